@@ -1,0 +1,25 @@
+# The two front-door commands: `make demo` runs the mission, `make test` runs every test.
+# Each target sets up what it needs first (Debian packages, .venv, catkin build); see ci/setup.sh.
+SHELL := /bin/bash
+ENV := source ci/env.sh &&
+PYTEST_ARGS ?=
+
+.PHONY: setup test demo experiments bench clean
+
+setup:
+	@bash ci/setup.sh
+
+test: setup
+	@$(ENV) bash ci/run_tests.sh $(PYTEST_ARGS)
+
+demo: setup
+	@$(ENV) python catkin_ws/src/cps_bringup/nodes/demo $(DEMO_ARGS)
+
+experiments: setup
+	@$(ENV) python catkin_ws/src/cps_bringup/nodes/experiments $(EXPERIMENT_ARGS)
+
+bench: setup
+	@$(ENV) for b in bench/*_bench.py; do echo "== $$b"; python "$$b" || exit 1; done
+
+clean:
+	rm -rf catkin_ws/build catkin_ws/devel catkin_ws/pcl_ros_plugin_prefix

@@ -1,0 +1,1 @@
+"""Digital twin, part 2: the operator GUI, an rqt-style plugin that also runs standalone."""

@@ -1,0 +1,312 @@
+"""The fleet configuration (cps_bringup/config/fleet.yaml) and route files, validated.
+
+Every node that needs a fleet-wide number reads it through `load_fleet`, so the numbers live in
+one file. Errors name the file, the line and what is wrong (`cps_msgs.config.ConfigError`).
+"""
+import dataclasses
+import math
+import os
+import re
+from typing import Dict, List, Optional, Tuple
+
+from cps_msgs.config import ConfigError, Reader, load_yaml_document
+
+ROBOT_TYPES = ("wheeled_lidar", "wheeled_depth", "legged_depth", "aerial_depth")
+PROFILES = ("paper", "light")
+_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+def default_fleet_path():
+    """fleet.yaml of the cps_bringup package next to this one (source or devel space)."""
+    env = os.environ.get("CPS_FLEET_FILE")
+    if env:
+        return env
+    here = os.path.dirname(os.path.abspath(__file__))
+    for candidate in (
+        os.path.join(here, "..", "..", "..", "cps_bringup", "config", "fleet.yaml"),
+    ):
+        if os.path.exists(candidate):
+            return os.path.normpath(candidate)
+    try:
+        import rospkg
+
+        return os.path.join(rospkg.RosPack().get_path("cps_bringup"), "config", "fleet.yaml")
+    except Exception as exc:  # rospkg raises its own ResourceNotFound
+        raise ConfigError("fleet.yaml", None, f"cannot find cps_bringup/config/fleet.yaml: {exc}") from exc
+
+
+@dataclasses.dataclass(frozen=True)
+class Pose2D:
+    x: float
+    y: float
+    z: float
+    yaw_deg: float
+
+    @property
+    def yaw_rad(self):
+        return math.radians(self.yaw_deg)
+
+
+@dataclasses.dataclass(frozen=True)
+class DepthCameraProfile:
+    width: int
+    height: int
+    rate_hz: float
+    near_m: float
+    far_m: float
+    hfov_deg: float
+
+
+@dataclasses.dataclass(frozen=True)
+class LidarProfile:
+    rings: int
+    samples_per_ring: int
+    rate_hz: float
+    vertical_fov_deg: float
+    max_range_m: float
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorProfile:
+    name: str
+    depth_camera: DepthCameraProfile
+    lidar: LidarProfile
+
+
+@dataclasses.dataclass(frozen=True)
+class LinkConfig:
+    available_mbps: float
+    reserve_fraction: float
+    min_rate_hz: float
+    max_rate_hz: float
+    estimate_bandwidth: bool
+
+    @property
+    def budget_mbytes_per_s(self):
+        """The managed budget (1 - reserve) x available, in MB/s (10^6 bytes/s)."""
+        return (1.0 - self.reserve_fraction) * self.available_mbps / 8.0
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorModel:
+    hit: float
+    miss: float
+    min: float
+    max: float
+
+
+@dataclasses.dataclass(frozen=True)
+class MappingConfig:
+    resolution_m: float
+    sensor_model: SensorModel
+    max_range_m: Dict[str, float]
+
+
+@dataclasses.dataclass(frozen=True)
+class Waypoint:
+    x: float
+    y: float
+    z: float
+    inspect: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class Route:
+    path: str
+    waypoints: Tuple[Waypoint, ...]
+    # Line of every waypoint in the route file, for error messages of later checks.
+    lines: Tuple[int, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotConfig:
+    name: str
+    type: str
+    initial_pose: Pose2D
+    voxel_leaf_m: float
+    route_path: str
+
+    @property
+    def has_depth_camera(self):
+        return self.type.endswith("_depth")
+
+    @property
+    def has_lidar(self):
+        return self.type.endswith("_lidar")
+
+    @property
+    def sensor_frame(self):
+        return f"{self.name}/lidar" if self.has_lidar else f"{self.name}/camera_depth_optical_frame"
+
+
+@dataclasses.dataclass(frozen=True)
+class FleetConfig:
+    path: str
+    profile: SensorProfile
+    profiles: Dict[str, SensorProfile]
+    site_path: str
+    link: LinkConfig
+    mapping: MappingConfig
+    robots: Tuple[RobotConfig, ...]
+
+    def robot(self, name):
+        for robot in self.robots:
+            if robot.name == name:
+                return robot
+        raise KeyError(f"robot '{name}' is not in the fleet ({', '.join(self.robot_names)})")
+
+    @property
+    def robot_names(self):
+        return [r.name for r in self.robots]
+
+    def with_robots(self, names):
+        """The same fleet restricted to `names` (in the given order); unknown names raise KeyError."""
+        return dataclasses.replace(self, robots=tuple(self.robot(n) for n in names))
+
+    def with_profile(self, name):
+        if name not in self.profiles:
+            raise KeyError(f"unknown profile '{name}' (known: {', '.join(sorted(self.profiles))})")
+        return dataclasses.replace(self, profile=self.profiles[name])
+
+    def route(self, name):
+        return load_route(self.robot(name).route_path)
+
+
+def _profile(reader, name):
+    cam = reader.child("depth_camera")
+    lidar = reader.child("lidar")
+    depth = DepthCameraProfile(
+        width=_positive_int(cam, "width"),
+        height=_positive_int(cam, "height"),
+        rate_hz=cam.number("rate_hz", low=0.0, high=1000.0, low_open=True),
+        near_m=cam.number("near_m", low=0.0, low_open=True),
+        far_m=cam.number("far_m", low=0.0, low_open=True),
+        hfov_deg=cam.number("hfov_deg", low=1.0, high=179.0),
+    )
+    if depth.far_m <= depth.near_m:
+        raise cam.error("far_m", f"far_m ({depth.far_m}) must be greater than near_m ({depth.near_m})")
+    return SensorProfile(
+        name=name,
+        depth_camera=depth,
+        lidar=LidarProfile(
+            rings=_positive_int(lidar, "rings"),
+            samples_per_ring=_positive_int(lidar, "samples_per_ring"),
+            rate_hz=lidar.number("rate_hz", low=0.0, high=1000.0, low_open=True),
+            vertical_fov_deg=lidar.number("vertical_fov_deg", low=0.0, high=180.0),
+            max_range_m=lidar.number("max_range_m", low=0.0, low_open=True),
+        ),
+    )
+
+
+def _positive_int(reader, key):
+    value = reader.get(key, int)
+    if value <= 0:
+        raise reader.error(key, f"must be a positive integer, got {value}")
+    return value
+
+
+def load_fleet(path=None, profile=None):
+    """Read and validate fleet.yaml (default: cps_bringup's); `profile` overrides the file's choice."""
+    path = path or default_fleet_path()
+    doc = load_yaml_document(path)
+    top = Reader(doc)
+
+    profiles_reader = top.child("profiles")
+    profiles = {name: _profile(profiles_reader.child(name), name) for name in profiles_reader.value}
+    for required in PROFILES:
+        if required not in profiles:
+            raise profiles_reader.error(None, f"missing profile '{required}'")
+    chosen = profile or top.get("profile", str)
+    if chosen not in profiles:
+        raise ConfigError(doc.path, doc.line(("profile",)),
+                          f"profile: unknown profile '{chosen}' (known: {', '.join(sorted(profiles))})")
+
+    link_reader = top.child("link")
+    link = LinkConfig(
+        available_mbps=link_reader.number("available_mbps", low=0.0, low_open=True),
+        reserve_fraction=link_reader.number("reserve_fraction", low=0.0, high=0.99),
+        min_rate_hz=link_reader.number("min_rate_hz", low=0.0, low_open=True),
+        max_rate_hz=link_reader.number("max_rate_hz", low=0.0, low_open=True),
+        estimate_bandwidth=link_reader.get("estimate_bandwidth", bool, default=False),
+    )
+    if link.min_rate_hz > link.max_rate_hz:
+        raise link_reader.error("min_rate_hz", f"min_rate_hz ({link.min_rate_hz}) > max_rate_hz ({link.max_rate_hz})")
+
+    map_reader = top.child("mapping")
+    model = map_reader.child("sensor_model")
+    ranges_reader = map_reader.child("max_range_m")
+    max_range = {}
+    for robot_type in ranges_reader.value:
+        if robot_type not in ROBOT_TYPES:
+            raise ranges_reader.error(robot_type, f"unknown robot type '{robot_type}' (known: {', '.join(ROBOT_TYPES)})")
+        max_range[robot_type] = ranges_reader.number(robot_type, low=0.0, low_open=True)
+    mapping = MappingConfig(
+        resolution_m=map_reader.number("resolution_m", low=0.001, high=10.0),
+        sensor_model=SensorModel(
+            hit=model.number("hit", low=0.5, high=1.0, low_open=True),
+            miss=model.number("miss", low=0.0, high=0.5, low_open=True),
+            min=model.number("min", low=0.0, high=1.0),
+            max=model.number("max", low=0.0, high=1.0),
+        ),
+        max_range_m=max_range,
+    )
+
+    robots = []
+    for item in top.items("robots"):
+        name = item.get("name", str)
+        if not _NAME.match(name):
+            raise item.error("name", f"'{name}' is not a valid ROS name (lowercase letters, digits, _)")
+        if name in (r.name for r in robots):
+            raise item.error("name", f"robot '{name}' is listed twice")
+        robot_type = item.get("type", str)
+        if robot_type not in ROBOT_TYPES:
+            raise item.error("type", f"unknown robot type '{robot_type}' (known: {', '.join(ROBOT_TYPES)})")
+        pose = item.child("initial_pose")
+        route_path = item.path_of("route")
+        if not os.path.exists(route_path):
+            raise item.error("route", f"route file {route_path} does not exist")
+        robots.append(RobotConfig(
+            name=name,
+            type=robot_type,
+            initial_pose=Pose2D(pose.get("x", float), pose.get("y", float),
+                                pose.get("z", float, default=0.0), pose.get("yaw_deg", float, default=0.0)),
+            voxel_leaf_m=item.number("voxel_leaf_m", low=0.0, high=10.0, low_open=True),
+            route_path=route_path,
+        ))
+    if not robots:
+        raise top.error("robots", "the fleet has no robots")
+
+    return FleetConfig(
+        path=os.path.abspath(doc.path),
+        profile=profiles[chosen],
+        profiles=profiles,
+        site_path=top.path_of("site"),
+        link=link,
+        mapping=mapping,
+        robots=tuple(robots),
+    )
+
+
+def load_route(path):
+    """Read a route file: `waypoints:` a list of {x, y, z (default 0), inspect (default false)}."""
+    doc = load_yaml_document(path)
+    top = Reader(doc)
+    items = top.items("waypoints")
+    if not items:
+        raise top.error("waypoints", "a route needs at least one waypoint")
+    waypoints, lines = [], []
+    for item in items:
+        waypoints.append(Waypoint(item.get("x", float), item.get("y", float),
+                                  item.get("z", float, default=0.0), item.get("inspect", bool, default=False)))
+        lines.append(doc.line(item.key_path))
+    return Route(path=os.path.abspath(path), waypoints=tuple(waypoints), lines=tuple(lines))
+
+
+def robot_names_arg(fleet: FleetConfig, names: Optional[List[str]]):
+    """Validate a user's robot list against the fleet; raise ValueError naming the unknown ones."""
+    if not names:
+        return fleet
+    unknown = [n for n in names if n not in fleet.robot_names]
+    if unknown:
+        raise ValueError(f"unknown robot(s) {', '.join(unknown)}; the fleet has {', '.join(fleet.robot_names)}")
+    return fleet.with_robots(names)
