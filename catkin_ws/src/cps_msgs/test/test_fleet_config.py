@@ -1,0 +1,93 @@
+"""fleet.yaml and route files: the shipped ones load; broken ones fail naming file, line and problem."""
+import os
+import shutil
+
+import pytest
+
+from cps_msgs.config import ConfigError
+from cps_msgs.fleet import ROBOT_TYPES, default_fleet_path, load_fleet, load_route, robot_names_arg
+
+
+def test_shipped_fleet_loads_with_four_robots_and_both_profiles():
+    fleet = load_fleet()
+    assert fleet.robot_names == ["scout", "jackal", "champ", "iris"]
+    assert [r.type for r in fleet.robots] == list(ROBOT_TYPES)
+    assert set(fleet.profiles) >= {"paper", "light"}
+    paper = fleet.with_profile("paper").profile
+    assert (paper.depth_camera.width, paper.depth_camera.height, paper.depth_camera.rate_hz) == (640, 480, 30.0)
+    assert (paper.lidar.rings, paper.lidar.samples_per_ring, paper.lidar.rate_hz) == (16, 1875, 10.0)
+    assert fleet.link.budget_mbytes_per_s == pytest.approx(0.96 * 60 / 8)
+    for robot in fleet.robots:
+        assert fleet.route(robot.name).waypoints
+
+
+@pytest.fixture
+def fleet_copy(tmp_path):
+    """A copy of the shipped fleet.yaml (with its routes) that a test may break."""
+    source = default_fleet_path()
+    config_dir = tmp_path / "config"
+    shutil.copytree(os.path.dirname(source), config_dir)
+    path = config_dir / "fleet.yaml"
+    text = path.read_text()
+    # The site path is relative to the original location; point it back there.
+    site = os.path.normpath(os.path.join(os.path.dirname(source), "../../cps_sim/config/hall.yaml"))
+    path.write_text(text.replace("site: ../../cps_sim/config/hall.yaml", f"site: {site}"))
+    return path
+
+
+def _line_of(path, needle):
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if needle in line:
+            return number
+    raise AssertionError(needle)
+
+
+@pytest.mark.parametrize("old,new,message", [
+    ("type: legged_depth", "type: tank", "unknown robot type 'tank' (known: wheeled_lidar, wheeled_depth"),
+    ("voxel_leaf_m: 0.01", "voxel_leaf_m: -1", "voxel_leaf_m: -1.0 is outside (0.0, 10.0]"),
+    ("available_mbps: 60.0", "available_mbps: 0", "available_mbps: 0.0 is outside (0.0"),
+    ("reserve_fraction: 0.04", "reserve_fraction: 1.5", "reserve_fraction: 1.5 is outside [0.0, 0.99]"),
+    ("min_rate_hz: 1.0", "min_rate_hz: 40.0", "min_rate_hz (40.0) > max_rate_hz (30.0)"),
+    ("route: routes/route3.yaml", "route: routes/nowhere.yaml", "does not exist"),
+    ("name: jackal", "name: scout", "robot 'scout' is listed twice"),
+    ("profile: light", "profile: fast", "unknown profile 'fast'"),
+    ("resolution_m: 0.1", "resolution_m: .nan", "must be finite"),
+])
+def test_broken_fleet_file_names_file_line_and_problem(fleet_copy, old, new, message):
+    line = _line_of(fleet_copy, old)
+    fleet_copy.write_text(fleet_copy.read_text().replace(old, new, 1))
+    with pytest.raises(ConfigError) as info:
+        load_fleet(str(fleet_copy))
+    text = str(info.value)
+    assert message in text
+    assert f"{fleet_copy}:{line}:" in text
+
+
+def test_yaml_syntax_error_names_the_line(tmp_path):
+    path = tmp_path / "route.yaml"
+    path.write_text("waypoints:\n  - {x: 1, y: 2}\n  - {x: 3, y: [\n")
+    with pytest.raises(ConfigError, match=r"route.yaml:\d+: YAML syntax error"):
+        load_route(str(path))
+
+
+def test_route_waypoint_needs_numbers(tmp_path):
+    path = tmp_path / "route.yaml"
+    path.write_text("waypoints:\n  - {x: 1, y: 2}\n  - {x: one, y: 2}\n")
+    with pytest.raises(ConfigError, match=r"route.yaml:3: waypoints\[1\]\.x: must be a number, got 'one'"):
+        load_route(str(path))
+
+
+def test_missing_file_and_empty_route(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read file"):
+        load_fleet(str(tmp_path / "absent.yaml"))
+    path = tmp_path / "route.yaml"
+    path.write_text("waypoints: []\n")
+    with pytest.raises(ConfigError, match="at least one waypoint"):
+        load_route(str(path))
+
+
+def test_robot_subset_keeps_order_and_rejects_unknown_names():
+    fleet = load_fleet()
+    assert robot_names_arg(fleet, ["iris", "scout"]).robot_names == ["iris", "scout"]
+    with pytest.raises(ValueError, match="unknown robot\\(s\\) tank; the fleet has scout, jackal, champ, iris"):
+        robot_names_arg(fleet, ["scout", "tank"])
