@@ -1,0 +1,183 @@
+"""`cps_bringup physical|digital|all`: start a side (or both) of the system and run the mission.
+
+Starts a private roscore (unless --master-uri points at the other side's), the side's nodes with
+parameters from fleet.yaml, waits until each is up, restarts what dies, prints progress, and on
+Ctrl-C or the end of the mission stops everything. With --link, the physical and digital twins
+run in two network namespaces joined by a shaped link (cps_bw_manager), like the paper's Wi-Fi.
+"""
+import argparse
+import contextlib
+import dataclasses
+import os
+import signal
+import sys
+import time
+from typing import Dict, List, Optional
+
+from cps_bringup.mission import MissionMonitor, wait_for_mission
+from cps_bringup.plan import DIGITAL, PHYSICAL, RunOptions, plan_nodes
+from cps_bringup.supervisor import BringupError, Event, Supervisor, ensure_port_free, node_log_dir
+from cps_msgs.config import ConfigError
+from cps_msgs.fleet import load_fleet, robot_names_arg
+from cps_msgs.processes import RosGraph
+
+
+@dataclasses.dataclass
+class MissionResult:
+    out_dir: str
+    ended_by: str
+    elapsed_s: float
+    link: str
+    map_file: Optional[str]
+    progress: object
+    events: List[Event]
+    restarts: Dict[str, int]
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(prog="cps_bringup", description=__doc__.split("\n\n")[0])
+    parser.add_argument("side", choices=("physical", "digital", "all"))
+    parser.add_argument("--fleet", default=None, help="fleet.yaml (default: cps_bringup/config/fleet.yaml)")
+    parser.add_argument("--profile", choices=("light", "paper"), default=None,
+                        help="sensor profile (default: fleet.yaml's)")
+    parser.add_argument("--robots", default=None, help="comma-separated subset of the fleet, e.g. scout,jackal")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S seconds even if routes are not done (default: run until all done)")
+    parser.add_argument("--out", default="out/mission", help="output folder (logs, CSVs, map)")
+    parser.add_argument("--port", type=int, default=None, help="roscore port (default: a free one)")
+    parser.add_argument("--master-uri", default=None,
+                        help="join this master instead of starting one (split physical/digital across machines)")
+    parser.add_argument("--link", default="none", metavar="RATE",
+                        help="run the twins across a shaped link, e.g. 60mbit (needs root); 'none' = loopback")
+    parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
+    parser.add_argument("--screenshot-after", type=float, default=60.0, metavar="S")
+    parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
+    parser.add_argument("--renderer", choices=("egl", "tiny"), default="egl")
+    parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
+                        help="fault injection: kill the map server S seconds into the mission")
+    return parser
+
+
+def _sides(side):
+    return (PHYSICAL, DIGITAL) if side == "all" else (side,)
+
+
+def _terminate_on_sigterm():
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    signal.signal(signal.SIGTERM, handler)
+
+
+def run_mission(args, log=print) -> MissionResult:
+    """Bring up the chosen side(s), run until done/duration/Ctrl-C, save the map, stop everything."""
+    try:
+        fleet = load_fleet(args.fleet, profile=args.profile)
+        fleet = robot_names_arg(fleet, args.robots.split(",") if args.robots else None)
+    except (ConfigError, KeyError, ValueError) as exc:
+        raise BringupError(str(exc).strip('"')) from exc
+    out_dir = os.path.abspath(args.out)
+    os.makedirs(out_dir, exist_ok=True)
+    sides = _sides(args.side)
+    options = RunOptions(
+        out_dir=out_dir, profile=args.profile, renderer=args.renderer,
+        map_file=os.path.join(out_dir, "map.bt"),
+        gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
+        gui_screenshot_after_s=args.screenshot_after)
+    specs = plan_nodes(fleet, sides=sides, options=options)
+
+    with contextlib.ExitStack() as stack:
+        link = stack.enter_context(_link_context(args.link, log))
+        host_ip = link.twin_ip if link else "127.0.0.1"
+        if args.master_uri:
+            graph = RosGraph(master_uri=args.master_uri, log_dir=node_log_dir(out_dir), host_ip=host_ip)
+        else:
+            if args.port:
+                ensure_port_free(args.port)
+            graph = RosGraph(port=args.port, log_dir=node_log_dir(out_dir), host_ip=host_ip)
+        stack.callback(graph.close)
+        graph.start()
+        log(f"[bringup] master {graph.uri}; link: {link.describe() if link else 'loopback (no shaping)'}; "
+            f"robots {', '.join(fleet.robot_names)}; profile {options.profile or fleet.profile.name}; out {out_dir}")
+        supervisor = Supervisor(
+            specs, graph, log=log,
+            side_prefix={PHYSICAL: link.exec_prefix("phys")} if link else None,
+            side_env={PHYSICAL: {"ROS_IP": link.phys_ip}, DIGITAL: {"ROS_IP": link.twin_ip}} if link else None)
+        stack.callback(supervisor.stop_all)
+        import rospy
+
+        rospy.init_node("cps_bringup", anonymous=True, disable_signals=True)
+        supervisor.start_all(timeout_s=args.start_timeout)
+        monitor = MissionMonitor(fleet)
+        stack.callback(monitor.close)
+
+        killed = []
+
+        def fault_injection(elapsed):
+            if args.kill_map_server_at is not None and not killed and elapsed >= args.kill_map_server_at:
+                os.kill(supervisor.pid_of("map_server"), signal.SIGKILL)
+                supervisor.events.append(Event(elapsed, "map_server", "killed by --kill-map-server-at (fault injection)"))
+                log(f"[bringup] fault injection: killed map_server at {elapsed:.0f} s")
+                killed.append(elapsed)
+
+        ended_by, elapsed = "interrupted", 0.0
+        try:
+            ended_by, elapsed = wait_for_mission(monitor, supervisor, args.duration, log=log, on_tick=fault_injection)
+        except KeyboardInterrupt:
+            log("[bringup] interrupted; shutting down")
+        map_file = _save_map(options.map_file, log) if DIGITAL in sides else None
+        if options.gui_screenshot_path:
+            _wait_for_screenshot(supervisor, options.gui_screenshot_path, log)
+        return MissionResult(out_dir, ended_by, elapsed, link.describe() if link else "loopback",
+                             map_file, monitor.snapshot(), list(supervisor.events), supervisor.restarts())
+
+
+def _save_map(path, log):
+    import rospy
+    from cps_msgs.srv import SaveMap
+
+    try:
+        rospy.wait_for_service("/twin/save_map", timeout=10)
+        reply = rospy.ServiceProxy("/twin/save_map", SaveMap)(path=path)
+    except (rospy.ROSException, rospy.ServiceException) as exc:
+        log(f"[bringup] could not save the map: {exc}")
+        return None
+    if not reply.success:
+        log(f"[bringup] map server refused to save: {reply.message}")
+        return None
+    log(f"[bringup] map saved to {reply.path}")
+    return reply.path
+
+
+def _wait_for_screenshot(supervisor, path, log, timeout_s=90.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not os.path.exists(path):
+        if "gui" in supervisor.running and supervisor.running["gui"].proc.poll() is not None:
+            break
+        time.sleep(0.5)
+    log(f"[bringup] GUI screenshot {'saved to ' + path if os.path.exists(path) else 'missing'}")
+
+
+@contextlib.contextmanager
+def _link_context(rate, log):
+    if rate in (None, "", "none"):
+        yield None
+        return
+    from cps_bringup.link import namespaced_link
+
+    with namespaced_link(rate, log) as link:
+        yield link
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    _terminate_on_sigterm()
+    try:
+        result = run_mission(args)
+    except BringupError as exc:
+        print(f"cps_bringup: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    print(f"[bringup] ended by {result.ended_by} after {result.elapsed_s:.0f} s; outputs in {result.out_dir}")
+    return 0

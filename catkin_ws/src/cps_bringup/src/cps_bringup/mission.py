@@ -1,0 +1,140 @@
+"""What the mission is doing, for the terminal and the report: states, map size, link use.
+
+`MissionProgress` is plain data updated by ROS callbacks (`MissionMonitor` wires them) and
+formatted by `format_progress`.
+"""
+import dataclasses
+import math
+import threading
+import time
+from typing import Dict, List, Optional
+
+
+@dataclasses.dataclass
+class MissionProgress:
+    robots: List[str]
+    mission_state: Dict[str, str] = dataclasses.field(default_factory=dict)
+    # When each robot was first seen done (monotonic seconds), for the report.
+    done_at_s: Dict[str, float] = dataclasses.field(default_factory=dict)
+    occupied_voxels: int = 0
+    map_age_s: Dict[str, float] = dataclasses.field(default_factory=dict)
+    clouds_inserted: Dict[str, int] = dataclasses.field(default_factory=dict)
+    rates_hz: Dict[str, float] = dataclasses.field(default_factory=dict)
+    allocated_mbytes_per_s: float = 0.0
+    budget_mbytes_per_s: float = 0.0
+    available_mbps: float = 0.0
+    managed_mbytes_per_s: float = 0.0
+    managed_latency_ms: Dict[str, float] = dataclasses.field(default_factory=dict)
+    # Each robot's path in `map` (x, y, z), sampled at most every 0.5 s.
+    trajectories: Dict[str, list] = dataclasses.field(default_factory=dict)
+
+    def all_done(self):
+        return all(self.mission_state.get(r) == "done" for r in self.robots)
+
+
+def format_progress(progress: MissionProgress, elapsed_s: float) -> str:
+    states = " ".join(f"{r}:{progress.mission_state.get(r, '?')}@{progress.rates_hz.get(r, 0):.0f}Hz"
+                      for r in progress.robots)
+    return (f"[{elapsed_s:6.1f} s] {states} | map {progress.occupied_voxels} voxels | "
+            f"link {progress.managed_mbytes_per_s:.2f}/{progress.budget_mbytes_per_s:.2f} MB/s")
+
+
+class MissionMonitor:
+    """Subscribes to mission states, map stats, allocation and tissue stats (rospy must be up)."""
+
+    def __init__(self, fleet):
+        import rospy
+        from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
+        from nav_msgs.msg import Odometry
+        from std_msgs.msg import String
+
+        robots = fleet.robot_names
+        self.progress = MissionProgress(list(robots), trajectories={r: [] for r in robots})
+        self._initial_pose = {r.name: r.initial_pose for r in fleet.robots}
+        self._last_sample = {}
+        self._lock = threading.Lock()
+        self._subs = [rospy.Subscriber(f"/{r}/mission_state", String, self._on_state, callback_args=r)
+                      for r in robots]
+        self._subs += [rospy.Subscriber(f"/{r}/odom", Odometry, self._on_odom, callback_args=r) for r in robots]
+        self._subs.append(rospy.Subscriber("/twin/map_stats", MapStats, self._on_map))
+        self._subs.append(rospy.Subscriber("/tissue/allocation", BandwidthAllocationArray, self._on_allocation))
+        self._subs.append(rospy.Subscriber("/tissue/stats", TopicStatsArray, self._on_stats))
+
+    def _on_state(self, msg, robot):
+        with self._lock:
+            self.progress.mission_state[robot] = msg.data
+            if msg.data == "done":
+                self.progress.done_at_s.setdefault(robot, time.monotonic())
+
+    def _on_odom(self, msg, robot):
+        now = time.monotonic()
+        if now - self._last_sample.get(robot, 0.0) < 0.5:
+            return
+        self._last_sample[robot] = now
+        pose = self._initial_pose[robot]
+        p = msg.pose.pose.position
+        cos, sin = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
+        point = (pose.x + cos * p.x - sin * p.y, pose.y + sin * p.x + cos * p.y, pose.z + p.z)
+        with self._lock:
+            self.progress.trajectories[robot].append(point)
+
+    def _on_map(self, msg):
+        with self._lock:
+            self.progress.occupied_voxels = msg.occupied_voxels
+            for stats in msg.robots:
+                self.progress.map_age_s[stats.robot] = stats.map_age_s
+                self.progress.clouds_inserted[stats.robot] = stats.clouds_inserted
+
+    def _on_allocation(self, msg):
+        with self._lock:
+            self.progress.budget_mbytes_per_s = msg.budget_mbytes_per_s
+            self.progress.allocated_mbytes_per_s = msg.allocated_mbytes_per_s
+            self.progress.available_mbps = msg.available_mbps
+            for allocation in msg.allocations:
+                self.progress.rates_hz[allocation.robot] = allocation.rate_hz
+
+    def _on_stats(self, msg):
+        with self._lock:
+            managed = [t for t in msg.topics if t.managed]
+            self.progress.managed_mbytes_per_s = sum(t.bandwidth_mbytes_per_s for t in managed)
+            for topic in managed:
+                self.progress.managed_latency_ms[topic.robot] = topic.latency_avg_ms
+
+    def snapshot(self) -> MissionProgress:
+        with self._lock:
+            return dataclasses.replace(self.progress, mission_state=dict(self.progress.mission_state),
+                                       done_at_s=dict(self.progress.done_at_s),
+                                       map_age_s=dict(self.progress.map_age_s),
+                                       clouds_inserted=dict(self.progress.clouds_inserted),
+                                       rates_hz=dict(self.progress.rates_hz),
+                                       managed_latency_ms=dict(self.progress.managed_latency_ms),
+                                       trajectories={r: list(t) for r, t in self.progress.trajectories.items()})
+
+    def close(self):
+        for sub in self._subs:
+            sub.unregister()
+
+
+def wait_for_mission(monitor: MissionMonitor, supervisor, duration_s: Optional[float], print_every_s=10.0,
+                     log=print, on_tick=None):
+    """Poll until every robot is done or `duration_s` passes; the supervisor restarts what dies."""
+    t0 = time.monotonic()
+    last_print = -print_every_s
+    while True:
+        elapsed = time.monotonic() - t0
+        supervisor.poll()
+        if on_tick:
+            on_tick(elapsed)
+        progress = monitor.snapshot()
+        if elapsed - last_print >= print_every_s:
+            log(format_progress(progress, elapsed))
+            last_print = elapsed
+        if progress.all_done():
+            log(format_progress(progress, elapsed))
+            log("[bringup] every robot finished its route")
+            return "done", elapsed
+        if duration_s is not None and elapsed >= duration_s:
+            log(format_progress(progress, elapsed))
+            log(f"[bringup] duration of {duration_s:.0f} s reached")
+            return "duration", elapsed
+        time.sleep(0.5)

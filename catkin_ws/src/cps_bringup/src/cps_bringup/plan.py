@@ -1,0 +1,142 @@
+"""Which processes each side of the system runs, with which names, remappings and parameters.
+
+A pure function of the fleet configuration: `plan_nodes` returns `NodeSpec`s that the supervisor
+starts and a launch-file writer could print. Topic names follow shared/design/ros-graph.md.
+"""
+import dataclasses
+import os
+import sys
+from typing import Callable, Dict, List, Optional, Tuple
+
+from cps_msgs.fleet import FleetConfig
+
+PHYSICAL, DIGITAL = "physical", "digital"
+SIDES = (PHYSICAL, DIGITAL)
+VOXEL_MANAGER = "/tissue_nodelet_manager"
+
+
+@dataclasses.dataclass(frozen=True)
+class NodeSpec:
+    """One process of the running system."""
+
+    label: str  # unique, e.g. "scout/draco_encoder"
+    side: str
+    argv: Tuple[str, ...]
+    # Topics that must be advertised before the node counts as up.
+    wait_topics: Tuple[str, ...] = ()
+    # How often the supervisor restarts it when it dies (0: a death ends the run).
+    restart_limit: int = 3
+    # Labels of nodes that must be up before this one starts.
+    after: Tuple[str, ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class RunOptions:
+    out_dir: str
+    profile: Optional[str] = None
+    gui_screenshot_path: Optional[str] = None
+    gui_screenshot_after_s: float = 60.0
+    map_file: Optional[str] = None
+    renderer: str = "egl"
+
+
+def _args(params: Dict[str, object]) -> List[str]:
+    out = []
+    for key, value in params.items():
+        if isinstance(value, bool):
+            value = "true" if value else "false"
+        out.append(f"_{key}:={value}")
+    return out
+
+
+def default_node_path(package: str, node: str) -> str:
+    here = os.path.dirname(os.path.abspath(__file__))
+    return os.path.normpath(os.path.join(here, "..", "..", "..", package, "nodes", node))
+
+
+def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
+               node_path: Callable[[str, str], str] = default_node_path,
+               python: str = sys.executable) -> List[NodeSpec]:
+    """The processes of `sides` for `fleet` (its robots, its profile unless options.profile)."""
+    options = options or RunOptions(out_dir=".")
+    robots = fleet.robot_names
+    common = {"fleet_file": fleet.path}
+    specs: List[NodeSpec] = []
+
+    def py(package, node, *extra):
+        return (python, node_path(package, node), *extra)
+
+    if PHYSICAL in sides:
+        profile = options.profile or fleet.profile.name
+        specs.append(NodeSpec(
+            "fleet_sim", PHYSICAL,
+            py("cps_sim", "fleet_sim", "__name:=fleet_sim",
+               *_args({**common, "profile": profile, "robots": ",".join(robots), "renderer": options.renderer})),
+            wait_topics=tuple(t for r in robots for t in (f"/{r}/odom", f"/{r}/points")),
+            restart_limit=0))
+        specs.append(NodeSpec(
+            "nodelet_manager", PHYSICAL,
+            ("rosrun", "nodelet", "nodelet", "manager", f"__name:={VOXEL_MANAGER.lstrip('/')}"),
+            restart_limit=2))
+        for robot in fleet.robots:
+            r = robot.name
+            ns = f"__ns:=/{r}"
+            specs.append(NodeSpec(
+                f"{r}/velocity_mux", PHYSICAL,
+                py("cps_sim", "velocity_mux", ns, "__name:=velocity_mux", *_args({**common, "robot": r})),
+                wait_topics=(f"/{r}/cmd_vel",)))
+            specs.append(NodeSpec(
+                f"{r}/route_controller", PHYSICAL,
+                py("cps_sim", "route_controller", ns, "__name:=route_controller", *_args({**common, "robot": r})),
+                wait_topics=(f"/{r}/mission_state",), after=("fleet_sim",)))
+            specs.append(NodeSpec(
+                f"{r}/voxel_grid", PHYSICAL,
+                ("rosrun", "nodelet", "nodelet", "load", "pcl/VoxelGrid", VOXEL_MANAGER, ns, "__name:=voxel_grid",
+                 f"~input:=/{r}/points", f"~output:=/{r}/points_filtered",
+                 *_args({"leaf_size": robot.voxel_leaf_m, "filter_field_name": "",
+                         "filter_limit_min": -1e6, "filter_limit_max": 1e6})),
+                wait_topics=(f"/{r}/points_filtered",), after=("nodelet_manager",)))
+            specs.append(NodeSpec(
+                f"{r}/draco_encoder", PHYSICAL,
+                py("cps_transport", "draco_encoder", ns, "__name:=draco_encoder",
+                   f"~input:=/{r}/points_filtered", f"~output:=/{r}/points_filtered/draco",
+                   *_args({"leaf_size_m": robot.voxel_leaf_m})),
+                wait_topics=(f"/{r}/points_filtered/draco",)))
+            specs.append(NodeSpec(
+                f"{r}/cloud_throttle", PHYSICAL,
+                py("cps_transport", "rate_limiter", ns, "__name:=cloud_throttle",
+                   f"~input:=/{r}/points_filtered/draco", f"~output:=/{r}/points_filtered/draco/managed",
+                   *_args({"rate_hz": fleet.link.min_rate_hz})),
+                wait_topics=(f"/{r}/points_filtered/draco/managed",)))
+
+    if DIGITAL in sides:
+        out = options.out_dir
+        for r in robots:
+            specs.append(NodeSpec(
+                f"{r}/draco_decoder", DIGITAL,
+                py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=draco_decoder",
+                   f"~input:=/{r}/points_filtered/draco/managed", f"~output:=/twin/{r}/points"),
+                wait_topics=(f"/twin/{r}/points",)))
+        specs.append(NodeSpec(
+            "map_server", DIGITAL,
+            py("cps_mapping", "map_server", "__ns:=/twin", "__name:=map_server",
+               *_args({**common, "robots": ",".join(robots),
+                       "map_file": options.map_file or os.path.join(out, "map.bt")})),
+            wait_topics=("/twin/map_stats", "/twin/octomap_binary"), restart_limit=3))
+        specs.append(NodeSpec(
+            "topic_stats", DIGITAL,
+            py("cps_transport", "topic_stats", "__name:=tissue_stats",
+               *_args({**common, "csv_path": os.path.join(out, "stats.csv")})),
+            wait_topics=("/tissue/stats",)))
+        specs.append(NodeSpec(
+            "bandwidth_manager", DIGITAL,
+            py("cps_bw_manager", "bandwidth_manager", "__name:=bandwidth_manager",
+               *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv")})),
+            wait_topics=("/tissue/allocation",)))
+        if options.gui_screenshot_path:
+            specs.append(NodeSpec(
+                "gui", DIGITAL,
+                py("cps_gui", "cps_gui", "--screenshot", options.gui_screenshot_path,
+                   "--after", str(options.gui_screenshot_after_s), *_args(common)),
+                restart_limit=0))
+    return specs

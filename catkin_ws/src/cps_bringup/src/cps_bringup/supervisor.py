@@ -1,0 +1,153 @@
+"""Start the planned processes against a master, wait until each is up, restart what dies, stop all.
+
+The supervisor knows processes and topics, nothing of what the nodes do. Up means: the process
+runs and every topic in its spec is advertised. A node that does not come up within the timeout
+is named in the error, with the end of its log.
+"""
+import dataclasses
+import os
+import time
+from typing import Dict, List, Optional
+
+from cps_bringup.plan import NodeSpec
+from cps_msgs.processes import RosGraph
+
+
+class BringupError(RuntimeError):
+    """The system could not be brought up or kept up; the message says what and why."""
+
+
+@dataclasses.dataclass
+class Event:
+    time_s: float
+    label: str
+    what: str
+
+
+@dataclasses.dataclass
+class _Running:
+    spec: NodeSpec
+    proc: object
+    restarts: int = 0
+    up: bool = False
+
+
+class Supervisor:
+    """Runs `specs` on `graph`'s master. `side_prefix`/`side_env` put a side into a namespace."""
+
+    def __init__(self, specs: List[NodeSpec], graph: RosGraph, side_prefix: Optional[Dict[str, List[str]]] = None,
+                 side_env: Optional[Dict[str, Dict[str, str]]] = None, log=print):
+        labels = [s.label for s in specs]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"duplicate node labels in the plan: {labels}")
+        self.specs = specs
+        self.graph = graph
+        self.side_prefix = side_prefix or {}
+        self.side_env = side_env or {}
+        self.log = log
+        self.running: Dict[str, _Running] = {}
+        self.events: List[Event] = []
+        self._t0 = time.monotonic()
+
+    def _event(self, label, what):
+        self.events.append(Event(time.monotonic() - self._t0, label, what))
+        self.log(f"[bringup] {label}: {what}")
+
+    def _start(self, spec: NodeSpec):
+        argv = [*self.side_prefix.get(spec.side, []), *spec.argv]
+        proc = self.graph.popen(argv, name=spec.label.replace("/", "_"), env=self.side_env.get(spec.side))
+        return proc
+
+    def start_all(self, timeout_s=120.0):
+        """Start every spec in dependency order; BringupError names what did not come up."""
+        pending = list(self.specs)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            for spec in list(pending):
+                if all(self.running.get(dep) and self.running[dep].up for dep in spec.after):
+                    self.running[spec.label] = _Running(spec, self._start(spec))
+                    pending.remove(spec)
+            self._refresh_up()
+            self._check_deaths(during_start=True)
+            if not pending and all(r.up for r in self.running.values()):
+                self._event("all", f"{len(self.running)} processes up")
+                return
+            if time.monotonic() > deadline:
+                missing = [label for label, r in self.running.items() if not r.up] + [s.label for s in pending]
+                raise BringupError(self._describe_missing(missing, timeout_s))
+            time.sleep(0.25)
+
+    def _describe_missing(self, labels, timeout_s):
+        lines = [f"not up after {timeout_s:.0f} s: {', '.join(labels)}"]
+        topics = set(self.graph.published_topics())
+        for label in labels:
+            running = self.running.get(label)
+            if running is None:
+                lines.append(f"  {label}: never started (waits for {', '.join(self.specs_by_label[label].after)})")
+                continue
+            absent = [t for t in running.spec.wait_topics if t not in topics]
+            lines.append(f"  {label}: topics not advertised: {', '.join(absent) or '-'}")
+            tail = self.graph.output(label.replace("/", "_")).strip().splitlines()[-6:]
+            lines.extend(f"    | {line}" for line in tail)
+        return "\n".join(lines)
+
+    @property
+    def specs_by_label(self):
+        return {s.label: s for s in self.specs}
+
+    def _refresh_up(self):
+        try:
+            topics = set(self.graph.published_topics())
+        except OSError:
+            return
+        for running in self.running.values():
+            if not running.up and running.proc.poll() is None and all(t in topics for t in running.spec.wait_topics):
+                running.up = True
+
+    def _check_deaths(self, during_start=False):
+        for label, running in self.running.items():
+            code = running.proc.poll()
+            if code is None:
+                continue
+            # `nodelet load` and other one-shot helpers exit 0 only when told to; any exit is a death.
+            if running.restarts >= running.spec.restart_limit:
+                tail = "\n".join(self.graph.output(label.replace("/", "_")).strip().splitlines()[-8:])
+                raise BringupError(f"{label} exited with code {code} "
+                                   f"(restarted {running.restarts} of {running.spec.restart_limit} times):\n{tail}")
+            running.restarts += 1
+            self._event(label, f"exited with code {code}; restart {running.restarts}/{running.spec.restart_limit}")
+            running.proc = self._start(running.spec)
+            running.up = False
+
+    def poll(self):
+        """Call periodically: restarts dead processes, raises BringupError past a restart limit."""
+        self._refresh_up()
+        self._check_deaths()
+
+    def restarts(self):
+        return {label: r.restarts for label, r in self.running.items() if r.restarts}
+
+    def stop_all(self):
+        """Stop in reverse start order (consumers before producers), then the master."""
+        for running in reversed(list(self.running.values())):
+            self.graph.stop(running.proc, timeout_s=6.0)
+        self.running.clear()
+
+    def pid_of(self, label):
+        return self.running[label].proc.pid
+
+
+def ensure_port_free(port):
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        try:
+            sock.bind(("0.0.0.0", port))
+        except OSError as exc:
+            raise BringupError(f"port {port} is in use ({exc.strerror}); choose another with --port") from exc
+
+
+def node_log_dir(out_dir):
+    path = os.path.join(out_dir, "logs")
+    os.makedirs(path, exist_ok=True)
+    return path

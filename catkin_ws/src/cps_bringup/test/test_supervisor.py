@@ -1,0 +1,118 @@
+"""The bringup's plan and supervisor: wiring from fleet.yaml, and every failure path exits clearly
+with nothing left running."""
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from cps_bringup.plan import DIGITAL, PHYSICAL, NodeSpec, RunOptions, plan_nodes
+from cps_bringup.supervisor import BringupError, Supervisor
+from cps_msgs.fleet import load_fleet
+from cps_msgs.processes import RosGraph, processes_named
+
+BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
+
+
+def test_plan_wires_every_robot_through_the_tissue_to_the_map():
+    fleet = load_fleet()
+    specs = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x"))}
+    for robot in fleet.robots:
+        r = robot.name
+        voxel = " ".join(specs[f"{r}/voxel_grid"].argv)
+        assert f"~input:=/{r}/points " in voxel and f"~output:=/{r}/points_filtered" in voxel
+        assert f"_leaf_size:={robot.voxel_leaf_m}" in voxel and "_filter_field_name:= " in voxel + " "
+        assert f"~output:=/{r}/points_filtered/draco/managed" in " ".join(specs[f"{r}/cloud_throttle"].argv)
+        assert "__name:=cloud_throttle" in specs[f"{r}/cloud_throttle"].argv
+        decoder = " ".join(specs[f"{r}/draco_decoder"].argv)
+        assert f"~input:=/{r}/points_filtered/draco/managed" in decoder and f"~output:=/twin/{r}/points" in decoder
+        assert specs[f"{r}/draco_decoder"].side == DIGITAL and specs[f"{r}/draco_encoder"].side == PHYSICAL
+    assert specs["map_server"].side == DIGITAL
+    assert "_map_file:=/tmp/x/map.bt" in specs["map_server"].argv
+
+
+def test_plan_of_one_side_and_a_subset():
+    fleet = load_fleet().with_robots(["jackal"])
+    specs = plan_nodes(fleet, sides=(DIGITAL,), options=RunOptions(out_dir="/tmp/x"))
+    assert {s.side for s in specs} == {DIGITAL}
+    assert not any("scout" in s.label for s in specs)
+
+
+def _python_spec(label, code, wait_topics=(), restart_limit=0):
+    return NodeSpec(label, PHYSICAL, (sys.executable, "-c", code), wait_topics=tuple(wait_topics),
+                    restart_limit=restart_limit)
+
+
+def test_a_node_that_never_comes_up_is_named_and_nothing_is_left(tmp_path):
+    graph = RosGraph(log_dir=str(tmp_path))
+    graph.start()
+    port = graph.port
+    supervisor = Supervisor([_python_spec("lazy", "import time; print('starting'); time.sleep(600)", ["/never"])],
+                            graph, log=lambda *_: None)
+    try:
+        with pytest.raises(BringupError) as info:
+            supervisor.start_all(timeout_s=3)
+    finally:
+        supervisor.stop_all()
+        graph.close()
+    assert "not up after 3 s: lazy" in str(info.value)
+    assert "topics not advertised: /never" in str(info.value)
+    assert "| starting" in str(info.value)
+    assert not processes_named(f"-p {port}", f"127.0.0.1:{port}")
+
+
+TALKER = textwrap.dedent("""
+    import rospy
+    from std_msgs.msg import String
+    rospy.init_node("flaky")
+    pub = rospy.Publisher("/flaky/out", String, queue_size=1)
+    rospy.sleep(1.0)
+    raise SystemExit(4)
+""")
+
+
+def test_a_dying_node_is_restarted_up_to_its_limit(tmp_path):
+    events = []
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        supervisor = Supervisor([_python_spec("flaky", TALKER, ["/flaky/out"], restart_limit=1)], graph,
+                                log=events.append)
+        try:
+            supervisor.start_all(timeout_s=30)
+            with pytest.raises(BringupError, match=r"flaky exited with code 4 \(restarted 1 of 1 times\)"):
+                for _ in range(200):
+                    supervisor.poll()
+                    time.sleep(0.1)
+        finally:
+            supervisor.stop_all()
+    assert any("restart 1/1" in e for e in events)
+
+
+def _run_cli(*args, timeout=60):
+    return subprocess.run([sys.executable, BRINGUP, *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_cli_unknown_robot_fails_clearly():
+    result = _run_cli("all", "--robots", "scout,tank", "--out", "/tmp/cps-cli-test")
+    assert result.returncode == 2
+    assert "unknown robot(s) tank; the fleet has scout, jackal, champ, iris" in result.stderr
+
+
+def test_cli_malformed_fleet_file_names_the_line(tmp_path):
+    fleet = tmp_path / "fleet.yaml"
+    fleet.write_text("profile: light\nprofiles: [\n")
+    result = _run_cli("all", "--fleet", str(fleet), "--out", str(tmp_path / "out"))
+    assert result.returncode == 2
+    assert f"{fleet}:" in result.stderr and "YAML syntax error" in result.stderr
+
+
+def test_cli_port_in_use_fails_clearly(tmp_path):
+    with socket.socket() as sock:
+        sock.bind(("0.0.0.0", 0))
+        sock.listen()
+        port = sock.getsockname()[1]
+        result = _run_cli("digital", "--port", str(port), "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert f"port {port} is in use" in result.stderr
