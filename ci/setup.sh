@@ -4,6 +4,8 @@
 #   2. .venv made from /usr/bin/python3 with --system-site-packages, pinned ci/requirements.txt
 #   3. catkin_make of catkin_ws (only when a package's build files changed)
 #   4. the pcl_ros plugin-path fix, so that nodelet can load pcl/VoxelGrid
+#
+# CPS_VENV and CPS_APT_PACKAGES override the venv folder and the package list (used by the tests).
 set -euo pipefail
 
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
@@ -13,7 +15,9 @@ die() { printf '[setup] ERROR: %s\n' "$*" >&2; exit 1; }
 
 # --- 1. Debian packages --------------------------------------------------------------------
 [ -r /etc/debian_version ] || die "this project needs Debian 12 (bookworm) and its ROS packages; /etc/debian_version is missing"
-mapfile -t wanted < <(grep -vE '^\s*(#|$)' ci/apt-packages.txt)
+apt_list=${CPS_APT_PACKAGES:-ci/apt-packages.txt}
+[ -r "$apt_list" ] || die "cannot read the package list $apt_list"
+mapfile -t wanted < <(grep -vE '^\s*(#|$)' "$apt_list")
 missing=()
 for pkg in "${wanted[@]}"; do
   status=$(dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null || true)
@@ -28,11 +32,11 @@ if [ ${#missing[@]} -gt 0 ]; then
   export DEBIAN_FRONTEND=noninteractive
   apt-get update -q >/tmp/cps-apt-update.log 2>&1 || die "apt-get update failed: no network to Debian's package mirrors? (see /tmp/cps-apt-update.log)"
   apt-get install -y -q --no-install-recommends "${missing[@]}" >/tmp/cps-apt-install.log 2>&1 \
-    || die "apt-get install failed (see /tmp/cps-apt-install.log): $(tail -3 /tmp/cps-apt-install.log)"
+    || die "apt-get install failed; no network to Debian's package mirrors, or a package name unknown? (see /tmp/cps-apt-install.log): $(tail -3 /tmp/cps-apt-install.log)"
 fi
 
 # --- 2. the venv ---------------------------------------------------------------------------
-venv="$root/.venv"
+venv="${CPS_VENV:-$root/.venv}"
 req_hash=$(sha256sum ci/requirements.txt | cut -d' ' -f1)
 venv_ok() {
   [ -x "$venv/bin/python" ] && "$venv/bin/python" -c 'import rospy, numpy, yaml' >/dev/null 2>&1
