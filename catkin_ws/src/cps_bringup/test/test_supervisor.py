@@ -116,3 +116,18 @@ def test_cli_port_in_use_fails_clearly(tmp_path):
         result = _run_cli("digital", "--port", str(port), "--out", str(tmp_path))
     assert result.returncode == 2
     assert f"port {port} is in use" in result.stderr
+
+
+def test_shipped_launch_files_are_the_plan_and_parse_with_roslaunch():
+    from cps_bringup.launch_xml import shipped_launch_files
+
+    launch_dir = os.path.join(os.path.dirname(__file__), "..", "launch")
+    for name, text in shipped_launch_files().items():
+        with open(os.path.join(launch_dir, name)) as stream:
+            assert stream.read() == text, f"{name} is stale: run python -m cps_bringup.launch_xml"
+    listed = subprocess.run(["roslaunch", "--nodes", "cps_bringup", "all.launch"], capture_output=True, text=True,
+                            timeout=60)
+    assert listed.returncode == 0, listed.stderr
+    nodes = set(listed.stdout.split())
+    assert {"/fleet_sim", "/twin/map_server", "/scout/cloud_throttle", "/twin/iris/draco_decoder"} <= nodes
+    assert len(nodes) == len(plan_nodes(load_fleet(), options=RunOptions(out_dir="/tmp/x")))
