@@ -1,0 +1,80 @@
+"""Live topic statistics: what `rostopic hz` and `rostopic bw` show, plus end-to-end latency,
+over a sliding window (time injected, no ROS), and reading header.stamp from serialized bytes."""
+import collections
+import math
+import struct
+
+import numpy as np
+
+_STAMP = struct.Struct("<II")
+
+
+def has_header_first(message_definition):
+    """True when the first field of a message definition is a std_msgs/Header."""
+    for line in message_definition.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        if line.startswith("=" * 10):
+            return False
+        parts = line.split()
+        return len(parts) >= 2 and parts[0] in ("Header", "std_msgs/Header") and "=" not in line
+    return False
+
+
+def stamp_from_serialized(buffer):
+    """header.stamp (seconds) of a serialized message that starts with a Header, or None."""
+    if len(buffer) < 12:
+        return None
+    secs, nsecs = _STAMP.unpack_from(buffer, 4)
+    if nsecs >= 1_000_000_000:
+        return None
+    return secs + nsecs * 1e-9
+
+
+class TopicWindow:
+    """Receive time, serialized size and latency of the messages of one topic in the last window."""
+
+    def __init__(self, window_s=2.0):
+        if not window_s > 0:
+            raise ValueError(f"window_s must be > 0, got {window_s}")
+        self.window_s = float(window_s)
+        self._events = collections.deque()  # (receive_s, size_bytes, latency_s or nan)
+        self.total_messages = 0
+        self.last_receive_s = None
+        self.invalid_messages = 0
+
+    def add(self, receive_s, size_bytes, stamp_s=None):
+        latency = receive_s - stamp_s if stamp_s is not None and stamp_s > 0 else math.nan
+        self._events.append((receive_s, size_bytes, latency))
+        self.total_messages += 1
+        self.last_receive_s = receive_s
+        self._expire(receive_s)
+
+    def _expire(self, now_s):
+        while self._events and self._events[0][0] < now_s - self.window_s:
+            self._events.popleft()
+
+    def snapshot(self, now_s):
+        """Statistics over (now - window, now]: rate as rostopic hz ((n-1)/span), MB/s = rate x mean
+        size (rostopic bw's bytes over time), latency avg/max/std/p95 in ms (NaN without stamps)."""
+        self._expire(now_s)
+        n = len(self._events)
+        stats = dict(window_s=self.window_s, messages=n, rate_hz=0.0, bandwidth_mbytes_per_s=0.0,
+                     mean_message_bytes=0.0, latency_avg_ms=math.nan, latency_max_ms=math.nan,
+                     latency_std_ms=math.nan, latency_p95_ms=math.nan,
+                     age_s=math.inf if self.last_receive_s is None else now_s - self.last_receive_s,
+                     invalid_messages=self.invalid_messages)
+        if n == 0:
+            return stats
+        events = np.array(self._events, dtype=np.float64)
+        stats["mean_message_bytes"] = float(events[:, 1].mean())
+        span = events[-1, 0] - events[0, 0]
+        if n >= 2 and span > 0:
+            stats["rate_hz"] = (n - 1) / span
+        stats["bandwidth_mbytes_per_s"] = stats["rate_hz"] * stats["mean_message_bytes"] / 1e6
+        latencies = events[:, 2][~np.isnan(events[:, 2])] * 1e3
+        if len(latencies):
+            stats.update(latency_avg_ms=float(latencies.mean()), latency_max_ms=float(latencies.max()),
+                         latency_std_ms=float(latencies.std()), latency_p95_ms=float(np.percentile(latencies, 95)))
+        return stats
