@@ -1,0 +1,149 @@
+"""The bandwidth manager's state and decisions, without ROS: what the node feeds it and asks it.
+
+It keeps per robot the measured message size and input rate (from the rate limiter's status),
+the priority book (mission state + operator), and the available bandwidth (configured, or the
+online estimate), and turns them into an `Allocation`. The node only wires topics to it.
+"""
+import dataclasses
+import math
+from typing import Dict, Optional
+
+from cps_bw_manager.allocation import (DEFAULT_ASSUMED_MESSAGE_BYTES, DEFAULT_FLOOR_RATE_HZ,
+                                       DEFAULT_PRIORITY_WEIGHTS, allocate_frequencies,
+                                       managed_budget_mbytes_per_s)
+from cps_bw_manager.estimation import BandwidthEstimator
+from cps_bw_manager.priorities import PriorityBook
+
+# An input rate is allowed this much headroom before it caps the robot's maximum rate.
+INPUT_RATE_HEADROOM = 1.1
+# A size change smaller than this fraction does not count as a change worth an immediate update.
+SIZE_CHANGE_FRACTION = 0.1
+
+
+@dataclasses.dataclass(frozen=True)
+class ManagerSettings:
+    available_mbps: float
+    reserve_fraction: float
+    min_rate_hz: float
+    max_rate_hz: float
+    high_priority_weight: float = DEFAULT_PRIORITY_WEIGHTS[1]
+    floor_rate_hz: float = DEFAULT_FLOOR_RATE_HZ
+    assumed_message_bytes: float = DEFAULT_ASSUMED_MESSAGE_BYTES
+
+    def validate(self):
+        """ValueError naming the parameter that is wrong."""
+        managed_budget_mbytes_per_s(self.available_mbps, self.reserve_fraction)
+        for name in ("min_rate_hz", "max_rate_hz", "high_priority_weight", "floor_rate_hz", "assumed_message_bytes"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        if self.min_rate_hz > self.max_rate_hz:
+            raise ValueError(f"min_rate_hz ({self.min_rate_hz}) > max_rate_hz ({self.max_rate_hz})")
+        return self
+
+
+@dataclasses.dataclass
+class _Measured:
+    message_bytes: float = math.nan
+    input_rate_hz: float = math.nan
+
+
+class ManagerCore:
+    def __init__(self, robots, settings: ManagerSettings, estimator: Optional[BandwidthEstimator] = None):
+        self.settings = settings.validate()
+        self.robots = list(robots)
+        if not self.robots:
+            raise ValueError("no robots to manage")
+        self.book = PriorityBook(self.robots)
+        self.estimator = estimator
+        self.measured: Dict[str, _Measured] = {r: _Measured() for r in self.robots}
+        self.invalid_inputs = 0
+        self.weights = {0: DEFAULT_PRIORITY_WEIGHTS[0], 1: float(settings.high_priority_weight)}
+
+    @property
+    def available_mbps(self):
+        return self.estimator.estimate_mbps if self.estimator else self.settings.available_mbps
+
+    def on_limiter_status(self, robot, mean_message_bytes, input_rate_hz):
+        """A rate limiter's status; returns True if the size changed enough to re-allocate now.
+
+        Raises KeyError for an unknown robot. 0 or NaN (nothing received yet) keeps the old
+        measurement; a negative or infinite size is counted and refused (ValueError).
+        """
+        entry = self.measured[self._known(robot)]
+        if not _positive(mean_message_bytes):
+            if mean_message_bytes == 0 or math.isnan(mean_message_bytes):
+                return False
+            self.invalid_inputs += 1
+            raise ValueError(f"robot '{robot}': mean_message_bytes {mean_message_bytes!r} is not a size")
+        old = entry.message_bytes
+        entry.message_bytes = float(mean_message_bytes)
+        entry.input_rate_hz = float(input_rate_hz) if _positive(input_rate_hz) else math.nan
+        return not _positive(old) or abs(mean_message_bytes - old) > SIZE_CHANGE_FRACTION * old
+
+    def on_mission_state(self, robot, state):
+        return self.book.set_mission_state(self._known(robot), state)
+
+    def set_priority(self, robot, priority):
+        """(success, message) for the operator's request; never raises."""
+        try:
+            changed = self.book.set_operator_priority(robot, priority)
+        except (KeyError, ValueError) as exc:
+            self.invalid_inputs += 1
+            return False, str(exc).strip("'\"")
+        return True, (f"{robot}: priority {priority} until its mission state changes"
+                      + ("" if changed else " (unchanged)"))
+
+    def on_link_stats(self, now_s, delivered_mbps, latency_ms):
+        """Feed the estimator (if on); returns True if the available bandwidth moved by > 5 %."""
+        if not self.estimator:
+            return False
+        before = self.estimator.estimate_mbps
+        after = self.estimator.update(now_s, delivered_mbps, latency_ms)
+        return abs(after - before) > 0.05 * before
+
+    def demands(self):
+        s = self.settings
+        out = []
+        for robot in self.robots:
+            m = self.measured[robot]
+            max_rate = s.max_rate_hz
+            if _positive(m.input_rate_hz):
+                max_rate = min(max_rate, max(s.min_rate_hz, INPUT_RATE_HEADROOM * m.input_rate_hz))
+            out.append(self.book.demand(robot, m.message_bytes, s.min_rate_hz, max_rate))
+        return out
+
+    def allocate(self):
+        budget = managed_budget_mbytes_per_s(self.available_mbps, self.settings.reserve_fraction)
+        return allocate_frequencies(self.demands(), budget, priority_weights=self.weights,
+                                    floor_rate_hz=self.settings.floor_rate_hz,
+                                    assumed_message_bytes=self.settings.assumed_message_bytes)
+
+    def _known(self, robot):
+        if robot not in self.measured:
+            raise KeyError(f"unknown robot '{robot}' (managed: {', '.join(self.robots)})")
+        return robot
+
+
+def _positive(value):
+    try:
+        return math.isfinite(float(value)) and float(value) > 0
+    except (TypeError, ValueError):
+        return False
+
+
+def link_totals(topics):
+    """(delivered Mbit/s over every topic, worst mean latency in ms over managed topics) from
+    TopicStats-like records; NaN where nothing was measured."""
+    delivered = sum(t.bandwidth_mbytes_per_s for t in topics if _finite(t.bandwidth_mbytes_per_s)) * 8.0
+    latencies = [t.latency_avg_ms for t in topics if t.managed and t.messages > 0 and _finite(t.latency_avg_ms)]
+    if not any(_finite(t.bandwidth_mbytes_per_s) for t in topics):
+        delivered = math.nan
+    return delivered, (max(latencies) if latencies else math.nan)
+
+
+def _finite(value):
+    try:
+        return math.isfinite(float(value))
+    except (TypeError, ValueError):
+        return False

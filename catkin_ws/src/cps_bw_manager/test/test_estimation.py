@@ -1,0 +1,66 @@
+"""The bandwidth estimator against a simulated bottleneck queue whose capacity goes 60 -> 20 -> 60
+Mbit/s, with the sender obeying the estimate (as the manager's allocation does)."""
+import math
+
+import pytest
+
+from cps_bw_manager.estimation import BandwidthEstimator
+
+
+def _simulate(capacity_of, duration_s=40.0, dt=0.5, demand_mbps=80.0, reserve=0.04, base_ms=2.0):
+    """Fluid queue: offered = min(demand, budget from the estimate); queue grows at offered - capacity."""
+    est = BandwidthEstimator(initial_mbps=60.0, max_mbps=60.0)
+    queue_mbit, t, trace = 0.0, 0.0, []
+    while t < duration_s:
+        capacity = capacity_of(t)
+        offered = min(demand_mbps, (1 - reserve) * est.estimate_mbps)
+        delivered = min(capacity, offered + queue_mbit / dt)
+        queue_mbit = max(0.0, queue_mbit + (offered - capacity) * dt)
+        latency_ms = base_ms + 1000.0 * queue_mbit / capacity
+        t += dt
+        est.update(t, delivered, latency_ms)
+        trace.append((t, capacity, est.estimate_mbps, latency_ms))
+    return trace
+
+
+def _capacity(t):
+    return 20.0 if 10.0 <= t < 25.0 else 60.0
+
+
+def test_estimate_tracks_60_20_60_within_a_few_seconds():
+    trace = _simulate(_capacity)
+    for t, capacity, estimate, latency in trace:
+        settled = (3.0 <= t < 10.0) or (14.0 <= t < 25.0) or (32.0 <= t)
+        if settled:
+            # The estimate probes a little above the capacity, like a congestion controller.
+            assert 0.6 * capacity <= estimate <= 1.15 * capacity, (t, capacity, estimate)
+    # The queue built by the drop drains: latency is back near the baseline before the link recovers.
+    assert max(lat for t, _, _, lat in trace if 15.0 <= t < 25.0) < 50.0
+    # The drop is detected within 2 s.
+    assert min(est for t, _, est, _ in trace if 10.0 <= t <= 12.0) <= 22.0
+
+
+def test_estimate_never_exceeds_the_ceiling_and_ignores_bad_samples():
+    est = BandwidthEstimator(initial_mbps=60.0, max_mbps=60.0)
+    for i in range(20):
+        est.update(i * 0.5, 500.0, 1.0)
+    assert est.estimate_mbps == 60.0
+    before = est.estimate_mbps
+    for bad in ((11.0, math.nan, 1.0), (11.5, 10.0, math.inf), (12.0, -1.0, 1.0), (12.5, 10.0, -3.0)):
+        assert est.update(*bad) == before
+    assert est.ignored_samples == 4
+
+
+def test_estimate_has_a_floor():
+    est = BandwidthEstimator(initial_mbps=60.0, min_mbps=2.0)
+    est.update(0.0, 10.0, 1.0)
+    est.update(0.5, 0.0, 500.0)
+    assert est.estimate_mbps == 2.0
+
+
+@pytest.mark.parametrize("kwargs", [dict(initial_mbps=0.0), dict(initial_mbps=-5.0), dict(initial_mbps=math.nan),
+                                    dict(initial_mbps=10.0, drain_factor=1.5),
+                                    dict(initial_mbps=10.0, max_mbps=0.5)])
+def test_bad_parameters_are_clear_errors(kwargs):
+    with pytest.raises(ValueError):
+        BandwidthEstimator(**kwargs)

@@ -1,0 +1,99 @@
+"""ManagerCore: measured sizes and input rates, mission states, operator priorities and bad input."""
+import math
+from types import SimpleNamespace
+
+import pytest
+
+from cps_bw_manager.estimation import BandwidthEstimator
+from cps_bw_manager.manager import ManagerCore, ManagerSettings, link_totals
+
+SETTINGS = ManagerSettings(available_mbps=60.0, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0)
+
+
+def _core(**kwargs):
+    return ManagerCore(["a", "b"], SETTINGS, **kwargs)
+
+
+def test_measured_sizes_drive_the_allocation():
+    core = _core()
+    assert core.on_limiter_status("a", 200000.0, 50.0)
+    assert core.on_limiter_status("b", 200000.0, 50.0)
+    assert not core.on_limiter_status("a", 210000.0, 50.0)  # < 10 %: no immediate update needed
+    result = core.allocate()
+    assert result.allocated_mbytes_per_s == pytest.approx(7.2)
+    assert all(r.size_measured for r in result.robots)
+
+
+def test_input_rate_caps_the_maximum_and_frees_bandwidth_for_the_others():
+    core = _core()
+    core.on_limiter_status("a", 300000.0, 5.0)   # a only produces 5 Hz
+    core.on_limiter_status("b", 300000.0, 50.0)
+    rates = core.allocate().rates_hz()
+    assert rates["a"] == pytest.approx(5.5)
+    assert rates["b"] == pytest.approx((7.2 - 5.5 * 0.3) / 0.3)
+
+
+def test_done_robot_drops_to_minimum_and_operator_can_raise_it():
+    core = _core()
+    for r in "ab":
+        core.on_limiter_status(r, 300000.0, 50.0)
+        core.on_mission_state(r, "inspecting")
+    assert core.on_mission_state("a", "done")
+    assert core.allocate().rates_hz()["a"] == pytest.approx(1.0)
+    ok, message = core.set_priority("a", 1)
+    assert ok and "until its mission state changes" in message
+    rates = core.allocate().rates_hz()
+    assert rates["a"] == pytest.approx(rates["b"])
+
+
+@pytest.mark.parametrize("robot, priority", [("nobody", 1), ("a", 2), ("a", 255)])
+def test_bad_set_priority_is_refused_with_a_message(robot, priority):
+    core = _core()
+    ok, message = core.set_priority(robot, priority)
+    assert not ok and ("unknown robot" in message or "priority must be" in message)
+    assert core.invalid_inputs == 1
+
+
+def test_unmeasured_sizes_are_safe_and_bad_sizes_are_refused():
+    core = _core()
+    assert not core.on_limiter_status("a", 0.0, 0.0)
+    assert not core.on_limiter_status("a", math.nan, 0.0)
+    with pytest.raises(ValueError, match="not a size"):
+        core.on_limiter_status("a", -3.0, 10.0)
+    with pytest.raises(ValueError, match="not a size"):
+        core.on_limiter_status("a", math.inf, 10.0)
+    with pytest.raises(KeyError):
+        core.on_limiter_status("nobody", 1000.0, 10.0)
+    result = core.allocate()
+    assert not any(r.size_measured for r in result.robots)
+    assert result.allocated_mbytes_per_s <= 7.2 + 1e-9
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(available_mbps=0.0), "available"), (dict(available_mbps=-60.0), "available"),
+    (dict(reserve_fraction=1.0), "reserve"), (dict(reserve_fraction=-0.5), "reserve"),
+    (dict(min_rate_hz=40.0), "min_rate_hz"), (dict(max_rate_hz=math.nan), "max_rate_hz"),
+    (dict(high_priority_weight=0.0), "high_priority_weight"),
+])
+def test_bad_settings_name_the_parameter(change, match):
+    import dataclasses
+
+    with pytest.raises(ValueError, match=match):
+        ManagerCore(["a"], dataclasses.replace(SETTINGS, **change))
+
+
+def test_estimator_lowers_the_budget_when_the_link_saturates():
+    core = _core(estimator=BandwidthEstimator(initial_mbps=60.0))
+    core.on_link_stats(0.0, 30.0, 2.0)
+    assert core.on_link_stats(1.0, 20.0, 300.0)
+    assert core.available_mbps < 20.0
+    assert core.allocate().budget_mbytes_per_s == pytest.approx(0.96 * core.available_mbps / 8)
+
+
+def test_link_totals_from_topic_stats():
+    topics = [SimpleNamespace(managed=True, messages=10, bandwidth_mbytes_per_s=1.0, latency_avg_ms=5.0),
+              SimpleNamespace(managed=True, messages=0, bandwidth_mbytes_per_s=0.0, latency_avg_ms=math.nan),
+              SimpleNamespace(managed=False, messages=50, bandwidth_mbytes_per_s=0.25, latency_avg_ms=500.0)]
+    delivered, latency = link_totals(topics)
+    assert delivered == pytest.approx(10.0) and latency == 5.0
+    assert all(math.isnan(v) for v in link_totals([]))
