@@ -1,0 +1,202 @@
+"""The GUI's ROS side: subscribers that turn messages into plain values in a FleetState, and the
+command publishers and service calls of the teleoperation pane.
+
+Callbacks run on rospy's threads and only convert and store; anything that talks to the master
+or a service (topic discovery, /tissue/set_priority) runs on a worker thread and reports back
+through a callback, so the GUI thread never waits on the network.
+"""
+import math
+import threading
+
+import rospy
+from geometry_msgs.msg import Twist
+from nav_msgs.msg import OccupancyGrid, Odometry
+from rosgraph_msgs.msg import Log
+from sensor_msgs.msg import BatteryState, Image
+from std_msgs.msg import Bool, Float64, String
+
+from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
+from cps_msgs.srv import SetPriority, SetPriorityRequest
+
+from cps_gui import topview
+from cps_gui.fleet_state import (Allocation, ImageFrame, Pose, RobotAllocation, RobotMapFigures,
+                                 TopicFigures)
+
+IMAGE_TYPE = "sensor_msgs/Image"
+MODES = ("auto", "teleop")
+FLIGHT_COMMANDS = ("takeoff", "land")
+LOG_LEVELS = {Log.DEBUG: "DEBUG", Log.INFO: "INFO", Log.WARN: "WARN", Log.ERROR: "ERROR", Log.FATAL: "FATAL"}
+
+
+class FleetRosIO:
+    """Subscriptions feeding `state` and the command side for every robot of `fleet`."""
+
+    def __init__(self, fleet, state, discovery_period_s=2.0, service_timeout_s=3.0):
+        self.fleet = fleet
+        self.state = state
+        self.service_timeout_s = service_timeout_s
+        self._subscribers = []
+        self._image_sub = None
+        self._image_topic = ""
+        self._image_lock = threading.Lock()
+        self._image_topics = []
+        self._closed = False
+        self.teleop_pubs, self.mode_pubs, self.flight_pubs = {}, {}, {}
+        for robot in fleet.robots:
+            self._robot_io(robot)
+        sub = self._subscribe
+        sub("/tissue/stats", TopicStatsArray, self._on_stats)
+        sub("/tissue/allocation", BandwidthAllocationArray, self._on_allocation)
+        sub("/tissue/available_bandwidth", Float64, lambda m: state.set_available_bandwidth(m.data))
+        sub("/twin/map_stats", MapStats, self._on_map_stats)
+        sub("/twin/projected_map", OccupancyGrid, self._on_projected_map, buff_size=2 ** 24)
+        sub("/rosout_agg", Log, self._on_log, queue_size=100)
+        self.estop_pub = rospy.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+        self._discovery = rospy.Timer(rospy.Duration(discovery_period_s), self._discover_images)
+        threading.Thread(target=self._discover_images, args=(None,), daemon=True).start()
+
+    def _subscribe(self, topic, msg_type, callback, queue_size=1, buff_size=65536):
+        self._subscribers.append(rospy.Subscriber(topic, msg_type, callback, queue_size=queue_size,
+                                                  buff_size=buff_size))
+
+    def _robot_io(self, robot):
+        name, state = robot.name, self.state
+        pose0 = robot.initial_pose
+
+        def on_odom(msg):
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            if not all(math.isfinite(v) for v in (p.x, p.y, p.z, q.x, q.y, q.z, q.w)):
+                rospy.logwarn_throttle(10.0, f"cps_gui: /{name}/odom with a non-finite pose, ignored")
+                return
+            yaw = topview.yaw_from_quaternion(q.x, q.y, q.z, q.w)
+            x, y, yaw_map = topview.odom_to_map(pose0.x, pose0.y, pose0.yaw_rad, p.x, p.y, yaw)
+            v = msg.twist.twist.linear
+            state.set_pose(name, Pose(x, y, pose0.z + p.z, yaw_map, math.hypot(v.x, v.y)))
+
+        def on_battery(msg):
+            if not math.isfinite(msg.percentage):
+                rospy.logwarn_throttle(10.0, f"cps_gui: /{name}/battery without a percentage, ignored")
+                return
+            state.set_battery(name, msg.percentage)
+
+        self._subscribe(f"/{name}/odom", Odometry, on_odom)
+        self._subscribe(f"/{name}/battery", BatteryState, on_battery)
+        self._subscribe(f"/{name}/control_mode", String, lambda m: state.set_mode(name, m.data))
+        self._subscribe(f"/{name}/mission_state", String, lambda m: state.set_mission_state(name, m.data))
+        self.teleop_pubs[name] = rospy.Publisher(f"/{name}/cmd_vel/teleop", Twist, queue_size=1)
+        self.mode_pubs[name] = rospy.Publisher(f"/{name}/control_mode", String, queue_size=1, latch=True)
+        if robot.type == "aerial_depth":
+            self.flight_pubs[name] = rospy.Publisher(f"/{name}/flight_command", String, queue_size=1)
+
+    # Incoming.
+
+    def _on_stats(self, msg):
+        self.state.set_tissue_stats(
+            TopicFigures(t.topic, t.robot, t.managed, t.rate_hz, t.bandwidth_mbytes_per_s, t.latency_avg_ms, t.age_s)
+            for t in msg.topics)
+
+    def _on_allocation(self, msg):
+        self.state.set_allocation(Allocation(
+            budget_mbytes_per_s=msg.budget_mbytes_per_s, allocated_mbytes_per_s=msg.allocated_mbytes_per_s,
+            available_mbps=msg.available_mbps, feasible=msg.feasible,
+            robots=tuple(RobotAllocation(a.robot, a.priority, a.rate_hz, a.bandwidth_mbytes_per_s,
+                                         a.share_percent, a.degraded) for a in msg.allocations)))
+
+    def _on_map_stats(self, msg):
+        self.state.set_map_stats(
+            RobotMapFigures(r.robot, r.occupied_voxels_contributed,
+                            r.clouds_dropped_queue + r.clouds_dropped_tf + r.clouds_dropped_invalid)
+            for r in msg.robots)
+
+    def _on_projected_map(self, msg):
+        info = msg.info
+        try:
+            image = topview.occupancy_image(info.width, info.height, info.resolution, info.origin.position.x,
+                                            info.origin.position.y, msg.data)
+        except ValueError as exc:
+            rospy.logwarn_throttle(10.0, f"cps_gui: /twin/projected_map ignored: {exc}")
+            return
+        self.state.set_projected_map(image)
+
+    def _on_log(self, msg):
+        self.state.add_log(msg.header.stamp.to_sec(), LOG_LEVELS.get(msg.level, str(msg.level)), msg.name, msg.msg)
+
+    def _on_image(self, msg):
+        self.state.add_image(ImageFrame(
+            topic=self._image_topic, width=msg.width, height=msg.height, encoding=msg.encoding, step=msg.step,
+            data=bytes(msg.data), stamp_s=msg.header.stamp.to_sec(), received_s=self.state.clock()))
+
+    # Image topics: found by type, one subscribed at a time (the one on screen).
+
+    def _discover_images(self, _event):
+        if self._closed:
+            return
+        try:
+            topics = rospy.get_published_topics()
+        except Exception as exc:  # master unreachable: keep the last list
+            rospy.logwarn_throttle(30.0, f"cps_gui: cannot list topics: {exc}")
+            return
+        self._image_topics = sorted(t for t, kind in topics if kind == IMAGE_TYPE)
+
+    @property
+    def image_topics(self):
+        return list(self._image_topics)
+
+    def select_image_topic(self, topic):
+        """Subscribe to `topic` (empty: none), dropping the previous image subscription."""
+        with self._image_lock:
+            if topic == self._image_topic:
+                return
+            if self._image_sub is not None:
+                self._image_sub.unregister()
+                self._image_sub = None
+            self._image_topic = topic
+            if topic:
+                self._image_sub = rospy.Subscriber(topic, Image, self._on_image, queue_size=1, buff_size=2 ** 24)
+
+    # Outgoing.
+
+    def publish_velocity(self, robot, command):
+        twist = Twist()
+        twist.linear.x, twist.linear.y, twist.linear.z = command.linear_x, command.linear_y, command.linear_z
+        twist.angular.z = command.angular_z
+        self.teleop_pubs[robot].publish(twist)
+
+    def set_mode(self, robot, mode):
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got '{mode}'")
+        self.mode_pubs[robot].publish(String(data=mode))
+
+    def flight_command(self, robot, command):
+        if command not in FLIGHT_COMMANDS:
+            raise ValueError(f"flight command must be one of {FLIGHT_COMMANDS}, got '{command}'")
+        if robot not in self.flight_pubs:
+            raise ValueError(f"robot '{robot}' does not fly")
+        self.flight_pubs[robot].publish(String(data=command))
+
+    def set_estop(self, stop):
+        self.estop_pub.publish(Bool(data=bool(stop)))
+
+    def set_priority(self, robot, priority, done):
+        """Call /tissue/set_priority on a worker thread; `done(ok, text)` runs on that thread."""
+        def call():
+            try:
+                rospy.wait_for_service("/tissue/set_priority", timeout=self.service_timeout_s)
+                proxy = rospy.ServiceProxy("/tissue/set_priority", SetPriority)
+                reply = proxy(SetPriorityRequest(robot=robot, priority=priority))
+                done(reply.success, reply.message)
+            except (rospy.ROSException, rospy.ServiceException) as exc:
+                done(False, f"/tissue/set_priority failed: {exc}")
+        threading.Thread(target=call, name=f"set_priority_{robot}", daemon=True).start()
+
+    def close(self):
+        self._closed = True
+        self._discovery.shutdown()
+        for sub in self._subscribers:
+            sub.unregister()
+        self.select_image_topic("")
+        for pubs in (self.teleop_pubs, self.mode_pubs, self.flight_pubs):
+            for pub in pubs.values():
+                pub.unregister()
+        self.estop_pub.unregister()
+

@@ -1,0 +1,180 @@
+"""Pane 4, logging and status: plots of the link per robot (bandwidth with the manager's budget
+line, rate, latency) and battery, the fleet health table with alarms, and a filtered /rosout.
+Everything is redrawn by `refresh` from a FleetState; stale values are drawn in red.
+"""
+import math
+import time
+
+import pyqtgraph as pg
+from python_qt_binding.QtCore import Qt
+from python_qt_binding.QtGui import QColor
+from python_qt_binding.QtWidgets import (QComboBox, QHBoxLayout, QLabel, QLineEdit, QPlainTextEdit, QSplitter,
+                                         QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
+
+from cps_gui.colours import robot_colour
+
+STALE_RGB = (198, 40, 40)
+ALARM_BACKGROUND = QColor(255, 205, 210)
+HEALTH_COLUMNS = ("robot", "mode", "mission", "battery %", "heartbeat s", "link", "map voxels",
+                  "dropped", "priority", "alarms")
+LEVELS = ("DEBUG", "INFO", "WARN", "ERROR", "FATAL")
+
+
+class StatusPane(QWidget):
+    def __init__(self, fleet, state, parent=None):
+        super().__init__(parent)
+        self.setObjectName("status_pane")
+        self.fleet, self.state = fleet, state
+        names = fleet.robot_names
+
+        self.plots = pg.GraphicsLayoutWidget()
+        self.plots.setBackground("w")
+        self.curves = {}
+        specs = (("bandwidth", "MB/s"), ("rate", "Hz"), ("latency", "ms"), ("battery", "%"))
+        self.plot_items = {}
+        for column, (key, unit) in enumerate(specs):
+            plot = self.plots.addPlot(row=0, col=column, title=f"{key} [{unit}]")
+            plot.showGrid(x=True, y=True, alpha=0.3)
+            plot.setLabel("bottom", "t [s]")
+            if column == 0:
+                plot.addLegend(offset=(5, 5))
+            self.plot_items[key] = plot
+            for index, name in enumerate(names):
+                pen = pg.mkPen(robot_colour(index), width=2)
+                self.curves[(key, name)] = plot.plot([], [], pen=pen, name=name if column == 0 else None)
+        self.budget_curve = self.plot_items["bandwidth"].plot(
+            [], [], pen=pg.mkPen((0, 0, 0), width=2, style=Qt.DashLine), name="budget")
+
+        self.link_label = QLabel("link: no data")
+        self.table = QTableWidget(len(names), len(HEALTH_COLUMNS))
+        self.table.setHorizontalHeaderLabels(HEALTH_COLUMNS)
+        self.table.verticalHeader().setVisible(False)
+        self.table.setEditTriggers(QTableWidget.NoEditTriggers)
+        for row in range(len(names)):
+            for col in range(len(HEALTH_COLUMNS)):
+                self.table.setItem(row, col, QTableWidgetItem(""))
+
+        self.level_combo = QComboBox()
+        self.level_combo.addItems(LEVELS)
+        self.level_combo.setCurrentText("INFO")
+        self.filter_edit = QLineEdit()
+        self.filter_edit.setPlaceholderText("filter: node or text")
+        self.log_view = QPlainTextEdit()
+        self.log_view.setReadOnly(True)
+        self.log_view.setMaximumBlockCount(1000)
+        self._log_shown = None
+        self.level_combo.currentIndexChanged.connect(self._invalidate_log)
+        self.filter_edit.textChanged.connect(self._invalidate_log)
+
+        log_box = QWidget()
+        log_layout = QVBoxLayout(log_box)
+        log_layout.setContentsMargins(0, 0, 0, 0)
+        filters = QHBoxLayout()
+        filters.addWidget(QLabel("/rosout"))
+        filters.addWidget(self.level_combo)
+        filters.addWidget(self.filter_edit, 1)
+        log_layout.addLayout(filters)
+        log_layout.addWidget(self.log_view)
+
+        table_box = QWidget()
+        table_layout = QVBoxLayout(table_box)
+        table_layout.setContentsMargins(0, 0, 0, 0)
+        table_layout.addWidget(self.link_label)
+        table_layout.addWidget(self.table)
+
+        self.splitter = QSplitter(Qt.Vertical)
+        self.splitter.addWidget(self.plots)
+        self.splitter.addWidget(table_box)
+        self.splitter.addWidget(log_box)
+        self.splitter.setSizes([220, 170, 110])
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        layout.addWidget(self.splitter)
+
+    def refresh(self):
+        self._refresh_plots()
+        self._refresh_table()
+        self._refresh_log()
+
+    def _refresh_plots(self):
+        per_robot, budget, stats_age_s = self.state.plot_series()
+        for (key, name), curve in self.curves.items():
+            t, v = per_robot[name][key]
+            curve.setData(t, [x if math.isfinite(x) else 0.0 for x in v])
+        self.budget_curve.setData(*budget)
+        available_mbps, allocation, allocation_age_s = self.state.link_summary()
+        parts = [_age_text("stats", stats_age_s), _age_text("allocation", allocation_age_s)]
+        if allocation is not None:
+            parts.append(f"budget {allocation.budget_mbytes_per_s:.2f} MB/s, allocated "
+                         f"{allocation.allocated_mbytes_per_s:.2f} MB/s" + ("" if allocation.feasible else " (INFEASIBLE)"))
+        if math.isfinite(available_mbps):
+            parts.append(f"link {available_mbps:.1f} Mbit/s")
+        self.link_label.setText(" | ".join(parts))
+        stale = self.state.is_stale(stats_age_s) or (allocation is not None and self.state.is_stale(allocation_age_s))
+        self.link_label.setStyleSheet("color: rgb(%d,%d,%d); font-weight: bold" % STALE_RGB if stale else "")
+
+    def _refresh_table(self):
+        for row, health in enumerate(self.state.health_rows()):
+            battery = "--" if not math.isfinite(health.battery_percent) else f"{health.battery_percent:.0f}"
+            heartbeat = "never" if not math.isfinite(health.heartbeat_age_s) else f"{health.heartbeat_age_s:.1f}"
+            values = (health.robot, health.mode, health.mission_state, battery, heartbeat, health.link_state,
+                      str(health.map_voxels), str(health.clouds_dropped),
+                      "" if health.priority is None else ("high" if health.priority else "normal"),
+                      ", ".join(health.alarms))
+            stale_columns = {3: health.battery_stale, 4: health.heartbeat_stale,
+                             5: health.link_state not in ("ok",)}
+            for col, text in enumerate(values):
+                item = self.table.item(row, col)
+                if item.text() != text:
+                    item.setText(text)
+                red = stale_columns.get(col, False)
+                item.setForeground(QColor(*STALE_RGB) if red else QColor(0, 0, 0))
+                item.setBackground(ALARM_BACKGROUND if health.alarms else QColor(255, 255, 255))
+
+    def _invalidate_log(self, *_):
+        self._log_shown = None
+
+    def _refresh_log(self):
+        version, entries = self.state.log_entries()
+        key = (version, self.level_combo.currentIndex(), self.filter_edit.text())
+        if key == self._log_shown:
+            return
+        self._log_shown = key
+        lines = filter_log(entries, self.level_combo.currentText(), self.filter_edit.text())
+        self.log_view.setPlainText("\n".join(lines[-500:]))
+        self.log_view.verticalScrollBar().setValue(self.log_view.verticalScrollBar().maximum())
+
+    def save_settings(self, settings):
+        settings.set_value("status/splitter", self.splitter.saveState())
+        settings.set_value("status/log_level", self.level_combo.currentText())
+        settings.set_value("status/log_filter", self.filter_edit.text())
+
+    def restore_settings(self, settings):
+        state = settings.value("status/splitter", None)
+        if state is not None:
+            self.splitter.restoreState(state)
+        level = settings.value("status/log_level", None)
+        if level in LEVELS:
+            self.level_combo.setCurrentText(level)
+        text = settings.value("status/log_filter", None)
+        if text is not None:
+            self.filter_edit.setText(str(text))
+
+
+def filter_log(entries, min_level, text):
+    """Log lines at or above `min_level` whose node or message contains `text` (case-insensitive)."""
+    floor = LEVELS.index(min_level) if min_level in LEVELS else 0
+    needle = (text or "").lower()
+    lines = []
+    for wall_s, level, node, message in entries:
+        if level in LEVELS and LEVELS.index(level) < floor:
+            continue
+        if needle and needle not in node.lower() and needle not in message.lower():
+            continue
+        stamp = time.strftime("%H:%M:%S", time.localtime(wall_s)) if wall_s > 0 else "--:--:--"
+        lines.append(f"{stamp} [{level}] {node}: {message}")
+    return lines
+
+
+def _age_text(what, age_s):
+    return f"{what}: never" if not math.isfinite(age_s) else f"{what} {age_s:.1f} s ago"

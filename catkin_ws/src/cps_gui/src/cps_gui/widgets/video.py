@@ -1,0 +1,126 @@
+"""Pane 1, video: every sensor_msgs/Image topic in a dropdown (found by type, refreshed), the
+picture scaled to the pane, and its frame rate, bandwidth and age underneath (red when stale).
+Only the topic on screen is subscribed; a frame is converted when it is new and drawn.
+"""
+import math
+
+import numpy as np
+from python_qt_binding.QtCore import Qt
+from python_qt_binding.QtGui import QImage, QPixmap
+from python_qt_binding.QtWidgets import QComboBox, QHBoxLayout, QLabel, QSizePolicy, QVBoxLayout, QWidget
+
+_CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8UC1": 1, "8UC3": 3}
+
+
+def frame_to_rgb(frame, max_side_px=640):
+    """An ImageFrame as an HxWx3 uint8 array, every n-th pixel so that no side exceeds
+    `max_side_px`. ValueError for unsupported encodings or data shorter than height x step."""
+    channels = _CHANNELS.get(frame.encoding)
+    if channels is None:
+        raise ValueError(f"unsupported image encoding '{frame.encoding}' (shown: {', '.join(_CHANNELS)})")
+    if frame.width <= 0 or frame.height <= 0:
+        raise ValueError(f"empty image ({frame.width}x{frame.height})")
+    step = frame.step or frame.width * channels
+    if step < frame.width * channels or len(frame.data) < step * frame.height:
+        raise ValueError(f"image data has {len(frame.data)} bytes, expected {frame.height} rows of {step}")
+    rows = np.frombuffer(frame.data, dtype=np.uint8, count=step * frame.height).reshape(frame.height, step)
+    pixels = rows[:, :frame.width * channels].reshape(frame.height, frame.width, channels)
+    stride = max(1, int(math.ceil(max(frame.width, frame.height) / float(max_side_px))))
+    pixels = pixels[::stride, ::stride]
+    if channels == 1:
+        pixels = np.repeat(pixels, 3, axis=2)
+    elif frame.encoding.startswith("bgr"):
+        pixels = pixels[:, :, 2::-1]
+    else:
+        pixels = pixels[:, :, :3]
+    return np.ascontiguousarray(pixels)
+
+
+def rgb_to_qimage(rgb):
+    height, width, _ = rgb.shape
+    return QImage(rgb.data, width, height, 3 * width, QImage.Format_RGB888).copy()
+
+
+class VideoPane(QWidget):
+    def __init__(self, io, state, parent=None):
+        super().__init__(parent)
+        self.setObjectName("video_pane")
+        self.io, self.state = io, state
+        self.combo = QComboBox()
+        self.combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
+        self.picture = QLabel("no image topic yet")
+        self.picture.setAlignment(Qt.AlignCenter)
+        self.picture.setSizePolicy(QSizePolicy.Ignored, QSizePolicy.Ignored)
+        self.picture.setMinimumSize(160, 120)
+        self.picture.setStyleSheet("background: #202020; color: #dddddd")
+        self.info = QLabel("")
+        top = QHBoxLayout()
+        top.addWidget(QLabel("Camera"))
+        top.addWidget(self.combo, 1)
+        layout = QVBoxLayout(self)
+        layout.addLayout(top)
+        layout.addWidget(self.picture, 1)
+        layout.addWidget(self.info)
+        self._wanted_topic = ""
+        self._shown_received_s = None
+        self._pixmap = None
+        self.combo.currentIndexChanged.connect(self._on_choice)
+
+    @property
+    def topic(self):
+        return self.combo.currentText()
+
+    def _on_choice(self, *_):
+        topic = self.combo.currentText()
+        if topic:
+            self._wanted_topic = topic
+        self.io.select_image_topic(topic)
+        self._shown_received_s = None
+
+    def _refresh_topics(self):
+        topics = self.io.image_topics
+        if self._wanted_topic and self._wanted_topic not in topics:
+            topics = sorted(topics + [self._wanted_topic])
+        current = [self.combo.itemText(i) for i in range(self.combo.count())]
+        if topics != current:
+            self.combo.blockSignals(True)
+            self.combo.clear()
+            self.combo.addItems(topics)
+            index = self.combo.findText(self._wanted_topic)
+            self.combo.setCurrentIndex(index if index >= 0 else 0)
+            self.combo.blockSignals(False)
+            self._on_choice()
+
+    def refresh(self):
+        self._refresh_topics()
+        topic = self.topic
+        if not topic:
+            self.info.setText("no sensor_msgs/Image topic advertised")
+            return
+        frame, rate_hz, mbytes, age_s = self.state.image(topic)
+        if frame is None:
+            self.info.setText(f"{topic}: waiting for the first frame")
+            self.info.setStyleSheet("color: rgb(198,40,40)")
+            return
+        if frame.received_s != self._shown_received_s:
+            self._shown_received_s = frame.received_s
+            try:
+                self._pixmap = QPixmap.fromImage(rgb_to_qimage(frame_to_rgb(frame)))
+            except ValueError as exc:
+                self._pixmap = None
+                self.picture.setText(str(exc))
+        if self._pixmap is not None:
+            self.picture.setPixmap(self._pixmap.scaled(self.picture.size(), Qt.KeepAspectRatio, Qt.FastTransformation))
+        stale = self.state.is_stale(age_s)
+        self.info.setText(f"{frame.width}x{frame.height} {frame.encoding} | {rate_hz:.1f} Hz | "
+                          f"{mbytes:.2f} MB/s | age {age_s:.1f} s")
+        self.info.setStyleSheet("color: rgb(198,40,40); font-weight: bold" if stale else "")
+
+    def save_settings(self, settings):
+        settings.set_value("video/topic", self._wanted_topic)
+
+    def restore_settings(self, settings):
+        topic = settings.value("video/topic", None)
+        if topic:
+            self._wanted_topic = str(topic)
+            self._refresh_topics()
