@@ -1,0 +1,318 @@
+"""The four robot types: body, sensor mount, velocity limits, kinematics, joints and battery.
+
+Pure numpy. Robots move kinematically (their pose is integrated from the executed velocity,
+with the type's velocity and acceleration limits); odometry is that pose relative to the known
+initial pose. Everything specific to a robot type lives in ROBOT_SPECS, keyed by the type
+names of cps_msgs.fleet.ROBOT_TYPES.
+"""
+import dataclasses
+import math
+from typing import Tuple
+
+import numpy as np
+
+from cps_msgs.fleet import ROBOT_TYPES
+
+
+@dataclasses.dataclass(frozen=True)
+class VelocityLimits:
+    """Per-type limits every executed command is clamped to (m/s, rad/s, m/s², rad/s²)."""
+    max_forward_mps: float
+    max_lateral_mps: float      # 0 for non-holonomic bases
+    max_vertical_mps: float     # 0 for ground robots
+    max_yaw_rate_rps: float
+    max_linear_accel_mps2: float
+    max_yaw_accel_rps2: float
+    # Anything beyond this many times the limit is an absurd command and is dropped, not clamped.
+    absurd_factor: float = 10.0
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotSpec:
+    type: str
+    model: str
+    body_half_extents_m: Tuple[float, float, float]
+    body_center_z_m: float          # body centre above base_link
+    rgb: Tuple[float, float, float]
+    sensor_xyz_m: Tuple[float, float, float]   # sensor in base_link
+    sensor_pitch_deg: float         # positive looks down
+    limits: VelocityLimits
+    cruise_mps: float               # the route controller's travel speed
+    joint_names: Tuple[str, ...]
+    wheel_radius_m: float = 0.0
+    track_m: float = 0.0
+    battery_capacity_wh: float = 100.0
+    battery_nominal_v: float = 24.0
+    idle_power_w: float = 20.0
+    motion_power_w_per_mps: float = 40.0
+    sensor_power_w: float = 10.0
+
+
+_CHAMP_LEGS = ("lf", "rf", "lh", "rh")
+
+ROBOT_SPECS = {
+    "wheeled_lidar": RobotSpec(
+        type="wheeled_lidar", model="Agilex Scout 2.0", body_half_extents_m=(0.465, 0.35, 0.125),
+        body_center_z_m=0.225, rgb=(0.9, 0.9, 0.9), sensor_xyz_m=(0.0, 0.0, 0.55), sensor_pitch_deg=0.0,
+        limits=VelocityLimits(1.5, 0.0, 0.0, 1.5, 1.0, 2.0), cruise_mps=0.8,
+        joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
+        wheel_radius_m=0.165, track_m=0.58, battery_capacity_wh=720.0, battery_nominal_v=24.0,
+        idle_power_w=60.0, motion_power_w_per_mps=150.0, sensor_power_w=12.0),
+    "wheeled_depth": RobotSpec(
+        type="wheeled_depth", model="Clearpath Jackal", body_half_extents_m=(0.254, 0.215, 0.1),
+        body_center_z_m=0.165, rgb=(0.95, 0.75, 0.1), sensor_xyz_m=(0.26, 0.0, 0.35), sensor_pitch_deg=10.0,
+        limits=VelocityLimits(2.0, 0.0, 0.0, 4.0, 2.0, 4.0), cruise_mps=0.8,
+        joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
+        wheel_radius_m=0.098, track_m=0.37, battery_capacity_wh=270.0, battery_nominal_v=24.0,
+        idle_power_w=30.0, motion_power_w_per_mps=60.0, sensor_power_w=5.0),
+    "legged_depth": RobotSpec(
+        type="legged_depth", model="CHAMP quadruped", body_half_extents_m=(0.3, 0.12, 0.07),
+        body_center_z_m=0.32, rgb=(0.2, 0.2, 0.22), sensor_xyz_m=(0.33, 0.0, 0.40), sensor_pitch_deg=10.0,
+        limits=VelocityLimits(0.6, 0.3, 0.0, 1.0, 0.8, 1.5), cruise_mps=0.45,
+        joint_names=tuple(f"{leg}_{j}_joint" for leg in _CHAMP_LEGS for j in ("hip", "upper_leg", "lower_leg")),
+        battery_capacity_wh=150.0, battery_nominal_v=24.0, idle_power_w=40.0, motion_power_w_per_mps=120.0,
+        sensor_power_w=5.0),
+    "aerial_depth": RobotSpec(
+        type="aerial_depth", model="3DR Iris quadrotor", body_half_extents_m=(0.25, 0.25, 0.06),
+        body_center_z_m=0.0, rgb=(0.15, 0.15, 0.15), sensor_xyz_m=(0.2, 0.0, -0.06), sensor_pitch_deg=45.0,
+        limits=VelocityLimits(2.0, 2.0, 1.0, 1.5, 1.5, 2.0), cruise_mps=1.0,
+        joint_names=("rotor_0_joint", "rotor_1_joint", "rotor_2_joint", "rotor_3_joint"),
+        battery_capacity_wh=60.0, battery_nominal_v=11.1, idle_power_w=10.0, motion_power_w_per_mps=20.0,
+        sensor_power_w=5.0),
+}
+assert set(ROBOT_SPECS) == set(ROBOT_TYPES)
+
+TAKEOFF_ALTITUDE_M = 1.0
+CLIMB_RATE_MPS = 0.6
+MIN_FLIGHT_ALTITUDE_M = 0.3
+AERIAL_HOVER_POWER_W = 150.0
+
+
+def spec_for(robot_type):
+    """The RobotSpec of a type; an unknown type is a ValueError naming the known ones."""
+    try:
+        return ROBOT_SPECS[robot_type]
+    except KeyError:
+        raise ValueError(f"unknown robot type '{robot_type}' (known: {', '.join(ROBOT_TYPES)})") from None
+
+
+@dataclasses.dataclass
+class Twist:
+    """Velocity in the robot's body frame: vx, vy, vz (m/s), wz (rad/s)."""
+    vx: float = 0.0
+    vy: float = 0.0
+    vz: float = 0.0
+    wz: float = 0.0
+
+    def as_array(self):
+        return np.array([self.vx, self.vy, self.vz, self.wz])
+
+    @classmethod
+    def from_array(cls, a):
+        return cls(float(a[0]), float(a[1]), float(a[2]), float(a[3]))
+
+
+def validate_twist(twist, limits):
+    """None if the command is usable, else why it must be dropped (NaN/Inf or absurdly large)."""
+    values = twist.as_array()
+    if not np.all(np.isfinite(values)):
+        return f"non-finite velocity {values.tolist()}"
+    caps = np.array([limits.max_forward_mps, max(limits.max_lateral_mps, limits.max_forward_mps),
+                     max(limits.max_vertical_mps, limits.max_forward_mps), limits.max_yaw_rate_rps])
+    if np.any(np.abs(values) > limits.absurd_factor * caps):
+        return f"absurd velocity {values.tolist()} (limits {caps.tolist()})"
+    return None
+
+
+def clamp_twist(twist, limits, previous=None, dt_s=None):
+    """Clamp to the velocity limits and, given the previous output and dt, the acceleration limits."""
+    target = np.array([
+        np.clip(twist.vx, -limits.max_forward_mps, limits.max_forward_mps),
+        np.clip(twist.vy, -limits.max_lateral_mps, limits.max_lateral_mps),
+        np.clip(twist.vz, -limits.max_vertical_mps, limits.max_vertical_mps),
+        np.clip(twist.wz, -limits.max_yaw_rate_rps, limits.max_yaw_rate_rps),
+    ])
+    if previous is not None and dt_s is not None and dt_s > 0:
+        prev = previous.as_array()
+        step = np.array([limits.max_linear_accel_mps2] * 3 + [limits.max_yaw_accel_rps2]) * dt_s
+        target = prev + np.clip(target - prev, -step, step)
+    return Twist.from_array(target)
+
+
+def pose_matrix(x, y, z, yaw, pitch=0.0):
+    """4x4 transform from yaw (about z) then pitch (about the new y), translation (x, y, z)."""
+    cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+    m = np.eye(4)
+    m[:3, :3] = np.array([[cy * cp, -sy, cy * sp], [sy * cp, cy, sy * sp], [-sp, 0.0, cp]])
+    m[:3, 3] = (x, y, z)
+    return m
+
+
+# Optical frame (z forward, x right, y down) in a body-style sensor frame (x forward, z up).
+OPTICAL_IN_SENSOR = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+class Robot:
+    """One robot's kinematic state, joints and battery. Poses are in `map` unless named odom."""
+
+    def __init__(self, name, robot_type, initial_pose):
+        self.name = name
+        self.spec = spec_for(robot_type)
+        self.type = robot_type
+        self.initial = np.array([initial_pose.x, initial_pose.y, initial_pose.z, initial_pose.yaw_rad])
+        self.x, self.y, self.z, self.yaw = self.initial.tolist()
+        self.velocity = Twist()          # executed, body frame
+        self.command = Twist()           # last accepted command
+        self.joint_positions = np.zeros(len(self.spec.joint_names))
+        self.joint_velocities = np.zeros(len(self.spec.joint_names))
+        self.gait_phase = 0.0
+        self.energy_used_wh = 0.0
+        self.power_w = self.spec.idle_power_w
+        self.sensing = True
+        self.flight_state = "landed" if self.is_aerial else "ground"
+        self.distance_m = 0.0
+
+    @property
+    def is_aerial(self):
+        return self.type == "aerial_depth"
+
+    def set_command(self, twist):
+        self.command = twist
+
+    def flight_command(self, command):
+        """'takeoff' or 'land' (aerial only); returns False if the command does not apply."""
+        if not self.is_aerial or command not in ("takeoff", "land"):
+            return False
+        if command == "takeoff" and self.flight_state in ("landed", "landing"):
+            self.flight_state = "taking_off"
+        elif command == "land" and self.flight_state in ("flying", "taking_off"):
+            self.flight_state = "landing"
+        return True
+
+    def step(self, dt_s):
+        """Advance the robot by dt_s seconds of the executed command."""
+        lim = self.spec.limits
+        target = clamp_twist(self.command, lim)
+        if self.is_aerial:
+            if self.flight_state == "landed":
+                target = Twist()
+            elif self.flight_state == "taking_off":
+                target = Twist(0.0, 0.0, CLIMB_RATE_MPS, 0.0)
+            elif self.flight_state == "landing":
+                target = Twist(0.0, 0.0, -CLIMB_RATE_MPS, 0.0)
+        else:
+            target.vz = 0.0
+        self.velocity = clamp_twist(target, dataclasses.replace(
+            lim, max_vertical_mps=max(lim.max_vertical_mps, CLIMB_RATE_MPS)), self.velocity, dt_s)
+        v = self.velocity
+        yaw_mid = self.yaw + 0.5 * v.wz * dt_s
+        c, s = math.cos(yaw_mid), math.sin(yaw_mid)
+        dx, dy = (c * v.vx - s * v.vy) * dt_s, (s * v.vx + c * v.vy) * dt_s
+        self.x += dx
+        self.y += dy
+        self.z += v.vz * dt_s
+        self.yaw = (self.yaw + v.wz * dt_s + math.pi) % (2 * math.pi) - math.pi
+        self.distance_m += math.hypot(dx, dy)
+        if self.is_aerial:
+            self._update_flight()
+        else:
+            self.z = self.initial[2]
+        self._update_joints(dt_s)
+        self._update_battery(dt_s)
+
+    def _update_flight(self):
+        if self.flight_state == "taking_off" and self.z >= TAKEOFF_ALTITUDE_M:
+            self.flight_state = "flying"
+        if self.flight_state == "flying" and self.z < MIN_FLIGHT_ALTITUDE_M:
+            self.z = MIN_FLIGHT_ALTITUDE_M
+            self.velocity.vz = max(self.velocity.vz, 0.0)
+        if self.z <= 0.0:
+            self.z = 0.0
+            if self.flight_state == "landing":
+                self.flight_state = "landed"
+                self.velocity = Twist()
+
+    def _update_joints(self, dt_s):
+        v = self.velocity
+        spec = self.spec
+        if spec.wheel_radius_m > 0:
+            left = (v.vx - v.wz * spec.track_m / 2) / spec.wheel_radius_m
+            right = (v.vx + v.wz * spec.track_m / 2) / spec.wheel_radius_m
+            self.joint_velocities = np.array([left, right, left, right])
+            self.joint_positions = (self.joint_positions + self.joint_velocities * dt_s + math.pi) % (2 * math.pi) - math.pi
+        elif self.type == "legged_depth":
+            self.joint_positions, self.joint_velocities = self._trot(dt_s)
+        else:
+            spin = 0.0 if self.flight_state == "landed" else 900.0
+            self.joint_velocities = np.array([spin, -spin, spin, -spin])
+            self.joint_positions = (self.joint_positions + self.joint_velocities * dt_s + math.pi) % (2 * math.pi) - math.pi
+
+    def _trot(self, dt_s):
+        """A trot: diagonal leg pairs swing in antiphase, stride scaled by the body speed."""
+        v = self.velocity
+        speed = math.hypot(v.vx, v.vy) + 0.2 * abs(v.wz)
+        amplitude = min(speed / max(self.spec.limits.max_forward_mps, 1e-6), 1.0)
+        self.gait_phase = (self.gait_phase + 2 * math.pi * 2.0 * dt_s * (1.0 if amplitude > 0.01 else 0.0)) % (2 * math.pi)
+        positions = []
+        for i, leg in enumerate(_CHAMP_LEGS):
+            phase = self.gait_phase + (0.0 if leg in ("lf", "rh") else math.pi)
+            hip = 0.05 * amplitude * math.sin(phase) * (1 if i % 2 == 0 else -1)
+            upper = 0.6 + 0.35 * amplitude * math.sin(phase)
+            lower = -1.2 - 0.4 * amplitude * max(math.cos(phase), 0.0)
+            positions.extend([hip, upper, lower])
+        positions = np.array(positions)
+        velocities = (positions - self.joint_positions) / dt_s if dt_s > 0 else np.zeros_like(positions)
+        return positions, velocities
+
+    def _update_battery(self, dt_s):
+        spec = self.spec
+        v = self.velocity
+        motion = math.hypot(v.vx, v.vy) + abs(v.vz) + 0.3 * abs(v.wz)
+        power = spec.idle_power_w + spec.motion_power_w_per_mps * motion + (spec.sensor_power_w if self.sensing else 0.0)
+        if self.is_aerial and self.flight_state != "landed":
+            power += AERIAL_HOVER_POWER_W
+        self.power_w = power
+        self.energy_used_wh = min(self.energy_used_wh + power * dt_s / 3600.0, spec.battery_capacity_wh)
+
+    @property
+    def battery_fraction(self):
+        return 1.0 - self.energy_used_wh / self.spec.battery_capacity_wh
+
+    @property
+    def battery_voltage_v(self):
+        """Open-circuit voltage of a Li-ion pack falling from 1.17x to 0.9x nominal."""
+        return self.spec.battery_nominal_v * (0.9 + 0.27 * self.battery_fraction)
+
+    @property
+    def battery_current_a(self):
+        """Discharge current, negative (sensor_msgs/BatteryState: negative while discharging)."""
+        return -self.power_w / self.battery_voltage_v
+
+    # Poses -----------------------------------------------------------------------------------
+    def base_in_map(self):
+        return pose_matrix(self.x, self.y, self.z, self.yaw)
+
+    def odom_in_map(self):
+        """The static map -> <r>/odom transform: the known initial pose."""
+        x, y, z, yaw = self.initial
+        return pose_matrix(x, y, z, yaw)
+
+    def base_in_odom(self):
+        return np.linalg.inv(self.odom_in_map()) @ self.base_in_map()
+
+    def sensor_in_base(self):
+        """The static mount base_link -> <r>/lidar or <r>/camera_depth_optical_frame."""
+        sx, sy, sz = self.spec.sensor_xyz_m
+        mount = pose_matrix(sx, sy, sz, 0.0, math.radians(self.spec.sensor_pitch_deg))
+        if self.type == "wheeled_lidar":
+            return mount
+        return mount @ OPTICAL_IN_SENSOR
+
+    def sensor_in_map(self):
+        return self.base_in_map() @ self.sensor_in_base()
+
+    def set_pose(self, x, y, z, yaw):
+        """Place the robot (tests and sample renders); odometry keeps its initial pose."""
+        self.x, self.y, self.z, self.yaw = float(x), float(y), float(z), float(yaw)
+        if self.is_aerial and z > 0:
+            self.flight_state = "flying"
