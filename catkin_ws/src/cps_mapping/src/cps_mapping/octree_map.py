@@ -1,0 +1,499 @@
+"""The fused multi-robot map: one OctoMap OcTree (octomap-python) fed by every robot's clouds.
+
+`FusedOctoMap` is what the map server holds. It knows nothing of ROS: clouds arrive as N x 3
+numpy arrays in `map` with their sensor origin. Insertion follows octomap_server's sensor model
+and per-robot max range, and is made fast by
+- batching: consecutive clouds of one robot whose origins lie within `merge_origin_tolerance_m`
+  are inserted as one cloud (one ray per distinct endpoint voxel, cast from their mean origin);
+- discretization: endpoints are reduced to distinct voxel centres in numpy before OctoMap casts
+  rays (the same as OctoMap's `discretize`, done once for the whole batch);
+- lazy evaluation: inner nodes are updated once per batch, not once per voxel.
+
+Voxels are named by their grid index i = floor(p / resolution); the voxel centre is
+(i + 0.5) * resolution, OctoMap's grid.
+"""
+import dataclasses
+import itertools
+import math
+import os
+import tempfile
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import octomap
+
+BT_HEADER = b"# Octomap OcTree binary file"
+OT_HEADER = b"# Octomap OcTree file"
+_INDEX_BIAS = 1 << 20
+_UNKNOWN_ROBOT = ""
+
+
+class MapFileError(ValueError):
+    """A map file that cannot be saved or loaded; the message names the file and the reason."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorModelParams:
+    """octomap_server's sensor model: hit/miss probabilities and the clamping thresholds."""
+    hit: float = 0.7
+    miss: float = 0.4
+    min: float = 0.12
+    max: float = 0.97
+
+
+@dataclasses.dataclass
+class InsertResult:
+    clouds: int
+    points_in: int
+    points_inserted: int
+    points_rejected: int
+    groups: int
+    seconds: float
+
+
+@dataclasses.dataclass
+class LeafArrays:
+    """Every leaf of the tree at one moment: centre (m), edge (m) and log-odds."""
+    centers_m: np.ndarray
+    sizes_m: np.ndarray
+    log_odds: np.ndarray
+
+    @property
+    def occupied(self):
+        return self.log_odds > 0.0
+
+
+def voxel_index(points_m, resolution_m):
+    """Integer grid index floor(p / resolution) of each point (OctoMap's voxel)."""
+    return np.floor(np.asarray(points_m, dtype=np.float64) / resolution_m).astype(np.int64)
+
+
+def index_to_center(index, resolution_m):
+    return (np.asarray(index, dtype=np.float64) + 0.5) * resolution_m
+
+
+def pack_index(index):
+    """One int64 per voxel index (each axis within +-2^20 voxels), for sets and dicts."""
+    idx = np.asarray(index, dtype=np.int64) + _INDEX_BIAS
+    return (idx[:, 0] << 42) | (idx[:, 1] << 21) | idx[:, 2]
+
+
+def unpack_index(packed):
+    packed = np.asarray(packed, dtype=np.int64)
+    mask = (1 << 21) - 1
+    return np.stack([(packed >> 42) & mask, (packed >> 21) & mask, packed & mask], axis=1) - _INDEX_BIAS
+
+
+def expand_leaves(centers_m, sizes_m, resolution_m):
+    """Grid indices of the finest voxels covered by (possibly pruned) leaves."""
+    centers = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
+    sizes = np.asarray(sizes_m, dtype=np.float64).ravel()
+    if len(centers) == 0:
+        return np.zeros((0, 3), dtype=np.int64)
+    cells = np.maximum(np.rint(sizes / resolution_m).astype(np.int64), 1)
+    out = []
+    for n in np.unique(cells):
+        sel = cells == n
+        lo = np.rint((centers[sel] - sizes[sel, None] / 2) / resolution_m).astype(np.int64)
+        if n == 1:
+            out.append(lo)
+            continue
+        offsets = np.stack(np.meshgrid(*(np.arange(n),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+        out.append((lo[:, None, :] + offsets[None, :, :]).reshape(-1, 3))
+    return np.vstack(out)
+
+
+def height_colors(z_m, z_min_m=None, z_max_m=None):
+    """octomap_server's height colouring: hue from 0.8 (low) to 0 (high), RGB in [0, 1]."""
+    z = np.asarray(z_m, dtype=np.float64)
+    if len(z) == 0:
+        return np.zeros((0, 3))
+    lo = z.min() if z_min_m is None else z_min_m
+    hi = z.max() if z_max_m is None else z_max_m
+    span = max(hi - lo, 1e-9)
+    h = (1.0 - np.clip((z - lo) / span, 0.0, 1.0)) * 0.8 * 6.0
+    i = np.floor(h).astype(int)
+    f = h - i
+    f = np.where(i % 2 == 0, 1.0 - f, f)
+    n = 1.0 - f  # with s = v = 1: m = 0, n = v * (1 - s * f)
+    one, zero = np.ones_like(z), np.zeros_like(z)
+    table = {0: (one, n, zero), 1: (n, one, zero), 2: (zero, one, n), 3: (zero, n, one), 4: (n, zero, one),
+             5: (one, zero, n), 6: (one, zero, n)}
+    rgb = np.zeros((len(z), 3))
+    for k, (r, g, b) in table.items():
+        sel = i == k
+        rgb[sel] = np.stack([r[sel], g[sel], b[sel]], axis=1)
+    return rgb
+
+
+class FusedOctoMap:
+    """One OcTree fed by many robots, with per-robot contribution tracking, persistence and views.
+
+    Not thread-safe: the map server serializes access with one lock.
+    """
+
+    def __init__(self, resolution_m, sensor_model=SensorModelParams(), merge_origin_tolerance_m=0.5):
+        if not resolution_m > 0:
+            raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
+        self.resolution_m = float(resolution_m)
+        self.sensor_model = sensor_model
+        self.merge_origin_tolerance_m = float(merge_origin_tolerance_m)
+        self.tree = self._new_tree(self.resolution_m)
+        self._last_hit_by: Dict[int, int] = {}
+        self._robots: List[str] = [_UNKNOWN_ROBOT]
+        self.version = 0
+        self._leaf_cache: Optional[Tuple[int, LeafArrays]] = None
+
+    @classmethod
+    def from_mapping_config(cls, mapping, **kwargs):
+        """Build from cps_msgs.fleet.MappingConfig (fleet.yaml `mapping:`)."""
+        m = mapping.sensor_model
+        return cls(mapping.resolution_m, SensorModelParams(m.hit, m.miss, m.min, m.max), **kwargs)
+
+    def _new_tree(self, resolution_m):
+        tree = octomap.OcTree(resolution_m)
+        self._apply_sensor_model(tree)
+        return tree
+
+    def _apply_sensor_model(self, tree):
+        tree.setProbHit(self.sensor_model.hit)
+        tree.setProbMiss(self.sensor_model.miss)
+        tree.setClampingThresMin(self.sensor_model.min)
+        tree.setClampingThresMax(self.sensor_model.max)
+
+    # ---- insertion -------------------------------------------------------------------------
+
+    def insert_cloud(self, points_m, origin_m, max_range_m=-1.0, robot=_UNKNOWN_ROBOT):
+        """Insert one cloud (N x 3, map frame) seen from `origin_m`."""
+        return self.insert_batch([(points_m, origin_m)], max_range_m=max_range_m, robot=robot)
+
+    def insert_batch(self, clouds: Sequence[Tuple[np.ndarray, np.ndarray]], max_range_m=-1.0, robot=_UNKNOWN_ROBOT):
+        """Insert consecutive clouds of one robot; see the module docstring for how they merge.
+
+        Non-finite points are dropped (and counted in `points_rejected`); a non-finite origin
+        raises ValueError before anything is inserted.
+        """
+        import time
+
+        start = time.perf_counter()
+        prepared = []
+        points_in = rejected = 0
+        for points, origin in clouds:
+            origin = np.asarray(origin, dtype=np.float64).reshape(3)
+            if not np.all(np.isfinite(origin)):
+                raise ValueError(f"sensor origin {origin.tolist()} is not finite")
+            pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+            finite = np.all(np.isfinite(pts), axis=1)
+            points_in += len(pts)
+            rejected += int((~finite).sum())
+            prepared.append((pts[finite], origin))
+
+        groups = self._group_by_origin(prepared)
+        inserted = 0
+        robot_id = self._robot_id(robot)
+        for group in groups:
+            origin = np.mean([o for _, o in group], axis=0)
+            count = sum(len(p) for p, _ in group)
+            if count == 0:
+                continue
+            index, endpoints, cast_range = self._discretize(group, origin, max_range_m)
+            self.tree.insertPointCloud(endpoints, origin, maxrange=cast_range, lazy_eval=True, discretize=False)
+            inserted += count
+            self._last_hit_by.update(zip(pack_index(index).tolist(), itertools.repeat(robot_id)))
+        if inserted:
+            self.tree.updateInnerOccupancy()
+            self.version += 1
+        return InsertResult(clouds=len(prepared), points_in=points_in, points_inserted=inserted,
+                            points_rejected=rejected, groups=len(groups), seconds=time.perf_counter() - start)
+
+    def _discretize(self, group, origin, max_range_m):
+        """(occupied voxel indices, endpoints to cast, cast range) for one merged group.
+
+        A point within max range of its own cloud's origin becomes its voxel's centre
+        (occupied); the distinct centres are cast. A point beyond it keeps one raw
+        representative per voxel, pushed out just beyond the cast range, so that OctoMap casts
+        it as a free ray only. The cast range (from the group's mean origin) grows by half a
+        voxel diagonal plus the origins' spread, so no in-range centre falls beyond it. This
+        keeps octomap_server's max-range rule (a far point clears space, never occupies it).
+        """
+        res = self.resolution_m
+        if max_range_m is None or max_range_m <= 0:
+            index = np.unique(voxel_index(np.vstack([p for p, _ in group]), res), axis=0)
+            return index, index_to_center(index, res), -1.0
+        near, far = [], []
+        for pts, own_origin in group:
+            within = np.linalg.norm(pts - own_origin, axis=1) <= max_range_m
+            near.append(pts[within])
+            far.append(pts[~within])
+        index = np.unique(voxel_index(np.vstack(near), res), axis=0)
+        spread = max(np.linalg.norm(o - origin) for _, o in group)
+        cast_range = max_range_m + 0.87 * res + spread
+        far = np.vstack(far)
+        if len(far):
+            offsets = far - origin
+            dist = np.maximum(np.linalg.norm(offsets, axis=1), 1e-9)
+            far = origin + offsets / dist[:, None] * (cast_range + 0.05 * res)
+            _, first = np.unique(voxel_index(far, res), axis=0, return_index=True)
+            far = far[first]
+        return index, np.vstack([index_to_center(index, res), far]), cast_range
+
+    def _group_by_origin(self, prepared):
+        groups, current = [], []
+        for pts, origin in prepared:
+            if current and np.linalg.norm(origin - current[0][1]) > self.merge_origin_tolerance_m:
+                groups.append(current)
+                current = []
+            current.append((pts, origin))
+        if current:
+            groups.append(current)
+        return groups
+
+    def _robot_id(self, robot):
+        if robot not in self._robots:
+            self._robots.append(robot)
+        return self._robots.index(robot)
+
+    # ---- views -----------------------------------------------------------------------------
+
+    def leaves(self) -> LeafArrays:
+        """All leaves, cached until the map changes."""
+        if self._leaf_cache and self._leaf_cache[0] == self.version:
+            return self._leaf_cache[1]
+        rows = np.array([(it.getX(), it.getY(), it.getZ(), it.getSize(), it.getValue())
+                         for it in self.tree.begin_leafs()], dtype=np.float64).reshape(-1, 5)
+        arrays = LeafArrays(rows[:, :3].copy(), rows[:, 3].copy(), rows[:, 4].copy())
+        self._leaf_cache = (self.version, arrays)
+        return arrays
+
+    def occupied_index(self):
+        """Grid indices of every occupied finest-resolution voxel (pruned leaves expanded)."""
+        leaves = self.leaves()
+        occ = leaves.occupied
+        return expand_leaves(leaves.centers_m[occ], leaves.sizes_m[occ], self.resolution_m)
+
+    def occupied_centers(self):
+        return index_to_center(self.occupied_index(), self.resolution_m)
+
+    def occupied_leaves(self):
+        """(centres, sizes) of the occupied leaves as the tree stores them (for markers)."""
+        leaves = self.leaves()
+        occ = leaves.occupied
+        return leaves.centers_m[occ], leaves.sizes_m[occ]
+
+    def contributions(self, occupied_index=None) -> Dict[str, int]:
+        """Occupied voxels per robot that last hit them ('' for loaded or unattributed voxels)."""
+        return {robot: len(c) for robot, c in self.contributed_index(occupied_index).items()}
+
+    def contributed_index(self, occupied_index=None) -> Dict[str, np.ndarray]:
+        index = self.occupied_index() if occupied_index is None else occupied_index
+        packed = pack_index(index).tolist() if len(index) else []
+        owner = np.fromiter((self._last_hit_by.get(k, 0) for k in packed), dtype=np.int64, count=len(packed))
+        return {robot: index[owner == rid] for rid, robot in enumerate(self._robots) if (owner == rid).any()}
+
+    def is_free(self, points_m):
+        """True where the map holds the point's voxel as known and free."""
+        labels = self.tree.getLabels(np.asarray(points_m, dtype=np.float64).reshape(-1, 3))
+        return labels == 0
+
+    def projected_grid(self, z_min_m=-math.inf, z_max_m=math.inf):
+        """octomap_server's 2D projection: (grid int8 [rows=y, cols=x], origin_xy_m).
+
+        100 where a column holds an occupied voxel within [z_min, z_max], 0 where it holds only
+        free ones, -1 unknown.
+        """
+        leaves = self.leaves()
+        res = self.resolution_m
+        half = leaves.sizes_m / 2
+        in_band = (leaves.centers_m[:, 2] + half >= z_min_m) & (leaves.centers_m[:, 2] - half <= z_max_m)
+        centers, sizes, occ = leaves.centers_m[in_band], leaves.sizes_m[in_band], leaves.occupied[in_band]
+        if len(centers) == 0:
+            return np.full((1, 1), -1, dtype=np.int8), np.zeros(2)
+        lo = np.rint((centers[:, :2] - sizes[:, None] / 2) / res).astype(np.int64)
+        cells = np.maximum(np.rint(sizes / res).astype(np.int64), 1)
+        hi = lo + cells[:, None]
+        gmin = lo.min(axis=0)
+        shape = (hi.max(axis=0) - gmin)
+        grid = np.full((shape[1], shape[0]), -1, dtype=np.int8)
+        for want_occ, value in ((False, 0), (True, 100)):
+            sel = occ == want_occ
+            for n in np.unique(cells[sel]):
+                s = sel & (cells == n)
+                offs = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), axis=-1).reshape(-1, 2)
+                xy = (lo[s][:, None, :] + offs[None]).reshape(-1, 2) - gmin
+                grid[xy[:, 1], xy[:, 0]] = value
+        return grid, gmin.astype(np.float64) * res
+
+    def stats(self):
+        return {"occupied_voxels": int(len(self.occupied_index())), "tree_nodes": int(self.tree.size()),
+                "memory_bytes": int(self.tree.memoryUsage())}
+
+    # ---- editing ---------------------------------------------------------------------------
+
+    def reset(self):
+        self.tree = self._new_tree(self.resolution_m)
+        self._last_hit_by.clear()
+        self.version += 1
+
+    def clear_bbx(self, min_m, max_m):
+        """Set every known voxel whose centre lies in the box free (clamped), as octomap_server."""
+        lo, hi = np.asarray(min_m, dtype=np.float64), np.asarray(max_m, dtype=np.float64)
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            raise ValueError("clear_bbx: the box corners must be finite")
+        if np.any(hi < lo):
+            raise ValueError(f"clear_bbx: max {hi.tolist()} is below min {lo.tolist()} on some axis")
+        leaves = self.leaves()
+        index = expand_leaves(leaves.centers_m, leaves.sizes_m, self.resolution_m) if len(leaves.sizes_m) else \
+            np.zeros((0, 3), dtype=np.int64)
+        centers = index_to_center(index, self.resolution_m)
+        inside = np.all((centers >= lo) & (centers <= hi), axis=1)
+        targets = centers[inside]
+        if len(targets):
+            self.tree.updateNodes(targets, -1.0e6, True)
+            self.tree.updateInnerOccupancy()
+            for key in pack_index(index[inside]).tolist():
+                self._last_hit_by.pop(key, None)
+            self.version += 1
+        return int(len(targets))
+
+    # ---- persistence -----------------------------------------------------------------------
+
+    def to_bytes(self, binary=True):
+        """The whole map as an OctoMap file (.bt when binary, else .ot), header included."""
+        return self.tree.writeBinary() if binary else self.tree.write()
+
+    def save(self, path):
+        """Write `.bt` (binary, occupancy only) or `.ot` (full) atomically; return the path."""
+        path = os.path.abspath(os.path.expanduser(path))
+        binary = _format_of(path)
+        directory = os.path.dirname(path)
+        try:
+            os.makedirs(directory, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=directory)
+            os.close(fd)
+        except OSError as exc:
+            raise MapFileError(f"cannot write {path}: {exc}") from exc
+        try:
+            ok = self.tree.writeBinary(tmp.encode()) if binary else self.tree.write(tmp.encode())
+            if not ok:
+                raise MapFileError(f"OctoMap could not write {path}")
+            os.chmod(tmp, 0o644)
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        return path
+
+    def load(self, path):
+        """Replace the map with the file's; on any error the current map stays as it was."""
+        tree = read_octree_file(path, expected_resolution_m=self.resolution_m)
+        self._apply_sensor_model(tree)
+        self.tree = tree
+        self._last_hit_by.clear()
+        self.version += 1
+        return tree.size()
+
+
+def _format_of(path):
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in (".bt", ".ot"):
+        raise MapFileError(f"{path}: unknown map format '{ext}' (use .bt or .ot)")
+    return ext == ".bt"
+
+
+def parse_header(data: bytes, source="map"):
+    """(binary, id, size, resolution, body offset) of an OctoMap file's bytes; MapFileError if not one."""
+    first, _, _ = data.partition(b"\n")
+    if first.rstrip() == BT_HEADER:
+        binary = True
+    elif first.rstrip() == OT_HEADER:
+        binary = False
+    else:
+        raise MapFileError(f"{source}: not an OctoMap file (first line {first[:60]!r})")
+    fields, offset = {}, len(first) + 1
+    while offset < len(data):
+        line, _, _ = data[offset:].partition(b"\n")
+        offset += len(line) + 1
+        text = line.decode(errors="replace").strip()
+        if text == "data":
+            break
+        if text.startswith("#") or not text:
+            continue
+        key, _, value = text.partition(" ")
+        fields[key] = value.strip()
+    else:
+        raise MapFileError(f"{source}: OctoMap header has no 'data' line (truncated file?)")
+    try:
+        tree_id, size, res = fields.get("id", "OcTree"), int(fields["size"]), float(fields["res"])
+    except (KeyError, ValueError) as exc:
+        raise MapFileError(f"{source}: bad OctoMap header {fields}: {exc}") from exc
+    if tree_id != "OcTree":
+        raise MapFileError(f"{source}: tree type '{tree_id}' is not an occupancy OcTree")
+    return binary, tree_id, size, res, offset
+
+
+def read_octree_file(path, expected_resolution_m=None):
+    """A validated octomap.OcTree from a .bt or .ot file; MapFileError says what is wrong."""
+    path = os.path.abspath(os.path.expanduser(path))
+    binary = _format_of(path)
+    try:
+        with open(path, "rb") as stream:
+            data = stream.read()
+    except OSError as exc:
+        raise MapFileError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    is_binary, _, size, res, _ = parse_header(data, path)
+    if is_binary != binary:
+        raise MapFileError(f"{path}: the extension says {'.bt' if binary else '.ot'} but the content is "
+                           f"{'binary (.bt)' if is_binary else 'full (.ot)'}")
+    if expected_resolution_m is not None and not math.isclose(res, expected_resolution_m, rel_tol=1e-6):
+        raise MapFileError(f"{path}: resolution {res} m differs from the map's {expected_resolution_m} m")
+    tree = octree_from_bytes(data, path)
+    if tree.size() != size:
+        raise MapFileError(f"{path}: header says {size} nodes but {tree.size()} were read (truncated file?)")
+    return tree
+
+
+def octree_from_bytes(data: bytes, source="map"):
+    """An octomap.OcTree from the bytes of a whole .bt or .ot file."""
+    binary, _, _, res, _ = parse_header(data, source)
+    if binary:
+        tree = octomap.OcTree(res)
+        if not tree.readBinary(data):
+            raise MapFileError(f"{source}: OctoMap could not read the binary tree")
+        return tree
+    with tempfile.NamedTemporaryFile(suffix=".ot") as tmp:
+        tmp.write(data)
+        tmp.flush()
+        try:
+            return octomap.OcTree.read(tmp.name.encode())
+        except Exception as exc:  # the binding raises a bare Exception/IOError
+            raise MapFileError(f"{source}: OctoMap could not read the tree: {exc}") from exc
+
+
+def message_fields(fused: FusedOctoMap, binary=True):
+    """(binary, id, resolution, data body) as octomap_msgs/Octomap carries them (no file header)."""
+    data = fused.to_bytes(binary)
+    _, tree_id, _, res, offset = parse_header(data)
+    return binary, tree_id, res, data[offset:]
+
+
+def octree_from_message(binary, tree_id, resolution_m, body: bytes):
+    """Rebuild an octomap.OcTree from a cps_msgs/Octomap's fields (the GUI's side); binary only."""
+    if not binary:
+        raise MapFileError("octomap message: only binary (.bt) bodies can be rebuilt without their node count")
+    size = binary_body_node_count(body)
+    header = BT_HEADER + b"\n#\nid " + tree_id.encode() + b"\nsize " + str(size).encode() + \
+        b"\nres " + repr(float(resolution_m)).encode() + b"\ndata\n"
+    return octree_from_bytes(header + bytes(body), "octomap message")
+
+
+def binary_body_node_count(body: bytes):
+    """Nodes in a binary (.bt) tree body: the root plus every child marked known in the stream.
+
+    The body is OctoMap's pre-order stream of 2 bytes per node with children, 2 bits per child
+    (00 = no child), so the count needs no tree; the file header's `size` needs it.
+    """
+    raw = np.frombuffer(bytes(body), dtype=np.uint8)
+    if raw.size == 0:
+        return 0
+    pairs = np.stack([(raw >> shift) & 3 for shift in (0, 2, 4, 6)])
+    return 1 + int(np.count_nonzero(pairs))

@@ -1,0 +1,220 @@
+"""FusedOctoMap: fusion of several robots' clouds, batching, persistence readable by OctoMap's own
+tools, and every bad input (non-finite points, corrupt or wrong-type files) leaving the map intact."""
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import octomap
+import pytest
+
+from cps_mapping import synthetic_scene as sc
+from cps_mapping.octree_map import (FusedOctoMap, MapFileError, message_fields, octree_from_message, pack_index,
+                                    read_octree_file, voxel_index)
+
+RES = 0.1
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return sc.hall_scene()
+
+
+@pytest.fixture(scope="module")
+def two_robot_clouds(scene):
+    """A depth robot looking at crate_b and a lidar robot next to crate_a, a few frames each."""
+    depth = sc.robot_clouds(scene, "depth", sc.trajectory([-1.0, 2.0, 0.5], [-0.8, 2.0, 0.5], 2), RES)
+    lidar = sc.robot_clouds(scene, "lidar", sc.trajectory([-5.0, -1.5, 0.6], [-4.8, -1.5, 0.6], 2), 0.01)
+    return depth, lidar
+
+
+def _set(index):
+    return set(pack_index(index).tolist())
+
+
+def test_two_robots_land_in_one_map_at_the_right_places(scene, two_robot_clouds):
+    depth, lidar = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, max_range_m=6.0, robot="jackal")
+    fused.insert_batch(lidar, max_range_m=12.0, robot="scout")
+    occupied = _set(fused.occupied_index())
+    truth = _set(voxel_index(scene.occupied_voxels(RES), RES))
+    assert len(occupied & truth) / len(occupied) > 0.98, "occupied voxels must lie on the scene's surfaces"
+    for crate in ("crate_a", "crate_b"):
+        box = next(b for b in scene.boxes if b.name == crate)
+        crate_truth = _set(voxel_index(sc.BoxScene((box,)).occupied_voxels(RES), RES))
+        assert len(crate_truth & occupied) > 30, f"{crate} is missing from the fused map"
+    contributions = fused.contributions()
+    assert set(contributions) == {"jackal", "scout"}
+    assert sum(contributions.values()) == len(occupied)
+
+
+def test_each_robot_alone_sees_only_its_part(scene, two_robot_clouds):
+    depth, _ = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, max_range_m=6.0, robot="jackal")
+    crate_b = next(b for b in scene.boxes if b.name == "crate_b")
+    centers = fused.occupied_centers()
+    near_b = np.all((centers >= np.asarray(crate_b.min_m) - 0.1) & (centers <= np.asarray(crate_b.max_m) + 0.1), axis=1)
+    assert near_b.sum() > 30
+    assert centers[:, 0].min() > -1.0, "a camera looking along +x from x=-1 cannot see behind itself"
+
+
+def test_batch_keeps_every_voxel_sequential_insertion_finds(scene):
+    clouds = sc.robot_clouds(scene, "depth", sc.trajectory([-2.0, 0.0, 0.5], [-1.6, 0.0, 0.5], 4), RES)
+    plain = octomap.OcTree(RES)
+    for tree_setter, value in ((plain.setProbHit, 0.7), (plain.setProbMiss, 0.4), (plain.setClampingThresMin, 0.12),
+                               (plain.setClampingThresMax, 0.97)):
+        tree_setter(value)
+    for points, origin in clouds:
+        plain.insertPointCloud(points, origin, maxrange=6.0)
+    plain_occ = {tuple(np.floor(np.array([it.getX(), it.getY(), it.getZ()]) / RES).astype(int))
+                 for it in plain.begin_leafs() if it.getValue() > 0}
+    fused = FusedOctoMap(RES)
+    result = fused.insert_batch(clouds, max_range_m=6.0, robot="jackal")
+    assert result.groups == 1 and result.clouds == 4
+    ours = {tuple(i) for i in fused.occupied_index().tolist()}
+    assert len(plain_occ & ours) / len(plain_occ) >= 0.99
+
+
+def test_far_origins_are_not_merged(scene):
+    clouds = sc.robot_clouds(scene, "depth", sc.trajectory([-2.0, 0.0, 0.5], [0.0, 0.0, 0.5], 3), RES)
+    result = FusedOctoMap(RES, merge_origin_tolerance_m=0.5).insert_batch(clouds, 6.0, "jackal")
+    assert result.groups == 3
+
+
+def test_non_finite_and_empty_clouds(scene):
+    fused = FusedOctoMap(RES)
+    points = np.array([[1.0, 0.0, 0.5], [np.nan, 0.0, 0.0], [np.inf, 1.0, 1.0]])
+    result = fused.insert_cloud(points, [0.0, 0.0, 0.5], max_range_m=6.0, robot="jackal")
+    assert result.points_rejected == 2 and result.points_inserted == 1
+    assert len(fused.occupied_index()) == 1
+    version = fused.version
+    empty = fused.insert_cloud(np.zeros((0, 3)), [0.0, 0.0, 0.5], 6.0, "jackal")
+    assert empty.points_inserted == 0 and fused.version == version
+    with pytest.raises(ValueError, match="origin"):
+        fused.insert_cloud(points, [np.nan, 0.0, 0.0], 6.0, "jackal")
+    assert len(fused.occupied_index()) == 1
+
+
+def test_max_range_limits_occupied_voxels():
+    fused = FusedOctoMap(RES)
+    fused.insert_cloud(np.array([[3.0, 0.0, 0.0], [30.0, 0.0, 0.0]]), [0.0, 0.0, 0.0], max_range_m=6.0)
+    occupied = fused.occupied_centers()
+    assert len(occupied) == 1 and occupied[0][0] == pytest.approx(3.05)
+
+
+@pytest.mark.parametrize("ext", [".bt", ".ot"])
+def test_save_load_round_trip(tmp_path, two_robot_clouds, ext):
+    depth, lidar = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, 6.0, "jackal")
+    path = fused.save(str(tmp_path / f"sub/map{ext}"))
+    assert os.path.exists(path) and not [f for f in os.listdir(tmp_path / "sub") if f.startswith(".tmp")]
+    restored = FusedOctoMap(RES)
+    restored.load(path)
+    assert _set(restored.occupied_index()) == _set(fused.occupied_index())
+
+
+def test_saved_bt_opens_with_octomap_tools_and_equals_live_map(tmp_path, two_robot_clouds):
+    if not shutil.which("convert_octree"):
+        pytest.fail("octomap-tools (convert_octree) is not installed; ci/apt-packages.txt lists it")
+    depth, lidar = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, 6.0, "jackal")
+    fused.insert_batch(lidar, 12.0, "scout")
+    bt = fused.save(str(tmp_path / "live.bt"))
+    converted = tmp_path / "converted.ot"
+    run = subprocess.run(["convert_octree", bt, str(converted)], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0 and "OcTree" in run.stdout, run.stdout + run.stderr
+    assert read_octree_file(str(converted), expected_resolution_m=RES).size() == fused.tree.size()
+    live = {tuple(i) for i in fused.occupied_index().tolist()}
+    reread = FusedOctoMap(RES)
+    reread.load(str(converted))
+    assert {tuple(i) for i in reread.occupied_index().tolist()} == live
+    ot = fused.save(str(tmp_path / "live.ot"))
+    compare = subprocess.run(["compare_octrees", ot, ot], capture_output=True, text=True, timeout=60)
+    assert compare.returncode == 0 and "KLD: 0" in compare.stdout, compare.stdout
+
+
+def _bad_files(tmp_path):
+    good = FusedOctoMap(RES)
+    good.insert_cloud(np.array([[1.0, 1.0, 1.0]]), [0.0, 0.0, 0.0])
+    good.save(str(tmp_path / "good.bt"))
+    data = (tmp_path / "good.bt").read_bytes()
+    (tmp_path / "garbage.bt").write_bytes(b"\x00\x01garbage" * 50)
+    (tmp_path / "truncated.bt").write_bytes(data[: len(data) - 20])
+    (tmp_path / "text_as_binary.bt").write_bytes(data.replace(b"binary file", b"file", 1))
+    color = octomap.ColorOcTree(RES)
+    color.updateNode(np.array([0.05, 0.05, 0.05]), True)
+    color.write(str(tmp_path / "color.ot").encode())
+    coarse = FusedOctoMap(0.2)
+    coarse.insert_cloud(np.array([[1.0, 1.0, 1.0]]), [0.0, 0.0, 0.0])
+    coarse.save(str(tmp_path / "coarse.bt"))
+    (tmp_path / "map.png").write_bytes(data)
+    return {"garbage.bt": "not an OctoMap file", "truncated.bt": "", "text_as_binary.bt": "extension",
+            "color.ot": "ColorOcTree", "coarse.bt": "resolution", "map.png": "unknown map format",
+            "missing.bt": "cannot read"}
+
+
+def test_bad_map_files_leave_the_running_map_untouched(tmp_path, two_robot_clouds):
+    depth, _ = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, 6.0, "jackal")
+    before = _set(fused.occupied_index())
+    for name, reason in _bad_files(tmp_path).items():
+        with pytest.raises(MapFileError, match=reason) as info:
+            fused.load(str(tmp_path / name))
+        assert name in str(info.value)
+        assert _set(fused.occupied_index()) == before, f"loading {name} changed the map"
+
+
+def test_octomap_message_round_trip(two_robot_clouds):
+    depth, _ = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, 6.0, "jackal")
+    binary, tree_id, res, body = message_fields(fused)
+    assert binary and tree_id == "OcTree" and res == pytest.approx(RES)
+    assert not body.startswith(b"#"), "the message body carries no file header, as octomap_msgs"
+    tree = octree_from_message(binary, tree_id, res, body)
+    assert tree.size() == fused.tree.size()
+
+
+def test_clear_bbx_frees_only_inside(scene, two_robot_clouds):
+    depth, lidar = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, 6.0, "jackal")
+    fused.insert_batch(lidar, 12.0, "scout")
+    crate_b = next(b for b in scene.boxes if b.name == "crate_b")
+    lo, hi = np.asarray(crate_b.min_m) - 0.2, np.asarray(crate_b.max_m) + 0.2
+    before = fused.occupied_centers()
+    fused.clear_bbx(lo, hi)
+    after = fused.occupied_centers()
+    inside = np.all((after >= lo) & (after <= hi), axis=1)
+    assert not inside.any()
+    outside_before = before[~np.all((before >= lo) & (before <= hi), axis=1)]
+    assert len(after) == len(outside_before)
+    with pytest.raises(ValueError):
+        fused.clear_bbx(hi, lo)
+
+
+def test_projected_map_marks_crates_and_free_floor(scene, two_robot_clouds):
+    _, lidar = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(lidar, 12.0, "scout")
+    grid, origin = fused.projected_grid(z_min_m=0.2, z_max_m=2.0)
+    crate_a = next(b for b in scene.boxes if b.name == "crate_a")
+    cx, cy = (np.asarray(crate_a.min_m[:2]) + crate_a.max_m[:2]) / 2
+    col, row = int((crate_a.min_m[0] + 0.05 - origin[0]) / RES), int((cy - origin[1]) / RES)
+    assert grid[row, col] == 100
+    robot_col, robot_row = int((-4.9 - origin[0]) / RES), int((-1.5 - origin[1]) / RES)
+    assert grid[robot_row, robot_col] in (0, -1)
+    assert (grid == 0).sum() > (grid == 100).sum()
+
+
+def test_reset_empties_the_map(two_robot_clouds):
+    depth, _ = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, 6.0, "jackal")
+    fused.reset()
+    assert len(fused.occupied_index()) == 0 and fused.contributions() == {}
