@@ -1,0 +1,260 @@
+"""A real constrained link between a physical-twin host and a digital-twin host (the paper's Fig. 8).
+
+Two network namespaces, `<name>_phys` (10.201.0.1) and `<name>_twin` (10.201.0.2), joined by a veth
+pair whose both ends are shaped with a `tc` token bucket (tbf, default 60 Mbit/s, the paper's
+measured Wi-Fi) and, if asked, delay/loss with netem. ROS processes started through `ShapedLink`
+get ROS_IP and ROS_MASTER_URI of their side, so TCPROS really crosses the shaped link; iperf3
+measures it as the paper did. All traffic stays inside the two namespaces; `down` (and leaving the
+`ShapedLink` context, even on error) removes everything. Needs root and `ip netns`.
+"""
+import contextlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import time
+
+PHYS_IP = "10.201.0.1"
+TWIN_IP = "10.201.0.2"
+PREFIX_LEN = 30
+SIDES = ("phys", "twin")
+DEFAULT_RATE = "60mbit"
+DEFAULT_QUEUE_MS = 50.0
+_NAME = re.compile(r"^[a-z][a-z0-9]{0,9}$")
+_RATE = re.compile(r"^(\d+(\.\d+)?)(bit|kbit|mbit|gbit)$")
+_RATE_FACTOR = {"bit": 1.0, "kbit": 1e3, "mbit": 1e6, "gbit": 1e9}
+NO_LINK_HINT = "run with --link none (plain loopback) instead"
+
+
+class LinkError(RuntimeError):
+    """The link cannot be created, changed or measured; the message says why and what to do."""
+
+
+def rate_bits_per_s(rate):
+    """'60mbit' -> 6e7; LinkError for anything tc would not read the same way."""
+    match = _RATE.match(str(rate).strip().lower())
+    if not match:
+        raise LinkError(f"rate '{rate}' is not a tc rate like 60mbit, 500kbit or 1gbit")
+    value = float(match.group(1)) * _RATE_FACTOR[match.group(3)]
+    if value <= 0:
+        raise LinkError(f"rate '{rate}' must be > 0")
+    return value
+
+
+def namespace(name, side):
+    if side not in SIDES:
+        raise LinkError(f"side must be one of {', '.join(SIDES)}, got '{side}'")
+    return f"{name}_{side}"
+
+
+def side_ip(side):
+    return PHYS_IP if side == "phys" else TWIN_IP
+
+
+def _device(name, side):
+    return f"{name}_{side[0]}"  # cps_p / cps_t: at most 12 characters (IFNAMSIZ 15)
+
+
+def _check_name(name):
+    if not _NAME.match(name or ""):
+        raise LinkError(f"link name '{name}' must be 1-10 lowercase letters/digits, starting with a letter")
+
+
+def _run(argv, check=True, timeout_s=20.0):
+    proc = subprocess.run(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=timeout_s)
+    if check and proc.returncode != 0:
+        raise LinkError(f"`{' '.join(argv)}` failed ({proc.returncode}): {proc.stderr.strip() or proc.stdout.strip()}")
+    return proc
+
+
+def check_capability():
+    """LinkError naming what is missing unless we are root with ip, tc and network namespaces."""
+    if os.geteuid() != 0:
+        raise LinkError(f"the shaped link needs root (network namespaces and tc); {NO_LINK_HINT}")
+    for tool in ("ip", "tc"):
+        if shutil.which(tool) is None:
+            raise LinkError(f"the shaped link needs `{tool}` (Debian package iproute2); {NO_LINK_HINT}")
+    probe = f"cpsprobe{os.getpid() % 100000}"
+    result = _run(["ip", "netns", "add", probe], check=False)
+    if result.returncode != 0:
+        raise LinkError(f"cannot create network namespaces ({result.stderr.strip()}); {NO_LINK_HINT}")
+    _run(["ip", "netns", "del", probe], check=False)
+
+
+def list_namespaces():
+    out = _run(["ip", "netns", "list"], check=False).stdout
+    return [line.split()[0] for line in out.splitlines() if line.strip()]
+
+
+def link_exists(name):
+    return namespace(name, "phys") in list_namespaces() or namespace(name, "twin") in list_namespaces()
+
+
+def _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, verb):
+    """tc commands shaping one end: tbf alone, or netem (delay/loss) with tbf as its child."""
+    dev = _device(name, side)
+    rate_bps = rate_bits_per_s(rate)
+    burst_bytes = int(max(16000, rate_bps / 8 * 0.004))  # >= 4 ms at the rate, >= a few full frames
+    tbf = ["tbf", "rate", rate, "burst", str(burst_bytes), "latency", f"{queue_ms:g}ms"]
+    base = ["ip", "netns", "exec", namespace(name, side), "tc", "qdisc", verb, "dev", dev]
+    if delay_ms or loss_pct:
+        netem = ["netem"] + (["delay", f"{delay_ms:g}ms"] if delay_ms else []) + (["loss", f"{loss_pct:g}%"] if loss_pct else [])
+        return [base + ["root", "handle", "1:"] + netem, base + ["parent", "1:", "handle", "10:"] + tbf]
+    return [base + ["root", "handle", "1:"] + tbf]
+
+
+def _check_shaping_args(rate, delay_ms, loss_pct, queue_ms):
+    rate_bits_per_s(rate)
+    if not 0 <= delay_ms <= 10000:
+        raise LinkError(f"delay must be in [0, 10000] ms, got {delay_ms}")
+    if not 0 <= loss_pct < 100:
+        raise LinkError(f"loss must be in [0, 100) %, got {loss_pct}")
+    if not 1 <= queue_ms <= 10000:
+        raise LinkError(f"queue must be in [1, 10000] ms, got {queue_ms}")
+
+
+def link_up(name="cps", rate=DEFAULT_RATE, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
+    """Create both namespaces, the veth pair, addresses, loopbacks and the shaping on both ends."""
+    _check_name(name)
+    _check_shaping_args(rate, delay_ms, loss_pct, queue_ms)
+    check_capability()
+    if link_exists(name):
+        raise LinkError(f"link '{name}' already exists; `cps_link down --name {name}` first")
+    phys, twin = namespace(name, "phys"), namespace(name, "twin")
+    try:
+        _run(["ip", "netns", "add", phys])
+        _run(["ip", "netns", "add", twin])
+        # Created inside phys directly, so the pair never appears in the caller's namespace.
+        _run(["ip", "-n", phys, "link", "add", _device(name, "phys"), "type", "veth",
+              "peer", "name", _device(name, "twin"), "netns", twin])
+        for side in SIDES:
+            ns, dev = namespace(name, side), _device(name, side)
+            _run(["ip", "-n", ns, "addr", "add", f"{side_ip(side)}/{PREFIX_LEN}", "dev", dev])
+            _run(["ip", "-n", ns, "link", "set", "lo", "up"])
+            _run(["ip", "-n", ns, "link", "set", dev, "up"])
+            for cmd in _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, "add"):
+                result = _run(cmd, check=False)
+                if result.returncode != 0:
+                    if "netem" in cmd and "unknown" in result.stderr.lower():
+                        raise LinkError("this kernel has no netem qdisc (sch_netem), so --delay-ms/--loss-pct "
+                                        "cannot be applied; use the rate alone")
+                    raise LinkError(f"`{' '.join(cmd)}` failed: {result.stderr.strip()}")
+        _wait_until_up(name)
+    except BaseException:
+        link_down(name)
+        raise
+
+
+def _wait_until_up(name, timeout_s=5.0):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        states = [_run(["ip", "-n", namespace(name, side), "-br", "link", "show", "dev", _device(name, side)],
+                       check=False).stdout.split() for side in SIDES]
+        if all(len(s) > 1 and s[1] == "UP" for s in states):
+            return
+        if time.monotonic() > deadline:
+            raise LinkError(f"the veth pair of link '{name}' did not come up: {states}")
+        time.sleep(0.05)
+
+
+def link_set(name="cps", rate=DEFAULT_RATE, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
+    """Change the shaping of both ends live (e.g. 60 -> 20 -> 60 Mbit/s)."""
+    _check_name(name)
+    _check_shaping_args(rate, delay_ms, loss_pct, queue_ms)
+    if not link_exists(name):
+        raise LinkError(f"link '{name}' does not exist; `cps_link up --name {name}` first")
+    for side in SIDES:
+        for cmd in _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, "replace"):
+            _run(cmd)
+
+
+def link_down(name="cps"):
+    """Remove both namespaces (the veth pair and its qdiscs go with them). Idempotent."""
+    _check_name(name)
+    present = list_namespaces()
+    for side in SIDES:
+        ns = namespace(name, side)
+        if ns in present:
+            # Processes left in the namespace would keep it alive as a mount; kill them first.
+            pids = _run(["ip", "netns", "pids", ns], check=False).stdout.split()
+            for pid in pids:
+                with contextlib.suppress(ProcessLookupError, ValueError):
+                    os.kill(int(pid), 9)
+            _run(["ip", "netns", "del", ns], check=False)
+    left = [ns for ns in list_namespaces() if ns in (namespace(name, s) for s in SIDES)]
+    if left:
+        raise LinkError(f"could not remove namespaces {left}")
+
+
+def netns_argv(name, side, argv, env=None):
+    """argv that runs `argv` inside one side's namespace with `env` (e.g. ROS_IP) set."""
+    assignments = [f"{k}={v}" for k, v in (env or {}).items()]
+    return ["ip", "netns", "exec", namespace(name, side), "env", *assignments, *argv]
+
+
+def ros_env(side, master_port):
+    """ROS_IP of `side` and the master in the digital-twin namespace."""
+    return {"ROS_IP": side_ip(side), "ROS_MASTER_URI": f"http://{TWIN_IP}:{master_port}"}
+
+
+def measure_mbps(name="cps", seconds=3.0, reverse=False, port=5201):
+    """iperf3 server in the digital twin, client in the physical twin (as the paper: one machine
+    serves, the other receives); returns the received Mbit/s. `reverse` measures twin -> phys."""
+    if shutil.which("iperf3") is None:
+        raise LinkError("iperf3 is not installed (Debian package iperf3)")
+    if not 0.5 <= seconds <= 30:
+        raise LinkError(f"measurement time must be in [0.5, 30] s, got {seconds}")
+    server = subprocess.Popen(netns_argv(name, "twin", ["iperf3", "-s", "-1", "-B", TWIN_IP, "-p", str(port)]),
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        argv = ["iperf3", "-c", TWIN_IP, "-p", str(port), "-t", f"{seconds:g}", "-J"] + (["-R"] if reverse else [])
+        deadline = time.monotonic() + 5.0
+        while True:
+            result = _run(netns_argv(name, "phys", argv), check=False, timeout_s=seconds + 15)
+            try:
+                report = json.loads(result.stdout)
+            except ValueError:
+                report = {"error": result.stderr.strip() or result.stdout[-500:]}
+            if "error" not in report or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)  # the server may not listen yet
+        if "error" in report:
+            raise LinkError(f"iperf3 failed: {report['error']}")
+        return report["end"]["sum_received"]["bits_per_second"] / 1e6
+    finally:
+        server.kill()
+        server.wait(5)
+
+
+class ShapedLink:
+    """`with ShapedLink(rate="60mbit") as link:` the link exists inside the block and never after."""
+
+    def __init__(self, name="cps", rate=DEFAULT_RATE, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
+        self.name, self.rate, self.delay_ms, self.loss_pct, self.queue_ms = name, rate, delay_ms, loss_pct, queue_ms
+
+    def __enter__(self):
+        link_up(self.name, self.rate, self.delay_ms, self.loss_pct, self.queue_ms)
+        return self
+
+    def __exit__(self, *exc):
+        link_down(self.name)
+
+    def set_rate(self, rate):
+        link_set(self.name, rate, self.delay_ms, self.loss_pct, self.queue_ms)
+        self.rate = rate
+
+    def measure_mbps(self, seconds=3.0, reverse=False):
+        return measure_mbps(self.name, seconds, reverse)
+
+    def argv(self, side, argv, master_port=None, env=None):
+        merged = dict(ros_env(side, master_port) if master_port else {"ROS_IP": side_ip(side)})
+        merged.update(env or {})
+        return netns_argv(self.name, side, argv, merged)
+
+    def qdisc_bytes_sent(self, side):
+        """Bytes the shaping qdisc of `side` has sent so far (for per-window link accounting)."""
+        out = _run(["ip", "netns", "exec", namespace(self.name, side), "tc", "-s", "qdisc", "show",
+                    "dev", _device(self.name, side)]).stdout
+        match = re.search(r"qdisc tbf .*?Sent (\d+) bytes", out, re.S)
+        return int(match.group(1)) if match else 0
