@@ -68,3 +68,40 @@ def test_voxelgrid_nodelet_loads_and_filters(ros, rospy_node):
     finally:
         sub.unregister()
         pub.unregister()
+
+
+def test_voxel_nodelet_args_match_numpy_voxel_downsample(ros, rospy_node):
+    """The bringup's command line (leaf from fleet.yaml, no field filter) gives the same centroids
+    as cps_transport.voxel.voxel_downsample on an organized depth cloud with NaNs, 15 m deep."""
+    import dataclasses
+
+    from cps_msgs.fleet import load_fleet
+    from cps_transport import voxel_nodelet_args
+    from cps_transport.pointcloud import cloud_to_array, xyz_of
+    from cps_transport.synthetic_clouds import depth_camera_cloud
+    from cps_transport.voxel import voxel_downsample
+    from sensor_msgs.msg import PointCloud2
+
+    rospy = rospy_node
+    robot = dataclasses.replace(load_fleet().robot("jackal"), name="vgtest")
+    ros.popen(voxel_nodelet_args(robot), name="voxel_args")
+    ros.wait_for_topic("/vgtest/points_filtered", timeout_s=30)
+    received, got = [], threading.Event()
+    sub = rospy.Subscriber("/vgtest/points_filtered", PointCloud2, lambda m: (received.append(m), got.set()))
+    pub = rospy.Publisher("/vgtest/points", PointCloud2, queue_size=1, latch=True)
+    cloud = depth_camera_cloud(width=320, height=240)
+    try:
+        for _ in range(100):
+            cloud.header.stamp = rospy.Time.now()
+            pub.publish(cloud)
+            if got.wait(0.3):
+                break
+        assert received, "no output from the nodelet:\n" + ros.output("voxel_args")[-2000:]
+        theirs = xyz_of(cloud_to_array(received[-1]))
+        ours = voxel_downsample(xyz_of(cloud_to_array(cloud)), robot.voxel_leaf_m)
+        assert theirs[:, 2].max() > 10.0, "points beyond 1 m were dropped"
+        assert len(theirs) == len(ours)
+        np.testing.assert_allclose(theirs, ours, atol=1e-4)
+    finally:
+        sub.unregister()
+        pub.unregister()
