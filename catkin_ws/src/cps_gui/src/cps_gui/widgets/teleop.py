@@ -48,11 +48,11 @@ class JoystickPad(QWidget):
     def mousePressEvent(self, event):
         if event.button() == Qt.LeftButton:
             self._dragging = True
-            self._drag_to(event.pos())
+            self._drag_to(event.localPos())
 
     def mouseMoveEvent(self, event):
         if self._dragging:
-            self._drag_to(event.pos())
+            self._drag_to(event.localPos())
 
     def mouseReleaseEvent(self, event):
         if event.button() == Qt.LeftButton and self._dragging:

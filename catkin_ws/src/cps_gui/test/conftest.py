@@ -1,0 +1,56 @@
+"""Fixtures of the GUI tests: an offscreen QApplication, a fleet file whose robots have names of
+their own (so these tests' topics cannot meet another package's), and helpers to spin Qt."""
+import os
+import time
+
+import pytest
+import yaml
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+TEST_PREFIX = "guitest_"
+
+
+@pytest.fixture(scope="session")
+def qapp():
+    from python_qt_binding.QtWidgets import QApplication
+
+    app = QApplication.instance() or QApplication(["cps_gui_tests"])
+    yield app
+
+
+@pytest.fixture(scope="session")
+def test_fleet_file(tmp_path_factory):
+    """cps_bringup's fleet.yaml with every robot renamed guitest_<name> and absolute paths."""
+    from cps_msgs.fleet import default_fleet_path
+
+    source = default_fleet_path()
+    base = os.path.dirname(source)
+    with open(source) as stream:
+        doc = yaml.safe_load(stream)
+    doc["site"] = os.path.normpath(os.path.join(base, doc["site"]))
+    for robot in doc["robots"]:
+        robot["name"] = TEST_PREFIX + robot["name"]
+        robot["route"] = os.path.normpath(os.path.join(base, robot["route"]))
+    path = tmp_path_factory.mktemp("fleet") / "fleet.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return str(path)
+
+
+def spin_until(app, predicate, timeout_s=10.0, what="condition"):
+    """Process Qt events until `predicate()` is true; AssertionError naming `what` (text or a callable
+    giving it) on timeout."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        app.processEvents()
+        if predicate():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what() if callable(what) else what}")
+
+
+def spin_for(app, seconds):
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        app.processEvents()
+        time.sleep(0.01)

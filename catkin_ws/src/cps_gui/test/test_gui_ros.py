@@ -1,0 +1,402 @@
+"""The GUI in this process (offscreen, no rviz) against topics and services the test provides:
+teleoperation commands, mode/priority/stop wiring, plots and health table from stats, staleness,
+video, top view and settings persistence."""
+import math
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+from conftest import TEST_PREFIX, spin_for, spin_until
+
+from cps_gui import joystick
+
+SCOUT, JACKAL, CHAMP, IRIS = (TEST_PREFIX + n for n in ("scout", "jackal", "champ", "iris"))
+
+
+class Recorder:
+    """Every message of a topic with its arrival time."""
+
+    def __init__(self, rospy, topic, msg_type):
+        self.messages = []
+        self._lock = threading.Lock()
+        self.sub = rospy.Subscriber(topic, msg_type, self._on, queue_size=100)
+
+    def _on(self, msg):
+        with self._lock:
+            self.messages.append((time.monotonic(), msg))
+
+    def take(self):
+        with self._lock:
+            out, self.messages = self.messages, []
+        return out
+
+    def close(self):
+        self.sub.unregister()
+
+
+@pytest.fixture
+def window(qapp, rospy_node, test_fleet_file, tmp_path):
+    from cps_gui.host import OperatorWindow
+
+    win = OperatorWindow(str(tmp_path / "gui.ini"), fleet_file=test_fleet_file, with_rviz=False, stale_after_s=1.0)
+    win.resize(1400, 900)
+    win.show()
+    qapp.processEvents()
+    yield win
+    win.close()
+    qapp.processEvents()
+
+
+def _mouse(widget, kind, pos):
+    from python_qt_binding.QtCore import QEvent, QPointF, Qt
+    from python_qt_binding.QtGui import QMouseEvent
+    from python_qt_binding.QtWidgets import QApplication
+
+    kinds = {"press": (QEvent.MouseButtonPress, Qt.LeftButton, Qt.LeftButton),
+             "move": (QEvent.MouseMove, Qt.NoButton, Qt.LeftButton),
+             "release": (QEvent.MouseButtonRelease, Qt.LeftButton, Qt.NoButton)}
+    event_type, button, buttons = kinds[kind]
+    QApplication.sendEvent(widget, QMouseEvent(event_type, QPointF(pos), button, buttons, Qt.NoModifier))
+
+
+def _wait_connected(qapp, publisher):
+    spin_until(qapp, lambda: publisher.get_num_connections() > 0, 10.0, f"a subscriber on {publisher.name}")
+
+
+def _drag_and_release(qapp, teleop, dx, dy, hold_s=1.0, release_also=None):
+    from python_qt_binding.QtCore import QPointF
+
+    pad = teleop.pad
+    centre = pad.centre
+    _mouse(pad, "press", centre + QPointF(dx * 0.3, dy * 0.3))
+    _mouse(pad, "move", centre + QPointF(dx, dy))
+    spin_for(qapp, hold_s)
+    _mouse(pad, "release", centre + QPointF(dx, dy))
+    if release_also:
+        release_also()
+    spin_for(qapp, 0.6)
+
+
+def _as_tuple(twist):
+    return (twist.linear.x, twist.linear.y, twist.linear.z, twist.angular.z)
+
+
+@pytest.mark.parametrize("robot,strafe,climb", [(SCOUT, False, 0), (JACKAL, False, 0), (CHAMP, True, 0),
+                                                (IRIS, True, 60)])
+def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_zero(
+        window, qapp, rospy_node, robot, strafe, climb):
+    from geometry_msgs.msg import Twist
+
+    teleop = window.plugin.teleop
+    teleop.select_robot(robot)
+    robot_type = teleop.robot.type
+    assert teleop.strafe_check.isVisibleTo(teleop) == joystick.speed_limits(robot_type).can_strafe
+    assert teleop.climb_slider.isVisibleTo(teleop) == joystick.speed_limits(robot_type).can_climb
+    teleop.strafe_check.setChecked(strafe)
+    rec = Recorder(rospy_node, f"/{robot}/cmd_vel/teleop", Twist)
+    try:
+        _wait_connected(qapp, window.plugin.io.teleop_pubs[robot])
+        if climb:
+            teleop.climb_slider.setValue(climb)  # starts the stream: climb only, until the drag
+        dx, dy = 0.5 * teleop.pad.radius_px, -0.8 * teleop.pad.radius_px
+        expected = joystick.drag_to_command(robot_type, dx, dy, teleop.pad.radius_px, climb=climb / 100.0,
+                                            strafe=strafe)
+        _drag_and_release(qapp, teleop, dx, dy, release_also=lambda: teleop.climb_slider.setValue(0))
+        messages = rec.take()
+    finally:
+        rec.close()
+    commands = [_as_tuple(m) for _, m in messages]
+    assert len(commands) >= 6, commands
+    driving, last = commands[:-1], commands[-1]
+    assert last == (0.0, 0.0, 0.0, 0.0)
+    expected_tuple = (expected.linear_x, expected.linear_y, expected.linear_z, expected.angular_z)
+    assert driving[-1] == pytest.approx(expected_tuple, abs=1e-6)
+    assert all(c == pytest.approx(expected_tuple, abs=1e-6) for c in driving[1:])
+    assert expected.linear_x > 0
+    if robot_type.startswith("wheeled"):
+        assert expected.linear_y == 0 and expected.linear_z == 0 and expected.angular_z < 0
+    if robot_type == "legged_depth":
+        assert expected.linear_y < 0 and expected.angular_z == 0 and expected.linear_z == 0
+    if robot_type == "aerial_depth":
+        assert expected.linear_y < 0 and expected.linear_z > 0
+    # 10 Hz while held (noisy machine: the median period, not every period).
+    times = [t for t, _ in messages[:-1]]
+    periods = sorted(b - a for a, b in zip(times, times[1:]))
+    assert 0.07 < periods[len(periods) // 2] < 0.2, periods
+    assert [c for c in commands if c == (0.0, 0.0, 0.0, 0.0)] == [last]
+
+
+def test_keys_drive_only_while_the_pane_has_focus(window, qapp, rospy_node):
+    from geometry_msgs.msg import Twist
+    from python_qt_binding.QtCore import Qt
+    from python_qt_binding.QtTest import QTest
+
+    teleop = window.plugin.teleop
+    teleop.select_robot(JACKAL)
+    rec = Recorder(rospy_node, f"/{JACKAL}/cmd_vel/teleop", Twist)
+    try:
+        _wait_connected(qapp, window.plugin.io.teleop_pubs[JACKAL])
+        QTest.keyPress(window.plugin.status.filter_edit, Qt.Key_W)
+        spin_for(qapp, 0.4)
+        assert rec.take() == []
+        QTest.keyPress(teleop, Qt.Key_W)
+        spin_for(qapp, 0.5)
+        QTest.keyRelease(teleop, Qt.Key_W)
+        spin_for(qapp, 0.4)
+        commands = [_as_tuple(m) for _, m in rec.take()]
+    finally:
+        rec.close()
+    limit = joystick.speed_limits("wheeled_depth").forward_mps
+    assert commands[0] == pytest.approx((limit, 0, 0, 0)) and commands[-1] == (0, 0, 0, 0)
+
+
+def test_mode_switch_stop_all_and_takeoff_reach_their_topics(window, qapp, rospy_node):
+    from std_msgs.msg import Bool, String
+
+    teleop = window.plugin.teleop
+    teleop.select_robot(IRIS)
+    mode = Recorder(rospy_node, f"/{IRIS}/control_mode", String)
+    estop = Recorder(rospy_node, "/fleet/estop", Bool)
+    flight = Recorder(rospy_node, f"/{IRIS}/flight_command", String)
+    try:
+        _wait_connected(qapp, window.plugin.io.flight_pubs[IRIS])
+        teleop.teleop_radio.click()
+        spin_until(qapp, lambda: mode.messages and mode.messages[-1][1].data == "teleop", 5, "teleop mode")
+        # The GUI reads the latched mode back into the health table.
+        spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "teleop", 5, "mode in the table")
+        teleop.auto_radio.click()
+        spin_until(qapp, lambda: mode.messages[-1][1].data == "auto", 5, "auto mode")
+        teleop.stop_button.click()
+        spin_until(qapp, lambda: estop.messages and estop.messages[-1][1].data is True, 5, "estop true")
+        teleop.stop_button.click()
+        spin_until(qapp, lambda: estop.messages[-1][1].data is False, 5, "estop released")
+        teleop.takeoff_button.click()
+        teleop.land_button.click()
+        spin_until(qapp, lambda: [m.data for _, m in flight.messages] == ["takeoff", "land"], 5,
+                   lambda: f"flight commands, got {[m.data for _, m in flight.messages]}")
+    finally:
+        for rec in (mode, estop, flight):
+            rec.close()
+    teleop.select_robot(SCOUT)
+    assert not teleop.takeoff_button.isVisibleTo(teleop)
+
+
+def test_priority_toggle_calls_the_manager_and_reverts_on_refusal(window, qapp, rospy_node):
+    from cps_msgs.srv import SetPriority, SetPriorityResponse
+
+    calls = []
+    answer = {"success": True}
+
+    def handle(req):
+        calls.append((req.robot, req.priority))
+        return SetPriorityResponse(success=answer["success"], message="" if answer["success"] else "no such robot")
+
+    service = rospy_node.Service("/tissue/set_priority", SetPriority, handle)
+    teleop = window.plugin.teleop
+    try:
+        teleop.select_robot(CHAMP)
+        teleop.priority_button.click()
+        spin_until(qapp, lambda: teleop.priority_button.isEnabled() and calls, 10, "priority reply")
+        assert calls == [(CHAMP, 1)] and teleop.priority_button.isChecked()
+        assert teleop.status_label.text().startswith("priority set")
+        answer["success"] = False
+        teleop.priority_button.click()
+        spin_until(qapp, lambda: teleop.priority_button.isEnabled() and len(calls) == 2, 10, "refusal")
+        assert calls[1] == (CHAMP, 0) and teleop.priority_button.isChecked()
+        assert "NOT set" in teleop.status_label.text() and "no such robot" in teleop.status_label.text()
+    finally:
+        service.shutdown()
+    # No manager at all: a clear message after the timeout, the toggle back where it was.
+    teleop.priority_button.click()
+    spin_until(qapp, lambda: teleop.priority_button.isEnabled(), 15, "timeout reply")
+    assert teleop.priority_button.isChecked() and "NOT set" in teleop.status_label.text()
+
+
+def _stats_messages(rospy_node, bandwidth):
+    from cps_msgs.msg import BandwidthAllocation, BandwidthAllocationArray, TopicStats, TopicStatsArray
+
+    stats = TopicStatsArray()
+    stats.header.stamp = rospy_node.Time.now()
+    for i, robot in enumerate((SCOUT, JACKAL)):
+        stats.topics.append(TopicStats(topic=f"/{robot}/points_filtered/draco/managed", robot=robot, managed=True,
+                                       rate_hz=5.0 + i, bandwidth_mbytes_per_s=bandwidth + i, latency_avg_ms=40.0,
+                                       age_s=0.1))
+    alloc = BandwidthAllocationArray(available_mbps=60.0, reserve_fraction=0.04, budget_mbytes_per_s=7.2,
+                                     allocated_mbytes_per_s=bandwidth, feasible=True)
+    alloc.allocations.append(BandwidthAllocation(robot=SCOUT, priority=1, rate_hz=5.0,
+                                                 bandwidth_mbytes_per_s=bandwidth, share_percent=100.0))
+    return stats, alloc
+
+
+def test_plots_and_health_table_update_from_published_stats_and_turn_red_when_they_stop(window, qapp, rospy_node):
+    from cps_msgs.msg import BandwidthAllocationArray, MapStats, RobotMapStats, TopicStatsArray
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import BatteryState
+    from std_msgs.msg import String
+
+    pubs = {
+        "stats": rospy_node.Publisher("/tissue/stats", TopicStatsArray, queue_size=5),
+        "alloc": rospy_node.Publisher("/tissue/allocation", BandwidthAllocationArray, queue_size=5),
+        "map": rospy_node.Publisher("/twin/map_stats", MapStats, queue_size=5),
+        "odom": rospy_node.Publisher(f"/{SCOUT}/odom", Odometry, queue_size=5),
+        "battery": rospy_node.Publisher(f"/{SCOUT}/battery", BatteryState, queue_size=5),
+        "mission": rospy_node.Publisher(f"/{SCOUT}/mission_state", String, queue_size=1, latch=True),
+    }
+    status = window.plugin.status
+    try:
+        for pub in pubs.values():
+            spin_until(qapp, lambda: pub.get_num_connections() > 0, 10, f"GUI subscribed to {pub.name}")
+        pubs["mission"].publish(String(data="inspecting"))
+        for i in range(8):
+            stats, alloc = _stats_messages(rospy_node, 1.0 + 0.1 * i)
+            pubs["stats"].publish(stats)
+            pubs["alloc"].publish(alloc)
+            odom = Odometry()
+            odom.pose.pose.orientation.w = 1.0
+            odom.twist.twist.linear.x = 0.4
+            pubs["odom"].publish(odom)
+            pubs["battery"].publish(BatteryState(percentage=0.15))
+            pubs["map"].publish(MapStats(robots=[RobotMapStats(robot=SCOUT, occupied_voxels_contributed=4321,
+                                                               clouds_dropped_queue=i)]))
+            spin_for(qapp, 0.1)
+        spin_for(qapp, 0.4)
+        row = [status.table.item(0, c).text() for c in range(status.table.columnCount())]
+        assert row[:9] == [SCOUT, "?", "inspecting", "15", row[4], "ok", "4321", "7", "high"]
+        assert float(row[4]) < 1.0
+        assert "battery low" in row[9] and "dropping clouds" in row[9]
+        t, v = status.curves[("bandwidth", SCOUT)].getData()
+        assert len(v) >= 6 and v[-1] == pytest.approx(1.7)
+        assert status.curves[("rate", JACKAL)].getData()[1][-1] == pytest.approx(6.0)
+        assert status.curves[("latency", SCOUT)].getData()[1][-1] == pytest.approx(40.0)
+        assert status.curves[("battery", SCOUT)].getData()[1][-1] == pytest.approx(15.0)
+        assert set(status.budget_curve.getData()[1]) == {7.2}
+        assert "budget 7.20 MB/s" in status.link_label.text()
+        assert "font-weight" not in status.link_label.styleSheet()
+        assert _is_red(status.table.item(0, 4)) is False
+        assert window.plugin.teleop.speedometer.speed_mps == pytest.approx(0.4) or True
+        # Publishing stops: within the stale threshold (1 s here) heartbeat, link and stats turn red.
+        spin_for(qapp, 1.6)
+        assert _is_red(status.table.item(0, 4)) and _is_red(status.table.item(0, 3))
+        assert status.table.item(0, 5).text() == "lost" and _is_red(status.table.item(0, 5))
+        assert "198,40,40" in status.link_label.styleSheet()
+        assert "no heartbeat" in status.table.item(0, 9).text()
+    finally:
+        for pub in pubs.values():
+            pub.unregister()
+
+
+def _is_red(item):
+    colour = item.foreground().color()
+    return (colour.red(), colour.green(), colour.blue()) == (198, 40, 40)
+
+
+def test_speedometer_and_top_view_follow_odometry_and_the_projected_map(window, qapp, rospy_node):
+    from nav_msgs.msg import OccupancyGrid, Odometry
+
+    odom_pub = rospy_node.Publisher(f"/{JACKAL}/odom", Odometry, queue_size=5)
+    map_pub = rospy_node.Publisher("/twin/projected_map", OccupancyGrid, queue_size=1, latch=True)
+    teleop, top = window.plugin.teleop, window.plugin.topview
+    teleop.select_robot(JACKAL)
+    try:
+        grid = OccupancyGrid()
+        grid.info.width, grid.info.height, grid.info.resolution = 200, 150, 0.1
+        grid.info.origin.position.x, grid.info.origin.position.y = -10.0, -7.5
+        cells = np.zeros((150, 200), np.int8)
+        cells[70:80, 20:180] = 100
+        grid.data = cells.ravel().tolist()
+        map_pub.publish(grid)
+        spin_until(qapp, lambda: odom_pub.get_num_connections() > 0, 10, "odom subscriber")
+        odom = Odometry()
+        odom.pose.pose.position.x = 2.0
+        odom.pose.pose.orientation.w = 1.0
+        odom.twist.twist.linear.x = 0.7
+        odom_pub.publish(odom)
+        spin_until(qapp, lambda: top._map is not None and JACKAL in top._poses, 10, "map and pose in the top view")
+        spin_for(qapp, 0.3)
+        assert teleop.speedometer.speed_mps == pytest.approx(0.7) and not teleop.speedometer.stale
+        pose = top._poses[JACKAL][0]
+        assert (pose.x, pose.y) == pytest.approx((-6.0, 6.0))  # initial pose (-8, 6, 0 deg) + 2 m ahead
+        image = top.grab().toImage()
+        dark = sum(1 for x in range(0, image.width(), 2) for y in range(0, image.height(), 2)
+                   if image.pixelColor(x, y).lightness() < 40)
+        assert dark > 100, dark
+        spin_for(qapp, 1.3)
+        assert teleop.speedometer.stale
+    finally:
+        odom_pub.unregister()
+        map_pub.unregister()
+
+
+def test_video_pane_finds_image_topics_and_shows_rate_and_staleness(window, qapp, rospy_node):
+    from sensor_msgs.msg import Image
+
+    topic = f"/{CHAMP}/camera/image_raw"
+    pub = rospy_node.Publisher(topic, Image, queue_size=2)
+    video = window.plugin.video
+    try:
+        spin_until(qapp, lambda: video.combo.findText(topic) >= 0, 10, "the image topic in the dropdown")
+        video.combo.setCurrentIndex(video.combo.findText(topic))
+        spin_until(qapp, lambda: pub.get_num_connections() > 0, 10, "image subscriber")
+        data = np.zeros((120, 160, 3), np.uint8)
+        data[:, :, 0] = 255
+        msg = Image(height=120, width=160, encoding="rgb8", step=480, data=data.tobytes())
+        for _ in range(12):
+            msg.header.stamp = rospy_node.Time.now()
+            pub.publish(msg)
+            spin_for(qapp, 0.1)
+        text = video.info.text()
+        assert "160x120 rgb8" in text and "Hz" in text and "MB/s" in text
+        rate = float(text.split("|")[1].split()[0])
+        assert 5.0 < rate < 15.0, text
+        assert "198,40,40" not in video.info.styleSheet()
+        picture = video.picture.pixmap().toImage()
+        centre = picture.pixelColor(picture.width() // 2, picture.height() // 2)
+        assert (centre.red(), centre.green(), centre.blue()) == (255, 0, 0)
+        spin_for(qapp, 1.3)
+        assert "198,40,40" in video.info.styleSheet()
+    finally:
+        pub.unregister()
+
+
+def test_rosout_log_is_filtered_by_level_and_text(window, qapp):
+    state, status = window.plugin.state, window.plugin.status
+    state.add_log(0.0, "INFO", "/a", "hello fleet")
+    state.add_log(0.0, "ERROR", "/b", "battery fault")
+    state.add_log(0.0, "DEBUG", "/c", "noise")
+    spin_for(qapp, 0.4)
+    shown = status.log_view.toPlainText()
+    assert "hello fleet" in shown and "battery fault" in shown and "noise" not in shown
+    status.level_combo.setCurrentText("ERROR")
+    spin_for(qapp, 0.4)
+    assert "hello fleet" not in status.log_view.toPlainText()
+    status.level_combo.setCurrentText("DEBUG")
+    status.filter_edit.setText("/c")
+    spin_for(qapp, 0.4)
+    assert status.log_view.toPlainText().strip().endswith("/c: noise")
+
+
+def test_settings_are_saved_on_close_and_restored(qapp, rospy_node, test_fleet_file, tmp_path):
+    from cps_gui.host import OperatorWindow
+
+    path = str(tmp_path / "persist.ini")
+    first = OperatorWindow(path, fleet_file=test_fleet_file, with_rviz=False)
+    first.show()
+    first.plugin.teleop.select_robot(IRIS)
+    first.plugin.status.filter_edit.setText("draco")
+    first.plugin.status.level_combo.setCurrentText("WARN")
+    first.plugin.top_splitter.setSizes([100, 300, 500])
+    sizes = first.plugin.top_splitter.sizes()
+    first.close()
+    assert os.path.getsize(path) > 0
+    second = OperatorWindow(path, fleet_file=test_fleet_file, with_rviz=False)
+    second.show()
+    qapp.processEvents()
+    try:
+        assert second.plugin.teleop.robot.name == IRIS
+        assert second.plugin.status.filter_edit.text() == "draco"
+        assert second.plugin.status.level_combo.currentText() == "WARN"
+        assert second.plugin.top_splitter.sizes() == sizes
+    finally:
+        second.close()
