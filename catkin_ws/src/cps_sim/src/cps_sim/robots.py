@@ -132,7 +132,7 @@ def clamp_twist(twist, limits, previous=None, dt_s=None):
         np.clip(twist.vz, -limits.max_vertical_mps, limits.max_vertical_mps),
         np.clip(twist.wz, -limits.max_yaw_rate_rps, limits.max_yaw_rate_rps),
     ])
-    if previous is not None and dt_s is not None and dt_s > 0:
+    if previous is not None and dt_s is not None:
         prev = previous.as_array()
         step = np.array([limits.max_linear_accel_mps2] * 3 + [limits.max_yaw_accel_rps2]) * dt_s
         target = prev + np.clip(target - prev, -step, step)

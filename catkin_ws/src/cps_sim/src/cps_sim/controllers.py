@@ -1,0 +1,182 @@
+"""Route following and the velocity mux with dead-man (pure Python, no rospy).
+
+`RouteFollower` turns the robot's pose in `map` into a body-frame velocity toward the next
+waypoint and the mission state; `VelocityMux` chooses between the route's and the operator's
+commands and clamps every output to the robot type's limits.
+"""
+import math
+from typing import Optional
+
+from cps_msgs.config import ConfigError
+from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, spec_for, validate_twist
+from cps_sim.site import check_waypoint
+
+MISSION_STATES = ("idle", "transit", "inspecting", "done")
+CONTROL_MODES = ("auto", "teleop")
+
+
+def validate_route(route, site, robot_type):
+    """Raise ConfigError (route file, waypoint line) for a waypoint outside the hall or in equipment."""
+    spec_for(robot_type)
+    for waypoint, line in zip(route.waypoints, route.lines):
+        if robot_type != "aerial_depth" and waypoint.z != 0.0:
+            raise ConfigError(route.path, line, f"waypoint z = {waypoint.z} m: a {robot_type} robot drives on the floor (z = 0)")
+        if robot_type == "aerial_depth" and waypoint.z < MIN_FLIGHT_ALTITUDE_M:
+            raise ConfigError(route.path, line, f"waypoint z = {waypoint.z} m is below the {MIN_FLIGHT_ALTITUDE_M} m minimum flight altitude")
+        reason = check_waypoint(site, waypoint.x, waypoint.y, waypoint.z, robot_type)
+        if reason:
+            raise ConfigError(route.path, line, f"waypoint rejected: {reason}")
+
+
+def _wrap(angle):
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+class RouteFollower:
+    """Drives through the route's waypoints in order; aerial robots take off first and land last."""
+
+    def __init__(self, route, robot_type, tolerance_m=0.25, heading_gain=2.0):
+        self.route = route
+        self.spec = spec_for(robot_type)
+        self.aerial = robot_type == "aerial_depth"
+        self.tolerance_m = tolerance_m
+        self.heading_gain = heading_gain
+        self.index = 0
+        self.reached_inspect = False
+        self.landing = False
+        self.finished = False
+        self.started = False
+
+    @property
+    def state(self):
+        if not self.started:
+            return "idle"
+        if self.finished:
+            return "done"
+        if self.index >= len(self.route.waypoints):
+            return "transit"    # an aerial robot landing after its last waypoint
+        target = self.route.waypoints[self.index]
+        return "inspecting" if self.reached_inspect and target.inspect else "transit"
+
+    def update(self, x, y, z, yaw, airborne=None):
+        """(Twist in the body frame, flight command 'takeoff'/'land' or None) for the pose in map.
+
+        `airborne`: for aerial robots, whether it is flying (default: z above 0.5 m).
+        """
+        self.started = True
+        if self.finished:
+            return Twist(), None
+        if airborne is None:
+            airborne = z > 0.5
+        waypoints = self.route.waypoints
+        if self.aerial and not airborne and self.index < len(waypoints) and not self.landing:
+            return Twist(), "takeoff"
+        while self.index < len(waypoints):
+            wp = waypoints[self.index]
+            close_xy = math.hypot(wp.x - x, wp.y - y) <= self.tolerance_m
+            close_z = (not self.aerial) or abs(wp.z - z) <= self.tolerance_m
+            if not (close_xy and close_z):
+                break
+            if wp.inspect:
+                self.reached_inspect = True
+            self.index += 1
+        if self.index >= len(waypoints):
+            if self.aerial:
+                if airborne or z > 0.01:
+                    self.landing = True
+                    return Twist(), "land"
+            self.finished = True
+            return Twist(), None
+        wp = waypoints[self.index]
+        dx, dy = wp.x - x, wp.y - y
+        distance = math.hypot(dx, dy)
+        heading_error = _wrap(math.atan2(dy, dx) - yaw) if distance > 1e-6 else 0.0
+        limits = self.spec.limits
+        wz = max(-limits.max_yaw_rate_rps, min(limits.max_yaw_rate_rps, self.heading_gain * heading_error))
+        speed = min(self.spec.cruise_mps, 0.8 * distance + 0.1)
+        if self.aerial:
+            # Fly straight at the waypoint (holonomic), turning to face the direction of travel.
+            c, s = math.cos(yaw), math.sin(yaw)
+            scale = speed / distance if distance > 1e-6 else 0.0
+            vx, vy = (c * dx + s * dy) * scale, (-s * dx + c * dy) * scale
+            vz = max(-limits.max_vertical_mps, min(limits.max_vertical_mps, 1.0 * (wp.z - z)))
+            if distance < 0.5:
+                wz = 0.0
+            return Twist(vx, vy, vz, wz), None
+        # Ground robots turn on the spot when far off heading, then drive.
+        alignment = max(math.cos(heading_error), 0.0) ** 4 if abs(heading_error) < math.pi / 3 else 0.0
+        return Twist(speed * alignment, 0.0, 0.0, wz), None
+
+
+class VelocityMux:
+    """Chooses cmd_vel from the route (auto) or the operator (teleop), with dead-man and e-stop.
+
+    Teleop commands older than `deadman_s` and auto commands older than `auto_timeout_s` count
+    as zero. Non-finite or absurd commands are dropped (counted) and the robot holds.
+    """
+
+    def __init__(self, robot_type, deadman_s=0.5, auto_timeout_s=1.0):
+        self.limits = spec_for(robot_type).limits
+        self.deadman_s = deadman_s
+        self.auto_timeout_s = auto_timeout_s
+        self.mode = "auto"
+        self.estop = False
+        self._auto: Optional[Twist] = None
+        self._auto_t = -math.inf
+        self._teleop: Optional[Twist] = None
+        self._teleop_t = -math.inf
+        self.output = Twist()
+        self._output_t: Optional[float] = None
+        self.dropped = 0
+
+    def _accept(self, twist):
+        reason = validate_twist(twist, self.limits)
+        if reason:
+            self.dropped += 1
+        return reason
+
+    def on_auto(self, twist, now_s):
+        """Store a route command; returns why it was dropped, or None."""
+        reason = self._accept(twist)
+        if reason:
+            self._auto = None   # hold: a bad command must not leave the last good one running
+            return reason
+        self._auto, self._auto_t = twist, now_s
+        return None
+
+    def on_teleop(self, twist, now_s):
+        reason = self._accept(twist)
+        if reason:
+            self._teleop = None
+            return reason
+        self._teleop, self._teleop_t = twist, now_s
+        return None
+
+    def set_mode(self, mode):
+        if mode not in CONTROL_MODES:
+            raise ValueError(f"unknown control mode '{mode}' (known: {', '.join(CONTROL_MODES)})")
+        self.mode = mode
+
+    def set_estop(self, active):
+        self.estop = bool(active)
+
+    def selected(self, now_s):
+        """The raw command the mode selects now (zero when stale, stopped or missing)."""
+        if self.estop:
+            return Twist()
+        if self.mode == "teleop":
+            fresh = self._teleop is not None and now_s - self._teleop_t <= self.deadman_s
+            return self._teleop if fresh else Twist()
+        fresh = self._auto is not None and now_s - self._auto_t <= self.auto_timeout_s
+        return self._auto if fresh else Twist()
+
+    def update(self, now_s):
+        """The clamped command to execute now (velocity and acceleration limits)."""
+        dt = 0.0 if self._output_t is None else max(now_s - self._output_t, 0.0)
+        target = self.selected(now_s)
+        if self.estop:
+            self.output = Twist()   # an emergency stop does not ramp down
+        else:
+            self.output = clamp_twist(target, self.limits, self.output, dt)
+        self._output_t = now_s
+        return self.output

@@ -1,0 +1,423 @@
+"""The ROS side of cps_sim: parameters, topics and timers wired to the pure library.
+
+Three nodes use this: fleet_sim (`run_fleet_sim`), route_controller (`run_route_controller`)
+and velocity_mux (`run_velocity_mux`).
+"""
+import math
+import sys
+import threading
+import time
+
+import rospy
+import tf2_ros
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Twist as TwistMsg
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import BatteryState, CameraInfo, Image, JointState, PointCloud2
+from std_msgs.msg import Bool, String
+
+from cps_msgs.config import ConfigError, load_yaml_document
+from cps_msgs.fleet import load_fleet, robot_names_arg
+from cps_sim import messages
+from cps_sim.controllers import CONTROL_MODES, RouteFollower, VelocityMux, validate_route
+from cps_sim.robots import Twist, pose_matrix, validate_twist
+from cps_sim.scheduling import RateMeter, SensorScheduler
+from cps_sim.simulation import FleetSimulation, sensor_points
+from cps_sim.site import check_waypoint, load_site
+from cps_sim.world import RENDERERS
+
+CMD_TIMEOUT_S = 0.5
+
+
+def _fail(message):
+    """Log a start-up error and exit non-zero (a clear message instead of a traceback)."""
+    rospy.logfatal(message)
+    sys.stderr.write(message + "\n")
+    sys.stderr.flush()
+    raise SystemExit(1)
+
+
+def _positive_param(name, default):
+    value = rospy.get_param(name, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        _fail(f"parameter {rospy.resolve_name(name)} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def twist_from_msg(msg):
+    return Twist(msg.linear.x, msg.linear.y, msg.linear.z, msg.angular.z)
+
+
+def twist_to_msg(twist):
+    msg = TwistMsg()
+    msg.linear.x, msg.linear.y, msg.linear.z, msg.angular.z = twist.vx, twist.vy, twist.vz, twist.wz
+    return msg
+
+
+def load_fleet_param():
+    """The fleet from ~fleet_file (and ~profile, ~robots), exiting with file:line on errors."""
+    fleet_file = rospy.get_param("~fleet_file", "") or None
+    profile = rospy.get_param("~profile", "") or None
+    try:
+        fleet = load_fleet(fleet_file, profile)
+    except ConfigError as exc:
+        _fail(f"bad fleet file: {exc}")
+    robots = rospy.get_param("~robots", "")
+    names = [n.strip() for n in str(robots).split(",") if n.strip()]
+    try:
+        return robot_names_arg(fleet, names)
+    except ValueError as exc:
+        _fail(f"parameter ~robots: {exc}")
+
+
+def load_site_for(fleet):
+    try:
+        return load_site(fleet.site_path)
+    except ConfigError as exc:
+        _fail(f"bad site file: {exc}")
+
+
+def check_initial_poses(fleet, site):
+    """Exit naming fleet.yaml's line when an initial pose is outside the hall or in equipment."""
+    doc = load_yaml_document(fleet.path)
+    names = [r.get("name") for r in doc.data.get("robots", [])]
+    for robot in fleet.robots:
+        pose = robot.initial_pose
+        reason = check_waypoint(site, pose.x, pose.y, max(pose.z, 0.0) if pose.z > 0 else 0.0, robot.type, margin_m=0.2)
+        if reason:
+            line = doc.line(("robots", names.index(robot.name), "initial_pose"))
+            _fail(f"bad fleet file: {ConfigError(fleet.path, line, f'robots[{robot.name}].initial_pose: {reason}')}")
+
+
+# ------------------------------------------------------------------------------------------
+# fleet_sim
+# ------------------------------------------------------------------------------------------
+class FleetSimNode:
+    """All robots of the fleet in one world, publishing what their drivers would."""
+
+    def __init__(self):
+        self.fleet = load_fleet_param()
+        renderer = rospy.get_param("~renderer", "egl")
+        if renderer not in RENDERERS:
+            _fail(f"parameter ~renderer: unknown renderer '{renderer}' (known: {', '.join(RENDERERS)})")
+        self.odom_rate_hz = _positive_param("~odom_rate_hz", 50.0)
+        self.joint_rate_hz = _positive_param("~joint_state_rate_hz", 20.0)
+        self.battery_rate_hz = _positive_param("~battery_rate_hz", 1.0)
+        self.diagnostics_period_s = 1.0 / _positive_param("~diagnostics_rate_hz", 1.0)
+        self.max_step_s = _positive_param("~max_physics_step_s", 0.02)
+        self.max_catch_up_s = _positive_param("~max_catch_up_s", 1.0)
+        self.site = load_site_for(self.fleet)
+        check_initial_poses(self.fleet, self.site)
+        self.sim = FleetSimulation(self.fleet, site=self.site, renderer=renderer)
+        if renderer == "egl" and self.sim.renderer != "egl":
+            rospy.logwarn("EGL rendering unavailable; using TinyRenderer (slower)")
+        self.lock = threading.Lock()
+        self.pubs = {}
+        self.cmd_time = {}
+        self.bad_commands = {}
+        for name, sim in self.sim.robots.items():
+            pubs = {
+                "points": rospy.Publisher(f"/{name}/points", PointCloud2, queue_size=2),
+                "odom": rospy.Publisher(f"/{name}/odom", Odometry, queue_size=10),
+                "joint_states": rospy.Publisher(f"/{name}/joint_states", JointState, queue_size=10),
+                "battery": rospy.Publisher(f"/{name}/battery", BatteryState, queue_size=2),
+            }
+            if sim.config.has_depth_camera:
+                pubs["image"] = rospy.Publisher(f"/{name}/camera/image_raw", Image, queue_size=2)
+                pubs["info"] = rospy.Publisher(f"/{name}/camera/camera_info", CameraInfo, queue_size=2)
+            self.pubs[name] = pubs
+            self.cmd_time[name] = -math.inf
+            self.bad_commands[name] = 0
+            rospy.Subscriber(f"/{name}/cmd_vel", TwistMsg, self._on_cmd_vel, callback_args=name, queue_size=5)
+            if sim.robot.is_aerial:
+                rospy.Subscriber(f"/{name}/flight_command", String, self._on_flight_command, callback_args=name,
+                                 queue_size=5)
+        self.tf = tf2_ros.TransformBroadcaster()
+        self.static_tf = tf2_ros.StaticTransformBroadcaster()
+        self.diagnostics = rospy.Publisher("/diagnostics", DiagnosticArray, queue_size=5)
+        now = time.time()
+        statics = []
+        for name, sim in self.sim.robots.items():
+            statics.append(messages.transform_stamped(sim.robot.odom_in_map(), "map", f"{name}/odom", now))
+            statics.append(messages.transform_stamped(sim.robot.sensor_in_base(), f"{name}/base_link",
+                                                      sim.sensor_frame, now))
+        self.static_tf.sendTransform(statics)
+        self.scheduler = SensorScheduler({n: s.rate_hz for n, s in self.sim.robots.items()}, now)
+        self.physics_meter = RateMeter()
+        self.sim_time_s = 0.0
+        self.wall_start_s = now
+        self.rtf_window = []
+        rospy.loginfo("fleet_sim: %s profile, renderer %s, robots %s", self.fleet.profile.name, self.sim.renderer,
+                      ", ".join(self.sim.robots))
+
+    # Commands --------------------------------------------------------------------------------
+    def _on_cmd_vel(self, msg, name):
+        sim = self.sim.robots[name]
+        twist = twist_from_msg(msg)
+        reason = validate_twist(twist, sim.robot.spec.limits)
+        with self.lock:
+            if reason:
+                self.bad_commands[name] += 1
+                sim.robot.set_command(Twist())
+                rospy.logwarn_throttle(2.0, f"/{name}/cmd_vel: dropped {reason}; holding "
+                                            f"({self.bad_commands[name]} dropped so far)")
+                return
+            sim.robot.set_command(twist)
+            self.cmd_time[name] = time.time()
+
+    def _on_flight_command(self, msg, name):
+        command = msg.data.strip().lower()
+        with self.lock:
+            if not self.sim.robots[name].robot.flight_command(command):
+                rospy.logwarn_throttle(2.0, f"/{name}/flight_command: unknown command '{msg.data}' (known: takeoff, land)")
+
+    # Loop ------------------------------------------------------------------------------------
+    def _advance_physics(self, now):
+        lag = now - (self.wall_start_s + self.sim_time_s)
+        if lag > self.max_catch_up_s:
+            # The loop stalled (a long render): drop the excess instead of jumping the robots.
+            self.wall_start_s += lag - self.max_catch_up_s
+            lag = self.max_catch_up_s
+        with self.lock:
+            for name, sim in self.sim.robots.items():
+                if now - self.cmd_time[name] > CMD_TIMEOUT_S:
+                    sim.robot.set_command(Twist())
+            while lag > 1e-4:
+                dt = min(lag, self.max_step_s)
+                self.sim.step(dt)
+                self.sim_time_s += dt
+                lag -= dt
+        self.physics_meter.tick(now)
+
+    def _publish_state(self, now, joints, battery):
+        transforms = []
+        for name, sim in self.sim.robots.items():
+            robot = sim.robot
+            odom = messages.odometry(robot, now)
+            self.pubs[name]["odom"].publish(odom)
+            transforms.append(messages.transform_stamped(robot.base_in_odom(), f"{name}/odom", f"{name}/base_link", now))
+            if joints:
+                self.pubs[name]["joint_states"].publish(messages.joint_state(robot, now))
+            if battery:
+                self.pubs[name]["battery"].publish(messages.battery_state(robot, now))
+        self.tf.sendTransform(transforms)
+
+    def _capture(self, name):
+        sim = self.sim.robots[name]
+        with self.lock:
+            sensor_pose = sim.robot.sensor_in_map()
+        stamp = time.time()
+        frame = sim.sensor.capture(sensor_pose)
+        pubs = self.pubs[name]
+        pubs["points"].publish(messages.point_cloud2(sensor_points(frame), sim.sensor_frame, stamp))
+        if "image" in pubs:
+            pubs["image"].publish(messages.image_rgb8(frame.rgb, sim.sensor_frame, stamp))
+            pubs["info"].publish(messages.camera_info(sim.sensor, sim.sensor_frame, stamp))
+
+    def _publish_diagnostics(self, now):
+        array = DiagnosticArray()
+        array.header.stamp = messages.stamp(now)
+        wall = now - self._diag_wall_start
+        rtf = (self.sim_time_s - self._diag_sim_start) / wall if wall > 0 else 1.0
+        self._diag_wall_start, self._diag_sim_start = now, self.sim_time_s
+        fleet_status = DiagnosticStatus(level=DiagnosticStatus.OK if rtf > 0.9 else DiagnosticStatus.WARN,
+                                        name="cps_sim: fleet", hardware_id="fleet_sim",
+                                        message=f"real-time factor {rtf:.2f}")
+        fleet_status.values = [KeyValue("real_time_factor", f"{rtf:.3f}"), KeyValue("profile", self.fleet.profile.name),
+                               KeyValue("renderer", self.sim.renderer),
+                               KeyValue("physics_loop_hz", f"{self.physics_meter.rate_hz(now):.1f}")]
+        array.status.append(fleet_status)
+        summary = []
+        for name, sim in self.sim.robots.items():
+            achieved = self.scheduler.achieved_hz(name, now)
+            ok = achieved >= 0.9 * sim.rate_hz
+            kind = "lidar" if sim.config.has_lidar else "depth_camera"
+            status = DiagnosticStatus(level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
+                                      name=f"cps_sim: {name} {kind}", hardware_id=name,
+                                      message=f"{achieved:.1f} of {sim.rate_hz:.1f} Hz")
+            status.values = [KeyValue("configured_hz", f"{sim.rate_hz:.2f}"), KeyValue("achieved_hz", f"{achieved:.2f}"),
+                             KeyValue("mean_capture_ms", f"{self.scheduler.mean_run_ms(name):.1f}"),
+                             KeyValue("skipped_captures", str(self.scheduler.skipped[name])),
+                             KeyValue("dropped_commands", str(self.bad_commands[name])),
+                             KeyValue("battery_percentage", f"{100 * sim.robot.battery_fraction:.1f}")]
+            array.status.append(status)
+            summary.append(f"{name} {achieved:.1f}/{sim.rate_hz:.1f} Hz")
+        self.diagnostics.publish(array)
+        rospy.loginfo_throttle(10.0, f"fleet_sim: achieved sensor rates {', '.join(summary)}; real-time factor {rtf:.2f}")
+
+    def spin(self):
+        odom_period = 1.0 / self.odom_rate_hz
+        joint_period = 1.0 / self.joint_rate_hz
+        battery_period = 1.0 / self.battery_rate_hz
+        now = time.time()
+        next_odom = next_joint = next_battery = now
+        next_diag = now + self.diagnostics_period_s
+        self._diag_wall_start, self._diag_sim_start = now, self.sim_time_s
+        while not rospy.is_shutdown():
+            now = time.time()
+            self._advance_physics(now)
+            if now >= next_odom:
+                joints, battery = now >= next_joint, now >= next_battery
+                self._publish_state(now, joints, battery)
+                next_odom = max(next_odom + odom_period, now)
+                if joints:
+                    next_joint = max(next_joint + joint_period, now)
+                if battery:
+                    next_battery = max(next_battery + battery_period, now)
+            if now >= next_diag:
+                self._publish_diagnostics(now)
+                next_diag = max(next_diag + self.diagnostics_period_s, now)
+            name, due = self.scheduler.next()
+            if name is not None and due <= now:
+                started = time.time()
+                self._capture(name)
+                self.scheduler.done(name, started, time.time())
+                continue
+            wake = min(due, next_odom, next_diag)
+            delay = wake - time.time()
+            if delay > 0:
+                time.sleep(min(delay, odom_period))
+
+    def close(self):
+        self.sim.close()
+
+
+def run_fleet_sim():
+    rospy.init_node("fleet_sim")
+    node = FleetSimNode()
+    try:
+        node.spin()
+    finally:
+        node.close()
+
+
+# ------------------------------------------------------------------------------------------
+# route_controller
+# ------------------------------------------------------------------------------------------
+class RouteControllerNode:
+    """Follows the robot's route from its odometry and the known initial pose (in /<r>)."""
+
+    def __init__(self):
+        fleet = load_fleet_param()
+        name = rospy.get_param("~robot", "")
+        if not name:
+            _fail("parameter ~robot is required (the robot's name in the fleet file)")
+        try:
+            self.config = fleet.robot(name)
+        except KeyError as exc:
+            _fail(f"parameter ~robot: {exc.args[0]}")
+        site = load_site_for(fleet)
+        try:
+            route = fleet.route(name)
+            validate_route(route, site, self.config.type)
+        except ConfigError as exc:
+            _fail(f"bad route file: {exc}")
+        self.rate_hz = _positive_param("~rate_hz", 10.0)
+        pose = self.config.initial_pose
+        self.odom_in_map = pose_matrix(pose.x, pose.y, pose.z, pose.yaw_rad)
+        self.follower = RouteFollower(route, self.config.type)
+        self.cmd_pub = rospy.Publisher("cmd_vel/auto", TwistMsg, queue_size=5)
+        self.state_pub = rospy.Publisher("mission_state", String, queue_size=1, latch=True)
+        self.flight_pub = rospy.Publisher("flight_command", String, queue_size=5)
+        self.pose = None
+        self.last_state = None
+        self._publish_state()
+        rospy.Subscriber("odom", Odometry, self._on_odom, queue_size=5)
+        rospy.loginfo("route_controller %s: %d waypoints from %s", name, len(route.waypoints), route.path)
+
+    def _on_odom(self, msg):
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        yaw_odom = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+        m = self.odom_in_map @ pose_matrix(p.x, p.y, p.z, yaw_odom)
+        self.pose = (m[0, 3], m[1, 3], m[2, 3], math.atan2(m[1, 0], m[0, 0]))
+
+    def _publish_state(self):
+        state = self.follower.state
+        if state != self.last_state:
+            self.state_pub.publish(String(state))
+            rospy.loginfo("route_controller %s: mission %s", self.config.name, state)
+            self.last_state = state
+
+    def spin(self):
+        rate = rospy.Rate(self.rate_hz)
+        while not rospy.is_shutdown():
+            if self.pose is not None:
+                twist, flight = self.follower.update(*self.pose)
+                if flight:
+                    self.flight_pub.publish(String(flight))
+                if not self.follower.finished or self.last_state != "done":
+                    self.cmd_pub.publish(twist_to_msg(twist))
+                self._publish_state()
+            try:
+                rate.sleep()
+            except rospy.ROSInterruptException:
+                break
+
+
+def run_route_controller():
+    rospy.init_node("route_controller")
+    RouteControllerNode().spin()
+
+
+# ------------------------------------------------------------------------------------------
+# velocity_mux
+# ------------------------------------------------------------------------------------------
+class VelocityMuxNode:
+    """cmd_vel/auto or cmd_vel/teleop by control_mode -> cmd_vel, with dead-man and e-stop (in /<r>)."""
+
+    def __init__(self):
+        fleet = load_fleet_param()
+        name = rospy.get_param("~robot", "") or rospy.get_namespace().strip("/")
+        try:
+            self.config = fleet.robot(name)
+        except KeyError as exc:
+            _fail(f"parameter ~robot: {exc.args[0]}")
+        self.rate_hz = _positive_param("~rate_hz", 20.0)
+        deadman = _positive_param("~deadman_s", 0.5)
+        self.mux = VelocityMux(self.config.type, deadman_s=deadman)
+        self.lock = threading.Lock()
+        self.pub = rospy.Publisher("cmd_vel", TwistMsg, queue_size=5)
+        rospy.Subscriber("cmd_vel/auto", TwistMsg, self._on_cmd, callback_args="auto", queue_size=5)
+        rospy.Subscriber("cmd_vel/teleop", TwistMsg, self._on_cmd, callback_args="teleop", queue_size=5)
+        rospy.Subscriber("control_mode", String, self._on_mode, queue_size=5)
+        rospy.Subscriber("/fleet/estop", Bool, self._on_estop, queue_size=5)
+
+    def _on_cmd(self, msg, source):
+        with self.lock:
+            now = time.time()
+            handler = self.mux.on_auto if source == "auto" else self.mux.on_teleop
+            reason = handler(twist_from_msg(msg), now)
+        if reason:
+            rospy.logwarn_throttle(2.0, f"{rospy.resolve_name('cmd_vel/' + source)}: dropped {reason}; holding "
+                                        f"({self.mux.dropped} dropped so far)")
+
+    def _on_mode(self, msg):
+        try:
+            with self.lock:
+                self.mux.set_mode(msg.data.strip())
+            rospy.loginfo("velocity_mux %s: control mode %s", self.config.name, self.mux.mode)
+        except ValueError as exc:
+            rospy.logwarn_throttle(2.0, f"{rospy.resolve_name('control_mode')}: {exc}; staying in {self.mux.mode}")
+
+    def _on_estop(self, msg):
+        with self.lock:
+            self.mux.set_estop(msg.data)
+
+    def spin(self):
+        rate = rospy.Rate(self.rate_hz)
+        while not rospy.is_shutdown():
+            with self.lock:
+                out = self.mux.update(time.time())
+            self.pub.publish(twist_to_msg(out))
+            try:
+                rate.sleep()
+            except rospy.ROSInterruptException:
+                break
+
+
+def run_velocity_mux():
+    rospy.init_node("velocity_mux")
+    VelocityMuxNode().spin()
+
+
+__all__ = ["run_fleet_sim", "run_route_controller", "run_velocity_mux", "CONTROL_MODES"]

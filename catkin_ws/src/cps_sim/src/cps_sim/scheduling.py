@@ -1,0 +1,73 @@
+"""Sharing one simulator thread fairly between the fleet's sensors (pure Python).
+
+`SensorScheduler` runs the sensor whose capture is most overdue (earliest deadline first). A
+sensor that falls more than one period behind skips the missed captures instead of bursting,
+so when the machine cannot keep every nominal rate each sensor gets a share in proportion to
+its rate and none starves. `RateMeter` measures what was achieved.
+"""
+import collections
+
+
+class RateMeter:
+    """Events per second over the last `window_s` seconds."""
+
+    def __init__(self, window_s=5.0):
+        self.window_s = window_s
+        self._times = collections.deque()
+
+    def tick(self, now_s):
+        self._times.append(now_s)
+        self._trim(now_s)
+
+    def _trim(self, now_s):
+        while self._times and self._times[0] < now_s - self.window_s:
+            self._times.popleft()
+
+    def rate_hz(self, now_s):
+        self._trim(now_s)
+        if len(self._times) < 2:
+            return 0.0
+        span = max(now_s - self._times[0], self._times[-1] - self._times[0])
+        return (len(self._times) - 1) / span if span > 0 else 0.0
+
+
+class SensorScheduler:
+    """Earliest-deadline-first over periodic tasks keyed by name, with achieved-rate meters."""
+
+    def __init__(self, rates_hz, now_s, window_s=5.0):
+        for name, rate in rates_hz.items():
+            if not rate > 0:
+                raise ValueError(f"sensor '{name}': rate must be positive, got {rate}")
+        self.periods = {name: 1.0 / rate for name, rate in rates_hz.items()}
+        # Stagger the first captures so the sensors do not all fire in the same instant.
+        count = max(len(rates_hz), 1)
+        self.due = {name: now_s + i * min(self.periods.values()) / count for i, name in enumerate(rates_hz)}
+        self.meters = {name: RateMeter(window_s) for name in rates_hz}
+        self.busy_s = {name: 0.0 for name in rates_hz}
+        self.runs = {name: 0 for name in rates_hz}
+        self.skipped = {name: 0 for name in rates_hz}
+
+    def next(self):
+        """(name, due time) of the task to run next, or (None, inf) with no tasks."""
+        if not self.due:
+            return None, float("inf")
+        name = min(self.due, key=self.due.get)
+        return name, self.due[name]
+
+    def done(self, name, started_s, finished_s):
+        """Record a run of `name` that began at started_s and schedule its next one."""
+        self.meters[name].tick(started_s)
+        self.busy_s[name] += finished_s - started_s
+        self.runs[name] += 1
+        period = self.periods[name]
+        due = self.due[name] + period
+        if due < finished_s - period:
+            self.skipped[name] += int((finished_s - due) / period)
+            due = finished_s
+        self.due[name] = due
+
+    def achieved_hz(self, name, now_s):
+        return self.meters[name].rate_hz(now_s)
+
+    def mean_run_ms(self, name):
+        return 1000.0 * self.busy_s[name] / self.runs[name] if self.runs[name] else 0.0

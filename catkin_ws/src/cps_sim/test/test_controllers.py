@@ -1,0 +1,163 @@
+"""Route following, the velocity mux (dead-man, modes, e-stop, limits) and bad commands, without ROS."""
+import math
+
+import pytest
+
+from cps_msgs.config import ConfigError
+from cps_msgs.fleet import load_fleet, load_route
+from cps_sim.controllers import RouteFollower, VelocityMux, validate_route
+from cps_sim.robots import ROBOT_SPECS, Robot, Twist, spec_for
+from cps_sim.site import load_site
+
+
+def _fly(robot_cfg, route, seconds=400.0, dt=0.05):
+    robot = Robot(robot_cfg.name, robot_cfg.type, robot_cfg.initial_pose)
+    follower, mux = RouteFollower(route, robot_cfg.type), VelocityMux(robot_cfg.type)
+    states, t = [], 0.0
+    while t < seconds and follower.state != "done":
+        twist, flight = follower.update(robot.x, robot.y, robot.z, robot.yaw)
+        if flight:
+            robot.flight_command(flight)
+        mux.on_auto(twist, t)
+        robot.set_command(mux.update(t))
+        robot.step(dt)
+        t += dt
+        if not states or states[-1] != follower.state:
+            states.append(follower.state)
+    return robot, states, t
+
+
+@pytest.mark.parametrize("name", ["scout", "jackal", "champ", "iris"])
+def test_each_default_route_is_valid_and_ends_done_within_four_minutes(name):
+    fleet = load_fleet(profile="light")
+    cfg = fleet.robot(name)
+    route = fleet.route(name)
+    site = load_site(fleet.site_path)
+    validate_route(route, site, cfg.type)
+    robot, states, t = _fly(cfg, route)
+    assert states[0] == "transit" and "inspecting" in states and states[-1] == "done", states
+    assert t < 240.0
+    last = route.waypoints[-1]
+    assert math.hypot(robot.x - last.x, robot.y - last.y) < 0.5
+    if cfg.type == "aerial_depth":
+        assert robot.flight_state == "landed" and robot.z == 0.0
+
+
+def test_route_through_equipment_is_rejected_with_file_and_line(tmp_path):
+    site = load_site()
+    tank = site.item("tank_1")
+    path = tmp_path / "route.yaml"
+    path.write_text(f"waypoints:\n  - {{x: -8.5, y: -4.0}}\n  - {{x: {tank.x}, y: {tank.y}, inspect: true}}\n")
+    with pytest.raises(ConfigError) as err:
+        validate_route(load_route(path), site, "wheeled_lidar")
+    assert f"{path}:3:" in str(err.value) and "tank_1" in str(err.value)
+    path.write_text("waypoints:\n  - {x: 30.0, y: 0.0}\n")
+    with pytest.raises(ConfigError, match="outside the hall"):
+        validate_route(load_route(path), site, "wheeled_lidar")
+
+
+def test_unknown_robot_type_names_the_known_ones():
+    with pytest.raises(ValueError) as err:
+        spec_for("submarine")
+    for known in ROBOT_SPECS:
+        assert known in str(err.value)
+
+
+def test_deadman_stops_teleop_and_auto_takes_back_over():
+    mux = VelocityMux("wheeled_depth")
+    mux.set_mode("teleop")
+    mux.on_teleop(Twist(vx=0.5), 0.0)
+    for k in range(1, 5):
+        out = mux.update(0.1 * k)
+    assert out.vx == pytest.approx(0.5)
+    t = 0.4
+    while t < 0.6:                      # no teleop command since t = 0 -> dead-man at 0.5 s
+        t += 0.05
+        out = mux.update(t)
+    assert out.vx < 0.5
+    for _ in range(10):
+        t += 0.05
+        out = mux.update(t)
+    assert out.vx == 0.0
+    mux.on_auto(Twist(vx=0.3), t)
+    assert mux.update(t + 0.05).vx == 0.0   # still teleop: auto ignored
+    mux.set_mode("auto")
+    for _ in range(10):
+        t += 0.05
+        mux.on_auto(Twist(vx=0.3), t)
+        out = mux.update(t)
+    assert out.vx == pytest.approx(0.3)
+
+
+def test_estop_zeroes_at_once():
+    mux = VelocityMux("wheeled_lidar")
+    mux.on_auto(Twist(vx=1.0), 0.0)
+    for k in range(20):
+        mux.update(0.1 * k)
+    mux.set_estop(True)
+    assert mux.update(2.0).vx == 0.0
+    with pytest.raises(ValueError, match="known: auto, teleop"):
+        mux.set_mode("manual")
+
+
+@pytest.mark.parametrize("bad", [Twist(vx=float("nan")), Twist(wz=float("inf")), Twist(vx=1e6)])
+def test_nan_inf_and_absurd_commands_are_dropped_and_the_robot_holds(bad):
+    mux = VelocityMux("wheeled_depth")
+    mux.on_auto(Twist(vx=0.5), 0.0)
+    for k in range(1, 10):
+        mux.update(0.05 * k)
+    reason = mux.on_auto(bad, 0.5)
+    assert reason and mux.dropped == 1
+    out = mux.update(0.55)
+    assert math.isfinite(out.vx) and out.vx < 0.5     # holding: decelerating to zero
+    for k in range(12, 40):
+        out = mux.update(0.05 * k)
+    assert out.vx == 0.0
+
+
+def test_limits_clamp_velocity_and_acceleration():
+    limits = spec_for("legged_depth").limits
+    mux = VelocityMux("legged_depth")
+    mux.on_auto(Twist(vx=5.0, vy=5.0, wz=-9.0), 0.0)
+    first = mux.update(0.0)
+    second = mux.update(0.1)
+    assert second.vx == pytest.approx(min(limits.max_linear_accel_mps2 * 0.1, limits.max_forward_mps))
+    for k in range(2, 60):
+        out = mux.update(0.1 * k)
+    assert out.vx == pytest.approx(limits.max_forward_mps) and out.vy == pytest.approx(limits.max_lateral_mps)
+    assert out.wz == pytest.approx(-limits.max_yaw_rate_rps)
+    assert first.vx == 0.0
+
+
+def test_battery_drains_faster_when_moving_and_joints_move():
+    fleet = load_fleet()
+    still = Robot("a", "legged_depth", fleet.robot("champ").initial_pose)
+    moving = Robot("b", "legged_depth", fleet.robot("champ").initial_pose)
+    moving.set_command(Twist(vx=0.5))
+    for _ in range(200):
+        still.step(0.05)
+        moving.step(0.05)
+    assert moving.battery_fraction < still.battery_fraction < 1.0
+    assert moving.battery_current_a < still.battery_current_a < 0.0
+    assert len(moving.spec.joint_names) == 12 and any(abs(p - q) > 0.05 for p, q in zip(moving.joint_positions, still.joint_positions))
+
+
+def test_quadrotor_takes_off_holds_altitude_and_lands():
+    fleet = load_fleet()
+    iris = Robot("iris", "aerial_depth", fleet.robot("iris").initial_pose)
+    iris.set_command(Twist(vx=1.0))
+    iris.step(0.1)
+    assert iris.x == fleet.robot("iris").initial_pose.x      # landed: ignores cmd_vel
+    iris.flight_command("takeoff")
+    for _ in range(100):
+        iris.step(0.05)
+    assert iris.flight_state == "flying"
+    z = iris.z
+    iris.set_command(Twist())
+    for _ in range(40):
+        iris.step(0.05)
+    assert iris.z == pytest.approx(z, abs=0.05)                # altitude hold
+    iris.flight_command("land")
+    for _ in range(200):
+        iris.step(0.05)
+    assert iris.flight_state == "landed" and iris.z == 0.0
