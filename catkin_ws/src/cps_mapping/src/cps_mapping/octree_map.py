@@ -84,6 +84,19 @@ def unpack_index(packed):
     return np.stack([(packed >> 42) & mask, (packed >> 21) & mask, packed & mask], axis=1) - _INDEX_BIAS
 
 
+def near_any(index, other_index, tolerance_voxels):
+    """True for each voxel of `index` with a voxel of `other_index` within the Chebyshev tolerance."""
+    index = np.asarray(index, dtype=np.int64).reshape(-1, 3)
+    if len(index) == 0 or len(other_index) == 0:
+        return np.zeros(len(index), dtype=bool)
+    other = np.unique(pack_index(other_index))
+    r = range(-tolerance_voxels, tolerance_voxels + 1)
+    near = np.zeros(len(index), dtype=bool)
+    for offset in ((i, j, k) for i in r for j in r for k in r):
+        near |= np.isin(pack_index(index + np.asarray(offset, dtype=np.int64)), other, assume_unique=False)
+    return near
+
+
 def expand_leaves(centers_m, sizes_m, resolution_m):
     """Grid indices of the finest voxels covered by (possibly pruned) leaves."""
     centers = np.asarray(centers_m, dtype=np.float64).reshape(-1, 3)
