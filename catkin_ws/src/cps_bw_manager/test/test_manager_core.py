@@ -7,7 +7,8 @@ import pytest
 from cps_bw_manager.estimation import BandwidthEstimator
 from cps_bw_manager.manager import ManagerCore, ManagerSettings, link_totals
 
-SETTINGS = ManagerSettings(available_mbps=60.0, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0)
+SETTINGS = ManagerSettings(available_mbps=60.0, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0,
+                           headroom_messages=0.0)
 
 
 def _core(**kwargs):
@@ -22,6 +23,18 @@ def test_measured_sizes_drive_the_allocation():
     result = core.allocate()
     assert result.allocated_mbytes_per_s == pytest.approx(7.2)
     assert all(r.size_measured for r in result.robots)
+
+
+def test_headroom_keeps_room_for_one_message_per_robot_per_window():
+    import dataclasses
+
+    core = ManagerCore(["a", "b"], dataclasses.replace(SETTINGS, headroom_messages=1.0))
+    core.on_limiter_status("a", 200000.0, 50.0)
+    core.on_limiter_status("b", 200000.0, 50.0)
+    result = core.allocate()
+    assert result.budget_mbytes_per_s == pytest.approx(7.2)
+    assert result.allocated_mbytes_per_s == pytest.approx(7.2 - 0.4)
+    assert sum(r.share_percent for r in result.robots) == pytest.approx(100 * 6.8 / 7.2)
 
 
 def test_input_rate_caps_the_maximum_and_frees_bandwidth_for_the_others():
@@ -74,6 +87,7 @@ def test_unmeasured_sizes_are_safe_and_bad_sizes_are_refused():
     (dict(reserve_fraction=1.0), "reserve"), (dict(reserve_fraction=-0.5), "reserve"),
     (dict(min_rate_hz=40.0), "min_rate_hz"), (dict(max_rate_hz=math.nan), "max_rate_hz"),
     (dict(high_priority_weight=0.0), "high_priority_weight"),
+    (dict(headroom_messages=-1.0), "headroom_messages"), (dict(window_s=0.0), "window_s"),
 ])
 def test_bad_settings_name_the_parameter(change, match):
     import dataclasses

@@ -29,11 +29,18 @@ class ManagerSettings:
     high_priority_weight: float = DEFAULT_PRIORITY_WEIGHTS[1]
     floor_rate_hz: float = DEFAULT_FLOOR_RATE_HZ
     assumed_message_bytes: float = DEFAULT_ASSUMED_MESSAGE_BYTES
+    # Eq. 1 holds on average; for it to hold in every `window_s` window the budget keeps room for
+    # `headroom_messages` extra messages per robot per window (rate limiters release whole messages).
+    window_s: float = 1.0
+    headroom_messages: float = 1.0
 
     def validate(self):
         """ValueError naming the parameter that is wrong."""
         managed_budget_mbytes_per_s(self.available_mbps, self.reserve_fraction)
-        for name in ("min_rate_hz", "max_rate_hz", "high_priority_weight", "floor_rate_hz", "assumed_message_bytes"):
+        if not isinstance(self.headroom_messages, (int, float)) or not 0 <= self.headroom_messages <= 10:
+            raise ValueError(f"headroom_messages must be in [0, 10], got {self.headroom_messages!r}")
+        for name in ("min_rate_hz", "max_rate_hz", "high_priority_weight", "floor_rate_hz", "assumed_message_bytes",
+                     "window_s"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
@@ -113,11 +120,23 @@ class ManagerCore:
             out.append(self.book.demand(robot, m.message_bytes, s.min_rate_hz, max_rate))
         return out
 
+    def headroom_mbytes_per_s(self, demands, budget):
+        """Room for whole-message bursts inside a window, at most a quarter of the budget."""
+        s = self.settings
+        sizes = sum(d.message_bytes if _positive(d.message_bytes) else s.assumed_message_bytes for d in demands)
+        return min(0.25 * budget, s.headroom_messages * sizes / 1e6 / s.window_s)
+
     def allocate(self):
+        """The allocation of (budget - headroom); its `budget_mbytes_per_s` stays the full budget."""
         budget = managed_budget_mbytes_per_s(self.available_mbps, self.settings.reserve_fraction)
-        return allocate_frequencies(self.demands(), budget, priority_weights=self.weights,
+        demands = self.demands()
+        usable = budget - self.headroom_mbytes_per_s(demands, budget)
+        result = allocate_frequencies(demands, usable, priority_weights=self.weights,
                                     floor_rate_hz=self.settings.floor_rate_hz,
                                     assumed_message_bytes=self.settings.assumed_message_bytes)
+        robots = tuple(dataclasses.replace(r, share_percent=100.0 * r.bandwidth_mbytes_per_s / budget)
+                       for r in result.robots)
+        return dataclasses.replace(result, robots=robots, budget_mbytes_per_s=budget)
 
     def _known(self, robot):
         if robot not in self.measured:

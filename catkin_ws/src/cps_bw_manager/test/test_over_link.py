@@ -1,0 +1,106 @@
+"""Over the real shaped link (60 Mbit/s tbf between two namespaces, TCPROS across it): four robots
+publish realistic compressed clouds (Table 6 sizes) through cps_transport's rate limiters.
+Manager on: every 1 s window of consumed bandwidth stays within the budget and latency p95 < 100 ms
+(the paper's bound). Manager off: the same load overruns the link and latency grows. Both printed."""
+import os
+import time
+
+import pytest
+
+from cps_bw_manager import netns_link
+from cps_bw_manager.link_run import LinkRosGraph, read_records, summarize
+from cps_bw_manager.netns_link import ShapedLink
+from cps_msgs.processes import find_node
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+# robot: (mean Draco message bytes, input Hz) from Table 6 step 1 (MB/s / Hz); the lidar at 10 Hz.
+LOAD = {"scout": (34000, 10.0), "jackal": (142000, 30.0), "champ": (60000, 30.0), "iris": (67000, 30.0)}
+RESERVE = 0.04
+PHASE_S = 10.0
+
+
+def _capable():
+    try:
+        netns_link.check_capability()
+        return None
+    except netns_link.LinkError as exc:
+        return str(exc)
+
+
+def _set_all_rates(graph, rate_hz):
+    """Stand-in for `rostopic pub` to every limiter's rate_hz topic (the manager is not running)."""
+    code = ("import rospy,time; from std_msgs.msg import Float64; rospy.init_node('set_rates', anonymous=True);"
+            f"pubs=[rospy.Publisher('/%s/cloud_throttle/rate_hz' % r, Float64, queue_size=1, latch=True) for r in {list(LOAD)}];"
+            f"time.sleep(1.5); [p.publish(Float64({rate_hz})) for p in pubs]; time.sleep(1.0)")
+    result = graph.run_python("twin", code)
+    assert result.returncode == 0, result.stderr
+
+
+def _wait_for_file_rows(path, timeout_s):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if os.path.exists(path) and sum(1 for _ in open(path)) > 8:
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"{path} got no rows within {timeout_s} s")
+
+
+@pytest.mark.skipif(_capable() is not None, reason=f"{_capable()}")
+@pytest.mark.timeout(150)
+def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
+    name = "cpsbwl"
+    record_path = str(tmp_path / "received.txt")
+    csv_path = str(tmp_path / "allocation.csv")
+    try:
+        with ShapedLink(name, rate="60mbit") as link, LinkRosGraph(link) as graph:
+            available_mbps = link.measure_mbps(seconds=2)
+            budget = (1 - RESERVE) * available_mbps / 8.0
+            limiter = find_node("cps_transport", "rate_limiter")
+            for r in LOAD:
+                graph.start_python("phys", limiter, [f"__name:=cloud_throttle", f"__ns:=/{r}",
+                                                     f"~input:=/{r}/points_filtered/draco",
+                                                     f"~output:=/{r}/points_filtered/draco/managed"],
+                                   name=f"limiter_{r}")
+            graph.start_python("twin", os.path.join(HERE, "fixtures", "link_recorder.py"),
+                               [record_path, *LOAD], name="recorder")
+            graph.start_python("phys", os.path.join(HERE, "fixtures", "cloud_load.py"),
+                               [f"{r}:{size}:{hz}" for r, (size, hz) in LOAD.items()], name="load")
+            graph.start_python("twin", find_node("cps_bw_manager", "bandwidth_manager"),
+                               ["__name:=bandwidth_manager", f"_available_mbps:={available_mbps:.3f}",
+                                f"_reserve_fraction:={RESERVE}", f"_csv_path:={csv_path}"], name="manager")
+            _wait_for_file_rows(csv_path, 40.0)
+            _wait_for_file_rows(record_path, 40.0)
+            time.sleep(4.0)  # sizes measured and the first full allocation in force
+            on_t0 = time.time()
+            time.sleep(PHASE_S)
+            on_t1 = time.time()
+
+            manager = next(p for p in graph.sides["twin"].processes if p.cps_name == "manager")
+            graph.sides["twin"].stop(manager)
+            _set_all_rates(graph, 30.0)
+            time.sleep(2.0)
+            off_t0 = time.time()
+            time.sleep(PHASE_S)
+            off_t1 = time.time()
+            manager_log = graph.output("manager")
+    finally:
+        netns_link.link_down(name)
+    assert netns_link.list_namespaces() == [] or not any(ns.startswith(name) for ns in netns_link.list_namespaces())
+
+    records = read_records(record_path)
+    on, off = summarize(records, on_t0, on_t1), summarize(records, off_t0, off_t1)
+    offered = sum(size * hz for size, hz in LOAD.values()) / 1e6
+    print(f"\nlink: 60mbit tbf, iperf3 {available_mbps:.1f} Mbit/s -> budget {budget:.2f} MB/s "
+          f"(4 % reserve); offered load {offered:.2f} MB/s ({8 * offered:.1f} Mbit/s)")
+    for label, s in (("manager on ", on), ("manager off", off)):
+        print(f"{label}: consumed per 1 s window max {s.max_window_mbytes_per_s:.2f} MB/s, mean "
+              f"{s.mean_mbytes_per_s:.2f} MB/s; latency p50 {s.latency_p50_ms:.0f} ms, p95 {s.latency_p95_ms:.0f} ms, "
+              f"max {s.latency_max_ms:.0f} ms; rates " + ", ".join(f"{k} {v:.1f} Hz" for k, v in s.rates_hz.items()))
+    assert on.messages > 0 and off.messages > 0, manager_log[-2000:]
+    assert all(w <= budget for w in on.windows_mbytes_per_s), (on.windows_mbytes_per_s, budget)
+    assert on.latency_p95_ms < 100.0, manager_log[-2000:]
+    # Without the manager the offered load exceeds what the link can carry and queues build up.
+    assert offered > available_mbps / 8.0
+    assert off.latency_p95_ms > 2 * on.latency_p95_ms and off.latency_p95_ms > 100.0
