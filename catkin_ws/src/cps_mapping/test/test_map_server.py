@@ -105,10 +105,11 @@ def scene_clouds():
     return scene, sc.to_sensor_frame(depth, *JACKAL), sc.to_sensor_frame(lidar, *SCOUT)
 
 
-def _start(ros, map_file, name):
-    proc = ros.start_node("cps_mapping", "map_server", name=name, params={
-        "~robots": "jackal,scout,ghost", "~map_file": str(map_file), "~publish_period_s": 0.3,
-        "~tf_timeout_s": 0.3, "~autosave_period_s": 0.0, "~max_points_range_m": 200.0})
+def _start(ros, map_file, name, **extra):
+    params = {"~robots": "jackal,scout,ghost", "~map_file": str(map_file), "~publish_period_s": 0.3,
+              "~tf_timeout_s": 0.3, "~autosave_period_s": 0.0, "~max_points_range_m": 200.0}
+    params.update({f"~{k}": v for k, v in extra.items()})
+    proc = ros.start_node("cps_mapping", "map_server", name=name, params=params)
     ros.wait_for_service("/twin/clear_bbx", timeout_s=30)
     return proc
 
@@ -188,6 +189,7 @@ def test_map_server_end_to_end(ros, rospy_node, scene_clouds, tmp_path):
         crate_a = next(b for b in scene.boxes if b.name == "crate_a")
         assert rospy.ServiceProxy("/twin/clear_bbx", ClearBBX)(Point(*crate_a.min_m), Point(*crate_a.max_m)).success
         centers.wait(lambda m: m.width < before, what="clear_bbx effect")
+        assert save(str(tmp_path / "without_crate_a.bt")).success
         assert load(str(tmp_path / "copy.ot")).success
         centers.wait(lambda m: m.width == before, what="the loaded map")
         assert save("").success, "empty path saves to ~map_file"
@@ -195,16 +197,26 @@ def test_map_server_end_to_end(ros, rospy_node, scene_clouds, tmp_path):
         ros.stop(proc)
     assert map_file.exists(), "the server saves on shutdown"
 
-    # A restarted server resumes from its save.
-    proc = _start(ros, map_file, "map_server_b")
+    # A restarted server resumes from its save; against a baseline without crate_a, it reports
+    # crate_a as the one change.
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    changes = Latest("/twin/map_changes", MarkerArray)
+    proc = _start(ros, map_file, "map_server_b", baseline_map=str(tmp_path / "without_crate_a.bt"),
+                  change_period_s=1.0, change_report=str(tmp_path / "changes.md"))
     try:
         resumed = centers.wait(lambda m: m.header.stamp > occ_msg.header.stamp and m.width > 0, what="resumed map")
         assert resumed.width == before
+        boxes = [m for m in changes.wait(what="map changes").markers if m.type == Marker.CUBE]
+        assert len(boxes) == 1 and boxes[0].color.g > boxes[0].color.r, "crate_a must be the one appeared change"
+        crate_a = next(b for b in scene.boxes if b.name == "crate_a")
+        assert crate_a.min_m[0] - 0.2 < boxes[0].pose.position.x < crate_a.max_m[0] + 0.2
+        assert "appeared" in (tmp_path / "changes.md").read_text()
         rospy.ServiceProxy("/twin/reset", Empty)()
         centers.wait(lambda m: m.width == 0, what="reset")
     finally:
         ros.stop(proc)
-        for sub in (stats, centers, binary):
+        for sub in (stats, centers, binary, changes):
             sub.sub.unregister()
         for pub in (pub_j, pub_s, pub_ghost):
             pub.unregister()
