@@ -1,0 +1,95 @@
+"""Draco point-cloud transport for any rospy node, shaped like point_cloud_transport's plugin:
+a publisher created on a base topic advertises `<base>/draco` and encodes in `publish(cloud)`;
+a subscriber on a base topic listens on `<base>/draco` and hands the user's callback a decoded
+sensor_msgs/PointCloud2. Bad clouds and damaged payloads are counted, warned about (throttled)
+and reported on /diagnostics (see `ros_glue.DropReporter`); they never raise into rospy."""
+import rospy
+from rosgraph.names import ns_join
+from sensor_msgs.msg import PointCloud2
+
+from cps_msgs.msg import CompressedPointCloud2
+from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError
+from cps_transport.pointcloud import InvalidCloud
+from cps_transport.ros_glue import DropReporter
+
+TRANSPORT_SUFFIX = "draco"
+
+
+def draco_topic(base_topic):
+    """The transport topic of a base topic: `<base>/draco` (resolved in the caller's namespace)."""
+    return ns_join(rospy.resolve_name(base_topic), TRANSPORT_SUFFIX)
+
+
+class DracoPublisher:
+    """Advertises `<base>/draco` (cps_msgs/CompressedPointCloud2); `publish(cloud)` encodes a
+    sensor_msgs/PointCloud2 with `encoder` and sends it. `topic` overrides the transport topic
+    (the encoder node's `~output` remap). A cloud that cannot be encoded is dropped and counted."""
+
+    def __init__(self, base_topic, encoder=None, topic=None, queue_size=2, latch=False, **encoder_args):
+        self.base_topic = rospy.resolve_name(base_topic)
+        self.topic = rospy.resolve_name(topic) if topic else draco_topic(base_topic)
+        self.encoder = encoder if encoder is not None else DracoEncoder(**encoder_args)
+        self._publisher = rospy.Publisher(self.topic, CompressedPointCloud2, queue_size=queue_size, latch=latch)
+        self.report = DropReporter(self.base_topic)
+
+    @property
+    def invalid(self):
+        return self.report.invalid
+
+    @property
+    def published(self):
+        return self.report.processed
+
+    def get_num_connections(self):
+        return self._publisher.get_num_connections()
+
+    def publish(self, cloud):
+        """Encodes and publishes `cloud`; returns the CompressedPointCloud2, or None when dropped."""
+        try:
+            compressed = self.encoder.encode(cloud)
+        except (InvalidCloud, DracoError) as exc:
+            self.report.drop(exc)
+            return None
+        self.report.ok(nan_points_dropped=self.encoder.last_info.points_nan)
+        self._publisher.publish(compressed)
+        return compressed
+
+    def unregister(self):
+        self._publisher.unregister()
+
+
+class DracoSubscriber:
+    """Subscribes `<base>/draco` and calls `callback(cloud)` with each decoded
+    sensor_msgs/PointCloud2 (header kept). `topic` overrides the transport topic (the decoder
+    node subscribes `.../draco/managed`). A payload that cannot be decoded is dropped and counted."""
+
+    def __init__(self, base_topic, callback, decoder=None, topic=None, queue_size=10, buff_size=1 << 22):
+        self.topic = rospy.resolve_name(topic) if topic else draco_topic(base_topic)
+        self.decoder = decoder if decoder is not None else DracoDecoder()
+        self.callback = callback
+        self.report = DropReporter(self.topic)
+        self._subscriber = rospy.Subscriber(self.topic, CompressedPointCloud2, self._on_compressed,
+                                            queue_size=queue_size, buff_size=buff_size)
+
+    @property
+    def invalid(self):
+        return self.report.invalid
+
+    @property
+    def received(self):
+        return self.report.processed
+
+    def get_num_connections(self):
+        return self._subscriber.get_num_connections()
+
+    def _on_compressed(self, msg):
+        try:
+            cloud = self.decoder.decode(msg)
+        except (InvalidCloud, DracoError) as exc:
+            self.report.drop(exc)
+            return
+        self.report.ok()
+        self.callback(cloud)
+
+    def unregister(self):
+        self._subscriber.unregister()
