@@ -123,6 +123,7 @@ def test_limits_clamp_velocity_and_acceleration():
     second = mux.update(0.1)
     assert second.vx == pytest.approx(min(limits.max_linear_accel_mps2 * 0.1, limits.max_forward_mps))
     for k in range(2, 60):
+        mux.on_auto(Twist(vx=5.0, vy=5.0, wz=-9.0), 0.1 * k)
         out = mux.update(0.1 * k)
     assert out.vx == pytest.approx(limits.max_forward_mps) and out.vy == pytest.approx(limits.max_lateral_mps)
     assert out.wz == pytest.approx(-limits.max_yaw_rate_rps)
