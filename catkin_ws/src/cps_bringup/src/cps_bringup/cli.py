@@ -164,9 +164,13 @@ def _link_context(rate, log):
         yield None
         return
     from cps_bringup.link import namespaced_link
+    from cps_bw_manager.netns_link import LinkError
 
-    with namespaced_link(rate, log) as link:
-        yield link
+    try:
+        with namespaced_link(rate, log) as link:
+            yield link
+    except LinkError as exc:
+        raise BringupError(f"--link {rate}: {exc}") from exc
 
 
 def main(argv=None):

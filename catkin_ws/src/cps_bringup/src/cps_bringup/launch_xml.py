@@ -12,7 +12,7 @@ from cps_bringup.plan import NodeSpec
 
 
 def _split_node(spec: NodeSpec):
-    """(pkg, type, launch args, ros args) of a spec run by python or rosrun."""
+    """(package, node type, the rest of argv) of a spec run by python or rosrun."""
     argv = list(spec.argv)
     if argv[0] == "rosrun":
         return argv[1], argv[2], argv[3:]

@@ -19,6 +19,8 @@ class MissionProgress:
     occupied_voxels: int = 0
     map_age_s: Dict[str, float] = dataclasses.field(default_factory=dict)
     clouds_inserted: Dict[str, int] = dataclasses.field(default_factory=dict)
+    clouds_dropped: Dict[str, int] = dataclasses.field(default_factory=dict)
+    voxels_contributed: Dict[str, int] = dataclasses.field(default_factory=dict)
     rates_hz: Dict[str, float] = dataclasses.field(default_factory=dict)
     allocated_mbytes_per_s: float = 0.0
     budget_mbytes_per_s: float = 0.0
@@ -84,6 +86,9 @@ class MissionMonitor:
             for stats in msg.robots:
                 self.progress.map_age_s[stats.robot] = stats.map_age_s
                 self.progress.clouds_inserted[stats.robot] = stats.clouds_inserted
+                self.progress.clouds_dropped[stats.robot] = (stats.clouds_dropped_queue + stats.clouds_dropped_tf
+                                                             + stats.clouds_dropped_invalid)
+                self.progress.voxels_contributed[stats.robot] = stats.occupied_voxels_contributed
 
     def _on_allocation(self, msg):
         with self._lock:
@@ -106,6 +111,8 @@ class MissionMonitor:
                                        done_at_s=dict(self.progress.done_at_s),
                                        map_age_s=dict(self.progress.map_age_s),
                                        clouds_inserted=dict(self.progress.clouds_inserted),
+                                       clouds_dropped=dict(self.progress.clouds_dropped),
+                                       voxels_contributed=dict(self.progress.voxels_contributed),
                                        rates_hz=dict(self.progress.rates_hz),
                                        managed_latency_ms=dict(self.progress.managed_latency_ms),
                                        trajectories={r: list(t) for r, t in self.progress.trajectories.items()})

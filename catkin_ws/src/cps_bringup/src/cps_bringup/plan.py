@@ -28,6 +28,8 @@ class NodeSpec:
     restart_limit: int = 3
     # Labels of nodes that must be up before this one starts.
     after: Tuple[str, ...] = ()
+    # A job that ends by itself (e.g. the GUI taking a screenshot): exit 0 is success, not a death.
+    one_shot: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,9 +136,11 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv")})),
             wait_topics=("/tissue/allocation",)))
         if options.gui_screenshot_path:
+            # rviz needs an X server with OpenGL: a private Xvfb (Mesa llvmpipe) for the offscreen GUI.
             specs.append(NodeSpec(
                 "gui", DIGITAL,
-                py("cps_gui", "cps_gui", "--screenshot", options.gui_screenshot_path,
-                   "--after", str(options.gui_screenshot_after_s), *_args(common)),
-                restart_limit=0))
+                ("xvfb-run", "-a", "-s", "-screen 0 1920x1200x24",
+                 *py("cps_gui", "cps_gui", "--screenshot", options.gui_screenshot_path,
+                     "--after", str(options.gui_screenshot_after_s), "--fleet-file", fleet.path)),
+                restart_limit=0, one_shot=True, after=("map_server",)))
     return specs

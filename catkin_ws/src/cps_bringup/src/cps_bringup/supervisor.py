@@ -101,13 +101,14 @@ class Supervisor:
         except OSError:
             return
         for running in self.running.values():
-            if not running.up and running.proc.poll() is None and all(t in topics for t in running.spec.wait_topics):
+            alive = running.proc.poll() is None or (running.spec.one_shot and running.proc.returncode == 0)
+            if not running.up and alive and all(t in topics for t in running.spec.wait_topics):
                 running.up = True
 
     def _check_deaths(self, during_start=False):
         for label, running in self.running.items():
             code = running.proc.poll()
-            if code is None:
+            if code is None or (code == 0 and running.spec.one_shot):
                 continue
             # `nodelet load` and other one-shot helpers exit 0 only when told to; any exit is a death.
             if running.restarts >= running.spec.restart_limit:

@@ -1,0 +1,71 @@
+"""Run the twins across cps_bw_manager's shaped link: the supervisor joins the digital-twin
+namespace (where roscore and the digital side run) and starts the physical side in the other.
+
+Entering a network namespace with setns(2) changes only the calling thread; the supervisor calls
+it from its main thread before it starts rospy or any process, so everything it starts afterwards
+is on the digital-twin host, and it returns to its own namespace before the link is removed.
+"""
+import contextlib
+import ctypes
+import dataclasses
+import os
+
+from cps_bw_manager.netns_link import (LinkError, PHYS_IP, TWIN_IP, ShapedLink, check_capability, link_exists,
+                                       namespace)
+
+LINK_NAME = "cpsfleet"
+_CLONE_NEWNET = 0x40000000
+
+
+def link_unavailable_reason():
+    """None when this process can create the link, else why not (not root, no netns, no tc)."""
+    try:
+        check_capability()
+    except LinkError as exc:
+        return str(exc)
+    return None
+
+
+def _setns(fd):
+    libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    if libc.setns(fd, _CLONE_NEWNET) != 0:
+        errno = ctypes.get_errno()
+        raise LinkError(f"setns failed: {os.strerror(errno)}")
+
+
+@dataclasses.dataclass
+class NamespacedLink:
+    rate: str
+    measured_mbps: float
+    phys_ip: str = PHYS_IP
+    twin_ip: str = TWIN_IP
+
+    def exec_prefix(self, side):
+        return ["ip", "netns", "exec", namespace(LINK_NAME, side)]
+
+    def describe(self):
+        return (f"tc-shaped {self.rate} veth between namespaces {namespace(LINK_NAME, 'phys')} ({self.phys_ip}) and "
+                f"{namespace(LINK_NAME, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s")
+
+
+@contextlib.contextmanager
+def namespaced_link(rate, log=print):
+    """Create the link, measure it, move this thread into the twin namespace; undo all on exit."""
+    check_capability()
+    if link_exists(LINK_NAME):
+        raise LinkError(f"a link named {LINK_NAME} already exists (another run?); remove it with "
+                        f"`cps_link down --name {LINK_NAME}`")
+    with ShapedLink(name=LINK_NAME, rate=rate) as link:
+        measured = link.measure_mbps(seconds=2.0)
+        log(f"[bringup] link {rate}: iperf3 measured {measured:.1f} Mbit/s physical → digital twin")
+        home = os.open("/proc/self/ns/net", os.O_RDONLY)
+        target = os.open(f"/var/run/netns/{namespace(LINK_NAME, 'twin')}", os.O_RDONLY)
+        try:
+            _setns(target)
+            try:
+                yield NamespacedLink(rate, measured)
+            finally:
+                _setns(home)
+        finally:
+            os.close(target)
+            os.close(home)

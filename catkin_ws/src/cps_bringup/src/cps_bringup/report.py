@@ -1,0 +1,195 @@
+"""The mission report: map quality against ground truth, link use and latency, plots, report.md.
+
+Reads what the running system wrote (map.bt, stats.csv from cps_transport's topic_stats,
+allocation.csv from cps_bw_manager) and the MissionResult of the supervisor.
+"""
+import csv
+import json
+import math
+import os
+from collections import defaultdict
+
+import numpy as np
+
+
+def read_csv(path):
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as stream:
+        return list(csv.DictReader(stream))
+
+
+def _float(value):
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def managed_link_windows(stats_rows):
+    """Per stats publication (≈ 1 s apart): time and the sum of managed MB/s over all robots."""
+    totals = defaultdict(float)
+    for row in stats_rows:
+        if row.get("managed") == "True":
+            value = _float(row["bandwidth_mbytes_per_s"])
+            if math.isfinite(value):
+                totals[_float(row["time_s"])] += value
+    times = sorted(totals)
+    return np.array(times), np.array([totals[t] for t in times])
+
+
+def latency_summary(stats_rows):
+    """Per robot: avg, max and p95 of the windowed managed-topic latency (ms), over windows with data."""
+    out = {}
+    per_robot = defaultdict(lambda: defaultdict(list))
+    for row in stats_rows:
+        if row.get("managed") != "True" or not row.get("latency_avg_ms"):
+            continue
+        for key in ("latency_avg_ms", "latency_max_ms", "latency_p95_ms"):
+            value = _float(row[key])
+            if math.isfinite(value):
+                per_robot[row["robot"]][key].append(value)
+    for robot, series in per_robot.items():
+        out[robot] = {"avg_ms": float(np.mean(series["latency_avg_ms"])),
+                      "max_ms": float(np.max(series["latency_max_ms"])),
+                      "p95_ms": float(np.percentile(series["latency_p95_ms"], 95))}
+    return out
+
+
+def score_saved_map(map_file, fleet, ground_truth_path):
+    """Load the saved map and score it against the simulator's ground truth at the map's resolution."""
+    from cps_mapping.octree_map import FusedOctoMap
+    from cps_mapping.scoring import score_fused_map
+    from cps_sim.ground_truth import save_ground_truth
+    from cps_sim.site import load_site
+
+    resolution = fleet.mapping.resolution_m
+    save_ground_truth(ground_truth_path, load_site(fleet.site_path), resolution)
+    fused = FusedOctoMap.from_mapping_config(fleet.mapping)
+    fused.load(map_file)
+    return score_fused_map(fused, ground_truth_path), fused
+
+
+def plot_link(stats_rows, allocation_rows, budget_mbytes_per_s, png_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(9, 9), sharex=True)
+    t0 = min([_float(r["time_s"]) for r in stats_rows] + [_float(r["stamp_s"]) for r in allocation_rows] or [0.0])
+    per_robot = defaultdict(list)
+    for row in stats_rows:
+        if row.get("managed") == "True":
+            per_robot[row["robot"]].append((_float(row["time_s"]) - t0, _float(row["bandwidth_mbytes_per_s"]),
+                                            _float(row["latency_avg_ms"]) if row.get("latency_avg_ms") else math.nan))
+    times, totals = managed_link_windows(stats_rows)
+    for robot, series in sorted(per_robot.items()):
+        series = np.array(series)
+        axes[0].plot(series[:, 0], series[:, 1], label=robot)
+        axes[2].plot(series[:, 0], series[:, 2], label=robot)
+    axes[0].plot(times - t0, totals, "k-", lw=2, label="total managed")
+    axes[0].axhline(budget_mbytes_per_s, color="r", ls="--", label=f"budget {budget_mbytes_per_s:.2f} MB/s")
+    axes[0].set_ylabel("received MB/s")
+    rates = defaultdict(list)
+    for row in allocation_rows:
+        rates[row["robot"]].append((_float(row["stamp_s"]) - t0, _float(row["rate_hz"])))
+    for robot, series in sorted(rates.items()):
+        series = np.array(series)
+        axes[1].step(series[:, 0], series[:, 1], where="post", label=robot)
+    axes[1].set_ylabel("allocated Hz")
+    axes[2].set_ylabel("latency avg ms")
+    axes[2].axhline(100, color="r", ls="--", label="paper's bound 100 ms")
+    axes[2].set_xlabel("mission time, s")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right")
+    fig.suptitle("Digital tissue during the mission (managed point-cloud topics)")
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)
+
+
+def _table(headers, rows):
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def write_mission_report(result, mission_args, wall_time_s):
+    """Score the map, plot the link, write report.md (and scores.json) into result.out_dir."""
+    from cps_bringup.experiments.topdown_map import plot_topdown
+    from cps_msgs.fleet import load_fleet, robot_names_arg
+
+    out = result.out_dir
+    fleet = load_fleet(mission_args.fleet, profile=mission_args.profile)
+    fleet = robot_names_arg(fleet, mission_args.robots.split(",") if mission_args.robots else None)
+    stats_rows = read_csv(os.path.join(out, "stats.csv"))
+    allocation_rows = read_csv(os.path.join(out, "allocation.csv"))
+    budget = fleet.link.budget_mbytes_per_s
+
+    lines = ["# Mission report", "",
+             f"- robots: {', '.join(fleet.robot_names)}; profile: {fleet.profile.name}",
+             f"- link: {result.link}",
+             f"- ended by: {result.ended_by} after {result.elapsed_s:.0f} s of mission "
+             f"({wall_time_s:.0f} s wall time including start-up and this report)", ""]
+
+    progress = result.progress
+    rows = []
+    for robot in fleet.robot_names:
+        path = np.array(progress.trajectories.get(robot) or [(math.nan,) * 3])
+        length = float(np.nansum(np.linalg.norm(np.diff(path, axis=0), axis=1))) if len(path) > 1 else 0.0
+        rows.append((robot, progress.mission_state.get(robot, "?"), progress.clouds_inserted.get(robot, 0),
+                     progress.clouds_dropped.get(robot, 0), progress.voxels_contributed.get(robot, 0),
+                     f"{length:.1f}", f"{progress.map_age_s.get(robot, math.nan):.2f}"))
+    lines += ["## Robots", "", "From the map server's live statistics at the end of the mission.", "",
+              _table(("robot", "final state", "clouds inserted", "clouds dropped", "occupied voxels last updated",
+                      "path m", "map age s"), rows), ""]
+
+    scores = None
+    if result.map_file and os.path.exists(result.map_file):
+        score, fused = score_saved_map(result.map_file, fleet, os.path.join(out, "ground_truth.npz"))
+        scores = score.as_dict()
+        with open(os.path.join(out, "scores.json"), "w") as stream:
+            json.dump(scores, stream, indent=2)
+        lines += ["## Map quality against the simulator's ground truth", "",
+                  f"Map `map.bt` ({score.map_voxels} occupied voxels at {score.resolution_m} m) against "
+                  f"{score.truth_voxels} ground-truth voxels ({score.observable_voxels} on the observable surface):", "",
+                  _table(("precision", "recall", "F1", "coverage of the observable surface"),
+                         [(f"{score.precision:.3f}", f"{score.recall:.3f}", f"{score.f1:.3f}", f"{score.coverage:.3f}")]),
+                  ""]
+        plot_topdown(fused.occupied_centers(), progress.trajectories, fleet, os.path.join(out, "topdown.png"))
+        lines += ["![top-down view of the fused map with the trajectories](topdown.png)", ""]
+    else:
+        lines += ["## Map quality", "", "No map was saved: see the map server's log in `logs/`.", ""]
+
+    times, totals = managed_link_windows(stats_rows)
+    busy = totals[totals > 0]
+    latency = latency_summary(stats_rows)
+    lines += ["## Link", "",
+              f"Managed point-cloud traffic received at the digital twin, per ~1 s window: avg "
+              f"{np.mean(busy) if len(busy) else 0:.3f} MB/s, max {np.max(busy) if len(busy) else 0:.3f} MB/s, "
+              f"std {np.std(busy) if len(busy) else 0:.3f} MB/s against a budget of {budget:.2f} MB/s "
+              f"(96 % of {fleet.link.available_mbps:.0f} Mbit/s); windows over budget: "
+              f"{int(np.sum(totals > budget))} of {len(totals)}.", "",
+              _table(("robot", "latency avg ms", "latency max ms", "latency p95 ms"),
+                     [(r, f"{v['avg_ms']:.1f}", f"{v['max_ms']:.1f}", f"{v['p95_ms']:.1f}")
+                      for r, v in sorted(latency.items())]), ""]
+    if stats_rows or allocation_rows:
+        plot_link(stats_rows, allocation_rows, budget, os.path.join(out, "link.png"))
+        lines += ["![bandwidth, allocated rates and latency](link.png)", ""]
+
+    lines += ["## Supervisor events", ""]
+    lines += [f"- {e.time_s:.0f} s {e.label}: {e.what}" for e in result.events] or ["- none"]
+    if result.restarts:
+        lines += [f"- restarts: {', '.join(f'{k} ×{v}' for k, v in result.restarts.items())}"]
+    lines.append("")
+    if os.path.exists(os.path.join(out, "gui.png")):
+        lines += ["## Operator GUI during the mission", "", "![GUI screenshot](gui.png)", ""]
+    lines += ["## Files", "", "`map.bt` (OctoMap, opens with octomap's tools), `ground_truth.npz`, `scores.json`, "
+              "`stats.csv` (topic statistics), `allocation.csv` (bandwidth manager), `link.png`, `topdown.png`, "
+              "`gui.png`, `logs/` (every node's output)."]
+    path = os.path.join(out, "report.md")
+    with open(path, "w") as stream:
+        stream.write("\n".join(lines) + "\n")
+    return path
