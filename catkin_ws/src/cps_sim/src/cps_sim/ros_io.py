@@ -4,6 +4,7 @@ Three nodes use this: fleet_sim (`run_fleet_sim`), route_controller (`run_route_
 and velocity_mux (`run_velocity_mux`).
 """
 import math
+import multiprocessing.connection
 import sys
 import threading
 import time
@@ -22,6 +23,7 @@ from cps_sim import messages
 from cps_sim.controllers import CONTROL_MODES, RouteFollower, VelocityMux, validate_route
 from cps_sim.robots import Twist, pose_matrix, validate_twist
 from cps_sim.scheduling import RateMeter, SensorScheduler
+from cps_sim.sensor_workers import SensorWorkerPool
 from cps_sim.simulation import FleetSimulation, sensor_points
 from cps_sim.site import check_waypoint, load_site
 from cps_sim.world import RENDERERS
@@ -106,11 +108,23 @@ class FleetSimNode:
         self.diagnostics_period_s = 1.0 / _positive_param("~diagnostics_rate_hz", 1.0)
         self.max_step_s = _positive_param("~max_physics_step_s", 0.02)
         self.max_catch_up_s = _positive_param("~max_catch_up_s", 1.0)
+        workers = rospy.get_param("~sensor_workers", 2)
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+            _fail(f"parameter {rospy.resolve_name('~sensor_workers')} must be an integer >= 0, got {workers!r}")
         self.site = load_site_for(self.fleet)
         check_initial_poses(self.fleet, self.site)
-        self.sim = FleetSimulation(self.fleet, site=self.site, renderer=renderer)
-        if renderer == "egl" and self.sim.renderer != "egl":
+        if workers > 0:
+            # Robots' kinematics here; rendering and ray casting in worker processes.
+            self.pool = SensorWorkerPool(self.fleet, self.site, renderer, workers)
+            self.sim = FleetSimulation(self.fleet, site=self.site, renderer=None)
+            self.renderer = self.pool.renderer
+        else:
+            self.pool = None
+            self.sim = FleetSimulation(self.fleet, site=self.site, renderer=renderer)
+            self.renderer = self.sim.renderer
+        if renderer == "egl" and self.renderer != "egl":
             rospy.logwarn("EGL rendering unavailable; using TinyRenderer (slower)")
+        self.capture_ms = {name: 0.0 for name in self.sim.robots}
         self.lock = threading.Lock()
         self.pubs = {}
         self.cmd_time = {}
@@ -147,8 +161,8 @@ class FleetSimNode:
         self.sim_time_s = 0.0
         self.wall_start_s = now
         self.rtf_window = []
-        rospy.loginfo("fleet_sim: %s profile, renderer %s, robots %s", self.fleet.profile.name, self.sim.renderer,
-                      ", ".join(self.sim.robots))
+        rospy.loginfo("fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s",
+                      self.fleet.profile.name, self.renderer, workers, ", ".join(self.sim.robots))
 
     # Commands --------------------------------------------------------------------------------
     def _on_cmd_vel(self, msg, name):
@@ -202,17 +216,48 @@ class FleetSimNode:
                 self.pubs[name]["battery"].publish(messages.battery_state(robot, now))
         self.tf.sendTransform(transforms)
 
-    def _capture(self, name):
+    def _publish_frame(self, name, frame, stamp):
         sim = self.sim.robots[name]
-        with self.lock:
-            sensor_pose = sim.robot.sensor_in_map()
-        stamp = time.time()
-        frame = sim.sensor.capture(sensor_pose)
         pubs = self.pubs[name]
         pubs["points"].publish(messages.point_cloud2(sensor_points(frame), sim.sensor_frame, stamp))
         if "image" in pubs:
             pubs["image"].publish(messages.image_rgb8(frame.rgb, sim.sensor_frame, stamp))
             pubs["info"].publish(messages.camera_info(sim.sensor, sim.sensor_frame, stamp))
+
+    def _record_capture_ms(self, name, ms):
+        previous = self.capture_ms[name]
+        self.capture_ms[name] = ms if previous == 0.0 else 0.8 * previous + 0.2 * ms
+
+    def _capture_in_process(self, name):
+        sim = self.sim.robots[name]
+        with self.lock:
+            sensor_pose = sim.robot.sensor_in_map()
+        stamp = time.time()
+        frame = sim.sensor.capture(sensor_pose)
+        self._record_capture_ms(name, 1000.0 * (time.time() - stamp))
+        self._publish_frame(name, frame, stamp)
+        self.scheduler.done(name, stamp, time.time())
+
+    def _service_workers(self, now):
+        """Publish finished captures and hand due sensors to idle workers; True if any work was done."""
+        worked = False
+        for name, frame, requested, started, finished in self.pool.results():
+            self._record_capture_ms(name, 1000.0 * (finished - started))
+            self._publish_frame(name, frame, requested)
+            self.scheduler.done(name, requested, time.time())
+            worked = True
+        while True:
+            worker = self.pool.idle_worker()
+            if worker is None:
+                break
+            name, due = self.scheduler.next(exclude=[w.busy_with for w in self.pool.workers if w.busy_with])
+            if name is None or due > now:
+                break
+            with self.lock:
+                poses = self.sim.poses()
+            self.pool.request(worker, name, poses, time.time())
+            worked = True
+        return worked
 
     def _publish_diagnostics(self, now):
         array = DiagnosticArray()
@@ -224,7 +269,8 @@ class FleetSimNode:
                                         name="cps_sim: fleet", hardware_id="fleet_sim",
                                         message=f"real-time factor {rtf:.2f}")
         fleet_status.values = [KeyValue("real_time_factor", f"{rtf:.3f}"), KeyValue("profile", self.fleet.profile.name),
-                               KeyValue("renderer", self.sim.renderer),
+                               KeyValue("renderer", str(self.renderer)),
+                               KeyValue("sensor_workers", str(len(self.pool.workers) if self.pool else 0)),
                                KeyValue("physics_loop_hz", f"{self.physics_meter.rate_hz(now):.1f}")]
         array.status.append(fleet_status)
         summary = []
@@ -236,7 +282,7 @@ class FleetSimNode:
                                       name=f"cps_sim: {name} {kind}", hardware_id=name,
                                       message=f"{achieved:.1f} of {sim.rate_hz:.1f} Hz")
             status.values = [KeyValue("configured_hz", f"{sim.rate_hz:.2f}"), KeyValue("achieved_hz", f"{achieved:.2f}"),
-                             KeyValue("mean_capture_ms", f"{self.scheduler.mean_run_ms(name):.1f}"),
+                             KeyValue("capture_ms", f"{self.capture_ms[name]:.1f}"),
                              KeyValue("skipped_captures", str(self.scheduler.skipped[name])),
                              KeyValue("dropped_commands", str(self.bad_commands[name])),
                              KeyValue("battery_percentage", f"{100 * sim.robot.battery_fraction:.1f}")]
@@ -267,11 +313,24 @@ class FleetSimNode:
             if now >= next_diag:
                 self._publish_diagnostics(now)
                 next_diag = max(next_diag + self.diagnostics_period_s, now)
+            if self.pool is not None:
+                if self._service_workers(now):
+                    continue
+                self.pool.check_alive()
+                name, due = self.scheduler.next(exclude=[w.busy_with for w in self.pool.workers if w.busy_with])
+                if self.pool.idle_worker() is None:
+                    due = float("inf")
+                wake = min(due, next_odom, next_diag)
+                busy = [w.conn for w in self.pool.workers if w.busy_with]
+                delay = max(wake - time.time(), 0.0)
+                if busy:
+                    multiprocessing.connection.wait(busy, timeout=min(delay, odom_period))
+                elif delay > 0:
+                    time.sleep(min(delay, odom_period))
+                continue
             name, due = self.scheduler.next()
             if name is not None and due <= now:
-                started = time.time()
-                self._capture(name)
-                self.scheduler.done(name, started, time.time())
+                self._capture_in_process(name)
                 continue
             wake = min(due, next_odom, next_diag)
             delay = wake - time.time()
@@ -279,6 +338,8 @@ class FleetSimNode:
                 time.sleep(min(delay, odom_period))
 
     def close(self):
+        if self.pool is not None:
+            self.pool.close()
         self.sim.close()
 
 

@@ -43,21 +43,20 @@ class SensorScheduler:
         count = max(len(rates_hz), 1)
         self.due = {name: now_s + i * min(self.periods.values()) / count for i, name in enumerate(rates_hz)}
         self.meters = {name: RateMeter(window_s) for name in rates_hz}
-        self.busy_s = {name: 0.0 for name in rates_hz}
         self.runs = {name: 0 for name in rates_hz}
         self.skipped = {name: 0 for name in rates_hz}
 
-    def next(self):
-        """(name, due time) of the task to run next, or (None, inf) with no tasks."""
-        if not self.due:
+    def next(self, exclude=()):
+        """(name, due time) of the task to run next (not in `exclude`), or (None, inf) if none."""
+        candidates = [n for n in self.due if n not in exclude]
+        if not candidates:
             return None, float("inf")
-        name = min(self.due, key=self.due.get)
+        name = min(candidates, key=self.due.get)
         return name, self.due[name]
 
     def done(self, name, started_s, finished_s):
         """Record a run of `name` that began at started_s and schedule its next one."""
         self.meters[name].tick(started_s)
-        self.busy_s[name] += finished_s - started_s
         self.runs[name] += 1
         period = self.periods[name]
         due = self.due[name] + period
@@ -69,5 +68,3 @@ class SensorScheduler:
     def achieved_hz(self, name, now_s):
         return self.meters[name].rate_hz(now_s)
 
-    def mean_run_ms(self, name):
-        return 1000.0 * self.busy_s[name] / self.runs[name] if self.runs[name] else 0.0

@@ -50,6 +50,30 @@ def pack_rgb(rgb):
     return (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
 
 
+@dataclasses.dataclass(frozen=True)
+class CameraModel:
+    """Intrinsics of the pinhole camera (what camera_info carries), without a world to render."""
+    width: int
+    height: int
+    hfov_deg: float
+
+    @property
+    def fx(self):
+        return camera_intrinsics(self.width, self.height, self.hfov_deg)[0]
+
+    @property
+    def fy(self):
+        return camera_intrinsics(self.width, self.height, self.hfov_deg)[1]
+
+    @property
+    def cx(self):
+        return camera_intrinsics(self.width, self.height, self.hfov_deg)[2]
+
+    @property
+    def cy(self):
+        return camera_intrinsics(self.width, self.height, self.hfov_deg)[3]
+
+
 class DepthCamera:
     """A pinhole RGB-D camera: width x height, hfov_deg, depth range [near_m, far_m]."""
 

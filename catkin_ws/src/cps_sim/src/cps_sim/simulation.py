@@ -8,7 +8,7 @@ from typing import Dict
 import numpy as np
 
 from cps_sim.robots import Robot
-from cps_sim.sensors import DepthCamera, Lidar
+from cps_sim.sensors import CameraModel, DepthCamera, Lidar
 from cps_sim.site import load_site
 from cps_sim.world import SimWorld
 
@@ -16,7 +16,7 @@ from cps_sim.world import SimWorld
 @dataclasses.dataclass
 class SimulatedRobot:
     robot: Robot
-    sensor: object          # DepthCamera or Lidar
+    sensor: object          # DepthCamera or Lidar; CameraModel or None without a world
     rate_hz: float
     config: object          # cps_msgs.fleet.RobotConfig
 
@@ -30,16 +30,26 @@ class SimulatedRobot:
 
 
 class FleetSimulation:
-    """One world, the fleet's robots in it at their initial poses, one sensor per robot."""
+    """One world, the fleet's robots in it at their initial poses, one sensor per robot.
+
+    With renderer=None there is no PyBullet world: only the robots' kinematics and the camera
+    models (the fleet_sim node then captures in sensor worker processes).
+    """
 
     def __init__(self, fleet, site=None, renderer="egl"):
         self.fleet = fleet
         self.site = site if site is not None else load_site(fleet.site_path)
-        self.world = SimWorld(self.site, renderer)
+        self.world = SimWorld(self.site, renderer) if renderer is not None else None
         self.robots: Dict[str, SimulatedRobot] = {}
         profile = fleet.profile
         for cfg in fleet.robots:
             robot = Robot(cfg.name, cfg.type, cfg.initial_pose)
+            if self.world is None:
+                cp = profile.depth_camera
+                sensor = CameraModel(cp.width, cp.height, cp.hfov_deg) if cfg.has_depth_camera else None
+                rate = cp.rate_hz if cfg.has_depth_camera else profile.lidar.rate_hz
+                self.robots[cfg.name] = SimulatedRobot(robot, sensor, rate, cfg)
+                continue
             body = self.world.add_robot(robot)
             if cfg.has_lidar:
                 lp = profile.lidar
@@ -54,17 +64,23 @@ class FleetSimulation:
 
     @property
     def renderer(self):
-        return self.world.renderer
+        return self.world.renderer if self.world is not None else None
 
     def step(self, dt_s):
         for sim in self.robots.values():
             sim.robot.step(dt_s)
-            self.world.sync_robot(sim.robot)
+            if self.world is not None:
+                self.world.sync_robot(sim.robot)
 
     def place(self, name, x, y, z, yaw):
         sim = self.robots[name]
         sim.robot.set_pose(x, y, z, yaw)
-        self.world.sync_robot(sim.robot)
+        if self.world is not None:
+            self.world.sync_robot(sim.robot)
+
+    def poses(self):
+        """Robot -> (x, y, z, yaw) in map, what a sensor worker needs to place the bodies."""
+        return {name: (s.robot.x, s.robot.y, s.robot.z, s.robot.yaw) for name, s in self.robots.items()}
 
     def capture(self, name):
         """A DepthFrame or LidarScan of robot `name` at its current pose."""
@@ -72,7 +88,8 @@ class FleetSimulation:
         return sim.sensor.capture(sim.robot.sensor_in_map())
 
     def close(self):
-        self.world.close()
+        if self.world is not None:
+            self.world.close()
 
 
 def sensor_points(frame):
