@@ -98,8 +98,13 @@ def test_bad_settings_name_the_parameter(change, match):
 
 def test_estimator_lowers_the_budget_when_the_link_saturates():
     core = _core(estimator=BandwidthEstimator(initial_mbps=60.0))
-    core.on_link_stats(0.0, 30.0, 2.0)
-    assert core.on_link_stats(1.0, 20.0, 300.0)
+    for r in "ab":  # the limiters forward 15 Hz x 200 kB = 24 Mbit/s each
+        core.on_limiter_status(r, 200000.0, 50.0, 15.0)
+    assert core.sent_mbps() == pytest.approx(48.0)
+    core.on_link_stats(0.0, 48.0, 2.0)
+    assert core.on_link_stats(0.5, 20.0, 300.0)
+    assert not core.on_link_stats(1.0, 20.0, 400.0)  # one decrease per second at most
+    assert core.on_link_stats(1.6, 20.0, 500.0)
     assert core.available_mbps < 20.0
     assert core.allocate().budget_mbytes_per_s == pytest.approx(0.96 * core.available_mbps / 8)
 

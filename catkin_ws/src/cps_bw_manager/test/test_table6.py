@@ -5,39 +5,18 @@ import math
 
 import pytest
 
-from cps_bw_manager.allocation import allocate_frequencies, managed_budget_mbytes_per_s
+from cps_bw_manager.allocation import managed_budget_mbytes_per_s
 from cps_bw_manager.priorities import PriorityBook
+from cps_bw_manager.table6 import PAPER_TABLE6, TABLE6_ROBOTS, paper_message_bytes, run_table6_steps
 
-ROBOTS = ("scout", "jackal", "champ", "iris")  # Table 6: Scout, Jackal, Legged, Aerial
-# (Hz, MB/s) per robot and step, from Table 6.
-PAPER = [
-    [(30.0, 1.01), (13.15, 1.87), (30.0, 1.81), (28.02, 1.87)],
-    [(30.0, 1.00), (13.49, 1.87), (29.52, 1.87), (27.73, 1.87)],
-    [(30.0, 1.45), (25.11, 1.87), (30.0, 1.87), (22.07, 1.87)],
-    [(30.0, 1.63), (23.42, 1.87), (30.0, 0.66), (28.15, 1.87)],
-    [(30.0, 1.40), (26.31, 1.87), (30.0, 1.73), (25.06, 1.87)],
-    [(30.0, 1.50), (30.0, 1.70), (30.0, 1.35), (1.0, 0.05)],
-    [(1.0, 0.04), (30.0, 1.48), (30.0, 1.31), (1.0, 0.06)],
-    [(1.0, 0.04), (30.0, 2.09), (1.0, 0.03), (1.0, 0.06)],
-    [(1.0, 0.04), (1.0, 0.08), (1.0, 0.03), (1.0, 0.06)],
-]
-# Steps 1-5: every robot inspecting. Then iris, scout, champ, jackal finish (paper's text).
-FINISHED_BY_STEP = {6: {"iris"}, 7: {"iris", "scout"}, 8: {"iris", "scout", "champ"},
-                    9: {"iris", "scout", "champ", "jackal"}}
+ROBOTS = TABLE6_ROBOTS
+PAPER = PAPER_TABLE6
 
 
 def _run_table6():
     budget = managed_budget_mbytes_per_s(60.0, 0.04)
-    book = PriorityBook(ROBOTS)
-    rows = []
-    for step, paper_row in enumerate(PAPER, start=1):
-        done = FINISHED_BY_STEP.get(step, set())
-        for robot in ROBOTS:
-            book.set_mission_state(robot, "done" if robot in done else "inspecting")
-        demands = [book.demand(robot, mbytes / hz * 1e6, 1.0, 30.0)
-                   for robot, (hz, mbytes) in zip(ROBOTS, paper_row)]
-        rows.append((step, done, paper_row, allocate_frequencies(demands, budget)))
-    return budget, rows
+    steps = run_table6_steps(paper_message_bytes, budget)
+    return budget, [(step, done, PAPER[step - 1], result) for step, done, result in steps]
 
 
 def _format(rows):

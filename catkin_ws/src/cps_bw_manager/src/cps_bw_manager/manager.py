@@ -53,6 +53,7 @@ class ManagerSettings:
 class _Measured:
     message_bytes: float = math.nan
     input_rate_hz: float = math.nan
+    output_rate_hz: float = math.nan
 
 
 class ManagerCore:
@@ -71,13 +72,14 @@ class ManagerCore:
     def available_mbps(self):
         return self.estimator.estimate_mbps if self.estimator else self.settings.available_mbps
 
-    def on_limiter_status(self, robot, mean_message_bytes, input_rate_hz):
+    def on_limiter_status(self, robot, mean_message_bytes, input_rate_hz, output_rate_hz=math.nan):
         """A rate limiter's status; returns True if the size changed enough to re-allocate now.
 
         Raises KeyError for an unknown robot. 0 or NaN (nothing received yet) keeps the old
         measurement; a negative or infinite size is counted and refused (ValueError).
         """
         entry = self.measured[self._known(robot)]
+        entry.output_rate_hz = float(output_rate_hz) if _finite(output_rate_hz) and output_rate_hz >= 0 else math.nan
         if not _positive(mean_message_bytes):
             if mean_message_bytes == 0 or math.isnan(mean_message_bytes):
                 return False
@@ -101,12 +103,22 @@ class ManagerCore:
         return True, (f"{robot}: priority {priority} until its mission state changes"
                       + ("" if changed else " (unchanged)"))
 
+    def sent_mbps(self):
+        """What the rate limiters forward onto the link, Mbit/s (NaN until every one reported)."""
+        total = 0.0
+        for m in self.measured.values():
+            if not (_finite(m.output_rate_hz) and _positive(m.message_bytes)):
+                return math.nan
+            total += m.output_rate_hz * m.message_bytes * 8e-6
+        return total
+
     def on_link_stats(self, now_s, delivered_mbps, latency_ms):
         """Feed the estimator (if on); returns True if the available bandwidth moved by > 5 %."""
         if not self.estimator:
             return False
         before = self.estimator.estimate_mbps
-        after = self.estimator.update(now_s, delivered_mbps, latency_ms)
+        sent = self.sent_mbps()
+        after = self.estimator.update(now_s, delivered_mbps, latency_ms, None if math.isnan(sent) else sent)
         return abs(after - before) > 0.05 * before
 
     def demands(self):
