@@ -20,21 +20,17 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from cps_bringup.experiments import paper  # noqa: E402
 from cps_msgs.fleet import load_fleet  # noqa: E402
 from cps_transport.draco import DracoDecoder, DracoEncoder  # noqa: E402
-from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of  # noqa: E402
+from cps_transport.pointcloud import cloud_to_array, xyz_of  # noqa: E402
+from cps_transport.stream_sizes import filter_cloud  # noqa: E402
 from cps_transport.voxel import voxel_downsample  # noqa: E402
 
 LEAF_SIZES_M = (0.01, 0.02, 0.05, 0.10, 0.20, 0.50)
 FIGURES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "benchmarks", "figures")
-# Table 4 of the paper (voxel 10 cm): MB/s min, max per stage.
-PAPER_TABLE4 = {
-    "scout": ((2.85, 4.50), (2.1, 2.69), (0.37, 0.46), 10),
-    "jackal": ((280.0, 290.0), (22.14, 22.57), (4.12, 4.44), 30),
-    "champ": ((280.0, 290.0), (10.32, 12.47), (1.67, 2.47), 30),
-    "iris": ((280.0, 290.0), (10.53, 12.64), (1.8, 2.7), 30),
-}
-PAPER_TOTAL = ((842.85, 874.50), (45.09, 50.37), (8.01, 10.07))
+# Table 4 of the paper (voxel 10 cm): MB/s min, max per stage, and Hz.
+PAPER_TABLE4, PAPER_TOTAL = paper.TABLE4, paper.TABLE4_TOTAL
 
 
 def load_clouds(frames):
@@ -60,16 +56,6 @@ def best_ms(fn, repeats):
         result = fn()
         best = min(best, time.perf_counter() - start)
     return 1e3 * best, result
-
-
-def filter_cloud(cloud, leaf):
-    """voxel_downsample over every field, packed like pcl_ros's output (same point_step)."""
-    points = cloud_to_array(cloud)
-    extras = {n: points[n] for n in points.dtype.names if n not in "xyz"}
-    centroids, averaged = voxel_downsample(xyz_of(points), leaf, extras)
-    out = array_to_cloud({"x": centroids[:, 0], "y": centroids[:, 1], "z": centroids[:, 2], **averaged},
-                         header=cloud.header)
-    return out, len(centroids) * cloud.point_step  # pcl keeps the input's point layout
 
 
 def measure(cloud, leaf, repeats):
