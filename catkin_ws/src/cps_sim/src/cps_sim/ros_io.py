@@ -20,7 +20,7 @@ from std_msgs.msg import Bool, String
 from cps_msgs.config import ConfigError, load_yaml_document
 from cps_msgs.fleet import load_fleet, robot_names_arg
 from cps_sim import messages
-from cps_sim.controllers import CONTROL_MODES, RouteFollower, VelocityMux, validate_route
+from cps_sim.controllers import RouteFollower, VelocityMux, validate_route
 from cps_sim.robots import Twist, pose_matrix, validate_twist
 from cps_sim.scheduling import RateMeter, SensorScheduler
 from cps_sim.sensor_workers import SensorWorkerPool
@@ -481,4 +481,4 @@ def run_velocity_mux():
     VelocityMuxNode().spin()
 
 
-__all__ = ["run_fleet_sim", "run_route_controller", "run_velocity_mux", "CONTROL_MODES"]
+__all__ = ["run_fleet_sim", "run_route_controller", "run_velocity_mux"]

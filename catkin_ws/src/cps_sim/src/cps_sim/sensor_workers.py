@@ -16,7 +16,13 @@ Pose = Tuple[float, float, float, float]
 
 
 def _worker_main(conn, fleet, site, renderer):
+    """Serve capture requests until the parent sends None or goes away."""
+    import signal
+
     from cps_sim.simulation import FleetSimulation
+
+    # Ctrl-C reaches the whole process group; the parent decides when the workers stop.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     sim = FleetSimulation(fleet, site=site, renderer=renderer)
     conn.send(("ready", sim.renderer))
@@ -87,7 +93,11 @@ class SensorWorkerPool:
         out = []
         for worker in self.workers:
             if worker.busy_with is not None and worker.conn.poll():
-                _, name, frame, started, finished = worker.conn.recv()
+                try:
+                    _, name, frame, started, finished = worker.conn.recv()
+                except (EOFError, OSError):
+                    self.check_alive()
+                    raise RuntimeError(f"sensor worker {worker.process.pid} closed its pipe") from None
                 out.append((name, frame, worker.requested_at, started, finished))
                 worker.busy_with = None
         return out

@@ -12,7 +12,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from cps_msgs.config import ConfigError, Reader, load_yaml_document
+from cps_msgs.config import Reader, load_yaml_document
 
 EQUIPMENT_TYPES = ("tank", "vertical_cylinder", "drum", "crate", "shelving", "pipe_run")
 _SIZE_KEYS = {
