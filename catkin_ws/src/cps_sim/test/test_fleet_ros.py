@@ -175,6 +175,7 @@ def test_deadman_mode_switch_estop_and_bad_commands(ros, rospy_node):
         stop_t = wait_for(lambda: executed.msg.linear.x == 0.0, 3, "dead-man zeroes cmd_vel")
         assert stop_t - released < 1.2
         wait_for(stopped, 3, "robot stopped after the dead-man")
+        _assert_cloud_lands_in_the_hall_via_tf(rospy, "jackal")
 
         # NaN and absurd teleop commands are dropped; the robot holds.
         for bad in (float("nan"), 1e6):
@@ -205,6 +206,42 @@ def test_deadman_mode_switch_estop_and_bad_commands(ros, rospy_node):
             sub.close()
         for pub in (mode, teleop, direct, estop):
             pub.unregister()
+
+
+def _assert_cloud_lands_in_the_hall_via_tf(rospy, robot):
+    """Points of a published cloud, moved to `map` with the published tf, lie on the floor
+    (z = 0) or inside the hall's walls: the whole chain map -> odom -> base_link -> optical
+    frame agrees with what the sensor saw."""
+    import tf2_ros
+    from sensor_msgs.msg import PointCloud2
+
+    buffer = tf2_ros.Buffer()
+    listener = tf2_ros.TransformListener(buffer)
+    listening_since = rospy.Time.now()
+    cloud = Latest(rospy, f"/{robot}/points", PointCloud2)
+    try:
+        msg = cloud.wait(30)
+        while msg.header.stamp < listening_since + rospy.Duration(0.5):   # tf must cover the stamp
+            cloud.event.clear()
+            msg = cloud.wait(30)
+        tf = buffer.lookup_transform("map", msg.header.frame_id, msg.header.stamp, rospy.Duration(10))
+    finally:
+        cloud.close()
+        del listener
+    q, t = tf.transform.rotation, tf.transform.translation
+    x, y, z, w = q.x, q.y, q.z, q.w
+    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    points = cloud_to_array(msg).reshape(-1)
+    xyz = np.stack([points["x"], points["y"], points["z"]], axis=1).astype(float)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    world = xyz @ rot.T + [t.x, t.y, t.z]
+    assert len(world) > 1000
+    assert world[:, 2].min() > -0.05
+    assert np.all((world[:, 0] > -10.25) & (world[:, 0] < 10.25) & (world[:, 1] > -7.75) & (world[:, 1] < 7.75))
+    floor = np.abs(world[:, 2]) < 0.02
+    assert floor.mean() > 0.2, f"only {floor.mean():.0%} of the points are on the floor"
 
 
 def _wait_exit(proc, timeout_s=60):
