@@ -66,6 +66,7 @@ class OperatorWindow(QMainWindow):
         self.plugin.restore_settings(QSettingsAdapter(self.qsettings, "plugin"),
                                      QSettingsAdapter(self.qsettings, "instance"))
         self._closed = False
+        self.closed_for_good = False
 
     def save(self):
         self.qsettings.setValue("window/geometry", self.saveGeometry())
@@ -80,6 +81,7 @@ class OperatorWindow(QMainWindow):
             self.save()
             self.plugin.shutdown_plugin()
         super().closeEvent(event)
+        self.closed_for_good = True
 
     def screenshot(self, path):
         """Save the whole window as PNG and `<path>.panes.json` with each pane's rectangle in it.
@@ -129,7 +131,13 @@ def parse_args(argv):
 
 
 def main(argv=None):
+    import faulthandler
+    import signal
+
     import rospy
+
+    # `kill -USR1 <pid>` prints every thread's stack: the first thing to look at if the GUI hangs.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
     argv = rospy.myargv(sys.argv if argv is None else argv)
     args = parse_args(argv[1:])
@@ -154,12 +162,18 @@ def main(argv=None):
     if args.screenshot:
         QTimer.singleShot(int(args.after * 1000), take_screenshot)
     # Ctrl-C: Qt's loop does not return to Python by itself, so poll for rospy's shutdown.
-    import signal
+    stop_requested = []
+    signal.signal(signal.SIGINT, lambda *_: stop_requested.append(True))
+    signal.signal(signal.SIGTERM, lambda *_: stop_requested.append(True))
 
-    signal.signal(signal.SIGINT, lambda *_: window.close())
-    signal.signal(signal.SIGTERM, lambda *_: window.close())
+    def watch():
+        if (stop_requested or rospy.is_shutdown()) and not window.closed_for_good:
+            window.close()
+        if window.closed_for_good:
+            app.quit()
+
     poll = QTimer()
-    poll.timeout.connect(lambda: rospy.is_shutdown() and window.close())
+    poll.timeout.connect(watch)
     poll.start(200)
     app.exec_()
     rospy.signal_shutdown("GUI closed")

@@ -44,4 +44,6 @@ class RvizPane(QWidget):
         """rviz draws itself at its configured frame rate."""
 
     def shutdown(self):
-        self.frame.close()
+        """Delete the frame without closing it: rviz's closeEvent may open a modal "save the
+        config?" dialog, which nobody answers under Xvfb and which would hang the exit."""
+        self.frame.deleteLater()
