@@ -39,15 +39,19 @@ def _set_all_rates(graph, rate_hz):
     assert result.returncode == 0, result.stderr
 
 
-def _start_load(graph, record_path):
-    """cps_transport's rate limiters and the cloud load on the physical side, the recorder on the twin."""
+def _start_load(graph, record_path=None):
+    """cps_transport's rate limiters and the cloud load on the physical side, the recorder on the twin.
+
+    Every digital-twin subscriber of a managed topic is one more TCP copy of it on the link, so
+    each test has exactly one (the recorder, or topic_stats)."""
     limiter = find_node("cps_transport", "rate_limiter")
     for r in LOAD:
         graph.start_python("phys", limiter, ["__name:=cloud_throttle", f"__ns:=/{r}",
                                              f"~input:=/{r}/points_filtered/draco",
                                              f"~output:=/{r}/points_filtered/draco/managed"], name=f"limiter_{r}")
-    graph.start_python("twin", os.path.join(HERE, "fixtures", "link_recorder.py"), [record_path, *LOAD],
-                       name="recorder")
+    if record_path:
+        graph.start_python("twin", os.path.join(HERE, "fixtures", "link_recorder.py"), [record_path, *LOAD],
+                           name="recorder")
     graph.start_python("phys", os.path.join(HERE, "fixtures", "cloud_load.py"),
                        [f"{r}:{size}:{hz}" for r, (size, hz) in LOAD.items()], name="load")
 
@@ -111,6 +115,18 @@ def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
     assert off.latency_p95_ms > 2 * on.latency_p95_ms and off.latency_p95_ms > 100.0
 
 
+def _delivered(stats_path):
+    """(time, (delivered Mbit/s over the managed topics, worst latency avg ms)) from topic_stats' CSV."""
+    by_time = {}
+    with open(stats_path) as stream:
+        for row in csv.DictReader(stream):
+            t = float(row["time_s"])
+            mbps, lat = by_time.get(t, (0.0, 0.0))
+            latency = float(row["latency_avg_ms"]) if row["latency_avg_ms"] else 0.0
+            by_time[t] = (mbps + 8 * float(row["bandwidth_mbytes_per_s"] or 0.0), max(lat, latency))
+    return sorted(by_time.items())
+
+
 def _estimates(csv_path):
     """(time, available Mbit/s) per manager update from its CSV log."""
     seen = {}
@@ -126,23 +142,22 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
     """The manager estimates the capacity from /tissue/stats (cps_transport's topic_stats on the
     digital-twin side) while `cps_link set` changes the link 60 -> 20 -> 60 Mbit/s under load."""
     name = "cpsbwe"
-    record_path = str(tmp_path / "received.txt")
+    stats_path = str(tmp_path / "stats.csv")
     csv_path = str(tmp_path / "allocation.csv")
     marks = {}
     try:
-        # A deep, Wi-Fi-like buffer (200 ms): with 50 ms a sudden drop to a third of the rate loses so
-        # many packets that TCP backs off for ~10 s.
-        with ShapedLink(name, rate="60mbit", queue_ms=200.0) as link, LinkRosGraph(link) as graph:
-            _start_load(graph, record_path)
+        with ShapedLink(name, rate="60mbit") as link, LinkRosGraph(link) as graph:
+            _start_load(graph)
             graph.start_python("twin", find_node("cps_transport", "topic_stats"),
                                ["__name:=topic_stats", "_window_s:=2.0", "_publish_rate_hz:=2.0",
+                                f"_csv_path:={stats_path}",
                                 "_topics:=" + ",".join(f"/{r}/points_filtered/draco/managed" for r in LOAD)],
                                name="topic_stats")
             graph.start_python("twin", find_node("cps_bw_manager", "bandwidth_manager"),
                                ["__name:=bandwidth_manager", "_available_mbps:=60.0", "_estimate_bandwidth:=true",
                                 f"_csv_path:={csv_path}"], name="manager")
             _wait_for_file_rows(csv_path, 40.0)
-            _wait_for_file_rows(record_path, 40.0)
+            _wait_for_file_rows(stats_path, 40.0)
             time.sleep(6.0)
             marks["drop"] = time.time()
             link.set_rate("20mbit")
@@ -156,25 +171,23 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
         netns_link.link_down(name)
 
     trace = _estimates(csv_path)
-    records = read_records(record_path)
-    print("\nestimate of the available bandwidth (Mbit/s) while the link goes 60 -> 20 -> 60:")
+    delivered = _delivered(stats_path)
+    print("\nestimate of the available bandwidth while the link goes 60 -> 20 -> 60 Mbit/s "
+          "(delivered: topic_stats at the digital twin, 2 s window):")
     for t, mbps in trace:
         if marks["drop"] - 4 <= t <= marks["end"]:
             phase = "60" if t < marks["drop"] else "20" if t < marks["rise"] else "60"
-            print(f"  t={t - marks['drop']:+6.1f} s link {phase} Mbit/s: estimate {mbps:5.1f}")
-    for label, t0, t1 in (("20 Mbit/s", marks["drop"] + 6, marks["rise"]), ("60 Mbit/s again", marks["rise"] + 6, marks["end"])):
-        s = summarize(records, t0, t1)
-        print(f"{label}: consumed {s.mean_mbytes_per_s * 8:.1f} Mbit/s, latency p95 {s.latency_p95_ms:.0f} ms")
+            near = [v for ts, v in delivered if abs(ts - t) < 0.3]
+            shown = f"{near[0][0]:5.1f} Mbit/s, latency {near[0][1]:5.0f} ms" if near else ""
+            print(f"  t={t - marks['drop']:+6.1f} s link {phase} Mbit/s: estimate {mbps:5.1f}   delivered {shown}")
 
     def during(t0, t1):
         return [mbps for t, mbps in trace if t0 <= t < t1]
 
     low = during(marks["drop"] + 4.0, marks["rise"])
-    high = during(marks["rise"], marks["rise"] + 12.0)
+    high = during(marks["rise"], marks["rise"] + 8.0)
     assert low and high, manager_log[-2000:]
     # Within 4 s of the drop the estimate is at or below the new capacity (plus its probing margin)
-    # and stays there; within 12 s of the recovery it has climbed well above the old capacity.
-    # (On the shared 2-core test machine end-to-end latency has CPU noise of ~100 ms, which the
-    # delay-based estimator cannot tell from queueing, so it is asked for less than on the model.)
+    # and stays there; within 8 s of the recovery it is back near the full capacity.
     assert all(v <= 24.0 for v in low), low
-    assert max(high) >= 36.0, high
+    assert max(high) >= 45.0, high

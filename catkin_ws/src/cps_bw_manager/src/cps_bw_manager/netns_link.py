@@ -165,7 +165,9 @@ def link_set(name="cps", rate=DEFAULT_RATE, delay_ms=0.0, loss_pct=0.0, queue_ms
     if not link_exists(name):
         raise LinkError(f"link '{name}' does not exist; `cps_link up --name {name}` first")
     for side in SIDES:
-        for cmd in _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, "replace"):
+        # `change` keeps the queued packets; `replace` would drop them all at once and send every
+        # TCP connection into retransmission back-off for seconds.
+        for cmd in _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, "change"):
             _run(cmd)
 
 
