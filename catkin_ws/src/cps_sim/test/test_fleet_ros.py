@@ -279,3 +279,11 @@ def test_route_with_waypoint_in_equipment_fails_with_file_and_line(ros, tmp_path
     assert _wait_exit(proc) != 0
     out = ros.output("route_bad")
     assert f"{routes / 'route1.yaml'}:3:" in out and "tank_1" in out
+
+
+def test_site_change_with_unknown_item_fails_naming_the_known_ones(ros):
+    proc = ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_badsite",
+                          params={"~robots": "jackal", "~site_moves": "crate_99:1.0:0.0"})
+    assert _wait_exit(proc) != 0
+    out = ros.output("fleet_sim_badsite")
+    assert "crate_99" in out and "crate_2" in out

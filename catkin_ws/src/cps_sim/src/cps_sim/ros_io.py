@@ -79,6 +79,21 @@ def load_site_for(fleet):
         _fail(f"bad site file: {exc}")
 
 
+def apply_site_changes(site, without, moves):
+    """The site with equipment removed (`without`: "a,b") and shifted (`moves`: "name:dx:dy,...")."""
+    try:
+        for name in [n.strip() for n in str(without).split(",") if n.strip()]:
+            site = site.without(name)
+        for move in [m.strip() for m in str(moves).split(",") if m.strip()]:
+            parts = move.split(":")
+            if len(parts) != 3:
+                raise ValueError(f"'{move}' is not name:dx_m:dy_m")
+            site = site.moved(parts[0], float(parts[1]), float(parts[2]))
+    except (KeyError, ValueError) as exc:
+        _fail(f"parameters ~site_without/~site_moves: {exc.args[0]}")
+    return site
+
+
 def check_initial_poses(fleet, site):
     """Exit naming fleet.yaml's line when an initial pose is outside the hall or in equipment."""
     doc = load_yaml_document(fleet.path)
@@ -111,7 +126,8 @@ class FleetSimNode:
         workers = rospy.get_param("~sensor_workers", 2)
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
             _fail(f"parameter {rospy.resolve_name('~sensor_workers')} must be an integer >= 0, got {workers!r}")
-        self.site = load_site_for(self.fleet)
+        self.site = apply_site_changes(load_site_for(self.fleet), rospy.get_param("~site_without", ""),
+                                       rospy.get_param("~site_moves", ""))
         check_initial_poses(self.fleet, self.site)
         if workers > 0:
             # Robots' kinematics here; rendering and ray casting in worker processes.
