@@ -10,7 +10,7 @@ QUICK_FRAMES, FRAMES = 1, 10
 QUICK_LEAVES = (0.01, 0.10, 0.50)
 
 
-def run_experiments(names, out_dir, quick=False, log=print):
+def run_experiments(names, out_dir, quick=False, reuse_runs=False, log=print):
     from cps_bringup.experiments import bandwidth_tables, deployable_robots, fleet_scaling, manager_steps
 
     os.makedirs(out_dir, exist_ok=True)
@@ -29,7 +29,7 @@ def run_experiments(names, out_dir, quick=False, log=print):
     if "fig13" in names:
         done["fig13"] = deployable_robots.run(out_dir, mission, quick=quick, log=log)
     if names & {"table5", "fig14"}:
-        done["table5"] = fleet_scaling.run(out_dir, quick=quick, log=log)
+        done["table5"] = fleet_scaling.run(out_dir, quick=quick, reuse_runs=reuse_runs, log=log)
     write_index(out_dir)
     return done
 
@@ -65,7 +65,8 @@ def write_index(out_dir):
             rows.append([f"Table 5, {r['fleet']}: MB/s avg, latency avg/max ms",
                          f"{r['paper_bandwidth_avg']}; {r['paper_latency_avg']}/{r['paper_latency_max']}",
                          f"{float(r['bandwidth_avg_mbytes_per_s']):.3f}; {float(r['latency_avg_ms']):.1f}/"
-                         f"{float(r['latency_max_ms']):.1f} ({r['link']})", "[table5.md](table5.md)"])
+                         f"{float(r['latency_max_ms']):.1f} ({'shaped 60 Mbit/s link' if 'tc-shaped' in r['link'] else r['link']})",
+                         "[table5.md](table5.md)"])
         else:
             rows.append([f"Table 5, {r['fleet']}", f"{r['paper_bandwidth_avg']} MB/s", r["link"], "[table5.md](table5.md)"])
     if rows:
