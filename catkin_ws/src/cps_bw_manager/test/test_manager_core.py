@@ -37,6 +37,18 @@ def test_headroom_keeps_room_for_one_message_per_robot_per_window():
     assert sum(r.share_percent for r in result.robots) == pytest.approx(100 * 6.8 / 7.2)
 
 
+def test_two_subscribers_across_the_link_halve_the_rates():
+    import dataclasses
+
+    one = ManagerCore(["a", "b"], SETTINGS)
+    two = ManagerCore(["a", "b"], dataclasses.replace(SETTINGS, copies_on_link=2))
+    for core in (one, two):
+        core.on_limiter_status("a", 300000.0, 50.0)
+        core.on_limiter_status("b", 300000.0, 50.0)
+    assert two.allocate().rates_hz()["a"] == pytest.approx(one.allocate().rates_hz()["a"] / 2)
+    assert two.allocate().allocated_mbytes_per_s == pytest.approx(7.2)
+
+
 def test_input_rate_caps_the_maximum_and_frees_bandwidth_for_the_others():
     core = _core()
     core.on_limiter_status("a", 300000.0, 5.0)   # a only produces 5 Hz
@@ -88,6 +100,7 @@ def test_unmeasured_sizes_are_safe_and_bad_sizes_are_refused():
     (dict(min_rate_hz=40.0), "min_rate_hz"), (dict(max_rate_hz=math.nan), "max_rate_hz"),
     (dict(high_priority_weight=0.0), "high_priority_weight"),
     (dict(headroom_messages=-1.0), "headroom_messages"), (dict(window_s=0.0), "window_s"),
+    (dict(copies_on_link=0), "copies_on_link"), (dict(copies_on_link=1.5), "copies_on_link"),
 ])
 def test_bad_settings_name_the_parameter(change, match):
     import dataclasses

@@ -194,13 +194,11 @@ def allocate_frequencies(demands: Sequence[RobotDemand], budget_mbytes_per_s: fl
     unmeasured = [n for n, ok in zip(names, measured) if not ok]
     if unmeasured:
         status += f"; size not measured yet for {', '.join(unmeasured)} (assumed {assumed_message_bytes:.0f} B)"
-    robots = tuple(
-        RobotAllocation(name=d.name, priority=int(d.priority), rate_hz=float(rate[i]),
-                        min_rate_hz=float(fmin[i]), max_rate_hz=float(fmax[i]),
-                        message_bytes=float(size_mb[i] * _BYTES_PER_MB),
-                        bandwidth_mbytes_per_s=float(b[i]), share_percent=float(100.0 * b[i] / budget),
-                        degraded=bool(rate[i] < fmin[i] * (1 - 1e-9)), size_measured=bool(measured[i]))
-        for i, d in enumerate(demands))
+    share = (100.0 / budget) * b
+    degraded = rate < fmin * (1 - 1e-9)
+    columns = zip(names, priority.tolist(), rate.tolist(), fmin.tolist(), fmax.tolist(), (size_mb * _BYTES_PER_MB).tolist(),
+                  b.tolist(), share.tolist(), degraded.tolist(), measured.tolist())
+    robots = tuple(RobotAllocation(*row) for row in columns)
     return Allocation(robots, budget, float(b.sum()), feasible, status)
 
 

@@ -33,10 +33,16 @@ class ManagerSettings:
     # `headroom_messages` extra messages per robot per window (rate limiters release whole messages).
     window_s: float = 1.0
     headroom_messages: float = 1.0
+    # TCPROS sends one copy of a message per subscriber: every digital-twin node subscribed to a
+    # managed topic (the Draco decoder, a stats monitor, ...) is one more copy on the link.
+    copies_on_link: int = 1
 
     def validate(self):
         """ValueError naming the parameter that is wrong."""
         managed_budget_mbytes_per_s(self.available_mbps, self.reserve_fraction)
+        if isinstance(self.copies_on_link, bool) or not isinstance(self.copies_on_link, int) \
+                or not 1 <= self.copies_on_link <= 100:
+            raise ValueError(f"copies_on_link must be an integer in [1, 100], got {self.copies_on_link!r}")
         if not isinstance(self.headroom_messages, (int, float)) or not 0 <= self.headroom_messages <= 10:
             raise ValueError(f"headroom_messages must be in [0, 10], got {self.headroom_messages!r}")
         for name in ("min_rate_hz", "max_rate_hz", "high_priority_weight", "floor_rate_hz", "assumed_message_bytes",
@@ -139,16 +145,20 @@ class ManagerCore:
         return min(0.25 * budget, s.headroom_messages * sizes / 1e6 / s.window_s)
 
     def allocate(self):
-        """The allocation of (budget - headroom); its `budget_mbytes_per_s` stays the full budget."""
+        """The allocation of (budget - headroom) / copies_on_link; bandwidths and shares count every
+        copy on the link, and `budget_mbytes_per_s` stays the full budget."""
         budget = managed_budget_mbytes_per_s(self.available_mbps, self.settings.reserve_fraction)
         demands = self.demands()
-        usable = budget - self.headroom_mbytes_per_s(demands, budget)
+        copies = self.settings.copies_on_link
+        usable = (budget - self.headroom_mbytes_per_s(demands, budget)) / copies
         result = allocate_frequencies(demands, usable, priority_weights=self.weights,
-                                    floor_rate_hz=self.settings.floor_rate_hz,
-                                    assumed_message_bytes=self.settings.assumed_message_bytes)
-        robots = tuple(dataclasses.replace(r, share_percent=100.0 * r.bandwidth_mbytes_per_s / budget)
+                                      floor_rate_hz=self.settings.floor_rate_hz,
+                                      assumed_message_bytes=self.settings.assumed_message_bytes)
+        robots = tuple(dataclasses.replace(r, bandwidth_mbytes_per_s=copies * r.bandwidth_mbytes_per_s,
+                                           share_percent=100.0 * copies * r.bandwidth_mbytes_per_s / budget)
                        for r in result.robots)
-        return dataclasses.replace(result, robots=robots, budget_mbytes_per_s=budget)
+        return dataclasses.replace(result, robots=robots, budget_mbytes_per_s=budget,
+                                   allocated_mbytes_per_s=copies * result.allocated_mbytes_per_s)
 
     def _known(self, robot):
         if robot not in self.measured:
