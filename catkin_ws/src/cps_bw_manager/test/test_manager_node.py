@@ -96,6 +96,10 @@ def test_manager_sets_limiter_rates_from_sizes_states_and_operator(ros, graph):
                 return False
         return expected(current)
 
+    from std_msgs.msg import Float64
+
+    available = rospy.wait_for_message("/tissue/available_bandwidth", Float64, timeout=10.0)
+    assert available.data == pytest.approx(2.0)
     budget = 0.96 * 2.0 / 8.0
     # Sizes measured by the limiters (serialized message, a little above the payload); equal shares.
     _wait_for(lambda: in_force(lambda a: all(PAYLOAD_BYTES < a[r].message_bytes < PAYLOAD_BYTES + 1000 for r in ROBOTS)

@@ -7,32 +7,18 @@ import pytest
 
 from cps_bw_manager.allocation import managed_budget_mbytes_per_s
 from cps_bw_manager.priorities import PriorityBook
-from cps_bw_manager.table6 import PAPER_TABLE6, TABLE6_ROBOTS, paper_message_bytes, run_table6_steps
-
-ROBOTS = TABLE6_ROBOTS
-PAPER = PAPER_TABLE6
-
-
-def _run_table6():
-    budget = managed_budget_mbytes_per_s(60.0, 0.04)
-    steps = run_table6_steps(paper_message_bytes, budget)
-    return budget, [(step, done, PAPER[step - 1], result) for step, done, result in steps]
-
-
-def _format(rows):
-    lines = ["step | " + " | ".join(f"{r:>6}: paper Hz  MB/s -> ours Hz  MB/s  share%" for r in ROBOTS)]
-    for step, _, paper_row, result in rows:
-        cells = [f"{r:>6}: {hz:8.2f} {mb:5.2f} -> {a.rate_hz:7.2f} {a.bandwidth_mbytes_per_s:5.2f} {a.share_percent:6.2f}"
-                 for r, (hz, mb), a in zip(ROBOTS, paper_row, result.robots)]
-        lines.append(f"{step:4d} | " + " | ".join(cells) + f" | total {result.allocated_mbytes_per_s:.2f} MB/s")
-    return "\n".join(lines)
+from cps_bw_manager.table6 import (PAPER_TABLE6, TABLE6_ROBOTS as ROBOTS, format_table6, paper_message_bytes,
+                                   run_table6_steps)
 
 
 def test_table6_pattern_is_reproduced():
-    budget, rows = _run_table6()
+    budget = managed_budget_mbytes_per_s(60.0, 0.04)
+    steps = run_table6_steps(paper_message_bytes, budget, 1.0, 30.0)
     print(f"\nTable 6, 60 Mbit/s, 4 % reserve -> managed budget {budget:.2f} MB/s "
-          f"(the paper's shares are of 7.50 MB/s)\n" + _format(rows))
-    for step, done, paper_row, result in rows:
+          f"(the paper's shares are of 7.50 MB/s)\n" + format_table6(steps))
+    assert [done for _, done, _ in steps][5:] == [{"iris"}, {"iris", "scout"}, {"iris", "scout", "champ"}, set(ROBOTS)]
+    for step, done, result in steps:
+        paper_row = PAPER_TABLE6[step - 1]
         assert result.feasible
         assert result.allocated_mbytes_per_s <= budget * (1 + 1e-9)
         active = []
@@ -55,6 +41,12 @@ def test_table6_pattern_is_reproduced():
         if step >= 6:
             # Steps 6-8: the remaining robots run at the maximum, as in the paper.
             assert all(math.isclose(a.rate_hz, 30.0) for a in active)
+
+
+def test_per_robot_maximum_caps_a_slow_sensor():
+    budget = managed_budget_mbytes_per_s(60.0, 0.04)
+    steps = run_table6_steps(paper_message_bytes, budget, 1.0, {"scout": 10.0, "jackal": 30.0, "champ": 30.0, "iris": 30.0})
+    assert all(result.by_name()["scout"].rate_hz <= 10.0 + 1e-9 for _, _, result in steps)
 
 
 def test_operator_raises_a_finished_robot_back():
