@@ -100,7 +100,7 @@ def check_initial_poses(fleet, site):
     names = [r.get("name") for r in doc.data.get("robots", [])]
     for robot in fleet.robots:
         pose = robot.initial_pose
-        reason = check_waypoint(site, pose.x, pose.y, max(pose.z, 0.0) if pose.z > 0 else 0.0, robot.type, margin_m=0.2)
+        reason = check_waypoint(site, pose.x, pose.y, max(pose.z, 0.0), robot.type, margin_m=0.2)
         if reason:
             line = doc.line(("robots", names.index(robot.name), "initial_pose"))
             _fail(f"bad fleet file: {ConfigError(fleet.path, line, f'robots[{robot.name}].initial_pose: {reason}')}")

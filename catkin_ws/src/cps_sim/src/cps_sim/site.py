@@ -277,8 +277,8 @@ class Site:
     def blocking_item(self, x, y, z, margin_m=0.3):
         """Name of the equipment or fence whose volume (grown by margin_m) holds (x, y, z), or None."""
         point = np.array([[x, y, z]])
-        for prim in self.structure_primitives()[5:]:
-            if prim.contains(point, margin_m)[0]:
+        for prim in self.structure_primitives():
+            if prim.owner.startswith("fence_") and prim.contains(point, margin_m)[0]:
                 return prim.owner
         for item in self.equipment:
             for prim in item.primitives():
