@@ -162,3 +162,17 @@ def test_quadrotor_takes_off_holds_altitude_and_lands():
     for _ in range(200):
         iris.step(0.05)
     assert iris.flight_state == "landed" and iris.z == 0.0
+
+
+def test_a_restarted_route_controller_resumes_where_the_robot_is():
+    fleet = load_fleet()
+    cfg = fleet.robot("scout")
+    route = fleet.route("scout")
+    start = (cfg.initial_pose.x, cfg.initial_pose.y)
+    fresh = RouteFollower(route, cfg.type, start_xy=start)
+    fresh.update(start[0], start[1], 0.0, 0.0)
+    assert fresh.index == 0 and fresh.state == "transit"
+    a, b = route.waypoints[2], route.waypoints[3]
+    restarted = RouteFollower(route, cfg.type, start_xy=start)
+    restarted.update((a.x + b.x) / 2, (a.y + b.y) / 2, 0.0, 0.0)
+    assert restarted.index == 3 and restarted.state == "inspecting"

@@ -35,8 +35,11 @@ def _wrap(angle):
 class RouteFollower:
     """Drives through the route's waypoints in order; aerial robots take off first and land last."""
 
-    def __init__(self, route, robot_type, tolerance_m=0.25, heading_gain=2.0):
+    def __init__(self, route, robot_type, tolerance_m=0.25, heading_gain=2.0, start_xy=None):
+        """`start_xy`: the robot's initial position; with it, the first update resumes at the route
+        segment nearest to the robot (a restarted controller does not drive back to waypoint 0)."""
         self.route = route
+        self.start_xy = start_xy
         self.spec = spec_for(robot_type)
         self.aerial = robot_type == "aerial_depth"
         self.tolerance_m = tolerance_m
@@ -58,11 +61,27 @@ class RouteFollower:
         target = self.route.waypoints[self.index]
         return "inspecting" if self.reached_inspect and target.inspect else "transit"
 
+    def _resume_near(self, x, y):
+        points = [self.start_xy] + [(w.x, w.y) for w in self.route.waypoints]
+        best, best_distance = 0, math.inf
+        for i in range(len(points) - 1):
+            (ax, ay), (bx, by) = points[i], points[i + 1]
+            dx, dy = bx - ax, by - ay
+            length2 = dx * dx + dy * dy
+            f = 0.0 if length2 == 0 else max(0.0, min(1.0, ((x - ax) * dx + (y - ay) * dy) / length2))
+            distance = math.hypot(ax + f * dx - x, ay + f * dy - y)
+            if distance < best_distance - 1e-9:
+                best, best_distance = i, distance
+        self.index = best
+        self.reached_inspect = any(w.inspect for w in self.route.waypoints[:best])
+
     def update(self, x, y, z, yaw, airborne=None):
         """(Twist in the body frame, flight command 'takeoff'/'land' or None) for the pose in map.
 
         `airborne`: for aerial robots, whether it is flying (default: z above 0.5 m).
         """
+        if not self.started and self.start_xy is not None:
+            self._resume_near(x, y)
         self.started = True
         if self.finished:
             return Twist(), None

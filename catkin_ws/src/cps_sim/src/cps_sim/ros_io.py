@@ -392,7 +392,7 @@ class RouteControllerNode:
         self.rate_hz = _positive_param("~rate_hz", 10.0)
         pose = self.config.initial_pose
         self.odom_in_map = pose_matrix(pose.x, pose.y, pose.z, pose.yaw_rad)
-        self.follower = RouteFollower(route, self.config.type)
+        self.follower = RouteFollower(route, self.config.type, start_xy=(pose.x, pose.y))
         self.cmd_pub = rospy.Publisher("cmd_vel/auto", TwistMsg, queue_size=5)
         self.state_pub = rospy.Publisher("mission_state", String, queue_size=1, latch=True)
         self.flight_pub = rospy.Publisher("flight_command", String, queue_size=5)
