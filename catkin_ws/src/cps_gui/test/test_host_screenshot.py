@@ -130,6 +130,53 @@ def _map_messages(rospy):
     return markers, grid, image
 
 
+class _LiveFleet:
+    """Odometry, battery, stats and allocation of the test fleet, changing over time."""
+
+    def __init__(self, rospy):
+        from cps_msgs.msg import BandwidthAllocationArray, TopicStatsArray
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import BatteryState
+
+        self.rospy = rospy
+        self.names = [TEST_PREFIX + n for n in ("scout", "jackal", "champ", "iris")]
+        self.odom = {n: rospy.Publisher(f"/{n}/odom", Odometry, queue_size=2) for n in self.names}
+        self.battery = {n: rospy.Publisher(f"/{n}/battery", BatteryState, queue_size=2) for n in self.names}
+        self.stats = rospy.Publisher("/tissue/stats", TopicStatsArray, queue_size=2)
+        self.alloc = rospy.Publisher("/tissue/allocation", BandwidthAllocationArray, queue_size=2)
+        self.start = time.monotonic()
+
+    def publish(self):
+        from cps_msgs.msg import BandwidthAllocation, BandwidthAllocationArray, TopicStats, TopicStatsArray
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import BatteryState
+
+        t = time.monotonic() - self.start
+        stats = TopicStatsArray()
+        alloc = BandwidthAllocationArray(available_mbps=60.0, reserve_fraction=0.04, budget_mbytes_per_s=7.2,
+                                         feasible=True)
+        for i, name in enumerate(self.names):
+            odom = Odometry()
+            odom.header.frame_id = "map"  # no map -> <r>/odom tf in this test
+            odom.pose.pose.position.x = 0.3 * t
+            odom.pose.pose.orientation.w = 1.0
+            odom.twist.twist.linear.x = 0.3
+            self.odom[name].publish(odom)
+            self.battery[name].publish(BatteryState(percentage=0.9 - 0.1 * i - 0.002 * t))
+            mbytes = 1.0 + 0.5 * i + 0.2 * np.sin(t + i)
+            stats.topics.append(TopicStats(topic=f"/{name}/points_filtered/draco/managed", robot=name, managed=True,
+                                           rate_hz=4.0 + i, bandwidth_mbytes_per_s=mbytes,
+                                           latency_avg_ms=30.0 + 10 * i + 5 * np.cos(t), age_s=0.1))
+            alloc.allocations.append(BandwidthAllocation(robot=name, priority=int(i == 1), rate_hz=4.0 + i,
+                                                         bandwidth_mbytes_per_s=mbytes))
+        self.stats.publish(stats)
+        self.alloc.publish(alloc)
+
+    def close(self):
+        for pub in [*self.odom.values(), *self.battery.values(), self.stats, self.alloc]:
+            pub.unregister()
+
+
 def test_screenshot_of_the_live_gui_shows_the_map_in_3d_and_top_view_and_a_camera_image(
         ros, rospy_node, test_fleet_file, tmp_path, xvfb_display):
     from nav_msgs.msg import OccupancyGrid
@@ -137,6 +184,7 @@ def test_screenshot_of_the_live_gui_shows_the_map_in_3d_and_top_view_and_a_camer
     from visualization_msgs.msg import MarkerArray
 
     markers, grid, image = _map_messages(rospy_node)
+    live = _LiveFleet(rospy_node)
     marker_pub = rospy_node.Publisher("/twin/occupied_cells_vis_array", MarkerArray, queue_size=1, latch=True)
     grid_pub = rospy_node.Publisher("/twin/projected_map", OccupancyGrid, queue_size=1, latch=True)
     image_pub = rospy_node.Publisher(f"/{TEST_PREFIX}jackal/camera/image_raw", Image, queue_size=1)
@@ -148,7 +196,7 @@ def test_screenshot_of_the_live_gui_shows_the_map_in_3d_and_top_view_and_a_camer
         def publish():
             image.header.stamp = rospy_node.Time.now()
             image_pub.publish(image)
-            markers.markers[0].header.stamp = rospy_node.Time(0)
+            live.publish()
 
         proc = ros.start_node("cps_gui", "cps_gui", name="cps_gui_xvfb",
                               args=["--fleet-file", test_fleet_file, "--settings", str(tmp_path / "gui.ini"),
@@ -158,6 +206,11 @@ def test_screenshot_of_the_live_gui_shows_the_map_in_3d_and_top_view_and_a_camer
     finally:
         for pub in (marker_pub, grid_pub, image_pub):
             pub.unregister()
+        live.close()
+    if os.environ.get("CPS_GUI_FIGURE"):  # keep the picture, e.g. for the README
+        import shutil
+
+        shutil.copyfile(png, os.environ["CPS_GUI_FIGURE"])
     from python_qt_binding.QtGui import QImage
 
     rgb = _qimage_to_rgb(QImage(png))

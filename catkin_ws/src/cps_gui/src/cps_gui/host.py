@@ -136,7 +136,9 @@ def main(argv=None):
 
     import rospy
 
-    # `kill -USR1 <pid>` prints every thread's stack: the first thing to look at if the GUI hangs.
+    # `kill -USR1 <pid>` prints every thread's stack: the first thing to look at if the GUI hangs;
+    # a crash prints them too.
+    faulthandler.enable(all_threads=True)
     faulthandler.register(signal.SIGUSR1, all_threads=True)
 
     argv = rospy.myargv(sys.argv if argv is None else argv)
@@ -177,4 +179,8 @@ def main(argv=None):
     poll.start(200)
     app.exec_()
     rospy.signal_shutdown("GUI closed")
-    return exit_code[0]
+    # Settings are saved and the plugin shut down by now. Skip the C++ static destructors of
+    # rviz/Ogre and roscpp: tearing them down after Qt has gone can crash (seen: SIGBUS).
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(exit_code[0])

@@ -44,6 +44,6 @@ class RvizPane(QWidget):
         """rviz draws itself at its configured frame rate."""
 
     def shutdown(self):
-        """Delete the frame without closing it: rviz's closeEvent may open a modal "save the
-        config?" dialog, which nobody answers under Xvfb and which would hang the exit."""
-        self.frame.deleteLater()
+        """Nothing to do: the frame goes with its parent widget. Never `frame.close()`: rviz's
+        closeEvent may open a modal "save the config?" dialog, which nobody answers under Xvfb
+        and which hangs the exit."""

@@ -41,9 +41,10 @@ class StatusPane(QWidget):
             self.plot_items[key] = plot
             for index, name in enumerate(names):
                 pen = pg.mkPen(robot_colour(index), width=2)
-                self.curves[(key, name)] = plot.plot([], [], pen=pen, name=name if column == 0 else None)
-        self.budget_curve = self.plot_items["bandwidth"].plot(
-            [], [], pen=pg.mkPen((0, 0, 0), width=2, style=Qt.DashLine), name="budget")
+                self.curves[(key, name)] = _without_segments(plot.plot([], [], pen=pen,
+                                                                       name=name if column == 0 else None))
+        self.budget_curve = _without_segments(self.plot_items["bandwidth"].plot(
+            [], [], pen=pg.mkPen((0, 0, 0), width=2, style=Qt.DashLine), name="budget"))
 
         self.link_label = QLabel("link: no data")
         self.table = QTableWidget(len(names), len(HEALTH_COLUMNS))
@@ -159,6 +160,13 @@ class StatusPane(QWidget):
         text = settings.value("status/log_filter", None)
         if text is not None:
             self.filter_edit.setText(str(text))
+
+
+def _without_segments(item):
+    """pyqtgraph 0.13.1's segmented line drawing calls a QPainter.drawLines overload that PyQt5
+    5.15 (Debian 12) does not have; draw curves as one path instead."""
+    item.curve.setSegmentedLineMode("off")
+    return item
 
 
 def filter_log(entries, min_level, text):
