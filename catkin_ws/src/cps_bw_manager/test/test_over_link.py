@@ -19,7 +19,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 # robot: (mean Draco message bytes, input Hz) from Table 6 step 1 (MB/s / Hz); the lidar at 10 Hz.
 LOAD = {"scout": (34000, 10.0), "jackal": (142000, 30.0), "champ": (60000, 30.0), "iris": (67000, 30.0)}
 RESERVE = 0.04
-PHASE_S = 10.0
+PHASE_S = 8.0
 
 
 def _capable():
@@ -161,10 +161,10 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
             time.sleep(6.0)
             marks["drop"] = time.time()
             link.set_rate("20mbit")
-            time.sleep(12.0)
+            time.sleep(10.0)
             marks["rise"] = time.time()
             link.set_rate("60mbit")
-            time.sleep(12.5)
+            time.sleep(9.0)
             marks["end"] = time.time()
             manager_log = graph.output("manager")
     finally:

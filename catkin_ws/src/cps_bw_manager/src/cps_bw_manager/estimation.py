@@ -15,8 +15,9 @@ delay-based congestion control:
   the estimate;
 - otherwise the estimate grows by `increase_per_s` (multiplicative, per second; at least
   `increase_min_mbps_per_s`) up to `max_mbps`, and never stays below what was just delivered;
-  within +-10 % of the rate delivered at the last saturation it probes five times slower, so the
-  queue it builds while probing stays small (as CUBIC does near its last maximum).
+  within +-10 % of the rate delivered at the last saturation, and for `slow_probe_s` after it, it
+  probes five times slower, so the queue it builds while probing stays small (as CUBIC does near
+  its last maximum) without getting stuck at a saturation point measured while a queue drained.
 
 The default threshold (60 ms of queueing) sits below the paper's 100 ms latency bound and above
 the latency noise of a busy 2-core machine.
@@ -33,7 +34,7 @@ import math
 class BandwidthEstimator:
     def __init__(self, initial_mbps, max_mbps=None, min_mbps=1.0, queue_threshold_ms=60.0,
                  increase_per_s=0.25, increase_min_mbps_per_s=4.0, drain_factor=0.9, drain_time_s=2.0, baseline_window_s=10.0,
-                 backlog_ratio=0.85, holdoff_s=1.0, rise_ms=5.0):
+                 backlog_ratio=0.85, holdoff_s=1.0, rise_ms=5.0, slow_probe_s=5.0):
         for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps),
                             ("queue_threshold_ms", queue_threshold_ms), ("increase_per_s", increase_per_s),
                             ("drain_time_s", drain_time_s), ("baseline_window_s", baseline_window_s)):
@@ -55,6 +56,7 @@ class BandwidthEstimator:
         self.backlog_ratio = float(backlog_ratio)
         self.holdoff_s = max(0.0, float(holdoff_s))
         self.rise_ms = float(rise_ms)
+        self.slow_probe_s = float(slow_probe_s)
         self._last_decrease_s = -math.inf
         self._saturation_mbps = math.nan
         self.baseline_window_s = float(baseline_window_s)
@@ -115,7 +117,8 @@ class BandwidthEstimator:
         elif delayed:
             estimate = self.estimate_mbps
         else:
-            if 0.9 * self._saturation_mbps <= self.estimate_mbps <= 1.1 * self._saturation_mbps:
+            near = 0.9 * self._saturation_mbps <= self.estimate_mbps <= 1.1 * self._saturation_mbps
+            if near and now_s - self._last_decrease_s < self.slow_probe_s:
                 grown = self.estimate_mbps * (1.0 + self.increase_per_s / 5.0) ** dt
             else:
                 grown = max(self.estimate_mbps * (1.0 + self.increase_per_s) ** dt,
