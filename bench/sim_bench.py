@@ -8,7 +8,7 @@
    on /diagnostics, odometry rate and real-time factor (anchor: each sensor's configured rate).
 
 Usage: python bench/sim_bench.py [--frames 10] [--seconds 20] [--profiles light,paper]
-       [--workers 2] [--skip-fleet]
+       [--workers 2] [--renderers egl,auto] [--skip-fleet]
 Timings on a shared machine are noisy; run it on an idle machine for figures to quote.
 """
 import argparse
@@ -21,13 +21,15 @@ import time
 
 
 def _median_ms(fn, repeats):
+    """(median wall ms, min wall ms, median CPU ms of this process, all threads)."""
     fn()  # warm-up (first EGL frame compiles shaders)
-    samples = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         fn()
-        samples.append(1000.0 * (time.perf_counter() - start))
-    return statistics.median(samples), min(samples)
+        wall.append(1000.0 * (time.perf_counter() - start))
+        cpu.append(1000.0 * (time.process_time() - start_cpu))
+    return statistics.median(wall), min(wall), statistics.median(cpu)
 
 
 def bench_sensors(frames):
@@ -58,19 +60,19 @@ def bench_sensors(frames):
             sim.close()
     anchor = results[("egl", 640)][0]
     print("\n== Sensor costs (median of %d, this process; anchor EGL 640x480 = %.1f ms) ==" % (frames, anchor))
-    print(f"{'what':34s} {'median ms':>10s} {'min ms':>8s} {'x anchor':>9s}")
+    print(f"{'what':34s} {'median ms':>10s} {'min ms':>8s} {'CPU ms':>8s} {'x anchor':>9s}")
     for renderer in ("egl", "tiny"):
         for width, height in ((640, 480), (320, 240)):
-            med, low = results[(renderer, width)]
+            med, low, cpu = results[(renderer, width)]
             label = f"depth frame {width}x{height} {'EGL' if renderer == 'egl' else 'TinyRenderer'}"
-            print(f"{label:34s} {med:10.1f} {low:8.1f} {med / anchor:9.2f}")
-    med, low = results["lidar"]
+            print(f"{label:34s} {med:10.1f} {low:8.1f} {cpu:8.1f} {med / anchor:9.2f}")
+    med, low, cpu = results["lidar"]
     rays = lidar_cfg.rings * lidar_cfg.samples_per_ring
-    print(f"{'lidar scan (%d rays)' % rays:34s} {med:10.1f} {low:8.1f} {med / anchor:9.2f}")
+    print(f"{'lidar scan (%d rays)' % rays:34s} {med:10.1f} {low:8.1f} {cpu:8.1f} {med / anchor:9.2f}")
     return results
 
 
-def bench_fleet(profile, seconds, workers):
+def bench_fleet(profile, seconds, workers, renderer):
     import rospy
     from diagnostic_msgs.msg import DiagnosticArray
 
@@ -95,7 +97,7 @@ def bench_fleet(profile, seconds, workers):
 
     graph = _GRAPH.attach()
     graph.start_node("cps_sim", "fleet_sim", name=f"fleet_sim_{profile}",
-                            params={"~profile": profile, "~sensor_workers": workers})
+                            params={"~profile": profile, "~sensor_workers": workers, "~renderer": renderer})
     subs = []
     try:
         graph.wait_for_topic("/scout/points", timeout_s=120)
@@ -122,7 +124,7 @@ def bench_fleet(profile, seconds, workers):
                 rtf = float(values["real_time_factor"])
             elif "achieved_hz" in values:
                 reported[status.hardware_id] = (float(values["achieved_hz"]), float(values["capture_ms"]))
-    print(f"\n== Fleet, profile '{profile}' ({workers} sensor worker(s), {seconds:.0f} s measured; "
+    print(f"\n== Fleet, profile '{profile}', renderer '{renderer}' ({workers} sensor worker(s), {seconds:.0f} s measured; "
           f"anchor: configured rate) ==")
     print(f"{'robot':8s} {'sensor':22s} {'configured':>10s} {'received':>9s} {'reported':>9s} {'ratio':>6s} "
           f"{'capture ms':>10s} {'odom Hz':>8s}")
@@ -153,6 +155,7 @@ def main(argv=None):
     parser.add_argument("--seconds", type=float, default=20.0, help="measuring time per fleet profile, s")
     parser.add_argument("--profiles", default="light,paper", help="comma list of fleet profiles")
     parser.add_argument("--workers", type=int, default=2, help="fleet_sim ~sensor_workers")
+    parser.add_argument("--renderers", default="egl,auto", help="comma list of fleet_sim ~renderer values to run")
     parser.add_argument("--skip-fleet", action="store_true", help="only the per-sensor costs")
     args = parser.parse_args(argv)
     print(f"cps_sim benchmark on {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at start")
@@ -169,8 +172,9 @@ def main(argv=None):
 
     rospy.init_node("sim_bench", anonymous=True, disable_signals=True)
     try:
-        for profile in [p.strip() for p in args.profiles.split(",") if p.strip()]:
-            bench_fleet(profile, args.seconds, args.workers)
+        for renderer in [r.strip() for r in args.renderers.split(",") if r.strip()]:
+            for profile in [p.strip() for p in args.profiles.split(",") if p.strip()]:
+                bench_fleet(profile, args.seconds, args.workers, renderer)
     finally:
         rospy.signal_shutdown("bench done")
         _GRAPH.close()

@@ -14,14 +14,15 @@ BOX_CENTER_X = 3.0
 BOX_HALF = 0.5
 
 
-@pytest.fixture(scope="module")
-def sim():
+@pytest.fixture(scope="module", params=["egl", "tiny"])
+def sim(request):
     site = load_site()
     box = Equipment("test_box", "crate", BOX_CENTER_X, 0.0, 0.0,
                     (("size_x_m", 2 * BOX_HALF), ("size_y_m", 2.0), ("size_z_m", 2.0)), (0.8, 0.2, 0.2))
     site = dataclasses.replace(site, areas=(), equipment=(box,))
     fleet = load_fleet(profile="light").with_robots(["scout", "jackal"])
-    simulation = FleetSimulation(fleet, site=site, renderer="egl")
+    simulation = FleetSimulation(fleet, site=site, renderer=request.param)
+    assert simulation.renderer == request.param
     yield simulation
     simulation.close()
 
@@ -66,3 +67,13 @@ def test_box_in_lidar_scan_at_its_distance(sim):
     world = points_in_map(frame)
     on_box = world[(np.abs(world[:, 1]) < 0.9) & (world[:, 2] > 0.05) & (world[:, 0] > 0) & (world[:, 0] < 5)]
     np.testing.assert_allclose(on_box[:, 0], expected, atol=0.02)
+
+
+def test_auto_renderer_picks_tiny_for_small_frames_and_egl_for_large():
+    from cps_sim.world import resolve_renderer
+
+    assert resolve_renderer("auto", 320, 240) == "tiny"
+    assert resolve_renderer("auto", 640, 480) == "egl"
+    assert resolve_renderer("egl", 320, 240) == "egl"
+    with pytest.raises(ValueError, match="known: egl, tiny, auto"):
+        resolve_renderer("vulkan", 320, 240)

@@ -138,7 +138,7 @@ class FleetSimNode:
             self.pool = None
             self.sim = FleetSimulation(self.fleet, site=self.site, renderer=renderer)
             self.renderer = self.sim.renderer
-        if renderer == "egl" and self.renderer != "egl":
+        if renderer == "egl" and self.renderer != "egl":  # 'auto' may choose tiny on purpose
             rospy.logwarn("EGL rendering unavailable; using TinyRenderer (slower)")
         self.capture_ms = {name: 0.0 for name in self.sim.robots}
         self.lock = threading.Lock()

@@ -144,7 +144,7 @@ class Lidar:
     def capture(self, lidar_in_map):
         rot, origin = lidar_in_map[:3, :3], lidar_in_map[:3, 3]
         dirs_map = self.directions @ rot.T
-        origins = np.broadcast_to(origin + dirs_map * 0.0, dirs_map.shape) + dirs_map * LIDAR_MIN_RANGE_M
+        origins = origin + dirs_map * LIDAR_MIN_RANGE_M
         ends = origin + dirs_map * self.max_range_m
         fractions, positions, normals, ids = self.world.cast_rays(np.ascontiguousarray(origins), ends)
         hit = ids >= 0

@@ -10,7 +10,7 @@ import numpy as np
 from cps_sim.robots import Robot
 from cps_sim.sensors import CameraModel, DepthCamera, Lidar
 from cps_sim.site import load_site
-from cps_sim.world import SimWorld
+from cps_sim.world import SimWorld, resolve_renderer
 
 
 @dataclasses.dataclass
@@ -39,6 +39,9 @@ class FleetSimulation:
     def __init__(self, fleet, site=None, renderer="egl"):
         self.fleet = fleet
         self.site = site if site is not None else load_site(fleet.site_path)
+        if renderer is not None:
+            cam = fleet.profile.depth_camera
+            renderer = resolve_renderer(renderer, cam.width, cam.height)
         self.world = SimWorld(self.site, renderer) if renderer is not None else None
         self.robots: Dict[str, SimulatedRobot] = {}
         profile = fleet.profile

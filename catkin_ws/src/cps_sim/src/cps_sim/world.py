@@ -15,7 +15,20 @@ from cps_sim.geometry import merged_mesh
 
 log = logging.getLogger(__name__)
 
-RENDERERS = ("egl", "tiny")
+RENDERERS = ("egl", "tiny", "auto")
+# Below this many pixels per frame TinyRenderer costs less CPU than the EGL plugin on llvmpipe:
+# EGL pays ~60 ms per frame whatever the size (a fixed 2560x2048 window and a shadow-map pass),
+# TinyRenderer ~0.5 us per pixel (measured in docs/benchmarks/sim.md).
+AUTO_TINY_MAX_PIXELS = 170_000
+
+
+def resolve_renderer(requested, width, height):
+    """'egl' or 'tiny' for a requested renderer; 'auto' picks the cheaper one for the frame size."""
+    if requested not in RENDERERS:
+        raise ValueError(f"unknown renderer '{requested}' (known: {', '.join(RENDERERS)})")
+    if requested == "auto":
+        return "tiny" if width * height <= AUTO_TINY_MAX_PIXELS else "egl"
+    return requested
 # PyBullet refuses batches over 16384 rays and silently returns nothing for exactly 16384.
 MAX_RAYS_PER_BATCH = 16383
 
@@ -28,8 +41,8 @@ class SimWorld:
     """A PyBullet client with the site and the robots' bodies in it."""
 
     def __init__(self, site, renderer="egl"):
-        if renderer not in RENDERERS:
-            raise ValueError(f"unknown renderer '{renderer}' (known: {', '.join(RENDERERS)})")
+        if renderer not in ("egl", "tiny"):
+            raise ValueError(f"unknown renderer '{renderer}' (known: egl, tiny; resolve 'auto' first)")
         self.site = site
         self.client = pybullet.connect(pybullet.DIRECT)
         self.renderer = "tiny"
