@@ -68,13 +68,24 @@ def test_fence_polygons_read_the_shapes_a_site_may_use():
         {"name": "a", "polygon": [[0, 0], [1, 0], [1, 1]]},
         Area(name="b", min=(0, 0), max=(2, 1)),
         {"name": "c", "x_min": 0, "y_min": 0, "x_max": 1, "y_max": 3},
+        Area(name="m", x_min_m=0, y_min_m=0, x_max_m=1, y_max_m=2),
         {"name": "d", "center": {"x": 1, "y": 1}, "size": [2, 4]},
         {"name": "broken", "polygon": [["x", 0]]},
         {"name": "shapeless"},
     ]}
     polygons, unreadable = topview.fence_polygons(site)
-    assert [name for name, _ in polygons] == ["a", "b", "c", "d"] and unreadable == 2
+    assert [name for name, _ in polygons] == ["a", "b", "c", "m", "d"] and unreadable == 2
     assert dict(polygons)["d"] == [(0, -1), (2, -1), (2, 3), (0, 3)]
+
+
+def test_the_fenced_areas_of_the_shipped_hall_are_drawn():
+    from cps_msgs.fleet import load_fleet
+
+    pytest.importorskip("cps_sim.site")
+    fences, problem = topview.load_fences(load_fleet().site_path)
+    assert fences and problem == ""
+    for _, polygon in fences:
+        assert len(polygon) == 4 and polygon[0][0] < polygon[1][0] and polygon[1][1] < polygon[2][1]
 
 
 def test_load_fences_explains_a_missing_site_file(tmp_path):

@@ -141,11 +141,11 @@ class WorldToScreen:
 def fence_polygons(site):
     """[(name, [(x, y), ...])] of the fenced areas of a site loaded by cps_sim.site.load_site.
 
-    Accepts the shapes a site may give an area: a polygon (`polygon`/`corners`/`points`), or an
-    axis-aligned box (`min`/`max` pairs, `x_min`.. fields, or a centre with a size). Areas it
+    cps_sim's FencedArea is an axis-aligned box (`x_min_m`.. fields); other shapes are read too:
+    a polygon (`polygon`/`corners`/`points`), `min`/`max` pairs, `x_min`.., or a centre and size. Areas it
     cannot read are skipped and counted in the second return value.
     """
-    areas = _field(site, "fenced_areas", None) or _field(site, "fences", None) or []
+    areas = _field(site, "areas", None) or _field(site, "fenced_areas", None) or []
     polygons, unreadable = [], 0
     for index, area in enumerate(areas):
         name = str(_field(area, "name", f"fence {index + 1}"))
@@ -172,9 +172,10 @@ def _polygon_of(area):
         lo, hi = _field(area, "min", None), _field(area, "max", None)
         if lo is not None and hi is not None:
             return _box(_xy(lo)[0], _xy(lo)[1], _xy(hi)[0], _xy(hi)[1])
-        if _field(area, "x_min", None) is not None:
-            return _box(_field(area, "x_min", 0), _field(area, "y_min", 0),
-                        _field(area, "x_max", 0), _field(area, "y_max", 0))
+        for suffix in ("_m", ""):  # cps_sim.site.FencedArea: x_min_m, x_max_m, y_min_m, y_max_m
+            if _field(area, "x_min" + suffix, None) is not None:
+                return _box(_field(area, "x_min" + suffix, 0), _field(area, "y_min" + suffix, 0),
+                            _field(area, "x_max" + suffix, 0), _field(area, "y_max" + suffix, 0))
         centre, size = _field(area, "center", None) or _field(area, "centre", None), _field(area, "size", None)
         if centre is not None and size is not None:
             cx, cy = _xy(centre)
