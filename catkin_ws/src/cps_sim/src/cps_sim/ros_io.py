@@ -114,7 +114,7 @@ class FleetSimNode:
 
     def __init__(self):
         self.fleet = load_fleet_param()
-        renderer = rospy.get_param("~renderer", "egl")
+        renderer = rospy.get_param("~renderer", "auto")
         if renderer not in RENDERERS:
             _fail(f"parameter ~renderer: unknown renderer '{renderer}' (known: {', '.join(RENDERERS)})")
         self.odom_rate_hz = _positive_param("~odom_rate_hz", 50.0)
