@@ -32,9 +32,9 @@ def test_estimate_tracks_60_20_60_within_a_few_seconds():
     for t, capacity, estimate, latency in trace:
         settled = (3.0 <= t < 10.0) or (14.0 <= t < 25.0) or (32.0 <= t)
         if settled:
-            # The estimate probes up to ~20 % above the capacity (one second of growth), like a
+            # The estimate probes up to ~30 % above the capacity (one second of growth), like a
             # congestion controller, and comes back down at once.
-            assert 0.6 * capacity <= estimate <= 1.2 * capacity, (t, capacity, estimate)
+            assert 0.6 * capacity <= estimate <= 1.3 * capacity, (t, capacity, estimate)
     # The queue built by the drop drains within 6 s; afterwards probing costs short latency spikes
     # (< 200 ms) while the median stays near the baseline.
     after = sorted(lat for t, _, _, lat in trace if 16.5 <= t < 25.0)

@@ -11,10 +11,11 @@ delay-based congestion control:
   delivered x a factor below 1 so the queue drains within about `drain_time_s` (at most
   `drain_factor`), never less than half the old estimate and at most once per `holdoff_s`
   (the effect of a decrease shows only one statistics window later);
-- high latency without a building queue (a busy CPU, or a queue that is already draining) holds
-  the estimate;
+- high latency without a building queue (a busy CPU, or a queue that is already draining), or
+  queueing above half the threshold, holds the estimate;
 - otherwise the estimate grows by `increase_per_s` (multiplicative, per second; at least
-  `increase_min_mbps_per_s`) up to `max_mbps`, and never stays below what was just delivered;
+  `increase_min_mbps_per_s`), faster the longer the latency has stayed low (x(1 + quiet s / 5),
+  at most x3, convex like CUBIC away from its last maximum), up to `max_mbps`, and never stays below what was just delivered;
   within +-10 % of the rate delivered at the last saturation, and for `slow_probe_s` after it, it
   probes five times slower, so the queue it builds while probing stays small (as CUBIC does near
   its last maximum) without getting stuck at a saturation point measured while a queue drained.
@@ -59,6 +60,7 @@ class BandwidthEstimator:
         self.slow_probe_s = float(slow_probe_s)
         self._last_decrease_s = -math.inf
         self._saturation_mbps = math.nan
+        self._quiet_since_s = math.nan
         self.baseline_window_s = float(baseline_window_s)
         self.estimate_mbps = min(max(float(initial_mbps), self.min_mbps), self.max_mbps)
         self.congested = False
@@ -107,6 +109,8 @@ class BandwidthEstimator:
         self._last_latency_ms = latency_ms
         building = not known_sent or delivered_mbps < self.backlog_ratio * sent_mbps or self._rising >= 3
         self.congested = delayed and building
+        if self.congested:
+            self._quiet_since_s = now_s
         if self.congested and now_s - self._last_decrease_s < self.holdoff_s:
             estimate = self.estimate_mbps
         elif self.congested:
@@ -114,14 +118,18 @@ class BandwidthEstimator:
             self._saturation_mbps = delivered_mbps
             factor = min(self.drain_factor, max(0.5, 1.0 - queueing_ms / (1000.0 * self.drain_time_s)))
             estimate = min(self.estimate_mbps, max(0.5 * self.estimate_mbps, factor * delivered_mbps))
-        elif delayed:
+        elif delayed or queueing_ms > 0.5 * self.queue_threshold_ms:
             estimate = self.estimate_mbps
+            self._quiet_since_s = now_s
         else:
             near = 0.9 * self._saturation_mbps <= self.estimate_mbps <= 1.1 * self._saturation_mbps
             if near and now_s - self._last_decrease_s < self.slow_probe_s:
                 grown = self.estimate_mbps * (1.0 + self.increase_per_s / 5.0) ** dt
             else:
-                grown = max(self.estimate_mbps * (1.0 + self.increase_per_s) ** dt,
+                if math.isnan(self._quiet_since_s):
+                    self._quiet_since_s = now_s
+                boost = min(3.0, 1.0 + (now_s - self._quiet_since_s) / 5.0)
+                grown = max(self.estimate_mbps * (1.0 + boost * self.increase_per_s) ** dt,
                             self.estimate_mbps + self.increase_min_mbps_per_s * dt)
             estimate = max(grown, delivered_mbps)
         self.estimate_mbps = min(max(estimate, self.min_mbps), self.max_mbps)

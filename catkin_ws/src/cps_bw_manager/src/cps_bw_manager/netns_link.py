@@ -95,7 +95,9 @@ def _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, verb):
     """tc commands shaping one end: tbf alone, or netem (delay/loss) with tbf as its child."""
     dev = _device(name, side)
     rate_bps = rate_bits_per_s(rate)
-    burst_bytes = int(max(16000, rate_bps / 8 * 0.004))  # >= 4 ms at the rate, >= a few full frames
+    # At least two full 64 kB GSO frames: with less, TCP's large segments after a rate drop are
+    # dropped whole and every connection stalls for seconds. At least 4 ms at the rate.
+    burst_bytes = int(max(131072, rate_bps / 8 * 0.004))
     tbf = ["tbf", "rate", rate, "burst", str(burst_bytes), "latency", f"{queue_ms:g}ms"]
     base = ["ip", "netns", "exec", namespace(name, side), "tc", "qdisc", verb, "dev", dev]
     if delay_ms or loss_pct:
