@@ -133,7 +133,9 @@ def test_deadman_mode_switch_estop_and_bad_commands(ros, rospy_node):
     from nav_msgs.msg import Odometry
     from std_msgs.msg import Bool, String
 
-    ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_jackal", params={"~profile": "light", "~robots": "jackal"})
+    # Captures in the node's own process here (~sensor_workers 0); the fleet test uses workers.
+    ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_jackal",
+                   params={"~profile": "light", "~robots": "jackal", "~sensor_workers": 0})
     ros.wait_for_topic("/jackal/odom", timeout_s=60)
     _start_robot_nodes(ros, "jackal")
     odom = Latest(rospy, "/jackal/odom", Odometry)
