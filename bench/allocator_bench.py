@@ -63,7 +63,6 @@ def bench_solve(repeats):
 def bench_priority_to_rate(changes):
     """Median/max seconds from a set_priority call returning to every limiter running the new rate."""
     import rospy
-    from std_msgs.msg import String  # noqa: F401 (the graph needs std_msgs)
 
     from cps_msgs.msg import BandwidthAllocationArray, CompressedPointCloud2, RateLimiterStatus
     from cps_msgs.srv import SetPriority

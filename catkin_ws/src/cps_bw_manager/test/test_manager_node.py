@@ -37,6 +37,8 @@ class _Latest:
 def graph(ros, rospy_node, tmp_path):
     """Two rate limiters fed at 20 Hz with 20 kB clouds, and the manager on a 2 Mbit/s budget."""
     rospy = rospy_node
+    from std_msgs.msg import String
+
     from cps_msgs.msg import CompressedPointCloud2
 
     for r in ROBOTS:
@@ -48,8 +50,7 @@ def graph(ros, rospy_node, tmp_path):
                    params={"~robots": list(ROBOTS), "~available_mbps": 2.0, "~csv_path": str(csv_path)})
     ros.wait_for_service("/tissue/set_priority")
     pubs = {r: rospy.Publisher(f"/{r}/points_filtered/draco", CompressedPointCloud2, queue_size=2) for r in ROBOTS}
-    mission = {r: rospy.Publisher(f"/{r}/mission_state", __import__("std_msgs.msg", fromlist=["String"]).String,
-                                  queue_size=1, latch=True) for r in ROBOTS}
+    mission = {r: rospy.Publisher(f"/{r}/mission_state", String, queue_size=1, latch=True) for r in ROBOTS}
     stop = threading.Event()
 
     def feed():
