@@ -118,6 +118,9 @@ def test_default_topics_come_from_the_fleet():
     fleet = load_fleet()
     topics = module.fleet_topics(fleet)
     for robot in fleet.robots:
-        assert f"/{robot.name}/points_filtered/draco/managed" in topics
+        # The twin-side relay, never the physical side's topic: that would be a second copy on the link.
+        assert f"/twin/{robot.name}/points_filtered/draco/managed" in topics
+        assert f"/{robot.name}/points_filtered/draco/managed" not in topics
         assert f"/{robot.name}/odom" in topics
-    assert "/tf" in topics and "/scout/camera/image_raw" not in topics and "/jackal/camera/image_raw" in topics
+        assert f"/{robot.name}/camera/image_raw" not in topics
+    assert "/tf" in topics
