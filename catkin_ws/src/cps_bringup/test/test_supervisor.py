@@ -27,8 +27,15 @@ def test_plan_wires_every_robot_through_the_tissue_to_the_map():
         assert f"_leaf_size:={robot.voxel_leaf_m}" in voxel and "_filter_field_name:= " in voxel + " "
         assert f"~output:=/{r}/points_filtered/draco/managed" in " ".join(specs[f"{r}/cloud_throttle"].argv)
         assert "__name:=cloud_throttle" in specs[f"{r}/cloud_throttle"].argv
+        # Exactly one subscriber of the managed topic crosses the link: the twin-side relay.
+        relay = specs[f"{r}/link_relay"]
+        assert relay.side == DIGITAL and relay.argv[3:5] == (f"/{r}/points_filtered/draco/managed",
+                                                            f"/twin/{r}/points_filtered/draco/managed")
+        crossing = [s.label for s in specs.values() if s.side == DIGITAL and s is not relay
+                    and any(f"/{r}/points_filtered/draco/managed" == a.split(":=")[-1] for a in s.argv)]
+        assert crossing == [], crossing
         decoder = " ".join(specs[f"{r}/draco_decoder"].argv)
-        assert f"~input:=/{r}/points_filtered/draco/managed" in decoder and f"~output:=/twin/{r}/points" in decoder
+        assert f"~input:=/twin/{r}/points_filtered/draco/managed" in decoder and f"~output:=/twin/{r}/points" in decoder
         assert specs[f"{r}/draco_decoder"].side == DIGITAL and specs[f"{r}/draco_encoder"].side == PHYSICAL
     assert specs["map_server"].side == DIGITAL
     assert "_map_file:=/tmp/x/map.bt" in specs["map_server"].argv

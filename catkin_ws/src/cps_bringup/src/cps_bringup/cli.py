@@ -52,7 +52,8 @@ def build_parser():
     parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
     parser.add_argument("--screenshot-after", type=float, default=60.0, metavar="S")
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
-    parser.add_argument("--renderer", choices=("egl", "tiny"), default="egl")
+    parser.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto",
+                        help="PyBullet renderer; auto: TinyRenderer for small images, EGL for 640x480")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server S seconds into the mission")
     return parser
@@ -84,10 +85,12 @@ def run_mission(args, log=print) -> MissionResult:
         map_file=os.path.join(out_dir, "map.bt"),
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
         gui_screenshot_after_s=args.screenshot_after)
-    specs = plan_nodes(fleet, sides=sides, options=options)
-
     with contextlib.ExitStack() as stack:
         link = stack.enter_context(_link_context(args.link, log))
+        if link:
+            # As the paper: the manager's B is what iperf3 measured on the link, not the nominal rate.
+            options = dataclasses.replace(options, available_mbps=link.measured_mbps)
+        specs = plan_nodes(fleet, sides=sides, options=options)
         host_ip = link.twin_ip if link else "127.0.0.1"
         if args.master_uri:
             graph = RosGraph(master_uri=args.master_uri, log_dir=node_log_dir(out_dir), host_ip=host_ip)

@@ -39,7 +39,10 @@ class RunOptions:
     gui_screenshot_path: Optional[str] = None
     gui_screenshot_after_s: float = 60.0
     map_file: Optional[str] = None
-    renderer: str = "egl"
+    renderer: str = "auto"
+    # Link capacity for the bandwidth manager, Mbit/s (e.g. iperf3's measurement); None: fleet.yaml's.
+    available_mbps: Optional[float] = None
+    autosave_period_s: float = 10.0
 
 
 def _args(params: Dict[str, object]) -> List[str]:
@@ -49,6 +52,14 @@ def _args(params: Dict[str, object]) -> List[str]:
             value = "true" if value else "false"
         out.append(f"_{key}:={value}")
     return out
+
+
+def _stats_topics(robots):
+    """What topic_stats measures on the twin: the relayed managed clouds and the light unmanaged
+    streams (the same set as its fleet default, restricted to the running robots)."""
+    topics = [t for r in robots for t in (f"/twin/{r}/points_filtered/draco/managed", f"/{r}/odom",
+                                          f"/{r}/battery", f"/{r}/joint_states")]
+    return ",".join(topics + ["/tf"])
 
 
 def default_node_path(package: str, node: str) -> str:
@@ -114,26 +125,35 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
     if DIGITAL in sides:
         out = options.out_dir
         for r in robots:
+            # The one subscriber of the managed topic across the link; everything on the twin
+            # (decoder, statistics) reads the relay, so the link carries each cloud once.
+            relayed = f"/twin/{r}/points_filtered/draco/managed"
+            specs.append(NodeSpec(
+                f"{r}/link_relay", DIGITAL,
+                ("rosrun", "topic_tools", "relay", f"/{r}/points_filtered/draco/managed", relayed,
+                 f"__ns:=/twin/{r}", "__name:=link_relay"),
+                wait_topics=(relayed,)))
             specs.append(NodeSpec(
                 f"{r}/draco_decoder", DIGITAL,
                 py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=draco_decoder",
-                   f"~input:=/{r}/points_filtered/draco/managed", f"~output:=/twin/{r}/points"),
+                   f"~input:={relayed}", f"~output:=/twin/{r}/points"),
                 wait_topics=(f"/twin/{r}/points",)))
         specs.append(NodeSpec(
             "map_server", DIGITAL,
             py("cps_mapping", "map_server", "__ns:=/twin", "__name:=map_server",
-               *_args({**common, "robots": ",".join(robots),
+               *_args({**common, "robots": ",".join(robots), "autosave_period_s": options.autosave_period_s,
                        "map_file": options.map_file or os.path.join(out, "map.bt")})),
             wait_topics=("/twin/map_stats", "/twin/octomap_binary"), restart_limit=3))
         specs.append(NodeSpec(
             "topic_stats", DIGITAL,
             py("cps_transport", "topic_stats", "__name:=tissue_stats",
-               *_args({**common, "csv_path": os.path.join(out, "stats.csv")})),
+               *_args({**common, "csv_path": os.path.join(out, "stats.csv"), "topics": _stats_topics(robots)})),
             wait_topics=("/tissue/stats",)))
         specs.append(NodeSpec(
             "bandwidth_manager", DIGITAL,
             py("cps_bw_manager", "bandwidth_manager", "__name:=bandwidth_manager",
-               *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv")})),
+               *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv"),
+                       **({"available_mbps": round(options.available_mbps, 2)} if options.available_mbps else {})})),
             wait_topics=("/tissue/allocation",)))
         if options.gui_screenshot_path:
             # rviz needs an X server with OpenGL: a private Xvfb (Mesa llvmpipe) for the offscreen GUI.
