@@ -41,6 +41,15 @@ def test_plan_wires_every_robot_through_the_tissue_to_the_map():
     assert "_map_file:=/tmp/x/map.bt" in specs["map_server"].argv
 
 
+def test_plan_for_real_robots_leaves_the_simulator_out():
+    fleet = load_fleet()
+    specs = plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x", simulate=False))
+    labels = {s.label for s in specs}
+    assert "fleet_sim" not in labels
+    assert {"scout/route_controller", "scout/velocity_mux", "scout/voxel_grid", "scout/cloud_throttle"} <= labels
+    assert all(s.after != ("fleet_sim",) for s in specs)
+
+
 def test_plan_of_one_side_and_a_subset():
     fleet = load_fleet().with_robots(["jackal"])
     specs = plan_nodes(fleet, sides=(DIGITAL,), options=RunOptions(out_dir="/tmp/x"))

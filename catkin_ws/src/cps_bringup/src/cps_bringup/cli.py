@@ -54,6 +54,8 @@ def build_parser():
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
     parser.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto",
                         help="PyBullet renderer; auto: TinyRenderer for small images, EGL for 640x480")
+    parser.add_argument("--no-sim", action="store_true",
+                        help="real robots: do not start fleet_sim; their drivers publish /<r>/points, odom, tf")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server S seconds into the mission")
     return parser
@@ -81,7 +83,7 @@ def run_mission(args, log=print) -> MissionResult:
     os.makedirs(out_dir, exist_ok=True)
     sides = _sides(args.side)
     options = RunOptions(
-        out_dir=out_dir, profile=args.profile, renderer=args.renderer,
+        out_dir=out_dir, profile=args.profile, renderer=args.renderer, simulate=not args.no_sim,
         map_file=os.path.join(out_dir, "map.bt"),
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
         gui_screenshot_after_s=args.screenshot_after)

@@ -43,6 +43,8 @@ class RunOptions:
     # Link capacity for the bandwidth manager, Mbit/s (e.g. iperf3's measurement); None: fleet.yaml's.
     available_mbps: Optional[float] = None
     autosave_period_s: float = 10.0
+    # False on real robots: their drivers publish what fleet_sim would.
+    simulate: bool = True
 
 
 def _args(params: Dict[str, object]) -> List[str]:
@@ -81,12 +83,14 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
 
     if PHYSICAL in sides:
         profile = options.profile or fleet.profile.name
-        specs.append(NodeSpec(
-            "fleet_sim", PHYSICAL,
-            py("cps_sim", "fleet_sim", "__name:=fleet_sim",
-               *_args({**common, "profile": profile, "robots": ",".join(robots), "renderer": options.renderer})),
-            wait_topics=tuple(t for r in robots for t in (f"/{r}/odom", f"/{r}/points")),
-            restart_limit=0))
+        if options.simulate:
+            specs.append(NodeSpec(
+                "fleet_sim", PHYSICAL,
+                py("cps_sim", "fleet_sim", "__name:=fleet_sim",
+                   *_args({**common, "profile": profile, "robots": ",".join(robots), "renderer": options.renderer})),
+                wait_topics=tuple(t for r in robots for t in (f"/{r}/odom", f"/{r}/points")),
+                restart_limit=0))
+        drivers = ("fleet_sim",) if options.simulate else ()
         specs.append(NodeSpec(
             "nodelet_manager", PHYSICAL,
             ("rosrun", "nodelet", "nodelet", "manager", f"__name:={VOXEL_MANAGER.lstrip('/')}"),
@@ -101,7 +105,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             specs.append(NodeSpec(
                 f"{r}/route_controller", PHYSICAL,
                 py("cps_sim", "route_controller", ns, "__name:=route_controller", *_args({**common, "robot": r})),
-                wait_topics=(f"/{r}/mission_state",), after=("fleet_sim",)))
+                wait_topics=(f"/{r}/mission_state",), after=drivers))
             specs.append(NodeSpec(
                 f"{r}/voxel_grid", PHYSICAL,
                 ("rosrun", "nodelet", "nodelet", "load", "pcl/VoxelGrid", VOXEL_MANAGER, ns, "__name:=voxel_grid",
