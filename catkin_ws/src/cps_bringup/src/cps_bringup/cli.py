@@ -93,7 +93,8 @@ def run_mission(args, log=print) -> MissionResult:
             # As the paper: the manager's B is what iperf3 measured on the link, not the nominal rate.
             options = dataclasses.replace(options, available_mbps=link.measured_mbps)
         specs = plan_nodes(fleet, sides=sides, options=options)
-        host_ip = link.twin_ip if link else "127.0.0.1"
+        # Across machines the nodes must advertise this host's address: ROS_IP as the user set it.
+        host_ip = link.twin_ip if link else (os.environ.get("ROS_IP") or "127.0.0.1")
         if args.master_uri:
             graph = RosGraph(master_uri=args.master_uri, log_dir=node_log_dir(out_dir), host_ip=host_ip)
         else:
