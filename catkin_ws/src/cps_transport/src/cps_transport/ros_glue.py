@@ -84,6 +84,11 @@ class DropReporter:
         for key, value in counters.items():
             self._extra[key] = self._extra.get(key, 0) + value
 
+    def count(self, **counters):
+        """Adds to named counters without counting a processed message (e.g. frames skipped)."""
+        for key, value in counters.items():
+            self._extra[key] = self._extra.get(key, 0) + value
+
     def drop(self, reason):
         self.invalid += 1
         self.last_error = str(reason)

@@ -1,0 +1,127 @@
+"""The image_compressor node: encodes only while someone listens, keeps stamp and frame, counts
+and survives encodings it does not handle, honours its rate cap and refuses bad parameters."""
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from cps_transport.image_compression import camera_test_image, decode_jpeg, psnr_db
+
+pytestmark = pytest.mark.ros
+
+
+def _wait_for(predicate, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _reported(diagnostics, node):
+    """The newest counters the node reported on /diagnostics, as a dict of str."""
+    for array in reversed(diagnostics):
+        for status in array.status:
+            if status.name == node:
+                return {kv.key: kv.value for kv in status.values}
+    return {}
+
+
+def _image(rospy, encoding="rgb8", width=320, height=240):
+    from sensor_msgs.msg import Image
+
+    rgb = camera_test_image(width, height)
+    msg = Image(height=height, width=width, encoding=encoding, step=width * 3, data=rgb.tobytes())
+    msg.header.frame_id = "ic1/camera_optical_frame"
+    msg.header.stamp = rospy.Time.now()
+    return msg, rgb
+
+
+def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros, rospy_node):
+    rospy = rospy_node
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import CompressedImage, Image
+
+    ros.start_node("cps_transport", "image_compressor", name="image_compressor", namespace="/ic1/camera",
+                   params={"~jpeg_quality": 80}, remap={"~input": "/ic1/camera/image_raw"})
+    ros.wait_for_topic("/ic1/camera/image_raw/compressed", timeout_s=20)
+    diagnostics = []
+    diag_sub = rospy.Subscriber("/diagnostics", DiagnosticArray, diagnostics.append)
+    raw_pub = rospy.Publisher("/ic1/camera/image_raw", Image, queue_size=10)
+    received, got = [], threading.Event()
+    out_sub = None
+    try:
+        assert _wait_for(lambda: raw_pub.get_num_connections() > 0)
+        # Nobody listens to the output: frames arrive and none is encoded.
+        for _ in range(5):
+            raw_pub.publish(_image(rospy)[0])
+            time.sleep(0.05)
+        assert _wait_for(lambda: int(_reported(diagnostics, "/ic1/camera/image_compressor")
+                                     .get("skipped_no_subscriber", 0)) == 5), _reported(diagnostics, "/ic1/camera/image_compressor")
+        assert _reported(diagnostics, "/ic1/camera/image_compressor")["processed"] == "0"
+
+        def on_compressed(msg):
+            received.append(msg)
+            got.set()
+        out_sub = rospy.Subscriber("/ic1/camera/image_raw/compressed", CompressedImage, on_compressed)
+        assert _wait_for(lambda: out_sub.get_num_connections() > 0)
+        time.sleep(0.3)  # the node's publisher sees the connection too
+        bad, _ = _image(rospy, encoding="rgba8")
+        raw_pub.publish(bad)
+        time.sleep(0.1)
+        good, rgb = _image(rospy)
+        raw_pub.publish(good)
+        assert got.wait(10.0), ros.output("image_compressor")[-1500:]
+        out = received[0]
+        assert out.header.stamp == good.header.stamp and out.header.frame_id == good.header.frame_id
+        assert out.format == "rgb8; jpeg compressed bgr8"
+        assert psnr_db(rgb, decode_jpeg(out.data)) > 30.0
+        assert len(out.data) < len(good.data) / 8
+        assert _wait_for(lambda: _reported(diagnostics, "/ic1/camera/image_compressor").get("invalid_messages") == "1"
+                         and _reported(diagnostics, "/ic1/camera/image_compressor").get("processed") == "1")
+        assert "rgba8" in ros.output("image_compressor")
+        assert len(received) == 1
+    finally:
+        for handle in (diag_sub, raw_pub, out_sub):
+            if handle is not None:
+                handle.unregister()
+
+
+def test_rate_cap_and_remapped_output(ros, rospy_node):
+    rospy = rospy_node
+    from sensor_msgs.msg import CompressedImage, Image
+
+    ros.start_node("cps_transport", "image_compressor", name="capped_compressor", namespace="/ic2",
+                   params={"~max_rate_hz": 2.0}, remap={"~input": "/ic2/image_raw", "~output": "/ic2/video"})
+    ros.wait_for_topic("/ic2/video", timeout_s=20)
+    received = []
+    out_sub = rospy.Subscriber("/ic2/video", CompressedImage, received.append)
+    raw_pub = rospy.Publisher("/ic2/image_raw", Image, queue_size=10)
+    try:
+        assert _wait_for(lambda: raw_pub.get_num_connections() > 0 and out_sub.get_num_connections() > 0)
+        time.sleep(0.3)
+        msg, _ = _image(rospy, width=64, height=48)
+        start = time.monotonic()
+        for _ in range(30):  # 20 Hz for 1.5 s
+            raw_pub.publish(msg)
+            time.sleep(0.05)
+        elapsed_s = time.monotonic() - start
+        time.sleep(0.5)
+        # 2 Hz with a credit of one frame at the start (4 in 1.5 s), one more for scheduling slack.
+        assert 2 <= len(received) <= 2 + 2.0 * elapsed_s, (len(received), elapsed_s)
+    finally:
+        out_sub.unregister()
+        raw_pub.unregister()
+
+
+@pytest.mark.parametrize("params,name", [({"~jpeg_quality": 0}, "~jpeg_quality"),
+                                         ({"~jpeg_quality": 101}, "~jpeg_quality"),
+                                         ({"~max_rate_hz": -1.0}, "~max_rate_hz")])
+def test_bad_parameters_stop_the_node_naming_them(ros, params, name):
+    node = f"bad_compressor_{abs(hash(name)) % 1000}_{list(params.values())[0]}".replace(".", "_").replace("-", "m")
+    proc = ros.start_node("cps_transport", "image_compressor", name=node, namespace="/ic3", params=params)
+    proc.wait(30)
+    assert proc.returncode != 0
+    assert name.lstrip("~") in ros.output(node)
