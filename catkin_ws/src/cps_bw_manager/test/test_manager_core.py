@@ -17,9 +17,9 @@ def _core(**kwargs):
 
 def test_measured_sizes_drive_the_allocation():
     core = _core()
-    assert core.on_limiter_status("a", 200000.0, 50.0)
-    assert core.on_limiter_status("b", 200000.0, 50.0)
-    assert not core.on_limiter_status("a", 210000.0, 50.0)  # < 10 %: no immediate update needed
+    assert core.on_limiter_status("a", 200000.0, 50.0, now_s=0.0)
+    assert core.on_limiter_status("b", 200000.0, 50.0, now_s=0.0)
+    assert not core.on_limiter_status("a", 210000.0, 50.0, now_s=0.0)  # < 10 %: no immediate update needed
     result = core.allocate()
     assert result.allocated_mbytes_per_s == pytest.approx(7.2)
     assert all(r.size_measured for r in result.robots)
@@ -29,8 +29,8 @@ def test_headroom_keeps_room_for_one_message_per_robot_per_window():
     import dataclasses
 
     core = ManagerCore(["a", "b"], dataclasses.replace(SETTINGS, headroom_messages=1.0))
-    core.on_limiter_status("a", 200000.0, 50.0)
-    core.on_limiter_status("b", 200000.0, 50.0)
+    core.on_limiter_status("a", 200000.0, 50.0, now_s=0.0)
+    core.on_limiter_status("b", 200000.0, 50.0, now_s=0.0)
     result = core.allocate()
     assert result.budget_mbytes_per_s == pytest.approx(7.2)
     assert result.allocated_mbytes_per_s == pytest.approx(7.2 - 0.4)
@@ -43,16 +43,16 @@ def test_two_subscribers_across_the_link_halve_the_rates():
     one = ManagerCore(["a", "b"], SETTINGS)
     two = ManagerCore(["a", "b"], dataclasses.replace(SETTINGS, copies_on_link=2))
     for core in (one, two):
-        core.on_limiter_status("a", 300000.0, 50.0)
-        core.on_limiter_status("b", 300000.0, 50.0)
+        core.on_limiter_status("a", 300000.0, 50.0, now_s=0.0)
+        core.on_limiter_status("b", 300000.0, 50.0, now_s=0.0)
     assert two.allocate().rates_hz()["a"] == pytest.approx(one.allocate().rates_hz()["a"] / 2)
     assert two.allocate().allocated_mbytes_per_s == pytest.approx(7.2)
 
 
 def test_input_rate_caps_the_maximum_and_frees_bandwidth_for_the_others():
     core = _core()
-    core.on_limiter_status("a", 300000.0, 5.0)   # a only produces 5 Hz
-    core.on_limiter_status("b", 300000.0, 50.0)
+    core.on_limiter_status("a", 300000.0, 5.0, now_s=0.0)   # a only produces 5 Hz
+    core.on_limiter_status("b", 300000.0, 50.0, now_s=0.0)
     rates = core.allocate().rates_hz()
     assert rates["a"] == pytest.approx(5.5)
     assert rates["b"] == pytest.approx((7.2 - 5.5 * 0.3) / 0.3)
@@ -61,7 +61,7 @@ def test_input_rate_caps_the_maximum_and_frees_bandwidth_for_the_others():
 def test_done_robot_drops_to_minimum_and_operator_can_raise_it():
     core = _core()
     for r in "ab":
-        core.on_limiter_status(r, 300000.0, 50.0)
+        core.on_limiter_status(r, 300000.0, 50.0, now_s=0.0)
         core.on_mission_state(r, "inspecting")
     assert core.on_mission_state("a", "done")
     assert core.allocate().rates_hz()["a"] == pytest.approx(1.0)
@@ -81,14 +81,14 @@ def test_bad_set_priority_is_refused_with_a_message(robot, priority):
 
 def test_unmeasured_sizes_are_safe_and_bad_sizes_are_refused():
     core = _core()
-    assert not core.on_limiter_status("a", 0.0, 0.0)
-    assert not core.on_limiter_status("a", math.nan, 0.0)
+    assert not core.on_limiter_status("a", 0.0, 0.0, now_s=0.0)
+    assert not core.on_limiter_status("a", math.nan, 0.0, now_s=0.0)
     with pytest.raises(ValueError, match="not a size"):
-        core.on_limiter_status("a", -3.0, 10.0)
+        core.on_limiter_status("a", -3.0, 10.0, now_s=0.0)
     with pytest.raises(ValueError, match="not a size"):
-        core.on_limiter_status("a", math.inf, 10.0)
+        core.on_limiter_status("a", math.inf, 10.0, now_s=0.0)
     with pytest.raises(KeyError):
-        core.on_limiter_status("nobody", 1000.0, 10.0)
+        core.on_limiter_status("nobody", 1000.0, 10.0, now_s=0.0)
     result = core.allocate()
     assert not any(r.size_measured for r in result.robots)
     assert result.allocated_mbytes_per_s <= 7.2 + 1e-9
@@ -101,6 +101,7 @@ def test_unmeasured_sizes_are_safe_and_bad_sizes_are_refused():
     (dict(high_priority_weight=0.0), "high_priority_weight"),
     (dict(headroom_messages=-1.0), "headroom_messages"), (dict(window_s=0.0), "window_s"),
     (dict(copies_on_link=0), "copies_on_link"), (dict(copies_on_link=1.5), "copies_on_link"),
+    (dict(input_rate_hold_s=-1.0), "input_rate_hold_s"), (dict(input_rate_hold_s=math.nan), "input_rate_hold_s"),
 ])
 def test_bad_settings_name_the_parameter(change, match):
     import dataclasses
@@ -112,7 +113,7 @@ def test_bad_settings_name_the_parameter(change, match):
 def test_estimator_lowers_the_budget_when_the_link_saturates():
     core = _core(estimator=BandwidthEstimator(initial_mbps=60.0))
     for r in "ab":  # the limiters forward 15 Hz x 200 kB = 24 Mbit/s each
-        core.on_limiter_status(r, 200000.0, 50.0, 15.0)
+        core.on_limiter_status(r, 200000.0, 50.0, 15.0, now_s=0.0)
     assert core.sent_mbps() == pytest.approx(48.0)
     core.on_link_stats(0.0, 48.0, 2.0)
     assert core.on_link_stats(0.5, 20.0, 300.0)

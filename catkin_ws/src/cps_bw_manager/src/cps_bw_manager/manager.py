@@ -18,6 +18,10 @@ from cps_bw_manager.priorities import PriorityBook
 INPUT_RATE_HEADROOM = 1.1
 # A size change smaller than this fraction does not count as a change worth an immediate update.
 SIZE_CHANGE_FRACTION = 0.1
+# How long a robot keeps its input-rate cap while its limiter reports no input rate. A limiter
+# measures over a 2 s window and needs two messages in it, so a sensor at 0.7 Hz reads 0 for runs
+# of up to ~9 s (1 Hz: ~3 s); 10 s covers that. Longer silences fall back to max_rate_hz.
+DEFAULT_INPUT_RATE_HOLD_S = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +40,9 @@ class ManagerSettings:
     # TCPROS sends one copy of a message per subscriber: every digital-twin node subscribed to a
     # managed topic (the Draco decoder, a stats monitor, ...) is one more copy on the link.
     copies_on_link: int = 1
+    # A status without an input rate (0 or NaN: fewer than two messages in the limiter's window)
+    # keeps the robot's last input-rate cap this long before it falls back to max_rate_hz.
+    input_rate_hold_s: float = DEFAULT_INPUT_RATE_HOLD_S
 
     def validate(self):
         """ValueError naming the parameter that is wrong."""
@@ -45,6 +52,9 @@ class ManagerSettings:
             raise ValueError(f"copies_on_link must be an integer in [1, 100], got {self.copies_on_link!r}")
         if not isinstance(self.headroom_messages, (int, float)) or not 0 <= self.headroom_messages <= 10:
             raise ValueError(f"headroom_messages must be in [0, 10], got {self.headroom_messages!r}")
+        if not _finite(self.input_rate_hold_s) or isinstance(self.input_rate_hold_s, bool) \
+                or not 0 <= self.input_rate_hold_s <= 3600:
+            raise ValueError(f"input_rate_hold_s must be in [0, 3600] s, got {self.input_rate_hold_s!r}")
         for name in ("min_rate_hz", "max_rate_hz", "high_priority_weight", "floor_rate_hz", "assumed_message_bytes",
                      "window_s"):
             value = getattr(self, name)
@@ -58,7 +68,9 @@ class ManagerSettings:
 @dataclasses.dataclass
 class _Measured:
     message_bytes: float = math.nan
+    # The last input rate > 0 and when it was reported; NaN: never measured, or held too long.
     input_rate_hz: float = math.nan
+    input_rate_at_s: float = math.nan
     output_rate_hz: float = math.nan
 
 
@@ -78,22 +90,32 @@ class ManagerCore:
     def available_mbps(self):
         return self.estimator.estimate_mbps if self.estimator else self.settings.available_mbps
 
-    def on_limiter_status(self, robot, mean_message_bytes, input_rate_hz, output_rate_hz=math.nan):
-        """A rate limiter's status; returns True if the size changed enough to re-allocate now.
+    def on_limiter_status(self, robot, mean_message_bytes, input_rate_hz, output_rate_hz=math.nan, *, now_s):
+        """A rate limiter's status received at `now_s` (s, any monotonic clock); returns True if the
+        size changed enough to re-allocate now.
 
-        Raises KeyError for an unknown robot. 0 or NaN (nothing received yet) keeps the old
-        measurement; a negative or infinite size is counted and refused (ValueError).
+        Raises KeyError for an unknown robot. A size of 0 or NaN (nothing received yet) keeps the
+        old size; a negative or infinite size is counted and refused (ValueError). An input rate
+        > 0 replaces the robot's input-rate cap at once; 0 or NaN (fewer than two messages in the
+        limiter's window) keeps the last one for `input_rate_hold_s` after it was reported, then
+        drops it (the robot may use max_rate_hz again, as a robot never measured does).
         """
         entry = self.measured[self._known(robot)]
+        if not _finite(now_s):
+            self.invalid_inputs += 1
+            raise ValueError(f"robot '{robot}': status time {now_s!r} is not a time")
         entry.output_rate_hz = float(output_rate_hz) if _finite(output_rate_hz) and output_rate_hz >= 0 else math.nan
-        if not _positive(mean_message_bytes):
-            if mean_message_bytes == 0 or math.isnan(mean_message_bytes):
-                return False
+        if not _positive(mean_message_bytes) and not (mean_message_bytes == 0 or math.isnan(mean_message_bytes)):
             self.invalid_inputs += 1
             raise ValueError(f"robot '{robot}': mean_message_bytes {mean_message_bytes!r} is not a size")
+        if _positive(input_rate_hz):
+            entry.input_rate_hz, entry.input_rate_at_s = float(input_rate_hz), float(now_s)
+        elif not 0.0 <= now_s - entry.input_rate_at_s <= self.settings.input_rate_hold_s:
+            entry.input_rate_hz = entry.input_rate_at_s = math.nan  # held too long (or the clock went back)
+        if not _positive(mean_message_bytes):
+            return False
         old = entry.message_bytes
         entry.message_bytes = float(mean_message_bytes)
-        entry.input_rate_hz = float(input_rate_hz) if _positive(input_rate_hz) else math.nan
         return not _positive(old) or abs(mean_message_bytes - old) > SIZE_CHANGE_FRACTION * old
 
     def on_mission_state(self, robot, state):
@@ -127,15 +149,21 @@ class ManagerCore:
         after = self.estimator.update(now_s, delivered_mbps, latency_ms, None if math.isnan(sent) else sent)
         return abs(after - before) > 0.05 * before
 
+    def input_rate_cap_hz(self, robot):
+        """The robot's maximum rate from its input: INPUT_RATE_HEADROOM x the last input rate, in
+        [min_rate_hz, max_rate_hz]; max_rate_hz when none is known (never measured, or held out)."""
+        s = self.settings
+        rate = self.measured[self._known(robot)].input_rate_hz
+        if not _positive(rate):
+            return s.max_rate_hz
+        return min(s.max_rate_hz, max(s.min_rate_hz, INPUT_RATE_HEADROOM * rate))
+
     def demands(self):
         s = self.settings
         out = []
         for robot in self.robots:
-            m = self.measured[robot]
-            max_rate = s.max_rate_hz
-            if _positive(m.input_rate_hz):
-                max_rate = min(max_rate, max(s.min_rate_hz, INPUT_RATE_HEADROOM * m.input_rate_hz))
-            out.append(self.book.demand(robot, m.message_bytes, s.min_rate_hz, max_rate))
+            out.append(self.book.demand(robot, self.measured[robot].message_bytes, s.min_rate_hz,
+                                        self.input_rate_cap_hz(robot)))
         return out
 
     def headroom_mbytes_per_s(self, demands, budget):
