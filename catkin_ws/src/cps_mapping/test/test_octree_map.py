@@ -9,8 +9,8 @@ import octomap
 import pytest
 
 from cps_mapping import synthetic_scene as sc
-from cps_mapping.octree_map import (FusedOctoMap, MapFileError, message_fields, octree_from_message, pack_index,
-                                    read_octree_file, voxel_index)
+from cps_mapping.octree_map import (FusedOctoMap, MapFileError, _finest_voxels, message_fields, octree_from_bytes,
+                                    octree_from_message, pack_index, read_octree_file, voxel_index)
 
 RES = 0.1
 
@@ -60,7 +60,7 @@ def test_each_robot_alone_sees_only_its_part(scene, two_robot_clouds):
     assert centers[:, 0].min() > -1.0, "a camera looking along +x from x=-1 cannot see behind itself"
 
 
-def test_batch_keeps_every_voxel_sequential_insertion_finds(scene):
+def test_batch_holds_exactly_the_voxels_sequential_insertion_finds(scene):
     clouds = sc.robot_clouds(scene, "depth", sc.trajectory([-2.0, 0.0, 0.5], [-1.6, 0.0, 0.5], 4), RES)
     plain = octomap.OcTree(RES)
     for tree_setter, value in ((plain.setProbHit, 0.7), (plain.setProbMiss, 0.4), (plain.setClampingThresMin, 0.12),
@@ -72,9 +72,8 @@ def test_batch_keeps_every_voxel_sequential_insertion_finds(scene):
                  for it in plain.begin_leafs() if it.getValue() > 0}
     fused = FusedOctoMap(RES)
     result = fused.insert_batch(clouds, max_range_m=6.0, robot="jackal")
-    assert result.groups == 1 and result.clouds == 4
-    ours = {tuple(i) for i in fused.occupied_index().tolist()}
-    assert len(plain_occ & ours) / len(plain_occ) >= 0.99
+    assert result.groups == 4 and result.clouds == 4, "every cloud is cast from its own origin"
+    assert {tuple(i) for i in fused.occupied_index().tolist()} == plain_occ
 
 
 def test_far_origins_are_not_merged(scene):
@@ -127,7 +126,7 @@ def test_saved_bt_opens_with_octomap_tools_and_equals_live_map(tmp_path, two_rob
     converted = tmp_path / "converted.ot"
     run = subprocess.run(["convert_octree", bt, str(converted)], capture_output=True, text=True, timeout=60)
     assert run.returncode == 0 and "OcTree" in run.stdout, run.stdout + run.stderr
-    assert read_octree_file(str(converted), expected_resolution_m=RES).size() == fused.tree.size()
+    assert read_octree_file(str(converted), expected_resolution_m=RES).size() == _max_likelihood_copy(fused).size()
     live = {tuple(i) for i in fused.occupied_index().tolist()}
     reread = FusedOctoMap(RES)
     reread.load(str(converted))
@@ -177,7 +176,32 @@ def test_octomap_message_round_trip(two_robot_clouds):
     assert binary and tree_id == "OcTree" and res == pytest.approx(RES)
     assert not body.startswith(b"#"), "the message body carries no file header, as octomap_msgs"
     tree = octree_from_message(binary, tree_id, res, body)
-    assert tree.size() == fused.tree.size()
+    assert tree.size() == _max_likelihood_copy(fused).size()
+
+
+def _max_likelihood_copy(fused):
+    """What OctoMap's writeBinary makes of the live tree (max likelihood, pruned), on a copy."""
+    copy = octree_from_bytes(fused.to_bytes(binary=False))
+    copy.writeBinary()
+    return copy
+
+
+def test_writing_binary_keeps_the_log_odds_and_equals_octomaps_own(tmp_path, two_robot_clouds):
+    """OctoMap's writeBinary turns the tree it writes into max likelihood; publishing or saving
+    a .bt must neither do that to the live map nor write anything else than it would."""
+    depth, lidar = two_robot_clouds
+    fused, untouched = FusedOctoMap(RES), FusedOctoMap(RES)
+    steps = [lambda m: m.insert_batch(depth[:1], 6.0, "jackal"), lambda m: m.insert_batch(lidar, 12.0, "scout"),
+             lambda m: m.clear_bbx([-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]), lambda m: m.insert_batch(depth[1:], 6.0, "jackal")]
+    for step in steps:
+        step(fused)
+        step(untouched)
+        assert fused.to_bytes(binary=True) == _max_likelihood_copy(fused).writeBinary()
+        fused.save(str(tmp_path / "live.bt"))
+        ours, expected = _finest_voxels(fused.tree, RES), _finest_voxels(untouched.tree, RES)
+        assert np.array_equal(ours[0], expected[0]) and np.array_equal(ours[1], expected[1])
+    values = ours[1]
+    assert len(np.unique(values)) > 2, "the live map holds log-odds, not only the two clamping bounds"
 
 
 def test_clear_bbx_frees_only_inside(scene, two_robot_clouds):
@@ -218,3 +242,19 @@ def test_reset_empties_the_map(two_robot_clouds):
     fused.insert_batch(depth, 6.0, "jackal")
     fused.reset()
     assert len(fused.occupied_index()) == 0 and fused.contributions() == {}
+
+
+def test_is_free_agrees_with_octomap_and_asks_for_firmer_evidence_on_request(two_robot_clouds):
+    fused = FusedOctoMap(RES)
+    origin, target, crossed = [0.05, 0.05, 0.05], [[2.05, 0.05, 0.05]], [[1.05, 0.05, 0.05]]
+    for clouds in (1, 2, 3):
+        fused.insert_cloud(np.array(target), origin)
+        assert fused.is_free(crossed)[0], "one miss (probability 0.4) is free for OctoMap"
+        assert fused.is_free(crossed, max_probability=0.25)[0] == (clouds >= 3), "p = 0.25 takes three misses"
+    assert not fused.is_free(target)[0] and not fused.is_free([[9.0, 9.0, 9.0]])[0], "occupied, unknown"
+    with pytest.raises(ValueError, match="max_probability"):
+        fused.is_free(crossed, max_probability=1.0)
+    depth, _ = two_robot_clouds
+    fused.insert_batch(depth, 6.0, "jackal")
+    probes = np.random.default_rng(1).uniform([-3.0, -1.0, 0.0], [4.0, 5.0, 2.0], size=(5000, 3))
+    assert np.array_equal(fused.is_free(probes), fused.tree.getLabels(probes) == 0)

@@ -7,12 +7,17 @@ with a new map of the same site:
   tolerance absorbs the one-voxel jitter of surfaces seen from other viewpoints;
 - where the other map's free space is given (`baseline_is_free`, `current_is_free`), a voxel
   only counts if the other map saw that place free: a surface seen for the first time is not a
-  change, and neither is one the new mission did not look at;
+  change, and neither is one the new mission did not look at. Between two OctoMaps "free" means
+  firmly free (`free_max_probability`, default 0.25: with OctoMap's miss probability 0.4 at
+  least three clouds' rays more than hits): a curved or slanted surface seen at a grazing angle
+  is crossed by the rays of one or two clouds aimed past it and left weakly free, and when the
+  next mission sees it face on (because what hid it moved) it must not count as appeared;
 - changed voxels are grouped into 26-connected clusters; clusters smaller than
   `min_cluster_voxels` are noise. Each cluster has a centroid, an axis-aligned size and a
   volume (voxels x resolution^3).
 """
 import dataclasses
+import functools
 import json
 from typing import Callable, List, Optional
 
@@ -80,12 +85,15 @@ def detect_changes(baseline_centers_m, current_centers_m, resolution_m, toleranc
             _clusters(disappeared, "disappeared", resolution_m, min_cluster_voxels))
 
 
-def detect_map_changes(baseline_map, current_map, **kwargs) -> List[Change]:
-    """detect_changes for two FusedOctoMaps, each one's free space vouching for the other's changes."""
+def detect_map_changes(baseline_map, current_map, free_max_probability=0.25, **kwargs) -> List[Change]:
+    """detect_changes for two FusedOctoMaps, each one's firm free space (occupancy probability at
+    most `free_max_probability`) vouching for the other's changes."""
     if abs(baseline_map.resolution_m - current_map.resolution_m) > 1e-9:
         raise ValueError("the two maps have different resolutions")
     return detect_changes(baseline_map.occupied_centers(), current_map.occupied_centers(), current_map.resolution_m,
-                          baseline_is_free=baseline_map.is_free, current_is_free=current_map.is_free, **kwargs)
+                          baseline_is_free=functools.partial(baseline_map.is_free, max_probability=free_max_probability),
+                          current_is_free=functools.partial(current_map.is_free, max_probability=free_max_probability),
+                          **kwargs)
 
 
 def write_report(changes: List[Change], path, baseline_name="baseline", current_name="current"):

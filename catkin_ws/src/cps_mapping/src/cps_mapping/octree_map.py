@@ -1,19 +1,17 @@
 """The fused multi-robot map: one OctoMap OcTree (octomap-python) fed by every robot's clouds.
 
 `FusedOctoMap` is what the map server holds. It knows nothing of ROS: clouds arrive as N x 3
-numpy arrays in `map` with their sensor origin. Insertion follows octomap_server's sensor model
-and per-robot max range, and is made fast by
-- batching: consecutive clouds of one robot whose origins lie within `merge_origin_tolerance_m`
-  are inserted as one cloud (one ray per distinct endpoint voxel, cast from their mean origin);
-- discretization: endpoints are reduced to distinct voxel centres in numpy before OctoMap casts
-  rays (the same as OctoMap's `discretize`, done once for the whole batch);
-- lazy evaluation: inner nodes are updated once per batch, not once per voxel.
+numpy arrays in `map` with their sensor origin. Every cloud is inserted exactly as
+octomap_server's `insertPointCloud(points, origin, max_range)` would insert it, one after the
+other (same rays, same float32 log-odds, same clamping; see `cps_mapping.log_odds_grid`), but
+the ray casting runs in a compiled kernel over a dense log-odds grid and the OcTree receives only
+the voxels that changed, in bulk, when it is next read (`tree`, views, save). So a map built from
+a batch equals, to float rounding, the map plain sequential insertion builds.
 
 Voxels are named by their grid index i = floor(p / resolution); the voxel centre is
 (i + 0.5) * resolution, OctoMap's grid.
 """
 import dataclasses
-import itertools
 import math
 import os
 import tempfile
@@ -22,10 +20,13 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import octomap
 
+from cps_mapping.log_odds_grid import LogOddsGrid, set_max_likelihood
+
 BT_HEADER = b"# Octomap OcTree binary file"
 OT_HEADER = b"# Octomap OcTree file"
 _INDEX_BIAS = 1 << 20
 _UNKNOWN_ROBOT = ""
+_MAX_ROBOTS = 255
 
 
 class MapFileError(ValueError):
@@ -146,16 +147,19 @@ class FusedOctoMap:
     """
 
     def __init__(self, resolution_m, sensor_model=SensorModelParams(), merge_origin_tolerance_m=0.5):
+        """`merge_origin_tolerance_m` is accepted for compatibility and unused: clouds are no
+        longer merged, every cloud is cast from its own origin."""
         if not resolution_m > 0:
             raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
         self.resolution_m = float(resolution_m)
         self.sensor_model = sensor_model
         self.merge_origin_tolerance_m = float(merge_origin_tolerance_m)
-        self.tree = self._new_tree(self.resolution_m)
-        self._last_hit_by: Dict[int, int] = {}
         self._robots: List[str] = [_UNKNOWN_ROBOT]
         self.version = 0
         self._leaf_cache: Optional[Tuple[int, LeafArrays]] = None
+        self._tree = self._new_tree(self.resolution_m)
+        self._ml_tree = self._new_tree(self.resolution_m)
+        self._grid = self._new_grid(self._tree)
 
     @classmethod
     def from_mapping_config(cls, mapping, **kwargs):
@@ -163,16 +167,51 @@ class FusedOctoMap:
         m = mapping.sensor_model
         return cls(mapping.resolution_m, SensorModelParams(m.hit, m.miss, m.min, m.max), **kwargs)
 
+    @property
+    def tree(self):
+        """The OcTree, with every change inserted so far written into it. Read only: write
+        through the methods (and never call its writeBinary, see `_binary_tree`)."""
+        self._flush()
+        return self._tree
+
+    @tree.setter
+    def tree(self, tree):
+        """Take over `tree` (e.g. one just read), its voxels included; contributions are lost."""
+        index, log_odds = _finest_voxels(tree, self.resolution_m)
+        self._tree = tree
+        self._grid = self._new_grid(tree)
+        self._grid.load_leaves(index, log_odds)
+        self._ml_tree = self._new_tree(self.resolution_m)
+        centers = index_to_center(index, self.resolution_m)
+        set_max_likelihood(self._ml_tree, centers[log_odds > 0.0], centers[~(log_odds > 0.0)])
+
+    def _binary_tree(self):
+        """The max-likelihood twin of `tree`, up to date: what .bt files and binary messages carry.
+
+        OctoMap's writeBinary first turns the tree it writes into max likelihood (every voxel at
+        a clamping bound) and prunes it; called on `tree` it would destroy the log-odds the
+        next insertions build on. octomap_server writes messages without that conversion.
+        """
+        self._flush()
+        return self._ml_tree
+
     def _new_tree(self, resolution_m):
         tree = octomap.OcTree(resolution_m)
         self._apply_sensor_model(tree)
         return tree
+
+    def _new_grid(self, tree):
+        return LogOddsGrid(self.resolution_m, tree.getProbHitLog(), tree.getProbMissLog(),
+                           tree.getClampingThresMinLog(), tree.getClampingThresMaxLog())
 
     def _apply_sensor_model(self, tree):
         tree.setProbHit(self.sensor_model.hit)
         tree.setProbMiss(self.sensor_model.miss)
         tree.setClampingThresMin(self.sensor_model.min)
         tree.setClampingThresMax(self.sensor_model.max)
+
+    def _flush(self):
+        self._grid.flush_into(self._tree, self._ml_tree)
 
     # ---- insertion -------------------------------------------------------------------------
 
@@ -181,10 +220,12 @@ class FusedOctoMap:
         return self.insert_batch([(points_m, origin_m)], max_range_m=max_range_m, robot=robot)
 
     def insert_batch(self, clouds: Sequence[Tuple[np.ndarray, np.ndarray]], max_range_m=-1.0, robot=_UNKNOWN_ROBOT):
-        """Insert consecutive clouds of one robot; see the module docstring for how they merge.
+        """Insert consecutive clouds of one robot, in order, each as octomap_server would.
 
-        Non-finite points are dropped (and counted in `points_rejected`); a non-finite origin
-        raises ValueError before anything is inserted.
+        A point within `max_range_m` of its cloud's origin is a hit and clears the voxels to it;
+        a point beyond clears up to max range only (<= 0: no limit). Non-finite points are
+        dropped (and counted in `points_rejected`); a non-finite origin raises ValueError before
+        anything is inserted.
         """
         import time
 
@@ -201,68 +242,23 @@ class FusedOctoMap:
             rejected += int((~finite).sum())
             prepared.append((pts[finite], origin))
 
-        groups = self._group_by_origin(prepared)
-        inserted = 0
         robot_id = self._robot_id(robot)
-        for group in groups:
-            origin = np.mean([o for _, o in group], axis=0)
-            count = sum(len(p) for p, _ in group)
-            if count == 0:
+        inserted = cast = 0
+        for pts, origin in prepared:
+            if len(pts) == 0:
                 continue
-            index, endpoints, cast_range = self._discretize(group, origin, max_range_m)
-            self.tree.insertPointCloud(endpoints, origin, maxrange=cast_range, lazy_eval=True, discretize=False)
-            inserted += count
-            self._last_hit_by.update(zip(pack_index(index).tolist(), itertools.repeat(robot_id)))
+            self._grid.integrate_cloud(pts, origin, max_range_m, robot_id, before_move=self._flush)
+            inserted += len(pts)
+            cast += 1
         if inserted:
-            self.tree.updateInnerOccupancy()
             self.version += 1
         return InsertResult(clouds=len(prepared), points_in=points_in, points_inserted=inserted,
-                            points_rejected=rejected, groups=len(groups), seconds=time.perf_counter() - start)
-
-    def _discretize(self, group, origin, max_range_m):
-        """(occupied voxel indices, endpoints to cast, cast range) for one merged group.
-
-        A point within max range of its own cloud's origin becomes its voxel's centre
-        (occupied); the distinct centres are cast. A point beyond it keeps one raw
-        representative per voxel, pushed out just beyond the cast range, so that OctoMap casts
-        it as a free ray only. The cast range (from the group's mean origin) grows by half a
-        voxel diagonal plus the origins' spread, so no in-range centre falls beyond it. This
-        keeps octomap_server's max-range rule (a far point clears space, never occupies it).
-        """
-        res = self.resolution_m
-        if max_range_m is None or max_range_m <= 0:
-            index = np.unique(voxel_index(np.vstack([p for p, _ in group]), res), axis=0)
-            return index, index_to_center(index, res), -1.0
-        near, far = [], []
-        for pts, own_origin in group:
-            within = np.linalg.norm(pts - own_origin, axis=1) <= max_range_m
-            near.append(pts[within])
-            far.append(pts[~within])
-        index = np.unique(voxel_index(np.vstack(near), res), axis=0)
-        spread = max(np.linalg.norm(o - origin) for _, o in group)
-        cast_range = max_range_m + 0.87 * res + spread
-        far = np.vstack(far)
-        if len(far):
-            offsets = far - origin
-            dist = np.maximum(np.linalg.norm(offsets, axis=1), 1e-9)
-            far = origin + offsets / dist[:, None] * (cast_range + 0.05 * res)
-            _, first = np.unique(voxel_index(far, res), axis=0, return_index=True)
-            far = far[first]
-        return index, np.vstack([index_to_center(index, res), far]), cast_range
-
-    def _group_by_origin(self, prepared):
-        groups, current = [], []
-        for pts, origin in prepared:
-            if current and np.linalg.norm(origin - current[0][1]) > self.merge_origin_tolerance_m:
-                groups.append(current)
-                current = []
-            current.append((pts, origin))
-        if current:
-            groups.append(current)
-        return groups
+                            points_rejected=rejected, groups=cast, seconds=time.perf_counter() - start)
 
     def _robot_id(self, robot):
         if robot not in self._robots:
+            if len(self._robots) > _MAX_ROBOTS:
+                raise ValueError(f"more than {_MAX_ROBOTS} robots in one map")
             self._robots.append(robot)
         return self._robots.index(robot)
 
@@ -280,9 +276,7 @@ class FusedOctoMap:
 
     def occupied_index(self):
         """Grid indices of every occupied finest-resolution voxel (pruned leaves expanded)."""
-        leaves = self.leaves()
-        occ = leaves.occupied
-        return expand_leaves(leaves.centers_m[occ], leaves.sizes_m[occ], self.resolution_m)
+        return self._grid.index_of_flat(np.flatnonzero(self._grid.log_odds > 0.0))
 
     def occupied_centers(self):
         return index_to_center(self.occupied_index(), self.resolution_m)
@@ -298,15 +292,22 @@ class FusedOctoMap:
         return {robot: len(c) for robot, c in self.contributed_index(occupied_index).items()}
 
     def contributed_index(self, occupied_index=None) -> Dict[str, np.ndarray]:
-        index = self.occupied_index() if occupied_index is None else occupied_index
-        packed = pack_index(index).tolist() if len(index) else []
-        owner = np.fromiter((self._last_hit_by.get(k, 0) for k in packed), dtype=np.int64, count=len(packed))
+        index = self.occupied_index() if occupied_index is None else np.asarray(occupied_index, dtype=np.int64)
+        flat = self._grid.flat(index)
+        owner = np.where(flat >= 0, self._grid.owner[np.maximum(flat, 0)], 0)
         return {robot: index[owner == rid] for rid, robot in enumerate(self._robots) if (owner == rid).any()}
 
-    def is_free(self, points_m):
-        """True where the map holds the point's voxel as known and free."""
-        labels = self.tree.getLabels(np.asarray(points_m, dtype=np.float64).reshape(-1, 3))
-        return labels == 0
+    def is_free(self, points_m, max_probability=0.5):
+        """True where the map holds the point's voxel as known, with an occupancy probability
+        at most `max_probability` (0.5: free as OctoMap says; lower asks for firmer evidence)."""
+        if not 0.0 < max_probability < 1.0:
+            raise ValueError(f"max_probability must be in (0, 1), got {max_probability}")
+        grid = self._grid
+        flat = grid.flat(grid.index_of(np.asarray(points_m, dtype=np.float64).reshape(-1, 3)))
+        log_odds = np.where(flat >= 0, grid.log_odds[np.maximum(flat, 0)], np.nan) if len(flat) else \
+            np.zeros(0, dtype=np.float32)
+        with np.errstate(invalid="ignore"):
+            return log_odds <= np.float32(math.log(max_probability / (1.0 - max_probability)))
 
     def projected_grid(self, z_min_m=-math.inf, z_max_m=math.inf):
         """octomap_server's 2D projection: (grid int8 [rows=y, cols=x], origin_xy_m).
@@ -336,15 +337,20 @@ class FusedOctoMap:
                 grid[xy[:, 1], xy[:, 0]] = value
         return grid, gmin.astype(np.float64) * res
 
+    def memory_bytes(self):
+        """What the map holds in memory: the log-odds grid and both trees."""
+        return int(self._grid.nbytes + self.tree.memoryUsage() + self._ml_tree.memoryUsage())
+
     def stats(self):
         return {"occupied_voxels": int(len(self.occupied_index())), "tree_nodes": int(self.tree.size()),
-                "memory_bytes": int(self.tree.memoryUsage())}
+                "memory_bytes": self.memory_bytes(), "grid_bytes": int(self._grid.nbytes)}
 
     # ---- editing ---------------------------------------------------------------------------
 
     def reset(self):
-        self.tree = self._new_tree(self.resolution_m)
-        self._last_hit_by.clear()
+        self._tree = self._new_tree(self.resolution_m)
+        self._ml_tree = self._new_tree(self.resolution_m)
+        self._grid = self._new_grid(self._tree)
         self.version += 1
 
     def clear_bbx(self, min_m, max_m):
@@ -354,25 +360,28 @@ class FusedOctoMap:
             raise ValueError("clear_bbx: the box corners must be finite")
         if np.any(hi < lo):
             raise ValueError(f"clear_bbx: max {hi.tolist()} is below min {lo.tolist()} on some axis")
-        leaves = self.leaves()
-        index = expand_leaves(leaves.centers_m, leaves.sizes_m, self.resolution_m) if len(leaves.sizes_m) else \
-            np.zeros((0, 3), dtype=np.int64)
-        centers = index_to_center(index, self.resolution_m)
-        inside = np.all((centers >= lo) & (centers <= hi), axis=1)
-        targets = centers[inside]
-        if len(targets):
-            self.tree.updateNodes(targets, -1.0e6, True)
-            self.tree.updateInnerOccupancy()
-            for key in pack_index(index[inside]).tolist():
-                self._last_hit_by.pop(key, None)
+        grid = self._grid
+        if not grid.dims.all():
+            return 0
+        first = np.maximum(np.ceil(lo / self.resolution_m - 0.5).astype(np.int64), grid.lo)
+        last = np.minimum(np.floor(hi / self.resolution_m - 0.5).astype(np.int64), grid.lo + grid.dims - 1)
+        if np.any(last < first):
+            return 0
+        box = [slice(f, l + 1) for f, l in zip(first - grid.lo, last - grid.lo)]
+        axes = [np.arange(s.start, s.stop) for s in box]
+        cells = np.ravel_multi_index(np.meshgrid(*axes, indexing="ij"), tuple(grid.dims)).ravel()
+        cells = cells[~np.isnan(grid.log_odds[cells])]
+        if len(cells):
+            grid.set_values(cells, np.full(len(cells), grid.clamp_min))
+            grid.owner[cells] = 0
             self.version += 1
-        return int(len(targets))
+        return int(len(cells))
 
     # ---- persistence -----------------------------------------------------------------------
 
     def to_bytes(self, binary=True):
         """The whole map as an OctoMap file (.bt when binary, else .ot), header included."""
-        return self.tree.writeBinary() if binary else self.tree.write()
+        return self._binary_tree().writeBinary() if binary else self.tree.write()
 
     def save(self, path):
         """Write `.bt` (binary, occupancy only) or `.ot` (full) atomically; return the path."""
@@ -386,7 +395,7 @@ class FusedOctoMap:
         except OSError as exc:
             raise MapFileError(f"cannot write {path}: {exc}") from exc
         try:
-            ok = self.tree.writeBinary(tmp.encode()) if binary else self.tree.write(tmp.encode())
+            ok = self._binary_tree().writeBinary(tmp.encode()) if binary else self.tree.write(tmp.encode())
             if not ok:
                 raise MapFileError(f"OctoMap could not write {path}")
             os.chmod(tmp, 0o644)
@@ -401,9 +410,19 @@ class FusedOctoMap:
         tree = read_octree_file(path, expected_resolution_m=self.resolution_m)
         self._apply_sensor_model(tree)
         self.tree = tree
-        self._last_hit_by.clear()
         self.version += 1
         return tree.size()
+
+
+def _finest_voxels(tree, resolution_m):
+    """(grid index, log-odds) of every finest voxel a tree holds (pruned leaves expanded)."""
+    rows = np.array([(it.getX(), it.getY(), it.getZ(), it.getSize(), it.getValue())
+                     for it in tree.begin_leafs()], dtype=np.float64).reshape(-1, 5)
+    cells = np.maximum(np.rint(rows[:, 3] / resolution_m).astype(np.int64), 1)
+    index = expand_leaves(rows[:, :3], rows[:, 3], resolution_m)
+    order = np.argsort(cells, kind="stable")  # expand_leaves groups by leaf size, in ascending order
+    values = np.repeat(rows[order, 4], cells[order] ** 3)
+    return index, values
 
 
 def _format_of(path):
