@@ -362,6 +362,46 @@ def test_video_pane_finds_image_topics_and_shows_rate_and_staleness(window, qapp
         pub.unregister()
 
 
+def test_video_pane_prefers_and_shows_the_compressed_camera(window, qapp, rospy_node):
+    from sensor_msgs.msg import CompressedImage, Image
+
+    from cps_transport.image_compression import compressed_format, encode_jpeg
+
+    raw_topic = f"/{JACKAL}/camera/image_raw"
+    jpeg_topic = raw_topic + "/compressed"
+    raw_pub = rospy_node.Publisher(raw_topic, Image, queue_size=2)
+    jpeg_pub = rospy_node.Publisher(jpeg_topic, CompressedImage, queue_size=2)
+    video = window.plugin.video
+    try:
+        spin_until(qapp, lambda: video.combo.findText(raw_topic) >= 0 and video.combo.findText(jpeg_topic) >= 0,
+                   10, "both camera topics in the dropdown")
+        spin_until(qapp, lambda: video.topic == jpeg_topic, 5, lambda: f"the compressed topic shown, not {video.topic}")
+        spin_until(qapp, lambda: jpeg_pub.get_num_connections() > 0, 10, "a subscriber on the compressed topic")
+        assert raw_pub.get_num_connections() == 0
+        rgb = np.zeros((120, 160, 3), np.uint8)
+        rgb[:, :, 0] = 255
+        msg = CompressedImage(format=compressed_format("rgb8"), data=encode_jpeg(rgb, 90))
+        for _ in range(8):
+            msg.header.stamp = rospy_node.Time.now()
+            jpeg_pub.publish(msg)
+            spin_for(qapp, 0.1)
+        spin_until(qapp, lambda: video.picture.pixmap() is not None and "160x120 jpeg" in video.info.text(), 5,
+                   lambda: video.info.text())
+        mbytes = float(video.info.text().split("|")[2].split()[0])
+        assert mbytes < 0.1  # the meter counts the JPEG bytes on the wire, not the decoded 57.6 kB frames
+        picture = video.picture.pixmap().toImage()
+        centre = picture.pixelColor(picture.width() // 2, picture.height() // 2)
+        assert centre.red() > 240 and centre.green() < 15 and centre.blue() < 15, centre.name()
+        # The operator can still pick the raw stream, and it stays picked.
+        video.combo.setCurrentIndex(video.combo.findText(raw_topic))
+        spin_until(qapp, lambda: raw_pub.get_num_connections() > 0, 10, "a subscriber on the raw topic")
+        spin_for(qapp, 0.5)
+        assert video.topic == raw_topic
+    finally:
+        raw_pub.unregister()
+        jpeg_pub.unregister()
+
+
 def test_rosout_log_is_filtered_by_level_and_text(window, qapp):
     state, status = window.plugin.state, window.plugin.status
     state.add_log(0.0, "INFO", "/a", "hello fleet")

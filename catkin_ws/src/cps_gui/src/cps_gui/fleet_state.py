@@ -92,7 +92,9 @@ class HealthRow:
 
 @dataclasses.dataclass
 class ImageFrame:
-    """The newest frame of an image topic, kept as it came (decoding happens on display)."""
+    """The newest frame of an image topic: raw pixels as they came (conversion happens on display).
+    A JPEG frame arrives already decoded to rgb8 on the ROS thread; `transport` says "jpeg" and
+    `wire_bytes` is the compressed size, which the rate meter counts."""
 
     topic: str
     width: int
@@ -102,6 +104,8 @@ class ImageFrame:
     data: bytes
     stamp_s: float
     received_s: float
+    transport: str = "raw"
+    wire_bytes: Optional[int] = None
 
 
 class RateMeter:
@@ -292,7 +296,7 @@ class FleetState:
         with self._lock:
             self._images[frame.topic] = frame
             meter = self._image_meters.setdefault(frame.topic, RateMeter())
-            meter.add(frame.received_s, len(frame.data))
+            meter.add(frame.received_s, len(frame.data) if frame.wire_bytes is None else frame.wire_bytes)
 
     def add_log(self, wall_time_s, level, node, text):
         with self._lock:

@@ -12,17 +12,20 @@ import rospy
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rosgraph_msgs.msg import Log
-from sensor_msgs.msg import BatteryState, Image
+from sensor_msgs.msg import BatteryState, CompressedImage, Image
 from std_msgs.msg import Bool, Float64, String
 
 from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
 from cps_msgs.srv import SetPriority, SetPriorityRequest
+
+from cps_transport.image_compression import InvalidImage, decode_jpeg
 
 from cps_gui import topview
 from cps_gui.fleet_state import (Allocation, ImageFrame, Pose, RobotAllocation, RobotMapFigures,
                                  TopicFigures)
 
 IMAGE_TYPE = "sensor_msgs/Image"
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/CompressedImage"
 MODES = ("auto", "teleop")
 FLIGHT_COMMANDS = ("takeoff", "land")
 LOG_LEVELS = {Log.DEBUG: "DEBUG", Log.INFO: "INFO", Log.WARN: "WARN", Log.ERROR: "ERROR", Log.FATAL: "FATAL"}
@@ -39,7 +42,8 @@ class FleetRosIO:
         self._image_sub = None
         self._image_topic = ""
         self._image_lock = threading.Lock()
-        self._image_topics = []
+        self._image_topics = {}  # topic -> IMAGE_TYPE or COMPRESSED_IMAGE_TYPE
+        self.invalid_images = 0
         self._closed = False
         self.teleop_pubs, self.mode_pubs, self.flight_pubs = {}, {}, {}
         for robot in fleet.robots:
@@ -126,7 +130,22 @@ class FleetRosIO:
             topic=self._image_topic, width=msg.width, height=msg.height, encoding=msg.encoding, step=msg.step,
             data=bytes(msg.data), stamp_s=msg.header.stamp.to_sec(), received_s=self.state.clock()))
 
-    # Image topics: found by type, one subscribed at a time (the one on screen).
+    def _on_compressed_image(self, msg, topic):
+        """Decodes the JPEG here, on rospy's thread, so the GUI thread only scales a pixmap."""
+        try:
+            rgb = decode_jpeg(msg.data)
+        except InvalidImage as exc:
+            self.invalid_images += 1
+            rospy.logwarn_throttle(10.0, f"cps_gui: frame on {topic} ({msg.format!r}) not shown "
+                                         f"({self.invalid_images} so far): {exc}")
+            return
+        height, width, _ = rgb.shape
+        self.state.add_image(ImageFrame(
+            topic=topic, width=width, height=height, encoding="rgb8", step=3 * width, data=rgb.tobytes(),
+            stamp_s=msg.header.stamp.to_sec(), received_s=self.state.clock(), transport="jpeg",
+            wire_bytes=len(msg.data)))
+
+    # Image topics: raw and compressed, found by type, one subscribed at a time (the one on screen).
 
     def _discover_images(self, _event):
         if self._closed:
@@ -136,11 +155,20 @@ class FleetRosIO:
         except Exception as exc:  # master unreachable: keep the last list
             rospy.logwarn_throttle(30.0, f"cps_gui: cannot list topics: {exc}")
             return
-        self._image_topics = sorted(t for t, kind in topics if kind == IMAGE_TYPE)
+        self._image_topics = {t: kind for t, kind in topics if kind in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)}
 
     @property
     def image_topics(self):
-        return list(self._image_topics)
+        """Every advertised sensor_msgs/Image and sensor_msgs/CompressedImage topic, sorted."""
+        return sorted(self._image_topics)
+
+    def image_topic_type(self, topic):
+        """The advertised type of an image topic; before it is advertised, guessed from the name
+        (image_transport's `<base>/compressed`)."""
+        kind = self._image_topics.get(topic)
+        if kind:
+            return kind
+        return COMPRESSED_IMAGE_TYPE if topic.endswith("/compressed") else IMAGE_TYPE
 
     def select_image_topic(self, topic):
         """Subscribe to `topic` (empty: none), dropping the previous image subscription."""
@@ -151,7 +179,10 @@ class FleetRosIO:
                 self._image_sub.unregister()
                 self._image_sub = None
             self._image_topic = topic
-            if topic:
+            if topic and self.image_topic_type(topic) == COMPRESSED_IMAGE_TYPE:
+                self._image_sub = rospy.Subscriber(topic, CompressedImage, self._on_compressed_image, callback_args=topic,
+                                                   queue_size=1, buff_size=2 ** 22)
+            elif topic:
                 self._image_sub = rospy.Subscriber(topic, Image, self._on_image, queue_size=1, buff_size=2 ** 24)
 
     # Outgoing.

@@ -1,6 +1,8 @@
-"""Pane 1, video: every sensor_msgs/Image topic in a dropdown (found by type, refreshed), the
-picture scaled to the pane, and its frame rate, bandwidth and age underneath (red when stale).
-Only the topic on screen is subscribed; a frame is converted when it is new and drawn.
+"""Pane 1, video: every sensor_msgs/Image and sensor_msgs/CompressedImage topic in a dropdown
+(found by type, refreshed), the picture scaled to the pane, and its frame rate, bandwidth and age
+underneath (red when stale). Only the topic on screen is subscribed; a frame is converted when it
+is new and drawn. Until the operator picks a topic, a camera is shown through its JPEG variant
+(`<topic>/compressed`) when one is advertised: the raw stream would not fit the link's reserve.
 """
 import math
 
@@ -9,6 +11,7 @@ from python_qt_binding.QtCore import Qt
 from python_qt_binding.QtGui import QImage, QPixmap
 from python_qt_binding.QtWidgets import QComboBox, QHBoxLayout, QLabel, QSizePolicy, QVBoxLayout, QWidget
 
+COMPRESSED_SUFFIX = "/compressed"
 _CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8UC1": 1, "8UC3": 3}
 
 
@@ -34,6 +37,16 @@ def frame_to_rgb(frame, max_side_px=640):
     else:
         pixels = pixels[:, :, :3]
     return np.ascontiguousarray(pixels)
+
+
+def preferred_image_topic(topics, wanted=""):
+    """The topic to show when the operator has not picked one: `wanted` (a restored camera), else
+    the first topic; either through its `/compressed` variant when that is advertised."""
+    available = set(topics)
+    base = wanted or (topics[0] if topics else "")
+    if base and base + COMPRESSED_SUFFIX in available:
+        return base + COMPRESSED_SUFFIX
+    return base
 
 
 def rgb_to_qimage(rgb):
@@ -62,6 +75,7 @@ class VideoPane(QWidget):
         layout.addWidget(self.picture, 1)
         layout.addWidget(self.info)
         self._wanted_topic = ""
+        self._picked = False  # the operator chose the topic in the dropdown: keep it, raw or not
         self._shown_received_s = None
         self._pixmap = None
         self.combo.currentIndexChanged.connect(self._on_choice)
@@ -71,31 +85,44 @@ class VideoPane(QWidget):
         return self.combo.currentText()
 
     def _on_choice(self, *_):
+        """The operator picked a topic in the dropdown."""
         topic = self.combo.currentText()
         if topic:
             self._wanted_topic = topic
+            self._picked = True
+        self._subscribe(topic)
+
+    def _subscribe(self, topic):
         self.io.select_image_topic(topic)
         self._shown_received_s = None
 
+    def prefer(self, topic):
+        """Show the camera `topic` (through its compressed variant when there is one) until the
+        operator picks another in the dropdown."""
+        self._wanted_topic, self._picked = topic, False
+        self._refresh_topics()
+
     def _refresh_topics(self):
         topics = self.io.image_topics
-        if self._wanted_topic and self._wanted_topic not in topics:
-            topics = sorted(topics + [self._wanted_topic])
+        target = self._wanted_topic if self._picked else preferred_image_topic(topics, self._wanted_topic)
+        if target and target not in topics:
+            topics = sorted(topics + [target])
         current = [self.combo.itemText(i) for i in range(self.combo.count())]
-        if topics != current:
+        if topics != current or self.combo.currentText() != target:
             self.combo.blockSignals(True)
-            self.combo.clear()
-            self.combo.addItems(topics)
-            index = self.combo.findText(self._wanted_topic)
+            if topics != current:
+                self.combo.clear()
+                self.combo.addItems(topics)
+            index = self.combo.findText(target)
             self.combo.setCurrentIndex(index if index >= 0 else 0)
             self.combo.blockSignals(False)
-            self._on_choice()
+            self._subscribe(self.combo.currentText())
 
     def refresh(self):
         self._refresh_topics()
         topic = self.topic
         if not topic:
-            self.info.setText("no sensor_msgs/Image topic advertised")
+            self.info.setText("no sensor_msgs/Image or CompressedImage topic advertised")
             return
         frame, rate_hz, mbytes, age_s = self.state.image(topic)
         if frame is None:
@@ -112,15 +139,15 @@ class VideoPane(QWidget):
         if self._pixmap is not None:
             self.picture.setPixmap(self._pixmap.scaled(self.picture.size(), Qt.KeepAspectRatio, Qt.FastTransformation))
         stale = self.state.is_stale(age_s)
-        self.info.setText(f"{frame.width}x{frame.height} {frame.encoding} | {rate_hz:.1f} Hz | "
+        kind = frame.encoding if frame.transport == "raw" else frame.transport
+        self.info.setText(f"{frame.width}x{frame.height} {kind} | {rate_hz:.1f} Hz | "
                           f"{mbytes:.2f} MB/s | age {age_s:.1f} s")
         self.info.setStyleSheet("color: rgb(198,40,40); font-weight: bold" if stale else "")
 
     def save_settings(self, settings):
-        settings.set_value("video/topic", self._wanted_topic)
+        settings.set_value("video/topic", self._wanted_topic if self._picked else self.topic)
 
     def restore_settings(self, settings):
         topic = settings.value("video/topic", None)
         if topic:
-            self._wanted_topic = str(topic)
-            self._refresh_topics()
+            self.prefer(str(topic))
