@@ -380,6 +380,9 @@ def test_video_pane_prefers_and_shows_the_compressed_camera(window, qapp, rospy_
         assert raw_pub.get_num_connections() == 0
         rgb = np.zeros((120, 160, 3), np.uint8)
         rgb[:, :, 0] = 255
+        damaged = CompressedImage(format=compressed_format("rgb8"), data=encode_jpeg(rgb, 90)[:200])
+        jpeg_pub.publish(damaged)
+        spin_until(qapp, lambda: window.plugin.io.invalid_images == 1, 5, "the damaged frame counted")
         msg = CompressedImage(format=compressed_format("rgb8"), data=encode_jpeg(rgb, 90))
         for _ in range(8):
             msg.header.stamp = rospy_node.Time.now()
