@@ -13,6 +13,8 @@ from cps_msgs.fleet import FleetConfig
 PHYSICAL, DIGITAL = "physical", "digital"
 SIDES = (PHYSICAL, DIGITAL)
 VOXEL_MANAGER = "/tissue_nodelet_manager"
+# The operator's video stays within the unmanaged reserve: ~0.2 MB/s of JPEG at 640x480.
+CAMERA_MAX_RATE_HZ = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,6 +121,14 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                    f"~input:=/{r}/points_filtered", f"~output:=/{r}/points_filtered/draco",
                    *_args({"leaf_size_m": robot.voxel_leaf_m})),
                 wait_topics=(f"/{r}/points_filtered/draco",)))
+            if robot.has_depth_camera:
+                # JPEG for the operator's video (image_transport's compressed format): a raw 320x240
+                # stream alone is 7.7x the link's 4 % reserve. Encodes only while someone watches.
+                specs.append(NodeSpec(
+                    f"{r}/image_compressor", PHYSICAL,
+                    py("cps_transport", "image_compressor", f"__ns:=/{r}/camera", "__name:=image_compressor",
+                       f"~input:=/{r}/camera/image_raw", *_args({"max_rate_hz": CAMERA_MAX_RATE_HZ})),
+                    wait_topics=(f"/{r}/camera/image_raw/compressed",)))
             specs.append(NodeSpec(
                 f"{r}/cloud_throttle", PHYSICAL,
                 py("cps_transport", "rate_limiter", ns, "__name:=cloud_throttle",
