@@ -2,25 +2,17 @@
 reaches the user's callback decoded; a corrupt payload and an unencodable cloud are counted and
 the next good cloud still arrives."""
 import threading
-import time
 
 import numpy as np
 import pytest
 
+from cps_msgs.testing import wait_for
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
 from cps_transport.synthetic_clouds import depth_camera_cloud
 from cps_transport.voxel import voxel_downsample
 
 pytestmark = pytest.mark.ros
 
-
-def _wait_for(predicate, timeout_s=10.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_round_trip_and_corrupt_payload_counted(ros, rospy_node):
@@ -46,7 +38,7 @@ def test_round_trip_and_corrupt_payload_counted(ros, rospy_node):
     cloud = array_to_cloud({"x": centroids[:, 0], "y": centroids[:, 1], "z": centroids[:, 2], **extras})
     cloud.header.frame_id = "dtp1/camera_depth_optical_frame"
     try:
-        assert _wait_for(lambda: publisher.get_num_connections() > 0 and intruder.get_num_connections() > 0
+        assert wait_for(lambda: publisher.get_num_connections() > 0 and intruder.get_num_connections() > 0
                          and subscriber.get_num_connections() > 0)
         cloud.header.stamp = rospy.Time.now()
         compressed = publisher.publish(cloud)
@@ -70,7 +62,7 @@ def test_round_trip_and_corrupt_payload_counted(ros, rospy_node):
         corrupt.compressed_data = bytes(reversed(compressed.compressed_data))
         got.clear()
         intruder.publish(corrupt)
-        assert _wait_for(lambda: subscriber.invalid == 1), "the corrupt payload was not counted"
+        assert wait_for(lambda: subscriber.invalid == 1), "the corrupt payload was not counted"
         assert len(received) == 1 and not got.is_set()
         cloud.header.stamp = rospy.Time.now()
         publisher.publish(cloud)

@@ -6,18 +6,11 @@ import time
 import numpy as np
 import pytest
 
+from cps_msgs.testing import wait_for
 from cps_transport.image_compression import camera_test_image, decode_jpeg, psnr_db
 
 pytestmark = pytest.mark.ros
 
-
-def _wait_for(predicate, timeout_s=10.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def _reported(diagnostics, node):
@@ -53,12 +46,12 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
     received, got = [], threading.Event()
     out_sub = None
     try:
-        assert _wait_for(lambda: raw_pub.get_num_connections() > 0)
+        assert wait_for(lambda: raw_pub.get_num_connections() > 0)
         # Nobody listens to the output: frames arrive and none is encoded.
         for _ in range(5):
             raw_pub.publish(_image(rospy)[0])
             time.sleep(0.05)
-        assert _wait_for(lambda: int(_reported(diagnostics, "/ic1/camera/image_compressor")
+        assert wait_for(lambda: int(_reported(diagnostics, "/ic1/camera/image_compressor")
                                      .get("skipped_no_subscriber", 0)) == 5), _reported(diagnostics, "/ic1/camera/image_compressor")
         assert _reported(diagnostics, "/ic1/camera/image_compressor")["processed"] == "0"
 
@@ -66,7 +59,7 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
             received.append(msg)
             got.set()
         out_sub = rospy.Subscriber("/ic1/camera/image_raw/compressed", CompressedImage, on_compressed)
-        assert _wait_for(lambda: out_sub.get_num_connections() > 0)
+        assert wait_for(lambda: out_sub.get_num_connections() > 0)
         time.sleep(0.3)  # the node's publisher sees the connection too
         bad, _ = _image(rospy, encoding="rgba8")
         raw_pub.publish(bad)
@@ -79,7 +72,7 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
         assert out.format == "rgb8; jpeg compressed bgr8"
         assert psnr_db(rgb, decode_jpeg(out.data)) > 30.0
         assert len(out.data) < len(good.data) / 8
-        assert _wait_for(lambda: _reported(diagnostics, "/ic1/camera/image_compressor").get("invalid_messages") == "1"
+        assert wait_for(lambda: _reported(diagnostics, "/ic1/camera/image_compressor").get("invalid_messages") == "1"
                          and _reported(diagnostics, "/ic1/camera/image_compressor").get("processed") == "1")
         assert "rgba8" in ros.output("image_compressor")
         assert len(received) == 1
@@ -100,7 +93,7 @@ def test_rate_cap_and_remapped_output(ros, rospy_node):
     out_sub = rospy.Subscriber("/ic2/video", CompressedImage, received.append)
     raw_pub = rospy.Publisher("/ic2/image_raw", Image, queue_size=10)
     try:
-        assert _wait_for(lambda: raw_pub.get_num_connections() > 0 and out_sub.get_num_connections() > 0)
+        assert wait_for(lambda: raw_pub.get_num_connections() > 0 and out_sub.get_num_connections() > 0)
         time.sleep(0.3)
         msg, _ = _image(rospy, width=64, height=48)
         start = time.monotonic()

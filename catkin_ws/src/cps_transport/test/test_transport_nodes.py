@@ -6,6 +6,7 @@ import time
 import numpy as np
 import pytest
 
+from cps_msgs.testing import wait_for
 from cps_transport.draco import DracoEncoder
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
 from cps_transport.synthetic_clouds import depth_camera_cloud
@@ -22,14 +23,6 @@ def _collect(rospy, topic, msg_type):
         event.set()
     return rospy.Subscriber(topic, msg_type, on_msg), received, event
 
-
-def _wait_for(predicate, timeout_s=10.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_encoder_decoder_nodes_round_trip_and_survive_bad_input(ros, rospy_node):
@@ -61,7 +54,7 @@ def test_encoder_decoder_nodes_round_trip_and_survive_bad_input(ros, rospy_node)
     filtered = array_to_cloud({"x": centroids[:, 0], "y": centroids[:, 1], "z": centroids[:, 2], **extras})
     filtered.header.frame_id = f"{r}/camera_depth_optical_frame"
     try:
-        _wait_for(lambda: raw_pub.get_num_connections() > 0 and compressed_pub.get_num_connections() > 0)
+        wait_for(lambda: raw_pub.get_num_connections() > 0 and compressed_pub.get_num_connections() > 0)
         # Bad raw clouds for the encoder, then a good one.
         short = array_to_cloud({"x": centroids[:5, 0], "y": centroids[:5, 1], "z": centroids[:5, 2]})
         short.data = short.data[:-3]
@@ -92,7 +85,7 @@ def test_encoder_decoder_nodes_round_trip_and_survive_bad_input(ros, rospy_node)
             time.sleep(0.05)
         good.header.stamp = rospy.Time.now()
         compressed_pub.publish(good)
-        assert _wait_for(lambda: any(m.header.stamp == good.header.stamp for m in decoded), 15.0)
+        assert wait_for(lambda: any(m.header.stamp == good.header.stamp for m in decoded), 15.0)
 
         def reported(node):
             for array in reversed(diagnostics):
@@ -100,7 +93,7 @@ def test_encoder_decoder_nodes_round_trip_and_survive_bad_input(ros, rospy_node)
                     if status.name == node:
                         return int({kv.key: kv.value for kv in status.values}["invalid_messages"])
             return None
-        assert _wait_for(lambda: reported(f"/{r}/draco_encoder") == 3 and reported("/twin/draco_decoder") == 3), (
+        assert wait_for(lambda: reported(f"/{r}/draco_encoder") == 3 and reported("/twin/draco_decoder") == 3), (
             reported(f"/{r}/draco_encoder"), reported("/twin/draco_decoder"), ros.output("draco_encoder")[-1500:])
 
         def invalid_in_stats():
@@ -109,7 +102,7 @@ def test_encoder_decoder_nodes_round_trip_and_survive_bad_input(ros, rospy_node)
                     if item.topic == f"/{r}/points_filtered/draco":
                         return item.invalid_messages
             return None
-        assert _wait_for(lambda: invalid_in_stats() == 3)
+        assert wait_for(lambda: invalid_in_stats() == 3)
         assert "dropped a message" in ros.output("draco_decoder")
         assert all(proc.poll() is None for proc in ros.processes)
     finally:
