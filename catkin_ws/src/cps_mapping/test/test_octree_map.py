@@ -258,3 +258,15 @@ def test_is_free_agrees_with_octomap_and_asks_for_firmer_evidence_on_request(two
     fused.insert_batch(depth, 6.0, "jackal")
     probes = np.random.default_rng(1).uniform([-3.0, -1.0, 0.0], [4.0, 5.0, 2.0], size=(5000, 3))
     assert np.array_equal(fused.is_free(probes), fused.tree.getLabels(probes) == 0)
+
+
+def test_leaves_read_from_the_grid_are_the_trees_leaves(two_robot_clouds):
+    depth, lidar = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, 6.0, "jackal")
+    fused.insert_batch(lidar, 12.0, "scout")
+    rows = np.array([(it.getX(), it.getY(), it.getZ(), it.getSize(), it.getValue()) for it in fused.tree.begin_leafs()])
+    leaves = fused.leaves()
+    assert np.all(leaves.sizes_m == RES) and np.all(rows[:, 3] == pytest.approx(RES))
+    ours = dict(zip(map(tuple, np.round(leaves.centers_m, 4).tolist()), leaves.log_odds.tolist()))
+    assert ours == dict(zip(map(tuple, np.round(rows[:, :3], 4).tolist()), rows[:, 4].tolist()))

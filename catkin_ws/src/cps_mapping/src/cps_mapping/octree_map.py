@@ -265,12 +265,19 @@ class FusedOctoMap:
     # ---- views -----------------------------------------------------------------------------
 
     def leaves(self) -> LeafArrays:
-        """All leaves, cached until the map changes."""
+        """Every known finest voxel, cached until the map changes.
+
+        Read from the log-odds grid, not by iterating the tree's leaves in Python (0.25 s for
+        200k leaves, under the map lock every publish period). They are the tree's leaves: the
+        tree is updated lazily and never pruned, except one just loaded, whose pruned leaves
+        appear here expanded.
+        """
         if self._leaf_cache and self._leaf_cache[0] == self.version:
             return self._leaf_cache[1]
-        rows = np.array([(it.getX(), it.getY(), it.getZ(), it.getSize(), it.getValue())
-                         for it in self.tree.begin_leafs()], dtype=np.float64).reshape(-1, 5)
-        arrays = LeafArrays(rows[:, :3].copy(), rows[:, 3].copy(), rows[:, 4].copy())
+        grid = self._grid
+        flat = np.flatnonzero(~np.isnan(grid.log_odds))
+        arrays = LeafArrays(index_to_center(grid.index_of_flat(flat), self.resolution_m),
+                            np.full(len(flat), self.resolution_m), grid.log_odds[flat].astype(np.float64))
         self._leaf_cache = (self.version, arrays)
         return arrays
 
@@ -282,7 +289,7 @@ class FusedOctoMap:
         return index_to_center(self.occupied_index(), self.resolution_m)
 
     def occupied_leaves(self):
-        """(centres, sizes) of the occupied leaves as the tree stores them (for markers)."""
+        """(centres, sizes) of the occupied leaves (for markers; see `leaves`)."""
         leaves = self.leaves()
         occ = leaves.occupied
         return leaves.centers_m[occ], leaves.sizes_m[occ]
