@@ -136,6 +136,15 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                    *_args({"rate_hz": fleet.link.min_rate_hz})),
                 wait_topics=(f"/{r}/points_filtered/draco/managed",)))
 
+        # The robots' side of the latency: capture stamp -> voxel-filtered cloud, measured on the
+        # physical host (nothing crosses the link); the report subtracts it from the twin's figure.
+        specs.append(NodeSpec(
+            "physical_stats", PHYSICAL,
+            py("cps_transport", "topic_stats", "__name:=physical_stats", "/tissue/stats:=/tissue/physical_stats",
+               *_args({**common, "csv_path": os.path.join(options.out_dir, "physical_stats.csv"),
+                       "topics": ",".join(f"/{r}/points_filtered" for r in robots)})),
+            wait_topics=("/tissue/physical_stats",)))
+
     if DIGITAL in sides:
         out = options.out_dir
         for r in robots:
