@@ -19,7 +19,7 @@ import math
 import numba
 import numpy as np
 
-_GROW_MARGIN_VOXELS = 32
+_GROW_MARGIN_VOXELS = 8
 
 
 @numba.njit(cache=True, nogil=True)
