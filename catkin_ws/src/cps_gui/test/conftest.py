@@ -6,8 +6,6 @@ import time
 import pytest
 import yaml
 
-os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
-
 TEST_PREFIX = "guitest_"
 
 
@@ -15,7 +13,15 @@ TEST_PREFIX = "guitest_"
 def qapp():
     from python_qt_binding.QtWidgets import QApplication
 
-    app = QApplication.instance() or QApplication(["cps_gui_tests"])
+    # Qt reads the platform once, when the application is made; the variable is set only for that,
+    # so processes that other packages' tests start (the demo's GUI under Xvfb) do not inherit it.
+    previous = os.environ.get("QT_QPA_PLATFORM")
+    os.environ["QT_QPA_PLATFORM"] = previous or "offscreen"
+    try:
+        app = QApplication.instance() or QApplication(["cps_gui_tests"])
+    finally:
+        if previous is None:
+            del os.environ["QT_QPA_PLATFORM"]
     yield app
 
 

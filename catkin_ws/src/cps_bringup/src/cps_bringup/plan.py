@@ -182,7 +182,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             # rviz needs an X server with OpenGL: a private Xvfb (Mesa llvmpipe) for the offscreen GUI.
             specs.append(NodeSpec(
                 "gui", DIGITAL,
-                ("xvfb-run", "-a", "-s", "-screen 0 1920x1200x24",
+                ("env", "QT_QPA_PLATFORM=xcb", "xvfb-run", "-a", "-s", "-screen 0 1920x1200x24",
                  *py("cps_gui", "cps_gui", "--screenshot", options.gui_screenshot_path,
                      "--after", str(options.gui_screenshot_after_s), "--fleet-file", fleet.path)),
                 restart_limit=0, one_shot=True, after=("map_server",)))
