@@ -270,3 +270,17 @@ def test_leaves_read_from_the_grid_are_the_trees_leaves(two_robot_clouds):
     assert np.all(leaves.sizes_m == RES) and np.all(rows[:, 3] == pytest.approx(RES))
     ours = dict(zip(map(tuple, np.round(leaves.centers_m, 4).tolist()), leaves.log_odds.tolist()))
     assert ours == dict(zip(map(tuple, np.round(rows[:, :3], 4).tolist()), rows[:, 4].tolist()))
+
+
+def test_a_far_origin_cannot_grow_the_grid_beyond_its_limit():
+    fused = FusedOctoMap(RES, max_grid_voxels=2_000_000)
+    fused.insert_cloud(np.array([[3.0, 0.0, 0.5]]), [0.0, 0.0, 0.5], max_range_m=6.0)
+    before, grid_bytes = _set(fused.occupied_index()), fused.stats()["grid_bytes"]
+    near, far = (np.array([[1.0, 1.0, 0.5]]), [0.0, 0.0, 0.5]), (np.array([[900.0, 0.0, 0.5]]), [901.0, 0.0, 0.5])
+    with pytest.raises(ValueError, match="nothing inserted"):
+        fused.insert_batch([near, far], max_range_m=6.0, robot="jackal")
+    assert _set(fused.occupied_index()) == before and fused.stats()["grid_bytes"] == grid_bytes
+    with pytest.raises(ValueError, match="over the limit"):
+        fused.insert_cloud(np.array([[150.0, 150.0, 0.5]]), [0.0, 0.0, 0.5], max_range_m=-1.0)
+    fused.insert_batch([near], max_range_m=6.0, robot="jackal")
+    assert len(_set(fused.occupied_index())) == len(before) + 1

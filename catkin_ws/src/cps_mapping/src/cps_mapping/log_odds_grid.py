@@ -198,17 +198,39 @@ class LogOddsGrid:
     def index_of_flat(self, flat):
         return np.stack(np.unravel_index(np.asarray(flat, dtype=np.int64), self.dims), axis=1) + self.lo
 
-    def ensure(self, lo_index, hi_index, before_move):
-        """Grow the box to hold [lo_index, hi_index]; `before_move()` runs first (flush pending)."""
+    def _grown(self, lo_index, hi_index):
+        """(lo, hi) of the box that holds the current one and [lo_index, hi_index]; None if it does."""
         lo_index, hi_index = np.asarray(lo_index, dtype=np.int64), np.asarray(hi_index, dtype=np.int64)
         if self.dims.all() and np.all(lo_index >= self.lo) and np.all(hi_index < self.lo + self.dims):
+            return None
+        if self.dims.all():
+            return (np.minimum(self.lo, lo_index - _GROW_MARGIN_VOXELS),
+                    np.maximum(self.lo + self.dims, hi_index + 1 + _GROW_MARGIN_VOXELS))
+        return lo_index - _GROW_MARGIN_VOXELS, hi_index + 1 + _GROW_MARGIN_VOXELS
+
+    def voxels_to_hold(self, lo_index, hi_index):
+        """Voxels the box would have once it holds [lo_index, hi_index]."""
+        grown = self._grown(lo_index, hi_index)
+        return int(np.prod(self.dims)) if grown is None else int(np.prod(grown[1] - grown[0]))
+
+    def cloud_bounds(self, points_m, origin_m, max_range_m):
+        """(lo, hi) voxel indices a cloud's rays can touch (beyond max range: up to it only)."""
+        pts = np.asarray(points_m, dtype=np.float32).reshape(-1, 3).astype(np.float64)
+        o64 = np.asarray(origin_m, dtype=np.float32).reshape(3).astype(np.float64)
+        if max_range_m is not None and max_range_m > 0:
+            pts = np.clip(pts, o64 - max_range_m, o64 + max_range_m)
+        res = self.resolution_m
+        lo = np.floor(np.minimum(pts.min(axis=0), o64) / res).astype(np.int64) - 2
+        hi = np.floor(np.maximum(pts.max(axis=0), o64) / res).astype(np.int64) + 2
+        return lo, hi, pts, o64
+
+    def ensure(self, lo_index, hi_index, before_move):
+        """Grow the box to hold [lo_index, hi_index]; `before_move()` runs first (flush pending)."""
+        grown = self._grown(lo_index, hi_index)
+        if grown is None:
             return
         before_move()
-        if self.dims.all():
-            new_lo = np.minimum(self.lo, lo_index - _GROW_MARGIN_VOXELS)
-            new_hi = np.maximum(self.lo + self.dims, hi_index + 1 + _GROW_MARGIN_VOXELS)
-        else:
-            new_lo, new_hi = lo_index - _GROW_MARGIN_VOXELS, hi_index + 1 + _GROW_MARGIN_VOXELS
+        new_lo, new_hi = grown
         old = (self.log_odds, self.owner, self.lo, self.dims)
         self._allocate(new_lo, new_hi - new_lo)
         if old[3].all():
@@ -227,13 +249,7 @@ class LogOddsGrid:
             return
         max_range = float(max_range_m) if max_range_m is not None and max_range_m > 0 else -1.0
         res = self.resolution_m
-        o64 = origin.astype(np.float64)
-        if max_range > 0:
-            reach = np.clip(points.astype(np.float64), o64 - max_range, o64 + max_range)
-        else:
-            reach = points.astype(np.float64)
-        lo = np.floor(np.minimum(reach.min(axis=0), o64) / res).astype(np.int64) - 2
-        hi = np.floor(np.maximum(reach.max(axis=0), o64) / res).astype(np.int64) + 2
+        lo, hi, reach, o64 = self.cloud_bounds(points, origin, max_range)
         self.ensure(lo, hi, before_move)
         self._cloud_id += 1
         if self._cloud_id >= 2 ** 31 - 1:

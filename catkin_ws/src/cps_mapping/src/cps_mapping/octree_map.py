@@ -146,14 +146,18 @@ class FusedOctoMap:
     Not thread-safe: the map server serializes access with one lock.
     """
 
-    def __init__(self, resolution_m, sensor_model=SensorModelParams(), merge_origin_tolerance_m=0.5):
+    def __init__(self, resolution_m, sensor_model=SensorModelParams(), merge_origin_tolerance_m=0.5,
+                 max_grid_voxels=200_000_000):
         """`merge_origin_tolerance_m` is accepted for compatibility and unused: clouds are no
-        longer merged, every cloud is cast from its own origin."""
+        longer merged, every cloud is cast from its own origin. `max_grid_voxels` bounds the
+        log-odds grid (10 bytes per voxel; default 2 GB): a batch that would grow it beyond is
+        refused (ValueError)."""
         if not resolution_m > 0:
             raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
         self.resolution_m = float(resolution_m)
         self.sensor_model = sensor_model
         self.merge_origin_tolerance_m = float(merge_origin_tolerance_m)
+        self.max_grid_voxels = int(max_grid_voxels)
         self._robots: List[str] = [_UNKNOWN_ROBOT]
         self.version = 0
         self._leaf_cache: Optional[Tuple[int, LeafArrays]] = None
@@ -224,8 +228,8 @@ class FusedOctoMap:
 
         A point within `max_range_m` of its cloud's origin is a hit and clears the voxels to it;
         a point beyond clears up to max range only (<= 0: no limit). Non-finite points are
-        dropped (and counted in `points_rejected`); a non-finite origin raises ValueError before
-        anything is inserted.
+        dropped (and counted in `points_rejected`); a non-finite origin, or clouds that would grow
+        the grid beyond `max_grid_voxels`, raise ValueError before anything is inserted.
         """
         import time
 
@@ -242,6 +246,14 @@ class FusedOctoMap:
             rejected += int((~finite).sum())
             prepared.append((pts[finite], origin))
 
+        bounds = [self._grid.cloud_bounds(p, o, max_range_m)[:2] for p, o in prepared if len(p)]
+        if bounds:
+            needed = self._grid.voxels_to_hold(np.min([b[0] for b in bounds], axis=0),
+                                               np.max([b[1] for b in bounds], axis=0))
+            if needed > self.max_grid_voxels:
+                raise ValueError(f"these clouds would grow the map's log-odds grid to {needed} voxels "
+                                 f"({needed * 10 / 1e9:.1f} GB), over the limit of {self.max_grid_voxels} "
+                                 f"(sensor origin far from the map?); nothing inserted")
         robot_id = self._robot_id(robot)
         inserted = cast = 0
         for pts, origin in prepared:
