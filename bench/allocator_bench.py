@@ -147,6 +147,7 @@ def bench_priority_to_rate(changes):
         graph.start_node("cps_bw_manager", "bandwidth_manager", name="bandwidth_manager",
                          params={"~robots": list(robots), "~available_mbps": 4.0})
         graph.wait_for_service("/tissue/set_priority", timeout_s=60)
+        graph.point_this_process_here()
         rospy.init_node("allocator_bench", anonymous=True, disable_signals=True)
         delays = measure_priority_to_rate(changes, robots, feed=True)
         rospy.signal_shutdown("bench done")

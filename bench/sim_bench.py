@@ -170,6 +170,7 @@ def main(argv=None):
     os.environ.update(ROS_MASTER_URI=_GRAPH.uri, ROS_IP="127.0.0.1", ROS_HOME=_GRAPH.home)
     import rospy
 
+    _GRAPH.point_this_process_here()
     rospy.init_node("sim_bench", anonymous=True, disable_signals=True)
     try:
         for renderer in [r.strip() for r in args.renderers.split(",") if r.strip()]:

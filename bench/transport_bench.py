@@ -93,6 +93,7 @@ def nodelet_round_trip(clouds, leaf, repeats):
                      "~input:=/bench/in", "~output:=/bench/out", f"_leaf_size:={leaf}", "_filter_field_name:=",
                      "_filter_limit_min:=-1e6", "_filter_limit_max:=1e6"], name="nodelet")
         graph.wait_for_topic("/bench/out", timeout_s=30)
+        graph.point_this_process_here()
         rospy.init_node("transport_bench", anonymous=True, disable_signals=True)
         got, box = threading.Event(), {}
 

@@ -16,7 +16,8 @@ from cps_msgs.testing import RosGraph
 def ros_master():
     graph = RosGraph()
     graph.start()
-    os.environ.update(ROS_MASTER_URI=graph.uri, ROS_IP="127.0.0.1", ROS_HOME=graph.home)
+    graph.point_this_process_here()
+    os.environ["ROS_HOME"] = graph.home
     try:
         yield graph
     finally:

@@ -1,4 +1,5 @@
 """The test harness starts a private master and nodes, and leaves nothing behind."""
+import os
 import sys
 import textwrap
 
@@ -71,3 +72,11 @@ def test_messages_import_from_the_venv_python():
 
     msg = CompressedPointCloud2(format="draco", compressed_data=b"\x01\x02")
     assert msg.format == "draco"
+
+
+def test_a_private_master_leaves_this_process_pointed_where_it_was():
+    before = {k: os.environ.get(k) for k in ("ROS_MASTER_URI", "ROS_IP")}
+    with RosGraph() as graph:
+        graph.wait_for_topic("/rosout_agg", timeout_s=20)
+        assert {k: os.environ.get(k) for k in before} == before
+    assert {k: os.environ.get(k) for k in before} == before

@@ -112,6 +112,7 @@ def run_mission(args, log=print) -> MissionResult:
         stack.callback(supervisor.stop_all)
         import rospy
 
+        graph.point_this_process_here()
         rospy.init_node("cps_bringup", anonymous=True, disable_signals=True)
         supervisor.start_all(timeout_s=args.start_timeout)
         monitor = MissionMonitor(fleet)

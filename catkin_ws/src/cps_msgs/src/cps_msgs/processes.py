@@ -90,13 +90,14 @@ class RosGraph:
             if self._master.poll() is not None:
                 raise RuntimeError(f"roscore exited with {self._master.returncode}: {self.output('roscore')}")
             if self._master_up() and self._has_node("/rosout"):
-                self._point_rospy_here()
                 return
             time.sleep(0.1)
         self.close()
         raise TimeoutError(f"roscore on port {self.port} did not come up within {timeout_s} s")
 
-    def _point_rospy_here(self):
+    def point_this_process_here(self):
+        """Make rospy in this process use this master (rospy reads the environment): call it only in
+        a process that has one master for its whole life, e.g. before rospy.init_node."""
         os.environ["ROS_MASTER_URI"] = self.uri
         os.environ["ROS_IP"] = self.host_ip
 
