@@ -123,8 +123,8 @@ def run_mission(args, log=print) -> MissionResult:
         def fault_injection(elapsed):
             if args.kill_map_server_at is not None and not killed and elapsed >= args.kill_map_server_at:
                 os.kill(supervisor.pid_of("map_server"), signal.SIGKILL)
-                supervisor.events.append(Event(elapsed, "map_server", "killed by --kill-map-server-at (fault injection)"))
-                log(f"[bringup] fault injection: killed map_server at {elapsed:.0f} s")
+                supervisor.record("map_server", f"killed by --kill-map-server-at (fault injection, {elapsed:.0f} s "
+                                                "into the mission)")
                 killed.append(elapsed)
 
         ended_by, elapsed = "interrupted", 0.0

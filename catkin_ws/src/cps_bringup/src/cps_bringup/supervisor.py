@@ -49,7 +49,8 @@ class Supervisor:
         self.events: List[Event] = []
         self._t0 = time.monotonic()
 
-    def _event(self, label, what):
+    def record(self, label, what):
+        """Note an event (in the run's log and the report)."""
         self.events.append(Event(time.monotonic() - self._t0, label, what))
         self.log(f"[bringup] {label}: {what}")
 
@@ -70,7 +71,7 @@ class Supervisor:
             self._refresh_up()
             self._check_deaths(during_start=True)
             if not pending and all(r.up for r in self.running.values()):
-                self._event("all", f"{len(self.running)} processes up")
+                self.record("all", f"{len(self.running)} processes up")
                 return
             if time.monotonic() > deadline:
                 missing = [label for label, r in self.running.items() if not r.up] + [s.label for s in pending]
@@ -116,7 +117,7 @@ class Supervisor:
                 raise BringupError(f"{label} exited with code {code} "
                                    f"(restarted {running.restarts} of {running.spec.restart_limit} times):\n{tail}")
             running.restarts += 1
-            self._event(label, f"exited with code {code}; restart {running.restarts}/{running.spec.restart_limit}")
+            self.record(label, f"exited with code {code}; restart {running.restarts}/{running.spec.restart_limit}")
             running.proc = self._start(running.spec)
             running.up = False
 
