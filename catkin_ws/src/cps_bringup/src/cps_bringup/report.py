@@ -127,7 +127,11 @@ def write_mission_report(result, mission_args, wall_time_s):
     fleet = robot_names_arg(fleet, mission_args.robots.split(",") if mission_args.robots else None)
     stats_rows = read_csv(os.path.join(out, "stats.csv"))
     allocation_rows = read_csv(os.path.join(out, "allocation.csv"))
-    budget = fleet.link.budget_mbytes_per_s
+    budgets = [_float(r["budget_mbytes_per_s"]) for r in allocation_rows]
+    # The manager's own budget (with --link: from iperf3's measurement), else fleet.yaml's.
+    budget = budgets[-1] if budgets and math.isfinite(budgets[-1]) else fleet.link.budget_mbytes_per_s
+    available_mbps = (_float(allocation_rows[-1]["available_mbps"]) if allocation_rows
+                      else fleet.link.available_mbps)
 
     lines = ["# Mission report", "",
              f"- robots: {', '.join(fleet.robot_names)}; profile: {fleet.profile.name}",
@@ -143,7 +147,9 @@ def write_mission_report(result, mission_args, wall_time_s):
         rows.append((robot, progress.mission_state.get(robot, "?"), progress.clouds_inserted.get(robot, 0),
                      progress.clouds_dropped.get(robot, 0), progress.voxels_contributed.get(robot, 0),
                      f"{length:.1f}", f"{progress.map_age_s.get(robot, math.nan):.2f}"))
-    lines += ["## Robots", "", "From the map server's live statistics at the end of the mission.", "",
+    lines += ["## Robots", "", "From the map server's live statistics at the end of the mission. Dropped clouds are "
+              "the oldest ones its bounded per-robot queues let go when insertion fell behind (or with no "
+              "transform at their stamp); every one is counted.", "",
               _table(("robot", "final state", "clouds inserted", "clouds dropped", "occupied voxels last updated",
                       "path m", "map age s"), rows), ""]
 
@@ -172,7 +178,7 @@ def write_mission_report(result, mission_args, wall_time_s):
               f"Managed point-cloud traffic received at the digital twin, per ~1 s window: avg "
               f"{np.mean(busy) if len(busy) else 0:.3f} MB/s, max {np.max(busy) if len(busy) else 0:.3f} MB/s, "
               f"std {np.std(busy) if len(busy) else 0:.3f} MB/s against a budget of {budget:.2f} MB/s "
-              f"(96 % of {fleet.link.available_mbps:.0f} Mbit/s); windows over budget: "
+              f"({100 * (1 - fleet.link.reserve_fraction):.0f} % of {available_mbps:.1f} Mbit/s); windows over budget: "
               f"{int(np.sum(totals > budget))} of {len(totals)}.", "",
               "Latency is receive time at the digital twin minus the capture stamp. The robots' side of it "
               "(capture stamp to the voxel-filtered cloud on the physical host: the simulated sensor's render "
