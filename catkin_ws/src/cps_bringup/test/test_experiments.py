@@ -76,3 +76,23 @@ def test_fig13_counts_and_replay_quality(results):
     route_f1 = [float(r["route_f1"]) for r in replay]
     assert route_f1[-1] == pytest.approx(1.0) and all(0 < f <= 1 for f in route_f1)
     assert all(float(r["precision"]) > 0.8 for r in replay)
+
+
+def test_the_command_runs_everything_when_given_no_names():
+    """`make experiments` passes no names; that must mean all of them (argparse once refused it)."""
+    import importlib.machinery
+    import importlib.util
+
+    loader = importlib.machinery.SourceFileLoader("experiments_cli", EXPERIMENTS)
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
+    loader.exec_module(module)
+    called = {}
+    module.run_experiments = lambda names, out, **kwargs: called.update(names=names, out=out)
+    module.main(["--out", "/tmp/cps-experiments-cli"])
+    assert called == {"names": ["all"], "out": "/tmp/cps-experiments-cli"}
+
+
+def test_the_command_refuses_an_unknown_experiment():
+    result = subprocess.run([sys.executable, EXPERIMENTS, "table9"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert "unknown experiment(s) table9; known: all table4" in result.stderr
