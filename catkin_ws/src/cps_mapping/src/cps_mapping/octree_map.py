@@ -4,9 +4,12 @@
 numpy arrays in `map` with their sensor origin. Every cloud is inserted exactly as
 octomap_server's `insertPointCloud(points, origin, max_range)` would insert it, one after the
 other (same rays, same float32 log-odds, same clamping; see `cps_mapping.log_odds_grid`), but
-the ray casting runs in a compiled kernel over a dense log-odds grid and the OcTree receives only
-the voxels that changed, in bulk, when it is next read (`tree`, views, save). So a map built from
-a batch equals, to float rounding, the map plain sequential insertion builds.
+the ray casting runs in a compiled kernel over a dense log-odds grid; with
+`exact_free_space=False` every ray is cast back from its endpoint and stops where the cloud has
+already cleared (about each voxel once per cloud; >= 99 % of the occupied voxels agree). The map
+lives in the grid only: the `.bt` stream is written from it directly and an OcTree is built from
+it when `tree` is read (cached until the map changes). In exact mode a map built from a batch
+equals, to float rounding, the map plain sequential insertion builds.
 
 Voxels are named by their grid index i = floor(p / resolution); the voxel centre is
 (i + 0.5) * resolution, OctoMap's grid.
@@ -20,7 +23,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import octomap
 
-from cps_mapping.log_odds_grid import LogOddsGrid, set_max_likelihood
+from cps_mapping.log_odds_grid import LogOddsGrid
 
 BT_HEADER = b"# Octomap OcTree binary file"
 OT_HEADER = b"# Octomap OcTree file"
@@ -147,23 +150,34 @@ class FusedOctoMap:
     """
 
     def __init__(self, resolution_m, sensor_model=SensorModelParams(), merge_origin_tolerance_m=0.5,
-                 max_grid_voxels=200_000_000):
+                 max_grid_voxels=200_000_000, exact_free_space=True, shared_ray_stop_m=0.3):
         """`merge_origin_tolerance_m` is accepted for compatibility and unused: clouds are no
         longer merged, every cloud is cast from its own origin. `max_grid_voxels` bounds the
-        log-odds grid (10 bytes per voxel; default 2 GB): a batch that would grow it beyond is
-        refused (ValueError)."""
+        log-odds grid (9 bytes per voxel; default 1.8 GB): a batch that would grow it beyond is
+        refused (ValueError). `exact_free_space`: True casts every ray whole, as OctoMap does
+        (the map equals plain sequential insertion); False casts each ray back from its endpoint
+        and stops at the first voxel its cloud already cleared (shared-origin casting, several
+        times faster, approximate: see `cps_mapping.log_odds_grid`); a ray then stops once it has
+        crossed `shared_ray_stop_m` (rounded up to whole voxels) of voxels in a row that its cloud
+        already cleared (0.3 m: >= 99.7 % of plain insertion's occupied voxels agree on the paper
+        fleet's clouds at 0.1 and 0.05 m; longer is more exact and slower)."""
         if not resolution_m > 0:
             raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
         self.resolution_m = float(resolution_m)
         self.sensor_model = sensor_model
         self.merge_origin_tolerance_m = float(merge_origin_tolerance_m)
         self.max_grid_voxels = int(max_grid_voxels)
+        if not shared_ray_stop_m > 0:
+            raise ValueError(f"shared_ray_stop_m must be > 0, got {shared_ray_stop_m}")
+        self.exact_free_space = bool(exact_free_space)
+        self.shared_ray_stop_m = float(shared_ray_stop_m)
+        self._stop_run = max(1, math.ceil(self.shared_ray_stop_m / self.resolution_m - 1e-9))
         self._robots: List[str] = [_UNKNOWN_ROBOT]
         self.version = 0
         self._leaf_cache: Optional[Tuple[int, LeafArrays]] = None
-        self._tree = self._new_tree(self.resolution_m)
-        self._ml_tree = self._new_tree(self.resolution_m)
-        self._grid = self._new_grid(self._tree)
+        self._tree_cache = None  # (version, OcTree built from the grid)
+        self._binary_cache = None  # (version, .bt bytes, node count)
+        self._grid = self._new_grid()
 
     @classmethod
     def from_mapping_config(cls, mapping, **kwargs):
@@ -173,38 +187,43 @@ class FusedOctoMap:
 
     @property
     def tree(self):
-        """The OcTree, with every change inserted so far written into it. Read only: write
-        through the methods (and never call its writeBinary, see `_binary_tree`)."""
-        self._flush()
-        return self._tree
+        """An OcTree holding every known voxel with its log-odds, built from the grid when read
+        and cached until the map changes (tens of ms per 100 k voxels). Read only: the map is
+        the grid; write through the methods (and never call its writeBinary, which turns the
+        tree it writes into max likelihood: `to_bytes`/`save` write .bt from the grid)."""
+        if self._tree_cache is None or self._tree_cache[0] != self.version:
+            tree = self._new_tree(self.resolution_m)
+            self._grid.write_into(tree)
+            self._tree_cache = (self.version, tree)
+        return self._tree_cache[1]
 
     @tree.setter
     def tree(self, tree):
-        """Take over `tree` (e.g. one just read), its voxels included; contributions are lost."""
+        """Take over `tree`'s voxels (e.g. a tree just read); contributions are lost."""
         index, log_odds = _finest_voxels(tree, self.resolution_m)
-        self._tree = tree
-        self._grid = self._new_grid(tree)
+        self._grid = self._new_grid()
         self._grid.load_leaves(index, log_odds)
-        self._ml_tree = self._new_tree(self.resolution_m)
-        centers = index_to_center(index, self.resolution_m)
-        set_max_likelihood(self._ml_tree, centers[log_odds > 0.0], centers[~(log_odds > 0.0)])
+        self.version += 1
 
-    def _binary_tree(self):
-        """The max-likelihood twin of `tree`, up to date: what .bt files and binary messages carry.
+    def _binary_file(self):
+        """(.bt bytes, node count): the max-likelihood, pruned tree OctoMap's writeBinary would
+        write for `tree`, written from the grid (cached until the map changes)."""
+        if self._binary_cache is None or self._binary_cache[0] != self.version:
+            data, nodes = self._grid.binary_tree_file()
+            self._binary_cache = (self.version, data, nodes)
+        return self._binary_cache[1], self._binary_cache[2]
 
-        OctoMap's writeBinary first turns the tree it writes into max likelihood (every voxel at
-        a clamping bound) and prunes it; called on `tree` it would destroy the log-odds the
-        next insertions build on. octomap_server writes messages without that conversion.
-        """
-        self._flush()
-        return self._ml_tree
+    def binary_tree_nodes(self):
+        """Nodes of the published tree (.bt: max likelihood, pruned)."""
+        return self._binary_file()[1]
 
     def _new_tree(self, resolution_m):
         tree = octomap.OcTree(resolution_m)
         self._apply_sensor_model(tree)
         return tree
 
-    def _new_grid(self, tree):
+    def _new_grid(self):
+        tree = self._new_tree(self.resolution_m)  # OctoMap's own float32 log-odds of the model
         return LogOddsGrid(self.resolution_m, tree.getProbHitLog(), tree.getProbMissLog(),
                            tree.getClampingThresMinLog(), tree.getClampingThresMaxLog())
 
@@ -213,9 +232,6 @@ class FusedOctoMap:
         tree.setProbMiss(self.sensor_model.miss)
         tree.setClampingThresMin(self.sensor_model.min)
         tree.setClampingThresMax(self.sensor_model.max)
-
-    def _flush(self):
-        self._grid.flush_into(self._tree, self._ml_tree)
 
     # ---- insertion -------------------------------------------------------------------------
 
@@ -234,38 +250,36 @@ class FusedOctoMap:
         import time
 
         start = time.perf_counter()
+        grid = self._grid
         prepared = []
-        points_in = rejected = 0
+        points_in = 0
         for points, origin in clouds:
             origin = np.asarray(origin, dtype=np.float64).reshape(3)
             if not np.all(np.isfinite(origin)):
                 raise ValueError(f"sensor origin {origin.tolist()} is not finite")
             pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-            finite = np.all(np.isfinite(pts), axis=1)
             points_in += len(pts)
-            rejected += int((~finite).sum())
-            prepared.append((pts[finite], origin))
-
-        bounds = [self._grid.cloud_bounds(p, o, max_range_m)[:2] for p, o in prepared if len(p)]
+            prepared.append((origin, grid.prepare(pts, origin, max_range_m)))
+        inserted = sum(len(p[1][0]) for p in prepared)
+        bounds = [p[1][1:] for p in prepared if len(p[1][0])]
         if bounds:
-            needed = self._grid.voxels_to_hold(np.min([b[0] for b in bounds], axis=0),
-                                               np.max([b[1] for b in bounds], axis=0))
+            needed = grid.voxels_to_hold(np.min([b[0] for b in bounds], axis=0), np.max([b[1] for b in bounds], axis=0))
             if needed > self.max_grid_voxels:
                 raise ValueError(f"these clouds would grow the map's log-odds grid to {needed} voxels "
-                                 f"({needed * 10 / 1e9:.1f} GB), over the limit of {self.max_grid_voxels} "
+                                 f"({needed * 9 / 1e9:.1f} GB), over the limit of {self.max_grid_voxels} "
                                  f"(sensor origin far from the map?); nothing inserted")
         robot_id = self._robot_id(robot)
-        inserted = cast = 0
-        for pts, origin in prepared:
-            if len(pts) == 0:
+        cast = 0
+        for origin, cloud in prepared:
+            if len(cloud[0]) == 0:
                 continue
-            self._grid.integrate_cloud(pts, origin, max_range_m, robot_id, before_move=self._flush)
-            inserted += len(pts)
+            grid.integrate_cloud(None, origin, max_range_m, robot_id, exact=self.exact_free_space, prepared=cloud,
+                                 stop_run=self._stop_run)
             cast += 1
         if inserted:
             self.version += 1
         return InsertResult(clouds=len(prepared), points_in=points_in, points_inserted=inserted,
-                            points_rejected=rejected, groups=cast, seconds=time.perf_counter() - start)
+                            points_rejected=points_in - inserted, groups=cast, seconds=time.perf_counter() - start)
 
     def _robot_id(self, robot):
         if robot not in self._robots:
@@ -357,19 +371,24 @@ class FusedOctoMap:
         return grid, gmin.astype(np.float64) * res
 
     def memory_bytes(self):
-        """What the map holds in memory: the log-odds grid and both trees."""
-        return int(self._grid.nbytes + self.tree.memoryUsage() + self._ml_tree.memoryUsage())
+        """What the map holds in memory: the log-odds grid, plus an OcTree and .bt if one was
+        asked for since the last change."""
+        extra = 0
+        if self._tree_cache is not None and self._tree_cache[0] == self.version:
+            extra += self._tree_cache[1].memoryUsage()
+        if self._binary_cache is not None and self._binary_cache[0] == self.version:
+            extra += len(self._binary_cache[1])
+        return int(self._grid.nbytes + extra)
 
     def stats(self):
-        return {"occupied_voxels": int(len(self.occupied_index())), "tree_nodes": int(self.tree.size()),
+        """`tree_nodes`: nodes of the published (.bt: max likelihood, pruned) tree."""
+        return {"occupied_voxels": int(len(self.occupied_index())), "tree_nodes": self.binary_tree_nodes(),
                 "memory_bytes": self.memory_bytes(), "grid_bytes": int(self._grid.nbytes)}
 
     # ---- editing ---------------------------------------------------------------------------
 
     def reset(self):
-        self._tree = self._new_tree(self.resolution_m)
-        self._ml_tree = self._new_tree(self.resolution_m)
-        self._grid = self._new_grid(self._tree)
+        self._grid = self._new_grid()
         self.version += 1
 
     def clear_bbx(self, min_m, max_m):
@@ -400,7 +419,7 @@ class FusedOctoMap:
 
     def to_bytes(self, binary=True):
         """The whole map as an OctoMap file (.bt when binary, else .ot), header included."""
-        return self._binary_tree().writeBinary() if binary else self.tree.write()
+        return self._binary_file()[0] if binary else self.tree.write()
 
     def save(self, path):
         """Write `.bt` (binary, occupancy only) or `.ot` (full) atomically; return the path."""
@@ -414,7 +433,15 @@ class FusedOctoMap:
         except OSError as exc:
             raise MapFileError(f"cannot write {path}: {exc}") from exc
         try:
-            ok = self._binary_tree().writeBinary(tmp.encode()) if binary else self.tree.write(tmp.encode())
+            if binary:
+                try:
+                    with open(tmp, "wb") as stream:
+                        stream.write(self._binary_file()[0])
+                except OSError as exc:
+                    raise MapFileError(f"cannot write {path}: {exc}") from exc
+                ok = True
+            else:
+                ok = self.tree.write(tmp.encode())
             if not ok:
                 raise MapFileError(f"OctoMap could not write {path}")
             os.chmod(tmp, 0o644)
@@ -429,7 +456,6 @@ class FusedOctoMap:
         tree = read_octree_file(path, expected_resolution_m=self.resolution_m)
         self._apply_sensor_model(tree)
         self.tree = tree
-        self.version += 1
         return tree.size()
 
 
