@@ -3,13 +3,15 @@
 
 Anchor, measured in the same run: plain sequential OctoMap insertion, what octomap_server does
 per cloud (insertPointCloud of every point, its own origin, max range, no discretization,
-inner nodes updated per cloud). Ours: FusedOctoMap.insert_batch (OctoMap's ray casting and
-log-odds per cloud in a compiled kernel over a dense grid, the OcTree written in bulk when read).
+inner nodes updated per cloud). Ours: FusedOctoMap.insert_batch (ray casting and log-odds per
+cloud in a compiled kernel over a dense grid) in both free-space modes: exact (OctoMap's rays,
+the same map) and shared-origin casting (the map server's default: rays cast back from their
+endpoints, stopping where the cloud already cleared).
 
-1. Throughput at 0.1 m and 0.05 m: clouds/s and points/s of both on the same cloud stream
-   (median of `--runs` runs; ours includes writing the tree once per second of stream time, as
-   the node's publisher reads it), how their maps agree (occupied voxels, log-odds) and F1
-   against the ground truth.
+1. Throughput at 0.1 m and 0.05 m: clouds/s and points/s of plain and of both modes on the same
+   cloud stream, timed in the same runs (median of `--runs` runs; ours includes writing the .bt
+   map message once per second of stream time, as the node's publisher does), how the maps agree
+   (occupied and known voxels, log-odds) and F1 against the ground truth.
 2. Keeping up: the four robots replayed at the bandwidth manager's typical rates (`--depth-hz`,
    `--lidar-hz`) for `--keep-up-s` seconds (the rendered clouds looped); a discrete-event run of
    the server (bounded drop-oldest queues served round-robin, one worker; every second the
@@ -31,7 +33,9 @@ import time
 import numpy as np
 import octomap
 
-from cps_mapping.octree_map import FusedOctoMap, _finest_voxels, index_to_center, message_fields, near_any, pack_index
+from cps_mapping.log_odds_grid import warm_up
+from cps_mapping.octree_map import (FusedOctoMap, SensorModelParams, _finest_voxels, index_to_center, message_fields,
+                                    pack_index)
 from cps_mapping.scoring import score_map
 from cps_msgs.fleet import load_fleet
 from cps_transport.voxel import voxel_downsample
@@ -115,60 +119,77 @@ def run_plain(fleet, stream, resolution_m):
     return time.perf_counter() - start, tree
 
 
-def run_ours(fleet, stream, resolution_m, batch):
-    """insert_batch per batch; the tree is read (written in bulk) after every second of stream time."""
+def new_map(fleet, resolution_m, exact):
+    m = fleet.mapping.sensor_model
+    return FusedOctoMap(resolution_m, SensorModelParams(m.hit, m.miss, m.min, m.max), exact_free_space=exact)
+
+
+def run_ours(fleet, stream, resolution_m, batch, exact):
+    """insert_batch per batch; the .bt map message written after every second of stream time."""
     ranges = {r.name: fleet.mapping.max_range_m[r.type] for r in fleet.robots}
-    fused = FusedOctoMap.from_mapping_config(fleet.mapping)
-    fused.resolution_m = resolution_m
-    fused.reset()
+    fused = new_map(fleet, resolution_m, exact)
     next_read = 1.0
     start = time.perf_counter()
     for group in batches_of(stream, batch):
         fused.insert_batch([(c[2], c[3]) for c in group], max_range_m=ranges[group[0][1]], robot=group[0][1])
         if group[-1][0] >= next_read:
-            fused.tree.size()
+            fused.to_bytes(binary=True)
             next_read += 1.0
-    fused.tree.size()
+    fused.to_bytes(binary=True)
     return time.perf_counter() - start, fused
 
 
+MODES = (("exact", True), ("shared-origin", False))
+
+
 def throughput(fleet, stream, resolution_m, batch, truth, runs):
+    """One row per mode; plain and both modes timed in the same runs, one after the other."""
     points = sum(len(c[2]) for c in stream)
-    plain_times, ours_times = [], []
+    plain_times, ours_times, maps = [], {m: [] for m, _ in MODES}, {}
     for _ in range(runs):
         seconds, tree = run_plain(fleet, stream, resolution_m)
         plain_times.append(seconds)
-        seconds, fused = run_ours(fleet, stream, resolution_m, batch)
-        ours_times.append(seconds)
-    plain_s, ours_s = float(np.median(plain_times)), float(np.median(ours_times))
-    plain_occ, ours_occ = occupied_of_tree(tree, resolution_m), fused.occupied_index()
+        for mode, exact in MODES:
+            seconds, maps[mode] = run_ours(fleet, stream, resolution_m, batch, exact)
+            ours_times[mode].append(seconds)
+    plain_s = float(np.median(plain_times))
+    plain_occ = occupied_of_tree(tree, resolution_m)
     plain_idx, plain_val = _finest_voxels(tree, resolution_m)
-    ours_idx, ours_val = _finest_voxels(fused.tree, resolution_m)
     plain_map = dict(zip(pack_index(plain_idx).tolist(), plain_val.tolist()))
-    ours_map = dict(zip(pack_index(ours_idx).tolist(), ours_val.tolist()))
-    common = plain_map.keys() & ours_map.keys()
-    max_dl = max((abs(plain_map[k] - ours_map[k]) for k in common), default=0.0)
-
-    plain_keys, ours_keys = set(pack_index(plain_occ).tolist()), set(pack_index(ours_occ).tolist())
-    both = len(plain_keys & ours_keys)
-    row = dict(resolution_m=resolution_m, batch=batch, clouds=len(stream), points=points, runs=runs,
-               plain_s=plain_times, ours_s=ours_times,
-               plain_clouds_per_s=len(stream) / plain_s, plain_points_per_s=points / plain_s,
-               ours_clouds_per_s=len(stream) / ours_s, ours_points_per_s=points / ours_s,
-               speedup=plain_s / ours_s, plain_occupied=len(plain_keys), ours_occupied=len(ours_keys),
-               plain_in_ours=both / max(len(plain_keys), 1), ours_in_plain=both / max(len(ours_keys), 1),
-               jaccard=both / max(len(plain_keys | ours_keys), 1),
-               known_same=plain_map.keys() == ours_map.keys(), max_log_odds_difference=max_dl,
-               ours_memory_mb=fused.memory_bytes() / 1e6, ours_grid_mb=fused.stats()["grid_bytes"] / 1e6,
-               grid_voxels=tuple(fused._grid.dims.tolist()), plain_memory_mb=tree.memoryUsage() / 1e6)
+    plain_keys = set(pack_index(plain_occ).tolist())
+    gt = None
     if truth is not None:
         from cps_sim.ground_truth import occupied_voxels
 
         gt = occupied_voxels(truth, resolution_m)
-        for name, occ in (("plain", plain_occ), ("ours", ours_occ)):
-            s = score_map(index_to_center(occ, resolution_m), gt, resolution_m)
-            row[f"{name}_precision"], row[f"{name}_recall"], row[f"{name}_f1"] = s.precision, s.recall, s.f1
-    return row
+    rows = []
+    for mode, _ in MODES:
+        fused = maps[mode]
+        ours_s = float(np.median(ours_times[mode]))
+        ours_occ = fused.occupied_index()
+        flat, values = fused._grid.known()
+        ours_map = dict(zip(pack_index(fused._grid.index_of_flat(flat)).tolist(), values.astype(np.float64).tolist()))
+        common = plain_map.keys() & ours_map.keys()
+        max_dl = max((abs(plain_map[k] - ours_map[k]) for k in common), default=0.0)
+        ours_keys = set(pack_index(ours_occ).tolist())
+        both = len(plain_keys & ours_keys)
+        row = dict(mode=mode, resolution_m=resolution_m, batch=batch, clouds=len(stream), points=points, runs=runs,
+                   plain_s=plain_times, ours_s=ours_times[mode],
+                   plain_clouds_per_s=len(stream) / plain_s, plain_points_per_s=points / plain_s,
+                   ours_clouds_per_s=len(stream) / ours_s, ours_points_per_s=points / ours_s,
+                   speedup=plain_s / ours_s, plain_occupied=len(plain_keys), ours_occupied=len(ours_keys),
+                   plain_in_ours=both / max(len(plain_keys), 1), ours_in_plain=both / max(len(ours_keys), 1),
+                   jaccard=both / max(len(plain_keys | ours_keys), 1),
+                   known_jaccard=len(common) / max(len(plain_map.keys() | ours_map.keys()), 1),
+                   max_log_odds_difference=max_dl, steps_per_cloud=fused._grid.steps / len(stream),
+                   ours_memory_mb=fused.memory_bytes() / 1e6, ours_grid_mb=fused.stats()["grid_bytes"] / 1e6,
+                   grid_voxels=tuple(fused._grid.dims.tolist()), plain_memory_mb=tree.memoryUsage() / 1e6)
+        if gt is not None:
+            for name, occ in (("plain", plain_occ), ("ours", ours_occ)):
+                s = score_map(index_to_center(occ, resolution_m), gt, resolution_m)
+                row[f"{name}_precision"], row[f"{name}_recall"], row[f"{name}_f1"] = s.precision, s.recall, s.f1
+        rows.append(row)
+    return rows
 
 
 def replay(stream, depth_hz, lidar_hz, seconds, fleet):
@@ -195,10 +216,11 @@ def snapshot(fused):
     fused.projected_grid(0.1, 2.0)
     message_fields(fused, binary=True)
     fused.contributions(occupied)
-    fused.tree.size()
+    fused.binary_tree_nodes()
+    fused.memory_bytes()
 
 
-def keep_up(fleet, stream, queue_size, plain=False, publish_period_s=1.0):
+def keep_up(fleet, stream, queue_size, plain=False, publish_period_s=1.0, exact=False):
     """Discrete-event run of the server: arrivals at their stamps, one worker, real insertion times."""
     ranges = {r.name: fleet.mapping.max_range_m[r.type] for r in fleet.robots}
     robots = sorted({c[1] for c in stream})
@@ -206,7 +228,7 @@ def keep_up(fleet, stream, queue_size, plain=False, publish_period_s=1.0):
     dropped = {r: 0 for r in robots}
     newest = {r: None for r in robots}
     ages = {r: [] for r in robots}
-    fused = FusedOctoMap.from_mapping_config(fleet.mapping)
+    fused = new_map(fleet, fleet.mapping.resolution_m, exact)
     tree = plain_tree(fleet.mapping.resolution_m, fleet.mapping.sensor_model)
     clock, i, turn = 0.0, 0, 0
     end = stream[-1][0] + 1.0
@@ -301,35 +323,38 @@ def main():
           f"{os.cpu_count()} cores")
     for robot, sizes in per_robot.items():
         print(f"#   {robot}: {len(sizes)} clouds, {np.mean(sizes):.0f} points/cloud after the tissue's voxel grid")
-    FusedOctoMap(0.1).insert_cloud(stream[0][2][:10], stream[0][3], 6.0)  # compile the kernel outside the timing
+    warm_up()  # load (or compile) the kernels outside the timing
 
     print(f"\n## Throughput (ours vs plain sequential OctoMap insertion, same clouds, median of {args.runs} runs)")
-    print("| res m | batch | plain clouds/s | plain points/s | ours clouds/s | ours points/s | speed-up | "
-          "plain occ. in ours | ours occ. in plain | Jaccard | same known voxels | max abs log-odds diff | "
-          "F1 plain | F1 ours | plain s (runs) | ours s (runs) | plain tree MB | ours MB (grid MB, grid voxels) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| res m | batch | ours: free space | plain clouds/s | plain points/s | ours clouds/s | ours points/s | "
+          "speed-up | plain occ. in ours | ours occ. in plain | Jaccard occ. | Jaccard known | max abs log-odds diff | "
+          "voxel steps/cloud | F1 plain | F1 ours | plain s (runs) | ours s (runs) | plain tree MB | "
+          "ours grid MB (voxels) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for res in args.resolutions:
         for batch in args.batch:
-            r = throughput(fleet, stream, res, batch, site, args.runs)
-            print(f"| {res} | {batch} | {r['plain_clouds_per_s']:.1f} | {r['plain_points_per_s']:.0f} | "
-                  f"{r['ours_clouds_per_s']:.1f} | {r['ours_points_per_s']:.0f} | {r['speedup']:.1f}x | "
-                  f"{r['plain_in_ours']:.4f} | {r['ours_in_plain']:.4f} | {r['jaccard']:.4f} | {r['known_same']} | "
-                  f"{r['max_log_odds_difference']:.1e} | {r['plain_f1']:.3f} | {r['ours_f1']:.3f} | "
-                  f"{' '.join(f'{x:.1f}' for x in r['plain_s'])} | {' '.join(f'{x:.2f}' for x in r['ours_s'])} | "
-                  f"{r['plain_memory_mb']:.0f} | {r['ours_memory_mb']:.0f} ({r['ours_grid_mb']:.0f}, "
-                  f"{'x'.join(map(str, r['grid_voxels']))}) |",
-                  flush=True)
+            for r in throughput(fleet, stream, res, batch, site, args.runs):
+                print(f"| {res} | {batch} | {r['mode']} | {r['plain_clouds_per_s']:.1f} | {r['plain_points_per_s']:.0f} | "
+                      f"{r['ours_clouds_per_s']:.1f} | {r['ours_points_per_s']:.0f} | {r['speedup']:.1f}x | "
+                      f"{r['plain_in_ours']:.4f} | {r['ours_in_plain']:.4f} | {r['jaccard']:.4f} | "
+                      f"{r['known_jaccard']:.4f} | {r['max_log_odds_difference']:.1e} | {r['steps_per_cloud']:.0f} | "
+                      f"{r['plain_f1']:.3f} | {r['ours_f1']:.3f} | "
+                      f"{' '.join(f'{x:.2f}' for x in r['plain_s'])} | {' '.join(f'{x:.3f}' for x in r['ours_s'])} | "
+                      f"{r['plain_memory_mb']:.0f} | {r['ours_grid_mb']:.0f} ({'x'.join(map(str, r['grid_voxels']))}) |",
+                      flush=True)
+            print(f"<!-- load average {os.getloadavg()[0]:.1f} after {res} m batch {batch} -->", flush=True)
 
     print(f"\n## Keeping up: four robots at managed rates for {args.keep_up_s:g} s, queue {args.queue_size} per robot, "
           f"{fleet.mapping.resolution_m} m (fleet.yaml), publisher snapshot every 1 s")
-    print("| server | depth Hz | lidar Hz | robot | clouds | dropped | map age p95 s | worker busy |")
+    print("| ours: free space | depth Hz | lidar Hz | robot | clouds | dropped | map age p95 s | worker busy |")
     print("|---|---|---|---|---|---|---|---|")
-    for depth_hz in args.depth_hz:
-        replayed = replay(stream, depth_hz, args.lidar_hz, args.keep_up_s, fleet)
-        for label, plain in (("ours", False),):
-            for robot, r in keep_up(fleet, replayed, args.queue_size, plain).items():
-                print(f"| {label} | {depth_hz:g} | {args.lidar_hz:g} | {robot} | {r['clouds']} | {r['dropped']} | "
+    for mode, exact in (("shared-origin", False), ("exact", True)):
+        for depth_hz in args.depth_hz:
+            replayed = replay(stream, depth_hz, args.lidar_hz, args.keep_up_s, fleet)
+            for robot, r in keep_up(fleet, replayed, args.queue_size, exact=exact).items():
+                print(f"| {mode} | {depth_hz:g} | {args.lidar_hz:g} | {robot} | {r['clouds']} | {r['dropped']} | "
                       f"{r['p95_age_s']:.2f} | {r['busy']:.0%} |", flush=True)
+    print(f"<!-- load average {os.getloadavg()[0]:.1f} at the end -->")
 
 
 if __name__ == "__main__":
