@@ -153,7 +153,7 @@ class FusedOctoMap:
                  max_grid_voxels=200_000_000, exact_free_space=True, shared_ray_stop_m=0.3):
         """`merge_origin_tolerance_m` is accepted for compatibility and unused: clouds are no
         longer merged, every cloud is cast from its own origin. `max_grid_voxels` bounds the
-        log-odds grid (9 bytes per voxel; default 1.8 GB): a batch that would grow it beyond is
+        log-odds grid (6 bytes per voxel; default 1.2 GB): a batch that would grow it beyond is
         refused (ValueError). `exact_free_space`: True casts every ray whole, as OctoMap does
         (the map equals plain sequential insertion); False casts each ray back from its endpoint
         and stops at the first voxel its cloud already cleared (shared-origin casting, several
@@ -266,7 +266,7 @@ class FusedOctoMap:
             needed = grid.voxels_to_hold(np.min([b[0] for b in bounds], axis=0), np.max([b[1] for b in bounds], axis=0))
             if needed > self.max_grid_voxels:
                 raise ValueError(f"these clouds would grow the map's log-odds grid to {needed} voxels "
-                                 f"({needed * 9 / 1e9:.1f} GB), over the limit of {self.max_grid_voxels} "
+                                 f"({needed * 6 / 1e9:.1f} GB), over the limit of {self.max_grid_voxels} "
                                  f"(sensor origin far from the map?); nothing inserted")
         robot_id = self._robot_id(robot)
         cast = 0
