@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """cps_sim benchmark: render and ray-cast costs, and the whole fleet's achieved rates.
 
-1. ms per depth frame (640x480 and 320x240) with PyBullet's EGL plugin vs TinyRenderer, and
+1. ms per depth frame (640x480, 320x240, 160x120) with PyBullet's EGL plugin vs TinyRenderer, and
    ms per lidar scan (16 x 1875 rays), in this process (anchor: EGL 640x480).
 2. The fleet_sim node on a private ROS master, per profile (light, paper): achieved sensor
    rates measured by a subscriber (raw messages, no deserialization) and reported by the node
@@ -18,6 +18,9 @@ import statistics
 import sys
 import threading
 import time
+
+
+DEPTH_SIZES = ((640, 480), (320, 240), (160, 120))
 
 
 def _median_ms(fn, repeats):
@@ -48,7 +51,7 @@ def bench_sensors(frames):
                 x, y, z, yaw = pose
                 sim.place(name, x, y, z, math.radians(yaw))
             optical = sim.robots["jackal"].robot.sensor_in_map()
-            for width, height in ((640, 480), (320, 240)):
+            for width, height in DEPTH_SIZES:
                 camera = DepthCamera(sim.world, width, height, cam_cfg.hfov_deg, cam_cfg.near_m, cam_cfg.far_m)
                 results[(renderer, width)] = _median_ms(lambda: camera.capture(optical), frames)
             if renderer == "egl":
@@ -62,7 +65,7 @@ def bench_sensors(frames):
     print("\n== Sensor costs (median of %d, this process; anchor EGL 640x480 = %.1f ms) ==" % (frames, anchor))
     print(f"{'what':34s} {'median ms':>10s} {'min ms':>8s} {'CPU ms':>8s} {'x anchor':>9s}")
     for renderer in ("egl", "tiny"):
-        for width, height in ((640, 480), (320, 240)):
+        for width, height in DEPTH_SIZES:
             med, low, cpu = results[(renderer, width)]
             label = f"depth frame {width}x{height} {'EGL' if renderer == 'egl' else 'TinyRenderer'}"
             print(f"{label:34s} {med:10.1f} {low:8.1f} {cpu:8.1f} {med / anchor:9.2f}")

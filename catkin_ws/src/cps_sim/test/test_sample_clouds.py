@@ -1,6 +1,7 @@
 """The sample clouds other packages benchmark with have the layouts the contract fixes."""
 import numpy as np
 
+from cps_msgs.fleet import load_fleet
 from cps_sim.messages import cloud_to_array
 from cps_sim.sample_clouds import render_mission_clouds, render_sample_frames
 
@@ -33,4 +34,4 @@ def test_mission_clouds_follow_the_route():
     poses = [s.sensor_pose_in_map[:3, 3] for s in clouds["jackal"]]
     assert len(poses) == 3
     assert np.linalg.norm(poses[0] - poses[2]) > 1.0
-    assert clouds["jackal"][0].cloud.width == 320
+    assert clouds["jackal"][0].cloud.width == load_fleet(profile="light").profile.depth_camera.width
