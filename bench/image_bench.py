@@ -4,7 +4,7 @@ sensor_msgs/Image the GUI used to pull across the link, in one run.
 
     source ci/env.sh && python bench/image_bench.py [--repeats 20] [--no-sim]
 
-For each sensor profile of fleet.yaml (light: 320x240 at 10 Hz, paper: 640x480 at 30 Hz) and JPEG
+For each sensor profile of fleet.yaml (its camera size and rate: light 160x120 at 10 Hz, paper 640x480 at 30 Hz) and JPEG
 quality 50/75/90: ms per encode (what image_compressor spends per frame, rgb8 in) and decode (what
 the GUI spends), bytes per frame against raw, PSNR, MB/s at the profile's camera rate, and that
 against the link's reserve for unmanaged traffic and the whole link. Frames are the depth robots'
