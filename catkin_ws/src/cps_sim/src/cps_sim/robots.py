@@ -74,7 +74,9 @@ ROBOT_SPECS = {
         sensor_power_w=5.0),
     "aerial_depth": RobotSpec(
         type="aerial_depth", model="3DR Iris quadrotor", body_half_extents_m=(0.25, 0.25, 0.06),
-        body_center_z_m=0.0, rgb=(0.15, 0.15, 0.15), sensor_xyz_m=(0.28, 0.0, -0.06), sensor_pitch_deg=45.0,
+        # base_link on the ground when landed; the body stands on its landing gear and the camera
+        # hangs under its front, so a landed Iris still sees the floor (it was below it).
+        body_center_z_m=0.12, rgb=(0.15, 0.15, 0.15), sensor_xyz_m=(0.28, 0.0, 0.06), sensor_pitch_deg=45.0,
         limits=VelocityLimits(2.0, 2.0, 1.0, 1.5, 1.5, 2.0), cruise_mps=1.0,
         joint_names=("rotor_0_joint", "rotor_1_joint", "rotor_2_joint", "rotor_3_joint"),
         battery_capacity_wh=60.0, battery_nominal_v=11.1, idle_power_w=10.0, motion_power_w_per_mps=20.0,
