@@ -154,9 +154,13 @@ def test_keys_drive_only_while_the_pane_has_focus(window, qapp, rospy_node):
     assert commands[0] == pytest.approx((limit, 0, 0, 0)) and commands[-1] == (0, 0, 0, 0)
 
 
-def test_mode_switch_stop_all_and_takeoff_reach_their_topics(window, qapp, rospy_node):
+def test_mode_switch_stop_all_and_takeoff_reach_their_topics(window, qapp, rospy_node, ros, test_fleet_file):
     from std_msgs.msg import Bool, String
 
+    # The real mux: the health table shows the mode it reports in force, not what was asked.
+    ros.start_node("cps_sim", "velocity_mux", name="velocity_mux", namespace=f"/{IRIS}",
+                   params={"~robot": IRIS, "~fleet_file": test_fleet_file})
+    spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "auto", 30, "the mux's initial mode")
     teleop = window.plugin.teleop
     teleop.select_robot(IRIS)
     mode = Recorder(rospy_node, f"/{IRIS}/control_mode", String)
@@ -166,10 +170,10 @@ def test_mode_switch_stop_all_and_takeoff_reach_their_topics(window, qapp, rospy
         _wait_connected(qapp, window.plugin.io.flight_pubs[IRIS])
         teleop.teleop_radio.click()
         spin_until(qapp, lambda: mode.messages and mode.messages[-1][1].data == "teleop", 5, "teleop mode")
-        # The GUI reads the latched mode back into the health table.
-        spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "teleop", 5, "mode in the table")
+        spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "teleop", 5, "mux in teleop")
         teleop.auto_radio.click()
         spin_until(qapp, lambda: mode.messages[-1][1].data == "auto", 5, "auto mode")
+        spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "auto", 5, "mux back in auto")
         teleop.stop_button.click()
         spin_until(qapp, lambda: estop.messages and estop.messages[-1][1].data is True, 5, "estop true")
         teleop.stop_button.click()

@@ -85,7 +85,7 @@ class FleetRosIO:
 
         self._subscribe(f"/{name}/odom", Odometry, on_odom)
         self._subscribe(f"/{name}/battery", BatteryState, on_battery)
-        self._subscribe(f"/{name}/control_mode", String, lambda m: state.set_mode(name, m.data))
+        self._subscribe(f"/{name}/control_mode/active", String, lambda m: state.set_mode(name, m.data))
         self._subscribe(f"/{name}/mission_state", String, lambda m: state.set_mission_state(name, m.data))
         self.teleop_pubs[name] = rospy.Publisher(f"/{name}/cmd_vel/teleop", Twist, queue_size=1)
         self.mode_pubs[name] = rospy.Publisher(f"/{name}/control_mode", String, queue_size=1, latch=True)

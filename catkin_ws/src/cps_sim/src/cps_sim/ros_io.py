@@ -454,6 +454,9 @@ class VelocityMuxNode:
         self.mux = VelocityMux(self.config.type, deadman_s=deadman)
         self.lock = threading.Lock()
         self.pub = rospy.Publisher("cmd_vel", TwistMsg, queue_size=5)
+        # The mode in force (yocs_cmd_vel_mux's `active`): control_mode is only what was asked.
+        self.active_pub = rospy.Publisher("control_mode/active", String, queue_size=1, latch=True)
+        self.active_pub.publish(String(data=self.mux.mode))
         rospy.Subscriber("cmd_vel/auto", TwistMsg, self._on_cmd, callback_args="auto", queue_size=5)
         rospy.Subscriber("cmd_vel/teleop", TwistMsg, self._on_cmd, callback_args="teleop", queue_size=5)
         rospy.Subscriber("control_mode", String, self._on_mode, queue_size=5)
@@ -472,6 +475,7 @@ class VelocityMuxNode:
         try:
             with self.lock:
                 self.mux.set_mode(msg.data.strip())
+            self.active_pub.publish(String(data=self.mux.mode))
             rospy.loginfo("velocity_mux %s: control mode %s", self.config.name, self.mux.mode)
         except ValueError as exc:
             rospy.logwarn_throttle(2.0, f"{rospy.resolve_name('control_mode')}: {exc}; staying in {self.mux.mode}")
