@@ -156,11 +156,11 @@ class FusedOctoMap:
         log-odds grid (6 bytes per voxel; default 1.2 GB): a batch that would grow it beyond is
         refused (ValueError). `exact_free_space`: True casts every ray whole, as OctoMap does
         (the map equals plain sequential insertion); False casts each ray back from its endpoint
-        and stops at the first voxel its cloud already cleared (shared-origin casting, several
-        times faster, approximate: see `cps_mapping.log_odds_grid`); a ray then stops once it has
-        crossed `shared_ray_stop_m` (rounded up to whole voxels) of voxels in a row that its cloud
-        already cleared (0.3 m: >= 99.7 % of plain insertion's occupied voxels agree on the paper
-        fleet's clouds at 0.1 and 0.05 m; longer is more exact and slower)."""
+        and stops once it has crossed `shared_ray_stop_m` (rounded up to whole voxels) of voxels
+        in a row that its cloud already cleared (shared-origin casting, several times faster,
+        approximate: see `cps_mapping.log_odds_grid`; 0.3 m: >= 99.7 % of plain insertion's
+        occupied voxels agree on the paper fleet's clouds at 0.1 and 0.05 m; longer is more exact
+        and slower)."""
         if not resolution_m > 0:
             raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
         self.resolution_m = float(resolution_m)
