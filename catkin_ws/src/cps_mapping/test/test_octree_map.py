@@ -236,6 +236,30 @@ def test_projected_map_marks_crates_and_free_floor(scene, two_robot_clouds):
     assert (grid == 0).sum() > (grid == 100).sum()
 
 
+def test_projected_map_equals_the_projection_of_every_known_voxel(two_robot_clouds):
+    """The column-wise projection of the dense grid equals octomap_server's leaf by leaf one."""
+    depth, lidar = two_robot_clouds
+    fused = FusedOctoMap(RES)
+    fused.insert_batch(depth, 6.0, "jackal")
+    fused.insert_batch(lidar, 12.0, "scout")
+    for z_min, z_max in ((0.2, 2.0), (-np.inf, np.inf), (0.55, 0.6)):
+        leaves = fused.leaves()
+        z = leaves.centers_m[:, 2]
+        band = (z + RES / 2 >= z_min) & (z - RES / 2 <= z_max)
+        xy = np.floor(leaves.centers_m[band, :2] / RES).astype(int)
+        lo = xy.min(axis=0)
+        expected = np.full(tuple((xy.max(axis=0) - lo + 1)[::-1]), -1, dtype=np.int8)
+        expected[xy[:, 1] - lo[1], xy[:, 0] - lo[0]] = 0
+        occupied = xy[leaves.occupied[band]]
+        expected[occupied[:, 1] - lo[1], occupied[:, 0] - lo[0]] = 100
+        grid, origin = fused.projected_grid(z_min_m=z_min, z_max_m=z_max)
+        np.testing.assert_array_equal(grid, expected)
+        np.testing.assert_allclose(origin, lo * RES)
+    grid, _ = fused.projected_grid(z_min_m=50.0, z_max_m=60.0)
+    assert grid.shape == (1, 1) and grid[0, 0] == -1
+    assert FusedOctoMap(RES).projected_grid()[0].shape == (1, 1)
+
+
 def test_reset_empties_the_map(two_robot_clouds):
     depth, _ = two_robot_clouds
     fused = FusedOctoMap(RES)

@@ -346,29 +346,30 @@ class FusedOctoMap:
         """octomap_server's 2D projection: (grid int8 [rows=y, cols=x], origin_xy_m).
 
         100 where a column holds an occupied voxel within [z_min, z_max], 0 where it holds only
-        free ones, -1 unknown.
+        free ones, -1 unknown; the grid spans the columns that hold a known voxel in that band.
+        Read from the dense log-odds grid's columns (milliseconds, not a pass over every known
+        voxel, which took ~0.2 s for the hall under the map lock every publish period).
         """
-        leaves = self.leaves()
-        res = self.resolution_m
-        half = leaves.sizes_m / 2
-        in_band = (leaves.centers_m[:, 2] + half >= z_min_m) & (leaves.centers_m[:, 2] - half <= z_max_m)
-        centers, sizes, occ = leaves.centers_m[in_band], leaves.sizes_m[in_band], leaves.occupied[in_band]
-        if len(centers) == 0:
-            return np.full((1, 1), -1, dtype=np.int8), np.zeros(2)
-        lo = np.rint((centers[:, :2] - sizes[:, None] / 2) / res).astype(np.int64)
-        cells = np.maximum(np.rint(sizes / res).astype(np.int64), 1)
-        hi = lo + cells[:, None]
-        gmin = lo.min(axis=0)
-        shape = (hi.max(axis=0) - gmin)
-        grid = np.full((shape[1], shape[0]), -1, dtype=np.int8)
-        for want_occ, value in ((False, 0), (True, 100)):
-            sel = occ == want_occ
-            for n in np.unique(cells[sel]):
-                s = sel & (cells == n)
-                offs = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), axis=-1).reshape(-1, 2)
-                xy = (lo[s][:, None, :] + offs[None]).reshape(-1, 2) - gmin
-                grid[xy[:, 1], xy[:, 0]] = value
-        return grid, gmin.astype(np.float64) * res
+        grid, res = self._grid, self.resolution_m
+        empty = np.full((1, 1), -1, dtype=np.int8), np.zeros(2)
+        if not grid.dims.all():
+            return empty
+        center_z = (np.arange(grid.dims[2]) + grid.lo[2] + 0.5) * res
+        band = (center_z + res / 2 >= z_min_m) & (center_z - res / 2 <= z_max_m)
+        if not band.any():
+            return empty
+        columns = grid.log_odds.reshape(tuple(grid.dims))[:, :, band]
+        known = ~np.isnan(columns).all(axis=2)
+        with np.errstate(invalid="ignore"):
+            occupied = (columns > 0.0).any(axis=2)
+        xs, ys = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+        if len(xs) == 0:
+            return empty
+        window = (slice(xs[0], xs[-1] + 1), slice(ys[0], ys[-1] + 1))
+        projected = np.full((ys[-1] + 1 - ys[0], xs[-1] + 1 - xs[0]), -1, dtype=np.int8)
+        projected[known[window].T] = 0
+        projected[occupied[window].T] = 100
+        return projected, (np.array([xs[0], ys[0]]) + grid.lo[:2]).astype(np.float64) * res
 
     def memory_bytes(self):
         """What the map holds in memory: the log-odds grid, plus an OcTree and .bt if one was
