@@ -152,3 +152,18 @@ def test_shipped_launch_files_are_the_plan_and_parse_with_roslaunch():
     nodes = set(listed.stdout.split())
     assert {"/fleet_sim", "/twin/map_server", "/scout/cloud_throttle", "/twin/iris/draco_decoder"} <= nodes
     assert len(nodes) == len(plan_nodes(load_fleet(), options=RunOptions(out_dir="/tmp/x")))
+
+
+def test_a_new_mission_starts_without_the_previous_missions_map_and_csvs(tmp_path):
+    from cps_bringup.cli import clear_previous_mission
+
+    for name in ("map.bt", "stats.csv", "allocation.csv", "gui.png", "physical_stats.csv", "notes.txt"):
+        (tmp_path / name).write_text("from an earlier mission")
+    (tmp_path / "logs").mkdir()
+    assert sorted(clear_previous_mission(str(tmp_path), (DIGITAL,))) == ["allocation.csv", "gui.png", "map.bt",
+                                                                          "stats.csv"]
+    # The physical side's file stays for a physical twin started on its own into the same folder,
+    # and nothing the missions do not write is touched.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["logs", "notes.txt", "physical_stats.csv"]
+    assert clear_previous_mission(str(tmp_path), (PHYSICAL, DIGITAL)) == ["physical_stats.csv"]
+

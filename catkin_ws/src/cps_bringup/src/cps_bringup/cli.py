@@ -65,6 +65,28 @@ def _sides(side):
     return (PHYSICAL, DIGITAL) if side == "all" else (side,)
 
 
+# What one mission's side writes into the output folder (the demo's report included). A new mission
+# starts without them: the map server would otherwise resume from an earlier mission's map, and the
+# CSVs (appended to, so that a restarted node keeps its rows) would mix two missions.
+MISSION_OUTPUTS = {
+    PHYSICAL: ("physical_stats.csv",),
+    DIGITAL: ("map.bt", "stats.csv", "allocation.csv", "gui.png", "ground_truth.npz", "scores.json",
+              "topdown.png", "link.png", "report.md"),
+}
+
+
+def clear_previous_mission(out_dir, sides):
+    """Remove what an earlier mission of these sides left in out_dir; returns the names removed."""
+    removed = []
+    for side in sides:
+        for name in MISSION_OUTPUTS[side]:
+            path = os.path.join(out_dir, name)
+            if os.path.isfile(path):
+                os.remove(path)
+                removed.append(name)
+    return removed
+
+
 def _terminate_on_sigterm():
     def handler(signum, frame):
         raise KeyboardInterrupt(f"signal {signum}")
@@ -82,6 +104,10 @@ def run_mission(args, log=print) -> MissionResult:
     out_dir = os.path.abspath(args.out)
     os.makedirs(out_dir, exist_ok=True)
     sides = _sides(args.side)
+    removed = clear_previous_mission(out_dir, sides)
+    if removed:
+        log(f"[bringup] {out_dir}: removed the previous mission's {', '.join(removed)} (a new mission starts "
+            f"with an empty map)")
     options = RunOptions(
         out_dir=out_dir, profile=args.profile, renderer=args.renderer, simulate=not args.no_sim,
         map_file=os.path.join(out_dir, "map.bt"),
