@@ -309,19 +309,25 @@ class FusedOctoMap:
 
     def occupied_index(self):
         """Grid indices of every occupied finest-resolution voxel (pruned leaves expanded)."""
-        return self._grid.index_of_flat(np.flatnonzero(self._grid.log_odds > 0.0))
+        return self._grid.index_of_flat(self._occupied_flat())
+
+    def _occupied_flat(self):
+        return np.flatnonzero(self._grid.log_odds > 0.0)
 
     def occupied_centers(self):
         return index_to_center(self.occupied_index(), self.resolution_m)
 
     def occupied_leaves(self):
-        """(centres, sizes) of the occupied leaves (for markers; see `leaves`)."""
-        leaves = self.leaves()
-        occ = leaves.occupied
-        return leaves.centers_m[occ], leaves.sizes_m[occ]
+        """(centres, sizes) of the occupied leaves (for markers; see `leaves`), read from the
+        occupied voxels alone rather than from every known one."""
+        centers = index_to_center(self.occupied_index(), self.resolution_m)
+        return centers, np.full(len(centers), self.resolution_m)
 
     def contributions(self, occupied_index=None) -> Dict[str, int]:
         """Occupied voxels per robot that last hit them ('' for loaded or unattributed voxels)."""
+        if occupied_index is None:
+            counts = np.bincount(self._grid.owner[self._occupied_flat()], minlength=len(self._robots))
+            return {robot: int(counts[rid]) for rid, robot in enumerate(self._robots) if counts[rid]}
         return {robot: len(c) for robot, c in self.contributed_index(occupied_index).items()}
 
     def contributed_index(self, occupied_index=None) -> Dict[str, np.ndarray]:
