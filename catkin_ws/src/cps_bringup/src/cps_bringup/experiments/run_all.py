@@ -46,7 +46,7 @@ def write_index(out_dir):
     lines = ["# Results: the paper's tables and figures reproduced with this system", "",
              "Written by `make experiments` (`catkin_ws/src/cps_bringup/nodes/experiments`; each experiment alone: "
              "`… experiments table4|fig11|table5|table6|fig13|fig14`). Every file below has the paper's numbers beside "
-             "ours and a sentence on each difference. Timings were taken on a 2-core machine shared with other jobs.", ""]
+             "ours and a sentence on each difference. Timings were taken on one 2-core machine that the whole system shares.", ""]
     rows = []
     t4 = {r["robot"]: r for r in _csv(os.path.join(out_dir, "table4.csv"))}
     if "total (fleet)" in t4:
