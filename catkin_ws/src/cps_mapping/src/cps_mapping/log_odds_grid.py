@@ -207,32 +207,14 @@ def _integrate(points, origin, max_range, resolution, lo, dims, log_odds, stamp,
 # ---- OctoMap's binary stream from the grid --------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True)
-def _finest_codes(log_odds, dims, klo, occ_threshold):
-    """Level 1 of the pyramid: for each parent of finest voxels its 16-bit child code (2 bits per
-    child, OctoMap's child order x + 2y + 4z: 00 unknown, 01 free, 10 occupied)."""
-    plo = klo >> 1
-    phi = (klo + dims - 1) >> 1
-    pd = phi - plo + 1
-    codes = np.zeros(pd[0] * pd[1] * pd[2], dtype=np.uint16)
-    for x in range(dims[0]):
-        kx = klo[0] + x
-        px = (kx >> 1) - plo[0]
-        bx = kx & 1
-        for y in range(dims[1]):
-            ky = klo[1] + y
-            py = (ky >> 1) - plo[1]
-            by = ky & 1
-            base = (x * dims[1] + y) * dims[2]
-            prow = (px * pd[1] + py) * pd[2]
-            for z in range(dims[2]):
-                v = log_odds[base + z]
-                if math.isnan(v):
-                    continue
-                kz = klo[2] + z
-                child = bx + 2 * by + 4 * (kz & 1)
-                state = 2 if v >= occ_threshold else 1
-                codes[prow + (kz >> 1) - plo[2]] |= np.uint16(state << (2 * child))
-    return codes, plo, pd
+def _finest_states(log_odds, occ_threshold):
+    """Each finest voxel's state as a child: 0 unknown, 1 free, 2 occupied (max likelihood)."""
+    states = np.zeros(log_odds.shape[0], dtype=np.uint8)
+    for i in range(log_odds.shape[0]):
+        v = log_odds[i]
+        if not math.isnan(v):
+            states[i] = 2 if v >= occ_threshold else 1
+    return states
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -247,7 +229,19 @@ def _state_of(code):
 
 
 @numba.njit(cache=True, nogil=True)
-def _parent_codes(codes, clo, cd):
+def _level_states(codes):
+    """Each node's state as a child of the level above: `_state_of` its child code."""
+    states = np.empty(codes.shape[0], dtype=np.uint8)
+    for i in range(codes.shape[0]):
+        states[i] = _state_of(codes[i])
+    return states
+
+
+@numba.njit(cache=True, nogil=True)
+def _parent_codes(states, clo, cd):
+    """The level above a box of nodes with these states (lowest key `clo`, dims `cd`): for each
+    parent its 16-bit child code, 2 bits per child in OctoMap's child order x + 2y + 4z
+    (00 unknown, 01 free, 10 occupied, 11 inner node)."""
     plo = clo >> 1
     phi = (clo + cd - 1) >> 1
     pd = phi - plo + 1
@@ -263,7 +257,7 @@ def _parent_codes(codes, clo, cd):
             base = (x * cd[1] + y) * cd[2]
             prow = (px * pd[1] + py) * pd[2]
             for z in range(cd[2]):
-                state = _state_of(codes[base + z])
+                state = states[base + z]
                 if state == 0:
                     continue
                 kz = clo[2] + z
@@ -327,10 +321,10 @@ def binary_tree_body(log_odds, lo, dims, occ_threshold=0.0):
     if not dims.all() or not np.any(~np.isnan(log_odds)):
         return b"", 0
     klo = np.asarray(lo, dtype=np.int64) + _TREE_MAX_VAL
-    codes, clo, cd = _finest_codes(log_odds, dims, klo, np.float32(occ_threshold))
+    codes, clo, cd = _parent_codes(_finest_states(log_odds, np.float32(occ_threshold)), klo, dims)
     levels, los, ds = [codes], [clo], [cd]
     for _ in range(_TREE_DEPTH - 1):
-        codes, clo, cd = _parent_codes(codes, clo, cd)
+        codes, clo, cd = _parent_codes(_level_states(codes), clo, cd)
         levels.append(codes)
         los.append(clo)
         ds.append(cd)
