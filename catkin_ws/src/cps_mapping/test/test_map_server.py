@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cps_mapping import synthetic_scene as sc
-from cps_mapping.octree_map import index_to_center, pack_index, voxel_index
+from cps_mapping.octree_map import pack_index, voxel_index
 
 pytestmark = pytest.mark.ros
 RES = 0.1

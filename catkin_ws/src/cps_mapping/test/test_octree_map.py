@@ -78,7 +78,7 @@ def test_batch_holds_exactly_the_voxels_sequential_insertion_finds(scene):
 
 def test_far_origins_are_not_merged(scene):
     clouds = sc.robot_clouds(scene, "depth", sc.trajectory([-2.0, 0.0, 0.5], [0.0, 0.0, 0.5], 3), RES)
-    result = FusedOctoMap(RES, merge_origin_tolerance_m=0.5).insert_batch(clouds, 6.0, "jackal")
+    result = FusedOctoMap(RES).insert_batch(clouds, 6.0, "jackal")
     assert result.groups == 3
 
 

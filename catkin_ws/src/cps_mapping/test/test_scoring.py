@@ -5,7 +5,6 @@ import pytest
 
 from cps_mapping.octree_map import FusedOctoMap
 from cps_mapping.scoring import load_ground_truth, observable_surface, score_fused_map, score_map
-from cps_mapping.octree_map import voxel_index
 
 RES = 0.1
 

@@ -359,6 +359,15 @@ def morton_code(index):
     return _spread_bits(key[:, 0]) | (_spread_bits(key[:, 1]) << 1) | (_spread_bits(key[:, 2]) << 2)
 
 
+def _origin32(origin_m):
+    return np.ascontiguousarray(origin_m, dtype=np.float32).reshape(3)
+
+
+def _max_range_arg(max_range_m):
+    """The kernels' max range: metres, or -1 for none (None or <= 0, as OctoMap's maxrange)."""
+    return float(max_range_m) if max_range_m is not None and max_range_m > 0 else -1.0
+
+
 class LogOddsGrid:
     """Finest-voxel log-odds (float32, NaN = unknown) and last-hitting robot over a growing box.
 
@@ -416,12 +425,11 @@ class LogOddsGrid:
         return int(np.prod(self.dims)) if grown is None else int(np.prod(grown[1] - grown[0]))
 
     def prepare(self, points_m, origin_m, max_range_m):
-        """(finite points as float32, lo, hi): the cloud as the kernel takes it and the voxel
-        indices its rays can touch (a point beyond max range: up to max range only)."""
+        """(finite points as float32, lo, hi): the cloud as `integrate_cloud` takes it and the
+        voxel indices its rays can touch (a point beyond max range: up to max range only), so
+        that a caller can bound the grid's growth before inserting anything."""
         points = np.ascontiguousarray(np.asarray(points_m, dtype=np.float64).reshape(-1, 3))
-        origin = np.ascontiguousarray(origin_m, dtype=np.float32).reshape(3)
-        max_range = float(max_range_m) if max_range_m is not None and max_range_m > 0 else -1.0
-        return _prepare(points, origin, max_range, 1.0 / self.resolution_m)
+        return _prepare(points, _origin32(origin_m), _max_range_arg(max_range_m), 1.0 / self.resolution_m)
 
     def ensure(self, lo_index, hi_index):
         """Grow the box to hold [lo_index, hi_index]."""
@@ -439,21 +447,18 @@ class LogOddsGrid:
 
     # ---- insertion -----------------------------------------------------------------------
 
-    def integrate_cloud(self, points_m, origin_m, max_range_m, robot_id, exact=True, prepared=None, stop_run=1):
-        """Insert one cloud (N x 3, map frame): exact as OctoMap's insertPointCloud, or with
-        shared-origin casting (`exact=False`, see the module docstring). `prepared`: what
-        `prepare` returned for this cloud, if the caller already has it."""
-        points, lo, hi = prepared if prepared is not None else self.prepare(points_m, origin_m, max_range_m)
+    def integrate_cloud(self, prepared, origin_m, max_range_m, robot_id, exact=True, stop_run=1):
+        """Insert one cloud, as `prepare` returned it (map frame): exact as OctoMap's
+        insertPointCloud, or with shared-origin casting (`exact=False`, see the module docstring)."""
+        points, lo, hi = prepared
         if len(points) == 0:
             return
-        origin = np.ascontiguousarray(origin_m, dtype=np.float32).reshape(3)
-        max_range = float(max_range_m) if max_range_m is not None and max_range_m > 0 else -1.0
         self.ensure(lo, hi)
         self._cloud_id += 1
         if self._cloud_id > 127:  # one byte of stamp per voxel: start over every 127 clouds
             self.stamp[:] = 0
             self._cloud_id = 1
-        self.steps += _integrate(points, origin, max_range, self.resolution_m, self.lo, self.dims, self.log_odds,
+        self.steps += _integrate(points, _origin32(origin_m), _max_range_arg(max_range_m), self.resolution_m, self.lo, self.dims, self.log_odds,
                                  self.stamp, self.owner, np.uint8(2 * self._cloud_id), np.uint8(2 * self._cloud_id + 1),
                                  np.uint8(robot_id), self.hit,
                                  self.miss, self.clamp_min, self.clamp_max, bool(exact), np.int64(stop_run))
@@ -507,6 +512,7 @@ def warm_up():
     the first cloud. The machine code is cached next to this module (numba cache=True), so a
     later start takes about a second."""
     grid = LogOddsGrid(0.1, 0.85, -0.4, -2.0, 3.5)
+    cloud = grid.prepare(np.array([[1.0, 0.0, 0.0], [9.0, 0.0, 0.0]]), np.zeros(3), 5.0)
     for exact in (True, False):
-        grid.integrate_cloud(np.array([[1.0, 0.0, 0.0], [9.0, 0.0, 0.0]]), np.zeros(3), 5.0, 0, exact=exact)
+        grid.integrate_cloud(cloud, np.zeros(3), 5.0, 0, exact=exact)
     grid.binary_tree_file()

@@ -18,7 +18,7 @@ import dataclasses
 import math
 import os
 import tempfile
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 import octomap
@@ -149,10 +149,9 @@ class FusedOctoMap:
     Not thread-safe: the map server serializes access with one lock.
     """
 
-    def __init__(self, resolution_m, sensor_model=SensorModelParams(), merge_origin_tolerance_m=0.5,
-                 max_grid_voxels=200_000_000, exact_free_space=True, shared_ray_stop_m=0.3):
-        """`merge_origin_tolerance_m` is accepted for compatibility and unused: clouds are no
-        longer merged, every cloud is cast from its own origin. `max_grid_voxels` bounds the
+    def __init__(self, resolution_m, sensor_model=SensorModelParams(), max_grid_voxels=200_000_000,
+                 exact_free_space=True, shared_ray_stop_m=0.3):
+        """Every cloud is cast from its own origin. `max_grid_voxels` bounds the
         log-odds grid (6 bytes per voxel; default 1.2 GB): a batch that would grow it beyond is
         refused (ValueError). `exact_free_space`: True casts every ray whole, as OctoMap does
         (the map equals plain sequential insertion); False casts each ray back from its endpoint
@@ -165,7 +164,6 @@ class FusedOctoMap:
             raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
         self.resolution_m = float(resolution_m)
         self.sensor_model = sensor_model
-        self.merge_origin_tolerance_m = float(merge_origin_tolerance_m)
         self.max_grid_voxels = int(max_grid_voxels)
         if not shared_ray_stop_m > 0:
             raise ValueError(f"shared_ray_stop_m must be > 0, got {shared_ray_stop_m}")
@@ -174,7 +172,6 @@ class FusedOctoMap:
         self._stop_run = max(1, math.ceil(self.shared_ray_stop_m / self.resolution_m - 1e-9))
         self._robots: List[str] = [_UNKNOWN_ROBOT]
         self.version = 0
-        self._leaf_cache: Optional[Tuple[int, LeafArrays]] = None
         self._tree_cache = None  # (version, OcTree built from the grid)
         self._binary_cache = None  # (version, .bt bytes, node count)
         self._grid = self._new_grid()
@@ -273,7 +270,7 @@ class FusedOctoMap:
         for origin, cloud in prepared:
             if len(cloud[0]) == 0:
                 continue
-            grid.integrate_cloud(None, origin, max_range_m, robot_id, exact=self.exact_free_space, prepared=cloud,
+            grid.integrate_cloud(cloud, origin, max_range_m, robot_id, exact=self.exact_free_space,
                                  stop_run=self._stop_run)
             cast += 1
         if inserted:
@@ -291,21 +288,17 @@ class FusedOctoMap:
     # ---- views -----------------------------------------------------------------------------
 
     def leaves(self) -> LeafArrays:
-        """Every known finest voxel, cached until the map changes.
+        """Every known finest voxel (free ones too: about a million in the hall; the publisher
+        reads only the occupied ones).
 
         Read from the log-odds grid, not by iterating the tree's leaves in Python (0.25 s for
         200k leaves, under the map lock every publish period). They are the tree's leaves: the
         tree is updated lazily and never pruned, except one just loaded, whose pruned leaves
         appear here expanded.
         """
-        if self._leaf_cache and self._leaf_cache[0] == self.version:
-            return self._leaf_cache[1]
-        grid = self._grid
-        flat = np.flatnonzero(~np.isnan(grid.log_odds))
-        arrays = LeafArrays(index_to_center(grid.index_of_flat(flat), self.resolution_m),
-                            np.full(len(flat), self.resolution_m), grid.log_odds[flat].astype(np.float64))
-        self._leaf_cache = (self.version, arrays)
-        return arrays
+        flat, log_odds = self._grid.known()
+        return LeafArrays(index_to_center(self._grid.index_of_flat(flat), self.resolution_m),
+                          np.full(len(flat), self.resolution_m), log_odds.astype(np.float64))
 
     def occupied_index(self):
         """Grid indices of every occupied finest-resolution voxel (pruned leaves expanded)."""
