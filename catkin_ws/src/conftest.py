@@ -9,7 +9,7 @@ import os
 
 import pytest
 
-from cps_msgs.testing import RosGraph
+from cps_harness.testing import RosGraph
 
 
 @pytest.fixture(scope="session")

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from cps_msgs.processes import processes_named
+from cps_harness.processes import processes_named
 
 DEMO = os.path.join(os.path.dirname(__file__), "..", "nodes", "demo")
 # Two robots of the light profile over their whole routes map well over half of what the site's

@@ -11,8 +11,8 @@ import pytest
 
 from cps_bringup.plan import DIGITAL, PHYSICAL, NodeSpec, RunOptions, plan_nodes
 from cps_bringup.supervisor import BringupError, Supervisor
-from cps_msgs.fleet import load_fleet
-from cps_msgs.processes import RosGraph, processes_named
+from cps_fleet.fleet import load_fleet
+from cps_harness.processes import RosGraph, processes_named
 
 BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
 

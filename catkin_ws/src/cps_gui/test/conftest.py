@@ -28,7 +28,7 @@ def qapp():
 @pytest.fixture(scope="session")
 def test_fleet_file(tmp_path_factory):
     """cps_bringup's fleet.yaml with every robot renamed guitest_<name> and absolute paths."""
-    from cps_msgs.fleet import default_fleet_path
+    from cps_fleet.fleet import default_fleet_path
 
     source = default_fleet_path()
     base = os.path.dirname(source)

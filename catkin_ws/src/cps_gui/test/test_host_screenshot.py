@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import TEST_PREFIX
 
-from cps_msgs.testing import find_node
+from cps_harness.testing import find_node
 
 MARKER_RGB = (0, 255, 0)
 IMAGE_RGB = (255, 0, 255)

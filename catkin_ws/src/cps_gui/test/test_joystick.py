@@ -6,7 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cps_gui import joystick
-from cps_msgs.fleet import ROBOT_TYPES
+from cps_fleet.fleet import ROBOT_TYPES
 
 
 def test_every_fleet_robot_type_has_speed_limits():

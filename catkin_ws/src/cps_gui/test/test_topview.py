@@ -79,9 +79,9 @@ def test_fence_polygons_read_the_shapes_a_site_may_use():
 
 
 def test_the_fenced_areas_of_the_shipped_hall_are_drawn():
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
 
-    pytest.importorskip("cps_sim.site")
+    pytest.importorskip("cps_fleet.site")
     fences, problem = topview.load_fences(load_fleet().site_path)
     assert fences and problem == ""
     for _, polygon in fences:
@@ -94,7 +94,7 @@ def test_load_fences_explains_a_missing_site_file(tmp_path):
 
 
 def test_shipped_rviz_config_is_the_generated_one_for_the_default_fleet():
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
 
     path = os.path.join(os.path.dirname(__file__), "..", "config", "fleet.rviz")
     with open(path) as stream:

@@ -25,7 +25,7 @@ def _mission(site):
 
 @pytest.fixture(scope="module")
 def site():
-    from cps_sim.site import load_site
+    from cps_fleet.site import load_site
 
     return load_site()
 

@@ -11,7 +11,7 @@ RES = 0.1
 
 @pytest.fixture(scope="module")
 def site():
-    from cps_sim.site import load_site
+    from cps_fleet.site import load_site
 
     return load_site()
 

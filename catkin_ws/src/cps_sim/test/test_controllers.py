@@ -3,11 +3,11 @@ import math
 
 import pytest
 
-from cps_msgs.config import ConfigError
-from cps_msgs.fleet import load_fleet, load_route
+from cps_fleet.config import ConfigError
+from cps_fleet.fleet import load_fleet, load_route
 from cps_sim.controllers import RouteFollower, VelocityMux, validate_route
 from cps_sim.robots import ROBOT_SPECS, Robot, Twist, spec_for
-from cps_sim.site import load_site
+from cps_fleet.site import load_site
 
 
 def _fly(robot_cfg, route, seconds=400.0, dt=0.05):

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from cps_msgs.fleet import load_fleet
+from cps_fleet.fleet import load_fleet
 from cps_sim.messages import cloud_to_array
 
 pytestmark = pytest.mark.ros

@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from cps_msgs.fleet import load_fleet
+from cps_fleet.fleet import load_fleet
 from cps_sim.simulation import FleetSimulation, points_in_map
-from cps_sim.site import Equipment, load_site
+from cps_fleet.site import Equipment, load_site
 
 BOX_CENTER_X = 3.0
 BOX_HALF = 0.5

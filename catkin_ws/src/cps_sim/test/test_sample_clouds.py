@@ -1,7 +1,7 @@
 """The sample clouds other packages benchmark with have the layouts the contract fixes."""
 import numpy as np
 
-from cps_msgs.fleet import load_fleet
+from cps_fleet.fleet import load_fleet
 from cps_sim.messages import cloud_to_array
 from cps_sim.sample_clouds import render_mission_clouds, render_sample_frames
 

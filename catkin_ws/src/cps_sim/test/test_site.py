@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from cps_msgs.config import ConfigError
+from cps_fleet.config import ConfigError
 from cps_sim.ground_truth import occupied_voxels
-from cps_sim.site import check_waypoint, load_site
+from cps_fleet.site import check_waypoint, load_site
 
 
 def test_hall_has_three_fenced_areas_and_named_equipment():

@@ -6,7 +6,7 @@ import threading
 import numpy as np
 import pytest
 
-from cps_msgs.testing import wait_for
+from cps_harness.testing import wait_for
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
 from cps_transport.synthetic_clouds import depth_camera_cloud
 from cps_transport.voxel import voxel_downsample

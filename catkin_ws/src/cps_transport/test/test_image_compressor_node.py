@@ -6,7 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from cps_msgs.testing import wait_for
+from cps_harness.testing import wait_for
 from cps_transport.image_compression import camera_test_image, decode_jpeg, psnr_db
 
 pytestmark = pytest.mark.ros

@@ -75,7 +75,7 @@ def test_voxel_nodelet_args_match_numpy_voxel_downsample(ros, rospy_node):
     as cps_transport.voxel.voxel_downsample on an organized depth cloud with NaNs, 15 m deep."""
     import dataclasses
 
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
     from cps_transport import voxel_nodelet_args
     from cps_transport.pointcloud import cloud_to_array, xyz_of
     from cps_transport.synthetic_clouds import depth_camera_cloud

@@ -109,8 +109,8 @@ def test_default_topics_come_from_the_fleet():
     import importlib.machinery
     import importlib.util
 
-    from cps_msgs.fleet import load_fleet
-    from cps_msgs.testing import find_node
+    from cps_fleet.fleet import load_fleet
+    from cps_harness.testing import find_node
 
     loader = importlib.machinery.SourceFileLoader("topic_stats_node", find_node("cps_transport", "topic_stats"))
     module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))

@@ -6,7 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from cps_msgs.testing import wait_for
+from cps_harness.testing import wait_for
 from cps_transport.draco import DracoEncoder
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
 from cps_transport.synthetic_clouds import depth_camera_cloud

@@ -17,9 +17,9 @@ from typing import Dict, List, Optional
 from cps_bringup.mission import MissionMonitor, wait_for_mission
 from cps_bringup.plan import DIGITAL, PHYSICAL, RunOptions, plan_nodes
 from cps_bringup.supervisor import BringupError, Event, Supervisor, ensure_port_free, node_log_dir
-from cps_msgs.config import ConfigError
-from cps_msgs.fleet import load_fleet, robot_names_arg
-from cps_msgs.processes import RosGraph
+from cps_fleet.config import ConfigError
+from cps_fleet.fleet import load_fleet, robot_names_arg
+from cps_harness.processes import RosGraph
 
 
 @dataclasses.dataclass

@@ -67,7 +67,7 @@ def launch_xml(specs: Iterable[NodeSpec], fleet_path: str, title: str) -> str:
 def shipped_launch_files(out_dir="$(optenv CPS_OUT /tmp/cps_fleet)"):
     """{file name: text} of the launch files for the default fleet (outputs under `out_dir`)."""
     from cps_bringup.plan import DIGITAL, PHYSICAL, RunOptions, plan_nodes
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
 
     fleet = load_fleet()
     options = RunOptions(out_dir=out_dir)

@@ -8,7 +8,7 @@ import os
 import sys
 from typing import Callable, Dict, List, Optional, Tuple
 
-from cps_msgs.fleet import FleetConfig
+from cps_fleet.fleet import FleetConfig
 
 PHYSICAL, DIGITAL = "physical", "digital"
 SIDES = (PHYSICAL, DIGITAL)

@@ -62,7 +62,7 @@ def score_saved_map(map_file, fleet, ground_truth_path):
     from cps_mapping.octree_map import FusedOctoMap
     from cps_mapping.scoring import score_fused_map
     from cps_sim.ground_truth import save_ground_truth
-    from cps_sim.site import load_site
+    from cps_fleet.site import load_site
 
     resolution = fleet.mapping.resolution_m
     save_ground_truth(ground_truth_path, load_site(fleet.site_path), resolution)
@@ -120,7 +120,7 @@ def _table(headers, rows):
 def write_mission_report(result, mission_args, wall_time_s):
     """Score the map, plot the link, write report.md (and scores.json) into result.out_dir."""
     from cps_bringup.experiments.topdown_map import plot_topdown
-    from cps_msgs.fleet import load_fleet, robot_names_arg
+    from cps_fleet.fleet import load_fleet, robot_names_arg
 
     out = result.out_dir
     fleet = load_fleet(mission_args.fleet, profile=mission_args.profile)

@@ -10,7 +10,7 @@ import time
 from typing import Dict, List, Optional
 
 from cps_bringup.plan import NodeSpec
-from cps_msgs.processes import RosGraph
+from cps_harness.processes import RosGraph
 
 
 class BringupError(RuntimeError):

@@ -14,7 +14,7 @@ from typing import List
 import numpy as np
 
 from cps_bw_manager.netns_link import PHYS_IP, TWIN_IP
-from cps_msgs.processes import RosGraph, free_port
+from cps_harness.processes import RosGraph, free_port
 
 
 class LinkRosGraph:

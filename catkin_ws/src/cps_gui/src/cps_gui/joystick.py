@@ -30,7 +30,7 @@ class SpeedLimits:
         return self.climb_mps > 0.0
 
 
-# Keyed by the robot types of cps_msgs.fleet.ROBOT_TYPES.
+# Keyed by the robot types of cps_fleet.fleet.ROBOT_TYPES.
 SPEED_LIMITS = {
     "wheeled_lidar": SpeedLimits(forward_mps=1.0, strafe_mps=0.0, climb_mps=0.0, turn_radps=1.0),
     "wheeled_depth": SpeedLimits(forward_mps=1.0, strafe_mps=0.0, climb_mps=0.0, turn_radps=1.5),

@@ -35,7 +35,7 @@ class FleetOperatorPlugin(_PluginBase):
         from cps_gui.widgets.teleop import TeleopPane
         from cps_gui.widgets.topview import TopViewPane
         from cps_gui.widgets.video import VideoPane
-        from cps_msgs.fleet import load_fleet
+        from cps_fleet.fleet import load_fleet
 
         if with_rviz is None:
             with_rviz = os.environ.get("CPS_GUI_NO_RVIZ", "") not in ("1", "true")

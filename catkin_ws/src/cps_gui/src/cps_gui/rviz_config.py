@@ -68,7 +68,7 @@ def dump(config):
 
 
 def main():
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
 
     sys.stdout.write(dump(fleet_rviz_config(load_fleet(sys.argv[1] if len(sys.argv) > 1 else None))))
 

@@ -139,7 +139,7 @@ class WorldToScreen:
 
 
 def fence_polygons(site):
-    """[(name, [(x, y), ...])] of the fenced areas of a site loaded by cps_sim.site.load_site.
+    """[(name, [(x, y), ...])] of the fenced areas of a site loaded by cps_fleet.site.load_site.
 
     cps_sim's FencedArea is an axis-aligned box (`x_min_m`.. fields); other shapes are read too:
     a polygon (`polygon`/`corners`/`points`), `min`/`max` pairs, `x_min`.., or a centre and size. Areas it
@@ -172,7 +172,7 @@ def _polygon_of(area):
         lo, hi = _field(area, "min", None), _field(area, "max", None)
         if lo is not None and hi is not None:
             return _box(_xy(lo)[0], _xy(lo)[1], _xy(hi)[0], _xy(hi)[1])
-        for suffix in ("_m", ""):  # cps_sim.site.FencedArea: x_min_m, x_max_m, y_min_m, y_max_m
+        for suffix in ("_m", ""):  # cps_fleet.site.FencedArea: x_min_m, x_max_m, y_min_m, y_max_m
             if _field(area, "x_min" + suffix, None) is not None:
                 return _box(_field(area, "x_min" + suffix, 0), _field(area, "y_min" + suffix, 0),
                             _field(area, "x_max" + suffix, 0), _field(area, "y_max" + suffix, 0))
@@ -200,12 +200,12 @@ def _box(x0, y0, x1, y1):
 
 
 def load_fences(site_path):
-    """Fenced areas of the site file through cps_sim.site.load_site, or ([], reason) when cps_sim
+    """Fenced areas of the site file through cps_fleet.site.load_site, or ([], reason) when cps_sim
     is not there yet or the file cannot be read: the top view then draws no fences."""
     try:
-        from cps_sim.site import load_site
+        from cps_fleet.site import load_site
     except ImportError as exc:
-        return [], f"cps_sim.site is not available ({exc}); no fenced areas drawn"
+        return [], f"cps_fleet.site is not available ({exc}); no fenced areas drawn"
     try:
         site = load_site(site_path)
     except Exception as exc:  # a ConfigError or whatever the loader raises

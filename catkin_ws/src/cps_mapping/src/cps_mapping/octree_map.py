@@ -178,7 +178,7 @@ class FusedOctoMap:
 
     @classmethod
     def from_mapping_config(cls, mapping, **kwargs):
-        """Build from cps_msgs.fleet.MappingConfig (fleet.yaml `mapping:`)."""
+        """Build from cps_fleet.fleet.MappingConfig (fleet.yaml `mapping:`)."""
         m = mapping.sensor_model
         return cls(mapping.resolution_m, SensorModelParams(m.hit, m.miss, m.min, m.max), **kwargs)
 

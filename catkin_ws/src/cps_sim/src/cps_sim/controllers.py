@@ -7,9 +7,9 @@ commands and clamps every output to the robot type's limits.
 import math
 from typing import Optional
 
-from cps_msgs.config import ConfigError
+from cps_fleet.config import ConfigError
 from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, spec_for, validate_twist
-from cps_sim.site import check_waypoint
+from cps_fleet.site import check_waypoint
 
 MISSION_STATES = ("idle", "transit", "inspecting", "done")
 CONTROL_MODES = ("auto", "teleop")

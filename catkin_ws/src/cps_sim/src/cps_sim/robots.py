@@ -3,7 +3,7 @@
 Pure numpy. Robots move kinematically (their pose is integrated from the executed velocity,
 with the type's velocity and acceleration limits); odometry is that pose relative to the known
 initial pose. Everything specific to a robot type lives in ROBOT_SPECS, keyed by the type
-names of cps_msgs.fleet.ROBOT_TYPES.
+names of cps_fleet.fleet.ROBOT_TYPES.
 """
 import dataclasses
 import math
@@ -11,7 +11,7 @@ from typing import Tuple
 
 import numpy as np
 
-from cps_msgs.fleet import ROBOT_TYPES
+from cps_fleet.fleet import ROBOT_TYPES
 
 
 @dataclasses.dataclass(frozen=True)

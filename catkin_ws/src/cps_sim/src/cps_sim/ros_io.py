@@ -17,15 +17,15 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import BatteryState, CameraInfo, Image, JointState, PointCloud2
 from std_msgs.msg import Bool, String
 
-from cps_msgs.config import ConfigError, load_yaml_document
-from cps_msgs.fleet import load_fleet, robot_names_arg
+from cps_fleet.config import ConfigError, load_yaml_document
+from cps_fleet.fleet import load_fleet, robot_names_arg
 from cps_sim import messages
 from cps_sim.controllers import RouteFollower, VelocityMux, validate_route
 from cps_sim.robots import Twist, pose_matrix, validate_twist
 from cps_sim.scheduling import RateMeter, SensorScheduler
 from cps_sim.sensor_workers import SensorWorkerPool
 from cps_sim.simulation import FleetSimulation, sensor_points
-from cps_sim.site import check_waypoint, load_site
+from cps_fleet.site import check_waypoint, load_site
 from cps_sim.world import RENDERERS
 
 CMD_TIMEOUT_S = 0.5

@@ -9,7 +9,7 @@ import numpy as np
 
 from cps_sim.robots import Robot
 from cps_sim.sensors import CameraModel, DepthCamera, Lidar
-from cps_sim.site import load_site
+from cps_fleet.site import load_site
 from cps_sim.world import SimWorld, resolve_renderer
 
 
@@ -18,7 +18,7 @@ class SimulatedRobot:
     robot: Robot
     sensor: object          # DepthCamera or Lidar; CameraModel or None without a world
     rate_hz: float
-    config: object          # cps_msgs.fleet.RobotConfig
+    config: object          # cps_fleet.fleet.RobotConfig
 
     @property
     def name(self):
@@ -111,7 +111,7 @@ def points_in_map(frame) -> np.ndarray:
 
 def build_fleet_simulation(fleet_file=None, profile=None, robots=None, renderer="egl", site=None):
     """Load fleet.yaml (optionally a profile and a robot subset) and build the simulation."""
-    from cps_msgs.fleet import load_fleet, robot_names_arg
+    from cps_fleet.fleet import load_fleet, robot_names_arg
 
     fleet = load_fleet(fleet_file, profile)
     fleet = robot_names_arg(fleet, robots)

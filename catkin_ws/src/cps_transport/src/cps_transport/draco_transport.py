@@ -2,7 +2,7 @@
 a publisher created on a base topic advertises `<base>/draco` and encodes in `publish(cloud)`;
 a subscriber on a base topic listens on `<base>/draco` and hands the user's callback a decoded
 sensor_msgs/PointCloud2. Bad clouds and damaged payloads are counted, warned about (throttled)
-and reported on /diagnostics (see `ros_glue.DropReporter`); they never raise into rospy."""
+and reported on /diagnostics (see `cps_ros.diagnostics.DropReporter`); they never raise into rospy."""
 import rospy
 from rosgraph.names import ns_join
 from sensor_msgs.msg import PointCloud2
@@ -10,7 +10,7 @@ from sensor_msgs.msg import PointCloud2
 from cps_msgs.msg import CompressedPointCloud2
 from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError
 from cps_transport.pointcloud import InvalidCloud
-from cps_transport.ros_glue import DropReporter
+from cps_ros.diagnostics import DropReporter
 
 TRANSPORT_SUFFIX = "draco"
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from cps_bringup.experiments import paper
 from cps_bringup.experiments.markdown import fmt, markdown_table, write_csv, write_markdown
-from cps_msgs.fleet import load_fleet
+from cps_fleet.fleet import load_fleet
 
 LEAF_SIZES_M = (0.01, 0.02, 0.05, 0.10, 0.20, 0.50)
 PAPER_LEAF_M = 0.10

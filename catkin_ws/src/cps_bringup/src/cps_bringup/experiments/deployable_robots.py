@@ -53,7 +53,7 @@ def replay_quality(fleet, robot, rates_hz, duration_s=None, log=print):
     from cps_mapping.scoring import score_fused_map
     from cps_sim.ground_truth import occupied_voxels
     from cps_sim.sample_clouds import render_mission_clouds
-    from cps_sim.site import load_site
+    from cps_fleet.site import load_site
     from cps_transport.draco import DracoDecoder, DracoEncoder
 
     route_s, length_m = route_duration_s(fleet, robot)

@@ -201,13 +201,13 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
 
 
 def _budget():
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
 
     return load_fleet().link.budget_mbytes_per_s
 
 
 def _profile():
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
 
     return load_fleet().profile.name
 
@@ -215,7 +215,7 @@ def _profile():
 def write_fig14(summary, png_path):
     from cps_bringup.experiments.topdown_map import plot_topdown
     from cps_mapping.octree_map import FusedOctoMap
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
 
     fleet = load_fleet()
     fused = FusedOctoMap.from_mapping_config(fleet.mapping)

@@ -36,7 +36,7 @@ def plot_topdown(occupied_centers_m, trajectories, fleet, png_path, title=None):
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 
-    from cps_sim.site import load_site
+    from cps_fleet.site import load_site
 
     site = load_site(fleet.site_path)
     hall = site.hall

@@ -1,7 +1,7 @@
 """YAML configuration files with errors that name the file, the line and what is wrong.
 
 `load_yaml_document` parses a file into plain dicts/lists and remembers where every value
-came from, so that the validators in `cps_msgs.fleet` (and any package's own config reader)
+came from, so that the validators in `cps_fleet.fleet` (and any package's own config reader)
 can say ``fleet.yaml:12: robots[1].type: unknown robot type 'tank' (known: ...)``.
 """
 import math

@@ -6,7 +6,7 @@
 
 Every process is started in its own session with a parent-death signal, so nothing survives its
 owner: not on failure, not on Ctrl-C, not when the owner itself is killed. The test fixtures
-(`cps_msgs.testing`) and the bringup supervisor both build on it.
+(`cps_harness.testing`) and the bringup supervisor both build on it.
 """
 import contextlib
 import ctypes

@@ -1,4 +1,4 @@
-"""The industrial hall (config/hall.yaml) as plain dataclasses and geometric primitives.
+"""The industrial hall (a site file such as cps_sim/config/hall.yaml) as plain dataclasses and primitives.
 
 Pure Python + numpy (no pybullet, no rospy), so the GUI, the mapping scorer and the
 change-detection tests can read the site too. `Site.primitives()` expands the hall into boxes
@@ -12,7 +12,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from cps_msgs.config import Reader, load_yaml_document
+from cps_fleet.config import Reader, load_yaml_document
 
 EQUIPMENT_TYPES = ("tank", "vertical_cylinder", "drum", "crate", "shelving", "pipe_run")
 _SIZE_KEYS = {
@@ -26,7 +26,10 @@ _SIZE_KEYS = {
 
 
 def default_site_path():
-    return os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "hall.yaml"))
+    """The site the default fleet file names (see cps_fleet.fleet.default_fleet_path)."""
+    from cps_fleet.fleet import load_fleet
+
+    return load_fleet().site_path
 
 
 @dataclasses.dataclass(frozen=True)

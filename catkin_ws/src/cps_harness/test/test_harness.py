@@ -5,7 +5,7 @@ import textwrap
 
 import pytest
 
-from cps_msgs.testing import RosGraph, processes_named
+from cps_harness.testing import RosGraph, processes_named
 
 TALKER = textwrap.dedent("""
     import rospy

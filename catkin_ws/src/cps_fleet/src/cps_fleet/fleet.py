@@ -1,7 +1,7 @@
-"""The fleet configuration (cps_bringup/config/fleet.yaml) and route files, validated.
+"""The fleet configuration (fleet.yaml) and route files, validated.
 
 Every node that needs a fleet-wide number reads it through `load_fleet`, so the numbers live in
-one file. Errors name the file, the line and what is wrong (`cps_msgs.config.ConfigError`).
+one file. Errors name the file, the line and what is wrong (`cps_fleet.config.ConfigError`).
 """
 import dataclasses
 import math
@@ -9,30 +9,30 @@ import os
 import re
 from typing import Dict, List, Optional, Tuple
 
-from cps_msgs.config import ConfigError, Reader, load_yaml_document
+from cps_fleet.config import ConfigError, Reader, load_yaml_document
 
 ROBOT_TYPES = ("wheeled_lidar", "wheeled_depth", "legged_depth", "aerial_depth")
 PROFILES = ("paper", "light")
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 
 
+# The package whose config/fleet.yaml is the default fleet (found through rospkg, devel or install space).
+DEFAULT_FLEET_PACKAGE = "cps_bringup"
+
+
 def default_fleet_path():
-    """fleet.yaml of the cps_bringup package next to this one (source or devel space)."""
+    """$CPS_FLEET_FILE, else config/fleet.yaml of DEFAULT_FLEET_PACKAGE as rospkg finds it."""
     env = os.environ.get("CPS_FLEET_FILE")
     if env:
         return env
-    here = os.path.dirname(os.path.abspath(__file__))
-    for candidate in (
-        os.path.join(here, "..", "..", "..", "cps_bringup", "config", "fleet.yaml"),
-    ):
-        if os.path.exists(candidate):
-            return os.path.normpath(candidate)
     try:
         import rospkg
 
-        return os.path.join(rospkg.RosPack().get_path("cps_bringup"), "config", "fleet.yaml")
+        package_dir = rospkg.RosPack().get_path(DEFAULT_FLEET_PACKAGE)
     except Exception as exc:  # rospkg raises its own ResourceNotFound
-        raise ConfigError("fleet.yaml", None, f"cannot find cps_bringup/config/fleet.yaml: {exc}") from exc
+        raise ConfigError("fleet.yaml", None, f"no fleet file given and {DEFAULT_FLEET_PACKAGE} not found by rospkg "
+                          f"({exc}); pass the fleet file or set CPS_FLEET_FILE") from exc
+    return os.path.join(package_dir, "config", "fleet.yaml")
 
 
 @dataclasses.dataclass(frozen=True)

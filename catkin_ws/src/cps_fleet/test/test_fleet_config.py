@@ -4,8 +4,8 @@ import shutil
 
 import pytest
 
-from cps_msgs.config import ConfigError
-from cps_msgs.fleet import ROBOT_TYPES, default_fleet_path, load_fleet, load_route, robot_names_arg
+from cps_fleet.config import ConfigError
+from cps_fleet.fleet import ROBOT_TYPES, default_fleet_path, load_fleet, load_route, robot_names_arg
 
 
 def test_shipped_fleet_loads_with_four_robots_and_both_profiles():

@@ -1,0 +1,83 @@
+"""The toolkit the packages' ROS tests share: waiting for a condition, and recording a topic.
+
+The pytest fixtures in catkin_ws/src/conftest.py (`ros_master`, `ros`, `rospy_node`) start the
+private master; this module holds what tests do on it, so that no test file keeps its own copy.
+Wait for the event a test expects (a message, a counter moving) rather than sleeping and then
+asserting that nothing changed.
+"""
+import threading
+import time
+
+from cps_harness.processes import RosGraph, find_node, free_port, processes_named
+
+__all__ = ["RosGraph", "TopicRecorder", "find_node", "free_port", "processes_named", "wait_for"]
+
+
+def wait_for(predicate, timeout_s=10.0, poll_s=0.05):
+    """The first truthy value of `predicate()` within `timeout_s`, else None (assert on it)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = predicate()
+        if value or time.monotonic() >= deadline:
+            return value or None
+        time.sleep(poll_s)
+
+
+class TopicRecorder:
+    """Every message of a topic with its monotonic arrival time, the newest one, and waits on them.
+
+    `key(msg)` (optional) also keeps the newest message per key, e.g. per robot of an array topic.
+    """
+
+    def __init__(self, topic, msg_type, key=None, queue_size=100, buff_size=2 ** 26):
+        import rospy
+
+        self.key = key
+        self.messages = []  # (arrival monotonic s, msg)
+        self.by_key = {}
+        self._cond = threading.Condition()
+        self.sub = rospy.Subscriber(topic, msg_type, self._on, queue_size=queue_size, buff_size=buff_size)
+
+    def _on(self, msg):
+        with self._cond:
+            self.messages.append((time.monotonic(), msg))
+            if self.key is not None:
+                self.by_key[self.key(msg)] = msg
+            self._cond.notify_all()
+
+    @property
+    def latest(self):
+        with self._cond:
+            return self.messages[-1][1] if self.messages else None
+
+    @property
+    def count(self):
+        with self._cond:
+            return len(self.messages)
+
+    def wait(self, predicate=lambda msg: True, timeout_s=20.0, what=None):
+        """The newest message once `predicate(msg)` holds for it; AssertionError after `timeout_s`."""
+        with self._cond:
+            ok = self._cond.wait_for(lambda: bool(self.messages) and predicate(self.messages[-1][1]), timeout_s)
+            if not ok:
+                last = self.messages[-1][1] if self.messages else None
+                raise AssertionError(f"timed out after {timeout_s} s waiting for {what or 'a message'} on "
+                                     f"{self.sub.name}; last: {last}")
+            return self.messages[-1][1]
+
+    def wait_count(self, count, timeout_s=20.0):
+        """All messages once at least `count` have arrived; AssertionError after `timeout_s`."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: len(self.messages) >= count, timeout_s):
+                raise AssertionError(f"{len(self.messages)} of {count} messages on {self.sub.name} "
+                                     f"within {timeout_s} s")
+            return [msg for _, msg in self.messages]
+
+    def take(self):
+        """The (arrival, msg) pairs recorded since the last take, and forget them."""
+        with self._cond:
+            out, self.messages = self.messages, []
+        return out
+
+    def close(self):
+        self.sub.unregister()
