@@ -136,7 +136,7 @@ def bench_priority_to_rate(changes):
     """On a private loopback master: manager + two rate limiters fed from this process."""
     import rospy
 
-    from cps_msgs.testing import RosGraph
+    from cps_harness.testing import RosGraph
 
     robots = ("scout", "jackal")
     with RosGraph() as graph:
@@ -162,7 +162,7 @@ def bench_priority_to_rate_on_link(changes):
 
     from cps_bw_manager.link_run import LinkRosGraph
     from cps_bw_manager.netns_link import LinkError, ShapedLink, check_capability
-    from cps_msgs.processes import find_node
+    from cps_harness.processes import find_node
 
     try:
         check_capability()

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from cps_msgs.fleet import load_fleet
+from cps_fleet.fleet import load_fleet
 from cps_transport.image_compression import camera_test_image, compress_image, decode_jpeg, psnr_db
 
 QUALITIES = (50, 75, 90)

@@ -37,7 +37,7 @@ from cps_mapping.log_odds_grid import warm_up
 from cps_mapping.octree_map import (FusedOctoMap, SensorModelParams, _finest_voxels, index_to_center, message_fields,
                                     pack_index)
 from cps_mapping.scoring import score_map
-from cps_msgs.fleet import load_fleet
+from cps_fleet.fleet import load_fleet
 from cps_transport.voxel import voxel_downsample
 
 
@@ -312,7 +312,7 @@ def main():
             with open(args.cache, "wb") as f:
                 pickle.dump(stream, f)
     stream = [c for c in stream if c[0] < args.seconds]
-    from cps_sim.site import load_site
+    from cps_fleet.site import load_site
 
     site = load_site(fleet.site_path)
     per_robot = {}

@@ -36,7 +36,7 @@ def _median_ms(fn, repeats):
 
 
 def bench_sensors(frames):
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
     from cps_sim.sample_clouds import SAMPLE_POSES
     from cps_sim.sensors import DepthCamera, Lidar
     from cps_sim.simulation import FleetSimulation
@@ -79,7 +79,7 @@ def bench_fleet(profile, seconds, workers, renderer):
     import rospy
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from cps_msgs.fleet import load_fleet
+    from cps_fleet.fleet import load_fleet
 
     fleet = load_fleet(profile=profile)
     counts = {}
@@ -166,7 +166,7 @@ def main(argv=None):
     if args.skip_fleet:
         return 0
     global _GRAPH
-    from cps_msgs.testing import RosGraph
+    from cps_harness.testing import RosGraph
 
     _GRAPH = RosGraph()
     _GRAPH.start()

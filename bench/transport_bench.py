@@ -21,7 +21,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from cps_bringup.experiments import paper  # noqa: E402
-from cps_msgs.fleet import load_fleet  # noqa: E402
+from cps_fleet.fleet import load_fleet  # noqa: E402
 from cps_transport.draco import DracoDecoder, DracoEncoder  # noqa: E402
 from cps_transport.pointcloud import cloud_to_array, xyz_of  # noqa: E402
 from cps_transport.stream_sizes import filter_cloud  # noqa: E402
@@ -84,7 +84,7 @@ def nodelet_round_trip(clouds, leaf, repeats):
     import rospy
     from sensor_msgs.msg import PointCloud2
 
-    from cps_msgs.testing import RosGraph
+    from cps_harness.testing import RosGraph
 
     results = {}
     with RosGraph() as graph:
