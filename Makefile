@@ -4,13 +4,17 @@ SHELL := /bin/bash
 ENV := source ci/env.sh &&
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo experiments bench clean
+.PHONY: setup test test-unit demo experiments bench clean
 
 setup:
 	@bash ci/setup.sh
 
 test: setup
 	@$(ENV) bash ci/run_tests.sh $(PYTEST_ARGS)
+
+# The tests that need no ROS master (under a minute).
+test-unit: setup
+	@$(ENV) bash ci/run_tests.sh -m unit $(PYTEST_ARGS)
 
 demo: setup
 	@$(ENV) python catkin_ws/src/cps_bringup/nodes/demo $(DEMO_ARGS)

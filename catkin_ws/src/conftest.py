@@ -4,12 +4,41 @@
   process); the environment points at it.
 - `ros`: a RosGraph on that master that kills the processes a test started, even on failure.
 - `rospy_node`: this test process as a rospy node on that master.
+
+Every test is marked `ros` (it needs a master: it uses one of these fixtures, or says so with
+`pytest.mark.ros`) or `unit` (everything else), so `pytest -m unit` runs without ROS and the
+summary counts both kinds.
 """
+import collections
 import os
 
 import pytest
 
-from cps_harness.testing import RosGraph
+ROS_FIXTURES = frozenset({"ros_master", "ros", "rospy_node"})
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if ROS_FIXTURES.intersection(item.fixturenames):
+            item.add_marker(pytest.mark.ros)
+        if item.get_closest_marker("ros") is None:
+            item.add_marker(pytest.mark.unit)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """One line per kind, e.g. `unit: 250 passed, 0 failed, 1 skipped`."""
+    counts = {"unit": collections.Counter(), "ros": collections.Counter()}
+    for outcome in ("passed", "failed", "skipped", "error"):
+        for report in terminalreporter.stats.get(outcome, []):
+            if not hasattr(report, "keywords") or (outcome == "passed" and report.when != "call"):
+                continue
+            counts["ros" if "ros" in report.keywords else "unit"][outcome] += 1
+    if not any(counts.values()):
+        return
+    terminalreporter.section("tests by kind")
+    for kind, c in counts.items():
+        terminalreporter.write_line(f"{kind}: {c['passed']} passed, {c['failed'] + c['error']} failed, "
+                                    f"{c['skipped']} skipped")
 
 
 @pytest.fixture(scope="session")

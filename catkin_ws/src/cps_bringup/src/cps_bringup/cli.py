@@ -18,7 +18,7 @@ from cps_bringup.mission import MissionMonitor, wait_for_mission
 from cps_bringup.plan import DIGITAL, PHYSICAL, RunOptions, plan_nodes
 from cps_bringup.supervisor import BringupError, Event, Supervisor, ensure_port_free, node_log_dir
 from cps_fleet.config import ConfigError
-from cps_fleet.fleet import load_fleet, robot_names_arg
+from cps_fleet.fleet import PROFILES, load_fleet, robot_names_arg
 from cps_harness.processes import RosGraph
 
 
@@ -38,7 +38,7 @@ def build_parser():
     parser = argparse.ArgumentParser(prog="cps_bringup", description=__doc__.split("\n\n")[0])
     parser.add_argument("side", choices=("physical", "digital", "all"))
     parser.add_argument("--fleet", default=None, help="fleet.yaml (default: cps_bringup/config/fleet.yaml)")
-    parser.add_argument("--profile", choices=("light", "paper"), default=None,
+    parser.add_argument("--profile", choices=PROFILES, default=None,
                         help="sensor profile (default: fleet.yaml's)")
     parser.add_argument("--robots", default=None, help="comma-separated subset of the fleet, e.g. scout,jackal")
     parser.add_argument("--duration", type=float, default=None, metavar="S",

@@ -1,6 +1,6 @@
 """`make demo`: the whole mission headless, then everything a user needs to judge it in one folder.
 
-Four robots follow their routes (light profile) with voxel grid + Draco + bandwidth manager, the
+The fleet follows its routes (fleet.yaml's sensor profile unless --profile) with voxel grid + Draco + bandwidth manager, the
 map is fused at the digital twin and the GUI is rendered offscreen. Across a tc-shaped 60 Mbit/s
 link between two network namespaces when root, over loopback otherwise (and it says which).
 Writes: map.bt, ground_truth.npz, scores.json, gui.png, stats.csv, allocation.csv, plots, report.md.
@@ -13,6 +13,7 @@ import time
 
 from cps_bringup.cli import build_parser, run_mission
 from cps_bringup.supervisor import BringupError
+from cps_fleet.fleet import PROFILES
 
 
 def choose_link(requested, log=print):
@@ -32,7 +33,7 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="out/demo")
     parser.add_argument("--link", default="auto", help="auto (60mbit when root), none, or a rate like 20mbit")
-    parser.add_argument("--profile", default="light", choices=("light", "paper"))
+    parser.add_argument("--profile", default=None, choices=PROFILES, help="sensor profile (default: fleet.yaml's)")
     parser.add_argument("--robots", default=None, help="subset, e.g. scout,jackal (default: the whole fleet)")
     parser.add_argument("--duration", type=float, default=420.0, metavar="S",
                         help="upper bound on the mission (it normally ends when every route is done)")
@@ -49,7 +50,7 @@ def main(argv=None):
     out_dir = os.path.abspath(args.out)
     link = choose_link(args.link)
     mission_args = build_parser().parse_args([
-        "all", "--profile", args.profile, "--out", out_dir, "--link", link, "--duration", str(args.duration),
+        "all", *(["--profile", args.profile] if args.profile else []), "--out", out_dir, "--link", link, "--duration", str(args.duration),
         "--screenshot", "--screenshot-after", str(args.screenshot_after),
         *(["--robots", args.robots] if args.robots else []),
         *(["--kill-map-server-at", str(args.kill_map_server_at)] if args.kill_map_server_at is not None else [])])

@@ -4,10 +4,11 @@
 formatted by `format_progress`.
 """
 import dataclasses
-import math
 import threading
 import time
 from typing import Dict, List, Optional
+
+import numpy as np
 
 
 @dataclasses.dataclass
@@ -46,13 +47,17 @@ class MissionMonitor:
 
     def __init__(self, fleet):
         import rospy
+        import tf2_ros
         from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
         from nav_msgs.msg import Odometry
         from std_msgs.msg import String
 
         robots = fleet.robot_names
         self.progress = MissionProgress(list(robots), trajectories={r: [] for r in robots})
-        self._initial_pose = {r.name: r.initial_pose for r in fleet.robots}
+        # map <- <r>/odom as the robots' side publishes it on tf (static), not recomputed from config.
+        self._tf = tf2_ros.Buffer()
+        self._tf_listener = tf2_ros.TransformListener(self._tf)
+        self._odom_in_map = {}
         self._last_sample = {}
         self._lock = threading.Lock()
         self._subs = [rospy.Subscriber(f"/{r}/mission_state", String, self._on_state, callback_args=r)
@@ -72,13 +77,30 @@ class MissionMonitor:
         now = time.monotonic()
         if now - self._last_sample.get(robot, 0.0) < 0.5:
             return
+        odom_in_map = self._odom_in_map.get(robot) or self._lookup_odom_in_map(msg.header.frame_id)
+        if odom_in_map is None:
+            return
+        self._odom_in_map[robot] = odom_in_map
         self._last_sample[robot] = now
-        pose = self._initial_pose[robot]
+        rotation, translation = odom_in_map
         p = msg.pose.pose.position
-        cos, sin = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
-        point = (pose.x + cos * p.x - sin * p.y, pose.y + sin * p.x + cos * p.y, pose.z + p.z)
+        point = tuple(float(v) for v in rotation @ (p.x, p.y, p.z) + translation)
         with self._lock:
             self.progress.trajectories[robot].append(point)
+
+    def _lookup_odom_in_map(self, odom_frame):
+        """(rotation 3 x 3, translation 3) of `odom_frame` in map, or None while tf lacks it."""
+        import rospy
+        import tf2_ros
+
+        from cps_mapping.cloud_input import quaternion_matrix
+
+        try:
+            t = self._tf.lookup_transform("map", odom_frame, rospy.Time(0)).transform
+        except (tf2_ros.LookupException, tf2_ros.ConnectivityException, tf2_ros.ExtrapolationException):
+            return None
+        q, v = t.rotation, t.translation
+        return quaternion_matrix(q.x, q.y, q.z, q.w), np.array([v.x, v.y, v.z])
 
     def _on_map(self, msg):
         with self._lock:

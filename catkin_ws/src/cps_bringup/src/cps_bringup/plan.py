@@ -1,7 +1,7 @@
 """Which processes each side of the system runs, with which names, remappings and parameters.
 
 A pure function of the fleet configuration: `plan_nodes` returns `NodeSpec`s that the supervisor
-starts and a launch-file writer could print. Topic names follow shared/design/ros-graph.md.
+starts and a launch-file writer could print. Topic names follow docs/ros-graph.md.
 """
 import dataclasses
 import os
