@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cps_mapping import synthetic_scene as sc
-from cps_mapping.octree_map import pack_index, voxel_index
+from cps_mapping.fused_map import pack_index, voxel_index
+import synthetic_scene as sc
 
 pytestmark = pytest.mark.ros
 RES = 0.1
