@@ -164,7 +164,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
         specs.append(NodeSpec(
             "map_server", DIGITAL,
             py("cps_mapping", "map_server", "__ns:=/twin", "__name:=map_server",
-               *_args({**common, "robots": ",".join(robots), "autosave_period_s": options.autosave_period_s,
+               *_args({**common, "robots": ",".join(robots),
                        "map_file": options.map_file or os.path.join(out, "map.bt")})),
             wait_topics=("/twin/map_stats", "/twin/octomap_binary"), restart_limit=3))
         specs.append(NodeSpec(
