@@ -3,7 +3,7 @@
 
 Anchor, measured in the same run: plain sequential OctoMap insertion, what octomap_server does
 per cloud (insertPointCloud of every point, its own origin, max range, no discretization,
-inner nodes updated per cloud). Ours: FusedOctoMap.insert_batch (ray casting and log-odds per
+inner nodes updated per cloud). Ours: FusedLogOddsMap.insert_batch (ray casting and log-odds per
 cloud in a compiled kernel over a dense grid) in both free-space modes: exact (OctoMap's rays,
 the same map) and shared-origin casting (the map server's default: rays cast back from their
 endpoints, stopping where the cloud already cleared).
@@ -31,11 +31,10 @@ import pickle
 import time
 
 import numpy as np
-import octomap
 
 from cps_mapping.log_odds_grid import warm_up
-from cps_mapping.octree_map import (FusedOctoMap, SensorModelParams, _finest_voxels, index_to_center, message_fields,
-                                    pack_index)
+from cps_mapping.fused_map import (FusedLogOddsMap, _finest_voxels, index_to_center, message_fields, new_octree,
+                                   pack_index)
 from cps_mapping.scoring import score_map
 from cps_fleet.fleet import load_fleet
 from cps_transport.voxel import voxel_downsample
@@ -84,17 +83,8 @@ def render_stream(profile, seconds, speed_mps, start_fraction=0.3):
     return fleet, sorted(stream, key=lambda c: (c[0], c[1]))
 
 
-def plain_tree(resolution_m, model):
-    tree = octomap.OcTree(resolution_m)
-    tree.setProbHit(model.hit)
-    tree.setProbMiss(model.miss)
-    tree.setClampingThresMin(model.min)
-    tree.setClampingThresMax(model.max)
-    return tree
-
-
-def occupied_of_tree(tree, resolution_m):
-    fused = FusedOctoMap(resolution_m)
+def occupied_of_tree(fleet, tree, resolution_m):
+    fused = FusedLogOddsMap(resolution_m, fleet.mapping.sensor_model)
     fused.tree = tree
     return fused.occupied_index()
 
@@ -112,7 +102,7 @@ def batches_of(stream, batch):
 
 def run_plain(fleet, stream, resolution_m):
     ranges = {r.name: fleet.mapping.max_range_m[r.type] for r in fleet.robots}
-    tree = plain_tree(resolution_m, fleet.mapping.sensor_model)
+    tree = new_octree(resolution_m, fleet.mapping.sensor_model)
     start = time.perf_counter()
     for _, robot, pts, origin, _ in stream:
         tree.insertPointCloud(pts, origin, maxrange=ranges[robot])
@@ -120,8 +110,7 @@ def run_plain(fleet, stream, resolution_m):
 
 
 def new_map(fleet, resolution_m, exact):
-    m = fleet.mapping.sensor_model
-    return FusedOctoMap(resolution_m, SensorModelParams(m.hit, m.miss, m.min, m.max), exact_free_space=exact)
+    return FusedLogOddsMap(resolution_m, fleet.mapping.sensor_model, exact_free_space=exact)
 
 
 def run_ours(fleet, stream, resolution_m, batch, exact):
@@ -153,7 +142,7 @@ def throughput(fleet, stream, resolution_m, batch, truth, runs):
             seconds, maps[mode] = run_ours(fleet, stream, resolution_m, batch, exact)
             ours_times[mode].append(seconds)
     plain_s = float(np.median(plain_times))
-    plain_occ = occupied_of_tree(tree, resolution_m)
+    plain_occ = occupied_of_tree(fleet, tree, resolution_m)
     plain_idx, plain_val = _finest_voxels(tree, resolution_m)
     plain_map = dict(zip(pack_index(plain_idx).tolist(), plain_val.tolist()))
     plain_keys = set(pack_index(plain_occ).tolist())
@@ -229,7 +218,7 @@ def keep_up(fleet, stream, queue_size, plain=False, publish_period_s=1.0, exact=
     newest = {r: None for r in robots}
     ages = {r: [] for r in robots}
     fused = new_map(fleet, fleet.mapping.resolution_m, exact)
-    tree = plain_tree(fleet.mapping.resolution_m, fleet.mapping.sensor_model)
+    tree = new_octree(fleet.mapping.resolution_m, fleet.mapping.sensor_model)
     clock, i, turn = 0.0, 0, 0
     end = stream[-1][0] + 1.0
     next_sample, next_publish = 0.0, publish_period_s

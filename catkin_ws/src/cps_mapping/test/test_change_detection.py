@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cps_mapping.change_detection import detect_changes, detect_map_changes, write_report
-from cps_mapping.octree_map import FusedOctoMap
+from fleet_model import new_map
 
 RES = 0.1
 # Views of the storage area (crate_2 stands at x=3.2, y=-1.0, 1 m cube) from outside its fence.
@@ -17,7 +17,7 @@ def _mission(site):
     from sim_views import capture_views
 
     views = capture_views(POSES, site=site, robots=("jackal", "scout"))
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(views["jackal"], 6.0, "jackal")
     fused.insert_batch(views["scout"], 12.0, "scout")
     return fused

@@ -2,21 +2,12 @@
 of plain sequential insertPointCloud (what octomap_server does per cloud), and keeps OctoMap's
 max-range rule."""
 import numpy as np
-import octomap
 import pytest
 
-from cps_mapping.octree_map import FusedOctoMap, _finest_voxels, pack_index
+from cps_mapping.fused_map import _finest_voxels, pack_index
+from fleet_model import new_map, plain_tree
 
 RES = 0.1
-
-
-def _plain_tree(resolution_m):
-    tree = octomap.OcTree(resolution_m)
-    tree.setProbHit(0.7)
-    tree.setProbMiss(0.4)
-    tree.setClampingThresMin(0.12)
-    tree.setClampingThresMax(0.97)
-    return tree
 
 
 def _voxels(tree, resolution_m):
@@ -40,8 +31,8 @@ def sim_clouds():
 
 @pytest.mark.parametrize("resolution_m", [0.1, 0.05])
 def test_insertion_equals_plain_sequential_octomap(sim_clouds, resolution_m):
-    plain = _plain_tree(resolution_m)
-    fused = FusedOctoMap(resolution_m)
+    plain = plain_tree(resolution_m)
+    fused = new_map(resolution_m)
     for robot, points, origin, max_range in sim_clouds:
         plain.insertPointCloud(points, origin, maxrange=max_range)
     jackal = [(p, o) for r, p, o, _ in sim_clouds if r == "jackal"]
@@ -60,19 +51,19 @@ def test_insertion_equals_plain_sequential_octomap(sim_clouds, resolution_m):
 
 
 def test_max_range_point_clears_but_does_not_mark():
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     origin = np.array([0.05, 0.05, 0.05])
     fused.insert_cloud(np.array([[20.05, 0.05, 0.05]]), origin, max_range_m=6.0)
     assert len(fused.occupied_index()) == 0, "a point beyond max range must not be marked"
     assert fused.is_free(np.array([[1.0, 0.05, 0.05], [5.8, 0.05, 0.05]])).all(), "it clears up to max range"
     assert not fused.is_free(np.array([[7.0, 0.05, 0.05], [20.05, 0.05, 0.05]])).any()
-    plain = _plain_tree(RES)
+    plain = plain_tree(RES)
     plain.insertPointCloud(np.array([[20.05, 0.05, 0.05]]), origin, maxrange=6.0)
     assert _voxels(fused.tree, RES).keys() == _voxels(plain, RES).keys()
 
 
 def test_an_occupied_voxel_is_cleared_by_later_clouds_as_octomap_does():
-    fused, plain = FusedOctoMap(RES), _plain_tree(RES)
+    fused, plain = new_map(RES), plain_tree(RES)
     origin = np.array([0.05, 0.05, 0.05])
     wall, far_wall = np.array([[2.05, 0.05, 0.05]]), np.array([[4.05, 0.05, 0.05]])
     for cloud in [wall] + [far_wall] * 3:

@@ -1,16 +1,19 @@
-"""The map_server node: two robots with different known poses land in one map at the right
-places; bad inputs (NaN, unknown frame, no transform, empty, absurd points, unknown robot,
+"""The map_server node end to end: two robots with different known poses land in one map at the
+right places; bad inputs (NaN, unknown frame, no transform, empty, absurd points, unknown robot,
 corrupt or wrong-type map files) are counted and never cost the map; save, load, reset,
-clear_bbx; a restarted server resumes from its save."""
-import threading
+clear_bbx; a restarted server resumes from its save. The tests share one running server, in order."""
+import re
 import time
+import types
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cps_mapping import synthetic_scene as sc
-from cps_mapping.octree_map import pack_index, voxel_index
+from cps_harness.testing import TopicRecorder, wait_for
+from cps_mapping.fused_map import pack_index, voxel_index
+from fleet_model import new_map
+import synthetic_scene as sc
 
 pytestmark = pytest.mark.ros
 RES = 0.1
@@ -66,27 +69,6 @@ def _cloud(points_sensor, frame, stamp=None):
                           header=Header(stamp=stamp or rospy.Time.now(), frame_id=frame))
 
 
-class Latest:
-    """The newest message of a topic, waited for with a predicate."""
-
-    def __init__(self, topic, msg_type):
-        import rospy
-
-        self.msg, self.cond = None, threading.Condition()
-        self.sub = rospy.Subscriber(topic, msg_type, self._cb, queue_size=1, buff_size=2 ** 26)
-
-    def _cb(self, msg):
-        with self.cond:
-            self.msg = msg
-            self.cond.notify_all()
-
-    def wait(self, predicate=lambda m: True, timeout_s=20.0, what="message"):
-        with self.cond:
-            if not self.cond.wait_for(lambda: self.msg is not None and predicate(self.msg), timeout_s):
-                raise AssertionError(f"timed out waiting for {what}; last: {self.msg}")
-            return self.msg
-
-
 def _stats(msg):
     return {r.robot: r for r in msg.robots}
 
@@ -105,123 +87,164 @@ def scene_clouds():
     return scene, sc.to_sensor_frame(depth, *JACKAL), sc.to_sensor_frame(lidar, *SCOUT)
 
 
-def _start(ros, map_file, name, **extra):
+def _start(graph, map_file, name, **extra):
     params = {"~robots": "jackal,scout,ghost", "~map_file": str(map_file), "~publish_period_s": 0.3,
               "~tf_timeout_s": 0.3, "~autosave_period_s": 0.0, "~max_points_range_m": 200.0}
     params.update({f"~{k}": v for k, v in extra.items()})
-    proc = ros.start_node("cps_mapping", "map_server", name=name, params=params)
-    ros.wait_for_service("/twin/clear_bbx", timeout_s=30)
+    proc = graph.start_node("cps_mapping", "map_server", name=name, namespace="/twin", params=params)
+    graph.wait_for_service("/twin/clear_bbx", timeout_s=30)
     return proc
 
 
-def test_map_server_end_to_end(ros, rospy_node, scene_clouds, tmp_path):
+def _occupied_count(path):
+    """Occupied voxels of a saved map, read back here."""
+    fused = new_map(RES)
+    fused.load(str(path))
+    return len(fused.occupied_index())
+
+
+@pytest.fixture(scope="module")
+def server(ros_master, rospy_node, scene_clouds, tmp_path_factory):
+    """map_server_a with both robots' first clouds fused and published; stopped at the end."""
     rospy = rospy_node
-    from geometry_msgs.msg import Point
     from sensor_msgs.msg import PointCloud2
-    from std_srvs.srv import Empty
 
     from cps_msgs.msg import MapStats, Octomap
-    from cps_msgs.srv import ClearBBX, SaveMap
 
-    scene, depth_sensor, lidar_sensor = scene_clouds
-    map_file = tmp_path / "twin.bt"
-    tf_keep = _static_tf({"jackal/camera_depth_optical_frame": JACKAL, "scout/lidar": SCOUT})
-    proc = _start(ros, map_file, "map_server_a")
-    stats = Latest("/twin/map_stats", MapStats)
-    centers = Latest("/twin/octomap_point_cloud_centers", PointCloud2)
-    binary = Latest("/twin/octomap_binary", Octomap)
-    pub_j = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=5)
-    pub_s = rospy.Publisher("/twin/scout/points", PointCloud2, queue_size=5)
-    pub_ghost = rospy.Publisher("/twin/ghost/points", PointCloud2, queue_size=1)
-    time.sleep(1.0)
+    _, depth_sensor, lidar_sensor = scene_clouds
+    graph = ros_master.attach()
+    tmp = tmp_path_factory.mktemp("map_server")
+    s = types.SimpleNamespace(graph=graph, tmp=tmp, map_file=tmp / "twin.bt")
+    s.tf_keep = _static_tf({"jackal/camera_depth_optical_frame": JACKAL, "scout/lidar": SCOUT})
+    s.proc = _start(graph, s.map_file, "map_server_a")
+    s.stats = TopicRecorder("/twin/map_stats", MapStats)
+    s.centers = TopicRecorder("/twin/octomap_point_cloud_centers", PointCloud2)
+    s.binary = TopicRecorder("/twin/octomap_binary", Octomap)
+    s.pub_j = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=5)
+    s.pub_s = rospy.Publisher("/twin/scout/points", PointCloud2, queue_size=5)
+    s.pub_ghost = rospy.Publisher("/twin/ghost/points", PointCloud2, queue_size=1)
+    assert wait_for(lambda: s.pub_j.get_num_connections() and s.pub_s.get_num_connections(), timeout_s=20)
     try:
         # Depth clouds carry NaN (no return) as the decoder delivers them.
         with_nan = np.vstack([depth_sensor, np.full((500, 3), np.nan)])
-        pub_j.publish(_cloud(with_nan, "jackal/camera_depth_optical_frame"))
-        pub_s.publish(_cloud(lidar_sensor, "scout/lidar"))
+        s.pub_j.publish(_cloud(with_nan, "jackal/camera_depth_optical_frame"))
+        s.pub_s.publish(_cloud(lidar_sensor, "scout/lidar"))
         # Stats carry the published snapshot's figures: once both robots contribute to it, the
         # centres of that snapshot (or a later one) are out.
-        s = stats.wait(lambda m: all(r.clouds_inserted >= 1 and r.occupied_voxels_contributed > 0 for r in m.robots),
-                       what="both robots inserted and published")
-        assert set(_stats(s)) == {"jackal", "scout"}, "the unknown robot in ~robots must be ignored"
-        occ_msg = centers.wait(lambda m: m.width == s.occupied_voxels, what="occupied centres after insertion")
-        occupied = _centers(occ_msg)
-        truth = set(pack_index(voxel_index(scene.occupied_voxels(RES), RES)).tolist())
-        got = pack_index(voxel_index(occupied, RES)).tolist()
-        assert sum(k in truth for k in got) / len(got) > 0.98
-        for crate, robot in (("crate_a", "scout"), ("crate_b", "jackal")):
-            box = next(b for b in scene.boxes if b.name == crate)
-            near = np.all((occupied >= np.asarray(box.min_m) - 0.1) & (occupied <= np.asarray(box.max_m) + 0.1), axis=1)
-            assert near.sum() > 20, f"{crate} ({robot}'s view) is not in the fused map"
-        s = stats.wait(lambda m: all(r.occupied_voxels_contributed > 0 for r in m.robots), what="contributions")
-        assert s.occupied_voxels == len(occupied)
-        assert binary.wait(lambda m: len(m.data) > 0).id == "OcTree"
-        before = len(occupied)
-
-        # Bad input: every one is counted, none changes the map.
-        absurd = np.vstack([depth_sensor[:50], [[1e9, 0, 0], [0, 1e30, 0]]])
-        _moving_tf("scout/moving_lidar", SCOUT)
-        for pub, msg in (
-                (pub_j, _cloud(np.full((100, 3), np.nan), "jackal/camera_depth_optical_frame")),  # all NaN
-                (pub_j, _cloud(np.zeros((0, 3)), "jackal/camera_depth_optical_frame")),           # empty
-                (pub_s, _cloud(lidar_sensor[:100], "nowhere/lidar")),                             # unknown frame
-                (pub_s, _cloud(lidar_sensor[:100], "scout/moving_lidar",                          # no tf at stamp
-                               rospy.Time.now() + rospy.Duration(60.0))),
-                (pub_j, _cloud(absurd, "jackal/camera_depth_optical_frame")),                     # absurd points
-                (pub_ghost, _cloud(depth_sensor[:10], "ghost/lidar"))):                           # unknown robot
-            pub.publish(msg)
-            time.sleep(0.5)  # the subscriber waits up to tf_timeout_s per cloud
-        s = stats.wait(lambda m: _stats(m)["jackal"].clouds_dropped_invalid >= 2 and
-                       _stats(m)["scout"].clouds_dropped_tf >= 2 and _stats(m)["jackal"].clouds_inserted >= 2,
-                       what="bad inputs counted")
-        assert proc.poll() is None
-        time.sleep(0.7)  # > 2 publish periods: the map after the absurd cloud's 50 valid points is out
-        assert centers.msg.width == before, "bad input changed the map"
-
-        # Services: save, load a bad file (refused), clear_bbx, load the save back, reset.
-        save = rospy.ServiceProxy("/twin/save_map", SaveMap)
-        load = rospy.ServiceProxy("/twin/load_map", SaveMap)
-        saved = save(str(tmp_path / "copy.ot"))
-        assert saved.success, saved.message
-        (tmp_path / "corrupt.bt").write_bytes(b"# Octomap OcTree binary file\nid OcTree\nsize 99\nres 0.1\ndata\n\x01")
-        (tmp_path / "color.ot").write_bytes(b"# Octomap OcTree file\nid ColorOcTree\nsize 1\nres 0.1\ndata\n")
-        for bad in ("corrupt.bt", "color.ot", "missing.bt", "notamap.txt"):
-            answer = load(str(tmp_path / bad))
-            assert not answer.success and answer.message, bad
-        time.sleep(0.7)
-        assert centers.msg.width == before, "a refused load changed the map"
-        crate_a = next(b for b in scene.boxes if b.name == "crate_a")
-        assert rospy.ServiceProxy("/twin/clear_bbx", ClearBBX)(Point(*crate_a.min_m), Point(*crate_a.max_m)).success
-        centers.wait(lambda m: m.width < before, what="clear_bbx effect")
-        assert save(str(tmp_path / "without_crate_a.bt")).success
-        assert load(str(tmp_path / "copy.ot")).success
-        centers.wait(lambda m: m.width == before, what="the loaded map")
-        assert save("").success, "empty path saves to ~map_file"
+        first = s.stats.wait(lambda m: all(r.clouds_inserted >= 1 and r.occupied_voxels_contributed > 0
+                                           for r in m.robots), what="both robots inserted and published")
+        s.occ_msg = s.centers.wait(lambda m: m.width == first.occupied_voxels, what="occupied centres")
+        s.occupied = _centers(s.occ_msg)
+        yield s
     finally:
-        ros.stop(proc)
-    assert map_file.exists(), "the server saves on shutdown"
+        graph.close()
+        for recorder in (s.stats, s.centers, s.binary):
+            recorder.close()
+        for pub in (s.pub_j, s.pub_s, s.pub_ghost):
+            pub.unregister()
 
-    # A restarted server resumes from its save; against a baseline without crate_a, it reports
-    # crate_a as the one change.
+
+def test_two_robots_land_in_one_map_at_the_right_places(server, scene_clouds):
+    scene = scene_clouds[0]
+    assert set(_stats(server.stats.latest)) == {"jackal", "scout"}, "the unknown robot in ~robots must be ignored"
+    truth = set(pack_index(voxel_index(scene.occupied_voxels(RES), RES)).tolist())
+    got = pack_index(voxel_index(server.occupied, RES)).tolist()
+    assert sum(k in truth for k in got) / len(got) > 0.98
+    for crate, robot in (("crate_a", "scout"), ("crate_b", "jackal")):
+        box = next(b for b in scene.boxes if b.name == crate)
+        near = np.all((server.occupied >= np.asarray(box.min_m) - 0.1) &
+                      (server.occupied <= np.asarray(box.max_m) + 0.1), axis=1)
+        assert near.sum() > 20, f"{crate} ({robot}'s view) is not in the fused map"
+    assert server.stats.latest.occupied_voxels == len(server.occupied)
+    assert server.binary.wait(lambda m: len(m.data) > 0).id == "OcTree"
+
+
+def test_bad_input_is_counted_and_leaves_the_map(server, rospy_node, scene_clouds):
+    rospy = rospy_node
+    _, depth_sensor, lidar_sensor = scene_clouds
+    absurd = np.vstack([depth_sensor[:50], [[1e9, 0, 0], [0, 1e30, 0]]])
+    _moving_tf("scout/moving_lidar", SCOUT)
+    optical = "jackal/camera_depth_optical_frame"
+    for pub, msg in (
+            (server.pub_j, _cloud(np.full((100, 3), np.nan), optical)),                # all NaN
+            (server.pub_j, _cloud(np.zeros((0, 3)), optical)),                         # empty
+            (server.pub_s, _cloud(lidar_sensor[:100], "nowhere/lidar")),               # unknown frame
+            (server.pub_s, _cloud(lidar_sensor[:100], "scout/moving_lidar",            # no tf at stamp
+                                  rospy.Time.now() + rospy.Duration(60.0))),
+            (server.pub_j, _cloud(absurd, optical))):                                  # absurd points
+        pub.publish(msg)
+        time.sleep(0.5)  # pacing only: the subscriber queue holds 2 and waits up to tf_timeout_s per cloud
+    # The counters move only once each cloud went through (the absurd one's 50 points inserted).
+    server.stats.wait(lambda m: _stats(m)["jackal"].clouds_dropped_invalid >= 2 and
+                      _stats(m)["scout"].clouds_dropped_tf >= 2 and _stats(m)["jackal"].clouds_inserted >= 2,
+                      what="bad inputs counted")
+    assert server.proc.poll() is None
+    from cps_msgs.srv import SaveMap
+
+    saved = rospy.ServiceProxy("/twin/save_map", SaveMap)(str(server.tmp / "after_bad_input.bt"))
+    assert saved.success, saved.message
+    assert _occupied_count(server.tmp / "after_bad_input.bt") == len(server.occupied), "bad input changed the map"
+
+
+def test_unknown_robot_is_named_and_ignored(server):
+    assert "~robots names 'ghost', which is not in the fleet" in server.graph.output("map_server_a")
+    unmapped = re.compile(r"/twin/ghost/points is published but robot 'ghost' is not mapped")
+    assert wait_for(lambda: unmapped.search(server.graph.output("map_server_a")), timeout_s=20), \
+        "the unknown robot's topic was not reported"
+
+
+def test_refused_loads_leave_the_map_and_services_work(server, rospy_node, scene_clouds):
+    rospy = rospy_node
+    from geometry_msgs.msg import Point
+
+    from cps_msgs.srv import ClearBBX, LoadMap, SaveMap
+
+    tmp, before = server.tmp, len(server.occupied)
+    save = rospy.ServiceProxy("/twin/save_map", SaveMap)
+    load = rospy.ServiceProxy("/twin/load_map", LoadMap)
+    saved = save(str(tmp / "copy.ot"))
+    assert saved.success, saved.message
+    assert save(str(tmp / "before_loads.bt")).success
+    (tmp / "corrupt.bt").write_bytes(b"# Octomap OcTree binary file\nid OcTree\nsize 99\nres 0.1\ndata\n\x01")
+    (tmp / "color.ot").write_bytes(b"# Octomap OcTree file\nid ColorOcTree\nsize 1\nres 0.1\ndata\n")
+    for bad in ("corrupt.bt", "color.ot", "missing.bt", "notamap.txt"):
+        answer = load(str(tmp / bad))
+        assert not answer.success and answer.message, bad
+    assert save(str(tmp / "after_loads.bt")).success
+    assert (tmp / "after_loads.bt").read_bytes() == (tmp / "before_loads.bt").read_bytes(), \
+        "a refused load changed the map"
+
+    crate_a = next(b for b in scene_clouds[0].boxes if b.name == "crate_a")
+    assert rospy.ServiceProxy("/twin/clear_bbx", ClearBBX)(Point(*crate_a.min_m), Point(*crate_a.max_m)).success
+    server.centers.wait(lambda m: m.width < before, what="clear_bbx effect")
+    assert save(str(tmp / "without_crate_a.bt")).success
+    assert load(str(tmp / "copy.ot")).success
+    server.centers.wait(lambda m: m.width == before, what="the loaded map")
+    assert save("").success, "empty path saves to ~map_file"
+
+
+def test_restarted_server_resumes_and_reports_the_change(server, rospy_node, scene_clouds):
+    rospy = rospy_node
+    from std_srvs.srv import Empty
     from visualization_msgs.msg import Marker, MarkerArray
 
-    changes = Latest("/twin/map_changes", MarkerArray)
-    proc = _start(ros, map_file, "map_server_b", baseline_map=str(tmp_path / "without_crate_a.bt"),
-                  change_period_s=1.0, change_report=str(tmp_path / "changes.md"))
+    server.graph.stop(server.proc)
+    assert server.map_file.exists(), "the server saves on shutdown"
+    tmp = server.tmp
+    changes = TopicRecorder("/twin/map_changes", MarkerArray)
+    proc = _start(server.graph, server.map_file, "map_server_b", baseline_map=str(tmp / "without_crate_a.bt"),
+                  change_period_s=1.0, change_report=str(tmp / "changes.md"))
     try:
-        resumed = centers.wait(lambda m: m.header.stamp > occ_msg.header.stamp and m.width > 0, what="resumed map")
-        assert resumed.width == before
+        resumed = server.centers.wait(lambda m: m.header.stamp > server.occ_msg.header.stamp and m.width > 0,
+                                      what="resumed map")
+        assert resumed.width == len(server.occupied)
         boxes = [m for m in changes.wait(what="map changes").markers if m.type == Marker.CUBE]
         assert len(boxes) == 1 and boxes[0].color.g > boxes[0].color.r, "crate_a must be the one appeared change"
-        crate_a = next(b for b in scene.boxes if b.name == "crate_a")
+        crate_a = next(b for b in scene_clouds[0].boxes if b.name == "crate_a")
         assert crate_a.min_m[0] - 0.2 < boxes[0].pose.position.x < crate_a.max_m[0] + 0.2
-        assert "appeared" in (tmp_path / "changes.md").read_text()
+        assert "appeared" in (tmp / "changes.md").read_text()
         rospy.ServiceProxy("/twin/reset", Empty)()
-        centers.wait(lambda m: m.width == 0, what="reset")
+        server.centers.wait(lambda m: m.width == 0, what="reset")
     finally:
-        ros.stop(proc)
-        for sub in (stats, centers, binary, changes):
-            sub.sub.unregister()
-        for pub in (pub_j, pub_s, pub_ghost):
-            pub.unregister()
-    assert "not mapped" in ros.output("map_server_a") or "ghost" in ros.output("map_server_a")
+        server.graph.stop(proc)
+        changes.close()

@@ -8,7 +8,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 import rospy
 from cps_mapping.markers import occupied_cells_markers
-from cps_mapping.octree_map import height_colors
+from cps_mapping.fused_map import height_colors
 
 RES = 0.1
 

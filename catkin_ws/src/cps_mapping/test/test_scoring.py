@@ -3,8 +3,8 @@ map; a map built from simulated views scores sensibly, with each robot's contrib
 import numpy as np
 import pytest
 
-from cps_mapping.octree_map import FusedOctoMap
 from cps_mapping.scoring import load_ground_truth, observable_surface, score_fused_map, score_map
+from fleet_model import new_map
 
 RES = 0.1
 
@@ -65,7 +65,7 @@ def test_map_of_simulated_views_and_contributions(truth):
 
     views = capture_views({"jackal": [(-6.6, 1.8, 0.0, 35.0), (-6.0, 0.0, 0.0, 0.0)],
                            "scout": [(-6.5, -2.6, 0.0, 0.0)]}, robots=("jackal", "scout"))
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(views["jackal"], 6.0, "jackal")
     fused.insert_batch(views["scout"], 12.0, "scout")
     score = score_fused_map(fused, truth)

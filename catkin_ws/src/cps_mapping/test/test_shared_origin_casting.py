@@ -6,8 +6,9 @@ import numpy as np
 import octomap
 import pytest
 
-from cps_mapping import synthetic_scene as sc
-from cps_mapping.octree_map import FusedOctoMap, _finest_voxels, octree_from_bytes, pack_index
+from cps_mapping.fused_map import _finest_voxels, octree_from_bytes, pack_index
+from fleet_model import new_map, plain_tree
+import synthetic_scene as sc
 
 RES = 0.1
 
@@ -27,7 +28,7 @@ def clouds():
 
 
 def _build(clouds, resolution_m, **kwargs):
-    fused = FusedOctoMap(resolution_m, **kwargs)
+    fused = new_map(resolution_m, **kwargs)
     for k in range(5):  # interleave the robots as a server would
         for robot, frames, max_range in clouds:
             if k < len(frames):
@@ -61,25 +62,21 @@ def test_a_longer_stop_is_at_least_as_close_to_exact(clouds):
 
 
 def test_shared_origin_casting_keeps_octomaps_rules():
-    fused = FusedOctoMap(RES, exact_free_space=False)
+    fused = new_map(RES, exact_free_space=False)
     origin = np.array([0.05, 0.05, 0.05])
     fused.insert_cloud(np.array([[20.05, 0.05, 0.05], [2.05, 0.05, 0.05], [2.05, 0.15, 0.05]]), origin, 6.0)
     assert _set(fused.occupied_index()) == _set(np.array([[20, 0, 0], [20, 1, 0]])), "hits within range only"
     assert fused.is_free(np.array([[1.0, 0.05, 0.05], [5.8, 0.05, 0.05], [0.05, 0.05, 0.05]])).all()
     assert not fused.is_free(np.array([[7.0, 0.05, 0.05]])).any()
     # a ray through another point's voxel of the same cloud does not clear it (occupied wins)
-    fused = FusedOctoMap(RES, exact_free_space=False)
+    fused = new_map(RES, exact_free_space=False)
     fused.insert_cloud(np.array([[1.05, 0.05, 0.05], [3.05, 0.05, 0.05]]), origin, 6.0)
     assert len(fused.occupied_index()) == 2
 
 
 def test_exact_mode_equals_octomap_on_the_synthetic_hall(clouds):
     fused = _build(clouds, RES)
-    plain = octomap.OcTree(RES)
-    plain.setProbHit(0.7)
-    plain.setProbMiss(0.4)
-    plain.setClampingThresMin(0.12)
-    plain.setClampingThresMax(0.97)
+    plain = plain_tree(RES)
     for k in range(5):
         for robot, frames, max_range in clouds:
             if k < len(frames):
@@ -101,13 +98,13 @@ def test_binary_stream_from_the_grid_is_octomaps_own(clouds, exact):
 
 
 def test_empty_map_writes_octomaps_empty_tree():
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     assert fused.to_bytes(binary=True) == octomap.OcTree(RES).writeBinary()
     assert fused.binary_tree_nodes() == 0
 
 
 def test_the_tree_is_rebuilt_only_when_the_map_changed():
-    fused = FusedOctoMap(RES, exact_free_space=False)
+    fused = new_map(RES, exact_free_space=False)
     fused.insert_cloud(np.array([[1.05, 0.05, 0.05]]), [0.05, 0.05, 0.05], 6.0)
     first = fused.tree
     assert fused.tree is first and first.size() > 0
@@ -118,4 +115,4 @@ def test_the_tree_is_rebuilt_only_when_the_map_changed():
 
 def test_stop_length_must_be_positive():
     with pytest.raises(ValueError, match="shared_ray_stop_m"):
-        FusedOctoMap(RES, shared_ray_stop_m=0.0)
+        new_map(RES, shared_ray_stop_m=0.0)

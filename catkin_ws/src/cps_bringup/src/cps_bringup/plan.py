@@ -44,7 +44,6 @@ class RunOptions:
     renderer: str = "auto"
     # Link capacity for the bandwidth manager, Mbit/s (e.g. iperf3's measurement); None: fleet.yaml's.
     available_mbps: Optional[float] = None
-    autosave_period_s: float = 10.0
     # False on real robots: their drivers publish what fleet_sim would.
     simulate: bool = True
 
@@ -164,7 +163,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
         specs.append(NodeSpec(
             "map_server", DIGITAL,
             py("cps_mapping", "map_server", "__ns:=/twin", "__name:=map_server",
-               *_args({**common, "robots": ",".join(robots), "autosave_period_s": options.autosave_period_s,
+               *_args({**common, "robots": ",".join(robots),
                        "map_file": options.map_file or os.path.join(out, "map.bt")})),
             wait_topics=("/twin/map_stats", "/twin/octomap_binary"), restart_limit=3))
         specs.append(NodeSpec(

@@ -59,14 +59,14 @@ def latency_summary(stats_rows, managed_only=True):
 
 def score_saved_map(map_file, fleet, ground_truth_path):
     """Load the saved map and score it against the simulator's ground truth at the map's resolution."""
-    from cps_mapping.octree_map import FusedOctoMap
+    from cps_mapping.fused_map import FusedLogOddsMap
     from cps_mapping.scoring import score_fused_map
     from cps_sim.ground_truth import save_ground_truth
     from cps_fleet.site import load_site
 
     resolution = fleet.mapping.resolution_m
     save_ground_truth(ground_truth_path, load_site(fleet.site_path), resolution)
-    fused = FusedOctoMap.from_mapping_config(fleet.mapping)
+    fused = FusedLogOddsMap.from_mapping_config(fleet.mapping)
     fused.load(map_file)
     return score_fused_map(fused, ground_truth_path), fused
 

@@ -100,6 +100,8 @@ class MappingConfig:
     resolution_m: float
     sensor_model: SensorModel
     max_range_m: Dict[str, float]
+    # The map server's autosave period (0: only on shutdown and on request).
+    autosave_period_s: float
 
 
 @dataclasses.dataclass(frozen=True)
@@ -249,6 +251,7 @@ def load_fleet(path=None, profile=None):
             max=model.number("max", low=0.0, high=1.0),
         ),
         max_range_m=max_range,
+        autosave_period_s=map_reader.number("autosave_period_s", low=0.0),
     )
 
     robots = []

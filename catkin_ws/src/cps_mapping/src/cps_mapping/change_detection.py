@@ -24,7 +24,7 @@ from typing import Callable, List, Optional
 import numpy as np
 from scipy import ndimage
 
-from cps_mapping.octree_map import index_to_center, near_any, voxel_index
+from cps_mapping.fused_map import index_to_center, near_any, voxel_index
 
 
 @dataclasses.dataclass
@@ -86,7 +86,7 @@ def detect_changes(baseline_centers_m, current_centers_m, resolution_m, toleranc
 
 
 def detect_map_changes(baseline_map, current_map, free_max_probability=0.25, **kwargs) -> List[Change]:
-    """detect_changes for two FusedOctoMaps, each one's firm free space (occupancy probability at
+    """detect_changes for two FusedLogOddsMaps, each one's firm free space (occupancy probability at
     most `free_max_probability`) vouching for the other's changes."""
     if abs(baseline_map.resolution_m - current_map.resolution_m) > 1e-9:
         raise ValueError("the two maps have different resolutions")

@@ -12,7 +12,7 @@ import struct
 import numpy as np
 from visualization_msgs.msg import Marker, MarkerArray
 
-from cps_mapping.octree_map import height_colors
+from cps_mapping.fused_map import height_colors
 
 # Marker's fields after `colors` (text, mesh_resource: empty strings; mesh_use_embedded_materials).
 _TAIL_BYTES = 4 + 4 + 1

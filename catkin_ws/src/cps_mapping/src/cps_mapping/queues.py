@@ -1,14 +1,13 @@
-"""Bounded per-robot cloud queues served round-robin, and the per-robot statistics of the server.
+"""Bounded per-robot cloud queues served round-robin.
 
 The map server's subscriber callbacks `put` clouds (already in `map`); one worker thread `take`s
 every queued cloud of the next robot in turn and inserts them as one batch. A full queue drops
-its oldest cloud (the newest view of the site matters most) and counts it.
+its oldest cloud (the newest view of the site matters most) and says so; the server counts it.
 """
 import collections
 import dataclasses
-import math
 import threading
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 
@@ -21,31 +20,6 @@ class QueuedCloud:
     stamp_s: float
 
 
-@dataclasses.dataclass
-class RobotCounters:
-    """What RobotMapStats reports for one robot."""
-    clouds_received: int = 0
-    clouds_inserted: int = 0
-    clouds_dropped_queue: int = 0
-    clouds_dropped_tf: int = 0
-    clouds_dropped_invalid: int = 0
-    points_inserted: int = 0
-    points_rejected: int = 0
-    batches: int = 0
-    insertion_ms_total: float = 0.0
-    insertion_ms_max: float = 0.0
-    newest_inserted_stamp_s: Optional[float] = None
-
-    @property
-    def insertion_ms_avg(self):
-        return self.insertion_ms_total / self.batches if self.batches else 0.0
-
-    def map_age_s(self, now_s):
-        if self.newest_inserted_stamp_s is None:
-            return math.inf
-        return max(0.0, now_s - self.newest_inserted_stamp_s)
-
-
 class RobotQueues:
     """One bounded FIFO per robot, served fairly; thread-safe."""
 
@@ -55,7 +29,6 @@ class RobotQueues:
         self.robots = list(robots)
         self.queue_size = queue_size
         self._queues: Dict[str, collections.deque] = {r: collections.deque() for r in self.robots}
-        self.counters: Dict[str, RobotCounters] = {r: RobotCounters() for r in self.robots}
         self._cond = threading.Condition()
         self._next = 0
         self._closed = False
@@ -67,7 +40,6 @@ class RobotQueues:
             dropped = False
             if len(queue) >= self.queue_size:
                 queue.popleft()
-                self.counters[cloud.robot].clouds_dropped_queue += 1
                 dropped = True
             queue.append(cloud)
             self._cond.notify()

@@ -22,7 +22,7 @@ from typing import Callable, Dict, Optional
 
 import numpy as np
 
-from cps_mapping.octree_map import index_to_center, near_any, pack_index, voxel_index
+from cps_mapping.fused_map import index_to_center, near_any, pack_index, voxel_index
 
 _FACES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.int64)
 
@@ -84,7 +84,7 @@ def score_map(occupied_centers_m, ground_truth, resolution_m=None, is_free: Opti
               contributions: Optional[Dict[str, np.ndarray]] = None, tolerance_voxels=1) -> MapScore:
     """Score a map's occupied voxel centres against the ground truth (see the module docstring).
 
-    `is_free(points) -> bool array` is the map's free-space test (FusedOctoMap.is_free);
+    `is_free(points) -> bool array` is the map's free-space test (FusedLogOddsMap.is_free);
     `contributions` maps robot -> the occupied voxel centres that robot last updated.
     """
     truth_centers, truth_res = load_ground_truth(ground_truth, resolution_m)
@@ -118,7 +118,7 @@ def score_map(occupied_centers_m, ground_truth, resolution_m=None, is_free: Opti
 
 
 def score_fused_map(fused, ground_truth, tolerance_voxels=1) -> MapScore:
-    """score_map for a FusedOctoMap, with its free space and per-robot contributions."""
+    """score_map for a FusedLogOddsMap, with its free space and per-robot contributions."""
     occupied = fused.occupied_index()
     contributions = {robot: index_to_center(index, fused.resolution_m)
                      for robot, index in fused.contributed_index(occupied).items()}

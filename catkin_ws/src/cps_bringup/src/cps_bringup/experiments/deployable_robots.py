@@ -5,7 +5,7 @@ N = floor(link / per-robot MB/s) (the paper: 16 of type A and 2 of type B at 60 
 manager a robot only needs its minimum rate, so N(f) = floor(budget / (message size x f)); what
 a lower rate costs is map quality, measured by replaying one depth robot's recorded mission
 clouds at rate f (every k-th cloud of a route driven at its cruise speed) through the twin's
-pipeline (voxel grid, Draco, decode) into a FusedOctoMap and scoring it against cps_sim's
+pipeline (voxel grid, Draco, decode) into a FusedLogOddsMap and scoring it against cps_sim's
 ground truth.
 """
 import math
@@ -49,7 +49,7 @@ def twin_points_in_map(sample, leaf_m, encoder, decoder):
 
 def replay_quality(fleet, robot, rates_hz, duration_s=None, log=print):
     """Map quality after one mission of `robot` at each rate: list of dicts (rate, clouds, scores)."""
-    from cps_mapping.octree_map import FusedOctoMap, near_any, voxel_index
+    from cps_mapping.fused_map import FusedLogOddsMap, near_any, voxel_index
     from cps_mapping.scoring import score_fused_map
     from cps_sim.ground_truth import occupied_voxels
     from cps_sim.sample_clouds import render_mission_clouds
@@ -73,7 +73,7 @@ def replay_quality(fleet, robot, rates_hz, duration_s=None, log=print):
     for rate in sorted(rates_hz, reverse=True):
         step = top / rate
         chosen = sorted({int(math.floor(i * step)) for i in range(int(math.floor(frames / step + 1e-9)) or 1)})
-        fused = FusedOctoMap.from_mapping_config(fleet.mapping)
+        fused = FusedLogOddsMap.from_mapping_config(fleet.mapping, exact_free_space=True)
         for i in chosen:
             fused.insert_cloud(twin[i][0], twin[i][1], max_range_m=max_range, robot=robot)
         score = score_fused_map(fused, truth)
@@ -181,7 +181,7 @@ def run(out_dir, mission, quick=False, log=print):
         f"{replay_robot}'s route ({length_m:.1f} m at cruise speed = a {duration_s:.0f} s mission"
         f"{', shortened to 5 s by --quick' if quick else ''}) rendered at {max(rates):g} Hz (paper profile), every "
         f"cloud voxel-filtered, Draco-encoded and decoded as the twin receives it; at rate f every "
-        f"({max(rates):g}/f)-th cloud is inserted into a fresh FusedOctoMap ({fleet.mapping.resolution_m} m) and scored "
+        f"({max(rates):g}/f)-th cloud is inserted into a fresh FusedLogOddsMap ({fleet.mapping.resolution_m} m) and scored "
         f"against cps_sim's ground truth. *Route recall/F1* count only the ground-truth voxels the "
         f"{max(rates):g} Hz replay found (what this route can see at all); hall F1 counts the whole hall. "
         f"The last column is how many such robots the managed link carries at that rate (virtual robots replaying "

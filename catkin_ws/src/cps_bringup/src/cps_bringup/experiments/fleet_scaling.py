@@ -214,11 +214,11 @@ def _profile():
 
 def write_fig14(summary, png_path):
     from cps_bringup.experiments.topdown_map import plot_topdown
-    from cps_mapping.octree_map import FusedOctoMap
+    from cps_mapping.fused_map import FusedLogOddsMap
     from cps_fleet.fleet import load_fleet
 
     fleet = load_fleet()
-    fused = FusedOctoMap.from_mapping_config(fleet.mapping)
+    fused = FusedLogOddsMap.from_mapping_config(fleet.mapping)
     fused.load(summary["map_file"])
     trajectories = {r: [tuple(p) for p in t] for r, t in summary["trajectories"].items()}
     plot_topdown(fused.occupied_centers(), trajectories, fleet, png_path,

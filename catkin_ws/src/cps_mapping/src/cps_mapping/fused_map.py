@@ -1,6 +1,6 @@
-"""The fused multi-robot map: one OctoMap OcTree (octomap-python) fed by every robot's clouds.
+"""The fused multi-robot map: a dense log-odds grid with OctoMap's insertion and OctoMap I/O.
 
-`FusedOctoMap` is what the map server holds. It knows nothing of ROS: clouds arrive as N x 3
+`FusedLogOddsMap` is what the map server holds. It knows nothing of ROS: clouds arrive as N x 3
 numpy arrays in `map` with their sensor origin. Every cloud is inserted exactly as
 octomap_server's `insertPointCloud(points, origin, max_range)` would insert it, one after the
 other (same rays, same float32 log-odds, same clamping; see `cps_mapping.log_odds_grid`), but
@@ -34,15 +34,6 @@ _MAX_ROBOTS = 255
 
 class MapFileError(ValueError):
     """A map file that cannot be saved or loaded; the message names the file and the reason."""
-
-
-@dataclasses.dataclass(frozen=True)
-class SensorModelParams:
-    """octomap_server's sensor model: hit/miss probabilities and the clamping thresholds."""
-    hit: float = 0.7
-    miss: float = 0.4
-    min: float = 0.12
-    max: float = 0.97
 
 
 @dataclasses.dataclass
@@ -143,16 +134,31 @@ def height_colors(z_m, z_min_m=None, z_max_m=None):
     return rgb
 
 
-class FusedOctoMap:
-    """One OcTree fed by many robots, with per-robot contribution tracking, persistence and views.
+def _apply_sensor_model(tree, sensor_model):
+    tree.setProbHit(sensor_model.hit)
+    tree.setProbMiss(sensor_model.miss)
+    tree.setClampingThresMin(sensor_model.min)
+    tree.setClampingThresMax(sensor_model.max)
+
+
+def new_octree(resolution_m, sensor_model):
+    """An empty octomap.OcTree with `sensor_model` (hit, miss, min, max probabilities)."""
+    tree = octomap.OcTree(resolution_m)
+    _apply_sensor_model(tree, sensor_model)
+    return tree
+
+
+class FusedLogOddsMap:
+    """A dense log-odds grid fed by many robots as OctoMap would be, with per-robot contribution
+    tracking, OctoMap persistence (.bt/.ot) and views.
 
     Not thread-safe: the map server serializes access with one lock.
     """
 
-    def __init__(self, resolution_m, sensor_model=SensorModelParams(), max_grid_voxels=200_000_000,
-                 exact_free_space=True, shared_ray_stop_m=0.3):
-        """Every cloud is cast from its own origin. `max_grid_voxels` bounds the
-        log-odds grid (6 bytes per voxel; default 1.2 GB): a batch that would grow it beyond is
+    def __init__(self, resolution_m, sensor_model, max_grid_voxels=200_000_000,
+                 exact_free_space=False, shared_ray_stop_m=0.3):
+        """`sensor_model`: hit, miss, min, max probabilities (fleet.yaml `mapping.sensor_model`).
+        Every cloud is cast from its own origin. `max_grid_voxels` bounds the log-odds grid (6 bytes per voxel; default 1.2 GB): a batch that would grow it beyond is
         refused (ValueError). `exact_free_space`: True casts every ray whole, as OctoMap does
         (the map equals plain sequential insertion); False casts each ray back from its endpoint
         and stops once it has crossed `shared_ray_stop_m` (rounded up to whole voxels) of voxels
@@ -179,8 +185,7 @@ class FusedOctoMap:
     @classmethod
     def from_mapping_config(cls, mapping, **kwargs):
         """Build from cps_fleet.fleet.MappingConfig (fleet.yaml `mapping:`)."""
-        m = mapping.sensor_model
-        return cls(mapping.resolution_m, SensorModelParams(m.hit, m.miss, m.min, m.max), **kwargs)
+        return cls(mapping.resolution_m, mapping.sensor_model, **kwargs)
 
     @property
     def tree(self):
@@ -215,20 +220,12 @@ class FusedOctoMap:
         return self._binary_file()[1]
 
     def _new_tree(self, resolution_m):
-        tree = octomap.OcTree(resolution_m)
-        self._apply_sensor_model(tree)
-        return tree
+        return new_octree(resolution_m, self.sensor_model)
 
     def _new_grid(self):
         tree = self._new_tree(self.resolution_m)  # OctoMap's own float32 log-odds of the model
         return LogOddsGrid(self.resolution_m, tree.getProbHitLog(), tree.getProbMissLog(),
                            tree.getClampingThresMinLog(), tree.getClampingThresMaxLog())
-
-    def _apply_sensor_model(self, tree):
-        tree.setProbHit(self.sensor_model.hit)
-        tree.setProbMiss(self.sensor_model.miss)
-        tree.setClampingThresMin(self.sensor_model.min)
-        tree.setClampingThresMax(self.sensor_model.max)
 
     # ---- insertion -------------------------------------------------------------------------
 
@@ -454,7 +451,7 @@ class FusedOctoMap:
     def load(self, path):
         """Replace the map with the file's; on any error the current map stays as it was."""
         tree = read_octree_file(path, expected_resolution_m=self.resolution_m)
-        self._apply_sensor_model(tree)
+        _apply_sensor_model(tree, self.sensor_model)
         self.tree = tree
         return tree.size()
 
@@ -546,7 +543,7 @@ def octree_from_bytes(data: bytes, source="map"):
             raise MapFileError(f"{source}: OctoMap could not read the tree: {exc}") from exc
 
 
-def message_fields(fused: FusedOctoMap, binary=True):
+def message_fields(fused: FusedLogOddsMap, binary=True):
     """(binary, id, resolution, data body) as octomap_msgs/Octomap carries them (no file header)."""
     data = fused.to_bytes(binary)
     _, tree_id, _, res, offset = parse_header(data)

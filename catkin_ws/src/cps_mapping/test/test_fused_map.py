@@ -1,4 +1,4 @@
-"""FusedOctoMap: fusion of several robots' clouds, batching, persistence readable by OctoMap's own
+"""FusedLogOddsMap: fusion of several robots' clouds, batching, persistence readable by OctoMap's own
 tools, and every bad input (non-finite points, corrupt or wrong-type files) leaving the map intact."""
 import os
 import shutil
@@ -8,9 +8,10 @@ import numpy as np
 import octomap
 import pytest
 
-from cps_mapping import synthetic_scene as sc
-from cps_mapping.octree_map import (FusedOctoMap, MapFileError, _finest_voxels, message_fields, octree_from_bytes,
+from cps_mapping.fused_map import (MapFileError, _finest_voxels, message_fields, octree_from_bytes,
                                     octree_from_message, pack_index, read_octree_file, voxel_index)
+from fleet_model import new_map, plain_tree
+import synthetic_scene as sc
 
 RES = 0.1
 
@@ -34,7 +35,7 @@ def _set(index):
 
 def test_two_robots_land_in_one_map_at_the_right_places(scene, two_robot_clouds):
     depth, lidar = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, max_range_m=6.0, robot="jackal")
     fused.insert_batch(lidar, max_range_m=12.0, robot="scout")
     occupied = _set(fused.occupied_index())
@@ -51,7 +52,7 @@ def test_two_robots_land_in_one_map_at_the_right_places(scene, two_robot_clouds)
 
 def test_each_robot_alone_sees_only_its_part(scene, two_robot_clouds):
     depth, _ = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, max_range_m=6.0, robot="jackal")
     crate_b = next(b for b in scene.boxes if b.name == "crate_b")
     centers = fused.occupied_centers()
@@ -62,15 +63,12 @@ def test_each_robot_alone_sees_only_its_part(scene, two_robot_clouds):
 
 def test_batch_holds_exactly_the_voxels_sequential_insertion_finds(scene):
     clouds = sc.robot_clouds(scene, "depth", sc.trajectory([-2.0, 0.0, 0.5], [-1.6, 0.0, 0.5], 4), RES)
-    plain = octomap.OcTree(RES)
-    for tree_setter, value in ((plain.setProbHit, 0.7), (plain.setProbMiss, 0.4), (plain.setClampingThresMin, 0.12),
-                               (plain.setClampingThresMax, 0.97)):
-        tree_setter(value)
+    plain = plain_tree(RES)
     for points, origin in clouds:
         plain.insertPointCloud(points, origin, maxrange=6.0)
     plain_occ = {tuple(np.floor(np.array([it.getX(), it.getY(), it.getZ()]) / RES).astype(int))
                  for it in plain.begin_leafs() if it.getValue() > 0}
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     result = fused.insert_batch(clouds, max_range_m=6.0, robot="jackal")
     assert result.groups == 4 and result.clouds == 4, "every cloud is cast from its own origin"
     assert {tuple(i) for i in fused.occupied_index().tolist()} == plain_occ
@@ -78,12 +76,12 @@ def test_batch_holds_exactly_the_voxels_sequential_insertion_finds(scene):
 
 def test_far_origins_are_not_merged(scene):
     clouds = sc.robot_clouds(scene, "depth", sc.trajectory([-2.0, 0.0, 0.5], [0.0, 0.0, 0.5], 3), RES)
-    result = FusedOctoMap(RES).insert_batch(clouds, 6.0, "jackal")
+    result = new_map(RES).insert_batch(clouds, 6.0, "jackal")
     assert result.groups == 3
 
 
 def test_non_finite_and_empty_clouds(scene):
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     points = np.array([[1.0, 0.0, 0.5], [np.nan, 0.0, 0.0], [np.inf, 1.0, 1.0]])
     result = fused.insert_cloud(points, [0.0, 0.0, 0.5], max_range_m=6.0, robot="jackal")
     assert result.points_rejected == 2 and result.points_inserted == 1
@@ -97,7 +95,7 @@ def test_non_finite_and_empty_clouds(scene):
 
 
 def test_max_range_limits_occupied_voxels():
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_cloud(np.array([[3.0, 0.0, 0.0], [30.0, 0.0, 0.0]]), [0.0, 0.0, 0.0], max_range_m=6.0)
     occupied = fused.occupied_centers()
     assert len(occupied) == 1 and occupied[0][0] == pytest.approx(3.05)
@@ -106,11 +104,11 @@ def test_max_range_limits_occupied_voxels():
 @pytest.mark.parametrize("ext", [".bt", ".ot"])
 def test_save_load_round_trip(tmp_path, two_robot_clouds, ext):
     depth, lidar = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, 6.0, "jackal")
     path = fused.save(str(tmp_path / f"sub/map{ext}"))
     assert os.path.exists(path) and not [f for f in os.listdir(tmp_path / "sub") if f.startswith(".tmp")]
-    restored = FusedOctoMap(RES)
+    restored = new_map(RES)
     restored.load(path)
     assert _set(restored.occupied_index()) == _set(fused.occupied_index())
 
@@ -119,7 +117,7 @@ def test_saved_bt_opens_with_octomap_tools_and_equals_live_map(tmp_path, two_rob
     if not shutil.which("convert_octree"):
         pytest.fail("octomap-tools (convert_octree) is not installed; ci/apt-packages.txt lists it")
     depth, lidar = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, 6.0, "jackal")
     fused.insert_batch(lidar, 12.0, "scout")
     bt = fused.save(str(tmp_path / "live.bt"))
@@ -128,7 +126,7 @@ def test_saved_bt_opens_with_octomap_tools_and_equals_live_map(tmp_path, two_rob
     assert run.returncode == 0 and "OcTree" in run.stdout, run.stdout + run.stderr
     assert read_octree_file(str(converted), expected_resolution_m=RES).size() == _max_likelihood_copy(fused).size()
     live = {tuple(i) for i in fused.occupied_index().tolist()}
-    reread = FusedOctoMap(RES)
+    reread = new_map(RES)
     reread.load(str(converted))
     assert {tuple(i) for i in reread.occupied_index().tolist()} == live
     ot = fused.save(str(tmp_path / "live.ot"))
@@ -137,7 +135,7 @@ def test_saved_bt_opens_with_octomap_tools_and_equals_live_map(tmp_path, two_rob
 
 
 def _bad_files(tmp_path):
-    good = FusedOctoMap(RES)
+    good = new_map(RES)
     good.insert_cloud(np.array([[1.0, 1.0, 1.0]]), [0.0, 0.0, 0.0])
     good.save(str(tmp_path / "good.bt"))
     data = (tmp_path / "good.bt").read_bytes()
@@ -147,7 +145,7 @@ def _bad_files(tmp_path):
     color = octomap.ColorOcTree(RES)
     color.updateNode(np.array([0.05, 0.05, 0.05]), True)
     color.write(str(tmp_path / "color.ot").encode())
-    coarse = FusedOctoMap(0.2)
+    coarse = new_map(0.2)
     coarse.insert_cloud(np.array([[1.0, 1.0, 1.0]]), [0.0, 0.0, 0.0])
     coarse.save(str(tmp_path / "coarse.bt"))
     (tmp_path / "map.png").write_bytes(data)
@@ -158,7 +156,7 @@ def _bad_files(tmp_path):
 
 def test_bad_map_files_leave_the_running_map_untouched(tmp_path, two_robot_clouds):
     depth, _ = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, 6.0, "jackal")
     before = _set(fused.occupied_index())
     for name, reason in _bad_files(tmp_path).items():
@@ -170,7 +168,7 @@ def test_bad_map_files_leave_the_running_map_untouched(tmp_path, two_robot_cloud
 
 def test_octomap_message_round_trip(two_robot_clouds):
     depth, _ = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, 6.0, "jackal")
     binary, tree_id, res, body = message_fields(fused)
     assert binary and tree_id == "OcTree" and res == pytest.approx(RES)
@@ -190,7 +188,7 @@ def test_writing_binary_keeps_the_log_odds_and_equals_octomaps_own(tmp_path, two
     """OctoMap's writeBinary turns the tree it writes into max likelihood; publishing or saving
     a .bt must neither do that to the live map nor write anything else than it would."""
     depth, lidar = two_robot_clouds
-    fused, untouched = FusedOctoMap(RES), FusedOctoMap(RES)
+    fused, untouched = new_map(RES), new_map(RES)
     steps = [lambda m: m.insert_batch(depth[:1], 6.0, "jackal"), lambda m: m.insert_batch(lidar, 12.0, "scout"),
              lambda m: m.clear_bbx([-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]), lambda m: m.insert_batch(depth[1:], 6.0, "jackal")]
     for step in steps:
@@ -206,7 +204,7 @@ def test_writing_binary_keeps_the_log_odds_and_equals_octomaps_own(tmp_path, two
 
 def test_clear_bbx_frees_only_inside(scene, two_robot_clouds):
     depth, lidar = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, 6.0, "jackal")
     fused.insert_batch(lidar, 12.0, "scout")
     crate_b = next(b for b in scene.boxes if b.name == "crate_b")
@@ -224,7 +222,7 @@ def test_clear_bbx_frees_only_inside(scene, two_robot_clouds):
 
 def test_projected_map_marks_crates_and_free_floor(scene, two_robot_clouds):
     _, lidar = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(lidar, 12.0, "scout")
     grid, origin = fused.projected_grid(z_min_m=0.2, z_max_m=2.0)
     crate_a = next(b for b in scene.boxes if b.name == "crate_a")
@@ -239,7 +237,7 @@ def test_projected_map_marks_crates_and_free_floor(scene, two_robot_clouds):
 def test_projected_map_equals_the_projection_of_every_known_voxel(two_robot_clouds):
     """The column-wise projection of the dense grid equals octomap_server's leaf by leaf one."""
     depth, lidar = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, 6.0, "jackal")
     fused.insert_batch(lidar, 12.0, "scout")
     for z_min, z_max in ((0.2, 2.0), (-np.inf, np.inf), (0.55, 0.6)):
@@ -257,19 +255,19 @@ def test_projected_map_equals_the_projection_of_every_known_voxel(two_robot_clou
         np.testing.assert_allclose(origin, lo * RES)
     grid, _ = fused.projected_grid(z_min_m=50.0, z_max_m=60.0)
     assert grid.shape == (1, 1) and grid[0, 0] == -1
-    assert FusedOctoMap(RES).projected_grid()[0].shape == (1, 1)
+    assert new_map(RES).projected_grid()[0].shape == (1, 1)
 
 
 def test_reset_empties_the_map(two_robot_clouds):
     depth, _ = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, 6.0, "jackal")
     fused.reset()
     assert len(fused.occupied_index()) == 0 and fused.contributions() == {}
 
 
 def test_is_free_agrees_with_octomap_and_asks_for_firmer_evidence_on_request(two_robot_clouds):
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     origin, target, crossed = [0.05, 0.05, 0.05], [[2.05, 0.05, 0.05]], [[1.05, 0.05, 0.05]]
     for clouds in (1, 2, 3):
         fused.insert_cloud(np.array(target), origin)
@@ -286,7 +284,7 @@ def test_is_free_agrees_with_octomap_and_asks_for_firmer_evidence_on_request(two
 
 def test_leaves_read_from_the_grid_are_the_trees_leaves(two_robot_clouds):
     depth, lidar = two_robot_clouds
-    fused = FusedOctoMap(RES)
+    fused = new_map(RES)
     fused.insert_batch(depth, 6.0, "jackal")
     fused.insert_batch(lidar, 12.0, "scout")
     rows = np.array([(it.getX(), it.getY(), it.getZ(), it.getSize(), it.getValue()) for it in fused.tree.begin_leafs()])
@@ -297,7 +295,7 @@ def test_leaves_read_from_the_grid_are_the_trees_leaves(two_robot_clouds):
 
 
 def test_a_far_origin_cannot_grow_the_grid_beyond_its_limit():
-    fused = FusedOctoMap(RES, max_grid_voxels=2_000_000)
+    fused = new_map(RES, max_grid_voxels=2_000_000)
     fused.insert_cloud(np.array([[3.0, 0.0, 0.5]]), [0.0, 0.0, 0.5], max_range_m=6.0)
     before, grid_bytes = _set(fused.occupied_index()), fused.stats()["grid_bytes"]
     near, far = (np.array([[1.0, 1.0, 0.5]]), [0.0, 0.0, 0.5]), (np.array([[900.0, 0.0, 0.5]]), [901.0, 0.0, 0.5])

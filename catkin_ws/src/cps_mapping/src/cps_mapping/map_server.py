@@ -1,0 +1,392 @@
+"""The multi-robot map server (paper 2.3.1, Fig. 6) without the ROS plumbing.
+
+Every robot's cloud is moved into the fixed frame (an injected transform lookup), queued per
+robot (bounded, fair) and inserted into one FusedLogOddsMap by whoever calls `insert_pending`
+(the node's worker thread). `publish_*` build the messages and hand them to injected publish
+callables; the `on_*` service handlers take and return cps_msgs/std_srvs types. The node wires
+this to rospy; the tests drive it directly.
+"""
+import dataclasses
+import logging
+import math
+import os
+import threading
+import time
+from typing import Callable, Dict, Optional, Sequence, Tuple
+
+import numpy as np
+from std_msgs.msg import Header
+from std_srvs.srv import EmptyResponse
+
+from cps_mapping import map_messages, names
+from cps_mapping.change_detection import detect_map_changes, write_report
+from cps_mapping.cloud_input import InvalidInput, prepare_cloud
+from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
+from cps_mapping.markers import occupied_cells_markers
+from cps_mapping.queues import QueuedCloud, RobotQueues
+from cps_msgs.srv import ClearBBXResponse, LoadMapResponse, SaveMapResponse
+from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
+
+_WARN_EVERY_S = 5.0
+_FRAME_WARN_EVERY_S = 30.0
+
+
+def _option(default, meaning, unit="", **bounds):
+    return dataclasses.field(default=default, metadata=dict(meaning=meaning, unit=unit, bounds=bounds))
+
+
+@dataclasses.dataclass(frozen=True)
+class MapServerOptions:
+    """The map server's settings, one per private parameter of the node (same name)."""
+    fleet_file: str = _option("", "fleet.yaml: robots, resolution, sensor model, max ranges, autosave period "
+                                  "(empty: cps_bringup's)", "path")
+    robots: Tuple[str, ...] = _option((), "robots to map (list or comma string; empty: the whole fleet); "
+                                          "names not in the fleet are logged and ignored")
+    frame_id: str = _option("map", "fixed frame")
+    tf_timeout_s: float = _option(0.5, "longest wait for a cloud's transform, then it is dropped", "s", low=0.0)
+    queue_size: int = _option(3, "clouds queued per robot; a full queue drops its oldest", "clouds", low=1)
+    publish_period_s: float = _option(1.0, "map, markers, centres and projected map (if the map changed)", "s",
+                                      low=0.0, low_open=True)
+    map_file: str = _option("", "autosave target (.bt or .ot), saved on shutdown, resumed at start", "path")
+    autosave_period_s: Optional[float] = _option(None, "0: only on shutdown and on request (default: fleet.yaml "
+                                                       "mapping.autosave_period_s)", "s", low=0.0)
+    max_points_range_m: float = _option(200.0, "points farther from the sensor are absurd: removed, counted", "m",
+                                        low=0.0, low_open=True)
+    exact_free_space: bool = _option(False, "true: every ray cast whole (plain OctoMap insertion); false: "
+                                            "shared-origin casting")
+    shared_ray_stop_m: float = _option(0.3, "shared-origin casting: a ray stops after this length of voxels its "
+                                            "cloud already cleared", "m", low=0.0, low_open=True)
+    projected_min_z_m: float = _option(0.1, "lower bound of the projected map's height band", "m")
+    projected_max_z_m: float = _option(2.0, "upper bound of the projected map's height band", "m")
+    baseline_map: str = _option("", "baseline map of the same site for map_changes", "path")
+    change_period_s: float = _option(10.0, "change detection period", "s", low=0.0, low_open=True)
+    change_report: str = _option("", "Markdown (+ .json) report written at each change detection", "path")
+
+
+@dataclasses.dataclass
+class RobotCounters:
+    """What RobotMapStats reports for one robot."""
+    clouds_received: int = 0
+    clouds_inserted: int = 0
+    clouds_dropped_queue: int = 0
+    clouds_dropped_tf: int = 0
+    clouds_dropped_invalid: int = 0
+    points_inserted: int = 0
+    points_rejected: int = 0
+    batches: int = 0
+    insertion_ms_total: float = 0.0
+    insertion_ms_max: float = 0.0
+    newest_inserted_stamp_s: Optional[float] = None
+
+    @property
+    def insertion_ms_avg(self):
+        return self.insertion_ms_total / self.batches if self.batches else 0.0
+
+    def map_age_s(self, now_s):
+        if self.newest_inserted_stamp_s is None:
+            return math.inf
+        return max(0.0, now_s - self.newest_inserted_stamp_s)
+
+
+@dataclasses.dataclass(frozen=True)
+class MapSnapshot:
+    """What the publishers send for one map version, taken under the map lock."""
+    version: int
+    leaf_centers_m: np.ndarray
+    leaf_sizes_m: np.ndarray
+    grid: np.ndarray
+    grid_origin_m: np.ndarray
+    octomap_fields: tuple
+    contributions: Dict[str, int]
+    tree_nodes: int
+    memory_bytes: int
+
+
+@dataclasses.dataclass(frozen=True)
+class MapOutputs:
+    """One publish callable per output topic (a rospy Publisher's `publish`; a list's `append` in tests)."""
+    octomap: Callable
+    markers: Callable
+    centers: Callable
+    projected_map: Callable
+    stats: Callable
+    changes: Callable
+
+
+class TransformUnavailable(Exception):
+    """No transform fixed frame <- cloud frame at the cloud's stamp."""
+
+
+class MapServer:
+    """The fused map, the per-robot queues and counters, and what the node's callbacks do."""
+
+    def __init__(self, fleet, options: MapServerOptions, outputs: MapOutputs,
+                 transform_of: Callable, log: logging.Logger = logging.getLogger(__name__)):
+        """`fleet`: cps_fleet's FleetConfig. `transform_of(frame, stamp)` -> (3x3 rotation, translation)
+        of `frame` in `options.frame_id`, or raises TransformUnavailable. ValueError for bad options."""
+        self.options, self.outputs, self.log = options, outputs, log
+        self._transform_of = transform_of
+        if options.map_file and os.path.splitext(options.map_file)[1].lower() not in (".bt", ".ot"):
+            raise ValueError(f"map_file: '{options.map_file}' must end in .bt or .ot")
+        self.robots = self._select_robots(fleet, options.robots)
+        mapped = [r for r in fleet.robots if r.name in self.robots]
+        self.max_range_m = {r.name: fleet.mapping.max_range_m.get(r.type, -1.0) for r in mapped}
+        self.sensor_frames = {r.name: r.sensor_frame for r in mapped}
+        self.map = FusedLogOddsMap.from_mapping_config(fleet.mapping, exact_free_space=options.exact_free_space,
+                                                       shared_ray_stop_m=options.shared_ray_stop_m)
+        self.baseline = None
+        if options.baseline_map:
+            self.baseline = FusedLogOddsMap.from_mapping_config(fleet.mapping)
+            try:
+                self.baseline.load(options.baseline_map)
+            except MapFileError as exc:
+                raise ValueError(f"baseline_map: {exc}") from exc
+        self._map_lock = threading.Lock()
+        self._counters_lock = threading.Lock()
+        self.counters = {r: RobotCounters() for r in self.robots}
+        self.queues = RobotQueues(self.robots, options.queue_size)
+        self.snapshot: Optional[MapSnapshot] = None
+        self.unknown_robots = set()
+        self._last_warned = {}
+        self._resume()
+
+    def _select_robots(self, fleet, wanted: Sequence[str]):
+        if not wanted:
+            return list(fleet.robot_names)
+        for name in wanted:
+            if name not in fleet.robot_names:
+                self.log.error(f"map_server: ~robots names '{name}', which is not in the fleet "
+                               f"({', '.join(fleet.robot_names)}); ignoring it")
+        known = [w for w in wanted if w in fleet.robot_names]
+        if not known:
+            raise ValueError(f"robots: none of {list(wanted)} is in the fleet")
+        return known
+
+    def describe(self):
+        o = self.options
+        free = "exact" if o.exact_free_space else f"shared-origin casting (stop {o.shared_ray_stop_m} m)"
+        return (f"map_server: robots {', '.join(self.robots)}; resolution {self.map.resolution_m} m; "
+                f"max range {self.max_range_m}; queue {o.queue_size}; map file '{o.map_file or '(none)'}'; "
+                f"free space {free}")
+
+    def _warn(self, key, period_s, message, level=logging.WARNING):
+        """Log `message` unless the same `key` was logged within `period_s`."""
+        now = time.monotonic()
+        if now - self._last_warned.get(key, -math.inf) >= period_s:
+            self._last_warned[key] = now
+            self.log.log(level, message)
+
+    def _count(self, robot, **amounts):
+        with self._counters_lock:
+            counters = self.counters[robot]
+            for field, amount in amounts.items():
+                setattr(counters, field, getattr(counters, field) + amount)
+
+    # ---- persistence ---------------------------------------------------------------------------
+
+    def _resume(self):
+        path = self.options.map_file
+        if not path or not os.path.exists(path):
+            return
+        try:
+            nodes = self.map.load(path)
+            self.log.info(f"map_server: resumed from {path} ({nodes} nodes)")
+        except MapFileError as exc:
+            aside = f"{path}.unreadable-{int(time.time())}"
+            os.replace(path, aside)
+            self.log.error(f"map_server: cannot resume: {exc}; moved it to {aside} and started an empty map")
+
+    def _save(self, path):
+        with self._map_lock:
+            return self.map.save(path)
+
+    def autosave(self):
+        try:
+            self._save(self.options.map_file)
+        except MapFileError as exc:
+            self._warn("autosave", 30.0, f"map_server: autosave failed: {exc}", logging.ERROR)
+
+    def shutdown(self):
+        """Stop the insertion and save to `map_file`, if set."""
+        self.queues.close()
+        if self.options.map_file:
+            try:
+                path = self._save(self.options.map_file)
+                self.log.info(f"map_server: saved the map to {path} on shutdown")
+            except MapFileError as exc:
+                self.log.error(f"map_server: could not save on shutdown: {exc}")
+
+    # ---- input ---------------------------------------------------------------------------------
+
+    def receive_cloud(self, robot, msg):
+        """Check a robot's PointCloud2, move it into the fixed frame and queue it; bad ones are counted."""
+        self._count(robot, clouds_received=1)
+        frame = msg.header.frame_id.lstrip("/")
+        if not frame:
+            self._count(robot, clouds_dropped_invalid=1)
+            self._warn(("frame", robot), _WARN_EVERY_S, f"map_server: {robot}: cloud without frame_id dropped")
+            return
+        try:
+            xyz = xyz_of(cloud_to_array(msg))
+        except InvalidCloud as exc:
+            self._count(robot, clouds_dropped_invalid=1)
+            self._warn(("malformed", robot), _WARN_EVERY_S, f"map_server: {robot}: malformed cloud dropped: {exc}")
+            return
+        try:
+            rotation, translation = self._transform_of(frame, msg.header.stamp)
+        except TransformUnavailable as exc:
+            self._count(robot, clouds_dropped_tf=1)
+            self._warn(("tf", robot), _WARN_EVERY_S,
+                       f"map_server: {robot}: no transform {self.options.frame_id} <- '{frame}' at "
+                       f"{msg.header.stamp.to_sec():.3f} within {self.options.tf_timeout_s} s, cloud dropped: {exc}")
+            return
+        if frame != self.sensor_frames[robot]:
+            self._warn(("unexpected frame", robot), _FRAME_WARN_EVERY_S,
+                       f"map_server: {robot}: cloud in frame '{frame}', expected '{self.sensor_frames[robot]}'; "
+                       f"inserted with its own transform")
+        try:
+            cloud = prepare_cloud(xyz, rotation, translation, self.options.max_points_range_m)
+        except InvalidInput as exc:
+            self._count(robot, clouds_dropped_invalid=1)
+            self._warn(("invalid", robot), _WARN_EVERY_S, f"map_server: {robot}: cloud dropped: {exc}")
+            return
+        if cloud.absurd:
+            self._count(robot, points_rejected=cloud.absurd)
+            self._warn(("absurd", robot), _WARN_EVERY_S,
+                       f"map_server: {robot}: {cloud.absurd} points farther than {self.options.max_points_range_m} m "
+                       f"(~max_points_range_m) removed")
+        if self.queues.put(QueuedCloud(robot, cloud.points_m, cloud.origin_m, msg.header.stamp.to_sec())):
+            self._count(robot, clouds_dropped_queue=1)
+            self._warn(("queue", robot), _WARN_EVERY_S,
+                       f"map_server: {robot}: queue full, dropped the oldest cloud "
+                       f"({self.counters[robot].clouds_dropped_queue} so far)")
+
+    def notice_topics(self, topics: Sequence[str], namespace: str):
+        """Warn once per robot whose `<namespace>/<robot>/points` is among `topics` but is not mapped."""
+        for topic in topics:
+            robot = names.robot_of_points_topic(topic, namespace)
+            if robot and robot not in self.robots and robot not in self.unknown_robots:
+                self.unknown_robots.add(robot)
+                self.log.warning(f"map_server: {topic} is published but robot '{robot}' is not mapped "
+                                 f"(fleet/~robots: {', '.join(self.robots)}); its clouds are ignored "
+                                 f"({len(self.unknown_robots)} unknown robot(s) seen)")
+
+    def insert_pending(self, timeout_s=0.5):
+        """Insert the queued clouds of the next robot (waiting up to `timeout_s`); how many were taken."""
+        batch = self.queues.take(timeout_s=timeout_s)
+        if not batch:
+            return 0
+        robot = batch[0].robot
+        try:
+            with self._map_lock:
+                result = self.map.insert_batch([(c.points_m, c.origin_m) for c in batch],
+                                               max_range_m=self.max_range_m[robot], robot=robot)
+        except Exception as exc:  # a bug here must not stop the map; say it loudly
+            self._count(robot, clouds_dropped_invalid=len(batch))
+            self._warn(("insertion", robot), _WARN_EVERY_S,
+                       f"map_server: {robot}: insertion failed, {len(batch)} clouds lost: {exc}", logging.ERROR)
+            return len(batch)
+        elapsed_ms = result.seconds * 1e3
+        newest_s = max(c.stamp_s for c in batch)
+        with self._counters_lock:
+            c = self.counters[robot]
+            c.clouds_inserted += len(batch)
+            c.points_inserted += result.points_inserted
+            c.batches += 1
+            c.insertion_ms_total += elapsed_ms
+            c.insertion_ms_max = max(c.insertion_ms_max, elapsed_ms)
+            c.newest_inserted_stamp_s = max(newest_s, c.newest_inserted_stamp_s or newest_s)
+        return len(batch)
+
+    # ---- output --------------------------------------------------------------------------------
+
+    def take_snapshot(self):
+        """(snapshot of the current map version, whether it is new)."""
+        with self._map_lock:
+            if self.snapshot is not None and self.snapshot.version == self.map.version:
+                return self.snapshot, False
+            centers, sizes = self.map.occupied_leaves()
+            grid, origin = self.map.projected_grid(self.options.projected_min_z_m, self.options.projected_max_z_m)
+            snapshot = MapSnapshot(
+                version=self.map.version, leaf_centers_m=centers, leaf_sizes_m=sizes, grid=grid,
+                grid_origin_m=origin, octomap_fields=message_fields(self.map, binary=True),
+                contributions=self.map.contributions(), tree_nodes=self.map.binary_tree_nodes(),
+                memory_bytes=self.map.memory_bytes())
+        self.snapshot = snapshot
+        return snapshot, True
+
+    def _header(self, stamp):
+        return Header(stamp=stamp, frame_id=self.options.frame_id)
+
+    def publish_map(self, stamp):
+        """The map, markers, centres and projected map, if the map changed since the last call."""
+        snap, changed = self.take_snapshot()
+        if not changed:
+            return
+        out = self.outputs
+        out.octomap(map_messages.octomap_message(snap.octomap_fields, self._header(stamp)))
+        out.markers(occupied_cells_markers(snap.leaf_centers_m, snap.leaf_sizes_m, self.map.resolution_m,
+                                           self._header(stamp)))
+        out.centers(map_messages.centers_cloud(snap.leaf_centers_m, self._header(stamp)))
+        out.projected_map(map_messages.projected_map(snap.grid, snap.grid_origin_m, self.map.resolution_m,
+                                                     self._header(stamp)))
+
+    def publish_stats(self, stamp):
+        """MapStats: the published snapshot's figures and every robot's counters at `stamp`."""
+        snap = self.snapshot
+        contributions = snap.contributions if snap is not None else {}
+        with self._counters_lock:
+            robots = [map_messages.robot_map_stats(r, self.counters[r], self.queues.length(r), stamp.to_sec(),
+                                                   contributions.get(r, 0)) for r in self.robots]
+        self.outputs.stats(map_messages.map_stats(self._header(stamp), self.map.resolution_m, snap, robots))
+
+    def publish_changes(self, stamp):
+        """What appeared or disappeared against the baseline map, as markers (and the report)."""
+        with self._map_lock:
+            changes = detect_map_changes(self.baseline, self.map)
+        array = map_messages.change_markers(changes, self._header(stamp))
+        if self.options.change_report:  # before the markers, so that whoever sees them finds the report
+            write_report(changes, self.options.change_report, self.options.baseline_map, "live map")
+        self.outputs.changes(array)
+
+    # ---- services ------------------------------------------------------------------------------
+
+    def _path_or_default(self, path):
+        path = os.path.expanduser(path.strip()) if path else self.options.map_file
+        if not path:
+            raise MapFileError("no path given and ~map_file is empty")
+        return path
+
+    def on_save(self, req):
+        try:
+            path = self._save(self._path_or_default(req.path))
+            return SaveMapResponse(success=True, message=f"saved {path}", path=path)
+        except MapFileError as exc:
+            self.log.error(f"map_server: save failed: {exc}")
+            return SaveMapResponse(success=False, message=str(exc), path=req.path)
+
+    def on_load(self, req):
+        try:
+            path = self._path_or_default(req.path)
+            with self._map_lock:
+                nodes = self.map.load(path)
+            return LoadMapResponse(success=True, message=f"loaded {path} ({nodes} nodes)", path=path)
+        except MapFileError as exc:
+            self.log.error(f"map_server: load refused, the running map is unchanged: {exc}")
+            return LoadMapResponse(success=False, message=str(exc), path=req.path)
+
+    def on_reset(self, _req):
+        with self._map_lock:
+            self.map.reset()
+        self.log.info("map_server: map reset")
+        return EmptyResponse()
+
+    def on_clear_bbx(self, req):
+        lo = (req.min.x, req.min.y, req.min.z)
+        hi = (req.max.x, req.max.y, req.max.z)
+        try:
+            with self._map_lock:
+                cleared = self.map.clear_bbx(lo, hi)
+        except ValueError as exc:
+            return ClearBBXResponse(success=False, message=str(exc))
+        return ClearBBXResponse(success=True, message=f"cleared {cleared} voxels")

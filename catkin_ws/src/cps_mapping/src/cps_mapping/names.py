@@ -1,0 +1,31 @@
+"""The map server's topic and service names, relative to its namespace.
+
+The server runs in `/twin` (plan.py, the launch files), so these resolve to `/twin/octomap_binary`,
+`/twin/<r>/points` and so on (shared/design/ros-graph.md).
+"""
+import re
+from typing import Optional
+
+OCTOMAP_BINARY = "octomap_binary"
+OCCUPIED_CELLS = "occupied_cells_vis_array"
+POINT_CLOUD_CENTERS = "octomap_point_cloud_centers"
+PROJECTED_MAP = "projected_map"
+MAP_STATS = "map_stats"
+MAP_CHANGES = "map_changes"
+
+SAVE_MAP = "save_map"
+LOAD_MAP = "load_map"
+RESET = "reset"
+CLEAR_BBX = "clear_bbx"
+
+
+def robot_points(robot: str) -> str:
+    """A robot's decoded cloud topic."""
+    return f"{robot}/points"
+
+
+def robot_of_points_topic(topic: str, namespace: str) -> Optional[str]:
+    """The robot whose cloud topic the resolved name `topic` is, in `namespace`; None if it is none."""
+    prefix = re.escape(namespace.rstrip("/") + "/")
+    match = re.match(prefix + "([^/]+)" + re.escape(robot_points("")) + "$", topic)
+    return match.group(1) if match else None
