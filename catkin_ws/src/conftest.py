@@ -14,6 +14,8 @@ import os
 
 import pytest
 
+from cps_harness.testing import RosGraph
+
 ROS_FIXTURES = frozenset({"ros_master", "ros", "rospy_node"})
 
 
