@@ -59,7 +59,8 @@ def pipeline(ros, rospy_node):
     p.filtered = array_to_cloud({"x": p.centroids[:, 0], "y": p.centroids[:, 1], "z": p.centroids[:, 2], **extras})
     p.filtered.header.frame_id = f"{R}/camera_depth_optical_frame"
     try:
-        assert wait_for(lambda: p.raw_pub.get_num_connections() > 0 and p.compressed_pub.get_num_connections() > 0)
+        # The encoder reads the raw topic; the decoder and topic_stats both read the compressed one.
+        assert wait_for(lambda: p.raw_pub.get_num_connections() >= 1 and p.compressed_pub.get_num_connections() >= 2)
         yield p
     finally:
         for handle in (out_sub, stats_sub, diag_sub, p.raw_pub, p.compressed_pub):
