@@ -160,8 +160,8 @@ def bench_priority_to_rate_on_link(changes):
     manager and this measurement on the digital twin, so the new rate crosses the link."""
     import json
 
-    from cps_bw_manager.link_run import LinkRosGraph
-    from cps_bw_manager.netns_link import LinkError, ShapedLink, check_capability
+    from cps_link.link_run import LinkRosGraph
+    from cps_link.netns_link import LinkError, ShapedLink, check_capability
     from cps_harness.processes import find_node
 
     try:

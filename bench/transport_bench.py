@@ -40,7 +40,7 @@ def load_clouds(frames):
         clouds = render_mission_clouds("paper", frames_per_robot=frames)
         return {robot: [s.cloud for s in samples] for robot, samples in clouds.items()}, "cps_sim.render_mission_clouds (paper profile)"
     except ImportError:
-        from cps_transport.synthetic_clouds import depth_camera_cloud, lidar_cloud
+        from cps_harness.synthetic_clouds import depth_camera_cloud, lidar_cloud
         fleet = load_fleet(profile="paper")
         out = {}
         for robot in fleet.robots:

@@ -5,7 +5,8 @@ from types import SimpleNamespace
 import pytest
 
 from cps_bw_manager.estimation import BandwidthEstimator
-from cps_bw_manager.manager import ManagerCore, ManagerSettings, link_totals
+from cps_bw_manager.manager import (ALLOCATION_CSV_COLUMNS, ManagerCore, ManagerSettings, allocation_csv_rows,
+                                    link_totals)
 
 SETTINGS = ManagerSettings(available_mbps=60.0, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0,
                            headroom_messages=0.0)
@@ -130,3 +131,12 @@ def test_link_totals_from_topic_stats():
     delivered, latency = link_totals(topics)
     assert delivered == pytest.approx(10.0) and latency == 5.0
     assert all(math.isnan(v) for v in link_totals([]))
+
+
+def test_one_allocation_csv_row_per_robot_with_every_column():
+    core = _core()
+    core.on_limiter_status("a", 200000.0, 50.0, now_s=0.0)
+    rows = allocation_csv_rows(12.5, 60.0, core.allocate(), {"a": "inspecting", "b": "idle"})
+    assert [row[4] for row in rows] == ["a", "b"]
+    assert all(len(row) == len(ALLOCATION_CSV_COLUMNS) for row in rows)
+    assert rows[0][:4] == ("12.500", "60.000", "7.2000", 1) and rows[0][6] == "inspecting"

@@ -4,33 +4,16 @@ import csv
 import math
 import threading
 import time
+from types import SimpleNamespace
 
 import pytest
+
+from cps_harness.testing import TopicRecorder, wait_for
 
 pytestmark = pytest.mark.ros
 
 ROBOTS = ("scout", "jackal")
 PAYLOAD_BYTES = 20000
-
-
-def _wait_for(predicate, timeout_s, what):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-
-
-class _Latest:
-    def __init__(self, rospy, topic, cls, key=None):
-        self.msgs = {}
-        self.sub = rospy.Subscriber(topic, cls, self._on)
-        self.key = key
-
-    def _on(self, msg):
-        self.msgs[self.key(msg) if self.key else None] = msg
 
 
 @pytest.fixture
@@ -39,7 +22,7 @@ def graph(ros, rospy_node, tmp_path):
     rospy = rospy_node
     from std_msgs.msg import String
 
-    from cps_msgs.msg import CompressedPointCloud2
+    from cps_msgs.msg import BandwidthAllocationArray, CompressedPointCloud2, RateLimiterStatus
 
     for r in ROBOTS:
         ros.start_node("cps_transport", "rate_limiter", name="cloud_throttle", namespace=f"/{r}",
@@ -63,95 +46,105 @@ def graph(ros, rospy_node, tmp_path):
 
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
+    allocation = TopicRecorder("/tissue/allocation", BandwidthAllocationArray)
+    status = {r: TopicRecorder(f"/{r}/cloud_throttle/status", RateLimiterStatus) for r in ROBOTS}
     try:
-        yield rospy, mission, csv_path
+        yield SimpleNamespace(rospy=rospy, mission=mission, csv_path=csv_path, allocation=allocation, status=status)
     finally:
         stop.set()
         feeder.join(2.0)
+        for recorder in [allocation, *status.values()]:
+            recorder.close()
         for pub in list(pubs.values()) + list(mission.values()):
             pub.unregister()
 
 
-def test_manager_sets_limiter_rates_from_sizes_states_and_operator(ros, graph):
-    rospy, mission, csv_path = graph
-    from std_msgs.msg import String
+def _allocation(graph):
+    msg = graph.allocation.latest
+    return {a.robot: a for a in msg.allocations} if msg else {}
 
-    from cps_msgs.msg import BandwidthAllocationArray, RateLimiterStatus
-    from cps_msgs.srv import SetPriority
 
-    alloc = _Latest(rospy, "/tissue/allocation", BandwidthAllocationArray)
-    status = {r: _Latest(rospy, f"/{r}/cloud_throttle/status", RateLimiterStatus) for r in ROBOTS}
-
-    def allocation():
-        msg = alloc.msgs.get(None)
-        return {a.robot: a for a in msg.allocations} if msg else {}
-
-    def in_force(expected):
-        """Every limiter runs the rate the manager last allocated, and that matches `expected`."""
-        current = allocation()
+def _wait_in_force(graph, expected, timeout_s, what):
+    """Every limiter runs the rate the manager last allocated, and that allocation meets `expected`."""
+    def in_force():
+        current = _allocation(graph)
         if not current:
             return False
         for r in ROBOTS:
-            s = status[r].msgs.get(None)
+            s = graph.status[r].latest
             if s is None or not math.isclose(s.set_rate_hz, current[r].rate_hz, rel_tol=1e-6):
                 return False
         return expected(current)
 
+    assert wait_for(in_force, timeout_s), f"timed out after {timeout_s} s waiting for {what}: {_allocation(graph)}"
+    return _allocation(graph)
+
+
+def test_rates_from_the_measured_sizes_fit_the_budget(graph):
     from std_msgs.msg import Float64
 
-    available = rospy.wait_for_message("/tissue/available_bandwidth", Float64, timeout=10.0)
+    available = graph.rospy.wait_for_message("/tissue/available_bandwidth", Float64, timeout=10.0)
     assert available.data == pytest.approx(2.0)
     budget = 0.96 * 2.0 / 8.0
     # Sizes measured by the limiters (serialized message, a little above the payload); equal shares.
-    _wait_for(lambda: in_force(lambda a: all(PAYLOAD_BYTES < a[r].message_bytes < PAYLOAD_BYTES + 1000 for r in ROBOTS)
-                               and math.isclose(a["scout"].rate_hz, a["jackal"].rate_hz, rel_tol=1e-6)),
-              20.0, "equal rates from measured sizes")
-    a = allocation()
+    a = _wait_in_force(graph, lambda a: all(PAYLOAD_BYTES < a[r].message_bytes < PAYLOAD_BYTES + 1000 for r in ROBOTS)
+                       and math.isclose(a["scout"].rate_hz, a["jackal"].rate_hz, rel_tol=1e-6),
+                       20.0, "equal rates from measured sizes")
     assert sum(x.bandwidth_mbytes_per_s for x in a.values()) <= budget * (1 + 1e-9)
     # Room for one extra message per robot per 1 s window is kept (~headroom_messages).
     size = a["scout"].message_bytes / 1e6
     assert a["scout"].rate_hz == pytest.approx((budget - 2 * size) / 2 / size, rel=1e-6)
 
+
+def test_mission_states_and_the_operator_set_priorities_and_the_csv_logs_them(graph):
+    from std_msgs.msg import String
+
+    from cps_msgs.srv import SetPriority
+
     # Inspecting -> priority 1 -> 4x the bandwidth of the normal robot.
-    mission["scout"].publish(String("inspecting"))
-    _wait_for(lambda: in_force(lambda a: a["scout"].priority == 1 and math.isclose(
-        a["scout"].bandwidth_mbytes_per_s / a["jackal"].bandwidth_mbytes_per_s, 4.0, rel_tol=1e-3)),
-        5.0, "scout at priority 1")
-
+    graph.mission["scout"].publish(String("inspecting"))
+    _wait_in_force(graph, lambda a: a["scout"].priority == 1 and math.isclose(
+        a["scout"].bandwidth_mbytes_per_s / a["jackal"].bandwidth_mbytes_per_s, 4.0, rel_tol=1e-3),
+        20.0, "scout at priority 1")
     # Done -> the minimum rate.
-    mission["jackal"].publish(String("done"))
-    _wait_for(lambda: in_force(lambda a: a["jackal"].rate_hz == pytest.approx(1.0)), 5.0, "jackal at 1 Hz")
+    graph.mission["jackal"].publish(String("done"))
+    _wait_in_force(graph, lambda a: a["jackal"].rate_hz == pytest.approx(1.0), 5.0, "jackal at 1 Hz")
 
-    set_priority = rospy.ServiceProxy("/tissue/set_priority", SetPriority)
+    set_priority = graph.rospy.ServiceProxy("/tissue/set_priority", SetPriority)
     bad = set_priority(robot="nobody", priority=1)
     assert not bad.success and "unknown robot" in bad.message
     bad = set_priority(robot="jackal", priority=2)
     assert not bad.success and "priority must be 0" in bad.message
-    ok = set_priority(robot="jackal", priority=1)
-    assert ok.success
-    _wait_for(lambda: in_force(lambda a: a["jackal"].priority == 1 and math.isclose(
-        a["jackal"].rate_hz, a["scout"].rate_hz, rel_tol=0.1)), 5.0, "jackal raised by the operator")
+    assert set_priority(robot="jackal", priority=1).success
+    _wait_in_force(graph, lambda a: a["jackal"].priority == 1 and math.isclose(
+        a["jackal"].rate_hz, a["scout"].rate_hz, rel_tol=0.1), 5.0, "jackal raised by the operator")
 
-    # Bad input on the wire does not kill the node.
-    bogus = rospy.Publisher("/scout/cloud_throttle/status", RateLimiterStatus, queue_size=5)
-    time.sleep(0.5)
-    for size in (-5.0, math.inf):
-        bogus.publish(RateLimiterStatus(mean_message_bytes=size, input_rate_hz=10.0))
-    mission["scout"].publish(String("flying"))
-    time.sleep(1.0)
-    bogus.unregister()
-    stamp = alloc.msgs[None].header.stamp
-    _wait_for(lambda: alloc.msgs[None].header.stamp > stamp, 3.0, "allocations after bad input")
-    log = ros.output("bandwidth_manager")
-    assert "not a size" in log and "unknown mission state" in log
-
-    with open(csv_path) as stream:
+    with open(graph.csv_path) as stream:
         rows = list(csv.DictReader(stream))
     assert {r["robot"] for r in rows} == set(ROBOTS)
     assert any(r["mission_state"] == "done" for r in rows)
     assert all(float(r["rate_hz"]) > 0 for r in rows)
-    for sub in [alloc.sub] + [s.sub for s in status.values()]:
-        sub.unregister()
+
+
+def test_bad_input_on_the_wire_does_not_stop_the_manager(ros, graph):
+    from std_msgs.msg import String
+
+    from cps_msgs.msg import RateLimiterStatus
+
+    first = graph.allocation.wait(what="a first allocation")
+    bogus = graph.rospy.Publisher("/scout/cloud_throttle/status", RateLimiterStatus, queue_size=5)
+    assert wait_for(lambda: bogus.get_num_connections() > 0, 10.0), "the manager never subscribed"
+    for size in (-5.0, math.inf):
+        bogus.publish(RateLimiterStatus(mean_message_bytes=size, input_rate_hz=10.0))
+    graph.mission["scout"].publish(String("flying"))
+
+    def both_refused_in_the_log():
+        out = ros.output("bandwidth_manager")
+        return "not a size" in out and "unknown mission state" in out
+
+    assert wait_for(both_refused_in_the_log, 10.0), ros.output("bandwidth_manager")[-2000:]
+    bogus.unregister()
+    graph.allocation.wait(lambda msg: msg.header.stamp > first.header.stamp, 5.0, "allocations after bad input")
 
 
 @pytest.mark.parametrize("params, match", [

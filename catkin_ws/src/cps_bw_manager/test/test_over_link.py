@@ -8,9 +8,9 @@ import time
 
 import pytest
 
-from cps_bw_manager import netns_link
-from cps_bw_manager.link_run import LinkRosGraph, read_records, summarize
-from cps_bw_manager.netns_link import ShapedLink
+from cps_link import netns_link
+from cps_link.link_run import LinkRosGraph, read_records, summarize
+from cps_link.netns_link import ShapedLink
 from cps_harness.processes import find_node
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]

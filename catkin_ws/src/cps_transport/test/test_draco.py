@@ -10,7 +10,7 @@ from sensor_msgs.msg import PointField
 
 from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError, bits_for_tolerance, parse_fields
 from cps_transport.pointcloud import InvalidCloud, array_to_cloud, cloud_to_array, xyz_of
-from cps_transport.synthetic_clouds import depth_camera_cloud, lidar_cloud
+from cps_harness.synthetic_clouds import depth_camera_cloud, lidar_cloud
 from cps_transport.voxel import voxel_downsample
 
 REFERENCE_DECODER = "/usr/bin/draco_decoder"  # Debian's package "draco"

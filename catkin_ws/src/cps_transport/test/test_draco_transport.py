@@ -8,7 +8,7 @@ import pytest
 
 from cps_harness.testing import wait_for
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
-from cps_transport.synthetic_clouds import depth_camera_cloud
+from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_transport.voxel import voxel_downsample
 
 pytestmark = pytest.mark.ros

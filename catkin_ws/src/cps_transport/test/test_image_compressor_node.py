@@ -60,22 +60,19 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
             got.set()
         out_sub = rospy.Subscriber("/ic1/camera/image_raw/compressed", CompressedImage, on_compressed)
         assert wait_for(lambda: out_sub.get_num_connections() > 0)
-        time.sleep(0.3)  # the node's publisher sees the connection too
-        bad, _ = _image(rospy, encoding="rgba8")
-        raw_pub.publish(bad)
-        time.sleep(0.1)
         good, rgb = _image(rospy)
-        raw_pub.publish(good)
-        assert got.wait(10.0), ros.output("image_compressor")[-1500:]
+        # Until the node's publisher sees this subscriber too, frames are skipped as unwatched.
+        assert wait_for(lambda: raw_pub.publish(good) or got.is_set(), 10.0), ros.output("image_compressor")[-1500:]
         out = received[0]
         assert out.header.stamp == good.header.stamp and out.header.frame_id == good.header.frame_id
         assert out.format == "rgb8; jpeg compressed bgr8"
         assert psnr_db(rgb, decode_jpeg(out.data)) > 30.0
         assert len(out.data) < len(good.data) / 8
+        bad, _ = _image(rospy, encoding="rgba8")
+        raw_pub.publish(bad)
         assert wait_for(lambda: _reported(diagnostics, "/ic1/camera/image_compressor").get("invalid_messages") == "1"
-                         and _reported(diagnostics, "/ic1/camera/image_compressor").get("processed") == "1")
-        assert "rgba8" in ros.output("image_compressor")
-        assert len(received) == 1
+                        and _reported(diagnostics, "/ic1/camera/image_compressor").get("processed") == str(len(received)))
+        assert wait_for(lambda: "rgba8" in ros.output("image_compressor"))
     finally:
         for handle in (diag_sub, raw_pub, out_sub):
             if handle is not None:
@@ -84,29 +81,39 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
 
 def test_rate_cap_and_remapped_output(ros, rospy_node):
     rospy = rospy_node
+    from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CompressedImage, Image
 
     ros.start_node("cps_transport", "image_compressor", name="capped_compressor", namespace="/ic2",
                    params={"~max_rate_hz": 2.0}, remap={"~input": "/ic2/image_raw", "~output": "/ic2/video"})
     ros.wait_for_topic("/ic2/video", timeout_s=20)
-    received = []
+    received, diagnostics = [], []
     out_sub = rospy.Subscriber("/ic2/video", CompressedImage, received.append)
+    diag_sub = rospy.Subscriber("/diagnostics", DiagnosticArray, diagnostics.append)
     raw_pub = rospy.Publisher("/ic2/image_raw", Image, queue_size=10)
     try:
         assert wait_for(lambda: raw_pub.get_num_connections() > 0 and out_sub.get_num_connections() > 0)
-        time.sleep(0.3)
         msg, _ = _image(rospy, width=64, height=48)
-        start = time.monotonic()
-        for _ in range(30):  # 20 Hz for 1.5 s
+        start, sent = time.monotonic(), 0
+        while sent < 30 or (not received and time.monotonic() - start < 10.0):  # 20 Hz, >= 1.5 s
             raw_pub.publish(msg)
+            sent += 1
             time.sleep(0.05)
         elapsed_s = time.monotonic() - start
-        time.sleep(0.5)
-        # 2 Hz with a credit of one frame at the start (4 in 1.5 s), one more for scheduling slack.
+        end = rospy.Time.now() + rospy.Duration(1.0)
+
+        def final_counts_delivered():
+            """A report made after the node handled the last frame, and every frame it encoded received."""
+            last = [a for a in diagnostics if a.status and a.status[0].name == "/ic2/capped_compressor"]
+            return bool(last) and last[-1].header.stamp > end and \
+                int(_reported(diagnostics, "/ic2/capped_compressor").get("processed", -1)) == len(received)
+
+        assert wait_for(final_counts_delivered, 10.0), (_reported(diagnostics, "/ic2/capped_compressor"), sent)
+        # 2 Hz with a credit of one frame at the start, one more for scheduling slack.
         assert 2 <= len(received) <= 2 + 2.0 * elapsed_s, (len(received), elapsed_s)
     finally:
-        out_sub.unregister()
-        raw_pub.unregister()
+        for handle in (out_sub, diag_sub, raw_pub):
+            handle.unregister()
 
 
 @pytest.mark.parametrize("params,name", [({"~jpeg_quality": 0}, "~jpeg_quality"),

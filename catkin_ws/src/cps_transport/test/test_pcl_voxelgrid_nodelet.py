@@ -78,7 +78,7 @@ def test_voxel_nodelet_args_match_numpy_voxel_downsample(ros, rospy_node):
     from cps_fleet.fleet import load_fleet
     from cps_transport import voxel_nodelet_args
     from cps_transport.pointcloud import cloud_to_array, xyz_of
-    from cps_transport.synthetic_clouds import depth_camera_cloud
+    from cps_harness.synthetic_clouds import depth_camera_cloud
     from cps_transport.voxel import voxel_downsample
     from sensor_msgs.msg import PointCloud2
 

@@ -2,10 +2,12 @@
 1, 8, 15 and 30 Hz within 5 % on a faster input, with live rate changes by service and topic."""
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from cps_harness.testing import wait_for
 from cps_transport.rate_limiter import RateLimiter, WindowRate
 
 
@@ -75,30 +77,33 @@ def test_window_rate_and_mean_size():
 
 # --- the node -------------------------------------------------------------------------------------
 
-@pytest.mark.ros
-def test_node_holds_1_8_15_30_hz_within_5_percent(ros, rospy_node):
+NS = "/rl_test"
+MESSAGE_BYTES = 1600
+
+
+@pytest.fixture
+def limiter(ros, rospy_node):
+    """The rate_limiter node at 30 Hz, fed at 60 Hz; its output arrival times and its statuses."""
     rospy = rospy_node
     from std_msgs.msg import Float64
     from sensor_msgs.msg import PointCloud2
     from cps_msgs.msg import RateLimiterStatus
     from cps_msgs.srv import SetRate
 
-    ns = "/rl_test"
-    ros.start_node("cps_transport", "rate_limiter", name="cloud_throttle", namespace=ns,
-                   params={"~rate_hz": 30.0}, remap={"~input": f"{ns}/in", "~output": f"{ns}/out"})
-    ros.wait_for_service(f"{ns}/cloud_throttle/set_rate", timeout_s=20)
-    arrivals, statuses = [], []
-    lock = threading.Lock()
+    ros.start_node("cps_transport", "rate_limiter", name="cloud_throttle", namespace=NS,
+                   params={"~rate_hz": 30.0}, remap={"~input": f"{NS}/in", "~output": f"{NS}/out"})
+    ros.wait_for_service(f"{NS}/cloud_throttle/set_rate", timeout_s=20)
+    state = SimpleNamespace(rospy=rospy, arrivals=[], statuses=[], lock=threading.Lock())
 
     def on_out(_msg):
-        with lock:
-            arrivals.append(time.monotonic())
+        with state.lock:
+            state.arrivals.append(time.monotonic())
 
-    out_sub = rospy.Subscriber(f"{ns}/out", PointCloud2, on_out)
-    status_sub = rospy.Subscriber(f"{ns}/cloud_throttle/status", RateLimiterStatus, statuses.append)
-    pub = rospy.Publisher(f"{ns}/in", PointCloud2, queue_size=10)
+    out_sub = rospy.Subscriber(f"{NS}/out", PointCloud2, on_out)
+    status_sub = rospy.Subscriber(f"{NS}/cloud_throttle/status", RateLimiterStatus, state.statuses.append)
+    pub = rospy.Publisher(f"{NS}/in", PointCloud2, queue_size=10)
     stop = threading.Event()
-    message = PointCloud2(height=1, width=100, point_step=16, row_step=1600, data=bytes(1600))
+    message = PointCloud2(height=1, width=100, point_step=16, row_step=MESSAGE_BYTES, data=bytes(MESSAGE_BYTES))
 
     def feed(input_hz=60.0):
         period, next_t = 1.0 / input_hz, time.monotonic()
@@ -109,36 +114,51 @@ def test_node_holds_1_8_15_30_hz_within_5_percent(ros, rospy_node):
 
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
-    set_rate = rospy.ServiceProxy(f"{ns}/cloud_throttle/set_rate", SetRate)
-    rate_topic = rospy.Publisher(f"{ns}/cloud_throttle/rate_hz", Float64, queue_size=1, latch=True)
+    state.set_rate = rospy.ServiceProxy(f"{NS}/cloud_throttle/set_rate", SetRate)
+    state.rate_topic = rospy.Publisher(f"{NS}/cloud_throttle/rate_hz", Float64, queue_size=1, latch=True)
     try:
-        ros.wait_for_topic(f"{ns}/out", timeout_s=20)
-        measured = {}
-        for rate_hz, duration_s, via_topic in ((30.0, 3.0, False), (15.0, 3.0, True), (8.0, 3.0, False), (1.0, 5.5, False)):
-            if via_topic:
-                rate_topic.publish(Float64(rate_hz))
-            else:
-                assert set_rate(rate_hz).success
-            time.sleep(0.4)  # the old rate's credit is spent; within the manager's 1 s budget
-            with lock:
-                arrivals.clear()
-            time.sleep(duration_s)
-            with lock:
-                got = list(arrivals)
-            measured[rate_hz] = (len(got) - 1) / (got[-1] - got[0])
-        for rate_hz, value in measured.items():
-            assert value == pytest.approx(rate_hz, rel=0.05), measured
-        response = set_rate(0.0)
-        assert not response.success and response.rate_hz == 1.0
-        time.sleep(1.2)
-        status = statuses[-1]
-        assert status.set_rate_hz == 1.0
-        assert status.input_rate_hz == pytest.approx(60.0, rel=0.1)
-        assert status.mean_message_bytes == pytest.approx(len(message.data) + 60, rel=0.1)
-        assert status.received > status.forwarded > 0
-        assert status.input_topic == f"{ns}/in" and status.output_topic == f"{ns}/out"
+        ros.wait_for_topic(f"{NS}/out", timeout_s=20)
+        yield state
     finally:
         stop.set()
         feeder.join(2.0)
-        for handle in (out_sub, status_sub, pub, rate_topic):
+        for handle in (out_sub, status_sub, pub, state.rate_topic):
             handle.unregister()
+
+
+@pytest.mark.ros
+def test_node_holds_1_8_15_30_hz_within_5_percent(limiter):
+    from std_msgs.msg import Float64
+
+    measured = {}
+    for rate_hz, duration_s, via_topic in ((30.0, 3.0, False), (15.0, 3.0, True), (8.0, 3.0, False), (1.0, 5.5, False)):
+        if via_topic:
+            limiter.rate_topic.publish(Float64(rate_hz))
+        else:
+            assert limiter.set_rate(rate_hz).success
+        time.sleep(0.4)  # the old rate's credit is spent; within the manager's 1 s budget
+        with limiter.lock:
+            limiter.arrivals.clear()
+        # Measured over the messages of about `duration_s` at the set rate.
+        assert wait_for(lambda: len(limiter.arrivals) > rate_hz * duration_s, 3 * duration_s), rate_hz
+        with limiter.lock:
+            got = list(limiter.arrivals)
+        measured[rate_hz] = (len(got) - 1) / (got[-1] - got[0])
+    for rate_hz, value in measured.items():
+        assert value == pytest.approx(rate_hz, rel=0.05), measured
+
+
+@pytest.mark.ros
+def test_node_refuses_a_zero_rate_and_reports_its_input(limiter):
+    assert limiter.set_rate(1.0).success
+    response = limiter.set_rate(0.0)
+    asked = limiter.rospy.Time.now()
+    assert not response.success and response.rate_hz == 1.0
+    assert wait_for(lambda: limiter.statuses and limiter.statuses[-1].header.stamp > asked
+                    and limiter.statuses[-1].input_rate_hz > 0, 5.0), "no status after the refusal"
+    status = limiter.statuses[-1]
+    assert status.set_rate_hz == 1.0
+    assert status.input_rate_hz == pytest.approx(60.0, rel=0.1)
+    assert status.mean_message_bytes == pytest.approx(MESSAGE_BYTES + 60, rel=0.1)
+    assert status.received > status.forwarded > 0
+    assert status.input_topic == f"{NS}/in" and status.output_topic == f"{NS}/out"

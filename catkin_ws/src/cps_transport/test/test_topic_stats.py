@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from cps_harness.testing import wait_for
 from cps_transport.topic_stats import TopicWindow, has_header_first, stamp_from_serialized
 
 
@@ -77,7 +78,13 @@ def test_node_agrees_with_rostopic_hz_and_bw(ros, rospy_node, tmp_path):
         ros.wait_for_topic(topic)
         hz = ros.popen(["rostopic", "hz", topic, "-w", "60"], name="rostopic_hz")
         bw = ros.popen(["rostopic", "bw", topic, "-w", "60"], name="rostopic_bw")
-        time.sleep(6.0)
+
+        def full_window_reports():
+            """Three reports of each over a full 60-message window (the last is dropped below)."""
+            return (len(re.findall(r"window: 60", ros.output("rostopic_hz"))) >= 4
+                    and len(re.findall(r"window: 60", ros.output("rostopic_bw"))) >= 4 and stats)
+
+        assert wait_for(full_window_reports, 30.0), ros.output("rostopic_hz") + ros.output("rostopic_bw")
         ros.stop(hz)
         ros.stop(bw)
         # Reports with a full window; the last one is dropped (printed while rostopic shuts down).

@@ -2,6 +2,7 @@
 its stamp and frame; bad messages are dropped, counted (also in /tissue/stats) and nothing else is lost."""
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ import pytest
 from cps_harness.testing import wait_for
 from cps_transport.draco import DracoEncoder
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
-from cps_transport.synthetic_clouds import depth_camera_cloud
+from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_transport.voxel import voxel_downsample
 
 pytestmark = pytest.mark.ros
@@ -25,89 +26,105 @@ def _collect(rospy, topic, msg_type):
 
 
 
-def test_encoder_decoder_nodes_round_trip_and_survive_bad_input(ros, rospy_node):
+R = "tn1"
+
+
+@pytest.fixture
+def pipeline(ros, rospy_node):
+    """Encoder in /tn1, decoder on the twin, topic_stats on the compressed topic; a voxel-filtered cloud."""
     rospy = rospy_node
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import PointCloud2
 
     from cps_msgs.msg import CompressedPointCloud2, TopicStatsArray
 
-    r = "tn1"
-    ros.start_node("cps_transport", "draco_encoder", name="draco_encoder", namespace=f"/{r}",
-                   params={"~leaf_size_m": 0.1, "~fields": "xyz,rgb"}, remap={"~input": f"/{r}/points_filtered"})
+    ros.start_node("cps_transport", "draco_encoder", name="draco_encoder", namespace=f"/{R}",
+                   params={"~leaf_size_m": 0.1, "~fields": "xyz,rgb"}, remap={"~input": f"/{R}/points_filtered"})
     ros.start_node("cps_transport", "draco_decoder", name="draco_decoder", namespace="/twin",
-                   remap={"~input": f"/{r}/points_filtered/draco", "~output": f"/twin/{r}/points"})
-    ros.start_node("cps_transport", "topic_stats", name="topic_stats", namespace=f"/{r}",
-                   params={"~topics": [f"/{r}/points_filtered/draco"], "~publish_rate_hz": 4.0})
-    ros.wait_for_topic(f"/{r}/points_filtered/draco", timeout_s=20)
-    ros.wait_for_topic(f"/twin/{r}/points", timeout_s=20)
+                   remap={"~input": f"/{R}/points_filtered/draco", "~output": f"/twin/{R}/points"})
+    ros.start_node("cps_transport", "topic_stats", name="topic_stats", namespace=f"/{R}",
+                   params={"~topics": [f"/{R}/points_filtered/draco"], "~publish_rate_hz": 4.0})
+    ros.wait_for_topic(f"/{R}/points_filtered/draco", timeout_s=20)
+    ros.wait_for_topic(f"/twin/{R}/points", timeout_s=20)
 
-    out_sub, decoded, got = _collect(rospy, f"/twin/{r}/points", PointCloud2)
-    stats_sub, stats, _ = _collect(rospy, "/tissue/stats", TopicStatsArray)
-    diag_sub, diagnostics, _ = _collect(rospy, "/diagnostics", DiagnosticArray)
-    raw_pub = rospy.Publisher(f"/{r}/points_filtered", PointCloud2, queue_size=10)
-    compressed_pub = rospy.Publisher(f"/{r}/points_filtered/draco", CompressedPointCloud2, queue_size=10)
+    p = SimpleNamespace(rospy=rospy)
+    out_sub, p.decoded, p.got = _collect(rospy, f"/twin/{R}/points", PointCloud2)
+    stats_sub, p.stats, _ = _collect(rospy, "/tissue/stats", TopicStatsArray)
+    diag_sub, p.diagnostics, _ = _collect(rospy, "/diagnostics", DiagnosticArray)
+    p.raw_pub = rospy.Publisher(f"/{R}/points_filtered", PointCloud2, queue_size=10)
+    p.compressed_pub = rospy.Publisher(f"/{R}/points_filtered/draco", CompressedPointCloud2, queue_size=10)
 
-    depth = depth_camera_cloud(width=160, height=120)
-    points = cloud_to_array(depth)
-    centroids, extras = voxel_downsample(xyz_of(points), 0.1, {"rgb": points["rgb"]})
-    filtered = array_to_cloud({"x": centroids[:, 0], "y": centroids[:, 1], "z": centroids[:, 2], **extras})
-    filtered.header.frame_id = f"{r}/camera_depth_optical_frame"
+    points = cloud_to_array(depth_camera_cloud(width=160, height=120))
+    p.centroids, extras = voxel_downsample(xyz_of(points), 0.1, {"rgb": points["rgb"]})
+    p.filtered = array_to_cloud({"x": p.centroids[:, 0], "y": p.centroids[:, 1], "z": p.centroids[:, 2], **extras})
+    p.filtered.header.frame_id = f"{R}/camera_depth_optical_frame"
     try:
-        wait_for(lambda: raw_pub.get_num_connections() > 0 and compressed_pub.get_num_connections() > 0)
-        # Bad raw clouds for the encoder, then a good one.
-        short = array_to_cloud({"x": centroids[:5, 0], "y": centroids[:5, 1], "z": centroids[:5, 2]})
-        short.data = short.data[:-3]
-        no_z = array_to_cloud({"x": centroids[:5, 0], "y": centroids[:5, 1], "w": centroids[:5, 2]})
-        empty = PointCloud2(fields=filtered.fields, point_step=filtered.point_step, height=1, width=0)
-        for bad in (short, no_z, empty):
-            raw_pub.publish(bad)
-            time.sleep(0.05)
-        filtered.header.stamp = rospy.Time.now()
-        raw_pub.publish(filtered)
-        assert got.wait(15.0), "nothing came out of the decoder"
-        out = decoded[0]
-        assert out.header.stamp == filtered.header.stamp and out.header.frame_id == filtered.header.frame_id
-        assert out.height == 1 and [f.name for f in out.fields] == ["x", "y", "z", "rgb"]
-        np.testing.assert_allclose(xyz_of(cloud_to_array(out)), centroids, atol=0.05)
-
-        # Bad compressed clouds for the decoder, then a good one.
-        good = DracoEncoder(leaf_size_m=0.1).encode(filtered)
-        truncated = DracoEncoder(leaf_size_m=0.1).encode(filtered)
-        truncated.compressed_data = bytes(good.compressed_data)[:len(good.compressed_data) // 3]
-        corrupt = DracoEncoder(leaf_size_m=0.1).encode(filtered)
-        corrupt.compressed_data = bytes(255 - b for b in bytes(good.compressed_data))
-        unknown_type = DracoEncoder(leaf_size_m=0.1).encode(filtered)
-        unknown_type.fields[0].datatype = 99
-        got.clear()
-        for bad in (truncated, corrupt, unknown_type):
-            compressed_pub.publish(bad)
-            time.sleep(0.05)
-        good.header.stamp = rospy.Time.now()
-        compressed_pub.publish(good)
-        assert wait_for(lambda: any(m.header.stamp == good.header.stamp for m in decoded), 15.0)
-
-        def reported(node):
-            for array in reversed(diagnostics):
-                for status in array.status:
-                    if status.name == node:
-                        return int({kv.key: kv.value for kv in status.values}["invalid_messages"])
-            return None
-        assert wait_for(lambda: reported(f"/{r}/draco_encoder") == 3 and reported("/twin/draco_decoder") == 3), (
-            reported(f"/{r}/draco_encoder"), reported("/twin/draco_decoder"), ros.output("draco_encoder")[-1500:])
-
-        def invalid_in_stats():
-            for array in reversed(stats):
-                for item in array.topics:
-                    if item.topic == f"/{r}/points_filtered/draco":
-                        return item.invalid_messages
-            return None
-        assert wait_for(lambda: invalid_in_stats() == 3)
-        assert "dropped a message" in ros.output("draco_decoder")
-        assert all(proc.poll() is None for proc in ros.processes)
+        # The encoder reads the raw topic; the decoder and topic_stats both read the compressed one.
+        assert wait_for(lambda: p.raw_pub.get_num_connections() >= 1 and p.compressed_pub.get_num_connections() >= 2)
+        yield p
     finally:
-        for handle in (out_sub, stats_sub, diag_sub, raw_pub, compressed_pub):
+        for handle in (out_sub, stats_sub, diag_sub, p.raw_pub, p.compressed_pub):
             handle.unregister()
+
+
+def _reported_invalid(diagnostics, node):
+    for array in reversed(diagnostics):
+        for status in array.status:
+            if status.name == node:
+                return int({kv.key: kv.value for kv in status.values}["invalid_messages"])
+    return None
+
+
+def test_encoder_drops_bad_clouds_and_the_next_crosses_with_stamp_and_frame(ros, pipeline):
+    from sensor_msgs.msg import PointCloud2
+
+    p, c = pipeline, pipeline.centroids
+    short = array_to_cloud({"x": c[:5, 0], "y": c[:5, 1], "z": c[:5, 2]})
+    short.data = short.data[:-3]
+    no_z = array_to_cloud({"x": c[:5, 0], "y": c[:5, 1], "w": c[:5, 2]})
+    empty = PointCloud2(fields=p.filtered.fields, point_step=p.filtered.point_step, height=1, width=0)
+    for bad in (short, no_z, empty):
+        p.raw_pub.publish(bad)
+        time.sleep(0.05)
+    p.filtered.header.stamp = p.rospy.Time.now()
+    p.raw_pub.publish(p.filtered)
+    assert p.got.wait(15.0), "nothing came out of the decoder"
+    out = p.decoded[0]
+    assert out.header.stamp == p.filtered.header.stamp and out.header.frame_id == p.filtered.header.frame_id
+    assert out.height == 1 and [f.name for f in out.fields] == ["x", "y", "z", "rgb"]
+    np.testing.assert_allclose(xyz_of(cloud_to_array(out)), c, atol=0.05)
+    assert wait_for(lambda: _reported_invalid(p.diagnostics, f"/{R}/draco_encoder") == 3), (
+        _reported_invalid(p.diagnostics, f"/{R}/draco_encoder"), ros.output("draco_encoder")[-1500:])
+    assert all(proc.poll() is None for proc in ros.processes)
+
+
+def test_decoder_drops_bad_payloads_counts_them_in_the_stats_and_decodes_the_next(ros, pipeline):
+    p = pipeline
+    good = DracoEncoder(leaf_size_m=0.1).encode(p.filtered)
+    truncated = DracoEncoder(leaf_size_m=0.1).encode(p.filtered)
+    truncated.compressed_data = bytes(good.compressed_data)[:len(good.compressed_data) // 3]
+    corrupt = DracoEncoder(leaf_size_m=0.1).encode(p.filtered)
+    corrupt.compressed_data = bytes(255 - b for b in bytes(good.compressed_data))
+    unknown_type = DracoEncoder(leaf_size_m=0.1).encode(p.filtered)
+    unknown_type.fields[0].datatype = 99
+    for bad in (truncated, corrupt, unknown_type):
+        p.compressed_pub.publish(bad)
+        time.sleep(0.05)
+    good.header.stamp = p.rospy.Time.now()
+    p.compressed_pub.publish(good)
+    assert wait_for(lambda: any(m.header.stamp == good.header.stamp for m in p.decoded), 15.0)
+    assert wait_for(lambda: _reported_invalid(p.diagnostics, "/twin/draco_decoder") == 3), (
+        _reported_invalid(p.diagnostics, "/twin/draco_decoder"), ros.output("draco_decoder")[-1500:])
+
+    def invalid_in_stats():
+        for array in reversed(p.stats):
+            for item in array.topics:
+                if item.topic == f"/{R}/points_filtered/draco":
+                    return item.invalid_messages
+        return None
+    assert wait_for(lambda: invalid_in_stats() == 3)
+    assert "dropped a message" in ros.output("draco_decoder")
+    assert all(proc.poll() is None for proc in ros.processes)
 
 
 def test_encoder_refuses_a_bad_parameter(ros):

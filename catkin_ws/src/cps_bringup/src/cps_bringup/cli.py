@@ -3,7 +3,7 @@
 Starts a private roscore (unless --master-uri points at the other side's), the side's nodes with
 parameters from fleet.yaml, waits until each is up, restarts what dies, prints progress, and on
 Ctrl-C or the end of the mission stops everything. With --link, the physical and digital twins
-run in two network namespaces joined by a shaped link (cps_bw_manager), like the paper's Wi-Fi.
+run in two network namespaces joined by a shaped link (cps_link), like the paper's Wi-Fi.
 """
 import argparse
 import contextlib
@@ -48,7 +48,8 @@ def build_parser():
     parser.add_argument("--master-uri", default=None,
                         help="join this master instead of starting one (split physical/digital across machines)")
     parser.add_argument("--link", default="none", metavar="RATE",
-                        help="run the twins across a shaped link, e.g. 60mbit (needs root); 'none' = loopback")
+                        help="run the twins across a link shaped to this tc rate, e.g. 20mbit (needs root); "
+                             "'none' = loopback")
     parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
     parser.add_argument("--screenshot-after", type=float, default=60.0, metavar="S")
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
@@ -197,7 +198,7 @@ def _link_context(rate, log):
         yield None
         return
     from cps_bringup.link import namespaced_link
-    from cps_bw_manager.netns_link import LinkError
+    from cps_link.netns_link import LinkError
 
     try:
         with namespaced_link(rate, log) as link:

@@ -17,7 +17,8 @@ from cps_fleet.fleet import PROFILES
 
 
 def choose_link(requested, log=print):
-    """'auto' → 60mbit when this process may create network namespaces, else loopback (says why)."""
+    """'auto' → fleet.yaml's link rate when this process may create network namespaces, else
+    loopback (says why)."""
     if requested != "auto":
         return requested
     from cps_bringup.link import link_unavailable_reason
@@ -26,13 +27,15 @@ def choose_link(requested, log=print):
     if reason:
         log(f"[demo] no shaped link: {reason}; running over loopback instead")
         return "none"
-    return "60mbit"
+    from cps_link.netns_link import fleet_rate
+
+    return fleet_rate()
 
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="out/demo")
-    parser.add_argument("--link", default="auto", help="auto (60mbit when root), none, or a rate like 20mbit")
+    parser.add_argument("--link", default="auto", help="auto (fleet.yaml's link rate when root), none, or a rate like 20mbit")
     parser.add_argument("--profile", default=None, choices=PROFILES, help="sensor profile (default: fleet.yaml's)")
     parser.add_argument("--robots", default=None, help="subset, e.g. scout,jackal (default: the whole fleet)")
     parser.add_argument("--duration", type=float, default=420.0, metavar="S",

@@ -1,4 +1,4 @@
-"""Run the twins across cps_bw_manager's shaped link: the supervisor joins the digital-twin
+"""Run the twins across cps_link's shaped link: the supervisor joins the digital-twin
 namespace (where roscore and the digital side run) and starts the physical side in the other.
 
 Entering a network namespace with setns(2) changes only the calling thread; the supervisor calls
@@ -10,7 +10,7 @@ import ctypes
 import dataclasses
 import os
 
-from cps_bw_manager.netns_link import (LinkError, PHYS_IP, TWIN_IP, ShapedLink, check_capability, link_exists,
+from cps_link.netns_link import (LinkError, PHYS_IP, TWIN_IP, ShapedLink, check_capability, link_exists,
                                        namespace)
 
 LINK_NAME = "cpsfleet"

@@ -173,7 +173,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             wait_topics=("/tissue/stats",)))
         specs.append(NodeSpec(
             "bandwidth_manager", DIGITAL,
-            py("cps_bw_manager", "bandwidth_manager", "__name:=bandwidth_manager",
+            py("cps_bw_manager", "bandwidth_manager", "__ns:=/", "__name:=bandwidth_manager",
                *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv"),
                        **({"available_mbps": round(options.available_mbps, 2)} if options.available_mbps else {})})),
             wait_topics=("/tissue/allocation",)))

@@ -1,1 +1,1 @@
-"""Digital tissue, part 2: the bandwidth manager (rate allocation by linear program) and a real shaped network link between two namespaces."""
+"""Digital tissue, part 2: the bandwidth manager (rate allocation by a linear program, solved exactly by weighted water-filling)."""

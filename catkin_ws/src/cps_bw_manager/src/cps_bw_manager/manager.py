@@ -216,3 +216,15 @@ def _finite(value):
         return math.isfinite(float(value))
     except (TypeError, ValueError):
         return False
+
+
+ALLOCATION_CSV_COLUMNS = ("stamp_s", "available_mbps", "budget_mbytes_per_s", "feasible", "robot", "priority",
+                          "mission_state", "rate_hz", "message_bytes", "bandwidth_mbytes_per_s", "share_percent",
+                          "degraded")
+
+
+def allocation_csv_rows(stamp_s, available_mbps, result, mission_states):
+    """One row of allocation.csv per robot of an allocation `result` (ALLOCATION_CSV_COLUMNS)."""
+    return [(f"{stamp_s:.3f}", f"{available_mbps:.3f}", f"{result.budget_mbytes_per_s:.4f}", int(result.feasible),
+             a.name, a.priority, mission_states[a.name], f"{a.rate_hz:.3f}", f"{a.message_bytes:.0f}",
+             f"{a.bandwidth_mbytes_per_s:.4f}", f"{a.share_percent:.2f}", int(a.degraded)) for a in result.robots]

@@ -30,8 +30,12 @@ with open(sys.argv[1], "w") as stream:
 
 
 def link_arg():
-    """The shaped 60 Mbit/s link needs root (network namespaces); otherwise loopback."""
-    return "60mbit" if os.geteuid() == 0 else "none"
+    """The shaped link at fleet.yaml's rate needs root (network namespaces); otherwise loopback."""
+    if os.geteuid() != 0:
+        return "none"
+    from cps_link.netns_link import fleet_rate
+
+    return fleet_rate()
 
 
 def run_fleet(robots, out_dir, duration_s, link, log=print):

@@ -13,7 +13,7 @@ from typing import List
 
 import numpy as np
 
-from cps_bw_manager.netns_link import PHYS_IP, TWIN_IP
+from cps_link.netns_link import PHYS_IP, TWIN_IP
 from cps_harness.processes import RosGraph, free_port
 
 

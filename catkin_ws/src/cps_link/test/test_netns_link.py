@@ -7,8 +7,8 @@ import sys
 
 import pytest
 
-from cps_bw_manager import netns_link
-from cps_bw_manager.netns_link import LinkError, ShapedLink, list_namespaces
+from cps_link import netns_link
+from cps_link.netns_link import LinkError, ShapedLink, list_namespaces
 
 NODE = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_link")
 
@@ -77,6 +77,19 @@ def test_delay_and_loss_use_netem_or_say_why_not():
     finally:
         netns_link.link_down(name)
     assert _ours(name) == []
+
+
+@pytest.mark.parametrize("mbps, rate", [(60.0, "60mbit"), (57.5, "57500kbit"), (0.5, "500kbit"), (1000, "1000mbit")])
+def test_tc_rate_says_the_same_rate_as_the_mbit_per_s(mbps, rate):
+    assert netns_link.tc_rate(mbps) == rate
+    assert netns_link.rate_bits_per_s(rate) == pytest.approx(mbps * 1e6)
+
+
+def test_the_default_rate_is_the_fleet_files_link_rate():
+    from cps_fleet.fleet import load_fleet
+
+    assert netns_link.rate_bits_per_s(netns_link.fleet_rate()) == pytest.approx(load_fleet().link.available_mbps * 1e6)
+    assert ShapedLink("cpstdef").rate == netns_link.fleet_rate()
 
 
 @pytest.mark.parametrize("kwargs, match", [

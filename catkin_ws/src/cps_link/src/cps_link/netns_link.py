@@ -1,8 +1,8 @@
 """A real constrained link between a physical-twin host and a digital-twin host (the paper's Fig. 8).
 
 Two network namespaces, `<name>_phys` (10.201.0.1) and `<name>_twin` (10.201.0.2), joined by a veth
-pair whose both ends are shaped with a `tc` token bucket (tbf, default 60 Mbit/s, the paper's
-measured Wi-Fi) and, if asked, delay/loss with netem. ROS processes started through `ShapedLink`
+pair whose both ends are shaped with a `tc` token bucket (tbf, default fleet.yaml's
+`link.available_mbps`, the paper's measured Wi-Fi) and, if asked, delay/loss with netem. ROS processes started through `ShapedLink`
 get ROS_IP and ROS_MASTER_URI of their side, so TCPROS really crosses the shaped link; iperf3
 measures it as the paper did. All traffic stays inside the two namespaces; `down` (and leaving the
 `ShapedLink` context, even on error) removes everything. Needs root and `ip netns`.
@@ -15,11 +15,12 @@ import shutil
 import subprocess
 import time
 
+from cps_fleet.fleet import ConfigError, load_fleet
+
 PHYS_IP = "10.201.0.1"
 TWIN_IP = "10.201.0.2"
 PREFIX_LEN = 30
 SIDES = ("phys", "twin")
-DEFAULT_RATE = "60mbit"
 DEFAULT_QUEUE_MS = 50.0
 _NAME = re.compile(r"^[a-z][a-z0-9]{0,9}$")
 _RATE = re.compile(r"^(\d+(\.\d+)?)(bit|kbit|mbit|gbit)$")
@@ -40,6 +41,22 @@ def rate_bits_per_s(rate):
     if value <= 0:
         raise LinkError(f"rate '{rate}' must be > 0")
     return value
+
+
+def tc_rate(mbps):
+    """Mbit/s -> the tc rate that says the same, e.g. 60.0 -> '60mbit', 57.5 -> '57500kbit'."""
+    kbit = round(float(mbps) * 1000)
+    if kbit <= 0:
+        raise LinkError(f"link rate must be > 0 Mbit/s, got {mbps}")
+    return f"{kbit // 1000}mbit" if kbit % 1000 == 0 else f"{kbit}kbit"
+
+
+def fleet_rate(fleet_file=None):
+    """The configured link as a tc rate: fleet.yaml's `link.available_mbps`, the one home of that rate."""
+    try:
+        return tc_rate(load_fleet(fleet_file).link.available_mbps)
+    except ConfigError as exc:
+        raise LinkError(f"no link rate given and none from the fleet file: {exc}") from exc
 
 
 def namespace(name, side):
@@ -116,9 +133,11 @@ def _check_shaping_args(rate, delay_ms, loss_pct, queue_ms):
         raise LinkError(f"queue must be in [1, 10000] ms, got {queue_ms}")
 
 
-def link_up(name="cps", rate=DEFAULT_RATE, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
-    """Create both namespaces, the veth pair, addresses, loopbacks and the shaping on both ends."""
+def link_up(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
+    """Create both namespaces, the veth pair, addresses, loopbacks and the shaping on both ends
+    (`rate` None: fleet.yaml's link rate). Returns the rate."""
     _check_name(name)
+    rate = rate or fleet_rate()
     _check_shaping_args(rate, delay_ms, loss_pct, queue_ms)
     check_capability()
     if link_exists(name):
@@ -146,6 +165,7 @@ def link_up(name="cps", rate=DEFAULT_RATE, delay_ms=0.0, loss_pct=0.0, queue_ms=
     except BaseException:
         link_down(name)
         raise
+    return rate
 
 
 def _wait_until_up(name, timeout_s=5.0):
@@ -160,9 +180,11 @@ def _wait_until_up(name, timeout_s=5.0):
         time.sleep(0.05)
 
 
-def link_set(name="cps", rate=DEFAULT_RATE, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
-    """Change the shaping of both ends live (e.g. 60 -> 20 -> 60 Mbit/s)."""
+def link_set(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
+    """Change the shaping of both ends live (e.g. 60 -> 20 -> 60 Mbit/s; `rate` None: fleet.yaml's).
+    Returns the rate."""
     _check_name(name)
+    rate = rate or fleet_rate()
     _check_shaping_args(rate, delay_ms, loss_pct, queue_ms)
     if not link_exists(name):
         raise LinkError(f"link '{name}' does not exist; `cps_link up --name {name}` first")
@@ -171,6 +193,7 @@ def link_set(name="cps", rate=DEFAULT_RATE, delay_ms=0.0, loss_pct=0.0, queue_ms
         # TCP connection into retransmission back-off for seconds.
         for cmd in _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, "change"):
             _run(cmd)
+    return rate
 
 
 def link_down(name="cps"):
@@ -232,10 +255,12 @@ def measure_mbps(name="cps", seconds=3.0, reverse=False, port=5201):
 
 
 class ShapedLink:
-    """`with ShapedLink(rate="60mbit") as link:` the link exists inside the block and never after."""
+    """`with ShapedLink(rate="20mbit") as link:` the link exists inside the block and never after;
+    rate None is fleet.yaml's link rate."""
 
-    def __init__(self, name="cps", rate=DEFAULT_RATE, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
-        self.name, self.rate, self.delay_ms, self.loss_pct, self.queue_ms = name, rate, delay_ms, loss_pct, queue_ms
+    def __init__(self, name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
+        self.name, self.delay_ms, self.loss_pct, self.queue_ms = name, delay_ms, loss_pct, queue_ms
+        self.rate = rate or fleet_rate()
 
     def __enter__(self):
         link_up(self.name, self.rate, self.delay_ms, self.loss_pct, self.queue_ms)

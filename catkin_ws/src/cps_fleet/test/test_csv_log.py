@@ -1,0 +1,45 @@
+"""CsvLog: append, header once, every row on disk at once."""
+import csv
+
+import pytest
+
+from cps_fleet.csv_log import CsvLog
+
+COLUMNS = ("time_s", "robot", "rate_hz")
+
+
+def _rows(path):
+    with open(path, newline="") as stream:
+        return list(csv.reader(stream))
+
+
+def test_a_restarted_writer_keeps_the_history_and_writes_the_header_once(tmp_path):
+    path = tmp_path / "logs" / "allocation.csv"
+    with CsvLog(str(path), COLUMNS) as log:
+        log.write((1.0, "scout", 2.5))
+    with CsvLog(str(path), COLUMNS) as log:
+        log.write((2.0, "scout", 3.0))
+    assert _rows(path) == [list(COLUMNS), ["1.0", "scout", "2.5"], ["2.0", "scout", "3.0"]]
+
+
+def test_an_empty_file_gets_the_header(tmp_path):
+    path = tmp_path / "stats.csv"
+    path.write_text("")
+    with CsvLog(str(path), COLUMNS):
+        pass
+    assert _rows(path) == [list(COLUMNS)]
+
+
+def test_every_row_is_on_disk_at_once_and_none_after_close(tmp_path):
+    path = tmp_path / "stats.csv"
+    log = CsvLog(str(path), COLUMNS)
+    log.write((1.0, "jackal", 30.0))
+    assert _rows(path)[-1] == ["1.0", "jackal", "30.0"]
+    log.close()
+    log.write((2.0, "jackal", 30.0))
+    assert len(_rows(path)) == 2
+
+
+def test_a_row_of_the_wrong_width_is_refused(tmp_path):
+    with CsvLog(str(tmp_path / "x.csv"), COLUMNS) as log, pytest.raises(ValueError, match="2 values for 3"):
+        log.write((1.0, "scout"))
