@@ -23,6 +23,7 @@ def _pane(image, panes, name):
     return image[box["y"]:box["y"] + box["height"], box["x"]:box["x"] + box["width"]]
 
 
+@pytest.mark.ros
 @pytest.mark.slow
 def test_two_robot_mission_end_to_end(tmp_path):
     out = tmp_path / "demo"
