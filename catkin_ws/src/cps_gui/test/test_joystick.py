@@ -84,3 +84,19 @@ def test_keys_map_like_the_stick_and_opposites_cancel():
     assert strafe.linear_y == pytest.approx(limits.strafe_mps) and strafe.angular_z == pytest.approx(-limits.turn_radps)
     assert joystick.keys_to_command("wheeled_lidar", frozenset({"q", "r"})).is_zero
     assert joystick.keys_to_command("aerial_depth", frozenset({"r"})).linear_z > 0
+
+
+@pytest.mark.parametrize("robot_type", sorted(ROBOT_TYPES))
+def test_full_scale_deflection_is_what_the_simulator_executes(robot_type):
+    """The GUI must neither command more than the simulated robot executes nor less than it can."""
+    from cps_sim.robots import spec_for
+
+    limits = spec_for(robot_type).limits
+    ahead = joystick.axes_to_command(robot_type, forward=1.0, lateral=0.0)
+    turn = joystick.axes_to_command(robot_type, forward=0.0, lateral=-1.0)
+    strafe = joystick.axes_to_command(robot_type, forward=0.0, lateral=-1.0, strafe=True)
+    climb = joystick.axes_to_command(robot_type, forward=0.0, lateral=0.0, climb=1.0)
+    assert ahead.linear_x == pytest.approx(limits.max_forward_mps)
+    assert turn.angular_z == pytest.approx(limits.max_yaw_rate_rps)
+    assert strafe.linear_y == pytest.approx(limits.max_lateral_mps)
+    assert climb.linear_z == pytest.approx(limits.max_vertical_mps)

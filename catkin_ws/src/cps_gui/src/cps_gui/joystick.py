@@ -4,12 +4,14 @@ Pure functions, no Qt and no rospy, so the mapping is tested on its own. A drag 
 the knob from the pad's centre in screen pixels (x right, y down); the command is in the robot's
 base frame (REP 103: x forward, y left, z up, yaw counter-clockwise).
 
-The speed table below is the joystick's full-scale deflection. cps_sim keeps its own limits and
-clamps whatever it receives; the two tables should agree.
+Full-scale deflection is the robot type's velocity limit from cps_fleet.robot_types, the table
+the simulator clamps to: the joystick never asks for more than the robot executes.
 """
 import dataclasses
 import math
 from typing import FrozenSet
+
+from cps_fleet.robot_types import VELOCITY_LIMITS, velocity_limits
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,13 +32,12 @@ class SpeedLimits:
         return self.climb_mps > 0.0
 
 
-# Keyed by the robot types of cps_fleet.fleet.ROBOT_TYPES.
-SPEED_LIMITS = {
-    "wheeled_lidar": SpeedLimits(forward_mps=1.0, strafe_mps=0.0, climb_mps=0.0, turn_radps=1.0),
-    "wheeled_depth": SpeedLimits(forward_mps=1.0, strafe_mps=0.0, climb_mps=0.0, turn_radps=1.5),
-    "legged_depth": SpeedLimits(forward_mps=0.6, strafe_mps=0.4, climb_mps=0.0, turn_radps=1.0),
-    "aerial_depth": SpeedLimits(forward_mps=1.0, strafe_mps=1.0, climb_mps=0.5, turn_radps=1.0),
-}
+def _full_scale(limits):
+    return SpeedLimits(forward_mps=limits.max_forward_mps, strafe_mps=limits.max_lateral_mps,
+                       climb_mps=limits.max_vertical_mps, turn_radps=limits.max_yaw_rate_rps)
+
+
+SPEED_LIMITS = {robot_type: _full_scale(limits) for robot_type, limits in VELOCITY_LIMITS.items()}
 
 # A deflection below this fraction of full scale is treated as zero, so a resting finger does
 # not creep the robot.
@@ -66,10 +67,7 @@ ZERO = VelocityCommand()
 
 def speed_limits(robot_type):
     """The SpeedLimits of a robot type; ValueError names the known types."""
-    try:
-        return SPEED_LIMITS[robot_type]
-    except KeyError:
-        raise ValueError(f"unknown robot type '{robot_type}' (known: {', '.join(sorted(SPEED_LIMITS))})") from None
+    return _full_scale(velocity_limits(robot_type))
 
 
 def _shape(value):
