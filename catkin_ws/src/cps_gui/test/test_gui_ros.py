@@ -42,7 +42,8 @@ def _wait_connected(qapp, publisher):
     spin_until(qapp, lambda: publisher.get_num_connections() > 0, 10.0, f"a subscriber on {publisher.name}")
 
 
-def _drag_and_release(qapp, teleop, dx, dy, hold_s=1.0, release_also=None):
+def _drag_and_release(qapp, teleop, recorder, dx, dy, hold_s=1.0, release_also=None):
+    """Hold the knob at (dx, dy) for hold_s, release it, and wait for the zero command."""
     from python_qt_binding.QtCore import QPointF
 
     pad = teleop.pad
@@ -53,7 +54,9 @@ def _drag_and_release(qapp, teleop, dx, dy, hold_s=1.0, release_also=None):
     _mouse(pad, "release", centre + QPointF(dx, dy))
     if release_also:
         release_also()
-    spin_for(qapp, 0.6)
+    spin_until(qapp, lambda: recorder.latest is not None and _as_tuple(recorder.latest) == (0.0, 0.0, 0.0, 0.0), 5,
+               "the zero command on release")
+    spin_for(qapp, 0.5)  # room for a second zero, which must not come
 
 
 def _as_tuple(twist):
@@ -80,7 +83,7 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
         dx, dy = 0.5 * teleop.pad.radius_px, -0.8 * teleop.pad.radius_px
         expected = joystick.drag_to_command(robot_type, dx, dy, teleop.pad.radius_px, climb=climb / 100.0,
                                             strafe=strafe)
-        _drag_and_release(qapp, teleop, dx, dy, hold_s=1.5, release_also=lambda: teleop.climb_slider.setValue(0))
+        _drag_and_release(qapp, teleop, rec, dx, dy, hold_s=1.5, release_also=lambda: teleop.climb_slider.setValue(0))
         messages = rec.take()
     finally:
         rec.close()
@@ -127,7 +130,7 @@ def test_keys_drive_only_while_the_pane_has_focus(window, qapp, rospy_node):
         commands = [_as_tuple(m) for _, m in rec.take()]
     finally:
         rec.close()
-    limit = joystick.speed_limits("wheeled_depth").forward_mps
+    limit = joystick.speed_limits("wheeled_depth").max_forward_mps
     assert commands[0] == pytest.approx((limit, 0, 0, 0)) and commands[-1] == (0, 0, 0, 0)
 
 

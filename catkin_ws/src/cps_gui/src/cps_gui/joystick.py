@@ -11,33 +11,8 @@ import dataclasses
 import math
 from typing import FrozenSet
 
-from cps_fleet.robot_types import VELOCITY_LIMITS, velocity_limits
+from cps_fleet.robot_types import velocity_limits
 
-
-@dataclasses.dataclass(frozen=True)
-class SpeedLimits:
-    """Full-scale joystick deflection for one robot type; 0 means the robot has no such axis."""
-
-    forward_mps: float
-    strafe_mps: float
-    climb_mps: float
-    turn_radps: float
-
-    @property
-    def can_strafe(self):
-        return self.strafe_mps > 0.0
-
-    @property
-    def can_climb(self):
-        return self.climb_mps > 0.0
-
-
-def _full_scale(limits):
-    return SpeedLimits(forward_mps=limits.max_forward_mps, strafe_mps=limits.max_lateral_mps,
-                       climb_mps=limits.max_vertical_mps, turn_radps=limits.max_yaw_rate_rps)
-
-
-SPEED_LIMITS = {robot_type: _full_scale(limits) for robot_type, limits in VELOCITY_LIMITS.items()}
 
 # A deflection below this fraction of full scale is treated as zero, so a resting finger does
 # not creep the robot.
@@ -66,8 +41,8 @@ ZERO = VelocityCommand()
 
 
 def speed_limits(robot_type):
-    """The SpeedLimits of a robot type; ValueError names the known types."""
-    return _full_scale(velocity_limits(robot_type))
+    """Full-scale deflection of a robot type (cps_fleet.robot_types.VelocityLimits); ValueError names the known types."""
+    return velocity_limits(robot_type)
 
 
 def _shape(value):
@@ -92,11 +67,11 @@ def axes_to_command(robot_type, forward, lateral, climb=0.0, strafe=False):
     forward, lateral, climb = _shape(forward), _shape(lateral), _shape(climb)
     strafing = strafe and limits.can_strafe
     return VelocityCommand(
-        linear_x=forward * limits.forward_mps,
+        linear_x=forward * limits.max_forward_mps,
         # Right on the stick is -y (left is +y in the base frame) and clockwise (-yaw).
-        linear_y=-lateral * limits.strafe_mps if strafing else 0.0,
-        linear_z=climb * limits.climb_mps if limits.can_climb else 0.0,
-        angular_z=0.0 if strafing else -lateral * limits.turn_radps,
+        linear_y=-lateral * limits.max_lateral_mps if strafing else 0.0,
+        linear_z=climb * limits.max_vertical_mps if limits.can_climb else 0.0,
+        angular_z=0.0 if strafing else -lateral * limits.max_yaw_rate_rps,
     )
 
 

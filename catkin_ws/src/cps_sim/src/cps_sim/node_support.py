@@ -1,4 +1,5 @@
-"""rospy glue the three cps_sim nodes share: start-up failures, parameters, the fleet, Twist."""
+"""rospy glue the three cps_sim nodes share: start-up failures, parameters, the fleet, a fixed-rate
+spin, Twist."""
 import math
 import sys
 
@@ -51,6 +52,17 @@ def load_site_for(fleet):
         return load_site(fleet.site_path)
     except ConfigError as exc:
         fail(f"bad site file: {exc}")
+
+
+def spin_at(rate_hz, tick):
+    """Call `tick()` at `rate_hz` until shutdown."""
+    rate = rospy.Rate(rate_hz)
+    while not rospy.is_shutdown():
+        tick()
+        try:
+            rate.sleep()
+        except rospy.ROSInterruptException:
+            break
 
 
 def twist_from_msg(msg):

@@ -14,7 +14,7 @@ from std_msgs.msg import String
 from cps_fleet.config import ConfigError
 from cps_sim import names
 from cps_sim.controllers import RouteFollower, validate_route
-from cps_sim.node_support import fail, load_fleet_param, load_site_for, positive_param, twist_to_msg
+from cps_sim.node_support import fail, load_fleet_param, load_site_for, positive_param, spin_at, twist_to_msg
 from cps_sim.robots import pose_matrix
 
 
@@ -100,13 +100,7 @@ class RouteControllerNode:
         self._publish_state(self.follower.state)
 
     def spin(self):
-        rate = rospy.Rate(self.rate_hz)
-        while not rospy.is_shutdown():
-            self._update()
-            try:
-                rate.sleep()
-            except rospy.ROSInterruptException:
-                break
+        spin_at(self.rate_hz, self._update)
 
 
 def main():

@@ -9,7 +9,7 @@ from std_msgs.msg import Bool, String
 
 from cps_sim import names
 from cps_sim.controllers import VelocityMux
-from cps_sim.node_support import fail, load_fleet_param, positive_param, twist_from_msg, twist_to_msg
+from cps_sim.node_support import fail, load_fleet_param, positive_param, spin_at, twist_from_msg, twist_to_msg
 
 
 class VelocityMuxNode:
@@ -58,16 +58,13 @@ class VelocityMuxNode:
         with self.lock:
             self.mux.set_estop(msg.data)
 
+    def _publish(self):
+        with self.lock:
+            out = self.mux.update(time.time())
+        self.pub.publish(twist_to_msg(out))
+
     def spin(self):
-        rate = rospy.Rate(self.rate_hz)
-        while not rospy.is_shutdown():
-            with self.lock:
-                out = self.mux.update(time.time())
-            self.pub.publish(twist_to_msg(out))
-            try:
-                rate.sleep()
-            except rospy.ROSInterruptException:
-                break
+        spin_at(self.rate_hz, self._publish)
 
 
 def main():
