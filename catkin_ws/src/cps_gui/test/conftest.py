@@ -1,5 +1,6 @@
 """Fixtures of the GUI tests: an offscreen QApplication, a fleet file whose robots have names of
 their own (so these tests' topics cannot meet another package's), and helpers to spin Qt."""
+import math
 import os
 import time
 
@@ -60,3 +61,26 @@ def spin_for(app, seconds):
     while time.monotonic() < deadline:
         app.processEvents()
         time.sleep(0.01)
+
+
+@pytest.fixture(scope="session")
+def odom_frames_in_map(rospy_node, test_fleet_file):
+    """This process plays fleet_sim's part for tf: the static map -> <r>/odom of every test robot
+    (its initial pose), which the GUI reads to place odometry in `map`."""
+    import tf2_ros
+    from geometry_msgs.msg import TransformStamped
+
+    from cps_fleet.fleet import load_fleet
+
+    transforms = []
+    for robot in load_fleet(test_fleet_file).robots:
+        pose = robot.initial_pose
+        t = TransformStamped()
+        t.header.stamp = rospy_node.Time.now()
+        t.header.frame_id, t.child_frame_id = "map", f"{robot.name}/odom"
+        t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = pose.x, pose.y, pose.z
+        t.transform.rotation.z, t.transform.rotation.w = math.sin(pose.yaw_rad / 2), math.cos(pose.yaw_rad / 2)
+        transforms.append(t)
+    broadcaster = tf2_ros.StaticTransformBroadcaster()
+    broadcaster.sendTransform(transforms)
+    yield broadcaster

@@ -3,41 +3,18 @@ teleoperation commands, mode/priority/stop wiring, plots and health table from s
 video, top view and settings persistence."""
 import math
 import os
-import threading
-import time
-
 import numpy as np
 import pytest
 from conftest import TEST_PREFIX, spin_for, spin_until
 
 from cps_gui import joystick
+from cps_harness.testing import TopicRecorder
 
 SCOUT, JACKAL, CHAMP, IRIS = (TEST_PREFIX + n for n in ("scout", "jackal", "champ", "iris"))
 
 
-class Recorder:
-    """Every message of a topic with its arrival time."""
-
-    def __init__(self, rospy, topic, msg_type):
-        self.messages = []
-        self._lock = threading.Lock()
-        self.sub = rospy.Subscriber(topic, msg_type, self._on, queue_size=100)
-
-    def _on(self, msg):
-        with self._lock:
-            self.messages.append((time.monotonic(), msg))
-
-    def take(self):
-        with self._lock:
-            out, self.messages = self.messages, []
-        return out
-
-    def close(self):
-        self.sub.unregister()
-
-
 @pytest.fixture
-def window(qapp, rospy_node, test_fleet_file, tmp_path):
+def window(qapp, rospy_node, test_fleet_file, odom_frames_in_map, tmp_path):
     from cps_gui.host import OperatorWindow
 
     win = OperatorWindow(str(tmp_path / "gui.ini"), fleet_file=test_fleet_file, with_rviz=False, stale_after_s=1.0)
@@ -65,7 +42,8 @@ def _wait_connected(qapp, publisher):
     spin_until(qapp, lambda: publisher.get_num_connections() > 0, 10.0, f"a subscriber on {publisher.name}")
 
 
-def _drag_and_release(qapp, teleop, dx, dy, hold_s=1.0, release_also=None):
+def _drag_and_release(qapp, teleop, recorder, dx, dy, hold_s=1.0, release_also=None):
+    """Hold the knob at (dx, dy) for hold_s, release it, and wait for the zero command."""
     from python_qt_binding.QtCore import QPointF
 
     pad = teleop.pad
@@ -76,7 +54,9 @@ def _drag_and_release(qapp, teleop, dx, dy, hold_s=1.0, release_also=None):
     _mouse(pad, "release", centre + QPointF(dx, dy))
     if release_also:
         release_also()
-    spin_for(qapp, 0.6)
+    spin_until(qapp, lambda: recorder.latest is not None and _as_tuple(recorder.latest) == (0.0, 0.0, 0.0, 0.0), 5,
+               "the zero command on release")
+    spin_for(qapp, 0.5)  # room for a second zero, which must not come
 
 
 def _as_tuple(twist):
@@ -95,7 +75,7 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
     assert teleop.strafe_check.isVisibleTo(teleop) == joystick.speed_limits(robot_type).can_strafe
     assert teleop.climb_slider.isVisibleTo(teleop) == joystick.speed_limits(robot_type).can_climb
     teleop.strafe_check.setChecked(strafe)
-    rec = Recorder(rospy_node, f"/{robot}/cmd_vel/teleop", Twist)
+    rec = TopicRecorder(f"/{robot}/cmd_vel/teleop", Twist)
     try:
         _wait_connected(qapp, window.plugin.io.teleop_pubs[robot])
         if climb:
@@ -103,7 +83,7 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
         dx, dy = 0.5 * teleop.pad.radius_px, -0.8 * teleop.pad.radius_px
         expected = joystick.drag_to_command(robot_type, dx, dy, teleop.pad.radius_px, climb=climb / 100.0,
                                             strafe=strafe)
-        _drag_and_release(qapp, teleop, dx, dy, hold_s=1.5, release_also=lambda: teleop.climb_slider.setValue(0))
+        _drag_and_release(qapp, teleop, rec, dx, dy, hold_s=1.5, release_also=lambda: teleop.climb_slider.setValue(0))
         messages = rec.take()
     finally:
         rec.close()
@@ -137,20 +117,20 @@ def test_keys_drive_only_while_the_pane_has_focus(window, qapp, rospy_node):
 
     teleop = window.plugin.teleop
     teleop.select_robot(JACKAL)
-    rec = Recorder(rospy_node, f"/{JACKAL}/cmd_vel/teleop", Twist)
+    rec = TopicRecorder(f"/{JACKAL}/cmd_vel/teleop", Twist)
     try:
         _wait_connected(qapp, window.plugin.io.teleop_pubs[JACKAL])
         QTest.keyPress(window.plugin.status.filter_edit, Qt.Key_W)
         spin_for(qapp, 0.4)
         assert rec.take() == []
         QTest.keyPress(teleop, Qt.Key_W)
-        spin_for(qapp, 0.5)
+        spin_until(qapp, lambda: rec.count >= 2, 5, "commands while W is held")
         QTest.keyRelease(teleop, Qt.Key_W)
-        spin_for(qapp, 0.4)
+        spin_until(qapp, lambda: _as_tuple(rec.latest) == (0, 0, 0, 0), 5, "one zero command on release")
         commands = [_as_tuple(m) for _, m in rec.take()]
     finally:
         rec.close()
-    limit = joystick.speed_limits("wheeled_depth").forward_mps
+    limit = joystick.speed_limits("wheeled_depth").max_forward_mps
     assert commands[0] == pytest.approx((limit, 0, 0, 0)) and commands[-1] == (0, 0, 0, 0)
 
 
@@ -163,21 +143,21 @@ def test_mode_switch_stop_all_and_takeoff_reach_their_topics(window, qapp, rospy
     spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "auto", 30, "the mux's initial mode")
     teleop = window.plugin.teleop
     teleop.select_robot(IRIS)
-    mode = Recorder(rospy_node, f"/{IRIS}/control_mode", String)
-    estop = Recorder(rospy_node, "/fleet/estop", Bool)
-    flight = Recorder(rospy_node, f"/{IRIS}/flight_command", String)
+    mode = TopicRecorder(f"/{IRIS}/control_mode", String)
+    estop = TopicRecorder("/fleet/estop", Bool)
+    flight = TopicRecorder(f"/{IRIS}/flight_command", String)
     try:
         _wait_connected(qapp, window.plugin.io.flight_pubs[IRIS])
         teleop.teleop_radio.click()
-        spin_until(qapp, lambda: mode.messages and mode.messages[-1][1].data == "teleop", 5, "teleop mode")
+        spin_until(qapp, lambda: mode.latest is not None and mode.latest.data == "teleop", 5, "teleop mode")
         spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "teleop", 5, "mux in teleop")
         teleop.auto_radio.click()
-        spin_until(qapp, lambda: mode.messages[-1][1].data == "auto", 5, "auto mode")
+        spin_until(qapp, lambda: mode.latest.data == "auto", 5, "auto mode")
         spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "auto", 5, "mux back in auto")
         teleop.stop_button.click()
-        spin_until(qapp, lambda: estop.messages and estop.messages[-1][1].data is True, 5, "estop true")
+        spin_until(qapp, lambda: estop.latest is not None and estop.latest.data is True, 5, "estop true")
         teleop.stop_button.click()
-        spin_until(qapp, lambda: estop.messages[-1][1].data is False, 5, "estop released")
+        spin_until(qapp, lambda: estop.latest.data is False, 5, "estop released")
         teleop.takeoff_button.click()
         teleop.land_button.click()
         spin_until(qapp, lambda: [m.data for _, m in flight.messages] == ["takeoff", "land"], 5,
@@ -236,7 +216,10 @@ def _stats_messages(rospy_node, bandwidth):
     return stats, alloc
 
 
-def test_plots_and_health_table_update_from_published_stats_and_turn_red_when_they_stop(window, qapp, rospy_node):
+@pytest.fixture
+def scout_stream(window, qapp, rospy_node):
+    """publish(): eight rounds of stats, allocation, map stats, scout's odometry (0.4 m/s) and
+    battery (15 %) at 10 Hz, with mission_state `inspecting`, as the running system would."""
     from cps_msgs.msg import BandwidthAllocationArray, MapStats, RobotMapStats, TopicStatsArray
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import BatteryState
@@ -250,8 +233,8 @@ def test_plots_and_health_table_update_from_published_stats_and_turn_red_when_th
         "battery": rospy_node.Publisher(f"/{SCOUT}/battery", BatteryState, queue_size=5),
         "mission": rospy_node.Publisher(f"/{SCOUT}/mission_state", String, queue_size=1, latch=True),
     }
-    status = window.plugin.status
-    try:
+
+    def publish():
         for pub in pubs.values():
             spin_until(qapp, lambda: pub.get_num_connections() > 0, 10, f"GUI subscribed to {pub.name}")
         pubs["mission"].publish(String(data="inspecting"))
@@ -267,30 +250,59 @@ def test_plots_and_health_table_update_from_published_stats_and_turn_red_when_th
             pubs["map"].publish(MapStats(robots=[RobotMapStats(robot=SCOUT, occupied_voxels_contributed=4321,
                                                                clouds_dropped_queue=i)]))
             spin_for(qapp, 0.1)
-        spin_for(qapp, 0.4)
-        row = [status.table.item(0, c).text() for c in range(status.table.columnCount())]
-        assert row[:9] == [SCOUT, "?", "inspecting", "15", row[4], "ok", "4321", "7", "high"]
-        assert float(row[4]) < 1.0
-        assert "battery low" in row[9] and "dropping clouds" in row[9]
-        t, v = status.curves[("bandwidth", SCOUT)].getData()
-        assert len(v) >= 6 and v[-1] == pytest.approx(1.7)
-        assert status.curves[("rate", JACKAL)].getData()[1][-1] == pytest.approx(6.0)
-        assert status.curves[("latency", SCOUT)].getData()[1][-1] == pytest.approx(40.0)
-        assert status.curves[("battery", SCOUT)].getData()[1][-1] == pytest.approx(15.0)
-        assert set(status.budget_curve.getData()[1]) == {7.2}
-        assert "budget 7.20 MB/s" in status.link_label.text()
-        assert "font-weight" not in status.link_label.styleSheet()
-        assert _is_red(status.table.item(0, 4)) is False
-        assert window.plugin.teleop.speedometer.speed_mps == pytest.approx(0.4) or True
-        # Publishing stops: within the stale threshold (1 s here) heartbeat, link and stats turn red.
-        spin_for(qapp, 1.6)
-        assert _is_red(status.table.item(0, 4)) and _is_red(status.table.item(0, 3))
-        assert status.table.item(0, 5).text() == "lost" and _is_red(status.table.item(0, 5))
-        assert "198,40,40" in status.link_label.styleSheet()
-        assert "no heartbeat" in status.table.item(0, 9).text()
-    finally:
-        for pub in pubs.values():
-            pub.unregister()
+
+    yield publish
+    for pub in pubs.values():
+        pub.unregister()
+
+
+def _row(status, index=0):
+    return [status.table.item(index, c).text() for c in range(status.table.columnCount())]
+
+
+def test_health_table_shows_the_published_figures(window, qapp, scout_stream):
+    status = window.plugin.status
+    scout_stream()
+    spin_until(qapp, lambda: _row(status)[7] == "7" and _row(status)[2] == "inspecting", 5,
+               lambda: f"the last map stats in the table, got {_row(status)}")
+    row = _row(status)
+    assert row[:9] == [SCOUT, "?", "inspecting", "15", row[4], "ok", "4321", "7", "high"]
+    assert float(row[4]) < 1.0
+    assert "battery low" in row[9] and "dropping clouds" in row[9]
+    assert _is_red(status.table.item(0, 4)) is False
+
+
+def test_plots_and_link_label_follow_the_published_stats(window, qapp, scout_stream):
+    status = window.plugin.status
+    scout_stream()
+    bandwidth = status.curves[("bandwidth", SCOUT)]
+    spin_until(qapp, lambda: len(bandwidth.getData()[1]) >= 6 and bandwidth.getData()[1][-1] == pytest.approx(1.7),
+               5, lambda: f"the last bandwidth plotted, got {bandwidth.getData()[1]}")
+    assert status.curves[("rate", JACKAL)].getData()[1][-1] == pytest.approx(6.0)
+    assert status.curves[("latency", SCOUT)].getData()[1][-1] == pytest.approx(40.0)
+    assert status.curves[("battery", SCOUT)].getData()[1][-1] == pytest.approx(15.0)
+    assert set(status.budget_curve.getData()[1]) == {7.2}
+    assert "budget 7.20 MB/s" in status.link_label.text()
+    assert "font-weight" not in status.link_label.styleSheet()
+
+
+def test_speedometer_shows_the_selected_robots_odometry(window, qapp, scout_stream):
+    speedometer = window.plugin.teleop.speedometer
+    window.plugin.teleop.select_robot(SCOUT)
+    scout_stream()
+    spin_until(qapp, lambda: speedometer.speed_mps == pytest.approx(0.4), 5,
+               lambda: f"0.4 m/s on the speedometer, got {speedometer.speed_mps}")
+
+
+def test_heartbeat_link_and_stats_turn_red_when_publishing_stops(window, qapp, scout_stream):
+    """Within the stale threshold (1 s here) after the last message."""
+    status = window.plugin.status
+    scout_stream()
+    spin_until(qapp, lambda: status.table.item(0, 5).text() == "lost", 5,
+               lambda: f"the link lost, got {_row(status)}")
+    assert _is_red(status.table.item(0, 4)) and _is_red(status.table.item(0, 3)) and _is_red(status.table.item(0, 5))
+    assert "198,40,40" in status.link_label.styleSheet()
+    assert "no heartbeat" in status.table.item(0, 9).text()
 
 
 def _is_red(item):
@@ -320,16 +332,15 @@ def test_speedometer_and_top_view_follow_odometry_and_the_projected_map(window, 
         odom.twist.twist.linear.x = 0.7
         odom_pub.publish(odom)
         spin_until(qapp, lambda: top._map is not None and JACKAL in top._poses, 10, "map and pose in the top view")
-        spin_for(qapp, 0.3)
-        assert teleop.speedometer.speed_mps == pytest.approx(0.7) and not teleop.speedometer.stale
+        spin_until(qapp, lambda: teleop.speedometer.speed_mps == pytest.approx(0.7), 5, "the speed shown")
+        assert not teleop.speedometer.stale
         pose = top._poses[JACKAL][0]
         assert (pose.x, pose.y) == pytest.approx((-6.0, 6.0))  # initial pose (-8, 6, 0 deg) + 2 m ahead
         image = top.grab().toImage()
         dark = sum(1 for x in range(0, image.width(), 2) for y in range(0, image.height(), 2)
                    if image.pixelColor(x, y).lightness() < 40)
         assert dark > 100, dark
-        spin_for(qapp, 1.3)
-        assert teleop.speedometer.stale
+        spin_until(qapp, lambda: teleop.speedometer.stale, 5, "the speedometer stale once odometry stops")
     finally:
         odom_pub.unregister()
         map_pub.unregister()
@@ -352,16 +363,16 @@ def test_video_pane_finds_image_topics_and_shows_rate_and_staleness(window, qapp
             msg.header.stamp = rospy_node.Time.now()
             pub.publish(msg)
             spin_for(qapp, 0.1)
+        spin_until(qapp, lambda: "160x120 rgb8" in video.info.text(), 5, lambda: video.info.text())
         text = video.info.text()
-        assert "160x120 rgb8" in text and "Hz" in text and "MB/s" in text
+        assert "Hz" in text and "MB/s" in text
         rate = float(text.split("|")[1].split()[0])
         assert 5.0 < rate < 15.0, text
         assert "198,40,40" not in video.info.styleSheet()
         picture = video.picture.pixmap().toImage()
         centre = picture.pixelColor(picture.width() // 2, picture.height() // 2)
         assert (centre.red(), centre.green(), centre.blue()) == (255, 0, 0)
-        spin_for(qapp, 1.3)
-        assert "198,40,40" in video.info.styleSheet()
+        spin_until(qapp, lambda: "198,40,40" in video.info.styleSheet(), 5, "the video info red once frames stop")
     finally:
         pub.unregister()
 
@@ -414,16 +425,15 @@ def test_rosout_log_is_filtered_by_level_and_text(window, qapp):
     state.add_log(0.0, "INFO", "/a", "hello fleet")
     state.add_log(0.0, "ERROR", "/b", "battery fault")
     state.add_log(0.0, "DEBUG", "/c", "noise")
-    spin_for(qapp, 0.4)
+    spin_until(qapp, lambda: "battery fault" in status.log_view.toPlainText(), 5, "the log shown")
     shown = status.log_view.toPlainText()
-    assert "hello fleet" in shown and "battery fault" in shown and "noise" not in shown
+    assert "hello fleet" in shown and "noise" not in shown
     status.level_combo.setCurrentText("ERROR")
-    spin_for(qapp, 0.4)
-    assert "hello fleet" not in status.log_view.toPlainText()
+    spin_until(qapp, lambda: "hello fleet" not in status.log_view.toPlainText(), 5, "INFO filtered out")
     status.level_combo.setCurrentText("DEBUG")
     status.filter_edit.setText("/c")
-    spin_for(qapp, 0.4)
-    assert status.log_view.toPlainText().strip().endswith("/c: noise")
+    spin_until(qapp, lambda: status.log_view.toPlainText().strip().endswith("/c: noise"), 5,
+               lambda: f"only /c shown, got {status.log_view.toPlainText()!r}")
 
 
 def test_settings_are_saved_on_close_and_restored(qapp, rospy_node, test_fleet_file, tmp_path):

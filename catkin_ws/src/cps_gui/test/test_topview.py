@@ -5,7 +5,7 @@ import os
 import numpy as np
 import pytest
 
-from cps_gui import rviz_config, topview
+from cps_gui import names, rviz_config, topview
 
 
 def test_occupancy_image_colours_and_orientation():
@@ -38,7 +38,7 @@ def test_bad_grids_are_rejected(args, match):
         topview.occupancy_image(*args)
 
 
-def test_odom_to_map_applies_the_initial_pose():
+def test_odom_to_map_applies_the_map_to_odom_transform():
     x, y, yaw = topview.odom_to_map(-8.0, -6.0, math.radians(90), 1.0, 0.0, 0.0)
     assert (x, y, yaw) == pytest.approx((-8.0, -5.0, math.radians(90)))
     assert topview.yaw_from_quaternion(0, 0, math.sin(0.4), math.cos(0.4)) == pytest.approx(0.8)
@@ -103,7 +103,7 @@ def test_shipped_rviz_config_is_the_generated_one_for_the_default_fleet():
     assert shipped == rviz_config.dump(rviz_config.fleet_rviz_config(fleet))
     for robot in fleet.robots:
         assert f"/twin/{robot.name}/points" in shipped and f"/{robot.name}/odom" in shipped
-    assert "Fixed Frame: map" in shipped and rviz_config.MAP_MARKERS_TOPIC in shipped
+    assert "Fixed Frame: map" in shipped and names.MAP_MARKERS in shipped
 
 
 def _frame(encoding, width, height, data, step=0):

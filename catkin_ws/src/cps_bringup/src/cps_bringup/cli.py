@@ -15,7 +15,7 @@ import time
 from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
-from cps_bringup.plan import DIGITAL, PHYSICAL, RunOptions, plan_nodes
+from cps_bringup.plan import DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RunOptions, plan_nodes
 from cps_bringup.supervisor import BringupError, Event, Supervisor, ensure_port_free, node_log_dir
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import PROFILES, load_fleet, robot_names_arg
@@ -51,7 +51,7 @@ def build_parser():
                         help="run the twins across a link shaped to this tc rate, e.g. 20mbit (needs root); "
                              "'none' = loopback")
     parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
-    parser.add_argument("--screenshot-after", type=float, default=60.0, metavar="S")
+    parser.add_argument("--screenshot-after", type=float, default=GUI_SCREENSHOT_AFTER_S, metavar="S")
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
     parser.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto",
                         help="PyBullet renderer; auto: TinyRenderer for small images, EGL for 640x480")

@@ -12,6 +12,7 @@ import sys
 import time
 
 from cps_bringup.cli import build_parser, run_mission
+from cps_bringup.plan import GUI_SCREENSHOT_AFTER_S
 from cps_bringup.supervisor import BringupError
 from cps_fleet.fleet import PROFILES
 
@@ -40,7 +41,7 @@ def parse_args(argv):
     parser.add_argument("--robots", default=None, help="subset, e.g. scout,jackal (default: the whole fleet)")
     parser.add_argument("--duration", type=float, default=420.0, metavar="S",
                         help="upper bound on the mission (it normally ends when every route is done)")
-    parser.add_argument("--screenshot-after", type=float, default=35.0, metavar="S",
+    parser.add_argument("--screenshot-after", type=float, default=GUI_SCREENSHOT_AFTER_S, metavar="S",
                         help="when the GUI screenshot is taken, seconds after start (during the mission)")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server mid-mission (it must resume from autosave)")

@@ -34,12 +34,16 @@ class NodeSpec:
     one_shot: bool = False
 
 
+# When the GUI screenshot is taken, s after the GUI starts: during the light profile's missions.
+GUI_SCREENSHOT_AFTER_S = 35.0
+
+
 @dataclasses.dataclass(frozen=True)
 class RunOptions:
     out_dir: str
     profile: Optional[str] = None
     gui_screenshot_path: Optional[str] = None
-    gui_screenshot_after_s: float = 60.0
+    gui_screenshot_after_s: float = GUI_SCREENSHOT_AFTER_S
     map_file: Optional[str] = None
     renderer: str = "auto"
     # Link capacity for the bandwidth manager, Mbit/s (e.g. iperf3's measurement); None: fleet.yaml's.

@@ -4,39 +4,15 @@ Pure functions, no Qt and no rospy, so the mapping is tested on its own. A drag 
 the knob from the pad's centre in screen pixels (x right, y down); the command is in the robot's
 base frame (REP 103: x forward, y left, z up, yaw counter-clockwise).
 
-The speed table below is the joystick's full-scale deflection. cps_sim keeps its own limits and
-clamps whatever it receives; the two tables should agree.
+Full-scale deflection is the robot type's velocity limit from cps_fleet.robot_types, the table
+the simulator clamps to: the joystick never asks for more than the robot executes.
 """
 import dataclasses
 import math
 from typing import FrozenSet
 
+from cps_fleet.robot_types import velocity_limits
 
-@dataclasses.dataclass(frozen=True)
-class SpeedLimits:
-    """Full-scale joystick deflection for one robot type; 0 means the robot has no such axis."""
-
-    forward_mps: float
-    strafe_mps: float
-    climb_mps: float
-    turn_radps: float
-
-    @property
-    def can_strafe(self):
-        return self.strafe_mps > 0.0
-
-    @property
-    def can_climb(self):
-        return self.climb_mps > 0.0
-
-
-# Keyed by the robot types of cps_fleet.fleet.ROBOT_TYPES.
-SPEED_LIMITS = {
-    "wheeled_lidar": SpeedLimits(forward_mps=1.0, strafe_mps=0.0, climb_mps=0.0, turn_radps=1.0),
-    "wheeled_depth": SpeedLimits(forward_mps=1.0, strafe_mps=0.0, climb_mps=0.0, turn_radps=1.5),
-    "legged_depth": SpeedLimits(forward_mps=0.6, strafe_mps=0.4, climb_mps=0.0, turn_radps=1.0),
-    "aerial_depth": SpeedLimits(forward_mps=1.0, strafe_mps=1.0, climb_mps=0.5, turn_radps=1.0),
-}
 
 # A deflection below this fraction of full scale is treated as zero, so a resting finger does
 # not creep the robot.
@@ -65,11 +41,8 @@ ZERO = VelocityCommand()
 
 
 def speed_limits(robot_type):
-    """The SpeedLimits of a robot type; ValueError names the known types."""
-    try:
-        return SPEED_LIMITS[robot_type]
-    except KeyError:
-        raise ValueError(f"unknown robot type '{robot_type}' (known: {', '.join(sorted(SPEED_LIMITS))})") from None
+    """Full-scale deflection of a robot type (cps_fleet.robot_types.VelocityLimits); ValueError names the known types."""
+    return velocity_limits(robot_type)
 
 
 def _shape(value):
@@ -94,11 +67,11 @@ def axes_to_command(robot_type, forward, lateral, climb=0.0, strafe=False):
     forward, lateral, climb = _shape(forward), _shape(lateral), _shape(climb)
     strafing = strafe and limits.can_strafe
     return VelocityCommand(
-        linear_x=forward * limits.forward_mps,
+        linear_x=forward * limits.max_forward_mps,
         # Right on the stick is -y (left is +y in the base frame) and clockwise (-yaw).
-        linear_y=-lateral * limits.strafe_mps if strafing else 0.0,
-        linear_z=climb * limits.climb_mps if limits.can_climb else 0.0,
-        angular_z=0.0 if strafing else -lateral * limits.turn_radps,
+        linear_y=-lateral * limits.max_lateral_mps if strafing else 0.0,
+        linear_z=climb * limits.max_vertical_mps if limits.can_climb else 0.0,
+        angular_z=0.0 if strafing else -lateral * limits.max_yaw_rate_rps,
     )
 
 

@@ -9,6 +9,7 @@ import math
 import threading
 
 import rospy
+import tf2_ros
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rosgraph_msgs.msg import Log
@@ -20,7 +21,7 @@ from cps_msgs.srv import SetPriority, SetPriorityRequest
 
 from cps_transport.image_compression import InvalidImage, decode_jpeg
 
-from cps_gui import topview
+from cps_gui import names, topview
 from cps_gui.fleet_state import (Allocation, ImageFrame, Pose, RobotAllocation, RobotMapFigures,
                                  TopicFigures)
 
@@ -46,16 +47,20 @@ class FleetRosIO:
         self.invalid_images = 0
         self._closed = False
         self.teleop_pubs, self.mode_pubs, self.flight_pubs = {}, {}, {}
+        # map -> <r>/odom comes from tf (fleet_sim or the robots publish it), cached once heard.
+        self.tf_buffer = tf2_ros.Buffer()
+        self._tf_listener = tf2_ros.TransformListener(self.tf_buffer)
+        self._odom_in_map = {}
         for robot in fleet.robots:
             self._robot_io(robot)
         sub = self._subscribe
-        sub("/tissue/stats", TopicStatsArray, self._on_stats)
-        sub("/tissue/allocation", BandwidthAllocationArray, self._on_allocation)
-        sub("/tissue/available_bandwidth", Float64, lambda m: state.set_available_bandwidth(m.data))
-        sub("/twin/map_stats", MapStats, self._on_map_stats)
-        sub("/twin/projected_map", OccupancyGrid, self._on_projected_map, buff_size=2 ** 24)
-        sub("/rosout_agg", Log, self._on_log, queue_size=100)
-        self.estop_pub = rospy.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+        sub(names.TISSUE_STATS, TopicStatsArray, self._on_stats)
+        sub(names.ALLOCATION, BandwidthAllocationArray, self._on_allocation)
+        sub(names.AVAILABLE_BANDWIDTH, Float64, lambda m: state.set_available_bandwidth(m.data))
+        sub(names.MAP_STATS, MapStats, self._on_map_stats)
+        sub(names.PROJECTED_MAP, OccupancyGrid, self._on_projected_map, buff_size=2 ** 24)
+        sub(names.ROSOUT, Log, self._on_log, queue_size=100)
+        self.estop_pub = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
         self._discovery = rospy.Timer(rospy.Duration(discovery_period_s), self._discover_images)
         threading.Thread(target=self._discover_images, args=(None,), daemon=True).start()
 
@@ -65,17 +70,24 @@ class FleetRosIO:
 
     def _robot_io(self, robot):
         name, state = robot.name, self.state
-        pose0 = robot.initial_pose
+
+        def topic(relative):
+            return names.robot_topic(name, relative)
 
         def on_odom(msg):
             p, q = msg.pose.pose.position, msg.pose.pose.orientation
             if not all(math.isfinite(v) for v in (p.x, p.y, p.z, q.x, q.y, q.z, q.w)):
                 rospy.logwarn_throttle(10.0, f"cps_gui: /{name}/odom with a non-finite pose, ignored")
                 return
+            origin = self._odom_origin(name)
+            if origin is None:
+                rospy.logwarn_throttle(10.0, f"cps_gui: no tf {names.MAP_FRAME} -> {names.odom_frame(name)} yet; "
+                                             f"/{name}/odom not shown")
+                return
             yaw = topview.yaw_from_quaternion(q.x, q.y, q.z, q.w)
-            x, y, yaw_map = topview.odom_to_map(pose0.x, pose0.y, pose0.yaw_rad, p.x, p.y, yaw)
+            x, y, yaw_map = topview.odom_to_map(origin.x, origin.y, origin.yaw_rad, p.x, p.y, yaw)
             v = msg.twist.twist.linear
-            state.set_pose(name, Pose(x, y, pose0.z + p.z, yaw_map, math.hypot(v.x, v.y)))
+            state.set_pose(name, Pose(x, y, origin.z + p.z, yaw_map, math.hypot(v.x, v.y)))
 
         def on_battery(msg):
             if not math.isfinite(msg.percentage):
@@ -83,14 +95,28 @@ class FleetRosIO:
                 return
             state.set_battery(name, msg.percentage)
 
-        self._subscribe(f"/{name}/odom", Odometry, on_odom)
-        self._subscribe(f"/{name}/battery", BatteryState, on_battery)
-        self._subscribe(f"/{name}/control_mode/active", String, lambda m: state.set_mode(name, m.data))
-        self._subscribe(f"/{name}/mission_state", String, lambda m: state.set_mission_state(name, m.data))
-        self.teleop_pubs[name] = rospy.Publisher(f"/{name}/cmd_vel/teleop", Twist, queue_size=1)
-        self.mode_pubs[name] = rospy.Publisher(f"/{name}/control_mode", String, queue_size=1, latch=True)
+        self._subscribe(topic(names.ODOM), Odometry, on_odom)
+        self._subscribe(topic(names.BATTERY), BatteryState, on_battery)
+        self._subscribe(topic(names.CONTROL_MODE_ACTIVE), String, lambda m: state.set_mode(name, m.data))
+        self._subscribe(topic(names.MISSION_STATE), String, lambda m: state.set_mission_state(name, m.data))
+        self.teleop_pubs[name] = rospy.Publisher(topic(names.CMD_VEL_TELEOP), Twist, queue_size=1)
+        self.mode_pubs[name] = rospy.Publisher(topic(names.CONTROL_MODE), String, queue_size=1, latch=True)
         if robot.type == "aerial_depth":
-            self.flight_pubs[name] = rospy.Publisher(f"/{name}/flight_command", String, queue_size=1)
+            self.flight_pubs[name] = rospy.Publisher(topic(names.FLIGHT_COMMAND), String, queue_size=1)
+
+    def _odom_origin(self, robot):
+        """The static map -> <r>/odom as a topview.Pose2D, or None until tf has it."""
+        origin = self._odom_in_map.get(robot)
+        if origin is None:
+            try:
+                t = self.tf_buffer.lookup_transform(names.MAP_FRAME, names.odom_frame(robot), rospy.Time(0)).transform
+            except (tf2_ros.LookupException, tf2_ros.ConnectivityException, tf2_ros.ExtrapolationException):
+                return None
+            q = t.rotation
+            origin = topview.Pose2D(t.translation.x, t.translation.y, t.translation.z,
+                                    topview.yaw_from_quaternion(q.x, q.y, q.z, q.w))
+            self._odom_in_map[robot] = origin
+        return origin
 
     # Incoming.
 
@@ -118,7 +144,7 @@ class FleetRosIO:
             image = topview.occupancy_image(info.width, info.height, info.resolution, info.origin.position.x,
                                             info.origin.position.y, msg.data)
         except ValueError as exc:
-            rospy.logwarn_throttle(10.0, f"cps_gui: /twin/projected_map ignored: {exc}")
+            rospy.logwarn_throttle(10.0, f"cps_gui: {names.PROJECTED_MAP} ignored: {exc}")
             return
         self.state.set_projected_map(image)
 
@@ -212,17 +238,18 @@ class FleetRosIO:
         """Call /tissue/set_priority on a worker thread; `done(ok, text)` runs on that thread."""
         def call():
             try:
-                rospy.wait_for_service("/tissue/set_priority", timeout=self.service_timeout_s)
-                proxy = rospy.ServiceProxy("/tissue/set_priority", SetPriority)
+                rospy.wait_for_service(names.SET_PRIORITY, timeout=self.service_timeout_s)
+                proxy = rospy.ServiceProxy(names.SET_PRIORITY, SetPriority)
                 reply = proxy(SetPriorityRequest(robot=robot, priority=priority))
                 done(reply.success, reply.message)
             except (rospy.ROSException, rospy.ServiceException) as exc:
-                done(False, f"/tissue/set_priority failed: {exc}")
+                done(False, f"{names.SET_PRIORITY} failed: {exc}")
         threading.Thread(target=call, name=f"set_priority_{robot}", daemon=True).start()
 
     def close(self):
         self._closed = True
         self._discovery.shutdown()
+        self._tf_listener.unregister()
         for sub in self._subscribers:
             sub.unregister()
         self.select_image_topic("")

@@ -7,6 +7,8 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
+from cps_fleet.site import load_site
+
 # Colours (RGB) of the map image: free, occupied, unknown.
 FREE_RGB = (235, 235, 235)
 OCCUPIED_RGB = (20, 20, 20)
@@ -64,10 +66,20 @@ def occupancy_image(width, height, resolution_m, origin_x, origin_y, data, max_c
                           cell_m=resolution_m * factor, occupied_cells=int(occupied.sum()))
 
 
-def odom_to_map(initial_x, initial_y, initial_yaw_rad, x, y, yaw_rad):
-    """A pose in `<r>/odom` to `map`, through the static transform of the robot's initial pose."""
-    c, s = math.cos(initial_yaw_rad), math.sin(initial_yaw_rad)
-    return initial_x + c * x - s * y, initial_y + s * x + c * y, _wrap(initial_yaw_rad + yaw_rad)
+@dataclasses.dataclass(frozen=True)
+class Pose2D:
+    """A planar pose with height: x, y, z in m, yaw in rad."""
+
+    x: float
+    y: float
+    z: float
+    yaw_rad: float
+
+
+def odom_to_map(odom_x, odom_y, odom_yaw_rad, x, y, yaw_rad):
+    """A pose in `<r>/odom` to `map`, given the map -> <r>/odom transform (odom_x, odom_y, odom_yaw_rad)."""
+    c, s = math.cos(odom_yaw_rad), math.sin(odom_yaw_rad)
+    return odom_x + c * x - s * y, odom_y + s * x + c * y, _wrap(odom_yaw_rad + yaw_rad)
 
 
 def _wrap(angle):
@@ -141,7 +153,7 @@ class WorldToScreen:
 def fence_polygons(site):
     """[(name, [(x, y), ...])] of the fenced areas of a site loaded by cps_fleet.site.load_site.
 
-    cps_sim's FencedArea is an axis-aligned box (`x_min_m`.. fields); other shapes are read too:
+    cps_fleet.site's FencedArea is an axis-aligned box (`x_min_m`.. fields); other shapes are read too:
     a polygon (`polygon`/`corners`/`points`), `min`/`max` pairs, `x_min`.., or a centre and size. Areas it
     cannot read are skipped and counted in the second return value.
     """
@@ -200,12 +212,8 @@ def _box(x0, y0, x1, y1):
 
 
 def load_fences(site_path):
-    """Fenced areas of the site file through cps_fleet.site.load_site, or ([], reason) when cps_sim
-    is not there yet or the file cannot be read: the top view then draws no fences."""
-    try:
-        from cps_fleet.site import load_site
-    except ImportError as exc:
-        return [], f"cps_fleet.site is not available ({exc}); no fenced areas drawn"
+    """Fenced areas of the site file through cps_fleet.site.load_site, or ([], reason) when the
+    file cannot be read: the top view then draws no fences."""
     try:
         site = load_site(site_path)
     except Exception as exc:  # a ConfigError or whatever the loader raises

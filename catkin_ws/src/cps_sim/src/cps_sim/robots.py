@@ -3,7 +3,7 @@
 Pure numpy. Robots move kinematically (their pose is integrated from the executed velocity,
 with the type's velocity and acceleration limits); odometry is that pose relative to the known
 initial pose. Everything specific to a robot type lives in ROBOT_SPECS, keyed by the type
-names of cps_fleet.fleet.ROBOT_TYPES.
+names of cps_fleet.fleet.ROBOT_TYPES; the velocity limits come from cps_fleet.robot_types.
 """
 import dataclasses
 import math
@@ -12,19 +12,11 @@ from typing import Tuple
 import numpy as np
 
 from cps_fleet.fleet import ROBOT_TYPES
+from cps_fleet.robot_types import VelocityLimits, velocity_limits
 
 
-@dataclasses.dataclass(frozen=True)
-class VelocityLimits:
-    """Per-type limits every executed command is clamped to (m/s, rad/s, m/s², rad/s²)."""
-    max_forward_mps: float
-    max_lateral_mps: float      # 0 for non-holonomic bases
-    max_vertical_mps: float     # 0 for ground robots
-    max_yaw_rate_rps: float
-    max_linear_accel_mps2: float
-    max_yaw_accel_rps2: float
-    # Anything beyond this many times the limit is an absurd command and is dropped, not clamped.
-    absurd_factor: float = 10.0
+# Beyond this many times a limit a command is absurd: dropped, not clamped.
+ABSURD_FACTOR = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,7 +28,7 @@ class RobotSpec:
     rgb: Tuple[float, float, float]
     sensor_xyz_m: Tuple[float, float, float]   # sensor in base_link
     sensor_pitch_deg: float         # positive looks down
-    limits: VelocityLimits
+    limits: VelocityLimits          # cps_fleet.robot_types, shared with the GUI's joystick
     cruise_mps: float               # the route controller's travel speed
     joint_names: Tuple[str, ...]
     wheel_radius_m: float = 0.0
@@ -54,21 +46,21 @@ ROBOT_SPECS = {
     "wheeled_lidar": RobotSpec(
         type="wheeled_lidar", model="Agilex Scout 2.0", body_half_extents_m=(0.465, 0.35, 0.125),
         body_center_z_m=0.225, rgb=(0.9, 0.9, 0.9), sensor_xyz_m=(0.0, 0.0, 0.55), sensor_pitch_deg=0.0,
-        limits=VelocityLimits(1.5, 0.0, 0.0, 1.5, 1.0, 2.0), cruise_mps=0.8,
+        limits=velocity_limits("wheeled_lidar"), cruise_mps=0.8,
         joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
         wheel_radius_m=0.165, track_m=0.58, battery_capacity_wh=720.0, battery_nominal_v=24.0,
         idle_power_w=60.0, motion_power_w_per_mps=150.0, sensor_power_w=12.0),
     "wheeled_depth": RobotSpec(
         type="wheeled_depth", model="Clearpath Jackal", body_half_extents_m=(0.254, 0.215, 0.1),
         body_center_z_m=0.165, rgb=(0.95, 0.75, 0.1), sensor_xyz_m=(0.26, 0.0, 0.35), sensor_pitch_deg=10.0,
-        limits=VelocityLimits(2.0, 0.0, 0.0, 4.0, 2.0, 4.0), cruise_mps=0.8,
+        limits=velocity_limits("wheeled_depth"), cruise_mps=0.8,
         joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
         wheel_radius_m=0.098, track_m=0.37, battery_capacity_wh=270.0, battery_nominal_v=24.0,
         idle_power_w=30.0, motion_power_w_per_mps=60.0, sensor_power_w=5.0),
     "legged_depth": RobotSpec(
         type="legged_depth", model="CHAMP quadruped", body_half_extents_m=(0.3, 0.12, 0.07),
         body_center_z_m=0.32, rgb=(0.2, 0.2, 0.22), sensor_xyz_m=(0.33, 0.0, 0.40), sensor_pitch_deg=10.0,
-        limits=VelocityLimits(0.6, 0.3, 0.0, 1.0, 0.8, 1.5), cruise_mps=0.45,
+        limits=velocity_limits("legged_depth"), cruise_mps=0.45,
         joint_names=tuple(f"{leg}_{j}_joint" for leg in _CHAMP_LEGS for j in ("hip", "upper_leg", "lower_leg")),
         battery_capacity_wh=150.0, battery_nominal_v=24.0, idle_power_w=40.0, motion_power_w_per_mps=120.0,
         sensor_power_w=5.0),
@@ -77,7 +69,7 @@ ROBOT_SPECS = {
         # base_link on the ground when landed; the body stands on its landing gear and the camera
         # hangs under its front, so a landed Iris still sees the floor (it was below it).
         body_center_z_m=0.12, rgb=(0.15, 0.15, 0.15), sensor_xyz_m=(0.28, 0.0, 0.06), sensor_pitch_deg=45.0,
-        limits=VelocityLimits(2.0, 2.0, 1.0, 1.5, 1.5, 2.0), cruise_mps=1.0,
+        limits=velocity_limits("aerial_depth"), cruise_mps=1.0,
         joint_names=("rotor_0_joint", "rotor_1_joint", "rotor_2_joint", "rotor_3_joint"),
         battery_capacity_wh=60.0, battery_nominal_v=11.1, idle_power_w=10.0, motion_power_w_per_mps=20.0,
         sensor_power_w=5.0),
@@ -121,7 +113,7 @@ def validate_twist(twist, limits):
         return f"non-finite velocity {values.tolist()}"
     caps = np.array([limits.max_forward_mps, max(limits.max_lateral_mps, limits.max_forward_mps),
                      max(limits.max_vertical_mps, limits.max_forward_mps), limits.max_yaw_rate_rps])
-    if np.any(np.abs(values) > limits.absurd_factor * caps):
+    if np.any(np.abs(values) > ABSURD_FACTOR * caps):
         return f"absurd velocity {values.tolist()} (limits {caps.tolist()})"
     return None
 

@@ -339,7 +339,7 @@ class TeleopPane(QWidget):
                 self.priority_button.setChecked(row.priority == 1)
         poses = self.state.poses()
         stale = name not in poses or poses[name][1]
-        self.speedometer.set_speed(self.state.speed_mps(name), joystick.speed_limits(self.robot.type).forward_mps,
+        self.speedometer.set_speed(self.state.speed_mps(name), joystick.speed_limits(self.robot.type).max_forward_mps,
                                    stale)
 
     def save_settings(self, settings):

@@ -1,0 +1,46 @@
+"""The topic, service and frame names the operator GUI uses, in one place.
+
+The GUI runs in the root namespace and serves every robot, so per-robot names are built relative
+(`<r>/odom` resolves to `/<r>/odom`); site-wide names are global, as the ROS graph contract has
+them. rviz configs get fully qualified names (`global_robot_topic`).
+"""
+
+# Per robot.
+ODOM = "odom"
+BATTERY = "battery"
+MISSION_STATE = "mission_state"
+CONTROL_MODE = "control_mode"
+CONTROL_MODE_ACTIVE = "control_mode/active"
+CMD_VEL_TELEOP = "cmd_vel/teleop"
+FLIGHT_COMMAND = "flight_command"
+
+# Site-wide.
+ESTOP = "/fleet/estop"
+TISSUE_STATS = "/tissue/stats"
+ALLOCATION = "/tissue/allocation"
+AVAILABLE_BANDWIDTH = "/tissue/available_bandwidth"
+SET_PRIORITY = "/tissue/set_priority"
+MAP_STATS = "/twin/map_stats"
+PROJECTED_MAP = "/twin/projected_map"
+MAP_MARKERS = "/twin/occupied_cells_vis_array"
+ROSOUT = "/rosout_agg"
+
+MAP_FRAME = "map"
+
+
+def robot_topic(robot, topic):
+    """`<robot>/<topic>`, relative: resolves to /<robot>/<topic> from the GUI's root namespace."""
+    return f"{robot}/{topic}"
+
+
+def global_robot_topic(robot, topic):
+    return f"/{robot}/{topic}"
+
+
+def twin_points(robot):
+    """The robot's decoded cloud on the digital-twin side."""
+    return f"/twin/{robot}/points"
+
+
+def odom_frame(robot):
+    return f"{robot}/odom"

@@ -1,0 +1,342 @@
+"""fleet_sim's ROS side: every robot of the fleet in one world, publishing what its drivers would.
+
+Parameters are read once into `FleetSimOptions`; the loop is `cps_sim.realtime.run_realtime`
+over `FleetSimNode.step`.
+"""
+import dataclasses
+import math
+import multiprocessing.connection
+import threading
+import time
+from typing import Tuple
+
+import rospy
+import tf2_ros
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Twist as TwistMsg
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import BatteryState, CameraInfo, Image, JointState, PointCloud2
+from std_msgs.msg import String
+
+from cps_fleet.config import ConfigError, load_yaml_document
+from cps_fleet.site import check_waypoint
+from cps_sim import messages, names
+from cps_sim.node_support import fail, load_fleet_param, load_site_for, name_list, positive_param, twist_from_msg
+from cps_sim.realtime import Periodic, PhysicsClock, run_realtime
+from cps_sim.robots import Twist, validate_twist
+from cps_sim.scheduling import RateMeter, SensorScheduler
+from cps_sim.sensor_workers import SensorWorkerPool
+from cps_sim.simulation import FleetSimulation, sensor_points
+from cps_sim.site_changes import SiteMove, apply_site_changes
+from cps_sim.world import RENDERERS
+
+CMD_TIMEOUT_S = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class FleetSimOptions:
+    """fleet_sim's private parameters, checked (see the README for their meaning)."""
+
+    renderer: str = "auto"
+    odom_rate_hz: float = 50.0
+    joint_state_rate_hz: float = 20.0
+    battery_rate_hz: float = 1.0
+    diagnostics_rate_hz: float = 1.0
+    max_physics_step_s: float = 0.02
+    max_catch_up_s: float = 1.0
+    sensor_workers: int = 2
+    site_without: Tuple[str, ...] = ()
+    site_moves: Tuple[SiteMove, ...] = ()
+
+
+def read_options():
+    """FleetSimOptions from the private parameters; a bad one stops the node naming it."""
+    default = FleetSimOptions()
+    renderer = rospy.get_param("~renderer", default.renderer)
+    if renderer not in RENDERERS:
+        fail(f"parameter ~renderer: unknown renderer '{renderer}' (known: {', '.join(RENDERERS)})")
+    rates = {field: positive_param(f"~{field}", getattr(default, field))
+             for field in ("odom_rate_hz", "joint_state_rate_hz", "battery_rate_hz", "diagnostics_rate_hz",
+                           "max_physics_step_s", "max_catch_up_s")}
+    workers = rospy.get_param("~sensor_workers", default.sensor_workers)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        fail(f"parameter {rospy.resolve_name('~sensor_workers')} must be an integer >= 0, got {workers!r}")
+    try:
+        moves = tuple(SiteMove.parse(m) for m in name_list(rospy.get_param("~site_moves", "")))
+    except ValueError as exc:
+        fail(f"parameters ~site_without/~site_moves: {exc.args[0]}")
+    return FleetSimOptions(renderer=renderer, sensor_workers=workers,
+                           site_without=tuple(name_list(rospy.get_param("~site_without", ""))),
+                           site_moves=moves, **rates)
+
+
+def initial_pose_error(fleet, site):
+    """A ConfigError at fleet.yaml's line for an initial pose outside the hall or in equipment, or None."""
+    doc = load_yaml_document(fleet.path)
+    robot_names = [r.get("name") for r in doc.data.get("robots", [])]
+    for robot in fleet.robots:
+        pose = robot.initial_pose
+        reason = check_waypoint(site, pose.x, pose.y, max(pose.z, 0.0), robot.type, margin_m=0.2)
+        if reason:
+            line = doc.line(("robots", robot_names.index(robot.name), "initial_pose"))
+            return ConfigError(fleet.path, line, f"robots[{robot.name}].initial_pose: {reason}")
+    return None
+
+
+class FleetSimNode:
+    """All robots of the fleet in one world, publishing what their drivers would."""
+
+    def __init__(self, fleet, options: FleetSimOptions):
+        self.fleet = fleet
+        self.options = options
+        try:
+            self.site = apply_site_changes(load_site_for(fleet), options.site_without, options.site_moves)
+        except KeyError as exc:
+            fail(f"parameters ~site_without/~site_moves: {exc.args[0]}")
+        error = initial_pose_error(fleet, self.site)
+        if error:
+            fail(f"bad fleet file: {error}")
+        if options.sensor_workers > 0:
+            # Robots' kinematics here; rendering and ray casting in worker processes.
+            self.pool = SensorWorkerPool(fleet, self.site, options.renderer, options.sensor_workers)
+            self.sim = FleetSimulation(fleet, site=self.site, renderer=None)
+            self.renderer = self.pool.renderer
+        else:
+            self.pool = None
+            self.sim = FleetSimulation(fleet, site=self.site, renderer=options.renderer)
+            self.renderer = self.sim.renderer
+        if options.renderer == "egl" and self.renderer != "egl":  # 'auto' may choose tiny on purpose
+            rospy.logwarn("EGL rendering unavailable; using TinyRenderer (slower)")
+        self.capture_ms = {name: 0.0 for name in self.sim.robots}
+        self.lock = threading.Lock()
+        self.pubs = {}
+        self.cmd_time = {}
+        self.bad_commands = {}
+        for name, sim in self.sim.robots.items():
+            self._robot_io(name, sim)
+        self.tf = tf2_ros.TransformBroadcaster()
+        self.static_tf = tf2_ros.StaticTransformBroadcaster()
+        self.diagnostics = rospy.Publisher(names.DIAGNOSTICS, DiagnosticArray, queue_size=5)
+        now = time.time()
+        self.static_tf.sendTransform(self._static_transforms(now))
+        self.scheduler = SensorScheduler({n: s.rate_hz for n, s in self.sim.robots.items()}, now)
+        self.physics_meter = RateMeter()
+        self.physics = PhysicsClock(now, options.max_physics_step_s, options.max_catch_up_s)
+        rospy.loginfo("fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s",
+                      fleet.profile.name, self.renderer, options.sensor_workers, ", ".join(self.sim.robots))
+
+    def _robot_io(self, name, sim):
+        def topic(relative):
+            return names.robot_topic(name, relative)
+
+        pubs = {
+            "points": rospy.Publisher(topic(names.POINTS), PointCloud2, queue_size=2),
+            "odom": rospy.Publisher(topic(names.ODOM), Odometry, queue_size=10),
+            "joint_states": rospy.Publisher(topic(names.JOINT_STATES), JointState, queue_size=10),
+            "battery": rospy.Publisher(topic(names.BATTERY), BatteryState, queue_size=2),
+        }
+        if sim.config.has_depth_camera:
+            pubs["image"] = rospy.Publisher(topic(names.CAMERA_IMAGE), Image, queue_size=2)
+            pubs["info"] = rospy.Publisher(topic(names.CAMERA_INFO), CameraInfo, queue_size=2)
+        self.pubs[name] = pubs
+        self.cmd_time[name] = -math.inf
+        self.bad_commands[name] = 0
+        rospy.Subscriber(topic(names.CMD_VEL), TwistMsg, self._on_cmd_vel, callback_args=name, queue_size=5)
+        if sim.robot.is_aerial:
+            rospy.Subscriber(topic(names.FLIGHT_COMMAND), String, self._on_flight_command, callback_args=name,
+                             queue_size=5)
+
+    def _static_transforms(self, now):
+        """map -> <r>/odom (the known initial pose: only this node computes it) and the sensor mounts."""
+        statics = []
+        for name, sim in self.sim.robots.items():
+            statics.append(messages.transform_stamped(sim.robot.odom_in_map(), names.MAP_FRAME,
+                                                      names.odom_frame(name), now))
+            statics.append(messages.transform_stamped(sim.robot.sensor_in_base(), names.base_frame(name),
+                                                      sim.sensor_frame, now))
+        return statics
+
+    # Commands --------------------------------------------------------------------------------
+    def _on_cmd_vel(self, msg, name):
+        sim = self.sim.robots[name]
+        twist = twist_from_msg(msg)
+        reason = validate_twist(twist, sim.robot.spec.limits)
+        with self.lock:
+            if reason:
+                self.bad_commands[name] += 1
+                sim.robot.set_command(Twist())
+                rospy.logwarn_throttle(2.0, f"/{name}/cmd_vel: dropped {reason}; holding "
+                                            f"({self.bad_commands[name]} dropped so far)")
+                return
+            sim.robot.set_command(twist)
+            self.cmd_time[name] = time.time()
+
+    def _on_flight_command(self, msg, name):
+        command = msg.data.strip().lower()
+        with self.lock:
+            if not self.sim.robots[name].robot.flight_command(command):
+                rospy.logwarn_throttle(2.0, f"/{name}/flight_command: unknown command '{msg.data}' (known: takeoff, land)")
+
+    # Loop ------------------------------------------------------------------------------------
+    def _advance_physics(self, now):
+        with self.lock:
+            for name, sim in self.sim.robots.items():
+                if now - self.cmd_time[name] > CMD_TIMEOUT_S:
+                    sim.robot.set_command(Twist())
+            for dt_s in self.physics.steps(now):
+                self.sim.step(dt_s)
+        self.physics_meter.tick(now)
+
+    def _publish_state(self, now, joints, battery):
+        transforms = []
+        for name, sim in self.sim.robots.items():
+            robot = sim.robot
+            self.pubs[name]["odom"].publish(messages.odometry(robot, now))
+            transforms.append(messages.transform_stamped(robot.base_in_odom(), names.odom_frame(name),
+                                                         names.base_frame(name), now))
+            if joints:
+                self.pubs[name]["joint_states"].publish(messages.joint_state(robot, now))
+            if battery:
+                self.pubs[name]["battery"].publish(messages.battery_state(robot, now))
+        self.tf.sendTransform(transforms)
+
+    def _publish_frame(self, name, frame, stamp):
+        sim = self.sim.robots[name]
+        pubs = self.pubs[name]
+        pubs["points"].publish(messages.point_cloud2(sensor_points(frame), sim.sensor_frame, stamp))
+        if "image" in pubs:
+            pubs["image"].publish(messages.image_rgb8(frame.rgb, sim.sensor_frame, stamp))
+            pubs["info"].publish(messages.camera_info(sim.sensor, sim.sensor_frame, stamp))
+
+    def _record_capture_ms(self, name, ms):
+        previous = self.capture_ms[name]
+        self.capture_ms[name] = ms if previous == 0.0 else 0.8 * previous + 0.2 * ms
+
+    def _capture_in_process(self, name):
+        sim = self.sim.robots[name]
+        with self.lock:
+            sensor_pose = sim.robot.sensor_in_map()
+        stamp = time.time()
+        frame = sim.sensor.capture(sensor_pose)
+        self._record_capture_ms(name, 1000.0 * (time.time() - stamp))
+        self._publish_frame(name, frame, stamp)
+        self.scheduler.done(name, stamp, time.time())
+
+    def _busy_sensors(self):
+        return [w.busy_with for w in self.pool.workers if w.busy_with]
+
+    def _service_workers(self, now):
+        """Publish finished captures and hand due sensors to idle workers; True if any work was done."""
+        worked = False
+        for name, frame, requested, started, finished in self.pool.results():
+            self._record_capture_ms(name, 1000.0 * (finished - started))
+            self._publish_frame(name, frame, requested)
+            self.scheduler.done(name, requested, time.time())
+            worked = True
+        while True:
+            worker = self.pool.idle_worker()
+            if worker is None:
+                break
+            name, due = self.scheduler.next(exclude=self._busy_sensors())
+            if name is None or due > now:
+                break
+            with self.lock:
+                poses = self.sim.poses()
+            self.pool.request(worker, name, poses, time.time())
+            worked = True
+        return worked
+
+    def _publish_diagnostics(self, now):
+        array = DiagnosticArray()
+        array.header.stamp = messages.stamp(now)
+        wall = now - self._diag_wall_start
+        sim_time_s = self.physics.sim_time_s
+        rtf = (sim_time_s - self._diag_sim_start) / wall if wall > 0 else 1.0
+        self._diag_wall_start, self._diag_sim_start = now, sim_time_s
+        fleet_status = DiagnosticStatus(level=DiagnosticStatus.OK if rtf > 0.9 else DiagnosticStatus.WARN,
+                                        name="cps_sim: fleet", hardware_id="fleet_sim",
+                                        message=f"real-time factor {rtf:.2f}")
+        fleet_status.values = [KeyValue("real_time_factor", f"{rtf:.3f}"), KeyValue("profile", self.fleet.profile.name),
+                               KeyValue("renderer", str(self.renderer)),
+                               KeyValue("sensor_workers", str(len(self.pool.workers) if self.pool else 0)),
+                               KeyValue("physics_loop_hz", f"{self.physics_meter.rate_hz(now):.1f}")]
+        array.status.append(fleet_status)
+        summary = []
+        for name, sim in self.sim.robots.items():
+            achieved = self.scheduler.achieved_hz(name, now)
+            ok = achieved >= 0.9 * sim.rate_hz
+            kind = "lidar" if sim.config.has_lidar else "depth_camera"
+            status = DiagnosticStatus(level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
+                                      name=f"cps_sim: {name} {kind}", hardware_id=name,
+                                      message=f"{achieved:.1f} of {sim.rate_hz:.1f} Hz")
+            status.values = [KeyValue("configured_hz", f"{sim.rate_hz:.2f}"), KeyValue("achieved_hz", f"{achieved:.2f}"),
+                             KeyValue("capture_ms", f"{self.capture_ms[name]:.1f}"),
+                             KeyValue("skipped_captures", str(self.scheduler.skipped[name])),
+                             KeyValue("dropped_commands", str(self.bad_commands[name])),
+                             KeyValue("battery_percentage", f"{100 * sim.robot.battery_fraction:.1f}")]
+            array.status.append(status)
+            summary.append(f"{name} {achieved:.1f}/{sim.rate_hz:.1f} Hz")
+        self.diagnostics.publish(array)
+        rospy.loginfo_throttle(10.0, f"fleet_sim: achieved sensor rates {', '.join(summary)}; real-time factor {rtf:.2f}")
+
+    def step(self, now):
+        """One pass of the loop at wall time `now`; the time it next has work, or None for at once."""
+        self._advance_physics(now)
+        if self.odom_task.due(now):
+            joints, battery = self.joint_task.due(now), self.battery_task.due(now)
+            self._publish_state(now, joints, battery)
+            self.odom_task.done(now)
+            if joints:
+                self.joint_task.done(now)
+            if battery:
+                self.battery_task.done(now)
+        if self.diag_task.due(now):
+            self._publish_diagnostics(now)
+            self.diag_task.done(now)
+        if self.pool is not None:
+            if self._service_workers(now):
+                return None
+            self.pool.check_alive()
+            _, due = self.scheduler.next(exclude=self._busy_sensors())
+            if self.pool.idle_worker() is None:
+                due = math.inf
+        else:
+            name, due = self.scheduler.next()
+            if name is not None and due <= now:
+                self._capture_in_process(name)
+                return None
+        return min(due, self.odom_task.next_s, self.diag_task.next_s)
+
+    def _idle(self, delay_s):
+        """Sleep, waking early when a sensor worker finishes."""
+        busy = [w.conn for w in self.pool.workers if w.busy_with] if self.pool is not None else []
+        if busy:
+            multiprocessing.connection.wait(busy, timeout=delay_s)
+        else:
+            time.sleep(delay_s)
+
+    def spin(self):
+        options = self.options
+        now = time.time()
+        self.odom_task = Periodic(1.0 / options.odom_rate_hz, now)
+        self.joint_task = Periodic(1.0 / options.joint_state_rate_hz, now)
+        self.battery_task = Periodic(1.0 / options.battery_rate_hz, now)
+        diagnostics_period_s = 1.0 / options.diagnostics_rate_hz
+        self.diag_task = Periodic(diagnostics_period_s, now + diagnostics_period_s)
+        self._diag_wall_start, self._diag_sim_start = now, self.physics.sim_time_s
+        run_realtime(self.step, self.odom_task.period_s, time.time, self._idle, rospy.is_shutdown)
+
+    def close(self):
+        if self.pool is not None:
+            self.pool.close()
+        self.sim.close()
+
+
+def main():
+    rospy.init_node("fleet_sim")
+    fleet = load_fleet_param()
+    node = FleetSimNode(fleet, read_options())
+    try:
+        node.spin()
+    finally:
+        node.close()
