@@ -12,9 +12,9 @@ setup:
 test: setup
 	@$(ENV) bash ci/run_tests.sh $(PYTEST_ARGS)
 
-# The tests that need no ROS master (under a minute).
+# The quick tests that need no ROS master (under a minute; `make test` runs them all).
 test-unit: setup
-	@$(ENV) bash ci/run_tests.sh -m unit $(PYTEST_ARGS)
+	@$(ENV) bash ci/run_tests.sh -m "unit and not slow" $(PYTEST_ARGS)
 
 demo: setup
 	@$(ENV) python catkin_ws/src/cps_bringup/nodes/demo $(DEMO_ARGS)

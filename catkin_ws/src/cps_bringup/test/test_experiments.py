@@ -7,6 +7,9 @@ import sys
 
 import pytest
 
+# The offline experiments take ~15 s to generate; make test-unit leaves them to make test.
+pytestmark = pytest.mark.slow
+
 EXPERIMENTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "nodes", "experiments")
 
 

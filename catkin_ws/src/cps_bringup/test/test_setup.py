@@ -50,6 +50,7 @@ def test_not_root_with_packages_missing_says_which_and_how(absent_package_list):
     assert f"sudo apt-get update && sudo apt-get install -y --no-install-recommends {ABSENT_PACKAGE}" in result.stderr
 
 
+@pytest.mark.slow
 def test_no_network_to_the_registries_is_named(absent_package_list):
     if os.geteuid() != 0 or not shutil.which("unshare"):
         pytest.skip("needs root and unshare for an empty network namespace")

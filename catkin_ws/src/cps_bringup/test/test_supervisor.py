@@ -67,6 +67,7 @@ def _python_spec(label, code, wait_topics=(), restart_limit=0):
                     restart_limit=restart_limit)
 
 
+@pytest.mark.ros
 def test_a_node_that_never_comes_up_is_named_and_nothing_is_left(tmp_path):
     graph = RosGraph(log_dir=str(tmp_path))
     graph.start()
@@ -95,6 +96,7 @@ TALKER = textwrap.dedent("""
 """)
 
 
+@pytest.mark.ros
 def test_a_dying_node_is_restarted_up_to_its_limit(tmp_path):
     events = []
     with RosGraph(log_dir=str(tmp_path)) as graph:

@@ -29,6 +29,7 @@ LISTENER = textwrap.dedent("""
 """)
 
 
+@pytest.mark.ros
 def test_talker_listener_and_no_process_left(tmp_path):
     graph = RosGraph()
     try:
@@ -47,6 +48,7 @@ def test_talker_listener_and_no_process_left(tmp_path):
     assert len(pids) == 3
 
 
+@pytest.mark.ros
 def test_cleanup_happens_when_the_test_body_fails():
     port = None
     with pytest.raises(AssertionError):
@@ -58,6 +60,7 @@ def test_cleanup_happens_when_the_test_body_fails():
     assert not processes_named(f"-p {port}", f"127.0.0.1:{port}")
 
 
+@pytest.mark.ros
 def test_a_node_that_dies_is_reported_while_waiting():
     with RosGraph() as graph:
         graph.popen([sys.executable, "-c", "import sys; print('boom'); sys.exit(3)"], name="crasher")
@@ -74,6 +77,7 @@ def test_messages_import_from_the_venv_python():
     assert msg.format == "draco"
 
 
+@pytest.mark.ros
 def test_a_private_master_leaves_this_process_pointed_where_it_was():
     before = {k: os.environ.get(k) for k in ("ROS_MASTER_URI", "ROS_IP")}
     with RosGraph() as graph:

@@ -29,6 +29,7 @@ def _ours(name):
 
 
 @needs_link
+@pytest.mark.slow
 def test_link_is_shaped_both_ways_changes_live_and_is_removed():
     name = "cpstlink"
     try:
@@ -102,6 +103,7 @@ def test_bad_link_arguments_are_refused_before_anything_is_created(kwargs, match
 
 
 @needs_link
+@pytest.mark.slow
 def test_cli_up_measure_set_down():
     name = "cpstcli"
 
