@@ -20,6 +20,7 @@ from cps_bringup.supervisor import BringupError, Event, Supervisor, ensure_port_
 from cps_msgs.config import ConfigError
 from cps_msgs.fleet import load_fleet, robot_names_arg
 from cps_msgs.processes import RosGraph
+from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
 
 
 @dataclasses.dataclass
@@ -52,8 +53,9 @@ def build_parser():
     parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
     parser.add_argument("--screenshot-after", type=float, default=60.0, metavar="S")
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
-    parser.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto",
-                        help="PyBullet renderer; auto: TinyRenderer for small images, EGL for 640x480")
+    parser.add_argument("--renderer", choices=RENDERERS, default=DEFAULT_RENDERER,
+                        help="sensor renderer: fast (moderngl on EGL + Embree; falls back to PyBullet's without "
+                             "EGL), or PyBullet's egl, tiny, auto (TinyRenderer for small images, EGL for 640x480)")
     parser.add_argument("--no-sim", action="store_true",
                         help="real robots: do not start fleet_sim; their drivers publish /<r>/points, odom, tf")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",

@@ -9,6 +9,7 @@ import sys
 from typing import Callable, Dict, List, Optional, Tuple
 
 from cps_msgs.fleet import FleetConfig
+from cps_sim.renderers import DEFAULT_RENDERER
 
 PHYSICAL, DIGITAL = "physical", "digital"
 SIDES = (PHYSICAL, DIGITAL)
@@ -41,7 +42,7 @@ class RunOptions:
     gui_screenshot_path: Optional[str] = None
     gui_screenshot_after_s: float = 60.0
     map_file: Optional[str] = None
-    renderer: str = "auto"
+    renderer: str = DEFAULT_RENDERER
     # Link capacity for the bandwidth manager, Mbit/s (e.g. iperf3's measurement); None: fleet.yaml's.
     available_mbps: Optional[float] = None
     autosave_period_s: float = 10.0

@@ -26,7 +26,7 @@ from cps_sim.scheduling import RateMeter, SensorScheduler
 from cps_sim.sensor_workers import SensorWorkerPool
 from cps_sim.simulation import FleetSimulation, sensor_points
 from cps_sim.site import check_waypoint, load_site
-from cps_sim.world import RENDERERS
+from cps_sim.world import DEFAULT_RENDERER, RENDERERS
 
 CMD_TIMEOUT_S = 0.5
 
@@ -114,7 +114,7 @@ class FleetSimNode:
 
     def __init__(self):
         self.fleet = load_fleet_param()
-        renderer = rospy.get_param("~renderer", "auto")
+        renderer = rospy.get_param("~renderer", DEFAULT_RENDERER)
         if renderer not in RENDERERS:
             _fail(f"parameter ~renderer: unknown renderer '{renderer}' (known: {', '.join(RENDERERS)})")
         self.odom_rate_hz = _positive_param("~odom_rate_hz", 50.0)
@@ -138,8 +138,9 @@ class FleetSimNode:
             self.pool = None
             self.sim = FleetSimulation(self.fleet, site=self.site, renderer=renderer)
             self.renderer = self.sim.renderer
-        if renderer == "egl" and self.renderer != "egl":  # 'auto' may choose tiny on purpose
-            rospy.logwarn("EGL rendering unavailable; using TinyRenderer (slower)")
+        if renderer in ("fast", "egl") and self.renderer != renderer:  # 'auto' may choose tiny on purpose
+            rospy.logwarn(f"renderer '{renderer}' unavailable (the sensor workers' log says why); "
+                          f"using '{self.renderer}' (slower)")
         self.capture_ms = {name: 0.0 for name in self.sim.robots}
         self.lock = threading.Lock()
         self.pubs = {}

@@ -55,7 +55,7 @@ class _Worker:
 class SensorWorkerPool:
     """`count` processes, each able to capture any robot's sensor of `fleet` in `site`."""
 
-    def __init__(self, fleet, site, renderer="egl", count=2, start_timeout_s=60.0):
+    def __init__(self, fleet, site, renderer="fast", count=2, start_timeout_s=60.0):
         if count < 1:
             raise ValueError(f"need at least one sensor worker, got {count}")
         ctx = multiprocessing.get_context("spawn")
