@@ -231,36 +231,49 @@ class EmbreeRayCaster:
             fractions[hit] = hits["tfar"][hit]
             face = hits["Ng"][hit].astype(np.float64)
             normals[hit] = face / np.linalg.norm(face, axis=1, keepdims=True)
-        for box in boxes:
-            self._intersect_box(box, origins, segments, fractions, normals, ids)
+        if boxes:
+            ray_terms = (np.einsum("ij,ij->i", origins, segments), np.einsum("ij,ij->i", origins, origins),
+                         np.einsum("ij,ij->i", segments, segments))
+            for box in boxes:
+                self._intersect_box(box, origins, segments, ray_terms, fractions, normals, ids)
         positions = origins + fractions[:, None] * segments
         return fractions, positions, normals, ids
 
     @staticmethod
-    def _intersect_box(box, origins, segments, fractions, normals, ids):
-        """Slab test in the box's frame; replaces hits farther than the box's entry point. A ray
-        that starts inside the box does not hit it (as Bullet's ray test of a convex shape)."""
-        rot = box.rotation()
+    def _intersect_box(box, origins, segments, ray_terms, fractions, normals, ids):
+        """Slab test in the box's frame on the rays whose line passes within its bounding sphere;
+        replaces hits farther than the box's entry point. A ray that starts inside the box does not
+        hit it (as Bullet's ray test of a convex shape). ray_terms: o.d, o.o, d.d per ray."""
+        origin_dot_dir, origin_sq, dir_sq = ray_terms
         half = np.asarray(box.half_extents_m)
-        local_origin = (origins - np.asarray(box.center_m)) @ rot
-        local_dir = segments @ rot
+        center = np.asarray(box.center_m)
+        # |w|^2 - (w.d)^2 / |d|^2 <= r^2 with w = c - o, expanded so each box costs two mat-vecs.
+        w_dot_d = segments @ center - origin_dot_dir
+        w_sq = center @ center - 2.0 * (origins @ center) + origin_sq
+        candidates = np.nonzero(w_sq * dir_sq - w_dot_d * w_dot_d <= float(half @ half) * dir_sq)[0]
+        if not len(candidates):
+            return
+        rot = box.rotation()
+        local_origin = (origins[candidates] - center) @ rot
+        local_dir = segments[candidates] @ rot
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / local_dir
             t_low = (-half - local_origin) * inv
             t_high = (half - local_origin) * inv
-        t_enter_axes = np.fmin(t_low, t_high)
-        t_exit_axes = np.fmax(t_low, t_high)
-        # A ray parallel to a slab and outside it never enters: NaN (0 * inf) means outside here.
-        parallel_outside = (local_dir == 0.0) & (np.abs(local_origin) > half)
-        t_enter_axes[parallel_outside] = np.inf
-        t_enter = np.max(np.where(np.isnan(t_enter_axes), -np.inf, t_enter_axes), axis=1)
-        t_exit = np.min(np.where(np.isnan(t_exit_axes), np.inf, t_exit_axes), axis=1)
-        hit = (t_enter <= t_exit) & (t_enter >= 0.0) & (t_enter < fractions)
+        # A ray parallel to a slab: inside it the slab does not limit t, outside it never enters.
+        parallel = local_dir == 0.0
+        outside = parallel & (np.abs(local_origin) > half)
+        t_enter_axes = np.where(parallel, np.where(outside, np.inf, -np.inf), np.fmin(t_low, t_high))
+        t_exit_axes = np.where(parallel, np.where(outside, -np.inf, np.inf), np.fmax(t_low, t_high))
+        t_enter = t_enter_axes.max(axis=1)
+        t_exit = t_exit_axes.min(axis=1)
+        hit = (t_enter <= t_exit) & (t_enter >= 0.0) & (t_enter < fractions[candidates])
         if not hit.any():
             return
-        axis = np.argmax(np.where(np.isnan(t_enter_axes[hit]), -np.inf, t_enter_axes[hit]), axis=1)
-        local_normal = np.zeros((int(hit.sum()), 3))
-        local_normal[np.arange(len(axis)), axis] = -np.sign(local_dir[hit, axis])
-        fractions[hit] = t_enter[hit]
-        normals[hit] = local_normal @ rot.T
-        ids[hit] = box.body_id
+        rays = candidates[hit]
+        axis = np.argmax(t_enter_axes[hit], axis=1)
+        local_normal = np.zeros((len(rays), 3))
+        local_normal[np.arange(len(rays)), axis] = -np.sign(local_dir[hit, axis])
+        fractions[rays] = t_enter[hit]
+        normals[rays] = local_normal @ rot.T
+        ids[rays] = box.body_id
