@@ -71,8 +71,8 @@ def _sides(side):
 # starts without them: the map server would otherwise resume from an earlier mission's map, and the
 # CSVs (appended to, so that a restarted node keeps its rows) would mix two missions.
 MISSION_OUTPUTS = {
-    PHYSICAL: ("physical_stats.csv",),
-    DIGITAL: ("map.bt", "stats.csv", "allocation.csv", "gui.png", "ground_truth.npz", "scores.json",
+    PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv"),
+    DIGITAL: ("map.bt", "stats.csv", "arrivals.csv", "allocation.csv", "gui.png", "ground_truth.npz", "scores.json",
               "topdown.png", "link.png", "report.md"),
 }
 

@@ -1,7 +1,10 @@
 """Live topic statistics: what `rostopic hz` and `rostopic bw` show, plus end-to-end latency,
-over a sliding window (time injected, no ROS), and reading header.stamp from serialized bytes."""
+over a sliding window (time injected, no ROS), reading header.stamp from serialized bytes, and a
+per-message arrival log (stamp, receive time) for joining one cloud's arrivals at two places."""
 import collections
+import csv
 import math
+import os
 import struct
 
 import numpy as np
@@ -30,6 +33,49 @@ def stamp_from_serialized(buffer):
     if nsecs >= 1_000_000_000:
         return None
     return secs + nsecs * 1e-9
+
+
+def stamp_ns_from_serialized(buffer):
+    """header.stamp in integer nanoseconds (exact: a join key) of a serialized message that starts
+    with a Header, or None."""
+    if len(buffer) < 12:
+        return None
+    secs, nsecs = _STAMP.unpack_from(buffer, 4)
+    if nsecs >= 1_000_000_000:
+        return None
+    return secs * 1_000_000_000 + nsecs
+
+
+ARRIVAL_COLUMNS = ("topic", "robot", "stamp_ns", "receive_s")
+
+
+class ArrivalLog:
+    """Appends one CSV row per message: topic, robot, header stamp (ns) and receive time (s).
+
+    The same capture stamp travels through voxel grid, Draco and the rate limiter, so the rows
+    of the robots' side and of the twin join per cloud (cps_bringup.report.latency_split).
+    """
+
+    def __init__(self, path):
+        directory = os.path.dirname(os.path.abspath(path))
+        os.makedirs(directory, exist_ok=True)
+        new = not os.path.exists(path) or os.path.getsize(path) == 0
+        self._stream = open(path, "a", newline="")
+        self._writer = csv.writer(self._stream)
+        if new:
+            self._writer.writerow(ARRIVAL_COLUMNS)
+
+    def add(self, topic, robot, stamp_ns, receive_s):
+        self._writer.writerow((topic, robot, int(stamp_ns), f"{receive_s:.6f}"))
+
+    def flush(self):
+        if self._stream is not None:
+            self._stream.flush()
+
+    def close(self):
+        if self._stream is not None:
+            self._stream.close()
+            self._stream = None
 
 
 class TopicWindow:
