@@ -237,21 +237,21 @@ class EmbreeRayCaster:
         origins32 = np.ascontiguousarray(origins, dtype=np.float32)
         segments32 = np.ascontiguousarray(segments, dtype=np.float32)
         hit, fractions, normals, _ = self._query(self.scene, origins32, segments32)
-        ids = np.where(hit, self.hall_body_id, -1)
+        ids = np.where(hit, self.hall_body_id, -1).astype(np.int64)
+        fractions = np.where(hit, fractions, np.float32(1.0)).astype(np.float64)
         if boxes:
             scene = self._new_scene()
             box_triangles = np.concatenate([self._cube @ box.model_matrix()[:3, :3].T + box.model_matrix()[:3, 3]
                                             for box in boxes])
             self._mesh(scene, np.ascontiguousarray(box_triangles, dtype=np.float32))
             box_hit, box_fractions, box_normals, prim = self._query(scene, origins32, segments32)
-            entering = np.einsum("ij,ij->i", box_normals, segments32) < 0.0
-            nearer = box_hit & entering & (~hit | (box_fractions < fractions))
-            body_of_prim = np.array([box.body_id for box in boxes])[np.maximum(prim, 0) // len(self._cube)]
-            ids = np.where(nearer, body_of_prim, ids)
-            fractions = np.where(nearer, box_fractions, fractions)
-            normals = np.where(nearer[:, None], box_normals, normals)
-        fractions = np.where(ids >= 0, fractions, 1.0).astype(np.float64)
-        length = np.linalg.norm(normals, axis=1, keepdims=True)
-        normals = (normals / np.where(length > 0.0, length, 1.0)).astype(np.float64)
+            rays = np.nonzero(box_hit & (box_fractions < fractions))[0]
+            rays = rays[np.einsum("ij,ij->i", box_normals[rays], segments32[rays]) < 0.0]  # entering only
+            body_ids = np.array([box.body_id for box in boxes])
+            ids[rays] = body_ids[prim[rays] // len(self._cube)]
+            fractions[rays] = box_fractions[rays]
+            normals[rays] = box_normals[rays]
+        length = np.sqrt(np.einsum("ij,ij->i", normals, normals))
+        normals = normals.astype(np.float64) / np.maximum(length, np.float32(1e-30))[:, None]
         positions = origins + fractions[:, None] * segments
         return fractions, positions, normals, ids.astype(np.int64)
