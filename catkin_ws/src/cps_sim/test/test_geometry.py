@@ -14,7 +14,7 @@ BOX_CENTER_X = 3.0
 BOX_HALF = 0.5
 
 
-@pytest.fixture(scope="module", params=["egl", "tiny"])
+@pytest.fixture(scope="module", params=["fast", "egl", "tiny"])
 def sim(request):
     site = load_site()
     box = Equipment("test_box", "crate", BOX_CENTER_X, 0.0, 0.0,
@@ -75,5 +75,6 @@ def test_auto_renderer_picks_tiny_for_small_frames_and_egl_for_large():
     assert resolve_renderer("auto", 320, 240) == "tiny"
     assert resolve_renderer("auto", 640, 480) == "egl"
     assert resolve_renderer("egl", 320, 240) == "egl"
-    with pytest.raises(ValueError, match="known: egl, tiny, auto"):
+    assert resolve_renderer("fast", 640, 480) == "fast"
+    with pytest.raises(ValueError, match="known: fast, egl, tiny, auto"):
         resolve_renderer("vulkan", 320, 240)

@@ -20,6 +20,7 @@ from cps_bringup.supervisor import BringupError, Event, Supervisor, ensure_port_
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import PROFILES, load_fleet, robot_names_arg
 from cps_harness.processes import RosGraph
+from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
 
 
 @dataclasses.dataclass
@@ -53,8 +54,9 @@ def build_parser():
     parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
     parser.add_argument("--screenshot-after", type=float, default=GUI_SCREENSHOT_AFTER_S, metavar="S")
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
-    parser.add_argument("--renderer", choices=("auto", "egl", "tiny"), default="auto",
-                        help="PyBullet renderer; auto: TinyRenderer for small images, EGL for 640x480")
+    parser.add_argument("--renderer", choices=RENDERERS, default=DEFAULT_RENDERER,
+                        help="sensor renderer: fast (moderngl on EGL + Embree; falls back to PyBullet's without "
+                             "EGL), or PyBullet's egl, tiny, auto (TinyRenderer for small images, EGL for 640x480)")
     parser.add_argument("--no-sim", action="store_true",
                         help="real robots: do not start fleet_sim; their drivers publish /<r>/points, odom, tf")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
@@ -70,8 +72,8 @@ def _sides(side):
 # starts without them: the map server would otherwise resume from an earlier mission's map, and the
 # CSVs (appended to, so that a restarted node keeps its rows) would mix two missions.
 MISSION_OUTPUTS = {
-    PHYSICAL: ("physical_stats.csv",),
-    DIGITAL: ("map.bt", "stats.csv", "allocation.csv", "gui.png", "ground_truth.npz", "scores.json",
+    PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv"),
+    DIGITAL: ("map.bt", "stats.csv", "arrivals.csv", "allocation.csv", "gui.png", "ground_truth.npz", "scores.json",
               "topdown.png", "link.png", "report.md"),
 }
 

@@ -9,6 +9,7 @@ import sys
 from typing import Callable, Dict, List, Optional, Tuple
 
 from cps_fleet.fleet import FleetConfig
+from cps_sim.renderers import DEFAULT_RENDERER
 
 PHYSICAL, DIGITAL = "physical", "digital"
 SIDES = (PHYSICAL, DIGITAL)
@@ -45,7 +46,7 @@ class RunOptions:
     gui_screenshot_path: Optional[str] = None
     gui_screenshot_after_s: float = GUI_SCREENSHOT_AFTER_S
     map_file: Optional[str] = None
-    renderer: str = "auto"
+    renderer: str = DEFAULT_RENDERER
     # Link capacity for the bandwidth manager, Mbit/s (e.g. iperf3's measurement); None: fleet.yaml's.
     available_mbps: Optional[float] = None
     # False on real robots: their drivers publish what fleet_sim would.
@@ -140,11 +141,13 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                 wait_topics=(f"/{r}/points_filtered/draco/managed",)))
 
         # The robots' side of the latency: capture stamp -> voxel-filtered cloud, measured on the
-        # physical host (nothing crosses the link); the report subtracts it from the twin's figure.
+        # physical host (nothing crosses the link); the report joins its per-cloud arrivals with the
+        # twin's by capture stamp.
         specs.append(NodeSpec(
             "physical_stats", PHYSICAL,
             py("cps_transport", "topic_stats", "__name:=physical_stats", "/tissue/stats:=/tissue/physical_stats",
                *_args({**common, "csv_path": os.path.join(options.out_dir, "physical_stats.csv"),
+                       "arrivals_csv_path": os.path.join(options.out_dir, "physical_arrivals.csv"),
                        "topics": ",".join(f"/{r}/points_filtered" for r in robots)})),
             wait_topics=("/tissue/physical_stats",)))
 
@@ -173,7 +176,9 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
         specs.append(NodeSpec(
             "topic_stats", DIGITAL,
             py("cps_transport", "topic_stats", "__name:=tissue_stats",
-               *_args({**common, "csv_path": os.path.join(out, "stats.csv"), "topics": _stats_topics(robots)})),
+               *_args({**common, "csv_path": os.path.join(out, "stats.csv"), "topics": _stats_topics(robots),
+                       "arrivals_csv_path": os.path.join(out, "arrivals.csv"),
+                       "arrival_topics": ",".join(f"/twin/{r}/points_filtered/draco/managed" for r in robots)})),
             wait_topics=("/tissue/stats",)))
         specs.append(NodeSpec(
             "bandwidth_manager", DIGITAL,

@@ -28,7 +28,7 @@ from cps_sim.scheduling import RateMeter, SensorScheduler
 from cps_sim.sensor_workers import SensorWorkerPool
 from cps_sim.simulation import FleetSimulation, sensor_points
 from cps_sim.site_changes import SiteMove, apply_site_changes
-from cps_sim.world import RENDERERS
+from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
 
 CMD_TIMEOUT_S = 0.5
 
@@ -37,7 +37,7 @@ CMD_TIMEOUT_S = 0.5
 class FleetSimOptions:
     """fleet_sim's private parameters, checked (see the README for their meaning)."""
 
-    renderer: str = "auto"
+    renderer: str = DEFAULT_RENDERER
     odom_rate_hz: float = 50.0
     joint_state_rate_hz: float = 20.0
     battery_rate_hz: float = 1.0
@@ -105,8 +105,9 @@ class FleetSimNode:
             self.pool = None
             self.sim = FleetSimulation(fleet, site=self.site, renderer=options.renderer)
             self.renderer = self.sim.renderer
-        if options.renderer == "egl" and self.renderer != "egl":  # 'auto' may choose tiny on purpose
-            rospy.logwarn("EGL rendering unavailable; using TinyRenderer (slower)")
+        if options.renderer in ("fast", "egl") and self.renderer != options.renderer:  # 'auto' may pick tiny
+            rospy.logwarn(f"renderer '{options.renderer}' unavailable (the sensor workers' log says why); "
+                          f"using '{self.renderer}' (slower)")
         self.capture_ms = {name: 0.0 for name in self.sim.robots}
         self.lock = threading.Lock()
         self.pubs = {}

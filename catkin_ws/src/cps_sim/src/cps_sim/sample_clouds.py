@@ -13,6 +13,7 @@ import numpy as np
 
 from cps_sim import messages
 from cps_sim.simulation import build_fleet_simulation, sensor_points
+from cps_sim.world import DEFAULT_RENDERER
 
 # Robot -> (x, y, z, yaw_deg) in map: inside its fenced area, facing equipment.
 SAMPLE_POSES = {
@@ -38,7 +39,7 @@ def _sample(sim, name, stamp_s):
     return SampleCloud(name, cloud, frame.sensor_in_map.copy(), robot.sensor_frame)
 
 
-def render_sample_frames(profile_name="paper", robots=None, poses=None, renderer="egl", fleet_file=None):
+def render_sample_frames(profile_name="paper", robots=None, poses=None, renderer=DEFAULT_RENDERER, fleet_file=None):
     """Robot -> SampleCloud, one frame each from `poses` (robot -> (x, y, z, yaw_deg)) or SAMPLE_POSES."""
     import time
 
@@ -55,7 +56,7 @@ def render_sample_frames(profile_name="paper", robots=None, poses=None, renderer
         sim.close()
 
 
-def render_sample_clouds(profile_name="paper", robots=None, poses=None, renderer="egl", fleet_file=None):
+def render_sample_clouds(profile_name="paper", robots=None, poses=None, renderer=DEFAULT_RENDERER, fleet_file=None):
     """Robot -> sensor_msgs/PointCloud2 (depth: organized x,y,z,rgb, point_step 32, optical frame;
     lidar: x,y,z,intensity,ring,time, unorganized)."""
     return {name: s.cloud for name, s in render_sample_frames(profile_name, robots, poses, renderer, fleet_file).items()}
@@ -80,7 +81,7 @@ def _route_pose(sim, name, fraction):
     raise AssertionError("unreachable")
 
 
-def render_mission_clouds(profile_name="paper", robots=None, frames_per_robot=5, renderer="egl",
+def render_mission_clouds(profile_name="paper", robots=None, frames_per_robot=5, renderer=DEFAULT_RENDERER,
                           fleet_file=None) -> Dict[str, List[SampleCloud]]:
     """Robot -> SampleClouds at `frames_per_robot` poses evenly along its route (start to end)."""
     import time

@@ -10,7 +10,7 @@ import numpy as np
 from cps_sim.robots import Robot
 from cps_sim.sensors import CameraModel, DepthCamera, Lidar
 from cps_fleet.site import load_site
-from cps_sim.world import SimWorld, resolve_renderer
+from cps_sim.world import DEFAULT_RENDERER, SimWorld, resolve_renderer
 
 
 @dataclasses.dataclass
@@ -36,13 +36,14 @@ class FleetSimulation:
     models (the fleet_sim node then captures in sensor worker processes).
     """
 
-    def __init__(self, fleet, site=None, renderer="egl"):
+    def __init__(self, fleet, site=None, renderer=DEFAULT_RENDERER):
         self.fleet = fleet
         self.site = site if site is not None else load_site(fleet.site_path)
+        self.world = None
         if renderer is not None:
             cam = fleet.profile.depth_camera
-            renderer = resolve_renderer(renderer, cam.width, cam.height)
-        self.world = SimWorld(self.site, renderer) if renderer is not None else None
+            self.world = SimWorld(self.site, resolve_renderer(renderer, cam.width, cam.height),
+                                  fallback_renderer=resolve_renderer("auto", cam.width, cam.height))
         self.robots: Dict[str, SimulatedRobot] = {}
         profile = fleet.profile
         for cfg in fleet.robots:
@@ -109,7 +110,7 @@ def points_in_map(frame) -> np.ndarray:
     return xyz @ m[:3, :3].T + m[:3, 3]
 
 
-def build_fleet_simulation(fleet_file=None, profile=None, robots=None, renderer="egl", site=None):
+def build_fleet_simulation(fleet_file=None, profile=None, robots=None, renderer=DEFAULT_RENDERER, site=None):
     """Load fleet.yaml (optionally a profile and a robot subset) and build the simulation."""
     from cps_fleet.fleet import load_fleet, robot_names_arg
 

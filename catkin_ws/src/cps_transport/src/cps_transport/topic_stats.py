@@ -1,5 +1,6 @@
 """Live topic statistics: what `rostopic hz` and `rostopic bw` show, plus end-to-end latency,
-over a sliding window (time injected, no ROS), and reading header.stamp from serialized bytes."""
+over a sliding window (time injected, no ROS), reading header.stamp from serialized bytes, and a
+per-message arrival log (stamp, receive time) for joining one cloud's arrivals at two places."""
 import collections
 import math
 import struct
@@ -22,14 +23,21 @@ def has_header_first(message_definition):
     return False
 
 
-def stamp_from_serialized(buffer):
-    """header.stamp (seconds) of a serialized message that starts with a Header, or None."""
+def stamp_ns_from_serialized(buffer):
+    """header.stamp in integer nanoseconds (exact: a join key) of a serialized message that starts
+    with a Header, or None."""
     if len(buffer) < 12:
         return None
     secs, nsecs = _STAMP.unpack_from(buffer, 4)
     if nsecs >= 1_000_000_000:
         return None
-    return secs + nsecs * 1e-9
+    return secs * 1_000_000_000 + nsecs
+
+
+# One row per stamped message (cps_fleet.csv_log.CsvLog): the same capture stamp travels through
+# voxel grid, Draco and the rate limiter, so the robots' side's rows and the twin's join per cloud
+# (cps_bringup.report.latency_split).
+ARRIVAL_COLUMNS = ("topic", "robot", "stamp_ns", "receive_s")
 
 
 class TopicWindow:
