@@ -141,6 +141,9 @@ def run_mission(args, log=print) -> MissionResult:
 
         graph.point_this_process_here()
         rospy.init_node("cps_bringup", anonymous=True, disable_signals=True)
+        from cps_sim.estop_keeper import EstopKeeper
+
+        stack.callback(EstopKeeper().close)    # the e-stop state outlives the GUI
         supervisor.start_all(timeout_s=args.start_timeout)
         monitor = MissionMonitor(fleet)
         stack.callback(monitor.close)
