@@ -100,7 +100,9 @@ def test_a_dead_master_is_noticed_within_2_s(tmp_path):
                 while time.monotonic() - killed_at < 10:
                     supervisor.poll()
                     time.sleep(0.5)                             # wait_for_mission's period
-            assert time.monotonic() - killed_at < 2.0
+            noticed_after_s = time.monotonic() - killed_at
+            print(f"master loss noticed after {noticed_after_s:.2f} s")
+            assert noticed_after_s < 2.0
         finally:
             supervisor.stop_all()
 

@@ -16,7 +16,7 @@ from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
 from cps_bringup.plan import DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RunOptions, plan_nodes
-from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_prefix
+from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
 from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
                                     node_log_dir)
 from cps_fleet.config import ConfigError
@@ -140,9 +140,12 @@ def run_mission(args, log=print) -> MissionResult:
             graph = RosGraph(port=args.port, log_dir=node_log_dir(out_dir), host_ip=host_ip)
         stack.callback(graph.close)
         user = node_user(args.run_as)
+        side_env = {PHYSICAL: {"ROS_IP": link.phys_ip}, DIGITAL: {"ROS_IP": link.twin_ip}} if link else {}
         if user:
+            ros_log_dir = os.path.join(node_log_dir(out_dir), "log")
+            side_env = {side: {**side_env.get(side, {}), **user_env(ros_log_dir)} for side in sides}
             try:
-                hand_over(user, out_dir, os.path.join(node_log_dir(out_dir), "log"))
+                hand_over(user, out_dir, ros_log_dir)
                 prefix = user_prefix(user)
             except PrivilegeError as exc:
                 raise BringupError(str(exc)) from exc
@@ -153,7 +156,7 @@ def run_mission(args, log=print) -> MissionResult:
         supervisor = Supervisor(
             specs, graph, log=log,
             side_prefix={PHYSICAL: link.exec_prefix("phys")} if link else None,
-            side_env={PHYSICAL: {"ROS_IP": link.phys_ip}, DIGITAL: {"ROS_IP": link.twin_ip}} if link else None,
+            side_env=side_env or None,
             policy=RestartPolicy.from_limits(fleet.limits), node_log_max_bytes=int(fleet.limits.node_log_max_mbytes * 1e6),
             user_prefix=prefix if user else None)
         stack.callback(supervisor.stop_all)

@@ -33,12 +33,20 @@ def user_prefix(user):
     return ["setpriv", f"--reuid={entry.pw_uid}", f"--regid={group}", "--clear-groups", "--"]
 
 
+def user_env(log_dir):
+    """Environment for nodes run as another user: a home and a numba cache they can write (the
+    user's own home may not exist; numba caches next to the sources otherwise)."""
+    return {"HOME": os.path.join(log_dir, "home"), "NUMBA_CACHE_DIR": os.path.join(log_dir, "numba_cache")}
+
+
 def hand_over(user, out_dir, log_dir):
-    """Give `user` the mission folder (and ROS's log folder in it); PrivilegeError if it cannot reach it."""
+    """Give `user` the mission folder (with ROS's log folder and the `user_env` folders in it);
+    PrivilegeError if it cannot reach it."""
     if os.geteuid() != 0:
         raise PrivilegeError(f"running the nodes as '{user}' needs root")
     entry = pwd.getpwnam(user)
-    os.makedirs(log_dir, exist_ok=True)
+    for folder in (log_dir, *user_env(log_dir).values()):
+        os.makedirs(folder, exist_ok=True)
     for folder in (out_dir, log_dir):
         for root, dirs, files in os.walk(folder):
             for name in [root] + [os.path.join(root, f) for f in dirs + files]:

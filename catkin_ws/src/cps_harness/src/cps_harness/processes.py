@@ -111,6 +111,13 @@ class RosGraph:
         except OSError:
             return False
 
+    def _kill_orphans_of_the_core(self):
+        """roslaunch starts rosmaster and rosout in sessions of their own: a roscore killed hard leaves them."""
+        for pid, cmd in processes_named(self.uri, f"-p {self.port} "):
+            if any(f"/{core} " in cmd or cmd.startswith(core) for core in ("rosmaster", "rosout")):
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.kill(pid, signal.SIGKILL)
+
     def _master_up(self):
         import rosgraph
 
@@ -213,6 +220,8 @@ class RosGraph:
         for proc in reversed(self.processes):
             self.stop(proc, timeout_s=5.0)
         self.processes = []
+        if self._own_master:
+            self._kill_orphans_of_the_core()
         if self._own_home:
             shutil.rmtree(self.home, ignore_errors=True)
 
