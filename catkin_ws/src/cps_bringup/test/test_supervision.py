@@ -33,6 +33,13 @@ class FakeClock:
         return self.now_s
 
 
+def _poll(supervisor, seconds, period_s=0.1):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        supervisor.poll()
+        time.sleep(period_s)
+
+
 def _next_event(supervisor, events, count, timeout_s=20):
     assert wait_for(lambda: (supervisor.poll(), len(events) >= count)[1], timeout_s), events
     return events[count - 1]
@@ -49,9 +56,7 @@ def test_restarts_back_off_exponentially_and_the_limit_counts_within_a_window(tm
             events.clear()
             assert _next_event(supervisor, events, 1).endswith("restart 1/2 in 1.0 s")
             dead = supervisor.running["flaky"].proc
-            for _ in range(5):                                  # backing off: not restarted yet
-                supervisor.poll()
-                time.sleep(0.1)
+            _poll(supervisor, 0.5)                              # backing off: not restarted yet
             assert supervisor.running["flaky"].proc is dead
             clock.now_s = 1.0
             supervisor.poll()
@@ -66,9 +71,7 @@ def test_restarts_back_off_exponentially_and_the_limit_counts_within_a_window(tm
             clock.now_s = 15.0
             supervisor.poll()
             with pytest.raises(BringupError, match=r"restarted 2 of 2 times\) within 10 s"):
-                for _ in range(100):
-                    supervisor.poll()
-                    time.sleep(0.1)
+                _poll(supervisor, 10.0)
         finally:
             supervisor.stop_all()
 
@@ -79,9 +82,7 @@ def test_a_gui_that_exits_with_an_error_does_not_end_the_mission(tmp_path):
         supervisor = Supervisor([_spec("gui", DIES_SOON, essential=False)], graph, log=events.append)
         try:
             supervisor.start_all(timeout_s=30)
-            for _ in range(20):
-                supervisor.poll()
-                time.sleep(0.1)
+            _poll(supervisor, 2.0)
         finally:
             supervisor.stop_all()
     assert any("gui: exited with code 4; not essential" in e for e in events), events
@@ -144,9 +145,7 @@ def test_a_chatty_node_output_is_rotated_at_its_bound(tmp_path):
         try:
             supervisor.start_all(timeout_s=30)
             log_path = supervisor.running["chatty"].proc.cps_log
-            for _ in range(30):
-                supervisor.poll()
-                time.sleep(0.1)
+            _poll(supervisor, 3.0)
             assert os.path.exists(log_path + ".1")
             largest = max(os.path.getsize(log_path), os.path.getsize(log_path + ".1"))
         finally:
