@@ -11,6 +11,8 @@ summary counts both kinds.
 """
 import collections
 import os
+import shutil
+import tempfile
 
 import pytest
 
@@ -71,3 +73,17 @@ def rospy_node(ros_master):
     rospy.init_node("cps_pytest", anonymous=True, disable_signals=True)
     yield rospy
     rospy.signal_shutdown("tests done")
+
+
+@pytest.fixture
+def open_tmp_path():
+    """A temporary folder other users can reach (pytest's tmp_path is root-only): for a bringup run
+    as root, whose nodes drop to an unprivileged user."""
+    import pathlib
+
+    folder = tempfile.mkdtemp(prefix="cps-open-")
+    os.chmod(folder, 0o755)
+    try:
+        yield pathlib.Path(folder)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)

@@ -25,8 +25,8 @@ def _pane(image, panes, name):
 
 @pytest.mark.ros
 @pytest.mark.slow
-def test_two_robot_mission_end_to_end(tmp_path):
-    out = tmp_path / "demo"
+def test_two_robot_mission_end_to_end(open_tmp_path):
+    out = open_tmp_path / "demo"
     result = subprocess.run([sys.executable, DEMO, "--robots", "scout,jackal", "--out", str(out),
                              "--duration", "150", "--screenshot-after", "25", "--kill-map-server-at", "24"],
                             capture_output=True, text=True, timeout=600)

@@ -43,3 +43,18 @@ def test_every_row_is_on_disk_at_once_and_none_after_close(tmp_path):
 def test_a_row_of_the_wrong_width_is_refused(tmp_path):
     with CsvLog(str(tmp_path / "x.csv"), COLUMNS) as log, pytest.raises(ValueError, match="2 values for 3"):
         log.write((1.0, "scout"))
+
+
+def test_a_log_past_its_bound_rotates_and_both_files_stay_bounded(tmp_path):
+    path = tmp_path / "stats.csv"
+    rows = 5000
+    with CsvLog(str(path), COLUMNS, max_bytes=4000) as log:
+        for k in range(rows):
+            log.write((float(k), "scout", 2.5))
+        rotations = log.rotations
+    assert rotations > 10
+    current, previous = _rows(path), _rows(str(path) + ".1")
+    assert current[0] == list(COLUMNS) and previous[0] == list(COLUMNS)    # each file reads alone
+    assert path.stat().st_size < 4000 + 100 and (tmp_path / "stats.csv.1").stat().st_size < 4000 + 100
+    assert current[-1] == [str(float(rows - 1)), "scout", "2.5"]            # the newest rows are kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["stats.csv", "stats.csv.1"]

@@ -52,6 +52,11 @@ def _line_of(path, needle):
     ("name: jackal", "name: scout", "robot 'scout' is listed twice"),
     ("profile: light", "profile: fast", "unknown profile 'fast'"),
     ("resolution_m: 0.1", "resolution_m: .nan", "must be finite"),
+    ("trajectory_max_points: 2000", "trajectory_max_points: 1", "must be at least 2"),
+    ("csv_max_mbytes: 50.0", "csv_max_mbytes: 0", "csv_max_mbytes: 0.0 is outside [0.001"),
+    ("node_log_max_mbytes: 20.0", "node_log_max_mbytes: -5", "node_log_max_mbytes: -5.0 is outside"),
+    ("restart_backoff_max_s: 30.0", "restart_backoff_max_s: 0.5", "restart_backoff_max_s (0.5) < restart_backoff_s"),
+    ("restart_window_s: 300.0", "restart_window_s: 0", "restart_window_s: 0.0 is outside (0.0"),
 ])
 def test_broken_fleet_file_names_file_line_and_problem(fleet_copy, old, new, message):
     line = _line_of(fleet_copy, old)

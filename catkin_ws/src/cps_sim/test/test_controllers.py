@@ -13,6 +13,7 @@ from cps_fleet.site import load_site
 def _fly(robot_cfg, route, seconds=400.0, dt=0.05):
     robot = Robot(robot_cfg.name, robot_cfg.type, robot_cfg.initial_pose)
     follower, mux = RouteFollower(route, robot_cfg.type), VelocityMux(robot_cfg.type)
+    mux.set_estop(False)
     states, t = [], 0.0
     while t < seconds and follower.state != "done":
         twist, flight = follower.update(robot.x, robot.y, robot.z, robot.yaw)
@@ -65,6 +66,7 @@ def test_unknown_robot_type_names_the_known_ones():
 
 def test_deadman_stops_teleop_and_auto_takes_back_over():
     mux = VelocityMux("wheeled_depth")
+    mux.set_estop(False)
     mux.set_mode("teleop")
     mux.on_teleop(Twist(vx=0.5), 0.0)
     for k in range(1, 5):
@@ -74,7 +76,7 @@ def test_deadman_stops_teleop_and_auto_takes_back_over():
     while t < 0.6:                      # no teleop command since t = 0 -> dead-man at 0.5 s
         t += 0.05
         out = mux.update(t)
-    assert out.vx < 0.5
+    assert out.vx == 0.0                # a dead-man stops at once, no ramp down
     for _ in range(10):
         t += 0.05
         out = mux.update(t)
@@ -91,6 +93,7 @@ def test_deadman_stops_teleop_and_auto_takes_back_over():
 
 def test_estop_zeroes_at_once():
     mux = VelocityMux("wheeled_lidar")
+    mux.set_estop(False)
     mux.on_auto(Twist(vx=1.0), 0.0)
     for k in range(20):
         mux.update(0.1 * k)
@@ -103,6 +106,7 @@ def test_estop_zeroes_at_once():
 @pytest.mark.parametrize("bad", [Twist(vx=float("nan")), Twist(wz=float("inf")), Twist(vx=1e6)])
 def test_nan_inf_and_absurd_commands_are_dropped_and_the_robot_holds(bad):
     mux = VelocityMux("wheeled_depth")
+    mux.set_estop(False)
     mux.on_auto(Twist(vx=0.5), 0.0)
     for k in range(1, 10):
         mux.update(0.05 * k)
@@ -118,6 +122,7 @@ def test_nan_inf_and_absurd_commands_are_dropped_and_the_robot_holds(bad):
 def test_limits_clamp_velocity_and_acceleration():
     limits = spec_for("legged_depth").limits
     mux = VelocityMux("legged_depth")
+    mux.set_estop(False)
     mux.on_auto(Twist(vx=5.0, vy=5.0, wz=-9.0), 0.0)
     first = mux.update(0.0)
     second = mux.update(0.1)

@@ -25,10 +25,12 @@ def fleet():
 def running_fleet(ros_master, rospy_node):
     """fleet_sim (with sensor workers) and every robot's mux and route controller; the mission
     states are recorded from before the start."""
-    from std_msgs.msg import String
+    from std_msgs.msg import Bool, String
 
     states = {r: TopicRecorder(f"/{r}/mission_state", String) for r in ROBOTS}
     graph = ros_master.attach()
+    estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+    estop.publish(Bool(False))     # the mux and the simulator hold until they hear the state
     try:
         graph.start_node("cps_sim", "fleet_sim", name="fleet_sim", params={"~profile": "light"})
         graph.wait_for_topic("/scout/points", timeout_s=60)
@@ -37,6 +39,7 @@ def running_fleet(ros_master, rospy_node):
         yield states
     finally:
         graph.close()
+        estop.unregister()
         for recorder in states.values():
             recorder.close()
 

@@ -33,6 +33,7 @@ class Jackal:
         self.teleop = rospy.Publisher("/jackal/cmd_vel/teleop", Twist, queue_size=5)
         self.direct = rospy.Publisher("/jackal/cmd_vel", Twist, queue_size=5)
         self.estop = rospy.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+        self.estop.publish(Bool(False))     # the mux and the simulator hold until they hear the state
 
     def set_mode(self, mode):
         from std_msgs.msg import String

@@ -16,11 +16,19 @@ from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
 from cps_bringup.plan import DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RunOptions, plan_nodes
-from cps_bringup.supervisor import BringupError, Event, Supervisor, ensure_port_free, node_log_dir
+from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
+from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
+                                    node_log_dir)
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import PROFILES, load_fleet, robot_names_arg
 from cps_harness.processes import RosGraph
 from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
+
+
+# The exit code when the ROS master died mid-mission: the map was saved (if the map server could)
+# and everything stopped; the run is not restarted (docs/reliability.md).
+EXIT_MASTER_LOST = 3
+MASTER_LOST = "master_lost"
 
 
 @dataclasses.dataclass
@@ -59,6 +67,8 @@ def build_parser():
                              "EGL), or PyBullet's egl, tiny, auto (TinyRenderer for small images, EGL for 640x480)")
     parser.add_argument("--no-sim", action="store_true",
                         help="real robots: do not start fleet_sim; their drivers publish /<r>/points, odom, tf")
+    parser.add_argument("--run-as", default=None, metavar="USER",
+                        help="user the nodes run as when started as root (default: nobody; 'root' keeps root)")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server S seconds into the mission")
     return parser
@@ -131,18 +141,34 @@ def run_mission(args, log=print) -> MissionResult:
                 ensure_port_free(args.port)
             graph = RosGraph(port=args.port, log_dir=node_log_dir(out_dir), host_ip=host_ip)
         stack.callback(graph.close)
+        user = node_user(args.run_as)
+        side_env = {PHYSICAL: {"ROS_IP": link.phys_ip}, DIGITAL: {"ROS_IP": link.twin_ip}} if link else {}
+        if user:
+            ros_log_dir = os.path.join(node_log_dir(out_dir), "log")
+            side_env = {side: {**side_env.get(side, {}), **user_env(ros_log_dir)} for side in sides}
+            try:
+                hand_over(user, out_dir, ros_log_dir)
+                prefix = user_prefix(user)
+            except PrivilegeError as exc:
+                raise BringupError(str(exc)) from exc
+            log(f"[bringup] the nodes run as '{user}' (root only for the link)")
         graph.start()
         log(f"[bringup] master {graph.uri}; link: {link.describe() if link else 'loopback (no shaping)'}; "
             f"robots {', '.join(fleet.robot_names)}; profile {options.profile or fleet.profile.name}; out {out_dir}")
         supervisor = Supervisor(
             specs, graph, log=log,
             side_prefix={PHYSICAL: link.exec_prefix("phys")} if link else None,
-            side_env={PHYSICAL: {"ROS_IP": link.phys_ip}, DIGITAL: {"ROS_IP": link.twin_ip}} if link else None)
+            side_env=side_env or None,
+            policy=RestartPolicy.from_limits(fleet.limits), node_log_max_bytes=int(fleet.limits.node_log_max_mbytes * 1e6),
+            user_prefix=prefix if user else None)
         stack.callback(supervisor.stop_all)
         import rospy
 
         graph.point_this_process_here()
         rospy.init_node("cps_bringup", anonymous=True, disable_signals=True)
+        from cps_sim.estop_keeper import EstopKeeper
+
+        stack.callback(EstopKeeper().close)    # the e-stop state outlives the GUI
         supervisor.start_all(timeout_s=args.start_timeout)
         monitor = MissionMonitor(fleet)
         stack.callback(monitor.close)
@@ -161,8 +187,14 @@ def run_mission(args, log=print) -> MissionResult:
             ended_by, elapsed = wait_for_mission(monitor, supervisor, args.duration, log=log, on_tick=fault_injection)
         except KeyboardInterrupt:
             log("[bringup] interrupted; shutting down")
-        map_file = _save_map(options.map_file, log) if DIGITAL in sides else None
-        if options.gui_screenshot_path:
+        except MasterLost as exc:
+            ended_by = MASTER_LOST
+            supervisor.record("roscore", f"{exc}: the nodes cannot reach each other any more; ending the mission")
+        if ended_by == MASTER_LOST:
+            map_file = _save_map_without_master(supervisor, options.map_file, log) if DIGITAL in sides else None
+        else:
+            map_file = _save_map(options.map_file, log) if DIGITAL in sides else None
+        if options.gui_screenshot_path and ended_by != MASTER_LOST:
             _wait_for_screenshot(supervisor, options.gui_screenshot_path, log)
         return MissionResult(out_dir, ended_by, elapsed, link.describe() if link else "loopback",
                              map_file, monitor.snapshot(), list(supervisor.events), supervisor.restarts())
@@ -183,6 +215,18 @@ def _save_map(path, log):
         return None
     log(f"[bringup] map saved to {reply.path}")
     return reply.path
+
+
+def _save_map_without_master(supervisor, path, log):
+    """No master, no service: stop the map server with SIGINT; its shutdown hook saves to its map file."""
+    before = os.path.getmtime(path) if os.path.exists(path) else None
+    supervisor.stop_for_map_save("map_server")
+    if os.path.exists(path) and os.path.getmtime(path) != before:
+        log(f"[bringup] map saved to {path} by the map server on shutdown")
+        return path
+    log(f"[bringup] the map server did not save on shutdown; {path} holds its last autosave"
+        if os.path.exists(path) else "[bringup] no map saved")
+    return path if os.path.exists(path) else None
 
 
 def _wait_for_screenshot(supervisor, path, log, timeout_s=90.0):
@@ -220,4 +264,8 @@ def main(argv=None):
     except KeyboardInterrupt:
         return 130
     print(f"[bringup] ended by {result.ended_by} after {result.elapsed_s:.0f} s; outputs in {result.out_dir}")
+    if result.ended_by == MASTER_LOST:
+        print(f"cps_bringup: error: the ROS master died; mission ended (map: {result.map_file or 'none'})",
+              file=sys.stderr)
+        return EXIT_MASTER_LOST
     return 0

@@ -28,11 +28,47 @@ class MissionProgress:
     available_mbps: float = 0.0
     managed_mbytes_per_s: float = 0.0
     managed_latency_ms: Dict[str, float] = dataclasses.field(default_factory=dict)
-    # Each robot's path in `map` (x, y, z), sampled at most every 0.5 s.
-    trajectories: Dict[str, list] = dataclasses.field(default_factory=dict)
+    # Each robot's path in `map` (x, y, z), sampled at most every 0.5 s, decimated (`Trajectory`).
+    trajectories: Dict[str, tuple] = dataclasses.field(default_factory=dict)
 
     def all_done(self):
         return all(self.mission_state.get(r) == "done" for r in self.robots)
+
+
+class Trajectory:
+    """A path of at most `max_points` points: when full, every other point is dropped and from then
+    on only every `stride`-th sample is kept, so the points stay evenly spread over the whole run.
+    `points()` is an immutable copy, rebuilt only after a change."""
+
+    def __init__(self, max_points):
+        if max_points < 2:
+            raise ValueError(f"a trajectory needs room for at least 2 points, got {max_points}")
+        self.max_points = max_points
+        self.stride = 1
+        self._samples = 0
+        self._points = []
+        self._copy = ()
+
+    def append(self, point):
+        self._samples += 1
+        if (self._samples - 1) % self.stride:
+            return
+        if len(self._points) >= self.max_points:
+            self._points = self._points[::2]
+            self.stride *= 2
+            if (self._samples - 1) % self.stride:
+                self._copy = None
+                return
+        self._points.append(point)
+        self._copy = None
+
+    def points(self):
+        if self._copy is None:
+            self._copy = tuple(self._points)
+        return self._copy
+
+    def __len__(self):
+        return len(self._points)
 
 
 def format_progress(progress: MissionProgress, elapsed_s: float) -> str:
@@ -53,7 +89,8 @@ class MissionMonitor:
         from std_msgs.msg import String
 
         robots = fleet.robot_names
-        self.progress = MissionProgress(list(robots), trajectories={r: [] for r in robots})
+        self.progress = MissionProgress(list(robots), trajectories={r: () for r in robots})
+        self._trajectories = {r: Trajectory(fleet.limits.trajectory_max_points) for r in robots}
         # map <- <r>/odom as the robots' side publishes it on tf (static), not recomputed from config.
         self._tf = tf2_ros.Buffer()
         self._tf_listener = tf2_ros.TransformListener(self._tf)
@@ -86,7 +123,7 @@ class MissionMonitor:
         p = msg.pose.pose.position
         point = tuple(float(v) for v in rotation @ (p.x, p.y, p.z) + translation)
         with self._lock:
-            self.progress.trajectories[robot].append(point)
+            self._trajectories[robot].append(point)
 
     def _lookup_odom_in_map(self, odom_frame):
         """(rotation 3 x 3, translation 3) of `odom_frame` in map, or None while tf lacks it."""
@@ -137,7 +174,7 @@ class MissionMonitor:
                                        voxels_contributed=dict(self.progress.voxels_contributed),
                                        rates_hz=dict(self.progress.rates_hz),
                                        managed_latency_ms=dict(self.progress.managed_latency_ms),
-                                       trajectories={r: list(t) for r, t in self.progress.trajectories.items()})
+                                       trajectories={r: t.points() for r, t in self._trajectories.items()})
 
     def close(self):
         for sub in self._subs:

@@ -33,6 +33,8 @@ class NodeSpec:
     after: Tuple[str, ...] = ()
     # A job that ends by itself (e.g. the GUI taking a screenshot): exit 0 is success, not a death.
     one_shot: bool = False
+    # False: its exit, whatever the code, is noted and the mission goes on (the GUI).
+    essential: bool = True
 
 
 # When the GUI screenshot is taken, s after the GUI starts: during the light profile's missions.
@@ -193,5 +195,5 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                 ("env", "QT_QPA_PLATFORM=xcb", "xvfb-run", "-a", "-s", "-screen 0 1920x1200x24",
                  *py("cps_gui", "cps_gui", "--screenshot", options.gui_screenshot_path,
                      "--after", str(options.gui_screenshot_after_s), "--fleet-file", fleet.path)),
-                restart_limit=0, one_shot=True, after=("map_server",)))
+                restart_limit=0, one_shot=True, essential=False, after=("map_server",)))
     return specs

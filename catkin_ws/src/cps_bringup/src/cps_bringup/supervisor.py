@@ -2,12 +2,17 @@
 
 The supervisor knows processes and topics, nothing of what the nodes do. Up means: the process
 runs and every topic in its spec is advertised. A node that does not come up within the timeout
-is named in the error, with the end of its log.
+is named in the error, with the end of its log. Restarts wait an exponential backoff and a node's
+restart limit counts within a time window (`RestartPolicy`); a node that is not essential (the GUI)
+may end without ending the run. The master is watched: `MasterLost` when it is gone. Started as
+root, the nodes run as `run_as` (see `cps_bringup.privileges`).
 """
 import dataclasses
+import math
 import os
+import shutil
 import time
-from typing import Dict, List, Optional
+from typing import Callable, Dict, List, Optional
 
 from cps_bringup.plan import NodeSpec
 from cps_harness.processes import RosGraph
@@ -15,6 +20,27 @@ from cps_harness.processes import RosGraph
 
 class BringupError(RuntimeError):
     """The system could not be brought up or kept up; the message says what and why."""
+
+
+class MasterLost(BringupError):
+    """The ROS master is gone: nodes can no longer find each other."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RestartPolicy:
+    """Delay before the n-th restart within `window_s`: backoff_s * 2^(n-1), at most backoff_max_s.
+    The default restarts at once and counts over the whole run."""
+
+    backoff_s: float = 0.0
+    backoff_max_s: float = 0.0
+    window_s: float = math.inf
+
+    @classmethod
+    def from_limits(cls, limits):
+        return cls(limits.restart_backoff_s, limits.restart_backoff_max_s, limits.restart_window_s)
+
+    def delay_s(self, restarts_in_window):
+        return min(self.backoff_s * 2 ** max(restarts_in_window - 1, 0), self.backoff_max_s)
 
 
 @dataclasses.dataclass
@@ -30,13 +56,19 @@ class _Running:
     proc: object
     restarts: int = 0
     up: bool = False
+    restart_times: List[float] = dataclasses.field(default_factory=list)
+    restart_at: Optional[float] = None
+    ended: bool = False
 
 
 class Supervisor:
     """Runs `specs` on `graph`'s master. `side_prefix`/`side_env` put a side into a namespace."""
 
     def __init__(self, specs: List[NodeSpec], graph: RosGraph, side_prefix: Optional[Dict[str, List[str]]] = None,
-                 side_env: Optional[Dict[str, Dict[str, str]]] = None, log=print):
+                 side_env: Optional[Dict[str, Dict[str, str]]] = None, log=print,
+                 policy: RestartPolicy = RestartPolicy(), node_log_max_bytes: Optional[int] = None,
+                 user_prefix: Optional[List[str]] = None, clock: Callable[[], float] = time.monotonic):
+        """`user_prefix`: argv that runs a node as another user (after the side's prefix)."""
         labels = [s.label for s in specs]
         if len(set(labels)) != len(labels):
             raise ValueError(f"duplicate node labels in the plan: {labels}")
@@ -45,6 +77,11 @@ class Supervisor:
         self.side_prefix = side_prefix or {}
         self.side_env = side_env or {}
         self.log = log
+        self.policy = policy
+        self.node_log_max_bytes = node_log_max_bytes
+        self.user_prefix = list(user_prefix or [])
+        self.clock = clock
+        self._master_silent_since: Optional[float] = None
         self.running: Dict[str, _Running] = {}
         self.events: List[Event] = []
         self._t0 = time.monotonic()
@@ -55,7 +92,7 @@ class Supervisor:
         self.log(f"[bringup] {label}: {what}")
 
     def _start(self, spec: NodeSpec):
-        argv = [*self.side_prefix.get(spec.side, []), *spec.argv]
+        argv = [*self.side_prefix.get(spec.side, []), *self.user_prefix, *spec.argv]
         proc = self.graph.popen(argv, name=spec.label.replace("/", "_"), env=self.side_env.get(spec.side))
         return proc
 
@@ -107,24 +144,82 @@ class Supervisor:
                 running.up = True
 
     def _check_deaths(self, during_start=False):
+        now = self.clock()
         for label, running in self.running.items():
+            if running.restart_at is not None:
+                if now >= running.restart_at:
+                    running.restart_at = None
+                    running.proc = self._start(running.spec)
+                    running.up = False
+                continue
             code = running.proc.poll()
-            if code is None or (code == 0 and running.spec.one_shot):
+            if running.ended or code is None or (code == 0 and running.spec.one_shot):
+                continue
+            if not running.spec.essential:
+                running.ended = True
+                self.record(label, f"exited with code {code}; not essential: the mission goes on without it")
                 continue
             # `nodelet load` and other one-shot helpers exit 0 only when told to; any exit is a death.
-            if running.restarts >= running.spec.restart_limit:
+            window = self.policy.window_s
+            running.restart_times = [t for t in running.restart_times if now - t < window]
+            if len(running.restart_times) >= running.spec.restart_limit:
                 tail = "\n".join(self.graph.output(label.replace("/", "_")).strip().splitlines()[-8:])
+                within = f" within {window:.0f} s" if math.isfinite(window) else ""
                 raise BringupError(f"{label} exited with code {code} "
-                                   f"(restarted {running.restarts} of {running.spec.restart_limit} times):\n{tail}")
+                                   f"(restarted {len(running.restart_times)} of {running.spec.restart_limit} times)"
+                                   f"{within}:\n{tail}")
+            running.restart_times.append(now)
             running.restarts += 1
-            self.record(label, f"exited with code {code}; restart {running.restarts}/{running.spec.restart_limit}")
-            running.proc = self._start(running.spec)
+            delay_s = self.policy.delay_s(len(running.restart_times))
+            self.record(label, f"exited with code {code}; restart {len(running.restart_times)}/"
+                               f"{running.spec.restart_limit} in {delay_s:.1f} s")
+            running.restart_at = now + delay_s
             running.up = False
 
+    def _check_master(self):
+        code = self.graph.master_exit_code()
+        if code is not None:
+            raise MasterLost(f"the ROS master exited (code {code})")
+        if self.graph.master_online():
+            self._master_silent_since = None
+            return
+        # A master on another host: lost when it has not answered for two polls in a row.
+        now = self.clock()
+        if self._master_silent_since is None:
+            self._master_silent_since = now
+        elif now - self._master_silent_since >= 0.5:
+            raise MasterLost(f"the ROS master at {self.graph.uri} does not answer")
+
+    def _cap_logs(self):
+        """Rotate a node's captured output past `node_log_max_bytes` to <log>.1 (written in append mode,
+        so the node goes on writing at the start of the emptied file)."""
+        if self.node_log_max_bytes is None:
+            return
+        for running in self.running.values():
+            path = getattr(running.proc, "cps_log", None)
+            try:
+                if path and os.path.getsize(path) > self.node_log_max_bytes:
+                    shutil.copyfile(path, path + ".1")
+                    os.truncate(path, 0)
+            except OSError:
+                continue
+
     def poll(self):
-        """Call periodically: restarts dead processes, raises BringupError past a restart limit."""
+        """Call periodically: restarts dead processes, raises BringupError past a restart limit and
+        MasterLost when the master is gone."""
+        self._check_master()
         self._refresh_up()
         self._check_deaths()
+        self._cap_logs()
+
+    def stop_for_map_save(self, label, timeout_s=20.0):
+        """SIGINT `label` (a node that saves on shutdown) and wait for it; works without a master.
+        True if it exited by itself."""
+        running = self.running.get(label)
+        if running is None or running.proc.poll() is not None:
+            return False
+        self.graph.stop(running.proc, timeout_s=timeout_s)
+        return running.proc.returncode is not None and running.proc.returncode >= 0
 
     def restarts(self):
         return {label: r.restarts for label, r in self.running.items() if r.restarts}

@@ -105,6 +105,18 @@ class MappingConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class LimitsConfig:
+    """Bounds on growth and on restarts (fleet.yaml `limits:`)."""
+
+    trajectory_max_points: int
+    csv_max_mbytes: float
+    node_log_max_mbytes: float
+    restart_backoff_s: float
+    restart_backoff_max_s: float
+    restart_window_s: float
+
+
+@dataclasses.dataclass(frozen=True)
 class Waypoint:
     x: float
     y: float
@@ -150,6 +162,7 @@ class FleetConfig:
     link: LinkConfig
     mapping: MappingConfig
     robots: Tuple[RobotConfig, ...]
+    limits: LimitsConfig
 
     def robot(self, name):
         for robot in self.robots:
@@ -254,6 +267,21 @@ def load_fleet(path=None, profile=None):
         autosave_period_s=map_reader.number("autosave_period_s", low=0.0),
     )
 
+    limits_reader = top.child("limits")
+    limits = LimitsConfig(
+        trajectory_max_points=_positive_int(limits_reader, "trajectory_max_points"),
+        csv_max_mbytes=limits_reader.number("csv_max_mbytes", low=0.001, high=1e6),
+        node_log_max_mbytes=limits_reader.number("node_log_max_mbytes", low=0.001, high=1e6),
+        restart_backoff_s=limits_reader.number("restart_backoff_s", low=0.0, high=3600.0),
+        restart_backoff_max_s=limits_reader.number("restart_backoff_max_s", low=0.0, high=3600.0),
+        restart_window_s=limits_reader.number("restart_window_s", low=0.0, high=86400.0, low_open=True),
+    )
+    if limits.trajectory_max_points < 2:
+        raise limits_reader.error("trajectory_max_points", f"must be at least 2, got {limits.trajectory_max_points}")
+    if limits.restart_backoff_max_s < limits.restart_backoff_s:
+        raise limits_reader.error("restart_backoff_max_s", f"restart_backoff_max_s ({limits.restart_backoff_max_s}) < "
+                                  f"restart_backoff_s ({limits.restart_backoff_s})")
+
     robots = []
     for item in top.items("robots"):
         name = item.get("name", str)
@@ -287,6 +315,7 @@ def load_fleet(path=None, profile=None):
         link=link,
         mapping=mapping,
         robots=tuple(robots),
+        limits=limits,
     )
 
 

@@ -101,6 +101,23 @@ class RosGraph:
         os.environ["ROS_MASTER_URI"] = self.uri
         os.environ["ROS_IP"] = self.host_ip
 
+    def master_exit_code(self):
+        """The exit code of this graph's own roscore once it has ended, else None."""
+        return self._master.poll() if self._master is not None else None
+
+    def master_online(self):
+        try:
+            return self._master_up()
+        except OSError:
+            return False
+
+    def _kill_orphans_of_the_core(self):
+        """roslaunch starts rosmaster and rosout in sessions of their own: a roscore killed hard leaves them."""
+        for pid, cmd in processes_named(self.uri, f"-p {self.port} "):
+            if any(f"/{core} " in cmd or cmd.startswith(core) for core in ("rosmaster", "rosout")):
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.kill(pid, signal.SIGKILL)
+
     def _master_up(self):
         import rosgraph
 
@@ -119,7 +136,7 @@ class RosGraph:
         """Start a process against this master; its output goes to a log file under `home`."""
         name = name or os.path.basename(argv[0])
         log_path = os.path.join(self.home, f"{name}-{len(self.processes)}.log")
-        log = open(log_path, "wb")
+        log = open(log_path, "ab")   # append: the file may be truncated (rotated) under the process
         merged = self.env
         merged.update(env or {})
         proc = subprocess.Popen(argv, env=merged, cwd=cwd, stdout=log, stderr=subprocess.STDOUT,
@@ -203,6 +220,8 @@ class RosGraph:
         for proc in reversed(self.processes):
             self.stop(proc, timeout_s=5.0)
         self.processes = []
+        if self._own_master:
+            self._kill_orphans_of_the_core()
         if self._own_home:
             shutil.rmtree(self.home, ignore_errors=True)
 

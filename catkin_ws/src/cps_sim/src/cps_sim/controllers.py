@@ -5,7 +5,8 @@ waypoint and the mission state; `VelocityMux` chooses between the route's and th
 commands and clamps every output to the robot type's limits.
 """
 import math
-from typing import Optional
+import time
+from typing import Callable, Optional
 
 from cps_fleet.config import ConfigError
 from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, spec_for, validate_twist
@@ -75,18 +76,26 @@ class RouteFollower:
         self.index = best
         self.reached_inspect = any(w.inspect for w in self.route.waypoints[:best])
 
+    def _landed_at_the_end(self, x, y, airborne):
+        """An aerial robot found landed on its last waypoint, away from where it started, has flown
+        its route already: a restarted controller must not take off again."""
+        last = self.route.waypoints[-1]
+        return (self.aerial and not airborne and math.hypot(last.x - x, last.y - y) <= self.tolerance_m
+                and math.hypot(self.start_xy[0] - x, self.start_xy[1] - y) > self.tolerance_m)
+
     def update(self, x, y, z, yaw, airborne=None):
         """(Twist in the body frame, flight command 'takeoff'/'land' or None) for the pose in map.
 
         `airborne`: for aerial robots, whether it is flying (default: z above 0.5 m).
         """
+        if airborne is None:
+            airborne = z > 0.5
         if not self.started and self.start_xy is not None:
             self._resume_near(x, y)
+            self.finished = self._landed_at_the_end(x, y, airborne)
         self.started = True
         if self.finished:
             return Twist(), None
-        if airborne is None:
-            airborne = z > 0.5
         waypoints = self.route.waypoints
         if self.aerial and not airborne and self.index < len(waypoints) and not self.landing:
             return Twist(), "takeoff"
@@ -127,19 +136,32 @@ class RouteFollower:
         return Twist(speed * alignment, 0.0, 0.0, wz), None
 
 
+def is_fresh(stamp_s, now_s, timeout_s):
+    """Whether a command stamped `stamp_s` still holds at `now_s`: its age lies in [0, timeout_s].
+
+    A negative age (the clock stepped back) counts as stale, so even a non-monotonic clock can only
+    stop a robot early, never keep it running.
+    """
+    return 0.0 <= now_s - stamp_s <= timeout_s
+
+
 class VelocityMux:
     """Chooses cmd_vel from the route (auto) or the operator (teleop), with dead-man and e-stop.
 
+    Times come from `clock` (monotonic: a step of the wall clock cannot stretch a dead-man).
     Teleop commands older than `deadman_s` and auto commands older than `auto_timeout_s` count
-    as zero. Non-finite or absurd commands are dropped (counted) and the robot holds.
+    as zero, and the output drops to zero at once. Until the e-stop state has been heard (a
+    restarted mux does not know it) the output is zero. Non-finite or absurd commands are dropped
+    (counted) and the robot holds.
     """
 
-    def __init__(self, robot_type, deadman_s=0.5, auto_timeout_s=1.0):
+    def __init__(self, robot_type, deadman_s=0.5, auto_timeout_s=1.0, clock: Callable[[], float] = time.monotonic):
         self.limits = spec_for(robot_type).limits
         self.deadman_s = deadman_s
         self.auto_timeout_s = auto_timeout_s
+        self.clock = clock
         self.mode = "auto"
-        self.estop = False
+        self.estop: Optional[bool] = None    # None: not heard yet
         self._auto: Optional[Twist] = None
         self._auto_t = -math.inf
         self._teleop: Optional[Twist] = None
@@ -148,27 +170,30 @@ class VelocityMux:
         self._output_t: Optional[float] = None
         self.dropped = 0
 
+    def _now(self, now_s):
+        return self.clock() if now_s is None else now_s
+
     def _accept(self, twist):
         reason = validate_twist(twist, self.limits)
         if reason:
             self.dropped += 1
         return reason
 
-    def on_auto(self, twist, now_s):
+    def on_auto(self, twist, now_s=None):
         """Store a route command; returns why it was dropped, or None."""
         reason = self._accept(twist)
         if reason:
             self._auto = None   # hold: a bad command must not leave the last good one running
             return reason
-        self._auto, self._auto_t = twist, now_s
+        self._auto, self._auto_t = twist, self._now(now_s)
         return None
 
-    def on_teleop(self, twist, now_s):
+    def on_teleop(self, twist, now_s=None):
         reason = self._accept(twist)
         if reason:
             self._teleop = None
             return reason
-        self._teleop, self._teleop_t = twist, now_s
+        self._teleop, self._teleop_t = twist, self._now(now_s)
         return None
 
     def set_mode(self, mode):
@@ -179,23 +204,68 @@ class VelocityMux:
     def set_estop(self, active):
         self.estop = bool(active)
 
-    def selected(self, now_s):
-        """The raw command the mode selects now (zero when stale, stopped or missing)."""
-        if self.estop:
-            return Twist()
-        if self.mode == "teleop":
-            fresh = self._teleop is not None and now_s - self._teleop_t <= self.deadman_s
-            return self._teleop if fresh else Twist()
-        fresh = self._auto is not None and now_s - self._auto_t <= self.auto_timeout_s
-        return self._auto if fresh else Twist()
+    @property
+    def stopped(self):
+        """E-stop active or not yet heard."""
+        return self.estop is not False
 
-    def update(self, now_s):
+    def selected(self, now_s=None):
+        """The raw command the mode selects now, or None when stale, stopped or missing."""
+        now_s = self._now(now_s)
+        if self.stopped:
+            return None
+        if self.mode == "teleop":
+            fresh = self._teleop is not None and is_fresh(self._teleop_t, now_s, self.deadman_s)
+            return self._teleop if fresh else None
+        fresh = self._auto is not None and is_fresh(self._auto_t, now_s, self.auto_timeout_s)
+        return self._auto if fresh else None
+
+    def update(self, now_s=None):
         """The clamped command to execute now (velocity and acceleration limits)."""
+        now_s = self._now(now_s)
         dt = 0.0 if self._output_t is None else max(now_s - self._output_t, 0.0)
         target = self.selected(now_s)
-        if self.estop:
-            self.output = Twist()   # an emergency stop does not ramp down
+        if target is None:
+            self.output = Twist()   # stopped, stale or missing: no ramp down
         else:
             self.output = clamp_twist(target, self.limits, self.output, dt)
         self._output_t = now_s
         return self.output
+
+
+class CommandGate:
+    """What the component that executes velocities (fleet_sim, per robot) lets through.
+
+    The e-stop holds here too, so a publisher that bypasses the mux cannot move a stopped robot.
+    Zero until the e-stop state has been heard and a command is fresh (younger than `timeout_s`
+    on `clock`); a command received during an e-stop is discarded, not kept for afterwards.
+    """
+
+    def __init__(self, timeout_s=0.5, clock: Callable[[], float] = time.monotonic):
+        self.timeout_s = timeout_s
+        self.clock = clock
+        self.estop: Optional[bool] = None
+        self._command: Optional[Twist] = None
+        self._command_t = -math.inf
+
+    def set_estop(self, active):
+        self.estop = bool(active)
+        if self.estop:
+            self._command = None
+
+    def on_command(self, twist, now_s=None):
+        if self.estop is not False:
+            self._command = None
+            return
+        self._command, self._command_t = twist, self.clock() if now_s is None else now_s
+
+    def hold(self):
+        """Forget the command (a bad one arrived): zero until the next good one."""
+        self._command = None
+
+    def command(self, now_s=None):
+        """The twist to execute now."""
+        now_s = self.clock() if now_s is None else now_s
+        if self.estop is not False or self._command is None or not is_fresh(self._command_t, now_s, self.timeout_s):
+            return Twist()
+        return self._command

@@ -16,11 +16,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Twist as TwistMsg
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import BatteryState, CameraInfo, Image, JointState, PointCloud2
-from std_msgs.msg import String
+from std_msgs.msg import Bool, String
 
 from cps_fleet.config import ConfigError, load_yaml_document
 from cps_fleet.site import check_waypoint
 from cps_sim import messages, names
+from cps_sim.controllers import CommandGate
 from cps_sim.node_support import fail, load_fleet_param, load_site_for, name_list, positive_param, twist_from_msg
 from cps_sim.realtime import Periodic, PhysicsClock, run_realtime
 from cps_sim.robots import Twist, validate_twist
@@ -111,10 +112,12 @@ class FleetSimNode:
         self.capture_ms = {name: 0.0 for name in self.sim.robots}
         self.lock = threading.Lock()
         self.pubs = {}
-        self.cmd_time = {}
+        # Per robot: the e-stop and the command timeout hold here, where velocities are executed.
+        self.gates = {}
         self.bad_commands = {}
         for name, sim in self.sim.robots.items():
             self._robot_io(name, sim)
+        rospy.Subscriber(names.ESTOP, Bool, self._on_estop, queue_size=5)
         self.tf = tf2_ros.TransformBroadcaster()
         self.static_tf = tf2_ros.StaticTransformBroadcaster()
         self.diagnostics = rospy.Publisher(names.DIAGNOSTICS, DiagnosticArray, queue_size=5)
@@ -140,7 +143,7 @@ class FleetSimNode:
             pubs["image"] = rospy.Publisher(topic(names.CAMERA_IMAGE), Image, queue_size=2)
             pubs["info"] = rospy.Publisher(topic(names.CAMERA_INFO), CameraInfo, queue_size=2)
         self.pubs[name] = pubs
-        self.cmd_time[name] = -math.inf
+        self.gates[name] = CommandGate(CMD_TIMEOUT_S)
         self.bad_commands[name] = 0
         rospy.Subscriber(topic(names.CMD_VEL), TwistMsg, self._on_cmd_vel, callback_args=name, queue_size=5)
         if sim.robot.is_aerial:
@@ -165,12 +168,22 @@ class FleetSimNode:
         with self.lock:
             if reason:
                 self.bad_commands[name] += 1
+                self.gates[name].hold()
                 sim.robot.set_command(Twist())
                 rospy.logwarn_throttle(2.0, f"/{name}/cmd_vel: dropped {reason}; holding "
                                             f"({self.bad_commands[name]} dropped so far)")
                 return
-            sim.robot.set_command(twist)
-            self.cmd_time[name] = time.time()
+            self.gates[name].on_command(twist)
+            sim.robot.set_command(self.gates[name].command())
+
+    def _on_estop(self, msg):
+        with self.lock:
+            first = any(gate.estop is None for gate in self.gates.values())
+            for name, gate in self.gates.items():
+                gate.set_estop(msg.data)
+                self.sim.robots[name].robot.set_command(gate.command())
+        if first:
+            rospy.loginfo("fleet_sim: e-stop state heard (%s)", "on" if msg.data else "off")
 
     def _on_flight_command(self, msg, name):
         command = msg.data.strip().lower()
@@ -182,8 +195,7 @@ class FleetSimNode:
     def _advance_physics(self, now):
         with self.lock:
             for name, sim in self.sim.robots.items():
-                if now - self.cmd_time[name] > CMD_TIMEOUT_S:
-                    sim.robot.set_command(Twist())
+                sim.robot.set_command(self.gates[name].command())
             for dt_s in self.physics.steps(now):
                 self.sim.step(dt_s)
         self.physics_meter.tick(now)

@@ -1,7 +1,6 @@
 """velocity_mux's ROS side (in /<r>): cmd_vel/auto or cmd_vel/teleop by control_mode -> cmd_vel,
 with dead-man and e-stop. The decisions are `cps_sim.controllers.VelocityMux`'s."""
 import threading
-import time
 
 import rospy
 from geometry_msgs.msg import Twist as TwistMsg
@@ -24,6 +23,7 @@ class VelocityMuxNode:
             fail(f"parameter ~robot: {exc.args[0]}")
         self.rate_hz = positive_param("~rate_hz", 20.0)
         deadman = positive_param("~deadman_s", 0.5)
+        # Stopped until the latched e-stop state and a fresh command arrive (a restart knows neither).
         self.mux = VelocityMux(self.config.type, deadman_s=deadman)
         self.lock = threading.Lock()
         self.pub = rospy.Publisher(names.CMD_VEL, TwistMsg, queue_size=5)
@@ -38,9 +38,8 @@ class VelocityMuxNode:
 
     def _on_cmd(self, msg, topic):
         with self.lock:
-            now = time.time()
             handler = self.mux.on_auto if topic == names.CMD_VEL_AUTO else self.mux.on_teleop
-            reason = handler(twist_from_msg(msg), now)
+            reason = handler(twist_from_msg(msg))
         if reason:
             rospy.logwarn_throttle(2.0, f"{rospy.resolve_name(topic)}: dropped {reason}; holding "
                                         f"({self.mux.dropped} dropped so far)")
@@ -56,11 +55,14 @@ class VelocityMuxNode:
 
     def _on_estop(self, msg):
         with self.lock:
+            first = self.mux.estop is None
             self.mux.set_estop(msg.data)
+        if first:
+            rospy.loginfo("velocity_mux %s: e-stop state heard (%s)", self.config.name, "on" if msg.data else "off")
 
     def _publish(self):
         with self.lock:
-            out = self.mux.update(time.time())
+            out = self.mux.update()
         self.pub.publish(twist_to_msg(out))
 
     def spin(self):

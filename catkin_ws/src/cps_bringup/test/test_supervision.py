@@ -1,0 +1,153 @@
+"""The supervisor under faults, on a real master: restart backoff and a windowed limit (clock
+injected), a GUI that fails without ending the run, a dead master noticed within 2 s, nodes that
+drop root, node output that cannot grow without bound."""
+import os
+import pwd
+import signal
+import sys
+import time
+
+import pytest
+
+from cps_bringup.plan import DIGITAL, NodeSpec
+from cps_bringup.privileges import hand_over, user_prefix
+from cps_bringup.supervisor import BringupError, MasterLost, RestartPolicy, Supervisor
+from cps_harness.processes import RosGraph
+from cps_harness.testing import wait_for
+
+pytestmark = pytest.mark.ros
+
+DIES_SOON = "import time; time.sleep(0.3); raise SystemExit(4)"
+
+
+def _spec(label, code, wait_topics=(), restart_limit=0, essential=True):
+    return NodeSpec(label, DIGITAL, (sys.executable, "-c", code), wait_topics=tuple(wait_topics),
+                    restart_limit=restart_limit, essential=essential)
+
+
+class FakeClock:
+    def __init__(self):
+        self.now_s = 0.0
+
+    def __call__(self):
+        return self.now_s
+
+
+def _poll(supervisor, seconds, period_s=0.1):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        supervisor.poll()
+        time.sleep(period_s)
+
+
+def _next_event(supervisor, events, count, timeout_s=20):
+    assert wait_for(lambda: (supervisor.poll(), len(events) >= count)[1], timeout_s), events
+    return events[count - 1]
+
+
+def test_restarts_back_off_exponentially_and_the_limit_counts_within_a_window(tmp_path):
+    clock, events = FakeClock(), []
+    policy = RestartPolicy(backoff_s=1.0, backoff_max_s=4.0, window_s=10.0)
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        supervisor = Supervisor([_spec("flaky", DIES_SOON, restart_limit=2)], graph, log=events.append,
+                                policy=policy, clock=clock)
+        try:
+            supervisor.start_all(timeout_s=30)
+            events.clear()
+            assert _next_event(supervisor, events, 1).endswith("restart 1/2 in 1.0 s")
+            dead = supervisor.running["flaky"].proc
+            _poll(supervisor, 0.5)                              # backing off: not restarted yet
+            assert supervisor.running["flaky"].proc is dead
+            clock.now_s = 1.0
+            supervisor.poll()
+            assert supervisor.running["flaky"].proc is not dead
+            assert _next_event(supervisor, events, 2).endswith("restart 2/2 in 2.0 s")   # doubled
+            clock.now_s = 12.0                                  # both restarts leave the window
+            supervisor.poll()
+            assert _next_event(supervisor, events, 3).endswith("restart 1/2 in 1.0 s")
+            clock.now_s = 13.0
+            supervisor.poll()
+            assert _next_event(supervisor, events, 4).endswith("restart 2/2 in 2.0 s")
+            clock.now_s = 15.0
+            supervisor.poll()
+            with pytest.raises(BringupError, match=r"restarted 2 of 2 times\) within 10 s"):
+                _poll(supervisor, 10.0)
+        finally:
+            supervisor.stop_all()
+
+
+def test_a_gui_that_exits_with_an_error_does_not_end_the_mission(tmp_path):
+    events = []
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        supervisor = Supervisor([_spec("gui", DIES_SOON, essential=False)], graph, log=events.append)
+        try:
+            supervisor.start_all(timeout_s=30)
+            _poll(supervisor, 2.0)
+        finally:
+            supervisor.stop_all()
+    assert any("gui: exited with code 4; not essential" in e for e in events), events
+
+
+def test_a_dead_master_is_noticed_within_2_s(tmp_path):
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        supervisor = Supervisor([_spec("sleeper", "import time; time.sleep(600)")], graph, log=lambda *_: None)
+        try:
+            supervisor.start_all(timeout_s=30)
+            supervisor.poll()
+            master = next(p for p in graph.processes if p.cps_name == "roscore")
+            os.killpg(master.pid, signal.SIGKILL)
+            killed_at = time.monotonic()
+            with pytest.raises(MasterLost, match="the ROS master exited"):
+                while time.monotonic() - killed_at < 10:
+                    supervisor.poll()
+                    time.sleep(0.5)                             # wait_for_mission's period
+            noticed_after_s = time.monotonic() - killed_at
+            print(f"master loss noticed after {noticed_after_s:.2f} s")
+            assert noticed_after_s < 2.0
+        finally:
+            supervisor.stop_all()
+
+
+def _uids(pid):
+    with open(f"/proc/{pid}/status") as stream:
+        line = next(line for line in stream if line.startswith("Uid:"))
+    return [int(v) for v in line.split()[1:]]
+
+
+WRITER = ("import os, sys, time, rospy; from std_msgs.msg import String; rospy.init_node('writer'); "
+          "p = rospy.Publisher('/writer/out', String, queue_size=1); "
+          "open(os.path.join(sys.argv[1], 'written.csv'), 'w').write('ok'); time.sleep(600)")
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="dropping root needs root")
+def test_nodes_started_as_root_run_unprivileged_and_can_write_the_mission_folder(open_tmp_path):
+    out = open_tmp_path
+    log_dir = out / "logs"
+    hand_over("nobody", str(out), str(log_dir / "log"))
+    nobody = pwd.getpwnam("nobody").pw_uid
+    with RosGraph(log_dir=str(log_dir)) as graph:
+        spec = NodeSpec("writer", DIGITAL, (sys.executable, "-c", WRITER, str(out)), wait_topics=("/writer/out",))
+        supervisor = Supervisor([spec], graph, log=lambda *_: None, user_prefix=user_prefix("nobody"))
+        try:
+            supervisor.start_all(timeout_s=30)
+            assert _uids(supervisor.pid_of("writer")) == [nobody] * 4
+            assert wait_for(lambda: (out / "written.csv").exists(), 10)
+            assert (out / "written.csv").stat().st_uid == nobody
+        finally:
+            supervisor.stop_all()
+
+
+def test_a_chatty_node_output_is_rotated_at_its_bound(tmp_path):
+    # ~1 MB/s: the bound holds to within what a node writes between two polls.
+    chatty = "import time\nwhile True:\n    print('x' * 999, flush=True)\n    time.sleep(0.001)"
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        supervisor = Supervisor([_spec("chatty", chatty)], graph, log=lambda *_: None, node_log_max_bytes=100_000)
+        try:
+            supervisor.start_all(timeout_s=30)
+            log_path = supervisor.running["chatty"].proc.cps_log
+            _poll(supervisor, 3.0)
+            assert os.path.exists(log_path + ".1")
+            largest = max(os.path.getsize(log_path), os.path.getsize(log_path + ".1"))
+        finally:
+            supervisor.stop_all()
+    assert largest < 3 * 100_000, largest

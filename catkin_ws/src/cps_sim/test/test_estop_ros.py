@@ -1,0 +1,169 @@
+"""The e-stop holds at the robot and the dead-man runs on a monotonic clock, on a real master:
+fleet_sim ignores /<r>/cmd_vel during STOP ALL, a mux restarted after the GUI has gone starts
+stopped, and a mux whose wall clock steps by 30 s stops teleop within its dead-man and never
+stops spuriously while commands flow."""
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from cps_harness.testing import TopicRecorder, wait_for
+
+pytestmark = pytest.mark.ros
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+# A GUI stand-in in its own process: publishes the e-stop state latched, then dies when killed.
+GUI = ("import sys, rospy; from std_msgs.msg import Bool; rospy.init_node('gui', anonymous=True); "
+       "p = rospy.Publisher('/fleet/estop', Bool, queue_size=1, latch=True); "
+       "p.publish(Bool(sys.argv[1] == 'on')); rospy.spin()")
+
+
+def _twist(vx):
+    from geometry_msgs.msg import Twist
+
+    msg = Twist()
+    msg.linear.x = vx
+    return msg
+
+
+def _publish_for(pub, msg, seconds, rate_hz=20.0):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pub.publish(msg)
+        time.sleep(1.0 / rate_hz)
+
+
+def _start_mux(graph, env=None):
+    return graph.start_node("cps_sim", "velocity_mux", name="velocity_mux", namespace="/jackal",
+                            params={"~robot": "jackal"}, env=env)
+
+
+def _start_gui(graph, state):
+    return graph.popen([sys.executable, "-c", GUI, state], name="gui")
+
+
+@pytest.fixture(scope="module")
+def sim(ros_master, rospy_node):
+    graph = ros_master.attach()
+    try:
+        graph.start_node("cps_sim", "fleet_sim", name="fleet_sim_jackal",
+                         params={"~profile": "light", "~robots": "jackal", "~sensor_workers": 0})
+        graph.wait_for_topic("/jackal/odom", timeout_s=90)
+        yield graph
+    finally:
+        graph.close()
+
+
+def _position(odom):
+    p = odom.wait(timeout_s=10).pose.pose.position
+    return p.x, p.y
+
+
+def test_stop_all_cannot_be_bypassed_by_publishing_cmd_vel_directly(sim, rospy_node):
+    from geometry_msgs.msg import Twist
+    from nav_msgs.msg import Odometry
+
+    gui = _start_gui(sim, "on")
+    odom = TopicRecorder("/jackal/odom", Odometry)
+    direct = rospy_node.Publisher("/jackal/cmd_vel", Twist, queue_size=5)
+    try:
+        assert wait_for(lambda: "e-stop state heard (on)" in sim.output("fleet_sim_jackal"), 20)
+        before = _position(odom)
+        _publish_for(direct, _twist(0.5), seconds=3.0)
+        after = _position(odom)
+        assert abs(after[0] - before[0]) < 1e-3 and abs(after[1] - before[1]) < 1e-3, (before, after)
+        assert all(abs(m.twist.twist.linear.x) < 1e-6 for _, m in odom.messages[-20:])
+        sim.stop(gui)
+        gui = _start_gui(sim, "off")                # released: the same commands now drive it
+        assert wait_for(lambda: _moves(direct, odom), 20), "released: the same commands drive it"
+    finally:
+        sim.stop(gui)
+        direct.unregister()
+        odom.close()
+
+
+def _moves(direct, odom):
+    before = _position(odom)
+    _publish_for(direct, _twist(0.5), seconds=1.0)
+    after = _position(odom)
+    return abs(after[0] - before[0]) + abs(after[1] - before[1]) > 0.05
+
+
+def test_a_mux_restarted_after_the_gui_has_gone_starts_stopped(sim, rospy_node):
+    from geometry_msgs.msg import Twist
+
+    executed = TopicRecorder("/jackal/cmd_vel", Twist)
+    auto = rospy_node.Publisher("/jackal/cmd_vel/auto", Twist, queue_size=5)
+    gui = _start_gui(sim, "off")
+    mux = _start_mux(sim)
+    try:
+        sim.wait_for_topic("/jackal/cmd_vel", timeout_s=30)
+        assert wait_for(lambda: "e-stop state heard (off)" in sim.output("velocity_mux"), 20)
+        _publish_for(auto, _twist(0.3), seconds=1.0)
+        assert wait_for(lambda: executed.latest is not None and executed.latest.linear.x > 0.0, 5)
+        sim.stop(gui)                                # the GUI dies, then the mux
+        sim.stop(mux)
+        executed.take()
+        mux = _start_mux(sim)
+        assert wait_for(lambda: executed.count > 20, 30), "the restarted mux publishes cmd_vel"
+        _publish_for(auto, _twist(0.3), seconds=2.0)
+        outputs = [m.linear.x for _, m in executed.take()]
+        assert outputs and all(vx == 0.0 for vx in outputs), outputs
+        gui = _start_gui(sim, "off")                 # the state heard again: the route's commands drive
+        _publish_for(auto, _twist(0.3), seconds=2.0)
+        assert any(m.linear.x > 0.0 for _, m in executed.take())
+    finally:
+        sim.stop(gui)
+        sim.stop(mux)
+        auto.unregister()
+        executed.close()
+
+
+def test_the_mux_deadman_survives_its_wall_clock_stepping_back_30_s(sim, rospy_node, tmp_path):
+    from geometry_msgs.msg import Twist
+    from std_msgs.msg import String
+
+    step_file = tmp_path / "clock_stepped"
+    env = {"PYTHONPATH": os.path.join(HERE, "clock_step") + os.pathsep + os.environ.get("PYTHONPATH", ""),
+           "CPS_TEST_CLOCK_STEP_FILE": str(step_file), "CPS_TEST_CLOCK_STEP_S": "-30"}
+    executed = TopicRecorder("/jackal/cmd_vel", Twist)
+    teleop = rospy_node.Publisher("/jackal/cmd_vel/teleop", Twist, queue_size=5)
+    mode = rospy_node.Publisher("/jackal/control_mode", String, queue_size=1, latch=True)
+    gui = _start_gui(sim, "off")
+    mux = _start_mux(sim, env=env)
+    try:
+        assert wait_for(lambda: "e-stop state heard (off)" in sim.output("velocity_mux"), 30)
+        mode.publish(String("teleop"))
+        assert wait_for(lambda: "control mode teleop" in sim.output("velocity_mux"), 10)
+        # 5 Hz commands, well inside the 0.5 s dead-man: a mux on the wall clock would drop to zero
+        # between commands after each step (age < 0 after a step back, > 30 s after a step forward).
+        _publish_for(teleop, _twist(0.3), seconds=1.0, rate_hz=5.0)
+        assert executed.latest.linear.x > 0.0
+        executed.take()
+        for _ in range(3):
+            for step in (step_file.write_text, lambda _: step_file.unlink()):
+                teleop.publish(_twist(0.3))
+                time.sleep(0.1)
+                step("")                               # mid-way between two commands
+                time.sleep(0.1)
+                _publish_for(teleop, _twist(0.3), seconds=0.6, rate_hz=5.0)
+        outputs = [m.linear.x for _, m in executed.take()]
+        assert len(outputs) > 60 and all(vx > 0.0 for vx in outputs), outputs
+        step_file.write_text("")                      # the operator link goes; the wall clock steps back
+        stepped_at = time.monotonic()
+        assert wait_for(lambda: executed.latest is not None and executed.latest.linear.x == 0.0, 5)
+        stopped_after_s = time.monotonic() - stepped_at
+        assert stopped_after_s < 2.0, stopped_after_s   # dead-man 0.5 s; a wall-clock mux: ~30 s
+        executed.take()
+        time.sleep(1.0)
+        outputs = [m.linear.x for _, m in executed.take()]
+        assert len(outputs) > 5 and all(vx == 0.0 for vx in outputs)   # alive, and stays stopped
+        assert mux.poll() is None
+    finally:
+        sim.stop(gui)
+        sim.stop(mux)
+        teleop.unregister()
+        mode.unregister()
+        executed.close()
