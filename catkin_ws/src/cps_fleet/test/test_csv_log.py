@@ -43,3 +43,21 @@ def test_every_row_is_on_disk_at_once_and_none_after_close(tmp_path):
 def test_a_row_of_the_wrong_width_is_refused(tmp_path):
     with CsvLog(str(tmp_path / "x.csv"), COLUMNS) as log, pytest.raises(ValueError, match="2 values for 3"):
         log.write((1.0, "scout"))
+
+
+def test_a_full_disk_turns_the_log_off_once_and_counts_the_rows_lost():
+    errors = []
+    log = CsvLog("/dev/full", COLUMNS, on_failure=errors.append)
+    for i in range(5):
+        log.write((float(i), "scout", 1.0))
+    log.close()
+    assert len(errors) == 1 and "No space left on device" in errors[0] and "/dev/full" in errors[0]
+    assert log.failed and log.rows_lost == 6  # the header and five rows
+
+
+def test_an_unwritable_folder_turns_the_log_off_instead_of_raising(tmp_path):
+    (tmp_path / "file").write_text("")
+    errors = []
+    log = CsvLog(str(tmp_path / "file" / "stats.csv"), COLUMNS, on_failure=errors.append)
+    log.write((1.0, "scout", 1.0))
+    assert len(errors) == 1 and log.rows_lost == 2  # the header and the row
