@@ -6,22 +6,20 @@ import os
 
 import genpy
 import numpy as np
-import octomap
 from hypothesis import HealthCheck, given, settings
 
 from cps_fleet.fleet import load_fleet
 from cps_harness.hostile_clouds import hostile_clouds, packed_cloud
-from cps_mapping.fused_map import BT_HEADER, MapFileError
+from cps_mapping.fused_map import MapFileError
 from cps_mapping.map_server import MapOutputs, MapServer, MapServerOptions
 from cps_msgs.srv import LoadMapRequest, SaveMapRequest
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 from fleet_model import new_map
+from hostile_maps import COARSE_LEAF_BT, far_apart_bt
 
 FLEET = load_fleet()
 RES = FLEET.mapping.resolution_m
 FRAME = "jackal/camera_depth_optical_frame"
-# A tree whose root has one occupied child: one pruned leaf of 2^15 voxels a side (3.3 km at 0.1 m).
-COARSE_LEAF_BT = BT_HEADER + b"\n#\nid OcTree\nsize 2\nres 0.1\ndata\n" + bytes([0b01, 0])
 
 
 def _server(tmp_path, **options):
@@ -36,14 +34,6 @@ def _cloud(points):
     msg = packed_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, frame_id=FRAME)
     msg.header.stamp = genpy.Time(100, 0)
     return msg
-
-
-def _far_apart_bt(path):
-    tree = octomap.OcTree(RES)
-    for corner in ((-3000.0, -3000.0, -3000.0), (3000.0, 3000.0, 3000.0)):
-        tree.updateNode(np.array(corner), True)
-    assert tree.writeBinary(str(path).encode())
-    return path
 
 
 def _mapped(server):
@@ -85,7 +75,7 @@ def test_a_coarse_pruned_leaf_or_voxels_km_apart_are_refused_and_the_map_stays(t
     server = _server(tmp_path)
     before = _mapped(server)
     (tmp_path / "coarse.bt").write_bytes(COARSE_LEAF_BT)
-    _far_apart_bt(tmp_path / "far.bt")
+    far_apart_bt(tmp_path / "far.bt", RES)
     for name in ("coarse.bt", "far.bt"):
         reply = server.on_load(LoadMapRequest(path=str(tmp_path / name)))
         assert not reply.success and "max_grid_voxels" in reply.message and name in reply.message

@@ -112,3 +112,30 @@ def hostile_value_clouds(draw):
 def hostile_clouds():
     """Either kind of hostile PointCloud2 (random layout, or hostile values plus one mutation)."""
     return st.one_of(random_layout_clouds(), hostile_value_clouds().map(lambda pair: pair[0]))
+
+
+def refused_clouds(frame_id="jackal/camera_depth_optical_frame"):
+    """{what: PointCloud2} that every cloud reader must refuse: a handful for live-node tests."""
+    xyz = np.array([[1.0, 0.5, 2.0], [1.5, -0.5, 2.5], [2.0, 0.0, 3.0]], dtype=np.float32)
+
+    def cloud(**changes):
+        msg = packed_cloud({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}, frame_id)
+        fields = changes.pop("fields", None)
+        if fields:
+            for index, values in fields.items():
+                for key, value in values.items():
+                    setattr(msg.fields[index], key, value)
+        for key, value in changes.items():
+            setattr(msg, key, value)
+        return wire_copy(msg)
+    full = bytes(cloud().data)
+    return {
+        "x of count 3": cloud(fields={0: {"count": 3}}),
+        "truncated data": cloud(data=full[:-5]),
+        "nameless field": cloud(fields={1: {"name": ""}}),
+        "z outside the point": cloud(fields={2: {"offset": 4000}}),
+        "unknown datatype": cloud(fields={0: {"datatype": 42}}),
+        "row_step beyond the data": cloud(row_step=2 ** 32 - 1),
+        "height beyond the data": cloud(height=2 ** 31),
+        "all NaN": cloud(data=np.full(9, np.nan, np.float32).tobytes()),
+    }
