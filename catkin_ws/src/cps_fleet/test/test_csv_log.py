@@ -58,3 +58,21 @@ def test_a_log_past_its_bound_rotates_and_both_files_stay_bounded(tmp_path):
     assert path.stat().st_size < 4000 + 100 and (tmp_path / "stats.csv.1").stat().st_size < 4000 + 100
     assert current[-1] == [str(float(rows - 1)), "scout", "2.5"]            # the newest rows are kept
     assert sorted(p.name for p in tmp_path.iterdir()) == ["stats.csv", "stats.csv.1"]
+
+
+def test_a_full_disk_turns_the_log_off_once_and_counts_the_rows_lost():
+    errors = []
+    log = CsvLog("/dev/full", COLUMNS, on_failure=errors.append)
+    for i in range(5):
+        log.write((float(i), "scout", 1.0))
+    log.close()
+    assert len(errors) == 1 and "No space left on device" in errors[0] and "/dev/full" in errors[0]
+    assert log.failed and log.rows_lost == 6  # the header and five rows
+
+
+def test_an_unwritable_folder_turns_the_log_off_instead_of_raising(tmp_path):
+    (tmp_path / "file").write_text("")
+    errors = []
+    log = CsvLog(str(tmp_path / "file" / "stats.csv"), COLUMNS, on_failure=errors.append)
+    log.write((1.0, "scout", 1.0))
+    assert len(errors) == 1 and log.rows_lost == 2  # the header and the row

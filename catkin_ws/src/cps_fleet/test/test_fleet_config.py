@@ -57,6 +57,17 @@ def _line_of(path, needle):
     ("node_log_max_mbytes: 20.0", "node_log_max_mbytes: -5", "node_log_max_mbytes: -5.0 is outside"),
     ("restart_backoff_max_s: 30.0", "restart_backoff_max_s: 0.5", "restart_backoff_max_s (0.5) < restart_backoff_s"),
     ("restart_window_s: 300.0", "restart_window_s: 0", "restart_window_s: 0.0 is outside (0.0"),
+    ("autosave_period_s: 10.0", "autosave_periode_s: 10.0",
+     "mapping.autosave_periode_s: unknown key 'autosave_periode_s' (did you mean 'autosave_period_s'?)"),
+    ("link:", "links:", "links: unknown key 'links' (did you mean 'link'?)"),
+    ("voxel_leaf_m: 0.01", "voxel_leaf: 0.01", "robots[0].voxel_leaf: unknown key 'voxel_leaf'"),
+    ("yaw_deg: 90.0}", "yaw: 90.0}", "robots[0].initial_pose.yaw: unknown key 'yaw'"),
+    ("hfov_deg: 60.0}", "hfov_deg: 60.0, fps: 30}", "profiles.paper.depth_camera.fps: unknown key 'fps'"),
+    ("{hit: 0.7, miss: 0.4,", "{hti: 0.7, miss: 0.4,", "sensor_model.hti: unknown key 'hti' (did you mean 'hit'?)"),
+    ("min: 0.12, max: 0.97}", "min: 0.12, max: 0.10}", "sensor_model.max: 0.1 is outside (0.5, 1.0]"),
+    ("min: 0.12, max: 0.97}", "min: 0.7, max: 0.97}", "sensor_model.min: 0.7 is outside (0.0, 0.5]"),
+    ("{hit: 0.7, miss: 0.4,", "{hit: 1.0, miss: 0.4,", "sensor_model.hit: 1.0 must be below 1.0"),
+    ("{hit: 0.7, miss: 0.4,", "{hit: 0.7, miss: 0.5,", "sensor_model.miss: 0.5 must be below 0.5"),
 ])
 def test_broken_fleet_file_names_file_line_and_problem(fleet_copy, old, new, message):
     line = _line_of(fleet_copy, old)
@@ -96,3 +107,25 @@ def test_robot_subset_keeps_order_and_rejects_unknown_names():
     assert robot_names_arg(fleet, ["iris", "scout"]).robot_names == ["iris", "scout"]
     with pytest.raises(ValueError, match="unknown robot\\(s\\) tank; the fleet has scout, jackal, champ, iris"):
         robot_names_arg(fleet, ["scout", "tank"])
+
+
+def test_an_unknown_key_in_a_route_or_the_site_names_file_line_and_key(tmp_path):
+    from cps_fleet.site import default_site_path, load_site
+
+    path = tmp_path / "route.yaml"
+    path.write_text("waypoints:\n  - {x: 1, y: 2}\n  - {x: 3, y: 2, inspcet: true}\n")
+    with pytest.raises(ConfigError, match=r"route.yaml:3: waypoints\[1\]\.inspcet: unknown key 'inspcet' "
+                                          r"\(did you mean 'inspect'\?\)"):
+        load_route(str(path))
+    path.write_text("waypoints:\n  - {x: 1, y: 2}\nloop: true\n")
+    with pytest.raises(ConfigError, match=r"route.yaml:3: loop: unknown key 'loop'"):
+        load_route(str(path))
+    site = tmp_path / "hall.yaml"
+    text = open(default_site_path()).read()
+    site.write_text(text.replace("  post_size_m: 0.06", "  post_size_m: 0.06\n  post_colour: [1, 0, 0]"))
+    line = _line_of(site, "post_colour")
+    with pytest.raises(ConfigError, match=rf"hall.yaml:{line}: fence.post_colour: unknown key 'post_colour'"):
+        load_site(str(site))
+    site.write_text(text.replace("radius_m: 0.8, height_m: 2.5,", "radius_m: 0.8, height_m: 2.5, size_x_m: 1.0,"))
+    with pytest.raises(ConfigError, match=r"equipment\[0\]\.size_x_m: unknown key 'size_x_m'"):
+        load_site(str(site))

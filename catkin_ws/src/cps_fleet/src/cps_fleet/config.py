@@ -4,6 +4,7 @@
 came from, so that the validators in `cps_fleet.fleet` (and any package's own config reader)
 can say ``fleet.yaml:12: robots[1].type: unknown robot type 'tank' (known: ...)``.
 """
+import difflib
 import math
 import os
 
@@ -104,6 +105,16 @@ class Reader:
 
     def has(self, key):
         return key in self.value
+
+    def known_keys(self, *keys):
+        """This reader, if every key of its mapping is one of `keys`; else ConfigError at the first
+        unknown one (a typo, or a setting nothing reads), naming the nearest known key."""
+        for key in self.value:
+            if key not in keys:
+                near = difflib.get_close_matches(str(key), keys, n=1)
+                hint = f" (did you mean '{near[0]}'?)" if near else ""
+                raise self.error(key, f"unknown key '{key}'{hint}; known keys: {', '.join(keys)}")
+        return self
 
     def child(self, key, required=True):
         if key not in self.value:

@@ -188,8 +188,9 @@ class FleetConfig:
 
 
 def _profile(reader, name):
-    cam = reader.child("depth_camera")
-    lidar = reader.child("lidar")
+    reader.known_keys("depth_camera", "lidar")
+    cam = reader.child("depth_camera").known_keys("width", "height", "rate_hz", "near_m", "far_m", "hfov_deg")
+    lidar = reader.child("lidar").known_keys("rings", "samples_per_ring", "rate_hz", "vertical_fov_deg", "max_range_m")
     depth = DepthCameraProfile(
         width=_positive_int(cam, "width"),
         height=_positive_int(cam, "height"),
@@ -224,7 +225,7 @@ def load_fleet(path=None, profile=None):
     """Read and validate fleet.yaml (default: cps_bringup's); `profile` overrides the file's choice."""
     path = path or default_fleet_path()
     doc = load_yaml_document(path)
-    top = Reader(doc)
+    top = Reader(doc).known_keys("profile", "site", "profiles", "link", "mapping", "robots")
 
     profiles_reader = top.child("profiles")
     profiles = {name: _profile(profiles_reader.child(name), name) for name in profiles_reader.value}
@@ -236,7 +237,8 @@ def load_fleet(path=None, profile=None):
         raise ConfigError(doc.path, doc.line(("profile",)),
                           f"profile: unknown profile '{chosen}' (known: {', '.join(sorted(profiles))})")
 
-    link_reader = top.child("link")
+    link_reader = top.child("link").known_keys("available_mbps", "reserve_fraction", "min_rate_hz", "max_rate_hz",
+                                               "estimate_bandwidth")
     link = LinkConfig(
         available_mbps=link_reader.number("available_mbps", low=0.0, low_open=True),
         reserve_fraction=link_reader.number("reserve_fraction", low=0.0, high=0.99),
@@ -247,8 +249,8 @@ def load_fleet(path=None, profile=None):
     if link.min_rate_hz > link.max_rate_hz:
         raise link_reader.error("min_rate_hz", f"min_rate_hz ({link.min_rate_hz}) > max_rate_hz ({link.max_rate_hz})")
 
-    map_reader = top.child("mapping")
-    model = map_reader.child("sensor_model")
+    map_reader = top.child("mapping").known_keys("resolution_m", "sensor_model", "max_range_m", "autosave_period_s")
+    model = map_reader.child("sensor_model").known_keys("hit", "miss", "min", "max")
     ranges_reader = map_reader.child("max_range_m")
     max_range = {}
     for robot_type in ranges_reader.value:
@@ -257,12 +259,7 @@ def load_fleet(path=None, profile=None):
         max_range[robot_type] = ranges_reader.number(robot_type, low=0.0, low_open=True)
     mapping = MappingConfig(
         resolution_m=map_reader.number("resolution_m", low=0.001, high=10.0),
-        sensor_model=SensorModel(
-            hit=model.number("hit", low=0.5, high=1.0, low_open=True),
-            miss=model.number("miss", low=0.0, high=0.5, low_open=True),
-            min=model.number("min", low=0.0, high=1.0),
-            max=model.number("max", low=0.0, high=1.0),
-        ),
+        sensor_model=_sensor_model(model),
         max_range_m=max_range,
         autosave_period_s=map_reader.number("autosave_period_s", low=0.0),
     )
@@ -284,6 +281,7 @@ def load_fleet(path=None, profile=None):
 
     robots = []
     for item in top.items("robots"):
+        item.known_keys("name", "type", "initial_pose", "voxel_leaf_m", "route")
         name = item.get("name", str)
         if not _NAME.match(name):
             raise item.error("name", f"'{name}' is not a valid ROS name (lowercase letters, digits, _)")
@@ -292,7 +290,7 @@ def load_fleet(path=None, profile=None):
         robot_type = item.get("type", str)
         if robot_type not in ROBOT_TYPES:
             raise item.error("type", f"unknown robot type '{robot_type}' (known: {', '.join(ROBOT_TYPES)})")
-        pose = item.child("initial_pose")
+        pose = item.child("initial_pose").known_keys("x", "y", "z", "yaw_deg")
         route_path = item.path_of("route")
         if not os.path.exists(route_path):
             raise item.error("route", f"route file {route_path} does not exist")
@@ -319,15 +317,31 @@ def load_fleet(path=None, profile=None):
     )
 
 
+def _sensor_model(model):
+    """OctoMap's probabilities, checked: miss < 0.5 < hit (a miss lowers, a hit raises the
+    occupancy), and 0 < min < 0.5 < max < 1 (finite clamping log-odds on either side of unknown)."""
+    sensor = SensorModel(hit=model.number("hit", low=0.5, high=1.0, low_open=True),
+                         miss=model.number("miss", low=0.0, high=0.5, low_open=True),
+                         min=model.number("min", low=0.0, high=0.5, low_open=True),
+                         max=model.number("max", low=0.5, high=1.0, low_open=True))
+    for key, value, limit in (("hit", sensor.hit, 1.0), ("miss", sensor.miss, 0.5), ("min", sensor.min, 0.5),
+                              ("max", sensor.max, 1.0)):
+        if value == limit:
+            raise model.error(key, f"{value} must be below {limit} (a probability of {limit} has no finite "
+                                   f"log-odds or no effect)")
+    return sensor
+
+
 def load_route(path):
     """Read a route file: `waypoints:` a list of {x, y, z (default 0), inspect (default false)}."""
     doc = load_yaml_document(path)
-    top = Reader(doc)
+    top = Reader(doc).known_keys("waypoints")
     items = top.items("waypoints")
     if not items:
         raise top.error("waypoints", "a route needs at least one waypoint")
     waypoints, lines = [], []
     for item in items:
+        item.known_keys("x", "y", "z", "inspect")
         waypoints.append(Waypoint(item.get("x", float), item.get("y", float),
                                   item.get("z", float, default=0.0), item.get("inspect", bool, default=False)))
         lines.append(doc.line(item.key_path))

@@ -301,9 +301,10 @@ def load_site(path=None):
     """Read and validate hall.yaml; errors (ConfigError) name the file, the line and the problem."""
     path = path or default_site_path()
     doc = load_yaml_document(path)
-    top = Reader(doc)
+    top = Reader(doc).known_keys("seed", "hall", "fence", "fenced_areas", "equipment")
     seed = top.get("seed", int, default=0)
-    hr = top.child("hall")
+    hr = top.child("hall").known_keys("x_min_m", "x_max_m", "y_min_m", "y_max_m", "wall_height_m",
+                                      "wall_thickness_m", "floor_colour", "wall_colour")
     hall = Hall(
         x_min_m=hr.number("x_min_m"), x_max_m=hr.number("x_max_m"),
         y_min_m=hr.number("y_min_m"), y_max_m=hr.number("y_max_m"),
@@ -313,12 +314,13 @@ def load_site(path=None):
     )
     if hall.x_max_m <= hall.x_min_m or hall.y_max_m <= hall.y_min_m:
         raise hr.error(None, "x_max_m/y_max_m must be greater than x_min_m/y_min_m")
-    fr = top.child("fence")
+    fr = top.child("fence").known_keys("post_spacing_m", "post_size_m", "rail_size_m", "colour")
     fence = Fence(fr.number("post_spacing_m", low=0.0, low_open=True), fr.number("post_size_m", low=0.0, low_open=True),
                   fr.number("rail_size_m", low=0.0, low_open=True), _rgb(fr, "colour"))
 
     areas = []
     for ar in top.items("fenced_areas"):
+        ar.known_keys("name", "x_min_m", "x_max_m", "y_min_m", "y_max_m", "fence_height_m")
         area = FencedArea(ar.get("name", str), ar.number("x_min_m"), ar.number("x_max_m"), ar.number("y_min_m"),
                           ar.number("y_max_m"), ar.number("fence_height_m", low=0.0, low_open=True))
         if area.x_max_m <= area.x_min_m or area.y_max_m <= area.y_min_m:
@@ -338,6 +340,7 @@ def load_site(path=None):
         kind = er.get("type", str)
         if kind not in EQUIPMENT_TYPES:
             raise er.error("type", f"unknown equipment type '{kind}' (known: {', '.join(EQUIPMENT_TYPES)})")
+        er.known_keys("name", "type", "x", "y", "yaw_deg", "colour", *_SIZE_KEYS[kind])
         size = []
         for key in _SIZE_KEYS[kind]:
             if key in ("levels", "count"):

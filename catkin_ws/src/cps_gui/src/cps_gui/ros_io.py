@@ -19,6 +19,7 @@ from std_msgs.msg import Bool, Float64, String
 from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
 from cps_msgs.srv import SetPriority, SetPriorityRequest
 
+from cps_ros.timers import guarded_timer
 from cps_transport.image_compression import InvalidImage, decode_jpeg
 
 from cps_gui import names, topview
@@ -61,7 +62,7 @@ class FleetRosIO:
         sub(names.PROJECTED_MAP, OccupancyGrid, self._on_projected_map, buff_size=2 ** 24)
         sub(names.ROSOUT, Log, self._on_log, queue_size=100)
         self.estop_pub = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
-        self._discovery = rospy.Timer(rospy.Duration(discovery_period_s), self._discover_images)
+        self._discovery = guarded_timer(discovery_period_s, self._discover_images, "image discovery")
         threading.Thread(target=self._discover_images, args=(None,), daemon=True).start()
 
     def _subscribe(self, topic, msg_type, callback, queue_size=1, buff_size=65536):

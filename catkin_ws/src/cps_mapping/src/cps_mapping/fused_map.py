@@ -23,7 +23,7 @@ from typing import Dict, List, Sequence, Tuple
 import numpy as np
 import octomap
 
-from cps_mapping.log_odds_grid import LogOddsGrid
+from cps_mapping.log_odds_grid import GRID_MARGIN_VOXELS, LogOddsGrid
 
 BT_HEADER = b"# Octomap OcTree binary file"
 OT_HEADER = b"# Octomap OcTree file"
@@ -201,10 +201,15 @@ class FusedLogOddsMap:
 
     @tree.setter
     def tree(self, tree):
-        """Take over `tree`'s voxels (e.g. a tree just read); contributions are lost."""
-        index, log_odds = _finest_voxels(tree, self.resolution_m)
-        self._grid = self._new_grid()
-        self._grid.load_leaves(index, log_odds)
+        """Take over `tree`'s voxels (e.g. a tree just read); contributions are lost. MapFileError,
+        and the map unchanged, if they would need a grid over `max_grid_voxels`."""
+        index, log_odds = _finest_voxels(tree, self.resolution_m, self.max_grid_voxels)
+        grid = self._new_grid()
+        try:
+            grid.load_leaves(index, log_odds)
+        except MemoryError as exc:
+            raise MapFileError(f"no memory for a grid of {len(index)} voxels") from exc
+        self._grid = grid
         self.version += 1
 
     def _binary_file(self):
@@ -449,18 +454,35 @@ class FusedLogOddsMap:
         return path
 
     def load(self, path):
-        """Replace the map with the file's; on any error the current map stays as it was."""
-        tree = read_octree_file(path, expected_resolution_m=self.resolution_m)
+        """Replace the map with the file's; on any error (MapFileError, also for a map whose grid
+        would exceed `max_grid_voxels`) the current map stays as it was."""
+        try:
+            tree = read_octree_file(path, expected_resolution_m=self.resolution_m)
+        except MemoryError as exc:
+            raise MapFileError(f"{os.path.abspath(path)}: too large to read into memory") from exc
         _apply_sensor_model(tree, self.sensor_model)
-        self.tree = tree
+        try:
+            self.tree = tree
+        except MapFileError as exc:
+            raise MapFileError(f"{os.path.abspath(path)}: {exc}") from exc
         return tree.size()
 
 
-def _finest_voxels(tree, resolution_m):
-    """(grid index, log-odds) of every finest voxel a tree holds (pruned leaves expanded)."""
+def _finest_voxels(tree, resolution_m, max_grid_voxels=None):
+    """(grid index, log-odds) of every finest voxel a tree holds (pruned leaves expanded);
+    MapFileError before expanding if their bounding box (with the grid's margin) holds more than
+    `max_grid_voxels` voxels (a coarse pruned leaf, or voxels kilometres apart)."""
     rows = np.array([(it.getX(), it.getY(), it.getZ(), it.getSize(), it.getValue())
                      for it in tree.begin_leafs()], dtype=np.float64).reshape(-1, 5)
     cells = np.maximum(np.rint(rows[:, 3] / resolution_m).astype(np.int64), 1)
+    if len(rows) and max_grid_voxels is not None:
+        lo = np.rint((rows[:, :3] - rows[:, 3:4] / 2) / resolution_m).astype(np.int64)
+        span = (lo + cells[:, None]).max(axis=0) - lo.min(axis=0) + 2 * GRID_MARGIN_VOXELS
+        needed = int(np.prod(span.astype(np.float64)))
+        if needed > max_grid_voxels:
+            raise MapFileError(f"its {len(rows)} leaves span {' x '.join(str(int(n)) for n in span)} voxels "
+                               f"({needed:.3g}, {needed * 6 / 1e9:.3g} GB), over the map's limit of "
+                               f"{max_grid_voxels} (max_grid_voxels); not loaded")
     index = expand_leaves(rows[:, :3], rows[:, 3], resolution_m)
     order = np.argsort(cells, kind="stable")  # expand_leaves groups by leaf size, in ascending order
     values = np.repeat(rows[order, 4], cells[order] ** 3)

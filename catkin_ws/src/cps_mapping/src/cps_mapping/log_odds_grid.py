@@ -31,7 +31,7 @@ import math
 import numba
 import numpy as np
 
-_GROW_MARGIN_VOXELS = 8
+GRID_MARGIN_VOXELS = 8
 _TREE_DEPTH = 16
 _TREE_MAX_VAL = 1 << 15
 
@@ -415,9 +415,9 @@ class LogOddsGrid:
         if self.dims.all() and np.all(lo_index >= self.lo) and np.all(hi_index < self.lo + self.dims):
             return None
         if self.dims.all():
-            return (np.minimum(self.lo, lo_index - _GROW_MARGIN_VOXELS),
-                    np.maximum(self.lo + self.dims, hi_index + 1 + _GROW_MARGIN_VOXELS))
-        return lo_index - _GROW_MARGIN_VOXELS, hi_index + 1 + _GROW_MARGIN_VOXELS
+            return (np.minimum(self.lo, lo_index - GRID_MARGIN_VOXELS),
+                    np.maximum(self.lo + self.dims, hi_index + 1 + GRID_MARGIN_VOXELS))
+        return lo_index - GRID_MARGIN_VOXELS, hi_index + 1 + GRID_MARGIN_VOXELS
 
     def voxels_to_hold(self, lo_index, hi_index):
         """Voxels the box would have once it holds [lo_index, hi_index]."""
@@ -503,7 +503,7 @@ class LogOddsGrid:
             self._allocate(np.zeros(3, dtype=np.int64), np.zeros(3, dtype=np.int64))
             return
         lo, hi = index.min(axis=0), index.max(axis=0)
-        self._allocate(lo - _GROW_MARGIN_VOXELS, hi + 1 + _GROW_MARGIN_VOXELS - (lo - _GROW_MARGIN_VOXELS))
+        self._allocate(lo - GRID_MARGIN_VOXELS, hi + 1 + GRID_MARGIN_VOXELS - (lo - GRID_MARGIN_VOXELS))
         self.log_odds[self.flat(index)] = np.asarray(log_odds, dtype=np.float32)
 
 

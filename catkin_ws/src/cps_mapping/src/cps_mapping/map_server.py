@@ -48,6 +48,8 @@ class MapServerOptions:
     publish_period_s: float = _option(1.0, "map, markers, centres and projected map (if the map changed)", "s",
                                       low=0.0, low_open=True)
     map_file: str = _option("", "autosave target (.bt or .ot), saved on shutdown, resumed at start", "path")
+    map_folder: str = _option("", "save_map and load_map accept only paths inside this folder, symlinks and .. "
+                                  "resolved (empty: the folder of ~map_file; neither: only ~map_file itself)", "path")
     autosave_period_s: Optional[float] = _option(None, "0: only on shutdown and on request (default: fleet.yaml "
                                                        "mapping.autosave_period_s)", "s", low=0.0)
     max_points_range_m: float = _option(200.0, "points farther from the sensor are absurd: removed, counted", "m",
@@ -129,6 +131,8 @@ class MapServer:
         if options.map_file and os.path.splitext(options.map_file)[1].lower() not in (".bt", ".ot"):
             raise ValueError(f"map_file: '{options.map_file}' must end in .bt or .ot")
         self.robots = self._select_robots(fleet, options.robots)
+        folder = options.map_folder or (os.path.dirname(os.path.abspath(options.map_file)) if options.map_file else "")
+        self.map_folder = os.path.realpath(folder) if folder else ""
         mapped = [r for r in fleet.robots if r.name in self.robots]
         self.max_range_m = {r.name: fleet.mapping.max_range_m.get(r.type, -1.0) for r in mapped}
         self.sensor_frames = {r.name: r.sensor_frame for r in mapped}
@@ -191,9 +195,12 @@ class MapServer:
         try:
             nodes = self.map.load(path)
             self.log.info(f"map_server: resumed from {path} ({nodes} nodes)")
-        except MapFileError as exc:
+        except Exception as exc:  # any bad map file: moved aside, never a crash loop at start-up
             aside = f"{path}.unreadable-{int(time.time())}"
-            os.replace(path, aside)
+            try:
+                os.replace(path, aside)
+            except OSError as move_error:
+                aside = f"nowhere ({move_error.strerror}), it stays"
             self.log.error(f"map_server: cannot resume: {exc}; moved it to {aside} and started an empty map")
 
     def _save(self, path):
@@ -219,8 +226,17 @@ class MapServer:
     # ---- input ---------------------------------------------------------------------------------
 
     def receive_cloud(self, robot, msg):
-        """Check a robot's PointCloud2, move it into the fixed frame and queue it; bad ones are counted."""
+        """Check a robot's PointCloud2, move it into the fixed frame and queue it; bad ones are
+        counted. Never raises: what the checks miss is still dropped, counted and logged."""
         self._count(robot, clouds_received=1)
+        try:
+            self._receive_cloud(robot, msg)
+        except Exception as exc:
+            self._count(robot, clouds_dropped_invalid=1)
+            self._warn(("unexpected", robot), _WARN_EVERY_S,
+                       f"map_server: {robot}: cloud dropped, unexpected {type(exc).__name__}: {exc}", logging.ERROR)
+
+    def _receive_cloud(self, robot, msg):
         frame = msg.header.frame_id.lstrip("/")
         if not frame:
             self._count(robot, clouds_dropped_invalid=1)
@@ -351,15 +367,23 @@ class MapServer:
 
     # ---- services ------------------------------------------------------------------------------
 
-    def _path_or_default(self, path):
+    def _service_path(self, path):
+        """The file a save/load request names (empty: ~map_file), symlinks and .. resolved;
+        MapFileError for a path outside the map folder."""
         path = os.path.expanduser(path.strip()) if path else self.options.map_file
         if not path:
             raise MapFileError("no path given and ~map_file is empty")
-        return path
+        real = os.path.realpath(path)
+        if self.map_folder and os.path.commonpath([real, self.map_folder]) == self.map_folder:
+            return real
+        if not self.map_folder and self.options.map_file and real == os.path.realpath(self.options.map_file):
+            return real
+        raise MapFileError(f"{path}: refused, map files are read and written only inside "
+                           f"{self.map_folder or '(no folder: set ~map_folder or ~map_file)'} (~map_folder)")
 
     def on_save(self, req):
         try:
-            path = self._save(self._path_or_default(req.path))
+            path = self._save(self._service_path(req.path))
             return SaveMapResponse(success=True, message=f"saved {path}", path=path)
         except MapFileError as exc:
             self.log.error(f"map_server: save failed: {exc}")
@@ -367,7 +391,7 @@ class MapServer:
 
     def on_load(self, req):
         try:
-            path = self._path_or_default(req.path)
+            path = self._service_path(req.path)
             with self._map_lock:
                 nodes = self.map.load(path)
             return LoadMapResponse(success=True, message=f"loaded {path} ({nodes} nodes)", path=path)

@@ -129,15 +129,16 @@ class DracoEncoder:
         points = cloud_to_array(msg)
         kept = self._kept_fields(msg.fields)
         xyz = np.empty((len(points), 3), dtype=np.float32)
-        for i, axis in enumerate("xyz"):
-            xyz[:, i] = points[axis]
+        with np.errstate(over="ignore"):  # float64 beyond float32's range becomes inf: stripped, counted
+            for i, axis in enumerate("xyz"):
+                xyz[:, i] = points[axis]
         finite = finite_mask(xyz)
         n_nan = int(len(points) - np.count_nonzero(finite))
         if n_nan:
             xyz = xyz[finite]
         if len(xyz) == 0:
             raise InvalidCloud(f"no finite points (all {len(points)} are NaN/inf)")
-        extras = [(f, points[f.name] if not n_nan else points[f.name][finite]) for f in kept if f.name not in "xyz"]
+        extras = [(f, points[f.name] if not n_nan else points[f.name][finite]) for f in kept if f.name not in ("x", "y", "z")]
         payload, bits, bound = self.encode_arrays(xyz, extras)
 
         out = CompressedPointCloud2()
@@ -181,7 +182,11 @@ class DracoEncoder:
             span = max(float((high - low).max()) * (1 + 1e-6), 1e-6)
             # Dequantization happens in float32: leave room for two roundings of the largest coordinate.
             rounding = 2.0 * _FLOAT32_ULP * float(np.abs(np.concatenate([low, high])).max() + span)
-            bits = bits_for_tolerance(span, self.position_tolerance_m - rounding)
+            try:
+                bits = bits_for_tolerance(span, self.position_tolerance_m - rounding)
+            except ValueError as exc:
+                raise InvalidCloud(f"points spanning {span:.6g} m cannot be coded within "
+                                   f"{self.position_tolerance_m} m: {exc}") from exc
             kwargs.update(quantization_range=span, quantization_origin=low)
             bound = span / (2 * ((1 << bits) - 1)) + rounding
         try:
@@ -256,7 +261,7 @@ class DracoDecoder:
         columns = {}
         for field in fields:
             dtype = field_dtype(field.datatype)
-            if field.name in "xyz":
+            if field.name in ("x", "y", "z"):
                 columns[field.name] = points[:, "xyz".index(field.name)].astype(dtype)
             elif field.name in COLOR_FIELDS and decoded.colors is not None and field.name not in generic:
                 columns[field.name] = self._unpack_colors(np.asarray(decoded.colors), dtype, n)

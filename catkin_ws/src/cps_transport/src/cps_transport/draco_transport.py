@@ -50,6 +50,9 @@ class DracoPublisher:
         except (InvalidCloud, DracoError) as exc:
             self.report.drop(exc)
             return None
+        except Exception as exc:  # a cloud the checks missed: still one counted drop, not a traceback
+            self.report.drop(f"unexpected {type(exc).__name__}: {exc}")
+            return None
         self.report.ok(nan_points_dropped=self.encoder.last_info.points_nan)
         self._publisher.publish(compressed)
         return compressed
@@ -87,6 +90,9 @@ class DracoSubscriber:
             cloud = self.decoder.decode(msg)
         except (InvalidCloud, DracoError) as exc:
             self.report.drop(exc)
+            return
+        except Exception as exc:  # a payload the checks missed: still one counted drop, not a traceback
+            self.report.drop(f"unexpected {type(exc).__name__}: {exc}")
             return
         self.report.ok()
         self.callback(cloud)

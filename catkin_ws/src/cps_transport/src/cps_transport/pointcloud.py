@@ -1,8 +1,9 @@
 """sensor_msgs/PointCloud2 <-> numpy structured arrays, with validation.
 
 A cloud is checked before it is read: data length = height x row_step, every field inside the
-point, a known datatype, x/y/z present. Anything else raises `InvalidCloud` with the reason, so
-a node can drop the message, count it and carry on.
+point with a known datatype, a non-empty name and a sane count, x/y/z present as one float each,
+and at most MAX_CLOUD_BYTES of data. Anything else raises `InvalidCloud` with the reason, so a
+node can drop the message, count it and carry on.
 """
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
@@ -21,6 +22,12 @@ POINTFIELD_DTYPES = {
 DTYPE_TO_POINTFIELD = {dt.str[1:]: code for code, dt in POINTFIELD_DTYPES.items()}
 
 
+# Larger than any sensor's cloud (a 1875 x 16 lidar with 10 float64 fields is 2.4 MB), small
+# enough that a hostile header cannot make a reader allocate gigabytes.
+MAX_CLOUD_BYTES = 1 << 28
+MAX_FIELD_COUNT = 1024
+
+
 class InvalidCloud(ValueError):
     """A PointCloud2 (or its compressed form) that cannot be read as it claims to be."""
 
@@ -37,8 +44,10 @@ def cloud_dtype(fields, point_step, bigendian=False):
     """Structured dtype of one point (itemsize = point_step); checks every field fits."""
     names, formats, offsets = [], [], []
     for field in fields:
-        if field.count < 1:
-            raise InvalidCloud(f"field '{field.name}' has count {field.count}")
+        if not isinstance(field.name, str) or not field.name:
+            raise InvalidCloud(f"a field has no name ({field.name!r})")
+        if not 1 <= field.count <= MAX_FIELD_COUNT:
+            raise InvalidCloud(f"field '{field.name}' has count {field.count} (1..{MAX_FIELD_COUNT})")
         dtype = field_dtype(field.datatype, field.count, bigendian)
         if field.offset + dtype.itemsize > point_step:
             raise InvalidCloud(f"field '{field.name}' (offset {field.offset}, {dtype.itemsize} bytes) "
@@ -55,6 +64,8 @@ def validate_cloud_layout(height, width, point_step, row_step, data_len, fields,
     """Raise InvalidCloud unless the layout numbers describe `data_len` bytes of readable points."""
     if height * width == 0:
         raise InvalidCloud(f"empty cloud ({height} x {width} points)")
+    if data_len > MAX_CLOUD_BYTES:
+        raise InvalidCloud(f"data of {data_len} bytes is over the limit of {MAX_CLOUD_BYTES}")
     if point_step == 0:
         raise InvalidCloud("point_step is 0")
     if row_step < width * point_step:
@@ -67,8 +78,10 @@ def validate_cloud_layout(height, width, point_step, row_step, data_len, fields,
         if missing:
             raise InvalidCloud(f"no field {', '.join(missing)} (fields: {', '.join(sorted(names)) or 'none'})")
         for field in fields:
-            if field.name in "xyz" and field.datatype not in (PointField.FLOAT32, PointField.FLOAT64):
+            if field.name in ("x", "y", "z") and field.datatype not in (PointField.FLOAT32, PointField.FLOAT64):
                 raise InvalidCloud(f"field '{field.name}' must be FLOAT32 or FLOAT64, got datatype {field.datatype}")
+            if field.name in ("x", "y", "z") and field.count != 1:
+                raise InvalidCloud(f"field '{field.name}' must hold one value per point, got count {field.count}")
 
 
 def cloud_to_array(msg: PointCloud2, require_xyz=True):

@@ -13,7 +13,7 @@ def filter_cloud(cloud, leaf_size_m):
     """voxel_downsample over every field, as a PointCloud2 (the input's header), and the bytes
     pcl_ros's output would have (voxels x the input's point_step)."""
     points = cloud_to_array(cloud)
-    extras = {n: points[n] for n in points.dtype.names if n not in "xyz"}
+    extras = {n: points[n] for n in points.dtype.names if n not in ("x", "y", "z")}
     centroids, averaged = voxel_downsample(xyz_of(points), leaf_size_m, extras)
     out = array_to_cloud({"x": centroids[:, 0], "y": centroids[:, 1], "z": centroids[:, 2], **averaged},
                          header=cloud.header)

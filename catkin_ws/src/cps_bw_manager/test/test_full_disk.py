@@ -1,0 +1,52 @@
+"""A full disk (csv_path on /dev/full): topic_stats and the bandwidth manager report the lost CSV
+once on /diagnostics and keep publishing /tissue/stats and /tissue/allocation."""
+import time
+
+import pytest
+
+from cps_harness.testing import TopicRecorder
+
+pytestmark = pytest.mark.ros
+
+
+def _csv_report(msg):
+    for status in msg.status:
+        values = {kv.key: kv.value for kv in status.values}
+        if status.name.endswith("/csv_log") and int(values.get("csv_rows_lost", 0)) >= 2:
+            return status
+    return None
+
+
+def test_stats_and_allocation_keep_publishing_on_a_full_disk(ros, rospy_node):
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from cps_msgs.msg import BandwidthAllocationArray, TopicStatsArray
+
+    diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
+    stats = TopicRecorder("/tissue/stats", TopicStatsArray)
+    allocation = TopicRecorder("/tissue/allocation", BandwidthAllocationArray)
+    try:
+        stats_node = ros.start_node("cps_transport", "topic_stats", name="topic_stats", namespace="/tissue",
+                       params={"~topics": ["/full_disk/cloud"], "~publish_rate_hz": 4.0, "~csv_path": "/dev/full"})
+        manager = ros.start_node("cps_bw_manager", "bandwidth_manager", name="bandwidth_manager",
+                       params={"~robots": ["scout"], "~update_rate_hz": 4.0, "~csv_path": "/dev/full"})
+        stats.wait_count(2, timeout_s=30)
+        allocation.wait_count(2, timeout_s=30)
+        seen = {}
+        deadline = time.monotonic() + 15
+        while len(seen) < 2 and time.monotonic() < deadline:
+            for _, msg in diagnostics.take():
+                status = _csv_report(msg)
+                if status is not None:
+                    seen[status.name] = status.message
+            time.sleep(0.1)
+        assert sorted(seen) == ["/bandwidth_manager/csv_log", "/tissue/topic_stats/csv_log"], seen
+        assert all("No space left on device" in m for m in seen.values())
+        counts = stats.count, allocation.count
+        time.sleep(3.0)
+        assert stats.count >= counts[0] + 8, "topic_stats stopped publishing /tissue/stats"
+        assert allocation.count >= counts[1] + 8, "the bandwidth manager stopped publishing /tissue/allocation"
+        assert stats_node.poll() is None and manager.poll() is None
+    finally:
+        for recorder in (diagnostics, stats, allocation):
+            recorder.close()
