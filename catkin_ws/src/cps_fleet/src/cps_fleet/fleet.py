@@ -225,7 +225,7 @@ def load_fleet(path=None, profile=None):
     """Read and validate fleet.yaml (default: cps_bringup's); `profile` overrides the file's choice."""
     path = path or default_fleet_path()
     doc = load_yaml_document(path)
-    top = Reader(doc).known_keys("profile", "site", "profiles", "link", "mapping", "robots")
+    top = Reader(doc).known_keys("profile", "site", "profiles", "link", "mapping", "limits", "robots")
 
     profiles_reader = top.child("profiles")
     profiles = {name: _profile(profiles_reader.child(name), name) for name in profiles_reader.value}
@@ -264,7 +264,8 @@ def load_fleet(path=None, profile=None):
         autosave_period_s=map_reader.number("autosave_period_s", low=0.0),
     )
 
-    limits_reader = top.child("limits")
+    limits_reader = top.child("limits").known_keys("trajectory_max_points", "csv_max_mbytes", "node_log_max_mbytes",
+                                                   "restart_backoff_s", "restart_backoff_max_s", "restart_window_s")
     limits = LimitsConfig(
         trajectory_max_points=_positive_int(limits_reader, "trajectory_max_points"),
         csv_max_mbytes=limits_reader.number("csv_max_mbytes", low=0.001, high=1e6),
