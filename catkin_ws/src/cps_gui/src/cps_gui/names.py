@@ -4,6 +4,7 @@ The GUI runs in the root namespace and serves every robot, so per-robot names ar
 (`<r>/odom` resolves to `/<r>/odom`); site-wide names are global, as the ROS graph contract has
 them. rviz configs get fully qualified names (`global_robot_topic`).
 """
+from cps_fleet.names import MAP_FRAME, odom_frame, robot_topic  # noqa: F401 (the GUI's names, shared)
 
 # Per robot.
 ODOM = "odom"
@@ -25,13 +26,6 @@ PROJECTED_MAP = "/twin/projected_map"
 MAP_MARKERS = "/twin/occupied_cells_vis_array"
 ROSOUT = "/rosout_agg"
 
-MAP_FRAME = "map"
-
-
-def robot_topic(robot, topic):
-    """`<robot>/<topic>`, relative: resolves to /<robot>/<topic> from the GUI's root namespace."""
-    return f"{robot}/{topic}"
-
 
 def global_robot_topic(robot, topic):
     return f"/{robot}/{topic}"
@@ -40,7 +34,3 @@ def global_robot_topic(robot, topic):
 def twin_points(robot):
     """The robot's decoded cloud on the digital-twin side."""
     return f"/twin/{robot}/points"
-
-
-def odom_frame(robot):
-    return f"{robot}/odom"

@@ -5,6 +5,7 @@ relative. fleet_sim serves every robot from one node in the root namespace and b
 `<r>/<topic>` with `robot_topic`. Either way the resolved names are the contract's
 (`/<r>/odom`, `/<r>/cmd_vel`, ...). Site-wide topics are global.
 """
+from cps_fleet.names import MAP_FRAME, base_frame, odom_frame, robot_topic  # noqa: F401 (shared per-robot names)
 
 # Per robot, relative to the robot's namespace.
 POINTS = "points"
@@ -24,18 +25,3 @@ FLIGHT_COMMAND = "flight_command"
 # Site-wide.
 ESTOP = "/fleet/estop"
 DIAGNOSTICS = "/diagnostics"
-
-MAP_FRAME = "map"
-
-
-def robot_topic(robot, topic):
-    """`<robot>/<topic>`, relative: resolves to /<robot>/<topic> from the root namespace."""
-    return f"{robot}/{topic}"
-
-
-def odom_frame(robot):
-    return f"{robot}/odom"
-
-
-def base_frame(robot):
-    return f"{robot}/base_link"
