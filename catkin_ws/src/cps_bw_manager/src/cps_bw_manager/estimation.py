@@ -79,6 +79,14 @@ class BandwidthEstimator:
             self.estimate_mbps = max(self.min_mbps, 0.5 * self.estimate_mbps)
         return self.estimate_mbps
 
+    def resume(self, now_s):
+        """The link is back after an outage: the next update grows from `now_s`, not from before
+        the outage (the estimate itself is kept: the allocation resumes from it)."""
+        self._last_time_s = now_s
+        self._quiet_since_s = now_s
+        self._rising = 0
+        self._last_latency_ms = math.nan
+
     @property
     def baseline_ms(self):
         return min(v for _, v in self._latencies) if self._latencies else math.nan
