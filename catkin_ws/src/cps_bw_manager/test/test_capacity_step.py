@@ -4,7 +4,6 @@ leaving the physical side stays within the measured 5 Mbit/s capacity less the r
 
 The windows are the bytes the physical side's shaping qdisc sent (everything that crossed the
 link that way: clouds, TCP/IP headers, statuses), the capacity is iperf3's on the same link."""
-import os
 import time
 
 import pytest
@@ -15,7 +14,8 @@ from cps_link import netns_link
 from cps_link.link_run import LinkRosGraph
 from cps_link.netns_link import ShapedLink
 from cps_link.scenario import LINK_EVENTS_COLUMNS, ScenarioRunner, load_scenario
-from test_over_link import LOAD, RESERVE, _capable, _estimates, _start_load, _wait_for_file_rows
+from test_over_link import (RESERVE, _capable, _estimates, _start_load, _start_topic_stats,
+                            _wait_for_file_rows)
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 DROP_AT_S = 1.0
@@ -54,11 +54,7 @@ def test_every_window_fits_the_measured_capacity_2_s_after_a_drop_to_5mbit(tmp_p
             capacity_high = link.measure_mbps(seconds=2)
             with LinkRosGraph(link) as graph:
                 _start_load(graph)
-                graph.start_python("twin", find_node("cps_transport", "topic_stats"),
-                                   ["__name:=topic_stats", "_window_s:=1.0", "_publish_rate_hz:=2.0",
-                                    f"_csv_path:={stats_path}",
-                                    "_topics:=" + ",".join(f"/{r}/points_filtered/draco/managed" for r in LOAD)],
-                                   name="topic_stats")
+                _start_topic_stats(graph, stats_path, window_s=1.0)
                 graph.start_python("twin", find_node("cps_bw_manager", "bandwidth_manager"),
                                    ["__name:=bandwidth_manager", f"_available_mbps:={capacity_high:.3f}",
                                     f"_reserve_fraction:={RESERVE}", "_estimate_bandwidth:=true",

@@ -4,17 +4,9 @@ import pytest
 
 from cps_link import netns_link
 from cps_link.netns_link import LinkError, ShapedLink, list_namespaces
+from test_netns_link import needs_link
 
-
-def _capable():
-    try:
-        netns_link.check_capability()
-        return None
-    except LinkError as exc:
-        return str(exc)
-
-
-pytestmark = pytest.mark.skipif(_capable() is not None, reason=f"{_capable()}")
+pytestmark = needs_link
 RATE_MBPS = 20.0
 
 

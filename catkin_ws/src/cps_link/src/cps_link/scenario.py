@@ -135,7 +135,7 @@ def _load(path, folder, including):
     for reader in top.items("steps") if top.has("steps") else []:
         steps.append(_step(reader))
     scenario = Scenario(name, path, topology, _shaping(top, Shaping(**initial)), tuple(steps))
-    _check_outages(scenario, doc)
+    _check_outages(scenario)
     return scenario
 
 
@@ -167,7 +167,7 @@ def _shaping(top, shaping):
     return shaping
 
 
-def _check_outages(scenario, doc):
+def _check_outages(scenario):
     cut_until, cut_where = -1.0, None
     for event in scenario.events():
         if event.shaping.jitter_ms > event.shaping.delay_ms:
