@@ -30,7 +30,8 @@ def graph(ros, rospy_node, tmp_path):
                               "~output": f"/{r}/points_filtered/draco/managed"})
     csv_path = tmp_path / "allocation.csv"
     ros.start_node("cps_bw_manager", "bandwidth_manager", name="bandwidth_manager",
-                   params={"~robots": list(ROBOTS), "~available_mbps": 2.0, "~csv_path": str(csv_path)})
+                   params={"~robots": list(ROBOTS), "~available_mbps": 2.0, "~csv_path": str(csv_path),
+                           "~link_state_csv_path": str(tmp_path / "link_state.csv")})
     ros.wait_for_service("/tissue/set_priority")
     pubs = {r: rospy.Publisher(f"/{r}/points_filtered/draco", CompressedPointCloud2, queue_size=2) for r in ROBOTS}
     mission = {r: rospy.Publisher(f"/{r}/mission_state", String, queue_size=1, latch=True) for r in ROBOTS}
@@ -161,3 +162,39 @@ def test_bad_parameters_stop_the_node_with_a_clear_message(ros, params, match):
     proc = ros.start_node("cps_bw_manager", "bandwidth_manager", name=name, params=params)
     assert proc.wait(30) == 2
     assert match in ros.output(name)
+
+
+def test_link_down_pauses_the_allocation_and_up_resumes_it(graph, tmp_path):
+    """/tissue/link_state as the bridge publishes it: down -> the allocation says paused and no
+    limiter gets a new rate, even when a priority changes; up -> allocating again."""
+    from std_msgs.msg import Float64, String
+
+    from cps_msgs.msg import LinkState
+
+    rospy = graph.rospy
+    _wait_in_force(graph, lambda a: True, 20.0, "a first allocation")
+    link = rospy.Publisher("/tissue/link_state", LinkState, queue_size=10, latch=True)
+    rates = TopicRecorder("/scout/cloud_throttle/rate_hz", Float64)
+    try:
+        assert rates.wait(timeout_s=10.0)  # the latched rate
+        down_at = rospy.Time.now()
+        link.publish(LinkState(up=False, since=down_at, outages=1, peer="robots"))
+        paused = graph.allocation.wait(lambda m: not m.link_up, 10.0, "a paused allocation")
+        assert paused.status.startswith("paused: link to robots down"), paused.status
+        rates.take()
+        graph.mission["scout"].publish(String("inspecting"))
+        time.sleep(2.0)  # several update periods: none may set a rate
+        assert rates.take() == []
+        assert not graph.allocation.latest.link_up
+        link.publish(LinkState(up=True, since=rospy.Time.now(), outages=1, last_outage_s=2.0, peer="robots"))
+        graph.allocation.wait(lambda m: m.link_up and "paused" not in m.status, 10.0, "allocating again")
+        _wait_in_force(graph, lambda a: a["scout"].priority == 1 and a["scout"].rate_hz > a["jackal"].rate_hz, 10.0,
+                       "the inspecting robot's priority applied after the outage")
+        assert rates.take()
+    finally:
+        rates.close()
+        link.unregister()
+    with open(tmp_path / "link_state.csv") as stream:
+        rows = list(csv.DictReader(stream))
+    assert [(r["up"], r["outages"], r["peer"]) for r in rows] == [("0", "1", "robots"), ("1", "1", "robots")]
+    assert float(rows[0]["since_s"]) == pytest.approx(down_at.to_sec(), abs=1e-3)

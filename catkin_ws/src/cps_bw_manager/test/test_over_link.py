@@ -56,6 +56,16 @@ def _start_load(graph, record_path=None):
                        [f"{r}:{size}:{hz}" for r, (size, hz) in LOAD.items()], name="load")
 
 
+def _start_topic_stats(graph, stats_path, window_s):
+    """cps_transport's topic_stats on the twin (one more copy of every managed topic on the link),
+    publishing at 2 Hz into stats_path: the manager's estimator input."""
+    graph.start_python("twin", find_node("cps_transport", "topic_stats"),
+                       ["__name:=topic_stats", f"_window_s:={window_s}", "_publish_rate_hz:=2.0",
+                        f"_csv_path:={stats_path}",
+                        "_topics:=" + ",".join(f"/{r}/points_filtered/draco/managed" for r in LOAD)],
+                       name="topic_stats")
+
+
 def _wait_for_file_rows(path, timeout_s):
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -148,11 +158,7 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
     try:
         with ShapedLink(name, rate="60mbit") as link, LinkRosGraph(link) as graph:
             _start_load(graph)
-            graph.start_python("twin", find_node("cps_transport", "topic_stats"),
-                               ["__name:=topic_stats", "_window_s:=2.0", "_publish_rate_hz:=2.0",
-                                f"_csv_path:={stats_path}",
-                                "_topics:=" + ",".join(f"/{r}/points_filtered/draco/managed" for r in LOAD)],
-                               name="topic_stats")
+            _start_topic_stats(graph, stats_path, window_s=2.0)
             graph.start_python("twin", find_node("cps_bw_manager", "bandwidth_manager"),
                                ["__name:=bandwidth_manager", "_available_mbps:=60.0", "_estimate_bandwidth:=true",
                                 f"_csv_path:={csv_path}"], name="manager")

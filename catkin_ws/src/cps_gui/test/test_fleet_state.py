@@ -146,3 +146,20 @@ def test_concurrent_writers_and_reader(state):
 def test_stale_threshold_must_be_positive():
     with pytest.raises(ValueError, match="stale_after_s"):
         FleetState([], stale_after_s=0)
+
+
+def test_link_lost_marks_every_robot_and_its_data_age_red_until_the_link_is_back(state, clock):
+    state.set_pose("scout", Pose(1, 2, 0, 0.5, 0.3))
+    state.set_battery("scout", 0.9)
+    assert state.link_lost_text() == ""
+    state.set_link_state(False, 1.5, 3, 0.0, "robots")
+    clock.t += 1.0  # data still fresh by age, but from before the outage
+    row = rows(state)["scout"]
+    assert row.link_state == "link lost" and "link lost" in row.alarms and row.heartbeat_stale
+    assert state.link_lost_text().startswith("LINK LOST to robots for 2 s (outage 3)")
+    state.set_link_state(False, 9.0, 3, 0.0, "robots")  # a repeat keeps the first start
+    assert "for 2 s" in state.link_lost_text()
+    state.set_link_state(True, 0.0, 3, 2.5, "robots")
+    state.set_pose("scout", Pose(1, 2, 0, 0.5, 0.3))
+    row = rows(state)["scout"]
+    assert state.link_lost_text() == "" and row.link_state == "ok" and not row.heartbeat_stale

@@ -305,6 +305,27 @@ def test_heartbeat_link_and_stats_turn_red_when_publishing_stops(window, qapp, s
     assert "no heartbeat" in status.table.item(0, 9).text()
 
 
+def test_link_lost_banner_and_red_data_ages_while_link_state_says_down(window, qapp, rospy_node, scout_stream):
+    from cps_msgs.msg import LinkState
+
+    status = window.plugin.status
+    link = rospy_node.Publisher("/tissue/link_state", LinkState, queue_size=5, latch=True)
+    try:
+        scout_stream()
+        assert not status.link_lost_banner.isVisible()
+        since = rospy_node.Time.now() - rospy_node.Duration(3.0)
+        link.publish(LinkState(up=False, since=since, outages=1, peer="robots"))
+        spin_until(qapp, lambda: status.link_lost_banner.isVisible(), 5, "the link-lost banner")
+        assert status.link_lost_banner.text().startswith("LINK LOST to robots for ")
+        assert "198,40,40" in status.link_lost_banner.styleSheet()
+        assert status.table.item(0, 5).text() == "link lost" and _is_red(status.table.item(0, 5))
+        assert _is_red(status.table.item(0, 4)) and _is_red(status.table.item(1, 4))
+        link.publish(LinkState(up=True, since=rospy_node.Time.now(), outages=1, last_outage_s=3.0, peer="robots"))
+        spin_until(qapp, lambda: not status.link_lost_banner.isVisible(), 5, "the banner gone when the link is back")
+    finally:
+        link.unregister()
+
+
 def _is_red(item):
     colour = item.foreground().color()
     return (colour.red(), colour.green(), colour.blue()) == (198, 40, 40)

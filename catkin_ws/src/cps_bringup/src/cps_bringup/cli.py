@@ -59,6 +59,9 @@ def build_parser():
     parser.add_argument("--link", default="none", metavar="RATE",
                         help="run the twins across a link shaped to this tc rate, e.g. 20mbit (needs root); "
                              "'none' = loopback")
+    parser.add_argument("--link-scenario", default=None, metavar="NAME",
+                        help="run a cps_link scenario (capacity steps, outages; cps_link/config/scenarios/NAME.yaml "
+                             "or a path) on the link during the mission; implies --link at its initial rate")
     parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
     parser.add_argument("--screenshot-after", type=float, default=GUI_SCREENSHOT_AFTER_S, metavar="S")
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
@@ -84,7 +87,7 @@ def _sides(side):
 MISSION_OUTPUTS = {
     PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv"),
     DIGITAL: ("map.bt", "stats.csv", "arrivals.csv", "allocation.csv", "gui.png", "ground_truth.npz", "scores.json",
-              "topdown.png", "link.png", "report.md"),
+              "topdown.png", "link.png", "report.md", "link_events.csv", "link_state.csv"),
 }
 
 
@@ -127,7 +130,7 @@ def run_mission(args, log=print) -> MissionResult:
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
         gui_screenshot_after_s=args.screenshot_after)
     with contextlib.ExitStack() as stack:
-        link = stack.enter_context(_link_context(args.link, log))
+        link = stack.enter_context(_link_context(args.link, log, getattr(args, "link_scenario", None)))
         if link:
             # As the paper: the manager's B is what iperf3 measured on the link, not the nominal rate.
             options = dataclasses.replace(options, available_mbps=link.measured_mbps)
@@ -170,6 +173,9 @@ def run_mission(args, log=print) -> MissionResult:
 
         stack.callback(EstopKeeper().close)    # the e-stop state outlives the GUI
         supervisor.start_all(timeout_s=args.start_timeout)
+        runner = link.start_scenario(os.path.join(out_dir, "link_events.csv"), log) if link else None
+        if runner:
+            stack.callback(runner.stop)
         monitor = MissionMonitor(fleet)
         stack.callback(monitor.close)
 
@@ -239,15 +245,20 @@ def _wait_for_screenshot(supervisor, path, log, timeout_s=90.0):
 
 
 @contextlib.contextmanager
-def _link_context(rate, log):
-    if rate in (None, "", "none"):
+def _link_context(rate, log, scenario_name=None):
+    if rate in (None, "", "none") and not scenario_name:
         yield None
         return
     from cps_bringup.link import namespaced_link
     from cps_link.netns_link import LinkError
+    from cps_link.scenario import load_scenario
 
     try:
-        with namespaced_link(rate, log) as link:
+        scenario = load_scenario(scenario_name) if scenario_name else None
+    except ConfigError as exc:
+        raise BringupError(f"--link-scenario {scenario_name}: {exc}") from exc
+    try:
+        with namespaced_link(rate, log, scenario) as link:
             yield link
     except LinkError as exc:
         raise BringupError(f"--link {rate}: {exc}") from exc

@@ -37,6 +37,9 @@ def parse_args(argv):
     parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="out/demo")
     parser.add_argument("--link", default="auto", help="auto (fleet.yaml's link rate when root), none, or a rate like 20mbit")
+    parser.add_argument("--link-scenario", default="demo", metavar="NAME",
+                        help="cps_link scenario on the shaped link (default demo: a 10 s outage at 25 s, then "
+                             "60 -> 10 -> 60 Mbit/s); 'none' for a constant link")
     parser.add_argument("--profile", default=None, choices=PROFILES, help="sensor profile (default: fleet.yaml's)")
     parser.add_argument("--robots", default=None, help="subset, e.g. scout,jackal (default: the whole fleet)")
     parser.add_argument("--duration", type=float, default=420.0, metavar="S",
@@ -56,6 +59,7 @@ def main(argv=None):
     mission_args = build_parser().parse_args([
         "all", *(["--profile", args.profile] if args.profile else []), "--out", out_dir, "--link", link, "--duration", str(args.duration),
         "--screenshot", "--screenshot-after", str(args.screenshot_after),
+        *(["--link-scenario", args.link_scenario] if link != "none" and args.link_scenario != "none" else []),
         *(["--robots", args.robots] if args.robots else []),
         *(["--kill-map-server-at", str(args.kill_map_server_at)] if args.kill_map_server_at is not None else [])])
     try:

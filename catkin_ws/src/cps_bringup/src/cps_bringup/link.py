@@ -37,25 +37,46 @@ def _setns(fd):
 class NamespacedLink:
     rate: str
     measured_mbps: float
+    scenario: object = None  # a cps_link.scenario.Scenario to run during the mission, or None
     phys_ip: str = PHYS_IP
     twin_ip: str = TWIN_IP
 
     def exec_prefix(self, side):
         return ["ip", "netns", "exec", namespace(LINK_NAME, side)]
 
+    def start_scenario(self, csv_path, log=print):
+        """Start the scenario's runner (mission time 0 is now); returns it, or None without one."""
+        if self.scenario is None:
+            return None
+        from cps_fleet.csv_log import CsvLog
+        from cps_link.scenario import LINK_EVENTS_COLUMNS, ScenarioRunner
+
+        runner = ScenarioRunner(LINK_NAME, self.scenario, CsvLog(csv_path, LINK_EVENTS_COLUMNS), log=log)
+        runner.start()
+        return runner
+
     def describe(self):
-        return (f"tc-shaped {self.rate} veth between namespaces {namespace(LINK_NAME, 'phys')} ({self.phys_ip}) and "
-                f"{namespace(LINK_NAME, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s")
+        return (("shared-medium " if self.scenario and self.scenario.topology == "shared" else "")
+                + f"tc-shaped {self.rate} veth between namespaces {namespace(LINK_NAME, 'phys')} ({self.phys_ip}) and "
+                f"{namespace(LINK_NAME, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s"
+                + (f"; scenario {self.scenario.name}" if self.scenario else ""))
 
 
 @contextlib.contextmanager
-def namespaced_link(rate, log=print):
-    """Create the link, measure it, move this thread into the twin namespace; undo all on exit."""
+def namespaced_link(rate, log=print, scenario=None):
+    """Create the link (with `scenario`: its topology and initial rate), measure it, move this
+    thread into the twin namespace; undo all on exit."""
     check_capability()
     if link_exists(LINK_NAME):
         raise LinkError(f"a link named {LINK_NAME} already exists (another run?); remove it with "
                         f"`cps_link down --name {LINK_NAME}`")
-    with ShapedLink(name=LINK_NAME, rate=rate) as link:
+    shaping = {}
+    if scenario is not None:
+        from cps_link.netns_link import netem_available, tc_rate
+
+        rate = tc_rate(scenario.initial.rate_mbps)
+        shaping = dict(topology=scenario.topology, with_netem=netem_available())
+    with ShapedLink(name=LINK_NAME, rate=rate, **shaping) as link:
         measured = link.measure_mbps(seconds=2.0)
         log(f"[bringup] link {rate}: iperf3 measured {measured:.1f} Mbit/s physical → digital twin")
         home = os.open("/proc/self/ns/net", os.O_RDONLY)
@@ -63,7 +84,7 @@ def namespaced_link(rate, log=print):
         try:
             _setns(target)
             try:
-                yield NamespacedLink(rate, measured)
+                yield NamespacedLink(rate, measured, scenario)
             finally:
                 _setns(home)
         finally:

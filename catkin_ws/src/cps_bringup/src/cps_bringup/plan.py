@@ -186,6 +186,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             "bandwidth_manager", DIGITAL,
             py("cps_bw_manager", "bandwidth_manager", "__ns:=/", "__name:=bandwidth_manager",
                *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv"),
+                       "link_state_csv_path": os.path.join(out, "link_state.csv"),
                        **({"available_mbps": round(options.available_mbps, 2)} if options.available_mbps else {})})),
             wait_topics=("/tissue/allocation",)))
         if options.gui_screenshot_path:

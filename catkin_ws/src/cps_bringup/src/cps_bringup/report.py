@@ -236,6 +236,10 @@ def write_mission_report(result, mission_args, wall_time_s):
         plot_link(stats_rows, allocation_rows, budget, os.path.join(out, "link.png"))
         lines += ["![bandwidth, allocated rates and latency](link.png)", ""]
 
+    from cps_bringup.link_report import section as link_events_section
+
+    lines += link_events_section(read_csv(os.path.join(out, "link_events.csv")),
+                                 read_csv(os.path.join(out, "link_state.csv")), allocation_rows, times, totals)
     lines += ["## Supervisor events", ""]
     lines += [f"- {e.time_s:.0f} s {e.label}: {e.what}" for e in result.events] or ["- none"]
     if result.restarts:

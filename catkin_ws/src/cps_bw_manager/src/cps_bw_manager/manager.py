@@ -65,6 +65,16 @@ class ManagerSettings:
         return self
 
 
+@dataclasses.dataclass(frozen=True)
+class LinkHealth:
+    """The last cps_msgs/LinkState heard (up until one says otherwise)."""
+    up: bool = True
+    since_s: float = math.nan
+    outages: int = 0
+    last_outage_s: float = 0.0
+    peer: str = ""
+
+
 @dataclasses.dataclass
 class _Measured:
     message_bytes: float = math.nan
@@ -85,6 +95,30 @@ class ManagerCore:
         self.measured: Dict[str, _Measured] = {r: _Measured() for r in self.robots}
         self.invalid_inputs = 0
         self.weights = {0: DEFAULT_PRIORITY_WEIGHTS[0], 1: float(settings.high_priority_weight)}
+        self.link = LinkHealth()
+
+    @property
+    def paused(self):
+        """True while the link is down: no new allocation (the limiters keep their rates)."""
+        return not self.link.up
+
+    def on_link_state(self, up, since_s, outages=0, last_outage_s=0.0, peer=""):
+        """/tissue/link_state as plain values; returns True when the link changed state. While it
+        is down the estimator is not fed (an outage says nothing about the capacity); when it
+        comes back the estimator resumes from the estimate it had."""
+        changed = bool(up) != self.link.up
+        self.link = LinkHealth(bool(up), float(since_s), int(outages), float(last_outage_s), str(peer))
+        if changed and up and self.estimator:
+            self.estimator.resume(since_s)
+        return changed
+
+    def pause_status(self, now_s):
+        """Why the allocation is paused ("" when it is not)."""
+        if not self.paused:
+            return ""
+        peer = f" to {self.link.peer}" if self.link.peer else ""
+        return (f"paused: link{peer} down for {max(0.0, now_s - self.link.since_s):.1f} s; rates held, "
+                f"resuming from {self.available_mbps:.1f} Mbit/s when it is back")
 
     @property
     def available_mbps(self):
@@ -142,11 +176,12 @@ class ManagerCore:
 
     def on_link_stats(self, now_s, delivered_mbps, latency_ms):
         """Feed the estimator (if on); returns True if the available bandwidth moved by > 5 %."""
-        if not self.estimator:
+        if not self.estimator or self.paused:
             return False
         before = self.estimator.estimate_mbps
         sent = self.sent_mbps()
-        after = self.estimator.update(now_s, delivered_mbps, latency_ms, None if math.isnan(sent) else sent)
+        allocated = 8.0 * self.allocate().allocated_mbytes_per_s
+        after = self.estimator.update(now_s, delivered_mbps, latency_ms, None if math.isnan(sent) else sent, allocated)
         return abs(after - before) > 0.05 * before
 
     def input_rate_cap_hz(self, robot):
@@ -221,6 +256,15 @@ def _finite(value):
 ALLOCATION_CSV_COLUMNS = ("stamp_s", "available_mbps", "budget_mbytes_per_s", "feasible", "robot", "priority",
                           "mission_state", "rate_hz", "message_bytes", "bandwidth_mbytes_per_s", "share_percent",
                           "degraded")
+
+
+LINK_STATE_CSV_COLUMNS = ("stamp_s", "up", "since_s", "outages", "last_outage_s", "peer", "available_mbps")
+
+
+def link_state_csv_row(stamp_s, link: LinkHealth, available_mbps):
+    """One row of link_state.csv (LINK_STATE_CSV_COLUMNS), written at every transition."""
+    return (f"{stamp_s:.3f}", int(link.up), f"{link.since_s:.3f}", link.outages, f"{link.last_outage_s:.3f}",
+            link.peer, f"{available_mbps:.3f}")
 
 
 def allocation_csv_rows(stamp_s, available_mbps, result, mission_states):

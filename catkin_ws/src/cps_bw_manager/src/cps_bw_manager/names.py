@@ -8,6 +8,7 @@ ALLOCATION = "tissue/allocation"
 AVAILABLE_BANDWIDTH = "tissue/available_bandwidth"
 SET_PRIORITY = "tissue/set_priority"
 STATS = "tissue/stats"
+LINK_STATE = "tissue/link_state"  # cps_msgs/LinkState, published by the bridge
 LIMITER = "cloud_throttle"  # the robot's rate limiter node (cps_transport's rate_limiter)
 
 

@@ -54,6 +54,17 @@ class Allocation:
 
 
 @dataclasses.dataclass(frozen=True)
+class LinkHealth:
+    """What /tissue/link_state last said: `down_since_s` is on the store's clock (NaN while up)."""
+
+    up: bool
+    down_since_s: float
+    outages: int
+    last_outage_s: float
+    peer: str
+
+
+@dataclasses.dataclass(frozen=True)
 class RobotMapFigures:
     robot: str
     occupied_voxels_contributed: int
@@ -201,6 +212,7 @@ class FleetState:
         self._image_meters: Dict[str, RateMeter] = {}
         self._log = collections.deque(maxlen=log_len)
         self._log_version = 0
+        self._link = LinkHealth(True, math.nan, 0, 0.0, "")
         self.ignored_messages = 0
 
     @property
@@ -273,6 +285,24 @@ class FleetState:
         with self._lock:
             self._available_mbps = mbps
 
+    def set_link_state(self, up, down_for_s, outages, last_outage_s, peer):
+        """A /tissue/link_state message; `down_for_s`: how long the link has been down when it arrived."""
+        with self._lock:
+            since = self.clock() - max(0.0, down_for_s) if not up else math.nan
+            if not up and not self._link.up:
+                since = self._link.down_since_s
+            self._link = LinkHealth(bool(up), since, int(outages), float(last_outage_s), str(peer))
+
+    def link_lost_text(self):
+        """The banner while the link is down ("" while it is up or nothing said otherwise)."""
+        with self._lock:
+            link, now = self._link, self.clock()
+        if link.up:
+            return ""
+        peer = f" to {link.peer}" if link.peer else ""
+        return (f"LINK LOST{peer} for {now - link.down_since_s:.0f} s (outage {link.outages}): "
+                f"robot data below is from before the outage")
+
     def set_map_stats(self, robots):
         """A /twin/map_stats message: a sequence of RobotMapFigures."""
         with self._lock:
@@ -327,7 +357,11 @@ class FleetState:
                 battery_age = now - r.battery_received_s
                 alloc = allocations.get(r.name)
                 link = self._link_state(heartbeat_age, alloc, stats_by_robot.get(r.name))
+                link_lost = not self._link.up
                 alarms = []
+                if link_lost:
+                    link = "link lost"
+                    alarms.append("link lost")
                 if r.battery_fraction < LOW_BATTERY_FRACTION:
                     alarms.append("battery low")
                 if math.isfinite(heartbeat_age) and self.is_stale(heartbeat_age):
@@ -339,7 +373,7 @@ class FleetState:
                 rows.append(HealthRow(
                     robot=r.name, robot_type=r.robot_type, mode=r.mode, mission_state=r.mission_state,
                     battery_percent=r.battery_fraction * 100.0, battery_stale=self.is_stale(battery_age),
-                    heartbeat_age_s=heartbeat_age, heartbeat_stale=self.is_stale(heartbeat_age),
+                    heartbeat_age_s=heartbeat_age, heartbeat_stale=link_lost or self.is_stale(heartbeat_age),
                     link_state=link, map_voxels=r.map_voxels, clouds_dropped=r.clouds_dropped,
                     priority=alloc.priority if alloc else None, alarms=tuple(alarms),
                 ))

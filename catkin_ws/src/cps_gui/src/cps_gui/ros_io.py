@@ -16,7 +16,7 @@ from rosgraph_msgs.msg import Log
 from sensor_msgs.msg import BatteryState, CompressedImage, Image
 from std_msgs.msg import Bool, Float64, String
 
-from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
+from cps_msgs.msg import BandwidthAllocationArray, LinkState, MapStats, TopicStatsArray
 from cps_msgs.srv import SetPriority, SetPriorityRequest
 
 from cps_ros.timers import guarded_timer
@@ -59,6 +59,7 @@ class FleetRosIO:
         sub(names.ALLOCATION, BandwidthAllocationArray, self._on_allocation)
         sub(names.AVAILABLE_BANDWIDTH, Float64, lambda m: state.set_available_bandwidth(m.data))
         sub(names.MAP_STATS, MapStats, self._on_map_stats)
+        sub(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10)
         sub(names.PROJECTED_MAP, OccupancyGrid, self._on_projected_map, buff_size=2 ** 24)
         sub(names.ROSOUT, Log, self._on_log, queue_size=100)
         self.estop_pub = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
@@ -132,6 +133,10 @@ class FleetRosIO:
             available_mbps=msg.available_mbps, feasible=msg.feasible,
             robots=tuple(RobotAllocation(a.robot, a.priority, a.rate_hz, a.bandwidth_mbytes_per_s,
                                          a.share_percent, a.degraded) for a in msg.allocations)))
+
+    def _on_link_state(self, msg):
+        down_for_s = (rospy.Time.now() - msg.since).to_sec() if not msg.since.is_zero() else 0.0
+        self.state.set_link_state(msg.up, down_for_s, msg.outages, msg.last_outage_s, msg.peer)
 
     def _on_map_stats(self, msg):
         self.state.set_map_stats(

@@ -6,6 +6,10 @@ pair whose both ends are shaped with a `tc` token bucket (tbf, default fleet.yam
 get ROS_IP and ROS_MASTER_URI of their side, so TCPROS really crosses the shaped link; iperf3
 measures it as the paper did. All traffic stays inside the two namespaces; `down` (and leaving the
 `ShapedLink` context, even on error) removes everything. Needs root and `ip netns`.
+
+Topology "shared" (Wi-Fi airtime: both directions share ONE capacity) puts a router namespace
+`<name>_rtr` between them: a bridge joins the two veth pairs, the ingress of both bridge ports is
+redirected into one IFB device, and the one tbf (and netem) on that IFB shapes both directions.
 """
 import contextlib
 import json
@@ -21,7 +25,14 @@ PHYS_IP = "10.201.0.1"
 TWIN_IP = "10.201.0.2"
 PREFIX_LEN = 30
 SIDES = ("phys", "twin")
+ROUTER = "rtr"
+TOPOLOGIES = ("duplex", "shared")
 DEFAULT_QUEUE_MS = 50.0
+# Unsent bytes a TCP connection may keep in the sender's kernel buffer (tcp_notsent_lowat, set in
+# both namespaces). Linux's default is unlimited: at 60 Mbit/s the rate limiters' connections then
+# hold megabytes, which after a capacity drop to 5 Mbit/s keep the link saturated for > 14 s
+# whatever the manager allocates (measured, test_capacity_step.py).
+SEND_BACKLOG_BYTES = 16384
 _NAME = re.compile(r"^[a-z][a-z0-9]{0,9}$")
 _RATE = re.compile(r"^(\d+(\.\d+)?)(bit|kbit|mbit|gbit)$")
 _RATE_FACTOR = {"bit": 1.0, "kbit": 1e3, "mbit": 1e6, "gbit": 1e9}
@@ -105,40 +116,52 @@ def list_namespaces():
 
 
 def link_exists(name):
-    return namespace(name, "phys") in list_namespaces() or namespace(name, "twin") in list_namespaces()
+    present = list_namespaces()
+    return any(ns in present for ns in (namespace(name, "phys"), namespace(name, "twin"), namespace_of_router(name)))
 
 
-def _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, verb):
-    """tc commands shaping one end: tbf alone, or netem (delay/loss) with tbf as its child."""
-    dev = _device(name, side)
+def _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, verb, jitter_ms=0.0, with_netem=False):
+    return _qdisc_commands(namespace(name, side), _device(name, side), rate, delay_ms, loss_pct, queue_ms, verb,
+                           jitter_ms, with_netem)
+
+
+def _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, verb, jitter_ms=0.0, with_netem=False):
+    """tc commands shaping one device: tbf alone, or netem (delay/jitter/loss; always with
+    `with_netem`, so that a live change can add them) with tbf as its child."""
     rate_bps = rate_bits_per_s(rate)
     # At least two full 64 kB GSO frames: with less, TCP's large segments after a rate drop are
     # dropped whole and every connection stalls for seconds. At least 4 ms at the rate.
     burst_bytes = int(max(131072, rate_bps / 8 * 0.004))
     tbf = ["tbf", "rate", rate, "burst", str(burst_bytes), "latency", f"{queue_ms:g}ms"]
-    base = ["ip", "netns", "exec", namespace(name, side), "tc", "qdisc", verb, "dev", dev]
-    if delay_ms or loss_pct:
-        netem = ["netem"] + (["delay", f"{delay_ms:g}ms"] if delay_ms else []) + (["loss", f"{loss_pct:g}%"] if loss_pct else [])
+    base = ["ip", "netns", "exec", ns, "tc", "qdisc", verb, "dev", dev]
+    if delay_ms or loss_pct or with_netem:
+        delay = ["delay", f"{delay_ms:g}ms"] + ([f"{jitter_ms:g}ms"] if jitter_ms else []) if delay_ms else []
+        netem = ["netem", "limit", "10000"] + delay + ["loss", f"{loss_pct:g}%"]
         return [base + ["root", "handle", "1:"] + netem, base + ["parent", "1:", "handle", "10:"] + tbf]
     return [base + ["root", "handle", "1:"] + tbf]
 
 
-def _check_shaping_args(rate, delay_ms, loss_pct, queue_ms):
+def _check_shaping_args(rate, delay_ms, loss_pct, queue_ms, jitter_ms=0.0):
     rate_bits_per_s(rate)
     if not 0 <= delay_ms <= 10000:
         raise LinkError(f"delay must be in [0, 10000] ms, got {delay_ms}")
+    if not 0 <= jitter_ms <= delay_ms:
+        raise LinkError(f"jitter must be in [0, delay {delay_ms:g}] ms, got {jitter_ms}")
     if not 0 <= loss_pct < 100:
         raise LinkError(f"loss must be in [0, 100) %, got {loss_pct}")
     if not 1 <= queue_ms <= 10000:
         raise LinkError(f"queue must be in [1, 10000] ms, got {queue_ms}")
 
 
-def link_up(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
+def link_up(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS, jitter_ms=0.0,
+            topology="duplex", with_netem=False):
     """Create both namespaces, the veth pair, addresses, loopbacks and the shaping on both ends
-    (`rate` None: fleet.yaml's link rate). Returns the rate."""
+    (`rate` None: fleet.yaml's link rate; topology "shared": see the module). Returns the rate."""
     _check_name(name)
     rate = rate or fleet_rate()
-    _check_shaping_args(rate, delay_ms, loss_pct, queue_ms)
+    _check_shaping_args(rate, delay_ms, loss_pct, queue_ms, jitter_ms)
+    if topology not in TOPOLOGIES:
+        raise LinkError(f"topology must be one of {', '.join(TOPOLOGIES)}, got '{topology}'")
     check_capability()
     if link_exists(name):
         raise LinkError(f"link '{name}' already exists; `cps_link down --name {name}` first")
@@ -146,15 +169,20 @@ def link_up(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_
     try:
         _run(["ip", "netns", "add", phys])
         _run(["ip", "netns", "add", twin])
-        # Created inside phys directly, so the pair never appears in the caller's namespace.
-        _run(["ip", "-n", phys, "link", "add", _device(name, "phys"), "type", "veth",
-              "peer", "name", _device(name, "twin"), "netns", twin])
+        if topology == "shared":
+            _shared_medium(name)
+        else:
+            # Created inside phys directly, so the pair never appears in the caller's namespace.
+            _run(["ip", "-n", phys, "link", "add", _device(name, "phys"), "type", "veth",
+                  "peer", "name", _device(name, "twin"), "netns", twin])
         for side in SIDES:
             ns, dev = namespace(name, side), _device(name, side)
             _run(["ip", "-n", ns, "addr", "add", f"{side_ip(side)}/{PREFIX_LEN}", "dev", dev])
             _run(["ip", "-n", ns, "link", "set", "lo", "up"])
             _run(["ip", "-n", ns, "link", "set", dev, "up"])
-            for cmd in _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, "add"):
+            _run(["ip", "netns", "exec", ns, "sysctl", "-q", "-w", f"net.ipv4.tcp_notsent_lowat={SEND_BACKLOG_BYTES}"])
+        for ns, dev in shaped_devices(name):
+            for cmd in _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, "add", jitter_ms, with_netem):
                 result = _run(cmd, check=False)
                 if result.returncode != 0:
                     if "netem" in cmd and "unknown" in result.stderr.lower():
@@ -166,6 +194,51 @@ def link_up(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_
         link_down(name)
         raise
     return rate
+
+
+def _router_device(name, side):
+    return f"{name}_r{side[0]}"
+
+
+def _ifb_device(name):
+    return f"{name}_ifb"
+
+
+def shared_medium(name):
+    """True when link `name` has the router namespace of the shared topology."""
+    return namespace_of_router(name) in list_namespaces()
+
+
+def namespace_of_router(name):
+    return f"{name}_{ROUTER}"
+
+
+def shaped_devices(name):
+    """(namespace, device) of every qdisc that shapes link `name`: both veth ends, or the one IFB."""
+    if shared_medium(name):
+        return [(namespace_of_router(name), _ifb_device(name))]
+    return [(namespace(name, side), _device(name, side)) for side in SIDES]
+
+
+def _shared_medium(name):
+    """phys <-> bridge in the router namespace <-> twin; the ingress of both bridge ports goes
+    through one IFB, where the shaping is."""
+    rtr, bridge, ifb = namespace_of_router(name), f"{name}_br", _ifb_device(name)
+    _run(["ip", "netns", "add", rtr])
+    _run(["ip", "-n", rtr, "link", "add", bridge, "type", "bridge"])
+    _run(["ip", "-n", rtr, "link", "add", ifb, "type", "ifb"])
+    for side in SIDES:
+        port = _router_device(name, side)
+        _run(["ip", "-n", rtr, "link", "add", port, "type", "veth", "peer", "name", _device(name, side),
+              "netns", namespace(name, side)])
+        _run(["ip", "-n", rtr, "link", "set", port, "master", bridge])
+    for dev in ("lo", bridge, ifb, *(_router_device(name, side) for side in SIDES)):
+        _run(["ip", "-n", rtr, "link", "set", dev, "up"])
+    for side in SIDES:
+        port = _router_device(name, side)
+        _run(["ip", "netns", "exec", rtr, "tc", "qdisc", "add", "dev", port, "handle", "ffff:", "ingress"])
+        _run(["ip", "netns", "exec", rtr, "tc", "filter", "add", "dev", port, "parent", "ffff:", "protocol", "all",
+              "u32", "match", "u32", "0", "0", "action", "mirred", "egress", "redirect", "dev", ifb])
 
 
 def _wait_until_up(name, timeout_s=5.0):
@@ -180,28 +253,61 @@ def _wait_until_up(name, timeout_s=5.0):
         time.sleep(0.05)
 
 
-def link_set(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
+def link_set(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS, jitter_ms=0.0):
     """Change the shaping of both ends live (e.g. 60 -> 20 -> 60 Mbit/s; `rate` None: fleet.yaml's).
     Returns the rate."""
     _check_name(name)
     rate = rate or fleet_rate()
-    _check_shaping_args(rate, delay_ms, loss_pct, queue_ms)
+    _check_shaping_args(rate, delay_ms, loss_pct, queue_ms, jitter_ms)
     if not link_exists(name):
         raise LinkError(f"link '{name}' does not exist; `cps_link up --name {name}` first")
-    for side in SIDES:
+    for ns, dev in shaped_devices(name):
+        with_netem = _has_netem(ns, dev)
+        if (delay_ms or loss_pct) and not with_netem:
+            raise LinkError(f"link '{name}' was created without netem; delay/loss need it from the start")
         # `change` keeps the queued packets; `replace` would drop them all at once and send every
         # TCP connection into retransmission back-off for seconds.
-        for cmd in _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, "change"):
+        for cmd in _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, "change", jitter_ms, with_netem):
             _run(cmd)
     return rate
+
+
+def link_cut(name="cps"):
+    """Cut the link, as out of radio range: the physical side's veth end goes down (its peer loses
+    carrier), so every packet between the sides is lost; TCP connections survive and retransmit."""
+    _check_name(name)
+    _run(["ip", "-n", namespace(name, "phys"), "link", "set", "dev", _device(name, "phys"), "down"])
+
+
+def link_restore(name="cps"):
+    """Undo link_cut: the veth end comes up again (with its addresses, routes and shaping)."""
+    _check_name(name)
+    _run(["ip", "-n", namespace(name, "phys"), "link", "set", "dev", _device(name, "phys"), "up"])
+    _wait_until_up(name)
+
+
+def netem_available():
+    """True when this kernel has the netem qdisc (delay, jitter, loss); checked in a probe namespace."""
+    probe = f"cpsnetem{os.getpid() % 100000}"
+    _run(["ip", "netns", "add", probe])
+    try:
+        return _run(["ip", "netns", "exec", probe, "tc", "qdisc", "add", "dev", "lo", "root", "netem", "delay", "1ms"],
+                    check=False).returncode == 0
+    finally:
+        _run(["ip", "netns", "del", probe], check=False)
+
+
+def _has_netem(ns, dev):
+    out = _run(["ip", "netns", "exec", ns, "tc", "qdisc", "show", "dev", dev]).stdout
+    return re.search(r"qdisc netem 1: root", out) is not None
 
 
 def link_down(name="cps"):
     """Remove both namespaces (the veth pair and its qdiscs go with them). Idempotent."""
     _check_name(name)
     present = list_namespaces()
-    for side in SIDES:
-        ns = namespace(name, side)
+    ours = [namespace(name, side) for side in SIDES] + [namespace_of_router(name)]
+    for ns in ours:
         if ns in present:
             # Processes left in the namespace would keep it alive as a mount; kill them first.
             pids = _run(["ip", "netns", "pids", ns], check=False).stdout.split()
@@ -209,7 +315,7 @@ def link_down(name="cps"):
                 with contextlib.suppress(ProcessLookupError, ValueError):
                     os.kill(int(pid), 9)
             _run(["ip", "netns", "del", ns], check=False)
-    left = [ns for ns in list_namespaces() if ns in (namespace(name, s) for s in SIDES)]
+    left = [ns for ns in list_namespaces() if ns in ours]
     if left:
         raise LinkError(f"could not remove namespaces {left}")
 
@@ -228,6 +334,18 @@ def ros_env(side, master_port):
 def measure_mbps(name="cps", seconds=3.0, reverse=False, port=5201):
     """iperf3 server in the digital twin, client in the physical twin (as the paper: one machine
     serves, the other receives); returns the received Mbit/s. `reverse` measures twin -> phys."""
+    report = _iperf3(name, seconds, port, ["-R"] if reverse else [])
+    return report["end"]["sum_received"]["bits_per_second"] / 1e6
+
+
+def measure_bidir_mbps(name="cps", seconds=3.0, port=5202):
+    """Both directions at once (iperf3 --bidir): (phys -> twin, twin -> phys) received Mbit/s."""
+    end = _iperf3(name, seconds, port, ["--bidir"])["end"]
+    return end["sum_received"]["bits_per_second"] / 1e6, end["sum_received_bidir_reverse"]["bits_per_second"] / 1e6
+
+
+def _iperf3(name, seconds, port, extra):
+    """iperf3's JSON report of one client run phys -> twin server with `extra` options."""
     if shutil.which("iperf3") is None:
         raise LinkError("iperf3 is not installed (Debian package iperf3)")
     if not 0.5 <= seconds <= 30:
@@ -235,7 +353,7 @@ def measure_mbps(name="cps", seconds=3.0, reverse=False, port=5201):
     server = subprocess.Popen(netns_argv(name, "twin", ["iperf3", "-s", "-1", "-B", TWIN_IP, "-p", str(port)]),
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        argv = ["iperf3", "-c", TWIN_IP, "-p", str(port), "-t", f"{seconds:g}", "-J"] + (["-R"] if reverse else [])
+        argv = ["iperf3", "-c", TWIN_IP, "-p", str(port), "-t", f"{seconds:g}", "-J"] + extra
         deadline = time.monotonic() + 5.0
         while True:
             result = _run(netns_argv(name, "phys", argv), check=False, timeout_s=seconds + 15)
@@ -248,7 +366,7 @@ def measure_mbps(name="cps", seconds=3.0, reverse=False, port=5201):
             time.sleep(0.2)  # the server may not listen yet
         if "error" in report:
             raise LinkError(f"iperf3 failed: {report['error']}")
-        return report["end"]["sum_received"]["bits_per_second"] / 1e6
+        return report
     finally:
         server.kill()
         server.wait(5)
@@ -258,19 +376,22 @@ class ShapedLink:
     """`with ShapedLink(rate="20mbit") as link:` the link exists inside the block and never after;
     rate None is fleet.yaml's link rate."""
 
-    def __init__(self, name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS):
+    def __init__(self, name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS,
+                 jitter_ms=0.0, topology="duplex", with_netem=False):
         self.name, self.delay_ms, self.loss_pct, self.queue_ms = name, delay_ms, loss_pct, queue_ms
+        self.jitter_ms, self.topology, self.with_netem = jitter_ms, topology, with_netem
         self.rate = rate or fleet_rate()
 
     def __enter__(self):
-        link_up(self.name, self.rate, self.delay_ms, self.loss_pct, self.queue_ms)
+        link_up(self.name, self.rate, self.delay_ms, self.loss_pct, self.queue_ms, self.jitter_ms, self.topology,
+                self.with_netem)
         return self
 
     def __exit__(self, *exc):
         link_down(self.name)
 
     def set_rate(self, rate):
-        link_set(self.name, rate, self.delay_ms, self.loss_pct, self.queue_ms)
+        link_set(self.name, rate, self.delay_ms, self.loss_pct, self.queue_ms, self.jitter_ms)
         self.rate = rate
 
     def measure_mbps(self, seconds=3.0, reverse=False):
@@ -282,8 +403,10 @@ class ShapedLink:
         return netns_argv(self.name, side, argv, merged)
 
     def qdisc_bytes_sent(self, side):
-        """Bytes the shaping qdisc of `side` has sent so far (for per-window link accounting)."""
-        out = _run(["ip", "netns", "exec", namespace(self.name, side), "tc", "-s", "qdisc", "show",
-                    "dev", _device(self.name, side)]).stdout
+        """Bytes the shaping qdisc of `side` (shared topology: of both directions) has sent so far
+        (for per-window link accounting)."""
+        ns, dev = ((namespace_of_router(self.name), _ifb_device(self.name)) if self.topology == "shared"
+                   else (namespace(self.name, side), _device(self.name, side)))
+        out = _run(["ip", "netns", "exec", ns, "tc", "-s", "qdisc", "show", "dev", dev]).stdout
         match = re.search(r"qdisc tbf .*?Sent (\d+) bytes", out, re.S)
         return int(match.group(1)) if match else 0

@@ -47,6 +47,11 @@ class StatusPane(QWidget):
             [], [], pen=pg.mkPen((0, 0, 0), width=2, style=Qt.DashLine), name="budget"))
 
         self.link_label = QLabel("link: no data")
+        self.link_lost_banner = QLabel("")
+        self.link_lost_banner.setObjectName("link_lost_banner")
+        self.link_lost_banner.setStyleSheet("background: rgb(%d,%d,%d); color: white; font-weight: bold; "
+                                            "font-size: 16pt; padding: 6px" % STALE_RGB)
+        self.link_lost_banner.hide()
         self.table = QTableWidget(len(names), len(HEALTH_COLUMNS))
         self.table.setHorizontalHeaderLabels(HEALTH_COLUMNS)
         self.table.verticalHeader().setVisible(False)
@@ -80,6 +85,7 @@ class StatusPane(QWidget):
         table_box = QWidget()
         table_layout = QVBoxLayout(table_box)
         table_layout.setContentsMargins(0, 0, 0, 0)
+        table_layout.addWidget(self.link_lost_banner)
         table_layout.addWidget(self.link_label)
         table_layout.addWidget(self.table)
 
@@ -114,7 +120,14 @@ class StatusPane(QWidget):
         stale = self.state.is_stale(stats_age_s) or (allocation is not None and self.state.is_stale(allocation_age_s))
         self.link_label.setStyleSheet("color: rgb(%d,%d,%d); font-weight: bold" % STALE_RGB if stale else "")
 
+    def _refresh_link_lost(self):
+        text = self.state.link_lost_text()
+        if text != self.link_lost_banner.text():
+            self.link_lost_banner.setText(text)
+        self.link_lost_banner.setVisible(bool(text))
+
     def _refresh_table(self):
+        self._refresh_link_lost()
         for row, health in enumerate(self.state.health_rows()):
             battery = "--" if not math.isfinite(health.battery_percent) else f"{health.battery_percent:.0f}"
             heartbeat = "never" if not math.isfinite(health.heartbeat_age_s) else f"{health.heartbeat_age_s:.1f}"
