@@ -1,0 +1,191 @@
+"""The bandwidth manager's ROS adapter: parameters, topics, the service and the allocation timer
+wired to `ManagerCore` (nodes/bandwidth_manager starts it). See the package README for the interface."""
+import math
+import threading
+
+import rospy
+from std_msgs.msg import Float64, String
+
+from cps_fleet.csv_log import CsvLog
+from cps_fleet.fleet import load_fleet, robot_names_arg
+from cps_msgs.msg import BandwidthAllocation, BandwidthAllocationArray, LinkState, RateLimiterStatus, TopicStatsArray
+from cps_msgs.srv import SetPriority, SetPriorityResponse
+from cps_ros.diagnostics import FaultReport
+from cps_ros.timers import guarded_timer
+
+from cps_bw_manager import names
+from cps_bw_manager.estimation import BandwidthEstimator
+from cps_bw_manager.manager import (ALLOCATION_CSV_COLUMNS, DEFAULT_INPUT_RATE_HOLD_S, LINK_STATE_CSV_COLUMNS,
+                                    ManagerCore, ManagerSettings, allocation_csv_rows, link_state_csv_row, link_totals)
+
+
+def _param(name, default, kind):
+    value = rospy.get_param(name, default)
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
+        raise ValueError(f"parameter {name} must be {kind.__name__}, got {value!r}")
+    return value
+
+
+class BandwidthManagerNode:
+    """Reads its parameters, allocates on every input that changes the answer and at update_rate_hz."""
+    def __init__(self):
+        fleet = load_fleet(rospy.get_param("~fleet_file", None) or None)
+        robots = rospy.get_param("~robots", [])
+        if isinstance(robots, str):
+            robots = [r for r in robots.replace(",", " ").split() if r]
+        fleet = robot_names_arg(fleet, robots)
+        link = fleet.link
+        settings = ManagerSettings(
+            available_mbps=_param("~available_mbps", link.available_mbps, float),
+            reserve_fraction=_param("~reserve_fraction", link.reserve_fraction, float),
+            min_rate_hz=_param("~min_rate_hz", link.min_rate_hz, float),
+            max_rate_hz=_param("~max_rate_hz", link.max_rate_hz, float),
+            high_priority_weight=_param("~high_priority_weight", 4.0, float),
+            floor_rate_hz=_param("~floor_rate_hz", 0.1, float),
+            assumed_message_bytes=_param("~assumed_message_bytes", 60000.0, float),
+            window_s=_param("~window_s", 1.0, float),
+            headroom_messages=_param("~headroom_messages", 1.0, float),
+            copies_on_link=_param("~copies_on_link", 1, int),
+            input_rate_hold_s=_param("~input_rate_hold_s", DEFAULT_INPUT_RATE_HOLD_S, float),
+        )
+        settings.validate()  # before the estimator, which would refuse a bad rate less clearly
+        self.update_rate_hz = _param("~update_rate_hz", 2.0, float)
+        if not math.isfinite(self.update_rate_hz) or self.update_rate_hz < 1.0:
+            raise ValueError(f"parameter ~update_rate_hz must be >= 1 Hz, got {self.update_rate_hz}")
+        estimator = None
+        if _param("~estimate_bandwidth", link.estimate_bandwidth, bool):
+            estimator = BandwidthEstimator(
+                initial_mbps=settings.available_mbps,
+                max_mbps=_param("~max_estimate_mbps", settings.available_mbps, float),
+                min_mbps=_param("~min_estimate_mbps", 1.0, float),
+                holdoff_s=_param("~estimate_holdoff_s", 1.0, float))
+        self.core = ManagerCore(fleet.robot_names, settings, estimator)
+        self.lock = threading.Lock()
+        csv_path = rospy.get_param("~csv_path", "")
+        csv_max_bytes = int(fleet.limits.csv_max_mbytes * 1e6)
+        self.csv_log = (CsvLog(csv_path, ALLOCATION_CSV_COLUMNS, max_bytes=csv_max_bytes, on_failure=rospy.logerr)
+                        if csv_path else None)
+        self.csv_report = FaultReport("csv_log")
+        link_csv_path = rospy.get_param("~link_state_csv_path", "")
+        self.link_csv = (CsvLog(link_csv_path, LINK_STATE_CSV_COLUMNS, max_bytes=csv_max_bytes, on_failure=rospy.logerr)
+                         if link_csv_path else None)
+        self.last_result = None
+
+        self.rate_pubs = {r: rospy.Publisher(names.limiter_rate_hz(r), Float64, queue_size=1, latch=True)
+                          for r in self.core.robots}
+        self.alloc_pub = rospy.Publisher(names.ALLOCATION, BandwidthAllocationArray, queue_size=1, latch=True)
+        self.bw_pub = rospy.Publisher(names.AVAILABLE_BANDWIDTH, Float64, queue_size=1, latch=True)
+        self.subs = []
+        for robot in self.core.robots:
+            self.subs.append(rospy.Subscriber(names.mission_state(robot), String, self._on_mission_state,
+                                              callback_args=robot, queue_size=10))
+            self.subs.append(rospy.Subscriber(names.limiter_status(robot), RateLimiterStatus,
+                                              self._on_status, callback_args=robot, queue_size=10))
+        self.subs.append(rospy.Subscriber(names.STATS, TopicStatsArray, self._on_stats, queue_size=2))
+        self.subs.append(rospy.Subscriber(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10))
+        self.service = rospy.Service(names.SET_PRIORITY, SetPriority, self._on_set_priority)
+        rospy.loginfo("bandwidth manager: robots %s, %.1f Mbit/s (%s), reserve %.0f %%, rates %.1f..%.1f Hz",
+                      ", ".join(self.core.robots), settings.available_mbps,
+                      "estimated online" if estimator else "configured", 100 * settings.reserve_fraction,
+                      settings.min_rate_hz, settings.max_rate_hz)
+        self.update()
+        self.timer = guarded_timer(1.0 / self.update_rate_hz, lambda _: self.update(), "allocation")
+
+    def _on_mission_state(self, msg, robot):
+        try:
+            with self.lock:
+                changed = self.core.on_mission_state(robot, msg.data.strip())
+        except ValueError as exc:
+            rospy.logwarn_throttle(5.0, f"bandwidth manager: {exc}; ignored")
+            return
+        if changed:
+            rospy.loginfo("bandwidth manager: %s is %s -> priority %d", robot, msg.data,
+                          self.core.book.priority(robot))
+            self.update()
+
+    def _on_status(self, msg, robot):
+        try:
+            with self.lock:
+                changed = self.core.on_limiter_status(robot, msg.mean_message_bytes, msg.input_rate_hz,
+                                                      msg.output_rate_hz, now_s=rospy.get_time())
+        except ValueError as exc:
+            rospy.logwarn_throttle(5.0, f"bandwidth manager: {exc}; ignored "
+                                        f"({self.core.invalid_inputs} bad inputs so far)")
+            return
+        if changed:
+            self.update()
+
+    def _on_stats(self, msg):
+        delivered_mbps, latency_ms = link_totals(msg.topics)
+        with self.lock:
+            moved = self.core.on_link_stats(rospy.get_time(), delivered_mbps, latency_ms)
+        if moved:
+            self.update()
+
+    def _on_link_state(self, msg):
+        with self.lock:
+            changed = self.core.on_link_state(msg.up, msg.since.to_sec(), msg.outages, msg.last_outage_s, msg.peer)
+            available = self.core.available_mbps
+        if changed:
+            (rospy.loginfo if msg.up else rospy.logwarn)(
+                "bandwidth manager: link to %s %s; %s", msg.peer or "the other side", "back" if msg.up else "DOWN",
+                f"allocating again from {available:.1f} Mbit/s" if msg.up else "allocation paused, rates held")
+            if self.link_csv:
+                self.link_csv.write(link_state_csv_row(rospy.get_time(), self.core.link, available))
+            self.update()
+
+    def _on_set_priority(self, req):
+        with self.lock:
+            ok, message = self.core.set_priority(req.robot, req.priority)
+        (rospy.loginfo if ok else rospy.logwarn)("bandwidth manager: set_priority: %s", message)
+        if ok:
+            self.update()
+        return SetPriorityResponse(success=ok, message=message)
+
+    def update(self):
+        """Allocate, set every limiter's rate, publish and log the allocation."""
+        with self.lock:
+            paused = self.core.pause_status(rospy.get_time())
+            try:
+                result = self.last_result if paused and self.last_result else self.core.allocate()
+            except ValueError as exc:
+                rospy.logerr_throttle(5.0, f"bandwidth manager: cannot allocate: {exc}")
+                return
+            self.last_result = result
+            available = self.core.available_mbps
+            states = {r: self.core.book.mission_state(r) for r in self.core.robots}
+        if paused:
+            rospy.logwarn_throttle(5.0, f"bandwidth manager: {paused}")
+        elif not result.feasible:
+            rospy.logwarn_throttle(5.0, f"bandwidth manager: {result.status}")
+        for a in result.robots if not paused else ():
+            self.rate_pubs[a.name].publish(Float64(a.rate_hz))
+        msg = BandwidthAllocationArray()
+        msg.header.stamp = rospy.Time.now()
+        msg.available_mbps = available
+        msg.reserve_fraction = self.core.settings.reserve_fraction
+        msg.budget_mbytes_per_s = result.budget_mbytes_per_s
+        msg.allocated_mbytes_per_s = result.allocated_mbytes_per_s
+        msg.feasible = result.feasible
+        msg.status = paused or result.status
+        msg.link_up = not paused
+        for a in result.robots:
+            msg.allocations.append(BandwidthAllocation(
+                robot=a.name, topic=rospy.resolve_name(names.managed_cloud(a.name)), priority=a.priority,
+                rate_hz=a.rate_hz, min_rate_hz=a.min_rate_hz, max_rate_hz=a.max_rate_hz,
+                message_bytes=a.message_bytes, bandwidth_mbytes_per_s=a.bandwidth_mbytes_per_s,
+                share_percent=a.share_percent, degraded=a.degraded))
+        self.alloc_pub.publish(msg)
+        self.bw_pub.publish(Float64(available))
+        if self.csv_log:
+            for row in allocation_csv_rows(msg.header.stamp.to_sec(), available, result, states):
+                self.csv_log.write(row)
+            if self.csv_log.failed:
+                self.csv_report.report(self.csv_log.failed, csv_rows_lost=self.csv_log.rows_lost)
+
+    def close(self):
+        for log in (self.csv_log, self.link_csv):
+            if log:
+                log.close()
