@@ -23,6 +23,7 @@ SET_PRIORITY = "/tissue/set_priority"
 MAP_STATS = "/twin/map_stats"
 PROJECTED_MAP = "/twin/projected_map"
 MAP_MARKERS = "/twin/occupied_cells_vis_array"
+MAP_CHANGES = "/twin/map_changes"
 ROSOUT = "/rosout_agg"
 
 MAP_FRAME = "map"

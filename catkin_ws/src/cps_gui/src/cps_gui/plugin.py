@@ -31,6 +31,7 @@ class FleetOperatorPlugin(_PluginBase):
         import rospy
 
         from cps_gui.ros_io import FleetRosIO
+        from cps_gui.widgets.changes import ChangesPane
         from cps_gui.widgets.status import StatusPane
         from cps_gui.widgets.teleop import TeleopPane
         from cps_gui.widgets.topview import TopViewPane
@@ -61,6 +62,7 @@ class FleetOperatorPlugin(_PluginBase):
         self.topview = TopViewPane(self.fleet, self.state, fences)
         self.status = StatusPane(self.fleet, self.state)
         self.teleop = TeleopPane(self.fleet, self.io, self.state)
+        self.changes = ChangesPane(self.state, self.focus_on_change)
 
         self.top_splitter = QSplitter(Qt.Horizontal)
         for pane in (self.video, self.view3d, self.topview):
@@ -69,7 +71,8 @@ class FleetOperatorPlugin(_PluginBase):
         self.bottom_splitter = QSplitter(Qt.Horizontal)
         self.bottom_splitter.addWidget(self.status)
         self.bottom_splitter.addWidget(self.teleop)
-        self.bottom_splitter.setSizes([900, 400])
+        self.bottom_splitter.addWidget(self.changes)
+        self.bottom_splitter.setSizes([800, 400, 300])
         self.main_splitter = QSplitter(Qt.Vertical)
         self.main_splitter.addWidget(self.top_splitter)
         self.main_splitter.addWidget(self.bottom_splitter)
@@ -89,14 +92,20 @@ class FleetOperatorPlugin(_PluginBase):
 
     @property
     def panes(self):
-        """{name: widget} of the five panes, e.g. for screenshots and tests."""
+        """{name: widget} of the five panes and the change list, e.g. for screenshots and tests."""
         return {"video": self.video, "view3d": self.view3d, "topview": self.topview, "status": self.status,
-                "teleop": self.teleop}
+                "teleop": self.teleop, "changes": self.changes}
 
     def refresh(self):
         """Redraw every pane from the latest data; runs on the GUI thread at 5 Hz."""
-        for pane in (self.video, self.topview, self.status, self.teleop):
+        for pane in (self.video, self.topview, self.status, self.teleop, self.changes):
             pane.refresh()
+
+    def focus_on_change(self, change):
+        """Centre the top view and the 3D view on a MapChange."""
+        self.topview.focus_on(*change.center_m[:2])
+        if hasattr(self.view3d, "focus_on"):
+            self.view3d.focus_on(*change.center_m)
 
     def shutdown_plugin(self):
         self.timer.stop()
