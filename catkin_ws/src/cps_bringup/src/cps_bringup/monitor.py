@@ -18,7 +18,7 @@ DEFAULT_CHANGES = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(
                                                 "site_changes.yaml"))
 # The robots of the storage area, where the example changes are: a shorter mission than the demo's.
 DEFAULT_ROBOTS = "champ,iris"
-SCREENSHOT_AFTER_S = 75.0
+SCREENSHOT_AFTER_S = 60.0
 
 
 def parse_args(argv):
