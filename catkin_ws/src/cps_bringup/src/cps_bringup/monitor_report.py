@@ -6,9 +6,15 @@ import dataclasses
 import json
 import os
 
+import numpy as np
+
 from cps_bringup.report import _table
 
 APPEARED_COLOUR, DISAPPEARED_COLOUR = "tab:green", "tab:red"
+
+
+# How far from a false change the report looks for the solid it was made of.
+NEAR_SOLID_M = 0.3
 
 
 @dataclasses.dataclass
@@ -18,6 +24,18 @@ class MonitoringResult:
     score: object         # cps_mapping.change_scoring.ChangeScore
     current_map: object   # FusedLogOddsMap of the monitoring mission
     changes: object       # cps_sim.site_changes.SiteChanges
+    sites: tuple = ()     # the site before and after the changes
+
+
+def solid_near(sites, change, margin_m=NEAR_SOLID_M):
+    """What the simulator has where a detected change is: the owner of a solid (equipment, fence, wall)
+    within `margin_m` of its box centre in the site before or after, or "nothing"."""
+    centre = (np.asarray(change.min_m) + change.max_m) / 2
+    for site in sites:
+        for prim in site.primitives():
+            if prim.contains(centre, margin_m)[0]:
+                return prim.owner
+    return "nothing"
 
 
 def evaluate_monitoring(baseline_path, map_path, fleet, changes_path) -> MonitoringResult:
@@ -26,6 +44,7 @@ def evaluate_monitoring(baseline_path, map_path, fleet, changes_path) -> Monitor
     from cps_mapping.baseline import load_baseline
     from cps_mapping.change_detection import detect_map_changes
     from cps_mapping.change_scoring import score_changes
+    from cps_mapping.map_server import MapServerOptions
     from cps_sim.site_changes import expected_changes, load_site_changes
 
     site = load_site(fleet.site_path)
@@ -33,8 +52,11 @@ def evaluate_monitoring(baseline_path, map_path, fleet, changes_path) -> Monitor
     expected = expected_changes(site, changes)
     baseline = load_baseline(baseline_path, fleet.mapping)
     current = load_baseline(map_path, fleet.mapping)
-    detected = detect_map_changes(baseline, current)
-    return MonitoringResult(detected, expected, score_changes(detected, expected), current, changes)
+    defaults = MapServerOptions()  # what the live detection at the twin uses
+    detected = detect_map_changes(baseline, current, tolerance_voxels=defaults.change_tolerance_voxels,
+                                  min_cluster_voxels=defaults.change_min_cluster_voxels)
+    return MonitoringResult(detected, expected, score_changes(detected, expected), current, changes,
+                            (site, changes.apply(site)))
 
 
 def draw_changes(ax, result: MonitoringResult):
@@ -90,7 +112,8 @@ def write_monitor_report(mission, mission_args, wall_time_s):
                   _table(("#", "kind", "centroid x, y, z m", "size x, y, z m", "volume m³", "voxels", "matches",
                           "position error m"),
                          [(i, c.kind, _xyz(c.centroid_m), _xyz(c.size_m), f"{c.volume_m3:.3f}", c.voxels,
-                           result.expected[m.expected_index].name if m else "— (false change)",
+                           result.expected[m.expected_index].name if m else
+                           f"— (false; the site has {solid_near(result.sites, c)} there)",
                            f"{m.position_error_m:.2f}" if m else "—")
                           for i, c in enumerate(result.detected, 1)
                           for m in [score.match_of_detected(i - 1)]]), "",

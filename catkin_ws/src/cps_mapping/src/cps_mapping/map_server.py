@@ -63,6 +63,9 @@ class MapServerOptions:
     baseline_map: str = _option("", "baseline map of the same site for map_changes", "path")
     change_period_s: float = _option(5.0, "change detection period", "s", low=0.0, low_open=True)
     change_report: str = _option("", "Markdown (+ .json) report written at each change detection", "path")
+    change_tolerance_voxels: int = _option(2, "a voxel changed if no voxel of the other map lies this near: absorbs "
+                                              "thin structures (fence rails) seen from other viewpoints", "voxels", low=0)
+    change_min_cluster_voxels: int = _option(10, "smaller clusters of changed voxels are noise", "voxels", low=1)
     change_attention_radius_m: float = _option(ATTENTION_RADIUS_M, "a robot this near a newly found change gets "
                                                                    "high link priority (0: never)", "m", low=0.0)
 
@@ -349,7 +352,8 @@ class MapServer:
         """What appeared or disappeared against the baseline map, as markers (and the report); returns
         the changes."""
         with self._map_lock:
-            changes = detect_map_changes(self.baseline, self.map)
+            changes = detect_map_changes(self.baseline, self.map, tolerance_voxels=self.options.change_tolerance_voxels,
+                                         min_cluster_voxels=self.options.change_min_cluster_voxels)
         array = map_messages.change_markers(changes, self._header(stamp))
         if self.options.change_report:  # before the markers, so that whoever sees them finds the report
             write_report(changes, self.options.change_report, self.options.baseline_map, "live map")
