@@ -64,15 +64,20 @@ class FleetOperatorPlugin(_PluginBase):
         self.teleop = TeleopPane(self.fleet, self.io, self.state)
         self.changes = ChangesPane(self.state, self.focus_on_change)
 
+        # The change list under the top view: a splitter of its own, so that a layout saved before it
+        # existed restores without hiding it.
+        self.map_splitter = QSplitter(Qt.Vertical)
+        self.map_splitter.addWidget(self.topview)
+        self.map_splitter.addWidget(self.changes)
+        self.map_splitter.setSizes([380, 120])
         self.top_splitter = QSplitter(Qt.Horizontal)
-        for pane in (self.video, self.view3d, self.topview):
+        for pane in (self.video, self.view3d, self.map_splitter):
             self.top_splitter.addWidget(pane)
         self.top_splitter.setSizes([300, 600, 400])
         self.bottom_splitter = QSplitter(Qt.Horizontal)
         self.bottom_splitter.addWidget(self.status)
         self.bottom_splitter.addWidget(self.teleop)
-        self.bottom_splitter.addWidget(self.changes)
-        self.bottom_splitter.setSizes([800, 400, 300])
+        self.bottom_splitter.setSizes([900, 400])
         self.main_splitter = QSplitter(Qt.Vertical)
         self.main_splitter.addWidget(self.top_splitter)
         self.main_splitter.addWidget(self.bottom_splitter)
@@ -129,4 +134,5 @@ class FleetOperatorPlugin(_PluginBase):
             pane.restore_settings(instance_settings)
 
     def _splitters(self):
-        return {"main": self.main_splitter, "top": self.top_splitter, "bottom": self.bottom_splitter}
+        return {"main": self.main_splitter, "top": self.top_splitter, "bottom": self.bottom_splitter,
+                "map": self.map_splitter}
