@@ -77,10 +77,16 @@ def test_score_matches_by_kind_and_place_once_each():
 
 def test_robots_near_a_new_change_are_raised_once():
     attention = ChangeAttention(radius_m=3.0)
-    positions = {"champ": (1.0, -1.0), "iris": (8.0, 5.0)}
+    asked = []
+
+    def positions():
+        asked.append(True)
+        return {"champ": (1.0, -1.0), "iris": (8.0, 5.0)}
+
     crate = _change("disappeared", 3.2, -1.0)
     assert attention.robots_to_raise([crate], positions) == [("champ", crate)]
     grown = _change("disappeared", 3.3, -1.0)  # the same change, seen a little more
     assert attention.robots_to_raise([grown], positions) == []
+    assert len(asked) == 1, "positions are looked up only for new changes"
     far = _change("appeared", 8.5, 5.5)
     assert attention.robots_to_raise([grown, far], positions) == [("iris", far)]
