@@ -22,6 +22,7 @@ class ChangesPane(QWidget):
         self._version = -1
         self._changes = ()
         self.title = QLabel("Site changes: no baseline comparison yet")
+        self.title.setWordWrap(True)  # a long line would widen the whole window
         self.list = QListWidget()
         self.list.itemClicked.connect(lambda item: self.on_select(self._changes[self.list.row(item)]))
         layout = QVBoxLayout(self)
