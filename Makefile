@@ -4,7 +4,7 @@ SHELL := /bin/bash
 ENV := source ci/env.sh &&
 PYTEST_ARGS ?=
 
-.PHONY: setup test test-unit demo experiments bench clean
+.PHONY: setup test test-unit demo monitor experiments bench clean
 
 setup:
 	@bash ci/setup.sh
@@ -18,6 +18,10 @@ test-unit: setup
 
 demo: setup
 	@$(ENV) python catkin_ws/src/cps_bringup/nodes/demo $(DEMO_ARGS)
+
+# The monitoring mission against the map the last `make demo` saved (out/demo/map.bt).
+monitor: setup
+	@$(ENV) python catkin_ws/src/cps_bringup/nodes/monitor $(MONITOR_ARGS)
 
 experiments: setup
 	@$(ENV) python catkin_ws/src/cps_bringup/nodes/experiments $(EXPERIMENT_ARGS)

@@ -77,7 +77,7 @@ def test_standalone_host_starts_saves_a_screenshot_and_its_settings(ros, rospy_n
         settings = stream.read()
     assert f"teleop\\robot={TEST_PREFIX}scout" in settings and "[window]\ngeometry=" in settings
     panes = json.load(open(png + ".panes.json"))["panes"]
-    assert set(panes) == {"video", "view3d", "topview", "status", "teleop"}
+    assert set(panes) == {"video", "view3d", "topview", "status", "teleop", "changes"}
 
 
 def _qimage_to_rgb(image):

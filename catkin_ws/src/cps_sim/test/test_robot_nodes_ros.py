@@ -206,3 +206,13 @@ def test_site_change_with_unknown_item_fails_naming_the_known_ones(ros):
     assert _wait_exit(proc) != 0
     out = ros.output("fleet_sim_badsite")
     assert "crate_99" in out and "crate_2" in out
+
+
+def test_site_changes_file_out_of_the_hall_fails_with_file_and_line(ros, tmp_path):
+    changes = tmp_path / "changes.yaml"
+    changes.write_text("moved:\n  - {name: crate_2, dx_m: 20.0}\n")
+    proc = ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_badchanges",
+                          params={"~robots": "jackal", "~site_changes_file": str(changes)})
+    assert _wait_exit(proc) != 0
+    out = ros.output("fleet_sim_badchanges")
+    assert f"{changes}:2:" in out and "would leave the hall" in out, out[-2000:]

@@ -72,6 +72,11 @@ def build_parser():
                         help="real robots: do not start fleet_sim; their drivers publish /<r>/points, odom, tf")
     parser.add_argument("--run-as", default=None, metavar="USER",
                         help="user the nodes run as when started as root (default: nobody; 'root' keeps root)")
+    parser.add_argument("--baseline", default=None, metavar="MAP.bt",
+                        help="monitoring mission: compare the new map with this earlier one of the site, live")
+    parser.add_argument("--site-changes", default=None, metavar="FILE",
+                        help="monitoring mission in simulation: equipment removed/moved/added (YAML, see "
+                             "cps_bringup/config/site_changes.yaml); needs --baseline")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server S seconds into the mission")
     return parser
@@ -86,8 +91,9 @@ def _sides(side):
 # CSVs (appended to, so that a restarted node keeps its rows) would mix two missions.
 MISSION_OUTPUTS = {
     PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv"),
-    DIGITAL: ("map.bt", "stats.csv", "arrivals.csv", "allocation.csv", "gui.png", "ground_truth.npz", "scores.json",
-              "topdown.png", "link.png", "report.md", "link_events.csv", "link_state.csv"),
+    DIGITAL: ("map.bt", "map.bt.json", "map_changes.md", "map_changes.json", "stats.csv", "arrivals.csv",
+              "allocation.csv", "gui.png", "ground_truth.npz", "scores.json", "topdown.png", "link.png", "report.md",
+              "link_events.csv", "link_state.csv"),
 }
 
 
@@ -118,8 +124,9 @@ def run_mission(args, log=print) -> MissionResult:
     except (ConfigError, KeyError, ValueError) as exc:
         raise BringupError(str(exc).strip('"')) from exc
     out_dir = os.path.abspath(args.out)
-    os.makedirs(out_dir, exist_ok=True)
     sides = _sides(args.side)
+    baseline, site_changes = check_monitoring_inputs(args, fleet, sides)
+    os.makedirs(out_dir, exist_ok=True)
     removed = clear_previous_mission(out_dir, sides)
     if removed:
         log(f"[bringup] {out_dir}: removed the previous mission's {', '.join(removed)} (a new mission starts "
@@ -128,7 +135,7 @@ def run_mission(args, log=print) -> MissionResult:
         out_dir=out_dir, profile=args.profile, renderer=args.renderer, simulate=not args.no_sim,
         map_file=os.path.join(out_dir, "map.bt"),
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
-        gui_screenshot_after_s=args.screenshot_after)
+        gui_screenshot_after_s=args.screenshot_after, baseline_map=baseline, site_changes_file=site_changes)
     with contextlib.ExitStack() as stack:
         link = stack.enter_context(_link_context(args.link, log, getattr(args, "link_scenario", None)))
         if link:
@@ -204,6 +211,36 @@ def run_mission(args, log=print) -> MissionResult:
             _wait_for_screenshot(supervisor, options.gui_screenshot_path, log)
         return MissionResult(out_dir, ended_by, elapsed, link.describe() if link else "loopback",
                              map_file, monitor.snapshot(), list(supervisor.events), supervisor.restarts())
+
+
+def check_monitoring_inputs(args, fleet, sides):
+    """(baseline path, changes path), absolute, after checking them before anything starts: BringupError
+    for a baseline that is missing, corrupt or of another resolution or frame, a changes file that does
+    not fit the site (file:line), or changes without a baseline."""
+    from cps_mapping.baseline import BaselineError, load_baseline
+
+    baseline = os.path.abspath(os.path.expanduser(args.baseline)) if args.baseline else None
+    changes = os.path.abspath(os.path.expanduser(args.site_changes)) if args.site_changes else None
+    if changes and not baseline:
+        raise BringupError("--site-changes makes this a monitoring mission, which needs --baseline MAP.bt "
+                           "(the map of an earlier mission, e.g. out/demo/map.bt from `make demo`)")
+    if baseline and baseline == os.path.join(os.path.abspath(args.out), "map.bt"):
+        raise BringupError(f"--baseline {baseline} is this mission's own map file, which a new mission replaces; "
+                           f"copy it elsewhere or choose another --out")
+    if baseline and DIGITAL in sides:
+        try:
+            load_baseline(baseline, fleet.mapping)
+        except BaselineError as exc:
+            raise BringupError(f"--baseline: {exc}") from exc
+    if changes and PHYSICAL in sides:
+        from cps_fleet.site import load_site
+        from cps_sim.site_changes import load_site_changes
+
+        try:
+            load_site_changes(changes, load_site(fleet.site_path))
+        except ConfigError as exc:
+            raise BringupError(f"--site-changes: {exc}") from exc
+    return baseline, changes
 
 
 def _save_map(path, log):

@@ -62,14 +62,23 @@ def main(argv=None):
         *(["--link-scenario", args.link_scenario] if link != "none" and args.link_scenario != "none" else []),
         *(["--robots", args.robots] if args.robots else []),
         *(["--kill-map-server-at", str(args.kill_map_server_at)] if args.kill_map_server_at is not None else [])])
+    from cps_bringup.report import write_mission_report
+
+    result = run_and_report("demo", mission_args, write_mission_report, t0)
+    if result is None:
+        return 2
+    print(json.dumps({"ended_by": result.ended_by, "link": result.link, "out": out_dir}, indent=None))
+    return 0
+
+
+def run_and_report(prog, mission_args, write_report, t0):
+    """Run the mission and `write_report(result, mission_args, wall_time_s)`; the MissionResult, or None
+    after printing why the mission could not start."""
     try:
         result = run_mission(mission_args)
     except BringupError as exc:
-        print(f"demo: error: {exc}", file=sys.stderr)
-        return 2
-    from cps_bringup.report import write_mission_report
-
-    report = write_mission_report(result, mission_args, wall_time_s=time.monotonic() - t0)
-    print(f"[demo] wrote {report}")
-    print(json.dumps({"ended_by": result.ended_by, "link": result.link, "out": out_dir}, indent=None))
-    return 0
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return None
+    report = write_report(result, mission_args, wall_time_s=time.monotonic() - t0)
+    print(f"[{prog}] wrote {report}")
+    return result

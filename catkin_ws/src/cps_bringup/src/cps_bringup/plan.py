@@ -37,6 +37,9 @@ class NodeSpec:
     essential: bool = True
 
 
+# The map server's live change report in the output folder (and its .json twin).
+CHANGE_REPORT = "map_changes.md"
+
 # When the GUI screenshot is taken, s after the GUI starts: during the light profile's missions.
 GUI_SCREENSHOT_AFTER_S = 35.0
 
@@ -53,6 +56,9 @@ class RunOptions:
     available_mbps: Optional[float] = None
     # False on real robots: their drivers publish what fleet_sim would.
     simulate: bool = True
+    # A monitoring mission: the earlier map the twin compares with, and what the simulator changes.
+    baseline_map: Optional[str] = None
+    site_changes_file: Optional[str] = None
 
 
 def _args(params: Dict[str, object]) -> List[str]:
@@ -95,7 +101,8 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             specs.append(NodeSpec(
                 "fleet_sim", PHYSICAL,
                 py("cps_sim", "fleet_sim", "__name:=fleet_sim",
-                   *_args({**common, "profile": profile, "robots": ",".join(robots), "renderer": options.renderer})),
+                   *_args({**common, "profile": profile, "robots": ",".join(robots), "renderer": options.renderer,
+                           **({"site_changes_file": options.site_changes_file} if options.site_changes_file else {})})),
                 wait_topics=tuple(t for r in robots for t in (f"/{r}/odom", f"/{r}/points")),
                 restart_limit=0))
         drivers = ("fleet_sim",) if options.simulate else ()
@@ -173,7 +180,9 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             "map_server", DIGITAL,
             py("cps_mapping", "map_server", "__ns:=/twin", "__name:=map_server",
                *_args({**common, "robots": ",".join(robots),
-                       "map_file": options.map_file or os.path.join(out, "map.bt")})),
+                       "map_file": options.map_file or os.path.join(out, "map.bt"),
+                       **({"baseline_map": options.baseline_map, "change_report": os.path.join(out, CHANGE_REPORT)}
+                          if options.baseline_map else {})})),
             wait_topics=("/twin/map_stats", "/twin/octomap_binary"), restart_limit=3))
         specs.append(NodeSpec(
             "topic_stats", DIGITAL,

@@ -72,6 +72,20 @@ class RobotMapFigures:
 
 
 @dataclasses.dataclass(frozen=True)
+class MapChange:
+    """One change the twin found against the baseline map: kind ("appeared"/"disappeared"), the
+    centre and size (x, y, z) of its box in `map`, metres."""
+
+    kind: str
+    center_m: Tuple[float, float, float]
+    size_m: Tuple[float, float, float]
+
+    @property
+    def volume_m3(self):
+        return self.size_m[0] * self.size_m[1] * self.size_m[2]
+
+
+@dataclasses.dataclass(frozen=True)
 class Pose:
     """A robot's pose in `map` (x, y, z in m, yaw in rad) and its speed over ground in m/s."""
 
@@ -204,6 +218,8 @@ class FleetState:
         self._allocation: Optional[Allocation] = None
         self._allocation_received_s = -math.inf
         self._budget_series = _Series(history_len)
+        self._map_changes: Tuple[MapChange, ...] = ()
+        self._map_changes_version = 0
         self._available_mbps = math.nan
         self._map = None
         self._map_version = 0
@@ -441,3 +457,14 @@ class FleetState:
         """(version, entries); entries are (wall_time_s, level, node, text), oldest first."""
         with self._lock:
             return self._log_version, list(self._log)
+
+    def set_map_changes(self, changes):
+        """The twin's latest list of MapChange (replaces the last)."""
+        with self._lock:
+            self._map_changes = tuple(changes)
+            self._map_changes_version += 1
+
+    def map_changes(self):
+        """(version, changes); the version changes whenever a new list arrives."""
+        with self._lock:
+            return self._map_changes_version, self._map_changes

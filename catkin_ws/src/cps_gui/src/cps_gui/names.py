@@ -25,6 +25,7 @@ MAP_STATS = "/twin/map_stats"
 LINK_STATE = "/tissue/link_state"
 PROJECTED_MAP = "/twin/projected_map"
 MAP_MARKERS = "/twin/occupied_cells_vis_array"
+MAP_CHANGES = "/twin/map_changes"
 ROSOUT = "/rosout_agg"
 
 

@@ -31,6 +31,7 @@ class FleetOperatorPlugin(_PluginBase):
         import rospy
 
         from cps_gui.ros_io import FleetRosIO
+        from cps_gui.widgets.changes import ChangesPane
         from cps_gui.widgets.status import StatusPane
         from cps_gui.widgets.teleop import TeleopPane
         from cps_gui.widgets.topview import TopViewPane
@@ -61,9 +62,16 @@ class FleetOperatorPlugin(_PluginBase):
         self.topview = TopViewPane(self.fleet, self.state, fences)
         self.status = StatusPane(self.fleet, self.state)
         self.teleop = TeleopPane(self.fleet, self.io, self.state)
+        self.changes = ChangesPane(self.state, self.focus_on_change)
 
+        # The change list under the top view: a splitter of its own, so that a layout saved before it
+        # existed restores without hiding it.
+        self.map_splitter = QSplitter(Qt.Vertical)
+        self.map_splitter.addWidget(self.topview)
+        self.map_splitter.addWidget(self.changes)
+        self.map_splitter.setSizes([380, 120])
         self.top_splitter = QSplitter(Qt.Horizontal)
-        for pane in (self.video, self.view3d, self.topview):
+        for pane in (self.video, self.view3d, self.map_splitter):
             self.top_splitter.addWidget(pane)
         self.top_splitter.setSizes([300, 600, 400])
         self.bottom_splitter = QSplitter(Qt.Horizontal)
@@ -89,14 +97,20 @@ class FleetOperatorPlugin(_PluginBase):
 
     @property
     def panes(self):
-        """{name: widget} of the five panes, e.g. for screenshots and tests."""
+        """{name: widget} of the five panes and the change list, e.g. for screenshots and tests."""
         return {"video": self.video, "view3d": self.view3d, "topview": self.topview, "status": self.status,
-                "teleop": self.teleop}
+                "teleop": self.teleop, "changes": self.changes}
 
     def refresh(self):
         """Redraw every pane from the latest data; runs on the GUI thread at 5 Hz."""
-        for pane in (self.video, self.topview, self.status, self.teleop):
+        for pane in (self.video, self.topview, self.status, self.teleop, self.changes):
             pane.refresh()
+
+    def focus_on_change(self, change):
+        """Centre the top view and the 3D view on a MapChange."""
+        self.topview.focus_on(*change.center_m[:2])
+        if hasattr(self.view3d, "focus_on"):
+            self.view3d.focus_on(*change.center_m)
 
     def shutdown_plugin(self):
         self.timer.stop()
@@ -120,4 +134,5 @@ class FleetOperatorPlugin(_PluginBase):
             pane.restore_settings(instance_settings)
 
     def _splitters(self):
-        return {"main": self.main_splitter, "top": self.top_splitter, "bottom": self.bottom_splitter}
+        return {"main": self.main_splitter, "top": self.top_splitter, "bottom": self.bottom_splitter,
+                "map": self.map_splitter}

@@ -15,6 +15,7 @@ from nav_msgs.msg import OccupancyGrid, Odometry
 from rosgraph_msgs.msg import Log
 from sensor_msgs.msg import BatteryState, CompressedImage, Image
 from std_msgs.msg import Bool, Float64, String
+from visualization_msgs.msg import Marker, MarkerArray
 
 from cps_msgs.msg import BandwidthAllocationArray, LinkState, MapStats, TopicStatsArray
 from cps_msgs.srv import SetPriority, SetPriorityRequest
@@ -23,7 +24,7 @@ from cps_ros.timers import guarded_timer
 from cps_transport.image_compression import InvalidImage, decode_jpeg
 
 from cps_gui import names, topview
-from cps_gui.fleet_state import (Allocation, ImageFrame, Pose, RobotAllocation, RobotMapFigures,
+from cps_gui.fleet_state import (Allocation, ImageFrame, MapChange, Pose, RobotAllocation, RobotMapFigures,
                                  TopicFigures)
 
 IMAGE_TYPE = "sensor_msgs/Image"
@@ -31,6 +32,16 @@ COMPRESSED_IMAGE_TYPE = "sensor_msgs/CompressedImage"
 MODES = ("auto", "teleop")
 FLIGHT_COMMANDS = ("takeoff", "land")
 LOG_LEVELS = {Log.DEBUG: "DEBUG", Log.INFO: "INFO", Log.WARN: "WARN", Log.ERROR: "ERROR", Log.FATAL: "FATAL"}
+
+
+def map_changes_of(msg):
+    """The MapChanges of a /twin/map_changes MarkerArray: its boxes, whose `text` is the kind."""
+    out = []
+    for marker in msg.markers:
+        if marker.type == Marker.CUBE and marker.action == Marker.ADD and marker.text in ("appeared", "disappeared"):
+            p, s = marker.pose.position, marker.scale
+            out.append(MapChange(marker.text, (p.x, p.y, p.z), (s.x, s.y, s.z)))
+    return out
 
 
 class FleetRosIO:
@@ -62,6 +73,7 @@ class FleetRosIO:
         sub(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10)
         sub(names.PROJECTED_MAP, OccupancyGrid, self._on_projected_map, buff_size=2 ** 24)
         sub(names.ROSOUT, Log, self._on_log, queue_size=100)
+        sub(names.MAP_CHANGES, MarkerArray, lambda m: state.set_map_changes(map_changes_of(m)), buff_size=2 ** 20)
         self.estop_pub = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
         self._discovery = guarded_timer(discovery_period_s, self._discover_images, "image discovery")
         threading.Thread(target=self._discover_images, args=(None,), daemon=True).start()

@@ -19,6 +19,8 @@ def fleet_rviz_config(fleet, frame_rate_hz=10):
          "Reference Frame": "<Fixed Frame>", "Color": "160; 160; 164", "Alpha": 0.5},
         {"Class": "rviz/MarkerArray", "Name": "Fused map", "Enabled": True, "Marker Topic": names.MAP_MARKERS,
          "Queue Size": 2, "Namespaces": {}},
+        {"Class": "rviz/MarkerArray", "Name": "Map changes", "Enabled": True, "Marker Topic": names.MAP_CHANGES,
+         "Queue Size": 2, "Namespaces": {}},
         {"Class": "rviz/TF", "Name": "TF", "Enabled": True, "Show Names": False, "Show Axes": True,
          "Show Arrows": False, "Marker Scale": 1, "Update Interval": 0.2, "Frame Timeout": 15},
     ]

@@ -13,6 +13,10 @@ from cps_fleet.site import load_site
 FREE_RGB = (235, 235, 235)
 OCCUPIED_RGB = (20, 20, 20)
 UNKNOWN_RGB = (150, 160, 170)
+# Site changes against the baseline map: appeared green, disappeared red.
+CHANGE_RGB = {"appeared": (46, 160, 67), "disappeared": (211, 47, 47)}
+# Half the side of the square the top view shows around a change the operator selected.
+FOCUS_HALF_SIDE_M = 3.0
 # Occupancy values (0..100) at or above this are drawn occupied.
 OCCUPIED_THRESHOLD = 50
 
@@ -128,6 +132,11 @@ def scene_bounds(image: Optional[OccupancyImage], point_sets, margin_m=1.0, mini
     half_w = max(bounds.x_max - bounds.x_min, minimum_m) / 2
     half_h = max(bounds.y_max - bounds.y_min, minimum_m) / 2
     return Bounds(cx - half_w, cy - half_h, cx + half_w, cy + half_h).padded(margin_m)
+
+
+def focus_bounds(x, y, half_side_m=FOCUS_HALF_SIDE_M):
+    """The square around (x, y) the top view shows when the operator selects a change there."""
+    return Bounds(x - half_side_m, y - half_side_m, x + half_side_m, y + half_side_m)
 
 
 @dataclasses.dataclass(frozen=True)

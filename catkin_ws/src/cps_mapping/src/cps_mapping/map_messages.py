@@ -66,12 +66,12 @@ def map_stats(header: Header, resolution_m: float, snapshot, robots: Sequence[Ro
 
 def change_markers(changes, header: Header) -> MarkerArray:
     """A DELETEALL, then per `change_detection.Change` a green (appeared) or red (disappeared) box
-    and a text above it, ns `map_changes`."""
+    (its `text` the kind, for readers other than rviz) and a text above it, ns `map_changes`."""
     array = MarkerArray(markers=[Marker(header=header, ns="map_changes", action=Marker.DELETEALL)])
     for i, change in enumerate(changes):
         rgba = _APPEARED_RGBA if change.kind == "appeared" else _DISAPPEARED_RGBA
         box = Marker(header=header, ns="map_changes", id=2 * i + 1, type=Marker.CUBE, action=Marker.ADD,
-                     color=ColorRGBA(*rgba))
+                     color=ColorRGBA(*rgba), text=change.kind)
         box.pose.position = Point(*((np.asarray(change.min_m) + change.max_m) / 2).tolist())
         box.pose.orientation.w = 1.0
         box.scale.x, box.scale.y, box.scale.z = change.size_m

@@ -19,6 +19,8 @@ from std_msgs.msg import Header
 from std_srvs.srv import EmptyResponse
 
 from cps_mapping import map_messages, names
+from cps_mapping.baseline import BaselineError, load_baseline, write_map_metadata
+from cps_mapping.change_attention import ATTENTION_RADIUS_M
 from cps_mapping.change_detection import detect_map_changes, write_report
 from cps_mapping.cloud_input import InvalidInput, prepare_cloud
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
@@ -61,8 +63,13 @@ class MapServerOptions:
     projected_min_z_m: float = _option(0.1, "lower bound of the projected map's height band", "m")
     projected_max_z_m: float = _option(2.0, "upper bound of the projected map's height band", "m")
     baseline_map: str = _option("", "baseline map of the same site for map_changes", "path")
-    change_period_s: float = _option(10.0, "change detection period", "s", low=0.0, low_open=True)
+    change_period_s: float = _option(5.0, "change detection period", "s", low=0.0, low_open=True)
     change_report: str = _option("", "Markdown (+ .json) report written at each change detection", "path")
+    change_tolerance_voxels: int = _option(2, "a voxel changed if no voxel of the other map lies this near: absorbs "
+                                              "thin structures (fence rails) seen from other viewpoints", "voxels", low=0)
+    change_min_cluster_voxels: int = _option(10, "smaller clusters of changed voxels are noise", "voxels", low=1)
+    change_attention_radius_m: float = _option(ATTENTION_RADIUS_M, "a robot this near a newly found change gets "
+                                                                   "high link priority (0: never)", "m", low=0.0)
 
 
 @dataclasses.dataclass
@@ -140,10 +147,9 @@ class MapServer:
                                                        shared_ray_stop_m=options.shared_ray_stop_m)
         self.baseline = None
         if options.baseline_map:
-            self.baseline = FusedLogOddsMap.from_mapping_config(fleet.mapping)
             try:
-                self.baseline.load(options.baseline_map)
-            except MapFileError as exc:
+                self.baseline = load_baseline(options.baseline_map, fleet.mapping, options.frame_id)
+            except BaselineError as exc:
                 raise ValueError(f"baseline_map: {exc}") from exc
         self._map_lock = threading.Lock()
         self._counters_lock = threading.Lock()
@@ -205,7 +211,9 @@ class MapServer:
 
     def _save(self, path):
         with self._map_lock:
-            return self.map.save(path)
+            saved = self.map.save(path)
+        write_map_metadata(saved, self.options.frame_id, self.map.resolution_m)
+        return saved
 
     def autosave(self):
         try:
@@ -357,13 +365,16 @@ class MapServer:
         self.outputs.stats(map_messages.map_stats(self._header(stamp), self.map.resolution_m, snap, robots))
 
     def publish_changes(self, stamp):
-        """What appeared or disappeared against the baseline map, as markers (and the report)."""
+        """What appeared or disappeared against the baseline map, as markers (and the report); returns
+        the changes."""
         with self._map_lock:
-            changes = detect_map_changes(self.baseline, self.map)
+            changes = detect_map_changes(self.baseline, self.map, tolerance_voxels=self.options.change_tolerance_voxels,
+                                         min_cluster_voxels=self.options.change_min_cluster_voxels)
         array = map_messages.change_markers(changes, self._header(stamp))
         if self.options.change_report:  # before the markers, so that whoever sees them finds the report
             write_report(changes, self.options.change_report, self.options.baseline_map, "live map")
         self.outputs.changes(array)
+        return changes
 
     # ---- services ------------------------------------------------------------------------------
 

@@ -29,3 +29,6 @@ def robot_of_points_topic(topic: str, namespace: str) -> Optional[str]:
     prefix = re.escape(namespace.rstrip("/") + "/")
     match = re.match(prefix + "([^/]+)" + re.escape(robot_points("")) + "$", topic)
     return match.group(1) if match else None
+
+# cps_bw_manager's service, called for robots near a new change.
+SET_PRIORITY = "/tissue/set_priority"

@@ -28,8 +28,8 @@ from cps_sim.robots import Twist, validate_twist
 from cps_sim.scheduling import RateMeter, SensorScheduler
 from cps_sim.sensor_workers import SensorWorkerPool
 from cps_sim.simulation import FleetSimulation, sensor_points
-from cps_sim.site_changes import SiteMove, apply_site_changes
 from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
+from cps_sim.site_changes import SiteMove, apply_site_changes, load_site_changes
 
 CMD_TIMEOUT_S = 0.5
 
@@ -48,6 +48,7 @@ class FleetSimOptions:
     sensor_workers: int = 2
     site_without: Tuple[str, ...] = ()
     site_moves: Tuple[SiteMove, ...] = ()
+    site_changes_file: str = ""
 
 
 def read_options():
@@ -68,7 +69,7 @@ def read_options():
         fail(f"parameters ~site_without/~site_moves: {exc.args[0]}")
     return FleetSimOptions(renderer=renderer, sensor_workers=workers,
                            site_without=tuple(name_list(rospy.get_param("~site_without", ""))),
-                           site_moves=moves, **rates)
+                           site_moves=moves, site_changes_file=rospy.get_param("~site_changes_file", ""), **rates)
 
 
 def initial_pose_error(fleet, site):
@@ -94,6 +95,13 @@ class FleetSimNode:
             self.site = apply_site_changes(load_site_for(fleet), options.site_without, options.site_moves)
         except KeyError as exc:
             fail(f"parameters ~site_without/~site_moves: {exc.args[0]}")
+        if options.site_changes_file:
+            try:
+                changes = load_site_changes(options.site_changes_file, self.site)
+            except ConfigError as exc:
+                fail(f"parameter ~site_changes_file: {exc}")
+            self.site = changes.apply(self.site)
+            rospy.loginfo(f"fleet_sim: site changes from {options.site_changes_file}: {changes.describe()}")
         error = initial_pose_error(fleet, self.site)
         if error:
             fail(f"bad fleet file: {error}")

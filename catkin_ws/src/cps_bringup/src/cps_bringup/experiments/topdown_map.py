@@ -28,8 +28,9 @@ def height_image(occupied_centers_m, resolution_m, x_range, y_range):
     return image
 
 
-def plot_topdown(occupied_centers_m, trajectories, fleet, png_path, title=None):
-    """Write the top-down PNG. `trajectories`: robot → list of (x, y, z) in map."""
+def plot_topdown(occupied_centers_m, trajectories, fleet, png_path, title=None, overlay=None):
+    """Write the top-down PNG. `trajectories`: robot → list of (x, y, z) in map; `overlay(ax)` draws
+    more on the axes (e.g. the monitoring report's changes)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -68,6 +69,8 @@ def plot_topdown(occupied_centers_m, trajectories, fleet, png_path, title=None):
             ax.plot(path[-1, 0], path[-1, 1], "s", color=colour, ms=6)
         else:
             ax.plot([], [], color=colour, lw=2.2, label=f"{robot.name} (no trajectory)")
+    if overlay is not None:
+        overlay(ax)
     ax.set_xlim(*x_range)
     ax.set_ylim(*y_range)
     ax.set_aspect("equal")

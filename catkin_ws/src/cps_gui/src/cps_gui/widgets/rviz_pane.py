@@ -11,6 +11,9 @@ from python_qt_binding.QtWidgets import QVBoxLayout, QWidget
 
 from cps_gui import rviz_config
 
+# How far the orbit camera stands from a change the operator selected.
+FOCUS_DISTANCE_M = 8.0
+
 
 class RvizPane(QWidget):
     def __init__(self, fleet, parent=None):
@@ -42,6 +45,12 @@ class RvizPane(QWidget):
 
     def refresh(self):
         """rviz draws itself at its configured frame rate."""
+
+    def focus_on(self, x, y, z):
+        """Turn the orbit view's focal point to (x, y, z) in the fixed frame, closer in."""
+        view = self.frame.getManager().getViewManager().getCurrent()
+        view.subProp("Focal Point").setValue(f"{x}; {y}; {z}")
+        view.subProp("Distance").setValue(FOCUS_DISTANCE_M)
 
     def shutdown(self):
         """Nothing to do: the frame goes with its parent widget. Never `frame.close()`: rviz's

@@ -1,6 +1,7 @@
 """Pane 3, the secondary top view, drawn with QPainter (a second rviz frame cannot live in the
 same process): the projected map, fenced areas, routes with their waypoints, and every robot's
-position and heading (outlined red when its pose is stale).
+position and heading (outlined red when its pose is stale), and the site changes a monitoring
+mission found (appeared green, disappeared red; `focus_on` centres the view on one).
 """
 import math
 
@@ -35,6 +36,8 @@ class TopViewPane(QWidget):
         self._map = None
         self._poses = {}
         self._map_age_s = math.inf
+        self._changes = ()
+        self.focus = None  # (x, y) the operator selected, or None: the whole scene
 
     def refresh(self):
         grid, version, age_s = self.state.projected_map()
@@ -43,6 +46,12 @@ class TopViewPane(QWidget):
             self._map_qimage = None if grid is None else _to_qimage(grid.rgb)
         self._map_age_s = age_s
         self._poses = self.state.poses()
+        self._changes = self.state.map_changes()[1]
+        self.update()
+
+    def focus_on(self, x, y):
+        """Show the square around (x, y) (None: the whole scene again)."""
+        self.focus = None if x is None else (x, y)
         self.update()
 
     def paintEvent(self, _event):
@@ -52,7 +61,7 @@ class TopViewPane(QWidget):
         point_sets = [[(x, y) for x, y, _ in route] for route in self.routes.values()]
         point_sets += [poly for _, poly in self.fences]
         point_sets.append([(pose.x, pose.y) for pose, _ in self._poses.values()])
-        bounds = topview.scene_bounds(self._map, point_sets)
+        bounds = topview.focus_bounds(*self.focus) if self.focus else topview.scene_bounds(self._map, point_sets)
         to_screen = topview.WorldToScreen.fit(bounds, self.width(), self.height() - 18)
 
         if self._map_qimage is not None:
@@ -64,6 +73,16 @@ class TopViewPane(QWidget):
         painter.setBrush(QBrush(QColor(*FENCE_RGBA)))
         for _, polygon in self.fences:
             painter.drawPolygon(QPolygonF([QPointF(*to_screen(x, y)) for x, y in polygon]))
+
+        for change in self._changes:
+            (cx, cy, _), (sx, sy, _) = change.center_m, change.size_m
+            x0, y0 = to_screen(cx - sx / 2, cy + sy / 2)
+            x1, y1 = to_screen(cx + sx / 2, cy - sy / 2)
+            colour = QColor(*topview.CHANGE_RGB[change.kind])
+            painter.setPen(QPen(colour, 2))
+            colour.setAlpha(120)
+            painter.setBrush(QBrush(colour))
+            painter.drawRect(QRectF(x0 - 2, y0 - 2, x1 - x0 + 4, y1 - y0 + 4))
 
         for index, robot in enumerate(self.fleet.robots):
             colour = QColor(*robot_colour(index))

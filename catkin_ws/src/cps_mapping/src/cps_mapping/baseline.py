@@ -1,0 +1,64 @@
+"""The baseline map of a monitoring mission: loaded and checked against the running map's
+resolution and frame (no rospy).
+
+A .bt file holds its resolution but not its frame, so the map server writes a small sidecar
+`<map>.json` (`{"frame_id": ..., "resolution_m": ...}`) next to every map it saves; a baseline
+whose sidecar names another frame is refused, one without a sidecar is taken as in `frame_id`.
+"""
+import json
+import os
+
+from cps_mapping.fused_map import FusedLogOddsMap, MapFileError
+
+
+class BaselineError(ValueError):
+    """The baseline map cannot serve: missing, unreadable, or of another resolution or frame."""
+
+
+def metadata_path(map_path):
+    return f"{map_path}.json"
+
+
+def write_map_metadata(map_path, frame_id, resolution_m):
+    """The sidecar of a saved map; MapFileError if it cannot be written."""
+    try:
+        with open(metadata_path(map_path), "w") as stream:
+            json.dump({"frame_id": frame_id, "resolution_m": resolution_m}, stream)
+    except OSError as exc:
+        raise MapFileError(f"cannot write {metadata_path(map_path)}: {exc}") from exc
+
+
+def read_map_frame(map_path):
+    """The frame the sidecar names, or None without a sidecar; BaselineError if it is unreadable."""
+    path = metadata_path(map_path)
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path) as stream:
+            frame = json.load(stream)["frame_id"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise BaselineError(f"{path}: unreadable map metadata ({exc})") from exc
+    if not isinstance(frame, str) or not frame:
+        raise BaselineError(f"{path}: frame_id must be a non-empty string, got {frame!r}")
+    return frame
+
+
+def load_baseline(path, mapping, frame_id="map") -> FusedLogOddsMap:
+    """The baseline map at `path` for a map of fleet `mapping` (cps_fleet's MappingConfig) in
+    `frame_id`; BaselineError says why it cannot be used."""
+    if not path:
+        raise BaselineError("no baseline map given: a monitoring mission compares the site with an earlier map")
+    path = os.path.abspath(os.path.expanduser(path))
+    if not os.path.isfile(path):
+        raise BaselineError(f"baseline map {path} does not exist (run a characterization mission first, "
+                            f"e.g. `make demo`, which saves out/demo/map.bt)")
+    frame = read_map_frame(path)
+    if frame is not None and frame != frame_id:
+        raise BaselineError(f"baseline map {path} is in frame '{frame}' ({metadata_path(path)}), "
+                            f"this map is in '{frame_id}': the two cannot be compared")
+    baseline = FusedLogOddsMap.from_mapping_config(mapping)
+    try:
+        baseline.load(path)
+    except MapFileError as exc:
+        raise BaselineError(f"baseline map refused: {exc}") from exc
+    return baseline

@@ -1,0 +1,37 @@
+"""The map server's change-detection timer: publish the changes, and give robots near a new change
+high priority through cps_bw_manager's /tissue/set_priority (the paper's section 5 trigger)."""
+from cps_mapping import names
+
+
+def change_detection_timer(server, options, log, transform_of):
+    """The timer callback: publish the changes, then ask /tissue/set_priority for high priority for
+    each robot near a change new since the last detection."""
+    import rospy
+
+    from cps_mapping.change_attention import ChangeAttention
+    from cps_mapping.map_server import TransformUnavailable
+    from cps_msgs.srv import SetPriority
+
+    attention = ChangeAttention(options.change_attention_radius_m) if options.change_attention_radius_m > 0 else None
+    set_priority = rospy.ServiceProxy(names.SET_PRIORITY, SetPriority)
+
+    def positions():
+        out = {}
+        for robot, frame in server.sensor_frames.items():
+            try:
+                out[robot] = transform_of(frame, rospy.Time(0))[1][:2]
+            except TransformUnavailable:
+                pass
+        return out
+
+    def detect(_event):
+        changes = server.publish_changes(rospy.Time.now())
+        for robot, change in attention.robots_to_raise(changes, positions) if attention else ():
+            try:
+                reply = set_priority(robot=robot, priority=1)
+                log.info(f"map_server: {change.kind} change at ({change.centroid_m[0]:.1f}, {change.centroid_m[1]:.1f}) "
+                         f"near {robot}: high priority {'granted' if reply.success else 'refused: ' + reply.message}")
+            except (rospy.ServiceException, rospy.ROSException) as exc:
+                log.warning(f"map_server: could not raise {robot}'s priority: {exc}")
+
+    return detect

@@ -1,0 +1,92 @@
+"""The pieces of a monitoring mission at the twin: the baseline's checks (missing, corrupt, other
+resolution, other frame), scoring detected changes against the simulator's, and which robots get
+a closer look at a new change."""
+import types
+
+import numpy as np
+import pytest
+
+from cps_fleet.fleet import load_fleet
+from cps_mapping.baseline import BaselineError, load_baseline, write_map_metadata
+from cps_mapping.change_attention import ChangeAttention
+from cps_mapping.change_detection import Change
+from cps_mapping.change_scoring import score_changes
+from cps_mapping.fused_map import FusedLogOddsMap
+
+
+@pytest.fixture(scope="module")
+def mapping():
+    return load_fleet().mapping
+
+
+def _saved_map(path, resolution_m, mapping):
+    fused = FusedLogOddsMap(resolution_m, mapping.sensor_model)
+    points = np.array([[1.0, 1.0, 0.5], [1.1, 1.0, 0.5]])
+    fused.insert_batch([(points, np.zeros(3))], 10.0, "r")
+    fused.save(str(path))
+    return str(path)
+
+
+def test_baseline_in_the_same_resolution_and_frame_loads(tmp_path, mapping):
+    path = _saved_map(tmp_path / "a.bt", mapping.resolution_m, mapping)
+    write_map_metadata(path, "map", mapping.resolution_m)
+    assert len(load_baseline(path, mapping, "map").occupied_centers()) >= 2
+
+
+@pytest.mark.parametrize("problem", ["missing", "corrupt", "resolution", "frame", "none"])
+def test_bad_baselines_are_refused_with_the_reason(tmp_path, mapping, problem):
+    path = str(tmp_path / "base.bt")
+    if problem == "corrupt":
+        open(path, "wb").write(b"# Octomap OcTree binary file\nid OcTree\nsize 5\nres 0.1\ndata\n\x01")
+    elif problem == "resolution":
+        _saved_map(path, 2 * mapping.resolution_m, mapping)
+    elif problem == "frame":
+        _saved_map(path, mapping.resolution_m, mapping)
+        write_map_metadata(path, "odom", mapping.resolution_m)
+    with pytest.raises(BaselineError) as info:
+        load_baseline(path if problem != "none" else "", mapping, "map")
+    words = {"missing": "does not exist", "corrupt": path, "resolution": "resolution", "frame": "frame 'odom'",
+             "none": "no baseline"}[problem]
+    assert words in str(info.value)
+
+
+def _change(kind, x, y, size=0.8):
+    return Change(kind, 50, (x, y, 0.5), (size, size, 1.0), 0.05, (x - size / 2, y - size / 2, 0.0),
+                  (x + size / 2, y + size / 2, 1.0))
+
+
+def _expected(name, kind, x, y, size=1.0):
+    return types.SimpleNamespace(name=name, kind=kind, centroid_m=(x, y, 0.5), size_m=(size, size, 1.0))
+
+
+def test_score_matches_by_kind_and_place_once_each():
+    expected = [_expected("crate_2", "disappeared", 3.2, -1.0), _expected("crate_4", "disappeared", 3.0, -4.5),
+                _expected("crate_4", "appeared", 3.0, -3.5)]
+    detected = [_change("disappeared", 3.1, -1.1), _change("appeared", 3.0, -3.6),
+                _change("appeared", 3.2, -1.0),          # right place, wrong kind: false
+                _change("disappeared", 3.15, -1.0),      # a second piece of crate_2: false, matched once
+                _change("disappeared", -5.0, 0.0)]       # nowhere near a change: false
+    score = score_changes(detected, expected)
+    assert score.recall == pytest.approx(2 / 3)
+    assert score.precision == pytest.approx(2 / 5)
+    assert score.match_of_expected(0).detected_index == 3  # the nearer of the two
+    assert score.match_of_expected(0).position_error_m == pytest.approx(0.05)
+    assert score.match_of_expected(1) is None
+    assert score.match_of_expected(2).position_error_m == pytest.approx(0.1)
+
+
+def test_robots_near_a_new_change_are_raised_once():
+    attention = ChangeAttention(radius_m=3.0)
+    asked = []
+
+    def positions():
+        asked.append(True)
+        return {"champ": (1.0, -1.0), "iris": (8.0, 5.0)}
+
+    crate = _change("disappeared", 3.2, -1.0)
+    assert attention.robots_to_raise([crate], positions) == [("champ", crate)]
+    grown = _change("disappeared", 3.3, -1.0)  # the same change, seen a little more
+    assert attention.robots_to_raise([grown], positions) == []
+    assert len(asked) == 1, "positions are looked up only for new changes"
+    far = _change("appeared", 8.5, 5.5)
+    assert attention.robots_to_raise([grown, far], positions) == [("iris", far)]
