@@ -82,6 +82,18 @@ def build_parser():
     return parser
 
 
+def mission_args(side, **options):
+    """The parsed command line of `cps_bringup SIDE` with typed `options` in place of flags, for
+    callers in Python (demo, monitor): the parser's defaults, no argv strings built and parsed back."""
+    args = build_parser().parse_args([side])
+    unknown = sorted(set(options) - set(vars(args)))
+    if unknown:
+        raise TypeError(f"unknown mission option(s): {', '.join(unknown)}")
+    for key, value in options.items():
+        setattr(args, key, value)
+    return args
+
+
 def _sides(side):
     return (PHYSICAL, DIGITAL) if side == "all" else (side,)
 

@@ -11,7 +11,7 @@ import os
 import sys
 import time
 
-from cps_bringup.cli import build_parser, run_mission
+from cps_bringup.cli import mission_args, run_mission
 from cps_bringup.plan import GUI_SCREENSHOT_AFTER_S
 from cps_bringup.supervisor import BringupError
 from cps_fleet.fleet import PROFILES
@@ -56,29 +56,27 @@ def main(argv=None):
     t0 = time.monotonic()
     out_dir = os.path.abspath(args.out)
     link = choose_link(args.link)
-    mission_args = build_parser().parse_args([
-        "all", *(["--profile", args.profile] if args.profile else []), "--out", out_dir, "--link", link, "--duration", str(args.duration),
-        "--screenshot", "--screenshot-after", str(args.screenshot_after),
-        *(["--link-scenario", args.link_scenario] if link != "none" and args.link_scenario != "none" else []),
-        *(["--robots", args.robots] if args.robots else []),
-        *(["--kill-map-server-at", str(args.kill_map_server_at)] if args.kill_map_server_at is not None else [])])
+    scenario = args.link_scenario if link != "none" and args.link_scenario != "none" else None
+    mission = mission_args("all", profile=args.profile, out=out_dir, link=link, duration=args.duration,
+                           screenshot=True, screenshot_after=args.screenshot_after, link_scenario=scenario,
+                           robots=args.robots, kill_map_server_at=args.kill_map_server_at)
     from cps_bringup.report import write_mission_report
 
-    result = run_and_report("demo", mission_args, write_mission_report, t0)
+    result = run_and_report("demo", mission, write_mission_report, t0)
     if result is None:
         return 2
     print(json.dumps({"ended_by": result.ended_by, "link": result.link, "out": out_dir}, indent=None))
     return 0
 
 
-def run_and_report(prog, mission_args, write_report, t0):
-    """Run the mission and `write_report(result, mission_args, wall_time_s)`; the MissionResult, or None
+def run_and_report(prog, mission, write_report, t0):
+    """Run the mission and `write_report(result, mission, wall_time_s)`; the MissionResult, or None
     after printing why the mission could not start."""
     try:
-        result = run_mission(mission_args)
+        result = run_mission(mission)
     except BringupError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return None
-    report = write_report(result, mission_args, wall_time_s=time.monotonic() - t0)
+    report = write_report(result, mission, wall_time_s=time.monotonic() - t0)
     print(f"[{prog}] wrote {report}")
     return result

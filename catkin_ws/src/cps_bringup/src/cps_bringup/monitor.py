@@ -9,13 +9,12 @@ import os
 import sys
 import time
 
-from cps_bringup.cli import build_parser
+from cps_bringup.cli import mission_args
 from cps_bringup.demo import choose_link, run_and_report
 from cps_fleet.fleet import PROFILES
 
 DEFAULT_BASELINE = "out/demo/map.bt"
-DEFAULT_CHANGES = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config",
-                                                "site_changes.yaml"))
+DEFAULT_CHANGES_FILE = "config/site_changes.yaml"  # in cps_bringup, found through rospkg
 # The robots of the storage area, where the example changes are: a shorter mission than the demo's.
 DEFAULT_ROBOTS = "champ,iris"
 SCREENSHOT_AFTER_S = 60.0
@@ -24,7 +23,8 @@ SCREENSHOT_AFTER_S = 60.0
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="monitor", description=__doc__.split("\n\n")[0])
     parser.add_argument("--baseline", default=DEFAULT_BASELINE, help=f"the earlier map (default {DEFAULT_BASELINE})")
-    parser.add_argument("--site-changes", default=DEFAULT_CHANGES, help="what the simulator changes (YAML)")
+    parser.add_argument("--site-changes", default=None,
+                        help=f"what the simulator changes (YAML; default cps_bringup's {DEFAULT_CHANGES_FILE})")
     parser.add_argument("--out", default="out/monitor")
     parser.add_argument("--link", default="auto", help="auto (fleet.yaml's link rate when root), none, or a rate")
     parser.add_argument("--profile", default=None, choices=PROFILES)
@@ -37,15 +37,17 @@ def parse_args(argv):
 def main(argv=None):
     args = parse_args(argv)
     t0 = time.monotonic()
+    if args.site_changes is None:
+        import rospkg
+
+        args.site_changes = os.path.join(rospkg.RosPack().get_path("cps_bringup"), DEFAULT_CHANGES_FILE)
     if not os.path.isfile(args.baseline):
         print(f"monitor: error: no baseline map at {args.baseline}: run `make demo` first (it saves the "
               f"characterization map there), or pass --baseline MAP.bt", file=sys.stderr)
         return 2
-    mission_args = build_parser().parse_args([
-        "all", "--baseline", args.baseline, "--site-changes", args.site_changes, "--out", args.out,
-        "--link", choose_link(args.link), "--duration", str(args.duration), "--robots", args.robots,
-        "--screenshot", "--screenshot-after", str(args.screenshot_after),
-        *(["--profile", args.profile] if args.profile else [])])
+    mission = mission_args("all", baseline=args.baseline, site_changes=args.site_changes, out=args.out,
+                           link=choose_link(args.link), duration=args.duration, robots=args.robots, screenshot=True,
+                           screenshot_after=args.screenshot_after, profile=args.profile)
     from cps_bringup.monitor_report import write_monitor_report
 
-    return 0 if run_and_report("monitor", mission_args, write_monitor_report, t0) else 2
+    return 0 if run_and_report("monitor", mission, write_monitor_report, t0) else 2
