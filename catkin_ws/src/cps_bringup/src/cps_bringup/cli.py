@@ -57,6 +57,12 @@ def build_parser():
                         help="PyBullet renderer; auto: TinyRenderer for small images, EGL for 640x480")
     parser.add_argument("--no-sim", action="store_true",
                         help="real robots: do not start fleet_sim; their drivers publish /<r>/points, odom, tf")
+    parser.add_argument("--record", default=None, metavar="BAG",
+                        help="record the mission (sensor, odometry, tf topics and the twin's managed inputs) "
+                             "to this rosbag with rosbag record")
+    parser.add_argument("--replay", default=None, metavar="BAG",
+                        help="physical side: play this mission bag (e.g. your own robot's) with rosbag play "
+                             "in place of the simulator, on the bag's clock; the mission ends with the bag")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server S seconds into the mission")
     return parser
@@ -103,8 +109,9 @@ def run_mission(args, log=print) -> MissionResult:
     except (ConfigError, KeyError, ValueError) as exc:
         raise BringupError(str(exc).strip('"')) from exc
     out_dir = os.path.abspath(args.out)
-    os.makedirs(out_dir, exist_ok=True)
     sides = _sides(args.side)
+    replay_path = _checked_replay(args.replay, fleet, sides, log)
+    os.makedirs(out_dir, exist_ok=True)
     removed = clear_previous_mission(out_dir, sides)
     if removed:
         log(f"[bringup] {out_dir}: removed the previous mission's {', '.join(removed)} (a new mission starts "
@@ -113,7 +120,8 @@ def run_mission(args, log=print) -> MissionResult:
         out_dir=out_dir, profile=args.profile, renderer=args.renderer, simulate=not args.no_sim,
         map_file=os.path.join(out_dir, "map.bt"),
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
-        gui_screenshot_after_s=args.screenshot_after)
+        gui_screenshot_after_s=args.screenshot_after,
+        record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path)
     with contextlib.ExitStack() as stack:
         link = stack.enter_context(_link_context(args.link, log))
         if link:
@@ -130,6 +138,11 @@ def run_mission(args, log=print) -> MissionResult:
             graph = RosGraph(port=args.port, log_dir=node_log_dir(out_dir), host_ip=host_ip)
         stack.callback(graph.close)
         graph.start()
+        if replay_path:
+            # Every node (started after this) runs on the bag's clock, which rosbag play --clock publishes.
+            import rosgraph
+
+            rosgraph.Master("/cps_bringup", master_uri=graph.uri).setParam("/use_sim_time", True)
         log(f"[bringup] master {graph.uri}; link: {link.describe() if link else 'loopback (no shaping)'}; "
             f"robots {', '.join(fleet.robot_names)}; profile {options.profile or fleet.profile.name}; out {out_dir}")
         supervisor = Supervisor(
@@ -156,7 +169,8 @@ def run_mission(args, log=print) -> MissionResult:
 
         ended_by, elapsed = "interrupted", 0.0
         try:
-            ended_by, elapsed = wait_for_mission(monitor, supervisor, args.duration, log=log, on_tick=fault_injection)
+            ended_by, elapsed = wait_for_mission(monitor, supervisor, args.duration, log=log, on_tick=fault_injection,
+                                                 finished=_replay_finished(supervisor) if replay_path else None)
         except KeyboardInterrupt:
             log("[bringup] interrupted; shutting down")
         map_file = _save_map(options.map_file, log) if DIGITAL in sides else None
@@ -164,6 +178,39 @@ def run_mission(args, log=print) -> MissionResult:
             _wait_for_screenshot(supervisor, options.gui_screenshot_path, log)
         return MissionResult(out_dir, ended_by, elapsed, link.describe() if link else "loopback",
                              map_file, monitor.snapshot(), list(supervisor.events), supervisor.restarts())
+
+
+def _checked_replay(path, fleet, sides, log):
+    """The absolute path of a bag that can feed `fleet`, or BringupError saying why not."""
+    if not path:
+        return None
+    if PHYSICAL not in sides:
+        raise BringupError("--replay plays the robots' side: use it with `physical` or `all`")
+    from cps_bringup.mission_bag import BagError, check_bag
+
+    try:
+        contents = check_bag(os.path.abspath(path), fleet)
+    except BagError as exc:
+        raise BringupError(str(exc)) from exc
+    log(f"[bringup] replaying {path}: {contents.duration_s:.1f} s, {len(contents.topics)} topics")
+    return os.path.abspath(path)
+
+
+# After the bag ends, s for the tissue and the map server to take in the last clouds.
+REPLAY_DRAIN_S = 3.0
+
+
+def _replay_finished(supervisor):
+    from cps_bringup.plan import REPLAY
+
+    def finished():
+        running = supervisor.running.get(REPLAY)
+        if running is None or running.proc.poll() is None:
+            return None
+        time.sleep(REPLAY_DRAIN_S)
+        return "replay"
+
+    return finished
 
 
 def _save_map(path, log):

@@ -137,6 +137,11 @@ class RobotConfig:
         return self.type.endswith("_lidar")
 
     @property
+    def cloud_topic(self):
+        """The sensor's cloud topic, relative to /<name>."""
+        return "points"
+
+    @property
     def sensor_frame(self):
         return f"{self.name}/lidar" if self.has_lidar else f"{self.name}/camera_depth_optical_frame"
 
