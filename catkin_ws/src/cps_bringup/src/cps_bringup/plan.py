@@ -99,7 +99,8 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                 "fleet_sim", PHYSICAL,
                 py("cps_sim", "fleet_sim", "__name:=fleet_sim",
                    *_args({**common, "profile": profile, "robots": ",".join(robots), "renderer": options.renderer})),
-                wait_topics=tuple(t for r in robots for t in (f"/{r}/odom", f"/{r}/points")),
+                wait_topics=tuple(t for r in fleet.robots
+                                  for t in (f"/{r.name}/odom", f"/{r.name}/{r.cloud_topic}")),
                 restart_limit=0))
         drivers = ("fleet_sim",) if options.simulate and not options.replay_path else ()
         specs.append(NodeSpec(

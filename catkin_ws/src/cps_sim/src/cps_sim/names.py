@@ -7,7 +7,7 @@ relative. fleet_sim serves every robot from one node in the root namespace and b
 """
 
 # Per robot, relative to the robot's namespace.
-POINTS = "points"
+# The cloud topic is the robot type's (fleet.yaml robot_types[*].cloud_topic).
 CAMERA_IMAGE = "camera/image_raw"
 CAMERA_INFO = "camera/camera_info"
 ODOM = "odom"
