@@ -17,7 +17,10 @@ def _split_node(spec: NodeSpec):
     if argv[0] == "rosrun":
         return argv[1], argv[2], argv[3:]
     path = argv[1]
-    return os.path.basename(os.path.dirname(os.path.dirname(path))), os.path.basename(path), argv[2:]
+    # <package>/nodes/<node> in the source tree, lib/<package>/<node> in an install space.
+    folder = os.path.dirname(path)
+    package_dir = os.path.dirname(folder) if os.path.basename(folder) == "nodes" else folder
+    return os.path.basename(package_dir), os.path.basename(path), argv[2:]
 
 
 def _node_xml(spec: NodeSpec, substitutions):
@@ -80,8 +83,9 @@ def shipped_launch_files(out_dir="$(optenv CPS_OUT /tmp/cps_fleet)"):
 
 
 def main():
-    here = os.path.dirname(os.path.abspath(__file__))
-    launch_dir = os.path.normpath(os.path.join(here, "..", "..", "launch"))
+    import rospkg
+
+    launch_dir = os.path.join(rospkg.RosPack().get_path("cps_bringup"), "launch")
     os.makedirs(launch_dir, exist_ok=True)
     for name, text in shipped_launch_files().items():
         with open(os.path.join(launch_dir, name), "w") as stream:

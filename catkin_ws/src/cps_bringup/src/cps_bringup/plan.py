@@ -76,8 +76,10 @@ def _stats_topics(robots):
 
 
 def default_node_path(package: str, node: str) -> str:
-    here = os.path.dirname(os.path.abspath(__file__))
-    return os.path.normpath(os.path.join(here, "..", "..", "..", package, "nodes", node))
+    """The node's executable as rospkg/catkin find it (devel or install space)."""
+    from cps_harness.processes import find_node
+
+    return find_node(package, node)
 
 
 def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
