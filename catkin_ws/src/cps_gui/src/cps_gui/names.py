@@ -1,8 +1,10 @@
 """The topic, service and frame names the operator GUI uses, in one place.
 
 The GUI runs in the root namespace and serves every robot, so per-robot names are built relative
-(`<r>/odom` resolves to `/<r>/odom`); site-wide names are global, as the ROS graph contract has
-them. rviz configs get fully qualified names (`global_robot_topic`).
+(`<r>/odom` resolves to `/<r>/odom`); the tissue's and the twin's names are relative too
+(`tissue/stats` resolves to `/tissue/stats`), so `__ns:=` moves the GUI to a system started in a
+namespace; the e-stop and ROS's own `/rosout_agg` stay global. rviz configs get fully qualified
+names (`global_robot_topic`).
 """
 
 # Per robot.
@@ -16,13 +18,13 @@ FLIGHT_COMMAND = "flight_command"
 
 # Site-wide.
 ESTOP = "/fleet/estop"
-TISSUE_STATS = "/tissue/stats"
-ALLOCATION = "/tissue/allocation"
-AVAILABLE_BANDWIDTH = "/tissue/available_bandwidth"
-SET_PRIORITY = "/tissue/set_priority"
-MAP_STATS = "/twin/map_stats"
-PROJECTED_MAP = "/twin/projected_map"
-MAP_MARKERS = "/twin/occupied_cells_vis_array"
+TISSUE_STATS = "tissue/stats"
+ALLOCATION = "tissue/allocation"
+AVAILABLE_BANDWIDTH = "tissue/available_bandwidth"
+SET_PRIORITY = "tissue/set_priority"
+MAP_STATS = "twin/map_stats"
+PROJECTED_MAP = "twin/projected_map"
+MAP_MARKERS = "twin/occupied_cells_vis_array"
 ROSOUT = "/rosout_agg"
 
 MAP_FRAME = "map"
