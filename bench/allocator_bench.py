@@ -93,7 +93,7 @@ def measure_priority_to_rate(changes, robots, feed):
         pubs = {r: rospy.Publisher(f"/{r}/points_filtered/draco", CompressedPointCloud2, queue_size=2) for r in robots}
 
         def feeder():
-            msg = CompressedPointCloud2(format="draco", compressed_data=bytes(30000))
+            msg = CompressedPointCloud2(compressed_data=bytes(30000))
             while not stop.is_set():
                 for pub in pubs.values():
                     msg.header.stamp = rospy.Time.now()

@@ -38,7 +38,7 @@ def graph(ros, rospy_node, tmp_path):
     stop = threading.Event()
 
     def feed():
-        msg = CompressedPointCloud2(format="draco", compressed_data=bytes(PAYLOAD_BYTES))
+        msg = CompressedPointCloud2(compressed_data=bytes(PAYLOAD_BYTES))
         while not stop.is_set():
             for pub in pubs.values():
                 msg.header.stamp = rospy.Time.now()

@@ -1,15 +1,19 @@
-"""The robot types' limits table: one entry per fleet robot type, physically sensible values."""
+"""Robot types as data (fleet.yaml robot_types): sensible values, file:line errors, new types."""
+import os
+import shutil
+
 import pytest
 
-from cps_fleet.fleet import ROBOT_TYPES
-from cps_fleet.robot_types import VELOCITY_LIMITS, velocity_limits
+from cps_fleet.config import ConfigError
+from cps_fleet.fleet import ROBOT_TYPES, default_fleet_path, load_fleet
+from cps_fleet.robot_types import resolve, velocity_limits
 
 
-def test_every_fleet_robot_type_has_limits():
-    assert set(VELOCITY_LIMITS) == set(ROBOT_TYPES)
+def test_the_default_fleet_defines_the_four_types():
+    assert set(load_fleet().robot_types) == set(ROBOT_TYPES)
 
 
-@pytest.mark.parametrize("robot_type", sorted(VELOCITY_LIMITS))
+@pytest.mark.parametrize("robot_type", ROBOT_TYPES)
 def test_limits_are_non_negative_and_every_type_drives_and_turns(robot_type):
     limits = velocity_limits(robot_type)
     assert limits.max_forward_mps > 0 and limits.max_yaw_rate_rps > 0
@@ -18,9 +22,72 @@ def test_limits_are_non_negative_and_every_type_drives_and_turns(robot_type):
 
 
 def test_only_the_quadrotor_climbs():
-    assert [t for t, limits in VELOCITY_LIMITS.items() if limits.can_climb] == ["aerial_depth"]
+    types = load_fleet().robot_types
+    assert [name for name, t in types.items() if t.limits.can_climb] == ["aerial_depth"]
 
 
 def test_unknown_type_names_the_known_ones():
     with pytest.raises(ValueError, match="wheeled_lidar"):
         velocity_limits("hexapod")
+
+
+def test_sensor_frame_and_max_range_come_from_the_type():
+    fleet = load_fleet()
+    assert fleet.robot("scout").sensor_frame == "scout/lidar"
+    assert fleet.robot("jackal").sensor_frame == "jackal/camera_depth_optical_frame"
+    assert fleet.mapping.max_range_m == {"wheeled_lidar": 12.0, "wheeled_depth": 6.0, "legged_depth": 6.0,
+                                         "aerial_depth": 6.0}
+
+
+NEW_TYPE = """  tracked_lidar:   # a user's robot: only data
+    base: wheeled
+    sensor: lidar
+    cloud_topic: velodyne_points
+    sensor_frame: velodyne
+    max_range_m: 20.0
+    limits: {max_forward_mps: 1.0, max_lateral_mps: 0.0, max_vertical_mps: 0.0, max_yaw_rate_rps: 1.0,
+             max_linear_accel_mps2: 0.5, max_yaw_accel_rps2: 1.0}
+"""
+
+
+def fleet_with_new_type(tmp_path, robot="scout", entry=NEW_TYPE):
+    """A copy of the default fleet where `robot` is of a type defined only in this copy."""
+    source = default_fleet_path()
+    config_dir = tmp_path / "config"
+    shutil.copytree(os.path.dirname(source), config_dir)
+    path = config_dir / "fleet.yaml"
+    site = os.path.normpath(os.path.join(os.path.dirname(source), "../../cps_sim/config/hall.yaml"))
+    text = path.read_text().replace("site: ../../cps_sim/config/hall.yaml", f"site: {site}")
+    text = text.replace("robot_types:\n", "robot_types:\n" + entry, 1)
+    old = f"  - name: {robot}\n    type: "
+    start = text.index(old) + len(old)
+    text = text[:start] + "tracked_lidar" + text[text.index("\n", start):]
+    path.write_text(text)
+    return path
+
+
+def test_a_new_type_is_only_data(tmp_path):
+    fleet = load_fleet(str(fleet_with_new_type(tmp_path)))
+    scout = fleet.robot("scout")
+    assert scout.type == "tracked_lidar" and scout.has_lidar
+    assert scout.cloud_topic == "velodyne_points" and scout.sensor_frame == "scout/velodyne"
+    assert fleet.mapping.max_range_m["tracked_lidar"] == 20.0
+    assert resolve("tracked_lidar").limits.max_forward_mps == 1.0
+
+
+@pytest.mark.parametrize("key", ["base", "sensor", "cloud_topic", "sensor_frame", "max_range_m", "limits"])
+def test_a_type_missing_a_key_names_file_line_and_key(tmp_path, key):
+    drop = (f"{key}:",) + (("max_linear",) if key == "limits" else ())  # limits spans two lines
+    entry = "".join(line + "\n" for line in NEW_TYPE.splitlines() if not line.strip().startswith(drop))
+    path = fleet_with_new_type(tmp_path, entry=entry)
+    line = path.read_text().splitlines().index("  tracked_lidar:   # a user's robot: only data") + 1
+    with pytest.raises(ConfigError) as error:
+        load_fleet(str(path))
+    assert f"{path}:{line}: robot_types.tracked_lidar: missing key '{key}'" in str(error.value)
+
+
+def test_an_unknown_sensor_kind_is_refused(tmp_path):
+    path = fleet_with_new_type(tmp_path, entry=NEW_TYPE.replace("sensor: lidar", "sensor: sonar"))
+    with pytest.raises(ConfigError, match=r"fleet.yaml:\d+: robot_types.tracked_lidar.sensor: unknown sensor kind "
+                                          r"'sonar' \(known: lidar, depth\)"):
+        load_fleet(str(path))

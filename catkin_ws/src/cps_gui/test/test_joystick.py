@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from cps_gui import joystick
 from cps_fleet.fleet import ROBOT_TYPES
-from cps_fleet.robot_types import VELOCITY_LIMITS
+
 
 
 @pytest.mark.parametrize("robot_type", ["wheeled_lidar", "wheeled_depth"])
@@ -63,7 +63,7 @@ def test_bad_input_is_rejected_or_neutral():
 
 
 @given(dx=st.floats(-1e4, 1e4), dy=st.floats(-1e4, 1e4), climb=st.floats(-5, 5), strafe=st.booleans(),
-       robot_type=st.sampled_from(sorted(VELOCITY_LIMITS)))
+       robot_type=st.sampled_from(sorted(ROBOT_TYPES)))
 def test_commands_never_exceed_the_type_limits(dx, dy, climb, strafe, robot_type):
     limits = joystick.speed_limits(robot_type)
     c = joystick.drag_to_command(robot_type, dx, dy, 50, climb=climb, strafe=strafe)

@@ -73,8 +73,8 @@ def test_messages_import_from_the_venv_python():
     from cps_msgs.msg import BandwidthAllocationArray, CompressedPointCloud2, Octomap, TopicStatsArray  # noqa: F401
     from cps_msgs.srv import SetPriority, SetRate  # noqa: F401
 
-    msg = CompressedPointCloud2(format="draco", compressed_data=b"\x01\x02")
-    assert msg.format == "draco"
+    msg = CompressedPointCloud2(is_dense=True, compressed_data=b"\x01\x02")
+    assert msg.is_dense and msg.compressed_data == b"\x01\x02"
 
 
 @pytest.mark.ros

@@ -92,7 +92,7 @@ def _start(graph, map_file, name, **extra):
               "~tf_timeout_s": 0.3, "~autosave_period_s": 0.0, "~max_points_range_m": 200.0}
     params.update({f"~{k}": v for k, v in extra.items()})
     proc = graph.start_node("cps_mapping", "map_server", name=name, namespace="/twin", params=params)
-    graph.wait_for_service("/twin/clear_bbx", timeout_s=30)
+    graph.wait_for_service(f"/twin/{name}/clear_bbx", timeout_s=30)
     return proc
 
 
@@ -197,7 +197,8 @@ def test_refused_loads_leave_the_map_and_services_work(server, rospy_node, scene
     rospy = rospy_node
     from geometry_msgs.msg import Point
 
-    from cps_msgs.srv import ClearBBX, LoadMap, SaveMap
+    from cps_msgs.msg import Octomap
+    from cps_msgs.srv import BoundingBoxQuery, LoadMap, SaveMap
 
     tmp, before = server.tmp, len(server.occupied)
     save = rospy.ServiceProxy("/twin/save_map", SaveMap)
@@ -215,7 +216,17 @@ def test_refused_loads_leave_the_map_and_services_work(server, rospy_node, scene
         "a refused load changed the map"
 
     crate_a = next(b for b in scene_clouds[0].boxes if b.name == "crate_a")
-    assert rospy.ServiceProxy("/twin/clear_bbx", ClearBBX)(Point(*crate_a.min_m), Point(*crate_a.max_m)).success
+    full = TopicRecorder("/twin/octomap_full", Octomap)
+    try:
+        # As octomap_server's: the full tree (log-odds of every known voxel), not the binary one.
+        message = full.wait(lambda m: len(m.data) > 0, what="octomap_full")
+        assert not message.binary and message.id == "OcTree" and message.resolution == pytest.approx(RES)
+    finally:
+        full.close()
+    clear_bbx = rospy.ServiceProxy("/twin/map_server_a/clear_bbx", BoundingBoxQuery)
+    with pytest.raises(rospy.ServiceException, match="below min"):
+        clear_bbx(Point(*crate_a.max_m), Point(*crate_a.min_m))
+    clear_bbx(Point(*crate_a.min_m), Point(*crate_a.max_m))
     server.centers.wait(lambda m: m.width < before, what="clear_bbx effect")
     assert save(str(tmp / "without_crate_a.bt")).success
     assert load(str(tmp / "copy.ot")).success
@@ -243,7 +254,7 @@ def test_restarted_server_resumes_and_reports_the_change(server, rospy_node, sce
         crate_a = next(b for b in scene_clouds[0].boxes if b.name == "crate_a")
         assert crate_a.min_m[0] - 0.2 < boxes[0].pose.position.x < crate_a.max_m[0] + 0.2
         assert "appeared" in (tmp / "changes.md").read_text()
-        rospy.ServiceProxy("/twin/reset", Empty)()
+        rospy.ServiceProxy("/twin/map_server_b/reset", Empty)()
         server.centers.wait(lambda m: m.width == 0, what="reset")
     finally:
         server.graph.stop(proc)

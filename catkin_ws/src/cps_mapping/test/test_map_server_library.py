@@ -14,7 +14,7 @@ from cps_mapping import map_messages
 from cps_mapping.change_detection import Change
 from cps_mapping.fused_map import message_fields, octree_from_message
 from cps_mapping.map_server import MapOutputs, MapServer, MapServerOptions, TransformUnavailable
-from cps_msgs.srv import ClearBBXRequest, LoadMapRequest, SaveMapRequest
+from cps_msgs.srv import BoundingBoxQueryRequest, LoadMapRequest, SaveMapRequest
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
 import synthetic_scene as sc
 
@@ -36,7 +36,7 @@ class Published:
     """MapOutputs whose publish callables keep every message, per output."""
 
     def __init__(self):
-        self.messages = {name: [] for name in MapOutputs.__dataclass_fields__}
+        self.messages = {name: [] for name in MapOutputs.__dataclass_fields__ if name != "full_wanted"}
         self.outputs = MapOutputs(**{name: self.messages[name].append for name in self.messages})
 
 
@@ -123,6 +123,10 @@ def test_map_topics_are_published_once_per_map_version(jackal_points):
     assert centers.width == len(server.map.occupied_index())
     grid = published["projected_map"][-1]
     assert grid.info.width * grid.info.height == len(grid.data) and grid.info.resolution == RES
+    # octomap_full as octomap_server's: the .ot body (log-odds), once per map version.
+    full = published["octomap_full"]
+    assert len(full) == 2 and not full[-1].binary and full[-1].id == "OcTree"
+    assert bytes(np.asarray(full[-1].data, dtype=np.int8).tobytes()) == message_fields(server.map, binary=False)[3]
 
 
 def test_stats_carry_the_snapshot_and_the_counters(jackal_points):
@@ -151,7 +155,9 @@ def test_services_save_load_clear_and_reset(jackal_points, tmp_path):
     refused = server.on_load(LoadMapRequest(path=str(tmp_path / "bad.bt")))
     assert not refused.success and len(server.map.occupied_index()) == occupied
     lo, hi = server.map.occupied_centers().min(axis=0) - RES, server.map.occupied_centers().max(axis=0) + RES
-    assert server.on_clear_bbx(ClearBBXRequest(min=Point(*lo), max=Point(*hi))).success
+    with pytest.raises(ValueError, match="below min"):
+        server.on_clear_bbx(BoundingBoxQueryRequest(min=Point(*hi), max=Point(*lo)))
+    server.on_clear_bbx(BoundingBoxQueryRequest(min=Point(*lo), max=Point(*hi)))
     assert len(server.map.occupied_index()) == 0
     assert server.on_load(LoadMapRequest(path="")).success
     assert len(server.map.occupied_index()) == occupied

@@ -58,7 +58,7 @@ def test_round_trip_and_corrupt_payload_counted(ros, rospy_node):
         # A corrupt payload is dropped at the subscriber; the next good cloud arrives.
         corrupt = CompressedPointCloud2()
         corrupt.header, corrupt.height, corrupt.width = compressed.header, compressed.height, compressed.width
-        corrupt.fields, corrupt.format = compressed.fields, compressed.format
+        corrupt.fields = compressed.fields
         corrupt.compressed_data = bytes(reversed(compressed.compressed_data))
         got.clear()
         intruder.publish(corrupt)

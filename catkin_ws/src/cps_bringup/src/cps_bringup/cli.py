@@ -77,6 +77,12 @@ def build_parser():
     parser.add_argument("--site-changes", default=None, metavar="FILE",
                         help="monitoring mission in simulation: equipment removed/moved/added (YAML, see "
                              "cps_bringup/config/site_changes.yaml); needs --baseline")
+    parser.add_argument("--record", default=None, metavar="BAG",
+                        help="record the mission (sensor, odometry, tf topics and the twin's managed inputs) "
+                             "to this rosbag with rosbag record")
+    parser.add_argument("--replay", default=None, metavar="BAG",
+                        help="physical side: play this mission bag (e.g. your own robot's) with rosbag play "
+                             "in place of the simulator, on the bag's clock; the mission ends with the bag")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server S seconds into the mission")
     return parser
@@ -138,6 +144,7 @@ def run_mission(args, log=print) -> MissionResult:
     out_dir = os.path.abspath(args.out)
     sides = _sides(args.side)
     baseline, site_changes = check_monitoring_inputs(args, fleet, sides)
+    replay_path = _checked_replay(args.replay, fleet, sides, log)
     os.makedirs(out_dir, exist_ok=True)
     removed = clear_previous_mission(out_dir, sides)
     if removed:
@@ -147,7 +154,8 @@ def run_mission(args, log=print) -> MissionResult:
         out_dir=out_dir, profile=args.profile, renderer=args.renderer, simulate=not args.no_sim,
         map_file=os.path.join(out_dir, "map.bt"),
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
-        gui_screenshot_after_s=args.screenshot_after, baseline_map=baseline, site_changes_file=site_changes)
+        gui_screenshot_after_s=args.screenshot_after, baseline_map=baseline, site_changes_file=site_changes,
+        record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path)
     with contextlib.ExitStack() as stack:
         link = stack.enter_context(_link_context(args.link, log, getattr(args, "link_scenario", None)))
         if link:
@@ -175,6 +183,11 @@ def run_mission(args, log=print) -> MissionResult:
                 raise BringupError(str(exc)) from exc
             log(f"[bringup] the nodes run as '{user}' (root only for the link)")
         graph.start()
+        if replay_path:
+            # Every node (started after this) runs on the bag's clock, which rosbag play --clock publishes.
+            import rosgraph
+
+            rosgraph.Master("/cps_bringup", master_uri=graph.uri).setParam("/use_sim_time", True)
         log(f"[bringup] master {graph.uri}; link: {link.describe() if link else 'loopback (no shaping)'}; "
             f"robots {', '.join(fleet.robot_names)}; profile {options.profile or fleet.profile.name}; out {out_dir}")
         supervisor = Supervisor(
@@ -209,7 +222,8 @@ def run_mission(args, log=print) -> MissionResult:
 
         ended_by, elapsed = "interrupted", 0.0
         try:
-            ended_by, elapsed = wait_for_mission(monitor, supervisor, args.duration, log=log, on_tick=fault_injection)
+            ended_by, elapsed = wait_for_mission(monitor, supervisor, args.duration, log=log, on_tick=fault_injection,
+                                                 finished=_replay_finished(supervisor) if replay_path else None)
         except KeyboardInterrupt:
             log("[bringup] interrupted; shutting down")
         except MasterLost as exc:
@@ -253,6 +267,39 @@ def check_monitoring_inputs(args, fleet, sides):
         except ConfigError as exc:
             raise BringupError(f"--site-changes: {exc}") from exc
     return baseline, changes
+
+
+def _checked_replay(path, fleet, sides, log):
+    """The absolute path of a bag that can feed `fleet`, or BringupError saying why not."""
+    if not path:
+        return None
+    if PHYSICAL not in sides:
+        raise BringupError("--replay plays the robots' side: use it with `physical` or `all`")
+    from cps_bringup.mission_bag import BagError, check_bag
+
+    try:
+        contents = check_bag(os.path.abspath(path), fleet)
+    except BagError as exc:
+        raise BringupError(str(exc)) from exc
+    log(f"[bringup] replaying {path}: {contents.duration_s:.1f} s, {len(contents.topics)} topics")
+    return os.path.abspath(path)
+
+
+# After the bag ends, s for the tissue and the map server to take in the last clouds.
+REPLAY_DRAIN_S = 3.0
+
+
+def _replay_finished(supervisor):
+    from cps_bringup.plan import REPLAY
+
+    def finished():
+        running = supervisor.running.get(REPLAY)
+        if running is None or running.proc.poll() is None:
+            return None
+        time.sleep(REPLAY_DRAIN_S)
+        return "replay"
+
+    return finished
 
 
 def _save_map(path, log):

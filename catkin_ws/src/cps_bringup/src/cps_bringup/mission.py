@@ -182,7 +182,7 @@ class MissionMonitor:
 
 
 def wait_for_mission(monitor: MissionMonitor, supervisor, duration_s: Optional[float], print_every_s=10.0,
-                     log=print, on_tick=None):
+                     log=print, on_tick=None, finished=None):
     """Poll until every robot is done or `duration_s` passes; the supervisor restarts what dies."""
     t0 = time.monotonic()
     last_print = -print_every_s
@@ -199,6 +199,11 @@ def wait_for_mission(monitor: MissionMonitor, supervisor, duration_s: Optional[f
             log(format_progress(progress, elapsed))
             log("[bringup] every robot finished its route")
             return "done", elapsed
+        ended_by = finished() if finished else None
+        if ended_by:
+            log(format_progress(progress, elapsed))
+            log(f"[bringup] mission ended by {ended_by}")
+            return ended_by, elapsed
         if duration_s is not None and elapsed >= duration_s:
             log(format_progress(progress, elapsed))
             log(f"[bringup] duration of {duration_s:.0f} s reached")

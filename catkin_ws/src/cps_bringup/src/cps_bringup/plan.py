@@ -35,6 +35,8 @@ class NodeSpec:
     one_shot: bool = False
     # False: its exit, whatever the code, is noted and the mission goes on (the GUI).
     essential: bool = True
+    # How long stopping may take before SIGTERM/SIGKILL (rosbag record writes out its queue).
+    stop_timeout_s: float = 6.0
 
 
 # The map server's live change report in the output folder (and its .json twin).
@@ -59,6 +61,10 @@ class RunOptions:
     # A monitoring mission: the earlier map the twin compares with, and what the simulator changes.
     baseline_map: Optional[str] = None
     site_changes_file: Optional[str] = None
+    # Record the mission to this rosbag (cps_bringup.mission_bag.record_topics).
+    record_path: Optional[str] = None
+    # Play this rosbag in place of the robots (and the simulator), under the bag's clock.
+    replay_path: Optional[str] = None
 
 
 def _args(params: Dict[str, object]) -> List[str]:
@@ -79,8 +85,10 @@ def _stats_topics(robots):
 
 
 def default_node_path(package: str, node: str) -> str:
-    here = os.path.dirname(os.path.abspath(__file__))
-    return os.path.normpath(os.path.join(here, "..", "..", "..", package, "nodes", node))
+    """The node's executable as rospkg/catkin find it (devel or install space)."""
+    from cps_harness.processes import find_node
+
+    return find_node(package, node)
 
 
 def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
@@ -97,15 +105,16 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
 
     if PHYSICAL in sides:
         profile = options.profile or fleet.profile.name
-        if options.simulate:
+        if options.simulate and not options.replay_path:
             specs.append(NodeSpec(
                 "fleet_sim", PHYSICAL,
                 py("cps_sim", "fleet_sim", "__name:=fleet_sim",
                    *_args({**common, "profile": profile, "robots": ",".join(robots), "renderer": options.renderer,
                            **({"site_changes_file": options.site_changes_file} if options.site_changes_file else {})})),
-                wait_topics=tuple(t for r in robots for t in (f"/{r}/odom", f"/{r}/points")),
+                wait_topics=tuple(t for r in fleet.robots
+                                  for t in (f"/{r.name}/odom", f"/{r.name}/{r.cloud_topic}")),
                 restart_limit=0))
-        drivers = ("fleet_sim",) if options.simulate else ()
+        drivers = ("fleet_sim",) if options.simulate and not options.replay_path else ()
         specs.append(NodeSpec(
             "nodelet_manager", PHYSICAL,
             ("rosrun", "nodelet", "nodelet", "manager", f"__name:={VOXEL_MANAGER.lstrip('/')}"),
@@ -113,18 +122,19 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
         for robot in fleet.robots:
             r = robot.name
             ns = f"__ns:=/{r}"
-            specs.append(NodeSpec(
-                f"{r}/velocity_mux", PHYSICAL,
-                py("cps_sim", "velocity_mux", ns, "__name:=velocity_mux", *_args({**common, "robot": r})),
-                wait_topics=(f"/{r}/cmd_vel",)))
-            specs.append(NodeSpec(
-                f"{r}/route_controller", PHYSICAL,
-                py("cps_sim", "route_controller", ns, "__name:=route_controller", *_args({**common, "robot": r})),
-                wait_topics=(f"/{r}/mission_state",), after=drivers))
+            if not options.replay_path:  # a replayed robot cannot be driven
+                specs.append(NodeSpec(
+                    f"{r}/velocity_mux", PHYSICAL,
+                    py("cps_sim", "velocity_mux", ns, "__name:=velocity_mux", *_args({**common, "robot": r})),
+                    wait_topics=(f"/{r}/cmd_vel",)))
+                specs.append(NodeSpec(
+                    f"{r}/route_controller", PHYSICAL,
+                    py("cps_sim", "route_controller", ns, "__name:=route_controller", *_args({**common, "robot": r})),
+                    wait_topics=(f"/{r}/mission_state",), after=drivers))
             specs.append(NodeSpec(
                 f"{r}/voxel_grid", PHYSICAL,
                 ("rosrun", "nodelet", "nodelet", "load", "pcl/VoxelGrid", VOXEL_MANAGER, ns, "__name:=voxel_grid",
-                 f"~input:=/{r}/points", f"~output:=/{r}/points_filtered",
+                 f"~input:=/{r}/{robot.cloud_topic}", f"~output:=/{r}/points_filtered",
                  *_args({"leaf_size": robot.voxel_leaf_m, "filter_field_name": "",
                          "filter_limit_min": -1e6, "filter_limit_max": 1e6})),
                 wait_topics=(f"/{r}/points_filtered",), after=("nodelet_manager",)))
@@ -206,4 +216,36 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                  *py("cps_gui", "cps_gui", "--screenshot", options.gui_screenshot_path,
                      "--after", str(options.gui_screenshot_after_s), "--fleet-file", fleet.path)),
                 restart_limit=0, one_shot=True, essential=False, after=("map_server",)))
+    specs += _bag_specs(fleet, sides, options, specs)
     return specs
+
+
+REPLAY, RECORDER = "mission_replay", "mission_recorder"
+
+
+def _bag_specs(fleet, sides, options, planned):
+    """rosbag record of the mission and rosbag play of a recorded one (after everything else is up)."""
+    from cps_bringup.mission_bag import MANAGED_INPUT, record_topics, replay_topics
+
+    # The rate limiter and the link relay advertise the managed topics with the first cloud through.
+    lazy = {t for r in fleet.robot_names for t in (f"/{r}/{MANAGED_INPUT}", f"/twin/{r}/{MANAGED_INPUT}")}
+
+    specs = []
+    if options.record_path:
+        specs.append(NodeSpec(RECORDER, PHYSICAL if PHYSICAL in sides else DIGITAL,
+                              ("rosbag", "record", "-O", options.record_path, f"__name:={RECORDER}",
+                               *record_topics(fleet)), restart_limit=0, stop_timeout_s=RECORDER_STOP_TIMEOUT_S))
+    if options.replay_path and PHYSICAL in sides:
+        # --clock: every node runs on the bag's time (/use_sim_time); -d: subscribers connect first.
+        specs.append(NodeSpec(REPLAY, PHYSICAL,
+                              ("rosbag", "play", "--clock", "-d", str(REPLAY_DELAY_S), f"__name:={REPLAY}",
+                               options.replay_path, "--topics", *replay_topics(fleet)),
+                              restart_limit=0, one_shot=True,
+                              after=tuple(s.label for s in planned + specs if not lazy & set(s.wait_topics))))
+    return specs
+
+
+# rosbag record's buffer at the end of a mission: up to a few hundred MB to write out.
+RECORDER_STOP_TIMEOUT_S = 60.0
+# s between rosbag play advertising the topics and publishing the first message.
+REPLAY_DELAY_S = 2.0

@@ -227,7 +227,7 @@ class Supervisor:
     def stop_all(self):
         """Stop in reverse start order (consumers before producers), then the master."""
         for running in reversed(list(self.running.values())):
-            self.graph.stop(running.proc, timeout_s=6.0)
+            self.graph.stop(running.proc, timeout_s=running.spec.stop_timeout_s)
         self.running.clear()
 
     def pid_of(self, label):

@@ -10,7 +10,9 @@ import re
 from typing import Dict, List, Optional, Tuple
 
 from cps_fleet.config import ConfigError, Reader, load_yaml_document
+from cps_fleet.robot_types import RobotType, read_robot_types, register
 
+# The default fleet's four types (fleet.yaml robot_types); the simulator's bodies are modelled on them.
 ROBOT_TYPES = ("wheeled_lidar", "wheeled_depth", "legged_depth", "aerial_depth")
 PROFILES = ("paper", "light")
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -99,6 +101,7 @@ class SensorModel:
 class MappingConfig:
     resolution_m: float
     sensor_model: SensorModel
+    # Per robot type (robot_types[*].max_range_m).
     max_range_m: Dict[str, float]
     # The map server's autosave period (0: only on shutdown and on request).
     autosave_period_s: float
@@ -139,18 +142,24 @@ class RobotConfig:
     initial_pose: Pose2D
     voxel_leaf_m: float
     route_path: str
+    robot_type: RobotType
 
     @property
     def has_depth_camera(self):
-        return self.type.endswith("_depth")
+        return self.robot_type.sensor == "depth"
 
     @property
     def has_lidar(self):
-        return self.type.endswith("_lidar")
+        return self.robot_type.sensor == "lidar"
+
+    @property
+    def cloud_topic(self):
+        """The sensor's cloud topic, relative to /<name>."""
+        return self.robot_type.cloud_topic
 
     @property
     def sensor_frame(self):
-        return f"{self.name}/lidar" if self.has_lidar else f"{self.name}/camera_depth_optical_frame"
+        return f"{self.name}/{self.robot_type.sensor_frame}"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,6 +172,7 @@ class FleetConfig:
     mapping: MappingConfig
     robots: Tuple[RobotConfig, ...]
     limits: LimitsConfig
+    robot_types: Dict[str, RobotType]
 
     def robot(self, name):
         for robot in self.robots:
@@ -225,7 +235,7 @@ def load_fleet(path=None, profile=None):
     """Read and validate fleet.yaml (default: cps_bringup's); `profile` overrides the file's choice."""
     path = path or default_fleet_path()
     doc = load_yaml_document(path)
-    top = Reader(doc).known_keys("profile", "site", "profiles", "link", "mapping", "limits", "robots")
+    top = Reader(doc).known_keys("profile", "site", "profiles", "link", "robot_types", "mapping", "limits", "robots")
 
     profiles_reader = top.child("profiles")
     profiles = {name: _profile(profiles_reader.child(name), name) for name in profiles_reader.value}
@@ -249,18 +259,13 @@ def load_fleet(path=None, profile=None):
     if link.min_rate_hz > link.max_rate_hz:
         raise link_reader.error("min_rate_hz", f"min_rate_hz ({link.min_rate_hz}) > max_rate_hz ({link.max_rate_hz})")
 
-    map_reader = top.child("mapping").known_keys("resolution_m", "sensor_model", "max_range_m", "autosave_period_s")
+    robot_types = read_robot_types(top.child("robot_types"))
+    map_reader = top.child("mapping").known_keys("resolution_m", "sensor_model", "autosave_period_s")
     model = map_reader.child("sensor_model").known_keys("hit", "miss", "min", "max")
-    ranges_reader = map_reader.child("max_range_m")
-    max_range = {}
-    for robot_type in ranges_reader.value:
-        if robot_type not in ROBOT_TYPES:
-            raise ranges_reader.error(robot_type, f"unknown robot type '{robot_type}' (known: {', '.join(ROBOT_TYPES)})")
-        max_range[robot_type] = ranges_reader.number(robot_type, low=0.0, low_open=True)
     mapping = MappingConfig(
         resolution_m=map_reader.number("resolution_m", low=0.001, high=10.0),
         sensor_model=_sensor_model(model),
-        max_range_m=max_range,
+        max_range_m={name: t.max_range_m for name, t in robot_types.items()},
         autosave_period_s=map_reader.number("autosave_period_s", low=0.0),
     )
 
@@ -289,8 +294,8 @@ def load_fleet(path=None, profile=None):
         if name in (r.name for r in robots):
             raise item.error("name", f"robot '{name}' is listed twice")
         robot_type = item.get("type", str)
-        if robot_type not in ROBOT_TYPES:
-            raise item.error("type", f"unknown robot type '{robot_type}' (known: {', '.join(ROBOT_TYPES)})")
+        if robot_type not in robot_types:
+            raise item.error("type", f"unknown robot type '{robot_type}' (known: {', '.join(robot_types)})")
         pose = item.child("initial_pose").known_keys("x", "y", "z", "yaw_deg")
         route_path = item.path_of("route")
         if not os.path.exists(route_path):
@@ -302,10 +307,12 @@ def load_fleet(path=None, profile=None):
                                 pose.get("z", float, default=0.0), pose.get("yaw_deg", float, default=0.0)),
             voxel_leaf_m=item.number("voxel_leaf_m", low=0.0, high=10.0, low_open=True),
             route_path=route_path,
+            robot_type=robot_types[robot_type],
         ))
     if not robots:
         raise top.error("robots", "the fleet has no robots")
 
+    register(robot_types)
     return FleetConfig(
         path=os.path.abspath(doc.path),
         profile=profiles[chosen],
@@ -315,6 +322,7 @@ def load_fleet(path=None, profile=None):
         mapping=mapping,
         robots=tuple(robots),
         limits=limits,
+        robot_types=robot_types,
     )
 
 

@@ -1,10 +1,17 @@
-"""Per robot type velocity and acceleration limits: the one table the simulator and the GUI read.
+"""Robot types as data: fleet.yaml's `robot_types:` block, read by `read_robot_types`.
 
-Plain data (no ROS, no numpy), keyed by the type names of cps_fleet.fleet.ROBOT_TYPES, so that a
-later fleet.yaml can declare robot types with the same fields. The simulator clamps every executed
-command to these limits; the operator GUI's joystick uses them as its full-scale deflection.
+A type names what its robots sense (sensor kind, cloud topic, sensor frame, map max range) and how
+fast they may move (VelocityLimits: the simulator clamps every executed command to them, the
+operator GUI's joystick uses them as full scale). A real robot is a new entry in fleet.yaml, not
+new code. Plain data, no ROS.
 """
 import dataclasses
+from typing import Dict
+
+SENSOR_KINDS = ("lidar", "depth")
+BASES = ("wheeled", "legged", "aerial")
+_LIMIT_KEYS = ("max_forward_mps", "max_lateral_mps", "max_vertical_mps", "max_yaw_rate_rps",
+               "max_linear_accel_mps2", "max_yaw_accel_rps2")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,25 +34,75 @@ class VelocityLimits:
         return self.max_vertical_mps > 0.0
 
 
-VELOCITY_LIMITS = {
-    # Agilex Scout 2.0
-    "wheeled_lidar": VelocityLimits(max_forward_mps=1.5, max_lateral_mps=0.0, max_vertical_mps=0.0,
-                                    max_yaw_rate_rps=1.5, max_linear_accel_mps2=1.0, max_yaw_accel_rps2=2.0),
-    # Clearpath Jackal
-    "wheeled_depth": VelocityLimits(max_forward_mps=2.0, max_lateral_mps=0.0, max_vertical_mps=0.0,
-                                    max_yaw_rate_rps=4.0, max_linear_accel_mps2=2.0, max_yaw_accel_rps2=4.0),
-    # CHAMP quadruped
-    "legged_depth": VelocityLimits(max_forward_mps=0.6, max_lateral_mps=0.3, max_vertical_mps=0.0,
-                                   max_yaw_rate_rps=1.0, max_linear_accel_mps2=0.8, max_yaw_accel_rps2=1.5),
-    # 3DR Iris quadrotor
-    "aerial_depth": VelocityLimits(max_forward_mps=2.0, max_lateral_mps=2.0, max_vertical_mps=1.0,
-                                   max_yaw_rate_rps=1.5, max_linear_accel_mps2=1.5, max_yaw_accel_rps2=2.0),
-}
+@dataclasses.dataclass(frozen=True)
+class RobotType:
+    """One entry of fleet.yaml's robot_types."""
+
+    name: str
+    base: str            # wheeled | legged | aerial: how it moves (and the body the simulator gives it)
+    sensor: str          # lidar | depth: what the simulator can simulate
+    cloud_topic: str     # relative to /<robot>
+    sensor_frame: str    # relative to the robot's tf prefix: <robot>/<sensor_frame>
+    max_range_m: float   # the map server inserts points up to this far from the sensor
+    limits: VelocityLimits
+
+    @property
+    def is_aerial(self):
+        return self.base == "aerial"
 
 
-def velocity_limits(robot_type):
-    """The VelocityLimits of a type; an unknown type is a ValueError naming the known ones."""
+def read_robot_types(reader) -> Dict[str, RobotType]:
+    """{name: RobotType} from a cps_fleet.config.Reader over the robot_types mapping (ConfigError
+    with file:line for a missing or bad key)."""
+    types = {}
+    for name in reader.value:
+        entry = reader.child(name).known_keys("base", "sensor", "cloud_topic", "sensor_frame", "max_range_m", "limits")
+        base, sensor = entry.get("base", str), entry.get("sensor", str)
+        if base not in BASES:
+            raise entry.error("base", f"unknown base '{base}' (known: {', '.join(BASES)})")
+        if sensor not in SENSOR_KINDS:
+            raise entry.error("sensor", f"unknown sensor kind '{sensor}' (known: {', '.join(SENSOR_KINDS)})")
+        limits = entry.child("limits").known_keys(*_LIMIT_KEYS)
+        for key in ("cloud_topic", "sensor_frame"):
+            if entry.get(key, str).startswith("/"):
+                raise entry.error(key, "must be relative (it is resolved under the robot's name)")
+        types[name] = RobotType(
+            name=name, base=base, sensor=sensor, cloud_topic=entry.get("cloud_topic", str),
+            sensor_frame=entry.get("sensor_frame", str),
+            max_range_m=entry.number("max_range_m", low=0.0, low_open=True),
+            limits=VelocityLimits(**{key: limits.number(key, low=0.0) for key in _LIMIT_KEYS}))
+        for key in ("max_forward_mps", "max_yaw_rate_rps", "max_linear_accel_mps2", "max_yaw_accel_rps2"):
+            if getattr(types[name].limits, key) <= 0.0:
+                raise limits.error(key, "must be positive: every robot drives and turns")
+    if not types:
+        raise reader.error(None, "no robot types")
+    return types
+
+
+# Types of the fleets loaded in this process, for code that holds only a type's name (the GUI).
+_KNOWN: Dict[str, RobotType] = {}
+
+
+def register(types: Dict[str, RobotType]):
+    """Called by cps_fleet.fleet.load_fleet for every fleet it loads."""
+    _KNOWN.update(types)
+
+
+def resolve(robot_type) -> RobotType:
+    """A RobotType as is; a name: the type of a fleet loaded in this process (else of the default
+    fleet). An unknown name is a ValueError naming the known ones."""
+    if isinstance(robot_type, RobotType):
+        return robot_type
+    if robot_type not in _KNOWN:
+        from cps_fleet.fleet import load_fleet
+
+        load_fleet()
     try:
-        return VELOCITY_LIMITS[robot_type]
+        return _KNOWN[robot_type]
     except KeyError:
-        raise ValueError(f"unknown robot type '{robot_type}' (known: {', '.join(VELOCITY_LIMITS)})") from None
+        raise ValueError(f"unknown robot type '{robot_type}' (known: {', '.join(_KNOWN)})") from None
+
+
+def velocity_limits(robot_type) -> VelocityLimits:
+    """The VelocityLimits of a type (a RobotType or its name)."""
+    return resolve(robot_type).limits

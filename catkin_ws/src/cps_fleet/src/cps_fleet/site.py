@@ -367,10 +367,13 @@ def check_waypoint(site: Site, x, y, z, robot_type, margin_m=0.3) -> Optional[st
         h = site.hall
         return (f"({x}, {y}) is outside the hall (x in [{h.x_min_m}, {h.x_max_m}], "
                 f"y in [{h.y_min_m}, {h.y_max_m}], keeping {margin_m} m from the walls)")
-    probe_z = z if robot_type.startswith("aerial") else 0.2
+    from cps_fleet.robot_types import resolve
+
+    aerial = resolve(robot_type).is_aerial
+    probe_z = z if aerial else 0.2
     blocker = site.blocking_item(x, y, probe_z, margin_m)
     if blocker is not None:
         return f"({x}, {y}, {z}) is inside '{blocker}' (or within {margin_m} m of it)"
-    if robot_type.startswith("aerial") and z > 0.0 and z < 0.3:
+    if aerial and z > 0.0 and z < 0.3:
         return f"z = {z} m is below the 0.3 m minimum flight altitude"
     return None

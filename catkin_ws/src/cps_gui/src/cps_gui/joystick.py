@@ -4,7 +4,7 @@ Pure functions, no Qt and no rospy, so the mapping is tested on its own. A drag 
 the knob from the pad's centre in screen pixels (x right, y down); the command is in the robot's
 base frame (REP 103: x forward, y left, z up, yaw counter-clockwise).
 
-Full-scale deflection is the robot type's velocity limit from cps_fleet.robot_types, the table
+Full-scale deflection is the robot type's velocity limit (fleet.yaml robot_types), the table
 the simulator clamps to: the joystick never asks for more than the robot executes.
 """
 import dataclasses

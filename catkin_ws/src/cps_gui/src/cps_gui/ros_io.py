@@ -23,6 +23,7 @@ from cps_msgs.srv import SetPriority, SetPriorityRequest
 from cps_ros.timers import guarded_timer
 from cps_transport.image_compression import InvalidImage, decode_jpeg
 
+from cps_fleet.robot_types import resolve
 from cps_gui import names, topview
 from cps_gui.fleet_state import (Allocation, ImageFrame, MapChange, Pose, RobotAllocation, RobotMapFigures,
                                  TopicFigures)
@@ -115,7 +116,7 @@ class FleetRosIO:
         self._subscribe(topic(names.MISSION_STATE), String, lambda m: state.set_mission_state(name, m.data))
         self.teleop_pubs[name] = rospy.Publisher(topic(names.CMD_VEL_TELEOP), Twist, queue_size=1)
         self.mode_pubs[name] = rospy.Publisher(topic(names.CONTROL_MODE), String, queue_size=1, latch=True)
-        if robot.type == "aerial_depth":
+        if resolve(robot.type).is_aerial:
             self.flight_pubs[name] = rospy.Publisher(topic(names.FLIGHT_COMMAND), String, queue_size=1)
 
     def _odom_origin(self, robot):

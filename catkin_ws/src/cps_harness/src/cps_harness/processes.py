@@ -38,13 +38,19 @@ def _die_with_parent():
 
 
 def find_node(package, node):
-    """Path of `nodes/<node>` of a package in this workspace (source tree, no rospack needed)."""
+    """Path of a package's node: `nodes/<node>` of the package rospkg finds (devel space: the
+    source tree), else the installed `lib/<package>/<node>` catkin finds (install space)."""
     import rospkg
+    from catkin.find_in_workspaces import find_in_workspaces
 
     path = os.path.join(rospkg.RosPack().get_path(package), "nodes", node)
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"{package} has no node {node} ({path})")
-    return path
+    if os.path.exists(path):
+        return path
+    installed = find_in_workspaces(["libexec"], project=package, path=node, first_match_only=True)
+    if not installed:
+        raise FileNotFoundError(f"{package} has no node {node} ({path}, nor in lib/{package} of "
+                                f"{os.environ.get('CMAKE_PREFIX_PATH', '(no CMAKE_PREFIX_PATH)')})")
+    return installed[0]
 
 
 class RosGraph:

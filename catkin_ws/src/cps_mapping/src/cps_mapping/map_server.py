@@ -26,7 +26,7 @@ from cps_mapping.cloud_input import InvalidInput, prepare_cloud
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
 from cps_mapping.markers import occupied_cells_markers
 from cps_mapping.queues import QueuedCloud, RobotQueues
-from cps_msgs.srv import ClearBBXResponse, LoadMapResponse, SaveMapResponse
+from cps_msgs.srv import BoundingBoxQueryResponse, LoadMapResponse, SaveMapResponse
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 
 _WARN_EVERY_S = 5.0
@@ -120,6 +120,9 @@ class MapOutputs:
     projected_map: Callable
     stats: Callable
     changes: Callable
+    # octomap_full (log-odds .ot body), built only while `full_wanted()` (it costs a tree walk).
+    octomap_full: Optional[Callable] = None
+    full_wanted: Callable = lambda: True
 
 
 class TransformUnavailable(Exception):
@@ -156,6 +159,7 @@ class MapServer:
         self.counters = {r: RobotCounters() for r in self.robots}
         self.queues = RobotQueues(self.robots, options.queue_size)
         self.snapshot: Optional[MapSnapshot] = None
+        self._full_version = None  # the map version octomap_full last carried
         self.unknown_robots = set()
         self._last_warned = {}
         self._resume()
@@ -344,6 +348,7 @@ class MapServer:
 
     def publish_map(self, stamp):
         """The map, markers, centres and projected map, if the map changed since the last call."""
+        self._publish_full(stamp)
         snap, changed = self.take_snapshot()
         if not changed:
             return
@@ -354,6 +359,15 @@ class MapServer:
         out.centers(map_messages.centers_cloud(snap.leaf_centers_m, self._header(stamp)))
         out.projected_map(map_messages.projected_map(snap.grid, snap.grid_origin_m, self.map.resolution_m,
                                                      self._header(stamp)))
+
+    def _publish_full(self, stamp):
+        """octomap_full, once per map version and only while someone listens."""
+        out = self.outputs
+        if out.octomap_full is None or not out.full_wanted() or self._full_version == self.map.version:
+            return
+        with self._map_lock:
+            self._full_version, fields = self.map.version, message_fields(self.map, binary=False)
+        out.octomap_full(map_messages.octomap_message(fields, self._header(stamp)))
 
     def publish_stats(self, stamp):
         """MapStats: the published snapshot's figures and every robot's counters at `stamp`."""
@@ -417,11 +431,10 @@ class MapServer:
         return EmptyResponse()
 
     def on_clear_bbx(self, req):
+        """octomap_server's clear_bbx; a bad box raises ValueError (rospy fails the call with its text)."""
         lo = (req.min.x, req.min.y, req.min.z)
         hi = (req.max.x, req.max.y, req.max.z)
-        try:
-            with self._map_lock:
-                cleared = self.map.clear_bbx(lo, hi)
-        except ValueError as exc:
-            return ClearBBXResponse(success=False, message=str(exc))
-        return ClearBBXResponse(success=True, message=f"cleared {cleared} voxels")
+        with self._map_lock:
+            cleared = self.map.clear_bbx(lo, hi)
+        self.log.info(f"map_server: clear_bbx {lo} .. {hi}: {cleared} voxels cleared")
+        return BoundingBoxQueryResponse()

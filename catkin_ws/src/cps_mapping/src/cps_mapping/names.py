@@ -1,12 +1,15 @@
-"""The map server's topic and service names, relative to its namespace.
+"""The map server's topic and service names: relative to its namespace, private (~) where
+octomap_server's are.
 
-The server runs in `/twin` (plan.py, the launch files), so these resolve to `/twin/octomap_binary`,
-`/twin/<r>/points` and so on (shared/design/ros-graph.md).
+The server runs in `/twin` as `map_server` (plan.py, the launch files), so these resolve to
+`/twin/octomap_binary`, `/twin/<r>/points`, `/twin/map_server/clear_bbx` and so on
+(docs/ros-graph.md): octomap_server's names, so its users' remappings and tools apply.
 """
 import re
 from typing import Optional
 
 OCTOMAP_BINARY = "octomap_binary"
+OCTOMAP_FULL = "octomap_full"
 OCCUPIED_CELLS = "occupied_cells_vis_array"
 POINT_CLOUD_CENTERS = "octomap_point_cloud_centers"
 PROJECTED_MAP = "projected_map"
@@ -15,8 +18,8 @@ MAP_CHANGES = "map_changes"
 
 SAVE_MAP = "save_map"
 LOAD_MAP = "load_map"
-RESET = "reset"
-CLEAR_BBX = "clear_bbx"
+RESET = "~reset"
+CLEAR_BBX = "~clear_bbx"
 
 
 def robot_points(robot: str) -> str:

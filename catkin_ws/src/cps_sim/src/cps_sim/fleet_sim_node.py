@@ -78,7 +78,7 @@ def initial_pose_error(fleet, site):
     robot_names = [r.get("name") for r in doc.data.get("robots", [])]
     for robot in fleet.robots:
         pose = robot.initial_pose
-        reason = check_waypoint(site, pose.x, pose.y, max(pose.z, 0.0), robot.type, margin_m=0.2)
+        reason = check_waypoint(site, pose.x, pose.y, max(pose.z, 0.0), robot.robot_type, margin_m=0.2)
         if reason:
             line = doc.line(("robots", robot_names.index(robot.name), "initial_pose"))
             return ConfigError(fleet.path, line, f"robots[{robot.name}].initial_pose: {reason}")
@@ -142,7 +142,7 @@ class FleetSimNode:
             return names.robot_topic(name, relative)
 
         pubs = {
-            "points": rospy.Publisher(topic(names.POINTS), PointCloud2, queue_size=2),
+            "points": rospy.Publisher(topic(sim.config.cloud_topic), PointCloud2, queue_size=2),
             "odom": rospy.Publisher(topic(names.ODOM), Odometry, queue_size=10),
             "joint_states": rospy.Publisher(topic(names.JOINT_STATES), JointState, queue_size=10),
             "battery": rospy.Publisher(topic(names.BATTERY), BatteryState, queue_size=2),

@@ -8,7 +8,7 @@ relative. fleet_sim serves every robot from one node in the root namespace and b
 from cps_fleet.names import MAP_FRAME, base_frame, odom_frame, robot_topic  # noqa: F401 (shared per-robot names)
 
 # Per robot, relative to the robot's namespace.
-POINTS = "points"
+# The cloud topic is the robot type's (fleet.yaml robot_types[*].cloud_topic).
 CAMERA_IMAGE = "camera/image_raw"
 CAMERA_INFO = "camera/camera_info"
 ODOM = "odom"

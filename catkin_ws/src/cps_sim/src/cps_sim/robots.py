@@ -1,18 +1,19 @@
-"""The four robot types: body, sensor mount, velocity limits, kinematics, joints and battery.
+"""The simulated robots: body, sensor mount, velocity limits, kinematics, joints and battery.
 
 Pure numpy. Robots move kinematically (their pose is integrated from the executed velocity,
 with the type's velocity and acceleration limits); odometry is that pose relative to the known
-initial pose. Everything specific to a robot type lives in ROBOT_SPECS, keyed by the type
-names of cps_fleet.fleet.ROBOT_TYPES; the velocity limits come from cps_fleet.robot_types.
+initial pose. The simulator's bodies (ROBOT_SPECS) are modelled on the default fleet's four
+types; a fleet's own type (fleet.yaml robot_types) gets the body of its base and sensor kind and
+its own velocity limits (`spec_for`).
 """
 import dataclasses
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
 from cps_fleet.fleet import ROBOT_TYPES
-from cps_fleet.robot_types import VelocityLimits, velocity_limits
+from cps_fleet.robot_types import RobotType, VelocityLimits, resolve
 
 
 # Beyond this many times a limit a command is absurd: dropped, not clamped.
@@ -28,7 +29,7 @@ class RobotSpec:
     rgb: Tuple[float, float, float]
     sensor_xyz_m: Tuple[float, float, float]   # sensor in base_link
     sensor_pitch_deg: float         # positive looks down
-    limits: VelocityLimits          # cps_fleet.robot_types, shared with the GUI's joystick
+    limits: Optional[VelocityLimits]  # the fleet's robot type's (spec_for), shared with the GUI's joystick
     cruise_mps: float               # the route controller's travel speed
     joint_names: Tuple[str, ...]
     wheel_radius_m: float = 0.0
@@ -46,21 +47,21 @@ ROBOT_SPECS = {
     "wheeled_lidar": RobotSpec(
         type="wheeled_lidar", model="Agilex Scout 2.0", body_half_extents_m=(0.465, 0.35, 0.125),
         body_center_z_m=0.225, rgb=(0.9, 0.9, 0.9), sensor_xyz_m=(0.0, 0.0, 0.55), sensor_pitch_deg=0.0,
-        limits=velocity_limits("wheeled_lidar"), cruise_mps=0.8,
+        limits=None, cruise_mps=0.8,
         joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
         wheel_radius_m=0.165, track_m=0.58, battery_capacity_wh=720.0, battery_nominal_v=24.0,
         idle_power_w=60.0, motion_power_w_per_mps=150.0, sensor_power_w=12.0),
     "wheeled_depth": RobotSpec(
         type="wheeled_depth", model="Clearpath Jackal", body_half_extents_m=(0.254, 0.215, 0.1),
         body_center_z_m=0.165, rgb=(0.95, 0.75, 0.1), sensor_xyz_m=(0.26, 0.0, 0.35), sensor_pitch_deg=10.0,
-        limits=velocity_limits("wheeled_depth"), cruise_mps=0.8,
+        limits=None, cruise_mps=0.8,
         joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
         wheel_radius_m=0.098, track_m=0.37, battery_capacity_wh=270.0, battery_nominal_v=24.0,
         idle_power_w=30.0, motion_power_w_per_mps=60.0, sensor_power_w=5.0),
     "legged_depth": RobotSpec(
         type="legged_depth", model="CHAMP quadruped", body_half_extents_m=(0.3, 0.12, 0.07),
         body_center_z_m=0.32, rgb=(0.2, 0.2, 0.22), sensor_xyz_m=(0.33, 0.0, 0.40), sensor_pitch_deg=10.0,
-        limits=velocity_limits("legged_depth"), cruise_mps=0.45,
+        limits=None, cruise_mps=0.45,
         joint_names=tuple(f"{leg}_{j}_joint" for leg in _CHAMP_LEGS for j in ("hip", "upper_leg", "lower_leg")),
         battery_capacity_wh=150.0, battery_nominal_v=24.0, idle_power_w=40.0, motion_power_w_per_mps=120.0,
         sensor_power_w=5.0),
@@ -69,7 +70,7 @@ ROBOT_SPECS = {
         # base_link on the ground when landed; the body stands on its landing gear and the camera
         # hangs under its front, so a landed Iris still sees the floor (it was below it).
         body_center_z_m=0.12, rgb=(0.15, 0.15, 0.15), sensor_xyz_m=(0.28, 0.0, 0.06), sensor_pitch_deg=45.0,
-        limits=velocity_limits("aerial_depth"), cruise_mps=1.0,
+        limits=None, cruise_mps=1.0,
         joint_names=("rotor_0_joint", "rotor_1_joint", "rotor_2_joint", "rotor_3_joint"),
         battery_capacity_wh=60.0, battery_nominal_v=11.1, idle_power_w=10.0, motion_power_w_per_mps=20.0,
         sensor_power_w=5.0),
@@ -82,12 +83,19 @@ MIN_FLIGHT_ALTITUDE_M = 0.3
 AERIAL_HOVER_POWER_W = 150.0
 
 
+# The body a type of the fleet's own gets, by (base, sensor kind).
+_BODY_OF = {("wheeled", "lidar"): "wheeled_lidar", ("wheeled", "depth"): "wheeled_depth",
+            ("legged", "lidar"): "legged_depth", ("legged", "depth"): "legged_depth",
+            ("aerial", "lidar"): "aerial_depth", ("aerial", "depth"): "aerial_depth"}
+
+
 def spec_for(robot_type):
-    """The RobotSpec of a type; an unknown type is a ValueError naming the known ones."""
-    try:
-        return ROBOT_SPECS[robot_type]
-    except KeyError:
-        raise ValueError(f"unknown robot type '{robot_type}' (known: {', '.join(ROBOT_TYPES)})") from None
+    """The RobotSpec of a type (a RobotType, or its name in a loaded fleet): the body named like it,
+    else the body of its base and sensor kind, with the type's velocity limits. An unknown name is a
+    ValueError naming the known ones."""
+    rt: RobotType = resolve(robot_type)
+    body = ROBOT_SPECS.get(rt.name) or ROBOT_SPECS[_BODY_OF[(rt.base, rt.sensor)]]
+    return dataclasses.replace(body, type=rt.name, limits=rt.limits)
 
 
 @dataclasses.dataclass
@@ -152,7 +160,8 @@ class Robot:
     def __init__(self, name, robot_type, initial_pose):
         self.name = name
         self.spec = spec_for(robot_type)
-        self.type = robot_type
+        self.robot_type = resolve(robot_type)
+        self.type = self.robot_type.name
         self.initial = np.array([initial_pose.x, initial_pose.y, initial_pose.z, initial_pose.yaw_rad])
         self.x, self.y, self.z, self.yaw = self.initial.tolist()
         self.velocity = Twist()          # executed, body frame
@@ -168,7 +177,7 @@ class Robot:
 
     @property
     def is_aerial(self):
-        return self.type == "aerial_depth"
+        return self.robot_type.is_aerial
 
     def set_command(self, twist):
         self.command = twist
@@ -234,7 +243,7 @@ class Robot:
             right = (v.vx + v.wz * spec.track_m / 2) / spec.wheel_radius_m
             self.joint_velocities = np.array([left, right, left, right])
             self.joint_positions = (self.joint_positions + self.joint_velocities * dt_s + math.pi) % (2 * math.pi) - math.pi
-        elif self.type == "legged_depth":
+        elif self.robot_type.base == "legged":
             self.joint_positions, self.joint_velocities = self._trot(dt_s)
         else:
             spin = 0.0 if self.flight_state == "landed" else 900.0
@@ -298,7 +307,7 @@ class Robot:
         """The static mount base_link -> <r>/lidar or <r>/camera_depth_optical_frame."""
         sx, sy, sz = self.spec.sensor_xyz_m
         mount = pose_matrix(sx, sy, sz, 0.0, math.radians(self.spec.sensor_pitch_deg))
-        if self.type == "wheeled_lidar":
+        if self.robot_type.sensor == "lidar":
             return mount
         return mount @ OPTICAL_IN_SENSOR
 

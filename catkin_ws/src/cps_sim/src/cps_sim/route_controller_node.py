@@ -43,7 +43,7 @@ class RouteControllerNode:
         site = load_site_for(fleet)
         try:
             self.route = fleet.route(name)
-            validate_route(self.route, site, self.config.type)
+            validate_route(self.route, site, self.config.robot_type)
         except ConfigError as exc:
             fail(f"bad route file: {exc}")
         self.rate_hz = positive_param("~rate_hz", 10.0)
@@ -75,7 +75,7 @@ class RouteControllerNode:
             return
         self.odom_in_map = matrix_of_transform(stamped.transform)
         start_xy = (self.odom_in_map[0, 3], self.odom_in_map[1, 3])
-        self.follower = RouteFollower(self.route, self.config.type, start_xy=start_xy)
+        self.follower = RouteFollower(self.route, self.config.robot_type, start_xy=start_xy)
 
     def _pose_in_map(self):
         m = self.odom_in_map @ self.odom_pose

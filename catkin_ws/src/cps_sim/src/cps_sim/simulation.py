@@ -47,7 +47,7 @@ class FleetSimulation:
         self.robots: Dict[str, SimulatedRobot] = {}
         profile = fleet.profile
         for cfg in fleet.robots:
-            robot = Robot(cfg.name, cfg.type, cfg.initial_pose)
+            robot = Robot(cfg.name, cfg.robot_type, cfg.initial_pose)
             if self.world is None:
                 cp = profile.depth_camera
                 sensor = CameraModel(cp.width, cp.height, cp.hfov_deg) if cfg.has_depth_camera else None

@@ -24,7 +24,7 @@ class VelocityMuxNode:
         self.rate_hz = positive_param("~rate_hz", 20.0)
         deadman = positive_param("~deadman_s", 0.5)
         # Stopped until the latched e-stop state and a fresh command arrive (a restart knows neither).
-        self.mux = VelocityMux(self.config.type, deadman_s=deadman)
+        self.mux = VelocityMux(self.config.robot_type, deadman_s=deadman)
         self.lock = threading.Lock()
         self.pub = rospy.Publisher(names.CMD_VEL, TwistMsg, queue_size=5)
         # The mode in force (yocs_cmd_vel_mux's `active`): control_mode is only what was asked.

@@ -34,7 +34,6 @@ from sensor_msgs.msg import PointField
 from cps_transport.pointcloud import (InvalidCloud, array_to_cloud, cloud_dtype, cloud_to_array, field_dtype,
                                       finite_mask, validate_cloud_layout)
 
-FORMAT = "draco"
 COLOR_FIELDS = ("rgb", "rgba")
 _FLOAT32_ULP = 2.0 ** -23  # relative spacing of float32: decoded coordinates are float32
 
@@ -148,7 +147,6 @@ class DracoEncoder:
         out.is_bigendian = msg.is_bigendian
         out.point_step, out.row_step = msg.point_step, msg.row_step
         out.is_dense = msg.is_dense
-        out.format = FORMAT
         out.compressed_data = payload
         self.last_info = EncodeInfo(len(points), n_nan, len(xyz), bits, bound, len(payload),
                                     1e3 * (time.perf_counter() - start))
@@ -227,13 +225,11 @@ class DracoEncoder:
 
 
 class DracoDecoder:
-    """CompressedPointCloud2 (format "draco") -> PointCloud2 with the kept fields, unorganized.
+    """CompressedPointCloud2 (a Draco bitstream, as on <cloud>/draco) -> PointCloud2 with the kept fields, unorganized.
 
     The output keeps header (stamp, frame_id) and each field's datatype; points are packed densely."""
 
     def decode(self, msg):
-        if msg.format != FORMAT:
-            raise DracoError(f"format '{msg.format}' is not '{FORMAT}'")
         if not msg.compressed_data:
             raise DracoError("empty payload")
         fields = list(msg.fields)

@@ -1,0 +1,117 @@
+"""Which topics a mission bag holds, and whether a bag fits a fleet (before replaying it).
+
+A mission bag (`cps_bringup ... --record`) holds the physical side's sensor, odometry and tf
+topics and the twin's managed inputs. `--replay` plays only the physical topics, under the bag's
+own clock (`rosbag play --clock`, every node with /use_sim_time): the clouds keep their recorded
+stamps, tf is looked up at those stamps and the tissue's latency is measured against the replayed
+clock, so replay latency is the tissue's own, not the time since the recording.
+"""
+import dataclasses
+from typing import Dict, List, Tuple
+
+from cps_fleet.fleet import FleetConfig
+
+TF, TF_STATIC = "/tf", "/tf_static"
+# Per robot, relative to /<r>: what the robot's side publishes and the replay feeds to the tissue.
+PHYSICAL_TOPICS = ("odom", "joint_states", "battery")
+# What the twin receives over the link (recorded for inspection, not replayed).
+MANAGED_INPUT = "points_filtered/draco/managed"
+
+
+class BagError(ValueError):
+    """The bag cannot be replayed for this fleet; the message says why."""
+
+
+def cloud_topic(fleet: FleetConfig, robot: str) -> str:
+    return f"/{robot}/{fleet.robot(robot).cloud_topic}"
+
+
+def replay_topics(fleet: FleetConfig) -> List[str]:
+    """The physical side's topics: what `rosbag play` publishes in place of the robots."""
+    topics = []
+    for robot in fleet.robot_names:
+        topics.append(cloud_topic(fleet, robot))
+        topics += [f"/{robot}/{t}" for t in PHYSICAL_TOPICS]
+    return topics + [TF, TF_STATIC]
+
+
+def record_topics(fleet: FleetConfig) -> List[str]:
+    """The physical topics plus the twin's managed inputs."""
+    return replay_topics(fleet) + [f"/{r}/{MANAGED_INPUT}" for r in fleet.robot_names]
+
+
+def required_topics(fleet: FleetConfig) -> List[str]:
+    """What a replay cannot do without: each robot's cloud and odometry, and tf."""
+    return [t for r in fleet.robot_names for t in (cloud_topic(fleet, r), f"/{r}/odom")] + [TF]
+
+
+@dataclasses.dataclass(frozen=True)
+class BagContents:
+    """What check_bag read: topic -> (type, message count), the first cloud frame per cloud topic,
+    the child frames tf carries and the bag's duration."""
+
+    topics: Dict[str, Tuple[str, int]]
+    cloud_frames: Dict[str, str]
+    tf_child_frames: Tuple[str, ...]
+    duration_s: float
+
+
+def read_bag(path: str, cloud_topics) -> BagContents:
+    """Topics, first cloud frames and tf child frames of the bag at `path` (BagError if unreadable)."""
+    import rosbag
+
+    try:
+        bag = rosbag.Bag(path)
+    except Exception as exc:  # rosbag raises ROSBagException, OSError, ...
+        raise BagError(f"{path}: not a readable rosbag ({exc})") from exc
+    with bag:
+        info = bag.get_type_and_topic_info().topics
+        topics = {name: (t.msg_type, t.message_count) for name, t in info.items()}
+        frames = {}
+        wanted = [t for t in cloud_topics if t in topics]
+        # read_messages(topics=[]) would read every topic.
+        for topic, msg, _ in bag.read_messages(topics=wanted) if wanted else ():
+            frames.setdefault(topic, msg.header.frame_id)
+            if len(frames) == len(wanted):
+                break
+        children = set()
+        tf_topics = [t for t in (TF, TF_STATIC) if t in topics]
+        for count, (_, msg, _) in enumerate(bag.read_messages(topics=tf_topics) if tf_topics else ()):
+            children.update(t.child_frame_id.lstrip("/") for t in msg.transforms)
+            if count > 500:
+                break
+        duration = bag.get_end_time() - bag.get_start_time() if topics else 0.0
+    return BagContents(topics, frames, tuple(sorted(children)), duration)
+
+
+def check_bag(path: str, fleet: FleetConfig) -> BagContents:
+    """The bag's contents if it can feed `fleet`'s tissue and twin; else BagError naming what is
+    missing or why the bag belongs to another fleet (other robots, other sensor frames)."""
+    clouds = {cloud_topic(fleet, r): r for r in fleet.robot_names}
+    contents = read_bag(path, clouds)
+    problems = []
+    recorded_robots = sorted({t.split("/")[1] for t in contents.topics
+                              if t.count("/") >= 2 and t.endswith("/odom")})
+    ours = set(fleet.robot_names)
+    if recorded_robots and not ours & set(recorded_robots):
+        raise BagError(f"{path} was recorded for another fleet: it holds robots {', '.join(recorded_robots)}, "
+                       f"the fleet ({fleet.path}) has {', '.join(fleet.robot_names)}")
+    missing = [t for t in required_topics(fleet) if t not in contents.topics]
+    if missing:
+        problems.append(f"missing topics: {', '.join(missing)}")
+    for topic, robot in clouds.items():
+        kind = contents.topics.get(topic, (None,))[0]
+        if kind and kind != "sensor_msgs/PointCloud2":
+            problems.append(f"{topic} is {kind}, not sensor_msgs/PointCloud2")
+        frame = contents.cloud_frames.get(topic)
+        expected = fleet.robot(robot).sensor_frame
+        if frame is not None and frame.lstrip("/") != expected:
+            problems.append(f"{topic} is in frame '{frame}', the fleet's {robot} senses in '{expected}' "
+                            f"(recorded for another fleet or robot type?)")
+    if contents.tf_child_frames:
+        absent = [f"{r}/odom" for r in fleet.robot_names if f"{r}/odom" not in contents.tf_child_frames]
+        if absent:
+            problems.append(f"tf has no {', '.join(absent)} (map -> <robot>/odom on /tf_static)")
+    if problems:
+        raise BagError(f"{path} cannot be replayed for the fleet {fleet.path}:\n  " + "\n  ".join(problems))
+    return contents
