@@ -1,0 +1,132 @@
+"""The Zenoh bridge's table (config/bridge.yaml): which topics cross, which way, in which class.
+
+ROS-free and Zenoh-free: the table is read and checked here (errors name file and line), `<r>`
+is expanded per robot, and each class's QoS is kept as names the bridge maps onto Zenoh's enums.
+"""
+import dataclasses
+import os
+from typing import Dict, Optional, Sequence, Tuple
+
+from cps_fleet.config import ConfigError, Reader, load_yaml_document
+
+ROBOTS, TWIN = "robots", "twin"
+SIDES = (ROBOTS, TWIN)
+PRIORITIES = ("real_time", "interactive_high", "interactive_low", "data_high", "data", "data_low", "background")
+CONGESTION = ("block", "drop")
+ROBOT_PLACEHOLDER = "<r>"
+DEFAULT_TABLE = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..",
+                                              "config", "bridge.yaml"))
+
+
+@dataclasses.dataclass(frozen=True)
+class TrafficClass:
+    name: str
+    priority: str
+    congestion: str
+    reliable: bool
+    express: bool
+    max_age_s: Optional[float] = None  # receiving side drops older header stamps
+
+
+@dataclasses.dataclass(frozen=True)
+class Route:
+    """One topic crossing: published on `source` under `topic`, republished on the far side as `to`."""
+    topic: str
+    to: str
+    source: str
+    traffic: TrafficClass
+    latched: bool = False
+    robot: str = ""
+
+    def key(self, prefix):
+        """The Zenoh key expression this topic travels on."""
+        return f"{prefix}/topic{self.to}"
+
+
+@dataclasses.dataclass(frozen=True)
+class BridgeTable:
+    path: str
+    endpoint_port: int
+    key_prefix: str
+    lease_ms: int
+    keep_alive: int
+    retry_max_ms: int
+    classes: Dict[str, TrafficClass]
+    routes: Tuple[Route, ...]
+
+    def outgoing(self, side):
+        return [r for r in self.routes if r.source == side]
+
+    def incoming(self, side):
+        return [r for r in self.routes if r.source != side]
+
+    def liveliness_key(self, side, name):
+        return f"{self.key_prefix}/bridge/{side}/{name}"
+
+    def peer_liveliness_keys(self, side):
+        return f"{self.key_prefix}/bridge/{other_side(side)}/**"
+
+
+def other_side(side):
+    if side not in SIDES:
+        raise ValueError(f"side must be one of {', '.join(SIDES)}, got '{side}'")
+    return TWIN if side == ROBOTS else ROBOTS
+
+
+def _check_topic(reader, key, name):
+    if not name.startswith("/") or "//" in name or name.endswith("/") or " " in name:
+        raise reader.error(key, f"'{name}' is not a global ROS topic name")
+    return name
+
+
+def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
+    """The table with `<r>` expanded for `robots`; ConfigError (file:line) for anything wrong."""
+    path = path or DEFAULT_TABLE
+    doc = load_yaml_document(path)
+    top = Reader(doc)
+    classes = {}
+    class_reader = top.child("classes")
+    for name in class_reader.value:
+        c = class_reader.child(name)
+        priority = c.get("priority", str)
+        if priority not in PRIORITIES:
+            raise c.error("priority", f"unknown priority '{priority}' (known: {', '.join(PRIORITIES)})")
+        congestion = c.get("congestion", str)
+        if congestion not in CONGESTION:
+            raise c.error("congestion", f"unknown congestion control '{congestion}' (known: block, drop)")
+        classes[name] = TrafficClass(name, priority, congestion, c.get("reliable", bool), c.get("express", bool),
+                                     c.number("max_age_s", default=None, low=0.0, low_open=True)
+                                     if c.has("max_age_s") else None)
+    routes, seen = [], {}
+    for entry in top.items("topics"):
+        topic = _check_topic(entry, "topic", entry.get("topic", str))
+        to = _check_topic(entry, "to", entry.get("to", str)) if entry.has("to") else topic
+        source = entry.get("from", str)
+        if source not in SIDES:
+            raise entry.error("from", f"must be one of {', '.join(SIDES)}, got '{source}'")
+        class_name = entry.get("class", str)
+        if class_name not in classes:
+            raise entry.error("class", f"unknown class '{class_name}' (known: {', '.join(classes)})")
+        latched = entry.get("latched", bool, default=False)
+        per_robot = ROBOT_PLACEHOLDER in topic or ROBOT_PLACEHOLDER in to
+        for robot in (robots if per_robot else ("",)):
+            route = Route(topic.replace(ROBOT_PLACEHOLDER, robot), to.replace(ROBOT_PLACEHOLDER, robot), source,
+                          classes[class_name], latched, robot)
+            if route.to in seen:
+                raise entry.error("topic", f"'{route.to}' crosses twice (also at line {seen[route.to]})")
+            seen[route.to] = doc.line(entry.key_path)
+            routes.append(route)
+    return BridgeTable(
+        path=path,
+        endpoint_port=top.get("endpoint_port", int),
+        key_prefix=top.get("key_prefix", str),
+        lease_ms=top.get("lease_ms", int),
+        keep_alive=top.get("keep_alive", int),
+        retry_max_ms=top.get("retry_max_ms", int),
+        classes=classes,
+        routes=tuple(routes),
+    )
+
+
+__all__ = ["BridgeTable", "ConfigError", "Route", "TrafficClass", "load_bridge_table", "other_side",
+           "ROBOTS", "TWIN", "SIDES", "PRIORITIES"]

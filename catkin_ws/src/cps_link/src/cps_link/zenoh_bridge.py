@@ -1,0 +1,221 @@
+"""One side's bridge between its ROS graph and the Zenoh session to the other side.
+
+Outgoing topics (bridge.yaml, `from` this side) are read as rospy.AnyMsg and put on Zenoh
+unchanged with their class's priority, congestion control and reliability; incoming frames are
+checked (CRC, type and md5 against this side's message definitions, duplicates, stale stamps for
+classes with max_age_s), then republished under the contract's names. Latched topics keep every
+source's last message for late subscribers and are re-sent when the link comes back. Liveliness
+tokens tell each side within a lease whether the other is there: /tissue/link_state.
+"""
+import os
+import threading
+import time
+import uuid
+
+import roslib.message
+import rospy
+from cps_msgs.msg import LinkState
+
+from cps_link.bridge_config import BridgeTable, Route, other_side
+from cps_link.bridge_wire import Deduplicator, Frame, WireError, decode, encode, header_stamp_s, is_stale
+from cps_link.link_health import LinkHealth
+from cps_ros.diagnostics import DropReporter
+
+LINK_STATE_TOPIC = "/tissue/link_state"
+LINK_STATE_PERIOD_S = 1.0
+# How long to stay quiet before saying the other side has not come up yet, s.
+NOT_UP_WARN_AFTER_S = 5.0
+# rospy subscriber queues: the data class keeps only the newest message (fresh first).
+QUEUE_SIZE = {"data": 1, "backfill": 50}
+DEFAULT_QUEUE_SIZE = 20
+
+
+def zenoh_qos(traffic):
+    """The declare_publisher keyword arguments of a traffic class."""
+    import zenoh
+
+    return {"priority": getattr(zenoh.Priority, traffic.priority.upper()),
+            "congestion_control": getattr(zenoh.CongestionControl, traffic.congestion.upper()),
+            "reliability": zenoh.Reliability.RELIABLE if traffic.reliable else zenoh.Reliability.BEST_EFFORT,
+            "express": traffic.express}
+
+
+class _LatchedReplay(rospy.SubscribeListener):
+    """Sends every source's last message of a latched topic to each new subscriber."""
+
+    def __init__(self):
+        self.messages = {}
+        self.lock = threading.Lock()
+
+    def peer_subscribe(self, topic_name, topic_publish, peer_publish):
+        with self.lock:
+            stored = list(self.messages.values())
+        for msg in stored:
+            peer_publish(msg)
+
+
+class ZenohBridge:
+    """Carries `table`'s topics between this side's ROS master and `session` (an open Zenoh session)."""
+
+    def __init__(self, table: BridgeTable, side, session, name, endpoint=""):
+        self.table, self.side, self.session, self.name = table, side, session, name
+        self.peer_side = other_side(side)
+        self.endpoint = endpoint
+        self.session_id = uuid.uuid4().bytes
+        self.lock = threading.Lock()
+        self.seq = {}
+        self.latched_frames = {}
+        self.classes = {}
+        self.dedup = Deduplicator()
+        self.started_s = time.time()
+        self.health = LinkHealth(started_s=self.started_s)
+        self.reporter = DropReporter("zenoh_bridge")
+        self.link_pub = rospy.Publisher(LINK_STATE_TOPIC, LinkState, queue_size=5, latch=True)
+        self.publishers, self.replays, self.zenoh_pubs, self.ros_subs, self.zenoh_subs = {}, {}, {}, [], []
+        for route in table.incoming(side):
+            self.zenoh_subs.append(session.declare_subscriber(route.key(table.key_prefix),
+                                                              lambda sample, r=route: self._receive(sample, r)))
+        for route in table.outgoing(side):
+            self.zenoh_pubs[route.to] = session.declare_publisher(route.key(table.key_prefix),
+                                                                  **zenoh_qos(route.traffic))
+            self.ros_subs.append(rospy.Subscriber(route.topic, rospy.AnyMsg, self._send, callback_args=route,
+                                                  queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
+                                                  buff_size=2 ** 24, tcp_nodelay=True))
+        self.token = session.liveliness().declare_token(table.liveliness_key(side, name))
+        self.liveliness_sub = session.liveliness().declare_subscriber(
+            table.peer_liveliness_keys(side), self._on_liveliness, history=True)
+        self._publish_link_state()
+        self.timer = rospy.Timer(rospy.Duration(LINK_STATE_PERIOD_S), self._tick)
+
+    # --- outgoing ---------------------------------------------------------------------------
+    def _message_class(self, msg_type):
+        if msg_type not in self.classes:
+            self.classes[msg_type] = roslib.message.get_message_class(msg_type)
+        return self.classes[msg_type]
+
+    def frame_of(self, route: Route, msg):
+        """The frame of one rospy.AnyMsg received on `route` (next sequence number of its source)."""
+        header = getattr(msg, "_connection_header", None) or {}
+        msg_type, md5 = header.get("type", ""), header.get("md5sum", "")
+        source = header.get("callerid", "")
+        cls = self._message_class(msg_type)
+        stamp = float("nan")
+        if cls is not None and cls._has_header:
+            try:
+                stamp = header_stamp_s(msg._buff)
+            except WireError:
+                pass
+        with self.lock:
+            key = (route.to, source)
+            self.seq[key] = self.seq.get(key, 0) + 1
+            seq = self.seq[key]
+        return key, Frame(self.session_id, seq, stamp, msg_type, md5, source, bytes(msg._buff))
+
+    def _send(self, msg, route: Route):
+        key, frame = self.frame_of(route, msg)
+        payload = encode(frame)
+        if route.latched:
+            with self.lock:
+                self.latched_frames[key] = payload
+        self.zenoh_pubs[route.to].put(payload)
+        self.reporter.count(sent=1, sent_bytes=len(payload))
+
+    def resend_latched(self):
+        """Put every latched topic's last message again (the far side drops what it already has)."""
+        with self.lock:
+            frames = [(to, payload) for (to, _), payload in self.latched_frames.items()]
+        for to, payload in frames:
+            self.zenoh_pubs[to].put(payload)
+
+    # --- incoming ---------------------------------------------------------------------------
+    def _receive(self, sample, route: Route):
+        try:
+            self.deliver(route, sample.payload.to_bytes())
+        except Exception as exc:  # a zenoh callback must never die
+            self.reporter.drop(f"{route.to}: {exc}")
+
+    def deliver(self, route: Route, payload):
+        """Check one frame of `route` and republish it; returns why it was dropped, or None."""
+        try:
+            frame = decode(payload)
+        except WireError as exc:
+            self.reporter.drop(f"{route.to}: {exc}")
+            self.reporter.count(corrupt=1)
+            return "corrupt"
+        cls = self._message_class(frame.msg_type)
+        if cls is None or cls._md5sum != frame.md5:
+            why = "unknown type" if cls is None else f"md5 {frame.md5} != this side's {cls._md5sum}"
+            self.reporter.drop(f"{route.to}: {frame.msg_type}: {why}")
+            self.reporter.count(type_mismatch=1)
+            return "type_mismatch"
+        with self.lock:
+            fresh_copy = self.dedup.accept(route.to, frame)
+        if not fresh_copy:
+            self.reporter.count(duplicates=1)
+            return "duplicate"
+        if is_stale(frame, time.time(), route.traffic.max_age_s):
+            self.reporter.count(stale=1)
+            return "stale"
+        msg = rospy.AnyMsg()
+        msg._buff = frame.body
+        pub = self._publisher(route, cls)
+        if route.latched:
+            replay = self.replays[route.to]
+            with replay.lock:
+                replay.messages[frame.source] = msg
+        pub.publish(msg)
+        self.reporter.ok(received_bytes=len(frame.body))
+        return None
+
+    def _publisher(self, route, cls):
+        with self.lock:
+            if route.to not in self.publishers:
+                listener = None
+                if route.latched:
+                    listener = self.replays[route.to] = _LatchedReplay()
+                self.publishers[route.to] = rospy.Publisher(
+                    route.to, cls, queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
+                    subscriber_listener=listener, tcp_nodelay=True)
+            return self.publishers[route.to]
+
+    # --- link health ------------------------------------------------------------------------
+    def _on_liveliness(self, sample):
+        import zenoh
+
+        peer = str(sample.key_expr).rsplit("/", 1)[-1]
+        now = time.time()
+        if sample.kind == zenoh.SampleKind.PUT:
+            changed = self.health.peer_alive(peer, now)
+            if changed:
+                rospy.loginfo(f"{rospy.get_name()}: link up: {self.peer_side} bridge '{peer}' is there")
+                self.resend_latched()
+                threading.Timer(0.5, self.resend_latched).start()
+        else:
+            changed = self.health.peer_gone(peer, now)
+            if changed:
+                rospy.logwarn(f"{rospy.get_name()}: link down: {self.peer_side} bridge '{peer}' is gone "
+                              f"(outage {self.health.outages})")
+        if changed:
+            self._publish_link_state()
+
+    def _tick(self, _event=None):
+        if not self.health.ever_up and time.time() - self.started_s > NOT_UP_WARN_AFTER_S:
+            rospy.logwarn_throttle(10.0, f"{rospy.get_name()}: no {self.peer_side} bridge has come up yet "
+                                         f"({self.endpoint or 'listening'}); still trying")
+        self._publish_link_state()
+
+    def link_state(self):
+        h = self.health
+        return LinkState(up=h.up, since=rospy.Time.from_sec(h.since_s), outages=h.outages,
+                         last_outage_s=h.last_outage_s, peer=",".join(sorted(h.peers)) or self.peer_side)
+
+    def _publish_link_state(self):
+        msg = self.link_state()
+        msg.header.stamp = rospy.Time.from_sec(time.time())
+        self.link_pub.publish(msg)
+
+    def close(self):
+        self.timer.shutdown()
+        for sub in self.ros_subs:
+            sub.unregister()
+        self.token.undeclare()
