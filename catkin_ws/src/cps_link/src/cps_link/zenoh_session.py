@@ -80,3 +80,14 @@ def open_session(config):
         return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
     except Exception as exc:  # zenoh raises its own ZError
         raise BridgeSetupError(f"cannot open the Zenoh session: {exc}") from exc
+
+
+def bridge_argv(python, side, twin_address, robots, cert_dir=None, port=None, fleet_file=None, name=None):
+    """The command line of one side's zenoh_bridge node (bringup, tests and the benchmark)."""
+    node = os.path.normpath(os.path.join(os.path.dirname(MAKE_CERTS), "..", "nodes", "zenoh_bridge"))
+    argv = [python, node, "--side", side, "--twin-address", twin_address, "--robots", ",".join(robots),
+            f"__name:=zenoh_bridge_{side}"]
+    for flag, value in (("--cert-dir", cert_dir), ("--port", port), ("--fleet", fleet_file), ("--name", name)):
+        if value:
+            argv += [flag, str(value)]
+    return argv
