@@ -5,6 +5,7 @@ Entering a network namespace with setns(2) changes only the calling thread; the 
 it from its main thread before it starts rospy or any process, so everything it starts afterwards
 is on the digital-twin host, and it returns to its own namespace before the link is removed.
 """
+import concurrent.futures
 import contextlib
 import ctypes
 import dataclasses
@@ -39,31 +40,64 @@ class NamespacedLink:
     measured_mbps: float
     phys_ip: str = PHYS_IP
     twin_ip: str = TWIN_IP
+    name: str = LINK_NAME
 
     def exec_prefix(self, side):
-        return ["ip", "netns", "exec", namespace(LINK_NAME, side)]
+        return ["ip", "netns", "exec", namespace(self.name, side)]
+
+    def netns_path(self, side):
+        return f"/var/run/netns/{namespace(self.name, side)}"
 
     def describe(self):
-        return (f"tc-shaped {self.rate} veth between namespaces {namespace(LINK_NAME, 'phys')} ({self.phys_ip}) and "
-                f"{namespace(LINK_NAME, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s")
+        return (f"tc-shaped {self.rate} veth between namespaces {namespace(self.name, 'phys')} ({self.phys_ip}) and "
+                f"{namespace(self.name, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s")
+
+
+class InNamespace:
+    """A RosGraph whose every call runs in another network namespace: one worker thread enters it
+    with setns(2) (only that thread moves), and the processes it starts are forked there."""
+
+    def __init__(self, graph, netns_path):
+        self.graph = graph
+        self._pool = concurrent.futures.ThreadPoolExecutor(1, initializer=self._enter, initargs=(netns_path,))
+
+    @staticmethod
+    def _enter(path):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            _setns(fd)
+        finally:
+            os.close(fd)
+
+    def __getattr__(self, name):
+        attr = getattr(self.graph, name)
+        if not callable(attr):
+            return attr
+        return lambda *args, **kwargs: self._pool.submit(attr, *args, **kwargs).result()
+
+    def close(self):
+        try:
+            self._pool.submit(self.graph.close).result()
+        finally:
+            self._pool.shutdown()
 
 
 @contextlib.contextmanager
-def namespaced_link(rate, log=print):
+def namespaced_link(rate, log=print, name=LINK_NAME):
     """Create the link, measure it, move this thread into the twin namespace; undo all on exit."""
     check_capability()
-    if link_exists(LINK_NAME):
-        raise LinkError(f"a link named {LINK_NAME} already exists (another run?); remove it with "
-                        f"`cps_link down --name {LINK_NAME}`")
-    with ShapedLink(name=LINK_NAME, rate=rate) as link:
+    if link_exists(name):
+        raise LinkError(f"a link named {name} already exists (another run?); remove it with "
+                        f"`cps_link down --name {name}`")
+    with ShapedLink(name=name, rate=rate) as link:
         measured = link.measure_mbps(seconds=2.0)
         log(f"[bringup] link {rate}: iperf3 measured {measured:.1f} Mbit/s physical → digital twin")
         home = os.open("/proc/self/ns/net", os.O_RDONLY)
-        target = os.open(f"/var/run/netns/{namespace(LINK_NAME, 'twin')}", os.O_RDONLY)
+        target = os.open(f"/var/run/netns/{namespace(name, 'twin')}", os.O_RDONLY)
         try:
             _setns(target)
             try:
-                yield NamespacedLink(rate, measured)
+                yield NamespacedLink(rate, measured, name=name)
             finally:
                 _setns(home)
         finally:

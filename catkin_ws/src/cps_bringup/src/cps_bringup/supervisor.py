@@ -33,10 +33,13 @@ class _Running:
 
 
 class Supervisor:
-    """Runs `specs` on `graph`'s master. `side_prefix`/`side_env` put a side into a namespace."""
+    """Runs `specs` on `graph`'s master. `side_prefix`/`side_env` put a side into a namespace;
+    `side_graphs` gives a side its own master (a RosGraph-like object: popen, published_topics,
+    output, stop), e.g. the robots' master when the twins are joined by Zenoh bridges."""
 
     def __init__(self, specs: List[NodeSpec], graph: RosGraph, side_prefix: Optional[Dict[str, List[str]]] = None,
-                 side_env: Optional[Dict[str, Dict[str, str]]] = None, log=print):
+                 side_env: Optional[Dict[str, Dict[str, str]]] = None, log=print,
+                 side_graphs: Optional[Dict[str, object]] = None):
         labels = [s.label for s in specs]
         if len(set(labels)) != len(labels):
             raise ValueError(f"duplicate node labels in the plan: {labels}")
@@ -44,6 +47,7 @@ class Supervisor:
         self.graph = graph
         self.side_prefix = side_prefix or {}
         self.side_env = side_env or {}
+        self.side_graphs = side_graphs or {}
         self.log = log
         self.running: Dict[str, _Running] = {}
         self.events: List[Event] = []
@@ -54,9 +58,15 @@ class Supervisor:
         self.events.append(Event(time.monotonic() - self._t0, label, what))
         self.log(f"[bringup] {label}: {what}")
 
+    def _graph(self, label):
+        return self.side_graphs.get(self.specs_by_label[label].side, self.graph)
+
+    def _topics_by_graph(self):
+        return {id(g): set(g.published_topics()) for g in (self.graph, *self.side_graphs.values())}
+
     def _start(self, spec: NodeSpec):
         argv = [*self.side_prefix.get(spec.side, []), *spec.argv]
-        proc = self.graph.popen(argv, name=spec.label.replace("/", "_"), env=self.side_env.get(spec.side))
+        proc = self._graph(spec.label).popen(argv, name=spec.label.replace("/", "_"), env=self.side_env.get(spec.side))
         return proc
 
     def start_all(self, timeout_s=120.0):
@@ -80,15 +90,16 @@ class Supervisor:
 
     def _describe_missing(self, labels, timeout_s):
         lines = [f"not up after {timeout_s:.0f} s: {', '.join(labels)}"]
-        topics = set(self.graph.published_topics())
+        topics_by_graph = self._topics_by_graph()
         for label in labels:
+            topics = topics_by_graph[id(self._graph(label))]
             running = self.running.get(label)
             if running is None:
                 lines.append(f"  {label}: never started (waits for {', '.join(self.specs_by_label[label].after)})")
                 continue
             absent = [t for t in running.spec.wait_topics if t not in topics]
             lines.append(f"  {label}: topics not advertised: {', '.join(absent) or '-'}")
-            tail = self.graph.output(label.replace("/", "_")).strip().splitlines()[-6:]
+            tail = self._graph(label).output(label.replace("/", "_")).strip().splitlines()[-6:]
             lines.extend(f"    | {line}" for line in tail)
         return "\n".join(lines)
 
@@ -98,10 +109,11 @@ class Supervisor:
 
     def _refresh_up(self):
         try:
-            topics = set(self.graph.published_topics())
+            topics_by_graph = self._topics_by_graph()
         except OSError:
             return
-        for running in self.running.values():
+        for label, running in self.running.items():
+            topics = topics_by_graph[id(self._graph(label))]
             alive = running.proc.poll() is None or (running.spec.one_shot and running.proc.returncode == 0)
             if not running.up and alive and all(t in topics for t in running.spec.wait_topics):
                 running.up = True
@@ -113,7 +125,7 @@ class Supervisor:
                 continue
             # `nodelet load` and other one-shot helpers exit 0 only when told to; any exit is a death.
             if running.restarts >= running.spec.restart_limit:
-                tail = "\n".join(self.graph.output(label.replace("/", "_")).strip().splitlines()[-8:])
+                tail = "\n".join(self._graph(label).output(label.replace("/", "_")).strip().splitlines()[-8:])
                 raise BringupError(f"{label} exited with code {code} "
                                    f"(restarted {running.restarts} of {running.spec.restart_limit} times):\n{tail}")
             running.restarts += 1
@@ -131,8 +143,8 @@ class Supervisor:
 
     def stop_all(self):
         """Stop in reverse start order (consumers before producers), then the master."""
-        for running in reversed(list(self.running.values())):
-            self.graph.stop(running.proc, timeout_s=6.0)
+        for label, running in reversed(list(self.running.items())):
+            self._graph(label).stop(running.proc, timeout_s=6.0)
         self.running.clear()
 
     def pid_of(self, label):

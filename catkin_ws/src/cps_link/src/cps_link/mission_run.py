@@ -1,0 +1,78 @@
+"""A `cps_bringup all` mission running in the background across a named shaped link, and commands
+run on either side of it (tests and the benchmark). Everything it started, and the link's
+namespaces, are gone when the context ends, even on failure."""
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from cps_harness.processes import free_port
+from cps_link.netns_link import link_down, namespace
+
+BRINGUP = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "..",
+                                        "cps_bringup", "nodes", "cps_bringup"))
+
+
+class BackgroundMission:
+    """`with BackgroundMission(out, "cpszb", ["--robots", "scout"]) as m: m.wait_for_line("processes up")`"""
+
+    def __init__(self, out_dir, link_name, args=(), rate="60mbit", transport="zenoh"):
+        self.out_dir, self.link_name = str(out_dir), link_name
+        self.port = free_port()
+        self.log_path = os.path.join(self.out_dir, "bringup.log")
+        self.argv = [sys.executable, BRINGUP, "all", "--out", self.out_dir, "--link", rate, "--link-name", link_name,
+                     "--port", str(self.port), "--transport", transport, *args]
+        self.proc = None
+
+    def __enter__(self):
+        os.makedirs(self.out_dir, exist_ok=True)
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen(self.argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                         start_new_session=True)
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+    def log(self):
+        with open(self.log_path, errors="replace") as stream:
+            return stream.read()
+
+    def wait_for_line(self, text, timeout_s):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if text in self.log():
+                return
+            if self.proc.poll() is not None:
+                raise AssertionError(f"cps_bringup ended ({self.proc.returncode}) before '{text}':\n{self.log()[-4000:]}")
+            time.sleep(0.5)
+        raise AssertionError(f"no '{text}' within {timeout_s} s:\n{self.log()[-4000:]}")
+
+    def twin_env(self):
+        """Environment of a process on the twin's ROS graph (its master is on the twin's loopback)."""
+        env = dict(os.environ)
+        env.update(ROS_MASTER_URI=f"http://127.0.0.1:{self.port}", ROS_IP="127.0.0.1")
+        env.pop("ROS_HOSTNAME", None)
+        return env
+
+    def on_twin(self, argv, timeout_s=30.0, **kwargs):
+        """Run argv in the twin's namespace against its master."""
+        return subprocess.run(["ip", "netns", "exec", namespace(self.link_name, "twin"), *argv], env=self.twin_env(),
+                              capture_output=True, text=True, timeout=timeout_s, **kwargs)
+
+    def stop(self, timeout_s=60.0):
+        """Ctrl-C the mission (it saves the map and stops everything); kill what is left; remove the link."""
+        try:
+            if self.proc and self.proc.poll() is None:
+                os.killpg(self.proc.pid, signal.SIGINT)
+                try:
+                    self.proc.wait(timeout_s)
+                except subprocess.TimeoutExpired:
+                    os.killpg(self.proc.pid, signal.SIGKILL)
+                    self.proc.wait(10)
+        finally:
+            with contextlib.suppress(ProcessLookupError, PermissionError, TypeError):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            link_down(self.link_name)
