@@ -7,6 +7,7 @@ import pytest
 import roslib.message
 import zenoh
 
+from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
 from cps_link.bridge_config import ConfigError, ROBOTS, TWIN, load_bridge_table
 from cps_link.bridge_wire import Deduplicator, Frame, WireError, decode, encode, header_stamp_s, is_stale
 from cps_link.link_health import LinkHealth
@@ -105,7 +106,10 @@ def test_classes_map_to_their_zenoh_qos():
     assert {r.to for r in table.routes if r.latched} >= {"/tf_static", "/fleet/estop", "/scout/control_mode",
                                                         "/scout/mission_state"}
     assert all(r.source == TWIN for r in table.routes if r.traffic.name == "command")
-    assert all(r.source == ROBOTS for r in table.routes if r.traffic.name != "command")
+    assert all(r.source == ROBOTS for r in table.routes if r.traffic.name != "command" and r.to != "/tissue/allocation")
+    assert {r.to for r in table.routes if r.traffic.name == "backfill"} == \
+        {f"/twin/{r}/points_backfill/{kind}" for r in ROBOT_NAMES for kind in ("draco", "pose")}
+    assert zenoh_qos(routes["/twin/iris/points_backfill/draco"].traffic)["priority"] == zenoh.Priority.BACKGROUND
     assert routes["/twin/scout/points_filtered/draco/managed"].topic == "/scout/points_filtered/draco/managed"
 
 
@@ -147,3 +151,50 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
     assert robots["transport"]["link"]["tls"]["connect_private_key"].endswith("robots.key")
     assert not twin["scouting"]["multicast"]["enabled"]
     zenoh.Config.from_json5(__import__("json").dumps(twin))
+
+
+def _keyframe(robot, stamp_s, size):
+    return Keyframe(robot, stamp_s, (b"p" * 100, b"c" * (size - 100)))
+
+
+def test_backfill_store_keeps_one_keyframe_per_period_and_drops_the_oldest_when_full():
+    store = KeyframeStore(capacity_bytes=3000, period_s=1.0)
+    assert store.offer(_keyframe("scout", 10.0, 1000))
+    assert not store.offer(_keyframe("scout", 10.5, 1000))  # within the keyframe period
+    assert store.offer(_keyframe("iris", 10.5, 1000))  # per robot
+    assert store.offer(_keyframe("scout", 11.0, 1000))
+    assert store.bytes == 3000 and store.evicted == 0
+    assert store.offer(_keyframe("scout", 12.0, 1500))  # full: the two oldest make room
+    assert store.evicted == 2 and store.bytes == 2500 and len(store) == 2
+    assert not store.offer(_keyframe("iris", 20.0, 5000)) and store.refused == 1
+    assert [store.pop().stamp_s for _ in range(2)] == [11.0, 12.0] and store.pop() is None
+    assert store.bytes == 0 and store.kept == 4
+    with pytest.raises(ValueError):
+        KeyframeStore(0, 1.0)
+
+
+def test_backfill_pacer_sends_only_what_the_manager_leaves_unused():
+    assert unused_bytes_per_s(6.93, 6.0) == pytest.approx(0.93e6)
+    assert unused_bytes_per_s(6.0, 6.5) == 0.0
+    pacer = Pacer(burst_bytes=200_000, now_s=0.0)
+    assert not pacer.take(100_000, 10.0)  # no allocation heard yet: nothing goes
+    pacer.set_rate(100_000, 10.0)
+    assert not pacer.take(100_000, 10.5)
+    assert pacer.take(100_000, 11.01)
+    assert not pacer.take(100_000, 11.5)
+    pacer.set_rate(0.0, 11.5)
+    assert not pacer.take(1, 100.0)
+    # A 1 MB keyframe goes once the bucket is full, then the debt is paid first.
+    pacer.set_rate(100_000, 100.0)
+    assert pacer.take(1_000_000, 102.1)
+    assert not pacer.take(1000, 110.0)
+    assert pacer.take(1000, 112.0)
+
+
+def test_header_frame_id_of_a_cloud():
+    from cps_link.bridge_wire import header_frame_id
+
+    _, msg = _sample("cps_msgs/CompressedPointCloud2")
+    assert header_frame_id(_serialize(msg)) == "scout/lidar"
+    with pytest.raises(WireError):
+        header_frame_id(b"\x00" * 12 + b"\xff\x00\x00\x00")

@@ -185,6 +185,13 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                 py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=draco_decoder",
                    f"~input:={relayed}", f"~output:=/twin/{r}/points"),
                 wait_topics=(f"/twin/{r}/points",)))
+            if options.transport == ZENOH:
+                # Keyframes the robots' bridge kept during an outage, sent after it (cps_link backfill).
+                specs.append(NodeSpec(
+                    f"{r}/backfill_decoder", DIGITAL,
+                    py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=backfill_decoder",
+                       f"~input:=/twin/{r}/points_backfill/draco", f"~output:=/twin/{r}/points_backfill"),
+                    wait_topics=(f"/twin/{r}/points_backfill",)))
         specs.append(NodeSpec(
             "map_server", DIGITAL,
             py("cps_mapping", "map_server", "__ns:=/twin", "__name:=map_server",

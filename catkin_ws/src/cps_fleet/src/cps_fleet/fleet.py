@@ -80,6 +80,8 @@ class LinkConfig:
     min_rate_hz: float
     max_rate_hz: float
     estimate_bandwidth: bool
+    # The robots' side Zenoh bridge keeps this many bytes of keyframes during an outage (None: none).
+    backfill_store_bytes: Optional[int] = None
 
     @property
     def budget_mbytes_per_s(self):
@@ -230,6 +232,8 @@ def load_fleet(path=None, profile=None):
         min_rate_hz=link_reader.number("min_rate_hz", low=0.0, low_open=True),
         max_rate_hz=link_reader.number("max_rate_hz", low=0.0, low_open=True),
         estimate_bandwidth=link_reader.get("estimate_bandwidth", bool, default=False),
+        backfill_store_bytes=int(link_reader.number("backfill_store_bytes", low=0.0, low_open=True))
+        if link_reader.has("backfill_store_bytes") else None,
     )
     if link.min_rate_hz > link.max_rate_hz:
         raise link_reader.error("min_rate_hz", f"min_rate_hz ({link.min_rate_hz}) > max_rate_hz ({link.max_rate_hz})")

@@ -37,10 +37,23 @@ class Route:
     traffic: TrafficClass
     latched: bool = False
     robot: str = ""
+    # False for what the bridge itself puts on the wire (backfill): nothing to subscribe to.
+    from_ros: bool = True
 
     def key(self, prefix):
         """The Zenoh key expression this topic travels on."""
         return f"{prefix}/topic{self.to}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Backfill:
+    """Per robot: the route whose keyframes are kept and the two routes they are re-sent on."""
+    source: Dict[str, str]  # robot -> the source route's far-side name
+    cloud_to: Dict[str, str]
+    pose_to: Dict[str, str]
+    map_frame: str
+    keyframe_period_s: float
+    allocation_topic: str
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,9 +66,13 @@ class BridgeTable:
     retry_max_ms: int
     classes: Dict[str, TrafficClass]
     routes: Tuple[Route, ...]
+    backfill: Optional[Backfill] = None
 
     def outgoing(self, side):
         return [r for r in self.routes if r.source == side]
+
+    def route(self, to):
+        return next(r for r in self.routes if r.to == to)
 
     def incoming(self, side):
         return [r for r in self.routes if r.source != side]
@@ -116,6 +133,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
                 raise entry.error("topic", f"'{route.to}' crosses twice (also at line {seen[route.to]})")
             seen[route.to] = doc.line(entry.key_path)
             routes.append(route)
+    backfill = _backfill(top, doc, classes, robots, routes, seen) if top.has("backfill") else None
     return BridgeTable(
         path=path,
         endpoint_port=top.get("endpoint_port", int),
@@ -125,7 +143,34 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         retry_max_ms=top.get("retry_max_ms", int),
         classes=classes,
         routes=tuple(routes),
+        backfill=backfill,
     )
+
+
+def _backfill(top, doc, classes, robots, routes, seen):
+    """The backfill block; adds its two routes per robot to `routes`."""
+    b = top.child("backfill")
+    source = _check_topic(b, "source", b.get("source", str))
+    class_name = b.get("class", str)
+    if class_name not in classes:
+        raise b.error("class", f"unknown class '{class_name}' (known: {', '.join(classes)})")
+    names = {key: _check_topic(b, key, b.get(key, str)) for key in ("cloud_to", "pose_to")}
+    by_topic = {r.topic: r for r in routes}
+    sources, clouds, poses = {}, {}, {}
+    for robot in robots:
+        topic = source.replace(ROBOT_PLACEHOLDER, robot)
+        if topic not in by_topic or by_topic[topic].source != ROBOTS:
+            raise b.error("source", f"'{topic}' is not a topic that crosses from the robots")
+        sources[robot] = by_topic[topic].to
+        for key, out in (("cloud_to", clouds), ("pose_to", poses)):
+            out[robot] = names[key].replace(ROBOT_PLACEHOLDER, robot)
+            if out[robot] in seen:
+                raise b.error(key, f"'{out[robot]}' crosses twice (also at line {seen[out[robot]]})")
+            seen[out[robot]] = doc.line(b.key_path + (key,))
+            routes.append(Route(out[robot], out[robot], ROBOTS, classes[class_name], robot=robot, from_ros=False))
+    return Backfill(sources, clouds, poses, b.get("map_frame", str),
+                    b.number("keyframe_period_s", low=0.0, low_open=True),
+                    _check_topic(b, "allocation", b.get("allocation", str)))
 
 
 __all__ = ["BridgeTable", "ConfigError", "Route", "TrafficClass", "load_bridge_table", "other_side",

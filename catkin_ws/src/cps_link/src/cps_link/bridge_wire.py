@@ -41,6 +41,16 @@ def header_stamp_s(body):
     return secs + nsecs * 1e-9
 
 
+def header_frame_id(body):
+    """The header frame_id of a serialized message whose type starts with a std_msgs/Header."""
+    if len(body) < 16:
+        raise WireError(f"message of {len(body)} bytes is too short for a std_msgs/Header")
+    (n,) = struct.unpack_from("<I", body, 12)
+    if 16 + n > len(body):
+        raise WireError("header frame_id runs past the message")
+    return bytes(body[16:16 + n]).decode(errors="replace")
+
+
 def encode(frame: Frame) -> bytes:
     if len(frame.session) != 16:
         raise ValueError("session id must be 16 bytes")

@@ -7,7 +7,7 @@ classes with max_age_s), then republished under the contract's names. Latched to
 source's last message for late subscribers and are re-sent when the link comes back. Liveliness
 tokens tell each side within a lease whether the other is there: /tissue/link_state.
 """
-import os
+import io
 import threading
 import time
 import uuid
@@ -16,8 +16,10 @@ import roslib.message
 import rospy
 from cps_msgs.msg import LinkState
 
-from cps_link.bridge_config import BridgeTable, Route, other_side
-from cps_link.bridge_wire import Deduplicator, Frame, WireError, decode, encode, header_stamp_s, is_stale
+from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
+from cps_link.bridge_config import ROBOTS, BridgeTable, Route, other_side
+from cps_link.bridge_wire import (Deduplicator, Frame, WireError, decode, encode, header_frame_id, header_stamp_s,
+                                  is_stale)
 from cps_link.link_health import LinkHealth
 from cps_ros.diagnostics import DropReporter
 
@@ -28,6 +30,14 @@ NOT_UP_WARN_AFTER_S = 5.0
 # rospy subscriber queues: the data class keeps only the newest message (fresh first).
 QUEUE_SIZE = {"data": 1, "backfill": 50}
 DEFAULT_QUEUE_SIZE = 20
+# The backfill's token bucket: at most this much in one go, bytes; its send loop's period, s.
+BACKFILL_BURST_BYTES = 300_000
+BACKFILL_POLL_S = 0.02
+# How far back the robots' bridge keeps transforms for keyframe poses, s.
+TF_CACHE_S = 60.0
+# The transforms the robots' bridge forwards anyway; it keeps them for keyframe poses (one
+# subscription per topic and process in rospy: a tf2 listener beside the AnyMsg one would clash).
+TF_TOPICS = {"/tf": False, "/tf_static": True}
 
 
 def zenoh_qos(traffic):
@@ -57,7 +67,7 @@ class _LatchedReplay(rospy.SubscribeListener):
 class ZenohBridge:
     """Carries `table`'s topics between this side's ROS master and `session` (an open Zenoh session)."""
 
-    def __init__(self, table: BridgeTable, side, session, name, endpoint=""):
+    def __init__(self, table: BridgeTable, side, session, name, endpoint="", backfill_store_bytes=None):
         self.table, self.side, self.session, self.name = table, side, session, name
         self.peer_side = other_side(side)
         self.endpoint = endpoint
@@ -71,6 +81,9 @@ class ZenohBridge:
         self.health = LinkHealth(started_s=self.started_s)
         self.reporter = DropReporter("zenoh_bridge")
         self.link_pub = rospy.Publisher(LINK_STATE_TOPIC, LinkState, queue_size=5, latch=True)
+        self.store = None
+        if side == ROBOTS and table.backfill and backfill_store_bytes:
+            self._start_backfill(backfill_store_bytes)
         self.publishers, self.replays, self.zenoh_pubs, self.ros_subs, self.zenoh_subs = {}, {}, {}, [], []
         for route in table.incoming(side):
             self.zenoh_subs.append(session.declare_subscriber(route.key(table.key_prefix),
@@ -78,6 +91,8 @@ class ZenohBridge:
         for route in table.outgoing(side):
             self.zenoh_pubs[route.to] = session.declare_publisher(route.key(table.key_prefix),
                                                                   **zenoh_qos(route.traffic))
+            if not route.from_ros:
+                continue
             self.ros_subs.append(rospy.Subscriber(route.topic, rospy.AnyMsg, self._send, callback_args=route,
                                                   queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
                                                   buff_size=2 ** 24, tcp_nodelay=True))
@@ -111,8 +126,23 @@ class ZenohBridge:
             seq = self.seq[key]
         return key, Frame(self.session_id, seq, stamp, msg_type, md5, source, bytes(msg._buff))
 
+    def _keep_transforms(self, topic, body):
+        from tf2_msgs.msg import TFMessage
+
+        static = TF_TOPICS[topic]
+        for transform in TFMessage().deserialize(body).transforms:
+            if static:
+                self.tf_buffer.set_transform_static(transform, "zenoh_bridge")
+            else:
+                self.tf_buffer.set_transform(transform, "zenoh_bridge")
+
     def _send(self, msg, route: Route):
+        if self.store is not None and route.topic in TF_TOPICS:
+            self._keep_transforms(route.topic, msg._buff)
         key, frame = self.frame_of(route, msg)
+        if self.store is not None and not self.health.up and route.to in self.backfill_robot:
+            self._keep_keyframe(self.backfill_robot[route.to], frame)
+            return
         payload = encode(frame)
         if route.latched:
             with self.lock:
@@ -156,6 +186,8 @@ class ZenohBridge:
         if is_stale(frame, time.time(), route.traffic.max_age_s):
             self.reporter.count(stale=1)
             return "stale"
+        if self.store is not None and route.to == self.table.backfill.allocation_topic:
+            self._on_allocation(cls().deserialize(frame.body))
         msg = rospy.AnyMsg()
         msg._buff = frame.body
         pub = self._publisher(route, cls)
@@ -178,6 +210,70 @@ class ZenohBridge:
                     subscriber_listener=listener, tcp_nodelay=True)
             return self.publishers[route.to]
 
+    # --- backfill (robots' side) --------------------------------------------------------------
+    def _start_backfill(self, capacity_bytes):
+        import tf2_ros  # tf2's buffer alone: see TF_TOPICS
+
+        backfill = self.table.backfill
+        self.store = KeyframeStore(capacity_bytes, backfill.keyframe_period_s)
+        self.pacer = Pacer(BACKFILL_BURST_BYTES, time.monotonic())
+        self.backfill_robot = {to: robot for robot, to in backfill.source.items()}
+        self.tf_buffer = tf2_ros.Buffer(rospy.Duration(TF_CACHE_S))
+        missing = [t for t in TF_TOPICS if t not in {r.topic for r in self.table.outgoing(ROBOTS)}]
+        if missing:
+            rospy.logwarn(f"{rospy.get_name()}: {', '.join(missing)} do not cross; keyframes may lack poses")
+        threading.Thread(target=self._backfill_loop, name="backfill", daemon=True).start()
+
+    def _keep_keyframe(self, robot, cloud: Frame):
+        """Keep a cloud captured during an outage as a keyframe, with its sensor's pose in the map."""
+        from geometry_msgs.msg import TransformStamped
+
+        if not self.store.wants(robot, cloud.stamp_s):
+            return
+        try:
+            pose = self.tf_buffer.lookup_transform(self.table.backfill.map_frame, header_frame_id(cloud.body),
+                                                   rospy.Time.from_sec(cloud.stamp_s))
+        except Exception as exc:  # tf2's exceptions and a cloud without a header
+            self.reporter.count(backfill_no_pose=1)
+            rospy.logwarn_throttle(5.0, f"{rospy.get_name()}: keyframe of {robot} without a pose: {exc}")
+            return
+        backfill = self.table.backfill
+        pose_route = self.table.route(backfill.pose_to[robot])
+        cloud_route = self.table.route(backfill.cloud_to[robot])
+        pose_msg = rospy.AnyMsg()
+        buff = io.BytesIO()
+        pose.serialize(buff)
+        pose_msg._buff = buff.getvalue()
+        pose_msg._connection_header = {"type": TransformStamped._type, "md5sum": TransformStamped._md5sum,
+                                       "callerid": rospy.get_name()}
+        cloud_msg = rospy.AnyMsg()
+        cloud_msg._buff = cloud.body
+        cloud_msg._connection_header = {"type": cloud.msg_type, "md5sum": cloud.md5, "callerid": cloud.source}
+        payloads = tuple(encode(self.frame_of(r, m)[1]) for r, m in ((pose_route, pose_msg), (cloud_route, cloud_msg)))
+        self.store.offer(Keyframe(robot, cloud.stamp_s, payloads))
+
+    def _on_allocation(self, allocation):
+        self.pacer.set_rate(unused_bytes_per_s(allocation.budget_mbytes_per_s, allocation.allocated_mbytes_per_s),
+                            time.monotonic())
+
+    def _backfill_loop(self):
+        backfill = self.table.backfill
+        while not rospy.is_shutdown():
+            time.sleep(BACKFILL_POLL_S)
+            keyframe = self.store.peek() if self.health.up else None
+            if keyframe is None or not self.pacer.take(keyframe.size_bytes, time.monotonic()):
+                continue
+            keyframe = self.store.pop()
+            for to, payload in zip((backfill.pose_to[keyframe.robot], backfill.cloud_to[keyframe.robot]),
+                                   keyframe.payloads):
+                self.zenoh_pubs[to].put(payload)
+            self.reporter.count(backfill_sent=1, backfill_sent_bytes=keyframe.size_bytes)
+
+    def backfill_counters(self):
+        s = self.store
+        return {"backfill_kept": s.kept, "backfill_evicted": s.evicted, "backfill_refused": s.refused,
+                "backfill_stored": len(s), "backfill_stored_bytes": s.bytes} if s else {}
+
     # --- link health ------------------------------------------------------------------------
     def _on_liveliness(self, sample):
         import zenoh
@@ -199,6 +295,7 @@ class ZenohBridge:
             self._publish_link_state()
 
     def _tick(self, _event=None):
+        self.reporter.gauge(**self.backfill_counters())
         if not self.health.ever_up and time.time() - self.started_s > NOT_UP_WARN_AFTER_S:
             rospy.logwarn_throttle(10.0, f"{rospy.get_name()}: no {self.peer_side} bridge has come up yet "
                                          f"({self.endpoint or 'listening'}); still trying")
