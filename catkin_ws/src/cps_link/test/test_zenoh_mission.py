@@ -34,18 +34,13 @@ def test_one_robot_mission_over_zenoh(tmp_path):
         link = mission.on_twin(["rostopic", "echo", "-n", "1", "/tissue/link_state"])
         assert "up: True" in link.stdout, link.stdout + link.stderr
         # A command crosses: teleop asked on the twin, the robot's mux reports teleop in force.
-        pub = subprocess.Popen(["ip", "netns", "exec", "cpszb_twin", "rostopic", "pub", "-l", "/jackal/control_mode",
-                                "std_msgs/String", "teleop"], env=mission.twin_env(),
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        try:
-            deadline, active = time.monotonic() + 30, ""
-            while time.monotonic() < deadline and "teleop" not in active:
-                active = mission.on_twin(["rostopic", "echo", "-n", "1", "/jackal/control_mode/active"]).stdout
-                time.sleep(1.0)
-            assert "data: \"teleop\"" in active, active
-        finally:
-            pub.kill()
-            pub.wait(10)
+        mission.popen_on("twin", ["rostopic", "pub", "-l", "/jackal/control_mode", "std_msgs/String", "teleop"],
+                         "control_mode_pub")
+        deadline, active = time.monotonic() + 30, ""
+        while time.monotonic() < deadline and "teleop" not in active:
+            active = mission.on_twin(["rostopic", "echo", "-n", "1", "/jackal/control_mode/active"]).stdout
+            time.sleep(1.0)
+        assert "data: \"teleop\"" in active, active
         # No ROS port of either side is on the link: the twin's master is not reachable at its link address.
         probe = mission.on_twin(["python3", "-c", "import socket; s=socket.socket(); s.settimeout(2); "
                                  f"print(s.connect_ex(('{netns_link.TWIN_IP}', {mission.port})))"])
