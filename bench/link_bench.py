@@ -29,6 +29,11 @@ from cps_link.zenoh_session import MAKE_CERTS
 LINK_NAME = "cpszl"
 
 
+def _set_link(up):
+    subprocess.run(["ip", "-n", namespace(LINK_NAME, "phys"), "link", "set", f"{LINK_NAME}_p", "up" if up else "down"],
+                   check=True)
+
+
 def run(transport, args, cert_dir, tmp):
     out = {}
     with ShapedLink(LINK_NAME, rate=args.rate) as link:
@@ -43,14 +48,15 @@ def run(transport, args, cert_dir, tmp):
                 cpu0, t0 = cpu_s(bridge_pids(graphs)), time.time()
                 time.sleep(args.phase_s)
                 cpu1, t1 = cpu_s(bridge_pids(graphs)), time.time()
-                carried = sum(b for rows in read_watch(watch).messages.values() for recv, _, b in rows if t0 <= recv < t1)
+                rows = [r for msgs in read_watch(watch).messages.values() for r in msgs]
+                carried = sum(b for recv, _, b in rows if t0 <= recv < t1)
                 out["cpu_s_per_mb"] = (cpu1 - cpu0) / (carried / 1e6)
                 out["carried_mbytes_per_s"] = carried / 1e6 / (t1 - t0)
             # (1) a cut
-            subprocess.run(["ip", "-n", namespace(LINK_NAME, "phys"), "link", "set", f"{LINK_NAME}_p", "down"], check=True)
+            _set_link(up=False)
             time.sleep(args.cut_s)
             restore = time.time()
-            subprocess.run(["ip", "-n", namespace(LINK_NAME, "phys"), "link", "set", f"{LINK_NAME}_p", "up"], check=True)
+            _set_link(up=True)
             time.sleep(args.phase_s)
             ages = ages_after(read_watch(watch), restore, [graphs.managed_topic_on_twin(r) for r in LIVE])
             ages = ages if len(ages) else np.array([np.nan])
@@ -100,12 +106,15 @@ def main():
         subprocess.run([MAKE_CERTS, cert_dir], check=True, capture_output=True)
         results = {t: run(t, args, cert_dir, tmp) for t in ("tcpros", "zenoh")}
         results["zenoh"]["ceiling_mbytes_per_s"] = ceiling(cert_dir, tmp, seconds=8.0)
-    print(f"link {args.rate} (tc tbf veth, {PHYS_IP} <-> {TWIN_IP}), cut {args.cut_s:.0f} s, phases {args.phase_s:.0f} s")
+    print(f"link {args.rate} (tc tbf veth, {PHYS_IP} <-> {TWIN_IP}), cut {args.cut_s:.0f} s, "
+          f"phases {args.phase_s:.0f} s")
     print(f"{'':34s} {'tcpros':>10s} {'zenoh':>10s}")
-    rows = [("stale after cut: max (s)", "stale_max_s", "{:.2f}"), ("stale after cut: p95 (s)", "stale_p95_s", "{:.2f}"),
+    rows = [("stale after cut: max (s)", "stale_max_s", "{:.2f}"),
+            ("stale after cut: p95 (s)", "stale_p95_s", "{:.2f}"),
             ("clouds received after cut", "after_cut_messages", "{:d}"),
             ("teleop under saturation p50 (ms)", "teleop_p50_ms", "{:.1f}"),
-            ("teleop under saturation p95 (ms)", "teleop_p95_ms", "{:.1f}"), ("teleop commands", "teleop_commands", "{:d}")]
+            ("teleop under saturation p95 (ms)", "teleop_p95_ms", "{:.1f}"),
+            ("teleop commands", "teleop_commands", "{:d}")]
     for label, key, fmt in rows:
         print(f"{label:34s} " + " ".join(f"{fmt.format(results[t][key]):>10s}" for t in ("tcpros", "zenoh")))
     z = results["zenoh"]

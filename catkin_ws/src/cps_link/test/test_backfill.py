@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from cps_harness.processes import RosGraph, find_node, free_port
+from cps_harness.processes import find_node, free_port
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 
@@ -20,16 +20,6 @@ STATIC_TF = [sys.executable, "-c", "import rospy, tf2_ros; from geometry_msgs.ms
              "b = tf2_ros.StaticTransformBroadcaster(); b.sendTransform(t); rospy.spin()"]
 CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace("nodes/bandwidth_manager",
                                                                         "test/fixtures/cloud_load.py")
-
-
-@pytest.fixture
-def robots_graph():
-    graph = RosGraph()
-    graph.start()
-    try:
-        yield graph
-    finally:
-        graph.close()
 
 
 @pytest.mark.timeout(150)

@@ -59,7 +59,8 @@ def test_every_type_crosses_byte_identical(msg_type):
 
 
 def test_damaged_frames_are_refused_with_a_reason():
-    good = encode(Frame(b"s" * 16, 1, math.nan, "std_msgs/String", "992ce8a1687cec8c8bd883ec73ca41d1", "/gui", b"\x02\x00\x00\x00hi"))
+    good = encode(Frame(b"s" * 16, 1, math.nan, "std_msgs/String", "992ce8a1687cec8c8bd883ec73ca41d1", "/gui",
+                        b"\x02\x00\x00\x00hi"))
     flipped = bytearray(good)
     flipped[-1] ^= 0xFF
     for bad, why in ((good[:10], "shorter"), (b"XXXX" + good[4:], "magic"), (bytes(flipped), "CRC"),
@@ -120,8 +121,7 @@ def test_bad_table_names_file_and_line(tmp_path):
     for topics, message in (("  - {topic: /a, from: moon, class: command}\n", "bridge.yaml:9.*from"),
                             ("  - {topic: /a, from: twin, class: fast}\n", "bridge.yaml:9.*unknown class"),
                             ("  - {topic: a, from: twin, class: command}\n", "not a global ROS topic"),
-                            ("  - {topic: /a, from: twin, class: command}\n  - {topic: /a, from: twin, class: command}\n",
-                             "bridge.yaml:10.*crosses twice")):
+                            ("  - {topic: /a, from: twin, class: command}\n" * 2, "bridge.yaml:10.*crosses twice")):
         path.write_text(base + "topics:\n" + topics)
         with pytest.raises(ConfigError, match=message):
             load_bridge_table(str(path), ROBOT_NAMES)

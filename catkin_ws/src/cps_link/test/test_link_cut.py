@@ -23,13 +23,6 @@ MISSION_S, CUT_AT_S, CUT_S = 110.0, 35.0, 10.0
 DOWN_WITHIN_S, UP_WITHIN_S, FRESH_S, F1_RATIO = 1.0, 2.0, 1.0, 0.98
 
 
-def _capable():
-    try:
-        netns_link.check_capability()
-        return None
-    except netns_link.LinkError as exc:
-        return str(exc)
-
 
 def _f1(map_file):
     from cps_bringup.report import score_saved_map
@@ -42,7 +35,8 @@ def _f1(map_file):
 
 def _mission(out, cut):
     """One mission; with `cut`, the veth goes down CUT_AT_S into it for CUT_S. Returns (mission, times)."""
-    twin_topics = [t for r in ROBOTS for t in (f"/twin/{r}/points_filtered/draco/managed", f"/twin/{r}/points_backfill")]
+    twin_topics = [t for r in ROBOTS
+                   for t in (f"/twin/{r}/points_filtered/draco/managed", f"/twin/{r}/points_backfill")]
     with BackgroundMission(out, "cpszc", ["--robots", ",".join(ROBOTS), "--duration", str(MISSION_S)]) as mission:
         mission.wait_for_line("processes up", timeout_s=300)
         mission.popen_on("twin", [sys.executable, WATCH, str(out / "twin_watch.txt"), *twin_topics], "twin_watch")
@@ -59,7 +53,7 @@ def _mission(out, cut):
     return mission, times
 
 
-@pytest.mark.skipif(_capable() is not None, reason=f"{_capable()}")
+@pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
 @pytest.mark.timeout(1500)
 def test_a_ten_second_cut_mid_mission(tmp_path):
     base, _ = _mission(tmp_path / "nocut", cut=False)

@@ -23,19 +23,12 @@ PORT = 7447
 ROBOT = "scout"
 
 
-def _capable():
-    try:
-        netns_link.check_capability()
-        return None
-    except netns_link.LinkError as exc:
-        return str(exc)
-
 
 def _lines(path):
     return open(path).read().split("\n") if os.path.exists(path) else []
 
 
-@pytest.mark.skipif(_capable() is not None, reason=f"{_capable()}")
+@pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
 @pytest.mark.timeout(240)
 def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
     from cps_bringup.link import InNamespace

@@ -16,15 +16,8 @@ P95_LIMIT_MS = 50.0
 PHASE_S = 10.0
 
 
-def _capable():
-    try:
-        netns_link.check_capability()
-        return None
-    except netns_link.LinkError as exc:
-        return str(exc)
 
-
-@pytest.mark.skipif(_capable() is not None, reason=f"{_capable()}")
+@pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
 @pytest.mark.timeout(300)
 def test_teleop_p95_under_saturation(tmp_path):
     cert_dir = str(tmp_path / "certs")

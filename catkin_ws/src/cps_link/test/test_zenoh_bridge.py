@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from cps_harness.processes import RosGraph, find_node, free_port
+from cps_harness.processes import find_node, free_port
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.bridge_wire import Frame, encode
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv, session_config
@@ -27,16 +27,6 @@ def cert_dir(tmp_path_factory):
     path = str(tmp_path_factory.mktemp("certs") / "certs")
     subprocess.run([MAKE_CERTS, path], check=True, capture_output=True)
     return path
-
-
-@pytest.fixture
-def robots_graph():
-    graph = RosGraph()
-    graph.start()
-    try:
-        yield graph
-    finally:
-        graph.close()
 
 
 def _diag_counter(recorder, key):

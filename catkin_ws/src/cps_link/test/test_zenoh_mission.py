@@ -14,15 +14,8 @@ from cps_link.mission_run import BackgroundMission
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 
-def _capable():
-    try:
-        netns_link.check_capability()
-        return None
-    except netns_link.LinkError as exc:
-        return str(exc)
 
-
-@pytest.mark.skipif(_capable() is not None, reason=f"{_capable()}")
+@pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
 @pytest.mark.timeout(400)
 def test_one_robot_mission_over_zenoh(tmp_path):
     out = tmp_path / "mission"

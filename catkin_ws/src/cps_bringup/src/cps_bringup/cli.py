@@ -149,8 +149,9 @@ def run_mission(args, log=print) -> MissionResult:
             graph = RosGraph(port=args.port, log_dir=node_log_dir(out_dir), host_ip=host_ip)
         stack.callback(graph.close)
         graph.start()
-        log(f"[bringup] master {graph.uri}"
-            f"{'; robots master ' + side_graphs[PHYSICAL].uri + ' (joined by Zenoh bridges)' if side_graphs else ''}; link: {link.describe() if link else 'loopback (no shaping)'}; "
+        robots_master = f"; robots master {side_graphs[PHYSICAL].uri} (joined by Zenoh bridges)" if side_graphs else ""
+        log(f"[bringup] master {graph.uri}{robots_master}; "
+            f"link: {link.describe() if link else 'loopback (no shaping)'}; "
             f"robots {', '.join(fleet.robot_names)}; profile {options.profile or fleet.profile.name}; out {out_dir}")
         supervisor = Supervisor(
             specs, graph, log=log,

@@ -96,6 +96,13 @@ def _check_topic(reader, key, name):
     return name
 
 
+def _class_of(reader, classes):
+    name = reader.get("class", str)
+    if name not in classes:
+        raise reader.error("class", f"unknown class '{name}' (known: {', '.join(classes)})")
+    return classes[name]
+
+
 def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
     """The table with `<r>` expanded for `robots`; ConfigError (file:line) for anything wrong."""
     path = path or DEFAULT_TABLE
@@ -121,14 +128,12 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         source = entry.get("from", str)
         if source not in SIDES:
             raise entry.error("from", f"must be one of {', '.join(SIDES)}, got '{source}'")
-        class_name = entry.get("class", str)
-        if class_name not in classes:
-            raise entry.error("class", f"unknown class '{class_name}' (known: {', '.join(classes)})")
+        traffic = _class_of(entry, classes)
         latched = entry.get("latched", bool, default=False)
         per_robot = ROBOT_PLACEHOLDER in topic or ROBOT_PLACEHOLDER in to
         for robot in (robots if per_robot else ("",)):
             route = Route(topic.replace(ROBOT_PLACEHOLDER, robot), to.replace(ROBOT_PLACEHOLDER, robot), source,
-                          classes[class_name], latched, robot)
+                          traffic, latched, robot)
             if route.to in seen:
                 raise entry.error("topic", f"'{route.to}' crosses twice (also at line {seen[route.to]})")
             seen[route.to] = doc.line(entry.key_path)
@@ -151,9 +156,7 @@ def _backfill(top, doc, classes, robots, routes, seen):
     """The backfill block; adds its two routes per robot to `routes`."""
     b = top.child("backfill")
     source = _check_topic(b, "source", b.get("source", str))
-    class_name = b.get("class", str)
-    if class_name not in classes:
-        raise b.error("class", f"unknown class '{class_name}' (known: {', '.join(classes)})")
+    traffic = _class_of(b, classes)
     names = {key: _check_topic(b, key, b.get(key, str)) for key in ("cloud_to", "pose_to")}
     by_topic = {r.topic: r for r in routes}
     sources, clouds, poses = {}, {}, {}
@@ -167,7 +170,7 @@ def _backfill(top, doc, classes, robots, routes, seen):
             if out[robot] in seen:
                 raise b.error(key, f"'{out[robot]}' crosses twice (also at line {seen[out[robot]]})")
             seen[out[robot]] = doc.line(b.key_path + (key,))
-            routes.append(Route(out[robot], out[robot], ROBOTS, classes[class_name], robot=robot, from_ros=False))
+            routes.append(Route(out[robot], out[robot], ROBOTS, traffic, robot=robot, from_ros=False))
     return Backfill(sources, clouds, poses, b.get("map_frame", str),
                     b.number("keyframe_period_s", low=0.0, low_open=True),
                     _check_topic(b, "allocation", b.get("allocation", str)))

@@ -48,7 +48,8 @@ class BackgroundMission:
             if text in self.log():
                 return
             if self.proc.poll() is not None:
-                raise AssertionError(f"cps_bringup ended ({self.proc.returncode}) before '{text}':\n{self.log()[-4000:]}")
+                raise AssertionError(f"cps_bringup ended ({self.proc.returncode}) before '{text}':\n"
+                                     f"{self.log()[-4000:]}")
             time.sleep(0.5)
         raise AssertionError(f"no '{text}' within {timeout_s} s:\n{self.log()[-4000:]}")
 

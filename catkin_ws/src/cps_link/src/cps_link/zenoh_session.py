@@ -52,14 +52,13 @@ def session_config(table: BridgeTable, side, twin_address, cert_dir, tls=True):
     proto = "tls" if tls else "tcp"
     host = f"[{twin_address}]" if ":" in twin_address else twin_address
     endpoint = f"{proto}/{host}:{table.endpoint_port}"
+    retry = {"period_init_ms": 200, "period_max_ms": table.retry_max_ms, "period_increase_factor": 1.5}
     config = {
         "mode": "peer",
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "listen": {"endpoints": [endpoint] if side == TWIN else [],
-                   "retry": {"period_init_ms": 200, "period_max_ms": table.retry_max_ms, "period_increase_factor": 1.5}},
+        "listen": {"endpoints": [endpoint] if side == TWIN else [], "retry": retry},
         "connect": {"endpoints": [endpoint] if side == ROBOTS else [], "timeout_ms": -1, "exit_on_failure": False,
-                    "retry": {"period_init_ms": 200, "period_max_ms": table.retry_max_ms,
-                              "period_increase_factor": 1.5}},
+                    "retry": retry},
         "transport": {"link": {"tx": {"lease": table.lease_ms, "keep_alive": table.keep_alive}}},
     }
     if tls:
