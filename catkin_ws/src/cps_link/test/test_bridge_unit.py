@@ -117,11 +117,12 @@ def test_classes_map_to_their_zenoh_qos():
 def test_bad_table_names_file_and_line(tmp_path):
     path = tmp_path / "bridge.yaml"
     base = ("endpoint_port: 7447\nkey_prefix: cps\nlease_ms: 600\nkeep_alive: 3\nretry_max_ms: 500\n"
+            "heartbeat_ms: 100\nheartbeat_timeout_ms: 700\n"
             "classes:\n  command: {priority: real_time, congestion: block, reliable: true, express: true}\n")
-    for topics, message in (("  - {topic: /a, from: moon, class: command}\n", "bridge.yaml:9.*from"),
-                            ("  - {topic: /a, from: twin, class: fast}\n", "bridge.yaml:9.*unknown class"),
+    for topics, message in (("  - {topic: /a, from: moon, class: command}\n", "bridge.yaml:11.*from"),
+                            ("  - {topic: /a, from: twin, class: fast}\n", "bridge.yaml:11.*unknown class"),
                             ("  - {topic: a, from: twin, class: command}\n", "not a global ROS topic"),
-                            ("  - {topic: /a, from: twin, class: command}\n" * 2, "bridge.yaml:10.*crosses twice")):
+                            ("  - {topic: /a, from: twin, class: command}\n" * 2, "bridge.yaml:12.*crosses twice")):
         path.write_text(base + "topics:\n" + topics)
         with pytest.raises(ConfigError, match=message):
             load_bridge_table(str(path), ROBOT_NAMES)
@@ -137,6 +138,16 @@ def test_link_health_counts_outages_and_their_length():
     assert not health.peer_gone("robots", 3.5)
     assert health.peer_alive("robots", 13.0) and health.last_outage_s == pytest.approx(10.0)
     assert health.since_s == 13.0
+
+
+def test_a_silent_peer_is_gone_after_the_heartbeat_timeout_even_with_its_token():
+    health = LinkHealth(started_s=0.0)
+    assert health.heard("robots", 1.0)
+    assert not health.expire(1.6, timeout_s=0.7) and health.up
+    assert not health.heard("robots", 1.7)
+    assert health.expire(2.5, timeout_s=0.7) and not health.up and health.outages == 1
+    assert not health.expire(3.0, timeout_s=0.7)
+    assert health.heard("robots", 12.5) and health.last_outage_s == pytest.approx(10.0)
 
 
 def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path):

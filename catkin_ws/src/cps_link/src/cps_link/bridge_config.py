@@ -64,6 +64,8 @@ class BridgeTable:
     lease_ms: int
     keep_alive: int
     retry_max_ms: int
+    heartbeat_ms: int
+    heartbeat_timeout_ms: int
     classes: Dict[str, TrafficClass]
     routes: Tuple[Route, ...]
     backfill: Optional[Backfill] = None
@@ -82,6 +84,12 @@ class BridgeTable:
 
     def peer_liveliness_keys(self, side):
         return f"{self.key_prefix}/bridge/{other_side(side)}/**"
+
+    def heartbeat_key(self, side, name):
+        return f"{self.key_prefix}/heartbeat/{side}/{name}"
+
+    def peer_heartbeat_keys(self, side):
+        return f"{self.key_prefix}/heartbeat/{other_side(side)}/**"
 
 
 def other_side(side):
@@ -146,6 +154,8 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         lease_ms=top.get("lease_ms", int),
         keep_alive=top.get("keep_alive", int),
         retry_max_ms=top.get("retry_max_ms", int),
+        heartbeat_ms=top.get("heartbeat_ms", int),
+        heartbeat_timeout_ms=top.get("heartbeat_timeout_ms", int),
         classes=classes,
         routes=tuple(routes),
         backfill=backfill,

@@ -1,4 +1,6 @@
-"""The link's health as one bridge sees it: the other side's liveliness tokens come and go (ROS-free)."""
+"""The link's health as one bridge sees it (ROS-free): the other side's liveliness tokens come and
+go, and its heartbeats stop. The token alone is not enough: a bridge whose transport is stuck
+behind a full send buffer may not see the session end until the link is back."""
 import dataclasses
 
 
@@ -12,6 +14,7 @@ class LinkHealth:
     outages: int = 0
     last_outage_s: float = 0.0
     ever_up: bool = False
+    last_heard: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         if self.since_s is None:
@@ -21,8 +24,18 @@ class LinkHealth:
     def up(self):
         return bool(self.peers)
 
+    def heard(self, name, now_s):
+        """A peer's heartbeat; True when the link changed to up."""
+        return self.peer_alive(name, now_s)
+
+    def expire(self, now_s, timeout_s):
+        """Peers not heard for timeout_s are gone; True when the link changed to down."""
+        silent = [n for n in self.peers if now_s - self.last_heard.get(n, now_s) > timeout_s]
+        return any([self.peer_gone(n, now_s) for n in silent])
+
     def peer_alive(self, name, now_s):
-        """A peer's token appeared; True when the link changed to up."""
+        """A peer's token appeared (or it was heard); True when the link changed to up."""
+        self.last_heard[name] = now_s
         was_up = self.up
         self.peers.add(name)
         if was_up:

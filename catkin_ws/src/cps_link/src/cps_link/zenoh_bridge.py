@@ -40,12 +40,24 @@ TF_CACHE_S = 60.0
 TF_TOPICS = {"/tf": False, "/tf_static": True}
 
 
+def zenoh_qos_priority(name):
+    import zenoh
+
+    return getattr(zenoh.Priority, name.upper())
+
+
+def zenoh_congestion(name):
+    import zenoh
+
+    return getattr(zenoh.CongestionControl, name.upper())
+
+
 def zenoh_qos(traffic):
     """The declare_publisher keyword arguments of a traffic class."""
     import zenoh
 
-    return {"priority": getattr(zenoh.Priority, traffic.priority.upper()),
-            "congestion_control": getattr(zenoh.CongestionControl, traffic.congestion.upper()),
+    return {"priority": zenoh_qos_priority(traffic.priority),
+            "congestion_control": zenoh_congestion(traffic.congestion),
             "reliability": zenoh.Reliability.RELIABLE if traffic.reliable else zenoh.Reliability.BEST_EFFORT,
             "express": traffic.express}
 
@@ -99,8 +111,13 @@ class ZenohBridge:
         self.token = session.liveliness().declare_token(table.liveliness_key(side, name))
         self.liveliness_sub = session.liveliness().declare_subscriber(
             table.peer_liveliness_keys(side), self._on_liveliness, history=True)
+        self.heartbeat_pub = session.declare_publisher(
+            table.heartbeat_key(side, name), priority=zenoh_qos_priority("real_time"), express=True,
+            congestion_control=zenoh_congestion("drop"))
+        self.heartbeat_sub = session.declare_subscriber(table.peer_heartbeat_keys(side), self._on_heartbeat)
         self._publish_link_state()
         self.timer = rospy.Timer(rospy.Duration(LINK_STATE_PERIOD_S), self._tick)
+        self.heartbeat_timer = rospy.Timer(rospy.Duration(table.heartbeat_ms / 1000.0), self._heartbeat)
 
     # --- outgoing ---------------------------------------------------------------------------
     def _message_class(self, msg_type):
@@ -279,19 +296,35 @@ class ZenohBridge:
         import zenoh
 
         peer = str(sample.key_expr).rsplit("/", 1)[-1]
-        now = time.time()
-        if sample.kind == zenoh.SampleKind.PUT:
-            changed = self.health.peer_alive(peer, now)
-            if changed:
-                rospy.loginfo(f"{rospy.get_name()}: link up: {self.peer_side} bridge '{peer}' is there")
-                self.resend_latched()
-                threading.Timer(0.5, self.resend_latched).start()
-        else:
-            changed = self.health.peer_gone(peer, now)
-            if changed:
-                rospy.logwarn(f"{rospy.get_name()}: link down: {self.peer_side} bridge '{peer}' is gone "
-                              f"(outage {self.health.outages})")
-        if changed:
+        with self.lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                up = self.health.peer_alive(peer, time.time())
+                down = False
+            else:
+                up, down = False, self.health.peer_gone(peer, time.time())
+        self._link_changed(up, down, peer, "its liveliness token")
+
+    def _on_heartbeat(self, sample):
+        peer = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            up = self.health.heard(peer, time.time())
+        self._link_changed(up, False, peer, "its heartbeat")
+
+    def _heartbeat(self, _event=None):
+        self.heartbeat_pub.put(b"")
+        with self.lock:
+            down = self.health.expire(time.time(), self.table.heartbeat_timeout_ms / 1000.0)
+        self._link_changed(False, down, "", f"no heartbeat for {self.table.heartbeat_timeout_ms} ms")
+
+    def _link_changed(self, up, down, peer, why):
+        if up:
+            rospy.loginfo(f"{rospy.get_name()}: link up: {self.peer_side} bridge '{peer}' is there ({why})")
+            self.resend_latched()
+            threading.Timer(0.5, self.resend_latched).start()
+        if down:
+            rospy.logwarn(f"{rospy.get_name()}: link down: {self.peer_side} bridge {peer and repr(peer) + ' '}"
+                          f"is gone ({why}; outage {self.health.outages})")
+        if up or down:
             self._publish_link_state()
 
     def _tick(self, _event=None):
@@ -313,6 +346,7 @@ class ZenohBridge:
 
     def close(self):
         self.timer.shutdown()
+        self.heartbeat_timer.shutdown()
         for sub in self.ros_subs:
             sub.unregister()
         self.token.undeclare()
