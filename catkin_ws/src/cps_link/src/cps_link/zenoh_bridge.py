@@ -35,6 +35,8 @@ BACKFILL_BURST_BYTES = 300_000
 BACKFILL_POLL_S = 0.02
 # How far back the robots' bridge keeps transforms for keyframe poses, s.
 TF_CACHE_S = 60.0
+# A keyframe may take the newest transform when it is at most this far from its capture, s.
+POSE_TOLERANCE_S = 0.1
 # The transforms the robots' bridge forwards anyway; it keeps them for keyframe poses (one
 # subscription per topic and process in rospy: a tf2 listener beside the AnyMsg one would clash).
 TF_TOPICS = {"/tf": False, "/tf_static": True}
@@ -248,8 +250,7 @@ class ZenohBridge:
         if not self.store.wants(robot, cloud.stamp_s):
             return
         try:
-            pose = self.tf_buffer.lookup_transform(self.table.backfill.map_frame, header_frame_id(cloud.body),
-                                                   rospy.Time.from_sec(cloud.stamp_s))
+            pose = self._pose_at(header_frame_id(cloud.body), cloud.stamp_s)
         except Exception as exc:  # tf2's exceptions and a cloud without a header
             self.reporter.count(backfill_no_pose=1)
             rospy.logwarn_throttle(5.0, f"{rospy.get_name()}: keyframe of {robot} without a pose: {exc}")
@@ -268,6 +269,19 @@ class ZenohBridge:
         cloud_msg._connection_header = {"type": cloud.msg_type, "md5sum": cloud.md5, "callerid": cloud.source}
         payloads = tuple(encode(self.frame_of(r, m)[1]) for r, m in ((pose_route, pose_msg), (cloud_route, cloud_msg)))
         self.store.offer(Keyframe(robot, cloud.stamp_s, payloads))
+
+    def _pose_at(self, frame, stamp_s):
+        """map <- frame at the cloud's capture; the newest transform if the cloud is a few ms ahead of
+        the tf it is captured with (tf arrives after the cloud), stamped as the cloud."""
+        stamp = rospy.Time.from_sec(stamp_s)
+        try:
+            return self.tf_buffer.lookup_transform(self.table.backfill.map_frame, frame, stamp)
+        except Exception:  # tf2's extrapolation: look at the newest one
+            pose = self.tf_buffer.lookup_transform(self.table.backfill.map_frame, frame, rospy.Time(0))
+            if abs(pose.header.stamp.to_sec() - stamp_s) > POSE_TOLERANCE_S:
+                raise
+            pose.header.stamp = stamp
+            return pose
 
     def _on_allocation(self, allocation):
         self.pacer.set_rate(unused_bytes_per_s(allocation.budget_mbytes_per_s, allocation.allocated_mbytes_per_s),
