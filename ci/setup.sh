@@ -4,6 +4,7 @@
 #   2. .venv made from /usr/bin/python3 with --system-site-packages, pinned ci/requirements.txt
 #   3. catkin_make of catkin_ws (only when a package's build files changed)
 #   4. the pcl_ros plugin-path fix, so that nodelet can load pcl/VoxelGrid
+#   5. the fleet's TLS keys and certificates for the Zenoh bridges in .certs (outside git)
 #
 # CPS_VENV and CPS_APT_PACKAGES override the venv folder and the package list (used by the tests).
 set -euo pipefail
@@ -81,4 +82,9 @@ for lib in /usr/lib/x86_64-linux-gnu/libpcl_ros_*.so /usr/lib/*/libpcl_ros_*.so;
   [ -e "$lib" ] && ln -sfn "$lib" "$fix/$(basename "$lib")"
 done
 [ -e "$fix/libpcl_ros_filters.so" ] || die "libpcl_ros_filters.so not found (is libpcl-ros-dev installed?)"
+
+# --- 5. TLS material for the Zenoh bridges ---------------------------------------------------
+# The testbed's addresses; for real hosts see catkin_ws/src/cps_link/README.md.
+[ -f "$root/.certs/ca.pem" ] || catkin_ws/src/cps_link/scripts/make_certs "$root/.certs" >/dev/null \
+  || die "could not make the bridges' certificates (is openssl installed?)"
 exit 0

@@ -15,13 +15,14 @@ import time
 from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
-from cps_bringup.plan import DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RunOptions, plan_nodes
+from cps_bringup.plan import (DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, TCPROS, TRANSPORTS, ZENOH, RunOptions,
+                               plan_nodes)
 from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
 from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
                                     node_log_dir)
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import PROFILES, load_fleet, robot_names_arg
-from cps_harness.processes import RosGraph
+from cps_harness.processes import RosGraph, free_port
 from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
 
 
@@ -62,6 +63,13 @@ def build_parser():
     parser.add_argument("--link-scenario", default=None, metavar="NAME",
                         help="run a cps_link scenario (capacity steps, outages; cps_link/config/scenarios/NAME.yaml "
                              "or a path) on the link during the mission; implies --link at its initial rate")
+    parser.add_argument("--transport", choices=TRANSPORTS, default=ZENOH,
+                        help="zenoh: a master per side, joined only by cps_link's mutual-TLS bridges; "
+                             "tcpros: one master across the link (the paper's set-up)")
+    parser.add_argument("--twin-address", default=None,
+                        help="zenoh: the twin host's address, where its bridge listens (default: the link's twin "
+                             "address, or 127.0.0.1)")
+    parser.add_argument("--link-name", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
     parser.add_argument("--screenshot-after", type=float, default=GUI_SCREENSHOT_AFTER_S, metavar="S")
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
@@ -156,14 +164,29 @@ def run_mission(args, log=print) -> MissionResult:
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
         gui_screenshot_after_s=args.screenshot_after, baseline_map=baseline, site_changes_file=site_changes,
         record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path)
+    transport = args.transport
+    if replay_path and transport == ZENOH and len(sides) == 2:
+        log("[bringup] --replay: one master for both sides (tcpros), so that the bag's /clock reaches every node")
+        transport = TCPROS
+    zenoh = transport == ZENOH
     with contextlib.ExitStack() as stack:
-        link = stack.enter_context(_link_context(args.link, log, getattr(args, "link_scenario", None)))
+        link = stack.enter_context(_link_context(args.link, log, getattr(args, "link_scenario", None), args.link_name))
         if link:
             # As the paper: the manager's B is what iperf3 measured on the link, not the nominal rate.
             options = dataclasses.replace(options, available_mbps=link.measured_mbps)
+        if zenoh:
+            options = dataclasses.replace(
+                options, transport=ZENOH, twin_address=args.twin_address or (link.twin_ip if link else "127.0.0.1"),
+                zenoh_port=None if link or args.twin_address else free_port())
         specs = plan_nodes(fleet, sides=sides, options=options)
         # Across machines the nodes must advertise this host's address: ROS_IP as the user set it.
-        host_ip = link.twin_ip if link else (os.environ.get("ROS_IP") or "127.0.0.1")
+        # Over Zenoh each side's graph stays on its host's loopback: only the bridge is on the link.
+        host_ip = "127.0.0.1" if zenoh else link.twin_ip if link else (os.environ.get("ROS_IP") or "127.0.0.1")
+        side_graphs = {}
+        if zenoh and len(sides) == 2:
+            side_graphs[PHYSICAL] = _robots_graph(out_dir, link)
+            stack.callback(side_graphs[PHYSICAL].close)
+            side_graphs[PHYSICAL].start()
         if args.master_uri:
             graph = RosGraph(master_uri=args.master_uri, log_dir=node_log_dir(out_dir), host_ip=host_ip)
         else:
@@ -172,7 +195,8 @@ def run_mission(args, log=print) -> MissionResult:
             graph = RosGraph(port=args.port, log_dir=node_log_dir(out_dir), host_ip=host_ip)
         stack.callback(graph.close)
         user = node_user(args.run_as)
-        side_env = {PHYSICAL: {"ROS_IP": link.phys_ip}, DIGITAL: {"ROS_IP": link.twin_ip}} if link else {}
+        # Over Zenoh each side's nodes stay on their host's loopback; over TCPROS they advertise the link's addresses.
+        side_env = {PHYSICAL: {"ROS_IP": link.phys_ip}, DIGITAL: {"ROS_IP": link.twin_ip}} if link and not zenoh else {}
         if user:
             ros_log_dir = os.path.join(node_log_dir(out_dir), "log")
             side_env = {side: {**side_env.get(side, {}), **user_env(ros_log_dir)} for side in sides}
@@ -188,12 +212,14 @@ def run_mission(args, log=print) -> MissionResult:
             import rosgraph
 
             rosgraph.Master("/cps_bringup", master_uri=graph.uri).setParam("/use_sim_time", True)
-        log(f"[bringup] master {graph.uri}; link: {link.describe() if link else 'loopback (no shaping)'}; "
+        robots_master = f"; robots master {side_graphs[PHYSICAL].uri} (joined by Zenoh bridges)" if side_graphs else ""
+        log(f"[bringup] master {graph.uri}{robots_master}; "
+            f"link: {link.describe() if link else 'loopback (no shaping)'}; "
             f"robots {', '.join(fleet.robot_names)}; profile {options.profile or fleet.profile.name}; out {out_dir}")
         supervisor = Supervisor(
             specs, graph, log=log,
             side_prefix={PHYSICAL: link.exec_prefix("phys")} if link else None,
-            side_env=side_env or None,
+            side_env=side_env or None, side_graphs=side_graphs,
             policy=RestartPolicy.from_limits(fleet.limits), node_log_max_bytes=int(fleet.limits.node_log_max_mbytes * 1e6),
             user_prefix=prefix if user else None)
         stack.callback(supervisor.stop_all)
@@ -340,12 +366,25 @@ def _wait_for_screenshot(supervisor, path, log, timeout_s=90.0):
     log(f"[bringup] GUI screenshot {'saved to ' + path if os.path.exists(path) else 'missing'}")
 
 
+def _robots_graph(out_dir, link):
+    """The robots' own master (Zenoh, both sides in this run): on loopback, in the physical namespace
+    with --link."""
+    log_dir = os.path.join(node_log_dir(out_dir), "robots")
+    os.makedirs(log_dir, exist_ok=True)
+    graph = RosGraph(log_dir=log_dir, host_ip="127.0.0.1")
+    if link:
+        from cps_bringup.link import InNamespace
+
+        return InNamespace(graph, link.netns_path("phys"))
+    return graph
+
+
 @contextlib.contextmanager
-def _link_context(rate, log, scenario_name=None):
+def _link_context(rate, log, scenario_name=None, name=None):
     if rate in (None, "", "none") and not scenario_name:
         yield None
         return
-    from cps_bringup.link import namespaced_link
+    from cps_bringup.link import LINK_NAME, namespaced_link
     from cps_link.netns_link import LinkError
     from cps_link.scenario import load_scenario
 
@@ -354,7 +393,7 @@ def _link_context(rate, log, scenario_name=None):
     except ConfigError as exc:
         raise BringupError(f"--link-scenario {scenario_name}: {exc}") from exc
     try:
-        with namespaced_link(rate, log, scenario) as link:
+        with namespaced_link(rate, log, scenario, name or LINK_NAME) as link:
             yield link
     except LinkError as exc:
         raise BringupError(f"--link {rate}: {exc}") from exc

@@ -5,6 +5,7 @@ Entering a network namespace with setns(2) changes only the calling thread; the 
 it from its main thread before it starts rospy or any process, so everything it starts afterwards
 is on the digital-twin host, and it returns to its own namespace before the link is removed.
 """
+import concurrent.futures
 import contextlib
 import ctypes
 import dataclasses
@@ -40,9 +41,13 @@ class NamespacedLink:
     scenario: object = None  # a cps_link.scenario.Scenario to run during the mission, or None
     phys_ip: str = PHYS_IP
     twin_ip: str = TWIN_IP
+    name: str = LINK_NAME
 
     def exec_prefix(self, side):
-        return ["ip", "netns", "exec", namespace(LINK_NAME, side)]
+        return ["ip", "netns", "exec", namespace(self.name, side)]
+
+    def netns_path(self, side):
+        return f"/var/run/netns/{namespace(self.name, side)}"
 
     def start_scenario(self, csv_path, log=print):
         """Start the scenario's runner (mission time 0 is now); returns it, or None without one."""
@@ -51,40 +56,69 @@ class NamespacedLink:
         from cps_fleet.csv_log import CsvLog
         from cps_link.scenario import LINK_EVENTS_COLUMNS, ScenarioRunner
 
-        runner = ScenarioRunner(LINK_NAME, self.scenario, CsvLog(csv_path, LINK_EVENTS_COLUMNS), log=log)
+        runner = ScenarioRunner(self.name, self.scenario, CsvLog(csv_path, LINK_EVENTS_COLUMNS), log=log)
         runner.start()
         return runner
 
     def describe(self):
         return (("shared-medium " if self.scenario and self.scenario.topology == "shared" else "")
-                + f"tc-shaped {self.rate} veth between namespaces {namespace(LINK_NAME, 'phys')} ({self.phys_ip}) and "
-                f"{namespace(LINK_NAME, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s"
+                + f"tc-shaped {self.rate} veth between namespaces {namespace(self.name, 'phys')} ({self.phys_ip}) and "
+                f"{namespace(self.name, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s"
                 + (f"; scenario {self.scenario.name}" if self.scenario else ""))
 
 
+class InNamespace:
+    """A RosGraph whose every call runs in another network namespace: one worker thread enters it
+    with setns(2) (only that thread moves), and the processes it starts are forked there."""
+
+    def __init__(self, graph, netns_path):
+        self.graph = graph
+        self._pool = concurrent.futures.ThreadPoolExecutor(1, initializer=self._enter, initargs=(netns_path,))
+
+    @staticmethod
+    def _enter(path):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            _setns(fd)
+        finally:
+            os.close(fd)
+
+    def __getattr__(self, name):
+        attr = getattr(self.graph, name)
+        if not callable(attr):
+            return attr
+        return lambda *args, **kwargs: self._pool.submit(attr, *args, **kwargs).result()
+
+    def close(self):
+        try:
+            self._pool.submit(self.graph.close).result()
+        finally:
+            self._pool.shutdown()
+
+
 @contextlib.contextmanager
-def namespaced_link(rate, log=print, scenario=None):
+def namespaced_link(rate, log=print, scenario=None, name=LINK_NAME):
     """Create the link (with `scenario`: its topology and initial rate), measure it, move this
     thread into the twin namespace; undo all on exit."""
     check_capability()
-    if link_exists(LINK_NAME):
-        raise LinkError(f"a link named {LINK_NAME} already exists (another run?); remove it with "
-                        f"`cps_link down --name {LINK_NAME}`")
+    if link_exists(name):
+        raise LinkError(f"a link named {name} already exists (another run?); remove it with "
+                        f"`cps_link down --name {name}`")
     shaping = {}
     if scenario is not None:
         from cps_link.netns_link import netem_available, tc_rate
 
         rate = tc_rate(scenario.initial.rate_mbps)
         shaping = dict(topology=scenario.topology, with_netem=netem_available())
-    with ShapedLink(name=LINK_NAME, rate=rate, **shaping) as link:
+    with ShapedLink(name=name, rate=rate, **shaping) as link:
         measured = link.measure_mbps(seconds=2.0)
         log(f"[bringup] link {rate}: iperf3 measured {measured:.1f} Mbit/s physical → digital twin")
         home = os.open("/proc/self/ns/net", os.O_RDONLY)
-        target = os.open(f"/var/run/netns/{namespace(LINK_NAME, 'twin')}", os.O_RDONLY)
+        target = os.open(f"/var/run/netns/{namespace(name, 'twin')}", os.O_RDONLY)
         try:
             _setns(target)
             try:
-                yield NamespacedLink(rate, measured, scenario)
+                yield NamespacedLink(rate, measured, scenario, name=name)
             finally:
                 _setns(home)
         finally:

@@ -12,6 +12,8 @@ from cps_fleet.fleet import FleetConfig
 from cps_sim.renderers import DEFAULT_RENDERER
 
 PHYSICAL, DIGITAL = "physical", "digital"
+TCPROS, ZENOH = "tcpros", "zenoh"
+TRANSPORTS = (ZENOH, TCPROS)
 SIDES = (PHYSICAL, DIGITAL)
 VOXEL_MANAGER = "/tissue_nodelet_manager"
 # The operator's video stays within the unmanaged reserve: ~0.2 MB/s of JPEG at 640x480.
@@ -65,6 +67,11 @@ class RunOptions:
     record_path: Optional[str] = None
     # Play this rosbag in place of the robots (and the simulator), under the bag's clock.
     replay_path: Optional[str] = None
+    # "tcpros": one master across the link (the paper's set-up); "zenoh": a master per side joined
+    # only by cps_link's bridges (the twin's bridge listens at twin_address:zenoh_port).
+    transport: str = TCPROS
+    twin_address: str = "127.0.0.1"
+    zenoh_port: Optional[int] = None
 
 
 def _args(params: Dict[str, object]) -> List[str]:
@@ -103,8 +110,18 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
     def py(package, node, *extra):
         return (python, node_path(package, node), *extra)
 
+    def bridge(side, bridge_side):
+        from cps_link.zenoh_session import bridge_argv
+
+        return NodeSpec(f"zenoh_bridge_{bridge_side}", side,
+                        tuple(bridge_argv(python, bridge_side, options.twin_address, robots,
+                                          port=options.zenoh_port, fleet_file=fleet.path)),
+                        wait_topics=("/tissue/link_state",))
+
     if PHYSICAL in sides:
         profile = options.profile or fleet.profile.name
+        if options.transport == ZENOH:
+            specs.append(bridge(PHYSICAL, "robots"))
         if options.simulate and not options.replay_path:
             specs.append(NodeSpec(
                 "fleet_sim", PHYSICAL,
@@ -172,20 +189,31 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
 
     if DIGITAL in sides:
         out = options.out_dir
+        if options.transport == ZENOH:
+            specs.append(bridge(DIGITAL, "twin"))
         for r in robots:
             # The one subscriber of the managed topic across the link; everything on the twin
-            # (decoder, statistics) reads the relay, so the link carries each cloud once.
+            # (decoder, statistics) reads the relay, so the link carries each cloud once. Over
+            # Zenoh the twin's bridge publishes the relayed name itself.
             relayed = f"/twin/{r}/points_filtered/draco/managed"
-            specs.append(NodeSpec(
-                f"{r}/link_relay", DIGITAL,
-                ("rosrun", "topic_tools", "relay", f"/{r}/points_filtered/draco/managed", relayed,
-                 f"__ns:=/twin/{r}", "__name:=link_relay"),
-                wait_topics=(relayed,)))
+            if options.transport == TCPROS:
+                specs.append(NodeSpec(
+                    f"{r}/link_relay", DIGITAL,
+                    ("rosrun", "topic_tools", "relay", f"/{r}/points_filtered/draco/managed", relayed,
+                     f"__ns:=/twin/{r}", "__name:=link_relay"),
+                    wait_topics=(relayed,)))
             specs.append(NodeSpec(
                 f"{r}/draco_decoder", DIGITAL,
                 py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=draco_decoder",
                    f"~input:={relayed}", f"~output:=/twin/{r}/points"),
                 wait_topics=(f"/twin/{r}/points",)))
+            if options.transport == ZENOH:
+                # Keyframes the robots' bridge kept during an outage, sent after it (cps_link backfill).
+                specs.append(NodeSpec(
+                    f"{r}/backfill_decoder", DIGITAL,
+                    py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=backfill_decoder",
+                       f"~input:=/twin/{r}/points_backfill/draco", f"~output:=/twin/{r}/points_backfill"),
+                    wait_topics=(f"/twin/{r}/points_backfill",)))
         specs.append(NodeSpec(
             "map_server", DIGITAL,
             py("cps_mapping", "map_server", "__ns:=/twin", "__name:=map_server",

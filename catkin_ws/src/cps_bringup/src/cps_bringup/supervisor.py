@@ -62,13 +62,17 @@ class _Running:
 
 
 class Supervisor:
-    """Runs `specs` on `graph`'s master. `side_prefix`/`side_env` put a side into a namespace."""
+    """Runs `specs` on `graph`'s master. `side_prefix`/`side_env` put a side into a namespace;
+    `side_graphs` gives a side its own master (a RosGraph-like object: popen, published_topics,
+    output, stop), e.g. the robots' master when the twins are joined by Zenoh bridges."""
 
     def __init__(self, specs: List[NodeSpec], graph: RosGraph, side_prefix: Optional[Dict[str, List[str]]] = None,
                  side_env: Optional[Dict[str, Dict[str, str]]] = None, log=print,
                  policy: RestartPolicy = RestartPolicy(), node_log_max_bytes: Optional[int] = None,
-                 user_prefix: Optional[List[str]] = None, clock: Callable[[], float] = time.monotonic):
-        """`user_prefix`: argv that runs a node as another user (after the side's prefix)."""
+                 user_prefix: Optional[List[str]] = None, clock: Callable[[], float] = time.monotonic,
+                 side_graphs: Optional[Dict[str, object]] = None):
+        """`user_prefix`: argv that runs a node as another user (after the side's prefix). `side_graphs`:
+        a side's own master (Zenoh: a master per side), instead of `graph`."""
         labels = [s.label for s in specs]
         if len(set(labels)) != len(labels):
             raise ValueError(f"duplicate node labels in the plan: {labels}")
@@ -76,6 +80,7 @@ class Supervisor:
         self.graph = graph
         self.side_prefix = side_prefix or {}
         self.side_env = side_env or {}
+        self.side_graphs = side_graphs or {}
         self.log = log
         self.policy = policy
         self.node_log_max_bytes = node_log_max_bytes
@@ -91,9 +96,15 @@ class Supervisor:
         self.events.append(Event(time.monotonic() - self._t0, label, what))
         self.log(f"[bringup] {label}: {what}")
 
+    def _graph(self, label):
+        return self.side_graphs.get(self.specs_by_label[label].side, self.graph)
+
+    def _topics_by_graph(self):
+        return {id(g): set(g.published_topics()) for g in (self.graph, *self.side_graphs.values())}
+
     def _start(self, spec: NodeSpec):
         argv = [*self.side_prefix.get(spec.side, []), *self.user_prefix, *spec.argv]
-        proc = self.graph.popen(argv, name=spec.label.replace("/", "_"), env=self.side_env.get(spec.side))
+        proc = self._graph(spec.label).popen(argv, name=spec.label.replace("/", "_"), env=self.side_env.get(spec.side))
         return proc
 
     def start_all(self, timeout_s=120.0):
@@ -117,15 +128,16 @@ class Supervisor:
 
     def _describe_missing(self, labels, timeout_s):
         lines = [f"not up after {timeout_s:.0f} s: {', '.join(labels)}"]
-        topics = set(self.graph.published_topics())
+        topics_by_graph = self._topics_by_graph()
         for label in labels:
+            topics = topics_by_graph[id(self._graph(label))]
             running = self.running.get(label)
             if running is None:
                 lines.append(f"  {label}: never started (waits for {', '.join(self.specs_by_label[label].after)})")
                 continue
             absent = [t for t in running.spec.wait_topics if t not in topics]
             lines.append(f"  {label}: topics not advertised: {', '.join(absent) or '-'}")
-            tail = self.graph.output(label.replace("/", "_")).strip().splitlines()[-6:]
+            tail = self._graph(label).output(label.replace("/", "_")).strip().splitlines()[-6:]
             lines.extend(f"    | {line}" for line in tail)
         return "\n".join(lines)
 
@@ -135,10 +147,11 @@ class Supervisor:
 
     def _refresh_up(self):
         try:
-            topics = set(self.graph.published_topics())
+            topics_by_graph = self._topics_by_graph()
         except OSError:
             return
-        for running in self.running.values():
+        for label, running in self.running.items():
+            topics = topics_by_graph[id(self._graph(label))]
             alive = running.proc.poll() is None or (running.spec.one_shot and running.proc.returncode == 0)
             if not running.up and alive and all(t in topics for t in running.spec.wait_topics):
                 running.up = True
@@ -163,7 +176,7 @@ class Supervisor:
             window = self.policy.window_s
             running.restart_times = [t for t in running.restart_times if now - t < window]
             if len(running.restart_times) >= running.spec.restart_limit:
-                tail = "\n".join(self.graph.output(label.replace("/", "_")).strip().splitlines()[-8:])
+                tail = "\n".join(self._graph(label).output(label.replace("/", "_")).strip().splitlines()[-8:])
                 within = f" within {window:.0f} s" if math.isfinite(window) else ""
                 raise BringupError(f"{label} exited with code {code} "
                                    f"(restarted {len(running.restart_times)} of {running.spec.restart_limit} times)"
@@ -226,8 +239,8 @@ class Supervisor:
 
     def stop_all(self):
         """Stop in reverse start order (consumers before producers), then the master."""
-        for running in reversed(list(self.running.values())):
-            self.graph.stop(running.proc, timeout_s=running.spec.stop_timeout_s)
+        for label, running in reversed(list(self.running.items())):
+            self._graph(label).stop(running.proc, timeout_s=running.spec.stop_timeout_s)
         self.running.clear()
 
     def pid_of(self, label):

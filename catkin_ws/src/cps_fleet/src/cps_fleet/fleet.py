@@ -82,6 +82,8 @@ class LinkConfig:
     min_rate_hz: float
     max_rate_hz: float
     estimate_bandwidth: bool
+    # The robots' side Zenoh bridge keeps this many bytes of keyframes during an outage (None: none).
+    backfill_store_bytes: Optional[int] = None
 
     @property
     def budget_mbytes_per_s(self):
@@ -248,13 +250,15 @@ def load_fleet(path=None, profile=None):
                           f"profile: unknown profile '{chosen}' (known: {', '.join(sorted(profiles))})")
 
     link_reader = top.child("link").known_keys("available_mbps", "reserve_fraction", "min_rate_hz", "max_rate_hz",
-                                               "estimate_bandwidth")
+                                               "estimate_bandwidth", "backfill_store_bytes")
     link = LinkConfig(
         available_mbps=link_reader.number("available_mbps", low=0.0, low_open=True),
         reserve_fraction=link_reader.number("reserve_fraction", low=0.0, high=0.99),
         min_rate_hz=link_reader.number("min_rate_hz", low=0.0, low_open=True),
         max_rate_hz=link_reader.number("max_rate_hz", low=0.0, low_open=True),
         estimate_bandwidth=link_reader.get("estimate_bandwidth", bool, default=False),
+        backfill_store_bytes=int(link_reader.number("backfill_store_bytes", low=0.0, low_open=True))
+        if link_reader.has("backfill_store_bytes") else None,
     )
     if link.min_rate_hz > link.max_rate_hz:
         raise link_reader.error("min_rate_hz", f"min_rate_hz ({link.min_rate_hz}) > max_rate_hz ({link.max_rate_hz})")

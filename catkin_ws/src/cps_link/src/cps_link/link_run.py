@@ -13,11 +13,11 @@ from typing import List
 
 import numpy as np
 
-from cps_link.netns_link import PHYS_IP, TWIN_IP
+from cps_link.netns_link import PHYS_IP, TWIN_IP, ClosingContext
 from cps_harness.processes import RosGraph, free_port
 
 
-class LinkRosGraph:
+class LinkRosGraph(ClosingContext):
     """A roscore in the twin namespace and every process started on either side; `close` kills all."""
 
     def __init__(self, link, port=None):
@@ -28,16 +28,11 @@ class LinkRosGraph:
                       "phys": RosGraph(master_uri=self.uri, host_ip=PHYS_IP)}
 
     def __enter__(self):
-        try:
-            self.start("twin", ["roscore", "-p", str(self.port)], name="roscore")
-            self.wait_for_master()
-        except BaseException:
-            self.close()
-            raise
-        return self
+        return self._set_up_or_close(self._start_master)
 
-    def __exit__(self, *exc):
-        self.close()
+    def _start_master(self):
+        self.start("twin", ["roscore", "-p", str(self.port)], name="roscore")
+        self.wait_for_master()
 
     def start(self, side, argv, name):
         return self.sides[side].popen(self.link.argv(side, argv, master_port=self.port), name=name)

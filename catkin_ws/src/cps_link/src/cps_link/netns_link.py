@@ -39,6 +39,21 @@ _RATE_FACTOR = {"bit": 1.0, "kbit": 1e3, "mbit": 1e6, "gbit": 1e9}
 NO_LINK_HINT = "run with --link none (plain loopback) instead"
 
 
+class ClosingContext:
+    """A context manager whose set-up, if it fails half-way, and whose end both call `close()`."""
+
+    def _set_up_or_close(self, set_up):
+        try:
+            set_up()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
 class LinkError(RuntimeError):
     """The link cannot be created, changed or measured; the message says why and what to do."""
 
@@ -108,6 +123,15 @@ def check_capability():
     if result.returncode != 0:
         raise LinkError(f"cannot create network namespaces ({result.stderr.strip()}); {NO_LINK_HINT}")
     _run(["ip", "netns", "del", probe], check=False)
+
+
+def capability_problem():
+    """Why this process cannot create the link (not root, no netns, no tc), or None (tests skip on it)."""
+    try:
+        check_capability()
+    except LinkError as exc:
+        return str(exc)
+    return None
 
 
 def list_namespaces():

@@ -27,6 +27,17 @@ def robot_points(robot: str) -> str:
     return f"{robot}/points"
 
 
+def robot_backfill_points(robot: str) -> str:
+    """A robot's decoded backfill keyframes: clouds captured while the link was down (cps_link)."""
+    return f"{robot}/points_backfill"
+
+
+def robot_backfill_pose(robot: str) -> str:
+    """geometry_msgs/TransformStamped: the fixed frame <- sensor frame pose of each backfill keyframe,
+    sent before it (it may be older than the tf buffer)."""
+    return f"{robot}/points_backfill/pose"
+
+
 def robot_of_points_topic(topic: str, namespace: str) -> Optional[str]:
     """The robot whose cloud topic the resolved name `topic` is, in `namespace`; None if it is none."""
     prefix = re.escape(namespace.rstrip("/") + "/")

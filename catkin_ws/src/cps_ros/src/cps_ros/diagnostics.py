@@ -33,6 +33,10 @@ class DropReporter:
         for key, value in counters.items():
             self._extra[key] = self._extra.get(key, 0) + value
 
+    def gauge(self, **values):
+        """Sets named values reported as they are (e.g. a store's fill), not added up."""
+        self._extra.update(values)
+
     def drop(self, reason):
         self.invalid += 1
         self.last_error = str(reason)

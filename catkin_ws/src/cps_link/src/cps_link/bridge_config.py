@@ -1,0 +1,190 @@
+"""The Zenoh bridge's table (config/bridge.yaml): which topics cross, which way, in which class.
+
+ROS-free and Zenoh-free: the table is read and checked here (errors name file and line), `<r>`
+is expanded per robot, and each class's QoS is kept as names the bridge maps onto Zenoh's enums.
+"""
+import dataclasses
+import os
+from typing import Dict, Optional, Sequence, Tuple
+
+from cps_fleet.config import ConfigError, Reader, load_yaml_document
+
+ROBOTS, TWIN = "robots", "twin"
+SIDES = (ROBOTS, TWIN)
+PRIORITIES = ("real_time", "interactive_high", "interactive_low", "data_high", "data", "data_low", "background")
+CONGESTION = ("block", "drop")
+ROBOT_PLACEHOLDER = "<r>"
+DEFAULT_TABLE = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..",
+                                              "config", "bridge.yaml"))
+
+
+@dataclasses.dataclass(frozen=True)
+class TrafficClass:
+    name: str
+    priority: str
+    congestion: str
+    reliable: bool
+    express: bool
+    max_age_s: Optional[float] = None  # receiving side drops older header stamps
+
+
+@dataclasses.dataclass(frozen=True)
+class Route:
+    """One topic crossing: published on `source` under `topic`, republished on the far side as `to`."""
+    topic: str
+    to: str
+    source: str
+    traffic: TrafficClass
+    latched: bool = False
+    robot: str = ""
+    # False for what the bridge itself puts on the wire (backfill): nothing to subscribe to.
+    from_ros: bool = True
+
+    def key(self, prefix):
+        """The Zenoh key expression this topic travels on."""
+        return f"{prefix}/topic{self.to}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Backfill:
+    """Per robot: the route whose keyframes are kept and the two routes they are re-sent on."""
+    source: Dict[str, str]  # robot -> the source route's far-side name
+    cloud_to: Dict[str, str]
+    pose_to: Dict[str, str]
+    map_frame: str
+    keyframe_period_s: float
+    allocation_topic: str
+
+
+@dataclasses.dataclass(frozen=True)
+class BridgeTable:
+    path: str
+    endpoint_port: int
+    key_prefix: str
+    lease_ms: int
+    keep_alive: int
+    retry_max_ms: int
+    heartbeat_ms: int
+    heartbeat_timeout_ms: int
+    classes: Dict[str, TrafficClass]
+    routes: Tuple[Route, ...]
+    backfill: Optional[Backfill] = None
+
+    def outgoing(self, side):
+        return [r for r in self.routes if r.source == side]
+
+    def route(self, to):
+        return next(r for r in self.routes if r.to == to)
+
+    def incoming(self, side):
+        return [r for r in self.routes if r.source != side]
+
+    def liveliness_key(self, side, name):
+        return f"{self.key_prefix}/bridge/{side}/{name}"
+
+    def peer_liveliness_keys(self, side):
+        return f"{self.key_prefix}/bridge/{other_side(side)}/**"
+
+    def heartbeat_key(self, side, name):
+        return f"{self.key_prefix}/heartbeat/{side}/{name}"
+
+    def peer_heartbeat_keys(self, side):
+        return f"{self.key_prefix}/heartbeat/{other_side(side)}/**"
+
+
+def other_side(side):
+    if side not in SIDES:
+        raise ValueError(f"side must be one of {', '.join(SIDES)}, got '{side}'")
+    return TWIN if side == ROBOTS else ROBOTS
+
+
+def _check_topic(reader, key, name):
+    if not name.startswith("/") or "//" in name or name.endswith("/") or " " in name:
+        raise reader.error(key, f"'{name}' is not a global ROS topic name")
+    return name
+
+
+def _class_of(reader, classes):
+    name = reader.get("class", str)
+    if name not in classes:
+        raise reader.error("class", f"unknown class '{name}' (known: {', '.join(classes)})")
+    return classes[name]
+
+
+def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
+    """The table with `<r>` expanded for `robots`; ConfigError (file:line) for anything wrong."""
+    path = path or DEFAULT_TABLE
+    doc = load_yaml_document(path)
+    top = Reader(doc)
+    classes = {}
+    class_reader = top.child("classes")
+    for name in class_reader.value:
+        c = class_reader.child(name)
+        priority = c.get("priority", str)
+        if priority not in PRIORITIES:
+            raise c.error("priority", f"unknown priority '{priority}' (known: {', '.join(PRIORITIES)})")
+        congestion = c.get("congestion", str)
+        if congestion not in CONGESTION:
+            raise c.error("congestion", f"unknown congestion control '{congestion}' (known: block, drop)")
+        classes[name] = TrafficClass(name, priority, congestion, c.get("reliable", bool), c.get("express", bool),
+                                     c.number("max_age_s", default=None, low=0.0, low_open=True)
+                                     if c.has("max_age_s") else None)
+    routes, seen = [], {}
+    for entry in top.items("topics"):
+        topic = _check_topic(entry, "topic", entry.get("topic", str))
+        to = _check_topic(entry, "to", entry.get("to", str)) if entry.has("to") else topic
+        source = entry.get("from", str)
+        if source not in SIDES:
+            raise entry.error("from", f"must be one of {', '.join(SIDES)}, got '{source}'")
+        traffic = _class_of(entry, classes)
+        latched = entry.get("latched", bool, default=False)
+        per_robot = ROBOT_PLACEHOLDER in topic or ROBOT_PLACEHOLDER in to
+        for robot in (robots if per_robot else ("",)):
+            route = Route(topic.replace(ROBOT_PLACEHOLDER, robot), to.replace(ROBOT_PLACEHOLDER, robot), source,
+                          traffic, latched, robot)
+            if route.to in seen:
+                raise entry.error("topic", f"'{route.to}' crosses twice (also at line {seen[route.to]})")
+            seen[route.to] = doc.line(entry.key_path)
+            routes.append(route)
+    backfill = _backfill(top, doc, classes, robots, routes, seen) if top.has("backfill") else None
+    return BridgeTable(
+        path=path,
+        endpoint_port=top.get("endpoint_port", int),
+        key_prefix=top.get("key_prefix", str),
+        lease_ms=top.get("lease_ms", int),
+        keep_alive=top.get("keep_alive", int),
+        retry_max_ms=top.get("retry_max_ms", int),
+        heartbeat_ms=top.get("heartbeat_ms", int),
+        heartbeat_timeout_ms=top.get("heartbeat_timeout_ms", int),
+        classes=classes,
+        routes=tuple(routes),
+        backfill=backfill,
+    )
+
+
+def _backfill(top, doc, classes, robots, routes, seen):
+    """The backfill block; adds its two routes per robot to `routes`."""
+    b = top.child("backfill")
+    source = _check_topic(b, "source", b.get("source", str))
+    traffic = _class_of(b, classes)
+    names = {key: _check_topic(b, key, b.get(key, str)) for key in ("cloud_to", "pose_to")}
+    by_topic = {r.topic: r for r in routes}
+    sources, clouds, poses = {}, {}, {}
+    for robot in robots:
+        topic = source.replace(ROBOT_PLACEHOLDER, robot)
+        if topic not in by_topic or by_topic[topic].source != ROBOTS:
+            raise b.error("source", f"'{topic}' is not a topic that crosses from the robots")
+        sources[robot] = by_topic[topic].to
+        for key, out in (("cloud_to", clouds), ("pose_to", poses)):
+            out[robot] = names[key].replace(ROBOT_PLACEHOLDER, robot)
+            if out[robot] in seen:
+                raise b.error(key, f"'{out[robot]}' crosses twice (also at line {seen[out[robot]]})")
+            seen[out[robot]] = doc.line(b.key_path + (key,))
+            routes.append(Route(out[robot], out[robot], ROBOTS, traffic, robot=robot, from_ros=False))
+    return Backfill(sources, clouds, poses, b.get("map_frame", str),
+                    b.number("keyframe_period_s", low=0.0, low_open=True),
+                    _check_topic(b, "allocation", b.get("allocation", str)))
+
+
+__all__ = ["BridgeTable", "ConfigError", "Route", "TrafficClass", "load_bridge_table", "other_side",
+           "ROBOTS", "TWIN", "SIDES", "PRIORITIES"]

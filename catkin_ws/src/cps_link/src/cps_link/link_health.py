@@ -1,0 +1,58 @@
+"""The link's health as one bridge sees it (ROS-free): the other side's liveliness tokens come and
+go, and its heartbeats stop. The token alone is not enough: a bridge whose transport is stuck
+behind a full send buffer may not see the session end until the link is back."""
+import dataclasses
+
+
+@dataclasses.dataclass
+class LinkHealth:
+    """Up while at least one of the peer side's bridges holds its liveliness token."""
+
+    started_s: float
+    peers: set = dataclasses.field(default_factory=set)
+    since_s: float = None
+    outages: int = 0
+    last_outage_s: float = 0.0
+    ever_up: bool = False
+    last_heard: dict = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.since_s is None:
+            self.since_s = self.started_s
+
+    @property
+    def up(self):
+        return bool(self.peers)
+
+    def heard(self, name, now_s):
+        """A peer's heartbeat; True when the link changed to up."""
+        return self.peer_alive(name, now_s)
+
+    def expire(self, now_s, timeout_s):
+        """Peers not heard for timeout_s are gone; True when the link changed to down."""
+        silent = [n for n in self.peers if now_s - self.last_heard.get(n, now_s) > timeout_s]
+        return any([self.peer_gone(n, now_s) for n in silent])
+
+    def peer_alive(self, name, now_s):
+        """A peer's token appeared (or it was heard); True when the link changed to up."""
+        self.last_heard[name] = now_s
+        was_up = self.up
+        self.peers.add(name)
+        if was_up:
+            return False
+        if self.ever_up:
+            self.last_outage_s = now_s - self.since_s
+        self.ever_up = True
+        self.since_s = now_s
+        return True
+
+    def peer_gone(self, name, now_s):
+        """A peer's token disappeared; True when the link changed to down (one more outage)."""
+        if name not in self.peers:
+            return False
+        self.peers.discard(name)
+        if self.up:
+            return False
+        self.outages += 1
+        self.since_s = now_s
+        return True

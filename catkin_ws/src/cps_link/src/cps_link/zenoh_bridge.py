@@ -1,0 +1,366 @@
+"""One side's bridge between its ROS graph and the Zenoh session to the other side.
+
+Outgoing topics (bridge.yaml, `from` this side) are read as rospy.AnyMsg and put on Zenoh
+unchanged with their class's priority, congestion control and reliability; incoming frames are
+checked (CRC, type and md5 against this side's message definitions, duplicates, stale stamps for
+classes with max_age_s), then republished under the contract's names. Latched topics keep every
+source's last message for late subscribers and are re-sent when the link comes back. Liveliness
+tokens tell each side within a lease whether the other is there: /tissue/link_state.
+"""
+import io
+import threading
+import time
+import uuid
+
+import roslib.message
+import rospy
+from cps_msgs.msg import LinkState
+
+from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
+from cps_link.bridge_config import ROBOTS, BridgeTable, Route, other_side
+from cps_link.bridge_wire import (Deduplicator, Frame, WireError, decode, encode, header_frame_id, header_stamp_s,
+                                  is_stale)
+from cps_link.link_health import LinkHealth
+from cps_ros.diagnostics import DropReporter
+
+LINK_STATE_TOPIC = "/tissue/link_state"
+LINK_STATE_PERIOD_S = 1.0
+# How long to stay quiet before saying the other side has not come up yet, s.
+NOT_UP_WARN_AFTER_S = 5.0
+# rospy subscriber queues: the data class keeps only the newest message (fresh first).
+QUEUE_SIZE = {"data": 1, "backfill": 50}
+DEFAULT_QUEUE_SIZE = 20
+# The backfill's token bucket: at most this much in one go, bytes; its send loop's period, s.
+BACKFILL_BURST_BYTES = 300_000
+BACKFILL_POLL_S = 0.02
+# How far back the robots' bridge keeps transforms for keyframe poses, s.
+TF_CACHE_S = 60.0
+# A keyframe may take the newest transform when it is at most this far from its capture, s.
+POSE_TOLERANCE_S = 0.1
+# The transforms the robots' bridge forwards anyway; it keeps them for keyframe poses (one
+# subscription per topic and process in rospy: a tf2 listener beside the AnyMsg one would clash).
+TF_TOPICS = {"/tf": False, "/tf_static": True}
+
+
+def zenoh_qos_priority(name):
+    import zenoh
+
+    return getattr(zenoh.Priority, name.upper())
+
+
+def zenoh_congestion(name):
+    import zenoh
+
+    return getattr(zenoh.CongestionControl, name.upper())
+
+
+def zenoh_qos(traffic):
+    """The declare_publisher keyword arguments of a traffic class."""
+    import zenoh
+
+    return {"priority": zenoh_qos_priority(traffic.priority),
+            "congestion_control": zenoh_congestion(traffic.congestion),
+            "reliability": zenoh.Reliability.RELIABLE if traffic.reliable else zenoh.Reliability.BEST_EFFORT,
+            "express": traffic.express}
+
+
+class _LatchedReplay(rospy.SubscribeListener):
+    """Sends every source's last message of a latched topic to each new subscriber."""
+
+    def __init__(self):
+        self.messages = {}
+        self.lock = threading.Lock()
+
+    def peer_subscribe(self, topic_name, topic_publish, peer_publish):
+        with self.lock:
+            stored = list(self.messages.values())
+        for msg in stored:
+            peer_publish(msg)
+
+
+class ZenohBridge:
+    """Carries `table`'s topics between this side's ROS master and `session` (an open Zenoh session)."""
+
+    def __init__(self, table: BridgeTable, side, session, name, endpoint="", backfill_store_bytes=None):
+        self.table, self.side, self.session, self.name = table, side, session, name
+        self.peer_side = other_side(side)
+        self.endpoint = endpoint
+        self.session_id = uuid.uuid4().bytes
+        self.lock = threading.Lock()
+        self.seq = {}
+        self.latched_frames = {}
+        self.classes = {}
+        self.dedup = Deduplicator()
+        self.started_s = time.time()
+        self.health = LinkHealth(started_s=self.started_s)
+        self.reporter = DropReporter("zenoh_bridge")
+        self.link_pub = rospy.Publisher(LINK_STATE_TOPIC, LinkState, queue_size=5, latch=True)
+        self.store = None
+        if side == ROBOTS and table.backfill and backfill_store_bytes:
+            self._start_backfill(backfill_store_bytes)
+        self.publishers, self.replays, self.zenoh_pubs, self.ros_subs, self.zenoh_subs = {}, {}, {}, [], []
+        for route in table.incoming(side):
+            self.zenoh_subs.append(session.declare_subscriber(route.key(table.key_prefix),
+                                                              lambda sample, r=route: self._receive(sample, r)))
+        for route in table.outgoing(side):
+            self.zenoh_pubs[route.to] = session.declare_publisher(route.key(table.key_prefix),
+                                                                  **zenoh_qos(route.traffic))
+            if not route.from_ros:
+                continue
+            self.ros_subs.append(rospy.Subscriber(route.topic, rospy.AnyMsg, self._send, callback_args=route,
+                                                  queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
+                                                  buff_size=2 ** 24, tcp_nodelay=True))
+        self.token = session.liveliness().declare_token(table.liveliness_key(side, name))
+        self.liveliness_sub = session.liveliness().declare_subscriber(
+            table.peer_liveliness_keys(side), self._on_liveliness, history=True)
+        self.heartbeat_pub = session.declare_publisher(
+            table.heartbeat_key(side, name), priority=zenoh_qos_priority("real_time"), express=True,
+            congestion_control=zenoh_congestion("drop"))
+        self.heartbeat_sub = session.declare_subscriber(table.peer_heartbeat_keys(side), self._on_heartbeat)
+        self._publish_link_state()
+        self.timer = rospy.Timer(rospy.Duration(LINK_STATE_PERIOD_S), self._tick)
+        self.heartbeat_timer = rospy.Timer(rospy.Duration(table.heartbeat_ms / 1000.0), self._heartbeat)
+
+    # --- outgoing ---------------------------------------------------------------------------
+    def _message_class(self, msg_type):
+        if msg_type not in self.classes:
+            self.classes[msg_type] = roslib.message.get_message_class(msg_type)
+        return self.classes[msg_type]
+
+    def frame_of(self, route: Route, msg):
+        """The frame of one rospy.AnyMsg received on `route` (next sequence number of its source)."""
+        header = getattr(msg, "_connection_header", None) or {}
+        msg_type, md5 = header.get("type", ""), header.get("md5sum", "")
+        source = header.get("callerid", "")
+        cls = self._message_class(msg_type)
+        stamp = float("nan")
+        if cls is not None and cls._has_header:
+            try:
+                stamp = header_stamp_s(msg._buff)
+            except WireError:
+                pass
+        with self.lock:
+            key = (route.to, source)
+            self.seq[key] = self.seq.get(key, 0) + 1
+            seq = self.seq[key]
+        return key, Frame(self.session_id, seq, stamp, msg_type, md5, source, bytes(msg._buff))
+
+    def _keep_transforms(self, topic, body):
+        from tf2_msgs.msg import TFMessage
+
+        static = TF_TOPICS[topic]
+        for transform in TFMessage().deserialize(body).transforms:
+            if static:
+                self.tf_buffer.set_transform_static(transform, "zenoh_bridge")
+            else:
+                self.tf_buffer.set_transform(transform, "zenoh_bridge")
+
+    def _send(self, msg, route: Route):
+        if self.store is not None and route.topic in TF_TOPICS:
+            self._keep_transforms(route.topic, msg._buff)
+        key, frame = self.frame_of(route, msg)
+        if self.store is not None and not self.health.up and route.to in self.backfill_robot:
+            self._keep_keyframe(self.backfill_robot[route.to], frame)
+            return
+        payload = encode(frame)
+        if route.latched:
+            with self.lock:
+                self.latched_frames[key] = payload
+        self.zenoh_pubs[route.to].put(payload)
+        self.reporter.count(sent=1, sent_bytes=len(payload))
+
+    def resend_latched(self):
+        """Put every latched topic's last message again (the far side drops what it already has)."""
+        with self.lock:
+            frames = [(to, payload) for (to, _), payload in self.latched_frames.items()]
+        for to, payload in frames:
+            self.zenoh_pubs[to].put(payload)
+
+    # --- incoming ---------------------------------------------------------------------------
+    def _receive(self, sample, route: Route):
+        try:
+            self.deliver(route, sample.payload.to_bytes())
+        except Exception as exc:  # a zenoh callback must never die
+            self.reporter.drop(f"{route.to}: {exc}")
+
+    def deliver(self, route: Route, payload):
+        """Check one frame of `route` and republish it; returns why it was dropped, or None."""
+        try:
+            frame = decode(payload)
+        except WireError as exc:
+            self.reporter.drop(f"{route.to}: {exc}")
+            self.reporter.count(corrupt=1)
+            return "corrupt"
+        cls = self._message_class(frame.msg_type)
+        if cls is None or cls._md5sum != frame.md5:
+            why = "unknown type" if cls is None else f"md5 {frame.md5} != this side's {cls._md5sum}"
+            self.reporter.drop(f"{route.to}: {frame.msg_type}: {why}")
+            self.reporter.count(type_mismatch=1)
+            return "type_mismatch"
+        with self.lock:
+            fresh_copy = self.dedup.accept(route.to, frame)
+        if not fresh_copy:
+            self.reporter.count(duplicates=1)
+            return "duplicate"
+        if is_stale(frame, time.time(), route.traffic.max_age_s):
+            self.reporter.count(stale=1)
+            return "stale"
+        if self.store is not None and route.to == self.table.backfill.allocation_topic:
+            self._on_allocation(cls().deserialize(frame.body))
+        msg = rospy.AnyMsg()
+        msg._buff = frame.body
+        pub = self._publisher(route, cls)
+        if route.latched:
+            replay = self.replays[route.to]
+            with replay.lock:
+                replay.messages[frame.source] = msg
+        pub.publish(msg)
+        self.reporter.ok(received_bytes=len(frame.body))
+        return None
+
+    def _publisher(self, route, cls):
+        with self.lock:
+            if route.to not in self.publishers:
+                listener = None
+                if route.latched:
+                    listener = self.replays[route.to] = _LatchedReplay()
+                self.publishers[route.to] = rospy.Publisher(
+                    route.to, cls, queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
+                    subscriber_listener=listener, tcp_nodelay=True)
+            return self.publishers[route.to]
+
+    # --- backfill (robots' side) --------------------------------------------------------------
+    def _start_backfill(self, capacity_bytes):
+        import tf2_ros  # tf2's buffer alone: see TF_TOPICS
+
+        backfill = self.table.backfill
+        self.store = KeyframeStore(capacity_bytes, backfill.keyframe_period_s)
+        self.pacer = Pacer(BACKFILL_BURST_BYTES, time.monotonic())
+        self.backfill_robot = {to: robot for robot, to in backfill.source.items()}
+        self.tf_buffer = tf2_ros.Buffer(rospy.Duration(TF_CACHE_S))
+        missing = [t for t in TF_TOPICS if t not in {r.topic for r in self.table.outgoing(ROBOTS)}]
+        if missing:
+            rospy.logwarn(f"{rospy.get_name()}: {', '.join(missing)} do not cross; keyframes may lack poses")
+        threading.Thread(target=self._backfill_loop, name="backfill", daemon=True).start()
+
+    def _keep_keyframe(self, robot, cloud: Frame):
+        """Keep a cloud captured during an outage as a keyframe, with its sensor's pose in the map."""
+        from geometry_msgs.msg import TransformStamped
+
+        if not self.store.wants(robot, cloud.stamp_s):
+            return
+        try:
+            pose = self._pose_at(header_frame_id(cloud.body), cloud.stamp_s)
+        except Exception as exc:  # tf2's exceptions and a cloud without a header
+            self.reporter.count(backfill_no_pose=1)
+            rospy.logwarn_throttle(5.0, f"{rospy.get_name()}: keyframe of {robot} without a pose: {exc}")
+            return
+        backfill = self.table.backfill
+        pose_route = self.table.route(backfill.pose_to[robot])
+        cloud_route = self.table.route(backfill.cloud_to[robot])
+        pose_msg = rospy.AnyMsg()
+        buff = io.BytesIO()
+        pose.serialize(buff)
+        pose_msg._buff = buff.getvalue()
+        pose_msg._connection_header = {"type": TransformStamped._type, "md5sum": TransformStamped._md5sum,
+                                       "callerid": rospy.get_name()}
+        cloud_msg = rospy.AnyMsg()
+        cloud_msg._buff = cloud.body
+        cloud_msg._connection_header = {"type": cloud.msg_type, "md5sum": cloud.md5, "callerid": cloud.source}
+        payloads = tuple(encode(self.frame_of(r, m)[1]) for r, m in ((pose_route, pose_msg), (cloud_route, cloud_msg)))
+        self.store.offer(Keyframe(robot, cloud.stamp_s, payloads))
+
+    def _pose_at(self, frame, stamp_s):
+        """map <- frame at the cloud's capture; the newest transform if the cloud is a few ms ahead of
+        the tf it is captured with (tf arrives after the cloud), stamped as the cloud."""
+        stamp = rospy.Time.from_sec(stamp_s)
+        try:
+            return self.tf_buffer.lookup_transform(self.table.backfill.map_frame, frame, stamp)
+        except Exception:  # tf2's extrapolation: look at the newest one
+            pose = self.tf_buffer.lookup_transform(self.table.backfill.map_frame, frame, rospy.Time(0))
+            if abs(pose.header.stamp.to_sec() - stamp_s) > POSE_TOLERANCE_S:
+                raise
+            pose.header.stamp = stamp
+            return pose
+
+    def _on_allocation(self, allocation):
+        self.pacer.set_rate(unused_bytes_per_s(allocation.budget_mbytes_per_s, allocation.allocated_mbytes_per_s),
+                            time.monotonic())
+
+    def _backfill_loop(self):
+        backfill = self.table.backfill
+        while not rospy.is_shutdown():
+            time.sleep(BACKFILL_POLL_S)
+            keyframe = self.store.peek() if self.health.up else None
+            if keyframe is None or not self.pacer.take(keyframe.size_bytes, time.monotonic()):
+                continue
+            keyframe = self.store.pop()
+            for to, payload in zip((backfill.pose_to[keyframe.robot], backfill.cloud_to[keyframe.robot]),
+                                   keyframe.payloads):
+                self.zenoh_pubs[to].put(payload)
+            self.reporter.count(backfill_sent=1, backfill_sent_bytes=keyframe.size_bytes)
+
+    def backfill_counters(self):
+        s = self.store
+        return {"backfill_kept": s.kept, "backfill_evicted": s.evicted, "backfill_refused": s.refused,
+                "backfill_stored": len(s), "backfill_stored_bytes": s.bytes} if s else {}
+
+    # --- link health ------------------------------------------------------------------------
+    def _on_liveliness(self, sample):
+        import zenoh
+
+        peer = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                up = self.health.peer_alive(peer, time.time())
+                down = False
+            else:
+                up, down = False, self.health.peer_gone(peer, time.time())
+        self._link_changed(up, down, peer, "its liveliness token")
+
+    def _on_heartbeat(self, sample):
+        peer = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            up = self.health.heard(peer, time.time())
+        self._link_changed(up, False, peer, "its heartbeat")
+
+    def _heartbeat(self, _event=None):
+        self.heartbeat_pub.put(b"")
+        with self.lock:
+            down = self.health.expire(time.time(), self.table.heartbeat_timeout_ms / 1000.0)
+        self._link_changed(False, down, "", f"no heartbeat for {self.table.heartbeat_timeout_ms} ms")
+
+    def _link_changed(self, up, down, peer, why):
+        if up:
+            rospy.loginfo(f"{rospy.get_name()}: link up: {self.peer_side} bridge '{peer}' is there ({why})")
+            self.resend_latched()
+            threading.Timer(0.5, self.resend_latched).start()
+        if down:
+            rospy.logwarn(f"{rospy.get_name()}: link down: {self.peer_side} bridge {peer and repr(peer) + ' '}"
+                          f"is gone ({why}; outage {self.health.outages})")
+        if up or down:
+            self._publish_link_state()
+
+    def _tick(self, _event=None):
+        self.reporter.gauge(**self.backfill_counters())
+        if not self.health.ever_up and time.time() - self.started_s > NOT_UP_WARN_AFTER_S:
+            rospy.logwarn_throttle(10.0, f"{rospy.get_name()}: no {self.peer_side} bridge has come up yet "
+                                         f"({self.endpoint or 'listening'}); still trying")
+        self._publish_link_state()
+
+    def link_state(self):
+        h = self.health
+        return LinkState(up=h.up, since=rospy.Time.from_sec(h.since_s), outages=h.outages,
+                         last_outage_s=h.last_outage_s, peer=",".join(sorted(h.peers)) or self.peer_side)
+
+    def _publish_link_state(self):
+        msg = self.link_state()
+        msg.header.stamp = rospy.Time.from_sec(time.time())
+        self.link_pub.publish(msg)
+
+    def close(self):
+        self.timer.shutdown()
+        self.heartbeat_timer.shutdown()
+        for sub in self.ros_subs:
+            sub.unregister()
+        self.token.undeclare()

@@ -1,0 +1,92 @@
+"""The Zenoh session of one bridge: endpoints, mutual TLS with the fleet's certificates, a short
+lease (a silent peer is gone within a second) and endless reconnection. ROS-free.
+
+The twin side listens on its own address, the robots' side connects to it; nobody scouts.
+"""
+import json
+import os
+import subprocess
+
+from cps_link.bridge_config import ROBOTS, TWIN, BridgeTable
+
+MAKE_CERTS = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..",
+                                           "scripts", "make_certs"))
+CERT_DIR_ENV = "CPS_CERT_DIR"
+
+
+class BridgeSetupError(RuntimeError):
+    """The bridge cannot start (no certificates, bad endpoint); the message says what to do."""
+
+
+def default_cert_dir():
+    """$CPS_CERT_DIR, else .certs at the top of the checkout (outside git)."""
+    if os.environ.get(CERT_DIR_ENV):
+        return os.environ[CERT_DIR_ENV]
+    root = os.environ.get("CPS_ROOT") or os.path.normpath(os.path.join(os.path.dirname(MAKE_CERTS), *[".."] * 4))
+    return os.path.join(root, ".certs")
+
+
+def ensure_certs(cert_dir):
+    """Make the fleet's CA and certificates on first use (testbed addresses); return cert_dir."""
+    if not os.path.exists(os.path.join(cert_dir, "ca.pem")):
+        result = subprocess.run([MAKE_CERTS, cert_dir], capture_output=True, text=True)
+        if result.returncode != 0:
+            raise BridgeSetupError(f"could not make certificates in {cert_dir}: {result.stderr.strip()}")
+    return cert_dir
+
+
+def cert_files(cert_dir, side):
+    files = {"ca": os.path.join(cert_dir, "ca.pem"), "cert": os.path.join(cert_dir, f"{side}.pem"),
+             "key": os.path.join(cert_dir, f"{side}.key")}
+    missing = [p for p in files.values() if not os.path.isfile(p)]
+    if missing:
+        raise BridgeSetupError(f"missing TLS files {', '.join(missing)}; make them with "
+                               f"`{MAKE_CERTS} {cert_dir}` (see the cps_link README)")
+    return files
+
+
+def session_config(table: BridgeTable, side, twin_address, cert_dir, tls=True):
+    """The Zenoh configuration (a JSON-able dict) of `side`'s bridge; the twin listens at twin_address."""
+    if side not in (ROBOTS, TWIN):
+        raise BridgeSetupError(f"side must be robots or twin, got '{side}'")
+    proto = "tls" if tls else "tcp"
+    host = f"[{twin_address}]" if ":" in twin_address else twin_address
+    endpoint = f"{proto}/{host}:{table.endpoint_port}"
+    retry = {"period_init_ms": 200, "period_max_ms": table.retry_max_ms, "period_increase_factor": 1.5}
+    config = {
+        "mode": "peer",
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "listen": {"endpoints": [endpoint] if side == TWIN else [], "retry": retry},
+        "connect": {"endpoints": [endpoint] if side == ROBOTS else [], "timeout_ms": -1, "exit_on_failure": False,
+                    "retry": retry},
+        "transport": {"link": {"tx": {"lease": table.lease_ms, "keep_alive": table.keep_alive}}},
+    }
+    if tls:
+        files = cert_files(cert_dir, side)
+        config["transport"]["link"]["tls"] = {
+            "root_ca_certificate": files["ca"], "enable_mtls": True,
+            "listen_certificate": files["cert"], "listen_private_key": files["key"],
+            "connect_certificate": files["cert"], "connect_private_key": files["key"],
+            "verify_name_on_connect": True,
+        }
+    return config
+
+
+def open_session(config):
+    import zenoh
+
+    try:
+        return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
+    except Exception as exc:  # zenoh raises its own ZError
+        raise BridgeSetupError(f"cannot open the Zenoh session: {exc}") from exc
+
+
+def bridge_argv(python, side, twin_address, robots, cert_dir=None, port=None, fleet_file=None, name=None):
+    """The command line of one side's zenoh_bridge node (bringup, tests and the benchmark)."""
+    node = os.path.normpath(os.path.join(os.path.dirname(MAKE_CERTS), "..", "nodes", "zenoh_bridge"))
+    argv = [python, node, "--side", side, "--twin-address", twin_address, "--robots", ",".join(robots),
+            f"__name:=zenoh_bridge_{side}"]
+    for flag, value in (("--cert-dir", cert_dir), ("--port", port), ("--fleet", fleet_file), ("--name", name)):
+        if value:
+            argv += [flag, str(value)]
+    return argv

@@ -1,0 +1,211 @@
+"""The Zenoh bridge's parts that need no ROS master: wire frames, the table, link health."""
+import io
+import math
+import uuid
+
+import pytest
+import roslib.message
+import zenoh
+
+from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
+from cps_link.bridge_config import ConfigError, ROBOTS, TWIN, load_bridge_table
+from cps_link.bridge_wire import Deduplicator, Frame, WireError, decode, encode, header_stamp_s, is_stale
+from cps_link.link_health import LinkHealth
+from cps_link.zenoh_bridge import zenoh_qos
+from cps_link.zenoh_session import session_config
+
+ROBOT_NAMES = ("scout", "jackal", "champ", "iris")
+# Every type bridge.yaml carries (and sensor_msgs/PointCloud2 of the backfill).
+TYPES = ("geometry_msgs/Twist", "std_msgs/String", "std_msgs/Bool", "std_msgs/Float64", "nav_msgs/Odometry",
+         "sensor_msgs/BatteryState", "sensor_msgs/JointState", "cps_msgs/RateLimiterStatus", "tf2_msgs/TFMessage",
+         "diagnostic_msgs/DiagnosticArray", "cps_msgs/TopicStatsArray", "rosgraph_msgs/Log",
+         "cps_msgs/CompressedPointCloud2", "sensor_msgs/CompressedImage", "sensor_msgs/CameraInfo",
+         "cps_msgs/LinkState", "sensor_msgs/PointCloud2")
+
+
+def _sample(msg_type):
+    cls = roslib.message.get_message_class(msg_type)
+    msg = cls()
+    if cls._has_header:
+        msg.header.stamp.secs, msg.header.stamp.nsecs, msg.header.frame_id = 1700000000, 250000000, "scout/lidar"
+    for slot, slot_type in zip(cls.__slots__, cls._slot_types):
+        if slot_type == "string":
+            setattr(msg, slot, "teleop ü")
+        elif slot_type == "uint8[]":
+            setattr(msg, slot, bytes(range(256)) * 40)
+        elif slot_type == "float64":
+            setattr(msg, slot, 0.1 + 1e-12)
+    return cls, msg
+
+
+def _serialize(msg):
+    buff = io.BytesIO()
+    msg.serialize(buff)
+    return buff.getvalue()
+
+
+@pytest.mark.parametrize("msg_type", TYPES)
+def test_every_type_crosses_byte_identical(msg_type):
+    cls, msg = _sample(msg_type)
+    body = _serialize(msg)
+    stamp = header_stamp_s(body) if cls._has_header else math.nan
+    frame = Frame(uuid.uuid4().bytes, 7, stamp, msg_type, cls._md5sum, "/fleet_sim", body)
+    out = decode(encode(frame))
+    assert out.body == body and (out.session, out.seq, out.msg_type, out.md5, out.source) == \
+        (frame.session, 7, msg_type, cls._md5sum, "/fleet_sim")
+    assert _serialize(cls().deserialize(out.body)) == body
+    if cls._has_header:
+        assert out.stamp_s == pytest.approx(1700000000.25)
+
+
+def test_damaged_frames_are_refused_with_a_reason():
+    good = encode(Frame(b"s" * 16, 1, math.nan, "std_msgs/String", "992ce8a1687cec8c8bd883ec73ca41d1", "/gui",
+                        b"\x02\x00\x00\x00hi"))
+    flipped = bytearray(good)
+    flipped[-1] ^= 0xFF
+    for bad, why in ((good[:10], "shorter"), (b"XXXX" + good[4:], "magic"), (bytes(flipped), "CRC"),
+                     (good[:45], "truncated"), (b"", "shorter")):
+        with pytest.raises(WireError, match=why):
+            decode(bad)
+
+
+def test_duplicates_are_refused_and_a_new_session_starts_afresh():
+    dedup, s1, s2 = Deduplicator(), b"1" * 16, b"2" * 16
+
+    def frame(session, seq, source="/a"):
+        return Frame(session, seq, math.nan, "t", "m", source, b"")
+
+    assert dedup.accept("/x", frame(s1, 1)) and dedup.accept("/x", frame(s1, 2))
+    assert not dedup.accept("/x", frame(s1, 2)) and not dedup.accept("/x", frame(s1, 1))
+    assert dedup.accept("/x", frame(s1, 1, source="/b"))  # per source
+    assert dedup.accept("/x", frame(s2, 1))  # the sender restarted
+
+
+def test_staleness_only_for_stamped_messages_past_the_bound():
+    frame = Frame(b"s" * 16, 1, 100.0, "t", "m", "", b"")
+    assert is_stale(frame, 101.5, 1.0) and not is_stale(frame, 100.9, 1.0) and not is_stale(frame, 1e9, None)
+    assert not is_stale(Frame(b"s" * 16, 1, math.nan, "t", "m", "", b""), 1e9, 1.0)
+
+
+def test_classes_map_to_their_zenoh_qos():
+    table = load_bridge_table(robots=ROBOT_NAMES)
+    expected = {
+        "/scout/cmd_vel/teleop": (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
+        "/fleet/estop": (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
+        "/iris/cloud_throttle/rate_hz": (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
+        "/jackal/odom": (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
+        "/tf_static": (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
+        "/rosout": (zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP, True, False),
+        "/twin/champ/points_filtered/draco/managed": (zenoh.Priority.DATA, zenoh.CongestionControl.DROP, False, False),
+    }
+    routes = {r.to: r for r in table.routes}
+    for topic, (priority, congestion, reliable, express) in expected.items():
+        qos = zenoh_qos(routes[topic].traffic)
+        assert (qos["priority"], qos["congestion_control"], qos["express"]) == (priority, congestion, express), topic
+        assert (qos["reliability"] == zenoh.Reliability.RELIABLE) == reliable, topic
+    assert routes["/twin/champ/points_filtered/draco/managed"].traffic.max_age_s == 1.0
+    assert {r.to for r in table.routes if r.latched} >= {"/tf_static", "/fleet/estop", "/scout/control_mode",
+                                                        "/scout/mission_state"}
+    assert all(r.source == TWIN for r in table.routes if r.traffic.name == "command")
+    assert all(r.source == ROBOTS for r in table.routes if r.traffic.name != "command" and r.to != "/tissue/allocation")
+    assert {r.to for r in table.routes if r.traffic.name == "backfill"} == \
+        {f"/twin/{r}/points_backfill/{kind}" for r in ROBOT_NAMES for kind in ("draco", "pose")}
+    assert zenoh_qos(routes["/twin/iris/points_backfill/draco"].traffic)["priority"] == zenoh.Priority.BACKGROUND
+    assert routes["/twin/scout/points_filtered/draco/managed"].topic == "/scout/points_filtered/draco/managed"
+
+
+def test_bad_table_names_file_and_line(tmp_path):
+    path = tmp_path / "bridge.yaml"
+    base = ("endpoint_port: 7447\nkey_prefix: cps\nlease_ms: 600\nkeep_alive: 3\nretry_max_ms: 500\n"
+            "heartbeat_ms: 100\nheartbeat_timeout_ms: 700\n"
+            "classes:\n  command: {priority: real_time, congestion: block, reliable: true, express: true}\n")
+    for topics, message in (("  - {topic: /a, from: moon, class: command}\n", "bridge.yaml:11.*from"),
+                            ("  - {topic: /a, from: twin, class: fast}\n", "bridge.yaml:11.*unknown class"),
+                            ("  - {topic: a, from: twin, class: command}\n", "not a global ROS topic"),
+                            ("  - {topic: /a, from: twin, class: command}\n" * 2, "bridge.yaml:12.*crosses twice")):
+        path.write_text(base + "topics:\n" + topics)
+        with pytest.raises(ConfigError, match=message):
+            load_bridge_table(str(path), ROBOT_NAMES)
+
+
+def test_link_health_counts_outages_and_their_length():
+    health = LinkHealth(started_s=0.0)
+    assert not health.up and health.outages == 0
+    assert health.peer_alive("robots", 1.0) and health.up and health.last_outage_s == 0.0
+    assert not health.peer_alive("scout", 1.5)
+    assert not health.peer_gone("scout", 2.0) and health.up
+    assert health.peer_gone("robots", 3.0) and not health.up and health.outages == 1
+    assert not health.peer_gone("robots", 3.5)
+    assert health.peer_alive("robots", 13.0) and health.last_outage_s == pytest.approx(10.0)
+    assert health.since_s == 13.0
+
+
+def test_a_silent_peer_is_gone_after_the_heartbeat_timeout_even_with_its_token():
+    health = LinkHealth(started_s=0.0)
+    assert health.heard("robots", 1.0)
+    assert not health.expire(1.6, timeout_s=0.7) and health.up
+    assert not health.heard("robots", 1.7)
+    assert health.expire(2.5, timeout_s=0.7) and not health.up and health.outages == 1
+    assert not health.expire(3.0, timeout_s=0.7)
+    assert health.heard("robots", 12.5) and health.last_outage_s == pytest.approx(10.0)
+
+
+def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path):
+    for name in ("ca.pem", "twin.pem", "twin.key", "robots.pem", "robots.key"):
+        (tmp_path / name).write_text("x")
+    table = load_bridge_table(robots=ROBOT_NAMES)
+    twin = session_config(table, TWIN, "10.201.0.2", str(tmp_path))
+    robots = session_config(table, ROBOTS, "10.201.0.2", str(tmp_path))
+    assert twin["listen"]["endpoints"] == ["tls/10.201.0.2:7447"] and twin["connect"]["endpoints"] == []
+    assert robots["connect"]["endpoints"] == ["tls/10.201.0.2:7447"] and robots["listen"]["endpoints"] == []
+    assert robots["transport"]["link"]["tls"]["enable_mtls"] is True
+    assert robots["transport"]["link"]["tls"]["connect_private_key"].endswith("robots.key")
+    assert not twin["scouting"]["multicast"]["enabled"]
+    zenoh.Config.from_json5(__import__("json").dumps(twin))
+
+
+def _keyframe(robot, stamp_s, size):
+    return Keyframe(robot, stamp_s, (b"p" * 100, b"c" * (size - 100)))
+
+
+def test_backfill_store_keeps_one_keyframe_per_period_and_drops_the_oldest_when_full():
+    store = KeyframeStore(capacity_bytes=3000, period_s=1.0)
+    assert store.offer(_keyframe("scout", 10.0, 1000))
+    assert not store.offer(_keyframe("scout", 10.5, 1000))  # within the keyframe period
+    assert store.offer(_keyframe("iris", 10.5, 1000))  # per robot
+    assert store.offer(_keyframe("scout", 11.0, 1000))
+    assert store.bytes == 3000 and store.evicted == 0
+    assert store.offer(_keyframe("scout", 12.0, 1500))  # full: the two oldest make room
+    assert store.evicted == 2 and store.bytes == 2500 and len(store) == 2
+    assert not store.offer(_keyframe("iris", 20.0, 5000)) and store.refused == 1
+    assert [store.pop().stamp_s for _ in range(2)] == [11.0, 12.0] and store.pop() is None
+    assert store.bytes == 0 and store.kept == 4
+    with pytest.raises(ValueError):
+        KeyframeStore(0, 1.0)
+
+
+def test_backfill_pacer_sends_only_what_the_manager_leaves_unused():
+    assert unused_bytes_per_s(6.93, 6.0) == pytest.approx(0.93e6)
+    assert unused_bytes_per_s(6.0, 6.5) == 0.0
+    pacer = Pacer(burst_bytes=200_000, now_s=0.0)
+    assert not pacer.take(100_000, 10.0)  # no allocation heard yet: nothing goes
+    pacer.set_rate(100_000, 10.0)
+    assert not pacer.take(100_000, 10.5)
+    assert pacer.take(100_000, 11.01)
+    assert not pacer.take(100_000, 11.5)
+    pacer.set_rate(0.0, 11.5)
+    assert not pacer.take(1, 100.0)
+    # A 1 MB keyframe goes once the bucket is full, then the debt is paid first.
+    pacer.set_rate(100_000, 100.0)
+    assert pacer.take(1_000_000, 102.1)
+    assert not pacer.take(1000, 110.0)
+    assert pacer.take(1000, 112.0)
+
+
+def test_header_frame_id_of_a_cloud():
+    from cps_link.bridge_wire import header_frame_id
+
+    _, msg = _sample("cps_msgs/CompressedPointCloud2")
+    assert header_frame_id(_serialize(msg)) == "scout/lidar"
+    with pytest.raises(WireError):
+        header_frame_id(b"\x00" * 12 + b"\xff\x00\x00\x00")

@@ -1,0 +1,130 @@
+"""Two ROS masters on loopback joined only by the two Zenoh bridges (mutual TLS): clouds and
+telemetry cross one way, commands the other; link health; latched re-send after a bridge restart;
+bad frames from a keyed peer are counted, never delivered, duplicates delivered once."""
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from cps_harness.processes import find_node, free_port
+from cps_harness.testing import TopicRecorder, wait_for
+from cps_link.bridge_wire import Frame, encode
+from cps_link.zenoh_session import MAKE_CERTS, bridge_argv, session_config
+from cps_link.bridge_config import load_bridge_table
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+CLOUD_LOAD = os.path.normpath(os.path.join(find_node("cps_bw_manager", "bandwidth_manager"), "..", "..", "test",
+                                          "fixtures", "cloud_load.py"))
+ROBOT = "scout"
+
+
+@pytest.fixture(scope="module")
+def cert_dir(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("certs") / "certs")
+    subprocess.run([MAKE_CERTS, path], check=True, capture_output=True)
+    return path
+
+
+def _diag_counter(recorder, key):
+    msg = recorder.latest
+    for status in (msg.status if msg else []):
+        if status.name == "/zenoh_bridge_twin":
+            return int({kv.key: kv.value for kv in status.values}.get(key, 0))
+    return 0
+
+
+@pytest.mark.timeout(120)
+def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, cert_dir, tmp_path):
+    from cps_msgs.msg import CompressedPointCloud2, LinkState
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_msgs.msg import Bool
+
+    port = free_port()
+    ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], cert_dir, port), name="bridge_twin")
+    robots_bridge = robots_graph.popen(bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], cert_dir, port),
+                                       name="bridge_robots")
+    link = TopicRecorder("/tissue/link_state", LinkState)
+    clouds = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
+    diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
+    estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+    estop.publish(Bool(True))
+    link.wait(lambda m: m.up, timeout_s=20, what="the link up")
+
+    # A cloud crosses robots -> twin, byte for byte, under the contract's twin-side name.
+    robots_graph.popen([sys.executable, CLOUD_LOAD, f"{ROBOT}:20000:5",
+                        f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed"], name="load")
+    cloud = clouds.wait(timeout_s=20, what="a cloud across the bridge")
+    assert cloud.format == "draco" and 18000 <= len(cloud.compressed_data) <= 22000
+
+    # A teleop command crosses twin -> robots.
+    received = str(tmp_path / "teleop.txt")
+    robots_graph.popen([sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "recv", ROBOT, received],
+                       name="teleop_recv")
+    ros.popen([sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, "20"],
+              name="teleop_send")
+    assert wait_for(lambda: os.path.exists(received) and os.path.getsize(received) > 0, timeout_s=20), \
+        "no teleop command reached the robots' master"
+
+    # The latched e-stop reached the robots' side.
+    echo = subprocess.run(["rostopic", "echo", "-n", "1", "/fleet/estop"], env=robots_graph.env,
+                          capture_output=True, text=True, timeout=20)
+    assert "data: True" in echo.stdout, echo.stderr
+
+    # The robots' bridge dies: the twin knows within a second (lease 600 ms; margin for a loaded machine).
+    t_cut = time.monotonic()
+    robots_graph.stop(robots_bridge)
+    down = link.wait(lambda m: not m.up, timeout_s=5, what="the link down")
+    assert time.monotonic() - t_cut < 1.5 and down.outages == 1
+    # A restarted bridge (new session) comes back, and the latched e-stop is there again at once.
+    robots_graph.popen(bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], cert_dir, port),
+                       name="bridge_robots")
+    up = link.wait(lambda m: m.up, timeout_s=20, what="the link up again")
+    assert up.last_outage_s > 0
+    echo = subprocess.run(["rostopic", "echo", "-n", "1", "/fleet/estop"], env=robots_graph.env,
+                          capture_output=True, text=True, timeout=20)
+    assert "data: True" in echo.stdout, echo.stderr
+
+    # A keyed peer sends a corrupt frame, a wrong md5 and a duplicate: counted, never delivered.
+    import zenoh
+
+    table = load_bridge_table(robots=[ROBOT])
+    config = session_config(table, "robots", "127.0.0.1", cert_dir)
+    config["connect"]["endpoints"] = [f"tls/127.0.0.1:{port}"]
+    with zenoh.open(zenoh.Config.from_json5(json.dumps(config))) as session:
+        key = f"cps/topic/twin/{ROBOT}/points_filtered/draco/managed"
+        time.sleep(1.0)
+        good = encode(Frame(b"i" * 16, 1, time.time(), "cps_msgs/CompressedPointCloud2",
+                            CompressedPointCloud2._md5sum, "/intruder", bytes(cloud_bytes(cloud))))
+        session.put(key, good[:-3] + b"xyz")
+        session.put(key, encode(Frame(b"i" * 16, 2, math.nan, "cps_msgs/CompressedPointCloud2", "0" * 32,
+                                      "/intruder", b"")))
+        session.put(key, good)
+        session.put(key, good)
+        assert wait_for(lambda: _diag_counter(diagnostics, "corrupt") >= 1 and
+                        _diag_counter(diagnostics, "type_mismatch") >= 1 and
+                        _diag_counter(diagnostics, "duplicates") >= 1, timeout_s=10), diagnostics.latest
+        # The intact frame is delivered once; its duplicate, the corrupt and the mistyped one never.
+        assert wait_for(lambda: _intruder_checks(clouds), timeout_s=10), "the intact frame was not delivered"
+    time.sleep(1.0)
+    assert _intruder_checks(clouds) == 1
+
+
+def _intruder_checks(clouds):
+    with clouds._cond:
+        return sum(1 for _, m in clouds.messages if m.header.frame_id == "intruder-check")
+
+
+def cloud_bytes(received):
+    import copy
+    import io
+
+    cloud = copy.deepcopy(received)
+    cloud.header.frame_id = "intruder-check"
+    cloud.header.stamp.secs = int(time.time())
+    buff = io.BytesIO()
+    cloud.serialize(buff)
+    return buff.getvalue()
