@@ -200,6 +200,10 @@ def run_mission(args, log=print) -> MissionResult:
         if user:
             ros_log_dir = os.path.join(node_log_dir(out_dir), "log")
             side_env = {side: {**side_env.get(side, {}), **user_env(ros_log_dir)} for side in sides}
+            if zenoh:
+                # The bridges run as `user` too: they get their own copy of the fleet's certificates.
+                options = dataclasses.replace(options, cert_dir=_bridge_certs(os.path.join(ros_log_dir, "certs")))
+                specs = plan_nodes(fleet, sides=sides, options=options)
             try:
                 hand_over(user, out_dir, ros_log_dir)
                 prefix = user_prefix(user)
@@ -263,6 +267,22 @@ def run_mission(args, log=print) -> MissionResult:
             _wait_for_screenshot(supervisor, options.gui_screenshot_path, log)
         return MissionResult(out_dir, ended_by, elapsed, link.describe() if link else "loopback",
                              map_file, monitor.snapshot(), list(supervisor.events), supervisor.restarts())
+
+
+def _bridge_certs(folder):
+    """A private copy of the fleet's CA and bridge certificates in `folder` (made on first use)."""
+    import shutil
+
+    from cps_link.zenoh_session import BridgeSetupError, default_cert_dir, ensure_certs
+
+    try:
+        source = ensure_certs(default_cert_dir())
+    except BridgeSetupError as exc:
+        raise BringupError(str(exc)) from exc
+    os.makedirs(folder, mode=0o700, exist_ok=True)
+    for name in ("ca.pem", "robots.pem", "robots.key", "twin.pem", "twin.key"):
+        shutil.copy2(os.path.join(source, name), os.path.join(folder, name))
+    return folder
 
 
 def check_monitoring_inputs(args, fleet, sides):

@@ -72,6 +72,8 @@ class RunOptions:
     transport: str = TCPROS
     twin_address: str = "127.0.0.1"
     zenoh_port: Optional[int] = None
+    # The bridges' certificates (None: cps_link's default folder).
+    cert_dir: Optional[str] = None
 
 
 def _args(params: Dict[str, object]) -> List[str]:
@@ -115,7 +117,8 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
 
         return NodeSpec(f"zenoh_bridge_{bridge_side}", side,
                         tuple(bridge_argv(python, bridge_side, options.twin_address, robots,
-                                          port=options.zenoh_port, fleet_file=fleet.path)),
+                                          cert_dir=options.cert_dir, port=options.zenoh_port,
+                                          fleet_file=fleet.path)),
                         wait_topics=("/tissue/link_state",))
 
     if PHYSICAL in sides:
