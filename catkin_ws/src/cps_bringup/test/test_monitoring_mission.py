@@ -50,7 +50,8 @@ def _bringup(*args, timeout_s=400):
 
 @pytest.mark.ros
 @pytest.mark.slow
-def test_removed_and_moved_crates_are_found(tmp_path):
+def test_removed_and_moved_crates_are_found(open_tmp_path):
+    tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
     from cps_bringup.monitor_report import evaluate_monitoring
     from cps_fleet.fleet import load_fleet
 

@@ -12,7 +12,8 @@ FLEET_TESTS = os.path.join(os.path.dirname(__file__), "..", "..", "cps_fleet", "
 
 @pytest.mark.ros
 @pytest.mark.slow
-def test_new_type_is_simulated_and_mapped(tmp_path):
+def test_new_type_is_simulated_and_mapped(open_tmp_path):
+    tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
     sys.path.insert(0, FLEET_TESTS)
     try:
         from test_robot_types import fleet_with_new_type

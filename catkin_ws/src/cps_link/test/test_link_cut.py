@@ -55,7 +55,8 @@ def _mission(out, cut):
 
 @pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
 @pytest.mark.timeout(1500)
-def test_a_ten_second_cut_mid_mission(tmp_path):
+def test_a_ten_second_cut_mid_mission(open_tmp_path):
+    tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
     base, _ = _mission(tmp_path / "nocut", cut=False)
     mission, times = _mission(tmp_path / "cut", cut=True)
     f1_base, f1_cut = _f1(tmp_path / "nocut" / "map.bt"), _f1(tmp_path / "cut" / "map.bt")

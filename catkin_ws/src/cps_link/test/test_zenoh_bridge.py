@@ -58,7 +58,7 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     robots_graph.popen([sys.executable, CLOUD_LOAD, f"{ROBOT}:20000:5",
                         f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed"], name="load")
     cloud = clouds.wait(timeout_s=20, what="a cloud across the bridge")
-    assert cloud.format == "draco" and 18000 <= len(cloud.compressed_data) <= 22000
+    assert 18000 <= len(cloud.compressed_data) <= 22000
 
     # A teleop command crosses twin -> robots.
     received = str(tmp_path / "teleop.txt")

@@ -17,7 +17,8 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 @pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
 @pytest.mark.timeout(400)
-def test_one_robot_mission_over_zenoh(tmp_path):
+def test_one_robot_mission_over_zenoh(open_tmp_path):
+    tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
     out = tmp_path / "mission"
     with BackgroundMission(out, "cpszb", ["--robots", "jackal", "--duration", "120"]) as mission:
         mission.wait_for_line("processes up", timeout_s=240)

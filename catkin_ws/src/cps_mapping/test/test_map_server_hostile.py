@@ -52,7 +52,7 @@ def test_map_server_survives_hostile_maps_clouds_and_paths(ros, rospy_node, tmp_
                                   "~publish_period_s": 0.3, "~tf_timeout_s": 0.3, "~autosave_period_s": 0.0})
     points = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=20)
     try:
-        ros.wait_for_service("/twin/clear_bbx", timeout_s=60)
+        ros.wait_for_service("/twin/save_map", timeout_s=60)
         output = ros.output("map_server_hostile")
         assert re.search(r"cannot resume: .*max_grid_voxels.*moved it to .*map\.bt\.unreadable-\d+", output), output
         assert not (mission / "map.bt").exists()

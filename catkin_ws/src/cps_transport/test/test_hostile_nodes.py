@@ -30,7 +30,6 @@ def _refused_payloads():
     return {"truncated payload": changed(compressed_data=bytes(good.compressed_data)[:20]),
             "random payload": changed(compressed_data=bytes(range(256)) * 2),
             "empty payload": changed(compressed_data=b""),
-            "format zlib": changed(format="zlib"),
             "no z field": changed(fields=[PointField(name=n, offset=4 * i, datatype=7, count=1)
                                           for i, n in enumerate("xy")]),
             "fewer points than the payload": changed(width=3)}
