@@ -38,7 +38,7 @@ def _diag_counter(recorder, key):
 
 
 @pytest.mark.timeout(120)
-def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, cert_dir, tmp_path):
+def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, cert_dir, tmp_path, request):
     from cps_msgs.msg import CompressedPointCloud2, LinkState
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Bool
@@ -51,6 +51,9 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     clouds = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
     diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
     estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+    # This process's master serves later tests too: a latched e-stop left behind would hold their robots.
+    for done in (estop.unregister, link.close, clouds.close, diagnostics.close):
+        request.addfinalizer(done)
     estop.publish(Bool(True))
     link.wait(lambda m: m.up, timeout_s=20, what="the link up")
 

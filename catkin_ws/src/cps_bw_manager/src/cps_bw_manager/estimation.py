@@ -9,22 +9,16 @@ delay-based congestion control:
   clearly less than the physical side sends (`delivered < backlog_ratio x sent`) or the latency
   rising by more than `rise_ms` for three updates in a row (a queue is building), the link is saturated, so what it delivers is its capacity: the estimate becomes
   delivered x a factor below 1 so the queue drains within about `drain_time_s` (at most
-  `drain_factor`), never less than half the old estimate unless the backlog is measured
-  (`delivered < backlog_ratio x sent`: then straight to it), and at most once per `holdoff_s`
+  `drain_factor`), never less than half the old estimate and at most once per `holdoff_s`
   (the effect of a decrease shows only one statistics window later);
 - high latency without a building queue (a busy CPU, or a queue that is already draining), or
   queueing above half the threshold, holds the estimate;
 - otherwise the estimate grows by `increase_per_s` (multiplicative, per second; at least
   `increase_min_mbps_per_s`), faster the longer the latency has stayed low (x(1 + quiet s / 5),
   at most x3, convex like CUBIC away from its last maximum), up to `max_mbps`, and never stays below what was just delivered;
-  from 10 % below to 20 % above the rate delivered at the last saturation (below it: for `slow_probe_s`
-  after the saturation; above it: always), it probes five times slower, so the queue it builds while probing stays small (as CUBIC does near
+  within +-10 % of the rate delivered at the last saturation, and for `slow_probe_s` after it, it
+  probes five times slower, so the queue it builds while probing stays small (as CUBIC does near
   its last maximum) without getting stuck at a saturation point measured while a queue drained.
-
-While the physical side sends less than `app_limited_fraction` of what it was allocated
-(app-limited: the rate limiters have not caught up, or the robots have less to send), the
-estimate grows only as slowly as near its last saturation: an estimate nothing has tried is no measurement, and probing far above
-what is used overshoots the capacity once the senders catch up.
 
 The default threshold (60 ms of queueing) sits below the paper's 100 ms latency bound and above
 the latency noise of a busy 2-core machine.
@@ -41,7 +35,7 @@ import math
 class BandwidthEstimator:
     def __init__(self, initial_mbps, max_mbps=None, min_mbps=1.0, queue_threshold_ms=60.0,
                  increase_per_s=0.25, increase_min_mbps_per_s=4.0, drain_factor=0.9, drain_time_s=2.0, baseline_window_s=10.0,
-                 backlog_ratio=0.85, holdoff_s=1.0, rise_ms=5.0, slow_probe_s=5.0, app_limited_fraction=0.9):
+                 backlog_ratio=0.85, holdoff_s=1.0, rise_ms=5.0, slow_probe_s=5.0):
         for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps),
                             ("queue_threshold_ms", queue_threshold_ms), ("increase_per_s", increase_per_s),
                             ("drain_time_s", drain_time_s), ("baseline_window_s", baseline_window_s)):
@@ -64,9 +58,6 @@ class BandwidthEstimator:
         self.holdoff_s = max(0.0, float(holdoff_s))
         self.rise_ms = float(rise_ms)
         self.slow_probe_s = float(slow_probe_s)
-        if not 0 < app_limited_fraction <= 1:
-            raise ValueError(f"app_limited_fraction must be in (0, 1], got {app_limited_fraction!r}")
-        self.app_limited_fraction = float(app_limited_fraction)
         self._last_decrease_s = -math.inf
         self._saturation_mbps = math.nan
         self._quiet_since_s = math.nan
@@ -100,9 +91,9 @@ class BandwidthEstimator:
     def baseline_ms(self):
         return min(v for _, v in self._latencies) if self._latencies else math.nan
 
-    def update(self, now_s, delivered_mbps, latency_ms, sent_mbps=None, allocated_mbps=None):
-        """Feed one measurement window (`sent_mbps`: what the physical side sent in it, if known;
-        `allocated_mbps`: what it was allowed to send); returns the new estimate in Mbit/s.
+    def update(self, now_s, delivered_mbps, latency_ms, sent_mbps=None):
+        """Feed one measurement window (`sent_mbps`: what the physical side sent in it, if known);
+        returns the new estimate in Mbit/s.
 
         NaN, infinite or negative inputs (e.g. no message in the window) are counted and ignored.
         """
@@ -125,10 +116,7 @@ class BandwidthEstimator:
         self._rising = self._rising + 1 if latency_ms > self._last_latency_ms + self.rise_ms else 0
         self._last_latency_ms = latency_ms
         building = not known_sent or delivered_mbps < self.backlog_ratio * sent_mbps or self._rising >= 3
-        # A measured backlog needs only half the queueing: with small sender buffers (no bufferbloat)
-        # the latency alone rises too slowly to stop a probe above the capacity in time.
-        backlogged = known_sent and delivered_mbps < self.backlog_ratio * sent_mbps
-        self.congested = (delayed and building) or (backlogged and queueing_ms > 0.5 * self.queue_threshold_ms)
+        self.congested = delayed and building
         if self.congested:
             self._quiet_since_s = now_s
         if self.congested and now_s - self._last_decrease_s < self.holdoff_s:
@@ -137,28 +125,20 @@ class BandwidthEstimator:
             self._last_decrease_s = now_s
             self._saturation_mbps = delivered_mbps
             factor = min(self.drain_factor, max(0.5, 1.0 - queueing_ms / (1000.0 * self.drain_time_s)))
-            # A measured backlog (delivered clearly below sent) is the capacity itself: go there at
-            # once (a drop 60 -> 5 Mbit/s must not take four halvings); latency alone halves at most.
-            backlog = known_sent and delivered_mbps < self.backlog_ratio * sent_mbps
-            floor = 0.0 if backlog else 0.5 * self.estimate_mbps
-            estimate = min(self.estimate_mbps, max(floor, factor * delivered_mbps))
+            estimate = min(self.estimate_mbps, max(0.5 * self.estimate_mbps, factor * delivered_mbps))
         elif delayed or queueing_ms > 0.5 * self.queue_threshold_ms:
             estimate = self.estimate_mbps
             self._quiet_since_s = now_s
         else:
-            near = 0.9 * self._saturation_mbps <= self.estimate_mbps <= 1.2 * self._saturation_mbps
-            just_above = self._saturation_mbps <= self.estimate_mbps <= 1.2 * self._saturation_mbps
-            if just_above or (near and now_s - self._last_decrease_s < self.slow_probe_s):
+            near = 0.9 * self._saturation_mbps <= self.estimate_mbps <= 1.1 * self._saturation_mbps
+            if near and now_s - self._last_decrease_s < self.slow_probe_s:
                 grown = self.estimate_mbps * (1.0 + self.increase_per_s / 5.0) ** dt
-                self._quiet_since_s = now_s  # past the last maximum, growth starts slow again (convex)
             else:
                 if math.isnan(self._quiet_since_s):
                     self._quiet_since_s = now_s
                 boost = min(3.0, 1.0 + (now_s - self._quiet_since_s) / 5.0)
                 grown = max(self.estimate_mbps * (1.0 + boost * self.increase_per_s) ** dt,
                             self.estimate_mbps + self.increase_min_mbps_per_s * dt)
-            if known_sent and allocated_mbps is not None and sent_mbps < self.app_limited_fraction * allocated_mbps:
-                grown = self.estimate_mbps * (1.0 + self.increase_per_s / 5.0) ** dt
             estimate = max(grown, delivered_mbps)
         self.estimate_mbps = min(max(estimate, self.min_mbps), self.max_mbps)
         return self.estimate_mbps

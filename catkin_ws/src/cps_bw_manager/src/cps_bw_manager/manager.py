@@ -180,8 +180,7 @@ class ManagerCore:
             return False
         before = self.estimator.estimate_mbps
         sent = self.sent_mbps()
-        allocated = 8.0 * self.allocate().allocated_mbytes_per_s
-        after = self.estimator.update(now_s, delivered_mbps, latency_ms, None if math.isnan(sent) else sent, allocated)
+        after = self.estimator.update(now_s, delivered_mbps, latency_ms, None if math.isnan(sent) else sent)
         return abs(after - before) > 0.05 * before
 
     def input_rate_cap_hz(self, robot):

@@ -28,11 +28,6 @@ SIDES = ("phys", "twin")
 ROUTER = "rtr"
 TOPOLOGIES = ("duplex", "shared")
 DEFAULT_QUEUE_MS = 50.0
-# Unsent bytes a TCP connection may keep in the sender's kernel buffer (tcp_notsent_lowat, set in
-# both namespaces). Linux's default is unlimited: at 60 Mbit/s the rate limiters' connections then
-# hold megabytes, which after a capacity drop to 5 Mbit/s keep the link saturated for > 14 s
-# whatever the manager allocates (measured, test_capacity_step.py).
-SEND_BACKLOG_BYTES = 16384
 _NAME = re.compile(r"^[a-z][a-z0-9]{0,9}$")
 _RATE = re.compile(r"^(\d+(\.\d+)?)(bit|kbit|mbit|gbit)$")
 _RATE_FACTOR = {"bit": 1.0, "kbit": 1e3, "mbit": 1e6, "gbit": 1e9}
@@ -204,7 +199,6 @@ def link_up(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_
             _run(["ip", "-n", ns, "addr", "add", f"{side_ip(side)}/{PREFIX_LEN}", "dev", dev])
             _run(["ip", "-n", ns, "link", "set", "lo", "up"])
             _run(["ip", "-n", ns, "link", "set", dev, "up"])
-            _run(["ip", "netns", "exec", ns, "sysctl", "-q", "-w", f"net.ipv4.tcp_notsent_lowat={SEND_BACKLOG_BYTES}"])
         for ns, dev in shaped_devices(name):
             for cmd in _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, "add", jitter_ms, with_netem):
                 result = _run(cmd, check=False)
