@@ -8,7 +8,7 @@ from cps_bringup.report import _float, _table
 
 # Windows compared before and after a capacity step, s.
 STEP_SPAN_S = 10.0
-NOT_YET = "n/a: the bridge's counters are not published yet"
+NOT_YET = "n/a: the bridges count these on /diagnostics; this report does not read them yet"
 
 
 def scenario_outages(event_rows):
