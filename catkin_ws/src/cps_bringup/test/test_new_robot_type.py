@@ -28,7 +28,7 @@ def test_new_type_is_simulated_and_mapped(open_tmp_path):
                              "--duration", "15", "--out", str(out)], capture_output=True, text=True, timeout=300)
     log = result.stdout + result.stderr
     assert result.returncode == 0, log[-4000:]
-    sim_log = "\n".join(p.read_text() for p in (out / "logs").glob("fleet_sim-*.log"))
+    sim_log = "\n".join(p.read_text() for p in (out / "logs").rglob("fleet_sim-*.log"))
     assert "scout" in sim_log
 
     fleet = load_fleet(str(fleet_path)).with_robots(["scout"])

@@ -38,7 +38,7 @@ def _f1(map_file, fleet, tmp_path, name):
 @pytest.mark.slow
 def test_recorded_mission_replays_through_tissue_and_twin(open_tmp_path):
     tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
-    bag = tmp_path / "mission.bag"
+    bag = tmp_path / "live" / "mission.bag"   # in the mission folder: the nodes (the recorder too) run unprivileged
     _bringup("--duration", "20", "--record", str(bag), "--out", str(tmp_path / "live"))
     info = subprocess.run(["rosbag", "info", str(bag)], capture_output=True, text=True, check=True).stdout
     print(info)
