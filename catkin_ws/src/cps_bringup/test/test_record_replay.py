@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from cps_bringup.mission_bag import BagError, check_bag, record_topics, replay_topics
+from cps_bringup.mission_bag import BagError, check_bag, finish_recording, record_topics, replay_topics
 from cps_fleet.fleet import load_fleet
 
 BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
@@ -122,3 +122,38 @@ def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     assert "not a readable rosbag" in result.stderr, result.stderr
+
+
+def _unclosed_bag(path, fleet):
+    """A bag whose writer died before writing its index, as rosbag record leaves `<bag>.active`."""
+    import rosbag
+
+    _write_bag(path, fleet, replay_topics(fleet))
+    with open(path, "rb") as f:
+        data = f.read()
+    bag = rosbag.Bag(str(path))
+    index_pos = bag._index_data_pos
+    bag.close()
+    with open(path, "wb") as f:
+        f.write(data[:index_pos])
+
+
+def test_an_unclosed_recording_is_reindexed_into_place(tmp_path):
+    fleet = _two_robots()
+    bag = tmp_path / "mission.bag"
+    _unclosed_bag(tmp_path / "mission.bag.active", fleet)
+    with pytest.raises(BagError):
+        check_bag(str(tmp_path / "mission.bag.active"), fleet)
+
+    said = finish_recording(str(bag), None)
+
+    assert "reindexed" in said
+    assert not (tmp_path / "mission.bag.active").exists()
+    assert "/scout/points" in check_bag(str(bag), fleet).topics
+
+
+def test_a_missing_recording_is_an_error_with_the_recorders_log(tmp_path):
+    (tmp_path / "recorder.log").write_text("[ERROR] could not open /full/disk/mission.bag: No space left\n")
+    with pytest.raises(BagError) as error:
+        finish_recording(str(tmp_path / "mission.bag"), str(tmp_path / "recorder.log"))
+    assert "no bag was written" in str(error.value) and "No space left" in str(error.value)

@@ -15,8 +15,8 @@ import time
 from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
-from cps_bringup.plan import (DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, TCPROS, TRANSPORTS, ZENOH, RunOptions,
-                               plan_nodes)
+from cps_bringup.plan import (DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RECORDER, TCPROS, TRANSPORTS, ZENOH,
+                               RunOptions, plan_nodes)
 from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
 from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
                                     node_log_dir)
@@ -226,6 +226,10 @@ def run_mission(args, log=print) -> MissionResult:
             side_env=side_env or None, side_graphs=side_graphs,
             policy=RestartPolicy.from_limits(fleet.limits), node_log_max_bytes=int(fleet.limits.node_log_max_mbytes * 1e6),
             user_prefix=prefix if user else None)
+        recorder_log = None
+        if options.record_path:
+            # Registered first, so it runs after stop_all: the recorder has closed (or died) by then.
+            stack.callback(_finish_recording, options.record_path, lambda: recorder_log, log)
         stack.callback(supervisor.stop_all)
         import rospy
 
@@ -235,6 +239,7 @@ def run_mission(args, log=print) -> MissionResult:
 
         stack.callback(EstopKeeper().close)    # the e-stop state outlives the GUI
         supervisor.start_all(timeout_s=args.start_timeout)
+        recorder_log = supervisor.log_of(RECORDER)
         runner = link.start_scenario(os.path.join(out_dir, "link_events.csv"), log) if link else None
         if runner:
             stack.callback(runner.stop)
@@ -267,6 +272,17 @@ def run_mission(args, log=print) -> MissionResult:
             _wait_for_screenshot(supervisor, options.gui_screenshot_path, log)
         return MissionResult(out_dir, ended_by, elapsed, link.describe() if link else "loopback",
                              map_file, monitor.snapshot(), list(supervisor.events), supervisor.restarts())
+
+
+def _finish_recording(path, recorder_log, log):
+    """The mission's bag in place once the recorder has stopped (reindexed if it was left open), else
+    BringupError: a mission asked to record must not end quietly without its bag."""
+    from cps_bringup.mission_bag import BagError, finish_recording
+
+    try:
+        log(f"[bringup] {finish_recording(path, recorder_log())}")
+    except BagError as exc:
+        raise BringupError(f"--record: {exc}") from exc
 
 
 def _bridge_certs(folder):

@@ -115,3 +115,35 @@ def check_bag(path: str, fleet: FleetConfig) -> BagContents:
     if problems:
         raise BagError(f"{path} cannot be replayed for the fleet {fleet.path}:\n  " + "\n  ".join(problems))
     return contents
+
+
+def finish_recording(path: str, recorder_log: str = None) -> str:
+    """Make sure the mission's bag exists at `path` once the recorder has stopped.
+
+    rosbag record writes `<path>.active` and renames it when it closes cleanly. A recorder that was
+    killed (a slow disk, a stop timeout) leaves an unindexed `.active` file: it is reindexed
+    (`rosbag reindex`) and moved into place, so the recorded messages are not lost. Returns what was
+    done; BagError if there is no bag at all, with the recorder's last log lines.
+    """
+    import os
+    import subprocess
+
+    if os.path.exists(path):
+        return f"recorded {path}"
+    active = path + ".active"
+    if os.path.exists(active):
+        result = subprocess.run(["rosbag", "reindex", "--quiet", active], capture_output=True, text=True)
+        if result.returncode != 0:
+            raise BagError(f"{active} was left unclosed by the recorder and could not be reindexed: "
+                           f"{(result.stderr or result.stdout).strip()[-500:]}")
+        os.replace(active, path)
+        backup = os.path.splitext(active)[0] + ".orig.active"
+        if os.path.exists(backup):
+            os.remove(backup)
+        return f"the recorder did not close {path}; reindexed it from {active}"
+    tail = ""
+    if recorder_log and os.path.exists(recorder_log):
+        with open(recorder_log, errors="replace") as log:
+            tail = "".join(log.readlines()[-8:])
+    raise BagError(f"no bag was written to {path} (nor {active}); the recorder's log "
+                   f"{recorder_log or '(none)'} ends:\n{tail}")

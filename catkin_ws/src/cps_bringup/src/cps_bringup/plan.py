@@ -255,7 +255,10 @@ REPLAY, RECORDER = "mission_replay", "mission_recorder"
 
 
 def _bag_specs(fleet, sides, options, planned):
-    """rosbag record of the mission and rosbag play of a recorded one (after everything else is up)."""
+    """rosbag record of the mission and rosbag play of a recorded one (after everything else is up).
+
+    The bag is LZ4-compressed: raw clouds are most of it, and a third of the bytes is less for a slow
+    disk to take in before the recorder's stop timeout."""
     from cps_bringup.mission_bag import MANAGED_INPUT, record_topics, replay_topics
 
     # The rate limiter and the link relay advertise the managed topics with the first cloud through.
@@ -264,7 +267,7 @@ def _bag_specs(fleet, sides, options, planned):
     specs = []
     if options.record_path:
         specs.append(NodeSpec(RECORDER, PHYSICAL if PHYSICAL in sides else DIGITAL,
-                              ("rosbag", "record", "-O", options.record_path, f"__name:={RECORDER}",
+                              ("rosbag", "record", "--lz4", "-O", options.record_path, f"__name:={RECORDER}",
                                *record_topics(fleet)), restart_limit=0, stop_timeout_s=RECORDER_STOP_TIMEOUT_S))
     if options.replay_path and PHYSICAL in sides:
         # --clock: every node runs on the bag's time (/use_sim_time); -d: subscribers connect first.

@@ -246,6 +246,11 @@ class Supervisor:
     def pid_of(self, label):
         return self.running[label].proc.pid
 
+    def log_of(self, label):
+        """The captured output file of `label`'s process (None if it never started)."""
+        running = self.running.get(label)
+        return getattr(running.proc, "cps_log", None) if running else None
+
 
 def ensure_port_free(port):
     import socket
