@@ -26,7 +26,7 @@ if [ "$run_rostest" -eq 1 ]; then
   echo "rostest: $passed passed, $failed failed${failed_files:+ (failed:$failed_files)}" >"$rostest_summary"
   export CPS_ROSTEST_SUMMARY="$rostest_summary"
 fi
-python -m pytest catkin_ws/src "$@"
+python -m pytest --durations=30 catkin_ws/src "$@"
 rc=$?
 # pytest's 5 means it collected no test: that is a failure of the suite, not a pass.
 [ "$rc" -eq 5 ] && echo "no tests were collected" >&2

@@ -10,6 +10,7 @@ import time
 import pytest
 
 from cps_bringup.plan import DIGITAL, PHYSICAL, NodeSpec, RunOptions, plan_nodes
+from cps_link.names import COMMAND_PROBE
 from cps_bringup.supervisor import BringupError, Supervisor
 from cps_fleet.fleet import load_fleet
 from cps_harness.processes import RosGraph, processes_named
@@ -60,6 +61,15 @@ def test_plan_of_one_side_and_a_subset():
     specs = plan_nodes(fleet, sides=(DIGITAL,), options=RunOptions(out_dir="/tmp/x"))
     assert {s.side for s in specs} == {DIGITAL}
     assert not any("scout" in s.label for s in specs)
+
+
+def test_plan_without_the_manager_and_with_the_command_probe():
+    fleet = load_fleet()
+    managed = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x"))}
+    unmanaged = {s.label for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", bandwidth_manager=False))}
+    assert "bandwidth_manager" in managed and "bandwidth_manager" not in unmanaged
+    assert managed["command_probe"].side == DIGITAL
+    assert any(COMMAND_PROBE in arg for arg in managed["physical_stats"].argv)
 
 
 def _python_spec(label, code, wait_topics=(), restart_limit=0):

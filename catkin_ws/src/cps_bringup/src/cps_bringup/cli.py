@@ -91,6 +91,9 @@ def build_parser():
     parser.add_argument("--replay", default=None, metavar="BAG",
                         help="physical side: play this mission bag (e.g. your own robot's) with rosbag play "
                              "in place of the simulator, on the bag's clock; the mission ends with the bag")
+    parser.add_argument("--bandwidth-manager", choices=("on", "off"), default="on",
+                        help="off: no bandwidth manager; each robot's rate limiter passes its sensor's full rate "
+                             "(the paper's unmanaged case, for comparison)")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server S seconds into the mission")
     return parser
@@ -163,7 +166,8 @@ def run_mission(args, log=print) -> MissionResult:
         map_file=os.path.join(out_dir, "map.bt"),
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
         gui_screenshot_after_s=args.screenshot_after, baseline_map=baseline, site_changes_file=site_changes,
-        record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path)
+        record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path,
+        bandwidth_manager=args.bandwidth_manager == "on")
     transport = args.transport
     if replay_path and transport == ZENOH and len(sides) == 2:
         log("[bringup] --replay: one master for both sides (tcpros), so that the bag's /clock reaches every node")

@@ -9,6 +9,7 @@ import sys
 from typing import Callable, Dict, List, Optional, Tuple
 
 from cps_fleet.fleet import FleetConfig
+from cps_link.names import COMMAND_PROBE
 from cps_sim.renderers import DEFAULT_RENDERER
 
 PHYSICAL, DIGITAL = "physical", "digital"
@@ -74,6 +75,9 @@ class RunOptions:
     zenoh_port: Optional[int] = None
     # The bridges' certificates (None: cps_link's default folder).
     cert_dir: Optional[str] = None
+    # False: no bandwidth manager; every rate limiter passes the sensor's full rate (up to the
+    # link's max_rate_hz), the paper's unmanaged case.
+    bandwidth_manager: bool = True
 
 
 def _args(params: Dict[str, object]) -> List[str]:
@@ -176,7 +180,8 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                 f"{r}/cloud_throttle", PHYSICAL,
                 py("cps_transport", "rate_limiter", ns, "__name:=cloud_throttle",
                    f"~input:=/{r}/points_filtered/draco", f"~output:=/{r}/points_filtered/draco/managed",
-                   *_args({"rate_hz": fleet.link.min_rate_hz})),
+                   *_args({"rate_hz": fleet.link.min_rate_hz if options.bandwidth_manager
+                           else fleet.link.max_rate_hz})),
                 wait_topics=(f"/{r}/points_filtered/draco/managed",)))
 
         # The robots' side of the latency: capture stamp -> voxel-filtered cloud, measured on the
@@ -187,7 +192,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             py("cps_transport", "topic_stats", "__name:=physical_stats", "/tissue/stats:=/tissue/physical_stats",
                *_args({**common, "csv_path": os.path.join(options.out_dir, "physical_stats.csv"),
                        "arrivals_csv_path": os.path.join(options.out_dir, "physical_arrivals.csv"),
-                       "topics": ",".join(f"/{r}/points_filtered" for r in robots)})),
+                       "topics": ",".join([f"/{r}/points_filtered" for r in robots] + [COMMAND_PROBE])})),
             wait_topics=("/tissue/physical_stats",)))
 
     if DIGITAL in sides:
@@ -233,12 +238,15 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                        "arrival_topics": ",".join(f"/twin/{r}/points_filtered/draco/managed" for r in robots)})),
             wait_topics=("/tissue/stats",)))
         specs.append(NodeSpec(
-            "bandwidth_manager", DIGITAL,
-            py("cps_bw_manager", "bandwidth_manager", "__ns:=/", "__name:=bandwidth_manager",
-               *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv"),
-                       "link_state_csv_path": os.path.join(out, "link_state.csv"),
-                       **({"available_mbps": round(options.available_mbps, 2)} if options.available_mbps else {})})),
-            wait_topics=("/tissue/allocation",)))
+            "command_probe", DIGITAL, py("cps_link", "command_probe", "__name:=command_probe")))
+        if options.bandwidth_manager:
+            specs.append(NodeSpec(
+                "bandwidth_manager", DIGITAL,
+                py("cps_bw_manager", "bandwidth_manager", "__ns:=/", "__name:=bandwidth_manager",
+                   *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv"),
+                           "link_state_csv_path": os.path.join(out, "link_state.csv"),
+                           **({"available_mbps": round(options.available_mbps, 2)} if options.available_mbps else {})})),
+                wait_topics=("/tissue/allocation",)))
         if options.gui_screenshot_path:
             # rviz needs an X server with OpenGL: a private Xvfb (Mesa llvmpipe) for the offscreen GUI.
             specs.append(NodeSpec(

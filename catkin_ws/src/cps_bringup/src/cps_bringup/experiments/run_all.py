@@ -3,7 +3,7 @@ import csv
 import os
 import time
 
-EXPERIMENTS = ("table4", "fig11", "table6", "fig13", "table5", "fig14")
+EXPERIMENTS = ("table4", "fig11", "table6", "fig13", "table5", "fig14", "fig13_live")
 # What each name runs: the offline ones share one set of rendered mission clouds.
 OFFLINE = {"table4", "fig11", "table6", "fig13"}
 QUICK_FRAMES, FRAMES = 1, 10
@@ -11,7 +11,7 @@ QUICK_LEAVES = (0.01, 0.10, 0.50)
 
 
 def run_experiments(names, out_dir, quick=False, reuse_runs=False, log=print):
-    from cps_bringup.experiments import bandwidth_tables, deployable_robots, fleet_scaling, manager_steps
+    from cps_bringup.experiments import bandwidth_tables, deployable_robots, fleet_scaling, live_scaling, manager_steps
 
     os.makedirs(out_dir, exist_ok=True)
     names = set(EXPERIMENTS if "all" in names else names)
@@ -30,6 +30,8 @@ def run_experiments(names, out_dir, quick=False, reuse_runs=False, log=print):
         done["fig13"] = deployable_robots.run(out_dir, mission, quick=quick, log=log)
     if names & {"table5", "fig14"}:
         done["table5"] = fleet_scaling.run(out_dir, quick=quick, reuse_runs=reuse_runs, log=log)
+    if "fig13_live" in names:
+        done["fig13_live"] = live_scaling.run(out_dir, quick=quick, reuse_runs=reuse_runs, log=log)
     write_index(out_dir)
     return done
 
@@ -79,6 +81,8 @@ def write_index(out_dir):
                ("table5.md", "Table 5: fleets of 1–4 robots on the 60 Mbit/s link, bandwidth and latency", None),
                ("table6.md", "Table 6: the bandwidth manager's nine steps", None),
                ("fig13.md", "Fig. 13: deployable robots against link bandwidth, and map quality against rate", "fig13.png"),
+               ("fig13_live.md", "Fig. 13 live: fleets of 1–16 robots on 60 and 10 Mbit/s, manager on and off",
+                "fig13_live.png"),
                ("fig14.png", "Fig. 14: top-down view of the fused map with the four trajectories", "fig14.png"),
                ("fig14.md", "Fig. 14: why it was not produced", None)]
     for name, what, image in entries:
