@@ -29,6 +29,9 @@ LINK_STATE_PERIOD_S = 1.0
 NOT_UP_WARN_AFTER_S = 5.0
 # rospy subscriber queues: the data class keeps only the newest message (fresh first).
 QUEUE_SIZE = {"data": 1, "backfill": 50}
+# How long a new publisher of a never-dropped topic waits for the subscribers the master knows of
+# before its first message (rospy drops what is published before a subscriber has connected).
+SUBSCRIBER_WAIT_S = 2.0
 DEFAULT_QUEUE_SIZE = 20
 # The backfill's token bucket: at most this much in one go, bytes; its send loop's period, s.
 BACKFILL_BURST_BYTES = 300_000
@@ -220,14 +223,20 @@ class ZenohBridge:
 
     def _publisher(self, route, cls):
         with self.lock:
-            if route.to not in self.publishers:
+            pub = self.publishers.get(route.to)
+            if pub is None:
                 listener = None
                 if route.latched:
                     listener = self.replays[route.to] = _LatchedReplay()
-                self.publishers[route.to] = rospy.Publisher(
+                pub = self.publishers[route.to] = rospy.Publisher(
                     route.to, cls, queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
                     subscriber_listener=listener, tcp_nodelay=True)
-            return self.publishers[route.to]
+                new = True
+            else:
+                new = False
+        if new and route.traffic.congestion == "block" and not route.latched:
+            _await_subscribers(pub, route.to, SUBSCRIBER_WAIT_S)
+        return pub
 
     # --- backfill (robots' side) --------------------------------------------------------------
     def _start_backfill(self, capacity_bytes):
@@ -364,3 +373,19 @@ class ZenohBridge:
         for sub in self.ros_subs:
             sub.unregister()
         self.token.undeclare()
+
+
+def _await_subscribers(pub, topic, timeout_s):
+    """Wait (up to timeout_s) until `pub` is connected to every subscriber of `topic` the master
+    knows: publishers are made on a topic's first message, and a command or backfill keyframe
+    published before the subscribers connect would be lost."""
+    import rosgraph
+
+    try:
+        _, subscribers, _ = rosgraph.Master(rospy.get_name()).getSystemState()
+    except Exception:  # no master: nothing to wait for
+        return
+    expected = sum(len(nodes) for name, nodes in subscribers if name == topic)
+    deadline = time.monotonic() + timeout_s
+    while pub.get_num_connections() < expected and time.monotonic() < deadline and not rospy.is_shutdown():
+        time.sleep(0.01)
