@@ -6,7 +6,9 @@ import pytest
 from cps_harness.testing import TopicRecorder, wait_for
 
 pytestmark = pytest.mark.ros
-ROBOTS = ("jackal", "champ")
+SIMULATED = ("jackal", "champ")
+# scout and iris are not simulated: their routes wait for tf, their muxes still serve teleop.
+ROBOTS = SIMULATED + ("scout", "iris")
 
 
 def _twist(x):
@@ -22,17 +24,18 @@ def fleet(ros, rospy_node):
     from geometry_msgs.msg import Twist
     from std_msgs.msg import Bool, String
 
-    robots = ",".join(ROBOTS)
+    # Latched before the nodes start, as the bringup's keeper does: every robot must hear it.
+    estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+    estop.publish(Bool(False))
     ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_fc",
-                   params={"~profile": "light", "~robots": robots, "~sensor_workers": 0})
-    ros.start_node("cps_sim", "fleet_control", name="fleet_control", params={"~robots": robots})
+                   params={"~profile": "light", "~robots": ",".join(SIMULATED), "~sensor_workers": 0})
+    ros.start_node("cps_sim", "fleet_control", name="fleet_control", params={"~robots": ",".join(ROBOTS)})
     io = {"executed": {r: TopicRecorder(f"/{r}/cmd_vel", Twist) for r in ROBOTS},
           "state": {r: TopicRecorder(f"/{r}/mission_state", String) for r in ROBOTS},
           "active": {r: TopicRecorder(f"/{r}/control_mode/active", String) for r in ROBOTS},
           "mode": {r: rospy_node.Publisher(f"/{r}/control_mode", String, queue_size=1, latch=True) for r in ROBOTS},
           "teleop": {r: rospy_node.Publisher(f"/{r}/cmd_vel/teleop", Twist, queue_size=5) for r in ROBOTS},
-          "estop": rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)}
-    io["estop"].publish(Bool(False))
+          "estop": estop}
     try:
         yield io
     finally:
@@ -50,15 +53,17 @@ def test_one_process_drives_two_robots_isolates_a_nan_and_the_estop_stops_both(f
 
     import rosnode
 
-    for r in ROBOTS:   # both routes followed from this one process
+    for r in SIMULATED:   # both routes followed from this one process
         fleet["state"][r].wait(lambda m: m.data in ("transit", "inspecting"), timeout_s=45, what=f"{r}'s route")
+    for r in ROBOTS:   # the latched e-stop state reaches every robot's mux
+        assert wait_for(lambda r=r: f"velocity_mux {r}: e-stop state heard (off)" in ros.output("fleet_control"), 5)
     nodes = rosnode.get_node_names()
     assert "/fleet_control" in nodes and not [n for n in nodes if "velocity_mux" in n or "route_controller" in n]
 
     for r in ROBOTS:
         fleet["mode"][r].publish(String("teleop"))
         fleet["active"][r].wait(lambda m: m.data == "teleop", timeout_s=10, what=f"{r}'s mux in teleop")
-    speeds = {"jackal": 0.3, "champ": 0.2}
+    speeds = {"jackal": 0.3, "champ": 0.2, "scout": 0.25, "iris": 0.35}
     rate = rospy_node.Rate(10)
 
     def send(overrides=None, n=10):

@@ -8,6 +8,7 @@ import time
 
 import rospy
 import tf2_ros
+from std_msgs.msg import Bool
 
 from cps_fleet.config import ConfigError
 from cps_sim import names
@@ -38,16 +39,22 @@ class FleetControlNode:
             def topic(relative, r=r):
                 return "/" + names.robot_topic(r, relative)
 
-            self.muxes[r] = VelocityMuxNode(robot, self.control.muxes[r], topic)
+            self.muxes[r] = VelocityMuxNode(robot, self.control.muxes[r], topic, subscribe_estop=False)
             self.routes[r] = RouteControllerNode(robot, self.control.trackers[r], self.tf_buffer, topic)
             self.errors[r] = ThrottledLog(rospy.logerr, WARN_PERIOD_S)
             # Staggered so the robots' publications do not all fall in the same instant.
             offset_s = i / (len(fleet.robots) * mux_rate_hz)
             self.loop.add(r, MUX, mux_rate_hz, self.muxes[r].tick, now + offset_s)
             self.loop.add(r, ROUTE, route_rate_hz, self.routes[r].tick, now + offset_s)
+        # One subscriber for the fleet: the latched state must reach every robot's mux.
+        self.estop_sub = rospy.Subscriber(names.ESTOP, Bool, self._on_estop, queue_size=5)
         self.period_s = 1.0 / max(mux_rate_hz, route_rate_hz)
         rospy.loginfo("fleet_control: velocity mux (%.0f Hz) and route controller (%.0f Hz) for %s",
                       mux_rate_hz, route_rate_hz, ", ".join(self.muxes))
+
+    def _on_estop(self, msg):
+        for mux in self.muxes.values():
+            mux.on_estop(msg)
 
     def _on_error(self, robot, task, exc):
         """One robot's tick failed: say so and hold that robot (zero), the others carry on."""

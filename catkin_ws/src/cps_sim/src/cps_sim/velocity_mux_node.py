@@ -21,10 +21,12 @@ class VelocityMuxNode:
 
     `topic(relative)` gives the name to use for a per-robot topic (identity in the robot's
     namespace). Stopped until the latched e-stop state and a fresh command arrive (a restart
-    knows neither).
+    knows neither). `subscribe_estop=False`: the caller calls `on_estop` (rospy delivers a
+    latched message to only some of several same-topic subscribers in one process when they are
+    added while it arrives, so fleet_control subscribes once for the fleet).
     """
 
-    def __init__(self, config, mux: VelocityMux, topic=lambda relative: relative):
+    def __init__(self, config, mux: VelocityMux, topic=lambda relative: relative, subscribe_estop=True):
         self.config = config
         self.mux = mux
         self.lock = threading.Lock()
@@ -41,8 +43,9 @@ class VelocityMuxNode:
             rospy.Subscriber(self.cmd_vel_teleop, TwistMsg, self._on_cmd, callback_args=self.cmd_vel_teleop,
                              queue_size=5),
             rospy.Subscriber(self.mode_topic, String, self._on_mode, queue_size=5),
-            rospy.Subscriber(names.ESTOP, Bool, self._on_estop, queue_size=5),
         ]
+        if subscribe_estop:
+            self.subs.append(rospy.Subscriber(names.ESTOP, Bool, self.on_estop, queue_size=5))
 
     def _on_cmd(self, msg, topic):
         with self.lock:
@@ -62,7 +65,7 @@ class VelocityMuxNode:
         except ValueError as exc:
             self.warn(f"{rospy.resolve_name(self.mode_topic)}: {exc}; staying in {self.mux.mode}")
 
-    def _on_estop(self, msg):
+    def on_estop(self, msg):
         with self.lock:
             first = self.mux.estop is None
             self.mux.set_estop(msg.data)
