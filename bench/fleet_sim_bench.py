@@ -11,7 +11,12 @@ Prints per variant: received cloud Hz per robot against the configured rate, the
 process's and its sensor workers' CPU (core-s per s, from /proc), fleet_sim's own figures from
 /diagnostics (achieved rates, loop step ms, physics loop Hz, real-time factor), and our / anchor.
 
+With --control: the robots' control beside a running fleet_sim, a velocity_mux and a
+route_controller per robot (the anchor, 2N processes) against one fleet_control: processes, CPU
+(core-s per s) and resident memory of the control processes.
+
 Usage: python bench/fleet_sim_bench.py [--robots 16] [--seconds 30] [--anchor main] [--workers N]
+                                       [--control] [--no-sim]
 Timings on a shared machine are noisy; both variants run back to back in the same invocation.
 """
 import argparse
@@ -152,6 +157,55 @@ def run_variant(graph, fleet, label, seconds, workers, python_path=None, warmup_
             "physics_hz": mean_of("physics_loop_hz"), "rtf": mean_of("real_time_factor")}
 
 
+def _rss_mb(pid):
+    try:
+        with open(f"/proc/{pid}/status") as stream:
+            for line in stream:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except FileNotFoundError:
+        pass
+    return 0.0
+
+
+def run_control_layouts(graph, fleet, seconds, warmup_s=8.0):
+    """The robots' control with fleet_sim running: a velocity_mux and a route_controller per robot
+    (the anchor) against one fleet_control; {layout: (processes, core-s/s, RSS MB)}."""
+    sim_graph = graph.attach()
+    sim_graph.start_node("cps_sim", "fleet_sim", name="fleet_sim_control",
+                         params={"~fleet_file": fleet.path, "~profile": "light", "~renderer": "fast"})
+    out = {}
+    try:
+        sim_graph.wait_for_topic(f"/{fleet.robots[-1].name}/odom", timeout_s=180)
+        for layout in ("per_robot", "shared"):
+            node_graph = graph.attach()
+            params = {"~fleet_file": fleet.path}
+            if layout == "shared":
+                procs = [node_graph.start_node("cps_sim", "fleet_control", name="fleet_control",
+                                               params={**params, "~robots": ",".join(fleet.robot_names)})]
+            else:
+                procs = [node_graph.start_node("cps_sim", node, name=node, namespace=f"/{r}", params={**params, "~robot": r})
+                         for r in fleet.robot_names for node in ("velocity_mux", "route_controller")]
+            try:
+                for r in fleet.robot_names:
+                    node_graph.wait_for_topic(f"/{r}/mission_state", timeout_s=180)
+                time.sleep(warmup_s)
+                cpu0 = {p.pid: _cpu_s(p.pid) for p in procs}
+                time.sleep(seconds)
+                cpu = sum(_cpu_s(p.pid) - cpu0[p.pid] for p in procs) / seconds
+                rss = sum(_rss_mb(p.pid) for p in procs)
+            finally:
+                node_graph.close()
+            out[layout] = (len(procs), cpu, rss)
+            print(f"control {layout:9s}: {len(procs):2d} processes, {cpu:.2f} core-s/s, {rss:.0f} MB resident")
+    finally:
+        sim_graph.close()
+    (n_a, cpu_a, rss_a), (n_s, cpu_s, rss_s) = out["per_robot"], out["shared"]
+    print(f"shared / per_robot: processes {n_s}/{n_a}, CPU {cpu_s / max(cpu_a, 1e-9):.2f}x, "
+          f"memory {rss_s / max(rss_a, 1e-9):.2f}x")
+    return out
+
+
 def report(result):
     received, configured = result["received_hz"], result["configured_hz"]
     ratios = [received[n] / configured[n] for n in configured]
@@ -171,6 +225,9 @@ def main(argv=None):
     parser.add_argument("--seconds", type=float, default=30.0, help="measuring time per variant, s")
     parser.add_argument("--anchor", default="main", help="git revision of the anchor's cps_sim ('' : none)")
     parser.add_argument("--workers", type=int, default=None, help="~sensor_workers (default: the node's)")
+    parser.add_argument("--control", action="store_true",
+                        help="also the robots' control: fleet_control against a mux and route controller per robot")
+    parser.add_argument("--no-sim", action="store_true", help="skip the simulator comparison")
     parser.add_argument("--keep", action="store_true", help="keep the temp folder (fleet file)")
     args = parser.parse_args(argv)
     os.environ.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
@@ -191,9 +248,14 @@ def main(argv=None):
     rospy.init_node("fleet_sim_bench", anonymous=True, disable_signals=True)
     results = []
     try:
-        results.append(run_variant(graph, fleet, "ours", args.seconds, args.workers))
-        report(results[-1])
-        if args.anchor:
+        if args.control:
+            print(f"\n== The robots' control with fleet_sim running, {args.seconds:.0f} s ==")
+            run_control_layouts(graph, fleet, args.seconds)
+        if not args.no_sim:
+            print(f"\n== fleet_sim, {args.seconds:.0f} s per variant ==")
+            results.append(run_variant(graph, fleet, "ours", args.seconds, args.workers))
+            report(results[-1])
+        if args.anchor and not args.no_sim:
             path = anchor_python_path(args.anchor, folder)
             results.append(run_variant(graph, fleet, f"anchor ({args.anchor})", args.seconds, args.workers, path))
             report(results[-1])

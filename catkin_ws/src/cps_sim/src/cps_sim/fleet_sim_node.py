@@ -201,11 +201,17 @@ class FleetSimNode:
                 rospy.logwarn_throttle(2.0, f"/{name}/flight_command: unknown command '{msg.data}' (known: takeoff, land)")
 
     # Loop ------------------------------------------------------------------------------------
-    def _advance_physics(self, now):
+    def _advance_physics(self, now, exact):
+        """Integrate up to `now` when the state is about to be published (`exact`), otherwise only
+        once a whole step is due: the loop wakes far more often (each finished capture) than the
+        kinematics need, and each pass would step every robot."""
         with self.lock:
+            steps = self.physics.steps(now, 0.0 if exact else self.options.max_physics_step_s)
+            if not steps:
+                return
             for name, sim in self.sim.robots.items():
                 sim.robot.set_command(self.gates[name].command())
-            for dt_s in self.physics.steps(now):
+            for dt_s in steps:
                 self.sim.step(dt_s)
         self.physics_meter.tick(now)
 
@@ -213,8 +219,9 @@ class FleetSimNode:
         transforms = []
         for name, sim in self.sim.robots.items():
             robot = sim.robot
-            self.pubs[name]["odom"].publish(messages.odometry(robot, now))
-            transforms.append(messages.transform_stamped(robot.base_in_odom(), names.odom_frame(name),
+            base_in_odom = robot.base_in_odom()
+            self.pubs[name]["odom"].publish(messages.odometry(robot, now, base_in_odom))
+            transforms.append(messages.transform_stamped(base_in_odom, names.odom_frame(name),
                                                          names.base_frame(name), now))
             if joints:
                 self.pubs[name]["joint_states"].publish(messages.joint_state(robot, now))
@@ -312,8 +319,15 @@ class FleetSimNode:
         finally:
             self.step_timer.add(time.perf_counter() - started)
 
+    def _capture_due(self, now):
+        if self.pool is not None:
+            if self.pool.idle_worker() is None:
+                return False
+            return self.scheduler.next(exclude=self._busy_sensors())[1] <= now
+        return self.scheduler.next()[1] <= now
+
     def _step(self, now):
-        self._advance_physics(now)
+        self._advance_physics(now, exact=self.odom_task.due(now) or self._capture_due(now))
         if self.odom_task.due(now):
             joints, battery = self.joint_task.due(now), self.battery_task.due(now)
             self._publish_state(now, joints, battery)
