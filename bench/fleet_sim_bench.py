@@ -227,6 +227,7 @@ def main(argv=None):
     parser.add_argument("--workers", type=int, default=None, help="~sensor_workers (default: the node's)")
     parser.add_argument("--control", action="store_true",
                         help="also the robots' control: fleet_control against a mux and route controller per robot")
+    parser.add_argument("--rounds", type=int, default=2, help="ours-then-anchor rounds")
     parser.add_argument("--no-sim", action="store_true", help="skip the simulator comparison")
     parser.add_argument("--keep", action="store_true", help="keep the temp folder (fleet file)")
     args = parser.parse_args(argv)
@@ -251,29 +252,33 @@ def main(argv=None):
         if args.control:
             print(f"\n== The robots' control with fleet_sim running, {args.seconds:.0f} s ==")
             run_control_layouts(graph, fleet, args.seconds)
-        if not args.no_sim:
-            print(f"\n== fleet_sim, {args.seconds:.0f} s per variant ==")
+        anchor_path = anchor_python_path(args.anchor, folder) if args.anchor else None
+        for round_ in range(args.rounds if not args.no_sim else 0):
+            # Alternating, so that a change of the machine's load hits both variants alike.
+            print(f"\n== fleet_sim, round {round_ + 1} of {args.rounds}, {args.seconds:.0f} s per variant ==")
             results.append(run_variant(graph, fleet, "ours", args.seconds, args.workers))
             report(results[-1])
-        if args.anchor and not args.no_sim:
-            path = anchor_python_path(args.anchor, folder)
-            results.append(run_variant(graph, fleet, f"anchor ({args.anchor})", args.seconds, args.workers, path))
-            report(results[-1])
+            if anchor_path:
+                results.append(run_variant(graph, fleet, f"anchor ({args.anchor})", args.seconds, args.workers,
+                                           anchor_path))
+                report(results[-1])
     finally:
         rospy.signal_shutdown("bench done")
         graph.close()
         if not args.keep:
             shutil.rmtree(folder, ignore_errors=True)
-    if len(results) == 2:
-        ours, anchor = results
 
-        def min_ratio(r):
-            return min(r["received_hz"][n] / r["configured_hz"][n] for n in r["configured_hz"])
+    def min_ratio(r):
+        return min(r["received_hz"][n] / r["configured_hz"][n] for n in r["configured_hz"])
 
+    for ours, anchor in zip(results[0::2], results[1::2]):
+        if not anchor["label"].startswith("anchor"):
+            break
         print(f"\nours / anchor: min rate ratio {min_ratio(ours):.2f} / {min_ratio(anchor):.2f} = "
               f"{min_ratio(ours) / max(min_ratio(anchor), 1e-9):.2f}x; received captures/s "
               f"{sum(ours['received_hz'].values()):.0f} / {sum(anchor['received_hz'].values()):.0f}; "
-              f"fleet_sim CPU {ours['sim_cpu']:.2f} / {anchor['sim_cpu']:.2f} core-s/s")
+              f"fleet_sim CPU {ours['sim_cpu']:.2f} / {anchor['sim_cpu']:.2f} core-s/s; loop step "
+              f"{ours['step_ms']:.1f} ms; physics passes {ours['physics_hz']:.0f} / {anchor['physics_hz']:.0f} Hz")
     print(f"load average at end {os.getloadavg()[0]:.1f} (other processes share these cores)")
     return 0
 
