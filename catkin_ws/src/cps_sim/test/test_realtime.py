@@ -87,3 +87,16 @@ def test_site_move_is_parsed_from_name_dx_dy():
     assert SiteMove.parse("crate_2:1.0:-0.5") == SiteMove("crate_2", 1.0, -0.5)
     with pytest.raises(ValueError, match="name:dx_m:dy_m"):
         SiteMove.parse("crate_2:1.0")
+
+
+def test_step_timer_reports_mean_and_longest_pass_since_reset():
+    from cps_sim.scheduling import StepTimer
+
+    timer = StepTimer()
+    assert timer.mean_ms == 0.0 and timer.max_ms == 0.0
+    for seconds in (0.001, 0.003, 0.002):
+        timer.add(seconds)
+    assert timer.mean_ms == pytest.approx(2.0) and timer.max_ms == pytest.approx(3.0)
+    timer.reset()
+    timer.add(0.0005)
+    assert timer.mean_ms == pytest.approx(0.5) and timer.max_ms == pytest.approx(0.5)
