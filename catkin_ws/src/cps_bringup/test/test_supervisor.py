@@ -52,8 +52,28 @@ def test_plan_for_real_robots_leaves_the_simulator_out():
     specs = plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x", simulate=False))
     labels = {s.label for s in specs}
     assert "fleet_sim" not in labels
-    assert {"scout/route_controller", "scout/velocity_mux", "scout/voxel_grid", "scout/cloud_throttle"} <= labels
+    assert {"fleet_control", "scout/voxel_grid", "scout/cloud_throttle"} <= labels
     assert all(s.after != ("fleet_sim",) for s in specs)
+
+
+def test_plan_control_layouts_shared_and_per_robot():
+    fleet = load_fleet()
+    shared = plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x"))
+    control = [s for s in shared if "velocity_mux" in " ".join(s.argv) or "route_controller" in " ".join(s.argv)
+               or s.label == "fleet_control"]
+    assert [s.label for s in control] == ["fleet_control"]
+    argv = " ".join(control[0].argv)
+    assert "__name:=fleet_control" in argv and f"_robots:={','.join(fleet.robot_names)}" in argv
+    assert f"_fleet_file:={fleet.path}" in argv and "__ns" not in argv
+    assert set(control[0].wait_topics) == {f"/{r}/{t}" for r in fleet.robot_names for t in ("cmd_vel", "mission_state")}
+    assert control[0].after == ("fleet_sim",)
+
+    per_robot = plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x", control_layout="per_robot"))
+    labels = {s.label for s in per_robot}
+    assert "fleet_control" not in labels
+    assert {f"{r}/{n}" for r in fleet.robot_names for n in ("velocity_mux", "route_controller")} <= labels
+    with pytest.raises(ValueError, match="unknown control layout 'both'.*shared, per_robot"):
+        plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x", control_layout="both"))
 
 
 def test_plan_of_one_side_and_a_subset():

@@ -67,6 +67,15 @@ def test_physics_clock_integrates_the_lag_in_bounded_steps():
     assert physics.steps(0.05) == []
 
 
+def test_physics_clock_waits_for_a_whole_step_unless_the_state_is_needed_now():
+    physics = PhysicsClock(start_s=0.0, max_step_s=0.02, max_catch_up_s=1.0)
+    assert physics.steps(0.005, min_lag_s=0.02) == [] and physics.sim_time_s == 0.0
+    assert physics.steps(0.012, min_lag_s=0.02) == []
+    assert physics.steps(0.012) == pytest.approx([0.012])      # exact: up to now
+    assert physics.steps(0.035, min_lag_s=0.02) == pytest.approx([0.02, 0.003])
+    assert physics.sim_time_s == pytest.approx(0.035)
+
+
 def test_physics_clock_drops_a_stall_longer_than_the_catch_up_limit():
     physics = PhysicsClock(start_s=0.0, max_step_s=0.5, max_catch_up_s=1.0)
     assert sum(physics.steps(5.0)) == pytest.approx(1.0)
@@ -78,3 +87,16 @@ def test_site_move_is_parsed_from_name_dx_dy():
     assert SiteMove.parse("crate_2:1.0:-0.5") == SiteMove("crate_2", 1.0, -0.5)
     with pytest.raises(ValueError, match="name:dx_m:dy_m"):
         SiteMove.parse("crate_2:1.0")
+
+
+def test_step_timer_reports_mean_and_longest_pass_since_reset():
+    from cps_sim.scheduling import StepTimer
+
+    timer = StepTimer()
+    assert timer.mean_ms == 0.0 and timer.max_ms == 0.0
+    for seconds in (0.001, 0.003, 0.002):
+        timer.add(seconds)
+    assert timer.mean_ms == pytest.approx(2.0) and timer.max_ms == pytest.approx(3.0)
+    timer.reset()
+    timer.add(0.0005)
+    assert timer.mean_ms == pytest.approx(0.5) and timer.max_ms == pytest.approx(0.5)

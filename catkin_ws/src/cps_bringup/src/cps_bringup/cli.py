@@ -15,8 +15,8 @@ import time
 from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
-from cps_bringup.plan import (DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RECORDER, TCPROS, TRANSPORTS, ZENOH,
-                               RunOptions, plan_nodes)
+from cps_bringup.plan import (CONTROL_LAYOUTS, DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RECORDER, TCPROS,
+                               TRANSPORTS, ZENOH, RunOptions, plan_nodes)
 from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
 from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
                                     node_log_dir)
@@ -66,6 +66,9 @@ def build_parser():
     parser.add_argument("--transport", choices=TRANSPORTS, default=ZENOH,
                         help="zenoh: a master per side, joined only by cps_link's mutual-TLS bridges; "
                              "tcpros: one master across the link (the paper's set-up)")
+    parser.add_argument("--control-layout", choices=CONTROL_LAYOUTS, default=RunOptions.control_layout,
+                        help="the robots' velocity mux and route controller: shared (one fleet_control process "
+                             "for every robot) or per_robot (a velocity_mux and a route_controller per robot)")
     parser.add_argument("--twin-address", default=None,
                         help="zenoh: the twin host's address, where its bridge listens (default: the link's twin "
                              "address, or 127.0.0.1)")
@@ -167,7 +170,8 @@ def run_mission(args, log=print) -> MissionResult:
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
         gui_screenshot_after_s=args.screenshot_after, baseline_map=baseline, site_changes_file=site_changes,
         record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path,
-        bandwidth_manager=args.bandwidth_manager == "on")
+        bandwidth_manager=args.bandwidth_manager == "on",
+        control_layout=args.control_layout)
     transport = args.transport
     if replay_path and transport == ZENOH and len(sides) == 2:
         log("[bringup] --replay: one master for both sides (tcpros), so that the bag's /clock reaches every node")

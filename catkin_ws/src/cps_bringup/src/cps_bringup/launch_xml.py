@@ -4,7 +4,7 @@
 its output for the default fleet (a test keeps them in sync), so the two ways to start the
 system cannot drift apart. The files take <arg>s `fleet_file` (the same robots with other numbers)
 and `out`; for other robots, sides or real robots generate them: `python -m cps_bringup.launch_xml
---fleet my_fleet.yaml --robots a,b [--no-sim] --out-dir DIR`.
+--fleet my_fleet.yaml --robots a,b [--no-sim] [--control-layout per_robot] --out-dir DIR`.
 """
 import os
 from typing import Iterable
@@ -86,11 +86,12 @@ def launch_xml(specs: Iterable[NodeSpec], fleet_path: str, title: str, out_dir: 
 _OUT_PLACEHOLDER = "/CPS_OUT_ARG"
 
 
-def fleet_launch_files(fleet, sides_by_name, simulate=True, fleet_default=DEFAULT_FLEET):
+def fleet_launch_files(fleet, sides_by_name, simulate=True, fleet_default=DEFAULT_FLEET, control_layout=None):
     """{file name: text} for `fleet` (its robots, its types' topics and frames)."""
     from cps_bringup.plan import RunOptions, plan_nodes
 
-    options = RunOptions(out_dir=_OUT_PLACEHOLDER, simulate=simulate)
+    options = RunOptions(out_dir=_OUT_PLACEHOLDER, simulate=simulate,
+                         **({"control_layout": control_layout} if control_layout else {}))
     files = {}
     for name, sides in sides_by_name.items():
         specs = plan_nodes(fleet, sides=sides, options=options, python="python3")
@@ -117,6 +118,7 @@ def main(argv=None):
 
     import rospkg
 
+    from cps_bringup.plan import CONTROL_LAYOUTS
     from cps_fleet.config import ConfigError
     from cps_fleet.fleet import load_fleet, robot_names_arg
 
@@ -126,6 +128,9 @@ def main(argv=None):
     parser.add_argument("--fleet", help="fleet.yaml (default: cps_bringup's; becomes the fleet_file arg's default)")
     parser.add_argument("--robots", help="comma-separated subset of the fleet")
     parser.add_argument("--no-sim", action="store_true", help="real robots: no fleet_sim, route controllers kept")
+    parser.add_argument("--control-layout", choices=CONTROL_LAYOUTS, default=None,
+                        help="shared: one fleet_control for every robot (default); per_robot: a velocity_mux and "
+                             "a route_controller per robot")
     parser.add_argument("--out-dir", help="folder for the launch files (default: cps_bringup/launch)")
     args = parser.parse_args(argv)
     try:
@@ -137,7 +142,7 @@ def main(argv=None):
     os.makedirs(launch_dir, exist_ok=True)
     default = DEFAULT_FLEET if not args.fleet else os.path.abspath(args.fleet)
     for name, text in fleet_launch_files(fleet, _sides_by_name(), simulate=not args.no_sim,
-                                         fleet_default=default).items():
+                                         fleet_default=default, control_layout=args.control_layout).items():
         with open(os.path.join(launch_dir, name), "w") as stream:
             stream.write(text)
         print(f"wrote {os.path.join(launch_dir, name)}")

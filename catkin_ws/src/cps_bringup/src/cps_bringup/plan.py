@@ -16,6 +16,11 @@ PHYSICAL, DIGITAL = "physical", "digital"
 TCPROS, ZENOH = "tcpros", "zenoh"
 TRANSPORTS = (ZENOH, TCPROS)
 SIDES = (PHYSICAL, DIGITAL)
+# The robots' control (velocity mux + route controller): one fleet_control process for the fleet,
+# or the single-robot velocity_mux and route_controller per robot (two processes per robot).
+SHARED_CONTROL, PER_ROBOT_CONTROL = "shared", "per_robot"
+CONTROL_LAYOUTS = (SHARED_CONTROL, PER_ROBOT_CONTROL)
+FLEET_CONTROL = "fleet_control"
 VOXEL_MANAGER = "/tissue_nodelet_manager"
 # The operator's video stays within the unmanaged reserve: ~0.2 MB/s of JPEG at 640x480.
 CAMERA_MAX_RATE_HZ = 10.0
@@ -78,6 +83,8 @@ class RunOptions:
     # False: no bandwidth manager; every rate limiter passes the sensor's full rate (up to the
     # link's max_rate_hz), the paper's unmanaged case.
     bandwidth_manager: bool = True
+    # One of CONTROL_LAYOUTS.
+    control_layout: str = SHARED_CONTROL
 
 
 def _args(params: Dict[str, object]) -> List[str]:
@@ -143,10 +150,17 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             "nodelet_manager", PHYSICAL,
             ("rosrun", "nodelet", "nodelet", "manager", f"__name:={VOXEL_MANAGER.lstrip('/')}"),
             restart_limit=2))
+        if options.control_layout not in CONTROL_LAYOUTS:
+            raise ValueError(f"unknown control layout '{options.control_layout}' (known: {', '.join(CONTROL_LAYOUTS)})")
+        if not options.replay_path and options.control_layout == SHARED_CONTROL:
+            specs.append(NodeSpec(
+                FLEET_CONTROL, PHYSICAL,
+                py("cps_sim", "fleet_control", f"__name:={FLEET_CONTROL}", *_args({**common, "robots": ",".join(robots)})),
+                wait_topics=tuple(t for r in robots for t in (f"/{r}/cmd_vel", f"/{r}/mission_state")), after=drivers))
         for robot in fleet.robots:
             r = robot.name
             ns = f"__ns:=/{r}"
-            if not options.replay_path:  # a replayed robot cannot be driven
+            if not options.replay_path and options.control_layout == PER_ROBOT_CONTROL:  # replayed: not driven
                 specs.append(NodeSpec(
                     f"{r}/velocity_mux", PHYSICAL,
                     py("cps_sim", "velocity_mux", ns, "__name:=velocity_mux", *_args({**common, "robot": r})),

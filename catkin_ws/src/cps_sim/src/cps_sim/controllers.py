@@ -6,10 +6,10 @@ commands and clamps every output to the robot type's limits.
 """
 import math
 import time
-from typing import Callable, Optional
+from typing import Callable, Optional, Tuple
 
 from cps_fleet.config import ConfigError
-from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, spec_for, validate_twist
+from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, pose_matrix, spec_for, validate_twist
 from cps_fleet.robot_types import resolve
 from cps_fleet.site import check_waypoint
 
@@ -136,6 +136,52 @@ class RouteFollower:
         # Ground robots turn on the spot when far off heading, then drive.
         alignment = max(math.cos(heading_error), 0.0) ** 4 if abs(heading_error) < math.pi / 3 else 0.0
         return Twist(speed * alignment, 0.0, 0.0, wz), None
+
+
+class RouteTracker:
+    """A route controller's decisions between odometry and commands (what the node publishes).
+
+    Idle until both the static map -> odom transform (`set_odom_in_map`) and odometry
+    (`set_odom`) are known; the follower then starts from the odom frame's origin. `update`
+    returns a `RouteStep`: the command to send (None once done and said so), a flight command,
+    and the mission state when it changed.
+    """
+
+    def __init__(self, route, robot_type):
+        self.route = route
+        self.robot_type = robot_type
+        self.odom_in_map = None
+        self.odom_pose = None
+        self.follower: Optional[RouteFollower] = None
+        self.state = None   # the last state reported
+
+    def set_odom_in_map(self, x, y, z, yaw):
+        self.odom_in_map = pose_matrix(x, y, z, yaw)
+        self.follower = RouteFollower(self.route, self.robot_type, start_xy=(x, y))
+
+    def set_odom(self, x, y, z, yaw):
+        self.odom_pose = pose_matrix(x, y, z, yaw)
+
+    def pose_in_map(self):
+        m = self.odom_in_map @ self.odom_pose
+        return m[0, 3], m[1, 3], m[2, 3], math.atan2(m[1, 0], m[0, 0])
+
+    def _report(self, state):
+        changed = state if state != self.state else None
+        self.state = state
+        return changed
+
+    def start(self):
+        """The state to report before anything is known ('idle')."""
+        return self._report("idle")
+
+    def update(self) -> Tuple[Optional[Twist], Optional[str], Optional[str]]:
+        """(command or None, flight command or None, new mission state or None)."""
+        if self.follower is None or self.odom_pose is None:
+            return None, None, None
+        twist, flight = self.follower.update(*self.pose_in_map())
+        command = twist if not self.follower.finished or self.state != "done" else None
+        return command, flight, self._report(self.follower.state)
 
 
 def is_fresh(stamp_s, now_s, timeout_s):

@@ -25,7 +25,7 @@ from cps_sim.controllers import CommandGate
 from cps_sim.node_support import fail, load_fleet_param, load_site_for, name_list, positive_param, twist_from_msg
 from cps_sim.realtime import Periodic, PhysicsClock, run_realtime
 from cps_sim.robots import Twist, validate_twist
-from cps_sim.scheduling import RateMeter, SensorScheduler
+from cps_sim.scheduling import RateMeter, SensorScheduler, StepTimer
 from cps_sim.sensor_workers import SensorWorkerPool
 from cps_sim.simulation import FleetSimulation, sensor_points
 from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
@@ -133,6 +133,7 @@ class FleetSimNode:
         self.static_tf.sendTransform(self._static_transforms(now))
         self.scheduler = SensorScheduler({n: s.rate_hz for n, s in self.sim.robots.items()}, now)
         self.physics_meter = RateMeter()
+        self.step_timer = StepTimer()
         self.physics = PhysicsClock(now, options.max_physics_step_s, options.max_catch_up_s)
         rospy.loginfo("fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s",
                       fleet.profile.name, self.renderer, options.sensor_workers, ", ".join(self.sim.robots))
@@ -200,11 +201,17 @@ class FleetSimNode:
                 rospy.logwarn_throttle(2.0, f"/{name}/flight_command: unknown command '{msg.data}' (known: takeoff, land)")
 
     # Loop ------------------------------------------------------------------------------------
-    def _advance_physics(self, now):
+    def _advance_physics(self, now, exact):
+        """Integrate up to `now` when the state is about to be published (`exact`), otherwise only
+        once a whole step is due: the loop wakes far more often (each finished capture) than the
+        kinematics need, and each pass would step every robot."""
         with self.lock:
+            steps = self.physics.steps(now, 0.0 if exact else self.options.max_physics_step_s)
+            if not steps:
+                return
             for name, sim in self.sim.robots.items():
                 sim.robot.set_command(self.gates[name].command())
-            for dt_s in self.physics.steps(now):
+            for dt_s in steps:
                 self.sim.step(dt_s)
         self.physics_meter.tick(now)
 
@@ -212,8 +219,9 @@ class FleetSimNode:
         transforms = []
         for name, sim in self.sim.robots.items():
             robot = sim.robot
-            self.pubs[name]["odom"].publish(messages.odometry(robot, now))
-            transforms.append(messages.transform_stamped(robot.base_in_odom(), names.odom_frame(name),
+            base_in_odom = robot.base_in_odom()
+            self.pubs[name]["odom"].publish(messages.odometry(robot, now, base_in_odom))
+            transforms.append(messages.transform_stamped(base_in_odom, names.odom_frame(name),
                                                          names.base_frame(name), now))
             if joints:
                 self.pubs[name]["joint_states"].publish(messages.joint_state(robot, now))
@@ -280,7 +288,10 @@ class FleetSimNode:
         fleet_status.values = [KeyValue("real_time_factor", f"{rtf:.3f}"), KeyValue("profile", self.fleet.profile.name),
                                KeyValue("renderer", str(self.renderer)),
                                KeyValue("sensor_workers", str(len(self.pool.workers) if self.pool else 0)),
-                               KeyValue("physics_loop_hz", f"{self.physics_meter.rate_hz(now):.1f}")]
+                               KeyValue("physics_loop_hz", f"{self.physics_meter.rate_hz(now):.1f}"),
+                               KeyValue("step_ms_mean", f"{self.step_timer.mean_ms:.2f}"),
+                               KeyValue("step_ms_max", f"{self.step_timer.max_ms:.1f}")]
+        self.step_timer.reset()
         array.status.append(fleet_status)
         summary = []
         for name, sim in self.sim.robots.items():
@@ -302,7 +313,21 @@ class FleetSimNode:
 
     def step(self, now):
         """One pass of the loop at wall time `now`; the time it next has work, or None for at once."""
-        self._advance_physics(now)
+        started = time.perf_counter()
+        try:
+            return self._step(now)
+        finally:
+            self.step_timer.add(time.perf_counter() - started)
+
+    def _capture_due(self, now):
+        if self.pool is not None:
+            if self.pool.idle_worker() is None:
+                return False
+            return self.scheduler.next(exclude=self._busy_sensors())[1] <= now
+        return self.scheduler.next()[1] <= now
+
+    def _step(self, now):
+        self._advance_physics(now, exact=self.odom_task.due(now) or self._capture_due(now))
         if self.odom_task.due(now):
             joints, battery = self.joint_task.due(now), self.battery_task.due(now)
             self._publish_state(now, joints, battery)

@@ -105,14 +105,15 @@ def transform_stamped(matrix, parent, child, stamp_s):
     return msg
 
 
-def odometry(robot, stamp_s):
-    """nav_msgs/Odometry of <r>/base_link in <r>/odom, twist in the child frame."""
+def odometry(robot, stamp_s, base_in_odom=None):
+    """nav_msgs/Odometry of <r>/base_link in <r>/odom, twist in the child frame (`base_in_odom`:
+    robot.base_in_odom() if the caller has it already)."""
     name = robot.name
     msg = Odometry()
     msg.header.stamp = stamp(stamp_s)
     msg.header.frame_id = f"{name}/odom"
     msg.child_frame_id = f"{name}/base_link"
-    m = robot.base_in_odom()
+    m = robot.base_in_odom() if base_in_odom is None else base_in_odom
     p = msg.pose.pose.position
     p.x, p.y, p.z = (float(v) for v in m[:3, 3])
     o = msg.pose.pose.orientation

@@ -2,6 +2,7 @@
 spin, Twist."""
 import math
 import sys
+import time
 
 import rospy
 from geometry_msgs.msg import Twist as TwistMsg
@@ -10,6 +11,24 @@ from cps_fleet.config import ConfigError
 from cps_fleet.fleet import load_fleet, robot_names_arg
 from cps_fleet.site import load_site
 from cps_sim.robots import Twist
+
+
+# Repeated warnings (bad commands) are logged at most this often, per robot.
+WARN_PERIOD_S = 2.0
+
+
+class ThrottledLog:
+    """`log(message)` at most once per `period_s` on the monotonic clock, for one robot's warnings."""
+
+    def __init__(self, log, period_s, clock=time.monotonic):
+        self.log, self.period_s, self.clock = log, period_s, clock
+        self._last = -math.inf
+
+    def __call__(self, message):
+        now = self.clock()
+        if now - self._last >= self.period_s:
+            self._last = now
+            self.log(message)
 
 
 def fail(message):

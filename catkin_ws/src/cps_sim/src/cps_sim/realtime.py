@@ -49,9 +49,12 @@ class PhysicsClock:
         self.max_step_s = max_step_s
         self.max_catch_up_s = max_catch_up_s
 
-    def steps(self, now_s):
-        """The integration steps (s) that bring simulated time up to `now_s`."""
+    def steps(self, now_s, min_lag_s=0.0):
+        """The integration steps (s) that bring simulated time up to `now_s`; none while it lags by
+        less than `min_lag_s` (a caller that needs the state at `now_s` passes 0)."""
         lag_s = now_s - (self.wall_start_s + self.sim_time_s)
+        if lag_s < min_lag_s:
+            return []
         if lag_s > self.max_catch_up_s:
             self.wall_start_s += lag_s - self.max_catch_up_s
             lag_s = self.max_catch_up_s

@@ -126,19 +126,24 @@ def validate_twist(twist, limits):
     return None
 
 
+def _clip(value, bound):
+    return min(max(value, -bound), bound)
+
+
 def clamp_twist(twist, limits, previous=None, dt_s=None):
-    """Clamp to the velocity limits and, given the previous output and dt, the acceleration limits."""
-    target = np.array([
-        np.clip(twist.vx, -limits.max_forward_mps, limits.max_forward_mps),
-        np.clip(twist.vy, -limits.max_lateral_mps, limits.max_lateral_mps),
-        np.clip(twist.vz, -limits.max_vertical_mps, limits.max_vertical_mps),
-        np.clip(twist.wz, -limits.max_yaw_rate_rps, limits.max_yaw_rate_rps),
-    ])
+    """Clamp to the velocity limits and, given the previous output and dt, the acceleration limits.
+
+    Scalar Python, not numpy: fleet_sim calls it twice per robot per physics step (with 16
+    robots, ~1600 times a second), where numpy's per-call overhead was most of the loop's time."""
+    vx, vy = _clip(twist.vx, limits.max_forward_mps), _clip(twist.vy, limits.max_lateral_mps)
+    vz, wz = _clip(twist.vz, limits.max_vertical_mps), _clip(twist.wz, limits.max_yaw_rate_rps)
     if previous is not None and dt_s is not None:
-        prev = previous.as_array()
-        step = np.array([limits.max_linear_accel_mps2] * 3 + [limits.max_yaw_accel_rps2]) * dt_s
-        target = prev + np.clip(target - prev, -step, step)
-    return Twist.from_array(target)
+        linear, yaw = limits.max_linear_accel_mps2 * dt_s, limits.max_yaw_accel_rps2 * dt_s
+        vx = previous.vx + _clip(vx - previous.vx, linear)
+        vy = previous.vy + _clip(vy - previous.vy, linear)
+        vz = previous.vz + _clip(vz - previous.vz, linear)
+        wz = previous.wz + _clip(wz - previous.wz, yaw)
+    return Twist(float(vx), float(vy), float(vz), float(wz))
 
 
 def pose_matrix(x, y, z, yaw, pitch=0.0):
@@ -148,6 +153,16 @@ def pose_matrix(x, y, z, yaw, pitch=0.0):
     m[:3, :3] = np.array([[cy * cp, -sy, cy * sp], [sy * cp, cy, sy * sp], [-sp, 0.0, cp]])
     m[:3, 3] = (x, y, z)
     return m
+
+
+def rigid_inverse(m):
+    """The inverse of a 4x4 rigid transform (R^T, -R^T t): no LAPACK call, whose threads spun
+    for milliseconds per call on a loaded machine (fleet_sim inverts one per robot per odom)."""
+    out = np.eye(4)
+    rotation_t = m[:3, :3].T
+    out[:3, :3] = rotation_t
+    out[:3, 3] = -rotation_t @ m[:3, 3]
+    return out
 
 
 # Optical frame (z forward, x right, y down) in a body-style sensor frame (x forward, z up).
@@ -174,6 +189,9 @@ class Robot:
         self.sensing = True
         self.flight_state = "landed" if self.is_aerial else "ground"
         self.distance_m = 0.0
+        # What step() executes within: the type's limits, with the climb rate for take-off and landing.
+        lim = self.spec.limits
+        self._motion_limits = dataclasses.replace(lim, max_vertical_mps=max(lim.max_vertical_mps, CLIMB_RATE_MPS))
 
     @property
     def is_aerial(self):
@@ -205,8 +223,7 @@ class Robot:
                 target = Twist(0.0, 0.0, -CLIMB_RATE_MPS, 0.0)
         else:
             target.vz = 0.0
-        self.velocity = clamp_twist(target, dataclasses.replace(
-            lim, max_vertical_mps=max(lim.max_vertical_mps, CLIMB_RATE_MPS)), self.velocity, dt_s)
+        self.velocity = clamp_twist(target, self._motion_limits, self.velocity, dt_s)
         v = self.velocity
         yaw_mid = self.yaw + 0.5 * v.wz * dt_s
         c, s = math.cos(yaw_mid), math.sin(yaw_mid)
@@ -301,7 +318,7 @@ class Robot:
         return pose_matrix(x, y, z, yaw)
 
     def base_in_odom(self):
-        return np.linalg.inv(self.odom_in_map()) @ self.base_in_map()
+        return rigid_inverse(self.odom_in_map()) @ self.base_in_map()
 
     def sensor_in_base(self):
         """The static mount base_link -> <r>/lidar or <r>/camera_depth_optical_frame."""

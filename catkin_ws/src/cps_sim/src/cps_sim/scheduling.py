@@ -68,3 +68,26 @@ class SensorScheduler:
     def achieved_hz(self, name, now_s):
         return self.meters[name].rate_hz(now_s)
 
+
+
+class StepTimer:
+    """Mean and longest duration of a loop's passes since the last `reset` (for diagnostics)."""
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self):
+        self.count, self.total_s, self.longest_s = 0, 0.0, 0.0
+
+    def add(self, seconds):
+        self.count += 1
+        self.total_s += seconds
+        self.longest_s = max(self.longest_s, seconds)
+
+    @property
+    def mean_ms(self):
+        return 1000.0 * self.total_s / self.count if self.count else 0.0
+
+    @property
+    def max_ms(self):
+        return 1000.0 * self.longest_s
