@@ -15,8 +15,8 @@ import time
 from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
-from cps_bringup.plan import (DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RECORDER, TCPROS, TRANSPORTS, ZENOH,
-                               RunOptions, plan_nodes)
+from cps_bringup.plan import (DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RECORDER, SHARED, TCPROS, TISSUE_LAYOUTS,
+                               TRANSPORTS, ZENOH, RunOptions, plan_nodes)
 from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
 from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
                                     node_log_dir)
@@ -91,6 +91,10 @@ def build_parser():
     parser.add_argument("--replay", default=None, metavar="BAG",
                         help="physical side: play this mission bag (e.g. your own robot's) with rosbag play "
                              "in place of the simulator, on the bag's clock; the mission ends with the bag")
+    parser.add_argument("--tissue-layout", choices=TISSUE_LAYOUTS, default=SHARED,
+                        help="shared: a fixed number of tissue processes per side for any fleet (one nodelet "
+                             "manager and loader, one cloud_tissue, one cloud_decoder); per_robot: one process per "
+                             "node and robot, to compare with")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server S seconds into the mission")
     return parser
@@ -163,7 +167,8 @@ def run_mission(args, log=print) -> MissionResult:
         map_file=os.path.join(out_dir, "map.bt"),
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
         gui_screenshot_after_s=args.screenshot_after, baseline_map=baseline, site_changes_file=site_changes,
-        record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path)
+        record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path,
+        tissue_layout=args.tissue_layout)
     transport = args.transport
     if replay_path and transport == ZENOH and len(sides) == 2:
         log("[bringup] --replay: one master for both sides (tcpros), so that the bag's /clock reaches every node")
