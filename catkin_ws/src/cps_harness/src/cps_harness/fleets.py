@@ -1,15 +1,17 @@
 """Larger fleets for tests and benchmarks: the default fleet.yaml with every robot copied."""
+import math
 import os
 
 import yaml
 
-# How far each copy starts from its original, m (sideways: they drive their route side by side).
+# How far each copy starts from its original, m, towards the hall's centre line y = 0 (the routes
+# start near the walls).
 COPY_OFFSET_M = 1.5
 
 
 def write_fleet_with_copies(folder, copies=1, source=None):
     """`source` (default: cps_bringup's fleet.yaml) with every robot also as `<name>2`, `<name>3`...
-    (`copies` each): same type, leaf and route, initial pose offset sideways; its paths made
+    (`copies` each): same type, leaf and route, initial pose offset towards y = 0; its paths made
     absolute so the file works from `folder`. Returns the new file's path."""
     from cps_fleet.fleet import default_fleet_path
 
@@ -24,7 +26,8 @@ def write_fleet_with_copies(folder, copies=1, source=None):
     originals = list(robots)
     for i in range(2, copies + 2):
         for robot in originals:
-            pose = dict(robot["initial_pose"], y=robot["initial_pose"]["y"] + COPY_OFFSET_M * (i - 1))
+            y = robot["initial_pose"]["y"]
+            pose = dict(robot["initial_pose"], y=y - math.copysign(COPY_OFFSET_M * (i - 1), y))
             robots.append(dict(robot, name=f"{robot['name']}{i}", initial_pose=pose))
     path = os.path.join(folder, f"fleet{len(robots)}.yaml")
     with open(path, "w") as stream:
