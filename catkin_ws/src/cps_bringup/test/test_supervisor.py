@@ -81,8 +81,8 @@ def _with_copies(fleet, copies):
 
 @pytest.mark.parametrize("layout", ["shared", PER_ROBOT])
 def test_tissue_processes_per_side_do_not_grow_with_the_fleet_in_the_shared_layout(layout):
-    """4 and 8 robots: the same tissue processes on each side when shared, 4 more per robot and side
-    pair per robot when per_robot (the cps_sim nodes are not the tissue)."""
+    """4 and 8 robots: the same tissue processes on each side when shared, more with every robot
+    when per_robot (the per-robot cps_sim nodes are not the tissue)."""
     four = load_fleet()
     eight = _with_copies(four, 1)
     assert len(eight.robots) == 8
