@@ -151,7 +151,7 @@ def measure(graph, fleet, layout, rate_hz, window_s, warmup_timeout_s=90.0):
     for spec in tissue_specs(fleet, layout):
         procs.append(graph.popen(list(spec.argv), name=f"{layout}_{spec.label.replace('/', '_')}"))
         if spec.label == "nodelet_manager":
-            graph.wait_for_service("/tissue_nodelet_manager/load_nodelet", timeout_s=60)
+            rospy.wait_for_service("/tissue_nodelet_manager/load_nodelet", timeout=60)
     rates = [rospy.Publisher(f"/{r}/cloud_throttle/rate_hz", Float64, queue_size=1, latch=True)
              for r in fleet.robot_names]
     for pub in rates:
@@ -181,6 +181,7 @@ def measure(graph, fleet, layout, rate_hz, window_s, warmup_timeout_s=90.0):
             pub.unregister()
         for proc in reversed(procs):
             graph.stop(proc, timeout_s=5.0)
+            graph.processes.remove(proc)
         time.sleep(1.0)
 
 

@@ -271,8 +271,10 @@ def _robot_tissue_shared(fleet, py):
         NodeSpec("cloud_tissue", PHYSICAL,
                  py("cps_transport", "cloud_tissue", "__name:=cloud_tissue",
                     *_args({"fleet_file": fleet.path, "robots": robots, "camera_max_rate_hz": CAMERA_MAX_RATE_HZ})),
+                 # Not the managed topics, advertised with the first cloud through: a replayed bag
+                 # starts once this process (every robot's encoder) is up.
                  wait_topics=tuple(t for robot in fleet.robots for t in (
-                     f"/{robot.name}/points_filtered/draco", f"/{robot.name}/points_filtered/draco/managed",
+                     f"/{robot.name}/points_filtered/draco",
                      *((f"/{robot.name}/camera/image_raw/compressed",) if robot.has_depth_camera else ())))),
     ]
 
