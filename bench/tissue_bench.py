@@ -139,7 +139,7 @@ def tissue_specs(fleet, layout):
     return [s for s in specs if s.label in tissue or s.label.split("/")[-1] in per_robot]
 
 
-def measure(graph, fleet, layout, rate_hz, window_s, warmup_timeout_s=90.0):
+def measure(graph, fleet, layout, rate_hz, window_s, warmup_timeout_s=240.0):
     """Starts `layout`'s tissue, feeds it, and returns its CPU seconds, clouds decoded, processes
     and RSS over `window_s` once every robot's clouds reach the twin."""
     import rospy
@@ -160,8 +160,11 @@ def measure(graph, fleet, layout, rate_hz, window_s, warmup_timeout_s=90.0):
     try:
         up = wait_for(lambda: all(feeder.counts().values()), timeout_s=warmup_timeout_s, poll_s=0.5)
         if not up:
-            raise RuntimeError(f"{layout}: no decoded clouds from {[r for r, n in feeder.counts().items() if not n]} "
-                               f"within {warmup_timeout_s:.0f} s")
+            missing = [r for r, n in feeder.counts().items() if not n]
+            logs = "\n".join(f"--- {p.cps_name} ({'running' if p.poll() is None else p.returncode}):\n"
+                             f"{graph.output(p.cps_name)[-800:]}" for p in procs
+                             if any(r in p.cps_name for r in missing) or "manager" in p.cps_name)
+            raise RuntimeError(f"{layout}: no decoded clouds from {missing} within {warmup_timeout_s:.0f} s\n{logs}")
         time.sleep(3.0)  # the first clouds' start-up work (imports, allocations) out of the window
         pids = process_tree([p.pid for p in procs])
         cpu0, _ = cpu_and_rss(pids)
