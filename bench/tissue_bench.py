@@ -32,7 +32,8 @@ def _proc_stat(pid):
     except (FileNotFoundError, ProcessLookupError):
         return None
     # After the name: state ppid ... utime (field 14) stime (15) ... rss (24), 1-based from pid.
-    return int(fields[1]), (int(fields[11]) + int(fields[12])) / TICKS_PER_S, int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
+    cpu_s = (int(fields[11]) + int(fields[12])) / TICKS_PER_S
+    return int(fields[1]), cpu_s, int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
 
 
 def process_tree(roots):
@@ -223,7 +224,8 @@ def main(argv=None):
                       f"({result['pids']} with children), RSS {result['rss_mb']:.0f} MB", flush=True)
         rospy.signal_shutdown("done")
 
-    print(f"\n{n} robots, {args.rate_hz:g} Hz each (light profile clouds), {args.rounds} x {args.window_s:.0f} s per layout")
+    print(f"\n{n} robots, {args.rate_hz:g} Hz each (light profile clouds), "
+          f"{args.rounds} x {args.window_s:.0f} s per layout")
     per = {}
     for layout, t in totals.items():
         delivered_hz = t["clouds"] / t["window_s"] / n

@@ -61,7 +61,8 @@ def test_eight_robots_run_on_the_same_tissue_processes_as_four(open_tmp_path):
                 counted = subprocess.run([sys.executable, "-c", COUNT_TWIN_CLOUDS, ",".join(fleet.robot_names)],
                                          env=dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{port}"),
                                          capture_output=True, text=True, timeout=60)
-                counts = json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0 else counted.stderr
+                counts = (json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0
+                          else counted.stderr)
                 break
         log += proc.communicate(timeout=120)[0]
     finally:

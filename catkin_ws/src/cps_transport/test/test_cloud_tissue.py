@@ -19,8 +19,8 @@ def test_robot_configs_come_from_the_fleet_file():
     assert list(configs) == fleet.robot_names
     for robot in fleet.robots:
         c = configs[robot.name]
-        assert (c.filtered, c.draco, c.managed) == (f"/{robot.name}/points_filtered", f"/{robot.name}/points_filtered/draco",
-                                                    f"/{robot.name}/points_filtered/draco/managed")
+        base = f"/{robot.name}/points_filtered"
+        assert (c.filtered, c.draco, c.managed) == (base, f"{base}/draco", f"{base}/draco/managed")
         assert c.throttle_node == f"/{robot.name}/cloud_throttle"
         assert c.leaf_size_m == robot.voxel_leaf_m and c.rate_hz == fleet.link.min_rate_hz
         assert (c.image_compressed == f"/{robot.name}/camera/image_raw/compressed") == robot.has_depth_camera
