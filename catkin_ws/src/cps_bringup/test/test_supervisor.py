@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from cps_bringup.plan import DIGITAL, PHYSICAL, NodeSpec, RunOptions, plan_nodes
+from cps_bringup.plan import DIGITAL, PER_ROBOT, PHYSICAL, ZENOH, NodeSpec, RunOptions, plan_nodes
 from cps_link.names import COMMAND_PROBE
 from cps_bringup.supervisor import BringupError, Supervisor
 from cps_fleet.fleet import load_fleet
@@ -20,7 +20,7 @@ BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
 
 def test_plan_wires_every_robot_through_the_tissue_to_the_map():
     fleet = load_fleet()
-    specs = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x"))}
+    specs = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", tissue_layout=PER_ROBOT))}
     for robot in fleet.robots:
         r = robot.name
         voxel = " ".join(specs[f"{r}/voxel_grid"].argv)
@@ -47,12 +47,71 @@ def test_plan_wires_every_robot_through_the_tissue_to_the_map():
     assert "_map_file:=/tmp/x/map.bt" in specs["map_server"].argv
 
 
+def _arg(spec, key):
+    return next(a.split(":=", 1)[1] for a in spec.argv if a.startswith(f"{key}:="))
+
+
+def test_shared_plan_wires_every_robot_through_fixed_tissue_processes():
+    """The default layout: one loader, one cloud_tissue, one cloud_decoder carry every robot."""
+    fleet = load_fleet()
+    specs = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", transport=ZENOH))}
+    robots = fleet.robot_names
+    assert not [label for label in specs if label.split("/")[-1] in (
+        "voxel_grid", "draco_encoder", "cloud_throttle", "image_compressor", "draco_decoder", "backfill_decoder")]
+    for label, side in (("voxel_grid_loader", PHYSICAL), ("cloud_tissue", PHYSICAL), ("cloud_decoder", DIGITAL)):
+        assert specs[label].side == side and _arg(specs[label], "_robots") == ",".join(robots)
+        assert _arg(specs[label], "_fleet_file") == fleet.path
+    assert _arg(specs["voxel_grid_loader"], "_manager") == "/tissue_nodelet_manager"
+    assert specs["voxel_grid_loader"].after == ("nodelet_manager",)
+    assert _arg(specs["cloud_decoder"], "_backfill") == "true"
+    for robot in fleet.robots:
+        r = robot.name
+        assert f"/{r}/points_filtered" in specs["voxel_grid_loader"].wait_topics
+        assert f"/{r}/points_filtered/draco" in specs["cloud_tissue"].wait_topics
+        assert (f"/{r}/camera/image_raw/compressed" in specs["cloud_tissue"].wait_topics) == robot.has_depth_camera
+        assert {f"/twin/{r}/points", f"/twin/{r}/points_backfill"} <= set(specs["cloud_decoder"].wait_topics)
+
+
+def _with_copies(fleet, copies):
+    """`fleet` with each robot also under `copies` new names (same type, leaf and route)."""
+    import dataclasses
+
+    extra = tuple(dataclasses.replace(r, name=f"{r.name}{i}") for i in range(2, copies + 2) for r in fleet.robots)
+    return dataclasses.replace(fleet, robots=fleet.robots + extra)
+
+
+@pytest.mark.parametrize("layout", ["shared", PER_ROBOT])
+def test_tissue_processes_per_side_do_not_grow_with_the_fleet_in_the_shared_layout(layout):
+    """4 and 8 robots: the same tissue processes on each side when shared, more with every robot
+    when per_robot (the per-robot cps_sim nodes are not the tissue)."""
+    four = load_fleet()
+    eight = _with_copies(four, 1)
+    assert len(eight.robots) == 8
+
+    def tissue(fleet):
+        specs = plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", transport=ZENOH, tissue_layout=layout))
+        return {side: sorted(s.label for s in specs if s.side == side and "cps_sim" not in " ".join(s.argv)
+                             and s.label != "fleet_sim") for side in (PHYSICAL, DIGITAL)}
+
+    small, large = tissue(four), tissue(eight)
+    for side in (PHYSICAL, DIGITAL):
+        if layout == "shared":
+            assert small[side] == large[side], side
+        else:
+            assert len(large[side]) > len(small[side]), side
+
+
+def test_plan_rejects_an_unknown_tissue_layout():
+    with pytest.raises(ValueError, match="tissue_layout 'one'"):
+        plan_nodes(load_fleet(), options=RunOptions(out_dir="/tmp/x", tissue_layout="one"))
+
+
 def test_plan_for_real_robots_leaves_the_simulator_out():
     fleet = load_fleet()
     specs = plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x", simulate=False))
     labels = {s.label for s in specs}
     assert "fleet_sim" not in labels
-    assert {"fleet_control", "scout/voxel_grid", "scout/cloud_throttle"} <= labels
+    assert {"fleet_control", "voxel_grid_loader", "cloud_tissue"} <= labels
     assert all(s.after != ("fleet_sim",) for s in specs)
 
 
@@ -182,7 +241,7 @@ def test_shipped_launch_files_are_the_plan_and_parse_with_roslaunch():
                             timeout=60)
     assert listed.returncode == 0, listed.stderr
     nodes = set(listed.stdout.split())
-    assert {"/fleet_sim", "/twin/map_server", "/scout/cloud_throttle", "/twin/iris/draco_decoder"} <= nodes
+    assert {"/fleet_sim", "/twin/map_server", "/cloud_tissue", "/voxel_grid_loader", "/twin/cloud_decoder"} <= nodes
     assert len(nodes) == len(plan_nodes(load_fleet(), options=RunOptions(out_dir="/tmp/x")))
 
 

@@ -15,8 +15,8 @@ import time
 from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
-from cps_bringup.plan import (CONTROL_LAYOUTS, DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RECORDER, TCPROS,
-                               TRANSPORTS, ZENOH, RunOptions, plan_nodes)
+from cps_bringup.plan import (CONTROL_LAYOUTS, DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RECORDER, SHARED, TCPROS,
+                               TISSUE_LAYOUTS, TRANSPORTS, ZENOH, RunOptions, plan_nodes)
 from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
 from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
                                     node_log_dir)
@@ -97,6 +97,10 @@ def build_parser():
     parser.add_argument("--bandwidth-manager", choices=("on", "off"), default="on",
                         help="off: no bandwidth manager; each robot's rate limiter passes its sensor's full rate "
                              "(the paper's unmanaged case, for comparison)")
+    parser.add_argument("--tissue-layout", choices=TISSUE_LAYOUTS, default=SHARED,
+                        help="shared: a fixed number of tissue processes per side for any fleet (one nodelet "
+                             "manager and loader, one cloud_tissue, one cloud_decoder); per_robot: one process per "
+                             "node and robot, to compare with")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server S seconds into the mission")
     return parser
@@ -171,7 +175,8 @@ def run_mission(args, log=print) -> MissionResult:
         gui_screenshot_after_s=args.screenshot_after, baseline_map=baseline, site_changes_file=site_changes,
         record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path,
         bandwidth_manager=args.bandwidth_manager == "on",
-        control_layout=args.control_layout)
+        control_layout=args.control_layout,
+        tissue_layout=args.tissue_layout)
     transport = args.transport
     if replay_path and transport == ZENOH and len(sides) == 2:
         log("[bringup] --replay: one master for both sides (tcpros), so that the bag's /clock reaches every node")

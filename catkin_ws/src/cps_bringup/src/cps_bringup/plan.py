@@ -22,6 +22,12 @@ SHARED_CONTROL, PER_ROBOT_CONTROL = "shared", "per_robot"
 CONTROL_LAYOUTS = (SHARED_CONTROL, PER_ROBOT_CONTROL)
 FLEET_CONTROL = "fleet_control"
 VOXEL_MANAGER = "/tissue_nodelet_manager"
+# The tissue's processes: "shared", a fixed number per side whatever the fleet's size (one nodelet
+# manager + one loader for every robot's voxel grid, one cloud_tissue, one cloud_decoder); or
+# "per_robot", one process per node and robot (nodelet load, draco_encoder, rate_limiter,
+# image_compressor, draco_decoder), kept to compare with.
+SHARED, PER_ROBOT = "shared", "per_robot"
+TISSUE_LAYOUTS = (SHARED, PER_ROBOT)
 # The operator's video stays within the unmanaged reserve: ~0.2 MB/s of JPEG at 640x480.
 CAMERA_MAX_RATE_HZ = 10.0
 
@@ -85,6 +91,8 @@ class RunOptions:
     bandwidth_manager: bool = True
     # One of CONTROL_LAYOUTS.
     control_layout: str = SHARED_CONTROL
+    # One of TISSUE_LAYOUTS.
+    tissue_layout: str = SHARED
 
 
 def _args(params: Dict[str, object]) -> List[str]:
@@ -116,6 +124,8 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                python: str = sys.executable) -> List[NodeSpec]:
     """The processes of `sides` for `fleet` (its robots, its profile unless options.profile)."""
     options = options or RunOptions(out_dir=".")
+    if options.tissue_layout not in TISSUE_LAYOUTS:
+        raise ValueError(f"tissue_layout {options.tissue_layout!r}: one of {', '.join(TISSUE_LAYOUTS)}")
     robots = fleet.robot_names
     common = {"fleet_file": fleet.path}
     specs: List[NodeSpec] = []
@@ -146,6 +156,8 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                                   for t in (f"/{r.name}/odom", f"/{r.name}/{r.cloud_topic}")),
                 restart_limit=0))
         drivers = ("fleet_sim",) if options.simulate and not options.replay_path else ()
+        # Without the manager nothing lowers it: the sensors' full rate, up to the link's ceiling.
+        initial_rate_hz = fleet.link.min_rate_hz if options.bandwidth_manager else fleet.link.max_rate_hz
         specs.append(NodeSpec(
             "nodelet_manager", PHYSICAL,
             ("rosrun", "nodelet", "nodelet", "manager", f"__name:={VOXEL_MANAGER.lstrip('/')}"),
@@ -169,34 +181,10 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                     f"{r}/route_controller", PHYSICAL,
                     py("cps_sim", "route_controller", ns, "__name:=route_controller", *_args({**common, "robot": r})),
                     wait_topics=(f"/{r}/mission_state",), after=drivers))
-            specs.append(NodeSpec(
-                f"{r}/voxel_grid", PHYSICAL,
-                ("rosrun", "nodelet", "nodelet", "load", "pcl/VoxelGrid", VOXEL_MANAGER, ns, "__name:=voxel_grid",
-                 f"~input:=/{r}/{robot.cloud_topic}", f"~output:=/{r}/points_filtered",
-                 *_args({"leaf_size": robot.voxel_leaf_m, "filter_field_name": "",
-                         "filter_limit_min": -1e6, "filter_limit_max": 1e6})),
-                wait_topics=(f"/{r}/points_filtered",), after=("nodelet_manager",)))
-            specs.append(NodeSpec(
-                f"{r}/draco_encoder", PHYSICAL,
-                py("cps_transport", "draco_encoder", ns, "__name:=draco_encoder",
-                   f"~input:=/{r}/points_filtered", f"~output:=/{r}/points_filtered/draco",
-                   *_args({"leaf_size_m": robot.voxel_leaf_m})),
-                wait_topics=(f"/{r}/points_filtered/draco",)))
-            if robot.has_depth_camera:
-                # JPEG for the operator's video (image_transport's compressed format): a raw camera
-                # stream is 1.9x (light) to 92x (paper) the link's 4 % reserve. Encodes only while watched.
-                specs.append(NodeSpec(
-                    f"{r}/image_compressor", PHYSICAL,
-                    py("cps_transport", "image_compressor", f"__ns:=/{r}/camera", "__name:=image_compressor",
-                       f"~input:=/{r}/camera/image_raw", *_args({"max_rate_hz": CAMERA_MAX_RATE_HZ})),
-                    wait_topics=(f"/{r}/camera/image_raw/compressed",)))
-            specs.append(NodeSpec(
-                f"{r}/cloud_throttle", PHYSICAL,
-                py("cps_transport", "rate_limiter", ns, "__name:=cloud_throttle",
-                   f"~input:=/{r}/points_filtered/draco", f"~output:=/{r}/points_filtered/draco/managed",
-                   *_args({"rate_hz": fleet.link.min_rate_hz if options.bandwidth_manager
-                           else fleet.link.max_rate_hz})),
-                wait_topics=(f"/{r}/points_filtered/draco/managed",)))
+            if options.tissue_layout == PER_ROBOT:
+                specs += _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz)
+        if options.tissue_layout != PER_ROBOT:
+            specs += _robot_tissue_shared(fleet, py, initial_rate_hz)
 
         # The robots' side of the latency: capture stamp -> voxel-filtered cloud, measured on the
         # physical host (nothing crosses the link); the report joins its per-cloud arrivals with the
@@ -224,18 +212,10 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                     ("rosrun", "topic_tools", "relay", f"/{r}/points_filtered/draco/managed", relayed,
                      f"__ns:=/twin/{r}", "__name:=link_relay"),
                     wait_topics=(relayed,)))
-            specs.append(NodeSpec(
-                f"{r}/draco_decoder", DIGITAL,
-                py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=draco_decoder",
-                   f"~input:={relayed}", f"~output:=/twin/{r}/points"),
-                wait_topics=(f"/twin/{r}/points",)))
-            if options.transport == ZENOH:
-                # Keyframes the robots' bridge kept during an outage, sent after it (cps_link backfill).
-                specs.append(NodeSpec(
-                    f"{r}/backfill_decoder", DIGITAL,
-                    py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=backfill_decoder",
-                       f"~input:=/twin/{r}/points_backfill/draco", f"~output:=/twin/{r}/points_backfill"),
-                    wait_topics=(f"/twin/{r}/points_backfill",)))
+            if options.tissue_layout == PER_ROBOT:
+                specs += _twin_tissue_per_robot(r, options.transport == ZENOH, py)
+        if options.tissue_layout != PER_ROBOT:
+            specs += _twin_tissue_shared(fleet, options.transport == ZENOH, py)
         specs.append(NodeSpec(
             "map_server", DIGITAL,
             py("cps_mapping", "map_server", "__ns:=/twin", "__name:=map_server",
@@ -271,6 +251,84 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                 restart_limit=0, one_shot=True, essential=False, after=("map_server",)))
     specs += _bag_specs(fleet, sides, options, specs)
     return specs
+
+
+def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
+    """The per_robot layout: voxel grid (a `nodelet load` client), encoder, limiter and camera
+    compressor of one robot, each its own process."""
+    from cps_transport.voxel_grid_command import voxel_nodelet_args
+
+    r, ns = robot.name, f"__ns:=/{robot.name}"
+    specs = [NodeSpec(f"{r}/voxel_grid", PHYSICAL, tuple(voxel_nodelet_args(robot, manager=VOXEL_MANAGER)),
+                      wait_topics=(f"/{r}/points_filtered",), after=("nodelet_manager",)),
+             NodeSpec(f"{r}/draco_encoder", PHYSICAL,
+                      py("cps_transport", "draco_encoder", ns, "__name:=draco_encoder",
+                         f"~input:=/{r}/points_filtered", f"~output:=/{r}/points_filtered/draco",
+                         *_args({"leaf_size_m": robot.voxel_leaf_m})),
+                      wait_topics=(f"/{r}/points_filtered/draco",))]
+    if robot.has_depth_camera:
+        # JPEG for the operator's video (image_transport's compressed format): a raw camera
+        # stream is 1.9x (light) to 92x (paper) the link's 4 % reserve. Encodes only while watched.
+        specs.append(NodeSpec(
+            f"{r}/image_compressor", PHYSICAL,
+            py("cps_transport", "image_compressor", f"__ns:=/{r}/camera", "__name:=image_compressor",
+               f"~input:=/{r}/camera/image_raw", *_args({"max_rate_hz": CAMERA_MAX_RATE_HZ})),
+            wait_topics=(f"/{r}/camera/image_raw/compressed",)))
+    specs.append(NodeSpec(
+        f"{r}/cloud_throttle", PHYSICAL,
+        py("cps_transport", "rate_limiter", ns, "__name:=cloud_throttle",
+           f"~input:=/{r}/points_filtered/draco", f"~output:=/{r}/points_filtered/draco/managed",
+           *_args({"rate_hz": initial_rate_hz})),
+        wait_topics=(f"/{r}/points_filtered/draco/managed",)))
+    return specs
+
+
+def _robot_tissue_shared(fleet, py, initial_rate_hz):
+    """The shared layout: one loader puts every robot's voxel grid into the nodelet manager, one
+    cloud_tissue runs every robot's encoder, limiter (/<r>/cloud_throttle) and camera compressor."""
+    robots = ",".join(fleet.robot_names)
+    return [
+        NodeSpec("voxel_grid_loader", PHYSICAL,
+                 py("cps_transport", "voxel_grid_loader", "__name:=voxel_grid_loader",
+                    *_args({"fleet_file": fleet.path, "robots": robots, "manager": VOXEL_MANAGER})),
+                 wait_topics=tuple(f"/{r}/points_filtered" for r in fleet.robot_names), after=("nodelet_manager",)),
+        NodeSpec("cloud_tissue", PHYSICAL,
+                 py("cps_transport", "cloud_tissue", "__name:=cloud_tissue",
+                    *_args({"fleet_file": fleet.path, "robots": robots, "camera_max_rate_hz": CAMERA_MAX_RATE_HZ,
+                            "initial_rate_hz": initial_rate_hz})),
+                 # Not the managed topics, advertised with the first cloud through: a replayed bag
+                 # starts once this process (every robot's encoder) is up.
+                 wait_topics=tuple(t for robot in fleet.robots for t in (
+                     f"/{robot.name}/points_filtered/draco",
+                     *((f"/{robot.name}/camera/image_raw/compressed",) if robot.has_depth_camera else ())))),
+    ]
+
+
+def _twin_tissue_per_robot(r, backfill, py):
+    """The per_robot layout: a decoder process per robot (and one for its backfill keyframes)."""
+    specs = [NodeSpec(
+        f"{r}/draco_decoder", DIGITAL,
+        py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=draco_decoder",
+           f"~input:=/twin/{r}/points_filtered/draco/managed", f"~output:=/twin/{r}/points"),
+        wait_topics=(f"/twin/{r}/points",))]
+    if backfill:
+        # Keyframes the robots' bridge kept during an outage, sent after it (cps_link backfill).
+        specs.append(NodeSpec(
+            f"{r}/backfill_decoder", DIGITAL,
+            py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=backfill_decoder",
+               f"~input:=/twin/{r}/points_backfill/draco", f"~output:=/twin/{r}/points_backfill"),
+            wait_topics=(f"/twin/{r}/points_backfill",)))
+    return specs
+
+
+def _twin_tissue_shared(fleet, backfill, py):
+    """The shared layout: /twin/cloud_decoder decodes every robot's managed (and backfill) clouds."""
+    return [NodeSpec(
+        "cloud_decoder", DIGITAL,
+        py("cps_transport", "cloud_decoder", "__ns:=/twin", "__name:=cloud_decoder",
+           *_args({"fleet_file": fleet.path, "robots": ",".join(fleet.robot_names), "backfill": backfill})),
+        wait_topics=tuple(t for r in fleet.robot_names
+                          for t in (f"/twin/{r}/points", *((f"/twin/{r}/points_backfill",) if backfill else ()))))]
 
 
 REPLAY, RECORDER = "mission_replay", "mission_recorder"

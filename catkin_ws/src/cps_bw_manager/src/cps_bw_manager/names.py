@@ -9,7 +9,7 @@ AVAILABLE_BANDWIDTH = "tissue/available_bandwidth"
 SET_PRIORITY = "tissue/set_priority"
 STATS = "tissue/stats"
 LINK_STATE = "tissue/link_state"  # cps_msgs/LinkState, published by the bridge
-LIMITER = "cloud_throttle"  # the robot's rate limiter node (cps_transport's rate_limiter)
+LIMITER = "cloud_throttle"  # the robot's rate limiter (cps_transport: in cloud_tissue, or a rate_limiter node)
 
 
 def limiter_rate_hz(robot):

@@ -1,5 +1,8 @@
 """How the bringup starts pcl_ros's pcl/VoxelGrid for one robot (ci/env.sh must be sourced so
-pcl_ros's plugins load)."""
+pcl_ros's plugins load): its name, topics and parameters, for `nodelet load`/`standalone` argv
+and for the one loader (`nodelet_loader`) that puts every robot's into one manager."""
+VOXEL_NODELET_TYPE = "pcl/VoxelGrid"
+VOXEL_NODE_NAME = "voxel_grid"
 
 
 def voxel_nodelet_params(robot_config):
@@ -9,13 +12,24 @@ def voxel_nodelet_params(robot_config):
             "filter_limit_min": -1.0e6, "filter_limit_max": 1.0e6}
 
 
-def voxel_nodelet_args(robot_config, manager=None, name="voxel_grid"):
-    """argv of `rosrun nodelet nodelet` running pcl/VoxelGrid as /<r>/<name>, /<r>/points ->
+def voxel_nodelet_name(robot_config, name=VOXEL_NODE_NAME):
+    """/<r>/voxel_grid: the nodelet's name (its private parameters live under it)."""
+    return f"/{robot_config.name}/{name}"
+
+
+def voxel_nodelet_remaps(robot_config):
+    """{private name: topic}: the robot's cloud topic (fleet.yaml) -> /<r>/points_filtered."""
+    robot = robot_config.name
+    return {"~input": f"/{robot}/{robot_config.cloud_topic}", "~output": f"/{robot}/points_filtered"}
+
+
+def voxel_nodelet_args(robot_config, manager=None, name=VOXEL_NODE_NAME):
+    """argv of `rosrun nodelet nodelet` running pcl/VoxelGrid as /<r>/<name>, /<r>/<cloud topic> ->
     /<r>/points_filtered; standalone, or loaded into `manager` (a nodelet manager's name)."""
     robot = robot_config.name
-    mode = ["load", "pcl/VoxelGrid", manager] if manager else ["standalone", "pcl/VoxelGrid"]
-    argv = ["rosrun", "nodelet", "nodelet", *mode, f"__name:={name}", f"__ns:=/{robot}",
-            f"~input:=/{robot}/points", f"~output:=/{robot}/points_filtered"]
+    mode = ["load", VOXEL_NODELET_TYPE, manager] if manager else ["standalone", VOXEL_NODELET_TYPE]
+    argv = ["rosrun", "nodelet", "nodelet", *mode, f"__name:={name}", f"__ns:=/{robot}"]
+    argv += [f"{key}:={value}" for key, value in voxel_nodelet_remaps(robot_config).items()]
     for key, value in voxel_nodelet_params(robot_config).items():
         argv.append(f"_{key}:={value}")
     return argv
