@@ -151,3 +151,19 @@ def test_a_chatty_node_output_is_rotated_at_its_bound(tmp_path):
         finally:
             supervisor.stop_all()
     assert largest < 3 * 100_000, largest
+
+
+def test_the_unprivileged_nodes_get_the_compiled_map_kernels(tmp_path):
+    """Compiled once into the shared cache, copied per mission; a second mission compiles nothing."""
+    import glob
+
+    from cps_bringup.privileges import copy_compiled_kernels
+
+    shared, first, second = tmp_path / "shared", tmp_path / "one", tmp_path / "two"
+    copy_compiled_kernels(str(first), shared=str(shared))
+    indexes = glob.glob(str(shared / "**" / "log_odds_grid.*.nbi"), recursive=True)
+    assert indexes and glob.glob(str(first / "**" / "log_odds_grid.*.nbc"), recursive=True)
+    built = {i: os.path.getmtime(i) for i in indexes}
+    copy_compiled_kernels(str(second), shared=str(shared))
+    assert {i: os.path.getmtime(i) for i in indexes} == built
+    assert glob.glob(str(second / "**" / "log_odds_grid.*.nbc"), recursive=True)

@@ -3,12 +3,20 @@
 Started as root, the supervisor runs every node through `setpriv` as an unprivileged user; the
 mission folder is handed to that user so the nodes can write their logs, CSVs and the map.
 """
+import glob
 import grp
 import os
 import pwd
+import shutil
 import subprocess
+import sys
 
 DEFAULT_USER = "nobody"
+# The map server's compiled kernels (numba), built once by the user who starts the bringup and
+# copied into each mission's cache: the unprivileged nodes cannot write next to the sources, and
+# compiling them at every start took the map server 20 s (70 s on a loaded machine) before its
+# first insertion.
+SHARED_NUMBA_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "cps_numba")
 
 
 class PrivilegeError(RuntimeError):
@@ -47,6 +55,7 @@ def hand_over(user, out_dir, log_dir):
     entry = pwd.getpwnam(user)
     for folder in (log_dir, *user_env(log_dir).values()):
         os.makedirs(folder, exist_ok=True)
+    copy_compiled_kernels(user_env(log_dir)["NUMBA_CACHE_DIR"])
     for folder in (out_dir, log_dir):
         for root, dirs, files in os.walk(folder):
             for name in [root] + [os.path.join(root, f) for f in dirs + files]:
@@ -56,3 +65,16 @@ def hand_over(user, out_dir, log_dir):
     if check.returncode != 0:
         raise PrivilegeError(f"the nodes run as '{user}' (not root) but cannot write {out_dir}: a folder above it "
                              f"is closed to that user. Choose an --out that '{user}' can reach, or --run-as root")
+
+
+def copy_compiled_kernels(numba_cache_dir, shared=SHARED_NUMBA_CACHE):
+    """Fill `numba_cache_dir` with the map server's compiled kernels from `shared`, compiling them
+    there first if they are missing or older than their source."""
+    from cps_mapping import log_odds_grid
+
+    source_mtime = os.path.getmtime(log_odds_grid.__file__)
+    indexes = glob.glob(os.path.join(shared, "**", "log_odds_grid.*.nbi"), recursive=True)
+    if not indexes or min(os.path.getmtime(i) for i in indexes) < source_mtime:
+        subprocess.run([sys.executable, "-c", "from cps_mapping.log_odds_grid import warm_up; warm_up()"],
+                       env={**os.environ, "NUMBA_CACHE_DIR": shared}, check=True, capture_output=True)
+    shutil.copytree(shared, numba_cache_dir, dirs_exist_ok=True)
