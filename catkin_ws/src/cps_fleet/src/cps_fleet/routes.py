@@ -3,10 +3,10 @@
 The hall's free floor (inside the walls, outside the fenced areas and the equipment footprints,
 each grown by a clearance) is rasterised, thinned to its centre lines (the aisles' skeleton) and
 walked once by a depth-first tour. That tour is cut into N arcs of equal length: robot k starts
-at the beginning of arc k, inspects along it (``inspect: true``) and comes back to its start by
-the shortest way along the aisles (``inspect: false``, so the bandwidth manager's priority, which
-follows the mission state, is high only on the robot's own share). Everything is deterministic:
-the same site and N give the same routes in every process that loads the fleet.
+at the head of arc k (its first waypoint), inspects along it (``inspect: true``) and comes back
+to its start by the shortest way along the aisles (``inspect: false``, so the bandwidth manager's
+priority, which follows the mission state, is high only on the robot's own share). Everything is
+deterministic: the same site and N give the same routes in every process that loads the fleet.
 """
 import dataclasses
 import heapq
@@ -272,12 +272,13 @@ def generate_routes(site: Site, count, clearance_m=DEFAULT_CLEARANCE_M, min_sepa
         back = aisles.shortest_path(arc[-1], arc[0])
         out = _simplify(aisles, [aisles.xy(c) for c in arc])
         home = _simplify(aisles, [aisles.xy(c) for c in back])
-        waypoints = [GeneratedWaypoint(x, y, True) for x, y in out[1:]]
-        waypoints += [GeneratedWaypoint(x, y, False) for x, y in home[1:]]
-        if not waypoints:
+        if len(out) < 2:
             raise RouteError(f"robot {k + 1}'s share of the aisles is empty")
+        # The start is the first waypoint: the robot is on its share (inspecting) from the outset.
+        waypoints = [GeneratedWaypoint(x, y, True) for x, y in out]
+        waypoints += [GeneratedWaypoint(x, y, False) for x, y in home[1:]]
         start = out[0]
-        yaw = math.degrees(math.atan2(waypoints[0].y - start[1], waypoints[0].x - start[0]))
+        yaw = math.degrees(math.atan2(out[1][1] - start[1], out[1][0] - start[0]))
         routes.append(GeneratedRoute(start=start, yaw_deg=round(yaw, 1), waypoints=tuple(waypoints),
                                      share_m=float(cumulative[end] - cumulative[i])))
     return routes
