@@ -227,3 +227,17 @@ def test_the_follower_drives_a_generated_route_back_to_its_start_clear_of_the_si
     else:
         # The robot cuts corners a little: it stays 0.4 m clear where the route keeps 0.6 m.
         assert set(floor.blocker_2d(trace[:, :2], 0.4)) == {""}
+
+
+def test_fleet_sim_names_the_generate_line_for_a_generated_start_a_site_change_blocks(fleet16):
+    """fleet_sim re-checks the starts against the changed site; a generated robot has no line of its
+    own, so the error points at the fleet file's generate: block."""
+    from cps_sim.fleet_sim_node import initial_pose_error
+
+    fleet, site = fleet16
+    start = fleet.robot("champ_2").initial_pose
+    crate = site.item("crate_2")
+    blocked = site.moved("crate_2", start.x - crate.x, start.y - crate.y)
+    error = initial_pose_error(fleet, blocked)
+    assert error is not None and str(error).startswith(f"{fleet.path}:6: robots[") and "crate_2" in str(error)
+    assert initial_pose_error(fleet, site) is None
