@@ -239,7 +239,8 @@ def _positive_int(reader, key):
 
 
 def load_fleet(path=None, profile=None):
-    """Read and validate fleet.yaml (default: cps_bringup's); `profile` overrides the file's choice."""
+    """Read and validate fleet.yaml (default: cps_bringup's); `profile` overrides the file's choice.
+    A file with `base:` takes all but its robots from that fleet file (see `_load_derived`)."""
     path = path or default_fleet_path()
     doc = load_yaml_document(path)
     if "base" in doc.data:
