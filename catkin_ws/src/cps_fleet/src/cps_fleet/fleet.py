@@ -145,6 +145,10 @@ class RobotConfig:
     voxel_leaf_m: float
     route_path: str
     robot_type: RobotType
+    # A generated route (fleet files with `generate:`); None: the route is read from route_path.
+    route: Optional[Route] = None
+    # Where the robot is described: its fleet file and the line of its initial pose (or of `generate:`).
+    source: Tuple[str, int] = ("", 0)
 
     @property
     def has_depth_camera(self):
@@ -196,7 +200,8 @@ class FleetConfig:
         return dataclasses.replace(self, profile=self.profiles[name])
 
     def route(self, name):
-        return load_route(self.robot(name).route_path)
+        robot = self.robot(name)
+        return robot.route if robot.route is not None else load_route(robot.route_path)
 
 
 def _profile(reader, name):
@@ -234,9 +239,12 @@ def _positive_int(reader, key):
 
 
 def load_fleet(path=None, profile=None):
-    """Read and validate fleet.yaml (default: cps_bringup's); `profile` overrides the file's choice."""
+    """Read and validate fleet.yaml (default: cps_bringup's); `profile` overrides the file's choice.
+    A file with `base:` takes all but its robots from that fleet file (see `_load_derived`)."""
     path = path or default_fleet_path()
     doc = load_yaml_document(path)
+    if "base" in doc.data:
+        return _load_derived(doc, profile)
     top = Reader(doc).known_keys("profile", "site", "profiles", "link", "robot_types", "mapping", "limits", "robots")
 
     profiles_reader = top.child("profiles")
@@ -291,28 +299,7 @@ def load_fleet(path=None, profile=None):
 
     robots = []
     for item in top.items("robots"):
-        item.known_keys("name", "type", "initial_pose", "voxel_leaf_m", "route")
-        name = item.get("name", str)
-        if not _NAME.match(name):
-            raise item.error("name", f"'{name}' is not a valid ROS name (lowercase letters, digits, _)")
-        if name in (r.name for r in robots):
-            raise item.error("name", f"robot '{name}' is listed twice")
-        robot_type = item.get("type", str)
-        if robot_type not in robot_types:
-            raise item.error("type", f"unknown robot type '{robot_type}' (known: {', '.join(robot_types)})")
-        pose = item.child("initial_pose").known_keys("x", "y", "z", "yaw_deg")
-        route_path = item.path_of("route")
-        if not os.path.exists(route_path):
-            raise item.error("route", f"route file {route_path} does not exist")
-        robots.append(RobotConfig(
-            name=name,
-            type=robot_type,
-            initial_pose=Pose2D(pose.get("x", float), pose.get("y", float),
-                                pose.get("z", float, default=0.0), pose.get("yaw_deg", float, default=0.0)),
-            voxel_leaf_m=item.number("voxel_leaf_m", low=0.0, high=10.0, low_open=True),
-            route_path=route_path,
-            robot_type=robot_types[robot_type],
-        ))
+        robots.append(_read_robot(item, robot_types, robots))
     if not robots:
         raise top.error("robots", "the fleet has no robots")
 
@@ -327,6 +314,37 @@ def load_fleet(path=None, profile=None):
         robots=tuple(robots),
         limits=limits,
         robot_types=robot_types,
+    )
+
+
+def _read_robot(item, robot_types, robots, default_voxel_leaf_m=None):
+    """One entry of a `robots:` list, checked against `robot_types` and the robots read before it."""
+    item.known_keys("name", "type", "initial_pose", "voxel_leaf_m", "route")
+    name = item.get("name", str)
+    if not _NAME.match(name):
+        raise item.error("name", f"'{name}' is not a valid ROS name (lowercase letters, digits, _)")
+    if name in (r.name for r in robots):
+        raise item.error("name", f"robot '{name}' is listed twice")
+    robot_type = item.get("type", str)
+    if robot_type not in robot_types:
+        raise item.error("type", f"unknown robot type '{robot_type}' (known: {', '.join(robot_types)})")
+    pose = item.child("initial_pose").known_keys("x", "y", "z", "yaw_deg")
+    route_path = item.path_of("route")
+    if not os.path.exists(route_path):
+        raise item.error("route", f"route file {route_path} does not exist")
+    if default_voxel_leaf_m is not None and not item.has("voxel_leaf_m"):
+        voxel_leaf_m = default_voxel_leaf_m(item, robot_type)
+    else:
+        voxel_leaf_m = item.number("voxel_leaf_m", low=0.0, high=10.0, low_open=True)
+    return RobotConfig(
+        name=name,
+        type=robot_type,
+        initial_pose=Pose2D(pose.get("x", float), pose.get("y", float),
+                            pose.get("z", float, default=0.0), pose.get("yaw_deg", float, default=0.0)),
+        voxel_leaf_m=voxel_leaf_m,
+        route_path=route_path,
+        robot_type=robot_types[robot_type],
+        source=(os.path.abspath(item.doc.path), item.doc.line(item.key_path + ("initial_pose",))),
     )
 
 
@@ -359,6 +377,131 @@ def load_route(path):
                                   item.get("z", float, default=0.0), item.get("inspect", bool, default=False)))
         lines.append(doc.line(item.key_path))
     return Route(path=os.path.abspath(path), waypoints=tuple(waypoints), lines=tuple(lines))
+
+
+def _load_derived(doc, profile):
+    """A fleet file that takes everything but its robots from `base:` (another fleet file) and lists
+    and/or generates its robots; every robot, start and route is checked against the site."""
+    from cps_fleet import routes
+    from cps_fleet.site import load_site
+
+    top = Reader(doc).known_keys("base", "profile", "robots", "generate")
+    base_path = top.path_of("base")
+    if os.path.abspath(base_path) == os.path.abspath(doc.path):
+        raise top.error("base", "a fleet file cannot be its own base")
+    base_doc = load_yaml_document(base_path)
+    if "base" in base_doc.data:
+        raise top.error("base", f"{base_path} has a base itself; the base must be a complete fleet file")
+    base = load_fleet(base_path, profile)
+    if profile is None and top.has("profile"):
+        chosen = top.get("profile", str)
+        if chosen not in base.profiles:
+            raise top.error("profile", f"unknown profile '{chosen}' (known: {', '.join(sorted(base.profiles))})")
+        base = base.with_profile(chosen)
+    templates = {}
+    for robot in base.robots:
+        templates.setdefault(robot.type, robot)
+
+    def voxel_leaf_of(reader, robot_type):
+        if robot_type not in templates:
+            raise reader.error("voxel_leaf_m", f"missing key 'voxel_leaf_m' (the base fleet has no {robot_type} robot "
+                                               f"to take it from)")
+        return templates[robot_type].voxel_leaf_m
+
+    robots = []
+    if top.has("robots"):
+        for item in top.items("robots"):
+            robots.append(_read_robot(item, base.robot_types, robots, default_voxel_leaf_m=voxel_leaf_of))
+    site = load_site(base.site_path)
+    floor = routes.Floor(site)
+    if top.has("generate"):
+        robots += _generated_robots(top.child("generate"), base, templates, robots, site)
+    if not robots:
+        raise top.error(None, "the fleet has no robots (give robots: and/or generate:)")
+    for i, robot in enumerate(robots):
+        _check_robot(robot, robots[:i], site, floor)
+    return dataclasses.replace(base, path=os.path.abspath(doc.path), robots=tuple(robots))
+
+
+def _generated_robots(gen, base, templates, listed, site):
+    """The robots of a `generate:` block: round-robin over its types, routes per share of the aisles."""
+    from cps_fleet import routes
+
+    gen.known_keys("count", "types", "routes", "clearance_m", "flight_altitude_m")
+    count = _positive_int(gen, "count")
+    types = gen.get("types", list, default=[t for t in base.robot_types if t in templates])
+    for i, robot_type in enumerate(types):
+        if robot_type not in base.robot_types:
+            raise ConfigError(gen.doc.path, gen.doc.line(gen.key_path + ("types", i)),
+                              f"generate.types[{i}]: unknown robot type '{robot_type}' (known: {', '.join(base.robot_types)})")
+        if robot_type not in templates:
+            raise ConfigError(gen.doc.path, gen.doc.line(gen.key_path + ("types", i)),
+                              f"generate.types[{i}]: the base fleet has no {robot_type} robot to take its name "
+                              f"and voxel_leaf_m from")
+    if not types:
+        raise gen.error("types", "needs at least one robot type")
+    kind = gen.get("routes", str, default="per_area")
+    if kind != "per_area":
+        raise gen.error("routes", f"unknown route scheme '{kind}' (known: per_area)")
+    clearance_m = gen.number("clearance_m", default=routes.DEFAULT_CLEARANCE_M, low=routes.ROUTE_MARGIN_M, high=5.0)
+    altitude_m = gen.number("flight_altitude_m", default=routes.DEFAULT_FLIGHT_ALTITUDE_M, low=0.5, high=20.0)
+    try:
+        shares = routes.generate_routes(site, count, clearance_m=clearance_m)
+    except routes.RouteError as exc:
+        raise gen.error("count", str(exc)) from exc
+    path, line = os.path.abspath(gen.doc.path), gen.doc.line(gen.key_path)
+    out, per_type = [], {}
+    for k, share in enumerate(shares):
+        robot_type = types[k % len(types)]
+        per_type[robot_type] = per_type.get(robot_type, 0) + 1
+        template = templates[robot_type]
+        name = f"{template.name}_{per_type[robot_type]}"
+        if name in (r.name for r in listed):
+            raise gen.error("count", f"generated robot '{name}' is also listed under robots:")
+        z = altitude_m if template.robot_type.is_aerial else 0.0
+        waypoints = tuple(Waypoint(w.x, w.y, z, w.inspect) for w in share.waypoints)
+        out.append(RobotConfig(
+            name=name, type=robot_type,
+            initial_pose=Pose2D(share.start[0], share.start[1], 0.0, share.yaw_deg),
+            voxel_leaf_m=template.voxel_leaf_m, route_path=path, robot_type=template.robot_type,
+            route=Route(path=path, waypoints=waypoints, lines=(line,) * len(waypoints)),
+            source=(path, line)))
+    return out
+
+
+def _check_robot(robot, others, site, floor):
+    """ConfigError at the robot's line (or its route's) if its start is not free, is too close to
+    another robot's, or its route leaves the hall or crosses a fence or equipment."""
+    from cps_fleet import routes
+    from cps_fleet.site import check_waypoint
+
+    path, line = robot.source
+    pose = robot.initial_pose
+    reason = check_waypoint(site, pose.x, pose.y, max(pose.z, 0.0), robot.robot_type, margin_m=0.2)
+    if reason:
+        raise ConfigError(path, line, f"robot '{robot.name}' initial_pose: {reason}")
+    for other in others:
+        distance = math.hypot(pose.x - other.initial_pose.x, pose.y - other.initial_pose.y)
+        if distance < routes.MIN_SEPARATION_M:
+            raise ConfigError(path, line, f"robot '{robot.name}' starts {distance:.2f} m from '{other.name}' "
+                                          f"(at least {routes.MIN_SEPARATION_M:g} m apart; the hall has no room "
+                                          f"for this many robots here)")
+    route = robot.route if robot.route is not None else load_route(robot.route_path)
+    problem = routes.route_problem(floor, (pose.x, pose.y), route.waypoints, robot.robot_type.is_aerial)
+    if problem:
+        index, why = problem
+        raise ConfigError(route.path, route.lines[index], f"robot '{robot.name}' route: {why}")
+
+
+def check_fleet_routes(fleet: FleetConfig):
+    """The checks a derived fleet file gets at load time, for any fleet (ConfigError on the first problem)."""
+    from cps_fleet import routes
+    from cps_fleet.site import load_site
+
+    site = load_site(fleet.site_path)
+    floor = routes.Floor(site)
+    for i, robot in enumerate(fleet.robots):
+        _check_robot(robot, fleet.robots[:i], site, floor)
 
 
 def robot_names_arg(fleet: FleetConfig, names: Optional[List[str]]):

@@ -18,7 +18,7 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import BatteryState, CameraInfo, Image, JointState, PointCloud2
 from std_msgs.msg import Bool, String
 
-from cps_fleet.config import ConfigError, load_yaml_document
+from cps_fleet.config import ConfigError
 from cps_fleet.site import check_waypoint
 from cps_sim import messages, names
 from cps_sim.controllers import CommandGate
@@ -73,15 +73,13 @@ def read_options():
 
 
 def initial_pose_error(fleet, site):
-    """A ConfigError at fleet.yaml's line for an initial pose outside the hall or in equipment, or None."""
-    doc = load_yaml_document(fleet.path)
-    robot_names = [r.get("name") for r in doc.data.get("robots", [])]
+    """A ConfigError at the fleet file's line for an initial pose outside the hall or in equipment, or None."""
     for robot in fleet.robots:
         pose = robot.initial_pose
         reason = check_waypoint(site, pose.x, pose.y, max(pose.z, 0.0), robot.robot_type, margin_m=0.2)
         if reason:
-            line = doc.line(("robots", robot_names.index(robot.name), "initial_pose"))
-            return ConfigError(fleet.path, line, f"robots[{robot.name}].initial_pose: {reason}")
+            path, line = robot.source
+            return ConfigError(path or fleet.path, line, f"robots[{robot.name}].initial_pose: {reason}")
     return None
 
 
