@@ -1,5 +1,5 @@
 """Eight robots on the shared tissue layout: the tissue runs the same processes on each side as for
-the default four, and every robot's clouds are decoded on the twin."""
+the default four, and every robot's clouds reach the map."""
 import json
 import os
 import subprocess
@@ -10,11 +10,11 @@ import pytest
 
 from cps_bringup.plan import DIGITAL, PHYSICAL, ZENOH, RunOptions, plan_nodes
 from cps_fleet.fleet import load_fleet
-from cps_harness.fleets import write_fleet_with_copies
 from cps_harness.processes import free_port, processes_named
 
 BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
-MISSION_S = 10
+FLEET8 = os.path.join(os.path.dirname(__file__), "..", "config", "fleets", "fleet8.yaml")
+MISSION_S = 15
 
 
 def _started(log_dir, robots):
@@ -25,16 +25,20 @@ def _started(log_dir, robots):
                   and not any(label.startswith(f"{r}_") for r in robots))
 
 
-# Run on the twin's master: counts each robot's decoded clouds until all have some (or 30 s).
-COUNT_TWIN_CLOUDS = """
+# Run on the twin's master: each robot's clouds inserted into the map (the map server's
+# /twin/map_stats) until every robot has some (or 45 s).
+COUNT_INSERTED = """
 import json, sys, time, rospy
-from sensor_msgs.msg import PointCloud2
+from cps_msgs.msg import MapStats
 robots = sys.argv[1].split(",")
 counts = dict.fromkeys(robots, 0)
-rospy.init_node("twin_cloud_count", anonymous=True)
-subs = [rospy.Subscriber(f"/twin/{r}/points", PointCloud2, lambda _m, r=r: counts.__setitem__(r, counts[r] + 1))
-        for r in robots]
-deadline = time.monotonic() + 30
+def on_stats(stats):
+    for robot in stats.robots:
+        if robot.robot in counts:
+            counts[robot.robot] = robot.clouds_inserted
+rospy.init_node("map_insert_count", anonymous=True)
+sub = rospy.Subscriber("/twin/map_stats", MapStats, on_stats)
+deadline = time.monotonic() + 45
 while time.monotonic() < deadline and not all(counts.values()):
     time.sleep(0.2)
 print(json.dumps(counts))
@@ -44,9 +48,9 @@ print(json.dumps(counts))
 @pytest.mark.ros
 @pytest.mark.slow
 def test_eight_robots_run_on_the_same_tissue_processes_as_four(open_tmp_path):
-    """Eight robots come up with the default four's tissue processes, and every robot's clouds
-    are decoded on the twin (/twin/<r>/points, what the map server inserts)."""
-    fleet_path = write_fleet_with_copies(str(open_tmp_path))
+    """Eight robots (config/fleets/fleet8.yaml) come up with the default four's tissue processes, and
+    the map server inserts every robot's clouds."""
+    fleet_path = FLEET8
     fleet = load_fleet(fleet_path)
     assert len(fleet.robots) == 8
     out, port = open_tmp_path / "m8", free_port()
@@ -58,7 +62,7 @@ def test_eight_robots_run_on_the_same_tissue_processes_as_four(open_tmp_path):
         for line in proc.stdout:
             log.append(line)
             if "processes up" in line:
-                counted = subprocess.run([sys.executable, "-c", COUNT_TWIN_CLOUDS, ",".join(fleet.robot_names)],
+                counted = subprocess.run([sys.executable, "-c", COUNT_INSERTED, ",".join(fleet.robot_names)],
                                          env=dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{port}"),
                                          capture_output=True, text=True, timeout=60)
                 counts = (json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0

@@ -26,8 +26,9 @@ from cps_bringup.experiments.markdown import markdown_table, write_csv, write_ma
 FLEET_SIZES = (1, 2, 4, 8, 16)
 QUICK_FLEET_SIZES = (1, 2)
 LINKS_MBPS = (60.0, 10.0)
-# A cap: a run ends when every route is done (so each N covers the same ground whatever its timing).
-DURATION_S = 120.0
+# A cap: a run ends when every route is done (each N covers the same ground whatever its timing), or
+# here if a robot is still on its route.
+DURATION_S = 60.0
 QUICK_DURATION_S = 20.0
 # The bar for the 16-robot, 60 Mbit/s, manager-on run.
 MIN_RATE_HZ = 1.0
