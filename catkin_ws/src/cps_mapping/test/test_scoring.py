@@ -74,3 +74,11 @@ def test_map_of_simulated_views_and_contributions(truth):
     assert set(score.robots) == {"jackal", "scout"}
     assert sum(r.occupied_voxels for r in score.robots.values()) == score.map_voxels
     assert all(r.precision > 0.8 and r.coverage > 0.0 for r in score.robots.values())
+
+
+def test_an_empty_map_scores_zero_instead_of_failing(truth):
+    """A mission whose map server inserted nothing (no transform ever arrived) still gets a score."""
+    empty = new_map(RES)
+    assert not empty.is_free(np.array([[1.0, 2.0, 0.5]])).any()
+    score = score_fused_map(empty, truth)
+    assert score.f1 == 0.0 and score.map_voxels == 0

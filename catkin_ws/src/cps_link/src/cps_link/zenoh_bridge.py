@@ -352,6 +352,11 @@ class ZenohBridge:
 
     def _tick(self, _event=None):
         self.reporter.gauge(**self.backfill_counters())
+        if self.health.up:
+            # A latched message lost on its way (its class may drop, or the far side's subscriber
+            # was not there yet) is otherwise never sent again: a map server without /tf_static
+            # inserts nothing. The far side drops the copies it already has.
+            self.resend_latched()
         if not self.health.ever_up and time.time() - self.started_s > NOT_UP_WARN_AFTER_S:
             rospy.logwarn_throttle(10.0, f"{rospy.get_name()}: no {self.peer_side} bridge has come up yet "
                                          f"({self.endpoint or 'listening'}); still trying")

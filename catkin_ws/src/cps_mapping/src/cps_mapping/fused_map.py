@@ -338,8 +338,9 @@ class FusedLogOddsMap:
             raise ValueError(f"max_probability must be in (0, 1), got {max_probability}")
         grid = self._grid
         flat = grid.flat(grid.index_of(np.asarray(points_m, dtype=np.float64).reshape(-1, 3)))
-        log_odds = np.where(flat >= 0, grid.log_odds[np.maximum(flat, 0)], np.nan) if len(flat) else \
-            np.zeros(0, dtype=np.float32)
+        if not len(flat) or not grid.log_odds.size:   # no point, or a map that has nothing yet
+            return np.zeros(len(flat), dtype=bool)
+        log_odds = np.where(flat >= 0, grid.log_odds[np.maximum(flat, 0)], np.nan)
         with np.errstate(invalid="ignore"):
             return log_odds <= np.float32(math.log(max_probability / (1.0 - max_probability)))
 
