@@ -21,7 +21,10 @@ def test_fleet_sim_runs_the_sixteen_robot_fleet(ros, rospy_node):
     odom = {r.name: TopicRecorder(f"/{r.name}/odom", Odometry) for r in fleet.robots}
     clouds = {r.name: TopicRecorder(f"/{r.name}/{r.cloud_topic}", PointCloud2) for r in fleet.robots}
     try:
-        ros.start_node("cps_sim", "fleet_sim", name="fleet_sim", params={"~fleet_file": FLEET16, "~profile": "light"})
+        # Its own name: private parameters outlive the node on the session's master, and a later
+        # test's `fleet_sim` would read this one's ~fleet_file.
+        ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_fleet16",
+                       params={"~fleet_file": FLEET16, "~profile": "light"})
         deadline = time.monotonic() + 50.0
         for robot in fleet.robots:
             first = odom[robot.name].wait(timeout_s=max(deadline - time.monotonic(), 1.0))

@@ -65,6 +65,9 @@ class RosGraph:
         self.home = log_dir or tempfile.mkdtemp(prefix="cps-ros-")
         self.processes = []
         self._master = None
+        # Nodes started with private parameters: they are removed with the nodes, or a later node
+        # of the same name on a shared master would read them.
+        self._private_params = set()
 
     @property
     def env(self):
@@ -163,6 +166,8 @@ class RosGraph:
         for key, value in (params or {}).items():
             key = key[1:] if key.startswith("~") else key
             argv.append(f"_{key}:={_param_text(value)}")
+        if params:
+            self._private_params.add("/".join(["", (namespace or "").strip("/"), name or node]).replace("//", "/"))
         for source, target in (remap or {}).items():
             argv.append(f"{source}:={target}")
         return self.popen(argv, name=name or node, env=env)
@@ -226,10 +231,25 @@ class RosGraph:
         for proc in reversed(self.processes):
             self.stop(proc, timeout_s=5.0)
         self.processes = []
+        self._forget_private_params()
         if self._own_master:
             self._kill_orphans_of_the_core()
         if self._own_home:
             shutil.rmtree(self.home, ignore_errors=True)
+
+
+    def _forget_private_params(self):
+        import rosgraph
+
+        if self._private_params and not self._own_master:
+            master = rosgraph.Master("/cps_harness", master_uri=self.uri)
+            for namespace in self._private_params:
+                try:
+                    if master.hasParam(namespace):
+                        master.deleteParam(namespace)
+                except Exception:  # a master already gone has nothing left to forget
+                    break
+        self._private_params = set()
 
 
 def _param_text(value):
