@@ -20,8 +20,11 @@ def _write(path, columns, rows):
 
 
 def _mission_files(folder, budget=7.0, windows=(1.0, 8.0, 2.0)):
-    _write(folder / "stats.csv", ["time_s", "topic", "robot", "managed", "bandwidth_mbytes_per_s"],
-           [[f"{t}.0", f"/twin/{r}/points_filtered/draco/managed", r, "True", mbps / 2]
+    """Per window, the two robots share `windows` MB/s (as volume in topic_stats' 2 s window); the
+    rostopic-style rate column says 40 MB/s, as a CPU-starved twin's burst would."""
+    _write(folder / "stats.csv", ["time_s", "topic", "robot", "managed", "messages", "mean_message_bytes",
+                                  "bandwidth_mbytes_per_s"],
+           [[f"{t}.0", f"/twin/{r}/points_filtered/draco/managed", r, "True", 10, mbps / 2 * 2.0 / 10 * 1e6, 40.0]
             for t, mbps in enumerate(windows) for r in ("a", "b")])
     _write(folder / "allocation.csv", ["time_s", "budget_mbytes_per_s"], [["0.0", budget]])
     # a: 10 clouds at 20 ms; b: 5 clouds at 40 ms (one at 400 ms); c: none reached the twin.
@@ -42,6 +45,7 @@ def test_the_figures_come_from_the_missions_files(tmp_path):
 
     assert figures["budget_mbytes_per_s"] == 7.0          # the manager's own budget wins over the nominal one
     assert figures["windows"] == 3 and figures["windows_over_budget"] == 1
+    assert figures["max_window_mbytes_per_s"] == pytest.approx(8.0)   # the volume, not the burst's rate
     assert figures["robots_reached"] == 2                 # c is reported missing, not filled in
     assert figures["hz_per_robot"] == {"a": 1.0, "b": 0.5, "c": 0.0}
     assert figures["min_hz"] == 0.0

@@ -11,6 +11,8 @@ from collections import defaultdict
 
 import numpy as np
 
+from cps_transport.topic_stats import DEFAULT_WINDOW_S as STATS_WINDOW_S
+
 
 def read_csv(path):
     if not os.path.exists(path):
@@ -26,12 +28,18 @@ def _float(value):
         return math.nan
 
 
-def managed_link_windows(stats_rows):
-    """Per stats publication (≈ 1 s apart): time and the sum of managed MB/s over all robots."""
+def managed_link_windows(stats_rows, window_s=STATS_WINDOW_S):
+    """Per stats publication (≈ 1 s apart): time and the sum of managed MB/s over all robots.
+
+    The volume received in the window over its length (messages x mean size / window_s), not
+    topic_stats' rostopic-style rate x size: a twin starved of CPU takes a backlog in one burst,
+    and (n - 1) / span then reads many times what the link can carry."""
     totals = defaultdict(float)
     for row in stats_rows:
         if row.get("managed") == "True":
-            value = _float(row["bandwidth_mbytes_per_s"])
+            messages, mean_bytes = _float(row.get("messages")), _float(row.get("mean_message_bytes"))
+            value = (messages * mean_bytes / window_s / 1e6 if math.isfinite(messages) and math.isfinite(mean_bytes)
+                     else _float(row["bandwidth_mbytes_per_s"]))
             if math.isfinite(value):
                 totals[_float(row["time_s"])] += value
     times = sorted(totals)

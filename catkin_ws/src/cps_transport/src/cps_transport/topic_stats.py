@@ -40,6 +40,10 @@ def stamp_ns_from_serialized(buffer):
 ARRIVAL_COLUMNS = ("topic", "robot", "stamp_ns", "receive_s")
 
 
+# topic_stats' sliding window, s (its ~window_s).
+DEFAULT_WINDOW_S = 2.0
+
+
 class TopicWindow:
     """Receive time, serialized size and latency of the messages of one topic in the last window."""
 
