@@ -22,10 +22,12 @@ import json, sys
 from cps_bringup.cli import build_parser, run_mission
 result = run_mission(build_parser().parse_args(sys.argv[2:]))
 with open(sys.argv[1], "w") as stream:
+    p = result.progress
     json.dump({"ended_by": result.ended_by, "elapsed_s": result.elapsed_s, "link": result.link,
                "map_file": result.map_file, "restarts": result.restarts,
-               "trajectories": {r: [list(map(float, p)) for p in t] for r, t in result.progress.trajectories.items()}},
-              stream)
+               "trajectories": {r: [list(map(float, q)) for q in t] for r, t in p.trajectories.items()},
+               "clouds_inserted": dict(p.clouds_inserted), "clouds_dropped": dict(p.clouds_dropped),
+               "events": [f"{e.time_s:.0f} s {e.label}: {e.what}" for e in result.events]}, stream)
 """
 
 
@@ -39,10 +41,18 @@ def link_arg():
 
 
 def run_fleet(robots, out_dir, duration_s, link, log=print):
-    """run_mission in a child process; returns its summary dict (raises RuntimeError with the log tail)."""
+    """Table 5's mission of `robots` (run_mission_child)."""
+    argv = ["all", "--robots", ",".join(robots), "--duration", str(duration_s), "--out", out_dir, "--link", link]
+    return run_mission_child(argv, out_dir, log)
+
+
+def run_mission_child(argv, out_dir, log=print):
+    """run_mission in a child process (rospy allows one node per process); its summary dict, or
+    RuntimeError with the end of its log."""
     os.makedirs(out_dir, exist_ok=True)
     summary = os.path.join(out_dir, "mission_result.json")
-    argv = ["all", "--robots", ",".join(robots), "--duration", str(duration_s), "--out", out_dir, "--link", link]
+    if os.path.exists(summary):
+        os.remove(summary)
     log(f"[experiments] run_mission {' '.join(argv)}")
     with open(os.path.join(out_dir, "run_mission.log"), "w") as stream:
         proc = subprocess.run([sys.executable, "-c", _CHILD, summary, *argv], stdout=stream, stderr=subprocess.STDOUT)

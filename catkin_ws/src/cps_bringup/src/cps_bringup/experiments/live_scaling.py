@@ -13,14 +13,13 @@ import dataclasses
 import json
 import math
 import os
-import subprocess
-import sys
 from collections import defaultdict
-from typing import Dict, List, Optional
+from typing import List, Optional
 
 import numpy as np
 
 from cps_bringup.experiments import paper
+from cps_bringup.experiments.fleet_scaling import run_mission_child
 from cps_bringup.experiments.markdown import markdown_table, write_csv, write_markdown
 
 FLEET_SIZES = (1, 2, 4, 8, 16)
@@ -36,17 +35,6 @@ F1_FRACTION_TARGET = 0.95
 DROPPED_FRACTION_TARGET = 0.01
 TELEOP_P95_TARGET_MS = 100.0
 
-_CHILD = """
-import json, sys
-from cps_bringup.cli import build_parser, run_mission
-result = run_mission(build_parser().parse_args(sys.argv[2:]))
-p = result.progress
-with open(sys.argv[1], "w") as stream:
-    json.dump({"ended_by": result.ended_by, "elapsed_s": result.elapsed_s, "link": result.link,
-               "map_file": result.map_file, "restarts": result.restarts,
-               "clouds_inserted": dict(p.clouds_inserted), "clouds_dropped": dict(p.clouds_dropped),
-               "events": [f"{e.time_s:.0f} s {e.label}: {e.what}" for e in result.events]}, stream)
-"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,24 +79,6 @@ def mission_argv(run: LiveRun, fleet_file, out_dir, duration_s):
     if not run.manager:
         argv += ["--bandwidth-manager", "off"]
     return argv
-
-
-def run_mission_child(argv, out_dir, log=print):
-    """run_mission in a child process (rospy allows one node per process); its summary dict, or
-    RuntimeError with the end of its log."""
-    os.makedirs(out_dir, exist_ok=True)
-    summary = os.path.join(out_dir, "mission_result.json")
-    if os.path.exists(summary):
-        os.remove(summary)
-    log(f"[experiments] run_mission {' '.join(argv)}")
-    with open(os.path.join(out_dir, "run_mission.log"), "w") as stream:
-        proc = subprocess.run([sys.executable, "-c", _CHILD, summary, *argv], stdout=stream, stderr=subprocess.STDOUT)
-    if proc.returncode != 0 or not os.path.exists(summary):
-        with open(os.path.join(out_dir, "run_mission.log")) as stream:
-            tail = stream.read()[-2000:]
-        raise RuntimeError(f"run_mission {' '.join(argv)} exited {proc.returncode}:\n{tail}")
-    with open(summary) as stream:
-        return json.load(stream)
 
 
 def _arrival_latencies_ms(rows, topic_suffix):
