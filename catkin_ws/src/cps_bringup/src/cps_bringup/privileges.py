@@ -55,7 +55,10 @@ def hand_over(user, out_dir, log_dir):
     entry = pwd.getpwnam(user)
     for folder in (log_dir, *user_env(log_dir).values()):
         os.makedirs(folder, exist_ok=True)
-    copy_compiled_kernels(user_env(log_dir)["NUMBA_CACHE_DIR"])
+    try:
+        copy_compiled_kernels(user_env(log_dir)["NUMBA_CACHE_DIR"])
+    except (OSError, subprocess.CalledProcessError):
+        pass  # a speed-up only: without it the map server compiles its kernels at its start
     for folder in (out_dir, log_dir):
         for root, dirs, files in os.walk(folder):
             for name in [root] + [os.path.join(root, f) for f in dirs + files]:
