@@ -42,13 +42,10 @@ AISLE_SPOTS = ((-9.0, -3.0), (-9.0, 0.0), (-9.0, 3.0), (0.0, -6.5), (0.0, -3.0),
 
 def make_fleet_file(robots, folder, source=FLEET_YAML):
     """An N-robot fleet file in `folder`: source's robots, then copies `<name>_<k>` at AISLE_SPOTS."""
-    with open(source) as stream:
-        doc = yaml.safe_load(stream)
-    base = os.path.dirname(os.path.abspath(source))
-    doc["site"] = os.path.normpath(os.path.join(base, doc["site"]))
+    from cps_harness.fleets import fleet_doc_with_absolute_paths
+
+    doc = fleet_doc_with_absolute_paths(source)
     originals = doc["robots"]
-    for robot in originals:
-        robot["route"] = os.path.normpath(os.path.join(base, robot["route"]))
     if robots > len(originals) + len(AISLE_SPOTS):
         raise ValueError(f"at most {len(originals) + len(AISLE_SPOTS)} robots (free spots in the aisles)")
     out = list(originals[:robots])

@@ -9,10 +9,9 @@ import yaml
 COPY_OFFSET_M = 1.5
 
 
-def write_fleet_with_copies(folder, copies=1, source=None):
-    """`source` (default: cps_bringup's fleet.yaml) with every robot also as `<name>2`, `<name>3`...
-    (`copies` each): same type, leaf and route, initial pose offset towards y = 0; its paths made
-    absolute so the file works from `folder`. Returns the new file's path."""
+def fleet_doc_with_absolute_paths(source=None):
+    """The fleet file `source` (default: cps_bringup's fleet.yaml) as a dict whose site and route
+    paths are absolute, so a copy written elsewhere still finds them."""
     from cps_fleet.fleet import default_fleet_path
 
     source = source or default_fleet_path()
@@ -20,9 +19,17 @@ def write_fleet_with_copies(folder, copies=1, source=None):
         doc = yaml.safe_load(stream)
     here = os.path.dirname(os.path.abspath(source))
     doc["site"] = os.path.normpath(os.path.join(here, doc["site"]))
-    robots = doc["robots"]
-    for robot in robots:
+    for robot in doc["robots"]:
         robot["route"] = os.path.normpath(os.path.join(here, robot["route"]))
+    return doc
+
+
+def write_fleet_with_copies(folder, copies=1, source=None):
+    """`source` (default: cps_bringup's fleet.yaml) with every robot also as `<name>2`, `<name>3`...
+    (`copies` each): same type, leaf and route, initial pose offset towards y = 0; its paths made
+    absolute so the file works from `folder`. Returns the new file's path."""
+    doc = fleet_doc_with_absolute_paths(source)
+    robots = doc["robots"]
     originals = list(robots)
     for i in range(2, copies + 2):
         for robot in originals:
