@@ -7,7 +7,7 @@ import pytest
 from cps_bringup.experiments.live_scaling import LiveRun, measure_run, mission_argv, sweep, verdict
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import default_fleet_path
-from cps_link.names import COMMAND_PROBE
+from cps_fleet import names
 
 pytestmark = pytest.mark.unit
 
@@ -32,7 +32,7 @@ def _mission_files(folder, budget=7.0, windows=(1.0, 8.0, 2.0)):
     arrivals += [(f"/twin/b/points_filtered/draco/managed", "b", int(i * 1e9), i + (0.4 if i == 4 else 0.040))
                  for i in range(5)]
     _write(folder / "arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], arrivals)
-    probes = [(COMMAND_PROBE, "", int(i * 1e8), i * 0.1 + 0.003) for i in range(20)]
+    probes = [(names.absolute(names.COMMAND_PROBE), "", int(i * 1e8), i * 0.1 + 0.003) for i in range(20)]
     probes += [("/a/points_filtered", "a", int(1e9), 1.05)]
     _write(folder / "physical_arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], probes)
 

@@ -10,7 +10,7 @@ import time
 import pytest
 
 from cps_bringup.plan import DIGITAL, PER_ROBOT, PHYSICAL, ZENOH, NodeSpec, RunOptions, plan_nodes
-from cps_link.names import COMMAND_PROBE
+from cps_fleet import names
 from cps_bringup.supervisor import BringupError, Supervisor
 from cps_fleet.fleet import load_fleet
 from cps_harness.processes import RosGraph, processes_named
@@ -148,7 +148,7 @@ def test_plan_without_the_manager_and_with_the_command_probe():
     unmanaged = {s.label for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", bandwidth_manager=False))}
     assert "bandwidth_manager" in managed and "bandwidth_manager" not in unmanaged
     assert managed["command_probe"].side == DIGITAL
-    assert any(COMMAND_PROBE in arg for arg in managed["physical_stats"].argv)
+    assert any(names.absolute(names.COMMAND_PROBE) in arg for arg in managed["physical_stats"].argv)
 
 
 def _python_spec(label, code, wait_topics=(), restart_limit=0):

@@ -5,7 +5,8 @@ import os
 import numpy as np
 import pytest
 
-from cps_gui import names, rviz_config, topview
+from cps_fleet import names
+from cps_gui import rviz_config, topview
 
 
 def test_occupancy_image_colours_and_orientation():
@@ -103,7 +104,7 @@ def test_shipped_rviz_config_is_the_generated_one_for_the_default_fleet():
     assert shipped == rviz_config.dump(rviz_config.fleet_rviz_config(fleet))
     for robot in fleet.robots:
         assert f"/twin/{robot.name}/points" in shipped and f"/{robot.name}/odom" in shipped
-    assert "Fixed Frame: map" in shipped and names.MAP_MARKERS in shipped
+    assert "Fixed Frame: map" in shipped and names.in_twin(names.OCCUPIED_CELLS) in shipped
 
 
 def _frame(encoding, width, height, data, step=0):

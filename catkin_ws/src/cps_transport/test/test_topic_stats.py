@@ -123,11 +123,15 @@ def test_default_topics_come_from_the_fleet():
     module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
     loader.exec_module(module)
     fleet = load_fleet()
-    topics = module.fleet_topics(fleet)
+    from cps_fleet import names
+
+    # Relative names, resolved in the node's namespace (the root namespace here).
+    topics = [names.absolute(t) for t in module.fleet_topics(fleet)]
     for robot in fleet.robots:
+        r = robot.name
         # The twin-side relay, never the physical side's topic: that would be a second copy on the link.
-        assert f"/twin/{robot.name}/points_filtered/draco/managed" in topics
-        assert f"/{robot.name}/points_filtered/draco/managed" not in topics
-        assert f"/{robot.name}/odom" in topics
-        assert f"/{robot.name}/camera/image_raw" not in topics
-    assert "/tf" in topics
+        assert names.absolute(names.managed_cloud_at_twin(r)) in topics
+        assert names.absolute(names.managed_cloud(r)) not in topics
+        assert names.absolute(names.robot_topic(r, names.ODOM)) in topics
+        assert names.absolute(names.robot_topic(r, names.CAMERA_IMAGE)) not in topics
+    assert names.TF in topics

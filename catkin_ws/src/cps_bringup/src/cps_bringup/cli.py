@@ -20,6 +20,7 @@ from cps_bringup.plan import (CONTROL_LAYOUTS, DIGITAL, GUI_SCREENSHOT_AFTER_S, 
 from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
 from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
                                     node_log_dir)
+from cps_fleet import names
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import PROFILES, load_fleet, robot_names_arg
 from cps_harness.processes import RosGraph, free_port
@@ -228,7 +229,7 @@ def run_mission(args, log=print) -> MissionResult:
             # Every node (started after this) runs on the bag's clock, which rosbag play --clock publishes.
             import rosgraph
 
-            rosgraph.Master("/cps_bringup", master_uri=graph.uri).setParam("/use_sim_time", True)
+            rosgraph.Master("cps_bringup", master_uri=graph.uri).setParam(names.USE_SIM_TIME, True)
         robots_master = f"; robots master {side_graphs[PHYSICAL].uri} (joined by Zenoh bridges)" if side_graphs else ""
         log(f"[bringup] master {graph.uri}{robots_master}; "
             f"link: {link.describe() if link else 'loopback (no shaping)'}; "
@@ -382,8 +383,9 @@ def _save_map(path, log):
     from cps_msgs.srv import SaveMap
 
     try:
-        rospy.wait_for_service("/twin/save_map", timeout=10)
-        reply = rospy.ServiceProxy("/twin/save_map", SaveMap)(path=path)
+        service = names.absolute(names.in_twin(names.SAVE_MAP))
+        rospy.wait_for_service(service, timeout=10)
+        reply = rospy.ServiceProxy(service, SaveMap)(path=path)
     except (rospy.ROSException, rospy.ServiceException) as exc:
         log(f"[bringup] could not save the map: {exc}")
         return None

@@ -10,6 +10,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from cps_fleet import names
+
 
 @dataclasses.dataclass
 class MissionProgress:
@@ -97,12 +99,12 @@ class MissionMonitor:
         self._odom_in_map = {}
         self._last_sample = {}
         self._lock = threading.Lock()
-        self._subs = [rospy.Subscriber(f"/{r}/mission_state", String, self._on_state, callback_args=r)
+        self._subs = [rospy.Subscriber(names.robot_topic(r, names.MISSION_STATE), String, self._on_state, callback_args=r)
                       for r in robots]
-        self._subs += [rospy.Subscriber(f"/{r}/odom", Odometry, self._on_odom, callback_args=r) for r in robots]
-        self._subs.append(rospy.Subscriber("/twin/map_stats", MapStats, self._on_map))
-        self._subs.append(rospy.Subscriber("/tissue/allocation", BandwidthAllocationArray, self._on_allocation))
-        self._subs.append(rospy.Subscriber("/tissue/stats", TopicStatsArray, self._on_stats))
+        self._subs += [rospy.Subscriber(names.robot_topic(r, names.ODOM), Odometry, self._on_odom, callback_args=r) for r in robots]
+        self._subs.append(rospy.Subscriber(names.in_twin(names.MAP_STATS), MapStats, self._on_map))
+        self._subs.append(rospy.Subscriber(names.ALLOCATION, BandwidthAllocationArray, self._on_allocation))
+        self._subs.append(rospy.Subscriber(names.TISSUE_STATS, TopicStatsArray, self._on_stats))
 
     def _on_state(self, msg, robot):
         with self._lock:

@@ -9,21 +9,24 @@ clock, so replay latency is the tissue's own, not the time since the recording.
 import dataclasses
 from typing import Dict, List, Tuple
 
+from cps_fleet import names
 from cps_fleet.fleet import FleetConfig
 
-TF, TF_STATIC = "/tf", "/tf_static"
+TF, TF_STATIC = names.TF, names.TF_STATIC
 # Per robot, relative to /<r>: what the robot's side publishes and the replay feeds to the tissue.
-PHYSICAL_TOPICS = ("odom", "joint_states", "battery")
-# What the twin receives over the link (recorded for inspection, not replayed).
-MANAGED_INPUT = "points_filtered/draco/managed"
+PHYSICAL_TOPICS = (names.ODOM, names.JOINT_STATES, names.BATTERY)
 
 
 class BagError(ValueError):
     """The bag cannot be replayed for this fleet; the message says why."""
 
 
+def _rt(robot, name):
+    return names.absolute(names.robot_topic(robot, name))
+
+
 def cloud_topic(fleet: FleetConfig, robot: str) -> str:
-    return f"/{robot}/{fleet.robot(robot).cloud_topic}"
+    return _rt(robot, fleet.robot(robot).cloud_topic)
 
 
 def replay_topics(fleet: FleetConfig) -> List[str]:
@@ -31,18 +34,18 @@ def replay_topics(fleet: FleetConfig) -> List[str]:
     topics = []
     for robot in fleet.robot_names:
         topics.append(cloud_topic(fleet, robot))
-        topics += [f"/{robot}/{t}" for t in PHYSICAL_TOPICS]
+        topics += [_rt(robot, t) for t in PHYSICAL_TOPICS]
     return topics + [TF, TF_STATIC]
 
 
 def record_topics(fleet: FleetConfig) -> List[str]:
-    """The physical topics plus the twin's managed inputs."""
-    return replay_topics(fleet) + [f"/{r}/{MANAGED_INPUT}" for r in fleet.robot_names]
+    """The physical topics plus the managed clouds the twin receives (for inspection, not replayed)."""
+    return replay_topics(fleet) + [names.absolute(names.managed_cloud(r)) for r in fleet.robot_names]
 
 
 def required_topics(fleet: FleetConfig) -> List[str]:
     """What a replay cannot do without: each robot's cloud and odometry, and tf."""
-    return [t for r in fleet.robot_names for t in (cloud_topic(fleet, r), f"/{r}/odom")] + [TF]
+    return [t for r in fleet.robot_names for t in (cloud_topic(fleet, r), _rt(r, names.ODOM))] + [TF]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,7 +94,7 @@ def check_bag(path: str, fleet: FleetConfig) -> BagContents:
     contents = read_bag(path, clouds)
     problems = []
     recorded_robots = sorted({t.split("/")[1] for t in contents.topics
-                              if t.count("/") >= 2 and t.endswith("/odom")})
+                              if t.count("/") >= 2 and t.endswith("/" + names.ODOM)})
     ours = set(fleet.robot_names)
     if recorded_robots and not ours & set(recorded_robots):
         raise BagError(f"{path} was recorded for another fleet: it holds robots {', '.join(recorded_robots)}, "

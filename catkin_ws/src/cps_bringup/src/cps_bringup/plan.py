@@ -5,11 +5,12 @@ starts and a launch-file writer could print. Topic names follow docs/ros-graph.m
 """
 import dataclasses
 import os
+import posixpath
 import sys
 from typing import Callable, Dict, List, Optional, Tuple
 
+from cps_fleet import names
 from cps_fleet.fleet import FleetConfig
-from cps_link.names import COMMAND_PROBE
 from cps_sim.renderers import DEFAULT_RENDERER
 
 PHYSICAL, DIGITAL = "physical", "digital"
@@ -21,7 +22,7 @@ SIDES = (PHYSICAL, DIGITAL)
 SHARED_CONTROL, PER_ROBOT_CONTROL = "shared", "per_robot"
 CONTROL_LAYOUTS = (SHARED_CONTROL, PER_ROBOT_CONTROL)
 FLEET_CONTROL = "fleet_control"
-VOXEL_MANAGER = "/tissue_nodelet_manager"
+VOXEL_MANAGER = names.absolute(names.TISSUE_NODELET_MANAGER)
 # The tissue's processes: "shared", a fixed number per side whatever the fleet's size (one nodelet
 # manager + one loader for every robot's voxel grid, one cloud_tissue, one cloud_decoder); or
 # "per_robot", one process per node and robot (nodelet load, draco_encoder, rate_limiter,
@@ -95,6 +96,19 @@ class RunOptions:
     tissue_layout: str = SHARED
 
 
+A = names.absolute
+
+
+def _rt(robot, name):
+    """A robot's topic, fully qualified (the supervisor waits for it in the master's list)."""
+    return A(names.robot_topic(robot, name))
+
+
+def _tw(name):
+    """A name in the twin's namespace, fully qualified."""
+    return A(names.in_twin(name))
+
+
 def _args(params: Dict[str, object]) -> List[str]:
     out = []
     for key, value in params.items():
@@ -107,9 +121,8 @@ def _args(params: Dict[str, object]) -> List[str]:
 def _stats_topics(robots):
     """What topic_stats measures on the twin: the relayed managed clouds and the light unmanaged
     streams (the same set as its fleet default, restricted to the running robots)."""
-    topics = [t for r in robots for t in (f"/twin/{r}/points_filtered/draco/managed", f"/{r}/odom",
-                                          f"/{r}/battery", f"/{r}/joint_states")]
-    return ",".join(topics + ["/tf"])
+    topics = [A(t) for r in robots for t in (names.managed_cloud_at_twin(r), *names.light_robot_streams(r))]
+    return ",".join(topics + [names.TF])
 
 
 def default_node_path(package: str, node: str) -> str:
@@ -140,7 +153,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                         tuple(bridge_argv(python, bridge_side, options.twin_address, robots,
                                           cert_dir=options.cert_dir, port=options.zenoh_port,
                                           fleet_file=fleet.path)),
-                        wait_topics=("/tissue/link_state",))
+                        wait_topics=(A(names.LINK_STATE),))
 
     if PHYSICAL in sides:
         profile = options.profile or fleet.profile.name
@@ -153,7 +166,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                    *_args({**common, "profile": profile, "robots": ",".join(robots), "renderer": options.renderer,
                            **({"site_changes_file": options.site_changes_file} if options.site_changes_file else {})})),
                 wait_topics=tuple(t for r in fleet.robots
-                                  for t in (f"/{r.name}/odom", f"/{r.name}/{r.cloud_topic}")),
+                                  for t in (_rt(r.name, names.ODOM), _rt(r.name, r.cloud_topic))),
                 restart_limit=0))
         drivers = ("fleet_sim",) if options.simulate and not options.replay_path else ()
         # Without the manager nothing lowers it: the sensors' full rate, up to the link's ceiling.
@@ -168,19 +181,19 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             specs.append(NodeSpec(
                 FLEET_CONTROL, PHYSICAL,
                 py("cps_sim", "fleet_control", f"__name:={FLEET_CONTROL}", *_args({**common, "robots": ",".join(robots)})),
-                wait_topics=tuple(t for r in robots for t in (f"/{r}/cmd_vel", f"/{r}/mission_state")), after=drivers))
+                wait_topics=tuple(_rt(r, t) for r in robots for t in (names.CMD_VEL, names.MISSION_STATE)), after=drivers))
         for robot in fleet.robots:
             r = robot.name
-            ns = f"__ns:=/{r}"
+            ns = f"__ns:={A(r)}"
             if not options.replay_path and options.control_layout == PER_ROBOT_CONTROL:  # replayed: not driven
                 specs.append(NodeSpec(
                     f"{r}/velocity_mux", PHYSICAL,
                     py("cps_sim", "velocity_mux", ns, "__name:=velocity_mux", *_args({**common, "robot": r})),
-                    wait_topics=(f"/{r}/cmd_vel",)))
+                    wait_topics=(_rt(r, names.CMD_VEL),)))
                 specs.append(NodeSpec(
                     f"{r}/route_controller", PHYSICAL,
                     py("cps_sim", "route_controller", ns, "__name:=route_controller", *_args({**common, "robot": r})),
-                    wait_topics=(f"/{r}/mission_state",), after=drivers))
+                    wait_topics=(_rt(r, names.MISSION_STATE),), after=drivers))
             if options.tissue_layout == PER_ROBOT:
                 specs += _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz)
         if options.tissue_layout != PER_ROBOT:
@@ -191,11 +204,11 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
         # twin's by capture stamp.
         specs.append(NodeSpec(
             "physical_stats", PHYSICAL,
-            py("cps_transport", "topic_stats", "__name:=physical_stats", "/tissue/stats:=/tissue/physical_stats",
+            py("cps_transport", "topic_stats", "__name:=physical_stats", f"{A(names.TISSUE_STATS)}:={A(names.PHYSICAL_STATS)}",
                *_args({**common, "csv_path": os.path.join(options.out_dir, "physical_stats.csv"),
                        "arrivals_csv_path": os.path.join(options.out_dir, "physical_arrivals.csv"),
-                       "topics": ",".join([f"/{r}/points_filtered" for r in robots] + [COMMAND_PROBE])})),
-            wait_topics=("/tissue/physical_stats",)))
+                       "topics": ",".join([_rt(r, names.POINTS_FILTERED) for r in robots] + [A(names.COMMAND_PROBE)])})),
+            wait_topics=(A(names.PHYSICAL_STATS),)))
 
     if DIGITAL in sides:
         out = options.out_dir
@@ -205,12 +218,12 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             # The one subscriber of the managed topic across the link; everything on the twin
             # (decoder, statistics) reads the relay, so the link carries each cloud once. Over
             # Zenoh the twin's bridge publishes the relayed name itself.
-            relayed = f"/twin/{r}/points_filtered/draco/managed"
+            relayed = A(names.managed_cloud_at_twin(r))
             if options.transport == TCPROS:
                 specs.append(NodeSpec(
                     f"{r}/link_relay", DIGITAL,
-                    ("rosrun", "topic_tools", "relay", f"/{r}/points_filtered/draco/managed", relayed,
-                     f"__ns:=/twin/{r}", "__name:=link_relay"),
+                    ("rosrun", "topic_tools", "relay", A(names.managed_cloud(r)), relayed,
+                     f"__ns:={A(names.in_twin(r))}", "__name:=link_relay"),
                     wait_topics=(relayed,)))
             if options.tissue_layout == PER_ROBOT:
                 specs += _twin_tissue_per_robot(r, options.transport == ZENOH, py)
@@ -218,19 +231,19 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             specs += _twin_tissue_shared(fleet, options.transport == ZENOH, py)
         specs.append(NodeSpec(
             "map_server", DIGITAL,
-            py("cps_mapping", "map_server", "__ns:=/twin", "__name:=map_server",
+            py("cps_mapping", "map_server", f"__ns:={A(names.TWIN_NS)}", f"__name:={names.MAP_SERVER}",
                *_args({**common, "robots": ",".join(robots),
                        "map_file": options.map_file or os.path.join(out, "map.bt"),
                        **({"baseline_map": options.baseline_map, "change_report": os.path.join(out, CHANGE_REPORT)}
                           if options.baseline_map else {})})),
-            wait_topics=("/twin/map_stats", "/twin/octomap_binary"), restart_limit=3))
+            wait_topics=(_tw(names.MAP_STATS), _tw(names.OCTOMAP_BINARY)), restart_limit=3))
         specs.append(NodeSpec(
             "topic_stats", DIGITAL,
             py("cps_transport", "topic_stats", "__name:=tissue_stats",
                *_args({**common, "csv_path": os.path.join(out, "stats.csv"), "topics": _stats_topics(robots),
                        "arrivals_csv_path": os.path.join(out, "arrivals.csv"),
-                       "arrival_topics": ",".join(f"/twin/{r}/points_filtered/draco/managed" for r in robots)})),
-            wait_topics=("/tissue/stats",)))
+                       "arrival_topics": ",".join(A(names.managed_cloud_at_twin(r)) for r in robots)})),
+            wait_topics=(A(names.TISSUE_STATS),)))
         specs.append(NodeSpec(
             "command_probe", DIGITAL, py("cps_link", "command_probe", "__name:=command_probe")))
         if options.bandwidth_manager:
@@ -240,7 +253,7 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                    *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv"),
                            "link_state_csv_path": os.path.join(out, "link_state.csv"),
                            **({"available_mbps": round(options.available_mbps, 2)} if options.available_mbps else {})})),
-                wait_topics=("/tissue/allocation",)))
+                wait_topics=(A(names.ALLOCATION),)))
         if options.gui_screenshot_path:
             # rviz needs an X server with OpenGL: a private Xvfb (Mesa llvmpipe) for the offscreen GUI.
             specs.append(NodeSpec(
@@ -258,28 +271,29 @@ def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
     compressor of one robot, each its own process."""
     from cps_transport.voxel_grid_command import voxel_nodelet_args
 
-    r, ns = robot.name, f"__ns:=/{robot.name}"
+    r, ns = robot.name, f"__ns:={A(robot.name)}"
     specs = [NodeSpec(f"{r}/voxel_grid", PHYSICAL, tuple(voxel_nodelet_args(robot, manager=VOXEL_MANAGER)),
-                      wait_topics=(f"/{r}/points_filtered",), after=("nodelet_manager",)),
+                      wait_topics=(_rt(r, names.POINTS_FILTERED),), after=("nodelet_manager",)),
              NodeSpec(f"{r}/draco_encoder", PHYSICAL,
                       py("cps_transport", "draco_encoder", ns, "__name:=draco_encoder",
-                         f"~input:=/{r}/points_filtered", f"~output:=/{r}/points_filtered/draco",
+                         f"{names.INPUT}:={_rt(r, names.POINTS_FILTERED)}", f"{names.OUTPUT}:={_rt(r, names.POINTS_DRACO)}",
                          *_args({"leaf_size_m": robot.voxel_leaf_m})),
-                      wait_topics=(f"/{r}/points_filtered/draco",))]
+                      wait_topics=(_rt(r, names.POINTS_DRACO),))]
     if robot.has_depth_camera:
         # JPEG for the operator's video (image_transport's compressed format): a raw camera
         # stream is 1.9x (light) to 92x (paper) the link's 4 % reserve. Encodes only while watched.
         specs.append(NodeSpec(
             f"{r}/image_compressor", PHYSICAL,
-            py("cps_transport", "image_compressor", f"__ns:=/{r}/camera", "__name:=image_compressor",
-               f"~input:=/{r}/camera/image_raw", *_args({"max_rate_hz": CAMERA_MAX_RATE_HZ})),
-            wait_topics=(f"/{r}/camera/image_raw/compressed",)))
+            py("cps_transport", "image_compressor", f"__ns:={_rt(r, posixpath.dirname(names.CAMERA_IMAGE))}",
+               "__name:=image_compressor", f"{names.INPUT}:={_rt(r, names.CAMERA_IMAGE)}",
+               *_args({"max_rate_hz": CAMERA_MAX_RATE_HZ})),
+            wait_topics=(_rt(r, names.CAMERA_IMAGE_COMPRESSED),)))
     specs.append(NodeSpec(
         f"{r}/cloud_throttle", PHYSICAL,
-        py("cps_transport", "rate_limiter", ns, "__name:=cloud_throttle",
-           f"~input:=/{r}/points_filtered/draco", f"~output:=/{r}/points_filtered/draco/managed",
+        py("cps_transport", "rate_limiter", ns, f"__name:={names.CLOUD_THROTTLE}",
+           f"{names.INPUT}:={_rt(r, names.POINTS_DRACO)}", f"{names.OUTPUT}:={_rt(r, names.POINTS_MANAGED)}",
            *_args({"rate_hz": initial_rate_hz})),
-        wait_topics=(f"/{r}/points_filtered/draco/managed",)))
+        wait_topics=(_rt(r, names.POINTS_MANAGED),)))
     return specs
 
 
@@ -291,7 +305,7 @@ def _robot_tissue_shared(fleet, py, initial_rate_hz):
         NodeSpec("voxel_grid_loader", PHYSICAL,
                  py("cps_transport", "voxel_grid_loader", "__name:=voxel_grid_loader",
                     *_args({"fleet_file": fleet.path, "robots": robots, "manager": VOXEL_MANAGER})),
-                 wait_topics=tuple(f"/{r}/points_filtered" for r in fleet.robot_names), after=("nodelet_manager",)),
+                 wait_topics=tuple(_rt(r, names.POINTS_FILTERED) for r in fleet.robot_names), after=("nodelet_manager",)),
         NodeSpec("cloud_tissue", PHYSICAL,
                  py("cps_transport", "cloud_tissue", "__name:=cloud_tissue",
                     *_args({"fleet_file": fleet.path, "robots": robots, "camera_max_rate_hz": CAMERA_MAX_RATE_HZ,
@@ -299,8 +313,8 @@ def _robot_tissue_shared(fleet, py, initial_rate_hz):
                  # Not the managed topics, advertised with the first cloud through: a replayed bag
                  # starts once this process (every robot's encoder) is up.
                  wait_topics=tuple(t for robot in fleet.robots for t in (
-                     f"/{robot.name}/points_filtered/draco",
-                     *((f"/{robot.name}/camera/image_raw/compressed",) if robot.has_depth_camera else ())))),
+                     _rt(robot.name, names.POINTS_DRACO),
+                     *((_rt(robot.name, names.CAMERA_IMAGE_COMPRESSED),) if robot.has_depth_camera else ())))),
     ]
 
 
@@ -308,16 +322,17 @@ def _twin_tissue_per_robot(r, backfill, py):
     """The per_robot layout: a decoder process per robot (and one for its backfill keyframes)."""
     specs = [NodeSpec(
         f"{r}/draco_decoder", DIGITAL,
-        py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=draco_decoder",
-           f"~input:=/twin/{r}/points_filtered/draco/managed", f"~output:=/twin/{r}/points"),
-        wait_topics=(f"/twin/{r}/points",))]
+        py("cps_transport", "draco_decoder", f"__ns:={_tw(r)}", "__name:=draco_decoder",
+           f"{names.INPUT}:={A(names.managed_cloud_at_twin(r))}", f"{names.OUTPUT}:={A(names.twin_points(r))}"),
+        wait_topics=(A(names.twin_points(r)),))]
     if backfill:
         # Keyframes the robots' bridge kept during an outage, sent after it (cps_link backfill).
         specs.append(NodeSpec(
             f"{r}/backfill_decoder", DIGITAL,
-            py("cps_transport", "draco_decoder", f"__ns:=/twin/{r}", "__name:=backfill_decoder",
-               f"~input:=/twin/{r}/points_backfill/draco", f"~output:=/twin/{r}/points_backfill"),
-            wait_topics=(f"/twin/{r}/points_backfill",)))
+            py("cps_transport", "draco_decoder", f"__ns:={_tw(r)}", "__name:=backfill_decoder",
+               f"{names.INPUT}:={_tw(names.robot_topic(r, names.POINTS_BACKFILL_DRACO))}",
+               f"{names.OUTPUT}:={_tw(names.robot_topic(r, names.POINTS_BACKFILL))}"),
+            wait_topics=(_tw(names.robot_topic(r, names.POINTS_BACKFILL)),)))
     return specs
 
 
@@ -325,10 +340,11 @@ def _twin_tissue_shared(fleet, backfill, py):
     """The shared layout: /twin/cloud_decoder decodes every robot's managed (and backfill) clouds."""
     return [NodeSpec(
         "cloud_decoder", DIGITAL,
-        py("cps_transport", "cloud_decoder", "__ns:=/twin", "__name:=cloud_decoder",
+        py("cps_transport", "cloud_decoder", f"__ns:={A(names.TWIN_NS)}", "__name:=cloud_decoder",
            *_args({"fleet_file": fleet.path, "robots": ",".join(fleet.robot_names), "backfill": backfill})),
         wait_topics=tuple(t for r in fleet.robot_names
-                          for t in (f"/twin/{r}/points", *((f"/twin/{r}/points_backfill",) if backfill else ()))))]
+                          for t in (A(names.twin_points(r)),
+                                    *((_tw(names.robot_topic(r, names.POINTS_BACKFILL)),) if backfill else ()))))]
 
 
 REPLAY, RECORDER = "mission_replay", "mission_recorder"
@@ -339,10 +355,10 @@ def _bag_specs(fleet, sides, options, planned):
 
     The bag is LZ4-compressed: raw clouds are most of it, and a third of the bytes is less for a slow
     disk to take in before the recorder's stop timeout."""
-    from cps_bringup.mission_bag import MANAGED_INPUT, record_topics, replay_topics
+    from cps_bringup.mission_bag import record_topics, replay_topics
 
     # The rate limiter and the link relay advertise the managed topics with the first cloud through.
-    lazy = {t for r in fleet.robot_names for t in (f"/{r}/{MANAGED_INPUT}", f"/twin/{r}/{MANAGED_INPUT}")}
+    lazy = {A(t) for r in fleet.robot_names for t in (names.managed_cloud(r), names.managed_cloud_at_twin(r))}
 
     specs = []
     if options.record_path:

@@ -11,6 +11,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from cps_fleet import names
 from cps_transport.topic_stats import DEFAULT_WINDOW_S as STATS_WINDOW_S
 
 
@@ -80,7 +81,7 @@ def first_arrivals(arrival_rows, topic_suffix=""):
     return out
 
 
-def latency_split(physical_arrival_rows, twin_arrival_rows, twin_topic_suffix="/managed"):
+def latency_split(physical_arrival_rows, twin_arrival_rows, twin_topic_suffix="/" + names.POINTS_MANAGED):
     """Per robot, over the clouds that reached the twin and were seen on the robots' side (joined by
     capture stamp): clouds, capture -> twin avg/max ms, robot side avg ms, tissue + link avg ms.
 

@@ -6,6 +6,7 @@ import threading
 import rospy
 from std_msgs.msg import Float64, String
 
+from cps_fleet import names
 from cps_fleet.csv_log import CsvLog
 from cps_fleet.fleet import load_fleet, robot_names_arg
 from cps_msgs.msg import BandwidthAllocation, BandwidthAllocationArray, LinkState, RateLimiterStatus, TopicStatsArray
@@ -13,7 +14,6 @@ from cps_msgs.srv import SetPriority, SetPriorityResponse
 from cps_ros.diagnostics import FaultReport
 from cps_ros.timers import guarded_timer
 
-from cps_bw_manager import names
 from cps_bw_manager.estimation import BandwidthEstimator
 from cps_bw_manager.manager import (ALLOCATION_CSV_COLUMNS, DEFAULT_INPUT_RATE_HOLD_S, LINK_STATE_CSV_COLUMNS,
                                     ManagerCore, ManagerSettings, allocation_csv_rows, link_state_csv_row, link_totals)
@@ -73,17 +73,17 @@ class BandwidthManagerNode:
                          if link_csv_path else None)
         self.last_result = None
 
-        self.rate_pubs = {r: rospy.Publisher(names.limiter_rate_hz(r), Float64, queue_size=1, latch=True)
+        self.rate_pubs = {r: rospy.Publisher(names.robot_topic(r, names.LIMITER_RATE_HZ), Float64, queue_size=1, latch=True)
                           for r in self.core.robots}
         self.alloc_pub = rospy.Publisher(names.ALLOCATION, BandwidthAllocationArray, queue_size=1, latch=True)
         self.bw_pub = rospy.Publisher(names.AVAILABLE_BANDWIDTH, Float64, queue_size=1, latch=True)
         self.subs = []
         for robot in self.core.robots:
-            self.subs.append(rospy.Subscriber(names.mission_state(robot), String, self._on_mission_state,
+            self.subs.append(rospy.Subscriber(names.robot_topic(robot, names.MISSION_STATE), String, self._on_mission_state,
                                               callback_args=robot, queue_size=10))
-            self.subs.append(rospy.Subscriber(names.limiter_status(robot), RateLimiterStatus,
+            self.subs.append(rospy.Subscriber(names.robot_topic(robot, names.LIMITER_STATUS), RateLimiterStatus,
                                               self._on_status, callback_args=robot, queue_size=10))
-        self.subs.append(rospy.Subscriber(names.STATS, TopicStatsArray, self._on_stats, queue_size=2))
+        self.subs.append(rospy.Subscriber(names.TISSUE_STATS, TopicStatsArray, self._on_stats, queue_size=2))
         self.subs.append(rospy.Subscriber(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10))
         self.service = rospy.Service(names.SET_PRIORITY, SetPriority, self._on_set_priority)
         rospy.loginfo("bandwidth manager: robots %s, %.1f Mbit/s (%s), reserve %.0f %%, rates %.1f..%.1f Hz",

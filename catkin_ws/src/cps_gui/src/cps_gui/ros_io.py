@@ -24,7 +24,8 @@ from cps_ros.timers import guarded_timer
 from cps_transport.image_compression import InvalidImage, decode_jpeg
 
 from cps_fleet.robot_types import resolve
-from cps_gui import names, topview
+from cps_fleet import names
+from cps_gui import topview
 from cps_gui.fleet_state import (Allocation, ImageFrame, MapChange, Pose, RobotAllocation, RobotMapFigures,
                                  TopicFigures)
 
@@ -70,11 +71,11 @@ class FleetRosIO:
         sub(names.TISSUE_STATS, TopicStatsArray, self._on_stats)
         sub(names.ALLOCATION, BandwidthAllocationArray, self._on_allocation)
         sub(names.AVAILABLE_BANDWIDTH, Float64, lambda m: state.set_available_bandwidth(m.data))
-        sub(names.MAP_STATS, MapStats, self._on_map_stats)
+        sub(names.in_twin(names.MAP_STATS), MapStats, self._on_map_stats)
         sub(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10)
-        sub(names.PROJECTED_MAP, OccupancyGrid, self._on_projected_map, buff_size=2 ** 24)
-        sub(names.ROSOUT, Log, self._on_log, queue_size=100)
-        sub(names.MAP_CHANGES, MarkerArray, lambda m: state.set_map_changes(map_changes_of(m)), buff_size=2 ** 20)
+        sub(names.in_twin(names.PROJECTED_MAP), OccupancyGrid, self._on_projected_map, buff_size=2 ** 24)
+        sub(names.ROSOUT_AGG, Log, self._on_log, queue_size=100)
+        sub(names.in_twin(names.MAP_CHANGES), MarkerArray, lambda m: state.set_map_changes(map_changes_of(m)), buff_size=2 ** 20)
         self.estop_pub = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
         self._discovery = guarded_timer(discovery_period_s, self._discover_images, "image discovery")
         threading.Thread(target=self._discover_images, args=(None,), daemon=True).start()
@@ -97,7 +98,7 @@ class FleetRosIO:
             origin = self._odom_origin(name)
             if origin is None:
                 rospy.logwarn_throttle(10.0, f"cps_gui: no tf {names.MAP_FRAME} -> {names.odom_frame(name)} yet; "
-                                             f"/{name}/odom not shown")
+                                             f"{names.absolute(names.robot_topic(name, names.ODOM))} not shown")
                 return
             yaw = topview.yaw_from_quaternion(q.x, q.y, q.z, q.w)
             x, y, yaw_map = topview.odom_to_map(origin.x, origin.y, origin.yaw_rad, p.x, p.y, yaw)
@@ -163,7 +164,7 @@ class FleetRosIO:
             image = topview.occupancy_image(info.width, info.height, info.resolution, info.origin.position.x,
                                             info.origin.position.y, msg.data)
         except ValueError as exc:
-            rospy.logwarn_throttle(10.0, f"cps_gui: {names.PROJECTED_MAP} ignored: {exc}")
+            rospy.logwarn_throttle(10.0, f"cps_gui: {names.in_twin(names.PROJECTED_MAP)} ignored: {exc}")
             return
         self.state.set_projected_map(image)
 
@@ -213,7 +214,7 @@ class FleetRosIO:
         kind = self._image_topics.get(topic)
         if kind:
             return kind
-        return COMPRESSED_IMAGE_TYPE if topic.endswith("/compressed") else IMAGE_TYPE
+        return COMPRESSED_IMAGE_TYPE if topic.endswith("/" + names.COMPRESSED_SUFFIX) else IMAGE_TYPE
 
     def select_image_topic(self, topic):
         """Subscribe to `topic` (empty: none), dropping the previous image subscription."""

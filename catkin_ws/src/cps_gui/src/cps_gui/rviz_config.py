@@ -7,7 +7,7 @@ import sys
 
 import yaml
 
-from cps_gui import names
+from cps_fleet import names
 from cps_gui.colours import robot_colour
 
 
@@ -17,9 +17,9 @@ def fleet_rviz_config(fleet, frame_rate_hz=10):
     displays = [
         {"Class": "rviz/Grid", "Name": "Grid", "Enabled": True, "Cell Size": 1, "Plane Cell Count": 40,
          "Reference Frame": "<Fixed Frame>", "Color": "160; 160; 164", "Alpha": 0.5},
-        {"Class": "rviz/MarkerArray", "Name": "Fused map", "Enabled": True, "Marker Topic": names.MAP_MARKERS,
+        {"Class": "rviz/MarkerArray", "Name": "Fused map", "Enabled": True, "Marker Topic": names.in_twin(names.OCCUPIED_CELLS),
          "Queue Size": 2, "Namespaces": {}},
-        {"Class": "rviz/MarkerArray", "Name": "Map changes", "Enabled": True, "Marker Topic": names.MAP_CHANGES,
+        {"Class": "rviz/MarkerArray", "Name": "Map changes", "Enabled": True, "Marker Topic": names.in_twin(names.MAP_CHANGES),
          "Queue Size": 2, "Namespaces": {}},
         {"Class": "rviz/TF", "Name": "TF", "Enabled": True, "Show Names": False, "Show Axes": True,
          "Show Arrows": False, "Marker Scale": 1, "Update Interval": 0.2, "Frame Timeout": 15},
@@ -29,13 +29,13 @@ def fleet_rviz_config(fleet, frame_rate_hz=10):
         displays.append({
             "Class": "rviz/Group", "Name": robot.name, "Enabled": True,
             "Displays": [
-                {"Class": "rviz/Odometry", "Name": "pose and trail", "Enabled": True, "Topic": names.global_robot_topic(robot.name, names.ODOM),
+                {"Class": "rviz/Odometry", "Name": "pose and trail", "Enabled": True, "Topic": names.absolute(names.robot_topic(robot.name, names.ODOM)),
                  "Queue Size": 2, "Keep": 200, "Position Tolerance": 0.2, "Angle Tolerance": 0.3,
                  "Shape": {"Value": "Arrow", "Color": colour, "Alpha": 1, "Shaft Length": 0.6,
                            "Shaft Radius": 0.08, "Head Length": 0.3, "Head Radius": 0.15},
                  "Covariance": {"Value": False}},
                 {"Class": "rviz/PointCloud2", "Name": "latest cloud", "Enabled": True,
-                 "Topic": names.twin_points(robot.name), "Queue Size": 1, "Style": "Points", "Size (Pixels)": 2,
+                 "Topic": names.absolute(names.twin_points(robot.name)), "Queue Size": 1, "Style": "Points", "Size (Pixels)": 2,
                  "Alpha": 0.8, "Decay Time": 0, "Color Transformer": "FlatColor", "Color": colour,
                  "Selectable": False, "Use Fixed Frame": True, "Unreliable": True},
             ],

@@ -6,7 +6,9 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-LINK_STATE = "/tissue/link_state"
+from cps_fleet import names
+
+LINK_STATE = names.absolute(names.LINK_STATE)
 
 
 @dataclasses.dataclass

@@ -13,6 +13,7 @@ from typing import List
 
 import numpy as np
 
+from cps_fleet import names
 from cps_link.netns_link import PHYS_IP, TWIN_IP, ClosingContext
 from cps_harness.processes import RosGraph, free_port
 
@@ -46,8 +47,8 @@ class LinkRosGraph(ClosingContext):
                               capture_output=True, text=True, timeout=timeout_s)
 
     def wait_for_master(self, timeout_s=30.0):
-        code = ("import rosgraph,sys; sys.exit(0 if rosgraph.Master('/cps_probe').is_online() "
-                "and '/rosout' in str(rosgraph.Master('/cps_probe').getSystemState()) else 1)")
+        code = ("import rosgraph,sys; sys.exit(0 if rosgraph.Master('cps_probe').is_online() "
+                f"and '{names.ROSOUT}' in str(rosgraph.Master('cps_probe').getSystemState()) else 1)")
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.run_python("twin", code).returncode == 0:

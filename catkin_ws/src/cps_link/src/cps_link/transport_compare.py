@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 
+from cps_fleet import names
 from cps_harness.processes import RosGraph, find_node
 from cps_link.link_run import LinkRosGraph
 from cps_link.netns_link import TWIN_IP, namespace
@@ -56,8 +57,8 @@ class Graphs:
         graph.stop(proc, timeout_s=3.0)
 
     def managed_topic_on_twin(self, robot):
-        return f"/{robot}/points_filtered/draco/managed" if self.transport == "tcpros" else \
-            f"/twin/{robot}/points_filtered/draco/managed"
+        managed = names.managed_cloud(robot) if self.transport == "tcpros" else names.managed_cloud_at_twin(robot)
+        return names.absolute(managed)
 
     def close(self):
         self.stack.close()
@@ -65,7 +66,8 @@ class Graphs:
 
 def start_load(graphs, streams, name):
     return graphs.start("phys", [sys.executable, CLOUD_LOAD, *[f"{r}:{s}:{hz}" for r, (s, hz) in streams.items()],
-                                 *[f"/{r}/points_filtered/draco:=/{r}/points_filtered/draco/managed" for r in streams]],
+                                 *[f"{names.absolute(names.robot_topic(r, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(r))}"
+                                   for r in streams]],
                         name)
 
 

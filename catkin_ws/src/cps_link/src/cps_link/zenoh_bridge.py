@@ -14,6 +14,7 @@ import uuid
 
 import roslib.message
 import rospy
+from cps_fleet import names
 from cps_msgs.msg import LinkState
 
 from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
@@ -23,7 +24,6 @@ from cps_link.bridge_wire import (Deduplicator, Frame, WireError, decode, encode
 from cps_link.link_health import LinkHealth
 from cps_ros.diagnostics import DropReporter
 
-LINK_STATE_TOPIC = "/tissue/link_state"
 LINK_STATE_PERIOD_S = 1.0
 # How long to stay quiet before saying the other side has not come up yet, s.
 NOT_UP_WARN_AFTER_S = 5.0
@@ -42,7 +42,7 @@ TF_CACHE_S = 60.0
 POSE_TOLERANCE_S = 0.1
 # The transforms the robots' bridge forwards anyway; it keeps them for keyframe poses (one
 # subscription per topic and process in rospy: a tf2 listener beside the AnyMsg one would clash).
-TF_TOPICS = {"/tf": False, "/tf_static": True}
+TF_TOPICS = {names.TF: False, names.TF_STATIC: True}
 
 
 def zenoh_qos_priority(name):
@@ -97,7 +97,7 @@ class ZenohBridge:
         self.started_s = time.time()
         self.health = LinkHealth(started_s=self.started_s)
         self.reporter = DropReporter("zenoh_bridge")
-        self.link_pub = rospy.Publisher(LINK_STATE_TOPIC, LinkState, queue_size=5, latch=True)
+        self.link_pub = rospy.Publisher(names.LINK_STATE, LinkState, queue_size=5, latch=True)
         self.store = None
         if side == ROBOTS and table.backfill and backfill_store_bytes:
             self._start_backfill(backfill_store_bytes)

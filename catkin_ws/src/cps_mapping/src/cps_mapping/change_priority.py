@@ -1,6 +1,6 @@
 """The map server's change-detection timer: publish the changes, and give robots near a new change
 high priority through cps_bw_manager's /tissue/set_priority (the paper's section 5 trigger)."""
-from cps_mapping import names
+from cps_fleet import names
 
 
 def change_detection_timer(server, options, log, transform_of):
@@ -13,7 +13,7 @@ def change_detection_timer(server, options, log, transform_of):
     from cps_msgs.srv import SetPriority
 
     attention = ChangeAttention(options.change_attention_radius_m) if options.change_attention_radius_m > 0 else None
-    set_priority = rospy.ServiceProxy(names.SET_PRIORITY, SetPriority)
+    set_priority = rospy.ServiceProxy(names.absolute(names.SET_PRIORITY), SetPriority)  # the map server is in /twin
 
     def positions():
         out = {}

@@ -18,7 +18,8 @@ import numpy as np
 from std_msgs.msg import Header
 from std_srvs.srv import EmptyResponse
 
-from cps_mapping import map_messages, names
+from cps_fleet import names
+from cps_mapping import map_messages
 from cps_mapping.baseline import BaselineError, load_baseline, write_map_metadata
 from cps_mapping.change_attention import ATTENTION_RADIUS_M
 from cps_mapping.change_detection import detect_map_changes, write_report
@@ -292,7 +293,7 @@ class MapServer:
     def notice_topics(self, topics: Sequence[str], namespace: str):
         """Warn once per robot whose `<namespace>/<robot>/points` is among `topics` but is not mapped."""
         for topic in topics:
-            robot = names.robot_of_points_topic(topic, namespace)
+            robot = names.robot_of_topic(topic, names.POINTS, namespace)
             if robot and robot not in self.robots and robot not in self.unknown_robots:
                 self.unknown_robots.add(robot)
                 self.log.warning(f"map_server: {topic} is published but robot '{robot}' is not mapped "

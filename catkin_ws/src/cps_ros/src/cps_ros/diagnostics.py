@@ -4,7 +4,9 @@ import time
 import rospy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-DROP_REPORT_TOPIC = "/diagnostics"
+from cps_fleet import names
+
+DROP_REPORT_TOPIC = names.DIAGNOSTICS
 DROP_REPORT_KEY = "invalid_messages"
 
 

@@ -10,7 +10,7 @@ import threading
 import rospy
 from std_msgs.msg import Bool
 
-from cps_sim import names
+from cps_fleet import names
 
 
 class EstopKeeper:

@@ -11,7 +11,7 @@ import tf2_ros
 from std_msgs.msg import Bool
 
 from cps_fleet.config import ConfigError
-from cps_sim import names
+from cps_fleet import names
 from cps_sim.fleet_control import DEADMAN_S, MUX_RATE_HZ, ROUTE_RATE_HZ, ControlLoop, FleetControl
 from cps_sim.node_support import WARN_PERIOD_S, ThrottledLog, fail, load_fleet_param, load_site_for, positive_param
 from cps_sim.realtime import run_realtime

@@ -20,7 +20,8 @@ from std_msgs.msg import Bool, String
 
 from cps_fleet.config import ConfigError
 from cps_fleet.site import check_waypoint
-from cps_sim import messages, names
+from cps_fleet import names
+from cps_sim import messages
 from cps_sim.controllers import CommandGate
 from cps_sim.node_support import fail, load_fleet_param, load_site_for, name_list, positive_param, twist_from_msg
 from cps_sim.realtime import Periodic, PhysicsClock, run_realtime
@@ -177,7 +178,7 @@ class FleetSimNode:
                 self.bad_commands[name] += 1
                 self.gates[name].hold()
                 sim.robot.set_command(Twist())
-                rospy.logwarn_throttle(2.0, f"/{name}/cmd_vel: dropped {reason}; holding "
+                rospy.logwarn_throttle(2.0, f"{names.absolute(names.robot_topic(name, names.CMD_VEL))}: dropped {reason}; holding "
                                             f"({self.bad_commands[name]} dropped so far)")
                 return
             self.gates[name].on_command(twist)
@@ -196,7 +197,7 @@ class FleetSimNode:
         command = msg.data.strip().lower()
         with self.lock:
             if not self.sim.robots[name].robot.flight_command(command):
-                rospy.logwarn_throttle(2.0, f"/{name}/flight_command: unknown command '{msg.data}' (known: takeoff, land)")
+                rospy.logwarn_throttle(2.0, f"{names.absolute(names.robot_topic(name, names.FLIGHT_COMMAND))}: unknown command '{msg.data}' (known: takeoff, land)")
 
     # Loop ------------------------------------------------------------------------------------
     def _advance_physics(self, now, exact):

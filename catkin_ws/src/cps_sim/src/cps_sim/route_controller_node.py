@@ -15,7 +15,7 @@ from nav_msgs.msg import Odometry
 from std_msgs.msg import String
 
 from cps_fleet.config import ConfigError
-from cps_sim import names
+from cps_fleet import names
 from cps_sim.controllers import RouteTracker, validate_route
 from cps_sim.fleet_control import ROUTE_RATE_HZ
 from cps_sim.node_support import fail, load_fleet_param, load_site_for, positive_param, spin_at, twist_to_msg

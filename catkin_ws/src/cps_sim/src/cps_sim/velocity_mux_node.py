@@ -10,7 +10,7 @@ import rospy
 from geometry_msgs.msg import Twist as TwistMsg
 from std_msgs.msg import Bool, String
 
-from cps_sim import names
+from cps_fleet import names
 from cps_sim.controllers import VelocityMux
 from cps_sim.fleet_control import DEADMAN_S, MUX_RATE_HZ
 from cps_sim.node_support import WARN_PERIOD_S, ThrottledLog, fail, load_fleet_param, positive_param, spin_at, twist_from_msg, twist_to_msg

@@ -17,20 +17,17 @@ from rosgraph.names import ns_join
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import Float64
 
+from cps_fleet import names
 from cps_msgs.msg import RateLimiterStatus
 from cps_msgs.srv import SetRate, SetRateResponse
 from cps_ros.diagnostics import DropReporter
 from cps_ros.relay import relay_class, relay_message
 from cps_ros.timers import guarded_timer
-from cps_transport import names
 from cps_transport.draco import DracoEncoder
 from cps_transport.draco_transport import DracoPublisher, DracoSubscriber
 from cps_transport.image_compression import InvalidImage, compress_image
 from cps_transport.rate_limiter import RateLimiter
 
-# The rate limiter's node name under /<r>: the bandwidth manager's /<r>/cloud_throttle/rate_hz and
-# /<r>/cloud_throttle/status (docs/ros-graph.md), whichever process hosts it.
-THROTTLE_NAME = "cloud_throttle"
 # Clouds waiting for the link per subscriber of the managed topic.
 LIMITER_OUTPUT_QUEUE_SIZE = 5
 
@@ -50,6 +47,11 @@ class RobotTissueConfig:
     image_compressed: Optional[str] = None  # /<r>/camera/image_raw/compressed
 
 
+def _rt(robot, name):
+    """A robot's topic, fully qualified: cloud_tissue serves every robot from one node."""
+    return names.absolute(names.robot_topic(robot, name))
+
+
 def robot_tissue_configs(fleet, robots=None, initial_rate_hz=None) -> List[RobotTissueConfig]:
     """The tissue of `robots` (default: the whole fleet), everything from the fleet file (the
     limiters start at `initial_rate_hz`, default the link's min_rate_hz); an unknown robot raises
@@ -59,21 +61,22 @@ def robot_tissue_configs(fleet, robots=None, initial_rate_hz=None) -> List[Robot
         robot = fleet.robot(name)
         camera = robot.has_depth_camera
         out.append(RobotTissueConfig(
-            robot=name, filtered=f"/{name}/points_filtered", draco=f"/{name}/points_filtered/draco",
-            managed=f"/{name}/points_filtered/draco/managed", throttle_node=f"/{name}/{THROTTLE_NAME}",
+            robot=name, filtered=_rt(name, names.POINTS_FILTERED), draco=_rt(name, names.POINTS_DRACO),
+            managed=_rt(name, names.POINTS_MANAGED), throttle_node=_rt(name, names.CLOUD_THROTTLE),
             leaf_size_m=float(robot.voxel_leaf_m),
             rate_hz=float(fleet.link.min_rate_hz if initial_rate_hz is None else initial_rate_hz),
-            image_raw=f"/{name}/camera/image_raw" if camera else None,
-            image_compressed=f"/{name}/camera/image_raw/compressed" if camera else None))
+            image_raw=_rt(name, names.CAMERA_IMAGE) if camera else None,
+            image_compressed=_rt(name, names.CAMERA_IMAGE_COMPRESSED) if camera else None))
     return out
 
 
 def twin_cloud_topics(robot, backfill):
     """(input, output) pairs the twin's decoder serves for `robot`: the managed cloud as relayed,
     and with `backfill` (Zenoh transport) the keyframes kept during an outage."""
-    pairs = [(f"/twin/{robot}/points_filtered/draco/managed", f"/twin/{robot}/points")]
+    pairs = [(names.absolute(names.managed_cloud_at_twin(robot)), names.absolute(names.twin_points(robot)))]
     if backfill:
-        pairs.append((f"/twin/{robot}/points_backfill/draco", f"/twin/{robot}/points_backfill"))
+        pairs.append(tuple(names.absolute(names.in_twin(names.robot_topic(robot, t)))
+                           for t in (names.POINTS_BACKFILL_DRACO, names.POINTS_BACKFILL)))
     return pairs
 
 

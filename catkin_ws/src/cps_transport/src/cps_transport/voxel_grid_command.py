@@ -1,6 +1,8 @@
 """How the bringup starts pcl_ros's pcl/VoxelGrid for one robot (ci/env.sh must be sourced so
 pcl_ros's plugins load): its name, topics and parameters, for `nodelet load`/`standalone` argv
 and for the one loader (`nodelet_loader`) that puts every robot's into one manager."""
+from cps_fleet import names
+
 VOXEL_NODELET_TYPE = "pcl/VoxelGrid"
 VOXEL_NODE_NAME = "voxel_grid"
 
@@ -14,13 +16,14 @@ def voxel_nodelet_params(robot_config):
 
 def voxel_nodelet_name(robot_config, name=VOXEL_NODE_NAME):
     """/<r>/voxel_grid: the nodelet's name (its private parameters live under it)."""
-    return f"/{robot_config.name}/{name}"
+    return names.absolute(names.robot_topic(robot_config.name, name))
 
 
 def voxel_nodelet_remaps(robot_config):
     """{private name: topic}: the robot's cloud topic (fleet.yaml) -> /<r>/points_filtered."""
     robot = robot_config.name
-    return {"~input": f"/{robot}/{robot_config.cloud_topic}", "~output": f"/{robot}/points_filtered"}
+    return {names.INPUT: names.absolute(names.robot_topic(robot, robot_config.cloud_topic)),
+            names.OUTPUT: names.absolute(names.robot_topic(robot, names.POINTS_FILTERED))}
 
 
 def voxel_nodelet_args(robot_config, manager=None, name=VOXEL_NODE_NAME):

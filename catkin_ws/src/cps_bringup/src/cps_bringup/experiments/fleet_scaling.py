@@ -13,6 +13,7 @@ import numpy as np
 
 from cps_bringup.experiments import paper
 from cps_bringup.experiments.markdown import markdown_table, write_csv, write_markdown
+from cps_fleet import names
 
 FLEETS = (("scout",), ("scout", "jackal"), ("scout", "jackal", "iris"), ("scout", "jackal", "iris", "champ"))
 LABELS = {"scout": "Scout", "jackal": "Jackal", "iris": "Aerial", "champ": "Legged"}
@@ -85,7 +86,7 @@ def network_performance(stats_rows):
     return bw, lat, len(busy), int(np.sum(totals > 0))
 
 
-def unmanaged_per_robot(stats_rows, robots, suffixes=("/odom", "/joint_states")):
+def unmanaged_per_robot(stats_rows, robots, suffixes=("/" + names.ODOM, "/" + names.JOINT_STATES)):
     """Table 2's joint states + odometry column: per robot of the run, min/max over the windows
     with traffic of their summed MB/s."""
     from collections import defaultdict

@@ -21,6 +21,7 @@ import numpy as np
 from cps_bringup.experiments import paper
 from cps_bringup.experiments.fleet_scaling import run_mission_child
 from cps_bringup.experiments.markdown import markdown_table, write_csv, write_markdown
+from cps_fleet import names
 
 FLEET_SIZES = (1, 2, 4, 8, 16)
 QUICK_FLEET_SIZES = (1, 2)
@@ -96,15 +97,14 @@ def _arrival_latencies_ms(rows, topic_suffix):
 def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
     """The sweep's figures for one finished mission, from the files in `run_dir`."""
     from cps_bringup.report import managed_link_windows, read_csv
-    from cps_link.names import COMMAND_PROBE
 
     stats = read_csv(os.path.join(run_dir, "stats.csv"))
     allocation = read_csv(os.path.join(run_dir, "allocation.csv"))
     budgets = [float(r["budget_mbytes_per_s"]) for r in allocation if r.get("budget_mbytes_per_s")]
     budget = budgets[-1] if budgets and math.isfinite(budgets[-1]) else budget_mbytes_per_s
     _, totals = managed_link_windows(stats)
-    clouds = _arrival_latencies_ms(read_csv(os.path.join(run_dir, "arrivals.csv")), "/managed")
-    probe = _arrival_latencies_ms(read_csv(os.path.join(run_dir, "physical_arrivals.csv")), COMMAND_PROBE)
+    clouds = _arrival_latencies_ms(read_csv(os.path.join(run_dir, "arrivals.csv")), "/" + names.POINTS_MANAGED)
+    probe = _arrival_latencies_ms(read_csv(os.path.join(run_dir, "physical_arrivals.csv")), names.absolute(names.COMMAND_PROBE))
     pooled = np.concatenate([np.asarray(v) for v in clouds.values()]) if clouds else np.array([])
     probe_ms = np.concatenate([np.asarray(v) for v in probe.values()]) if probe else np.array([])
     elapsed = max(float(summary["elapsed_s"]), 1e-9)

@@ -11,6 +11,7 @@ from python_qt_binding.QtGui import QColor
 from python_qt_binding.QtWidgets import (QComboBox, QHBoxLayout, QLabel, QLineEdit, QPlainTextEdit, QSplitter,
                                          QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
 
+from cps_fleet import names
 from cps_gui.colours import robot_colour
 
 STALE_RGB = (198, 40, 40)
@@ -76,7 +77,7 @@ class StatusPane(QWidget):
         log_layout = QVBoxLayout(log_box)
         log_layout.setContentsMargins(0, 0, 0, 0)
         filters = QHBoxLayout()
-        filters.addWidget(QLabel("/rosout"))
+        filters.addWidget(QLabel(names.ROSOUT))
         filters.addWidget(self.level_combo)
         filters.addWidget(self.filter_edit, 1)
         log_layout.addLayout(filters)

@@ -11,7 +11,8 @@ from python_qt_binding.QtCore import Qt
 from python_qt_binding.QtGui import QImage, QPixmap
 from python_qt_binding.QtWidgets import QComboBox, QHBoxLayout, QLabel, QSizePolicy, QVBoxLayout, QWidget
 
-COMPRESSED_SUFFIX = "/compressed"
+from cps_fleet import names
+
 _CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8UC1": 1, "8UC3": 3}
 
 
@@ -44,8 +45,9 @@ def preferred_image_topic(topics, wanted=""):
     the first topic; either through its `/compressed` variant when that is advertised."""
     available = set(topics)
     base = wanted or (topics[0] if topics else "")
-    if base and base + COMPRESSED_SUFFIX in available:
-        return base + COMPRESSED_SUFFIX
+    compressed = f"{base}/{names.COMPRESSED_SUFFIX}"
+    if base and compressed in available:
+        return compressed
     return base
 
 
