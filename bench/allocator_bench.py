@@ -23,6 +23,7 @@ import numpy as np
 from scipy.optimize import linprog
 
 from cps_bw_manager.allocation import RobotDemand, allocate_frequencies
+from cps_fleet import names
 
 
 def _fleet(n, rng):
@@ -85,12 +86,12 @@ def measure_priority_to_rate(changes, robots, feed):
             latest_alloc.update({a.robot: a.rate_hz for a in msg.allocations})
             changed.notify_all()
 
-    subs = [rospy.Subscriber(f"/{r}/cloud_throttle/status", RateLimiterStatus, on_status, callback_args=r)
+    subs = [rospy.Subscriber(names.robot_topic(r, names.LIMITER_STATUS), RateLimiterStatus, on_status, callback_args=r)
             for r in robots]
-    subs.append(rospy.Subscriber("/tissue/allocation", BandwidthAllocationArray, on_alloc))
+    subs.append(rospy.Subscriber(names.ALLOCATION, BandwidthAllocationArray, on_alloc))
     stop = threading.Event()
     if feed:
-        pubs = {r: rospy.Publisher(f"/{r}/points_filtered/draco", CompressedPointCloud2, queue_size=2) for r in robots}
+        pubs = {r: rospy.Publisher(names.robot_topic(r, names.POINTS_DRACO), CompressedPointCloud2, queue_size=2) for r in robots}
 
         def feeder():
             msg = CompressedPointCloud2(compressed_data=bytes(30000))
@@ -101,9 +102,9 @@ def measure_priority_to_rate(changes, robots, feed):
                 time.sleep(0.05)
 
         threading.Thread(target=feeder, daemon=True).start()
-    rospy.wait_for_service("/tissue/set_priority", timeout=60)
+    rospy.wait_for_service(names.SET_PRIORITY, timeout=60)
     time.sleep(5.0)  # sizes measured
-    proxy = rospy.ServiceProxy("/tissue/set_priority", SetPriority)
+    proxy = rospy.ServiceProxy(names.SET_PRIORITY, SetPriority)
     delays = []
     for k in range(changes):
         with changed:
@@ -141,12 +142,12 @@ def bench_priority_to_rate(changes):
     robots = ("scout", "jackal")
     with RosGraph() as graph:
         for r in robots:
-            graph.start_node("cps_transport", "rate_limiter", name="cloud_throttle", namespace=f"/{r}",
-                             remap={"~input": f"/{r}/points_filtered/draco",
-                                    "~output": f"/{r}/points_filtered/draco/managed"})
+            graph.start_node("cps_transport", "rate_limiter", name=names.CLOUD_THROTTLE, namespace=names.absolute(r),
+                             remap={names.INPUT: names.absolute(names.robot_topic(r, names.POINTS_DRACO)),
+                                    names.OUTPUT: names.absolute(names.managed_cloud(r))})
         graph.start_node("cps_bw_manager", "bandwidth_manager", name="bandwidth_manager",
                          params={"~robots": list(robots), "~available_mbps": 4.0})
-        graph.wait_for_service("/tissue/set_priority", timeout_s=60)
+        graph.wait_for_service(names.absolute(names.SET_PRIORITY), timeout_s=60)
         graph.point_this_process_here()
         rospy.init_node("allocator_bench", anonymous=True, disable_signals=True)
         delays = measure_priority_to_rate(changes, robots, feed=True)

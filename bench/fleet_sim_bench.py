@@ -30,6 +30,8 @@ import time
 
 import yaml
 
+from cps_fleet import names
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FLEET_YAML = os.path.join(REPO, "catkin_ws/src/cps_bringup/config/fleet.yaml")
 CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
@@ -119,10 +121,10 @@ def run_variant(graph, fleet, label, seconds, workers, python_path=None, warmup_
                                          **({"~sensor_workers": workers} if workers is not None else {})})
     subs = []
     try:
-        node_graph.wait_for_topic(f"/{fleet.robots[-1].name}/odom", timeout_s=180)
-        subs = [rospy.Subscriber(f"/{r.name}/{r.cloud_topic}", rospy.AnyMsg, counter(r.name), queue_size=2)
+        node_graph.wait_for_topic(names.absolute(names.robot_topic(fleet.robots[-1].name, names.ODOM)), timeout_s=180)
+        subs = [rospy.Subscriber(names.robot_topic(r.name, r.cloud_topic), rospy.AnyMsg, counter(r.name), queue_size=2)
                 for r in fleet.robots]
-        subs.append(rospy.Subscriber("/diagnostics", DiagnosticArray, on_diagnostics, queue_size=50))
+        subs.append(rospy.Subscriber(names.DIAGNOSTICS, DiagnosticArray, on_diagnostics, queue_size=50))
         time.sleep(warmup_s)
         pids = [proc.pid] + _children(proc.pid)
         cpu0 = {pid: _cpu_s(pid) for pid in pids}
@@ -173,7 +175,7 @@ def run_control_layouts(graph, fleet, seconds, warmup_s=8.0):
                          params={"~fleet_file": fleet.path, "~profile": "light", "~renderer": "fast"})
     out = {}
     try:
-        sim_graph.wait_for_topic(f"/{fleet.robots[-1].name}/odom", timeout_s=180)
+        sim_graph.wait_for_topic(names.absolute(names.robot_topic(fleet.robots[-1].name, names.ODOM)), timeout_s=180)
         for layout in ("per_robot", "shared"):
             node_graph = graph.attach()
             params = {"~fleet_file": fleet.path}
@@ -181,11 +183,11 @@ def run_control_layouts(graph, fleet, seconds, warmup_s=8.0):
                 procs = [node_graph.start_node("cps_sim", "fleet_control", name="fleet_control",
                                                params={**params, "~robots": ",".join(fleet.robot_names)})]
             else:
-                procs = [node_graph.start_node("cps_sim", node, name=node, namespace=f"/{r}", params={**params, "~robot": r})
+                procs = [node_graph.start_node("cps_sim", node, name=node, namespace=names.absolute(r), params={**params, "~robot": r})
                          for r in fleet.robot_names for node in ("velocity_mux", "route_controller")]
             try:
                 for r in fleet.robot_names:
-                    node_graph.wait_for_topic(f"/{r}/mission_state", timeout_s=180)
+                    node_graph.wait_for_topic(names.absolute(names.robot_topic(r, names.MISSION_STATE)), timeout_s=180)
                 time.sleep(warmup_s)
                 cpu0 = {p.pid: _cpu_s(p.pid) for p in procs}
                 time.sleep(seconds)

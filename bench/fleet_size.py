@@ -22,6 +22,8 @@ import tempfile
 import threading
 import time
 
+from cps_fleet import names
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = os.path.join(ROOT, "catkin_ws", "src", "cps_bringup", "config")
 BRINGUP = os.path.join(ROOT, "catkin_ws", "src", "cps_bringup", "nodes", "cps_bringup")
@@ -139,7 +141,7 @@ def run_fleet(fleet_file, duration_s, out_dir):
         for kind, cores in sample["by"].items():
             by_kind[kind] += cores / len(steady)
     physical, twin = _per_topic(os.path.join(out_dir, "physical_stats.csv")), _per_topic(os.path.join(out_dir, "stats.csv"))
-    first_odom = min(t for topic, rows in twin.items() if topic.endswith("/odom") for t, n in rows if n > 0)
+    first_odom = min(t for topic, rows in twin.items() if topic.endswith("/" + names.ODOM) for t, n in rows if n > 0)
     t0, t1 = first_odom + 5.0, first_odom + duration_s
 
     def rate(rows):
@@ -154,9 +156,9 @@ def run_fleet(fleet_file, duration_s, out_dir):
         configured = fleet.profile.lidar.rate_hz if robot.has_lidar else fleet.profile.depth_camera.rate_hz
         robots.append({
             "robot": robot.name, "sensor": sensor, "configured_hz": configured,
-            "robots_side_hz": rate(physical.get(f"/{robot.name}/points_filtered", [])),
+            "robots_side_hz": rate(physical.get(names.absolute(names.robot_topic(robot.name, names.POINTS_FILTERED)), [])),
             "twin_managed_hz": rate(twin.get(f"/twin/{robot.name}/points_filtered/draco/managed", [])),
-            "odom_at_twin_hz": rate(twin.get(f"/{robot.name}/odom", [])),
+            "odom_at_twin_hz": rate(twin.get(names.absolute(names.robot_topic(robot.name, names.ODOM)), [])),
         })
     return {
         "fleet": os.path.relpath(fleet_file, CONFIG), "robots": len(fleet.robots), "exit_code": proc.returncode,

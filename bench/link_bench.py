@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from cps_fleet import names
 from cps_link.cut_analysis import ages_after, read_watch
 from cps_link.netns_link import PHYS_IP, TWIN_IP, ShapedLink, namespace
 from cps_link.transport_compare import (FIXTURES, LIVE, Graphs, bridge_pids, cpu_s, start_load,
@@ -79,13 +80,13 @@ def ceiling(cert_dir, tmp, seconds):
         try:
             watch = os.path.join(tmp, "ceiling_watch.txt")
             graphs.start("twin", [sys.executable, os.path.join(FIXTURES, "link_watch.py"), watch,
-                                  "/twin/scout/points_filtered/draco/managed"], "watch")
+                                  names.absolute(names.managed_cloud_at_twin("scout"))], "watch")
             time.sleep(3.0)
             start_load(graphs, {"scout": (100000, 1000.0)}, "load")
             time.sleep(4.0)
             t0 = time.time()
             time.sleep(seconds)
-            rows = read_watch(watch).messages.get("/twin/scout/points_filtered/draco/managed", [])
+            rows = read_watch(watch).messages.get(names.absolute(names.managed_cloud_at_twin("scout")), [])
             carried = sum(b for recv, _, b in rows if t0 <= recv < t0 + seconds)
             return carried / 1e6 / seconds
         finally:

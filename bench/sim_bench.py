@@ -24,6 +24,8 @@ import statistics
 import sys
 import time
 
+from cps_fleet import names
+
 FRAME_SIZES = ((640, 480), (160, 120))
 PYBULLET_FOR_SIZE = {640: "egl", 160: "tiny"}
 CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
@@ -220,8 +222,8 @@ def bench_node(seconds, workers):
                                   params={"~profile": "light", "~sensor_workers": workers, "~renderer": renderer})
             subs = []
             try:
-                node_graph.wait_for_topic("/scout/points", timeout_s=120)
-                subs = [rospy.Subscriber(f"/{r.name}/points", rospy.AnyMsg, counter(r.name), queue_size=2)
+                node_graph.wait_for_topic(names.absolute(names.robot_topic("scout", names.POINTS)), timeout_s=120)
+                subs = [rospy.Subscriber(names.robot_topic(r.name, names.POINTS), rospy.AnyMsg, counter(r.name), queue_size=2)
                         for r in fleet.robots]
                 time.sleep(5.0)
                 measuring.set()

@@ -21,6 +21,8 @@ import tempfile
 import threading
 import time
 
+from cps_fleet import names
+
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
@@ -85,7 +87,7 @@ class Feeder:
                 cloud = lidar_cloud(lid.rings, lid.samples_per_ring, lid.vertical_fov_deg, lid.max_range_m, seed=i,
                                     frame_id=f"{r}/{robot.sensor_frame}")
             self.clouds[r] = cloud
-            self.pubs[r] = rospy.Publisher(f"/{r}/{robot.cloud_topic}", PointCloud2, queue_size=2)
+            self.pubs[r] = rospy.Publisher(names.robot_topic(r, robot.cloud_topic), PointCloud2, queue_size=2)
             twin = {}
 
             def relay(msg, twin=twin, r=r):
@@ -93,7 +95,7 @@ class Feeder:
                     twin["cls"] = relay_class(msg._connection_header)
                     twin["pub"] = rospy.Publisher(f"/twin/{r}/points_filtered/draco/managed", twin["cls"], queue_size=5)
                 twin["pub"].publish(relay_message(twin["cls"], msg))
-            self.relays.append(rospy.Subscriber(f"/{r}/points_filtered/draco/managed", rospy.AnyMsg, relay,
+            self.relays.append(rospy.Subscriber(names.managed_cloud(r), rospy.AnyMsg, relay,
                                                 queue_size=5, buff_size=1 << 24))
             self.subs.append(rospy.Subscriber(f"/twin/{r}/points", rospy.AnyMsg, self._count, callback_args=r,
                                               queue_size=5, buff_size=1 << 24))
@@ -152,8 +154,8 @@ def measure(graph, fleet, layout, rate_hz, window_s, warmup_timeout_s=240.0):
     for spec in tissue_specs(fleet, layout):
         procs.append(graph.popen(list(spec.argv), name=f"{layout}_{spec.label.replace('/', '_')}"))
         if spec.label == "nodelet_manager":
-            rospy.wait_for_service("/tissue_nodelet_manager/load_nodelet", timeout=60)
-    rates = [rospy.Publisher(f"/{r}/cloud_throttle/rate_hz", Float64, queue_size=1, latch=True)
+            rospy.wait_for_service(f"{names.TISSUE_NODELET_MANAGER}/load_nodelet", timeout=60)
+    rates = [rospy.Publisher(names.robot_topic(r, names.LIMITER_RATE_HZ), Float64, queue_size=1, latch=True)
              for r in fleet.robot_names]
     for pub in rates:
         pub.publish(Float64(fleet.link.max_rate_hz))
