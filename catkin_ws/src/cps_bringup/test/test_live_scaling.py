@@ -28,8 +28,8 @@ def _mission_files(folder, budget=7.0, windows=(1.0, 8.0, 2.0)):
             for t, mbps in enumerate(windows) for r in ("a", "b")])
     _write(folder / "allocation.csv", ["time_s", "budget_mbytes_per_s"], [["0.0", budget]])
     # a: 10 clouds at 20 ms; b: 5 clouds at 40 ms (one at 400 ms); c: none reached the twin.
-    arrivals = [(f"/twin/a/points_filtered/draco/managed", "a", int(i * 1e9), i + 0.020) for i in range(10)]
-    arrivals += [(f"/twin/b/points_filtered/draco/managed", "b", int(i * 1e9), i + (0.4 if i == 4 else 0.040))
+    arrivals = [("/twin/a/points_filtered/draco/managed", "a", int(i * 1e9), i + 0.020) for i in range(10)]
+    arrivals += [("/twin/b/points_filtered/draco/managed", "b", int(i * 1e9), i + (0.4 if i == 4 else 0.040))
                  for i in range(5)]
     _write(folder / "arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], arrivals)
     probes = [(names.absolute(names.COMMAND_PROBE), "", int(i * 1e8), i * 0.1 + 0.003) for i in range(20)]

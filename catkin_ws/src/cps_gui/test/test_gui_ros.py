@@ -1,7 +1,6 @@
 """The GUI in this process (offscreen, no rviz) against topics and services the test provides:
 teleoperation commands, mode/priority/stop wiring, plots and health table from stats, staleness,
 video, top view and settings persistence."""
-import math
 import os
 import numpy as np
 import pytest

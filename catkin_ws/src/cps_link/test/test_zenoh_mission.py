@@ -1,7 +1,6 @@
 """cps_bringup over the real shaped link with --transport zenoh: a master per side, each on its own
 host's loopback, joined only by the two bridges. A robot's clouds reach the twin's map, and a
 command from the twin reaches the robot, which executes it (its active mode comes back)."""
-import os
 import subprocess
 import time
 

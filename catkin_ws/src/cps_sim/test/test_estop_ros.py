@@ -3,7 +3,6 @@ fleet_sim ignores /<r>/cmd_vel during STOP ALL, a mux restarted after the GUI ha
 stopped, and a mux whose wall clock steps by 30 s stops teleop within its dead-man and never
 stops spuriously while commands flow."""
 import os
-import subprocess
 import sys
 import time
 

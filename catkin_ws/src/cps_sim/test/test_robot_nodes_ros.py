@@ -177,7 +177,7 @@ def test_malformed_fleet_file_fails_with_file_and_line(ros, tmp_path):
     proc = ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_bad", params={"~fleet_file": str(bad)})
     assert _wait_exit(proc) != 0
     out = ros.output("fleet_sim_bad")
-    line = next(i for i, l in enumerate(text.splitlines(), 1) if "hexapod" in l)
+    line = next(i for i, text_line in enumerate(text.splitlines(), 1) if "hexapod" in text_line)
     assert f"{bad}:{line}:" in out and "hexapod" in out
     for known in ("wheeled_lidar", "wheeled_depth", "legged_depth", "aerial_depth"):
         assert known in out

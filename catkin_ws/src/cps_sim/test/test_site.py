@@ -48,7 +48,7 @@ def test_bad_hall_file_names_file_and_line(tmp_path):
     bad.write_text(text)
     with pytest.raises(ConfigError) as err:
         load_site(bad)
-    line = next(i for i, l in enumerate(text.splitlines(), 1) if "barrel" in l)
+    line = next(i for i, text_line in enumerate(text.splitlines(), 1) if "barrel" in text_line)
     assert f"hall.yaml:{line}:" in str(err.value) and "barrel" in str(err.value) and "known:" in str(err.value)
 
 

@@ -1,6 +1,5 @@
 """Every robot's tissue in one process (cloud_tissue, cloud_decoder, voxel_grid_loader): each robot
 keeps its own topics, rate and drop counts, and one robot's malformed clouds stop nobody else's."""
-import dataclasses
 
 import numpy as np
 import pytest

@@ -1,7 +1,6 @@
 """Draco round trips within the quantization bound and with the kept fields, a payload Google's
 reference draco_decoder reads, and every malformed input rejected with a clear error."""
 import os
-import shutil
 import subprocess
 import zlib
 

@@ -3,7 +3,6 @@ and survives encodings it does not handle, honours its rate cap and refuses bad 
 import threading
 import time
 
-import numpy as np
 import pytest
 
 from cps_harness.testing import wait_for

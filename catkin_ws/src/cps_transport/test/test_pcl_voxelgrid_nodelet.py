@@ -1,6 +1,5 @@
 """pcl_ros's pcl/VoxelGrid nodelet loads from Debian's packages (with ci/setup.sh's plugin-path
 fix) and filters a cloud, including points beyond 1 m when filter_field_name is empty."""
-import struct
 import threading
 
 import numpy as np

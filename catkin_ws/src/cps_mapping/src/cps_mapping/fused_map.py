@@ -408,7 +408,7 @@ class FusedLogOddsMap:
         last = np.minimum(np.floor(hi / self.resolution_m - 0.5).astype(np.int64), grid.lo + grid.dims - 1)
         if np.any(last < first):
             return 0
-        box = [slice(f, l + 1) for f, l in zip(first - grid.lo, last - grid.lo)]
+        box = [slice(lo, hi + 1) for lo, hi in zip(first - grid.lo, last - grid.lo)]
         axes = [np.arange(s.start, s.stop) for s in box]
         cells = np.ravel_multi_index(np.meshgrid(*axes, indexing="ij"), tuple(grid.dims)).ravel()
         cells = cells[~np.isnan(grid.log_odds[cells])]

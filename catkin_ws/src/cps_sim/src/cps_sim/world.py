@@ -14,12 +14,11 @@ import pkgutil
 import numpy as np
 import pybullet
 
+from cps_sim import fast_sensors
 from cps_sim.geometry import merged_mesh
+from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
-
-from cps_sim import fast_sensors
-from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS  # noqa: F401 (re-exported)
 # Below this many pixels per frame TinyRenderer costs less CPU than the EGL plugin on llvmpipe:
 # EGL pays ~60 ms per frame whatever the size (a fixed 2560x2048 window and a shadow-map pass),
 # TinyRenderer ~0.5 us per pixel (measured in docs/benchmarks/sim.md).

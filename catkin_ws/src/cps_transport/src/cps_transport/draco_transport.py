@@ -5,7 +5,6 @@ sensor_msgs/PointCloud2. Bad clouds and damaged payloads are counted, warned abo
 and reported on /diagnostics (see `cps_ros.diagnostics.DropReporter`); they never raise into rospy."""
 import rospy
 from rosgraph.names import ns_join
-from sensor_msgs.msg import PointCloud2
 
 from cps_msgs.msg import CompressedPointCloud2
 from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError

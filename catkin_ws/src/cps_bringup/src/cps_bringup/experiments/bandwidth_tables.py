@@ -7,7 +7,7 @@ encoder node send); MB/s = bytes x the nominal rate (10^6 B/s).
 """
 import dataclasses
 import os
-from typing import Dict, List
+from typing import Dict
 
 import numpy as np
 

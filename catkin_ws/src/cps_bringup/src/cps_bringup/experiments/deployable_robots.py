@@ -100,7 +100,6 @@ def run(out_dir, mission, quick=False, log=print):
     import matplotlib.pyplot as plt
 
     fleet = mission.fleet
-    link_mbytes = paper.FIG13_LINK_MBPS / 8.0
     budget = fleet.link.budget_mbytes_per_s
     lidar = next(r.name for r in fleet.robots if r.has_lidar)
     depth = [r.name for r in fleet.robots if not r.has_lidar]

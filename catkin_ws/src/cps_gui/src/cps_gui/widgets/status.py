@@ -26,7 +26,7 @@ class StatusPane(QWidget):
         super().__init__(parent)
         self.setObjectName("status_pane")
         self.fleet, self.state = fleet, state
-        names = fleet.robot_names
+        robot_names = fleet.robot_names
 
         self.plots = pg.GraphicsLayoutWidget()
         self.plots.setBackground("w")
@@ -40,7 +40,7 @@ class StatusPane(QWidget):
             if column == 0:
                 plot.addLegend(offset=(5, 5))
             self.plot_items[key] = plot
-            for index, name in enumerate(names):
+            for index, name in enumerate(robot_names):
                 pen = pg.mkPen(robot_colour(index), width=2)
                 self.curves[(key, name)] = _without_segments(plot.plot([], [], pen=pen,
                                                                        name=name if column == 0 else None))
@@ -53,11 +53,11 @@ class StatusPane(QWidget):
         self.link_lost_banner.setStyleSheet("background: rgb(%d,%d,%d); color: white; font-weight: bold; "
                                             "font-size: 16pt; padding: 6px" % STALE_RGB)
         self.link_lost_banner.hide()
-        self.table = QTableWidget(len(names), len(HEALTH_COLUMNS))
+        self.table = QTableWidget(len(robot_names), len(HEALTH_COLUMNS))
         self.table.setHorizontalHeaderLabels(HEALTH_COLUMNS)
         self.table.verticalHeader().setVisible(False)
         self.table.setEditTriggers(QTableWidget.NoEditTriggers)
-        for row in range(len(names)):
+        for row in range(len(robot_names)):
             for col in range(len(HEALTH_COLUMNS)):
                 self.table.setItem(row, col, QTableWidgetItem(""))
 
