@@ -17,14 +17,14 @@ test-unit: setup
 	@$(ENV) bash ci/run_tests.sh -m "unit and not slow" $(PYTEST_ARGS)
 
 demo: setup
-	@$(ENV) python catkin_ws/src/cps_bringup/nodes/demo $(DEMO_ARGS)
+	@$(ENV) python catkin_ws/src/cps_experiments/nodes/demo $(DEMO_ARGS)
 
 # The monitoring mission against the map the last `make demo` saved (out/demo/map.bt).
 monitor: setup
-	@$(ENV) python catkin_ws/src/cps_bringup/nodes/monitor $(MONITOR_ARGS)
+	@$(ENV) python catkin_ws/src/cps_experiments/nodes/monitor $(MONITOR_ARGS)
 
 experiments: setup
-	@$(ENV) python catkin_ws/src/cps_bringup/nodes/experiments $(EXPERIMENT_ARGS)
+	@$(ENV) python catkin_ws/src/cps_experiments/nodes/experiments $(EXPERIMENT_ARGS)
 
 bench: setup
 	@$(ENV) for b in bench/*_bench.py; do echo "== $$b"; python "$$b" || exit 1; done

@@ -161,9 +161,9 @@ def bench_priority_to_rate_on_link(changes):
     manager and this measurement on the digital twin, so the new rate crosses the link."""
     import json
 
-    from cps_link.link_run import LinkRosGraph
+    from cps_experiments.link_run import LinkRosGraph
     from cps_link.netns_link import LinkError, ShapedLink, check_capability
-    from cps_harness.processes import find_node
+    from cps_ros.processes import find_node
 
     try:
         check_capability()

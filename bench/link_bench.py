@@ -21,9 +21,9 @@ import time
 import numpy as np
 
 from cps_fleet import names
-from cps_link.cut_analysis import ages_after, read_watch
+from cps_experiments.cut_analysis import ages_after, read_watch
 from cps_link.netns_link import PHYS_IP, TWIN_IP, ShapedLink, namespace
-from cps_link.transport_compare import (FIXTURES, LIVE, Graphs, bridge_pids, cpu_s, start_load,
+from cps_experiments.transport_compare import (FIXTURES, LIVE, Graphs, bridge_pids, cpu_s, start_load,
                                         teleop_under_saturation)
 from cps_link.zenoh_session import MAKE_CERTS
 

@@ -204,7 +204,7 @@ def main(argv=None):
     from cps_bringup.plan import PER_ROBOT, SHARED
     from cps_fleet.fleet import load_fleet
     from cps_harness.fleets import write_fleet_with_copies
-    from cps_harness.processes import RosGraph
+    from cps_ros.processes import RosGraph
 
     folder = tempfile.mkdtemp(prefix="tissue_bench_")
     fleet = load_fleet(write_fleet_with_copies(folder, args.copies) if args.copies else None)

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from cps_harness.processes import RosGraph
+from cps_ros.processes import RosGraph
 
 SRC = os.path.normpath(os.path.join(os.path.dirname(__file__), "..", ".."))
 WORKSPACE = os.path.dirname(SRC)
@@ -41,7 +41,7 @@ def _in_install(install, command, env=None, **kwargs):
 @pytest.mark.ros
 @pytest.mark.slow
 def test_install_space_finds_its_resources(install_space):
-    code = ("from cps_fleet.fleet import load_fleet; from cps_harness.processes import find_node; "
+    code = ("from cps_fleet.fleet import load_fleet; from cps_ros.processes import find_node; "
             "import cps_bringup; f = load_fleet(); "
             "print(f.path, f.site_path, find_node('cps_mapping', 'map_server'), cps_bringup.__file__, sep='\\n')")
     result = _in_install(install_space, f"python -c \"{code}\"", capture_output=True, text=True, timeout=60)

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from cps_harness.processes import RosGraph
+from cps_ros.processes import RosGraph
 
 
 @pytest.mark.ros

@@ -11,7 +11,7 @@ import time
 import pytest
 
 from cps_bringup.cli import EXIT_MASTER_LOST
-from cps_harness.processes import processes_named
+from cps_ros.processes import processes_named
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -9,7 +9,7 @@ import pytest
 
 from cps_bringup.plan import DIGITAL, PHYSICAL, ZENOH, RunOptions, plan_nodes
 from cps_fleet.fleet import load_fleet
-from cps_harness.processes import free_port, processes_named
+from cps_ros.processes import free_port, processes_named
 
 BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
 FLEET8 = os.path.join(os.path.dirname(__file__), "..", "config", "fleets", "fleet8.yaml")

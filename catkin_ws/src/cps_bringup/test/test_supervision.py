@@ -12,7 +12,7 @@ import pytest
 from cps_bringup.plan import DIGITAL, NodeSpec
 from cps_bringup.privileges import hand_over, user_prefix
 from cps_bringup.supervisor import BringupError, MasterLost, RestartPolicy, Supervisor
-from cps_harness.processes import RosGraph
+from cps_ros.processes import RosGraph
 from cps_harness.testing import wait_for
 
 pytestmark = pytest.mark.ros

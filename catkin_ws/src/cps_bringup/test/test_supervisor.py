@@ -13,7 +13,7 @@ from cps_bringup.plan import DIGITAL, PER_ROBOT, PHYSICAL, ZENOH, NodeSpec, RunO
 from cps_fleet import names
 from cps_bringup.supervisor import BringupError, Supervisor
 from cps_fleet.fleet import load_fleet
-from cps_harness.processes import RosGraph, processes_named
+from cps_ros.processes import RosGraph, processes_named
 
 BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
 

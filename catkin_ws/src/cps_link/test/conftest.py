@@ -1,7 +1,7 @@
 """Fixtures of cps_link's tests (the workspace's ros_master/ros/rospy_node come from the top conftest)."""
 import pytest
 
-from cps_harness.processes import RosGraph
+from cps_ros.processes import RosGraph
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from cps_harness.processes import RosGraph, find_node
+from cps_ros.processes import RosGraph, find_node
 from cps_link import netns_link
 from cps_link.netns_lan import SharedLan
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from cps_harness.processes import find_node, free_port
+from cps_ros.processes import find_node, free_port
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.bridge_wire import Frame, encode
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv, session_config

@@ -23,7 +23,7 @@ from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPoli
 from cps_fleet import names
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import PROFILES, load_fleet, robot_names_arg
-from cps_harness.processes import RosGraph, free_port
+from cps_ros.processes import RosGraph, free_port
 from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
 
 

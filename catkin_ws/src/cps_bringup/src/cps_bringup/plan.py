@@ -127,7 +127,7 @@ def _stats_topics(robots):
 
 def default_node_path(package: str, node: str) -> str:
     """The node's executable as rospkg/catkin find it (devel or install space)."""
-    from cps_harness.processes import find_node
+    from cps_ros.processes import find_node
 
     return find_node(package, node)
 

@@ -15,7 +15,7 @@ import time
 from typing import Callable, Dict, List, Optional
 
 from cps_bringup.plan import NodeSpec
-from cps_harness.processes import RosGraph
+from cps_ros.processes import RosGraph
 
 
 class BringupError(RuntimeError):

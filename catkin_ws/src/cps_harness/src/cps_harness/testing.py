@@ -8,7 +8,7 @@ asserting that nothing changed.
 import threading
 import time
 
-from cps_harness.processes import RosGraph, find_node, free_port, processes_named
+from cps_ros.processes import RosGraph, find_node, free_port, processes_named
 
 __all__ = ["RosGraph", "TopicRecorder", "find_node", "free_port", "processes_named", "wait_for"]
 

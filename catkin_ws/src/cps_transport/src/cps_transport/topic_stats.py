@@ -36,7 +36,7 @@ def stamp_ns_from_serialized(buffer):
 
 # One row per stamped message (cps_fleet.csv_log.CsvLog): the same capture stamp travels through
 # voxel grid, Draco and the rate limiter, so the robots' side's rows and the twin's join per cloud
-# (cps_bringup.report.latency_split).
+# (cps_experiments.report.latency_split).
 ARRIVAL_COLUMNS = ("topic", "robot", "stamp_ns", "receive_s")
 
 

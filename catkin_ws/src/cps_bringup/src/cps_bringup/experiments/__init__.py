@@ -1,1 +1,0 @@
-"""The paper's experiments reproduced with this system (make experiments)."""

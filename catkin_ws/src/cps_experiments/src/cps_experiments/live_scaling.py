@@ -1,0 +1,337 @@
+"""Fig. 13 run live (`fig13_live`): fleets of N = 1, 2, 4, 8, 16 mixed robots actually running on the
+shaped 60 Mbit/s link and on a degraded 10 Mbit/s one, with the bandwidth manager on and off, each
+beside the same N on an unconstrained (loopback) link for the map's reference F1.
+
+Each run is one `cps_bringup all` mission (`run_mission` in a child process) over the N-robot fleet
+file; everything below is read back from the files the mission wrote: the twin's managed-cloud
+statistics (windows over budget), the per-cloud arrivals at the twin (latency, achieved Hz), the
+command probe's arrivals on the robots' side (teleop latency), the map server's counters (clouds
+dropped) and the saved map (F1 against cps_sim's ground truth). A robot whose clouds never reached
+the twin is reported as missing, never filled in.
+"""
+import dataclasses
+import json
+import math
+import os
+from collections import defaultdict
+from typing import List, Optional
+
+import numpy as np
+
+from cps_experiments import paper
+from cps_experiments.fleet_scaling import run_mission_child
+from cps_experiments.markdown import markdown_table, write_csv, write_markdown
+from cps_fleet import names
+
+FLEET_SIZES = (1, 2, 4, 8, 16)
+QUICK_FLEET_SIZES = (1, 2)
+LINKS_MBPS = (60.0, 10.0)
+# A cap: a run ends when every route is done (each N covers the same ground whatever its timing), or
+# here if a robot is still on its route.
+DURATION_S = 60.0
+QUICK_DURATION_S = 20.0
+# The issue's bar for the 16-robot, 60 Mbit/s, manager-on run.
+MIN_RATE_HZ = 1.0
+F1_FRACTION_TARGET = 0.95
+DROPPED_FRACTION_TARGET = 0.01
+TELEOP_P95_TARGET_MS = 100.0
+
+
+
+@dataclasses.dataclass(frozen=True)
+class LiveRun:
+    """One mission of the sweep. link_mbps None: unconstrained (loopback, no shaping)."""
+    robots: int
+    link_mbps: Optional[float]
+    manager: bool
+
+    @property
+    def name(self):
+        link = f"{self.link_mbps:g}mbit" if self.link_mbps else "unconstrained"
+        return f"n{self.robots:02d}_{link}_manager_{'on' if self.manager else 'off'}"
+
+
+def sweep(sizes=FLEET_SIZES, links_mbps=LINKS_MBPS, shaped=True) -> List[LiveRun]:
+    """Per N: the unconstrained reference (loopback, no manager: every cloud sent), then each link with
+    the manager on and off."""
+    runs = []
+    for n in sizes:
+        runs.append(LiveRun(n, None, False))
+        if shaped:
+            runs += [LiveRun(n, mbps, manager) for mbps in links_mbps for manager in (True, False)]
+    return runs
+
+
+def fleet_robots(fleet_file, n):
+    """The first `n` robots of the fleet file (ConfigError if it has fewer: never invented)."""
+    from cps_fleet.config import ConfigError
+    from cps_fleet.fleet import load_fleet
+
+    names = load_fleet(fleet_file).robot_names
+    if len(names) < n:
+        raise ConfigError(fleet_file, None, f"{len(names)} robots, the sweep asks for {n}")
+    return names[:n]
+
+
+def mission_argv(run: LiveRun, fleet_file, out_dir, duration_s):
+    argv = ["all", "--fleet", fleet_file, "--robots", ",".join(fleet_robots(fleet_file, run.robots)),
+            "--duration", f"{duration_s:g}", "--out", out_dir,
+            "--link", f"{run.link_mbps:g}mbit" if run.link_mbps else "none"]
+    if not run.manager:
+        argv += ["--bandwidth-manager", "off"]
+    return argv
+
+
+def _arrival_latencies_ms(rows, topic_suffix):
+    """Per robot: receive - capture stamp (ms) of every arrival on topics ending in topic_suffix."""
+    out = defaultdict(list)
+    for row in rows:
+        if row["topic"].endswith(topic_suffix):
+            try:
+                out[row["robot"]].append((float(row["receive_s"]) - int(row["stamp_ns"]) * 1e-9) * 1e3)
+            except (TypeError, ValueError):
+                continue
+    return out
+
+
+def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
+    """The sweep's figures for one finished mission, from the files in `run_dir`."""
+    from cps_experiments.report import managed_link_windows, read_csv
+
+    stats = read_csv(os.path.join(run_dir, "stats.csv"))
+    allocation = read_csv(os.path.join(run_dir, "allocation.csv"))
+    budgets = [float(r["budget_mbytes_per_s"]) for r in allocation if r.get("budget_mbytes_per_s")]
+    budget = budgets[-1] if budgets and math.isfinite(budgets[-1]) else budget_mbytes_per_s
+    _, totals = managed_link_windows(stats)
+    clouds = _arrival_latencies_ms(read_csv(os.path.join(run_dir, "arrivals.csv")), "/" + names.POINTS_MANAGED)
+    probe = _arrival_latencies_ms(read_csv(os.path.join(run_dir, "physical_arrivals.csv")), names.absolute(names.COMMAND_PROBE))
+    pooled = np.concatenate([np.asarray(v) for v in clouds.values()]) if clouds else np.array([])
+    probe_ms = np.concatenate([np.asarray(v) for v in probe.values()]) if probe else np.array([])
+    elapsed = max(float(summary["elapsed_s"]), 1e-9)
+    hz = {r: len(clouds.get(r, ())) / elapsed for r in robots}
+    inserted = sum(summary.get("clouds_inserted", {}).values())
+    dropped = sum(summary.get("clouds_dropped", {}).values())
+    return {
+        "elapsed_s": elapsed,
+        "budget_mbytes_per_s": budget,
+        "windows": int(len(totals)),
+        "windows_over_budget": int(np.sum(totals > budget)),
+        "max_window_mbytes_per_s": float(totals.max()) if len(totals) else 0.0,
+        "latency_p50_ms": float(np.percentile(pooled, 50)) if len(pooled) else math.nan,
+        "latency_p95_ms": float(np.percentile(pooled, 95)) if len(pooled) else math.nan,
+        "teleop_p95_ms": float(np.percentile(probe_ms, 95)) if len(probe_ms) else math.nan,
+        "teleop_probes": int(len(probe_ms)),
+        "robots_reached": sum(1 for r in robots if hz[r] > 0),
+        "min_hz": min(hz.values()) if hz else 0.0,
+        "median_hz": float(np.median(list(hz.values()))) if hz else 0.0,
+        "hz_per_robot": hz,
+        "clouds_inserted": inserted,
+        "clouds_dropped": dropped,
+        "dropped_fraction": dropped / (inserted + dropped) if inserted + dropped else math.nan,
+    }
+
+
+def _score(map_file, fleet, run_dir):
+    from cps_experiments.report import score_saved_map
+
+    if not map_file or not os.path.exists(map_file):
+        return math.nan
+    score, _ = score_saved_map(map_file, fleet, os.path.join(run_dir, "ground_truth.npz"))
+    return float(score.f1)
+
+
+def default_fleet_file():
+    from cps_fleet.fleet import default_fleet_path
+
+    return os.path.join(os.path.dirname(default_fleet_path()), "fleets", "fleet16.yaml")
+
+
+def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse_runs=False,
+        fleet_file=None, sizes=None, log=print):
+    """Run (or, with reuse_runs, read back) the sweep; write fig13_live.csv/.png/.md into out_dir."""
+    from cps_fleet.fleet import load_fleet
+
+    fleet_file = os.path.abspath(fleet_file or default_fleet_file())
+    shaped = os.geteuid() == 0
+    duration_s = duration_s or (QUICK_DURATION_S if quick else DURATION_S)
+    sizes = sizes or (QUICK_FLEET_SIZES if quick else FLEET_SIZES)
+    base = load_fleet(fleet_file)
+    measured, failures = {}, {}
+    for live in sweep(sizes, shaped=shaped):
+        run_dir = os.path.abspath(os.path.join(run_root, "fig13_live", live.name))
+        robots = fleet_robots(fleet_file, live.robots)
+        fleet = base.with_robots(robots)
+        try:
+            done = os.path.join(run_dir, "mission_result.json")
+            if reuse_runs and os.path.exists(done):
+                with open(done) as stream:
+                    summary = json.load(stream)
+            else:
+                summary = run_mission_child(mission_argv(live, fleet_file, run_dir, duration_s), run_dir, log)
+        except RuntimeError as exc:
+            failures[live] = str(exc)
+            log(f"[experiments] {exc}")
+            continue
+        link_mbps = live.link_mbps or base.link.available_mbps
+        figures = measure_run(run_dir, summary, robots, link_mbps / 8 * (1 - base.link.reserve_fraction))
+        figures["f1"] = _score(summary.get("map_file"), fleet, run_dir)
+        measured[live] = figures
+        log(f"[experiments] {live.name}: {figures['robots_reached']}/{live.robots} robots reached the twin, "
+            f"min {figures['min_hz']:.2f} Hz, {figures['windows_over_budget']}/{figures['windows']} windows over "
+            f"budget, F1 {figures['f1']:.3f}")
+    for live, figures in measured.items():
+        reference = measured.get(LiveRun(live.robots, None, False))
+        figures["f1_fraction"] = (figures["f1"] / reference["f1"] if reference and reference["f1"] > 0
+                                  else math.nan)
+    _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped)
+    return {"measured": measured, "failures": failures}
+
+
+COLUMNS = ("robots", "link_mbps", "manager", "robots_reached", "elapsed_s", "windows", "windows_over_budget",
+           "max_window_mbytes_per_s", "budget_mbytes_per_s", "latency_p50_ms", "latency_p95_ms", "teleop_p95_ms",
+           "teleop_probes", "min_hz", "median_hz", "clouds_inserted", "clouds_dropped", "dropped_fraction", "f1",
+           "f1_fraction")
+
+
+def _cell(value):
+    if isinstance(value, float):
+        return "" if math.isnan(value) else round(value, 4)
+    return value
+
+
+def verdict(figures):
+    """The issue's bar for a managed run: each condition and whether it held."""
+    return {
+        f"every robot ≥ {MIN_RATE_HZ:g} Hz": figures["min_hz"] >= MIN_RATE_HZ,
+        "no window over budget": figures["windows_over_budget"] == 0,
+        f"F1 ≥ {F1_FRACTION_TARGET:.0%} of unconstrained": figures.get("f1_fraction", math.nan) >= F1_FRACTION_TARGET,
+        f"map server drops ≤ {DROPPED_FRACTION_TARGET:.0%}": figures["dropped_fraction"] <= DROPPED_FRACTION_TARGET,
+        f"teleop p95 ≤ {TELEOP_P95_TARGET_MS:g} ms": figures["teleop_p95_ms"] <= TELEOP_P95_TARGET_MS,
+    }
+
+
+def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped):
+    rows = []
+    for live, f in sorted(measured.items(), key=lambda kv: (kv[0].robots, -(kv[0].link_mbps or 1e9), not kv[0].manager)):
+        rows.append([live.robots, live.link_mbps or "unconstrained", "on" if live.manager else "off"] +
+                    [_cell(f[c]) for c in COLUMNS[3:]])
+    write_csv(os.path.join(out_dir, "fig13_live.csv"), COLUMNS, rows)
+    _plot(measured, os.path.join(out_dir, "fig13_live.png"))
+
+    table = [[live.robots, f"{live.link_mbps:g}" if live.link_mbps else "none", "on" if live.manager else "off",
+              f"{f['robots_reached']}/{live.robots}", f"{f['windows_over_budget']}/{f['windows']}",
+              f"{f['max_window_mbytes_per_s']:.2f} / {f['budget_mbytes_per_s']:.2f}",
+              f"{f['latency_p50_ms']:.0f} / {f['latency_p95_ms']:.0f}", f"{f['teleop_p95_ms']:.0f}",
+              f"{f['min_hz']:.2f} / {f['median_hz']:.2f}", f"{f['clouds_dropped']}/{f['clouds_inserted'] + f['clouds_dropped']}",
+              f"{f['f1']:.3f}", f"{f.get('f1_fraction', math.nan):.1%}"]
+             for live, f in sorted(measured.items(), key=lambda kv: (kv[0].robots, -(kv[0].link_mbps or 1e9),
+                                                                    not kv[0].manager))]
+    sections = [
+        f"Each row is one `cps_bringup all --fleet {os.path.relpath(fleet_file)} --robots <first N> --duration "
+        f"{duration_s:g} --link <rate>` mission (`--bandwidth-manager off` for the unmanaged rows), the first N robots "
+        f"of the fleet file (mixed types, generated routes), ending when every route is done, the whole system (simulator, tissue, bridges, map "
+        f"server) on one 2-core machine. "
+        + ("Shaped links are tc-shaped veth pairs between two network namespaces; " if shaped else
+           "Not root: only the unconstrained (loopback) runs were possible; ")
+        + "'none' is the same fleet on loopback, the map's reference. Latency is receive at the twin − capture "
+          "stamp per cloud (pooled p50/p95); teleop is the command probe (TwistStamped at 10 Hz in the bridge's "
+          "command class, twin → robots) measured on the robots' side; Hz is clouds received at the twin per "
+          "robot per second of mission (min / median over robots); windows are /tissue/stats' ~1 s windows of "
+          "managed MB/s against the manager's budget (the nominal one with the manager off).",
+        markdown_table(["N", "link Mbit/s", "manager", "robots reached", "windows over budget",
+                        "max window / budget MB/s", "cloud latency p50 / p95 ms", "teleop p95 ms",
+                        "Hz min / median", "clouds dropped by the map server", "F1", "F1 / unconstrained"], table),
+        "![fig13_live](fig13_live.png)",
+    ]
+    from cps_fleet.fleet import load_fleet
+
+    sections += _differences(measured, load_fleet(fleet_file).link.reserve_fraction)
+    for live, error in failures.items():
+        sections += [f"### {live.name}: failed", "```\n" + error.strip()[-1500:] + "\n```"]
+    write_markdown(os.path.join(out_dir, "fig13_live.md"),
+                   "Fig. 13 live: fleets of 1–16 robots sharing one link, manager on and off", sections)
+
+
+def _differences(measured, reserve_fraction):
+    """A sentence on each difference from the paper's Fig. 13 and on each of the issue's conditions."""
+    lines = ["### Against the paper's Fig. 13 and the targets"]
+    lines.append(f"- The paper's Fig. 13 is arithmetic: {paper.FIG13_DEPLOYABLE_A} lidar or "
+                 f"{paper.FIG13_DEPLOYABLE_B} depth robots fit {paper.FIG13_LINK_MBPS:g} Mbit/s unmanaged. "
+                 "These rows are measured on running fleets.")
+    largest = max((live.robots for live in measured), default=0)
+    for link in LINKS_MBPS:
+        on, off = measured.get(LiveRun(largest, link, True)), measured.get(LiveRun(largest, link, False))
+        if on:
+            held = verdict(on)
+            lines.append(f"- {largest} robots on {link:g} Mbit/s with the manager: " + "; ".join(
+                f"{name}: {'yes' if ok else 'NO'}" for name, ok in held.items()) +
+                f" (min {on['min_hz']:.2f} Hz, {on['windows_over_budget']} windows over, F1 {on.get('f1_fraction', math.nan):.1%} "
+                f"of unconstrained, {on['dropped_fraction']:.1%} dropped, teleop p95 {on['teleop_p95_ms']:.0f} ms).")
+        if on and off:
+            lines.append(f"- Without the manager on {link:g} Mbit/s: {off['windows_over_budget']} of {off['windows']} "
+                         f"windows over budget (with: {on['windows_over_budget']}), cloud latency p95 "
+                         f"{off['latency_p95_ms']:.0f} ms (with: {on['latency_p95_ms']:.0f} ms), teleop p95 "
+                         f"{off['teleop_p95_ms']:.0f} ms (with: {on['teleop_p95_ms']:.0f} ms).")
+    reference = measured.get(LiveRun(largest, None, False))
+    degraded_off = measured.get(LiveRun(largest, min(LINKS_MBPS), False))
+    if reference and degraded_off:
+        lines.append(f"- What limits {largest} robots here is the machine, not the link: unmanaged on "
+                     f"{min(LINKS_MBPS):g} Mbit/s the busiest window carried {degraded_off['max_window_mbytes_per_s']:.2f} "
+                     f"of {degraded_off['budget_mbytes_per_s']:.2f} MB/s, while the unconstrained (loopback) run of the "
+                     f"same fleet already had the map server drop {reference['dropped_fraction']:.1%} of the clouds, "
+                     f"cloud latency p95 {reference['latency_p95_ms']:.0f} ms and teleop p95 {reference['teleop_p95_ms']:.0f} ms: "
+                     "the two cores run the simulated robots and their sensors, the tissue, both bridges and the map "
+                     "server together.")
+    for link in LINKS_MBPS:
+        on = measured.get(LiveRun(largest, link, True))
+        nominal = link / 8 * (1 - reserve_fraction)
+        if on and on["budget_mbytes_per_s"] < 0.8 * nominal:
+            lines.append(f"- With the manager on {link:g} Mbit/s its estimate of the link fell to "
+                         f"{on['budget_mbytes_per_s']:.2f} MB/s of budget (nominal {nominal:.2f}): the estimator "
+                         "reads the latency that CPU queueing adds as congestion, so it lowered the rates "
+                         f"(median {on['median_hz']:.2f} Hz) although the link had room.")
+    short = [f"{live.name} ({f['robots_reached']}/{live.robots})" for live, f in measured.items()
+             if f["robots_reached"] < live.robots]
+    if short:
+        lines.append("- Runs where not every robot's clouds reached the twin (reported as measured, not filled in): "
+                     + ", ".join(short) + ".")
+    return lines
+
+
+def _plot(measured, png_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_hz, ax_link, ax_f1) = plt.subplots(1, 3, figsize=(15, 4.5))
+    styles = {(60.0, True): ("g-o", "60 Mbit/s, manager on"), (60.0, False): ("g--x", "60 Mbit/s, manager off"),
+              (10.0, True): ("r-o", "10 Mbit/s, manager on"), (10.0, False): ("r--x", "10 Mbit/s, manager off"),
+              (None, False): ("k:", "unconstrained (loopback, every cloud sent)")}
+    for (link, manager), (style, label) in styles.items():
+        runs = sorted((live.robots, f) for live, f in measured.items() if live.link_mbps == link and live.manager == manager)
+        if not runs:
+            continue
+        n = [r for r, _ in runs]
+        ax_hz.plot(n, [f["min_hz"] for _, f in runs], style, label=label)
+        if link:
+            ax_link.plot(n, [f["max_window_mbytes_per_s"] / f["budget_mbytes_per_s"] for _, f in runs], style, label=label)
+        ax_f1.plot(n, [f["f1"] for _, f in runs], style, label=label)
+    ax_hz.axhline(MIN_RATE_HZ, color="grey", lw=0.8)
+    ax_hz.set(xlabel="robots N", ylabel="slowest robot's clouds at the twin (Hz)", xscale="log", title="achieved rate")
+    ax_link.axhline(1.0, color="grey", lw=0.8)
+    for n, label in ((paper.FIG13_DEPLOYABLE_A, "paper: lidar robots at 60 Mbit/s"),
+                     (paper.FIG13_DEPLOYABLE_B, "paper: depth robots at 60 Mbit/s")):
+        ax_link.axvline(n, color="b", lw=0.8, ls=":")
+        ax_link.text(n, 0.02, label, rotation=90, fontsize=7, color="b", va="bottom",
+                     transform=ax_link.get_xaxis_transform())
+    ax_link.set(xlabel="robots N", ylabel="busiest window / budget", xscale="log", title="link use (paper's Fig. 13 axis)")
+    ax_f1.set(xlabel="robots N", ylabel="map F1 vs ground truth", xscale="log", title="map quality")
+    for ax in (ax_hz, ax_link, ax_f1):
+        ax.set_xticks(sorted({live.robots for live in measured}) or [1])
+        ax.get_xaxis().set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        ax.grid(alpha=0.3)
+    ax_hz.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)

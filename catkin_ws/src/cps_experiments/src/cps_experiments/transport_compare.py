@@ -1,0 +1,104 @@
+"""The same load over either transport, on a shaped link (the link benchmark and its tests): one
+master across the link (tcpros, the paper's set-up) or a master per side joined by the Zenoh
+bridges. Processes on either side, the cloud load, teleop latency and the bridges' CPU."""
+import contextlib
+import os
+import sys
+import time
+
+import numpy as np
+
+from cps_fleet import names
+from cps_ros.processes import RosGraph, find_node
+from cps_experiments.link_run import LinkRosGraph
+from cps_link.netns_link import TWIN_IP, namespace
+from cps_link.zenoh_session import bridge_argv
+
+FIXTURES = os.path.normpath(os.path.join(os.path.dirname(find_node("cps_link", "zenoh_bridge")), "..", "test",
+                                        "fixtures"))
+CLOUD_LOAD = os.path.normpath(os.path.join(os.path.dirname(find_node("cps_bw_manager", "bandwidth_manager")), "..",
+                                           "test", "fixtures", "cloud_load.py"))
+# Within the budget of a 60 Mbit/s link (~4.9 MB/s of ~7.2): Table 6's sizes at managed rates.
+LIVE = {"scout": (34000, 10.0), "jackal": (142000, 10.0), "champ": (60000, 20.0), "iris": (67000, 20.0)}
+# Saturating: ~17 MB/s offered.
+SATURATING = {"scout": (34000, 10.0), "jackal": (142000, 30.0), "champ": (60000, 30.0), "iris": (67000, 30.0)}
+
+
+class Graphs:
+    """Processes on either side: one master across the link (tcpros) or one per side (zenoh)."""
+
+    def __init__(self, link, transport, cert_dir):
+        self.link, self.transport = link, transport
+        self.stack = contextlib.ExitStack()
+        if transport == "tcpros":
+            self.tcpros = self.stack.enter_context(LinkRosGraph(link))
+        else:
+            self.sides = {}
+            from cps_bringup.link import InNamespace
+
+            for side in ("phys", "twin"):
+                graph = InNamespace(RosGraph(host_ip="127.0.0.1"), f"/var/run/netns/{namespace(link.name, side)}")
+                self.stack.callback(graph.close)
+                graph.start()
+                self.sides[side] = graph
+            robots = list(LIVE)
+            self.bridges = [self.sides["twin"].popen(bridge_argv(sys.executable, "twin", TWIN_IP, robots, cert_dir),
+                                                     name="bridge_twin"),
+                            self.sides["phys"].popen(bridge_argv(sys.executable, "robots", TWIN_IP, robots, cert_dir),
+                                                     name="bridge_robots")]
+
+    def start(self, side, argv, name):
+        if self.transport == "tcpros":
+            return self.tcpros.start(side, argv, name)
+        return self.sides[side].popen(argv, name=name)
+
+    def stop(self, side, proc):
+        graph = self.tcpros.sides[side] if self.transport == "tcpros" else self.sides[side]
+        graph.stop(proc, timeout_s=3.0)
+
+    def managed_topic_on_twin(self, robot):
+        managed = names.managed_cloud(robot) if self.transport == "tcpros" else names.managed_cloud_at_twin(robot)
+        return names.absolute(managed)
+
+    def close(self):
+        self.stack.close()
+
+
+def start_load(graphs, streams, name):
+    return graphs.start("phys", [sys.executable, CLOUD_LOAD, *[f"{r}:{s}:{hz}" for r, (s, hz) in streams.items()],
+                                 *[f"{names.absolute(names.robot_topic(r, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(r))}"
+                                   for r in streams]],
+                        name)
+
+
+def cpu_s(pids):
+    total = 0.0
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
+
+
+def bridge_pids(graphs):
+    """The bridges' python processes (the netns exec wrapper execs into them)."""
+    return [p.pid for p in graphs.bridges]
+
+
+def teleop_latencies_ms(path):
+    rows = [line.split() for line in open(path) if len(line.split()) == 2]
+    return np.array([1000.0 * (float(recv) - float(sent)) for recv, sent in rows])
+
+
+
+
+def teleop_under_saturation(graphs, path, seconds):
+    """Teleop latencies (ms) twin -> robot at 20 Hz while the clouds saturate robots -> twin."""
+    graphs.start("phys", [sys.executable, os.path.join(FIXTURES, "teleop_probe.py"), "recv", "scout", path],
+                 "teleop_recv")
+    start_load(graphs, SATURATING, "saturating_load")
+    time.sleep(3.0)
+    graphs.start("twin", [sys.executable, os.path.join(FIXTURES, "teleop_probe.py"), "send", "scout", "20"],
+                 "teleop_send")
+    time.sleep(seconds)
+    return teleop_latencies_ms(path)

@@ -1,0 +1,159 @@
+"""A mission recorded with `--record` and replayed with `--replay` through the real tissue and twin
+maps as well as the live run; bags that cannot feed the fleet are refused with the reason."""
+import os
+import subprocess
+import sys
+
+import pytest
+
+from cps_bringup.mission_bag import BagError, check_bag, finish_recording, record_topics, replay_topics
+from cps_fleet.fleet import load_fleet
+
+BRINGUP = os.path.join(os.path.dirname(__file__), "..", "..", "cps_bringup", "nodes", "cps_bringup")
+ROBOTS = "scout,jackal"
+# The replay feeds the same clouds through the same tissue: its map scores (nearly) as the live one.
+REPLAY_F1_FRACTION = 0.95
+
+
+def _two_robots():
+    return load_fleet().with_robots(ROBOTS.split(","))
+
+
+def _bringup(*args, timeout_s=400):
+    result = subprocess.run([sys.executable, BRINGUP, "all", "--robots", ROBOTS, *args],
+                            capture_output=True, text=True, timeout=timeout_s)
+    log = result.stdout + result.stderr
+    assert result.returncode == 0, log[-4000:]
+    return log
+
+
+def _f1(map_file, fleet, tmp_path, name):
+    from cps_experiments.report import score_saved_map
+
+    score, _ = score_saved_map(str(map_file), fleet, str(tmp_path / f"{name}_ground_truth.npz"))
+    return score.f1
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_recorded_mission_replays_through_tissue_and_twin(open_tmp_path):
+    tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
+    bag = tmp_path / "live" / "mission.bag"   # in the mission folder: the nodes (the recorder too) run unprivileged
+    _bringup("--duration", "20", "--record", str(bag), "--out", str(tmp_path / "live"))
+    info = subprocess.run(["rosbag", "info", str(bag)], capture_output=True, text=True, check=True).stdout
+    print(info)
+    fleet = _two_robots()
+    for topic in record_topics(fleet):
+        assert topic in info, f"{topic} not recorded:\n{info}"
+
+    log = _bringup("--replay", str(bag), "--out", str(tmp_path / "replay"))
+    assert "mission ended by replay" in log, log[-3000:]
+
+    live_f1 = _f1(tmp_path / "live" / "map.bt", fleet, tmp_path, "live")
+    replay_f1 = _f1(tmp_path / "replay" / "map.bt", fleet, tmp_path, "replay")
+    print(f"map F1 vs ground truth: live {live_f1:.4f}, replayed {replay_f1:.4f} "
+          f"({replay_f1 / live_f1:.1%} of live)")
+    assert replay_f1 >= REPLAY_F1_FRACTION * live_f1
+
+
+def _write_bag(path, fleet, topics, frame_of=None):
+    """A small real bag: one cloud, odometry and tf message per robot on the given topics."""
+    import rosbag
+    import rospy
+    from geometry_msgs.msg import TransformStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import PointCloud2
+    from tf2_msgs.msg import TFMessage
+
+    stamp = rospy.Time(100)
+    with rosbag.Bag(str(path), "w") as bag:
+        for robot in fleet.robots:
+            cloud = PointCloud2()
+            cloud.header.stamp, cloud.header.frame_id = stamp, (frame_of or {}).get(robot.name, robot.sensor_frame)
+            odom = Odometry()
+            odom.header.stamp, odom.header.frame_id = stamp, f"{robot.name}/odom"
+            for topic, msg in ((f"/{robot.name}/points", cloud), (f"/{robot.name}/odom", odom)):
+                if topic in topics:
+                    bag.write(topic, msg, stamp)
+        static = TFMessage([TransformStamped(child_frame_id=f"{r}/odom") for r in fleet.robot_names])
+        for t in static.transforms:
+            t.header.frame_id, t.transform.rotation.w = "map", 1.0
+        for topic in ("/tf", "/tf_static"):
+            if topic in topics:
+                bag.write(topic, static, stamp)
+
+
+def test_bag_with_every_topic_passes(tmp_path):
+    fleet = _two_robots()
+    _write_bag(tmp_path / "ok.bag", fleet, replay_topics(fleet))
+    contents = check_bag(str(tmp_path / "ok.bag"), fleet)
+    assert "/scout/points" in contents.topics
+
+
+def test_bag_without_topics_names_them(tmp_path):
+    fleet = _two_robots()
+    topics = [t for t in replay_topics(fleet) if t not in ("/jackal/points", "/tf")]
+    _write_bag(tmp_path / "partial.bag", fleet, topics)
+    with pytest.raises(BagError) as error:
+        check_bag(str(tmp_path / "partial.bag"), fleet)
+    assert "missing topics: /jackal/points, /tf" in str(error.value)
+
+
+def test_bag_of_another_fleet_is_refused(tmp_path):
+    other = load_fleet().with_robots(["champ", "iris"])
+    _write_bag(tmp_path / "other.bag", other, replay_topics(other))
+    with pytest.raises(BagError) as error:
+        check_bag(str(tmp_path / "other.bag"), _two_robots())
+    assert "recorded for another fleet" in str(error.value) and "champ, iris" in str(error.value)
+
+
+def test_bag_with_other_sensor_frames_is_refused(tmp_path):
+    fleet = _two_robots()
+    _write_bag(tmp_path / "frames.bag", fleet, replay_topics(fleet), frame_of={"scout": "scout/velodyne"})
+    with pytest.raises(BagError) as error:
+        check_bag(str(tmp_path / "frames.bag"), fleet)
+    assert "'scout/velodyne'" in str(error.value) and "scout/lidar" in str(error.value)
+
+
+def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
+    (tmp_path / "junk.bag").write_bytes(b"not a bag")
+    result = subprocess.run([sys.executable, BRINGUP, "physical", "--robots", ROBOTS, "--replay",
+                             str(tmp_path / "junk.bag"), "--out", str(tmp_path / "out")],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert "not a readable rosbag" in result.stderr, result.stderr
+
+
+def _unclosed_bag(path, fleet):
+    """A bag whose writer died before writing its index, as rosbag record leaves `<bag>.active`."""
+    import rosbag
+
+    _write_bag(path, fleet, replay_topics(fleet))
+    with open(path, "rb") as f:
+        data = f.read()
+    bag = rosbag.Bag(str(path))
+    index_pos = bag._index_data_pos
+    bag.close()
+    with open(path, "wb") as f:
+        f.write(data[:index_pos])
+
+
+def test_an_unclosed_recording_is_reindexed_into_place(tmp_path):
+    fleet = _two_robots()
+    bag = tmp_path / "mission.bag"
+    _unclosed_bag(tmp_path / "mission.bag.active", fleet)
+    with pytest.raises(BagError):
+        check_bag(str(tmp_path / "mission.bag.active"), fleet)
+
+    said = finish_recording(str(bag), None)
+
+    assert "reindexed" in said
+    assert not (tmp_path / "mission.bag.active").exists()
+    assert "/scout/points" in check_bag(str(bag), fleet).topics
+
+
+def test_a_missing_recording_is_an_error_with_the_recorders_log(tmp_path):
+    (tmp_path / "recorder.log").write_text("[ERROR] could not open /full/disk/mission.bag: No space left\n")
+    with pytest.raises(BagError) as error:
+        finish_recording(str(tmp_path / "mission.bag"), str(tmp_path / "recorder.log"))
+    assert "no bag was written" in str(error.value) and "No space left" in str(error.value)

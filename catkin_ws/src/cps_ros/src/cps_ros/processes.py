@@ -1,0 +1,285 @@
+"""A ROS master and the processes started against it, always cleaned up.
+
+    with RosGraph() as graph:
+        graph.start_node("cps_transport", "rate_limiter", params={"~rate_hz": 8.0})
+        graph.wait_for_topic("/out", timeout_s=10)
+
+Every process is started in its own session with a parent-death signal, so nothing survives its
+owner: not on failure, not on Ctrl-C, not when the owner itself is killed. The bringup supervisor
+and the test fixtures (`cps_harness.testing`) both build on it.
+"""
+import contextlib
+import ctypes
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+_PR_SET_PDEATHSIG = 1
+
+
+def free_port():
+    """A TCP port nobody listens on right now."""
+    with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _die_with_parent():
+    os.setsid()
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+def find_node(package, node):
+    """Path of a package's node: `nodes/<node>` of the package rospkg finds (devel space: the
+    source tree), else the installed `lib/<package>/<node>` catkin finds (install space)."""
+    import rospkg
+    from catkin.find_in_workspaces import find_in_workspaces
+
+    path = os.path.join(rospkg.RosPack().get_path(package), "nodes", node)
+    if os.path.exists(path):
+        return path
+    installed = find_in_workspaces(["libexec"], project=package, path=node, first_match_only=True)
+    if not installed:
+        raise FileNotFoundError(f"{package} has no node {node} ({path}, nor in lib/{package} of "
+                                f"{os.environ.get('CMAKE_PREFIX_PATH', '(no CMAKE_PREFIX_PATH)')})")
+    return installed[0]
+
+
+class RosGraph:
+    """A roscore on a free port plus every process started through it; `close` kills them all."""
+
+    def __init__(self, port=None, log_dir=None, master_uri=None, host_ip="127.0.0.1"):
+        self._own_master = master_uri is None
+        self.host_ip = host_ip
+        self.port = port or (free_port() if self._own_master else int(master_uri.rsplit(":", 1)[1]))
+        self.uri = master_uri or f"http://{host_ip}:{self.port}"
+        self._own_home = log_dir is None
+        self.home = log_dir or tempfile.mkdtemp(prefix="cps-ros-")
+        self.processes = []
+        self._master = None
+        # Nodes started with private parameters: they are removed with the nodes, or a later node
+        # of the same name on a shared master would read them.
+        self._private_params = set()
+
+    @property
+    def env(self):
+        env = dict(os.environ)
+        env.update(ROS_MASTER_URI=self.uri, ROS_HOME=self.home, ROS_LOG_DIR=os.path.join(self.home, "log"),
+                   ROS_IP=self.host_ip, PYTHONUNBUFFERED="1")
+        env.pop("ROS_HOSTNAME", None)
+        return env
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def attach(self):
+        """Another RosGraph on the same master that owns (and kills) only its own processes."""
+        return RosGraph(master_uri=self.uri, host_ip=self.host_ip)
+
+    def start(self, timeout_s=30.0):
+        if not self._own_master:
+            if not self._master_up():
+                raise RuntimeError(f"no ROS master at {self.uri}")
+            return
+        self._master = self.popen(["roscore", "-p", str(self.port)], name="roscore")
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self._master.poll() is not None:
+                raise RuntimeError(f"roscore exited with {self._master.returncode}: {self.output('roscore')}")
+            if self._master_up() and self._has_node("/rosout"):
+                return
+            time.sleep(0.1)
+        self.close()
+        raise TimeoutError(f"roscore on port {self.port} did not come up within {timeout_s} s")
+
+    def point_this_process_here(self):
+        """Make rospy in this process use this master (rospy reads the environment): call it only in
+        a process that has one master for its whole life, e.g. before rospy.init_node."""
+        os.environ["ROS_MASTER_URI"] = self.uri
+        os.environ["ROS_IP"] = self.host_ip
+
+    def master_exit_code(self):
+        """The exit code of this graph's own roscore once it has ended, else None."""
+        return self._master.poll() if self._master is not None else None
+
+    def master_online(self):
+        try:
+            return self._master_up()
+        except OSError:
+            return False
+
+    def _kill_orphans_of_the_core(self):
+        """roslaunch starts rosmaster and rosout in sessions of their own: a roscore killed hard leaves them."""
+        for pid, cmd in processes_named(self.uri, f"-p {self.port} "):
+            if any(f"/{core} " in cmd or cmd.startswith(core) for core in ("rosmaster", "rosout")):
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.kill(pid, signal.SIGKILL)
+
+    def _master_up(self):
+        import rosgraph
+
+        return rosgraph.Master("/cps_test", master_uri=self.uri).is_online()
+
+    def _has_node(self, name):
+        import rosgraph
+
+        try:
+            state = rosgraph.Master("/cps_test", master_uri=self.uri).getSystemState()
+        except Exception:
+            return False
+        return any(name in nodes for group in state for _, nodes in group)
+
+    def popen(self, argv, name=None, env=None, cwd=None):
+        """Start a process against this master; its output goes to a log file under `home`."""
+        name = name or os.path.basename(argv[0])
+        log_path = os.path.join(self.home, f"{name}-{len(self.processes)}.log")
+        log = open(log_path, "ab")   # append: the file may be truncated (rotated) under the process
+        merged = self.env
+        merged.update(env or {})
+        proc = subprocess.Popen(argv, env=merged, cwd=cwd, stdout=log, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+        proc.cps_name = name
+        proc.cps_log = log_path
+        log.close()
+        self.processes.append(proc)
+        return proc
+
+    def start_node(self, package, node, name=None, namespace=None, params=None, remap=None, args=(), env=None):
+        """Run `nodes/<node>` of `package` with this venv's python; params are `_name:=value` args."""
+        argv = [sys.executable, find_node(package, node), *args]
+        if name:
+            argv.append(f"__name:={name}")
+        if namespace:
+            argv.append(f"__ns:={namespace}")
+        for key, value in (params or {}).items():
+            key = key[1:] if key.startswith("~") else key
+            argv.append(f"_{key}:={_param_text(value)}")
+        if params:
+            self._private_params.add("/".join(["", (namespace or "").strip("/"), name or node]).replace("//", "/"))
+        for source, target in (remap or {}).items():
+            argv.append(f"{source}:={target}")
+        return self.popen(argv, name=name or node, env=env)
+
+    def output(self, name):
+        """The captured output of the processes called `name` so far."""
+        texts = []
+        for proc in self.processes:
+            if proc.cps_name == name and os.path.exists(proc.cps_log):
+                with open(proc.cps_log, "rb") as stream:
+                    texts.append(stream.read().decode(errors="replace"))
+        return "\n".join(texts)
+
+    def published_topics(self):
+        import rosgraph
+
+        return dict(rosgraph.Master("/cps_test", master_uri=self.uri).getPublishedTopics(""))
+
+    def wait_for_topic(self, topic, timeout_s=20.0):
+        """Block until someone advertises `topic`; TimeoutError names what is advertised instead."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if topic in self.published_topics():
+                return
+            self._raise_if_any_died()
+            time.sleep(0.1)
+        raise TimeoutError(f"{topic} not advertised within {timeout_s} s; advertised: "
+                           f"{sorted(self.published_topics())}")
+
+    def wait_for_service(self, service, timeout_s=20.0):
+        import rosgraph
+
+        deadline = time.monotonic() + timeout_s
+        master = rosgraph.Master("/cps_test", master_uri=self.uri)
+        while time.monotonic() < deadline:
+            if any(name == service for name, _ in master.getSystemState()[2]):
+                return
+            self._raise_if_any_died()
+            time.sleep(0.1)
+        raise TimeoutError(f"service {service} not advertised within {timeout_s} s")
+
+    def _raise_if_any_died(self):
+        for proc in self.processes:
+            if proc.poll() is not None and proc.returncode != 0 and proc is not self._master:
+                raise RuntimeError(f"{proc.cps_name} exited with {proc.returncode}:\n{self.output(proc.cps_name)[-3000:]}")
+
+    def stop(self, proc, timeout_s=10.0):
+        """SIGINT (as Ctrl-C), then SIGTERM, then SIGKILL to the process group."""
+        for sig, wait_s in ((signal.SIGINT, timeout_s * 0.6), (signal.SIGTERM, timeout_s * 0.3), (signal.SIGKILL, 5.0)):
+            if proc.poll() is not None:
+                break
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(proc.pid, sig)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(wait_s)
+        # The group may hold children that outlived their leader.
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(proc.pid, signal.SIGKILL)
+
+    def close(self):
+        for proc in reversed(self.processes):
+            self.stop(proc, timeout_s=5.0)
+        self.processes = []
+        self._forget_private_params()
+        if self._own_master:
+            self._kill_orphans_of_the_core()
+        if self._own_home:
+            shutil.rmtree(self.home, ignore_errors=True)
+
+
+    def _forget_private_params(self):
+        import rosgraph
+
+        if self._private_params and not self._own_master:
+            master = rosgraph.Master("/cps_harness", master_uri=self.uri)
+            for namespace in self._private_params:
+                try:
+                    if master.hasParam(namespace):
+                        master.deleteParam(namespace)
+                except Exception:  # a master already gone has nothing left to forget
+                    break
+        self._private_params = set()
+
+
+def _param_text(value):
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, dict)):
+        import yaml
+
+        return yaml.safe_dump(value, default_flow_style=True).strip()
+    return str(value)
+
+
+def processes_named(*needles):
+    """(pid, command line) of running processes whose command line or environment mentions one of
+    `needles`, e.g. a master's port (rosout learns its master only from ROS_MASTER_URI)."""
+    found = []
+    me = os.getpid()
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit() or int(entry) == me:
+            continue
+        try:
+            with open(f"/proc/{entry}/cmdline", "rb") as stream:
+                cmd = stream.read().replace(b"\0", b" ").decode(errors="replace")
+            with open(f"/proc/{entry}/environ", "rb") as stream:
+                environ = stream.read().replace(b"\0", b" ").decode(errors="replace")
+            with open(f"/proc/{entry}/stat") as stream:
+                if stream.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    continue
+        except OSError:
+            continue
+        if any(needle in cmd or needle in environ for needle in needles):
+            found.append((int(entry), cmd.strip()))
+    return found
