@@ -26,7 +26,7 @@ def test_stats_and_allocation_keep_publishing_on_a_full_disk(ros, rospy_node):
     stats = TopicRecorder("/tissue/stats", TopicStatsArray)
     allocation = TopicRecorder("/tissue/allocation", BandwidthAllocationArray)
     try:
-        stats_node = ros.start_node("cps_transport", "topic_stats", name="topic_stats", namespace="/tissue",
+        stats_node = ros.start_node("cps_transport", "topic_stats", name="topic_stats",
                        params={"~topics": ["/full_disk/cloud"], "~publish_rate_hz": 4.0, "~csv_path": "/dev/full"})
         manager = ros.start_node("cps_bw_manager", "bandwidth_manager", name="bandwidth_manager",
                        params={"~robots": ["scout"], "~update_rate_hz": 4.0, "~csv_path": "/dev/full"})
@@ -40,7 +40,7 @@ def test_stats_and_allocation_keep_publishing_on_a_full_disk(ros, rospy_node):
                 if status is not None:
                     seen[status.name] = status.message
             time.sleep(0.1)
-        assert sorted(seen) == ["/bandwidth_manager/csv_log", "/tissue/topic_stats/csv_log"], seen
+        assert sorted(seen) == ["/bandwidth_manager/csv_log", "/topic_stats/csv_log"], seen
         assert all("No space left on device" in m for m in seen.values())
         counts = stats.count, allocation.count
         time.sleep(3.0)

@@ -60,7 +60,7 @@ def test_node_agrees_with_rostopic_hz_and_bw(ros, rospy_node, tmp_path):
                            "~csv_path": str(csv_path)})
     pub = rospy.Publisher(topic, PointCloud2, queue_size=10)
     stats = []
-    sub = rospy.Subscriber("/tissue/stats", TopicStatsArray, stats.append)
+    sub = rospy.Subscriber("/ts_test/tissue/stats", TopicStatsArray, stats.append)  # relative, in its namespace
     stop = threading.Event()
 
     def feed(rate_hz=20.0):

@@ -49,7 +49,7 @@ def pipeline(ros, rospy_node):
 
     p = SimpleNamespace(rospy=rospy)
     out_sub, p.decoded, p.got = _collect(rospy, f"/twin/{R}/points", PointCloud2)
-    stats_sub, p.stats, _ = _collect(rospy, "/tissue/stats", TopicStatsArray)
+    stats_sub, p.stats, _ = _collect(rospy, f"/{R}/tissue/stats", TopicStatsArray)  # relative, in its namespace
     diag_sub, p.diagnostics, _ = _collect(rospy, "/diagnostics", DiagnosticArray)
     p.raw_pub = rospy.Publisher(f"/{R}/points_filtered", PointCloud2, queue_size=10)
     p.compressed_pub = rospy.Publisher(f"/{R}/points_filtered/draco", CompressedPointCloud2, queue_size=10)
