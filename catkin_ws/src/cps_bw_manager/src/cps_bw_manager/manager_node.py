@@ -11,7 +11,7 @@ from cps_fleet.csv_log import CsvLog
 from cps_fleet.fleet import load_fleet, robot_names_arg
 from cps_msgs.msg import BandwidthAllocation, BandwidthAllocationArray, LinkState, RateLimiterStatus, TopicStatsArray
 from cps_msgs.srv import SetPriority, SetPriorityResponse
-from cps_ros.diagnostics import FaultReport
+from cps_ros.fault_report import FaultReport
 from cps_ros.timers import guarded_timer
 
 from cps_bw_manager.estimation import BandwidthEstimator

@@ -8,7 +8,7 @@ import time
 
 import rospy
 
-from cps_ros.diagnostics import FaultReport
+from cps_ros.fault_report import FaultReport
 
 FAILURE_KEY = "timer_failures"
 _LOG_EVERY_S = 5.0
