@@ -31,7 +31,6 @@ def test_roslaunch_brings_the_digital_side_up(tmp_path):
         finally:
             graph.stop(launch, timeout_s=20)
     assert (out / "map.bt").exists(), "the map server saves into $(arg out) on shutdown"
-    assert launch.returncode is not None
 
 
 def test_generator_refuses_unknown_robots(tmp_path):

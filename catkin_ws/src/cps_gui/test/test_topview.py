@@ -82,7 +82,6 @@ def test_fence_polygons_read_the_shapes_a_site_may_use():
 def test_the_fenced_areas_of_the_shipped_hall_are_drawn():
     from cps_fleet.fleet import load_fleet
 
-    pytest.importorskip("cps_fleet.site")
     fences, problem = topview.load_fences(load_fleet().site_path)
     assert fences and problem == ""
     for _, polygon in fences:
