@@ -43,9 +43,10 @@ def test_stats_and_allocation_keep_publishing_on_a_full_disk(ros, rospy_node):
         assert sorted(seen) == ["/bandwidth_manager/csv_log", "/topic_stats/csv_log"], seen
         assert all("No space left on device" in m for m in seen.values())
         counts = stats.count, allocation.count
-        time.sleep(3.0)
-        assert stats.count >= counts[0] + 8, "topic_stats stopped publishing /tissue/stats"
-        assert allocation.count >= counts[1] + 8, "the bandwidth manager stopped publishing /tissue/allocation"
+        # Both publish at 4 Hz: 8 more each within 10 s, or they stopped.
+        assert stats.wait_count(counts[0] + 8, timeout_s=10.0), "topic_stats stopped publishing /tissue/stats"
+        assert allocation.wait_count(counts[1] + 8, timeout_s=10.0), \
+            "the bandwidth manager stopped publishing /tissue/allocation"
         assert stats_node.poll() is None and manager.poll() is None
     finally:
         for recorder in (diagnostics, stats, allocation):

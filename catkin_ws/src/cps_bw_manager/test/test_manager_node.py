@@ -183,7 +183,10 @@ def test_link_down_pauses_the_allocation_and_up_resumes_it(graph, tmp_path):
         assert paused.status.startswith("paused: link to robots down"), paused.status
         rates.take()
         graph.mission["scout"].publish(String("inspecting"))
-        time.sleep(2.0)  # several update periods: none may set a rate
+        # The positive marker first: several allocations published while paused (one per update
+        # period, each a chance to set a rate), then the negative check.
+        published = graph.allocation.count
+        assert graph.allocation.wait_count(published + 4, timeout_s=10.0), "the manager stopped allocating"
         assert rates.take() == []
         assert not graph.allocation.latest.link_up
         link.publish(LinkState(up=True, since=rospy.Time.now(), outages=1, last_outage_s=2.0, peer="robots"))
