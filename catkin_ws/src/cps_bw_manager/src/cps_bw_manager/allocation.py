@@ -23,6 +23,8 @@ from typing import Dict, Sequence, Tuple
 
 import numpy as np
 
+from cps_fleet.fleet import managed_budget_mbytes_per_s  # noqa: F401 (the budget, defined once)
+
 # Bandwidth weight per priority: 0 = normal, 1 = high (inspecting).
 DEFAULT_PRIORITY_WEIGHTS = {0: 1.0, 1: 4.0}
 DEFAULT_FLOOR_RATE_HZ = 0.1
@@ -69,15 +71,6 @@ class Allocation:
 
     def rates_hz(self) -> Dict[str, float]:
         return {r.name: r.rate_hz for r in self.robots}
-
-
-def managed_budget_mbytes_per_s(available_mbps, reserve_fraction):
-    """(1 - reserve) x available, converted from Mbit/s to MB/s; ValueError on a bad argument."""
-    if not _finite(available_mbps) or available_mbps <= 0:
-        raise ValueError(f"available bandwidth must be > 0 Mbit/s, got {available_mbps!r}")
-    if not _finite(reserve_fraction) or not 0.0 <= reserve_fraction < 1.0:
-        raise ValueError(f"reserve_fraction must be in [0, 1), got {reserve_fraction!r}")
-    return (1.0 - reserve_fraction) * available_mbps / 8.0
 
 
 def _finite(value):

@@ -15,6 +15,7 @@ import numpy as np
 
 from cps_experiments import paper
 from cps_experiments.markdown import markdown_table, write_csv, write_markdown
+from cps_fleet.fleet import managed_budget_mbytes_per_s
 
 REPLAY_RATES_HZ = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0)
 QUICK_REPLAY_RATES_HZ = (0.5, 1.0, 2.0)
@@ -117,7 +118,7 @@ def run(out_dir, mission, quick=False, log=print):
         "paper_B_unmanaged": [deployable(b / 8, paper.FIG13_TYPE_B_MBYTES_PER_S) for b in LINK_AXIS_MBPS],
         "ours_A_unmanaged": [deployable(b / 8, ours_a) for b in LINK_AXIS_MBPS],
         "ours_B_unmanaged": [deployable(b / 8, ours_b) for b in LINK_AXIS_MBPS],
-        "ours_B_managed_1hz": [deployable(b / 8 * (1 - fleet.link.reserve_fraction), size_b / 1e6) for b in LINK_AXIS_MBPS],
+        "ours_B_managed_1hz": [deployable(managed_budget_mbytes_per_s(b, fleet.link.reserve_fraction), size_b / 1e6) for b in LINK_AXIS_MBPS],
     }
     write_csv(os.path.join(out_dir, "fig13.csv"), ["link_mbps"] + list(curves),
               [[b] + [curves[k][i] for k in curves] for i, b in enumerate(LINK_AXIS_MBPS)])

@@ -22,6 +22,7 @@ from cps_experiments import paper
 from cps_experiments.fleet_scaling import run_mission_child
 from cps_experiments.markdown import markdown_table, write_csv, write_markdown
 from cps_fleet import names
+from cps_fleet.fleet import managed_budget_mbytes_per_s
 
 FLEET_SIZES = (1, 2, 4, 8, 16)
 QUICK_FLEET_SIZES = (1, 2)
@@ -173,7 +174,7 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
             log(f"[experiments] {exc}")
             continue
         link_mbps = live.link_mbps or base.link.available_mbps
-        figures = measure_run(run_dir, summary, robots, link_mbps / 8 * (1 - base.link.reserve_fraction))
+        figures = measure_run(run_dir, summary, robots, managed_budget_mbytes_per_s(link_mbps, base.link.reserve_fraction))
         figures["f1"] = _score(summary.get("map_file"), fleet, run_dir)
         measured[live] = figures
         log(f"[experiments] {live.name}: {figures['robots_reached']}/{live.robots} robots reached the twin, "
@@ -284,7 +285,7 @@ def _differences(measured, reserve_fraction):
                      "server together.")
     for link in LINKS_MBPS:
         on = measured.get(LiveRun(largest, link, True))
-        nominal = link / 8 * (1 - reserve_fraction)
+        nominal = managed_budget_mbytes_per_s(link, reserve_fraction)
         if on and on["budget_mbytes_per_s"] < 0.8 * nominal:
             lines.append(f"- With the manager on {link:g} Mbit/s its estimate of the link fell to "
                          f"{on['budget_mbytes_per_s']:.2f} MB/s of budget (nominal {nominal:.2f}): the estimator "

@@ -87,8 +87,19 @@ class LinkConfig:
 
     @property
     def budget_mbytes_per_s(self):
-        """The managed budget (1 - reserve) x available, in MB/s (10^6 bytes/s)."""
-        return (1.0 - self.reserve_fraction) * self.available_mbps / 8.0
+        """The managed budget at the configured link rate (managed_budget_mbytes_per_s)."""
+        return managed_budget_mbytes_per_s(self.available_mbps, self.reserve_fraction)
+
+
+def managed_budget_mbytes_per_s(available_mbps, reserve_fraction):
+    """The one formula of the managed budget: (1 - reserve) x available, from Mbit/s to MB/s
+    (10^6 bytes/s); ValueError on a bad argument."""
+    if not isinstance(available_mbps, (int, float)) or not math.isfinite(available_mbps) or available_mbps <= 0:
+        raise ValueError(f"available bandwidth must be > 0 Mbit/s, got {available_mbps!r}")
+    if not isinstance(reserve_fraction, (int, float)) or not math.isfinite(reserve_fraction) \
+            or not 0.0 <= reserve_fraction < 1.0:
+        raise ValueError(f"reserve_fraction must be in [0, 1), got {reserve_fraction!r}")
+    return (1.0 - reserve_fraction) * available_mbps / 8.0
 
 
 @dataclasses.dataclass(frozen=True)
