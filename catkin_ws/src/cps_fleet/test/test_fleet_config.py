@@ -110,7 +110,7 @@ def test_robot_subset_keeps_order_and_rejects_unknown_names():
 
 
 def test_an_unknown_key_in_a_route_or_the_site_names_file_line_and_key(tmp_path):
-    from cps_fleet.site import default_site_path, load_site
+    from cps_fleet.site import load_site
 
     path = tmp_path / "route.yaml"
     path.write_text("waypoints:\n  - {x: 1, y: 2}\n  - {x: 3, y: 2, inspcet: true}\n")
@@ -121,7 +121,7 @@ def test_an_unknown_key_in_a_route_or_the_site_names_file_line_and_key(tmp_path)
     with pytest.raises(ConfigError, match=r"route.yaml:3: loop: unknown key 'loop'"):
         load_route(str(path))
     site = tmp_path / "hall.yaml"
-    text = open(default_site_path()).read()
+    text = open(load_fleet().site_path).read()
     site.write_text(text.replace("  post_size_m: 0.06", "  post_size_m: 0.06\n  post_colour: [1, 0, 0]"))
     line = _line_of(site, "post_colour")
     with pytest.raises(ConfigError, match=rf"hall.yaml:{line}: fence.post_colour: unknown key 'post_colour'"):

@@ -6,7 +6,6 @@ import pytest
 
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import ROBOT_TYPES, default_fleet_path, load_fleet
-from cps_fleet.robot_types import resolve, velocity_limits
 
 
 def test_the_default_fleet_defines_the_four_types():
@@ -15,7 +14,7 @@ def test_the_default_fleet_defines_the_four_types():
 
 @pytest.mark.parametrize("robot_type", ROBOT_TYPES)
 def test_limits_are_non_negative_and_every_type_drives_and_turns(robot_type):
-    limits = velocity_limits(robot_type)
+    limits = load_fleet().robot_types[robot_type].limits
     assert limits.max_forward_mps > 0 and limits.max_yaw_rate_rps > 0
     assert limits.max_linear_accel_mps2 > 0 and limits.max_yaw_accel_rps2 > 0
     assert limits.max_lateral_mps >= 0 and limits.max_vertical_mps >= 0
@@ -24,11 +23,6 @@ def test_limits_are_non_negative_and_every_type_drives_and_turns(robot_type):
 def test_only_the_quadrotor_climbs():
     types = load_fleet().robot_types
     assert [name for name, t in types.items() if t.limits.can_climb] == ["aerial_depth"]
-
-
-def test_unknown_type_names_the_known_ones():
-    with pytest.raises(ValueError, match="wheeled_lidar"):
-        velocity_limits("hexapod")
 
 
 def test_sensor_frame_and_max_range_come_from_the_type():
@@ -72,7 +66,7 @@ def test_a_new_type_is_only_data(tmp_path):
     assert scout.type == "tracked_lidar" and scout.has_lidar
     assert scout.cloud_topic == "velodyne_points" and scout.sensor_frame == "scout/velodyne"
     assert fleet.mapping.max_range_m["tracked_lidar"] == 20.0
-    assert resolve("tracked_lidar").limits.max_forward_mps == 1.0
+    assert fleet.robot_types["tracked_lidar"].limits.max_forward_mps == 1.0
 
 
 @pytest.mark.parametrize("key", ["base", "sensor", "cloud_topic", "sensor_frame", "max_range_m", "limits"])

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from conftest import TEST_PREFIX, spin_for, spin_until
 
+from cps_fleet.fleet import load_fleet
 from cps_gui import joystick
 from cps_harness.testing import TopicRecorder
 
@@ -129,7 +130,7 @@ def test_keys_drive_only_while_the_pane_has_focus(window, qapp, rospy_node):
         commands = [_as_tuple(m) for _, m in rec.take()]
     finally:
         rec.close()
-    limit = joystick.speed_limits("wheeled_depth").max_forward_mps
+    limit = joystick.speed_limits(load_fleet().robot_types["wheeled_depth"]).max_forward_mps
     assert commands[0] == pytest.approx((limit, 0, 0, 0)) and commands[-1] == (0, 0, 0, 0)
 
 

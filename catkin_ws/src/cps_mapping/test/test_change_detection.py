@@ -5,6 +5,7 @@ import pytest
 
 from cps_mapping.change_detection import detect_changes, detect_map_changes, write_report
 from fleet_model import new_map
+from cps_fleet.fleet import load_fleet
 
 RES = 0.1
 # Views of the storage area (crate_2 stands at x=3.2, y=-1.0, 1 m cube) from outside its fence.
@@ -27,7 +28,7 @@ def _mission(site):
 def site():
     from cps_fleet.site import load_site
 
-    return load_site()
+    return load_site(load_fleet().site_path)
 
 
 @pytest.fixture(scope="module")

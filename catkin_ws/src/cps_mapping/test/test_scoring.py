@@ -5,6 +5,7 @@ import pytest
 
 from cps_mapping.scoring import load_ground_truth, observable_surface, score_fused_map, score_map
 from fleet_model import new_map
+from cps_fleet.fleet import load_fleet
 
 RES = 0.1
 
@@ -13,7 +14,7 @@ RES = 0.1
 def site():
     from cps_fleet.site import load_site
 
-    return load_site()
+    return load_site(load_fleet().site_path)
 
 
 @pytest.fixture(scope="module")

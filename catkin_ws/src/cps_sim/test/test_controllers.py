@@ -6,13 +6,15 @@ import pytest
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import load_fleet, load_route
 from cps_sim.controllers import RouteFollower, VelocityMux, validate_route
-from cps_sim.robots import ROBOT_SPECS, Robot, Twist, spec_for
+from cps_sim.robots import Robot, Twist, spec_for
 from cps_fleet.site import load_site
+
+TYPES = load_fleet().robot_types
 
 
 def _fly(robot_cfg, route, seconds=400.0, dt=0.05):
-    robot = Robot(robot_cfg.name, robot_cfg.type, robot_cfg.initial_pose)
-    follower, mux = RouteFollower(route, robot_cfg.type), VelocityMux(robot_cfg.type)
+    robot = Robot(robot_cfg.name, robot_cfg.robot_type, robot_cfg.initial_pose)
+    follower, mux = RouteFollower(route, robot_cfg.robot_type), VelocityMux(robot_cfg.robot_type)
     mux.set_estop(False)
     states, t = [], 0.0
     while t < seconds and follower.state != "done":
@@ -34,7 +36,7 @@ def test_each_default_route_is_valid_and_ends_done_within_four_minutes(name):
     cfg = fleet.robot(name)
     route = fleet.route(name)
     site = load_site(fleet.site_path)
-    validate_route(route, site, cfg.type)
+    validate_route(route, site, cfg.robot_type)
     robot, states, t = _fly(cfg, route)
     assert states[0] == "transit" and "inspecting" in states and states[-1] == "done", states
     assert t < 240.0
@@ -45,27 +47,25 @@ def test_each_default_route_is_valid_and_ends_done_within_four_minutes(name):
 
 
 def test_route_through_equipment_is_rejected_with_file_and_line(tmp_path):
-    site = load_site()
+    site = load_site(load_fleet().site_path)
     tank = site.item("tank_1")
     path = tmp_path / "route.yaml"
     path.write_text(f"waypoints:\n  - {{x: -8.5, y: -4.0}}\n  - {{x: {tank.x}, y: {tank.y}, inspect: true}}\n")
     with pytest.raises(ConfigError) as err:
-        validate_route(load_route(path), site, "wheeled_lidar")
+        validate_route(load_route(path), site, TYPES["wheeled_lidar"])
     assert f"{path}:3:" in str(err.value) and "tank_1" in str(err.value)
     path.write_text("waypoints:\n  - {x: 30.0, y: 0.0}\n")
     with pytest.raises(ConfigError, match="outside the hall"):
-        validate_route(load_route(path), site, "wheeled_lidar")
+        validate_route(load_route(path), site, TYPES["wheeled_lidar"])
 
 
-def test_unknown_robot_type_names_the_known_ones():
-    with pytest.raises(ValueError) as err:
+def test_a_type_name_in_place_of_a_robot_type_is_a_clear_error():
+    with pytest.raises(TypeError, match="RobotType.*got 'submarine'"):
         spec_for("submarine")
-    for known in ROBOT_SPECS:
-        assert known in str(err.value)
 
 
 def test_deadman_stops_teleop_and_auto_takes_back_over():
-    mux = VelocityMux("wheeled_depth")
+    mux = VelocityMux(TYPES["wheeled_depth"])
     mux.set_estop(False)
     mux.set_mode("teleop")
     mux.on_teleop(Twist(vx=0.5), 0.0)
@@ -92,7 +92,7 @@ def test_deadman_stops_teleop_and_auto_takes_back_over():
 
 
 def test_estop_zeroes_at_once():
-    mux = VelocityMux("wheeled_lidar")
+    mux = VelocityMux(TYPES["wheeled_lidar"])
     mux.set_estop(False)
     mux.on_auto(Twist(vx=1.0), 0.0)
     for k in range(20):
@@ -105,7 +105,7 @@ def test_estop_zeroes_at_once():
 
 @pytest.mark.parametrize("bad", [Twist(vx=float("nan")), Twist(wz=float("inf")), Twist(vx=1e6)])
 def test_nan_inf_and_absurd_commands_are_dropped_and_the_robot_holds(bad):
-    mux = VelocityMux("wheeled_depth")
+    mux = VelocityMux(TYPES["wheeled_depth"])
     mux.set_estop(False)
     mux.on_auto(Twist(vx=0.5), 0.0)
     for k in range(1, 10):
@@ -120,8 +120,8 @@ def test_nan_inf_and_absurd_commands_are_dropped_and_the_robot_holds(bad):
 
 
 def test_limits_clamp_velocity_and_acceleration():
-    limits = spec_for("legged_depth").limits
-    mux = VelocityMux("legged_depth")
+    limits = spec_for(TYPES["legged_depth"]).limits
+    mux = VelocityMux(TYPES["legged_depth"])
     mux.set_estop(False)
     mux.on_auto(Twist(vx=5.0, vy=5.0, wz=-9.0), 0.0)
     first = mux.update(0.0)
@@ -137,8 +137,8 @@ def test_limits_clamp_velocity_and_acceleration():
 
 def test_battery_drains_faster_when_moving_and_joints_move():
     fleet = load_fleet()
-    still = Robot("a", "legged_depth", fleet.robot("champ").initial_pose)
-    moving = Robot("b", "legged_depth", fleet.robot("champ").initial_pose)
+    still = Robot("a", TYPES["legged_depth"], fleet.robot("champ").initial_pose)
+    moving = Robot("b", TYPES["legged_depth"], fleet.robot("champ").initial_pose)
     moving.set_command(Twist(vx=0.5))
     for _ in range(200):
         still.step(0.05)
@@ -150,7 +150,7 @@ def test_battery_drains_faster_when_moving_and_joints_move():
 
 def test_quadrotor_takes_off_holds_altitude_and_lands():
     fleet = load_fleet()
-    iris = Robot("iris", "aerial_depth", fleet.robot("iris").initial_pose)
+    iris = Robot("iris", TYPES["aerial_depth"], fleet.robot("iris").initial_pose)
     iris.set_command(Twist(vx=1.0))
     iris.step(0.1)
     assert iris.x == fleet.robot("iris").initial_pose.x      # landed: ignores cmd_vel
@@ -174,11 +174,11 @@ def test_a_restarted_route_controller_resumes_where_the_robot_is():
     cfg = fleet.robot("scout")
     route = fleet.route("scout")
     start = (cfg.initial_pose.x, cfg.initial_pose.y)
-    fresh = RouteFollower(route, cfg.type, start_xy=start)
+    fresh = RouteFollower(route, cfg.robot_type, start_xy=start)
     fresh.update(start[0], start[1], 0.0, 0.0)
     assert fresh.index == 0 and fresh.state == "transit"
     a, b = route.waypoints[2], route.waypoints[3]
-    restarted = RouteFollower(route, cfg.type, start_xy=start)
+    restarted = RouteFollower(route, cfg.robot_type, start_xy=start)
     restarted.update((a.x + b.x) / 2, (a.y + b.y) / 2, 0.0, 0.0)
     assert restarted.index == 3 and restarted.state == "inspecting"
 
@@ -202,9 +202,9 @@ def test_the_follower_drives_a_generated_route_back_to_its_start_clear_of_the_si
 
     fleet, site = fleet16
     cfg, route = fleet.robot(name), fleet.route(name)
-    validate_route(route, site, cfg.type)
-    robot = Robot(cfg.name, cfg.type, cfg.initial_pose)
-    follower, mux = RouteFollower(route, cfg.type, start_xy=(cfg.initial_pose.x, cfg.initial_pose.y)), VelocityMux(cfg.type)
+    validate_route(route, site, cfg.robot_type)
+    robot = Robot(cfg.name, cfg.robot_type, cfg.initial_pose)
+    follower, mux = RouteFollower(route, cfg.robot_type, start_xy=(cfg.initial_pose.x, cfg.initial_pose.y)), VelocityMux(cfg.robot_type)
     mux.set_estop(False)
     states, trace, t = [], [], 0.0
     while t < 300.0 and follower.state != "done":

@@ -129,7 +129,7 @@ def test_one_robot_sees_another_where_pybullet_does(sims, egl_reference):
 
 def test_cylinder_depth_is_on_the_true_surface():
     """A tank of radius 0.8 m in front of the camera: depth within 1 cm of the analytic cylinder."""
-    site = load_site()
+    site = load_site(load_fleet().site_path)
     tank = next(e for e in site.equipment if e.type == "tank")
     site = dataclasses.replace(site, areas=(), equipment=(dataclasses.replace(tank, x=4.0, y=0.0),))
     radius = dict(tank.size)["radius_m"]
@@ -231,7 +231,7 @@ def test_no_egl_falls_back_to_pybullet_and_says_why(monkeypatch, caplog):
 
 
 def test_degenerate_triangles_are_dropped_and_an_empty_mesh_is_a_clear_error():
-    site = load_site()
+    site = load_site(load_fleet().site_path)
     flat = Equipment("flat_crate", "crate", 0.0, 0.0, 0.0,
                      (("size_x_m", 1.0), ("size_y_m", 1.0), ("size_z_m", 0.0)), (0.5, 0.5, 0.5))
     prims = dataclasses.replace(site, areas=(), equipment=(flat,)).primitives()

@@ -13,6 +13,8 @@ from cps_sim.controllers import RouteTracker
 from cps_sim.fleet_control import ControlLoop, FleetControl
 from cps_sim.robots import Twist, spec_for
 
+TYPES = load_fleet().robot_types
+
 
 class Clock:
     def __init__(self):
@@ -133,7 +135,7 @@ def test_route_trackers_follow_their_own_routes(fleet, control):
 
 def test_route_tracker_stops_sending_once_done():
     fleet = load_fleet(profile="light")
-    tracker = RouteTracker(fleet.route("jackal"), "wheeled_depth")
+    tracker = RouteTracker(fleet.route("jackal"), TYPES["wheeled_depth"])
     last = fleet.route("jackal").waypoints[-1]
     tracker.set_odom_in_map(0.0, 0.0, 0.0, 0.0)
     tracker.follower.started, tracker.follower.index = True, len(fleet.route("jackal").waypoints)

@@ -16,7 +16,7 @@ BOX_HALF = 0.5
 
 @pytest.fixture(scope="module", params=["fast", "egl", "tiny"])
 def sim(request):
-    site = load_site()
+    site = load_site(load_fleet().site_path)
     box = Equipment("test_box", "crate", BOX_CENTER_X, 0.0, 0.0,
                     (("size_x_m", 2 * BOX_HALF), ("size_y_m", 2.0), ("size_z_m", 2.0)), (0.8, 0.2, 0.2))
     site = dataclasses.replace(site, areas=(), equipment=(box,))

@@ -8,6 +8,8 @@ from cps_fleet.fleet import load_fleet
 from cps_sim.controllers import CommandGate, RouteFollower, VelocityMux
 from cps_sim.robots import Twist
 
+TYPES = load_fleet().robot_types
+
 JUMPS_S = (-30.0, 30.0)
 
 
@@ -42,7 +44,7 @@ def subject_output(subject):
 
 def _mux(mode):
     def make(clock):
-        mux = VelocityMux("wheeled_depth", deadman_s=0.5, auto_timeout_s=0.5, clock=clock)
+        mux = VelocityMux(TYPES["wheeled_depth"], deadman_s=0.5, auto_timeout_s=0.5, clock=clock)
         mux.set_estop(False)
         mux.set_mode(mode)
         return mux
@@ -80,13 +82,13 @@ def test_on_a_steady_clock_the_deadman_stops_at_its_timeout(which):
 
 
 def test_the_default_clock_is_monotonic():
-    assert VelocityMux("wheeled_depth").clock is time.monotonic
+    assert VelocityMux(TYPES["wheeled_depth"]).clock is time.monotonic
     assert CommandGate().clock is time.monotonic
 
 
 def test_a_new_mux_or_gate_is_stopped_until_it_hears_the_estop_and_a_fresh_command():
     t = [0.0]
-    mux = VelocityMux("wheeled_depth", clock=lambda: t[0])
+    mux = VelocityMux(TYPES["wheeled_depth"], clock=lambda: t[0])
     gate = CommandGate(clock=lambda: t[0])
     mux.on_auto(Twist(vx=0.5))
     gate.on_command(Twist(vx=0.5))
@@ -113,10 +115,10 @@ def test_a_restarted_route_controller_does_not_refly_a_landed_quadrotor():
     route = fleet.route("iris")
     start = (cfg.initial_pose.x, cfg.initial_pose.y)
     last = route.waypoints[-1]
-    restarted = RouteFollower(route, cfg.type, start_xy=start)
+    restarted = RouteFollower(route, cfg.robot_type, start_xy=start)
     twist, flight = restarted.update(last.x, last.y, 0.0, 0.0)
     assert flight is None and twist == Twist() and restarted.state == "done"
-    fresh = RouteFollower(route, cfg.type, start_xy=start)
+    fresh = RouteFollower(route, cfg.robot_type, start_xy=start)
     assert fresh.update(start[0], start[1], 0.0, 0.0)[1] == "takeoff"
-    flying = RouteFollower(route, cfg.type, start_xy=start)
+    flying = RouteFollower(route, cfg.robot_type, start_xy=start)
     assert flying.update(last.x, last.y, 3.0, 0.0)[1] == "land"       # still airborne at the end: land it

@@ -5,10 +5,13 @@ import pytest
 from cps_fleet.config import ConfigError
 from cps_sim.ground_truth import occupied_voxels
 from cps_fleet.site import check_waypoint, load_site
+from cps_fleet.fleet import load_fleet
+
+TYPES = load_fleet().robot_types
 
 
 def test_hall_has_three_fenced_areas_and_named_equipment():
-    site = load_site()
+    site = load_site(load_fleet().site_path)
     assert len(site.areas) == 3
     names = [e.name for e in site.equipment]
     assert len(names) == len(set(names))
@@ -19,7 +22,7 @@ def test_hall_has_three_fenced_areas_and_named_equipment():
 
 
 def test_without_and_moved_change_one_item():
-    site = load_site()
+    site = load_site(load_fleet().site_path)
     assert "crate_2" not in [e.name for e in site.without("crate_2").equipment]
     moved = site.moved("crate_2", 1.0, -0.5)
     assert moved.item("crate_2").x == pytest.approx(site.item("crate_2").x + 1.0)
@@ -29,7 +32,7 @@ def test_without_and_moved_change_one_item():
 
 
 def test_ground_truth_is_on_octomap_grid_and_sees_the_change():
-    site = load_site()
+    site = load_site(load_fleet().site_path)
     res = 0.1
     full = occupied_voxels(site, res)
     assert full.dtype == np.float64 and full.shape[1] == 3
@@ -43,7 +46,7 @@ def test_ground_truth_is_on_octomap_grid_and_sees_the_change():
 
 
 def test_bad_hall_file_names_file_and_line(tmp_path):
-    text = open(load_site().path).read().replace("type: drum", "type: barrel", 1)
+    text = open(load_site(load_fleet().site_path).path).read().replace("type: drum", "type: barrel", 1)
     bad = tmp_path / "hall.yaml"
     bad.write_text(text)
     with pytest.raises(ConfigError) as err:
@@ -53,13 +56,13 @@ def test_bad_hall_file_names_file_and_line(tmp_path):
 
 
 def test_waypoints_outside_the_hall_or_in_equipment_are_rejected():
-    site = load_site()
-    assert check_waypoint(site, 0.0, 0.0, 0.0, "wheeled_depth") is None
-    assert "outside the hall" in check_waypoint(site, 12.0, 0.0, 0.0, "wheeled_depth")
+    site = load_site(load_fleet().site_path)
+    assert check_waypoint(site, 0.0, 0.0, 0.0, TYPES["wheeled_depth"]) is None
+    assert "outside the hall" in check_waypoint(site, 12.0, 0.0, 0.0, TYPES["wheeled_depth"])
     tank = site.item("tank_1")
-    assert "tank_1" in check_waypoint(site, tank.x, tank.y, 0.0, "wheeled_lidar")
-    assert check_waypoint(site, tank.x, tank.y, 3.0, "aerial_depth") is None
-    assert "tank_1" in check_waypoint(site, tank.x, tank.y, 2.0, "aerial_depth")
+    assert "tank_1" in check_waypoint(site, tank.x, tank.y, 0.0, TYPES["wheeled_lidar"])
+    assert check_waypoint(site, tank.x, tank.y, 3.0, TYPES["aerial_depth"]) is None
+    assert "tank_1" in check_waypoint(site, tank.x, tank.y, 2.0, TYPES["aerial_depth"])
 
 
 def test_export_ground_truth_command_writes_npz(tmp_path):

@@ -7,13 +7,14 @@ import pytest
 from cps_fleet.config import ConfigError
 from cps_fleet.site import load_site
 from cps_sim.site_changes import expected_changes, load_site_changes
+from cps_fleet.fleet import load_fleet
 
 EXAMPLE = os.path.join(os.path.dirname(__file__), "..", "..", "cps_bringup", "config", "site_changes.yaml")
 
 
 @pytest.fixture(scope="module")
 def site():
-    return load_site()
+    return load_site(load_fleet().site_path)
 
 
 def _write(tmp_path, text):

@@ -33,7 +33,7 @@ def route_duration_s(fleet, robot):
     cfg = fleet.robot(robot)
     pts = [(cfg.initial_pose.x, cfg.initial_pose.y)] + [(w.x, w.y) for w in fleet.route(robot).waypoints]
     length = float(np.sum(np.linalg.norm(np.diff(np.array(pts), axis=0), axis=1)))
-    return length / spec_for(cfg.type).cruise_mps, length
+    return length / spec_for(cfg.robot_type).cruise_mps, length
 
 
 def twin_points_in_map(sample, leaf_m, encoder, decoder):

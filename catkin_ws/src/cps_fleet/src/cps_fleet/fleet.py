@@ -10,7 +10,7 @@ import re
 from typing import Dict, List, Optional, Tuple
 
 from cps_fleet.config import ConfigError, Reader, load_yaml_document
-from cps_fleet.robot_types import RobotType, read_robot_types, register
+from cps_fleet.robot_types import RobotType, read_robot_types
 
 # The default fleet's four types (fleet.yaml robot_types); the simulator's bodies are modelled on them.
 ROBOT_TYPES = ("wheeled_lidar", "wheeled_depth", "legged_depth", "aerial_depth")
@@ -314,7 +314,6 @@ def load_fleet(path=None, profile=None):
     if not robots:
         raise top.error("robots", "the fleet has no robots")
 
-    register(robot_types)
     return FleetConfig(
         path=os.path.abspath(doc.path),
         profile=profiles[chosen],

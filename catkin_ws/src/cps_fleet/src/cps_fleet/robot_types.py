@@ -78,31 +78,3 @@ def read_robot_types(reader) -> Dict[str, RobotType]:
         raise reader.error(None, "no robot types")
     return types
 
-
-# Types of the fleets loaded in this process, for code that holds only a type's name (the GUI).
-_KNOWN: Dict[str, RobotType] = {}
-
-
-def register(types: Dict[str, RobotType]):
-    """Called by cps_fleet.fleet.load_fleet for every fleet it loads."""
-    _KNOWN.update(types)
-
-
-def resolve(robot_type) -> RobotType:
-    """A RobotType as is; a name: the type of a fleet loaded in this process (else of the default
-    fleet). An unknown name is a ValueError naming the known ones."""
-    if isinstance(robot_type, RobotType):
-        return robot_type
-    if robot_type not in _KNOWN:
-        from cps_fleet.fleet import load_fleet
-
-        load_fleet()
-    try:
-        return _KNOWN[robot_type]
-    except KeyError:
-        raise ValueError(f"unknown robot type '{robot_type}' (known: {', '.join(_KNOWN)})") from None
-
-
-def velocity_limits(robot_type) -> VelocityLimits:
-    """The VelocityLimits of a type (a RobotType or its name)."""
-    return resolve(robot_type).limits

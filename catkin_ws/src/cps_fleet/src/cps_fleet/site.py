@@ -25,13 +25,6 @@ _SIZE_KEYS = {
 }
 
 
-def default_site_path():
-    """The site the default fleet file names (see cps_fleet.fleet.default_fleet_path)."""
-    from cps_fleet.fleet import load_fleet
-
-    return load_fleet().site_path
-
-
 @dataclasses.dataclass(frozen=True)
 class Primitive:
     """A box (half_extents) or a cylinder (radius, half_length along `axis`) in `map`.
@@ -297,9 +290,9 @@ def _rgb(reader, key):
     return tuple(float(v) for v in value)
 
 
-def load_site(path=None):
-    """Read and validate hall.yaml; errors (ConfigError) name the file, the line and the problem."""
-    path = path or default_site_path()
+def load_site(path):
+    """Read and validate a site file (the fleet's `site_path`); errors (ConfigError) name the file,
+    the line and the problem."""
     doc = load_yaml_document(path)
     top = Reader(doc).known_keys("seed", "hall", "fence", "fenced_areas", "equipment")
     seed = top.get("seed", int, default=0)
@@ -362,14 +355,13 @@ def load_site(path=None):
 
 
 def check_waypoint(site: Site, x, y, z, robot_type, margin_m=0.3) -> Optional[str]:
-    """Why a waypoint is not reachable (outside the hall, inside equipment or a fence), or None."""
+    """Why a waypoint is not reachable for a robot of `robot_type` (a RobotType: aerial robots fly over
+    equipment) at (x, y, z): outside the hall, inside equipment or a fence; None if it is."""
     if not site.inside_hall(x, y, margin_m):
         h = site.hall
         return (f"({x}, {y}) is outside the hall (x in [{h.x_min_m}, {h.x_max_m}], "
                 f"y in [{h.y_min_m}, {h.y_max_m}], keeping {margin_m} m from the walls)")
-    from cps_fleet.robot_types import resolve
-
-    aerial = resolve(robot_type).is_aerial
+    aerial = robot_type.is_aerial
     probe_z = z if aerial else 0.2
     blocker = site.blocking_item(x, y, probe_z, margin_m)
     if blocker is not None:

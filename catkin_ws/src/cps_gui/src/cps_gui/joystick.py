@@ -11,8 +11,7 @@ import dataclasses
 import math
 from typing import FrozenSet
 
-from cps_fleet.robot_types import velocity_limits
-
+from cps_fleet.robot_types import RobotType
 
 # A deflection below this fraction of full scale is treated as zero, so a resting finger does
 # not creep the robot.
@@ -41,8 +40,10 @@ ZERO = VelocityCommand()
 
 
 def speed_limits(robot_type):
-    """Full-scale deflection of a robot type (cps_fleet.robot_types.VelocityLimits); ValueError names the known types."""
-    return velocity_limits(robot_type)
+    """Full-scale deflection of a robot type (a cps_fleet RobotType): its VelocityLimits."""
+    if not isinstance(robot_type, RobotType):
+        raise TypeError(f"expected a cps_fleet RobotType (fleet.robot_types[name]), got {robot_type!r}")
+    return robot_type.limits
 
 
 def _shape(value):

@@ -23,7 +23,6 @@ from cps_msgs.srv import SetPriority, SetPriorityRequest
 from cps_ros.timers import guarded_timer
 from cps_transport.image_compression import InvalidImage, decode_jpeg
 
-from cps_fleet.robot_types import resolve
 from cps_fleet import names
 from cps_gui import topview
 from cps_gui.fleet_state import (Allocation, ImageFrame, MapChange, Pose, RobotAllocation, RobotMapFigures,
@@ -93,7 +92,7 @@ class FleetRosIO:
         def on_odom(msg):
             p, q = msg.pose.pose.position, msg.pose.pose.orientation
             if not all(math.isfinite(v) for v in (p.x, p.y, p.z, q.x, q.y, q.z, q.w)):
-                rospy.logwarn_throttle(10.0, f"cps_gui: /{name}/odom with a non-finite pose, ignored")
+                rospy.logwarn_throttle(10.0, f"cps_gui: {names.absolute(names.robot_topic(name, names.ODOM))} with a non-finite pose, ignored")
                 return
             origin = self._odom_origin(name)
             if origin is None:
@@ -107,7 +106,7 @@ class FleetRosIO:
 
         def on_battery(msg):
             if not math.isfinite(msg.percentage):
-                rospy.logwarn_throttle(10.0, f"cps_gui: /{name}/battery without a percentage, ignored")
+                rospy.logwarn_throttle(10.0, f"cps_gui: {names.absolute(names.robot_topic(name, names.BATTERY))} without a percentage, ignored")
                 return
             state.set_battery(name, msg.percentage)
 
@@ -117,7 +116,7 @@ class FleetRosIO:
         self._subscribe(topic(names.MISSION_STATE), String, lambda m: state.set_mission_state(name, m.data))
         self.teleop_pubs[name] = rospy.Publisher(topic(names.CMD_VEL_TELEOP), Twist, queue_size=1)
         self.mode_pubs[name] = rospy.Publisher(topic(names.CONTROL_MODE), String, queue_size=1, latch=True)
-        if resolve(robot.type).is_aerial:
+        if robot.robot_type.is_aerial:
             self.flight_pubs[name] = rospy.Publisher(topic(names.FLIGHT_COMMAND), String, queue_size=1)
 
     def _odom_origin(self, robot):

@@ -10,7 +10,6 @@ from typing import Callable, Optional, Tuple
 
 from cps_fleet.config import ConfigError
 from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, pose_matrix, spec_for, validate_twist
-from cps_fleet.robot_types import resolve
 from cps_fleet.site import check_waypoint
 
 MISSION_STATES = ("idle", "transit", "inspecting", "done")
@@ -20,7 +19,7 @@ CONTROL_MODES = ("auto", "teleop")
 def validate_route(route, site, robot_type):
     """Raise ConfigError (route file, waypoint line) for a waypoint outside the hall or in equipment."""
     spec_for(robot_type)
-    aerial, name = resolve(robot_type).is_aerial, resolve(robot_type).name
+    aerial, name = robot_type.is_aerial, robot_type.name
     for waypoint, line in zip(route.waypoints, route.lines):
         if not aerial and waypoint.z != 0.0:
             raise ConfigError(route.path, line, f"waypoint z = {waypoint.z} m: a {name} robot drives on the floor (z = 0)")
@@ -44,7 +43,7 @@ class RouteFollower:
         self.route = route
         self.start_xy = start_xy
         self.spec = spec_for(robot_type)
-        self.aerial = resolve(robot_type).is_aerial
+        self.aerial = robot_type.is_aerial
         self.tolerance_m = tolerance_m
         self.heading_gain = heading_gain
         self.index = 0

@@ -13,7 +13,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from cps_fleet.fleet import ROBOT_TYPES
-from cps_fleet.robot_types import RobotType, VelocityLimits, resolve
+from cps_fleet.robot_types import RobotType, VelocityLimits
 
 
 # Beyond this many times a limit a command is absurd: dropped, not clamped.
@@ -89,11 +89,11 @@ _BODY_OF = {("wheeled", "lidar"): "wheeled_lidar", ("wheeled", "depth"): "wheele
             ("aerial", "lidar"): "aerial_depth", ("aerial", "depth"): "aerial_depth"}
 
 
-def spec_for(robot_type):
-    """The RobotSpec of a type (a RobotType, or its name in a loaded fleet): the body named like it,
-    else the body of its base and sensor kind, with the type's velocity limits. An unknown name is a
-    ValueError naming the known ones."""
-    rt: RobotType = resolve(robot_type)
+def spec_for(rt: RobotType):
+    """The RobotSpec of a robot type (a cps_fleet RobotType): the body named like it, else the body of
+    its base and sensor kind, with the type's velocity limits."""
+    if not isinstance(rt, RobotType):
+        raise TypeError(f"expected a cps_fleet RobotType (fleet.robot_types[name]), got {rt!r}")
     body = ROBOT_SPECS.get(rt.name) or ROBOT_SPECS[_BODY_OF[(rt.base, rt.sensor)]]
     return dataclasses.replace(body, type=rt.name, limits=rt.limits)
 
@@ -175,7 +175,7 @@ class Robot:
     def __init__(self, name, robot_type, initial_pose):
         self.name = name
         self.spec = spec_for(robot_type)
-        self.robot_type = resolve(robot_type)
+        self.robot_type = robot_type
         self.type = self.robot_type.name
         self.initial = np.array([initial_pose.x, initial_pose.y, initial_pose.z, initial_pose.yaw_rad])
         self.x, self.y, self.z, self.yaw = self.initial.tolist()

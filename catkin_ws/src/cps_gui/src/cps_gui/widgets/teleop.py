@@ -211,7 +211,7 @@ class TeleopPane(QWidget):
 
     def _on_robot_changed(self, *_):
         self._stop_driving()
-        limits = joystick.speed_limits(self.robot.type)
+        limits = joystick.speed_limits(self.robot.robot_type)
         self.strafe_check.setVisible(limits.can_strafe)
         self.strafe_check.setChecked(False)
         self.climb_slider.setVisible(limits.can_climb)
@@ -220,7 +220,7 @@ class TeleopPane(QWidget):
         self.land_button.setVisible(flies)
 
     def _current_command(self):
-        robot_type = self.robot.type
+        robot_type = self.robot.robot_type
         climb = self.climb_slider.value() / 100.0
         if self._drag is not None:
             dx, dy = self._drag
@@ -339,7 +339,7 @@ class TeleopPane(QWidget):
                 self.priority_button.setChecked(row.priority == 1)
         poses = self.state.poses()
         stale = name not in poses or poses[name][1]
-        self.speedometer.set_speed(self.state.speed_mps(name), joystick.speed_limits(self.robot.type).max_forward_mps,
+        self.speedometer.set_speed(self.state.speed_mps(name), joystick.speed_limits(self.robot.robot_type).max_forward_mps,
                                    stale)
 
     def save_settings(self, settings):
