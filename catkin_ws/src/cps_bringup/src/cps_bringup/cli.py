@@ -129,7 +129,7 @@ MISSION_OUTPUTS = {
     PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv"),
     DIGITAL: ("map.bt", "map.bt.json", "map_changes.md", "map_changes.json", "stats.csv", "arrivals.csv",
               "allocation.csv", "gui.png", "ground_truth.npz", "scores.json", "topdown.png", "link.png", "report.md",
-              "link_events.csv", "link_state.csv"),
+              "link_events.csv", "link_state.csv", "trajectories.csv"),
 }
 
 
