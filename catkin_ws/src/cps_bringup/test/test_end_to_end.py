@@ -28,7 +28,8 @@ def _pane(image, panes, name):
 def test_two_robot_mission_end_to_end(open_tmp_path):
     out = open_tmp_path / "demo"
     result = subprocess.run([sys.executable, DEMO, "--robots", "scout,jackal", "--out", str(out),
-                             "--duration", "150", "--screenshot-after", "25", "--kill-map-server-at", "24"],
+                             "--duration", "150", "--screenshot-after", "25", "--kill-map-server-at", "24",
+                             "--map-f1-floor", str(F1_THRESHOLD)],
                             capture_output=True, text=True, timeout=600)
     log = result.stdout + result.stderr
     assert result.returncode == 0, log[-4000:]

@@ -81,7 +81,9 @@ def format_progress(progress: MissionProgress, elapsed_s: float) -> str:
 class MissionMonitor:
     """Subscribes to mission states, map stats, allocation and tissue stats (rospy must be up)."""
 
-    def __init__(self, fleet):
+    def __init__(self, fleet, map_age_csv_path=None):
+        """`map_age_csv_path`: where each map_stats message's per-robot map age is logged (the
+        verdict's map-stale check reads it); None: not logged."""
         import rospy
         import tf2_ros
         from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
@@ -97,6 +99,12 @@ class MissionMonitor:
         self._odom_in_map = {}
         self._last_sample = {}
         self._lock = threading.Lock()
+        self._map_age_log = None
+        if map_age_csv_path:
+            from cps_bringup.verdict import MAP_AGE_COLUMNS
+            from cps_fleet.csv_log import CsvLog
+
+            self._map_age_log = CsvLog(map_age_csv_path, MAP_AGE_COLUMNS)
         self._subs = [rospy.Subscriber(f"/{r}/mission_state", String, self._on_state, callback_args=r)
                       for r in robots]
         self._subs += [rospy.Subscriber(f"/{r}/odom", Odometry, self._on_odom, callback_args=r) for r in robots]
@@ -148,6 +156,9 @@ class MissionMonitor:
                 self.progress.clouds_dropped[stats.robot] = (stats.clouds_dropped_queue + stats.clouds_dropped_tf
                                                              + stats.clouds_dropped_invalid)
                 self.progress.voxels_contributed[stats.robot] = stats.occupied_voxels_contributed
+                if self._map_age_log is not None:
+                    self._map_age_log.write((f"{time.time():.3f}", stats.robot, f"{stats.map_age_s:.3f}",
+                                             self.progress.mission_state.get(stats.robot, ""), stats.clouds_inserted))
 
     def _on_allocation(self, msg):
         with self._lock:
@@ -179,6 +190,8 @@ class MissionMonitor:
     def close(self):
         for sub in self._subs:
             sub.unregister()
+        if self._map_age_log is not None:
+            self._map_age_log.close()
 
 
 def wait_for_mission(monitor: MissionMonitor, supervisor, duration_s: Optional[float], print_every_s=10.0,

@@ -146,7 +146,8 @@ def observable_surface_from_poses(fleet, ground_truth_path, trajectories):
         if robot not in fleet.robot_names or not len(points):
             continue
         config = fleet.robot(robot)
-        sensor = positions_every(points, OBSERVABLE_POSITION_SPACING_M) + [0.0, 0.0, spec_for(config.robot_type).sensor_xyz_m[2]]
+        sensor_height_m = spec_for(config.robot_type).sensor_xyz_m[2]
+        sensor = positions_every(points, OBSERVABLE_POSITION_SPACING_M) + [0.0, 0.0, sensor_height_m]
         seen.append(observable_from_positions(truth, resolution, sensor, config.robot_type.max_range_m))
     return np.unique(np.vstack(seen), axis=0) if seen else None
 
@@ -332,6 +333,14 @@ def write_mission_report(result, mission_args, wall_time_s):
               "`physical_arrivals.csv` (per-cloud stamps and receive times there), `allocation.csv` "
               "(bandwidth manager), `link.png`, `topdown.png`, "
               "`gui.png`, `logs/` (every node's output)."]
+    from cps_bringup.verdict import DEMO_FILES, MAP_F1_FLOOR_WITHIN_1_VOXEL, judge, write_verdict
+
+    # `make demo --map-f1-floor` sets map_f1_floor on the mission's arguments; else the code default.
+    floor = getattr(mission_args, "map_f1_floor", None)
+    verdict = judge(out, DEMO_FILES, ended_by=result.ended_by,
+                    f1_floor_within_1_voxel=MAP_F1_FLOOR_WITHIN_1_VOXEL if floor is None else floor)
+    write_verdict(out, verdict)
+    lines[2:2] = verdict.lines()
     path = os.path.join(out, "report.md")
     with open(path, "w") as stream:
         stream.write("\n".join(lines) + "\n")
