@@ -81,9 +81,20 @@ def test_a_map_server_restart_gets_the_start_grace_and_its_silence_is_noted(tmp_
             for t in list(range(24)) + list(range(26, 40)) + list(range(45, 60)) for robot in ROBOTS]
     verdict = judge(_mission(tmp_path / "m", rows), ended_by="done")
     assert verdict.status == PASS, verdict
-    assert verdict.notes == ["the map server published no statistics from record 39 s to 45 s (not judged)"]
+    assert verdict.notes == ["the map server published no statistics from record 39 s to 45 s (a restart; under 15 s)"]
     rows = [(t, robot, float("inf") if 26 <= float(t) - T0 < 50 else age, state, n) for t, robot, age, state, n in rows]
     assert judge(_mission(tmp_path / "m", rows), ended_by="done").status == FAIL
+
+
+def test_a_map_server_that_publishes_nothing_for_long_fails(tmp_path):
+    """The monitor's start mark at 0 s, the first statistics at 30 s (a map server busy starting up),
+    its end mark at 80 s while the map server went silent at 60 s."""
+    marks = [(f"{T0 + t:.3f}", robot, "nan", mark, "") for t, mark in ((0, "start"), (80, "end")) for robot in ROBOTS]
+    rows = marks + [(f"{T0 + t:.3f}", robot, 0.5, "inspecting", t) for t in range(30, 60) for robot in ROBOTS]
+    verdict = judge(_mission(tmp_path / "m", rows), ended_by="done")
+    assert verdict.status == FAIL
+    silent = "map stale: the map server published no statistics from record"
+    assert verdict.failures == [f"{silent} 0 s to 30 s (over 15 s)", f"{silent} 59 s to 80 s (over 15 s)"]
 
 
 def test_a_done_robot_is_not_judged(tmp_path):

@@ -105,6 +105,7 @@ class MissionMonitor:
             from cps_fleet.csv_log import CsvLog
 
             self._map_age_log = CsvLog(map_age_csv_path, MAP_AGE_COLUMNS)
+            self._mark_map_age_log("start")
         self._subs = [rospy.Subscriber(f"/{r}/mission_state", String, self._on_state, callback_args=r)
                       for r in robots]
         self._subs += [rospy.Subscriber(f"/{r}/odom", Odometry, self._on_odom, callback_args=r) for r in robots]
@@ -187,10 +188,17 @@ class MissionMonitor:
                                        managed_latency_ms=dict(self.progress.managed_latency_ms),
                                        trajectories={r: t.points() for r, t in self._trajectories.items()})
 
+    def _mark_map_age_log(self, mark):
+        """A row per robot with no age: when the monitoring started and ended, so the verdict sees a
+        map server that published nothing at the start or the end of the mission."""
+        for robot in self.progress.robots:
+            self._map_age_log.write((f"{time.time():.3f}", robot, "nan", mark, ""))
+
     def close(self):
         for sub in self._subs:
             sub.unregister()
         if self._map_age_log is not None:
+            self._mark_map_age_log("end")
             self._map_age_log.close()
 
 

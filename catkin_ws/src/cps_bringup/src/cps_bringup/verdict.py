@@ -11,8 +11,10 @@ only the mission folder (and what the caller knows of how the mission ended).
     robot inserted into the map, as the map server published it) above MAP_STALE_AFTER_S while the
     robot is not done, outside every link outage and the AFTER_OUTAGE_S after it. A robot with no
     cloud in the map yet ("inf") is judged only after MAP_START_GRACE_S of the map server's run
-    (its start, and a restart: start-up loads the map and the kernels). Silences of the map
-    server (no map_stats for MAP_STATS_GAP_S) are listed as notes, not judged;
+    (its start, and a restart: start-up loads the map and the kernels). A map server silent (no
+    map_stats) for longer than MAP_START_GRACE_S fails too, counted from the mission monitor's
+    start and to its end (rows marked "start"/"end" with no age); shorter silences of more than
+    MAP_STATS_GAP_S (a restart) are listed as notes;
   - *map F1*: F1 within ±1 voxel (scores.json) below the floor (MAP_F1_FLOOR_WITHIN_1_VOXEL
     unless the caller gives another).
 - PASS: every check ran and none failed.
@@ -32,7 +34,8 @@ EXIT_CODES = {PASS: 0, FAIL: 1, INCOMPLETE: 4}   # 2: could not start, 3: master
 MAP_STALE_AFTER_S = 3.0
 AFTER_OUTAGE_S = 3.0
 MAP_START_GRACE_S = 15.0
-# map_stats rows further apart than this: the map server was not publishing (noted, not judged).
+# map_stats rows further apart than this: the map server was not publishing (noted; a failure
+# past MAP_START_GRACE_S).
 MAP_STATS_GAP_S = 3.0
 # The floor on the whole-hall F1 within ±1 voxel; the committed four-robot demo scores 0.955.
 MAP_F1_FLOOR_WITHIN_1_VOXEL = 0.9
@@ -136,6 +139,7 @@ def stale_intervals(map_age_rows, outages=()):
     t0 = samples[0][0]
     times = sorted({s[0] for s in samples})
     gaps = [(before - t0, after - t0) for before, after in zip(times, times[1:]) if after - before > MAP_STATS_GAP_S]
+    samples = [s for s in samples if not math.isnan(s[2])]   # the monitor's start/end marks
     stale = defaultdict(list)
     open_run, run_start, inserted_before = {}, {}, {}
     for t, robot, age, state, inserted in samples:
@@ -181,8 +185,13 @@ def judge(folder, required_files: Sequence[str] = DEMO_FILES, ended_by: Optional
                               for a, b, age in runs)
             failures.append(f"map stale: {robot}'s map older than {MAP_STALE_AFTER_S:g} s outside link outages "
                             f"(+{AFTER_OUTAGE_S:g} s) at record {spans}")
-        notes += [f"the map server published no statistics from record {a:.0f} s to {b:.0f} s (not judged)"
-                  for a, b in gaps]
+        for a, b in gaps:
+            if b - a > MAP_START_GRACE_S:
+                failures.append(f"map stale: the map server published no statistics from record {a:.0f} s to "
+                                f"{b:.0f} s (over {MAP_START_GRACE_S:g} s)")
+            else:
+                notes.append(f"the map server published no statistics from record {a:.0f} s to {b:.0f} s "
+                             f"(a restart; under {MAP_START_GRACE_S:g} s)")
 
     if f1_floor_within_1_voxel is not None:
         scores_path = os.path.join(folder, "scores.json")
