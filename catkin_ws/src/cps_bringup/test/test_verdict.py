@@ -2,6 +2,8 @@
 stops growing outside an outage fails, a missing or truncated CSV makes it INCOMPLETE (named, and
 never a crash), and `make demo`'s exit code and console follow the verdict."""
 import json
+import os
+import shutil
 
 import pytest
 
@@ -162,3 +164,31 @@ def test_demo_exit_code_and_console_follow_the_verdict(tmp_path, capsys, status,
             "none": "verdict INCOMPLETE"}[status] in console
     if code:
         assert "[demo] verdict" in out.err
+
+
+@pytest.mark.slow
+def test_the_report_of_a_folder_with_missing_and_truncated_csvs_says_incomplete(tmp_path):
+    """The committed demo's CSVs, one cut off mid-row and one gone, no map: report.md is written,
+    opens with INCOMPLETE and names both; nothing crashes."""
+    from cps_bringup.cli import MissionResult, mission_args
+    from cps_bringup.mission import MissionProgress
+    from cps_bringup.report import write_mission_report
+
+    demo = os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "docs", "results", "demo")
+    out = tmp_path / "demo"
+    out.mkdir()
+    for name in ("stats.csv", "arrivals.csv", "physical_stats.csv", "physical_arrivals.csv", "link_events.csv",
+                 "link_state.csv"):
+        shutil.copy(os.path.join(demo, name), out / name)
+    text = (out / "stats.csv").read_text()
+    (out / "stats.csv").write_text(text[:len(text) // 2])
+    robots = ["scout", "jackal"]
+    progress = MissionProgress(robots, mission_state={r: "done" for r in robots},
+                               trajectories={"scout": ((-8.0, -6.0, 0.0),), "jackal": ((-8.0, 6.0, 0.0),)})
+    result = MissionResult(str(out), "done", 74.0, "loopback", None, progress, [], {})
+    report = open(write_mission_report(result, mission_args("all", out=str(out), robots="scout,jackal"), 1.0)).read()
+    head = report.split("## Robots")[0]
+    assert head.startswith("# Mission report\n\n**INCOMPLETE**"), head
+    assert "- allocation.csv is missing" in head and "- map_age.csv is missing" in head
+    assert "- stats.csv: 1 truncated row(s)" in head and "- map.bt is missing" in head
+    assert read_verdict(str(out)).status == INCOMPLETE

@@ -328,7 +328,8 @@ def write_mission_report(result, mission_args, wall_time_s):
     if os.path.exists(os.path.join(out, "gui.png")):
         lines += ["## Operator GUI during the mission", "", "![GUI screenshot](gui.png)", ""]
     lines += ["## Files", "", "`map.bt` (OctoMap, opens with octomap's tools), `ground_truth.npz`, `scores.json`, "
-              "`trajectories.csv` (each robot's recorded positions), "
+              "`trajectories.csv` (each robot's recorded positions), `map_age.csv` (each robot's map age as the "
+              "map server published it), `verdict.json`, "
               "`stats.csv` (topic statistics at the twin), `physical_stats.csv` (at the robots), `arrivals.csv` and "
               "`physical_arrivals.csv` (per-cloud stamps and receive times there), `allocation.csv` "
               "(bandwidth manager), `link.png`, `topdown.png`, "
