@@ -192,3 +192,29 @@ def test_the_report_of_a_folder_with_missing_and_truncated_csvs_says_incomplete(
     assert "- allocation.csv is missing" in head and "- map_age.csv is missing" in head
     assert "- stats.csv: 1 truncated row(s)" in head and "- map.bt is missing" in head
     assert read_verdict(str(out)).status == INCOMPLETE
+
+
+def test_map_stats_messages_logged_by_the_mission_monitor_are_what_the_verdict_reads(tmp_path):
+    """MapStats as the map server publishes it (inf before a robot's first cloud) through the
+    monitor's map_age.csv writer, then judged: iris's map froze at 10 s."""
+    from cps_msgs.msg import MapStats, RobotMapStats
+
+    from cps_bringup.mission import map_age_rows
+    from cps_fleet.csv_log import CsvLog
+
+    folder = _mission(tmp_path / "m")
+    (folder / "map_age.csv").unlink()
+    log = CsvLog(str(folder / "map_age.csv"), MAP_AGE_COLUMNS)
+    for t in range(40):
+        msg = MapStats(robots=[RobotMapStats(robot="scout", map_age_s=float("inf") if t < 2 else 0.4,
+                                             clouds_inserted=max(t - 2, 0)),
+                               RobotMapStats(robot="iris", map_age_s=0.3 if t < 10 else t - 9.7,
+                                             clouds_inserted=min(t, 10))])
+        for row in map_age_rows(msg, {"scout": "inspecting", "iris": "inspecting"}, T0 + t):
+            log.write(row)
+    log.close()
+    rows, problems = read_rows(str(folder / "map_age.csv"))
+    assert problems == [] and len(rows) == 80 and rows[0]["map_age_s"] == "inf"
+    verdict = judge(folder, ended_by="done")
+    assert verdict.status == FAIL and len(verdict.failures) == 1
+    assert verdict.failures[0].startswith("map stale: iris's map") and "13–39 s" in verdict.failures[0]

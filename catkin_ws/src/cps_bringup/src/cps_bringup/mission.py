@@ -78,6 +78,13 @@ def format_progress(progress: MissionProgress, elapsed_s: float) -> str:
             f"link {progress.managed_mbytes_per_s:.2f}/{progress.budget_mbytes_per_s:.2f} MB/s")
 
 
+def map_age_rows(map_stats, mission_state, now_s):
+    """map_age.csv rows (cps_bringup.verdict.MAP_AGE_COLUMNS) of one cps_msgs/MapStats message:
+    per robot, the wall time, its map age, its mission state then and its inserted clouds."""
+    return [(f"{now_s:.3f}", stats.robot, f"{stats.map_age_s:.3f}", mission_state.get(stats.robot, ""),
+             stats.clouds_inserted) for stats in map_stats.robots]
+
+
 class MissionMonitor:
     """Subscribes to mission states, map stats, allocation and tissue stats (rospy must be up)."""
 
@@ -157,9 +164,9 @@ class MissionMonitor:
                 self.progress.clouds_dropped[stats.robot] = (stats.clouds_dropped_queue + stats.clouds_dropped_tf
                                                              + stats.clouds_dropped_invalid)
                 self.progress.voxels_contributed[stats.robot] = stats.occupied_voxels_contributed
-                if self._map_age_log is not None:
-                    self._map_age_log.write((f"{time.time():.3f}", stats.robot, f"{stats.map_age_s:.3f}",
-                                             self.progress.mission_state.get(stats.robot, ""), stats.clouds_inserted))
+            if self._map_age_log is not None:
+                for row in map_age_rows(msg, self.progress.mission_state, time.time()):
+                    self._map_age_log.write(row)
 
     def _on_allocation(self, msg):
         with self._lock:
