@@ -140,6 +140,17 @@ def test_a_truncated_csv_is_incomplete_and_its_rows_are_counted(tmp_path):
     assert verdict.status == INCOMPLETE and verdict.failures == problems
 
 
+def test_a_failure_found_wins_over_what_is_missing(tmp_path):
+    """A map server silent all mission and no scores.json (no map): FAIL, both listed."""
+    folder = _mission(tmp_path / "m", [(f"{T0 + t:.3f}", robot, "nan", mark, "")
+                                       for t, mark in ((0, "start"), (60, "end")) for robot in ROBOTS])
+    (folder / "scores.json").unlink()
+    verdict = judge(folder, ended_by="done")
+    assert verdict.status == FAIL and verdict.exit_code == 1
+    assert verdict.failures[0].startswith("map stale: the map server published no statistics from record 0 s")
+    assert verdict.failures[1:] == ["scores.json is missing"]
+
+
 def test_an_empty_folder_and_an_interrupted_mission_are_incomplete_not_a_crash(tmp_path):
     verdict = judge(tmp_path, ended_by="interrupted")
     assert verdict.status == INCOMPLETE

@@ -3,10 +3,11 @@
 So that a report cannot say a mission worked when its own files say otherwise. ROS-free: it reads
 only the mission folder (and what the caller knows of how the mission ended).
 
-- INCOMPLETE: a file the mission should have written is missing, empty or truncated (a row with
-  the wrong number of fields, a last line cut off), or the mission ended before every route was
-  done. Each is named; no row is dropped without being counted here.
-- FAIL (when nothing is missing):
+- INCOMPLETE: no check failed, but a file the mission should have written is missing, empty or
+  truncated (a row with the wrong number of fields, a last line cut off), or the mission ended
+  before every route was done. Each is named; no row is dropped without being counted here.
+- FAIL: a check that could run found a failure (it wins over INCOMPLETE: what is missing is
+  listed too):
   - *map stale*: a robot's map age (map_age.csv: now minus the stamp of the newest cloud of that
     robot inserted into the map, as the map server published it) above MAP_STALE_AFTER_S while the
     robot is not done, outside every link outage and the AFTER_OUTAGE_S after it. A robot with no
@@ -211,8 +212,8 @@ def judge(folder, required_files: Sequence[str] = DEMO_FILES, ended_by: Optional
     else:
         notes.append("map F1 not judged: this mission's map is not scored against the ground truth")
 
-    status = INCOMPLETE if incomplete else FAIL if failures else PASS
-    return Verdict(status, incomplete + failures, notes, f1_floor_within_1_voxel)
+    status = FAIL if failures else INCOMPLETE if incomplete else PASS
+    return Verdict(status, failures + incomplete, notes, f1_floor_within_1_voxel)
 
 
 def write_verdict(folder, verdict: Verdict):
