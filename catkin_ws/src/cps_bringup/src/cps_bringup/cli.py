@@ -130,7 +130,7 @@ MISSION_OUTPUTS = {
     PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv"),
     DIGITAL: ("map.bt", "map.bt.json", "map_changes.md", "map_changes.json", "stats.csv", "arrivals.csv",
               "allocation.csv", "gui.png", "ground_truth.npz", "scores.json", "topdown.png", "link.png", "report.md",
-              "link_events.csv", "link_state.csv"),
+              "link_events.csv", "link_state.csv", "trajectories.csv", "map_age.csv", "verdict.json"),
 }
 
 
@@ -257,7 +257,8 @@ def run_mission(args, log=print) -> MissionResult:
         runner = link.start_scenario(os.path.join(out_dir, "link_events.csv"), log) if link else None
         if runner:
             stack.callback(runner.stop)
-        monitor = MissionMonitor(fleet)
+        monitor = MissionMonitor(fleet, map_age_csv_path=os.path.join(out_dir, "map_age.csv") if DIGITAL in sides
+                                 else None)
         stack.callback(monitor.close)
 
         killed = []

@@ -80,10 +80,23 @@ def format_progress(progress: MissionProgress, elapsed_s: float) -> str:
             f"link {progress.managed_mbytes_per_s:.2f}/{progress.budget_mbytes_per_s:.2f} MB/s")
 
 
+# map_age.csv, which the mission monitor writes and the mission verdict reads (cps_experiments.verdict).
+MAP_AGE_COLUMNS = ("time_s", "robot", "map_age_s", "mission_state", "clouds_inserted")
+
+
+def map_age_rows(map_stats, mission_state, now_s):
+    """map_age.csv rows (MAP_AGE_COLUMNS) of one cps_msgs/MapStats message:
+    per robot, the wall time, its map age, its mission state then and its inserted clouds."""
+    return [(f"{now_s:.3f}", stats.robot, f"{stats.map_age_s:.3f}", mission_state.get(stats.robot, ""),
+             stats.clouds_inserted) for stats in map_stats.robots]
+
+
 class MissionMonitor:
     """Subscribes to mission states, map stats, allocation and tissue stats (rospy must be up)."""
 
-    def __init__(self, fleet):
+    def __init__(self, fleet, map_age_csv_path=None):
+        """`map_age_csv_path`: where each map_stats message's per-robot map age is logged (the
+        verdict's map-stale check reads it); None: not logged."""
         import rospy
         import tf2_ros
         from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
@@ -99,6 +112,12 @@ class MissionMonitor:
         self._odom_in_map = {}
         self._last_sample = {}
         self._lock = threading.Lock()
+        self._map_age_log = None
+        if map_age_csv_path:
+            from cps_fleet.csv_log import CsvLog
+
+            self._map_age_log = CsvLog(map_age_csv_path, MAP_AGE_COLUMNS)
+            self._mark_map_age_log("start")
         self._subs = [rospy.Subscriber(names.robot_topic(r, names.MISSION_STATE), String, self._on_state, callback_args=r)
                       for r in robots]
         self._subs += [rospy.Subscriber(names.robot_topic(r, names.ODOM), Odometry, self._on_odom, callback_args=r) for r in robots]
@@ -150,6 +169,9 @@ class MissionMonitor:
                 self.progress.clouds_dropped[stats.robot] = (stats.clouds_dropped_queue + stats.clouds_dropped_tf
                                                              + stats.clouds_dropped_invalid)
                 self.progress.voxels_contributed[stats.robot] = stats.occupied_voxels_contributed
+            if self._map_age_log is not None:
+                for row in map_age_rows(msg, self.progress.mission_state, time.time()):
+                    self._map_age_log.write(row)
 
     def _on_allocation(self, msg):
         with self._lock:
@@ -178,9 +200,18 @@ class MissionMonitor:
                                        managed_latency_ms=dict(self.progress.managed_latency_ms),
                                        trajectories={r: t.points() for r, t in self._trajectories.items()})
 
+    def _mark_map_age_log(self, mark):
+        """A row per robot with no age: when the monitoring started and ended, so the verdict sees a
+        map server that published nothing at the start or the end of the mission."""
+        for robot in self.progress.robots:
+            self._map_age_log.write((f"{time.time():.3f}", robot, "nan", mark, ""))
+
     def close(self):
         for sub in self._subs:
             sub.unregister()
+        if self._map_age_log is not None:
+            self._mark_map_age_log("end")
+            self._map_age_log.close()
 
 
 def wait_for_mission(monitor: MissionMonitor, supervisor, duration_s: Optional[float], print_every_s=10.0,

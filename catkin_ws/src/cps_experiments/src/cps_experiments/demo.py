@@ -46,6 +46,9 @@ def parse_args(argv):
                         help="upper bound on the mission (it normally ends when every route is done)")
     parser.add_argument("--screenshot-after", type=float, default=GUI_SCREENSHOT_AFTER_S, metavar="S",
                         help="when the GUI screenshot is taken, seconds after start (during the mission)")
+    parser.add_argument("--map-f1-floor", type=float, default=None, metavar="F1",
+                        help="the verdict's floor on map F1 within ±1 voxel (default: cps_experiments.verdict's "
+                             "MAP_F1_FLOOR_WITHIN_1_VOXEL, for the whole fleet)")
     parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
                         help="fault injection: kill the map server mid-mission (it must resume from autosave)")
     return parser.parse_args(argv)
@@ -60,13 +63,24 @@ def main(argv=None):
     mission = mission_args("all", profile=args.profile, out=out_dir, link=link, duration=args.duration,
                            screenshot=True, screenshot_after=args.screenshot_after, link_scenario=scenario,
                            robots=args.robots, kill_map_server_at=args.kill_map_server_at)
+    mission.map_f1_floor = args.map_f1_floor
     from cps_experiments.report import write_mission_report
 
     result = run_and_report("demo", mission, write_mission_report, t0)
     if result is None:
         return 2
     print(json.dumps({"ended_by": result.ended_by, "link": result.link, "out": out_dir}, indent=None))
-    return 0
+    return report_verdict("demo", out_dir)
+
+
+def report_verdict(prog, out_dir):
+    """Print the verdict the report wrote and each reason; the exit code (0 only on PASS)."""
+    from cps_experiments.verdict import console_lines, exit_code, read_verdict
+
+    verdict = read_verdict(out_dir)
+    for line in console_lines(prog, verdict):
+        print(line, file=sys.stderr if verdict is None or verdict.status != "PASS" else sys.stdout)
+    return exit_code(verdict)
 
 
 def run_and_report(prog, mission, write_report, t0):

@@ -10,7 +10,7 @@ import sys
 import time
 
 from cps_bringup.cli import mission_args
-from cps_experiments.demo import choose_link, run_and_report
+from cps_experiments.demo import choose_link, report_verdict, run_and_report
 from cps_fleet.fleet import PROFILES
 
 DEFAULT_BASELINE = "out/demo/map.bt"
@@ -50,4 +50,6 @@ def main(argv=None):
                            screenshot_after=args.screenshot_after, profile=args.profile)
     from cps_experiments.monitor_report import write_monitor_report
 
-    return 0 if run_and_report("monitor", mission, write_monitor_report, t0) else 2
+    if not run_and_report("monitor", mission, write_monitor_report, t0):
+        return 2
+    return report_verdict("monitor", os.path.abspath(args.out))

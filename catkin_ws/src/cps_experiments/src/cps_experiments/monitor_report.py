@@ -136,6 +136,12 @@ def write_monitor_report(mission, mission_args, wall_time_s):
     lines += [f"- {e.time_s:.0f} s {e.label}: {e.what}" for e in mission.events] or ["- none"]
     lines += ["", "## Files", "", "`map.bt` (the new map), `map_changes.md`/`.json` (the twin's last live "
               "detection), `changes.json` (this report's figures), `topdown.png`, `gui.png`, `logs/`."]
+    from cps_experiments.verdict import MONITOR_FILES, judge, write_verdict
+
+    # The new map is judged by its change detection above, not against the ground truth: no F1 floor.
+    verdict = judge(out, MONITOR_FILES, ended_by=mission.ended_by, f1_floor_within_1_voxel=None)
+    write_verdict(out, verdict)
+    lines[2:2] = verdict.lines()
     path = os.path.join(out, "report.md")
     with open(path, "w") as stream:
         stream.write("\n".join(lines) + "\n")

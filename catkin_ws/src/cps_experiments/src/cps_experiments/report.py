@@ -100,8 +100,57 @@ def latency_split(physical_arrival_rows, twin_arrival_rows, twin_topic_suffix="/
     return out
 
 
-def score_saved_map(map_file, fleet, ground_truth_path):
-    """Load the saved map and score it against the simulator's ground truth at the map's resolution."""
+TRAJECTORIES_CSV = "trajectories.csv"
+TRAJECTORY_COLUMNS = ("robot", "sample", "x_m", "y_m", "z_m")
+# Ray-cast the truth from one recorded position per this much travel (the samples are 0.5 s apart).
+OBSERVABLE_POSITION_SPACING_M = 1.0
+
+
+def write_trajectories(path, trajectories):
+    """trajectories.csv: each robot's recorded base positions in `map` (the mission's poses, for the
+    observable surface and for anyone re-scoring the map later)."""
+    with open(path, "w", newline="") as stream:
+        writer = csv.writer(stream)
+        writer.writerow(TRAJECTORY_COLUMNS)
+        for robot, points in sorted(trajectories.items()):
+            for i, (x, y, z) in enumerate(points):
+                writer.writerow((robot, i, f"{x:.3f}", f"{y:.3f}", f"{z:.3f}"))
+
+
+def read_trajectories(path):
+    """{robot: N x 3 positions} from trajectories.csv ({} if it is missing); unreadable rows are skipped."""
+    out = defaultdict(list)
+    for row in read_csv(path):
+        point = (_float(row.get("x_m")), _float(row.get("y_m")), _float(row.get("z_m")))
+        if row.get("robot") and all(math.isfinite(v) for v in point):
+            out[row["robot"]].append(point)
+    return {robot: np.array(points) for robot, points in out.items()}
+
+
+def observable_surface_from_poses(fleet, ground_truth_path, trajectories):
+    """The truth voxels in sight of where the robots' sensors were (cps_sim's ray-cast: base
+    position + the sensor's mount height, within each robot type's max_range_m), or None without
+    any position."""
+    from cps_mapping.scoring import load_ground_truth
+    from cps_sim.ground_truth import observable_from_positions, positions_every
+    from cps_sim.robots import spec_for
+
+    truth, resolution = load_ground_truth(ground_truth_path)
+    seen = []
+    for robot, points in sorted(trajectories.items()):
+        if robot not in fleet.robot_names or not len(points):
+            continue
+        config = fleet.robot(robot)
+        sensor_height_m = spec_for(config.robot_type).sensor_xyz_m[2]
+        sensor = positions_every(points, OBSERVABLE_POSITION_SPACING_M) + [0.0, 0.0, sensor_height_m]
+        seen.append(observable_from_positions(truth, resolution, sensor, config.robot_type.max_range_m))
+    return np.unique(np.vstack(seen), axis=0) if seen else None
+
+
+def score_saved_map(map_file, fleet, ground_truth_path, trajectories=None):
+    """Load the saved map and score it against the simulator's ground truth at the map's resolution,
+    exact and within ±1 voxel. With `trajectories` ({robot: positions in map}) the observable
+    surface is ray-cast from them; without, it is the scored map's free space (and says so)."""
     from cps_mapping.fused_map import FusedLogOddsMap
     from cps_mapping.scoring import score_fused_map
     from cps_sim.ground_truth import save_ground_truth
@@ -111,7 +160,29 @@ def score_saved_map(map_file, fleet, ground_truth_path):
     save_ground_truth(ground_truth_path, load_site(fleet.site_path), resolution)
     fused = FusedLogOddsMap.from_mapping_config(fleet.mapping)
     fused.load(map_file)
-    return score_fused_map(fused, ground_truth_path), fused
+    observable = observable_surface_from_poses(fleet, ground_truth_path, trajectories) if trajectories else None
+    return score_fused_map(fused, ground_truth_path, observable_centers_m=observable), fused
+
+
+def observable_text(observable_from):
+    """What the observable surface was computed from, for the report line."""
+    from cps_mapping.scoring import OBSERVABLE_FROM_POSES, OBSERVABLE_FROM_MAP
+
+    return {OBSERVABLE_FROM_POSES: "ray-cast in the ground truth from the robots' recorded positions at sensor "
+                                   "height, any direction, within each robot type's max_range_m",
+            OBSERVABLE_FROM_MAP: "relative to the scored map's own free space: a map that saw less is judged "
+                                 "against less"}.get(observable_from, "every truth voxel with an empty face neighbour")
+
+
+def map_quality_table(score):
+    """Report lines: precision, recall, F1 voxel for voxel and within the tolerance, each row naming it."""
+    from cps_mapping.scoring import tolerance_text
+
+    rows = [(tolerance_text(m.tolerance_voxels), f"{m.precision:.3f}", f"{m.recall:.3f}", f"{m.f1:.3f}")
+            for m in (score.exact, score.tolerant)]
+    return [_table(("match", "precision", "recall", "F1"), rows), "",
+            f"Coverage of the observable surface ({tolerance_text(score.tolerant.tolerance_voxels)}): "
+            f"{score.coverage:.3f}."]
 
 
 def plot_link(stats_rows, allocation_rows, budget_mbytes_per_s, png_path):
@@ -191,17 +262,18 @@ def write_mission_report(result, mission_args, wall_time_s):
                       "path m", "map age s"), rows), ""]
 
     scores = None
+    write_trajectories(os.path.join(out, TRAJECTORIES_CSV), progress.trajectories)
     if result.map_file and os.path.exists(result.map_file):
-        score, fused = score_saved_map(result.map_file, fleet, os.path.join(out, "ground_truth.npz"))
+        score, fused = score_saved_map(result.map_file, fleet, os.path.join(out, "ground_truth.npz"),
+                                       progress.trajectories)
         scores = score.as_dict()
         with open(os.path.join(out, "scores.json"), "w") as stream:
             json.dump(scores, stream, indent=2)
         lines += ["## Map quality against the simulator's ground truth", "",
                   f"Map `map.bt` ({score.map_voxels} occupied voxels at {score.resolution_m} m) against "
-                  f"{score.truth_voxels} ground-truth voxels ({score.observable_voxels} on the observable surface):", "",
-                  markdown_table(("precision", "recall", "F1", "coverage of the observable surface"),
-                         [(f"{score.precision:.3f}", f"{score.recall:.3f}", f"{score.f1:.3f}", f"{score.coverage:.3f}")]),
-                  ""]
+                  f"{score.truth_voxels} ground-truth voxels ({score.observable_voxels} on the observable surface, "
+                  f"{observable_text(score.observable_from)}):", "",
+                  *map_quality_table(score), ""]
         plot_topdown(fused.occupied_centers(), progress.trajectories, fleet, os.path.join(out, "topdown.png"))
         lines += ["![top-down view of the fused map with the trajectories](topdown.png)", ""]
     else:
@@ -245,10 +317,20 @@ def write_mission_report(result, mission_args, wall_time_s):
     if os.path.exists(os.path.join(out, "gui.png")):
         lines += ["## Operator GUI during the mission", "", "![GUI screenshot](gui.png)", ""]
     lines += ["## Files", "", "`map.bt` (OctoMap, opens with octomap's tools), `ground_truth.npz`, `scores.json`, "
+              "`trajectories.csv` (each robot's recorded positions), `map_age.csv` (each robot's map age as the "
+              "map server published it), `verdict.json`, "
               "`stats.csv` (topic statistics at the twin), `physical_stats.csv` (at the robots), `arrivals.csv` and "
               "`physical_arrivals.csv` (per-cloud stamps and receive times there), `allocation.csv` "
               "(bandwidth manager), `link.png`, `topdown.png`, "
               "`gui.png`, `logs/` (every node's output)."]
+    from cps_experiments.verdict import DEMO_FILES, MAP_F1_FLOOR_WITHIN_1_VOXEL, judge, write_verdict
+
+    # `make demo --map-f1-floor` sets map_f1_floor on the mission's arguments; else the code default.
+    floor = getattr(mission_args, "map_f1_floor", None)
+    verdict = judge(out, DEMO_FILES, ended_by=result.ended_by,
+                    f1_floor_within_1_voxel=MAP_F1_FLOOR_WITHIN_1_VOXEL if floor is None else floor)
+    write_verdict(out, verdict)
+    lines[2:2] = verdict.lines()
     path = os.path.join(out, "report.md")
     with open(path, "w") as stream:
         stream.write("\n".join(lines) + "\n")

@@ -38,3 +38,64 @@ def save_ground_truth(path, site, resolution_m, include_floor=True):
     np.savez_compressed(path, resolution_m=float(resolution_m), occupied_centers_m=centers,
                         includes_floor=bool(include_floor), site_path=str(site.path))
     return centers
+
+
+def positions_every(positions_m, spacing_m):
+    """The positions of a path at least `spacing_m` apart (the first always kept): ray-casting from
+    every 0.5 s sample of a slow robot adds little but time."""
+    pts = np.asarray(positions_m, dtype=np.float64).reshape(-1, 3)
+    kept = []
+    for p in pts[np.isfinite(pts).all(axis=1)]:
+        if not kept or np.linalg.norm(p - kept[-1]) >= spacing_m:
+            kept.append(p)
+    return np.array(kept).reshape(-1, 3)
+
+
+def observable_from_positions(truth_centers_m, resolution_m, sensor_positions_m, max_range_m, chunk=4096):
+    """The truth voxels in line of sight of at least one sensor position, within `max_range_m`.
+
+    The simulator's ground truth ray-cast from where the sensors actually were, so the observable
+    surface does not depend on the map being scored. Per position and truth voxel within range, a
+    ray from the sensor to the voxel's nearest point is marched in half-voxel steps through the
+    truth grid; the voxel is visible when no other truth voxel lies on the way. The sensor's field
+    of view is not modelled (any direction counts): this surface is a superset of what a camera
+    facing the direction it was facing could see, so coverage against it errs low, never high.
+    """
+    truth = np.asarray(truth_centers_m, dtype=np.float64).reshape(-1, 3)
+    positions = np.asarray(sensor_positions_m, dtype=np.float64).reshape(-1, 3)
+    if len(truth) == 0 or len(positions) == 0:
+        return truth[:0]
+    res = float(resolution_m)
+    index = np.floor(truth / res).astype(np.int64)
+    lo = index.min(axis=0) - 1
+    dims = index.max(axis=0) - lo + 2
+    occupied = np.zeros(tuple(dims), dtype=bool)
+    occupied[tuple((index - lo).T)] = True
+    seen = np.zeros(len(truth), dtype=bool)
+    step_m = res / 2.0
+    for origin in positions:
+        todo = np.flatnonzero(~seen & (np.linalg.norm(truth - origin, axis=1) <= max_range_m))
+        for start in range(0, len(todo), chunk):
+            which = todo[start:start + chunk]
+            # The voxel's point nearest the sensor: a ray to its centre would graze its neighbours.
+            target = np.clip(origin, truth[which] - res / 2, truth[which] + res / 2)
+            length = np.linalg.norm(target - origin, axis=1)
+            steps = int(np.ceil(length.max() / step_m)) if len(length) else 0
+            blocked = np.zeros(len(which), dtype=bool)
+            for k in range(1, steps):
+                along = k * step_m
+                active = along < length - 1e-6
+                if not active.any():
+                    break
+                p = origin + (target[active] - origin) * (along / length[active])[:, None]
+                cell = np.floor(p / res).astype(np.int64) - lo
+                inside = ((cell >= 0) & (cell < dims)).all(axis=1)
+                hit = np.zeros(len(cell), dtype=bool)
+                hit[inside] = occupied[tuple(cell[inside].T)]
+                blocked[np.flatnonzero(active)[hit]] = True
+            # A sensor inside a truth voxel (on the floor, in a wall) sees nothing from there.
+            start_cell = np.floor(origin / res).astype(np.int64) - lo
+            if ((start_cell >= 0) & (start_cell < dims)).all() and occupied[tuple(start_cell)]:
+                blocked[:] = True
+            seen[which[~blocked]] = True
+    return truth[seen]
