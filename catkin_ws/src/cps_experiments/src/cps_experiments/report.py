@@ -121,7 +121,7 @@ def read_trajectories(path):
     """{robot: N x 3 positions} from trajectories.csv ({} if it is missing); unreadable rows are skipped."""
     out = defaultdict(list)
     for row in read_csv(path):
-        point = (_float(row.get("x_m")), _float(row.get("y_m")), _float(row.get("z_m")))
+        point = (csv_float(row.get("x_m")), csv_float(row.get("y_m")), csv_float(row.get("z_m")))
         if row.get("robot") and all(math.isfinite(v) for v in point):
             out[row["robot"]].append(point)
     return {robot: np.array(points) for robot, points in out.items()}
@@ -180,7 +180,7 @@ def map_quality_table(score):
 
     rows = [(tolerance_text(m.tolerance_voxels), f"{m.precision:.3f}", f"{m.recall:.3f}", f"{m.f1:.3f}")
             for m in (score.exact, score.tolerant)]
-    return [_table(("match", "precision", "recall", "F1"), rows), "",
+    return [markdown_table(("match", "precision", "recall", "F1"), rows), "",
             f"Coverage of the observable surface ({tolerance_text(score.tolerant.tolerance_voxels)}): "
             f"{score.coverage:.3f}."]
 
