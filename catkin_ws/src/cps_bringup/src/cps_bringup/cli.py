@@ -17,7 +17,8 @@ from typing import Dict, List, Optional
 from cps_bringup.mission import MissionMonitor, wait_for_mission
 from cps_bringup.plan import (CONTROL_LAYOUTS, DIGITAL, GUI_SCREENSHOT_AFTER_S, MAP_SERVER, MAP_SERVER_READY, PHYSICAL,
                                RECORDER, SHARED, TCPROS, TISSUE_LAYOUTS, TRANSPORTS, ZENOH, RunOptions, plan_nodes)
-from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
+from cps_bringup.privileges import (PrivilegeError, check_code_readable, ensure_map_kernels, hand_over, node_user,
+                                    user_env, user_prefix)
 from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
                                     node_log_dir)
 from cps_fleet.config import ConfigError
@@ -192,6 +193,8 @@ def run_mission(args, log=print) -> MissionResult:
                 options, transport=ZENOH, twin_address=args.twin_address or (link.twin_ip if link else "127.0.0.1"),
                 zenoh_port=None if link or args.twin_address else free_port())
         specs = plan_nodes(fleet, sides=sides, options=options)
+        if DIGITAL in sides:
+            ensure_map_kernels(log)  # before the mission: no node compiles during it
         # Across machines the nodes must advertise this host's address: ROS_IP as the user set it.
         # Over Zenoh each side's graph stays on its host's loopback: only the bridge is on the link.
         host_ip = "127.0.0.1" if zenoh else link.twin_ip if link else (os.environ.get("ROS_IP") or "127.0.0.1")
@@ -219,6 +222,7 @@ def run_mission(args, log=print) -> MissionResult:
                 specs = plan_nodes(fleet, sides=sides, options=options)
             try:
                 hand_over(user, out_dir, ros_log_dir)
+                check_code_readable(user, specs)
                 prefix = user_prefix(user)
             except PrivilegeError as exc:
                 raise BringupError(str(exc)) from exc
