@@ -31,7 +31,6 @@ import math
 import time
 from typing import Tuple
 
-import numba
 import numpy as np
 
 from cps_mapping import kernel_cache
@@ -272,12 +271,15 @@ def _parent_codes(states, clo, cd):
 
 
 @kernel_cache.njit(nogil=True)
-def _write_preorder(levels, los, ds):
-    """OctoMap's writeBinaryNode from the root down: 2 bytes per inner node, children in order."""
-    top = len(levels) - 1
+def _write_preorder(codes, offsets, los, ds):
+    """OctoMap's writeBinaryNode from the root down: 2 bytes per inner node, children in order.
+    Level lv's child codes are codes[offsets[lv]:offsets[lv + 1]], its box (los[lv], ds[lv]): flat
+    arrays rather than numba typed lists, whose own functions numba compiles in every process."""
+    top = offsets.shape[0] - 2
     n_inner = 0
-    for lv in range(len(levels)):
-        for c in levels[lv]:
+    for lv in range(top + 1):
+        for i in range(offsets[lv], offsets[lv + 1]):
+            c = codes[i]
             if _state_of(c) == 3 or (lv == top and c != 0):
                 n_inner += 1
     out = np.empty(2 * n_inner, dtype=np.uint8)
@@ -296,7 +298,7 @@ def _write_preorder(levels, los, ds):
         lv = stack_l[sp]
         kx, ky, kz = stack_k[sp, 0], stack_k[sp, 1], stack_k[sp, 2]
         lo, d = los[lv], ds[lv]
-        code = levels[lv][((kx - lo[0]) * d[1] + (ky - lo[1])) * d[2] + (kz - lo[2])]
+        code = codes[offsets[lv] + ((kx - lo[0]) * d[1] + (ky - lo[1])) * d[2] + (kz - lo[2])]
         out[w] = np.uint8(code & 0xFF)
         out[w + 1] = np.uint8(code >> 8)
         w += 2
@@ -334,7 +336,9 @@ def binary_tree_body(log_odds, lo, dims, occ_threshold=0.0):
         los.append(clo)
         ds.append(cd)
     # levels[i] holds the nodes of depth 15 - i; the last is the root (depth 0)
-    body, nodes = _write_preorder(numba.typed.List(levels), numba.typed.List(los), numba.typed.List(ds))
+    offsets = np.cumsum([0] + [len(level) for level in levels]).astype(np.int64)
+    body, nodes = _write_preorder(np.concatenate(levels), offsets, np.stack(los).astype(np.int64),
+                                  np.stack(ds).astype(np.int64))
     return body.tobytes(), int(nodes)
 
 
