@@ -6,7 +6,9 @@ cache that another test, or the workspace, warmed.
 - a copy of a built checkout at another path, with an older or a newer mtime, compiles nothing
   (numba's own cache keys by path and mtime and recompiled there); an edited source compiles anew;
 - cold start: the map server node started from the fresh checkout reports ready with every kernel
-  loaded from that cache, and the first cloud that reaches it is inserted within 1 s.
+  loaded from that cache, and the first cloud that reaches it is inserted within 1 s;
+- a node whose kernels are not built compiles them before it is ready (and says so), and a cloud
+  that arrives meanwhile is queued and inserted, not lost.
 """
 import json
 import os
@@ -164,6 +166,43 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
         print(f"cold start: ready after {values['ready_after_s']} s, first cloud in the map "
               f"{arrived_at - published_at:.3f} s after it was sent")
         assert arrived_at - published_at < 1.0
+    finally:
+        for recorder in (ready, octomap):
+            recorder.close()
+        publisher.unregister()
+        del tf_keep
+
+
+@pytest.mark.ros
+def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node, tmp_path):
+    """No build step (a checkout without its kernels): the node compiles before it is ready and says
+    so; a cloud sent once it subscribed, before its ready, waits in the queue and reaches the map."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from sensor_msgs.msg import PointCloud2
+
+    from cps_harness.testing import TopicRecorder, wait_for
+    from cps_msgs.msg import Octomap
+
+    rospy = rospy_node
+    path = _copy_checkout(PACKAGE, str(tmp_path / "unbuilt" / "cps_mapping"), with_cache=False)
+    name = "unbuilt_map_server"
+    ready = TopicRecorder(f"/twin/{name}/ready", DiagnosticStatus)
+    octomap = TopicRecorder(f"/twin/{name}/octomap_binary", Octomap)
+    publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
+    tf_keep = _static_tf()
+    try:
+        ros.popen([sys.executable, os.path.join(path, "nodes", "map_server"), "__ns:=/twin", f"__name:={name}",
+                   f"octomap_binary:=/twin/{name}/octomap_binary", "_robots:=jackal",
+                   f"_map_file:={tmp_path / 'map.bt'}", "_publish_period_s:=0.05", "_autosave_period_s:=0.0"],
+                  name=name, env=_env(path))
+        assert wait_for(lambda: publisher.get_num_connections(), timeout_s=60), "the map server did not subscribe"
+        publisher.publish(_wall_cloud(rospy))
+        assert ready.count == 0, "ready before the cloud was sent: this test needs the cloud to arrive first"
+        status = ready.wait(timeout_s=300, what="the map server's ready")
+        values = {kv.key: kv.value for kv in status.values}
+        assert status.level == DiagnosticStatus.WARN and "_integrate" in values["kernels_compiled"], status
+        assert values["clouds_queued_before_ready"] == "1", status
+        octomap.wait(lambda m: len(m.data) > 0, timeout_s=10, what="the queued cloud in the map")
     finally:
         for recorder in (ready, octomap):
             recorder.close()
