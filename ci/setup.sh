@@ -3,8 +3,10 @@
 #   1. Debian packages from ci/apt-packages.txt (only the missing ones; needs root then)
 #   2. .venv made from /usr/bin/python3 with --system-site-packages, pinned ci/requirements.txt
 #   3. catkin_make of catkin_ws (only when a package's build files changed)
-#   4. the pcl_ros plugin-path fix, so that nodelet can load pcl/VoxelGrid
-#   5. the fleet's TLS keys and certificates for the Zenoh bridges in .certs (outside git)
+#   4. the map server's numba kernels, compiled next to their source and keyed by its content
+#      (cps_mapping.kernel_cache): no node compiles them during a mission
+#   5. the pcl_ros plugin-path fix, so that nodelet can load pcl/VoxelGrid
+#   6. the fleet's TLS keys and certificates for the Zenoh bridges in .certs (outside git)
 #
 # CPS_VENV and CPS_APT_PACKAGES override the venv folder and the package list (used by the tests).
 set -euo pipefail
@@ -73,7 +75,12 @@ if [ ! -f "$stamp" ] || [ -n "$(find "$ws/src" \( -name package.xml -o -name CMa
   touch "$stamp"
 fi
 
-# --- 4. pcl_ros plugin path ----------------------------------------------------------------
+# --- 4. the map server's kernels ---------------------------------------------------------------
+# Quick when built: the cache folder's key is the source's hash (+ numba and Python versions).
+PYTHONPATH="$ws/src/cps_mapping/src${PYTHONPATH:+:$PYTHONPATH}" "$venv/bin/python" -m cps_mapping.kernel_cache \
+  >/tmp/cps-kernels.log 2>&1 || die "building the map server's kernels failed (see /tmp/cps-kernels.log): $(tail -3 /tmp/cps-kernels.log)"
+
+# --- 5. pcl_ros plugin path ----------------------------------------------------------------
 # Debian's pcl_ros nodelet description names "lib/libpcl_ros_filters"; pluginlib looks for it as
 # <prefix>/lib/lib/libpcl_ros_filters.so on CMAKE_PREFIX_PATH. ci/env.sh puts this prefix there.
 fix="$ws/pcl_ros_plugin_prefix/lib/lib"
@@ -83,7 +90,7 @@ for lib in /usr/lib/x86_64-linux-gnu/libpcl_ros_*.so /usr/lib/*/libpcl_ros_*.so;
 done
 [ -e "$fix/libpcl_ros_filters.so" ] || die "libpcl_ros_filters.so not found (is libpcl-ros-dev installed?)"
 
-# --- 5. TLS material for the Zenoh bridges ---------------------------------------------------
+# --- 6. TLS material for the Zenoh bridges ---------------------------------------------------
 # The testbed's addresses; for real hosts see catkin_ws/src/cps_link/README.md.
 [ -f "$root/.certs/ca.pem" ] || catkin_ws/src/cps_link/scripts/make_certs "$root/.certs" >/dev/null \
   || die "could not make the bridges' certificates (is openssl installed?)"

@@ -1,5 +1,6 @@
 """`catkin_make install` gives a working install space: resources found through rospkg/catkin,
-nodes start from it, and the front door without setup.bash says what to do."""
+nodes start from it (the map server with its kernels built at install), and the front door without
+setup.bash says what to do."""
 import os
 import subprocess
 import sys
@@ -65,6 +66,11 @@ def test_a_node_starts_from_the_install_space(install_space, tmp_path):
         try:
             graph.wait_for_topic("/twin/octomap_binary", timeout_s=60)
             graph.wait_for_service("/twin/map_server/clear_bbx", timeout_s=30)
+            # catkin_make install built the kernels in the install space: the node compiled nothing.
+            ready = subprocess.run(["rostopic", "echo", "-n", "1", "/twin/map_server/ready/message"],
+                                   env={**os.environ, "ROS_MASTER_URI": graph.uri}, capture_output=True, text=True,
+                                   timeout=60)
+            assert "kernels loaded from the build-time cache" in ready.stdout, ready.stdout + ready.stderr
             # rosrun execs the installed node: its Python path is the install space's, not the workspace's.
             with open(f"/proc/{proc.pid}/environ", "rb") as stream:
                 environ = dict(item.split(b"=", 1) for item in stream.read().split(b"\0") if b"=" in item)

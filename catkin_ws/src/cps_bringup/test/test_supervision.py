@@ -1,16 +1,18 @@
 """The supervisor under faults, on a real master: restart backoff and a windowed limit (clock
 injected), a GUI that fails without ending the run, a dead master noticed within 2 s, nodes that
-drop root, node output that cannot grow without bound."""
+drop root, code they cannot read refused at start, the map kernels they read without compiling,
+node output that cannot grow without bound."""
 import os
 import pwd
 import signal
+import subprocess
 import sys
 import time
 
 import pytest
 
 from cps_bringup.plan import DIGITAL, NodeSpec
-from cps_bringup.privileges import hand_over, user_prefix
+from cps_bringup.privileges import PrivilegeError, check_code_readable, ensure_map_kernels, hand_over, user_prefix
 from cps_bringup.supervisor import BringupError, MasterLost, RestartPolicy, Supervisor
 from cps_ros.processes import RosGraph
 from cps_harness.testing import wait_for
@@ -153,17 +155,35 @@ def test_a_chatty_node_output_is_rotated_at_its_bound(tmp_path):
     assert largest < 3 * 100_000, largest
 
 
-def test_the_unprivileged_nodes_get_the_compiled_map_kernels(tmp_path):
-    """Compiled once into the shared cache, copied per mission; a second mission compiles nothing."""
-    import glob
+@pytest.mark.skipif(os.geteuid() != 0, reason="dropping root needs root")
+def test_code_closed_to_the_node_user_is_refused_at_start_and_says_so(tmp_path, open_tmp_path):
+    """A checkout in a 0700 folder (pytest's tmp_path) was "fleet_sim exited with code 2"; now
+    bringup names the file the nodes cannot read before starting anything."""
+    closed, readable = tmp_path / "checkout" / "node", open_tmp_path / "node"
+    for path in (closed, readable):
+        path.parent.mkdir(exist_ok=True)
+        path.write_text("print('a node')\n")
+        path.chmod(0o755)
+    check_code_readable("nobody", [NodeSpec("open", DIGITAL, (sys.executable, str(readable)))])
+    with pytest.raises(PrivilegeError) as info:
+        check_code_readable("nobody", [NodeSpec("open", DIGITAL, (sys.executable, str(readable))),
+                                       NodeSpec("closed", DIGITAL, (sys.executable, str(closed)))])
+    assert f"'nobody' (not root) but cannot read the code: {closed}" in str(info.value)
 
-    from cps_bringup.privileges import copy_compiled_kernels
 
-    shared, first, second = tmp_path / "shared", tmp_path / "one", tmp_path / "two"
-    copy_compiled_kernels(str(first), shared=str(shared))
-    indexes = glob.glob(str(shared / "**" / "log_odds_grid.*.nbi"), recursive=True)
-    assert indexes and glob.glob(str(first / "**" / "log_odds_grid.*.nbc"), recursive=True)
-    built = {i: os.path.getmtime(i) for i in indexes}
-    copy_compiled_kernels(str(second), shared=str(shared))
-    assert {i: os.path.getmtime(i) for i in indexes} == built
-    assert glob.glob(str(second / "**" / "log_odds_grid.*.nbc"), recursive=True)
+@pytest.mark.skipif(os.geteuid() != 0, reason="dropping root needs root")
+def test_the_unprivileged_nodes_read_the_built_kernels_and_compile_nothing(open_tmp_path):
+    """As bringup prepares a mission: the kernels are built (if the set-up has not) where the code
+    is, and a process as `nobody`, which cannot write there, loads every one of them."""
+    import json
+
+    ensure_map_kernels(log=lambda *_: None)
+    code = ("import json; from cps_mapping.log_odds_grid import warm_up; w = warm_up(); "
+            "print(json.dumps({'compiled': list(w.compiled), 'dir': w.cache_dir}))")
+    out = subprocess.run([*user_prefix("nobody"), sys.executable, "-c", code], capture_output=True, text=True,
+                         env={**os.environ, "HOME": str(open_tmp_path)}, timeout=120)
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["compiled"] == [], result
+    nobody = pwd.getpwnam("nobody").pw_uid
+    assert all(os.stat(os.path.join(result["dir"], f)).st_uid != nobody for f in os.listdir(result["dir"]))

@@ -9,7 +9,8 @@ import time
 
 import pytest
 
-from cps_bringup.plan import DIGITAL, PER_ROBOT, PHYSICAL, ZENOH, NodeSpec, RunOptions, plan_nodes
+from cps_bringup.plan import (DIGITAL, MAP_SERVER, MAP_SERVER_READY, PER_ROBOT, PHYSICAL, ZENOH, NodeSpec, RunOptions,
+                              plan_nodes)
 from cps_fleet import names
 from cps_bringup.supervisor import BringupError, Supervisor
 from cps_fleet.fleet import load_fleet
@@ -113,6 +114,17 @@ def test_plan_for_real_robots_leaves_the_simulator_out():
     assert "fleet_sim" not in labels
     assert {"fleet_control", "voxel_grid_loader", "cloud_tissue"} <= labels
     assert all(s.after != ("fleet_sim",) for s in specs)
+
+
+def test_plan_starts_the_clouds_once_the_map_server_is_ready():
+    """Both sides: the map server is up only with its ~ready advertised, and the simulator (the
+    clouds' source) starts after it; the physical side alone cannot wait for a remote twin."""
+    fleet = load_fleet()
+    both = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x"))}
+    assert MAP_SERVER_READY in both[MAP_SERVER].wait_topics
+    assert both["fleet_sim"].after == (MAP_SERVER,)
+    physical = {s.label: s for s in plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x"))}
+    assert physical["fleet_sim"].after == ()
 
 
 def test_plan_control_layouts_shared_and_per_robot():

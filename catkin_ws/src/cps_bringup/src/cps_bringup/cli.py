@@ -15,9 +15,10 @@ import time
 from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
-from cps_bringup.plan import (CONTROL_LAYOUTS, DIGITAL, GUI_SCREENSHOT_AFTER_S, PHYSICAL, RECORDER, SHARED, TCPROS,
-                               TISSUE_LAYOUTS, TRANSPORTS, ZENOH, RunOptions, plan_nodes)
-from cps_bringup.privileges import PrivilegeError, hand_over, node_user, user_env, user_prefix
+from cps_bringup.plan import (CONTROL_LAYOUTS, DIGITAL, GUI_SCREENSHOT_AFTER_S, MAP_SERVER, MAP_SERVER_READY, PHYSICAL,
+                               RECORDER, SHARED, TCPROS, TISSUE_LAYOUTS, TRANSPORTS, ZENOH, RunOptions, plan_nodes)
+from cps_bringup.privileges import (PrivilegeError, check_code_readable, ensure_map_kernels, hand_over, node_user,
+                                    user_env, user_prefix)
 from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
                                     node_log_dir)
 from cps_fleet import names
@@ -193,6 +194,8 @@ def run_mission(args, log=print) -> MissionResult:
                 options, transport=ZENOH, twin_address=args.twin_address or (link.twin_ip if link else "127.0.0.1"),
                 zenoh_port=None if link or args.twin_address else free_port())
         specs = plan_nodes(fleet, sides=sides, options=options)
+        if DIGITAL in sides:
+            ensure_map_kernels(log)  # before the mission: no node compiles during it
         # Across machines the nodes must advertise this host's address: ROS_IP as the user set it.
         # Over Zenoh each side's graph stays on its host's loopback: only the bridge is on the link.
         host_ip = "127.0.0.1" if zenoh else link.twin_ip if link else (os.environ.get("ROS_IP") or "127.0.0.1")
@@ -220,6 +223,7 @@ def run_mission(args, log=print) -> MissionResult:
                 specs = plan_nodes(fleet, sides=sides, options=options)
             try:
                 hand_over(user, out_dir, ros_log_dir)
+                check_code_readable(user, specs)
                 prefix = user_prefix(user)
             except PrivilegeError as exc:
                 raise BringupError(str(exc)) from exc
@@ -253,6 +257,8 @@ def run_mission(args, log=print) -> MissionResult:
 
         stack.callback(EstopKeeper().close)    # the e-stop state outlives the GUI
         supervisor.start_all(timeout_s=args.start_timeout)
+        if DIGITAL in sides:
+            _record_map_server_ready(supervisor)
         recorder_log = supervisor.log_of(RECORDER)
         runner = link.start_scenario(os.path.join(out_dir, "link_events.csv"), log) if link else None
         if runner:
@@ -287,6 +293,22 @@ def run_mission(args, log=print) -> MissionResult:
             _wait_for_screenshot(supervisor, options.gui_screenshot_path, log)
         return MissionResult(out_dir, ended_by, elapsed, link.describe() if link else "loopback",
                              map_file, monitor.snapshot(), list(supervisor.events), supervisor.restarts())
+
+
+def _record_map_server_ready(supervisor):
+    """Note when the clouds started and what the map server said when it became ready (its
+    latched ~ready: kernels loaded, warm-up insertion done)."""
+    import rospy
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    try:
+        ready = rospy.wait_for_message(MAP_SERVER_READY, DiagnosticStatus, timeout=5.0).message
+    except rospy.ROSException:
+        ready = f"no message on {MAP_SERVER_READY}"
+    sim = supervisor.running.get("fleet_sim")
+    clouds = (f"fleet_sim (the clouds) started {sim.waited_s:.1f} s into the bring-up, after it"
+              if sim and MAP_SERVER in sim.spec.after else "the clouds do not wait for it")
+    supervisor.record(MAP_SERVER, f"{ready}; {clouds}")
 
 
 def _finish_recording(path, recorder_log, log):

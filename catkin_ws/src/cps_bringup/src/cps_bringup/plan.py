@@ -54,6 +54,10 @@ class NodeSpec:
     stop_timeout_s: float = 6.0
 
 
+MAP_SERVER = names.MAP_SERVER
+# Advertised (latched) by the map server once its kernels are loaded and a warm-up insertion ran.
+MAP_SERVER_READY = names.absolute(names.in_twin(f"{names.MAP_SERVER}/{names.READY.lstrip('~')}"))
+
 # The map server's live change report in the output folder (and its .json twin).
 CHANGE_REPORT = "map_changes.md"
 
@@ -167,7 +171,9 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
                            **({"site_changes_file": options.site_changes_file} if options.site_changes_file else {})})),
                 wait_topics=tuple(t for r in fleet.robots
                                   for t in (_rt(r.name, names.ODOM), _rt(r.name, r.cloud_topic))),
-                restart_limit=0))
+                restart_limit=0,
+                # The clouds start once the map server can insert them at full speed (MAP_SERVER_READY).
+                after=(MAP_SERVER,) if DIGITAL in sides else ()))
         drivers = ("fleet_sim",) if options.simulate and not options.replay_path else ()
         # Without the manager nothing lowers it: the sensors' full rate, up to the link's ceiling.
         initial_rate_hz = fleet.link.min_rate_hz if options.bandwidth_manager else fleet.link.max_rate_hz
@@ -230,13 +236,13 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
         if options.tissue_layout != PER_ROBOT:
             specs += _twin_tissue_shared(fleet, options.transport == ZENOH, py)
         specs.append(NodeSpec(
-            "map_server", DIGITAL,
+            MAP_SERVER, DIGITAL,
             py("cps_mapping", "map_server", f"__ns:={A(names.TWIN_NS)}", f"__name:={names.MAP_SERVER}",
                *_args({**common, "robots": ",".join(robots),
                        "map_file": options.map_file or os.path.join(out, "map.bt"),
                        **({"baseline_map": options.baseline_map, "change_report": os.path.join(out, CHANGE_REPORT)}
                           if options.baseline_map else {})})),
-            wait_topics=(_tw(names.MAP_STATS), _tw(names.OCTOMAP_BINARY)), restart_limit=3))
+            wait_topics=(_tw(names.MAP_STATS), _tw(names.OCTOMAP_BINARY), MAP_SERVER_READY), restart_limit=3))
         specs.append(NodeSpec(
             "topic_stats", DIGITAL,
             py("cps_transport", "topic_stats", "__name:=tissue_stats",

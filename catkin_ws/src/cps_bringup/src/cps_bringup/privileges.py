@@ -1,22 +1,17 @@
 """Nodes do not need root: only the link (ip netns, tc, entering a namespace) does.
 
 Started as root, the supervisor runs every node through `setpriv` as an unprivileged user; the
-mission folder is handed to that user so the nodes can write their logs, CSVs and the map.
+mission folder is handed to that user so the nodes can write their logs, CSVs and the map, and the
+code (with the map server's kernels, built before the mission: `ensure_map_kernels`) must be
+readable by it (`check_code_readable`).
 """
-import glob
 import grp
 import os
 import pwd
-import shutil
 import subprocess
 import sys
 
 DEFAULT_USER = "nobody"
-# The map server's compiled kernels (numba), built once by the user who starts the bringup and
-# copied into each mission's cache: the unprivileged nodes cannot write next to the sources, and
-# compiling them at every start took the map server 20 s (70 s on a loaded machine) before its
-# first insertion.
-SHARED_NUMBA_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "cps_numba")
 
 
 class PrivilegeError(RuntimeError):
@@ -42,9 +37,9 @@ def user_prefix(user):
 
 
 def user_env(log_dir):
-    """Environment for nodes run as another user: a home and a numba cache they can write (the
-    user's own home may not exist; numba caches next to the sources otherwise)."""
-    return {"HOME": os.path.join(log_dir, "home"), "NUMBA_CACHE_DIR": os.path.join(log_dir, "numba_cache")}
+    """Environment for nodes run as another user: a home they can write (the user's own home may
+    not exist)."""
+    return {"HOME": os.path.join(log_dir, "home")}
 
 
 def hand_over(user, out_dir, log_dir):
@@ -55,10 +50,6 @@ def hand_over(user, out_dir, log_dir):
     entry = pwd.getpwnam(user)
     for folder in (log_dir, *user_env(log_dir).values()):
         os.makedirs(folder, exist_ok=True)
-    try:
-        copy_compiled_kernels(user_env(log_dir)["NUMBA_CACHE_DIR"])
-    except (OSError, subprocess.CalledProcessError):
-        pass  # a speed-up only: without it the map server compiles its kernels at its start
     for folder in (out_dir, log_dir):
         for root, dirs, files in os.walk(folder):
             for name in [root] + [os.path.join(root, f) for f in dirs + files]:
@@ -70,14 +61,37 @@ def hand_over(user, out_dir, log_dir):
                              f"is closed to that user. Choose an --out that '{user}' can reach, or --run-as root")
 
 
-def copy_compiled_kernels(numba_cache_dir, shared=SHARED_NUMBA_CACHE):
-    """Fill `numba_cache_dir` with the map server's compiled kernels from `shared`, compiling them
-    there first if they are missing or older than their source."""
-    from cps_mapping import log_odds_grid
+def check_code_readable(user, specs):
+    """PrivilegeError naming the first file of the code (a node's program, the python, the map
+    server's kernels) that `user` cannot read: a folder above it is closed to that user, and the
+    node would only fail later with an exit code."""
+    from cps_mapping import kernel_cache
 
-    source_mtime = os.path.getmtime(log_odds_grid.__file__)
-    indexes = glob.glob(os.path.join(shared, "**", "log_odds_grid.*.nbi"), recursive=True)
-    if not indexes or min(os.path.getmtime(i) for i in indexes) < source_mtime:
-        subprocess.run([sys.executable, "-c", "from cps_mapping.log_odds_grid import warm_up; warm_up()"],
-                       env={**os.environ, "NUMBA_CACHE_DIR": shared}, check=True, capture_output=True)
-    shutil.copytree(shared, numba_cache_dir, dirs_exist_ok=True)
+    kernels = kernel_cache.cache_dir(kernel_cache.map_kernels_file())
+    paths = [sys.executable, kernel_cache.map_kernels_file(), *([kernels] if os.path.isdir(kernels) else [])]
+    paths += [arg for spec in specs for arg in spec.argv if os.path.isabs(arg) and os.path.isfile(arg)]
+    paths = list(dict.fromkeys(paths))
+    probe = 'for f; do test -r "$f" || { echo "$f"; exit 1; }; done'
+    check = subprocess.run([*user_prefix(user), "sh", "-c", probe, "sh", *paths], capture_output=True, text=True)
+    if check.returncode != 0:
+        path = check.stdout.strip() or paths[0]
+        raise PrivilegeError(f"the nodes run as '{user}' (not root) but cannot read the code: {path} (a folder above "
+                             f"it is closed to that user, e.g. a 0700 temporary folder). Put the checkout where "
+                             f"'{user}' can read it (o+rx on the folders above it), or --run-as root")
+
+
+def ensure_map_kernels(log=print):
+    """Build the map server's kernels before the mission when this source has none built (`make
+    setup` normally did), so that no node compiles during the mission; the nodes only read them."""
+    from cps_mapping import kernel_cache
+
+    if kernel_cache.is_built():
+        return
+    log("[bringup] building the map server's kernels for this source (once; `make setup` does it too)")
+    built = subprocess.run([sys.executable, "-m", "cps_mapping.kernel_cache"], capture_output=True, text=True)
+    if built.returncode != 0:
+        tail = (built.stderr or built.stdout).strip().splitlines()[-1:]
+        log(f"[bringup] WARNING: could not build them ({' '.join(tail)}); the map server compiles them at its "
+            f"start and the clouds wait for it")
+    else:
+        log(built.stdout.strip())

@@ -59,6 +59,8 @@ class _Running:
     restart_times: List[float] = dataclasses.field(default_factory=list)
     restart_at: Optional[float] = None
     ended: bool = False
+    # s from start_all's call to this node's start: how long it waited for the nodes it comes after.
+    waited_s: float = 0.0
 
 
 class Supervisor:
@@ -110,11 +112,12 @@ class Supervisor:
     def start_all(self, timeout_s=120.0):
         """Start every spec in dependency order; BringupError names what did not come up."""
         pending = list(self.specs)
-        deadline = time.monotonic() + timeout_s
+        started_at = time.monotonic()
+        deadline = started_at + timeout_s
         while True:
             for spec in list(pending):
                 if all(self.running.get(dep) and self.running[dep].up for dep in spec.after):
-                    self.running[spec.label] = _Running(spec, self._start(spec))
+                    self.running[spec.label] = _Running(spec, self._start(spec), waited_s=time.monotonic() - started_at)
                     pending.remove(spec)
             self._refresh_up()
             self._check_deaths(during_start=True)

@@ -95,6 +95,9 @@ SAVE_MAP = "save_map"
 LOAD_MAP = "load_map"
 RESET = "~reset"
 CLEAR_BBX = "~clear_bbx"
+# diagnostic_msgs/DiagnosticStatus, latched, advertised once the kernels are loaded and a warm-up
+# insertion ran: the first cloud after it is inserted at full speed (bringup starts the clouds then).
+READY = "~ready"
 
 
 def robot_topic(robot, name):

@@ -26,22 +26,26 @@ log-odds when one is asked for. Memory: 6 bytes per voxel (float32 log-odds, a o
 the last cloud that cleared or hit it, the last robot that hit it) of the bounding box of
 everything seen (0.05 m over a 21 x 16 x 3.5 m hall: about 56 MB).
 """
+import dataclasses
 import math
+import time
+from typing import Tuple
 
-import numba
 import numpy as np
+
+from cps_mapping import kernel_cache
 
 GRID_MARGIN_VOXELS = 8
 _TREE_DEPTH = 16
 _TREE_MAX_VAL = 1 << 15
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel_cache.njit(nogil=True, inline="always")
 def _key(coord, res_factor):
     return np.int64(math.floor(res_factor * np.float64(coord)))
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel_cache.njit(nogil=True, inline="always")
 def _add(log_odds, flat, delta, clamp_min, clamp_max):
     old = log_odds[flat]
     base = np.float32(0.0) if math.isnan(old) else old
@@ -53,7 +57,7 @@ def _add(log_odds, flat, delta, clamp_min, clamp_max):
     log_odds[flat] = new
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel_cache.njit(nogil=True)
 def _prepare(points, origin, max_range, res_factor):
     """Finite points as float32 (N x 3) and the (lo, hi) voxel indices the cloud's rays can touch
     (a point beyond max range: up to max range only), with two voxels to spare."""
@@ -87,7 +91,7 @@ def _prepare(points, origin, max_range, res_factor):
     return out[:m], lo, hi
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel_cache.njit(nogil=True)
 def _integrate(points, origin, max_range, resolution, lo, dims, log_odds, stamp, owner, free_code, hit_code, robot_id,
                hit, miss, clamp_min, clamp_max, exact, stop_run):
     """One cloud into the grid (see the module docstring); returns the voxel steps walked.
@@ -206,7 +210,7 @@ def _integrate(points, origin, max_range, resolution, lo, dims, log_odds, stamp,
 
 # ---- OctoMap's binary stream from the grid --------------------------------------------------------
 
-@numba.njit(cache=True, nogil=True)
+@kernel_cache.njit(nogil=True)
 def _finest_states(log_odds, occ_threshold):
     """Each finest voxel's state as a child: 0 unknown, 1 free, 2 occupied (max likelihood)."""
     states = np.zeros(log_odds.shape[0], dtype=np.uint8)
@@ -217,7 +221,7 @@ def _finest_states(log_odds, occ_threshold):
     return states
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@kernel_cache.njit(nogil=True, inline="always")
 def _state_of(code):
     if code == 0:
         return 0
@@ -228,7 +232,7 @@ def _state_of(code):
     return 3
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel_cache.njit(nogil=True)
 def _level_states(codes):
     """Each node's state as a child of the level above: `_state_of` its child code."""
     states = np.empty(codes.shape[0], dtype=np.uint8)
@@ -237,7 +241,7 @@ def _level_states(codes):
     return states
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel_cache.njit(nogil=True)
 def _parent_codes(states, clo, cd):
     """The level above a box of nodes with these states (lowest key `clo`, dims `cd`): for each
     parent its 16-bit child code, 2 bits per child in OctoMap's child order x + 2y + 4z
@@ -266,13 +270,16 @@ def _parent_codes(states, clo, cd):
     return out, plo, pd
 
 
-@numba.njit(cache=True, nogil=True)
-def _write_preorder(levels, los, ds):
-    """OctoMap's writeBinaryNode from the root down: 2 bytes per inner node, children in order."""
-    top = len(levels) - 1
+@kernel_cache.njit(nogil=True)
+def _write_preorder(codes, offsets, los, ds):
+    """OctoMap's writeBinaryNode from the root down: 2 bytes per inner node, children in order.
+    Level lv's child codes are codes[offsets[lv]:offsets[lv + 1]], its box (los[lv], ds[lv]): flat
+    arrays rather than numba typed lists, whose own functions numba compiles in every process."""
+    top = offsets.shape[0] - 2
     n_inner = 0
-    for lv in range(len(levels)):
-        for c in levels[lv]:
+    for lv in range(top + 1):
+        for i in range(offsets[lv], offsets[lv + 1]):
+            c = codes[i]
             if _state_of(c) == 3 or (lv == top and c != 0):
                 n_inner += 1
     out = np.empty(2 * n_inner, dtype=np.uint8)
@@ -291,7 +298,7 @@ def _write_preorder(levels, los, ds):
         lv = stack_l[sp]
         kx, ky, kz = stack_k[sp, 0], stack_k[sp, 1], stack_k[sp, 2]
         lo, d = los[lv], ds[lv]
-        code = levels[lv][((kx - lo[0]) * d[1] + (ky - lo[1])) * d[2] + (kz - lo[2])]
+        code = codes[offsets[lv] + ((kx - lo[0]) * d[1] + (ky - lo[1])) * d[2] + (kz - lo[2])]
         out[w] = np.uint8(code & 0xFF)
         out[w + 1] = np.uint8(code >> 8)
         w += 2
@@ -329,7 +336,9 @@ def binary_tree_body(log_odds, lo, dims, occ_threshold=0.0):
         los.append(clo)
         ds.append(cd)
     # levels[i] holds the nodes of depth 15 - i; the last is the root (depth 0)
-    body, nodes = _write_preorder(numba.typed.List(levels), numba.typed.List(los), numba.typed.List(ds))
+    offsets = np.cumsum([0] + [len(level) for level in levels]).astype(np.int64)
+    body, nodes = _write_preorder(np.concatenate(levels), offsets, np.stack(los).astype(np.int64),
+                                  np.stack(ds).astype(np.int64))
     return body.tobytes(), int(nodes)
 
 
@@ -507,12 +516,32 @@ class LogOddsGrid:
         self.log_odds[self.flat(index)] = np.asarray(log_odds, dtype=np.float32)
 
 
+@dataclasses.dataclass(frozen=True)
+class WarmUp:
+    """What `warm_up` measured."""
+    load_s: float  # first call of every kernel: loaded from the build-time cache (or compiled)
+    insertion_ms: float  # one cloud inserted after that: the speed the first real cloud gets
+    compiled: Tuple[str, ...]  # kernels this process compiled; () when the cache held them all
+    cache_dir: str  # where they were looked for (kernel_cache: keyed by this source's content)
+
+
+# The warm-up cloud: a ring of points around the origin, as a scan of a small room.
+WARMUP_POINTS = 2000
+
+
 def warm_up():
-    """Load (or, on the first run after a checkout, compile: ~20 s) the kernels now rather than at
-    the first cloud. The machine code is cached next to this module (numba cache=True), so a
-    later start takes about a second."""
+    """Load every kernel with the argument types the map server passes (compiling what the cache
+    lacks), then time one more insertion: after this the first cloud is inserted at full speed."""
+    t0 = time.monotonic()
     grid = LogOddsGrid(0.1, 0.85, -0.4, -2.0, 3.5)
     cloud = grid.prepare(np.array([[1.0, 0.0, 0.0], [9.0, 0.0, 0.0]]), np.zeros(3), 5.0)
     for exact in (True, False):
         grid.integrate_cloud(cloud, np.zeros(3), 5.0, 0, exact=exact)
     grid.binary_tree_file()
+    load_s = time.monotonic() - t0
+    angles = np.linspace(0.0, 2.0 * np.pi, WARMUP_POINTS, endpoint=False)
+    ring = np.stack([4.0 * np.cos(angles), 4.0 * np.sin(angles), np.linspace(-1.0, 1.0, WARMUP_POINTS)], axis=1)
+    t1 = time.monotonic()
+    grid.integrate_cloud(grid.prepare(ring, np.zeros(3), 5.0), np.zeros(3), 5.0, 1, exact=False)
+    insertion_ms = (time.monotonic() - t1) * 1e3
+    return WarmUp(load_s, insertion_ms, kernel_cache.compiled_kernels(), kernel_cache.cache_dir(__file__))

@@ -1,0 +1,172 @@
+#!/usr/bin/env python3
+"""Benchmark of the map server's warm-up: process start to ready, and the first cloud's insertion.
+
+Each run copies the cps_mapping package (nodes and Python, no cache) to a fresh temporary folder
+(another checkout) and starts its map_server node on a private master, in two modes, in the same run:
+- cold: no usable kernel cache (what an older checkout had after another checkout's build, issue
+  29): the node compiles its numba kernels at its start;
+- built: the kernels built first as `make setup` builds them (`python -m cps_mapping.kernel_cache`,
+  timed apart), keyed by the source's content: the node only loads them.
+
+Measured per run and mode: start to ready (Popen to the latched `~ready` arriving here, and the
+node's own `ready_after_s`), the first cloud's insertion latency when it is sent as soon as the
+node subscribes (during its warm-up: as the clouds of a mission that does not wait), and a cloud
+sent once it is ready (what bringup now does). Inserted = the first `octomap_binary` that
+follows it (published every 0.05 s on change). Medians over `--runs`; two shared cores are noisy.
+
+    python bench/warmup_bench.py [--runs 3]
+"""
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+PACKAGE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "catkin_ws", "src", "cps_mapping")
+SENSOR_FRAME = "jackal/camera_depth_optical_frame"
+MODES = ("cold", "built")
+
+
+def fresh_checkout(folder):
+    """The package's nodes and Python at `folder`, without any cache."""
+    for part in ("nodes", "src"):
+        shutil.copytree(os.path.join(PACKAGE, part), os.path.join(folder, part),
+                        ignore=shutil.ignore_patterns("__pycache__"))
+    return folder
+
+
+def checkout_env(checkout):
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([os.path.join(checkout, "src"), os.environ["PYTHONPATH"]])}
+
+
+def wall_cloud(rospy, offset_m):
+    """A 4 x 3 m wall 3 m in front of the sensor, `offset_m` sideways (a new map version each)."""
+    from std_msgs.msg import Header
+
+    from cps_transport.pointcloud import array_to_cloud
+
+    u, v = np.meshgrid(np.linspace(-2.0, 2.0, 80), np.linspace(-1.5, 1.5, 60))
+    pts = np.stack([u.ravel() + offset_m, v.ravel(), np.full(u.size, 3.0)], axis=1).astype(np.float32)
+    return array_to_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]},
+                          header=Header(stamp=rospy.Time.now(), frame_id=SENSOR_FRAME))
+
+
+def static_tf(rospy):
+    import tf2_ros
+    from geometry_msgs.msg import TransformStamped
+
+    broadcaster = tf2_ros.StaticTransformBroadcaster()
+    t = TransformStamped()
+    t.header.stamp = rospy.Time.now()
+    t.header.frame_id, t.child_frame_id = "map", SENSOR_FRAME
+    t.transform.translation.z = 0.5
+    t.transform.rotation.w = 1.0
+    broadcaster.sendTransform(t)
+    return broadcaster
+
+
+def inserted_after(octomap, sent_at_s, timeout_s=180.0):
+    """Arrival (monotonic s) of the first non-empty map published after `sent_at_s`."""
+    octomap.wait(lambda m: len(m.data) > 0 and octomap.messages[-1][0] >= sent_at_s, timeout_s=timeout_s,
+                 what="the cloud in the map")
+    return next(t for t, m in octomap.messages if t >= sent_at_s and len(m.data) > 0)
+
+
+def one_start(graph, rospy, mode, run, tmp):
+    """Start a map server from a fresh checkout in `mode`; its figures."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from sensor_msgs.msg import PointCloud2
+
+    from cps_harness.testing import TopicRecorder, wait_for
+    from cps_msgs.msg import Octomap
+
+    checkout = fresh_checkout(os.path.join(tmp, f"{mode}_{run}", "cps_mapping"))
+    env = checkout_env(checkout)
+    build_s = None
+    if mode == "built":
+        t0 = time.monotonic()
+        subprocess.run([sys.executable, "-m", "cps_mapping.kernel_cache"], env=env, check=True, capture_output=True)
+        build_s = time.monotonic() - t0
+    name = f"map_server_{mode}_{run}"
+    ready = TopicRecorder(f"/twin/{name}/ready", DiagnosticStatus)
+    octomap = TopicRecorder(f"/twin/{name}/octomap_binary", Octomap)
+    publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
+    try:
+        started_at = time.monotonic()
+        proc = graph.popen([sys.executable, os.path.join(checkout, "nodes", "map_server"), "__ns:=/twin",
+                            f"__name:={name}", f"octomap_binary:=/twin/{name}/octomap_binary", "_robots:=jackal",
+                            f"_map_file:={os.path.join(tmp, name + '.bt')}", "_publish_period_s:=0.05",
+                            "_autosave_period_s:=0.0"], name=name, env=env)
+        assert wait_for(lambda: publisher.get_num_connections(), timeout_s=60), f"{name} did not subscribe"
+        early_sent_at = time.monotonic()
+        publisher.publish(wall_cloud(rospy, 0.0))
+        status = ready.wait(timeout_s=300, what=f"{name} ready")
+        ready_at = ready.messages[0][0]
+        early_inserted_at = inserted_after(octomap, early_sent_at)
+        late_sent_at = time.monotonic()
+        publisher.publish(wall_cloud(rospy, 5.0))
+        late_inserted_at = inserted_after(octomap, late_sent_at)
+        values = {kv.key: kv.value for kv in status.values}
+        graph.stop(proc)
+    finally:
+        ready.close()
+        octomap.close()
+        publisher.unregister()
+    return {"build_s": build_s, "start_to_ready_s": ready_at - started_at,
+            "node_ready_after_s": float(values["ready_after_s"]), "kernel_load_s": float(values["kernel_load_s"]),
+            "compiled": values["kernels_compiled"] or "-",
+            "early_cloud_s": early_inserted_at - early_sent_at, "ready_cloud_s": late_inserted_at - late_sent_at}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", type=int, default=3)
+    args = parser.parse_args()
+
+    from cps_harness.processes import RosGraph
+
+    tmp = tempfile.mkdtemp(prefix="cps-warmup-bench-")
+    graph = RosGraph(log_dir=tmp)
+    graph.start()
+    graph.point_this_process_here()
+    import rospy
+
+    rospy.init_node("warmup_bench", anonymous=True, disable_signals=True)
+    keep_tf = static_tf(rospy)
+    results = {mode: [] for mode in MODES}
+    try:
+        for run in range(args.runs):
+            for mode in MODES:
+                figures = one_start(graph, rospy, mode, run, tmp)
+                results[mode].append(figures)
+                print(f"run {run + 1} {mode:5s}: " + ", ".join(
+                    f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in figures.items()), flush=True)
+    finally:
+        graph.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+        del keep_tf
+
+    def median(mode, key):
+        return statistics.median(r[key] for r in results[mode])
+
+    print(f"\nmedians of {args.runs} runs (s)")
+    print("| mode | kernels compiled at start | start -> ready (here) | node's ready_after_s | kernel load | "
+          "first cloud, sent at subscription, inserted after | cloud sent once ready, inserted after |")
+    print("|---|---|---|---|---|---|---|")
+    for mode in MODES:
+        print(f"| {mode} | {results[mode][0]['compiled']} | {median(mode, 'start_to_ready_s'):.2f} | "
+              f"{median(mode, 'node_ready_after_s'):.2f} | {median(mode, 'kernel_load_s'):.2f} | "
+              f"{median(mode, 'early_cloud_s'):.2f} | {median(mode, 'ready_cloud_s'):.3f} |")
+    print(f"\nbuild step (make setup's `python -m cps_mapping.kernel_cache`, once per source): "
+          f"{median('built', 'build_s'):.1f} s")
+    for key, what in (("start_to_ready_s", "start -> ready"), ("early_cloud_s", "first cloud (sent at subscription)")):
+        print(f"ratio cold / built, {what}: {median('cold', key) / median('built', key):.1f}x")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,210 @@
+"""The map server's kernels are built with the code and keyed by what they compile (issue 29).
+
+Each test starts from a fresh checkout: a copy of this package's source at a new path with no
+kernel cache (`checkout` fixture), built as `make setup` builds it. So no test here depends on a
+cache that another test, or the workspace, warmed.
+- a copy of a built checkout at another path, with an older or a newer mtime, compiles nothing
+  (numba's own cache keys by path and mtime and recompiled there); an edited source compiles anew;
+- cold start: the map server node started from the fresh checkout reports ready with every kernel
+  loaded from that cache, and the first cloud that reaches it is inserted within 1 s;
+- a node whose kernels are not built compiles them before it is ready (and says so), and a cloud
+  that arrives meanwhile is queued and inserted, not lost.
+"""
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from cps_mapping.kernel_cache import KERNEL_FOLDER
+
+pytestmark = pytest.mark.slow
+PACKAGE = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
+# The kernels' first use as the map server uses them: fused maps of both casting modes, a batch of
+# clouds, the .bt and the projected map. Prints what this process compiled.
+EXERCISE = """
+import json
+import numpy as np
+from cps_fleet.fleet import load_fleet
+from cps_mapping import kernel_cache, log_odds_grid
+from cps_mapping.fused_map import FusedLogOddsMap
+
+warm = log_odds_grid.warm_up()
+rng = np.random.default_rng(0)
+for exact in (True, False):
+    fused = FusedLogOddsMap(0.1, load_fleet().mapping.sensor_model, exact_free_space=exact)
+    points_m = rng.uniform(-5.0, 5.0, (3000, 3)).astype(np.float32)
+    fused.insert_batch([(points_m, np.zeros(3)), (points_m + 1.0, np.ones(3))], max_range_m=8.0, robot="jackal")
+    fused.binary_tree_nodes()
+    fused.projected_grid(0.1, 2.0)
+print(json.dumps({"module": log_odds_grid.__file__, "warm_up": list(warm.compiled),
+                  "compiled": list(kernel_cache.compiled_kernels())}))
+"""
+# Sensor pose of the cold-start test's cloud, in map.
+SENSOR_FRAME = "jackal/camera_depth_optical_frame"
+
+
+def _copy_checkout(source_root, target_root, with_cache):
+    """The package's source (nodes and Python) at `target_root`, with or without its kernel cache."""
+    ignore = None if with_cache else shutil.ignore_patterns("__pycache__")
+    for part in ("nodes", "src"):
+        shutil.copytree(os.path.join(source_root, part), os.path.join(target_root, part), ignore=ignore)
+    return target_root
+
+
+def _env(checkout):
+    """This environment with `checkout`'s cps_mapping first on the Python path."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([os.path.join(checkout, "src"), os.environ["PYTHONPATH"]])}
+
+
+def _module_file(checkout):
+    return os.path.join(checkout, "src", "cps_mapping", "log_odds_grid.py")
+
+
+def _exercise(checkout):
+    out = subprocess.run([sys.executable, "-c", EXERCISE], env=_env(checkout), capture_output=True, text=True,
+                         timeout=300, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def checkout(tmp_path_factory):
+    """A fresh checkout (no kernel cache) built as ci/setup.sh builds it; (path, build output)."""
+    path = _copy_checkout(PACKAGE, str(tmp_path_factory.mktemp("checkout") / "cps_mapping"), with_cache=False)
+    assert not os.path.exists(os.path.join(path, "src", "cps_mapping", KERNEL_FOLDER))
+    built = subprocess.run([sys.executable, "-m", "cps_mapping.kernel_cache"], env=_env(path), capture_output=True,
+                           text=True, timeout=300, check=True)
+    return path, built.stdout
+
+
+def test_a_fresh_checkout_builds_its_own_kernels(checkout):
+    path, output = checkout
+    assert "compiled" in output and os.path.join(path, "src") in output, output
+
+
+@pytest.mark.parametrize("mtime_shift_s", [-365 * 86400.0, 3600.0], ids=["older", "newer"])
+def test_kernels_built_elsewhere_serve_a_copy_at_another_path_and_mtime(checkout, tmp_path, mtime_shift_s):
+    """The issue's older checkout: the same source at another path, its file older (or newer) than
+    the kernels, loads them all and compiles nothing."""
+    other = _copy_checkout(checkout[0], str(tmp_path / "other_checkout"), with_cache=True)
+    now = time.time()
+    os.utime(_module_file(other), (now + mtime_shift_s, now + mtime_shift_s))
+    result = _exercise(other)
+    assert result["module"] == _module_file(other)
+    assert result["compiled"] == [], f"compiled at use: {result['compiled']}"
+
+
+def test_an_edited_source_never_gets_the_old_kernels(checkout, tmp_path):
+    edited = _copy_checkout(checkout[0], str(tmp_path / "edited"), with_cache=True)
+    with open(_module_file(edited), "a") as stream:
+        stream.write("\n# an edit\n")
+    result = _exercise(edited)
+    assert "_integrate" in result["compiled"], result
+
+
+def _static_tf():
+    import rospy
+    import tf2_ros
+    from geometry_msgs.msg import TransformStamped
+
+    broadcaster = tf2_ros.StaticTransformBroadcaster()
+    t = TransformStamped()
+    t.header.stamp = rospy.Time.now()
+    t.header.frame_id, t.child_frame_id = "map", SENSOR_FRAME
+    t.transform.translation.z = 0.5
+    t.transform.rotation.w = 1.0
+    broadcaster.sendTransform(t)
+    return broadcaster
+
+
+def _wall_cloud(rospy):
+    """A 4 x 3 m wall of points 3 m in front of the sensor (its optical z axis)."""
+    from std_msgs.msg import Header
+
+    from cps_transport.pointcloud import array_to_cloud
+
+    u, v = np.meshgrid(np.linspace(-2.0, 2.0, 80), np.linspace(-1.5, 1.5, 60))
+    pts = np.stack([u.ravel(), v.ravel(), np.full(u.size, 3.0)], axis=1).astype(np.float32)
+    return array_to_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]},
+                          header=Header(stamp=rospy.Time.now(), frame_id=SENSOR_FRAME))
+
+
+@pytest.mark.ros
+def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node, tmp_path):
+    """The node of a fresh checkout (its cache built by the set-up, nothing warmed before) says it
+    is ready with no kernel compiled, and inserts the first cloud within 1 s of its arrival."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from sensor_msgs.msg import PointCloud2
+
+    from cps_harness.testing import TopicRecorder, wait_for
+    from cps_msgs.msg import Octomap
+
+    rospy = rospy_node
+    path, _ = checkout
+    name = "cold_map_server"
+    ready = TopicRecorder(f"/twin/{name}/ready", DiagnosticStatus)
+    octomap = TopicRecorder("/twin/octomap_binary", Octomap)
+    publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
+    tf_keep = _static_tf()
+    try:
+        ros.popen([sys.executable, os.path.join(path, "nodes", "map_server"), "__ns:=/twin", f"__name:={name}",
+                   "_robots:=jackal", f"_map_file:={tmp_path / 'map.bt'}", "_publish_period_s:=0.05",
+                   "_autosave_period_s:=0.0"], name=name, env=_env(path))
+        status = ready.wait(timeout_s=120, what="the map server's ready")
+        values = {kv.key: kv.value for kv in status.values}
+        assert values["kernel_cache_dir"].startswith(os.path.join(path, "src")), values
+        assert status.level == DiagnosticStatus.OK and values["kernels_compiled"] == "", status
+        assert wait_for(lambda: publisher.get_num_connections(), timeout_s=20), "the map server did not subscribe"
+        published_at = time.monotonic()
+        publisher.publish(_wall_cloud(rospy))
+        octomap.wait(lambda m: len(m.data) > 0, timeout_s=10, what="the first cloud in the map")
+        arrived_at = next(t for t, m in octomap.messages if t >= published_at and len(m.data) > 0)
+        print(f"cold start: ready after {values['ready_after_s']} s, first cloud in the map "
+              f"{arrived_at - published_at:.3f} s after it was sent")
+        assert arrived_at - published_at < 1.0
+    finally:
+        for recorder in (ready, octomap):
+            recorder.close()
+        publisher.unregister()
+        del tf_keep
+
+
+@pytest.mark.ros
+def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node, tmp_path):
+    """No build step (a checkout without its kernels): the node compiles before it is ready and says
+    so; a cloud sent once it subscribed, before its ready, waits in the queue and reaches the map."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from sensor_msgs.msg import PointCloud2
+
+    from cps_harness.testing import TopicRecorder, wait_for
+    from cps_msgs.msg import Octomap
+
+    rospy = rospy_node
+    path = _copy_checkout(PACKAGE, str(tmp_path / "unbuilt" / "cps_mapping"), with_cache=False)
+    name = "unbuilt_map_server"
+    ready = TopicRecorder(f"/twin/{name}/ready", DiagnosticStatus)
+    octomap = TopicRecorder(f"/twin/{name}/octomap_binary", Octomap)
+    publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
+    tf_keep = _static_tf()
+    try:
+        ros.popen([sys.executable, os.path.join(path, "nodes", "map_server"), "__ns:=/twin", f"__name:={name}",
+                   f"octomap_binary:=/twin/{name}/octomap_binary", "_robots:=jackal",
+                   f"_map_file:={tmp_path / 'map.bt'}", "_publish_period_s:=0.05", "_autosave_period_s:=0.0"],
+                  name=name, env=_env(path))
+        assert wait_for(lambda: publisher.get_num_connections(), timeout_s=60), "the map server did not subscribe"
+        publisher.publish(_wall_cloud(rospy))
+        assert ready.count == 0, "ready before the cloud was sent: this test needs the cloud to arrive first"
+        status = ready.wait(timeout_s=300, what="the map server's ready")
+        values = {kv.key: kv.value for kv in status.values}
+        assert status.level == DiagnosticStatus.WARN and "_integrate" in values["kernels_compiled"], status
+        assert values["clouds_queued_before_ready"] == "1", status
+        octomap.wait(lambda m: len(m.data) > 0, timeout_s=10, what="the queued cloud in the map")
+    finally:
+        for recorder in (ready, octomap):
+            recorder.close()
+        publisher.unregister()
+        del tf_keep
