@@ -1,10 +1,10 @@
-"""The bandwidth estimator against a simulated bottleneck queue whose capacity goes 60 -> 20 -> 60
+"""The LEGACY delay-based estimator (the bench's anchor) against a simulated bottleneck queue whose capacity goes 60 -> 20 -> 60
 Mbit/s, with the sender obeying the estimate (as the manager's allocation does)."""
 import math
 
 import pytest
 
-from cps_bw_manager.estimation import BandwidthEstimator
+from cps_bw_manager.legacy_estimation import LegacyDelayEstimator as BandwidthEstimator
 
 
 def _simulate(capacity_of, duration_s=40.0, dt=0.5, demand_mbps=80.0, reserve=0.04, base_ms=2.0):
