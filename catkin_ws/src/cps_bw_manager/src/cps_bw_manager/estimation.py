@@ -5,9 +5,12 @@ what the sender put on the link, what the fleet wanted to send, whether the send
 app-limited, heartbeat RTT samples and whether the receiver's processing (the twin's CPU) is
 behind. Where each rule comes from (details in docs/bandwidth_manager.md):
 
-- BBR: the capacity `capacity_mbps` is the windowed maximum of delivery-rate samples taken while
-  the sender is not app-limited (a sample is min(delivered, sent), BBR's guard against ACK
-  compression: a backlog that arrives in a burst is not capacity); the minimum RTT is the
+- BBR: the capacity `capacity_mbps` is the maximum of delivery-rate samples taken while the
+  sender is not app-limited (a sample is min(delivered, sent), BBR's guard against ACK
+  compression: a backlog that arrives in a burst is not capacity). BBR ages its max filter over
+  ~10 round trips; here it restarts at every overuse instead, because a fleet held back by its
+  own allocation delivers less than the link could and would age a right estimate down (only an
+  overuse is evidence of a lower capacity). The minimum RTT is the
   propagation floor; the allocation target probes above the capacity (gain 1.25, one interval)
   only when demand exceeds it, and doubles per successful probe (BBR's STARTUP) so an up step is
   found in a few intervals.
@@ -61,8 +64,8 @@ class _Trendline:
     """GCC's delay-gradient detector: least-squares slope of the (smoothed) queueing delay over the
     last `window` samples, compared with a threshold that adapts to the slope's own size."""
 
-    def __init__(self, window=8, smoothing=0.6, gain=4.0, threshold_ms=12.5, k_up=0.0087, k_down=0.039):
-        self.window, self.smoothing, self.gain = window, smoothing, gain
+    def __init__(self, window=8, smoothing=0.6, threshold_ms=25.0, k_up=0.0087, k_down=0.039):
+        self.window, self.smoothing = window, smoothing
         self.threshold_ms, self.k_up, self.k_down = threshold_ms, k_up, k_down
         self.samples = collections.deque(maxlen=window)
         self.smoothed_ms = math.nan
@@ -87,12 +90,14 @@ class _Trendline:
         var = sum((t - mean_t) ** 2 for t, _ in self.samples)
         slope_ms_per_s = 0.0 if var <= 0 else \
             sum((t - mean_t) * (d - mean_d) for t, d in self.samples) / var
-        # GCC compares slope x (samples) x gain in ms per packet group; ours are per 0.5 s interval.
-        self.modified_trend = slope_ms_per_s * dt_s * n * self.gain
+        # GCC compares slope x samples x gain per packet group; over our 0.5 s intervals the
+        # equivalent is the delay the slope adds across the window, in ms.
+        span_s = self.samples[-1][0] - self.samples[0][0]
+        self.modified_trend = slope_ms_per_s * span_s
         k = self.k_down if abs(self.modified_trend) < self.threshold_ms else self.k_up
         if abs(self.modified_trend) < self.threshold_ms + 15.0:  # GCC skips adapting on big spikes
             self.threshold_ms += k * (abs(self.modified_trend) - self.threshold_ms) * dt_s * 1000.0 / 100.0
-            self.threshold_ms = min(600.0, max(6.0, self.threshold_ms))
+            self.threshold_ms = min(600.0, max(15.0, self.threshold_ms))
         return self.modified_trend > self.threshold_ms
 
 
@@ -102,10 +107,10 @@ class DeliveryRateEstimator:
     `initial_mbps`: the prior (configured capacity); `line_rate_mbps`: the interface's rate, the
     ceiling of the estimate and above which a report is absurd; `min_mbps`: the floor."""
 
-    def __init__(self, initial_mbps, line_rate_mbps=None, min_mbps=1.0, bw_window_s=8.0, min_rtt_window_s=10.0,
+    def __init__(self, initial_mbps, line_rate_mbps=None, min_mbps=1.0, min_rtt_window_s=10.0,
                  merge_window_s=1.0, deficit_fraction=0.05, deficit_min_mbps=0.3, probe_every_s=1.5,
                  max_drain_s=4.0, queue_delay_threshold_s=0.03):
-        for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps), ("bw_window_s", bw_window_s),
+        for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps), ("min_rtt_window_s", min_rtt_window_s),
                             ("merge_window_s", merge_window_s), ("probe_every_s", probe_every_s)):
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
@@ -113,7 +118,6 @@ class DeliveryRateEstimator:
         if not math.isfinite(self.line_rate_mbps) or self.line_rate_mbps < min_mbps:
             raise ValueError(f"line_rate_mbps ({self.line_rate_mbps}) must be finite and >= min_mbps ({min_mbps})")
         self.min_mbps = float(min_mbps)
-        self.bw_window_s = float(bw_window_s)
         self.min_rtt_window_s = float(min_rtt_window_s)
         self.merge_window_s = float(merge_window_s)
         self.deficit_fraction = float(deficit_fraction)
@@ -129,7 +133,7 @@ class DeliveryRateEstimator:
         self.mode = "cruise"                 # cruise | probe | drain
         self.ignored = collections.Counter()  # reason -> reports ignored
         self.overuses = 0
-        self._bw_samples = collections.deque()    # (now_s, delivery-rate sample) for the max filter
+        self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
         self._rtt_samples = collections.deque()   # (now_s, rtt_s) for the min-RTT floor
         self._merged = collections.deque()        # (now_s, interval_s, delivered_mbps, sent_mbps)
         self._trend = _Trendline()
@@ -146,7 +150,8 @@ class DeliveryRateEstimator:
 
     @property
     def min_rtt_s(self):
-        return min(r for _, r in self._rtt_samples) if self._rtt_samples else math.nan
+        """BBR's propagation floor: the smallest RTT sample of the last `min_rtt_window_s`."""
+        return min(r for _, r, _ in self._rtt_samples) if self._rtt_samples else math.nan
 
     def _clip(self, mbps):
         return min(max(mbps, self.min_mbps), self.line_rate_mbps)
@@ -158,8 +163,6 @@ class DeliveryRateEstimator:
         self._merged.clear()
         self._trend.reset()
         self._rtt_samples.clear()
-        self._bw_samples.clear()
-        self._bw_samples.append((now_s, self.capacity_mbps))
         self._set_mode("cruise", now_s)
         self.estimate_mbps = self.capacity_mbps
         self.congested = self.receiver_behind = False
@@ -194,22 +197,23 @@ class DeliveryRateEstimator:
         dt = report.interval_s if self._last_now_s is None else min(report.interval_s, now - self._last_now_s)
         self._last_now_s = now
         delivered, sent = report.delivered_mbps, report.sent_mbps
-        self._merged.append((now, report.interval_s, delivered, sent))
-        while self._merged and self._merged[0][0] <= now - self.merge_window_s:
-            self._merged.popleft()
-
-        rtt_overuse, queue_delay_s = self._rtt(now, report.rtt_s, dt)
         self.receiver_behind = bool(report.receiver_behind)
         if self.receiver_behind:
-            # rwnd-limited: the twin's CPU, not the link. Its rate is the twin's capacity.
+            # rwnd-limited: the twin's CPU, not the link. Its rate is the twin's capacity. The
+            # deficit and the RTT rise it causes are not the link's: forget them.
             self.twin_capacity_mbps = delivered
             self.congested = False
+            self._merged.clear()
+            self._trend.reset()
             return self.estimate_mbps
-
         if not math.isnan(sent) and sent > 0 and delivered == 0:
             # Nothing arrived although the sender sent: an outage in the making (liveliness decides).
             self.ignored["stalled"] += 1
             return self.estimate_mbps
+        self._merged.append((now, report.interval_s, delivered, sent))
+        while self._merged and self._merged[0][0] <= now - self.merge_window_s:
+            self._merged.popleft()
+        rtt_overuse, queue_delay_s = self._rtt(now, report.rtt_s, dt)
 
         deficit = self._deficit()
         app_limited = report.app_limited
@@ -223,10 +227,9 @@ class DeliveryRateEstimator:
             return self.estimate_mbps
 
         sample = delivered if math.isnan(sent) else min(delivered, sent)
-        if not app_limited or sample > self._max_bw(now):
+        if not app_limited or sample > self._bw_max_mbps:
             # BBR: app-limited samples only count when they exceed the current estimate.
-            self._bw_samples.append((now, sample))
-        self._expire_bw(now)
+            self._bw_max_mbps = max(self._bw_max_mbps, sample)
 
         if self.mode == "drain":
             drained = (not math.isnan(queue_delay_s) and queue_delay_s < self.queue_delay_threshold_s) or \
@@ -241,7 +244,7 @@ class DeliveryRateEstimator:
                 and delivered >= 0.97 * sent
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
             self._set_mode("cruise", now)
-        self.capacity_mbps = self._clip(max(self._max_bw(now), self.min_mbps))
+        self.capacity_mbps = self._clip(self._bw_max_mbps)
 
         demand_exceeds = not app_limited
         can_probe = self.capacity_mbps < self.line_rate_mbps
@@ -262,8 +265,7 @@ class DeliveryRateEstimator:
         self.overuses += 1
         probing = self.mode == "probe"
         measured = self._clip(delivered)
-        self._bw_samples.clear()
-        self._bw_samples.append((now, measured))
+        self._bw_max_mbps = measured
         self._gain = PROBE_GAIN
         self._merged.clear()  # this deficit is acted upon; the next one must be new
         if probing and measured >= DRAIN_FACTOR * self._capacity_before_probe_mbps:
@@ -295,17 +297,10 @@ class DeliveryRateEstimator:
         if not good:
             return False, math.nan
         rtt = good[len(good) // 2]  # median: a burst of late echoes is one interval's worth, not many
-        self._rtt_samples.append((now, good[0]))
+        self._rtt_samples.append((now, good[0], rtt))
         while self._rtt_samples and self._rtt_samples[0][0] < now - self.min_rtt_window_s:
             self._rtt_samples.popleft()
-        queue_delay_s = max(0.0, rtt - self.min_rtt_s)
+        # queueing delay against the floor of the interval medians, so jitter is not queueing
+        queue_delay_s = max(0.0, rtt - min(m for _, _, m in self._rtt_samples))
         overuse = self._trend.update(now, 1000.0 * queue_delay_s, dt)
         return overuse and queue_delay_s > self.queue_delay_threshold_s, queue_delay_s
-
-    def _max_bw(self, now):
-        self._expire_bw(now)
-        return max((b for _, b in self._bw_samples), default=self.capacity_mbps)
-
-    def _expire_bw(self, now):
-        while len(self._bw_samples) > 1 and self._bw_samples[0][0] < now - self.bw_window_s:
-            self._bw_samples.popleft()
