@@ -29,11 +29,14 @@ DOWN_STEPS = [(60, 20), (20, 5), (60, 5), (60, 50), (20, 15), (10, 5), (60, 10)]
 UP_STEPS = [(20, 60), (5, 60), (5, 20), (50, 60), (15, 20), (5, 10), (10, 60)]
 
 
+@pytest.mark.parametrize("offset_s", [0.0, 0.23, 0.41], ids=["on_report", "off_report_a", "off_report_b"])
 @pytest.mark.parametrize("model", [{}, WIFI], ids=["clean", "wifi_jitter_loss"])
 @pytest.mark.parametrize("known", [ALL, TODAY], ids=["all_fields", "today_fields"])
 @pytest.mark.parametrize("before, after", DOWN_STEPS)
-def test_down_step_within_15_percent_in_2_s_and_ingress_over_capacity_at_most_2_s(before, after, known, model):
-    trace, _ = _run([(0, 60), (5, before), (20, after)], 35.0, known=known, **model)
+def test_down_step_within_15_percent_in_2_s_and_ingress_over_capacity_at_most_2_s(before, after, known, model,
+                                                                                   offset_s):
+    """`offset_s`: where the step falls inside a report interval."""
+    trace, _ = _run([(0, 60), (5, before), (20, after)], 35.0, known=known, report_offset_s=offset_s, **model)
     assert settle_time_s(trace, 20.0, 35.0) <= 2.0
     first, longest = ingress_over_capacity_s(trace, 20.0, 35.0)
     assert first <= 2.0 and longest <= 2.0, (first, longest)
@@ -41,9 +44,9 @@ def test_down_step_within_15_percent_in_2_s_and_ingress_over_capacity_at_most_2_
 
 @pytest.mark.parametrize("before, after", DOWN_STEPS + UP_STEPS)
 def test_step_with_an_outage_between_tracks_from_the_restore(before, after):
-    """60 s in: before; cut at 20 s for 10 s; restored at `after`: the down-step target for a
+    """`before` from 5 s; cut at 20 s for 10 s; restored at `after`: the down-step target for a
     lower capacity, the up-step target for a higher one, from the restore."""
-    trace, _ = _run([(0, 60), (5, before), (20, 0), (30, after)], 45.0)
+    trace, _ = _run([(0, 60), (5, before), (20, 0), (30, after)], 45.0, report_offset_s=0.23)
     limit_s = 2.0 if after < before else 5.0
     assert settle_time_s(trace, 30.0, 45.0) <= limit_s
     if after < before:
@@ -51,10 +54,11 @@ def test_step_with_an_outage_between_tracks_from_the_restore(before, after):
         assert first <= 2.0 and longest <= 2.0, (first, longest)
 
 
+@pytest.mark.parametrize("offset_s", [0.0, 0.23, 0.41], ids=["on_report", "off_report_a", "off_report_b"])
 @pytest.mark.parametrize("known", [ALL, TODAY], ids=["all_fields", "today_fields"])
 @pytest.mark.parametrize("before, after", UP_STEPS)
-def test_up_step_with_demand_above_within_15_percent_in_5_s(before, after, known):
-    trace, _ = _run([(0, 60), (5, before), (20, after)], 35.0, known=known, **WIFI)
+def test_up_step_with_demand_above_within_15_percent_in_5_s(before, after, known, offset_s):
+    trace, _ = _run([(0, 60), (5, before), (20, after)], 35.0, known=known, report_offset_s=offset_s, **WIFI)
     assert settle_time_s(trace, 20.0, 35.0) <= 5.0
 
 
@@ -84,7 +88,7 @@ def test_after_an_outage_the_pre_outage_estimate_resumes(before):
     resumed = next(r for r in trace if r.t_s > 30.0 and r.link_up)
     assert resumed.estimate_mbps == pytest.approx(pre.estimate_mbps, rel=0.15)
     assert abs(pre.estimate_mbps - before) <= 0.15 * before
-    assert settle_time_s(trace, 30.0, 45.0) == 0.0  # within +-15 % from the first report after it
+    assert settle_time_s(trace, 30.0, 45.0) <= 0.5  # within +-15 % from the first report after it
 
 
 # --- the estimator alone ------------------------------------------------------------------------

@@ -134,6 +134,7 @@ class DeliveryRateEstimator:
         self.ignored = collections.Counter()  # reason -> reports ignored
         self.overuses = 0
         self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
+        self._unrefuted_mbps = self.capacity_mbps  # highest allocation target run without an overuse since
         self._rtt_samples = collections.deque()   # (now_s, rtt_s) for the min-RTT floor
         self._merged = collections.deque()        # (now_s, interval_s, delivered_mbps, sent_mbps)
         self._trend = _Trendline()
@@ -217,10 +218,13 @@ class DeliveryRateEstimator:
 
         deficit = self._deficit()
         app_limited = report.app_limited
-        if app_limited is None:  # inferred: everything offered was sent and it all arrived
+        if app_limited is None:
+            # inferred (BBR: in flight below what the pacing allowed): the sender used clearly less
+            # than its allocation, everything offered was sent, and it all arrived
             app_limited = (not deficit and not rtt_overuse
+                           and (math.isnan(sent) or sent < 0.9 * self.estimate_mbps)
                            and (math.isnan(report.offered_mbps) or math.isnan(sent)
-                                or report.offered_mbps <= 1.05 * sent))
+                                or report.offered_mbps <= 1.02 * sent))
         self.congested = (deficit or rtt_overuse) and not app_limited
         if self.congested:
             self._on_overuse(now, delivered, sent)
@@ -243,6 +247,9 @@ class DeliveryRateEstimator:
             kept_up = not math.isnan(sent) and sent > 1.05 * self._capacity_before_probe_mbps \
                 and delivered >= 0.97 * sent
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
+            # Nothing refused the probe's rate: the fleet may keep it (BBR keeps pacing at the
+            # last rate the path accepted) although it measured only what the fleet sent.
+            self._unrefuted_mbps = max(self._unrefuted_mbps, self.estimate_mbps)
             self._set_mode("cruise", now)
         self.capacity_mbps = self._clip(self._bw_max_mbps)
 
@@ -257,7 +264,7 @@ class DeliveryRateEstimator:
             self.estimate_mbps = self._clip(self._gain * self.capacity_mbps)
         elif self.mode == "cruise":
             self._gain = PROBE_GAIN if not demand_exceeds else self._gain
-            self.estimate_mbps = self.capacity_mbps
+            self.estimate_mbps = self._clip(max(self.capacity_mbps, self._unrefuted_mbps))
         return self.estimate_mbps
 
     def _on_overuse(self, now, delivered, sent):
@@ -265,7 +272,7 @@ class DeliveryRateEstimator:
         self.overuses += 1
         probing = self.mode == "probe"
         measured = self._clip(delivered)
-        self._bw_max_mbps = measured
+        self._bw_max_mbps = self._unrefuted_mbps = measured
         self._gain = PROBE_GAIN
         self._merged.clear()  # this deficit is acted upon; the next one must be new
         if probing and measured >= DRAIN_FACTOR * self._capacity_before_probe_mbps:

@@ -110,6 +110,7 @@ class LinkModel:
     hogs: Sequence[CpuHog] = ()
     reserve_fraction: float = 0.04
     report_s: float = 0.5
+    report_offset_s: float = 0.0   # reports at offset + k x report_s (so steps need not fall on one)
     tick_s: float = 0.01
     control_lag_s: float = 0.1
     liveliness_s: float = 1.0
@@ -127,7 +128,8 @@ class LinkModel:
         pending = []          # (apply_at_s, allowed) from the control lag
         up = True
         trace, acc = [], None
-        tick, cut_since = 0, None
+        tick, cut_since, last_report_s = 0, None, 0.0
+        offset_ticks = int(round(self.report_offset_s / self.tick_s)) % ticks_per_report
         while tick * self.tick_s < duration_s - 1e-9:
             if acc is None:
                 acc = dict(ingress=0.0, delivered=0.0, offered=0.0, app_limited=True, queue_empty=False,
@@ -166,9 +168,9 @@ class LinkModel:
             elif not up and cut_since is None:
                 up = True
                 subject.resume(now)
-            if tick % ticks_per_report:
+            if (tick - offset_ticks) % ticks_per_report:
                 continue
-            interval = ticks_per_report * self.tick_s
+            interval, last_report_s = now - last_report_s, now
             report = LinkReport(
                 now_s=now, interval_s=interval, delivered_mbps=acc["delivered"] / interval,
                 sent_mbps=acc["ingress"] / interval, offered_mbps=acc["offered"] / interval,
@@ -187,16 +189,14 @@ class LinkModel:
 
 
 def settle_time_s(trace: Sequence[TraceRow], step_s, end_s, tolerance=0.15):
-    """Seconds from `step_s` until the capacity estimate stays within +-tolerance of the true
-    capacity up to `end_s` (rows while the link is down are not judged); inf if it never does."""
+    """Seconds from `step_s` to the first report from which the capacity estimate stays within
+    +-tolerance of the true capacity up to `end_s` (rows while the link is down are not judged;
+    a report covers the interval before it, so 0.5 s is the soonest); inf if it never settles."""
     rows = [r for r in trace if step_s < r.t_s <= end_s and r.link_up and r.capacity_mbps > 0]
-    settled_at = step_s
-    for r in rows:
-        if abs(r.estimate_mbps - r.capacity_mbps) > tolerance * r.capacity_mbps:
-            settled_at = r.t_s
-    if rows and settled_at == rows[-1].t_s and \
-            abs(rows[-1].estimate_mbps - rows[-1].capacity_mbps) > tolerance * rows[-1].capacity_mbps:
-        return math.inf
+    settled_at = math.inf
+    for r in rows:  # the first report of the final stretch within the band
+        inside = abs(r.estimate_mbps - r.capacity_mbps) <= tolerance * r.capacity_mbps
+        settled_at = (r.t_s if math.isinf(settled_at) else settled_at) if inside else math.inf
     return settled_at - step_s
 
 
