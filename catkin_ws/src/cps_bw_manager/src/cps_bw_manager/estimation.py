@@ -11,7 +11,8 @@ behind. Where each rule comes from (details in docs/bandwidth_manager.md):
   ~10 round trips; here it restarts at every overuse instead, because a fleet held back by its
   own allocation delivers less than the link could and would age a right estimate down (only an
   overuse is evidence of a lower capacity). The minimum RTT is the
-  propagation floor; the allocation target probes above the capacity (gain 1.25, one interval)
+  propagation floor; the allocation target probes above the capacity (gain 1.2, BBR's 1.25 kept inside the
+  +-15 % band, for `probe_s`)
   only when demand exceeds it, and doubles per successful probe (BBR's STARTUP) so an up step is
   found in a few intervals.
 - Google Congestion Control: overuse is a queue building, seen as delivered < sent over a merged
@@ -38,7 +39,9 @@ import math
 from typing import Optional, Sequence
 
 DRAIN_FACTOR = 0.85   # GCC's cut on overuse, x the acknowledged (delivered) rate
-PROBE_GAIN = 1.25     # BBR's ProbeBW up gain
+# BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
+# inside the +-15 % band the estimate is held to
+PROBE_GAIN = 1.2
 STARTUP_GAIN = 2.0    # BBR's STARTUP roughly doubles per round while delivery keeps up
 
 
@@ -108,10 +111,11 @@ class DeliveryRateEstimator:
     ceiling of the estimate and above which a report is absurd; `min_mbps`: the floor."""
 
     def __init__(self, initial_mbps, line_rate_mbps=None, min_mbps=1.0, min_rtt_window_s=10.0,
-                 merge_window_s=1.0, deficit_fraction=0.05, deficit_min_mbps=0.3, probe_every_s=1.5,
+                 merge_window_s=1.0, deficit_fraction=0.05, deficit_min_mbps=0.3, probe_every_s=1.5, probe_s=0.5,
                  max_drain_s=4.0, queue_delay_threshold_s=0.03):
         for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps), ("min_rtt_window_s", min_rtt_window_s),
-                            ("merge_window_s", merge_window_s), ("probe_every_s", probe_every_s)):
+                            ("merge_window_s", merge_window_s), ("probe_every_s", probe_every_s),
+                            ("probe_s", probe_s)):
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         self.line_rate_mbps = float(initial_mbps if line_rate_mbps is None else line_rate_mbps)
@@ -123,6 +127,9 @@ class DeliveryRateEstimator:
         self.deficit_fraction = float(deficit_fraction)
         self.deficit_min_mbps = float(deficit_min_mbps)
         self.probe_every_s = float(probe_every_s)
+        # how long a probe is held: one report interval when the reports are per interval; as long
+        # as the measurement window when they are sliding averages (today's /tissue/stats: 2 s)
+        self.probe_s = float(probe_s)
         self.max_drain_s = float(max_drain_s)
         self.queue_delay_threshold_s = float(queue_delay_threshold_s)
         self.capacity_mbps = self._clip(float(initial_mbps))
@@ -141,7 +148,8 @@ class DeliveryRateEstimator:
         self._last_now_s = None
         self._mode_since_s = -math.inf
         self._last_probe_s = -math.inf
-        self._capacity_before_probe_mbps = math.nan
+        self._sent_before_probe_mbps = math.nan
+        self._drain_checked = False  # the drain's one correction of the capacity was made
         self._gain = PROBE_GAIN
 
     @property
@@ -235,21 +243,39 @@ class DeliveryRateEstimator:
             # BBR: app-limited samples only count when they exceed the current estimate.
             self._bw_max_mbps = max(self._bw_max_mbps, sample)
 
+        if self.mode == "drain" and not self._drain_checked and not math.isnan(sent) \
+                and now - self._mode_since_s >= 2 * report.interval_s - 1e-6:
+            # The first whole interval after the cut: if the queue the overuse left was still
+            # served all along (more delivered than sent; by the RTT, still queueing), the link ran
+            # full and what it delivered is its rate (GCC's acknowledged bitrate). This corrects a
+            # cut measured over an interval that straddled the step. Once only: later the queue
+            # may empty inside an interval.
+            self._drain_checked = True
+            queueing = math.isnan(queue_delay_s) or queue_delay_s > self.queue_delay_threshold_s
+            if delivered >= 1.02 * sent and queueing:
+                self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = self._clip(delivered)
+                self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)
         if self.mode == "drain":
+            # Without RTT: the link no longer delivers more than is sent (its queue is empty), seen
+            # in a report that began after the cut took effect (the first one mixes both rates).
             drained = (not math.isnan(queue_delay_s) and queue_delay_s < self.queue_delay_threshold_s) or \
-                (math.isnan(queue_delay_s) and not math.isnan(sent) and delivered <= 1.02 * sent) or \
+                (math.isnan(queue_delay_s) and not math.isnan(sent) and delivered <= 1.02 * sent
+                 and now - self._mode_since_s >= 2 * report.interval_s - 1e-6) or \
                 now - self._mode_since_s >= self.max_drain_s
             if drained:
                 self._set_mode("cruise", now)
-        elif self.mode == "probe":
-            # The link carried the probe (no overuse, the sender sent more than the capacity and it
+        elif self.mode == "probe" and now - self._mode_since_s >= self.probe_s - 1e-6:
+            # The link carried the probe (no overuse, the sender sent more than before it and it
             # all arrived): BBR's STARTUP, double next time, at once.
-            kept_up = not math.isnan(sent) and sent > 1.05 * self._capacity_before_probe_mbps \
+            kept_up = not math.isnan(sent) and sent > 1.05 * self._sent_before_probe_mbps \
                 and delivered >= 0.97 * sent
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
-            # Nothing refused the probe's rate: the fleet may keep it (BBR keeps pacing at the
-            # last rate the path accepted) although it measured only what the fleet sent.
-            self._unrefuted_mbps = max(self._unrefuted_mbps, self.estimate_mbps)
+            if kept_up or app_limited:
+                # Nothing refused the probe's rate and the fleet got all it wanted at it: it may
+                # keep that rate (BBR keeps pacing at the last rate the path accepted), though the
+                # capacity only rises by what was measured.
+                self._unrefuted_mbps = max(self._unrefuted_mbps, self.estimate_mbps)
+            self._last_probe_s = now
             self._set_mode("cruise", now)
         self.capacity_mbps = self._clip(self._bw_max_mbps)
 
@@ -258,9 +284,8 @@ class DeliveryRateEstimator:
         quick = self._gain == STARTUP_GAIN
         if self.mode == "cruise" and demand_exceeds and can_probe and \
                 (quick or now - self._last_probe_s >= self.probe_every_s):
-            self._last_probe_s = now
             self._set_mode("probe", now)
-            self._capacity_before_probe_mbps = self.capacity_mbps
+            self._sent_before_probe_mbps = sent if not math.isnan(sent) else self.capacity_mbps
             self.estimate_mbps = self._clip(self._gain * self.capacity_mbps)
         elif self.mode == "cruise":
             self._gain = PROBE_GAIN if not demand_exceeds else self._gain
@@ -270,21 +295,15 @@ class DeliveryRateEstimator:
     def _on_overuse(self, now, delivered, sent):
         """GCC: the link is full, so what it delivered is its rate; cut the target to 0.85 x it."""
         self.overuses += 1
-        probing = self.mode == "probe"
         measured = self._clip(delivered)
         self._bw_max_mbps = self._unrefuted_mbps = measured
         self._gain = PROBE_GAIN
         self._merged.clear()  # this deficit is acted upon; the next one must be new
-        if probing and measured >= DRAIN_FACTOR * self._capacity_before_probe_mbps:
-            # Our own probe filled the link: what it delivered is the capacity; the small queue the
-            # probe built drains under the allocation's reserve, no cut needed.
-            self.capacity_mbps = measured
-            self.estimate_mbps = measured
-            self._set_mode("cruise", now)
-            return
         self.capacity_mbps = measured
         self.estimate_mbps = self._clip(DRAIN_FACTOR * measured)
-        self._set_mode("drain", now)
+        self.mode, self._mode_since_s = "drain", now  # a new overuse restarts the drain
+        self._drain_checked = False
+        self._trend.reset()  # the rise is acted upon; the next overuse must be a new rise
 
     def _deficit(self):
         """Over the merged window, did the link deliver clearly less than was sent (a queue building)?"""

@@ -19,6 +19,7 @@ The subject is anything with `update(report, latency_ms) -> allocation Mbit/s`,
 `resume(now_s)`, `estimate_mbps` and `capacity_mbps` (see `NewEstimatorSubject`); the legacy
 anchor is wrapped the same way in bench/estimator_bench.py. Deterministic: jitter from a seeded RNG.
 """
+import collections
 import dataclasses
 import math
 import random
@@ -111,6 +112,9 @@ class LinkModel:
     reserve_fraction: float = 0.04
     report_s: float = 0.5
     report_offset_s: float = 0.0   # reports at offset + k x report_s (so steps need not fall on one)
+    # rates in a report averaged over this sliding window (0: the report's own interval, as a
+    # bridge counting bytes per interval would; 2: today's /tissue/stats and limiter status)
+    measure_window_s: float = 0.0
     tick_s: float = 0.01
     control_lag_s: float = 0.1
     liveliness_s: float = 1.0
@@ -129,6 +133,7 @@ class LinkModel:
         up = True
         trace, acc = [], None
         tick, cut_since, last_report_s = 0, None, 0.0
+        history = collections.deque()  # (t, ingress Mbit, delivered Mbit, offered Mbit) per tick
         offset_ticks = int(round(self.report_offset_s / self.tick_s)) % ticks_per_report
         while tick * self.tick_s < duration_s - 1e-9:
             if acc is None:
@@ -146,6 +151,9 @@ class LinkModel:
             queue += ingress * self.tick_s
             out = min(queue, drain_rate * self.tick_s)
             queue = min(self.queue_limit_mbit, queue - out)
+            history.append((t, ingress * self.tick_s, out, demand * self.tick_s))
+            while history and history[0][0] < t - self.measure_window_s:
+                history.popleft()
             acc["ingress"] += ingress * self.tick_s
             acc["delivered"] += out
             acc["offered"] += demand * self.tick_s
@@ -171,9 +179,14 @@ class LinkModel:
             if (tick - offset_ticks) % ticks_per_report:
                 continue
             interval, last_report_s = now - last_report_s, now
+            if self.measure_window_s > 0:
+                span = min(self.measure_window_s, now)
+                sent, delivered, offered = (sum(h[i] for h in history) / span for i in (1, 2, 3))
+            else:
+                sent, delivered, offered = (acc[k] / interval for k in ("ingress", "delivered", "offered"))
             report = LinkReport(
-                now_s=now, interval_s=interval, delivered_mbps=acc["delivered"] / interval,
-                sent_mbps=acc["ingress"] / interval, offered_mbps=acc["offered"] / interval,
+                now_s=now, interval_s=interval, delivered_mbps=delivered,
+                sent_mbps=sent, offered_mbps=offered,
                 app_limited=acc["app_limited"] and acc["queue_empty"], rtt_s=tuple(acc["rtt"]),
                 receiver_behind=acc["behind"])
             if up and not acc["cut"]:
@@ -182,8 +195,8 @@ class LinkModel:
                 subject.update(report, latency_ms)
                 pending.append((now + self.control_lag_s, (1 - self.reserve_fraction) * subject.estimate_mbps))
             trace.append(TraceRow(now, capacity, subject.capacity_mbps, subject.estimate_mbps, allowed,
-                                  report.sent_mbps, report.delivered_mbps, report.offered_mbps, queue, up,
-                                  acc["behind"]))
+                                  acc["ingress"] / interval, acc["delivered"] / interval,
+                                  acc["offered"] / interval, queue, up, acc["behind"]))
             acc = None
         return trace
 

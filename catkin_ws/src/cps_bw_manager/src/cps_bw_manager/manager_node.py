@@ -59,7 +59,10 @@ class BandwidthManagerNode:
             estimator = DeliveryRateEstimator(
                 initial_mbps=settings.available_mbps,
                 line_rate_mbps=_param("~max_estimate_mbps", settings.available_mbps, float),
-                min_mbps=_param("~min_estimate_mbps", 1.0, float))
+                min_mbps=_param("~min_estimate_mbps", 1.0, float),
+                # /tissue/stats and the limiters' status are 2 s sliding averages: a probe shorter
+                # than that is not seen (a bridge reporting per interval allows 0.5 s)
+                probe_s=_param("~estimate_probe_s", 2.0, float))
         self.core = ManagerCore(fleet.robot_names, settings, estimator)
         self.lock = threading.Lock()
         csv_path = rospy.get_param("~csv_path", "")
