@@ -13,9 +13,11 @@ Mbit/s step. Each runs twice:
   CPU processing only 2 Mbit/s for 10 s in each phase: report intervals in which the fleet
   offered < 85 % of the capacity but was allowed less (target: none), and the lowest estimate.
 
-Subjects: `new` (every field of a LinkReport, as when the bridge reports them), `new/today` (only
-delivered, sent and offered: what the manager has now) and `old` (the delay rule, fed delivered,
-one-way latency and sent, as the manager fed it).
+Subjects, in pairs judged on the same inputs: `new` and `old` on per-interval reports (what the
+bridge's LinkReport should carry; `new` gets every field), `new/today` and `old/today` on today's
+inputs (delivered, sent, offered as 2 s sliding averages, as /tissue/stats and the limiters'
+status give them; `new/today` holds probes 2 s, as manager_node configures it). `old` is fed
+delivered, one-way latency and sent, as the manager fed it.
 
     python bench/estimator_bench.py [--out docs/benchmarks/estimator.md] [--no-write]
 """
@@ -58,12 +60,21 @@ class LegacySubject:
         return self.estimator.estimate_mbps
 
 
+def _new(known=None, probe_s=0.5):
+    est = DeliveryRateEstimator(LINE_RATE_MBPS, line_rate_mbps=LINE_RATE_MBPS, probe_s=probe_s)
+    return NewEstimatorSubject(est, known) if known else NewEstimatorSubject(est)
+
+
+# name: (make the subject, the model's measurement window s). Pairs judged on the same inputs:
+# per-interval reports (what the bridge should send) and today's 2 s sliding windows.
 SUBJECTS = {
-    "new": lambda: NewEstimatorSubject(DeliveryRateEstimator(LINE_RATE_MBPS, line_rate_mbps=LINE_RATE_MBPS)),
-    "new/today": lambda: NewEstimatorSubject(DeliveryRateEstimator(LINE_RATE_MBPS, line_rate_mbps=LINE_RATE_MBPS),
-                                             known=TODAY),
-    "old": LegacySubject,
+    "new": (_new, 0.0),
+    "old": (LegacySubject, 0.0),
+    "new/today": (lambda: _new(TODAY, probe_s=2.0), 2.0),  # as manager_node builds it
+    "old/today": (LegacySubject, 2.0),
 }
+PAIRS = (("new", "old", "per-interval reports (the bridge's LinkReport)"),
+         ("new/today", "old/today", "today's inputs: delivered, sent, offered as 2 s sliding averages"))
 
 
 def _timeline(name):
@@ -97,8 +108,8 @@ def _timeline(name):
     return capacity_of, steps, shaping, topology, duration_s
 
 
-def _model(capacity_of, shaping, topology, demand_mbps, hogs=()):
-    extra = {}
+def _model(capacity_of, shaping, topology, demand_mbps, hogs=(), window_s=0.0):
+    extra = dict(measure_window_s=window_s)
     if shaping is not None:
         extra = dict(base_rtt_s=0.004 + 2e-3 * shaping.delay_ms, jitter_s=1e-3 * shaping.jitter_ms,
                      loss_fraction=shaping.loss_pct / 100.0)
@@ -112,8 +123,8 @@ def run_scenario(name):
     capacity_of, steps, shaping, topology, duration_s = _timeline(name)
     ends = [t for t, _, _ in steps[1:]] + [duration_s]
     rows = {}
-    for subject_name, make in SUBJECTS.items():
-        trace = _model(capacity_of, shaping, topology, FLEET_MBPS).run(make(), duration_s)
+    for subject_name, (make, window_s) in SUBJECTS.items():
+        trace = _model(capacity_of, shaping, topology, FLEET_MBPS, window_s=window_s).run(make(), duration_s)
         per_step = []
         for (t, label, kind), end in zip(steps, ends):
             end = min(end, next((c for c in _cuts(capacity_of, t, end)), end))
@@ -123,7 +134,7 @@ def run_scenario(name):
                                  longest_over_s=longest))
         hogs = [CpuHog(s, s + 10.0, receiver_mbps=2.0, extra_delay_s=0.5)
                 for s in range(5, int(duration_s) - 10, 20)]
-        low = _model(capacity_of, shaping, topology, PAPER_PROFILE_MBPS, hogs).run(make(), duration_s)
+        low = _model(capacity_of, shaping, topology, PAPER_PROFILE_MBPS, hogs, window_s).run(make(), duration_s)
         rows[subject_name] = dict(
             steps=per_step, mean_error=mean_abs_error(trace, 5.0, duration_s),
             settled_error=_settled_error(trace, [t for t, _, _ in steps] + list(_all_cuts(capacity_of, duration_s))),
@@ -181,34 +192,36 @@ def report(results):
     lines = []
     for name, (steps, rows) in results.items():
         lines.append(f"\n### {name}\n")
-        lines.append("Fleet above the link (67 Mbit/s offered). Per step: s until the estimate stays within "
-                     "+-15 % (target <= 2 s down, <= 5 s up); ingress over the capacity, s (from the step / "
-                     "longest later run; target <= 2 s after a down step).\n")
-        lines.append("| step | at s | new: settle | new: ingress over | new: meets | new/today: settle | "
-                     "new/today: meets | old: settle | old: ingress over | old: meets | old/new settle |")
-        lines.append("|---|---|---|---|---|---|---|---|---|---|---|")
-        for i, (t, label, kind) in enumerate(steps):
-            n, d, o = (rows[s]["steps"][i] for s in ("new", "new/today", "old"))
-            old_was_off = i > 0 and math.isinf(rows["old"]["steps"][i - 1]["settle_s"])
-            ratio = "n/a: old never settled before it" if old_was_off else _ratio(o['settle_s'], n['settle_s'])
-            lines.append(f"| {label} ({kind}) | {t:g} | {_fmt_s(n['settle_s'])} | {n['first_over_s']:.1f} / "
-                         f"{n['longest_over_s']:.1f} | {_meets(n, 'new')} | {_fmt_s(d['settle_s'])} | "
-                         f"{_meets(d, 'new/today')} | {_fmt_s(o['settle_s'])} | {o['first_over_s']:.1f} / "
-                         f"{o['longest_over_s']:.1f} | {_meets(o, 'old')} | {ratio} |")
-        if not steps:
-            lines.append("| (no capacity step) | | | | | | | | | | |")
-        lines.append("")
+        for new, old, inputs in PAIRS:
+            lines.append(f"Fleet above the link (67 Mbit/s offered); {inputs}. Settle: s until the estimate "
+                         "stays within +-15 % (target <= 2 s down, <= 5 s up). Ingress over the capacity, s "
+                         "(from the step / longest later run; target <= 2 s after a down step).\n")
+            lines.append(f"| step | at s | {new}: settle | ingress over | meets | {old}: settle | ingress over "
+                         f"| meets | settle {old}/{new} |")
+            lines.append("|---|---|---|---|---|---|---|---|---|")
+            for i, (t, label, kind) in enumerate(steps):
+                n, o = rows[new]["steps"][i], rows[old]["steps"][i]
+                old_was_off = i > 0 and math.isinf(rows[old]["steps"][i - 1]["settle_s"])
+                ratio = "n/a: old never settled before" if old_was_off else _ratio(o["settle_s"], n["settle_s"])
+                lines.append(f"| {label} ({kind}) | {t:g} | {_fmt_s(n['settle_s'])} | {n['first_over_s']:.1f} / "
+                             f"{n['longest_over_s']:.1f} | {_meets(n, new)} | {_fmt_s(o['settle_s'])} | "
+                             f"{o['first_over_s']:.1f} / {o['longest_over_s']:.1f} | {_meets(o, old)} | {ratio} |")
+            if not steps:
+                lines.append("| (no capacity step) | | | | | | | | |")
+            lines.append("")
         lines.append("| subject | mean abs error vs capacity, whole run (fleet above) | the same, > 5 s after "
                      "every step/outage | paper profile + CPU hog: intervals held below offered | lowest "
                      "allocation target there, Mbit/s |")
         lines.append("|---|---|---|---|---|")
-        for s in ("new", "new/today", "old"):
+        for s in SUBJECTS:
             r = rows[s]
             lines.append(f"| {s} | {100 * r['mean_error']:.1f} % | {100 * r['settled_error']:.1f} % | "
                          f"{r['held']} of {r['low_intervals']} | {r['low_min_estimate']:.1f} |")
-        old, new = rows["old"]["mean_error"], rows["new"]["mean_error"]
-        lines.append(f"\nmean error (whole run) old/new: {old / new:.1f}x" if new > 1e-3 else
-                     f"\nmean error (whole run): new {100 * new:.1f} %, old {100 * old:.1f} % (no ratio: new ~0)")
+        for new, old, _ in PAIRS:
+            o, n = rows[old]["mean_error"], rows[new]["mean_error"]
+            lines.append(f"\nmean error (whole run): {old} {100 * o:.1f} % / {new} {100 * n:.1f} % = {o / n:.1f}x"
+                         if n > 1e-3 else
+                         f"\nmean error (whole run): {new} {100 * n:.1f} %, {old} {100 * o:.1f} % (no ratio: ~0)")
     return "\n".join(lines)
 
 
@@ -220,13 +233,16 @@ cps_link's scenario files, the twin's CPU as a receiver cap with late heartbeat 
 manager's 4 % reserve, a 0.1 s control lag, 0.5 s reports). They are **not live measurements**:
 the live half of issue 23 (netns + tc, 4 robots, as root) is not run here.
 
-Subjects: `new` = `DeliveryRateEstimator` with every LinkReport field (as when the bridge reports
-delivery, app-limited, heartbeat RTT and receiver-behind); `new/today` = the same with only what the
-manager has today (delivered from /tissue/stats, the limiters' sent and offered rates); `old` =
-`LegacyDelayEstimator` (the delay rule the manager used before), fed delivered, one-way latency and
-sent. "settle" = seconds after the step until the capacity estimate stays within +-15 % of the true
-(tc) capacity until the next event; the new estimator's allocation target probes +25 % above it
-for one 0.5 s interval at most every 1.5 s while demand exceeds it (counted in "ingress over").
+Subjects, in pairs judged on the same inputs: `new` (`DeliveryRateEstimator` with every
+LinkReport field) and `old` (`LegacyDelayEstimator`, the delay rule the manager used before, fed
+delivered, one-way latency and sent) on per-interval reports, as the bridge should send them;
+`new/today` (only delivered, sent and offered, probes held 2 s, as `manager_node` builds it) and
+`old/today` on today's inputs, 2 s sliding averages like /tissue/stats and the limiters' status.
+"settle" = seconds from the step to the first report from which the capacity estimate stays
+within +-15 % of the true (tc) capacity until the next event (a report covers the 0.5 s before
+it; reports fall 0.23 s off the whole-second steps). The new estimator's allocation target
+probes +20 % above the capacity (one report, or 2 s for new/today) at most every 1.5 s while
+demand exceeds it; that is counted in "ingress over".
 wifi_degraded's 2 % loss is modelled as 2 % less goodput, its 20 +- 10 ms delay as RTT and jitter.
 """
 
