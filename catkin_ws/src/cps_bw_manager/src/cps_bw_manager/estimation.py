@@ -148,7 +148,7 @@ class DeliveryRateEstimator:
         self._last_now_s = None
         self._mode_since_s = -math.inf
         self._last_probe_s = -math.inf
-        self._sent_before_probe_mbps = math.nan
+        self._capacity_before_probe_mbps = math.nan
         self._drain_checked = False  # the drain's one correction of the capacity was made
         self._gain = PROBE_GAIN
 
@@ -265,9 +265,9 @@ class DeliveryRateEstimator:
             if drained:
                 self._set_mode("cruise", now)
         elif self.mode == "probe" and now - self._mode_since_s >= self.probe_s - 1e-6:
-            # The link carried the probe (no overuse, the sender sent more than before it and it
-            # all arrived): BBR's STARTUP, double next time, at once.
-            kept_up = not math.isnan(sent) and sent > 1.05 * self._sent_before_probe_mbps \
+            # The link carried clearly more than the capacity believed (10 %: more than the
+            # measurement noise) and all that was sent: BBR's STARTUP, double next time, at once.
+            kept_up = not math.isnan(sent) and delivered >= 1.1 * self._capacity_before_probe_mbps \
                 and delivered >= 0.97 * sent
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
             if kept_up or app_limited:
@@ -280,13 +280,18 @@ class DeliveryRateEstimator:
         self.capacity_mbps = self._clip(self._bw_max_mbps)
 
         demand_exceeds = not app_limited
-        can_probe = self.capacity_mbps < self.line_rate_mbps
+        # no probe while a queue drains (more delivered than sent): the link is full already
+        surplus = not math.isnan(sent) and delivered - sent > max(self.deficit_fraction * sent, self.deficit_min_mbps)
+        can_probe = self.capacity_mbps < self.line_rate_mbps and not surplus
         quick = self._gain == STARTUP_GAIN
         if self.mode == "cruise" and demand_exceeds and can_probe and \
                 (quick or now - self._last_probe_s >= self.probe_every_s):
             self._set_mode("probe", now)
-            self._sent_before_probe_mbps = sent if not math.isnan(sent) else self.capacity_mbps
-            self.estimate_mbps = self._clip(self._gain * self.capacity_mbps)
+            self._capacity_before_probe_mbps = self.capacity_mbps
+            # The manager keeps a reserve and per-message headroom below the target, so the fleet
+            # sends less than it: the probe adds that gap, for the *sent* rate to reach gain x.
+            gap = max(0.0, self.estimate_mbps - sent) if not math.isnan(sent) else 0.0
+            self.estimate_mbps = self._clip(self._gain * self.capacity_mbps + gap)
         elif self.mode == "cruise":
             self._gain = PROBE_GAIN if not demand_exceeds else self._gain
             self.estimate_mbps = self._clip(max(self.capacity_mbps, self._unrefuted_mbps))
