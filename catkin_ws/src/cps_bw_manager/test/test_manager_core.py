@@ -135,6 +135,21 @@ def test_estimator_is_not_lowered_by_an_app_limited_fleet():
     assert core.available_mbps == 60.0
 
 
+def test_a_full_link_report_keeps_a_busy_twin_apart_from_the_link():
+    """With the bridge's report (receiver behind, RTT), a twin that drains 2 of 48 Mbit/s is the
+    twin's capacity; the link's estimate and the budget stay."""
+    from cps_bw_manager.estimation import LinkReport
+
+    core = _core(estimator=DeliveryRateEstimator(initial_mbps=60.0))
+    for i in range(1, 10):
+        core.on_link_report(LinkReport(now_s=0.5 * i, interval_s=0.5, delivered_mbps=2.0, sent_mbps=48.0,
+                                       offered_mbps=48.0, app_limited=False, rtt_s=(0.05 + 0.1 * i,),
+                                       receiver_behind=True))
+    assert core.available_mbps == 60.0 and core.estimator.twin_capacity_mbps == 2.0
+    core.on_link_state(False, since_s=5.0)  # while down, not fed
+    assert not core.on_link_report(LinkReport(now_s=5.5, interval_s=0.5, delivered_mbps=1.0, sent_mbps=48.0))
+
+
 def test_link_totals_from_topic_stats():
     topics = [SimpleNamespace(managed=True, messages=10, bandwidth_mbytes_per_s=1.0, latency_avg_ms=5.0),
               SimpleNamespace(managed=True, messages=0, bandwidth_mbytes_per_s=0.0, latency_avg_ms=math.nan),

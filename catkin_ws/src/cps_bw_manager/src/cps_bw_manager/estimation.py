@@ -99,6 +99,8 @@ class _Trendline:
         self.modified_trend = slope_ms_per_s * span_s
         k = self.k_down if abs(self.modified_trend) < self.threshold_ms else self.k_up
         if abs(self.modified_trend) < self.threshold_ms + 15.0:  # GCC skips adapting on big spikes
+            # GCC's k are per ms between packet groups; per 0.5 s report they would overshoot, so
+            # they are applied per 100 ms: one report moves the threshold by 4-20 % of the gap
             self.threshold_ms += k * (abs(self.modified_trend) - self.threshold_ms) * dt_s * 1000.0 / 100.0
             self.threshold_ms = min(600.0, max(15.0, self.threshold_ms))
         return self.modified_trend > self.threshold_ms
@@ -142,7 +144,7 @@ class DeliveryRateEstimator:
         self.overuses = 0
         self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
         self._unrefuted_mbps = self.capacity_mbps  # highest allocation target run without an overuse since
-        self._rtt_samples = collections.deque()   # (now_s, rtt_s) for the min-RTT floor
+        self._rtt_samples = collections.deque()   # (now_s, smallest rtt_s, median rtt_s) per interval
         self._merged = collections.deque()        # (now_s, interval_s, delivered_mbps, sent_mbps)
         self._trend = _Trendline()
         self._last_now_s = None
