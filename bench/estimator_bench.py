@@ -60,8 +60,9 @@ class LegacySubject:
         return self.estimator.estimate_mbps
 
 
-def _new(known=None, probe_s=0.5):
-    est = DeliveryRateEstimator(LINE_RATE_MBPS, line_rate_mbps=LINE_RATE_MBPS, probe_s=probe_s)
+def _new(known=None, window_s=0.0):
+    est = DeliveryRateEstimator(LINE_RATE_MBPS, line_rate_mbps=LINE_RATE_MBPS, probe_s=max(0.5, window_s),
+                                measure_window_s=window_s)
     return NewEstimatorSubject(est, known) if known else NewEstimatorSubject(est)
 
 
@@ -70,7 +71,7 @@ def _new(known=None, probe_s=0.5):
 SUBJECTS = {
     "new": (_new, 0.0),
     "old": (LegacySubject, 0.0),
-    "new/today": (lambda: _new(TODAY, probe_s=2.0), 2.0),  # as manager_node builds it
+    "new/today": (lambda: _new(TODAY, window_s=2.0), 2.0),  # as manager_node builds it
     "old/today": (LegacySubject, 2.0),
 }
 PAIRS = (("new", "old", "per-interval reports (the bridge's LinkReport)"),
@@ -111,7 +112,7 @@ def _timeline(name):
 def _model(capacity_of, shaping, topology, demand_mbps, hogs=(), window_s=0.0):
     extra = dict(measure_window_s=window_s)
     if shaping is not None:
-        extra = dict(base_rtt_s=0.004 + 2e-3 * shaping.delay_ms, jitter_s=1e-3 * shaping.jitter_ms,
+        extra.update(base_rtt_s=0.004 + 2e-3 * shaping.delay_ms, jitter_s=1e-3 * shaping.jitter_ms,
                      loss_fraction=shaping.loss_pct / 100.0)
     if topology == "shared":
         extra["reverse_mbps"] = 1.0  # commands, TF and maps coming down share the airtime

@@ -114,7 +114,7 @@ class DeliveryRateEstimator:
 
     def __init__(self, initial_mbps, line_rate_mbps=None, min_mbps=1.0, min_rtt_window_s=10.0,
                  merge_window_s=1.0, deficit_fraction=0.05, deficit_min_mbps=0.3, probe_every_s=1.5, probe_s=0.5,
-                 max_drain_s=4.0, queue_delay_threshold_s=0.03):
+                 max_drain_s=4.0, queue_delay_threshold_s=0.03, measure_window_s=0.0):
         for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps), ("min_rtt_window_s", min_rtt_window_s),
                             ("merge_window_s", merge_window_s), ("probe_every_s", probe_every_s),
                             ("probe_s", probe_s)):
@@ -133,6 +133,10 @@ class DeliveryRateEstimator:
         # as the measurement window when they are sliding averages (today's /tissue/stats: 2 s)
         self.probe_s = float(probe_s)
         self.max_drain_s = float(max_drain_s)
+        # the reports' rates are sliding averages over this window (0: per interval, as the
+        # bridge's report; 2: today's /tissue/stats and limiter status)
+        self.measure_window_s = max(0.0, float(measure_window_s))
+        self._resumed_s = -math.inf
         self.queue_delay_threshold_s = float(queue_delay_threshold_s)
         self.capacity_mbps = self._clip(float(initial_mbps))
         self.estimate_mbps = self.capacity_mbps
@@ -171,6 +175,7 @@ class DeliveryRateEstimator:
         """The link is back after an outage: the capacity measured before it is kept (an outage
         says nothing about the capacity), the per-interval state restarts at `now_s`."""
         self._last_now_s = now_s
+        self._resumed_s = now_s
         self._merged.clear()
         self._trend.reset()
         self._rtt_samples.clear()
@@ -203,6 +208,11 @@ class DeliveryRateEstimator:
         reason = self._reject(report)
         if reason:
             self.ignored[reason] += 1
+            return self.estimate_mbps
+        if report.now_s < self._resumed_s + self.measure_window_s - 1e-6:
+            # sliding averages still hold the outage (sent, nothing delivered): not a measurement
+            self.ignored["window_holds_outage"] += 1
+            self._last_now_s = report.now_s
             return self.estimate_mbps
         now = report.now_s
         dt = report.interval_s if self._last_now_s is None else min(report.interval_s, now - self._last_now_s)
@@ -266,11 +276,15 @@ class DeliveryRateEstimator:
                 now - self._mode_since_s >= self.max_drain_s
             if drained:
                 self._set_mode("cruise", now)
-        elif self.mode == "probe" and now - self._mode_since_s >= self.probe_s - 1e-6:
+        kept_up = False
+        if self.mode == "probe":
             # The link carried clearly more than the capacity believed (10 %: more than the
             # measurement noise) and all that was sent: BBR's STARTUP, double next time, at once.
+            # That can show before `probe_s` is over (a sliding window rises early); a refusal
+            # can only be trusted once the window holds the whole probe.
             kept_up = not math.isnan(sent) and delivered >= 1.1 * self._capacity_before_probe_mbps \
                 and delivered >= 0.97 * sent
+        if self.mode == "probe" and (kept_up or now - self._mode_since_s >= self.probe_s - 1e-6):
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
             if kept_up or app_limited:
                 # Nothing refused the probe's rate and the fleet got all it wanted at it: it may

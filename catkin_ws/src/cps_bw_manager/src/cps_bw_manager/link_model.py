@@ -152,7 +152,7 @@ class LinkModel:
             out = min(queue, drain_rate * self.tick_s)
             queue = min(self.queue_limit_mbit, queue - out)
             history.append((t, ingress * self.tick_s, out, demand * self.tick_s))
-            while history and history[0][0] < t - self.measure_window_s:
+            while history and history[0][0] < t + self.tick_s - self.measure_window_s - 1e-9:  # tick = [t, t+dt)
                 history.popleft()
             acc["ingress"] += ingress * self.tick_s
             acc["delivered"] += out

@@ -55,14 +55,18 @@ class BandwidthManagerNode:
         if not math.isfinite(self.update_rate_hz) or self.update_rate_hz < 1.0:
             raise ValueError(f"parameter ~update_rate_hz must be >= 1 Hz, got {self.update_rate_hz}")
         estimator = None
+        estimate_window_s = _param("~estimate_window_s", 2.0, float)
+        if not math.isfinite(estimate_window_s) or not 0 <= estimate_window_s <= 10:
+            raise ValueError(f"parameter ~estimate_window_s must be in [0, 10] s, got {estimate_window_s}")
         if _param("~estimate_bandwidth", link.estimate_bandwidth, bool):
             estimator = DeliveryRateEstimator(
                 initial_mbps=settings.available_mbps,
                 line_rate_mbps=_param("~max_estimate_mbps", settings.available_mbps, float),
                 min_mbps=_param("~min_estimate_mbps", 1.0, float),
                 # /tissue/stats and the limiters' status are 2 s sliding averages: a probe shorter
-                # than that is not seen (a bridge reporting per interval allows 0.5 s)
-                probe_s=_param("~estimate_probe_s", 2.0, float))
+                # than that is not seen, and after an outage the window still holds it (a bridge
+                # reporting per interval allows 0)
+                measure_window_s=estimate_window_s, probe_s=max(0.5, estimate_window_s))
         self.core = ManagerCore(fleet.robot_names, settings, estimator)
         self.lock = threading.Lock()
         csv_path = rospy.get_param("~csv_path", "")
