@@ -2,14 +2,14 @@
 (an outage is no capacity measurement), and resuming from the online estimate when it is back."""
 import pytest
 
-from cps_bw_manager.estimation import BandwidthEstimator
+from cps_bw_manager.estimation import DeliveryRateEstimator
 from cps_bw_manager.manager import (LINK_STATE_CSV_COLUMNS, ManagerCore, ManagerSettings, link_state_csv_row)
 
 SETTINGS = ManagerSettings(available_mbps=60.0, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0)
 
 
 def _core():
-    core = ManagerCore(["a", "b"], SETTINGS, BandwidthEstimator(initial_mbps=60.0, max_mbps=60.0))
+    core = ManagerCore(["a", "b"], SETTINGS, DeliveryRateEstimator(initial_mbps=60.0, line_rate_mbps=60.0))
     for robot in ("a", "b"):
         core.on_limiter_status(robot, 100000.0, 30.0, 30.0, now_s=0.0)
     return core
@@ -28,22 +28,23 @@ def test_down_pauses_and_says_so_up_resumes():
 
 
 def test_an_outage_does_not_collapse_the_estimate_and_it_resumes_from_it():
-    core = _core()
-    # Saturated at 20 Mbit/s: the estimate comes down to about that.
+    core = _core()  # the limiters send 2 x 30 Hz x 100 kB = 48 Mbit/s
+    # Saturated at 20 Mbit/s: the capacity comes down to that.
     for t in range(1, 8):
-        core.on_link_stats(float(t), 20.0, 40.0 + 60.0 * t)
-    before = core.available_mbps
-    assert before < 30.0
+        core.on_link_stats(0.5 * t, 20.0)
+    before = core.estimator.capacity_mbps
+    assert before == pytest.approx(20.0)
     core.on_link_state(False, since_s=8.0)
-    # Nothing arrives while the physical side sends: without the pause this would halve the estimate.
+    # Nothing arrives while the physical side sends: an outage is no capacity measurement.
     for t in range(8, 18):
-        assert not core.on_link_stats(float(t), 0.0, float("nan"))
-    assert core.available_mbps == before
+        assert not core.on_link_stats(float(t), 0.0)
+    assert core.estimator.capacity_mbps == before
     core.on_link_state(True, since_s=18.0, last_outage_s=10.0)
+    assert core.available_mbps == before
     assert core.allocate().budget_mbytes_per_s == pytest.approx(0.96 * before / 8.0)
-    # Growth after the outage starts from the moment it ended, not from before it.
-    core.on_link_stats(18.5, 10.0, 40.0)
-    assert core.available_mbps < 2 * before
+    # After the outage it tracks again from there.
+    core.on_link_stats(18.5, 20.0)
+    assert core.estimator.capacity_mbps == pytest.approx(20.0)
 
 
 def test_link_state_rows_match_the_columns():

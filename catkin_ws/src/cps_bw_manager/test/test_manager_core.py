@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from cps_bw_manager.estimation import BandwidthEstimator
+from cps_bw_manager.estimation import DeliveryRateEstimator
 from cps_bw_manager.manager import (ALLOCATION_CSV_COLUMNS, ManagerCore, ManagerSettings, allocation_csv_rows,
                                     link_totals)
 
@@ -112,16 +112,42 @@ def test_bad_settings_name_the_parameter(change, match):
 
 
 def test_estimator_lowers_the_budget_when_the_link_saturates():
-    core = _core(estimator=BandwidthEstimator(initial_mbps=60.0))
-    for r in "ab":  # the limiters forward 15 Hz x 200 kB = 24 Mbit/s each
+    core = _core(estimator=DeliveryRateEstimator(initial_mbps=60.0))
+    for r in "ab":  # the limiters forward 15 Hz x 200 kB = 24 Mbit/s each, of 50 Hz offered
         core.on_limiter_status(r, 200000.0, 50.0, 15.0, now_s=0.0)
     assert core.sent_mbps() == pytest.approx(48.0)
-    core.on_link_stats(0.0, 48.0, 2.0)
-    assert core.on_link_stats(0.5, 20.0, 300.0)
-    assert not core.on_link_stats(1.0, 20.0, 400.0)  # one decrease per second at most
-    assert core.on_link_stats(1.6, 20.0, 500.0)
-    assert core.available_mbps < 20.0
+    assert core.offered_mbps() == pytest.approx(160.0)
+    assert not core.on_link_stats(0.0, 48.0)
+    # The link delivers 20 of the 48 Mbit/s sent: it is full at 20, the target is cut to 0.85 x 20.
+    assert core.on_link_stats(0.5, 20.0)
+    assert core.estimator.capacity_mbps == pytest.approx(20.0)
+    assert core.available_mbps == pytest.approx(17.0)
     assert core.allocate().budget_mbytes_per_s == pytest.approx(0.96 * core.available_mbps / 8)
+
+
+def test_estimator_is_not_lowered_by_an_app_limited_fleet():
+    """The fleet offers 8 Mbit/s and all of it arrives: nothing says the link is narrower."""
+    core = _core(estimator=DeliveryRateEstimator(initial_mbps=60.0))
+    for r in "ab":
+        core.on_limiter_status(r, 50000.0, 10.0, 10.0, now_s=0.0)
+    for i in range(20):
+        core.on_link_stats(0.5 * i, 8.0)
+    assert core.available_mbps == 60.0
+
+
+def test_a_full_link_report_keeps_a_busy_twin_apart_from_the_link():
+    """With the bridge's report (receiver behind, RTT), a twin that drains 2 of 48 Mbit/s is the
+    twin's capacity; the link's estimate and the budget stay."""
+    from cps_bw_manager.estimation import LinkReport
+
+    core = _core(estimator=DeliveryRateEstimator(initial_mbps=60.0))
+    for i in range(1, 10):
+        core.on_link_report(LinkReport(now_s=0.5 * i, interval_s=0.5, delivered_mbps=2.0, sent_mbps=48.0,
+                                       offered_mbps=48.0, app_limited=False, rtt_s=(0.05 + 0.1 * i,),
+                                       receiver_behind=True))
+    assert core.available_mbps == 60.0 and core.estimator.twin_capacity_mbps == 2.0
+    core.on_link_state(False, since_s=5.0)  # while down, not fed
+    assert not core.on_link_report(LinkReport(now_s=5.5, interval_s=0.5, delivered_mbps=1.0, sent_mbps=48.0))
 
 
 def test_link_totals_from_topic_stats():

@@ -1,144 +1,353 @@
-"""Online estimate of the link's available bandwidth from what it delivers (delay-based), no ROS.
+"""Online estimate of the link's capacity from what the link delivers (issue 23), no ROS.
 
-The paper assumes the available bandwidth is known in advance (section 5). Here the digital twin
-side's statistics (`/tissue/stats`: delivered MB/s and latency) drive an estimator in the style of
-delay-based congestion control:
+Fed one `LinkReport` per measurement interval (the manager's 0.5 s): what the far side received,
+what the sender put on the link, what the fleet wanted to send, whether the sender was
+app-limited, heartbeat RTT samples and whether the receiver's processing (the twin's CPU) is
+behind. Where each rule comes from (details in docs/bandwidth_manager.md):
 
-- the latency baseline is the smallest latency seen over the last `baseline_window_s`;
-- queueing delay = latency - baseline. Above `queue_threshold_ms` *and* with the link delivering
-  clearly less than the physical side sends (`delivered < backlog_ratio x sent`) or the latency
-  rising by more than `rise_ms` for three updates in a row (a queue is building), the link is saturated, so what it delivers is its capacity: the estimate becomes
-  delivered x a factor below 1 so the queue drains within about `drain_time_s` (at most
-  `drain_factor`), never less than half the old estimate and at most once per `holdoff_s`
-  (the effect of a decrease shows only one statistics window later);
-- high latency without a building queue (a busy CPU, or a queue that is already draining), or
-  queueing above half the threshold, holds the estimate;
-- otherwise the estimate grows by `increase_per_s` (multiplicative, per second; at least
-  `increase_min_mbps_per_s`), faster the longer the latency has stayed low (x(1 + quiet s / 5),
-  at most x3, convex like CUBIC away from its last maximum), up to `max_mbps`, and never stays below what was just delivered;
-  within +-10 % of the rate delivered at the last saturation, and for `slow_probe_s` after it, it
-  probes five times slower, so the queue it builds while probing stays small (as CUBIC does near
-  its last maximum) without getting stuck at a saturation point measured while a queue drained.
+- BBR: the capacity `capacity_mbps` is the maximum of delivery-rate samples taken while the
+  sender is not app-limited (a sample is min(delivered, sent), BBR's guard against ACK
+  compression: a backlog that arrives in a burst is not capacity). BBR ages its max filter over
+  ~10 round trips; here it restarts at every overuse instead, because a fleet held back by its
+  own allocation delivers less than the link could and would age a right estimate down (only an
+  overuse is evidence of a lower capacity). The minimum RTT is the
+  propagation floor; the allocation target probes above the capacity (gain 1.2, BBR's 1.25 kept inside the
+  +-15 % band, for `probe_s`)
+  only when demand exceeds it, and doubles per successful probe (BBR's STARTUP) so an up step is
+  found in a few intervals.
+- Google Congestion Control: overuse is a queue building, seen as delivered < sent over a merged
+  window of `merge_window_s` (bursts of arrivals are merged, not read as queueing) or as the
+  trendline of the RTT's queueing delay above an adaptive threshold (not absolute delay). On
+  overuse caused by the link the capacity becomes what was delivered (the link was full, so that
+  is its rate) and the allocation target is cut to 0.85 x it until the queue has drained.
+- TCP_INFO: `rwnd_limited` (receiver not draining: its CPU) is kept apart from `app_limited`
+  (the sender had nothing more to send). A receiver that is behind is recorded as
+  `twin_capacity_mbps` and never lowers the link's capacity; an app-limited sender never lowers it.
 
-The default threshold (60 ms of queueing) sits below the paper's 100 ms latency bound and above
-the latency noise of a busy 2-core machine.
+Bad input (NaN, negative, a delivery rate above the line rate, time going backwards or repeating)
+is counted in `ignored` by reason and ignored. No report holds the estimate (a silent far side);
+`resume(now_s)` after an outage keeps the pre-outage capacity and restarts the per-interval state.
 
-Without `sent` (unknown), high latency alone counts as saturation. A window in which nothing
-arrives although the physical side sends (a stalled link) halves the estimate.
-
-Time is passed in, so the estimator is unit-tested against a simulated queue.
+Two outputs, as BBR separates its bottleneck bandwidth from its pacing rate:
+`capacity_mbps` (the link's capacity; what the accuracy targets judge) and `estimate_mbps` (the
+rate the manager allocates from: the capacity, x the probe gain while probing, x the drain
+factor while a queue drains). Time is passed in.
 """
 import collections
+import dataclasses
 import math
+from typing import Optional, Sequence
+
+DRAIN_FACTOR = 0.85   # GCC's cut on overuse, x the acknowledged (delivered) rate
+# BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
+# inside the +-15 % band the estimate is held to
+PROBE_GAIN = 1.2
+STARTUP_GAIN = 2.0    # BBR's STARTUP roughly doubles per round while delivery keeps up
 
 
-class BandwidthEstimator:
-    def __init__(self, initial_mbps, max_mbps=None, min_mbps=1.0, queue_threshold_ms=60.0,
-                 increase_per_s=0.25, increase_min_mbps_per_s=4.0, drain_factor=0.9, drain_time_s=2.0, baseline_window_s=10.0,
-                 backlog_ratio=0.85, holdoff_s=1.0, rise_ms=5.0, slow_probe_s=5.0):
-        for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps),
-                            ("queue_threshold_ms", queue_threshold_ms), ("increase_per_s", increase_per_s),
-                            ("drain_time_s", drain_time_s), ("baseline_window_s", baseline_window_s)):
-            if not math.isfinite(value) or value <= 0:
-                raise ValueError(f"{name} must be > 0, got {value!r}")
-        if not 0 < drain_factor <= 1:
-            raise ValueError(f"drain_factor must be in (0, 1], got {drain_factor!r}")
-        self.max_mbps = float(initial_mbps if max_mbps is None else max_mbps)
-        if self.max_mbps < min_mbps:
-            raise ValueError(f"max_mbps ({self.max_mbps}) < min_mbps ({min_mbps})")
+@dataclasses.dataclass(frozen=True)
+class LinkReport:
+    """One measurement interval of the link, as the manager receives it.
+
+    `now_s`: when it was received (manager's clock); `interval_s`: the far side's measurement
+    window. Rates in Mbit/s over that window. NaN / None: not known (today's manager has no RTT,
+    app-limited or receiver-behind signal; see docs/bandwidth_manager.md for what the bridge must
+    report)."""
+    now_s: float
+    interval_s: float
+    delivered_mbps: float                 # bytes the far side actually received
+    sent_mbps: float = math.nan           # bytes the sender put on the link
+    offered_mbps: float = math.nan        # what the fleet produced (demand before the rate limiters)
+    app_limited: Optional[bool] = None    # the sender's queue ran empty (it had nothing more to send)
+    rtt_s: Sequence[float] = ()           # heartbeat echo round-trip times measured in the interval
+    receiver_behind: Optional[bool] = None  # the far side's processing is behind (CPU; TCP rwnd_limited)
+
+
+class _Trendline:
+    """GCC's delay-gradient detector: least-squares slope of the (smoothed) queueing delay over the
+    last `window` samples, compared with a threshold that adapts to the slope's own size."""
+
+    def __init__(self, window=8, smoothing=0.6, threshold_ms=25.0, k_up=0.0087, k_down=0.039):
+        self.window, self.smoothing = window, smoothing
+        self.threshold_ms, self.k_up, self.k_down = threshold_ms, k_up, k_down
+        self.samples = collections.deque(maxlen=window)
+        self.smoothed_ms = math.nan
+        self.modified_trend = 0.0
+
+    def reset(self):
+        self.samples.clear()
+        self.smoothed_ms = math.nan
+        self.modified_trend = 0.0
+
+    def update(self, now_s, queue_delay_ms, dt_s):
+        """True when the delay gradient says a queue is building (overuse)."""
+        s = queue_delay_ms if math.isnan(self.smoothed_ms) else \
+            self.smoothing * self.smoothed_ms + (1 - self.smoothing) * queue_delay_ms
+        self.smoothed_ms = s
+        self.samples.append((now_s, s))
+        if len(self.samples) < 3:
+            return False
+        n = len(self.samples)
+        mean_t = sum(t for t, _ in self.samples) / n
+        mean_d = sum(d for _, d in self.samples) / n
+        var = sum((t - mean_t) ** 2 for t, _ in self.samples)
+        slope_ms_per_s = 0.0 if var <= 0 else \
+            sum((t - mean_t) * (d - mean_d) for t, d in self.samples) / var
+        # GCC compares slope x samples x gain per packet group; over our 0.5 s intervals the
+        # equivalent is the delay the slope adds across the window, in ms.
+        span_s = self.samples[-1][0] - self.samples[0][0]
+        self.modified_trend = slope_ms_per_s * span_s
+        k = self.k_down if abs(self.modified_trend) < self.threshold_ms else self.k_up
+        if abs(self.modified_trend) < self.threshold_ms + 15.0:  # GCC skips adapting on big spikes
+            # GCC's k are per ms between packet groups; per 0.5 s report they would overshoot, so
+            # they are applied per 100 ms: one report moves the threshold by 4-20 % of the gap
+            self.threshold_ms += k * (abs(self.modified_trend) - self.threshold_ms) * dt_s * 1000.0 / 100.0
+            self.threshold_ms = min(600.0, max(15.0, self.threshold_ms))
+        return self.modified_trend > self.threshold_ms
+
+
+class DeliveryRateEstimator:
+    """The link's capacity from delivery rates (BBR) with GCC's overuse cut; see the module doc.
+
+    `initial_mbps`: the prior (configured capacity); `line_rate_mbps`: the interface's rate, the
+    ceiling of the estimate and above which a report is absurd; `min_mbps`: the floor."""
+
+    def __init__(self, initial_mbps, line_rate_mbps=None, min_mbps=1.0, min_rtt_window_s=10.0,
+                 merge_window_s=1.0, deficit_fraction=0.05, deficit_min_mbps=0.3, probe_every_s=1.5, probe_s=0.5,
+                 max_drain_s=4.0, queue_delay_threshold_s=0.03, measure_window_s=0.0):
+        for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps), ("min_rtt_window_s", min_rtt_window_s),
+                            ("merge_window_s", merge_window_s), ("probe_every_s", probe_every_s),
+                            ("probe_s", probe_s)):
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        self.line_rate_mbps = float(initial_mbps if line_rate_mbps is None else line_rate_mbps)
+        if not math.isfinite(self.line_rate_mbps) or self.line_rate_mbps < min_mbps:
+            raise ValueError(f"line_rate_mbps ({self.line_rate_mbps}) must be finite and >= min_mbps ({min_mbps})")
         self.min_mbps = float(min_mbps)
-        self.queue_threshold_ms = float(queue_threshold_ms)
-        self.increase_per_s = float(increase_per_s)
-        self.increase_min_mbps_per_s = max(0.0, float(increase_min_mbps_per_s))
-        self.drain_factor = float(drain_factor)
-        self.drain_time_s = float(drain_time_s)
-        if not 0 < backlog_ratio <= 1:
-            raise ValueError(f"backlog_ratio must be in (0, 1], got {backlog_ratio!r}")
-        self.backlog_ratio = float(backlog_ratio)
-        self.holdoff_s = max(0.0, float(holdoff_s))
-        self.rise_ms = float(rise_ms)
-        self.slow_probe_s = float(slow_probe_s)
-        self._last_decrease_s = -math.inf
-        self._saturation_mbps = math.nan
-        self._quiet_since_s = math.nan
-        self.baseline_window_s = float(baseline_window_s)
-        self.estimate_mbps = min(max(float(initial_mbps), self.min_mbps), self.max_mbps)
+        self.min_rtt_window_s = float(min_rtt_window_s)
+        self.merge_window_s = float(merge_window_s)
+        self.deficit_fraction = float(deficit_fraction)
+        self.deficit_min_mbps = float(deficit_min_mbps)
+        self.probe_every_s = float(probe_every_s)
+        # how long a probe is held: one report interval when the reports are per interval; as long
+        # as the measurement window when they are sliding averages (today's /tissue/stats: 2 s)
+        self.probe_s = float(probe_s)
+        self.max_drain_s = float(max_drain_s)
+        # the reports' rates are sliding averages over this window (0: per interval, as the
+        # bridge's report; 2: today's /tissue/stats and limiter status)
+        self.measure_window_s = max(0.0, float(measure_window_s))
+        self._resumed_s = -math.inf
+        self.queue_delay_threshold_s = float(queue_delay_threshold_s)
+        self.capacity_mbps = self._clip(float(initial_mbps))
+        self.estimate_mbps = self.capacity_mbps
+        self.twin_capacity_mbps = math.nan   # what a behind receiver processed (the twin's, not the link's)
+        self.receiver_behind = False
         self.congested = False
-        self.ignored_samples = 0
-        self._latencies = collections.deque()
-        self._last_time_s = None
-        self._last_latency_ms = math.nan
-        self._rising = 0
-
-    def _stalled(self, now_s):
-        """Nothing arrives although the physical side sends: back off (halve, once per holdoff)."""
-        self.congested = True
-        self._last_time_s = now_s
-        if now_s - self._last_decrease_s >= self.holdoff_s:
-            self._last_decrease_s = now_s
-            self.estimate_mbps = max(self.min_mbps, 0.5 * self.estimate_mbps)
-        return self.estimate_mbps
-
-    def resume(self, now_s):
-        """The link is back after an outage: the next update grows from `now_s`, not from before
-        the outage (the estimate itself is kept: the allocation resumes from it)."""
-        self._last_time_s = now_s
-        self._quiet_since_s = now_s
-        self._rising = 0
-        self._last_latency_ms = math.nan
+        self.mode = "cruise"                 # cruise | probe | drain
+        self.ignored = collections.Counter()  # reason -> reports ignored
+        self.overuses = 0
+        self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
+        self._unrefuted_mbps = self.capacity_mbps  # highest allocation target run without an overuse since
+        self._rtt_samples = collections.deque()   # (now_s, smallest rtt_s, median rtt_s) per interval
+        self._merged = collections.deque()        # (now_s, interval_s, delivered_mbps, sent_mbps)
+        self._trend = _Trendline()
+        self._last_now_s = None
+        self._mode_since_s = -math.inf
+        self._last_probe_s = -math.inf
+        self._capacity_before_probe_mbps = math.nan
+        self._drain_checked = False  # the drain's one correction of the capacity was made
+        self._gain = PROBE_GAIN
 
     @property
-    def baseline_ms(self):
-        return min(v for _, v in self._latencies) if self._latencies else math.nan
+    def ignored_samples(self):
+        """Reports ignored for any reason (bad values, clock steps)."""
+        return sum(self.ignored.values())
 
-    def update(self, now_s, delivered_mbps, latency_ms, sent_mbps=None):
-        """Feed one measurement window (`sent_mbps`: what the physical side sent in it, if known);
-        returns the new estimate in Mbit/s.
+    @property
+    def min_rtt_s(self):
+        """BBR's propagation floor: the smallest RTT sample of the last `min_rtt_window_s`."""
+        return min(r for _, r, _ in self._rtt_samples) if self._rtt_samples else math.nan
 
-        NaN, infinite or negative inputs (e.g. no message in the window) are counted and ignored.
-        """
-        known_sent = sent_mbps is not None and math.isfinite(sent_mbps) and sent_mbps >= 0
-        stalled = (known_sent and sent_mbps > self.min_mbps and delivered_mbps == 0
-                   and math.isfinite(now_s) and not math.isfinite(latency_ms))
-        if stalled:
-            return self._stalled(now_s)
-        if not all(math.isfinite(v) for v in (now_s, delivered_mbps, latency_ms)) \
-                or delivered_mbps < 0 or latency_ms < 0:
-            self.ignored_samples += 1
+    def _clip(self, mbps):
+        return min(max(mbps, self.min_mbps), self.line_rate_mbps)
+
+    def resume(self, now_s):
+        """The link is back after an outage: the capacity measured before it is kept (an outage
+        says nothing about the capacity), the per-interval state restarts at `now_s`."""
+        self._last_now_s = now_s
+        self._resumed_s = now_s
+        self._merged.clear()
+        self._trend.reset()
+        self._rtt_samples.clear()
+        self._set_mode("cruise", now_s)
+        self.estimate_mbps = self.capacity_mbps
+        self.congested = self.receiver_behind = False
+
+    def _reject(self, r):
+        """The reason a report is unusable, or None."""
+        values = (r.now_s, r.interval_s, r.delivered_mbps)
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+            return "not_finite"
+        if r.interval_s <= 0 or r.delivered_mbps < 0:
+            return "negative"
+        for v in (r.sent_mbps, r.offered_mbps):
+            if not (isinstance(v, (int, float)) and (math.isnan(v) or (math.isfinite(v) and v >= 0))):
+                return "negative"
+        if r.delivered_mbps > 1.05 * self.line_rate_mbps:
+            return "above_line_rate"
+        if self._last_now_s is not None and r.now_s <= self._last_now_s + 0.25 * r.interval_s:
+            return "clock_step"  # backwards, or a repeat of the interval just counted
+        return None
+
+    def _set_mode(self, mode, now_s):
+        if mode != self.mode:
+            self.mode, self._mode_since_s = mode, now_s
+
+    def update(self, report: LinkReport):
+        """Feed one interval; returns the allocation target `estimate_mbps` (Mbit/s)."""
+        reason = self._reject(report)
+        if reason:
+            self.ignored[reason] += 1
             return self.estimate_mbps
-        dt = 0.0 if self._last_time_s is None else max(0.0, now_s - self._last_time_s)
-        self._last_time_s = now_s
-        self._latencies.append((now_s, latency_ms))
-        while self._latencies and self._latencies[0][0] < now_s - self.baseline_window_s:
-            self._latencies.popleft()
-        queueing_ms = latency_ms - self.baseline_ms
-        delayed = queueing_ms > self.queue_threshold_ms
-        self._rising = self._rising + 1 if latency_ms > self._last_latency_ms + self.rise_ms else 0
-        self._last_latency_ms = latency_ms
-        building = not known_sent or delivered_mbps < self.backlog_ratio * sent_mbps or self._rising >= 3
-        self.congested = delayed and building
+        if report.now_s < self._resumed_s + self.measure_window_s - 1e-6:
+            # sliding averages still hold the outage (sent, nothing delivered): not a measurement
+            self.ignored["window_holds_outage"] += 1
+            self._last_now_s = report.now_s
+            return self.estimate_mbps
+        now = report.now_s
+        dt = report.interval_s if self._last_now_s is None else min(report.interval_s, now - self._last_now_s)
+        self._last_now_s = now
+        delivered, sent = report.delivered_mbps, report.sent_mbps
+        self.receiver_behind = bool(report.receiver_behind)
+        if self.receiver_behind:
+            # rwnd-limited: the twin's CPU, not the link. Its rate is the twin's capacity. The
+            # deficit and the RTT rise it causes are not the link's: forget them.
+            self.twin_capacity_mbps = delivered
+            self.congested = False
+            self._merged.clear()
+            self._trend.reset()
+            return self.estimate_mbps
+        if not math.isnan(sent) and sent > 0 and delivered == 0:
+            # Nothing arrived although the sender sent: an outage in the making (liveliness decides).
+            self.ignored["stalled"] += 1
+            return self.estimate_mbps
+        self._merged.append((now, report.interval_s, delivered, sent))
+        while self._merged and self._merged[0][0] <= now - self.merge_window_s:
+            self._merged.popleft()
+        rtt_overuse, queue_delay_s = self._rtt(now, report.rtt_s, dt)
+
+        deficit = self._deficit()
+        app_limited = report.app_limited
+        if app_limited is None:
+            # inferred (BBR: in flight below what the pacing allowed): the sender used clearly less
+            # than its allocation, everything offered was sent, and it all arrived
+            app_limited = (not deficit and not rtt_overuse
+                           and (math.isnan(sent) or sent < 0.9 * self.estimate_mbps)
+                           and (math.isnan(report.offered_mbps) or math.isnan(sent)
+                                or report.offered_mbps <= 1.02 * sent))
+        self.congested = (deficit or rtt_overuse) and not app_limited
         if self.congested:
-            self._quiet_since_s = now_s
-        if self.congested and now_s - self._last_decrease_s < self.holdoff_s:
-            estimate = self.estimate_mbps
-        elif self.congested:
-            self._last_decrease_s = now_s
-            self._saturation_mbps = delivered_mbps
-            factor = min(self.drain_factor, max(0.5, 1.0 - queueing_ms / (1000.0 * self.drain_time_s)))
-            estimate = min(self.estimate_mbps, max(0.5 * self.estimate_mbps, factor * delivered_mbps))
-        elif delayed or queueing_ms > 0.5 * self.queue_threshold_ms:
-            estimate = self.estimate_mbps
-            self._quiet_since_s = now_s
-        else:
-            near = 0.9 * self._saturation_mbps <= self.estimate_mbps <= 1.1 * self._saturation_mbps
-            if near and now_s - self._last_decrease_s < self.slow_probe_s:
-                grown = self.estimate_mbps * (1.0 + self.increase_per_s / 5.0) ** dt
-            else:
-                if math.isnan(self._quiet_since_s):
-                    self._quiet_since_s = now_s
-                boost = min(3.0, 1.0 + (now_s - self._quiet_since_s) / 5.0)
-                grown = max(self.estimate_mbps * (1.0 + boost * self.increase_per_s) ** dt,
-                            self.estimate_mbps + self.increase_min_mbps_per_s * dt)
-            estimate = max(grown, delivered_mbps)
-        self.estimate_mbps = min(max(estimate, self.min_mbps), self.max_mbps)
+            self._on_overuse(now, delivered, sent)
+            return self.estimate_mbps
+
+        sample = delivered if math.isnan(sent) else min(delivered, sent)
+        if not app_limited or sample > self._bw_max_mbps:
+            # BBR: app-limited samples only count when they exceed the current estimate.
+            self._bw_max_mbps = max(self._bw_max_mbps, sample)
+
+        if self.mode == "drain" and not self._drain_checked and not math.isnan(sent) \
+                and now - self._mode_since_s >= 2 * report.interval_s - 1e-6:
+            # The first whole interval after the cut: if the queue the overuse left was still
+            # served all along (more delivered than sent; by the RTT, still queueing), the link ran
+            # full and what it delivered is its rate (GCC's acknowledged bitrate). This corrects a
+            # cut measured over an interval that straddled the step. Once only: later the queue
+            # may empty inside an interval.
+            self._drain_checked = True
+            queueing = math.isnan(queue_delay_s) or queue_delay_s > self.queue_delay_threshold_s
+            if delivered >= 1.02 * sent and queueing:
+                self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = self._clip(delivered)
+                self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)
+        if self.mode == "drain":
+            # Without RTT: the link no longer delivers more than is sent (its queue is empty), seen
+            # in a report that began after the cut took effect (the first one mixes both rates).
+            drained = (not math.isnan(queue_delay_s) and queue_delay_s < self.queue_delay_threshold_s) or \
+                (math.isnan(queue_delay_s) and not math.isnan(sent) and delivered <= 1.02 * sent
+                 and now - self._mode_since_s >= 2 * report.interval_s - 1e-6) or \
+                now - self._mode_since_s >= self.max_drain_s
+            if drained:
+                self._set_mode("cruise", now)
+        kept_up = False
+        if self.mode == "probe":
+            # The link carried clearly more than the capacity believed (10 %: more than the
+            # measurement noise) and all that was sent: BBR's STARTUP, double next time, at once.
+            # That can show before `probe_s` is over (a sliding window rises early); a refusal
+            # can only be trusted once the window holds the whole probe.
+            kept_up = not math.isnan(sent) and delivered >= 1.1 * self._capacity_before_probe_mbps \
+                and delivered >= 0.97 * sent
+        if self.mode == "probe" and (kept_up or now - self._mode_since_s >= self.probe_s - 1e-6):
+            self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
+            if kept_up or app_limited:
+                # Nothing refused the probe's rate and the fleet got all it wanted at it: it may
+                # keep that rate (BBR keeps pacing at the last rate the path accepted), though the
+                # capacity only rises by what was measured.
+                self._unrefuted_mbps = max(self._unrefuted_mbps, self.estimate_mbps)
+            self._last_probe_s = now
+            self._set_mode("cruise", now)
+        self.capacity_mbps = self._clip(self._bw_max_mbps)
+
+        demand_exceeds = not app_limited
+        # no probe while a queue drains (more delivered than sent): the link is full already
+        surplus = not math.isnan(sent) and delivered - sent > max(self.deficit_fraction * sent, self.deficit_min_mbps)
+        can_probe = self.capacity_mbps < self.line_rate_mbps and not surplus
+        quick = self._gain == STARTUP_GAIN
+        if self.mode == "cruise" and demand_exceeds and can_probe and \
+                (quick or now - self._last_probe_s >= self.probe_every_s):
+            self._set_mode("probe", now)
+            self._capacity_before_probe_mbps = self.capacity_mbps
+            # The manager keeps a reserve and per-message headroom below the target, so the fleet
+            # sends less than it: the probe adds that gap, for the *sent* rate to reach gain x.
+            gap = max(0.0, self.estimate_mbps - sent) if not math.isnan(sent) else 0.0
+            self.estimate_mbps = self._clip(self._gain * self.capacity_mbps + gap)
+        elif self.mode == "cruise":
+            self._gain = PROBE_GAIN if not demand_exceeds else self._gain
+            self.estimate_mbps = self._clip(max(self.capacity_mbps, self._unrefuted_mbps))
         return self.estimate_mbps
+
+    def _on_overuse(self, now, delivered, sent):
+        """GCC: the link is full, so what it delivered is its rate; cut the target to 0.85 x it."""
+        self.overuses += 1
+        measured = self._clip(delivered)
+        self._bw_max_mbps = self._unrefuted_mbps = measured
+        self._gain = PROBE_GAIN
+        self._merged.clear()  # this deficit is acted upon; the next one must be new
+        self.capacity_mbps = measured
+        self.estimate_mbps = self._clip(DRAIN_FACTOR * measured)
+        self.mode, self._mode_since_s = "drain", now  # a new overuse restarts the drain
+        self._drain_checked = False
+        self._trend.reset()  # the rise is acted upon; the next overuse must be a new rise
+
+    def _deficit(self):
+        """Over the merged window, did the link deliver clearly less than was sent (a queue building)?"""
+        known = [(i, d, s) for _, i, d, s in self._merged if not math.isnan(s)]
+        if not known:
+            return False
+        span = sum(i for i, _, _ in known)
+        delivered = sum(i * d for i, d, _ in known) / span
+        sent = sum(i * s for i, _, s in known) / span
+        return sent - delivered > max(self.deficit_fraction * sent, self.deficit_min_mbps)
+
+    def _rtt(self, now, rtt_samples, dt):
+        """(GCC trendline says overuse, queueing delay s over the min-RTT floor) from this interval."""
+        good = sorted(r for r in rtt_samples if isinstance(r, (int, float)) and math.isfinite(r) and 0 < r < 60)
+        if len(good) < len(tuple(rtt_samples)):
+            self.ignored["bad_rtt_sample"] += len(tuple(rtt_samples)) - len(good)
+        if not good:
+            return False, math.nan
+        rtt = good[len(good) // 2]  # median: a burst of late echoes is one interval's worth, not many
+        self._rtt_samples.append((now, good[0], rtt))
+        while self._rtt_samples and self._rtt_samples[0][0] < now - self.min_rtt_window_s:
+            self._rtt_samples.popleft()
+        # queueing delay against the floor of the interval medians, so jitter is not queueing
+        queue_delay_s = max(0.0, rtt - min(m for _, _, m in self._rtt_samples))
+        overuse = self._trend.update(now, 1000.0 * queue_delay_s, dt)
+        return overuse and queue_delay_s > self.queue_delay_threshold_s, queue_delay_s

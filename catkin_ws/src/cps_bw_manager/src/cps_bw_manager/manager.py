@@ -11,7 +11,7 @@ from typing import Dict, Optional
 from cps_bw_manager.allocation import (DEFAULT_ASSUMED_MESSAGE_BYTES, DEFAULT_FLOOR_RATE_HZ,
                                        DEFAULT_PRIORITY_WEIGHTS, allocate_frequencies,
                                        managed_budget_mbytes_per_s)
-from cps_bw_manager.estimation import BandwidthEstimator
+from cps_bw_manager.estimation import DeliveryRateEstimator, LinkReport
 from cps_bw_manager.priorities import PriorityBook
 
 # An input rate is allowed this much headroom before it caps the robot's maximum rate.
@@ -85,7 +85,7 @@ class _Measured:
 
 
 class ManagerCore:
-    def __init__(self, robots, settings: ManagerSettings, estimator: Optional[BandwidthEstimator] = None):
+    def __init__(self, robots, settings: ManagerSettings, estimator: Optional[DeliveryRateEstimator] = None):
         self.settings = settings.validate()
         self.robots = list(robots)
         if not self.robots:
@@ -96,6 +96,7 @@ class ManagerCore:
         self.invalid_inputs = 0
         self.weights = {0: DEFAULT_PRIORITY_WEIGHTS[0], 1: float(settings.high_priority_weight)}
         self.link = LinkHealth()
+        self._last_stats_s = math.nan
 
     @property
     def paused(self):
@@ -174,14 +175,34 @@ class ManagerCore:
             total += m.output_rate_hz * m.message_bytes * 8e-6
         return total
 
-    def on_link_stats(self, now_s, delivered_mbps, latency_ms):
-        """Feed the estimator (if on); returns True if the available bandwidth moved by > 5 %."""
+    def offered_mbps(self):
+        """What the fleet produces before the rate limiters (their input rates x sizes), Mbit/s
+        (NaN until every one reported both): the demand the estimator probes for."""
+        total = 0.0
+        for m in self.measured.values():
+            if not (_positive(m.input_rate_hz) and _positive(m.message_bytes)):
+                return math.nan
+            total += m.input_rate_hz * m.message_bytes * 8e-6
+        return total
+
+    def on_link_report(self, report: LinkReport):
+        """Feed the estimator (if on) one full link report (the bridge's telemetry; see
+        docs/bandwidth_manager.md); returns True if the available bandwidth moved by > 5 %.
+        Not fed while the link is down: an outage says nothing about the capacity."""
         if not self.estimator or self.paused:
             return False
         before = self.estimator.estimate_mbps
-        sent = self.sent_mbps()
-        after = self.estimator.update(now_s, delivered_mbps, latency_ms, None if math.isnan(sent) else sent)
+        after = self.estimator.update(report)
         return abs(after - before) > 0.05 * before
+
+    def on_link_stats(self, now_s, delivered_mbps):
+        """What exists today: the twin side's delivered Mbit/s (`/tissue/stats`) with the limiters'
+        sent and offered rates; no RTT, app-limited or receiver-behind signal yet (the bridge must
+        report those). Returns True if the available bandwidth moved by > 5 %."""
+        last, self._last_stats_s = self._last_stats_s, now_s
+        interval_s = now_s - last if math.isfinite(last) and 0 < now_s - last <= 5.0 else 0.5
+        return self.on_link_report(LinkReport(now_s=now_s, interval_s=interval_s, delivered_mbps=delivered_mbps,
+                                              sent_mbps=self.sent_mbps(), offered_mbps=self.offered_mbps()))
 
     def input_rate_cap_hz(self, robot):
         """The robot's maximum rate from its input: INPUT_RATE_HEADROOM x the last input rate, in

@@ -14,7 +14,7 @@ from cps_msgs.srv import SetPriority, SetPriorityResponse
 from cps_ros.fault_report import FaultReport
 from cps_ros.timers import guarded_timer
 
-from cps_bw_manager.estimation import BandwidthEstimator
+from cps_bw_manager.estimation import DeliveryRateEstimator
 from cps_bw_manager.manager import (ALLOCATION_CSV_COLUMNS, DEFAULT_INPUT_RATE_HOLD_S, LINK_STATE_CSV_COLUMNS,
                                     ManagerCore, ManagerSettings, allocation_csv_rows, link_state_csv_row, link_totals)
 
@@ -55,12 +55,18 @@ class BandwidthManagerNode:
         if not math.isfinite(self.update_rate_hz) or self.update_rate_hz < 1.0:
             raise ValueError(f"parameter ~update_rate_hz must be >= 1 Hz, got {self.update_rate_hz}")
         estimator = None
+        estimate_window_s = _param("~estimate_window_s", 2.0, float)
+        if not math.isfinite(estimate_window_s) or not 0 <= estimate_window_s <= 10:
+            raise ValueError(f"parameter ~estimate_window_s must be in [0, 10] s, got {estimate_window_s}")
         if _param("~estimate_bandwidth", link.estimate_bandwidth, bool):
-            estimator = BandwidthEstimator(
+            estimator = DeliveryRateEstimator(
                 initial_mbps=settings.available_mbps,
-                max_mbps=_param("~max_estimate_mbps", settings.available_mbps, float),
+                line_rate_mbps=_param("~max_estimate_mbps", settings.available_mbps, float),
                 min_mbps=_param("~min_estimate_mbps", 1.0, float),
-                holdoff_s=_param("~estimate_holdoff_s", 1.0, float))
+                # /tissue/stats and the limiters' status are 2 s sliding averages: a probe shorter
+                # than that is not seen, and after an outage the window still holds it (a bridge
+                # reporting per interval allows 0)
+                measure_window_s=estimate_window_s, probe_s=max(0.5, estimate_window_s))
         self.core = ManagerCore(fleet.robot_names, settings, estimator)
         self.lock = threading.Lock()
         csv_path = rospy.get_param("~csv_path", "")
@@ -118,9 +124,9 @@ class BandwidthManagerNode:
             self.update()
 
     def _on_stats(self, msg):
-        delivered_mbps, latency_ms = link_totals(msg.topics)
+        delivered_mbps, _ = link_totals(msg.topics)  # one-way latency is not used (issue 23)
         with self.lock:
-            moved = self.core.on_link_stats(rospy.get_time(), delivered_mbps, latency_ms)
+            moved = self.core.on_link_stats(rospy.get_time(), delivered_mbps)
         if moved:
             self.update()
 
