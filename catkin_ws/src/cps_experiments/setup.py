@@ -1,5 +1,4 @@
 from catkin_pkg.python_setup import generate_distutils_setup
 from setuptools import setup
 
-setup(**generate_distutils_setup(packages=["cps_experiments", "cps_experiments.paper", "cps_experiments.link"],
-                                 package_dir={"": "src"}))
+setup(**generate_distutils_setup(packages=["cps_experiments"], package_dir={"": "src"}))
