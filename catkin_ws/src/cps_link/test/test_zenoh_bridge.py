@@ -100,11 +100,12 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     with zenoh.open(zenoh.Config.from_json5(json.dumps(config))) as session:
         key = f"cps/topic/twin/{ROBOT}/points_filtered/draco/managed"
         time.sleep(1.0)
+        to = f"/twin/{ROBOT}/points_filtered/draco/managed"
         good = encode(Frame(b"i" * 16, 1, time.time(), "cps_msgs/CompressedPointCloud2",
-                            CompressedPointCloud2._md5sum, "/intruder", bytes(cloud_bytes(cloud))))
+                            CompressedPointCloud2._md5sum, "/intruder", bytes(cloud_bytes(cloud)), topic=to))
         session.put(key, good[:-3] + b"xyz")
         session.put(key, encode(Frame(b"i" * 16, 2, math.nan, "cps_msgs/CompressedPointCloud2", "0" * 32,
-                                      "/intruder", b"")))
+                                      "/intruder", b"", topic=to)))
         session.put(key, good)
         session.put(key, good)
         assert wait_for(lambda: _diag_counter(diagnostics, "corrupt") >= 1 and
