@@ -73,6 +73,8 @@ def test_each_bad_input_is_dropped_and_counted_by_kind(table):
     good = encode(_frame(to, "std_msgs/String", body=b"\x04\x00\x00\x00auto"))
     flipped = bytearray(good)
     flipped[-1] ^= 0x01
+    seq_flipped = bytearray(good)
+    seq_flipped[30] ^= 0x01  # the CRC covers the header too: no copy with another seq gets through
     old_version = bytearray(good)
     old_version[4] = 1
     cases = [
@@ -82,6 +84,7 @@ def test_each_bad_input_is_dropped_and_counted_by_kind(table):
         (good + b"xx", "not_a_frame"),
         (b"XXXX" + good[4:], "not_a_frame"),
         (bytes(flipped), "bad_crc"),
+        (bytes(seq_flipped), "bad_crc"),
         (bytes(old_version), "bad_version"),
         (encode(_frame(to, "std_msgs/Strung")), "unknown_type"),
         (encode(_frame(to, "no type at all")), "unknown_type"),
@@ -101,7 +104,7 @@ def test_each_bad_input_is_dropped_and_counted_by_kind(table):
     expected["key_mismatch"] = 1
     assert dict(path.counts) == expected
     counters = path.counters()
-    assert counters["corrupt"] == 7 and counters["type_mismatch"] == 4 and counters["drop_wrong_topic"] == 1
+    assert counters["corrupt"] == 8 and counters["type_mismatch"] == 4 and counters["drop_wrong_topic"] == 1
     assert set(counters) >= {f"drop_{k}" for k in DROP_KINDS}
     # None of it stopped anything: the good frame still goes through, once.
     assert _receive(path, table, to, good).drop is None

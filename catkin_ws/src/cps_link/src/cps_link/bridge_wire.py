@@ -3,7 +3,7 @@
 A frame is one serialized ROS message, unchanged, behind a small header: session id (which run
 of the sending bridge; its first 8 bytes are the run's start time, so a newer run is known),
 sequence number per (topic, source publisher), the message's header stamp (NaN when its type has
-none), CRC-32 and length of the body, destination topic, type, md5 and source. So any message
+none), CRC-32 of the whole frame, length of the body, destination topic, type, md5 and source. So any message
 type crosses without per-type code, corruption and truncation are detected, a restarted bridge
 delivers nothing twice, and a frame that reaches the wrong topic is recognised (version 2: the
 frame names its topic; version 1 did not, and a frame mis-delivered after a reconnect was
@@ -18,7 +18,8 @@ import zlib
 
 MAGIC = b"CPSZ"
 VERSION = 2
-_FIXED = struct.Struct("!4sB16sQdII")  # magic, version, session, seq, stamp, body CRC-32, body length
+_FIXED = struct.Struct("!4sB16sQdII")  # magic, version, session, seq, stamp, CRC-32, body length
+_CRC_AT = 37  # the CRC's offset in _FIXED: it covers the whole frame with its own 4 bytes zeroed
 _LEN = struct.Struct("!H")
 _ROS_STAMP = struct.Struct("<III")  # std_msgs/Header: seq, stamp.secs, stamp.nsecs
 
@@ -78,13 +79,14 @@ def header_frame_id(body):
 def encode(frame: Frame) -> bytes:
     if len(frame.session) != 16:
         raise ValueError("session id must be 16 bytes")
-    parts = [_FIXED.pack(MAGIC, VERSION, frame.session, frame.seq, frame.stamp_s, zlib.crc32(frame.body),
-                         len(frame.body))]
+    parts = [_FIXED.pack(MAGIC, VERSION, frame.session, frame.seq, frame.stamp_s, 0, len(frame.body))]
     for text in (frame.topic, frame.msg_type, frame.md5, frame.source):
         data = text.encode()
         parts += [_LEN.pack(len(data)), data]
     parts.append(frame.body)
-    return b"".join(parts)
+    out = bytearray(b"".join(parts))
+    struct.pack_into("!I", out, _CRC_AT, zlib.crc32(out))
+    return bytes(out)
 
 
 def decode(payload) -> Frame:
@@ -114,9 +116,9 @@ def decode(payload) -> Frame:
         raise WireError(f"body truncated: {len(view) - offset} of {body_len} bytes", TRUNCATED)
     if len(view) - offset > body_len:
         raise WireError(f"{len(view) - offset - body_len} bytes past the body", NOT_A_FRAME)
+    if zlib.crc32(view[_CRC_AT + 4:], zlib.crc32(b"\x00" * 4, zlib.crc32(view[:_CRC_AT]))) != crc:
+        raise WireError("CRC mismatch (corrupt payload)", BAD_CRC)
     body = bytes(view[offset:])
-    if zlib.crc32(body) != crc:
-        raise WireError("body CRC mismatch (corrupt payload)", BAD_CRC)
     return Frame(bytes(session), seq, stamp_s, texts[1], texts[2], texts[3], body, topic=texts[0])
 
 
