@@ -13,7 +13,8 @@ import threading
 from typing import Callable, Dict, Iterable, Optional
 
 from cps_link.bridge_config import Route
-from cps_link.bridge_wire import Frame, WireError, decode, is_stale, new_session_id, session_started_ns
+from cps_link.bridge_wire import (BAD_CRC, BAD_VERSION, NOT_A_FRAME, TRUNCATED, Frame, WireError, decode, is_stale,
+                                  new_session_id, session_started_ns)
 
 # Drop kinds beyond WireError's (truncated, not_a_frame, bad_version, bad_crc).
 KEY_MISMATCH = "key_mismatch"  # the sample's key is not the key of the route that received it
@@ -25,7 +26,7 @@ TOPIC_TYPE_MISMATCH = "topic_type_mismatch"  # the topic has another type (table
 OLD_SESSION = "old_session"  # from a sender's run older than the one heard lately
 DUPLICATE = "duplicates"
 STALE = "stale"
-WIRE_KINDS = ("truncated", "not_a_frame", "bad_version", "bad_crc")
+WIRE_KINDS = (TRUNCATED, NOT_A_FRAME, BAD_VERSION, BAD_CRC)
 DROP_KINDS = WIRE_KINDS + (KEY_MISMATCH, WRONG_TOPIC, UNLISTED_TOPIC, UNKNOWN_TYPE, MD5_MISMATCH,
                            TOPIC_TYPE_MISMATCH, OLD_SESSION, DUPLICATE, STALE)
 # The older counters the diagnostics kept (and dashboards read): sums of the kinds above.
