@@ -148,3 +148,15 @@ def test_a_schedule_runs_faults_in_order(proxy):
     assert proxy.up
     with _client(proxy) as c:
         assert _echo(c, b"ok") == b"ok"
+
+
+def test_a_one_way_cut_stops_only_that_way(proxy):
+    with _client(proxy) as c:
+        assert _echo(c, b"a") == b"a"
+        proxy.cut("down")  # the echo server still gets our bytes; its answers wait
+        with pytest.raises(socket.timeout):
+            _echo(c, b"b", timeout_s=0.3)
+        assert wait_for(lambda: proxy.forwarded_bytes["up"] >= 2, timeout_s=WAIT_S)
+        proxy.restore()
+        c.settimeout(WAIT_S)
+        assert c.recv(10) == b"b"

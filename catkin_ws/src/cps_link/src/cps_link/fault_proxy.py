@@ -3,7 +3,8 @@ twin's listener and the link can be cut, stalled, throttled or reset on a schedu
 or network namespaces (issue 22: fault tests that run on a laptop and in CI).
 
   cut       both ways stop: open connections are frozen (their bytes wait in the kernel, as over a
-            pulled cable that TCP later retransmits) and new connections are held, unconnected
+            pulled cable that TCP later retransmits) and new connections are held, unconnected;
+            cut("up") or cut("down") stops one way only (client -> target is "up")
   stall     open connections are frozen; new ones pass (a peer stuck behind a full buffer)
   restore   ends a cut or a stall: frozen connections resume, held ones are connected
   throttle  at most bytes_per_s each way (None: unlimited)
@@ -32,7 +33,7 @@ class FaultProxy:
         self.port = self._listener.getsockname()[1]
         self._lock = threading.Lock()
         self._pairs = []  # [client socket, upstream socket or None]
-        self._cut = False
+        self._cut = set()  # the ways cut: "up" (client -> target), "down"
         self._stalled = []  # the connections a stall froze
         self._bytes_per_s = None
         self._closed = threading.Event()
@@ -41,9 +42,9 @@ class FaultProxy:
         threading.Thread(target=self._accept_loop, name="fault_proxy", daemon=True).start()
 
     # --- faults -------------------------------------------------------------------------------
-    def cut(self):
+    def cut(self, way=None):
         with self._lock:
-            self._cut = True
+            self._cut |= {way} if way else {"up", "down"}
 
     def stall(self):
         with self._lock:
@@ -51,7 +52,7 @@ class FaultProxy:
 
     def restore(self):
         with self._lock:
-            self._cut, self._stalled = False, []
+            self._cut, self._stalled = set(), []
 
     def throttle(self, bytes_per_s):
         with self._lock:
@@ -132,14 +133,14 @@ class FaultProxy:
         for src, dst, way in ((pair[0], upstream, "up"), (upstream, pair[0], "down")):
             threading.Thread(target=self._pump, args=(pair, src, dst, way), daemon=True).start()
 
-    def _frozen(self, pair):
+    def _frozen(self, pair, way):
         with self._lock:
-            return self._cut or any(p is pair for p in self._stalled)
+            return way in self._cut or any(p is pair for p in self._stalled)
 
     def _pump(self, pair, src, dst, way):
         allowance_bytes, last_s = 0.0, time.monotonic()
         while self._alive(pair):
-            if self._frozen(pair):
+            if self._frozen(pair, way):
                 time.sleep(POLL_S)
                 continue
             rate = self._bytes_per_s
@@ -153,7 +154,7 @@ class FaultProxy:
                     continue
                 chunk = max(1, min(CHUNK_BYTES, int(allowance_bytes)))
             try:
-                if not select.select([src], [], [], POLL_S)[0] or self._frozen(pair):  # cut while waiting
+                if not select.select([src], [], [], POLL_S)[0] or self._frozen(pair, way):  # cut while waiting
                     continue
                 data = src.recv(chunk)
             except (OSError, ValueError):  # reset or closed by another thread
