@@ -1,13 +1,14 @@
-"""What the Zenoh bridge puts on the wire, and the receiving side's bookkeeping (ROS-free).
+"""What the Zenoh bridge puts on the wire (ROS-free; what the receiving side makes of it is
+cps_link.receive_path).
 
 A frame is one serialized ROS message, unchanged, behind a small header: session id (which run
 of the sending bridge; its first 8 bytes are the run's start time, so a newer run is known),
 sequence number per (topic, source publisher), the message's header stamp (NaN when its type has
-none), CRC-32 of the whole frame, length of the body, destination topic, type, md5 and source. So any message
-type crosses without per-type code, corruption and truncation are detected, a restarted bridge
-delivers nothing twice, and a frame that reaches the wrong topic is recognised (version 2: the
-frame names its topic; version 1 did not, and a frame mis-delivered after a reconnect was
-published on another topic with another type).
+none), CRC-32 of the whole frame, length of the body, destination topic, type, md5 and source.
+So any message type crosses without per-type code, corruption and truncation are detected, a
+restarted bridge delivers nothing twice, and a frame that reaches the wrong topic is recognised
+(version 2: the frame names its topic; version 1 did not, and a frame mis-delivered after a
+reconnect was published on another topic with another type).
 """
 import dataclasses
 import math
@@ -120,22 +121,6 @@ def decode(payload) -> Frame:
         raise WireError("CRC mismatch (corrupt payload)", BAD_CRC)
     body = bytes(view[offset:])
     return Frame(bytes(session), seq, stamp_s, texts[1], texts[2], texts[3], body, topic=texts[0])
-
-
-class Deduplicator:
-    """Accepts each (session, topic, source, seq) once: a bridge that re-sends after an outage or a
-    restarted receiver never delivers a message twice, a restarted sender (new session) starts afresh."""
-
-    def __init__(self):
-        self._last = {}
-
-    def accept(self, topic, frame: Frame):
-        key = (topic, frame.source)
-        last = self._last.get(key)
-        if last is not None and last[0] == frame.session and frame.seq <= last[1]:
-            return False
-        self._last[key] = (frame.session, frame.seq)
-        return True
 
 
 def is_stale(frame: Frame, now_s, max_age_s):
