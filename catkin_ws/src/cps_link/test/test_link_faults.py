@@ -18,6 +18,7 @@ from cps_link.bridge_config import load_bridge_table
 from cps_link.fault_proxy import FaultProxy
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
 CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace("nodes/bandwidth_manager",
                                                                         "test/fixtures/cloud_load.py")
