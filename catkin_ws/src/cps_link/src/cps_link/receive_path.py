@@ -5,7 +5,8 @@ The invariant the receiving side keeps, on both sides: a message is published on
 its sender put it on (the frame names it; the Zenoh key it came under must be that topic's key)
 and only with the one type that topic has (the table's, else the first accepted frame's). A frame
 that breaks it is dropped and counted by kind; nothing re-types a topic. Issue 22: after a link
-cut, frames reached another route's subscriber and were published there with their own type.
+cut, the twin's bridge published frames on another route's topic with their own type (the cause
+was not reproduced; docs/reliability.md, "Frames on the wrong topic").
 """
 import collections
 import dataclasses
