@@ -9,7 +9,7 @@ import zenoh
 
 from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
 from cps_link.bridge_config import ConfigError, ROBOTS, TWIN, load_bridge_table
-from cps_link.bridge_wire import Deduplicator, Frame, WireError, decode, encode, header_stamp_s, is_stale
+from cps_link.bridge_wire import Frame, WireError, decode, encode, header_stamp_s, is_stale
 from cps_link.link_health import LinkHealth
 from cps_link.zenoh_bridge import zenoh_qos
 from cps_link.zenoh_session import session_config
@@ -67,18 +67,6 @@ def test_damaged_frames_are_refused_with_a_reason():
                      (good[:45], "truncated"), (b"", "shorter")):
         with pytest.raises(WireError, match=why):
             decode(bad)
-
-
-def test_duplicates_are_refused_and_a_new_session_starts_afresh():
-    dedup, s1, s2 = Deduplicator(), b"1" * 16, b"2" * 16
-
-    def frame(session, seq, source="/a"):
-        return Frame(session, seq, math.nan, "t", "m", source, b"")
-
-    assert dedup.accept("/x", frame(s1, 1)) and dedup.accept("/x", frame(s1, 2))
-    assert not dedup.accept("/x", frame(s1, 2)) and not dedup.accept("/x", frame(s1, 1))
-    assert dedup.accept("/x", frame(s1, 1, source="/b"))  # per source
-    assert dedup.accept("/x", frame(s2, 1))  # the sender restarted
 
 
 def test_staleness_only_for_stamped_messages_past_the_bound():

@@ -1,6 +1,7 @@
 """Two ROS masters on loopback joined only by the two Zenoh bridges (mutual TLS): clouds and
 telemetry cross one way, commands the other; link health; latched re-send after a bridge restart;
-bad frames from a keyed peer are counted, never delivered, duplicates delivered once."""
+bad frames from a keyed peer (corrupt, mistyped, for another topic) are counted, never delivered,
+duplicates delivered once."""
 import json
 import math
 import os
@@ -42,6 +43,7 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     from cps_msgs.msg import CompressedPointCloud2, LinkState
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Bool
+    from tf2_msgs.msg import TFMessage
 
     port = free_port()
     ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], cert_dir, port), name="bridge_twin")
@@ -100,16 +102,21 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     with zenoh.open(zenoh.Config.from_json5(json.dumps(config))) as session:
         key = f"cps/topic/twin/{ROBOT}/points_filtered/draco/managed"
         time.sleep(1.0)
+        to = f"/twin/{ROBOT}/points_filtered/draco/managed"
         good = encode(Frame(b"i" * 16, 1, time.time(), "cps_msgs/CompressedPointCloud2",
-                            CompressedPointCloud2._md5sum, "/intruder", bytes(cloud_bytes(cloud))))
+                            CompressedPointCloud2._md5sum, "/intruder", bytes(cloud_bytes(cloud)), topic=to))
         session.put(key, good[:-3] + b"xyz")
         session.put(key, encode(Frame(b"i" * 16, 2, math.nan, "cps_msgs/CompressedPointCloud2", "0" * 32,
-                                      "/intruder", b"")))
+                                      "/intruder", b"", topic=to)))
         session.put(key, good)
         session.put(key, good)
+        # A well-formed frame for another topic under the cloud's key (issue 22): never published there.
+        session.put(key, encode(Frame(b"i" * 16, 3, math.nan, "tf2_msgs/TFMessage", TFMessage._md5sum, "/intruder",
+                                      b"\x00\x00\x00\x00", topic="/tf")))
         assert wait_for(lambda: _diag_counter(diagnostics, "corrupt") >= 1 and
                         _diag_counter(diagnostics, "type_mismatch") >= 1 and
-                        _diag_counter(diagnostics, "duplicates") >= 1, timeout_s=10), diagnostics.latest
+                        _diag_counter(diagnostics, "duplicates") >= 1 and
+                        _diag_counter(diagnostics, "drop_wrong_topic") >= 1, timeout_s=10), diagnostics.latest
         # The intact frame is delivered once; its duplicate, the corrupt and the mistyped one never.
         assert wait_for(lambda: _intruder_checks(clouds), timeout_s=10), "the intact frame was not delivered"
     time.sleep(1.0)

@@ -14,6 +14,8 @@ SIDES = (ROBOTS, TWIN)
 PRIORITIES = ("real_time", "interactive_high", "interactive_low", "data_high", "data", "data_low", "background")
 CONGESTION = ("block", "drop")
 ROBOT_PLACEHOLDER = "<r>"
+# What the robots' bridge sends on a backfill pose route.
+POSE_TYPE = "geometry_msgs/TransformStamped"
 DEFAULT_TABLE = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..",
                                               "config", "bridge.yaml"))
 
@@ -39,6 +41,8 @@ class Route:
     robot: str = ""
     # False for what the bridge itself puts on the wire (backfill): nothing to subscribe to.
     from_ros: bool = True
+    # The message type, where the table names it ("" = the type of the first frame accepted).
+    msg_type: str = ""
 
     def key(self, prefix):
         """The Zenoh key expression this topic travels on."""
@@ -138,10 +142,13 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
             raise entry.error("from", f"must be one of {', '.join(SIDES)}, got '{source}'")
         traffic = _class_of(entry, classes)
         latched = entry.get("latched", bool, default=False)
+        msg_type = entry.get("type", str, default="")
+        if msg_type and msg_type.count("/") != 1:
+            raise entry.error("type", f"'{msg_type}' is not a ROS message type (package/Name)")
         per_robot = ROBOT_PLACEHOLDER in topic or ROBOT_PLACEHOLDER in to
         for robot in (robots if per_robot else ("",)):
             route = Route(topic.replace(ROBOT_PLACEHOLDER, robot), to.replace(ROBOT_PLACEHOLDER, robot), source,
-                          traffic, latched, robot)
+                          traffic, latched, robot, msg_type=msg_type)
             if route.to in seen:
                 raise entry.error("topic", f"'{route.to}' crosses twice (also at line {seen[route.to]})")
             seen[route.to] = doc.line(entry.key_path)
@@ -180,7 +187,8 @@ def _backfill(top, doc, classes, robots, routes, seen):
             if out[robot] in seen:
                 raise b.error(key, f"'{out[robot]}' crosses twice (also at line {seen[out[robot]]})")
             seen[out[robot]] = doc.line(b.key_path + (key,))
-            routes.append(Route(out[robot], out[robot], ROBOTS, traffic, robot=robot, from_ros=False))
+            routes.append(Route(out[robot], out[robot], ROBOTS, traffic, robot=robot, from_ros=False,
+                                msg_type=POSE_TYPE if key == "pose_to" else by_topic[topic].msg_type))
     return Backfill(sources, clouds, poses, b.get("map_frame", str),
                     b.number("keyframe_period_s", low=0.0, low_open=True),
                     _check_topic(b, "allocation", b.get("allocation", str)))

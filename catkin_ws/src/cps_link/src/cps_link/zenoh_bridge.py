@@ -3,14 +3,14 @@
 Outgoing topics (bridge.yaml, `from` this side) are read as rospy.AnyMsg and put on Zenoh
 unchanged with their class's priority, congestion control and reliability; incoming frames are
 checked (CRC, type and md5 against this side's message definitions, duplicates, stale stamps for
-classes with max_age_s), then republished under the contract's names. Latched topics keep every
+classes with max_age_s, and that the frame is for the topic whose route received it, in that topic's
+one type: cps_link.receive_path), then republished under the contract's names. Latched topics keep every
 source's last message for late subscribers and are re-sent when the link comes back. Liveliness
 tokens tell each side within a lease whether the other is there: /tissue/link_state.
 """
 import io
 import threading
 import time
-import uuid
 
 import roslib.message
 import rospy
@@ -19,9 +19,9 @@ from cps_msgs.msg import LinkState
 
 from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
 from cps_link.bridge_config import ROBOTS, BridgeTable, Route, other_side
-from cps_link.bridge_wire import (Deduplicator, Frame, WireError, decode, encode, header_frame_id, header_stamp_s,
-                                  is_stale)
+from cps_link.bridge_wire import Frame, WireError, encode, header_frame_id, header_stamp_s
 from cps_link.link_health import LinkHealth
+from cps_link.receive_path import TOPIC_TYPE_MISMATCH, ReceivePath, SendPath
 from cps_ros.diagnostics import DropReporter
 
 LINK_STATE_PERIOD_S = 1.0
@@ -88,12 +88,12 @@ class ZenohBridge:
         self.table, self.side, self.session, self.name = table, side, session, name
         self.peer_side = other_side(side)
         self.endpoint = endpoint
-        self.session_id = uuid.uuid4().bytes
         self.lock = threading.Lock()
-        self.seq = {}
         self.latched_frames = {}
         self.classes = {}
-        self.dedup = Deduplicator()
+        self.send_path = SendPath(table_types={r.to: r.msg_type for r in table.outgoing(side) if r.msg_type})
+        self.session_id = self.send_path.session
+        self.receive_path = ReceivePath(table.incoming(side), table.key_prefix, self._md5_of)
         self.started_s = time.time()
         self.health = LinkHealth(started_s=self.started_s)
         self.reporter = DropReporter("zenoh_bridge")
@@ -127,11 +127,19 @@ class ZenohBridge:
     # --- outgoing ---------------------------------------------------------------------------
     def _message_class(self, msg_type):
         if msg_type not in self.classes:
-            self.classes[msg_type] = roslib.message.get_message_class(msg_type)
+            try:
+                self.classes[msg_type] = roslib.message.get_message_class(msg_type)
+            except Exception:  # a type name roslib cannot even parse: not a type of this side
+                self.classes[msg_type] = None
         return self.classes[msg_type]
 
+    def _md5_of(self, msg_type):
+        cls = self._message_class(msg_type)
+        return cls._md5sum if cls is not None else None
+
     def frame_of(self, route: Route, msg):
-        """The frame of one rospy.AnyMsg received on `route` (next sequence number of its source)."""
+        """The frame of one rospy.AnyMsg received on `route` (next sequence number of its source), or
+        None (counted) when it is not of the type the route's topic has."""
         header = getattr(msg, "_connection_header", None) or {}
         msg_type, md5 = header.get("type", ""), header.get("md5sum", "")
         source = header.get("callerid", "")
@@ -142,11 +150,11 @@ class ZenohBridge:
                 stamp = header_stamp_s(msg._buff)
             except WireError:
                 pass
-        with self.lock:
-            key = (route.to, source)
-            self.seq[key] = self.seq.get(key, 0) + 1
-            seq = self.seq[key]
-        return key, Frame(self.session_id, seq, stamp, msg_type, md5, source, bytes(msg._buff))
+        frame = self.send_path.frame(route.to, source, msg_type, md5, stamp, msg._buff)
+        if frame is None:
+            self.reporter.count(send_topic_type_mismatch=1)
+            self.reporter.drop(f"{route.topic}: {msg_type} from {source} is not the topic's type")
+        return (route.to, source), frame
 
     def _keep_transforms(self, topic, body):
         from tf2_msgs.msg import TFMessage
@@ -162,6 +170,8 @@ class ZenohBridge:
         if self.store is not None and route.topic in TF_TOPICS:
             self._keep_transforms(route.topic, msg._buff)
         key, frame = self.frame_of(route, msg)
+        if frame is None:
+            return
         if self.store is not None and not self.health.up and route.to in self.backfill_robot:
             self._keep_keyframe(self.backfill_robot[route.to], frame)
             return
@@ -182,37 +192,30 @@ class ZenohBridge:
     # --- incoming ---------------------------------------------------------------------------
     def _receive(self, sample, route: Route):
         try:
-            self.deliver(route, sample.payload.to_bytes())
+            self.deliver(route, sample.payload.to_bytes(), str(sample.key_expr))
         except Exception as exc:  # a zenoh callback must never die
             self.reporter.drop(f"{route.to}: {exc}")
 
-    def deliver(self, route: Route, payload):
-        """Check one frame of `route` and republish it; returns why it was dropped, or None."""
-        try:
-            frame = decode(payload)
-        except WireError as exc:
-            self.reporter.drop(f"{route.to}: {exc}")
-            self.reporter.count(corrupt=1)
-            return "corrupt"
+    def deliver(self, route: Route, payload, key=None):
+        """Check one frame received by `route`'s subscriber (under `key`) and republish it; returns
+        the kind of drop (counted in the diagnostics), or None when published."""
+        verdict = self.receive_path.receive(route.to, key, payload, time.time())
+        if verdict.drop is not None:
+            if verdict.drop not in ("duplicates", "stale"):
+                self.reporter.drop(f"{route.to}: {verdict.drop}: {verdict.detail}")
+            self.reporter.gauge(**self.receive_path.counters())
+            return verdict.drop
+        frame = verdict.frame
         cls = self._message_class(frame.msg_type)
-        if cls is None or cls._md5sum != frame.md5:
-            why = "unknown type" if cls is None else f"md5 {frame.md5} != this side's {cls._md5sum}"
-            self.reporter.drop(f"{route.to}: {frame.msg_type}: {why}")
-            self.reporter.count(type_mismatch=1)
-            return "type_mismatch"
-        with self.lock:
-            fresh_copy = self.dedup.accept(route.to, frame)
-        if not fresh_copy:
-            self.reporter.count(duplicates=1)
-            return "duplicate"
-        if is_stale(frame, time.time(), route.traffic.max_age_s):
-            self.reporter.count(stale=1)
-            return "stale"
+        pub = self._publisher(route, cls)
+        if (pub.type, pub.md5sum) != (frame.msg_type, frame.md5):  # never: the receive path keeps one type
+            self.reporter.count(publisher_type_mismatch=1)
+            self.reporter.drop(f"{route.to}: {frame.msg_type} for a publisher of {pub.type}")
+            return TOPIC_TYPE_MISMATCH
         if self.store is not None and route.to == self.table.backfill.allocation_topic:
             self._on_allocation(cls().deserialize(frame.body))
         msg = rospy.AnyMsg()
         msg._buff = frame.body
-        pub = self._publisher(route, cls)
         if route.latched:
             replay = self.replays[route.to]
             with replay.lock:
@@ -276,7 +279,10 @@ class ZenohBridge:
         cloud_msg = rospy.AnyMsg()
         cloud_msg._buff = cloud.body
         cloud_msg._connection_header = {"type": cloud.msg_type, "md5sum": cloud.md5, "callerid": cloud.source}
-        payloads = tuple(encode(self.frame_of(r, m)[1]) for r, m in ((pose_route, pose_msg), (cloud_route, cloud_msg)))
+        frames = [self.frame_of(r, m)[1] for r, m in ((pose_route, pose_msg), (cloud_route, cloud_msg))]
+        if None in frames:  # counted by frame_of
+            return
+        payloads = tuple(encode(f) for f in frames)
         self.store.offer(Keyframe(robot, cloud.stamp_s, payloads))
 
     def _pose_at(self, frame, stamp_s):
@@ -351,7 +357,7 @@ class ZenohBridge:
             self._publish_link_state()
 
     def _tick(self, _event=None):
-        self.reporter.gauge(**self.backfill_counters())
+        self.reporter.gauge(**self.backfill_counters(), **self.receive_path.counters())
         if self.health.up:
             # A latched message lost on its way (its class may drop, or the far side's subscriber
             # was not there yet) is otherwise never sent again: a map server without /tf_static
