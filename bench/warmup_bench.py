@@ -128,7 +128,7 @@ def main():
     parser.add_argument("--runs", type=int, default=3)
     args = parser.parse_args()
 
-    from cps_harness.processes import RosGraph
+    from cps_ros.processes import RosGraph
 
     tmp = tempfile.mkdtemp(prefix="cps-warmup-bench-")
     graph = RosGraph(log_dir=tmp)

@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from cps_harness.processes import find_node, free_port
+from cps_ros.processes import find_node, free_port
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.bridge_config import load_bridge_table
 from cps_link.fault_proxy import FaultProxy
