@@ -27,6 +27,8 @@ import time
 
 import numpy as np
 
+from cps_fleet import names
+
 PACKAGE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "catkin_ws", "src", "cps_mapping")
 SENSOR_FRAME = "jackal/camera_depth_optical_frame"
 MODES = ("cold", "built")
@@ -93,9 +95,9 @@ def one_start(graph, rospy, mode, run, tmp):
         subprocess.run([sys.executable, "-m", "cps_mapping.kernel_cache"], env=env, check=True, capture_output=True)
         build_s = time.monotonic() - t0
     name = f"map_server_{mode}_{run}"
-    ready = TopicRecorder(f"/twin/{name}/ready", DiagnosticStatus)
-    octomap = TopicRecorder(f"/twin/{name}/octomap_binary", Octomap)
-    publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
+    ready = TopicRecorder(names.absolute(names.in_twin(f"{name}/{names.READY.lstrip('~')}")), DiagnosticStatus)
+    octomap = TopicRecorder(names.absolute(names.in_twin(f"{name}/{names.OCTOMAP_BINARY}")), Octomap)
+    publisher = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=1)
     try:
         started_at = time.monotonic()
         proc = graph.popen([sys.executable, os.path.join(checkout, "nodes", "map_server"), "__ns:=/twin",
