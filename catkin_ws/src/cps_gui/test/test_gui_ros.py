@@ -1,7 +1,9 @@
 """The GUI in this process (offscreen, no rviz) against topics and services the test provides:
 teleoperation commands, mode/priority/stop wiring, plots and health table from stats, staleness,
 video, top view and settings persistence."""
+
 import os
+
 import numpy as np
 import pytest
 from conftest import TEST_PREFIX, spin_for, spin_until
@@ -31,9 +33,11 @@ def _mouse(widget, kind, pos):
     from python_qt_binding.QtGui import QMouseEvent
     from python_qt_binding.QtWidgets import QApplication
 
-    kinds = {"press": (QEvent.MouseButtonPress, Qt.LeftButton, Qt.LeftButton),
-             "move": (QEvent.MouseMove, Qt.NoButton, Qt.LeftButton),
-             "release": (QEvent.MouseButtonRelease, Qt.LeftButton, Qt.NoButton)}
+    kinds = {
+        "press": (QEvent.MouseButtonPress, Qt.LeftButton, Qt.LeftButton),
+        "move": (QEvent.MouseMove, Qt.NoButton, Qt.LeftButton),
+        "release": (QEvent.MouseButtonRelease, Qt.LeftButton, Qt.NoButton),
+    }
     event_type, button, buttons = kinds[kind]
     QApplication.sendEvent(widget, QMouseEvent(event_type, QPointF(pos), button, buttons, Qt.NoModifier))
 
@@ -54,8 +58,12 @@ def _drag_and_release(qapp, teleop, recorder, dx, dy, hold_s=1.0, release_also=N
     _mouse(pad, "release", centre + QPointF(dx, dy))
     if release_also:
         release_also()
-    spin_until(qapp, lambda: recorder.latest is not None and _as_tuple(recorder.latest) == (0.0, 0.0, 0.0, 0.0), 5,
-               "the zero command on release")
+    spin_until(
+        qapp,
+        lambda: recorder.latest is not None and _as_tuple(recorder.latest) == (0.0, 0.0, 0.0, 0.0),
+        5,
+        "the zero command on release",
+    )
     spin_for(qapp, 0.5)  # room for a second zero, which must not come
 
 
@@ -63,15 +71,17 @@ def _as_tuple(twist):
     return (twist.linear.x, twist.linear.y, twist.linear.z, twist.angular.z)
 
 
-@pytest.mark.parametrize("robot,strafe,climb", [(SCOUT, False, 0), (JACKAL, False, 0), (CHAMP, True, 0),
-                                                (IRIS, True, 60)])
+@pytest.mark.parametrize(
+    "robot,strafe,climb", [(SCOUT, False, 0), (JACKAL, False, 0), (CHAMP, True, 0), (IRIS, True, 60)]
+)
 def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_zero(
-        window, qapp, rospy_node, robot, strafe, climb):
+    window, qapp, rospy_node, robot, strafe, climb
+):
     from geometry_msgs.msg import Twist
 
     teleop = window.plugin.teleop
     teleop.select_robot(robot)
-    robot_type = teleop.robot.type
+    robot_type = teleop.robot.robot_type
     assert teleop.strafe_check.isVisibleTo(teleop) == joystick.speed_limits(robot_type).can_strafe
     assert teleop.climb_slider.isVisibleTo(teleop) == joystick.speed_limits(robot_type).can_climb
     teleop.strafe_check.setChecked(strafe)
@@ -81,8 +91,9 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
         if climb:
             teleop.climb_slider.setValue(climb)  # starts the stream: climb only, until the drag
         dx, dy = 0.5 * teleop.pad.radius_px, -0.8 * teleop.pad.radius_px
-        expected = joystick.drag_to_command(robot_type, dx, dy, teleop.pad.radius_px, climb=climb / 100.0,
-                                            strafe=strafe)
+        expected = joystick.drag_to_command(
+            robot_type, dx, dy, teleop.pad.radius_px, climb=climb / 100.0, strafe=strafe
+        )
         _drag_and_release(qapp, teleop, rec, dx, dy, hold_s=1.5, release_also=lambda: teleop.climb_slider.setValue(0))
         messages = rec.take()
     finally:
@@ -97,11 +108,11 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
     assert driving[-1] == pytest.approx(expected_tuple, abs=1e-6)
     assert all(c == pytest.approx(expected_tuple, abs=1e-6) for c in driving[1:])
     assert expected.linear_x > 0
-    if robot_type.startswith("wheeled"):
+    if robot_type.name.startswith("wheeled"):
         assert expected.linear_y == 0 and expected.linear_z == 0 and expected.angular_z < 0
-    if robot_type == "legged_depth":
+    if robot_type.name == "legged_depth":
         assert expected.linear_y < 0 and expected.angular_z == 0 and expected.linear_z == 0
-    if robot_type == "aerial_depth":
+    if robot_type.name == "aerial_depth":
         assert expected.linear_y < 0 and expected.linear_z > 0
     # 10 Hz while held (noisy machine: the median period, not every period).
     times = [t for t, _ in messages[:-1]]
@@ -138,8 +149,13 @@ def test_mode_switch_stop_all_and_takeoff_reach_their_topics(window, qapp, rospy
     from std_msgs.msg import Bool, String
 
     # The real mux: the health table shows the mode it reports in force, not what was asked.
-    ros.start_node("cps_sim", "velocity_mux", name="velocity_mux", namespace=f"/{IRIS}",
-                   params={"~robot": IRIS, "~fleet_file": test_fleet_file})
+    ros.start_node(
+        "cps_sim",
+        "velocity_mux",
+        name="velocity_mux",
+        namespace=f"/{IRIS}",
+        params={"~robot": IRIS, "~fleet_file": test_fleet_file},
+    )
     spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "auto", 30, "the mux's initial mode")
     teleop = window.plugin.teleop
     teleop.select_robot(IRIS)
@@ -160,8 +176,12 @@ def test_mode_switch_stop_all_and_takeoff_reach_their_topics(window, qapp, rospy
         spin_until(qapp, lambda: estop.latest.data is False, 5, "estop released")
         teleop.takeoff_button.click()
         teleop.land_button.click()
-        spin_until(qapp, lambda: [m.data for _, m in flight.messages] == ["takeoff", "land"], 5,
-                   lambda: f"flight commands, got {[m.data for _, m in flight.messages]}")
+        spin_until(
+            qapp,
+            lambda: [m.data for _, m in flight.messages] == ["takeoff", "land"],
+            5,
+            lambda: f"flight commands, got {[m.data for _, m in flight.messages]}",
+        )
     finally:
         for rec in (mode, estop, flight):
             rec.close()
@@ -206,13 +226,27 @@ def _stats_messages(rospy_node, bandwidth):
     stats = TopicStatsArray()
     stats.header.stamp = rospy_node.Time.now()
     for i, robot in enumerate((SCOUT, JACKAL)):
-        stats.topics.append(TopicStats(topic=f"/{robot}/points_filtered/draco/managed", robot=robot, managed=True,
-                                       rate_hz=5.0 + i, bandwidth_mbytes_per_s=bandwidth + i, latency_avg_ms=40.0,
-                                       age_s=0.1))
-    alloc = BandwidthAllocationArray(available_mbps=60.0, reserve_fraction=0.04, budget_mbytes_per_s=7.2,
-                                     allocated_mbytes_per_s=bandwidth, feasible=True)
-    alloc.allocations.append(BandwidthAllocation(robot=SCOUT, priority=1, rate_hz=5.0,
-                                                 bandwidth_mbytes_per_s=bandwidth, share_percent=100.0))
+        stats.topics.append(
+            TopicStats(
+                topic=f"/{robot}/points_filtered/draco/managed",
+                robot=robot,
+                managed=True,
+                rate_hz=5.0 + i,
+                bandwidth_mbytes_per_s=bandwidth + i,
+                latency_avg_ms=40.0,
+                age_s=0.1,
+            )
+        )
+    alloc = BandwidthAllocationArray(
+        available_mbps=60.0,
+        reserve_fraction=0.04,
+        budget_mbytes_per_s=7.2,
+        allocated_mbytes_per_s=bandwidth,
+        feasible=True,
+    )
+    alloc.allocations.append(
+        BandwidthAllocation(robot=SCOUT, priority=1, rate_hz=5.0, bandwidth_mbytes_per_s=bandwidth, share_percent=100.0)
+    )
     return stats, alloc
 
 
@@ -220,10 +254,11 @@ def _stats_messages(rospy_node, bandwidth):
 def scout_stream(window, qapp, rospy_node):
     """publish(): eight rounds of stats, allocation, map stats, scout's odometry (0.4 m/s) and
     battery (15 %) at 10 Hz, with mission_state `inspecting`, as the running system would."""
-    from cps_msgs.msg import BandwidthAllocationArray, MapStats, RobotMapStats, TopicStatsArray
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import BatteryState
     from std_msgs.msg import String
+
+    from cps_msgs.msg import BandwidthAllocationArray, MapStats, RobotMapStats, TopicStatsArray
 
     pubs = {
         "stats": rospy_node.Publisher("/tissue/stats", TopicStatsArray, queue_size=5),
@@ -247,8 +282,9 @@ def scout_stream(window, qapp, rospy_node):
             odom.twist.twist.linear.x = 0.4
             pubs["odom"].publish(odom)
             pubs["battery"].publish(BatteryState(percentage=0.15))
-            pubs["map"].publish(MapStats(robots=[RobotMapStats(robot=SCOUT, occupied_voxels_contributed=4321,
-                                                               clouds_dropped_queue=i)]))
+            pubs["map"].publish(
+                MapStats(robots=[RobotMapStats(robot=SCOUT, occupied_voxels_contributed=4321, clouds_dropped_queue=i)])
+            )
             spin_for(qapp, 0.1)
 
     yield publish
@@ -263,8 +299,12 @@ def _row(status, index=0):
 def test_health_table_shows_the_published_figures(window, qapp, scout_stream):
     status = window.plugin.status
     scout_stream()
-    spin_until(qapp, lambda: _row(status)[7] == "7" and _row(status)[2] == "inspecting", 5,
-               lambda: f"the last map stats in the table, got {_row(status)}")
+    spin_until(
+        qapp,
+        lambda: _row(status)[7] == "7" and _row(status)[2] == "inspecting",
+        5,
+        lambda: f"the last map stats in the table, got {_row(status)}",
+    )
     row = _row(status)
     assert row[:9] == [SCOUT, "?", "inspecting", "15", row[4], "ok", "4321", "7", "high"]
     assert float(row[4]) < 1.0
@@ -276,8 +316,12 @@ def test_plots_and_link_label_follow_the_published_stats(window, qapp, scout_str
     status = window.plugin.status
     scout_stream()
     bandwidth = status.curves[("bandwidth", SCOUT)]
-    spin_until(qapp, lambda: len(bandwidth.getData()[1]) >= 6 and bandwidth.getData()[1][-1] == pytest.approx(1.7),
-               5, lambda: f"the last bandwidth plotted, got {bandwidth.getData()[1]}")
+    spin_until(
+        qapp,
+        lambda: len(bandwidth.getData()[1]) >= 6 and bandwidth.getData()[1][-1] == pytest.approx(1.7),
+        5,
+        lambda: f"the last bandwidth plotted, got {bandwidth.getData()[1]}",
+    )
     assert status.curves[("rate", JACKAL)].getData()[1][-1] == pytest.approx(6.0)
     assert status.curves[("latency", SCOUT)].getData()[1][-1] == pytest.approx(40.0)
     assert status.curves[("battery", SCOUT)].getData()[1][-1] == pytest.approx(15.0)
@@ -290,16 +334,19 @@ def test_speedometer_shows_the_selected_robots_odometry(window, qapp, scout_stre
     speedometer = window.plugin.teleop.speedometer
     window.plugin.teleop.select_robot(SCOUT)
     scout_stream()
-    spin_until(qapp, lambda: speedometer.speed_mps == pytest.approx(0.4), 5,
-               lambda: f"0.4 m/s on the speedometer, got {speedometer.speed_mps}")
+    spin_until(
+        qapp,
+        lambda: speedometer.speed_mps == pytest.approx(0.4),
+        5,
+        lambda: f"0.4 m/s on the speedometer, got {speedometer.speed_mps}",
+    )
 
 
 def test_heartbeat_link_and_stats_turn_red_when_publishing_stops(window, qapp, scout_stream):
     """Within the stale threshold (1 s here) after the last message."""
     status = window.plugin.status
     scout_stream()
-    spin_until(qapp, lambda: status.table.item(0, 5).text() == "lost", 5,
-               lambda: f"the link lost, got {_row(status)}")
+    spin_until(qapp, lambda: status.table.item(0, 5).text() == "lost", 5, lambda: f"the link lost, got {_row(status)}")
     assert _is_red(status.table.item(0, 4)) and _is_red(status.table.item(0, 3)) and _is_red(status.table.item(0, 5))
     assert "198,40,40" in status.link_label.styleSheet()
     assert "no heartbeat" in status.table.item(0, 9).text()
@@ -358,8 +405,12 @@ def test_speedometer_and_top_view_follow_odometry_and_the_projected_map(window, 
         pose = top._poses[JACKAL][0]
         assert (pose.x, pose.y) == pytest.approx((-6.0, 6.0))  # initial pose (-8, 6, 0 deg) + 2 m ahead
         image = top.grab().toImage()
-        dark = sum(1 for x in range(0, image.width(), 2) for y in range(0, image.height(), 2)
-                   if image.pixelColor(x, y).lightness() < 40)
+        dark = sum(
+            1
+            for x in range(0, image.width(), 2)
+            for y in range(0, image.height(), 2)
+            if image.pixelColor(x, y).lightness() < 40
+        )
         assert dark > 100, dark
         spin_until(qapp, lambda: teleop.speedometer.stale, 5, "the speedometer stale once odometry stops")
     finally:
@@ -409,8 +460,12 @@ def test_video_pane_prefers_and_shows_the_compressed_camera(window, qapp, rospy_
     jpeg_pub = rospy_node.Publisher(jpeg_topic, CompressedImage, queue_size=2)
     video = window.plugin.video
     try:
-        spin_until(qapp, lambda: video.combo.findText(raw_topic) >= 0 and video.combo.findText(jpeg_topic) >= 0,
-                   10, "both camera topics in the dropdown")
+        spin_until(
+            qapp,
+            lambda: video.combo.findText(raw_topic) >= 0 and video.combo.findText(jpeg_topic) >= 0,
+            10,
+            "both camera topics in the dropdown",
+        )
         spin_until(qapp, lambda: video.topic == jpeg_topic, 5, lambda: f"the compressed topic shown, not {video.topic}")
         spin_until(qapp, lambda: jpeg_pub.get_num_connections() > 0, 10, "a subscriber on the compressed topic")
         assert raw_pub.get_num_connections() == 0
@@ -424,8 +479,12 @@ def test_video_pane_prefers_and_shows_the_compressed_camera(window, qapp, rospy_
             msg.header.stamp = rospy_node.Time.now()
             jpeg_pub.publish(msg)
             spin_for(qapp, 0.1)
-        spin_until(qapp, lambda: video.picture.pixmap() is not None and "160x120 jpeg" in video.info.text(), 5,
-                   lambda: video.info.text())
+        spin_until(
+            qapp,
+            lambda: video.picture.pixmap() is not None and "160x120 jpeg" in video.info.text(),
+            5,
+            lambda: video.info.text(),
+        )
         mbytes = float(video.info.text().split("|")[2].split()[0])
         assert mbytes < 0.1  # the meter counts the JPEG bytes on the wire, not the decoded 57.6 kB frames
         picture = video.picture.pixmap().toImage()
@@ -453,8 +512,12 @@ def test_rosout_log_is_filtered_by_level_and_text(window, qapp):
     spin_until(qapp, lambda: "hello fleet" not in status.log_view.toPlainText(), 5, "INFO filtered out")
     status.level_combo.setCurrentText("DEBUG")
     status.filter_edit.setText("/c")
-    spin_until(qapp, lambda: status.log_view.toPlainText().strip().endswith("/c: noise"), 5,
-               lambda: f"only /c shown, got {status.log_view.toPlainText()!r}")
+    spin_until(
+        qapp,
+        lambda: status.log_view.toPlainText().strip().endswith("/c: noise"),
+        5,
+        lambda: f"only /c shown, got {status.log_view.toPlainText()!r}",
+    )
 
 
 def test_settings_are_saved_on_close_and_restored(qapp, rospy_node, test_fleet_file, tmp_path):
