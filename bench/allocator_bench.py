@@ -11,6 +11,7 @@
 
     python bench/allocator_bench.py [--repeats 50] [--skip-ros]
 """
+
 import argparse
 import os
 import statistics
@@ -35,8 +36,13 @@ def _fleet(n, rng):
 def _lp(demands, budget):
     size = np.array([d.message_bytes for d in demands]) / 1e6
     weight = np.array([4.0 if d.priority else 1.0 for d in demands])
-    return linprog(-(weight * size), A_ub=[size], b_ub=[budget],
-                   bounds=[(d.min_rate_hz, d.max_rate_hz) for d in demands], method="highs")
+    return linprog(
+        -(weight * size),
+        A_ub=[size],
+        b_ub=[budget],
+        bounds=[(d.min_rate_hz, d.max_rate_hz) for d in demands],
+        method="highs",
+    )
 
 
 def _time_ms(fn, repeats):
@@ -59,7 +65,9 @@ def bench_solve(repeats):
         ours = _time_ms(lambda: allocate_frequencies(demands, budget), repeats)
         anchor = _time_ms(lambda: _lp(demands, budget), max(5, repeats // 5))
         rows.append((n, ours, anchor))
-        print(f"{n:>7} {ours[0]:8.3f} / {ours[1]:6.3f} {anchor[0]:12.3f} / {anchor[1]:8.3f} {anchor[0] / ours[0]:7.1f}x")
+        print(
+            f"{n:>7} {ours[0]:8.3f} / {ours[1]:6.3f} {anchor[0]:12.3f} / {anchor[1]:8.3f} {anchor[0] / ours[0]:7.1f}x"
+        )
     at_100 = next(o for n, o, _ in rows if n == 100)[0]
     print(f"goal < 10 ms at 100 topics: {'met' if at_100 < 10 else 'NOT met'} ({at_100:.3f} ms)")
     return rows
@@ -86,12 +94,17 @@ def measure_priority_to_rate(changes, robots, feed):
             latest_alloc.update({a.robot: a.rate_hz for a in msg.allocations})
             changed.notify_all()
 
-    subs = [rospy.Subscriber(names.robot_topic(r, names.LIMITER_STATUS), RateLimiterStatus, on_status, callback_args=r)
-            for r in robots]
+    subs = [
+        rospy.Subscriber(names.robot_topic(r, names.LIMITER_STATUS), RateLimiterStatus, on_status, callback_args=r)
+        for r in robots
+    ]
     subs.append(rospy.Subscriber(names.ALLOCATION, BandwidthAllocationArray, on_alloc))
     stop = threading.Event()
     if feed:
-        pubs = {r: rospy.Publisher(names.robot_topic(r, names.POINTS_DRACO), CompressedPointCloud2, queue_size=2) for r in robots}
+        pubs = {
+            r: rospy.Publisher(names.robot_topic(r, names.POINTS_DRACO), CompressedPointCloud2, queue_size=2)
+            for r in robots
+        }
 
         def feeder():
             msg = CompressedPointCloud2(compressed_data=bytes(30000))
@@ -113,9 +126,12 @@ def measure_priority_to_rate(changes, robots, feed):
         proxy(robot=robots[0], priority=(k + 1) % 2)
         with changed:
             done = changed.wait_for(
-                lambda: set_rates.get(robots[0]) != before.get(robots[0]) and all(
-                    r in latest_alloc and abs(set_rates.get(r, -1) - latest_alloc[r]) < 1e-6 for r in robots),
-                timeout=5.0)
+                lambda: (
+                    set_rates.get(robots[0]) != before.get(robots[0])
+                    and all(r in latest_alloc and abs(set_rates.get(r, -1) - latest_alloc[r]) < 1e-6 for r in robots)
+                ),
+                timeout=5.0,
+            )
         if done:
             delays.append(time.monotonic() - t0)
         time.sleep(0.3)
@@ -129,8 +145,10 @@ def _report(label, delays, changes):
     if not delays:
         print(f"{label}: no change observed")
         return
-    print(f"{label}: median {1000 * statistics.median(delays):.0f} ms, max {1000 * max(delays):.0f} ms "
-          f"over {len(delays)}/{changes} changes (goal: within 1 s)")
+    print(
+        f"{label}: median {1000 * statistics.median(delays):.0f} ms, max {1000 * max(delays):.0f} ms "
+        f"over {len(delays)}/{changes} changes (goal: within 1 s)"
+    )
 
 
 def bench_priority_to_rate(changes):
@@ -142,11 +160,22 @@ def bench_priority_to_rate(changes):
     robots = ("scout", "jackal")
     with RosGraph() as graph:
         for r in robots:
-            graph.start_node("cps_transport", "rate_limiter", name=names.CLOUD_THROTTLE, namespace=names.absolute(r),
-                             remap={names.INPUT: names.absolute(names.robot_topic(r, names.POINTS_DRACO)),
-                                    names.OUTPUT: names.absolute(names.managed_cloud(r))})
-        graph.start_node("cps_bw_manager", "bandwidth_manager", name="bandwidth_manager",
-                         params={"~robots": list(robots), "~available_mbps": 4.0})
+            graph.start_node(
+                "cps_transport",
+                "rate_limiter",
+                name=names.CLOUD_THROTTLE,
+                namespace=names.absolute(r),
+                remap={
+                    names.INPUT: names.absolute(names.robot_topic(r, names.POINTS_DRACO)),
+                    names.OUTPUT: names.absolute(names.managed_cloud(r)),
+                },
+            )
+        graph.start_node(
+            "cps_bw_manager",
+            "bandwidth_manager",
+            name="bandwidth_manager",
+            params={"~robots": list(robots), "~available_mbps": 4.0},
+        )
         graph.wait_for_service(names.absolute(names.SET_PRIORITY), timeout_s=60)
         graph.point_this_process_here()
         rospy.init_node("allocator_bench", anonymous=True, disable_signals=True)
@@ -162,6 +191,7 @@ def bench_priority_to_rate_on_link(changes):
     import json
 
     from cps_experiments.link_run import LinkRosGraph
+
     from cps_link.netns_link import LinkError, ShapedLink, check_capability
     from cps_ros.processes import find_node
 
@@ -171,29 +201,65 @@ def bench_priority_to_rate_on_link(changes):
         print(f"priority change over the shaped link: skipped ({exc})")
         return None
     robots = ("scout", "jackal", "champ", "iris")
-    load = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "catkin_ws", "src", "cps_bw_manager",
-                        "test", "fixtures", "cloud_load.py")
+    load = os.path.join(
+        os.path.dirname(os.path.abspath(__file__)),
+        "..",
+        "catkin_ws",
+        "src",
+        "cps_bw_manager",
+        "test",
+        "fixtures",
+        "cloud_load.py",
+    )
     with ShapedLink("cpsbench") as link, LinkRosGraph(link) as graph:
         limiter = find_node("cps_transport", "rate_limiter")
         for r in robots:
-            graph.start_python("phys", limiter, ["__name:=cloud_throttle", f"__ns:=/{r}",
-                                                 f"~input:=/{r}/points_filtered/draco",
-                                                 f"~output:=/{r}/points_filtered/draco/managed"], name=f"limiter_{r}")
-        graph.start_python("phys", load, ["scout:34000:10", "jackal:142000:30", "champ:60000:30", "iris:67000:30"],
-                           name="load")
-        graph.start_python("twin", find_node("cps_bw_manager", "bandwidth_manager"),
-                           ["__name:=bandwidth_manager", "_available_mbps:=55.0"], name="manager")
-        result = subprocess.run(link.argv("twin", [sys.executable, os.path.abspath(__file__), "--measure-only",
-                                                   "--changes", str(changes), "--robots", ",".join(robots)],
-                                          master_port=graph.port),
-                                capture_output=True, text=True, timeout=120)
+            graph.start_python(
+                "phys",
+                limiter,
+                [
+                    "__name:=cloud_throttle",
+                    f"__ns:=/{r}",
+                    f"~input:=/{r}/points_filtered/draco",
+                    f"~output:=/{r}/points_filtered/draco/managed",
+                ],
+                name=f"limiter_{r}",
+            )
+        graph.start_python(
+            "phys", load, ["scout:34000:10", "jackal:142000:30", "champ:60000:30", "iris:67000:30"], name="load"
+        )
+        graph.start_python(
+            "twin",
+            find_node("cps_bw_manager", "bandwidth_manager"),
+            ["__name:=bandwidth_manager", "_available_mbps:=55.0"],
+            name="manager",
+        )
+        result = subprocess.run(
+            link.argv(
+                "twin",
+                [
+                    sys.executable,
+                    os.path.abspath(__file__),
+                    "--measure-only",
+                    "--changes",
+                    str(changes),
+                    "--robots",
+                    ",".join(robots),
+                ],
+                master_port=graph.port,
+            ),
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     try:
         delays = json.loads(result.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
         print(f"priority change over the shaped link: failed: {result.stderr[-1000:]}")
         return None
-    _report("priority change -> new rates in force at all four limiters (over the 60 Mbit/s link, loaded)",
-            delays, changes)
+    _report(
+        "priority change -> new rates in force at all four limiters (over the 60 Mbit/s link, loaded)", delays, changes
+    )
     return delays
 
 

@@ -21,6 +21,7 @@ delivered, one-way latency and sent, as the manager fed it.
 
     python bench/estimator_bench.py [--out docs/benchmarks/estimator.md] [--no-write]
 """
+
 import argparse
 import math
 import os
@@ -28,14 +29,21 @@ import sys
 
 from cps_bw_manager.estimation import DeliveryRateEstimator
 from cps_bw_manager.legacy_estimation import LegacyDelayEstimator
-from cps_bw_manager.link_model import (CpuHog, LinkModel, NewEstimatorSubject, held_below_offered,
-                                       ingress_over_capacity_s, mean_abs_error, settle_time_s)
+from cps_bw_manager.link_model import (
+    CpuHog,
+    LinkModel,
+    NewEstimatorSubject,
+    held_below_offered,
+    ingress_over_capacity_s,
+    mean_abs_error,
+    settle_time_s,
+)
 from cps_link.scenario import load_scenario
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LINE_RATE_MBPS = 60.0
-FLEET_MBPS = 67.0          # Table 6 step 1, 4 robots at full rate: 8.41 MB/s
-PAPER_PROFILE_MBPS = 3.5   # what the fleet offered in the issue's paper-profile run
+FLEET_MBPS = 67.0  # Table 6 step 1, 4 robots at full rate: 8.41 MB/s
+PAPER_PROFILE_MBPS = 3.5  # what the fleet offered in the issue's paper-profile run
 TODAY = ("delivered", "sent", "offered")
 
 
@@ -61,8 +69,9 @@ class LegacySubject:
 
 
 def _new(known=None, window_s=0.0):
-    est = DeliveryRateEstimator(LINE_RATE_MBPS, line_rate_mbps=LINE_RATE_MBPS, probe_s=max(0.5, window_s),
-                                measure_window_s=window_s)
+    est = DeliveryRateEstimator(
+        LINE_RATE_MBPS, line_rate_mbps=LINE_RATE_MBPS, probe_s=max(0.5, window_s), measure_window_s=window_s
+    )
     return NewEstimatorSubject(est, known) if known else NewEstimatorSubject(est)
 
 
@@ -74,8 +83,10 @@ SUBJECTS = {
     "new/today": (lambda: _new(TODAY, window_s=2.0), 2.0),  # as manager_node builds it
     "old/today": (LegacySubject, 2.0),
 }
-PAIRS = (("new", "old", "per-interval reports (the bridge's LinkReport)"),
-         ("new/today", "old/today", "today's inputs: delivered, sent, offered as 2 s sliding averages"))
+PAIRS = (
+    ("new", "old", "per-interval reports (the bridge's LinkReport)"),
+    ("new/today", "old/today", "today's inputs: delivered, sent, offered as 2 s sliding averages"),
+)
 
 
 def _timeline(name):
@@ -97,6 +108,7 @@ def _timeline(name):
             if t >= at_s:
                 value = mbps
         return value
+
     steps, last_up = [], changes[0][1]
     for t, mbps in changes[1:]:
         if mbps == 0.0:
@@ -112,8 +124,11 @@ def _timeline(name):
 def _model(capacity_of, shaping, topology, demand_mbps, hogs=(), window_s=0.0):
     extra = dict(measure_window_s=window_s)
     if shaping is not None:
-        extra.update(base_rtt_s=0.004 + 2e-3 * shaping.delay_ms, jitter_s=1e-3 * shaping.jitter_ms,
-                     loss_fraction=shaping.loss_pct / 100.0)
+        extra.update(
+            base_rtt_s=0.004 + 2e-3 * shaping.delay_ms,
+            jitter_s=1e-3 * shaping.jitter_ms,
+            loss_fraction=shaping.loss_pct / 100.0,
+        )
     if topology == "shared":
         extra["reverse_mbps"] = 1.0  # commands, TF and maps coming down share the airtime
     # reports every 0.5 s from 0.23 s: the steps (whole seconds) fall inside report intervals
@@ -131,23 +146,29 @@ def run_scenario(name):
             end = min(end, next((c for c in _cuts(capacity_of, t, end)), end))
             settle = settle_time_s(trace, t, end)
             first, longest = ingress_over_capacity_s(trace, t, end)
-            per_step.append(dict(t=t, label=label, kind=kind, settle_s=settle, first_over_s=first,
-                                 longest_over_s=longest))
-        hogs = [CpuHog(s, s + 10.0, receiver_mbps=2.0, extra_delay_s=0.5)
-                for s in range(5, int(duration_s) - 10, 20)]
+            per_step.append(
+                dict(t=t, label=label, kind=kind, settle_s=settle, first_over_s=first, longest_over_s=longest)
+            )
+        hogs = [CpuHog(s, s + 10.0, receiver_mbps=2.0, extra_delay_s=0.5) for s in range(5, int(duration_s) - 10, 20)]
         low = _model(capacity_of, shaping, topology, PAPER_PROFILE_MBPS, hogs, window_s).run(make(), duration_s)
         rows[subject_name] = dict(
-            steps=per_step, mean_error=mean_abs_error(trace, 5.0, duration_s),
+            steps=per_step,
+            mean_error=mean_abs_error(trace, 5.0, duration_s),
             settled_error=_settled_error(trace, [t for t, _, _ in steps] + list(_all_cuts(capacity_of, duration_s))),
-            held=len(held_below_offered(low)), low_min_estimate=min(r.allocation_mbps for r in low if r.link_up),
-            low_intervals=len([r for r in low if r.link_up]))
+            held=len(held_below_offered(low)),
+            low_min_estimate=min(r.allocation_mbps for r in low if r.link_up),
+            low_intervals=len([r for r in low if r.link_up]),
+        )
     return steps, rows
 
 
 def _settled_error(trace, events, after_s=5.0):
     """Mean |estimate - capacity| / capacity outside the first `after_s` after every event."""
-    rows = [r for r in trace if r.t_s > after_s and r.link_up and r.capacity_mbps > 0
-            and not any(0 <= r.t_s - e <= after_s for e in events)]
+    rows = [
+        r
+        for r in trace
+        if r.t_s > after_s and r.link_up and r.capacity_mbps > 0 and not any(0 <= r.t_s - e <= after_s for e in events)
+    ]
     return sum(abs(r.estimate_mbps - r.capacity_mbps) / r.capacity_mbps for r in rows) / max(1, len(rows))
 
 
@@ -194,35 +215,47 @@ def report(results):
     for name, (steps, rows) in results.items():
         lines.append(f"\n### {name}\n")
         for new, old, inputs in PAIRS:
-            lines.append(f"Fleet above the link (67 Mbit/s offered); {inputs}. Settle: s until the estimate "
-                         "stays within +-15 % (target <= 2 s down, <= 5 s up). Ingress over the capacity, s "
-                         "(from the step / longest later run; target <= 2 s after a down step).\n")
-            lines.append(f"| step | at s | {new}: settle | ingress over | meets | {old}: settle | ingress over "
-                         f"| meets | settle {old}/{new} |")
+            lines.append(
+                f"Fleet above the link (67 Mbit/s offered); {inputs}. Settle: s until the estimate "
+                "stays within +-15 % (target <= 2 s down, <= 5 s up). Ingress over the capacity, s "
+                "(from the step / longest later run; target <= 2 s after a down step).\n"
+            )
+            lines.append(
+                f"| step | at s | {new}: settle | ingress over | meets | {old}: settle | ingress over "
+                f"| meets | settle {old}/{new} |"
+            )
             lines.append("|---|---|---|---|---|---|---|---|---|")
             for i, (t, label, kind) in enumerate(steps):
                 n, o = rows[new]["steps"][i], rows[old]["steps"][i]
                 old_was_off = i > 0 and math.isinf(rows[old]["steps"][i - 1]["settle_s"])
                 ratio = "n/a: old never settled before" if old_was_off else _ratio(o["settle_s"], n["settle_s"])
-                lines.append(f"| {label} ({kind}) | {t:g} | {_fmt_s(n['settle_s'])} | {n['first_over_s']:.1f} / "
-                             f"{n['longest_over_s']:.1f} | {_meets(n, new)} | {_fmt_s(o['settle_s'])} | "
-                             f"{o['first_over_s']:.1f} / {o['longest_over_s']:.1f} | {_meets(o, old)} | {ratio} |")
+                lines.append(
+                    f"| {label} ({kind}) | {t:g} | {_fmt_s(n['settle_s'])} | {n['first_over_s']:.1f} / "
+                    f"{n['longest_over_s']:.1f} | {_meets(n, new)} | {_fmt_s(o['settle_s'])} | "
+                    f"{o['first_over_s']:.1f} / {o['longest_over_s']:.1f} | {_meets(o, old)} | {ratio} |"
+                )
             if not steps:
                 lines.append("| (no capacity step) | | | | | | | | |")
             lines.append("")
-        lines.append("| subject | mean abs error vs capacity, whole run (fleet above) | the same, > 5 s after "
-                     "every step/outage | paper profile + CPU hog: intervals held below offered | lowest "
-                     "allocation target there, Mbit/s |")
+        lines.append(
+            "| subject | mean abs error vs capacity, whole run (fleet above) | the same, > 5 s after "
+            "every step/outage | paper profile + CPU hog: intervals held below offered | lowest "
+            "allocation target there, Mbit/s |"
+        )
         lines.append("|---|---|---|---|---|")
         for s in SUBJECTS:
             r = rows[s]
-            lines.append(f"| {s} | {100 * r['mean_error']:.1f} % | {100 * r['settled_error']:.1f} % | "
-                         f"{r['held']} of {r['low_intervals']} | {r['low_min_estimate']:.1f} |")
+            lines.append(
+                f"| {s} | {100 * r['mean_error']:.1f} % | {100 * r['settled_error']:.1f} % | "
+                f"{r['held']} of {r['low_intervals']} | {r['low_min_estimate']:.1f} |"
+            )
         for new, old, _ in PAIRS:
             o, n = rows[old]["mean_error"], rows[new]["mean_error"]
-            lines.append(f"\nmean error (whole run): {old} {100 * o:.1f} % / {new} {100 * n:.1f} % = {o / n:.1f}x"
-                         if n > 1e-3 else
-                         f"\nmean error (whole run): {new} {100 * n:.1f} %, {old} {100 * o:.1f} % (no ratio: ~0)")
+            lines.append(
+                f"\nmean error (whole run): {old} {100 * o:.1f} % / {new} {100 * n:.1f} % = {o / n:.1f}x"
+                if n > 1e-3
+                else f"\nmean error (whole run): {new} {100 * n:.1f} %, {old} {100 * o:.1f} % (no ratio: ~0)"
+            )
     return "\n".join(lines)
 
 
@@ -260,9 +293,12 @@ def main(argv=None):
         with open(args.out, "w") as stream:
             stream.write(HEADER + text + "\n")
         print(f"\nwritten: {args.out}")
-    failed = [(name, s["label"]) for name, (_, rows) in results.items() for s in rows["new"]["steps"]
-              if _meets(s, "new") != "yes"] + \
-        [(name, "held below offered") for name, (_, rows) in results.items() if rows["new"]["held"]]
+    failed = [
+        (name, s["label"])
+        for name, (_, rows) in results.items()
+        for s in rows["new"]["steps"]
+        if _meets(s, "new") != "yes"
+    ] + [(name, "held below offered") for name, (_, rows) in results.items() if rows["new"]["held"]]
     if failed:
         print(f"new estimator misses a target in: {failed}")
     return 1 if failed else 0

@@ -19,6 +19,7 @@ Usage: python bench/fleet_sim_bench.py [--robots 16] [--seconds 30] [--anchor ma
                                        [--control] [--no-sim]
 Timings on a shared machine are noisy; both variants run back to back in the same invocation.
 """
+
 import argparse
 import os
 import shutil
@@ -37,9 +38,28 @@ FLEET_YAML = os.path.join(REPO, "catkin_ws/src/cps_bringup/config/fleet.yaml")
 CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 # Free floor in the hall's aisles (cps_sim/config/hall.yaml): west and east aisles, the central
 # aisle, the north/south aisles and the corridor between tank_farm and pipe_rack.
-AISLE_SPOTS = ((-9.0, -3.0), (-9.0, 0.0), (-9.0, 3.0), (0.0, -6.5), (0.0, -3.0), (0.0, 0.0), (0.0, 3.0),
-               (0.0, 6.5), (9.0, -3.0), (9.0, 0.0), (9.0, 3.0), (-4.5, 0.0), (-4.5, -6.5), (-4.5, 6.5),
-               (4.5, -6.5), (4.5, 6.5), (9.0, 6.5), (-9.0, 6.8), (-2.0, 0.0), (9.0, -6.5))
+AISLE_SPOTS = (
+    (-9.0, -3.0),
+    (-9.0, 0.0),
+    (-9.0, 3.0),
+    (0.0, -6.5),
+    (0.0, -3.0),
+    (0.0, 0.0),
+    (0.0, 3.0),
+    (0.0, 6.5),
+    (9.0, -3.0),
+    (9.0, 0.0),
+    (9.0, 3.0),
+    (-4.5, 0.0),
+    (-4.5, -6.5),
+    (-4.5, 6.5),
+    (4.5, -6.5),
+    (4.5, 6.5),
+    (9.0, 6.5),
+    (-9.0, 6.8),
+    (-2.0, 0.0),
+    (9.0, -6.5),
+)
 
 
 def make_fleet_file(robots, folder, source=FLEET_YAML):
@@ -54,8 +74,13 @@ def make_fleet_file(robots, folder, source=FLEET_YAML):
     for i in range(robots - len(out)):
         template = originals[i % len(originals)]
         x, y = AISLE_SPOTS[i]
-        out.append({**template, "name": f"{template['name']}_{i // len(originals) + 2}",
-                    "initial_pose": {**template["initial_pose"], "x": x, "y": y}})
+        out.append(
+            {
+                **template,
+                "name": f"{template['name']}_{i // len(originals) + 2}",
+                "initial_pose": {**template["initial_pose"], "x": x, "y": y},
+            }
+        )
     doc["robots"] = out
     path = os.path.join(folder, f"fleet_{robots}.yaml")
     with open(path, "w") as stream:
@@ -67,8 +92,9 @@ def anchor_python_path(rev, folder):
     """cps_sim's library at git revision `rev`, extracted into `folder` (put first on PYTHONPATH)."""
     target = os.path.join(folder, "anchor")
     os.makedirs(target, exist_ok=True)
-    archive = subprocess.run(["git", "-C", REPO, "archive", rev, "catkin_ws/src/cps_sim/src/cps_sim"],
-                             check=True, capture_output=True).stdout
+    archive = subprocess.run(
+        ["git", "-C", REPO, "archive", rev, "catkin_ws/src/cps_sim/src/cps_sim"], check=True, capture_output=True
+    ).stdout
     subprocess.run(["tar", "-x", "-C", target], input=archive, check=True)
     return os.path.join(target, "catkin_ws/src/cps_sim/src")
 
@@ -103,6 +129,7 @@ def run_variant(graph, fleet, label, seconds, workers, python_path=None, warmup_
             if measuring.is_set():
                 with lock:
                     counts[name] = counts.get(name, 0) + 1
+
         return on_msg
 
     def on_diagnostics(msg):
@@ -116,14 +143,25 @@ def run_variant(graph, fleet, label, seconds, workers, python_path=None, warmup_
     if python_path:
         env["PYTHONPATH"] = python_path + os.pathsep + env.get("PYTHONPATH", "")
     node_graph = graph.attach()
-    proc = node_graph.start_node("cps_sim", "fleet_sim", name=f"fleet_sim_{label}", env=env,
-                                 params={"~fleet_file": fleet.path, "~profile": "light", "~renderer": "fast",
-                                         **({"~sensor_workers": workers} if workers is not None else {})})
+    proc = node_graph.start_node(
+        "cps_sim",
+        "fleet_sim",
+        name=f"fleet_sim_{label}",
+        env=env,
+        params={
+            "~fleet_file": fleet.path,
+            "~profile": "light",
+            "~renderer": "fast",
+            **({"~sensor_workers": workers} if workers is not None else {}),
+        },
+    )
     subs = []
     try:
         node_graph.wait_for_topic(names.absolute(names.robot_topic(fleet.robots[-1].name, names.ODOM)), timeout_s=180)
-        subs = [rospy.Subscriber(names.robot_topic(r.name, r.cloud_topic), rospy.AnyMsg, counter(r.name), queue_size=2)
-                for r in fleet.robots]
+        subs = [
+            rospy.Subscriber(names.robot_topic(r.name, r.cloud_topic), rospy.AnyMsg, counter(r.name), queue_size=2)
+            for r in fleet.robots
+        ]
         subs.append(rospy.Subscriber(names.DIAGNOSTICS, DiagnosticArray, on_diagnostics, queue_size=50))
         time.sleep(warmup_s)
         pids = [proc.pid] + _children(proc.pid)
@@ -147,13 +185,23 @@ def run_variant(graph, fleet, label, seconds, workers, python_path=None, warmup_
         kind = "lidar" if r.has_lidar else "depth_camera"
         reports = diagnostics.get(f"cps_sim: {r.name} {kind}", [])
         achieved[r.name] = float(reports[-1]["achieved_hz"]) if reports else float("nan")
-    configured = {r.name: (fleet.profile.lidar.rate_hz if r.has_lidar else fleet.profile.depth_camera.rate_hz)
-                  for r in fleet.robots}
-    return {"label": label, "received_hz": {n: counts.get(n, 0) / seconds for n in configured},
-            "configured_hz": configured, "achieved_hz": achieved, "sim_cpu": cpu[proc.pid],
-            "workers_cpu": sum(v for pid, v in cpu.items() if pid != proc.pid), "workers": len(pids) - 1,
-            "step_ms": mean_of("step_ms_mean"), "step_ms_max": mean_of("step_ms_max"),
-            "physics_hz": mean_of("physics_loop_hz"), "rtf": mean_of("real_time_factor")}
+    configured = {
+        r.name: (fleet.profile.lidar.rate_hz if r.has_lidar else fleet.profile.depth_camera.rate_hz)
+        for r in fleet.robots
+    }
+    return {
+        "label": label,
+        "received_hz": {n: counts.get(n, 0) / seconds for n in configured},
+        "configured_hz": configured,
+        "achieved_hz": achieved,
+        "sim_cpu": cpu[proc.pid],
+        "workers_cpu": sum(v for pid, v in cpu.items() if pid != proc.pid),
+        "workers": len(pids) - 1,
+        "step_ms": mean_of("step_ms_mean"),
+        "step_ms_max": mean_of("step_ms_max"),
+        "physics_hz": mean_of("physics_loop_hz"),
+        "rtf": mean_of("real_time_factor"),
+    }
 
 
 def _rss_mb(pid):
@@ -171,8 +219,12 @@ def run_control_layouts(graph, fleet, seconds, warmup_s=8.0):
     """The robots' control with fleet_sim running: a velocity_mux and a route_controller per robot
     (the anchor) against one fleet_control; {layout: (processes, core-s/s, RSS MB)}."""
     sim_graph = graph.attach()
-    sim_graph.start_node("cps_sim", "fleet_sim", name="fleet_sim_control",
-                         params={"~fleet_file": fleet.path, "~profile": "light", "~renderer": "fast"})
+    sim_graph.start_node(
+        "cps_sim",
+        "fleet_sim",
+        name="fleet_sim_control",
+        params={"~fleet_file": fleet.path, "~profile": "light", "~renderer": "fast"},
+    )
     out = {}
     try:
         sim_graph.wait_for_topic(names.absolute(names.robot_topic(fleet.robots[-1].name, names.ODOM)), timeout_s=180)
@@ -180,11 +232,22 @@ def run_control_layouts(graph, fleet, seconds, warmup_s=8.0):
             node_graph = graph.attach()
             params = {"~fleet_file": fleet.path}
             if layout == "shared":
-                procs = [node_graph.start_node("cps_sim", "fleet_control", name="fleet_control",
-                                               params={**params, "~robots": ",".join(fleet.robot_names)})]
+                procs = [
+                    node_graph.start_node(
+                        "cps_sim",
+                        "fleet_control",
+                        name="fleet_control",
+                        params={**params, "~robots": ",".join(fleet.robot_names)},
+                    )
+                ]
             else:
-                procs = [node_graph.start_node("cps_sim", node, name=node, namespace=names.absolute(r), params={**params, "~robot": r})
-                         for r in fleet.robot_names for node in ("velocity_mux", "route_controller")]
+                procs = [
+                    node_graph.start_node(
+                        "cps_sim", node, name=node, namespace=names.absolute(r), params={**params, "~robot": r}
+                    )
+                    for r in fleet.robot_names
+                    for node in ("velocity_mux", "route_controller")
+                ]
             try:
                 for r in fleet.robot_names:
                     node_graph.wait_for_topic(names.absolute(names.robot_topic(r, names.MISSION_STATE)), timeout_s=180)
@@ -200,21 +263,27 @@ def run_control_layouts(graph, fleet, seconds, warmup_s=8.0):
     finally:
         sim_graph.close()
     (n_a, cpu_a, rss_a), (n_s, cpu_s, rss_s) = out["per_robot"], out["shared"]
-    print(f"shared / per_robot: processes {n_s}/{n_a}, CPU {cpu_s / max(cpu_a, 1e-9):.2f}x, "
-          f"memory {rss_s / max(rss_a, 1e-9):.2f}x")
+    print(
+        f"shared / per_robot: processes {n_s}/{n_a}, CPU {cpu_s / max(cpu_a, 1e-9):.2f}x, "
+        f"memory {rss_s / max(rss_a, 1e-9):.2f}x"
+    )
     return out
 
 
 def report(result):
     received, configured = result["received_hz"], result["configured_hz"]
     ratios = [received[n] / configured[n] for n in configured]
-    print(f"\n-- {result['label']}: fleet_sim {result['sim_cpu']:.2f} core-s/s, {result['workers']} sensor workers "
-          f"{result['workers_cpu']:.2f} core-s/s; loop step {result['step_ms']:.1f} ms mean "
-          f"(max {result['step_ms_max']:.0f}), physics loop {result['physics_hz']:.0f} Hz, real-time factor "
-          f"{result['rtf']:.2f}")
-    print(f"   received Hz / configured: min {min(received.values()):.2f} Hz, min ratio {min(ratios):.2f}, "
-          f"mean ratio {sum(ratios) / len(ratios):.2f}; robots below 1 Hz: "
-          f"{sum(1 for v in received.values() if v < 1.0)}")
+    print(
+        f"\n-- {result['label']}: fleet_sim {result['sim_cpu']:.2f} core-s/s, {result['workers']} sensor workers "
+        f"{result['workers_cpu']:.2f} core-s/s; loop step {result['step_ms']:.1f} ms mean "
+        f"(max {result['step_ms_max']:.0f}), physics loop {result['physics_hz']:.0f} Hz, real-time factor "
+        f"{result['rtf']:.2f}"
+    )
+    print(
+        f"   received Hz / configured: min {min(received.values()):.2f} Hz, min ratio {min(ratios):.2f}, "
+        f"mean ratio {sum(ratios) / len(ratios):.2f}; robots below 1 Hz: "
+        f"{sum(1 for v in received.values() if v < 1.0)}"
+    )
     print("   " + ", ".join(f"{n} {received[n]:.1f}/{configured[n]:.0f}" for n in configured))
 
 
@@ -224,8 +293,11 @@ def main(argv=None):
     parser.add_argument("--seconds", type=float, default=30.0, help="measuring time per variant, s")
     parser.add_argument("--anchor", default="main", help="git revision of the anchor's cps_sim ('' : none)")
     parser.add_argument("--workers", type=int, default=None, help="~sensor_workers (default: the node's)")
-    parser.add_argument("--control", action="store_true",
-                        help="also the robots' control: fleet_control against a mux and route controller per robot")
+    parser.add_argument(
+        "--control",
+        action="store_true",
+        help="also the robots' control: fleet_control against a mux and route controller per robot",
+    )
     parser.add_argument("--rounds", type=int, default=2, help="ours-then-anchor rounds")
     parser.add_argument("--no-sim", action="store_true", help="skip the simulator comparison")
     parser.add_argument("--keep", action="store_true", help="keep the temp folder (fleet file)")
@@ -237,8 +309,10 @@ def main(argv=None):
     folder = tempfile.mkdtemp(prefix="fleet_sim_bench_")
     os.chmod(folder, 0o755)
     fleet = load_fleet(make_fleet_file(args.robots, folder), profile="light")
-    print(f"fleet_sim with {len(fleet.robots)} robots (light profile, fast renderer) on {os.cpu_count()} cores, "
-          f"load average {os.getloadavg()[0]:.1f} at start, {time.strftime('%Y-%m-%d %H:%M')}; fleet file {fleet.path}")
+    print(
+        f"fleet_sim with {len(fleet.robots)} robots (light profile, fast renderer) on {os.cpu_count()} cores, "
+        f"load average {os.getloadavg()[0]:.1f} at start, {time.strftime('%Y-%m-%d %H:%M')}; fleet file {fleet.path}"
+    )
     graph = RosGraph()
     graph.start()
     os.environ.update(ROS_MASTER_URI=graph.uri, ROS_IP="127.0.0.1", ROS_HOME=graph.home)
@@ -258,8 +332,9 @@ def main(argv=None):
             results.append(run_variant(graph, fleet, "ours", args.seconds, args.workers))
             report(results[-1])
             if anchor_path:
-                results.append(run_variant(graph, fleet, f"anchor ({args.anchor})", args.seconds, args.workers,
-                                           anchor_path))
+                results.append(
+                    run_variant(graph, fleet, f"anchor ({args.anchor})", args.seconds, args.workers, anchor_path)
+                )
                 report(results[-1])
     finally:
         rospy.signal_shutdown("bench done")
@@ -273,11 +348,13 @@ def main(argv=None):
     for ours, anchor in zip(results[0::2], results[1::2]):
         if not anchor["label"].startswith("anchor"):
             break
-        print(f"\nours / anchor: min rate ratio {min_ratio(ours):.2f} / {min_ratio(anchor):.2f} = "
-              f"{min_ratio(ours) / max(min_ratio(anchor), 1e-9):.2f}x; received captures/s "
-              f"{sum(ours['received_hz'].values()):.0f} / {sum(anchor['received_hz'].values()):.0f}; "
-              f"fleet_sim CPU {ours['sim_cpu']:.2f} / {anchor['sim_cpu']:.2f} core-s/s; loop step "
-              f"{ours['step_ms']:.1f} ms; physics passes {ours['physics_hz']:.0f} / {anchor['physics_hz']:.0f} Hz")
+        print(
+            f"\nours / anchor: min rate ratio {min_ratio(ours):.2f} / {min_ratio(anchor):.2f} = "
+            f"{min_ratio(ours) / max(min_ratio(anchor), 1e-9):.2f}x; received captures/s "
+            f"{sum(ours['received_hz'].values()):.0f} / {sum(anchor['received_hz'].values()):.0f}; "
+            f"fleet_sim CPU {ours['sim_cpu']:.2f} / {anchor['sim_cpu']:.2f} core-s/s; loop step "
+            f"{ours['step_ms']:.1f} ms; physics passes {ours['physics_hz']:.0f} / {anchor['physics_hz']:.0f} Hz"
+        )
     print(f"load average at end {os.getloadavg()[0]:.1f} (other processes share these cores)")
     return 0
 

@@ -10,6 +10,7 @@ shutdown); figures into docs/benchmarks/fleet_size.md.
 
     python bench/fleet_size.py [--fleets fleet.yaml,fleets/fleet16.yaml] [--duration 40] [--out DIR]
 """
+
 import argparse
 import collections
 import csv
@@ -58,10 +59,15 @@ def _kind(pid):
         return None
     for arg in argv:
         if arg.startswith("__name:="):
-            return re.sub(r"^[a-z]+_\d+_", "", arg[len("__name:="):])
+            return re.sub(r"^[a-z]+_\d+_", "", arg[len("__name:=") :])
     line = " ".join(argv)
-    for key, name in (("rosmaster", "rosmaster"), ("zenoh_bridge", "zenoh_bridge"), ("spawn_main", "sensor_worker"),
-                      ("rosout", "rosout"), ("cps_bringup", "cps_bringup")):
+    for key, name in (
+        ("rosmaster", "rosmaster"),
+        ("zenoh_bridge", "zenoh_bridge"),
+        ("spawn_main", "sensor_worker"),
+        ("rosout", "rosout"),
+        ("cps_bringup", "cps_bringup"),
+    ):
         if key in line:
             return name
     return os.path.basename(argv[0]) if argv and argv[0] else "other"
@@ -97,8 +103,9 @@ class TreeSampler(threading.Thread):
                 by_kind[kind] += (cpu - previous.get(pid, cpu)) / (now - then)
             with open("/proc/loadavg") as stream:
                 load = float(stream.read().split()[0])
-            self.samples.append({"t": now, "procs": len(current), "cores": sum(by_kind.values()), "load": load,
-                                 "by": by_kind})
+            self.samples.append(
+                {"t": now, "procs": len(current), "cores": sum(by_kind.values()), "load": load, "by": by_kind}
+            )
             previous, then = current, now
 
 
@@ -115,8 +122,12 @@ def run_fleet(fleet_file, duration_s, out_dir):
 
     fleet = load_fleet(fleet_file)
     started = time.monotonic()
-    proc = subprocess.Popen([sys.executable, BRINGUP, "all", "--fleet", fleet_file, "--duration", str(duration_s),
-                             "--out", out_dir], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, BRINGUP, "all", "--fleet", fleet_file, "--duration", str(duration_s), "--out", out_dir],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     sampler = TreeSampler(proc.pid)
     sampler.start()
     log, up_at, ended_at = [], None, None
@@ -140,7 +151,10 @@ def run_fleet(fleet_file, duration_s, out_dir):
     for sample in steady:
         for kind, cores in sample["by"].items():
             by_kind[kind] += cores / len(steady)
-    physical, twin = _per_topic(os.path.join(out_dir, "physical_stats.csv")), _per_topic(os.path.join(out_dir, "stats.csv"))
+    physical, twin = (
+        _per_topic(os.path.join(out_dir, "physical_stats.csv")),
+        _per_topic(os.path.join(out_dir, "stats.csv")),
+    )
     first_odom = min(t for topic, rows in twin.items() if topic.endswith("/" + names.ODOM) for t, n in rows if n > 0)
     t0, t1 = first_odom + 5.0, first_odom + duration_s
 
@@ -154,18 +168,30 @@ def run_fleet(fleet_file, duration_s, out_dir):
     for robot in fleet.robots:
         sensor = "lidar" if robot.has_lidar else "depth"
         configured = fleet.profile.lidar.rate_hz if robot.has_lidar else fleet.profile.depth_camera.rate_hz
-        robots.append({
-            "robot": robot.name, "sensor": sensor, "configured_hz": configured,
-            "robots_side_hz": rate(physical.get(names.absolute(names.robot_topic(robot.name, names.POINTS_FILTERED)), [])),
-            "twin_managed_hz": rate(twin.get(f"/twin/{robot.name}/points_filtered/draco/managed", [])),
-            "odom_at_twin_hz": rate(twin.get(names.absolute(names.robot_topic(robot.name, names.ODOM)), [])),
-        })
+        robots.append(
+            {
+                "robot": robot.name,
+                "sensor": sensor,
+                "configured_hz": configured,
+                "robots_side_hz": rate(
+                    physical.get(names.absolute(names.robot_topic(robot.name, names.POINTS_FILTERED)), [])
+                ),
+                "twin_managed_hz": rate(twin.get(f"/twin/{robot.name}/points_filtered/draco/managed", [])),
+                "odom_at_twin_hz": rate(twin.get(names.absolute(names.robot_topic(robot.name, names.ODOM)), [])),
+            }
+        )
     return {
-        "fleet": os.path.relpath(fleet_file, CONFIG), "robots": len(fleet.robots), "exit_code": proc.returncode,
-        "processes_up": up, "cores": sum(s["cores"] for s in steady) / len(steady), "load": [s["load"] for s in steady],
-        "by_kind": dict(by_kind.most_common()), "per_robot": robots,
+        "fleet": os.path.relpath(fleet_file, CONFIG),
+        "robots": len(fleet.robots),
+        "exit_code": proc.returncode,
+        "processes_up": up,
+        "cores": sum(s["cores"] for s in steady) / len(steady),
+        "load": [s["load"] for s in steady],
+        "by_kind": dict(by_kind.most_common()),
+        "per_robot": robots,
         "all_robots_up": all(r["robots_side_hz"] > 0 and r["twin_managed_hz"] > 0 for r in robots),
-        "shutdown_s": finished - ended_at if ended_at else None, "wall_s": finished - started,
+        "shutdown_s": finished - ended_at if ended_at else None,
+        "wall_s": finished - started,
     }
 
 
@@ -176,34 +202,47 @@ def _mean(values):
 
 def report(results):
     anchor = results[0]
-    print("| fleet | robots | all up | processes | cores (of 2) | sensor Hz per robot, robots' side: lidar / depth "
-          "(configured 5 / 10) | twin managed Hz | odom at twin Hz (50) | shutdown s |")
+    print(
+        "| fleet | robots | all up | processes | cores (of 2) | sensor Hz per robot, robots' side: lidar / depth "
+        "(configured 5 / 10) | twin managed Hz | odom at twin Hz (50) | shutdown s |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in results:
         lidar = [x["robots_side_hz"] for x in r["per_robot"] if x["sensor"] == "lidar"]
         depth = [x["robots_side_hz"] for x in r["per_robot"] if x["sensor"] == "depth"]
-        print(f"| {r['fleet']} | {r['robots']} | {'yes' if r['all_robots_up'] else 'NO'} | {r['processes_up']} | "
-              f"{r['cores']:.2f} | {_mean(lidar):.2f} / {_mean(depth):.2f} | "
-              f"{_mean(x['twin_managed_hz'] for x in r['per_robot']):.2f} | "
-              f"{_mean(x['odom_at_twin_hz'] for x in r['per_robot']):.1f} | {r['shutdown_s'] or float('nan'):.0f} |")
+        print(
+            f"| {r['fleet']} | {r['robots']} | {'yes' if r['all_robots_up'] else 'NO'} | {r['processes_up']} | "
+            f"{r['cores']:.2f} | {_mean(lidar):.2f} / {_mean(depth):.2f} | "
+            f"{_mean(x['twin_managed_hz'] for x in r['per_robot']):.2f} | "
+            f"{_mean(x['odom_at_twin_hz'] for x in r['per_robot']):.1f} | {r['shutdown_s'] or float('nan'):.0f} |"
+        )
     for r in results[1:]:
-        ratio = _mean(x["robots_side_hz"] for x in r["per_robot"]) / _mean(x["robots_side_hz"] for x in anchor["per_robot"])
-        print(f"\n{r['fleet']}: per-robot sensor rate {ratio:.2f}x the anchor's ({anchor['fleet']}), "
-              f"{r['robots'] / anchor['robots']:.0f}x the robots, processes {r['processes_up'] / anchor['processes_up']:.1f}x")
+        ratio = _mean(x["robots_side_hz"] for x in r["per_robot"]) / _mean(
+            x["robots_side_hz"] for x in anchor["per_robot"]
+        )
+        print(
+            f"\n{r['fleet']}: per-robot sensor rate {ratio:.2f}x the anchor's ({anchor['fleet']}), "
+            f"{r['robots'] / anchor['robots']:.0f}x the robots, processes {r['processes_up'] / anchor['processes_up']:.1f}x"
+        )
     for r in results:
-        print(f"\n{r['fleet']}: cores by node kind (steady state): "
-              + ", ".join(f"{k} {v:.2f}" for k, v in r["by_kind"].items() if v >= 0.01))
+        print(
+            f"\n{r['fleet']}: cores by node kind (steady state): "
+            + ", ".join(f"{k} {v:.2f}" for k, v in r["by_kind"].items() if v >= 0.01)
+        )
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--fleets", default="fleet.yaml,fleets/fleet16.yaml",
-                        help="fleet files relative to cps_bringup/config (the first is the anchor)")
+    parser.add_argument(
+        "--fleets",
+        default="fleet.yaml,fleets/fleet16.yaml",
+        help="fleet files relative to cps_bringup/config (the first is the anchor)",
+    )
     parser.add_argument("--duration", type=float, default=40.0)
     parser.add_argument("--out", default=None, help="folder for the missions' outputs (default: a new temporary one)")
     args = parser.parse_args()
     out = args.out or tempfile.mkdtemp(prefix="cps-fleet-size-")
-    os.chmod(out, 0o777)   # the nodes run as 'nobody' when the bench runs as root
+    os.chmod(out, 0o777)  # the nodes run as 'nobody' when the bench runs as root
     results = []
     for name in args.fleets.split(","):
         folder = os.path.join(out, re.sub(r"\W+", "_", name))

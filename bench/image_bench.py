@@ -11,6 +11,7 @@ against the link's reserve for unmanaged traffic and the whole link. Frames are 
 cameras rendered by cps_sim at their sample poses (a synthetic hall picture with --no-sim or when
 cps_sim cannot render). Single-threaded; the machine is shared, so timings are noisy (median).
 """
+
 import argparse
 import statistics
 import time
@@ -62,8 +63,10 @@ def main():
     link = fleet.link
     reserve_mbytes = link.available_mbps * link.reserve_fraction / 8.0
     link_mbytes = link.available_mbps / 8.0
-    print(f"link {link.available_mbps:.0f} Mbit/s = {link_mbytes:.2f} MB/s; reserve for unmanaged traffic "
-          f"{link.reserve_fraction:.0%} = {reserve_mbytes:.3f} MB/s (one camera would have all of it)")
+    print(
+        f"link {link.available_mbps:.0f} Mbit/s = {link_mbytes:.2f} MB/s; reserve for unmanaged traffic "
+        f"{link.reserve_fraction:.0%} = {reserve_mbytes:.3f} MB/s (one camera would have all of it)"
+    )
     for profile in ("light", "paper"):
         camera = load_fleet(profile=profile).profile.depth_camera
         width, height, rate_hz = camera.width, camera.height, camera.rate_hz
@@ -76,10 +79,14 @@ def main():
         frames["synthetic"] = camera_test_image(width, height)
         raw_bytes = width * height * 3
         raw_mbytes = raw_bytes * rate_hz / 1e6
-        print(f"\n{profile}: {width}x{height} rgb8 at {rate_hz:g} Hz; raw {raw_bytes} B/frame = {raw_mbytes:.2f} MB/s "
-              f"= {raw_mbytes / reserve_mbytes:.1f}x the reserve, {raw_mbytes / link_mbytes:.0%} of the link (anchor)")
-        print(f"  {'frame':<10} {'q':>3} {'enc ms':>7} {'dec ms':>7} {'bytes':>7} {'raw/jpeg':>8} {'PSNR dB':>7} "
-              f"{'MB/s':>6} {'x reserve':>9} {'% link':>6} {'Hz in reserve':>13}")
+        print(
+            f"\n{profile}: {width}x{height} rgb8 at {rate_hz:g} Hz; raw {raw_bytes} B/frame = {raw_mbytes:.2f} MB/s "
+            f"= {raw_mbytes / reserve_mbytes:.1f}x the reserve, {raw_mbytes / link_mbytes:.0%} of the link (anchor)"
+        )
+        print(
+            f"  {'frame':<10} {'q':>3} {'enc ms':>7} {'dec ms':>7} {'bytes':>7} {'raw/jpeg':>8} {'PSNR dB':>7} "
+            f"{'MB/s':>6} {'x reserve':>9} {'% link':>6} {'Hz in reserve':>13}"
+        )
         for name, rgb in frames.items():
             data = rgb.tobytes()
             for quality in QUALITIES:
@@ -87,9 +94,11 @@ def main():
                 enc_ms = timed_ms(lambda: compress_image("rgb8", width, height, 3 * width, data, quality), args.repeats)
                 dec_ms = timed_ms(lambda: decode_jpeg(jpeg), args.repeats)
                 mbytes = len(jpeg) * rate_hz / 1e6
-                print(f"  {name:<10} {quality:>3} {enc_ms:>7.2f} {dec_ms:>7.2f} {len(jpeg):>7} {raw_bytes / len(jpeg):>8.1f} "
-                      f"{psnr_db(rgb, decode_jpeg(jpeg)):>7.1f} {mbytes:>6.3f} {mbytes / reserve_mbytes:>9.2f} "
-                      f"{mbytes / link_mbytes:>6.1%} {reserve_mbytes * 1e6 / len(jpeg):>13.1f}")
+                print(
+                    f"  {name:<10} {quality:>3} {enc_ms:>7.2f} {dec_ms:>7.2f} {len(jpeg):>7} {raw_bytes / len(jpeg):>8.1f} "
+                    f"{psnr_db(rgb, decode_jpeg(jpeg)):>7.1f} {mbytes:>6.3f} {mbytes / reserve_mbytes:>9.2f} "
+                    f"{mbytes / link_mbytes:>6.1%} {reserve_mbytes * 1e6 / len(jpeg):>13.1f}"
+                )
         print(f"  format on the wire: '{fmt}'")
 
 

@@ -11,6 +11,7 @@ the bridges' CPU seconds per MB carried and (4) their throughput ceiling over an
 Results go to stdout and docs/benchmarks/link.md's figures are from it. The machine is shared and
 has 2 cores; the load generator and recorders run on them too.
 """
+
 import argparse
 import os
 import subprocess
@@ -19,20 +20,28 @@ import tempfile
 import time
 
 import numpy as np
+from cps_experiments.cut_analysis import ages_after, read_watch
+from cps_experiments.transport_compare import (
+    FIXTURES,
+    LIVE,
+    Graphs,
+    bridge_pids,
+    cpu_s,
+    start_load,
+    teleop_under_saturation,
+)
 
 from cps_fleet import names
-from cps_experiments.cut_analysis import ages_after, read_watch
 from cps_link.netns_link import PHYS_IP, TWIN_IP, ShapedLink, namespace
-from cps_experiments.transport_compare import (FIXTURES, LIVE, Graphs, bridge_pids, cpu_s, start_load,
-                                        teleop_under_saturation)
 from cps_link.zenoh_session import MAKE_CERTS
 
 LINK_NAME = "cpszl"
 
 
 def _set_link(up):
-    subprocess.run(["ip", "-n", namespace(LINK_NAME, "phys"), "link", "set", f"{LINK_NAME}_p", "up" if up else "down"],
-                   check=True)
+    subprocess.run(
+        ["ip", "-n", namespace(LINK_NAME, "phys"), "link", "set", f"{LINK_NAME}_p", "up" if up else "down"], check=True
+    )
 
 
 def run(transport, args, cert_dir, tmp):
@@ -41,8 +50,16 @@ def run(transport, args, cert_dir, tmp):
         graphs = Graphs(link, transport, cert_dir)
         try:
             watch = os.path.join(tmp, f"{transport}_watch.txt")
-            graphs.start("twin", [sys.executable, os.path.join(FIXTURES, "link_watch.py"), watch,
-                                  *[graphs.managed_topic_on_twin(r) for r in LIVE]], "watch")
+            graphs.start(
+                "twin",
+                [
+                    sys.executable,
+                    os.path.join(FIXTURES, "link_watch.py"),
+                    watch,
+                    *[graphs.managed_topic_on_twin(r) for r in LIVE],
+                ],
+                "watch",
+            )
             load = start_load(graphs, LIVE, "load")
             time.sleep(args.phase_s)
             if transport == "zenoh":
@@ -79,8 +96,16 @@ def ceiling(cert_dir, tmp, seconds):
         graphs = Graphs(link, "zenoh", cert_dir)
         try:
             watch = os.path.join(tmp, "ceiling_watch.txt")
-            graphs.start("twin", [sys.executable, os.path.join(FIXTURES, "link_watch.py"), watch,
-                                  names.absolute(names.managed_cloud_at_twin("scout"))], "watch")
+            graphs.start(
+                "twin",
+                [
+                    sys.executable,
+                    os.path.join(FIXTURES, "link_watch.py"),
+                    watch,
+                    names.absolute(names.managed_cloud_at_twin("scout")),
+                ],
+                "watch",
+            )
             time.sleep(3.0)
             start_load(graphs, {"scout": (100000, 1000.0)}, "load")
             time.sleep(4.0)
@@ -107,21 +132,26 @@ def main():
         subprocess.run([MAKE_CERTS, cert_dir], check=True, capture_output=True)
         results = {t: run(t, args, cert_dir, tmp) for t in ("tcpros", "zenoh")}
         results["zenoh"]["ceiling_mbytes_per_s"] = ceiling(cert_dir, tmp, seconds=8.0)
-    print(f"link {args.rate} (tc tbf veth, {PHYS_IP} <-> {TWIN_IP}), cut {args.cut_s:.0f} s, "
-          f"phases {args.phase_s:.0f} s")
+    print(
+        f"link {args.rate} (tc tbf veth, {PHYS_IP} <-> {TWIN_IP}), cut {args.cut_s:.0f} s, phases {args.phase_s:.0f} s"
+    )
     print(f"{'':34s} {'tcpros':>10s} {'zenoh':>10s}")
-    rows = [("stale after cut: max (s)", "stale_max_s", "{:.2f}"),
-            ("stale after cut: p95 (s)", "stale_p95_s", "{:.2f}"),
-            ("clouds received after cut", "after_cut_messages", "{:d}"),
-            ("teleop under saturation p50 (ms)", "teleop_p50_ms", "{:.1f}"),
-            ("teleop under saturation p95 (ms)", "teleop_p95_ms", "{:.1f}"),
-            ("teleop commands", "teleop_commands", "{:d}")]
+    rows = [
+        ("stale after cut: max (s)", "stale_max_s", "{:.2f}"),
+        ("stale after cut: p95 (s)", "stale_p95_s", "{:.2f}"),
+        ("clouds received after cut", "after_cut_messages", "{:d}"),
+        ("teleop under saturation p50 (ms)", "teleop_p50_ms", "{:.1f}"),
+        ("teleop under saturation p95 (ms)", "teleop_p95_ms", "{:.1f}"),
+        ("teleop commands", "teleop_commands", "{:d}"),
+    ]
     for label, key, fmt in rows:
         print(f"{label:34s} " + " ".join(f"{fmt.format(results[t][key]):>10s}" for t in ("tcpros", "zenoh")))
     z = results["zenoh"]
-    print(f"zenoh bridges: {z['cpu_s_per_mb']:.3f} CPU s per MB carried (both sides, at "
-          f"{z['carried_mbytes_per_s']:.2f} MB/s); throughput ceiling {z['ceiling_mbytes_per_s']:.1f} MB/s "
-          f"(100 kB clouds, unshaped veth)")
+    print(
+        f"zenoh bridges: {z['cpu_s_per_mb']:.3f} CPU s per MB carried (both sides, at "
+        f"{z['carried_mbytes_per_s']:.2f} MB/s); throughput ceiling {z['ceiling_mbytes_per_s']:.1f} MB/s "
+        f"(100 kB clouds, unshaped veth)"
+    )
     return 0
 
 

@@ -24,6 +24,7 @@ machine are noisy.
 
     python bench/mapping_bench.py [--profile paper] [--seconds 1] [--runs 3] [--cache clouds.pkl]
 """
+
 import argparse
 import math
 import os
@@ -32,11 +33,17 @@ import time
 
 import numpy as np
 
-from cps_mapping.log_odds_grid import warm_up
-from cps_mapping.fused_map import (FusedLogOddsMap, _finest_voxels, index_to_center, message_fields, new_octree,
-                                   pack_index)
-from cps_mapping.scoring import score_map
 from cps_fleet.fleet import load_fleet
+from cps_mapping.fused_map import (
+    FusedLogOddsMap,
+    _finest_voxels,
+    index_to_center,
+    message_fields,
+    new_octree,
+    pack_index,
+)
+from cps_mapping.log_odds_grid import warm_up
+from cps_mapping.scoring import score_map
 from cps_transport.voxel import voxel_downsample
 
 
@@ -162,17 +169,33 @@ def throughput(fleet, stream, resolution_m, batch, truth, runs):
         max_dl = max((abs(plain_map[k] - ours_map[k]) for k in common), default=0.0)
         ours_keys = set(pack_index(ours_occ).tolist())
         both = len(plain_keys & ours_keys)
-        row = dict(mode=mode, resolution_m=resolution_m, batch=batch, clouds=len(stream), points=points, runs=runs,
-                   plain_s=plain_times, ours_s=ours_times[mode],
-                   plain_clouds_per_s=len(stream) / plain_s, plain_points_per_s=points / plain_s,
-                   ours_clouds_per_s=len(stream) / ours_s, ours_points_per_s=points / ours_s,
-                   speedup=plain_s / ours_s, plain_occupied=len(plain_keys), ours_occupied=len(ours_keys),
-                   plain_in_ours=both / max(len(plain_keys), 1), ours_in_plain=both / max(len(ours_keys), 1),
-                   jaccard=both / max(len(plain_keys | ours_keys), 1),
-                   known_jaccard=len(common) / max(len(plain_map.keys() | ours_map.keys()), 1),
-                   max_log_odds_difference=max_dl, steps_per_cloud=fused._grid.steps / len(stream),
-                   ours_memory_mb=fused.memory_bytes() / 1e6, ours_grid_mb=fused.stats()["grid_bytes"] / 1e6,
-                   grid_voxels=tuple(fused._grid.dims.tolist()), plain_memory_mb=tree.memoryUsage() / 1e6)
+        row = dict(
+            mode=mode,
+            resolution_m=resolution_m,
+            batch=batch,
+            clouds=len(stream),
+            points=points,
+            runs=runs,
+            plain_s=plain_times,
+            ours_s=ours_times[mode],
+            plain_clouds_per_s=len(stream) / plain_s,
+            plain_points_per_s=points / plain_s,
+            ours_clouds_per_s=len(stream) / ours_s,
+            ours_points_per_s=points / ours_s,
+            speedup=plain_s / ours_s,
+            plain_occupied=len(plain_keys),
+            ours_occupied=len(ours_keys),
+            plain_in_ours=both / max(len(plain_keys), 1),
+            ours_in_plain=both / max(len(ours_keys), 1),
+            jaccard=both / max(len(plain_keys | ours_keys), 1),
+            known_jaccard=len(common) / max(len(plain_map.keys() | ours_map.keys()), 1),
+            max_log_odds_difference=max_dl,
+            steps_per_cloud=fused._grid.steps / len(stream),
+            ours_memory_mb=fused.memory_bytes() / 1e6,
+            ours_grid_mb=fused.stats()["grid_bytes"] / 1e6,
+            grid_voxels=tuple(fused._grid.dims.tolist()),
+            plain_memory_mb=tree.memoryUsage() / 1e6,
+        )
         if gt is not None:
             for name, occ in (("plain", plain_occ), ("ours", ours_occ)):
                 s = score_map(index_to_center(occ, resolution_m), gt, resolution_m)
@@ -273,8 +296,15 @@ def keep_up(fleet, stream, queue_size, plain=False, publish_period_s=1.0, exact=
         busy += spent
         sample_until(clock)
         newest[robot] = max(c[0] for c in batch)
-    return {r: dict(p95_age_s=float(np.percentile(ages[r], 95)) if ages[r] else math.inf,
-                    dropped=dropped[r], clouds=sum(c[1] == r for c in stream), busy=busy / end) for r in robots}
+    return {
+        r: dict(
+            p95_age_s=float(np.percentile(ages[r], 95)) if ages[r] else math.inf,
+            dropped=dropped[r],
+            clouds=sum(c[1] == r for c in stream),
+            busy=busy / end,
+        )
+        for r in robots
+    }
 
 
 def main():
@@ -309,43 +339,54 @@ def main():
     per_robot = {}
     for c in stream:
         per_robot.setdefault(c[1], []).append(len(c[2]))
-    print(f"# {len(stream)} clouds ready in {time.perf_counter() - t0:.1f} s (profile {args.profile}, "
-          f"{args.seconds} s per robot at {args.speed} m/s); load average {os.getloadavg()[0]:.1f} on "
-          f"{os.cpu_count()} cores")
+    print(
+        f"# {len(stream)} clouds ready in {time.perf_counter() - t0:.1f} s (profile {args.profile}, "
+        f"{args.seconds} s per robot at {args.speed} m/s); load average {os.getloadavg()[0]:.1f} on "
+        f"{os.cpu_count()} cores"
+    )
     for robot, sizes in per_robot.items():
         print(f"#   {robot}: {len(sizes)} clouds, {np.mean(sizes):.0f} points/cloud after the tissue's voxel grid")
     warm_up()  # load (or compile) the kernels outside the timing
 
     print(f"\n## Throughput (ours vs plain sequential OctoMap insertion, same clouds, median of {args.runs} runs)")
-    print("| res m | batch | ours: free space | plain clouds/s | plain points/s | ours clouds/s | ours points/s | "
-          "speed-up | plain occ. in ours | ours occ. in plain | Jaccard occ. | Jaccard known | max abs log-odds diff | "
-          "voxel steps/cloud | F1 exact plain | F1 exact ours | F1 within ±1 voxel plain | F1 within ±1 voxel ours | plain s (runs) | ours s (runs) | plain tree MB | "
-          "ours grid MB (voxels) |")
+    print(
+        "| res m | batch | ours: free space | plain clouds/s | plain points/s | ours clouds/s | ours points/s | "
+        "speed-up | plain occ. in ours | ours occ. in plain | Jaccard occ. | Jaccard known | max abs log-odds diff | "
+        "voxel steps/cloud | F1 exact plain | F1 exact ours | F1 within ±1 voxel plain | F1 within ±1 voxel ours | plain s (runs) | ours s (runs) | plain tree MB | "
+        "ours grid MB (voxels) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for res in args.resolutions:
         for batch in args.batch:
             for r in throughput(fleet, stream, res, batch, site, args.runs):
-                print(f"| {res} | {batch} | {r['mode']} | {r['plain_clouds_per_s']:.1f} | {r['plain_points_per_s']:.0f} | "
-                      f"{r['ours_clouds_per_s']:.1f} | {r['ours_points_per_s']:.0f} | {r['speedup']:.1f}x | "
-                      f"{r['plain_in_ours']:.4f} | {r['ours_in_plain']:.4f} | {r['jaccard']:.4f} | "
-                      f"{r['known_jaccard']:.4f} | {r['max_log_odds_difference']:.1e} | {r['steps_per_cloud']:.0f} | "
-                      f"{r['plain_f1_exact']:.3f} | {r['ours_f1_exact']:.3f} | "
-                      f"{r['plain_f1_within_1_voxel']:.3f} | {r['ours_f1_within_1_voxel']:.3f} | "
-                      f"{' '.join(f'{x:.2f}' for x in r['plain_s'])} | {' '.join(f'{x:.3f}' for x in r['ours_s'])} | "
-                      f"{r['plain_memory_mb']:.0f} | {r['ours_grid_mb']:.0f} ({'x'.join(map(str, r['grid_voxels']))}) |",
-                      flush=True)
+                print(
+                    f"| {res} | {batch} | {r['mode']} | {r['plain_clouds_per_s']:.1f} | {r['plain_points_per_s']:.0f} | "
+                    f"{r['ours_clouds_per_s']:.1f} | {r['ours_points_per_s']:.0f} | {r['speedup']:.1f}x | "
+                    f"{r['plain_in_ours']:.4f} | {r['ours_in_plain']:.4f} | {r['jaccard']:.4f} | "
+                    f"{r['known_jaccard']:.4f} | {r['max_log_odds_difference']:.1e} | {r['steps_per_cloud']:.0f} | "
+                    f"{r['plain_f1_exact']:.3f} | {r['ours_f1_exact']:.3f} | "
+                    f"{r['plain_f1_within_1_voxel']:.3f} | {r['ours_f1_within_1_voxel']:.3f} | "
+                    f"{' '.join(f'{x:.2f}' for x in r['plain_s'])} | {' '.join(f'{x:.3f}' for x in r['ours_s'])} | "
+                    f"{r['plain_memory_mb']:.0f} | {r['ours_grid_mb']:.0f} ({'x'.join(map(str, r['grid_voxels']))}) |",
+                    flush=True,
+                )
             print(f"<!-- load average {os.getloadavg()[0]:.1f} after {res} m batch {batch} -->", flush=True)
 
-    print(f"\n## Keeping up: four robots at managed rates for {args.keep_up_s:g} s, queue {args.queue_size} per robot, "
-          f"{fleet.mapping.resolution_m} m (fleet.yaml), publisher snapshot every 1 s")
+    print(
+        f"\n## Keeping up: four robots at managed rates for {args.keep_up_s:g} s, queue {args.queue_size} per robot, "
+        f"{fleet.mapping.resolution_m} m (fleet.yaml), publisher snapshot every 1 s"
+    )
     print("| ours: free space | depth Hz | lidar Hz | robot | clouds | dropped | map age p95 s | worker busy |")
     print("|---|---|---|---|---|---|---|---|")
     for mode, exact in (("shared-origin", False), ("exact", True)):
         for depth_hz in args.depth_hz:
             replayed = replay(stream, depth_hz, args.lidar_hz, args.keep_up_s, fleet)
             for robot, r in keep_up(fleet, replayed, args.queue_size, exact=exact).items():
-                print(f"| {mode} | {depth_hz:g} | {args.lidar_hz:g} | {robot} | {r['clouds']} | {r['dropped']} | "
-                      f"{r['p95_age_s']:.2f} | {r['busy']:.0%} |", flush=True)
+                print(
+                    f"| {mode} | {depth_hz:g} | {args.lidar_hz:g} | {robot} | {r['clouds']} | {r['dropped']} | "
+                    f"{r['p95_age_s']:.2f} | {r['busy']:.0%} |",
+                    flush=True,
+                )
     print(f"<!-- load average {os.getloadavg()[0]:.1f} at the end -->")
 
 

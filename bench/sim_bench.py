@@ -16,6 +16,7 @@
 Usage: python bench/sim_bench.py [--frames 15] [--seconds 20] [--workers 2] [--node]
 Timings on a shared machine are noisy; figures are medians and ratios from the same run.
 """
+
 import argparse
 import math
 import multiprocessing
@@ -60,7 +61,8 @@ def _sensor_costs(renderer, frames):
             camera = DepthCamera(sim.world, width, height, cam_cfg.hfov_deg, cam_cfg.near_m, cam_cfg.far_m)
             view = camera.view_matrix(optical)
             out[f"render {width}x{height}"] = _median_ms(
-                lambda: sim.world.render(width, height, view, camera.projection), frames)
+                lambda: sim.world.render(width, height, view, camera.projection), frames
+            )
             out[f"frame {width}x{height}"] = _median_ms(lambda: camera.capture(optical), frames)
         out["lidar scan"] = _median_ms(lambda: sim.capture("scout"), frames)
         return out
@@ -82,10 +84,22 @@ def bench_sensors(frames):
     rows = []
     for width, height in FRAME_SIZES:
         ref = PYBULLET_FOR_SIZE[width]
-        rows.append((f"render() {width}x{height} ({ref})", fast[f"render {width}x{height}"],
-                     pybullet[ref][f"render {width}x{height}"], ">= 5" if width == 640 else ""))
-        rows.append((f"  + depth, cloud {width}x{height}", fast[f"frame {width}x{height}"],
-                     pybullet[ref][f"frame {width}x{height}"], ""))
+        rows.append(
+            (
+                f"render() {width}x{height} ({ref})",
+                fast[f"render {width}x{height}"],
+                pybullet[ref][f"render {width}x{height}"],
+                ">= 5" if width == 640 else "",
+            )
+        )
+        rows.append(
+            (
+                f"  + depth, cloud {width}x{height}",
+                fast[f"frame {width}x{height}"],
+                pybullet[ref][f"frame {width}x{height}"],
+                "",
+            )
+        )
     rows.append(("lidar scan 16x1875 (rayTestBatch)", fast["lidar scan"], pybullet["egl"]["lidar scan"], ">= 10"))
     for label, ours, theirs, target in rows:
         print(f"{label:34s} {ours:8.1f} {theirs:9.1f} {theirs / ours:11.1f} {target:>7s}")
@@ -101,13 +115,14 @@ def _cpu_s(pid):
 def run_sensor_loop(profile, renderer, seconds, workers, warmup_s=4.0):
     """Drive the sensor worker pool as fleet_sim does (EDF over the configured rates) with the
     robots at their sample poses; (core-seconds per second, {robot: (configured Hz, achieved Hz)})."""
+    from multiprocessing.connection import wait
+
     from cps_fleet.fleet import load_fleet
+    from cps_fleet.site import load_site
     from cps_sim.sample_clouds import SAMPLE_POSES
     from cps_sim.scheduling import SensorScheduler
     from cps_sim.sensor_workers import SensorWorkerPool
     from cps_sim.simulation import FleetSimulation
-    from cps_fleet.site import load_site
-    from multiprocessing.connection import wait
 
     fleet = load_fleet(profile=profile)
     site = load_site(fleet.site_path)
@@ -162,8 +177,10 @@ def run_sensor_loop(profile, renderer, seconds, workers, warmup_s=4.0):
 
 
 def bench_fleet_cpu(seconds, workers):
-    print(f"\n== Light profile, sensors at their configured rates, {workers} worker processes, "
-          f"{seconds:.0f} s measured: core-seconds per mission-second (this process + workers) ==")
+    print(
+        f"\n== Light profile, sensors at their configured rates, {workers} worker processes, "
+        f"{seconds:.0f} s measured: core-seconds per mission-second (this process + workers) =="
+    )
     results = {}
     for renderer in ("fast", "auto"):
         in_force, core_s, parent_core_s, rates = run_sensor_loop("light", renderer, seconds, workers)
@@ -171,8 +188,10 @@ def bench_fleet_cpu(seconds, workers):
         scale = sum(c for c, _ in rates.values()) / max(sum(a for _, a in rates.values()), 1e-9)
         results[renderer] = core_s * scale
         achieved = ", ".join(f"{n} {a:.1f}/{c:.0f} Hz" for n, (c, a) in rates.items())
-        print(f"{renderer:5s} (in force: {in_force:4s}) {core_s:5.2f} core-s/s measured (scheduling process "
-              f"{parent_core_s:.2f}), {core_s * scale:5.2f} at the configured rates   {achieved}")
+        print(
+            f"{renderer:5s} (in force: {in_force:4s}) {core_s:5.2f} core-s/s measured (scheduling process "
+            f"{parent_core_s:.2f}), {core_s * scale:5.2f} at the configured rates   {achieved}"
+        )
     print(f"fast / PyBullet at the configured rates: {100 * results['fast'] / results['auto']:.0f} % (target <= 30 %)")
     return results
 
@@ -182,9 +201,11 @@ def bench_paper_rates(seconds, workers):
     in_force, core_s, parent_core_s, rates = run_sensor_loop("paper", "fast", seconds, workers)
     captures_per_s = sum(achieved for _, achieved in rates.values())
     configured_per_s = sum(configured for configured, _ in rates.values())
-    print(f"renderer in force {in_force}, {core_s:.2f} core-s/s (of which scheduling process {parent_core_s:.2f}) "
-          f"for {captures_per_s:.1f} captures/s: the configured {configured_per_s:.0f} captures/s would need "
-          f"~{core_s * configured_per_s / max(captures_per_s, 1e-9):.1f} cores at that cost per capture")
+    print(
+        f"renderer in force {in_force}, {core_s:.2f} core-s/s (of which scheduling process {parent_core_s:.2f}) "
+        f"for {captures_per_s:.1f} captures/s: the configured {configured_per_s:.0f} captures/s would need "
+        f"~{core_s * configured_per_s / max(captures_per_s, 1e-9):.1f} cores at that cost per capture"
+    )
     print(f"{'robot':8s} {'configured Hz':>13s} {'achieved Hz':>11s} {'ratio':>6s} (target >= 0.60)")
     for name, (configured, achieved) in rates.items():
         print(f"{name:8s} {configured:13.1f} {achieved:11.2f} {achieved / configured:6.2f}")
@@ -215,16 +236,25 @@ def bench_node(seconds, workers):
                     if measuring.is_set():
                         with lock:
                             counts[topic] = counts.get(topic, 0) + 1
+
                 return on_msg
 
             node_graph = graph.attach()
-            node_graph.start_node("cps_sim", "fleet_sim", name=f"fleet_sim_{renderer}",
-                                  params={"~profile": "light", "~sensor_workers": workers, "~renderer": renderer})
+            node_graph.start_node(
+                "cps_sim",
+                "fleet_sim",
+                name=f"fleet_sim_{renderer}",
+                params={"~profile": "light", "~sensor_workers": workers, "~renderer": renderer},
+            )
             subs = []
             try:
                 node_graph.wait_for_topic(names.absolute(names.robot_topic("scout", names.POINTS)), timeout_s=120)
-                subs = [rospy.Subscriber(names.robot_topic(r.name, names.POINTS), rospy.AnyMsg, counter(r.name), queue_size=2)
-                        for r in fleet.robots]
+                subs = [
+                    rospy.Subscriber(
+                        names.robot_topic(r.name, names.POINTS), rospy.AnyMsg, counter(r.name), queue_size=2
+                    )
+                    for r in fleet.robots
+                ]
                 time.sleep(5.0)
                 measuring.set()
                 time.sleep(seconds)
@@ -233,8 +263,10 @@ def bench_node(seconds, workers):
                 for sub in subs:
                     sub.unregister()
                 node_graph.close()
-            print(f"fleet_sim node, light, renderer {renderer}: " +
-                  ", ".join(f"{r.name} {counts.get(r.name, 0) / seconds:.1f} Hz" for r in fleet.robots))
+            print(
+                f"fleet_sim node, light, renderer {renderer}: "
+                + ", ".join(f"{r.name} {counts.get(r.name, 0) / seconds:.1f} Hz" for r in fleet.robots)
+            )
     finally:
         rospy.signal_shutdown("bench done")
         graph.close()
@@ -250,8 +282,10 @@ def main(argv=None):
     # As in SensorWorkerPool's workers: one BLAS thread, so the cost children measure what the
     # workers pay (OpenBLAS's spinning threads would otherwise be counted, or compete).
     os.environ.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    print(f"cps_sim benchmark on {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at start, "
-          f"{time.strftime('%Y-%m-%d %H:%M')}")
+    print(
+        f"cps_sim benchmark on {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at start, "
+        f"{time.strftime('%Y-%m-%d %H:%M')}"
+    )
     bench_sensors(args.frames)
     bench_fleet_cpu(args.seconds, args.workers)
     bench_paper_rates(args.seconds, args.workers)

@@ -14,6 +14,7 @@ layouts alternate (A B A B) so that a noisy neighbour hits both.
 
     python bench/tissue_bench.py [--copies 1] [--rate-hz 5] [--window-s 20] [--rounds 2]
 """
+
 import argparse
 import os
 import sys
@@ -80,12 +81,19 @@ class Feeder:
             r = robot.name
             if robot.has_depth_camera:
                 cam = profile.depth_camera
-                cloud = depth_camera_cloud(cam.width, cam.height, cam.hfov_deg, cam.far_m, seed=i,
-                                           frame_id=f"{r}/{robot.sensor_frame}")
+                cloud = depth_camera_cloud(
+                    cam.width, cam.height, cam.hfov_deg, cam.far_m, seed=i, frame_id=f"{r}/{robot.sensor_frame}"
+                )
             else:
                 lid = profile.lidar
-                cloud = lidar_cloud(lid.rings, lid.samples_per_ring, lid.vertical_fov_deg, lid.max_range_m, seed=i,
-                                    frame_id=f"{r}/{robot.sensor_frame}")
+                cloud = lidar_cloud(
+                    lid.rings,
+                    lid.samples_per_ring,
+                    lid.vertical_fov_deg,
+                    lid.max_range_m,
+                    seed=i,
+                    frame_id=f"{r}/{robot.sensor_frame}",
+                )
             self.clouds[r] = cloud
             self.pubs[r] = rospy.Publisher(names.robot_topic(r, robot.cloud_topic), PointCloud2, queue_size=2)
             twin = {}
@@ -95,10 +103,15 @@ class Feeder:
                     twin["cls"] = relay_class(msg._connection_header)
                     twin["pub"] = rospy.Publisher(f"/twin/{r}/points_filtered/draco/managed", twin["cls"], queue_size=5)
                 twin["pub"].publish(relay_message(twin["cls"], msg))
-            self.relays.append(rospy.Subscriber(names.managed_cloud(r), rospy.AnyMsg, relay,
-                                                queue_size=5, buff_size=1 << 24))
-            self.subs.append(rospy.Subscriber(f"/twin/{r}/points", rospy.AnyMsg, self._count, callback_args=r,
-                                              queue_size=5, buff_size=1 << 24))
+
+            self.relays.append(
+                rospy.Subscriber(names.managed_cloud(r), rospy.AnyMsg, relay, queue_size=5, buff_size=1 << 24)
+            )
+            self.subs.append(
+                rospy.Subscriber(
+                    f"/twin/{r}/points", rospy.AnyMsg, self._count, callback_args=r, queue_size=5, buff_size=1 << 24
+                )
+            )
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -134,11 +147,20 @@ def tissue_specs(fleet, layout):
     """The tissue's processes of both sides in `layout`, as the bringup plans them."""
     from cps_bringup.plan import DIGITAL, PHYSICAL, ZENOH, RunOptions, plan_nodes
 
-    specs = plan_nodes(fleet, sides=(PHYSICAL, DIGITAL),
-                       options=RunOptions(out_dir=tempfile.gettempdir(), transport=ZENOH, tissue_layout=layout))
+    specs = plan_nodes(
+        fleet,
+        sides=(PHYSICAL, DIGITAL),
+        options=RunOptions(out_dir=tempfile.gettempdir(), transport=ZENOH, tissue_layout=layout),
+    )
     tissue = ("nodelet_manager", "voxel_grid_loader", "cloud_tissue", "cloud_decoder")
-    per_robot = ("voxel_grid", "draco_encoder", "cloud_throttle", "image_compressor", "draco_decoder",
-                 "backfill_decoder")
+    per_robot = (
+        "voxel_grid",
+        "draco_encoder",
+        "cloud_throttle",
+        "image_compressor",
+        "draco_decoder",
+        "backfill_decoder",
+    )
     return [s for s in specs if s.label in tissue or s.label.split("/")[-1] in per_robot]
 
 
@@ -155,8 +177,10 @@ def measure(graph, fleet, layout, rate_hz, window_s, warmup_timeout_s=240.0):
         procs.append(graph.popen(list(spec.argv), name=f"{layout}_{spec.label.replace('/', '_')}"))
         if spec.label == "nodelet_manager":
             rospy.wait_for_service(f"{names.TISSUE_NODELET_MANAGER}/load_nodelet", timeout=60)
-    rates = [rospy.Publisher(names.robot_topic(r, names.LIMITER_RATE_HZ), Float64, queue_size=1, latch=True)
-             for r in fleet.robot_names]
+    rates = [
+        rospy.Publisher(names.robot_topic(r, names.LIMITER_RATE_HZ), Float64, queue_size=1, latch=True)
+        for r in fleet.robot_names
+    ]
     for pub in rates:
         pub.publish(Float64(fleet.link.max_rate_hz))
     feeder = Feeder(fleet, rate_hz)
@@ -164,9 +188,12 @@ def measure(graph, fleet, layout, rate_hz, window_s, warmup_timeout_s=240.0):
         up = wait_for(lambda: all(feeder.counts().values()), timeout_s=warmup_timeout_s, poll_s=0.5)
         if not up:
             missing = [r for r, n in feeder.counts().items() if not n]
-            logs = "\n".join(f"--- {p.cps_name} ({'running' if p.poll() is None else p.returncode}):\n"
-                             f"{graph.output(p.cps_name)[-800:]}" for p in procs
-                             if any(r in p.cps_name for r in missing) or "manager" in p.cps_name)
+            logs = "\n".join(
+                f"--- {p.cps_name} ({'running' if p.poll() is None else p.returncode}):\n"
+                f"{graph.output(p.cps_name)[-800:]}"
+                for p in procs
+                if any(r in p.cps_name for r in missing) or "manager" in p.cps_name
+            )
             raise RuntimeError(f"{layout}: no decoded clouds from {missing} within {warmup_timeout_s:.0f} s\n{logs}")
         time.sleep(3.0)  # the first clouds' start-up work (imports, allocations) out of the window
         pids = process_tree([p.pid for p in procs])
@@ -179,8 +206,13 @@ def measure(graph, fleet, layout, rate_hz, window_s, warmup_timeout_s=240.0):
         if dead:
             raise RuntimeError(f"{layout}: {', '.join(dead)} died")
         cpu_s = sum(cpu1[p] - cpu0.get(p, 0.0) for p in cpu1)
-        return {"cpu_s": cpu_s, "clouds": sum(n1[r] - n0[r] for r in n1), "processes": len(procs),
-                "pids": len(pids), "rss_mb": rss / 1e6}
+        return {
+            "cpu_s": cpu_s,
+            "clouds": sum(n1[r] - n0[r] for r in n1),
+            "processes": len(procs),
+            "pids": len(pids),
+            "rss_mb": rss / 1e6,
+        }
     finally:
         feeder.close()
         for pub in rates:
@@ -221,23 +253,32 @@ def main(argv=None):
                 totals[layout]["clouds"] += result["clouds"]
                 totals[layout]["window_s"] += args.window_s
                 info[layout] = result
-                print(f"round {round_ + 1} {layout:9s}: {result['cpu_s']:.2f} CPU-s in {args.window_s:.0f} s, "
-                      f"{result['clouds']} clouds decoded, {result['processes']} processes "
-                      f"({result['pids']} with children), RSS {result['rss_mb']:.0f} MB", flush=True)
+                print(
+                    f"round {round_ + 1} {layout:9s}: {result['cpu_s']:.2f} CPU-s in {args.window_s:.0f} s, "
+                    f"{result['clouds']} clouds decoded, {result['processes']} processes "
+                    f"({result['pids']} with children), RSS {result['rss_mb']:.0f} MB",
+                    flush=True,
+                )
         rospy.signal_shutdown("done")
 
-    print(f"\n{n} robots, {args.rate_hz:g} Hz each (light profile clouds), "
-          f"{args.rounds} x {args.window_s:.0f} s per layout")
+    print(
+        f"\n{n} robots, {args.rate_hz:g} Hz each (light profile clouds), "
+        f"{args.rounds} x {args.window_s:.0f} s per layout"
+    )
     per = {}
     for layout, t in totals.items():
         delivered_hz = t["clouds"] / t["window_s"] / n
         # CPU-seconds per second of mission, per robot, per Hz of clouds delivered = CPU-s per cloud.
         per[layout] = t["cpu_s"] / t["window_s"] / n / delivered_hz
-        print(f"{layout:9s}: {info[layout]['processes']:3d} processes, RSS {info[layout]['rss_mb']:6.0f} MB, "
-              f"{t['cpu_s'] / t['window_s']:.3f} CPU-s/s, {delivered_hz:.2f} Hz delivered per robot, "
-              f"{per[layout] * 1000:.1f} ms CPU per robot per Hz")
-    print(f"shared / per_robot CPU: {per[SHARED] / per[PER_ROBOT]:.2f} "
-          f"(the anchor is per_robot, today's one process per node)")
+        print(
+            f"{layout:9s}: {info[layout]['processes']:3d} processes, RSS {info[layout]['rss_mb']:6.0f} MB, "
+            f"{t['cpu_s'] / t['window_s']:.3f} CPU-s/s, {delivered_hz:.2f} Hz delivered per robot, "
+            f"{per[layout] * 1000:.1f} ms CPU per robot per Hz"
+        )
+    print(
+        f"shared / per_robot CPU: {per[SHARED] / per[PER_ROBOT]:.2f} "
+        f"(the anchor is per_robot, today's one process per node)"
+    )
     return 0
 
 

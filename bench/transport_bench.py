@@ -9,6 +9,7 @@ Prints bytes raw / filtered / compressed and ms for filtering, encoding and deco
 the paper's figures beside ours, and writes Fig. 11/12 as PNG into docs/benchmarks/figures/.
 Single-threaded (numpy and Draco use one core); the machine is shared, so timings are noisy.
 """
+
 import argparse
 import os
 import sys
@@ -19,8 +20,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-
 from cps_experiments import paper  # noqa: E402
+
 from cps_fleet.fleet import load_fleet  # noqa: E402
 from cps_transport.draco import DracoDecoder, DracoEncoder  # noqa: E402
 from cps_transport.pointcloud import cloud_to_array, xyz_of  # noqa: E402
@@ -37,10 +38,14 @@ def load_clouds(frames):
     """robot -> [PointCloud2]; cps_sim's renderer when available, else synthetic clouds."""
     try:
         from cps_sim.sample_clouds import render_mission_clouds
+
         clouds = render_mission_clouds("paper", frames_per_robot=frames)
-        return {robot: [s.cloud for s in samples] for robot, samples in clouds.items()}, "cps_sim.render_mission_clouds (paper profile)"
+        return {
+            robot: [s.cloud for s in samples] for robot, samples in clouds.items()
+        }, "cps_sim.render_mission_clouds (paper profile)"
     except ImportError:
         from cps_harness.synthetic_clouds import depth_camera_cloud, lidar_cloud
+
         fleet = load_fleet(profile="paper")
         out = {}
         for robot in fleet.robots:
@@ -89,9 +94,23 @@ def nodelet_round_trip(clouds, leaf, repeats):
     results = {}
     with RosGraph() as graph:
         os.environ.update(ROS_MASTER_URI=graph.uri, ROS_IP="127.0.0.1")
-        graph.popen(["rosrun", "nodelet", "nodelet", "standalone", "pcl/VoxelGrid", "__name:=bench_voxel",
-                     "~input:=/bench/in", "~output:=/bench/out", f"_leaf_size:={leaf}", "_filter_field_name:=",
-                     "_filter_limit_min:=-1e6", "_filter_limit_max:=1e6"], name="nodelet")
+        graph.popen(
+            [
+                "rosrun",
+                "nodelet",
+                "nodelet",
+                "standalone",
+                "pcl/VoxelGrid",
+                "__name:=bench_voxel",
+                "~input:=/bench/in",
+                "~output:=/bench/out",
+                f"_leaf_size:={leaf}",
+                "_filter_field_name:=",
+                "_filter_limit_min:=-1e6",
+                "_filter_limit_max:=1e6",
+            ],
+            name="nodelet",
+        )
         graph.wait_for_topic("/bench/out", timeout_s=30)
         graph.point_this_process_here()
         rospy.init_node("transport_bench", anonymous=True, disable_signals=True)
@@ -100,6 +119,7 @@ def nodelet_round_trip(clouds, leaf, repeats):
         def on_out(msg):
             box["t"], box["msg"] = time.perf_counter(), msg
             got.set()
+
         sub = rospy.Subscriber("/bench/out", PointCloud2, on_out, buff_size=1 << 25)
         pub = rospy.Publisher("/bench/in", PointCloud2, queue_size=1)
         deadline = time.monotonic() + 10
@@ -139,34 +159,50 @@ def main():
     args = parser.parse_args()
 
     fleet = load_fleet(profile="paper")
-    rates = {r.name: (fleet.profile.lidar.rate_hz if r.has_lidar else fleet.profile.depth_camera.rate_hz)
-             for r in fleet.robots}
+    rates = {
+        r.name: (fleet.profile.lidar.rate_hz if r.has_lidar else fleet.profile.depth_camera.rate_hz)
+        for r in fleet.robots
+    }
     clouds, source = load_clouds(args.frames)
-    print(f"clouds: {source}; {args.frames} frame(s) per robot; timings best of {args.repeats}, one core, "
-          f"shared 2-core machine (noisy)\n")
+    print(
+        f"clouds: {source}; {args.frames} frame(s) per robot; timings best of {args.repeats}, one core, "
+        f"shared 2-core machine (noisy)\n"
+    )
 
     results = {}  # (robot, leaf) -> [row per frame]
     for robot, robot_clouds in clouds.items():
         for leaf in LEAF_SIZES_M:
             results[(robot, leaf)] = [measure(c, leaf, args.repeats) for c in robot_clouds]
 
-    print("Per cloud (mean over frames): ours = voxel (numpy, all fields) + Draco (xyz, tolerance leaf/2, speed 7, no dedup);")
-    print("anchor = Draco as point_cloud_transport's defaults (speed 7, 14 bits, dedup on, all fields) on the same filtered cloud\n")
-    header = (f"{'robot':7s} {'leaf m':>6s} {'points':>7s} {'voxels':>7s} {'raw kB':>8s} {'filt kB':>8s} {'ours kB':>8s} "
-              f"{'bits':>4s} {'err mm':>6s} {'vox ms':>6s} {'enc ms':>6s} {'dec ms':>6s} | {'anch kB':>8s} {'enc ms':>6s} {'dec ms':>6s}")
+    print(
+        "Per cloud (mean over frames): ours = voxel (numpy, all fields) + Draco (xyz, tolerance leaf/2, speed 7, no dedup);"
+    )
+    print(
+        "anchor = Draco as point_cloud_transport's defaults (speed 7, 14 bits, dedup on, all fields) on the same filtered cloud\n"
+    )
+    header = (
+        f"{'robot':7s} {'leaf m':>6s} {'points':>7s} {'voxels':>7s} {'raw kB':>8s} {'filt kB':>8s} {'ours kB':>8s} "
+        f"{'bits':>4s} {'err mm':>6s} {'vox ms':>6s} {'enc ms':>6s} {'dec ms':>6s} | {'anch kB':>8s} {'enc ms':>6s} {'dec ms':>6s}"
+    )
     print(header)
     print("-" * len(header))
     for (robot, leaf), rows in results.items():
         m = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-        print(f"{robot:7s} {leaf:6.2f} {m['points']:7.0f} {m['voxels']:7.0f} {m['raw_bytes'] / 1e3:8.1f} "
-              f"{m['filtered_bytes'] / 1e3:8.1f} {m['compressed_bytes'] / 1e3:8.1f} {m['position_bits']:4.0f} "
-              f"{1e3 * max(r['max_error_m'] for r in rows):6.1f} {m['voxel_ms']:6.1f} {m['encode_ms']:6.1f} "
-              f"{m['decode_ms']:6.1f} | {m['anchor_bytes'] / 1e3:8.1f} {m['anchor_encode_ms']:6.1f} {m['anchor_decode_ms']:6.1f}")
+        print(
+            f"{robot:7s} {leaf:6.2f} {m['points']:7.0f} {m['voxels']:7.0f} {m['raw_bytes'] / 1e3:8.1f} "
+            f"{m['filtered_bytes'] / 1e3:8.1f} {m['compressed_bytes'] / 1e3:8.1f} {m['position_bits']:4.0f} "
+            f"{1e3 * max(r['max_error_m'] for r in rows):6.1f} {m['voxel_ms']:6.1f} {m['encode_ms']:6.1f} "
+            f"{m['decode_ms']:6.1f} | {m['anchor_bytes'] / 1e3:8.1f} {m['anchor_encode_ms']:6.1f} {m['anchor_decode_ms']:6.1f}"
+        )
 
     # Table 4 layout at 0.10 m.
-    print("\nTable 4 layout, voxel 0.10 m for every robot, MB/s at the nominal rates (min-max over frames); paper in [ ]")
-    print(f"{'robot':7s} {'Hz':>3s} {'raw':>17s} {'[paper]':>15s} {'filtered':>15s} {'[paper]':>13s} {'compressed':>13s} "
-          f"{'[paper]':>11s} {'anchor':>13s}")
+    print(
+        "\nTable 4 layout, voxel 0.10 m for every robot, MB/s at the nominal rates (min-max over frames); paper in [ ]"
+    )
+    print(
+        f"{'robot':7s} {'Hz':>3s} {'raw':>17s} {'[paper]':>15s} {'filtered':>15s} {'[paper]':>13s} {'compressed':>13s} "
+        f"{'[paper]':>11s} {'anchor':>13s}"
+    )
     totals = np.zeros((4, 2))
     for robot in clouds:
         rows, rate = results[(robot, 0.10)], rates[robot]
@@ -177,29 +213,41 @@ def main():
         totals += np.array([raw, filt, comp, anch])
         paper = PAPER_TABLE4.get(robot)
         pr = (lambda i: f"[{paper[i][0]:.2f}-{paper[i][1]:.2f}]") if paper else (lambda i: "")
-        print(f"{robot:7s} {rate:3.0f} {raw[0]:8.2f}-{raw[1]:8.2f} {pr(0):>15s} {filt[0]:7.2f}-{filt[1]:7.2f} {pr(1):>13s} "
-              f"{comp[0]:6.3f}-{comp[1]:6.3f} {pr(2):>11s} {anch[0]:6.3f}-{anch[1]:6.3f}")
+        print(
+            f"{robot:7s} {rate:3.0f} {raw[0]:8.2f}-{raw[1]:8.2f} {pr(0):>15s} {filt[0]:7.2f}-{filt[1]:7.2f} {pr(1):>13s} "
+            f"{comp[0]:6.3f}-{comp[1]:6.3f} {pr(2):>11s} {anch[0]:6.3f}-{anch[1]:6.3f}"
+        )
     pt = PAPER_TOTAL
-    print(f"{'total':7s} {'':3s} {totals[0, 0]:8.2f}-{totals[0, 1]:8.2f} {f'[{pt[0][0]}-{pt[0][1]}]':>15s} "
-          f"{totals[1, 0]:7.2f}-{totals[1, 1]:7.2f} {f'[{pt[1][0]}-{pt[1][1]}]':>13s} {totals[2, 0]:6.3f}-{totals[2, 1]:6.3f} "
-          f"{f'[{pt[2][0]}-{pt[2][1]}]':>11s} {totals[3, 0]:6.3f}-{totals[3, 1]:6.3f}")
+    print(
+        f"{'total':7s} {'':3s} {totals[0, 0]:8.2f}-{totals[0, 1]:8.2f} {f'[{pt[0][0]}-{pt[0][1]}]':>15s} "
+        f"{totals[1, 0]:7.2f}-{totals[1, 1]:7.2f} {f'[{pt[1][0]}-{pt[1][1]}]':>13s} {totals[2, 0]:6.3f}-{totals[2, 1]:6.3f} "
+        f"{f'[{pt[2][0]}-{pt[2][1]}]':>11s} {totals[3, 0]:6.3f}-{totals[3, 1]:6.3f}"
+    )
     reduction = 100.0 * (1.0 - totals[2, 1] / totals[0, 1])
     reduction_anchor = 100.0 * (1.0 - totals[3, 1] / totals[0, 1])
-    print(f"\nreduction raw -> compressed at 0.10 m (max): ours {reduction:.2f} % (target >= 99.5 %), "
-          f"anchor {reduction_anchor:.2f} %, paper {100 * (1 - pt[2][1] / pt[0][1]):.2f} % (8.71 / 874.5 MB/s: 99.0 %)")
+    print(
+        f"\nreduction raw -> compressed at 0.10 m (max): ours {reduction:.2f} % (target >= 99.5 %), "
+        f"anchor {reduction_anchor:.2f} %, paper {100 * (1 - pt[2][1] / pt[0][1]):.2f} % (8.71 / 874.5 MB/s: 99.0 %)"
+    )
     worst_error = max(r["max_error_m"] for (_, leaf), rows in results.items() for r in rows if leaf == 0.10)
     print(f"max position error at 0.10 m: {1e3 * worst_error:.1f} mm (bound: half a leaf, 50 mm)")
 
-    depth_rows = [r for robot in clouds if robot in rates and rates[robot] == fleet.profile.depth_camera.rate_hz
-                  for r in results[(robot, 0.10)]]
+    depth_rows = [
+        r
+        for robot in clouds
+        if robot in rates and rates[robot] == fleet.profile.depth_camera.rate_hz
+        for r in results[(robot, 0.10)]
+    ]
     if depth_rows:
         pipeline = [r["voxel_xyz_ms"] + r["encode_ms"] for r in depth_rows]
         pipeline_all = [r["voxel_ms"] + r["encode_ms"] for r in depth_rows]
-        print(f"640x480 depth cloud at 0.10 m, one core: voxel(xyz) + encode {np.median(pipeline):.1f} ms median "
-              f"(max {max(pipeline):.1f}; voxel over all fields + encode {np.median(pipeline_all):.1f}) target <= 20 ms; "
-              f"decode {np.median([r['decode_ms'] for r in depth_rows]):.1f} ms (target <= 5 ms); "
-              f"anchor encode {np.median([r['anchor_encode_ms'] for r in depth_rows]):.1f} ms, "
-              f"ratio {np.median([r['anchor_encode_ms'] / r['encode_ms'] for r in depth_rows]):.1f}x")
+        print(
+            f"640x480 depth cloud at 0.10 m, one core: voxel(xyz) + encode {np.median(pipeline):.1f} ms median "
+            f"(max {max(pipeline):.1f}; voxel over all fields + encode {np.median(pipeline_all):.1f}) target <= 20 ms; "
+            f"decode {np.median([r['decode_ms'] for r in depth_rows]):.1f} ms (target <= 5 ms); "
+            f"anchor encode {np.median([r['anchor_encode_ms'] for r in depth_rows]):.1f} ms, "
+            f"ratio {np.median([r['anchor_encode_ms'] / r['encode_ms'] for r in depth_rows]):.1f}x"
+        )
 
     if not args.no_nodelet:
         try:
@@ -208,11 +256,15 @@ def main():
             print(f"\npcl_ros nodelet comparison skipped: {exc}")
             nodelet = {}
         if nodelet:
-            print("\npcl_ros pcl/VoxelGrid nodelet at 0.10 m (standalone; publish -> filtered cloud received, incl. ROS transport):")
+            print(
+                "\npcl_ros pcl/VoxelGrid nodelet at 0.10 m (standalone; publish -> filtered cloud received, incl. ROS transport):"
+            )
             for robot, (ms, n, nbytes) in nodelet.items():
                 ours = results[(robot, 0.10)][0]
-                print(f"  {robot:7s} {ms:7.1f} ms  {n:7d} points {nbytes / 1e3:8.1f} kB | numpy voxel_downsample "
-                      f"{ours['voxel_ms']:6.1f} ms (all fields) {ours['voxel_xyz_ms']:6.1f} ms (xyz) {ours['voxels']:7d} points")
+                print(
+                    f"  {robot:7s} {ms:7.1f} ms  {n:7d} points {nbytes / 1e3:8.1f} kB | numpy voxel_downsample "
+                    f"{ours['voxel_ms']:6.1f} ms (all fields) {ours['voxel_xyz_ms']:6.1f} ms (xyz) {ours['voxels']:7d} points"
+                )
 
     if not args.no_plots:
         plot(results, clouds, rates)
@@ -220,6 +272,7 @@ def main():
 
 def plot(results, clouds, rates):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -227,15 +280,24 @@ def plot(results, clouds, rates):
     leaves = np.array(LEAF_SIZES_M)
 
     def fleet_mbps(key):
-        return np.array([sum(np.mean([r[key] for r in results[(robot, leaf)]]) * rates[robot] / 1e6 for robot in clouds)
-                         for leaf in leaves])
+        return np.array(
+            [
+                sum(np.mean([r[key] for r in results[(robot, leaf)]]) * rates[robot] / 1e6 for robot in clouds)
+                for leaf in leaves
+            ]
+        )
 
     raw, filt, comp, anch = (fleet_mbps(k) for k in ("raw_bytes", "filtered_bytes", "compressed_bytes", "anchor_bytes"))
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(leaves * 100, filt, "o-", label="filtered (voxel grid)")
     ax.axhline(raw[0], color="grey", ls="--", label=f"raw ({raw[0]:.0f} MB/s)")
-    ax.set(xscale="log", yscale="log", xlabel="voxel size (cm)", ylabel="fleet bandwidth (MB/s)",
-           title="Fig. 11: voxel size vs consumed bandwidth (4 robots, nominal rates)")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="voxel size (cm)",
+        ylabel="fleet bandwidth (MB/s)",
+        title="Fig. 11: voxel size vs consumed bandwidth (4 robots, nominal rates)",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -244,8 +306,13 @@ def plot(results, clouds, rates):
     ax.plot(leaves * 100, filt, "o-", label="filtered")
     ax.plot(leaves * 100, anch, "s--", label="Draco, point_cloud_transport defaults")
     ax.plot(leaves * 100, comp, "^-", label="Draco, ours (xyz, error <= leaf/2)")
-    ax.set(xscale="log", yscale="log", xlabel="voxel size (cm)", ylabel="fleet bandwidth (MB/s)",
-           title="Fig. 12: filtered vs compressed point-cloud streams")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="voxel size (cm)",
+        ylabel="fleet bandwidth (MB/s)",
+        title="Fig. 12: filtered vs compressed point-cloud streams",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()

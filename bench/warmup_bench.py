@@ -16,6 +16,7 @@ follows it (published every 0.05 s on change). Medians over `--runs`; two shared
 
     python bench/warmup_bench.py [--runs 3]
 """
+
 import argparse
 import os
 import shutil
@@ -37,8 +38,9 @@ MODES = ("cold", "built")
 def fresh_checkout(folder):
     """The package's nodes and Python at `folder`, without any cache."""
     for part in ("nodes", "src"):
-        shutil.copytree(os.path.join(PACKAGE, part), os.path.join(folder, part),
-                        ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(
+            os.path.join(PACKAGE, part), os.path.join(folder, part), ignore=shutil.ignore_patterns("__pycache__")
+        )
     return folder
 
 
@@ -54,8 +56,9 @@ def wall_cloud(rospy, offset_m):
 
     u, v = np.meshgrid(np.linspace(-2.0, 2.0, 80), np.linspace(-1.5, 1.5, 60))
     pts = np.stack([u.ravel() + offset_m, v.ravel(), np.full(u.size, 3.0)], axis=1).astype(np.float32)
-    return array_to_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]},
-                          header=Header(stamp=rospy.Time.now(), frame_id=SENSOR_FRAME))
+    return array_to_cloud(
+        {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, header=Header(stamp=rospy.Time.now(), frame_id=SENSOR_FRAME)
+    )
 
 
 def static_tf(rospy):
@@ -74,8 +77,11 @@ def static_tf(rospy):
 
 def inserted_after(octomap, sent_at_s, timeout_s=180.0):
     """Arrival (monotonic s) of the first non-empty map published after `sent_at_s`."""
-    octomap.wait(lambda m: len(m.data) > 0 and octomap.messages[-1][0] >= sent_at_s, timeout_s=timeout_s,
-                 what="the cloud in the map")
+    octomap.wait(
+        lambda m: len(m.data) > 0 and octomap.messages[-1][0] >= sent_at_s,
+        timeout_s=timeout_s,
+        what="the cloud in the map",
+    )
     return next(t for t, m in octomap.messages if t >= sent_at_s and len(m.data) > 0)
 
 
@@ -100,10 +106,21 @@ def one_start(graph, rospy, mode, run, tmp):
     publisher = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=1)
     try:
         started_at = time.monotonic()
-        proc = graph.popen([sys.executable, os.path.join(checkout, "nodes", "map_server"), "__ns:=/twin",
-                            f"__name:={name}", f"octomap_binary:=/twin/{name}/octomap_binary", "_robots:=jackal",
-                            f"_map_file:={os.path.join(tmp, name + '.bt')}", "_publish_period_s:=0.05",
-                            "_autosave_period_s:=0.0"], name=name, env=env)
+        proc = graph.popen(
+            [
+                sys.executable,
+                os.path.join(checkout, "nodes", "map_server"),
+                "__ns:=/twin",
+                f"__name:={name}",
+                f"octomap_binary:=/twin/{name}/octomap_binary",
+                "_robots:=jackal",
+                f"_map_file:={os.path.join(tmp, name + '.bt')}",
+                "_publish_period_s:=0.05",
+                "_autosave_period_s:=0.0",
+            ],
+            name=name,
+            env=env,
+        )
         assert wait_for(lambda: publisher.get_num_connections(), timeout_s=60), f"{name} did not subscribe"
         early_sent_at = time.monotonic()
         publisher.publish(wall_cloud(rospy, 0.0))
@@ -119,10 +136,15 @@ def one_start(graph, rospy, mode, run, tmp):
         ready.close()
         octomap.close()
         publisher.unregister()
-    return {"build_s": build_s, "start_to_ready_s": ready_at - started_at,
-            "node_ready_after_s": float(values["ready_after_s"]), "kernel_load_s": float(values["kernel_load_s"]),
-            "compiled": values["kernels_compiled"] or "-",
-            "early_cloud_s": early_inserted_at - early_sent_at, "ready_cloud_s": late_inserted_at - late_sent_at}
+    return {
+        "build_s": build_s,
+        "start_to_ready_s": ready_at - started_at,
+        "node_ready_after_s": float(values["ready_after_s"]),
+        "kernel_load_s": float(values["kernel_load_s"]),
+        "compiled": values["kernels_compiled"] or "-",
+        "early_cloud_s": early_inserted_at - early_sent_at,
+        "ready_cloud_s": late_inserted_at - late_sent_at,
+    }
 
 
 def main():
@@ -146,8 +168,11 @@ def main():
             for mode in MODES:
                 figures = one_start(graph, rospy, mode, run, tmp)
                 results[mode].append(figures)
-                print(f"run {run + 1} {mode:5s}: " + ", ".join(
-                    f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in figures.items()), flush=True)
+                print(
+                    f"run {run + 1} {mode:5s}: "
+                    + ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in figures.items()),
+                    flush=True,
+                )
     finally:
         graph.close()
         shutil.rmtree(tmp, ignore_errors=True)
@@ -157,15 +182,21 @@ def main():
         return statistics.median(r[key] for r in results[mode])
 
     print(f"\nmedians of {args.runs} runs (s)")
-    print("| mode | kernels compiled at start | start -> ready (here) | node's ready_after_s | kernel load | "
-          "first cloud, sent at subscription, inserted after | cloud sent once ready, inserted after |")
+    print(
+        "| mode | kernels compiled at start | start -> ready (here) | node's ready_after_s | kernel load | "
+        "first cloud, sent at subscription, inserted after | cloud sent once ready, inserted after |"
+    )
     print("|---|---|---|---|---|---|---|")
     for mode in MODES:
-        print(f"| {mode} | {results[mode][0]['compiled']} | {median(mode, 'start_to_ready_s'):.2f} | "
-              f"{median(mode, 'node_ready_after_s'):.2f} | {median(mode, 'kernel_load_s'):.2f} | "
-              f"{median(mode, 'early_cloud_s'):.2f} | {median(mode, 'ready_cloud_s'):.3f} |")
-    print(f"\nbuild step (make setup's `python -m cps_mapping.kernel_cache`, once per source): "
-          f"{median('built', 'build_s'):.1f} s")
+        print(
+            f"| {mode} | {results[mode][0]['compiled']} | {median(mode, 'start_to_ready_s'):.2f} | "
+            f"{median(mode, 'node_ready_after_s'):.2f} | {median(mode, 'kernel_load_s'):.2f} | "
+            f"{median(mode, 'early_cloud_s'):.2f} | {median(mode, 'ready_cloud_s'):.3f} |"
+        )
+    print(
+        f"\nbuild step (make setup's `python -m cps_mapping.kernel_cache`, once per source): "
+        f"{median('built', 'build_s'):.1f} s"
+    )
     for key, what in (("start_to_ready_s", "start -> ready"), ("early_cloud_s", "first cloud (sent at subscription)")):
         print(f"ratio cold / built, {what}: {median('cold', key) / median('built', key):.1f}x")
 

@@ -5,6 +5,11 @@
 # closing line stays last. Expects ci/env.sh to be sourced (make test does that).
 set -uo pipefail
 cd "$CPS_ROOT"
+# ruff (ruff.toml): lint and format check of every Python file, nodes included; a finding fails the
+# run, after the tests have run.
+lint_rc=0
+ruff check . && ruff format --check . || lint_rc=1
+if [ "$lint_rc" -eq 0 ]; then echo "ruff: lint and format clean"; else echo "ruff: findings above; the run fails" >&2; fi
 run_rostest=1
 for arg in "$@"; do
   case "$arg" in -m|-m*|-k|-k*|catkin_ws/*|*.py|*::*) run_rostest=0 ;; esac
@@ -26,8 +31,9 @@ if [ "$run_rostest" -eq 1 ]; then
   echo "rostest: $passed passed, $failed failed${failed_files:+ (failed:$failed_files)}" >"$rostest_summary"
   export CPS_ROSTEST_SUMMARY="$rostest_summary"
 fi
-python -m pytest --durations=30 catkin_ws/src "$@"
+python -m pytest --durations=20 catkin_ws/src "$@"
 rc=$?
+[ "$lint_rc" -ne 0 ] && [ "$rc" -eq 0 ] && rc=1  # ruff printed its findings before the tests
 # pytest's 5 means it collected no test: that is a failure of the suite, not a pass.
 [ "$rc" -eq 5 ] && echo "no tests were collected" >&2
 if [ -n "$rostest_summary" ]; then

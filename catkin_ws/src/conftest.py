@@ -9,6 +9,7 @@ Every test is marked `ros` (it needs a master: it uses one of these fixtures, or
 `pytest.mark.ros`) or `unit` (everything else), so `pytest -m unit` runs without ROS and the
 summary counts both kinds.
 """
+
 import collections
 import os
 import shutil
@@ -47,8 +48,9 @@ def pytest_terminal_summary(terminalreporter):
         return
     terminalreporter.section("tests by kind")
     for kind, c in counts.items():
-        terminalreporter.write_line(f"{kind}: {c['passed']} passed, {c['failed'] + c['error']} failed, "
-                                    f"{c['skipped']} skipped")
+        terminalreporter.write_line(
+            f"{kind}: {c['passed']} passed, {c['failed'] + c['error']} failed, {c['skipped']} skipped"
+        )
     if rostest_line:
         terminalreporter.write_line(rostest_line)
 

@@ -1,5 +1,6 @@
 """Launch files generated for a fleet start with roslaunch: the digital side comes up and the map
 topics appear; the <arg>s place the outputs."""
+
 import os
 import subprocess
 import sys
@@ -13,8 +14,12 @@ from cps_ros.processes import RosGraph
 @pytest.mark.slow
 def test_roslaunch_brings_the_digital_side_up(tmp_path):
     launch_dir = tmp_path / "launch"
-    result = subprocess.run([sys.executable, "-m", "cps_bringup.launch_xml", "--robots", "jackal",
-                             "--out-dir", str(launch_dir)], capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "cps_bringup.launch_xml", "--robots", "jackal", "--out-dir", str(launch_dir)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 0, result.stderr
     text = (launch_dir / "digital.launch").read_text()
     assert '<arg name="fleet_file"' in text and "scout" not in text
@@ -23,9 +28,16 @@ def test_roslaunch_brings_the_digital_side_up(tmp_path):
     with RosGraph(log_dir=str(tmp_path / "ros")) as graph:
         launch = graph.popen(["roslaunch", str(launch_dir / "digital.launch"), f"out:={out}"], name="roslaunch")
         try:
-            for topic in ("/twin/octomap_binary", "/twin/octomap_point_cloud_centers", "/twin/occupied_cells_vis_array",
-                          "/twin/projected_map", "/twin/map_stats", "/tissue/allocation", "/tissue/stats",
-                          "/twin/jackal/points"):
+            for topic in (
+                "/twin/octomap_binary",
+                "/twin/octomap_point_cloud_centers",
+                "/twin/occupied_cells_vis_array",
+                "/twin/projected_map",
+                "/twin/map_stats",
+                "/tissue/allocation",
+                "/tissue/stats",
+                "/twin/jackal/points",
+            ):
                 graph.wait_for_topic(topic, timeout_s=90)
             graph.wait_for_service("/twin/map_server/clear_bbx", timeout_s=30)
         finally:
@@ -34,7 +46,11 @@ def test_roslaunch_brings_the_digital_side_up(tmp_path):
 
 
 def test_generator_refuses_unknown_robots(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "cps_bringup.launch_xml", "--robots", "ghost",
-                             "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-m", "cps_bringup.launch_xml", "--robots", "ghost", "--out-dir", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 2 and "unknown robot(s) ghost" in result.stderr
     assert not os.listdir(tmp_path)

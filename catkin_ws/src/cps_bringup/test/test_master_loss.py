@@ -1,5 +1,6 @@
 """roscore killed mid-mission (`cps_bringup all --robots jackal`): noticed within 2 s, the map saved
 by the map server's shutdown, everything stopped, exit code 3 (EXIT_MASTER_LOST)."""
+
 import os
 import re
 import signal
@@ -37,22 +38,27 @@ class Lines:
                 if re.search(pattern, line):
                     return t, line
             time.sleep(0.05)
-        raise AssertionError(f"no line matching {pattern!r} within {timeout_s} s:\n" +
-                             "\n".join(line for _, line in self.lines[-40:]))
+        raise AssertionError(
+            f"no line matching {pattern!r} within {timeout_s} s:\n" + "\n".join(line for _, line in self.lines[-40:])
+        )
 
 
 def test_roscore_killed_mid_mission_saves_the_map_and_ends_with_exit_code_3(open_tmp_path):
     out = open_tmp_path / "mission"
-    proc = subprocess.Popen([sys.executable, BRINGUP, "all", "--robots", "jackal", "--duration", "300",
-                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, BRINGUP, "all", "--robots", "jackal", "--duration", "300", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
     port = None
     try:
         lines = Lines(proc.stdout)
         _, master_line = lines.first(r"\[bringup\] master http://[\d.]+:\d+", 60)
         port = int(re.search(r"master http://[\d.]+:(\d+)", master_line).group(1))
         lines.first(r"processes up", 240)
-        time.sleep(8.0)                                   # the robot drives, the map fills
+        time.sleep(8.0)  # the robot drives, the map fills
         # The master itself (roscore's rosmaster) dies hard; roscore's launcher then ends too.
         master = [pid for pid, cmd in processes_named(f"-p {port}") if "rosmaster" in cmd]
         assert master, processes_named(f"-p {port}")

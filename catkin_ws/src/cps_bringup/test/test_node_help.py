@@ -1,4 +1,5 @@
 """Every node and command of the workspace answers --help: exit 0, a description, no master needed."""
+
 import glob
 import os
 import subprocess

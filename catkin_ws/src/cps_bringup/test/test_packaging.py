@@ -1,6 +1,7 @@
 """The workspace as a package set: one BSD-3-Clause LICENSE matching every package.xml, a
 CHANGELOG.rst entry for every package's version, and an exec_depend for every third-party module
 a package's code imports."""
+
 import ast
 import glob
 import os
@@ -15,11 +16,24 @@ PACKAGES = sorted(os.path.basename(os.path.dirname(p)) for p in glob.glob(os.pat
 
 # Imported module -> its rosdep key: Debian's package where Debian 12 has it, `<name>-pip` otherwise.
 ROSDEP_KEY = {
-    "numpy": "python3-numpy", "yaml": "python3-yaml", "scipy": "python3-scipy", "matplotlib": "python3-matplotlib",
-    "PIL": "python3-pil", "numba": "python3-numba", "pyqtgraph": "python3-pyqtgraph", "rospkg": "python3-rospkg",
-    "DracoPy": "python3-dracopy-pip", "octomap": "python3-octomap-python-pip", "pybullet": "python3-pybullet-pip",
-    "rospy": "rospy", "rosbag": "rosbag", "rosgraph": "rosgraph", "tf2_ros": "tf2_ros", "catkin": "catkin",
-    "python_qt_binding": "python_qt_binding", "genpy": "genpy",
+    "numpy": "python3-numpy",
+    "yaml": "python3-yaml",
+    "scipy": "python3-scipy",
+    "matplotlib": "python3-matplotlib",
+    "PIL": "python3-pil",
+    "numba": "python3-numba",
+    "pyqtgraph": "python3-pyqtgraph",
+    "rospkg": "python3-rospkg",
+    "DracoPy": "python3-dracopy-pip",
+    "octomap": "python3-octomap-python-pip",
+    "pybullet": "python3-pybullet-pip",
+    "rospy": "rospy",
+    "rosbag": "rosbag",
+    "rosgraph": "rosgraph",
+    "tf2_ros": "tf2_ros",
+    "catkin": "catkin",
+    "python_qt_binding": "python_qt_binding",
+    "genpy": "genpy",
 }
 
 

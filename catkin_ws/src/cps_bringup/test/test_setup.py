@@ -1,4 +1,5 @@
 """ci/setup.sh (what `make setup` runs) on bad set-up input: it says what is wrong and how to fix it."""
+
 import os
 import shutil
 import subprocess
@@ -43,8 +44,12 @@ def test_a_run_after_a_run_installs_and_builds_nothing():
 def test_not_root_with_packages_missing_says_which_and_how(absent_package_list):
     if os.geteuid() != 0 or not shutil.which("runuser"):
         pytest.skip("needs root to run the script as an unprivileged user")
-    result = subprocess.run(["runuser", "-u", "nobody", "--", "env", f"CPS_APT_PACKAGES={absent_package_list}",
-                             "bash", SETUP], capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        ["runuser", "-u", "nobody", "--", "env", f"CPS_APT_PACKAGES={absent_package_list}", "bash", SETUP],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode != 0
     assert f"missing Debian packages: {ABSENT_PACKAGE}" in result.stderr
     assert f"sudo apt-get update && sudo apt-get install -y --no-install-recommends {ABSENT_PACKAGE}" in result.stderr
@@ -54,8 +59,12 @@ def test_not_root_with_packages_missing_says_which_and_how(absent_package_list):
 def test_no_network_to_the_registries_is_named(absent_package_list):
     if os.geteuid() != 0 or not shutil.which("unshare"):
         pytest.skip("needs root and unshare for an empty network namespace")
-    result = subprocess.run(["unshare", "--net", "env", f"CPS_APT_PACKAGES={absent_package_list}", "bash", SETUP],
-                            capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        ["unshare", "--net", "env", f"CPS_APT_PACKAGES={absent_package_list}", "bash", SETUP],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode != 0
     assert "no network to Debian's package mirrors" in result.stderr
     assert not _installed(ABSENT_PACKAGE)
@@ -66,10 +75,14 @@ def test_broken_venv_is_rebuilt(tmp_path):
     venv = tmp_path / "venv"
     (venv / "bin").mkdir(parents=True)
     (venv / "bin" / "python").symlink_to("/nonexistent/python3")
-    result = subprocess.run(["bash", SETUP], env={**os.environ, "CPS_VENV": str(venv)},
-                            capture_output=True, text=True, timeout=900)
+    result = subprocess.run(
+        ["bash", SETUP], env={**os.environ, "CPS_VENV": str(venv)}, capture_output=True, text=True, timeout=900
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     assert ".venv is broken" in result.stdout
-    check = subprocess.run([str(venv / "bin" / "python"), "-c", "import rospy, numpy, DracoPy, octomap, pybullet"],
-                           capture_output=True, text=True)
+    check = subprocess.run(
+        [str(venv / "bin" / "python"), "-c", "import rospy, numpy, DracoPy, octomap, pybullet"],
+        capture_output=True,
+        text=True,
+    )
     assert check.returncode == 0, check.stderr

@@ -1,5 +1,6 @@
 """Eight robots on the shared tissue layout: the tissue runs the same processes on each side as for
 the default four, and every robot's clouds reach the map."""
+
 import json
 import os
 import subprocess
@@ -20,8 +21,9 @@ def _started(log_dir, robots):
     """The labels of what the supervisor started (one log file per start), without the
     per-robot cps_sim nodes (`<r>_velocity_mux`...) and the masters."""
     labels = [name.rsplit("-", 1)[0] for name in os.listdir(log_dir) if name.endswith(".log")]
-    return sorted(label for label in labels if label != "roscore"
-                  and not any(label.startswith(f"{r}_") for r in robots))
+    return sorted(
+        label for label in labels if label != "roscore" and not any(label.startswith(f"{r}_") for r in robots)
+    )
 
 
 # Run on the twin's master: each robot's clouds inserted into the map (the map server's
@@ -53,19 +55,41 @@ def test_eight_robots_run_on_the_same_tissue_processes_as_four(open_tmp_path):
     fleet = load_fleet(fleet_path)
     assert len(fleet.robots) == 8
     out, port = open_tmp_path / "m8", free_port()
-    proc = subprocess.Popen([sys.executable, BRINGUP, "all", "--fleet", fleet_path, "--profile", "light",
-                             "--duration", str(MISSION_S), "--out", str(out), "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            BRINGUP,
+            "all",
+            "--fleet",
+            fleet_path,
+            "--profile",
+            "light",
+            "--duration",
+            str(MISSION_S),
+            "--out",
+            str(out),
+            "--port",
+            str(port),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     log, counts = [], {}
     try:
         for line in proc.stdout:
             log.append(line)
             if "processes up" in line:
-                counted = subprocess.run([sys.executable, "-c", COUNT_INSERTED, ",".join(fleet.robot_names)],
-                                         env=dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{port}"),
-                                         capture_output=True, text=True, timeout=60)
-                counts = (json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0
-                          else counted.stderr)
+                counted = subprocess.run(
+                    [sys.executable, "-c", COUNT_INSERTED, ",".join(fleet.robot_names)],
+                    env=dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{port}"),
+                    capture_output=True,
+                    text=True,
+                    timeout=60,
+                )
+                counts = (
+                    json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0 else counted.stderr
+                )
                 break
         log += proc.communicate(timeout=120)[0]
     finally:

@@ -2,6 +2,7 @@
 injected), a GUI that fails without ending the run, a dead master noticed within 2 s, nodes that
 drop root, code they cannot read refused at start, the map kernels they read without compiling,
 node output that cannot grow without bound."""
+
 import os
 import pwd
 import signal
@@ -14,8 +15,8 @@ import pytest
 from cps_bringup.plan import DIGITAL, NodeSpec
 from cps_bringup.privileges import PrivilegeError, check_code_readable, ensure_map_kernels, hand_over, user_prefix
 from cps_bringup.supervisor import BringupError, MasterLost, RestartPolicy, Supervisor
-from cps_ros.processes import RosGraph
 from cps_harness.testing import wait_for
+from cps_ros.processes import RosGraph
 
 pytestmark = pytest.mark.ros
 
@@ -23,8 +24,14 @@ DIES_SOON = "import time; time.sleep(0.3); raise SystemExit(4)"
 
 
 def _spec(label, code, wait_topics=(), restart_limit=0, essential=True):
-    return NodeSpec(label, DIGITAL, (sys.executable, "-c", code), wait_topics=tuple(wait_topics),
-                    restart_limit=restart_limit, essential=essential)
+    return NodeSpec(
+        label,
+        DIGITAL,
+        (sys.executable, "-c", code),
+        wait_topics=tuple(wait_topics),
+        restart_limit=restart_limit,
+        essential=essential,
+    )
 
 
 class FakeClock:
@@ -51,20 +58,21 @@ def test_restarts_back_off_exponentially_and_the_limit_counts_within_a_window(tm
     clock, events = FakeClock(), []
     policy = RestartPolicy(backoff_s=1.0, backoff_max_s=4.0, window_s=10.0)
     with RosGraph(log_dir=str(tmp_path)) as graph:
-        supervisor = Supervisor([_spec("flaky", DIES_SOON, restart_limit=2)], graph, log=events.append,
-                                policy=policy, clock=clock)
+        supervisor = Supervisor(
+            [_spec("flaky", DIES_SOON, restart_limit=2)], graph, log=events.append, policy=policy, clock=clock
+        )
         try:
             supervisor.start_all(timeout_s=30)
             events.clear()
             assert _next_event(supervisor, events, 1).endswith("restart 1/2 in 1.0 s")
             dead = supervisor.running["flaky"].proc
-            _poll(supervisor, 0.5)                              # backing off: not restarted yet
+            _poll(supervisor, 0.5)  # backing off: not restarted yet
             assert supervisor.running["flaky"].proc is dead
             clock.now_s = 1.0
             supervisor.poll()
             assert supervisor.running["flaky"].proc is not dead
-            assert _next_event(supervisor, events, 2).endswith("restart 2/2 in 2.0 s")   # doubled
-            clock.now_s = 12.0                                  # both restarts leave the window
+            assert _next_event(supervisor, events, 2).endswith("restart 2/2 in 2.0 s")  # doubled
+            clock.now_s = 12.0  # both restarts leave the window
             supervisor.poll()
             assert _next_event(supervisor, events, 3).endswith("restart 1/2 in 1.0 s")
             clock.now_s = 13.0
@@ -102,7 +110,7 @@ def test_a_dead_master_is_noticed_within_2_s(tmp_path):
             with pytest.raises(MasterLost, match="the ROS master exited"):
                 while time.monotonic() - killed_at < 10:
                     supervisor.poll()
-                    time.sleep(0.5)                             # wait_for_mission's period
+                    time.sleep(0.5)  # wait_for_mission's period
             noticed_after_s = time.monotonic() - killed_at
             print(f"master loss noticed after {noticed_after_s:.2f} s")
             assert noticed_after_s < 2.0
@@ -116,9 +124,11 @@ def _uids(pid):
     return [int(v) for v in line.split()[1:]]
 
 
-WRITER = ("import os, sys, time, rospy; from std_msgs.msg import String; rospy.init_node('writer'); "
-          "p = rospy.Publisher('/writer/out', String, queue_size=1); "
-          "open(os.path.join(sys.argv[1], 'written.csv'), 'w').write('ok'); time.sleep(600)")
+WRITER = (
+    "import os, sys, time, rospy; from std_msgs.msg import String; rospy.init_node('writer'); "
+    "p = rospy.Publisher('/writer/out', String, queue_size=1); "
+    "open(os.path.join(sys.argv[1], 'written.csv'), 'w').write('ok'); time.sleep(600)"
+)
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="dropping root needs root")
@@ -166,8 +176,13 @@ def test_code_closed_to_the_node_user_is_refused_at_start_and_says_so(tmp_path, 
         path.chmod(0o755)
     check_code_readable("nobody", [NodeSpec("open", DIGITAL, (sys.executable, str(readable)))])
     with pytest.raises(PrivilegeError) as info:
-        check_code_readable("nobody", [NodeSpec("open", DIGITAL, (sys.executable, str(readable))),
-                                       NodeSpec("closed", DIGITAL, (sys.executable, str(closed)))])
+        check_code_readable(
+            "nobody",
+            [
+                NodeSpec("open", DIGITAL, (sys.executable, str(readable))),
+                NodeSpec("closed", DIGITAL, (sys.executable, str(closed))),
+            ],
+        )
     assert f"'nobody' (not root) but cannot read the code: {closed}" in str(info.value)
 
 
@@ -178,10 +193,17 @@ def test_the_unprivileged_nodes_read_the_built_kernels_and_compile_nothing(open_
     import json
 
     ensure_map_kernels(log=lambda *_: None)
-    code = ("import json; from cps_mapping.log_odds_grid import warm_up; w = warm_up(); "
-            "print(json.dumps({'compiled': list(w.compiled), 'dir': w.cache_dir}))")
-    out = subprocess.run([*user_prefix("nobody"), sys.executable, "-c", code], capture_output=True, text=True,
-                         env={**os.environ, "HOME": str(open_tmp_path)}, timeout=120)
+    code = (
+        "import json; from cps_mapping.log_odds_grid import warm_up; w = warm_up(); "
+        "print(json.dumps({'compiled': list(w.compiled), 'dir': w.cache_dir}))"
+    )
+    out = subprocess.run(
+        [*user_prefix("nobody"), sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "HOME": str(open_tmp_path)},
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout.strip().splitlines()[-1])
     assert result["compiled"] == [], result

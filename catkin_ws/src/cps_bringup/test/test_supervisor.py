@@ -1,5 +1,6 @@
 """The bringup's plan and supervisor: wiring from fleet.yaml, and every failure path exits clearly
 with nothing left running."""
+
 import os
 import socket
 import subprocess
@@ -9,10 +10,19 @@ import time
 
 import pytest
 
-from cps_bringup.plan import (DIGITAL, MAP_SERVER, MAP_SERVER_READY, PER_ROBOT, PHYSICAL, ZENOH, NodeSpec, RunOptions,
-                              plan_nodes)
-from cps_fleet import names
+from cps_bringup.plan import (
+    DIGITAL,
+    MAP_SERVER,
+    MAP_SERVER_READY,
+    PER_ROBOT,
+    PHYSICAL,
+    ZENOH,
+    NodeSpec,
+    RunOptions,
+    plan_nodes,
+)
 from cps_bringup.supervisor import BringupError, Supervisor
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_ros.processes import RosGraph, processes_named
 
@@ -31,10 +41,17 @@ def test_plan_wires_every_robot_through_the_tissue_to_the_map():
         assert "__name:=cloud_throttle" in specs[f"{r}/cloud_throttle"].argv
         # Exactly one subscriber of the managed topic crosses the link: the twin-side relay.
         relay = specs[f"{r}/link_relay"]
-        assert relay.side == DIGITAL and relay.argv[3:5] == (f"/{r}/points_filtered/draco/managed",
-                                                            f"/twin/{r}/points_filtered/draco/managed")
-        crossing = [s.label for s in specs.values() if s.side == DIGITAL and s is not relay
-                    and any(f"/{r}/points_filtered/draco/managed" == a.split(":=")[-1] for a in s.argv)]
+        assert relay.side == DIGITAL and relay.argv[3:5] == (
+            f"/{r}/points_filtered/draco/managed",
+            f"/twin/{r}/points_filtered/draco/managed",
+        )
+        crossing = [
+            s.label
+            for s in specs.values()
+            if s.side == DIGITAL
+            and s is not relay
+            and any(f"/{r}/points_filtered/draco/managed" == a.split(":=")[-1] for a in s.argv)
+        ]
         assert crossing == [], crossing
         decoder = " ".join(specs[f"{r}/draco_decoder"].argv)
         assert f"~input:=/twin/{r}/points_filtered/draco/managed" in decoder and f"~output:=/twin/{r}/points" in decoder
@@ -57,8 +74,12 @@ def test_shared_plan_wires_every_robot_through_fixed_tissue_processes():
     fleet = load_fleet()
     specs = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", transport=ZENOH))}
     robots = fleet.robot_names
-    assert not [label for label in specs if label.split("/")[-1] in (
-        "voxel_grid", "draco_encoder", "cloud_throttle", "image_compressor", "draco_decoder", "backfill_decoder")]
+    assert not [
+        label
+        for label in specs
+        if label.split("/")[-1]
+        in ("voxel_grid", "draco_encoder", "cloud_throttle", "image_compressor", "draco_decoder", "backfill_decoder")
+    ]
     for label, side in (("voxel_grid_loader", PHYSICAL), ("cloud_tissue", PHYSICAL), ("cloud_decoder", DIGITAL)):
         assert specs[label].side == side and _arg(specs[label], "_robots") == ",".join(robots)
         assert _arg(specs[label], "_fleet_file") == fleet.path
@@ -91,8 +112,14 @@ def test_tissue_processes_per_side_do_not_grow_with_the_fleet_in_the_shared_layo
 
     def tissue(fleet):
         specs = plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", transport=ZENOH, tissue_layout=layout))
-        return {side: sorted(s.label for s in specs if s.side == side and "cps_sim" not in " ".join(s.argv)
-                             and s.label != "fleet_sim") for side in (PHYSICAL, DIGITAL)}
+        return {
+            side: sorted(
+                s.label
+                for s in specs
+                if s.side == side and "cps_sim" not in " ".join(s.argv) and s.label != "fleet_sim"
+            )
+            for side in (PHYSICAL, DIGITAL)
+        }
 
     small, large = tissue(four), tissue(eight)
     for side in (PHYSICAL, DIGITAL):
@@ -130,8 +157,11 @@ def test_plan_starts_the_clouds_once_the_map_server_is_ready():
 def test_plan_control_layouts_shared_and_per_robot():
     fleet = load_fleet()
     shared = plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x"))
-    control = [s for s in shared if "velocity_mux" in " ".join(s.argv) or "route_controller" in " ".join(s.argv)
-               or s.label == "fleet_control"]
+    control = [
+        s
+        for s in shared
+        if "velocity_mux" in " ".join(s.argv) or "route_controller" in " ".join(s.argv) or s.label == "fleet_control"
+    ]
     assert [s.label for s in control] == ["fleet_control"]
     argv = " ".join(control[0].argv)
     assert "__name:=fleet_control" in argv and f"_robots:={','.join(fleet.robot_names)}" in argv
@@ -164,8 +194,9 @@ def test_plan_without_the_manager_and_with_the_command_probe():
 
 
 def _python_spec(label, code, wait_topics=(), restart_limit=0):
-    return NodeSpec(label, PHYSICAL, (sys.executable, "-c", code), wait_topics=tuple(wait_topics),
-                    restart_limit=restart_limit)
+    return NodeSpec(
+        label, PHYSICAL, (sys.executable, "-c", code), wait_topics=tuple(wait_topics), restart_limit=restart_limit
+    )
 
 
 @pytest.mark.ros
@@ -173,8 +204,11 @@ def test_a_node_that_never_comes_up_is_named_and_nothing_is_left(tmp_path):
     graph = RosGraph(log_dir=str(tmp_path))
     graph.start()
     port = graph.port
-    supervisor = Supervisor([_python_spec("lazy", "import time; print('starting'); time.sleep(600)", ["/never"])],
-                            graph, log=lambda *_: None)
+    supervisor = Supervisor(
+        [_python_spec("lazy", "import time; print('starting'); time.sleep(600)", ["/never"])],
+        graph,
+        log=lambda *_: None,
+    )
     try:
         with pytest.raises(BringupError) as info:
             supervisor.start_all(timeout_s=3)
@@ -201,8 +235,9 @@ TALKER = textwrap.dedent("""
 def test_a_dying_node_is_restarted_up_to_its_limit(tmp_path):
     events = []
     with RosGraph(log_dir=str(tmp_path)) as graph:
-        supervisor = Supervisor([_python_spec("flaky", TALKER, ["/flaky/out"], restart_limit=1)], graph,
-                                log=events.append)
+        supervisor = Supervisor(
+            [_python_spec("flaky", TALKER, ["/flaky/out"], restart_limit=1)], graph, log=events.append
+        )
         try:
             supervisor.start_all(timeout_s=30)
             with pytest.raises(BringupError, match=r"flaky exited with code 4 \(restarted 1 of 1 times\)"):
@@ -249,8 +284,9 @@ def test_shipped_launch_files_are_the_plan_and_parse_with_roslaunch():
     for name, text in shipped_launch_files().items():
         with open(os.path.join(launch_dir, name)) as stream:
             assert stream.read() == text, f"{name} is stale: run python -m cps_bringup.launch_xml"
-    listed = subprocess.run(["roslaunch", "--nodes", "cps_bringup", "all.launch"], capture_output=True, text=True,
-                            timeout=60)
+    listed = subprocess.run(
+        ["roslaunch", "--nodes", "cps_bringup", "all.launch"], capture_output=True, text=True, timeout=60
+    )
     assert listed.returncode == 0, listed.stderr
     nodes = set(listed.stdout.split())
     assert {"/fleet_sim", "/twin/map_server", "/cloud_tissue", "/voxel_grid_loader", "/twin/cloud_decoder"} <= nodes
@@ -263,10 +299,13 @@ def test_a_new_mission_starts_without_the_previous_missions_map_and_csvs(tmp_pat
     for name in ("map.bt", "stats.csv", "allocation.csv", "gui.png", "physical_stats.csv", "notes.txt"):
         (tmp_path / name).write_text("from an earlier mission")
     (tmp_path / "logs").mkdir()
-    assert sorted(clear_previous_mission(str(tmp_path), (DIGITAL,))) == ["allocation.csv", "gui.png", "map.bt",
-                                                                          "stats.csv"]
+    assert sorted(clear_previous_mission(str(tmp_path), (DIGITAL,))) == [
+        "allocation.csv",
+        "gui.png",
+        "map.bt",
+        "stats.csv",
+    ]
     # The physical side's file stays for a physical twin started on its own into the same folder,
     # and nothing the missions do not write is touched.
     assert sorted(p.name for p in tmp_path.iterdir()) == ["logs", "notes.txt", "physical_stats.csv"]
     assert clear_previous_mission(str(tmp_path), (PHYSICAL, DIGITAL)) == ["physical_stats.csv"]
-

@@ -1,13 +1,20 @@
 """Properties of allocate_frequencies over many random fleets, and its bad-input handling."""
+
 import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.optimize import linprog
 
-from cps_bw_manager.allocation import (DEFAULT_PRIORITY_WEIGHTS, RobotDemand, allocate_frequencies,
-                                       managed_budget_mbytes_per_s, water_fill)
+from cps_bw_manager.allocation import (
+    DEFAULT_PRIORITY_WEIGHTS,
+    RobotDemand,
+    allocate_frequencies,
+    managed_budget_mbytes_per_s,
+    water_fill,
+)
 
 REL = 1e-7
 
@@ -19,8 +26,15 @@ def fleets(draw, min_robots=1, max_robots=12):
     for i in range(n):
         fmin = draw(st.floats(0.2, 5.0))
         fmax = draw(st.floats(fmin, 40.0))
-        demands.append(RobotDemand(name=f"r{i}", message_bytes=draw(st.floats(500.0, 300000.0)),
-                                   priority=draw(st.sampled_from([0, 1])), min_rate_hz=fmin, max_rate_hz=fmax))
+        demands.append(
+            RobotDemand(
+                name=f"r{i}",
+                message_bytes=draw(st.floats(500.0, 300000.0)),
+                priority=draw(st.sampled_from([0, 1])),
+                min_rate_hz=fmin,
+                max_rate_hz=fmax,
+            )
+        )
     budget = draw(st.floats(0.005, 20.0))
     return demands, budget
 
@@ -95,10 +109,14 @@ def test_equal_priority_equal_size_gives_equal_rates(n, size, budget):
 def test_monotone_in_priority(case, data):
     demands, budget = case
     i = data.draw(st.integers(0, len(demands) - 1))
-    low = [d if k != i else RobotDemand(d.name, d.message_bytes, 0, d.min_rate_hz, d.max_rate_hz)
-           for k, d in enumerate(demands)]
-    high = [d if k != i else RobotDemand(d.name, d.message_bytes, 1, d.min_rate_hz, d.max_rate_hz)
-            for k, d in enumerate(demands)]
+    low = [
+        d if k != i else RobotDemand(d.name, d.message_bytes, 0, d.min_rate_hz, d.max_rate_hz)
+        for k, d in enumerate(demands)
+    ]
+    high = [
+        d if k != i else RobotDemand(d.name, d.message_bytes, 1, d.min_rate_hz, d.max_rate_hz)
+        for k, d in enumerate(demands)
+    ]
     rate_low = allocate_frequencies(low, budget).robots[i].rate_hz
     rate_high = allocate_frequencies(high, budget).robots[i].rate_hz
     assert rate_high >= rate_low * (1 - 1e-7)
@@ -135,8 +153,9 @@ def test_total_matches_the_eq1_linear_program(case):
     if not result.feasible:
         return
     size = np.array([d.message_bytes for d in demands]) / 1e6
-    lp = linprog(-size, A_ub=[size], b_ub=[budget],
-                 bounds=[(d.min_rate_hz, d.max_rate_hz) for d in demands], method="highs")
+    lp = linprog(
+        -size, A_ub=[size], b_ub=[budget], bounds=[(d.min_rate_hz, d.max_rate_hz) for d in demands], method="highs"
+    )
     assert lp.status == 0
     assert math.isclose(-lp.fun, result.allocated_mbytes_per_s, rel_tol=1e-6)
 
@@ -162,8 +181,9 @@ def test_unmeasured_size_uses_the_conservative_default():
         assert result.allocated_mbytes_per_s <= 1.0 * (1 + REL)
 
 
-@pytest.mark.parametrize("available, reserve", [(0.0, 0.04), (-10.0, 0.04), (float("nan"), 0.04),
-                                                (60.0, 1.0), (60.0, -0.1), (60.0, 1.5)])
+@pytest.mark.parametrize(
+    "available, reserve", [(0.0, 0.04), (-10.0, 0.04), (float("nan"), 0.04), (60.0, 1.0), (60.0, -0.1), (60.0, 1.5)]
+)
 def test_bad_link_numbers_are_clear_errors(available, reserve):
     with pytest.raises(ValueError, match="available|reserve"):
         managed_budget_mbytes_per_s(available, reserve)
@@ -179,13 +199,16 @@ def test_bad_budget_is_a_clear_error(budget):
         allocate_frequencies([RobotDemand("a", 1000.0)], budget)
 
 
-@pytest.mark.parametrize("demand, match", [
-    (RobotDemand("a", 1000.0, 0, 5.0, 1.0), "min_rate_hz .* > max_rate_hz"),
-    (RobotDemand("a", 1000.0, 2), "priority"),
-    (RobotDemand("a", 1000.0, -1), "priority"),
-    (RobotDemand("a", 1000.0, 0, 0.0, 1.0), "min_rate_hz"),
-    (RobotDemand("a", 1000.0, 0, 1.0, float("nan")), "max_rate_hz"),
-])
+@pytest.mark.parametrize(
+    "demand, match",
+    [
+        (RobotDemand("a", 1000.0, 0, 5.0, 1.0), "min_rate_hz .* > max_rate_hz"),
+        (RobotDemand("a", 1000.0, 2), "priority"),
+        (RobotDemand("a", 1000.0, -1), "priority"),
+        (RobotDemand("a", 1000.0, 0, 0.0, 1.0), "min_rate_hz"),
+        (RobotDemand("a", 1000.0, 0, 1.0, float("nan")), "max_rate_hz"),
+    ],
+)
 def test_bad_demand_is_a_clear_error(demand, match):
     with pytest.raises(ValueError, match=match):
         allocate_frequencies([demand], 1.0)

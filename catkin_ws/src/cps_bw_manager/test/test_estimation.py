@@ -5,13 +5,21 @@ Targets: after a down step within +-15 % of the true capacity in <= 2 s and ingr
 capacity for <= 2 s; after an up step (demand above the new capacity) within +-15 % in <= 5 s;
 offered < 85 % of the capacity never held below its offered rate, CPU hog on the twin or not;
 after an outage the pre-outage estimate resumes."""
+
 import math
 
 import pytest
 
 from cps_bw_manager.estimation import DeliveryRateEstimator, LinkReport
-from cps_bw_manager.link_model import (CpuHog, LinkModel, NewEstimatorSubject, held_below_offered,
-                                       ingress_over_capacity_s, settle_time_s, steps_capacity)
+from cps_bw_manager.link_model import (
+    CpuHog,
+    LinkModel,
+    NewEstimatorSubject,
+    held_below_offered,
+    ingress_over_capacity_s,
+    settle_time_s,
+    steps_capacity,
+)
 
 FLEET_MBPS = 67.0  # the paper profile's 4 robots at full rate: more than the link carries
 ALL = ("delivered", "sent", "offered", "app_limited", "rtt", "receiver_behind")
@@ -33,8 +41,9 @@ UP_STEPS = [(20, 60), (5, 60), (5, 20), (50, 60), (15, 20), (5, 10), (10, 60)]
 @pytest.mark.parametrize("model", [{}, WIFI], ids=["clean", "wifi_jitter_loss"])
 @pytest.mark.parametrize("known", [ALL, TODAY], ids=["all_fields", "today_fields"])
 @pytest.mark.parametrize("before, after", DOWN_STEPS)
-def test_down_step_within_15_percent_in_2_s_and_ingress_over_capacity_at_most_2_s(before, after, known, model,
-                                                                                   offset_s):
+def test_down_step_within_15_percent_in_2_s_and_ingress_over_capacity_at_most_2_s(
+    before, after, known, model, offset_s
+):
     """`offset_s`: where the step falls inside a report interval."""
     trace, _ = _run([(0, 60), (5, before), (20, after)], 35.0, known=known, report_offset_s=offset_s, **model)
     assert settle_time_s(trace, 20.0, 35.0) <= 2.0
@@ -70,14 +79,18 @@ def test_offered_below_85_percent_is_never_held_below_it_even_with_a_cpu_hog(cap
     trace, est = _run([(0, capacity)], 45.0, demand_mbps=offered, hogs=[hog], **WIFI)
     assert held_below_offered(trace) == []
     assert est.twin_capacity_mbps == pytest.approx(1.0, rel=0.05)  # reported as the twin's, not the link's
-    assert all(r.estimate_mbps >= 0.85 * min(capacity, 60) or r.estimate_mbps >= r.offered_mbps / 0.96
-               for r in trace)
+    assert all(r.estimate_mbps >= 0.85 * min(capacity, 60) or r.estimate_mbps >= r.offered_mbps / 0.96 for r in trace)
 
 
 def test_offered_below_85_percent_across_the_wifi_degraded_steps():
     """60 -> 20 -> 5 -> 60 under the paper profile's 3.5 Mbit/s (never the bottleneck): no one held."""
-    trace, _ = _run([(0, 60), (20, 20), (40, 5), (60, 60)], 76.0, demand_mbps=3.5,
-                    hogs=[CpuHog(5.0, 15.0, 1.0), CpuHog(45.0, 50.0, 0.5)], **WIFI)
+    trace, _ = _run(
+        [(0, 60), (20, 20), (40, 5), (60, 60)],
+        76.0,
+        demand_mbps=3.5,
+        hogs=[CpuHog(5.0, 15.0, 1.0), CpuHog(45.0, 50.0, 0.5)],
+        **WIFI,
+    )
     assert held_below_offered(trace) == []
 
 
@@ -93,6 +106,7 @@ def test_after_an_outage_the_pre_outage_estimate_resumes(before):
 
 # --- the estimator alone ------------------------------------------------------------------------
 
+
 def _report(now_s, delivered, sent=math.nan, **kw):
     return LinkReport(now_s=now_s, interval_s=0.5, delivered_mbps=delivered, sent_mbps=sent, **kw)
 
@@ -101,11 +115,15 @@ def test_bad_reports_are_counted_by_reason_and_ignored():
     est = DeliveryRateEstimator(60.0, line_rate_mbps=60.0)
     est.update(_report(1.0, 40.0, 40.0))
     before = (est.capacity_mbps, est.estimate_mbps)
-    for bad in (_report(1.5, math.nan, 40.0), _report(2.0, -3.0, 40.0), _report(2.5, 40.0, -1.0),
-                _report(3.0, 500.0, 40.0),           # above the line rate
-                _report(0.5, 1.0, 40.0),             # the clock went backwards
-                _report(1.0, 1.0, 40.0),             # the interval just counted, again
-                _report(math.inf, 1.0, 40.0)):
+    for bad in (
+        _report(1.5, math.nan, 40.0),
+        _report(2.0, -3.0, 40.0),
+        _report(2.5, 40.0, -1.0),
+        _report(3.0, 500.0, 40.0),  # above the line rate
+        _report(0.5, 1.0, 40.0),  # the clock went backwards
+        _report(1.0, 1.0, 40.0),  # the interval just counted, again
+        _report(math.inf, 1.0, 40.0),
+    ):
         assert est.update(bad) == before[1]
     assert (est.capacity_mbps, est.estimate_mbps) == before
     assert dict(est.ignored) == {"not_finite": 2, "negative": 2, "above_line_rate": 1, "clock_step": 2}
@@ -146,8 +164,7 @@ def test_an_app_limited_sender_never_lowers_the_estimate():
 def test_a_receiver_behind_is_the_twins_capacity_not_the_links():
     est = DeliveryRateEstimator(60.0)
     for i in range(1, 10):
-        est.update(_report(0.5 * i, 2.0, 30.0, offered_mbps=30.0, receiver_behind=True,
-                           rtt_s=(0.04 + 0.2 * i,)))
+        est.update(_report(0.5 * i, 2.0, 30.0, offered_mbps=30.0, receiver_behind=True, rtt_s=(0.04 + 0.2 * i,)))
     assert est.capacity_mbps == 60.0 and est.twin_capacity_mbps == 2.0 and est.receiver_behind
 
 
@@ -164,17 +181,28 @@ def test_a_building_rtt_queue_alone_is_overuse():
 
 def test_jitter_alone_is_not_overuse():
     import random
+
     rng = random.Random(3)
     est = DeliveryRateEstimator(60.0)
     for i in range(1, 120):
-        est.update(_report(0.5 * i, 20.0, 20.0, offered_mbps=20.0,
-                           rtt_s=tuple(0.04 + rng.uniform(-0.02, 0.02) for _ in range(5))))
+        est.update(
+            _report(
+                0.5 * i, 20.0, 20.0, offered_mbps=20.0, rtt_s=tuple(0.04 + rng.uniform(-0.02, 0.02) for _ in range(5))
+            )
+        )
     assert est.overuses == 0 and est.capacity_mbps == 60.0
 
 
-@pytest.mark.parametrize("kwargs", [dict(initial_mbps=0.0), dict(initial_mbps=-5.0), dict(initial_mbps=math.nan),
-                                    dict(initial_mbps=10.0, line_rate_mbps=0.5),
-                                    dict(initial_mbps=10.0, min_rtt_window_s=0.0)])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(initial_mbps=0.0),
+        dict(initial_mbps=-5.0),
+        dict(initial_mbps=math.nan),
+        dict(initial_mbps=10.0, line_rate_mbps=0.5),
+        dict(initial_mbps=10.0, min_rtt_window_s=0.0),
+    ],
+)
 def test_bad_parameters_are_clear_errors(kwargs):
     with pytest.raises(ValueError):
         DeliveryRateEstimator(**kwargs)

@@ -1,5 +1,6 @@
 """A full disk (csv_path on /dev/full): topic_stats and the bandwidth manager report the lost CSV
 once on /diagnostics and keep publishing /tissue/stats and /tissue/allocation."""
+
 import time
 
 import pytest
@@ -26,10 +27,18 @@ def test_stats_and_allocation_keep_publishing_on_a_full_disk(ros, rospy_node):
     stats = TopicRecorder("/tissue/stats", TopicStatsArray)
     allocation = TopicRecorder("/tissue/allocation", BandwidthAllocationArray)
     try:
-        stats_node = ros.start_node("cps_transport", "topic_stats", name="topic_stats",
-                       params={"~topics": ["/full_disk/cloud"], "~publish_rate_hz": 4.0, "~csv_path": "/dev/full"})
-        manager = ros.start_node("cps_bw_manager", "bandwidth_manager", name="bandwidth_manager",
-                       params={"~robots": ["scout"], "~update_rate_hz": 4.0, "~csv_path": "/dev/full"})
+        stats_node = ros.start_node(
+            "cps_transport",
+            "topic_stats",
+            name="topic_stats",
+            params={"~topics": ["/full_disk/cloud"], "~publish_rate_hz": 4.0, "~csv_path": "/dev/full"},
+        )
+        manager = ros.start_node(
+            "cps_bw_manager",
+            "bandwidth_manager",
+            name="bandwidth_manager",
+            params={"~robots": ["scout"], "~update_rate_hz": 4.0, "~csv_path": "/dev/full"},
+        )
         stats.wait_count(2, timeout_s=30)
         allocation.wait_count(2, timeout_s=30)
         seen = {}
@@ -45,8 +54,9 @@ def test_stats_and_allocation_keep_publishing_on_a_full_disk(ros, rospy_node):
         counts = stats.count, allocation.count
         # Both publish at 4 Hz: 8 more each within 10 s, or they stopped.
         assert stats.wait_count(counts[0] + 8, timeout_s=10.0), "topic_stats stopped publishing /tissue/stats"
-        assert allocation.wait_count(counts[1] + 8, timeout_s=10.0), \
+        assert allocation.wait_count(counts[1] + 8, timeout_s=10.0), (
             "the bandwidth manager stopped publishing /tissue/allocation"
+        )
         assert stats_node.poll() is None and manager.poll() is None
     finally:
         for recorder in (diagnostics, stats, allocation):

@@ -2,12 +2,14 @@
 reports input_rate_hz 0; the manager must keep the robot's last cap for `input_rate_hold_s`
 instead of flapping to max_rate_hz (seen in a mission on a loaded 2-core machine: 1.06 -> 30 ->
 1.06 -> 1.49 Hz within 2 s)."""
+
 import dataclasses
 import math
 import random
 
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from cps_bw_manager.manager import INPUT_RATE_HEADROOM, ManagerCore, ManagerSettings
 from cps_transport.rate_limiter import WindowRate
@@ -126,7 +128,9 @@ def test_share_of_an_input_capped_robot_is_its_allocated_bandwidth_over_the_budg
     a, b = result.by_name()["a"], result.by_name()["b"]
     assert a.rate_hz == pytest.approx(2.2)
     for r in (a, b):
-        assert r.share_percent == pytest.approx(100 * 2 * r.rate_hz * r.message_bytes / 1e6 / result.budget_mbytes_per_s)
+        assert r.share_percent == pytest.approx(
+            100 * 2 * r.rate_hz * r.message_bytes / 1e6 / result.budget_mbytes_per_s
+        )
     assert a.share_percent + b.share_percent == pytest.approx(100.0)
 
 
@@ -140,13 +144,21 @@ def test_priority_and_budget_changes_act_at_the_next_allocation_while_a_cap_is_h
     assert after["a"] > before["a"] and after["a"] <= 22.0 + 1e-9
 
 
-STATUS = st.tuples(st.sampled_from(["a", "b", "c"]), st.sampled_from([0.0, math.nan, 20000.0, 150000.0]),
-                   st.one_of(st.just(0.0), st.just(math.nan), st.floats(0.05, 100.0)), st.floats(0.0, 8.0))
+STATUS = st.tuples(
+    st.sampled_from(["a", "b", "c"]),
+    st.sampled_from([0.0, math.nan, 20000.0, 150000.0]),
+    st.one_of(st.just(0.0), st.just(math.nan), st.floats(0.05, 100.0)),
+    st.floats(0.0, 8.0),
+)
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(STATUS, min_size=1, max_size=40), st.floats(0.0, 20.0), st.floats(1.0, 100.0),
-       st.lists(st.sampled_from(["idle", "inspecting", "done"]), min_size=3, max_size=3))
+@given(
+    st.lists(STATUS, min_size=1, max_size=40),
+    st.floats(0.0, 20.0),
+    st.floats(1.0, 100.0),
+    st.lists(st.sampled_from(["idle", "inspecting", "done"]), min_size=3, max_size=3),
+)
 def test_any_status_sequence_keeps_caps_in_bounds_and_the_budget(statuses, hold_s, available_mbps, states):
     s = dataclasses.replace(SETTINGS, input_rate_hold_s=hold_s, available_mbps=available_mbps)
     core = ManagerCore(["a", "b", "c"], s)

@@ -1,5 +1,6 @@
 """The LEGACY delay-based estimator (the bench's anchor) against a simulated bottleneck queue whose capacity goes 60 -> 20 -> 60
 Mbit/s, with the sender obeying the estimate (as the manager's allocation does)."""
+
 import math
 
 import pytest
@@ -87,9 +88,16 @@ def test_estimate_has_a_floor():
     assert est.estimate_mbps == 2.0
 
 
-@pytest.mark.parametrize("kwargs", [dict(initial_mbps=0.0), dict(initial_mbps=-5.0), dict(initial_mbps=math.nan),
-                                    dict(initial_mbps=10.0, drain_factor=1.5),
-                                    dict(initial_mbps=10.0, max_mbps=0.5)])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(initial_mbps=0.0),
+        dict(initial_mbps=-5.0),
+        dict(initial_mbps=math.nan),
+        dict(initial_mbps=10.0, drain_factor=1.5),
+        dict(initial_mbps=10.0, max_mbps=0.5),
+    ],
+)
 def test_bad_parameters_are_clear_errors(kwargs):
     with pytest.raises(ValueError):
         BandwidthEstimator(**kwargs)

@@ -1,5 +1,6 @@
 """The simulated link and its judges (what the estimator's tests and bench rely on), and that the
 legacy estimator stays out of the manager's runtime path."""
+
 import ast
 import math
 import os
@@ -8,8 +9,15 @@ import sys
 
 import pytest
 
-from cps_bw_manager.link_model import (CpuHog, LinkModel, TraceRow, held_below_offered, ingress_over_capacity_s,
-                                       settle_time_s, steps_capacity)
+from cps_bw_manager.link_model import (
+    CpuHog,
+    LinkModel,
+    TraceRow,
+    held_below_offered,
+    ingress_over_capacity_s,
+    settle_time_s,
+    steps_capacity,
+)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 PACKAGE = os.path.join(HERE, "..", "src", "cps_bw_manager")
@@ -63,6 +71,7 @@ def test_sliding_measurement_windows_lag_a_step():
         def update(self, report, latency_ms):
             reports.append(report)
             return self.estimate_mbps
+
     model.run(Recorder(60.0), 8.0)
     at = {round(r.now_s, 2): r.delivered_mbps for r in reports}
     assert at[5.0] == pytest.approx(30.0) and at[6.0] == pytest.approx(20.0) and at[7.0] == pytest.approx(10.0)
@@ -75,20 +84,28 @@ def test_settle_time_is_from_the_first_report_of_the_final_in_band_stretch():
 
 
 def test_ingress_over_capacity_first_and_longest_runs():
-    trace = [_row(0.5, 10, 10, ingress=30), _row(1.0, 10, 10, ingress=12), _row(1.5, 10, 10, ingress=9),
-             _row(2.0, 10, 10, ingress=11), _row(2.5, 10, 10, ingress=9)]
+    trace = [
+        _row(0.5, 10, 10, ingress=30),
+        _row(1.0, 10, 10, ingress=12),
+        _row(1.5, 10, 10, ingress=9),
+        _row(2.0, 10, 10, ingress=11),
+        _row(2.5, 10, 10, ingress=9),
+    ]
     assert ingress_over_capacity_s(trace, 0.0, 2.5) == (1.0, 0.5)
 
 
 def test_held_below_offered_only_counts_loads_under_85_percent():
-    trace = [_row(0.5, 10, 10, offered=8.0, allowed=7.0), _row(1.0, 10, 10, offered=9.0, allowed=7.0),
-             _row(1.5, 10, 10, offered=8.0, allowed=9.6), _row(2.0, 10, 10, offered=8.0, allowed=1.0, up=False)]
+    trace = [
+        _row(0.5, 10, 10, offered=8.0, allowed=7.0),
+        _row(1.0, 10, 10, offered=9.0, allowed=7.0),
+        _row(1.5, 10, 10, offered=8.0, allowed=9.6),
+        _row(2.0, 10, 10, offered=8.0, allowed=1.0, up=False),
+    ]
     assert [r.t_s for r in held_below_offered(trace)] == [0.5]
 
 
 def test_the_manager_uses_one_estimator_and_never_the_legacy_one():
-    code = ("import sys, cps_bw_manager.manager; "
-            "sys.exit('cps_bw_manager.legacy_estimation' in sys.modules)")
+    code = "import sys, cps_bw_manager.manager; sys.exit('cps_bw_manager.legacy_estimation' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
     for module in ("manager.py", "manager_node.py"):
         with open(os.path.join(PACKAGE, module)) as stream:

@@ -1,9 +1,10 @@
 """ManagerCore during an outage: paused while /tissue/link_state says down, the estimator not fed
 (an outage is no capacity measurement), and resuming from the online estimate when it is back."""
+
 import pytest
 
 from cps_bw_manager.estimation import DeliveryRateEstimator
-from cps_bw_manager.manager import (LINK_STATE_CSV_COLUMNS, ManagerCore, ManagerSettings, link_state_csv_row)
+from cps_bw_manager.manager import LINK_STATE_CSV_COLUMNS, ManagerCore, ManagerSettings, link_state_csv_row
 
 SETTINGS = ManagerSettings(available_mbps=60.0, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0)
 
@@ -52,6 +53,12 @@ def test_link_state_rows_match_the_columns():
     core.on_link_state(False, since_s=3.5, outages=2, last_outage_s=1.25, peer="twin")
     row = link_state_csv_row(4.0, core.link, core.available_mbps)
     assert len(row) == len(LINK_STATE_CSV_COLUMNS)
-    assert dict(zip(LINK_STATE_CSV_COLUMNS, row)) == {"stamp_s": "4.000", "up": 0, "since_s": "3.500", "outages": 2,
-                                                       "last_outage_s": "1.250", "peer": "twin",
-                                                       "available_mbps": "60.000"}
+    assert dict(zip(LINK_STATE_CSV_COLUMNS, row)) == {
+        "stamp_s": "4.000",
+        "up": 0,
+        "since_s": "3.500",
+        "outages": 2,
+        "last_outage_s": "1.250",
+        "peer": "twin",
+        "available_mbps": "60.000",
+    }

@@ -1,15 +1,22 @@
 """ManagerCore: measured sizes and input rates, mission states, operator priorities and bad input."""
+
 import math
 from types import SimpleNamespace
 
 import pytest
 
 from cps_bw_manager.estimation import DeliveryRateEstimator
-from cps_bw_manager.manager import (ALLOCATION_CSV_COLUMNS, ManagerCore, ManagerSettings, allocation_csv_rows,
-                                    link_totals)
+from cps_bw_manager.manager import (
+    ALLOCATION_CSV_COLUMNS,
+    ManagerCore,
+    ManagerSettings,
+    allocation_csv_rows,
+    link_totals,
+)
 
-SETTINGS = ManagerSettings(available_mbps=60.0, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0,
-                           headroom_messages=0.0)
+SETTINGS = ManagerSettings(
+    available_mbps=60.0, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0, headroom_messages=0.0
+)
 
 
 def _core(**kwargs):
@@ -52,7 +59,7 @@ def test_two_subscribers_across_the_link_halve_the_rates():
 
 def test_input_rate_caps_the_maximum_and_frees_bandwidth_for_the_others():
     core = _core()
-    core.on_limiter_status("a", 300000.0, 5.0, now_s=0.0)   # a only produces 5 Hz
+    core.on_limiter_status("a", 300000.0, 5.0, now_s=0.0)  # a only produces 5 Hz
     core.on_limiter_status("b", 300000.0, 50.0, now_s=0.0)
     rates = core.allocate().rates_hz()
     assert rates["a"] == pytest.approx(5.5)
@@ -95,15 +102,24 @@ def test_unmeasured_sizes_are_safe_and_bad_sizes_are_refused():
     assert result.allocated_mbytes_per_s <= 7.2 + 1e-9
 
 
-@pytest.mark.parametrize("change, match", [
-    (dict(available_mbps=0.0), "available"), (dict(available_mbps=-60.0), "available"),
-    (dict(reserve_fraction=1.0), "reserve"), (dict(reserve_fraction=-0.5), "reserve"),
-    (dict(min_rate_hz=40.0), "min_rate_hz"), (dict(max_rate_hz=math.nan), "max_rate_hz"),
-    (dict(high_priority_weight=0.0), "high_priority_weight"),
-    (dict(headroom_messages=-1.0), "headroom_messages"), (dict(window_s=0.0), "window_s"),
-    (dict(copies_on_link=0), "copies_on_link"), (dict(copies_on_link=1.5), "copies_on_link"),
-    (dict(input_rate_hold_s=-1.0), "input_rate_hold_s"), (dict(input_rate_hold_s=math.nan), "input_rate_hold_s"),
-])
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (dict(available_mbps=0.0), "available"),
+        (dict(available_mbps=-60.0), "available"),
+        (dict(reserve_fraction=1.0), "reserve"),
+        (dict(reserve_fraction=-0.5), "reserve"),
+        (dict(min_rate_hz=40.0), "min_rate_hz"),
+        (dict(max_rate_hz=math.nan), "max_rate_hz"),
+        (dict(high_priority_weight=0.0), "high_priority_weight"),
+        (dict(headroom_messages=-1.0), "headroom_messages"),
+        (dict(window_s=0.0), "window_s"),
+        (dict(copies_on_link=0), "copies_on_link"),
+        (dict(copies_on_link=1.5), "copies_on_link"),
+        (dict(input_rate_hold_s=-1.0), "input_rate_hold_s"),
+        (dict(input_rate_hold_s=math.nan), "input_rate_hold_s"),
+    ],
+)
 def test_bad_settings_name_the_parameter(change, match):
     import dataclasses
 
@@ -142,18 +158,29 @@ def test_a_full_link_report_keeps_a_busy_twin_apart_from_the_link():
 
     core = _core(estimator=DeliveryRateEstimator(initial_mbps=60.0))
     for i in range(1, 10):
-        core.on_link_report(LinkReport(now_s=0.5 * i, interval_s=0.5, delivered_mbps=2.0, sent_mbps=48.0,
-                                       offered_mbps=48.0, app_limited=False, rtt_s=(0.05 + 0.1 * i,),
-                                       receiver_behind=True))
+        core.on_link_report(
+            LinkReport(
+                now_s=0.5 * i,
+                interval_s=0.5,
+                delivered_mbps=2.0,
+                sent_mbps=48.0,
+                offered_mbps=48.0,
+                app_limited=False,
+                rtt_s=(0.05 + 0.1 * i,),
+                receiver_behind=True,
+            )
+        )
     assert core.available_mbps == 60.0 and core.estimator.twin_capacity_mbps == 2.0
     core.on_link_state(False, since_s=5.0)  # while down, not fed
     assert not core.on_link_report(LinkReport(now_s=5.5, interval_s=0.5, delivered_mbps=1.0, sent_mbps=48.0))
 
 
 def test_link_totals_from_topic_stats():
-    topics = [SimpleNamespace(managed=True, messages=10, bandwidth_mbytes_per_s=1.0, latency_avg_ms=5.0),
-              SimpleNamespace(managed=True, messages=0, bandwidth_mbytes_per_s=0.0, latency_avg_ms=math.nan),
-              SimpleNamespace(managed=False, messages=50, bandwidth_mbytes_per_s=0.25, latency_avg_ms=500.0)]
+    topics = [
+        SimpleNamespace(managed=True, messages=10, bandwidth_mbytes_per_s=1.0, latency_avg_ms=5.0),
+        SimpleNamespace(managed=True, messages=0, bandwidth_mbytes_per_s=0.0, latency_avg_ms=math.nan),
+        SimpleNamespace(managed=False, messages=50, bandwidth_mbytes_per_s=0.25, latency_avg_ms=500.0),
+    ]
     delivered, latency = link_totals(topics)
     assert delivered == pytest.approx(10.0) and latency == 5.0
     assert all(math.isnan(v) for v in link_totals([]))

@@ -1,5 +1,6 @@
 """The bandwidth_manager node with cps_transport's real rate_limiter nodes: measured sizes, mission
 states, operator priorities, bad input and the CSV log."""
+
 import csv
 import math
 import threading
@@ -25,13 +26,25 @@ def graph(ros, rospy_node, tmp_path):
     from cps_msgs.msg import BandwidthAllocationArray, CompressedPointCloud2, RateLimiterStatus
 
     for r in ROBOTS:
-        ros.start_node("cps_transport", "rate_limiter", name="cloud_throttle", namespace=f"/{r}",
-                       remap={"~input": f"/{r}/points_filtered/draco",
-                              "~output": f"/{r}/points_filtered/draco/managed"})
+        ros.start_node(
+            "cps_transport",
+            "rate_limiter",
+            name="cloud_throttle",
+            namespace=f"/{r}",
+            remap={"~input": f"/{r}/points_filtered/draco", "~output": f"/{r}/points_filtered/draco/managed"},
+        )
     csv_path = tmp_path / "allocation.csv"
-    ros.start_node("cps_bw_manager", "bandwidth_manager", name="bandwidth_manager",
-                   params={"~robots": list(ROBOTS), "~available_mbps": 2.0, "~csv_path": str(csv_path),
-                           "~link_state_csv_path": str(tmp_path / "link_state.csv")})
+    ros.start_node(
+        "cps_bw_manager",
+        "bandwidth_manager",
+        name="bandwidth_manager",
+        params={
+            "~robots": list(ROBOTS),
+            "~available_mbps": 2.0,
+            "~csv_path": str(csv_path),
+            "~link_state_csv_path": str(tmp_path / "link_state.csv"),
+        },
+    )
     ros.wait_for_service("/tissue/set_priority")
     pubs = {r: rospy.Publisher(f"/{r}/points_filtered/draco", CompressedPointCloud2, queue_size=2) for r in ROBOTS}
     mission = {r: rospy.Publisher(f"/{r}/mission_state", String, queue_size=1, latch=True) for r in ROBOTS}
@@ -67,6 +80,7 @@ def _allocation(graph):
 
 def _wait_in_force(graph, expected, timeout_s, what):
     """Every limiter runs the rate the manager last allocated, and that allocation meets `expected`."""
+
     def in_force():
         current = _allocation(graph)
         if not current:
@@ -88,9 +102,15 @@ def test_rates_from_the_measured_sizes_fit_the_budget(graph):
     assert available.data == pytest.approx(2.0)
     budget = 0.96 * 2.0 / 8.0
     # Sizes measured by the limiters (serialized message, a little above the payload); equal shares.
-    a = _wait_in_force(graph, lambda a: all(PAYLOAD_BYTES < a[r].message_bytes < PAYLOAD_BYTES + 1000 for r in ROBOTS)
-                       and math.isclose(a["scout"].rate_hz, a["jackal"].rate_hz, rel_tol=1e-6),
-                       20.0, "equal rates from measured sizes")
+    a = _wait_in_force(
+        graph,
+        lambda a: (
+            all(PAYLOAD_BYTES < a[r].message_bytes < PAYLOAD_BYTES + 1000 for r in ROBOTS)
+            and math.isclose(a["scout"].rate_hz, a["jackal"].rate_hz, rel_tol=1e-6)
+        ),
+        20.0,
+        "equal rates from measured sizes",
+    )
     assert sum(x.bandwidth_mbytes_per_s for x in a.values()) <= budget * (1 + 1e-9)
     # Room for one extra message per robot per 1 s window is kept (~headroom_messages).
     size = a["scout"].message_bytes / 1e6
@@ -104,9 +124,15 @@ def test_mission_states_and_the_operator_set_priorities_and_the_csv_logs_them(gr
 
     # Inspecting -> priority 1 -> 4x the bandwidth of the normal robot.
     graph.mission["scout"].publish(String("inspecting"))
-    _wait_in_force(graph, lambda a: a["scout"].priority == 1 and math.isclose(
-        a["scout"].bandwidth_mbytes_per_s / a["jackal"].bandwidth_mbytes_per_s, 4.0, rel_tol=1e-3),
-        20.0, "scout at priority 1")
+    _wait_in_force(
+        graph,
+        lambda a: (
+            a["scout"].priority == 1
+            and math.isclose(a["scout"].bandwidth_mbytes_per_s / a["jackal"].bandwidth_mbytes_per_s, 4.0, rel_tol=1e-3)
+        ),
+        20.0,
+        "scout at priority 1",
+    )
     # Done -> the minimum rate.
     graph.mission["jackal"].publish(String("done"))
     _wait_in_force(graph, lambda a: a["jackal"].rate_hz == pytest.approx(1.0), 5.0, "jackal at 1 Hz")
@@ -117,8 +143,12 @@ def test_mission_states_and_the_operator_set_priorities_and_the_csv_logs_them(gr
     bad = set_priority(robot="jackal", priority=2)
     assert not bad.success and "priority must be 0" in bad.message
     assert set_priority(robot="jackal", priority=1).success
-    _wait_in_force(graph, lambda a: a["jackal"].priority == 1 and math.isclose(
-        a["jackal"].rate_hz, a["scout"].rate_hz, rel_tol=0.1), 5.0, "jackal raised by the operator")
+    _wait_in_force(
+        graph,
+        lambda a: a["jackal"].priority == 1 and math.isclose(a["jackal"].rate_hz, a["scout"].rate_hz, rel_tol=0.1),
+        5.0,
+        "jackal raised by the operator",
+    )
 
     with open(graph.csv_path) as stream:
         rows = list(csv.DictReader(stream))
@@ -148,15 +178,18 @@ def test_bad_input_on_the_wire_does_not_stop_the_manager(ros, graph):
     graph.allocation.wait(lambda msg: msg.header.stamp > first.header.stamp, 5.0, "allocations after bad input")
 
 
-@pytest.mark.parametrize("params, match", [
-    ({"~available_mbps": -5.0}, "available bandwidth must be > 0"),
-    ({"~available_mbps": 0.0}, "available bandwidth must be > 0"),
-    ({"~reserve_fraction": 1.0}, "reserve_fraction must be in"),
-    ({"~min_rate_hz": 40.0}, "min_rate_hz"),
-    ({"~robots": ["scout", "nobody"]}, "unknown robot"),
-    ({"~update_rate_hz": 0.5}, "update_rate_hz"),
-    ({"~headroom_messages": -1.0}, "headroom_messages"),
-])
+@pytest.mark.parametrize(
+    "params, match",
+    [
+        ({"~available_mbps": -5.0}, "available bandwidth must be > 0"),
+        ({"~available_mbps": 0.0}, "available bandwidth must be > 0"),
+        ({"~reserve_fraction": 1.0}, "reserve_fraction must be in"),
+        ({"~min_rate_hz": 40.0}, "min_rate_hz"),
+        ({"~robots": ["scout", "nobody"]}, "unknown robot"),
+        ({"~update_rate_hz": 0.5}, "update_rate_hz"),
+        ({"~headroom_messages": -1.0}, "headroom_messages"),
+    ],
+)
 def test_bad_parameters_stop_the_node_with_a_clear_message(ros, params, match):
     name = f"bad_manager_{abs(hash(match)) % 10**6}"  # private params outlive a node on the master
     proc = ros.start_node("cps_bw_manager", "bandwidth_manager", name=name, params=params)
@@ -191,8 +224,12 @@ def test_link_down_pauses_the_allocation_and_up_resumes_it(graph, tmp_path):
         assert not graph.allocation.latest.link_up
         link.publish(LinkState(up=True, since=rospy.Time.now(), outages=1, last_outage_s=2.0, peer="robots"))
         graph.allocation.wait(lambda m: m.link_up and "paused" not in m.status, 10.0, "allocating again")
-        _wait_in_force(graph, lambda a: a["scout"].priority == 1 and a["scout"].rate_hz > a["jackal"].rate_hz, 10.0,
-                       "the inspecting robot's priority applied after the outage")
+        _wait_in_force(
+            graph,
+            lambda a: a["scout"].priority == 1 and a["scout"].rate_hz > a["jackal"].rate_hz,
+            10.0,
+            "the inspecting robot's priority applied after the outage",
+        )
         assert rates.take()
     finally:
         rates.close()

@@ -1,21 +1,24 @@
 """The paper's Table 6 (four robots, 60 Mbit/s, nine steps) through the mission-state mapping and
 the allocator. Message sizes per step are the paper's bandwidth / frequency. Run with -s to see
 our rates beside the paper's."""
+
 import math
 
 import pytest
 
 from cps_bw_manager.allocation import managed_budget_mbytes_per_s
 from cps_bw_manager.priorities import PriorityBook
-from cps_bw_manager.table6 import (PAPER_TABLE6, TABLE6_ROBOTS as ROBOTS, format_table6, paper_message_bytes,
-                                   run_table6_steps)
+from cps_bw_manager.table6 import PAPER_TABLE6, format_table6, paper_message_bytes, run_table6_steps
+from cps_bw_manager.table6 import TABLE6_ROBOTS as ROBOTS
 
 
 def test_table6_pattern_is_reproduced():
     budget = managed_budget_mbytes_per_s(60.0, 0.04)
     steps = run_table6_steps(paper_message_bytes, budget, 1.0, 30.0)
-    print(f"\nTable 6, 60 Mbit/s, 4 % reserve -> managed budget {budget:.2f} MB/s "
-          f"(the paper's shares are of 7.50 MB/s)\n" + format_table6(steps))
+    print(
+        f"\nTable 6, 60 Mbit/s, 4 % reserve -> managed budget {budget:.2f} MB/s "
+        f"(the paper's shares are of 7.50 MB/s)\n" + format_table6(steps)
+    )
     assert [done for _, done, _ in steps][5:] == [{"iris"}, {"iris", "scout"}, {"iris", "scout", "champ"}, set(ROBOTS)]
     for step, done, result in steps:
         paper_row = PAPER_TABLE6[step - 1]
@@ -45,7 +48,9 @@ def test_table6_pattern_is_reproduced():
 
 def test_per_robot_maximum_caps_a_slow_sensor():
     budget = managed_budget_mbytes_per_s(60.0, 0.04)
-    steps = run_table6_steps(paper_message_bytes, budget, 1.0, {"scout": 10.0, "jackal": 30.0, "champ": 30.0, "iris": 30.0})
+    steps = run_table6_steps(
+        paper_message_bytes, budget, 1.0, {"scout": 10.0, "jackal": 30.0, "champ": 30.0, "iris": 30.0}
+    )
     assert all(result.by_name()["scout"].rate_hz <= 10.0 + 1e-9 for _, _, result in steps)
 
 
@@ -63,9 +68,15 @@ def test_operator_raises_a_finished_robot_back():
     assert book.priority("iris") == 0
 
 
-@pytest.mark.parametrize("robot, priority, error", [
-    ("nobody", 1, KeyError), ("iris", 2, ValueError), ("iris", -1, ValueError), ("iris", True, ValueError),
-])
+@pytest.mark.parametrize(
+    "robot, priority, error",
+    [
+        ("nobody", 1, KeyError),
+        ("iris", 2, ValueError),
+        ("iris", -1, ValueError),
+        ("iris", True, ValueError),
+    ],
+)
 def test_bad_operator_priority_is_a_clear_error(robot, priority, error):
     with pytest.raises(error):
         PriorityBook(ROBOTS).set_operator_priority(robot, priority)

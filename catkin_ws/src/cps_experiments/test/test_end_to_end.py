@@ -2,6 +2,7 @@
 (across the shaped link when root), the map server is killed mid-mission and must resume from its
 autosave, and the demo writes a map that scores against ground truth, a report and a screenshot.
 Afterwards no process and no network namespace of the run is left."""
+
 import json
 import os
 import subprocess
@@ -20,17 +21,34 @@ F1_THRESHOLD = 0.6
 
 def _pane(image, panes, name):
     box = panes["panes"][name]
-    return image[box["y"]:box["y"] + box["height"], box["x"]:box["x"] + box["width"]]
+    return image[box["y"] : box["y"] + box["height"], box["x"] : box["x"] + box["width"]]
 
 
 @pytest.mark.ros
 @pytest.mark.slow
 def test_two_robot_mission_end_to_end(open_tmp_path):
     out = open_tmp_path / "demo"
-    result = subprocess.run([sys.executable, DEMO, "--robots", "scout,jackal", "--out", str(out),
-                             "--duration", "150", "--screenshot-after", "25", "--kill-map-server-at", "24",
-                             "--map-f1-floor", str(F1_THRESHOLD)],
-                            capture_output=True, text=True, timeout=600)
+    result = subprocess.run(
+        [
+            sys.executable,
+            DEMO,
+            "--robots",
+            "scout,jackal",
+            "--out",
+            str(out),
+            "--duration",
+            "150",
+            "--screenshot-after",
+            "25",
+            "--kill-map-server-at",
+            "24",
+            "--map-f1-floor",
+            str(F1_THRESHOLD),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     log = result.stdout + result.stderr
     assert result.returncode == 0, log[-4000:]
     assert "every robot finished its route" in log, log[-3000:]

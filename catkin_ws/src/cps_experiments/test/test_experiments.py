@@ -1,5 +1,6 @@
 """The offline experiments (Tables 4/6, Figs. 11/12/13) on a tiny input write their files with
 numbers that make sense; Table 5/Fig. 14 need the running system and are left to the end-to-end test."""
+
 import csv
 import os
 import subprocess
@@ -21,16 +22,32 @@ def _rows(path):
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     out = tmp_path_factory.mktemp("results")
-    proc = subprocess.run([sys.executable, EXPERIMENTS, "table4", "table6", "fig13", "--quick", "--out", str(out)],
-                          capture_output=True, text=True, timeout=240)
+    proc = subprocess.run(
+        [sys.executable, EXPERIMENTS, "table4", "table6", "fig13", "--quick", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return out
 
 
 @pytest.mark.timeout(300)
 def test_every_offline_output_is_written(results):
-    for name in ("table4.csv", "table4.md", "fig11.png", "fig12.png", "fig11_12.csv", "table6.csv", "table6.md",
-                 "fig13.png", "fig13.md", "fig13.csv", "fig13_replay.csv", "README.md"):
+    for name in (
+        "table4.csv",
+        "table4.md",
+        "fig11.png",
+        "fig12.png",
+        "fig11_12.csv",
+        "table6.csv",
+        "table6.md",
+        "fig13.png",
+        "fig13.md",
+        "fig13.csv",
+        "fig13_replay.csv",
+        "README.md",
+    ):
         assert (results / name).stat().st_size > 0, name
     assert not (results / "table5.md").exists()
     readme = (results / "README.md").read_text()

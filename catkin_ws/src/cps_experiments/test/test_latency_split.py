@@ -1,9 +1,10 @@
 """The report's latency split joins the robots' side and the twin per cloud by capture stamp."""
+
 import struct
 
 import pytest
-
 from cps_experiments.report import latency_split, read_csv
+
 from cps_fleet.csv_log import CsvLog
 from cps_transport.topic_stats import ARRIVAL_COLUMNS, stamp_ns_from_serialized
 
@@ -27,9 +28,9 @@ def stamp_from_bytes(stamp_ns):
 
 def test_split_is_per_cloud_over_the_clouds_that_reached_the_twin(tmp_path):
     base_ns = 1_700_000_000_123_456_789
-    capture_ns = [base_ns + k * 100_000_000 for k in range(6)]       # clouds every 0.1 s
-    robot_side_s = [0.050, 0.070, 0.300, 0.060, 0.055, 0.080]       # capture -> filtered, physical host
-    tissue_s = [0.020, 0.030, None, None, 0.025, -0.010]             # None: dropped by the rate limiter
+    capture_ns = [base_ns + k * 100_000_000 for k in range(6)]  # clouds every 0.1 s
+    robot_side_s = [0.050, 0.070, 0.300, 0.060, 0.055, 0.080]  # capture -> filtered, physical host
+    tissue_s = [0.020, 0.030, None, None, 0.025, -0.010]  # None: dropped by the rate limiter
     physical, twin = [], []
     for stamp, robot_s, tissue in zip(capture_ns, robot_side_s, tissue_s):
         filtered = stamp * 1e-9 + robot_s
@@ -38,7 +39,7 @@ def test_split_is_per_cloud_over_the_clouds_that_reached_the_twin(tmp_path):
             twin.append(("/twin/scout/points_filtered/draco/managed", "scout", stamp, filtered + tissue))
     # A cloud of another robot with the same stamp must not join scout's.
     twin.append(("/twin/jackal/points_filtered/draco/managed", "jackal", capture_ns[2], capture_ns[2] * 1e-9 + 0.2))
-    twin.append(("/scout/odom", "scout", capture_ns[3], capture_ns[3] * 1e-9 + 0.001))   # not a managed cloud
+    twin.append(("/scout/odom", "scout", capture_ns[3], capture_ns[3] * 1e-9 + 0.001))  # not a managed cloud
     split = latency_split(_log(tmp_path / "physical_arrivals.csv", physical), _log(tmp_path / "arrivals.csv", twin))
 
     assert set(split) == {"scout"}

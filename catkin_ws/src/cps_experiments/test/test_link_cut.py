@@ -3,17 +3,25 @@ the veth cut for 10 s mid-mission. Both sides report the link down within 1 s of
 within 2 s of its end, no node restarts, no live cloud older than 1 s reaches the twin after
 recovery, the backfilled keyframes reach the map, and the map's F1 is at least 98 % of the same
 mission's without a cut (both printed). CPS_CUT_TEST_ROBOTS picks a subset (default: all four)."""
+
 import os
 import subprocess
 import sys
 import time
 
 import pytest
-
-from cps_ros.processes import processes_named
-from cps_link import netns_link
-from cps_experiments.cut_analysis import LINK_STATE, ages_after, count_after, describe_ages, first_state_after, read_watch
+from cps_experiments.cut_analysis import (
+    LINK_STATE,
+    ages_after,
+    count_after,
+    describe_ages,
+    first_state_after,
+    read_watch,
+)
 from cps_experiments.mission_run import BackgroundMission
+
+from cps_link import netns_link
+from cps_ros.processes import processes_named
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -23,9 +31,9 @@ MISSION_S, CUT_AT_S, CUT_S = 110.0, 35.0, 10.0
 DOWN_WITHIN_S, UP_WITHIN_S, FRESH_S, F1_RATIO = 1.0, 2.0, 1.0, 0.98
 
 
-
 def _f1(map_file):
     from cps_experiments.report import score_saved_map
+
     from cps_fleet.fleet import load_fleet, robot_names_arg
 
     fleet = robot_names_arg(load_fleet(), ROBOTS)
@@ -35,8 +43,9 @@ def _f1(map_file):
 
 def _mission(out, cut):
     """One mission; with `cut`, the veth goes down CUT_AT_S into it for CUT_S. Returns (mission, times)."""
-    twin_topics = [t for r in ROBOTS
-                   for t in (f"/twin/{r}/points_filtered/draco/managed", f"/twin/{r}/points_backfill")]
+    twin_topics = [
+        t for r in ROBOTS for t in (f"/twin/{r}/points_filtered/draco/managed", f"/twin/{r}/points_backfill")
+    ]
     with BackgroundMission(out, "cpszc", ["--robots", ",".join(ROBOTS), "--duration", str(MISSION_S)]) as mission:
         mission.wait_for_line("processes up", timeout_s=300)
         mission.popen_on("twin", [sys.executable, WATCH, str(out / "twin_watch.txt"), *twin_topics], "twin_watch")
@@ -64,12 +73,20 @@ def test_a_ten_second_cut_mid_mission(open_tmp_path):
     live = [f"/twin/{r}/points_filtered/draco/managed" for r in ROBOTS]
     ages = ages_after(twin, times["restore"], live)
     backfilled = {r: count_after(twin, times["restore"], f"/twin/{r}/points_backfill") for r in ROBOTS}
-    delays = {f"{side} down": (first_state_after(w, times["cut"], False) or float("inf")) - times["cut"]
-              for side, w in (("twin", twin), ("robots", robots))}
-    delays.update({f"{side} up": (first_state_after(w, times["restore"], True) or float("inf")) - times["restore"]
-                   for side, w in (("twin", twin), ("robots", robots))})
-    print(f"\nrobots {','.join(ROBOTS)}: F1 without cut {f1_base:.4f}, with a {CUT_S:.0f} s cut {f1_cut:.4f} "
-          f"({100 * f1_cut / f1_base:.1f} %)")
+    delays = {
+        f"{side} down": (first_state_after(w, times["cut"], False) or float("inf")) - times["cut"]
+        for side, w in (("twin", twin), ("robots", robots))
+    }
+    delays.update(
+        {
+            f"{side} up": (first_state_after(w, times["restore"], True) or float("inf")) - times["restore"]
+            for side, w in (("twin", twin), ("robots", robots))
+        }
+    )
+    print(
+        f"\nrobots {','.join(ROBOTS)}: F1 without cut {f1_base:.4f}, with a {CUT_S:.0f} s cut {f1_cut:.4f} "
+        f"({100 * f1_cut / f1_base:.1f} %)"
+    )
     print("link state delays: " + ", ".join(f"{k} {v:.2f} s" for k, v in delays.items()))
     print(f"live clouds after recovery: {describe_ages(ages)}; backfilled keyframes: {backfilled}")
 

@@ -1,22 +1,35 @@
 """The report's link events from the CSVs the scenario runner and the manager write: outages with
 their durations, capacity steps with the windows over budget around them, and what is missing."""
+
 import math
 
 import numpy as np
 import pytest
-
-from cps_experiments.link_report import (NOT_YET, bridge_outages, capacity_steps, scenario_outages, section)
+from cps_experiments.link_report import NOT_YET, bridge_outages, capacity_steps, scenario_outages, section
 
 T0 = 1000.0  # wall time of mission second 0
 
 
 def _event(mission_s, event, rate, note=""):
-    return {"mission_time_s": str(mission_s), "wall_time_s": str(T0 + mission_s), "event": event,
-            "rate_mbps": str(rate), "delay_ms": "0", "jitter_ms": "0", "loss_pct": "0", "note": note}
+    return {
+        "mission_time_s": str(mission_s),
+        "wall_time_s": str(T0 + mission_s),
+        "event": event,
+        "rate_mbps": str(rate),
+        "delay_ms": "0",
+        "jitter_ms": "0",
+        "loss_pct": "0",
+        "note": note,
+    }
 
 
-EVENTS = [_event(0, "start", 60, "scenario demo (duplex)"), _event(25, "cut", 60), _event(35.2, "restore", 60),
-          _event(60, "shape", 10), _event(80, "shape", 60)]
+EVENTS = [
+    _event(0, "start", 60, "scenario demo (duplex)"),
+    _event(25, "cut", 60),
+    _event(35.2, "restore", 60),
+    _event(60, "shape", 10),
+    _event(80, "shape", 60),
+]
 
 
 def _windows():
@@ -28,9 +41,11 @@ def _windows():
     return times, totals
 
 
-ALLOCATIONS = [{"stamp_s": str(T0), "budget_mbytes_per_s": "6.9"},
-               {"stamp_s": str(T0 + 60.5), "budget_mbytes_per_s": "1.1"},
-               {"stamp_s": str(T0 + 80.5), "budget_mbytes_per_s": "6.9"}]
+ALLOCATIONS = [
+    {"stamp_s": str(T0), "budget_mbytes_per_s": "6.9"},
+    {"stamp_s": str(T0 + 60.5), "budget_mbytes_per_s": "1.1"},
+    {"stamp_s": str(T0 + 80.5), "budget_mbytes_per_s": "6.9"},
+]
 
 
 def test_outages_and_steps_from_the_runners_events():
@@ -40,8 +55,12 @@ def test_outages_and_steps_from_the_runners_events():
 
 
 def test_bridge_transitions_make_outages_and_an_unended_one_says_so():
-    rows = [{"up": "0", "since_s": "10.0", "peer": "robots"}, {"up": "0", "since_s": "10.0", "peer": "robots"},
-            {"up": "1", "since_s": "22.5", "peer": "robots"}, {"up": "0", "since_s": "40.0", "peer": "robots"}]
+    rows = [
+        {"up": "0", "since_s": "10.0", "peer": "robots"},
+        {"up": "0", "since_s": "10.0", "peer": "robots"},
+        {"up": "1", "since_s": "22.5", "peer": "robots"},
+        {"up": "0", "since_s": "40.0", "peer": "robots"},
+    ]
     outages = bridge_outages(rows)
     assert outages[0] == (10.0, 12.5, "robots") and outages[1][0] == 40.0 and outages[1][2] == "robots"
     lines = "\n".join(section([], rows, ALLOCATIONS, *_windows()))

@@ -1,13 +1,14 @@
 """fig13_live's sweep and its figures read back from a mission's files."""
+
 import csv
 import math
 
 import pytest
-
 from cps_experiments.live_scaling import LiveRun, measure_run, mission_argv, sweep, verdict
+
+from cps_fleet import names
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import default_fleet_path
-from cps_fleet import names
 
 pytestmark = pytest.mark.unit
 
@@ -22,15 +23,21 @@ def _write(path, columns, rows):
 def _mission_files(folder, budget=7.0, windows=(1.0, 8.0, 2.0)):
     """Per window, the two robots share `windows` MB/s (as volume in topic_stats' 2 s window); the
     rostopic-style rate column says 40 MB/s, as a CPU-starved twin's burst would."""
-    _write(folder / "stats.csv", ["time_s", "topic", "robot", "managed", "messages", "mean_message_bytes",
-                                  "bandwidth_mbytes_per_s"],
-           [[f"{t}.0", f"/twin/{r}/points_filtered/draco/managed", r, "True", 10, mbps / 2 * 2.0 / 10 * 1e6, 40.0]
-            for t, mbps in enumerate(windows) for r in ("a", "b")])
+    _write(
+        folder / "stats.csv",
+        ["time_s", "topic", "robot", "managed", "messages", "mean_message_bytes", "bandwidth_mbytes_per_s"],
+        [
+            [f"{t}.0", f"/twin/{r}/points_filtered/draco/managed", r, "True", 10, mbps / 2 * 2.0 / 10 * 1e6, 40.0]
+            for t, mbps in enumerate(windows)
+            for r in ("a", "b")
+        ],
+    )
     _write(folder / "allocation.csv", ["time_s", "budget_mbytes_per_s"], [["0.0", budget]])
     # a: 10 clouds at 20 ms; b: 5 clouds at 40 ms (one at 400 ms); c: none reached the twin.
     arrivals = [("/twin/a/points_filtered/draco/managed", "a", int(i * 1e9), i + 0.020) for i in range(10)]
-    arrivals += [("/twin/b/points_filtered/draco/managed", "b", int(i * 1e9), i + (0.4 if i == 4 else 0.040))
-                 for i in range(5)]
+    arrivals += [
+        ("/twin/b/points_filtered/draco/managed", "b", int(i * 1e9), i + (0.4 if i == 4 else 0.040)) for i in range(5)
+    ]
     _write(folder / "arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], arrivals)
     probes = [(names.absolute(names.COMMAND_PROBE), "", int(i * 1e8), i * 0.1 + 0.003) for i in range(20)]
     probes += [("/a/points_filtered", "a", int(1e9), 1.05)]
@@ -43,10 +50,10 @@ def test_the_figures_come_from_the_missions_files(tmp_path):
 
     figures = measure_run(str(tmp_path), summary, ["a", "b", "c"], budget_mbytes_per_s=99.0)
 
-    assert figures["budget_mbytes_per_s"] == 7.0          # the manager's own budget wins over the nominal one
+    assert figures["budget_mbytes_per_s"] == 7.0  # the manager's own budget wins over the nominal one
     assert figures["windows"] == 3 and figures["windows_over_budget"] == 1
-    assert figures["max_window_mbytes_per_s"] == pytest.approx(8.0)   # the volume, not the burst's rate
-    assert figures["robots_reached"] == 2                 # c is reported missing, not filled in
+    assert figures["max_window_mbytes_per_s"] == pytest.approx(8.0)  # the volume, not the burst's rate
+    assert figures["robots_reached"] == 2  # c is reported missing, not filled in
     assert figures["hz_per_robot"] == {"a": 1.0, "b": 0.5, "c": 0.0}
     assert figures["min_hz"] == 0.0
     assert figures["latency_p50_ms"] == pytest.approx(20.0, abs=0.5)
@@ -64,10 +71,22 @@ def test_without_the_manager_the_nominal_budget_counts(tmp_path):
 
 
 def test_a_run_meets_the_bar_only_when_every_condition_holds():
-    good = {"min_hz": 1.2, "windows_over_budget": 0, "f1_fraction": 0.97, "dropped_fraction": 0.0, "teleop_p95_ms": 12.0}
+    good = {
+        "min_hz": 1.2,
+        "windows_over_budget": 0,
+        "f1_fraction": 0.97,
+        "dropped_fraction": 0.0,
+        "teleop_p95_ms": 12.0,
+    }
     assert all(verdict(good).values())
-    for key, bad in (("min_hz", 0.9), ("windows_over_budget", 1), ("f1_fraction", 0.9),
-                     ("dropped_fraction", 0.02), ("teleop_p95_ms", 150.0), ("f1_fraction", math.nan)):
+    for key, bad in (
+        ("min_hz", 0.9),
+        ("windows_over_budget", 1),
+        ("f1_fraction", 0.9),
+        ("dropped_fraction", 0.02),
+        ("teleop_p95_ms", 150.0),
+        ("f1_fraction", math.nan),
+    ):
         assert not all(verdict({**good, key: bad}).values()), key
 
 
@@ -75,12 +94,17 @@ def test_the_sweep_has_a_reference_and_both_links_each_way():
     runs = sweep((1, 16))
     assert LiveRun(16, None, False) in runs
     assert {(r.link_mbps, r.manager) for r in runs if r.robots == 16} == {
-        (None, False), (60.0, True), (60.0, False), (10.0, True), (10.0, False)}
+        (None, False),
+        (60.0, True),
+        (60.0, False),
+        (10.0, True),
+        (10.0, False),
+    }
     assert sweep((4,), shaped=False) == [LiveRun(4, None, False)]
 
 
 def test_a_fleet_too_small_for_the_sweep_is_refused(tmp_path):
-    fleet = default_fleet_path()   # four robots
+    fleet = default_fleet_path()  # four robots
     argv = mission_argv(LiveRun(2, 10.0, False), fleet, str(tmp_path), 30)
     assert argv[argv.index("--link") + 1] == "10mbit" and argv[-2:] == ["--bandwidth-manager", "off"]
     with pytest.raises(ConfigError, match="asks for 16"):

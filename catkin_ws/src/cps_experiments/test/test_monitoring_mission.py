@@ -3,6 +3,7 @@ area, then the same routes on a site where one crate is gone and one moved 1 m
 (cps_bringup/config/site_changes.yaml). Both changes are detected at the twin, live and in the
 saved maps, within 0.2 m, with no other change; and the bad inputs of a monitoring mission are
 refused before anything starts."""
+
 import os
 import subprocess
 import sys
@@ -22,8 +23,10 @@ MAX_POSITION_ERROR_M = 0.2
 # over its west half at 3 m, so both crates are seen from above and the side.
 ROUTES = {
     "scout": ({"x": 1.0, "y": 0.5, "z": 0.0, "yaw_deg": -90.0}, [{"x": 1.0, "y": -5.5}]),
-    "iris": ({"x": 0.0, "y": 1.0, "z": 0.0, "yaw_deg": -90.0},
-             [{"x": 3.2, "y": 1.0, "z": 3.0}, {"x": 3.2, "y": -5.0, "z": 3.0, "inspect": True}]),
+    "iris": (
+        {"x": 0.0, "y": 1.0, "z": 0.0, "yaw_deg": -90.0},
+        [{"x": 3.2, "y": 1.0, "z": 3.0}, {"x": 3.2, "y": -5.0, "z": 3.0, "inspect": True}],
+    ),
 }
 
 
@@ -50,25 +53,40 @@ def _bringup(*args, timeout_s=400):
 
 @pytest.mark.ros
 @pytest.mark.slow
-@pytest.mark.skip(reason="flaky in the full suite: passed in 3 runs, failed in 1 (cause not traced before the "
-                         "session ended); make monitor's committed run shows the phase end to end")
+@pytest.mark.skip(
+    reason="flaky in the full suite: passed in 3 runs, failed in 1 (cause not traced before the "
+    "session ended); make monitor's committed run shows the phase end to end"
+)
 def test_removed_and_moved_crates_are_found(open_tmp_path):
     tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
     from cps_experiments.monitor_report import evaluate_monitoring
+
     from cps_fleet.fleet import load_fleet
 
     fleet_file = _short_fleet(tmp_path)
     base, monitor = tmp_path / "baseline", tmp_path / "monitor"
     code, log = _bringup("--fleet", fleet_file, "--out", str(base), "--duration", "120")
     assert code == 0 and "every robot finished its route" in log, log[-3000:]
-    code, log = _bringup("--fleet", fleet_file, "--out", str(monitor), "--duration", "120",
-                         "--baseline", str(base / "map.bt"), "--site-changes", CHANGES)
+    code, log = _bringup(
+        "--fleet",
+        fleet_file,
+        "--out",
+        str(monitor),
+        "--duration",
+        "120",
+        "--baseline",
+        str(base / "map.bt"),
+        "--site-changes",
+        CHANGES,
+    )
     assert code == 0 and "every robot finished its route" in log, log[-3000:]
     assert not processes_named(str(tmp_path)), processes_named(str(tmp_path))
 
     result = evaluate_monitoring(str(base / "map.bt"), str(monitor / "map.bt"), load_fleet(fleet_file), CHANGES)
-    found = {(result.expected[m.expected_index].name, result.expected[m.expected_index].kind): m.position_error_m
-             for m in result.score.matches}
+    found = {
+        (result.expected[m.expected_index].name, result.expected[m.expected_index].kind): m.position_error_m
+        for m in result.score.matches
+    }
     summary = [(c.kind, c.centroid_m, c.size_m, c.voxels) for c in result.detected]
     assert set(found) == {("crate_2", "disappeared"), ("crate_4", "disappeared"), ("crate_4", "appeared")}, summary
     assert max(found.values()) <= MAX_POSITION_ERROR_M, (found, summary)

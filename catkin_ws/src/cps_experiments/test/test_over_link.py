@@ -2,14 +2,15 @@
 publish realistic compressed clouds (Table 6 sizes) through cps_transport's rate limiters.
 Manager on: every 1 s window of consumed bandwidth stays within the budget and latency p95 < 100 ms
 (the paper's bound). Manager off: the same load overruns the link and latency grows. Both printed."""
+
 import csv
 import os
 import time
 
 import pytest
+from cps_experiments.link_run import LinkRosGraph, read_records, summarize
 
 from cps_link import netns_link
-from cps_experiments.link_run import LinkRosGraph, read_records, summarize
 from cps_link.netns_link import ShapedLink
 from cps_ros.processes import find_node
 
@@ -33,9 +34,11 @@ def _capable():
 
 def _set_all_rates(graph, rate_hz):
     """Stand-in for `rostopic pub` to every limiter's rate_hz topic (the manager is not running)."""
-    code = ("import rospy,time; from std_msgs.msg import Float64; rospy.init_node('set_rates', anonymous=True);"
-            f"pubs=[rospy.Publisher('/%s/cloud_throttle/rate_hz' % r, Float64, queue_size=1, latch=True) for r in {list(LOAD)}];"
-            f"time.sleep(1.5); [p.publish(Float64({rate_hz})) for p in pubs]; time.sleep(1.0)")
+    code = (
+        "import rospy,time; from std_msgs.msg import Float64; rospy.init_node('set_rates', anonymous=True);"
+        f"pubs=[rospy.Publisher('/%s/cloud_throttle/rate_hz' % r, Float64, queue_size=1, latch=True) for r in {list(LOAD)}];"
+        f"time.sleep(1.5); [p.publish(Float64({rate_hz})) for p in pubs]; time.sleep(1.0)"
+    )
     result = graph.run_python("twin", code)
     assert result.returncode == 0, result.stderr
 
@@ -47,24 +50,42 @@ def _start_load(graph, record_path=None):
     each test has exactly one (the recorder, or topic_stats)."""
     limiter = find_node("cps_transport", "rate_limiter")
     for r in LOAD:
-        graph.start_python("phys", limiter, ["__name:=cloud_throttle", f"__ns:=/{r}",
-                                             f"~input:=/{r}/points_filtered/draco",
-                                             f"~output:=/{r}/points_filtered/draco/managed"], name=f"limiter_{r}")
+        graph.start_python(
+            "phys",
+            limiter,
+            [
+                "__name:=cloud_throttle",
+                f"__ns:=/{r}",
+                f"~input:=/{r}/points_filtered/draco",
+                f"~output:=/{r}/points_filtered/draco/managed",
+            ],
+            name=f"limiter_{r}",
+        )
     if record_path:
-        graph.start_python("twin", os.path.join(FIXTURES, "link_recorder.py"), [record_path, *LOAD],
-                           name="recorder")
-    graph.start_python("phys", os.path.join(FIXTURES, "cloud_load.py"),
-                       [f"{r}:{size}:{hz}" for r, (size, hz) in LOAD.items()], name="load")
+        graph.start_python("twin", os.path.join(FIXTURES, "link_recorder.py"), [record_path, *LOAD], name="recorder")
+    graph.start_python(
+        "phys",
+        os.path.join(FIXTURES, "cloud_load.py"),
+        [f"{r}:{size}:{hz}" for r, (size, hz) in LOAD.items()],
+        name="load",
+    )
 
 
 def _start_topic_stats(graph, stats_path, window_s):
     """cps_transport's topic_stats on the twin (one more copy of every managed topic on the link),
     publishing at 2 Hz into stats_path: the manager's estimator input."""
-    graph.start_python("twin", find_node("cps_transport", "topic_stats"),
-                       ["__name:=topic_stats", f"_window_s:={window_s}", "_publish_rate_hz:=2.0",
-                        f"_csv_path:={stats_path}",
-                        "_topics:=" + ",".join(f"/{r}/points_filtered/draco/managed" for r in LOAD)],
-                       name="topic_stats")
+    graph.start_python(
+        "twin",
+        find_node("cps_transport", "topic_stats"),
+        [
+            "__name:=topic_stats",
+            f"_window_s:={window_s}",
+            "_publish_rate_hz:=2.0",
+            f"_csv_path:={stats_path}",
+            "_topics:=" + ",".join(f"/{r}/points_filtered/draco/managed" for r in LOAD),
+        ],
+        name="topic_stats",
+    )
 
 
 def _wait_for_file_rows(path, timeout_s):
@@ -87,9 +108,17 @@ def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
             available_mbps = link.measure_mbps(seconds=2)
             budget = (1 - RESERVE) * available_mbps / 8.0
             _start_load(graph, record_path)
-            graph.start_python("twin", find_node("cps_bw_manager", "bandwidth_manager"),
-                               ["__name:=bandwidth_manager", f"_available_mbps:={available_mbps:.3f}",
-                                f"_reserve_fraction:={RESERVE}", f"_csv_path:={csv_path}"], name="manager")
+            graph.start_python(
+                "twin",
+                find_node("cps_bw_manager", "bandwidth_manager"),
+                [
+                    "__name:=bandwidth_manager",
+                    f"_available_mbps:={available_mbps:.3f}",
+                    f"_reserve_fraction:={RESERVE}",
+                    f"_csv_path:={csv_path}",
+                ],
+                name="manager",
+            )
             _wait_for_file_rows(csv_path, 40.0)
             _wait_for_file_rows(record_path, 40.0)
             time.sleep(4.0)  # sizes measured and the first full allocation in force
@@ -112,12 +141,16 @@ def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
     records = read_records(record_path)
     on, off = summarize(records, on_t0, on_t1), summarize(records, off_t0, off_t1)
     offered = sum(size * hz for size, hz in LOAD.values()) / 1e6
-    print(f"\nlink: 60mbit tbf, iperf3 {available_mbps:.1f} Mbit/s -> budget {budget:.2f} MB/s "
-          f"(4 % reserve); offered load {offered:.2f} MB/s ({8 * offered:.1f} Mbit/s)")
+    print(
+        f"\nlink: 60mbit tbf, iperf3 {available_mbps:.1f} Mbit/s -> budget {budget:.2f} MB/s "
+        f"(4 % reserve); offered load {offered:.2f} MB/s ({8 * offered:.1f} Mbit/s)"
+    )
     for label, s in (("manager on ", on), ("manager off", off)):
-        print(f"{label}: consumed per 1 s window max {s.max_window_mbytes_per_s:.2f} MB/s, mean "
-              f"{s.mean_mbytes_per_s:.2f} MB/s; latency p50 {s.latency_p50_ms:.0f} ms, p95 {s.latency_p95_ms:.0f} ms, "
-              f"max {s.latency_max_ms:.0f} ms; rates " + ", ".join(f"{k} {v:.1f} Hz" for k, v in s.rates_hz.items()))
+        print(
+            f"{label}: consumed per 1 s window max {s.max_window_mbytes_per_s:.2f} MB/s, mean "
+            f"{s.mean_mbytes_per_s:.2f} MB/s; latency p50 {s.latency_p50_ms:.0f} ms, p95 {s.latency_p95_ms:.0f} ms, "
+            f"max {s.latency_max_ms:.0f} ms; rates " + ", ".join(f"{k} {v:.1f} Hz" for k, v in s.rates_hz.items())
+        )
     assert on.messages > 0 and off.messages > 0, manager_log[-2000:]
     assert all(w <= budget for w in on.windows_mbytes_per_s), (on.windows_mbytes_per_s, budget)
     assert on.latency_p95_ms < 100.0, manager_log[-2000:]
@@ -160,9 +193,17 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
         with ShapedLink(name, rate="60mbit") as link, LinkRosGraph(link) as graph:
             _start_load(graph)
             _start_topic_stats(graph, stats_path, window_s=2.0)
-            graph.start_python("twin", find_node("cps_bw_manager", "bandwidth_manager"),
-                               ["__name:=bandwidth_manager", "_available_mbps:=60.0", "_estimate_bandwidth:=true",
-                                f"_csv_path:={csv_path}"], name="manager")
+            graph.start_python(
+                "twin",
+                find_node("cps_bw_manager", "bandwidth_manager"),
+                [
+                    "__name:=bandwidth_manager",
+                    "_available_mbps:=60.0",
+                    "_estimate_bandwidth:=true",
+                    f"_csv_path:={csv_path}",
+                ],
+                name="manager",
+            )
             _wait_for_file_rows(csv_path, 40.0)
             _wait_for_file_rows(stats_path, 40.0)
             time.sleep(6.0)
@@ -179,8 +220,10 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
 
     trace = _estimates(csv_path)
     delivered = _delivered(stats_path)
-    print("\nestimate of the available bandwidth while the link goes 60 -> 20 -> 60 Mbit/s "
-          "(delivered: topic_stats at the digital twin, 2 s window):")
+    print(
+        "\nestimate of the available bandwidth while the link goes 60 -> 20 -> 60 Mbit/s "
+        "(delivered: topic_stats at the digital twin, 2 s window):"
+    )
     for t, mbps in trace:
         if marks["drop"] - 4 <= t <= marks["end"]:
             phase = "60" if t < marks["drop"] else "20" if t < marks["rise"] else "60"

@@ -1,5 +1,6 @@
 """A mission recorded with `--record` and replayed with `--replay` through the real tissue and twin
 maps as well as the live run; bags that cannot feed the fleet are refused with the reason."""
+
 import os
 import subprocess
 import sys
@@ -20,8 +21,9 @@ def _two_robots():
 
 
 def _bringup(*args, timeout_s=400):
-    result = subprocess.run([sys.executable, BRINGUP, "all", "--robots", ROBOTS, *args],
-                            capture_output=True, text=True, timeout=timeout_s)
+    result = subprocess.run(
+        [sys.executable, BRINGUP, "all", "--robots", ROBOTS, *args], capture_output=True, text=True, timeout=timeout_s
+    )
     log = result.stdout + result.stderr
     assert result.returncode == 0, log[-4000:]
     return log
@@ -38,7 +40,7 @@ def _f1(map_file, fleet, tmp_path, name):
 @pytest.mark.slow
 def test_recorded_mission_replays_through_tissue_and_twin(open_tmp_path):
     tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
-    bag = tmp_path / "live" / "mission.bag"   # in the mission folder: the nodes (the recorder too) run unprivileged
+    bag = tmp_path / "live" / "mission.bag"  # in the mission folder: the nodes (the recorder too) run unprivileged
     _bringup("--duration", "20", "--record", str(bag), "--out", str(tmp_path / "live"))
     info = subprocess.run(["rosbag", "info", str(bag)], capture_output=True, text=True, check=True).stdout
     print(info)
@@ -51,8 +53,7 @@ def test_recorded_mission_replays_through_tissue_and_twin(open_tmp_path):
 
     live_f1 = _f1(tmp_path / "live" / "map.bt", fleet, tmp_path, "live")
     replay_f1 = _f1(tmp_path / "replay" / "map.bt", fleet, tmp_path, "replay")
-    print(f"map F1 vs ground truth: live {live_f1:.4f}, replayed {replay_f1:.4f} "
-          f"({replay_f1 / live_f1:.1%} of live)")
+    print(f"map F1 vs ground truth: live {live_f1:.4f}, replayed {replay_f1:.4f} ({replay_f1 / live_f1:.1%} of live)")
     assert replay_f1 >= REPLAY_F1_FRACTION * live_f1
 
 
@@ -117,9 +118,22 @@ def test_bag_with_other_sensor_frames_is_refused(tmp_path):
 
 def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
     (tmp_path / "junk.bag").write_bytes(b"not a bag")
-    result = subprocess.run([sys.executable, BRINGUP, "physical", "--robots", ROBOTS, "--replay",
-                             str(tmp_path / "junk.bag"), "--out", str(tmp_path / "out")],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [
+            sys.executable,
+            BRINGUP,
+            "physical",
+            "--robots",
+            ROBOTS,
+            "--replay",
+            str(tmp_path / "junk.bag"),
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 2
     assert "not a readable rosbag" in result.stderr, result.stderr
 

@@ -1,11 +1,11 @@
 """The report's map scores: the robots' positions round-trip through trajectories.csv, and the
 observable surface ray-cast from them is the same whichever map is scored (the committed demo's
 map and an empty one), while the map-free-space definition shrinks to nothing for the empty map."""
+
 import os
 
 import numpy as np
 import pytest
-
 from cps_experiments.report import read_trajectories, score_saved_map, write_trajectories
 
 DEMO_MAP = os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "docs", "results", "demo", "map.bt")

@@ -1,20 +1,20 @@
 """Teleop under saturation over the real shaped link: with the robots -> twin direction saturated
 by clouds (~2.4x the link), twin -> robot command latency p95 <= 50 ms over Zenoh; printed beside
 what the paper's single-master TCPROS gives on the same link and load."""
+
 import subprocess
 
 import numpy as np
 import pytest
+from cps_experiments.transport_compare import Graphs, teleop_under_saturation
 
 from cps_link import netns_link
 from cps_link.netns_link import ShapedLink
-from cps_experiments.transport_compare import Graphs, teleop_under_saturation
 from cps_link.zenoh_session import MAKE_CERTS
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 P95_LIMIT_MS = 50.0
 PHASE_S = 10.0
-
 
 
 @pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")

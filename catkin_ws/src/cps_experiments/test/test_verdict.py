@@ -1,15 +1,24 @@
 """The mission verdict from small synthetic mission folders: a clean mission passes, a map that
 stops growing outside an outage fails, a missing or truncated CSV makes it INCOMPLETE (named, and
 never a crash), and `make demo`'s exit code and console follow the verdict."""
+
 import json
 import os
 import shutil
 
 import pytest
-
 from cps_experiments.demo import report_verdict
-from cps_experiments.verdict import (DEMO_FILES, FAIL, INCOMPLETE, MAP_AGE_COLUMNS, PASS, judge, read_rows,
-                                 read_verdict, write_verdict)
+from cps_experiments.verdict import (
+    DEMO_FILES,
+    FAIL,
+    INCOMPLETE,
+    MAP_AGE_COLUMNS,
+    PASS,
+    judge,
+    read_rows,
+    read_verdict,
+    write_verdict,
+)
 
 T0 = 1000.0  # wall time of the first map_age.csv row
 ROBOTS = ("scout", "iris")
@@ -21,8 +30,9 @@ def _write_csv(path, columns, rows):
 
 def _map_ages(duration_s=60, age_of=lambda robot, t: 0.5):
     """One row per robot per second, the way MissionMonitor logs /twin/map_stats."""
-    return [(f"{T0 + t:.3f}", robot, age_of(robot, t), "inspecting", 10 * t) for t in range(duration_s)
-            for robot in ROBOTS]
+    return [
+        (f"{T0 + t:.3f}", robot, age_of(robot, t), "inspecting", 10 * t) for t in range(duration_s) for robot in ROBOTS
+    ]
 
 
 def _mission(folder, map_ages=None, f1_within_1_voxel=0.95, link_events=None):
@@ -35,8 +45,11 @@ def _mission(folder, map_ages=None, f1_within_1_voxel=0.95, link_events=None):
     (folder / "map.bt").write_bytes(b"# Octomap OcTree binary file\n")
     (folder / "scores.json").write_text(json.dumps({"f1_exact": 0.7, "f1_within_1_voxel": f1_within_1_voxel}))
     if link_events:
-        _write_csv(folder / "link_events.csv", ("mission_time_s", "wall_time_s", "event", "rate_mbps", "delay_ms",
-                                                "jitter_ms", "loss_pct", "note"), link_events)
+        _write_csv(
+            folder / "link_events.csv",
+            ("mission_time_s", "wall_time_s", "event", "rate_mbps", "delay_ms", "jitter_ms", "loss_pct", "note"),
+            link_events,
+        )
     return folder
 
 
@@ -59,8 +72,11 @@ def test_a_map_that_stops_growing_fails_as_stale(tmp_path):
 
 
 def test_a_stale_map_during_an_outage_and_3_s_after_it_is_not_a_failure(tmp_path):
-    cut = [(0, T0, "start", 60, 0, 0, 0, ""), (20, T0 + 20, "cut", 60, 0, 0, 0, ""),
-           (30, T0 + 30, "restore", 60, 0, 0, 0, "")]
+    cut = [
+        (0, T0, "start", 60, 0, 0, 0, ""),
+        (20, T0 + 20, "cut", 60, 0, 0, 0, ""),
+        (30, T0 + 30, "restore", 60, 0, 0, 0, ""),
+    ]
     # Clouds stop at 20 s, the map catches up 2 s after the link is back.
     ages = _map_ages(60, lambda robot, t: t - 19.5 if 20 <= t < 32 else 0.5)
     assert judge(_mission(tmp_path / "ok", ages, link_events=cut), ended_by="done").status == PASS
@@ -79,8 +95,11 @@ def test_no_cloud_yet_is_judged_only_after_the_start_grace(tmp_path):
 
 def test_a_map_server_restart_gets_the_start_grace_and_its_silence_is_noted(tmp_path):
     """Killed at 24 s, back at 26 s with fresh counters and no cloud for 5 s; then silent 40-45 s."""
-    rows = [(f"{T0 + t:.3f}", robot, float("inf") if 26 <= t < 31 else 0.5, "inspecting", t if t < 24 else t - 26)
-            for t in list(range(24)) + list(range(26, 40)) + list(range(45, 60)) for robot in ROBOTS]
+    rows = [
+        (f"{T0 + t:.3f}", robot, float("inf") if 26 <= t < 31 else 0.5, "inspecting", t if t < 24 else t - 26)
+        for t in list(range(24)) + list(range(26, 40)) + list(range(45, 60))
+        for robot in ROBOTS
+    ]
     verdict = judge(_mission(tmp_path / "m", rows), ended_by="done")
     assert verdict.status == PASS, verdict
     assert verdict.notes == ["the map server published no statistics from record 39 s to 45 s (a restart; under 15 s)"]
@@ -101,8 +120,10 @@ def test_a_map_server_that_publishes_nothing_for_long_fails(tmp_path):
 
 def test_a_done_robot_is_not_judged(tmp_path):
     """A robot at the end of its route sends no new clouds: its map ages, and that is no failure."""
-    rows = [(t, robot, 30.0 if float(t) - T0 > 40 else 0.5, "done" if float(t) - T0 > 40 else "inspecting", 0)
-            for t, robot, _, _, _ in _map_ages()]
+    rows = [
+        (t, robot, 30.0 if float(t) - T0 > 40 else 0.5, "done" if float(t) - T0 > 40 else "inspecting", 0)
+        for t, robot, _, _, _ in _map_ages()
+    ]
     assert judge(_mission(tmp_path / "m", rows), ended_by="done").status == PASS
 
 
@@ -142,8 +163,10 @@ def test_a_truncated_csv_is_incomplete_and_its_rows_are_counted(tmp_path):
 
 def test_a_failure_found_wins_over_what_is_missing(tmp_path):
     """A map server silent all mission and no scores.json (no map): FAIL, both listed."""
-    folder = _mission(tmp_path / "m", [(f"{T0 + t:.3f}", robot, "nan", mark, "")
-                                       for t, mark in ((0, "start"), (60, "end")) for robot in ROBOTS])
+    folder = _mission(
+        tmp_path / "m",
+        [(f"{T0 + t:.3f}", robot, "nan", mark, "") for t, mark in ((0, "start"), (60, "end")) for robot in ROBOTS],
+    )
     (folder / "scores.json").unlink()
     verdict = judge(folder, ended_by="done")
     assert verdict.status == FAIL and verdict.exit_code == 1
@@ -171,8 +194,12 @@ def test_demo_exit_code_and_console_follow_the_verdict(tmp_path, capsys, status,
     assert report_verdict("demo", str(folder)) == code
     out = capsys.readouterr()
     console = out.out + out.err
-    assert {"pass": "verdict PASS", "stale": "map stale", "missing": "allocation.csv is missing",
-            "none": "verdict INCOMPLETE"}[status] in console
+    assert {
+        "pass": "verdict PASS",
+        "stale": "map stale",
+        "missing": "allocation.csv is missing",
+        "none": "verdict INCOMPLETE",
+    }[status] in console
     if code:
         assert "[demo] verdict" in out.err
 
@@ -181,21 +208,31 @@ def test_demo_exit_code_and_console_follow_the_verdict(tmp_path, capsys, status,
 def test_the_report_of_a_folder_with_missing_and_truncated_csvs_says_incomplete(tmp_path):
     """The committed demo's CSVs, one cut off mid-row and one gone, no map: report.md is written,
     opens with INCOMPLETE and names both; nothing crashes."""
+    from cps_experiments.report import write_mission_report
+
     from cps_bringup.cli import MissionResult, mission_args
     from cps_bringup.mission import MissionProgress
-    from cps_experiments.report import write_mission_report
 
     demo = os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "docs", "results", "demo")
     out = tmp_path / "demo"
     out.mkdir()
-    for name in ("stats.csv", "arrivals.csv", "physical_stats.csv", "physical_arrivals.csv", "link_events.csv",
-                 "link_state.csv"):
+    for name in (
+        "stats.csv",
+        "arrivals.csv",
+        "physical_stats.csv",
+        "physical_arrivals.csv",
+        "link_events.csv",
+        "link_state.csv",
+    ):
         shutil.copy(os.path.join(demo, name), out / name)
     text = (out / "stats.csv").read_text()
-    (out / "stats.csv").write_text(text[:len(text) // 2])
+    (out / "stats.csv").write_text(text[: len(text) // 2])
     robots = ["scout", "jackal"]
-    progress = MissionProgress(robots, mission_state={r: "done" for r in robots},
-                               trajectories={"scout": ((-8.0, -6.0, 0.0),), "jackal": ((-8.0, 6.0, 0.0),)})
+    progress = MissionProgress(
+        robots,
+        mission_state={r: "done" for r in robots},
+        trajectories={"scout": ((-8.0, -6.0, 0.0),), "jackal": ((-8.0, 6.0, 0.0),)},
+    )
     result = MissionResult(str(out), "done", 74.0, "loopback", None, progress, [], {})
     report = open(write_mission_report(result, mission_args("all", out=str(out), robots="scout,jackal"), 1.0)).read()
     head = report.split("## Robots")[0]
@@ -208,19 +245,20 @@ def test_the_report_of_a_folder_with_missing_and_truncated_csvs_says_incomplete(
 def test_map_stats_messages_logged_by_the_mission_monitor_are_what_the_verdict_reads(tmp_path):
     """MapStats as the map server publishes it (inf before a robot's first cloud) through the
     monitor's map_age.csv writer, then judged: iris's map froze at 10 s."""
-    from cps_msgs.msg import MapStats, RobotMapStats
-
     from cps_bringup.mission import map_age_rows
     from cps_fleet.csv_log import CsvLog
+    from cps_msgs.msg import MapStats, RobotMapStats
 
     folder = _mission(tmp_path / "m")
     (folder / "map_age.csv").unlink()
     log = CsvLog(str(folder / "map_age.csv"), MAP_AGE_COLUMNS)
     for t in range(40):
-        msg = MapStats(robots=[RobotMapStats(robot="scout", map_age_s=float("inf") if t < 2 else 0.4,
-                                             clouds_inserted=max(t - 2, 0)),
-                               RobotMapStats(robot="iris", map_age_s=0.3 if t < 10 else t - 9.7,
-                                             clouds_inserted=min(t, 10))])
+        msg = MapStats(
+            robots=[
+                RobotMapStats(robot="scout", map_age_s=float("inf") if t < 2 else 0.4, clouds_inserted=max(t - 2, 0)),
+                RobotMapStats(robot="iris", map_age_s=0.3 if t < 10 else t - 9.7, clouds_inserted=min(t, 10)),
+            ]
+        )
         for row in map_age_rows(msg, {"scout": "inspecting", "iris": "inspecting"}, T0 + t):
             log.write(row)
     log.close()

@@ -1,4 +1,5 @@
 """CsvLog: append, header once, every row on disk at once."""
+
 import csv
 
 import pytest
@@ -54,9 +55,9 @@ def test_a_log_past_its_bound_rotates_and_both_files_stay_bounded(tmp_path):
         rotations = log.rotations
     assert rotations > 10
     current, previous = _rows(path), _rows(str(path) + ".1")
-    assert current[0] == list(COLUMNS) and previous[0] == list(COLUMNS)    # each file reads alone
+    assert current[0] == list(COLUMNS) and previous[0] == list(COLUMNS)  # each file reads alone
     assert path.stat().st_size < 4000 + 100 and (tmp_path / "stats.csv.1").stat().st_size < 4000 + 100
-    assert current[-1] == [str(float(rows - 1)), "scout", "2.5"]            # the newest rows are kept
+    assert current[-1] == [str(float(rows - 1)), "scout", "2.5"]  # the newest rows are kept
     assert sorted(p.name for p in tmp_path.iterdir()) == ["stats.csv", "stats.csv.1"]
 
 

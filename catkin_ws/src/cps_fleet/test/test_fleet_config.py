@@ -1,4 +1,5 @@
 """fleet.yaml and route files: the shipped ones load; broken ones fail naming file, line and problem."""
+
 import os
 import shutil
 
@@ -42,33 +43,43 @@ def _line_of(path, needle):
     raise AssertionError(needle)
 
 
-@pytest.mark.parametrize("old,new,message", [
-    ("type: legged_depth", "type: tank", "unknown robot type 'tank' (known: wheeled_lidar, wheeled_depth"),
-    ("voxel_leaf_m: 0.01", "voxel_leaf_m: -1", "voxel_leaf_m: -1.0 is outside (0.0, 10.0]"),
-    ("available_mbps: 60.0", "available_mbps: 0", "available_mbps: 0.0 is outside (0.0"),
-    ("reserve_fraction: 0.04", "reserve_fraction: 1.5", "reserve_fraction: 1.5 is outside [0.0, 0.99]"),
-    ("min_rate_hz: 1.0", "min_rate_hz: 40.0", "min_rate_hz (40.0) > max_rate_hz (30.0)"),
-    ("route: routes/route3.yaml", "route: routes/nowhere.yaml", "does not exist"),
-    ("name: jackal", "name: scout", "robot 'scout' is listed twice"),
-    ("profile: light", "profile: fast", "unknown profile 'fast'"),
-    ("resolution_m: 0.1", "resolution_m: .nan", "must be finite"),
-    ("trajectory_max_points: 2000", "trajectory_max_points: 1", "must be at least 2"),
-    ("csv_max_mbytes: 50.0", "csv_max_mbytes: 0", "csv_max_mbytes: 0.0 is outside [0.001"),
-    ("node_log_max_mbytes: 20.0", "node_log_max_mbytes: -5", "node_log_max_mbytes: -5.0 is outside"),
-    ("restart_backoff_max_s: 30.0", "restart_backoff_max_s: 0.5", "restart_backoff_max_s (0.5) < restart_backoff_s"),
-    ("restart_window_s: 300.0", "restart_window_s: 0", "restart_window_s: 0.0 is outside (0.0"),
-    ("autosave_period_s: 10.0", "autosave_periode_s: 10.0",
-     "mapping.autosave_periode_s: unknown key 'autosave_periode_s' (did you mean 'autosave_period_s'?)"),
-    ("link:", "links:", "links: unknown key 'links' (did you mean 'link'?)"),
-    ("voxel_leaf_m: 0.01", "voxel_leaf: 0.01", "robots[0].voxel_leaf: unknown key 'voxel_leaf'"),
-    ("yaw_deg: 90.0}", "yaw: 90.0}", "robots[0].initial_pose.yaw: unknown key 'yaw'"),
-    ("hfov_deg: 60.0}", "hfov_deg: 60.0, fps: 30}", "profiles.paper.depth_camera.fps: unknown key 'fps'"),
-    ("{hit: 0.7, miss: 0.4,", "{hti: 0.7, miss: 0.4,", "sensor_model.hti: unknown key 'hti' (did you mean 'hit'?)"),
-    ("min: 0.12, max: 0.97}", "min: 0.12, max: 0.10}", "sensor_model.max: 0.1 is outside (0.5, 1.0]"),
-    ("min: 0.12, max: 0.97}", "min: 0.7, max: 0.97}", "sensor_model.min: 0.7 is outside (0.0, 0.5]"),
-    ("{hit: 0.7, miss: 0.4,", "{hit: 1.0, miss: 0.4,", "sensor_model.hit: 1.0 must be below 1.0"),
-    ("{hit: 0.7, miss: 0.4,", "{hit: 0.7, miss: 0.5,", "sensor_model.miss: 0.5 must be below 0.5"),
-])
+@pytest.mark.parametrize(
+    "old,new,message",
+    [
+        ("type: legged_depth", "type: tank", "unknown robot type 'tank' (known: wheeled_lidar, wheeled_depth"),
+        ("voxel_leaf_m: 0.01", "voxel_leaf_m: -1", "voxel_leaf_m: -1.0 is outside (0.0, 10.0]"),
+        ("available_mbps: 60.0", "available_mbps: 0", "available_mbps: 0.0 is outside (0.0"),
+        ("reserve_fraction: 0.04", "reserve_fraction: 1.5", "reserve_fraction: 1.5 is outside [0.0, 0.99]"),
+        ("min_rate_hz: 1.0", "min_rate_hz: 40.0", "min_rate_hz (40.0) > max_rate_hz (30.0)"),
+        ("route: routes/route3.yaml", "route: routes/nowhere.yaml", "does not exist"),
+        ("name: jackal", "name: scout", "robot 'scout' is listed twice"),
+        ("profile: light", "profile: fast", "unknown profile 'fast'"),
+        ("resolution_m: 0.1", "resolution_m: .nan", "must be finite"),
+        ("trajectory_max_points: 2000", "trajectory_max_points: 1", "must be at least 2"),
+        ("csv_max_mbytes: 50.0", "csv_max_mbytes: 0", "csv_max_mbytes: 0.0 is outside [0.001"),
+        ("node_log_max_mbytes: 20.0", "node_log_max_mbytes: -5", "node_log_max_mbytes: -5.0 is outside"),
+        (
+            "restart_backoff_max_s: 30.0",
+            "restart_backoff_max_s: 0.5",
+            "restart_backoff_max_s (0.5) < restart_backoff_s",
+        ),
+        ("restart_window_s: 300.0", "restart_window_s: 0", "restart_window_s: 0.0 is outside (0.0"),
+        (
+            "autosave_period_s: 10.0",
+            "autosave_periode_s: 10.0",
+            "mapping.autosave_periode_s: unknown key 'autosave_periode_s' (did you mean 'autosave_period_s'?)",
+        ),
+        ("link:", "links:", "links: unknown key 'links' (did you mean 'link'?)"),
+        ("voxel_leaf_m: 0.01", "voxel_leaf: 0.01", "robots[0].voxel_leaf: unknown key 'voxel_leaf'"),
+        ("yaw_deg: 90.0}", "yaw: 90.0}", "robots[0].initial_pose.yaw: unknown key 'yaw'"),
+        ("hfov_deg: 60.0}", "hfov_deg: 60.0, fps: 30}", "profiles.paper.depth_camera.fps: unknown key 'fps'"),
+        ("{hit: 0.7, miss: 0.4,", "{hti: 0.7, miss: 0.4,", "sensor_model.hti: unknown key 'hti' (did you mean 'hit'?)"),
+        ("min: 0.12, max: 0.97}", "min: 0.12, max: 0.10}", "sensor_model.max: 0.1 is outside (0.5, 1.0]"),
+        ("min: 0.12, max: 0.97}", "min: 0.7, max: 0.97}", "sensor_model.min: 0.7 is outside (0.0, 0.5]"),
+        ("{hit: 0.7, miss: 0.4,", "{hit: 1.0, miss: 0.4,", "sensor_model.hit: 1.0 must be below 1.0"),
+        ("{hit: 0.7, miss: 0.4,", "{hit: 0.7, miss: 0.5,", "sensor_model.miss: 0.5 must be below 0.5"),
+    ],
+)
 def test_broken_fleet_file_names_file_line_and_problem(fleet_copy, old, new, message):
     line = _line_of(fleet_copy, old)
     fleet_copy.write_text(fleet_copy.read_text().replace(old, new, 1))
@@ -114,8 +125,11 @@ def test_an_unknown_key_in_a_route_or_the_site_names_file_line_and_key(tmp_path)
 
     path = tmp_path / "route.yaml"
     path.write_text("waypoints:\n  - {x: 1, y: 2}\n  - {x: 3, y: 2, inspcet: true}\n")
-    with pytest.raises(ConfigError, match=r"route.yaml:3: waypoints\[1\]\.inspcet: unknown key 'inspcet' "
-                                          r"\(did you mean 'inspect'\?\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"route.yaml:3: waypoints\[1\]\.inspcet: unknown key 'inspcet' "
+        r"\(did you mean 'inspect'\?\)",
+    ):
         load_route(str(path))
     path.write_text("waypoints:\n  - {x: 1, y: 2}\nloop: true\n")
     with pytest.raises(ConfigError, match=r"route.yaml:3: loop: unknown key 'loop'"):

@@ -1,5 +1,6 @@
 """Fleet files with a base and generated robots, and the routes generated per share of the hall:
 the routes stay in the aisles, cover them, are the same every time; bad fleets fail at file:line."""
+
 import math
 import os
 
@@ -8,7 +9,7 @@ import pytest
 
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import check_fleet_routes, default_fleet_path, load_fleet, robot_names_arg
-from cps_fleet.routes import AisleMap, MIN_SEPARATION_M, generate_routes
+from cps_fleet.routes import MIN_SEPARATION_M, AisleMap, generate_routes
 from cps_fleet.site import load_site
 
 CONFIG = os.path.dirname(default_fleet_path())
@@ -32,9 +33,12 @@ def _clearance_problems(site, points, clearance_m):
     points = np.asarray(points, dtype=float)
     bad = [(x, y, "wall") for x, y in points if not site.inside_hall(x, y, clearance_m)]
     for area in site.areas:
-        bad += [(x, y, area.name) for x, y in points
-                if area.x_min_m - clearance_m <= x <= area.x_max_m + clearance_m
-                and area.y_min_m - clearance_m <= y <= area.y_max_m + clearance_m]
+        bad += [
+            (x, y, area.name)
+            for x, y in points
+            if area.x_min_m - clearance_m <= x <= area.x_max_m + clearance_m
+            and area.y_min_m - clearance_m <= y <= area.y_max_m + clearance_m
+        ]
     for z in (0.2, 0.7, 1.2):
         xyz = np.column_stack([points, np.full(len(points), z)])
         for prim in site.primitives():
@@ -62,7 +66,9 @@ def test_generated_routes_stay_in_the_aisles_are_closed_and_start_apart(site, ai
         assert (last.x, last.y) == route.start, "a route ends where its robot starts"
         assert route.waypoints[0].inspect and any(not w.inspect for w in route.waypoints[1:]) or len(routes) == 1
     starts = [r.start for r in routes]
-    assert min((math.dist(a, b) for i, a in enumerate(starts) for b in starts[:i]), default=math.inf) >= MIN_SEPARATION_M
+    assert (
+        min((math.dist(a, b) for i, a in enumerate(starts) for b in starts[:i]), default=math.inf) >= MIN_SEPARATION_M
+    )
 
 
 @pytest.mark.parametrize("count", SIZES)
@@ -77,18 +83,24 @@ def test_generated_shares_cover_the_free_aisles_in_equal_parts(site, aisles, cou
 def test_generation_is_deterministic(site):
     assert generate_routes(site, 16) == generate_routes(load_site(site.path), 16)
     a, b = load_fleet(os.path.join(FLEETS, "fleet16.yaml")), load_fleet(os.path.join(FLEETS, "fleet16.yaml"))
-    assert [(r.initial_pose, a.route(r.name).waypoints) for r in a.robots] == \
-           [(r.initial_pose, b.route(r.name).waypoints) for r in b.robots]
+    assert [(r.initial_pose, a.route(r.name).waypoints) for r in a.robots] == [
+        (r.initial_pose, b.route(r.name).waypoints) for r in b.robots
+    ]
 
 
 def test_shipped_fleet_files_load_with_their_robots_and_the_base_fleet_settings():
     base = load_fleet()
-    check_fleet_routes(base)   # the four-robot fleet passes the checks derived fleets get at load
+    check_fleet_routes(base)  # the four-robot fleet passes the checks derived fleets get at load
     for count in SIZES:
         fleet = load_fleet(os.path.join(FLEETS, f"fleet{count}.yaml"))
         assert len(fleet.robots) == count
-        assert (fleet.link, fleet.mapping, fleet.limits, fleet.site_path, fleet.profile) == \
-               (base.link, base.mapping, base.limits, base.site_path, base.profile)
+        assert (fleet.link, fleet.mapping, fleet.limits, fleet.site_path, fleet.profile) == (
+            base.link,
+            base.mapping,
+            base.limits,
+            base.site_path,
+            base.profile,
+        )
         assert fleet.path == os.path.join(FLEETS, f"fleet{count}.yaml")
     fleet = load_fleet(os.path.join(FLEETS, "fleet16.yaml"), profile="paper")
     assert fleet.profile.name == "paper"
@@ -96,8 +108,11 @@ def test_shipped_fleet_files_load_with_their_robots_and_the_base_fleet_settings(
     assert all(types.count(t) == 4 for t in base.robot_types)
     assert fleet.robot_names[:4] == ["scout_1", "jackal_1", "champ_1", "iris_1"] and fleet.robot_names[-1] == "iris_4"
     for robot in fleet.robots:
-        template = base.robot({"wheeled_lidar": "scout", "wheeled_depth": "jackal", "legged_depth": "champ",
-                               "aerial_depth": "iris"}[robot.type])
+        template = base.robot(
+            {"wheeled_lidar": "scout", "wheeled_depth": "jackal", "legged_depth": "champ", "aerial_depth": "iris"}[
+                robot.type
+            ]
+        )
         assert robot.voxel_leaf_m == template.voxel_leaf_m
         assert robot.sensor_frame == f"{robot.name}/{template.robot_type.sensor_frame}"
         route = fleet.route(robot.name)
@@ -127,8 +142,11 @@ SCOUT = "  - {{name: {name}, type: wheeled_lidar, route: ok.yaml,\n     initial_
 
 
 def test_explicit_robots_take_the_type_voxel_leaf_and_can_mix_with_generated_ones(tmp_path):
-    path = _derived(tmp_path, "robots:\n" + SCOUT.format(name="a", x=-8.5, y=-5.0)
-                    + "generate: {count: 4, types: [wheeled_depth]}\n", {"ok.yaml": ROUTE_OK})
+    path = _derived(
+        tmp_path,
+        "robots:\n" + SCOUT.format(name="a", x=-8.5, y=-5.0) + "generate: {count: 4, types: [wheeled_depth]}\n",
+        {"ok.yaml": ROUTE_OK},
+    )
     fleet = load_fleet(str(path))
     assert fleet.robot_names == ["a", "jackal_1", "jackal_2", "jackal_3", "jackal_4"]
     assert fleet.robot("a").voxel_leaf_m == load_fleet().robot("scout").voxel_leaf_m
@@ -136,14 +154,20 @@ def test_explicit_robots_take_the_type_voxel_leaf_and_can_mix_with_generated_one
 
 
 def test_duplicate_robot_names_fail_at_the_second(tmp_path):
-    path = _derived(tmp_path, "robots:\n" + SCOUT.format(name="a", x=-8.5, y=-5.0)
-                    + SCOUT.format(name="a", x=-8.5, y=-2.0), {"ok.yaml": ROUTE_OK})
+    path = _derived(
+        tmp_path,
+        "robots:\n" + SCOUT.format(name="a", x=-8.5, y=-5.0) + SCOUT.format(name="a", x=-8.5, y=-2.0),
+        {"ok.yaml": ROUTE_OK},
+    )
     _expect(path, 5, "robot 'a' is listed twice")
 
 
 def test_generated_name_taken_by_a_listed_robot_fails_at_generate(tmp_path):
-    path = _derived(tmp_path, "robots:\n" + SCOUT.format(name="scout_1", x=-8.5, y=-5.0)
-                    + "generate:\n  count: 2\n", {"ok.yaml": ROUTE_OK})
+    path = _derived(
+        tmp_path,
+        "robots:\n" + SCOUT.format(name="scout_1", x=-8.5, y=-5.0) + "generate:\n  count: 2\n",
+        {"ok.yaml": ROUTE_OK},
+    )
     _expect(path, 6, "generated robot 'scout_1' is also listed")
 
 
@@ -153,8 +177,11 @@ def test_more_robots_than_the_hall_has_room_for_fail_at_count(tmp_path):
 
 
 def test_starts_too_close_fail_at_the_second_robot(tmp_path):
-    path = _derived(tmp_path, "robots:\n" + SCOUT.format(name="a", x=-8.5, y=-5.0)
-                    + SCOUT.format(name="b", x=-8.5, y=-4.5), {"ok.yaml": ROUTE_OK})
+    path = _derived(
+        tmp_path,
+        "robots:\n" + SCOUT.format(name="a", x=-8.5, y=-5.0) + SCOUT.format(name="b", x=-8.5, y=-4.5),
+        {"ok.yaml": ROUTE_OK},
+    )
     _expect(path, 6, "robot 'b' starts 0.50 m from 'a'")
 
 
@@ -169,22 +196,29 @@ def test_start_inside_equipment_or_a_fenced_area_fails_at_its_pose(tmp_path, sit
 def test_route_through_a_fenced_area_or_out_of_the_hall_fails_at_its_waypoint(tmp_path):
     crossing = "waypoints:\n  - {x: -8.5, y: -3.0}\n  - {x: -1.0, y: -3.0, inspect: true}\n"
     path = _derived(tmp_path, "robots:\n" + SCOUT.format(name="a", x=-8.5, y=-5.0), {"ok.yaml": crossing})
-    _expect(path, 3, "robot 'a' route: leg from waypoint 0 to waypoint 1 (-1, -3) passes within "
-                     "0.3 m of fenced area 'tank_farm'", where=tmp_path / "ok.yaml")
+    _expect(
+        path,
+        3,
+        "robot 'a' route: leg from waypoint 0 to waypoint 1 (-1, -3) passes within 0.3 m of fenced area 'tank_farm'",
+        where=tmp_path / "ok.yaml",
+    )
     leaving = "waypoints:\n  - {x: -8.5, y: -3.0}\n  - {x: -8.5, y: 9.0}\n"
     path = _derived(tmp_path, "robots:\n" + SCOUT.format(name="a", x=-8.5, y=-5.0), {"ok.yaml": leaving})
     _expect(path, 3, "the hall's walls", where=tmp_path / "ok.yaml")
 
 
-@pytest.mark.parametrize("text,line,message", [
-    ("generate:\n  count: 4\n  types: [wheeled_lidar, tank]\n", 4, "generate.types[1]: unknown robot type 'tank'"),
-    ("generate:\n  count: 4\n  routes: random\n", 4, "unknown route scheme 'random'"),
-    ("generate:\n  count: 0\n", 3, "must be a positive integer"),
-    ("generate:\n  cuont: 4\n", 3, "unknown key 'cuont' (did you mean 'count'?)"),
-    ("generate:\n  count: 4\n  clearance_m: 4.0\n", 3, "no free aisle 4 m clear"),
-    ("profile: fast\ngenerate: {count: 1}\n", 2, "unknown profile 'fast'"),
-    ("robots: []\n", 1, "the fleet has no robots"),
-])
+@pytest.mark.parametrize(
+    "text,line,message",
+    [
+        ("generate:\n  count: 4\n  types: [wheeled_lidar, tank]\n", 4, "generate.types[1]: unknown robot type 'tank'"),
+        ("generate:\n  count: 4\n  routes: random\n", 4, "unknown route scheme 'random'"),
+        ("generate:\n  count: 0\n", 3, "must be a positive integer"),
+        ("generate:\n  cuont: 4\n", 3, "unknown key 'cuont' (did you mean 'count'?)"),
+        ("generate:\n  count: 4\n  clearance_m: 4.0\n", 3, "no free aisle 4 m clear"),
+        ("profile: fast\ngenerate: {count: 1}\n", 2, "unknown profile 'fast'"),
+        ("robots: []\n", 1, "the fleet has no robots"),
+    ],
+)
 def test_bad_generate_block_names_file_line_and_problem(tmp_path, text, line, message):
     _expect(_derived(tmp_path, text), line, message)
 

@@ -1,4 +1,5 @@
 """Robot types as data (fleet.yaml robot_types): sensible values, file:line errors, new types."""
+
 import os
 import shutil
 
@@ -29,8 +30,12 @@ def test_sensor_frame_and_max_range_come_from_the_type():
     fleet = load_fleet()
     assert fleet.robot("scout").sensor_frame == "scout/lidar"
     assert fleet.robot("jackal").sensor_frame == "jackal/camera_depth_optical_frame"
-    assert fleet.mapping.max_range_m == {"wheeled_lidar": 12.0, "wheeled_depth": 6.0, "legged_depth": 6.0,
-                                         "aerial_depth": 6.0}
+    assert fleet.mapping.max_range_m == {
+        "wheeled_lidar": 12.0,
+        "wheeled_depth": 6.0,
+        "legged_depth": 6.0,
+        "aerial_depth": 6.0,
+    }
 
 
 NEW_TYPE = """  tracked_lidar:   # a user's robot: only data
@@ -55,7 +60,7 @@ def fleet_with_new_type(tmp_path, robot="scout", entry=NEW_TYPE):
     text = text.replace("robot_types:\n", "robot_types:\n" + entry, 1)
     old = f"  - name: {robot}\n    type: "
     start = text.index(old) + len(old)
-    text = text[:start] + "tracked_lidar" + text[text.index("\n", start):]
+    text = text[:start] + "tracked_lidar" + text[text.index("\n", start) :]
     path.write_text(text)
     return path
 
@@ -82,6 +87,9 @@ def test_a_type_missing_a_key_names_file_line_and_key(tmp_path, key):
 
 def test_an_unknown_sensor_kind_is_refused(tmp_path):
     path = fleet_with_new_type(tmp_path, entry=NEW_TYPE.replace("sensor: lidar", "sensor: sonar"))
-    with pytest.raises(ConfigError, match=r"fleet.yaml:\d+: robot_types.tracked_lidar.sensor: unknown sensor kind "
-                                          r"'sonar' \(known: lidar, depth\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"fleet.yaml:\d+: robot_types.tracked_lidar.sensor: unknown sensor kind "
+        r"'sonar' \(known: lidar, depth\)",
+    ):
         load_fleet(str(path))

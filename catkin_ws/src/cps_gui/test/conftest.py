@@ -1,5 +1,6 @@
 """Fixtures of the GUI tests: an offscreen QApplication, a fleet file whose robots have names of
 their own (so these tests' topics cannot meet another package's), and helpers to spin Qt."""
+
 import math
 import os
 import time

@@ -1,11 +1,20 @@
 """The latest-data store: health rows, alarms, staleness and plot histories, on a fake clock."""
+
 import math
 import threading
 
 import pytest
 
-from cps_gui.fleet_state import (Allocation, FleetState, ImageFrame, Pose, RateMeter, RobotAllocation,
-                                 RobotMapFigures, TopicFigures)
+from cps_gui.fleet_state import (
+    Allocation,
+    FleetState,
+    ImageFrame,
+    Pose,
+    RateMeter,
+    RobotAllocation,
+    RobotMapFigures,
+    TopicFigures,
+)
 
 
 class FakeClock:
@@ -79,9 +88,11 @@ def test_alarms_for_low_battery_degraded_link_slow_link_and_dropped_clouds(state
 
 
 def test_plot_series_from_stats_and_allocation(state, clock):
-    stats = [TopicFigures("/scout/points_filtered/draco/managed", "scout", True, 4.0, 0.6, 35.0, 0.1),
-             TopicFigures("/scout/odom", "scout", False, 20.0, 0.01, 2.0, 0.05),
-             TopicFigures("/tf", "", False, 100.0, 0.05, math.nan, 0.0)]
+    stats = [
+        TopicFigures("/scout/points_filtered/draco/managed", "scout", True, 4.0, 0.6, 35.0, 0.1),
+        TopicFigures("/scout/odom", "scout", False, 20.0, 0.01, 2.0, 0.05),
+        TopicFigures("/tf", "", False, 100.0, 0.05, math.nan, 0.0),
+    ]
     state.set_tissue_stats(stats)
     state.set_allocation(Allocation(6.9, 0.6, 60.0, True, (RobotAllocation("scout", 0, 4.0, 0.6, 100.0, False),)))
     clock.t += 1.0

@@ -1,5 +1,6 @@
 """The standalone `cps_gui` command as a process: options, settings file, and the screenshot of
 the whole GUI with rviz under Xvfb, checked by pixels in each pane."""
+
 import json
 import os
 import signal
@@ -21,9 +22,13 @@ IMAGE_RGB = (255, 0, 255)
 def xvfb_display():
     """A private Xvfb (it picks a free display number itself), killed afterwards."""
     read_fd, write_fd = os.pipe()
-    proc = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
-                            pass_fds=(write_fd,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        ["Xvfb", "-displayfd", str(write_fd), "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
+        pass_fds=(write_fd,),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     os.close(write_fd)
     try:
         with os.fdopen(read_fd) as stream:
@@ -55,19 +60,42 @@ def _wait_exit(ros, proc, timeout_s, publish=None):
 
 
 def test_bad_options_are_refused_with_a_message(ros):
-    for argv, words in ((["--after", "-1"], "--after must be >= 0"), (["--geometry", "big"], "WxH"),
-                        (["--stale-after", "0"], "--stale-after must be positive")):
-        result = subprocess.run([sys.executable, find_node("cps_gui", "cps_gui"), *argv], capture_output=True,
-                                text=True, env=ros.env, timeout=60)
+    for argv, words in (
+        (["--after", "-1"], "--after must be >= 0"),
+        (["--geometry", "big"], "WxH"),
+        (["--stale-after", "0"], "--stale-after must be positive"),
+    ):
+        result = subprocess.run(
+            [sys.executable, find_node("cps_gui", "cps_gui"), *argv],
+            capture_output=True,
+            text=True,
+            env=ros.env,
+            timeout=60,
+        )
         assert result.returncode == 2 and words in result.stderr, result.stderr
 
 
 def test_standalone_host_starts_saves_a_screenshot_and_its_settings(ros, rospy_node, test_fleet_file, tmp_path):
     png, ini = str(tmp_path / "gui.png"), str(tmp_path / "settings" / "gui.ini")
-    proc = ros.start_node("cps_gui", "cps_gui", name="cps_gui_offscreen",
-                          args=["--no-rviz", "--fleet-file", test_fleet_file, "--settings", ini, "--screenshot", png,
-                                "--after", "2", "--geometry", "1200x800"],
-                          env={"QT_QPA_PLATFORM": "offscreen"})
+    proc = ros.start_node(
+        "cps_gui",
+        "cps_gui",
+        name="cps_gui_offscreen",
+        args=[
+            "--no-rviz",
+            "--fleet-file",
+            test_fleet_file,
+            "--settings",
+            ini,
+            "--screenshot",
+            png,
+            "--after",
+            "2",
+            "--geometry",
+            "1200x800",
+        ],
+        env={"QT_QPA_PLATFORM": "offscreen"},
+    )
     assert _wait_exit(ros, proc, 90) == 0, ros.output("cps_gui_offscreen")[-3000:]
     from python_qt_binding.QtGui import QImage
 
@@ -88,11 +116,11 @@ def _qimage_to_rgb(image):
     buffer = image.constBits()
     buffer.setsize(image.bytesPerLine() * height)
     rows = np.frombuffer(buffer, np.uint8).reshape(height, image.bytesPerLine())
-    return rows[:, :width * 3].reshape(height, width, 3).copy()
+    return rows[:, : width * 3].reshape(height, width, 3).copy()
 
 
 def _pane(rgb, rect):
-    return rgb[rect["y"]:rect["y"] + rect["height"], rect["x"]:rect["x"] + rect["width"]].astype(int)
+    return rgb[rect["y"] : rect["y"] + rect["height"], rect["x"] : rect["x"] + rect["width"]].astype(int)
 
 
 def _count_near(pixels, rgb, tolerance):
@@ -134,9 +162,10 @@ class _LiveFleet:
     """Odometry, battery, stats and allocation of the test fleet, changing over time."""
 
     def __init__(self, rospy):
-        from cps_msgs.msg import BandwidthAllocationArray, TopicStatsArray
         from nav_msgs.msg import Odometry
         from sensor_msgs.msg import BatteryState
+
+        from cps_msgs.msg import BandwidthAllocationArray, TopicStatsArray
 
         self.rospy = rospy
         self.names = [TEST_PREFIX + n for n in ("scout", "jackal", "champ", "iris")]
@@ -147,14 +176,16 @@ class _LiveFleet:
         self.start = time.monotonic()
 
     def publish(self):
-        from cps_msgs.msg import BandwidthAllocation, BandwidthAllocationArray, TopicStats, TopicStatsArray
         from nav_msgs.msg import Odometry
         from sensor_msgs.msg import BatteryState
 
+        from cps_msgs.msg import BandwidthAllocation, BandwidthAllocationArray, TopicStats, TopicStatsArray
+
         t = time.monotonic() - self.start
         stats = TopicStatsArray()
-        alloc = BandwidthAllocationArray(available_mbps=60.0, reserve_fraction=0.04, budget_mbytes_per_s=7.2,
-                                         feasible=True)
+        alloc = BandwidthAllocationArray(
+            available_mbps=60.0, reserve_fraction=0.04, budget_mbytes_per_s=7.2, feasible=True
+        )
         for i, name in enumerate(self.names):
             odom = Odometry()
             odom.header.frame_id = "map"  # no map -> <r>/odom tf in this test
@@ -164,11 +195,20 @@ class _LiveFleet:
             self.odom[name].publish(odom)
             self.battery[name].publish(BatteryState(percentage=0.9 - 0.1 * i - 0.002 * t))
             mbytes = 1.0 + 0.5 * i + 0.2 * np.sin(t + i)
-            stats.topics.append(TopicStats(topic=f"/{name}/points_filtered/draco/managed", robot=name, managed=True,
-                                           rate_hz=4.0 + i, bandwidth_mbytes_per_s=mbytes,
-                                           latency_avg_ms=30.0 + 10 * i + 5 * np.cos(t), age_s=0.1))
-            alloc.allocations.append(BandwidthAllocation(robot=name, priority=int(i == 1), rate_hz=4.0 + i,
-                                                         bandwidth_mbytes_per_s=mbytes))
+            stats.topics.append(
+                TopicStats(
+                    topic=f"/{name}/points_filtered/draco/managed",
+                    robot=name,
+                    managed=True,
+                    rate_hz=4.0 + i,
+                    bandwidth_mbytes_per_s=mbytes,
+                    latency_avg_ms=30.0 + 10 * i + 5 * np.cos(t),
+                    age_s=0.1,
+                )
+            )
+            alloc.allocations.append(
+                BandwidthAllocation(robot=name, priority=int(i == 1), rate_hz=4.0 + i, bandwidth_mbytes_per_s=mbytes)
+            )
         self.stats.publish(stats)
         self.alloc.publish(alloc)
 
@@ -178,7 +218,8 @@ class _LiveFleet:
 
 
 def test_screenshot_of_the_live_gui_shows_the_map_in_3d_and_top_view_and_a_camera_image(
-        ros, rospy_node, test_fleet_file, tmp_path, xvfb_display):
+    ros, rospy_node, test_fleet_file, tmp_path, xvfb_display
+):
     from nav_msgs.msg import OccupancyGrid
     from sensor_msgs.msg import Image
     from visualization_msgs.msg import MarkerArray
@@ -198,10 +239,24 @@ def test_screenshot_of_the_live_gui_shows_the_map_in_3d_and_top_view_and_a_camer
             image_pub.publish(image)
             live.publish()
 
-        proc = ros.start_node("cps_gui", "cps_gui", name="cps_gui_xvfb",
-                              args=["--fleet-file", test_fleet_file, "--settings", str(tmp_path / "gui.ini"),
-                                    "--screenshot", png, "--after", "12", "--geometry", "1600x1000"],
-                              env={"DISPLAY": xvfb_display, "QT_QPA_PLATFORM": "xcb"})
+        proc = ros.start_node(
+            "cps_gui",
+            "cps_gui",
+            name="cps_gui_xvfb",
+            args=[
+                "--fleet-file",
+                test_fleet_file,
+                "--settings",
+                str(tmp_path / "gui.ini"),
+                "--screenshot",
+                png,
+                "--after",
+                "12",
+                "--geometry",
+                "1600x1000",
+            ],
+            env={"DISPLAY": xvfb_display, "QT_QPA_PLATFORM": "xcb"},
+        )
         assert _wait_exit(ros, proc, 60, publish) == 0, ros.output("cps_gui_xvfb")[-3000:]
     finally:
         for pub in (marker_pub, grid_pub, image_pub):

@@ -1,15 +1,15 @@
 """The joystick mapping per robot type, without Qt or ROS."""
+
 import math
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from cps_gui import joystick
 from cps_fleet.fleet import ROBOT_TYPES, load_fleet
+from cps_gui import joystick
 
 TYPES = load_fleet().robot_types
-
 
 
 @pytest.mark.parametrize("robot_type", ["wheeled_lidar", "wheeled_depth"])
@@ -37,7 +37,9 @@ def test_quadrotor_climbs_strafes_and_turns():
     up = joystick.drag_to_command(TYPES["aerial_depth"], 0, 0, 100, climb=1.0)
     assert up == joystick.VelocityCommand(linear_z=limits.max_vertical_mps)
     down = joystick.axes_to_command(TYPES["aerial_depth"], 0, 0, climb=-0.5)
-    assert down.linear_z == pytest.approx(-limits.max_vertical_mps * (0.5 - joystick.DEADZONE) / (1 - joystick.DEADZONE))
+    assert down.linear_z == pytest.approx(
+        -limits.max_vertical_mps * (0.5 - joystick.DEADZONE) / (1 - joystick.DEADZONE)
+    )
     right = joystick.drag_to_command(TYPES["aerial_depth"], 100, 0, 100, strafe=True)
     assert right.linear_y == pytest.approx(-limits.max_lateral_mps)
 
@@ -47,8 +49,9 @@ def test_drag_beyond_the_pad_is_clipped_to_full_scale():
     far = joystick.drag_to_command(TYPES["wheeled_depth"], 0, -1000, 100)
     assert far.linear_x == pytest.approx(limits.max_forward_mps)
     diagonal = joystick.drag_to_command(TYPES["wheeled_depth"], 1000, -1000, 100)
-    assert diagonal.linear_x == pytest.approx(limits.max_forward_mps * (math.sqrt(0.5) - joystick.DEADZONE)
-                                              / (1 - joystick.DEADZONE))
+    assert diagonal.linear_x == pytest.approx(
+        limits.max_forward_mps * (math.sqrt(0.5) - joystick.DEADZONE) / (1 - joystick.DEADZONE)
+    )
 
 
 def test_dead_zone_gives_exact_zero():
@@ -64,8 +67,13 @@ def test_bad_input_is_rejected_or_neutral():
     assert joystick.axes_to_command(TYPES["wheeled_lidar"], math.nan, 0.5).linear_x == 0.0
 
 
-@given(dx=st.floats(-1e4, 1e4), dy=st.floats(-1e4, 1e4), climb=st.floats(-5, 5), strafe=st.booleans(),
-       robot_type=st.sampled_from(sorted(ROBOT_TYPES)))
+@given(
+    dx=st.floats(-1e4, 1e4),
+    dy=st.floats(-1e4, 1e4),
+    climb=st.floats(-5, 5),
+    strafe=st.booleans(),
+    robot_type=st.sampled_from(sorted(ROBOT_TYPES)),
+)
 def test_commands_never_exceed_the_type_limits(dx, dy, climb, strafe, robot_type):
     limits = joystick.speed_limits(TYPES[robot_type])
     c = joystick.drag_to_command(TYPES[robot_type], dx, dy, 50, climb=climb, strafe=strafe)
@@ -77,10 +85,14 @@ def test_commands_never_exceed_the_type_limits(dx, dy, climb, strafe, robot_type
 
 def test_keys_map_like_the_stick_and_opposites_cancel():
     limits = joystick.speed_limits(TYPES["legged_depth"])
-    assert joystick.keys_to_command(TYPES["legged_depth"], frozenset({"w"})).linear_x == pytest.approx(limits.max_forward_mps)
+    assert joystick.keys_to_command(TYPES["legged_depth"], frozenset({"w"})).linear_x == pytest.approx(
+        limits.max_forward_mps
+    )
     assert joystick.keys_to_command(TYPES["legged_depth"], frozenset({"w", "s"})).is_zero
     strafe = joystick.keys_to_command(TYPES["legged_depth"], frozenset({"q", "d"}))
-    assert strafe.linear_y == pytest.approx(limits.max_lateral_mps) and strafe.angular_z == pytest.approx(-limits.max_yaw_rate_rps)
+    assert strafe.linear_y == pytest.approx(limits.max_lateral_mps) and strafe.angular_z == pytest.approx(
+        -limits.max_yaw_rate_rps
+    )
     assert joystick.keys_to_command(TYPES["wheeled_lidar"], frozenset({"q", "r"})).is_zero
     assert joystick.keys_to_command(TYPES["aerial_depth"], frozenset({"r"})).linear_z > 0
 

@@ -1,5 +1,6 @@
 """The GUI's side of monitoring: /twin/map_changes as the map server builds it becomes the change
 list, and the views can centre on a change; the list pane shows and selects changes."""
+
 import pytest
 from std_msgs.msg import Header
 
@@ -11,8 +12,10 @@ from cps_mapping.map_messages import change_markers
 
 
 def _changes():
-    return [Change("disappeared", 100, (3.1, -1.0, 0.5), (1.0, 1.0, 1.0), 0.1, (2.7, -1.5, 0.0), (3.7, -0.5, 1.0)),
-            Change("appeared", 40, (3.0, -3.5, 0.8), (0.8, 0.2, 1.6), 0.04, (2.6, -3.9, 0.0), (3.4, -3.7, 1.6))]
+    return [
+        Change("disappeared", 100, (3.1, -1.0, 0.5), (1.0, 1.0, 1.0), 0.1, (2.7, -1.5, 0.0), (3.7, -0.5, 1.0)),
+        Change("appeared", 40, (3.0, -3.5, 0.8), (0.8, 0.2, 1.6), 0.04, (2.6, -3.9, 0.0), (3.4, -3.7, 1.6)),
+    ]
 
 
 def test_markers_of_the_map_server_become_the_change_list():

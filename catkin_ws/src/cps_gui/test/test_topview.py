@@ -1,4 +1,5 @@
 """Top-view drawing data, the video frame conversion and the shipped rviz config."""
+
 import math
 import os
 
@@ -14,7 +15,7 @@ def test_occupancy_image_colours_and_orientation():
     data = [0, -1, 100, 0, 0, 0]
     image = topview.occupancy_image(3, 2, 0.5, -1.0, 2.0, data)
     assert image.rgb.shape == (2, 3, 3) and image.occupied_cells == 1
-    assert tuple(image.rgb[1, 2]) == topview.OCCUPIED_RGB      # bottom row on screen is row 0
+    assert tuple(image.rgb[1, 2]) == topview.OCCUPIED_RGB  # bottom row on screen is row 0
     assert tuple(image.rgb[1, 1]) == topview.UNKNOWN_RGB
     assert tuple(image.rgb[0, 0]) == topview.FREE_RGB
     assert (image.x_min, image.y_min, image.width_m, image.height_m) == (-1.0, 2.0, 1.5, 1.0)
@@ -23,17 +24,20 @@ def test_occupancy_image_colours_and_orientation():
 def test_large_grids_are_decimated_keeping_thin_walls():
     width = height = 2000
     data = np.zeros((height, width), dtype=np.int8)
-    data[1000, :] = 100                                       # a one-cell wall
+    data[1000, :] = 100  # a one-cell wall
     image = topview.occupancy_image(width, height, 0.05, 0.0, 0.0, data.ravel(), max_cells=500)
     assert image.rgb.shape == (500, 500, 3) and image.cell_m == pytest.approx(0.2)
     assert image.occupied_cells == 500
 
 
-@pytest.mark.parametrize("args,match", [
-    ((0, 2, 0.1, 0, 0, []), "empty"),
-    ((2, 2, 0.0, 0, 0, [0] * 4), "resolution"),
-    ((2, 2, 0.1, 0, 0, [0] * 3), "3 cells"),
-])
+@pytest.mark.parametrize(
+    "args,match",
+    [
+        ((0, 2, 0.1, 0, 0, []), "empty"),
+        ((2, 2, 0.0, 0, 0, [0] * 4), "resolution"),
+        ((2, 2, 0.1, 0, 0, [0] * 3), "3 cells"),
+    ],
+)
 def test_bad_grids_are_rejected(args, match):
     with pytest.raises(ValueError, match=match):
         topview.occupancy_image(*args)
@@ -65,15 +69,17 @@ def test_fence_polygons_read_the_shapes_a_site_may_use():
         def __init__(self, **kw):
             self.__dict__.update(kw)
 
-    site = {"fenced_areas": [
-        {"name": "a", "polygon": [[0, 0], [1, 0], [1, 1]]},
-        Area(name="b", min=(0, 0), max=(2, 1)),
-        {"name": "c", "x_min": 0, "y_min": 0, "x_max": 1, "y_max": 3},
-        Area(name="m", x_min_m=0, y_min_m=0, x_max_m=1, y_max_m=2),
-        {"name": "d", "center": {"x": 1, "y": 1}, "size": [2, 4]},
-        {"name": "broken", "polygon": [["x", 0]]},
-        {"name": "shapeless"},
-    ]}
+    site = {
+        "fenced_areas": [
+            {"name": "a", "polygon": [[0, 0], [1, 0], [1, 1]]},
+            Area(name="b", min=(0, 0), max=(2, 1)),
+            {"name": "c", "x_min": 0, "y_min": 0, "x_max": 1, "y_max": 3},
+            Area(name="m", x_min_m=0, y_min_m=0, x_max_m=1, y_max_m=2),
+            {"name": "d", "center": {"x": 1, "y": 1}, "size": [2, 4]},
+            {"name": "broken", "polygon": [["x", 0]]},
+            {"name": "shapeless"},
+        ]
+    }
     polygons, unreadable = topview.fence_polygons(site)
     assert [name for name, _ in polygons] == ["a", "b", "c", "m", "d"] and unreadable == 2
     assert dict(polygons)["d"] == [(0, -1), (2, -1), (2, 3), (0, 3)]
@@ -125,11 +131,14 @@ def test_video_frames_convert_from_the_common_encodings(qapp):
     assert big.shape == (480, 640, 3)
 
 
-@pytest.mark.parametrize("frame,match", [
-    (("32FC1", 1, 1, [0] * 4), "unsupported image encoding"),
-    (("rgb8", 2, 2, [0] * 6), "expected 2 rows"),
-    (("rgb8", 0, 0, []), "empty"),
-])
+@pytest.mark.parametrize(
+    "frame,match",
+    [
+        (("32FC1", 1, 1, [0] * 4), "unsupported image encoding"),
+        (("rgb8", 2, 2, [0] * 6), "expected 2 rows"),
+        (("rgb8", 0, 0, []), "empty"),
+    ],
+)
 def test_bad_video_frames_are_rejected(qapp, frame, match):
     from cps_gui.widgets.video import frame_to_rgb
 

@@ -1,5 +1,6 @@
 """Which camera topic the video pane shows before the operator picks one: the compressed variant
 whenever it is advertised."""
+
 from cps_gui.widgets.video import preferred_image_topic
 
 RAW = "/jackal/camera/image_raw"

@@ -1,4 +1,5 @@
 """Fleet files written for benchmarks elsewhere still find their site and routes."""
+
 import os
 
 from cps_fleet.fleet import load_fleet

@@ -1,4 +1,5 @@
 """The test harness starts a private master and nodes, and leaves nothing behind."""
+
 import os
 import sys
 import textwrap

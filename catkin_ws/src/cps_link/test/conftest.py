@@ -1,4 +1,5 @@
 """Fixtures of cps_link's tests (the workspace's ros_master/ros/rospy_node come from the top conftest)."""
+
 import pytest
 
 from cps_ros.processes import RosGraph

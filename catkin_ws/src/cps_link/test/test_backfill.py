@@ -1,31 +1,38 @@
 """Backfill across two masters on loopback: while the twin's bridge is away the robots' bridge keeps
 one keyframe per second with its pose; once the twin is back they cross, oldest first, each once,
 at background priority, paced by what the manager's allocation leaves unused."""
+
 import subprocess
 import sys
 import time
 
 import pytest
 
-from cps_ros.processes import find_node, free_port
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
+from cps_ros.processes import find_node, free_port
 
 ROBOT = "scout"
 # map -> load (the frame of cloud_load.py's clouds), latched on /tf_static.
-STATIC_TF = [sys.executable, "-c", "import rospy, tf2_ros; from geometry_msgs.msg import TransformStamped; "
-             "rospy.init_node('static_tf'); t = TransformStamped(); t.header.frame_id = 'map'; "
-             "t.child_frame_id = 'load'; t.transform.translation.x, t.transform.translation.y, "
-             "t.transform.translation.z = 1, 2, 3; t.transform.rotation.w = 1; "
-             "b = tf2_ros.StaticTransformBroadcaster(); b.sendTransform(t); rospy.spin()"]
-CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace("nodes/bandwidth_manager",
-                                                                        "test/fixtures/cloud_load.py")
+STATIC_TF = [
+    sys.executable,
+    "-c",
+    "import rospy, tf2_ros; from geometry_msgs.msg import TransformStamped; "
+    "rospy.init_node('static_tf'); t = TransformStamped(); t.header.frame_id = 'map'; "
+    "t.child_frame_id = 'load'; t.transform.translation.x, t.transform.translation.y, "
+    "t.transform.translation.z = 1, 2, 3; t.transform.rotation.w = 1; "
+    "b = tf2_ros.StaticTransformBroadcaster(); b.sendTransform(t); rospy.spin()",
+]
+CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace(
+    "nodes/bandwidth_manager", "test/fixtures/cloud_load.py"
+)
 
 
 @pytest.mark.timeout(150)
 def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots_graph, tmp_path):
-    from cps_msgs.msg import BandwidthAllocationArray, CompressedPointCloud2, LinkState
     from geometry_msgs.msg import TransformStamped
+
+    from cps_msgs.msg import BandwidthAllocationArray, CompressedPointCloud2, LinkState
 
     certs = str(tmp_path / "certs")
     subprocess.run([MAKE_CERTS, certs], check=True, capture_output=True)
@@ -33,12 +40,21 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
     twin_bridge = ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], certs, port), name="bt")
     robots_graph.popen(bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], certs, port), name="br")
     robots_graph.popen(STATIC_TF, name="static_tf")
-    robots_graph.popen([sys.executable, CLOUD_LOAD, f"{ROBOT}:20000:5",
-                        f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed"], name="load")
+    robots_graph.popen(
+        [
+            sys.executable,
+            CLOUD_LOAD,
+            f"{ROBOT}:20000:5",
+            f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+        ],
+        name="load",
+    )
     # As the manager: its allocation at 2 Hz, here leaving 0.5 MB/s of its budget unused.
     allocation = rospy_node.Publisher("/tissue/allocation", BandwidthAllocationArray, queue_size=1)
-    timer = rospy_node.Timer(rospy_node.Duration(0.5), lambda _e: allocation.publish(
-        BandwidthAllocationArray(budget_mbytes_per_s=6.0, allocated_mbytes_per_s=5.5)))
+    timer = rospy_node.Timer(
+        rospy_node.Duration(0.5),
+        lambda _e: allocation.publish(BandwidthAllocationArray(budget_mbytes_per_s=6.0, allocated_mbytes_per_s=5.5)),
+    )
     link = TopicRecorder("/tissue/link_state", LinkState)
     live = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
     backfill = TopicRecorder(f"/twin/{ROBOT}/points_backfill/draco", CompressedPointCloud2)
@@ -55,8 +71,9 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
     time.sleep(2.0)
     stamps = [m.header.stamp.to_sec() for _, m in backfill.messages]
     wall_minus_monotonic = time.time() - time.monotonic()
-    first_live_after = min(m.header.stamp.to_sec() for arrival, m in live.messages
-                           if arrival + wall_minus_monotonic > t_up)
+    first_live_after = min(
+        m.header.stamp.to_sec() for arrival, m in live.messages if arrival + wall_minus_monotonic > t_up
+    )
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps), stamps  # oldest first, each once
     # Captured while the twin was away: after the cut, before live clouds flowed again.
     assert all(t_down - 1.0 <= s < first_live_after for s in stamps), (t_down, first_live_after, stamps)
@@ -68,7 +85,10 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
         t = pose.transform.translation
         assert (pose.header.frame_id, pose.child_frame_id, t.x, t.y, t.z) == ("map", "load", 1.0, 2.0, 3.0)
     # The live stream resumed fresh (nothing older than the data class's bound was republished).
-    ages = [arrival + wall_minus_monotonic - m.header.stamp.to_sec() for arrival, m in live.messages
-            if arrival + wall_minus_monotonic > t_up]
+    ages = [
+        arrival + wall_minus_monotonic - m.header.stamp.to_sec()
+        for arrival, m in live.messages
+        if arrival + wall_minus_monotonic > t_up
+    ]
     assert ages and max(ages) < 1.0 + 0.5, ages
     timer.shutdown()

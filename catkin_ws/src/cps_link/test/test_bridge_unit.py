@@ -1,4 +1,5 @@
 """The Zenoh bridge's parts that need no ROS master: wire frames, the table, link health."""
+
 import io
 import math
 import uuid
@@ -8,7 +9,7 @@ import roslib.message
 import zenoh
 
 from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
-from cps_link.bridge_config import ConfigError, ROBOTS, TWIN, load_bridge_table
+from cps_link.bridge_config import ROBOTS, TWIN, ConfigError, load_bridge_table
 from cps_link.bridge_wire import Frame, WireError, decode, encode, header_stamp_s, is_stale
 from cps_link.link_health import LinkHealth
 from cps_link.zenoh_bridge import zenoh_qos
@@ -16,11 +17,25 @@ from cps_link.zenoh_session import session_config
 
 ROBOT_NAMES = ("scout", "jackal", "champ", "iris")
 # Every type bridge.yaml carries (and sensor_msgs/PointCloud2 of the backfill).
-TYPES = ("geometry_msgs/Twist", "std_msgs/String", "std_msgs/Bool", "std_msgs/Float64", "nav_msgs/Odometry",
-         "sensor_msgs/BatteryState", "sensor_msgs/JointState", "cps_msgs/RateLimiterStatus", "tf2_msgs/TFMessage",
-         "diagnostic_msgs/DiagnosticArray", "cps_msgs/TopicStatsArray", "rosgraph_msgs/Log",
-         "cps_msgs/CompressedPointCloud2", "sensor_msgs/CompressedImage", "sensor_msgs/CameraInfo",
-         "cps_msgs/LinkState", "sensor_msgs/PointCloud2")
+TYPES = (
+    "geometry_msgs/Twist",
+    "std_msgs/String",
+    "std_msgs/Bool",
+    "std_msgs/Float64",
+    "nav_msgs/Odometry",
+    "sensor_msgs/BatteryState",
+    "sensor_msgs/JointState",
+    "cps_msgs/RateLimiterStatus",
+    "tf2_msgs/TFMessage",
+    "diagnostic_msgs/DiagnosticArray",
+    "cps_msgs/TopicStatsArray",
+    "rosgraph_msgs/Log",
+    "cps_msgs/CompressedPointCloud2",
+    "sensor_msgs/CompressedImage",
+    "sensor_msgs/CameraInfo",
+    "cps_msgs/LinkState",
+    "sensor_msgs/PointCloud2",
+)
 
 
 def _sample(msg_type):
@@ -51,20 +66,33 @@ def test_every_type_crosses_byte_identical(msg_type):
     stamp = header_stamp_s(body) if cls._has_header else math.nan
     frame = Frame(uuid.uuid4().bytes, 7, stamp, msg_type, cls._md5sum, "/fleet_sim", body)
     out = decode(encode(frame))
-    assert out.body == body and (out.session, out.seq, out.msg_type, out.md5, out.source) == \
-        (frame.session, 7, msg_type, cls._md5sum, "/fleet_sim")
+    assert out.body == body and (out.session, out.seq, out.msg_type, out.md5, out.source) == (
+        frame.session,
+        7,
+        msg_type,
+        cls._md5sum,
+        "/fleet_sim",
+    )
     assert _serialize(cls().deserialize(out.body)) == body
     if cls._has_header:
         assert out.stamp_s == pytest.approx(1700000000.25)
 
 
 def test_damaged_frames_are_refused_with_a_reason():
-    good = encode(Frame(b"s" * 16, 1, math.nan, "std_msgs/String", "992ce8a1687cec8c8bd883ec73ca41d1", "/gui",
-                        b"\x02\x00\x00\x00hi"))
+    good = encode(
+        Frame(
+            b"s" * 16, 1, math.nan, "std_msgs/String", "992ce8a1687cec8c8bd883ec73ca41d1", "/gui", b"\x02\x00\x00\x00hi"
+        )
+    )
     flipped = bytearray(good)
     flipped[-1] ^= 0xFF
-    for bad, why in ((good[:10], "shorter"), (b"XXXX" + good[4:], "magic"), (bytes(flipped), "CRC"),
-                     (good[:45], "truncated"), (b"", "shorter")):
+    for bad, why in (
+        (good[:10], "shorter"),
+        (b"XXXX" + good[4:], "magic"),
+        (bytes(flipped), "CRC"),
+        (good[:45], "truncated"),
+        (b"", "shorter"),
+    ):
         with pytest.raises(WireError, match=why):
             decode(bad)
 
@@ -92,25 +120,34 @@ def test_classes_map_to_their_zenoh_qos():
         assert (qos["priority"], qos["congestion_control"], qos["express"]) == (priority, congestion, express), topic
         assert (qos["reliability"] == zenoh.Reliability.RELIABLE) == reliable, topic
     assert routes["/twin/champ/points_filtered/draco/managed"].traffic.max_age_s == 1.0
-    assert {r.to for r in table.routes if r.latched} >= {"/tf_static", "/fleet/estop", "/scout/control_mode",
-                                                        "/scout/mission_state"}
+    assert {r.to for r in table.routes if r.latched} >= {
+        "/tf_static",
+        "/fleet/estop",
+        "/scout/control_mode",
+        "/scout/mission_state",
+    }
     assert all(r.source == TWIN for r in table.routes if r.traffic.name == "command")
     assert all(r.source == ROBOTS for r in table.routes if r.traffic.name != "command" and r.to != "/tissue/allocation")
-    assert {r.to for r in table.routes if r.traffic.name == "backfill"} == \
-        {f"/twin/{r}/points_backfill/{kind}" for r in ROBOT_NAMES for kind in ("draco", "pose")}
+    assert {r.to for r in table.routes if r.traffic.name == "backfill"} == {
+        f"/twin/{r}/points_backfill/{kind}" for r in ROBOT_NAMES for kind in ("draco", "pose")
+    }
     assert zenoh_qos(routes["/twin/iris/points_backfill/draco"].traffic)["priority"] == zenoh.Priority.BACKGROUND
     assert routes["/twin/scout/points_filtered/draco/managed"].topic == "/scout/points_filtered/draco/managed"
 
 
 def test_bad_table_names_file_and_line(tmp_path):
     path = tmp_path / "bridge.yaml"
-    base = ("endpoint_port: 7447\nkey_prefix: cps\nlease_ms: 600\nkeep_alive: 3\nretry_max_ms: 500\n"
-            "heartbeat_ms: 100\nheartbeat_timeout_ms: 700\n"
-            "classes:\n  command: {priority: real_time, congestion: block, reliable: true, express: true}\n")
-    for topics, message in (("  - {topic: /a, from: moon, class: command}\n", "bridge.yaml:11.*from"),
-                            ("  - {topic: /a, from: twin, class: fast}\n", "bridge.yaml:11.*unknown class"),
-                            ("  - {topic: a, from: twin, class: command}\n", "not a global ROS topic"),
-                            ("  - {topic: /a, from: twin, class: command}\n" * 2, "bridge.yaml:12.*crosses twice")):
+    base = (
+        "endpoint_port: 7447\nkey_prefix: cps\nlease_ms: 600\nkeep_alive: 3\nretry_max_ms: 500\n"
+        "heartbeat_ms: 100\nheartbeat_timeout_ms: 700\n"
+        "classes:\n  command: {priority: real_time, congestion: block, reliable: true, express: true}\n"
+    )
+    for topics, message in (
+        ("  - {topic: /a, from: moon, class: command}\n", "bridge.yaml:11.*from"),
+        ("  - {topic: /a, from: twin, class: fast}\n", "bridge.yaml:11.*unknown class"),
+        ("  - {topic: a, from: twin, class: command}\n", "not a global ROS topic"),
+        ("  - {topic: /a, from: twin, class: command}\n" * 2, "bridge.yaml:12.*crosses twice"),
+    ):
         path.write_text(base + "topics:\n" + topics)
         with pytest.raises(ConfigError, match=message):
             load_bridge_table(str(path), ROBOT_NAMES)

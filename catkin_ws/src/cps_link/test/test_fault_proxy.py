@@ -1,5 +1,6 @@
 """The fault-injecting proxy (ROS-free) against an echo server on loopback: it forwards, and a cut,
 a stall, a throttle and a reset each do what the link tests rely on."""
+
 import socket
 import threading
 import time
@@ -78,8 +79,9 @@ def test_it_forwards_both_ways(proxy):
     with _client(proxy) as c:
         assert _echo(c, b"hello" * 1000) == b"hello" * 1000
     # The counter moves after the bytes are handed on: the echo may be read before it does.
-    assert wait_for(lambda: proxy.forwarded_bytes["up"] >= 5000 and proxy.forwarded_bytes["down"] >= 5000,
-                    timeout_s=WAIT_S), proxy.forwarded_bytes
+    assert wait_for(
+        lambda: proxy.forwarded_bytes["up"] >= 5000 and proxy.forwarded_bytes["down"] >= 5000, timeout_s=WAIT_S
+    ), proxy.forwarded_bytes
 
 
 def test_a_cut_freezes_open_connections_and_holds_new_ones_until_restored(proxy):

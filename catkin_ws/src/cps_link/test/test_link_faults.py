@@ -4,6 +4,7 @@ faults drawn from a seed (cuts of 0.2-3 s, resets, stalls, a 1 Mbit/s throttle).
 again, and every message the twin's bridge published on the watched topics is of the table's
 type and decodes (issue 22: after a cut, frames were published on other topics with their
 own types). Prints a row per fault and the bridges' drop counters."""
+
 import os
 import random
 import subprocess
@@ -12,21 +13,26 @@ import time
 
 import pytest
 
-from cps_ros.processes import find_node, free_port
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.bridge_config import load_bridge_table
 from cps_link.fault_proxy import FaultProxy
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
+from cps_ros.processes import find_node, free_port
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
-CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace("nodes/bandwidth_manager",
-                                                                        "test/fixtures/cloud_load.py")
+CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace(
+    "nodes/bandwidth_manager", "test/fixtures/cloud_load.py"
+)
 # map -> load (cloud_load.py's frame) on /tf_static: the robots' bridge needs it for keyframe poses.
-STATIC_TF = [sys.executable, "-c", "import rospy, tf2_ros; from geometry_msgs.msg import TransformStamped; "
-             "rospy.init_node('static_tf'); t = TransformStamped(); t.header.frame_id = 'map'; "
-             "t.child_frame_id = 'load'; t.transform.rotation.w = 1; "
-             "b = tf2_ros.StaticTransformBroadcaster(); b.sendTransform(t); rospy.spin()"]
+STATIC_TF = [
+    sys.executable,
+    "-c",
+    "import rospy, tf2_ros; from geometry_msgs.msg import TransformStamped; "
+    "rospy.init_node('static_tf'); t = TransformStamped(); t.header.frame_id = 'map'; "
+    "t.child_frame_id = 'load'; t.transform.rotation.w = 1; "
+    "b = tf2_ros.StaticTransformBroadcaster(); b.sendTransform(t); rospy.spin()",
+]
 ROBOT = "scout"
 SEED = int(os.environ.get("CPS_FAULT_SEED", "22"))
 FAULTS = 10
@@ -35,9 +41,15 @@ TF_WITHIN_S = 1.0
 # TLS, heartbeat), s.
 LINK_BACK_WITHIN_S = 8.0
 TELEOP_WITHIN_S = 5.0
-WATCHED = ("/tf", f"/{ROBOT}/odom", f"/{ROBOT}/camera/camera_info", f"/{ROBOT}/control_mode/active",
-           f"/twin/{ROBOT}/points_filtered/draco/managed", f"/twin/{ROBOT}/points_backfill/pose",
-           f"/twin/{ROBOT}/points_backfill/draco")
+WATCHED = (
+    "/tf",
+    f"/{ROBOT}/odom",
+    f"/{ROBOT}/camera/camera_info",
+    f"/{ROBOT}/control_mode/active",
+    f"/twin/{ROBOT}/points_filtered/draco/managed",
+    f"/twin/{ROBOT}/points_backfill/pose",
+    f"/twin/{ROBOT}/points_backfill/draco",
+)
 
 
 def _faults(rng):
@@ -45,8 +57,12 @@ def _faults(rng):
     kinds = ["cut", "reset", "stall", "throttle"]
     kinds += [rng.choice(("cut", "cut", "reset", "stall", "throttle")) for _ in range(FAULTS - len(kinds))]
     rng.shuffle(kinds)
-    held = {"cut": lambda: rng.uniform(0.2, 3.0), "reset": lambda: 0.0, "stall": lambda: rng.uniform(0.5, 2.0),
-            "throttle": lambda: 2.0}
+    held = {
+        "cut": lambda: rng.uniform(0.2, 3.0),
+        "reset": lambda: 0.0,
+        "stall": lambda: rng.uniform(0.5, 2.0),
+        "throttle": lambda: 2.0,
+    }
     return [(k, held[k]()) for k in kinds]
 
 
@@ -108,8 +124,9 @@ def _teleop_after(path, t_wall):
 
 @pytest.mark.timeout(240)
 def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, tmp_path, request):
-    from cps_msgs.msg import LinkState
     from diagnostic_msgs.msg import DiagnosticArray
+
+    from cps_msgs.msg import LinkState
 
     certs = str(tmp_path / "certs")
     subprocess.run([MAKE_CERTS, certs], check=True, capture_output=True)
@@ -119,23 +136,35 @@ def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, tmp_
     request.addfinalizer(proxy.close)
     # The twin listens on `port`; the robots' bridge connects to the proxy, which forwards there.
     ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], certs, port), name="bridge_twin")
-    robots_graph.popen(bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], certs, proxy.port),
-                       name="bridge_robots")
+    robots_graph.popen(
+        bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], certs, proxy.port), name="bridge_robots"
+    )
     teleop_file = str(tmp_path / "teleop.txt")
-    robots_graph.popen([sys.executable, os.path.join(HERE, "fixtures", "fault_robot.py"), ROBOT, "20", teleop_file],
-                       name="fault_robot")
-    ros.popen([sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, "20"],
-              name="teleop_send")
+    robots_graph.popen(
+        [sys.executable, os.path.join(HERE, "fixtures", "fault_robot.py"), ROBOT, "20", teleop_file], name="fault_robot"
+    )
+    ros.popen(
+        [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, "20"], name="teleop_send"
+    )
     # Clouds, kept as keyframes during the longer outages and backfilled after them (the issue's
     # mixed-up topics were the backfill poses); the manager's allocation paces the backfill.
     robots_graph.popen(STATIC_TF, name="static_tf")
-    robots_graph.popen([sys.executable, CLOUD_LOAD, f"{ROBOT}:20000:5",
-                        f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed"], name="load")
+    robots_graph.popen(
+        [
+            sys.executable,
+            CLOUD_LOAD,
+            f"{ROBOT}:20000:5",
+            f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+        ],
+        name="load",
+    )
     from cps_msgs.msg import BandwidthAllocationArray
 
     allocation = rospy_node.Publisher("/tissue/allocation", BandwidthAllocationArray, queue_size=1)
-    timer = rospy_node.Timer(rospy_node.Duration(0.5), lambda _e: allocation.publish(
-        BandwidthAllocationArray(budget_mbytes_per_s=6.0, allocated_mbytes_per_s=5.5)))
+    timer = rospy_node.Timer(
+        rospy_node.Duration(0.5),
+        lambda _e: allocation.publish(BandwidthAllocationArray(budget_mbytes_per_s=6.0, allocated_mbytes_per_s=5.5)),
+    )
     request.addfinalizer(timer.shutdown)
     request.addfinalizer(allocation.unregister)
     link = TopicRecorder("/tissue/link_state", LinkState)
@@ -164,29 +193,42 @@ def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, tmp_
             went_down = any(not m.up for arrival, m in link.messages if arrival > t_fault)
         t_up = t_restored
         if went_down:
-            assert wait_for(lambda: any(m.up for a, m in list(link.messages) if a > t_restored and
-                                        a > max(a2 for a2, m2 in list(link.messages) if not m2.up)),
-                            timeout_s=LINK_BACK_WITHIN_S), f"{kind}: the link did not come back"
+            assert wait_for(
+                lambda: any(
+                    m.up
+                    for a, m in list(link.messages)
+                    if a > t_restored and a > max(a2 for a2, m2 in list(link.messages) if not m2.up)
+                ),
+                timeout_s=LINK_BACK_WITHIN_S,
+            ), f"{kind}: the link did not come back"
             with link._cond:
                 last_down = max(a for a, m in link.messages if not m.up)
                 t_up = max(t_restored, min(a for a, m in link.messages if m.up and a > last_down))
-        assert wait_for(lambda: _arrived_after(tf, t_up) is not None, timeout_s=LINK_BACK_WITHIN_S), \
+        assert wait_for(lambda: _arrived_after(tf, t_up) is not None, timeout_s=LINK_BACK_WITHIN_S), (
             f"{kind}: no /tf at the twin after the link came back"
+        )
         tf_delay_s = _arrived_after(tf, t_up) - t_up
-        assert wait_for(lambda: _teleop_after(teleop_file, t_restored_wall) is not None,
-                        timeout_s=TELEOP_WITHIN_S + (t_up - t_restored)), f"{kind}: no teleop at the robots"
+        assert wait_for(
+            lambda: _teleop_after(teleop_file, t_restored_wall) is not None,
+            timeout_s=TELEOP_WITHIN_S + (t_up - t_restored),
+        ), f"{kind}: no teleop at the robots"
         teleop_delay_s = _teleop_after(teleop_file, t_restored_wall) - t_restored_wall
         rows.append((kind, held_s, went_down, t_up - t_restored, tf_delay_s, teleop_delay_s))
-        print(f"{kind:8s} held {held_s:4.2f} s  link down: {str(went_down):5s}  link up after "
-              f"{t_up - t_restored:5.2f} s  /tf after {tf_delay_s:5.2f} s  teleop after {teleop_delay_s:5.2f} s")
+        print(
+            f"{kind:8s} held {held_s:4.2f} s  link down: {str(went_down):5s}  link up after "
+            f"{t_up - t_restored:5.2f} s  /tf after {tf_delay_s:5.2f} s  teleop after {teleop_delay_s:5.2f} s"
+        )
         assert tf_delay_s <= TF_WITHIN_S, rows[-1]
 
     assert wait_for(lambda: _bridge_counters(diagnostics, "/zenoh_bridge_twin"), timeout_s=5)
     for node in ("/zenoh_bridge_twin", "/zenoh_bridge_robots"):
         counters = _bridge_counters(diagnostics, node)
         print(node, {k: v for k, v in counters.items() if k.startswith("drop_") or k in ("processed", "corrupt")})
-    print(f"watched {types.received} messages on the twin: " +
-          ", ".join(f"{t} {len(a)}" for t, a in types.arrivals.items()) + f"; proxy resets {proxy.resets}")
+    print(
+        f"watched {types.received} messages on the twin: "
+        + ", ".join(f"{t} {len(a)}" for t, a in types.arrivals.items())
+        + f"; proxy resets {proxy.resets}"
+    )
     assert types.received > 0
     if any(kind == "cut" and down and held_s >= 1.5 for kind, held_s, down, *_ in rows):
         # An outage longer than a keyframe period: keyframes were kept and crossed after it.

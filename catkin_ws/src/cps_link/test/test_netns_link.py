@@ -1,5 +1,6 @@
 """The shaped link: namespaces, tbf on both directions, iperf3, live rate change, cleanup always,
 and the clear refusal without root. Skipped (only) where root or network namespaces are missing."""
+
 import os
 import shutil
 import subprocess
@@ -72,8 +73,9 @@ def test_delay_and_loss_use_netem_or_say_why_not():
         assert _ours(name) == []
         return
     try:
-        show = subprocess.run(["ip", "netns", "exec", f"{name}_phys", "tc", "qdisc", "show"],
-                              capture_output=True, text=True).stdout
+        show = subprocess.run(
+            ["ip", "netns", "exec", f"{name}_phys", "tc", "qdisc", "show"], capture_output=True, text=True
+        ).stdout
         assert "netem" in show and "delay 20ms" in show and "tbf" in show
     finally:
         netns_link.link_down(name)
@@ -93,10 +95,16 @@ def test_the_default_rate_is_the_fleet_files_link_rate():
     assert ShapedLink("cpstdef").rate == netns_link.fleet_rate()
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(name="Bad Name"), "link name"), (dict(rate="fast"), "not a tc rate"),
-    (dict(rate="0mbit"), "must be > 0"), (dict(delay_ms=-1.0), "delay"), (dict(loss_pct=100.0), "loss"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(name="Bad Name"), "link name"),
+        (dict(rate="fast"), "not a tc rate"),
+        (dict(rate="0mbit"), "must be > 0"),
+        (dict(delay_ms=-1.0), "delay"),
+        (dict(loss_pct=100.0), "loss"),
+    ],
+)
 def test_bad_link_arguments_are_refused_before_anything_is_created(kwargs, match):
     with pytest.raises(LinkError, match=match):
         netns_link.link_up(**kwargs)
@@ -118,7 +126,9 @@ def test_cli_up_measure_set_down():
         assert measured.returncode == 0 and "Mbit/s" in measured.stdout
         assert 15.0 < float(measured.stdout.split()[0]) <= 31.0
         assert cli("set", "--name", name, "--rate", "10mbit").returncode == 0
-        env = cli("exec", "phys", "--name", name, "--master-port", "11999", "--", "sh", "-c", "echo $ROS_IP $ROS_MASTER_URI")
+        env = cli(
+            "exec", "phys", "--name", name, "--master-port", "11999", "--", "sh", "-c", "echo $ROS_IP $ROS_MASTER_URI"
+        )
         assert env.stdout.split() == ["10.201.0.1", "http://10.201.0.2:11999"]
     finally:
         assert cli("down", "--name", name).returncode == 0
@@ -128,7 +138,21 @@ def test_cli_up_measure_set_down():
 
 @pytest.mark.skipif(os.geteuid() != 0 or shutil.which("setpriv") is None, reason="needs root to drop to nobody")
 def test_without_root_the_cli_says_so_and_offers_loopback():
-    out = subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups",
-                          sys.executable, NODE, "up", "--name", "cpstnoroot"], capture_output=True, text=True, timeout=30)
+    out = subprocess.run(
+        [
+            "setpriv",
+            "--reuid=65534",
+            "--regid=65534",
+            "--clear-groups",
+            sys.executable,
+            NODE,
+            "up",
+            "--name",
+            "cpstnoroot",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert out.returncode == 2
     assert "needs root" in out.stderr and "--link none" in out.stderr

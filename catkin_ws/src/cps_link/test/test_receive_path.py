@@ -1,5 +1,6 @@
 """The bridge's receive path without ROS or Zenoh (issue 22): a frame is published only on the topic
 it was sent for, in that topic's one type; every bad input is dropped and counted by its kind."""
+
 import math
 import struct
 
@@ -55,8 +56,11 @@ def test_issue_22_a_tf_frame_on_the_backfill_pose_route_is_dropped_and_never_ret
     """The issue's run: /tf, odom and camera_info frames reached the backfill pose subscribers."""
     path = _path(table)
     pose = "/twin/scout/points_backfill/pose"
-    for to, msg_type in (("/tf", "tf2_msgs/TFMessage"), ("/jackal/odom", "nav_msgs/Odometry"),
-                         ("/scout/camera/camera_info", "sensor_msgs/CameraInfo")):
+    for to, msg_type in (
+        ("/tf", "tf2_msgs/TFMessage"),
+        ("/jackal/odom", "nav_msgs/Odometry"),
+        ("/scout/camera/camera_info", "sensor_msgs/CameraInfo"),
+    ):
         # Under the pose route's key (Zenoh resolved the wrong key) and under its own (wrong callback).
         payload = encode(_frame(to, msg_type))
         assert _receive(path, table, pose, payload).drop == "wrong_topic"
@@ -134,8 +138,16 @@ def test_stale_stamped_data_is_dropped_and_counted(table):
     path = _path(table)
     to = "/twin/scout/points_filtered/draco/managed"
     body = struct.pack("<III", 0, int(T0_S), 0) + b"\x00" * 40
-    assert _receive(path, table, to, encode(_frame(to, "cps_msgs/CompressedPointCloud2", body=body,
-                                                   stamp_s=T0_S)), now_s=T0_S + 2).drop == "stale"
+    assert (
+        _receive(
+            path,
+            table,
+            to,
+            encode(_frame(to, "cps_msgs/CompressedPointCloud2", body=body, stamp_s=T0_S)),
+            now_s=T0_S + 2,
+        ).drop
+        == "stale"
+    )
     assert path.counters()["stale"] == 1
 
 

@@ -8,6 +8,7 @@ Every message published is on the topic it was sent for, with that topic's type;
 published twice within a session; every drop is counted with its kind, and the kind says why;
 an intact, in-order, fresh frame of the sender's current run that reaches its own route is
 published (the checks do not over-drop)."""
+
 import collections
 import math
 import struct
@@ -22,8 +23,15 @@ from cps_link.receive_path import DROP_KINDS, SESSION_HOLD_S, WIRE_KINDS, Receiv
 
 ROBOTS = ("scout", "jackal")
 TABLE = load_bridge_table(robots=ROBOTS)
-TOPICS = ("/tf", "/scout/odom", "/jackal/odom", "/scout/control_mode/active", "/jackal/mission_state",
-          "/twin/scout/points_filtered/draco/managed", "/scout/camera/camera_info")
+TOPICS = (
+    "/tf",
+    "/scout/odom",
+    "/jackal/odom",
+    "/scout/control_mode/active",
+    "/jackal/mission_state",
+    "/twin/scout/points_filtered/draco/managed",
+    "/scout/camera/camera_info",
+)
 BACKFILL = {"scout": ("/twin/scout/points_backfill/pose", "/twin/scout/points_backfill/draco")}
 ROUTES = {r.to: r for r in TABLE.incoming("twin")}
 SOURCES = ("/fleet_sim", "/robot_state_publisher")
@@ -85,8 +93,9 @@ class World:
         elif topic == "/twin/scout/points_filtered/draco/managed":
             # A keyframe: its pose, then the cloud, on the backfill routes.
             for to, msg_type in zip(BACKFILL["scout"], ("geometry_msgs/TransformStamped", ROUTES[topic].msg_type)):
-                f = self.sender.frame(to, "/zenoh_bridge_robots", msg_type, md5_of(msg_type), self.now_s,
-                                      self._body(to, msg_type))
+                f = self.sender.frame(
+                    to, "/zenoh_bridge_robots", msg_type, md5_of(msg_type), self.now_s, self._body(to, msg_type)
+                )
                 self.backfill.append((to, encode(f)))
 
     def restore(self):
@@ -201,7 +210,7 @@ def test_every_published_message_is_on_its_topic_with_its_type_once(steps):
         elif kind == "intruder":
             topic, msg_type = args
             body = world._body(topic, msg_type)
-            f = SendPath(new_session_id(10 ** 18)).frame(topic, "/intruder", msg_type, md5_of(msg_type), math.nan, body)
+            f = SendPath(new_session_id(10**18)).frame(topic, "/intruder", msg_type, md5_of(msg_type), math.nan, body)
             world.deliver(topic, _key(topic), encode(f), expect={"topic_type_mismatch"})
         elif kind == "cut":
             world.up = False

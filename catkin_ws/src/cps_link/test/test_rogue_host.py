@@ -1,6 +1,7 @@
 """A rogue host on the same segment as the robots and the twin, without the fleet's keys: it
 cannot publish a command that a robot executes, cannot read any cloud, and cannot reach either
 ROS master, while the fleet's own bridges carry clouds and commands. Over real namespaces."""
+
 import json
 import os
 import subprocess
@@ -9,19 +10,19 @@ import time
 
 import pytest
 
-from cps_ros.processes import RosGraph, find_node
 from cps_link import netns_link
 from cps_link.netns_lan import SharedLan
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
+from cps_ros.processes import RosGraph, find_node
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
-CLOUD_LOAD = os.path.normpath(os.path.join(find_node("cps_bw_manager", "bandwidth_manager"), "..", "..", "test",
-                                          "fixtures", "cloud_load.py"))
+CLOUD_LOAD = os.path.normpath(
+    os.path.join(find_node("cps_bw_manager", "bandwidth_manager"), "..", "..", "test", "fixtures", "cloud_load.py")
+)
 HOSTS = {"phys": "10.203.0.1", "twin": "10.203.0.2", "rogue": "10.203.0.3"}
 PORT = 7447
 ROBOT = "scout"
-
 
 
 def _lines(path):
@@ -35,8 +36,11 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
 
     fleet_certs, rogue_certs = str(tmp_path / "fleet"), str(tmp_path / "rogue")
     for path in (fleet_certs, rogue_certs):
-        subprocess.run([MAKE_CERTS, path, "--san", f"IP:{HOSTS['twin']}", "--san", f"IP:{HOSTS['phys']}"],
-                       check=True, capture_output=True)
+        subprocess.run(
+            [MAKE_CERTS, path, "--san", f"IP:{HOSTS['twin']}", "--san", f"IP:{HOSTS['phys']}"],
+            check=True,
+            capture_output=True,
+        )
     teleop_file, cloud_file = str(tmp_path / "teleop.txt"), str(tmp_path / "clouds.txt")
     with SharedLan("cpszr", HOSTS) as lan:
         robots = InNamespace(RosGraph(host_ip="127.0.0.1"), f"/var/run/netns/{lan.namespace('phys')}")
@@ -46,16 +50,33 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
             twin.start()
             twin.popen(bridge_argv(sys.executable, "twin", HOSTS["twin"], [ROBOT], fleet_certs, PORT), name="bt")
             robots.popen(bridge_argv(sys.executable, "robots", HOSTS["twin"], [ROBOT], fleet_certs, PORT), name="br")
-            robots.popen([sys.executable, CLOUD_LOAD, f"{ROBOT}:20000:5",
-                          f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed"], name="load")
-            robots.popen([sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "recv", ROBOT,
-                          teleop_file], name="teleop_recv")
-            twin.popen([sys.executable, os.path.join(HERE, "..", "..", "cps_bw_manager", "test", "fixtures",
-                                                     "link_recorder.py"), cloud_file, ROBOT,
-                        f"/{ROBOT}/points_filtered/draco/managed:=/twin/{ROBOT}/points_filtered/draco/managed"],
-                       name="recorder")
-            sender = twin.popen([sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT,
-                                 "10"], name="teleop_send")
+            robots.popen(
+                [
+                    sys.executable,
+                    CLOUD_LOAD,
+                    f"{ROBOT}:20000:5",
+                    f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+                ],
+                name="load",
+            )
+            robots.popen(
+                [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "recv", ROBOT, teleop_file],
+                name="teleop_recv",
+            )
+            twin.popen(
+                [
+                    sys.executable,
+                    os.path.join(HERE, "..", "..", "cps_bw_manager", "test", "fixtures", "link_recorder.py"),
+                    cloud_file,
+                    ROBOT,
+                    f"/{ROBOT}/points_filtered/draco/managed:=/twin/{ROBOT}/points_filtered/draco/managed",
+                ],
+                name="recorder",
+            )
+            sender = twin.popen(
+                [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, "10"],
+                name="teleop_send",
+            )
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and not (len(_lines(teleop_file)) > 3 and len(_lines(cloud_file)) > 3):
                 time.sleep(0.5)
@@ -63,12 +84,25 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
             assert len(_lines(cloud_file)) > 3, "the fleet's own clouds did not cross:\n" + robots.output("br")[-2000:]
             twin.stop(sender)
 
-            rogue = subprocess.run(lan.argv("rogue", [sys.executable, os.path.join(HERE, "fixtures", "rogue.py"),
-                                                      HOSTS["twin"], str(PORT), rogue_certs,
-                                                      os.path.join(fleet_certs, "ca.pem"),
-                                                      f"{HOSTS['phys']}:{robots.port}", f"{HOSTS['twin']}:{twin.port}",
-                                                      f"{HOSTS['twin']}:11311"]),
-                                   capture_output=True, text=True, timeout=120)
+            rogue = subprocess.run(
+                lan.argv(
+                    "rogue",
+                    [
+                        sys.executable,
+                        os.path.join(HERE, "fixtures", "rogue.py"),
+                        HOSTS["twin"],
+                        str(PORT),
+                        rogue_certs,
+                        os.path.join(fleet_certs, "ca.pem"),
+                        f"{HOSTS['phys']}:{robots.port}",
+                        f"{HOSTS['twin']}:{twin.port}",
+                        f"{HOSTS['twin']}:11311",
+                    ],
+                ),
+                capture_output=True,
+                text=True,
+                timeout=120,
+            )
             assert rogue.returncode == 0, rogue.stderr[-3000:]
             results = json.loads(rogue.stdout.strip().splitlines()[-1])
             print(json.dumps(results, indent=1))

@@ -1,5 +1,6 @@
 """Link scenario files: the shipped ones parse into the timelines they describe; bad files fail
 with file:line and what is wrong."""
+
 import pytest
 
 from cps_fleet.config import ConfigError
@@ -24,33 +25,43 @@ def test_the_shipped_scenarios_parse():
     assert (degraded.initial.delay_ms, degraded.initial.jitter_ms, degraded.initial.loss_pct) == (20, 10, 2)
     assert _timeline(degraded) == [(20, "shape", 20), (40, "shape", 5), (60, "shape", 60)]
     assert load_scenario("shared_medium").topology == "shared"
-    assert _timeline(load_scenario("demo")) == [(25, "cut", 60), (35, "restore", 60), (60, "shape", 10),
-                                                (80, "shape", 60)]
+    assert _timeline(load_scenario("demo")) == [
+        (25, "cut", 60),
+        (35, "restore", 60),
+        (60, "shape", 10),
+        (80, "shape", 60),
+    ]
 
 
 def test_an_include_merges_steps_and_an_outage_restores_the_shaping_in_force(tmp_path):
-    _write(tmp_path, "steps", "initial: {rate_mbps: 60, delay_ms: 10}\nsteps:\n  - {at_s: 5, rate_mbps: 20}\n"
-                              "  - {at_s: 12, rate_mbps: 60}\n")
+    _write(
+        tmp_path,
+        "steps",
+        "initial: {rate_mbps: 60, delay_ms: 10}\nsteps:\n  - {at_s: 5, rate_mbps: 20}\n  - {at_s: 12, rate_mbps: 60}\n",
+    )
     combo = load_scenario(str(_write(tmp_path, "combo", "include: [steps]\nsteps:\n  - {at_s: 8, outage_s: 10}\n")))
     assert _timeline(combo) == [(5, "shape", 20), (8, "cut", 20), (12, "shape", 60), (18, "restore", 60)]
     assert combo.initial.delay_ms == 10
     assert combo.events()[-1].shaping.delay_ms == 10
 
 
-@pytest.mark.parametrize("text,line,message", [
-    ("initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 5, rate_mbps: -3}\n", 3, "rate_mbps: -3.0 is outside"),
-    ("initial: {rate_mbps: 60}\nsteps:\n  - {rate_mbps: 5}\n", 3, "missing key 'at_s'"),
-    ("initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 5}\n", 3, "needs outage_s or one of"),
-    ("initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 5, speed: 3}\n", 3, "speed: unknown key"),
-    ("initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 1, outage_s: 10}\n  - {at_s: 5, outage_s: 2}\n", 4, "overlaps"),
-    ("initial: {delay_ms: 5}\n", 1, "missing initial rate_mbps"),
-    ("initial: {rate_mbps: 60}\ntopology: mesh\n", 2, "must be duplex or shared"),
-    ("initial: {rate_mbps: 60}\ninclude: [nowhere]\n", 2, "no scenario 'nowhere'"),
-    ("initial: {rate_mbps: 60}\ninclude: [bad]\n", 2, "includes itself"),
-    ("initial: {rate_mbps: 60, delay_ms: 5, jitter_ms: 9}\n", 1, "jitter_ms (9.0) > delay_ms"),
-    ("initial: {rate_mbps: 60}\nsteps: [\n", 3, "YAML syntax error"),
-    ("initial: {rate_mbps: 60}\nwhen: now\n", 2, "when: unknown key"),
-])
+@pytest.mark.parametrize(
+    "text,line,message",
+    [
+        ("initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 5, rate_mbps: -3}\n", 3, "rate_mbps: -3.0 is outside"),
+        ("initial: {rate_mbps: 60}\nsteps:\n  - {rate_mbps: 5}\n", 3, "missing key 'at_s'"),
+        ("initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 5}\n", 3, "needs outage_s or one of"),
+        ("initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 5, speed: 3}\n", 3, "speed: unknown key"),
+        ("initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 1, outage_s: 10}\n  - {at_s: 5, outage_s: 2}\n", 4, "overlaps"),
+        ("initial: {delay_ms: 5}\n", 1, "missing initial rate_mbps"),
+        ("initial: {rate_mbps: 60}\ntopology: mesh\n", 2, "must be duplex or shared"),
+        ("initial: {rate_mbps: 60}\ninclude: [nowhere]\n", 2, "no scenario 'nowhere'"),
+        ("initial: {rate_mbps: 60}\ninclude: [bad]\n", 2, "includes itself"),
+        ("initial: {rate_mbps: 60, delay_ms: 5, jitter_ms: 9}\n", 1, "jitter_ms (9.0) > delay_ms"),
+        ("initial: {rate_mbps: 60}\nsteps: [\n", 3, "YAML syntax error"),
+        ("initial: {rate_mbps: 60}\nwhen: now\n", 2, "when: unknown key"),
+    ],
+)
 def test_a_bad_file_names_its_line_and_the_problem(tmp_path, text, line, message):
     path = _write(tmp_path, "bad", text)
     with pytest.raises(ConfigError) as err:

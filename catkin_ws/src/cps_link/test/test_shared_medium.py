@@ -1,10 +1,11 @@
 """Shared medium (Wi-Fi airtime): with topology "shared" both directions together get the one
 capacity; the full-duplex veth gives each direction its own. Measured with iperf3 --bidir."""
+
 import pytest
+from test_netns_link import needs_link
 
 from cps_link import netns_link
 from cps_link.netns_link import LinkError, ShapedLink, list_namespaces
-from test_netns_link import needs_link
 
 pytestmark = needs_link
 RATE_MBPS = 20.0
@@ -23,9 +24,11 @@ def _bidir(name, topology):
 def test_both_directions_share_one_capacity_where_the_veth_gives_each_its_own():
     up_shared, down_shared = _bidir("cpsksm", "shared")
     up_duplex, down_duplex = _bidir("cpskdx", "duplex")
-    print(f"\n{RATE_MBPS:g} Mbit/s, iperf3 --bidir: shared medium {up_shared:.1f} up + {down_shared:.1f} down = "
-          f"{up_shared + down_shared:.1f} Mbit/s; full-duplex veth {up_duplex:.1f} + {down_duplex:.1f} = "
-          f"{up_duplex + down_duplex:.1f} Mbit/s")
+    print(
+        f"\n{RATE_MBPS:g} Mbit/s, iperf3 --bidir: shared medium {up_shared:.1f} up + {down_shared:.1f} down = "
+        f"{up_shared + down_shared:.1f} Mbit/s; full-duplex veth {up_duplex:.1f} + {down_duplex:.1f} = "
+        f"{up_duplex + down_duplex:.1f} Mbit/s"
+    )
     assert up_shared + down_shared <= 1.05 * RATE_MBPS
     assert up_shared > 0.1 * RATE_MBPS and down_shared > 0.1 * RATE_MBPS
     assert up_duplex + down_duplex >= 1.6 * RATE_MBPS

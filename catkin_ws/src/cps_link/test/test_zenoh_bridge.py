@@ -2,6 +2,7 @@
 telemetry cross one way, commands the other; link health; latched re-send after a bridge restart;
 bad frames from a keyed peer (corrupt, mistyped, for another topic) are counted, never delivered,
 duplicates delivered once."""
+
 import json
 import math
 import os
@@ -11,15 +12,16 @@ import time
 
 import pytest
 
-from cps_ros.processes import find_node, free_port
 from cps_harness.testing import TopicRecorder, wait_for
+from cps_link.bridge_config import load_bridge_table
 from cps_link.bridge_wire import Frame, encode
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv, session_config
-from cps_link.bridge_config import load_bridge_table
+from cps_ros.processes import find_node, free_port
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-CLOUD_LOAD = os.path.normpath(os.path.join(find_node("cps_bw_manager", "bandwidth_manager"), "..", "..", "test",
-                                          "fixtures", "cloud_load.py"))
+CLOUD_LOAD = os.path.normpath(
+    os.path.join(find_node("cps_bw_manager", "bandwidth_manager"), "..", "..", "test", "fixtures", "cloud_load.py")
+)
 ROBOT = "scout"
 
 
@@ -32,7 +34,7 @@ def cert_dir(tmp_path_factory):
 
 def _diag_counter(recorder, key):
     msg = recorder.latest
-    for status in (msg.status if msg else []):
+    for status in msg.status if msg else []:
         if status.name == "/zenoh_bridge_twin":
             return int({kv.key: kv.value for kv in status.values}.get(key, 0))
     return 0
@@ -40,15 +42,17 @@ def _diag_counter(recorder, key):
 
 @pytest.mark.timeout(120)
 def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, cert_dir, tmp_path, request):
-    from cps_msgs.msg import CompressedPointCloud2, LinkState
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import Bool
     from tf2_msgs.msg import TFMessage
 
+    from cps_msgs.msg import CompressedPointCloud2, LinkState
+
     port = free_port()
     ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], cert_dir, port), name="bridge_twin")
-    robots_bridge = robots_graph.popen(bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], cert_dir, port),
-                                       name="bridge_robots")
+    robots_bridge = robots_graph.popen(
+        bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], cert_dir, port), name="bridge_robots"
+    )
     link = TopicRecorder("/tissue/link_state", LinkState)
     clouds = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
     diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
@@ -60,23 +64,38 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     link.wait(lambda m: m.up, timeout_s=20, what="the link up")
 
     # A cloud crosses robots -> twin, byte for byte, under the contract's twin-side name.
-    robots_graph.popen([sys.executable, CLOUD_LOAD, f"{ROBOT}:20000:5",
-                        f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed"], name="load")
+    robots_graph.popen(
+        [
+            sys.executable,
+            CLOUD_LOAD,
+            f"{ROBOT}:20000:5",
+            f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+        ],
+        name="load",
+    )
     cloud = clouds.wait(timeout_s=20, what="a cloud across the bridge")
     assert 18000 <= len(cloud.compressed_data) <= 22000
 
     # A teleop command crosses twin -> robots.
     received = str(tmp_path / "teleop.txt")
-    robots_graph.popen([sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "recv", ROBOT, received],
-                       name="teleop_recv")
-    ros.popen([sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, "20"],
-              name="teleop_send")
-    assert wait_for(lambda: os.path.exists(received) and os.path.getsize(received) > 0, timeout_s=20), \
+    robots_graph.popen(
+        [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "recv", ROBOT, received], name="teleop_recv"
+    )
+    ros.popen(
+        [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, "20"], name="teleop_send"
+    )
+    assert wait_for(lambda: os.path.exists(received) and os.path.getsize(received) > 0, timeout_s=20), (
         "no teleop command reached the robots' master"
+    )
 
     # The latched e-stop reached the robots' side.
-    echo = subprocess.run(["rostopic", "echo", "-n", "1", "/fleet/estop"], env=robots_graph.env,
-                          capture_output=True, text=True, timeout=20)
+    echo = subprocess.run(
+        ["rostopic", "echo", "-n", "1", "/fleet/estop"],
+        env=robots_graph.env,
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
     assert "data: True" in echo.stdout, echo.stderr
 
     # The robots' bridge dies: the twin knows within a second (lease 600 ms; margin for a loaded machine).
@@ -85,12 +104,18 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     down = link.wait(lambda m: not m.up, timeout_s=5, what="the link down")
     assert time.monotonic() - t_cut < 1.5 and down.outages == 1
     # A restarted bridge (new session) comes back, and the latched e-stop is there again at once.
-    robots_graph.popen(bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], cert_dir, port),
-                       name="bridge_robots")
+    robots_graph.popen(
+        bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], cert_dir, port), name="bridge_robots"
+    )
     up = link.wait(lambda m: m.up, timeout_s=20, what="the link up again")
     assert up.last_outage_s > 0
-    echo = subprocess.run(["rostopic", "echo", "-n", "1", "/fleet/estop"], env=robots_graph.env,
-                          capture_output=True, text=True, timeout=20)
+    echo = subprocess.run(
+        ["rostopic", "echo", "-n", "1", "/fleet/estop"],
+        env=robots_graph.env,
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
     assert "data: True" in echo.stdout, echo.stderr
 
     # A keyed peer sends a corrupt frame, a wrong md5 and a duplicate: counted, never delivered.
@@ -103,20 +128,52 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
         key = f"cps/topic/twin/{ROBOT}/points_filtered/draco/managed"
         time.sleep(1.0)
         to = f"/twin/{ROBOT}/points_filtered/draco/managed"
-        good = encode(Frame(b"i" * 16, 1, time.time(), "cps_msgs/CompressedPointCloud2",
-                            CompressedPointCloud2._md5sum, "/intruder", bytes(cloud_bytes(cloud)), topic=to))
+        good = encode(
+            Frame(
+                b"i" * 16,
+                1,
+                time.time(),
+                "cps_msgs/CompressedPointCloud2",
+                CompressedPointCloud2._md5sum,
+                "/intruder",
+                bytes(cloud_bytes(cloud)),
+                topic=to,
+            )
+        )
         session.put(key, good[:-3] + b"xyz")
-        session.put(key, encode(Frame(b"i" * 16, 2, math.nan, "cps_msgs/CompressedPointCloud2", "0" * 32,
-                                      "/intruder", b"", topic=to)))
+        session.put(
+            key,
+            encode(
+                Frame(b"i" * 16, 2, math.nan, "cps_msgs/CompressedPointCloud2", "0" * 32, "/intruder", b"", topic=to)
+            ),
+        )
         session.put(key, good)
         session.put(key, good)
         # A well-formed frame for another topic under the cloud's key (issue 22): never published there.
-        session.put(key, encode(Frame(b"i" * 16, 3, math.nan, "tf2_msgs/TFMessage", TFMessage._md5sum, "/intruder",
-                                      b"\x00\x00\x00\x00", topic="/tf")))
-        assert wait_for(lambda: _diag_counter(diagnostics, "corrupt") >= 1 and
-                        _diag_counter(diagnostics, "type_mismatch") >= 1 and
-                        _diag_counter(diagnostics, "duplicates") >= 1 and
-                        _diag_counter(diagnostics, "drop_wrong_topic") >= 1, timeout_s=10), diagnostics.latest
+        session.put(
+            key,
+            encode(
+                Frame(
+                    b"i" * 16,
+                    3,
+                    math.nan,
+                    "tf2_msgs/TFMessage",
+                    TFMessage._md5sum,
+                    "/intruder",
+                    b"\x00\x00\x00\x00",
+                    topic="/tf",
+                )
+            ),
+        )
+        assert wait_for(
+            lambda: (
+                _diag_counter(diagnostics, "corrupt") >= 1
+                and _diag_counter(diagnostics, "type_mismatch") >= 1
+                and _diag_counter(diagnostics, "duplicates") >= 1
+                and _diag_counter(diagnostics, "drop_wrong_topic") >= 1
+            ),
+            timeout_s=10,
+        ), diagnostics.latest
         # The intact frame is delivered once; its duplicate, the corrupt and the mistyped one never.
         assert wait_for(lambda: _intruder_checks(clouds), timeout_s=10), "the intact frame was not delivered"
     time.sleep(1.0)

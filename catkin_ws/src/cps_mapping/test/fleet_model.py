@@ -1,4 +1,5 @@
 """Maps built as the fleet builds them (fleet.yaml's `mapping.sensor_model`), for the tests."""
+
 from cps_fleet.fleet import load_fleet
 from cps_mapping.fused_map import FusedLogOddsMap, new_octree
 

@@ -1,4 +1,5 @@
 """OctoMap files that are valid but too large for the map's grid limit, for the tests."""
+
 import numpy as np
 import octomap
 

@@ -1,4 +1,5 @@
 """Views of the simulated hall (cps_sim) from chosen poses, as (points in map, sensor origin)."""
+
 import math
 
 import numpy as np

@@ -6,6 +6,7 @@ surfaces a robot saw. Clouds are returned in `map`; `to_sensor_frame` gives them
 frame for ROS tests. The digital twin's real input comes from cps_sim; this module only stands
 in where the simulator is not wanted (unit tests, a labelled fallback in the benchmark).
 """
+
 import dataclasses
 from typing import Dict, Tuple
 
@@ -19,8 +20,11 @@ class Box:
     max_m: Tuple[float, float, float]
 
     def moved(self, dx_m, dy_m):
-        return Box(self.name, (self.min_m[0] + dx_m, self.min_m[1] + dy_m, self.min_m[2]),
-                   (self.max_m[0] + dx_m, self.max_m[1] + dy_m, self.max_m[2]))
+        return Box(
+            self.name,
+            (self.min_m[0] + dx_m, self.min_m[1] + dy_m, self.min_m[2]),
+            (self.max_m[0] + dx_m, self.max_m[1] + dy_m, self.max_m[2]),
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,22 +61,28 @@ GRID_OFFSET_M = 0.013
 def hall_scene(size_x_m=20.0, size_y_m=16.0, height_m=4.0, wall_m=0.2, offset_m=GRID_OFFSET_M):
     """A closed hall with a floor, four walls and three pieces of equipment (two crates, a tank)."""
     hx, hy = size_x_m / 2, size_y_m / 2
-    return _shifted(BoxScene((
-        Box("floor", (-hx, -hy, -wall_m), (hx, hy, 0.0)),
-        Box("wall_north", (-hx, hy, 0.0), (hx, hy + wall_m, height_m)),
-        Box("wall_south", (-hx, -hy - wall_m, 0.0), (hx, -hy, height_m)),
-        Box("wall_east", (hx, -hy, 0.0), (hx + wall_m, hy, height_m)),
-        Box("wall_west", (-hx - wall_m, -hy, 0.0), (-hx, hy, height_m)),
-        Box("crate_a", (-3.0, -2.0, 0.0), (-2.0, -1.0, 1.0)),
-        Box("crate_b", (2.0, 1.5, 0.0), (3.2, 2.5, 1.2)),
-        Box("tank", (-1.0, 3.0, 0.0), (1.0, 4.5, 2.0)),
-    )), offset_m)
+    return _shifted(
+        BoxScene(
+            (
+                Box("floor", (-hx, -hy, -wall_m), (hx, hy, 0.0)),
+                Box("wall_north", (-hx, hy, 0.0), (hx, hy + wall_m, height_m)),
+                Box("wall_south", (-hx, -hy - wall_m, 0.0), (hx, -hy, height_m)),
+                Box("wall_east", (hx, -hy, 0.0), (hx + wall_m, hy, height_m)),
+                Box("wall_west", (-hx - wall_m, -hy, 0.0), (-hx, hy, height_m)),
+                Box("crate_a", (-3.0, -2.0, 0.0), (-2.0, -1.0, 1.0)),
+                Box("crate_b", (2.0, 1.5, 0.0), (3.2, 2.5, 1.2)),
+                Box("tank", (-1.0, 3.0, 0.0), (1.0, 4.5, 2.0)),
+            )
+        ),
+        offset_m,
+    )
 
 
 def _shifted(scene, offset_m):
     shift = np.full(3, offset_m)
-    return BoxScene(tuple(Box(b.name, tuple(np.asarray(b.min_m) + shift), tuple(np.asarray(b.max_m) + shift))
-                          for b in scene.boxes))
+    return BoxScene(
+        tuple(Box(b.name, tuple(np.asarray(b.min_m) + shift), tuple(np.asarray(b.max_m) + shift)) for b in scene.boxes)
+    )
 
 
 def cast_rays(scene, origin_m, directions, max_range_m):
@@ -115,13 +125,14 @@ def depth_camera_cloud(scene, origin_m, yaw_rad, width=640, height=480, hfov_deg
     optical = np.stack([u.ravel() / f, v.ravel() / f, np.ones(u.size)], axis=1)
     rot = rotation_z(yaw_rad) @ OPTICAL_TO_BODY
     rays = optical @ rot.T
-    depth_along_z = cast_rays(scene, origin_m, rays, far_m * np.sqrt(1 + (u.ravel() ** 2 + v.ravel() ** 2) / f ** 2))
+    depth_along_z = cast_rays(scene, origin_m, rays, far_m * np.sqrt(1 + (u.ravel() ** 2 + v.ravel() ** 2) / f**2))
     keep = np.isfinite(depth_along_z)
     return np.asarray(origin_m) + rays[keep] * depth_along_z[keep, None]
 
 
-def lidar_cloud(scene, origin_m, yaw_rad=0.0, rings=16, samples_per_ring=1875, vertical_fov_deg=30.0,
-                max_range_m=100.0):
+def lidar_cloud(
+    scene, origin_m, yaw_rad=0.0, rings=16, samples_per_ring=1875, vertical_fov_deg=30.0, max_range_m=100.0
+):
     """Points (map frame) of a spinning multi-ring lidar at `origin_m`."""
     elev = np.radians(np.linspace(-vertical_fov_deg / 2, vertical_fov_deg / 2, rings))
     azim = np.linspace(0.0, 2 * np.pi, samples_per_ring, endpoint=False) + yaw_rad

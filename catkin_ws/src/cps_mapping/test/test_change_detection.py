@@ -1,17 +1,19 @@
 """Change detection between two missions in the simulated hall: a moved crate is found (where it
 went and where it was) and nothing else; a removed one is found as disappeared."""
+
 import numpy as np
 import pytest
-
-from cps_mapping.change_detection import detect_changes, detect_map_changes, write_report
 from fleet_model import new_map
+
 from cps_fleet.fleet import load_fleet
+from cps_mapping.change_detection import detect_changes, detect_map_changes, write_report
 
 RES = 0.1
 # Views of the storage area (crate_2 stands at x=3.2, y=-1.0, 1 m cube) from outside its fence.
-POSES = {"jackal": [(0.0, -0.25, 0.0, -25.0), (0.0, -0.25, 0.0, 0.0), (0.0, -0.25, 0.0, 25.0),
-                    (0.5, -2.0, 0.0, 10.0)],
-         "scout": [(0.0, -1.0, 0.0, 0.0)]}
+POSES = {
+    "jackal": [(0.0, -0.25, 0.0, -25.0), (0.0, -0.25, 0.0, 0.0), (0.0, -0.25, 0.0, 25.0), (0.5, -2.0, 0.0, 10.0)],
+    "scout": [(0.0, -1.0, 0.0, 0.0)],
+}
 
 
 def _mission(site):
@@ -67,8 +69,11 @@ def test_tolerance_and_cluster_size_filter_jitter():
     base = (plane + 0.5) * RES
     jittered = base + rng.integers(-1, 2, size=base.shape) * np.array([0, 0, RES])
     assert detect_changes(base, jittered, RES) == []
-    box = (np.stack(np.meshgrid(np.arange(5), np.arange(5), np.arange(1, 6), indexing="ij"), axis=-1)
-           .reshape(-1, 3) + [10, 10, 0] + 0.5) * RES
+    box = (
+        np.stack(np.meshgrid(np.arange(5), np.arange(5), np.arange(1, 6), indexing="ij"), axis=-1).reshape(-1, 3)
+        + [10, 10, 0]
+        + 0.5
+    ) * RES
     changes = detect_changes(base, np.vstack([base, box]), RES)
     assert len(changes) == 1 and changes[0].kind == "appeared"
     assert changes[0].voxels < len(box), "the box's bottom layer touches the floor and falls within tolerance"

@@ -1,11 +1,12 @@
 """The fast insertion is OctoMap's own: on real cps_sim clouds it gives the finest-voxel log-odds
 of plain sequential insertPointCloud (what octomap_server does per cloud), and keeps OctoMap's
 max-range rule."""
+
 import numpy as np
 import pytest
+from fleet_model import new_map, plain_tree
 
 from cps_mapping.fused_map import _finest_voxels, pack_index
-from fleet_model import new_map, plain_tree
 
 RES = 0.1
 
@@ -19,14 +20,23 @@ def _voxels(tree, resolution_m):
 def sim_clouds():
     """Two robots' clouds from cps_sim, voxelized as the tissue does (depth 0.10 m, lidar 0.01 m)."""
     from sim_views import capture_views
+
     from cps_transport.voxel import voxel_downsample
 
-    views = capture_views({"jackal": [(-6.6, 1.8, 0.0, 35.0), (-6.5, 1.7, 0.0, 30.0), (-6.0, 0.0, 0.0, 0.0)],
-                           "scout": [(-6.5, -2.6, 0.0, 0.0), (-6.3, -2.6, 0.0, 10.0)]}, robots=("jackal", "scout"))
+    views = capture_views(
+        {
+            "jackal": [(-6.6, 1.8, 0.0, 35.0), (-6.5, 1.7, 0.0, 30.0), (-6.0, 0.0, 0.0, 0.0)],
+            "scout": [(-6.5, -2.6, 0.0, 0.0), (-6.3, -2.6, 0.0, 10.0)],
+        },
+        robots=("jackal", "scout"),
+    )
     leaf = {"jackal": 0.10, "scout": 0.01}
     max_range = {"jackal": 6.0, "scout": 12.0}
-    return [(robot, np.asarray(voxel_downsample(points, leaf[robot]), dtype=np.float64), origin, max_range[robot])
-            for robot in ("jackal", "scout") for points, origin in views[robot]]
+    return [
+        (robot, np.asarray(voxel_downsample(points, leaf[robot]), dtype=np.float64), origin, max_range[robot])
+        for robot in ("jackal", "scout")
+        for points, origin in views[robot]
+    ]
 
 
 @pytest.mark.parametrize("resolution_m", [0.1, 0.05])

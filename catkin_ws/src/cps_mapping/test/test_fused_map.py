@@ -1,5 +1,6 @@
 """FusedLogOddsMap: fusion of several robots' clouds, batching, persistence readable by OctoMap's own
 tools, and every bad input (non-finite points, corrupt or wrong-type files) leaving the map intact."""
+
 import os
 import shutil
 import subprocess
@@ -7,11 +8,19 @@ import subprocess
 import numpy as np
 import octomap
 import pytest
-
-from cps_mapping.fused_map import (MapFileError, _finest_voxels, message_fields, octree_from_bytes,
-                                    octree_from_message, pack_index, read_octree_file, voxel_index)
-from fleet_model import new_map, plain_tree
 import synthetic_scene as sc
+from fleet_model import new_map, plain_tree
+
+from cps_mapping.fused_map import (
+    MapFileError,
+    _finest_voxels,
+    message_fields,
+    octree_from_bytes,
+    octree_from_message,
+    pack_index,
+    read_octree_file,
+    voxel_index,
+)
 
 RES = 0.1
 
@@ -66,8 +75,11 @@ def test_batch_holds_exactly_the_voxels_sequential_insertion_finds(scene):
     plain = plain_tree(RES)
     for points, origin in clouds:
         plain.insertPointCloud(points, origin, maxrange=6.0)
-    plain_occ = {tuple(np.floor(np.array([it.getX(), it.getY(), it.getZ()]) / RES).astype(int))
-                 for it in plain.begin_leafs() if it.getValue() > 0}
+    plain_occ = {
+        tuple(np.floor(np.array([it.getX(), it.getY(), it.getZ()]) / RES).astype(int))
+        for it in plain.begin_leafs()
+        if it.getValue() > 0
+    }
     fused = new_map(RES)
     result = fused.insert_batch(clouds, max_range_m=6.0, robot="jackal")
     assert result.groups == 4 and result.clouds == 4, "every cloud is cast from its own origin"
@@ -149,9 +161,15 @@ def _bad_files(tmp_path):
     coarse.insert_cloud(np.array([[1.0, 1.0, 1.0]]), [0.0, 0.0, 0.0])
     coarse.save(str(tmp_path / "coarse.bt"))
     (tmp_path / "map.png").write_bytes(data)
-    return {"garbage.bt": "not an OctoMap file", "truncated.bt": "", "text_as_binary.bt": "extension",
-            "color.ot": "ColorOcTree", "coarse.bt": "resolution", "map.png": "unknown map format",
-            "missing.bt": "cannot read"}
+    return {
+        "garbage.bt": "not an OctoMap file",
+        "truncated.bt": "",
+        "text_as_binary.bt": "extension",
+        "color.ot": "ColorOcTree",
+        "coarse.bt": "resolution",
+        "map.png": "unknown map format",
+        "missing.bt": "cannot read",
+    }
 
 
 def test_bad_map_files_leave_the_running_map_untouched(tmp_path, two_robot_clouds):
@@ -189,8 +207,12 @@ def test_writing_binary_keeps_the_log_odds_and_equals_octomaps_own(tmp_path, two
     a .bt must neither do that to the live map nor write anything else than it would."""
     depth, lidar = two_robot_clouds
     fused, untouched = new_map(RES), new_map(RES)
-    steps = [lambda m: m.insert_batch(depth[:1], 6.0, "jackal"), lambda m: m.insert_batch(lidar, 12.0, "scout"),
-             lambda m: m.clear_bbx([-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]), lambda m: m.insert_batch(depth[1:], 6.0, "jackal")]
+    steps = [
+        lambda m: m.insert_batch(depth[:1], 6.0, "jackal"),
+        lambda m: m.insert_batch(lidar, 12.0, "scout"),
+        lambda m: m.clear_bbx([-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]),
+        lambda m: m.insert_batch(depth[1:], 6.0, "jackal"),
+    ]
     for step in steps:
         step(fused)
         step(untouched)

@@ -2,10 +2,13 @@
 are inserted or dropped and counted, never raised; map files too large for the grid limit
 (a coarse pruned leaf, voxels kilometres apart) are refused with the running map unchanged, and
 moved aside at resume; save/load stay inside the map folder."""
+
 import os
 
 import genpy
 import numpy as np
+from fleet_model import new_map
+from hostile_maps import COARSE_LEAF_BT, far_apart_bt
 from hypothesis import HealthCheck, given, settings
 
 from cps_fleet.fleet import load_fleet
@@ -14,8 +17,6 @@ from cps_mapping.fused_map import MapFileError
 from cps_mapping.map_server import MapOutputs, MapServer, MapServerOptions
 from cps_msgs.srv import LoadMapRequest, SaveMapRequest
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
-from fleet_model import new_map
-from hostile_maps import COARSE_LEAF_BT, far_apart_bt
 
 FLEET = load_fleet()
 RES = FLEET.mapping.resolution_m
@@ -25,8 +26,12 @@ FRAME = "jackal/camera_depth_optical_frame"
 def _server(tmp_path, **options):
     outputs = MapOutputs(**{name: (lambda _msg: None) for name in MapOutputs.__dataclass_fields__})
     options.setdefault("map_file", str(tmp_path / "twin.bt"))
-    return MapServer(FLEET, MapServerOptions(robots=("jackal",), queue_size=100000, **options), outputs,
-                     lambda _frame, _stamp: (np.eye(3), (0.0, 0.0, 0.5)))
+    return MapServer(
+        FLEET,
+        MapServerOptions(robots=("jackal",), queue_size=100000, **options),
+        outputs,
+        lambda _frame, _stamp: (np.eye(3), (0.0, 0.0, 0.5)),
+    )
 
 
 def _cloud(points):
@@ -46,8 +51,9 @@ class _Fuzz:
     server = None
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow,
-                                                                   HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture]
+)
 @given(cloud=hostile_clouds())
 def test_every_hostile_cloud_is_queued_or_dropped_and_counted(tmp_path, cloud):
     if _Fuzz.server is None:

@@ -10,6 +10,7 @@ cache that another test, or the workspace, warmed.
 - a node whose kernels are not built compiles them before it is ready (and says so), and a cloud
   that arrives meanwhile is queued and inserted, not lost.
 """
+
 import json
 import os
 import shutil
@@ -66,8 +67,9 @@ def _module_file(checkout):
 
 
 def _exercise(checkout):
-    out = subprocess.run([sys.executable, "-c", EXERCISE], env=_env(checkout), capture_output=True, text=True,
-                         timeout=300, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", EXERCISE], env=_env(checkout), capture_output=True, text=True, timeout=300, check=True
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -76,8 +78,14 @@ def checkout(tmp_path_factory):
     """A fresh checkout (no kernel cache) built as ci/setup.sh builds it; (path, build output)."""
     path = _copy_checkout(PACKAGE, str(tmp_path_factory.mktemp("checkout") / "cps_mapping"), with_cache=False)
     assert not os.path.exists(os.path.join(path, "src", "cps_mapping", KERNEL_FOLDER))
-    built = subprocess.run([sys.executable, "-m", "cps_mapping.kernel_cache"], env=_env(path), capture_output=True,
-                           text=True, timeout=300, check=True)
+    built = subprocess.run(
+        [sys.executable, "-m", "cps_mapping.kernel_cache"],
+        env=_env(path),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
     return path, built.stdout
 
 
@@ -129,8 +137,9 @@ def _wall_cloud(rospy):
 
     u, v = np.meshgrid(np.linspace(-2.0, 2.0, 80), np.linspace(-1.5, 1.5, 60))
     pts = np.stack([u.ravel(), v.ravel(), np.full(u.size, 3.0)], axis=1).astype(np.float32)
-    return array_to_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]},
-                          header=Header(stamp=rospy.Time.now(), frame_id=SENSOR_FRAME))
+    return array_to_cloud(
+        {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, header=Header(stamp=rospy.Time.now(), frame_id=SENSOR_FRAME)
+    )
 
 
 @pytest.mark.ros
@@ -151,9 +160,20 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
     publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
     tf_keep = _static_tf()
     try:
-        ros.popen([sys.executable, os.path.join(path, "nodes", "map_server"), "__ns:=/twin", f"__name:={name}",
-                   "_robots:=jackal", f"_map_file:={tmp_path / 'map.bt'}", "_publish_period_s:=0.05",
-                   "_autosave_period_s:=0.0"], name=name, env=_env(path))
+        ros.popen(
+            [
+                sys.executable,
+                os.path.join(path, "nodes", "map_server"),
+                "__ns:=/twin",
+                f"__name:={name}",
+                "_robots:=jackal",
+                f"_map_file:={tmp_path / 'map.bt'}",
+                "_publish_period_s:=0.05",
+                "_autosave_period_s:=0.0",
+            ],
+            name=name,
+            env=_env(path),
+        )
         status = ready.wait(timeout_s=120, what="the map server's ready")
         values = {kv.key: kv.value for kv in status.values}
         assert values["kernel_cache_dir"].startswith(os.path.join(path, "src")), values
@@ -163,8 +183,10 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
         publisher.publish(_wall_cloud(rospy))
         octomap.wait(lambda m: len(m.data) > 0, timeout_s=10, what="the first cloud in the map")
         arrived_at = next(t for t, m in octomap.messages if t >= published_at and len(m.data) > 0)
-        print(f"cold start: ready after {values['ready_after_s']} s, first cloud in the map "
-              f"{arrived_at - published_at:.3f} s after it was sent")
+        print(
+            f"cold start: ready after {values['ready_after_s']} s, first cloud in the map "
+            f"{arrived_at - published_at:.3f} s after it was sent"
+        )
         assert arrived_at - published_at < 1.0
     finally:
         for recorder in (ready, octomap):
@@ -191,10 +213,21 @@ def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node,
     publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
     tf_keep = _static_tf()
     try:
-        ros.popen([sys.executable, os.path.join(path, "nodes", "map_server"), "__ns:=/twin", f"__name:={name}",
-                   f"octomap_binary:=/twin/{name}/octomap_binary", "_robots:=jackal",
-                   f"_map_file:={tmp_path / 'map.bt'}", "_publish_period_s:=0.05", "_autosave_period_s:=0.0"],
-                  name=name, env=_env(path))
+        ros.popen(
+            [
+                sys.executable,
+                os.path.join(path, "nodes", "map_server"),
+                "__ns:=/twin",
+                f"__name:={name}",
+                f"octomap_binary:=/twin/{name}/octomap_binary",
+                "_robots:=jackal",
+                f"_map_file:={tmp_path / 'map.bt'}",
+                "_publish_period_s:=0.05",
+                "_autosave_period_s:=0.0",
+            ],
+            name=name,
+            env=_env(path),
+        )
         assert wait_for(lambda: publisher.get_num_connections(), timeout_s=60), "the map server did not subscribe"
         publisher.publish(_wall_cloud(rospy))
         assert ready.count == 0, "ready before the cloud was sent: this test needs the cloud to arrive first"

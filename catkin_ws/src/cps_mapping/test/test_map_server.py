@@ -2,18 +2,19 @@
 right places; bad inputs (NaN, unknown frame, no transform, empty, absurd points, unknown robot,
 corrupt or wrong-type map files) are counted and never cost the map; save, load, reset,
 clear_bbx; a restarted server resumes from its save. The tests share one running server, in order."""
+
 import re
 import time
 import types
 
 import numpy as np
 import pytest
+import synthetic_scene as sc
+from fleet_model import new_map
 from scipy.spatial.transform import Rotation
 
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_mapping.fused_map import pack_index, voxel_index
-from fleet_model import new_map
-import synthetic_scene as sc
 
 pytestmark = pytest.mark.ros
 RES = 0.1
@@ -65,8 +66,9 @@ def _cloud(points_sensor, frame, stamp=None):
     from cps_transport.pointcloud import array_to_cloud
 
     pts = np.asarray(points_sensor, dtype=np.float32).reshape(-1, 3)
-    return array_to_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]},
-                          header=Header(stamp=stamp or rospy.Time.now(), frame_id=frame))
+    return array_to_cloud(
+        {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, header=Header(stamp=stamp or rospy.Time.now(), frame_id=frame)
+    )
 
 
 def _stats(msg):
@@ -88,8 +90,14 @@ def scene_clouds():
 
 
 def _start(graph, map_file, name, **extra):
-    params = {"~robots": "jackal,scout,ghost", "~map_file": str(map_file), "~publish_period_s": 0.3,
-              "~tf_timeout_s": 0.3, "~autosave_period_s": 0.0, "~max_points_range_m": 200.0}
+    params = {
+        "~robots": "jackal,scout,ghost",
+        "~map_file": str(map_file),
+        "~publish_period_s": 0.3,
+        "~tf_timeout_s": 0.3,
+        "~autosave_period_s": 0.0,
+        "~max_points_range_m": 200.0,
+    }
     params.update({f"~{k}": v for k, v in extra.items()})
     proc = graph.start_node("cps_mapping", "map_server", name=name, namespace="/twin", params=params)
     graph.wait_for_service(f"/twin/{name}/clear_bbx", timeout_s=30)
@@ -131,8 +139,10 @@ def server(ros_master, rospy_node, scene_clouds, tmp_path_factory):
         s.pub_s.publish(_cloud(lidar_sensor, "scout/lidar"))
         # Stats carry the published snapshot's figures: once both robots contribute to it, the
         # centres of that snapshot (or a later one) are out.
-        first = s.stats.wait(lambda m: all(r.clouds_inserted >= 1 and r.occupied_voxels_contributed > 0
-                                           for r in m.robots), what="both robots inserted and published")
+        first = s.stats.wait(
+            lambda m: all(r.clouds_inserted >= 1 and r.occupied_voxels_contributed > 0 for r in m.robots),
+            what="both robots inserted and published",
+        )
         s.occ_msg = s.centers.wait(lambda m: m.width == first.occupied_voxels, what="occupied centres")
         s.occupied = _centers(s.occ_msg)
         yield s
@@ -152,8 +162,9 @@ def test_two_robots_land_in_one_map_at_the_right_places(server, scene_clouds):
     assert sum(k in truth for k in got) / len(got) > 0.98
     for crate, robot in (("crate_a", "scout"), ("crate_b", "jackal")):
         box = next(b for b in scene.boxes if b.name == crate)
-        near = np.all((server.occupied >= np.asarray(box.min_m) - 0.1) &
-                      (server.occupied <= np.asarray(box.max_m) + 0.1), axis=1)
+        near = np.all(
+            (server.occupied >= np.asarray(box.min_m) - 0.1) & (server.occupied <= np.asarray(box.max_m) + 0.1), axis=1
+        )
         assert near.sum() > 20, f"{crate} ({robot}'s view) is not in the fused map"
     assert server.stats.latest.occupied_voxels == len(server.occupied)
     assert server.binary.wait(lambda m: len(m.data) > 0).id == "OcTree"
@@ -166,18 +177,30 @@ def test_bad_input_is_counted_and_leaves_the_map(server, rospy_node, scene_cloud
     _moving_tf("scout/moving_lidar", SCOUT)
     optical = "jackal/camera_depth_optical_frame"
     for pub, msg in (
-            (server.pub_j, _cloud(np.full((100, 3), np.nan), optical)),                # all NaN
-            (server.pub_j, _cloud(np.zeros((0, 3)), optical)),                         # empty
-            (server.pub_s, _cloud(lidar_sensor[:100], "nowhere/lidar")),               # unknown frame
-            (server.pub_s, _cloud(lidar_sensor[:100], "scout/moving_lidar",            # no tf at stamp
-                                  rospy.Time.now() + rospy.Duration(60.0))),
-            (server.pub_j, _cloud(absurd, optical))):                                  # absurd points
+        (server.pub_j, _cloud(np.full((100, 3), np.nan), optical)),  # all NaN
+        (server.pub_j, _cloud(np.zeros((0, 3)), optical)),  # empty
+        (server.pub_s, _cloud(lidar_sensor[:100], "nowhere/lidar")),  # unknown frame
+        (
+            server.pub_s,
+            _cloud(
+                lidar_sensor[:100],
+                "scout/moving_lidar",  # no tf at stamp
+                rospy.Time.now() + rospy.Duration(60.0),
+            ),
+        ),
+        (server.pub_j, _cloud(absurd, optical)),
+    ):  # absurd points
         pub.publish(msg)
         time.sleep(0.5)  # pacing only: the subscriber queue holds 2 and waits up to tf_timeout_s per cloud
     # The counters move only once each cloud went through (the absurd one's 50 points inserted).
-    server.stats.wait(lambda m: _stats(m)["jackal"].clouds_dropped_invalid >= 2 and
-                      _stats(m)["scout"].clouds_dropped_tf >= 2 and _stats(m)["jackal"].clouds_inserted >= 2,
-                      what="bad inputs counted")
+    server.stats.wait(
+        lambda m: (
+            _stats(m)["jackal"].clouds_dropped_invalid >= 2
+            and _stats(m)["scout"].clouds_dropped_tf >= 2
+            and _stats(m)["jackal"].clouds_inserted >= 2
+        ),
+        what="bad inputs counted",
+    )
     assert server.proc.poll() is None
     from cps_msgs.srv import SaveMap
 
@@ -189,8 +212,9 @@ def test_bad_input_is_counted_and_leaves_the_map(server, rospy_node, scene_cloud
 def test_unknown_robot_is_named_and_ignored(server):
     assert "~robots names 'ghost', which is not in the fleet" in server.graph.output("map_server_a")
     unmapped = re.compile(r"/twin/ghost/points is published but robot 'ghost' is not mapped")
-    assert wait_for(lambda: unmapped.search(server.graph.output("map_server_a")), timeout_s=20), \
+    assert wait_for(lambda: unmapped.search(server.graph.output("map_server_a")), timeout_s=20), (
         "the unknown robot's topic was not reported"
+    )
 
 
 def test_refused_loads_leave_the_map_and_services_work(server, rospy_node, scene_clouds):
@@ -212,8 +236,9 @@ def test_refused_loads_leave_the_map_and_services_work(server, rospy_node, scene
         answer = load(str(tmp / bad))
         assert not answer.success and answer.message, bad
     assert save(str(tmp / "after_loads.bt")).success
-    assert (tmp / "after_loads.bt").read_bytes() == (tmp / "before_loads.bt").read_bytes(), \
+    assert (tmp / "after_loads.bt").read_bytes() == (tmp / "before_loads.bt").read_bytes(), (
         "a refused load changed the map"
+    )
 
     crate_a = next(b for b in scene_clouds[0].boxes if b.name == "crate_a")
     full = TopicRecorder("/twin/octomap_full", Octomap)
@@ -243,11 +268,18 @@ def test_restarted_server_resumes_and_reports_the_change(server, rospy_node, sce
     assert server.map_file.exists(), "the server saves on shutdown"
     tmp = server.tmp
     changes = TopicRecorder("/twin/map_changes", MarkerArray)
-    proc = _start(server.graph, server.map_file, "map_server_b", baseline_map=str(tmp / "without_crate_a.bt"),
-                  change_period_s=1.0, change_report=str(tmp / "changes.md"))
+    proc = _start(
+        server.graph,
+        server.map_file,
+        "map_server_b",
+        baseline_map=str(tmp / "without_crate_a.bt"),
+        change_period_s=1.0,
+        change_report=str(tmp / "changes.md"),
+    )
     try:
-        resumed = server.centers.wait(lambda m: m.header.stamp > server.occ_msg.header.stamp and m.width > 0,
-                                      what="resumed map")
+        resumed = server.centers.wait(
+            lambda m: m.header.stamp > server.occ_msg.header.stamp and m.width > 0, what="resumed map"
+        )
         assert resumed.width == len(server.occupied)
         boxes = [m for m in changes.wait(what="map changes").markers if m.type == Marker.CUBE]
         assert len(boxes) == 1 and boxes[0].color.g > boxes[0].color.r, "crate_a must be the one appeared change"

@@ -2,14 +2,15 @@
 moved aside and the node starts empty; hostile clouds are counted in map_stats and cost nothing;
 load_map of too-large maps is refused with the running map unchanged; save_map and load_map
 refuse paths outside the map folder (/etc/x)."""
+
 import os
 import re
 
 import pytest
+from hostile_maps import COARSE_LEAF_BT, far_apart_bt
 
 from cps_harness.hostile_clouds import packed_cloud, refused_clouds
 from cps_harness.testing import TopicRecorder, wait_for
-from hostile_maps import COARSE_LEAF_BT, far_apart_bt
 
 pytestmark = pytest.mark.ros
 FRAME = "jackal/camera_depth_optical_frame"
@@ -47,9 +48,19 @@ def test_map_server_survives_hostile_maps_clouds_and_paths(ros, rospy_node, tmp_
     (mission / "map.bt").write_bytes(COARSE_LEAF_BT)
     tf_keep = _static_tf()
     stats = TopicRecorder("/twin/map_stats", MapStats)
-    proc = ros.start_node("cps_mapping", "map_server", name="map_server_hostile", namespace="/twin",
-                          params={"~robots": "jackal", "~map_file": str(mission / "map.bt"),
-                                  "~publish_period_s": 0.3, "~tf_timeout_s": 0.3, "~autosave_period_s": 0.0})
+    proc = ros.start_node(
+        "cps_mapping",
+        "map_server",
+        name="map_server_hostile",
+        namespace="/twin",
+        params={
+            "~robots": "jackal",
+            "~map_file": str(mission / "map.bt"),
+            "~publish_period_s": 0.3,
+            "~tf_timeout_s": 0.3,
+            "~autosave_period_s": 0.0,
+        },
+    )
     points = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=20)
     try:
         ros.wait_for_service("/twin/save_map", timeout_s=60)
@@ -68,8 +79,11 @@ def test_map_server_survives_hostile_maps_clouds_and_paths(ros, rospy_node, tmp_
             msg.header.stamp = rospy.Time.now()
             points.publish(msg)
             rospy.sleep(0.1)  # the subscriber queue holds 2
-        stats.wait(lambda m: _jackal(m).clouds_dropped_invalid == len(hostile), timeout_s=20,
-                   what=f"{len(hostile)} hostile clouds counted")
+        stats.wait(
+            lambda m: _jackal(m).clouds_dropped_invalid == len(hostile),
+            timeout_s=20,
+            what=f"{len(hostile)} hostile clouds counted",
+        )
 
         save = rospy.ServiceProxy("/twin/save_map", SaveMap)
         load = rospy.ServiceProxy("/twin/load_map", LoadMap)
@@ -80,7 +94,9 @@ def test_map_server_survives_hostile_maps_clouds_and_paths(ros, rospy_node, tmp_
             answer = load(str(mission / name))
             assert not answer.success and "max_grid_voxels" in answer.message, answer.message
         assert save(str(mission / "after.bt")).success
-        assert (mission / "after.bt").read_bytes() == (mission / "before.bt").read_bytes(), "a refused load changed the map"
+        assert (mission / "after.bt").read_bytes() == (mission / "before.bt").read_bytes(), (
+            "a refused load changed the map"
+        )
 
         for path in ("/etc/x", "/etc/x.bt", str(mission / ".." / "outside.bt")):
             answer = save(path)

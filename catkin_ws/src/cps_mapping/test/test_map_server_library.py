@@ -1,11 +1,13 @@
 """MapServer and the map messages without a master: clouds in, the map, the counters and the
 built messages out, through injected publish callables and a transform table."""
+
 import logging
 import os
 
 import genpy
 import numpy as np
 import pytest
+import synthetic_scene as sc
 from geometry_msgs.msg import Point
 from std_msgs.msg import Header
 
@@ -16,7 +18,6 @@ from cps_mapping.fused_map import message_fields, octree_from_message
 from cps_mapping.map_server import MapOutputs, MapServer, MapServerOptions, TransformUnavailable
 from cps_msgs.srv import BoundingBoxQueryRequest, LoadMapRequest, SaveMapRequest
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
-import synthetic_scene as sc
 
 FLEET = load_fleet()
 RES = FLEET.mapping.resolution_m
@@ -66,8 +67,9 @@ def test_a_cloud_is_inserted_as_the_library_inserts_it(jackal_points):
     assert server.insert_pending(timeout_s=0) == 1
     reference = type(server.map).from_mapping_config(FLEET.mapping)
     in_map = jackal_points @ JACKAL_POSE[1].T + JACKAL_POSE[0]
-    reference.insert_cloud(in_map, JACKAL_POSE[0], max_range_m=FLEET.mapping.max_range_m["wheeled_depth"],
-                           robot="jackal")
+    reference.insert_cloud(
+        in_map, JACKAL_POSE[0], max_range_m=FLEET.mapping.max_range_m["wheeled_depth"], robot="jackal"
+    )
     assert np.array_equal(server.map.occupied_index(), reference.occupied_index())
     c = server.counters["jackal"]
     assert (c.clouds_received, c.clouds_inserted, c.batches) == (1, 1, 1)
@@ -76,11 +78,11 @@ def test_a_cloud_is_inserted_as_the_library_inserts_it(jackal_points):
 
 def test_bad_clouds_are_counted_and_never_reach_the_map(jackal_points):
     server, _ = _server(queue_size=1)
-    server.receive_cloud("jackal", _cloud(jackal_points, frame=""))                 # no frame
-    server.receive_cloud("jackal", _cloud(np.full((10, 3), np.nan)))                # all NaN
-    server.receive_cloud("scout", _cloud(jackal_points, frame="scout/lidar"))       # no transform
+    server.receive_cloud("jackal", _cloud(jackal_points, frame=""))  # no frame
+    server.receive_cloud("jackal", _cloud(np.full((10, 3), np.nan)))  # all NaN
+    server.receive_cloud("scout", _cloud(jackal_points, frame="scout/lidar"))  # no transform
     server.receive_cloud("jackal", _cloud(np.vstack([jackal_points, [[1e9, 0, 0]]])))  # one absurd point
-    server.receive_cloud("jackal", _cloud(jackal_points))                           # queue of 1: drops the one before
+    server.receive_cloud("jackal", _cloud(jackal_points))  # queue of 1: drops the one before
     jackal, scout = server.counters["jackal"], server.counters["scout"]
     assert (jackal.clouds_received, jackal.clouds_dropped_invalid, jackal.points_rejected) == (4, 2, 1)
     assert (jackal.clouds_dropped_queue, scout.clouds_dropped_tf) == (1, 1)
@@ -189,8 +191,15 @@ def test_builders_make_the_messages_the_map_describes(jackal_points):
     grid = map_messages.projected_map(np.array([[0, 100, -1]], dtype=np.int8), np.array([1.0, 2.0]), RES, header)
     assert (grid.info.width, grid.info.height, list(grid.data)) == (3, 1, [0, 100, -1])
     assert (grid.info.origin.position.x, grid.info.map_load_time) == (1.0, STAMP)
-    change = Change(kind="appeared", voxels=10, centroid_m=(1.0, 1.0, 0.5), size_m=(1.0, 1.0, 1.0), volume_m3=1.0,
-                    min_m=(0.5, 0.5, 0.0), max_m=(1.5, 1.5, 1.0))
+    change = Change(
+        kind="appeared",
+        voxels=10,
+        centroid_m=(1.0, 1.0, 0.5),
+        size_m=(1.0, 1.0, 1.0),
+        volume_m3=1.0,
+        min_m=(0.5, 0.5, 0.0),
+        max_m=(1.5, 1.5, 1.0),
+    )
     markers = map_messages.change_markers([change], header).markers
     assert [m.type for m in markers[1:]] == [markers[1].CUBE, markers[1].TEXT_VIEW_FACING]
     assert markers[1].color.g > markers[1].color.r and markers[1].pose.position.x == 1.0

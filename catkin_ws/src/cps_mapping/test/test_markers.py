@@ -1,14 +1,15 @@
 """occupied_cells_markers: the bytes on the wire are the MarkerArray genpy would write."""
+
 import io
 
 import numpy as np
+import rospy
 from geometry_msgs.msg import Point
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-import rospy
-from cps_mapping.markers import occupied_cells_markers
 from cps_mapping.fused_map import height_colors
+from cps_mapping.markers import occupied_cells_markers
 
 RES = 0.1
 
@@ -20,8 +21,13 @@ def _genpy_markers(centers, sizes, header):
     levels = np.round(sizes / RES).astype(int)
     for marker_id, level in enumerate(sorted(set(levels.tolist()) | {1})):
         sel = levels == level
-        m = Marker(header=header, ns="map", id=marker_id, type=Marker.CUBE_LIST,
-                   action=Marker.ADD if sel.any() else Marker.DELETE)
+        m = Marker(
+            header=header,
+            ns="map",
+            id=marker_id,
+            type=Marker.CUBE_LIST,
+            action=Marker.ADD if sel.any() else Marker.DELETE,
+        )
         m.scale.x = m.scale.y = m.scale.z = level * RES
         m.pose.orientation.w = 1.0
         m.color.a = 1.0

@@ -1,6 +1,7 @@
 """The pieces of a monitoring mission at the twin: the baseline's checks (missing, corrupt, other
 resolution, other frame), scoring detected changes against the simulator's, and which robots get
 a closer look at a new change."""
+
 import types
 
 import numpy as np
@@ -45,14 +46,26 @@ def test_bad_baselines_are_refused_with_the_reason(tmp_path, mapping, problem):
         write_map_metadata(path, "odom", mapping.resolution_m)
     with pytest.raises(BaselineError) as info:
         load_baseline(path if problem != "none" else "", mapping, "map")
-    words = {"missing": "does not exist", "corrupt": path, "resolution": "resolution", "frame": "frame 'odom'",
-             "none": "no baseline"}[problem]
+    words = {
+        "missing": "does not exist",
+        "corrupt": path,
+        "resolution": "resolution",
+        "frame": "frame 'odom'",
+        "none": "no baseline",
+    }[problem]
     assert words in str(info.value)
 
 
 def _change(kind, x, y, size=0.8):
-    return Change(kind, 50, (x, y, 0.5), (size, size, 1.0), 0.05, (x - size / 2, y - size / 2, 0.0),
-                  (x + size / 2, y + size / 2, 1.0))
+    return Change(
+        kind,
+        50,
+        (x, y, 0.5),
+        (size, size, 1.0),
+        0.05,
+        (x - size / 2, y - size / 2, 0.0),
+        (x + size / 2, y + size / 2, 1.0),
+    )
 
 
 def _expected(name, kind, x, y, size=1.0):
@@ -60,12 +73,18 @@ def _expected(name, kind, x, y, size=1.0):
 
 
 def test_score_matches_by_kind_and_place_once_each():
-    expected = [_expected("crate_2", "disappeared", 3.2, -1.0), _expected("crate_4", "disappeared", 3.0, -4.5),
-                _expected("crate_4", "appeared", 3.0, -3.5)]
-    detected = [_change("disappeared", 3.1, -1.1), _change("appeared", 3.0, -3.6),
-                _change("appeared", 3.2, -1.0),          # right place, wrong kind: false
-                _change("disappeared", 3.15, -1.0),      # a second piece of crate_2: false, matched once
-                _change("disappeared", -5.0, 0.0)]       # nowhere near a change: false
+    expected = [
+        _expected("crate_2", "disappeared", 3.2, -1.0),
+        _expected("crate_4", "disappeared", 3.0, -4.5),
+        _expected("crate_4", "appeared", 3.0, -3.5),
+    ]
+    detected = [
+        _change("disappeared", 3.1, -1.1),
+        _change("appeared", 3.0, -3.6),
+        _change("appeared", 3.2, -1.0),  # right place, wrong kind: false
+        _change("disappeared", 3.15, -1.0),  # a second piece of crate_2: false, matched once
+        _change("disappeared", -5.0, 0.0),
+    ]  # nowhere near a change: false
     score = score_changes(detected, expected)
     assert score.recall == pytest.approx(2 / 3)
     assert score.precision == pytest.approx(2 / 5)

@@ -1,12 +1,19 @@
 """The scorer against cps_sim's ground truth: F1 = 1 for the truth itself, lower for a damaged
 map; a map built from simulated views scores sensibly, with each robot's contribution."""
+
 import numpy as np
 import pytest
-
-from cps_mapping.scoring import (load_ground_truth, observable_surface, read_scores, score_fused_map, score_map,
-                                 tolerance_label)
 from fleet_model import new_map
+
 from cps_fleet.fleet import load_fleet
+from cps_mapping.scoring import (
+    load_ground_truth,
+    observable_surface,
+    read_scores,
+    score_fused_map,
+    score_map,
+    tolerance_label,
+)
 
 RES = 0.1
 
@@ -66,8 +73,10 @@ def test_resolution_mismatch_is_refused(truth):
 def test_map_of_simulated_views_and_contributions(truth):
     from sim_views import capture_views
 
-    views = capture_views({"jackal": [(-6.6, 1.8, 0.0, 35.0), (-6.0, 0.0, 0.0, 0.0)],
-                           "scout": [(-6.5, -2.6, 0.0, 0.0)]}, robots=("jackal", "scout"))
+    views = capture_views(
+        {"jackal": [(-6.6, 1.8, 0.0, 35.0), (-6.0, 0.0, 0.0, 0.0)], "scout": [(-6.5, -2.6, 0.0, 0.0)]},
+        robots=("jackal", "scout"),
+    )
     fused = new_map(RES)
     fused.insert_batch(views["jackal"], 6.0, "jackal")
     fused.insert_batch(views["scout"], 12.0, "scout")
@@ -122,8 +131,14 @@ def test_score_keys_name_their_tolerance():
     truth = {"resolution_m": RES, "occupied_centers_m": _block(0, 3)}
     doc = score_map(_block(0, 3), truth, tolerance_voxels=2).as_dict()
     assert tolerance_label(0) == "exact" and tolerance_label(1) == "within_1_voxel"
-    assert {"f1_exact", "precision_exact", "recall_exact", "f1_within_2_voxels", "coverage_within_2_voxels",
-            "observable_from"} <= set(doc)
+    assert {
+        "f1_exact",
+        "precision_exact",
+        "recall_exact",
+        "f1_within_2_voxels",
+        "coverage_within_2_voxels",
+        "observable_from",
+    } <= set(doc)
     assert not {"f1", "precision", "recall", "coverage"} & set(doc)
     assert read_scores(doc)["definition"] == "current"
 

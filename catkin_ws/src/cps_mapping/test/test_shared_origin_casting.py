@@ -2,13 +2,14 @@
 stopping where its cloud already cleared. Approximate by design: it must keep >= 99 % of the
 occupied voxels of exact insertion (OctoMap's) and never touch an endpoint's hit; the exact
 mode must stay exact, and the .bt written from the grid must equal OctoMap's own writeBinary."""
+
 import numpy as np
 import octomap
 import pytest
+import synthetic_scene as sc
+from fleet_model import new_map, plain_tree
 
 from cps_mapping.fused_map import _finest_voxels, octree_from_bytes, pack_index
-from fleet_model import new_map, plain_tree
-import synthetic_scene as sc
 
 RES = 0.1
 
@@ -32,7 +33,7 @@ def _build(clouds, resolution_m, **kwargs):
     for k in range(5):  # interleave the robots as a server would
         for robot, frames, max_range in clouds:
             if k < len(frames):
-                fused.insert_batch(frames[k:k + 1], max_range, robot)
+                fused.insert_batch(frames[k : k + 1], max_range, robot)
     return fused
 
 
@@ -80,8 +81,11 @@ def test_exact_mode_equals_octomap_on_the_synthetic_hall(clouds):
     for k in range(5):
         for robot, frames, max_range in clouds:
             if k < len(frames):
-                plain.insertPointCloud(np.asarray(frames[k][0], dtype=np.float64), np.asarray(frames[k][1], dtype=np.float64),
-                                       maxrange=max_range)
+                plain.insertPointCloud(
+                    np.asarray(frames[k][0], dtype=np.float64),
+                    np.asarray(frames[k][1], dtype=np.float64),
+                    maxrange=max_range,
+                )
     ours, theirs = _finest_voxels(fused.tree, RES), _finest_voxels(plain, RES)
     a = dict(zip(pack_index(ours[0]).tolist(), ours[1].tolist()))
     b = dict(zip(pack_index(theirs[0]).tolist(), theirs[1].tolist()))

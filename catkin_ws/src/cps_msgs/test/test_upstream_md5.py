@@ -1,6 +1,7 @@
 """cps_msgs types that stand in for upstream ones Debian 12 does not package have the upstream md5s,
 so upstream tools and nodes (octomap_server's clients, point_cloud_transport, rosbag) accept them.
 The md5s are computed here from the upstream definition texts with genmsg, not copied."""
+
 import genmsg
 import genmsg.msg_loader
 import pytest
@@ -101,8 +102,13 @@ def test_reset_service_is_std_srvs_empty_as_octomap_servers():
     assert Empty._md5sum == upstream_srv_md5("---\n", "std_srvs/Empty")
 
 
-@pytest.mark.parametrize("text", [POINT_CLOUD_TRANSPORT_COMPRESSED.replace("bool is_dense", ""),
-                                  POINT_CLOUD_TRANSPORT_COMPRESSED + "\nstring format"])
+@pytest.mark.parametrize(
+    "text",
+    [
+        POINT_CLOUD_TRANSPORT_COMPRESSED.replace("bool is_dense", ""),
+        POINT_CLOUD_TRANSPORT_COMPRESSED + "\nstring format",
+    ],
+)
 def test_the_md5_check_can_fail(text):
     from cps_msgs.msg import CompressedPointCloud2
 

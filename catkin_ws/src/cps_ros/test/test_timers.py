@@ -1,4 +1,5 @@
 """guarded_timer: a periodic callback that raises is logged, counted on /diagnostics and keeps running."""
+
 import pytest
 
 from cps_harness.testing import TopicRecorder, wait_for
@@ -26,6 +27,7 @@ def test_a_failing_callback_keeps_its_timer_and_is_counted(rospy_node):
         def reported(msg):
             values = {kv.key: kv.value for status in msg.status for kv in status.values}
             return values.get("timer") == "failing test timer" and int(values.get(FAILURE_KEY, 0)) >= 2
+
         diagnostics.wait(reported, timeout_s=10, what="the failure count on /diagnostics")
     finally:
         timer.shutdown()

@@ -1,4 +1,5 @@
 """What the cps_sim ROS tests share: starting a robot's nodes, and tf read back as numbers."""
+
 import math
 
 

@@ -1,13 +1,14 @@
 """Route following, the velocity mux (dead-man, modes, e-stop, limits) and bad commands, without ROS."""
+
 import math
 
 import pytest
 
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import load_fleet, load_route
+from cps_fleet.site import load_site
 from cps_sim.controllers import RouteFollower, VelocityMux, validate_route
 from cps_sim.robots import Robot, Twist, spec_for
-from cps_fleet.site import load_site
 
 TYPES = load_fleet().robot_types
 
@@ -73,16 +74,16 @@ def test_deadman_stops_teleop_and_auto_takes_back_over():
         out = mux.update(0.1 * k)
     assert out.vx == pytest.approx(0.5)
     t = 0.4
-    while t < 0.6:                      # no teleop command since t = 0 -> dead-man at 0.5 s
+    while t < 0.6:  # no teleop command since t = 0 -> dead-man at 0.5 s
         t += 0.05
         out = mux.update(t)
-    assert out.vx == 0.0                # a dead-man stops at once, no ramp down
+    assert out.vx == 0.0  # a dead-man stops at once, no ramp down
     for _ in range(10):
         t += 0.05
         out = mux.update(t)
     assert out.vx == 0.0
     mux.on_auto(Twist(vx=0.3), t)
-    assert mux.update(t + 0.05).vx == 0.0   # still teleop: auto ignored
+    assert mux.update(t + 0.05).vx == 0.0  # still teleop: auto ignored
     mux.set_mode("auto")
     for _ in range(10):
         t += 0.05
@@ -113,7 +114,7 @@ def test_nan_inf_and_absurd_commands_are_dropped_and_the_robot_holds(bad):
     reason = mux.on_auto(bad, 0.5)
     assert reason and mux.dropped == 1
     out = mux.update(0.55)
-    assert math.isfinite(out.vx) and out.vx < 0.5     # holding: decelerating to zero
+    assert math.isfinite(out.vx) and out.vx < 0.5  # holding: decelerating to zero
     for k in range(12, 40):
         out = mux.update(0.05 * k)
     assert out.vx == 0.0
@@ -145,7 +146,9 @@ def test_battery_drains_faster_when_moving_and_joints_move():
         moving.step(0.05)
     assert moving.battery_fraction < still.battery_fraction < 1.0
     assert moving.battery_current_a < still.battery_current_a < 0.0
-    assert len(moving.spec.joint_names) == 12 and any(abs(p - q) > 0.05 for p, q in zip(moving.joint_positions, still.joint_positions))
+    assert len(moving.spec.joint_names) == 12 and any(
+        abs(p - q) > 0.05 for p, q in zip(moving.joint_positions, still.joint_positions)
+    )
 
 
 def test_quadrotor_takes_off_holds_altitude_and_lands():
@@ -153,7 +156,7 @@ def test_quadrotor_takes_off_holds_altitude_and_lands():
     iris = Robot("iris", TYPES["aerial_depth"], fleet.robot("iris").initial_pose)
     iris.set_command(Twist(vx=1.0))
     iris.step(0.1)
-    assert iris.x == fleet.robot("iris").initial_pose.x      # landed: ignores cmd_vel
+    assert iris.x == fleet.robot("iris").initial_pose.x  # landed: ignores cmd_vel
     iris.flight_command("takeoff")
     for _ in range(100):
         iris.step(0.05)
@@ -162,7 +165,7 @@ def test_quadrotor_takes_off_holds_altitude_and_lands():
     iris.set_command(Twist())
     for _ in range(40):
         iris.step(0.05)
-    assert iris.z == pytest.approx(z, abs=0.05)                # altitude hold
+    assert iris.z == pytest.approx(z, abs=0.05)  # altitude hold
     iris.flight_command("land")
     for _ in range(200):
         iris.step(0.05)
@@ -204,7 +207,10 @@ def test_the_follower_drives_a_generated_route_back_to_its_start_clear_of_the_si
     cfg, route = fleet.robot(name), fleet.route(name)
     validate_route(route, site, cfg.robot_type)
     robot = Robot(cfg.name, cfg.robot_type, cfg.initial_pose)
-    follower, mux = RouteFollower(route, cfg.robot_type, start_xy=(cfg.initial_pose.x, cfg.initial_pose.y)), VelocityMux(cfg.robot_type)
+    follower, mux = (
+        RouteFollower(route, cfg.robot_type, start_xy=(cfg.initial_pose.x, cfg.initial_pose.y)),
+        VelocityMux(cfg.robot_type),
+    )
     mux.set_estop(False)
     states, trace, t = [], [], 0.0
     while t < 300.0 and follower.state != "done":

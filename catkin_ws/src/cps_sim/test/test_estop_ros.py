@@ -2,6 +2,7 @@
 fleet_sim ignores /<r>/cmd_vel during STOP ALL, a mux restarted after the GUI has gone starts
 stopped, and a mux whose wall clock steps by 30 s stops teleop within its dead-man and never
 stops spuriously while commands flow."""
+
 import os
 import sys
 import time
@@ -14,9 +15,11 @@ pytestmark = pytest.mark.ros
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # A GUI stand-in in its own process: publishes the e-stop state latched, then dies when killed.
-GUI = ("import sys, rospy; from std_msgs.msg import Bool; rospy.init_node('gui', anonymous=True); "
-       "p = rospy.Publisher('/fleet/estop', Bool, queue_size=1, latch=True); "
-       "p.publish(Bool(sys.argv[1] == 'on')); rospy.spin()")
+GUI = (
+    "import sys, rospy; from std_msgs.msg import Bool; rospy.init_node('gui', anonymous=True); "
+    "p = rospy.Publisher('/fleet/estop', Bool, queue_size=1, latch=True); "
+    "p.publish(Bool(sys.argv[1] == 'on')); rospy.spin()"
+)
 
 
 def _twist(vx):
@@ -35,8 +38,9 @@ def _publish_for(pub, msg, seconds, rate_hz=20.0):
 
 
 def _start_mux(graph, env=None):
-    return graph.start_node("cps_sim", "velocity_mux", name="velocity_mux", namespace="/jackal",
-                            params={"~robot": "jackal"}, env=env)
+    return graph.start_node(
+        "cps_sim", "velocity_mux", name="velocity_mux", namespace="/jackal", params={"~robot": "jackal"}, env=env
+    )
 
 
 def _start_gui(graph, state):
@@ -47,8 +51,12 @@ def _start_gui(graph, state):
 def sim(ros_master, rospy_node):
     graph = ros_master.attach()
     try:
-        graph.start_node("cps_sim", "fleet_sim", name="fleet_sim_jackal",
-                         params={"~profile": "light", "~robots": "jackal", "~sensor_workers": 0})
+        graph.start_node(
+            "cps_sim",
+            "fleet_sim",
+            name="fleet_sim_jackal",
+            params={"~profile": "light", "~robots": "jackal", "~sensor_workers": 0},
+        )
         graph.wait_for_topic("/jackal/odom", timeout_s=90)
         yield graph
     finally:
@@ -75,7 +83,7 @@ def test_stop_all_cannot_be_bypassed_by_publishing_cmd_vel_directly(sim, rospy_n
         assert abs(after[0] - before[0]) < 1e-3 and abs(after[1] - before[1]) < 1e-3, (before, after)
         assert all(abs(m.twist.twist.linear.x) < 1e-6 for _, m in odom.messages[-20:])
         sim.stop(gui)
-        gui = _start_gui(sim, "off")                # released: the same commands now drive it
+        gui = _start_gui(sim, "off")  # released: the same commands now drive it
         assert wait_for(lambda: _moves(direct, odom), 20), "released: the same commands drive it"
     finally:
         sim.stop(gui)
@@ -102,7 +110,7 @@ def test_a_mux_restarted_after_the_gui_has_gone_starts_stopped(sim, rospy_node):
         assert wait_for(lambda: "e-stop state heard (off)" in sim.output("velocity_mux"), 20)
         _publish_for(auto, _twist(0.3), seconds=1.0)
         assert wait_for(lambda: executed.latest is not None and executed.latest.linear.x > 0.0, 5)
-        sim.stop(gui)                                # the GUI dies, then the mux
+        sim.stop(gui)  # the GUI dies, then the mux
         sim.stop(mux)
         executed.take()
         mux = _start_mux(sim)
@@ -110,7 +118,7 @@ def test_a_mux_restarted_after_the_gui_has_gone_starts_stopped(sim, rospy_node):
         _publish_for(auto, _twist(0.3), seconds=2.0)
         outputs = [m.linear.x for _, m in executed.take()]
         assert outputs and all(vx == 0.0 for vx in outputs), outputs
-        gui = _start_gui(sim, "off")                 # the state heard again: the route's commands drive
+        gui = _start_gui(sim, "off")  # the state heard again: the route's commands drive
         _publish_for(auto, _twist(0.3), seconds=2.0)
         assert any(m.linear.x > 0.0 for _, m in executed.take())
     finally:
@@ -125,8 +133,11 @@ def test_the_mux_deadman_survives_its_wall_clock_stepping_back_30_s(sim, rospy_n
     from std_msgs.msg import String
 
     step_file = tmp_path / "clock_stepped"
-    env = {"PYTHONPATH": os.path.join(HERE, "clock_step") + os.pathsep + os.environ.get("PYTHONPATH", ""),
-           "CPS_TEST_CLOCK_STEP_FILE": str(step_file), "CPS_TEST_CLOCK_STEP_S": "-30"}
+    env = {
+        "PYTHONPATH": os.path.join(HERE, "clock_step") + os.pathsep + os.environ.get("PYTHONPATH", ""),
+        "CPS_TEST_CLOCK_STEP_FILE": str(step_file),
+        "CPS_TEST_CLOCK_STEP_S": "-30",
+    }
     executed = TopicRecorder("/jackal/cmd_vel", Twist)
     teleop = rospy_node.Publisher("/jackal/cmd_vel/teleop", Twist, queue_size=5)
     mode = rospy_node.Publisher("/jackal/control_mode", String, queue_size=1, latch=True)
@@ -145,20 +156,20 @@ def test_the_mux_deadman_survives_its_wall_clock_stepping_back_30_s(sim, rospy_n
             for step in (step_file.write_text, lambda _: step_file.unlink()):
                 teleop.publish(_twist(0.3))
                 time.sleep(0.1)
-                step("")                               # mid-way between two commands
+                step("")  # mid-way between two commands
                 time.sleep(0.1)
                 _publish_for(teleop, _twist(0.3), seconds=0.6, rate_hz=5.0)
         outputs = [m.linear.x for _, m in executed.take()]
         assert len(outputs) > 60 and all(vx > 0.0 for vx in outputs), outputs
-        step_file.write_text("")                      # the operator link goes; the wall clock steps back
+        step_file.write_text("")  # the operator link goes; the wall clock steps back
         stepped_at = time.monotonic()
         assert wait_for(lambda: executed.latest is not None and executed.latest.linear.x == 0.0, 5)
         stopped_after_s = time.monotonic() - stepped_at
-        assert stopped_after_s < 2.0, stopped_after_s   # dead-man 0.5 s; a wall-clock mux: ~30 s
+        assert stopped_after_s < 2.0, stopped_after_s  # dead-man 0.5 s; a wall-clock mux: ~30 s
         executed.take()
         time.sleep(1.0)
         outputs = [m.linear.x for _, m in executed.take()]
-        assert len(outputs) > 5 and all(vx == 0.0 for vx in outputs)   # alive, and stays stopped
+        assert len(outputs) > 5 and all(vx == 0.0 for vx in outputs)  # alive, and stays stopped
         assert mux.poll() is None
     finally:
         sim.stop(gui)

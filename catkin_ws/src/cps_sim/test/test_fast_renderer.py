@@ -9,6 +9,7 @@ COMPARE_RANGE_M, off cylinders and away from depth edges; cylinders are checked 
 analytic surface instead. (TinyRenderer is no better a reference: its depth is off by up to
 0.4 % on large triangles.) Lidar reference: PyBullet's rayTestBatch, in this process.
 """
+
 import dataclasses
 import math
 import multiprocessing
@@ -17,19 +18,31 @@ import numpy as np
 import pytest
 
 from cps_fleet.fleet import load_fleet
+from cps_fleet.site import Equipment, load_site
 from cps_sim import fast_sensors
 from cps_sim.simulation import FleetSimulation, points_in_map
-from cps_fleet.site import Equipment, load_site
 from cps_sim.world import SimWorld
 
 # (robot -> (x, y, z, yaw_deg)) scenes; the last one has jackal looking at scout's body.
 SCENES = [
-    {"scout": (-6.5, -2.6, 0.0, 0.0), "jackal": (-6.6, 1.8, 0.0, 35.0), "champ": (2.6, 0.8, 0.0, 20.0),
-     "iris": (6.5, -5.2, 3.0, 150.0)},
-    {"scout": (0.0, 0.0, 0.0, 90.0), "jackal": (-3.0, -5.5, 0.0, 180.0), "champ": (-8.0, 5.0, 0.0, -45.0),
-     "iris": (0.0, -4.0, 1.5, 60.0)},
-    {"scout": (1.5, -2.0, 0.0, 30.0), "jackal": (-1.0, -2.0, 0.0, 0.0), "champ": (1.5, 0.5, 0.0, -90.0),
-     "iris": (1.0, -4.5, 1.0, 90.0)},
+    {
+        "scout": (-6.5, -2.6, 0.0, 0.0),
+        "jackal": (-6.6, 1.8, 0.0, 35.0),
+        "champ": (2.6, 0.8, 0.0, 20.0),
+        "iris": (6.5, -5.2, 3.0, 150.0),
+    },
+    {
+        "scout": (0.0, 0.0, 0.0, 90.0),
+        "jackal": (-3.0, -5.5, 0.0, 180.0),
+        "champ": (-8.0, 5.0, 0.0, -45.0),
+        "iris": (0.0, -4.0, 1.5, 60.0),
+    },
+    {
+        "scout": (1.5, -2.0, 0.0, 30.0),
+        "jackal": (-1.0, -2.0, 0.0, 0.0),
+        "champ": (1.5, 0.5, 0.0, -90.0),
+        "iris": (1.0, -4.5, 1.0, 90.0),
+    },
 ]
 CAMERA_ROBOTS = ("jackal", "champ", "iris")
 EDGE_STEP_M = 0.05
@@ -56,8 +69,14 @@ def _pybullet_egl_frames(scenes):
             camera = sim.robots[name].sensor
             optical = sim.robots[name].robot.sensor_in_map()
             _, _, _, buffer, segmentation = pybullet.getCameraImage(
-                camera.width, camera.height, camera.view_matrix(optical), camera.projection,
-                renderer=pybullet.ER_BULLET_HARDWARE_OPENGL, shadow=0, physicsClientId=sim.world.client)
+                camera.width,
+                camera.height,
+                camera.view_matrix(optical),
+                camera.projection,
+                renderer=pybullet.ER_BULLET_HARDWARE_OPENGL,
+                shadow=0,
+                physicsClientId=sim.world.client,
+            )
             depth = camera.depth_from_buffer(np.asarray(buffer, dtype=np.float32).reshape(camera.height, camera.width))
             segmentation = np.asarray(segmentation).reshape(camera.height, camera.width)
             frames[name] = (depth, np.isin(segmentation & ((1 << 24) - 1), cylinders))
@@ -105,8 +124,13 @@ def test_depth_matches_pybullet(sims, egl_reference, scene):
         assert frame.rgb.shape == (*expected.shape, 3) and frame.depth_m.shape == expected.shape
         valid_fast, valid_ref = np.isfinite(frame.depth_m), np.isfinite(expected)
         assert np.mean(valid_fast == valid_ref) >= 0.99, name
-        comparable = (valid_fast & valid_ref & (expected <= COMPARE_RANGE_M) & ~on_cylinder
-                      & ~_near_depth_edge(frame.depth_m, expected))
+        comparable = (
+            valid_fast
+            & valid_ref
+            & (expected <= COMPARE_RANGE_M)
+            & ~on_cylinder
+            & ~_near_depth_edge(frame.depth_m, expected)
+        )
         assert comparable.sum() > 5000, f"{name}: {comparable.sum()} comparable pixels"
         diff = np.abs(frame.depth_m - expected)[comparable]
         assert np.median(diff) <= 0.001, f"{name}: median |depth diff| {1000 * np.median(diff):.2f} mm"
@@ -124,7 +148,9 @@ def test_one_robot_sees_another_where_pybullet_does(sims, egl_reference):
     assert np.mean(on_robot[np.isfinite(expected) & (expected < 3.0)]) >= 0.97
     near_scout = on_scout[(np.abs(on_scout[:, 1] + 2.0) < 0.2) & (on_scout[:, 2] > 0.15) & (on_scout[:, 2] < 0.3)]
     assert len(near_scout) > 100
-    assert np.median(near_scout[:, 0]) == pytest.approx(1.5 - 0.465 * math.cos(math.radians(30)) - 0.35 * math.sin(math.radians(30)), abs=0.1)
+    assert np.median(near_scout[:, 0]) == pytest.approx(
+        1.5 - 0.465 * math.cos(math.radians(30)) - 0.35 * math.sin(math.radians(30)), abs=0.1
+    )
 
 
 def test_cylinder_depth_is_on_the_true_surface():
@@ -147,7 +173,7 @@ def test_cylinder_depth_is_on_the_true_surface():
         o = pose[:3, 3]
         a = d[:, 0] ** 2 + d[:, 1] ** 2
         b = 2 * ((o[0] - 4.0) * d[:, 0] + o[1] * d[:, 1])
-        c = (o[0] - 4.0) ** 2 + o[1] ** 2 - radius ** 2
+        c = (o[0] - 4.0) ** 2 + o[1] ** 2 - radius**2
         disc = b * b - 4 * a * c
         on_tank = disc > 0.05
         analytic = (-b[on_tank] - np.sqrt(disc[on_tank])) / (2 * a[on_tank])
@@ -172,8 +198,11 @@ def test_lidar_matches_pybullet(sims, scene):
     for label, sim in (("fast", fast), ("reference", reference)):
         fractions, positions, normals, ids = sim.world.cast_rays(origins, ends)
         hit = (ids >= 0) & (ids != sim.robots["scout"].sensor.ignore_body)
-        results[label] = (hit, np.linalg.norm(positions - pose[:3, 3], axis=1),
-                          np.round(100 * np.abs(np.einsum("ij,ij->i", normals, dirs))))
+        results[label] = (
+            hit,
+            np.linalg.norm(positions - pose[:3, 3], axis=1),
+            np.round(100 * np.abs(np.einsum("ij,ij->i", normals, dirs))),
+        )
     (hit_f, range_f, intensity_f), (hit_r, range_r, intensity_r) = results["fast"], results["reference"]
     assert np.mean(hit_f == hit_r) >= 0.99
     both = hit_f & hit_r
@@ -194,17 +223,17 @@ def test_lidar_ignores_its_own_body_and_hits_other_robots(sims):
     origin = np.array([[-3.0, -2.0, 0.2], [1.5, -2.0, 0.2]])
     ends = np.array([[3.0, -2.0, 0.2], [1.5, -2.0, 5.0]])
     fractions, positions, normals, ids = world.cast_rays(origin, ends)
-    assert ids[0] == jackal_body          # jackal's box (x in [-1.254, -0.746]) first along +x
+    assert ids[0] == jackal_body  # jackal's box (x in [-1.254, -0.746]) first along +x
     assert positions[0, 0] == pytest.approx(-1.0 - 0.254, abs=1e-6)
     np.testing.assert_allclose(np.abs(normals[0]), [1.0, 0.0, 0.0], atol=1e-9)
-    assert ids[1] != scout_body           # starting inside scout's own box: it is not hit
+    assert ids[1] != scout_body  # starting inside scout's own box: it is not hit
     scan = fast.capture("scout")
     assert len(scan.points) > 0
 
 
 def test_robot_outside_the_hall_gets_empty_frames_without_error(sims):
     fast, _ = sims
-    fast.place("jackal", 40.0, 0.0, 0.0, 0.0)       # outside the walls, looking away from the hall
+    fast.place("jackal", 40.0, 0.0, 0.0, 0.0)  # outside the walls, looking away from the hall
     fast.place("scout", 0.0, 40.0 + fast.robots["scout"].sensor.max_range_m, 0.0, 0.0)  # nothing within range
     frame = fast.capture("jackal")
     assert frame.cloud.shape == (480, 640) and np.isnan(frame.depth_m).all()
@@ -221,7 +250,7 @@ def test_no_egl_falls_back_to_pybullet_and_says_why(monkeypatch, caplog):
     with caplog.at_level("WARNING"):
         sim = FleetSimulation(fleet, renderer="fast")
     try:
-        assert sim.renderer == "tiny"      # the cheaper PyBullet renderer at the light profile's 160x120
+        assert sim.renderer == "tiny"  # the cheaper PyBullet renderer at the light profile's 160x120
         assert "no headless EGL" in sim.world.fallback_reason
         assert "fast renderer unavailable" in caplog.text
         frame = sim.capture("jackal")
@@ -232,13 +261,14 @@ def test_no_egl_falls_back_to_pybullet_and_says_why(monkeypatch, caplog):
 
 def test_degenerate_triangles_are_dropped_and_an_empty_mesh_is_a_clear_error():
     site = load_site(load_fleet().site_path)
-    flat = Equipment("flat_crate", "crate", 0.0, 0.0, 0.0,
-                     (("size_x_m", 1.0), ("size_y_m", 1.0), ("size_z_m", 0.0)), (0.5, 0.5, 0.5))
+    flat = Equipment(
+        "flat_crate", "crate", 0.0, 0.0, 0.0, (("size_x_m", 1.0), ("size_y_m", 1.0), ("size_z_m", 0.0)), (0.5, 0.5, 0.5)
+    )
     prims = dataclasses.replace(site, areas=(), equipment=(flat,)).primitives()
     flat_prims = [p for p in prims if p.owner == "flat_crate"]
     assert flat_prims, "the test crate is a primitive"
     triangles, rgba = fast_sensors.hall_triangles(flat_prims)
-    assert len(triangles) == 4 and len(rgba) == 4      # top and bottom faces only; the sides have no area
+    assert len(triangles) == 4 and len(rgba) == 4  # top and bottom faces only; the sides have no area
     zero = dataclasses.replace(flat_prims[0], half_extents=(0.0, 0.0, 0.0))
     with pytest.raises(fast_sensors.EmptyMeshError, match="no triangle with a non-zero area"):
         fast_sensors.hall_triangles([zero])
@@ -267,4 +297,3 @@ def test_unreadable_site_file_names_file_and_line(tmp_path):
     path.write_text("hall:\n  size_x_m: 20\n  size_y_m: [oops\n")
     with pytest.raises(ConfigError, match=r"hall\.yaml:\d+"):
         load_site(str(path))
-

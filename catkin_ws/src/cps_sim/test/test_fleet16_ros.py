@@ -1,5 +1,6 @@
 """The simulator takes a generated fleet: fleet_sim with the 16-robot fleet file (light profile)
 starts, and every robot publishes odometry and its sensor's clouds."""
+
 import os
 import time
 
@@ -23,8 +24,9 @@ def test_fleet_sim_runs_the_sixteen_robot_fleet(ros, rospy_node):
     try:
         # Its own name: private parameters outlive the node on the session's master, and a later
         # test's `fleet_sim` would read this one's ~fleet_file.
-        ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_fleet16",
-                       params={"~fleet_file": FLEET16, "~profile": "light"})
+        ros.start_node(
+            "cps_sim", "fleet_sim", name="fleet_sim_fleet16", params={"~fleet_file": FLEET16, "~profile": "light"}
+        )
         deadline = time.monotonic() + 50.0
         for robot in fleet.robots:
             first = odom[robot.name].wait(timeout_s=max(deadline - time.monotonic(), 1.0))

@@ -1,5 +1,6 @@
 """The shared control library (cps_sim.fleet_control): every robot's mux and route tracker in one
 process, each robot's state its own. Without ROS."""
+
 import math
 import os
 
@@ -70,9 +71,9 @@ def test_a_nan_command_for_one_robot_is_refused_and_the_others_drive_on(control)
     reason = control.mux("scout").on_teleop(Twist(vx=float("nan")))
     assert reason and "nan" in reason.lower()
     control.clock.now += 0.05
-    assert control.mux("scout").update() == Twist()     # holds
+    assert control.mux("scout").update() == Twist()  # holds
     assert control.mux("scout").dropped == 1
-    assert control.mux("jackal").update().vx > 0        # untouched
+    assert control.mux("jackal").update().vx > 0  # untouched
     assert control.mux("jackal").dropped == 0
     assert control.mux("jackal").mode == "teleop" and control.mux("champ").mode == "auto"
 
@@ -81,8 +82,12 @@ def test_a_bad_mode_for_one_robot_leaves_every_mode_as_it_was(control):
     control.mux("iris").set_mode("teleop")
     with pytest.raises(ValueError, match="unknown control mode 'manual'"):
         control.mux("iris").set_mode("manual")
-    assert {r: control.mux(r).mode for r in control.robots} == {"scout": "auto", "jackal": "auto",
-                                                                "champ": "auto", "iris": "teleop"}
+    assert {r: control.mux(r).mode for r in control.robots} == {
+        "scout": "auto",
+        "jackal": "auto",
+        "champ": "auto",
+        "iris": "teleop",
+    }
 
 
 def test_the_estop_stops_every_robot(control):
@@ -118,7 +123,7 @@ def test_a_bad_route_of_one_robot_is_refused_with_its_file_and_line(tmp_path):
 
 def test_route_trackers_follow_their_own_routes(fleet, control):
     scout, jackal = control.trackers["scout"], control.trackers["jackal"]
-    assert scout.start() == "idle" and scout.update() == (None, None, None)   # nothing known yet
+    assert scout.start() == "idle" and scout.update() == (None, None, None)  # nothing known yet
     for name, tracker in (("scout", scout), ("jackal", jackal)):
         pose = fleet.robot(name).initial_pose
         tracker.set_odom_in_map(pose.x, pose.y, 0.0, math.radians(pose.yaw_deg))
@@ -130,7 +135,7 @@ def test_route_trackers_follow_their_own_routes(fleet, control):
     assert (x, y) == pytest.approx((fleet.robot("scout").initial_pose.x, fleet.robot("scout").initial_pose.y))
     assert scout.follower.route.waypoints[0] == first_scout
     assert jackal.follower.route.path != scout.follower.route.path
-    assert jackal.update()[2] == "transit" and scout.update()[2] is None    # a state is said once
+    assert jackal.update()[2] == "transit" and scout.update()[2] is None  # a state is said once
 
 
 def test_route_tracker_stops_sending_once_done():
@@ -141,7 +146,7 @@ def test_route_tracker_stops_sending_once_done():
     tracker.follower.started, tracker.follower.index = True, len(fleet.route("jackal").waypoints)
     tracker.set_odom(last.x, last.y, 0.0, 0.0)
     command, _, state = tracker.update()
-    assert state == "done" and command == Twist()        # the stop is sent once
+    assert state == "done" and command == Twist()  # the stop is sent once
     assert tracker.update() == (None, None, None)
 
 
@@ -153,6 +158,7 @@ def test_control_loop_runs_each_robots_ticks_at_its_rate_and_isolates_failures()
             calls[name] += 1
             if name == "a":
                 raise RuntimeError("boom")
+
         return run
 
     loop = ControlLoop(lambda robot, task, exc: errors.append((robot, task, str(exc))))

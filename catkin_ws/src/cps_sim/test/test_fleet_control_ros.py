@@ -1,6 +1,7 @@
 """One fleet_control process drives several robots on a real master: their routes, each robot's
 teleop reaching its own cmd_vel, a NaN for one robot refused without touching the other, and the
 fleet's e-stop stopping both."""
+
 import pytest
 
 from cps_harness.testing import TopicRecorder, wait_for
@@ -27,15 +28,21 @@ def fleet(ros, rospy_node):
     # Latched before the nodes start, as the bringup's keeper does: every robot must hear it.
     estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
     estop.publish(Bool(False))
-    ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_fc",
-                   params={"~profile": "light", "~robots": ",".join(SIMULATED), "~sensor_workers": 0})
+    ros.start_node(
+        "cps_sim",
+        "fleet_sim",
+        name="fleet_sim_fc",
+        params={"~profile": "light", "~robots": ",".join(SIMULATED), "~sensor_workers": 0},
+    )
     ros.start_node("cps_sim", "fleet_control", name="fleet_control", params={"~robots": ",".join(ROBOTS)})
-    io = {"executed": {r: TopicRecorder(f"/{r}/cmd_vel", Twist) for r in ROBOTS},
-          "state": {r: TopicRecorder(f"/{r}/mission_state", String) for r in ROBOTS},
-          "active": {r: TopicRecorder(f"/{r}/control_mode/active", String) for r in ROBOTS},
-          "mode": {r: rospy_node.Publisher(f"/{r}/control_mode", String, queue_size=1, latch=True) for r in ROBOTS},
-          "teleop": {r: rospy_node.Publisher(f"/{r}/cmd_vel/teleop", Twist, queue_size=5) for r in ROBOTS},
-          "estop": estop}
+    io = {
+        "executed": {r: TopicRecorder(f"/{r}/cmd_vel", Twist) for r in ROBOTS},
+        "state": {r: TopicRecorder(f"/{r}/mission_state", String) for r in ROBOTS},
+        "active": {r: TopicRecorder(f"/{r}/control_mode/active", String) for r in ROBOTS},
+        "mode": {r: rospy_node.Publisher(f"/{r}/control_mode", String, queue_size=1, latch=True) for r in ROBOTS},
+        "teleop": {r: rospy_node.Publisher(f"/{r}/cmd_vel/teleop", Twist, queue_size=5) for r in ROBOTS},
+        "estop": estop,
+    }
     try:
         yield io
     finally:
@@ -49,13 +56,12 @@ def fleet(ros, rospy_node):
 
 
 def test_one_process_drives_two_robots_isolates_a_nan_and_the_estop_stops_both(fleet, ros, rospy_node):
+    import rosnode
     from std_msgs.msg import Bool, String
 
-    import rosnode
-
-    for r in SIMULATED:   # both routes followed from this one process
+    for r in SIMULATED:  # both routes followed from this one process
         fleet["state"][r].wait(lambda m: m.data in ("transit", "inspecting"), timeout_s=45, what=f"{r}'s route")
-    for r in ROBOTS:   # the latched e-stop state reaches every robot's mux
+    for r in ROBOTS:  # the latched e-stop state reaches every robot's mux
         assert wait_for(lambda r=r: f"velocity_mux {r}: e-stop state heard (off)" in ros.output("fleet_control"), 5)
     nodes = rosnode.get_node_names()
     assert "/fleet_control" in nodes and not [n for n in nodes if "velocity_mux" in n or "route_controller" in n]
@@ -73,14 +79,16 @@ def test_one_process_drives_two_robots_isolates_a_nan_and_the_estop_stops_both(f
             rate.sleep()
 
     send()
-    for r in ROBOTS:   # each robot's command reaches its own cmd_vel
-        fleet["executed"][r].wait(lambda m, r=r: m.linear.x == pytest.approx(speeds[r], abs=0.02), timeout_s=2,
-                                  what=f"{r}'s teleop executed")
+    for r in ROBOTS:  # each robot's command reaches its own cmd_vel
+        fleet["executed"][r].wait(
+            lambda m, r=r: m.linear.x == pytest.approx(speeds[r], abs=0.02), timeout_s=2, what=f"{r}'s teleop executed"
+        )
 
     send({"jackal": float("nan")}, n=5)
     fleet["executed"]["jackal"].wait(lambda m: m.linear.x == 0.0, timeout_s=2, what="jackal holding after a NaN")
-    assert wait_for(lambda: "/jackal/cmd_vel/teleop: dropped" in ros.output("fleet_control"), 5), \
-        ros.output("fleet_control")[-2000:]
+    assert wait_for(lambda: "/jackal/cmd_vel/teleop: dropped" in ros.output("fleet_control"), 5), ros.output(
+        "fleet_control"
+    )[-2000:]
     assert "/champ/cmd_vel/teleop: dropped" not in ros.output("fleet_control")
     assert fleet["executed"]["champ"].latest.linear.x == pytest.approx(speeds["champ"], abs=0.02)
 

@@ -1,5 +1,6 @@
 """The default fleet on a real master in the light profile: the contract's topics and frames,
 and every route run to `done`. One fleet for the whole module (starting it takes a minute)."""
+
 import math
 
 import numpy as np
@@ -30,7 +31,7 @@ def running_fleet(ros_master, rospy_node):
     states = {r: TopicRecorder(f"/{r}/mission_state", String) for r in ROBOTS}
     graph = ros_master.attach()
     estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
-    estop.publish(Bool(False))     # the mux and the simulator hold until they hear the state
+    estop.publish(Bool(False))  # the mux and the simulator hold until they hear the state
     try:
         graph.start_node("cps_sim", "fleet_sim", name="fleet_sim", params={"~profile": "light"})
         graph.wait_for_topic("/scout/points", timeout_s=60)
@@ -96,7 +97,8 @@ def test_joints_battery_and_diagnostics(record):
     bat = record("/scout/battery", BatteryState).wait(timeout_s=30)
     assert 0.0 < bat.percentage <= 1.0 and bat.voltage > 0 and bat.current < 0
     diag = record("/diagnostics", DiagnosticArray).wait(
-        lambda m: any(s.name == "cps_sim: fleet" for s in m.status), timeout_s=10, what="fleet_sim's diagnostics")
+        lambda m: any(s.name == "cps_sim: fleet" for s in m.status), timeout_s=10, what="fleet_sim's diagnostics"
+    )
     names = [s.name for s in diag.status]
     assert "cps_sim: scout lidar" in names and "cps_sim: iris depth_camera" in names
     fleet_values = {kv.key: kv.value for kv in diag.status[names.index("cps_sim: fleet")].values}
@@ -149,5 +151,7 @@ def test_every_route_runs_to_done_through_inspecting(running_fleet, record, flee
     p = map_to_base.transform.translation
     assert math.hypot(p.x - last.x, p.y - last.y) < 0.6
     assert abs(odom.wait(timeout_s=10).twist.twist.linear.x) < 0.05
-    assert battery.wait(lambda m: m.percentage < first_battery.percentage, timeout_s=10).percentage < \
-        first_battery.percentage
+    assert (
+        battery.wait(lambda m: m.percentage < first_battery.percentage, timeout_s=10).percentage
+        < first_battery.percentage
+    )

@@ -1,5 +1,6 @@
 """A known box at a known distance shows up where it is in the depth cloud and the lidar scan,
 and sensor points transformed to `map` land on it."""
+
 import dataclasses
 import math
 
@@ -7,8 +8,8 @@ import numpy as np
 import pytest
 
 from cps_fleet.fleet import load_fleet
-from cps_sim.simulation import FleetSimulation, points_in_map
 from cps_fleet.site import Equipment, load_site
+from cps_sim.simulation import FleetSimulation, points_in_map
 
 BOX_CENTER_X = 3.0
 BOX_HALF = 0.5
@@ -17,8 +18,15 @@ BOX_HALF = 0.5
 @pytest.fixture(scope="module", params=["fast", "egl", "tiny"])
 def sim(request):
     site = load_site(load_fleet().site_path)
-    box = Equipment("test_box", "crate", BOX_CENTER_X, 0.0, 0.0,
-                    (("size_x_m", 2 * BOX_HALF), ("size_y_m", 2.0), ("size_z_m", 2.0)), (0.8, 0.2, 0.2))
+    box = Equipment(
+        "test_box",
+        "crate",
+        BOX_CENTER_X,
+        0.0,
+        0.0,
+        (("size_x_m", 2 * BOX_HALF), ("size_y_m", 2.0), ("size_z_m", 2.0)),
+        (0.8, 0.2, 0.2),
+    )
     site = dataclasses.replace(site, areas=(), equipment=(box,))
     fleet = load_fleet(profile="light").with_robots(["scout", "jackal"])
     simulation = FleetSimulation(fleet, site=site, renderer=request.param)
@@ -29,7 +37,7 @@ def sim(request):
 
 def test_box_in_depth_cloud_at_its_distance(sim):
     sim.place("jackal", 0.0, 0.0, 0.0, 0.0)
-    sim.place("scout", 0.0, -6.0, 0.0, math.pi)   # out of the way
+    sim.place("scout", 0.0, -6.0, 0.0, math.pi)  # out of the way
     frame = sim.capture("jackal")
     camera = sim.robots["jackal"].sensor
     cloud = frame.cloud
@@ -59,7 +67,7 @@ def test_box_in_lidar_scan_at_its_distance(sim):
     above_floor = points["z"] > -0.5
     front = points[(np.abs(np.arctan2(points["y"], points["x"])) < math.radians(2)) & above_floor]
     rings = np.unique(front["ring"])
-    assert len(rings) >= 8          # rings whose beams reach the 2 m box at 2.5 m
+    assert len(rings) >= 8  # rings whose beams reach the 2 m box at 2.5 m
     np.testing.assert_allclose(front["x"][front["x"] < expected + 0.5], expected, atol=0.02)
     # Beam elevation of each point matches its ring within one ring spacing.
     elevation = np.arctan2(front["z"], np.hypot(front["x"], front["y"]))

@@ -1,5 +1,6 @@
 """The observable surface ray-cast from sensor positions: what a wall hides is not observable,
 what is out of range is not, and the result depends only on the truth and the positions."""
+
 import numpy as np
 
 from cps_sim.ground_truth import observable_from_positions, positions_every
@@ -15,8 +16,8 @@ def _slab(x_index, y_range, z_range):
 
 
 def test_a_wall_hides_what_is_behind_it():
-    near_wall = _slab(10, (-10, 10), (0, 10))      # x = 1.0 m, 2 m wide, 1 m high
-    far_wall = _slab(20, (-5, 5), (2, 8))          # x = 2.0 m, entirely behind it
+    near_wall = _slab(10, (-10, 10), (0, 10))  # x = 1.0 m, 2 m wide, 1 m high
+    far_wall = _slab(20, (-5, 5), (2, 8))  # x = 2.0 m, entirely behind it
     truth = np.vstack([near_wall, far_wall])
     seen = observable_from_positions(truth, RES, [[0.0, 0.0, 0.5]], max_range_m=5.0)
     seen_x = np.round(seen[:, 0], 2)

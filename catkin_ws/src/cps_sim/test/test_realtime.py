@@ -1,4 +1,5 @@
 """The real-time loop and its clocks with a fake clock: no master, no sleeping."""
+
 import pytest
 
 from cps_sim.realtime import Periodic, PhysicsClock, run_realtime
@@ -53,7 +54,7 @@ def test_periodic_runs_on_its_period_and_a_late_task_runs_once_not_in_a_burst():
     assert not task.due(9.99) and task.due(10.0)
     task.done(10.0)
     assert task.next_s == pytest.approx(10.1)
-    task.done(12.0)   # two seconds late
+    task.done(12.0)  # two seconds late
     assert task.next_s == pytest.approx(12.0)
     task.done(12.0)
     assert task.next_s == pytest.approx(12.1)
@@ -71,7 +72,7 @@ def test_physics_clock_waits_for_a_whole_step_unless_the_state_is_needed_now():
     physics = PhysicsClock(start_s=0.0, max_step_s=0.02, max_catch_up_s=1.0)
     assert physics.steps(0.005, min_lag_s=0.02) == [] and physics.sim_time_s == 0.0
     assert physics.steps(0.012, min_lag_s=0.02) == []
-    assert physics.steps(0.012) == pytest.approx([0.012])      # exact: up to now
+    assert physics.steps(0.012) == pytest.approx([0.012])  # exact: up to now
     assert physics.steps(0.035, min_lag_s=0.02) == pytest.approx([0.02, 0.003])
     assert physics.sim_time_s == pytest.approx(0.035)
 

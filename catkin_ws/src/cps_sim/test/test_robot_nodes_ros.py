@@ -1,5 +1,6 @@
 """cps_sim's nodes for one robot on a real master: teleop and the dead-man, bad commands, mode
 switch and e-stop; and the start-up errors that name the file and line."""
+
 import numpy as np
 import pytest
 from rostest_support import start_robot_nodes
@@ -21,8 +22,12 @@ class Jackal:
         from std_msgs.msg import Bool, String
 
         self.graph = graph
-        graph.start_node("cps_sim", "fleet_sim", name="fleet_sim_jackal",
-                         params={"~profile": "light", "~robots": "jackal", "~sensor_workers": 0})
+        graph.start_node(
+            "cps_sim",
+            "fleet_sim",
+            name="fleet_sim_jackal",
+            params={"~profile": "light", "~robots": "jackal", "~sensor_workers": 0},
+        )
         graph.wait_for_topic("/jackal/odom", timeout_s=60)
         start_robot_nodes(graph, "jackal")
         self.odom = TopicRecorder("/jackal/odom", Odometry)
@@ -33,7 +38,7 @@ class Jackal:
         self.teleop = rospy.Publisher("/jackal/cmd_vel/teleop", Twist, queue_size=5)
         self.direct = rospy.Publisher("/jackal/cmd_vel", Twist, queue_size=5)
         self.estop = rospy.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
-        self.estop.publish(Bool(False))     # the mux and the simulator hold until they hear the state
+        self.estop.publish(Bool(False))  # the mux and the simulator hold until they hear the state
 
     def set_mode(self, mode):
         from std_msgs.msg import String
@@ -43,13 +48,15 @@ class Jackal:
 
     def wait_moving(self, timeout_s, what):
         twist = lambda m: m.twist.twist  # noqa: E731
-        self.odom.wait(lambda m: abs(twist(m).linear.x) > 0.05 or abs(twist(m).angular.z) > 0.05,
-                       timeout_s=timeout_s, what=what)
+        self.odom.wait(
+            lambda m: abs(twist(m).linear.x) > 0.05 or abs(twist(m).angular.z) > 0.05, timeout_s=timeout_s, what=what
+        )
 
     def wait_stopped(self, timeout_s, what):
         twist = lambda m: m.twist.twist  # noqa: E731
-        self.odom.wait(lambda m: abs(twist(m).linear.x) < 1e-3 and abs(twist(m).angular.z) < 1e-3,
-                       timeout_s=timeout_s, what=what)
+        self.odom.wait(
+            lambda m: abs(twist(m).linear.x) < 1e-3 and abs(twist(m).angular.z) < 1e-3, timeout_s=timeout_s, what=what
+        )
 
     def close(self):
         for recorder in (self.odom, self.executed, self.state, self.active_mode):
@@ -86,8 +93,9 @@ def test_teleop_without_commands_holds_then_drives_and_the_deadman_stops_it(jack
     for _ in range(15):
         jackal.teleop.publish(_twist(x=0.3))
         rate.sleep()
-    jackal.executed.wait(lambda m: m.linear.x == pytest.approx(0.3, abs=0.05), timeout_s=0.4,
-                         what="the teleop command executed")
+    jackal.executed.wait(
+        lambda m: m.linear.x == pytest.approx(0.3, abs=0.05), timeout_s=0.4, what="the teleop command executed"
+    )
     jackal.executed.wait(lambda m: m.linear.x == 0.0, timeout_s=3, what="the dead-man zeroing cmd_vel")
     jackal.wait_stopped(3, "robot stopped after the dead-man")
     _assert_cloud_lands_in_the_hall_via_tf(rospy_node, "jackal")
@@ -98,8 +106,9 @@ def test_nan_and_absurd_teleop_commands_are_dropped_and_the_robot_holds(jackal):
     jackal.wait_stopped(5, "teleop without commands stops the robot")
     for bad in (float("nan"), 1e6):
         jackal.teleop.publish(_twist(x=bad))
-        assert wait_for(lambda: ros_output_count(jackal, "velocity_mux", "dropped") > 0, 5), \
+        assert wait_for(lambda: ros_output_count(jackal, "velocity_mux", "dropped") > 0, 5), (
             "mux warns about dropped commands"
+        )
     jackal.executed.wait(lambda m: m.linear.x == 0.0, timeout_s=3, what="cmd_vel holding at zero")
     jackal.wait_stopped(3, "the robot holding")
 
@@ -107,8 +116,9 @@ def test_nan_and_absurd_teleop_commands_are_dropped_and_the_robot_holds(jackal):
 def test_a_non_finite_command_straight_to_the_robot_is_dropped_by_the_simulator(jackal):
     jackal.set_mode("teleop")
     jackal.direct.publish(_twist(wz=float("inf")))
-    assert wait_for(lambda: ros_output_count(jackal, "fleet_sim_jackal", "dropped") > 0, 5), \
+    assert wait_for(lambda: ros_output_count(jackal, "fleet_sim_jackal", "dropped") > 0, 5), (
         "fleet_sim warns about dropped commands"
+    )
     jackal.wait_stopped(3, "the robot holding")
 
 
@@ -141,17 +151,24 @@ def _assert_cloud_lands_in_the_hall_via_tf(rospy, robot):
     cloud = TopicRecorder(f"/{robot}/points", PointCloud2)
     try:
         # tf must cover the stamp
-        msg = cloud.wait(lambda m: m.header.stamp >= listening_since + rospy.Duration(0.5), timeout_s=30,
-                         what="a cloud stamped after tf is heard")
+        msg = cloud.wait(
+            lambda m: m.header.stamp >= listening_since + rospy.Duration(0.5),
+            timeout_s=30,
+            what="a cloud stamped after tf is heard",
+        )
         tf = buffer.lookup_transform("map", msg.header.frame_id, msg.header.stamp, rospy.Duration(10))
     finally:
         cloud.close()
         del listener
     q, t = tf.transform.rotation, tf.transform.translation
     x, y, z, w = q.x, q.y, q.z, q.w
-    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    rot = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
     points = cloud_to_array(msg).reshape(-1)
     xyz = np.stack([points["x"], points["y"], points["z"]], axis=1).astype(float)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
@@ -172,8 +189,11 @@ def test_malformed_fleet_file_fails_with_file_and_line(ros, tmp_path):
     fleet = load_fleet()
     text = open(fleet.path).read().replace("type: legged_depth", "type: hexapod", 1)
     bad = tmp_path / "fleet.yaml"
-    bad.write_text(text.replace("routes/", f"{fleet.path.rsplit('/', 1)[0]}/routes/").replace(
-        "../../cps_sim/config/hall.yaml", fleet.site_path))
+    bad.write_text(
+        text.replace("routes/", f"{fleet.path.rsplit('/', 1)[0]}/routes/").replace(
+            "../../cps_sim/config/hall.yaml", fleet.site_path
+        )
+    )
     proc = ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_bad", params={"~fleet_file": str(bad)})
     assert _wait_exit(proc) != 0
     out = ros.output("fleet_sim_bad")
@@ -193,16 +213,25 @@ def test_route_with_waypoint_in_equipment_fails_with_file_and_line(ros, tmp_path
         text = text.replace(f"routes/route{k}.yaml", f"{fleet.path.rsplit('/', 1)[0]}/routes/route{k}.yaml")
     path = tmp_path / "fleet.yaml"
     path.write_text(text)
-    proc = ros.start_node("cps_sim", "route_controller", name="route_bad", namespace="/scout",
-                          params={"~robot": "scout", "~fleet_file": str(path)})
+    proc = ros.start_node(
+        "cps_sim",
+        "route_controller",
+        name="route_bad",
+        namespace="/scout",
+        params={"~robot": "scout", "~fleet_file": str(path)},
+    )
     assert _wait_exit(proc) != 0
     out = ros.output("route_bad")
     assert f"{routes / 'route1.yaml'}:3:" in out and "tank_1" in out
 
 
 def test_site_change_with_unknown_item_fails_naming_the_known_ones(ros):
-    proc = ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_badsite",
-                          params={"~robots": "jackal", "~site_moves": "crate_99:1.0:0.0"})
+    proc = ros.start_node(
+        "cps_sim",
+        "fleet_sim",
+        name="fleet_sim_badsite",
+        params={"~robots": "jackal", "~site_moves": "crate_99:1.0:0.0"},
+    )
     assert _wait_exit(proc) != 0
     out = ros.output("fleet_sim_badsite")
     assert "crate_99" in out and "crate_2" in out
@@ -211,8 +240,12 @@ def test_site_change_with_unknown_item_fails_naming_the_known_ones(ros):
 def test_site_changes_file_out_of_the_hall_fails_with_file_and_line(ros, tmp_path):
     changes = tmp_path / "changes.yaml"
     changes.write_text("moved:\n  - {name: crate_2, dx_m: 20.0}\n")
-    proc = ros.start_node("cps_sim", "fleet_sim", name="fleet_sim_badchanges",
-                          params={"~robots": "jackal", "~site_changes_file": str(changes)})
+    proc = ros.start_node(
+        "cps_sim",
+        "fleet_sim",
+        name="fleet_sim_badchanges",
+        params={"~robots": "jackal", "~site_changes_file": str(changes)},
+    )
     assert _wait_exit(proc) != 0
     out = ros.output("fleet_sim_badchanges")
     assert f"{changes}:2:" in out and "would leave the hall" in out, out[-2000:]

@@ -1,5 +1,6 @@
 """Dead-man, command timeout and e-stop on an injected clock: a step of the wall clock (NTP) must
 neither keep a robot running nor be needed to stop it. Without ROS."""
+
 import time
 
 import pytest
@@ -48,6 +49,7 @@ def _mux(mode):
         mux.set_estop(False)
         mux.set_mode(mode)
         return mux
+
     return make
 
 
@@ -92,21 +94,21 @@ def test_a_new_mux_or_gate_is_stopped_until_it_hears_the_estop_and_a_fresh_comma
     gate = CommandGate(clock=lambda: t[0])
     mux.on_auto(Twist(vx=0.5))
     gate.on_command(Twist(vx=0.5))
-    assert mux.update().vx == 0.0 and gate.command().vx == 0.0        # e-stop state unknown
+    assert mux.update().vx == 0.0 and gate.command().vx == 0.0  # e-stop state unknown
     mux.set_estop(False)
     gate.set_estop(False)
     t[0] = 0.1
-    assert mux.update().vx > 0.0                                        # the auto command is still fresh
-    assert gate.command().vx == 0.0                                     # sent before the state was known
+    assert mux.update().vx > 0.0  # the auto command is still fresh
+    assert gate.command().vx == 0.0  # sent before the state was known
     gate.on_command(Twist(vx=0.5))
     assert gate.command().vx == 0.5
     gate.set_estop(True)
     mux.set_estop(True)
     assert gate.command().vx == 0.0 and mux.update().vx == 0.0
     gate.on_command(Twist(vx=0.5))
-    assert gate.command().vx == 0.0                                     # bypassing the mux does not help
+    assert gate.command().vx == 0.0  # bypassing the mux does not help
     gate.set_estop(False)
-    assert gate.command().vx == 0.0                                     # nor does a command sent while stopped
+    assert gate.command().vx == 0.0  # nor does a command sent while stopped
 
 
 def test_a_restarted_route_controller_does_not_refly_a_landed_quadrotor():
@@ -121,4 +123,4 @@ def test_a_restarted_route_controller_does_not_refly_a_landed_quadrotor():
     fresh = RouteFollower(route, cfg.robot_type, start_xy=start)
     assert fresh.update(start[0], start[1], 0.0, 0.0)[1] == "takeoff"
     flying = RouteFollower(route, cfg.robot_type, start_xy=start)
-    assert flying.update(last.x, last.y, 3.0, 0.0)[1] == "land"       # still airborne at the end: land it
+    assert flying.update(last.x, last.y, 3.0, 0.0)[1] == "land"  # still airborne at the end: land it

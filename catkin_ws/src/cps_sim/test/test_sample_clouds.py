@@ -1,4 +1,5 @@
 """The sample clouds other packages benchmark with have the layouts the contract fixes."""
+
 import numpy as np
 
 from cps_fleet.fleet import load_fleet

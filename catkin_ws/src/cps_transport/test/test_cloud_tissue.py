@@ -78,25 +78,35 @@ def test_one_robots_malformed_clouds_stop_no_other_robot(ros, rospy_node):
     from cps_msgs.msg import CompressedPointCloud2, RateLimiterStatus
 
     bad, good = "jackal", ("scout", "champ")
-    tissue = ros.start_node("cps_transport", "cloud_tissue", name="cloud_tissue",
-                            params={"~robots": ",".join((bad, *good))})
-    decoder = ros.start_node("cps_transport", "cloud_decoder", name="cloud_decoder", namespace="/twin",
-                             params={"~robots": f"{bad},{good[0]}", "~backfill": True})
+    tissue = ros.start_node(
+        "cps_transport", "cloud_tissue", name="cloud_tissue", params={"~robots": ",".join((bad, *good))}
+    )
+    decoder = ros.start_node(
+        "cps_transport",
+        "cloud_decoder",
+        name="cloud_decoder",
+        namespace="/twin",
+        params={"~robots": f"{bad},{good[0]}", "~backfill": True},
+    )
     diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
     managed = {r: TopicRecorder(f"/{r}/points_filtered/draco/managed", CompressedPointCloud2) for r in good}
     status = {r: TopicRecorder(f"/{r}/cloud_throttle/status", RateLimiterStatus) for r in (bad, *good)}
     twin = TopicRecorder(f"/twin/{good[0]}/points", PointCloud2)
     backfill = TopicRecorder(f"/twin/{good[0]}/points_backfill", PointCloud2)
     raw = {r: rospy.Publisher(f"/{r}/points_filtered", PointCloud2, queue_size=20) for r in (bad, *good)}
-    to_twin = {r: rospy.Publisher(f"/twin/{r}/points_filtered/draco/managed", CompressedPointCloud2, queue_size=20)
-               for r in (bad, good[0])}
-    relay = rospy.Subscriber(f"/{good[0]}/points_filtered/draco/managed", CompressedPointCloud2,
-                             to_twin[good[0]].publish)
+    to_twin = {
+        r: rospy.Publisher(f"/twin/{r}/points_filtered/draco/managed", CompressedPointCloud2, queue_size=20)
+        for r in (bad, good[0])
+    }
+    relay = rospy.Subscriber(
+        f"/{good[0]}/points_filtered/draco/managed", CompressedPointCloud2, to_twin[good[0]].publish
+    )
     backfill_in = rospy.Publisher(f"/twin/{good[0]}/points_backfill/draco", CompressedPointCloud2, queue_size=5)
     rate = rospy.Publisher(f"/{good[1]}/cloud_throttle/rate_hz", Float64, queue_size=1, latch=True)
     try:
-        assert wait_for(lambda: all(p.get_num_connections() for p in (*raw.values(), *to_twin.values())),
-                        timeout_s=30), ros.output("cloud_tissue")[-2000:] + ros.output("cloud_decoder")[-2000:]
+        assert wait_for(
+            lambda: all(p.get_num_connections() for p in (*raw.values(), *to_twin.values())), timeout_s=30
+        ), ros.output("cloud_tissue")[-2000:] + ros.output("cloud_decoder")[-2000:]
         rate.publish(Float64(3.5))
         assert status[good[1]].wait(lambda m: m.set_rate_hz == 3.5, timeout_s=10)
         clouds = list(refused_clouds(f"{bad}/lidar").values())
@@ -112,13 +122,19 @@ def test_one_robots_malformed_clouds_stop_no_other_robot(ros, rospy_node):
         assert decoded.header.frame_id == f"{good[0]}/lidar" and decoded.width > 0
         backfill_in.publish(managed[good[0]].latest)
         assert backfill.wait(timeout_s=10).header.frame_id == f"{good[0]}/lidar"
-        assert wait_for(lambda: int(_status(diagnostics, f"/{bad}/points_filtered").get("invalid_messages", 0)) >= 10,
-                        timeout_s=10), _status(diagnostics, f"/{bad}/points_filtered")
-        assert wait_for(lambda: int(_status(diagnostics, f"/twin/{bad}/points_filtered/draco/managed")
-                                    .get("invalid_messages", 0)) >= 10, timeout_s=10)
+        assert wait_for(
+            lambda: int(_status(diagnostics, f"/{bad}/points_filtered").get("invalid_messages", 0)) >= 10, timeout_s=10
+        ), _status(diagnostics, f"/{bad}/points_filtered")
+        assert wait_for(
+            lambda: (
+                int(_status(diagnostics, f"/twin/{bad}/points_filtered/draco/managed").get("invalid_messages", 0)) >= 10
+            ),
+            timeout_s=10,
+        )
         for r in good:
-            assert wait_for(lambda: _status(diagnostics, f"/{r}/points_filtered").get("processed") == "12",
-                            timeout_s=10), _status(diagnostics, f"/{r}/points_filtered")
+            assert wait_for(
+                lambda: _status(diagnostics, f"/{r}/points_filtered").get("processed") == "12", timeout_s=10
+            ), _status(diagnostics, f"/{r}/points_filtered")
             assert _status(diagnostics, f"/{r}/points_filtered")["invalid_messages"] == "0"
         assert status[bad].latest.received == 0 and status[good[0]].latest.set_rate_hz == load_fleet().link.min_rate_hz
         assert tissue.poll() is None and decoder.poll() is None
@@ -158,16 +174,21 @@ def test_one_loader_puts_every_robots_voxel_grid_into_one_manager(ros, rospy_nod
 
     manager = ros.popen(["rosrun", "nodelet", "nodelet", "manager", "__name:=vg_manager"], name="vg_manager")
     robots = ["scout", "jackal"]
-    loader = ros.start_node("cps_transport", "voxel_grid_loader", name="voxel_grid_loader",
-                            params={"~robots": ",".join(robots), "~manager": "/vg_manager"})
+    loader = ros.start_node(
+        "cps_transport",
+        "voxel_grid_loader",
+        name="voxel_grid_loader",
+        params={"~robots": ",".join(robots), "~manager": "/vg_manager"},
+    )
     filtered = {r: TopicRecorder(f"/{r}/points_filtered", PointCloud2) for r in robots}
     fleet = load_fleet()
     pubs = {r: rospy.Publisher(f"/{r}/{fleet.robot(r).cloud_topic}", PointCloud2, queue_size=2) for r in robots}
     listing = rospy.ServiceProxy("/vg_manager/list", NodeletList)
     try:
         ros.wait_for_service("/vg_manager/list", timeout_s=30)
-        assert wait_for(lambda: sorted(_listed(listing) or ()) == ["/jackal/voxel_grid", "/scout/voxel_grid"],
-                        timeout_s=30), ros.output("voxel_grid_loader")[-2000:]
+        assert wait_for(
+            lambda: sorted(_listed(listing) or ()) == ["/jackal/voxel_grid", "/scout/voxel_grid"], timeout_s=30
+        ), ros.output("voxel_grid_loader")[-2000:]
         assert rospy.get_param("/scout/voxel_grid/leaf_size") == fleet.robot("scout").voxel_leaf_m
         cloud = lidar_cloud(rings=8, samples_per_ring=400)
         for r in robots:
@@ -177,8 +198,9 @@ def test_one_loader_puts_every_robots_voxel_grid_into_one_manager(ros, rospy_nod
         ros.stop(manager)
         manager = ros.popen(["rosrun", "nodelet", "nodelet", "manager", "__name:=vg_manager"], name="vg_manager2")
         ros.wait_for_service("/vg_manager/list", timeout_s=30)
-        assert wait_for(lambda: sorted(_listed(listing) or ()) == ["/jackal/voxel_grid", "/scout/voxel_grid"],
-                        timeout_s=30), ros.output("voxel_grid_loader")[-2000:]
+        assert wait_for(
+            lambda: sorted(_listed(listing) or ()) == ["/jackal/voxel_grid", "/scout/voxel_grid"], timeout_s=30
+        ), ros.output("voxel_grid_loader")[-2000:]
         ros.stop(loader)
         assert wait_for(lambda: _listed(listing) == [], timeout_s=10), _listed(listing)
 

@@ -1,5 +1,6 @@
 """Draco round trips within the quantization bound and with the kept fields, a payload Google's
 reference draco_decoder reads, and every malformed input rejected with a clear error."""
+
 import os
 import subprocess
 import zlib
@@ -8,9 +9,9 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import PointField
 
+from cps_harness.synthetic_clouds import depth_camera_cloud, lidar_cloud
 from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError, bits_for_tolerance, parse_fields
 from cps_transport.pointcloud import InvalidCloud, array_to_cloud, cloud_to_array, xyz_of
-from cps_harness.synthetic_clouds import depth_camera_cloud, lidar_cloud
 from cps_transport.voxel import voxel_downsample
 
 REFERENCE_DECODER = "/usr/bin/draco_decoder"  # Debian's package "draco"
@@ -71,7 +72,7 @@ def test_all_lidar_fields_integers_exact_floats_within_step(lidar):
     assert decoded.dtype.names == ("x", "y", "z", "intensity", "ring", "time")
     assert np.array_equal(decoded["ring"], original["ring"]) and decoded["ring"].dtype == np.uint16
     for name in ("intensity", "time"):
-        step = np.ptp(original[name]) / (2 ** 16 - 1)
+        step = np.ptp(original[name]) / (2**16 - 1)
         assert np.abs(decoded[name] - original[name]).max() <= step / 2 + 1e-6
 
 
@@ -116,8 +117,12 @@ def test_reference_draco_decoder_reads_our_payload(depth, tmp_path):
     cloud = _filtered(depth, 0.1)
     compressed = DracoEncoder(leaf_size_m=0.1, fields="xyz,rgb").encode(cloud)
     (tmp_path / "cloud.drc").write_bytes(bytes(compressed.compressed_data))
-    result = subprocess.run([REFERENCE_DECODER, "-i", str(tmp_path / "cloud.drc"), "-o", str(tmp_path / "cloud.ply")],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [REFERENCE_DECODER, "-i", str(tmp_path / "cloud.drc"), "-o", str(tmp_path / "cloud.ply")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     ply = (tmp_path / "cloud.ply").read_bytes()
     header, body = ply.split(b"end_header\n", 1)
@@ -146,6 +151,7 @@ def test_parse_fields_and_tolerance_bits():
 
 # --- bad input: every case the issue lists -------------------------------------------------------
 
+
 def _small_cloud():
     xyz = np.arange(30, dtype=np.float32).reshape(10, 3)
     return array_to_cloud({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]})
@@ -170,7 +176,9 @@ def test_empty_and_all_nan_clouds_are_rejected():
     empty.width, empty.row_step, empty.data = 0, 0, b""
     with pytest.raises(InvalidCloud, match="empty"):
         DracoEncoder(leaf_size_m=0.1).encode(empty)
-    nan = array_to_cloud({"x": np.full(4, np.nan, np.float32), "y": np.zeros(4, np.float32), "z": np.zeros(4, np.float32)})
+    nan = array_to_cloud(
+        {"x": np.full(4, np.nan, np.float32), "y": np.zeros(4, np.float32), "z": np.zeros(4, np.float32)}
+    )
     with pytest.raises(InvalidCloud, match="no finite points"):
         DracoEncoder(leaf_size_m=0.1).encode(nan)
 
@@ -191,7 +199,7 @@ def test_damaged_payload_is_rejected(depth, damage):
     compressed = DracoEncoder(leaf_size_m=0.1).encode(_filtered(depth, 0.1))
     data = bytes(compressed.compressed_data)
     if damage == "truncated":
-        compressed.compressed_data = data[:len(data) // 2]
+        compressed.compressed_data = data[: len(data) // 2]
     elif damage == "corrupt":
         compressed.compressed_data = data[:20] + bytes(255 - b for b in data[20:])
     elif damage == "empty":

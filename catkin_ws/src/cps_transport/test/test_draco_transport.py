@@ -1,18 +1,18 @@
 """DracoPublisher/DracoSubscriber: a cloud published on a base topic travels as `<base>/draco` and
 reaches the user's callback decoded; a corrupt payload and an unencodable cloud are counted and
 the next good cloud still arrives."""
+
 import threading
 
 import numpy as np
 import pytest
 
+from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_harness.testing import wait_for
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
-from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_transport.voxel import voxel_downsample
 
 pytestmark = pytest.mark.ros
-
 
 
 def test_round_trip_and_corrupt_payload_counted(ros, rospy_node):
@@ -38,8 +38,13 @@ def test_round_trip_and_corrupt_payload_counted(ros, rospy_node):
     cloud = array_to_cloud({"x": centroids[:, 0], "y": centroids[:, 1], "z": centroids[:, 2], **extras})
     cloud.header.frame_id = "dtp1/camera_depth_optical_frame"
     try:
-        assert wait_for(lambda: publisher.get_num_connections() > 0 and intruder.get_num_connections() > 0
-                         and subscriber.get_num_connections() > 0)
+        assert wait_for(
+            lambda: (
+                publisher.get_num_connections() > 0
+                and intruder.get_num_connections() > 0
+                and subscriber.get_num_connections() > 0
+            )
+        )
         cloud.header.stamp = rospy.Time.now()
         compressed = publisher.publish(cloud)
         assert compressed is not None and len(compressed.compressed_data) < len(cloud.data)

@@ -1,6 +1,7 @@
 """Fuzz (hypothesis) of the Draco encoder and decoder with hostile clouds and payloads: a message
 is either coded or refused with InvalidCloud/DracoError (the reason a node counts); nothing else
 escapes, and what comes out is a cloud the readers accept with finite coordinates."""
+
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -22,8 +23,9 @@ def _good_compressed():
         xyz = rng.uniform(-5, 5, (n, 3)).astype(np.float32)
         columns = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
         if extras:
-            columns.update(intensity=rng.uniform(0, 1, n).astype(np.float32),
-                           rgb=rng.integers(0, 2 ** 24, n).astype(np.uint32))
+            columns.update(
+                intensity=rng.uniform(0, 1, n).astype(np.float32), rgb=rng.integers(0, 2**24, n).astype(np.uint32)
+            )
         out.append(ENCODER.encode(packed_cloud(columns)))
     return out
 
@@ -40,16 +42,22 @@ def hostile_compressed(draw):
     payload = bytearray(msg.compressed_data)
     how = draw(st.sampled_from(PAYLOAD_FAULTS))
     if how == "truncate":
-        payload = payload[:draw(st.integers(0, len(payload) - 1))]
+        payload = payload[: draw(st.integers(0, len(payload) - 1))]
     elif how == "flip":
         for _ in range(draw(st.integers(1, 8))):
             payload[draw(st.integers(0, len(payload) - 1))] ^= 1 << draw(st.integers(0, 7))
     elif how == "random":
         payload = bytearray(draw(st.binary(min_size=0, max_size=300)))
     elif how == "fields":
-        msg.fields = [PointField(name=draw(st.sampled_from(FIELD_NAMES)), offset=draw(st.integers(0, 64)),
-                                 datatype=draw(st.integers(0, 9)), count=draw(st.sampled_from((0, 1, 2))))
-                      for _ in range(draw(st.integers(0, 5)))]
+        msg.fields = [
+            PointField(
+                name=draw(st.sampled_from(FIELD_NAMES)),
+                offset=draw(st.integers(0, 64)),
+                datatype=draw(st.integers(0, 9)),
+                count=draw(st.sampled_from((0, 1, 2))),
+            )
+            for _ in range(draw(st.integers(0, 5)))
+        ]
     elif how == "size":
         msg.height, msg.width = draw(st.integers(0, 3)), draw(st.integers(0, 50))
     elif how == "empty":

@@ -1,5 +1,6 @@
 """The real encoder and decoder nodes fed a handful of hostile messages: they stay up, count every
 one on /diagnostics, and the next good cloud still crosses."""
+
 import numpy as np
 import pytest
 
@@ -27,12 +28,16 @@ def _refused_payloads():
         for key, value in changes.items():
             setattr(msg, key, value)
         return msg
-    return {"truncated payload": changed(compressed_data=bytes(good.compressed_data)[:20]),
-            "random payload": changed(compressed_data=bytes(range(256)) * 2),
-            "empty payload": changed(compressed_data=b""),
-            "no z field": changed(fields=[PointField(name=n, offset=4 * i, datatype=7, count=1)
-                                          for i, n in enumerate("xy")]),
-            "fewer points than the payload": changed(width=3)}
+
+    return {
+        "truncated payload": changed(compressed_data=bytes(good.compressed_data)[:20]),
+        "random payload": changed(compressed_data=bytes(range(256)) * 2),
+        "empty payload": changed(compressed_data=b""),
+        "no z field": changed(
+            fields=[PointField(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xy")]
+        ),
+        "fewer points than the payload": changed(width=3),
+    }
 
 
 def _invalid_count(diagnostics, node):
@@ -51,18 +56,27 @@ def test_encoder_and_decoder_nodes_count_hostile_messages_and_stay_up(ros, rospy
 
     from cps_msgs.msg import CompressedPointCloud2
 
-    encoder = ros.start_node("cps_transport", "draco_encoder", name="draco_encoder", namespace=f"/{R}",
-                             params={"~leaf_size_m": 0.1, "~fields": "all"},
-                             remap={"~input": f"/{R}/points_filtered"})
-    decoder = ros.start_node("cps_transport", "draco_decoder", name="draco_decoder", namespace="/twin",
-                             remap={"~input": f"/{R}/points_filtered/draco", "~output": f"/twin/{R}/points"})
+    encoder = ros.start_node(
+        "cps_transport",
+        "draco_encoder",
+        name="draco_encoder",
+        namespace=f"/{R}",
+        params={"~leaf_size_m": 0.1, "~fields": "all"},
+        remap={"~input": f"/{R}/points_filtered"},
+    )
+    decoder = ros.start_node(
+        "cps_transport",
+        "draco_decoder",
+        name="draco_decoder",
+        namespace="/twin",
+        remap={"~input": f"/{R}/points_filtered/draco", "~output": f"/twin/{R}/points"},
+    )
     diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
     decoded = TopicRecorder(f"/twin/{R}/points", PointCloud2)
     raw = rospy.Publisher(f"/{R}/points_filtered", PointCloud2, queue_size=20)
     compressed = rospy.Publisher(f"/{R}/points_filtered/draco", CompressedPointCloud2, queue_size=20)
     try:
-        assert wait_for(lambda: raw.get_num_connections() >= 1 and compressed.get_num_connections() >= 1,
-                        timeout_s=20)
+        assert wait_for(lambda: raw.get_num_connections() >= 1 and compressed.get_num_connections() >= 1, timeout_s=20)
         clouds, payloads = refused_clouds(FRAME), _refused_payloads()
         for msg in clouds.values():
             raw.publish(msg)
@@ -70,10 +84,12 @@ def test_encoder_and_decoder_nodes_count_hostile_messages_and_stay_up(ros, rospy
         for msg in payloads.values():
             compressed.publish(msg)
             rospy.sleep(0.05)
-        assert wait_for(lambda: _invalid_count(diagnostics, f"/{R}/draco_encoder") == len(clouds), timeout_s=15), \
+        assert wait_for(lambda: _invalid_count(diagnostics, f"/{R}/draco_encoder") == len(clouds), timeout_s=15), (
             f"encoder counted {_invalid_count(diagnostics, f'/{R}/draco_encoder')} of {len(clouds)}"
-        assert wait_for(lambda: _invalid_count(diagnostics, "/twin/draco_decoder") == len(payloads), timeout_s=15), \
+        )
+        assert wait_for(lambda: _invalid_count(diagnostics, "/twin/draco_decoder") == len(payloads), timeout_s=15), (
             f"decoder counted {_invalid_count(diagnostics, '/twin/draco_decoder')} of {len(payloads)}"
+        )
         raw.publish(_good_cloud())
         assert decoded.wait(timeout_s=15).header.frame_id == FRAME
         assert encoder.poll() is None and decoder.poll() is None

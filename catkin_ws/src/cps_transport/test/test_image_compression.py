@@ -1,10 +1,20 @@
 """JPEG camera compression: round trip within a PSNR bound, the compressed plugin's format
 strings, encodings and bad input."""
+
 import numpy as np
 import pytest
 
-from cps_transport.image_compression import (InvalidImage, camera_test_image, compress_image, compressed_format,
-                                             decode_jpeg, encode_jpeg, format_encoding, image_pixels, psnr_db)
+from cps_transport.image_compression import (
+    InvalidImage,
+    camera_test_image,
+    compress_image,
+    compressed_format,
+    decode_jpeg,
+    encode_jpeg,
+    format_encoding,
+    image_pixels,
+    psnr_db,
+)
 
 
 @pytest.mark.parametrize("width,height", [(320, 240), (640, 480)])
@@ -61,13 +71,16 @@ def test_row_padding_is_cut():
     np.testing.assert_array_equal(image_pixels("rgb8", 10, 4, 40, padded.tobytes()), rgb)
 
 
-@pytest.mark.parametrize("encoding,width,height,step,size,match", [
-    ("rgba8", 4, 4, 16, 64, "not handled"),
-    ("16UC1", 4, 4, 8, 32, "not handled"),
-    ("rgb8", 0, 4, 0, 0, "empty"),
-    ("rgb8", 4, 4, 8, 64, "step"),
-    ("rgb8", 4, 4, 12, 47, "bytes"),
-])
+@pytest.mark.parametrize(
+    "encoding,width,height,step,size,match",
+    [
+        ("rgba8", 4, 4, 16, 64, "not handled"),
+        ("16UC1", 4, 4, 8, 32, "not handled"),
+        ("rgb8", 0, 4, 0, 0, "empty"),
+        ("rgb8", 4, 4, 8, 64, "step"),
+        ("rgb8", 4, 4, 12, 47, "bytes"),
+    ],
+)
 def test_bad_images_are_refused_with_the_reason(encoding, width, height, step, size, match):
     with pytest.raises(InvalidImage, match=match):
         compress_image(encoding, width, height, step, bytes(size))
@@ -81,6 +94,7 @@ def test_damaged_payloads_are_refused():
     import io
 
     from PIL import Image
+
     png = io.BytesIO()
     Image.fromarray(camera_test_image(8, 8)).save(png, "PNG")
     with pytest.raises(InvalidImage, match="not JPEG"):

@@ -1,5 +1,6 @@
 """The image_compressor node: encodes only while someone listens, keeps stamp and frame, counts
 and survives encodings it does not handle, honours its rate cap and refuses bad parameters."""
+
 import threading
 import time
 
@@ -9,7 +10,6 @@ from cps_harness.testing import wait_for
 from cps_transport.image_compression import camera_test_image, decode_jpeg, psnr_db
 
 pytestmark = pytest.mark.ros
-
 
 
 def _reported(diagnostics, node):
@@ -36,8 +36,14 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CompressedImage, Image
 
-    ros.start_node("cps_transport", "image_compressor", name="image_compressor", namespace="/ic1/camera",
-                   params={"~jpeg_quality": 80}, remap={"~input": "/ic1/camera/image_raw"})
+    ros.start_node(
+        "cps_transport",
+        "image_compressor",
+        name="image_compressor",
+        namespace="/ic1/camera",
+        params={"~jpeg_quality": 80},
+        remap={"~input": "/ic1/camera/image_raw"},
+    )
     ros.wait_for_topic("/ic1/camera/image_raw/compressed", timeout_s=20)
     diagnostics = []
     diag_sub = rospy.Subscriber("/diagnostics", DiagnosticArray, diagnostics.append)
@@ -50,13 +56,15 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
         for _ in range(5):
             raw_pub.publish(_image(rospy)[0])
             time.sleep(0.05)
-        assert wait_for(lambda: int(_reported(diagnostics, "/ic1/camera/image_compressor")
-                                     .get("skipped_no_subscriber", 0)) == 5), _reported(diagnostics, "/ic1/camera/image_compressor")
+        assert wait_for(
+            lambda: int(_reported(diagnostics, "/ic1/camera/image_compressor").get("skipped_no_subscriber", 0)) == 5
+        ), _reported(diagnostics, "/ic1/camera/image_compressor")
         assert _reported(diagnostics, "/ic1/camera/image_compressor")["processed"] == "0"
 
         def on_compressed(msg):
             received.append(msg)
             got.set()
+
         out_sub = rospy.Subscriber("/ic1/camera/image_raw/compressed", CompressedImage, on_compressed)
         assert wait_for(lambda: out_sub.get_num_connections() > 0)
         good, rgb = _image(rospy)
@@ -69,8 +77,12 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
         assert len(out.data) < len(good.data) / 8
         bad, _ = _image(rospy, encoding="rgba8")
         raw_pub.publish(bad)
-        assert wait_for(lambda: _reported(diagnostics, "/ic1/camera/image_compressor").get("invalid_messages") == "1"
-                        and _reported(diagnostics, "/ic1/camera/image_compressor").get("processed") == str(len(received)))
+        assert wait_for(
+            lambda: (
+                _reported(diagnostics, "/ic1/camera/image_compressor").get("invalid_messages") == "1"
+                and _reported(diagnostics, "/ic1/camera/image_compressor").get("processed") == str(len(received))
+            )
+        )
         assert wait_for(lambda: "rgba8" in ros.output("image_compressor"))
     finally:
         for handle in (diag_sub, raw_pub, out_sub):
@@ -83,8 +95,14 @@ def test_rate_cap_and_remapped_output(ros, rospy_node):
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CompressedImage, Image
 
-    ros.start_node("cps_transport", "image_compressor", name="capped_compressor", namespace="/ic2",
-                   params={"~max_rate_hz": 2.0}, remap={"~input": "/ic2/image_raw", "~output": "/ic2/video"})
+    ros.start_node(
+        "cps_transport",
+        "image_compressor",
+        name="capped_compressor",
+        namespace="/ic2",
+        params={"~max_rate_hz": 2.0},
+        remap={"~input": "/ic2/image_raw", "~output": "/ic2/video"},
+    )
     ros.wait_for_topic("/ic2/video", timeout_s=20)
     received, diagnostics = [], []
     out_sub = rospy.Subscriber("/ic2/video", CompressedImage, received.append)
@@ -104,8 +122,11 @@ def test_rate_cap_and_remapped_output(ros, rospy_node):
         def final_counts_delivered():
             """A report made after the node handled the last frame, and every frame it encoded received."""
             last = [a for a in diagnostics if a.status and a.status[0].name == "/ic2/capped_compressor"]
-            return bool(last) and last[-1].header.stamp > end and \
-                int(_reported(diagnostics, "/ic2/capped_compressor").get("processed", -1)) == len(received)
+            return (
+                bool(last)
+                and last[-1].header.stamp > end
+                and int(_reported(diagnostics, "/ic2/capped_compressor").get("processed", -1)) == len(received)
+            )
 
         assert wait_for(final_counts_delivered, 10.0), (_reported(diagnostics, "/ic2/capped_compressor"), sent)
         # 2 Hz with a credit of one frame at the start, one more for scheduling slack.
@@ -115,9 +136,14 @@ def test_rate_cap_and_remapped_output(ros, rospy_node):
             handle.unregister()
 
 
-@pytest.mark.parametrize("params,name", [({"~jpeg_quality": 0}, "~jpeg_quality"),
-                                         ({"~jpeg_quality": 101}, "~jpeg_quality"),
-                                         ({"~max_rate_hz": -1.0}, "~max_rate_hz")])
+@pytest.mark.parametrize(
+    "params,name",
+    [
+        ({"~jpeg_quality": 0}, "~jpeg_quality"),
+        ({"~jpeg_quality": 101}, "~jpeg_quality"),
+        ({"~max_rate_hz": -1.0}, "~max_rate_hz"),
+    ],
+)
 def test_bad_parameters_stop_the_node_naming_them(ros, params, name):
     node = f"bad_compressor_{abs(hash(name)) % 1000}_{list(params.values())[0]}".replace(".", "_").replace("-", "m")
     proc = ros.start_node("cps_transport", "image_compressor", name=node, namespace="/ic3", params=params)

@@ -1,5 +1,6 @@
 """pcl_ros's pcl/VoxelGrid nodelet loads from Debian's packages (with ci/setup.sh's plugin-path
 fix) and filters a cloud, including points beyond 1 m when filter_field_name is empty."""
+
 import threading
 
 import numpy as np
@@ -27,17 +28,30 @@ def _cloud(points, frame="cloud_frame"):
 def _xyz(msg):
     offsets = {f.name: f.offset for f in msg.fields}
     raw = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(-1, msg.point_step)
-    return np.stack([raw[:, offsets[a]:offsets[a] + 4].copy().view("<f4")[:, 0] for a in "xyz"], axis=1)
+    return np.stack([raw[:, offsets[a] : offsets[a] + 4].copy().view("<f4")[:, 0] for a in "xyz"], axis=1)
 
 
 def test_voxelgrid_nodelet_loads_and_filters(ros, rospy_node):
     rospy = rospy_node
     from sensor_msgs.msg import PointCloud2
 
-    ros.popen(["rosrun", "nodelet", "nodelet", "standalone", "pcl/VoxelGrid", "__name:=voxel_test",
-               "~input:=/voxel_test/in", "~output:=/voxel_test/out",
-               "_leaf_size:=0.5", "_filter_field_name:=", "_filter_limit_min:=-1000", "_filter_limit_max:=1000"],
-              name="voxel_nodelet")
+    ros.popen(
+        [
+            "rosrun",
+            "nodelet",
+            "nodelet",
+            "standalone",
+            "pcl/VoxelGrid",
+            "__name:=voxel_test",
+            "~input:=/voxel_test/in",
+            "~output:=/voxel_test/out",
+            "_leaf_size:=0.5",
+            "_filter_field_name:=",
+            "_filter_limit_min:=-1000",
+            "_filter_limit_max:=1000",
+        ],
+        name="voxel_nodelet",
+    )
     ros.wait_for_topic("/voxel_test/out", timeout_s=30)
 
     received = []
@@ -74,12 +88,13 @@ def test_voxel_nodelet_args_match_numpy_voxel_downsample(ros, rospy_node):
     as cps_transport.voxel.voxel_downsample on an organized depth cloud with NaNs, 15 m deep."""
     import dataclasses
 
+    from sensor_msgs.msg import PointCloud2
+
     from cps_fleet.fleet import load_fleet
+    from cps_harness.synthetic_clouds import depth_camera_cloud
     from cps_transport import voxel_nodelet_args
     from cps_transport.pointcloud import cloud_to_array, xyz_of
-    from cps_harness.synthetic_clouds import depth_camera_cloud
     from cps_transport.voxel import voxel_downsample
-    from sensor_msgs.msg import PointCloud2
 
     rospy = rospy_node
     robot = dataclasses.replace(load_fleet().robot("jackal"), name="vgtest")

@@ -1,5 +1,6 @@
 """The rate limiter delivers the rate it is set to (unit, with injected time) and the node holds
 1, 8, 15 and 30 Hz within 5 % on a faster input, with live rate changes by service and topic."""
+
 import threading
 import time
 from types import SimpleNamespace
@@ -31,7 +32,9 @@ def _throttle_rate(rate_hz, input_hz, duration_s):
 @pytest.mark.parametrize("rate_hz", [1.0, 8.0, 15.0, 30.0])
 @pytest.mark.parametrize("input_hz", [31.0, 60.0])
 def test_delivers_the_set_rate_on_any_faster_input(rate_hz, input_hz):
-    assert _forwarded_rate(RateLimiter(rate_hz), input_hz, 60.0, jitter_s=0.3 / input_hz) == pytest.approx(rate_hz, rel=0.01)
+    assert _forwarded_rate(RateLimiter(rate_hz), input_hz, 60.0, jitter_s=0.3 / input_hz) == pytest.approx(
+        rate_hz, rel=0.01
+    )
 
 
 def test_ten_to_eight_hz_where_throttle_gives_five():
@@ -85,13 +88,20 @@ MESSAGE_BYTES = 1600
 def limiter(ros, rospy_node):
     """The rate_limiter node at 30 Hz, fed at 60 Hz; its output arrival times and its statuses."""
     rospy = rospy_node
-    from std_msgs.msg import Float64
     from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import Float64
+
     from cps_msgs.msg import RateLimiterStatus
     from cps_msgs.srv import SetRate
 
-    ros.start_node("cps_transport", "rate_limiter", name="cloud_throttle", namespace=NS,
-                   params={"~rate_hz": 30.0}, remap={"~input": f"{NS}/in", "~output": f"{NS}/out"})
+    ros.start_node(
+        "cps_transport",
+        "rate_limiter",
+        name="cloud_throttle",
+        namespace=NS,
+        params={"~rate_hz": 30.0},
+        remap={"~input": f"{NS}/in", "~output": f"{NS}/out"},
+    )
     ros.wait_for_service(f"{NS}/cloud_throttle/set_rate", timeout_s=20)
     state = SimpleNamespace(rospy=rospy, arrivals=[], statuses=[], lock=threading.Lock())
 
@@ -154,8 +164,12 @@ def test_node_refuses_a_zero_rate_and_reports_its_input(limiter):
     response = limiter.set_rate(0.0)
     asked = limiter.rospy.Time.now()
     assert not response.success and response.rate_hz == 1.0
-    assert wait_for(lambda: limiter.statuses and limiter.statuses[-1].header.stamp > asked
-                    and limiter.statuses[-1].input_rate_hz > 0, 5.0), "no status after the refusal"
+    assert wait_for(
+        lambda: (
+            limiter.statuses and limiter.statuses[-1].header.stamp > asked and limiter.statuses[-1].input_rate_hz > 0
+        ),
+        5.0,
+    ), "no status after the refusal"
     status = limiter.statuses[-1]
     assert status.set_rate_hz == 1.0
     assert status.input_rate_hz == pytest.approx(60.0, rel=0.1)

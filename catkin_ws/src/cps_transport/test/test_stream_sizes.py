@@ -1,10 +1,11 @@
 """stage_sizes: the bytes each stage of the tissue sends for one cloud, as the nodes produce them."""
+
 import numpy as np
 
+from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_transport.draco import DracoDecoder, DracoEncoder
 from cps_transport.pointcloud import cloud_to_array, xyz_of
 from cps_transport.stream_sizes import filter_cloud, stage_sizes
-from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_transport.voxel import voxel_downsample
 
 

@@ -1,4 +1,5 @@
 """Topic statistics: the sliding window (unit) and the node against rostopic hz / bw (live)."""
+
 import csv
 import io
 import math
@@ -34,6 +35,7 @@ def test_window_rate_bandwidth_latency():
 def test_header_detection_and_stamp_peek():
     from nav_msgs.msg import Odometry
     from std_msgs.msg import String
+
     from cps_msgs.msg import CompressedPointCloud2
 
     assert has_header_first(Odometry._full_text)
@@ -52,12 +54,22 @@ def test_header_detection_and_stamp_peek():
 def test_node_agrees_with_rostopic_hz_and_bw(ros, rospy_node, tmp_path):
     rospy = rospy_node
     from sensor_msgs.msg import PointCloud2
+
     from cps_msgs.msg import TopicStatsArray
 
     topic, csv_path = "/ts_test/cloud", tmp_path / "stats.csv"
-    ros.start_node("cps_transport", "topic_stats", name="topic_stats", namespace="/ts_test",
-                   params={"~topics": [topic, "/ts_test/silent"], "~window_s": 3.0, "~publish_rate_hz": 2.0,
-                           "~csv_path": str(csv_path)})
+    ros.start_node(
+        "cps_transport",
+        "topic_stats",
+        name="topic_stats",
+        namespace="/ts_test",
+        params={
+            "~topics": [topic, "/ts_test/silent"],
+            "~window_s": 3.0,
+            "~publish_rate_hz": 2.0,
+            "~csv_path": str(csv_path),
+        },
+    )
     pub = rospy.Publisher(topic, PointCloud2, queue_size=10)
     stats = []
     sub = rospy.Subscriber("/ts_test/tissue/stats", TopicStatsArray, stats.append)  # relative, in its namespace
@@ -81,14 +93,19 @@ def test_node_agrees_with_rostopic_hz_and_bw(ros, rospy_node, tmp_path):
 
         def full_window_reports():
             """Three reports of each over a full 60-message window (the last is dropped below)."""
-            return (len(re.findall(r"window: 60", ros.output("rostopic_hz"))) >= 4
-                    and len(re.findall(r"window: 60", ros.output("rostopic_bw"))) >= 4 and stats)
+            return (
+                len(re.findall(r"window: 60", ros.output("rostopic_hz"))) >= 4
+                and len(re.findall(r"window: 60", ros.output("rostopic_bw"))) >= 4
+                and stats
+            )
 
         assert wait_for(full_window_reports, 30.0), ros.output("rostopic_hz") + ros.output("rostopic_bw")
         ros.stop(hz)
         ros.stop(bw)
         # Reports with a full window; the last one is dropped (printed while rostopic shuts down).
-        hz_values = [float(v) for v in re.findall(r"average rate: ([0-9.]+)\n.*window: 60", ros.output("rostopic_hz"))][:-1]
+        hz_values = [float(v) for v in re.findall(r"average rate: ([0-9.]+)\n.*window: 60", ros.output("rostopic_hz"))][
+            :-1
+        ]
         bw_values = re.findall(r"average: ([0-9.]+)(B|KB|MB)/s\n.*window: 60", ros.output("rostopic_bw"))[:-1]
         assert hz_values and bw_values, ros.output("rostopic_hz") + ros.output("rostopic_bw")
         rostopic_hz = float(np.median(hz_values))
@@ -96,7 +113,9 @@ def test_node_agrees_with_rostopic_hz_and_bw(ros, rospy_node, tmp_path):
         ours = [t for t in stats[-1].topics if t.topic == topic][0]
         silent = [t for t in stats[-1].topics if t.topic == "/ts_test/silent"][0]
         assert ours.rate_hz == pytest.approx(rostopic_hz, rel=0.05)
-        assert ours.bandwidth_mbytes_per_s == pytest.approx(rostopic_mbytes, rel=0.1), ros.output("rostopic_bw")[-600:] + ros.output("rostopic_hz")[-400:]
+        assert ours.bandwidth_mbytes_per_s == pytest.approx(rostopic_mbytes, rel=0.1), (
+            ros.output("rostopic_bw")[-600:] + ros.output("rostopic_hz")[-400:]
+        )
         assert ours.mean_message_bytes == pytest.approx(40000 + 60, rel=0.01)
         assert 0.0 < ours.latency_avg_ms <= ours.latency_max_ms < 500.0 and ours.latency_std_ms >= 0.0
         assert ours.robot == "" and not ours.managed and ours.window_s == 3.0

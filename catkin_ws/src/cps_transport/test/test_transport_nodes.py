@@ -1,5 +1,6 @@
 """The encoder and decoder nodes carry a cloud from /<r>/points_filtered to /twin/<r>/points with
 its stamp and frame; bad messages are dropped, counted (also in /tissue/stats) and nothing else is lost."""
+
 import threading
 import time
 from types import SimpleNamespace
@@ -7,10 +8,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_harness.testing import wait_for
 from cps_transport.draco import DracoEncoder
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
-from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_transport.voxel import voxel_downsample
 
 pytestmark = pytest.mark.ros
@@ -22,8 +23,8 @@ def _collect(rospy, topic, msg_type):
     def on_msg(msg):
         received.append(msg)
         event.set()
-    return rospy.Subscriber(topic, msg_type, on_msg), received, event
 
+    return rospy.Subscriber(topic, msg_type, on_msg), received, event
 
 
 R = "tn1"
@@ -38,12 +39,28 @@ def pipeline(ros, rospy_node):
 
     from cps_msgs.msg import CompressedPointCloud2, TopicStatsArray
 
-    ros.start_node("cps_transport", "draco_encoder", name="draco_encoder", namespace=f"/{R}",
-                   params={"~leaf_size_m": 0.1, "~fields": "xyz,rgb"}, remap={"~input": f"/{R}/points_filtered"})
-    ros.start_node("cps_transport", "draco_decoder", name="draco_decoder", namespace="/twin",
-                   remap={"~input": f"/{R}/points_filtered/draco", "~output": f"/twin/{R}/points"})
-    ros.start_node("cps_transport", "topic_stats", name="topic_stats", namespace=f"/{R}",
-                   params={"~topics": [f"/{R}/points_filtered/draco"], "~publish_rate_hz": 4.0})
+    ros.start_node(
+        "cps_transport",
+        "draco_encoder",
+        name="draco_encoder",
+        namespace=f"/{R}",
+        params={"~leaf_size_m": 0.1, "~fields": "xyz,rgb"},
+        remap={"~input": f"/{R}/points_filtered"},
+    )
+    ros.start_node(
+        "cps_transport",
+        "draco_decoder",
+        name="draco_decoder",
+        namespace="/twin",
+        remap={"~input": f"/{R}/points_filtered/draco", "~output": f"/twin/{R}/points"},
+    )
+    ros.start_node(
+        "cps_transport",
+        "topic_stats",
+        name="topic_stats",
+        namespace=f"/{R}",
+        params={"~topics": [f"/{R}/points_filtered/draco"], "~publish_rate_hz": 4.0},
+    )
     ros.wait_for_topic(f"/{R}/points_filtered/draco", timeout_s=20)
     ros.wait_for_topic(f"/twin/{R}/points", timeout_s=20)
 
@@ -94,7 +111,9 @@ def test_encoder_drops_bad_clouds_and_the_next_crosses_with_stamp_and_frame(ros,
     assert out.height == 1 and [f.name for f in out.fields] == ["x", "y", "z", "rgb"]
     np.testing.assert_allclose(xyz_of(cloud_to_array(out)), c, atol=0.05)
     assert wait_for(lambda: _reported_invalid(p.diagnostics, f"/{R}/draco_encoder") == 3), (
-        _reported_invalid(p.diagnostics, f"/{R}/draco_encoder"), ros.output("draco_encoder")[-1500:])
+        _reported_invalid(p.diagnostics, f"/{R}/draco_encoder"),
+        ros.output("draco_encoder")[-1500:],
+    )
     assert all(proc.poll() is None for proc in ros.processes)
 
 
@@ -102,7 +121,7 @@ def test_decoder_drops_bad_payloads_counts_them_in_the_stats_and_decodes_the_nex
     p = pipeline
     good = DracoEncoder(leaf_size_m=0.1).encode(p.filtered)
     truncated = DracoEncoder(leaf_size_m=0.1).encode(p.filtered)
-    truncated.compressed_data = bytes(good.compressed_data)[:len(good.compressed_data) // 3]
+    truncated.compressed_data = bytes(good.compressed_data)[: len(good.compressed_data) // 3]
     corrupt = DracoEncoder(leaf_size_m=0.1).encode(p.filtered)
     corrupt.compressed_data = bytes(255 - b for b in bytes(good.compressed_data))
     unknown_type = DracoEncoder(leaf_size_m=0.1).encode(p.filtered)
@@ -114,7 +133,9 @@ def test_decoder_drops_bad_payloads_counts_them_in_the_stats_and_decodes_the_nex
     p.compressed_pub.publish(good)
     assert wait_for(lambda: any(m.header.stamp == good.header.stamp for m in p.decoded), 15.0)
     assert wait_for(lambda: _reported_invalid(p.diagnostics, "/twin/draco_decoder") == 3), (
-        _reported_invalid(p.diagnostics, "/twin/draco_decoder"), ros.output("draco_decoder")[-1500:])
+        _reported_invalid(p.diagnostics, "/twin/draco_decoder"),
+        ros.output("draco_decoder")[-1500:],
+    )
 
     def invalid_in_stats():
         for array in reversed(p.stats):
@@ -122,14 +143,20 @@ def test_decoder_drops_bad_payloads_counts_them_in_the_stats_and_decodes_the_nex
                 if item.topic == f"/{R}/points_filtered/draco":
                     return item.invalid_messages
         return None
+
     assert wait_for(lambda: invalid_in_stats() == 3)
     assert "dropped a message" in ros.output("draco_decoder")
     assert all(proc.poll() is None for proc in ros.processes)
 
 
 def test_encoder_refuses_a_bad_parameter(ros):
-    proc = ros.start_node("cps_transport", "draco_encoder", name="bad_encoder", namespace="/tn2",
-                          params={"~speed": 11, "~leaf_size_m": 0.1})
+    proc = ros.start_node(
+        "cps_transport",
+        "draco_encoder",
+        name="bad_encoder",
+        namespace="/tn2",
+        params={"~speed": 11, "~leaf_size_m": 0.1},
+    )
     proc.wait(30)
     assert proc.returncode != 0
     assert "~speed" in ros.output("bad_encoder") or "speed" in ros.output("bad_encoder")

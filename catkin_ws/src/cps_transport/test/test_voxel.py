@@ -1,5 +1,6 @@
 """voxel_downsample has pcl::VoxelGrid's semantics: one centroid per occupied voxel, voxel index
 floor(p / leaf), non-finite points ignored, pcl's voxel order."""
+
 import numpy as np
 import pytest
 

@@ -5,6 +5,7 @@ parameters from fleet.yaml, waits until each is up, restarts what dies, prints p
 Ctrl-C or the end of the mission stops everything. With --link, the physical and digital twins
 run in two network namespaces joined by a shaped link (cps_link), like the paper's Wi-Fi.
 """
+
 import argparse
 import contextlib
 import dataclasses
@@ -15,18 +16,45 @@ import time
 from typing import Dict, List, Optional
 
 from cps_bringup.mission import MissionMonitor, wait_for_mission
-from cps_bringup.plan import (CONTROL_LAYOUTS, DIGITAL, GUI_SCREENSHOT_AFTER_S, MAP_SERVER, MAP_SERVER_READY, PHYSICAL,
-                               RECORDER, SHARED, TCPROS, TISSUE_LAYOUTS, TRANSPORTS, ZENOH, RunOptions, plan_nodes)
-from cps_bringup.privileges import (PrivilegeError, check_code_readable, ensure_map_kernels, hand_over, node_user,
-                                    user_env, user_prefix)
-from cps_bringup.supervisor import (BringupError, Event, MasterLost, RestartPolicy, Supervisor, ensure_port_free,
-                                    node_log_dir)
+from cps_bringup.plan import (
+    CONTROL_LAYOUTS,
+    DIGITAL,
+    GUI_SCREENSHOT_AFTER_S,
+    MAP_SERVER,
+    MAP_SERVER_READY,
+    PHYSICAL,
+    RECORDER,
+    SHARED,
+    TCPROS,
+    TISSUE_LAYOUTS,
+    TRANSPORTS,
+    ZENOH,
+    RunOptions,
+    plan_nodes,
+)
+from cps_bringup.privileges import (
+    PrivilegeError,
+    check_code_readable,
+    ensure_map_kernels,
+    hand_over,
+    node_user,
+    user_env,
+    user_prefix,
+)
+from cps_bringup.supervisor import (
+    BringupError,
+    Event,
+    MasterLost,
+    RestartPolicy,
+    Supervisor,
+    ensure_port_free,
+    node_log_dir,
+)
 from cps_fleet import names
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import PROFILES, load_fleet, robot_names_arg
 from cps_ros.processes import RosGraph, free_port
 from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
-
 
 # The exit code when the ROS master died mid-mission: the map was saved (if the map server could)
 # and everything stopped; the run is not restarted (docs/reliability.md).
@@ -50,61 +78,126 @@ def build_parser():
     parser = argparse.ArgumentParser(prog="cps_bringup", description=__doc__.split("\n\n")[0])
     parser.add_argument("side", choices=("physical", "digital", "all"))
     parser.add_argument("--fleet", default=None, help="fleet.yaml (default: cps_bringup/config/fleet.yaml)")
-    parser.add_argument("--profile", choices=PROFILES, default=None,
-                        help="sensor profile (default: fleet.yaml's)")
+    parser.add_argument("--profile", choices=PROFILES, default=None, help="sensor profile (default: fleet.yaml's)")
     parser.add_argument("--robots", default=None, help="comma-separated subset of the fleet, e.g. scout,jackal")
-    parser.add_argument("--duration", type=float, default=None, metavar="S",
-                        help="stop after S seconds even if routes are not done (default: run until all done)")
+    parser.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S seconds even if routes are not done (default: run until all done)",
+    )
     parser.add_argument("--out", default="out/mission", help="output folder (logs, CSVs, map)")
     parser.add_argument("--port", type=int, default=None, help="roscore port (default: a free one)")
-    parser.add_argument("--master-uri", default=None,
-                        help="join this master instead of starting one (split physical/digital across machines)")
-    parser.add_argument("--link", default="none", metavar="RATE",
-                        help="run the twins across a link shaped to this tc rate, e.g. 20mbit (needs root); "
-                             "'none' = loopback")
-    parser.add_argument("--link-scenario", default=None, metavar="NAME",
-                        help="run a cps_link scenario (capacity steps, outages; cps_link/config/scenarios/NAME.yaml "
-                             "or a path) on the link during the mission; implies --link at its initial rate")
-    parser.add_argument("--transport", choices=TRANSPORTS, default=ZENOH,
-                        help="zenoh: a master per side, joined only by cps_link's mutual-TLS bridges; "
-                             "tcpros: one master across the link (the paper's set-up)")
-    parser.add_argument("--control-layout", choices=CONTROL_LAYOUTS, default=RunOptions.control_layout,
-                        help="the robots' velocity mux and route controller: shared (one fleet_control process "
-                             "for every robot) or per_robot (a velocity_mux and a route_controller per robot)")
-    parser.add_argument("--twin-address", default=None,
-                        help="zenoh: the twin host's address, where its bridge listens (default: the link's twin "
-                             "address, or 127.0.0.1)")
+    parser.add_argument(
+        "--master-uri",
+        default=None,
+        help="join this master instead of starting one (split physical/digital across machines)",
+    )
+    parser.add_argument(
+        "--link",
+        default="none",
+        metavar="RATE",
+        help="run the twins across a link shaped to this tc rate, e.g. 20mbit (needs root); 'none' = loopback",
+    )
+    parser.add_argument(
+        "--link-scenario",
+        default=None,
+        metavar="NAME",
+        help="run a cps_link scenario (capacity steps, outages; cps_link/config/scenarios/NAME.yaml "
+        "or a path) on the link during the mission; implies --link at its initial rate",
+    )
+    parser.add_argument(
+        "--transport",
+        choices=TRANSPORTS,
+        default=ZENOH,
+        help="zenoh: a master per side, joined only by cps_link's mutual-TLS bridges; "
+        "tcpros: one master across the link (the paper's set-up)",
+    )
+    parser.add_argument(
+        "--control-layout",
+        choices=CONTROL_LAYOUTS,
+        default=RunOptions.control_layout,
+        help="the robots' velocity mux and route controller: shared (one fleet_control process "
+        "for every robot) or per_robot (a velocity_mux and a route_controller per robot)",
+    )
+    parser.add_argument(
+        "--twin-address",
+        default=None,
+        help="zenoh: the twin host's address, where its bridge listens (default: the link's twin "
+        "address, or 127.0.0.1)",
+    )
     parser.add_argument("--link-name", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
     parser.add_argument("--screenshot-after", type=float, default=GUI_SCREENSHOT_AFTER_S, metavar="S")
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
-    parser.add_argument("--renderer", choices=RENDERERS, default=DEFAULT_RENDERER,
-                        help="sensor renderer: fast (moderngl on EGL + Embree; falls back to PyBullet's without "
-                             "EGL), or PyBullet's egl, tiny, auto (TinyRenderer for small images, EGL for 640x480)")
-    parser.add_argument("--no-sim", action="store_true",
-                        help="real robots: do not start fleet_sim; their drivers publish /<r>/points, odom, tf")
-    parser.add_argument("--run-as", default=None, metavar="USER",
-                        help="user the nodes run as when started as root (default: nobody; 'root' keeps root)")
-    parser.add_argument("--baseline", default=None, metavar="MAP.bt",
-                        help="monitoring mission: compare the new map with this earlier one of the site, live")
-    parser.add_argument("--site-changes", default=None, metavar="FILE",
-                        help="monitoring mission in simulation: equipment removed/moved/added (YAML, see "
-                             "cps_bringup/config/site_changes.yaml); needs --baseline")
-    parser.add_argument("--record", default=None, metavar="BAG",
-                        help="record the mission (sensor, odometry, tf topics and the twin's managed inputs) "
-                             "to this rosbag with rosbag record")
-    parser.add_argument("--replay", default=None, metavar="BAG",
-                        help="physical side: play this mission bag (e.g. your own robot's) with rosbag play "
-                             "in place of the simulator, on the bag's clock; the mission ends with the bag")
-    parser.add_argument("--bandwidth-manager", choices=("on", "off"), default="on",
-                        help="off: no bandwidth manager; each robot's rate limiter passes its sensor's full rate "
-                             "(the paper's unmanaged case, for comparison)")
-    parser.add_argument("--tissue-layout", choices=TISSUE_LAYOUTS, default=SHARED,
-                        help="shared: a fixed number of tissue processes per side for any fleet (one nodelet "
-                             "manager and loader, one cloud_tissue, one cloud_decoder); per_robot: one process per "
-                             "node and robot, to compare with")
-    parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
-                        help="fault injection: kill the map server S seconds into the mission")
+    parser.add_argument(
+        "--renderer",
+        choices=RENDERERS,
+        default=DEFAULT_RENDERER,
+        help="sensor renderer: fast (moderngl on EGL + Embree; falls back to PyBullet's without "
+        "EGL), or PyBullet's egl, tiny, auto (TinyRenderer for small images, EGL for 640x480)",
+    )
+    parser.add_argument(
+        "--no-sim",
+        action="store_true",
+        help="real robots: do not start fleet_sim; their drivers publish /<r>/points, odom, tf",
+    )
+    parser.add_argument(
+        "--run-as",
+        default=None,
+        metavar="USER",
+        help="user the nodes run as when started as root (default: nobody; 'root' keeps root)",
+    )
+    parser.add_argument(
+        "--baseline",
+        default=None,
+        metavar="MAP.bt",
+        help="monitoring mission: compare the new map with this earlier one of the site, live",
+    )
+    parser.add_argument(
+        "--site-changes",
+        default=None,
+        metavar="FILE",
+        help="monitoring mission in simulation: equipment removed/moved/added (YAML, see "
+        "cps_bringup/config/site_changes.yaml); needs --baseline",
+    )
+    parser.add_argument(
+        "--record",
+        default=None,
+        metavar="BAG",
+        help="record the mission (sensor, odometry, tf topics and the twin's managed inputs) "
+        "to this rosbag with rosbag record",
+    )
+    parser.add_argument(
+        "--replay",
+        default=None,
+        metavar="BAG",
+        help="physical side: play this mission bag (e.g. your own robot's) with rosbag play "
+        "in place of the simulator, on the bag's clock; the mission ends with the bag",
+    )
+    parser.add_argument(
+        "--bandwidth-manager",
+        choices=("on", "off"),
+        default="on",
+        help="off: no bandwidth manager; each robot's rate limiter passes its sensor's full rate "
+        "(the paper's unmanaged case, for comparison)",
+    )
+    parser.add_argument(
+        "--tissue-layout",
+        choices=TISSUE_LAYOUTS,
+        default=SHARED,
+        help="shared: a fixed number of tissue processes per side for any fleet (one nodelet "
+        "manager and loader, one cloud_tissue, one cloud_decoder); per_robot: one process per "
+        "node and robot, to compare with",
+    )
+    parser.add_argument(
+        "--kill-map-server-at",
+        type=float,
+        default=None,
+        metavar="S",
+        help="fault injection: kill the map server S seconds into the mission",
+    )
     return parser
 
 
@@ -129,9 +222,26 @@ def _sides(side):
 # CSVs (appended to, so that a restarted node keeps its rows) would mix two missions.
 MISSION_OUTPUTS = {
     PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv"),
-    DIGITAL: ("map.bt", "map.bt.json", "map_changes.md", "map_changes.json", "stats.csv", "arrivals.csv",
-              "allocation.csv", "gui.png", "ground_truth.npz", "scores.json", "topdown.png", "link.png", "report.md",
-              "link_events.csv", "link_state.csv", "trajectories.csv", "map_age.csv", "verdict.json"),
+    DIGITAL: (
+        "map.bt",
+        "map.bt.json",
+        "map_changes.md",
+        "map_changes.json",
+        "stats.csv",
+        "arrivals.csv",
+        "allocation.csv",
+        "gui.png",
+        "ground_truth.npz",
+        "scores.json",
+        "topdown.png",
+        "link.png",
+        "report.md",
+        "link_events.csv",
+        "link_state.csv",
+        "trajectories.csv",
+        "map_age.csv",
+        "verdict.json",
+    ),
 }
 
 
@@ -168,17 +278,26 @@ def run_mission(args, log=print) -> MissionResult:
     os.makedirs(out_dir, exist_ok=True)
     removed = clear_previous_mission(out_dir, sides)
     if removed:
-        log(f"[bringup] {out_dir}: removed the previous mission's {', '.join(removed)} (a new mission starts "
-            f"with an empty map)")
+        log(
+            f"[bringup] {out_dir}: removed the previous mission's {', '.join(removed)} (a new mission starts "
+            f"with an empty map)"
+        )
     options = RunOptions(
-        out_dir=out_dir, profile=args.profile, renderer=args.renderer, simulate=not args.no_sim,
+        out_dir=out_dir,
+        profile=args.profile,
+        renderer=args.renderer,
+        simulate=not args.no_sim,
         map_file=os.path.join(out_dir, "map.bt"),
         gui_screenshot_path=os.path.join(out_dir, "gui.png") if args.screenshot and DIGITAL in sides else None,
-        gui_screenshot_after_s=args.screenshot_after, baseline_map=baseline, site_changes_file=site_changes,
-        record_path=os.path.abspath(args.record) if args.record else None, replay_path=replay_path,
+        gui_screenshot_after_s=args.screenshot_after,
+        baseline_map=baseline,
+        site_changes_file=site_changes,
+        record_path=os.path.abspath(args.record) if args.record else None,
+        replay_path=replay_path,
         bandwidth_manager=args.bandwidth_manager == "on",
         control_layout=args.control_layout,
-        tissue_layout=args.tissue_layout)
+        tissue_layout=args.tissue_layout,
+    )
     transport = args.transport
     if replay_path and transport == ZENOH and len(sides) == 2:
         log("[bringup] --replay: one master for both sides (tcpros), so that the bag's /clock reaches every node")
@@ -191,8 +310,11 @@ def run_mission(args, log=print) -> MissionResult:
             options = dataclasses.replace(options, available_mbps=link.measured_mbps)
         if zenoh:
             options = dataclasses.replace(
-                options, transport=ZENOH, twin_address=args.twin_address or (link.twin_ip if link else "127.0.0.1"),
-                zenoh_port=None if link or args.twin_address else free_port())
+                options,
+                transport=ZENOH,
+                twin_address=args.twin_address or (link.twin_ip if link else "127.0.0.1"),
+                zenoh_port=None if link or args.twin_address else free_port(),
+            )
         specs = plan_nodes(fleet, sides=sides, options=options)
         if DIGITAL in sides:
             ensure_map_kernels(log)  # before the mission: no node compiles during it
@@ -235,15 +357,22 @@ def run_mission(args, log=print) -> MissionResult:
 
             rosgraph.Master("cps_bringup", master_uri=graph.uri).setParam(names.USE_SIM_TIME, True)
         robots_master = f"; robots master {side_graphs[PHYSICAL].uri} (joined by Zenoh bridges)" if side_graphs else ""
-        log(f"[bringup] master {graph.uri}{robots_master}; "
+        log(
+            f"[bringup] master {graph.uri}{robots_master}; "
             f"link: {link.describe() if link else 'loopback (no shaping)'}; "
-            f"robots {', '.join(fleet.robot_names)}; profile {options.profile or fleet.profile.name}; out {out_dir}")
+            f"robots {', '.join(fleet.robot_names)}; profile {options.profile or fleet.profile.name}; out {out_dir}"
+        )
         supervisor = Supervisor(
-            specs, graph, log=log,
+            specs,
+            graph,
+            log=log,
             side_prefix={PHYSICAL: link.exec_prefix("phys")} if link else None,
-            side_env=side_env or None, side_graphs=side_graphs,
-            policy=RestartPolicy.from_limits(fleet.limits), node_log_max_bytes=int(fleet.limits.node_log_max_mbytes * 1e6),
-            user_prefix=prefix if user else None)
+            side_env=side_env or None,
+            side_graphs=side_graphs,
+            policy=RestartPolicy.from_limits(fleet.limits),
+            node_log_max_bytes=int(fleet.limits.node_log_max_mbytes * 1e6),
+            user_prefix=prefix if user else None,
+        )
         recorder_log = None
         if options.record_path:
             # Registered first, so it runs after stop_all: the recorder has closed (or died) by then.
@@ -255,7 +384,7 @@ def run_mission(args, log=print) -> MissionResult:
         rospy.init_node("cps_bringup", anonymous=True, disable_signals=True)
         from cps_sim.estop_keeper import EstopKeeper
 
-        stack.callback(EstopKeeper().close)    # the e-stop state outlives the GUI
+        stack.callback(EstopKeeper().close)  # the e-stop state outlives the GUI
         supervisor.start_all(timeout_s=args.start_timeout)
         if DIGITAL in sides:
             _record_map_server_ready(supervisor)
@@ -263,8 +392,9 @@ def run_mission(args, log=print) -> MissionResult:
         runner = link.start_scenario(os.path.join(out_dir, "link_events.csv"), log) if link else None
         if runner:
             stack.callback(runner.stop)
-        monitor = MissionMonitor(fleet, map_age_csv_path=os.path.join(out_dir, "map_age.csv") if DIGITAL in sides
-                                 else None)
+        monitor = MissionMonitor(
+            fleet, map_age_csv_path=os.path.join(out_dir, "map_age.csv") if DIGITAL in sides else None
+        )
         stack.callback(monitor.close)
 
         killed = []
@@ -272,14 +402,21 @@ def run_mission(args, log=print) -> MissionResult:
         def fault_injection(elapsed):
             if args.kill_map_server_at is not None and not killed and elapsed >= args.kill_map_server_at:
                 os.kill(supervisor.pid_of("map_server"), signal.SIGKILL)
-                supervisor.record("map_server", f"killed by --kill-map-server-at (fault injection, {elapsed:.0f} s "
-                                                "into the mission)")
+                supervisor.record(
+                    "map_server", f"killed by --kill-map-server-at (fault injection, {elapsed:.0f} s into the mission)"
+                )
                 killed.append(elapsed)
 
         ended_by, elapsed = "interrupted", 0.0
         try:
-            ended_by, elapsed = wait_for_mission(monitor, supervisor, args.duration, log=log, on_tick=fault_injection,
-                                                 finished=_replay_finished(supervisor) if replay_path else None)
+            ended_by, elapsed = wait_for_mission(
+                monitor,
+                supervisor,
+                args.duration,
+                log=log,
+                on_tick=fault_injection,
+                finished=_replay_finished(supervisor) if replay_path else None,
+            )
         except KeyboardInterrupt:
             log("[bringup] interrupted; shutting down")
         except MasterLost as exc:
@@ -291,8 +428,16 @@ def run_mission(args, log=print) -> MissionResult:
             map_file = _save_map(options.map_file, log) if DIGITAL in sides else None
         if options.gui_screenshot_path and ended_by != MASTER_LOST:
             _wait_for_screenshot(supervisor, options.gui_screenshot_path, log)
-        return MissionResult(out_dir, ended_by, elapsed, link.describe() if link else "loopback",
-                             map_file, monitor.snapshot(), list(supervisor.events), supervisor.restarts())
+        return MissionResult(
+            out_dir,
+            ended_by,
+            elapsed,
+            link.describe() if link else "loopback",
+            map_file,
+            monitor.snapshot(),
+            list(supervisor.events),
+            supervisor.restarts(),
+        )
 
 
 def _record_map_server_ready(supervisor):
@@ -306,8 +451,11 @@ def _record_map_server_ready(supervisor):
     except rospy.ROSException:
         ready = f"no message on {MAP_SERVER_READY}"
     sim = supervisor.running.get("fleet_sim")
-    clouds = (f"fleet_sim (the clouds) started {sim.waited_s:.1f} s into the bring-up, after it"
-              if sim and MAP_SERVER in sim.spec.after else "the clouds do not wait for it")
+    clouds = (
+        f"fleet_sim (the clouds) started {sim.waited_s:.1f} s into the bring-up, after it"
+        if sim and MAP_SERVER in sim.spec.after
+        else "the clouds do not wait for it"
+    )
     supervisor.record(MAP_SERVER, f"{ready}; {clouds}")
 
 
@@ -347,11 +495,15 @@ def check_monitoring_inputs(args, fleet, sides):
     baseline = os.path.abspath(os.path.expanduser(args.baseline)) if args.baseline else None
     changes = os.path.abspath(os.path.expanduser(args.site_changes)) if args.site_changes else None
     if changes and not baseline:
-        raise BringupError("--site-changes makes this a monitoring mission, which needs --baseline MAP.bt "
-                           "(the map of an earlier mission, e.g. out/demo/map.bt from `make demo`)")
+        raise BringupError(
+            "--site-changes makes this a monitoring mission, which needs --baseline MAP.bt "
+            "(the map of an earlier mission, e.g. out/demo/map.bt from `make demo`)"
+        )
     if baseline and baseline == os.path.join(os.path.abspath(args.out), "map.bt"):
-        raise BringupError(f"--baseline {baseline} is this mission's own map file, which a new mission replaces; "
-                           f"copy it elsewhere or choose another --out")
+        raise BringupError(
+            f"--baseline {baseline} is this mission's own map file, which a new mission replaces; "
+            f"copy it elsewhere or choose another --out"
+        )
     if baseline and DIGITAL in sides:
         try:
             load_baseline(baseline, fleet.mapping)
@@ -403,6 +555,7 @@ def _replay_finished(supervisor):
 
 def _save_map(path, log):
     import rospy
+
     from cps_msgs.srv import SaveMap
 
     try:
@@ -426,8 +579,11 @@ def _save_map_without_master(supervisor, path, log):
     if os.path.exists(path) and os.path.getmtime(path) != before:
         log(f"[bringup] map saved to {path} by the map server on shutdown")
         return path
-    log(f"[bringup] the map server did not save on shutdown; {path} holds its last autosave"
-        if os.path.exists(path) else "[bringup] no map saved")
+    log(
+        f"[bringup] the map server did not save on shutdown; {path} holds its last autosave"
+        if os.path.exists(path)
+        else "[bringup] no map saved"
+    )
     return path if os.path.exists(path) else None
 
 
@@ -485,7 +641,9 @@ def main(argv=None):
         return 130
     print(f"[bringup] ended by {result.ended_by} after {result.elapsed_s:.0f} s; outputs in {result.out_dir}")
     if result.ended_by == MASTER_LOST:
-        print(f"cps_bringup: error: the ROS master died; mission ended (map: {result.map_file or 'none'})",
-              file=sys.stderr)
+        print(
+            f"cps_bringup: error: the ROS master died; mission ended (map: {result.map_file or 'none'})",
+            file=sys.stderr,
+        )
         return EXIT_MASTER_LOST
     return 0

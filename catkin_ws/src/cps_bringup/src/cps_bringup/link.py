@@ -5,14 +5,14 @@ Entering a network namespace with setns(2) changes only the calling thread; the 
 it from its main thread before it starts rospy or any process, so everything it starts afterwards
 is on the digital-twin host, and it returns to its own namespace before the link is removed.
 """
+
 import concurrent.futures
 import contextlib
 import ctypes
 import dataclasses
 import os
 
-from cps_link.netns_link import (LinkError, PHYS_IP, TWIN_IP, ShapedLink, check_capability, link_exists,
-                                       namespace)
+from cps_link.netns_link import PHYS_IP, TWIN_IP, LinkError, ShapedLink, check_capability, link_exists, namespace
 
 LINK_NAME = "cpsfleet"
 _CLONE_NEWNET = 0x40000000
@@ -61,10 +61,12 @@ class NamespacedLink:
         return runner
 
     def describe(self):
-        return (("shared-medium " if self.scenario and self.scenario.topology == "shared" else "")
-                + f"tc-shaped {self.rate} veth between namespaces {namespace(self.name, 'phys')} ({self.phys_ip}) and "
-                f"{namespace(self.name, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s"
-                + (f"; scenario {self.scenario.name}" if self.scenario else ""))
+        return (
+            ("shared-medium " if self.scenario and self.scenario.topology == "shared" else "")
+            + f"tc-shaped {self.rate} veth between namespaces {namespace(self.name, 'phys')} ({self.phys_ip}) and "
+            f"{namespace(self.name, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s"
+            + (f"; scenario {self.scenario.name}" if self.scenario else "")
+        )
 
 
 class InNamespace:
@@ -102,8 +104,9 @@ def namespaced_link(rate, log=print, scenario=None, name=LINK_NAME):
     thread into the twin namespace; undo all on exit."""
     check_capability()
     if link_exists(name):
-        raise LinkError(f"a link named {name} already exists (another run?); remove it with "
-                        f"`cps_link down --name {name}`")
+        raise LinkError(
+            f"a link named {name} already exists (another run?); remove it with `cps_link down --name {name}`"
+        )
     shaping = {}
     if scenario is not None:
         from cps_link.netns_link import netem_available, tc_rate

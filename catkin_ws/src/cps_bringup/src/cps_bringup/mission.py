@@ -3,6 +3,7 @@
 `MissionProgress` is plain data updated by ROS callbacks (`MissionMonitor` wires them) and
 formatted by `format_progress`.
 """
+
 import dataclasses
 import threading
 import time
@@ -74,10 +75,13 @@ class Trajectory:
 
 
 def format_progress(progress: MissionProgress, elapsed_s: float) -> str:
-    states = " ".join(f"{r}:{progress.mission_state.get(r, '?')}@{progress.rates_hz.get(r, 0):.0f}Hz"
-                      for r in progress.robots)
-    return (f"[{elapsed_s:6.1f} s] {states} | map {progress.occupied_voxels} voxels | "
-            f"link {progress.managed_mbytes_per_s:.2f}/{progress.budget_mbytes_per_s:.2f} MB/s")
+    states = " ".join(
+        f"{r}:{progress.mission_state.get(r, '?')}@{progress.rates_hz.get(r, 0):.0f}Hz" for r in progress.robots
+    )
+    return (
+        f"[{elapsed_s:6.1f} s] {states} | map {progress.occupied_voxels} voxels | "
+        f"link {progress.managed_mbytes_per_s:.2f}/{progress.budget_mbytes_per_s:.2f} MB/s"
+    )
 
 
 # map_age.csv, which the mission monitor writes and the mission verdict reads (cps_experiments.verdict).
@@ -87,8 +91,16 @@ MAP_AGE_COLUMNS = ("time_s", "robot", "map_age_s", "mission_state", "clouds_inse
 def map_age_rows(map_stats, mission_state, now_s):
     """map_age.csv rows (MAP_AGE_COLUMNS) of one cps_msgs/MapStats message:
     per robot, the wall time, its map age, its mission state then and its inserted clouds."""
-    return [(f"{now_s:.3f}", stats.robot, f"{stats.map_age_s:.3f}", mission_state.get(stats.robot, ""),
-             stats.clouds_inserted) for stats in map_stats.robots]
+    return [
+        (
+            f"{now_s:.3f}",
+            stats.robot,
+            f"{stats.map_age_s:.3f}",
+            mission_state.get(stats.robot, ""),
+            stats.clouds_inserted,
+        )
+        for stats in map_stats.robots
+    ]
 
 
 class MissionMonitor:
@@ -99,9 +111,10 @@ class MissionMonitor:
         verdict's map-stale check reads it); None: not logged."""
         import rospy
         import tf2_ros
-        from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
         from nav_msgs.msg import Odometry
         from std_msgs.msg import String
+
+        from cps_msgs.msg import BandwidthAllocationArray, MapStats, TopicStatsArray
 
         robots = fleet.robot_names
         self.progress = MissionProgress(list(robots), trajectories={r: () for r in robots})
@@ -118,9 +131,13 @@ class MissionMonitor:
 
             self._map_age_log = CsvLog(map_age_csv_path, MAP_AGE_COLUMNS)
             self._mark_map_age_log("start")
-        self._subs = [rospy.Subscriber(names.robot_topic(r, names.MISSION_STATE), String, self._on_state, callback_args=r)
-                      for r in robots]
-        self._subs += [rospy.Subscriber(names.robot_topic(r, names.ODOM), Odometry, self._on_odom, callback_args=r) for r in robots]
+        self._subs = [
+            rospy.Subscriber(names.robot_topic(r, names.MISSION_STATE), String, self._on_state, callback_args=r)
+            for r in robots
+        ]
+        self._subs += [
+            rospy.Subscriber(names.robot_topic(r, names.ODOM), Odometry, self._on_odom, callback_args=r) for r in robots
+        ]
         self._subs.append(rospy.Subscriber(names.in_twin(names.MAP_STATS), MapStats, self._on_map))
         self._subs.append(rospy.Subscriber(names.ALLOCATION, BandwidthAllocationArray, self._on_allocation))
         self._subs.append(rospy.Subscriber(names.TISSUE_STATS, TopicStatsArray, self._on_stats))
@@ -166,8 +183,9 @@ class MissionMonitor:
             for stats in msg.robots:
                 self.progress.map_age_s[stats.robot] = stats.map_age_s
                 self.progress.clouds_inserted[stats.robot] = stats.clouds_inserted
-                self.progress.clouds_dropped[stats.robot] = (stats.clouds_dropped_queue + stats.clouds_dropped_tf
-                                                             + stats.clouds_dropped_invalid)
+                self.progress.clouds_dropped[stats.robot] = (
+                    stats.clouds_dropped_queue + stats.clouds_dropped_tf + stats.clouds_dropped_invalid
+                )
                 self.progress.voxels_contributed[stats.robot] = stats.occupied_voxels_contributed
             if self._map_age_log is not None:
                 for row in map_age_rows(msg, self.progress.mission_state, time.time()):
@@ -190,15 +208,18 @@ class MissionMonitor:
 
     def snapshot(self) -> MissionProgress:
         with self._lock:
-            return dataclasses.replace(self.progress, mission_state=dict(self.progress.mission_state),
-                                       done_at_s=dict(self.progress.done_at_s),
-                                       map_age_s=dict(self.progress.map_age_s),
-                                       clouds_inserted=dict(self.progress.clouds_inserted),
-                                       clouds_dropped=dict(self.progress.clouds_dropped),
-                                       voxels_contributed=dict(self.progress.voxels_contributed),
-                                       rates_hz=dict(self.progress.rates_hz),
-                                       managed_latency_ms=dict(self.progress.managed_latency_ms),
-                                       trajectories={r: t.points() for r, t in self._trajectories.items()})
+            return dataclasses.replace(
+                self.progress,
+                mission_state=dict(self.progress.mission_state),
+                done_at_s=dict(self.progress.done_at_s),
+                map_age_s=dict(self.progress.map_age_s),
+                clouds_inserted=dict(self.progress.clouds_inserted),
+                clouds_dropped=dict(self.progress.clouds_dropped),
+                voxels_contributed=dict(self.progress.voxels_contributed),
+                rates_hz=dict(self.progress.rates_hz),
+                managed_latency_ms=dict(self.progress.managed_latency_ms),
+                trajectories={r: t.points() for r, t in self._trajectories.items()},
+            )
 
     def _mark_map_age_log(self, mark):
         """A row per robot with no age: when the monitoring started and ended, so the verdict sees a
@@ -214,8 +235,15 @@ class MissionMonitor:
             self._map_age_log.close()
 
 
-def wait_for_mission(monitor: MissionMonitor, supervisor, duration_s: Optional[float], print_every_s=10.0,
-                     log=print, on_tick=None, finished=None):
+def wait_for_mission(
+    monitor: MissionMonitor,
+    supervisor,
+    duration_s: Optional[float],
+    print_every_s=10.0,
+    log=print,
+    on_tick=None,
+    finished=None,
+):
     """Poll until every robot is done or `duration_s` passes; the supervisor restarts what dies."""
     t0 = time.monotonic()
     last_print = -print_every_s

@@ -6,6 +6,7 @@ own clock (`rosbag play --clock`, every node with /use_sim_time): the clouds kee
 stamps, tf is looked up at those stamps and the tissue's latency is measured against the replayed
 clock, so replay latency is the tissue's own, not the time since the recording.
 """
+
 import dataclasses
 from typing import Dict, List, Tuple
 
@@ -93,12 +94,15 @@ def check_bag(path: str, fleet: FleetConfig) -> BagContents:
     clouds = {cloud_topic(fleet, r): r for r in fleet.robot_names}
     contents = read_bag(path, clouds)
     problems = []
-    recorded_robots = sorted({t.split("/")[1] for t in contents.topics
-                              if t.count("/") >= 2 and t.endswith("/" + names.ODOM)})
+    recorded_robots = sorted(
+        {t.split("/")[1] for t in contents.topics if t.count("/") >= 2 and t.endswith("/" + names.ODOM)}
+    )
     ours = set(fleet.robot_names)
     if recorded_robots and not ours & set(recorded_robots):
-        raise BagError(f"{path} was recorded for another fleet: it holds robots {', '.join(recorded_robots)}, "
-                       f"the fleet ({fleet.path}) has {', '.join(fleet.robot_names)}")
+        raise BagError(
+            f"{path} was recorded for another fleet: it holds robots {', '.join(recorded_robots)}, "
+            f"the fleet ({fleet.path}) has {', '.join(fleet.robot_names)}"
+        )
     missing = [t for t in required_topics(fleet) if t not in contents.topics]
     if missing:
         problems.append(f"missing topics: {', '.join(missing)}")
@@ -109,8 +113,10 @@ def check_bag(path: str, fleet: FleetConfig) -> BagContents:
         frame = contents.cloud_frames.get(topic)
         expected = fleet.robot(robot).sensor_frame
         if frame is not None and frame.lstrip("/") != expected:
-            problems.append(f"{topic} is in frame '{frame}', the fleet's {robot} senses in '{expected}' "
-                            f"(recorded for another fleet or robot type?)")
+            problems.append(
+                f"{topic} is in frame '{frame}', the fleet's {robot} senses in '{expected}' "
+                f"(recorded for another fleet or robot type?)"
+            )
     if contents.tf_child_frames:
         absent = [f"{r}/odom" for r in fleet.robot_names if f"{r}/odom" not in contents.tf_child_frames]
         if absent:
@@ -137,8 +143,10 @@ def finish_recording(path: str, recorder_log: str = None) -> str:
     if os.path.exists(active):
         result = subprocess.run(["rosbag", "reindex", "--quiet", active], capture_output=True, text=True)
         if result.returncode != 0:
-            raise BagError(f"{active} was left unclosed by the recorder and could not be reindexed: "
-                           f"{(result.stderr or result.stdout).strip()[-500:]}")
+            raise BagError(
+                f"{active} was left unclosed by the recorder and could not be reindexed: "
+                f"{(result.stderr or result.stdout).strip()[-500:]}"
+            )
         os.replace(active, path)
         backup = os.path.splitext(active)[0] + ".orig.active"
         if os.path.exists(backup):
@@ -148,5 +156,6 @@ def finish_recording(path: str, recorder_log: str = None) -> str:
     if recorder_log and os.path.exists(recorder_log):
         with open(recorder_log, errors="replace") as log:
             tail = "".join(log.readlines()[-8:])
-    raise BagError(f"no bag was written to {path} (nor {active}); the recorder's log "
-                   f"{recorder_log or '(none)'} ends:\n{tail}")
+    raise BagError(
+        f"no bag was written to {path} (nor {active}); the recorder's log {recorder_log or '(none)'} ends:\n{tail}"
+    )

@@ -3,6 +3,7 @@
 A pure function of the fleet configuration: `plan_nodes` returns `NodeSpec`s that the supervisor
 starts and a launch-file writer could print. Topic names follow docs/ros-graph.md.
 """
+
 import dataclasses
 import os
 import posixpath
@@ -136,9 +137,13 @@ def default_node_path(package: str, node: str) -> str:
     return find_node(package, node)
 
 
-def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
-               node_path: Callable[[str, str], str] = default_node_path,
-               python: str = sys.executable) -> List[NodeSpec]:
+def plan_nodes(
+    fleet: FleetConfig,
+    sides=SIDES,
+    options: RunOptions = None,
+    node_path: Callable[[str, str], str] = default_node_path,
+    python: str = sys.executable,
+) -> List[NodeSpec]:
     """The processes of `sides` for `fleet` (its robots, its profile unless options.profile)."""
     options = options or RunOptions(out_dir=".")
     if options.tissue_layout not in TISSUE_LAYOUTS:
@@ -153,53 +158,113 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
     def bridge(side, bridge_side):
         from cps_link.zenoh_session import bridge_argv
 
-        return NodeSpec(f"zenoh_bridge_{bridge_side}", side,
-                        tuple(bridge_argv(python, bridge_side, options.twin_address, robots,
-                                          cert_dir=options.cert_dir, port=options.zenoh_port,
-                                          fleet_file=fleet.path)),
-                        wait_topics=(A(names.LINK_STATE),))
+        return NodeSpec(
+            f"zenoh_bridge_{bridge_side}",
+            side,
+            tuple(
+                bridge_argv(
+                    python,
+                    bridge_side,
+                    options.twin_address,
+                    robots,
+                    cert_dir=options.cert_dir,
+                    port=options.zenoh_port,
+                    fleet_file=fleet.path,
+                )
+            ),
+            wait_topics=(A(names.LINK_STATE),),
+        )
 
     if PHYSICAL in sides:
         profile = options.profile or fleet.profile.name
         if options.transport == ZENOH:
             specs.append(bridge(PHYSICAL, "robots"))
         if options.simulate and not options.replay_path:
-            specs.append(NodeSpec(
-                "fleet_sim", PHYSICAL,
-                py("cps_sim", "fleet_sim", "__name:=fleet_sim",
-                   *_args({**common, "profile": profile, "robots": ",".join(robots), "renderer": options.renderer,
-                           **({"site_changes_file": options.site_changes_file} if options.site_changes_file else {})})),
-                wait_topics=tuple(t for r in fleet.robots
-                                  for t in (_rt(r.name, names.ODOM), _rt(r.name, r.cloud_topic))),
-                restart_limit=0,
-                # The clouds start once the map server can insert them at full speed (MAP_SERVER_READY).
-                after=(MAP_SERVER,) if DIGITAL in sides else ()))
+            specs.append(
+                NodeSpec(
+                    "fleet_sim",
+                    PHYSICAL,
+                    py(
+                        "cps_sim",
+                        "fleet_sim",
+                        "__name:=fleet_sim",
+                        *_args(
+                            {
+                                **common,
+                                "profile": profile,
+                                "robots": ",".join(robots),
+                                "renderer": options.renderer,
+                                **(
+                                    {"site_changes_file": options.site_changes_file}
+                                    if options.site_changes_file
+                                    else {}
+                                ),
+                            }
+                        ),
+                    ),
+                    wait_topics=tuple(
+                        t for r in fleet.robots for t in (_rt(r.name, names.ODOM), _rt(r.name, r.cloud_topic))
+                    ),
+                    restart_limit=0,
+                    # The clouds start once the map server can insert them at full speed (MAP_SERVER_READY).
+                    after=(MAP_SERVER,) if DIGITAL in sides else (),
+                )
+            )
         drivers = ("fleet_sim",) if options.simulate and not options.replay_path else ()
         # Without the manager nothing lowers it: the sensors' full rate, up to the link's ceiling.
         initial_rate_hz = fleet.link.min_rate_hz if options.bandwidth_manager else fleet.link.max_rate_hz
-        specs.append(NodeSpec(
-            "nodelet_manager", PHYSICAL,
-            ("rosrun", "nodelet", "nodelet", "manager", f"__name:={VOXEL_MANAGER.lstrip('/')}"),
-            restart_limit=2))
+        specs.append(
+            NodeSpec(
+                "nodelet_manager",
+                PHYSICAL,
+                ("rosrun", "nodelet", "nodelet", "manager", f"__name:={VOXEL_MANAGER.lstrip('/')}"),
+                restart_limit=2,
+            )
+        )
         if options.control_layout not in CONTROL_LAYOUTS:
             raise ValueError(f"unknown control layout '{options.control_layout}' (known: {', '.join(CONTROL_LAYOUTS)})")
         if not options.replay_path and options.control_layout == SHARED_CONTROL:
-            specs.append(NodeSpec(
-                FLEET_CONTROL, PHYSICAL,
-                py("cps_sim", "fleet_control", f"__name:={FLEET_CONTROL}", *_args({**common, "robots": ",".join(robots)})),
-                wait_topics=tuple(_rt(r, t) for r in robots for t in (names.CMD_VEL, names.MISSION_STATE)), after=drivers))
+            specs.append(
+                NodeSpec(
+                    FLEET_CONTROL,
+                    PHYSICAL,
+                    py(
+                        "cps_sim",
+                        "fleet_control",
+                        f"__name:={FLEET_CONTROL}",
+                        *_args({**common, "robots": ",".join(robots)}),
+                    ),
+                    wait_topics=tuple(_rt(r, t) for r in robots for t in (names.CMD_VEL, names.MISSION_STATE)),
+                    after=drivers,
+                )
+            )
         for robot in fleet.robots:
             r = robot.name
             ns = f"__ns:={A(r)}"
             if not options.replay_path and options.control_layout == PER_ROBOT_CONTROL:  # replayed: not driven
-                specs.append(NodeSpec(
-                    f"{r}/velocity_mux", PHYSICAL,
-                    py("cps_sim", "velocity_mux", ns, "__name:=velocity_mux", *_args({**common, "robot": r})),
-                    wait_topics=(_rt(r, names.CMD_VEL),)))
-                specs.append(NodeSpec(
-                    f"{r}/route_controller", PHYSICAL,
-                    py("cps_sim", "route_controller", ns, "__name:=route_controller", *_args({**common, "robot": r})),
-                    wait_topics=(_rt(r, names.MISSION_STATE),), after=drivers))
+                specs.append(
+                    NodeSpec(
+                        f"{r}/velocity_mux",
+                        PHYSICAL,
+                        py("cps_sim", "velocity_mux", ns, "__name:=velocity_mux", *_args({**common, "robot": r})),
+                        wait_topics=(_rt(r, names.CMD_VEL),),
+                    )
+                )
+                specs.append(
+                    NodeSpec(
+                        f"{r}/route_controller",
+                        PHYSICAL,
+                        py(
+                            "cps_sim",
+                            "route_controller",
+                            ns,
+                            "__name:=route_controller",
+                            *_args({**common, "robot": r}),
+                        ),
+                        wait_topics=(_rt(r, names.MISSION_STATE),),
+                        after=drivers,
+                    )
+                )
             if options.tissue_layout == PER_ROBOT:
                 specs += _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz)
         if options.tissue_layout != PER_ROBOT:
@@ -208,13 +273,29 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
         # The robots' side of the latency: capture stamp -> voxel-filtered cloud, measured on the
         # physical host (nothing crosses the link); the report joins its per-cloud arrivals with the
         # twin's by capture stamp.
-        specs.append(NodeSpec(
-            "physical_stats", PHYSICAL,
-            py("cps_transport", "topic_stats", "__name:=physical_stats", f"{A(names.TISSUE_STATS)}:={A(names.PHYSICAL_STATS)}",
-               *_args({**common, "csv_path": os.path.join(options.out_dir, "physical_stats.csv"),
-                       "arrivals_csv_path": os.path.join(options.out_dir, "physical_arrivals.csv"),
-                       "topics": ",".join([_rt(r, names.POINTS_FILTERED) for r in robots] + [A(names.COMMAND_PROBE)])})),
-            wait_topics=(A(names.PHYSICAL_STATS),)))
+        specs.append(
+            NodeSpec(
+                "physical_stats",
+                PHYSICAL,
+                py(
+                    "cps_transport",
+                    "topic_stats",
+                    "__name:=physical_stats",
+                    f"{A(names.TISSUE_STATS)}:={A(names.PHYSICAL_STATS)}",
+                    *_args(
+                        {
+                            **common,
+                            "csv_path": os.path.join(options.out_dir, "physical_stats.csv"),
+                            "arrivals_csv_path": os.path.join(options.out_dir, "physical_arrivals.csv"),
+                            "topics": ",".join(
+                                [_rt(r, names.POINTS_FILTERED) for r in robots] + [A(names.COMMAND_PROBE)]
+                            ),
+                        }
+                    ),
+                ),
+                wait_topics=(A(names.PHYSICAL_STATS),),
+            )
+        )
 
     if DIGITAL in sides:
         out = options.out_dir
@@ -226,48 +307,134 @@ def plan_nodes(fleet: FleetConfig, sides=SIDES, options: RunOptions = None,
             # Zenoh the twin's bridge publishes the relayed name itself.
             relayed = A(names.managed_cloud_at_twin(r))
             if options.transport == TCPROS:
-                specs.append(NodeSpec(
-                    f"{r}/link_relay", DIGITAL,
-                    ("rosrun", "topic_tools", "relay", A(names.managed_cloud(r)), relayed,
-                     f"__ns:={A(names.in_twin(r))}", "__name:=link_relay"),
-                    wait_topics=(relayed,)))
+                specs.append(
+                    NodeSpec(
+                        f"{r}/link_relay",
+                        DIGITAL,
+                        (
+                            "rosrun",
+                            "topic_tools",
+                            "relay",
+                            A(names.managed_cloud(r)),
+                            relayed,
+                            f"__ns:={A(names.in_twin(r))}",
+                            "__name:=link_relay",
+                        ),
+                        wait_topics=(relayed,),
+                    )
+                )
             if options.tissue_layout == PER_ROBOT:
                 specs += _twin_tissue_per_robot(r, options.transport == ZENOH, py)
         if options.tissue_layout != PER_ROBOT:
             specs += _twin_tissue_shared(fleet, options.transport == ZENOH, py)
-        specs.append(NodeSpec(
-            MAP_SERVER, DIGITAL,
-            py("cps_mapping", "map_server", f"__ns:={A(names.TWIN_NS)}", f"__name:={names.MAP_SERVER}",
-               *_args({**common, "robots": ",".join(robots),
-                       "map_file": options.map_file or os.path.join(out, "map.bt"),
-                       **({"baseline_map": options.baseline_map, "change_report": os.path.join(out, CHANGE_REPORT)}
-                          if options.baseline_map else {})})),
-            wait_topics=(_tw(names.MAP_STATS), _tw(names.OCTOMAP_BINARY), MAP_SERVER_READY), restart_limit=3))
-        specs.append(NodeSpec(
-            "topic_stats", DIGITAL,
-            py("cps_transport", "topic_stats", "__name:=tissue_stats",
-               *_args({**common, "csv_path": os.path.join(out, "stats.csv"), "topics": _stats_topics(robots),
-                       "arrivals_csv_path": os.path.join(out, "arrivals.csv"),
-                       "arrival_topics": ",".join(A(names.managed_cloud_at_twin(r)) for r in robots)})),
-            wait_topics=(A(names.TISSUE_STATS),)))
-        specs.append(NodeSpec(
-            "command_probe", DIGITAL, py("cps_link", "command_probe", "__name:=command_probe")))
+        specs.append(
+            NodeSpec(
+                MAP_SERVER,
+                DIGITAL,
+                py(
+                    "cps_mapping",
+                    "map_server",
+                    f"__ns:={A(names.TWIN_NS)}",
+                    f"__name:={names.MAP_SERVER}",
+                    *_args(
+                        {
+                            **common,
+                            "robots": ",".join(robots),
+                            "map_file": options.map_file or os.path.join(out, "map.bt"),
+                            **(
+                                {
+                                    "baseline_map": options.baseline_map,
+                                    "change_report": os.path.join(out, CHANGE_REPORT),
+                                }
+                                if options.baseline_map
+                                else {}
+                            ),
+                        }
+                    ),
+                ),
+                wait_topics=(_tw(names.MAP_STATS), _tw(names.OCTOMAP_BINARY), MAP_SERVER_READY),
+                restart_limit=3,
+            )
+        )
+        specs.append(
+            NodeSpec(
+                "topic_stats",
+                DIGITAL,
+                py(
+                    "cps_transport",
+                    "topic_stats",
+                    "__name:=tissue_stats",
+                    *_args(
+                        {
+                            **common,
+                            "csv_path": os.path.join(out, "stats.csv"),
+                            "topics": _stats_topics(robots),
+                            "arrivals_csv_path": os.path.join(out, "arrivals.csv"),
+                            "arrival_topics": ",".join(A(names.managed_cloud_at_twin(r)) for r in robots),
+                        }
+                    ),
+                ),
+                wait_topics=(A(names.TISSUE_STATS),),
+            )
+        )
+        specs.append(NodeSpec("command_probe", DIGITAL, py("cps_link", "command_probe", "__name:=command_probe")))
         if options.bandwidth_manager:
-            specs.append(NodeSpec(
-                "bandwidth_manager", DIGITAL,
-                py("cps_bw_manager", "bandwidth_manager", "__ns:=/", "__name:=bandwidth_manager",
-                   *_args({**common, "robots": ",".join(robots), "csv_path": os.path.join(out, "allocation.csv"),
-                           "link_state_csv_path": os.path.join(out, "link_state.csv"),
-                           **({"available_mbps": round(options.available_mbps, 2)} if options.available_mbps else {})})),
-                wait_topics=(A(names.ALLOCATION),)))
+            specs.append(
+                NodeSpec(
+                    "bandwidth_manager",
+                    DIGITAL,
+                    py(
+                        "cps_bw_manager",
+                        "bandwidth_manager",
+                        "__ns:=/",
+                        "__name:=bandwidth_manager",
+                        *_args(
+                            {
+                                **common,
+                                "robots": ",".join(robots),
+                                "csv_path": os.path.join(out, "allocation.csv"),
+                                "link_state_csv_path": os.path.join(out, "link_state.csv"),
+                                **(
+                                    {"available_mbps": round(options.available_mbps, 2)}
+                                    if options.available_mbps
+                                    else {}
+                                ),
+                            }
+                        ),
+                    ),
+                    wait_topics=(A(names.ALLOCATION),),
+                )
+            )
         if options.gui_screenshot_path:
             # rviz needs an X server with OpenGL: a private Xvfb (Mesa llvmpipe) for the offscreen GUI.
-            specs.append(NodeSpec(
-                "gui", DIGITAL,
-                ("env", "QT_QPA_PLATFORM=xcb", "xvfb-run", "-a", "-s", "-screen 0 1920x1200x24",
-                 *py("cps_gui", "cps_gui", "--screenshot", options.gui_screenshot_path,
-                     "--after", str(options.gui_screenshot_after_s), "--fleet-file", fleet.path)),
-                restart_limit=0, one_shot=True, essential=False, after=("map_server",)))
+            specs.append(
+                NodeSpec(
+                    "gui",
+                    DIGITAL,
+                    (
+                        "env",
+                        "QT_QPA_PLATFORM=xcb",
+                        "xvfb-run",
+                        "-a",
+                        "-s",
+                        "-screen 0 1920x1200x24",
+                        *py(
+                            "cps_gui",
+                            "cps_gui",
+                            "--screenshot",
+                            options.gui_screenshot_path,
+                            "--after",
+                            str(options.gui_screenshot_after_s),
+                            "--fleet-file",
+                            fleet.path,
+                        ),
+                    ),
+                    restart_limit=0,
+                    one_shot=True,
+                    essential=False,
+                    after=("map_server",),
+                )
+            )
     specs += _bag_specs(fleet, sides, options, specs)
     return specs
 
@@ -278,28 +445,63 @@ def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
     from cps_transport.voxel_grid_command import voxel_nodelet_args
 
     r, ns = robot.name, f"__ns:={A(robot.name)}"
-    specs = [NodeSpec(f"{r}/voxel_grid", PHYSICAL, tuple(voxel_nodelet_args(robot, manager=VOXEL_MANAGER)),
-                      wait_topics=(_rt(r, names.POINTS_FILTERED),), after=("nodelet_manager",)),
-             NodeSpec(f"{r}/draco_encoder", PHYSICAL,
-                      py("cps_transport", "draco_encoder", ns, "__name:=draco_encoder",
-                         f"{names.INPUT}:={_rt(r, names.POINTS_FILTERED)}", f"{names.OUTPUT}:={_rt(r, names.POINTS_DRACO)}",
-                         *_args({"leaf_size_m": robot.voxel_leaf_m})),
-                      wait_topics=(_rt(r, names.POINTS_DRACO),))]
+    specs = [
+        NodeSpec(
+            f"{r}/voxel_grid",
+            PHYSICAL,
+            tuple(voxel_nodelet_args(robot, manager=VOXEL_MANAGER)),
+            wait_topics=(_rt(r, names.POINTS_FILTERED),),
+            after=("nodelet_manager",),
+        ),
+        NodeSpec(
+            f"{r}/draco_encoder",
+            PHYSICAL,
+            py(
+                "cps_transport",
+                "draco_encoder",
+                ns,
+                "__name:=draco_encoder",
+                f"{names.INPUT}:={_rt(r, names.POINTS_FILTERED)}",
+                f"{names.OUTPUT}:={_rt(r, names.POINTS_DRACO)}",
+                *_args({"leaf_size_m": robot.voxel_leaf_m}),
+            ),
+            wait_topics=(_rt(r, names.POINTS_DRACO),),
+        ),
+    ]
     if robot.has_depth_camera:
         # JPEG for the operator's video (image_transport's compressed format): a raw camera
         # stream is 1.9x (light) to 92x (paper) the link's 4 % reserve. Encodes only while watched.
-        specs.append(NodeSpec(
-            f"{r}/image_compressor", PHYSICAL,
-            py("cps_transport", "image_compressor", f"__ns:={_rt(r, posixpath.dirname(names.CAMERA_IMAGE))}",
-               "__name:=image_compressor", f"{names.INPUT}:={_rt(r, names.CAMERA_IMAGE)}",
-               *_args({"max_rate_hz": CAMERA_MAX_RATE_HZ})),
-            wait_topics=(_rt(r, names.CAMERA_IMAGE_COMPRESSED),)))
-    specs.append(NodeSpec(
-        f"{r}/cloud_throttle", PHYSICAL,
-        py("cps_transport", "rate_limiter", ns, f"__name:={names.CLOUD_THROTTLE}",
-           f"{names.INPUT}:={_rt(r, names.POINTS_DRACO)}", f"{names.OUTPUT}:={_rt(r, names.POINTS_MANAGED)}",
-           *_args({"rate_hz": initial_rate_hz})),
-        wait_topics=(_rt(r, names.POINTS_MANAGED),)))
+        specs.append(
+            NodeSpec(
+                f"{r}/image_compressor",
+                PHYSICAL,
+                py(
+                    "cps_transport",
+                    "image_compressor",
+                    f"__ns:={_rt(r, posixpath.dirname(names.CAMERA_IMAGE))}",
+                    "__name:=image_compressor",
+                    f"{names.INPUT}:={_rt(r, names.CAMERA_IMAGE)}",
+                    *_args({"max_rate_hz": CAMERA_MAX_RATE_HZ}),
+                ),
+                wait_topics=(_rt(r, names.CAMERA_IMAGE_COMPRESSED),),
+            )
+        )
+    specs.append(
+        NodeSpec(
+            f"{r}/cloud_throttle",
+            PHYSICAL,
+            py(
+                "cps_transport",
+                "rate_limiter",
+                ns,
+                f"__name:={names.CLOUD_THROTTLE}",
+                f"{names.INPUT}:={_rt(r, names.POINTS_DRACO)}",
+                f"{names.OUTPUT}:={_rt(r, names.POINTS_MANAGED)}",
+                *_args({"rate_hz": initial_rate_hz}),
+            ),
+            wait_topics=(_rt(r, names.POINTS_MANAGED),),
+        )
+    )
     return specs
 
 
@@ -308,49 +510,108 @@ def _robot_tissue_shared(fleet, py, initial_rate_hz):
     cloud_tissue runs every robot's encoder, limiter (/<r>/cloud_throttle) and camera compressor."""
     robots = ",".join(fleet.robot_names)
     return [
-        NodeSpec("voxel_grid_loader", PHYSICAL,
-                 py("cps_transport", "voxel_grid_loader", "__name:=voxel_grid_loader",
-                    *_args({"fleet_file": fleet.path, "robots": robots, "manager": VOXEL_MANAGER})),
-                 wait_topics=tuple(_rt(r, names.POINTS_FILTERED) for r in fleet.robot_names), after=("nodelet_manager",)),
-        NodeSpec("cloud_tissue", PHYSICAL,
-                 py("cps_transport", "cloud_tissue", "__name:=cloud_tissue",
-                    *_args({"fleet_file": fleet.path, "robots": robots, "camera_max_rate_hz": CAMERA_MAX_RATE_HZ,
-                            "initial_rate_hz": initial_rate_hz})),
-                 # Not the managed topics, advertised with the first cloud through: a replayed bag
-                 # starts once this process (every robot's encoder) is up.
-                 wait_topics=tuple(t for robot in fleet.robots for t in (
-                     _rt(robot.name, names.POINTS_DRACO),
-                     *((_rt(robot.name, names.CAMERA_IMAGE_COMPRESSED),) if robot.has_depth_camera else ())))),
+        NodeSpec(
+            "voxel_grid_loader",
+            PHYSICAL,
+            py(
+                "cps_transport",
+                "voxel_grid_loader",
+                "__name:=voxel_grid_loader",
+                *_args({"fleet_file": fleet.path, "robots": robots, "manager": VOXEL_MANAGER}),
+            ),
+            wait_topics=tuple(_rt(r, names.POINTS_FILTERED) for r in fleet.robot_names),
+            after=("nodelet_manager",),
+        ),
+        NodeSpec(
+            "cloud_tissue",
+            PHYSICAL,
+            py(
+                "cps_transport",
+                "cloud_tissue",
+                "__name:=cloud_tissue",
+                *_args(
+                    {
+                        "fleet_file": fleet.path,
+                        "robots": robots,
+                        "camera_max_rate_hz": CAMERA_MAX_RATE_HZ,
+                        "initial_rate_hz": initial_rate_hz,
+                    }
+                ),
+            ),
+            # Not the managed topics, advertised with the first cloud through: a replayed bag
+            # starts once this process (every robot's encoder) is up.
+            wait_topics=tuple(
+                t
+                for robot in fleet.robots
+                for t in (
+                    _rt(robot.name, names.POINTS_DRACO),
+                    *((_rt(robot.name, names.CAMERA_IMAGE_COMPRESSED),) if robot.has_depth_camera else ()),
+                )
+            ),
+        ),
     ]
 
 
 def _twin_tissue_per_robot(r, backfill, py):
     """The per_robot layout: a decoder process per robot (and one for its backfill keyframes)."""
-    specs = [NodeSpec(
-        f"{r}/draco_decoder", DIGITAL,
-        py("cps_transport", "draco_decoder", f"__ns:={_tw(r)}", "__name:=draco_decoder",
-           f"{names.INPUT}:={A(names.managed_cloud_at_twin(r))}", f"{names.OUTPUT}:={A(names.twin_points(r))}"),
-        wait_topics=(A(names.twin_points(r)),))]
+    specs = [
+        NodeSpec(
+            f"{r}/draco_decoder",
+            DIGITAL,
+            py(
+                "cps_transport",
+                "draco_decoder",
+                f"__ns:={_tw(r)}",
+                "__name:=draco_decoder",
+                f"{names.INPUT}:={A(names.managed_cloud_at_twin(r))}",
+                f"{names.OUTPUT}:={A(names.twin_points(r))}",
+            ),
+            wait_topics=(A(names.twin_points(r)),),
+        )
+    ]
     if backfill:
         # Keyframes the robots' bridge kept during an outage, sent after it (cps_link backfill).
-        specs.append(NodeSpec(
-            f"{r}/backfill_decoder", DIGITAL,
-            py("cps_transport", "draco_decoder", f"__ns:={_tw(r)}", "__name:=backfill_decoder",
-               f"{names.INPUT}:={_tw(names.robot_topic(r, names.POINTS_BACKFILL_DRACO))}",
-               f"{names.OUTPUT}:={_tw(names.robot_topic(r, names.POINTS_BACKFILL))}"),
-            wait_topics=(_tw(names.robot_topic(r, names.POINTS_BACKFILL)),)))
+        specs.append(
+            NodeSpec(
+                f"{r}/backfill_decoder",
+                DIGITAL,
+                py(
+                    "cps_transport",
+                    "draco_decoder",
+                    f"__ns:={_tw(r)}",
+                    "__name:=backfill_decoder",
+                    f"{names.INPUT}:={_tw(names.robot_topic(r, names.POINTS_BACKFILL_DRACO))}",
+                    f"{names.OUTPUT}:={_tw(names.robot_topic(r, names.POINTS_BACKFILL))}",
+                ),
+                wait_topics=(_tw(names.robot_topic(r, names.POINTS_BACKFILL)),),
+            )
+        )
     return specs
 
 
 def _twin_tissue_shared(fleet, backfill, py):
     """The shared layout: /twin/cloud_decoder decodes every robot's managed (and backfill) clouds."""
-    return [NodeSpec(
-        "cloud_decoder", DIGITAL,
-        py("cps_transport", "cloud_decoder", f"__ns:={A(names.TWIN_NS)}", "__name:=cloud_decoder",
-           *_args({"fleet_file": fleet.path, "robots": ",".join(fleet.robot_names), "backfill": backfill})),
-        wait_topics=tuple(t for r in fleet.robot_names
-                          for t in (A(names.twin_points(r)),
-                                    *((_tw(names.robot_topic(r, names.POINTS_BACKFILL)),) if backfill else ()))))]
+    return [
+        NodeSpec(
+            "cloud_decoder",
+            DIGITAL,
+            py(
+                "cps_transport",
+                "cloud_decoder",
+                f"__ns:={A(names.TWIN_NS)}",
+                "__name:=cloud_decoder",
+                *_args({"fleet_file": fleet.path, "robots": ",".join(fleet.robot_names), "backfill": backfill}),
+            ),
+            wait_topics=tuple(
+                t
+                for r in fleet.robot_names
+                for t in (
+                    A(names.twin_points(r)),
+                    *((_tw(names.robot_topic(r, names.POINTS_BACKFILL)),) if backfill else ()),
+                )
+            ),
+        )
+    ]
 
 
 REPLAY, RECORDER = "mission_replay", "mission_recorder"
@@ -368,16 +629,37 @@ def _bag_specs(fleet, sides, options, planned):
 
     specs = []
     if options.record_path:
-        specs.append(NodeSpec(RECORDER, PHYSICAL if PHYSICAL in sides else DIGITAL,
-                              ("rosbag", "record", "--lz4", "-O", options.record_path, f"__name:={RECORDER}",
-                               *record_topics(fleet)), restart_limit=0, stop_timeout_s=RECORDER_STOP_TIMEOUT_S))
+        specs.append(
+            NodeSpec(
+                RECORDER,
+                PHYSICAL if PHYSICAL in sides else DIGITAL,
+                ("rosbag", "record", "--lz4", "-O", options.record_path, f"__name:={RECORDER}", *record_topics(fleet)),
+                restart_limit=0,
+                stop_timeout_s=RECORDER_STOP_TIMEOUT_S,
+            )
+        )
     if options.replay_path and PHYSICAL in sides:
         # --clock: every node runs on the bag's time (/use_sim_time); -d: subscribers connect first.
-        specs.append(NodeSpec(REPLAY, PHYSICAL,
-                              ("rosbag", "play", "--clock", "-d", str(REPLAY_DELAY_S), f"__name:={REPLAY}",
-                               options.replay_path, "--topics", *replay_topics(fleet)),
-                              restart_limit=0, one_shot=True,
-                              after=tuple(s.label for s in planned + specs if not lazy & set(s.wait_topics))))
+        specs.append(
+            NodeSpec(
+                REPLAY,
+                PHYSICAL,
+                (
+                    "rosbag",
+                    "play",
+                    "--clock",
+                    "-d",
+                    str(REPLAY_DELAY_S),
+                    f"__name:={REPLAY}",
+                    options.replay_path,
+                    "--topics",
+                    *replay_topics(fleet),
+                ),
+                restart_limit=0,
+                one_shot=True,
+                after=tuple(s.label for s in planned + specs if not lazy & set(s.wait_topics)),
+            )
+        )
     return specs
 
 

@@ -5,6 +5,7 @@ mission folder is handed to that user so the nodes can write their logs, CSVs an
 code (with the map server's kernels, built before the mission: `ensure_map_kernels`) must be
 readable by it (`check_code_readable`).
 """
+
 import grp
 import os
 import pwd
@@ -54,11 +55,14 @@ def hand_over(user, out_dir, log_dir):
         for root, dirs, files in os.walk(folder):
             for name in [root] + [os.path.join(root, f) for f in dirs + files]:
                 os.chown(name, entry.pw_uid, entry.pw_gid)
-    check = subprocess.run([*user_prefix(user), "test", "-w", out_dir, "-a", "-x", out_dir, "-a", "-w", log_dir],
-                           capture_output=True)
+    check = subprocess.run(
+        [*user_prefix(user), "test", "-w", out_dir, "-a", "-x", out_dir, "-a", "-w", log_dir], capture_output=True
+    )
     if check.returncode != 0:
-        raise PrivilegeError(f"the nodes run as '{user}' (not root) but cannot write {out_dir}: a folder above it "
-                             f"is closed to that user. Choose an --out that '{user}' can reach, or --run-as root")
+        raise PrivilegeError(
+            f"the nodes run as '{user}' (not root) but cannot write {out_dir}: a folder above it "
+            f"is closed to that user. Choose an --out that '{user}' can reach, or --run-as root"
+        )
 
 
 def check_code_readable(user, specs):
@@ -75,9 +79,11 @@ def check_code_readable(user, specs):
     check = subprocess.run([*user_prefix(user), "sh", "-c", probe, "sh", *paths], capture_output=True, text=True)
     if check.returncode != 0:
         path = check.stdout.strip() or paths[0]
-        raise PrivilegeError(f"the nodes run as '{user}' (not root) but cannot read the code: {path} (a folder above "
-                             f"it is closed to that user, e.g. a 0700 temporary folder). Put the checkout where "
-                             f"'{user}' can read it (o+rx on the folders above it), or --run-as root")
+        raise PrivilegeError(
+            f"the nodes run as '{user}' (not root) but cannot read the code: {path} (a folder above "
+            f"it is closed to that user, e.g. a 0700 temporary folder). Put the checkout where "
+            f"'{user}' can read it (o+rx on the folders above it), or --run-as root"
+        )
 
 
 def ensure_map_kernels(log=print):
@@ -91,7 +97,9 @@ def ensure_map_kernels(log=print):
     built = subprocess.run([sys.executable, "-m", "cps_mapping.kernel_cache"], capture_output=True, text=True)
     if built.returncode != 0:
         tail = (built.stderr or built.stdout).strip().splitlines()[-1:]
-        log(f"[bringup] WARNING: could not build them ({' '.join(tail)}); the map server compiles them at its "
-            f"start and the clouds wait for it")
+        log(
+            f"[bringup] WARNING: could not build them ({' '.join(tail)}); the map server compiles them at its "
+            f"start and the clouds wait for it"
+        )
     else:
         log(built.stdout.strip())

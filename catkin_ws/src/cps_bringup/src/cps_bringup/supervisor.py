@@ -7,6 +7,7 @@ restart limit counts within a time window (`RestartPolicy`); a node that is not 
 may end without ending the run. The master is watched: `MasterLost` when it is gone. Started as
 root, the nodes run as `run_as` (see `cps_bringup.privileges`).
 """
+
 import dataclasses
 import math
 import os
@@ -68,11 +69,19 @@ class Supervisor:
     `side_graphs` gives a side its own master (a RosGraph-like object: popen, published_topics,
     output, stop), e.g. the robots' master when the twins are joined by Zenoh bridges."""
 
-    def __init__(self, specs: List[NodeSpec], graph: RosGraph, side_prefix: Optional[Dict[str, List[str]]] = None,
-                 side_env: Optional[Dict[str, Dict[str, str]]] = None, log=print,
-                 policy: RestartPolicy = RestartPolicy(), node_log_max_bytes: Optional[int] = None,
-                 user_prefix: Optional[List[str]] = None, clock: Callable[[], float] = time.monotonic,
-                 side_graphs: Optional[Dict[str, object]] = None):
+    def __init__(
+        self,
+        specs: List[NodeSpec],
+        graph: RosGraph,
+        side_prefix: Optional[Dict[str, List[str]]] = None,
+        side_env: Optional[Dict[str, Dict[str, str]]] = None,
+        log=print,
+        policy: RestartPolicy = RestartPolicy(),
+        node_log_max_bytes: Optional[int] = None,
+        user_prefix: Optional[List[str]] = None,
+        clock: Callable[[], float] = time.monotonic,
+        side_graphs: Optional[Dict[str, object]] = None,
+    ):
         """`user_prefix`: argv that runs a node as another user (after the side's prefix). `side_graphs`:
         a side's own master (Zenoh: a master per side), instead of `graph`."""
         labels = [s.label for s in specs]
@@ -181,14 +190,19 @@ class Supervisor:
             if len(running.restart_times) >= running.spec.restart_limit:
                 tail = "\n".join(self._graph(label).output(label.replace("/", "_")).strip().splitlines()[-8:])
                 within = f" within {window:.0f} s" if math.isfinite(window) else ""
-                raise BringupError(f"{label} exited with code {code} "
-                                   f"(restarted {len(running.restart_times)} of {running.spec.restart_limit} times)"
-                                   f"{within}:\n{tail}")
+                raise BringupError(
+                    f"{label} exited with code {code} "
+                    f"(restarted {len(running.restart_times)} of {running.spec.restart_limit} times)"
+                    f"{within}:\n{tail}"
+                )
             running.restart_times.append(now)
             running.restarts += 1
             delay_s = self.policy.delay_s(len(running.restart_times))
-            self.record(label, f"exited with code {code}; restart {len(running.restart_times)}/"
-                               f"{running.spec.restart_limit} in {delay_s:.1f} s")
+            self.record(
+                label,
+                f"exited with code {code}; restart {len(running.restart_times)}/"
+                f"{running.spec.restart_limit} in {delay_s:.1f} s",
+            )
             running.restart_at = now + delay_s
             running.up = False
 

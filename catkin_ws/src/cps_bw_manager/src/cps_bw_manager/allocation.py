@@ -17,6 +17,7 @@ priority class goes below its minimum first (equal shares inside the class, down
 `floor_rate_hz`), then the next class, and if all floors still do not fit every rate is scaled by
 the same factor. The result says so (`feasible`, `status`, per-robot `degraded`).
 """
+
 import dataclasses
 import math
 from typing import Dict, Sequence, Tuple
@@ -37,6 +38,7 @@ _BYTES_PER_MB = 1e6
 @dataclasses.dataclass(frozen=True)
 class RobotDemand:
     """What the allocator knows about one robot's managed topic."""
+
     name: str
     message_bytes: float
     priority: int = 0
@@ -83,15 +85,17 @@ def _finite(value):
 def validate_demand(demand: RobotDemand, priority_weights=DEFAULT_PRIORITY_WEIGHTS):
     """ValueError naming the robot and the field if `demand` cannot be allocated."""
     if demand.priority not in priority_weights:
-        raise ValueError(f"robot '{demand.name}': priority must be one of {sorted(priority_weights)}, "
-                         f"got {demand.priority!r}")
+        raise ValueError(
+            f"robot '{demand.name}': priority must be one of {sorted(priority_weights)}, got {demand.priority!r}"
+        )
     for field in ("min_rate_hz", "max_rate_hz"):
         value = getattr(demand, field)
         if not _finite(value) or value <= 0:
             raise ValueError(f"robot '{demand.name}': {field} must be a finite rate > 0 Hz, got {value!r}")
     if demand.min_rate_hz > demand.max_rate_hz:
-        raise ValueError(f"robot '{demand.name}': min_rate_hz ({demand.min_rate_hz}) > "
-                         f"max_rate_hz ({demand.max_rate_hz})")
+        raise ValueError(
+            f"robot '{demand.name}': min_rate_hz ({demand.min_rate_hz}) > max_rate_hz ({demand.max_rate_hz})"
+        )
 
 
 def water_fill(weights, low, high, budget):
@@ -135,9 +139,14 @@ def water_fill(weights, low, high, budget):
     return b
 
 
-def allocate_frequencies(demands: Sequence[RobotDemand], budget_mbytes_per_s: float, *,
-                         priority_weights=None, floor_rate_hz=DEFAULT_FLOOR_RATE_HZ,
-                         assumed_message_bytes=DEFAULT_ASSUMED_MESSAGE_BYTES) -> Allocation:
+def allocate_frequencies(
+    demands: Sequence[RobotDemand],
+    budget_mbytes_per_s: float,
+    *,
+    priority_weights=None,
+    floor_rate_hz=DEFAULT_FLOOR_RATE_HZ,
+    assumed_message_bytes=DEFAULT_ASSUMED_MESSAGE_BYTES,
+) -> Allocation:
     """Rates for every robot so that sum(size x rate) <= budget (Eq. 1), fairly and by priority.
 
     `budget_mbytes_per_s` is the managed budget (see `managed_budget_mbytes_per_s`). Raises
@@ -162,8 +171,10 @@ def allocate_frequencies(demands: Sequence[RobotDemand], budget_mbytes_per_s: fl
 
     budget = float(budget_mbytes_per_s)
     measured = np.array([_finite(d.message_bytes) and d.message_bytes > 0 for d in demands])
-    size_mb = np.array([float(d.message_bytes) if ok else assumed_message_bytes
-                        for d, ok in zip(demands, measured)]) / _BYTES_PER_MB
+    size_mb = (
+        np.array([float(d.message_bytes) if ok else assumed_message_bytes for d, ok in zip(demands, measured)])
+        / _BYTES_PER_MB
+    )
     fmin = np.array([d.min_rate_hz for d in demands], dtype=float)
     fmax = np.array([d.max_rate_hz for d in demands], dtype=float)
     priority = np.array([d.priority for d in demands])
@@ -173,8 +184,11 @@ def allocate_frequencies(demands: Sequence[RobotDemand], budget_mbytes_per_s: fl
     if lo.sum() <= budget:
         b = water_fill(w, lo, hi, budget)
         feasible = True
-        status = ("every robot at its maximum rate" if hi.sum() <= budget
-                  else "budget shared by priority-weighted max-min fairness")
+        status = (
+            "every robot at its maximum rate"
+            if hi.sum() <= budget
+            else "budget shared by priority-weighted max-min fairness"
+        )
     else:
         b, status = _degrade(size_mb, fmin, priority, w, lo, budget, floor_rate_hz)
         feasible = False
@@ -189,8 +203,18 @@ def allocate_frequencies(demands: Sequence[RobotDemand], budget_mbytes_per_s: fl
         status += f"; size not measured yet for {', '.join(unmeasured)} (assumed {assumed_message_bytes:.0f} B)"
     share = (100.0 / budget) * b
     degraded = rate < fmin * (1 - 1e-9)
-    columns = zip(names, priority.tolist(), rate.tolist(), fmin.tolist(), fmax.tolist(), (size_mb * _BYTES_PER_MB).tolist(),
-                  b.tolist(), share.tolist(), degraded.tolist(), measured.tolist())
+    columns = zip(
+        names,
+        priority.tolist(),
+        rate.tolist(),
+        fmin.tolist(),
+        fmax.tolist(),
+        (size_mb * _BYTES_PER_MB).tolist(),
+        b.tolist(),
+        share.tolist(),
+        degraded.tolist(),
+        measured.tolist(),
+    )
     robots = tuple(RobotAllocation(*row) for row in columns)
     return Allocation(robots, budget, float(b.sum()), feasible, status)
 
@@ -204,9 +228,13 @@ def _degrade(size_mb, fmin, priority, w, lo, budget, floor_rate_hz):
         others = b[~members].sum()
         if others + floor[members].sum() <= budget:
             b[members] = water_fill(w[members], floor[members], lo[members], budget - others)
-            return b, (f"infeasible: minimum rates need {lo.sum():.3f} MB/s > budget {budget:.3f} MB/s; "
-                       f"priority-{level} robots below their minimum")
+            return b, (
+                f"infeasible: minimum rates need {lo.sum():.3f} MB/s > budget {budget:.3f} MB/s; "
+                f"priority-{level} robots below their minimum"
+            )
         b[members] = floor[members]
     b = floor * (budget / floor.sum())
-    return b, (f"infeasible: even the floor rates need {floor.sum():.3f} MB/s > budget {budget:.3f} MB/s; "
-               f"every rate scaled by {budget / floor.sum():.3f}")
+    return b, (
+        f"infeasible: even the floor rates need {floor.sum():.3f} MB/s > budget {budget:.3f} MB/s; "
+        f"every rate scaled by {budget / floor.sum():.3f}"
+    )

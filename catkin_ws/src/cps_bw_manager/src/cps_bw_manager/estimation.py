@@ -33,16 +33,17 @@ Two outputs, as BBR separates its bottleneck bandwidth from its pacing rate:
 rate the manager allocates from: the capacity, x the probe gain while probing, x the drain
 factor while a queue drains). Time is passed in.
 """
+
 import collections
 import dataclasses
 import math
 from typing import Optional, Sequence
 
-DRAIN_FACTOR = 0.85   # GCC's cut on overuse, x the acknowledged (delivered) rate
+DRAIN_FACTOR = 0.85  # GCC's cut on overuse, x the acknowledged (delivered) rate
 # BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
 # inside the +-15 % band the estimate is held to
 PROBE_GAIN = 1.2
-STARTUP_GAIN = 2.0    # BBR's STARTUP roughly doubles per round while delivery keeps up
+STARTUP_GAIN = 2.0  # BBR's STARTUP roughly doubles per round while delivery keeps up
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,13 +54,14 @@ class LinkReport:
     window. Rates in Mbit/s over that window. NaN / None: not known (today's manager has no RTT,
     app-limited or receiver-behind signal; see docs/bandwidth_manager.md for what the bridge must
     report)."""
+
     now_s: float
     interval_s: float
-    delivered_mbps: float                 # bytes the far side actually received
-    sent_mbps: float = math.nan           # bytes the sender put on the link
-    offered_mbps: float = math.nan        # what the fleet produced (demand before the rate limiters)
-    app_limited: Optional[bool] = None    # the sender's queue ran empty (it had nothing more to send)
-    rtt_s: Sequence[float] = ()           # heartbeat echo round-trip times measured in the interval
+    delivered_mbps: float  # bytes the far side actually received
+    sent_mbps: float = math.nan  # bytes the sender put on the link
+    offered_mbps: float = math.nan  # what the fleet produced (demand before the rate limiters)
+    app_limited: Optional[bool] = None  # the sender's queue ran empty (it had nothing more to send)
+    rtt_s: Sequence[float] = ()  # heartbeat echo round-trip times measured in the interval
     receiver_behind: Optional[bool] = None  # the far side's processing is behind (CPU; TCP rwnd_limited)
 
 
@@ -81,8 +83,11 @@ class _Trendline:
 
     def update(self, now_s, queue_delay_ms, dt_s):
         """True when the delay gradient says a queue is building (overuse)."""
-        s = queue_delay_ms if math.isnan(self.smoothed_ms) else \
-            self.smoothing * self.smoothed_ms + (1 - self.smoothing) * queue_delay_ms
+        s = (
+            queue_delay_ms
+            if math.isnan(self.smoothed_ms)
+            else self.smoothing * self.smoothed_ms + (1 - self.smoothing) * queue_delay_ms
+        )
         self.smoothed_ms = s
         self.samples.append((now_s, s))
         if len(self.samples) < 3:
@@ -91,8 +96,7 @@ class _Trendline:
         mean_t = sum(t for t, _ in self.samples) / n
         mean_d = sum(d for _, d in self.samples) / n
         var = sum((t - mean_t) ** 2 for t, _ in self.samples)
-        slope_ms_per_s = 0.0 if var <= 0 else \
-            sum((t - mean_t) * (d - mean_d) for t, d in self.samples) / var
+        slope_ms_per_s = 0.0 if var <= 0 else sum((t - mean_t) * (d - mean_d) for t, d in self.samples) / var
         # GCC compares slope x samples x gain per packet group; over our 0.5 s intervals the
         # equivalent is the delay the slope adds across the window, in ms.
         span_s = self.samples[-1][0] - self.samples[0][0]
@@ -112,12 +116,29 @@ class DeliveryRateEstimator:
     `initial_mbps`: the prior (configured capacity); `line_rate_mbps`: the interface's rate, the
     ceiling of the estimate and above which a report is absurd; `min_mbps`: the floor."""
 
-    def __init__(self, initial_mbps, line_rate_mbps=None, min_mbps=1.0, min_rtt_window_s=10.0,
-                 merge_window_s=1.0, deficit_fraction=0.05, deficit_min_mbps=0.3, probe_every_s=1.5, probe_s=0.5,
-                 max_drain_s=4.0, queue_delay_threshold_s=0.03, measure_window_s=0.0):
-        for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps), ("min_rtt_window_s", min_rtt_window_s),
-                            ("merge_window_s", merge_window_s), ("probe_every_s", probe_every_s),
-                            ("probe_s", probe_s)):
+    def __init__(
+        self,
+        initial_mbps,
+        line_rate_mbps=None,
+        min_mbps=1.0,
+        min_rtt_window_s=10.0,
+        merge_window_s=1.0,
+        deficit_fraction=0.05,
+        deficit_min_mbps=0.3,
+        probe_every_s=1.5,
+        probe_s=0.5,
+        max_drain_s=4.0,
+        queue_delay_threshold_s=0.03,
+        measure_window_s=0.0,
+    ):
+        for name, value in (
+            ("initial_mbps", initial_mbps),
+            ("min_mbps", min_mbps),
+            ("min_rtt_window_s", min_rtt_window_s),
+            ("merge_window_s", merge_window_s),
+            ("probe_every_s", probe_every_s),
+            ("probe_s", probe_s),
+        ):
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         self.line_rate_mbps = float(initial_mbps if line_rate_mbps is None else line_rate_mbps)
@@ -140,16 +161,16 @@ class DeliveryRateEstimator:
         self.queue_delay_threshold_s = float(queue_delay_threshold_s)
         self.capacity_mbps = self._clip(float(initial_mbps))
         self.estimate_mbps = self.capacity_mbps
-        self.twin_capacity_mbps = math.nan   # what a behind receiver processed (the twin's, not the link's)
+        self.twin_capacity_mbps = math.nan  # what a behind receiver processed (the twin's, not the link's)
         self.receiver_behind = False
         self.congested = False
-        self.mode = "cruise"                 # cruise | probe | drain
+        self.mode = "cruise"  # cruise | probe | drain
         self.ignored = collections.Counter()  # reason -> reports ignored
         self.overuses = 0
         self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
         self._unrefuted_mbps = self.capacity_mbps  # highest allocation target run without an overuse since
-        self._rtt_samples = collections.deque()   # (now_s, smallest rtt_s, median rtt_s) per interval
-        self._merged = collections.deque()        # (now_s, interval_s, delivered_mbps, sent_mbps)
+        self._rtt_samples = collections.deque()  # (now_s, smallest rtt_s, median rtt_s) per interval
+        self._merged = collections.deque()  # (now_s, interval_s, delivered_mbps, sent_mbps)
         self._trend = _Trendline()
         self._last_now_s = None
         self._mode_since_s = -math.inf
@@ -241,10 +262,12 @@ class DeliveryRateEstimator:
         if app_limited is None:
             # inferred (BBR: in flight below what the pacing allowed): the sender used clearly less
             # than its allocation, everything offered was sent, and it all arrived
-            app_limited = (not deficit and not rtt_overuse
-                           and (math.isnan(sent) or sent < 0.9 * self.estimate_mbps)
-                           and (math.isnan(report.offered_mbps) or math.isnan(sent)
-                                or report.offered_mbps <= 1.02 * sent))
+            app_limited = (
+                not deficit
+                and not rtt_overuse
+                and (math.isnan(sent) or sent < 0.9 * self.estimate_mbps)
+                and (math.isnan(report.offered_mbps) or math.isnan(sent) or report.offered_mbps <= 1.02 * sent)
+            )
         self.congested = (deficit or rtt_overuse) and not app_limited
         if self.congested:
             self._on_overuse(now, delivered, sent)
@@ -255,8 +278,12 @@ class DeliveryRateEstimator:
             # BBR: app-limited samples only count when they exceed the current estimate.
             self._bw_max_mbps = max(self._bw_max_mbps, sample)
 
-        if self.mode == "drain" and not self._drain_checked and not math.isnan(sent) \
-                and now - self._mode_since_s >= 2 * report.interval_s - 1e-6:
+        if (
+            self.mode == "drain"
+            and not self._drain_checked
+            and not math.isnan(sent)
+            and now - self._mode_since_s >= 2 * report.interval_s - 1e-6
+        ):
             # The first whole interval after the cut: if the queue the overuse left was still
             # served all along (more delivered than sent; by the RTT, still queueing), the link ran
             # full and what it delivered is its rate (GCC's acknowledged bitrate). This corrects a
@@ -270,10 +297,16 @@ class DeliveryRateEstimator:
         if self.mode == "drain":
             # Without RTT: the link no longer delivers more than is sent (its queue is empty), seen
             # in a report that began after the cut took effect (the first one mixes both rates).
-            drained = (not math.isnan(queue_delay_s) and queue_delay_s < self.queue_delay_threshold_s) or \
-                (math.isnan(queue_delay_s) and not math.isnan(sent) and delivered <= 1.02 * sent
-                 and now - self._mode_since_s >= 2 * report.interval_s - 1e-6) or \
-                now - self._mode_since_s >= self.max_drain_s
+            drained = (
+                (not math.isnan(queue_delay_s) and queue_delay_s < self.queue_delay_threshold_s)
+                or (
+                    math.isnan(queue_delay_s)
+                    and not math.isnan(sent)
+                    and delivered <= 1.02 * sent
+                    and now - self._mode_since_s >= 2 * report.interval_s - 1e-6
+                )
+                or now - self._mode_since_s >= self.max_drain_s
+            )
             if drained:
                 self._set_mode("cruise", now)
         kept_up = False
@@ -282,8 +315,11 @@ class DeliveryRateEstimator:
             # measurement noise) and all that was sent: BBR's STARTUP, double next time, at once.
             # That can show before `probe_s` is over (a sliding window rises early); a refusal
             # can only be trusted once the window holds the whole probe.
-            kept_up = not math.isnan(sent) and delivered >= 1.1 * self._capacity_before_probe_mbps \
+            kept_up = (
+                not math.isnan(sent)
+                and delivered >= 1.1 * self._capacity_before_probe_mbps
                 and delivered >= 0.97 * sent
+            )
         if self.mode == "probe" and (kept_up or now - self._mode_since_s >= self.probe_s - 1e-6):
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
             if kept_up or app_limited:
@@ -300,8 +336,12 @@ class DeliveryRateEstimator:
         surplus = not math.isnan(sent) and delivered - sent > max(self.deficit_fraction * sent, self.deficit_min_mbps)
         can_probe = self.capacity_mbps < self.line_rate_mbps and not surplus
         quick = self._gain == STARTUP_GAIN
-        if self.mode == "cruise" and demand_exceeds and can_probe and \
-                (quick or now - self._last_probe_s >= self.probe_every_s):
+        if (
+            self.mode == "cruise"
+            and demand_exceeds
+            and can_probe
+            and (quick or now - self._last_probe_s >= self.probe_every_s)
+        ):
             self._set_mode("probe", now)
             self._capacity_before_probe_mbps = self.capacity_mbps
             # The manager keeps a reserve and per-message headroom below the target, so the fleet

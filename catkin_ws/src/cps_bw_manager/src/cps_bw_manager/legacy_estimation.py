@@ -32,18 +32,38 @@ arrives although the physical side sends (a stalled link) halves the estimate.
 
 Time is passed in, so the estimator is unit-tested against a simulated queue.
 """
+
 import collections
 import math
 
 
 class LegacyDelayEstimator:
     """The old hand-tuned queueing-delay rule (see the module docstring); bench anchor only."""
-    def __init__(self, initial_mbps, max_mbps=None, min_mbps=1.0, queue_threshold_ms=60.0,
-                 increase_per_s=0.25, increase_min_mbps_per_s=4.0, drain_factor=0.9, drain_time_s=2.0, baseline_window_s=10.0,
-                 backlog_ratio=0.85, holdoff_s=1.0, rise_ms=5.0, slow_probe_s=5.0):
-        for name, value in (("initial_mbps", initial_mbps), ("min_mbps", min_mbps),
-                            ("queue_threshold_ms", queue_threshold_ms), ("increase_per_s", increase_per_s),
-                            ("drain_time_s", drain_time_s), ("baseline_window_s", baseline_window_s)):
+
+    def __init__(
+        self,
+        initial_mbps,
+        max_mbps=None,
+        min_mbps=1.0,
+        queue_threshold_ms=60.0,
+        increase_per_s=0.25,
+        increase_min_mbps_per_s=4.0,
+        drain_factor=0.9,
+        drain_time_s=2.0,
+        baseline_window_s=10.0,
+        backlog_ratio=0.85,
+        holdoff_s=1.0,
+        rise_ms=5.0,
+        slow_probe_s=5.0,
+    ):
+        for name, value in (
+            ("initial_mbps", initial_mbps),
+            ("min_mbps", min_mbps),
+            ("queue_threshold_ms", queue_threshold_ms),
+            ("increase_per_s", increase_per_s),
+            ("drain_time_s", drain_time_s),
+            ("baseline_window_s", baseline_window_s),
+        ):
             if not math.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be > 0, got {value!r}")
         if not 0 < drain_factor <= 1:
@@ -103,12 +123,20 @@ class LegacyDelayEstimator:
         NaN, infinite or negative inputs (e.g. no message in the window) are counted and ignored.
         """
         known_sent = sent_mbps is not None and math.isfinite(sent_mbps) and sent_mbps >= 0
-        stalled = (known_sent and sent_mbps > self.min_mbps and delivered_mbps == 0
-                   and math.isfinite(now_s) and not math.isfinite(latency_ms))
+        stalled = (
+            known_sent
+            and sent_mbps > self.min_mbps
+            and delivered_mbps == 0
+            and math.isfinite(now_s)
+            and not math.isfinite(latency_ms)
+        )
         if stalled:
             return self._stalled(now_s)
-        if not all(math.isfinite(v) for v in (now_s, delivered_mbps, latency_ms)) \
-                or delivered_mbps < 0 or latency_ms < 0:
+        if (
+            not all(math.isfinite(v) for v in (now_s, delivered_mbps, latency_ms))
+            or delivered_mbps < 0
+            or latency_ms < 0
+        ):
             self.ignored_samples += 1
             return self.estimate_mbps
         dt = 0.0 if self._last_time_s is None else max(0.0, now_s - self._last_time_s)
@@ -142,8 +170,10 @@ class LegacyDelayEstimator:
                 if math.isnan(self._quiet_since_s):
                     self._quiet_since_s = now_s
                 boost = min(3.0, 1.0 + (now_s - self._quiet_since_s) / 5.0)
-                grown = max(self.estimate_mbps * (1.0 + boost * self.increase_per_s) ** dt,
-                            self.estimate_mbps + self.increase_min_mbps_per_s * dt)
+                grown = max(
+                    self.estimate_mbps * (1.0 + boost * self.increase_per_s) ** dt,
+                    self.estimate_mbps + self.increase_min_mbps_per_s * dt,
+                )
             estimate = max(grown, delivered_mbps)
         self.estimate_mbps = min(max(estimate, self.min_mbps), self.max_mbps)
         return self.estimate_mbps

@@ -19,6 +19,7 @@ The subject is anything with `update(report, latency_ms) -> allocation Mbit/s`,
 `resume(now_s)`, `estimate_mbps` and `capacity_mbps` (see `NewEstimatorSubject`); the legacy
 anchor is wrapped the same way in bench/estimator_bench.py. Deterministic: jitter from a seeded RNG.
 """
+
 import collections
 import dataclasses
 import math
@@ -31,6 +32,7 @@ from cps_bw_manager.estimation import DeliveryRateEstimator, LinkReport
 @dataclasses.dataclass(frozen=True)
 class CpuHog:
     """The twin's CPU is busy from `start_s` to `end_s`: it processes at most `receiver_mbps`."""
+
     start_s: float
     end_s: float
     receiver_mbps: float
@@ -40,16 +42,17 @@ class CpuHog:
 @dataclasses.dataclass(frozen=True)
 class TraceRow:
     """One report interval as the judge sees it (rates in Mbit/s averaged over the interval)."""
+
     t_s: float
-    capacity_mbps: float      # the true capacity (tc rate); 0 during an outage
-    estimate_mbps: float      # the subject's capacity estimate (what the accuracy targets judge)
-    allocation_mbps: float    # the subject's allocation target (what the manager allocates from)
-    allowed_mbps: float       # what the sender was allowed at the end of the interval
-    ingress_mbps: float       # what entered the link
+    capacity_mbps: float  # the true capacity (tc rate); 0 during an outage
+    estimate_mbps: float  # the subject's capacity estimate (what the accuracy targets judge)
+    allocation_mbps: float  # the subject's allocation target (what the manager allocates from)
+    allowed_mbps: float  # what the sender was allowed at the end of the interval
+    ingress_mbps: float  # what entered the link
     delivered_mbps: float
-    offered_mbps: float       # the fleet's demand
+    offered_mbps: float  # the fleet's demand
     queue_mbit: float
-    link_up: bool             # the link health's view (the subject is paused while False)
+    link_up: bool  # the link health's view (the subject is paused while False)
     receiver_behind: bool
 
 
@@ -63,6 +66,7 @@ def steps_capacity(steps: Sequence[Tuple[float, float]]) -> Callable[[float], fl
             if t >= at_s:
                 value = mbps
         return value
+
     return capacity_of
 
 
@@ -70,8 +74,11 @@ class NewEstimatorSubject:
     """`DeliveryRateEstimator` behind the simulator's interface; `known` says which report fields
     it gets (default all; ("delivered", "sent", "offered") is what the manager has today)."""
 
-    def __init__(self, estimator: DeliveryRateEstimator, known=("delivered", "sent", "offered", "app_limited",
-                                                                 "rtt", "receiver_behind")):
+    def __init__(
+        self,
+        estimator: DeliveryRateEstimator,
+        known=("delivered", "sent", "offered", "app_limited", "rtt", "receiver_behind"),
+    ):
         self.estimator = estimator
         self.known = set(known)
 
@@ -83,7 +90,8 @@ class NewEstimatorSubject:
             offered_mbps=report.offered_mbps if "offered" in k else math.nan,
             app_limited=report.app_limited if "app_limited" in k else None,
             rtt_s=report.rtt_s if "rtt" in k else (),
-            receiver_behind=report.receiver_behind if "receiver_behind" in k else None)
+            receiver_behind=report.receiver_behind if "receiver_behind" in k else None,
+        )
         return self.estimator.update(report)
 
     def resume(self, now_s):
@@ -101,17 +109,18 @@ class NewEstimatorSubject:
 @dataclasses.dataclass
 class LinkModel:
     """The link, the sender and the receiver (module docstring); `run` drives a subject over it."""
+
     capacity_of: Callable[[float], float]
     demand_of: Callable[[float], float]
     base_rtt_s: float = 0.004
-    jitter_s: float = 0.0          # one-way delay jitter (uniform +-)
+    jitter_s: float = 0.0  # one-way delay jitter (uniform +-)
     loss_fraction: float = 0.0
-    reverse_mbps: float = 0.0      # traffic the other way on a shared medium
+    reverse_mbps: float = 0.0  # traffic the other way on a shared medium
     queue_limit_mbit: float = 4.0  # tbf queue + the bridge's buffer
     hogs: Sequence[CpuHog] = ()
     reserve_fraction: float = 0.04
     report_s: float = 0.5
-    report_offset_s: float = 0.0   # reports at offset + k x report_s (so steps need not fall on one)
+    report_offset_s: float = 0.0  # reports at offset + k x report_s (so steps need not fall on one)
     # rates in a report averaged over this sliding window (0: the report's own interval, as a
     # bridge counting bytes per interval would; 2: today's /tissue/stats and limiter status)
     measure_window_s: float = 0.0
@@ -129,7 +138,7 @@ class LinkModel:
         ticks_per_report = max(1, int(round(self.report_s / self.tick_s)))
         queue = 0.0
         allowed = (1 - self.reserve_fraction) * subject.estimate_mbps
-        pending = []          # (apply_at_s, allowed) from the control lag
+        pending = []  # (apply_at_s, allowed) from the control lag
         up = True
         trace, acc = [], None
         tick, cut_since, last_report_s = 0, None, 0.0
@@ -137,8 +146,18 @@ class LinkModel:
         offset_ticks = int(round(self.report_offset_s / self.tick_s)) % ticks_per_report
         while tick * self.tick_s < duration_s - 1e-9:
             if acc is None:
-                acc = dict(ingress=0.0, delivered=0.0, offered=0.0, app_limited=True, queue_empty=False,
-                           behind=False, rtt=[], latency=[], delivered_while_cut=False, cut=False)
+                acc = dict(
+                    ingress=0.0,
+                    delivered=0.0,
+                    offered=0.0,
+                    app_limited=True,
+                    queue_empty=False,
+                    behind=False,
+                    rtt=[],
+                    latency=[],
+                    delivered_while_cut=False,
+                    cut=False,
+                )
             t = tick * self.tick_s
             while pending and pending[0][0] <= t + 1e-9:
                 allowed = pending.pop(0)[1]
@@ -185,18 +204,35 @@ class LinkModel:
             else:
                 sent, delivered, offered = (acc[k] / interval for k in ("ingress", "delivered", "offered"))
             report = LinkReport(
-                now_s=now, interval_s=interval, delivered_mbps=delivered,
-                sent_mbps=sent, offered_mbps=offered,
-                app_limited=acc["app_limited"] and acc["queue_empty"], rtt_s=tuple(acc["rtt"]),
-                receiver_behind=acc["behind"])
+                now_s=now,
+                interval_s=interval,
+                delivered_mbps=delivered,
+                sent_mbps=sent,
+                offered_mbps=offered,
+                app_limited=acc["app_limited"] and acc["queue_empty"],
+                rtt_s=tuple(acc["rtt"]),
+                receiver_behind=acc["behind"],
+            )
             if up and not acc["cut"]:
                 latency = acc["latency"]
                 latency_ms = sorted(latency)[len(latency) // 2] if latency else math.nan
                 subject.update(report, latency_ms)
                 pending.append((now + self.control_lag_s, (1 - self.reserve_fraction) * subject.estimate_mbps))
-            trace.append(TraceRow(now, capacity, subject.capacity_mbps, subject.estimate_mbps, allowed,
-                                  acc["ingress"] / interval, acc["delivered"] / interval,
-                                  acc["offered"] / interval, queue, up, acc["behind"]))
+            trace.append(
+                TraceRow(
+                    now,
+                    capacity,
+                    subject.capacity_mbps,
+                    subject.estimate_mbps,
+                    allowed,
+                    acc["ingress"] / interval,
+                    acc["delivered"] / interval,
+                    acc["offered"] / interval,
+                    queue,
+                    up,
+                    acc["behind"],
+                )
+            )
             acc = None
         return trace
 

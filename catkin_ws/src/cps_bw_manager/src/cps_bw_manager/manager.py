@@ -4,13 +4,18 @@ It keeps per robot the measured message size and input rate (from the rate limit
 the priority book (mission state + operator), and the available bandwidth (configured, or the
 online estimate), and turns them into an `Allocation`. The node only wires topics to it.
 """
+
 import dataclasses
 import math
 from typing import Dict, Optional
 
-from cps_bw_manager.allocation import (DEFAULT_ASSUMED_MESSAGE_BYTES, DEFAULT_FLOOR_RATE_HZ,
-                                       DEFAULT_PRIORITY_WEIGHTS, allocate_frequencies,
-                                       managed_budget_mbytes_per_s)
+from cps_bw_manager.allocation import (
+    DEFAULT_ASSUMED_MESSAGE_BYTES,
+    DEFAULT_FLOOR_RATE_HZ,
+    DEFAULT_PRIORITY_WEIGHTS,
+    allocate_frequencies,
+    managed_budget_mbytes_per_s,
+)
 from cps_bw_manager.estimation import DeliveryRateEstimator, LinkReport
 from cps_bw_manager.priorities import PriorityBook
 
@@ -47,16 +52,28 @@ class ManagerSettings:
     def validate(self):
         """ValueError naming the parameter that is wrong."""
         managed_budget_mbytes_per_s(self.available_mbps, self.reserve_fraction)
-        if isinstance(self.copies_on_link, bool) or not isinstance(self.copies_on_link, int) \
-                or not 1 <= self.copies_on_link <= 100:
+        if (
+            isinstance(self.copies_on_link, bool)
+            or not isinstance(self.copies_on_link, int)
+            or not 1 <= self.copies_on_link <= 100
+        ):
             raise ValueError(f"copies_on_link must be an integer in [1, 100], got {self.copies_on_link!r}")
         if not isinstance(self.headroom_messages, (int, float)) or not 0 <= self.headroom_messages <= 10:
             raise ValueError(f"headroom_messages must be in [0, 10], got {self.headroom_messages!r}")
-        if not _finite(self.input_rate_hold_s) or isinstance(self.input_rate_hold_s, bool) \
-                or not 0 <= self.input_rate_hold_s <= 3600:
+        if (
+            not _finite(self.input_rate_hold_s)
+            or isinstance(self.input_rate_hold_s, bool)
+            or not 0 <= self.input_rate_hold_s <= 3600
+        ):
             raise ValueError(f"input_rate_hold_s must be in [0, 3600] s, got {self.input_rate_hold_s!r}")
-        for name in ("min_rate_hz", "max_rate_hz", "high_priority_weight", "floor_rate_hz", "assumed_message_bytes",
-                     "window_s"):
+        for name in (
+            "min_rate_hz",
+            "max_rate_hz",
+            "high_priority_weight",
+            "floor_rate_hz",
+            "assumed_message_bytes",
+            "window_s",
+        ):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
@@ -68,6 +85,7 @@ class ManagerSettings:
 @dataclasses.dataclass(frozen=True)
 class LinkHealth:
     """The last cps_msgs/LinkState heard (up until one says otherwise)."""
+
     up: bool = True
     since_s: float = math.nan
     outages: int = 0
@@ -118,8 +136,10 @@ class ManagerCore:
         if not self.paused:
             return ""
         peer = f" to {self.link.peer}" if self.link.peer else ""
-        return (f"paused: link{peer} down for {max(0.0, now_s - self.link.since_s):.1f} s; rates held, "
-                f"resuming from {self.available_mbps:.1f} Mbit/s when it is back")
+        return (
+            f"paused: link{peer} down for {max(0.0, now_s - self.link.since_s):.1f} s; rates held, "
+            f"resuming from {self.available_mbps:.1f} Mbit/s when it is back"
+        )
 
     @property
     def available_mbps(self):
@@ -163,8 +183,9 @@ class ManagerCore:
         except (KeyError, ValueError) as exc:
             self.invalid_inputs += 1
             return False, str(exc).strip("'\"")
-        return True, (f"{robot}: priority {priority} until its mission state changes"
-                      + ("" if changed else " (unchanged)"))
+        return True, (
+            f"{robot}: priority {priority} until its mission state changes" + ("" if changed else " (unchanged)")
+        )
 
     def sent_mbps(self):
         """What the rate limiters forward onto the link, Mbit/s (NaN until every one reported)."""
@@ -201,8 +222,15 @@ class ManagerCore:
         report those). Returns True if the available bandwidth moved by > 5 %."""
         last, self._last_stats_s = self._last_stats_s, now_s
         interval_s = now_s - last if math.isfinite(last) and 0 < now_s - last <= 5.0 else 0.5
-        return self.on_link_report(LinkReport(now_s=now_s, interval_s=interval_s, delivered_mbps=delivered_mbps,
-                                              sent_mbps=self.sent_mbps(), offered_mbps=self.offered_mbps()))
+        return self.on_link_report(
+            LinkReport(
+                now_s=now_s,
+                interval_s=interval_s,
+                delivered_mbps=delivered_mbps,
+                sent_mbps=self.sent_mbps(),
+                offered_mbps=self.offered_mbps(),
+            )
+        )
 
     def input_rate_cap_hz(self, robot):
         """The robot's maximum rate from its input: INPUT_RATE_HEADROOM x the last input rate, in
@@ -217,8 +245,11 @@ class ManagerCore:
         s = self.settings
         out = []
         for robot in self.robots:
-            out.append(self.book.demand(robot, self.measured[robot].message_bytes, s.min_rate_hz,
-                                        self.input_rate_cap_hz(robot)))
+            out.append(
+                self.book.demand(
+                    robot, self.measured[robot].message_bytes, s.min_rate_hz, self.input_rate_cap_hz(robot)
+                )
+            )
         return out
 
     def headroom_mbytes_per_s(self, demands, budget):
@@ -234,14 +265,27 @@ class ManagerCore:
         demands = self.demands()
         copies = self.settings.copies_on_link
         usable = (budget - self.headroom_mbytes_per_s(demands, budget)) / copies
-        result = allocate_frequencies(demands, usable, priority_weights=self.weights,
-                                      floor_rate_hz=self.settings.floor_rate_hz,
-                                      assumed_message_bytes=self.settings.assumed_message_bytes)
-        robots = tuple(dataclasses.replace(r, bandwidth_mbytes_per_s=copies * r.bandwidth_mbytes_per_s,
-                                           share_percent=100.0 * copies * r.bandwidth_mbytes_per_s / budget)
-                       for r in result.robots)
-        return dataclasses.replace(result, robots=robots, budget_mbytes_per_s=budget,
-                                   allocated_mbytes_per_s=copies * result.allocated_mbytes_per_s)
+        result = allocate_frequencies(
+            demands,
+            usable,
+            priority_weights=self.weights,
+            floor_rate_hz=self.settings.floor_rate_hz,
+            assumed_message_bytes=self.settings.assumed_message_bytes,
+        )
+        robots = tuple(
+            dataclasses.replace(
+                r,
+                bandwidth_mbytes_per_s=copies * r.bandwidth_mbytes_per_s,
+                share_percent=100.0 * copies * r.bandwidth_mbytes_per_s / budget,
+            )
+            for r in result.robots
+        )
+        return dataclasses.replace(
+            result,
+            robots=robots,
+            budget_mbytes_per_s=budget,
+            allocated_mbytes_per_s=copies * result.allocated_mbytes_per_s,
+        )
 
     def _known(self, robot):
         if robot not in self.measured:
@@ -273,9 +317,20 @@ def _finite(value):
         return False
 
 
-ALLOCATION_CSV_COLUMNS = ("stamp_s", "available_mbps", "budget_mbytes_per_s", "feasible", "robot", "priority",
-                          "mission_state", "rate_hz", "message_bytes", "bandwidth_mbytes_per_s", "share_percent",
-                          "degraded")
+ALLOCATION_CSV_COLUMNS = (
+    "stamp_s",
+    "available_mbps",
+    "budget_mbytes_per_s",
+    "feasible",
+    "robot",
+    "priority",
+    "mission_state",
+    "rate_hz",
+    "message_bytes",
+    "bandwidth_mbytes_per_s",
+    "share_percent",
+    "degraded",
+)
 
 
 LINK_STATE_CSV_COLUMNS = ("stamp_s", "up", "since_s", "outages", "last_outage_s", "peer", "available_mbps")
@@ -283,12 +338,33 @@ LINK_STATE_CSV_COLUMNS = ("stamp_s", "up", "since_s", "outages", "last_outage_s"
 
 def link_state_csv_row(stamp_s, link: LinkHealth, available_mbps):
     """One row of link_state.csv (LINK_STATE_CSV_COLUMNS), written at every transition."""
-    return (f"{stamp_s:.3f}", int(link.up), f"{link.since_s:.3f}", link.outages, f"{link.last_outage_s:.3f}",
-            link.peer, f"{available_mbps:.3f}")
+    return (
+        f"{stamp_s:.3f}",
+        int(link.up),
+        f"{link.since_s:.3f}",
+        link.outages,
+        f"{link.last_outage_s:.3f}",
+        link.peer,
+        f"{available_mbps:.3f}",
+    )
 
 
 def allocation_csv_rows(stamp_s, available_mbps, result, mission_states):
     """One row of allocation.csv per robot of an allocation `result` (ALLOCATION_CSV_COLUMNS)."""
-    return [(f"{stamp_s:.3f}", f"{available_mbps:.3f}", f"{result.budget_mbytes_per_s:.4f}", int(result.feasible),
-             a.name, a.priority, mission_states[a.name], f"{a.rate_hz:.3f}", f"{a.message_bytes:.0f}",
-             f"{a.bandwidth_mbytes_per_s:.4f}", f"{a.share_percent:.2f}", int(a.degraded)) for a in result.robots]
+    return [
+        (
+            f"{stamp_s:.3f}",
+            f"{available_mbps:.3f}",
+            f"{result.budget_mbytes_per_s:.4f}",
+            int(result.feasible),
+            a.name,
+            a.priority,
+            mission_states[a.name],
+            f"{a.rate_hz:.3f}",
+            f"{a.message_bytes:.0f}",
+            f"{a.bandwidth_mbytes_per_s:.4f}",
+            f"{a.share_percent:.2f}",
+            int(a.degraded),
+        )
+        for a in result.robots
+    ]

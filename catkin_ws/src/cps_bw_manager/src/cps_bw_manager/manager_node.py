@@ -1,11 +1,23 @@
 """The bandwidth manager's ROS adapter: parameters, topics, the service and the allocation timer
 wired to `ManagerCore` (nodes/bandwidth_manager starts it). See the package README for the interface."""
+
 import math
 import threading
 
 import rospy
 from std_msgs.msg import Float64, String
 
+from cps_bw_manager.estimation import DeliveryRateEstimator
+from cps_bw_manager.manager import (
+    ALLOCATION_CSV_COLUMNS,
+    DEFAULT_INPUT_RATE_HOLD_S,
+    LINK_STATE_CSV_COLUMNS,
+    ManagerCore,
+    ManagerSettings,
+    allocation_csv_rows,
+    link_state_csv_row,
+    link_totals,
+)
 from cps_fleet import names
 from cps_fleet.csv_log import CsvLog
 from cps_fleet.fleet import load_fleet, robot_names_arg
@@ -13,10 +25,6 @@ from cps_msgs.msg import BandwidthAllocation, BandwidthAllocationArray, LinkStat
 from cps_msgs.srv import SetPriority, SetPriorityResponse
 from cps_ros.fault_report import FaultReport
 from cps_ros.timers import guarded_timer
-
-from cps_bw_manager.estimation import DeliveryRateEstimator
-from cps_bw_manager.manager import (ALLOCATION_CSV_COLUMNS, DEFAULT_INPUT_RATE_HOLD_S, LINK_STATE_CSV_COLUMNS,
-                                    ManagerCore, ManagerSettings, allocation_csv_rows, link_state_csv_row, link_totals)
 
 
 def _param(name, default, kind):
@@ -30,6 +38,7 @@ def _param(name, default, kind):
 
 class BandwidthManagerNode:
     """Reads its parameters, allocates on every input that changes the answer and at update_rate_hz."""
+
     def __init__(self):
         fleet = load_fleet(rospy.get_param("~fleet_file", None) or None)
         robots = rospy.get_param("~robots", [])
@@ -66,36 +75,65 @@ class BandwidthManagerNode:
                 # /tissue/stats and the limiters' status are 2 s sliding averages: a probe shorter
                 # than that is not seen, and after an outage the window still holds it (a bridge
                 # reporting per interval allows 0)
-                measure_window_s=estimate_window_s, probe_s=max(0.5, estimate_window_s))
+                measure_window_s=estimate_window_s,
+                probe_s=max(0.5, estimate_window_s),
+            )
         self.core = ManagerCore(fleet.robot_names, settings, estimator)
         self.lock = threading.Lock()
         csv_path = rospy.get_param("~csv_path", "")
         csv_max_bytes = int(fleet.limits.csv_max_mbytes * 1e6)
-        self.csv_log = (CsvLog(csv_path, ALLOCATION_CSV_COLUMNS, max_bytes=csv_max_bytes, on_failure=rospy.logerr)
-                        if csv_path else None)
+        self.csv_log = (
+            CsvLog(csv_path, ALLOCATION_CSV_COLUMNS, max_bytes=csv_max_bytes, on_failure=rospy.logerr)
+            if csv_path
+            else None
+        )
         self.csv_report = FaultReport("csv_log")
         link_csv_path = rospy.get_param("~link_state_csv_path", "")
-        self.link_csv = (CsvLog(link_csv_path, LINK_STATE_CSV_COLUMNS, max_bytes=csv_max_bytes, on_failure=rospy.logerr)
-                         if link_csv_path else None)
+        self.link_csv = (
+            CsvLog(link_csv_path, LINK_STATE_CSV_COLUMNS, max_bytes=csv_max_bytes, on_failure=rospy.logerr)
+            if link_csv_path
+            else None
+        )
         self.last_result = None
 
-        self.rate_pubs = {r: rospy.Publisher(names.robot_topic(r, names.LIMITER_RATE_HZ), Float64, queue_size=1, latch=True)
-                          for r in self.core.robots}
+        self.rate_pubs = {
+            r: rospy.Publisher(names.robot_topic(r, names.LIMITER_RATE_HZ), Float64, queue_size=1, latch=True)
+            for r in self.core.robots
+        }
         self.alloc_pub = rospy.Publisher(names.ALLOCATION, BandwidthAllocationArray, queue_size=1, latch=True)
         self.bw_pub = rospy.Publisher(names.AVAILABLE_BANDWIDTH, Float64, queue_size=1, latch=True)
         self.subs = []
         for robot in self.core.robots:
-            self.subs.append(rospy.Subscriber(names.robot_topic(robot, names.MISSION_STATE), String, self._on_mission_state,
-                                              callback_args=robot, queue_size=10))
-            self.subs.append(rospy.Subscriber(names.robot_topic(robot, names.LIMITER_STATUS), RateLimiterStatus,
-                                              self._on_status, callback_args=robot, queue_size=10))
+            self.subs.append(
+                rospy.Subscriber(
+                    names.robot_topic(robot, names.MISSION_STATE),
+                    String,
+                    self._on_mission_state,
+                    callback_args=robot,
+                    queue_size=10,
+                )
+            )
+            self.subs.append(
+                rospy.Subscriber(
+                    names.robot_topic(robot, names.LIMITER_STATUS),
+                    RateLimiterStatus,
+                    self._on_status,
+                    callback_args=robot,
+                    queue_size=10,
+                )
+            )
         self.subs.append(rospy.Subscriber(names.TISSUE_STATS, TopicStatsArray, self._on_stats, queue_size=2))
         self.subs.append(rospy.Subscriber(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10))
         self.service = rospy.Service(names.SET_PRIORITY, SetPriority, self._on_set_priority)
-        rospy.loginfo("bandwidth manager: robots %s, %.1f Mbit/s (%s), reserve %.0f %%, rates %.1f..%.1f Hz",
-                      ", ".join(self.core.robots), settings.available_mbps,
-                      "estimated online" if estimator else "configured", 100 * settings.reserve_fraction,
-                      settings.min_rate_hz, settings.max_rate_hz)
+        rospy.loginfo(
+            "bandwidth manager: robots %s, %.1f Mbit/s (%s), reserve %.0f %%, rates %.1f..%.1f Hz",
+            ", ".join(self.core.robots),
+            settings.available_mbps,
+            "estimated online" if estimator else "configured",
+            100 * settings.reserve_fraction,
+            settings.min_rate_hz,
+            settings.max_rate_hz,
+        )
         self.update()
         self.timer = guarded_timer(1.0 / self.update_rate_hz, lambda _: self.update(), "allocation")
 
@@ -107,18 +145,19 @@ class BandwidthManagerNode:
             rospy.logwarn_throttle(5.0, f"bandwidth manager: {exc}; ignored")
             return
         if changed:
-            rospy.loginfo("bandwidth manager: %s is %s -> priority %d", robot, msg.data,
-                          self.core.book.priority(robot))
+            rospy.loginfo("bandwidth manager: %s is %s -> priority %d", robot, msg.data, self.core.book.priority(robot))
             self.update()
 
     def _on_status(self, msg, robot):
         try:
             with self.lock:
-                changed = self.core.on_limiter_status(robot, msg.mean_message_bytes, msg.input_rate_hz,
-                                                      msg.output_rate_hz, now_s=rospy.get_time())
+                changed = self.core.on_limiter_status(
+                    robot, msg.mean_message_bytes, msg.input_rate_hz, msg.output_rate_hz, now_s=rospy.get_time()
+                )
         except ValueError as exc:
-            rospy.logwarn_throttle(5.0, f"bandwidth manager: {exc}; ignored "
-                                        f"({self.core.invalid_inputs} bad inputs so far)")
+            rospy.logwarn_throttle(
+                5.0, f"bandwidth manager: {exc}; ignored ({self.core.invalid_inputs} bad inputs so far)"
+            )
             return
         if changed:
             self.update()
@@ -136,8 +175,11 @@ class BandwidthManagerNode:
             available = self.core.available_mbps
         if changed:
             (rospy.loginfo if msg.up else rospy.logwarn)(
-                "bandwidth manager: link to %s %s; %s", msg.peer or "the other side", "back" if msg.up else "DOWN",
-                f"allocating again from {available:.1f} Mbit/s" if msg.up else "allocation paused, rates held")
+                "bandwidth manager: link to %s %s; %s",
+                msg.peer or "the other side",
+                "back" if msg.up else "DOWN",
+                f"allocating again from {available:.1f} Mbit/s" if msg.up else "allocation paused, rates held",
+            )
             if self.link_csv:
                 self.link_csv.write(link_state_csv_row(rospy.get_time(), self.core.link, available))
             self.update()
@@ -178,11 +220,20 @@ class BandwidthManagerNode:
         msg.status = paused or result.status
         msg.link_up = not paused
         for a in result.robots:
-            msg.allocations.append(BandwidthAllocation(
-                robot=a.name, topic=rospy.resolve_name(names.managed_cloud(a.name)), priority=a.priority,
-                rate_hz=a.rate_hz, min_rate_hz=a.min_rate_hz, max_rate_hz=a.max_rate_hz,
-                message_bytes=a.message_bytes, bandwidth_mbytes_per_s=a.bandwidth_mbytes_per_s,
-                share_percent=a.share_percent, degraded=a.degraded))
+            msg.allocations.append(
+                BandwidthAllocation(
+                    robot=a.name,
+                    topic=rospy.resolve_name(names.managed_cloud(a.name)),
+                    priority=a.priority,
+                    rate_hz=a.rate_hz,
+                    min_rate_hz=a.min_rate_hz,
+                    max_rate_hz=a.max_rate_hz,
+                    message_bytes=a.message_bytes,
+                    bandwidth_mbytes_per_s=a.bandwidth_mbytes_per_s,
+                    share_percent=a.share_percent,
+                    degraded=a.degraded,
+                )
+            )
         self.alloc_pub.publish(msg)
         self.bw_pub.publish(Float64(available))
         if self.csv_log:

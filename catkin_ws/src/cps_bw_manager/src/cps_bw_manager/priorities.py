@@ -14,6 +14,7 @@ An operator priority (`/tissue/set_priority`) overrides the automatic one until 
 state changes again. A done robot set to 1 by the operator gets [min, max] back; set to 0 it stays
 pinned at the minimum.
 """
+
 import dataclasses
 from typing import Dict, Iterable, Optional
 
@@ -46,8 +47,7 @@ class PriorityBook:
         """
         entry = self._entry(robot)
         if state not in MISSION_STATES:
-            raise ValueError(f"robot '{robot}': unknown mission state '{state}' "
-                             f"(known: {', '.join(MISSION_STATES)})")
+            raise ValueError(f"robot '{robot}': unknown mission state '{state}' (known: {', '.join(MISSION_STATES)})")
         if state == entry.mission_state:
             return False
         before = self.effective(robot)
@@ -82,9 +82,13 @@ class PriorityBook:
 
     def demand(self, robot, message_bytes, min_rate_hz, max_rate_hz):
         """The allocator's input for `robot`: priority and bounds from its state and the operator."""
-        return RobotDemand(name=robot, message_bytes=message_bytes, priority=self.priority(robot),
-                           min_rate_hz=min_rate_hz,
-                           max_rate_hz=min_rate_hz if self.pinned_to_minimum(robot) else max_rate_hz)
+        return RobotDemand(
+            name=robot,
+            message_bytes=message_bytes,
+            priority=self.priority(robot),
+            min_rate_hz=min_rate_hz,
+            max_rate_hz=min_rate_hz if self.pinned_to_minimum(robot) else max_rate_hz,
+        )
 
     def _entry(self, robot):
         try:

@@ -5,6 +5,7 @@ Clouds: cps_sim's renderer with the paper's sensor profile (640x480 depth camera
 mission. Sizes per stage come from cps_transport.stream_sizes (what pcl_ros's VoxelGrid and our
 encoder node send); MB/s = bytes x the nominal rate (10^6 B/s).
 """
+
 import dataclasses
 import os
 from typing import Dict
@@ -23,6 +24,7 @@ STAGES = ("raw", "filtered", "compressed")
 @dataclasses.dataclass
 class MissionSizes:
     """Bytes per stage of every rendered cloud: sizes[robot][leaf] = [StageSizes per frame]."""
+
     fleet: object
     frames_per_robot: int
     sizes: Dict[str, Dict[float, list]]
@@ -45,8 +47,10 @@ def measure_mission_sizes(frames_per_robot=10, leaf_sizes=LEAF_SIZES_M, log=prin
     from cps_transport.stream_sizes import stage_sizes
 
     fleet = load_fleet(profile="paper")
-    rates = {r.name: (fleet.profile.lidar.rate_hz if r.has_lidar else fleet.profile.depth_camera.rate_hz)
-             for r in fleet.robots}
+    rates = {
+        r.name: (fleet.profile.lidar.rate_hz if r.has_lidar else fleet.profile.depth_camera.rate_hz)
+        for r in fleet.robots
+    }
     fleet_leaf = {r.name: r.voxel_leaf_m for r in fleet.robots}
     leaves = sorted(set(leaf_sizes) | set(fleet_leaf.values()) | {PAPER_LEAF_M})
     log(f"[experiments] rendering {frames_per_robot} paper-profile cloud(s) per robot along the routes")
@@ -79,28 +83,56 @@ def _paper_range(pair):
 
 def write_table4(mission: MissionSizes, out_dir):
     """table4.csv and table4.md: the fleet's leaf sizes (scout 1 cm) and every robot at 10 cm."""
-    headers = ["robot", "leaf_m", "rate_hz"] + [f"{stage}_{m}_mbytes_per_s" for stage in STAGES for m in ("min", "max")] + \
-              [f"paper_{stage}_{m}" for stage in STAGES for m in ("min", "max")]
+    headers = (
+        ["robot", "leaf_m", "rate_hz"]
+        + [f"{stage}_{m}_mbytes_per_s" for stage in STAGES for m in ("min", "max")]
+        + [f"paper_{stage}_{m}" for stage in STAGES for m in ("min", "max")]
+    )
     csv_rows, sections = [], []
-    variants = (("fleet.yaml leaf sizes (scout 0.01 m, the others 0.10 m; the paper's text)", "fleet",
-                 lambda r: mission.fleet_leaf_m[r]),
-                ("every robot at 0.10 m (the caption of the paper's Table 4)", "0.10", lambda r: PAPER_LEAF_M))
+    variants = (
+        (
+            "fleet.yaml leaf sizes (scout 0.01 m, the others 0.10 m; the paper's text)",
+            "fleet",
+            lambda r: mission.fleet_leaf_m[r],
+        ),
+        ("every robot at 0.10 m (the caption of the paper's Table 4)", "0.10", lambda r: PAPER_LEAF_M),
+    )
     summary = {}
     for title, key, leaf_of in variants:
         rows, totals = table4_rows(mission, leaf_of)
         md_rows = []
         for robot, leaf, rate, cells in rows:
             p = paper.TABLE4[robot]
-            csv_rows.append([robot, leaf, rate] + [round(v, 4) for c in cells for v in c] +
-                            [v for stage in p[:3] for v in stage])
-            md_rows.append([robot, f"{leaf:g}", f"{rate:g}"] +
-                           [f"{fmt(c[0], 3)}–{fmt(c[1], 3)} ({_paper_range(ps)})" for c, ps in zip(cells, p[:3])])
-        csv_rows.append([f"total ({key})", "", ""] + [round(v, 4) for t in totals for v in t] +
-                        [v for stage in paper.TABLE4_TOTAL for v in stage])
-        md_rows.append(["**total**", "", ""] + [f"**{fmt(t[0], 3)}–{fmt(t[1], 3)}** ({_paper_range(pt)})"
-                                                for t, pt in zip(totals, paper.TABLE4_TOTAL)])
-        sections += [f"## {title}", markdown_table(
-            ["robot", "leaf m", "Hz", "raw MB/s min–max (paper)", "filtered MB/s (paper)", "compressed MB/s (paper)"], md_rows)]
+            csv_rows.append(
+                [robot, leaf, rate] + [round(v, 4) for c in cells for v in c] + [v for stage in p[:3] for v in stage]
+            )
+            md_rows.append(
+                [robot, f"{leaf:g}", f"{rate:g}"]
+                + [f"{fmt(c[0], 3)}–{fmt(c[1], 3)} ({_paper_range(ps)})" for c, ps in zip(cells, p[:3])]
+            )
+        csv_rows.append(
+            [f"total ({key})", "", ""]
+            + [round(v, 4) for t in totals for v in t]
+            + [v for stage in paper.TABLE4_TOTAL for v in stage]
+        )
+        md_rows.append(
+            ["**total**", "", ""]
+            + [f"**{fmt(t[0], 3)}–{fmt(t[1], 3)}** ({_paper_range(pt)})" for t, pt in zip(totals, paper.TABLE4_TOTAL)]
+        )
+        sections += [
+            f"## {title}",
+            markdown_table(
+                [
+                    "robot",
+                    "leaf m",
+                    "Hz",
+                    "raw MB/s min–max (paper)",
+                    "filtered MB/s (paper)",
+                    "compressed MB/s (paper)",
+                ],
+                md_rows,
+            ),
+        ]
         summary[key] = totals
     write_csv(os.path.join(out_dir, "table4.csv"), headers, csv_rows)
 
@@ -108,8 +140,10 @@ def write_table4(mission: MissionSizes, out_dir):
     lidar_robot = next(r.name for r in mission.fleet.robots if r.has_lidar)
     lidar = mission.sizes[lidar_robot][PAPER_LEAF_M][0]
     lidar_step = mission.clouds[lidar_robot][0].cloud.point_step
-    means = {stage: sum(float(np.mean(mission.mbytes_per_s(r, mission.fleet_leaf_m[r], stage))) for r in mission.sizes)
-             for stage in STAGES}
+    means = {
+        stage: sum(float(np.mean(mission.mbytes_per_s(r, mission.fleet_leaf_m[r], stage))) for r in mission.sizes)
+        for stage in STAGES
+    }
     text = [
         f"Clouds: cps_sim, paper profile, {mission.frames_per_robot} poses evenly along each robot's route "
         f"(min/max over those). MB/s = bytes per cloud × nominal rate (depth 30 Hz, lidar 10 Hz); filtered = "
@@ -134,16 +168,20 @@ def write_table4(mission: MissionSizes, out_dir):
         f"point_cloud_transport's 14) and sends x,y,z only; with point_cloud_transport's defaults the same clouds "
         f"are 5–10× larger (docs/benchmarks/transport.md).",
     ]
-    write_markdown(os.path.join(out_dir, "table4.md"), "Tables 2/3/4: raw, filtered and compressed point clouds",
-                   text[:2] + sections + text[2:])
+    write_markdown(
+        os.path.join(out_dir, "table4.md"),
+        "Tables 2/3/4: raw, filtered and compressed point clouds",
+        text[:2] + sections + text[2:],
+    )
     return {"fleet": fleet_totals, "0.10": ten_cm, "means": means}
 
 
 def fleet_curve(mission: MissionSizes, stage):
     """Fleet MB/s (sum over robots of the mean over frames) at every leaf size measured."""
     leaves = sorted(next(iter(mission.sizes.values())))
-    return np.array(leaves), np.array([sum(float(np.mean(mission.mbytes_per_s(r, leaf, stage))) for r in mission.sizes)
-                                       for leaf in leaves])
+    return np.array(leaves), np.array(
+        [sum(float(np.mean(mission.mbytes_per_s(r, leaf, stage))) for r in mission.sizes) for leaf in leaves]
+    )
 
 
 def write_figs_11_12(mission: MissionSizes, out_dir):
@@ -156,13 +194,18 @@ def write_figs_11_12(mission: MissionSizes, out_dir):
     leaves, raw = fleet_curve(mission, "raw")
     _, filtered = fleet_curve(mission, "filtered")
     _, compressed = fleet_curve(mission, "compressed")
-    per_robot = {r: fleet_curve(dataclasses.replace(mission, sizes={r: mission.sizes[r]}), "filtered")[1]
-                 for r in mission.sizes}
-    write_csv(os.path.join(out_dir, "fig11_12.csv"),
-              ["leaf_m", "raw_mbytes_per_s", "filtered_mbytes_per_s", "compressed_mbytes_per_s"] +
-              [f"filtered_{r}_mbytes_per_s" for r in per_robot],
-              [[leaf, round(a, 4), round(b, 4), round(c, 5)] + [round(per_robot[r][i], 4) for r in per_robot]
-               for i, (leaf, a, b, c) in enumerate(zip(leaves, raw, filtered, compressed))])
+    per_robot = {
+        r: fleet_curve(dataclasses.replace(mission, sizes={r: mission.sizes[r]}), "filtered")[1] for r in mission.sizes
+    }
+    write_csv(
+        os.path.join(out_dir, "fig11_12.csv"),
+        ["leaf_m", "raw_mbytes_per_s", "filtered_mbytes_per_s", "compressed_mbytes_per_s"]
+        + [f"filtered_{r}_mbytes_per_s" for r in per_robot],
+        [
+            [leaf, round(a, 4), round(b, 4), round(c, 5)] + [round(per_robot[r][i], 4) for r in per_robot]
+            for i, (leaf, a, b, c) in enumerate(zip(leaves, raw, filtered, compressed))
+        ],
+    )
 
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     ax.plot(leaves * 100, filtered, "o-", color="tab:blue", label="filtered, fleet (ours)")
@@ -171,8 +214,13 @@ def write_figs_11_12(mission: MissionSizes, out_dir):
     ax.axhline(raw[0], color="grey", ls="--", label=f"raw, fleet ({raw[0]:.0f} MB/s)")
     ax.plot([10], [paper.FLEET_FILTERED_MBYTES_PER_S], "k*", ms=12, label="paper: 44.55 MB/s at 10 cm")
     ax.axhline(paper.FLEET_RAW_MBYTES_PER_S, color="k", ls=":", lw=0.8, label="paper raw 874.5 MB/s")
-    ax.set(xscale="log", yscale="log", xlabel="voxel size (cm)", ylabel="MB/s at nominal rates",
-           title="Fig. 11: voxel size vs consumed bandwidth (4 robots)")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="voxel size (cm)",
+        ylabel="MB/s at nominal rates",
+        title="Fig. 11: voxel size vs consumed bandwidth (4 robots)",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -184,8 +232,13 @@ def write_figs_11_12(mission: MissionSizes, out_dir):
     ax.plot(leaves * 100, compressed, "^-", label="filtered + Draco (ours)")
     ax.plot([10], [paper.FLEET_FILTERED_MBYTES_PER_S], "k*", ms=12, label="paper filtered, 10 cm")
     ax.plot([10], [paper.FLEET_COMPRESSED_MBYTES_PER_S], "kP", ms=10, label="paper compressed, 10 cm (8.71)")
-    ax.set(xscale="log", yscale="log", xlabel="voxel size (cm)", ylabel="fleet MB/s at nominal rates",
-           title="Fig. 12: filtered vs compressed point-cloud streams")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="voxel size (cm)",
+        ylabel="fleet MB/s at nominal rates",
+        title="Fig. 12: filtered vs compressed point-cloud streams",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()

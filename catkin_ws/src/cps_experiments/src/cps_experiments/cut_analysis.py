@@ -1,5 +1,6 @@
 """What a link cut did, from link_watch files (tests and the benchmark; ROS-free): when each side
 saw the link go and come back, and how old the live data was that arrived after it came back."""
+
 import collections
 import dataclasses
 from typing import Dict, List, Optional, Tuple
@@ -39,8 +40,9 @@ def first_state_after(watch: Watch, t_s, up) -> Optional[float]:
 
 def ages_after(watch: Watch, t_s, topics) -> np.ndarray:
     """Receive - stamp (s) of every message of `topics` received after t_s."""
-    return np.array([recv - stamp for topic in topics for recv, stamp, _ in watch.messages.get(topic, [])
-                     if recv >= t_s])
+    return np.array(
+        [recv - stamp for topic in topics for recv, stamp, _ in watch.messages.get(topic, []) if recv >= t_s]
+    )
 
 
 def count_after(watch: Watch, t_s, topic) -> int:

@@ -5,6 +5,7 @@ map is fused at the digital twin and the GUI is rendered offscreen. Across a tc-
 link between two network namespaces when root, over loopback otherwise (and it says which).
 Writes: map.bt, ground_truth.npz, scores.json, gui.png, stats.csv, allocation.csv, plots, report.md.
 """
+
 import argparse
 import json
 import os
@@ -36,21 +37,47 @@ def choose_link(requested, log=print):
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="out/demo")
-    parser.add_argument("--link", default="auto", help="auto (fleet.yaml's link rate when root), none, or a rate like 20mbit")
-    parser.add_argument("--link-scenario", default="demo", metavar="NAME",
-                        help="cps_link scenario on the shaped link (default demo: a 10 s outage at 25 s, then "
-                             "60 -> 10 -> 60 Mbit/s); 'none' for a constant link")
+    parser.add_argument(
+        "--link", default="auto", help="auto (fleet.yaml's link rate when root), none, or a rate like 20mbit"
+    )
+    parser.add_argument(
+        "--link-scenario",
+        default="demo",
+        metavar="NAME",
+        help="cps_link scenario on the shaped link (default demo: a 10 s outage at 25 s, then "
+        "60 -> 10 -> 60 Mbit/s); 'none' for a constant link",
+    )
     parser.add_argument("--profile", default=None, choices=PROFILES, help="sensor profile (default: fleet.yaml's)")
     parser.add_argument("--robots", default=None, help="subset, e.g. scout,jackal (default: the whole fleet)")
-    parser.add_argument("--duration", type=float, default=420.0, metavar="S",
-                        help="upper bound on the mission (it normally ends when every route is done)")
-    parser.add_argument("--screenshot-after", type=float, default=GUI_SCREENSHOT_AFTER_S, metavar="S",
-                        help="when the GUI screenshot is taken, seconds after start (during the mission)")
-    parser.add_argument("--map-f1-floor", type=float, default=None, metavar="F1",
-                        help="the verdict's floor on map F1 within ±1 voxel (default: cps_experiments.verdict's "
-                             "MAP_F1_FLOOR_WITHIN_1_VOXEL, for the whole fleet)")
-    parser.add_argument("--kill-map-server-at", type=float, default=None, metavar="S",
-                        help="fault injection: kill the map server mid-mission (it must resume from autosave)")
+    parser.add_argument(
+        "--duration",
+        type=float,
+        default=420.0,
+        metavar="S",
+        help="upper bound on the mission (it normally ends when every route is done)",
+    )
+    parser.add_argument(
+        "--screenshot-after",
+        type=float,
+        default=GUI_SCREENSHOT_AFTER_S,
+        metavar="S",
+        help="when the GUI screenshot is taken, seconds after start (during the mission)",
+    )
+    parser.add_argument(
+        "--map-f1-floor",
+        type=float,
+        default=None,
+        metavar="F1",
+        help="the verdict's floor on map F1 within ±1 voxel (default: cps_experiments.verdict's "
+        "MAP_F1_FLOOR_WITHIN_1_VOXEL, for the whole fleet)",
+    )
+    parser.add_argument(
+        "--kill-map-server-at",
+        type=float,
+        default=None,
+        metavar="S",
+        help="fault injection: kill the map server mid-mission (it must resume from autosave)",
+    )
     return parser.parse_args(argv)
 
 
@@ -60,9 +87,18 @@ def main(argv=None):
     out_dir = os.path.abspath(args.out)
     link = choose_link(args.link)
     scenario = args.link_scenario if link != "none" and args.link_scenario != "none" else None
-    mission = mission_args("all", profile=args.profile, out=out_dir, link=link, duration=args.duration,
-                           screenshot=True, screenshot_after=args.screenshot_after, link_scenario=scenario,
-                           robots=args.robots, kill_map_server_at=args.kill_map_server_at)
+    mission = mission_args(
+        "all",
+        profile=args.profile,
+        out=out_dir,
+        link=link,
+        duration=args.duration,
+        screenshot=True,
+        screenshot_after=args.screenshot_after,
+        link_scenario=scenario,
+        robots=args.robots,
+        kill_map_server_at=args.kill_map_server_at,
+    )
     mission.map_f1_floor = args.map_f1_floor
     from cps_experiments.report import write_mission_report
 

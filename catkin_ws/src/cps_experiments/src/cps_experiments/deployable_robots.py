@@ -8,6 +8,7 @@ clouds at rate f (every k-th cloud of a route driven at its cruise speed) throug
 pipeline (voxel grid, Draco, decode) into a FusedLogOddsMap and scoring it against cps_sim's
 ground truth.
 """
+
 import math
 import os
 
@@ -50,19 +51,21 @@ def twin_points_in_map(sample, leaf_m, encoder, decoder):
 
 def replay_quality(fleet, robot, rates_hz, duration_s=None, log=print):
     """Map quality after one mission of `robot` at each rate: list of dicts (rate, clouds, scores)."""
+    from cps_fleet.site import load_site
     from cps_mapping.fused_map import FusedLogOddsMap, near_any, voxel_index
     from cps_mapping.scoring import score_fused_map
     from cps_sim.ground_truth import occupied_voxels
     from cps_sim.sample_clouds import render_mission_clouds
-    from cps_fleet.site import load_site
     from cps_transport.draco import DracoDecoder, DracoEncoder
 
     route_s, length_m = route_duration_s(fleet, robot)
     duration_s = duration_s or route_s
     top = max(rates_hz)
     frames = max(1, int(round(duration_s * top)))
-    log(f"[experiments] replay: {robot} route {length_m:.1f} m in {duration_s:.0f} s, rendering {frames} clouds "
-        f"({top:g} Hz)")
+    log(
+        f"[experiments] replay: {robot} route {length_m:.1f} m in {duration_s:.0f} s, rendering {frames} clouds "
+        f"({top:g} Hz)"
+    )
     samples = render_mission_clouds("paper", robots=[robot], frames_per_robot=frames)[robot]
     cfg = fleet.robot(robot)
     encoder, decoder = DracoEncoder(leaf_size_m=cfg.voxel_leaf_m), DracoDecoder()
@@ -78,10 +81,11 @@ def replay_quality(fleet, robot, rates_hz, duration_s=None, log=print):
         for i in chosen:
             fused.insert_cloud(twin[i][0], twin[i][1], max_range_m=max_range, robot=robot)
         score = score_fused_map(fused, truth)
-        results.append({"rate_hz": rate, "clouds": len(chosen), "score": score,
-                        "occupied": fused.occupied_index()})
-        log(f"[experiments] replay {rate:g} Hz: {len(chosen)} clouds, within ±1 voxel: precision "
-            f"{score.precision:.3f}, recall {score.recall:.3f}, F1 {score.f1:.3f} (voxel for voxel {score.exact.f1:.3f})")
+        results.append({"rate_hz": rate, "clouds": len(chosen), "score": score, "occupied": fused.occupied_index()})
+        log(
+            f"[experiments] replay {rate:g} Hz: {len(chosen)} clouds, within ±1 voxel: precision "
+            f"{score.precision:.3f}, recall {score.recall:.3f}, F1 {score.f1:.3f} (voxel for voxel {score.exact.f1:.3f})"
+        )
     # What this route can see: the ground-truth voxels the densest replay found. Quality at rate f
     # is F1 against that (route recall), so a lower rate is judged by what it misses of the route.
     truth_index = np.unique(voxel_index(truth["occupied_centers_m"], res), axis=0)
@@ -111,23 +115,55 @@ def run(out_dir, mission, quick=False, log=print):
 
     replay_robot = "jackal" if "jackal" in depth else depth[0]
     rates = QUICK_REPLAY_RATES_HZ if quick else REPLAY_RATES_HZ
-    replay, duration_s, length_m = replay_quality(fleet, replay_robot, rates, duration_s=5.0 if quick else None, log=log)
+    replay, duration_s, length_m = replay_quality(
+        fleet, replay_robot, rates, duration_s=5.0 if quick else None, log=log
+    )
 
     curves = {
         "paper_A_unmanaged": [deployable(b / 8, paper.FIG13_TYPE_A_MBYTES_PER_S) for b in LINK_AXIS_MBPS],
         "paper_B_unmanaged": [deployable(b / 8, paper.FIG13_TYPE_B_MBYTES_PER_S) for b in LINK_AXIS_MBPS],
         "ours_A_unmanaged": [deployable(b / 8, ours_a) for b in LINK_AXIS_MBPS],
         "ours_B_unmanaged": [deployable(b / 8, ours_b) for b in LINK_AXIS_MBPS],
-        "ours_B_managed_1hz": [deployable(managed_budget_mbytes_per_s(b, fleet.link.reserve_fraction), size_b / 1e6) for b in LINK_AXIS_MBPS],
+        "ours_B_managed_1hz": [
+            deployable(managed_budget_mbytes_per_s(b, fleet.link.reserve_fraction), size_b / 1e6)
+            for b in LINK_AXIS_MBPS
+        ],
     }
-    write_csv(os.path.join(out_dir, "fig13.csv"), ["link_mbps"] + list(curves),
-              [[b] + [curves[k][i] for k in curves] for i, b in enumerate(LINK_AXIS_MBPS)])
-    write_csv(os.path.join(out_dir, "fig13_replay.csv"),
-              ["robot", "rate_hz", "clouds", "map_voxels", "precision", "recall_hall", "f1_hall", "route_recall",
-               "route_f1", "depth_robots_on_link"],
-              [[replay_robot, r["rate_hz"], r["clouds"], r["score"].map_voxels, round(r["score"].precision, 4),
-                round(r["score"].recall, 4), round(r["score"].f1, 4), round(r["route_recall"], 4), round(r["route_f1"], 4),
-                deployable(budget, size_b / 1e6 * r["rate_hz"])] for r in replay])
+    write_csv(
+        os.path.join(out_dir, "fig13.csv"),
+        ["link_mbps"] + list(curves),
+        [[b] + [curves[k][i] for k in curves] for i, b in enumerate(LINK_AXIS_MBPS)],
+    )
+    write_csv(
+        os.path.join(out_dir, "fig13_replay.csv"),
+        [
+            "robot",
+            "rate_hz",
+            "clouds",
+            "map_voxels",
+            "precision",
+            "recall_hall",
+            "f1_hall",
+            "route_recall",
+            "route_f1",
+            "depth_robots_on_link",
+        ],
+        [
+            [
+                replay_robot,
+                r["rate_hz"],
+                r["clouds"],
+                r["score"].map_voxels,
+                round(r["score"].precision, 4),
+                round(r["score"].recall, 4),
+                round(r["score"].f1, 4),
+                round(r["route_recall"], 4),
+                round(r["route_f1"], 4),
+                deployable(budget, size_b / 1e6 * r["rate_hz"]),
+            ]
+            for r in replay
+        ],
+    )
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     ax = axes[0]
@@ -137,8 +173,12 @@ def run(out_dir, mission, quick=False, log=print):
     ax.plot(LINK_AXIS_MBPS, curves["ours_B_unmanaged"], "r-", label=f"ours, type B unmanaged ({ours_b:.3f} MB/s)")
     ax.plot(LINK_AXIS_MBPS, curves["ours_B_managed_1hz"], "m-.", label="ours, type B managed at 1 Hz")
     ax.axvline(paper.FIG13_LINK_MBPS, color="grey", lw=0.8)
-    ax.set(yscale="log", xlabel="link bandwidth (Mbit/s)", ylabel="deployable robots",
-           title="Fig. 13: deployable robots vs link bandwidth")
+    ax.set(
+        yscale="log",
+        xlabel="link bandwidth (Mbit/s)",
+        ylabel="deployable robots",
+        title="Fig. 13: deployable robots vs link bandwidth",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     ax = axes[1]
@@ -147,8 +187,13 @@ def run(out_dir, mission, quick=False, log=print):
     ax.plot(hz, [r["score"].precision for r in replay], "s--", label="precision")
     ax.plot(hz, [r["score"].f1 for r in replay], "^:", label="F1 against the whole hall")
     ax.axvline(1.0, color="grey", lw=0.8)
-    ax.set(xscale="log", ylim=(0, 1.02), xlabel=f"{replay_robot}'s managed rate (Hz)", ylabel="map score",
-           title=f"Map quality of one depth robot ({length_m:.0f} m route, {duration_s:.0f} s) vs rate")
+    ax.set(
+        xscale="log",
+        ylim=(0, 1.02),
+        xlabel=f"{replay_robot}'s managed rate (Hz)",
+        ylabel="map score",
+        title=f"Map quality of one depth robot ({length_m:.0f} m route, {duration_s:.0f} s) vs rate",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
@@ -158,17 +203,45 @@ def run(out_dir, mission, quick=False, log=print):
     i60 = list(LINK_AXIS_MBPS).index(paper.FIG13_LINK_MBPS)
     at_1hz = next((r for r in replay if r["rate_hz"] == 1.0), None)
     best = replay[-1]
-    rows = [["type A (lidar), unmanaged", paper.FIG13_DEPLOYABLE_A, curves["ours_A_unmanaged"][i60],
-             f"{ours_a:.3f} MB/s per robot (paper 0.46)"],
-            ["type B (depth), unmanaged", paper.FIG13_DEPLOYABLE_B, curves["ours_B_unmanaged"][i60],
-             f"{ours_b:.3f} MB/s per robot (paper 3.13)"],
-            ["type B, managed, ≥ 1 Hz", "—", deployable(budget, size_b / 1e6),
-             f"largest depth message {size_b / 1e3:.1f} kB × 1 Hz within {budget:.2f} MB/s"],
-            ["type A, managed, ≥ 1 Hz", "—", deployable(budget, size_a / 1e6),
-             f"largest lidar message {size_a / 1e3:.1f} kB × 1 Hz"]]
-    replay_rows = [[f"{r['rate_hz']:g}", r["clouds"], r["score"].map_voxels, f"{r['score'].precision:.3f}",
-                    f"{r['route_recall']:.3f}", f"{r['route_f1']:.3f}", f"{r['score'].f1:.3f}",
-                    deployable(budget, size_b / 1e6 * r["rate_hz"])] for r in replay]
+    rows = [
+        [
+            "type A (lidar), unmanaged",
+            paper.FIG13_DEPLOYABLE_A,
+            curves["ours_A_unmanaged"][i60],
+            f"{ours_a:.3f} MB/s per robot (paper 0.46)",
+        ],
+        [
+            "type B (depth), unmanaged",
+            paper.FIG13_DEPLOYABLE_B,
+            curves["ours_B_unmanaged"][i60],
+            f"{ours_b:.3f} MB/s per robot (paper 3.13)",
+        ],
+        [
+            "type B, managed, ≥ 1 Hz",
+            "—",
+            deployable(budget, size_b / 1e6),
+            f"largest depth message {size_b / 1e3:.1f} kB × 1 Hz within {budget:.2f} MB/s",
+        ],
+        [
+            "type A, managed, ≥ 1 Hz",
+            "—",
+            deployable(budget, size_a / 1e6),
+            f"largest lidar message {size_a / 1e3:.1f} kB × 1 Hz",
+        ],
+    ]
+    replay_rows = [
+        [
+            f"{r['rate_hz']:g}",
+            r["clouds"],
+            r["score"].map_voxels,
+            f"{r['score'].precision:.3f}",
+            f"{r['route_recall']:.3f}",
+            f"{r['route_f1']:.3f}",
+            f"{r['score'].f1:.3f}",
+            deployable(budget, size_b / 1e6 * r["rate_hz"]),
+        ]
+        for r in replay
+    ]
     text = [
         f"Per-robot rates: the paper's (section 5) and ours = the maximum compressed MB/s over the mission "
         f"(Table 4 run; type B = the mean of the three depth robots). Without management: all robots at the sensor "
@@ -187,18 +260,32 @@ def run(out_dir, mission, quick=False, log=print):
         f"Every score here matches a voxel within ±1 voxel in all 26 directions, not voxel for voxel. "
         f"The last column is how many such robots the managed link carries at that rate (virtual robots replaying "
         f"the same clouds).",
-        markdown_table(["rate Hz", "clouds", "map voxels", "precision", "route recall", "route F1", "hall F1",
-                        "depth robots on 60 Mbit/s"], replay_rows),
+        markdown_table(
+            [
+                "rate Hz",
+                "clouds",
+                "map voxels",
+                "precision",
+                "route recall",
+                "route F1",
+                "hall F1",
+                "depth robots on 60 Mbit/s",
+            ],
+            replay_rows,
+        ),
         "### Differences",
         f"- Without management we fit {curves['ours_A_unmanaged'][i60]} lidar and {curves['ours_B_unmanaged'][i60]} "
         f"depth robots at 60 Mbit/s against the paper's {paper.FIG13_DEPLOYABLE_A} and {paper.FIG13_DEPLOYABLE_B}: "
         f"our compressed clouds are {paper.FIG13_TYPE_A_MBYTES_PER_S / ours_a:.1f}× (lidar) and "
         f"{paper.FIG13_TYPE_B_MBYTES_PER_S / ours_b:.0f}× (depth) smaller (fewer voxels in our emptier hall, positions "
         f"quantized to half a leaf, x,y,z only; see Table 4).",
-        (f"- With the manager at 1 Hz the link carries {deployable(budget, size_b / 1e6)} depth robots; one of them "
-         f"maps its route at route-F1 {at_1hz['route_f1']:.3f} (precision {at_1hz['score'].precision:.3f}) against "
-         f"{best['route_f1']:.3f} at {best['rate_hz']:g} Hz. The paper gives no map-quality figure for this; it is ours."
-         if at_1hz else ""),
+        (
+            f"- With the manager at 1 Hz the link carries {deployable(budget, size_b / 1e6)} depth robots; one of them "
+            f"maps its route at route-F1 {at_1hz['route_f1']:.3f} (precision {at_1hz['score'].precision:.3f}) against "
+            f"{best['route_f1']:.3f} at {best['rate_hz']:g} Hz. The paper gives no map-quality figure for this; it is ours."
+            if at_1hz
+            else ""
+        ),
     ]
     write_markdown(os.path.join(out_dir, "fig13.md"), "Fig. 13: deployable robots against link bandwidth", text)
     return {"ours_a": ours_a, "ours_b": ours_b, "replay": replay, "curves": curves}

@@ -3,6 +3,7 @@ and latency of the managed point clouds) and Fig. 14 (top-down view of the 4-rob
 the trajectories), both from the running system: `cps_bringup.cli.run_mission`, one process per
 fleet (rospy allows one node per process), then the run's stats.csv (cps_transport's topic_stats)
 and map.bt."""
+
 import json
 import math
 import os
@@ -81,8 +82,11 @@ def network_performance(stats_rows):
                 mx.append(m)
                 std.append(s if math.isfinite(s) else 0.0)
     bw = (float(busy.mean()), float(busy.max()), float(busy.std())) if len(busy) else (math.nan,) * 3
-    lat = ((float(np.mean(avg)), float(np.max(mx)), float(math.sqrt(np.mean(np.square(std)) + np.var(avg))))
-           if avg else (math.nan,) * 3)
+    lat = (
+        (float(np.mean(avg)), float(np.max(mx)), float(math.sqrt(np.mean(np.square(std)) + np.var(avg))))
+        if avg
+        else (math.nan,) * 3
+    )
     return bw, lat, len(busy), int(np.sum(totals > 0))
 
 
@@ -135,10 +139,25 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
         sensor_avg_ms = sum(v["avg_ms"] for v in sensor.values()) / len(sensor) if sensor else float("nan")
         results[robots] = (summary, network_performance(stats), stats, run_dir, sensor_avg_ms)
 
-    headers = ["fleet", "link", "duration_s", "windows", "bandwidth_avg_mbytes_per_s", "bandwidth_max_mbytes_per_s",
-               "bandwidth_std_mbytes_per_s", "latency_avg_ms", "latency_max_ms", "latency_std_ms",
-               "robot_side_latency_avg_ms", "paper_bandwidth_avg", "paper_bandwidth_max", "paper_bandwidth_std", "paper_latency_avg",
-               "paper_latency_max", "paper_latency_std"]
+    headers = [
+        "fleet",
+        "link",
+        "duration_s",
+        "windows",
+        "bandwidth_avg_mbytes_per_s",
+        "bandwidth_max_mbytes_per_s",
+        "bandwidth_std_mbytes_per_s",
+        "latency_avg_ms",
+        "latency_max_ms",
+        "latency_std_ms",
+        "robot_side_latency_avg_ms",
+        "paper_bandwidth_avg",
+        "paper_bandwidth_max",
+        "paper_bandwidth_std",
+        "paper_latency_avg",
+        "paper_latency_max",
+        "paper_latency_std",
+    ]
     csv_rows, md_rows = [], []
     elapsed = {}
     for robots in FLEETS:
@@ -146,12 +165,19 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
         (pbw, plat) = paper.TABLE5[robots]
         if robots in results:
             summary, (bw, lat, windows, _), _, _, sensor_avg_ms = results[robots]
-            csv_rows.append([name, summary["link"], round(summary["elapsed_s"], 1), windows] +
-                            [round(v, 4) for v in bw + lat] + [round(sensor_avg_ms, 1)] + list(pbw + plat))
+            csv_rows.append(
+                [name, summary["link"], round(summary["elapsed_s"], 1), windows]
+                + [round(v, 4) for v in bw + lat]
+                + [round(sensor_avg_ms, 1)]
+                + list(pbw + plat)
+            )
             elapsed[robots] = summary["elapsed_s"]
-            md_rows.append([name, f"{summary['elapsed_s']:.0f}"] + [f"{v:.3f} ({p:g})" for v, p in zip(bw, pbw)] +
-                           [f"{v:.1f} ({p:g})" for v, p in zip(lat, plat)] +
-                           [f"{sensor_avg_ms:.1f}", f"{lat[0] - sensor_avg_ms:.1f}"])
+            md_rows.append(
+                [name, f"{summary['elapsed_s']:.0f}"]
+                + [f"{v:.3f} ({p:g})" for v, p in zip(bw, pbw)]
+                + [f"{v:.1f} ({p:g})" for v, p in zip(lat, plat)]
+                + [f"{sensor_avg_ms:.1f}", f"{lat[0] - sensor_avg_ms:.1f}"]
+            )
         else:
             reason = "failed (see below)" if robots in failures else "not run (--quick)"
             csv_rows.append([name, reason, "", ""] + [""] * 7 + list(pbw + plat))
@@ -170,38 +196,61 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
         "The last two columns split the average latency: the robots' side (capture stamp → voxel-filtered cloud, "
         "measured on the physical host by a second topic_stats: the simulated sensor's render time under the "
         "machine's load) and the rest (Draco encoding, rate limiter, the link, relay).",
-        markdown_table(["fleet", "mission s", "MB/s avg", "MB/s max", "MB/s std", "latency avg ms", "latency max ms",
-                        "latency std ms", "robot side avg ms", "tissue + link avg ms"], md_rows)]
+        markdown_table(
+            [
+                "fleet",
+                "mission s",
+                "MB/s avg",
+                "MB/s max",
+                "MB/s std",
+                "latency avg ms",
+                "latency max ms",
+                "latency std ms",
+                "robot side avg ms",
+                "tissue + link avg ms",
+            ],
+            md_rows,
+        ),
+    ]
     if results:
         largest = max(results, key=len)
         unmanaged = unmanaged_per_robot(results[largest][2], largest)
         if unmanaged:
-            sections += ["Table 2's joint states + odometry column, measured in the same run (paper: 0.046–0.048 MB/s "
-                         "per ground robot, 0.021–0.023 aerial):",
-                         markdown_table(["robot", "odom + joint_states MB/s min–max"],
-                                        [[r, f"{a:.4f}–{b:.4f}"] for r, (a, b) in sorted(unmanaged.items())])]
+            sections += [
+                "Table 2's joint states + odometry column, measured in the same run (paper: 0.046–0.048 MB/s "
+                "per ground robot, 0.021–0.023 aerial):",
+                markdown_table(
+                    ["robot", "odom + joint_states MB/s min–max"],
+                    [[r, f"{a:.4f}–{b:.4f}"] for r, (a, b) in sorted(unmanaged.items())],
+                ),
+            ]
         worst = max(v[1][1][1] for v in results.values())
         averages = [v[1][0][0] for v in results.values()]
         budget = _budget()
         tissue = [v[1][1][0] - v[4] for v in results.values() if math.isfinite(v[4])]
-        tissue_text = (f" The tissue and the link (Draco encoding, rate limiter, the shaped link, relay, decoding) take "
-                       f"{min(tissue):.0f}–{max(tissue):.0f} ms of it on average, "
-                       f"{'within' if max(tissue) < paper.TABLE5_LATENCY_BOUND_MS else 'over'} the paper's bound; "
-                       "the rest is the robots' side: the simulated capture (an 8 ms Embree scan for the lidar, "
-                       "1–2 ms per 160×120 camera frame), publishing and the voxel grid on the same two cores as "
-                       "everything else, which a real sensor's driver does on its own computer." if tissue else "")
-        sections += ["### Differences",
-                     f"- Latency: {min(v[1][1][0] for v in results.values()):.0f}–{max(v[1][1][0] for v in results.values()):.0f} ms "
-                     f"on average, largest window maximum {worst:.0f} ms "
-                     f"({'under' if worst < paper.TABLE5_LATENCY_BOUND_MS else 'over'} the paper's 100 ms bound; paper 39–52 ms avg). "
-                     "Ours is capture stamp → decoded at the twin's topic statistics, all on one 2-core machine."
-                     + tissue_text,
-                     f"- Bandwidth: {min(averages):.3f}–{max(averages):.3f} MB/s on average, at most "
-                     f"{100 * max(v[1][0][1] for v in results.values()) / budget:.0f} % of the managed budget "
-                     f"({budget:.2f} MB/s), against the paper's 1.2–5.3 MB/s: our compressed clouds are much smaller "
-                     f"(Table 4), and the '{_profile()}' profile renders fewer, smaller clouds than the paper's sensors. A run ends "
-                     f"when the last route is done ({min(elapsed.values()):.0f}–{max(elapsed.values()):.0f} s here) and a robot "
-                     f"that has finished is pinned to 1 Hz, so the averages include those quiet windows."]
+        tissue_text = (
+            f" The tissue and the link (Draco encoding, rate limiter, the shaped link, relay, decoding) take "
+            f"{min(tissue):.0f}–{max(tissue):.0f} ms of it on average, "
+            f"{'within' if max(tissue) < paper.TABLE5_LATENCY_BOUND_MS else 'over'} the paper's bound; "
+            "the rest is the robots' side: the simulated capture (an 8 ms Embree scan for the lidar, "
+            "1–2 ms per 160×120 camera frame), publishing and the voxel grid on the same two cores as "
+            "everything else, which a real sensor's driver does on its own computer."
+            if tissue
+            else ""
+        )
+        sections += [
+            "### Differences",
+            f"- Latency: {min(v[1][1][0] for v in results.values()):.0f}–{max(v[1][1][0] for v in results.values()):.0f} ms "
+            f"on average, largest window maximum {worst:.0f} ms "
+            f"({'under' if worst < paper.TABLE5_LATENCY_BOUND_MS else 'over'} the paper's 100 ms bound; paper 39–52 ms avg). "
+            "Ours is capture stamp → decoded at the twin's topic statistics, all on one 2-core machine." + tissue_text,
+            f"- Bandwidth: {min(averages):.3f}–{max(averages):.3f} MB/s on average, at most "
+            f"{100 * max(v[1][0][1] for v in results.values()) / budget:.0f} % of the managed budget "
+            f"({budget:.2f} MB/s), against the paper's 1.2–5.3 MB/s: our compressed clouds are much smaller "
+            f"(Table 4), and the '{_profile()}' profile renders fewer, smaller clouds than the paper's sensors. A run ends "
+            f"when the last route is done ({min(elapsed.values()):.0f}–{max(elapsed.values()):.0f} s here) and a robot "
+            f"that has finished is pinned to 1 Hz, so the averages include those quiet windows.",
+        ]
     for robots, error in failures.items():
         sections += [f"### {' + '.join(LABELS[r] for r in robots)}: not run", "```\n" + error.strip() + "\n```"]
     write_markdown(os.path.join(out_dir, "table5.md"), "Table 5: network performance of fleets of 1–4 robots", sections)
@@ -229,18 +278,25 @@ def _profile():
 
 def write_fig14(summary, png_path):
     from cps_experiments.topdown_map import plot_topdown
-    from cps_mapping.fused_map import FusedLogOddsMap
     from cps_fleet.fleet import load_fleet
+    from cps_mapping.fused_map import FusedLogOddsMap
 
     fleet = load_fleet()
     fused = FusedLogOddsMap.from_mapping_config(fleet.mapping)
     fused.load(summary["map_file"])
     trajectories = {r: [tuple(p) for p in t] for r, t in summary["trajectories"].items()}
-    plot_topdown(fused.occupied_centers(), trajectories, fleet, png_path,
-                 title=f"Fig. 14: fused map ({fleet.mapping.resolution_m} m) and trajectories, "
-                       f"{summary['elapsed_s']:.0f} s mission")
-    return {"occupied_voxels": int(len(fused.occupied_centers())),
-            "trajectory_points": {r: len(t) for r, t in trajectories.items()}}
+    plot_topdown(
+        fused.occupied_centers(),
+        trajectories,
+        fleet,
+        png_path,
+        title=f"Fig. 14: fused map ({fleet.mapping.resolution_m} m) and trajectories, "
+        f"{summary['elapsed_s']:.0f} s mission",
+    )
+    return {
+        "occupied_voxels": int(len(fused.occupied_centers())),
+        "trajectory_points": {r: len(t) for r, t in trajectories.items()},
+    }
 
 
 def _write_fig14_note(out_dir, why):

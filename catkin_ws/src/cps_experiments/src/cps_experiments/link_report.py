@@ -1,6 +1,7 @@
 """The mission report's link events: every outage (from the scenario runner's link_events.csv and,
 when the bridge publishes /tissue/link_state, the manager's link_state.csv) and every capacity
 step with the 1 s windows over budget around it. Plain rows in, markdown lines out."""
+
 import bisect
 import math
 
@@ -18,8 +19,13 @@ def scenario_outages(event_rows):
         if row["event"] == "cut":
             cut = row
         elif row["event"] == "restore" and cut is not None:
-            out.append((csv_float(cut["wall_time_s"]), csv_float(cut["mission_time_s"]),
-                        csv_float(row["wall_time_s"]) - csv_float(cut["wall_time_s"])))
+            out.append(
+                (
+                    csv_float(cut["wall_time_s"]),
+                    csv_float(cut["mission_time_s"]),
+                    csv_float(row["wall_time_s"]) - csv_float(cut["wall_time_s"]),
+                )
+            )
             cut = None
     if cut is not None:
         out.append((csv_float(cut["wall_time_s"]), csv_float(cut["mission_time_s"]), math.nan))
@@ -33,7 +39,9 @@ def bridge_outages(state_rows):
         if row["up"] == "0":
             down = down or row
         elif down is not None:
-            out.append((csv_float(down["since_s"]), csv_float(row["since_s"]) - csv_float(down["since_s"]), row["peer"]))
+            out.append(
+                (csv_float(down["since_s"]), csv_float(row["since_s"]) - csv_float(down["since_s"]), row["peer"])
+            )
             down = None
     if down is not None:
         out.append((csv_float(down["since_s"]), math.nan, down["peer"]))
@@ -60,6 +68,7 @@ def budget_at(allocation_rows):
     def at(t):
         i = bisect.bisect_right(times, t) - 1
         return points[i][1] if i >= 0 else math.nan
+
     return at
 
 
@@ -81,26 +90,53 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
     lines = ["## Link events", ""]
     scenario = next((r["note"] for r in event_rows if r["event"] == "start"), "")
     if scenario:
-        lines += [f"The link ran {scenario}; every step the runner applied, with its time, is in `link_events.csv`.", ""]
+        lines += [
+            f"The link ran {scenario}; every step the runner applied, with its time, is in `link_events.csv`.",
+            "",
+        ]
     notes = sorted({r["note"] for r in event_rows if r["note"] and r["event"] != "start"})
     lines += [f"- note: {n}" for n in notes] + ([""] if notes else [])
     rows = []
     for start, mission_s, duration in scenario_outages(event_rows):
         end = start + duration if math.isfinite(duration) else math.inf
-        rows.append(("link cut (scenario)", f"{mission_s:.1f}", _seconds(duration),
-                     f"{received_during(times, totals, start, end):.3f}", NOT_YET, NOT_YET))
+        rows.append(
+            (
+                "link cut (scenario)",
+                f"{mission_s:.1f}",
+                _seconds(duration),
+                f"{received_during(times, totals, start, end):.3f}",
+                NOT_YET,
+                NOT_YET,
+            )
+        )
     for start, duration, peer in bridge_outages(state_rows):
         end = start + duration if math.isfinite(duration) else math.inf
         mission_s = start - _mission_start(event_rows) if event_rows else math.nan
-        rows.append((f"bridge saw {peer or 'peer'} down", f"{mission_s:.1f}" if math.isfinite(mission_s) else "-",
-                     _seconds(duration), f"{received_during(times, totals, start, end):.3f}", NOT_YET, NOT_YET))
+        rows.append(
+            (
+                f"bridge saw {peer or 'peer'} down",
+                f"{mission_s:.1f}" if math.isfinite(mission_s) else "-",
+                _seconds(duration),
+                f"{received_during(times, totals, start, end):.3f}",
+                NOT_YET,
+                NOT_YET,
+            )
+        )
     lines += ["### Outages", ""]
     if rows:
-        lines += [markdown_table(("outage", "start, mission s", "duration s", "clouds received meanwhile MB", "dropped",
-                          "backfilled"), rows), ""]
+        lines += [
+            markdown_table(
+                ("outage", "start, mission s", "duration s", "clouds received meanwhile MB", "dropped", "backfilled"),
+                rows,
+            ),
+            "",
+        ]
         if not state_rows:
-            lines += ["No `/tissue/link_state` was heard (the Zenoh bridge does not run yet), so the manager did not "
-                      "pause: the outages above are the scenario's cuts.", ""]
+            lines += [
+                "No `/tissue/link_state` was heard (the Zenoh bridge does not run yet), so the manager did not "
+                "pause: the outages above are the scenario's cuts.",
+                "",
+            ]
     else:
         lines += ["- none", ""]
     budget = budget_at(allocation_rows)
@@ -109,14 +145,33 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
         over_before, n_before = windows_over(times, totals, budget, wall_s - STEP_SPAN_S, wall_s)
         over_after, n_after = windows_over(times, totals, budget, wall_s, wall_s + STEP_SPAN_S)
         first_ok = _first_within(times, totals, budget, wall_s)
-        steps.append((f"{mission_s:.1f}", f"{old:g} → {new:g}", f"{over_before} of {n_before}",
-                      f"{over_after} of {n_after}", first_ok))
+        steps.append(
+            (
+                f"{mission_s:.1f}",
+                f"{old:g} → {new:g}",
+                f"{over_before} of {n_before}",
+                f"{over_after} of {n_after}",
+                first_ok,
+            )
+        )
     lines += ["### Capacity steps", ""]
     if steps:
-        lines += [f"Managed traffic at the twin per ~1 s stats window against the manager's budget in force then, "
-                  f"{STEP_SPAN_S:.0f} s before and after each step.", "",
-                  markdown_table(("at mission s", "Mbit/s", "windows over budget before", "after",
-                          "from the step until every later window of the span is within"), steps), ""]
+        lines += [
+            f"Managed traffic at the twin per ~1 s stats window against the manager's budget in force then, "
+            f"{STEP_SPAN_S:.0f} s before and after each step.",
+            "",
+            markdown_table(
+                (
+                    "at mission s",
+                    "Mbit/s",
+                    "windows over budget before",
+                    "after",
+                    "from the step until every later window of the span is within",
+                ),
+                steps,
+            ),
+            "",
+        ]
     else:
         lines += ["- none", ""]
     return lines

@@ -4,6 +4,7 @@ and the analysis of what crossed (bandwidth per 1 s window, latency percentiles)
     with ShapedLink("cpsbw") as link, LinkRosGraph(link) as graph:
         graph.start("phys", [python, node, ...], name="limiter")
 """
+
 import dataclasses
 import math
 import subprocess
@@ -25,8 +26,10 @@ class LinkRosGraph(ClosingContext):
         self.link = link
         self.port = port or free_port()
         self.uri = f"http://{TWIN_IP}:{self.port}"
-        self.sides = {"twin": RosGraph(master_uri=self.uri, host_ip=TWIN_IP),
-                      "phys": RosGraph(master_uri=self.uri, host_ip=PHYS_IP)}
+        self.sides = {
+            "twin": RosGraph(master_uri=self.uri, host_ip=TWIN_IP),
+            "phys": RosGraph(master_uri=self.uri, host_ip=PHYS_IP),
+        }
 
     def __enter__(self):
         return self._set_up_or_close(self._start_master)
@@ -43,12 +46,18 @@ class LinkRosGraph(ClosingContext):
 
     def run_python(self, side, code, timeout_s=30.0):
         """Run a short python snippet on one side against the master; returns CompletedProcess."""
-        return subprocess.run(self.link.argv(side, [sys.executable, "-c", code], master_port=self.port),
-                              capture_output=True, text=True, timeout=timeout_s)
+        return subprocess.run(
+            self.link.argv(side, [sys.executable, "-c", code], master_port=self.port),
+            capture_output=True,
+            text=True,
+            timeout=timeout_s,
+        )
 
     def wait_for_master(self, timeout_s=30.0):
-        code = ("import rosgraph,sys; sys.exit(0 if rosgraph.Master('cps_probe').is_online() "
-                f"and '{names.ROSOUT}' in str(rosgraph.Master('cps_probe').getSystemState()) else 1)")
+        code = (
+            "import rosgraph,sys; sys.exit(0 if rosgraph.Master('cps_probe').is_online() "
+            f"and '{names.ROSOUT}' in str(rosgraph.Master('cps_probe').getSystemState()) else 1)"
+        )
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.run_python("twin", code).returncode == 0:
@@ -119,8 +128,11 @@ def summarize(records, t0, t1, window_s=1.0) -> PhaseSummary:
     rates = {}
     for r in inside:
         rates[r.robot] = rates.get(r.robot, 0) + 1
-    return PhaseSummary(windows_mbytes_per_s=list(sums / window_s / 1e6),
-                        latency_p50_ms=float(np.percentile(latencies, 50)),
-                        latency_p95_ms=float(np.percentile(latencies, 95)),
-                        latency_max_ms=float(np.max(latencies)), messages=len(inside),
-                        rates_hz={k: v / duration for k, v in sorted(rates.items())} if duration else {})
+    return PhaseSummary(
+        windows_mbytes_per_s=list(sums / window_s / 1e6),
+        latency_p50_ms=float(np.percentile(latencies, 50)),
+        latency_p95_ms=float(np.percentile(latencies, 95)),
+        latency_max_ms=float(np.max(latencies)),
+        messages=len(inside),
+        rates_hz={k: v / duration for k, v in sorted(rates.items())} if duration else {},
+    )

@@ -9,6 +9,7 @@ command probe's arrivals on the robots' side (teleop latency), the map server's 
 dropped) and the saved map (F1 against cps_sim's ground truth). A robot whose clouds never reached
 the twin is reported as missing, never filled in.
 """
+
 import dataclasses
 import json
 import math
@@ -38,10 +39,10 @@ DROPPED_FRACTION_TARGET = 0.01
 TELEOP_P95_TARGET_MS = 100.0
 
 
-
 @dataclasses.dataclass(frozen=True)
 class LiveRun:
     """One mission of the sweep. link_mbps None: unconstrained (loopback, no shaping)."""
+
     robots: int
     link_mbps: Optional[float]
     manager: bool
@@ -75,9 +76,19 @@ def fleet_robots(fleet_file, n):
 
 
 def mission_argv(run: LiveRun, fleet_file, out_dir, duration_s):
-    argv = ["all", "--fleet", fleet_file, "--robots", ",".join(fleet_robots(fleet_file, run.robots)),
-            "--duration", f"{duration_s:g}", "--out", out_dir,
-            "--link", f"{run.link_mbps:g}mbit" if run.link_mbps else "none"]
+    argv = [
+        "all",
+        "--fleet",
+        fleet_file,
+        "--robots",
+        ",".join(fleet_robots(fleet_file, run.robots)),
+        "--duration",
+        f"{duration_s:g}",
+        "--out",
+        out_dir,
+        "--link",
+        f"{run.link_mbps:g}mbit" if run.link_mbps else "none",
+    ]
     if not run.manager:
         argv += ["--bandwidth-manager", "off"]
     return argv
@@ -105,7 +116,9 @@ def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
     budget = budgets[-1] if budgets and math.isfinite(budgets[-1]) else budget_mbytes_per_s
     _, totals = managed_link_windows(stats)
     clouds = _arrival_latencies_ms(read_csv(os.path.join(run_dir, "arrivals.csv")), "/" + names.POINTS_MANAGED)
-    probe = _arrival_latencies_ms(read_csv(os.path.join(run_dir, "physical_arrivals.csv")), names.absolute(names.COMMAND_PROBE))
+    probe = _arrival_latencies_ms(
+        read_csv(os.path.join(run_dir, "physical_arrivals.csv")), names.absolute(names.COMMAND_PROBE)
+    )
     pooled = np.concatenate([np.asarray(v) for v in clouds.values()]) if clouds else np.array([])
     probe_ms = np.concatenate([np.asarray(v) for v in probe.values()]) if probe else np.array([])
     elapsed = max(float(summary["elapsed_s"]), 1e-9)
@@ -148,8 +161,16 @@ def default_fleet_file():
     return os.path.join(os.path.dirname(default_fleet_path()), "fleets", "fleet16.yaml")
 
 
-def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse_runs=False,
-        fleet_file=None, sizes=None, log=print):
+def run(
+    out_dir,
+    quick=False,
+    duration_s=None,
+    run_root="out/experiments",
+    reuse_runs=False,
+    fleet_file=None,
+    sizes=None,
+    log=print,
+):
     """Run (or, with reuse_runs, read back) the sweep; write fig13_live.csv/.png/.md into out_dir."""
     from cps_fleet.fleet import load_fleet
 
@@ -175,25 +196,47 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
             log(f"[experiments] {exc}")
             continue
         link_mbps = live.link_mbps or base.link.available_mbps
-        figures = measure_run(run_dir, summary, robots, managed_budget_mbytes_per_s(link_mbps, base.link.reserve_fraction))
+        figures = measure_run(
+            run_dir, summary, robots, managed_budget_mbytes_per_s(link_mbps, base.link.reserve_fraction)
+        )
         # "f1" is within ±1 voxel (the column's name predates the exact figure).
         figures["f1"], figures["f1_exact"] = _score(summary.get("map_file"), fleet, run_dir)
         measured[live] = figures
-        log(f"[experiments] {live.name}: {figures['robots_reached']}/{live.robots} robots reached the twin, "
+        log(
+            f"[experiments] {live.name}: {figures['robots_reached']}/{live.robots} robots reached the twin, "
             f"min {figures['min_hz']:.2f} Hz, {figures['windows_over_budget']}/{figures['windows']} windows over "
-            f"budget, F1 within ±1 voxel {figures['f1']:.3f} (voxel for voxel {figures['f1_exact']:.3f})")
+            f"budget, F1 within ±1 voxel {figures['f1']:.3f} (voxel for voxel {figures['f1_exact']:.3f})"
+        )
     for live, figures in measured.items():
         reference = measured.get(LiveRun(live.robots, None, False))
-        figures["f1_fraction"] = (figures["f1"] / reference["f1"] if reference and reference["f1"] > 0
-                                  else math.nan)
+        figures["f1_fraction"] = figures["f1"] / reference["f1"] if reference and reference["f1"] > 0 else math.nan
     _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped)
     return {"measured": measured, "failures": failures}
 
 
-COLUMNS = ("robots", "link_mbps", "manager", "robots_reached", "elapsed_s", "windows", "windows_over_budget",
-           "max_window_mbytes_per_s", "budget_mbytes_per_s", "latency_p50_ms", "latency_p95_ms", "teleop_p95_ms",
-           "teleop_probes", "min_hz", "median_hz", "clouds_inserted", "clouds_dropped", "dropped_fraction", "f1",
-           "f1_fraction", "f1_exact")
+COLUMNS = (
+    "robots",
+    "link_mbps",
+    "manager",
+    "robots_reached",
+    "elapsed_s",
+    "windows",
+    "windows_over_budget",
+    "max_window_mbytes_per_s",
+    "budget_mbytes_per_s",
+    "latency_p50_ms",
+    "latency_p95_ms",
+    "teleop_p95_ms",
+    "teleop_probes",
+    "min_hz",
+    "median_hz",
+    "clouds_inserted",
+    "clouds_dropped",
+    "dropped_fraction",
+    "f1",
+    "f1_fraction",
+    "f1_exact",
+)
 
 
 def _cell(value):
@@ -207,7 +250,8 @@ def verdict(figures):
     return {
         f"every robot ≥ {MIN_RATE_HZ:g} Hz": figures["min_hz"] >= MIN_RATE_HZ,
         "no window over budget": figures["windows_over_budget"] == 0,
-        f"F1 within ±1 voxel ≥ {F1_FRACTION_TARGET:.0%} of unconstrained": figures.get("f1_fraction", math.nan) >= F1_FRACTION_TARGET,
+        f"F1 within ±1 voxel ≥ {F1_FRACTION_TARGET:.0%} of unconstrained": figures.get("f1_fraction", math.nan)
+        >= F1_FRACTION_TARGET,
         f"map server drops ≤ {DROPPED_FRACTION_TARGET:.0%}": figures["dropped_fraction"] <= DROPPED_FRACTION_TARGET,
         f"teleop p95 ≤ {TELEOP_P95_TARGET_MS:g} ms": figures["teleop_p95_ms"] <= TELEOP_P95_TARGET_MS,
     }
@@ -215,35 +259,67 @@ def verdict(figures):
 
 def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped):
     rows = []
-    for live, f in sorted(measured.items(), key=lambda kv: (kv[0].robots, -(kv[0].link_mbps or 1e9), not kv[0].manager)):
-        rows.append([live.robots, live.link_mbps or "unconstrained", "on" if live.manager else "off"] +
-                    [_cell(f[c]) for c in COLUMNS[3:]])
+    for live, f in sorted(
+        measured.items(), key=lambda kv: (kv[0].robots, -(kv[0].link_mbps or 1e9), not kv[0].manager)
+    ):
+        rows.append(
+            [live.robots, live.link_mbps or "unconstrained", "on" if live.manager else "off"]
+            + [_cell(f[c]) for c in COLUMNS[3:]]
+        )
     write_csv(os.path.join(out_dir, "fig13_live.csv"), COLUMNS, rows)
     _plot(measured, os.path.join(out_dir, "fig13_live.png"))
 
-    table = [[live.robots, f"{live.link_mbps:g}" if live.link_mbps else "none", "on" if live.manager else "off",
-              f"{f['robots_reached']}/{live.robots}", f"{f['windows_over_budget']}/{f['windows']}",
-              f"{f['max_window_mbytes_per_s']:.2f} / {f['budget_mbytes_per_s']:.2f}",
-              f"{f['latency_p50_ms']:.0f} / {f['latency_p95_ms']:.0f}", f"{f['teleop_p95_ms']:.0f}",
-              f"{f['min_hz']:.2f} / {f['median_hz']:.2f}", f"{f['clouds_dropped']}/{f['clouds_inserted'] + f['clouds_dropped']}",
-              f"{f['f1']:.3f}", f"{f.get('f1_fraction', math.nan):.1%}"]
-             for live, f in sorted(measured.items(), key=lambda kv: (kv[0].robots, -(kv[0].link_mbps or 1e9),
-                                                                    not kv[0].manager))]
+    table = [
+        [
+            live.robots,
+            f"{live.link_mbps:g}" if live.link_mbps else "none",
+            "on" if live.manager else "off",
+            f"{f['robots_reached']}/{live.robots}",
+            f"{f['windows_over_budget']}/{f['windows']}",
+            f"{f['max_window_mbytes_per_s']:.2f} / {f['budget_mbytes_per_s']:.2f}",
+            f"{f['latency_p50_ms']:.0f} / {f['latency_p95_ms']:.0f}",
+            f"{f['teleop_p95_ms']:.0f}",
+            f"{f['min_hz']:.2f} / {f['median_hz']:.2f}",
+            f"{f['clouds_dropped']}/{f['clouds_inserted'] + f['clouds_dropped']}",
+            f"{f['f1']:.3f}",
+            f"{f.get('f1_fraction', math.nan):.1%}",
+        ]
+        for live, f in sorted(
+            measured.items(), key=lambda kv: (kv[0].robots, -(kv[0].link_mbps or 1e9), not kv[0].manager)
+        )
+    ]
     sections = [
         f"Each row is one `cps_bringup all --fleet {os.path.relpath(fleet_file)} --robots <first N> --duration "
         f"{duration_s:g} --link <rate>` mission (`--bandwidth-manager off` for the unmanaged rows), the first N robots "
         f"of the fleet file (mixed types, generated routes), ending when every route is done, the whole system (simulator, tissue, bridges, map "
         f"server) on one 2-core machine. "
-        + ("Shaped links are tc-shaped veth pairs between two network namespaces; " if shaped else
-           "Not root: only the unconstrained (loopback) runs were possible; ")
+        + (
+            "Shaped links are tc-shaped veth pairs between two network namespaces; "
+            if shaped
+            else "Not root: only the unconstrained (loopback) runs were possible; "
+        )
         + "'none' is the same fleet on loopback, the map's reference. Latency is receive at the twin − capture "
-          "stamp per cloud (pooled p50/p95); teleop is the command probe (TwistStamped at 10 Hz in the bridge's "
-          "command class, twin → robots) measured on the robots' side; Hz is clouds received at the twin per "
-          "robot per second of mission (min / median over robots); windows are /tissue/stats' ~1 s windows of "
-          "managed MB/s against the manager's budget (the nominal one with the manager off).",
-        markdown_table(["N", "link Mbit/s", "manager", "robots reached", "windows over budget",
-                        "max window / budget MB/s", "cloud latency p50 / p95 ms", "teleop p95 ms",
-                        "Hz min / median", "clouds dropped by the map server", "F1 within ±1 voxel", "F1 / unconstrained"], table),
+        "stamp per cloud (pooled p50/p95); teleop is the command probe (TwistStamped at 10 Hz in the bridge's "
+        "command class, twin → robots) measured on the robots' side; Hz is clouds received at the twin per "
+        "robot per second of mission (min / median over robots); windows are /tissue/stats' ~1 s windows of "
+        "managed MB/s against the manager's budget (the nominal one with the manager off).",
+        markdown_table(
+            [
+                "N",
+                "link Mbit/s",
+                "manager",
+                "robots reached",
+                "windows over budget",
+                "max window / budget MB/s",
+                "cloud latency p50 / p95 ms",
+                "teleop p95 ms",
+                "Hz min / median",
+                "clouds dropped by the map server",
+                "F1 within ±1 voxel",
+                "F1 / unconstrained",
+            ],
+            table,
+        ),
         "![fig13_live](fig13_live.png)",
     ]
     from cps_fleet.fleet import load_fleet
@@ -251,54 +327,73 @@ def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped):
     sections += _differences(measured, load_fleet(fleet_file).link.reserve_fraction)
     for live, error in failures.items():
         sections += [f"### {live.name}: failed", "```\n" + error.strip()[-1500:] + "\n```"]
-    write_markdown(os.path.join(out_dir, "fig13_live.md"),
-                   "Fig. 13 live: fleets of 1–16 robots sharing one link, manager on and off", sections)
+    write_markdown(
+        os.path.join(out_dir, "fig13_live.md"),
+        "Fig. 13 live: fleets of 1–16 robots sharing one link, manager on and off",
+        sections,
+    )
 
 
 def _differences(measured, reserve_fraction):
     """A sentence on each difference from the paper's Fig. 13 and on each of the issue's conditions."""
     lines = ["### Against the paper's Fig. 13 and the targets"]
-    lines.append(f"- The paper's Fig. 13 is arithmetic: {paper.FIG13_DEPLOYABLE_A} lidar or "
-                 f"{paper.FIG13_DEPLOYABLE_B} depth robots fit {paper.FIG13_LINK_MBPS:g} Mbit/s unmanaged. "
-                 "These rows are measured on running fleets.")
+    lines.append(
+        f"- The paper's Fig. 13 is arithmetic: {paper.FIG13_DEPLOYABLE_A} lidar or "
+        f"{paper.FIG13_DEPLOYABLE_B} depth robots fit {paper.FIG13_LINK_MBPS:g} Mbit/s unmanaged. "
+        "These rows are measured on running fleets."
+    )
     largest = max((live.robots for live in measured), default=0)
     for link in LINKS_MBPS:
         on, off = measured.get(LiveRun(largest, link, True)), measured.get(LiveRun(largest, link, False))
         if on:
             held = verdict(on)
-            lines.append(f"- {largest} robots on {link:g} Mbit/s with the manager: " + "; ".join(
-                f"{name}: {'yes' if ok else 'NO'}" for name, ok in held.items()) +
-                f" (min {on['min_hz']:.2f} Hz, {on['windows_over_budget']} windows over, F1 within ±1 voxel "
+            lines.append(
+                f"- {largest} robots on {link:g} Mbit/s with the manager: "
+                + "; ".join(f"{name}: {'yes' if ok else 'NO'}" for name, ok in held.items())
+                + f" (min {on['min_hz']:.2f} Hz, {on['windows_over_budget']} windows over, F1 within ±1 voxel "
                 f"{on.get('f1_fraction', math.nan):.1%} "
-                f"of unconstrained, {on['dropped_fraction']:.1%} dropped, teleop p95 {on['teleop_p95_ms']:.0f} ms).")
+                f"of unconstrained, {on['dropped_fraction']:.1%} dropped, teleop p95 {on['teleop_p95_ms']:.0f} ms)."
+            )
         if on and off:
-            lines.append(f"- Without the manager on {link:g} Mbit/s: {off['windows_over_budget']} of {off['windows']} "
-                         f"windows over budget (with: {on['windows_over_budget']}), cloud latency p95 "
-                         f"{off['latency_p95_ms']:.0f} ms (with: {on['latency_p95_ms']:.0f} ms), teleop p95 "
-                         f"{off['teleop_p95_ms']:.0f} ms (with: {on['teleop_p95_ms']:.0f} ms).")
+            lines.append(
+                f"- Without the manager on {link:g} Mbit/s: {off['windows_over_budget']} of {off['windows']} "
+                f"windows over budget (with: {on['windows_over_budget']}), cloud latency p95 "
+                f"{off['latency_p95_ms']:.0f} ms (with: {on['latency_p95_ms']:.0f} ms), teleop p95 "
+                f"{off['teleop_p95_ms']:.0f} ms (with: {on['teleop_p95_ms']:.0f} ms)."
+            )
     reference = measured.get(LiveRun(largest, None, False))
     degraded_off = measured.get(LiveRun(largest, min(LINKS_MBPS), False))
     if reference and degraded_off:
-        lines.append(f"- What limits {largest} robots here is the machine, not the link: unmanaged on "
-                     f"{min(LINKS_MBPS):g} Mbit/s the busiest window carried {degraded_off['max_window_mbytes_per_s']:.2f} "
-                     f"of {degraded_off['budget_mbytes_per_s']:.2f} MB/s, while the unconstrained (loopback) run of the "
-                     f"same fleet already had the map server drop {reference['dropped_fraction']:.1%} of the clouds, "
-                     f"cloud latency p95 {reference['latency_p95_ms']:.0f} ms and teleop p95 {reference['teleop_p95_ms']:.0f} ms: "
-                     "the two cores run the simulated robots and their sensors, the tissue, both bridges and the map "
-                     "server together.")
+        lines.append(
+            f"- What limits {largest} robots here is the machine, not the link: unmanaged on "
+            f"{min(LINKS_MBPS):g} Mbit/s the busiest window carried {degraded_off['max_window_mbytes_per_s']:.2f} "
+            f"of {degraded_off['budget_mbytes_per_s']:.2f} MB/s, while the unconstrained (loopback) run of the "
+            f"same fleet already had the map server drop {reference['dropped_fraction']:.1%} of the clouds, "
+            f"cloud latency p95 {reference['latency_p95_ms']:.0f} ms and teleop p95 {reference['teleop_p95_ms']:.0f} ms: "
+            "the two cores run the simulated robots and their sensors, the tissue, both bridges and the map "
+            "server together."
+        )
     for link in LINKS_MBPS:
         on = measured.get(LiveRun(largest, link, True))
         nominal = managed_budget_mbytes_per_s(link, reserve_fraction)
         if on and on["budget_mbytes_per_s"] < 0.8 * nominal:
-            lines.append(f"- With the manager on {link:g} Mbit/s its estimate of the link fell to "
-                         f"{on['budget_mbytes_per_s']:.2f} MB/s of budget (nominal {nominal:.2f}): the estimator "
-                         "reads the latency that CPU queueing adds as congestion, so it lowered the rates "
-                         f"(median {on['median_hz']:.2f} Hz) although the link had room.")
-    short = [f"{live.name} ({f['robots_reached']}/{live.robots})" for live, f in measured.items()
-             if f["robots_reached"] < live.robots]
+            lines.append(
+                f"- With the manager on {link:g} Mbit/s its estimate of the link fell to "
+                f"{on['budget_mbytes_per_s']:.2f} MB/s of budget (nominal {nominal:.2f}): the estimator "
+                "reads the latency that CPU queueing adds as congestion, so it lowered the rates "
+                f"(median {on['median_hz']:.2f} Hz) although the link had room."
+            )
+    short = [
+        f"{live.name} ({f['robots_reached']}/{live.robots})"
+        for live, f in measured.items()
+        if f["robots_reached"] < live.robots
+    ]
     if short:
-        lines.append("- Runs where not every robot's clouds reached the twin (reported as measured, not filled in): "
-                     + ", ".join(short) + ".")
+        lines.append(
+            "- Runs where not every robot's clouds reached the twin (reported as measured, not filled in): "
+            + ", ".join(short)
+            + "."
+        )
     return lines
 
 
@@ -309,27 +404,40 @@ def _plot(measured, png_path):
     import matplotlib.pyplot as plt
 
     fig, (ax_hz, ax_link, ax_f1) = plt.subplots(1, 3, figsize=(15, 4.5))
-    styles = {(60.0, True): ("g-o", "60 Mbit/s, manager on"), (60.0, False): ("g--x", "60 Mbit/s, manager off"),
-              (10.0, True): ("r-o", "10 Mbit/s, manager on"), (10.0, False): ("r--x", "10 Mbit/s, manager off"),
-              (None, False): ("k:", "unconstrained (loopback, every cloud sent)")}
+    styles = {
+        (60.0, True): ("g-o", "60 Mbit/s, manager on"),
+        (60.0, False): ("g--x", "60 Mbit/s, manager off"),
+        (10.0, True): ("r-o", "10 Mbit/s, manager on"),
+        (10.0, False): ("r--x", "10 Mbit/s, manager off"),
+        (None, False): ("k:", "unconstrained (loopback, every cloud sent)"),
+    }
     for (link, manager), (style, label) in styles.items():
-        runs = sorted((live.robots, f) for live, f in measured.items() if live.link_mbps == link and live.manager == manager)
+        runs = sorted(
+            (live.robots, f) for live, f in measured.items() if live.link_mbps == link and live.manager == manager
+        )
         if not runs:
             continue
         n = [r for r, _ in runs]
         ax_hz.plot(n, [f["min_hz"] for _, f in runs], style, label=label)
         if link:
-            ax_link.plot(n, [f["max_window_mbytes_per_s"] / f["budget_mbytes_per_s"] for _, f in runs], style, label=label)
+            ax_link.plot(
+                n, [f["max_window_mbytes_per_s"] / f["budget_mbytes_per_s"] for _, f in runs], style, label=label
+            )
         ax_f1.plot(n, [f["f1"] for _, f in runs], style, label=label)
     ax_hz.axhline(MIN_RATE_HZ, color="grey", lw=0.8)
     ax_hz.set(xlabel="robots N", ylabel="slowest robot's clouds at the twin (Hz)", xscale="log", title="achieved rate")
     ax_link.axhline(1.0, color="grey", lw=0.8)
-    for n, label in ((paper.FIG13_DEPLOYABLE_A, "paper: lidar robots at 60 Mbit/s"),
-                     (paper.FIG13_DEPLOYABLE_B, "paper: depth robots at 60 Mbit/s")):
+    for n, label in (
+        (paper.FIG13_DEPLOYABLE_A, "paper: lidar robots at 60 Mbit/s"),
+        (paper.FIG13_DEPLOYABLE_B, "paper: depth robots at 60 Mbit/s"),
+    ):
         ax_link.axvline(n, color="b", lw=0.8, ls=":")
-        ax_link.text(n, 0.02, label, rotation=90, fontsize=7, color="b", va="bottom",
-                     transform=ax_link.get_xaxis_transform())
-    ax_link.set(xlabel="robots N", ylabel="busiest window / budget", xscale="log", title="link use (paper's Fig. 13 axis)")
+        ax_link.text(
+            n, 0.02, label, rotation=90, fontsize=7, color="b", va="bottom", transform=ax_link.get_xaxis_transform()
+        )
+    ax_link.set(
+        xlabel="robots N", ylabel="busiest window / budget", xscale="log", title="link use (paper's Fig. 13 axis)"
+    )
     ax_f1.set(xlabel="robots N", ylabel="map F1 within ±1 voxel vs ground truth", xscale="log", title="map quality")
     for ax in (ax_hz, ax_link, ax_f1):
         ax.set_xticks(sorted({live.robots for live in measured}) or [1])

@@ -3,22 +3,25 @@ the aerial robot, Scout, the legged robot and Jackal finish), computed by cps_bw
 `allocate_frequencies` through its mission-state priorities (`cps_bw_manager.table6`), twice:
 with the message sizes the paper's table implies (MB/s / Hz), and with our measured compressed
 sizes (one mission frame per step, in route order)."""
+
 import os
 
 import numpy as np
 
+from cps_bw_manager.table6 import paper_message_bytes, run_table6_steps
 from cps_experiments import paper
 from cps_experiments.markdown import markdown_table, write_csv, write_markdown
-from cps_bw_manager.table6 import paper_message_bytes, run_table6_steps
 
 ROBOT_LABELS = {"scout": "Scout", "jackal": "Jackal", "champ": "Legged", "iris": "Aerial"}
 
 
 def measured_message_bytes(mission):
     """message_bytes(step, robot) from our mission clouds: frame round((step-1)(N-1)/8) of the route."""
+
     def size(step, robot):
         sizes = mission.compressed_bytes(robot)
         return float(sizes[int(round((step - 1) * (len(sizes) - 1) / 8))])
+
     return size
 
 
@@ -30,28 +33,57 @@ def run(out_dir, mission):
     sensor_cap = {r: min(fleet.link.max_rate_hz, mission.rates_hz[r]) for r in robots}
     with_our_sizes = run_table6_steps(measured_message_bytes(mission), budget, fleet.link.min_rate_hz, sensor_cap)
 
-    headers = ["sizes", "step", "finished"] + [f"{r}_{k}" for r in robots for k in
-                                               ("paper_hz", "paper_mbytes_per_s", "hz", "message_bytes", "mbytes_per_s", "share_percent")] + \
-              ["allocated_mbytes_per_s", "budget_mbytes_per_s"]
+    headers = (
+        ["sizes", "step", "finished"]
+        + [
+            f"{r}_{k}"
+            for r in robots
+            for k in ("paper_hz", "paper_mbytes_per_s", "hz", "message_bytes", "mbytes_per_s", "share_percent")
+        ]
+        + ["allocated_mbytes_per_s", "budget_mbytes_per_s"]
+    )
     csv_rows, sections = [], []
     for label, steps in (("paper", with_paper_sizes), ("ours", with_our_sizes)):
         md_rows = []
         for step, done, result in steps:
             by_name = result.by_name()
             paper_row = paper.PAPER_TABLE6[step - 1]
-            csv_rows.append([label, step, "+".join(sorted(done))] +
-                            [v for r, (phz, pmb) in zip(robots, paper_row) for v in
-                             (phz, pmb, round(by_name[r].rate_hz, 3), round(by_name[r].message_bytes),
-                              round(by_name[r].bandwidth_mbytes_per_s, 4), round(by_name[r].share_percent, 2))] +
-                            [round(result.allocated_mbytes_per_s, 4), round(budget, 4)])
-            md_rows.append([step] + [f"{by_name[r].rate_hz:.2f} Hz, {by_name[r].bandwidth_mbytes_per_s:.3f} MB/s, "
-                                     f"{by_name[r].share_percent:.1f} % ({phz:g} Hz, {pmb:g} MB/s)"
-                                     for r, (phz, pmb) in zip(robots, paper_row)] +
-                           [f"{result.allocated_mbytes_per_s:.2f}"])
-        title = ("## With the paper's message sizes (its MB/s ÷ Hz per step)" if label == "paper" else
-                 "## With our measured compressed sizes (paper profile; one mission frame per step)")
-        sections += [title, markdown_table(["step"] + [f"{ROBOT_LABELS[r]}: ours (paper)" for r in robots] +
-                                           ["allocated MB/s"], md_rows)]
+            csv_rows.append(
+                [label, step, "+".join(sorted(done))]
+                + [
+                    v
+                    for r, (phz, pmb) in zip(robots, paper_row)
+                    for v in (
+                        phz,
+                        pmb,
+                        round(by_name[r].rate_hz, 3),
+                        round(by_name[r].message_bytes),
+                        round(by_name[r].bandwidth_mbytes_per_s, 4),
+                        round(by_name[r].share_percent, 2),
+                    )
+                ]
+                + [round(result.allocated_mbytes_per_s, 4), round(budget, 4)]
+            )
+            md_rows.append(
+                [step]
+                + [
+                    f"{by_name[r].rate_hz:.2f} Hz, {by_name[r].bandwidth_mbytes_per_s:.3f} MB/s, "
+                    f"{by_name[r].share_percent:.1f} % ({phz:g} Hz, {pmb:g} MB/s)"
+                    for r, (phz, pmb) in zip(robots, paper_row)
+                ]
+                + [f"{result.allocated_mbytes_per_s:.2f}"]
+            )
+        title = (
+            "## With the paper's message sizes (its MB/s ÷ Hz per step)"
+            if label == "paper"
+            else "## With our measured compressed sizes (paper profile; one mission frame per step)"
+        )
+        sections += [
+            title,
+            markdown_table(
+                ["step"] + [f"{ROBOT_LABELS[r]}: ours (paper)" for r in robots] + ["allocated MB/s"], md_rows
+            ),
+        ]
     write_csv(os.path.join(out_dir, "table6.csv"), headers, csv_rows)
 
     ours_total = [s[2].allocated_mbytes_per_s for s in with_our_sizes]

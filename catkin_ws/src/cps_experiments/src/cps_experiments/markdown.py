@@ -1,4 +1,5 @@
 """Reading a mission's CSV cells, writing an experiment's table as CSV and as a markdown table."""
+
 import csv
 import math
 import os

@@ -1,6 +1,7 @@
 """A `cps_bringup all` mission running in the background across a named shaped link, and commands
 run on either side of it (tests and the benchmark). Everything it started, and the link's
 namespaces, are gone when the context ends, even on failure."""
+
 import contextlib
 import os
 import signal
@@ -8,11 +9,13 @@ import subprocess
 import sys
 import time
 
+from cps_link.netns_link import link_down, namespace
+from cps_link.netns_link import side_ip as namespace_ip
 from cps_ros.processes import free_port
-from cps_link.netns_link import link_down, namespace, side_ip as namespace_ip
 
-BRINGUP = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "..",
-                                        "cps_bringup", "nodes", "cps_bringup"))
+BRINGUP = os.path.normpath(
+    os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "..", "cps_bringup", "nodes", "cps_bringup")
+)
 
 
 class BackgroundMission:
@@ -22,8 +25,22 @@ class BackgroundMission:
         self.out_dir, self.link_name = str(out_dir), link_name
         self.port = free_port()
         self.log_path = os.path.join(self.out_dir, "bringup.log")
-        self.argv = [sys.executable, BRINGUP, "all", "--out", self.out_dir, "--link", rate, "--link-name", link_name,
-                     "--port", str(self.port), "--transport", transport, *args]
+        self.argv = [
+            sys.executable,
+            BRINGUP,
+            "all",
+            "--out",
+            self.out_dir,
+            "--link",
+            rate,
+            "--link-name",
+            link_name,
+            "--port",
+            str(self.port),
+            "--transport",
+            transport,
+            *args,
+        ]
         self.proc = None
         self.transport = transport
         self.helpers = []
@@ -31,8 +48,9 @@ class BackgroundMission:
     def __enter__(self):
         os.makedirs(self.out_dir, exist_ok=True)
         with open(self.log_path, "wb") as log:
-            self.proc = subprocess.Popen(self.argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                         start_new_session=True)
+            self.proc = subprocess.Popen(
+                self.argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True
+            )
         return self
 
     def __exit__(self, *exc):
@@ -48,8 +66,9 @@ class BackgroundMission:
             if text in self.log():
                 return
             if self.proc.poll() is not None:
-                raise AssertionError(f"cps_bringup ended ({self.proc.returncode}) before '{text}':\n"
-                                     f"{self.log()[-4000:]}")
+                raise AssertionError(
+                    f"cps_bringup ended ({self.proc.returncode}) before '{text}':\n{self.log()[-4000:]}"
+                )
             time.sleep(0.5)
         raise AssertionError(f"no '{text}' within {timeout_s} s:\n{self.log()[-4000:]}")
 
@@ -67,22 +86,45 @@ class BackgroundMission:
         else:
             master = f"http://{namespace_ip('twin')}:{self.port}"
         ros_ip = "127.0.0.1" if self.transport == "zenoh" else namespace_ip(side)
-        return ["ip", "netns", "exec", namespace(self.link_name, side), "env", f"ROS_MASTER_URI={master}",
-                f"ROS_IP={ros_ip}", *argv]
+        return [
+            "ip",
+            "netns",
+            "exec",
+            namespace(self.link_name, side),
+            "env",
+            f"ROS_MASTER_URI={master}",
+            f"ROS_IP={ros_ip}",
+            *argv,
+        ]
 
     def popen_on(self, side, argv, log_name):
         """Start argv on one side in the background; stopped with the mission."""
         log = open(os.path.join(self.out_dir, f"{log_name}.log"), "wb")
-        proc = subprocess.Popen(self.side_argv(side, argv), stdout=log, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, start_new_session=True)
+        proc = subprocess.Popen(
+            self.side_argv(side, argv),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
         log.close()
         self.helpers.append(proc)
         return proc
 
     def set_link(self, up):
         """Cut (or restore) the link: the physical end of the veth pair down (or up)."""
-        subprocess.run(["ip", "-n", namespace(self.link_name, "phys"), "link", "set", f"{self.link_name}_p",
-                        "up" if up else "down"], check=True)
+        subprocess.run(
+            [
+                "ip",
+                "-n",
+                namespace(self.link_name, "phys"),
+                "link",
+                "set",
+                f"{self.link_name}_p",
+                "up" if up else "down",
+            ],
+            check=True,
+        )
 
     def wait(self, timeout_s):
         """Until the mission ends by itself (--duration); its exit code."""

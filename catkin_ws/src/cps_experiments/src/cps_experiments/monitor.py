@@ -4,6 +4,7 @@ moved, added: a changes file), the twin compares its new map with the saved one 
 and the report scores what it found against what the simulator changed.
 Writes into --out: map.bt, map_changes.md/.json (live), gui.png, changes.json, topdown.png, report.md.
 """
+
 import argparse
 import os
 import sys
@@ -23,8 +24,11 @@ SCREENSHOT_AFTER_S = 60.0
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="monitor", description=__doc__.split("\n\n")[0])
     parser.add_argument("--baseline", default=DEFAULT_BASELINE, help=f"the earlier map (default {DEFAULT_BASELINE})")
-    parser.add_argument("--site-changes", default=None,
-                        help=f"what the simulator changes (YAML; default cps_bringup's {DEFAULT_CHANGES_FILE})")
+    parser.add_argument(
+        "--site-changes",
+        default=None,
+        help=f"what the simulator changes (YAML; default cps_bringup's {DEFAULT_CHANGES_FILE})",
+    )
     parser.add_argument("--out", default="out/monitor")
     parser.add_argument("--link", default="auto", help="auto (fleet.yaml's link rate when root), none, or a rate")
     parser.add_argument("--profile", default=None, choices=PROFILES)
@@ -42,12 +46,24 @@ def main(argv=None):
 
         args.site_changes = os.path.join(rospkg.RosPack().get_path("cps_bringup"), DEFAULT_CHANGES_FILE)
     if not os.path.isfile(args.baseline):
-        print(f"monitor: error: no baseline map at {args.baseline}: run `make demo` first (it saves the "
-              f"characterization map there), or pass --baseline MAP.bt", file=sys.stderr)
+        print(
+            f"monitor: error: no baseline map at {args.baseline}: run `make demo` first (it saves the "
+            f"characterization map there), or pass --baseline MAP.bt",
+            file=sys.stderr,
+        )
         return 2
-    mission = mission_args("all", baseline=args.baseline, site_changes=args.site_changes, out=args.out,
-                           link=choose_link(args.link), duration=args.duration, robots=args.robots, screenshot=True,
-                           screenshot_after=args.screenshot_after, profile=args.profile)
+    mission = mission_args(
+        "all",
+        baseline=args.baseline,
+        site_changes=args.site_changes,
+        out=args.out,
+        link=choose_link(args.link),
+        duration=args.duration,
+        robots=args.robots,
+        screenshot=True,
+        screenshot_after=args.screenshot_after,
+        profile=args.profile,
+    )
     from cps_experiments.monitor_report import write_monitor_report
 
     if not run_and_report("monitor", mission, write_monitor_report, t0):

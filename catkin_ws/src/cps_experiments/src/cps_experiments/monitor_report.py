@@ -2,6 +2,7 @@
 against the baseline) and as the simulator made it (the site model + the changes file), matched:
 precision, recall, each match's position error, and a top-down picture with the changes marked.
 """
+
 import dataclasses
 import json
 import os
@@ -19,12 +20,12 @@ NEAR_SOLID_M = 0.3
 
 @dataclasses.dataclass
 class MonitoringResult:
-    detected: list        # cps_mapping.change_detection.Change
-    expected: list        # cps_sim.site_changes.ExpectedChange
-    score: object         # cps_mapping.change_scoring.ChangeScore
-    current_map: object   # FusedLogOddsMap of the monitoring mission
-    changes: object       # cps_sim.site_changes.SiteChanges
-    sites: tuple = ()     # the site before and after the changes
+    detected: list  # cps_mapping.change_detection.Change
+    expected: list  # cps_sim.site_changes.ExpectedChange
+    score: object  # cps_mapping.change_scoring.ChangeScore
+    current_map: object  # FusedLogOddsMap of the monitoring mission
+    changes: object  # cps_sim.site_changes.SiteChanges
+    sites: tuple = ()  # the site before and after the changes
 
 
 def solid_near(sites, change, margin_m=NEAR_SOLID_M):
@@ -53,10 +54,15 @@ def evaluate_monitoring(baseline_path, map_path, fleet, changes_path) -> Monitor
     baseline = load_baseline(baseline_path, fleet.mapping)
     current = load_baseline(map_path, fleet.mapping)
     defaults = MapServerOptions()  # what the live detection at the twin uses
-    detected = detect_map_changes(baseline, current, tolerance_voxels=defaults.change_tolerance_voxels,
-                                  min_cluster_voxels=defaults.change_min_cluster_voxels)
-    return MonitoringResult(detected, expected, score_changes(detected, expected), current, changes,
-                            (site, changes.apply(site)))
+    detected = detect_map_changes(
+        baseline,
+        current,
+        tolerance_voxels=defaults.change_tolerance_voxels,
+        min_cluster_voxels=defaults.change_min_cluster_voxels,
+    )
+    return MonitoringResult(
+        detected, expected, score_changes(detected, expected), current, changes, (site, changes.apply(site))
+    )
 
 
 def draw_changes(ax, result: MonitoringResult):
@@ -65,8 +71,17 @@ def draw_changes(ax, result: MonitoringResult):
 
     for e in result.expected:
         colour = APPEARED_COLOUR if e.kind == "appeared" else DISAPPEARED_COLOUR
-        ax.add_patch(Rectangle((e.centroid_m[0] - e.size_m[0] / 2, e.centroid_m[1] - e.size_m[1] / 2),
-                               e.size_m[0], e.size_m[1], fill=False, ec=colour, ls="--", lw=1.5))
+        ax.add_patch(
+            Rectangle(
+                (e.centroid_m[0] - e.size_m[0] / 2, e.centroid_m[1] - e.size_m[1] / 2),
+                e.size_m[0],
+                e.size_m[1],
+                fill=False,
+                ec=colour,
+                ls="--",
+                lw=1.5,
+            )
+        )
     for i, c in enumerate(result.detected, 1):
         colour = APPEARED_COLOUR if c.kind == "appeared" else DISAPPEARED_COLOUR
         ax.add_patch(Rectangle(c.min_m[:2], c.size_m[0], c.size_m[1], fc=colour, ec="k", alpha=0.55, lw=1))
@@ -88,54 +103,117 @@ def write_monitor_report(mission, mission_args, wall_time_s):
     out = mission.out_dir
     fleet = load_fleet(mission_args.fleet, profile=mission_args.profile)
     fleet = robot_names_arg(fleet, mission_args.robots.split(",") if mission_args.robots else None)
-    lines = ["# Monitoring mission report", "",
-             f"- baseline (characterization) map: `{mission_args.baseline}`",
-             f"- site changes made by the simulator: `{mission_args.site_changes}`",
-             f"- robots: {', '.join(fleet.robot_names)}; link: {mission.link}",
-             f"- ended by: {mission.ended_by} after {mission.elapsed_s:.0f} s of mission "
-             f"({wall_time_s:.0f} s wall time including start-up and this report)", ""]
+    lines = [
+        "# Monitoring mission report",
+        "",
+        f"- baseline (characterization) map: `{mission_args.baseline}`",
+        f"- site changes made by the simulator: `{mission_args.site_changes}`",
+        f"- robots: {', '.join(fleet.robot_names)}; link: {mission.link}",
+        f"- ended by: {mission.ended_by} after {mission.elapsed_s:.0f} s of mission "
+        f"({wall_time_s:.0f} s wall time including start-up and this report)",
+        "",
+    ]
     if not (mission.map_file and os.path.exists(mission.map_file)):
         lines += ["No map was saved: see the map server's log in `logs/`."]
     else:
         result = evaluate_monitoring(mission_args.baseline, mission.map_file, fleet, mission_args.site_changes)
         score = result.score
-        lines += [f"Simulator: {result.changes.describe()}.", "",
-                  "## Score", "",
-                  markdown_table(("changes detected", "changes made", "precision", "recall"),
-                         [(score.detected, score.expected, f"{score.precision:.2f}", f"{score.recall:.2f}")]), "",
-                  "A detected change is placed at the centre of its box (a surface seen from one side pulls the "
-                  "voxels' mean centroid toward that side) and matches a made one of the same kind whose footprint "
-                  "(grown by 0.5 m) holds that place. Position error: horizontal distance from there to the centre "
-                  "of the item's footprint. Only places the monitoring mission saw free or occupied count "
-                  "(the free-space rule of `cps_mapping.change_detection`).", "",
-                  "## Changes the twin detected (saved map against the baseline)", "",
-                  markdown_table(("#", "kind", "centroid x, y, z m", "size x, y, z m", "volume m³", "voxels", "matches",
-                          "position error m"),
-                         [(i, c.kind, _xyz(c.centroid_m), _xyz(c.size_m), f"{c.volume_m3:.3f}", c.voxels,
-                           result.expected[m.expected_index].name if m else
-                           f"— (false; the site has {solid_near(result.sites, c)} there)",
-                           f"{m.position_error_m:.2f}" if m else "—")
-                          for i, c in enumerate(result.detected, 1)
-                          for m in [score.match_of_detected(i - 1)]]), "",
-                  "## Changes the simulator made", "",
-                  markdown_table(("item", "kind", "centre x, y, z m", "size x, y, z m", "detected as", "position error m"),
-                         [(e.name, e.kind, _xyz(e.centroid_m), _xyz(e.size_m),
-                           f"#{m.detected_index + 1}" if m else "missed", f"{m.position_error_m:.2f}" if m else "—")
-                          for i, e in enumerate(result.expected) for m in [score.match_of_expected(i)]]), ""]
+        lines += [
+            f"Simulator: {result.changes.describe()}.",
+            "",
+            "## Score",
+            "",
+            markdown_table(
+                ("changes detected", "changes made", "precision", "recall"),
+                [(score.detected, score.expected, f"{score.precision:.2f}", f"{score.recall:.2f}")],
+            ),
+            "",
+            "A detected change is placed at the centre of its box (a surface seen from one side pulls the "
+            "voxels' mean centroid toward that side) and matches a made one of the same kind whose footprint "
+            "(grown by 0.5 m) holds that place. Position error: horizontal distance from there to the centre "
+            "of the item's footprint. Only places the monitoring mission saw free or occupied count "
+            "(the free-space rule of `cps_mapping.change_detection`).",
+            "",
+            "## Changes the twin detected (saved map against the baseline)",
+            "",
+            markdown_table(
+                (
+                    "#",
+                    "kind",
+                    "centroid x, y, z m",
+                    "size x, y, z m",
+                    "volume m³",
+                    "voxels",
+                    "matches",
+                    "position error m",
+                ),
+                [
+                    (
+                        i,
+                        c.kind,
+                        _xyz(c.centroid_m),
+                        _xyz(c.size_m),
+                        f"{c.volume_m3:.3f}",
+                        c.voxels,
+                        result.expected[m.expected_index].name
+                        if m
+                        else f"— (false; the site has {solid_near(result.sites, c)} there)",
+                        f"{m.position_error_m:.2f}" if m else "—",
+                    )
+                    for i, c in enumerate(result.detected, 1)
+                    for m in [score.match_of_detected(i - 1)]
+                ],
+            ),
+            "",
+            "## Changes the simulator made",
+            "",
+            markdown_table(
+                ("item", "kind", "centre x, y, z m", "size x, y, z m", "detected as", "position error m"),
+                [
+                    (
+                        e.name,
+                        e.kind,
+                        _xyz(e.centroid_m),
+                        _xyz(e.size_m),
+                        f"#{m.detected_index + 1}" if m else "missed",
+                        f"{m.position_error_m:.2f}" if m else "—",
+                    )
+                    for i, e in enumerate(result.expected)
+                    for m in [score.match_of_expected(i)]
+                ],
+            ),
+            "",
+        ]
         with open(os.path.join(out, "changes.json"), "w") as stream:
-            json.dump({"detected": [dataclasses.asdict(c) for c in result.detected],
-                       "expected": [dataclasses.asdict(e) for e in result.expected], "score": score.as_dict()},
-                      stream, indent=1)
-        plot_topdown(result.current_map.occupied_centers(), mission.progress.trajectories, fleet,
-                     os.path.join(out, "topdown.png"), overlay=lambda ax: draw_changes(ax, result),
-                     title="Monitoring mission: new map, detected changes (filled) and the simulator's (dashed)")
+            json.dump(
+                {
+                    "detected": [dataclasses.asdict(c) for c in result.detected],
+                    "expected": [dataclasses.asdict(e) for e in result.expected],
+                    "score": score.as_dict(),
+                },
+                stream,
+                indent=1,
+            )
+        plot_topdown(
+            result.current_map.occupied_centers(),
+            mission.progress.trajectories,
+            fleet,
+            os.path.join(out, "topdown.png"),
+            overlay=lambda ax: draw_changes(ax, result),
+            title="Monitoring mission: new map, detected changes (filled) and the simulator's (dashed)",
+        )
         lines += ["![top-down view with the changes](topdown.png)", ""]
     if os.path.exists(os.path.join(out, "gui.png")):
         lines += ["## Operator GUI during the mission", "", "![GUI screenshot](gui.png)", ""]
     lines += ["## Supervisor events", ""]
     lines += [f"- {e.time_s:.0f} s {e.label}: {e.what}" for e in mission.events] or ["- none"]
-    lines += ["", "## Files", "", "`map.bt` (the new map), `map_changes.md`/`.json` (the twin's last live "
-              "detection), `changes.json` (this report's figures), `topdown.png`, `gui.png`, `logs/`."]
+    lines += [
+        "",
+        "## Files",
+        "",
+        "`map.bt` (the new map), `map_changes.md`/`.json` (the twin's last live "
+        "detection), `changes.json` (this report's figures), `topdown.png`, `gui.png`, `logs/`.",
+    ]
     from cps_experiments.verdict import MONITOR_FILES, judge, write_verdict
 
     # The new map is judged by its change detection above, not against the ground truth: no F1 floor.

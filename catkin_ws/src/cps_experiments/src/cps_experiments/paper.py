@@ -3,6 +3,7 @@
 Robot names are our fleet's: scout = Scout 2.0 (type A, 3D lidar), jackal = Jackal (type B,
 depth camera), champ = the legged robot, iris = the aerial robot (both depth cameras).
 """
+
 from cps_bw_manager.table6 import PAPER_TABLE6, TABLE6_FINISHED_BY_STEP, TABLE6_ROBOTS  # noqa: F401
 
 # Table 4 (voxel 10 cm; the text: Scout 1 cm): MB/s (min, max) raw, filtered, compressed, and Hz.
@@ -30,8 +31,8 @@ TABLE5 = {
 TABLE5_LATENCY_BOUND_MS = 100.0
 
 # Fig. 13 / section 5: per-robot data rates without management and the deployable counts at 60 Mbit/s.
-FIG13_TYPE_A_MBYTES_PER_S = 0.46   # 3.68 Mbit/s, Scout's compressed max (Table 4)
-FIG13_TYPE_B_MBYTES_PER_S = 3.13   # 25.04 Mbit/s, the average of Jackal, legged and aerial
+FIG13_TYPE_A_MBYTES_PER_S = 0.46  # 3.68 Mbit/s, Scout's compressed max (Table 4)
+FIG13_TYPE_B_MBYTES_PER_S = 3.13  # 25.04 Mbit/s, the average of Jackal, legged and aerial
 FIG13_LINK_MBPS = 60.0
 FIG13_DEPLOYABLE_A = 16
 FIG13_DEPLOYABLE_B = 2

@@ -3,6 +3,7 @@
 Reads what the running system wrote (map.bt, stats.csv from cps_transport's topic_stats,
 allocation.csv from cps_bw_manager) and the MissionResult of the supervisor.
 """
+
 import csv
 import json
 import math
@@ -33,8 +34,11 @@ def managed_link_windows(stats_rows, window_s=STATS_WINDOW_S):
     for row in stats_rows:
         if row.get("managed") == "True":
             messages, mean_bytes = csv_float(row.get("messages")), csv_float(row.get("mean_message_bytes"))
-            value = (messages * mean_bytes / window_s / 1e6 if math.isfinite(messages) and math.isfinite(mean_bytes)
-                     else csv_float(row["bandwidth_mbytes_per_s"]))
+            value = (
+                messages * mean_bytes / window_s / 1e6
+                if math.isfinite(messages) and math.isfinite(mean_bytes)
+                else csv_float(row["bandwidth_mbytes_per_s"])
+            )
             if math.isfinite(value):
                 totals[csv_float(row["time_s"])] += value
     times = sorted(totals)
@@ -54,9 +58,11 @@ def latency_summary(stats_rows, managed_only=True):
             if math.isfinite(value):
                 per_robot[row["robot"]][key].append(value)
     for robot, series in per_robot.items():
-        out[robot] = {"avg_ms": float(np.mean(series["latency_avg_ms"])),
-                      "max_ms": float(np.max(series["latency_max_ms"])),
-                      "p95_ms": float(np.percentile(series["latency_p95_ms"], 95))}
+        out[robot] = {
+            "avg_ms": float(np.mean(series["latency_avg_ms"])),
+            "max_ms": float(np.max(series["latency_max_ms"])),
+            "p95_ms": float(np.percentile(series["latency_p95_ms"], 95)),
+        }
     return out
 
 
@@ -95,8 +101,13 @@ def latency_split(physical_arrival_rows, twin_arrival_rows, twin_topic_suffix="/
     out = {}
     for robot, rows in per_robot.items():
         ms = 1e3 * np.array(rows)
-        out[robot] = {"clouds": len(rows), "total_avg_ms": float(ms[:, 0].mean()), "total_max_ms": float(ms[:, 0].max()),
-                      "robot_side_avg_ms": float(ms[:, 1].mean()), "tissue_link_avg_ms": float(ms[:, 2].mean())}
+        out[robot] = {
+            "clouds": len(rows),
+            "total_avg_ms": float(ms[:, 0].mean()),
+            "total_max_ms": float(ms[:, 0].max()),
+            "robot_side_avg_ms": float(ms[:, 1].mean()),
+            "tissue_link_avg_ms": float(ms[:, 2].mean()),
+        }
     return out
 
 
@@ -151,10 +162,10 @@ def score_saved_map(map_file, fleet, ground_truth_path, trajectories=None):
     """Load the saved map and score it against the simulator's ground truth at the map's resolution,
     exact and within ±1 voxel. With `trajectories` ({robot: positions in map}) the observable
     surface is ray-cast from them; without, it is the scored map's free space (and says so)."""
+    from cps_fleet.site import load_site
     from cps_mapping.fused_map import FusedLogOddsMap
     from cps_mapping.scoring import score_fused_map
     from cps_sim.ground_truth import save_ground_truth
-    from cps_fleet.site import load_site
 
     resolution = fleet.mapping.resolution_m
     save_ground_truth(ground_truth_path, load_site(fleet.site_path), resolution)
@@ -166,23 +177,29 @@ def score_saved_map(map_file, fleet, ground_truth_path, trajectories=None):
 
 def observable_text(observable_from):
     """What the observable surface was computed from, for the report line."""
-    from cps_mapping.scoring import OBSERVABLE_FROM_POSES, OBSERVABLE_FROM_MAP
+    from cps_mapping.scoring import OBSERVABLE_FROM_MAP, OBSERVABLE_FROM_POSES
 
-    return {OBSERVABLE_FROM_POSES: "ray-cast in the ground truth from the robots' recorded positions at sensor "
-                                   "height, any direction, within each robot type's max_range_m",
-            OBSERVABLE_FROM_MAP: "relative to the scored map's own free space: a map that saw less is judged "
-                                 "against less"}.get(observable_from, "every truth voxel with an empty face neighbour")
+    return {
+        OBSERVABLE_FROM_POSES: "ray-cast in the ground truth from the robots' recorded positions at sensor "
+        "height, any direction, within each robot type's max_range_m",
+        OBSERVABLE_FROM_MAP: "relative to the scored map's own free space: a map that saw less is judged against less",
+    }.get(observable_from, "every truth voxel with an empty face neighbour")
 
 
 def map_quality_table(score):
     """Report lines: precision, recall, F1 voxel for voxel and within the tolerance, each row naming it."""
     from cps_mapping.scoring import tolerance_text
 
-    rows = [(tolerance_text(m.tolerance_voxels), f"{m.precision:.3f}", f"{m.recall:.3f}", f"{m.f1:.3f}")
-            for m in (score.exact, score.tolerant)]
-    return [markdown_table(("match", "precision", "recall", "F1"), rows), "",
-            f"Coverage of the observable surface ({tolerance_text(score.tolerant.tolerance_voxels)}): "
-            f"{score.coverage:.3f}."]
+    rows = [
+        (tolerance_text(m.tolerance_voxels), f"{m.precision:.3f}", f"{m.recall:.3f}", f"{m.f1:.3f}")
+        for m in (score.exact, score.tolerant)
+    ]
+    return [
+        markdown_table(("match", "precision", "recall", "F1"), rows),
+        "",
+        f"Coverage of the observable surface ({tolerance_text(score.tolerant.tolerance_voxels)}): "
+        f"{score.coverage:.3f}.",
+    ]
 
 
 def plot_link(stats_rows, allocation_rows, budget_mbytes_per_s, png_path):
@@ -196,8 +213,13 @@ def plot_link(stats_rows, allocation_rows, budget_mbytes_per_s, png_path):
     per_robot = defaultdict(list)
     for row in stats_rows:
         if row.get("managed") == "True":
-            per_robot[row["robot"]].append((csv_float(row["time_s"]) - t0, csv_float(row["bandwidth_mbytes_per_s"]),
-                                            csv_float(row["latency_avg_ms"]) if row.get("latency_avg_ms") else math.nan))
+            per_robot[row["robot"]].append(
+                (
+                    csv_float(row["time_s"]) - t0,
+                    csv_float(row["bandwidth_mbytes_per_s"]),
+                    csv_float(row["latency_avg_ms"]) if row.get("latency_avg_ms") else math.nan,
+                )
+            )
     times, totals = managed_link_windows(stats_rows)
     for robot, series in sorted(per_robot.items()):
         series = np.array(series)
@@ -238,42 +260,75 @@ def write_mission_report(result, mission_args, wall_time_s):
     budgets = [csv_float(r["budget_mbytes_per_s"]) for r in allocation_rows]
     # The manager's own budget (with --link: from iperf3's measurement), else fleet.yaml's.
     budget = budgets[-1] if budgets and math.isfinite(budgets[-1]) else fleet.link.budget_mbytes_per_s
-    available_mbps = (csv_float(allocation_rows[-1]["available_mbps"]) if allocation_rows
-                      else fleet.link.available_mbps)
+    available_mbps = csv_float(allocation_rows[-1]["available_mbps"]) if allocation_rows else fleet.link.available_mbps
 
-    lines = ["# Mission report", "",
-             f"- robots: {', '.join(fleet.robot_names)}; profile: {fleet.profile.name}",
-             f"- link: {result.link}",
-             f"- ended by: {result.ended_by} after {result.elapsed_s:.0f} s of mission "
-             f"({wall_time_s:.0f} s wall time including start-up and this report)", ""]
+    lines = [
+        "# Mission report",
+        "",
+        f"- robots: {', '.join(fleet.robot_names)}; profile: {fleet.profile.name}",
+        f"- link: {result.link}",
+        f"- ended by: {result.ended_by} after {result.elapsed_s:.0f} s of mission "
+        f"({wall_time_s:.0f} s wall time including start-up and this report)",
+        "",
+    ]
 
     progress = result.progress
     rows = []
     for robot in fleet.robot_names:
         path = np.array(progress.trajectories.get(robot) or [(math.nan,) * 3])
         length = float(np.nansum(np.linalg.norm(np.diff(path, axis=0), axis=1))) if len(path) > 1 else 0.0
-        rows.append((robot, progress.mission_state.get(robot, "?"), progress.clouds_inserted.get(robot, 0),
-                     progress.clouds_dropped.get(robot, 0), progress.voxels_contributed.get(robot, 0),
-                     f"{length:.1f}", f"{progress.map_age_s.get(robot, math.nan):.2f}"))
-    lines += ["## Robots", "", "From the map server's live statistics at the end of the mission. Dropped clouds are "
-              "the oldest ones its bounded per-robot queues let go when insertion fell behind (or with no "
-              "transform at their stamp); every one is counted.", "",
-              markdown_table(("robot", "final state", "clouds inserted", "clouds dropped", "occupied voxels last updated",
-                      "path m", "map age s"), rows), ""]
+        rows.append(
+            (
+                robot,
+                progress.mission_state.get(robot, "?"),
+                progress.clouds_inserted.get(robot, 0),
+                progress.clouds_dropped.get(robot, 0),
+                progress.voxels_contributed.get(robot, 0),
+                f"{length:.1f}",
+                f"{progress.map_age_s.get(robot, math.nan):.2f}",
+            )
+        )
+    lines += [
+        "## Robots",
+        "",
+        "From the map server's live statistics at the end of the mission. Dropped clouds are "
+        "the oldest ones its bounded per-robot queues let go when insertion fell behind (or with no "
+        "transform at their stamp); every one is counted.",
+        "",
+        markdown_table(
+            (
+                "robot",
+                "final state",
+                "clouds inserted",
+                "clouds dropped",
+                "occupied voxels last updated",
+                "path m",
+                "map age s",
+            ),
+            rows,
+        ),
+        "",
+    ]
 
     scores = None
     write_trajectories(os.path.join(out, TRAJECTORIES_CSV), progress.trajectories)
     if result.map_file and os.path.exists(result.map_file):
-        score, fused = score_saved_map(result.map_file, fleet, os.path.join(out, "ground_truth.npz"),
-                                       progress.trajectories)
+        score, fused = score_saved_map(
+            result.map_file, fleet, os.path.join(out, "ground_truth.npz"), progress.trajectories
+        )
         scores = score.as_dict()
         with open(os.path.join(out, "scores.json"), "w") as stream:
             json.dump(scores, stream, indent=2)
-        lines += ["## Map quality against the simulator's ground truth", "",
-                  f"Map `map.bt` ({score.map_voxels} occupied voxels at {score.resolution_m} m) against "
-                  f"{score.truth_voxels} ground-truth voxels ({score.observable_voxels} on the observable surface, "
-                  f"{observable_text(score.observable_from)}):", "",
-                  *map_quality_table(score), ""]
+        lines += [
+            "## Map quality against the simulator's ground truth",
+            "",
+            f"Map `map.bt` ({score.map_voxels} occupied voxels at {score.resolution_m} m) against "
+            f"{score.truth_voxels} ground-truth voxels ({score.observable_voxels} on the observable surface, "
+            f"{observable_text(score.observable_from)}):",
+            "",
+            *map_quality_table(score),
+            "",
+        ]
         plot_topdown(fused.occupied_centers(), progress.trajectories, fleet, os.path.join(out, "topdown.png"))
         lines += ["![top-down view of the fused map with the trajectories](topdown.png)", ""]
     else:
@@ -282,33 +337,70 @@ def write_mission_report(result, mission_args, wall_time_s):
     times, totals = managed_link_windows(stats_rows)
     busy = totals[totals > 0]
     latency = latency_summary(stats_rows)
-    split = latency_split(read_csv(os.path.join(out, "physical_arrivals.csv")),
-                          read_csv(os.path.join(out, "arrivals.csv")))
-    lines += ["## Link", "",
-              f"Managed point-cloud traffic received at the digital twin, per ~1 s window: avg "
-              f"{np.mean(busy) if len(busy) else 0:.3f} MB/s, max {np.max(busy) if len(busy) else 0:.3f} MB/s, "
-              f"std {np.std(busy) if len(busy) else 0:.3f} MB/s against a budget of {budget:.2f} MB/s "
-              f"({100 * (1 - fleet.link.reserve_fraction):.0f} % of {available_mbps:.1f} Mbit/s); windows over budget: "
-              f"{int(np.sum(totals > budget))} of {len(totals)}.", "",
-              "Latency is receive time at the digital twin minus the capture stamp (windowed: avg, max, p95 "
-              "over the statistics windows). The split is per cloud, over the clouds that reached the twin, "
-              "joined by capture stamp with their arrival on the robots' side: the robot side (capture to the "
-              "voxel-filtered cloud on the physical host: the simulated sensor's render time and the machine's "
-              "load) and the rest (encoding, rate limiting, the link and the relay).", "",
-              markdown_table(("robot", "capture → twin avg ms", "max ms", "p95 ms", "clouds joined",
-                      "of those: capture → twin avg ms", "robot side avg ms", "tissue + link avg ms"),
-                     [(r, f"{v['avg_ms']:.1f}", f"{v['max_ms']:.1f}", f"{v['p95_ms']:.1f}",
-                       *((split[r]["clouds"], f"{split[r]['total_avg_ms']:.1f}", f"{split[r]['robot_side_avg_ms']:.1f}",
-                          f"{split[r]['tissue_link_avg_ms']:.1f}") if r in split else ("0", "-", "-", "-")))
-                      for r, v in sorted(latency.items())]), ""]
+    split = latency_split(
+        read_csv(os.path.join(out, "physical_arrivals.csv")), read_csv(os.path.join(out, "arrivals.csv"))
+    )
+    lines += [
+        "## Link",
+        "",
+        f"Managed point-cloud traffic received at the digital twin, per ~1 s window: avg "
+        f"{np.mean(busy) if len(busy) else 0:.3f} MB/s, max {np.max(busy) if len(busy) else 0:.3f} MB/s, "
+        f"std {np.std(busy) if len(busy) else 0:.3f} MB/s against a budget of {budget:.2f} MB/s "
+        f"({100 * (1 - fleet.link.reserve_fraction):.0f} % of {available_mbps:.1f} Mbit/s); windows over budget: "
+        f"{int(np.sum(totals > budget))} of {len(totals)}.",
+        "",
+        "Latency is receive time at the digital twin minus the capture stamp (windowed: avg, max, p95 "
+        "over the statistics windows). The split is per cloud, over the clouds that reached the twin, "
+        "joined by capture stamp with their arrival on the robots' side: the robot side (capture to the "
+        "voxel-filtered cloud on the physical host: the simulated sensor's render time and the machine's "
+        "load) and the rest (encoding, rate limiting, the link and the relay).",
+        "",
+        markdown_table(
+            (
+                "robot",
+                "capture → twin avg ms",
+                "max ms",
+                "p95 ms",
+                "clouds joined",
+                "of those: capture → twin avg ms",
+                "robot side avg ms",
+                "tissue + link avg ms",
+            ),
+            [
+                (
+                    r,
+                    f"{v['avg_ms']:.1f}",
+                    f"{v['max_ms']:.1f}",
+                    f"{v['p95_ms']:.1f}",
+                    *(
+                        (
+                            split[r]["clouds"],
+                            f"{split[r]['total_avg_ms']:.1f}",
+                            f"{split[r]['robot_side_avg_ms']:.1f}",
+                            f"{split[r]['tissue_link_avg_ms']:.1f}",
+                        )
+                        if r in split
+                        else ("0", "-", "-", "-")
+                    ),
+                )
+                for r, v in sorted(latency.items())
+            ],
+        ),
+        "",
+    ]
     if stats_rows or allocation_rows:
         plot_link(stats_rows, allocation_rows, budget, os.path.join(out, "link.png"))
         lines += ["![bandwidth, allocated rates and latency](link.png)", ""]
 
     from cps_experiments.link_report import section as link_events_section
 
-    lines += link_events_section(read_csv(os.path.join(out, "link_events.csv")),
-                                 read_csv(os.path.join(out, "link_state.csv")), allocation_rows, times, totals)
+    lines += link_events_section(
+        read_csv(os.path.join(out, "link_events.csv")),
+        read_csv(os.path.join(out, "link_state.csv")),
+        allocation_rows,
+        times,
+        totals,
+    )
     lines += ["## Supervisor events", ""]
     lines += [f"- {e.time_s:.0f} s {e.label}: {e.what}" for e in result.events] or ["- none"]
     if result.restarts:
@@ -316,19 +408,27 @@ def write_mission_report(result, mission_args, wall_time_s):
     lines.append("")
     if os.path.exists(os.path.join(out, "gui.png")):
         lines += ["## Operator GUI during the mission", "", "![GUI screenshot](gui.png)", ""]
-    lines += ["## Files", "", "`map.bt` (OctoMap, opens with octomap's tools), `ground_truth.npz`, `scores.json`, "
-              "`trajectories.csv` (each robot's recorded positions), `map_age.csv` (each robot's map age as the "
-              "map server published it), `verdict.json`, "
-              "`stats.csv` (topic statistics at the twin), `physical_stats.csv` (at the robots), `arrivals.csv` and "
-              "`physical_arrivals.csv` (per-cloud stamps and receive times there), `allocation.csv` "
-              "(bandwidth manager), `link.png`, `topdown.png`, "
-              "`gui.png`, `logs/` (every node's output)."]
+    lines += [
+        "## Files",
+        "",
+        "`map.bt` (OctoMap, opens with octomap's tools), `ground_truth.npz`, `scores.json`, "
+        "`trajectories.csv` (each robot's recorded positions), `map_age.csv` (each robot's map age as the "
+        "map server published it), `verdict.json`, "
+        "`stats.csv` (topic statistics at the twin), `physical_stats.csv` (at the robots), `arrivals.csv` and "
+        "`physical_arrivals.csv` (per-cloud stamps and receive times there), `allocation.csv` "
+        "(bandwidth manager), `link.png`, `topdown.png`, "
+        "`gui.png`, `logs/` (every node's output).",
+    ]
     from cps_experiments.verdict import DEMO_FILES, MAP_F1_FLOOR_WITHIN_1_VOXEL, judge, write_verdict
 
     # `make demo --map-f1-floor` sets map_f1_floor on the mission's arguments; else the code default.
     floor = getattr(mission_args, "map_f1_floor", None)
-    verdict = judge(out, DEMO_FILES, ended_by=result.ended_by,
-                    f1_floor_within_1_voxel=MAP_F1_FLOOR_WITHIN_1_VOXEL if floor is None else floor)
+    verdict = judge(
+        out,
+        DEMO_FILES,
+        ended_by=result.ended_by,
+        f1_floor_within_1_voxel=MAP_F1_FLOOR_WITHIN_1_VOXEL if floor is None else floor,
+    )
     write_verdict(out, verdict)
     lines[2:2] = verdict.lines()
     path = os.path.join(out, "report.md")

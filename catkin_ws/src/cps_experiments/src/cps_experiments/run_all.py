@@ -1,4 +1,5 @@
 """`make experiments`: run the chosen experiments and index their outputs in <out>/README.md."""
+
 import csv
 import os
 import time
@@ -20,7 +21,8 @@ def run_experiments(names, out_dir, quick=False, reuse_runs=False, log=print):
     if names & OFFLINE:
         start = time.monotonic()
         mission = bandwidth_tables.measure_mission_sizes(
-            QUICK_FRAMES if quick else FRAMES, QUICK_LEAVES if quick else bandwidth_tables.LEAF_SIZES_M, log=log)
+            QUICK_FRAMES if quick else FRAMES, QUICK_LEAVES if quick else bandwidth_tables.LEAF_SIZES_M, log=log
+        )
         log(f"[experiments] clouds sized in {time.monotonic() - start:.0f} s")
     if names & {"table4", "fig11"}:
         done["table4"] = bandwidth_tables.run(out_dir, mission)
@@ -45,46 +47,72 @@ def _csv(path):
 
 def write_index(out_dir):
     """README.md: what each file is, with the paper's headline numbers beside ours."""
-    lines = ["# Results: the paper's tables and figures reproduced with this system", "",
-             "Written by `make experiments` (`catkin_ws/src/cps_experiments/nodes/experiments`; each experiment alone: "
-             "`… experiments table4|fig11|table5|table6|fig13|fig14`). Every file below has the paper's numbers beside "
-             "ours and a sentence on each difference. Timings were taken on one 2-core machine that the whole system shares.", ""]
+    lines = [
+        "# Results: the paper's tables and figures reproduced with this system",
+        "",
+        "Written by `make experiments` (`catkin_ws/src/cps_experiments/nodes/experiments`; each experiment alone: "
+        "`… experiments table4|fig11|table5|table6|fig13|fig14`). Every file below has the paper's numbers beside "
+        "ours and a sentence on each difference. Timings were taken on one 2-core machine that the whole system shares.",
+        "",
+    ]
     rows = []
     t4 = {r["robot"]: r for r in _csv(os.path.join(out_dir, "table4.csv"))}
     if "total (fleet)" in t4:
         t = t4["total (fleet)"]
-        rows.append(["Table 4, fleet total MB/s max (raw → filtered → compressed)", "874.5 → 50.37 → 10.07",
-                     f"{float(t['raw_max_mbytes_per_s']):.1f} → {float(t['filtered_max_mbytes_per_s']):.2f} → "
-                     f"{float(t['compressed_max_mbytes_per_s']):.3f}", "[table4.md](table4.md)"])
+        rows.append(
+            [
+                "Table 4, fleet total MB/s max (raw → filtered → compressed)",
+                "874.5 → 50.37 → 10.07",
+                f"{float(t['raw_max_mbytes_per_s']):.1f} → {float(t['filtered_max_mbytes_per_s']):.2f} → "
+                f"{float(t['compressed_max_mbytes_per_s']):.3f}",
+                "[table4.md](table4.md)",
+            ]
+        )
     f13 = _csv(os.path.join(out_dir, "fig13.csv"))
     for r in f13:
         if float(r["link_mbps"]) == 60.0:
-            rows.append(["Fig. 13, deployable robots at 60 Mbit/s without management (A lidar, B depth)", "16, 2",
-                         f"{r['ours_A_unmanaged']}, {r['ours_B_unmanaged']} (B at ≥ 1 Hz managed: {r['ours_B_managed_1hz']})",
-                         "[fig13.md](fig13.md)"])
+            rows.append(
+                [
+                    "Fig. 13, deployable robots at 60 Mbit/s without management (A lidar, B depth)",
+                    "16, 2",
+                    f"{r['ours_A_unmanaged']}, {r['ours_B_unmanaged']} (B at ≥ 1 Hz managed: {r['ours_B_managed_1hz']})",
+                    "[fig13.md](fig13.md)",
+                ]
+            )
     for r in _csv(os.path.join(out_dir, "table5.csv")):
         if r["bandwidth_avg_mbytes_per_s"]:
-            rows.append([f"Table 5, {r['fleet']}: MB/s avg, latency avg/max ms",
-                         f"{r['paper_bandwidth_avg']}; {r['paper_latency_avg']}/{r['paper_latency_max']}",
-                         f"{float(r['bandwidth_avg_mbytes_per_s']):.3f}; {float(r['latency_avg_ms']):.1f}/"
-                         f"{float(r['latency_max_ms']):.1f} ({'shaped 60 Mbit/s link' if 'tc-shaped' in r['link'] else r['link']})",
-                         "[table5.md](table5.md)"])
+            rows.append(
+                [
+                    f"Table 5, {r['fleet']}: MB/s avg, latency avg/max ms",
+                    f"{r['paper_bandwidth_avg']}; {r['paper_latency_avg']}/{r['paper_latency_max']}",
+                    f"{float(r['bandwidth_avg_mbytes_per_s']):.3f}; {float(r['latency_avg_ms']):.1f}/"
+                    f"{float(r['latency_max_ms']):.1f} ({'shaped 60 Mbit/s link' if 'tc-shaped' in r['link'] else r['link']})",
+                    "[table5.md](table5.md)",
+                ]
+            )
         else:
-            rows.append([f"Table 5, {r['fleet']}", f"{r['paper_bandwidth_avg']} MB/s", r["link"], "[table5.md](table5.md)"])
+            rows.append(
+                [f"Table 5, {r['fleet']}", f"{r['paper_bandwidth_avg']} MB/s", r["link"], "[table5.md](table5.md)"]
+            )
     if rows:
         lines += ["| result | paper | ours | details |", "|---|---|---|---|"]
         lines += ["| " + " | ".join(row) + " |" for row in rows]
         lines.append("")
-    entries = [("table4.md", "Tables 2/3/4: raw, filtered, compressed MB/s per robot (min/max over a mission)", None),
-               ("fig11.png", "Fig. 11: voxel size against filtered bandwidth", "fig11.png"),
-               ("fig12.png", "Fig. 12: filtered against compressed bandwidth", "fig12.png"),
-               ("table5.md", "Table 5: fleets of 1–4 robots on the 60 Mbit/s link, bandwidth and latency", None),
-               ("table6.md", "Table 6: the bandwidth manager's nine steps", None),
-               ("fig13.md", "Fig. 13: deployable robots against link bandwidth, and map quality against rate", "fig13.png"),
-               ("fig13_live.md", "Fig. 13 live: fleets of 1–16 robots on 60 and 10 Mbit/s, manager on and off",
-                "fig13_live.png"),
-               ("fig14.png", "Fig. 14: top-down view of the fused map with the four trajectories", "fig14.png"),
-               ("fig14.md", "Fig. 14: why it was not produced", None)]
+    entries = [
+        ("table4.md", "Tables 2/3/4: raw, filtered, compressed MB/s per robot (min/max over a mission)", None),
+        ("fig11.png", "Fig. 11: voxel size against filtered bandwidth", "fig11.png"),
+        ("fig12.png", "Fig. 12: filtered against compressed bandwidth", "fig12.png"),
+        ("table5.md", "Table 5: fleets of 1–4 robots on the 60 Mbit/s link, bandwidth and latency", None),
+        ("table6.md", "Table 6: the bandwidth manager's nine steps", None),
+        ("fig13.md", "Fig. 13: deployable robots against link bandwidth, and map quality against rate", "fig13.png"),
+        (
+            "fig13_live.md",
+            "Fig. 13 live: fleets of 1–16 robots on 60 and 10 Mbit/s, manager on and off",
+            "fig13_live.png",
+        ),
+        ("fig14.png", "Fig. 14: top-down view of the fused map with the four trajectories", "fig14.png"),
+        ("fig14.md", "Fig. 14: why it was not produced", None),
+    ]
     for name, what, image in entries:
         if os.path.exists(os.path.join(out_dir, name)):
             lines += [f"## [{what}]({name})", ""]

@@ -4,13 +4,18 @@ Used by the demo's report and by `make experiments`. Occupied voxels are drawn a
 (the highest occupied voxel per column) over the observed floor in grey, fenced areas as outlines,
 routes dashed.
 """
+
 import numpy as np
 
 # The paper's colours (Fig. 14): legged yellow, scout green, Jackal red, UAV purple.
 # Voxels below this height are the floor: drawn grey, not as obstacles.
 FLOOR_TOP_M = 0.15
-ROBOT_COLOURS = {"wheeled_lidar": "tab:green", "wheeled_depth": "tab:red", "legged_depth": "gold",
-                 "aerial_depth": "tab:purple"}
+ROBOT_COLOURS = {
+    "wheeled_lidar": "tab:green",
+    "wheeled_depth": "tab:red",
+    "legged_depth": "gold",
+    "aerial_depth": "tab:purple",
+}
 
 
 def height_image(occupied_centers_m, resolution_m, x_range, y_range):
@@ -51,8 +56,14 @@ def plot_topdown(occupied_centers_m, trajectories, fleet, png_path, title=None, 
     image = height_image(centers[~on_floor], res, x_range, y_range)
     fig, ax = plt.subplots(figsize=(11, 8.5))
     ax.imshow(np.where(floor, 0.85, np.nan), origin="lower", extent=(*x_range, *y_range), cmap="gray", vmin=0, vmax=1)
-    shown = ax.imshow(image, origin="lower", extent=(*x_range, *y_range), cmap="viridis", vmin=0.0,
-                      vmax=max(2.0, float(np.nanmax(image)) if np.isfinite(image).any() else 2.0))
+    shown = ax.imshow(
+        image,
+        origin="lower",
+        extent=(*x_range, *y_range),
+        cmap="viridis",
+        vmin=0.0,
+        vmax=max(2.0, float(np.nanmax(image)) if np.isfinite(image).any() else 2.0),
+    )
     fig.colorbar(shown, ax=ax, fraction=0.03, label="highest occupied voxel, m")
     for area in site.areas:
         x0, y0, x1, y1 = area.rectangle

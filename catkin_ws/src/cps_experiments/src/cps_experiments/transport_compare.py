@@ -1,6 +1,7 @@
 """The same load over either transport, on a shaped link (the link benchmark and its tests): one
 master across the link (tcpros, the paper's set-up) or a master per side joined by the Zenoh
 bridges. Processes on either side, the cloud load, teleop latency and the bridges' CPU."""
+
 import contextlib
 import os
 import sys
@@ -8,16 +9,20 @@ import time
 
 import numpy as np
 
-from cps_fleet import names
-from cps_ros.processes import RosGraph, find_node
 from cps_experiments.link_run import LinkRosGraph
+from cps_fleet import names
 from cps_link.netns_link import TWIN_IP, namespace
 from cps_link.zenoh_session import bridge_argv
+from cps_ros.processes import RosGraph, find_node
 
-FIXTURES = os.path.normpath(os.path.join(os.path.dirname(find_node("cps_link", "zenoh_bridge")), "..", "test",
-                                        "fixtures"))
-CLOUD_LOAD = os.path.normpath(os.path.join(os.path.dirname(find_node("cps_bw_manager", "bandwidth_manager")), "..",
-                                           "test", "fixtures", "cloud_load.py"))
+FIXTURES = os.path.normpath(
+    os.path.join(os.path.dirname(find_node("cps_link", "zenoh_bridge")), "..", "test", "fixtures")
+)
+CLOUD_LOAD = os.path.normpath(
+    os.path.join(
+        os.path.dirname(find_node("cps_bw_manager", "bandwidth_manager")), "..", "test", "fixtures", "cloud_load.py"
+    )
+)
 # Within the budget of a 60 Mbit/s link (~4.9 MB/s of ~7.2): Table 6's sizes at managed rates.
 LIVE = {"scout": (34000, 10.0), "jackal": (142000, 10.0), "champ": (60000, 20.0), "iris": (67000, 20.0)}
 # Saturating: ~17 MB/s offered.
@@ -42,10 +47,14 @@ class Graphs:
                 graph.start()
                 self.sides[side] = graph
             robots = list(LIVE)
-            self.bridges = [self.sides["twin"].popen(bridge_argv(sys.executable, "twin", TWIN_IP, robots, cert_dir),
-                                                     name="bridge_twin"),
-                            self.sides["phys"].popen(bridge_argv(sys.executable, "robots", TWIN_IP, robots, cert_dir),
-                                                     name="bridge_robots")]
+            self.bridges = [
+                self.sides["twin"].popen(
+                    bridge_argv(sys.executable, "twin", TWIN_IP, robots, cert_dir), name="bridge_twin"
+                ),
+                self.sides["phys"].popen(
+                    bridge_argv(sys.executable, "robots", TWIN_IP, robots, cert_dir), name="bridge_robots"
+                ),
+            ]
 
     def start(self, side, argv, name):
         if self.transport == "tcpros":
@@ -65,10 +74,19 @@ class Graphs:
 
 
 def start_load(graphs, streams, name):
-    return graphs.start("phys", [sys.executable, CLOUD_LOAD, *[f"{r}:{s}:{hz}" for r, (s, hz) in streams.items()],
-                                 *[f"{names.absolute(names.robot_topic(r, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(r))}"
-                                   for r in streams]],
-                        name)
+    return graphs.start(
+        "phys",
+        [
+            sys.executable,
+            CLOUD_LOAD,
+            *[f"{r}:{s}:{hz}" for r, (s, hz) in streams.items()],
+            *[
+                f"{names.absolute(names.robot_topic(r, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(r))}"
+                for r in streams
+            ],
+        ],
+        name,
+    )
 
 
 def cpu_s(pids):
@@ -90,15 +108,15 @@ def teleop_latencies_ms(path):
     return np.array([1000.0 * (float(recv) - float(sent)) for recv, sent in rows])
 
 
-
-
 def teleop_under_saturation(graphs, path, seconds):
     """Teleop latencies (ms) twin -> robot at 20 Hz while the clouds saturate robots -> twin."""
-    graphs.start("phys", [sys.executable, os.path.join(FIXTURES, "teleop_probe.py"), "recv", "scout", path],
-                 "teleop_recv")
+    graphs.start(
+        "phys", [sys.executable, os.path.join(FIXTURES, "teleop_probe.py"), "recv", "scout", path], "teleop_recv"
+    )
     start_load(graphs, SATURATING, "saturating_load")
     time.sleep(3.0)
-    graphs.start("twin", [sys.executable, os.path.join(FIXTURES, "teleop_probe.py"), "send", "scout", "20"],
-                 "teleop_send")
+    graphs.start(
+        "twin", [sys.executable, os.path.join(FIXTURES, "teleop_probe.py"), "send", "scout", "20"], "teleop_send"
+    )
     time.sleep(seconds)
     return teleop_latencies_ms(path)

@@ -22,6 +22,7 @@ only the mission folder (and what the caller knows of how the mission ended).
 
 Seconds in the messages are counted from the first row of map_age.csv ("record s").
 """
+
 import csv
 import dataclasses
 import json
@@ -33,7 +34,7 @@ from typing import List, Optional, Sequence
 from cps_bringup.mission import MAP_AGE_COLUMNS  # noqa: F401 (the mission monitor writes map_age.csv)
 
 PASS, FAIL, INCOMPLETE = "PASS", "FAIL", "INCOMPLETE"
-EXIT_CODES = {PASS: 0, FAIL: 1, INCOMPLETE: 4}   # 2: could not start, 3: master lost (cli)
+EXIT_CODES = {PASS: 0, FAIL: 1, INCOMPLETE: 4}  # 2: could not start, 3: master lost (cli)
 MAP_STALE_AFTER_S = 3.0
 AFTER_OUTAGE_S = 3.0
 MAP_START_GRACE_S = 15.0
@@ -45,16 +46,25 @@ MAP_F1_FLOOR_WITHIN_1_VOXEL = 0.9
 MAP_AGE_CSV = "map_age.csv"
 VERDICT_JSON = "verdict.json"
 # What each mission must leave in its folder for its verdict to be judged.
-DEMO_FILES = ("map.bt", "scores.json", "stats.csv", "arrivals.csv", "physical_stats.csv", "physical_arrivals.csv",
-              "allocation.csv", MAP_AGE_CSV, "trajectories.csv")
+DEMO_FILES = (
+    "map.bt",
+    "scores.json",
+    "stats.csv",
+    "arrivals.csv",
+    "physical_stats.csv",
+    "physical_arrivals.csv",
+    "allocation.csv",
+    MAP_AGE_CSV,
+    "trajectories.csv",
+)
 MONITOR_FILES = ("map.bt", "stats.csv", "arrivals.csv", "physical_stats.csv", "physical_arrivals.csv", MAP_AGE_CSV)
 
 
 @dataclasses.dataclass
 class Verdict:
     status: str
-    failures: List[str]         # why FAIL or INCOMPLETE, one line each
-    notes: List[str]            # what was not judged, and why
+    failures: List[str]  # why FAIL or INCOMPLETE, one line each
+    notes: List[str]  # what was not judged, and why
     f1_floor_within_1_voxel: Optional[float]
 
     @property
@@ -64,13 +74,23 @@ class Verdict:
     def lines(self):
         """The report's first lines (markdown)."""
         head = f"**{self.status}**" + (": every check passed" if self.status == PASS else "")
-        floor = ("" if self.f1_floor_within_1_voxel is None
-                 else f"; map F1 within ±1 voxel at least {self.f1_floor_within_1_voxel:.2f}")
-        checked = (f"Checked: every mission file present and whole; each robot's map age at most "
-                   f"{MAP_STALE_AFTER_S:g} s while it works, outside link outages and {AFTER_OUTAGE_S:g} s after "
-                   f"each{floor}.")
-        return ([head, ""] + [f"- {f}" for f in self.failures] + [f"- note: {n}" for n in self.notes]
-                + ([""] if self.failures or self.notes else []) + [checked, ""])
+        floor = (
+            ""
+            if self.f1_floor_within_1_voxel is None
+            else f"; map F1 within ±1 voxel at least {self.f1_floor_within_1_voxel:.2f}"
+        )
+        checked = (
+            f"Checked: every mission file present and whole; each robot's map age at most "
+            f"{MAP_STALE_AFTER_S:g} s while it works, outside link outages and {AFTER_OUTAGE_S:g} s after "
+            f"each{floor}."
+        )
+        return (
+            [head, ""]
+            + [f"- {f}" for f in self.failures]
+            + [f"- note: {n}" for n in self.notes]
+            + ([""] if self.failures or self.notes else [])
+            + [checked, ""]
+        )
 
     def as_dict(self):
         return dataclasses.asdict(self)
@@ -100,8 +120,10 @@ def read_rows(path):
         bad.append(len(body) + 1)
         rows.pop()
     if bad:
-        problems.append(f"{name}: {len(bad)} truncated row(s) (line {', '.join(map(str, sorted(bad)[:5]))}"
-                        f"{', ...' if len(bad) > 5 else ''}), not counted in the figures")
+        problems.append(
+            f"{name}: {len(bad)} truncated row(s) (line {', '.join(map(str, sorted(bad)[:5]))}"
+            f"{', ...' if len(bad) > 5 else ''}), not counted in the figures"
+        )
     if not body:
         problems.append(f"{name} has a header and no rows")
     return rows, problems
@@ -123,8 +145,11 @@ def outage_windows(folder):
     states, _ = read_rows(os.path.join(folder, "link_state.csv"))
     windows = [(start, start + duration) for start, _, duration in scenario_outages(events)]
     windows += [(start, start + duration) for start, duration, _ in bridge_outages(states)]
-    return [(start, end + AFTER_OUTAGE_S if math.isfinite(end) else math.inf) for start, end in windows
-            if math.isfinite(start)]
+    return [
+        (start, end + AFTER_OUTAGE_S if math.isfinite(end) else math.inf)
+        for start, end in windows
+        if math.isfinite(start)
+    ]
 
 
 def stale_intervals(map_age_rows, outages=()):
@@ -133,15 +158,23 @@ def stale_intervals(map_age_rows, outages=()):
 
     A map server run starts at the first row, and again where the robot's clouds_inserted counter
     goes back (the map server restarted with fresh counters)."""
-    samples = sorted((_float(r.get("time_s")), r.get("robot", ""), _float(r.get("map_age_s")),
-                      r.get("mission_state", ""), _float(r.get("clouds_inserted"))) for r in map_age_rows)
+    samples = sorted(
+        (
+            _float(r.get("time_s")),
+            r.get("robot", ""),
+            _float(r.get("map_age_s")),
+            r.get("mission_state", ""),
+            _float(r.get("clouds_inserted")),
+        )
+        for r in map_age_rows
+    )
     samples = [s for s in samples if math.isfinite(s[0]) and s[1]]
     if not samples:
         return {}, []
     t0 = samples[0][0]
     times = sorted({s[0] for s in samples})
     gaps = [(before - t0, after - t0) for before, after in zip(times, times[1:]) if after - before > MAP_STATS_GAP_S]
-    samples = [s for s in samples if not math.isnan(s[2])]   # the monitor's start/end marks
+    samples = [s for s in samples if not math.isnan(s[2])]  # the monitor's start/end marks
     stale = defaultdict(list)
     open_run, run_start, inserted_before = {}, {}, {}
     for t, robot, age, state, inserted in samples:
@@ -165,8 +198,12 @@ def stale_intervals(map_age_rows, outages=()):
     return {robot: [tuple(run) for run in runs] for robot, runs in stale.items()}, gaps
 
 
-def judge(folder, required_files: Sequence[str] = DEMO_FILES, ended_by: Optional[str] = None,
-          f1_floor_within_1_voxel: Optional[float] = MAP_F1_FLOOR_WITHIN_1_VOXEL) -> Verdict:
+def judge(
+    folder,
+    required_files: Sequence[str] = DEMO_FILES,
+    ended_by: Optional[str] = None,
+    f1_floor_within_1_voxel: Optional[float] = MAP_F1_FLOOR_WITHIN_1_VOXEL,
+) -> Verdict:
     """The verdict of the mission whose files are in `folder`. `ended_by`: how the mission ended
     (MissionResult.ended_by; anything but "done" is INCOMPLETE); `f1_floor_within_1_voxel`: None when
     this mission's map is not scored against the ground truth (the monitoring mission)."""
@@ -183,17 +220,24 @@ def judge(folder, required_files: Sequence[str] = DEMO_FILES, ended_by: Optional
     if map_age_rows:
         stale, gaps = stale_intervals(map_age_rows, outage_windows(folder))
         for robot, runs in sorted(stale.items()):
-            spans = ", ".join(f"{a:.0f}–{b:.0f} s (age up to {'inf' if math.isinf(age) else f'{age:.0f}'} s)"
-                              for a, b, age in runs)
-            failures.append(f"map stale: {robot}'s map older than {MAP_STALE_AFTER_S:g} s outside link outages "
-                            f"(+{AFTER_OUTAGE_S:g} s) at record {spans}")
+            spans = ", ".join(
+                f"{a:.0f}–{b:.0f} s (age up to {'inf' if math.isinf(age) else f'{age:.0f}'} s)" for a, b, age in runs
+            )
+            failures.append(
+                f"map stale: {robot}'s map older than {MAP_STALE_AFTER_S:g} s outside link outages "
+                f"(+{AFTER_OUTAGE_S:g} s) at record {spans}"
+            )
         for a, b in gaps:
             if b - a > MAP_START_GRACE_S:
-                failures.append(f"map stale: the map server published no statistics from record {a:.0f} s to "
-                                f"{b:.0f} s (over {MAP_START_GRACE_S:g} s)")
+                failures.append(
+                    f"map stale: the map server published no statistics from record {a:.0f} s to "
+                    f"{b:.0f} s (over {MAP_START_GRACE_S:g} s)"
+                )
             else:
-                notes.append(f"the map server published no statistics from record {a:.0f} s to {b:.0f} s "
-                             f"(a restart; under {MAP_START_GRACE_S:g} s)")
+                notes.append(
+                    f"the map server published no statistics from record {a:.0f} s to {b:.0f} s "
+                    f"(a restart; under {MAP_START_GRACE_S:g} s)"
+                )
 
     if f1_floor_within_1_voxel is not None:
         scores_path = os.path.join(folder, "scores.json")
@@ -208,8 +252,10 @@ def judge(folder, required_files: Sequence[str] = DEMO_FILES, ended_by: Optional
                 scores = {}
             f1 = scores.get("f1_within_1_voxel")
             if f1 is not None and f1 < f1_floor_within_1_voxel:
-                failures.append(f"map F1 within ±1 voxel {f1:.3f} below the floor {f1_floor_within_1_voxel:.2f} "
-                                f"(voxel for voxel: {scores.get('f1_exact', math.nan):.3f})")
+                failures.append(
+                    f"map F1 within ±1 voxel {f1:.3f} below the floor {f1_floor_within_1_voxel:.2f} "
+                    f"(voxel for voxel: {scores.get('f1_exact', math.nan):.3f})"
+                )
     else:
         notes.append("map F1 not judged: this mission's map is not scored against the ground truth")
 
@@ -241,4 +287,3 @@ def console_lines(prog, verdict: Optional[Verdict]) -> List[str]:
 
 def exit_code(verdict: Optional[Verdict]) -> int:
     return EXIT_CODES[INCOMPLETE] if verdict is None else verdict.exit_code
-

@@ -4,6 +4,7 @@
 came from, so that the validators in `cps_fleet.fleet` (and any package's own config reader)
 can say ``fleet.yaml:12: robots[1].type: unknown robot type 'tank' (known: ...)``.
 """
+
 import difflib
 import math
 import os

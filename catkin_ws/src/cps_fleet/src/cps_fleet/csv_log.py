@@ -1,6 +1,7 @@
 """The one CSV policy of the mission logs (stats.csv, allocation.csv, ...): a node that restarts
 keeps appending to what its earlier run wrote, so a mission's history survives a crash. A log past
 its size bound is rotated to `<path>.1` (one old file kept), so a long mission cannot fill the disk."""
+
 import csv
 import logging
 import os

@@ -3,6 +3,7 @@
 Every node that needs a fleet-wide number reads it through `load_fleet`, so the numbers live in
 one file. Errors name the file, the line and what is wrong (`cps_fleet.config.ConfigError`).
 """
+
 import dataclasses
 import math
 import os
@@ -32,8 +33,12 @@ def default_fleet_path():
 
         package_dir = rospkg.RosPack().get_path(DEFAULT_FLEET_PACKAGE)
     except Exception as exc:  # rospkg raises its own ResourceNotFound
-        raise ConfigError("fleet.yaml", None, f"no fleet file given and {DEFAULT_FLEET_PACKAGE} not found by rospkg "
-                          f"({exc}); pass the fleet file or set CPS_FLEET_FILE") from exc
+        raise ConfigError(
+            "fleet.yaml",
+            None,
+            f"no fleet file given and {DEFAULT_FLEET_PACKAGE} not found by rospkg "
+            f"({exc}); pass the fleet file or set CPS_FLEET_FILE",
+        ) from exc
     return os.path.join(package_dir, "config", "fleet.yaml")
 
 
@@ -96,8 +101,11 @@ def managed_budget_mbytes_per_s(available_mbps, reserve_fraction):
     (10^6 bytes/s); ValueError on a bad argument."""
     if not isinstance(available_mbps, (int, float)) or not math.isfinite(available_mbps) or available_mbps <= 0:
         raise ValueError(f"available bandwidth must be > 0 Mbit/s, got {available_mbps!r}")
-    if not isinstance(reserve_fraction, (int, float)) or not math.isfinite(reserve_fraction) \
-            or not 0.0 <= reserve_fraction < 1.0:
+    if (
+        not isinstance(reserve_fraction, (int, float))
+        or not math.isfinite(reserve_fraction)
+        or not 0.0 <= reserve_fraction < 1.0
+    ):
         raise ValueError(f"reserve_fraction must be in [0, 1), got {reserve_fraction!r}")
     return (1.0 - reserve_fraction) * available_mbps / 8.0
 
@@ -265,11 +273,15 @@ def load_fleet(path=None, profile=None):
             raise profiles_reader.error(None, f"missing profile '{required}'")
     chosen = profile or top.get("profile", str)
     if chosen not in profiles:
-        raise ConfigError(doc.path, doc.line(("profile",)),
-                          f"profile: unknown profile '{chosen}' (known: {', '.join(sorted(profiles))})")
+        raise ConfigError(
+            doc.path,
+            doc.line(("profile",)),
+            f"profile: unknown profile '{chosen}' (known: {', '.join(sorted(profiles))})",
+        )
 
-    link_reader = top.child("link").known_keys("available_mbps", "reserve_fraction", "min_rate_hz", "max_rate_hz",
-                                               "estimate_bandwidth", "backfill_store_bytes")
+    link_reader = top.child("link").known_keys(
+        "available_mbps", "reserve_fraction", "min_rate_hz", "max_rate_hz", "estimate_bandwidth", "backfill_store_bytes"
+    )
     link = LinkConfig(
         available_mbps=link_reader.number("available_mbps", low=0.0, low_open=True),
         reserve_fraction=link_reader.number("reserve_fraction", low=0.0, high=0.99),
@@ -277,7 +289,8 @@ def load_fleet(path=None, profile=None):
         max_rate_hz=link_reader.number("max_rate_hz", low=0.0, low_open=True),
         estimate_bandwidth=link_reader.get("estimate_bandwidth", bool, default=False),
         backfill_store_bytes=int(link_reader.number("backfill_store_bytes", low=0.0, low_open=True))
-        if link_reader.has("backfill_store_bytes") else None,
+        if link_reader.has("backfill_store_bytes")
+        else None,
     )
     if link.min_rate_hz > link.max_rate_hz:
         raise link_reader.error("min_rate_hz", f"min_rate_hz ({link.min_rate_hz}) > max_rate_hz ({link.max_rate_hz})")
@@ -292,8 +305,14 @@ def load_fleet(path=None, profile=None):
         autosave_period_s=map_reader.number("autosave_period_s", low=0.0),
     )
 
-    limits_reader = top.child("limits").known_keys("trajectory_max_points", "csv_max_mbytes", "node_log_max_mbytes",
-                                                   "restart_backoff_s", "restart_backoff_max_s", "restart_window_s")
+    limits_reader = top.child("limits").known_keys(
+        "trajectory_max_points",
+        "csv_max_mbytes",
+        "node_log_max_mbytes",
+        "restart_backoff_s",
+        "restart_backoff_max_s",
+        "restart_window_s",
+    )
     limits = LimitsConfig(
         trajectory_max_points=_positive_int(limits_reader, "trajectory_max_points"),
         csv_max_mbytes=limits_reader.number("csv_max_mbytes", low=0.001, high=1e6),
@@ -305,8 +324,10 @@ def load_fleet(path=None, profile=None):
     if limits.trajectory_max_points < 2:
         raise limits_reader.error("trajectory_max_points", f"must be at least 2, got {limits.trajectory_max_points}")
     if limits.restart_backoff_max_s < limits.restart_backoff_s:
-        raise limits_reader.error("restart_backoff_max_s", f"restart_backoff_max_s ({limits.restart_backoff_max_s}) < "
-                                  f"restart_backoff_s ({limits.restart_backoff_s})")
+        raise limits_reader.error(
+            "restart_backoff_max_s",
+            f"restart_backoff_max_s ({limits.restart_backoff_max_s}) < restart_backoff_s ({limits.restart_backoff_s})",
+        )
 
     robots = []
     for item in top.items("robots"):
@@ -349,8 +370,12 @@ def _read_robot(item, robot_types, robots, default_voxel_leaf_m=None):
     return RobotConfig(
         name=name,
         type=robot_type,
-        initial_pose=Pose2D(pose.get("x", float), pose.get("y", float),
-                            pose.get("z", float, default=0.0), pose.get("yaw_deg", float, default=0.0)),
+        initial_pose=Pose2D(
+            pose.get("x", float),
+            pose.get("y", float),
+            pose.get("z", float, default=0.0),
+            pose.get("yaw_deg", float, default=0.0),
+        ),
         voxel_leaf_m=voxel_leaf_m,
         route_path=route_path,
         robot_type=robot_types[robot_type],
@@ -361,15 +386,22 @@ def _read_robot(item, robot_types, robots, default_voxel_leaf_m=None):
 def _sensor_model(model):
     """OctoMap's probabilities, checked: miss < 0.5 < hit (a miss lowers, a hit raises the
     occupancy), and 0 < min < 0.5 < max < 1 (finite clamping log-odds on either side of unknown)."""
-    sensor = SensorModel(hit=model.number("hit", low=0.5, high=1.0, low_open=True),
-                         miss=model.number("miss", low=0.0, high=0.5, low_open=True),
-                         min=model.number("min", low=0.0, high=0.5, low_open=True),
-                         max=model.number("max", low=0.5, high=1.0, low_open=True))
-    for key, value, limit in (("hit", sensor.hit, 1.0), ("miss", sensor.miss, 0.5), ("min", sensor.min, 0.5),
-                              ("max", sensor.max, 1.0)):
+    sensor = SensorModel(
+        hit=model.number("hit", low=0.5, high=1.0, low_open=True),
+        miss=model.number("miss", low=0.0, high=0.5, low_open=True),
+        min=model.number("min", low=0.0, high=0.5, low_open=True),
+        max=model.number("max", low=0.5, high=1.0, low_open=True),
+    )
+    for key, value, limit in (
+        ("hit", sensor.hit, 1.0),
+        ("miss", sensor.miss, 0.5),
+        ("min", sensor.min, 0.5),
+        ("max", sensor.max, 1.0),
+    ):
         if value == limit:
-            raise model.error(key, f"{value} must be below {limit} (a probability of {limit} has no finite "
-                                   f"log-odds or no effect)")
+            raise model.error(
+                key, f"{value} must be below {limit} (a probability of {limit} has no finite log-odds or no effect)"
+            )
     return sensor
 
 
@@ -383,8 +415,14 @@ def load_route(path):
     waypoints, lines = [], []
     for item in items:
         item.known_keys("x", "y", "z", "inspect")
-        waypoints.append(Waypoint(item.get("x", float), item.get("y", float),
-                                  item.get("z", float, default=0.0), item.get("inspect", bool, default=False)))
+        waypoints.append(
+            Waypoint(
+                item.get("x", float),
+                item.get("y", float),
+                item.get("z", float, default=0.0),
+                item.get("inspect", bool, default=False),
+            )
+        )
         lines.append(doc.line(item.key_path))
     return Route(path=os.path.abspath(path), waypoints=tuple(waypoints), lines=tuple(lines))
 
@@ -414,8 +452,9 @@ def _load_derived(doc, profile):
 
     def voxel_leaf_of(reader, robot_type):
         if robot_type not in templates:
-            raise reader.error("voxel_leaf_m", f"missing key 'voxel_leaf_m' (the base fleet has no {robot_type} robot "
-                                               f"to take it from)")
+            raise reader.error(
+                "voxel_leaf_m", f"missing key 'voxel_leaf_m' (the base fleet has no {robot_type} robot to take it from)"
+            )
         return templates[robot_type].voxel_leaf_m
 
     robots = []
@@ -442,12 +481,17 @@ def _generated_robots(gen, base, templates, listed, site):
     types = gen.get("types", list, default=[t for t in base.robot_types if t in templates])
     for i, robot_type in enumerate(types):
         if robot_type not in base.robot_types:
-            raise ConfigError(gen.doc.path, gen.doc.line(gen.key_path + ("types", i)),
-                              f"generate.types[{i}]: unknown robot type '{robot_type}' (known: {', '.join(base.robot_types)})")
+            raise ConfigError(
+                gen.doc.path,
+                gen.doc.line(gen.key_path + ("types", i)),
+                f"generate.types[{i}]: unknown robot type '{robot_type}' (known: {', '.join(base.robot_types)})",
+            )
         if robot_type not in templates:
-            raise ConfigError(gen.doc.path, gen.doc.line(gen.key_path + ("types", i)),
-                              f"generate.types[{i}]: the base fleet has no {robot_type} robot to take its name "
-                              f"and voxel_leaf_m from")
+            raise ConfigError(
+                gen.doc.path,
+                gen.doc.line(gen.key_path + ("types", i)),
+                f"generate.types[{i}]: the base fleet has no {robot_type} robot to take its name and voxel_leaf_m from",
+            )
     if not types:
         raise gen.error("types", "needs at least one robot type")
     kind = gen.get("routes", str, default="per_area")
@@ -470,12 +514,18 @@ def _generated_robots(gen, base, templates, listed, site):
             raise gen.error("count", f"generated robot '{name}' is also listed under robots:")
         z = altitude_m if template.robot_type.is_aerial else 0.0
         waypoints = tuple(Waypoint(w.x, w.y, z, w.inspect) for w in share.waypoints)
-        out.append(RobotConfig(
-            name=name, type=robot_type,
-            initial_pose=Pose2D(share.start[0], share.start[1], 0.0, share.yaw_deg),
-            voxel_leaf_m=template.voxel_leaf_m, route_path=path, robot_type=template.robot_type,
-            route=Route(path=path, waypoints=waypoints, lines=(line,) * len(waypoints)),
-            source=(path, line)))
+        out.append(
+            RobotConfig(
+                name=name,
+                type=robot_type,
+                initial_pose=Pose2D(share.start[0], share.start[1], 0.0, share.yaw_deg),
+                voxel_leaf_m=template.voxel_leaf_m,
+                route_path=path,
+                robot_type=template.robot_type,
+                route=Route(path=path, waypoints=waypoints, lines=(line,) * len(waypoints)),
+                source=(path, line),
+            )
+        )
     return out
 
 
@@ -493,9 +543,13 @@ def _check_robot(robot, others, site, floor):
     for other in others:
         distance = math.hypot(pose.x - other.initial_pose.x, pose.y - other.initial_pose.y)
         if distance < routes.MIN_SEPARATION_M:
-            raise ConfigError(path, line, f"robot '{robot.name}' starts {distance:.2f} m from '{other.name}' "
-                                          f"(at least {routes.MIN_SEPARATION_M:g} m apart; the hall has no room "
-                                          f"for this many robots here)")
+            raise ConfigError(
+                path,
+                line,
+                f"robot '{robot.name}' starts {distance:.2f} m from '{other.name}' "
+                f"(at least {routes.MIN_SEPARATION_M:g} m apart; the hall has no room "
+                f"for this many robots here)",
+            )
     route = robot.route if robot.route is not None else load_route(robot.route_path)
     problem = routes.route_problem(floor, (pose.x, pose.y), route.waypoints, robot.robot_type.is_aerial)
     if problem:

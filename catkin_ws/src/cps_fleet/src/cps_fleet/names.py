@@ -9,6 +9,7 @@ site-wide e-stop (shared by nodes in every robot's namespace) and the sim-time p
 absolute. `absolute()` gives a fully qualified name for tools that need one (rviz configs,
 rosbag, waits on the master's topic list).
 """
+
 import re
 from typing import List, Optional
 

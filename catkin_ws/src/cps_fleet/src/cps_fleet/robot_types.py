@@ -5,13 +5,20 @@ fast they may move (VelocityLimits: the simulator clamps every executed command 
 operator GUI's joystick uses them as full scale). A real robot is a new entry in fleet.yaml, not
 new code. Plain data, no ROS.
 """
+
 import dataclasses
 from typing import Dict
 
 SENSOR_KINDS = ("lidar", "depth")
 BASES = ("wheeled", "legged", "aerial")
-_LIMIT_KEYS = ("max_forward_mps", "max_lateral_mps", "max_vertical_mps", "max_yaw_rate_rps",
-               "max_linear_accel_mps2", "max_yaw_accel_rps2")
+_LIMIT_KEYS = (
+    "max_forward_mps",
+    "max_lateral_mps",
+    "max_vertical_mps",
+    "max_yaw_rate_rps",
+    "max_linear_accel_mps2",
+    "max_yaw_accel_rps2",
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -19,8 +26,8 @@ class VelocityLimits:
     """What a robot type can execute, in its base frame (REP 103)."""
 
     max_forward_mps: float
-    max_lateral_mps: float      # 0 for non-holonomic bases
-    max_vertical_mps: float     # 0 for ground robots
+    max_lateral_mps: float  # 0 for non-holonomic bases
+    max_vertical_mps: float  # 0 for ground robots
     max_yaw_rate_rps: float
     max_linear_accel_mps2: float
     max_yaw_accel_rps2: float
@@ -39,11 +46,11 @@ class RobotType:
     """One entry of fleet.yaml's robot_types."""
 
     name: str
-    base: str            # wheeled | legged | aerial: how it moves (and the body the simulator gives it)
-    sensor: str          # lidar | depth: what the simulator can simulate
-    cloud_topic: str     # relative to /<robot>
-    sensor_frame: str    # relative to the robot's tf prefix: <robot>/<sensor_frame>
-    max_range_m: float   # the map server inserts points up to this far from the sensor
+    base: str  # wheeled | legged | aerial: how it moves (and the body the simulator gives it)
+    sensor: str  # lidar | depth: what the simulator can simulate
+    cloud_topic: str  # relative to /<robot>
+    sensor_frame: str  # relative to the robot's tf prefix: <robot>/<sensor_frame>
+    max_range_m: float  # the map server inserts points up to this far from the sensor
     limits: VelocityLimits
 
     @property
@@ -67,14 +74,17 @@ def read_robot_types(reader) -> Dict[str, RobotType]:
             if entry.get(key, str).startswith("/"):
                 raise entry.error(key, "must be relative (it is resolved under the robot's name)")
         types[name] = RobotType(
-            name=name, base=base, sensor=sensor, cloud_topic=entry.get("cloud_topic", str),
+            name=name,
+            base=base,
+            sensor=sensor,
+            cloud_topic=entry.get("cloud_topic", str),
             sensor_frame=entry.get("sensor_frame", str),
             max_range_m=entry.number("max_range_m", low=0.0, low_open=True),
-            limits=VelocityLimits(**{key: limits.number(key, low=0.0) for key in _LIMIT_KEYS}))
+            limits=VelocityLimits(**{key: limits.number(key, low=0.0) for key in _LIMIT_KEYS}),
+        )
         for key in ("max_forward_mps", "max_yaw_rate_rps", "max_linear_accel_mps2", "max_yaw_accel_rps2"):
             if getattr(types[name].limits, key) <= 0.0:
                 raise limits.error(key, "must be positive: every robot drives and turns")
     if not types:
         raise reader.error(None, "no robot types")
     return types
-

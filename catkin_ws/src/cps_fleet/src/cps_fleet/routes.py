@@ -8,6 +8,7 @@ to its start by the shortest way along the aisles (``inspect: false``, so the ba
 priority, which follows the mission state, is high only on the robot's own share). Everything is
 deterministic: the same site and N give the same routes in every process that loads the fleet.
 """
+
 import dataclasses
 import heapq
 import math
@@ -64,7 +65,11 @@ class _Solids:
         ly = -s * rel[..., 0] + c * rel[..., 1]
         lz = np.zeros_like(lx) if footprint else points[:, None, 2] - self.center[None, :, 2]
         m = margin_m
-        box = (np.abs(lx) <= self.half[:, 0] + m) & (np.abs(ly) <= self.half[:, 1] + m) & (np.abs(lz) <= self.half[:, 2] + m)
+        box = (
+            (np.abs(lx) <= self.half[:, 0] + m)
+            & (np.abs(ly) <= self.half[:, 1] + m)
+            & (np.abs(lz) <= self.half[:, 2] + m)
+        )
         vertical = (np.hypot(lx, ly) <= self.radius + m) & (np.abs(lz) <= self.half_length + m)
         horizontal = (np.hypot(ly, lz) <= self.radius + m) & (np.abs(lx) <= self.half_length + m)
         hit = np.where(self.kind == 0, box, np.where(self.kind == 1, vertical, horizontal))
@@ -87,16 +92,24 @@ class Floor:
 
     def _walls(self, xy, margin_m):
         h = self.hall
-        return ((xy[:, 0] < h.x_min_m + margin_m) | (xy[:, 0] > h.x_max_m - margin_m)
-                | (xy[:, 1] < h.y_min_m + margin_m) | (xy[:, 1] > h.y_max_m - margin_m))
+        return (
+            (xy[:, 0] < h.x_min_m + margin_m)
+            | (xy[:, 0] > h.x_max_m - margin_m)
+            | (xy[:, 1] < h.y_min_m + margin_m)
+            | (xy[:, 1] > h.y_max_m - margin_m)
+        )
 
     def blocker_2d(self, xy, margin_m):
         """Per (N, 2) point: '' if a ground robot may stand there keeping `margin_m`, else what is in the way."""
         xy = np.atleast_2d(np.asarray(xy, dtype=float))[:, :2]
         out = self.equipment.first_owner(xy, margin_m, footprint=True)
         for area, (x0, y0, x1, y1) in zip(self.site.areas, self.areas):
-            inside = ((xy[:, 0] >= x0 - margin_m) & (xy[:, 0] <= x1 + margin_m)
-                      & (xy[:, 1] >= y0 - margin_m) & (xy[:, 1] <= y1 + margin_m))
+            inside = (
+                (xy[:, 0] >= x0 - margin_m)
+                & (xy[:, 0] <= x1 + margin_m)
+                & (xy[:, 1] >= y0 - margin_m)
+                & (xy[:, 1] <= y1 + margin_m)
+            )
             out[inside] = f"fenced area '{area.name}'"
         out[self._walls(xy, margin_m)] = "the hall's walls"
         return out
@@ -135,9 +148,13 @@ def route_problem(floor: Floor, start, waypoints, aerial, margin_m=ROUTE_MARGIN_
         else:
             what, at = floor.segment_blocker(points[i - 1], points[i], margin_m, aerial)
         if what:
-            leg = "waypoint" if i == 1 and aerial else ("leg from the start" if i == 1 else f"leg from waypoint {i - 2}")
-            return i - 1, (f"{leg} to waypoint {i - 1} ({points[i][0]:g}, {points[i][1]:g}) passes within "
-                           f"{margin_m:g} m of {what} at ({at[0]:.2f}, {at[1]:.2f})")
+            leg = (
+                "waypoint" if i == 1 and aerial else ("leg from the start" if i == 1 else f"leg from waypoint {i - 2}")
+            )
+            return i - 1, (
+                f"{leg} to waypoint {i - 1} ({points[i][0]:g}, {points[i][1]:g}) passes within "
+                f"{margin_m:g} m of {what} at ({at[0]:.2f}, {at[1]:.2f})"
+            )
     return None
 
 
@@ -151,6 +168,7 @@ class GeneratedWaypoint:
 @dataclasses.dataclass(frozen=True)
 class GeneratedRoute:
     """A robot's share: where it starts (x, y, yaw) and its closed route back to there."""
+
     start: Tuple[float, float]
     yaw_deg: float
     waypoints: Tuple[GeneratedWaypoint, ...]
@@ -170,7 +188,9 @@ class AisleMap:
         self.xs = cx + grid_m * np.arange(-kx, kx + 1)
         self.ys = cy + grid_m * np.arange(-ky, ky + 1)
         gx, gy = np.meshgrid(self.xs, self.ys)
-        self.free = (self.floor.blocker_2d(np.column_stack([gx.ravel(), gy.ravel()]), clearance_m) == "").reshape(gx.shape)
+        self.free = (self.floor.blocker_2d(np.column_stack([gx.ravel(), gy.ravel()]), clearance_m) == "").reshape(
+            gx.shape
+        )
         skeleton = _largest_component(_thin(self.free))
         self.nodes = [tuple(rc) for rc in np.argwhere(skeleton)]
         self.skeleton = skeleton
@@ -227,7 +247,9 @@ class AisleMap:
 
     def coverage(self, routes, radius_m):
         """Fraction of the free cells within `radius_m` of some route's legs (start included)."""
-        cells = np.column_stack([np.meshgrid(self.xs, self.ys)[0][self.free], np.meshgrid(self.xs, self.ys)[1][self.free]])
+        cells = np.column_stack(
+            [np.meshgrid(self.xs, self.ys)[0][self.free], np.meshgrid(self.xs, self.ys)[1][self.free]]
+        )
         near = np.zeros(len(cells), dtype=bool)
         for route in routes:
             pts = [route.start] + [(w.x, w.y) for w in route.waypoints]
@@ -240,8 +262,13 @@ class AisleMap:
         return float(near.mean()) if len(cells) else 0.0
 
 
-def generate_routes(site: Site, count, clearance_m=DEFAULT_CLEARANCE_M, min_separation_m=MIN_SEPARATION_M,
-                    aisles: Optional[AisleMap] = None) -> List[GeneratedRoute]:
+def generate_routes(
+    site: Site,
+    count,
+    clearance_m=DEFAULT_CLEARANCE_M,
+    min_separation_m=MIN_SEPARATION_M,
+    aisles: Optional[AisleMap] = None,
+) -> List[GeneratedRoute]:
     """`count` closed routes sharing the hall's aisles; RouteError if they do not fit."""
     aisles = aisles or AisleMap(site, clearance_m)
     tour = aisles.tour
@@ -253,8 +280,10 @@ def generate_routes(site: Site, count, clearance_m=DEFAULT_CLEARANCE_M, min_sepa
     cumulative = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
     total = cumulative[-1]
     if total / count < MIN_ARC_M:
-        raise RouteError(f"{count} robots do not fit: the aisles' tour is {total:.0f} m, "
-                         f"{total / count:.1f} m each is below the {MIN_ARC_M:g} m minimum share")
+        raise RouteError(
+            f"{count} robots do not fit: the aisles' tour is {total:.0f} m, "
+            f"{total / count:.1f} m each is below the {MIN_ARC_M:g} m minimum share"
+        )
     starts = []
     for k in range(count):
         i = int(np.searchsorted(cumulative, k * total / count))
@@ -262,13 +291,15 @@ def generate_routes(site: Site, count, clearance_m=DEFAULT_CLEARANCE_M, min_sepa
         while i <= limit and any(math.dist(xy[i], xy[j]) < min_separation_m for j in starts):
             i += 1
         if i > limit:
-            raise RouteError(f"{count} robots do not fit: no start for robot {k + 1} at least "
-                             f"{min_separation_m:g} m from the others along its share of the aisles")
+            raise RouteError(
+                f"{count} robots do not fit: no start for robot {k + 1} at least "
+                f"{min_separation_m:g} m from the others along its share of the aisles"
+            )
         starts.append(i)
     routes = []
     for k, i in enumerate(starts):
         end = starts[k + 1] if k + 1 < count else len(tour) - 1
-        arc = tour[i:end + 1]
+        arc = tour[i : end + 1]
         back = aisles.shortest_path(arc[-1], arc[0])
         out = _simplify(aisles, [aisles.xy(c) for c in arc])
         home = _simplify(aisles, [aisles.xy(c) for c in back])
@@ -279,8 +310,14 @@ def generate_routes(site: Site, count, clearance_m=DEFAULT_CLEARANCE_M, min_sepa
         waypoints += [GeneratedWaypoint(x, y, False) for x, y in home[1:]]
         start = out[0]
         yaw = math.degrees(math.atan2(out[1][1] - start[1], out[1][0] - start[0]))
-        routes.append(GeneratedRoute(start=start, yaw_deg=round(yaw, 1), waypoints=tuple(waypoints),
-                                     share_m=float(cumulative[end] - cumulative[i])))
+        routes.append(
+            GeneratedRoute(
+                start=start,
+                yaw_deg=round(yaw, 1),
+                waypoints=tuple(waypoints),
+                share_m=float(cumulative[end] - cumulative[i]),
+            )
+        )
     return routes
 
 
@@ -298,7 +335,7 @@ def _simplify(aisles, points):
         if b - a < 2:
             continue
         seg = arr[b] - arr[a]
-        rel = arr[a + 1:b] - arr[a]
+        rel = arr[a + 1 : b] - arr[a]
         length = np.hypot(*seg)
         if length > 0:
             deviation = np.abs(seg[0] * rel[:, 1] - seg[1] * rel[:, 0]) / length

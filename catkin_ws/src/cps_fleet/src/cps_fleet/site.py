@@ -5,6 +5,7 @@ change-detection tests can read the site too. `Site.primitives()` expands the ha
 and cylinders in `map`; the simulator, the ground-truth export and the waypoint checks all use
 that one expansion, so they cannot disagree.
 """
+
 import dataclasses
 import math
 import os
@@ -32,6 +33,7 @@ class Primitive:
     The shape is rotated by `yaw_rad` about z; a cylinder's axis is 'z' (vertical) or 'x'
     (horizontal, along the rotated x axis).
     """
+
     kind: str
     center: Tuple[float, float, float]
     yaw_rad: float
@@ -138,8 +140,18 @@ class Equipment:
 
         if self.type in ("tank", "vertical_cylinder", "drum"):
             h = self.dim("height_m")
-            return [Primitive("cylinder", (self.x, self.y, h / 2.0), yaw, rgba, self.name,
-                              radius=self.dim("radius_m"), half_length=h / 2.0, axis="z")]
+            return [
+                Primitive(
+                    "cylinder",
+                    (self.x, self.y, h / 2.0),
+                    yaw,
+                    rgba,
+                    self.name,
+                    radius=self.dim("radius_m"),
+                    half_length=h / 2.0,
+                    axis="z",
+                )
+            ]
         if self.type == "crate":
             hx, hy, hz = self.dim("size_x_m") / 2, self.dim("size_y_m") / 2, self.dim("size_z_m") / 2
             return [Primitive("box", (self.x, self.y, hz), yaw, rgba, self.name, half_extents=(hx, hy, hz))]
@@ -150,28 +162,59 @@ class Equipment:
             out = []
             for px in (-1, 1):
                 for py in (-1, 1):
-                    out.append(Primitive("box", at(px * (sx / 2 - post / 2), py * (sy / 2 - post / 2), sz / 2), yaw, rgba,
-                                         self.name, half_extents=(post / 2, post / 2, sz / 2)))
+                    out.append(
+                        Primitive(
+                            "box",
+                            at(px * (sx / 2 - post / 2), py * (sy / 2 - post / 2), sz / 2),
+                            yaw,
+                            rgba,
+                            self.name,
+                            half_extents=(post / 2, post / 2, sz / 2),
+                        )
+                    )
             shelf_rgba = (0.6, 0.6, 0.6, 1.0)
             for k in range(levels):
                 z = 0.15 + k * (sz - 0.2) / max(levels - 1, 1)
-                out.append(Primitive("box", at(0.0, 0.0, z), yaw, shelf_rgba, self.name,
-                                     half_extents=(sx / 2, sy / 2, 0.02)))
+                out.append(
+                    Primitive("box", at(0.0, 0.0, z), yaw, shelf_rgba, self.name, half_extents=(sx / 2, sy / 2, 0.02))
+                )
             return out
         if self.type == "pipe_run":
             length, r = self.dim("length_m"), self.dim("pipe_radius_m")
             elev, count, spacing = self.dim("elevation_m"), int(self.dim("count")), self.dim("spacing_m")
             width = (count - 1) * spacing
-            out = [Primitive("cylinder", at(0.0, -width / 2 + k * spacing, elev), yaw, rgba, self.name,
-                             radius=r, half_length=length / 2, axis="x") for k in range(count)]
+            out = [
+                Primitive(
+                    "cylinder",
+                    at(0.0, -width / 2 + k * spacing, elev),
+                    yaw,
+                    rgba,
+                    self.name,
+                    radius=r,
+                    half_length=length / 2,
+                    axis="x",
+                )
+                for k in range(count)
+            ]
             support_rgba = (0.45, 0.45, 0.45, 1.0)
             for end in (-1, 1):
                 lx = end * (length / 2 - 0.1)
                 top = elev - r
-                out.append(Primitive("box", at(lx, 0.0, top / 2), yaw, support_rgba, self.name,
-                                     half_extents=(0.04, 0.04, top / 2)))
-                out.append(Primitive("box", at(lx, 0.0, top - 0.03), yaw, support_rgba, self.name,
-                                     half_extents=(0.05, width / 2 + r + 0.05, 0.03)))
+                out.append(
+                    Primitive(
+                        "box", at(lx, 0.0, top / 2), yaw, support_rgba, self.name, half_extents=(0.04, 0.04, top / 2)
+                    )
+                )
+                out.append(
+                    Primitive(
+                        "box",
+                        at(lx, 0.0, top - 0.03),
+                        yaw,
+                        support_rgba,
+                        self.name,
+                        half_extents=(0.05, width / 2 + r + 0.05, 0.03),
+                    )
+                )
             return out
         raise ValueError(f"unknown equipment type {self.type}")
 
@@ -210,9 +253,15 @@ class Site:
     def moved(self, name, dx_m, dy_m, dyaw_deg=0.0):
         """The same hall with equipment `name` shifted by (dx_m, dy_m) and turned by dyaw_deg."""
         self.item(name)
-        return dataclasses.replace(self, equipment=tuple(
-            dataclasses.replace(e, x=e.x + dx_m, y=e.y + dy_m, yaw_deg=e.yaw_deg + dyaw_deg) if e.name == name else e
-            for e in self.equipment))
+        return dataclasses.replace(
+            self,
+            equipment=tuple(
+                dataclasses.replace(e, x=e.x + dx_m, y=e.y + dy_m, yaw_deg=e.yaw_deg + dyaw_deg)
+                if e.name == name
+                else e
+                for e in self.equipment
+            ),
+        )
 
     def area(self, name):
         for area in self.areas:
@@ -230,29 +279,52 @@ class Site:
         sx, sy = (h.x_max_m - h.x_min_m) / 2, (h.y_max_m - h.y_min_m) / 2
         wz = h.wall_height_m / 2
         out = [Primitive("box", (cx, cy, -0.05), 0.0, floor_rgba, "floor", half_extents=(sx + t, sy + t, 0.05))]
-        out.append(Primitive("box", (h.x_min_m - t / 2, cy, wz), 0.0, wall_rgba, "wall_west", half_extents=(t / 2, sy + t, wz)))
-        out.append(Primitive("box", (h.x_max_m + t / 2, cy, wz), 0.0, wall_rgba, "wall_east", half_extents=(t / 2, sy + t, wz)))
-        out.append(Primitive("box", (cx, h.y_min_m - t / 2, wz), 0.0, wall_rgba, "wall_south", half_extents=(sx, t / 2, wz)))
-        out.append(Primitive("box", (cx, h.y_max_m + t / 2, wz), 0.0, wall_rgba, "wall_north", half_extents=(sx, t / 2, wz)))
+        out.append(
+            Primitive("box", (h.x_min_m - t / 2, cy, wz), 0.0, wall_rgba, "wall_west", half_extents=(t / 2, sy + t, wz))
+        )
+        out.append(
+            Primitive("box", (h.x_max_m + t / 2, cy, wz), 0.0, wall_rgba, "wall_east", half_extents=(t / 2, sy + t, wz))
+        )
+        out.append(
+            Primitive("box", (cx, h.y_min_m - t / 2, wz), 0.0, wall_rgba, "wall_south", half_extents=(sx, t / 2, wz))
+        )
+        out.append(
+            Primitive("box", (cx, h.y_max_m + t / 2, wz), 0.0, wall_rgba, "wall_north", half_extents=(sx, t / 2, wz))
+        )
         fence_rgba = tuple(self.fence.rgb) + (1.0,)
         post, rail = self.fence.post_size_m / 2, self.fence.rail_size_m / 2
         for area in self.areas:
             owner = f"fence_{area.name}"
             fh = area.fence_height_m
-            corners = [(area.x_min_m, area.y_min_m), (area.x_max_m, area.y_min_m),
-                       (area.x_max_m, area.y_max_m), (area.x_min_m, area.y_max_m)]
+            corners = [
+                (area.x_min_m, area.y_min_m),
+                (area.x_max_m, area.y_min_m),
+                (area.x_max_m, area.y_max_m),
+                (area.x_min_m, area.y_max_m),
+            ]
             for (x0, y0), (x1, y1) in zip(corners, corners[1:] + corners[:1]):
                 length = math.hypot(x1 - x0, y1 - y0)
                 yaw = math.atan2(y1 - y0, x1 - x0)
                 n_posts = max(int(round(length / self.fence.post_spacing_m)), 1)
                 for k in range(n_posts):
                     f = k / n_posts
-                    out.append(Primitive("box", (x0 + f * (x1 - x0), y0 + f * (y1 - y0), fh / 2), yaw, fence_rgba, owner,
-                                         half_extents=(post, post, fh / 2)))
+                    out.append(
+                        Primitive(
+                            "box",
+                            (x0 + f * (x1 - x0), y0 + f * (y1 - y0), fh / 2),
+                            yaw,
+                            fence_rgba,
+                            owner,
+                            half_extents=(post, post, fh / 2),
+                        )
+                    )
                 mid = ((x0 + x1) / 2, (y0 + y1) / 2)
                 for z in (fh - rail, 0.1, fh / 2):
-                    out.append(Primitive("box", (mid[0], mid[1], z), yaw, fence_rgba, owner,
-                                         half_extents=(length / 2, rail, rail)))
+                    out.append(
+                        Primitive(
+                            "box", (mid[0], mid[1], z), yaw, fence_rgba, owner, half_extents=(length / 2, rail, rail)
+                        )
+                    )
         return out
 
     def primitives(self):
@@ -268,7 +340,9 @@ class Site:
 
     def inside_hall(self, x, y, margin_m=0.0):
         h = self.hall
-        return (h.x_min_m + margin_m <= x <= h.x_max_m - margin_m) and (h.y_min_m + margin_m <= y <= h.y_max_m - margin_m)
+        return (h.x_min_m + margin_m <= x <= h.x_max_m - margin_m) and (
+            h.y_min_m + margin_m <= y <= h.y_max_m - margin_m
+        )
 
     def blocking_item(self, x, y, z, margin_m=0.3):
         """Name of the equipment or fence whose volume (grown by margin_m) holds (x, y, z), or None."""
@@ -285,7 +359,9 @@ class Site:
 
 def _rgb(reader, key):
     value = reader.get(key, list)
-    if len(value) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v <= 1.0 for v in value):
+    if len(value) != 3 or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v <= 1.0 for v in value
+    ):
         raise reader.error(key, f"must be three numbers in [0, 1], got {value!r}")
     return tuple(float(v) for v in value)
 
@@ -296,30 +372,48 @@ def load_site(path):
     doc = load_yaml_document(path)
     top = Reader(doc).known_keys("seed", "hall", "fence", "fenced_areas", "equipment")
     seed = top.get("seed", int, default=0)
-    hr = top.child("hall").known_keys("x_min_m", "x_max_m", "y_min_m", "y_max_m", "wall_height_m",
-                                      "wall_thickness_m", "floor_colour", "wall_colour")
+    hr = top.child("hall").known_keys(
+        "x_min_m", "x_max_m", "y_min_m", "y_max_m", "wall_height_m", "wall_thickness_m", "floor_colour", "wall_colour"
+    )
     hall = Hall(
-        x_min_m=hr.number("x_min_m"), x_max_m=hr.number("x_max_m"),
-        y_min_m=hr.number("y_min_m"), y_max_m=hr.number("y_max_m"),
+        x_min_m=hr.number("x_min_m"),
+        x_max_m=hr.number("x_max_m"),
+        y_min_m=hr.number("y_min_m"),
+        y_max_m=hr.number("y_max_m"),
         wall_height_m=hr.number("wall_height_m", low=0.0, low_open=True),
         wall_thickness_m=hr.number("wall_thickness_m", low=0.0, low_open=True),
-        floor_rgb=_rgb(hr, "floor_colour"), wall_rgb=_rgb(hr, "wall_colour"),
+        floor_rgb=_rgb(hr, "floor_colour"),
+        wall_rgb=_rgb(hr, "wall_colour"),
     )
     if hall.x_max_m <= hall.x_min_m or hall.y_max_m <= hall.y_min_m:
         raise hr.error(None, "x_max_m/y_max_m must be greater than x_min_m/y_min_m")
     fr = top.child("fence").known_keys("post_spacing_m", "post_size_m", "rail_size_m", "colour")
-    fence = Fence(fr.number("post_spacing_m", low=0.0, low_open=True), fr.number("post_size_m", low=0.0, low_open=True),
-                  fr.number("rail_size_m", low=0.0, low_open=True), _rgb(fr, "colour"))
+    fence = Fence(
+        fr.number("post_spacing_m", low=0.0, low_open=True),
+        fr.number("post_size_m", low=0.0, low_open=True),
+        fr.number("rail_size_m", low=0.0, low_open=True),
+        _rgb(fr, "colour"),
+    )
 
     areas = []
     for ar in top.items("fenced_areas"):
         ar.known_keys("name", "x_min_m", "x_max_m", "y_min_m", "y_max_m", "fence_height_m")
-        area = FencedArea(ar.get("name", str), ar.number("x_min_m"), ar.number("x_max_m"), ar.number("y_min_m"),
-                          ar.number("y_max_m"), ar.number("fence_height_m", low=0.0, low_open=True))
+        area = FencedArea(
+            ar.get("name", str),
+            ar.number("x_min_m"),
+            ar.number("x_max_m"),
+            ar.number("y_min_m"),
+            ar.number("y_max_m"),
+            ar.number("fence_height_m", low=0.0, low_open=True),
+        )
         if area.x_max_m <= area.x_min_m or area.y_max_m <= area.y_min_m:
             raise ar.error(None, f"fenced area '{area.name}' is empty (max must exceed min)")
-        if not (hall.x_min_m <= area.x_min_m and area.x_max_m <= hall.x_max_m
-                and hall.y_min_m <= area.y_min_m and area.y_max_m <= hall.y_max_m):
+        if not (
+            hall.x_min_m <= area.x_min_m
+            and area.x_max_m <= hall.x_max_m
+            and hall.y_min_m <= area.y_min_m
+            and area.y_max_m <= hall.y_max_m
+        ):
             raise ar.error(None, f"fenced area '{area.name}' is not inside the hall")
         if area.name in (a.name for a in areas):
             raise ar.error("name", f"fenced area '{area.name}' is listed twice")
@@ -343,15 +437,26 @@ def load_site(path):
             else:
                 value = er.number(key, low=0.0, low_open=True)
             size.append((key, float(value)))
-        item = Equipment(name, kind, er.number("x"), er.number("y"), er.number("yaw_deg", default=0.0),
-                         tuple(size), _rgb(er, "colour"), line=doc.line(er.key_path))
+        item = Equipment(
+            name,
+            kind,
+            er.number("x"),
+            er.number("y"),
+            er.number("yaw_deg", default=0.0),
+            tuple(size),
+            _rgb(er, "colour"),
+            line=doc.line(er.key_path),
+        )
         x0, y0, x1, y1 = item.footprint
         if not (hall.x_min_m <= x0 and x1 <= hall.x_max_m and hall.y_min_m <= y0 and y1 <= hall.y_max_m):
-            raise er.error(None, f"equipment '{name}' is not inside the hall (footprint {x0:.2f},{y0:.2f}..{x1:.2f},{y1:.2f})")
+            raise er.error(
+                None, f"equipment '{name}' is not inside the hall (footprint {x0:.2f},{y0:.2f}..{x1:.2f},{y1:.2f})"
+            )
         equipment.append(item)
 
-    return Site(path=os.path.abspath(path), seed=seed, hall=hall, fence=fence, areas=tuple(areas),
-                equipment=tuple(equipment))
+    return Site(
+        path=os.path.abspath(path), seed=seed, hall=hall, fence=fence, areas=tuple(areas), equipment=tuple(equipment)
+    )
 
 
 def check_waypoint(site: Site, x, y, z, robot_type, margin_m=0.3) -> Optional[str]:
@@ -359,8 +464,10 @@ def check_waypoint(site: Site, x, y, z, robot_type, margin_m=0.3) -> Optional[st
     equipment) at (x, y, z): outside the hall, inside equipment or a fence; None if it is."""
     if not site.inside_hall(x, y, margin_m):
         h = site.hall
-        return (f"({x}, {y}) is outside the hall (x in [{h.x_min_m}, {h.x_max_m}], "
-                f"y in [{h.y_min_m}, {h.y_max_m}], keeping {margin_m} m from the walls)")
+        return (
+            f"({x}, {y}) is outside the hall (x in [{h.x_min_m}, {h.x_max_m}], "
+            f"y in [{h.y_min_m}, {h.y_max_m}], keeping {margin_m} m from the walls)"
+        )
     aerial = robot_type.is_aerial
     probe_z = z if aerial else 0.2
     blocker = site.blocking_item(x, y, probe_z, margin_m)

@@ -7,6 +7,7 @@ shows how old every value is. Values older than `stale_after_s` are stale and dr
 No rospy here: the ROS side (cps_gui.ros_io) converts messages to plain values first, so the
 store is tested with a fake clock.
 """
+
 import collections
 import dataclasses
 import math
@@ -316,8 +317,10 @@ class FleetState:
         if link.up:
             return ""
         peer = f" to {link.peer}" if link.peer else ""
-        return (f"LINK LOST{peer} for {now - link.down_since_s:.0f} s (outage {link.outages}): "
-                f"robot data below is from before the outage")
+        return (
+            f"LINK LOST{peer} for {now - link.down_since_s:.0f} s (outage {link.outages}): "
+            f"robot data below is from before the outage"
+        )
 
     def set_map_stats(self, robots):
         """A /twin/map_stats message: a sequence of RobotMapFigures."""
@@ -386,13 +389,23 @@ class FleetState:
                     alarms.append("below minimum rate")
                 if r.drop_times and now - r.drop_times[-1] < DROP_ALARM_WINDOW_S:
                     alarms.append("dropping clouds")
-                rows.append(HealthRow(
-                    robot=r.name, robot_type=r.robot_type, mode=r.mode, mission_state=r.mission_state,
-                    battery_percent=r.battery_fraction * 100.0, battery_stale=self.is_stale(battery_age),
-                    heartbeat_age_s=heartbeat_age, heartbeat_stale=link_lost or self.is_stale(heartbeat_age),
-                    link_state=link, map_voxels=r.map_voxels, clouds_dropped=r.clouds_dropped,
-                    priority=alloc.priority if alloc else None, alarms=tuple(alarms),
-                ))
+                rows.append(
+                    HealthRow(
+                        robot=r.name,
+                        robot_type=r.robot_type,
+                        mode=r.mode,
+                        mission_state=r.mission_state,
+                        battery_percent=r.battery_fraction * 100.0,
+                        battery_stale=self.is_stale(battery_age),
+                        heartbeat_age_s=heartbeat_age,
+                        heartbeat_stale=link_lost or self.is_stale(heartbeat_age),
+                        link_state=link,
+                        map_voxels=r.map_voxels,
+                        clouds_dropped=r.clouds_dropped,
+                        priority=alloc.priority if alloc else None,
+                        alarms=tuple(alarms),
+                    )
+                )
             return rows
 
     def _link_state(self, heartbeat_age, alloc, managed_stats):
@@ -422,9 +435,13 @@ class FleetState:
         the budget line (t, v), and the seconds since the last /tissue/stats."""
         with self._lock:
             per_robot = {
-                n: {"bandwidth": r.bandwidth_series.copy(), "rate": r.rate_series.copy(),
-                    "latency": r.latency_series.copy(), "battery": r.battery_series.copy(),
-                    "allocated": r.allocated_series.copy()}
+                n: {
+                    "bandwidth": r.bandwidth_series.copy(),
+                    "rate": r.rate_series.copy(),
+                    "latency": r.latency_series.copy(),
+                    "battery": r.battery_series.copy(),
+                    "allocated": r.allocated_series.copy(),
+                }
                 for n, r in self._robots.items()
             }
             return per_robot, self._budget_series.copy(), self.clock() - self._stats_received_s

@@ -1,6 +1,7 @@
 """The standalone host: runs FleetOperatorPlugin in a QMainWindow where rqt_gui is not installed,
 with its settings persisted through QSettings (an ini file), and takes screenshots for `make demo`.
 """
+
 import argparse
 import json
 import os
@@ -63,14 +64,17 @@ class OperatorWindow(QMainWindow):
         geometry = self.qsettings.value("window/geometry", None)
         if geometry is not None:
             self.restoreGeometry(geometry)
-        self.plugin.restore_settings(QSettingsAdapter(self.qsettings, "plugin"),
-                                     QSettingsAdapter(self.qsettings, "instance"))
+        self.plugin.restore_settings(
+            QSettingsAdapter(self.qsettings, "plugin"), QSettingsAdapter(self.qsettings, "instance")
+        )
         self._closed = False
         self.closed_for_good = False
 
     def save(self):
         self.qsettings.setValue("window/geometry", self.saveGeometry())
-        self.plugin.save_settings(QSettingsAdapter(self.qsettings, "plugin"), QSettingsAdapter(self.qsettings, "instance"))
+        self.plugin.save_settings(
+            QSettingsAdapter(self.qsettings, "plugin"), QSettingsAdapter(self.qsettings, "instance")
+        )
         self.qsettings.sync()
         if self.qsettings.status() != QSettings.NoError:
             raise OSError(f"cannot write the settings file {self.settings_path}")
@@ -106,15 +110,24 @@ class OperatorWindow(QMainWindow):
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="cps_gui", description="The fleet operator GUI (standalone host).")
-    parser.add_argument("--settings", default=DEFAULT_SETTINGS_PATH,
-                        help=f"ini file the window layout and choices persist in (default {DEFAULT_SETTINGS_PATH})")
+    parser.add_argument(
+        "--settings",
+        default=DEFAULT_SETTINGS_PATH,
+        help=f"ini file the window layout and choices persist in (default {DEFAULT_SETTINGS_PATH})",
+    )
     parser.add_argument("--fleet-file", default=None, help="fleet.yaml (default: CPS_FLEET_FILE or cps_bringup's)")
     parser.add_argument("--no-rviz", action="store_true", help="leave the rviz 3D pane out (no OpenGL needed)")
-    parser.add_argument("--stale-after", type=float, default=2.0, metavar="S",
-                        help="age in seconds at which data is shown red (default 2.0)")
+    parser.add_argument(
+        "--stale-after",
+        type=float,
+        default=2.0,
+        metavar="S",
+        help="age in seconds at which data is shown red (default 2.0)",
+    )
     parser.add_argument("--screenshot", metavar="PATH", help="save a PNG of the whole window and exit")
-    parser.add_argument("--after", type=float, default=5.0, metavar="S",
-                        help="seconds to wait before the screenshot (default 5.0)")
+    parser.add_argument(
+        "--after", type=float, default=5.0, metavar="S", help="seconds to wait before the screenshot (default 5.0)"
+    )
     parser.add_argument("--geometry", default="1600x1000", help="window size WxH (default 1600x1000)")
     args = parser.parse_args(argv)
     if args.stale_after <= 0:
@@ -145,8 +158,9 @@ def main(argv=None):
     args = parse_args(argv[1:])
     rospy.init_node("cps_gui", disable_signals=True)
     app = QApplication.instance() or QApplication(argv[:1])
-    window = OperatorWindow(args.settings, fleet_file=args.fleet_file, with_rviz=not args.no_rviz,
-                            stale_after_s=args.stale_after)
+    window = OperatorWindow(
+        args.settings, fleet_file=args.fleet_file, with_rviz=not args.no_rviz, stale_after_s=args.stale_after
+    )
     if args.screenshot:
         window.resize(*args.size)
     window.show()

@@ -7,6 +7,7 @@ base frame (REP 103: x forward, y left, z up, yaw counter-clockwise).
 Full-scale deflection is the robot type's velocity limit (fleet.yaml robot_types), the table
 the simulator clamps to: the joystick never asks for more than the robot executes.
 """
+
 import dataclasses
 import math
 from typing import FrozenSet
@@ -100,12 +101,18 @@ def clip_to_unit_circle(x, y):
 # Keyboard layout (only while the teleoperation pane has focus): W/S ahead/back, A/D turn left/
 # right, Q/E strafe left/right, R/F climb/descend. Arrow keys double W/A/S/D.
 KEY_AXES = {
-    "w": ("forward", 1.0), "up": ("forward", 1.0),
-    "s": ("forward", -1.0), "down": ("forward", -1.0),
-    "a": ("turn", -1.0), "left": ("turn", -1.0),
-    "d": ("turn", 1.0), "right": ("turn", 1.0),
-    "q": ("strafe", -1.0), "e": ("strafe", 1.0),
-    "r": ("climb", 1.0), "f": ("climb", -1.0),
+    "w": ("forward", 1.0),
+    "up": ("forward", 1.0),
+    "s": ("forward", -1.0),
+    "down": ("forward", -1.0),
+    "a": ("turn", -1.0),
+    "left": ("turn", -1.0),
+    "d": ("turn", 1.0),
+    "right": ("turn", 1.0),
+    "q": ("strafe", -1.0),
+    "e": ("strafe", 1.0),
+    "r": ("climb", 1.0),
+    "f": ("climb", -1.0),
 }
 
 

@@ -4,6 +4,7 @@ rqt creates `FleetOperatorPlugin(context)` inside its own rospy node; the standa
 (cps_gui.host, command `cps_gui`) does the same with a small context of its own where rqt_gui is
 not installed. Settings go through the rqt Settings API (`value`, `set_value`).
 """
+
 import os
 
 from python_qt_binding.QtCore import QObject, Qt, QTimer
@@ -30,13 +31,13 @@ class FleetOperatorPlugin(_PluginBase):
         self.setObjectName("FleetOperatorPlugin")
         import rospy
 
+        from cps_fleet.fleet import load_fleet
         from cps_gui.ros_io import FleetRosIO
         from cps_gui.widgets.changes import ChangesPane
         from cps_gui.widgets.status import StatusPane
         from cps_gui.widgets.teleop import TeleopPane
         from cps_gui.widgets.topview import TopViewPane
         from cps_gui.widgets.video import VideoPane
-        from cps_fleet.fleet import load_fleet
 
         if with_rviz is None:
             with_rviz = os.environ.get("CPS_GUI_NO_RVIZ", "") not in ("1", "true")
@@ -98,8 +99,14 @@ class FleetOperatorPlugin(_PluginBase):
     @property
     def panes(self):
         """{name: widget} of the five panes and the change list, e.g. for screenshots and tests."""
-        return {"video": self.video, "view3d": self.view3d, "topview": self.topview, "status": self.status,
-                "teleop": self.teleop, "changes": self.changes}
+        return {
+            "video": self.video,
+            "view3d": self.view3d,
+            "topview": self.topview,
+            "status": self.status,
+            "teleop": self.teleop,
+            "changes": self.changes,
+        }
 
     def refresh(self):
         """Redraw every pane from the latest data; runs on the GUI thread at 5 Hz."""
@@ -134,5 +141,9 @@ class FleetOperatorPlugin(_PluginBase):
             pane.restore_settings(instance_settings)
 
     def _splitters(self):
-        return {"main": self.main_splitter, "top": self.top_splitter, "bottom": self.bottom_splitter,
-                "map": self.map_splitter}
+        return {
+            "main": self.main_splitter,
+            "top": self.top_splitter,
+            "bottom": self.bottom_splitter,
+            "map": self.map_splitter,
+        }

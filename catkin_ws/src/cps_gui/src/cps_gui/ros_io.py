@@ -5,6 +5,7 @@ Callbacks run on rospy's threads and only convert and store; anything that talks
 or a service (topic discovery, /tissue/set_priority) runs on a worker thread and reports back
 through a callback, so the GUI thread never waits on the network.
 """
+
 import math
 import threading
 
@@ -17,16 +18,13 @@ from sensor_msgs.msg import BatteryState, CompressedImage, Image
 from std_msgs.msg import Bool, Float64, String
 from visualization_msgs.msg import Marker, MarkerArray
 
-from cps_msgs.msg import BandwidthAllocationArray, LinkState, MapStats, TopicStatsArray
-from cps_msgs.srv import SetPriority, SetPriorityRequest
-
-from cps_ros.timers import guarded_timer
-from cps_transport.image_compression import InvalidImage, decode_jpeg
-
 from cps_fleet import names
 from cps_gui import topview
-from cps_gui.fleet_state import (Allocation, ImageFrame, MapChange, Pose, RobotAllocation, RobotMapFigures,
-                                 TopicFigures)
+from cps_gui.fleet_state import Allocation, ImageFrame, MapChange, Pose, RobotAllocation, RobotMapFigures, TopicFigures
+from cps_msgs.msg import BandwidthAllocationArray, LinkState, MapStats, TopicStatsArray
+from cps_msgs.srv import SetPriority, SetPriorityRequest
+from cps_ros.timers import guarded_timer
+from cps_transport.image_compression import InvalidImage, decode_jpeg
 
 IMAGE_TYPE = "sensor_msgs/Image"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/CompressedImage"
@@ -72,16 +70,22 @@ class FleetRosIO:
         sub(names.AVAILABLE_BANDWIDTH, Float64, lambda m: state.set_available_bandwidth(m.data))
         sub(names.in_twin(names.MAP_STATS), MapStats, self._on_map_stats)
         sub(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10)
-        sub(names.in_twin(names.PROJECTED_MAP), OccupancyGrid, self._on_projected_map, buff_size=2 ** 24)
+        sub(names.in_twin(names.PROJECTED_MAP), OccupancyGrid, self._on_projected_map, buff_size=2**24)
         sub(names.ROSOUT_AGG, Log, self._on_log, queue_size=100)
-        sub(names.in_twin(names.MAP_CHANGES), MarkerArray, lambda m: state.set_map_changes(map_changes_of(m)), buff_size=2 ** 20)
+        sub(
+            names.in_twin(names.MAP_CHANGES),
+            MarkerArray,
+            lambda m: state.set_map_changes(map_changes_of(m)),
+            buff_size=2**20,
+        )
         self.estop_pub = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
         self._discovery = guarded_timer(discovery_period_s, self._discover_images, "image discovery")
         threading.Thread(target=self._discover_images, args=(None,), daemon=True).start()
 
     def _subscribe(self, topic, msg_type, callback, queue_size=1, buff_size=65536):
-        self._subscribers.append(rospy.Subscriber(topic, msg_type, callback, queue_size=queue_size,
-                                                  buff_size=buff_size))
+        self._subscribers.append(
+            rospy.Subscriber(topic, msg_type, callback, queue_size=queue_size, buff_size=buff_size)
+        )
 
     def _robot_io(self, robot):
         name, state = robot.name, self.state
@@ -92,12 +96,18 @@ class FleetRosIO:
         def on_odom(msg):
             p, q = msg.pose.pose.position, msg.pose.pose.orientation
             if not all(math.isfinite(v) for v in (p.x, p.y, p.z, q.x, q.y, q.z, q.w)):
-                rospy.logwarn_throttle(10.0, f"cps_gui: {names.absolute(names.robot_topic(name, names.ODOM))} with a non-finite pose, ignored")
+                rospy.logwarn_throttle(
+                    10.0,
+                    f"cps_gui: {names.absolute(names.robot_topic(name, names.ODOM))} with a non-finite pose, ignored",
+                )
                 return
             origin = self._odom_origin(name)
             if origin is None:
-                rospy.logwarn_throttle(10.0, f"cps_gui: no tf {names.MAP_FRAME} -> {names.odom_frame(name)} yet; "
-                                             f"{names.absolute(names.robot_topic(name, names.ODOM))} not shown")
+                rospy.logwarn_throttle(
+                    10.0,
+                    f"cps_gui: no tf {names.MAP_FRAME} -> {names.odom_frame(name)} yet; "
+                    f"{names.absolute(names.robot_topic(name, names.ODOM))} not shown",
+                )
                 return
             yaw = topview.yaw_from_quaternion(q.x, q.y, q.z, q.w)
             x, y, yaw_map = topview.odom_to_map(origin.x, origin.y, origin.yaw_rad, p.x, p.y, yaw)
@@ -106,7 +116,10 @@ class FleetRosIO:
 
         def on_battery(msg):
             if not math.isfinite(msg.percentage):
-                rospy.logwarn_throttle(10.0, f"cps_gui: {names.absolute(names.robot_topic(name, names.BATTERY))} without a percentage, ignored")
+                rospy.logwarn_throttle(
+                    10.0,
+                    f"cps_gui: {names.absolute(names.robot_topic(name, names.BATTERY))} without a percentage, ignored",
+                )
                 return
             state.set_battery(name, msg.percentage)
 
@@ -128,8 +141,9 @@ class FleetRosIO:
             except (tf2_ros.LookupException, tf2_ros.ConnectivityException, tf2_ros.ExtrapolationException):
                 return None
             q = t.rotation
-            origin = topview.Pose2D(t.translation.x, t.translation.y, t.translation.z,
-                                    topview.yaw_from_quaternion(q.x, q.y, q.z, q.w))
+            origin = topview.Pose2D(
+                t.translation.x, t.translation.y, t.translation.z, topview.yaw_from_quaternion(q.x, q.y, q.z, q.w)
+            )
             self._odom_in_map[robot] = origin
         return origin
 
@@ -138,14 +152,24 @@ class FleetRosIO:
     def _on_stats(self, msg):
         self.state.set_tissue_stats(
             TopicFigures(t.topic, t.robot, t.managed, t.rate_hz, t.bandwidth_mbytes_per_s, t.latency_avg_ms, t.age_s)
-            for t in msg.topics)
+            for t in msg.topics
+        )
 
     def _on_allocation(self, msg):
-        self.state.set_allocation(Allocation(
-            budget_mbytes_per_s=msg.budget_mbytes_per_s, allocated_mbytes_per_s=msg.allocated_mbytes_per_s,
-            available_mbps=msg.available_mbps, feasible=msg.feasible,
-            robots=tuple(RobotAllocation(a.robot, a.priority, a.rate_hz, a.bandwidth_mbytes_per_s,
-                                         a.share_percent, a.degraded) for a in msg.allocations)))
+        self.state.set_allocation(
+            Allocation(
+                budget_mbytes_per_s=msg.budget_mbytes_per_s,
+                allocated_mbytes_per_s=msg.allocated_mbytes_per_s,
+                available_mbps=msg.available_mbps,
+                feasible=msg.feasible,
+                robots=tuple(
+                    RobotAllocation(
+                        a.robot, a.priority, a.rate_hz, a.bandwidth_mbytes_per_s, a.share_percent, a.degraded
+                    )
+                    for a in msg.allocations
+                ),
+            )
+        )
 
     def _on_link_state(self, msg):
         down_for_s = (rospy.Time.now() - msg.since).to_sec() if not msg.since.is_zero() else 0.0
@@ -153,15 +177,20 @@ class FleetRosIO:
 
     def _on_map_stats(self, msg):
         self.state.set_map_stats(
-            RobotMapFigures(r.robot, r.occupied_voxels_contributed,
-                            r.clouds_dropped_queue + r.clouds_dropped_tf + r.clouds_dropped_invalid)
-            for r in msg.robots)
+            RobotMapFigures(
+                r.robot,
+                r.occupied_voxels_contributed,
+                r.clouds_dropped_queue + r.clouds_dropped_tf + r.clouds_dropped_invalid,
+            )
+            for r in msg.robots
+        )
 
     def _on_projected_map(self, msg):
         info = msg.info
         try:
-            image = topview.occupancy_image(info.width, info.height, info.resolution, info.origin.position.x,
-                                            info.origin.position.y, msg.data)
+            image = topview.occupancy_image(
+                info.width, info.height, info.resolution, info.origin.position.x, info.origin.position.y, msg.data
+            )
         except ValueError as exc:
             rospy.logwarn_throttle(10.0, f"cps_gui: {names.in_twin(names.PROJECTED_MAP)} ignored: {exc}")
             return
@@ -171,9 +200,18 @@ class FleetRosIO:
         self.state.add_log(msg.header.stamp.to_sec(), LOG_LEVELS.get(msg.level, str(msg.level)), msg.name, msg.msg)
 
     def _on_image(self, msg):
-        self.state.add_image(ImageFrame(
-            topic=self._image_topic, width=msg.width, height=msg.height, encoding=msg.encoding, step=msg.step,
-            data=bytes(msg.data), stamp_s=msg.header.stamp.to_sec(), received_s=self.state.clock()))
+        self.state.add_image(
+            ImageFrame(
+                topic=self._image_topic,
+                width=msg.width,
+                height=msg.height,
+                encoding=msg.encoding,
+                step=msg.step,
+                data=bytes(msg.data),
+                stamp_s=msg.header.stamp.to_sec(),
+                received_s=self.state.clock(),
+            )
+        )
 
     def _on_compressed_image(self, msg, topic):
         """Decodes the JPEG here, on rospy's thread, so the GUI thread only scales a pixmap."""
@@ -181,14 +219,25 @@ class FleetRosIO:
             rgb = decode_jpeg(msg.data)
         except InvalidImage as exc:
             self.invalid_images += 1
-            rospy.logwarn_throttle(10.0, f"cps_gui: frame on {topic} ({msg.format!r}) not shown "
-                                         f"({self.invalid_images} so far): {exc}")
+            rospy.logwarn_throttle(
+                10.0, f"cps_gui: frame on {topic} ({msg.format!r}) not shown ({self.invalid_images} so far): {exc}"
+            )
             return
         height, width, _ = rgb.shape
-        self.state.add_image(ImageFrame(
-            topic=topic, width=width, height=height, encoding="rgb8", step=3 * width, data=rgb.tobytes(),
-            stamp_s=msg.header.stamp.to_sec(), received_s=self.state.clock(), transport="jpeg",
-            wire_bytes=len(msg.data)))
+        self.state.add_image(
+            ImageFrame(
+                topic=topic,
+                width=width,
+                height=height,
+                encoding="rgb8",
+                step=3 * width,
+                data=rgb.tobytes(),
+                stamp_s=msg.header.stamp.to_sec(),
+                received_s=self.state.clock(),
+                transport="jpeg",
+                wire_bytes=len(msg.data),
+            )
+        )
 
     # Image topics: raw and compressed, found by type, one subscribed at a time (the one on screen).
 
@@ -225,10 +274,16 @@ class FleetRosIO:
                 self._image_sub = None
             self._image_topic = topic
             if topic and self.image_topic_type(topic) == COMPRESSED_IMAGE_TYPE:
-                self._image_sub = rospy.Subscriber(topic, CompressedImage, self._on_compressed_image, callback_args=topic,
-                                                   queue_size=1, buff_size=2 ** 22)
+                self._image_sub = rospy.Subscriber(
+                    topic,
+                    CompressedImage,
+                    self._on_compressed_image,
+                    callback_args=topic,
+                    queue_size=1,
+                    buff_size=2**22,
+                )
             elif topic:
-                self._image_sub = rospy.Subscriber(topic, Image, self._on_image, queue_size=1, buff_size=2 ** 24)
+                self._image_sub = rospy.Subscriber(topic, Image, self._on_image, queue_size=1, buff_size=2**24)
 
     # Outgoing.
 
@@ -255,6 +310,7 @@ class FleetRosIO:
 
     def set_priority(self, robot, priority, done):
         """Call /tissue/set_priority on a worker thread; `done(ok, text)` runs on that thread."""
+
         def call():
             try:
                 rospy.wait_for_service(names.SET_PRIORITY, timeout=self.service_timeout_s)
@@ -263,6 +319,7 @@ class FleetRosIO:
                 done(reply.success, reply.message)
             except (rospy.ROSException, rospy.ServiceException) as exc:
                 done(False, f"{names.SET_PRIORITY} failed: {exc}")
+
         threading.Thread(target=call, name=f"set_priority_{robot}", daemon=True).start()
 
     def close(self):
@@ -276,4 +333,3 @@ class FleetRosIO:
             for pub in pubs.values():
                 pub.unregister()
         self.estop_pub.unregister()
-

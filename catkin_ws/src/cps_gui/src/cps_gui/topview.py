@@ -1,6 +1,7 @@
 """Drawing data of the secondary top view: the projected map as an image, poses in `map`, routes,
 fenced areas, and the world-to-screen transform. numpy only; the widget paints what this computes.
 """
+
 import dataclasses
 import math
 from typing import Optional, Sequence, Tuple
@@ -66,8 +67,13 @@ def occupancy_image(width, height, resolution_m, origin_x, origin_y, data, max_c
     rgb[(grid >= 0) & (grid < OCCUPIED_THRESHOLD)] = FREE_RGB
     occupied = grid >= OCCUPIED_THRESHOLD
     rgb[occupied] = OCCUPIED_RGB
-    return OccupancyImage(rgb=np.ascontiguousarray(rgb[::-1]), x_min=origin_x, y_min=origin_y,
-                          cell_m=resolution_m * factor, occupied_cells=int(occupied.sum()))
+    return OccupancyImage(
+        rgb=np.ascontiguousarray(rgb[::-1]),
+        x_min=origin_x,
+        y_min=origin_y,
+        cell_m=resolution_m * factor,
+        occupied_cells=int(occupied.sum()),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,8 +108,12 @@ class Bounds:
     y_max: float
 
     def union(self, other: "Bounds"):
-        return Bounds(min(self.x_min, other.x_min), min(self.y_min, other.y_min),
-                      max(self.x_max, other.x_max), max(self.y_max, other.y_max))
+        return Bounds(
+            min(self.x_min, other.x_min),
+            min(self.y_min, other.y_min),
+            max(self.x_max, other.x_max),
+            max(self.y_max, other.y_max),
+        )
 
     def padded(self, margin_m):
         return Bounds(self.x_min - margin_m, self.y_min - margin_m, self.x_max + margin_m, self.y_max + margin_m)
@@ -195,8 +205,12 @@ def _polygon_of(area):
             return _box(_xy(lo)[0], _xy(lo)[1], _xy(hi)[0], _xy(hi)[1])
         for suffix in ("_m", ""):  # cps_fleet.site.FencedArea: x_min_m, x_max_m, y_min_m, y_max_m
             if _field(area, "x_min" + suffix, None) is not None:
-                return _box(_field(area, "x_min" + suffix, 0), _field(area, "y_min" + suffix, 0),
-                            _field(area, "x_max" + suffix, 0), _field(area, "y_max" + suffix, 0))
+                return _box(
+                    _field(area, "x_min" + suffix, 0),
+                    _field(area, "y_min" + suffix, 0),
+                    _field(area, "x_max" + suffix, 0),
+                    _field(area, "y_max" + suffix, 0),
+                )
         centre, size = _field(area, "center", None) or _field(area, "centre", None), _field(area, "size", None)
         if centre is not None and size is not None:
             cx, cy = _xy(centre)

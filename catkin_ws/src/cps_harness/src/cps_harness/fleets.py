@@ -1,4 +1,5 @@
 """Larger fleets for tests and benchmarks: the default fleet.yaml with every robot copied."""
+
 import math
 import os
 

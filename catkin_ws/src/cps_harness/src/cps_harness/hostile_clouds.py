@@ -2,6 +2,7 @@
 strategies): wrong field layouts, counts and sizes, truncated or padded data, NaN/Inf and absurd
 coordinates. Every message is passed through rospy's serialization, so it holds only what could
 arrive on the wire."""
+
 import io
 
 import numpy as np
@@ -10,11 +11,26 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 # NaN/Inf, one point 10 km away, float32's largest values, a denormal, and ordinary coordinates.
 HOSTILE_COORDINATES_M = (float("nan"), float("inf"), -float("inf"), 1e4, -1e4, 3.4e38, -3.4e38, 1e-42, 0.0, 1.5)
-_POINTFIELD_TYPES = {np.dtype(np.float32): PointField.FLOAT32, np.dtype(np.float64): PointField.FLOAT64,
-                     np.dtype(np.uint32): PointField.UINT32}
+_POINTFIELD_TYPES = {
+    np.dtype(np.float32): PointField.FLOAT32,
+    np.dtype(np.float64): PointField.FLOAT64,
+    np.dtype(np.uint32): PointField.UINT32,
+}
 FIELD_NAMES = ("x", "y", "z", "rgb", "intensity", "ring", "", "xy")
-MUTATIONS = ("none", "truncate", "extend", "xyz_count", "bigendian", "point_step", "row_step", "offset",
-             "datatype", "duplicate", "drop_z", "height")
+MUTATIONS = (
+    "none",
+    "truncate",
+    "extend",
+    "xyz_count",
+    "bigendian",
+    "point_step",
+    "row_step",
+    "offset",
+    "datatype",
+    "duplicate",
+    "drop_z",
+    "height",
+)
 _MAX_DATA_BYTES = 4096
 
 
@@ -25,10 +41,19 @@ def packed_cloud(columns, frame_id="jackal/camera_depth_optical_frame"):
     points = np.empty(len(columns[names[0]]), dtype=dtype)
     for name in names:
         points[name] = columns[name]
-    msg = PointCloud2(height=1, width=len(points), is_bigendian=False, point_step=dtype.itemsize,
-                      row_step=dtype.itemsize * len(points), is_dense=False, data=points.tobytes())
-    msg.fields = [PointField(name=name, offset=dtype.fields[name][1], datatype=_POINTFIELD_TYPES[dtype[name]],
-                             count=1) for name in names]
+    msg = PointCloud2(
+        height=1,
+        width=len(points),
+        is_bigendian=False,
+        point_step=dtype.itemsize,
+        row_step=dtype.itemsize * len(points),
+        is_dense=False,
+        data=points.tobytes(),
+    )
+    msg.fields = [
+        PointField(name=name, offset=dtype.fields[name][1], datatype=_POINTFIELD_TYPES[dtype[name]], count=1)
+        for name in names
+    ]
     msg.header.frame_id = frame_id
     return msg
 
@@ -46,12 +71,18 @@ def wire_copy(msg):
 def random_layout_clouds(draw):
     """Any layout: 0..5 fields of any name, offset, datatype and count; height, width, steps and
     data length that may or may not agree; random bytes."""
-    fields = [PointField(name=draw(st.sampled_from(FIELD_NAMES)), offset=draw(st.integers(0, 40)),
-                         datatype=draw(st.integers(0, 9)), count=draw(st.sampled_from((0, 1, 1, 1, 2, 3, 70000))))
-              for _ in range(draw(st.integers(0, 5)))]
+    fields = [
+        PointField(
+            name=draw(st.sampled_from(FIELD_NAMES)),
+            offset=draw(st.integers(0, 40)),
+            datatype=draw(st.integers(0, 9)),
+            count=draw(st.sampled_from((0, 1, 1, 1, 2, 3, 70000))),
+        )
+        for _ in range(draw(st.integers(0, 5)))
+    ]
     height, width = draw(st.integers(0, 4)), draw(st.integers(0, 8))
     point_step = draw(st.integers(0, 48))
-    row_step = draw(st.one_of(st.just(width * point_step), st.integers(0, 400), st.just(2 ** 32 - 1)))
+    row_step = draw(st.one_of(st.just(width * point_step), st.integers(0, 400), st.just(2**32 - 1)))
     data_len = draw(st.one_of(st.just(min(height * row_step, _MAX_DATA_BYTES)), st.integers(0, 400)))
     msg = packed_cloud({"x": np.zeros(1, np.float32)})
     msg.fields, msg.height, msg.width = fields, height, width
@@ -75,14 +106,14 @@ def hostile_value_clouds(draw):
     if draw(st.booleans()):
         columns["intensity"] = np.full(n, draw(st.sampled_from(HOSTILE_COORDINATES_M)), dtype=np.float32)
     if draw(st.booleans()):
-        columns["rgb"] = np.full(n, draw(st.integers(0, 2 ** 32 - 1)), dtype=np.uint32)
+        columns["rgb"] = np.full(n, draw(st.integers(0, 2**32 - 1)), dtype=np.uint32)
     msg = packed_cloud(columns)
     mutation = draw(st.sampled_from(MUTATIONS))
     data = bytes(msg.data)
     fields = list(msg.fields)
     pick = draw(st.integers(0, len(fields) - 1))
     if mutation == "truncate":
-        msg.data = data[:draw(st.integers(0, len(data) - 1))]
+        msg.data = data[: draw(st.integers(0, len(data) - 1))]
     elif mutation == "extend":
         msg.data = data + bytes(draw(st.integers(1, 64)))
     elif mutation == "xyz_count":
@@ -94,9 +125,9 @@ def hostile_value_clouds(draw):
         msg.row_step = msg.point_step * msg.width
         msg.data = bytes(msg.row_step * msg.height) if msg.row_step * msg.height <= _MAX_DATA_BYTES else b""
     elif mutation == "row_step":
-        msg.row_step = draw(st.integers(0, 2 ** 32 - 1))
+        msg.row_step = draw(st.integers(0, 2**32 - 1))
     elif mutation == "offset":
-        fields[pick].offset = draw(st.integers(0, 2 ** 32 - 1))
+        fields[pick].offset = draw(st.integers(0, 2**32 - 1))
     elif mutation == "datatype":
         fields[pick].datatype = draw(st.integers(0, 255))
     elif mutation == "duplicate":
@@ -104,7 +135,7 @@ def hostile_value_clouds(draw):
     elif mutation == "drop_z":
         fields = [f for f in fields if f.name != "z"]
     elif mutation == "height":
-        msg.height = draw(st.integers(0, 2 ** 32 - 1))
+        msg.height = draw(st.integers(0, 2**32 - 1))
     msg.fields = fields
     return wire_copy(msg), mutation
 
@@ -128,6 +159,7 @@ def refused_clouds(frame_id="jackal/camera_depth_optical_frame"):
         for key, value in changes.items():
             setattr(msg, key, value)
         return wire_copy(msg)
+
     full = bytes(cloud().data)
     return {
         "x of count 3": cloud(fields={0: {"count": 3}}),
@@ -135,7 +167,7 @@ def refused_clouds(frame_id="jackal/camera_depth_optical_frame"):
         "nameless field": cloud(fields={1: {"name": ""}}),
         "z outside the point": cloud(fields={2: {"offset": 4000}}),
         "unknown datatype": cloud(fields={0: {"datatype": 42}}),
-        "row_step beyond the data": cloud(row_step=2 ** 32 - 1),
-        "height beyond the data": cloud(height=2 ** 31),
+        "row_step beyond the data": cloud(row_step=2**32 - 1),
+        "height beyond the data": cloud(height=2**31),
         "all NaN": cloud(data=np.full(9, np.nan, np.float32).tobytes()),
     }

@@ -6,6 +6,7 @@ renderer is not available: the same layouts as the simulator publishes (ros-grap
 - 3D lidar: x, y, z, intensity (float32), ring (uint16), time (float32), point_step 22 (as the
   Velodyne driver), unorganized.
 """
+
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
@@ -32,8 +33,17 @@ def _hall_depth(directions):
     return np.min(candidates, axis=0)
 
 
-def depth_camera_cloud(width=640, height=480, hfov_deg=60.0, far_m=18.0, dropout=0.02, noise_m=0.003, seed=0,
-                       stamp=None, frame_id="camera_depth_optical_frame"):
+def depth_camera_cloud(
+    width=640,
+    height=480,
+    hfov_deg=60.0,
+    far_m=18.0,
+    dropout=0.02,
+    noise_m=0.003,
+    seed=0,
+    stamp=None,
+    frame_id="camera_depth_optical_frame",
+):
     """An organized depth-camera PointCloud2 (x, y, z, rgb; point_step 32) with NaN dropouts."""
     rng = np.random.default_rng(seed)
     focal = (width / 2.0) / np.tan(np.radians(hfov_deg) / 2.0)
@@ -46,17 +56,26 @@ def depth_camera_cloud(width=640, height=480, hfov_deg=60.0, far_m=18.0, dropout
     xyz[missing] = np.nan
     shade = np.clip(255 - 12 * np.nan_to_num(distance), 40, 255).astype(np.uint32)
     rgb = (shade << 16 | (shade // 2) << 8 | (255 - shade)).astype(np.uint32)
-    dtype = np.dtype({"names": ["x", "y", "z", "rgb"], "formats": ["<f4", "<f4", "<f4", "<u4"],
-                      "offsets": [0, 4, 8, 16], "itemsize": 32})
+    dtype = np.dtype(
+        {
+            "names": ["x", "y", "z", "rgb"],
+            "formats": ["<f4", "<f4", "<f4", "<u4"],
+            "offsets": [0, 4, 8, 16],
+            "itemsize": 32,
+        }
+    )
     points = np.zeros(len(rays), dtype=dtype)
     points["x"], points["y"], points["z"], points["rgb"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], rgb
-    fields = [PointField(name=n, offset=o, datatype=PointField.FLOAT32, count=1)
-              for n, o in (("x", 0), ("y", 4), ("z", 8), ("rgb", 16))]
+    fields = [
+        PointField(name=n, offset=o, datatype=PointField.FLOAT32, count=1)
+        for n, o in (("x", 0), ("y", 4), ("z", 8), ("rgb", 16))
+    ]
     return _message(points, fields, height, width, 32, stamp, frame_id, is_dense=False)
 
 
-def lidar_cloud(rings=16, samples_per_ring=1875, vertical_fov_deg=30.0, max_range_m=100.0, seed=0, stamp=None,
-                frame_id="lidar"):
+def lidar_cloud(
+    rings=16, samples_per_ring=1875, vertical_fov_deg=30.0, max_range_m=100.0, seed=0, stamp=None, frame_id="lidar"
+):
     """An unorganized 3D-lidar PointCloud2 (x, y, z, intensity, ring, time; point_step 22)."""
     rng = np.random.default_rng(seed)
     elevation = np.radians(np.linspace(-vertical_fov_deg / 2, vertical_fov_deg / 2, rings))
@@ -67,20 +86,27 @@ def lidar_cloud(rings=16, samples_per_ring=1875, vertical_fov_deg=30.0, max_rang
     optical = np.stack([-lidar_rays[:, 1], -lidar_rays[:, 2], lidar_rays[:, 0]], axis=1)
     distance = np.minimum(_hall_depth(optical), max_range_m) + rng.normal(0.0, 0.01, len(optical))
     xyz = lidar_rays * distance[:, None]
-    dtype = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "time"],
-                      "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
-                      "offsets": [0, 4, 8, 12, 16, 18], "itemsize": 22})
+    dtype = np.dtype(
+        {
+            "names": ["x", "y", "z", "intensity", "ring", "time"],
+            "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
+            "offsets": [0, 4, 8, 12, 16, 18],
+            "itemsize": 22,
+        }
+    )
     points = np.zeros(len(xyz), dtype=dtype)
     points["x"], points["y"], points["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     points["intensity"] = np.clip(100.0 / (1.0 + distance), 0, 255) + rng.random(len(xyz))
     points["ring"] = np.repeat(np.arange(rings), samples_per_ring)
     points["time"] = np.tile(np.linspace(0.0, 0.1, samples_per_ring, endpoint=False), rings)
-    fields = [PointField(name="x", offset=0, datatype=PointField.FLOAT32, count=1),
-              PointField(name="y", offset=4, datatype=PointField.FLOAT32, count=1),
-              PointField(name="z", offset=8, datatype=PointField.FLOAT32, count=1),
-              PointField(name="intensity", offset=12, datatype=PointField.FLOAT32, count=1),
-              PointField(name="ring", offset=16, datatype=PointField.UINT16, count=1),
-              PointField(name="time", offset=18, datatype=PointField.FLOAT32, count=1)]
+    fields = [
+        PointField(name="x", offset=0, datatype=PointField.FLOAT32, count=1),
+        PointField(name="y", offset=4, datatype=PointField.FLOAT32, count=1),
+        PointField(name="z", offset=8, datatype=PointField.FLOAT32, count=1),
+        PointField(name="intensity", offset=12, datatype=PointField.FLOAT32, count=1),
+        PointField(name="ring", offset=16, datatype=PointField.UINT16, count=1),
+        PointField(name="time", offset=18, datatype=PointField.FLOAT32, count=1),
+    ]
     return _message(points, fields, 1, len(xyz), 22, stamp, frame_id, is_dense=True)
 
 

@@ -5,6 +5,7 @@ private master; this module holds what tests do on it, so that no test file keep
 Wait for the event a test expects (a message, a counter moving) rather than sleeping and then
 asserting that nothing changed.
 """
+
 import threading
 import time
 
@@ -29,7 +30,7 @@ class TopicRecorder:
     `key(msg)` (optional) also keeps the newest message per key, e.g. per robot of an array topic.
     """
 
-    def __init__(self, topic, msg_type, key=None, queue_size=100, buff_size=2 ** 26):
+    def __init__(self, topic, msg_type, key=None, queue_size=100, buff_size=2**26):
         import rospy
 
         self.key = key
@@ -61,16 +62,18 @@ class TopicRecorder:
             ok = self._cond.wait_for(lambda: bool(self.messages) and predicate(self.messages[-1][1]), timeout_s)
             if not ok:
                 last = self.messages[-1][1] if self.messages else None
-                raise AssertionError(f"timed out after {timeout_s} s waiting for {what or 'a message'} on "
-                                     f"{self.sub.name}; last: {last}")
+                raise AssertionError(
+                    f"timed out after {timeout_s} s waiting for {what or 'a message'} on {self.sub.name}; last: {last}"
+                )
             return self.messages[-1][1]
 
     def wait_count(self, count, timeout_s=20.0):
         """All messages once at least `count` have arrived; AssertionError after `timeout_s`."""
         with self._cond:
             if not self._cond.wait_for(lambda: len(self.messages) >= count, timeout_s):
-                raise AssertionError(f"{len(self.messages)} of {count} messages on {self.sub.name} "
-                                     f"within {timeout_s} s")
+                raise AssertionError(
+                    f"{len(self.messages)} of {count} messages on {self.sub.name} within {timeout_s} s"
+                )
             return [msg for _, msg in self.messages]
 
     def take(self):

@@ -3,6 +3,7 @@
 go into a store bounded in bytes; when it is full the oldest go first, each counted. After
 recovery they leave oldest first, paced by a token bucket at the bandwidth the manager leaves
 unused (budget - allocated), so they never take live traffic's share."""
+
 import collections
 import dataclasses
 import threading

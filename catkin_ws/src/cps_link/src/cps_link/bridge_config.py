@@ -3,6 +3,7 @@
 ROS-free and Zenoh-free: the table is read and checked here (errors name file and line), `<r>`
 is expanded per robot, and each class's QoS is kept as names the bridge maps onto Zenoh's enums.
 """
+
 import dataclasses
 import os
 from typing import Dict, Optional, Sequence, Tuple
@@ -16,8 +17,9 @@ CONGESTION = ("block", "drop")
 ROBOT_PLACEHOLDER = "<r>"
 # What the robots' bridge sends on a backfill pose route.
 POSE_TYPE = "geometry_msgs/TransformStamped"
-DEFAULT_TABLE = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..",
-                                              "config", "bridge.yaml"))
+DEFAULT_TABLE = os.path.normpath(
+    os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "bridge.yaml")
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,6 +35,7 @@ class TrafficClass:
 @dataclasses.dataclass(frozen=True)
 class Route:
     """One topic crossing: published on `source` under `topic`, republished on the far side as `to`."""
+
     topic: str
     to: str
     source: str
@@ -52,6 +55,7 @@ class Route:
 @dataclasses.dataclass(frozen=True)
 class Backfill:
     """Per robot: the route whose keyframes are kept and the two routes they are re-sent on."""
+
     source: Dict[str, str]  # robot -> the source route's far-side name
     cloud_to: Dict[str, str]
     pose_to: Dict[str, str]
@@ -130,9 +134,14 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         congestion = c.get("congestion", str)
         if congestion not in CONGESTION:
             raise c.error("congestion", f"unknown congestion control '{congestion}' (known: block, drop)")
-        classes[name] = TrafficClass(name, priority, congestion, c.get("reliable", bool), c.get("express", bool),
-                                     c.number("max_age_s", default=None, low=0.0, low_open=True)
-                                     if c.has("max_age_s") else None)
+        classes[name] = TrafficClass(
+            name,
+            priority,
+            congestion,
+            c.get("reliable", bool),
+            c.get("express", bool),
+            c.number("max_age_s", default=None, low=0.0, low_open=True) if c.has("max_age_s") else None,
+        )
     routes, seen = [], {}
     for entry in top.items("topics"):
         topic = _check_topic(entry, "topic", entry.get("topic", str))
@@ -146,9 +155,16 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         if msg_type and msg_type.count("/") != 1:
             raise entry.error("type", f"'{msg_type}' is not a ROS message type (package/Name)")
         per_robot = ROBOT_PLACEHOLDER in topic or ROBOT_PLACEHOLDER in to
-        for robot in (robots if per_robot else ("",)):
-            route = Route(topic.replace(ROBOT_PLACEHOLDER, robot), to.replace(ROBOT_PLACEHOLDER, robot), source,
-                          traffic, latched, robot, msg_type=msg_type)
+        for robot in robots if per_robot else ("",):
+            route = Route(
+                topic.replace(ROBOT_PLACEHOLDER, robot),
+                to.replace(ROBOT_PLACEHOLDER, robot),
+                source,
+                traffic,
+                latched,
+                robot,
+                msg_type=msg_type,
+            )
             if route.to in seen:
                 raise entry.error("topic", f"'{route.to}' crosses twice (also at line {seen[route.to]})")
             seen[route.to] = doc.line(entry.key_path)
@@ -187,12 +203,36 @@ def _backfill(top, doc, classes, robots, routes, seen):
             if out[robot] in seen:
                 raise b.error(key, f"'{out[robot]}' crosses twice (also at line {seen[out[robot]]})")
             seen[out[robot]] = doc.line(b.key_path + (key,))
-            routes.append(Route(out[robot], out[robot], ROBOTS, traffic, robot=robot, from_ros=False,
-                                msg_type=POSE_TYPE if key == "pose_to" else by_topic[topic].msg_type))
-    return Backfill(sources, clouds, poses, b.get("map_frame", str),
-                    b.number("keyframe_period_s", low=0.0, low_open=True),
-                    _check_topic(b, "allocation", b.get("allocation", str)))
+            routes.append(
+                Route(
+                    out[robot],
+                    out[robot],
+                    ROBOTS,
+                    traffic,
+                    robot=robot,
+                    from_ros=False,
+                    msg_type=POSE_TYPE if key == "pose_to" else by_topic[topic].msg_type,
+                )
+            )
+    return Backfill(
+        sources,
+        clouds,
+        poses,
+        b.get("map_frame", str),
+        b.number("keyframe_period_s", low=0.0, low_open=True),
+        _check_topic(b, "allocation", b.get("allocation", str)),
+    )
 
 
-__all__ = ["BridgeTable", "ConfigError", "Route", "TrafficClass", "load_bridge_table", "other_side",
-           "ROBOTS", "TWIN", "SIDES", "PRIORITIES"]
+__all__ = [
+    "BridgeTable",
+    "ConfigError",
+    "Route",
+    "TrafficClass",
+    "load_bridge_table",
+    "other_side",
+    "ROBOTS",
+    "TWIN",
+    "SIDES",
+    "PRIORITIES",
+]

@@ -10,6 +10,7 @@ restarted bridge delivers nothing twice, and a frame that reaches the wrong topi
 (version 2: the frame names its topic; version 1 did not, and a frame mis-delivered after a
 reconnect was published on another topic with another type).
 """
+
 import dataclasses
 import math
 import os
@@ -74,7 +75,7 @@ def header_frame_id(body):
     (n,) = struct.unpack_from("<I", body, 12)
     if 16 + n > len(body):
         raise WireError("header frame_id runs past the message")
-    return bytes(body[16:16 + n]).decode(errors="replace")
+    return bytes(body[16 : 16 + n]).decode(errors="replace")
 
 
 def encode(frame: Frame) -> bytes:
@@ -109,7 +110,7 @@ def decode(payload) -> Frame:
         if offset + n > len(view):
             raise WireError("frame header truncated", TRUNCATED)
         try:
-            texts.append(bytes(view[offset:offset + n]).decode())
+            texts.append(bytes(view[offset : offset + n]).decode())
         except UnicodeDecodeError as exc:
             raise WireError(f"frame header is not text: {exc}", NOT_A_FRAME) from exc
         offset += n
@@ -117,7 +118,7 @@ def decode(payload) -> Frame:
         raise WireError(f"body truncated: {len(view) - offset} of {body_len} bytes", TRUNCATED)
     if len(view) - offset > body_len:
         raise WireError(f"{len(view) - offset - body_len} bytes past the body", NOT_A_FRAME)
-    if zlib.crc32(view[_CRC_AT + 4:], zlib.crc32(b"\x00" * 4, zlib.crc32(view[:_CRC_AT]))) != crc:
+    if zlib.crc32(view[_CRC_AT + 4 :], zlib.crc32(b"\x00" * 4, zlib.crc32(view[:_CRC_AT]))) != crc:
         raise WireError("CRC mismatch (corrupt payload)", BAD_CRC)
     body = bytes(view[offset:])
     return Frame(bytes(session), seq, stamp_s, texts[1], texts[2], texts[3], body, topic=texts[0])

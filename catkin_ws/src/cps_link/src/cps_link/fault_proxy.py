@@ -10,6 +10,7 @@ or network namespaces (issue 22: fault tests that run on a laptop and in CI).
   throttle  at most bytes_per_s each way (None: unlimited)
   reset     every open connection is closed with a TCP reset, both ends
 """
+
 import select
 import socket
 import struct

@@ -1,6 +1,7 @@
 """The link's health as one bridge sees it (ROS-free): the other side's liveliness tokens come and
 go, and its heartbeats stop. The token alone is not enough: a bridge whose transport is stuck
 behind a full send buffer may not see the session end until the link is back."""
+
 import dataclasses
 
 

@@ -1,11 +1,19 @@
 """Several hosts on one shared segment (e.g. the robots, the twin and a rogue laptop on one Wi-Fi):
 a network namespace per host, each joined by a veth pair to a Linux bridge in a switch namespace,
 optionally shaped with tbf on the host ends. Needs root; `SharedLan` always removes everything."""
+
 import contextlib
 import os
 
-from cps_link.netns_link import (ClosingContext, LinkError, _check_name, _run, check_capability, list_namespaces,
-                                 rate_bits_per_s)
+from cps_link.netns_link import (
+    ClosingContext,
+    LinkError,
+    _check_name,
+    _run,
+    check_capability,
+    list_namespaces,
+    rate_bits_per_s,
+)
 
 SUBNET_PREFIX = 24
 
@@ -48,15 +56,49 @@ class SharedLan(ClosingContext):
         for host, address in self.hosts.items():
             ns = self.namespace(host)
             _run(["ip", "netns", "add", ns])
-            _run(["ip", "-n", sw, "link", "add", f"{self.name}{host}", "type", "veth", "peer", "name", "eth0",
-                  "netns", ns])
+            _run(
+                [
+                    "ip",
+                    "-n",
+                    sw,
+                    "link",
+                    "add",
+                    f"{self.name}{host}",
+                    "type",
+                    "veth",
+                    "peer",
+                    "name",
+                    "eth0",
+                    "netns",
+                    ns,
+                ]
+            )
             _run(["ip", "-n", sw, "link", "set", f"{self.name}{host}", "master", "br0", "up"])
             _run(["ip", "-n", ns, "addr", "add", f"{address}/{SUBNET_PREFIX}", "dev", "eth0"])
             _run(["ip", "-n", ns, "link", "set", "lo", "up"])
             _run(["ip", "-n", ns, "link", "set", "eth0", "up"])
             if self.rate:
-                _run(["ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", "eth0", "root", "tbf", "rate",
-                      self.rate, "burst", "131072", "latency", "50ms"])
+                _run(
+                    [
+                        "ip",
+                        "netns",
+                        "exec",
+                        ns,
+                        "tc",
+                        "qdisc",
+                        "add",
+                        "dev",
+                        "eth0",
+                        "root",
+                        "tbf",
+                        "rate",
+                        self.rate,
+                        "burst",
+                        "131072",
+                        "latency",
+                        "50ms",
+                    ]
+                )
 
     def close(self):
         present = list_namespaces()

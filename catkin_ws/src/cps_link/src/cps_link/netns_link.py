@@ -11,6 +11,7 @@ Topology "shared" (Wi-Fi airtime: both directions share ONE capacity) puts a rou
 `<name>_rtr` between them: a bridge joins the two veth pairs, the ingress of both bridge ports is
 redirected into one IFB device, and the one tbf (and netem) on that IFB shapes both directions.
 """
+
 import contextlib
 import json
 import os
@@ -140,8 +141,9 @@ def link_exists(name):
 
 
 def _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, verb, jitter_ms=0.0, with_netem=False):
-    return _qdisc_commands(namespace(name, side), _device(name, side), rate, delay_ms, loss_pct, queue_ms, verb,
-                           jitter_ms, with_netem)
+    return _qdisc_commands(
+        namespace(name, side), _device(name, side), rate, delay_ms, loss_pct, queue_ms, verb, jitter_ms, with_netem
+    )
 
 
 def _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, verb, jitter_ms=0.0, with_netem=False):
@@ -172,8 +174,16 @@ def _check_shaping_args(rate, delay_ms, loss_pct, queue_ms, jitter_ms=0.0):
         raise LinkError(f"queue must be in [1, 10000] ms, got {queue_ms}")
 
 
-def link_up(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS, jitter_ms=0.0,
-            topology="duplex", with_netem=False):
+def link_up(
+    name="cps",
+    rate=None,
+    delay_ms=0.0,
+    loss_pct=0.0,
+    queue_ms=DEFAULT_QUEUE_MS,
+    jitter_ms=0.0,
+    topology="duplex",
+    with_netem=False,
+):
     """Create both namespaces, the veth pair, addresses, loopbacks and the shaping on both ends
     (`rate` None: fleet.yaml's link rate; topology "shared": see the module). Returns the rate."""
     _check_name(name)
@@ -192,8 +202,23 @@ def link_up(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_
             _shared_medium(name)
         else:
             # Created inside phys directly, so the pair never appears in the caller's namespace.
-            _run(["ip", "-n", phys, "link", "add", _device(name, "phys"), "type", "veth",
-                  "peer", "name", _device(name, "twin"), "netns", twin])
+            _run(
+                [
+                    "ip",
+                    "-n",
+                    phys,
+                    "link",
+                    "add",
+                    _device(name, "phys"),
+                    "type",
+                    "veth",
+                    "peer",
+                    "name",
+                    _device(name, "twin"),
+                    "netns",
+                    twin,
+                ]
+            )
         for side in SIDES:
             ns, dev = namespace(name, side), _device(name, side)
             _run(["ip", "-n", ns, "addr", "add", f"{side_ip(side)}/{PREFIX_LEN}", "dev", dev])
@@ -204,8 +229,10 @@ def link_up(name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_
                 result = _run(cmd, check=False)
                 if result.returncode != 0:
                     if "netem" in cmd and "unknown" in result.stderr.lower():
-                        raise LinkError("this kernel has no netem qdisc (sch_netem), so --delay-ms/--loss-pct "
-                                        "cannot be applied; use the rate alone")
+                        raise LinkError(
+                            "this kernel has no netem qdisc (sch_netem), so --delay-ms/--loss-pct "
+                            "cannot be applied; use the rate alone"
+                        )
                     raise LinkError(f"`{' '.join(cmd)}` failed: {result.stderr.strip()}")
         _wait_until_up(name)
     except BaseException:
@@ -247,23 +274,68 @@ def _shared_medium(name):
     _run(["ip", "-n", rtr, "link", "add", ifb, "type", "ifb"])
     for side in SIDES:
         port = _router_device(name, side)
-        _run(["ip", "-n", rtr, "link", "add", port, "type", "veth", "peer", "name", _device(name, side),
-              "netns", namespace(name, side)])
+        _run(
+            [
+                "ip",
+                "-n",
+                rtr,
+                "link",
+                "add",
+                port,
+                "type",
+                "veth",
+                "peer",
+                "name",
+                _device(name, side),
+                "netns",
+                namespace(name, side),
+            ]
+        )
         _run(["ip", "-n", rtr, "link", "set", port, "master", bridge])
     for dev in ("lo", bridge, ifb, *(_router_device(name, side) for side in SIDES)):
         _run(["ip", "-n", rtr, "link", "set", dev, "up"])
     for side in SIDES:
         port = _router_device(name, side)
         _run(["ip", "netns", "exec", rtr, "tc", "qdisc", "add", "dev", port, "handle", "ffff:", "ingress"])
-        _run(["ip", "netns", "exec", rtr, "tc", "filter", "add", "dev", port, "parent", "ffff:", "protocol", "all",
-              "u32", "match", "u32", "0", "0", "action", "mirred", "egress", "redirect", "dev", ifb])
+        _run(
+            [
+                "ip",
+                "netns",
+                "exec",
+                rtr,
+                "tc",
+                "filter",
+                "add",
+                "dev",
+                port,
+                "parent",
+                "ffff:",
+                "protocol",
+                "all",
+                "u32",
+                "match",
+                "u32",
+                "0",
+                "0",
+                "action",
+                "mirred",
+                "egress",
+                "redirect",
+                "dev",
+                ifb,
+            ]
+        )
 
 
 def _wait_until_up(name, timeout_s=5.0):
     deadline = time.monotonic() + timeout_s
     while True:
-        states = [_run(["ip", "-n", namespace(name, side), "-br", "link", "show", "dev", _device(name, side)],
-                       check=False).stdout.split() for side in SIDES]
+        states = [
+            _run(
+                ["ip", "-n", namespace(name, side), "-br", "link", "show", "dev", _device(name, side)], check=False
+            ).stdout.split()
+            for side in SIDES
+        ]
         if all(len(s) > 1 and s[1] == "UP" for s in states):
             return
         if time.monotonic() > deadline:
@@ -309,8 +381,13 @@ def netem_available():
     probe = f"cpsnetem{os.getpid() % 100000}"
     _run(["ip", "netns", "add", probe])
     try:
-        return _run(["ip", "netns", "exec", probe, "tc", "qdisc", "add", "dev", "lo", "root", "netem", "delay", "1ms"],
-                    check=False).returncode == 0
+        return (
+            _run(
+                ["ip", "netns", "exec", probe, "tc", "qdisc", "add", "dev", "lo", "root", "netem", "delay", "1ms"],
+                check=False,
+            ).returncode
+            == 0
+        )
     finally:
         _run(["ip", "netns", "del", probe], check=False)
 
@@ -368,8 +445,11 @@ def _iperf3(name, seconds, port, extra):
         raise LinkError("iperf3 is not installed (Debian package iperf3)")
     if not 0.5 <= seconds <= 30:
         raise LinkError(f"measurement time must be in [0.5, 30] s, got {seconds}")
-    server = subprocess.Popen(netns_argv(name, "twin", ["iperf3", "-s", "-1", "-B", TWIN_IP, "-p", str(port)]),
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    server = subprocess.Popen(
+        netns_argv(name, "twin", ["iperf3", "-s", "-1", "-B", TWIN_IP, "-p", str(port)]),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         argv = ["iperf3", "-c", TWIN_IP, "-p", str(port), "-t", f"{seconds:g}", "-J"] + extra
         deadline = time.monotonic() + 5.0
@@ -394,15 +474,32 @@ class ShapedLink:
     """`with ShapedLink(rate="20mbit") as link:` the link exists inside the block and never after;
     rate None is fleet.yaml's link rate."""
 
-    def __init__(self, name="cps", rate=None, delay_ms=0.0, loss_pct=0.0, queue_ms=DEFAULT_QUEUE_MS,
-                 jitter_ms=0.0, topology="duplex", with_netem=False):
+    def __init__(
+        self,
+        name="cps",
+        rate=None,
+        delay_ms=0.0,
+        loss_pct=0.0,
+        queue_ms=DEFAULT_QUEUE_MS,
+        jitter_ms=0.0,
+        topology="duplex",
+        with_netem=False,
+    ):
         self.name, self.delay_ms, self.loss_pct, self.queue_ms = name, delay_ms, loss_pct, queue_ms
         self.jitter_ms, self.topology, self.with_netem = jitter_ms, topology, with_netem
         self.rate = rate or fleet_rate()
 
     def __enter__(self):
-        link_up(self.name, self.rate, self.delay_ms, self.loss_pct, self.queue_ms, self.jitter_ms, self.topology,
-                self.with_netem)
+        link_up(
+            self.name,
+            self.rate,
+            self.delay_ms,
+            self.loss_pct,
+            self.queue_ms,
+            self.jitter_ms,
+            self.topology,
+            self.with_netem,
+        )
         return self
 
     def __exit__(self, *exc):
@@ -423,8 +520,11 @@ class ShapedLink:
     def qdisc_bytes_sent(self, side):
         """Bytes the shaping qdisc of `side` (shared topology: of both directions) has sent so far
         (for per-window link accounting)."""
-        ns, dev = ((namespace_of_router(self.name), _ifb_device(self.name)) if self.topology == "shared"
-                   else (namespace(self.name, side), _device(self.name, side)))
+        ns, dev = (
+            (namespace_of_router(self.name), _ifb_device(self.name))
+            if self.topology == "shared"
+            else (namespace(self.name, side), _device(self.name, side))
+        )
         out = _run(["ip", "netns", "exec", ns, "tc", "-s", "qdisc", "show", "dev", dev]).stdout
         match = re.search(r"qdisc tbf .*?Sent (\d+) bytes", out, re.S)
         return int(match.group(1)) if match else 0

@@ -8,14 +8,25 @@ that breaks it is dropped and counted by kind; nothing re-types a topic. Issue 2
 cut, the twin's bridge published frames on another route's topic with their own type (the cause
 was not reproduced; docs/reliability.md, "Frames on the wrong topic").
 """
+
 import collections
 import dataclasses
 import threading
 from typing import Callable, Dict, Iterable, Optional
 
 from cps_link.bridge_config import Route
-from cps_link.bridge_wire import (BAD_CRC, BAD_VERSION, NOT_A_FRAME, TRUNCATED, Frame, WireError, decode, is_stale,
-                                  new_session_id, session_started_ns)
+from cps_link.bridge_wire import (
+    BAD_CRC,
+    BAD_VERSION,
+    NOT_A_FRAME,
+    TRUNCATED,
+    Frame,
+    WireError,
+    decode,
+    is_stale,
+    new_session_id,
+    session_started_ns,
+)
 
 # Drop kinds beyond WireError's (truncated, not_a_frame, bad_version, bad_crc).
 KEY_MISMATCH = "key_mismatch"  # the sample's key is not the key of the route that received it
@@ -28,8 +39,17 @@ OLD_SESSION = "old_session"  # from a sender's run older than the one heard late
 DUPLICATE = "duplicates"
 STALE = "stale"
 WIRE_KINDS = (TRUNCATED, NOT_A_FRAME, BAD_VERSION, BAD_CRC)
-DROP_KINDS = WIRE_KINDS + (KEY_MISMATCH, WRONG_TOPIC, UNLISTED_TOPIC, UNKNOWN_TYPE, MD5_MISMATCH,
-                           TOPIC_TYPE_MISMATCH, OLD_SESSION, DUPLICATE, STALE)
+DROP_KINDS = WIRE_KINDS + (
+    KEY_MISMATCH,
+    WRONG_TOPIC,
+    UNLISTED_TOPIC,
+    UNKNOWN_TYPE,
+    MD5_MISMATCH,
+    TOPIC_TYPE_MISMATCH,
+    OLD_SESSION,
+    DUPLICATE,
+    STALE,
+)
 # The older counters the diagnostics kept (and dashboards read): sums of the kinds above.
 AGGREGATE = {"corrupt": WIRE_KINDS, "type_mismatch": (UNKNOWN_TYPE, MD5_MISMATCH, TOPIC_TYPE_MISMATCH)}
 # A frame from an older run of a sender is dropped while the newer run was heard this recently, s;
@@ -42,6 +62,7 @@ SESSIONS_KEPT = 4
 @dataclasses.dataclass(frozen=True)
 class Verdict:
     """What to do with one payload: publish `frame` on frame.topic (drop is None) or drop it."""
+
     frame: Optional[Frame]
     drop: Optional[str] = None
     detail: str = ""
@@ -62,8 +83,9 @@ class ReceivePath:
     `routes` are the routes this side receives, `md5_of(msg_type)` this side's md5 of a type (None
     when it has no such type)."""
 
-    def __init__(self, routes: Iterable[Route], key_prefix, md5_of: Callable[[str], Optional[str]],
-                 hold_s=SESSION_HOLD_S):
+    def __init__(
+        self, routes: Iterable[Route], key_prefix, md5_of: Callable[[str], Optional[str]], hold_s=SESSION_HOLD_S
+    ):
         self.routes = {r.to: r for r in routes}
         self.keys = {to: r.key(key_prefix) for to, r in self.routes.items()}
         self.md5_of = md5_of
@@ -158,8 +180,10 @@ class SendPath:
     def frame(self, topic, source, msg_type, md5, stamp_s, body) -> Optional[Frame]:
         """The next frame of `source` on `topic`, or None (counted) when the topic has another type."""
         with self._lock:
-            if self.table_types.get(topic, msg_type) != msg_type or \
-                    self.types.setdefault(topic, (msg_type, md5)) != (msg_type, md5):
+            if self.table_types.get(topic, msg_type) != msg_type or self.types.setdefault(topic, (msg_type, md5)) != (
+                msg_type,
+                md5,
+            ):
                 self.counts[TOPIC_TYPE_MISMATCH] += 1
                 return None
             key = (topic, source)

@@ -11,6 +11,7 @@ runner applies to a live cps_link link during a mission, logging every step to a
 A step changes only the values it names; the others keep their last value. Times are seconds
 from the start of the mission.
 """
+
 import dataclasses
 import os
 import threading
@@ -19,12 +20,26 @@ from typing import Optional, Tuple
 
 from cps_fleet.config import ConfigError, Reader, load_yaml_document
 
-SCENARIO_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "scenarios"))
+SCENARIO_DIR = os.path.normpath(
+    os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "scenarios")
+)
 SHAPING_KEYS = ("rate_mbps", "delay_ms", "jitter_ms", "loss_pct")
-LINK_EVENTS_COLUMNS = ("mission_time_s", "wall_time_s", "event", "rate_mbps", "delay_ms", "jitter_ms", "loss_pct",
-                       "note")
-_LIMITS = {"rate_mbps": (0.0, 10000.0, True), "delay_ms": (0.0, 10000.0, False), "jitter_ms": (0.0, 10000.0, False),
-           "loss_pct": (0.0, 99.0, False)}
+LINK_EVENTS_COLUMNS = (
+    "mission_time_s",
+    "wall_time_s",
+    "event",
+    "rate_mbps",
+    "delay_ms",
+    "jitter_ms",
+    "loss_pct",
+    "note",
+)
+_LIMITS = {
+    "rate_mbps": (0.0, 10000.0, True),
+    "delay_ms": (0.0, 10000.0, False),
+    "jitter_ms": (0.0, 10000.0, False),
+    "loss_pct": (0.0, 99.0, False),
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +65,7 @@ class Step:
 @dataclasses.dataclass(frozen=True)
 class LinkEvent:
     """What the runner does at `at_s`: "shape" (set `shaping`), "cut" or "restore"."""
+
     at_s: float
     kind: str
     shaping: Shaping
@@ -154,8 +170,7 @@ def _step(reader):
     where = f"{reader.doc.path}:{reader.doc.line(reader.key_path)}"
     at_s = reader.number("at_s", low=0.0, high=86400.0)
     changes = _changes(reader)
-    outage_s = reader.number("outage_s", low=0.0, high=86400.0, low_open=True) \
-        if reader.has("outage_s") else None
+    outage_s = reader.number("outage_s", low=0.0, high=86400.0, low_open=True) if reader.has("outage_s") else None
     if not changes and outage_s is None:
         raise reader.error(None, f"a step needs outage_s or one of {', '.join(SHAPING_KEYS)}")
     return Step(at_s, tuple(sorted(changes.items())), outage_s, where)
@@ -175,8 +190,11 @@ def _check_outages(scenario):
         if event.kind == "cut":
             if event.at_s < cut_until:
                 raise _at(event.where, f"outage at {event.at_s:g} s overlaps the one from {cut_where}")
-            cut_until = next(e.at_s for e in scenario.events() if e.kind == "restore" and e.at_s > event.at_s
-                             and e.where == event.where)
+            cut_until = next(
+                e.at_s
+                for e in scenario.events()
+                if e.kind == "restore" and e.at_s > event.at_s and e.where == event.where
+            )
             cut_where = event.where
 
 
@@ -233,16 +251,29 @@ class ScenarioRunner:
             netns_link.link_restore(self.link_name)
         s = event.shaping
         if self.netem:
-            netns_link.link_set(self.link_name, netns_link.tc_rate(s.rate_mbps), s.delay_ms, s.loss_pct,
-                                jitter_ms=s.jitter_ms)
+            netns_link.link_set(
+                self.link_name, netns_link.tc_rate(s.rate_mbps), s.delay_ms, s.loss_pct, jitter_ms=s.jitter_ms
+            )
             return ""
         netns_link.link_set(self.link_name, netns_link.tc_rate(s.rate_mbps))
         return "delay/jitter/loss not applied: this kernel has no sch_netem" if s.impaired else ""
 
     def _write(self, mission_s, kind, s, note):
         self.applied.append((mission_s, kind, s, note))
-        self.log(f"[link] {mission_s:6.1f} s {kind}: {s.rate_mbps:g} Mbit/s, delay {s.delay_ms:g}+-{s.jitter_ms:g} ms, "
-                 f"loss {s.loss_pct:g} %" + (f" ({note})" if note else ""))
+        self.log(
+            f"[link] {mission_s:6.1f} s {kind}: {s.rate_mbps:g} Mbit/s, delay {s.delay_ms:g}+-{s.jitter_ms:g} ms, "
+            f"loss {s.loss_pct:g} %" + (f" ({note})" if note else "")
+        )
         if self.csv_log:
-            self.csv_log.write((f"{mission_s:.3f}", f"{time.time():.3f}", kind, f"{s.rate_mbps:g}", f"{s.delay_ms:g}",
-                                f"{s.jitter_ms:g}", f"{s.loss_pct:g}", note))
+            self.csv_log.write(
+                (
+                    f"{mission_s:.3f}",
+                    f"{time.time():.3f}",
+                    kind,
+                    f"{s.rate_mbps:g}",
+                    f"{s.delay_ms:g}",
+                    f"{s.jitter_ms:g}",
+                    f"{s.loss_pct:g}",
+                    note,
+                )
+            )

@@ -8,20 +8,21 @@ one type: cps_link.receive_path), then republished under the contract's names. L
 source's last message for late subscribers and are re-sent when the link comes back. Liveliness
 tokens tell each side within a lease whether the other is there: /tissue/link_state.
 """
+
 import io
 import threading
 import time
 
 import roslib.message
 import rospy
-from cps_fleet import names
-from cps_msgs.msg import LinkState
 
+from cps_fleet import names
 from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
 from cps_link.bridge_config import ROBOTS, BridgeTable, Route, other_side
 from cps_link.bridge_wire import Frame, WireError, encode, header_frame_id, header_stamp_s
 from cps_link.link_health import LinkHealth
 from cps_link.receive_path import TOPIC_TYPE_MISMATCH, ReceivePath, SendPath
+from cps_msgs.msg import LinkState
 from cps_ros.diagnostics import DropReporter
 
 LINK_STATE_PERIOD_S = 1.0
@@ -61,10 +62,12 @@ def zenoh_qos(traffic):
     """The declare_publisher keyword arguments of a traffic class."""
     import zenoh
 
-    return {"priority": zenoh_qos_priority(traffic.priority),
-            "congestion_control": zenoh_congestion(traffic.congestion),
-            "reliability": zenoh.Reliability.RELIABLE if traffic.reliable else zenoh.Reliability.BEST_EFFORT,
-            "express": traffic.express}
+    return {
+        "priority": zenoh_qos_priority(traffic.priority),
+        "congestion_control": zenoh_congestion(traffic.congestion),
+        "reliability": zenoh.Reliability.RELIABLE if traffic.reliable else zenoh.Reliability.BEST_EFFORT,
+        "express": traffic.express,
+    }
 
 
 class _LatchedReplay(rospy.SubscribeListener):
@@ -103,22 +106,38 @@ class ZenohBridge:
             self._start_backfill(backfill_store_bytes)
         self.publishers, self.replays, self.zenoh_pubs, self.ros_subs, self.zenoh_subs = {}, {}, {}, [], []
         for route in table.incoming(side):
-            self.zenoh_subs.append(session.declare_subscriber(route.key(table.key_prefix),
-                                                              lambda sample, r=route: self._receive(sample, r)))
+            self.zenoh_subs.append(
+                session.declare_subscriber(
+                    route.key(table.key_prefix), lambda sample, r=route: self._receive(sample, r)
+                )
+            )
         for route in table.outgoing(side):
-            self.zenoh_pubs[route.to] = session.declare_publisher(route.key(table.key_prefix),
-                                                                  **zenoh_qos(route.traffic))
+            self.zenoh_pubs[route.to] = session.declare_publisher(
+                route.key(table.key_prefix), **zenoh_qos(route.traffic)
+            )
             if not route.from_ros:
                 continue
-            self.ros_subs.append(rospy.Subscriber(route.topic, rospy.AnyMsg, self._send, callback_args=route,
-                                                  queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
-                                                  buff_size=2 ** 24, tcp_nodelay=True))
+            self.ros_subs.append(
+                rospy.Subscriber(
+                    route.topic,
+                    rospy.AnyMsg,
+                    self._send,
+                    callback_args=route,
+                    queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
+                    buff_size=2**24,
+                    tcp_nodelay=True,
+                )
+            )
         self.token = session.liveliness().declare_token(table.liveliness_key(side, name))
         self.liveliness_sub = session.liveliness().declare_subscriber(
-            table.peer_liveliness_keys(side), self._on_liveliness, history=True)
+            table.peer_liveliness_keys(side), self._on_liveliness, history=True
+        )
         self.heartbeat_pub = session.declare_publisher(
-            table.heartbeat_key(side, name), priority=zenoh_qos_priority("real_time"), express=True,
-            congestion_control=zenoh_congestion("drop"))
+            table.heartbeat_key(side, name),
+            priority=zenoh_qos_priority("real_time"),
+            express=True,
+            congestion_control=zenoh_congestion("drop"),
+        )
         self.heartbeat_sub = session.declare_subscriber(table.peer_heartbeat_keys(side), self._on_heartbeat)
         self._publish_link_state()
         self.timer = rospy.Timer(rospy.Duration(LINK_STATE_PERIOD_S), self._tick)
@@ -232,8 +251,12 @@ class ZenohBridge:
                 if route.latched:
                     listener = self.replays[route.to] = _LatchedReplay()
                 pub = self.publishers[route.to] = rospy.Publisher(
-                    route.to, cls, queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
-                    subscriber_listener=listener, tcp_nodelay=True)
+                    route.to,
+                    cls,
+                    queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
+                    subscriber_listener=listener,
+                    tcp_nodelay=True,
+                )
                 new = True
             else:
                 new = False
@@ -274,8 +297,11 @@ class ZenohBridge:
         buff = io.BytesIO()
         pose.serialize(buff)
         pose_msg._buff = buff.getvalue()
-        pose_msg._connection_header = {"type": TransformStamped._type, "md5sum": TransformStamped._md5sum,
-                                       "callerid": rospy.get_name()}
+        pose_msg._connection_header = {
+            "type": TransformStamped._type,
+            "md5sum": TransformStamped._md5sum,
+            "callerid": rospy.get_name(),
+        }
         cloud_msg = rospy.AnyMsg()
         cloud_msg._buff = cloud.body
         cloud_msg._connection_header = {"type": cloud.msg_type, "md5sum": cloud.md5, "callerid": cloud.source}
@@ -299,8 +325,9 @@ class ZenohBridge:
             return pose
 
     def _on_allocation(self, allocation):
-        self.pacer.set_rate(unused_bytes_per_s(allocation.budget_mbytes_per_s, allocation.allocated_mbytes_per_s),
-                            time.monotonic())
+        self.pacer.set_rate(
+            unused_bytes_per_s(allocation.budget_mbytes_per_s, allocation.allocated_mbytes_per_s), time.monotonic()
+        )
 
     def _backfill_loop(self):
         backfill = self.table.backfill
@@ -310,15 +337,25 @@ class ZenohBridge:
             if keyframe is None or not self.pacer.take(keyframe.size_bytes, time.monotonic()):
                 continue
             keyframe = self.store.pop()
-            for to, payload in zip((backfill.pose_to[keyframe.robot], backfill.cloud_to[keyframe.robot]),
-                                   keyframe.payloads):
+            for to, payload in zip(
+                (backfill.pose_to[keyframe.robot], backfill.cloud_to[keyframe.robot]), keyframe.payloads
+            ):
                 self.zenoh_pubs[to].put(payload)
             self.reporter.count(backfill_sent=1, backfill_sent_bytes=keyframe.size_bytes)
 
     def backfill_counters(self):
         s = self.store
-        return {"backfill_kept": s.kept, "backfill_evicted": s.evicted, "backfill_refused": s.refused,
-                "backfill_stored": len(s), "backfill_stored_bytes": s.bytes} if s else {}
+        return (
+            {
+                "backfill_kept": s.kept,
+                "backfill_evicted": s.evicted,
+                "backfill_refused": s.refused,
+                "backfill_stored": len(s),
+                "backfill_stored_bytes": s.bytes,
+            }
+            if s
+            else {}
+        )
 
     # --- link health ------------------------------------------------------------------------
     def _on_liveliness(self, sample):
@@ -351,8 +388,10 @@ class ZenohBridge:
             self.resend_latched()
             threading.Timer(0.5, self.resend_latched).start()
         if down:
-            rospy.logwarn(f"{rospy.get_name()}: link down: {self.peer_side} bridge {peer and repr(peer) + ' '}"
-                          f"is gone ({why}; outage {self.health.outages})")
+            rospy.logwarn(
+                f"{rospy.get_name()}: link down: {self.peer_side} bridge {peer and repr(peer) + ' '}"
+                f"is gone ({why}; outage {self.health.outages})"
+            )
         if up or down:
             self._publish_link_state()
 
@@ -364,14 +403,22 @@ class ZenohBridge:
             # inserts nothing. The far side drops the copies it already has.
             self.resend_latched()
         if not self.health.ever_up and time.time() - self.started_s > NOT_UP_WARN_AFTER_S:
-            rospy.logwarn_throttle(10.0, f"{rospy.get_name()}: no {self.peer_side} bridge has come up yet "
-                                         f"({self.endpoint or 'listening'}); still trying")
+            rospy.logwarn_throttle(
+                10.0,
+                f"{rospy.get_name()}: no {self.peer_side} bridge has come up yet "
+                f"({self.endpoint or 'listening'}); still trying",
+            )
         self._publish_link_state()
 
     def link_state(self):
         h = self.health
-        return LinkState(up=h.up, since=rospy.Time.from_sec(h.since_s), outages=h.outages,
-                         last_outage_s=h.last_outage_s, peer=",".join(sorted(h.peers)) or self.peer_side)
+        return LinkState(
+            up=h.up,
+            since=rospy.Time.from_sec(h.since_s),
+            outages=h.outages,
+            last_outage_s=h.last_outage_s,
+            peer=",".join(sorted(h.peers)) or self.peer_side,
+        )
 
     def _publish_link_state(self):
         msg = self.link_state()

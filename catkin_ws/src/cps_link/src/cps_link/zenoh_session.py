@@ -3,14 +3,16 @@ lease (a silent peer is gone within a second) and endless reconnection. ROS-free
 
 The twin side listens on its own address, the robots' side connects to it; nobody scouts.
 """
+
 import json
 import os
 import subprocess
 
 from cps_link.bridge_config import ROBOTS, TWIN, BridgeTable
 
-MAKE_CERTS = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..",
-                                           "scripts", "make_certs"))
+MAKE_CERTS = os.path.normpath(
+    os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "scripts", "make_certs")
+)
 CERT_DIR_ENV = "CPS_CERT_DIR"
 
 
@@ -36,12 +38,17 @@ def ensure_certs(cert_dir):
 
 
 def cert_files(cert_dir, side):
-    files = {"ca": os.path.join(cert_dir, "ca.pem"), "cert": os.path.join(cert_dir, f"{side}.pem"),
-             "key": os.path.join(cert_dir, f"{side}.key")}
+    files = {
+        "ca": os.path.join(cert_dir, "ca.pem"),
+        "cert": os.path.join(cert_dir, f"{side}.pem"),
+        "key": os.path.join(cert_dir, f"{side}.key"),
+    }
     missing = [p for p in files.values() if not os.path.isfile(p)]
     if missing:
-        raise BridgeSetupError(f"missing TLS files {', '.join(missing)}; make them with "
-                               f"`{MAKE_CERTS} {cert_dir}` (see the cps_link README)")
+        raise BridgeSetupError(
+            f"missing TLS files {', '.join(missing)}; make them with "
+            f"`{MAKE_CERTS} {cert_dir}` (see the cps_link README)"
+        )
     return files
 
 
@@ -57,16 +64,23 @@ def session_config(table: BridgeTable, side, twin_address, cert_dir, tls=True):
         "mode": "peer",
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "listen": {"endpoints": [endpoint] if side == TWIN else [], "retry": retry},
-        "connect": {"endpoints": [endpoint] if side == ROBOTS else [], "timeout_ms": -1, "exit_on_failure": False,
-                    "retry": retry},
+        "connect": {
+            "endpoints": [endpoint] if side == ROBOTS else [],
+            "timeout_ms": -1,
+            "exit_on_failure": False,
+            "retry": retry,
+        },
         "transport": {"link": {"tx": {"lease": table.lease_ms, "keep_alive": table.keep_alive}}},
     }
     if tls:
         files = cert_files(cert_dir, side)
         config["transport"]["link"]["tls"] = {
-            "root_ca_certificate": files["ca"], "enable_mtls": True,
-            "listen_certificate": files["cert"], "listen_private_key": files["key"],
-            "connect_certificate": files["cert"], "connect_private_key": files["key"],
+            "root_ca_certificate": files["ca"],
+            "enable_mtls": True,
+            "listen_certificate": files["cert"],
+            "listen_private_key": files["key"],
+            "connect_certificate": files["cert"],
+            "connect_private_key": files["key"],
             "verify_name_on_connect": True,
         }
     return config
@@ -84,8 +98,17 @@ def open_session(config):
 def bridge_argv(python, side, twin_address, robots, cert_dir=None, port=None, fleet_file=None, name=None):
     """The command line of one side's zenoh_bridge node (bringup, tests and the benchmark)."""
     node = os.path.normpath(os.path.join(os.path.dirname(MAKE_CERTS), "..", "nodes", "zenoh_bridge"))
-    argv = [python, node, "--side", side, "--twin-address", twin_address, "--robots", ",".join(robots),
-            f"__name:=zenoh_bridge_{side}"]
+    argv = [
+        python,
+        node,
+        "--side",
+        side,
+        "--twin-address",
+        twin_address,
+        "--robots",
+        ",".join(robots),
+        f"__name:=zenoh_bridge_{side}",
+    ]
     for flag, value in (("--cert-dir", cert_dir), ("--port", port), ("--fleet", fleet_file), ("--name", name)):
         if value:
             argv += [flag, str(value)]

@@ -5,6 +5,7 @@ A .bt file holds its resolution but not its frame, so the map server writes a sm
 `<map>.json` (`{"frame_id": ..., "resolution_m": ...}`) next to every map it saves; a baseline
 whose sidecar names another frame is refused, one without a sidecar is taken as in `frame_id`.
 """
+
 import json
 import os
 
@@ -50,12 +51,16 @@ def load_baseline(path, mapping, frame_id="map") -> FusedLogOddsMap:
         raise BaselineError("no baseline map given: a monitoring mission compares the site with an earlier map")
     path = os.path.abspath(os.path.expanduser(path))
     if not os.path.isfile(path):
-        raise BaselineError(f"baseline map {path} does not exist (run a characterization mission first, "
-                            f"e.g. `make demo`, which saves out/demo/map.bt)")
+        raise BaselineError(
+            f"baseline map {path} does not exist (run a characterization mission first, "
+            f"e.g. `make demo`, which saves out/demo/map.bt)"
+        )
     frame = read_map_frame(path)
     if frame is not None and frame != frame_id:
-        raise BaselineError(f"baseline map {path} is in frame '{frame}' ({metadata_path(path)}), "
-                            f"this map is in '{frame_id}': the two cannot be compared")
+        raise BaselineError(
+            f"baseline map {path} is in frame '{frame}' ({metadata_path(path)}), "
+            f"this map is in '{frame_id}': the two cannot be compared"
+        )
     baseline = FusedLogOddsMap.from_mapping_config(mapping)
     try:
         baseline.load(path)

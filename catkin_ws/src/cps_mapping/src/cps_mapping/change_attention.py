@@ -2,6 +2,7 @@
 detection", section 5), without ROS: a robot within `radius_m` (horizontal) of a change that
 was not there at the previous detection gets high priority on the link.
 """
+
 import math
 from typing import Callable, Dict, List, Sequence, Tuple
 
@@ -19,8 +20,9 @@ class ChangeAttention:
 
     def _is_new(self, change):
         x, y = change.centroid_m[0], change.centroid_m[1]
-        return not any(kind == change.kind and math.hypot(x - sx, y - sy) <= self.same_change_m
-                       for kind, sx, sy in self._seen)
+        return not any(
+            kind == change.kind and math.hypot(x - sx, y - sy) <= self.same_change_m for kind, sx, sy in self._seen
+        )
 
     def robots_to_raise(self, changes: Sequence, positions_m: Callable[[], Dict[str, Tuple[float, float]]]):
         """[(robot, change)] for every change new since the last call and each robot near it;

@@ -16,6 +16,7 @@ with a new map of the same site:
   `min_cluster_voxels` are noise. Each cluster has a centroid, an axis-aligned size and a
   volume (voxels x resolution^3).
 """
+
 import dataclasses
 import functools
 import json
@@ -29,10 +30,10 @@ from cps_mapping.fused_map import index_to_center, near_any, voxel_index
 
 @dataclasses.dataclass
 class Change:
-    kind: str                 # "appeared" or "disappeared"
+    kind: str  # "appeared" or "disappeared"
     voxels: int
     centroid_m: tuple
-    size_m: tuple             # extent along x, y, z
+    size_m: tuple  # extent along x, y, z
     volume_m3: float
     min_m: tuple
     max_m: tuple
@@ -60,16 +61,29 @@ def _clusters(index, kind, resolution_m, min_cluster_voxels):
         centers = index_to_center(members, resolution_m)
         lo_m = members.min(axis=0) * resolution_m
         hi_m = (members.max(axis=0) + 1) * resolution_m
-        out.append(Change(kind=kind, voxels=int(len(members)), centroid_m=tuple(np.round(centers.mean(axis=0), 4).tolist()),
-                          size_m=tuple(np.round(hi_m - lo_m, 4).tolist()),
-                          volume_m3=float(len(members) * resolution_m ** 3),
-                          min_m=tuple(np.round(lo_m, 4).tolist()), max_m=tuple(np.round(hi_m, 4).tolist())))
+        out.append(
+            Change(
+                kind=kind,
+                voxels=int(len(members)),
+                centroid_m=tuple(np.round(centers.mean(axis=0), 4).tolist()),
+                size_m=tuple(np.round(hi_m - lo_m, 4).tolist()),
+                volume_m3=float(len(members) * resolution_m**3),
+                min_m=tuple(np.round(lo_m, 4).tolist()),
+                max_m=tuple(np.round(hi_m, 4).tolist()),
+            )
+        )
     return sorted(out, key=lambda c: -c.voxels)
 
 
-def detect_changes(baseline_centers_m, current_centers_m, resolution_m, tolerance_voxels=1, min_cluster_voxels=8,
-                   baseline_is_free: Optional[Callable] = None,
-                   current_is_free: Optional[Callable] = None) -> List[Change]:
+def detect_changes(
+    baseline_centers_m,
+    current_centers_m,
+    resolution_m,
+    tolerance_voxels=1,
+    min_cluster_voxels=8,
+    baseline_is_free: Optional[Callable] = None,
+    current_is_free: Optional[Callable] = None,
+) -> List[Change]:
     """Clusters of voxels that appeared or disappeared between two maps (see the module docstring)."""
     if tolerance_voxels < 0 or min_cluster_voxels < 1:
         raise ValueError("tolerance_voxels must be >= 0 and min_cluster_voxels >= 1")
@@ -81,8 +95,9 @@ def detect_changes(baseline_centers_m, current_centers_m, resolution_m, toleranc
         appeared = appeared[baseline_is_free(index_to_center(appeared, resolution_m))]
     if current_is_free is not None and len(disappeared):
         disappeared = disappeared[current_is_free(index_to_center(disappeared, resolution_m))]
-    return (_clusters(appeared, "appeared", resolution_m, min_cluster_voxels) +
-            _clusters(disappeared, "disappeared", resolution_m, min_cluster_voxels))
+    return _clusters(appeared, "appeared", resolution_m, min_cluster_voxels) + _clusters(
+        disappeared, "disappeared", resolution_m, min_cluster_voxels
+    )
 
 
 def detect_map_changes(baseline_map, current_map, free_max_probability=0.25, **kwargs) -> List[Change]:
@@ -90,22 +105,32 @@ def detect_map_changes(baseline_map, current_map, free_max_probability=0.25, **k
     most `free_max_probability`) vouching for the other's changes."""
     if abs(baseline_map.resolution_m - current_map.resolution_m) > 1e-9:
         raise ValueError("the two maps have different resolutions")
-    return detect_changes(baseline_map.occupied_centers(), current_map.occupied_centers(), current_map.resolution_m,
-                          baseline_is_free=functools.partial(baseline_map.is_free, max_probability=free_max_probability),
-                          current_is_free=functools.partial(current_map.is_free, max_probability=free_max_probability),
-                          **kwargs)
+    return detect_changes(
+        baseline_map.occupied_centers(),
+        current_map.occupied_centers(),
+        current_map.resolution_m,
+        baseline_is_free=functools.partial(baseline_map.is_free, max_probability=free_max_probability),
+        current_is_free=functools.partial(current_map.is_free, max_probability=free_max_probability),
+        **kwargs,
+    )
 
 
 def write_report(changes: List[Change], path, baseline_name="baseline", current_name="current"):
     """A Markdown report (and a .json twin) of the changes; returns the Markdown path."""
-    lines = [f"# Site changes: {current_name} against {baseline_name}", "",
-             f"{sum(c.kind == 'appeared' for c in changes)} appeared, "
-             f"{sum(c.kind == 'disappeared' for c in changes)} disappeared.", "",
-             "| # | change | centroid x, y, z (m) | size x, y, z (m) | volume (m³) | voxels |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        f"# Site changes: {current_name} against {baseline_name}",
+        "",
+        f"{sum(c.kind == 'appeared' for c in changes)} appeared, "
+        f"{sum(c.kind == 'disappeared' for c in changes)} disappeared.",
+        "",
+        "| # | change | centroid x, y, z (m) | size x, y, z (m) | volume (m³) | voxels |",
+        "|---|---|---|---|---|---|",
+    ]
     for i, c in enumerate(changes, 1):
-        lines.append(f"| {i} | {c.kind} | {', '.join(f'{v:.2f}' for v in c.centroid_m)} | "
-                     f"{', '.join(f'{v:.2f}' for v in c.size_m)} | {c.volume_m3:.3f} | {c.voxels} |")
+        lines.append(
+            f"| {i} | {c.kind} | {', '.join(f'{v:.2f}' for v in c.centroid_m)} | "
+            f"{', '.join(f'{v:.2f}' for v in c.size_m)} | {c.volume_m3:.3f} | {c.voxels} |"
+        )
     with open(path, "w") as stream:
         stream.write("\n".join(lines) + "\n")
     with open(str(path).rsplit(".", 1)[0] + ".json", "w") as stream:

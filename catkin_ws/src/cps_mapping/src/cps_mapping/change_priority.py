@@ -1,5 +1,6 @@
 """The map server's change-detection timer: publish the changes, and give robots near a new change
 high priority through cps_bw_manager's /tissue/set_priority (the paper's section 5 trigger)."""
+
 from cps_fleet import names
 
 
@@ -29,8 +30,10 @@ def change_detection_timer(server, options, log, transform_of):
         for robot, change in attention.robots_to_raise(changes, positions) if attention else ():
             try:
                 reply = set_priority(robot=robot, priority=1)
-                log.info(f"map_server: {change.kind} change at ({change.centroid_m[0]:.1f}, {change.centroid_m[1]:.1f}) "
-                         f"near {robot}: high priority {'granted' if reply.success else 'refused: ' + reply.message}")
+                log.info(
+                    f"map_server: {change.kind} change at ({change.centroid_m[0]:.1f}, {change.centroid_m[1]:.1f}) "
+                    f"near {robot}: high priority {'granted' if reply.success else 'refused: ' + reply.message}"
+                )
             except (rospy.ServiceException, rospy.ROSException) as exc:
                 log.warning(f"map_server: could not raise {robot}'s priority: {exc}")
 

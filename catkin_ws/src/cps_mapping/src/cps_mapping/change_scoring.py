@@ -8,6 +8,7 @@ first. Precision is matched detections over detections, recall matched expectati
 expectations. The position error of a match is the horizontal distance between the detected
 place and the centre of the changed item's footprint.
 """
+
 import dataclasses
 import math
 from typing import List, Optional, Sequence, Tuple
@@ -43,8 +44,13 @@ class ChangeScore:
         return next((m for m in self.matches if m.detected_index == index), None)
 
     def as_dict(self):
-        return {"precision": self.precision, "recall": self.recall, "detected": self.detected,
-                "expected": self.expected, "matches": [dataclasses.asdict(m) for m in self.matches]}
+        return {
+            "precision": self.precision,
+            "recall": self.recall,
+            "detected": self.detected,
+            "expected": self.expected,
+            "matches": [dataclasses.asdict(m) for m in self.matches],
+        }
 
 
 def detected_place(change):

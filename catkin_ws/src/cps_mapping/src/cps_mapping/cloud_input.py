@@ -1,4 +1,5 @@
 """Checks and transforms an incoming sensor cloud before it may enter the map."""
+
 import dataclasses
 
 import numpy as np
@@ -10,10 +11,10 @@ class InvalidInput(ValueError):
 
 @dataclasses.dataclass
 class PreparedCloud:
-    points_m: np.ndarray     # N x 3 in map
-    origin_m: np.ndarray     # sensor origin in map
-    non_finite: int          # NaN/inf points removed (normal for depth clouds: no return)
-    absurd: int              # points farther than the sanity limit, removed
+    points_m: np.ndarray  # N x 3 in map
+    origin_m: np.ndarray  # sensor origin in map
+    non_finite: int  # NaN/inf points removed (normal for depth clouds: no return)
+    absurd: int  # points farther than the sanity limit, removed
 
 
 def quaternion_matrix(x, y, z, w):
@@ -23,9 +24,13 @@ def quaternion_matrix(x, y, z, w):
     if not np.isfinite(norm) or norm < 1e-9:
         raise InvalidInput(f"transform has an invalid rotation quaternion {q.tolist()}")
     x, y, z, w = q / norm
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def prepare_cloud(xyz_sensor, rotation, translation_m, max_points_range_m):
@@ -36,12 +41,13 @@ def prepare_cloud(xyz_sensor, rotation, translation_m, max_points_range_m):
         raise InvalidInput("empty cloud")
     finite = np.isfinite(xyz).all(axis=1)
     sane = finite.copy()
-    sane[finite] = np.einsum("ij,ij->i", xyz[finite], xyz[finite]) <= max_points_range_m ** 2
+    sane[finite] = np.einsum("ij,ij->i", xyz[finite], xyz[finite]) <= max_points_range_m**2
     non_finite = int((~finite).sum())
     absurd = int((finite & ~sane).sum())
     if not sane.any():
-        raise InvalidInput(f"no usable point among {len(xyz)} ({non_finite} non-finite, {absurd} farther than "
-                           f"{max_points_range_m} m)")
+        raise InvalidInput(
+            f"no usable point among {len(xyz)} ({non_finite} non-finite, {absurd} farther than {max_points_range_m} m)"
+        )
     origin = np.asarray(translation_m, dtype=np.float64).reshape(3)
     if not np.isfinite(origin).all():
         raise InvalidInput(f"transform has a non-finite translation {origin.tolist()}")

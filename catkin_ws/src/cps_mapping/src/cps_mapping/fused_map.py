@@ -14,6 +14,7 @@ equals, to float rounding, the map plain sequential insertion builds.
 Voxels are named by their grid index i = floor(p / resolution); the voxel centre is
 (i + 0.5) * resolution, OctoMap's grid.
 """
+
 import dataclasses
 import math
 import os
@@ -49,6 +50,7 @@ class InsertResult:
 @dataclasses.dataclass
 class LeafArrays:
     """Every leaf of the tree at one moment: centre (m), edge (m) and log-odds."""
+
     centers_m: np.ndarray
     sizes_m: np.ndarray
     log_odds: np.ndarray
@@ -125,8 +127,15 @@ def height_colors(z_m, z_min_m=None, z_max_m=None):
     f = np.where(i % 2 == 0, 1.0 - f, f)
     n = 1.0 - f  # with s = v = 1: m = 0, n = v * (1 - s * f)
     one, zero = np.ones_like(z), np.zeros_like(z)
-    table = {0: (one, n, zero), 1: (n, one, zero), 2: (zero, one, n), 3: (zero, n, one), 4: (n, zero, one),
-             5: (one, zero, n), 6: (one, zero, n)}
+    table = {
+        0: (one, n, zero),
+        1: (n, one, zero),
+        2: (zero, one, n),
+        3: (zero, n, one),
+        4: (n, zero, one),
+        5: (one, zero, n),
+        6: (one, zero, n),
+    }
     rgb = np.zeros((len(z), 3))
     for k, (r, g, b) in table.items():
         sel = i == k
@@ -155,8 +164,9 @@ class FusedLogOddsMap:
     Not thread-safe: the map server serializes access with one lock.
     """
 
-    def __init__(self, resolution_m, sensor_model, max_grid_voxels=200_000_000,
-                 exact_free_space=False, shared_ray_stop_m=0.3):
+    def __init__(
+        self, resolution_m, sensor_model, max_grid_voxels=200_000_000, exact_free_space=False, shared_ray_stop_m=0.3
+    ):
         """`sensor_model`: hit, miss, min, max probabilities (fleet.yaml `mapping.sensor_model`).
         Every cloud is cast from its own origin. `max_grid_voxels` bounds the log-odds grid (6 bytes per voxel; default 1.2 GB): a batch that would grow it beyond is
         refused (ValueError). `exact_free_space`: True casts every ray whole, as OctoMap does
@@ -229,8 +239,13 @@ class FusedLogOddsMap:
 
     def _new_grid(self):
         tree = self._new_tree(self.resolution_m)  # OctoMap's own float32 log-odds of the model
-        return LogOddsGrid(self.resolution_m, tree.getProbHitLog(), tree.getProbMissLog(),
-                           tree.getClampingThresMinLog(), tree.getClampingThresMaxLog())
+        return LogOddsGrid(
+            self.resolution_m,
+            tree.getProbHitLog(),
+            tree.getProbMissLog(),
+            tree.getClampingThresMinLog(),
+            tree.getClampingThresMaxLog(),
+        )
 
     # ---- insertion -------------------------------------------------------------------------
 
@@ -264,21 +279,30 @@ class FusedLogOddsMap:
         if bounds:
             needed = grid.voxels_to_hold(np.min([b[0] for b in bounds], axis=0), np.max([b[1] for b in bounds], axis=0))
             if needed > self.max_grid_voxels:
-                raise ValueError(f"these clouds would grow the map's log-odds grid to {needed} voxels "
-                                 f"({needed * 6 / 1e9:.1f} GB), over the limit of {self.max_grid_voxels} "
-                                 f"(sensor origin far from the map?); nothing inserted")
+                raise ValueError(
+                    f"these clouds would grow the map's log-odds grid to {needed} voxels "
+                    f"({needed * 6 / 1e9:.1f} GB), over the limit of {self.max_grid_voxels} "
+                    f"(sensor origin far from the map?); nothing inserted"
+                )
         robot_id = self._robot_id(robot)
         cast = 0
         for origin, cloud in prepared:
             if len(cloud[0]) == 0:
                 continue
-            grid.integrate_cloud(cloud, origin, max_range_m, robot_id, exact=self.exact_free_space,
-                                 stop_run=self._stop_run)
+            grid.integrate_cloud(
+                cloud, origin, max_range_m, robot_id, exact=self.exact_free_space, stop_run=self._stop_run
+            )
             cast += 1
         if inserted:
             self.version += 1
-        return InsertResult(clouds=len(prepared), points_in=points_in, points_inserted=inserted,
-                            points_rejected=points_in - inserted, groups=cast, seconds=time.perf_counter() - start)
+        return InsertResult(
+            clouds=len(prepared),
+            points_in=points_in,
+            points_inserted=inserted,
+            points_rejected=points_in - inserted,
+            groups=cast,
+            seconds=time.perf_counter() - start,
+        )
 
     def _robot_id(self, robot):
         if robot not in self._robots:
@@ -299,8 +323,11 @@ class FusedLogOddsMap:
         appear here expanded.
         """
         flat, log_odds = self._grid.known()
-        return LeafArrays(index_to_center(self._grid.index_of_flat(flat), self.resolution_m),
-                          np.full(len(flat), self.resolution_m), log_odds.astype(np.float64))
+        return LeafArrays(
+            index_to_center(self._grid.index_of_flat(flat), self.resolution_m),
+            np.full(len(flat), self.resolution_m),
+            log_odds.astype(np.float64),
+        )
 
     def occupied_index(self):
         """Grid indices of every occupied finest-resolution voxel (pruned leaves expanded)."""
@@ -338,7 +365,7 @@ class FusedLogOddsMap:
             raise ValueError(f"max_probability must be in (0, 1), got {max_probability}")
         grid = self._grid
         flat = grid.flat(grid.index_of(np.asarray(points_m, dtype=np.float64).reshape(-1, 3)))
-        if not len(flat) or not grid.log_odds.size:   # no point, or a map that has nothing yet
+        if not len(flat) or not grid.log_odds.size:  # no point, or a map that has nothing yet
             return np.zeros(len(flat), dtype=bool)
         log_odds = np.where(flat >= 0, grid.log_odds[np.maximum(flat, 0)], np.nan)
         with np.errstate(invalid="ignore"):
@@ -385,8 +412,12 @@ class FusedLogOddsMap:
 
     def stats(self):
         """`tree_nodes`: nodes of the published (.bt: max likelihood, pruned) tree."""
-        return {"occupied_voxels": int(len(self.occupied_index())), "tree_nodes": self.binary_tree_nodes(),
-                "memory_bytes": self.memory_bytes(), "grid_bytes": int(self._grid.nbytes)}
+        return {
+            "occupied_voxels": int(len(self.occupied_index())),
+            "tree_nodes": self.binary_tree_nodes(),
+            "memory_bytes": self.memory_bytes(),
+            "grid_bytes": int(self._grid.nbytes),
+        }
 
     # ---- editing ---------------------------------------------------------------------------
 
@@ -473,17 +504,20 @@ def _finest_voxels(tree, resolution_m, max_grid_voxels=None):
     """(grid index, log-odds) of every finest voxel a tree holds (pruned leaves expanded);
     MapFileError before expanding if their bounding box (with the grid's margin) holds more than
     `max_grid_voxels` voxels (a coarse pruned leaf, or voxels kilometres apart)."""
-    rows = np.array([(it.getX(), it.getY(), it.getZ(), it.getSize(), it.getValue())
-                     for it in tree.begin_leafs()], dtype=np.float64).reshape(-1, 5)
+    rows = np.array(
+        [(it.getX(), it.getY(), it.getZ(), it.getSize(), it.getValue()) for it in tree.begin_leafs()], dtype=np.float64
+    ).reshape(-1, 5)
     cells = np.maximum(np.rint(rows[:, 3] / resolution_m).astype(np.int64), 1)
     if len(rows) and max_grid_voxels is not None:
         lo = np.rint((rows[:, :3] - rows[:, 3:4] / 2) / resolution_m).astype(np.int64)
         span = (lo + cells[:, None]).max(axis=0) - lo.min(axis=0) + 2 * GRID_MARGIN_VOXELS
         needed = int(np.prod(span.astype(np.float64)))
         if needed > max_grid_voxels:
-            raise MapFileError(f"its {len(rows)} leaves span {' x '.join(str(int(n)) for n in span)} voxels "
-                               f"({needed:.3g}, {needed * 6 / 1e9:.3g} GB), over the map's limit of "
-                               f"{max_grid_voxels} (max_grid_voxels); not loaded")
+            raise MapFileError(
+                f"its {len(rows)} leaves span {' x '.join(str(int(n)) for n in span)} voxels "
+                f"({needed:.3g}, {needed * 6 / 1e9:.3g} GB), over the map's limit of "
+                f"{max_grid_voxels} (max_grid_voxels); not loaded"
+            )
     index = expand_leaves(rows[:, :3], rows[:, 3], resolution_m)
     order = np.argsort(cells, kind="stable")  # expand_leaves groups by leaf size, in ascending order
     values = np.repeat(rows[order, 4], cells[order] ** 3)
@@ -539,8 +573,10 @@ def read_octree_file(path, expected_resolution_m=None):
         raise MapFileError(f"cannot read {path}: {exc.strerror or exc}") from exc
     is_binary, _, size, res, _ = parse_header(data, path)
     if is_binary != binary:
-        raise MapFileError(f"{path}: the extension says {'.bt' if binary else '.ot'} but the content is "
-                           f"{'binary (.bt)' if is_binary else 'full (.ot)'}")
+        raise MapFileError(
+            f"{path}: the extension says {'.bt' if binary else '.ot'} but the content is "
+            f"{'binary (.bt)' if is_binary else 'full (.ot)'}"
+        )
     if expected_resolution_m is not None and not math.isclose(res, expected_resolution_m, rel_tol=1e-6):
         raise MapFileError(f"{path}: resolution {res} m differs from the map's {expected_resolution_m} m")
     tree = octree_from_bytes(data, path)
@@ -578,8 +614,16 @@ def octree_from_message(binary, tree_id, resolution_m, body: bytes):
     if not binary:
         raise MapFileError("octomap message: only binary (.bt) bodies can be rebuilt without their node count")
     size = binary_body_node_count(body)
-    header = BT_HEADER + b"\n#\nid " + tree_id.encode() + b"\nsize " + str(size).encode() + \
-        b"\nres " + repr(float(resolution_m)).encode() + b"\ndata\n"
+    header = (
+        BT_HEADER
+        + b"\n#\nid "
+        + tree_id.encode()
+        + b"\nsize "
+        + str(size).encode()
+        + b"\nres "
+        + repr(float(resolution_m)).encode()
+        + b"\ndata\n"
+    )
     return octree_from_bytes(header + bytes(body), "octomap message")
 
 

@@ -15,6 +15,7 @@ and not saved (`compiled_kernels()` names it, the map server reports it).
 
 Usage: `@kernel_cache.njit(nogil=True)` in place of `@numba.njit(cache=True, nogil=True)`.
 """
+
 import hashlib
 import os
 import shutil
@@ -93,11 +94,13 @@ class _KernelCache(FunctionCache):
 
 def njit(**options):
     """numba.njit whose machine code is cached by content (this module's docstring)."""
+
     def wrap(py_func):
         dispatcher = numba.njit(**options)(py_func)
         dispatcher._cache = _KernelCache(dispatcher.py_func)
         _KERNELS.append(dispatcher)
         return dispatcher
+
     return wrap
 
 

@@ -26,6 +26,7 @@ log-odds when one is asked for. Memory: 6 bytes per voxel (float32 log-odds, a o
 the last cloud that cleared or hit it, the last robot that hit it) of the bounding box of
 everything seen (0.05 m over a 21 x 16 x 3.5 m hall: about 56 MB).
 """
+
 import dataclasses
 import math
 import time
@@ -92,8 +93,26 @@ def _prepare(points, origin, max_range, res_factor):
 
 
 @kernel_cache.njit(nogil=True)
-def _integrate(points, origin, max_range, resolution, lo, dims, log_odds, stamp, owner, free_code, hit_code, robot_id,
-               hit, miss, clamp_min, clamp_max, exact, stop_run):
+def _integrate(
+    points,
+    origin,
+    max_range,
+    resolution,
+    lo,
+    dims,
+    log_odds,
+    stamp,
+    owner,
+    free_code,
+    hit_code,
+    robot_id,
+    hit,
+    miss,
+    clamp_min,
+    clamp_max,
+    exact,
+    stop_run,
+):
     """One cloud into the grid (see the module docstring); returns the voxel steps walked.
     exact: OctoMap's computeRayKeys from the origin; else back from each endpoint, stopping after
     `stop_run` consecutive voxels this cloud already cleared."""
@@ -209,6 +228,7 @@ def _integrate(points, origin, max_range, resolution, lo, dims, log_odds, stamp,
 
 
 # ---- OctoMap's binary stream from the grid --------------------------------------------------------
+
 
 @kernel_cache.njit(nogil=True)
 def _finest_states(log_odds, occ_threshold):
@@ -337,21 +357,25 @@ def binary_tree_body(log_odds, lo, dims, occ_threshold=0.0):
         ds.append(cd)
     # levels[i] holds the nodes of depth 15 - i; the last is the root (depth 0)
     offsets = np.cumsum([0] + [len(level) for level in levels]).astype(np.int64)
-    body, nodes = _write_preorder(np.concatenate(levels), offsets, np.stack(los).astype(np.int64),
-                                  np.stack(ds).astype(np.int64))
+    body, nodes = _write_preorder(
+        np.concatenate(levels), offsets, np.stack(los).astype(np.int64), np.stack(ds).astype(np.int64)
+    )
     return body.tobytes(), int(nodes)
 
 
 def binary_tree_file(log_odds, lo, dims, resolution_m, occ_threshold=0.0):
     """(whole .bt file bytes, node count), header as OctoMap's writeBinary writes it."""
     body, nodes = binary_tree_body(log_odds, lo, dims, occ_threshold)
-    header = ("# Octomap OcTree binary file\n"
-              "# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
-              f"id OcTree\nsize {nodes}\nres {resolution_m:g}\ndata\n").encode()
+    header = (
+        "# Octomap OcTree binary file\n"
+        "# (feel free to add / change comments, but leave the first line as it is!)\n#\n"
+        f"id OcTree\nsize {nodes}\nres {resolution_m:g}\ndata\n"
+    ).encode()
     return header + body, nodes
 
 
 # ---- Z order, for writing voxels into an OcTree --------------------------------------------------
+
 
 def _spread_bits(v):
     v = (v | (v << 32)) & 0x1F00000000FFFF
@@ -424,8 +448,10 @@ class LogOddsGrid:
         if self.dims.all() and np.all(lo_index >= self.lo) and np.all(hi_index < self.lo + self.dims):
             return None
         if self.dims.all():
-            return (np.minimum(self.lo, lo_index - GRID_MARGIN_VOXELS),
-                    np.maximum(self.lo + self.dims, hi_index + 1 + GRID_MARGIN_VOXELS))
+            return (
+                np.minimum(self.lo, lo_index - GRID_MARGIN_VOXELS),
+                np.maximum(self.lo + self.dims, hi_index + 1 + GRID_MARGIN_VOXELS),
+            )
         return lo_index - GRID_MARGIN_VOXELS, hi_index + 1 + GRID_MARGIN_VOXELS
 
     def voxels_to_hold(self, lo_index, hi_index):
@@ -467,10 +493,26 @@ class LogOddsGrid:
         if self._cloud_id > 127:  # one byte of stamp per voxel: start over every 127 clouds
             self.stamp[:] = 0
             self._cloud_id = 1
-        self.steps += _integrate(points, _origin32(origin_m), _max_range_arg(max_range_m), self.resolution_m, self.lo, self.dims, self.log_odds,
-                                 self.stamp, self.owner, np.uint8(2 * self._cloud_id), np.uint8(2 * self._cloud_id + 1),
-                                 np.uint8(robot_id), self.hit,
-                                 self.miss, self.clamp_min, self.clamp_max, bool(exact), np.int64(stop_run))
+        self.steps += _integrate(
+            points,
+            _origin32(origin_m),
+            _max_range_arg(max_range_m),
+            self.resolution_m,
+            self.lo,
+            self.dims,
+            self.log_odds,
+            self.stamp,
+            self.owner,
+            np.uint8(2 * self._cloud_id),
+            np.uint8(2 * self._cloud_id + 1),
+            np.uint8(robot_id),
+            self.hit,
+            self.miss,
+            self.clamp_min,
+            self.clamp_max,
+            bool(exact),
+            np.int64(stop_run),
+        )
 
     @property
     def nbytes(self):
@@ -502,7 +544,7 @@ class LogOddsGrid:
         distinct, starts = np.unique(values[order], return_index=True)
         bounds = list(starts) + [len(order)]
         for k, value in enumerate(distinct):
-            rows = order[bounds[k]:bounds[k + 1]]
+            rows = order[bounds[k] : bounds[k + 1]]
             tree.updateNodes(centers[rows].tolist(), float(value), True)
         tree.updateInnerOccupancy()
 
@@ -519,6 +561,7 @@ class LogOddsGrid:
 @dataclasses.dataclass(frozen=True)
 class WarmUp:
     """What `warm_up` measured."""
+
     load_s: float  # first call of every kernel: loaded from the build-time cache (or compiled)
     insertion_ms: float  # one cloud inserted after that: the speed the first real cloud gets
     compiled: Tuple[str, ...]  # kernels this process compiled; () when the cache held them all

@@ -1,4 +1,5 @@
 """The map server's messages built from numpy arrays and the map's figures; no master needed."""
+
 from typing import Sequence
 
 import numpy as np
@@ -46,12 +47,19 @@ def robot_map_stats(robot: str, counters, queue_length: int, now_s: float, contr
     """One robot's RobotMapStats from its `RobotCounters`."""
     c = counters
     return RobotMapStats(
-        robot=robot, clouds_received=c.clouds_received, clouds_inserted=c.clouds_inserted,
-        clouds_dropped_queue=c.clouds_dropped_queue, clouds_dropped_tf=c.clouds_dropped_tf,
-        clouds_dropped_invalid=c.clouds_dropped_invalid, queue_length=queue_length,
-        insertion_ms_avg=c.insertion_ms_avg, insertion_ms_max=c.insertion_ms_max,
-        points_inserted=c.points_inserted, map_age_s=c.map_age_s(now_s),
-        occupied_voxels_contributed=contributed_voxels)
+        robot=robot,
+        clouds_received=c.clouds_received,
+        clouds_inserted=c.clouds_inserted,
+        clouds_dropped_queue=c.clouds_dropped_queue,
+        clouds_dropped_tf=c.clouds_dropped_tf,
+        clouds_dropped_invalid=c.clouds_dropped_invalid,
+        queue_length=queue_length,
+        insertion_ms_avg=c.insertion_ms_avg,
+        insertion_ms_max=c.insertion_ms_max,
+        points_inserted=c.points_inserted,
+        map_age_s=c.map_age_s(now_s),
+        occupied_voxels_contributed=contributed_voxels,
+    )
 
 
 def map_stats(header: Header, resolution_m: float, snapshot, robots: Sequence[RobotMapStats]) -> MapStats:
@@ -70,18 +78,29 @@ def change_markers(changes, header: Header) -> MarkerArray:
     array = MarkerArray(markers=[Marker(header=header, ns="map_changes", action=Marker.DELETEALL)])
     for i, change in enumerate(changes):
         rgba = _APPEARED_RGBA if change.kind == "appeared" else _DISAPPEARED_RGBA
-        box = Marker(header=header, ns="map_changes", id=2 * i + 1, type=Marker.CUBE, action=Marker.ADD,
-                     color=ColorRGBA(*rgba), text=change.kind)
+        box = Marker(
+            header=header,
+            ns="map_changes",
+            id=2 * i + 1,
+            type=Marker.CUBE,
+            action=Marker.ADD,
+            color=ColorRGBA(*rgba),
+            text=change.kind,
+        )
         box.pose.position = Point(*((np.asarray(change.min_m) + change.max_m) / 2).tolist())
         box.pose.orientation.w = 1.0
         box.scale.x, box.scale.y, box.scale.z = change.size_m
-        text = Marker(header=header, ns="map_changes", id=2 * i + 2, type=Marker.TEXT_VIEW_FACING,
-                      action=Marker.ADD, color=ColorRGBA(1.0, 1.0, 1.0, 1.0),
-                      text=f"{change.kind} {change.volume_m3:.2f} m3")
-        text.pose.position = Point(change.centroid_m[0], change.centroid_m[1],
-                                   change.max_m[2] + _CHANGE_TEXT_LIFT_M)
+        text = Marker(
+            header=header,
+            ns="map_changes",
+            id=2 * i + 2,
+            type=Marker.TEXT_VIEW_FACING,
+            action=Marker.ADD,
+            color=ColorRGBA(1.0, 1.0, 1.0, 1.0),
+            text=f"{change.kind} {change.volume_m3:.2f} m3",
+        )
+        text.pose.position = Point(change.centroid_m[0], change.centroid_m[1], change.max_m[2] + _CHANGE_TEXT_LIFT_M)
         text.pose.orientation.w = 1.0
         text.scale.z = 0.3
         array.markers += [box, text]
     return array
-

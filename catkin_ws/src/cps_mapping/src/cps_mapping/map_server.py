@@ -6,6 +6,7 @@ robot (bounded, fair) and inserted into one FusedLogOddsMap by whoever calls `in
 callables; the `on_*` service handlers take and return cps_msgs/std_srvs types. The node wires
 this to rospy; the tests drive it directly.
 """
+
 import dataclasses
 import logging
 import math
@@ -41,41 +42,65 @@ def _option(default, meaning, unit="", **bounds):
 @dataclasses.dataclass(frozen=True)
 class MapServerOptions:
     """The map server's settings, one per private parameter of the node (same name)."""
-    fleet_file: str = _option("", "fleet.yaml: robots, resolution, sensor model, max ranges, autosave period "
-                                  "(empty: cps_bringup's)", "path")
-    robots: Tuple[str, ...] = _option((), "robots to map (list or comma string; empty: the whole fleet); "
-                                          "names not in the fleet are logged and ignored")
+
+    fleet_file: str = _option(
+        "", "fleet.yaml: robots, resolution, sensor model, max ranges, autosave period (empty: cps_bringup's)", "path"
+    )
+    robots: Tuple[str, ...] = _option(
+        (),
+        "robots to map (list or comma string; empty: the whole fleet); names not in the fleet are logged and ignored",
+    )
     frame_id: str = _option("map", "fixed frame")
     tf_timeout_s: float = _option(0.5, "longest wait for a cloud's transform, then it is dropped", "s", low=0.0)
     queue_size: int = _option(3, "clouds queued per robot; a full queue drops its oldest", "clouds", low=1)
-    publish_period_s: float = _option(1.0, "map, markers, centres and projected map (if the map changed)", "s",
-                                      low=0.0, low_open=True)
+    publish_period_s: float = _option(
+        1.0, "map, markers, centres and projected map (if the map changed)", "s", low=0.0, low_open=True
+    )
     map_file: str = _option("", "autosave target (.bt or .ot), saved on shutdown, resumed at start", "path")
-    map_folder: str = _option("", "save_map and load_map accept only paths inside this folder, symlinks and .. "
-                                  "resolved (empty: the folder of ~map_file; neither: only ~map_file itself)", "path")
-    autosave_period_s: Optional[float] = _option(None, "0: only on shutdown and on request (default: fleet.yaml "
-                                                       "mapping.autosave_period_s)", "s", low=0.0)
-    max_points_range_m: float = _option(200.0, "points farther from the sensor are absurd: removed, counted", "m",
-                                        low=0.0, low_open=True)
-    exact_free_space: bool = _option(False, "true: every ray cast whole (plain OctoMap insertion); false: "
-                                            "shared-origin casting")
-    shared_ray_stop_m: float = _option(0.3, "shared-origin casting: a ray stops after this length of voxels its "
-                                            "cloud already cleared", "m", low=0.0, low_open=True)
+    map_folder: str = _option(
+        "",
+        "save_map and load_map accept only paths inside this folder, symlinks and .. "
+        "resolved (empty: the folder of ~map_file; neither: only ~map_file itself)",
+        "path",
+    )
+    autosave_period_s: Optional[float] = _option(
+        None, "0: only on shutdown and on request (default: fleet.yaml mapping.autosave_period_s)", "s", low=0.0
+    )
+    max_points_range_m: float = _option(
+        200.0, "points farther from the sensor are absurd: removed, counted", "m", low=0.0, low_open=True
+    )
+    exact_free_space: bool = _option(
+        False, "true: every ray cast whole (plain OctoMap insertion); false: shared-origin casting"
+    )
+    shared_ray_stop_m: float = _option(
+        0.3,
+        "shared-origin casting: a ray stops after this length of voxels its cloud already cleared",
+        "m",
+        low=0.0,
+        low_open=True,
+    )
     projected_min_z_m: float = _option(0.1, "lower bound of the projected map's height band", "m")
     projected_max_z_m: float = _option(2.0, "upper bound of the projected map's height band", "m")
     baseline_map: str = _option("", "baseline map of the same site for map_changes", "path")
     change_period_s: float = _option(5.0, "change detection period", "s", low=0.0, low_open=True)
     change_report: str = _option("", "Markdown (+ .json) report written at each change detection", "path")
-    change_tolerance_voxels: int = _option(2, "a voxel changed if no voxel of the other map lies this near: absorbs "
-                                              "thin structures (fence rails) seen from other viewpoints", "voxels", low=0)
+    change_tolerance_voxels: int = _option(
+        2,
+        "a voxel changed if no voxel of the other map lies this near: absorbs "
+        "thin structures (fence rails) seen from other viewpoints",
+        "voxels",
+        low=0,
+    )
     change_min_cluster_voxels: int = _option(10, "smaller clusters of changed voxels are noise", "voxels", low=1)
-    change_attention_radius_m: float = _option(ATTENTION_RADIUS_M, "a robot this near a newly found change gets "
-                                                                   "high link priority (0: never)", "m", low=0.0)
+    change_attention_radius_m: float = _option(
+        ATTENTION_RADIUS_M, "a robot this near a newly found change gets high link priority (0: never)", "m", low=0.0
+    )
 
 
 @dataclasses.dataclass
 class RobotCounters:
     """What RobotMapStats reports for one robot."""
+
     clouds_received: int = 0
     clouds_inserted: int = 0
     clouds_dropped_queue: int = 0
@@ -101,6 +126,7 @@ class RobotCounters:
 @dataclasses.dataclass(frozen=True)
 class MapSnapshot:
     """What the publishers send for one map version, taken under the map lock."""
+
     version: int
     leaf_centers_m: np.ndarray
     leaf_sizes_m: np.ndarray
@@ -115,6 +141,7 @@ class MapSnapshot:
 @dataclasses.dataclass(frozen=True)
 class MapOutputs:
     """One publish callable per output topic (a rospy Publisher's `publish`; a list's `append` in tests)."""
+
     octomap: Callable
     markers: Callable
     centers: Callable
@@ -133,8 +160,14 @@ class TransformUnavailable(Exception):
 class MapServer:
     """The fused map, the per-robot queues and counters, and what the node's callbacks do."""
 
-    def __init__(self, fleet, options: MapServerOptions, outputs: MapOutputs,
-                 transform_of: Callable, log: logging.Logger = logging.getLogger(__name__)):
+    def __init__(
+        self,
+        fleet,
+        options: MapServerOptions,
+        outputs: MapOutputs,
+        transform_of: Callable,
+        log: logging.Logger = logging.getLogger(__name__),
+    ):
         """`fleet`: cps_fleet's FleetConfig. `transform_of(frame, stamp)` -> (3x3 rotation, translation)
         of `frame` in `options.frame_id`, or raises TransformUnavailable. ValueError for bad options."""
         self.options, self.outputs, self.log = options, outputs, log
@@ -147,8 +180,9 @@ class MapServer:
         mapped = [r for r in fleet.robots if r.name in self.robots]
         self.max_range_m = {r.name: fleet.mapping.max_range_m.get(r.type, -1.0) for r in mapped}
         self.sensor_frames = {r.name: r.sensor_frame for r in mapped}
-        self.map = FusedLogOddsMap.from_mapping_config(fleet.mapping, exact_free_space=options.exact_free_space,
-                                                       shared_ray_stop_m=options.shared_ray_stop_m)
+        self.map = FusedLogOddsMap.from_mapping_config(
+            fleet.mapping, exact_free_space=options.exact_free_space, shared_ray_stop_m=options.shared_ray_stop_m
+        )
         self.baseline = None
         if options.baseline_map:
             try:
@@ -170,8 +204,10 @@ class MapServer:
             return list(fleet.robot_names)
         for name in wanted:
             if name not in fleet.robot_names:
-                self.log.error(f"map_server: ~robots names '{name}', which is not in the fleet "
-                               f"({', '.join(fleet.robot_names)}); ignoring it")
+                self.log.error(
+                    f"map_server: ~robots names '{name}', which is not in the fleet "
+                    f"({', '.join(fleet.robot_names)}); ignoring it"
+                )
         known = [w for w in wanted if w in fleet.robot_names]
         if not known:
             raise ValueError(f"robots: none of {list(wanted)} is in the fleet")
@@ -180,9 +216,11 @@ class MapServer:
     def describe(self):
         o = self.options
         free = "exact" if o.exact_free_space else f"shared-origin casting (stop {o.shared_ray_stop_m} m)"
-        return (f"map_server: robots {', '.join(self.robots)}; resolution {self.map.resolution_m} m; "
-                f"max range {self.max_range_m}; queue {o.queue_size}; map file '{o.map_file or '(none)'}'; "
-                f"free space {free}")
+        return (
+            f"map_server: robots {', '.join(self.robots)}; resolution {self.map.resolution_m} m; "
+            f"max range {self.max_range_m}; queue {o.queue_size}; map file '{o.map_file or '(none)'}'; "
+            f"free space {free}"
+        )
 
     def _warn(self, key, period_s, message, level=logging.WARNING):
         """Log `message` unless the same `key` was logged within `period_s`."""
@@ -246,8 +284,12 @@ class MapServer:
             self._receive_cloud(robot, msg)
         except Exception as exc:
             self._count(robot, clouds_dropped_invalid=1)
-            self._warn(("unexpected", robot), _WARN_EVERY_S,
-                       f"map_server: {robot}: cloud dropped, unexpected {type(exc).__name__}: {exc}", logging.ERROR)
+            self._warn(
+                ("unexpected", robot),
+                _WARN_EVERY_S,
+                f"map_server: {robot}: cloud dropped, unexpected {type(exc).__name__}: {exc}",
+                logging.ERROR,
+            )
 
     def _receive_cloud(self, robot, msg):
         frame = msg.header.frame_id.lstrip("/")
@@ -265,14 +307,20 @@ class MapServer:
             rotation, translation = self._transform_of(frame, msg.header.stamp)
         except TransformUnavailable as exc:
             self._count(robot, clouds_dropped_tf=1)
-            self._warn(("tf", robot), _WARN_EVERY_S,
-                       f"map_server: {robot}: no transform {self.options.frame_id} <- '{frame}' at "
-                       f"{msg.header.stamp.to_sec():.3f} within {self.options.tf_timeout_s} s, cloud dropped: {exc}")
+            self._warn(
+                ("tf", robot),
+                _WARN_EVERY_S,
+                f"map_server: {robot}: no transform {self.options.frame_id} <- '{frame}' at "
+                f"{msg.header.stamp.to_sec():.3f} within {self.options.tf_timeout_s} s, cloud dropped: {exc}",
+            )
             return
         if frame != self.sensor_frames[robot]:
-            self._warn(("unexpected frame", robot), _FRAME_WARN_EVERY_S,
-                       f"map_server: {robot}: cloud in frame '{frame}', expected '{self.sensor_frames[robot]}'; "
-                       f"inserted with its own transform")
+            self._warn(
+                ("unexpected frame", robot),
+                _FRAME_WARN_EVERY_S,
+                f"map_server: {robot}: cloud in frame '{frame}', expected '{self.sensor_frames[robot]}'; "
+                f"inserted with its own transform",
+            )
         try:
             cloud = prepare_cloud(xyz, rotation, translation, self.options.max_points_range_m)
         except InvalidInput as exc:
@@ -281,14 +329,20 @@ class MapServer:
             return
         if cloud.absurd:
             self._count(robot, points_rejected=cloud.absurd)
-            self._warn(("absurd", robot), _WARN_EVERY_S,
-                       f"map_server: {robot}: {cloud.absurd} points farther than {self.options.max_points_range_m} m "
-                       f"(~max_points_range_m) removed")
+            self._warn(
+                ("absurd", robot),
+                _WARN_EVERY_S,
+                f"map_server: {robot}: {cloud.absurd} points farther than {self.options.max_points_range_m} m "
+                f"(~max_points_range_m) removed",
+            )
         if self.queues.put(QueuedCloud(robot, cloud.points_m, cloud.origin_m, msg.header.stamp.to_sec())):
             self._count(robot, clouds_dropped_queue=1)
-            self._warn(("queue", robot), _WARN_EVERY_S,
-                       f"map_server: {robot}: queue full, dropped the oldest cloud "
-                       f"({self.counters[robot].clouds_dropped_queue} so far)")
+            self._warn(
+                ("queue", robot),
+                _WARN_EVERY_S,
+                f"map_server: {robot}: queue full, dropped the oldest cloud "
+                f"({self.counters[robot].clouds_dropped_queue} so far)",
+            )
 
     def notice_topics(self, topics: Sequence[str], namespace: str):
         """Warn once per robot whose `<namespace>/<robot>/points` is among `topics` but is not mapped."""
@@ -296,9 +350,11 @@ class MapServer:
             robot = names.robot_of_topic(topic, names.POINTS, namespace)
             if robot and robot not in self.robots and robot not in self.unknown_robots:
                 self.unknown_robots.add(robot)
-                self.log.warning(f"map_server: {topic} is published but robot '{robot}' is not mapped "
-                                 f"(fleet/~robots: {', '.join(self.robots)}); its clouds are ignored "
-                                 f"({len(self.unknown_robots)} unknown robot(s) seen)")
+                self.log.warning(
+                    f"map_server: {topic} is published but robot '{robot}' is not mapped "
+                    f"(fleet/~robots: {', '.join(self.robots)}); its clouds are ignored "
+                    f"({len(self.unknown_robots)} unknown robot(s) seen)"
+                )
 
     def insert_pending(self, timeout_s=0.5):
         """Insert the queued clouds of the next robot (waiting up to `timeout_s`); how many were taken."""
@@ -308,12 +364,17 @@ class MapServer:
         robot = batch[0].robot
         try:
             with self._map_lock:
-                result = self.map.insert_batch([(c.points_m, c.origin_m) for c in batch],
-                                               max_range_m=self.max_range_m[robot], robot=robot)
+                result = self.map.insert_batch(
+                    [(c.points_m, c.origin_m) for c in batch], max_range_m=self.max_range_m[robot], robot=robot
+                )
         except Exception as exc:  # a bug here must not stop the map; say it loudly
             self._count(robot, clouds_dropped_invalid=len(batch))
-            self._warn(("insertion", robot), _WARN_EVERY_S,
-                       f"map_server: {robot}: insertion failed, {len(batch)} clouds lost: {exc}", logging.ERROR)
+            self._warn(
+                ("insertion", robot),
+                _WARN_EVERY_S,
+                f"map_server: {robot}: insertion failed, {len(batch)} clouds lost: {exc}",
+                logging.ERROR,
+            )
             return len(batch)
         elapsed_ms = result.seconds * 1e3
         newest_s = max(c.stamp_s for c in batch)
@@ -337,10 +398,16 @@ class MapServer:
             centers, sizes = self.map.occupied_leaves()
             grid, origin = self.map.projected_grid(self.options.projected_min_z_m, self.options.projected_max_z_m)
             snapshot = MapSnapshot(
-                version=self.map.version, leaf_centers_m=centers, leaf_sizes_m=sizes, grid=grid,
-                grid_origin_m=origin, octomap_fields=message_fields(self.map, binary=True),
-                contributions=self.map.contributions(), tree_nodes=self.map.binary_tree_nodes(),
-                memory_bytes=self.map.memory_bytes())
+                version=self.map.version,
+                leaf_centers_m=centers,
+                leaf_sizes_m=sizes,
+                grid=grid,
+                grid_origin_m=origin,
+                octomap_fields=message_fields(self.map, binary=True),
+                contributions=self.map.contributions(),
+                tree_nodes=self.map.binary_tree_nodes(),
+                memory_bytes=self.map.memory_bytes(),
+            )
         self.snapshot = snapshot
         return snapshot, True
 
@@ -355,11 +422,13 @@ class MapServer:
             return
         out = self.outputs
         out.octomap(map_messages.octomap_message(snap.octomap_fields, self._header(stamp)))
-        out.markers(occupied_cells_markers(snap.leaf_centers_m, snap.leaf_sizes_m, self.map.resolution_m,
-                                           self._header(stamp)))
+        out.markers(
+            occupied_cells_markers(snap.leaf_centers_m, snap.leaf_sizes_m, self.map.resolution_m, self._header(stamp))
+        )
         out.centers(map_messages.centers_cloud(snap.leaf_centers_m, self._header(stamp)))
-        out.projected_map(map_messages.projected_map(snap.grid, snap.grid_origin_m, self.map.resolution_m,
-                                                     self._header(stamp)))
+        out.projected_map(
+            map_messages.projected_map(snap.grid, snap.grid_origin_m, self.map.resolution_m, self._header(stamp))
+        )
 
     def _publish_full(self, stamp):
         """octomap_full, once per map version and only while someone listens."""
@@ -375,16 +444,24 @@ class MapServer:
         snap = self.snapshot
         contributions = snap.contributions if snap is not None else {}
         with self._counters_lock:
-            robots = [map_messages.robot_map_stats(r, self.counters[r], self.queues.length(r), stamp.to_sec(),
-                                                   contributions.get(r, 0)) for r in self.robots]
+            robots = [
+                map_messages.robot_map_stats(
+                    r, self.counters[r], self.queues.length(r), stamp.to_sec(), contributions.get(r, 0)
+                )
+                for r in self.robots
+            ]
         self.outputs.stats(map_messages.map_stats(self._header(stamp), self.map.resolution_m, snap, robots))
 
     def publish_changes(self, stamp):
         """What appeared or disappeared against the baseline map, as markers (and the report); returns
         the changes."""
         with self._map_lock:
-            changes = detect_map_changes(self.baseline, self.map, tolerance_voxels=self.options.change_tolerance_voxels,
-                                         min_cluster_voxels=self.options.change_min_cluster_voxels)
+            changes = detect_map_changes(
+                self.baseline,
+                self.map,
+                tolerance_voxels=self.options.change_tolerance_voxels,
+                min_cluster_voxels=self.options.change_min_cluster_voxels,
+            )
         array = map_messages.change_markers(changes, self._header(stamp))
         if self.options.change_report:  # before the markers, so that whoever sees them finds the report
             write_report(changes, self.options.change_report, self.options.baseline_map, "live map")
@@ -404,8 +481,10 @@ class MapServer:
             return real
         if not self.map_folder and self.options.map_file and real == os.path.realpath(self.options.map_file):
             return real
-        raise MapFileError(f"{path}: refused, map files are read and written only inside "
-                           f"{self.map_folder or '(no folder: set ~map_folder or ~map_file)'} (~map_folder)")
+        raise MapFileError(
+            f"{path}: refused, map files are read and written only inside "
+            f"{self.map_folder or '(no folder: set ~map_folder or ~map_file)'} (~map_folder)"
+        )
 
     def on_save(self, req):
         try:

@@ -6,6 +6,7 @@ publish period, with the GIL held (the map server's insertion starved behind it)
 writes each marker without its points and colours, and the two arrays are spliced in as bytes:
 the same message on the wire in a few milliseconds.
 """
+
 import io
 import struct
 
@@ -23,6 +24,7 @@ _EMPTY_ARRAYS_BYTES = 4 + 4
 class SerializedMarkerArray(MarkerArray):
     """A MarkerArray whose serialized bytes are made in advance; `markers` stays empty on this
     side (a subscriber deserializes the full message)."""
+
     __slots__ = ("serialized",)
 
     def __init__(self, serialized: bytes):
@@ -38,11 +40,18 @@ def _marker_bytes(marker: Marker, points_m: np.ndarray, colors_rgba: np.ndarray)
     buff = io.BytesIO()
     marker.serialize(buff)
     data = buff.getvalue()
-    head = data[:-(_EMPTY_ARRAYS_BYTES + _TAIL_BYTES)]
+    head = data[: -(_EMPTY_ARRAYS_BYTES + _TAIL_BYTES)]
     n = len(points_m)
-    return b"".join((head, struct.pack("<I", n), np.ascontiguousarray(points_m, dtype="<f8").tobytes(),
-                     struct.pack("<I", n), np.ascontiguousarray(colors_rgba, dtype="<f4").tobytes(),
-                     data[-_TAIL_BYTES:]))
+    return b"".join(
+        (
+            head,
+            struct.pack("<I", n),
+            np.ascontiguousarray(points_m, dtype="<f8").tobytes(),
+            struct.pack("<I", n),
+            np.ascontiguousarray(colors_rgba, dtype="<f4").tobytes(),
+            data[-_TAIL_BYTES:],
+        )
+    )
 
 
 def occupied_cells_markers(centers_m, sizes_m, resolution_m, header) -> SerializedMarkerArray:
@@ -56,8 +65,13 @@ def occupied_cells_markers(centers_m, sizes_m, resolution_m, header) -> Serializ
     chunks = []
     for marker_id, level in enumerate(sorted(set(levels.tolist()) | {1})):
         sel = levels == level
-        marker = Marker(header=header, ns="map", id=marker_id, type=Marker.CUBE_LIST,
-                        action=Marker.ADD if sel.any() else Marker.DELETE)
+        marker = Marker(
+            header=header,
+            ns="map",
+            id=marker_id,
+            type=Marker.CUBE_LIST,
+            action=Marker.ADD if sel.any() else Marker.DELETE,
+        )
         marker.scale.x = marker.scale.y = marker.scale.z = level * resolution_m
         marker.pose.orientation.w = 1.0
         marker.color.a = 1.0

@@ -4,6 +4,7 @@ The map server's subscriber callbacks `put` clouds (already in `map`); one worke
 every queued cloud of the next robot in turn and inserts them as one batch. A full queue drops
 its oldest cloud (the newest view of the site matters most) and says so; the server counts it.
 """
+
 import collections
 import dataclasses
 import threading

@@ -26,6 +26,7 @@ Every figure is given at two matching tolerances, and each is named by its toler
 `scores.json` written before the exact figures existed has bare `precision`, `recall`, `f1`:
 those are the within-1-voxel figures; `read_scores` names them so.
 """
+
 import dataclasses
 from typing import Callable, Dict, Optional
 
@@ -54,9 +55,10 @@ def tolerance_text(tolerance_voxels):
 @dataclasses.dataclass
 class MatchScore:
     """Precision, recall and F1 at one matching tolerance (0 = exact)."""
+
     tolerance_voxels: int
-    true_positives: int     # map voxels with a truth voxel within the tolerance
-    truth_found: int        # truth voxels with a map voxel within the tolerance
+    true_positives: int  # map voxels with a truth voxel within the tolerance
+    truth_found: int  # truth voxels with a map voxel within the tolerance
     precision: float
     recall: float
     f1: float
@@ -67,9 +69,9 @@ class RobotScore:
     occupied_voxels: int
     true_positives_exact: int
     precision_exact: float
-    true_positives: int     # within the score's tolerance
-    precision: float        # within the score's tolerance
-    coverage: float         # within the score's tolerance
+    true_positives: int  # within the score's tolerance
+    precision: float  # within the score's tolerance
+    coverage: float  # within the score's tolerance
 
 
 @dataclasses.dataclass
@@ -78,10 +80,10 @@ class MapScore:
     map_voxels: int
     truth_voxels: int
     observable_voxels: int
-    observable_from: str    # OBSERVABLE_FROM_*: what the observable surface was computed from
+    observable_from: str  # OBSERVABLE_FROM_*: what the observable surface was computed from
     exact: MatchScore
     tolerant: MatchScore
-    coverage: float         # of the observable surface, within the tolerant score's tolerance
+    coverage: float  # of the observable surface, within the tolerant score's tolerance
     robots: Dict[str, RobotScore]
 
     # The bare names are the tolerant figures (what every score was before the exact ones existed).
@@ -103,20 +105,31 @@ class MapScore:
 
     def as_dict(self):
         """Flat, every figure keyed with its tolerance (`f1_exact`, `f1_within_1_voxel`, ...)."""
-        out = {"resolution_m": self.resolution_m, "tolerance_voxels": self.tolerant.tolerance_voxels,
-               "map_voxels": self.map_voxels, "truth_voxels": self.truth_voxels,
-               "observable_voxels": self.observable_voxels, "observable_from": self.observable_from}
+        out = {
+            "resolution_m": self.resolution_m,
+            "tolerance_voxels": self.tolerant.tolerance_voxels,
+            "map_voxels": self.map_voxels,
+            "truth_voxels": self.truth_voxels,
+            "observable_voxels": self.observable_voxels,
+            "observable_from": self.observable_from,
+        }
         for match in (self.exact, self.tolerant):
             label = tolerance_label(match.tolerance_voxels)
             for key in ("true_positives", "truth_found", "precision", "recall", "f1"):
                 out[f"{key}_{label}"] = getattr(match, key)
         tolerant = tolerance_label(self.tolerant.tolerance_voxels)
         out[f"coverage_{tolerant}"] = self.coverage
-        out["robots"] = {robot: {"occupied_voxels": r.occupied_voxels,
-                                 "true_positives_exact": r.true_positives_exact, "precision_exact": r.precision_exact,
-                                 f"true_positives_{tolerant}": r.true_positives, f"precision_{tolerant}": r.precision,
-                                 f"coverage_{tolerant}": r.coverage}
-                         for robot, r in self.robots.items()}
+        out["robots"] = {
+            robot: {
+                "occupied_voxels": r.occupied_voxels,
+                "true_positives_exact": r.true_positives_exact,
+                "precision_exact": r.precision_exact,
+                f"true_positives_{tolerant}": r.true_positives,
+                f"precision_{tolerant}": r.precision,
+                f"coverage_{tolerant}": r.coverage,
+            }
+            for robot, r in self.robots.items()
+        }
         return out
 
 
@@ -176,14 +189,26 @@ def _match(map_index, truth_index, tolerance_voxels):
     truth_found = near_any(truth_index, map_index, tolerance_voxels)
     tp = int(map_true.sum())
     precision, recall = _ratio(tp, len(map_index)), _ratio(truth_found.sum(), len(truth_index))
-    score = MatchScore(int(tolerance_voxels), tp, int(truth_found.sum()), precision, recall,
-                       _ratio(2 * precision * recall, precision + recall))
+    score = MatchScore(
+        int(tolerance_voxels),
+        tp,
+        int(truth_found.sum()),
+        precision,
+        recall,
+        _ratio(2 * precision * recall, precision + recall),
+    )
     return score, truth_found
 
 
-def score_map(occupied_centers_m, ground_truth, resolution_m=None, is_free: Optional[Callable] = None,
-              contributions: Optional[Dict[str, np.ndarray]] = None, tolerance_voxels=1,
-              observable_centers_m=None) -> MapScore:
+def score_map(
+    occupied_centers_m,
+    ground_truth,
+    resolution_m=None,
+    is_free: Optional[Callable] = None,
+    contributions: Optional[Dict[str, np.ndarray]] = None,
+    tolerance_voxels=1,
+    observable_centers_m=None,
+) -> MapScore:
     """Score a map's occupied voxel centres against the ground truth, exact and within
     `tolerance_voxels` (see the module docstring).
 
@@ -216,20 +241,41 @@ def score_map(occupied_centers_m, ground_truth, resolution_m=None, is_free: Opti
         robot_exact = int(near_any(idx, truth_index, 0).sum())
         robot_tp = int(near_any(idx, truth_index, tolerance_voxels).sum())
         seen = near_any(truth_index[observable_mask], idx, tolerance_voxels).sum()
-        robots[robot] = RobotScore(len(idx), robot_exact, _ratio(robot_exact, len(idx)), robot_tp,
-                                   _ratio(robot_tp, len(idx)), _ratio(seen, observable_mask.sum()))
+        robots[robot] = RobotScore(
+            len(idx),
+            robot_exact,
+            _ratio(robot_exact, len(idx)),
+            robot_tp,
+            _ratio(robot_tp, len(idx)),
+            _ratio(seen, observable_mask.sum()),
+        )
     coverage = _ratio((truth_found & observable_mask).sum(), observable_mask.sum())
-    return MapScore(resolution_m=res, map_voxels=len(map_index), truth_voxels=len(truth_index),
-                    observable_voxels=int(observable_mask.sum()), observable_from=observable_from, exact=exact,
-                    tolerant=tolerant, coverage=coverage, robots=robots)
+    return MapScore(
+        resolution_m=res,
+        map_voxels=len(map_index),
+        truth_voxels=len(truth_index),
+        observable_voxels=int(observable_mask.sum()),
+        observable_from=observable_from,
+        exact=exact,
+        tolerant=tolerant,
+        coverage=coverage,
+        robots=robots,
+    )
 
 
 def score_fused_map(fused, ground_truth, tolerance_voxels=1, observable_centers_m=None) -> MapScore:
     """score_map for a FusedLogOddsMap, with its per-robot contributions, and its free space as the
     observable surface unless `observable_centers_m` (from the sensor poses) is given."""
     occupied = fused.occupied_index()
-    contributions = {robot: index_to_center(index, fused.resolution_m)
-                     for robot, index in fused.contributed_index(occupied).items()}
-    return score_map(index_to_center(occupied, fused.resolution_m), ground_truth, fused.resolution_m,
-                     is_free=fused.is_free, contributions=contributions, tolerance_voxels=tolerance_voxels,
-                     observable_centers_m=observable_centers_m)
+    contributions = {
+        robot: index_to_center(index, fused.resolution_m) for robot, index in fused.contributed_index(occupied).items()
+    }
+    return score_map(
+        index_to_center(occupied, fused.resolution_m),
+        ground_truth,
+        fused.resolution_m,
+        is_free=fused.is_free,
+        contributions=contributions,
+        tolerance_voxels=tolerance_voxels,
+        observable_centers_m=observable_centers_m,
+    )

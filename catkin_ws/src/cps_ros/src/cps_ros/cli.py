@@ -1,5 +1,6 @@
 """`--help` for the rospy nodes: the node's docstring and its private parameters, printed before
 rospy starts (so no master is needed) and the process exits 0."""
+
 import sys
 
 

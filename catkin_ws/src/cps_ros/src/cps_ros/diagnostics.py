@@ -40,13 +40,17 @@ class DropReporter:
     def drop(self, reason):
         self.invalid += 1
         self.last_error = str(reason)
-        rospy.logwarn_throttle(5.0, f"{rospy.get_name()}: dropped a message on {self.input_topic} "
-                                    f"({self.invalid} so far): {reason}")
+        rospy.logwarn_throttle(
+            5.0, f"{rospy.get_name()}: dropped a message on {self.input_topic} ({self.invalid} so far): {reason}"
+        )
 
     def _report(self, _event=None):
-        status = DiagnosticStatus(level=DiagnosticStatus.WARN if self.invalid else DiagnosticStatus.OK,
-                                  name=rospy.get_name(), hardware_id=self.input_topic,
-                                  message=self.last_error or "ok")
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.WARN if self.invalid else DiagnosticStatus.OK,
+            name=rospy.get_name(),
+            hardware_id=self.input_topic,
+            message=self.last_error or "ok",
+        )
         values = {"input_topic": self.input_topic, DROP_REPORT_KEY: self.invalid, "processed": self.processed}
         values.update(self._extra)
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]

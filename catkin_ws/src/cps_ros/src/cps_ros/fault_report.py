@@ -1,5 +1,6 @@
 """A part of a node that failed (a periodic callback that raised, a CSV log turned off), reported
 on /diagnostics; the guarded timers and the drop reports both report through it."""
+
 import time
 
 import rospy
@@ -23,9 +24,13 @@ class FaultReport:
         if now - self._last_s < self.period_s:
             return
         self._last_s = now
-        status = DiagnosticStatus(level=DiagnosticStatus.ERROR, name=f"{rospy.get_name()}/{self.part}",
-                                  hardware_id=self.part, message=message,
-                                  values=[KeyValue(key=k, value=str(v)) for k, v in counts.items()])
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.ERROR,
+            name=f"{rospy.get_name()}/{self.part}",
+            hardware_id=self.part,
+            message=message,
+            values=[KeyValue(key=k, value=str(v)) for k, v in counts.items()],
+        )
         array = DiagnosticArray(status=[status])
         array.header.stamp = rospy.Time.now()
         try:

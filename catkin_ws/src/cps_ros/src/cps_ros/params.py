@@ -1,4 +1,5 @@
 """Private parameters read once, converted and range-checked, with errors that name them."""
+
 import rospy
 
 from cps_fleet.fleet import load_fleet

@@ -8,6 +8,7 @@ Every process is started in its own session with a parent-death signal, so nothi
 owner: not on failure, not on Ctrl-C, not when the owner itself is killed. The bringup supervisor
 and the test fixtures (`cps_harness.testing`) both build on it.
 """
+
 import contextlib
 import ctypes
 import os
@@ -48,8 +49,10 @@ def find_node(package, node):
         return path
     installed = find_in_workspaces(["libexec"], project=package, path=node, first_match_only=True)
     if not installed:
-        raise FileNotFoundError(f"{package} has no node {node} ({path}, nor in lib/{package} of "
-                                f"{os.environ.get('CMAKE_PREFIX_PATH', '(no CMAKE_PREFIX_PATH)')})")
+        raise FileNotFoundError(
+            f"{package} has no node {node} ({path}, nor in lib/{package} of "
+            f"{os.environ.get('CMAKE_PREFIX_PATH', '(no CMAKE_PREFIX_PATH)')})"
+        )
     return installed[0]
 
 
@@ -72,8 +75,13 @@ class RosGraph:
     @property
     def env(self):
         env = dict(os.environ)
-        env.update(ROS_MASTER_URI=self.uri, ROS_HOME=self.home, ROS_LOG_DIR=os.path.join(self.home, "log"),
-                   ROS_IP=self.host_ip, PYTHONUNBUFFERED="1")
+        env.update(
+            ROS_MASTER_URI=self.uri,
+            ROS_HOME=self.home,
+            ROS_LOG_DIR=os.path.join(self.home, "log"),
+            ROS_IP=self.host_ip,
+            PYTHONUNBUFFERED="1",
+        )
         env.pop("ROS_HOSTNAME", None)
         return env
 
@@ -145,11 +153,18 @@ class RosGraph:
         """Start a process against this master; its output goes to a log file under `home`."""
         name = name or os.path.basename(argv[0])
         log_path = os.path.join(self.home, f"{name}-{len(self.processes)}.log")
-        log = open(log_path, "ab")   # append: the file may be truncated (rotated) under the process
+        log = open(log_path, "ab")  # append: the file may be truncated (rotated) under the process
         merged = self.env
         merged.update(env or {})
-        proc = subprocess.Popen(argv, env=merged, cwd=cwd, stdout=log, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+        proc = subprocess.Popen(
+            argv,
+            env=merged,
+            cwd=cwd,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            preexec_fn=_die_with_parent,
+        )
         proc.cps_name = name
         proc.cps_log = log_path
         log.close()
@@ -194,8 +209,9 @@ class RosGraph:
                 return
             self._raise_if_any_died()
             time.sleep(0.1)
-        raise TimeoutError(f"{topic} not advertised within {timeout_s} s; advertised: "
-                           f"{sorted(self.published_topics())}")
+        raise TimeoutError(
+            f"{topic} not advertised within {timeout_s} s; advertised: {sorted(self.published_topics())}"
+        )
 
     def wait_for_service(self, service, timeout_s=20.0):
         import rosgraph
@@ -212,7 +228,9 @@ class RosGraph:
     def _raise_if_any_died(self):
         for proc in self.processes:
             if proc.poll() is not None and proc.returncode != 0 and proc is not self._master:
-                raise RuntimeError(f"{proc.cps_name} exited with {proc.returncode}:\n{self.output(proc.cps_name)[-3000:]}")
+                raise RuntimeError(
+                    f"{proc.cps_name} exited with {proc.returncode}:\n{self.output(proc.cps_name)[-3000:]}"
+                )
 
     def stop(self, proc, timeout_s=10.0):
         """SIGINT (as Ctrl-C), then SIGTERM, then SIGKILL to the process group."""
@@ -236,7 +254,6 @@ class RosGraph:
             self._kill_orphans_of_the_core()
         if self._own_home:
             shutil.rmtree(self.home, ignore_errors=True)
-
 
     def _forget_private_params(self):
         import rosgraph

@@ -4,6 +4,7 @@ A rospy.Timer whose callback raises stops for good while the process stays alive
 once stopped /tissue/stats forever). `guarded_timer` runs the callback in a guard that catches
 the exception, logs it (throttled), counts it and reports the count on /diagnostics, and keeps
 the timer going."""
+
 import time
 
 import rospy
@@ -37,8 +38,10 @@ class GuardedTimer:
             now = time.monotonic()
             if now - self._last_logged_s >= _LOG_EVERY_S:
                 self._last_logged_s = now
-                rospy.logerr(f"{rospy.get_name()}: periodic '{self.name}' failed ({self.failures} so far), "
-                             f"the timer goes on: {self.last_error}")
+                rospy.logerr(
+                    f"{rospy.get_name()}: periodic '{self.name}' failed ({self.failures} so far), "
+                    f"the timer goes on: {self.last_error}"
+                )
         if self.failures:
             self._report.report(self.last_error, timer=self.name, **{FAILURE_KEY: self.failures})
 

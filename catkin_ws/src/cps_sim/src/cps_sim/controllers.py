@@ -4,13 +4,14 @@
 waypoint and the mission state; `VelocityMux` chooses between the route's and the operator's
 commands and clamps every output to the robot type's limits.
 """
+
 import math
 import time
 from typing import Callable, Optional, Tuple
 
 from cps_fleet.config import ConfigError
-from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, pose_matrix, spec_for, validate_twist
 from cps_fleet.site import check_waypoint
+from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, pose_matrix, spec_for, validate_twist
 
 MISSION_STATES = ("idle", "transit", "inspecting", "done")
 CONTROL_MODES = ("auto", "teleop")
@@ -22,9 +23,15 @@ def validate_route(route, site, robot_type):
     aerial, name = robot_type.is_aerial, robot_type.name
     for waypoint, line in zip(route.waypoints, route.lines):
         if not aerial and waypoint.z != 0.0:
-            raise ConfigError(route.path, line, f"waypoint z = {waypoint.z} m: a {name} robot drives on the floor (z = 0)")
+            raise ConfigError(
+                route.path, line, f"waypoint z = {waypoint.z} m: a {name} robot drives on the floor (z = 0)"
+            )
         if aerial and waypoint.z < MIN_FLIGHT_ALTITUDE_M:
-            raise ConfigError(route.path, line, f"waypoint z = {waypoint.z} m is below the {MIN_FLIGHT_ALTITUDE_M} m minimum flight altitude")
+            raise ConfigError(
+                route.path,
+                line,
+                f"waypoint z = {waypoint.z} m is below the {MIN_FLIGHT_ALTITUDE_M} m minimum flight altitude",
+            )
         reason = check_waypoint(site, waypoint.x, waypoint.y, waypoint.z, robot_type)
         if reason:
             raise ConfigError(route.path, line, f"waypoint rejected: {reason}")
@@ -59,7 +66,7 @@ class RouteFollower:
         if self.finished:
             return "done"
         if self.index >= len(self.route.waypoints):
-            return "transit"    # an aerial robot landing after its last waypoint
+            return "transit"  # an aerial robot landing after its last waypoint
         target = self.route.waypoints[self.index]
         return "inspecting" if self.reached_inspect and target.inspect else "transit"
 
@@ -81,8 +88,12 @@ class RouteFollower:
         """An aerial robot found landed on its last waypoint, away from where it started, has flown
         its route already: a restarted controller must not take off again."""
         last = self.route.waypoints[-1]
-        return (self.aerial and not airborne and math.hypot(last.x - x, last.y - y) <= self.tolerance_m
-                and math.hypot(self.start_xy[0] - x, self.start_xy[1] - y) > self.tolerance_m)
+        return (
+            self.aerial
+            and not airborne
+            and math.hypot(last.x - x, last.y - y) <= self.tolerance_m
+            and math.hypot(self.start_xy[0] - x, self.start_xy[1] - y) > self.tolerance_m
+        )
 
     def update(self, x, y, z, yaw, airborne=None):
         """(Twist in the body frame, flight command 'takeoff'/'land' or None) for the pose in map.
@@ -152,7 +163,7 @@ class RouteTracker:
         self.odom_in_map = None
         self.odom_pose = None
         self.follower: Optional[RouteFollower] = None
-        self.state = None   # the last state reported
+        self.state = None  # the last state reported
 
     def set_odom_in_map(self, x, y, z, yaw):
         self.odom_in_map = pose_matrix(x, y, z, yaw)
@@ -208,7 +219,7 @@ class VelocityMux:
         self.auto_timeout_s = auto_timeout_s
         self.clock = clock
         self.mode = "auto"
-        self.estop: Optional[bool] = None    # None: not heard yet
+        self.estop: Optional[bool] = None  # None: not heard yet
         self._auto: Optional[Twist] = None
         self._auto_t = -math.inf
         self._teleop: Optional[Twist] = None
@@ -230,7 +241,7 @@ class VelocityMux:
         """Store a route command; returns why it was dropped, or None."""
         reason = self._accept(twist)
         if reason:
-            self._auto = None   # hold: a bad command must not leave the last good one running
+            self._auto = None  # hold: a bad command must not leave the last good one running
             return reason
         self._auto, self._auto_t = twist, self._now(now_s)
         return None
@@ -273,7 +284,7 @@ class VelocityMux:
         dt = 0.0 if self._output_t is None else max(now_s - self._output_t, 0.0)
         target = self.selected(now_s)
         if target is None:
-            self.output = Twist()   # stopped, stale or missing: no ramp down
+            self.output = Twist()  # stopped, stale or missing: no ramp down
         else:
             self.output = clamp_twist(target, self.limits, self.output, dt)
         self._output_t = now_s

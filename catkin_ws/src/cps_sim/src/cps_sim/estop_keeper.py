@@ -5,6 +5,7 @@ then never hear the state and stay stopped, or (before they waited for it) drive
 the long-lived bringup process, publishes the initial state and republishes every change it hears,
 so a late subscriber always gets the last state.
 """
+
 import threading
 
 import rospy

@@ -7,6 +7,7 @@ scan ~110-160 ms. Here the static hall is uploaded once: cameras rasterize it wi
 robots' boxes are the only things that move, drawn with a per-frame model matrix and
 intersected analytically per scan. Outputs are what SimWorld.render / cast_rays return.
 """
+
 import dataclasses
 import math
 from typing import Sequence, Tuple
@@ -35,6 +36,7 @@ class EmptyMeshError(ValueError):
 @dataclasses.dataclass
 class BoxBody:
     """A robot's body box: PyBullet body id, half extents (m), centre in map (m), yaw (rad), rgb 0-1."""
+
     body_id: int
     half_extents_m: Tuple[float, float, float]
     center_m: Tuple[float, float, float]
@@ -68,8 +70,10 @@ def hall_triangles(primitives):
         triangles.append(tris)
         colours.append(np.broadcast_to(np.asarray(prim.rgba, dtype=float), (len(tris), 4)))
     if not triangles or sum(len(t) for t in triangles) == 0:
-        raise EmptyMeshError(f"the site mesh has no triangle with a non-zero area ({len(primitives)} primitives, "
-                             f"{given} triangles given): nothing to render or ray-cast")
+        raise EmptyMeshError(
+            f"the site mesh has no triangle with a non-zero area ({len(primitives)} primitives, "
+            f"{given} triangles given): nothing to render or ray-cast"
+        )
     return np.concatenate(triangles), np.concatenate(colours)
 
 
@@ -80,8 +84,22 @@ def _face_normals(triangles):
 
 def _unit_cube_triangles():
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
-    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    faces = np.array(
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ]
+    )
     return corners[faces]
 
 
@@ -157,8 +175,10 @@ class GlRasterizer:
     def _framebuffer(self, width, height):
         fbo = self._framebuffers.get((width, height))
         if fbo is None:
-            fbo = self.ctx.framebuffer(color_attachments=[self.ctx.renderbuffer((width, height), 4)],
-                                       depth_attachment=self.ctx.depth_renderbuffer((width, height)))
+            fbo = self.ctx.framebuffer(
+                color_attachments=[self.ctx.renderbuffer((width, height), 4)],
+                depth_attachment=self.ctx.depth_renderbuffer((width, height)),
+            )
             self._framebuffers[(width, height)] = fbo
         return fbo
 
@@ -188,8 +208,9 @@ class GlRasterizer:
                 self.program["tint"].value = (*box.rgb, 1.0)
                 self.cube.render()
             rgba = np.frombuffer(fbo.read(components=4, alignment=1), dtype=np.uint8).reshape(height, width, 4)
-            depth = np.frombuffer(fbo.read(components=1, attachment=-1, alignment=1, dtype="f4"),
-                                  dtype=np.float32).reshape(height, width)
+            depth = np.frombuffer(
+                fbo.read(components=1, attachment=-1, alignment=1, dtype="f4"), dtype=np.float32
+            ).reshape(height, width)
         # GL's first row is the bottom of the image; PyBullet's (and the camera's) is the top.
         return np.ascontiguousarray(rgba[::-1]), np.ascontiguousarray(depth[::-1])
 
@@ -241,8 +262,9 @@ class EmbreeRayCaster:
         fractions = np.where(hit, fractions, np.float32(1.0)).astype(np.float64)
         if boxes:
             scene = self._new_scene()
-            box_triangles = np.concatenate([self._cube @ box.model_matrix()[:3, :3].T + box.model_matrix()[:3, 3]
-                                            for box in boxes])
+            box_triangles = np.concatenate(
+                [self._cube @ box.model_matrix()[:3, :3].T + box.model_matrix()[:3, 3] for box in boxes]
+            )
             self._mesh(scene, np.ascontiguousarray(box_triangles, dtype=np.float32))
             box_hit, box_fractions, box_normals, prim = self._query(scene, origins32, segments32)
             rays = np.nonzero(box_hit & (box_fractions < fractions))[0]

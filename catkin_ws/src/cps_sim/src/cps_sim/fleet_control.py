@@ -6,6 +6,7 @@ The single-robot executables (`velocity_mux`, `route_controller`) run one robot'
 failing tick of one robot never reaches another's state. `ControlLoop` runs the robots' periodic
 ticks from one thread, each robot's exceptions caught and reported by robot.
 """
+
 import math
 from typing import Callable, Dict, List, Optional, Tuple
 

@@ -4,14 +4,15 @@ The same `VelocityMuxNode` and `RouteControllerNode` as the single-robot executa
 robot of the fleet with `/<r>/...` names (the graph is the same as with a process per robot),
 one tf listener, ticked from one thread by `cps_sim.fleet_control.ControlLoop`.
 """
+
 import time
 
 import rospy
 import tf2_ros
 from std_msgs.msg import Bool
 
-from cps_fleet.config import ConfigError
 from cps_fleet import names
+from cps_fleet.config import ConfigError
 from cps_sim.fleet_control import DEADMAN_S, MUX_RATE_HZ, ROUTE_RATE_HZ, ControlLoop, FleetControl
 from cps_sim.node_support import WARN_PERIOD_S, ThrottledLog, fail, load_fleet_param, load_site_for, positive_param
 from cps_sim.realtime import run_realtime
@@ -49,8 +50,12 @@ class FleetControlNode:
         # One subscriber for the fleet: the latched state must reach every robot's mux.
         self.estop_sub = rospy.Subscriber(names.ESTOP, Bool, self._on_estop, queue_size=5)
         self.period_s = 1.0 / max(mux_rate_hz, route_rate_hz)
-        rospy.loginfo("fleet_control: velocity mux (%.0f Hz) and route controller (%.0f Hz) for %s",
-                      mux_rate_hz, route_rate_hz, ", ".join(self.muxes))
+        rospy.loginfo(
+            "fleet_control: velocity mux (%.0f Hz) and route controller (%.0f Hz) for %s",
+            mux_rate_hz,
+            route_rate_hz,
+            ", ".join(self.muxes),
+        )
 
     def _on_estop(self, msg):
         for mux in self.muxes.values():
@@ -58,8 +63,10 @@ class FleetControlNode:
 
     def _on_error(self, robot, task, exc):
         """One robot's tick failed: say so and hold that robot (zero), the others carry on."""
-        self.errors[robot](f"fleet_control {robot}: {task} failed: {type(exc).__name__}: {exc}; "
-                           f"{robot} holds ({self.loop.failures[(robot, task)]} failures so far)")
+        self.errors[robot](
+            f"fleet_control {robot}: {task} failed: {type(exc).__name__}: {exc}; "
+            f"{robot} holds ({self.loop.failures[(robot, task)]} failures so far)"
+        )
         try:
             self.muxes[robot].stop()
         except Exception as stop_exc:  # noqa: BLE001
@@ -72,7 +79,10 @@ class FleetControlNode:
 def main():
     rospy.init_node("fleet_control")
     fleet = load_fleet_param()
-    node = FleetControlNode(fleet, mux_rate_hz=positive_param("~mux_rate_hz", MUX_RATE_HZ),
-                            route_rate_hz=positive_param("~route_rate_hz", ROUTE_RATE_HZ),
-                            deadman_s=positive_param("~deadman_s", DEADMAN_S))
+    node = FleetControlNode(
+        fleet,
+        mux_rate_hz=positive_param("~mux_rate_hz", MUX_RATE_HZ),
+        route_rate_hz=positive_param("~route_rate_hz", ROUTE_RATE_HZ),
+        deadman_s=positive_param("~deadman_s", DEADMAN_S),
+    )
     node.spin()

@@ -3,6 +3,7 @@
 Parameters are read once into `FleetSimOptions`; the loop is `cps_sim.realtime.run_realtime`
 over `FleetSimNode.step`.
 """
+
 import dataclasses
 import math
 import multiprocessing.connection
@@ -18,18 +19,18 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import BatteryState, CameraInfo, Image, JointState, PointCloud2
 from std_msgs.msg import Bool, String
 
+from cps_fleet import names
 from cps_fleet.config import ConfigError
 from cps_fleet.site import check_waypoint
-from cps_fleet import names
 from cps_sim import messages
 from cps_sim.controllers import CommandGate
 from cps_sim.node_support import fail, load_fleet_param, load_site_for, name_list, positive_param, twist_from_msg
 from cps_sim.realtime import Periodic, PhysicsClock, run_realtime
+from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
 from cps_sim.robots import Twist, validate_twist
 from cps_sim.scheduling import RateMeter, SensorScheduler, StepTimer
 from cps_sim.sensor_workers import SensorWorkerPool
 from cps_sim.simulation import FleetSimulation, sensor_points
-from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
 from cps_sim.site_changes import SiteMove, apply_site_changes, load_site_changes
 
 CMD_TIMEOUT_S = 0.5
@@ -58,9 +59,17 @@ def read_options():
     renderer = rospy.get_param("~renderer", default.renderer)
     if renderer not in RENDERERS:
         fail(f"parameter ~renderer: unknown renderer '{renderer}' (known: {', '.join(RENDERERS)})")
-    rates = {field: positive_param(f"~{field}", getattr(default, field))
-             for field in ("odom_rate_hz", "joint_state_rate_hz", "battery_rate_hz", "diagnostics_rate_hz",
-                           "max_physics_step_s", "max_catch_up_s")}
+    rates = {
+        field: positive_param(f"~{field}", getattr(default, field))
+        for field in (
+            "odom_rate_hz",
+            "joint_state_rate_hz",
+            "battery_rate_hz",
+            "diagnostics_rate_hz",
+            "max_physics_step_s",
+            "max_catch_up_s",
+        )
+    }
     workers = rospy.get_param("~sensor_workers", default.sensor_workers)
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
         fail(f"parameter {rospy.resolve_name('~sensor_workers')} must be an integer >= 0, got {workers!r}")
@@ -68,9 +77,14 @@ def read_options():
         moves = tuple(SiteMove.parse(m) for m in name_list(rospy.get_param("~site_moves", "")))
     except ValueError as exc:
         fail(f"parameters ~site_without/~site_moves: {exc.args[0]}")
-    return FleetSimOptions(renderer=renderer, sensor_workers=workers,
-                           site_without=tuple(name_list(rospy.get_param("~site_without", ""))),
-                           site_moves=moves, site_changes_file=rospy.get_param("~site_changes_file", ""), **rates)
+    return FleetSimOptions(
+        renderer=renderer,
+        sensor_workers=workers,
+        site_without=tuple(name_list(rospy.get_param("~site_without", ""))),
+        site_moves=moves,
+        site_changes_file=rospy.get_param("~site_changes_file", ""),
+        **rates,
+    )
 
 
 def initial_pose_error(fleet, site):
@@ -114,8 +128,10 @@ class FleetSimNode:
             self.sim = FleetSimulation(fleet, site=self.site, renderer=options.renderer)
             self.renderer = self.sim.renderer
         if options.renderer in ("fast", "egl") and self.renderer != options.renderer:  # 'auto' may pick tiny
-            rospy.logwarn(f"renderer '{options.renderer}' unavailable (the sensor workers' log says why); "
-                          f"using '{self.renderer}' (slower)")
+            rospy.logwarn(
+                f"renderer '{options.renderer}' unavailable (the sensor workers' log says why); "
+                f"using '{self.renderer}' (slower)"
+            )
         self.capture_ms = {name: 0.0 for name in self.sim.robots}
         self.lock = threading.Lock()
         self.pubs = {}
@@ -134,8 +150,13 @@ class FleetSimNode:
         self.physics_meter = RateMeter()
         self.step_timer = StepTimer()
         self.physics = PhysicsClock(now, options.max_physics_step_s, options.max_catch_up_s)
-        rospy.loginfo("fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s",
-                      fleet.profile.name, self.renderer, options.sensor_workers, ", ".join(self.sim.robots))
+        rospy.loginfo(
+            "fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s",
+            fleet.profile.name,
+            self.renderer,
+            options.sensor_workers,
+            ", ".join(self.sim.robots),
+        )
 
     def _robot_io(self, name, sim):
         def topic(relative):
@@ -155,17 +176,20 @@ class FleetSimNode:
         self.bad_commands[name] = 0
         rospy.Subscriber(topic(names.CMD_VEL), TwistMsg, self._on_cmd_vel, callback_args=name, queue_size=5)
         if sim.robot.is_aerial:
-            rospy.Subscriber(topic(names.FLIGHT_COMMAND), String, self._on_flight_command, callback_args=name,
-                             queue_size=5)
+            rospy.Subscriber(
+                topic(names.FLIGHT_COMMAND), String, self._on_flight_command, callback_args=name, queue_size=5
+            )
 
     def _static_transforms(self, now):
         """map -> <r>/odom (the known initial pose: only this node computes it) and the sensor mounts."""
         statics = []
         for name, sim in self.sim.robots.items():
-            statics.append(messages.transform_stamped(sim.robot.odom_in_map(), names.MAP_FRAME,
-                                                      names.odom_frame(name), now))
-            statics.append(messages.transform_stamped(sim.robot.sensor_in_base(), names.base_frame(name),
-                                                      sim.sensor_frame, now))
+            statics.append(
+                messages.transform_stamped(sim.robot.odom_in_map(), names.MAP_FRAME, names.odom_frame(name), now)
+            )
+            statics.append(
+                messages.transform_stamped(sim.robot.sensor_in_base(), names.base_frame(name), sim.sensor_frame, now)
+            )
         return statics
 
     # Commands --------------------------------------------------------------------------------
@@ -178,8 +202,11 @@ class FleetSimNode:
                 self.bad_commands[name] += 1
                 self.gates[name].hold()
                 sim.robot.set_command(Twist())
-                rospy.logwarn_throttle(2.0, f"{names.absolute(names.robot_topic(name, names.CMD_VEL))}: dropped {reason}; holding "
-                                            f"({self.bad_commands[name]} dropped so far)")
+                rospy.logwarn_throttle(
+                    2.0,
+                    f"{names.absolute(names.robot_topic(name, names.CMD_VEL))}: dropped {reason}; holding "
+                    f"({self.bad_commands[name]} dropped so far)",
+                )
                 return
             self.gates[name].on_command(twist)
             sim.robot.set_command(self.gates[name].command())
@@ -197,7 +224,10 @@ class FleetSimNode:
         command = msg.data.strip().lower()
         with self.lock:
             if not self.sim.robots[name].robot.flight_command(command):
-                rospy.logwarn_throttle(2.0, f"{names.absolute(names.robot_topic(name, names.FLIGHT_COMMAND))}: unknown command '{msg.data}' (known: takeoff, land)")
+                rospy.logwarn_throttle(
+                    2.0,
+                    f"{names.absolute(names.robot_topic(name, names.FLIGHT_COMMAND))}: unknown command '{msg.data}' (known: takeoff, land)",
+                )
 
     # Loop ------------------------------------------------------------------------------------
     def _advance_physics(self, now, exact):
@@ -220,8 +250,9 @@ class FleetSimNode:
             robot = sim.robot
             base_in_odom = robot.base_in_odom()
             self.pubs[name]["odom"].publish(messages.odometry(robot, now, base_in_odom))
-            transforms.append(messages.transform_stamped(base_in_odom, names.odom_frame(name),
-                                                         names.base_frame(name), now))
+            transforms.append(
+                messages.transform_stamped(base_in_odom, names.odom_frame(name), names.base_frame(name), now)
+            )
             if joints:
                 self.pubs[name]["joint_states"].publish(messages.joint_state(robot, now))
             if battery:
@@ -281,15 +312,21 @@ class FleetSimNode:
         sim_time_s = self.physics.sim_time_s
         rtf = (sim_time_s - self._diag_sim_start) / wall if wall > 0 else 1.0
         self._diag_wall_start, self._diag_sim_start = now, sim_time_s
-        fleet_status = DiagnosticStatus(level=DiagnosticStatus.OK if rtf > 0.9 else DiagnosticStatus.WARN,
-                                        name="cps_sim: fleet", hardware_id="fleet_sim",
-                                        message=f"real-time factor {rtf:.2f}")
-        fleet_status.values = [KeyValue("real_time_factor", f"{rtf:.3f}"), KeyValue("profile", self.fleet.profile.name),
-                               KeyValue("renderer", str(self.renderer)),
-                               KeyValue("sensor_workers", str(len(self.pool.workers) if self.pool else 0)),
-                               KeyValue("physics_loop_hz", f"{self.physics_meter.rate_hz(now):.1f}"),
-                               KeyValue("step_ms_mean", f"{self.step_timer.mean_ms:.2f}"),
-                               KeyValue("step_ms_max", f"{self.step_timer.max_ms:.1f}")]
+        fleet_status = DiagnosticStatus(
+            level=DiagnosticStatus.OK if rtf > 0.9 else DiagnosticStatus.WARN,
+            name="cps_sim: fleet",
+            hardware_id="fleet_sim",
+            message=f"real-time factor {rtf:.2f}",
+        )
+        fleet_status.values = [
+            KeyValue("real_time_factor", f"{rtf:.3f}"),
+            KeyValue("profile", self.fleet.profile.name),
+            KeyValue("renderer", str(self.renderer)),
+            KeyValue("sensor_workers", str(len(self.pool.workers) if self.pool else 0)),
+            KeyValue("physics_loop_hz", f"{self.physics_meter.rate_hz(now):.1f}"),
+            KeyValue("step_ms_mean", f"{self.step_timer.mean_ms:.2f}"),
+            KeyValue("step_ms_max", f"{self.step_timer.max_ms:.1f}"),
+        ]
         self.step_timer.reset()
         array.status.append(fleet_status)
         summary = []
@@ -297,18 +334,26 @@ class FleetSimNode:
             achieved = self.scheduler.achieved_hz(name, now)
             ok = achieved >= 0.9 * sim.rate_hz
             kind = "lidar" if sim.config.has_lidar else "depth_camera"
-            status = DiagnosticStatus(level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
-                                      name=f"cps_sim: {name} {kind}", hardware_id=name,
-                                      message=f"{achieved:.1f} of {sim.rate_hz:.1f} Hz")
-            status.values = [KeyValue("configured_hz", f"{sim.rate_hz:.2f}"), KeyValue("achieved_hz", f"{achieved:.2f}"),
-                             KeyValue("capture_ms", f"{self.capture_ms[name]:.1f}"),
-                             KeyValue("skipped_captures", str(self.scheduler.skipped[name])),
-                             KeyValue("dropped_commands", str(self.bad_commands[name])),
-                             KeyValue("battery_percentage", f"{100 * sim.robot.battery_fraction:.1f}")]
+            status = DiagnosticStatus(
+                level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
+                name=f"cps_sim: {name} {kind}",
+                hardware_id=name,
+                message=f"{achieved:.1f} of {sim.rate_hz:.1f} Hz",
+            )
+            status.values = [
+                KeyValue("configured_hz", f"{sim.rate_hz:.2f}"),
+                KeyValue("achieved_hz", f"{achieved:.2f}"),
+                KeyValue("capture_ms", f"{self.capture_ms[name]:.1f}"),
+                KeyValue("skipped_captures", str(self.scheduler.skipped[name])),
+                KeyValue("dropped_commands", str(self.bad_commands[name])),
+                KeyValue("battery_percentage", f"{100 * sim.robot.battery_fraction:.1f}"),
+            ]
             array.status.append(status)
             summary.append(f"{name} {achieved:.1f}/{sim.rate_hz:.1f} Hz")
         self.diagnostics.publish(array)
-        rospy.loginfo_throttle(10.0, f"fleet_sim: achieved sensor rates {', '.join(summary)}; real-time factor {rtf:.2f}")
+        rospy.loginfo_throttle(
+            10.0, f"fleet_sim: achieved sensor rates {', '.join(summary)}; real-time factor {rtf:.2f}"
+        )
 
     def step(self, now):
         """One pass of the loop at wall time `now`; the time it next has work, or None for at once."""

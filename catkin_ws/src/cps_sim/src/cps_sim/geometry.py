@@ -4,6 +4,7 @@ The lidar casts its rays against one static triangle mesh of the whole hall: Bul
 triangle mesh answers ~30 000 rays in tens of ms, where the same hall built from convex
 cylinders takes over a second. The ground truth samples the same primitives' surfaces.
 """
+
 import math
 
 import numpy as np
@@ -35,11 +36,22 @@ def primitive_mesh(prim, segments=CYLINDER_SEGMENTS):
     if prim.kind == "box":
         hx, hy, hz = prim.half_extents
         corners = np.array([[sx * hx, sy * hy, sz * hz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-        faces = np.array([
-            [0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5],  # x- , x+
-            [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],  # y- , y+
-            [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3],  # z- , z+
-        ])
+        faces = np.array(
+            [
+                [0, 1, 3],
+                [0, 3, 2],
+                [4, 6, 7],
+                [4, 7, 5],  # x- , x+
+                [0, 4, 5],
+                [0, 5, 1],
+                [2, 3, 7],
+                [2, 7, 6],  # y- , y+
+                [0, 2, 6],
+                [0, 6, 4],
+                [1, 5, 7],
+                [1, 7, 3],  # z- , z+
+            ]
+        )
         return _place(prim, corners), faces
     angles = np.linspace(0.0, 2 * math.pi, segments, endpoint=False)
     # Vertices on the circumscribed polygon would bulge; use a polygon whose edge midpoints and
@@ -54,8 +66,12 @@ def primitive_mesh(prim, segments=CYLINDER_SEGMENTS):
     k = np.arange(segments)
     k1 = (k + 1) % segments
     side = np.concatenate([np.stack([k, k1, k + segments], 1), np.stack([k1, k1 + segments, k + segments], 1)])
-    caps = np.concatenate([np.stack([np.full(segments, 2 * segments), k1, k], 1),
-                           np.stack([np.full(segments, 2 * segments + 1), k + segments, k1 + segments], 1)])
+    caps = np.concatenate(
+        [
+            np.stack([np.full(segments, 2 * segments), k1, k], 1),
+            np.stack([np.full(segments, 2 * segments + 1), k + segments, k1 + segments], 1),
+        ]
+    )
     return _place(prim, verts), np.concatenate([side, caps])
 
 
@@ -80,7 +96,9 @@ def surface_points(prim, spacing_m, inset_m=1e-6):
         pts = []
         for axis in range(3):
             others = [a for a in range(3) if a != axis]
-            grids = [np.linspace(-half[a], half[a], max(int(math.ceil(2 * half[a] / spacing_m)) + 1, 2)) for a in others]
+            grids = [
+                np.linspace(-half[a], half[a], max(int(math.ceil(2 * half[a] / spacing_m)) + 1, 2)) for a in others
+            ]
             g0, g1 = np.meshgrid(*grids, indexing="ij")
             for sign in (-1.0, 1.0):
                 face = np.zeros((g0.size, 3))
@@ -100,7 +118,7 @@ def surface_points(prim, spacing_m, inset_m=1e-6):
     side = np.stack([r * np.cos(aa).ravel(), r * np.sin(aa).ravel(), zz.ravel()], axis=1)
     g = np.arange(-r, r + spacing_m, spacing_m)
     gx, gy = np.meshgrid(g, g, indexing="ij")
-    inside = gx ** 2 + gy ** 2 <= r ** 2
+    inside = gx**2 + gy**2 <= r**2
     disk = np.stack([gx[inside], gy[inside]], axis=1)
     caps = [np.hstack([disk, np.full((len(disk), 1), sign * (h - inset_m))]) for sign in (-1.0, 1.0)]
     local = np.vstack([side] + caps)

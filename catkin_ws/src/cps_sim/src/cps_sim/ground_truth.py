@@ -5,6 +5,7 @@ through it; voxel centres are (floor(p / res) + 0.5) * res in `map`, as OctoMap 
 The floor is included: its top surface z = 0 lies in the voxel layer just below z = 0
 (centres at z = -res / 2), because the floor slab is the solid below that plane.
 """
+
 import numpy as np
 
 from cps_sim.geometry import surface_points
@@ -35,8 +36,13 @@ def occupied_voxels(site, resolution_m, include_floor=True):
 def save_ground_truth(path, site, resolution_m, include_floor=True):
     """Write `path` (.npz): resolution_m, occupied_centers_m (N x 3, map), includes_floor."""
     centers = occupied_voxels(site, resolution_m, include_floor)
-    np.savez_compressed(path, resolution_m=float(resolution_m), occupied_centers_m=centers,
-                        includes_floor=bool(include_floor), site_path=str(site.path))
+    np.savez_compressed(
+        path,
+        resolution_m=float(resolution_m),
+        occupied_centers_m=centers,
+        includes_floor=bool(include_floor),
+        site_path=str(site.path),
+    )
     return centers
 
 
@@ -76,7 +82,7 @@ def observable_from_positions(truth_centers_m, resolution_m, sensor_positions_m,
     for origin in positions:
         todo = np.flatnonzero(~seen & (np.linalg.norm(truth - origin, axis=1) <= max_range_m))
         for start in range(0, len(todo), chunk):
-            which = todo[start:start + chunk]
+            which = todo[start : start + chunk]
             # The voxel's point nearest the sensor: a ray to its centre would graze its neighbours.
             target = np.clip(origin, truth[which] - res / 2, truth[which] + res / 2)
             length = np.linalg.norm(target - origin, axis=1)

@@ -2,6 +2,7 @@
 
 Stamps are genpy.Time built from wall-clock seconds, so these work with or without a node.
 """
+
 import math
 
 import genpy
@@ -10,8 +11,11 @@ from geometry_msgs.msg import TransformStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import BatteryState, CameraInfo, Image, JointState, PointCloud2, PointField
 
-_DATATYPES = {np.dtype("<f4"): PointField.FLOAT32, np.dtype("<u4"): PointField.UINT32,
-              np.dtype("<u2"): PointField.UINT16}
+_DATATYPES = {
+    np.dtype("<f4"): PointField.FLOAT32,
+    np.dtype("<u4"): PointField.UINT32,
+    np.dtype("<u2"): PointField.UINT16,
+}
 
 
 def stamp(seconds):
@@ -26,7 +30,7 @@ def point_cloud2(array, frame_id, stamp_s):
     dense when every point is finite.
     """
     array = np.ascontiguousarray(array)
-    height, width = (array.shape if array.ndim == 2 else (1, array.shape[0]))
+    height, width = array.shape if array.ndim == 2 else (1, array.shape[0])
     msg = PointCloud2()
     msg.header.stamp = stamp(stamp_s)
     msg.header.frame_id = frame_id
@@ -48,9 +52,14 @@ def point_cloud2(array, frame_id, stamp_s):
 def cloud_to_array(msg):
     """The structured numpy array (H x W or N) of a PointCloud2 this module wrote."""
     formats = {PointField.FLOAT32: "<f4", PointField.UINT32: "<u4", PointField.UINT16: "<u2"}
-    dtype = np.dtype({"names": [f.name for f in msg.fields],
-                      "formats": ["<u4" if f.name == "rgb" else formats[f.datatype] for f in msg.fields],
-                      "offsets": [f.offset for f in msg.fields], "itemsize": msg.point_step})
+    dtype = np.dtype(
+        {
+            "names": [f.name for f in msg.fields],
+            "formats": ["<u4" if f.name == "rgb" else formats[f.datatype] for f in msg.fields],
+            "offsets": [f.offset for f in msg.fields],
+            "itemsize": msg.point_step,
+        }
+    )
     array = np.frombuffer(bytes(msg.data), dtype=dtype)
     return array.reshape(msg.height, msg.width) if msg.height > 1 else array
 

@@ -1,5 +1,6 @@
 """rospy glue the three cps_sim nodes share: start-up failures, parameters, the fleet, a fixed-rate
 spin, Twist."""
+
 import math
 import sys
 import time
@@ -11,7 +12,6 @@ from cps_fleet.config import ConfigError
 from cps_fleet.fleet import load_fleet, robot_names_arg
 from cps_fleet.site import load_site
 from cps_sim.robots import Twist
-
 
 # Repeated warnings (bad commands) are logged at most this often, per robot.
 WARN_PERIOD_S = 2.0

@@ -4,5 +4,6 @@
 (cps_sim.fast_sensors); 'egl', 'tiny': PyBullet's EGL plugin or TinyRenderer with its
 rayTestBatch; 'auto': the cheaper of PyBullet's two for the frame size.
 """
+
 RENDERERS = ("fast", "egl", "tiny", "auto")
 DEFAULT_RENDERER = "fast"

@@ -6,6 +6,7 @@ initial pose. The simulator's bodies (ROBOT_SPECS) are modelled on the default f
 types; a fleet's own type (fleet.yaml robot_types) gets the body of its base and sensor kind and
 its own velocity limits (`spec_for`).
 """
+
 import dataclasses
 import math
 from typing import Optional, Tuple
@@ -14,7 +15,6 @@ import numpy as np
 
 from cps_fleet.fleet import ROBOT_TYPES
 from cps_fleet.robot_types import RobotType, VelocityLimits
-
 
 # Beyond this many times a limit a command is absurd: dropped, not clamped.
 ABSURD_FACTOR = 10.0
@@ -25,12 +25,12 @@ class RobotSpec:
     type: str
     model: str
     body_half_extents_m: Tuple[float, float, float]
-    body_center_z_m: float          # body centre above base_link
+    body_center_z_m: float  # body centre above base_link
     rgb: Tuple[float, float, float]
-    sensor_xyz_m: Tuple[float, float, float]   # sensor in base_link
-    sensor_pitch_deg: float         # positive looks down
+    sensor_xyz_m: Tuple[float, float, float]  # sensor in base_link
+    sensor_pitch_deg: float  # positive looks down
     limits: Optional[VelocityLimits]  # the fleet's robot type's (spec_for), shared with the GUI's joystick
-    cruise_mps: float               # the route controller's travel speed
+    cruise_mps: float  # the route controller's travel speed
     joint_names: Tuple[str, ...]
     wheel_radius_m: float = 0.0
     track_m: float = 0.0
@@ -45,35 +45,79 @@ _CHAMP_LEGS = ("lf", "rf", "lh", "rh")
 
 ROBOT_SPECS = {
     "wheeled_lidar": RobotSpec(
-        type="wheeled_lidar", model="Agilex Scout 2.0", body_half_extents_m=(0.465, 0.35, 0.125),
-        body_center_z_m=0.225, rgb=(0.9, 0.9, 0.9), sensor_xyz_m=(0.0, 0.0, 0.55), sensor_pitch_deg=0.0,
-        limits=None, cruise_mps=0.8,
+        type="wheeled_lidar",
+        model="Agilex Scout 2.0",
+        body_half_extents_m=(0.465, 0.35, 0.125),
+        body_center_z_m=0.225,
+        rgb=(0.9, 0.9, 0.9),
+        sensor_xyz_m=(0.0, 0.0, 0.55),
+        sensor_pitch_deg=0.0,
+        limits=None,
+        cruise_mps=0.8,
         joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
-        wheel_radius_m=0.165, track_m=0.58, battery_capacity_wh=720.0, battery_nominal_v=24.0,
-        idle_power_w=60.0, motion_power_w_per_mps=150.0, sensor_power_w=12.0),
+        wheel_radius_m=0.165,
+        track_m=0.58,
+        battery_capacity_wh=720.0,
+        battery_nominal_v=24.0,
+        idle_power_w=60.0,
+        motion_power_w_per_mps=150.0,
+        sensor_power_w=12.0,
+    ),
     "wheeled_depth": RobotSpec(
-        type="wheeled_depth", model="Clearpath Jackal", body_half_extents_m=(0.254, 0.215, 0.1),
-        body_center_z_m=0.165, rgb=(0.95, 0.75, 0.1), sensor_xyz_m=(0.26, 0.0, 0.35), sensor_pitch_deg=10.0,
-        limits=None, cruise_mps=0.8,
+        type="wheeled_depth",
+        model="Clearpath Jackal",
+        body_half_extents_m=(0.254, 0.215, 0.1),
+        body_center_z_m=0.165,
+        rgb=(0.95, 0.75, 0.1),
+        sensor_xyz_m=(0.26, 0.0, 0.35),
+        sensor_pitch_deg=10.0,
+        limits=None,
+        cruise_mps=0.8,
         joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
-        wheel_radius_m=0.098, track_m=0.37, battery_capacity_wh=270.0, battery_nominal_v=24.0,
-        idle_power_w=30.0, motion_power_w_per_mps=60.0, sensor_power_w=5.0),
+        wheel_radius_m=0.098,
+        track_m=0.37,
+        battery_capacity_wh=270.0,
+        battery_nominal_v=24.0,
+        idle_power_w=30.0,
+        motion_power_w_per_mps=60.0,
+        sensor_power_w=5.0,
+    ),
     "legged_depth": RobotSpec(
-        type="legged_depth", model="CHAMP quadruped", body_half_extents_m=(0.3, 0.12, 0.07),
-        body_center_z_m=0.32, rgb=(0.2, 0.2, 0.22), sensor_xyz_m=(0.33, 0.0, 0.40), sensor_pitch_deg=10.0,
-        limits=None, cruise_mps=0.45,
+        type="legged_depth",
+        model="CHAMP quadruped",
+        body_half_extents_m=(0.3, 0.12, 0.07),
+        body_center_z_m=0.32,
+        rgb=(0.2, 0.2, 0.22),
+        sensor_xyz_m=(0.33, 0.0, 0.40),
+        sensor_pitch_deg=10.0,
+        limits=None,
+        cruise_mps=0.45,
         joint_names=tuple(f"{leg}_{j}_joint" for leg in _CHAMP_LEGS for j in ("hip", "upper_leg", "lower_leg")),
-        battery_capacity_wh=150.0, battery_nominal_v=24.0, idle_power_w=40.0, motion_power_w_per_mps=120.0,
-        sensor_power_w=5.0),
+        battery_capacity_wh=150.0,
+        battery_nominal_v=24.0,
+        idle_power_w=40.0,
+        motion_power_w_per_mps=120.0,
+        sensor_power_w=5.0,
+    ),
     "aerial_depth": RobotSpec(
-        type="aerial_depth", model="3DR Iris quadrotor", body_half_extents_m=(0.25, 0.25, 0.06),
+        type="aerial_depth",
+        model="3DR Iris quadrotor",
+        body_half_extents_m=(0.25, 0.25, 0.06),
         # base_link on the ground when landed; the body stands on its landing gear and the camera
         # hangs under its front, so a landed Iris still sees the floor (it was below it).
-        body_center_z_m=0.12, rgb=(0.15, 0.15, 0.15), sensor_xyz_m=(0.28, 0.0, 0.06), sensor_pitch_deg=45.0,
-        limits=None, cruise_mps=1.0,
+        body_center_z_m=0.12,
+        rgb=(0.15, 0.15, 0.15),
+        sensor_xyz_m=(0.28, 0.0, 0.06),
+        sensor_pitch_deg=45.0,
+        limits=None,
+        cruise_mps=1.0,
         joint_names=("rotor_0_joint", "rotor_1_joint", "rotor_2_joint", "rotor_3_joint"),
-        battery_capacity_wh=60.0, battery_nominal_v=11.1, idle_power_w=10.0, motion_power_w_per_mps=20.0,
-        sensor_power_w=5.0),
+        battery_capacity_wh=60.0,
+        battery_nominal_v=11.1,
+        idle_power_w=10.0,
+        motion_power_w_per_mps=20.0,
+        sensor_power_w=5.0,
+    ),
 }
 assert set(ROBOT_SPECS) == set(ROBOT_TYPES)
 
@@ -84,9 +128,14 @@ AERIAL_HOVER_POWER_W = 150.0
 
 
 # The body a type of the fleet's own gets, by (base, sensor kind).
-_BODY_OF = {("wheeled", "lidar"): "wheeled_lidar", ("wheeled", "depth"): "wheeled_depth",
-            ("legged", "lidar"): "legged_depth", ("legged", "depth"): "legged_depth",
-            ("aerial", "lidar"): "aerial_depth", ("aerial", "depth"): "aerial_depth"}
+_BODY_OF = {
+    ("wheeled", "lidar"): "wheeled_lidar",
+    ("wheeled", "depth"): "wheeled_depth",
+    ("legged", "lidar"): "legged_depth",
+    ("legged", "depth"): "legged_depth",
+    ("aerial", "lidar"): "aerial_depth",
+    ("aerial", "depth"): "aerial_depth",
+}
 
 
 def spec_for(rt: RobotType):
@@ -101,6 +150,7 @@ def spec_for(rt: RobotType):
 @dataclasses.dataclass
 class Twist:
     """Velocity in the robot's body frame: vx, vy, vz (m/s), wz (rad/s)."""
+
     vx: float = 0.0
     vy: float = 0.0
     vz: float = 0.0
@@ -119,8 +169,14 @@ def validate_twist(twist, limits):
     values = twist.as_array()
     if not np.all(np.isfinite(values)):
         return f"non-finite velocity {values.tolist()}"
-    caps = np.array([limits.max_forward_mps, max(limits.max_lateral_mps, limits.max_forward_mps),
-                     max(limits.max_vertical_mps, limits.max_forward_mps), limits.max_yaw_rate_rps])
+    caps = np.array(
+        [
+            limits.max_forward_mps,
+            max(limits.max_lateral_mps, limits.max_forward_mps),
+            max(limits.max_vertical_mps, limits.max_forward_mps),
+            limits.max_yaw_rate_rps,
+        ]
+    )
     if np.any(np.abs(values) > ABSURD_FACTOR * caps):
         return f"absurd velocity {values.tolist()} (limits {caps.tolist()})"
     return None
@@ -179,8 +235,8 @@ class Robot:
         self.type = self.robot_type.name
         self.initial = np.array([initial_pose.x, initial_pose.y, initial_pose.z, initial_pose.yaw_rad])
         self.x, self.y, self.z, self.yaw = self.initial.tolist()
-        self.velocity = Twist()          # executed, body frame
-        self.command = Twist()           # last accepted command
+        self.velocity = Twist()  # executed, body frame
+        self.command = Twist()  # last accepted command
         self.joint_positions = np.zeros(len(self.spec.joint_names))
         self.joint_velocities = np.zeros(len(self.spec.joint_names))
         self.gait_phase = 0.0
@@ -259,20 +315,26 @@ class Robot:
             left = (v.vx - v.wz * spec.track_m / 2) / spec.wheel_radius_m
             right = (v.vx + v.wz * spec.track_m / 2) / spec.wheel_radius_m
             self.joint_velocities = np.array([left, right, left, right])
-            self.joint_positions = (self.joint_positions + self.joint_velocities * dt_s + math.pi) % (2 * math.pi) - math.pi
+            self.joint_positions = (self.joint_positions + self.joint_velocities * dt_s + math.pi) % (
+                2 * math.pi
+            ) - math.pi
         elif self.robot_type.base == "legged":
             self.joint_positions, self.joint_velocities = self._trot(dt_s)
         else:
             spin = 0.0 if self.flight_state == "landed" else 900.0
             self.joint_velocities = np.array([spin, -spin, spin, -spin])
-            self.joint_positions = (self.joint_positions + self.joint_velocities * dt_s + math.pi) % (2 * math.pi) - math.pi
+            self.joint_positions = (self.joint_positions + self.joint_velocities * dt_s + math.pi) % (
+                2 * math.pi
+            ) - math.pi
 
     def _trot(self, dt_s):
         """A trot: diagonal leg pairs swing in antiphase, stride scaled by the body speed."""
         v = self.velocity
         speed = math.hypot(v.vx, v.vy) + 0.2 * abs(v.wz)
         amplitude = min(speed / max(self.spec.limits.max_forward_mps, 1e-6), 1.0)
-        self.gait_phase = (self.gait_phase + 2 * math.pi * 2.0 * dt_s * (1.0 if amplitude > 0.01 else 0.0)) % (2 * math.pi)
+        self.gait_phase = (self.gait_phase + 2 * math.pi * 2.0 * dt_s * (1.0 if amplitude > 0.01 else 0.0)) % (
+            2 * math.pi
+        )
         positions = []
         for i, leg in enumerate(_CHAMP_LEGS):
             phase = self.gait_phase + (0.0 if leg in ("lf", "rh") else math.pi)
@@ -288,7 +350,9 @@ class Robot:
         spec = self.spec
         v = self.velocity
         motion = math.hypot(v.vx, v.vy) + abs(v.vz) + 0.3 * abs(v.wz)
-        power = spec.idle_power_w + spec.motion_power_w_per_mps * motion + (spec.sensor_power_w if self.sensing else 0.0)
+        power = (
+            spec.idle_power_w + spec.motion_power_w_per_mps * motion + (spec.sensor_power_w if self.sensing else 0.0)
+        )
         if self.is_aerial and self.flight_state != "landed":
             power += AERIAL_HOVER_POWER_W
         self.power_w = power

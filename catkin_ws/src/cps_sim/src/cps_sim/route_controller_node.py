@@ -6,6 +6,7 @@ decisions are `cps_sim.controllers.RouteTracker`'s. `RouteControllerNode` is one
 the `route_controller` executable runs one in `/<r>` (relative names), `fleet_control` one per
 robot in a single process (`/<r>/...` names, one tf listener for all).
 """
+
 import math
 
 import rospy
@@ -14,8 +15,8 @@ from geometry_msgs.msg import Twist as TwistMsg
 from nav_msgs.msg import Odometry
 from std_msgs.msg import String
 
-from cps_fleet.config import ConfigError
 from cps_fleet import names
+from cps_fleet.config import ConfigError
 from cps_sim.controllers import RouteTracker, validate_route
 from cps_sim.fleet_control import ROUTE_RATE_HZ
 from cps_sim.node_support import fail, load_fleet_param, load_site_for, positive_param, spin_at, twist_to_msg
@@ -41,8 +42,9 @@ class RouteControllerNode:
         self.flight_pub = rospy.Publisher(topic(names.FLIGHT_COMMAND), String, queue_size=5)
         self._publish_state(self.tracker.start())
         self.sub = rospy.Subscriber(topic(names.ODOM), Odometry, self._on_odom, queue_size=5)
-        rospy.loginfo("route_controller %s: %d waypoints from %s", config.name, len(tracker.route.waypoints),
-                      tracker.route.path)
+        rospy.loginfo(
+            "route_controller %s: %d waypoints from %s", config.name, len(tracker.route.waypoints), tracker.route.path
+        )
 
     def _on_odom(self, msg):
         p = msg.pose.pose.position
@@ -54,8 +56,9 @@ class RouteControllerNode:
         try:
             stamped = self.tf_buffer.lookup_transform(names.MAP_FRAME, odom_frame, rospy.Time(0))
         except (tf2_ros.LookupException, tf2_ros.ConnectivityException, tf2_ros.ExtrapolationException):
-            rospy.loginfo_throttle_identical(10.0, f"route_controller {self.config.name}: waiting for tf "
-                                                   f"{names.MAP_FRAME} -> {odom_frame}")
+            rospy.loginfo_throttle_identical(
+                10.0, f"route_controller {self.config.name}: waiting for tf {names.MAP_FRAME} -> {odom_frame}"
+            )
             return
         t = stamped.transform.translation
         self.tracker.set_odom_in_map(t.x, t.y, t.z, yaw_of_quaternion(stamped.transform.rotation))

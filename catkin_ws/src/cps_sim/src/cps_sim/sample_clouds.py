@@ -5,6 +5,7 @@ area looking at equipment; `render_mission_clouds` gives clouds at poses spread 
 robot's route (for min/max figures over a mission). Each sample carries the sensor's pose in
 `map` so that a mapping test can insert it.
 """
+
 import dataclasses
 import math
 from typing import Dict, List
@@ -27,8 +28,8 @@ SAMPLE_POSES = {
 @dataclasses.dataclass
 class SampleCloud:
     robot: str
-    cloud: object                    # sensor_msgs/PointCloud2 in the sensor frame
-    sensor_pose_in_map: np.ndarray   # 4 x 4, the sensor frame in map
+    cloud: object  # sensor_msgs/PointCloud2 in the sensor frame
+    sensor_pose_in_map: np.ndarray  # 4 x 4, the sensor frame in map
     frame_id: str
 
 
@@ -59,7 +60,9 @@ def render_sample_frames(profile_name="paper", robots=None, poses=None, renderer
 def render_sample_clouds(profile_name="paper", robots=None, poses=None, renderer=DEFAULT_RENDERER, fleet_file=None):
     """Robot -> sensor_msgs/PointCloud2 (depth: organized x,y,z,rgb, point_step 32, optical frame;
     lidar: x,y,z,intensity,ring,time, unorganized)."""
-    return {name: s.cloud for name, s in render_sample_frames(profile_name, robots, poses, renderer, fleet_file).items()}
+    return {
+        name: s.cloud for name, s in render_sample_frames(profile_name, robots, poses, renderer, fleet_file).items()
+    }
 
 
 def _route_pose(sim, name, fraction):
@@ -81,8 +84,9 @@ def _route_pose(sim, name, fraction):
     raise AssertionError("unreachable")
 
 
-def render_mission_clouds(profile_name="paper", robots=None, frames_per_robot=5, renderer=DEFAULT_RENDERER,
-                          fleet_file=None) -> Dict[str, List[SampleCloud]]:
+def render_mission_clouds(
+    profile_name="paper", robots=None, frames_per_robot=5, renderer=DEFAULT_RENDERER, fleet_file=None
+) -> Dict[str, List[SampleCloud]]:
     """Robot -> SampleClouds at `frames_per_robot` poses evenly along its route (start to end)."""
     import time
 

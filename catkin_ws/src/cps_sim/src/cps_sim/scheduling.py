@@ -5,6 +5,7 @@ sensor that falls more than one period behind skips the missed captures instead 
 so when the machine cannot keep every nominal rate each sensor gets a share in proportion to
 its rate and none starves. `RateMeter` measures what was achieved.
 """
+
 import collections
 
 
@@ -67,7 +68,6 @@ class SensorScheduler:
 
     def achieved_hz(self, name, now_s):
         return self.meters[name].rate_hz(now_s)
-
 
 
 class StepTimer:

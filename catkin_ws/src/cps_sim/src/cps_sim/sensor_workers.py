@@ -13,6 +13,7 @@ depth frame is 12 MB, which a pipe carried in ~50 ms on the loaded 2-core machin
 carries only the layout; the worker writes the next frame only after the parent has copied
 this one out (one request at a time per worker).
 """
+
 import dataclasses
 import multiprocessing
 import os

@@ -4,6 +4,7 @@ The camera renders an image and a depth buffer, turns it into an organized cloud
 optical frame (z forward, x right, y down) with NaN where there is no return. The lidar casts
 a VLP-16-like ray pattern with rayTestBatch and returns an unorganized scan (misses dropped).
 """
+
 import dataclasses
 import math
 
@@ -12,25 +13,31 @@ import pybullet
 
 # Structured layouts of the clouds (little-endian), as Gazebo's depth camera and the velodyne
 # driver publish them.
-DEPTH_DTYPE = np.dtype({"names": ["x", "y", "z", "rgb"], "formats": ["<f4", "<f4", "<f4", "<u4"],
-                        "offsets": [0, 4, 8, 16], "itemsize": 32})
-LIDAR_DTYPE = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "time"],
-                        "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
-                        "offsets": [0, 4, 8, 12, 16, 18], "itemsize": 22})
+DEPTH_DTYPE = np.dtype(
+    {"names": ["x", "y", "z", "rgb"], "formats": ["<f4", "<f4", "<f4", "<u4"], "offsets": [0, 4, 8, 16], "itemsize": 32}
+)
+LIDAR_DTYPE = np.dtype(
+    {
+        "names": ["x", "y", "z", "intensity", "ring", "time"],
+        "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
+        "offsets": [0, 4, 8, 12, 16, 18],
+        "itemsize": 22,
+    }
+)
 LIDAR_MIN_RANGE_M = 0.4
 
 
 @dataclasses.dataclass
 class DepthFrame:
-    rgb: np.ndarray            # H x W x 3 uint8
-    depth_m: np.ndarray        # H x W float32, NaN = no return
-    cloud: np.ndarray          # H x W structured DEPTH_DTYPE, optical frame
+    rgb: np.ndarray  # H x W x 3 uint8
+    depth_m: np.ndarray  # H x W float32, NaN = no return
+    cloud: np.ndarray  # H x W structured DEPTH_DTYPE, optical frame
     sensor_in_map: np.ndarray  # 4 x 4
 
 
 @dataclasses.dataclass
 class LidarScan:
-    points: np.ndarray         # N structured LIDAR_DTYPE, lidar frame
+    points: np.ndarray  # N structured LIDAR_DTYPE, lidar frame
     sensor_in_map: np.ndarray  # 4 x 4
 
 
@@ -53,6 +60,7 @@ def pack_rgb(rgb):
 @dataclasses.dataclass(frozen=True)
 class CameraModel:
     """Intrinsics of the pinhole camera (what camera_info carries), without a world to render."""
+
     width: int
     height: int
     hfov_deg: float
@@ -86,8 +94,11 @@ class DepthCamera:
         # Render with a slightly nearer/farther clip so near/far returns are not cut by the buffer.
         self._clip_near, self._clip_far = self.near_m * 0.5, self.far_m * 1.05
         self.projection = pybullet.computeProjectionMatrixFOV(
-            vertical_fov_deg(self.width, self.height, self.hfov_deg), self.width / self.height,
-            self._clip_near, self._clip_far)
+            vertical_fov_deg(self.width, self.height, self.hfov_deg),
+            self.width / self.height,
+            self._clip_near,
+            self._clip_far,
+        )
         u = np.arange(self.width, dtype=np.float32)
         v = np.arange(self.height, dtype=np.float32)
         self._ray_x = np.broadcast_to((u - self.cx) / self.fx, (self.height, self.width))
@@ -133,7 +144,9 @@ class Lidar:
         self.elevations = np.linspace(-half, half, self.rings) if self.rings > 1 else np.zeros(1)
         self.azimuths = np.linspace(0.0, 2 * math.pi, self.samples, endpoint=False)
         el, az = np.meshgrid(self.elevations, self.azimuths, indexing="ij")
-        self.directions = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
+        self.directions = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(
+            -1, 3
+        )
         self.ring_of_ray = np.repeat(np.arange(self.rings, dtype=np.uint16), self.samples)
         self.ignore_body = ignore_body
 

@@ -2,23 +2,24 @@
 
 `FleetSimulation` is what the fleet_sim node, the sample-cloud renderer and the tests drive.
 """
+
 import dataclasses
 from typing import Dict
 
 import numpy as np
 
+from cps_fleet.site import load_site
 from cps_sim.robots import Robot
 from cps_sim.sensors import CameraModel, DepthCamera, Lidar
-from cps_fleet.site import load_site
 from cps_sim.world import DEFAULT_RENDERER, SimWorld, resolve_renderer
 
 
 @dataclasses.dataclass
 class SimulatedRobot:
     robot: Robot
-    sensor: object          # DepthCamera or Lidar; CameraModel or None without a world
+    sensor: object  # DepthCamera or Lidar; CameraModel or None without a world
     rate_hz: float
-    config: object          # cps_fleet.fleet.RobotConfig
+    config: object  # cps_fleet.fleet.RobotConfig
 
     @property
     def name(self):
@@ -42,8 +43,11 @@ class FleetSimulation:
         self.world = None
         if renderer is not None:
             cam = fleet.profile.depth_camera
-            self.world = SimWorld(self.site, resolve_renderer(renderer, cam.width, cam.height),
-                                  fallback_renderer=resolve_renderer("auto", cam.width, cam.height))
+            self.world = SimWorld(
+                self.site,
+                resolve_renderer(renderer, cam.width, cam.height),
+                fallback_renderer=resolve_renderer("auto", cam.width, cam.height),
+            )
         self.robots: Dict[str, SimulatedRobot] = {}
         profile = fleet.profile
         for cfg in fleet.robots:
@@ -57,8 +61,9 @@ class FleetSimulation:
             body = self.world.add_robot(robot)
             if cfg.has_lidar:
                 lp = profile.lidar
-                sensor = Lidar(self.world, lp.rings, lp.samples_per_ring, lp.vertical_fov_deg, lp.max_range_m,
-                               ignore_body=body)
+                sensor = Lidar(
+                    self.world, lp.rings, lp.samples_per_ring, lp.vertical_fov_deg, lp.max_range_m, ignore_body=body
+                )
                 rate = lp.rate_hz
             else:
                 cp = profile.depth_camera
@@ -117,4 +122,3 @@ def build_fleet_simulation(fleet_file=None, profile=None, robots=None, renderer=
     fleet = load_fleet(fleet_file, profile)
     fleet = robot_names_arg(fleet, robots)
     return FleetSimulation(fleet, site=site, renderer=renderer)
-

@@ -10,6 +10,7 @@ A changes file (e.g. cps_bringup/config/site_changes.yaml) lists them by equipme
 `load_site_changes` checks it against the site (ConfigError with file:line); `expected_changes`
 is the simulator's truth of what a change detector should find.
 """
+
 import dataclasses
 from typing import Sequence, Tuple
 
@@ -18,8 +19,7 @@ import numpy as np
 from cps_fleet.config import Reader, load_yaml_document
 from cps_fleet.site import Equipment
 
-ADDED_SHAPES = {"box": ("crate", ("size_x_m", "size_y_m", "size_z_m")),
-                "cylinder": ("drum", ("radius_m", "height_m"))}
+ADDED_SHAPES = {"box": ("crate", ("size_x_m", "size_y_m", "size_z_m")), "cylinder": ("drum", ("radius_m", "height_m"))}
 ADDED_RGB = (0.85, 0.20, 0.60)
 
 
@@ -54,10 +54,13 @@ class SiteChanges:
         return dataclasses.replace(site, equipment=site.equipment + tuple(self.added))
 
     def describe(self):
-        parts = [f"removed {', '.join(self.removed)}" if self.removed else "",
-                 "moved " + ", ".join(f"{m.name} by ({m.dx_m:+.2f}, {m.dy_m:+.2f}) m" for m in self.moved)
-                 if self.moved else "",
-                 f"added {', '.join(a.name for a in self.added)}" if self.added else ""]
+        parts = [
+            f"removed {', '.join(self.removed)}" if self.removed else "",
+            "moved " + ", ".join(f"{m.name} by ({m.dx_m:+.2f}, {m.dy_m:+.2f}) m" for m in self.moved)
+            if self.moved
+            else "",
+            f"added {', '.join(a.name for a in self.added)}" if self.added else "",
+        ]
         return "; ".join(p for p in parts if p) or "no changes"
 
 
@@ -73,8 +76,9 @@ def apply_site_changes(site, without: Sequence[str] = (), moves: Sequence[SiteMo
 def _known(reader, key, site):
     name = reader.get(key, str)
     if name not in (e.name for e in site.equipment):
-        raise reader.error(key, f"no equipment named '{name}' in {site.path} "
-                                f"(known: {', '.join(e.name for e in site.equipment)})")
+        raise reader.error(
+            key, f"no equipment named '{name}' in {site.path} (known: {', '.join(e.name for e in site.equipment)})"
+        )
     return name
 
 
@@ -82,8 +86,11 @@ def _check_inside(reader, site, item, what):
     x0, y0, x1, y1 = item.footprint
     if not all(site.inside_hall(x, y) for x, y in ((x0, y0), (x1, y1))):
         h = site.hall
-        raise reader.error(None, f"{what} '{item.name}' would leave the hall: footprint x {x0:.2f}..{x1:.2f}, "
-                                 f"y {y0:.2f}..{y1:.2f} (hall x {h.x_min_m}..{h.x_max_m}, y {h.y_min_m}..{h.y_max_m})")
+        raise reader.error(
+            None,
+            f"{what} '{item.name}' would leave the hall: footprint x {x0:.2f}..{x1:.2f}, "
+            f"y {y0:.2f}..{y1:.2f} (hall x {h.x_min_m}..{h.x_max_m}, y {h.y_min_m}..{h.y_max_m})",
+        )
 
 
 def load_site_changes(path, site) -> SiteChanges:
@@ -96,8 +103,10 @@ def load_site_changes(path, site) -> SiteChanges:
     removed = []
     for i, name in enumerate(top.get("removed", list, default=[])):
         if not isinstance(name, str) or name not in (e.name for e in site.equipment):
-            raise doc.error(("removed", i), f"no equipment named {name!r} in {site.path} "
-                                            f"(known: {', '.join(e.name for e in site.equipment)})")
+            raise doc.error(
+                ("removed", i),
+                f"no equipment named {name!r} in {site.path} (known: {', '.join(e.name for e in site.equipment)})",
+            )
         removed.append(name)
     moved = []
     for reader in top.items("moved") if top.has("moved") else []:
@@ -117,8 +126,16 @@ def load_site_changes(path, site) -> SiteChanges:
             raise reader.error("shape", f"unknown shape '{shape}' (known: {', '.join(ADDED_SHAPES)})")
         kind, keys = ADDED_SHAPES[shape]
         size = tuple((key, reader.number(key, low=0.0, low_open=True)) for key in keys)
-        item = Equipment(name, kind, reader.number("x"), reader.number("y"), reader.number("yaw_deg", default=0.0),
-                         size, ADDED_RGB, line=doc.line(reader.key_path))
+        item = Equipment(
+            name,
+            kind,
+            reader.number("x"),
+            reader.number("y"),
+            reader.number("yaw_deg", default=0.0),
+            size,
+            ADDED_RGB,
+            line=doc.line(reader.key_path),
+        )
         _check_inside(reader, site, item, "added equipment")
         added.append(item)
     return SiteChanges(tuple(removed), tuple(moved), tuple(added), path=str(path))
@@ -138,8 +155,9 @@ class ExpectedChange:
 def _expected(item, kind):
     lows, highs = zip(*(p.aabb() for p in item.primitives()))
     lo, hi = np.min(lows, axis=0), np.max(highs, axis=0)
-    return ExpectedChange(item.name, kind, tuple(np.round((lo + hi) / 2, 4).tolist()),
-                          tuple(np.round(hi - lo, 4).tolist()))
+    return ExpectedChange(
+        item.name, kind, tuple(np.round((lo + hi) / 2, 4).tolist()), tuple(np.round(hi - lo, 4).tolist())
+    )
 
 
 def expected_changes(site, changes: SiteChanges):

@@ -4,6 +4,7 @@ dead-man and e-stop. The decisions are `cps_sim.controllers.VelocityMux`'s.
 `VelocityMuxNode` is one robot's topics; the `velocity_mux` executable runs one in `/<r>`
 (relative names), `fleet_control` one per robot in a single process (`/<r>/...` names).
 """
+
 import threading
 
 import rospy
@@ -13,7 +14,16 @@ from std_msgs.msg import Bool, String
 from cps_fleet import names
 from cps_sim.controllers import VelocityMux
 from cps_sim.fleet_control import DEADMAN_S, MUX_RATE_HZ
-from cps_sim.node_support import WARN_PERIOD_S, ThrottledLog, fail, load_fleet_param, positive_param, spin_at, twist_from_msg, twist_to_msg
+from cps_sim.node_support import (
+    WARN_PERIOD_S,
+    ThrottledLog,
+    fail,
+    load_fleet_param,
+    positive_param,
+    spin_at,
+    twist_from_msg,
+    twist_to_msg,
+)
 
 
 class VelocityMuxNode:
@@ -40,8 +50,9 @@ class VelocityMuxNode:
         self.mode_topic = topic(names.CONTROL_MODE)
         self.subs = [
             rospy.Subscriber(self.cmd_vel_auto, TwistMsg, self._on_cmd, callback_args=self.cmd_vel_auto, queue_size=5),
-            rospy.Subscriber(self.cmd_vel_teleop, TwistMsg, self._on_cmd, callback_args=self.cmd_vel_teleop,
-                             queue_size=5),
+            rospy.Subscriber(
+                self.cmd_vel_teleop, TwistMsg, self._on_cmd, callback_args=self.cmd_vel_teleop, queue_size=5
+            ),
             rospy.Subscriber(self.mode_topic, String, self._on_mode, queue_size=5),
         ]
         if subscribe_estop:

@@ -7,6 +7,7 @@ headless EGL context and Embree ray casting of the same hall and robot boxes) or
 ('egl' plugin, 'tiny' TinyRenderer, each with rayTestBatch; those need coloured visual bodies
 of the hall too).
 """
+
 import logging
 import math
 import pkgutil
@@ -50,8 +51,10 @@ class SimWorld:
         """`fallback_renderer` ('egl' or 'tiny') is used, with a logged reason in
         `fallback_reason`, when 'fast' cannot run here (no EGL context, no Embree)."""
         if renderer not in ("fast", "egl", "tiny") or fallback_renderer not in ("egl", "tiny"):
-            raise ValueError(f"unknown renderer '{renderer}' or fallback '{fallback_renderer}' "
-                             f"(known: fast, egl, tiny; resolve 'auto' first)")
+            raise ValueError(
+                f"unknown renderer '{renderer}' or fallback '{fallback_renderer}' "
+                f"(known: fast, egl, tiny; resolve 'auto' first)"
+            )
         self.site = site
         self._prims = site.primitives()
         self._hall_triangles, self._hall_rgba = fast_sensors.hall_triangles(self._prims)
@@ -66,8 +69,9 @@ class SimWorld:
             except fast_sensors.RendererUnavailable as exc:
                 self._ray_caster = None
                 self.fallback_reason = str(exc)
-                log.warning("fast renderer unavailable: %s; using PyBullet's '%s' renderer (slower)",
-                            exc, fallback_renderer)
+                log.warning(
+                    "fast renderer unavailable: %s; using PyBullet's '%s' renderer (slower)", exc, fallback_renderer
+                )
                 renderer = fallback_renderer
         self.client = pybullet.connect(pybullet.DIRECT)
         self.renderer = "tiny"
@@ -86,8 +90,9 @@ class SimWorld:
                 log.warning("EGL renderer unavailable (%s); using TinyRenderer", exc)
             if self.renderer != "egl":
                 log.warning("EGL renderer plugin did not load; using TinyRenderer")
-        self._bullet_renderer = (pybullet.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl"
-                                 else pybullet.ER_TINY_RENDERER)
+        self._bullet_renderer = (
+            pybullet.ER_BULLET_HARDWARE_OPENGL if self.renderer == "egl" else pybullet.ER_TINY_RENDERER
+        )
         pybullet.configureDebugVisualizer(pybullet.COV_ENABLE_SHADOWS, 0, physicsClientId=self.client)
         self.hall_body = None
         self.visual_bodies = []
@@ -101,21 +106,29 @@ class SimWorld:
             prims = ()  # the rasterizer draws the hall from its own copy of the mesh
         for prim in prims:
             if prim.kind == "box":
-                vis = pybullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=prim.half_extents, rgbaColor=prim.rgba,
-                                                 physicsClientId=c)
+                vis = pybullet.createVisualShape(
+                    pybullet.GEOM_BOX, halfExtents=prim.half_extents, rgbaColor=prim.rgba, physicsClientId=c
+                )
                 orn = _quaternion_z(prim.yaw_rad)
             else:
-                vis = pybullet.createVisualShape(pybullet.GEOM_CYLINDER, radius=prim.radius, length=2 * prim.half_length,
-                                                 rgbaColor=prim.rgba, physicsClientId=c)
+                vis = pybullet.createVisualShape(
+                    pybullet.GEOM_CYLINDER,
+                    radius=prim.radius,
+                    length=2 * prim.half_length,
+                    rgbaColor=prim.rgba,
+                    physicsClientId=c,
+                )
                 orn = _quaternion_z(prim.yaw_rad)
                 if prim.axis == "x":
-                    orn = pybullet.multiplyTransforms((0, 0, 0), orn, (0, 0, 0),
-                                                      pybullet.getQuaternionFromEuler((0.0, math.pi / 2, 0.0)))[1]
+                    orn = pybullet.multiplyTransforms(
+                        (0, 0, 0), orn, (0, 0, 0), pybullet.getQuaternionFromEuler((0.0, math.pi / 2, 0.0))
+                    )[1]
             body = pybullet.createMultiBody(0.0, -1, vis, prim.center, orn, physicsClientId=c)
             self.visual_bodies.append(body)
         verts, tris = merged_mesh(self._prims)
-        col = pybullet.createCollisionShape(pybullet.GEOM_MESH, vertices=verts.tolist(), indices=tris.ravel().tolist(),
-                                            physicsClientId=c)
+        col = pybullet.createCollisionShape(
+            pybullet.GEOM_MESH, vertices=verts.tolist(), indices=tris.ravel().tolist(), physicsClientId=c
+        )
         self.hall_body = pybullet.createMultiBody(0.0, col, -1, (0, 0, 0), physicsClientId=c)
         if self._ray_caster is not None:
             self._ray_caster.hall_body_id = self.hall_body
@@ -125,31 +138,54 @@ class SimWorld:
         spec = robot.spec
         c = self.client
         col = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=spec.body_half_extents_m, physicsClientId=c)
-        vis = pybullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=spec.body_half_extents_m,
-                                         rgbaColor=tuple(spec.rgb) + (1.0,), physicsClientId=c)
-        body = pybullet.createMultiBody(0.0, col, vis, (robot.x, robot.y, robot.z + spec.body_center_z_m),
-                                        _quaternion_z(robot.yaw), physicsClientId=c)
+        vis = pybullet.createVisualShape(
+            pybullet.GEOM_BOX,
+            halfExtents=spec.body_half_extents_m,
+            rgbaColor=tuple(spec.rgb) + (1.0,),
+            physicsClientId=c,
+        )
+        body = pybullet.createMultiBody(
+            0.0,
+            col,
+            vis,
+            (robot.x, robot.y, robot.z + spec.body_center_z_m),
+            _quaternion_z(robot.yaw),
+            physicsClientId=c,
+        )
         self.robot_bodies[robot.name] = body
         self._robot_boxes[robot.name] = fast_sensors.BoxBody(
-            body, tuple(spec.body_half_extents_m), (robot.x, robot.y, robot.z + spec.body_center_z_m), robot.yaw,
-            tuple(spec.rgb))
+            body,
+            tuple(spec.body_half_extents_m),
+            (robot.x, robot.y, robot.z + spec.body_center_z_m),
+            robot.yaw,
+            tuple(spec.rgb),
+        )
         return body
 
     def sync_robot(self, robot):
         center = (robot.x, robot.y, robot.z + robot.spec.body_center_z_m)
-        pybullet.resetBasePositionAndOrientation(self.robot_bodies[robot.name], center,
-                                                 _quaternion_z(robot.yaw), physicsClientId=self.client)
+        pybullet.resetBasePositionAndOrientation(
+            self.robot_bodies[robot.name], center, _quaternion_z(robot.yaw), physicsClientId=self.client
+        )
         box = self._robot_boxes[robot.name]
         box.center_m, box.yaw_rad = center, robot.yaw
 
     def render(self, width, height, view_matrix, projection_matrix):
         """(rgba uint8 H x W x 4, OpenGL depth buffer float32 H x W), row 0 = top of the image."""
         if self._rasterizer is not None:
-            return self._rasterizer.render(width, height, view_matrix, projection_matrix,
-                                           list(self._robot_boxes.values()))
+            return self._rasterizer.render(
+                width, height, view_matrix, projection_matrix, list(self._robot_boxes.values())
+            )
         _, _, rgba, depth, _ = pybullet.getCameraImage(
-            width, height, view_matrix, projection_matrix, renderer=self._bullet_renderer,
-            flags=pybullet.ER_NO_SEGMENTATION_MASK, shadow=0, physicsClientId=self.client)
+            width,
+            height,
+            view_matrix,
+            projection_matrix,
+            renderer=self._bullet_renderer,
+            flags=pybullet.ER_NO_SEGMENTATION_MASK,
+            shadow=0,
+            physicsClientId=self.client,
+        )
         rgba = np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)
         depth = np.asarray(depth, dtype=np.float32).reshape(height, width)
         return rgba, depth

@@ -1,5 +1,6 @@
 """Fault injection for test_estop_ros: while the file $CPS_TEST_CLOCK_STEP_FILE exists, this
 process's wall clock (time.time, what NTP steps) reads $CPS_TEST_CLOCK_STEP_S off (default -30 s)."""
+
 import os
 import time
 

@@ -22,20 +22,28 @@ How the fields are carried:
   deduplication is the slowest step. Without it Draco uses its sequential coder, which on voxel
   grid output is both faster and smaller than the kd-tree coder (see docs/benchmarks/transport.md).
 """
+
 import dataclasses
 import math
 import time
 
 import DracoPy
 import numpy as np
-from cps_msgs.msg import CompressedPointCloud2
 from sensor_msgs.msg import PointField
 
-from cps_transport.pointcloud import (InvalidCloud, array_to_cloud, cloud_dtype, cloud_to_array, field_dtype,
-                                      finite_mask, validate_cloud_layout)
+from cps_msgs.msg import CompressedPointCloud2
+from cps_transport.pointcloud import (
+    InvalidCloud,
+    array_to_cloud,
+    cloud_dtype,
+    cloud_to_array,
+    field_dtype,
+    finite_mask,
+    validate_cloud_layout,
+)
 
 COLOR_FIELDS = ("rgb", "rgba")
-_FLOAT32_ULP = 2.0 ** -23  # relative spacing of float32: decoded coordinates are float32
+_FLOAT32_ULP = 2.0**-23  # relative spacing of float32: decoded coordinates are float32
 
 
 class DracoError(ValueError):
@@ -53,7 +61,7 @@ def parse_fields(spec):
         return None
     names = []
     for token in tokens:
-        for name in (("x", "y", "z") if token == "xyz" else (token,)):
+        for name in ("x", "y", "z") if token == "xyz" else (token,):
             if name not in names:
                 names.append(name)
     missing = [a for a in "xyz" if a not in names]
@@ -99,8 +107,17 @@ class DracoEncoder:
     deduplicate: merge identical points first (point_cloud_transport's default; slow).
     """
 
-    def __init__(self, leaf_size_m=None, position_tolerance_m=None, quantization_bits=None,
-                 field_quantization_bits=16, speed=7, fields="xyz", lossless=False, deduplicate=False):
+    def __init__(
+        self,
+        leaf_size_m=None,
+        position_tolerance_m=None,
+        quantization_bits=None,
+        field_quantization_bits=16,
+        speed=7,
+        fields="xyz",
+        lossless=False,
+        deduplicate=False,
+    ):
         if quantization_bits is not None and not 1 <= int(quantization_bits) <= 30:
             raise ValueError(f"quantization_bits must be 1..30, got {quantization_bits}")
         if position_tolerance_m is None and quantization_bits is None and not lossless:
@@ -137,7 +154,9 @@ class DracoEncoder:
             xyz = xyz[finite]
         if len(xyz) == 0:
             raise InvalidCloud(f"no finite points (all {len(points)} are NaN/inf)")
-        extras = [(f, points[f.name] if not n_nan else points[f.name][finite]) for f in kept if f.name not in ("x", "y", "z")]
+        extras = [
+            (f, points[f.name] if not n_nan else points[f.name][finite]) for f in kept if f.name not in ("x", "y", "z")
+        ]
         payload, bits, bound = self.encode_arrays(xyz, extras)
 
         out = CompressedPointCloud2()
@@ -148,8 +167,9 @@ class DracoEncoder:
         out.point_step, out.row_step = msg.point_step, msg.row_step
         out.is_dense = msg.is_dense
         out.compressed_data = payload
-        self.last_info = EncodeInfo(len(points), n_nan, len(xyz), bits, bound, len(payload),
-                                    1e3 * (time.perf_counter() - start))
+        self.last_info = EncodeInfo(
+            len(points), n_nan, len(xyz), bits, bound, len(payload), 1e3 * (time.perf_counter() - start)
+        )
         return out
 
     def encode_arrays(self, xyz, extras=()):
@@ -166,8 +186,12 @@ class DracoEncoder:
             else:
                 name, array = self._generic_attribute(field, values)
                 generic[name] = array
-        kwargs = dict(compression_level=10 - self.speed, preserve_order=not self.deduplicate,
-                      colors=colors, generic_attributes=generic or None)
+        kwargs = dict(
+            compression_level=10 - self.speed,
+            preserve_order=not self.deduplicate,
+            colors=colors,
+            generic_attributes=generic or None,
+        )
         if self.lossless:
             bits, bound = 0, 0.0
         elif self.quantization_bits is not None:
@@ -183,8 +207,9 @@ class DracoEncoder:
             try:
                 bits = bits_for_tolerance(span, self.position_tolerance_m - rounding)
             except ValueError as exc:
-                raise InvalidCloud(f"points spanning {span:.6g} m cannot be coded within "
-                                   f"{self.position_tolerance_m} m: {exc}") from exc
+                raise InvalidCloud(
+                    f"points spanning {span:.6g} m cannot be coded within {self.position_tolerance_m} m: {exc}"
+                ) from exc
             kwargs.update(quantization_range=span, quantization_origin=low)
             bound = span / (2 * ((1 << bits) - 1)) + rounding
         try:
@@ -205,7 +230,9 @@ class DracoEncoder:
         if values.ndim == 1:
             values = values[:, None]
         if np.issubdtype(dtype, np.integer):
-            unsigned = np.ascontiguousarray(values.astype(dtype.newbyteorder("<"), copy=False)).view(f"<u{dtype.itemsize}")
+            unsigned = np.ascontiguousarray(values.astype(dtype.newbyteorder("<"), copy=False)).view(
+                f"<u{dtype.itemsize}"
+            )
             if dtype.itemsize == 4 and unsigned.max() >= 1 << 31:
                 # Draco's integer coder works in int32: carry large words as two 16-bit halves.
                 return f"{field.name}|w16", unsigned.view("<u2")
@@ -272,7 +299,7 @@ class DracoDecoder:
         if colors.shape[0] != n or colors.shape[1] not in (3, 4):
             raise DracoError(f"colours of shape {colors.shape} for {n} points")
         packed = np.zeros((n, 4), dtype=np.uint8)
-        packed[:, [2, 1, 0, 3][:colors.shape[1]]] = colors
+        packed[:, [2, 1, 0, 3][: colors.shape[1]]] = colors
         if colors.shape[1] == 3:
             packed[:, 3] = 0
         return packed.reshape(-1).view(dtype.newbyteorder("<"))

@@ -3,13 +3,14 @@ a publisher created on a base topic advertises `<base>/draco` and encodes in `pu
 a subscriber on a base topic listens on `<base>/draco` and hands the user's callback a decoded
 sensor_msgs/PointCloud2. Bad clouds and damaged payloads are counted, warned about (throttled)
 and reported on /diagnostics (see `cps_ros.diagnostics.DropReporter`); they never raise into rospy."""
+
 import rospy
 from rosgraph.names import ns_join
 
 from cps_msgs.msg import CompressedPointCloud2
+from cps_ros.diagnostics import DropReporter
 from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError
 from cps_transport.pointcloud import InvalidCloud
-from cps_ros.diagnostics import DropReporter
 
 TRANSPORT_SUFFIX = "draco"
 
@@ -70,8 +71,9 @@ class DracoSubscriber:
         self.decoder = decoder if decoder is not None else DracoDecoder()
         self.callback = callback
         self.report = DropReporter(self.topic)
-        self._subscriber = rospy.Subscriber(self.topic, CompressedPointCloud2, self._on_compressed,
-                                            queue_size=queue_size, buff_size=buff_size)
+        self._subscriber = rospy.Subscriber(
+            self.topic, CompressedPointCloud2, self._on_compressed, queue_size=queue_size, buff_size=buff_size
+        )
 
     @property
     def invalid(self):

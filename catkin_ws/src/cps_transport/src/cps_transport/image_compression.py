@@ -4,6 +4,7 @@ a sensor_msgs/CompressedImage whose `data` is a plain JPEG file and whose `forma
 compressed_image_transport's subscriber, rqt_image_view and this package's GUI all read it.
 Debian 12 packages image_transport but not that plugin; this module (Pillow, no ROS) stands in.
 """
+
 import io
 
 import numpy as np
@@ -18,8 +19,12 @@ class InvalidImage(ValueError):
 
 
 def _checked_quality(quality):
-    if isinstance(quality, bool) or not isinstance(quality, (int, float, np.integer)) \
-            or int(quality) != quality or not 1 <= quality <= 100:
+    if (
+        isinstance(quality, bool)
+        or not isinstance(quality, (int, float, np.integer))
+        or int(quality) != quality
+        or not 1 <= quality <= 100
+    ):
         raise ValueError(f"jpeg quality must be an integer 1..100, got {quality!r}")
     return int(quality)
 
@@ -87,7 +92,7 @@ def image_pixels(encoding, width, height, step, data):
     if len(data) < step * height:
         raise InvalidImage(f"image data has {len(data)} bytes, expected {height} rows of {step}")
     rows = np.frombuffer(data, dtype=np.uint8, count=step * height).reshape(height, step)
-    pixels = rows[:, :width * channels].reshape(height, width, channels)
+    pixels = rows[:, : width * channels].reshape(height, width, channels)
     if channels == 1:
         return pixels[:, :, 0]
     return pixels[:, :, ::-1] if encoding == "bgr8" else pixels
@@ -104,7 +109,7 @@ def psnr_db(reference, decoded):
     if reference.shape != decoded.shape:
         raise ValueError(f"shapes differ: {reference.shape} vs {decoded.shape}")
     mse = float(np.mean((reference - decoded) ** 2))
-    return float("inf") if mse == 0 else 10.0 * np.log10(255.0 ** 2 / mse)
+    return float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse)
 
 
 def camera_test_image(width=320, height=240, seed=0):
@@ -120,6 +125,6 @@ def camera_test_image(width=320, height=240, seed=0):
     image[floor] = [70, 70, 75]
     for i in range(6):  # shelves and pipes: rectangles of a few colours
         x0, y0 = int((0.05 + 0.15 * i) * width), int((0.15 + 0.05 * (i % 3)) * height)
-        image[y0:y0 + height // 3, x0:x0 + width // 12] = [(40 * i) % 255, 200 - 25 * i, 60 + 30 * i]
+        image[y0 : y0 + height // 3, x0 : x0 + width // 12] = [(40 * i) % 255, 200 - 25 * i, 60 + 30 * i]
     image += rng.normal(0.0, 3.0, image.shape)
     return np.clip(image, 0, 255).astype(np.uint8)

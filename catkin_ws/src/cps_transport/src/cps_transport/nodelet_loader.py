@@ -9,14 +9,14 @@ and parameters. `NodeletLoader` makes the same calls for many nodelets without a
 client process, not one per nodelet), unloads them (MANAGER/unload_nodelet) when asked, and
 reloads them if the manager restarts.
 """
+
 import dataclasses
 import time
 from typing import Dict, List, Tuple
 
 import rospy
-from rosgraph.names import ns_join
-
 from nodelet.srv import NodeletList, NodeletLoad, NodeletUnload
+from rosgraph.names import ns_join
 
 # How long a load waits for the manager's services before failing (a manager starting pcl_ros's
 # plugins on a busy machine takes a few seconds).
@@ -43,12 +43,14 @@ class NodeletRequest:
     def resolved_remappings(self) -> Tuple[List[str], List[str]]:
         """(sources, targets) as nodelet.cpp sends them: private sources under the nodelet's name,
         relative ones in its namespace, targets resolved the same way."""
+
         def resolve(topic):
             if topic.startswith("~"):
                 return ns_join(self.name, topic[1:])
             if topic.startswith("/"):
                 return topic
             return ns_join(self.name.rsplit("/", 1)[0] or "/", topic)
+
         pairs = [(resolve(s), resolve(t)) for s, t in self.remappings.items()]
         return [s for s, _ in pairs], [t for _, t in pairs]
 
@@ -71,8 +73,10 @@ class NodeletLoader:
         try:
             self._load.wait_for_service(timeout=timeout_s)
         except rospy.ROSException as exc:
-            raise NodeletLoadError(f"nodelet manager {self.manager} did not offer {self._load.resolved_name} "
-                                   f"within {timeout_s:.0f} s (is it running?)") from exc
+            raise NodeletLoadError(
+                f"nodelet manager {self.manager} did not offer {self._load.resolved_name} "
+                f"within {timeout_s:.0f} s (is it running?)"
+            ) from exc
 
     def running(self):
         """The names the manager has loaded; None when it does not answer."""
@@ -100,18 +104,27 @@ class NodeletLoader:
             rospy.set_param(ns_join(request.name, key), value)
         sources, targets = request.resolved_remappings()
         try:
-            response = self._load(name=request.name, type=request.type, remap_source_args=sources,
-                                  remap_target_args=targets, my_argv=list(request.argv), bond_id="")
+            response = self._load(
+                name=request.name,
+                type=request.type,
+                remap_source_args=sources,
+                remap_target_args=targets,
+                my_argv=list(request.argv),
+                bond_id="",
+            )
         except (rospy.ServiceException, rospy.ROSException, OSError) as exc:
             # The manager answers a failed load (unknown type, plugin not loadable, name taken) with
             # an error, not success=false.
-            raise NodeletLoadError(f"{self.manager} failed to load {request.type} as {request.name} ({exc}): "
-                                   f"{_WHY}") from exc
+            raise NodeletLoadError(
+                f"{self.manager} failed to load {request.type} as {request.name} ({exc}): {_WHY}"
+            ) from exc
         if not response.success:
             raise NodeletLoadError(f"{self.manager} failed to load {request.type} as {request.name}: {_WHY}")
         self.loaded.append(request.name)
-        rospy.loginfo(f"{rospy.get_name()}: loaded {request.type} as {request.name} into {self.manager} "
-                      f"({', '.join(f'{s} -> {t}' for s, t in zip(sources, targets))})")
+        rospy.loginfo(
+            f"{rospy.get_name()}: loaded {request.type} as {request.name} into {self.manager} "
+            f"({', '.join(f'{s} -> {t}' for s, t in zip(sources, targets))})"
+        )
 
     def _unload_one(self, name):
         try:
@@ -134,8 +147,10 @@ class NodeletLoader:
                 continue
             missing = [r for r in self.requests if r.name not in running]
             if missing:
-                rospy.logwarn(f"{rospy.get_name()}: {self.manager} lost {', '.join(r.name for r in missing)} "
-                              "(restarted?): loading them again")
+                rospy.logwarn(
+                    f"{rospy.get_name()}: {self.manager} lost {', '.join(r.name for r in missing)} "
+                    "(restarted?): loading them again"
+                )
                 self.loaded = [n for n in self.loaded if n in running]
                 for request in missing:
                     self.load(request)
@@ -144,12 +159,22 @@ class NodeletLoader:
 def voxel_grid_requests(fleet, robots=None) -> List[NodeletRequest]:
     """pcl/VoxelGrid for each robot with the names, topics and parameters `nodelet load` gets
     from cps_transport.voxel_grid_command (the per-robot layout)."""
-    from cps_transport.voxel_grid_command import (VOXEL_NODELET_TYPE, voxel_nodelet_name, voxel_nodelet_params,
-                                                  voxel_nodelet_remaps)
+    from cps_transport.voxel_grid_command import (
+        VOXEL_NODELET_TYPE,
+        voxel_nodelet_name,
+        voxel_nodelet_params,
+        voxel_nodelet_remaps,
+    )
 
     out = []
     for name in robots or fleet.robot_names:
         robot = fleet.robot(name)
-        out.append(NodeletRequest(name=voxel_nodelet_name(robot), type=VOXEL_NODELET_TYPE,
-                                  remappings=voxel_nodelet_remaps(robot), params=voxel_nodelet_params(robot)))
+        out.append(
+            NodeletRequest(
+                name=voxel_nodelet_name(robot),
+                type=VOXEL_NODELET_TYPE,
+                remappings=voxel_nodelet_remaps(robot),
+                params=voxel_nodelet_params(robot),
+            )
+        )
     return out

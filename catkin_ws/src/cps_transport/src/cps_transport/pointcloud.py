@@ -5,6 +5,7 @@ point with a known datatype, a non-empty name and a sane count, x/y/z present as
 and at most MAX_CLOUD_BYTES of data. Anything else raises `InvalidCloud` with the reason, so a
 node can drop the message, count it and carry on.
 """
+
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
@@ -50,8 +51,10 @@ def cloud_dtype(fields, point_step, bigendian=False):
             raise InvalidCloud(f"field '{field.name}' has count {field.count} (1..{MAX_FIELD_COUNT})")
         dtype = field_dtype(field.datatype, field.count, bigendian)
         if field.offset + dtype.itemsize > point_step:
-            raise InvalidCloud(f"field '{field.name}' (offset {field.offset}, {dtype.itemsize} bytes) "
-                               f"does not fit in point_step {point_step}")
+            raise InvalidCloud(
+                f"field '{field.name}' (offset {field.offset}, {dtype.itemsize} bytes) "
+                f"does not fit in point_step {point_step}"
+            )
         if field.name in names:
             raise InvalidCloud(f"field '{field.name}' appears twice")
         names.append(field.name)
@@ -88,13 +91,12 @@ def cloud_to_array(msg: PointCloud2, require_xyz=True):
     """All points of a PointCloud2 as a flat structured array (row-major for organized clouds).
 
     The array views the message's bytes where the rows are unpadded (read-only then)."""
-    validate_cloud_layout(msg.height, msg.width, msg.point_step, msg.row_step, len(msg.data), msg.fields,
-                          require_xyz)
+    validate_cloud_layout(msg.height, msg.width, msg.point_step, msg.row_step, len(msg.data), msg.fields, require_xyz)
     dtype = cloud_dtype(msg.fields, msg.point_step, msg.is_bigendian)
     data = msg.data if isinstance(msg.data, (bytes, bytearray)) else bytes(msg.data)
     if msg.row_step == msg.width * msg.point_step:
         return np.frombuffer(data, dtype=dtype, count=msg.height * msg.width)
-    rows = np.frombuffer(data, dtype=np.uint8).reshape(msg.height, msg.row_step)[:, :msg.width * msg.point_step]
+    rows = np.frombuffer(data, dtype=np.uint8).reshape(msg.height, msg.row_step)[:, : msg.width * msg.point_step]
     return np.ascontiguousarray(rows).view(dtype).reshape(-1)
 
 
@@ -134,9 +136,17 @@ def array_to_cloud(columns, header=None, height=1, width=None):
     names = list(columns)
     n = len(columns[names[0]]) if names else 0
     fields, point_step = packed_fields([(name, np.asarray(columns[name]).dtype) for name in names])
-    packed = np.empty(n, dtype=np.dtype({"names": names,
-                                         "formats": [np.asarray(columns[k]).dtype.newbyteorder("<") for k in names],
-                                         "offsets": [f.offset for f in fields], "itemsize": point_step}))
+    packed = np.empty(
+        n,
+        dtype=np.dtype(
+            {
+                "names": names,
+                "formats": [np.asarray(columns[k]).dtype.newbyteorder("<") for k in names],
+                "offsets": [f.offset for f in fields],
+                "itemsize": point_step,
+            }
+        ),
+    )
     for name in names:
         packed[name] = columns[name]
     msg = PointCloud2()

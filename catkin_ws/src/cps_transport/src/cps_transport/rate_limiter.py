@@ -6,6 +6,7 @@ Here every message earns `rate x dt` credit and costs 1, with at most `burst` cr
 the fractional credit carries over, so whenever the input is faster than the set rate the
 output averages exactly the set rate (10 Hz -> 8 Hz forwards 4 of every 5).
 """
+
 import collections
 
 

@@ -2,6 +2,7 @@
 running pipeline produces them: pcl_ros's VoxelGrid keeps the input's point layout, so a filtered
 cloud is voxels x point_step; the encoder node sends x,y,z with an error of at most leaf/2.
 Shared by bench/transport_bench.py and cps_bringup's experiments (Table 4, Fig. 11/12)."""
+
 import dataclasses
 
 from cps_transport.draco import DracoEncoder
@@ -15,8 +16,9 @@ def filter_cloud(cloud, leaf_size_m):
     points = cloud_to_array(cloud)
     extras = {n: points[n] for n in points.dtype.names if n not in ("x", "y", "z")}
     centroids, averaged = voxel_downsample(xyz_of(points), leaf_size_m, extras)
-    out = array_to_cloud({"x": centroids[:, 0], "y": centroids[:, 1], "z": centroids[:, 2], **averaged},
-                         header=cloud.header)
+    out = array_to_cloud(
+        {"x": centroids[:, 0], "y": centroids[:, 1], "z": centroids[:, 2], **averaged}, header=cloud.header
+    )
     return out, len(centroids) * cloud.point_step
 
 
@@ -36,6 +38,11 @@ def stage_sizes(cloud, leaf_size_m, encoder=None):
     filtered, filtered_bytes = filter_cloud(cloud, leaf_size_m)
     encoder = encoder or DracoEncoder(leaf_size_m=leaf_size_m)
     compressed = encoder.encode(filtered)
-    return StageSizes(leaf_size_m=float(leaf_size_m), points=cloud.width * cloud.height, voxels=filtered.width,
-                      raw_bytes=len(cloud.data), filtered_bytes=filtered_bytes,
-                      compressed_bytes=len(compressed.compressed_data))
+    return StageSizes(
+        leaf_size_m=float(leaf_size_m),
+        points=cloud.width * cloud.height,
+        voxels=filtered.width,
+        raw_bytes=len(cloud.data),
+        filtered_bytes=filtered_bytes,
+        compressed_bytes=len(compressed.compressed_data),
+    )

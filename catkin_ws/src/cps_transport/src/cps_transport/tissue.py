@@ -7,6 +7,7 @@ Each robot's parts have their own subscribers (rospy gives each its own thread),
 and drop counters: a malformed cloud of one robot is dropped and counted there and nothing else.
 `robot_tissue_configs` (no ROS) says which topics and numbers each robot gets from the fleet file.
 """
+
 import dataclasses
 import threading
 import time
@@ -37,13 +38,13 @@ class RobotTissueConfig:
     """One robot's topics and numbers in the tissue (docs/ros-graph.md)."""
 
     robot: str
-    filtered: str        # /<r>/points_filtered, the voxel grid's output
-    draco: str           # /<r>/points_filtered/draco
-    managed: str         # /<r>/points_filtered/draco/managed
-    throttle_node: str   # /<r>/cloud_throttle: its status, rate_hz and set_rate
-    leaf_size_m: float   # the voxel leaf: sets Draco's quantization
-    rate_hz: float       # the managed rate until the bandwidth manager sets one
-    image_raw: Optional[str] = None         # /<r>/camera/image_raw (depth robots)
+    filtered: str  # /<r>/points_filtered, the voxel grid's output
+    draco: str  # /<r>/points_filtered/draco
+    managed: str  # /<r>/points_filtered/draco/managed
+    throttle_node: str  # /<r>/cloud_throttle: its status, rate_hz and set_rate
+    leaf_size_m: float  # the voxel leaf: sets Draco's quantization
+    rate_hz: float  # the managed rate until the bandwidth manager sets one
+    image_raw: Optional[str] = None  # /<r>/camera/image_raw (depth robots)
     image_compressed: Optional[str] = None  # /<r>/camera/image_raw/compressed
 
 
@@ -60,13 +61,19 @@ def robot_tissue_configs(fleet, robots=None, initial_rate_hz=None) -> List[Robot
     for name in robots or fleet.robot_names:
         robot = fleet.robot(name)
         camera = robot.has_depth_camera
-        out.append(RobotTissueConfig(
-            robot=name, filtered=_rt(name, names.POINTS_FILTERED), draco=_rt(name, names.POINTS_DRACO),
-            managed=_rt(name, names.POINTS_MANAGED), throttle_node=_rt(name, names.CLOUD_THROTTLE),
-            leaf_size_m=float(robot.voxel_leaf_m),
-            rate_hz=float(fleet.link.min_rate_hz if initial_rate_hz is None else initial_rate_hz),
-            image_raw=_rt(name, names.CAMERA_IMAGE) if camera else None,
-            image_compressed=_rt(name, names.CAMERA_IMAGE_COMPRESSED) if camera else None))
+        out.append(
+            RobotTissueConfig(
+                robot=name,
+                filtered=_rt(name, names.POINTS_FILTERED),
+                draco=_rt(name, names.POINTS_DRACO),
+                managed=_rt(name, names.POINTS_MANAGED),
+                throttle_node=_rt(name, names.CLOUD_THROTTLE),
+                leaf_size_m=float(robot.voxel_leaf_m),
+                rate_hz=float(fleet.link.min_rate_hz if initial_rate_hz is None else initial_rate_hz),
+                image_raw=_rt(name, names.CAMERA_IMAGE) if camera else None,
+                image_compressed=_rt(name, names.CAMERA_IMAGE_COMPRESSED) if camera else None,
+            )
+        )
     return out
 
 
@@ -75,8 +82,12 @@ def twin_cloud_topics(robot, backfill):
     and with `backfill` (Zenoh transport) the keyframes kept during an outage."""
     pairs = [(names.absolute(names.managed_cloud_at_twin(robot)), names.absolute(names.twin_points(robot)))]
     if backfill:
-        pairs.append(tuple(names.absolute(names.in_twin(names.robot_topic(robot, t)))
-                           for t in (names.POINTS_BACKFILL_DRACO, names.POINTS_BACKFILL)))
+        pairs.append(
+            tuple(
+                names.absolute(names.in_twin(names.robot_topic(robot, t)))
+                for t in (names.POINTS_BACKFILL_DRACO, names.POINTS_BACKFILL)
+            )
+        )
     return pairs
 
 
@@ -107,11 +118,11 @@ class ManagedRateLimiter:
 
         def private(name):
             return ns_join(node_name, name.lstrip("~"))
+
         self.status_pub = rospy.Publisher(private(names.STATUS), RateLimiterStatus, queue_size=5, latch=True)
         self.service = rospy.Service(private(names.SET_RATE), SetRate, self.on_set_rate)
         self.rate_sub = rospy.Subscriber(private(names.RATE_HZ), Float64, lambda msg: self.set_rate(msg.data))
-        self.input_sub = rospy.Subscriber(input_topic, rospy.AnyMsg, self.on_message, queue_size=5,
-                                          buff_size=1 << 24)
+        self.input_sub = rospy.Subscriber(input_topic, rospy.AnyMsg, self.on_message, queue_size=5, buff_size=1 << 24)
         self.status_timer = guarded_timer(1.0, lambda _event: self.publish_status(), f"status {node_name}")
         self.publish_status()
 
@@ -134,20 +145,25 @@ class ManagedRateLimiter:
             forward = self.limiter.allow(time.monotonic(), len(msg._buff))
             if forward and self.publisher is None:
                 self.relay_cls = relay_class(msg._connection_header)
-                self.publisher = rospy.Publisher(self.output_topic, self.relay_cls,
-                                                 queue_size=LIMITER_OUTPUT_QUEUE_SIZE)
+                self.publisher = rospy.Publisher(
+                    self.output_topic, self.relay_cls, queue_size=LIMITER_OUTPUT_QUEUE_SIZE
+                )
         if forward:
             self.publisher.publish(relay_message(self.relay_cls, msg))
 
     def publish_status(self):
         now = time.monotonic()
         with self.lock:
-            status = RateLimiterStatus(input_topic=self.input_topic, output_topic=self.output_topic,
-                                       set_rate_hz=self.limiter.rate_hz,
-                                       input_rate_hz=self.limiter.input.rate_hz(now),
-                                       output_rate_hz=self.limiter.output.rate_hz(now),
-                                       mean_message_bytes=self.limiter.input.mean_bytes(now),
-                                       received=self.limiter.received, forwarded=self.limiter.forwarded)
+            status = RateLimiterStatus(
+                input_topic=self.input_topic,
+                output_topic=self.output_topic,
+                set_rate_hz=self.limiter.rate_hz,
+                input_rate_hz=self.limiter.input.rate_hz(now),
+                output_rate_hz=self.limiter.output.rate_hz(now),
+                mean_message_bytes=self.limiter.input.mean_bytes(now),
+                received=self.limiter.received,
+                forwarded=self.limiter.forwarded,
+            )
         status.header.stamp = rospy.Time.now()
         self.status_pub.publish(status)
 
@@ -186,8 +202,9 @@ class DracoEncoderPart:
 
     def __init__(self, input_topic, output_topic, encoder):
         self.publisher = DracoPublisher(input_topic, encoder, topic=output_topic)
-        self.subscriber = rospy.Subscriber(input_topic, PointCloud2, self.publisher.publish, queue_size=3,
-                                           buff_size=1 << 24)
+        self.subscriber = rospy.Subscriber(
+            input_topic, PointCloud2, self.publisher.publish, queue_size=3, buff_size=1 << 24
+        )
 
 
 class DracoDecoderPart:
@@ -207,8 +224,11 @@ class RobotTissue:
         self.config = config
         self.encoder = DracoEncoderPart(config.filtered, config.draco, DracoEncoder(leaf_size_m=config.leaf_size_m))
         self.limiter = ManagedRateLimiter(config.draco, config.managed, config.throttle_node, config.rate_hz)
-        self.camera = (ImageCompressor(config.image_raw, config.image_compressed, jpeg_quality, camera_max_rate_hz)
-                       if config.image_raw else None)
+        self.camera = (
+            ImageCompressor(config.image_raw, config.image_compressed, jpeg_quality, camera_max_rate_hz)
+            if config.image_raw
+            else None
+        )
 
 
 class CloudTissue:
@@ -223,5 +243,8 @@ class CloudDecoders:
     keyframes sent after an outage."""
 
     def __init__(self, robots, backfill):
-        self.parts = {(r, i): DracoDecoderPart(src, dst)
-                      for r in robots for i, (src, dst) in enumerate(twin_cloud_topics(r, backfill))}
+        self.parts = {
+            (r, i): DracoDecoderPart(src, dst)
+            for r in robots
+            for i, (src, dst) in enumerate(twin_cloud_topics(r, backfill))
+        }

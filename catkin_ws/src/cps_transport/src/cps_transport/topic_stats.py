@@ -1,6 +1,7 @@
 """Live topic statistics: what `rostopic hz` and `rostopic bw` show, plus end-to-end latency,
 over a sliding window (time injected, no ROS), reading header.stamp from serialized bytes, and a
 per-message arrival log (stamp, receive time) for joining one cloud's arrivals at two places."""
+
 import collections
 import math
 import struct
@@ -72,11 +73,19 @@ class TopicWindow:
         size (rostopic bw's bytes over time), latency avg/max/std/p95 in ms (NaN without stamps)."""
         self._expire(now_s)
         n = len(self._events)
-        stats = dict(window_s=self.window_s, messages=n, rate_hz=0.0, bandwidth_mbytes_per_s=0.0,
-                     mean_message_bytes=0.0, latency_avg_ms=math.nan, latency_max_ms=math.nan,
-                     latency_std_ms=math.nan, latency_p95_ms=math.nan,
-                     age_s=math.inf if self.last_receive_s is None else now_s - self.last_receive_s,
-                     invalid_messages=self.invalid_messages)
+        stats = dict(
+            window_s=self.window_s,
+            messages=n,
+            rate_hz=0.0,
+            bandwidth_mbytes_per_s=0.0,
+            mean_message_bytes=0.0,
+            latency_avg_ms=math.nan,
+            latency_max_ms=math.nan,
+            latency_std_ms=math.nan,
+            latency_p95_ms=math.nan,
+            age_s=math.inf if self.last_receive_s is None else now_s - self.last_receive_s,
+            invalid_messages=self.invalid_messages,
+        )
         if n == 0:
             return stats
         events = np.array(self._events, dtype=np.float64)
@@ -87,6 +96,10 @@ class TopicWindow:
         stats["bandwidth_mbytes_per_s"] = stats["rate_hz"] * stats["mean_message_bytes"] / 1e6
         latencies = events[:, 2][~np.isnan(events[:, 2])] * 1e3
         if len(latencies):
-            stats.update(latency_avg_ms=float(latencies.mean()), latency_max_ms=float(latencies.max()),
-                         latency_std_ms=float(latencies.std()), latency_p95_ms=float(np.percentile(latencies, 95)))
+            stats.update(
+                latency_avg_ms=float(latencies.mean()),
+                latency_max_ms=float(latencies.max()),
+                latency_std_ms=float(latencies.std()),
+                latency_p95_ms=float(np.percentile(latencies, 95)),
+            )
         return stats

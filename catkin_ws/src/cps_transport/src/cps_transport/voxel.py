@@ -5,6 +5,7 @@ is floor(p / leaf) per axis (computed in the input's float type, as pcl does in 
 non-finite points are dropped; voxels come out in pcl's order (x fastest, then y, then z).
 The cost is one sort of the voxel keys, so it is O(n log n) and independent of the extent.
 """
+
 import numpy as np
 
 _COLOR_FIELDS = ("rgb", "rgba")

@@ -1,6 +1,7 @@
 """How the bringup starts pcl_ros's pcl/VoxelGrid for one robot (ci/env.sh must be sourced so
 pcl_ros's plugins load): its name, topics and parameters, for `nodelet load`/`standalone` argv
 and for the one loader (`nodelet_loader`) that puts every robot's into one manager."""
+
 from cps_fleet import names
 
 VOXEL_NODELET_TYPE = "pcl/VoxelGrid"
@@ -10,8 +11,12 @@ VOXEL_NODE_NAME = "voxel_grid"
 def voxel_nodelet_params(robot_config):
     """Private parameters: the robot's leaf size from fleet.yaml and no field filter (pcl_ros
     otherwise keeps only z in [0, 1] m in some versions and drops everything beyond 1 m)."""
-    return {"leaf_size": float(robot_config.voxel_leaf_m), "filter_field_name": "",
-            "filter_limit_min": -1.0e6, "filter_limit_max": 1.0e6}
+    return {
+        "leaf_size": float(robot_config.voxel_leaf_m),
+        "filter_field_name": "",
+        "filter_limit_min": -1.0e6,
+        "filter_limit_max": 1.0e6,
+    }
 
 
 def voxel_nodelet_name(robot_config, name=VOXEL_NODE_NAME):
@@ -22,8 +27,10 @@ def voxel_nodelet_name(robot_config, name=VOXEL_NODE_NAME):
 def voxel_nodelet_remaps(robot_config):
     """{private name: topic}: the robot's cloud topic (fleet.yaml) -> /<r>/points_filtered."""
     robot = robot_config.name
-    return {names.INPUT: names.absolute(names.robot_topic(robot, robot_config.cloud_topic)),
-            names.OUTPUT: names.absolute(names.robot_topic(robot, names.POINTS_FILTERED))}
+    return {
+        names.INPUT: names.absolute(names.robot_topic(robot, robot_config.cloud_topic)),
+        names.OUTPUT: names.absolute(names.robot_topic(robot, names.POINTS_FILTERED)),
+    }
 
 
 def voxel_nodelet_args(robot_config, manager=None, name=VOXEL_NODE_NAME):

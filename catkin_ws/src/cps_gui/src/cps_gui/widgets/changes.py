@@ -1,6 +1,7 @@
 """The change list of a monitoring mission: what the twin found against the baseline map (kind,
 size, position), newest detection; a click centres the 3D and top views on the change.
 """
+
 from python_qt_binding.QtGui import QColor
 from python_qt_binding.QtWidgets import QLabel, QListWidget, QListWidgetItem, QVBoxLayout, QWidget
 
@@ -37,8 +38,10 @@ class ChangesPane(QWidget):
         self._version, self._changes = version, changes
         self.list.clear()
         appeared = sum(c.kind == "appeared" for c in changes)
-        self.title.setText(f"Site changes: {appeared} appeared, {len(changes) - appeared} disappeared "
-                           f"(click one to centre the views on it)")
+        self.title.setText(
+            f"Site changes: {appeared} appeared, {len(changes) - appeared} disappeared "
+            f"(click one to centre the views on it)"
+        )
         for change in changes:
             item = QListWidgetItem(change_text(change))
             item.setForeground(QColor(*CHANGE_RGB[change.kind]))

@@ -4,6 +4,7 @@
 rviz needs an X server with OpenGL (Xvfb with Mesa's llvmpipe is enough) and a ROS master; only
 one VisualizationFrame can live in a process.
 """
+
 import os
 import tempfile
 

@@ -2,22 +2,43 @@
 line, rate, latency) and battery, the fleet health table with alarms, and a filtered /rosout.
 Everything is redrawn by `refresh` from a FleetState; stale values are drawn in red.
 """
+
 import math
 import time
 
 import pyqtgraph as pg
 from python_qt_binding.QtCore import Qt
 from python_qt_binding.QtGui import QColor
-from python_qt_binding.QtWidgets import (QComboBox, QHBoxLayout, QLabel, QLineEdit, QPlainTextEdit, QSplitter,
-                                         QTableWidget, QTableWidgetItem, QVBoxLayout, QWidget)
+from python_qt_binding.QtWidgets import (
+    QComboBox,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QPlainTextEdit,
+    QSplitter,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
 
 from cps_fleet import names
 from cps_gui.colours import robot_colour
 
 STALE_RGB = (198, 40, 40)
 ALARM_BACKGROUND = QColor(255, 205, 210)
-HEALTH_COLUMNS = ("robot", "mode", "mission", "battery %", "heartbeat s", "link", "map voxels",
-                  "dropped", "priority", "alarms")
+HEALTH_COLUMNS = (
+    "robot",
+    "mode",
+    "mission",
+    "battery %",
+    "heartbeat s",
+    "link",
+    "map voxels",
+    "dropped",
+    "priority",
+    "alarms",
+)
 LEVELS = ("DEBUG", "INFO", "WARN", "ERROR", "FATAL")
 
 
@@ -42,16 +63,21 @@ class StatusPane(QWidget):
             self.plot_items[key] = plot
             for index, name in enumerate(robot_names):
                 pen = pg.mkPen(robot_colour(index), width=2)
-                self.curves[(key, name)] = _without_segments(plot.plot([], [], pen=pen,
-                                                                       name=name if column == 0 else None))
-        self.budget_curve = _without_segments(self.plot_items["bandwidth"].plot(
-            [], [], pen=pg.mkPen((0, 0, 0), width=2, style=Qt.DashLine), name="budget"))
+                self.curves[(key, name)] = _without_segments(
+                    plot.plot([], [], pen=pen, name=name if column == 0 else None)
+                )
+        self.budget_curve = _without_segments(
+            self.plot_items["bandwidth"].plot(
+                [], [], pen=pg.mkPen((0, 0, 0), width=2, style=Qt.DashLine), name="budget"
+            )
+        )
 
         self.link_label = QLabel("link: no data")
         self.link_lost_banner = QLabel("")
         self.link_lost_banner.setObjectName("link_lost_banner")
-        self.link_lost_banner.setStyleSheet("background: rgb(%d,%d,%d); color: white; font-weight: bold; "
-                                            "font-size: 16pt; padding: 6px" % STALE_RGB)
+        self.link_lost_banner.setStyleSheet(
+            "background: rgb(%d,%d,%d); color: white; font-weight: bold; font-size: 16pt; padding: 6px" % STALE_RGB
+        )
         self.link_lost_banner.hide()
         self.table = QTableWidget(len(robot_names), len(HEALTH_COLUMNS))
         self.table.setHorizontalHeaderLabels(HEALTH_COLUMNS)
@@ -113,8 +139,10 @@ class StatusPane(QWidget):
         available_mbps, allocation, allocation_age_s = self.state.link_summary()
         parts = [_age_text("stats", stats_age_s), _age_text("allocation", allocation_age_s)]
         if allocation is not None:
-            parts.append(f"budget {allocation.budget_mbytes_per_s:.2f} MB/s, allocated "
-                         f"{allocation.allocated_mbytes_per_s:.2f} MB/s" + ("" if allocation.feasible else " (INFEASIBLE)"))
+            parts.append(
+                f"budget {allocation.budget_mbytes_per_s:.2f} MB/s, allocated "
+                f"{allocation.allocated_mbytes_per_s:.2f} MB/s" + ("" if allocation.feasible else " (INFEASIBLE)")
+            )
         if math.isfinite(available_mbps):
             parts.append(f"link {available_mbps:.1f} Mbit/s")
         self.link_label.setText(" | ".join(parts))
@@ -132,12 +160,19 @@ class StatusPane(QWidget):
         for row, health in enumerate(self.state.health_rows()):
             battery = "--" if not math.isfinite(health.battery_percent) else f"{health.battery_percent:.0f}"
             heartbeat = "never" if not math.isfinite(health.heartbeat_age_s) else f"{health.heartbeat_age_s:.1f}"
-            values = (health.robot, health.mode, health.mission_state, battery, heartbeat, health.link_state,
-                      str(health.map_voxels), str(health.clouds_dropped),
-                      "" if health.priority is None else ("high" if health.priority else "normal"),
-                      ", ".join(health.alarms))
-            stale_columns = {3: health.battery_stale, 4: health.heartbeat_stale,
-                             5: health.link_state not in ("ok",)}
+            values = (
+                health.robot,
+                health.mode,
+                health.mission_state,
+                battery,
+                heartbeat,
+                health.link_state,
+                str(health.map_voxels),
+                str(health.clouds_dropped),
+                "" if health.priority is None else ("high" if health.priority else "normal"),
+                ", ".join(health.alarms),
+            )
+            stale_columns = {3: health.battery_stale, 4: health.heartbeat_stale, 5: health.link_state not in ("ok",)}
             for col, text in enumerate(values):
                 item = self.table.item(row, col)
                 if item.text() != text:

@@ -5,21 +5,42 @@ While the knob is held (or a key is down) the command is published at 10 Hz; the
 one zero command and stops. cps_sim's dead-man stops a robot whose commands stop coming, so a
 frozen or closed GUI cannot leave a robot driving.
 """
+
 import math
 
 from python_qt_binding.QtCore import QPointF, QRectF, Qt, QTimer, Signal
 from python_qt_binding.QtGui import QBrush, QColor, QFont, QPainter, QPen
-from python_qt_binding.QtWidgets import (QButtonGroup, QCheckBox, QComboBox, QGridLayout, QHBoxLayout,
-                                         QLabel, QPushButton, QRadioButton, QSizePolicy, QSlider,
-                                         QVBoxLayout, QWidget)
+from python_qt_binding.QtWidgets import (
+    QButtonGroup,
+    QCheckBox,
+    QComboBox,
+    QGridLayout,
+    QHBoxLayout,
+    QLabel,
+    QPushButton,
+    QRadioButton,
+    QSizePolicy,
+    QSlider,
+    QVBoxLayout,
+    QWidget,
+)
 
 from cps_gui import joystick
 
 PUBLISH_PERIOD_MS = 100
 
 _KEY_NAMES = {
-    Qt.Key_W: "w", Qt.Key_S: "s", Qt.Key_A: "a", Qt.Key_D: "d", Qt.Key_Q: "q", Qt.Key_E: "e",
-    Qt.Key_R: "r", Qt.Key_F: "f", Qt.Key_Up: "up", Qt.Key_Down: "down", Qt.Key_Left: "left",
+    Qt.Key_W: "w",
+    Qt.Key_S: "s",
+    Qt.Key_A: "a",
+    Qt.Key_D: "d",
+    Qt.Key_Q: "q",
+    Qt.Key_E: "e",
+    Qt.Key_R: "r",
+    Qt.Key_F: "f",
+    Qt.Key_Up: "up",
+    Qt.Key_Down: "down",
+    Qt.Key_Left: "left",
     Qt.Key_Right: "right",
 }
 
@@ -109,8 +130,9 @@ class Speedometer(QWidget):
         fraction = 0.0 if not math.isfinite(self.speed_mps) else min(abs(self.speed_mps) / self.full_scale_mps, 1.0)
         angle = math.pi * (1.0 - fraction)
         painter.setPen(QPen(QColor(200, 40, 40), 3))
-        painter.drawLine(centre, QPointF(centre.x() + 0.85 * radius * math.cos(angle),
-                                         centre.y() - 0.85 * radius * math.sin(angle)))
+        painter.drawLine(
+            centre, QPointF(centre.x() + 0.85 * radius * math.cos(angle), centre.y() - 0.85 * radius * math.sin(angle))
+        )
         painter.setPen(QColor(200, 0, 0) if self.stale else QColor(20, 20, 20))
         font = QFont()
         font.setPointSize(10)
@@ -154,8 +176,10 @@ class TeleopPane(QWidget):
         self.priority_button.setCheckable(True)
         self.stop_button = QPushButton("STOP ALL")
         self.stop_button.setCheckable(True)
-        self.stop_button.setStyleSheet("QPushButton { background: #c62828; color: white; font-weight: bold; }"
-                                       "QPushButton:checked { background: #7f0000; }")
+        self.stop_button.setStyleSheet(
+            "QPushButton { background: #c62828; color: white; font-weight: bold; }"
+            "QPushButton:checked { background: #7f0000; }"
+        )
         self.status_label = QLabel("")
         self.status_label.setWordWrap(True)
 
@@ -224,8 +248,9 @@ class TeleopPane(QWidget):
         climb = self.climb_slider.value() / 100.0
         if self._drag is not None:
             dx, dy = self._drag
-            return joystick.drag_to_command(robot_type, dx, dy, self.pad.radius_px, climb=climb,
-                                            strafe=self.strafe_check.isChecked())
+            return joystick.drag_to_command(
+                robot_type, dx, dy, self.pad.radius_px, climb=climb, strafe=self.strafe_check.isChecked()
+            )
         if self._keys:
             command = joystick.keys_to_command(robot_type, frozenset(self._keys))
             if climb and not command.linear_z:
@@ -339,8 +364,9 @@ class TeleopPane(QWidget):
                 self.priority_button.setChecked(row.priority == 1)
         poses = self.state.poses()
         stale = name not in poses or poses[name][1]
-        self.speedometer.set_speed(self.state.speed_mps(name), joystick.speed_limits(self.robot.robot_type).max_forward_mps,
-                                   stale)
+        self.speedometer.set_speed(
+            self.state.speed_mps(name), joystick.speed_limits(self.robot.robot_type).max_forward_mps, stale
+        )
 
     def save_settings(self, settings):
         settings.set_value("teleop/robot", self.robot.name)

@@ -3,6 +3,7 @@ same process): the projected map, fenced areas, routes with their waypoints, and
 position and heading (outlined red when its pose is stale), and the site changes a monitoring
 mission found (appeared green, disappeared red; `focus_on` centres the view on one).
 """
+
 import math
 
 from python_qt_binding.QtCore import QPointF, QRectF, Qt
@@ -10,8 +11,8 @@ from python_qt_binding.QtGui import QBrush, QColor, QFont, QImage, QPainter, QPe
 from python_qt_binding.QtWidgets import QSizePolicy, QWidget
 
 from cps_gui import topview
-from cps_gui.widgets.status import STALE_RGB
 from cps_gui.colours import robot_colour
+from cps_gui.widgets.status import STALE_RGB
 
 FENCE_RGBA = (255, 152, 0, 70)
 
@@ -119,8 +120,10 @@ class TopViewPane(QWidget):
         if self._map is None:
             text = "map: none yet"
         else:
-            text = (f"map: {self._map.occupied_cells} occupied cells, {self._map.cell_m:.2f} m/px, "
-                    f"age {self._map_age_s:.1f} s")
+            text = (
+                f"map: {self._map.occupied_cells} occupied cells, {self._map.cell_m:.2f} m/px, "
+                f"age {self._map_age_s:.1f} s"
+            )
         painter.drawText(QRectF(4, self.height() - 18, self.width() - 8, 16), Qt.AlignLeft | Qt.AlignVCenter, text)
         painter.end()
 

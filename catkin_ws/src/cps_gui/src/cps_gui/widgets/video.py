@@ -4,6 +4,7 @@ underneath (red when stale). Only the topic on screen is subscribed; a frame is 
 is new and drawn. Until the operator picks a topic, a camera is shown through its JPEG variant
 (`<topic>/compressed`) when one is advertised: the raw stream would not fit the link's reserve.
 """
+
 import math
 
 import numpy as np
@@ -28,7 +29,7 @@ def frame_to_rgb(frame, max_side_px=640):
     if step < frame.width * channels or len(frame.data) < step * frame.height:
         raise ValueError(f"image data has {len(frame.data)} bytes, expected {frame.height} rows of {step}")
     rows = np.frombuffer(frame.data, dtype=np.uint8, count=step * frame.height).reshape(frame.height, step)
-    pixels = rows[:, :frame.width * channels].reshape(frame.height, frame.width, channels)
+    pixels = rows[:, : frame.width * channels].reshape(frame.height, frame.width, channels)
     stride = max(1, int(math.ceil(max(frame.width, frame.height) / float(max_side_px))))
     pixels = pixels[::stride, ::stride]
     if channels == 1:
@@ -142,8 +143,9 @@ class VideoPane(QWidget):
             self.picture.setPixmap(self._pixmap.scaled(self.picture.size(), Qt.KeepAspectRatio, Qt.FastTransformation))
         stale = self.state.is_stale(age_s)
         kind = frame.encoding if frame.transport == "raw" else frame.transport
-        self.info.setText(f"{frame.width}x{frame.height} {kind} | {rate_hz:.1f} Hz | "
-                          f"{mbytes:.2f} MB/s | age {age_s:.1f} s")
+        self.info.setText(
+            f"{frame.width}x{frame.height} {kind} | {rate_hz:.1f} Hz | {mbytes:.2f} MB/s | age {age_s:.1f} s"
+        )
         self.info.setStyleSheet("color: rgb(198,40,40); font-weight: bold" if stale else "")
 
     def save_settings(self, settings):
