@@ -44,6 +44,9 @@ DRAIN_FACTOR = 0.85  # GCC's cut on overuse, x the acknowledged (delivered) rate
 # inside the +-15 % band the estimate is held to
 PROBE_GAIN = 1.2
 STARTUP_GAIN = 2.0  # BBR's STARTUP roughly doubles per round while delivery keeps up
+# A probe adds the gap between the estimate and what the fleet sends, up to this fraction of its
+# target (the manager's reserve and per-message headroom are a few per cent).
+PROBE_GAP_FRACTION = 0.1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -346,8 +349,12 @@ class DeliveryRateEstimator:
             self._capacity_before_probe_mbps = self.capacity_mbps
             # The manager keeps a reserve and per-message headroom below the target, so the fleet
             # sends less than it: the probe adds that gap, for the *sent* rate to reach gain x.
+            # The gap is bounded: after a drain the fleet may still send far below the estimate
+            # (its rates were cut), and an unbounded gap took a 20 Mbit/s link's estimate to 28
+            # Mbit/s live (test_over_link); at most PROBE_GAP_FRACTION of the probe's own target.
             gap = max(0.0, self.estimate_mbps - sent) if not math.isnan(sent) else 0.0
-            self.estimate_mbps = self._clip(self._gain * self.capacity_mbps + gap)
+            target = self._gain * self.capacity_mbps
+            self.estimate_mbps = self._clip(target + min(gap, PROBE_GAP_FRACTION * target))
         elif self.mode == "cruise":
             self._gain = PROBE_GAIN if not demand_exceeds else self._gain
             self.estimate_mbps = self._clip(max(self.capacity_mbps, self._unrefuted_mbps))
