@@ -5,7 +5,7 @@ Each run copies the cps_mapping package (nodes and Python, no cache) to a fresh 
 (another checkout) and starts its map_server node on a private master, in two modes, in the same run:
 - cold: no usable kernel cache (what an older checkout had after another checkout's build, issue
   29): the node compiles its numba kernels at its start;
-- built: the kernels built first as `make setup` builds them (`python -m cps_mapping.kernel_cache`,
+- built: the kernels built first as `make setup` builds them (`python -m cps_mapping.build_kernels`,
   timed apart), keyed by the source's content: the node only loads them.
 
 Measured per run and mode: start to ready (Popen to the latched `~ready` arriving here, and the
@@ -98,7 +98,7 @@ def one_start(graph, rospy, mode, run, tmp):
     build_s = None
     if mode == "built":
         t0 = time.monotonic()
-        subprocess.run([sys.executable, "-m", "cps_mapping.kernel_cache"], env=env, check=True, capture_output=True)
+        subprocess.run([sys.executable, "-m", "cps_mapping.build_kernels"], env=env, check=True, capture_output=True)
         build_s = time.monotonic() - t0
     name = f"map_server_{mode}_{run}"
     ready = TopicRecorder(names.absolute(names.in_twin(f"{name}/{names.READY.lstrip('~')}")), DiagnosticStatus)
@@ -194,7 +194,7 @@ def main():
             f"{median(mode, 'early_cloud_s'):.2f} | {median(mode, 'ready_cloud_s'):.3f} |"
         )
     print(
-        f"\nbuild step (make setup's `python -m cps_mapping.kernel_cache`, once per source): "
+        f"\nbuild step (make setup's `python -m cps_mapping.build_kernels`, once per source): "
         f"{median('built', 'build_s'):.1f} s"
     )
     for key, what in (("start_to_ready_s", "start -> ready"), ("early_cloud_s", "first cloud (sent at subscription)")):

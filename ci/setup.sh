@@ -77,7 +77,7 @@ fi
 
 # --- 4. the map server's kernels ---------------------------------------------------------------
 # Quick when built: the cache folder's key is the source's hash (+ numba and Python versions).
-PYTHONPATH="$ws/src/cps_mapping/src${PYTHONPATH:+:$PYTHONPATH}" "$venv/bin/python" -m cps_mapping.kernel_cache \
+PYTHONPATH="$ws/src/cps_mapping/src${PYTHONPATH:+:$PYTHONPATH}" "$venv/bin/python" -m cps_mapping.build_kernels \
   >/tmp/cps-kernels.log 2>&1 || die "building the map server's kernels failed (see /tmp/cps-kernels.log): $(tail -3 /tmp/cps-kernels.log)"
 
 # --- 5. pcl_ros plugin path ----------------------------------------------------------------

@@ -79,7 +79,7 @@ def checkout(tmp_path_factory):
     path = _copy_checkout(PACKAGE, str(tmp_path_factory.mktemp("checkout") / "cps_mapping"), with_cache=False)
     assert not os.path.exists(os.path.join(path, "src", "cps_mapping", KERNEL_FOLDER))
     built = subprocess.run(
-        [sys.executable, "-m", "cps_mapping.kernel_cache"],
+        [sys.executable, "-m", "cps_mapping.build_kernels"],
         env=_env(path),
         capture_output=True,
         text=True,

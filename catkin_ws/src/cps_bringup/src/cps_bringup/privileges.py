@@ -94,7 +94,7 @@ def ensure_map_kernels(log=print):
     if kernel_cache.is_built():
         return
     log("[bringup] building the map server's kernels for this source (once; `make setup` does it too)")
-    built = subprocess.run([sys.executable, "-m", "cps_mapping.kernel_cache"], capture_output=True, text=True)
+    built = subprocess.run([sys.executable, "-m", "cps_mapping.build_kernels"], capture_output=True, text=True)
     if built.returncode != 0:
         tail = (built.stderr or built.stdout).strip().splitlines()[-1:]
         log(
