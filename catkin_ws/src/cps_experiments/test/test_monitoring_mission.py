@@ -53,10 +53,6 @@ def _bringup(*args, timeout_s=400):
 
 @pytest.mark.ros
 @pytest.mark.slow
-@pytest.mark.skip(
-    reason="flaky in the full suite: passed in 3 runs, failed in 1 (cause not traced before the "
-    "session ended); make monitor's committed run shows the phase end to end"
-)
 def test_removed_and_moved_crates_are_found(open_tmp_path):
     tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
     from cps_experiments.monitor_report import evaluate_monitoring
@@ -90,13 +86,18 @@ def test_removed_and_moved_crates_are_found(open_tmp_path):
     summary = [(c.kind, c.centroid_m, c.size_m, c.voxels) for c in result.detected]
     assert set(found) == {("crate_2", "disappeared"), ("crate_4", "disappeared"), ("crate_4", "appeared")}, summary
     assert max(found.values()) <= MAX_POSITION_ERROR_M, (found, summary)
-    assert result.score.precision == 1.0, summary  # every cluster above the minimum size is a real change
 
     # Live at the twin: the map server's last detection saw them too, and asked for a closer look.
     live = (monitor / "map_changes.md").read_text()
     assert "disappeared" in live and "appeared" in live, live
     server_log = "".join(p.read_text() for p in (monitor / "logs").glob("map_server-*.log"))
     assert "high priority granted" in server_log, server_log[-3000:]
+
+    # Every cluster above the minimum size should be a real change. Known to fail in about 1 run
+    # of 4 (issue 25): a robot's body and corners the baseline never saw come out as changes. Only
+    # that check is an expected failure; everything above must hold in every run.
+    if result.score.precision < 1.0:
+        pytest.xfail(f"issue 25: precision {result.score.precision:.2f}, false changes: {summary}")
 
 
 def test_monitoring_inputs_are_checked_before_anything_starts(tmp_path):
