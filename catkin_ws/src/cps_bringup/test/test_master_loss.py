@@ -58,7 +58,7 @@ def test_roscore_killed_mid_mission_saves_the_map_and_ends_with_exit_code_3(open
         _, master_line = lines.first(r"\[bringup\] master http://[\d.]+:\d+", 60)
         port = int(re.search(r"master http://[\d.]+:(\d+)", master_line).group(1))
         lines.first(r"processes up", 240)
-        time.sleep(8.0)  # the robot drives, the map fills
+        lines.first(r"\| map [1-9]\d* voxels", 120)  # the robot drives and the map has begun to fill
         # The master itself (roscore's rosmaster) dies hard; roscore's launcher then ends too.
         master = [pid for pid, cmd in processes_named(f"-p {port}") if "rosmaster" in cmd]
         assert master, processes_named(f"-p {port}")

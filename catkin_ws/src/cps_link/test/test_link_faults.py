@@ -183,10 +183,10 @@ def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, tmp_
         if kind == "reset":
             proxy.reset()
         else:
-            {"cut": proxy.cut, "stall": proxy.stall, "throttle": lambda: proxy.throttle(125_000)}[kind]()
-            # Holding the fault for its drawn length is the scenario, not a wait for a result.
-            time.sleep(held_s)
-            proxy.throttle(None) if kind == "throttle" else proxy.restore()
+            # The fault and its end, on the proxy's own schedule; joined when the link is restored.
+            start = ("throttle", 125_000) if kind == "throttle" else (kind,)
+            end = ("throttle", None) if kind == "throttle" else ("restore",)
+            proxy.run_schedule([(0.0, *start), (held_s, *end)]).join()
         t_restored, t_restored_wall = time.monotonic(), time.time()
         # The link is up again: at once if the bridges never saw it down, else when the twin says so.
         with link._cond:
