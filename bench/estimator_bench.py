@@ -47,21 +47,15 @@ PAPER_PROFILE_MBPS = 3.5  # what the fleet offered in the issue's paper-profile 
 TODAY = ("delivered", "sent", "offered")
 
 
-class LegacySubject:
-    """The old delay rule behind the simulator's interface (its only estimate is its capacity)."""
+class LegacySubject(NewEstimatorSubject):
+    """The old delay rule behind the simulator's interface (its only estimate is its capacity);
+    resume and estimate_mbps as the new estimator's subject."""
 
     def __init__(self):
         self.estimator = LegacyDelayEstimator(initial_mbps=LINE_RATE_MBPS, max_mbps=LINE_RATE_MBPS)
 
     def update(self, report, latency_ms):
         return self.estimator.update(report.now_s, report.delivered_mbps, latency_ms, report.sent_mbps)
-
-    def resume(self, now_s):
-        self.estimator.resume(now_s)
-
-    @property
-    def estimate_mbps(self):
-        return self.estimator.estimate_mbps
 
     @property
     def capacity_mbps(self):
