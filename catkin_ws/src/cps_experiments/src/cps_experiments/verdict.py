@@ -32,6 +32,7 @@ from collections import defaultdict
 from typing import List, Optional, Sequence
 
 from cps_bringup.mission import MAP_AGE_COLUMNS  # noqa: F401 (the mission monitor writes map_age.csv)
+from cps_experiments.markdown import csv_float
 
 PASS, FAIL, INCOMPLETE = "PASS", "FAIL", "INCOMPLETE"
 EXIT_CODES = {PASS: 0, FAIL: 1, INCOMPLETE: 4}  # 2: could not start, 3: master lost (cli)
@@ -129,13 +130,6 @@ def read_rows(path):
     return rows, problems
 
 
-def _float(value):
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return math.nan
-
-
 def outage_windows(folder):
     """[(start wall s, end wall s)] of every link outage (scenario cuts and the bridge's link state),
     each extended by AFTER_OUTAGE_S; an outage still on at the end lasts forever."""
@@ -160,11 +154,11 @@ def stale_intervals(map_age_rows, outages=()):
     goes back (the map server restarted with fresh counters)."""
     samples = sorted(
         (
-            _float(r.get("time_s")),
+            csv_float(r.get("time_s")),
             r.get("robot", ""),
-            _float(r.get("map_age_s")),
+            csv_float(r.get("map_age_s")),
             r.get("mission_state", ""),
-            _float(r.get("clouds_inserted")),
+            csv_float(r.get("clouds_inserted")),
         )
         for r in map_age_rows
     )
