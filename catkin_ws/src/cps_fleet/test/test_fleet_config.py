@@ -78,6 +78,12 @@ def _line_of(path, needle):
         ("min: 0.12, max: 0.97}", "min: 0.7, max: 0.97}", "sensor_model.min: 0.7 is outside (0.0, 0.5]"),
         ("{hit: 0.7, miss: 0.4,", "{hit: 1.0, miss: 0.4,", "sensor_model.hit: 1.0 must be below 1.0"),
         ("{hit: 0.7, miss: 0.4,", "{hit: 0.7, miss: 0.5,", "sensor_model.miss: 0.5 must be below 0.5"),
+        ("voxel_leaf_m: 0.20, bytes_prior", "voxel_leaf_m: 0.08, bytes_prior", "levels go from finest to coarsest"),
+        ("{name: 160x120, width: 160,", "{name: 160x120, width: 1600,", "levels go from finest to coarsest"),
+        ("jpeg_quality: 90,", "jpeg_quality: 101,", "jpeg_quality: 101.0 is outside [1, 100]"),
+        ("bytes_prior: 3600}", "bytes_prior: 0}", "bytes_prior: 0.0 is outside (0.0"),
+        ("operator_video_level: 1", "operator_video_level: 3", "there are 3 video levels"),
+        ("operator_video_rate_hz: 15.0", "operator_video_rate_hz: 45.0", "must lie within"),
     ],
 )
 def test_broken_fleet_file_names_file_line_and_problem(fleet_copy, old, new, message):

@@ -111,6 +111,39 @@ def managed_budget_mbytes_per_s(available_mbps, reserve_fraction):
 
 
 @dataclasses.dataclass(frozen=True)
+class CloudLevel:
+    """One detail level of a robot's managed cloud: the voxel grid's leaf."""
+
+    name: str
+    voxel_leaf_m: float
+    bytes_prior: float  # size per message assumed before the encoder's first one at this level
+
+
+@dataclasses.dataclass(frozen=True)
+class VideoLevel:
+    """One level of a camera robot's video: the resolution the camera renders and the JPEG quality."""
+
+    name: str
+    width: int
+    height: int
+    jpeg_quality: int
+    bytes_prior: float
+
+
+@dataclasses.dataclass(frozen=True)
+class StreamsConfig:
+    """The managed streams' levels (fleet.yaml `streams:`); index 0 is the finest level."""
+
+    cloud_levels: Tuple[CloudLevel, ...]
+    video_levels: Tuple[VideoLevel, ...]
+    video_min_rate_hz: float
+    video_max_rate_hz: float
+    # The selected (or teleoperated) robot's video: at this level or finer, at least this rate.
+    operator_video_level: int
+    operator_video_rate_hz: float
+
+
+@dataclasses.dataclass(frozen=True)
 class SensorModel:
     hit: float
     miss: float
@@ -198,6 +231,7 @@ class FleetConfig:
     robots: Tuple[RobotConfig, ...]
     limits: LimitsConfig
     robot_types: Dict[str, RobotType]
+    streams: StreamsConfig
 
     def robot(self, name):
         for robot in self.robots:
@@ -264,7 +298,9 @@ def load_fleet(path=None, profile=None):
     doc = load_yaml_document(path)
     if "base" in doc.data:
         return _load_derived(doc, profile)
-    top = Reader(doc).known_keys("profile", "site", "profiles", "link", "robot_types", "mapping", "limits", "robots")
+    top = Reader(doc).known_keys(
+        "profile", "site", "profiles", "link", "robot_types", "mapping", "limits", "streams", "robots"
+    )
 
     profiles_reader = top.child("profiles")
     profiles = {name: _profile(profiles_reader.child(name), name) for name in profiles_reader.value}
@@ -329,6 +365,8 @@ def load_fleet(path=None, profile=None):
             f"restart_backoff_max_s ({limits.restart_backoff_max_s}) < restart_backoff_s ({limits.restart_backoff_s})",
         )
 
+    streams = _streams(top.child("streams"))
+
     robots = []
     for item in top.items("robots"):
         robots.append(_read_robot(item, robot_types, robots))
@@ -345,7 +383,68 @@ def load_fleet(path=None, profile=None):
         robots=tuple(robots),
         limits=limits,
         robot_types=robot_types,
+        streams=streams,
     )
+
+
+def _streams(reader):
+    """fleet.yaml `streams:`: each stream's levels, finest first, and the operator's video target."""
+    reader.known_keys(
+        "cloud_levels",
+        "video_levels",
+        "video_min_rate_hz",
+        "video_max_rate_hz",
+        "operator_video_level",
+        "operator_video_rate_hz",
+    )
+    cloud = []
+    for item in reader.items("cloud_levels"):
+        item.known_keys("name", "voxel_leaf_m", "bytes_prior")
+        level = CloudLevel(
+            name=item.get("name", str),
+            voxel_leaf_m=item.number("voxel_leaf_m", low=0.001, high=10.0),
+            bytes_prior=item.number("bytes_prior", low=0.0, low_open=True),
+        )
+        if cloud and level.voxel_leaf_m <= cloud[-1].voxel_leaf_m:
+            raise item.error(
+                "voxel_leaf_m",
+                f"levels go from finest to coarsest: {level.voxel_leaf_m} m after {cloud[-1].voxel_leaf_m} m",
+            )
+        cloud.append(level)
+    video = []
+    for item in reader.items("video_levels"):
+        item.known_keys("name", "width", "height", "jpeg_quality", "bytes_prior")
+        level = VideoLevel(
+            name=item.get("name", str),
+            width=_positive_int(item, "width"),
+            height=_positive_int(item, "height"),
+            jpeg_quality=int(item.number("jpeg_quality", low=1, high=100)),
+            bytes_prior=item.number("bytes_prior", low=0.0, low_open=True),
+        )
+        if video and level.width * level.height >= video[-1].width * video[-1].height:
+            raise item.error("width", f"levels go from finest to coarsest: {level.name} after {video[-1].name}")
+        video.append(level)
+    for key, levels in (("cloud_levels", cloud), ("video_levels", video)):
+        if not levels:
+            raise reader.error(key, "needs at least one level")
+        names = [level.name for level in levels]
+        if len(set(names)) != len(names):
+            raise reader.error(key, f"level names must be unique, got {names}")
+    streams = StreamsConfig(
+        cloud_levels=tuple(cloud),
+        video_levels=tuple(video),
+        video_min_rate_hz=reader.number("video_min_rate_hz", low=0.0, low_open=True),
+        video_max_rate_hz=reader.number("video_max_rate_hz", low=0.0, low_open=True),
+        operator_video_level=int(reader.number("operator_video_level", low=0)),
+        operator_video_rate_hz=reader.number("operator_video_rate_hz", low=0.0, low_open=True),
+    )
+    if streams.video_min_rate_hz > streams.video_max_rate_hz:
+        raise reader.error("video_min_rate_hz", "video_min_rate_hz > video_max_rate_hz")
+    if streams.operator_video_level >= len(video):
+        raise reader.error("operator_video_level", f"there are {len(video)} video levels (0 is the finest)")
+    if not streams.video_min_rate_hz <= streams.operator_video_rate_hz <= streams.video_max_rate_hz:
+        raise reader.error("operator_video_rate_hz", "must lie within [video_min_rate_hz, video_max_rate_hz]")
+    return streams
 
 
 def _read_robot(item, robot_types, robots, default_voxel_leaf_m=None):

@@ -56,6 +56,15 @@ POINTS_MANAGED = "points_filtered/draco/managed"  # the rate limiter's output: w
 CLOUD_THROTTLE = "cloud_throttle"  # the robot's rate limiter (node name in the robot's namespace)
 LIMITER_RATE_HZ = f"{CLOUD_THROTTLE}/rate_hz"
 LIMITER_STATUS = f"{CLOUD_THROTTLE}/status"
+# std_msgs/UInt8, latched, from the manager: the cloud's level (index into fleet.yaml
+# streams.cloud_levels) that the robot's voxel grid produces.
+LIMITER_LEVEL = f"{CLOUD_THROTTLE}/level"
+# The robot's video stream under the manager: its rate (std_msgs/Float64) and level (std_msgs/UInt8,
+# index into streams.video_levels), both latched; the camera renders and encodes only that.
+VIDEO_THROTTLE = "video_throttle"
+VIDEO_RATE_HZ = f"{VIDEO_THROTTLE}/rate_hz"
+VIDEO_LEVEL = f"{VIDEO_THROTTLE}/level"
+VIDEO_STATUS = f"{VIDEO_THROTTLE}/status"
 # Decoded clouds at the twin's map server, relative to the map server's namespace.
 POINTS = "points"
 POINTS_BACKFILL = "points_backfill"  # keyframes captured while the link was down (cps_link)
@@ -75,6 +84,9 @@ PHYSICAL_STATS = "tissue/physical_stats"
 ALLOCATION = "tissue/allocation"
 AVAILABLE_BANDWIDTH = "tissue/available_bandwidth"
 SET_PRIORITY = "tissue/set_priority"
+# std_msgs/String, latched, from the operator GUI: the robot whose video the operator watches
+# ("" for none). It and a robot in teleop get operator-quality video first.
+SELECTED_ROBOT = "tissue/selected_robot"
 LINK_STATE = "tissue/link_state"  # cps_msgs/LinkState, published by each side's bridge
 # TwistStamped probes sent twin -> robots in the bridge's command class (teleop's): their latency,
 # measured on the robots' side, is the teleop command latency.
