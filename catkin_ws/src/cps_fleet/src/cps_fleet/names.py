@@ -104,6 +104,7 @@ POINT_CLOUD_CENTERS = "octomap_point_cloud_centers"
 PROJECTED_MAP = "projected_map"
 MAP_STATS = "map_stats"
 MAP_CHANGES = "map_changes"
+INSERT_CAPACITY = "insert_capacity"  # cps_msgs/InsertCapacity: what the map server can insert
 SAVE_MAP = "save_map"
 LOAD_MAP = "load_map"
 RESET = "~reset"
