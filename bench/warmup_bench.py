@@ -26,53 +26,12 @@ import sys
 import tempfile
 import time
 
-import numpy as np
-
 from cps_fleet import names
+from cps_harness.warm_start import checkout_env, copy_checkout, static_sensor_transform, wall_cloud
 
 PACKAGE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "catkin_ws", "src", "cps_mapping")
 SENSOR_FRAME = "jackal/camera_depth_optical_frame"
 MODES = ("cold", "built")
-
-
-def fresh_checkout(folder):
-    """The package's nodes and Python at `folder`, without any cache."""
-    for part in ("nodes", "src"):
-        shutil.copytree(
-            os.path.join(PACKAGE, part), os.path.join(folder, part), ignore=shutil.ignore_patterns("__pycache__")
-        )
-    return folder
-
-
-def checkout_env(checkout):
-    return {**os.environ, "PYTHONPATH": os.pathsep.join([os.path.join(checkout, "src"), os.environ["PYTHONPATH"]])}
-
-
-def wall_cloud(rospy, offset_m):
-    """A 4 x 3 m wall 3 m in front of the sensor, `offset_m` sideways (a new map version each)."""
-    from std_msgs.msg import Header
-
-    from cps_transport.pointcloud import array_to_cloud
-
-    u, v = np.meshgrid(np.linspace(-2.0, 2.0, 80), np.linspace(-1.5, 1.5, 60))
-    pts = np.stack([u.ravel() + offset_m, v.ravel(), np.full(u.size, 3.0)], axis=1).astype(np.float32)
-    return array_to_cloud(
-        {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, header=Header(stamp=rospy.Time.now(), frame_id=SENSOR_FRAME)
-    )
-
-
-def static_tf(rospy):
-    import tf2_ros
-    from geometry_msgs.msg import TransformStamped
-
-    broadcaster = tf2_ros.StaticTransformBroadcaster()
-    t = TransformStamped()
-    t.header.stamp = rospy.Time.now()
-    t.header.frame_id, t.child_frame_id = "map", SENSOR_FRAME
-    t.transform.translation.z = 0.5
-    t.transform.rotation.w = 1.0
-    broadcaster.sendTransform(t)
-    return broadcaster
 
 
 def inserted_after(octomap, sent_at_s, timeout_s=180.0):
@@ -93,7 +52,7 @@ def one_start(graph, rospy, mode, run, tmp):
     from cps_harness.testing import TopicRecorder, wait_for
     from cps_msgs.msg import Octomap
 
-    checkout = fresh_checkout(os.path.join(tmp, f"{mode}_{run}", "cps_mapping"))
+    checkout = copy_checkout(PACKAGE, os.path.join(tmp, f"{mode}_{run}", "cps_mapping"))
     env = checkout_env(checkout)
     build_s = None
     if mode == "built":
@@ -123,12 +82,12 @@ def one_start(graph, rospy, mode, run, tmp):
         )
         assert wait_for(lambda: publisher.get_num_connections(), timeout_s=60), f"{name} did not subscribe"
         early_sent_at = time.monotonic()
-        publisher.publish(wall_cloud(rospy, 0.0))
+        publisher.publish(wall_cloud(rospy, SENSOR_FRAME, 0.0))
         status = ready.wait(timeout_s=300, what=f"{name} ready")
         ready_at = ready.messages[0][0]
         early_inserted_at = inserted_after(octomap, early_sent_at)
         late_sent_at = time.monotonic()
-        publisher.publish(wall_cloud(rospy, 5.0))
+        publisher.publish(wall_cloud(rospy, SENSOR_FRAME, 5.0))
         late_inserted_at = inserted_after(octomap, late_sent_at)
         values = {kv.key: kv.value for kv in status.values}
         graph.stop(proc)
@@ -161,7 +120,7 @@ def main():
     import rospy
 
     rospy.init_node("warmup_bench", anonymous=True, disable_signals=True)
-    keep_tf = static_tf(rospy)
+    keep_tf = static_sensor_transform(rospy, SENSOR_FRAME)
     results = {mode: [] for mode in MODES}
     try:
         for run in range(args.runs):

@@ -10,51 +10,23 @@ import pytest
 
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
-from cps_ros.processes import find_node, free_port
+from cps_ros.processes import free_port
 
 ROBOT = "scout"
-# map -> load (the frame of cloud_load.py's clouds), latched on /tf_static.
-STATIC_TF = [
-    sys.executable,
-    "-c",
-    "import rospy, tf2_ros; from geometry_msgs.msg import TransformStamped; "
-    "rospy.init_node('static_tf'); t = TransformStamped(); t.header.frame_id = 'map'; "
-    "t.child_frame_id = 'load'; t.transform.translation.x, t.transform.translation.y, "
-    "t.transform.translation.z = 1, 2, 3; t.transform.rotation.w = 1; "
-    "b = tf2_ros.StaticTransformBroadcaster(); b.sendTransform(t); rospy.spin()",
-]
-CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace(
-    "nodes/bandwidth_manager", "test/fixtures/cloud_load.py"
-)
 
 
 @pytest.mark.timeout(150)
-def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots_graph, tmp_path):
+def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots_graph, managed_cloud_load, tmp_path):
     from geometry_msgs.msg import TransformStamped
 
-    from cps_msgs.msg import BandwidthAllocationArray, CompressedPointCloud2, LinkState
+    from cps_msgs.msg import CompressedPointCloud2, LinkState
 
     certs = str(tmp_path / "certs")
     subprocess.run([MAKE_CERTS, certs], check=True, capture_output=True)
     port = free_port()
     twin_bridge = ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], certs, port), name="bt")
     robots_graph.popen(bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], certs, port), name="br")
-    robots_graph.popen(STATIC_TF, name="static_tf")
-    robots_graph.popen(
-        [
-            sys.executable,
-            CLOUD_LOAD,
-            f"{ROBOT}:20000:5",
-            f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
-        ],
-        name="load",
-    )
-    # As the manager: its allocation at 2 Hz, here leaving 0.5 MB/s of its budget unused.
-    allocation = rospy_node.Publisher("/tissue/allocation", BandwidthAllocationArray, queue_size=1)
-    timer = rospy_node.Timer(
-        rospy_node.Duration(0.5),
-        lambda _e: allocation.publish(BandwidthAllocationArray(budget_mbytes_per_s=6.0, allocated_mbytes_per_s=5.5)),
-    )
+    managed_cloud_load(ROBOT)
     link = TopicRecorder("/tissue/link_state", LinkState)
     live = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
     backfill = TopicRecorder(f"/twin/{ROBOT}/points_backfill/draco", CompressedPointCloud2)
@@ -91,4 +63,3 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
         if arrival + wall_minus_monotonic > t_up
     ]
     assert ages and max(ages) < 1.0 + 0.5, ages
-    timer.shutdown()

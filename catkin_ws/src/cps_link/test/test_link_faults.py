@@ -17,22 +17,10 @@ from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.bridge_config import load_bridge_table
 from cps_link.fault_proxy import FaultProxy
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
-from cps_ros.processes import find_node, free_port
+from cps_ros.processes import free_port
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
-CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace(
-    "nodes/bandwidth_manager", "test/fixtures/cloud_load.py"
-)
-# map -> load (cloud_load.py's frame) on /tf_static: the robots' bridge needs it for keyframe poses.
-STATIC_TF = [
-    sys.executable,
-    "-c",
-    "import rospy, tf2_ros; from geometry_msgs.msg import TransformStamped; "
-    "rospy.init_node('static_tf'); t = TransformStamped(); t.header.frame_id = 'map'; "
-    "t.child_frame_id = 'load'; t.transform.rotation.w = 1; "
-    "b = tf2_ros.StaticTransformBroadcaster(); b.sendTransform(t); rospy.spin()",
-]
 ROBOT = "scout"
 SEED = int(os.environ.get("CPS_FAULT_SEED", "22"))
 FAULTS = 10
@@ -123,7 +111,7 @@ def _teleop_after(path, t_wall):
 
 
 @pytest.mark.timeout(240)
-def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, tmp_path, request):
+def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, managed_cloud_load, tmp_path, request):
     from diagnostic_msgs.msg import DiagnosticArray
 
     from cps_msgs.msg import LinkState
@@ -148,25 +136,7 @@ def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, tmp_
     )
     # Clouds, kept as keyframes during the longer outages and backfilled after them (the issue's
     # mixed-up topics were the backfill poses); the manager's allocation paces the backfill.
-    robots_graph.popen(STATIC_TF, name="static_tf")
-    robots_graph.popen(
-        [
-            sys.executable,
-            CLOUD_LOAD,
-            f"{ROBOT}:20000:5",
-            f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
-        ],
-        name="load",
-    )
-    from cps_msgs.msg import BandwidthAllocationArray
-
-    allocation = rospy_node.Publisher("/tissue/allocation", BandwidthAllocationArray, queue_size=1)
-    timer = rospy_node.Timer(
-        rospy_node.Duration(0.5),
-        lambda _e: allocation.publish(BandwidthAllocationArray(budget_mbytes_per_s=6.0, allocated_mbytes_per_s=5.5)),
-    )
-    request.addfinalizer(timer.shutdown)
-    request.addfinalizer(allocation.unregister)
+    managed_cloud_load(ROBOT)
     link = TopicRecorder("/tissue/link_state", LinkState)
     diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
     types = TypeWatch(rospy_node, table)

@@ -13,14 +13,13 @@ cache that another test, or the workspace, warmed.
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
 
-import numpy as np
 import pytest
 
+from cps_harness.warm_start import checkout_env, copy_checkout, static_sensor_transform, wall_cloud
 from cps_mapping.kernel_cache import KERNEL_FOLDER
 
 pytestmark = pytest.mark.slow
@@ -49,26 +48,18 @@ print(json.dumps({"module": log_odds_grid.__file__, "warm_up": list(warm.compile
 SENSOR_FRAME = "jackal/camera_depth_optical_frame"
 
 
-def _copy_checkout(source_root, target_root, with_cache):
-    """The package's source (nodes and Python) at `target_root`, with or without its kernel cache."""
-    ignore = None if with_cache else shutil.ignore_patterns("__pycache__")
-    for part in ("nodes", "src"):
-        shutil.copytree(os.path.join(source_root, part), os.path.join(target_root, part), ignore=ignore)
-    return target_root
-
-
-def _env(checkout):
-    """This environment with `checkout`'s cps_mapping first on the Python path."""
-    return {**os.environ, "PYTHONPATH": os.pathsep.join([os.path.join(checkout, "src"), os.environ["PYTHONPATH"]])}
-
-
 def _module_file(checkout):
     return os.path.join(checkout, "src", "cps_mapping", "log_odds_grid.py")
 
 
 def _exercise(checkout):
     out = subprocess.run(
-        [sys.executable, "-c", EXERCISE], env=_env(checkout), capture_output=True, text=True, timeout=300, check=True
+        [sys.executable, "-c", EXERCISE],
+        env=checkout_env(checkout),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -76,11 +67,11 @@ def _exercise(checkout):
 @pytest.fixture(scope="module")
 def checkout(tmp_path_factory):
     """A fresh checkout (no kernel cache) built as ci/setup.sh builds it; (path, build output)."""
-    path = _copy_checkout(PACKAGE, str(tmp_path_factory.mktemp("checkout") / "cps_mapping"), with_cache=False)
+    path = copy_checkout(PACKAGE, str(tmp_path_factory.mktemp("checkout") / "cps_mapping"), with_cache=False)
     assert not os.path.exists(os.path.join(path, "src", "cps_mapping", KERNEL_FOLDER))
     built = subprocess.run(
         [sys.executable, "-m", "cps_mapping.build_kernels"],
-        env=_env(path),
+        env=checkout_env(path),
         capture_output=True,
         text=True,
         timeout=300,
@@ -98,7 +89,7 @@ def test_a_fresh_checkout_builds_its_own_kernels(checkout):
 def test_kernels_built_elsewhere_serve_a_copy_at_another_path_and_mtime(checkout, tmp_path, mtime_shift_s):
     """The issue's older checkout: the same source at another path, its file older (or newer) than
     the kernels, loads them all and compiles nothing."""
-    other = _copy_checkout(checkout[0], str(tmp_path / "other_checkout"), with_cache=True)
+    other = copy_checkout(checkout[0], str(tmp_path / "other_checkout"), with_cache=True)
     now = time.time()
     os.utime(_module_file(other), (now + mtime_shift_s, now + mtime_shift_s))
     result = _exercise(other)
@@ -107,39 +98,11 @@ def test_kernels_built_elsewhere_serve_a_copy_at_another_path_and_mtime(checkout
 
 
 def test_an_edited_source_never_gets_the_old_kernels(checkout, tmp_path):
-    edited = _copy_checkout(checkout[0], str(tmp_path / "edited"), with_cache=True)
+    edited = copy_checkout(checkout[0], str(tmp_path / "edited"), with_cache=True)
     with open(_module_file(edited), "a") as stream:
         stream.write("\n# an edit\n")
     result = _exercise(edited)
     assert "_integrate" in result["compiled"], result
-
-
-def _static_tf():
-    import rospy
-    import tf2_ros
-    from geometry_msgs.msg import TransformStamped
-
-    broadcaster = tf2_ros.StaticTransformBroadcaster()
-    t = TransformStamped()
-    t.header.stamp = rospy.Time.now()
-    t.header.frame_id, t.child_frame_id = "map", SENSOR_FRAME
-    t.transform.translation.z = 0.5
-    t.transform.rotation.w = 1.0
-    broadcaster.sendTransform(t)
-    return broadcaster
-
-
-def _wall_cloud(rospy):
-    """A 4 x 3 m wall of points 3 m in front of the sensor (its optical z axis)."""
-    from std_msgs.msg import Header
-
-    from cps_transport.pointcloud import array_to_cloud
-
-    u, v = np.meshgrid(np.linspace(-2.0, 2.0, 80), np.linspace(-1.5, 1.5, 60))
-    pts = np.stack([u.ravel(), v.ravel(), np.full(u.size, 3.0)], axis=1).astype(np.float32)
-    return array_to_cloud(
-        {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, header=Header(stamp=rospy.Time.now(), frame_id=SENSOR_FRAME)
-    )
 
 
 @pytest.mark.ros
@@ -158,7 +121,7 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
     ready = TopicRecorder(f"/twin/{name}/ready", DiagnosticStatus)
     octomap = TopicRecorder("/twin/octomap_binary", Octomap)
     publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
-    tf_keep = _static_tf()
+    tf_keep = static_sensor_transform(rospy, SENSOR_FRAME)
     try:
         ros.popen(
             [
@@ -172,7 +135,7 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
                 "_autosave_period_s:=0.0",
             ],
             name=name,
-            env=_env(path),
+            env=checkout_env(path),
         )
         status = ready.wait(timeout_s=120, what="the map server's ready")
         values = {kv.key: kv.value for kv in status.values}
@@ -180,7 +143,7 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
         assert status.level == DiagnosticStatus.OK and values["kernels_compiled"] == "", status
         assert wait_for(lambda: publisher.get_num_connections(), timeout_s=20), "the map server did not subscribe"
         published_at = time.monotonic()
-        publisher.publish(_wall_cloud(rospy))
+        publisher.publish(wall_cloud(rospy, SENSOR_FRAME))
         octomap.wait(lambda m: len(m.data) > 0, timeout_s=10, what="the first cloud in the map")
         arrived_at = next(t for t, m in octomap.messages if t >= published_at and len(m.data) > 0)
         print(
@@ -206,12 +169,12 @@ def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node,
     from cps_msgs.msg import Octomap
 
     rospy = rospy_node
-    path = _copy_checkout(PACKAGE, str(tmp_path / "unbuilt" / "cps_mapping"), with_cache=False)
+    path = copy_checkout(PACKAGE, str(tmp_path / "unbuilt" / "cps_mapping"), with_cache=False)
     name = "unbuilt_map_server"
     ready = TopicRecorder(f"/twin/{name}/ready", DiagnosticStatus)
     octomap = TopicRecorder(f"/twin/{name}/octomap_binary", Octomap)
     publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
-    tf_keep = _static_tf()
+    tf_keep = static_sensor_transform(rospy, SENSOR_FRAME)
     try:
         ros.popen(
             [
@@ -226,10 +189,10 @@ def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node,
                 "_autosave_period_s:=0.0",
             ],
             name=name,
-            env=_env(path),
+            env=checkout_env(path),
         )
         assert wait_for(lambda: publisher.get_num_connections(), timeout_s=60), "the map server did not subscribe"
-        publisher.publish(_wall_cloud(rospy))
+        publisher.publish(wall_cloud(rospy, SENSOR_FRAME))
         assert ready.count == 0, "ready before the cloud was sent: this test needs the cloud to arrive first"
         status = ready.wait(timeout_s=300, what="the map server's ready")
         values = {kv.key: kv.value for kv in status.values}
