@@ -145,7 +145,7 @@ def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
     }
 
 
-def _score(map_file, fleet, run_dir):
+def score_map(map_file, fleet, run_dir):
     """(F1 within ±1 voxel, F1 voxel for voxel) of the run's saved map; NaN without a map."""
     from cps_experiments.report import score_saved_map
 
@@ -200,7 +200,7 @@ def run(
             run_dir, summary, robots, managed_budget_mbytes_per_s(link_mbps, base.link.reserve_fraction)
         )
         # "f1" is within ±1 voxel (the column's name predates the exact figure).
-        figures["f1"], figures["f1_exact"] = _score(summary.get("map_file"), fleet, run_dir)
+        figures["f1"], figures["f1_exact"] = score_map(summary.get("map_file"), fleet, run_dir)
         measured[live] = figures
         log(
             f"[experiments] {live.name}: {figures['robots_reached']}/{live.robots} robots reached the twin, "

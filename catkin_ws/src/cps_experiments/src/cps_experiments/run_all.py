@@ -4,7 +4,7 @@ import csv
 import os
 import time
 
-EXPERIMENTS = ("table4", "fig11", "table6", "fig13", "table5", "fig14", "fig13_live")
+EXPERIMENTS = ("table4", "fig11", "table6", "fig13", "table5", "fig14", "fig13_live", "link_thesis")
 # What each name runs: the offline ones share one set of rendered mission clouds.
 OFFLINE = {"table4", "fig11", "table6", "fig13"}
 QUICK_FRAMES, FRAMES = 1, 10
@@ -12,7 +12,14 @@ QUICK_LEAVES = (0.01, 0.10, 0.50)
 
 
 def run_experiments(names, out_dir, quick=False, reuse_runs=False, log=print):
-    from cps_experiments import bandwidth_tables, deployable_robots, fleet_scaling, live_scaling, manager_steps
+    from cps_experiments import (
+        bandwidth_tables,
+        deployable_robots,
+        fleet_scaling,
+        link_thesis,
+        live_scaling,
+        manager_steps,
+    )
 
     os.makedirs(out_dir, exist_ok=True)
     names = set(EXPERIMENTS if "all" in names else names)
@@ -34,6 +41,8 @@ def run_experiments(names, out_dir, quick=False, reuse_runs=False, log=print):
         done["table5"] = fleet_scaling.run(out_dir, quick=quick, reuse_runs=reuse_runs, log=log)
     if "fig13_live" in names:
         done["fig13_live"] = live_scaling.run(out_dir, quick=quick, reuse_runs=reuse_runs, log=log)
+    if "link_thesis" in names:
+        done["link_thesis"] = link_thesis.run(out_dir, quick=quick, reuse_runs=reuse_runs, log=log)
     write_index(out_dir)
     return done
 

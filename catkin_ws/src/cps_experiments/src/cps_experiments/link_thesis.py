@@ -1,0 +1,506 @@
+"""`link_thesis`: does the bandwidth manager earn its place when the link is the bottleneck?
+
+Four robots, the paper profile with video, over the `wifi_degraded` (60 -> 20 -> 5 -> 60 Mbit/s)
+and `shared_medium` scenarios, the manager on and off alternating in the same run, beside a
+`wifi_good` reference for the map's F1. Every figure is read back from the files each mission
+wrote, per phase of constant capacity:
+- per stream (a robot's cloud or video): delivered fps (mean, and the lowest 10 s window), the level
+  the manager set, latency p50/p95 (receive - capture stamp, per frame and per cloud), staleness
+  (age of the newest delivered message, sampled every second);
+- the link: what the robots' side offered and what the twin received, in 1 s windows, against the
+  capacity the scenario set (the true capacity, not the manager's estimate);
+- teleop: the command probe's latency p95;
+- the map: F1 voxel for voxel and within ±1 voxel.
+A stream or robot that delivered nothing is reported as such, never filled in.
+"""
+
+import bisect
+import dataclasses
+import json
+import math
+import os
+from collections import defaultdict
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from cps_experiments.markdown import csv_float, markdown_table, write_csv, write_markdown
+from cps_fleet import names
+
+SCENARIOS = ("wifi_degraded", "shared_medium")
+REFERENCE_SCENARIO = "wifi_good"
+ROBOTS = 4
+DURATION_S = 80.0  # wifi_degraded's last step (back to 60 Mbit/s) is at 60 s
+QUICK_DURATION_S = 30.0
+LINK = "60mbit"
+FPS_WINDOW_S = 10.0  # "every robot's clouds >= 1 Hz in every 10 s window"
+STALENESS_TICK_S = 1.0
+INGRESS_WINDOW_S = 1.0
+# The issue's bar, judged in wifi_degraded's 5 Mbit/s phase with the manager on.
+JUDGED_SCENARIO, JUDGED_CAPACITY_MBPS = "wifi_degraded", 5.0
+TELEOP_P95_TARGET_MS = 50.0
+VIDEO_FPS_TARGET = 15.0
+VIDEO_P95_TARGET_MS = 200.0
+CLOUD_MIN_HZ_TARGET = 1.0
+F1_FRACTION_TARGET = 0.95
+STREAMS = ("cloud", "video")
+
+
+@dataclasses.dataclass(frozen=True)
+class ThesisRun:
+    scenario: str
+    manager: bool
+
+    @property
+    def name(self):
+        return f"{self.scenario}_manager_{'on' if self.manager else 'off'}"
+
+
+def runs(scenarios=SCENARIOS) -> List[ThesisRun]:
+    """The reference, then each scenario's two arms, their order alternating between scenarios so
+    neither arm always runs first (on a warm or a cold machine)."""
+    out = [ThesisRun(REFERENCE_SCENARIO, True)]
+    for i, scenario in enumerate(scenarios):
+        arms = (True, False) if i % 2 == 0 else (False, True)
+        out += [ThesisRun(scenario, manager) for manager in arms]
+    return out
+
+
+def mission_argv(run: ThesisRun, robots, selected_robot, out_dir, duration_s):
+    argv = [
+        "all",
+        "--profile",
+        "paper",
+        "--robots",
+        ",".join(robots),
+        "--duration",
+        f"{duration_s:g}",
+        "--out",
+        out_dir,
+        "--link",
+        LINK,
+        "--link-scenario",
+        run.scenario,
+        "--select-robot",
+        selected_robot,
+    ]
+    if not run.manager:
+        argv += ["--bandwidth-manager", "off"]
+    return argv
+
+
+# --- reading a mission's files ---------------------------------------------------------------------
+
+
+def stream_of(topic) -> Optional[str]:
+    """'cloud', 'video' or None for a topic of arrivals.csv."""
+    if topic.endswith("/" + names.POINTS_MANAGED):
+        return "cloud"
+    if topic.endswith("/" + names.CAMERA_IMAGE_COMPRESSED):
+        return "video"
+    return None
+
+
+def stream_arrivals(rows) -> Dict[Tuple[str, str], np.ndarray]:
+    """{(robot, stream): array of (receive s, capture stamp s)} sorted by arrival."""
+    out = defaultdict(list)
+    for row in rows:
+        stream = stream_of(row.get("topic", ""))
+        receive, stamp_ns = csv_float(row.get("receive_s")), csv_float(row.get("stamp_ns"))
+        if stream and row.get("robot") and math.isfinite(receive) and math.isfinite(stamp_ns):
+            out[(row["robot"], stream)].append((receive, stamp_ns * 1e-9))
+    return {k: np.array(sorted(v)) for k, v in out.items()}
+
+
+def capacity_phases(event_rows, t_end) -> List[Tuple[float, float, float]]:
+    """[(t0, t1, capacity Mbit/s)] of constant capacity from link_events.csv, up to `t_end` (wall s)."""
+    points = []
+    for row in event_rows:
+        if row.get("event") in ("start", "shape"):
+            t, rate = csv_float(row["wall_time_s"]), csv_float(row["rate_mbps"])
+            if math.isfinite(t) and math.isfinite(rate):
+                if points and points[-1][1] == rate:
+                    continue
+                points.append((t, rate))
+    return [(t, points[i + 1][0] if i + 1 < len(points) else t_end, rate) for i, (t, rate) in enumerate(points)]
+
+
+def capacity_at(phases):
+    starts = [p[0] for p in phases]
+
+    def at(t):
+        i = bisect.bisect_right(starts, t) - 1
+        return phases[i][2] if i >= 0 else math.nan
+
+    return at
+
+
+def stream_figures(arrivals, t0, t1, window_s=FPS_WINDOW_S, tick_s=STALENESS_TICK_S):
+    """One stream's figures in [t0, t1): fps (mean, lowest full window), latency p50/p95 (ms),
+    staleness p95/max (s). `arrivals`: array of (receive s, stamp s) or None."""
+    span = max(t1 - t0, 1e-9)
+    inside = arrivals[(arrivals[:, 0] >= t0) & (arrivals[:, 0] < t1)] if arrivals is not None and len(arrivals) else []
+    n = len(inside)
+    windows = [(a, a + window_s) for a in np.arange(t0, t1 - window_s + 1e-9, window_s)]
+    per_window = [int(np.sum((inside[:, 0] >= a) & (inside[:, 0] < b))) / window_s if n else 0.0 for a, b in windows]
+    latency_ms = (inside[:, 0] - inside[:, 1]) * 1e3 if n else np.array([])
+    staleness = []
+    if arrivals is not None and len(arrivals):
+        receive, stamp = arrivals[:, 0], arrivals[:, 1]
+        newest = np.maximum.accumulate(stamp)
+        for t in np.arange(t0 + tick_s, t1 + 1e-9, tick_s):
+            i = bisect.bisect_right(receive, t) - 1
+            staleness.append(t - newest[i] if i >= 0 else math.inf)
+    return {
+        "messages": n,
+        "fps_mean": n / span,
+        "fps_min_window": min(per_window) if per_window else math.nan,
+        "latency_p50_ms": float(np.percentile(latency_ms, 50)) if n else math.nan,
+        "latency_p95_ms": float(np.percentile(latency_ms, 95)) if n else math.nan,
+        "staleness_p95_s": float(np.percentile(staleness, 95)) if staleness else math.nan,
+        "staleness_max_s": float(max(staleness)) if staleness else math.nan,
+    }
+
+
+def link_windows(stats_rows, window_s=INGRESS_WINDOW_S):
+    """{time s: MB/s} of everything topic_stats measured in a window (managed or not): messages x
+    mean size over the window, the volume actually received (see report.managed_link_windows)."""
+    totals = defaultdict(float)
+    for row in stats_rows:
+        messages, mean_bytes = csv_float(row.get("messages")), csv_float(row.get("mean_message_bytes"))
+        t = csv_float(row.get("time_s"))
+        if math.isfinite(messages) and math.isfinite(mean_bytes) and math.isfinite(t):
+            totals[t] += messages * mean_bytes / window_s / 1e6
+    return totals
+
+
+def stream_levels(allocation_rows) -> Dict[Tuple[str, str], List[Tuple[float, str]]]:
+    """{(robot, stream): [(stamp s, level name)]} from allocation.csv (empty with the manager off)."""
+    out = defaultdict(list)
+    for row in allocation_rows:
+        if row.get("stream") and row.get("robot"):
+            out[(row["robot"], row["stream"])].append((csv_float(row["stamp_s"]), row.get("level_name", "")))
+    return out
+
+
+def level_in(levels, t0, t1):
+    """The level set for most of [t0, t1) ('' when the manager set none)."""
+    counts = defaultdict(int)
+    for t, name in levels:
+        if t0 <= t < t1:
+            counts[name] += 1
+    return max(counts, key=counts.get) if counts else ""
+
+
+def percentile_or_nan(values, q):
+    return float(np.percentile(values, q)) if len(values) else math.nan
+
+
+def measure_run(run_dir, robots, read_csv):
+    """Rows of link_thesis.csv for one finished mission: per phase, one per stream and one `link`."""
+    events = read_csv(os.path.join(run_dir, "link_events.csv"))
+    arrivals = stream_arrivals(read_csv(os.path.join(run_dir, "arrivals.csv")))
+    probe = [
+        (csv_float(r["receive_s"]), (csv_float(r["receive_s"]) - csv_float(r["stamp_ns"]) * 1e-9) * 1e3)
+        for r in read_csv(os.path.join(run_dir, "physical_arrivals.csv"))
+        if r.get("topic") == names.absolute(names.COMMAND_PROBE)
+    ]
+    received = link_windows(read_csv(os.path.join(run_dir, "stats.csv")))
+    offered = link_windows(read_csv(os.path.join(run_dir, "physical_stats.csv")))
+    allocation_path = os.path.join(run_dir, "allocation.csv")
+    levels = stream_levels(read_csv(allocation_path) if os.path.exists(allocation_path) else [])
+    ends = [a[-1, 0] for a in arrivals.values() if len(a)] + [t for t in received]
+    phases = capacity_phases(events, max(ends) if ends else 0.0)
+    rows = []
+    for t0, t1, capacity_mbps in phases:
+        phase = f"{capacity_mbps:g} Mbit/s @ {t0 - phases[0][0]:.0f}-{t1 - phases[0][0]:.0f} s"
+        common = {"phase": phase, "capacity_mbps": capacity_mbps, "phase_s": t1 - t0}
+        for robot in robots:
+            for stream in STREAMS:
+                if stream == "video" and (robot, stream) not in arrivals and not levels.get((robot, stream)):
+                    continue  # a robot without a camera
+                figures = stream_figures(arrivals.get((robot, stream)), t0, t1)
+                rows.append(
+                    {**common, "robot": robot, "stream": stream, "level": level_in(levels[(robot, stream)], t0, t1)}
+                    | figures
+                )
+        capacity_mbytes = capacity_mbps / 8.0
+        got = [v for t, v in received.items() if t0 <= t < t1]
+        sent = [v for t, v in offered.items() if t0 <= t < t1]
+        teleop = [ms for t, ms in probe if t0 <= t < t1]
+        rows.append(
+            {
+                **common,
+                "robot": "",
+                "stream": "link",
+                "received_mean_mbytes_per_s": float(np.mean(got)) if got else math.nan,
+                "offered_mean_mbytes_per_s": float(np.mean(sent)) if sent else math.nan,
+                "offered_p95_mbytes_per_s": percentile_or_nan(sent, 95),
+                "offered_over_capacity_windows": sum(1 for v in sent if v > capacity_mbytes),
+                "windows": len(sent),
+                "teleop_p95_ms": percentile_or_nan(teleop, 95),
+                "teleop_probes": len(teleop),
+            }
+        )
+    return rows
+
+
+# --- the experiment ----------------------------------------------------------------------------------
+
+COLUMNS = (
+    "scenario",
+    "manager",
+    "phase",
+    "capacity_mbps",
+    "phase_s",
+    "robot",
+    "stream",
+    "level",
+    "messages",
+    "fps_mean",
+    "fps_min_window",
+    "latency_p50_ms",
+    "latency_p95_ms",
+    "staleness_p95_s",
+    "staleness_max_s",
+    "received_mean_mbytes_per_s",
+    "offered_mean_mbytes_per_s",
+    "offered_p95_mbytes_per_s",
+    "offered_over_capacity_windows",
+    "windows",
+    "teleop_p95_ms",
+    "teleop_probes",
+    "f1_exact",
+    "f1_tolerant",
+)
+
+
+def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse_runs=False, log=print):
+    """Run (or with reuse_runs read back) every mission; write link_thesis.csv/.md/.png into out_dir."""
+    from cps_experiments.fleet_scaling import run_mission_child
+    from cps_experiments.live_scaling import score_map
+    from cps_experiments.report import read_csv
+    from cps_fleet.fleet import load_fleet
+
+    fleet = load_fleet(profile="paper")
+    robots = fleet.robot_names[:ROBOTS]
+    fleet = fleet.with_robots(robots)
+    selected = next(r.name for r in fleet.robots if r.has_depth_camera)
+    duration_s = duration_s or (QUICK_DURATION_S if quick else DURATION_S)
+    rows, failures = [], {}
+    for thesis_run in runs():
+        run_dir = os.path.abspath(os.path.join(run_root, "link_thesis", thesis_run.name))
+        try:
+            done = os.path.join(run_dir, "mission_result.json")
+            if reuse_runs and os.path.exists(done):
+                with open(done) as stream:
+                    summary = json.load(stream)
+            else:
+                argv = mission_argv(thesis_run, robots, selected, run_dir, duration_s)
+                summary = run_mission_child(argv, run_dir, log)
+        except RuntimeError as exc:
+            failures[thesis_run.name] = str(exc)
+            log(f"[experiments] {exc}")
+            continue
+        f1_tolerant, f1_exact = score_map(summary.get("map_file"), fleet, run_dir)
+        for row in measure_run(run_dir, robots, read_csv):
+            row.update(scenario=thesis_run.scenario, manager="on" if thesis_run.manager else "off")
+            rows.append(row)
+        rows.append(
+            {
+                "scenario": thesis_run.scenario,
+                "manager": "on" if thesis_run.manager else "off",
+                "phase": "mission",
+                "stream": "map",
+                "f1_exact": f1_exact,
+                "f1_tolerant": f1_tolerant,
+            }
+        )
+    write_csv(os.path.join(out_dir, "link_thesis.csv"), COLUMNS, [[_cell(r.get(c, "")) for c in COLUMNS] for r in rows])
+    write_markdown(
+        os.path.join(out_dir, "link_thesis.md"), TITLE, markdown_sections(rows, failures, selected, duration_s)
+    )
+    plot(rows, os.path.join(out_dir, "link_thesis.png"))
+    return {"rows": rows, "failures": failures}
+
+
+def _cell(value):
+    if isinstance(value, float):
+        return "" if math.isnan(value) else round(value, 4)
+    return value
+
+
+def judge(rows, selected):
+    """The issue's bar in wifi_degraded's 5 Mbit/s phase, manager on: {condition: held (bool) or None
+    when not measured}."""
+    on = [r for r in rows if r.get("scenario") == JUDGED_SCENARIO and r.get("manager") == "on"]
+    phase = [r for r in on if r.get("capacity_mbps") == JUDGED_CAPACITY_MBPS]
+    link = next((r for r in phase if r["stream"] == "link"), None)
+    video = next((r for r in phase if r["stream"] == "video" and r["robot"] == selected), None)
+    clouds = [r for r in phase if r["stream"] == "cloud"]
+    f1 = {r["scenario"]: r for r in rows if r.get("stream") == "map" and r.get("manager") == "on"}
+
+    def held(value, ok):
+        return None if value is None or (isinstance(value, float) and math.isnan(value)) else bool(ok(value))
+
+    ratio = None
+    if JUDGED_SCENARIO in f1 and REFERENCE_SCENARIO in f1:
+        ref = f1[REFERENCE_SCENARIO]
+        ratio = min(f1[JUDGED_SCENARIO][k] / ref[k] if ref[k] > 0 else math.nan for k in ("f1_exact", "f1_tolerant"))
+    return {
+        f"teleop p95 ≤ {TELEOP_P95_TARGET_MS:g} ms": held(
+            link and link["teleop_p95_ms"], lambda v: v <= TELEOP_P95_TARGET_MS
+        ),
+        f"{selected}'s video ≥ {VIDEO_FPS_TARGET:g} fps (lowest {FPS_WINDOW_S:g} s window)": held(
+            video and video["fps_min_window"], lambda v: v >= VIDEO_FPS_TARGET
+        ),
+        f"{selected}'s video at ≥ 320x240": held(
+            video and video["level"] or None, lambda v: v in ("640x480", "320x240")
+        ),
+        f"{selected}'s video p95 ≤ {VIDEO_P95_TARGET_MS:g} ms": held(
+            video and video["latency_p95_ms"], lambda v: v <= VIDEO_P95_TARGET_MS
+        ),
+        f"every robot's clouds ≥ {CLOUD_MIN_HZ_TARGET:g} Hz in every {FPS_WINDOW_S:g} s window": held(
+            min((r["fps_min_window"] for r in clouds), default=None), lambda v: v >= CLOUD_MIN_HZ_TARGET
+        ),
+        f"F1 ≥ {F1_FRACTION_TARGET:.0%} of the {REFERENCE_SCENARIO} run's (both forms)": held(
+            ratio, lambda v: v >= F1_FRACTION_TARGET
+        ),
+    }
+
+
+def differences(rows):
+    """One sentence per difference between the arms, per scenario and phase (streams whose fps,
+    latency p95 or level differ; the link's offered load and teleop p95; the map's F1)."""
+    by_key = defaultdict(dict)
+    for r in rows:
+        by_key[(r.get("scenario"), r.get("phase"), r.get("robot", ""), r.get("stream"))][r.get("manager")] = r
+    out = []
+    for (scenario, phase, robot, stream), arms in sorted(by_key.items(), key=lambda kv: tuple(map(str, kv[0]))):
+        if "on" not in arms or "off" not in arms or scenario == REFERENCE_SCENARIO:
+            continue
+        on, off = arms["on"], arms["off"]
+        where = f"{scenario}, {phase}"
+        if stream in STREAMS:
+            what = f"{robot}'s {stream}"
+            if _differ(on["fps_mean"], off["fps_mean"], 0.1) or on.get("level") != off.get("level"):
+                out.append(
+                    f"{where}: {what} ran at {_fmt(on['fps_mean'])} fps{_at(on)} with the manager, "
+                    f"{_fmt(off['fps_mean'])} fps{_at(off)} without (lowest {FPS_WINDOW_S:g} s window "
+                    f"{_fmt(on['fps_min_window'])} vs {_fmt(off['fps_min_window'])})."
+                )
+            if _differ(on["latency_p95_ms"], off["latency_p95_ms"], 0.2):
+                out.append(
+                    f"{where}: {what} latency p95 {_fmt(on['latency_p95_ms'], 0)} ms with the manager, "
+                    f"{_fmt(off['latency_p95_ms'], 0)} ms without."
+                )
+        elif stream == "link":
+            out.append(
+                f"{where}: the robots offered {_fmt(on['offered_mean_mbytes_per_s'], 2)} MB/s with the manager "
+                f"({on['offered_over_capacity_windows']} of {on['windows']} windows over capacity), "
+                f"{_fmt(off['offered_mean_mbytes_per_s'], 2)} MB/s without ({off['offered_over_capacity_windows']} of "
+                f"{off['windows']}); teleop p95 {_fmt(on['teleop_p95_ms'], 0)} vs {_fmt(off['teleop_p95_ms'], 0)} ms."
+            )
+        elif stream == "map":
+            out.append(
+                f"{scenario}: the map's F1 with the manager {_fmt(on['f1_exact'], 3)} voxel for voxel and "
+                f"{_fmt(on['f1_tolerant'], 3)} within ±1 voxel; without {_fmt(off['f1_exact'], 3)} and "
+                f"{_fmt(off['f1_tolerant'], 3)}."
+            )
+    return out
+
+
+def _differ(a, b, relative):
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return math.isfinite(a) != math.isfinite(b)
+    return abs(a - b) > relative * max(abs(a), abs(b), 1e-9)
+
+
+def _fmt(value, digits=1):
+    return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _at(row):
+    return f" at {row['level']}" if row.get("level") else ""
+
+
+TITLE = "link_thesis: the manager against running without it"
+
+
+def markdown_sections(rows, failures, selected, duration_s):
+    """The report's sections under TITLE: setup, the issue's bar, one sentence per difference, tables."""
+    sections = [
+        f"{ROBOTS} robots, paper profile with video, {duration_s:g} s missions on a {LINK} link running each "
+        f"scenario; the operator watches {selected}. Phases are the scenario's spans of constant capacity. "
+        f"fps: mean over the phase and the lowest full {FPS_WINDOW_S:g} s window; latency: receive - capture "
+        f"stamp; staleness: age of the newest delivered message, sampled every {STALENESS_TICK_S:g} s; "
+        f"offered/received: {INGRESS_WINDOW_S:g} s windows on the robots' side / at the twin, against the "
+        "scenario's capacity. Machine-bound: robots' side, tissue, bridges and twin share 2 cores.",
+        "## The issue's bar (wifi_degraded, 5 Mbit/s phase, manager on)",
+        "\n".join(
+            f"- {condition}: {'held' if held else ('not measured' if held is None else 'NOT held')}"
+            for condition, held in judge(rows, selected).items()
+        ),
+        "## Differences between the arms",
+        "\n".join(f"- {s}" for s in differences(rows)) or "- no run had both arms",
+    ]
+    for title, stream in (("Streams", STREAMS), ("Link and teleop", ("link",)), ("Map", ("map",))):
+        table = [r for r in rows if r.get("stream") in stream]
+        if table:
+            columns = [c for c in COLUMNS if any(r.get(c, "") not in ("", None) for r in table)]
+            sections += [
+                f"## {title}",
+                markdown_table(columns, [[_text(r.get(c, "")) for c in columns] for r in table]),
+            ]
+    if failures:
+        sections += ["## Runs that failed", "\n".join(f"- {n}: {why.splitlines()[0]}" for n, why in failures.items())]
+    sections.append("![link_thesis](link_thesis.png)")
+    return sections
+
+
+def _text(value):
+    if isinstance(value, float):
+        return "n/a" if math.isnan(value) else f"{value:.3g}"
+    return str(value)
+
+
+def plot(rows, png_path):
+    """Per scenario and arm, each phase's offered and received load against the capacity, and the
+    selected robot's video fps (the paper's Fig. 12 shows rates against the budget over time)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenarios = [s for s in (REFERENCE_SCENARIO, *SCENARIOS) if any(r.get("scenario") == s for r in rows)]
+    if not scenarios:
+        return
+    fig, axes = plt.subplots(1, len(scenarios), figsize=(5 * len(scenarios), 3.8), squeeze=False)
+    for ax, scenario in zip(axes[0], scenarios):
+        for manager, style in (("on", "-"), ("off", "--")):
+            link = [
+                r
+                for r in rows
+                if r.get("scenario") == scenario and r.get("manager") == manager and r["stream"] == "link"
+            ]
+            if not link:
+                continue
+            x = np.arange(len(link))
+            ax.plot(x, [r["offered_mean_mbytes_per_s"] for r in link], style + "o", label=f"offered, manager {manager}")
+            ax.plot(
+                x, [r["received_mean_mbytes_per_s"] for r in link], style + "s", label=f"received, manager {manager}"
+            )
+            ax.step(
+                x,
+                [r["capacity_mbps"] / 8.0 for r in link],
+                "k:",
+                where="mid",
+                label="capacity" if manager == "on" else None,
+            )
+            ax.set_xticks(x, [r["phase"].split(" @")[0] for r in link], fontsize=7)
+        ax.set_title(scenario)
+        ax.set_ylabel("MB/s")
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)

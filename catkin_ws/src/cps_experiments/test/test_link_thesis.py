@@ -1,0 +1,120 @@
+"""link_thesis' figures from a mission's files: phases from the scenario's capacity steps, per
+stream fps (mean and lowest 10 s window), latency, staleness, the level the manager set, offered
+load against the true capacity, teleop p95, and the issue's bar judged on them."""
+
+import csv
+import math
+
+import pytest
+from cps_experiments import link_thesis
+from cps_experiments.report import read_csv
+
+pytestmark = pytest.mark.unit
+T0 = 1000.0  # wall s of the scenario's start
+CLOUD = "/twin/{}/points_filtered/draco/managed"
+VIDEO = "/twin/{}/camera/image_raw/compressed"
+
+
+def _write(path, header, rows):
+    with open(path, "w", newline="") as stream:
+        writer = csv.writer(stream)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+@pytest.fixture
+def mission(tmp_path):
+    """60 Mbit/s for 20 s, then 5 Mbit/s for 30 s. jackal: clouds at 2 Hz, video at 20 fps with 50 ms
+    latency, then 5 fps at 5 Mbit/s; scout: clouds at 2 Hz that stop 15 s into the 5 Mbit/s phase."""
+    _write(
+        tmp_path / "link_events.csv",
+        ["mission_time_s", "wall_time_s", "event", "rate_mbps", "delay_ms", "jitter_ms", "loss_pct", "note"],
+        [[0, T0, "start", 60, 0, 0, 0, ""], [20, T0 + 20, "shape", 5, 0, 0, 0, ""]],
+    )
+    arrivals = []
+    for k in range(100):  # 50 s of clouds at 2 Hz, 100 ms latency
+        t = T0 + 0.5 * k
+        arrivals.append([CLOUD.format("jackal"), "jackal", int((t - 0.1) * 1e9), t + 0.0])
+        if t < T0 + 35:
+            arrivals.append([CLOUD.format("scout"), "scout", int((t - 0.1) * 1e9), t])
+    t = T0
+    while t < T0 + 50:
+        arrivals.append([VIDEO.format("jackal"), "jackal", int((t - 0.05) * 1e9), t])
+        t += 0.05 if t < T0 + 20 else 0.2
+    _write(tmp_path / "arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], arrivals)
+    probes = [["/tissue/command_probe", "", int((T0 + k * 0.1 - 0.02) * 1e9), T0 + k * 0.1] for k in range(500)]
+    _write(tmp_path / "physical_arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], probes)
+    header = ["time_s", "topic", "robot", "managed", "messages", "mean_message_bytes"]
+    # Offered on the robots' side: 1 MB/s throughout (over the 0.625 MB/s of 5 Mbit/s); received: 0.6 MB/s.
+    _write(tmp_path / "physical_stats.csv", header, [[T0 + s, "/x", "jackal", "True", 10, 100000] for s in range(50)])
+    _write(tmp_path / "stats.csv", header, [[T0 + s, "/x", "jackal", "True", 6, 100000] for s in range(50)])
+    _write(
+        tmp_path / "allocation.csv",
+        ["stamp_s", "robot", "stream", "level", "level_name"],
+        [[T0 + s, "jackal", "video", 1 if s < 20 else 2, "320x240" if s < 20 else "160x120"] for s in range(50)],
+    )
+    return tmp_path
+
+
+def _row(rows, phase_capacity, robot, stream):
+    return next(
+        r for r in rows if r["capacity_mbps"] == phase_capacity and r["robot"] == robot and r["stream"] == stream
+    )
+
+
+def test_phases_streams_and_the_link_are_measured_per_phase(mission):
+    rows = link_thesis.measure_run(str(mission), ["scout", "jackal"], read_csv)
+    video_fast, video_slow = _row(rows, 60.0, "jackal", "video"), _row(rows, 5.0, "jackal", "video")
+    assert video_fast["fps_mean"] == pytest.approx(20.0, rel=0.05)
+    assert video_slow["fps_mean"] == pytest.approx(5.0, rel=0.05)
+    assert video_fast["level"] == "320x240" and video_slow["level"] == "160x120"
+    assert video_fast["latency_p95_ms"] == pytest.approx(50.0, abs=1.0)
+    scout = _row(rows, 5.0, "scout", "cloud")
+    # 15 s of 2 Hz clouds, then none, in a phase that ends with the last arrival (49.5 s): only full
+    # 10 s windows count (20-30 s: 2 Hz, 30-40 s: 1 Hz); staleness sees the 14.5 s without a cloud.
+    assert scout["fps_mean"] == pytest.approx(15 * 2 / 29.5, rel=0.05)
+    assert scout["fps_min_window"] == pytest.approx(1.0)
+    assert scout["staleness_max_s"] > 10.0
+    link = _row(rows, 5.0, "", "link")
+    assert link["offered_mean_mbytes_per_s"] == pytest.approx(1.0)
+    assert link["offered_over_capacity_windows"] == link["windows"] == 30
+    assert _row(rows, 60.0, "", "link")["offered_over_capacity_windows"] == 0
+    assert link["teleop_p95_ms"] == pytest.approx(20.0, abs=1.0)
+
+
+def test_a_robot_that_delivered_nothing_shows_zero_never_a_filled_in_figure(mission):
+    rows = link_thesis.measure_run(str(mission), ["scout", "jackal", "iris"], read_csv)
+    iris = _row(rows, 5.0, "iris", "cloud")
+    assert iris["messages"] == 0 and iris["fps_min_window"] == 0.0 and math.isnan(iris["latency_p95_ms"])
+    assert not any(r["robot"] == "iris" and r["stream"] == "video" for r in rows)  # no camera seen, none invented
+
+
+def test_the_issues_bar_is_judged_in_the_5_mbits_phase_with_the_manager_on(mission):
+    rows = [
+        dict(r, scenario="wifi_degraded", manager="on")
+        for r in link_thesis.measure_run(str(mission), ["jackal"], read_csv)
+    ]
+    rows += [
+        {"scenario": "wifi_degraded", "manager": "on", "stream": "map", "f1_exact": 0.64, "f1_tolerant": 0.93},
+        {"scenario": "wifi_good", "manager": "on", "stream": "map", "f1_exact": 0.66, "f1_tolerant": 0.94},
+    ]
+    verdict = link_thesis.judge(rows, "jackal")
+    held = {k.split(" ")[0] + " " + k.split(" ")[1]: v for k, v in verdict.items()}
+    assert held["teleop p95"] is True
+    assert held["every robot's"] is True
+    assert verdict["jackal's video ≥ 15 fps (lowest 10 s window)"] is False  # 5 fps at 5 Mbit/s
+    assert verdict["jackal's video at ≥ 320x240"] is False  # 160x120
+    assert verdict["F1 ≥ 95% of the wifi_good run's (both forms)"] is True
+
+
+def test_differences_name_both_arms(mission):
+    rows = []
+    for manager in ("on", "off"):
+        for r in link_thesis.measure_run(str(mission), ["jackal"], read_csv):
+            if manager == "off" and r["stream"] == "video":
+                r = dict(r, fps_mean=r["fps_mean"] / 4, level="")
+            rows.append(dict(r, scenario="wifi_degraded", manager=manager))
+    sentences = link_thesis.differences(rows)
+    video = [s for s in sentences if s.startswith("wifi_degraded, 60 Mbit/s @ 0-20 s: jackal's video")]
+    assert len(video) == 1 and "fps at 320x240 with the manager, 5.0 fps without" in video[0], sentences
+    assert any("the robots offered" in s for s in sentences)
