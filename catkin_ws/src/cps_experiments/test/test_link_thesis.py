@@ -118,3 +118,20 @@ def test_differences_name_both_arms(mission):
     video = [s for s in sentences if s.startswith("wifi_degraded, 60 Mbit/s @ 0-20 s: jackal's video")]
     assert len(video) == 1 and "fps at 320x240 with the manager, 5.0 fps without" in video[0], sentences
     assert any("the robots offered" in s for s in sentences)
+
+
+def test_the_report_and_plot_are_written_with_both_arms(mission, tmp_path):
+    rows = []
+    for manager in ("on", "off"):
+        rows += [
+            dict(r, scenario="wifi_degraded", manager=manager)
+            for r in link_thesis.measure_run(str(mission), ["jackal"], read_csv)
+        ]
+    sections = link_thesis.markdown_sections(rows, {"shared_medium_manager_on": "exited 1\n..."}, "jackal", 80.0)
+    text = "\n".join(sections)
+    assert "## The issue's bar" in text and "not measured" in text  # no F1 rows: said, not guessed
+    assert "shared_medium_manager_on: exited 1" in text
+    link_thesis.plot(rows, str(tmp_path / "link_thesis.png"))
+    assert (tmp_path / "link_thesis.png").stat().st_size > 10000
+    jackal_video = _row([r for r in rows if r["manager"] == "on"], 5.0, "jackal", "video")
+    assert jackal_video["received_mean_mbytes_per_s"] == 0.0  # stats.csv measured no video topic

@@ -174,6 +174,18 @@ def link_windows(stats_rows, window_s=INGRESS_WINDOW_S):
     return totals
 
 
+def stream_volumes(stats_rows, window_s=INGRESS_WINDOW_S) -> Dict[Tuple[str, str], List[Tuple[float, float]]]:
+    """{(robot, stream): [(time s, MB/s)]} the twin received per stats window (messages x mean size)."""
+    out = defaultdict(list)
+    for row in stats_rows:
+        stream = stream_of(row.get("topic", ""))
+        messages, mean_bytes = csv_float(row.get("messages")), csv_float(row.get("mean_message_bytes"))
+        t = csv_float(row.get("time_s"))
+        if stream and row.get("robot") and all(map(math.isfinite, (messages, mean_bytes, t))):
+            out[(row["robot"], stream)].append((t, messages * mean_bytes / window_s / 1e6))
+    return out
+
+
 def stream_levels(allocation_rows) -> Dict[Tuple[str, str], List[Tuple[float, str]]]:
     """{(robot, stream): [(stamp s, level name)]} from allocation.csv (empty with the manager off)."""
     out = defaultdict(list)
@@ -205,7 +217,9 @@ def measure_run(run_dir, robots, read_csv):
         for r in read_csv(os.path.join(run_dir, "physical_arrivals.csv"))
         if r.get("topic") == names.absolute(names.COMMAND_PROBE)
     ]
-    received = link_windows(read_csv(os.path.join(run_dir, "stats.csv")))
+    twin_stats = read_csv(os.path.join(run_dir, "stats.csv"))
+    received = link_windows(twin_stats)
+    volumes = stream_volumes(twin_stats)
     offered = link_windows(read_csv(os.path.join(run_dir, "physical_stats.csv")))
     allocation_path = os.path.join(run_dir, "allocation.csv")
     levels = stream_levels(read_csv(allocation_path) if os.path.exists(allocation_path) else [])
@@ -220,6 +234,8 @@ def measure_run(run_dir, robots, read_csv):
                 if stream == "video" and (robot, stream) not in arrivals and not levels.get((robot, stream)):
                     continue  # a robot without a camera
                 figures = stream_figures(arrivals.get((robot, stream)), t0, t1)
+                got = [v for t, v in volumes.get((robot, stream), ()) if t0 <= t < t1]
+                figures["received_mean_mbytes_per_s"] = float(np.mean(got)) if got else 0.0
                 rows.append(
                     {**common, "robot": robot, "stream": stream, "level": level_in(levels[(robot, stream)], t0, t1)}
                     | figures
@@ -465,8 +481,9 @@ def _text(value):
 
 
 def plot(rows, png_path):
-    """Per scenario and arm, each phase's offered and received load against the capacity, and the
-    selected robot's video fps (the paper's Fig. 12 shows rates against the budget over time)."""
+    """Per scenario, each phase's offered and received load against the capacity, both arms; and,
+    like the paper's Fig. 12 (MB/s per robot and stream), what each robot's cloud and video got in
+    the judged 5 Mbit/s phase, manager on beside off."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -475,13 +492,13 @@ def plot(rows, png_path):
     scenarios = [s for s in (REFERENCE_SCENARIO, *SCENARIOS) if any(r.get("scenario") == s for r in rows)]
     if not scenarios:
         return
-    fig, axes = plt.subplots(1, len(scenarios), figsize=(5 * len(scenarios), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(scenarios) + 1, figsize=(4.6 * (len(scenarios) + 1), 3.8), squeeze=False)
     for ax, scenario in zip(axes[0], scenarios):
         for manager, style in (("on", "-"), ("off", "--")):
             link = [
                 r
                 for r in rows
-                if r.get("scenario") == scenario and r.get("manager") == manager and r["stream"] == "link"
+                if r.get("scenario") == scenario and r.get("manager") == manager and r.get("stream") == "link"
             ]
             if not link:
                 continue
@@ -490,17 +507,45 @@ def plot(rows, png_path):
             ax.plot(
                 x, [r["received_mean_mbytes_per_s"] for r in link], style + "s", label=f"received, manager {manager}"
             )
-            ax.step(
-                x,
-                [r["capacity_mbps"] / 8.0 for r in link],
-                "k:",
-                where="mid",
-                label="capacity" if manager == "on" else None,
-            )
+            if manager == "on":
+                ax.plot(x, [r["capacity_mbps"] / 8.0 for r in link], "k_", markersize=22, label="capacity")
             ax.set_xticks(x, [r["phase"].split(" @")[0] for r in link], fontsize=7)
         ax.set_title(scenario)
-        ax.set_ylabel("MB/s")
+        ax.set_ylabel("MB/s (1 s windows, phase mean)")
         ax.legend(fontsize=6)
+    ax = axes[0][-1]
+    judged = [
+        r
+        for r in rows
+        if r.get("scenario") == JUDGED_SCENARIO
+        and r.get("capacity_mbps") == JUDGED_CAPACITY_MBPS
+        and r.get("stream") in STREAMS
+    ]
+    robots = sorted({r["robot"] for r in judged})
+    for offset, manager in ((-0.2, "on"), (0.2, "off")):
+        bottom = np.zeros(len(robots))
+        for stream, colour in (("cloud", "tab:blue"), ("video", "tab:orange")):
+            got = {
+                r["robot"]: r["received_mean_mbytes_per_s"]
+                for r in judged
+                if r["manager"] == manager and r["stream"] == stream
+            }
+            values = np.array([got.get(robot, 0.0) for robot in robots])
+            ax.bar(
+                np.arange(len(robots)) + offset,
+                values,
+                0.38,
+                bottom=bottom,
+                color=colour,
+                hatch="" if manager == "on" else "//",
+                label=f"{stream}, manager {manager}",
+            )
+            bottom += values
+    ax.axhline(JUDGED_CAPACITY_MBPS / 8.0, color="k", linestyle=":", label=f"{JUDGED_CAPACITY_MBPS:g} Mbit/s")
+    ax.set_xticks(np.arange(len(robots)), robots)
+    ax.set_title(f"{JUDGED_SCENARIO} at {JUDGED_CAPACITY_MBPS:g} Mbit/s (cf. paper Fig. 12)")
+    ax.set_ylabel("MB/s received at the twin")
+    ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(png_path, dpi=110)
     plt.close(fig)
