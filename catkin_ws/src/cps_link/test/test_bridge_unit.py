@@ -234,3 +234,30 @@ def test_header_frame_id_of_a_cloud():
     assert header_frame_id(_serialize(msg)) == "scout/lidar"
     with pytest.raises(WireError):
         header_frame_id(b"\x00" * 12 + b"\xff\x00\x00\x00")
+
+
+def test_the_command_lane_carries_the_command_class_alone_on_its_own_port_and_keys():
+    table = load_bridge_table(robots=["scout", "jackal"])
+    command, main = table.for_lane("command"), table.for_lane("main")
+    assert {r.traffic.name for r in command.routes} == {"command"}
+    assert "command" not in {r.traffic.name for r in main.routes}
+    assert sorted(r.to for r in command.routes + main.routes) == sorted(r.to for r in table.routes)  # none lost
+    assert "/scout/cmd_vel/teleop" in {r.to for r in command.routes}
+    assert (command.endpoint_port, main.endpoint_port) == (table.command_port, table.endpoint_port)
+    assert command.endpoint_port != main.endpoint_port
+    assert command.backfill is None and main.backfill is not None
+    # Each lane knows only its own peers: the main lane's link state never counts a command bridge.
+    assert command.peer_liveliness_keys(TWIN) != main.peer_liveliness_keys(TWIN)
+    assert not command.publishes_link_state and main.publishes_link_state and table.publishes_link_state
+    assert table.liveliness_key(ROBOTS, "robots") == "cps/bridge/robots/robots"  # one process: keys as before
+    with pytest.raises(ValueError, match="lane must be one of"):
+        table.for_lane("video")
+
+
+def test_a_command_port_equal_to_the_main_port_is_refused_with_file_and_line(tmp_path):
+    source = open(load_bridge_table().path).read()
+    path = tmp_path / "bridge.yaml"
+    path.write_text(source.replace("command_port: 7448", "command_port: 7447"))
+    line = next(i for i, text in enumerate(path.read_text().splitlines(), 1) if text.startswith("command_port"))
+    with pytest.raises(ConfigError, match=f"{path}:{line}: command_port: the command lane needs a port of its own"):
+        load_bridge_table(str(path))

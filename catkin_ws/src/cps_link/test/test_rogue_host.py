@@ -21,7 +21,7 @@ CLOUD_LOAD = os.path.normpath(
     os.path.join(find_node("cps_bw_manager", "bandwidth_manager"), "..", "..", "test", "fixtures", "cloud_load.py")
 )
 HOSTS = {"phys": "10.203.0.1", "twin": "10.203.0.2", "rogue": "10.203.0.3"}
-PORT = 7447
+PORTS = {"main": 7447, "command": 7448}  # each lane's twin port (bridge.yaml's endpoint_port, command_port)
 ROBOT = "scout"
 
 
@@ -48,8 +48,15 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
         try:
             robots.start()
             twin.start()
-            twin.popen(bridge_argv(sys.executable, "twin", HOSTS["twin"], [ROBOT], fleet_certs, PORT), name="bt")
-            robots.popen(bridge_argv(sys.executable, "robots", HOSTS["twin"], [ROBOT], fleet_certs, PORT), name="br")
+            for lane, port in PORTS.items():
+                twin.popen(
+                    bridge_argv(sys.executable, "twin", HOSTS["twin"], [ROBOT], fleet_certs, port, lane=lane),
+                    name=f"bt_{lane}",
+                )
+                robots.popen(
+                    bridge_argv(sys.executable, "robots", HOSTS["twin"], [ROBOT], fleet_certs, port, lane=lane),
+                    name=f"br_{lane}",
+                )
             robots.popen(
                 [
                     sys.executable,
@@ -80,37 +87,42 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and not (len(_lines(teleop_file)) > 3 and len(_lines(cloud_file)) > 3):
                 time.sleep(0.5)
-            assert len(_lines(teleop_file)) > 3, "the fleet's own teleop did not cross:\n" + twin.output("bt")[-2000:]
-            assert len(_lines(cloud_file)) > 3, "the fleet's own clouds did not cross:\n" + robots.output("br")[-2000:]
+            assert len(_lines(teleop_file)) > 3, (
+                "the fleet's own teleop did not cross:\n" + twin.output("bt_command")[-2000:]
+            )
+            assert len(_lines(cloud_file)) > 3, (
+                "the fleet's own clouds did not cross:\n" + robots.output("br_main")[-2000:]
+            )
             twin.stop(sender)
 
-            rogue = subprocess.run(
-                lan.argv(
-                    "rogue",
-                    [
-                        sys.executable,
-                        os.path.join(HERE, "fixtures", "rogue.py"),
-                        HOSTS["twin"],
-                        str(PORT),
-                        rogue_certs,
-                        os.path.join(fleet_certs, "ca.pem"),
-                        f"{HOSTS['phys']}:{robots.port}",
-                        f"{HOSTS['twin']}:{twin.port}",
-                        f"{HOSTS['twin']}:11311",
-                    ],
-                ),
-                capture_output=True,
-                text=True,
-                timeout=120,
-            )
-            assert rogue.returncode == 0, rogue.stderr[-3000:]
-            results = json.loads(rogue.stdout.strip().splitlines()[-1])
-            print(json.dumps(results, indent=1))
-            for name in ("plain_tcp", "tls_own_ca", "tls_fleet_ca_own_cert", "tls_fleet_ca_no_cert"):
-                attempt = results[name]
-                assert attempt["read"] == 0, f"{name}: the rogue read {attempt['read']} samples"
-                assert attempt.get("peers", 0) == 0, f"{name}: the rogue joined the session"
-            assert all(code != 0 for code in results["masters"].values()), results["masters"]
+            for lane, port in PORTS.items():  # both lanes' ports, the command lane's above all
+                rogue = subprocess.run(
+                    lan.argv(
+                        "rogue",
+                        [
+                            sys.executable,
+                            os.path.join(HERE, "fixtures", "rogue.py"),
+                            HOSTS["twin"],
+                            str(port),
+                            rogue_certs,
+                            os.path.join(fleet_certs, "ca.pem"),
+                            f"{HOSTS['phys']}:{robots.port}",
+                            f"{HOSTS['twin']}:{twin.port}",
+                            f"{HOSTS['twin']}:11311",
+                        ],
+                    ),
+                    capture_output=True,
+                    text=True,
+                    timeout=120,
+                )
+                assert rogue.returncode == 0, rogue.stderr[-3000:]
+                results = json.loads(rogue.stdout.strip().splitlines()[-1])
+                print(lane, json.dumps(results, indent=1))
+                for name in ("plain_tcp", "tls_own_ca", "tls_fleet_ca_own_cert", "tls_fleet_ca_no_cert"):
+                    attempt = results[name]
+                    assert attempt["read"] == 0, f"{lane} lane, {name}: the rogue read {attempt['read']} samples"
+                    assert attempt.get("peers", 0) == 0, f"{lane} lane, {name}: the rogue joined the session"
+                assert all(code != 0 for code in results["masters"].values()), results["masters"]
             time.sleep(1.0)
             executed = [line for line in _lines(teleop_file) if line.endswith(" 12345.000000")]
             assert not executed, f"a rogue command reached the robot: {executed}"

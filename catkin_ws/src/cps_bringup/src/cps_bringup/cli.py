@@ -314,6 +314,7 @@ def run_mission(args, log=print) -> MissionResult:
                 transport=ZENOH,
                 twin_address=args.twin_address or (link.twin_ip if link else "127.0.0.1"),
                 zenoh_port=None if link or args.twin_address else free_port(),
+                zenoh_command_port=None if link or args.twin_address else free_port(),
             )
         specs = plan_nodes(fleet, sides=sides, options=options)
         if DIGITAL in sides:

@@ -90,6 +90,9 @@ class RunOptions:
     transport: str = TCPROS
     twin_address: str = "127.0.0.1"
     zenoh_port: Optional[int] = None
+    # The command lane's port (None: bridge.yaml's command_port): each side runs its command-class
+    # bridge as a process of its own, so teleop never waits behind clouds (cps_link LANES).
+    zenoh_command_port: Optional[int] = None
     # The bridges' certificates (None: cps_link's default folder).
     cert_dir: Optional[str] = None
     # False: no bandwidth manager; every rate limiter passes the sensor's full rate (up to the
@@ -155,30 +158,36 @@ def plan_nodes(
     def py(package, node, *extra):
         return (python, node_path(package, node), *extra)
 
-    def bridge(side, bridge_side):
-        from cps_link.zenoh_session import bridge_argv
+    def bridges(side, bridge_side):
+        """The side's two bridge processes: the main lane (says whether the link is up) and the
+        command lane (the command class alone, its own session and connection)."""
+        from cps_link.zenoh_session import bridge_argv, bridge_node_name
 
-        return NodeSpec(
-            f"zenoh_bridge_{bridge_side}",
-            side,
-            tuple(
-                bridge_argv(
-                    python,
-                    bridge_side,
-                    options.twin_address,
-                    robots,
-                    cert_dir=options.cert_dir,
-                    port=options.zenoh_port,
-                    fleet_file=fleet.path,
-                )
-            ),
-            wait_topics=(A(names.LINK_STATE),),
-        )
+        return [
+            NodeSpec(
+                bridge_node_name(bridge_side, lane),
+                side,
+                tuple(
+                    bridge_argv(
+                        python,
+                        bridge_side,
+                        options.twin_address,
+                        robots,
+                        cert_dir=options.cert_dir,
+                        port=port,
+                        fleet_file=fleet.path,
+                        lane=lane,
+                    )
+                ),
+                wait_topics=(A(names.LINK_STATE),) if lane == "main" else (),
+            )
+            for lane, port in (("main", options.zenoh_port), ("command", options.zenoh_command_port))
+        ]
 
     if PHYSICAL in sides:
         profile = options.profile or fleet.profile.name
         if options.transport == ZENOH:
-            specs.append(bridge(PHYSICAL, "robots"))
+            specs += bridges(PHYSICAL, "robots")
         if options.simulate and not options.replay_path:
             specs.append(
                 NodeSpec(
@@ -300,7 +309,7 @@ def plan_nodes(
     if DIGITAL in sides:
         out = options.out_dir
         if options.transport == ZENOH:
-            specs.append(bridge(DIGITAL, "twin"))
+            specs += bridges(DIGITAL, "twin")
         for r in robots:
             # The one subscriber of the managed topic across the link; everything on the twin
             # (decoder, statistics) reads the relay, so the link carries each cloud once. Over

@@ -24,15 +24,12 @@ def checkout_env(checkout_dir):
 def wall_cloud(rospy, frame_id, offset_m=0.0):
     """A 4 x 3 m wall of 80 x 60 points 3 m in front of the sensor (its optical z axis), `offset_m`
     sideways (a new map version each)."""
+    from sensor_msgs import point_cloud2
     from std_msgs.msg import Header
-
-    from cps_transport.pointcloud import array_to_cloud
 
     u, v = np.meshgrid(np.linspace(-2.0, 2.0, 80), np.linspace(-1.5, 1.5, 60))
     pts = np.stack([u.ravel() + offset_m, v.ravel(), np.full(u.size, 3.0)], axis=1).astype(np.float32)
-    return array_to_cloud(
-        {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, header=Header(stamp=rospy.Time.now(), frame_id=frame_id)
-    )
+    return point_cloud2.create_cloud_xyz32(Header(stamp=rospy.Time.now(), frame_id=frame_id), pts)
 
 
 def static_sensor_transform(rospy, frame_id, height_m=0.5):

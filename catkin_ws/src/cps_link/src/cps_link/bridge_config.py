@@ -15,6 +15,11 @@ SIDES = (ROBOTS, TWIN)
 PRIORITIES = ("real_time", "interactive_high", "interactive_low", "data_high", "data", "data_low", "background")
 CONGESTION = ("block", "drop")
 ROBOT_PLACEHOLDER = "<r>"
+# A bridge process carries one lane: `command` the command class alone (its own process, Zenoh
+# session and TCP connection, so a command never waits behind a cloud in a queue, a thread or the
+# interpreter lock), `main` every other class, `all` both in one process.
+LANES = ("all", "main", "command")
+COMMAND_CLASS = "command"
 # What the robots' bridge sends on a backfill pose route.
 POSE_TYPE = "geometry_msgs/TransformStamped"
 DEFAULT_TABLE = os.path.normpath(
@@ -77,6 +82,32 @@ class BridgeTable:
     classes: Dict[str, TrafficClass]
     routes: Tuple[Route, ...]
     backfill: Optional[Backfill] = None
+    # Where the twin's command lane listens (the main lane and `all` use endpoint_port).
+    command_port: int = 0
+    lane: str = "all"
+
+    def for_lane(self, lane):
+        """The part of the table one lane's bridge process carries, on that lane's port."""
+        if lane not in LANES:
+            raise ValueError(f"lane must be one of {', '.join(LANES)}, got '{lane}'")
+        if lane == "all":
+            return self
+        command = lane == COMMAND_CLASS
+        return dataclasses.replace(
+            self,
+            lane=lane,
+            routes=tuple(r for r in self.routes if (r.traffic.name == COMMAND_CLASS) == command),
+            endpoint_port=self.command_port if command else self.endpoint_port,
+            backfill=None if command else self.backfill,
+        )
+
+    @property
+    def publishes_link_state(self):
+        """Only one process per side says whether the link is up: the one carrying telemetry."""
+        return self.lane != COMMAND_CLASS
+
+    def _scope(self, side):
+        return f"{side}" if self.lane == "all" else f"{self.lane}/{side}"
 
     def outgoing(self, side):
         return [r for r in self.routes if r.source == side]
@@ -88,16 +119,16 @@ class BridgeTable:
         return [r for r in self.routes if r.source != side]
 
     def liveliness_key(self, side, name):
-        return f"{self.key_prefix}/bridge/{side}/{name}"
+        return f"{self.key_prefix}/bridge/{self._scope(side)}/{name}"
 
     def peer_liveliness_keys(self, side):
-        return f"{self.key_prefix}/bridge/{other_side(side)}/**"
+        return f"{self.key_prefix}/bridge/{self._scope(other_side(side))}/**"
 
     def heartbeat_key(self, side, name):
-        return f"{self.key_prefix}/heartbeat/{side}/{name}"
+        return f"{self.key_prefix}/heartbeat/{self._scope(side)}/{name}"
 
     def peer_heartbeat_keys(self, side):
-        return f"{self.key_prefix}/heartbeat/{other_side(side)}/**"
+        return f"{self.key_prefix}/heartbeat/{self._scope(other_side(side))}/**"
 
 
 def other_side(side):
@@ -170,9 +201,14 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
             seen[route.to] = doc.line(entry.key_path)
             routes.append(route)
     backfill = _backfill(top, doc, classes, robots, routes, seen) if top.has("backfill") else None
+    if top.get("command_port", int) == top.get("endpoint_port", int):
+        raise top.error("command_port", "the command lane needs a port of its own (it equals endpoint_port)")
+    if COMMAND_CLASS not in classes:
+        raise class_reader.error(None, f"missing class '{COMMAND_CLASS}' (the command lane carries it)")
     return BridgeTable(
         path=path,
         endpoint_port=top.get("endpoint_port", int),
+        command_port=top.get("command_port", int),
         key_prefix=top.get("key_prefix", str),
         lease_ms=top.get("lease_ms", int),
         keep_alive=top.get("keep_alive", int),

@@ -99,8 +99,12 @@ class ZenohBridge:
         self.receive_path = ReceivePath(table.incoming(side), table.key_prefix, self._md5_of)
         self.started_s = time.time()
         self.health = LinkHealth(started_s=self.started_s)
-        self.reporter = DropReporter("zenoh_bridge")
-        self.link_pub = rospy.Publisher(names.LINK_STATE, LinkState, queue_size=5, latch=True)
+        self.reporter = DropReporter("zenoh_bridge_command" if table.lane == "command" else "zenoh_bridge")
+        self.link_pub = (
+            rospy.Publisher(names.LINK_STATE, LinkState, queue_size=5, latch=True)
+            if table.publishes_link_state
+            else None
+        )
         self.store = None
         if side == ROBOTS and table.backfill and backfill_store_bytes:
             self._start_backfill(backfill_store_bytes)
@@ -421,6 +425,8 @@ class ZenohBridge:
         )
 
     def _publish_link_state(self):
+        if self.link_pub is None:
+            return
         msg = self.link_state()
         msg.header.stamp = rospy.Time.from_sec(time.time())
         self.link_pub.publish(msg)

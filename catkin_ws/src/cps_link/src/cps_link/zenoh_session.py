@@ -95,8 +95,14 @@ def open_session(config):
         raise BridgeSetupError(f"cannot open the Zenoh session: {exc}") from exc
 
 
-def bridge_argv(python, side, twin_address, robots, cert_dir=None, port=None, fleet_file=None, name=None):
-    """The command line of one side's zenoh_bridge node (bringup, tests and the benchmark)."""
+def bridge_node_name(side, lane="all"):
+    """The ROS node name of one side's bridge for one lane (bridge_config.LANES): the command lane's
+    is `zenoh_bridge_<side>_command`, the others' `zenoh_bridge_<side>`."""
+    return f"zenoh_bridge_{side}_command" if lane == "command" else f"zenoh_bridge_{side}"
+
+
+def bridge_argv(python, side, twin_address, robots, cert_dir=None, port=None, fleet_file=None, name=None, lane="all"):
+    """The command line of one side's zenoh_bridge node for one lane (bringup, tests and the benchmark)."""
     node = os.path.normpath(os.path.join(os.path.dirname(MAKE_CERTS), "..", "nodes", "zenoh_bridge"))
     argv = [
         python,
@@ -107,7 +113,9 @@ def bridge_argv(python, side, twin_address, robots, cert_dir=None, port=None, fl
         twin_address,
         "--robots",
         ",".join(robots),
-        f"__name:=zenoh_bridge_{side}",
+        "--lane",
+        lane,
+        f"__name:={bridge_node_name(side, lane)}",
     ]
     for flag, value in (("--cert-dir", cert_dir), ("--port", port), ("--fleet", fleet_file), ("--name", name)):
         if value:
