@@ -52,6 +52,8 @@ OPERATOR_VIDEO = "operator_video"
 INSPECTION_DETAIL = "inspection_detail"
 GUARANTEES = (OPERATOR_VIDEO, INSPECTION_DETAIL)  # precedence order of rule 1b, 1c
 _BYTES_PER_MB = 1e6
+# A rule that fits within this fraction of the budget fits (float rounding of sums of products).
+_SLACK = 1e-12
 
 
 @dataclasses.dataclass(frozen=True)
@@ -222,7 +224,7 @@ def allocate_levels(
                 continue
             lvl = _cheapest(sizes[i], range(d.guarantee_level + 1))
             extra = sizes[i][lvl] * d.guarantee_rate_hz - (floor_cost[i] if active[i] else 0.0)
-            if extra <= remaining:
+            if extra <= remaining + _SLACK * budget:
                 remaining -= extra
                 kept_guarantee[i], active[i] = True, True
                 base[i], required[i] = lvl, d.guarantee_rate_hz
@@ -230,7 +232,7 @@ def allocate_levels(
                 broken.append(f"{d.robot}/{d.stream}: {rule}")
     for i, d in enumerate(demands):
         if d.may_go_off and not active[i]:
-            if floor_cost[i] <= remaining:
+            if floor_cost[i] <= remaining + _SLACK * budget:
                 remaining -= floor_cost[i]
                 active[i] = True
             else:
@@ -259,7 +261,7 @@ def allocate_levels(
                 gain = weight[i] * (bits[i][lvl] - bits[i][base[i]])
                 if lvl != base[i] and gain > 0:
                     options.append((i, lvl, (sizes[i][lvl] - size_base[i]) * cap[i], gain))
-        choice, detail_value = choose_levels(options, leftover)
+        choice, detail_value = choose_levels(options, leftover + _SLACK * budget)
         for i, lvl in choice.items():
             level[i] = lvl
         rate = np.where(active, cap, 0.0)
@@ -315,14 +317,18 @@ def choose_levels(options, leftover):
     one_per_stream = np.zeros((len(streams), len(options)))
     for k, o in enumerate(options):
         one_per_stream[streams.index(o[0]), k] = 1.0
+    # Scaled to a leftover of 1 and a largest gain of 1 (sizes in MB x rates give costs of 1e-6).
     result = milp(
-        -gains,
+        -gains / gains.max(),
         integrality=np.ones(len(options)),
         bounds=Bounds(0, 1),
         constraints=[
-            LinearConstraint(costs[None, :], -np.inf, leftover),
+            LinearConstraint(costs[None, :] / leftover, -np.inf, 1.0),
             LinearConstraint(one_per_stream, -np.inf, 1.0),
         ],
+        # HiGHS' presolve loses an option whose cost is ~1e-6 of the leftover (returns "optimal"
+        # with nothing chosen); the problem is small enough to need none.
+        options={"presolve": False},
     )
     if result.x is None:  # cannot happen (all zeros is feasible); keep the base levels
         return {}, 0.0
