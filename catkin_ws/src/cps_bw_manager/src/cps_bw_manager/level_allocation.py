@@ -299,20 +299,101 @@ def allocate_levels(
 
 def choose_levels(options, leftover):
     """Exact multiple-choice knapsack: at most one option (stream i, level, cost, gain) per stream,
-    total cost <= leftover, maximum total gain. Returns ({stream: level}, gain)."""
+    total cost <= leftover, maximum total gain. Returns ({stream: level}, gain).
+
+    Branch and bound over the streams (most gain per byte first) with the LP relaxation as the
+    bound (per stream the upper concave hull of its options; the LP fills the hull's segments by
+    slope and has at most one fractional stream, so the bound is tight and few nodes are opened).
+    Past NODE_LIMIT nodes it hands the problem to scipy's milp (HiGHS)."""
+    groups = {}
+    for i, lvl, cost, gain in options:
+        if gain > 0 and cost <= leftover:
+            groups.setdefault(i, []).append((float(cost), float(gain), lvl))
+    if not groups:
+        return {}, 0.0
+    finest = {i: max(opts, key=lambda o: o[1]) for i, opts in groups.items()}
+    if sum(o[0] for o in finest.values()) <= leftover:  # every stream's best fits
+        return {i: o[2] for i, o in finest.items()}, float(sum(o[1] for o in finest.values()))
+    order, lists, segments = [], [], []
+    for i, opts in groups.items():
+        opts.sort(key=lambda o: (o[0], -o[1]))
+        kept = []
+        for o in opts:  # drop dominated options (costlier, no more gain)
+            if not kept or o[1] > kept[-1][1]:
+                kept.append(o)
+        hull = [(0.0, 0.0)]
+        for o in kept:
+            while len(hull) >= 2 and _cross(hull[-2], hull[-1], o) >= 0:
+                hull.pop()
+            hull.append(o)
+        slopes = [(b[1] - a[1]) / (b[0] - a[0]) if b[0] > a[0] else math.inf for a, b in zip(hull, hull[1:])]
+        order.append((slopes[0], i, kept, hull, slopes))
+    order.sort(key=lambda g: -g[0])
+    for rank, (_, i, kept, hull, slopes) in enumerate(order):
+        lists.append((i, sorted(kept, key=lambda o: -o[1])))
+        for (a, b), slope in zip(zip(hull, hull[1:]), slopes):
+            segments.append((slope, rank, b[0] - a[0], b[1] - a[1]))
+    segments.sort(key=lambda x: -x[0])
+    n = len(lists)
+    best = [0.0, [None] * n]
+    chosen = [None] * n
+    nodes = [0]
+
+    def bound(rank, capacity):
+        total = 0.0
+        for _, r, dc, dg in segments:
+            if r < rank:
+                continue
+            if dc <= capacity:
+                total, capacity = total + dg, capacity - dc
+            else:
+                return total + dg * capacity / dc
+        return total
+
+    def search(rank, capacity, gain):
+        nodes[0] += 1
+        if nodes[0] > NODE_LIMIT:
+            raise _TooLarge
+        if gain > best[0]:
+            best[0], best[1] = gain, list(chosen)
+        if rank == n or gain + bound(rank, capacity) <= best[0] * (1 + 1e-12):
+            return
+        for option in lists[rank][1]:
+            if option[0] <= capacity:
+                chosen[rank] = option
+                search(rank + 1, capacity - option[0], gain + option[1])
+        chosen[rank] = None
+        search(rank + 1, capacity, gain)
+
+    try:
+        search(0, float(leftover), 0.0)
+    except _TooLarge:
+        return _choose_levels_milp(options, leftover)
+    picked = {lists[r][0]: o[2] for r, o in enumerate(best[1]) if o is not None}
+    return picked, float(best[0])
+
+
+# Branch-and-bound nodes before the knapsack goes to milp (16 robots x 2 streams open ~100).
+NODE_LIMIT = 20000
+
+
+class _TooLarge(Exception):
+    pass
+
+
+def _cross(o, a, b):
+    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+
+def _choose_levels_milp(options, leftover):
+    """The same knapsack by scipy.optimize.milp (HiGHS)."""
+    from scipy.optimize import Bounds, LinearConstraint, milp
+
+    options = [o for o in options if o[3] > 0]
     if not options:
         return {}, 0.0
     costs = np.array([o[2] for o in options])
     gains = np.array([o[3] for o in options])
-    best = {}
-    for k, (i, _, _, gain) in enumerate(options):  # every stream's finest affordable is a trivial answer
-        if i not in best or gain > options[best[i]][3]:
-            best[i] = k
-    if costs[list(best.values())].sum() <= leftover:
-        chosen = list(best.values())
-        return {options[k][0]: options[k][1] for k in chosen}, float(gains[chosen].sum())
-    from scipy.optimize import Bounds, LinearConstraint, milp
-
     streams = sorted({o[0] for o in options})
     one_per_stream = np.zeros((len(streams), len(options)))
     for k, o in enumerate(options):
