@@ -41,7 +41,7 @@ def graph(ros, rospy_node, tmp_path):
         params={
             "~robots": list(ROBOTS),
             # the clouds alone, as these tests judge them (videos: test_manager_node_levels.py)
-            "~video_robots": "",
+            "~video_robots": [],
             "~available_mbps": 2.0,
             "~csv_path": str(csv_path),
             "~link_state_csv_path": str(tmp_path / "link_state.csv"),
@@ -116,7 +116,7 @@ def test_rates_from_the_measured_sizes_fit_the_budget(graph):
     assert sum(x.bandwidth_mbytes_per_s for x in a.values()) <= budget * (1 + 1e-9)
     # Room for one extra message per robot per 1 s window is kept (~headroom_messages).
     size = a["scout"].message_bytes / 1e6
-    assert a["scout"].rate_hz == pytest.approx((budget - 2 * size) / 2 / size, rel=1e-6)
+    assert a["scout"].rate_hz == pytest.approx((budget - 2 * size) / 2 / size, rel=1e-6), graph.allocation.latest
 
 
 def test_mission_states_and_the_operator_set_priorities_and_the_csv_logs_them(graph):
