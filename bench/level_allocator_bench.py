@@ -7,7 +7,7 @@ a selection, teleop or size change).
 Four budgets (fractions of every stream at its finest level and maximum rate): "short" (some
 guarantees and video floors broken, reported), "tight" (the floors and guarantees fit, rates
 shared at the base levels: stages 1-2), "rich" and "richer" (every stream at its maximum and
-finer levels with the rest: the knapsack, branch and bound).
+finer levels with the rest: the knapsack, dynamic programming on its Pareto frontier).
 
     python bench/level_allocator_bench.py [--repeats 200] [--out docs/benchmarks/level_allocator.md] [--no-write]
 """

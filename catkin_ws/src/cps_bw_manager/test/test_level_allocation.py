@@ -263,11 +263,11 @@ def test_matches_the_oracle_on_seeded_random_fleets_of_four_robots():
     assert all(count >= 10 for count in regimes.values()), regimes
 
 
-@pytest.mark.parametrize("solver", ["branch and bound", "milp"])
+@pytest.mark.parametrize("solver", ["pareto", "milp"])
 def test_the_knapsack_matches_enumeration(solver):
     from cps_bw_manager.level_allocation import _choose_levels_milp
 
-    solve = choose_levels if solver == "branch and bound" else _choose_levels_milp
+    solve = choose_levels if solver == "pareto" else _choose_levels_milp
     rng = np.random.default_rng(7)
     for _ in range(200):
         options = [(i, lvl, float(rng.uniform(0.1, 2)), float(rng.uniform(0.1, 8))) for i in range(5) for lvl in (0, 1)]

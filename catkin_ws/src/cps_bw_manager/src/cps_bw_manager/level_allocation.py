@@ -29,7 +29,7 @@ The objective is lexicographic, most important first (docs/bandwidth_manager.md)
 3. Detail: only when every stream runs at its maximum rate is there budget left, and it buys
    finer levels at the maximum rate: max sum_s w_s (bits(l_s) - bits(base_s)) with
    sum_s (size_{s,l_s} - size_{s,base_s}) fmax_s <= leftover, a multiple-choice knapsack solved
-   exactly by scipy.optimize.milp (HiGHS). bits(l) = log2 of the level's detail over the
+   exactly (dynamic programming on its Pareto frontier; scipy.optimize.milp past a size limit). bits(l) = log2 of the level's detail over the
    coarsest (points per area 1/leaf^2 for clouds, pixels for video).
 
 Rates first, then detail, except where a rule (b, c) asks for detail first: that is the
@@ -135,8 +135,21 @@ def video_detail_bits(pixels):
 
 def validate_stream(d: StreamDemand):
     """ValueError naming the stream and the field if `d` cannot be allocated."""
-    who = f"{d.robot}/{d.stream}"
     n = len(d.level_bytes)
+    try:  # the common case at once (the allocator validates every stream at every update)
+        if (
+            n
+            and len(d.detail_bits) == n
+            and all(0 < b < math.inf for b in d.level_bytes)
+            and all(math.isfinite(x) for x in d.detail_bits)
+            and 0 < d.weight < math.inf
+            and 0 < d.floor_rate_hz <= d.max_rate_hz < math.inf
+            and not d.guarantee
+        ):
+            return
+    except TypeError:
+        pass
+    who = f"{d.robot}/{d.stream}"
     if n == 0 or len(d.detail_bits) != n:
         raise ValueError(f"{who}: needs one size and one detail per level, got {n} and {len(d.detail_bits)}")
     if any(not _finite(b) or b <= 0 for b in d.level_bytes):
@@ -301,10 +314,10 @@ def choose_levels(options, leftover):
     """Exact multiple-choice knapsack: at most one option (stream i, level, cost, gain) per stream,
     total cost <= leftover, maximum total gain. Returns ({stream: level}, gain).
 
-    Branch and bound over the streams (most gain per byte first) with the LP relaxation as the
-    bound (per stream the upper concave hull of its options; the LP fills the hull's segments by
-    slope and has at most one fractional stream, so the bound is tight and few nodes are opened).
-    Past NODE_LIMIT nodes it hands the problem to scipy's milp (HiGHS)."""
+    Dynamic programming over the streams on the Pareto frontier of (cost, gain): after each
+    stream only the partial choices that no cheaper one matches in gain are kept, which is exact
+    and stays small because the gains (weight x bits) take few distinct sums. Past
+    FRONTIER_LIMIT states it hands the problem to scipy's milp (HiGHS)."""
     groups = {}
     for i, lvl, cost, gain in options:
         if gain > 0 and cost <= leftover:
@@ -314,75 +327,37 @@ def choose_levels(options, leftover):
     finest = {i: max(opts, key=lambda o: o[1]) for i, opts in groups.items()}
     if sum(o[0] for o in finest.values()) <= leftover:  # every stream's best fits
         return {i: o[2] for i, o in finest.items()}, float(sum(o[1] for o in finest.values()))
-    order, lists, segments = [], [], []
-    for i, opts in groups.items():
-        opts.sort(key=lambda o: (o[0], -o[1]))
-        kept = []
-        for o in opts:  # drop dominated options (costlier, no more gain)
-            if not kept or o[1] > kept[-1][1]:
-                kept.append(o)
-        hull = [(0.0, 0.0)]
-        for o in kept:
-            while len(hull) >= 2 and _cross(hull[-2], hull[-1], o) >= 0:
-                hull.pop()
-            hull.append(o)
-        slopes = [(b[1] - a[1]) / (b[0] - a[0]) if b[0] > a[0] else math.inf for a, b in zip(hull, hull[1:])]
-        order.append((slopes[0], i, kept, hull, slopes))
-    order.sort(key=lambda g: -g[0])
-    for rank, (_, i, kept, hull, slopes) in enumerate(order):
-        lists.append((i, sorted(kept, key=lambda o: -o[1])))
-        for (a, b), slope in zip(zip(hull, hull[1:]), slopes):
-            segments.append((slope, rank, b[0] - a[0], b[1] - a[1]))
-    segments.sort(key=lambda x: -x[0])
-    n = len(lists)
-    best = [0.0, [None] * n]
-    chosen = [None] * n
-    nodes = [0]
-
-    def bound(rank, capacity):
-        total = 0.0
-        for _, r, dc, dg in segments:
-            if r < rank:
-                continue
-            if dc <= capacity:
-                total, capacity = total + dg, capacity - dc
-            else:
-                return total + dg * capacity / dc
-        return total
-
-    def search(rank, capacity, gain):
-        nodes[0] += 1
-        if nodes[0] > NODE_LIMIT:
-            raise _TooLarge
-        if gain > best[0]:
-            best[0], best[1] = gain, list(chosen)
-        if rank == n or gain + bound(rank, capacity) <= best[0] * (1 + 1e-12):
-            return
-        for option in lists[rank][1]:
-            if option[0] <= capacity:
-                chosen[rank] = option
-                search(rank + 1, capacity - option[0], gain + option[1])
-        chosen[rank] = None
-        search(rank + 1, capacity, gain)
-
-    try:
-        search(0, float(leftover), 0.0)
-    except _TooLarge:
-        return _choose_levels_milp(options, leftover)
-    picked = {lists[r][0]: o[2] for r, o in enumerate(best[1]) if o is not None}
-    return picked, float(best[0])
+    costs, gains = np.zeros(1), np.zeros(1)
+    history = []
+    for opts in groups.values():
+        option_cost = np.array([0.0] + [o[0] for o in opts])
+        option_gain = np.array([0.0] + [o[1] for o in opts])
+        c = (costs[:, None] + option_cost[None, :]).ravel()
+        g = (gains[:, None] + option_gain[None, :]).ravel()
+        flat = np.flatnonzero(c <= leftover)
+        flat = flat[np.lexsort((-g[flat], c[flat]))]  # cheapest first, on equal cost the larger gain first
+        g_sorted = g[flat]
+        best_before = np.maximum.accumulate(g_sorted)
+        keep = np.empty(len(flat), dtype=bool)  # more gain than every cheaper (or equally cheap) state
+        keep[0] = True
+        keep[1:] = g_sorted[1:] > best_before[:-1]
+        flat = flat[keep]
+        costs, gains = c[flat], g[flat]
+        history.append(np.divmod(flat, len(option_cost)))  # (parent state, option) per state
+        if len(costs) > FRONTIER_LIMIT:
+            return _choose_levels_milp(options, leftover)
+    state = int(np.argmax(gains))
+    value = float(gains[state])
+    picked = {}
+    for (i, opts), (parent, pick) in zip(reversed(list(groups.items())), reversed(history)):
+        if pick[state] > 0:
+            picked[i] = opts[pick[state] - 1][2]
+        state = int(parent[state])
+    return picked, value
 
 
-# Branch-and-bound nodes before the knapsack goes to milp (16 robots x 2 streams open ~100).
-NODE_LIMIT = 20000
-
-
-class _TooLarge(Exception):
-    pass
-
-
-def _cross(o, a, b):
-    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+# Pareto states before the knapsack goes to milp (16 robots x 2 streams x 3 levels keep ~100).
+FRONTIER_LIMIT = 20000
 
 
 def _choose_levels_milp(options, leftover):
