@@ -91,7 +91,7 @@ def measure_priority_to_rate(changes, robots, feed):
 
     def on_alloc(msg):
         with changed:
-            latest_alloc.update({a.robot: a.rate_hz for a in msg.allocations})
+            latest_alloc.update({a.robot: a.rate_hz for a in msg.allocations if a.stream == "cloud"})
             changed.notify_all()
 
     subs = [

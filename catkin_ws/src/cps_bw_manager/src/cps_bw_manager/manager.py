@@ -1,8 +1,11 @@
 """The bandwidth manager's state and decisions, without ROS: what the node feeds it and asks it.
 
 It keeps per robot the measured message size and input rate (from the rate limiter's status),
-the priority book (mission state + operator), and the available bandwidth (configured, or the
-online estimate), and turns them into an `Allocation`. The node only wires topics to it.
+the per-level sizes of every managed stream (cloud, and video for camera robots), the priority
+book (mission state + operator), the operator's selected robot and the robots in teleop, the
+twin's insertion capacity and the available bandwidth (configured, or the online estimate), and
+turns them into a `LevelAllocation` (`allocate_streams`; `allocate` is its clouds, in the old
+`Allocation` form). The node only wires topics to it.
 """
 
 import dataclasses
@@ -13,10 +16,23 @@ from cps_bw_manager.allocation import (
     DEFAULT_ASSUMED_MESSAGE_BYTES,
     DEFAULT_FLOOR_RATE_HZ,
     DEFAULT_PRIORITY_WEIGHTS,
-    allocate_frequencies,
+    Allocation,
+    RobotAllocation,
     managed_budget_mbytes_per_s,
 )
 from cps_bw_manager.estimation import DeliveryRateEstimator, LinkReport
+from cps_bw_manager.level_allocation import (
+    CLOUD,
+    INSPECTION_DETAIL,
+    OPERATOR_VIDEO,
+    VIDEO,
+    LevelAllocation,
+    StreamDemand,
+    allocate_levels,
+    cloud_detail_bits,
+    video_detail_bits,
+)
+from cps_bw_manager.level_sizes import LevelSizes
 from cps_bw_manager.priorities import PriorityBook
 
 # An input rate is allowed this much headroom before it caps the robot's maximum rate.
@@ -27,6 +43,10 @@ SIZE_CHANGE_FRACTION = 0.1
 # measures over a 2 s window and needs two messages in it, so a sensor at 0.7 Hz reads 0 for runs
 # of up to ~9 s (1 Hz: ~3 s); 10 s covers that. Longer silences fall back to max_rate_hz.
 DEFAULT_INPUT_RATE_HOLD_S = 10.0
+# The twin's insertion capacity counts this long after its last report (the map server publishes
+# it every window; a silent map server no longer bounds the clouds).
+INSERT_CAPACITY_HOLD_S = 10.0
+TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,7 +123,17 @@ class _Measured:
 
 
 class ManagerCore:
-    def __init__(self, robots, settings: ManagerSettings, estimator: Optional[DeliveryRateEstimator] = None):
+    """`streams`: fleet.yaml's StreamsConfig (the levels; None: one cloud level of unknown detail
+    and no video, the allocation before issue 24); `camera_robots`: the robots with a video."""
+
+    def __init__(
+        self,
+        robots,
+        settings: ManagerSettings,
+        estimator: Optional[DeliveryRateEstimator] = None,
+        streams=None,
+        camera_robots=(),
+    ):
         self.settings = settings.validate()
         self.robots = list(robots)
         if not self.robots:
@@ -115,6 +145,35 @@ class ManagerCore:
         self.weights = {0: DEFAULT_PRIORITY_WEIGHTS[0], 1: float(settings.high_priority_weight)}
         self.link = LinkHealth()
         self._last_stats_s = math.nan
+        self.streams = streams
+        if streams is None:
+            self.cloud_levels = (("managed",), (0.0,), (settings.assumed_message_bytes,))
+            self.video_levels = None
+            self.camera_robots = []
+        else:
+            self.cloud_levels = (
+                tuple(lvl.name for lvl in streams.cloud_levels),
+                cloud_detail_bits([lvl.voxel_leaf_m for lvl in streams.cloud_levels]),
+                tuple(lvl.bytes_prior for lvl in streams.cloud_levels),
+            )
+            self.video_levels = (
+                tuple(lvl.name for lvl in streams.video_levels),
+                video_detail_bits([lvl.width * lvl.height for lvl in streams.video_levels]),
+                tuple(lvl.bytes_prior for lvl in streams.video_levels),
+            )
+            self.camera_robots = [r for r in self.robots if r in set(camera_robots)]
+        self.sizes: Dict[tuple, LevelSizes] = {(r, CLOUD): LevelSizes(self.cloud_levels[2]) for r in self.robots}
+        self.video_measured: Dict[str, _Measured] = {}
+        for r in self.camera_robots:
+            self.sizes[(r, VIDEO)] = LevelSizes(self.video_levels[2])
+            self.video_measured[r] = _Measured()
+        # The level each stream was last allocated (what its encoder produces once it follows).
+        self.level_in_force = {key: sizes.levels - 1 for key, sizes in self.sizes.items()}
+        self.selected_robot = ""
+        self.teleop = set()
+        self._capacity = (math.nan, -math.inf)  # (clouds/s, reported at s)
+        self._now_s = -math.inf
+        self.last_demands: Dict[tuple, StreamDemand] = {}
 
     @property
     def paused(self):
@@ -145,9 +204,21 @@ class ManagerCore:
     def available_mbps(self):
         return self.estimator.estimate_mbps if self.estimator else self.settings.available_mbps
 
-    def on_limiter_status(self, robot, mean_message_bytes, input_rate_hz, output_rate_hz=math.nan, *, now_s):
+    def on_limiter_status(
+        self,
+        robot,
+        mean_message_bytes,
+        input_rate_hz,
+        output_rate_hz=math.nan,
+        *,
+        now_s,
+        level=None,
+        level_mean_message_bytes=math.nan,
+    ):
         """A rate limiter's status received at `now_s` (s, any monotonic clock); returns True if the
-        size changed enough to re-allocate now.
+        size (of any level) changed enough to re-allocate now. `level`, `level_mean_message_bytes`:
+        the level the clouds were produced at and their size (RateLimiterStatus); without them the
+        mean size counts as the size of the level in force.
 
         Raises KeyError for an unknown robot. A size of 0 or NaN (nothing received yet) keeps the
         old size; a negative or infinite size is counted and refused (ValueError). An input rate
@@ -167,11 +238,97 @@ class ManagerCore:
             entry.input_rate_hz, entry.input_rate_at_s = float(input_rate_hz), float(now_s)
         elif not 0.0 <= now_s - entry.input_rate_at_s <= self.settings.input_rate_hold_s:
             entry.input_rate_hz = entry.input_rate_at_s = math.nan  # held too long (or the clock went back)
+        self._now_s = max(self._now_s, float(now_s))
+        level_changed = self._learn((robot, CLOUD), level, level_mean_message_bytes, mean_message_bytes, now_s)
         if not _positive(mean_message_bytes):
-            return False
+            return level_changed
         old = entry.message_bytes
         entry.message_bytes = float(mean_message_bytes)
-        return not _positive(old) or abs(mean_message_bytes - old) > SIZE_CHANGE_FRACTION * old
+        return level_changed or not _positive(old) or abs(mean_message_bytes - old) > SIZE_CHANGE_FRACTION * old
+
+    def _learn(self, key, level, level_mean_bytes, mean_bytes, now_s):
+        """Feed the stream's level sizes: the level's own mean if the encoder gave one, else the
+        overall mean as the size of the level in force (an encoder that knows no levels)."""
+        sizes = self.sizes[key]
+        if _positive(level_mean_bytes) and level is not None:
+            if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level < sizes.levels:
+                self.invalid_inputs += 1
+                raise ValueError(f"{key[0]}/{key[1]}: level {level!r} outside the {sizes.levels} levels")
+            return sizes.report(level, float(level_mean_bytes), float(now_s))
+        if _positive(mean_bytes):
+            return sizes.report(self.level_in_force[key], float(mean_bytes), float(now_s))
+        return False
+
+    def on_video_status(
+        self, robot, level, level_mean_message_bytes, mean_message_bytes=math.nan, output_rate_hz=math.nan, *, now_s
+    ):
+        """A camera robot's video status (cps_msgs/RateLimiterStatus from its video pipeline);
+        returns True if a level's size moved enough to re-allocate now. KeyError for a robot
+        without managed video, ValueError (counted) for a bad level, size or time."""
+        if robot not in self.video_measured:
+            raise KeyError(f"robot '{robot}' has no managed video (camera robots: {', '.join(self.camera_robots)})")
+        if not _finite(now_s):
+            self.invalid_inputs += 1
+            raise ValueError(f"robot '{robot}': status time {now_s!r} is not a time")
+        for value in (level_mean_message_bytes, mean_message_bytes):
+            if not _positive(value) and not (value == 0 or math.isnan(value)):
+                self.invalid_inputs += 1
+                raise ValueError(f"robot '{robot}': video size {value!r} is not a size")
+        self._now_s = max(self._now_s, float(now_s))
+        entry = self.video_measured[robot]
+        entry.output_rate_hz = float(output_rate_hz) if _finite(output_rate_hz) and output_rate_hz >= 0 else math.nan
+        if _positive(mean_message_bytes):
+            entry.message_bytes = float(mean_message_bytes)
+        return self._learn((robot, VIDEO), level, level_mean_message_bytes, mean_message_bytes, now_s)
+
+    def on_selected_robot(self, robot):
+        """The operator's selected robot ("" for none; a robot not managed here selects none of
+        ours). Returns True if the allocation's rules changed."""
+        robot = str(robot).strip()
+        before = self._operators()
+        self.selected_robot = robot
+        return self._operators() != before
+
+    def on_control_mode(self, robot, mode):
+        """A robot's control mode in force (velocity_mux's control_mode/active). Returns True if
+        the allocation's rules changed. KeyError for an unknown robot."""
+        self._known(robot)
+        before = self._operators()
+        if str(mode).strip() == TELEOP_MODE:
+            self.teleop.add(robot)
+        else:
+            self.teleop.discard(robot)
+        return self._operators() != before
+
+    def _operators(self):
+        """The camera robots whose video gets operator quality: the selected one and every teleoperated one."""
+        return {r for r in self.camera_robots if r == self.selected_robot or r in self.teleop}
+
+    def on_insert_capacity(self, clouds_per_s, now_s):
+        """The map server's insertion capacity (cps_msgs/InsertCapacity.clouds_per_s). 0 or NaN
+        (nothing measured in its window) clears it; negative or infinite is refused (ValueError,
+        counted). Returns True if the bound moved by more than 10 % (or appeared, or went)."""
+        if not _finite(now_s):
+            self.invalid_inputs += 1
+            raise ValueError(f"insert capacity time {now_s!r} is not a time")
+        if not (_positive(clouds_per_s) or clouds_per_s == 0 or math.isnan(clouds_per_s)):
+            self.invalid_inputs += 1
+            raise ValueError(f"insert capacity {clouds_per_s!r} clouds/s is not a capacity")
+        before = self.insert_capacity_clouds_per_s(now_s)
+        self._capacity = (float(clouds_per_s) if _positive(clouds_per_s) else math.nan, float(now_s))
+        self._now_s = max(self._now_s, float(now_s))
+        after = self.insert_capacity_clouds_per_s(now_s)
+        if (before is None) != (after is None):
+            return True
+        return before is not None and abs(after - before) > SIZE_CHANGE_FRACTION * before
+
+    def insert_capacity_clouds_per_s(self, now_s=None):
+        """The twin's insertion capacity in force (None: none reported in the last INSERT_CAPACITY_HOLD_S)."""
+        now_s = self._now_s if now_s is None else now_s
+        value, at_s = self._capacity
+        if not _positive(value) or not 0.0 <= now_s - at_s <= INSERT_CAPACITY_HOLD_S:
+            return None
+        return value
 
     def on_mission_state(self, robot, state):
         return self.book.set_mission_state(self._known(robot), state)
@@ -194,6 +351,9 @@ class ManagerCore:
             if not (_finite(m.output_rate_hz) and _positive(m.message_bytes)):
                 return math.nan
             total += m.output_rate_hz * m.message_bytes * 8e-6
+        for m in self.video_measured.values():  # a video not reporting yet sends nothing we know of
+            if _finite(m.output_rate_hz) and _positive(m.message_bytes):
+                total += m.output_rate_hz * m.message_bytes * 8e-6
         return total
 
     def offered_mbps(self):
@@ -258,34 +418,112 @@ class ManagerCore:
         sizes = sum(d.message_bytes if _positive(d.message_bytes) else s.assumed_message_bytes for d in demands)
         return min(0.25 * budget, s.headroom_messages * sizes / 1e6 / s.window_s)
 
-    def allocate(self):
-        """The allocation of (budget - headroom) / copies_on_link; bandwidths and shares count every
-        copy on the link, and `budget_mbytes_per_s` stays the full budget."""
-        budget = managed_budget_mbytes_per_s(self.available_mbps, self.settings.reserve_fraction)
-        demands = self.demands()
-        copies = self.settings.copies_on_link
-        usable = (budget - self.headroom_mbytes_per_s(demands, budget)) / copies
-        result = allocate_frequencies(
-            demands,
-            usable,
-            priority_weights=self.weights,
-            floor_rate_hz=self.settings.floor_rate_hz,
-            assumed_message_bytes=self.settings.assumed_message_bytes,
-        )
-        robots = tuple(
-            dataclasses.replace(
-                r,
-                bandwidth_mbytes_per_s=copies * r.bandwidth_mbytes_per_s,
-                share_percent=100.0 * copies * r.bandwidth_mbytes_per_s / budget,
+    def stream_demands(self, now_s=None):
+        """The level allocator's input: every robot's cloud and every camera robot's video."""
+        s = self.settings
+        now_s = self._now_s if now_s is None else now_s
+        operators = self._operators()
+        out = []
+        names, bits, _ = self.cloud_levels
+        for robot in self.robots:
+            d = self.book.demand(robot, math.nan, s.min_rate_hz, self.input_rate_cap_hz(robot))
+            sizes = self.sizes[(robot, CLOUD)]
+            detail = d.priority == 1 and len(names) > 1
+            out.append(
+                StreamDemand(
+                    robot,
+                    CLOUD,
+                    sizes.estimate(now_s),
+                    bits,
+                    names,
+                    weight=self.weights[d.priority],
+                    priority=d.priority,
+                    floor_rate_hz=d.min_rate_hz,
+                    max_rate_hz=d.max_rate_hz,
+                    guarantee=INSPECTION_DETAIL if detail else "",
+                    guarantee_level=0,
+                    guarantee_rate_hz=d.min_rate_hz,
+                    size_measured=sizes.measured(now_s),
+                )
             )
-            for r in result.robots
+        if self.video_levels:
+            names, bits, _ = self.video_levels
+            st = self.streams
+            for robot in self.camera_robots:
+                operator = robot in operators
+                sizes = self.sizes[(robot, VIDEO)]
+                out.append(
+                    StreamDemand(
+                        robot,
+                        VIDEO,
+                        sizes.estimate(now_s),
+                        bits,
+                        names,
+                        weight=self.weights[1 if operator else 0],
+                        priority=int(operator),
+                        floor_rate_hz=st.video_min_rate_hz,
+                        max_rate_hz=st.video_max_rate_hz,
+                        may_go_off=True,
+                        guarantee=OPERATOR_VIDEO if operator else "",
+                        guarantee_level=st.operator_video_level,
+                        guarantee_rate_hz=st.operator_video_rate_hz,
+                        size_measured=sizes.measured(now_s),
+                    )
+                )
+        return out
+
+    def allocate_streams(self, now_s=None) -> LevelAllocation:
+        """Every stream's level and rate within (budget - headroom) / copies_on_link; bandwidths
+        and shares count every copy on the link, and `budget_mbytes_per_s` stays the full budget.
+        The headroom is one message per stream per window at the levels in force; if the levels
+        chosen need more, the allocation is made again with that (never less than it needs)."""
+        s = self.settings
+        now_s = self._now_s if now_s is None else now_s
+        budget = managed_budget_mbytes_per_s(self.available_mbps, s.reserve_fraction)
+        demands = self.stream_demands(now_s)
+        copies = s.copies_on_link
+        capacity = self.insert_capacity_clouds_per_s(now_s)
+
+        def headroom(levels):
+            sizes = sum(d.level_bytes[levels[d.key]] for d in demands)
+            return min(0.25 * budget, s.headroom_messages * sizes / 1e6 / s.window_s)
+
+        def solve(room):
+            return allocate_levels(
+                demands,
+                (budget - room) / copies,
+                max_clouds_per_s=capacity,
+                floor_rate_hz=s.floor_rate_hz,
+                priority_weights=self.weights,
+            )
+
+        room = headroom(self.level_in_force)
+        result = solve(room)
+        chosen = {a.key: a.level for a in result.streams}
+        if headroom(chosen) > room * (1 + 1e-9):
+            result = solve(headroom(chosen))
+            chosen = {a.key: a.level for a in result.streams}
+        self.level_in_force.update(chosen)
+        self.last_demands = {d.key: d for d in demands}
+        streams = tuple(
+            dataclasses.replace(
+                a,
+                bandwidth_mbytes_per_s=copies * a.bandwidth_mbytes_per_s,
+                share_percent=100.0 * copies * a.bandwidth_mbytes_per_s / budget,
+            )
+            for a in result.streams
         )
         return dataclasses.replace(
             result,
-            robots=robots,
+            streams=streams,
             budget_mbytes_per_s=budget,
             allocated_mbytes_per_s=copies * result.allocated_mbytes_per_s,
         )
+
+    def allocate(self, now_s=None) -> Allocation:
+        """The clouds of `allocate_streams` as the allocation before levels (`Allocation`, one
+        RobotAllocation per robot); with `streams=None` it is that allocation exactly."""
+        return clouds_allocation(self.allocate_streams(now_s), self.last_demands)
 
     def _known(self, robot):
         if robot not in self.measured:
@@ -330,6 +568,10 @@ ALLOCATION_CSV_COLUMNS = (
     "bandwidth_mbytes_per_s",
     "share_percent",
     "degraded",
+    # issue 24: one row per stream; readers of the rows before it take stream "cloud"
+    "stream",
+    "level",
+    "level_name",
 )
 
 
@@ -349,22 +591,63 @@ def link_state_csv_row(stamp_s, link: LinkHealth, available_mbps):
     )
 
 
+def clouds_allocation(result: LevelAllocation, demands) -> Allocation:
+    """The clouds of a LevelAllocation as an `Allocation` (rate bounds from their demands)."""
+    robots = []
+    for a in result.streams:
+        if a.stream != CLOUD:
+            continue
+        d = demands[a.key]
+        robots.append(
+            RobotAllocation(
+                name=a.robot,
+                priority=a.priority,
+                rate_hz=a.rate_hz,
+                min_rate_hz=d.floor_rate_hz,
+                max_rate_hz=a.max_rate_hz,
+                message_bytes=a.message_bytes,
+                bandwidth_mbytes_per_s=a.bandwidth_mbytes_per_s,
+                share_percent=a.share_percent,
+                degraded=a.degraded,
+                size_measured=a.size_measured,
+            )
+        )
+    allocated = sum(r.bandwidth_mbytes_per_s for r in robots)
+    return Allocation(tuple(robots), result.budget_mbytes_per_s, allocated, result.feasible, result.status)
+
+
 def allocation_csv_rows(stamp_s, available_mbps, result, mission_states):
-    """One row of allocation.csv per robot of an allocation `result` (ALLOCATION_CSV_COLUMNS)."""
+    """One row of allocation.csv per stream of `result` (ALLOCATION_CSV_COLUMNS): a LevelAllocation
+    (cloud and video rows, with their levels) or an Allocation (cloud rows, no level)."""
+    if isinstance(result, LevelAllocation):
+        items = [
+            (a.robot, a.priority, a.rate_hz, a.message_bytes, a.bandwidth_mbytes_per_s, a.share_percent, a.degraded)
+            + (a.stream, a.level, a.level_name)
+            for a in result.streams
+        ]
+    else:
+        items = [
+            (a.name, a.priority, a.rate_hz, a.message_bytes, a.bandwidth_mbytes_per_s, a.share_percent, a.degraded)
+            + (CLOUD, "", "")
+            for a in result.robots
+        ]
     return [
         (
             f"{stamp_s:.3f}",
             f"{available_mbps:.3f}",
             f"{result.budget_mbytes_per_s:.4f}",
             int(result.feasible),
-            a.name,
-            a.priority,
-            mission_states[a.name],
-            f"{a.rate_hz:.3f}",
-            f"{a.message_bytes:.0f}",
-            f"{a.bandwidth_mbytes_per_s:.4f}",
-            f"{a.share_percent:.2f}",
-            int(a.degraded),
+            robot,
+            priority,
+            mission_states[robot],
+            f"{rate:.3f}",
+            f"{size:.0f}",
+            f"{bandwidth:.4f}",
+            f"{share:.2f}",
+            int(degraded),
+            stream,
+            level,
+            level_name,
         )
-        for a in result.robots
+        for robot, priority, rate, size, bandwidth, share, degraded, stream, level, level_name in items
     ]

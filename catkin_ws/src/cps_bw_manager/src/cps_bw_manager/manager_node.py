@@ -5,9 +5,10 @@ import math
 import threading
 
 import rospy
-from std_msgs.msg import Float64, String
+from std_msgs.msg import Float64, String, UInt8
 
 from cps_bw_manager.estimation import DeliveryRateEstimator
+from cps_bw_manager.level_allocation import CLOUD
 from cps_bw_manager.manager import (
     ALLOCATION_CSV_COLUMNS,
     DEFAULT_INPUT_RATE_HOLD_S,
@@ -21,7 +22,14 @@ from cps_bw_manager.manager import (
 from cps_fleet import names
 from cps_fleet.csv_log import CsvLog
 from cps_fleet.fleet import load_fleet, robot_names_arg
-from cps_msgs.msg import BandwidthAllocation, BandwidthAllocationArray, LinkState, RateLimiterStatus, TopicStatsArray
+from cps_msgs.msg import (
+    BandwidthAllocation,
+    BandwidthAllocationArray,
+    InsertCapacity,
+    LinkState,
+    RateLimiterStatus,
+    TopicStatsArray,
+)
 from cps_msgs.srv import SetPriority, SetPriorityResponse
 from cps_ros.fault_report import FaultReport
 from cps_ros.timers import guarded_timer
@@ -78,7 +86,17 @@ class BandwidthManagerNode:
                 measure_window_s=estimate_window_s,
                 probe_s=max(0.5, estimate_window_s),
             )
-        self.core = ManagerCore(fleet.robot_names, settings, estimator)
+        video_robots = rospy.get_param("~video_robots", None)
+        if video_robots is None:  # default: the fleet's camera robots
+            video_robots = [r.name for r in fleet.robots if r.has_depth_camera]
+        elif isinstance(video_robots, str):
+            video_robots = [r for r in video_robots.replace(",", " ").split() if r]
+        unknown = sorted(set(video_robots) - set(fleet.robot_names))
+        if unknown:
+            raise ValueError(f"parameter ~video_robots: unknown robot {', '.join(unknown)}")
+        self.core = ManagerCore(
+            fleet.robot_names, settings, estimator, streams=fleet.streams, camera_robots=video_robots
+        )
         self.lock = threading.Lock()
         csv_path = rospy.get_param("~csv_path", "")
         csv_max_bytes = int(fleet.limits.csv_max_mbytes * 1e6)
@@ -96,10 +114,15 @@ class BandwidthManagerNode:
         )
         self.last_result = None
 
-        self.rate_pubs = {
-            r: rospy.Publisher(names.robot_topic(r, names.LIMITER_RATE_HZ), Float64, queue_size=1, latch=True)
-            for r in self.core.robots
-        }
+        self.last_levels = None
+
+        def latched(robot, name, kind):
+            return rospy.Publisher(names.robot_topic(robot, name), kind, queue_size=1, latch=True)
+
+        self.rate_pubs = {r: latched(r, names.LIMITER_RATE_HZ, Float64) for r in self.core.robots}
+        self.level_pubs = {r: latched(r, names.LIMITER_LEVEL, UInt8) for r in self.core.robots}
+        self.video_rate_pubs = {r: latched(r, names.VIDEO_RATE_HZ, Float64) for r in self.core.camera_robots}
+        self.video_level_pubs = {r: latched(r, names.VIDEO_LEVEL, UInt8) for r in self.core.camera_robots}
         self.alloc_pub = rospy.Publisher(names.ALLOCATION, BandwidthAllocationArray, queue_size=1, latch=True)
         self.bw_pub = rospy.Publisher(names.AVAILABLE_BANDWIDTH, Float64, queue_size=1, latch=True)
         self.subs = []
@@ -122,6 +145,31 @@ class BandwidthManagerNode:
                     queue_size=10,
                 )
             )
+            self.subs.append(
+                rospy.Subscriber(
+                    names.robot_topic(robot, names.CONTROL_MODE_ACTIVE),
+                    String,
+                    self._on_control_mode,
+                    callback_args=robot,
+                    queue_size=10,
+                )
+            )
+        for robot in self.core.camera_robots:
+            self.subs.append(
+                rospy.Subscriber(
+                    names.robot_topic(robot, names.VIDEO_STATUS),
+                    RateLimiterStatus,
+                    self._on_video_status,
+                    callback_args=robot,
+                    queue_size=10,
+                )
+            )
+        self.subs.append(rospy.Subscriber(names.SELECTED_ROBOT, String, self._on_selected, queue_size=10))
+        self.subs.append(
+            rospy.Subscriber(
+                names.in_twin(names.INSERT_CAPACITY), InsertCapacity, self._on_insert_capacity, queue_size=10
+            )
+        )
         self.subs.append(rospy.Subscriber(names.TISSUE_STATS, TopicStatsArray, self._on_stats, queue_size=2))
         self.subs.append(rospy.Subscriber(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10))
         self.service = rospy.Service(names.SET_PRIORITY, SetPriority, self._on_set_priority)
@@ -152,12 +200,61 @@ class BandwidthManagerNode:
         try:
             with self.lock:
                 changed = self.core.on_limiter_status(
-                    robot, msg.mean_message_bytes, msg.input_rate_hz, msg.output_rate_hz, now_s=rospy.get_time()
+                    robot,
+                    msg.mean_message_bytes,
+                    msg.input_rate_hz,
+                    msg.output_rate_hz,
+                    now_s=rospy.get_time(),
+                    level=msg.level,
+                    level_mean_message_bytes=msg.level_mean_message_bytes,
                 )
         except ValueError as exc:
             rospy.logwarn_throttle(
                 5.0, f"bandwidth manager: {exc}; ignored ({self.core.invalid_inputs} bad inputs so far)"
             )
+            return
+        if changed:
+            self.update()
+
+    def _on_video_status(self, msg, robot):
+        try:
+            with self.lock:
+                changed = self.core.on_video_status(
+                    robot,
+                    msg.level,
+                    msg.level_mean_message_bytes,
+                    msg.mean_message_bytes,
+                    msg.output_rate_hz,
+                    now_s=rospy.get_time(),
+                )
+        except ValueError as exc:
+            rospy.logwarn_throttle(
+                5.0, f"bandwidth manager: {exc}; ignored ({self.core.invalid_inputs} bad inputs so far)"
+            )
+            return
+        if changed:
+            self.update()
+
+    def _on_selected(self, msg):
+        with self.lock:
+            changed = self.core.on_selected_robot(msg.data)
+        if changed:
+            rospy.loginfo("bandwidth manager: operator selected '%s'", msg.data)
+            self.update()
+
+    def _on_control_mode(self, msg, robot):
+        with self.lock:
+            changed = self.core.on_control_mode(robot, msg.data)
+        if changed:
+            rospy.loginfo("bandwidth manager: %s in %s", robot, msg.data)
+            self.update()
+
+    def _on_insert_capacity(self, msg):
+        try:
+            with self.lock:
+                changed = self.core.on_insert_capacity(msg.clouds_per_s, rospy.get_time())
+        except ValueError as exc:
+            rospy.logwarn_throttle(5.0, f"bandwidth manager: {exc}; ignored")
             return
         if changed:
             self.update()
@@ -193,11 +290,12 @@ class BandwidthManagerNode:
         return SetPriorityResponse(success=ok, message=message)
 
     def update(self):
-        """Allocate, set every limiter's rate, publish and log the allocation."""
+        """Allocate, set every limiter's and every video's level and rate, publish and log the allocation."""
         with self.lock:
-            paused = self.core.pause_status(rospy.get_time())
+            now_s = rospy.get_time()
+            paused = self.core.pause_status(now_s)
             try:
-                result = self.last_result if paused and self.last_result else self.core.allocate()
+                result = self.last_result if paused and self.last_result else self.core.allocate_streams(now_s)
             except ValueError as exc:
                 rospy.logerr_throttle(5.0, f"bandwidth manager: cannot allocate: {exc}")
                 return
@@ -208,8 +306,14 @@ class BandwidthManagerNode:
             rospy.logwarn_throttle(5.0, f"bandwidth manager: {paused}")
         elif not result.feasible:
             rospy.logwarn_throttle(5.0, f"bandwidth manager: {result.status}")
-        for a in result.robots if not paused else ():
-            self.rate_pubs[a.name].publish(Float64(a.rate_hz))
+        for a in result.streams if not paused else ():
+            # the level first: the encoder switches, then the rate for that level applies
+            if a.stream == CLOUD:
+                self.level_pubs[a.robot].publish(UInt8(a.level))
+                self.rate_pubs[a.robot].publish(Float64(a.rate_hz))
+            else:
+                self.video_level_pubs[a.robot].publish(UInt8(a.level))
+                self.video_rate_pubs[a.robot].publish(Float64(a.rate_hz))
         msg = BandwidthAllocationArray()
         msg.header.stamp = rospy.Time.now()
         msg.available_mbps = available
@@ -219,11 +323,17 @@ class BandwidthManagerNode:
         msg.feasible = result.feasible
         msg.status = paused or result.status
         msg.link_up = not paused
-        for a in result.robots:
+        for a in result.streams:
+            topic = (
+                names.managed_cloud(a.robot) if a.stream == CLOUD else names.robot_topic(a.robot, names.VIDEO_THROTTLE)
+            )
             msg.allocations.append(
                 BandwidthAllocation(
-                    robot=a.name,
-                    topic=rospy.resolve_name(names.managed_cloud(a.name)),
+                    robot=a.robot,
+                    topic=rospy.resolve_name(topic),
+                    stream=a.stream,
+                    level=a.level,
+                    level_name=a.level_name,
                     priority=a.priority,
                     rate_hz=a.rate_hz,
                     min_rate_hz=a.min_rate_hz,
