@@ -197,7 +197,8 @@ class MissionMonitor:
             self.progress.allocated_mbytes_per_s = msg.allocated_mbytes_per_s
             self.progress.available_mbps = msg.available_mbps
             for allocation in msg.allocations:
-                self.progress.rates_hz[allocation.robot] = allocation.rate_hz
+                if allocation.stream in ("", "cloud"):  # the cloud's rate ("" from a manager without levels)
+                    self.progress.rates_hz[allocation.robot] = allocation.rate_hz
 
     def _on_stats(self, msg):
         with self._lock:
