@@ -11,7 +11,7 @@ and drop counters: a malformed cloud of one robot is dropped and counted there a
 import dataclasses
 import threading
 import time
-from typing import List, Optional
+from typing import List
 
 import rospy
 from rosgraph.names import ns_join
@@ -44,8 +44,6 @@ class RobotTissueConfig:
     throttle_node: str  # /<r>/cloud_throttle: its status, rate_hz and set_rate
     leaf_size_m: float  # the voxel leaf: sets Draco's quantization
     rate_hz: float  # the managed rate until the bandwidth manager sets one
-    image_raw: Optional[str] = None  # /<r>/camera/image_raw (depth robots)
-    image_compressed: Optional[str] = None  # /<r>/camera/image_raw/compressed
 
 
 def _rt(robot, name):
@@ -60,7 +58,6 @@ def robot_tissue_configs(fleet, robots=None, initial_rate_hz=None) -> List[Robot
     out = []
     for name in robots or fleet.robot_names:
         robot = fleet.robot(name)
-        camera = robot.has_depth_camera
         out.append(
             RobotTissueConfig(
                 robot=name,
@@ -70,8 +67,6 @@ def robot_tissue_configs(fleet, robots=None, initial_rate_hz=None) -> List[Robot
                 throttle_node=_rt(name, names.CLOUD_THROTTLE),
                 leaf_size_m=float(robot.voxel_leaf_m),
                 rate_hz=float(fleet.link.min_rate_hz if initial_rate_hz is None else initial_rate_hz),
-                image_raw=_rt(name, names.CAMERA_IMAGE) if camera else None,
-                image_compressed=_rt(name, names.CAMERA_IMAGE_COMPRESSED) if camera else None,
             )
         )
     return out
@@ -171,7 +166,11 @@ class ManagedRateLimiter:
 class ImageCompressor:
     """sensor_msgs/Image (rgb8, bgr8, mono8) -> sensor_msgs/CompressedImage JPEG, only while the
     output has subscribers and at most `max_rate_hz` (0: every image); other encodings and
-    malformed images are dropped, counted and reported on /diagnostics."""
+    malformed images are dropped, counted and reported on /diagnostics.
+
+    For a camera that only gives raw images (the `image_compressor` executable). The fleet's
+    managed video is not this: the simulated camera renders and encodes each robot's video at the
+    manager's level and rate (cps_sim.video), so the tissue no longer compresses camera images."""
 
     def __init__(self, input_topic, output_topic, quality=75, max_rate_hz=0.0):
         self.quality = quality
@@ -217,25 +216,21 @@ class DracoDecoderPart:
 
 
 class RobotTissue:
-    """One robot's tissue on its side: Draco encoder, rate limiter and (depth robots) JPEG
-    compressor, with the same topics, defaults and queue sizes as the single-node executables."""
+    """One robot's cloud tissue on its side: Draco encoder and rate limiter, with the same topics,
+    defaults and queue sizes as the single-node executables. (The camera's JPEG video comes from
+    the camera itself at the manager's level and rate: cps_sim.video.)"""
 
-    def __init__(self, config: RobotTissueConfig, camera_max_rate_hz=0.0, jpeg_quality=75):
+    def __init__(self, config: RobotTissueConfig):
         self.config = config
         self.encoder = DracoEncoderPart(config.filtered, config.draco, DracoEncoder(leaf_size_m=config.leaf_size_m))
         self.limiter = ManagedRateLimiter(config.draco, config.managed, config.throttle_node, config.rate_hz)
-        self.camera = (
-            ImageCompressor(config.image_raw, config.image_compressed, jpeg_quality, camera_max_rate_hz)
-            if config.image_raw
-            else None
-        )
 
 
 class CloudTissue:
     """Every robot's RobotTissue in one process (the robots' side of the shared layout)."""
 
-    def __init__(self, configs, camera_max_rate_hz=0.0, jpeg_quality=75):
-        self.robots = {c.robot: RobotTissue(c, camera_max_rate_hz, jpeg_quality) for c in configs}
+    def __init__(self, configs):
+        self.robots = {c.robot: RobotTissue(c) for c in configs}
 
 
 class CloudDecoders:
