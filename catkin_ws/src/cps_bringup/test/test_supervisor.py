@@ -306,3 +306,18 @@ def test_a_new_mission_starts_without_the_previous_missions_map_and_csvs(tmp_pat
     # and nothing the missions do not write is touched.
     assert sorted(p.name for p in tmp_path.iterdir()) == ["logs", "notes.txt", "physical_stats.csv"]
     assert clear_previous_mission(str(tmp_path), (PHYSICAL, DIGITAL)) == ["physical_stats.csv"]
+
+
+@pytest.mark.parametrize("simulate, replay", [(True, ""), (True, "/tmp/x.bag"), (False, "")])
+def test_a_camera_compressor_runs_only_without_the_simulated_camera(simulate, replay):
+    """fleet_sim's camera sends the managed video itself; a replayed bag or real robots' raw images
+    get the old fixed JPEG compressor per depth robot."""
+    fleet = load_fleet()
+    options = RunOptions(out_dir="/tmp/x", transport=ZENOH, simulate=simulate, replay_path=replay)
+    specs = {s.label: s for s in plan_nodes(fleet, options=options)}
+    for robot in fleet.robots:
+        compressor = specs.get(f"{robot.name}/image_compressor")
+        if simulate and not replay or not robot.has_depth_camera:
+            assert compressor is None
+        else:
+            assert f"~input:=/{robot.name}/camera/image_raw" in compressor.argv and compressor.side == PHYSICAL

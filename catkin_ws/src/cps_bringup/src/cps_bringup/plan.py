@@ -6,6 +6,7 @@ starts and a launch-file writer could print. Topic names follow docs/ros-graph.m
 
 import dataclasses
 import os
+import posixpath
 import sys
 from typing import Callable, Dict, List, Optional, Tuple
 
@@ -29,6 +30,8 @@ VOXEL_MANAGER = names.absolute(names.TISSUE_NODELET_MANAGER)
 # draco_decoder), kept to compare with. The camera robots' JPEG video is the simulated camera's
 # own, at the bandwidth manager's level and rate (cps_sim.video): no compressor process.
 SHARED, PER_ROBOT = "shared", "per_robot"
+# A raw-only camera's fixed JPEG stream (no simulator): ~0.03 MB/s at 160x120, within the reserve.
+RAW_CAMERA_MAX_RATE_HZ = 10.0
 TISSUE_LAYOUTS = (SHARED, PER_ROBOT)
 
 
@@ -209,6 +212,7 @@ def plan_nodes(
                 )
             )
         drivers = ("fleet_sim",) if options.simulate and not options.replay_path else ()
+        simulated_camera = bool(drivers)  # fleet_sim's camera sends the managed video itself
         # Without the manager nothing lowers it: the sensors' full rate, up to the link's ceiling.
         initial_rate_hz = fleet.link.min_rate_hz if options.bandwidth_manager else fleet.link.max_rate_hz
         specs.append(
@@ -265,6 +269,8 @@ def plan_nodes(
                 )
             if options.tissue_layout == PER_ROBOT:
                 specs += _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz)
+            if robot.has_depth_camera and not simulated_camera:
+                specs.append(_raw_camera_compressor(r, py))
         if options.tissue_layout != PER_ROBOT:
             specs += _robot_tissue_shared(fleet, py, initial_rate_hz)
 
@@ -483,6 +489,25 @@ def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
         )
     )
     return specs
+
+
+def _raw_camera_compressor(r, py):
+    """Without the simulator's camera (a replayed bag, real robots) a depth robot's raw images are
+    JPEG-compressed at a fixed quality and at most RAW_CAMERA_MAX_RATE_HZ, only while watched: the
+    old unmanaged stream (the simulated camera encodes its own managed video instead)."""
+    return NodeSpec(
+        f"{r}/image_compressor",
+        PHYSICAL,
+        py(
+            "cps_transport",
+            "image_compressor",
+            f"__ns:={_rt(r, posixpath.dirname(names.CAMERA_IMAGE))}",
+            "__name:=image_compressor",
+            f"{names.INPUT}:={_rt(r, names.CAMERA_IMAGE)}",
+            *_args({"max_rate_hz": RAW_CAMERA_MAX_RATE_HZ}),
+        ),
+        wait_topics=(_rt(r, names.CAMERA_IMAGE_COMPRESSED),),
+    )
 
 
 def _robot_tissue_shared(fleet, py, initial_rate_hz):
