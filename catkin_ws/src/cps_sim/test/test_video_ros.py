@@ -132,3 +132,27 @@ def test_bad_settings_are_logged_and_the_last_good_one_kept(sim, rospy_node):
         assert all(_dimensions(m) == (320, 240) for _, m in images.take()[1:])
     finally:
         log.close()
+
+
+def test_fleet_sim_refuses_a_level_the_camera_cannot_produce_at_start_up(ros, tmp_path):
+    """A 320x200 level (not the depth camera's 4:3) stops fleet_sim before it publishes anything,
+    naming the level's file and line."""
+    import pathlib
+    import shutil
+
+    fleet_yaml = pathlib.Path(__file__).resolve().parents[2] / "cps_bringup" / "config" / "fleet.yaml"
+    good = "    - {name: 320x240, width: 320, height: 240, jpeg_quality: 75, bytes_prior: 14000}\n"
+    bad = "    - {name: 320x200, width: 320, height: 200, jpeg_quality: 75, bytes_prior: 14000}\n"
+    text = fleet_yaml.read_text()
+    site = fleet_yaml.parents[2] / "cps_sim" / "config" / "hall.yaml"
+    text = text.replace(good, bad).replace("site: ../../cps_sim/config/hall.yaml", f"site: {site}")
+    shutil.copytree(fleet_yaml.parent / "routes", tmp_path / "routes")
+    path = tmp_path / "fleet.yaml"
+    path.write_text(text)
+    line = text[: text.index(bad)].count("\n") + 1
+    proc = ros.start_node(
+        "cps_sim", "fleet_sim", name="fleet_sim_bad_level", params={"~fleet_file": str(path), "~robots": ROBOT}
+    )
+    assert proc.wait(timeout=60) != 0
+    output = ros.output("fleet_sim_bad_level")
+    assert f"{path}:{line}" in output and "aspect ratio" in output, output[-2000:]
