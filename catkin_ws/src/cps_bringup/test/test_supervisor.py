@@ -311,7 +311,7 @@ def test_a_new_mission_starts_without_the_previous_missions_map_and_csvs(tmp_pat
 @pytest.mark.parametrize("simulate, replay", [(True, ""), (True, "/tmp/x.bag"), (False, "")])
 def test_a_camera_compressor_runs_only_without_the_simulated_camera(simulate, replay):
     """fleet_sim's camera sends the managed video itself; a replayed bag or real robots' raw images
-    get the old fixed JPEG compressor per depth robot."""
+    become the managed video in a compressor per depth robot."""
     fleet = load_fleet()
     options = RunOptions(out_dir="/tmp/x", transport=ZENOH, simulate=simulate, replay_path=replay)
     specs = {s.label: s for s in plan_nodes(fleet, options=options)}
@@ -320,4 +320,4 @@ def test_a_camera_compressor_runs_only_without_the_simulated_camera(simulate, re
         if simulate and not replay or not robot.has_depth_camera:
             assert compressor is None
         else:
-            assert f"~input:=/{robot.name}/camera/image_raw" in compressor.argv and compressor.side == PHYSICAL
+            assert f"_robot:={robot.name}" in compressor.argv and compressor.side == PHYSICAL

@@ -30,8 +30,6 @@ VOXEL_MANAGER = names.absolute(names.TISSUE_NODELET_MANAGER)
 # draco_decoder), kept to compare with. The camera robots' JPEG video is the simulated camera's
 # own, at the bandwidth manager's level and rate (cps_sim.video): no compressor process.
 SHARED, PER_ROBOT = "shared", "per_robot"
-# A raw-only camera's fixed JPEG stream (no simulator): ~0.03 MB/s at 160x120, within the reserve.
-RAW_CAMERA_MAX_RATE_HZ = 10.0
 TISSUE_LAYOUTS = (SHARED, PER_ROBOT)
 
 
@@ -270,7 +268,7 @@ def plan_nodes(
             if options.tissue_layout == PER_ROBOT:
                 specs += _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz)
             if robot.has_depth_camera and not simulated_camera:
-                specs.append(_raw_camera_compressor(r, py))
+                specs.append(_raw_camera_compressor(fleet, r, py))
         if options.tissue_layout != PER_ROBOT:
             specs += _robot_tissue_shared(fleet, py, initial_rate_hz)
 
@@ -491,10 +489,10 @@ def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
     return specs
 
 
-def _raw_camera_compressor(r, py):
-    """Without the simulator's camera (a replayed bag, real robots) a depth robot's raw images are
-    JPEG-compressed at a fixed quality and at most RAW_CAMERA_MAX_RATE_HZ, only while watched: the
-    old unmanaged stream (the simulated camera encodes its own managed video instead)."""
+def _raw_camera_compressor(fleet, r, py):
+    """Without the simulator's camera (a replayed bag, real robots) a depth robot's raw images
+    become its managed video: shrunk to the manager's level and JPEG-encoded at its quality, at its
+    rate, only while watched (the simulated camera renders and encodes its own instead)."""
     return NodeSpec(
         f"{r}/image_compressor",
         PHYSICAL,
@@ -503,8 +501,7 @@ def _raw_camera_compressor(r, py):
             "image_compressor",
             f"__ns:={_rt(r, posixpath.dirname(names.CAMERA_IMAGE))}",
             "__name:=image_compressor",
-            f"{names.INPUT}:={_rt(r, names.CAMERA_IMAGE)}",
-            *_args({"max_rate_hz": RAW_CAMERA_MAX_RATE_HZ}),
+            *_args({"robot": r, "fleet_file": fleet.path}),
         ),
         wait_topics=(_rt(r, names.CAMERA_IMAGE_COMPRESSED),),
     )

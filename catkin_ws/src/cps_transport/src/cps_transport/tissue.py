@@ -16,7 +16,7 @@ from typing import List
 import rospy
 from rosgraph.names import ns_join
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, UInt8
 
 from cps_fleet import names
 from cps_msgs.msg import RateLimiterStatus
@@ -26,8 +26,8 @@ from cps_ros.relay import relay_class, relay_message
 from cps_ros.timers import guarded_timer
 from cps_transport.draco import DracoEncoder
 from cps_transport.draco_transport import DracoPublisher, DracoSubscriber
-from cps_transport.image_compression import InvalidImage, compress_image
-from cps_transport.rate_limiter import RateLimiter
+from cps_transport.image_compression import InvalidImage, compress_image, compressed_format
+from cps_transport.rate_limiter import RateLimiter, WindowRate
 
 # Clouds waiting for the link per subscriber of the managed topic.
 LIMITER_OUTPUT_QUEUE_SIZE = 5
@@ -193,6 +193,120 @@ class ImageCompressor:
             return
         self.report.ok(raw_bytes=len(msg.data), compressed_bytes=len(data))
         self.publisher.publish(CompressedImage(header=msg.header, format=fmt, data=data))
+
+
+class ManagedVideoCompressor:
+    """A raw-only camera's managed video: `<robot>/camera/image_raw` (rgb8, bgr8, mono8) ->
+    `<robot>/camera/image_raw/compressed` at the level and rate the bandwidth manager sets on
+    `<robot>/video_throttle/level` and `rate_hz` (the simulated camera renders at the level instead;
+    this is for cameras that cannot be told). A frame is admitted at the set rate first (token
+    bucket, one frame of burst), and only then shrunk to the level's size and encoded at its
+    quality: nothing is encoded to be dropped. A camera whose aspect ratio is not the level's is
+    refused frame by frame (an error, throttled, and counted). Publishes
+    `<robot>/video_throttle/status` (1 Hz and on change) like the simulated camera."""
+
+    def __init__(self, robot, streams):
+        from cps_transport.video_levels import LevelSizes, VideoControl
+
+        def topic(relative):
+            return _rt(robot, relative)
+
+        self.robot = robot
+        self.lock = threading.Lock()
+        self.control = VideoControl(streams)
+        self.sizes = LevelSizes(streams.video_levels)
+        self.limiter = RateLimiter(self.control.rate_hz, burst=1.0)
+        self.sent_meter = WindowRate()  # frames sent per second
+        self.rendered = self.sent = 0
+        self.mean_bytes = float("nan")
+        self.input_topic, self.output_topic = topic(names.CAMERA_IMAGE), topic(names.CAMERA_IMAGE_COMPRESSED)
+        self.level_topic, self.rate_topic = topic(names.VIDEO_LEVEL), topic(names.VIDEO_RATE_HZ)
+        self.report = DropReporter(self.input_topic)
+        self.publisher = rospy.Publisher(self.output_topic, CompressedImage, queue_size=2)
+        self.status_pub = rospy.Publisher(topic(names.VIDEO_STATUS), RateLimiterStatus, queue_size=5, latch=True)
+        self.level_sub = rospy.Subscriber(self.level_topic, UInt8, self._on_level, queue_size=5)
+        self.rate_sub = rospy.Subscriber(self.rate_topic, Float64, self._on_rate, queue_size=5)
+        self.subscriber = rospy.Subscriber(self.input_topic, Image, self.on_image, queue_size=1, buff_size=1 << 24)
+        self.status_timer = guarded_timer(1.0, lambda _event: self.publish_status(), f"status {robot} video")
+        self.publish_status()
+
+    def _on_level(self, msg):
+        with self.lock:
+            error = self.control.set_level(msg.data)
+        if error:
+            rospy.logerr(f"{self.level_topic}: {error}")
+            return
+        self.publish_status()
+
+    def _on_rate(self, msg):
+        with self.lock:
+            error, note = self.control.set_rate(msg.data)
+            if not error:
+                self.limiter.set_rate(self.control.rate_hz)
+        if error:
+            rospy.logerr(f"{self.rate_topic}: {error}")
+            return
+        if note:
+            rospy.logwarn_throttle(10.0, f"{self.rate_topic}: {note}")
+        self.publish_status()
+
+    def on_image(self, msg):
+        from cps_transport.image_compression import encode_jpeg, image_pixels, resize_pixels
+        from cps_transport.video_levels import compressed_image_bytes
+
+        if self.publisher.get_num_connections() == 0:
+            self.report.count(skipped_no_subscriber=1)
+            return
+        now = time.monotonic()
+        with self.lock:
+            if not self.limiter.allow(now):
+                self.report.count(skipped_rate=1)
+                return
+            index, level = self.control.level_index, self.control.level
+        if msg.width * level.height != msg.height * level.width:
+            self.report.drop(InvalidImage(f"{msg.width}x{msg.height} has not the aspect ratio of level {level.name}"))
+            rospy.logerr_throttle(
+                10.0,
+                f"{self.input_topic}: {msg.width}x{msg.height} cannot give video level {level.name} (aspect ratio)",
+            )
+            return
+        try:
+            pixels = resize_pixels(
+                image_pixels(msg.encoding, msg.width, msg.height, msg.step, msg.data), level.width, level.height
+            )
+            data = encode_jpeg(pixels, level.jpeg_quality)
+        except InvalidImage as exc:
+            self.report.drop(exc)
+            return
+        out = CompressedImage(header=msg.header, format=compressed_format(msg.encoding), data=data)
+        self.publisher.publish(out)
+        size = compressed_image_bytes(msg.header.frame_id, out.format, len(data))
+        self.report.ok(raw_bytes=len(msg.data), compressed_bytes=len(data))
+        with self.lock:
+            self.rendered += 1
+            self.sent += 1
+            self.sizes.add(index, size)
+            self.mean_bytes = size if self.mean_bytes != self.mean_bytes else 0.9 * self.mean_bytes + 0.1 * size
+            self.sent_meter.add(now, size)
+
+    def publish_status(self):
+        now = time.monotonic()
+        with self.lock:
+            index = self.control.level_index
+            status = RateLimiterStatus(
+                input_topic=self.input_topic,
+                output_topic=self.output_topic,
+                set_rate_hz=self.control.rate_hz,
+                input_rate_hz=self.limiter.input.rate_hz(now),
+                output_rate_hz=self.sent_meter.rate_hz(now),
+                mean_message_bytes=self.mean_bytes,
+                received=self.limiter.received,
+                forwarded=self.sent,
+                level=index,
+                level_mean_message_bytes=self.sizes.mean(index),
+            )
+        status.header.stamp = rospy.Time.now()
+        self.status_pub.publish(status)
 
 
 class DracoEncoderPart:
