@@ -56,11 +56,8 @@ def test_plan_wires_every_robot_through_the_tissue_to_the_map():
         decoder = " ".join(specs[f"{r}/draco_decoder"].argv)
         assert f"~input:=/twin/{r}/points_filtered/draco/managed" in decoder and f"~output:=/twin/{r}/points" in decoder
         assert specs[f"{r}/draco_decoder"].side == DIGITAL and specs[f"{r}/draco_encoder"].side == PHYSICAL
-        if robot.has_depth_camera:
-            compressor = " ".join(specs[f"{r}/image_compressor"].argv)
-            assert f"~input:=/{r}/camera/image_raw" in compressor and specs[f"{r}/image_compressor"].side == PHYSICAL
-        else:
-            assert f"{r}/image_compressor" not in specs
+        # The camera encodes its own video at the manager's level (cps_sim.video): no compressor.
+        assert f"{r}/image_compressor" not in specs
     assert specs["map_server"].side == DIGITAL
     assert "_map_file:=/tmp/x/map.bt" in specs["map_server"].argv
 
@@ -90,7 +87,7 @@ def test_shared_plan_wires_every_robot_through_fixed_tissue_processes():
         r = robot.name
         assert f"/{r}/points_filtered" in specs["voxel_grid_loader"].wait_topics
         assert f"/{r}/points_filtered/draco" in specs["cloud_tissue"].wait_topics
-        assert (f"/{r}/camera/image_raw/compressed" in specs["cloud_tissue"].wait_topics) == robot.has_depth_camera
+        assert f"/{r}/camera/image_raw/compressed" not in specs["cloud_tissue"].wait_topics  # the camera encodes it
         assert {f"/twin/{r}/points", f"/twin/{r}/points_backfill"} <= set(specs["cloud_decoder"].wait_topics)
 
 
@@ -309,3 +306,18 @@ def test_a_new_mission_starts_without_the_previous_missions_map_and_csvs(tmp_pat
     # and nothing the missions do not write is touched.
     assert sorted(p.name for p in tmp_path.iterdir()) == ["logs", "notes.txt", "physical_stats.csv"]
     assert clear_previous_mission(str(tmp_path), (PHYSICAL, DIGITAL)) == ["physical_stats.csv"]
+
+
+@pytest.mark.parametrize("simulate, replay", [(True, ""), (True, "/tmp/x.bag"), (False, "")])
+def test_a_camera_compressor_runs_only_without_the_simulated_camera(simulate, replay):
+    """fleet_sim's camera sends the managed video itself; a replayed bag or real robots' raw images
+    become the managed video in a compressor per depth robot."""
+    fleet = load_fleet()
+    options = RunOptions(out_dir="/tmp/x", transport=ZENOH, simulate=simulate, replay_path=replay)
+    specs = {s.label: s for s in plan_nodes(fleet, options=options)}
+    for robot in fleet.robots:
+        compressor = specs.get(f"{robot.name}/image_compressor")
+        if simulate and not replay or not robot.has_depth_camera:
+            assert compressor is None
+        else:
+            assert f"_robot:={robot.name}" in compressor.argv and compressor.side == PHYSICAL

@@ -315,13 +315,17 @@ def test_health_table_shows_the_published_figures(window, qapp, scout_stream):
 def test_plots_and_link_label_follow_the_published_stats(window, qapp, scout_stream):
     status = window.plugin.status
     scout_stream()
-    bandwidth = status.curves[("bandwidth", SCOUT)]
+    bandwidth = status.stack_curves[(SCOUT, "cloud")]
     spin_until(
         qapp,
         lambda: len(bandwidth.getData()[1]) >= 6 and bandwidth.getData()[1][-1] == pytest.approx(1.7),
         5,
         lambda: f"the last bandwidth plotted, got {bandwidth.getData()[1]}",
     )
+    # Stacked: jackal's cloud (2.7 MB/s) sits on scout's cloud and (silent) video.
+    assert status.stack_curves[(SCOUT, "video")].getData()[1][-1] == pytest.approx(1.7)
+    assert status.stack_curves[(JACKAL, "cloud")].getData()[1][-1] == pytest.approx(4.4)
+    assert status.stack_curves[(IRIS, "video")].getData()[1][-1] == pytest.approx(4.4)
     assert status.curves[("rate", JACKAL)].getData()[1][-1] == pytest.approx(6.0)
     assert status.curves[("latency", SCOUT)].getData()[1][-1] == pytest.approx(40.0)
     assert status.curves[("battery", SCOUT)].getData()[1][-1] == pytest.approx(15.0)
@@ -543,3 +547,84 @@ def test_settings_are_saved_on_close_and_restored(qapp, rospy_node, test_fleet_f
         assert second.plugin.top_splitter.sizes() == sizes
     finally:
         second.close()
+
+
+def _video_status(level, set_rate_hz, output_rate_hz, level_mean_bytes):
+    from cps_msgs.msg import RateLimiterStatus
+
+    return RateLimiterStatus(
+        set_rate_hz=set_rate_hz,
+        output_rate_hz=output_rate_hz,
+        mean_message_bytes=level_mean_bytes,
+        level=level,
+        level_mean_message_bytes=level_mean_bytes,
+    )
+
+
+def test_video_layer_is_stacked_from_the_robots_video_status(window, qapp, rospy_node, scout_stream):
+    from cps_msgs.msg import RateLimiterStatus
+
+    status = window.plugin.status
+    pub = rospy_node.Publisher(f"/{JACKAL}/video_throttle/status", RateLimiterStatus, queue_size=1, latch=True)
+    try:
+        _wait_connected(qapp, pub)
+        pub.publish(_video_status(1, 15.0, 10.0, 6000.0))  # 10 Hz x 6 kB = 0.06 MB/s
+        spin_until(qapp, lambda: window.plugin.state.video_status(JACKAL)[0] is not None, 5, "the video status")
+        scout_stream()
+        top = status.stack_curves[(JACKAL, "video")]
+        spin_until(
+            qapp,
+            lambda: top.getData()[1] is not None and top.getData()[1][-1] == pytest.approx(4.46),
+            5,
+            lambda: f"jackal's video on top of its cloud, got {top.getData()[1]}",
+        )
+    finally:
+        pub.unregister()
+
+
+def test_selecting_a_robot_publishes_it_and_shows_its_video_level_fps_latency_and_age(window, qapp, rospy_node):
+    import time
+
+    from sensor_msgs.msg import CompressedImage
+    from std_msgs.msg import String
+
+    from cps_msgs.msg import RateLimiterStatus
+    from cps_transport.image_compression import compressed_format, encode_jpeg
+
+    video = window.plugin.video
+    assert [video.robot_combo.itemData(i) for i in range(video.robot_combo.count())] == [JACKAL, CHAMP, IRIS]
+    selected = TopicRecorder("/tissue/selected_robot", String)
+    topic = f"/{CHAMP}/camera/image_raw/compressed"
+    image_pub = rospy_node.Publisher(topic, CompressedImage, queue_size=5)
+    status_pub = rospy_node.Publisher(f"/{CHAMP}/video_throttle/status", RateLimiterStatus, queue_size=1, latch=True)
+    try:
+        # Latched: a late subscriber hears the robot selected at start-up.
+        assert selected.wait(timeout_s=10).data == video.robot
+        video.select_robot(CHAMP)
+        assert selected.wait(lambda m: m.data == CHAMP, timeout_s=10).data == CHAMP
+        spin_until(qapp, lambda: video.topic == topic, 10, lambda: f"{topic} shown, not {video.topic}")
+        _wait_connected(qapp, status_pub)
+        status_pub.publish(_video_status(1, 15.0, 15.0, 6200.0))
+        _wait_connected(qapp, image_pub)
+        rgb = np.zeros((240, 320, 3), np.uint8)
+        rgb[:, :, 2] = 255
+        msg = CompressedImage(format=compressed_format("rgb8"), data=encode_jpeg(rgb, 75))
+        delay_s = 0.3  # the frames are stamped this long before they are sent: latency >= 300 ms
+        for _ in range(10):
+            msg.header.stamp = rospy_node.Time.from_sec(time.time() - delay_s)
+            image_pub.publish(msg)
+            spin_for(qapp, 1.0 / 15.0)
+        spin_until(qapp, lambda: "level 320x240" in video.info.text(), 5, lambda: video.info.text())
+        text = video.info.text()
+        assert text.startswith(f"{CHAMP}: 320x240 jpeg") and "at 15 Hz" in text, text
+        fields = [f.strip() for f in text.split("|")]
+        rate = float(fields[1].split()[0])
+        assert 5.0 < rate < 25.0, text  # 15 frames/s sent; the meter's window on a loaded machine
+        latency_ms = float(fields[4].split()[1])
+        assert 300.0 <= latency_ms < 2000.0, text
+        assert fields[3].startswith("age ") and float(fields[3].split()[1]) < 1.0, text
+        spin_until(qapp, lambda: "198,40,40" in video.info.styleSheet(), 5, "the video info red once frames stop")
+    finally:
+        selected.close()
+        image_pub.unregister()
+        status_pub.unregister()

@@ -22,7 +22,6 @@ def test_robot_configs_come_from_the_fleet_file():
         assert (c.filtered, c.draco, c.managed) == (base, f"{base}/draco", f"{base}/draco/managed")
         assert c.throttle_node == f"/{robot.name}/cloud_throttle"
         assert c.leaf_size_m == robot.voxel_leaf_m and c.rate_hz == fleet.link.min_rate_hz
-        assert (c.image_compressed == f"/{robot.name}/camera/image_raw/compressed") == robot.has_depth_camera
     assert [c.robot for c in robot_tissue_configs(fleet, ["iris", "scout"])] == ["iris", "scout"]
     with pytest.raises(KeyError, match="robot 'nope' is not in the fleet"):
         robot_tissue_configs(fleet, ["scout", "nope"])

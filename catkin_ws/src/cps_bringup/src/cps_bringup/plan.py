@@ -27,11 +27,10 @@ VOXEL_MANAGER = names.absolute(names.TISSUE_NODELET_MANAGER)
 # The tissue's processes: "shared", a fixed number per side whatever the fleet's size (one nodelet
 # manager + one loader for every robot's voxel grid, one cloud_tissue, one cloud_decoder); or
 # "per_robot", one process per node and robot (nodelet load, draco_encoder, rate_limiter,
-# image_compressor, draco_decoder), kept to compare with.
+# draco_decoder), kept to compare with. The camera robots' JPEG video is the simulated camera's
+# own, at the bandwidth manager's level and rate (cps_sim.video): no compressor process.
 SHARED, PER_ROBOT = "shared", "per_robot"
 TISSUE_LAYOUTS = (SHARED, PER_ROBOT)
-# The operator's video stays within the unmanaged reserve: ~0.2 MB/s of JPEG at 640x480.
-CAMERA_MAX_RATE_HZ = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,6 +219,7 @@ def plan_nodes(
                 )
             )
         drivers = ("fleet_sim",) if options.simulate and not options.replay_path else ()
+        simulated_camera = bool(drivers)  # fleet_sim's camera sends the managed video itself
         # Without the manager nothing lowers it: the sensors' full rate, up to the link's ceiling.
         initial_rate_hz = fleet.link.min_rate_hz if options.bandwidth_manager else fleet.link.max_rate_hz
         specs.append(
@@ -276,6 +276,8 @@ def plan_nodes(
                 )
             if options.tissue_layout == PER_ROBOT:
                 specs += _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz)
+            if robot.has_depth_camera and not simulated_camera:
+                specs.append(_raw_camera_compressor(fleet, r, py))
         if options.tissue_layout != PER_ROBOT:
             specs += _robot_tissue_shared(fleet, py, initial_rate_hz)
 
@@ -477,24 +479,6 @@ def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
             wait_topics=(_rt(r, names.POINTS_DRACO),),
         ),
     ]
-    if robot.has_depth_camera:
-        # JPEG for the operator's video (image_transport's compressed format): a raw camera
-        # stream is 1.9x (light) to 92x (paper) the link's 4 % reserve. Encodes only while watched.
-        specs.append(
-            NodeSpec(
-                f"{r}/image_compressor",
-                PHYSICAL,
-                py(
-                    "cps_transport",
-                    "image_compressor",
-                    f"__ns:={_rt(r, posixpath.dirname(names.CAMERA_IMAGE))}",
-                    "__name:=image_compressor",
-                    f"{names.INPUT}:={_rt(r, names.CAMERA_IMAGE)}",
-                    *_args({"max_rate_hz": CAMERA_MAX_RATE_HZ}),
-                ),
-                wait_topics=(_rt(r, names.CAMERA_IMAGE_COMPRESSED),),
-            )
-        )
     specs.append(
         NodeSpec(
             f"{r}/cloud_throttle",
@@ -514,9 +498,27 @@ def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
     return specs
 
 
+def _raw_camera_compressor(fleet, r, py):
+    """Without the simulator's camera (a replayed bag, real robots) a depth robot's raw images
+    become its managed video: shrunk to the manager's level and JPEG-encoded at its quality, at its
+    rate, only while watched (the simulated camera renders and encodes its own instead)."""
+    return NodeSpec(
+        f"{r}/image_compressor",
+        PHYSICAL,
+        py(
+            "cps_transport",
+            "image_compressor",
+            f"__ns:={_rt(r, posixpath.dirname(names.CAMERA_IMAGE))}",
+            "__name:=image_compressor",
+            *_args({"robot": r, "fleet_file": fleet.path}),
+        ),
+        wait_topics=(_rt(r, names.CAMERA_IMAGE_COMPRESSED),),
+    )
+
+
 def _robot_tissue_shared(fleet, py, initial_rate_hz):
     """The shared layout: one loader puts every robot's voxel grid into the nodelet manager, one
-    cloud_tissue runs every robot's encoder, limiter (/<r>/cloud_throttle) and camera compressor."""
+    cloud_tissue runs every robot's encoder and limiter (/<r>/cloud_throttle)."""
     robots = ",".join(fleet.robot_names)
     return [
         NodeSpec(
@@ -542,21 +544,13 @@ def _robot_tissue_shared(fleet, py, initial_rate_hz):
                     {
                         "fleet_file": fleet.path,
                         "robots": robots,
-                        "camera_max_rate_hz": CAMERA_MAX_RATE_HZ,
                         "initial_rate_hz": initial_rate_hz,
                     }
                 ),
             ),
             # Not the managed topics, advertised with the first cloud through: a replayed bag
             # starts once this process (every robot's encoder) is up.
-            wait_topics=tuple(
-                t
-                for robot in fleet.robots
-                for t in (
-                    _rt(robot.name, names.POINTS_DRACO),
-                    *((_rt(robot.name, names.CAMERA_IMAGE_COMPRESSED),) if robot.has_depth_camera else ()),
-                )
-            ),
+            wait_topics=tuple(_rt(robot.name, names.POINTS_DRACO) for robot in fleet.robots),
         ),
     ]
 

@@ -202,7 +202,28 @@ def map_quality_table(score):
     ]
 
 
+STREAMS = ("cloud", "video")
+
+
+def allocated_streams(allocation_rows):
+    """(times (N,), {(robot, stream): MB/s (N,)}) of allocation.csv: at each allocation instant, what
+    the manager gave each robot's stream (a row without `stream`, from before the video was
+    managed, is the cloud's); a stream absent at an instant had nothing. Keys robot by robot,
+    cloud then video: the stacking order."""
+    by_stamp = defaultdict(dict)
+    for row in allocation_rows:
+        stamp, value = csv_float(row["stamp_s"]), csv_float(row.get("bandwidth_mbytes_per_s"))
+        key = (row["robot"], row.get("stream") or "cloud")
+        by_stamp[stamp][key] = by_stamp[stamp].get(key, 0.0) + (value if math.isfinite(value) else 0.0)
+    times = np.array(sorted(by_stamp))
+    keys = sorted({k for values in by_stamp.values() for k in values}, key=lambda k: (k[0], STREAMS.index(k[1])))
+    return times, {k: np.array([by_stamp[t].get(k, 0.0) for t in times]) for k in keys}
+
+
 def plot_link(stats_rows, allocation_rows, budget_mbytes_per_s, png_path):
+    """link.png: (1) every managed stream (each robot's cloud and video) stacked as the manager
+    allocated it, against the budget, with the managed traffic received at the twin on top; (2)
+    the allocated rates per stream; (3) the clouds' latency at the twin."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -210,38 +231,55 @@ def plot_link(stats_rows, allocation_rows, budget_mbytes_per_s, png_path):
 
     fig, axes = plt.subplots(3, 1, figsize=(9, 9), sharex=True)
     t0 = min([csv_float(r["time_s"]) for r in stats_rows] + [csv_float(r["stamp_s"]) for r in allocation_rows] or [0.0])
-    per_robot = defaultdict(list)
+    latencies = defaultdict(list)
     for row in stats_rows:
         if row.get("managed") == "True":
-            per_robot[row["robot"]].append(
+            latencies[row["robot"]].append(
                 (
                     csv_float(row["time_s"]) - t0,
-                    csv_float(row["bandwidth_mbytes_per_s"]),
                     csv_float(row["latency_avg_ms"]) if row.get("latency_avg_ms") else math.nan,
                 )
             )
+    alloc_times, streams = allocated_streams(allocation_rows)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    robots = sorted({robot for robot, _ in streams})
+    below = np.zeros(len(alloc_times))
+    for (robot, stream), values in streams.items():
+        colour = colours[robots.index(robot) % len(colours)]
+        axes[0].fill_between(
+            alloc_times - t0,
+            below,
+            below + values,
+            step="post",
+            color=colour,
+            alpha=0.85 if stream == "cloud" else 0.4,
+            hatch=None if stream == "cloud" else "//",
+            lw=0,
+            label=f"{robot} {stream}",
+        )
+        below = below + values
     times, totals = managed_link_windows(stats_rows)
-    for robot, series in sorted(per_robot.items()):
-        series = np.array(series)
-        axes[0].plot(series[:, 0], series[:, 1], label=robot)
-        axes[2].plot(series[:, 0], series[:, 2], label=robot)
-    axes[0].plot(times - t0, totals, "k-", lw=2, label="total managed")
+    axes[0].plot(times - t0, totals, "k-", lw=1.5, label="received at the twin (managed)")
     axes[0].axhline(budget_mbytes_per_s, color="r", ls="--", label=f"budget {budget_mbytes_per_s:.2f} MB/s")
-    axes[0].set_ylabel("received MB/s")
+    axes[0].set_ylabel("allocated MB/s (stacked)")
     rates = defaultdict(list)
     for row in allocation_rows:
-        rates[row["robot"]].append((csv_float(row["stamp_s"]) - t0, csv_float(row["rate_hz"])))
-    for robot, series in sorted(rates.items()):
+        key = f"{row['robot']} {row.get('stream') or 'cloud'}"
+        rates[key].append((csv_float(row["stamp_s"]) - t0, csv_float(row["rate_hz"])))
+    for key, series in sorted(rates.items()):
         series = np.array(series)
-        axes[1].step(series[:, 0], series[:, 1], where="post", label=robot)
+        axes[1].step(series[:, 0], series[:, 1], where="post", label=key, ls="-" if key.endswith("cloud") else ":")
+    for robot, series in sorted(latencies.items()):
+        series = np.array(series)
+        axes[2].plot(series[:, 0], series[:, 1], label=robot)
     axes[1].set_ylabel("allocated Hz")
-    axes[2].set_ylabel("latency avg ms")
+    axes[2].set_ylabel("cloud latency avg ms")
     axes[2].axhline(100, color="r", ls="--", label="paper's bound 100 ms")
     axes[2].set_xlabel("mission time, s")
     for ax in axes:
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="upper right")
-    fig.suptitle("Digital tissue during the mission (managed point-cloud topics)")
+        ax.legend(fontsize=7, loc="upper right", ncol=2)
+    fig.suptitle("Digital tissue during the mission (managed streams: clouds and video)")
     fig.tight_layout()
     fig.savefig(png_path, dpi=110)
     plt.close(fig)

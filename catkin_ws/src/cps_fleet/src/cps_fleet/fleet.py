@@ -128,6 +128,8 @@ class VideoLevel:
     height: int
     jpeg_quality: int
     bytes_prior: float
+    # Where the level is written: its fleet file and line (for errors about what the camera can do).
+    source: Tuple[str, int] = ("", 0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -420,6 +422,7 @@ def _streams(reader):
             height=_positive_int(item, "height"),
             jpeg_quality=int(item.number("jpeg_quality", low=1, high=100)),
             bytes_prior=item.number("bytes_prior", low=0.0, low_open=True),
+            source=(os.path.abspath(item.doc.path), item.doc.line(item.key_path)),
         )
         if video and level.width * level.height >= video[-1].width * video[-1].height:
             raise item.error("width", f"levels go from finest to coarsest: {level.name} after {video[-1].name}")

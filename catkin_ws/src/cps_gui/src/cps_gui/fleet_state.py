@@ -20,6 +20,8 @@ LOW_BATTERY_FRACTION = 0.2
 SLOW_LINK_LATENCY_MS = 1000.0
 # Clouds dropped by the map server within this window raise an alarm.
 DROP_ALARM_WINDOW_S = 10.0
+# A robot's video status comes at 1 Hz: older than this, its video counts as 0 MB/s in the plot.
+VIDEO_STATUS_MAX_AGE_S = 3.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +45,30 @@ class RobotAllocation:
     bandwidth_mbytes_per_s: float
     share_percent: float
     degraded: bool
+    # Which of the robot's managed streams ("cloud" or "video") and its level (index, name).
+    stream: str = "cloud"
+    level: int = 0
+    level_name: str = ""
+
+
+# The managed streams, stacked in this order in the bandwidth plot.
+STREAMS = ("cloud", "video")
+
+
+@dataclasses.dataclass(frozen=True)
+class VideoStatus:
+    """What a camera robot's video pipeline last said (<robot>/video_throttle/status)."""
+
+    level: int
+    level_name: str
+    set_rate_hz: float
+    output_rate_hz: float
+    mean_message_bytes: float
+
+    @property
+    def bandwidth_mbytes_per_s(self):
+        size = self.mean_message_bytes if math.isfinite(self.mean_message_bytes) else 0.0
+        return self.output_rate_hz * size / 1e6
 
 
 @dataclasses.dataclass(frozen=True)
@@ -219,6 +245,9 @@ class FleetState:
         self._allocation: Optional[Allocation] = None
         self._allocation_received_s = -math.inf
         self._budget_series = _Series(history_len)
+        # Measured bandwidth per (robot, stream), sampled together at each /tissue/stats.
+        self._stream_series = {(n, s): _Series(history_len) for n in self._robots for s in STREAMS}
+        self._video_status: Dict[str, Tuple[VideoStatus, float]] = {}
         self._map_changes: Tuple[MapChange, ...] = ()
         self._map_changes_version = 0
         self._available_mbps = math.nan
@@ -281,6 +310,12 @@ class FleetState:
             self._stats, self._stats_received_s = topics, now
             for name, r in self._robots.items():
                 mine = [f for f in topics if f.robot == name]
+                # Every robot's streams at every sample, so the layers stack instant by instant.
+                video, received_s = self._video_status.get(name, (None, -math.inf))
+                fresh = video is not None and now - received_s <= max(self.stale_after_s, VIDEO_STATUS_MAX_AGE_S)
+                cloud = sum(f.bandwidth_mbytes_per_s for f in mine if f.managed)
+                self._stream_series[(name, "cloud")].add(t, cloud)
+                self._stream_series[(name, "video")].add(t, video.bandwidth_mbytes_per_s if fresh else 0.0)
                 if not mine:
                     continue
                 managed = [f for f in mine if f.managed] or mine
@@ -293,10 +328,30 @@ class FleetState:
             self._allocation, self._allocation_received_s = allocation, self.clock()
             t = self._t()
             self._budget_series.add(t, allocation.budget_mbytes_per_s)
+            per_robot = collections.defaultdict(float)
             for a in allocation.robots:
-                r = self._robots.get(a.robot)
+                per_robot[a.robot] += a.bandwidth_mbytes_per_s
+            for name, mbytes in per_robot.items():
+                r = self._robots.get(name)
                 if r:
-                    r.allocated_series.add(t, a.bandwidth_mbytes_per_s)
+                    r.allocated_series.add(t, mbytes)
+
+    def set_video_status(self, robot, status: VideoStatus):
+        with self._lock:
+            if self._robot(robot):
+                self._video_status[robot] = (status, self.clock())
+
+    def video_status(self, robot):
+        """(VideoStatus or None, seconds since it arrived) of a camera robot's video."""
+        with self._lock:
+            status, received_s = self._video_status.get(robot, (None, -math.inf))
+            return status, self.clock() - received_s
+
+    def stream_series(self):
+        """[(robot, stream, t list, MB/s list)] in stacking order (robot by robot, cloud then video),
+        every series sampled at the same /tissue/stats instants."""
+        with self._lock:
+            return [(n, s, *self._stream_series[(n, s)].copy()) for n in self._robots for s in STREAMS]
 
     def set_available_bandwidth(self, mbps):
         with self._lock:
@@ -364,7 +419,9 @@ class FleetState:
     def health_rows(self) -> List[HealthRow]:
         with self._lock:
             now = self.clock()
-            allocations = {a.robot: a for a in self._allocation.robots} if self._allocation else {}
+            allocations = (
+                {a.robot: a for a in self._allocation.robots if a.stream == "cloud"} if self._allocation else {}
+            )
             stats_by_robot = {}
             for f in self._stats:
                 if f.managed:

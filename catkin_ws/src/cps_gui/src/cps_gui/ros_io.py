@@ -20,8 +20,17 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from cps_fleet import names
 from cps_gui import topview
-from cps_gui.fleet_state import Allocation, ImageFrame, MapChange, Pose, RobotAllocation, RobotMapFigures, TopicFigures
-from cps_msgs.msg import BandwidthAllocationArray, LinkState, MapStats, TopicStatsArray
+from cps_gui.fleet_state import (
+    Allocation,
+    ImageFrame,
+    MapChange,
+    Pose,
+    RobotAllocation,
+    RobotMapFigures,
+    TopicFigures,
+    VideoStatus,
+)
+from cps_msgs.msg import BandwidthAllocationArray, LinkState, MapStats, RateLimiterStatus, TopicStatsArray
 from cps_msgs.srv import SetPriority, SetPriorityRequest
 from cps_ros.timers import guarded_timer
 from cps_transport.image_compression import InvalidImage, decode_jpeg
@@ -79,6 +88,9 @@ class FleetRosIO:
             buff_size=2**20,
         )
         self.estop_pub = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
+        # The robot whose video the operator watches: the manager gives it operator-quality video.
+        self.selected_pub = rospy.Publisher(names.SELECTED_ROBOT, String, queue_size=1, latch=True)
+        self.selected_robot = None
         self._discovery = guarded_timer(discovery_period_s, self._discover_images, "image discovery")
         threading.Thread(target=self._discover_images, args=(None,), daemon=True).start()
 
@@ -127,6 +139,8 @@ class FleetRosIO:
         self._subscribe(topic(names.BATTERY), BatteryState, on_battery)
         self._subscribe(topic(names.CONTROL_MODE_ACTIVE), String, lambda m: state.set_mode(name, m.data))
         self._subscribe(topic(names.MISSION_STATE), String, lambda m: state.set_mission_state(name, m.data))
+        if robot.has_depth_camera:
+            self._subscribe(topic(names.VIDEO_STATUS), RateLimiterStatus, lambda m: self._on_video_status(name, m))
         self.teleop_pubs[name] = rospy.Publisher(topic(names.CMD_VEL_TELEOP), Twist, queue_size=1)
         self.mode_pubs[name] = rospy.Publisher(topic(names.CONTROL_MODE), String, queue_size=1, latch=True)
         if robot.robot_type.is_aerial:
@@ -164,11 +178,27 @@ class FleetRosIO:
                 feasible=msg.feasible,
                 robots=tuple(
                     RobotAllocation(
-                        a.robot, a.priority, a.rate_hz, a.bandwidth_mbytes_per_s, a.share_percent, a.degraded
+                        a.robot,
+                        a.priority,
+                        a.rate_hz,
+                        a.bandwidth_mbytes_per_s,
+                        a.share_percent,
+                        a.degraded,
+                        a.stream or "cloud",
+                        a.level,
+                        a.level_name,
                     )
                     for a in msg.allocations
                 ),
             )
+        )
+
+    def _on_video_status(self, robot, msg):
+        levels = self.fleet.streams.video_levels
+        level_name = levels[msg.level].name if msg.level < len(levels) else f"level {msg.level}?"
+        size = msg.level_mean_message_bytes if math.isfinite(msg.level_mean_message_bytes) else msg.mean_message_bytes
+        self.state.set_video_status(
+            robot, VideoStatus(msg.level, level_name, msg.set_rate_hz, msg.output_rate_hz, size)
         )
 
     def _on_link_state(self, msg):
@@ -305,6 +335,12 @@ class FleetRosIO:
             raise ValueError(f"robot '{robot}' does not fly")
         self.flight_pubs[robot].publish(String(data=command))
 
+    def select_robot(self, robot):
+        """The operator watches `robot` ("" for none): say so on /tissue/selected_robot (latched)."""
+        if robot != self.selected_robot:
+            self.selected_robot = robot
+            self.selected_pub.publish(String(data=robot))
+
     def set_estop(self, stop):
         self.estop_pub.publish(Bool(data=bool(stop)))
 
@@ -333,3 +369,4 @@ class FleetRosIO:
             for pub in pubs.values():
                 pub.unregister()
         self.estop_pub.unregister()
+        self.selected_pub.unregister()

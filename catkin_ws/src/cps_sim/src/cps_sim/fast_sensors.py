@@ -182,31 +182,43 @@ class GlRasterizer:
             self._framebuffers[(width, height)] = fbo
         return fbo
 
+    def _draw(self, width, height, view_matrix, projection_matrix, boxes):
+        """Rasterize into the (width, height) framebuffer; the caller holds the context."""
+        view = np.asarray(view_matrix, dtype=np.float64).reshape(4, 4).T
+        projection = np.asarray(projection_matrix, dtype=np.float64).reshape(4, 4).T
+        fbo = self._framebuffer(width, height)
+        fbo.use()
+        ctx = self.ctx
+        ctx.viewport = (0, 0, width, height)
+        ctx.enable(ctx.DEPTH_TEST)
+        ctx.disable(ctx.CULL_FACE)
+        fbo.clear(*SKY_RGB, 1.0, depth=1.0)
+        self.program["view_projection"].write((projection @ view).astype("f4").tobytes(order="F"))
+        self.program["model"].write(self._identity)
+        self.program["tint"].value = (1.0, 1.0, 1.0, 1.0)
+        self.hall.render()
+        for box in boxes:
+            self.program["model"].write(box.model_matrix().astype("f4").tobytes(order="F"))
+            self.program["tint"].value = (*box.rgb, 1.0)
+            self.cube.render()
+        return fbo
+
+    def render_colour(self, width, height, view_matrix, projection_matrix, boxes: Sequence[BoxBody] = ()):
+        """The colour image only (rgb uint8 H x W x 3, row 0 = top): no depth read back (video)."""
+        with self.ctx:
+            fbo = self._draw(width, height, view_matrix, projection_matrix, boxes)
+            rgb = np.frombuffer(fbo.read(components=3, alignment=1), dtype=np.uint8).reshape(height, width, 3)
+        return np.ascontiguousarray(rgb[::-1])
+
     def render(self, width, height, view_matrix, projection_matrix, boxes: Sequence[BoxBody] = ()):
         """(rgba uint8 H x W x 4, depth buffer float32 H x W in [0, 1]), row 0 = top of the image.
 
         view_matrix and projection_matrix are 16 floats in OpenGL's column-major order, as
         pybullet.computeViewMatrix / computeProjectionMatrixFOV return them.
         """
-        view = np.asarray(view_matrix, dtype=np.float64).reshape(4, 4).T
-        projection = np.asarray(projection_matrix, dtype=np.float64).reshape(4, 4).T
         # Another GL user in this process (PyBullet's EGL plugin) may have made its context current.
         with self.ctx:
-            fbo = self._framebuffer(width, height)
-            fbo.use()
-            ctx = self.ctx
-            ctx.viewport = (0, 0, width, height)
-            ctx.enable(ctx.DEPTH_TEST)
-            ctx.disable(ctx.CULL_FACE)
-            fbo.clear(*SKY_RGB, 1.0, depth=1.0)
-            self.program["view_projection"].write((projection @ view).astype("f4").tobytes(order="F"))
-            self.program["model"].write(self._identity)
-            self.program["tint"].value = (1.0, 1.0, 1.0, 1.0)
-            self.hall.render()
-            for box in boxes:
-                self.program["model"].write(box.model_matrix().astype("f4").tobytes(order="F"))
-                self.program["tint"].value = (*box.rgb, 1.0)
-                self.cube.render()
+            fbo = self._draw(width, height, view_matrix, projection_matrix, boxes)
             rgba = np.frombuffer(fbo.read(components=4, alignment=1), dtype=np.uint8).reshape(height, width, 4)
             depth = np.frombuffer(
                 fbo.read(components=1, attachment=-1, alignment=1, dtype="f4"), dtype=np.float32

@@ -32,6 +32,8 @@ from cps_sim.scheduling import RateMeter, SensorScheduler, StepTimer
 from cps_sim.sensor_workers import SensorWorkerPool
 from cps_sim.simulation import FleetSimulation, sensor_points
 from cps_sim.site_changes import SiteMove, apply_site_changes, load_site_changes
+from cps_sim.video import video_level_errors
+from cps_sim.video_ros import RobotVideo
 
 CMD_TIMEOUT_S = 0.5
 
@@ -118,6 +120,9 @@ class FleetSimNode:
         error = initial_pose_error(fleet, self.site)
         if error:
             fail(f"bad fleet file: {error}")
+        level_errors = video_level_errors(fleet)
+        if level_errors:
+            fail("bad fleet file: " + "; ".join(str(e) for e in level_errors))
         if options.sensor_workers > 0:
             # Robots' kinematics here; rendering and ray casting in worker processes.
             self.pool = SensorWorkerPool(fleet, self.site, options.renderer, options.sensor_workers)
@@ -135,6 +140,7 @@ class FleetSimNode:
         self.capture_ms = {name: 0.0 for name in self.sim.robots}
         self.lock = threading.Lock()
         self.pubs = {}
+        self.videos = {}  # scheduler key -> RobotVideo, per camera robot
         # Per robot: the e-stop and the command timeout hold here, where velocities are executed.
         self.gates = {}
         self.bad_commands = {}
@@ -146,7 +152,9 @@ class FleetSimNode:
         self.diagnostics = rospy.Publisher(names.DIAGNOSTICS, DiagnosticArray, queue_size=5)
         now = time.time()
         self.static_tf.sendTransform(self._static_transforms(now))
-        self.scheduler = SensorScheduler({n: s.rate_hz for n, s in self.sim.robots.items()}, now)
+        rates = {n: s.rate_hz for n, s in self.sim.robots.items()}
+        rates.update({key: video.rate_hz for key, video in self.videos.items()})
+        self.scheduler = SensorScheduler(rates, now)
         self.physics_meter = RateMeter()
         self.step_timer = StepTimer()
         self.physics = PhysicsClock(now, options.max_physics_step_s, options.max_catch_up_s)
@@ -171,6 +179,8 @@ class FleetSimNode:
         if sim.config.has_depth_camera:
             pubs["image"] = rospy.Publisher(topic(names.CAMERA_IMAGE), Image, queue_size=2)
             pubs["info"] = rospy.Publisher(topic(names.CAMERA_INFO), CameraInfo, queue_size=2)
+            video = RobotVideo(name, sim.sensor_frame, self.fleet.streams, self._on_video_rate)
+            self.videos[video.key] = video
         self.pubs[name] = pubs
         self.gates[name] = CommandGate(CMD_TIMEOUT_S)
         self.bad_commands[name] = 0
@@ -179,6 +189,12 @@ class FleetSimNode:
             rospy.Subscriber(
                 topic(names.FLIGHT_COMMAND), String, self._on_flight_command, callback_args=name, queue_size=5
             )
+
+    def _on_video_rate(self, key, rate_hz):
+        with self.lock:
+            scheduler = getattr(self, "scheduler", None)
+            if scheduler is not None:
+                scheduler.set_rate(key, rate_hz, time.time())
 
     def _static_transforms(self, now):
         """map -> <r>/odom (the known initial pose: only this node computes it) and the sensor mounts."""
@@ -272,6 +288,16 @@ class FleetSimNode:
         self.capture_ms[name] = ms if previous == 0.0 else 0.8 * previous + 0.2 * ms
 
     def _capture_in_process(self, name):
+        video = self.videos.get(name)
+        if video is not None:
+            stamp = time.time()
+            task = video.wanted()
+            if task is not None:
+                with self.lock:
+                    frame = self.sim.capture_video(task)
+                video.publish(frame, stamp, time.time())
+            self.scheduler.done(name, stamp, time.time())
+            return
         sim = self.sim.robots[name]
         with self.lock:
             sensor_pose = sim.robot.sensor_in_map()
@@ -288,8 +314,11 @@ class FleetSimNode:
         """Publish finished captures and hand due sensors to idle workers; True if any work was done."""
         worked = False
         for name, frame, requested, started, finished in self.pool.results():
-            self._record_capture_ms(name, 1000.0 * (finished - started))
-            self._publish_frame(name, frame, requested)
+            if name in self.videos:
+                self.videos[name].publish(frame, requested, time.time())
+            else:
+                self._record_capture_ms(name, 1000.0 * (finished - started))
+                self._publish_frame(name, frame, requested)
             self.scheduler.done(name, requested, time.time())
             worked = True
         while True:
@@ -299,9 +328,16 @@ class FleetSimNode:
             name, due = self.scheduler.next(exclude=self._busy_sensors())
             if name is None or due > now:
                 break
+            task = None
+            if name in self.videos:
+                task = self.videos[name].wanted()
+                if task is None:  # nobody watches: render nothing
+                    self.scheduler.done(name, now, now)
+                    worked = True
+                    continue
             with self.lock:
                 poses = self.sim.poses()
-            self.pool.request(worker, name, poses, time.time())
+            self.pool.request(worker, name, poses, time.time(), task=task)
             worked = True
         return worked
 
@@ -351,6 +387,8 @@ class FleetSimNode:
             array.status.append(status)
             summary.append(f"{name} {achieved:.1f}/{sim.rate_hz:.1f} Hz")
         self.diagnostics.publish(array)
+        for video in self.videos.values():
+            video.publish_status(now)
         rospy.loginfo_throttle(
             10.0, f"fleet_sim: achieved sensor rates {', '.join(summary)}; real-time factor {rtf:.2f}"
         )

@@ -47,6 +47,13 @@ class SensorScheduler:
         self.runs = {name: 0 for name in rates_hz}
         self.skipped = {name: 0 for name in rates_hz}
 
+    def set_rate(self, name, rate_hz, now_s):
+        """Run `name` at `rate_hz` from now on; a faster rate takes effect at once."""
+        if not rate_hz > 0:
+            raise ValueError(f"sensor '{name}': rate must be positive, got {rate_hz}")
+        self.periods[name] = 1.0 / rate_hz
+        self.due[name] = min(self.due[name], now_s + self.periods[name])
+
     def next(self, exclude=()):
         """(name, due time) of the task to run next (not in `exclude`), or (None, inf) if none."""
         candidates = [n for n in self.due if n not in exclude]

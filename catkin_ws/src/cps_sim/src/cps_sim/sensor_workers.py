@@ -107,12 +107,12 @@ def _worker_main(conn, fleet, site, renderer):
                 break
             if request is None:
                 break
-            name, poses = request
+            key, task, poses = request
             for other, (x, y, z, yaw) in poses.items():
                 sim.place(other, x, y, z, yaw)
             started = time.time()
-            frame = sim.capture(name)
-            conn.send(("frame", name, block.write(frame), started, time.time()))
+            frame = sim.capture(task) if isinstance(task, str) else sim.capture_video(task)
+            conn.send(("frame", key, block.write(frame), started, time.time()))
     finally:
         block.close()
         sim.close()
@@ -167,8 +167,10 @@ class SensorWorkerPool:
     def busy(self, name):
         return any(w.busy_with == name for w in self.workers)
 
-    def request(self, worker, name, poses: Dict[str, Pose], now_s):
-        worker.conn.send((name, poses))
+    def request(self, worker, name, poses: Dict[str, Pose], now_s, task=None):
+        """Capture `name` (a robot: its sensor) on `worker`; with `task` (a cps_sim.video.VideoTask)
+        render that video frame instead, `name` then being the scheduler's key for it."""
+        worker.conn.send((name, name if task is None else task, poses))
         worker.busy_with = name
         worker.requested_at = now_s
 

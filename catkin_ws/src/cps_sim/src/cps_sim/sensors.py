@@ -103,6 +103,7 @@ class DepthCamera:
         v = np.arange(self.height, dtype=np.float32)
         self._ray_x = np.broadcast_to((u - self.cx) / self.fx, (self.height, self.width))
         self._ray_y = np.broadcast_to(((v - self.cy) / self.fy)[:, None], (self.height, self.width))
+        self._video_projections = {}
 
     @staticmethod
     def view_matrix(optical_in_map):
@@ -110,6 +111,23 @@ class DepthCamera:
         forward = optical_in_map[:3, 2]
         up = -optical_in_map[:3, 1]
         return pybullet.computeViewMatrix(eye.tolist(), (eye + forward).tolist(), up.tolist())
+
+    def video_projection(self, width, height):
+        """The projection of a colour image of width x height through this camera's optics."""
+        key = (int(width), int(height))
+        projection = self._video_projections.get(key)
+        if projection is None:
+            projection = pybullet.computeProjectionMatrixFOV(
+                vertical_fov_deg(key[0], key[1], self.hfov_deg), key[0] / key[1], self._clip_near, self._clip_far
+            )
+            self._video_projections[key] = projection
+        return projection
+
+    def render_colour(self, optical_in_map, width, height):
+        """The colour image alone at width x height (the video; same optics, no depth, no cloud)."""
+        return self.world.render_colour(
+            int(width), int(height), self.view_matrix(optical_in_map), self.video_projection(width, height)
+        )
 
     def depth_from_buffer(self, buffer):
         """Metric depth along the optical axis from the OpenGL depth buffer; NaN outside range."""

@@ -96,6 +96,13 @@ class FleetSimulation:
         sim = self.robots[name]
         return sim.sensor.capture(sim.robot.sensor_in_map())
 
+    def capture_video(self, task):
+        """A VideoFrame of robot `task.robot`'s camera at its current pose, at the task's level only."""
+        from cps_sim.video import render_video
+
+        sim = self.robots[task.robot]
+        return render_video(sim.sensor, sim.robot.sensor_in_map(), task)
+
     def close(self):
         if self.world is not None:
             self.world.close()

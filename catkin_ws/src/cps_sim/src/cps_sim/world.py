@@ -190,6 +190,16 @@ class SimWorld:
         depth = np.asarray(depth, dtype=np.float32).reshape(height, width)
         return rgba, depth
 
+    def render_colour(self, width, height, view_matrix, projection_matrix):
+        """The colour image alone (rgb uint8 H x W x 3, row 0 = top): the fast renderer reads no
+        depth back; PyBullet's renderers always produce both."""
+        if self._rasterizer is not None:
+            return self._rasterizer.render_colour(
+                width, height, view_matrix, projection_matrix, list(self._robot_boxes.values())
+            )
+        rgba, _ = self.render(width, height, view_matrix, projection_matrix)
+        return np.ascontiguousarray(rgba[..., :3])
+
     def cast_rays(self, origins, ends):
         """Hit fractions (N,), hit positions (N, 3), hit normals (N, 3), body ids (N,) (-1 = miss).
 

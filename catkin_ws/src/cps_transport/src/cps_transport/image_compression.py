@@ -98,6 +98,16 @@ def image_pixels(encoding, width, height, step, data):
     return pixels[:, :, ::-1] if encoding == "bgr8" else pixels
 
 
+def resize_pixels(pixels, width, height):
+    """RGB (HxWx3) or grey (HxW) uint8 pixels at width x height: unchanged when already that size,
+    else resampled with Pillow's box filter (each output pixel the mean of the input it covers)."""
+    pixels = np.asarray(pixels)
+    if pixels.shape[1] == width and pixels.shape[0] == height:
+        return pixels
+    image = PilImage.fromarray(np.ascontiguousarray(pixels))
+    return np.asarray(image.resize((int(width), int(height)), PilImage.Resampling.BOX))
+
+
 def compress_image(encoding, width, height, step, data, quality=75):
     """(format, JPEG bytes) of a sensor_msgs/Image's fields, as the compressed plugin sends them."""
     return compressed_format(encoding), encode_jpeg(image_pixels(encoding, width, height, step, data), quality)

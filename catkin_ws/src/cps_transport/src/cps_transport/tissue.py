@@ -11,12 +11,12 @@ and drop counters: a malformed cloud of one robot is dropped and counted there a
 import dataclasses
 import threading
 import time
-from typing import List, Optional
+from typing import List
 
 import rospy
 from rosgraph.names import ns_join
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, UInt8
 
 from cps_fleet import names
 from cps_msgs.msg import RateLimiterStatus
@@ -26,8 +26,8 @@ from cps_ros.relay import relay_class, relay_message
 from cps_ros.timers import guarded_timer
 from cps_transport.draco import DracoEncoder
 from cps_transport.draco_transport import DracoPublisher, DracoSubscriber
-from cps_transport.image_compression import InvalidImage, compress_image
-from cps_transport.rate_limiter import RateLimiter
+from cps_transport.image_compression import InvalidImage, compress_image, compressed_format
+from cps_transport.rate_limiter import RateLimiter, WindowRate
 
 # Clouds waiting for the link per subscriber of the managed topic.
 LIMITER_OUTPUT_QUEUE_SIZE = 5
@@ -44,8 +44,6 @@ class RobotTissueConfig:
     throttle_node: str  # /<r>/cloud_throttle: its status, rate_hz and set_rate
     leaf_size_m: float  # the voxel leaf: sets Draco's quantization
     rate_hz: float  # the managed rate until the bandwidth manager sets one
-    image_raw: Optional[str] = None  # /<r>/camera/image_raw (depth robots)
-    image_compressed: Optional[str] = None  # /<r>/camera/image_raw/compressed
 
 
 def _rt(robot, name):
@@ -60,7 +58,6 @@ def robot_tissue_configs(fleet, robots=None, initial_rate_hz=None) -> List[Robot
     out = []
     for name in robots or fleet.robot_names:
         robot = fleet.robot(name)
-        camera = robot.has_depth_camera
         out.append(
             RobotTissueConfig(
                 robot=name,
@@ -70,8 +67,6 @@ def robot_tissue_configs(fleet, robots=None, initial_rate_hz=None) -> List[Robot
                 throttle_node=_rt(name, names.CLOUD_THROTTLE),
                 leaf_size_m=float(robot.voxel_leaf_m),
                 rate_hz=float(fleet.link.min_rate_hz if initial_rate_hz is None else initial_rate_hz),
-                image_raw=_rt(name, names.CAMERA_IMAGE) if camera else None,
-                image_compressed=_rt(name, names.CAMERA_IMAGE_COMPRESSED) if camera else None,
             )
         )
     return out
@@ -171,7 +166,11 @@ class ManagedRateLimiter:
 class ImageCompressor:
     """sensor_msgs/Image (rgb8, bgr8, mono8) -> sensor_msgs/CompressedImage JPEG, only while the
     output has subscribers and at most `max_rate_hz` (0: every image); other encodings and
-    malformed images are dropped, counted and reported on /diagnostics."""
+    malformed images are dropped, counted and reported on /diagnostics.
+
+    For a camera that only gives raw images (the `image_compressor` executable). The fleet's
+    managed video is not this: the simulated camera renders and encodes each robot's video at the
+    manager's level and rate (cps_sim.video), so the tissue no longer compresses camera images."""
 
     def __init__(self, input_topic, output_topic, quality=75, max_rate_hz=0.0):
         self.quality = quality
@@ -196,6 +195,120 @@ class ImageCompressor:
         self.publisher.publish(CompressedImage(header=msg.header, format=fmt, data=data))
 
 
+class ManagedVideoCompressor:
+    """A raw-only camera's managed video: `<robot>/camera/image_raw` (rgb8, bgr8, mono8) ->
+    `<robot>/camera/image_raw/compressed` at the level and rate the bandwidth manager sets on
+    `<robot>/video_throttle/level` and `rate_hz` (the simulated camera renders at the level instead;
+    this is for cameras that cannot be told). A frame is admitted at the set rate first (token
+    bucket, one frame of burst), and only then shrunk to the level's size and encoded at its
+    quality: nothing is encoded to be dropped. A camera whose aspect ratio is not the level's is
+    refused frame by frame (an error, throttled, and counted). Publishes
+    `<robot>/video_throttle/status` (1 Hz and on change) like the simulated camera."""
+
+    def __init__(self, robot, streams):
+        from cps_transport.video_levels import LevelSizes, VideoControl
+
+        def topic(relative):
+            return _rt(robot, relative)
+
+        self.robot = robot
+        self.lock = threading.Lock()
+        self.control = VideoControl(streams)
+        self.sizes = LevelSizes(streams.video_levels)
+        self.limiter = RateLimiter(self.control.rate_hz, burst=1.0)
+        self.sent_meter = WindowRate()  # frames sent per second
+        self.rendered = self.sent = 0
+        self.mean_bytes = float("nan")
+        self.input_topic, self.output_topic = topic(names.CAMERA_IMAGE), topic(names.CAMERA_IMAGE_COMPRESSED)
+        self.level_topic, self.rate_topic = topic(names.VIDEO_LEVEL), topic(names.VIDEO_RATE_HZ)
+        self.report = DropReporter(self.input_topic)
+        self.publisher = rospy.Publisher(self.output_topic, CompressedImage, queue_size=2)
+        self.status_pub = rospy.Publisher(topic(names.VIDEO_STATUS), RateLimiterStatus, queue_size=5, latch=True)
+        self.level_sub = rospy.Subscriber(self.level_topic, UInt8, self._on_level, queue_size=5)
+        self.rate_sub = rospy.Subscriber(self.rate_topic, Float64, self._on_rate, queue_size=5)
+        self.subscriber = rospy.Subscriber(self.input_topic, Image, self.on_image, queue_size=1, buff_size=1 << 24)
+        self.status_timer = guarded_timer(1.0, lambda _event: self.publish_status(), f"status {robot} video")
+        self.publish_status()
+
+    def _on_level(self, msg):
+        with self.lock:
+            error = self.control.set_level(msg.data)
+        if error:
+            rospy.logerr(f"{self.level_topic}: {error}")
+            return
+        self.publish_status()
+
+    def _on_rate(self, msg):
+        with self.lock:
+            error, note = self.control.set_rate(msg.data)
+            if not error:
+                self.limiter.set_rate(self.control.rate_hz)
+        if error:
+            rospy.logerr(f"{self.rate_topic}: {error}")
+            return
+        if note:
+            rospy.logwarn_throttle(10.0, f"{self.rate_topic}: {note}")
+        self.publish_status()
+
+    def on_image(self, msg):
+        from cps_transport.image_compression import encode_jpeg, image_pixels, resize_pixels
+        from cps_transport.video_levels import compressed_image_bytes
+
+        if self.publisher.get_num_connections() == 0:
+            self.report.count(skipped_no_subscriber=1)
+            return
+        now = time.monotonic()
+        with self.lock:
+            if not self.limiter.allow(now):
+                self.report.count(skipped_rate=1)
+                return
+            index, level = self.control.level_index, self.control.level
+        if msg.width * level.height != msg.height * level.width:
+            self.report.drop(InvalidImage(f"{msg.width}x{msg.height} has not the aspect ratio of level {level.name}"))
+            rospy.logerr_throttle(
+                10.0,
+                f"{self.input_topic}: {msg.width}x{msg.height} cannot give video level {level.name} (aspect ratio)",
+            )
+            return
+        try:
+            pixels = resize_pixels(
+                image_pixels(msg.encoding, msg.width, msg.height, msg.step, msg.data), level.width, level.height
+            )
+            data = encode_jpeg(pixels, level.jpeg_quality)
+        except InvalidImage as exc:
+            self.report.drop(exc)
+            return
+        out = CompressedImage(header=msg.header, format=compressed_format(msg.encoding), data=data)
+        self.publisher.publish(out)
+        size = compressed_image_bytes(msg.header.frame_id, out.format, len(data))
+        self.report.ok(raw_bytes=len(msg.data), compressed_bytes=len(data))
+        with self.lock:
+            self.rendered += 1
+            self.sent += 1
+            self.sizes.add(index, size)
+            self.mean_bytes = size if self.mean_bytes != self.mean_bytes else 0.9 * self.mean_bytes + 0.1 * size
+            self.sent_meter.add(now, size)
+
+    def publish_status(self):
+        now = time.monotonic()
+        with self.lock:
+            index = self.control.level_index
+            status = RateLimiterStatus(
+                input_topic=self.input_topic,
+                output_topic=self.output_topic,
+                set_rate_hz=self.control.rate_hz,
+                input_rate_hz=self.limiter.input.rate_hz(now),
+                output_rate_hz=self.sent_meter.rate_hz(now),
+                mean_message_bytes=self.mean_bytes,
+                received=self.limiter.received,
+                forwarded=self.sent,
+                level=index,
+                level_mean_message_bytes=self.sizes.mean(index),
+            )
+        status.header.stamp = rospy.Time.now()
+        self.status_pub.publish(status)
+
+
 class DracoEncoderPart:
     """Subscribes a sensor_msgs/PointCloud2 topic and publishes it Draco-encoded (DracoPublisher:
     bad clouds dropped and counted)."""
@@ -217,25 +330,21 @@ class DracoDecoderPart:
 
 
 class RobotTissue:
-    """One robot's tissue on its side: Draco encoder, rate limiter and (depth robots) JPEG
-    compressor, with the same topics, defaults and queue sizes as the single-node executables."""
+    """One robot's cloud tissue on its side: Draco encoder and rate limiter, with the same topics,
+    defaults and queue sizes as the single-node executables. (The camera's JPEG video comes from
+    the camera itself at the manager's level and rate: cps_sim.video.)"""
 
-    def __init__(self, config: RobotTissueConfig, camera_max_rate_hz=0.0, jpeg_quality=75):
+    def __init__(self, config: RobotTissueConfig):
         self.config = config
         self.encoder = DracoEncoderPart(config.filtered, config.draco, DracoEncoder(leaf_size_m=config.leaf_size_m))
         self.limiter = ManagedRateLimiter(config.draco, config.managed, config.throttle_node, config.rate_hz)
-        self.camera = (
-            ImageCompressor(config.image_raw, config.image_compressed, jpeg_quality, camera_max_rate_hz)
-            if config.image_raw
-            else None
-        )
 
 
 class CloudTissue:
     """Every robot's RobotTissue in one process (the robots' side of the shared layout)."""
 
-    def __init__(self, configs, camera_max_rate_hz=0.0, jpeg_quality=75):
-        self.robots = {c.robot: RobotTissue(c, camera_max_rate_hz, jpeg_quality) for c in configs}
+    def __init__(self, configs):
+        self.robots = {c.robot: RobotTissue(c) for c in configs}
 
 
 class CloudDecoders:

@@ -1,5 +1,5 @@
-"""Pane 4, logging and status: plots of the link per robot (bandwidth with the manager's budget
-line, rate, latency) and battery, the fleet health table with alarms, and a filtered /rosout.
+"""Pane 4, logging and status: plots of the link per robot (bandwidth: every managed stream, each
+robot's cloud and video, stacked against the manager's budget line; rate, latency) and battery, the fleet health table with alarms, and a filtered /rosout.
 Everything is redrawn by `refresh` from a FleetState; stale values are drawn in red.
 """
 
@@ -24,6 +24,7 @@ from python_qt_binding.QtWidgets import (
 
 from cps_fleet import names
 from cps_gui.colours import robot_colour
+from cps_gui.fleet_state import STREAMS
 
 STALE_RGB = (198, 40, 40)
 ALARM_BACKGROUND = QColor(255, 205, 210)
@@ -61,11 +62,26 @@ class StatusPane(QWidget):
             if column == 0:
                 plot.addLegend(offset=(5, 5))
             self.plot_items[key] = plot
+            if key == "bandwidth":
+                continue  # stacked streams, below
             for index, name in enumerate(robot_names):
                 pen = pg.mkPen(robot_colour(index), width=2)
-                self.curves[(key, name)] = _without_segments(
-                    plot.plot([], [], pen=pen, name=name if column == 0 else None)
-                )
+                self.curves[(key, name)] = _without_segments(plot.plot([], [], pen=pen))
+        # Bandwidth: one filled layer per (robot, stream), stacked robot by robot, cloud then video
+        # (the video a lighter shade of the robot's colour); each curve is the top of its layer.
+        self.stack_curves = {}
+        layers = [(name, stream) for name in robot_names for stream in STREAMS]
+        for depth, (name, stream) in enumerate(layers):
+            colour = QColor(*robot_colour(robot_names.index(name)))
+            if stream == "video":
+                colour = colour.lighter(150)
+            fill = QColor(colour)
+            fill.setAlpha(170)
+            curve = self.plot_items["bandwidth"].plot(
+                [], [], pen=pg.mkPen(colour, width=1), fillLevel=0.0, brush=fill, name=f"{name} {stream}"
+            )
+            curve.setZValue(-depth)  # lower layers drawn over the higher ones' fill
+            self.stack_curves[(name, stream)] = _without_segments(curve)
         self.budget_curve = _without_segments(
             self.plot_items["bandwidth"].plot(
                 [], [], pen=pg.mkPen((0, 0, 0), width=2, style=Qt.DashLine), name="budget"
@@ -135,6 +151,8 @@ class StatusPane(QWidget):
         for (key, name), curve in self.curves.items():
             t, v = per_robot[name][key]
             curve.setData(t, [x if math.isfinite(x) else 0.0 for x in v])
+        for (name, stream), (t, top) in stacked_streams(self.state.stream_series()).items():
+            self.stack_curves[(name, stream)].setData(t, top)
         self.budget_curve.setData(*budget)
         available_mbps, allocation, allocation_age_s = self.state.link_summary()
         parts = [_age_text("stats", stats_age_s), _age_text("allocation", allocation_age_s)]
@@ -209,6 +227,20 @@ class StatusPane(QWidget):
         text = settings.value("status/log_filter", None)
         if text is not None:
             self.filter_edit.setText(str(text))
+
+
+def stacked_streams(series):
+    """{(robot, stream): (t, top of its layer)} from FleetState.stream_series(): each layer's top is
+    the sum of its and every earlier layer's MB/s (non-finite counted as 0) at the shared instants."""
+    out, below, shared_t = {}, None, None
+    for robot, stream, t, values in series:
+        values = [v if math.isfinite(v) else 0.0 for v in values]
+        if below is None or len(below) != len(values):
+            below, shared_t = [0.0] * len(values), t
+        top = [b + v for b, v in zip(below, values)]
+        out[(robot, stream)] = (shared_t, top)
+        below = top
+    return out
 
 
 def _without_segments(item):

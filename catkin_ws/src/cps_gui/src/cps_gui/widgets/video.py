@@ -1,11 +1,14 @@
-"""Pane 1, video: every sensor_msgs/Image and sensor_msgs/CompressedImage topic in a dropdown
-(found by type, refreshed), the picture scaled to the pane, and its frame rate, bandwidth and age
-underneath (red when stale). Only the topic on screen is subscribed; a frame is converted when it
-is new and drawn. Until the operator picks a topic, a camera is shown through its JPEG variant
-(`<topic>/compressed`) when one is advertised: the raw stream would not fit the link's reserve.
+"""Pane 1, video: the operator picks a camera robot; the pane shows its managed video
+(`<robot>/camera/image_raw/compressed`, at the level and rate the bandwidth manager allocated) and
+says so on /tissue/selected_robot, so that the manager gives that robot operator-quality video.
+Any other sensor_msgs/Image or CompressedImage topic can be picked in the topic dropdown (found by
+type, refreshed). Under the picture: size, frame rate, bandwidth, age (red when stale), latency
+(header stamp to display, wall clock) and the level and rate the robot's video status reports.
+Only the topic on screen is subscribed; a frame is converted when it is new and drawn.
 """
 
 import math
+import time
 
 import numpy as np
 from python_qt_binding.QtCore import Qt
@@ -62,6 +65,11 @@ class VideoPane(QWidget):
         super().__init__(parent)
         self.setObjectName("video_pane")
         self.io, self.state = io, state
+        self.robot_combo = QComboBox()
+        self.robot_combo.setObjectName("video_robot")
+        for robot in io.fleet.robots:
+            if robot.has_depth_camera:
+                self.robot_combo.addItem(robot.name, robot.name)
         self.combo = QComboBox()
         self.combo.setSizeAdjustPolicy(QComboBox.AdjustToMinimumContentsLengthWithIcon)
         self.picture = QLabel("no image topic yet")
@@ -71,6 +79,8 @@ class VideoPane(QWidget):
         self.picture.setStyleSheet("background: #202020; color: #dddddd")
         self.info = QLabel("")
         top = QHBoxLayout()
+        top.addWidget(QLabel("Robot"))
+        top.addWidget(self.robot_combo)
         top.addWidget(QLabel("Camera"))
         top.addWidget(self.combo, 1)
         layout = QVBoxLayout(self)
@@ -80,8 +90,31 @@ class VideoPane(QWidget):
         self._wanted_topic = ""
         self._picked = False  # the operator chose the topic in the dropdown: keep it, raw or not
         self._shown_received_s = None
+        self._latency_ms = math.nan
         self._pixmap = None
         self.combo.currentIndexChanged.connect(self._on_choice)
+        self.robot_combo.currentIndexChanged.connect(self._on_robot_choice)
+        self._on_robot_choice()
+
+    @property
+    def robot(self):
+        """The camera robot the operator watches ("" when the fleet has none)."""
+        return self.robot_combo.currentData() or ""
+
+    def select_robot(self, robot):
+        """Watch `robot`'s managed video (as if picked in the robot dropdown)."""
+        index = self.robot_combo.findData(robot)
+        if index < 0:
+            raise ValueError(f"'{robot}' is not a camera robot of the fleet")
+        self.robot_combo.setCurrentIndex(index)
+        self._on_robot_choice()
+
+    def _on_robot_choice(self, *_):
+        robot = self.robot
+        self.io.select_robot(robot)
+        if robot:
+            # Its managed JPEG video once advertised (the raw image where only that exists).
+            self.prefer(names.absolute(names.robot_topic(robot, names.CAMERA_IMAGE)))
 
     @property
     def topic(self):
@@ -134,6 +167,8 @@ class VideoPane(QWidget):
             return
         if frame.received_s != self._shown_received_s:
             self._shown_received_s = frame.received_s
+            # Stamp (the render instant, wall clock) to now, when this frame is drawn.
+            self._latency_ms = 1e3 * (time.time() - frame.stamp_s) if frame.stamp_s > 0 else math.nan
             try:
                 self._pixmap = QPixmap.fromImage(rgb_to_qimage(frame_to_rgb(frame)))
             except ValueError as exc:
@@ -143,15 +178,28 @@ class VideoPane(QWidget):
             self.picture.setPixmap(self._pixmap.scaled(self.picture.size(), Qt.KeepAspectRatio, Qt.FastTransformation))
         stale = self.state.is_stale(age_s)
         kind = frame.encoding if frame.transport == "raw" else frame.transport
-        self.info.setText(
+        text = (
             f"{frame.width}x{frame.height} {kind} | {rate_hz:.1f} Hz | {mbytes:.2f} MB/s | age {age_s:.1f} s"
+            f" | latency {self._latency_ms:.0f} ms"
         )
+        robot = self.robot
+        if robot and topic == names.absolute(names.robot_topic(robot, names.CAMERA_IMAGE_COMPRESSED)):
+            status, status_age_s = self.state.video_status(robot)
+            if status is not None:
+                text += f" | level {status.level_name} at {status.set_rate_hz:g} Hz"
+                stale = stale or self.state.is_stale(status_age_s)
+            text = f"{robot}: {text}"
+        self.info.setText(text)
         self.info.setStyleSheet("color: rgb(198,40,40); font-weight: bold" if stale else "")
 
     def save_settings(self, settings):
         settings.set_value("video/topic", self._wanted_topic if self._picked else self.topic)
+        settings.set_value("video/robot", self.robot)
 
     def restore_settings(self, settings):
+        robot = settings.value("video/robot", None)
+        if robot and self.robot_combo.findData(str(robot)) >= 0:
+            self.select_robot(str(robot))
         topic = settings.value("video/topic", None)
         if topic:
             self.prefer(str(topic))

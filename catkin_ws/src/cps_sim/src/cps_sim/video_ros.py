@@ -1,0 +1,121 @@
+"""One camera robot's managed video as fleet_sim publishes it (rospy wiring over cps_sim.video).
+
+Listens to the manager's <robot>/video_throttle/level (std_msgs/UInt8) and rate_hz
+(std_msgs/Float64); publishes the JPEG frames on <robot>/camera/image_raw/compressed and
+<robot>/video_throttle/status (cps_msgs/RateLimiterStatus, latched, 1 Hz and after every change).
+"""
+
+import threading
+import time
+
+import rospy
+from sensor_msgs.msg import CompressedImage
+from std_msgs.msg import Float64, UInt8
+
+from cps_fleet import names
+from cps_msgs.msg import RateLimiterStatus
+from cps_sim import messages
+from cps_sim.scheduling import RateMeter
+from cps_sim.video import LevelSizes, VideoControl, VideoTask, compressed_image_bytes
+
+# The scheduler's key of a robot's video task (a robot's name has no space).
+VIDEO_KEY_SUFFIX = " video"
+
+
+def video_key(robot):
+    return robot + VIDEO_KEY_SUFFIX
+
+
+class RobotVideo:
+    """A robot's video: the level and rate it follows, what it sent, its topics."""
+
+    def __init__(self, robot, sensor_frame, streams, on_rate_change):
+        """on_rate_change(key, rate_hz): reschedules the video task when the manager changes its rate."""
+        self.robot, self.sensor_frame = robot, sensor_frame
+        self.key = video_key(robot)
+        self.lock = threading.Lock()
+        self.control = VideoControl(streams)
+        self.sizes = LevelSizes(streams.video_levels)
+        self.sent_meter = RateMeter()
+        self.rendered = 0
+        self.sent = 0
+        self.mean_bytes = float("nan")
+        self.on_rate_change = on_rate_change
+
+        def topic(relative):
+            return names.robot_topic(robot, relative)
+
+        self.level_topic = names.absolute(topic(names.VIDEO_LEVEL))
+        self.rate_topic = names.absolute(topic(names.VIDEO_RATE_HZ))
+        self.image_topic = names.absolute(topic(names.CAMERA_IMAGE_COMPRESSED))
+        self.publisher = rospy.Publisher(self.image_topic, CompressedImage, queue_size=2)
+        self.status_pub = rospy.Publisher(
+            names.absolute(topic(names.VIDEO_STATUS)), RateLimiterStatus, queue_size=5, latch=True
+        )
+        rospy.Subscriber(self.level_topic, UInt8, self._on_level, queue_size=5)
+        rospy.Subscriber(self.rate_topic, Float64, self._on_rate, queue_size=5)
+
+    @property
+    def rate_hz(self):
+        return self.control.rate_hz
+
+    def _on_level(self, msg):
+        with self.lock:
+            error = self.control.set_level(msg.data)
+        if error:
+            rospy.logerr(f"{self.level_topic}: {error}")
+            return
+        self.publish_status()
+
+    def _on_rate(self, msg):
+        with self.lock:
+            error, note = self.control.set_rate(msg.data)
+            rate = self.control.rate_hz
+        if error:
+            rospy.logerr(f"{self.rate_topic}: {error}")
+            return
+        if note:
+            rospy.logwarn_throttle(10.0, f"{self.rate_topic}: {note}")
+        self.on_rate_change(self.key, rate)
+        self.publish_status()
+
+    def wanted(self):
+        """The VideoTask of the next frame, or None when nobody subscribes (nothing is rendered)."""
+        if self.publisher.get_num_connections() == 0:
+            return None
+        with self.lock:
+            level = self.control.level
+            return VideoTask(self.robot, self.control.level_index, level.width, level.height, level.jpeg_quality)
+
+    def publish(self, frame, stamp_s, now_s):
+        """Send a rendered VideoFrame stamped at its pose's instant; learn its level's size."""
+        msg = CompressedImage(format=frame.format, data=frame.jpeg.tobytes())
+        msg.header.stamp = messages.stamp(stamp_s)
+        msg.header.frame_id = self.sensor_frame
+        self.publisher.publish(msg)
+        size = compressed_image_bytes(msg.header.frame_id, msg.format, len(msg.data))
+        with self.lock:
+            self.rendered += 1
+            self.sent += 1
+            self.sizes.add(frame.level_index, size)
+            self.mean_bytes = size if self.mean_bytes != self.mean_bytes else 0.9 * self.mean_bytes + 0.1 * size
+            self.sent_meter.tick(now_s)
+
+    def publish_status(self, now_s=None):
+        now_s = time.time() if now_s is None else now_s
+        with self.lock:
+            index = self.control.level_index
+            status = RateLimiterStatus(
+                input_topic=self.image_topic,
+                output_topic=self.image_topic,
+                set_rate_hz=self.control.rate_hz,
+                input_rate_hz=self.sent_meter.rate_hz(now_s),
+                output_rate_hz=self.sent_meter.rate_hz(now_s),
+                mean_message_bytes=self.mean_bytes,
+                received=self.rendered,
+                forwarded=self.sent,
+                level=index,
+                level_mean_message_bytes=self.sizes.mean(index),
+            )
+        status.header.stamp = rospy.Time.now()
+        self.status_pub.publish(status)
