@@ -125,11 +125,16 @@ def _args(params: Dict[str, object]) -> List[str]:
     return out
 
 
-def _stats_topics(robots):
+def _stats_topics(robots, video_robots=()):
     """What topic_stats measures on the twin: the relayed managed clouds and the light unmanaged
-    streams (the same set as its fleet default, restricted to the running robots)."""
+    streams (the same set as its fleet default, restricted to the running robots), and the managed
+    video of `video_robots`."""
     topics = [A(t) for r in robots for t in (names.managed_cloud_at_twin(r), *names.light_robot_streams(r))]
-    return ",".join(topics + [names.TF])
+    return ",".join(topics + _video_topics(video_robots) + [names.TF])
+
+
+def _video_topics(video_robots):
+    return [A(names.robot_topic(r, names.CAMERA_IMAGE_COMPRESSED)) for r in video_robots]
 
 
 def default_node_path(package: str, node: str) -> str:
@@ -367,6 +372,9 @@ def plan_nodes(
                 restart_limit=3,
             )
         )
+        # The managed video, measured where it arrives: over Zenoh the twin's bridge republishes it
+        # there; over one master a twin-side subscriber would pull a second copy across the link.
+        measured_video = [r.name for r in fleet.robots if r.has_depth_camera] if options.transport == ZENOH else []
         specs.append(
             NodeSpec(
                 "topic_stats",
@@ -379,9 +387,11 @@ def plan_nodes(
                         {
                             **common,
                             "csv_path": os.path.join(out, "stats.csv"),
-                            "topics": _stats_topics(robots),
+                            "topics": _stats_topics(robots, measured_video),
                             "arrivals_csv_path": os.path.join(out, "arrivals.csv"),
-                            "arrival_topics": ",".join(A(names.managed_cloud_at_twin(r)) for r in robots),
+                            "arrival_topics": ",".join(
+                                [A(names.managed_cloud_at_twin(r)) for r in robots] + _video_topics(measured_video)
+                            ),
                         }
                     ),
                 ),
