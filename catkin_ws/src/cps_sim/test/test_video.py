@@ -64,11 +64,20 @@ def test_control_starts_coarse_and_slow_and_keeps_the_last_good_setting():
     assert control.set_level(0) is None and control.level.name == "640x480"
     assert "unknown video level 7" in control.set_level(7) and control.level_index == 0
     assert control.set_rate(12.5) == (None, None) and control.rate_hz == 12.5
-    for bad in (math.nan, -3.0, 0.0, math.inf, "fast"):
+    for bad in (math.nan, -3.0, math.inf, "fast"):
         error, _ = control.set_rate(bad)
-        assert error and control.rate_hz == 12.5, bad
+        assert error and control.rate_hz == 12.5 and not control.off, bad
     error, note = control.set_rate(100.0)
     assert error is None and "clamped" in note and control.rate_hz == streams.video_max_rate_hz
+
+
+def test_rate_0_from_the_allocator_turns_the_video_off_until_a_positive_rate():
+    control = VideoControl(load_fleet().streams)
+    assert control.set_rate(12.0) == (None, None)
+    assert control.set_rate(0.0) == (None, None)
+    assert control.off and control.set_rate_hz == 0.0 and control.rate_hz == 12.0
+    assert control.set_rate(8.0) == (None, None)
+    assert not control.off and control.set_rate_hz == 8.0
 
 
 def test_level_sizes_are_per_level_means_of_the_last_frames():

@@ -119,7 +119,9 @@ def test_bad_settings_are_logged_and_the_last_good_one_kept(sim, rospy_node):
         rate.publish(Float64(8.0))
         status.wait(lambda s: s.level == 1 and s.set_rate_hz == 8.0, timeout_s=10)
         rate.publish(Float64(float("nan")))
-        log.wait(lambda m: "not a positive finite number" in m.msg, timeout_s=10, what="the NaN rate's error")
+        log.wait(
+            lambda m: "not 0 (off) or a positive finite number" in m.msg, timeout_s=10, what="the NaN rate's error"
+        )
         rate.publish(Float64(-2.0))
         log.wait(lambda m: "-2.0" in m.msg and m.level == Log.ERROR, timeout_s=10, what="the negative rate's error")
         level.publish(UInt8(7))
@@ -130,6 +132,13 @@ def test_bad_settings_are_logged_and_the_last_good_one_kept(sim, rospy_node):
         report = status.wait(lambda s: s.forwarded > 0, timeout_s=5)
         assert (report.level, report.set_rate_hz) == (1, 8.0)
         assert all(_dimensions(m) == (320, 240) for _, m in images.take()[1:])
+        # Rate 0, the allocator's "no room": off, said in the status, until a positive rate.
+        rate.publish(Float64(0.0))
+        status.wait(lambda s: s.set_rate_hz == 0.0, timeout_s=10, what="the video off")
+        images.take()
+        assert not wait_for(lambda: images.count > 0, timeout_s=2.0), "a frame was sent while the video was off"
+        rate.publish(Float64(8.0))
+        images.wait_count(2, timeout_s=10)
     finally:
         log.close()
 

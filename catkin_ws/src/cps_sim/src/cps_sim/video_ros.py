@@ -80,10 +80,13 @@ class RobotVideo:
         self.publish_status()
 
     def wanted(self):
-        """The VideoTask of the next frame, or None when nobody subscribes (nothing is rendered)."""
+        """The VideoTask of the next frame, or None when nobody subscribes or the manager turned the
+        video off (nothing is rendered)."""
         if self.publisher.get_num_connections() == 0:
             return None
         with self.lock:
+            if self.control.off:
+                return None
             level = self.control.level
             return VideoTask(self.robot, self.control.level_index, level.width, level.height, level.jpeg_quality)
 
@@ -108,7 +111,7 @@ class RobotVideo:
             status = RateLimiterStatus(
                 input_topic=self.image_topic,
                 output_topic=self.image_topic,
-                set_rate_hz=self.control.rate_hz,
+                set_rate_hz=self.control.set_rate_hz,
                 input_rate_hz=self.sent_meter.rate_hz(now_s),
                 output_rate_hz=self.sent_meter.rate_hz(now_s),
                 mean_message_bytes=self.mean_bytes,

@@ -259,7 +259,7 @@ class ManagedVideoCompressor:
             return
         now = time.monotonic()
         with self.lock:
-            if not self.limiter.allow(now):
+            if self.control.off or not self.limiter.allow(now):
                 self.report.count(skipped_rate=1)
                 return
             index, level = self.control.level_index, self.control.level
@@ -296,7 +296,7 @@ class ManagedVideoCompressor:
             status = RateLimiterStatus(
                 input_topic=self.input_topic,
                 output_topic=self.output_topic,
-                set_rate_hz=self.control.rate_hz,
+                set_rate_hz=self.control.set_rate_hz,
                 input_rate_hz=self.limiter.input.rate_hz(now),
                 output_rate_hz=self.sent_meter.rate_hz(now),
                 mean_message_bytes=self.mean_bytes,

@@ -19,7 +19,12 @@ class VideoControl:
     """The level and rate one robot's camera follows. Until set: the coarsest level at
     DEFAULT_VIDEO_RATE_HZ (within the fleet's video rate bounds). A bad setting is refused with
     the reason and the last good one kept; a rate outside [video_min_rate_hz, video_max_rate_hz]
-    is clamped to it (with a note)."""
+    is clamped to it (with a note); rate 0 turns the video off (the allocator's "no room")."""
+
+    @property
+    def set_rate_hz(self):
+        """The rate in force: 0 while off."""
+        return 0.0 if self.off else self.rate_hz
 
     def __init__(self, streams):
         self.levels = streams.video_levels
@@ -27,6 +32,9 @@ class VideoControl:
         self.max_rate_hz = streams.video_max_rate_hz
         self.level_index = len(self.levels) - 1
         self.rate_hz = min(max(DEFAULT_VIDEO_RATE_HZ, self.min_rate_hz), self.max_rate_hz)
+        # Rate 0 from the manager: the link has no room for this video; nothing is rendered or sent
+        # until a positive rate comes (rate_hz keeps the last one, for the schedule).
+        self.off = False
 
     @property
     def level(self):
@@ -52,10 +60,13 @@ class VideoControl:
             rate = float(rate_hz)
         except (TypeError, ValueError):
             return f"rate {rate_hz!r} is not a number; keeping {self.rate_hz:g} Hz", None
-        if not math.isfinite(rate) or rate <= 0.0:
-            return f"rate {rate_hz!r} Hz is not a positive finite number; keeping {self.rate_hz:g} Hz", None
+        if rate == 0.0:
+            self.off = True
+            return None, None
+        if not math.isfinite(rate) or rate < 0.0:
+            return f"rate {rate_hz!r} Hz is not 0 (off) or a positive finite number; keeping {self.rate_hz:g} Hz", None
         clamped = min(max(rate, self.min_rate_hz), self.max_rate_hz)
-        self.rate_hz = clamped
+        self.rate_hz, self.off = clamped, False
         if clamped != rate:
             return None, f"rate {rate:g} Hz clamped to {clamped:g} Hz (video_min/max_rate_hz)"
         return None, None
