@@ -321,3 +321,37 @@ def test_a_camera_compressor_runs_only_without_the_simulated_camera(simulate, re
             assert compressor is None
         else:
             assert f"_robot:={robot.name}" in compressor.argv and compressor.side == PHYSICAL
+
+
+def test_the_unmanaged_arm_sends_the_finest_video_and_the_operators_robot_reaches_the_manager():
+    """--bandwidth-manager off: the cameras start at the finest video at the maximum rate (nobody
+    will lower them); with the manager, --select-robot becomes its ~selected_robot. Over Zenoh each
+    side runs a main and a command bridge, and the twin measures the cameras' video."""
+    fleet = load_fleet()
+    off = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", bandwidth_manager=False))}
+    assert "bandwidth_manager" not in off and _arg(off["fleet_sim"], "_video_unmanaged") == "true"
+    on = {
+        s.label: s
+        for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", transport=ZENOH, selected_robot="jackal"))
+    }
+    assert _arg(on["fleet_sim"], "_video_unmanaged") == "false"
+    assert _arg(on["bandwidth_manager"], "_selected_robot") == "jackal"
+    assert {
+        "zenoh_bridge_robots",
+        "zenoh_bridge_robots_command",
+        "zenoh_bridge_twin",
+        "zenoh_bridge_twin_command",
+    } <= set(on)
+    assert "--lane" in on["zenoh_bridge_twin_command"].argv
+    cameras = [r.name for r in fleet.robots if r.has_depth_camera]
+    assert _arg(on["topic_stats"], "_topics").count("/camera/image_raw/compressed") == len(cameras)
+    assert all(f"/{r}/camera/image_raw/compressed" in _arg(on["topic_stats"], "_arrival_topics") for r in cameras)
+
+
+def test_selecting_a_robot_without_a_camera_is_refused_before_anything_starts(tmp_path):
+    from cps_bringup.cli import build_parser, run_mission
+
+    args = build_parser().parse_args(["all", "--select-robot", "scout", "--out", str(tmp_path / "out")])
+    with pytest.raises(BringupError, match=r"--select-robot scout: not a camera robot .*camera robots: jackal"):
+        run_mission(args, log=lambda _line: None)
+    assert not (tmp_path / "out").exists()

@@ -180,8 +180,15 @@ def build_parser():
         "--bandwidth-manager",
         choices=("on", "off"),
         default="on",
-        help="off: no bandwidth manager; each robot's rate limiter passes its sensor's full rate "
-        "(the paper's unmanaged case, for comparison)",
+        help="off: no bandwidth manager; each robot's rate limiter passes its sensor's full rate and each "
+        "camera sends its finest video at the fleet's maximum rate (the unmanaged case, for comparison)",
+    )
+    parser.add_argument(
+        "--select-robot",
+        default=None,
+        metavar="ROBOT",
+        help="the camera robot whose video the operator watches from the start (the GUI's choice replaces it): "
+        "the manager gives it operator-quality video first",
     )
     parser.add_argument(
         "--tissue-layout",
@@ -271,6 +278,10 @@ def run_mission(args, log=print) -> MissionResult:
         fleet = robot_names_arg(fleet, args.robots.split(",") if args.robots else None)
     except (ConfigError, KeyError, ValueError) as exc:
         raise BringupError(str(exc).strip('"')) from exc
+    selected = getattr(args, "select_robot", None)
+    if selected and selected not in [r.name for r in fleet.robots if r.has_depth_camera]:
+        cameras = ", ".join(r.name for r in fleet.robots if r.has_depth_camera) or "none"
+        raise BringupError(f"--select-robot {selected}: not a camera robot of this fleet (camera robots: {cameras})")
     out_dir = os.path.abspath(args.out)
     sides = _sides(args.side)
     baseline, site_changes = check_monitoring_inputs(args, fleet, sides)
@@ -295,6 +306,7 @@ def run_mission(args, log=print) -> MissionResult:
         record_path=os.path.abspath(args.record) if args.record else None,
         replay_path=replay_path,
         bandwidth_manager=args.bandwidth_manager == "on",
+        selected_robot=selected or "",
         control_layout=args.control_layout,
         tissue_layout=args.tissue_layout,
     )

@@ -97,6 +97,8 @@ class RunOptions:
     # False: no bandwidth manager; every rate limiter passes the sensor's full rate (up to the
     # link's max_rate_hz), the paper's unmanaged case.
     bandwidth_manager: bool = True
+    # The operator's robot from the start (the manager's ~selected_robot; the GUI's choice replaces it).
+    selected_robot: str = ""
     # One of CONTROL_LAYOUTS.
     control_layout: str = SHARED_CONTROL
     # One of TISSUE_LAYOUTS.
@@ -207,6 +209,7 @@ def plan_nodes(
                                 "profile": profile,
                                 "robots": ",".join(robots),
                                 "renderer": options.renderer,
+                                "video_unmanaged": not options.bandwidth_manager,
                                 **(
                                     {"site_changes_file": options.site_changes_file}
                                     if options.site_changes_file
@@ -415,6 +418,7 @@ def plan_nodes(
                                 "robots": ",".join(robots),
                                 "csv_path": os.path.join(out, "allocation.csv"),
                                 "link_state_csv_path": os.path.join(out, "link_state.csv"),
+                                **({"selected_robot": options.selected_robot} if options.selected_robot else {}),
                                 **(
                                     {"available_mbps": round(options.available_mbps, 2)}
                                     if options.available_mbps

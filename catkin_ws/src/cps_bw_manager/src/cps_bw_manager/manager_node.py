@@ -97,6 +97,12 @@ class BandwidthManagerNode:
         self.core = ManagerCore(
             fleet.robot_names, settings, estimator, streams=fleet.streams, camera_robots=video_robots
         )
+        selected = str(rospy.get_param("~selected_robot", "")).strip()
+        if selected and selected not in video_robots:
+            raise ValueError(
+                f"parameter ~selected_robot: '{selected}' is not a camera robot ({', '.join(video_robots)})"
+            )
+        self.core.on_selected_robot(selected)  # until the operator's GUI says otherwise
         self.lock = threading.Lock()
         csv_path = rospy.get_param("~csv_path", "")
         csv_max_bytes = int(fleet.limits.csv_max_mbytes * 1e6)

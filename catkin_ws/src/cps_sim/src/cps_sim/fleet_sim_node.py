@@ -53,6 +53,9 @@ class FleetSimOptions:
     site_without: Tuple[str, ...] = ()
     site_moves: Tuple[SiteMove, ...] = ()
     site_changes_file: str = ""
+    # No bandwidth manager: every camera's video at the finest level and the fleet's maximum rate
+    # (the unmanaged load), not the coarse default it keeps until a manager speaks.
+    video_unmanaged: bool = False
 
 
 def read_options():
@@ -85,6 +88,7 @@ def read_options():
         site_without=tuple(name_list(rospy.get_param("~site_without", ""))),
         site_moves=moves,
         site_changes_file=rospy.get_param("~site_changes_file", ""),
+        video_unmanaged=bool(rospy.get_param("~video_unmanaged", default.video_unmanaged)),
         **rates,
     )
 
@@ -179,7 +183,9 @@ class FleetSimNode:
         if sim.config.has_depth_camera:
             pubs["image"] = rospy.Publisher(topic(names.CAMERA_IMAGE), Image, queue_size=2)
             pubs["info"] = rospy.Publisher(topic(names.CAMERA_INFO), CameraInfo, queue_size=2)
-            video = RobotVideo(name, sim.sensor_frame, self.fleet.streams, self._on_video_rate)
+            video = RobotVideo(
+                name, sim.sensor_frame, self.fleet.streams, self._on_video_rate, unmanaged=self.options.video_unmanaged
+            )
             self.videos[video.key] = video
         self.pubs[name] = pubs
         self.gates[name] = CommandGate(CMD_TIMEOUT_S)

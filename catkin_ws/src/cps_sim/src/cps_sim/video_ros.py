@@ -29,12 +29,16 @@ def video_key(robot):
 class RobotVideo:
     """A robot's video: the level and rate it follows, what it sent, its topics."""
 
-    def __init__(self, robot, sensor_frame, streams, on_rate_change):
-        """on_rate_change(key, rate_hz): reschedules the video task when the manager changes its rate."""
+    def __init__(self, robot, sensor_frame, streams, on_rate_change, unmanaged=False):
+        """on_rate_change(key, rate_hz): reschedules the video task when the manager changes its rate.
+        unmanaged: start at the finest level and the maximum rate (no manager will speak)."""
         self.robot, self.sensor_frame = robot, sensor_frame
         self.key = video_key(robot)
         self.lock = threading.Lock()
         self.control = VideoControl(streams)
+        if unmanaged:
+            self.control.set_level(0)
+            self.control.set_rate(streams.video_max_rate_hz)
         self.sizes = LevelSizes(streams.video_levels)
         self.sent_meter = RateMeter()
         self.rendered = 0
