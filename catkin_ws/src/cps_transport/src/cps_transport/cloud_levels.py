@@ -1,0 +1,126 @@
+"""The managed cloud's detail levels and the leaf each cloud carries (no ROS; docs/cloud_levels.md).
+
+Every managed cloud carries the voxel leaf it was produced at as a per-point FLOAT32 field named
+`leaf_size_m` (LEAF_FIELD), the same value on every point. The encoder adds it without copying the
+cloud (`DracoEncoder.encode(cloud, leaf_size_m=...)`): Draco carries it as one constant GENERIC
+attribute (about 45 bytes per cloud), the compressed message's `fields` name it, and the unchanged
+decoder gives it back as an ordinary field of the twin's PointCloud2, which the map server reads.
+
+A level change reaches the voxel grid before the clouds it already filtered have all reached the
+encoder, so `LeafTracker` labels the clouds of a switch by what they are: a voxel grid's output
+has one point per voxel of its leaf (each centroid lies in its own voxel), and a cloud filtered at
+a finer leaf almost always has several points in some voxel of the coarser one.
+"""
+
+import math
+from typing import Optional, Sequence, Tuple
+
+import numpy as np
+
+LEAF_FIELD = "leaf_size_m"
+# Two leaves within this relative difference are the same level (float32 round trips of 0.05 m).
+LEAF_RELATIVE_TOLERANCE = 1e-4
+
+
+class LeafError(ValueError):
+    """A cloud's leaf field that cannot be read as one leaf (not constant, not finite, <= 0)."""
+
+
+def level_of_leaf(leaves_m: Sequence[float], leaf_m: float) -> Optional[int]:
+    """Index of the level whose leaf is `leaf_m` (within LEAF_RELATIVE_TOLERANCE), else None."""
+    for index, level_leaf in enumerate(leaves_m):
+        if abs(leaf_m - level_leaf) <= LEAF_RELATIVE_TOLERANCE * level_leaf:
+            return index
+    return None
+
+
+def nearest_level(leaves_m: Sequence[float], leaf_m: float) -> int:
+    """Index of the level nearest `leaf_m` by ratio (0.01 m -> the 0.05 m level; ties: finer)."""
+    if not leaves_m:
+        raise ValueError("no levels")
+    if not leaf_m > 0:
+        raise ValueError(f"leaf must be > 0 m, got {leaf_m}")
+    return min(range(len(leaves_m)), key=lambda i: (abs(math.log(leaves_m[i] / leaf_m)), i))
+
+
+def cloud_level_leaves(fleet) -> Tuple[float, ...]:
+    """The managed cloud's level leaves (fleet.yaml streams.cloud_levels), finest first."""
+    return tuple(float(level.voxel_leaf_m) for level in fleet.streams.cloud_levels)
+
+
+def initial_leaf_m(fleet, robot_config) -> float:
+    """The leaf a robot's voxel grid starts at, until the manager publishes a level: the level
+    nearest the robot's voxel_leaf_m (one of the levels, so the manager always knows the size)."""
+    leaves = cloud_level_leaves(fleet)
+    return leaves[nearest_level(leaves, robot_config.voxel_leaf_m)]
+
+
+def leaf_of_points(points) -> Optional[float]:
+    """The leaf a structured point array carries in LEAF_FIELD; None when it has no such field;
+    LeafError when the values are not one finite leaf > 0."""
+    names = points.dtype.names or ()
+    if LEAF_FIELD not in names:
+        return None
+    values = np.asarray(points[LEAF_FIELD], dtype=np.float64).reshape(-1)
+    if len(values) == 0:
+        raise LeafError("no points to read the leaf from")
+    first = values[0]
+    if not (math.isfinite(first) and first > 0):
+        raise LeafError(f"{LEAF_FIELD} is {first!r}, not a leaf > 0 m")
+    if not np.all(values == first):
+        low, high = float(np.nanmin(values)), float(np.nanmax(values))
+        raise LeafError(f"{LEAF_FIELD} varies within the cloud ({low!r} .. {high!r}); one leaf per cloud")
+    return float(first)
+
+
+def one_point_per_voxel(xyz, leaf_m) -> bool:
+    """True when no two of the finite points (N x 3) share a voxel of edge `leaf_m`, keyed as
+    pcl::VoxelGrid keys them (floor(p * (1 / leaf)) in float32): what a voxel grid at that leaf
+    (or finer) emits."""
+    xyz = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if len(xyz) < 2:
+        return True
+    keys = np.floor(xyz * (np.float32(1.0) / np.float32(leaf_m))).astype(np.int64)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 2] * span[1] + keys[:, 1]) * span[0] + keys[:, 0]
+    return len(np.unique(flat)) == len(flat)
+
+
+class LeafTracker:
+    """The leaf of each cloud coming out of a voxel grid whose leaf is switched at runtime.
+
+    `switch(new_leaf)` once the voxel grid has taken the new leaf; `leaf_of(xyz)` for each cloud
+    after it, in order. Until the first cloud that shows the new leaf, a cloud is the coarser of
+    (old, new) if it has one point per voxel of the coarser leaf, else the finer; from then on
+    every cloud is the new leaf. A sparse cloud of the finer leaf can pass for the coarser one
+    during a switch (then it is inserted as the coarser: gaps of up to the coarser leaf bridged)."""
+
+    def __init__(self, leaf_m):
+        self.leaf_m = float(leaf_m)
+        self.previous_m: Optional[float] = None
+        self.switches = 0
+
+    @property
+    def switching(self):
+        return self.previous_m is not None
+
+    def switch(self, new_leaf_m):
+        new_leaf_m = float(new_leaf_m)
+        if new_leaf_m == self.leaf_m and not self.switching:
+            return
+        old = self.previous_m if self.switching else self.leaf_m
+        self.previous_m, self.leaf_m = old, new_leaf_m
+        if old == new_leaf_m:  # switched back before any cloud showed the new leaf
+            self.previous_m = None
+        self.switches += 1
+
+    def leaf_of(self, xyz) -> float:
+        if not self.switching:
+            return self.leaf_m
+        coarse, fine = max(self.previous_m, self.leaf_m), min(self.previous_m, self.leaf_m)
+        leaf = coarse if one_point_per_voxel(xyz, coarse) else fine
+        if leaf == self.leaf_m:
+            self.previous_m = None
+        return leaf
