@@ -1,0 +1,116 @@
+"""The robot's tissue follows the manager's cloud level: publishing /<r>/cloud_throttle/level makes
+pcl_ros's VoxelGrid filter at that level's leaf, every managed cloud carries that leaf, and the
+rate limiter's status reports the level and its own mean size (private master, real nodes)."""
+
+import math
+
+import pytest
+
+from cps_fleet import names
+from cps_fleet.fleet import load_fleet
+from cps_harness.testing import TopicRecorder, wait_for
+from cps_transport.cloud_levels import cloud_level_leaves, initial_leaf_m, level_of_leaf, one_point_per_voxel
+
+pytestmark = pytest.mark.ros
+
+ROBOT = "jackal"
+
+
+def _xyz(cloud):
+    from cps_transport.pointcloud import cloud_to_array, xyz_of
+
+    return xyz_of(cloud_to_array(cloud))
+
+
+def _filtered_at(leaf, coarser):
+    """A voxel grid's output at `leaf`: one point per voxel of it, several in some of `coarser`."""
+    return lambda msg: (
+        one_point_per_voxel(_xyz(msg), leaf) and (coarser is None or not one_point_per_voxel(_xyz(msg), coarser))
+    )
+
+
+def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros, rospy_node):
+    rospy = rospy_node
+    from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import UInt8
+
+    from cps_harness.synthetic_clouds import depth_camera_cloud
+    from cps_msgs.msg import CompressedPointCloud2, RateLimiterStatus
+    from cps_transport.draco import leaf_of_compressed
+
+    fleet = load_fleet()
+    leaves = cloud_level_leaves(fleet)
+    start_leaf = initial_leaf_m(fleet, fleet.robot(ROBOT))
+    ros.popen(["rosrun", "nodelet", "nodelet", "manager", "__name:=level_manager"], name="level_manager")
+    ros.start_node(
+        "cps_transport",
+        "voxel_grid_loader",
+        name="voxel_grid_loader",
+        params={"~robots": ROBOT, "~manager": "/level_manager"},
+    )
+    ros.start_node(
+        "cps_transport", "cloud_tissue", name="cloud_tissue", params={"~robots": ROBOT, "~initial_rate_hz": 30.0}
+    )
+    managed = TopicRecorder(f"/{ROBOT}/{names.POINTS_MANAGED}", CompressedPointCloud2)
+    filtered = TopicRecorder(f"/{ROBOT}/{names.POINTS_FILTERED}", PointCloud2)
+    status = TopicRecorder(f"/{ROBOT}/{names.LIMITER_STATUS}", RateLimiterStatus)
+    level_pub = rospy.Publisher(f"/{ROBOT}/{names.LIMITER_LEVEL}", UInt8, queue_size=1, latch=True)
+    cloud_pub = rospy.Publisher(f"/{ROBOT}/{fleet.robot(ROBOT).cloud_topic}", PointCloud2, queue_size=2)
+    cloud = depth_camera_cloud(width=320, height=240, far_m=8.0)
+
+    def feed_until(predicate, timeout_s=60.0):
+        """Publish the camera cloud until the newest managed cloud satisfies `predicate`."""
+
+        def check():
+            cloud.header.stamp = rospy.Time.now()
+            cloud_pub.publish(cloud)
+            latest = managed.latest
+            return latest is not None and predicate(latest)
+
+        return wait_for(check, timeout_s=timeout_s, poll_s=0.1)
+
+    def leaf_is(leaf):
+        return lambda msg: abs(leaf_of_compressed(msg) - leaf) < 1e-6
+
+    try:
+        ros.wait_for_topic(f"/{ROBOT}/{names.POINTS_FILTERED}", timeout_s=60)
+        assert feed_until(leaf_is(start_leaf)), ros.output("cloud_tissue")[-3000:]
+        for level in (2, 0):
+            level_pub.publish(UInt8(data=level))
+            assert feed_until(leaf_is(leaves[level])), (
+                f"no cloud at level {level}: " + ros.output("cloud_tissue")[-3000:]
+            )
+            assert level_of_leaf(leaves, leaf_of_compressed(managed.latest)) == level
+            # the voxel grid really filters at that leaf now (its own output; Draco then moves
+            # points by up to half the finer of leaf and map resolution)
+            coarser = leaves[level + 1] if level + 1 < len(leaves) else None
+            filtered.wait(_filtered_at(leaves[level], coarser), timeout_s=20, what=f"a cloud at {leaves[level]} m")
+            last = status.wait(
+                lambda s, level=level: s.level == level and math.isfinite(s.level_mean_message_bytes),
+                timeout_s=20,
+                what=f"status at level {level}",
+            )
+            assert 0 < last.level_mean_message_bytes
+        sizes = {}
+        # The status' level mean is the size at that level only: the fine level's is larger.
+        for level in (2, 0):
+            level_pub.publish(UInt8(data=level))
+            assert feed_until(leaf_is(leaves[level]))
+            wait_for(lambda: cloud_pub.publish(cloud) or managed.count > 0, timeout_s=5)
+            sizes[level] = status.wait(
+                lambda s, level=level: s.level == level and math.isfinite(s.level_mean_message_bytes),
+                timeout_s=20,
+            ).level_mean_message_bytes
+        assert sizes[0] > 3 * sizes[2], sizes
+        # A level past the fleet's levels is refused and counted; the leaf stays.
+        level_pub.publish(UInt8(data=len(leaves) + 4))
+        assert wait_for(lambda: "is not one of the 3 cloud levels" in ros.output("cloud_tissue"), timeout_s=20), (
+            ros.output("cloud_tissue")[-2000:]
+        )
+        assert feed_until(leaf_is(leaves[0]))
+    finally:
+        managed.close()
+        filtered.close()
+        status.close()
+        level_pub.unregister()
+        cloud_pub.unregister()
