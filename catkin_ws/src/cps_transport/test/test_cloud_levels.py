@@ -133,7 +133,24 @@ def test_tracker_labels_the_clouds_of_a_switch_by_what_they_are(old, new):
 
 
 def test_tracker_switched_back_before_any_new_cloud():
+    surface = _surface()
     tracker = LeafTracker(0.1)
     tracker.switch(0.2)
     tracker.switch(0.1)
-    assert not tracker.switching and tracker.leaf_m == 0.1
+    assert tracker.leaf_m == 0.1 and tracker.pending == [0.2, 0.1]
+    assert tracker.leaf_of(voxel_downsample(surface, 0.2)) == 0.2
+    assert tracker.leaf_of(voxel_downsample(surface, 0.1)) == 0.1 and not tracker.switching
+
+
+def test_tracker_through_a_voxel_grid_restart():
+    """Level 0.05 m; the voxel grid comes back at 0.10 m (its initial leaf) and is set to 0.05 m
+    again: the clouds in between are labelled 0.10 m, then 0.05 m."""
+    surface = _surface()
+    tracker = LeafTracker(0.10)
+    tracker.switch(0.05)
+    assert tracker.leaf_of(voxel_downsample(surface, 0.05)) == 0.05 and not tracker.switching
+    tracker.switch(0.10)  # parameter_updates: it runs at 0.10 m
+    tracker.switch(0.05)  # set again
+    assert tracker.leaf_of(voxel_downsample(surface, 0.10)) == 0.10
+    assert tracker.leaf_of(voxel_downsample(surface, 0.10)) == 0.10
+    assert tracker.leaf_of(voxel_downsample(surface, 0.05)) == 0.05 and not tracker.switching

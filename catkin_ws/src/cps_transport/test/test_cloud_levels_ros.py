@@ -41,7 +41,7 @@ def _start_shared(ros, fleet):
     ros.start_node(
         "cps_transport", "cloud_tissue", name="cloud_tissue", params={"~robots": ROBOT, "~initial_rate_hz": 30.0}
     )
-    return "cloud_tissue", "cloud_tissue"
+    return "cloud_tissue", "cloud_tissue", None
 
 
 def _start_per_robot(ros, fleet):
@@ -50,7 +50,14 @@ def _start_per_robot(ros, fleet):
     from cps_transport.voxel_grid_command import voxel_nodelet_args
 
     robot = fleet.robot(ROBOT)
-    ros.popen(voxel_nodelet_args(robot, leaf_size_m=initial_leaf_m(fleet, robot)), name="voxel_grid")
+    argv = voxel_nodelet_args(robot, leaf_size_m=initial_leaf_m(fleet, robot))
+    voxel_grid = [ros.popen(argv, name="voxel_grid")]
+
+    def restart_voxel_grid():
+        """The voxel grid dies and comes back at its initial leaf, as after a manager restart."""
+        ros.stop(voxel_grid[0])
+        voxel_grid[0] = ros.popen(argv, name="voxel_grid")
+
     ros.start_node(
         "cps_transport",
         "draco_encoder",
@@ -67,7 +74,7 @@ def _start_per_robot(ros, fleet):
         params={"~cloud_levels": True, "~rate_hz": 30.0},
         remap={"~input": f"/{ROBOT}/{names.POINTS_DRACO}", "~output": f"/{ROBOT}/{names.POINTS_MANAGED}"},
     )
-    return "draco_encoder", names.CLOUD_THROTTLE
+    return "draco_encoder", names.CLOUD_THROTTLE, restart_voxel_grid
 
 
 @pytest.mark.parametrize("start", [_start_shared, _start_per_robot], ids=["shared", "per_robot"])
@@ -83,7 +90,7 @@ def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros,
     fleet = load_fleet()
     leaves = cloud_level_leaves(fleet)
     start_leaf = initial_leaf_m(fleet, fleet.robot(ROBOT))
-    follower, limiter = start(ros, fleet)
+    follower, limiter, restart_voxel_grid = start(ros, fleet)
     managed = TopicRecorder(f"/{ROBOT}/{names.POINTS_MANAGED}", CompressedPointCloud2)
     filtered = TopicRecorder(f"/{ROBOT}/{names.POINTS_FILTERED}", PointCloud2)
     status = TopicRecorder(f"/{ROBOT}/{names.LIMITER_STATUS}", RateLimiterStatus)
@@ -135,6 +142,22 @@ def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros,
             ).level_mean_message_bytes
         # (this 320 x 240 view: 0.05 m clouds are 2.8-3.5x the 0.2 m ones, measured; 2x is the bound)
         assert sizes[0] > 2 * sizes[2], sizes
+        if restart_voxel_grid is not None:
+            # level 0 (0.05 m) in force; a voxel grid back at its initial 0.10 m is set to 0.05 m again
+            restart_voxel_grid()
+            assert wait_for(lambda: "setting it again" in ros.output(follower), timeout_s=60), ros.output(follower)[
+                -2000:
+            ]
+            filtered.take()  # only clouds the new voxel grid filtered count now
+
+            def refiltered():
+                cloud.header.stamp = rospy.Time.now()
+                cloud_pub.publish(cloud)
+                latest = filtered.latest
+                return latest is not None and _filtered_at(leaves[0], leaves[1])(latest)
+
+            assert wait_for(refiltered, timeout_s=60, poll_s=0.1), "no 0.05 m cloud from the restarted voxel grid"
+            assert feed_until(leaf_is(leaves[0]))
         # A level past the fleet's levels is refused and counted; the leaf stays.
         level_pub.publish(UInt8(data=len(leaves) + 4))
         assert wait_for(lambda: "is not one of the 3 cloud levels" in ros.output(follower), timeout_s=20), ros.output(

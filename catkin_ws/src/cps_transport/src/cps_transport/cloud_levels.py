@@ -92,35 +92,36 @@ class LeafTracker:
     """The leaf of each cloud coming out of a voxel grid whose leaf is switched at runtime.
 
     `switch(new_leaf)` once the voxel grid has taken the new leaf; `leaf_of(xyz)` for each cloud
-    after it, in order. Until the first cloud that shows the new leaf, a cloud is the coarser of
-    (old, new) if it has one point per voxel of the coarser leaf, else the finer; from then on
-    every cloud is the new leaf. A sparse cloud of the finer leaf can pass for the coarser one
-    during a switch (then it is inserted as the coarser: gaps of up to the coarser leaf bridged)."""
+    after it, in order. Until the first cloud that shows the newest leaf, each cloud is the
+    coarsest of the leaves set since the last confirmed one for which it has one point per voxel;
+    from then on every cloud is the newest leaf. A sparse cloud of a finer leaf can pass for a
+    coarser one during a switch (then it is inserted as the coarser: gaps up to it bridged)."""
 
     def __init__(self, leaf_m):
-        self.leaf_m = float(leaf_m)
-        self.previous_m: Optional[float] = None
+        self.pending = [float(leaf_m)]  # leaves set since the last confirmed one, newest last
         self.switches = 0
 
     @property
+    def leaf_m(self):
+        """The newest leaf set (what the voxel grid produces now)."""
+        return self.pending[-1]
+
+    @property
     def switching(self):
-        return self.previous_m is not None
+        return len(self.pending) > 1
 
     def switch(self, new_leaf_m):
         new_leaf_m = float(new_leaf_m)
-        if new_leaf_m == self.leaf_m and not self.switching:
+        if new_leaf_m == self.pending[-1]:
             return
-        old = self.previous_m if self.switching else self.leaf_m
-        self.previous_m, self.leaf_m = old, new_leaf_m
-        if old == new_leaf_m:  # switched back before any cloud showed the new leaf
-            self.previous_m = None
+        self.pending = [leaf for leaf in self.pending if leaf != new_leaf_m] + [new_leaf_m]
         self.switches += 1
 
     def leaf_of(self, xyz) -> float:
         if not self.switching:
-            return self.leaf_m
-        coarse, fine = max(self.previous_m, self.leaf_m), min(self.previous_m, self.leaf_m)
-        leaf = coarse if one_point_per_voxel(xyz, coarse) else fine
-        if leaf == self.leaf_m:
-            self.previous_m = None
+            return self.pending[0]
+        candidates = sorted(self.pending, reverse=True)
+        leaf = next((c for c in candidates[:-1] if one_point_per_voxel(xyz, c)), candidates[-1])
+        # clouds come in order: the leaves set before this one's are over
+        self.pending = self.pending[self.pending.index(leaf) :]
         return leaf

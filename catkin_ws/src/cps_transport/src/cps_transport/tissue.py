@@ -300,9 +300,13 @@ class CloudLevelSwitch:
     index into `leaves_m`) sets the voxel grid `voxel_grid`'s leaf through its dynamic_reconfigure
     service (pcl_ros's VoxelGrid takes it between two clouds) and, once it answers with the new
     leaf, tells the encoder (`on_leaf(leaf_m)`). An index past the levels or a voxel grid that does
-    not take the leaf is logged and counted on /diagnostics; the previous level stays."""
+    not take the leaf is logged and counted on /diagnostics; the previous level stays. A voxel grid
+    that comes back at another leaf (its manager restarted and it was loaded again at its initial
+    leaf: its latched `parameter_updates` says so) is given the level again, and the clouds in
+    between carry the leaf it really used."""
 
     def __init__(self, level_topic, voxel_grid, leaves_m, on_leaf, timeout_s=VOXEL_GRID_RECONFIGURE_TIMEOUT_S):
+        from dynamic_reconfigure.msg import Config
         from dynamic_reconfigure.srv import Reconfigure
 
         self.leaves_m = tuple(leaves_m)
@@ -314,6 +318,28 @@ class CloudLevelSwitch:
         self.level = None
         self.lock = threading.Lock()
         self.subscriber = rospy.Subscriber(level_topic, UInt8, self.on_level, queue_size=1)
+        self.restored = 0
+        self.updates = rospy.Subscriber(ns_join(voxel_grid, "parameter_updates"), Config, self.on_parameters)
+
+    def on_parameters(self, config):
+        """The voxel grid's configuration in force: if it is not our level's leaf, set it again."""
+        leaf = {p.name: p.value for p in config.doubles}.get("leaf_size")
+        with self.lock:
+            if self.level is None or leaf is None or abs(leaf - self.leaves_m[self.level]) <= 1e-9:
+                return
+            rospy.logwarn(
+                f"{self.service_name}: the voxel grid runs at {leaf} m, not level {self.level}'s "
+                f"{self.leaves_m[self.level]} m (restarted?): setting it again"
+            )
+            self.on_leaf(leaf)
+            level, self.level = self.level, None
+            try:
+                self.apply(level)
+            except ValueError as exc:
+                self.report.drop(exc)
+                rospy.logerr_throttle(10.0, f"{self.subscriber.name}: {exc}")
+            else:
+                self.restored += 1
 
     def on_level(self, msg):
         with self.lock:  # one change at a time, in order
