@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
 """Cloud levels benchmark: bytes per managed cloud at each level of fleet.yaml's streams.cloud_levels
 on clouds cps_sim renders along each robot's route (the demo's profile, `light` by default), as the
-robot's tissue sends them: voxel grid at the level's leaf (pcl's semantics), Draco at half the finer
-of leaf and map resolution, the leaf carried with the cloud. Anchor in the same run: the same
-clouds without the leaf (the carrier's cost) and fleet.yaml's bytes_prior (the manager's
-assumption before it learns the size).
+robot's tissue sends them: voxel grid at the level's leaf (pcl's semantics), Draco at the tissue's
+tolerance (cloud_levels.position_tolerance_m: half the leaf, at most 1/8 of the map's resolution),
+the leaf carried with the cloud. Anchors in the same run: the same clouds without the leaf (the
+carrier's cost), Draco at half the leaf (the tolerance before the levels), and fleet.yaml's
+bytes_prior (the manager's assumption before it learns the size).
 
     source ci/env.sh && python bench/cloud_levels_bench.py [--frames 5] [--profile light] [--out docs/benchmarks/cloud_levels.md]
 """
@@ -16,7 +17,7 @@ import sys
 import numpy as np
 
 from cps_fleet.fleet import load_fleet
-from cps_transport.cloud_levels import cloud_level_leaves
+from cps_transport.cloud_levels import cloud_level_leaves, position_tolerance_m
 from cps_transport.draco import DracoEncoder
 from cps_transport.stream_sizes import filter_cloud
 
@@ -45,13 +46,15 @@ def main(argv=None):
     rows = []
     for robot, samples in clouds.items():
         for index, leaf in enumerate(leaves):
-            encoder = DracoEncoder(position_tolerance_m=0.5 * min(leaf, resolution))
-            points, labelled, plain = [], [], []
+            encoder = DracoEncoder(position_tolerance_m=position_tolerance_m(leaf, resolution))
+            half_leaf = DracoEncoder(position_tolerance_m=0.5 * leaf)
+            points, labelled, plain, before = [], [], [], []
             for sample in samples:
                 filtered, _ = filter_cloud(sample.cloud, leaf)
                 points.append(filtered.width * filtered.height)
                 labelled.append(serialized_bytes(encoder.encode(filtered, leaf_size_m=leaf)))
                 plain.append(serialized_bytes(encoder.encode(filtered)))
+                before.append(serialized_bytes(half_leaf.encode(filtered)))
             rows.append(
                 (
                     robot,
@@ -62,6 +65,7 @@ def main(argv=None):
                     min(labelled),
                     max(labelled),
                     np.mean(labelled) - np.mean(plain),
+                    np.mean(before),
                     priors[index],
                 )
             )
@@ -69,13 +73,16 @@ def main(argv=None):
         f"Bytes per managed cloud per level, {fleet.profile.name} profile, {args.frames} poses along each "
         f"robot's route (cps_sim), map resolution {resolution} m; serialized CompressedPointCloud2 as the "
         "rate limiter counts it. `leaf cost`: bytes the carried leaf adds (anchor: the same cloud without "
-        "it); `/ prior`: mean over fleet.yaml's bytes_prior for that level.\n\n"
-        "| robot | level | leaf m | points | bytes mean | min | max | leaf cost | bytes_prior | mean / prior |\n"
-        "|---|---|---|---|---|---|---|---|---|---|\n"
+        "it); `half leaf`: the same cloud at Draco's tolerance before the levels (half the leaf, no leaf "
+        "carried); `/ prior`: mean over fleet.yaml's bytes_prior for that level.\n\n"
+        "| robot | level | leaf m | points | bytes mean | min | max | leaf cost | half leaf | mean / half leaf "
+        "| bytes_prior | mean / prior |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = [
-        f"| {r} | {i} | {leaf:.2f} | {pts:.0f} | {mean:.0f} | {lo} | {hi} | {cost:.0f} | {prior:.0f} | {mean / prior:.2f} |"
-        for r, i, leaf, pts, mean, lo, hi, cost, prior in rows
+        f"| {r} | {i} | {leaf:.2f} | {pts:.0f} | {mean:.0f} | {lo} | {hi} | {cost:.0f} | {old:.0f} | {mean / old:.2f} "
+        f"| {prior:.0f} | {mean / prior:.2f} |"
+        for r, i, leaf, pts, mean, lo, hi, cost, old, prior in rows
     ]
     table = header + "\n".join(lines) + "\n"
     print(table)

@@ -26,7 +26,13 @@ from cps_msgs.srv import SetRate, SetRateResponse
 from cps_ros.diagnostics import DropReporter
 from cps_ros.relay import relay_class, relay_message
 from cps_ros.timers import guarded_timer
-from cps_transport.cloud_levels import LeafTracker, cloud_level_leaves, level_of_leaf, nearest_level
+from cps_transport.cloud_levels import (
+    LeafTracker,
+    cloud_level_leaves,
+    level_of_leaf,
+    nearest_level,
+    position_tolerance_m,
+)
 from cps_transport.draco import DracoEncoder, leaf_of_compressed
 from cps_transport.draco_transport import DracoPublisher, DracoSubscriber
 from cps_transport.image_compression import InvalidImage, compress_image
@@ -58,7 +64,7 @@ class RobotTissueConfig:
     initial_level: int = 0  # the level until the manager publishes one (the leaf above)
     level_topic: Optional[str] = None  # /<r>/cloud_throttle/level (std_msgs/UInt8, from the manager)
     voxel_grid: Optional[str] = None  # /<r>/voxel_grid, whose leaf a level change sets
-    map_resolution_m: float = math.inf  # Draco's tolerance is half the finer of the leaf and this
+    map_resolution_m: float = math.inf  # sets Draco's tolerance (cloud_levels.position_tolerance_m)
 
 
 def _rt(robot, name):
@@ -263,8 +269,8 @@ class ImageCompressor:
 class DracoEncoderPart:
     """Subscribes a sensor_msgs/PointCloud2 topic and publishes it Draco-encoded (DracoPublisher:
     bad clouds dropped and counted). With `leaves` (a LeafTracker) each cloud carries the leaf the
-    voxel grid produced it at, and Draco's position tolerance is half the finer of that leaf and
-    `map_resolution_m`."""
+    voxel grid produced it at, and Draco's position tolerance is `cloud_levels.position_tolerance_m`
+    of that leaf and `map_resolution_m`."""
 
     def __init__(
         self, input_topic, output_topic, encoder, leaves: Optional[LeafTracker] = None, map_resolution_m=math.inf
@@ -291,7 +297,7 @@ class DracoEncoderPart:
                     return
             else:
                 leaf = self.leaves.leaf_m
-        self.publisher.encoder.position_tolerance_m = 0.5 * min(leaf, self.map_resolution_m)
+        self.publisher.encoder.position_tolerance_m = position_tolerance_m(leaf, self.map_resolution_m)
         self.publisher.publish(cloud, leaf_size_m=leaf)
 
 
