@@ -122,7 +122,7 @@ def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros,
             )
             assert level_of_leaf(leaves, leaf_of_compressed(managed.latest)) == level
             # the voxel grid really filters at that leaf now (its own output; Draco then moves
-            # points by up to half the finer of leaf and map resolution)
+            # points by up to cloud_levels.position_tolerance_m)
             coarser = leaves[level + 1] if level + 1 < len(leaves) else None
             filtered.wait(_filtered_at(leaves[level], coarser), timeout_s=20, what=f"a cloud at {leaves[level]} m")
             last = status.wait(
