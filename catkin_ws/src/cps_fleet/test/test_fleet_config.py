@@ -81,8 +81,9 @@ def _line_of(path, needle):
         ("voxel_leaf_m: 0.20, bytes_prior", "voxel_leaf_m: 0.08, bytes_prior", "levels go from finest to coarsest"),
         (
             "voxel_leaf_m: 0.05, bytes_prior",
-            "voxel_leaf_m: 0.02, bytes_prior",
-            "leaf 0.02 m is finer than what robot type aerial_depth's depth resolves at its 6.0 m range (0.039 m",
+            "voxel_leaf_m: 0.01, bytes_prior",
+            "leaf 0.01 m is finer than what robot type aerial_depth's depth resolves at 3 m, half its max_range_m "
+            "(0.020 m",
         ),
         ("{name: 160x120, width: 160,", "{name: 160x120, width: 1600,", "levels go from finest to coarsest"),
         ("jpeg_quality: 90,", "jpeg_quality: 101,", "jpeg_quality: 101.0 is outside [1, 100]"),

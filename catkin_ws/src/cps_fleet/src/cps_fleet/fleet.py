@@ -462,19 +462,21 @@ def _streams(reader):
 
 def _check_cloud_levels(reader, streams, profile, robot_types, robots):
     """A cloud level finer than a robot's sensor resolves is refused (ConfigError at the level's
-    line): its leaf must be at least the sensor's point spacing at its type's max_range_m (the
-    farthest point the map inserts), else the voxel grid keeps every far point as it is and the
-    level costs bytes without adding detail there (docs/cloud_levels.md)."""
+    line): its leaf must be at least the sensor's point spacing at half its type's max_range_m
+    (the map inserts points up to max_range_m), else the voxel grid keeps every return of the
+    farther half of that range as it is and the level costs bytes without detail the sensor has
+    (docs/cloud_levels.md)."""
     used = sorted({robot.type for robot in robots})
     for item, level in zip(reader.items("cloud_levels"), streams.cloud_levels):
         for name in used:
             robot_type = robot_types[name]
-            spacing = profile.point_spacing_m(robot_type.sensor, robot_type.max_range_m)
+            range_m = 0.5 * robot_type.max_range_m
+            spacing = profile.point_spacing_m(robot_type.sensor, range_m)
             if level.voxel_leaf_m < spacing:
                 raise item.error(
                     "voxel_leaf_m",
                     f"level {level.name}: leaf {level.voxel_leaf_m} m is finer than what robot type {name}'s "
-                    f"{robot_type.sensor} resolves at its {robot_type.max_range_m} m range ({spacing:.3f} m between "
+                    f"{robot_type.sensor} resolves at {range_m:g} m, half its max_range_m ({spacing:.3f} m between "
                     f"neighbouring returns, profile {profile.name}); use a leaf of at least {spacing:.3f} m",
                 )
 
