@@ -145,9 +145,9 @@ def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros,
         if restart_voxel_grid is not None:
             # level 0 (0.05 m) in force; a voxel grid back at its initial 0.10 m is set to 0.05 m again
             restart_voxel_grid()
-            assert wait_for(lambda: "setting it again" in ros.output(follower), timeout_s=60), ros.output(follower)[
-                -2000:
-            ]
+            assert wait_for(lambda: "restarted): setting it" in ros.output(follower), timeout_s=60), ros.output(
+                follower
+            )[-2000:]
             filtered.take()  # only clouds the new voxel grid filtered count now
 
             def refiltered():
@@ -168,5 +168,61 @@ def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros,
         managed.close()
         filtered.close()
         status.close()
+        level_pub.unregister()
+        cloud_pub.unregister()
+
+
+def test_a_level_published_before_the_voxel_grid_is_up_is_set_when_it_comes(ros, rospy_node):
+    """The manager's latched level reaches the encoder before the voxel grid offers its service
+    (the set fails, counted); once the voxel grid is up at its initial leaf, it is set to the level."""
+    rospy = rospy_node
+    from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import UInt8
+
+    from cps_harness.synthetic_clouds import depth_camera_cloud
+    from cps_msgs.msg import CompressedPointCloud2
+    from cps_transport.draco import leaf_of_compressed
+    from cps_transport.voxel_grid_command import voxel_nodelet_args
+
+    fleet = load_fleet()
+    leaves = cloud_level_leaves(fleet)
+    robot = fleet.robot(ROBOT)
+    level_pub = rospy.Publisher(f"/{ROBOT}/{names.LIMITER_LEVEL}", UInt8, queue_size=1, latch=True)
+    level_pub.publish(UInt8(data=2))
+    ros.start_node(
+        "cps_transport",
+        "draco_encoder",
+        name="draco_encoder",
+        namespace=f"/{ROBOT}",
+        params={"~cloud_levels": True},
+        remap={"~input": f"/{ROBOT}/{names.POINTS_FILTERED}", "~output": f"/{ROBOT}/{names.POINTS_DRACO}"},
+    )
+    draco = TopicRecorder(f"/{ROBOT}/{names.POINTS_DRACO}", CompressedPointCloud2)
+    filtered = TopicRecorder(f"/{ROBOT}/{names.POINTS_FILTERED}", PointCloud2)
+    cloud_pub = rospy.Publisher(f"/{ROBOT}/{robot.cloud_topic}", PointCloud2, queue_size=2)
+    cloud = depth_camera_cloud(width=320, height=240, far_m=8.0)
+    try:
+        assert wait_for(lambda: "did not take leaf 0.2 m" in ros.output("draco_encoder"), timeout_s=60), ros.output(
+            "draco_encoder"
+        )[-2000:]
+        ros.popen(voxel_nodelet_args(robot, leaf_size_m=initial_leaf_m(fleet, robot)), name="voxel_grid")
+
+        def at_level_2():
+            cloud.header.stamp = rospy.Time.now()
+            cloud_pub.publish(cloud)
+            latest, raw = draco.latest, filtered.latest
+            return (
+                latest is not None
+                and abs(leaf_of_compressed(latest) - leaves[2]) < 1e-6
+                and raw is not None
+                and _filtered_at(leaves[2], None)(raw)
+                and not one_point_per_voxel(_xyz(raw), 2 * leaves[2])
+            )
+
+        assert wait_for(at_level_2, timeout_s=60, poll_s=0.1), ros.output("draco_encoder")[-2000:]
+        assert "started late or restarted): setting it" in ros.output("draco_encoder")
+    finally:
+        draco.close()
+        filtered.close()
         level_pub.unregister()
         cloud_pub.unregister()

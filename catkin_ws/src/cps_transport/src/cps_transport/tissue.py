@@ -306,10 +306,10 @@ class CloudLevelSwitch:
     index into `leaves_m`) sets the voxel grid `voxel_grid`'s leaf through its dynamic_reconfigure
     service (pcl_ros's VoxelGrid takes it between two clouds) and, once it answers with the new
     leaf, tells the encoder (`on_leaf(leaf_m)`). An index past the levels or a voxel grid that does
-    not take the leaf is logged and counted on /diagnostics; the previous level stays. A voxel grid
-    that comes back at another leaf (its manager restarted and it was loaded again at its initial
-    leaf: its latched `parameter_updates` says so) is given the level again, and the clouds in
-    between carry the leaf it really used."""
+    not take the leaf is logged and counted on /diagnostics; the previous level stays. The voxel
+    grid's latched `parameter_updates` says which leaf it runs at: one that comes up after the level
+    was published (the service was not there yet), or comes back at its initial leaf (its manager
+    restarted), is given the level then, and the clouds in between carry the leaf it really used."""
 
     def __init__(self, level_topic, voxel_grid, leaves_m, on_leaf, timeout_s=VOXEL_GRID_RECONFIGURE_TIMEOUT_S):
         from dynamic_reconfigure.msg import Config
@@ -321,47 +321,54 @@ class CloudLevelSwitch:
         self.service_name = ns_join(voxel_grid, "set_parameters")
         self.proxy = rospy.ServiceProxy(self.service_name, Reconfigure)
         self.report = DropReporter(level_topic)
-        self.level = None
+        self.wanted = None  # the manager's last valid level
+        self.level = None  # the level the voxel grid confirmed
+        self.restored = 0
         self.lock = threading.Lock()
         self.subscriber = rospy.Subscriber(level_topic, UInt8, self.on_level, queue_size=1)
-        self.restored = 0
         self.updates = rospy.Subscriber(ns_join(voxel_grid, "parameter_updates"), Config, self.on_parameters)
-
-    def on_parameters(self, config):
-        """The voxel grid's configuration in force: if it is not our level's leaf, set it again."""
-        leaf = {p.name: p.value for p in config.doubles}.get("leaf_size")
-        with self.lock:
-            if self.level is None or leaf is None or abs(leaf - self.leaves_m[self.level]) <= 1e-9:
-                return
-            rospy.logwarn(
-                f"{self.service_name}: the voxel grid runs at {leaf} m, not level {self.level}'s "
-                f"{self.leaves_m[self.level]} m (restarted?): setting it again"
-            )
-            self.on_leaf(leaf)
-            level, self.level = self.level, None
-            try:
-                self.apply(level)
-            except ValueError as exc:
-                self.report.drop(exc)
-                rospy.logerr_throttle(10.0, f"{self.subscriber.name}: {exc}")
-            else:
-                self.restored += 1
 
     def on_level(self, msg):
         with self.lock:  # one change at a time, in order
+            level = int(msg.data)
+            if not 0 <= level < len(self.leaves_m):
+                self._failed(f"level {level} is not one of the {len(self.leaves_m)} cloud levels (0 = finest)")
+                return
+            self.wanted = level
             try:
-                self.apply(int(msg.data))
+                self.apply(level)
             except ValueError as exc:
-                self.report.drop(exc)
-                rospy.logerr_throttle(10.0, f"{self.subscriber.name}: {exc}")
+                self._failed(exc)
             else:
                 self.report.ok()
+
+    def on_parameters(self, config):
+        """The voxel grid's configuration in force: if it is not the wanted level's leaf, set it."""
+        leaf = {p.name: p.value for p in config.doubles}.get("leaf_size")
+        with self.lock:
+            if self.wanted is None or leaf is None or abs(leaf - self.leaves_m[self.wanted]) <= 1e-9:
+                return
+            rospy.logwarn(
+                f"{self.service_name}: the voxel grid runs at {leaf} m, not level {self.wanted}'s "
+                f"{self.leaves_m[self.wanted]} m (started late or restarted): setting it"
+            )
+            if self.level is not None:  # the encoder believed the level's leaf: it is this one
+                self.on_leaf(leaf)
+                self.level = None
+            try:
+                self.apply(self.wanted)
+            except ValueError as exc:
+                self._failed(exc)
+            else:
+                self.restored += 1
+
+    def _failed(self, reason):
+        self.report.drop(reason)
+        rospy.logerr_throttle(10.0, f"{self.subscriber.name}: {reason}")
 
     def apply(self, level):
         from dynamic_reconfigure.msg import Config, DoubleParameter
 
-        if not 0 <= level < len(self.leaves_m):
-            raise ValueError(f"level {level} is not one of the {len(self.leaves_m)} cloud levels (0 = finest)")
         if level == self.level:
             return
         leaf = self.leaves_m[level]
