@@ -25,6 +25,7 @@ from cps_bringup.supervisor import BringupError, Supervisor
 from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_ros.processes import RosGraph, processes_named
+from cps_transport.cloud_levels import initial_leaf_m
 
 BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
 
@@ -36,7 +37,7 @@ def test_plan_wires_every_robot_through_the_tissue_to_the_map():
         r = robot.name
         voxel = " ".join(specs[f"{r}/voxel_grid"].argv)
         assert f"~input:=/{r}/points " in voxel and f"~output:=/{r}/points_filtered" in voxel
-        assert f"_leaf_size:={robot.voxel_leaf_m}" in voxel and "_filter_field_name:= " in voxel + " "
+        assert f"_leaf_size:={initial_leaf_m(fleet, robot)}" in voxel and "_filter_field_name:= " in voxel + " "
         assert f"~output:=/{r}/points_filtered/draco/managed" in " ".join(specs[f"{r}/cloud_throttle"].argv)
         assert "__name:=cloud_throttle" in specs[f"{r}/cloud_throttle"].argv
         # Exactly one subscriber of the managed topic crosses the link: the twin-side relay.

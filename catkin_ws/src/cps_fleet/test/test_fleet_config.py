@@ -79,6 +79,12 @@ def _line_of(path, needle):
         ("{hit: 0.7, miss: 0.4,", "{hit: 1.0, miss: 0.4,", "sensor_model.hit: 1.0 must be below 1.0"),
         ("{hit: 0.7, miss: 0.4,", "{hit: 0.7, miss: 0.5,", "sensor_model.miss: 0.5 must be below 0.5"),
         ("voxel_leaf_m: 0.20, bytes_prior", "voxel_leaf_m: 0.08, bytes_prior", "levels go from finest to coarsest"),
+        (
+            "voxel_leaf_m: 0.05, bytes_prior",
+            "voxel_leaf_m: 0.01, bytes_prior",
+            "leaf 0.01 m is finer than what robot type aerial_depth's depth resolves at 3 m, half its max_range_m "
+            "(0.020 m",
+        ),
         ("{name: 160x120, width: 160,", "{name: 160x120, width: 1600,", "levels go from finest to coarsest"),
         ("jpeg_quality: 90,", "jpeg_quality: 101,", "jpeg_quality: 101.0 is outside [1, 100]"),
         ("bytes_prior: 3600}", "bytes_prior: 0}", "bytes_prior: 0.0 is outside (0.0"),

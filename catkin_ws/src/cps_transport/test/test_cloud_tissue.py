@@ -7,6 +7,7 @@ import pytest
 from cps_fleet.fleet import load_fleet
 from cps_harness.hostile_clouds import packed_cloud, refused_clouds
 from cps_harness.testing import TopicRecorder, wait_for
+from cps_transport.cloud_levels import initial_leaf_m
 from cps_transport.nodelet_loader import NodeletRequest, voxel_grid_requests
 from cps_transport.tissue import parse_robot_list, robot_tissue_configs, twin_cloud_topics
 from cps_transport.voxel_grid_command import voxel_nodelet_args
@@ -21,7 +22,11 @@ def test_robot_configs_come_from_the_fleet_file():
         base = f"/{robot.name}/points_filtered"
         assert (c.filtered, c.draco, c.managed) == (base, f"{base}/draco", f"{base}/draco/managed")
         assert c.throttle_node == f"/{robot.name}/cloud_throttle"
-        assert c.leaf_size_m == robot.voxel_leaf_m and c.rate_hz == fleet.link.min_rate_hz
+        assert c.leaf_size_m == initial_leaf_m(fleet, robot) and c.rate_hz == fleet.link.min_rate_hz
+        assert (
+            c.cloud_levels_m[c.initial_level] == c.leaf_size_m
+            and c.level_topic == f"/{robot.name}/cloud_throttle/level"
+        )
     assert [c.robot for c in robot_tissue_configs(fleet, ["iris", "scout"])] == ["iris", "scout"]
     with pytest.raises(KeyError, match="robot 'nope' is not in the fleet"):
         robot_tissue_configs(fleet, ["scout", "nope"])
@@ -39,14 +44,14 @@ def test_loader_requests_carry_what_nodelet_load_passes():
     and parameters of `rosrun nodelet nodelet load` in the per-robot layout."""
     fleet = load_fleet()
     for robot, request in zip(fleet.robots, voxel_grid_requests(fleet)):
-        argv = voxel_nodelet_args(robot, manager="/m")
+        argv = voxel_nodelet_args(robot, manager="/m", leaf_size_m=initial_leaf_m(fleet, robot))
         assert request.type == argv[4] == "pcl/VoxelGrid"
         assert f"__name:={request.name.rsplit('/', 1)[1]}" in argv and f"__ns:=/{robot.name}" in argv
         sources, targets = request.resolved_remappings()
         assert sources == [f"{request.name}/input", f"{request.name}/output"]
         assert targets == [f"/{robot.name}/{robot.cloud_topic}", f"/{robot.name}/points_filtered"]
         assert [f"_{k}:={v}" for k, v in request.params.items()] == [a for a in argv if a[0] == "_" and a[1] != "_"]
-        assert request.params["leaf_size"] == robot.voxel_leaf_m and request.params["filter_field_name"] == ""
+        assert request.params["leaf_size"] == initial_leaf_m(fleet, robot) and request.params["filter_field_name"] == ""
     relative = NodeletRequest("/a/vg", "t", {"in": "pts", "~out": "/abs"}, {})
     assert relative.resolved_remappings() == (["/a/in", "/a/vg/out"], ["/a/pts", "/abs"])
 
@@ -188,7 +193,7 @@ def test_one_loader_puts_every_robots_voxel_grid_into_one_manager(ros, rospy_nod
         assert wait_for(
             lambda: sorted(_listed(listing) or ()) == ["/jackal/voxel_grid", "/scout/voxel_grid"], timeout_s=30
         ), ros.output("voxel_grid_loader")[-2000:]
-        assert rospy.get_param("/scout/voxel_grid/leaf_size") == fleet.robot("scout").voxel_leaf_m
+        assert rospy.get_param("/scout/voxel_grid/leaf_size") == initial_leaf_m(fleet, fleet.robot("scout"))
         cloud = lidar_cloud(rings=8, samples_per_ring=400)
         for r in robots:
             assert wait_for(lambda: pubs[r].publish(cloud) or filtered[r].count, timeout_s=20, poll_s=0.3), r

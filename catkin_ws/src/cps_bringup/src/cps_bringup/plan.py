@@ -467,6 +467,7 @@ def plan_nodes(
 def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
     """The per_robot layout: voxel grid (a `nodelet load` client), encoder, limiter and camera
     compressor of one robot, each its own process."""
+    from cps_transport.cloud_levels import initial_leaf_m
     from cps_transport.voxel_grid_command import voxel_nodelet_args
 
     r, ns = robot.name, f"__ns:={A(robot.name)}"
@@ -474,7 +475,7 @@ def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
         NodeSpec(
             f"{r}/voxel_grid",
             PHYSICAL,
-            tuple(voxel_nodelet_args(robot, manager=VOXEL_MANAGER)),
+            tuple(voxel_nodelet_args(robot, manager=VOXEL_MANAGER, leaf_size_m=initial_leaf_m(fleet, robot))),
             wait_topics=(_rt(r, names.POINTS_FILTERED),),
             after=("nodelet_manager",),
         ),
@@ -488,7 +489,7 @@ def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
                 "__name:=draco_encoder",
                 f"{names.INPUT}:={_rt(r, names.POINTS_FILTERED)}",
                 f"{names.OUTPUT}:={_rt(r, names.POINTS_DRACO)}",
-                *_args({"leaf_size_m": robot.voxel_leaf_m}),
+                *_args({"cloud_levels": True}),
             ),
             wait_topics=(_rt(r, names.POINTS_DRACO),),
         ),
@@ -504,7 +505,7 @@ def _robot_tissue_per_robot(fleet, robot, py, initial_rate_hz):
                 f"__name:={names.CLOUD_THROTTLE}",
                 f"{names.INPUT}:={_rt(r, names.POINTS_DRACO)}",
                 f"{names.OUTPUT}:={_rt(r, names.POINTS_MANAGED)}",
-                *_args({"rate_hz": initial_rate_hz}),
+                *_args({"rate_hz": initial_rate_hz, "cloud_levels": True}),
             ),
             wait_topics=(_rt(r, names.POINTS_MANAGED),),
         )

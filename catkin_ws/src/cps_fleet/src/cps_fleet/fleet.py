@@ -79,6 +79,18 @@ class SensorProfile:
     depth_camera: DepthCameraProfile
     lidar: LidarProfile
 
+    def point_spacing_m(self, sensor, range_m):
+        """Distance between neighbouring returns `range_m` away, at the sensor's finest angular
+        step (lidar: min of the azimuth step and the ring spacing; depth: one pixel's angle)."""
+        if sensor == "lidar":
+            lidar = self.lidar
+            step = 2.0 * math.pi / lidar.samples_per_ring
+            if lidar.rings > 1:
+                step = min(step, math.radians(lidar.vertical_fov_deg) / (lidar.rings - 1) or step)
+        else:
+            step = math.radians(self.depth_camera.hfov_deg) / self.depth_camera.width
+        return step * range_m
+
 
 @dataclasses.dataclass(frozen=True)
 class LinkConfig:
@@ -374,6 +386,7 @@ def load_fleet(path=None, profile=None):
         robots.append(_read_robot(item, robot_types, robots))
     if not robots:
         raise top.error("robots", "the fleet has no robots")
+    _check_cloud_levels(top.child("streams"), streams, profiles[chosen], robot_types, robots)
 
     return FleetConfig(
         path=os.path.abspath(doc.path),
@@ -448,6 +461,27 @@ def _streams(reader):
     if not streams.video_min_rate_hz <= streams.operator_video_rate_hz <= streams.video_max_rate_hz:
         raise reader.error("operator_video_rate_hz", "must lie within [video_min_rate_hz, video_max_rate_hz]")
     return streams
+
+
+def _check_cloud_levels(reader, streams, profile, robot_types, robots):
+    """A cloud level finer than a robot's sensor resolves is refused (ConfigError at the level's
+    line): its leaf must be at least the sensor's point spacing at half its type's max_range_m
+    (the map inserts points up to max_range_m), else the voxel grid keeps every return of the
+    farther half of that range as it is and the level costs bytes without detail the sensor has
+    (docs/cloud_levels.md)."""
+    used = sorted({robot.type for robot in robots})
+    for item, level in zip(reader.items("cloud_levels"), streams.cloud_levels):
+        for name in used:
+            robot_type = robot_types[name]
+            range_m = 0.5 * robot_type.max_range_m
+            spacing = profile.point_spacing_m(robot_type.sensor, range_m)
+            if level.voxel_leaf_m < spacing:
+                raise item.error(
+                    "voxel_leaf_m",
+                    f"level {level.name}: leaf {level.voxel_leaf_m} m is finer than what robot type {name}'s "
+                    f"{robot_type.sensor} resolves at {range_m:g} m, half its max_range_m ({spacing:.3f} m between "
+                    f"neighbouring returns, profile {profile.name}); use a leaf of at least {spacing:.3f} m",
+                )
 
 
 def _read_robot(item, robot_types, robots, default_voxel_leaf_m=None):

@@ -24,7 +24,7 @@ from cps_mapping import map_messages
 from cps_mapping.baseline import BaselineError, load_baseline, write_map_metadata
 from cps_mapping.change_attention import ATTENTION_RADIUS_M
 from cps_mapping.change_detection import detect_map_changes, write_report
-from cps_mapping.cloud_input import InvalidInput, prepare_cloud
+from cps_mapping.cloud_input import InvalidInput, prepare_cloud, read_leaf
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
 from cps_mapping.markers import occupied_cells_markers
 from cps_mapping.queues import QueuedCloud, RobotQueues
@@ -106,6 +106,9 @@ class RobotCounters:
     clouds_dropped_queue: int = 0
     clouds_dropped_tf: int = 0
     clouds_dropped_invalid: int = 0
+    clouds_without_leaf: int = 0  # inserted as they are (docs/cloud_levels.md)
+    clouds_bad_leaf: int = 0  # leaf unreadable: inserted as they are
+    points_bridged: int = 0  # surface samples added to clouds coarser than the map
     points_inserted: int = 0
     points_rejected: int = 0
     batches: int = 0
@@ -298,7 +301,8 @@ class MapServer:
             self._warn(("frame", robot), _WARN_EVERY_S, f"map_server: {robot}: cloud without frame_id dropped")
             return
         try:
-            xyz = xyz_of(cloud_to_array(msg))
+            points = cloud_to_array(msg)
+            xyz = xyz_of(points)
         except InvalidCloud as exc:
             self._count(robot, clouds_dropped_invalid=1)
             self._warn(("malformed", robot), _WARN_EVERY_S, f"map_server: {robot}: malformed cloud dropped: {exc}")
@@ -321,12 +325,25 @@ class MapServer:
                 f"map_server: {robot}: cloud in frame '{frame}', expected '{self.sensor_frames[robot]}'; "
                 f"inserted with its own transform",
             )
+        leaf, leaf_problem = read_leaf(points)
+        if leaf is None:
+            self._count(robot, **{"clouds_bad_leaf" if leaf_problem else "clouds_without_leaf": 1})
+            self._warn(
+                ("leaf", robot),
+                _WARN_EVERY_S,
+                f"map_server: {robot}: cloud {'with a bad leaf (' + leaf_problem + ')' if leaf_problem else 'without a leaf'}"
+                f" inserted at the map's resolution as it is",
+            )
         try:
-            cloud = prepare_cloud(xyz, rotation, translation, self.options.max_points_range_m)
+            cloud = prepare_cloud(
+                xyz, rotation, translation, self.options.max_points_range_m, leaf, self.map.resolution_m
+            )
         except InvalidInput as exc:
             self._count(robot, clouds_dropped_invalid=1)
             self._warn(("invalid", robot), _WARN_EVERY_S, f"map_server: {robot}: cloud dropped: {exc}")
             return
+        if cloud.bridged:
+            self._count(robot, points_bridged=cloud.bridged)
         if cloud.absurd:
             self._count(robot, points_rejected=cloud.absurd)
             self._warn(

@@ -16,6 +16,10 @@ How the fields are carried:
   The attribute's Draco metadata name carries what the decoder needs: `name`, `name|q<bits>|lo|hi`,
   `name|f64` or `name|w16` (4-byte integers >= 2^31, which Draco's int32 coder cannot take,
   as two uint16 halves).
+- The leaf the cloud was voxelized at (`encode(cloud, leaf_size_m=...)`, cps_transport.cloud_levels):
+  one constant GENERIC attribute `leaf_size_m|q8|<leaf>|<leaf>` (uint8 zeros, about 45 bytes per
+  cloud) and a FLOAT32 field `leaf_size_m` after the cloud's own in `fields`, so the decoder gives
+  every point the leaf back as an ordinary field.
 - Points with a non-finite x, y or z are stripped (and counted); the decoded cloud is unorganized
   (height 1) and dense. The compressed message's height/width/fields describe the input cloud.
 - Deduplication is off by default: after a voxel grid there are no duplicates, and Draco's
@@ -32,6 +36,7 @@ import numpy as np
 from sensor_msgs.msg import PointField
 
 from cps_msgs.msg import CompressedPointCloud2
+from cps_transport.cloud_levels import LEAF_FIELD
 from cps_transport.pointcloud import (
     InvalidCloud,
     array_to_cloud,
@@ -139,11 +144,16 @@ class DracoEncoder:
         self.deduplicate = bool(deduplicate)
         self.last_info = None
 
-    def encode(self, msg):
-        """Compress one cloud; raises InvalidCloud for a malformed or empty one."""
+    def encode(self, msg, leaf_size_m=None):
+        """Compress one cloud; raises InvalidCloud for a malformed or empty one. `leaf_size_m`:
+        the voxel leaf the cloud was produced at, carried with it (see the module docstring)."""
         start = time.perf_counter()
         points = cloud_to_array(msg)
         kept = self._kept_fields(msg.fields)
+        if leaf_size_m is not None:
+            if not (math.isfinite(leaf_size_m) and leaf_size_m > 0):
+                raise InvalidCloud(f"leaf_size_m must be a finite number > 0, got {leaf_size_m!r}")
+            kept = [f for f in kept if f.name != LEAF_FIELD]
         xyz = np.empty((len(points), 3), dtype=np.float32)
         with np.errstate(over="ignore"):  # float64 beyond float32's range becomes inf: stripped, counted
             for i, axis in enumerate("xyz"):
@@ -157,7 +167,7 @@ class DracoEncoder:
         extras = [
             (f, points[f.name] if not n_nan else points[f.name][finite]) for f in kept if f.name not in ("x", "y", "z")
         ]
-        payload, bits, bound = self.encode_arrays(xyz, extras)
+        payload, bits, bound = self.encode_arrays(xyz, extras, leaf_size_m=leaf_size_m)
 
         out = CompressedPointCloud2()
         out.header = msg.header
@@ -165,6 +175,10 @@ class DracoEncoder:
         out.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in kept]
         out.is_bigendian = msg.is_bigendian
         out.point_step, out.row_step = msg.point_step, msg.row_step
+        if leaf_size_m is not None:  # the cloud as labelled: its points and the leaf after them
+            out.fields.append(PointField(name=LEAF_FIELD, offset=msg.point_step, datatype=PointField.FLOAT32, count=1))
+            out.point_step = msg.point_step + 4
+            out.row_step = out.point_step * msg.width
         out.is_dense = msg.is_dense
         out.compressed_data = payload
         self.last_info = EncodeInfo(
@@ -172,9 +186,9 @@ class DracoEncoder:
         )
         return out
 
-    def encode_arrays(self, xyz, extras=()):
-        """Draco bitstream of finite (N, 3) points plus [(PointField, values)]; returns
-        (payload, position bits, position error bound in m)."""
+    def encode_arrays(self, xyz, extras=(), leaf_size_m=None):
+        """Draco bitstream of finite (N, 3) points plus [(PointField, values)] and the leaf
+        (None: none); returns (payload, position bits, position error bound in m)."""
         xyz = np.ascontiguousarray(xyz, dtype=np.float32)
         colors, generic = None, {}
         for field, values in extras:
@@ -186,6 +200,9 @@ class DracoEncoder:
             else:
                 name, array = self._generic_attribute(field, values)
                 generic[name] = array
+        if leaf_size_m is not None:
+            leaf = float(np.float32(leaf_size_m))  # the value the decoder's float32 field will hold
+            generic[f"{LEAF_FIELD}|q8|{leaf!r}|{leaf!r}"] = np.zeros((len(xyz), 1), dtype=np.uint8)
         kwargs = dict(
             compression_level=10 - self.speed,
             preserve_order=not self.deduplicate,
@@ -326,3 +343,27 @@ class DracoDecoder:
         except (ValueError, IndexError, TypeError) as exc:
             raise DracoError(f"field '{field.name}': cannot read attribute '{attribute['name']}': {exc}") from exc
         raise DracoError(f"field '{field.name}': unknown attribute tag '{attribute['name']}'")
+
+
+def leaf_of_compressed(msg):
+    """The leaf a CompressedPointCloud2 carries (see the module docstring): None when it carries
+    none, DracoError when its payload or its leaf cannot be read. Decodes the payload (about 0.4 ms
+    for 3000 points): the rate limiter reads it for the clouds it forwards only."""
+    if not any(f.name == LEAF_FIELD for f in msg.fields):
+        return None
+    payload = msg.compressed_data if isinstance(msg.compressed_data, bytes) else bytes(msg.compressed_data)
+    try:
+        decoded = DracoPy.decode(payload)
+    except Exception as exc:  # DracoPy raises its own exceptions for corrupt buffers
+        raise DracoError(f"corrupt Draco payload ({len(payload)} bytes): {exc}") from exc
+    for attribute in decoded.attributes:
+        tag = (attribute.get("name") or "").split("|")
+        if tag[0] == LEAF_FIELD:
+            try:
+                leaf = float(tag[2])
+            except (IndexError, ValueError) as exc:
+                raise DracoError(f"unreadable leaf attribute '{attribute['name']}'") from exc
+            if not (math.isfinite(leaf) and leaf > 0):
+                raise DracoError(f"leaf attribute '{attribute['name']}' is not a leaf > 0 m")
+            return leaf
+    raise DracoError(f"the fields name {LEAF_FIELD} but the payload has no leaf attribute")

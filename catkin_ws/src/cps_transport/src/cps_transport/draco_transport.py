@@ -43,10 +43,11 @@ class DracoPublisher:
     def get_num_connections(self):
         return self._publisher.get_num_connections()
 
-    def publish(self, cloud):
-        """Encodes and publishes `cloud`; returns the CompressedPointCloud2, or None when dropped."""
+    def publish(self, cloud, leaf_size_m=None):
+        """Encodes and publishes `cloud` (carrying `leaf_size_m`, the leaf it was voxelized at, if
+        given); returns the CompressedPointCloud2, or None when dropped."""
         try:
-            compressed = self.encoder.encode(cloud)
+            compressed = self.encoder.encode(cloud, leaf_size_m=leaf_size_m)
         except (InvalidCloud, DracoError) as exc:
             self.report.drop(exc)
             return None

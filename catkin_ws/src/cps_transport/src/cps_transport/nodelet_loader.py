@@ -158,7 +158,9 @@ class NodeletLoader:
 
 def voxel_grid_requests(fleet, robots=None) -> List[NodeletRequest]:
     """pcl/VoxelGrid for each robot with the names, topics and parameters `nodelet load` gets
-    from cps_transport.voxel_grid_command (the per-robot layout)."""
+    from cps_transport.voxel_grid_command (the per-robot layout), starting at the cloud level
+    nearest the robot's voxel_leaf_m."""
+    from cps_transport.cloud_levels import initial_leaf_m
     from cps_transport.voxel_grid_command import (
         VOXEL_NODELET_TYPE,
         voxel_nodelet_name,
@@ -174,7 +176,7 @@ def voxel_grid_requests(fleet, robots=None) -> List[NodeletRequest]:
                 name=voxel_nodelet_name(robot),
                 type=VOXEL_NODELET_TYPE,
                 remappings=voxel_nodelet_remaps(robot),
-                params=voxel_nodelet_params(robot),
+                params=voxel_nodelet_params(robot, initial_leaf_m(fleet, robot)),
             )
         )
     return out

@@ -8,10 +8,12 @@ and drop counters: a malformed cloud of one robot is dropped and counted there a
 `robot_tissue_configs` (no ROS) says which topics and numbers each robot gets from the fleet file.
 """
 
+import collections
 import dataclasses
+import math
 import threading
 import time
-from typing import List
+from typing import List, Optional, Tuple
 
 import rospy
 from rosgraph.names import ns_join
@@ -19,18 +21,30 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import Float64, UInt8
 
 from cps_fleet import names
-from cps_msgs.msg import RateLimiterStatus
+from cps_msgs.msg import CompressedPointCloud2, RateLimiterStatus
 from cps_msgs.srv import SetRate, SetRateResponse
 from cps_ros.diagnostics import DropReporter
 from cps_ros.relay import relay_class, relay_message
 from cps_ros.timers import guarded_timer
-from cps_transport.draco import DracoEncoder
+from cps_transport.cloud_levels import (
+    LeafTracker,
+    cloud_level_leaves,
+    level_of_leaf,
+    nearest_level,
+    position_tolerance_m,
+)
+from cps_transport.draco import DracoEncoder, leaf_of_compressed
 from cps_transport.draco_transport import DracoPublisher, DracoSubscriber
 from cps_transport.image_compression import InvalidImage, compress_image, compressed_format
+from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 from cps_transport.rate_limiter import RateLimiter, WindowRate
 
 # Clouds waiting for the link per subscriber of the managed topic.
 LIMITER_OUTPUT_QUEUE_SIZE = 5
+# A level's mean size in the limiter's status: over its last this many forwarded messages.
+LEVEL_MEAN_MESSAGES = 10
+# How long a level change waits for the voxel grid's dynamic_reconfigure service.
+VOXEL_GRID_RECONFIGURE_TIMEOUT_S = 5.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,8 +56,13 @@ class RobotTissueConfig:
     draco: str  # /<r>/points_filtered/draco
     managed: str  # /<r>/points_filtered/draco/managed
     throttle_node: str  # /<r>/cloud_throttle: its status, rate_hz and set_rate
-    leaf_size_m: float  # the voxel leaf: sets Draco's quantization
+    leaf_size_m: float  # the voxel leaf at start: the cloud level nearest the robot's voxel_leaf_m
     rate_hz: float  # the managed rate until the bandwidth manager sets one
+    cloud_levels_m: Tuple[float, ...] = ()  # fleet.yaml streams.cloud_levels' leaves, finest first
+    initial_level: int = 0  # the level until the manager publishes one (the leaf above)
+    level_topic: Optional[str] = None  # /<r>/cloud_throttle/level (std_msgs/UInt8, from the manager)
+    voxel_grid: Optional[str] = None  # /<r>/voxel_grid, whose leaf a level change sets
+    map_resolution_m: float = math.inf  # sets Draco's tolerance (cloud_levels.position_tolerance_m)
 
 
 def _rt(robot, name):
@@ -55,9 +74,13 @@ def robot_tissue_configs(fleet, robots=None, initial_rate_hz=None) -> List[Robot
     """The tissue of `robots` (default: the whole fleet), everything from the fleet file (the
     limiters start at `initial_rate_hz`, default the link's min_rate_hz); an unknown robot raises
     KeyError naming the fleet's."""
+    from cps_transport.voxel_grid_command import voxel_nodelet_name
+
     out = []
+    leaves = cloud_level_leaves(fleet)
     for name in robots or fleet.robot_names:
         robot = fleet.robot(name)
+        level = nearest_level(leaves, robot.voxel_leaf_m)
         out.append(
             RobotTissueConfig(
                 robot=name,
@@ -65,7 +88,12 @@ def robot_tissue_configs(fleet, robots=None, initial_rate_hz=None) -> List[Robot
                 draco=_rt(name, names.POINTS_DRACO),
                 managed=_rt(name, names.POINTS_MANAGED),
                 throttle_node=_rt(name, names.CLOUD_THROTTLE),
-                leaf_size_m=float(robot.voxel_leaf_m),
+                leaf_size_m=leaves[level],
+                cloud_levels_m=leaves,
+                initial_level=level,
+                level_topic=_rt(name, names.LIMITER_LEVEL),
+                voxel_grid=voxel_nodelet_name(robot),
+                map_resolution_m=float(fleet.mapping.resolution_m),
                 rate_hz=float(fleet.link.min_rate_hz if initial_rate_hz is None else initial_rate_hz),
             )
         )
@@ -100,9 +128,15 @@ class ManagedRateLimiter:
     """Any message type: `input_topic` -> `output_topic` at the set rate (token bucket), relayed
     without deserializing. `node_name` (e.g. /<r>/cloud_throttle) owns `<node>/set_rate`
     (cps_msgs/SetRate), `<node>/rate_hz` (std_msgs/Float64) and `<node>/status`
-    (cps_msgs/RateLimiterStatus, 1 Hz and right after every change)."""
+    (cps_msgs/RateLimiterStatus, 1 Hz and right after every change). With `cloud_levels_m` (the
+    managed cloud's level leaves) the status also gives the level of the clouds it forwards (from
+    the leaf each carries) and that level's mean size over its last LEVEL_MEAN_MESSAGES forwarded
+    clouds (NaN before the first); a forwarded cloud without a readable level leaf is counted on
+    /diagnostics and leaves both as they were."""
 
-    def __init__(self, input_topic, output_topic, node_name, rate_hz, burst=2.0, window_s=2.0):
+    def __init__(
+        self, input_topic, output_topic, node_name, rate_hz, burst=2.0, window_s=2.0, cloud_levels_m=(), level=0
+    ):
         self.limiter = RateLimiter(rate_hz, burst=burst, window_s=window_s)
         self.node_name = node_name
         self.lock = threading.Lock()
@@ -110,6 +144,12 @@ class ManagedRateLimiter:
         self.output_topic = output_topic
         self.publisher = None
         self.relay_cls = None
+        # Managed clouds (`cloud_levels_m`, the levels' leaves): the level of each forwarded cloud,
+        # read from the leaf it carries, and each level's last sizes.
+        self.cloud_levels_m = tuple(cloud_levels_m)
+        self.level = int(level)
+        self.level_sizes = collections.defaultdict(lambda: collections.deque(maxlen=LEVEL_MEAN_MESSAGES))
+        self.level_report = DropReporter(ns_join(node_name, "level")) if self.cloud_levels_m else None
 
         def private(name):
             return ns_join(node_name, name.lstrip("~"))
@@ -145,6 +185,30 @@ class ManagedRateLimiter:
                 )
         if forward:
             self.publisher.publish(relay_message(self.relay_cls, msg))
+            if self.cloud_levels_m:
+                self._note_level(msg)
+
+    def _note_level(self, msg):
+        """The forwarded cloud's level (from its leaf) and size; a status right away on a change."""
+        try:
+            cloud = CompressedPointCloud2().deserialize(msg._buff)
+            leaf = leaf_of_compressed(cloud)
+        except Exception as exc:  # DracoError, or genpy's DeserializationError for a foreign message
+            self.level_report.drop(f"level of a forwarded cloud unreadable: {exc}")
+            return
+        level = None if leaf is None else level_of_leaf(self.cloud_levels_m, leaf)
+        if level is None:
+            self.level_report.drop(
+                f"forwarded cloud carries leaf {leaf!r} m, not one of the levels {list(self.cloud_levels_m)}"
+            )
+            return
+        self.level_report.ok()
+        with self.lock:
+            changed = level != self.level
+            self.level = level
+            self.level_sizes[level].append(len(msg._buff))
+        if changed:
+            self.publish_status()
 
     def publish_status(self):
         now = time.monotonic()
@@ -158,9 +222,15 @@ class ManagedRateLimiter:
                 mean_message_bytes=self.limiter.input.mean_bytes(now),
                 received=self.limiter.received,
                 forwarded=self.limiter.forwarded,
+                level=self.level,
+                level_mean_message_bytes=self._level_mean_bytes(),
             )
         status.header.stamp = rospy.Time.now()
         self.status_pub.publish(status)
+
+    def _level_mean_bytes(self):
+        sizes = self.level_sizes.get(self.level)
+        return sum(sizes) / len(sizes) if sizes else math.nan
 
 
 class ImageCompressor:
@@ -311,13 +381,121 @@ class ManagedVideoCompressor:
 
 class DracoEncoderPart:
     """Subscribes a sensor_msgs/PointCloud2 topic and publishes it Draco-encoded (DracoPublisher:
-    bad clouds dropped and counted)."""
+    bad clouds dropped and counted). With `leaves` (a LeafTracker) each cloud carries the leaf the
+    voxel grid produced it at, and Draco's position tolerance is `cloud_levels.position_tolerance_m`
+    of that leaf and `map_resolution_m`."""
 
-    def __init__(self, input_topic, output_topic, encoder):
+    def __init__(
+        self, input_topic, output_topic, encoder, leaves: Optional[LeafTracker] = None, map_resolution_m=math.inf
+    ):
         self.publisher = DracoPublisher(input_topic, encoder, topic=output_topic)
-        self.subscriber = rospy.Subscriber(
-            input_topic, PointCloud2, self.publisher.publish, queue_size=3, buff_size=1 << 24
-        )
+        self.leaves = leaves
+        self.map_resolution_m = map_resolution_m
+        self.lock = threading.Lock()
+        callback = self.publisher.publish if leaves is None else self.on_cloud
+        self.subscriber = rospy.Subscriber(input_topic, PointCloud2, callback, queue_size=3, buff_size=1 << 24)
+
+    def switch_leaf(self, leaf_m):
+        """The voxel grid now produces `leaf_m`: the next clouds carry it (see LeafTracker)."""
+        with self.lock:
+            self.leaves.switch(leaf_m)
+
+    def on_cloud(self, cloud):
+        with self.lock:
+            if self.leaves.switching:
+                try:
+                    leaf = self.leaves.leaf_of(xyz_of(cloud_to_array(cloud)))
+                except InvalidCloud as exc:
+                    self.publisher.report.drop(exc)
+                    return
+            else:
+                leaf = self.leaves.leaf_m
+        self.publisher.encoder.position_tolerance_m = position_tolerance_m(leaf, self.map_resolution_m)
+        self.publisher.publish(cloud, leaf_size_m=leaf)
+
+
+class CloudLevelSwitch:
+    """Follows the manager's level for one robot's cloud: on `level_topic` (std_msgs/UInt8, the
+    index into `leaves_m`) sets the voxel grid `voxel_grid`'s leaf through its dynamic_reconfigure
+    service (pcl_ros's VoxelGrid takes it between two clouds) and, once it answers with the new
+    leaf, tells the encoder (`on_leaf(leaf_m)`). An index past the levels or a voxel grid that does
+    not take the leaf is logged and counted on /diagnostics; the previous level stays. The voxel
+    grid's latched `parameter_updates` says which leaf it runs at: one that comes up after the level
+    was published (the service was not there yet), or comes back at its initial leaf (its manager
+    restarted), is given the level then, and the clouds in between carry the leaf it really used."""
+
+    def __init__(self, level_topic, voxel_grid, leaves_m, on_leaf, timeout_s=VOXEL_GRID_RECONFIGURE_TIMEOUT_S):
+        from dynamic_reconfigure.msg import Config
+        from dynamic_reconfigure.srv import Reconfigure
+
+        self.leaves_m = tuple(leaves_m)
+        self.on_leaf = on_leaf
+        self.timeout_s = timeout_s
+        self.service_name = ns_join(voxel_grid, "set_parameters")
+        self.proxy = rospy.ServiceProxy(self.service_name, Reconfigure)
+        self.report = DropReporter(level_topic)
+        self.wanted = None  # the manager's last valid level
+        self.level = None  # the level the voxel grid confirmed
+        self.restored = 0
+        self.lock = threading.Lock()
+        self.subscriber = rospy.Subscriber(level_topic, UInt8, self.on_level, queue_size=1)
+        self.updates = rospy.Subscriber(ns_join(voxel_grid, "parameter_updates"), Config, self.on_parameters)
+
+    def on_level(self, msg):
+        with self.lock:  # one change at a time, in order
+            level = int(msg.data)
+            if not 0 <= level < len(self.leaves_m):
+                self._failed(f"level {level} is not one of the {len(self.leaves_m)} cloud levels (0 = finest)")
+                return
+            self.wanted = level
+            try:
+                self.apply(level)
+            except ValueError as exc:
+                self._failed(exc)
+            else:
+                self.report.ok()
+
+    def on_parameters(self, config):
+        """The voxel grid's configuration in force: if it is not the wanted level's leaf, set it."""
+        leaf = {p.name: p.value for p in config.doubles}.get("leaf_size")
+        with self.lock:
+            if self.wanted is None or leaf is None or abs(leaf - self.leaves_m[self.wanted]) <= 1e-9:
+                return
+            rospy.logwarn(
+                f"{self.service_name}: the voxel grid runs at {leaf} m, not level {self.wanted}'s "
+                f"{self.leaves_m[self.wanted]} m (started late or restarted): setting it"
+            )
+            if self.level is not None:  # the encoder believed the level's leaf: it is this one
+                self.on_leaf(leaf)
+                self.level = None
+            try:
+                self.apply(self.wanted)
+            except ValueError as exc:
+                self._failed(exc)
+            else:
+                self.restored += 1
+
+    def _failed(self, reason):
+        self.report.drop(reason)
+        rospy.logerr_throttle(10.0, f"{self.subscriber.name}: {reason}")
+
+    def apply(self, level):
+        from dynamic_reconfigure.msg import Config, DoubleParameter
+
+        if level == self.level:
+            return
+        leaf = self.leaves_m[level]
+        try:
+            self.proxy.wait_for_service(timeout=self.timeout_s)
+            answer = self.proxy(Config(doubles=[DoubleParameter(name="leaf_size", value=leaf)]))
+        except (rospy.ServiceException, rospy.ROSException, OSError) as exc:
+            raise ValueError(f"{self.service_name} did not take leaf {leaf} m (level {level}): {exc}") from exc
+        taken = {p.name: p.value for p in answer.config.doubles}.get("leaf_size")
+        if taken is None or abs(taken - leaf) > 1e-9:
+            raise ValueError(f"{self.service_name} answered leaf_size {taken} for {leaf} m (level {level})")
+        self.level = level
+        self.on_leaf(leaf)
+        rospy.loginfo(f"{self.service_name}: cloud level {level}, leaf {leaf} m")
 
 
 class DracoDecoderPart:
@@ -330,14 +508,33 @@ class DracoDecoderPart:
 
 
 class RobotTissue:
-    """One robot's cloud tissue on its side: Draco encoder and rate limiter, with the same topics,
-    defaults and queue sizes as the single-node executables. (The camera's JPEG video comes from
-    the camera itself at the manager's level and rate: cps_sim.video.)"""
+    """One robot's cloud tissue on its side: Draco encoder, rate limiter and the cloud level's
+    follower, with the same topics, defaults and queue sizes as the single-node executables. (The
+    camera's JPEG video comes from the camera itself at the manager's level and rate: cps_sim.video.)"""
 
     def __init__(self, config: RobotTissueConfig):
         self.config = config
-        self.encoder = DracoEncoderPart(config.filtered, config.draco, DracoEncoder(leaf_size_m=config.leaf_size_m))
-        self.limiter = ManagedRateLimiter(config.draco, config.managed, config.throttle_node, config.rate_hz)
+        levels = bool(config.cloud_levels_m)
+        self.encoder = DracoEncoderPart(
+            config.filtered,
+            config.draco,
+            DracoEncoder(leaf_size_m=config.leaf_size_m),
+            leaves=LeafTracker(config.leaf_size_m) if levels else None,
+            map_resolution_m=config.map_resolution_m,
+        )
+        self.limiter = ManagedRateLimiter(
+            config.draco,
+            config.managed,
+            config.throttle_node,
+            config.rate_hz,
+            cloud_levels_m=config.cloud_levels_m,
+            level=config.initial_level,
+        )
+        self.levels = (
+            CloudLevelSwitch(config.level_topic, config.voxel_grid, config.cloud_levels_m, self.encoder.switch_leaf)
+            if levels and config.level_topic and config.voxel_grid
+            else None
+        )
 
 
 class CloudTissue:
