@@ -87,7 +87,7 @@ def _line_of(path, needle):
         ),
         ("{name: 160x120, width: 160,", "{name: 160x120, width: 1600,", "levels go from finest to coarsest"),
         ("jpeg_quality: 90,", "jpeg_quality: 101,", "jpeg_quality: 101.0 is outside [1, 100]"),
-        ("bytes_prior: 3600}", "bytes_prior: 0}", "bytes_prior: 0.0 is outside (0.0"),
+        ("bytes_prior: 11000}", "bytes_prior: 0}", "bytes_prior: 0.0 is outside (0.0"),
         ("operator_video_level: 1", "operator_video_level: 3", "there are 3 video levels"),
         ("operator_video_rate_hz: 15.0", "operator_video_rate_hz: 45.0", "must lie within"),
     ],
