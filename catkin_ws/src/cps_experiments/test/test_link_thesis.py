@@ -46,7 +46,10 @@ def mission(tmp_path):
     _write(tmp_path / "physical_arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], probes)
     header = ["time_s", "topic", "robot", "managed", "messages", "mean_message_bytes"]
     # Offered on the robots' side: 1 MB/s throughout (over the 0.625 MB/s of 5 Mbit/s); received: 0.6 MB/s.
-    _write(tmp_path / "physical_stats.csv", header, [[T0 + s, "/x", "jackal", "True", 10, 100000] for s in range(50)])
+    offered = [[T0 + s, "/jackal/points_filtered/draco/managed", "jackal", "True", 10, 100000] for s in range(50)]
+    # The voxel grid's output never crosses the link: not offered to it.
+    offered += [[T0 + s, "/jackal/points_filtered", "jackal", "False", 30, 900000] for s in range(50)]
+    _write(tmp_path / "physical_stats.csv", header, offered)
     _write(tmp_path / "stats.csv", header, [[T0 + s, "/x", "jackal", "True", 6, 100000] for s in range(50)])
     _write(
         tmp_path / "allocation.csv",

@@ -291,7 +291,8 @@ def plan_nodes(
 
         # The robots' side of the latency: capture stamp -> voxel-filtered cloud, measured on the
         # physical host (nothing crosses the link); the report joins its per-cloud arrivals with the
-        # twin's by capture stamp.
+        # twin's by capture stamp. Also what the robots offer the link: each managed cloud and
+        # camera video as the robots' side publishes it (local subscriptions, nothing crosses).
         specs.append(
             NodeSpec(
                 "physical_stats",
@@ -306,8 +307,14 @@ def plan_nodes(
                             **common,
                             "csv_path": os.path.join(options.out_dir, "physical_stats.csv"),
                             "arrivals_csv_path": os.path.join(options.out_dir, "physical_arrivals.csv"),
-                            "topics": ",".join(
+                            "arrival_topics": ",".join(
                                 [_rt(r, names.POINTS_FILTERED) for r in robots] + [A(names.COMMAND_PROBE)]
+                            ),
+                            "topics": ",".join(
+                                [_rt(r, names.POINTS_FILTERED) for r in robots]
+                                + [A(names.COMMAND_PROBE)]
+                                + [_rt(r, names.POINTS_MANAGED) for r in robots]
+                                + _video_topics(r.name for r in fleet.robots if r.has_depth_camera)
                             ),
                         }
                     ),

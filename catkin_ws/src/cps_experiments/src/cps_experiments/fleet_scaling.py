@@ -135,7 +135,14 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
             log(f"[experiments] {exc}")
             continue
         stats = read_csv(os.path.join(run_dir, "stats.csv"))
-        sensor = latency_summary(read_csv(os.path.join(run_dir, "physical_stats.csv")), managed_only=False)
+        # The sensor's side: capture -> voxel-filtered cloud (physical_stats also measures what the
+        # robots offer the link, which is not this figure).
+        filtered = [
+            r
+            for r in read_csv(os.path.join(run_dir, "physical_stats.csv"))
+            if r.get("topic", "").endswith("/" + names.POINTS_FILTERED)
+        ]
+        sensor = latency_summary(filtered, managed_only=False)
         sensor_avg_ms = sum(v["avg_ms"] for v in sensor.values()) / len(sensor) if sensor else float("nan")
         results[robots] = (summary, network_performance(stats), stats, run_dir, sensor_avg_ms)
 

@@ -220,7 +220,11 @@ def measure_run(run_dir, robots, read_csv):
     twin_stats = read_csv(os.path.join(run_dir, "stats.csv"))
     received = link_windows(twin_stats)
     volumes = stream_volumes(twin_stats)
-    offered = link_windows(read_csv(os.path.join(run_dir, "physical_stats.csv")))
+    # What the robots offer the link: their managed clouds and videos as the robots' side publishes
+    # them (physical_stats also measures the voxel grid's output, which never crosses).
+    offered = link_windows(
+        [r for r in read_csv(os.path.join(run_dir, "physical_stats.csv")) if stream_of(r.get("topic", ""))]
+    )
     allocation_path = os.path.join(run_dir, "allocation.csv")
     levels = stream_levels(read_csv(allocation_path) if os.path.exists(allocation_path) else [])
     ends = [a[-1, 0] for a in arrivals.values() if len(a)] + [t for t in received]
