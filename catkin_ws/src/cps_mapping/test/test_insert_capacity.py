@@ -3,9 +3,15 @@ the InsertCapacity it publishes, measured from its own insertions."""
 
 import genpy
 import pytest
-from test_map_server_library import _cloud, _server, jackal_points  # noqa: F401 (a fixture)
+import test_map_server_library as library
+from test_map_server_library import _cloud, _server
 
 from cps_mapping.insert_capacity import InsertionBudget, InsertionMeter
+
+
+@pytest.fixture(scope="module")
+def jackal_points():
+    return library.jackal_points.__wrapped__()
 
 
 def _stamped(points, secs):
