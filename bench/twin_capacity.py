@@ -122,7 +122,8 @@ def trial(graph, watch, split, bag, n, layout, duration_s, out_dir):
         start = time.monotonic()
         replay = graph.popen(
             [*split.prefix(PHYSICAL), sys.executable, REPLAY, bag, "--robots", str(n), "--duration", str(duration_s)]
-            + ["--copies-fleet", copies_fleet, "--no-odom", "--tf-rate", str(TF_RATE_HZ)],
+            + ["--copies-fleet", copies_fleet, "--no-odom", "--tf-rate", str(TF_RATE_HZ)]
+            + ["--wait-for-subscribers", "30"],
             name=f"replay_{layout}_{n}",
         )
         replay.wait(timeout=duration_s + 120)
@@ -132,7 +133,7 @@ def trial(graph, watch, split, bag, n, layout, duration_s, out_dir):
     finally:
         supervisor.stop_all()
     output = graph.output(f"replay_{layout}_{n}")
-    sent_line = next((line for line in output.splitlines() if "sent clouds:" in line), None)
+    sent_line = next((line for line in reversed(output.splitlines()) if "sent clouds:" in line), None)
     if sent_line is None:
         raise RuntimeError(f"the replay of {n} did not finish: {output[-2000:]}")
     summary = json.loads(sent_line[sent_line.index("{") :])
@@ -311,7 +312,7 @@ def main():
 
         compact = os.path.join(args.out, os.path.basename(bag).replace(".bag", "") + ".trace.bag")
         if not os.path.exists(compact):
-            compact_trace(bag, load_fleet(), compact)
+            compact_trace(bag, load_fleet(), compact, busy_only=True)
         bag = compact
     cpus = online_cpus()
     twin = args.twin_cpu if args.twin_cpu is not None else cpus[-1]

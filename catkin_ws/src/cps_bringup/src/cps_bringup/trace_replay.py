@@ -42,6 +42,8 @@ from cps_fleet.fleet import FleetConfig, load_fleet
 PLACEMENT_STEP_M = 1.0
 WALL_MARGIN_M = 0.3
 MAX_PLACEMENTS_PER_ROBOT = 64
+# compact_trace(busy_only): a robot sending fewer clouds per second is starting or done.
+MIN_BUSY_HZ = 3
 
 
 class TraceError(ValueError):
@@ -116,16 +118,39 @@ def load_trace(bag_path: str, fleet: FleetConfig) -> Trace:
     return Trace(found, duration, bag_path)
 
 
-def compact_trace(bag_path: str, fleet: FleetConfig, out_path: str) -> str:
+def compact_trace(bag_path: str, fleet: FleetConfig, out_path: str, busy_only=False) -> str:
     """A copy of the bag with only what a replay reads (managed clouds, odometry, tf): a mission bag
-    also holds the raw sensor streams, ~30x larger and slow to scan."""
+    also holds the raw sensor streams, ~30x larger and slow to scan. `busy_only`: only the part where
+    every robot sends clouds at its working rate (from the last robot's first cloud to the first
+    second in which a robot sends fewer than MIN_BUSY_HZ), not the start-up nor the robots done;
+    /tf_static is kept whole."""
     import rosbag
 
-    topics = [names.absolute(names.managed_cloud(r)) for r in fleet.robot_names]
-    topics += [names.absolute(names.robot_topic(r, names.ODOM)) for r in fleet.robot_names]
-    with rosbag.Bag(bag_path) as bag, rosbag.Bag(out_path, "w") as out:
-        for topic, msg, t in bag.read_messages(topics=topics + [names.TF, names.TF_STATIC]):
-            out.write(topic, msg, t)
+    clouds = [names.absolute(names.managed_cloud(r)) for r in fleet.robot_names]
+    topics = clouds + [names.absolute(names.robot_topic(r, names.ODOM)) for r in fleet.robot_names]
+    with rosbag.Bag(bag_path) as bag:
+        start, end = -math.inf, math.inf
+        if busy_only:
+            stamps = {}
+            for topic, _, t in bag.read_messages(topics=clouds):
+                stamps.setdefault(topic, []).append(t.to_sec())
+            start = max(min(s) for s in stamps.values())
+            for s in stamps.values():
+                s = np.asarray(s)
+                for second in np.arange(start, s[-1], 1.0):
+                    if np.count_nonzero((s >= second) & (s < second + 1.0)) < MIN_BUSY_HZ:
+                        end = min(end, second)
+                        break
+                else:
+                    end = min(end, s[-1])
+            if not end - start > 5.0:
+                raise TraceError(f"{bag_path}: fewer than 5 s in which every robot sends clouds")
+        with rosbag.Bag(out_path, "w") as out:
+            for topic, msg, t in bag.read_messages(topics=topics + [names.TF, names.TF_STATIC]):
+                if topic == names.TF_STATIC and t.to_sec() < start:
+                    out.write(topic, msg, type(t).from_sec(start))  # the trace starts with it, not before
+                elif topic == names.TF_STATIC or start <= t.to_sec() <= end:
+                    out.write(topic, msg, t)
     return out_path
 
 
@@ -306,8 +331,17 @@ class Player:
                 tf.append((t, 0, "tf", m))
         odom = [(t, 1, "odom", m) for t, m in robot.odom] if self.odometry else []
         events = sorted(tf + odom + [(t, 2, "cloud", m) for t, m in robot.clouds], key=lambda e: (e[0], e[1]))
+        # At its start a copy first sends each frame's transform nearest its time offset, so that its
+        # first clouds find tf (the trace's order resumes after).
+        nearest = {}
+        for t, _, _, m in tf:
+            best = nearest.get(m.child_frame_id)
+            if best is None or abs(t - c.time_offset_s) < abs(best[0] - c.time_offset_s):
+                nearest[m.child_frame_id] = (t, m)
         period = max(self.trace.duration_s, 1e-3)
         shifted = sorted(((t - c.time_offset_s) % period, order, kind, m) for t, order, kind, m in events)
+        for _, m in nearest.values():
+            yield 0.0, "tf", m
         loop = 0
         while True:
             for t, _, kind, m in shifted:
@@ -373,6 +407,13 @@ def build_parser():
         "--tf-rate", type=float, default=0.0, metavar="HZ", help="odom -> base transforms per second (0: as recorded)"
     )
     parser.add_argument(
+        "--wait-for-subscribers",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="wait up to S seconds for a subscriber on every cloud topic and /tf before playing (as rosbag play's)",
+    )
+    parser.add_argument(
         "--no-odom", action="store_true", help="leave odometry out (the twin's cloud path needs tf only)"
     )
     parser.add_argument("--step", type=float, default=PLACEMENT_STEP_M, metavar="M", help="placement grid pitch")
@@ -429,6 +470,17 @@ def main(argv=None, log=print):
         tf_period_s=1.0 / args.tf_rate if args.tf_rate > 0 else 0.0,
         odometry=not args.no_odom,
     )
+    if args.wait_for_subscribers > 0:
+        deadline = time.monotonic() + args.wait_for_subscribers
+        waiting = [*cloud_pubs.values(), tf_pub]
+        while waiting and time.monotonic() < deadline:
+            waiting = [p for p in waiting if p.get_num_connections() == 0]
+            time.sleep(0.05)
+        if waiting:
+            names_waiting = ", ".join(p.name for p in waiting)
+            log(
+                f"[trace_replay] no subscriber after {args.wait_for_subscribers:g} s on {names_waiting}; playing anyway"
+            )
     static_pub.publish(TFMessage(transforms=player.static_transforms(rospy.Time.from_sec(time.time()))))
     try:
         player.run(args.duration, rospy.Time.from_sec)
