@@ -165,3 +165,39 @@ def test_bringup_places_each_side_in_its_own_cgroup(open_tmp_path):
     for controller in ("cpuset", "cpu"):
         assert not os.path.exists(f"/sys/fs/cgroup/{controller}/{group}")
     assert not processes_named(str(out))
+
+
+@pytest.mark.skipif(cgroup_v1_writable() is not None, reason=f"cgroup v1 split unavailable: {cgroup_v1_writable()}")
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPUs to split")
+def test_groups_are_removed_even_with_a_process_left_inside_and_stale_ones_too():
+    """A node that outlived the run is moved out and the groups removed; an earlier run's empty
+    groups (its bringup killed hard, pid gone) are removed at the next start."""
+    cpus = sorted(os.sched_getaffinity(0))[:2]
+    stale = "/sys/fs/cgroup/cpu/cpsfleet_4194305/physical"  # above any pid_max: that bringup is gone
+    os.makedirs(stale, exist_ok=True)
+    name = f"cpsfleet_{os.getpid()}"
+    leftover = None
+    try:
+        with HostSplit.choose({PHYSICAL: (cpus[0],), DIGITAL: (cpus[1],)}, name=name) as split:
+            assert not os.path.exists(os.path.dirname(stale))
+            # The node says where it runs (one line of its own /proc/self/cgroup), then stays.
+            leftover = subprocess.Popen(
+                [*split.prefix(DIGITAL), "sh", "-c", "grep :cpuset: /proc/self/cgroup; exec cat"],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            assert leftover.stdout.readline().strip().endswith(f":cpuset:/{name}/{DIGITAL}")
+            assert _groups_of(leftover.pid)["cpu"] == f"/{name}/{DIGITAL}"
+            with open(f"/sys/fs/cgroup/cpuset/{name}/{DIGITAL}/cpuset.cpus") as f:
+                assert f.read().strip() == str(cpus[1])
+        assert leftover.poll() is None and _groups_of(leftover.pid)["cpuset"] == "/"
+        for controller in ("cpuset", "cpu"):
+            assert not os.path.exists(f"/sys/fs/cgroup/{controller}/{name}")
+    finally:
+        if leftover is not None:
+            leftover.kill()
+            leftover.wait()
+        for folder in (stale, os.path.dirname(stale)):
+            if os.path.isdir(folder):
+                os.rmdir(folder)

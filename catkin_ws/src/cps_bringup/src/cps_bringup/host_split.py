@@ -174,8 +174,9 @@ class HostSplit:
     def __enter__(self):
         if self.mode != "cgroup":
             return self
+        self._remove_stale()
         if any(os.path.isdir(os.path.join(self.root, c, self.name)) for c in ("cpuset", "cpu")):
-            self._remove()  # a previous run killed hard left them; empty groups only (rmdir)
+            self._remove()  # a previous run killed hard left them
         try:
             for controller in ("cpuset", "cpu"):
                 os.makedirs(os.path.join(self.root, controller, self.name), exist_ok=True)
@@ -200,6 +201,28 @@ class HostSplit:
 
     def __exit__(self, *exc):
         self._remove()
+
+    def _remove_stale(self):
+        """Remove the groups of earlier runs (`<prefix>_<pid>`) whose bringup died without cleaning up
+        (SIGKILL): their pid is gone and nothing runs in them any more."""
+        prefix, _, own_pid = self.name.rpartition("_")
+        if not prefix or not own_pid.isdigit():
+            return
+        for controller in ("cpuset", "cpu"):
+            folder = os.path.join(self.root, controller)
+            for entry in os.listdir(folder):
+                head, _, pid = entry.rpartition("_")
+                if head != prefix or not pid.isdigit() or pid == own_pid or os.path.exists(f"/proc/{pid}"):
+                    continue
+                top = os.path.join(folder, entry)
+                groups = [os.path.join(top, s) for s in os.listdir(top) if os.path.isdir(os.path.join(top, s))]
+                if any(_read(os.path.join(g, "cgroup.procs")) for g in groups + [top]):
+                    continue  # something still runs there: not ours to move
+                for g in groups + [top]:
+                    try:
+                        os.rmdir(g)
+                    except OSError:
+                        pass
 
     def _remove(self):
         """Remove the groups; a group still holding a process (a node that outlived stop_all) has its
