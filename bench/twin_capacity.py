@@ -251,15 +251,22 @@ def report(results, split_text, args, bag):
         "**Contended machine:** two cores shared with other sessions' builds and tests while this ran; the twin's "
         "CPU was not idle-exclusive. Treat the figures as a lower bound of one free core.",
         "",
-        "| layout | largest N held | robots per twin core | voxel updates/s per core (insertion, measured) | anchor ratio |",
-        "|---|---|---|---|---|",
+        "| layout | largest N held on the (shared) twin CPU | twin CPU at that N (cores) | robots per free core "
+        "(N / twin CPU) | voxel updates/s per core of insertion | ratio to the anchor (robots per free core) |",
+        "|---|---|---|---|---|---|",
     ]
-    anchor = results.get("per_robot", (None, None))[0]
+    per_free_core = {}
+    for layout, (good, rows) in results.items():
+        best = next((r for r in rows if r["robots"] == good and r["holds"]), None)
+        per_free_core[layout] = best["robots"] / best["twin_cpu_s_per_s"] if best and best["twin_cpu_s_per_s"] else None
+    anchor = per_free_core.get("per_robot")
     for layout, (good, rows) in results.items():
         best = next((r for r in rows if r["robots"] == good and r["holds"]), None)
         per_core = f"{best['insertion_voxel_updates_per_busy_s'] / 1e6:.2f} M" if best else "-"
-        ratio = f"{good / anchor:.2f}x" if anchor else "-"
-        lines.append(f"| {layout} | {good} | {good} | {per_core} | {ratio} |")
+        free = per_free_core[layout]
+        ratio = f"{free / anchor:.2f}x" if free and anchor else "-"
+        cpu = f"{best['twin_cpu_s_per_s']:.2f}" if best else "-"
+        lines.append(f"| {layout} | {good} | {cpu} | {f'{free:.0f}' if free else '-'} | {per_core} | {ratio} |")
     lines += [
         "",
         "Voxel updates per second per core = the map server's InsertCapacity voxel_updates_per_s at the largest "
@@ -297,8 +304,25 @@ def main():
     parser.add_argument("--max", type=int, default=128)
     parser.add_argument("--twin-cpu", type=int, default=None, help="the twin's CPU (default: the last)")
     parser.add_argument("--out", default=os.path.join(ROOT, "bench", "out", "twin_capacity"))
+    parser.add_argument("--split-text", default="", help=argparse.SUPPRESS)
+    parser.add_argument("--from-json", default=None, help="only write the report from an earlier results.json")
     parser.add_argument("--md", default=os.path.join(ROOT, "docs", "benchmarks", "twin_capacity.md"))
     args = parser.parse_args()
+
+    if args.from_json:
+        with open(args.from_json) as f:
+            saved = json.load(f)
+        if "results" not in saved:  # the first format: {layout: rows}
+            held = {k: [r["robots"] for r in rows if r["holds"]] for k, rows in saved.items()}
+            saved = dict(
+                results={k: dict(good=max(held[k], default=0), rows=rows) for k, rows in saved.items()},
+                split=args.split_text,
+                bag=args.bag,
+            )
+        results = {k: (v["good"], v["rows"]) for k, v in saved["results"].items()}
+        with open(args.md, "w") as f:
+            f.write(report(results, saved["split"], args, saved["bag"]))
+        return
 
     from cps_bringup.host_split import HostSplit, online_cpus
     from cps_bringup.plan import DIGITAL, PHYSICAL
@@ -337,7 +361,8 @@ def main():
         rospy.signal_shutdown("done")
     text = report(results, split_text, args, os.path.relpath(bag, ROOT))
     with open(os.path.join(args.out, "results.json"), "w") as f:
-        json.dump({k: v[1] for k, v in results.items()}, f, indent=1)
+        saved = {k: dict(good=v[0], rows=v[1]) for k, v in results.items()}
+        json.dump(dict(results=saved, split=split_text, bag=os.path.relpath(bag, ROOT)), f, indent=1)
     with open(args.md, "w") as f:
         f.write(text)
     print(text)
