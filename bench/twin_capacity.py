@@ -294,7 +294,17 @@ def report(results, split_text, args, bag):
     return "\n".join(lines) + "\n"
 
 
+def _stop_on_sigterm():
+    import signal
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")  # the cgroups and the master are cleaned up
+
+    signal.signal(signal.SIGTERM, handler)
+
+
 def main():
+    _stop_on_sigterm()
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--bag", default=None, help="a mission bag (default: record one)")
     parser.add_argument("--profile", default="light", help="the profile the trace was (or is) recorded with")
@@ -302,6 +312,14 @@ def main():
     parser.add_argument("--layouts", default="shared,per_robot")
     parser.add_argument("--start", type=int, default=4)
     parser.add_argument("--max", type=int, default=128)
+    parser.add_argument(
+        "--twin-shares",
+        type=int,
+        default=16384,
+        help="the twin group's cpu.shares: on a machine shared with other work, the twin gets its CPU first "
+        "(a plain process weighs 1024), the closest this machine comes to a free core",
+    )
+    parser.add_argument("--replay-shares", type=int, default=4096, help="the replay's cpu.shares (it must keep time)")
     parser.add_argument("--twin-cpu", type=int, default=None, help="the twin's CPU (default: the last)")
     parser.add_argument("--out", default=os.path.join(ROOT, "bench", "out", "twin_capacity"))
     parser.add_argument("--split-text", default="", help=argparse.SUPPRESS)
@@ -341,7 +359,11 @@ def main():
     cpus = online_cpus()
     twin = args.twin_cpu if args.twin_cpu is not None else cpus[-1]
     robots_side = tuple(c for c in cpus if c != twin) or cpus
-    split = HostSplit.choose({PHYSICAL: robots_side, DIGITAL: (twin,)}, name=f"cps_twin_capacity_{os.getpid()}")
+    split = HostSplit.choose(
+        {PHYSICAL: robots_side, DIGITAL: (twin,)},
+        name=f"cps_twin_capacity_{os.getpid()}",
+        shares={DIGITAL: args.twin_shares, PHYSICAL: args.replay_shares},
+    )
     split_text = split.describe()
     print(split_text, flush=True)
     results = {}

@@ -154,16 +154,20 @@ class HostSplit:
     mode: str = "cgroup"  # "cgroup" | "taskset" | "none"
     reason: str = ""  # why not "cgroup"
     can_raise_priority: bool = dataclasses.field(default_factory=lambda: os.geteuid() == 0)
+    # cpu.shares per side (default 1024, a plain process's weight): against processes outside the
+    # groups on the same CPUs (other work on a shared test machine), a side with more shares gets
+    # the CPU first.
+    shares: Dict[str, int] = dataclasses.field(default_factory=dict)
 
     @classmethod
-    def choose(cls, cpus, quota_cores=None, name="cpsfleet", root=CGROUP_ROOT):
+    def choose(cls, cpus, quota_cores=None, name="cpsfleet", root=CGROUP_ROOT, shares=None):
         """cgroups where they are writable, else taskset, else none (cpus None: no split)."""
         quota_cores = quota_cores or {}
         if cpus is None:
             return cls({}, {}, name, root, mode="none", reason="a single CPU: nothing to split")
         why = cgroup_v1_writable(root)
         if why is None:
-            return cls(cpus, quota_cores, name, root)
+            return cls(cpus, quota_cores, name, root, shares=dict(shares or {}))
         if shutil.which("taskset"):
             return cls(cpus, {}, name, root, mode="taskset", reason=why)
         return cls({}, {}, name, root, mode="none", reason=f"{why}, and no taskset")
@@ -190,6 +194,8 @@ class HostSplit:
                 _write(os.path.join(self.group("cpuset", side), "cpuset.cpus"), ",".join(map(str, cpus)))
                 _write(os.path.join(self.group("cpuset", side), "cpuset.mems"), mems)
                 os.makedirs(self.group("cpu", side), exist_ok=True)
+                if side in self.shares:
+                    _write(os.path.join(self.group("cpu", side), "cpu.shares"), str(int(self.shares[side])))
                 quota = self.quota_cores.get(side)
                 if quota:
                     _write(os.path.join(self.group("cpu", side), "cpu.cfs_period_us"), str(CFS_PERIOD_US))
@@ -261,6 +267,7 @@ class HostSplit:
         sides = "; ".join(
             f"{'robots' if side == PHYSICAL else 'twin'} CPU {','.join(map(str, cpus))}"
             + (f" (quota {self.quota_cores[side]:g} cores)" if side in self.quota_cores else "")
+            + (f" (cpu.shares {self.shares[side]})" if side in self.shares and self.mode == "cgroup" else "")
             for side, cpus in sorted(self.cpus.items(), reverse=True)
         )
         priority = (
