@@ -2,6 +2,7 @@
 each side's processes in its own cgroup (read back from /proc/<pid>/cgroup)."""
 
 import os
+import shutil
 import subprocess
 import sys
 
@@ -16,7 +17,8 @@ from cps_bringup.host_split import (
     parse_host_cpus,
     parse_host_quota,
 )
-from cps_bringup.plan import DIGITAL, PHYSICAL
+from cps_bringup.plan import DIGITAL, PHYSICAL, NodeSpec
+from cps_bringup.supervisor import Supervisor
 from cps_ros.processes import free_port, processes_named
 
 BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
@@ -201,3 +203,37 @@ def test_groups_are_removed_even_with_a_process_left_inside_and_stale_ones_too()
         for folder in (stale, os.path.dirname(stale)):
             if os.path.isdir(folder):
                 os.rmdir(folder)
+
+
+@pytest.mark.skipif(cgroup_v1_writable() is not None, reason=f"cgroup v1 split unavailable: {cgroup_v1_writable()}")
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPUs to split")
+@pytest.mark.skipif(shutil.which("ip") is None, reason="no iproute2")
+def test_a_node_started_through_ip_netns_exec_keeps_its_group_and_priority():
+    """With --link the robots' nodes start through `ip netns exec`, which mounts its own /sys: the
+    supervisor puts the split's prefix before it (joined first, inherited through it)."""
+    cpus = sorted(os.sched_getaffinity(0))[:2]
+    netns = f"cpshosttest{os.getpid()}"
+    name = f"cpsfleet_{os.getpid()}"
+    subprocess.run(["ip", "netns", "add", netns], check=True)
+    try:
+        with HostSplit.choose({PHYSICAL: (cpus[0],), DIGITAL: (cpus[1],)}, name=name) as split:
+            supervisor = Supervisor(
+                [
+                    NodeSpec(
+                        "probe",
+                        PHYSICAL,
+                        ("sh", "-c", "grep :cpuset: /proc/self/cgroup; cut -d' ' -f19 /proc/self/stat"),
+                        control=True,
+                    )
+                ],
+                graph=None,
+                side_prefix={PHYSICAL: ["ip", "netns", "exec", netns]},
+                spec_prefix=lambda spec: split.prefix(spec.side, control=spec.control),
+            )
+            argv = supervisor.argv_of(supervisor.specs[0])
+            run = subprocess.run(argv, capture_output=True, text=True, timeout=30)
+        assert run.returncode == 0, run.stderr
+        group, nice = run.stdout.split()
+        assert group.endswith(f":cpuset:/{name}/{PHYSICAL}") and int(nice) == CONTROL_NICE
+    finally:
+        subprocess.run(["ip", "netns", "del", netns])
