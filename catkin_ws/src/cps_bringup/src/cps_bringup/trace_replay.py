@@ -44,6 +44,8 @@ WALL_MARGIN_M = 0.3
 MAX_PLACEMENTS_PER_ROBOT = 64
 # compact_trace(busy_only): a robot sending fewer clouds per second is starting or done.
 MIN_BUSY_HZ = 3
+# A replay later than this has stalled: it resumes from the present (Player.run).
+STALL_S = 0.5
 
 
 class TraceError(ValueError):
@@ -301,6 +303,7 @@ class Player:
         self.trace, self.copies = trace, copies
         self.tf_period_s, self.odometry = tf_period_s, odometry
         self.cloud_lateness_s: List[float] = []
+        self.stalls_s: List[float] = []
         self.publish_cloud, self.publish_tf, self.publish_odom = publish_cloud, publish_tf, publish_odom
         self.clock = clock
         self._stop = threading.Event()
@@ -363,6 +366,12 @@ class Player:
             if t > duration_s:
                 break
             delay = start + t - self.clock()
+            if delay < -STALL_S:
+                # The replay stalled (its CPU taken): resume from now rather than send the missed
+                # seconds in a burst of old stamps; counted, so that the run can be judged.
+                self.stalls_s.append(-delay)
+                start -= delay
+                delay = 0.0
             if delay > 0 and self._stop.wait(delay):
                 break
             if kind == "cloud":
@@ -407,6 +416,12 @@ def build_parser():
         "--tf-rate", type=float, default=0.0, metavar="HZ", help="odom -> base transforms per second (0: as recorded)"
     )
     parser.add_argument(
+        "--shard",
+        default="0/1",
+        metavar="I/K",
+        help="play only copies I, I+K, I+2K... of the plan (K processes share a large replay)",
+    )
+    parser.add_argument(
         "--wait-for-subscribers",
         type=float,
         default=0.0,
@@ -427,6 +442,9 @@ def main(argv=None, log=print):
     try:
         trace = load_trace(args.bag, fleet)
         copies, note = plan_copies(trace, args.robots, hall_bounds(fleet), args.step)
+        shard, shards = (int(x) for x in args.shard.split("/"))
+        if not 0 <= shard < shards:
+            raise TraceError(f"--shard {args.shard}: I/K with 0 <= I < K")
     except TraceError as exc:
         print(f"trace_replay: error: {exc}", file=sys.stderr)
         return 2
@@ -442,6 +460,7 @@ def main(argv=None, log=print):
     )
     if args.plan_only:
         return 0
+    copies = copies[shard::shards]
     import rospy
     from nav_msgs.msg import Odometry
     from tf2_msgs.msg import TFMessage
@@ -487,7 +506,12 @@ def main(argv=None, log=print):
     except KeyboardInterrupt:
         pass
     late = sorted(player.cloud_lateness_s) or [0.0]
-    summary = dict(sent=player.sent_clouds, late_p95_s=late[int(0.95 * (len(late) - 1))], late_max_s=late[-1])
+    summary = dict(
+        sent=player.sent_clouds,
+        late_p95_s=late[int(0.95 * (len(late) - 1))],
+        late_max_s=late[-1],
+        stalls_s=[round(x, 3) for x in player.stalls_s],
+    )
     # The replay's own lateness: clouds are stamped when they were due, so a late replay ages the map.
     log(f"[trace_replay] sent clouds: {sum(player.sent_clouds.values())} {json.dumps(summary)}", flush=True)
     rospy.signal_shutdown("done")
