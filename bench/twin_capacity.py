@@ -301,7 +301,9 @@ def report(results, split_text, args, bag):
         free = per_free_core[layout]
         ratio = f"{free / anchor:.2f}x" if free and anchor else "-"
         cpu = f"{best['twin_cpu_s_per_s']:.2f}" if best else "-"
-        lines.append(f"| {layout} | {good} | {cpu} | {f'{free:.0f}' if free else '-'} | {per_core} | {ratio} |")
+        limited = bool(rows) and rows[-1]["replay_limited"] and not rows[-1]["holds"]
+        held = f">= {good} (beyond: the replay stalled, machine-limited)" if limited else str(good)
+        lines.append(f"| {layout} | {held} | {cpu} | {f'{free:.0f}' if free else '-'} | {per_core} | {ratio} |")
     lines += [
         "",
         "Voxel updates per second per core = the map server's InsertCapacity voxel_updates_per_s at the largest "
