@@ -310,18 +310,23 @@ def report(results, split_text, args, bag):
         "N held, divided by its insertion budget (0.8): ray-caster voxel steps per second of insertion time on "
         "that core (the unit voxblox and OctoMap quote).",
         "",
+        "Insertion busy = the map server's insertion wall time per second (InsertCapacity busy_s / window_s, "
+        "the last window of the trial); the twin's CPU (decoder(s) and map server, from /proc) less the "
+        "insertion is decoding, deserialising and publishing. Wall time counts preemption too.",
+        "",
         "## Every trial",
         "",
         "| layout | N | sent | inserted | superseded % | dropped % | map age p95 s | twin CPU (cores) | "
-        "capacity clouds/s | capacity M voxel updates/s | replay late p95 s | holds |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "insertion busy (s per s) | capacity clouds/s | capacity M voxel updates/s | replay late p95 s | holds |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for layout, (_, rows) in results.items():
         for r in rows:
             lines.append(
                 f"| {layout} | {r['robots']}{' (asked ' + str(r['asked']) + ')' if r['robots'] != r['asked'] else ''} "
                 f"| {r['sent']} | {r['inserted']} | {r['superseded_pct']:.1f} | {r['dropped_pct']:.2f} | "
-                f"{r['age_p95_s']:.2f} | {r['twin_cpu_s_per_s']:.2f} | {r['clouds_per_s_capacity']:.0f} | "
+                f"{r['age_p95_s']:.2f} | {r['twin_cpu_s_per_s']:.2f} | "
+                f"{r['busy_s'] / r['window_s'] if r['window_s'] else 0:.2f} | {r['clouds_per_s_capacity']:.0f} | "
                 f"{r['voxel_updates_per_s_capacity'] / 1e6:.2f} | {r['replay_late_p95_s']:.3f} | "
                 f"{'yes' if r['holds'] else 'no'}{' (replay-limited)' if r['replay_limited'] else ''} |"
             )
