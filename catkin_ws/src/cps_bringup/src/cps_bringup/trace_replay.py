@@ -467,7 +467,8 @@ def main(argv=None, log=print):
 
     from cps_msgs.msg import CompressedPointCloud2
 
-    rospy.init_node("trace_replay", disable_signals=True)
+    # One node name per shard: a second node of the same name would shut the first one down.
+    rospy.init_node("trace_replay" if shards == 1 else f"trace_replay_{shard}_of_{shards}", disable_signals=True)
     cloud_pubs = {
         c.name: rospy.Publisher(
             names.absolute(names.managed_cloud_at_twin(c.name)), CompressedPointCloud2, queue_size=5
