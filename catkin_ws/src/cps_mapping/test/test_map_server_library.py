@@ -82,10 +82,10 @@ def test_bad_clouds_are_counted_and_never_reach_the_map(jackal_points):
     server.receive_cloud("jackal", _cloud(np.full((10, 3), np.nan)))  # all NaN
     server.receive_cloud("scout", _cloud(jackal_points, frame="scout/lidar"))  # no transform
     server.receive_cloud("jackal", _cloud(np.vstack([jackal_points, [[1e9, 0, 0]]])))  # one absurd point
-    server.receive_cloud("jackal", _cloud(jackal_points))  # queue of 1: drops the one before
+    server.receive_cloud("jackal", _cloud(jackal_points))  # slot of 1: supersedes the one before
     jackal, scout = server.counters["jackal"], server.counters["scout"]
     assert (jackal.clouds_received, jackal.clouds_dropped_invalid, jackal.points_rejected) == (4, 2, 1)
-    assert (jackal.clouds_dropped_queue, scout.clouds_dropped_tf) == (1, 1)
+    assert (jackal.clouds_superseded, jackal.clouds_dropped_queue, scout.clouds_dropped_tf) == (1, 0, 1)
     assert server.map.version == 0
     assert server.insert_pending(timeout_s=0) == 1 and server.counters["jackal"].clouds_inserted == 1
 

@@ -15,6 +15,7 @@ import sys
 import time
 from typing import Dict, List, Optional
 
+from cps_bringup.host_split import HostSplitError
 from cps_bringup.mission import MissionMonitor, wait_for_mission
 from cps_bringup.plan import (
     CONTROL_LAYOUTS,
@@ -72,6 +73,7 @@ class MissionResult:
     progress: object
     events: List[Event]
     restarts: Dict[str, int]
+    host_split: str = "no host split (not asked)"
 
 
 def build_parser():
@@ -128,6 +130,20 @@ def build_parser():
         "address, or 127.0.0.1)",
     )
     parser.add_argument("--link-name", default=None, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--host-cpus",
+        default=None,
+        metavar="robots=CPUS,twin=CPUS",
+        help="run the robots' side and the twin side on separate CPUs (cgroup v1 cpuset+cpu as root, else "
+        "taskset), e.g. robots=0,twin=1 or robots=0-2,twin=3; 'none': no split (default: split the CPUs in "
+        "halves for --link runs as root, no split otherwise)",
+    )
+    parser.add_argument(
+        "--host-quota",
+        default=None,
+        metavar="SIDE=CORES",
+        help="a side's CFS quota in cores on top of its CPUs, e.g. twin=0.5 (cgroups only)",
+    )
     parser.add_argument("--screenshot", action="store_true", help="start the GUI offscreen and save a screenshot")
     parser.add_argument("--screenshot-after", type=float, default=GUI_SCREENSHOT_AFTER_S, metavar="S")
     parser.add_argument("--start-timeout", type=float, default=150.0, metavar="S")
@@ -284,6 +300,7 @@ def run_mission(args, log=print) -> MissionResult:
         raise BringupError(f"--select-robot {selected}: not a camera robot of this fleet (camera robots: {cameras})")
     out_dir = os.path.abspath(args.out)
     sides = _sides(args.side)
+    split = _host_split(args, sides)  # refused here, before anything starts
     baseline, site_changes = check_monitoring_inputs(args, fleet, sides)
     replay_path = _checked_replay(args.replay, fleet, sides, log)
     os.makedirs(out_dir, exist_ok=True)
@@ -316,6 +333,11 @@ def run_mission(args, log=print) -> MissionResult:
         transport = TCPROS
     zenoh = transport == ZENOH
     with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(split)
+        except HostSplitError as exc:
+            raise BringupError(str(exc)) from exc
+        log(f"[bringup] {split.describe()}")
         link = stack.enter_context(_link_context(args.link, log, getattr(args, "link_scenario", None), args.link_name))
         if link:
             # As the paper: the manager's B is what iperf3 measured on the link, not the nominal rate.
@@ -385,6 +407,7 @@ def run_mission(args, log=print) -> MissionResult:
             policy=RestartPolicy.from_limits(fleet.limits),
             node_log_max_bytes=int(fleet.limits.node_log_max_mbytes * 1e6),
             user_prefix=prefix if user else None,
+            spec_prefix=lambda spec: split.prefix(spec.side, control=spec.control),
         )
         recorder_log = None
         if options.record_path:
@@ -450,6 +473,7 @@ def run_mission(args, log=print) -> MissionResult:
             monitor.snapshot(),
             list(supervisor.events),
             supervisor.restarts(),
+            split.describe(),
         )
 
 
@@ -620,6 +644,28 @@ def _robots_graph(out_dir, link):
 
         return InNamespace(graph, link.netns_path("phys"))
     return graph
+
+
+def _host_split(args, sides):
+    """The sides' CPU budgets: --host-cpus, else halves for a two-side --link run as root, else none.
+    BringupError for a split the machine cannot honour."""
+    from cps_bringup.host_split import HostSplit, default_host_cpus, parse_host_cpus, parse_host_quota
+
+    text = getattr(args, "host_cpus", None)
+    quota_text = getattr(args, "host_quota", None)
+    linked = args.link not in (None, "", "none") or getattr(args, "link_scenario", None)
+    try:
+        if text == "none" or (text is None and not (linked and os.geteuid() == 0 and len(sides) == 2)):
+            if quota_text:
+                raise HostSplitError("--host-quota needs a host split (--host-cpus)")
+            reason = "--host-cpus none" if text == "none" else "not asked (default only for --link runs as root)"
+            return HostSplit({}, mode="none", reason=reason)
+        cpus = parse_host_cpus(text) if text else default_host_cpus()
+        quota = parse_host_quota(quota_text, cpus or {}) if quota_text else {}
+        name = f"cpsfleet_{args.link_name}" if getattr(args, "link_name", None) else f"cpsfleet_{os.getpid()}"
+        return HostSplit.choose(cpus, quota, name=name)
+    except HostSplitError as exc:
+        raise BringupError(str(exc)) from exc
 
 
 @contextlib.contextmanager

@@ -52,6 +52,9 @@ class NodeSpec:
     essential: bool = True
     # How long stopping may take before SIGTERM/SIGKILL (rosbag record writes out its queue).
     stop_timeout_s: float = 6.0
+    # A control process (velocity mux, route control): it runs at a higher scheduling priority than
+    # the sensors and clouds of its side when the sides are split (host_split.CONTROL_NICE).
+    control: bool = False
 
 
 MAP_SERVER = names.MAP_SERVER
@@ -253,6 +256,7 @@ def plan_nodes(
                     ),
                     wait_topics=tuple(_rt(r, t) for r in robots for t in (names.CMD_VEL, names.MISSION_STATE)),
                     after=drivers,
+                    control=True,
                 )
             )
         for robot in fleet.robots:
@@ -265,6 +269,7 @@ def plan_nodes(
                         PHYSICAL,
                         py("cps_sim", "velocity_mux", ns, "__name:=velocity_mux", *_args({**common, "robot": r})),
                         wait_topics=(_rt(r, names.CMD_VEL),),
+                        control=True,
                     )
                 )
                 specs.append(
@@ -280,6 +285,7 @@ def plan_nodes(
                         ),
                         wait_topics=(_rt(r, names.MISSION_STATE),),
                         after=drivers,
+                        control=True,
                     )
                 )
             if options.tissue_layout == PER_ROBOT:

@@ -81,9 +81,11 @@ class Supervisor:
         user_prefix: Optional[List[str]] = None,
         clock: Callable[[], float] = time.monotonic,
         side_graphs: Optional[Dict[str, object]] = None,
+        spec_prefix: Optional[Callable[[NodeSpec], List[str]]] = None,
     ):
         """`user_prefix`: argv that runs a node as another user (after the side's prefix). `side_graphs`:
-        a side's own master (Zenoh: a master per side), instead of `graph`."""
+        a side's own master (Zenoh: a master per side), instead of `graph`. `spec_prefix(spec)`: argv
+        before the side's prefix (its side's CPU budget and priority: host_split)."""
         labels = [s.label for s in specs]
         if len(set(labels)) != len(labels):
             raise ValueError(f"duplicate node labels in the plan: {labels}")
@@ -96,6 +98,7 @@ class Supervisor:
         self.policy = policy
         self.node_log_max_bytes = node_log_max_bytes
         self.user_prefix = list(user_prefix or [])
+        self.spec_prefix = spec_prefix or (lambda spec: [])
         self.clock = clock
         self._master_silent_since: Optional[float] = None
         self.running: Dict[str, _Running] = {}
@@ -113,8 +116,14 @@ class Supervisor:
     def _topics_by_graph(self):
         return {id(g): set(g.published_topics()) for g in (self.graph, *self.side_graphs.values())}
 
+    def argv_of(self, spec: NodeSpec):
+        """The command that starts `spec`. The CPU budget first: `ip netns exec` (a side's prefix with
+        --link) mounts its own /sys, where the cgroup folders are not; the groups and the nice value
+        are inherited through it."""
+        return [*self.spec_prefix(spec), *self.side_prefix.get(spec.side, []), *self.user_prefix, *spec.argv]
+
     def _start(self, spec: NodeSpec):
-        argv = [*self.side_prefix.get(spec.side, []), *self.user_prefix, *spec.argv]
+        argv = self.argv_of(spec)
         proc = self._graph(spec.label).popen(argv, name=spec.label.replace("/", "_"), env=self.side_env.get(spec.side))
         return proc
 

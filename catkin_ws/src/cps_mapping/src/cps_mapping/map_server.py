@@ -26,6 +26,7 @@ from cps_mapping.change_attention import ATTENTION_RADIUS_M
 from cps_mapping.change_detection import detect_map_changes, write_report
 from cps_mapping.cloud_input import InvalidInput, prepare_cloud, read_leaf
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
+from cps_mapping.insert_capacity import InsertionBudget, InsertionMeter, voxel_updates_of
 from cps_mapping.markers import occupied_cells_markers
 from cps_mapping.queues import QueuedCloud, RobotQueues
 from cps_msgs.srv import BoundingBoxQueryResponse, LoadMapResponse, SaveMapResponse
@@ -52,7 +53,24 @@ class MapServerOptions:
     )
     frame_id: str = _option("map", "fixed frame")
     tf_timeout_s: float = _option(0.5, "longest wait for a cloud's transform, then it is dropped", "s", low=0.0)
-    queue_size: int = _option(3, "clouds queued per robot; a full queue drops its oldest", "clouds", low=1)
+    queue_size: int = _option(
+        1,
+        "clouds held per robot (1: only its latest, as voxblox); a newer cloud supersedes the oldest waiting one",
+        "clouds",
+        low=1,
+    )
+    insertion_budget_fraction: float = _option(
+        0.8,
+        "share of each second the insertion may work (the rest: publishing, services, subscribers); "
+        "InsertCapacity's capacity is at this share",
+        "",
+        low=0.0,
+        low_open=True,
+        high=1.0,
+    )
+    capacity_window_s: float = _option(
+        10.0, "InsertCapacity's window of measured insertions", "s", low=0.0, low_open=True
+    )
     publish_period_s: float = _option(
         1.0, "map, markers, centres and projected map (if the map changed)", "s", low=0.0, low_open=True
     )
@@ -103,7 +121,8 @@ class RobotCounters:
 
     clouds_received: int = 0
     clouds_inserted: int = 0
-    clouds_dropped_queue: int = 0
+    clouds_dropped_queue: int = 0  # none since the slots keep the newest: superseded is not lost
+    clouds_superseded: int = 0
     clouds_dropped_tf: int = 0
     clouds_dropped_invalid: int = 0
     clouds_without_leaf: int = 0  # inserted as they are (docs/cloud_levels.md)
@@ -154,6 +173,8 @@ class MapOutputs:
     # octomap_full (log-odds .ot body), built only while `full_wanted()` (it costs a tree walk).
     octomap_full: Optional[Callable] = None
     full_wanted: Callable = lambda: True
+    # cps_msgs/InsertCapacity (insert_capacity.py), once a second.
+    capacity: Optional[Callable] = None
 
 
 class TransformUnavailable(Exception):
@@ -196,6 +217,8 @@ class MapServer:
         self._counters_lock = threading.Lock()
         self.counters = {r: RobotCounters() for r in self.robots}
         self.queues = RobotQueues(self.robots, options.queue_size)
+        self.meter = InsertionMeter(options.capacity_window_s, options.insertion_budget_fraction)
+        self.budget = InsertionBudget(options.insertion_budget_fraction)
         self.snapshot: Optional[MapSnapshot] = None
         self._full_version = None  # the map version octomap_full last carried
         self.unknown_robots = set()
@@ -237,6 +260,9 @@ class MapServer:
             counters = self.counters[robot]
             for field, amount in amounts.items():
                 setattr(counters, field, getattr(counters, field) + amount)
+        lost = sum(amount for field, amount in amounts.items() if field.startswith("clouds_dropped"))
+        if lost:
+            self.meter.dropped(lost)
 
     # ---- persistence ---------------------------------------------------------------------------
 
@@ -353,13 +379,8 @@ class MapServer:
                 f"(~max_points_range_m) removed",
             )
         if self.queues.put(QueuedCloud(robot, cloud.points_m, cloud.origin_m, msg.header.stamp.to_sec())):
-            self._count(robot, clouds_dropped_queue=1)
-            self._warn(
-                ("queue", robot),
-                _WARN_EVERY_S,
-                f"map_server: {robot}: queue full, dropped the oldest cloud "
-                f"({self.counters[robot].clouds_dropped_queue} so far)",
-            )
+            self._count(robot, clouds_superseded=1)
+            self.meter.superseded()
 
     def notice_topics(self, topics: Sequence[str], namespace: str):
         """Warn once per robot whose `<namespace>/<robot>/points` is among `topics` but is not mapped."""
@@ -374,16 +395,22 @@ class MapServer:
                 )
 
     def insert_pending(self, timeout_s=0.5):
-        """Insert the queued clouds of the next robot (waiting up to `timeout_s`); how many were taken."""
+        """Insert the waiting clouds of the next robot (waiting up to `timeout_s` for one, and first
+        for the next budget cycle if this one's insertion budget is spent); how many were taken."""
+        pause_s = self.budget.wait_s()
+        if pause_s > 0:
+            time.sleep(pause_s)  # the insertion thread yields its core for the rest of the cycle
         batch = self.queues.take(timeout_s=timeout_s)
         if not batch:
             return 0
         robot = batch[0].robot
         try:
             with self._map_lock:
+                updates_before = voxel_updates_of(self.map)
                 result = self.map.insert_batch(
                     [(c.points_m, c.origin_m) for c in batch], max_range_m=self.max_range_m[robot], robot=robot
                 )
+                updates_after = voxel_updates_of(self.map)
         except Exception as exc:  # a bug here must not stop the map; say it loudly
             self._count(robot, clouds_dropped_invalid=len(batch))
             self._warn(
@@ -395,6 +422,9 @@ class MapServer:
             return len(batch)
         elapsed_ms = result.seconds * 1e3
         newest_s = max(c.stamp_s for c in batch)
+        self.budget.spend(result.seconds)
+        updates = updates_after - updates_before if None not in (updates_before, updates_after) else 0
+        self.meter.inserted(len(batch), result.points_inserted, max(0, updates), result.seconds)
         with self._counters_lock:
             c = self.counters[robot]
             c.clouds_inserted += len(batch)
@@ -468,6 +498,11 @@ class MapServer:
                 for r in self.robots
             ]
         self.outputs.stats(map_messages.map_stats(self._header(stamp), self.map.resolution_m, snap, robots))
+
+    def publish_capacity(self, stamp):
+        """InsertCapacity over the last window (to the manager: the fleet's cloud load must fit in it)."""
+        if self.outputs.capacity is not None:
+            self.outputs.capacity(self.meter.message(stamp, self.options.frame_id))
 
     def publish_changes(self, stamp):
         """What appeared or disappeared against the baseline map, as markers (and the report); returns

@@ -1,8 +1,10 @@
-"""Bounded per-robot cloud queues served round-robin.
+"""Per-robot cloud slots served round-robin (as voxblox's node keeps only what it can integrate).
 
 The map server's subscriber callbacks `put` clouds (already in `map`); one worker thread `take`s
-every queued cloud of the next robot in turn and inserts them as one batch. A full queue drops
-its oldest cloud (the newest view of the site matters most) and says so; the server counts it.
+every waiting cloud of the next robot in turn and inserts them as one batch. A robot's slot holds
+at most `queue_size` clouds (default 1: only its latest); a newer cloud supersedes the oldest
+waiting one, which is counted as superseded, not as lost information: the newer view of the same
+robot's surroundings replaces it, and a robot never waits behind another's backlog.
 """
 
 import collections
@@ -22,7 +24,7 @@ class QueuedCloud:
 
 
 class RobotQueues:
-    """One bounded FIFO per robot, served fairly; thread-safe."""
+    """One bounded slot per robot (newest clouds win), served round-robin; thread-safe."""
 
     def __init__(self, robots: List[str], queue_size: int):
         if queue_size < 1:
@@ -35,16 +37,16 @@ class RobotQueues:
         self._closed = False
 
     def put(self, cloud: QueuedCloud):
-        """Queue a cloud; returns True if an older one had to be dropped to make room."""
+        """Hold a cloud; returns True if it superseded the robot's oldest waiting cloud."""
         with self._cond:
             queue = self._queues[cloud.robot]
-            dropped = False
+            superseded = False
             if len(queue) >= self.queue_size:
                 queue.popleft()
-                dropped = True
+                superseded = True
             queue.append(cloud)
             self._cond.notify()
-            return dropped
+            return superseded
 
     def take(self, timeout_s=None) -> List[QueuedCloud]:
         """All queued clouds of the next robot (round-robin) that has any; [] on timeout or close."""

@@ -1,0 +1,292 @@
+"""Host boundaries on one machine: the robots' side and the twin side on separate CPU budgets.
+
+On a real site every robot has its own computer and the twin its own server; on one test machine
+the simulation would otherwise starve the twin. As root, each side gets a cgroup v1 group under
+the `cpuset` controller (its own CPUs) and the `cpu` controller (optionally a CFS quota, in cores);
+every node of the side is started inside them by an `sh` prefix that writes its own pid into both
+groups and then execs the node (children inherit the groups). Without root, or without a writable
+cgroup v1 hierarchy, the split falls back to `taskset` (CPUs only, no quota), or to no split when
+the machine has a single CPU, and `describe` says which.
+
+Priority: control processes (velocity mux, route control, the shared fleet control) run at nice
+CONTROL_NICE (higher priority than the sensors and clouds of their side, which stay at 0). We
+choose nice rather than SCHED_RR: a real-time task inside a cgroup v1 `cpu` group needs an
+`rt_runtime_us` budget carved for that group, and a busy real-time node could starve its whole
+side; a nice of -10 gives a control node ~10x the CFS weight of a sensor node when they compete.
+Lowering nice needs root; without it the priorities stay equal (said by `describe`).
+"""
+
+import dataclasses
+import os
+import shutil
+from typing import Dict, List, Optional, Tuple
+
+from cps_bringup.plan import DIGITAL, PHYSICAL
+
+# What the user writes on the command line -> the plan's side.
+SIDE_NAMES = {"robots": PHYSICAL, "twin": DIGITAL}
+CGROUP_ROOT = "/sys/fs/cgroup"
+CONTROL_NICE = -10
+CFS_PERIOD_US = 100_000
+
+# Writes the shell's own pid into every group given, then execs the node (argv after the groups).
+_JOIN = 'n=$1; shift; i=0; while [ $i -lt $n ]; do echo $$ > "$1/cgroup.procs" || exit 126; shift; i=$((i+1)); done; exec "$@"'
+
+
+class HostSplitError(ValueError):
+    """A --host-cpus or --host-quota the machine cannot honour; nothing was started."""
+
+
+def online_cpus() -> Tuple[int, ...]:
+    """The CPUs this process may run on."""
+    return tuple(sorted(os.sched_getaffinity(0)))
+
+
+def _cpu_list(text, where):
+    cpus = []
+    for part in text.split("+"):
+        part = part.strip()
+        try:
+            if "-" in part:
+                lo, hi = (int(x) for x in part.split("-", 1))
+                if hi < lo:
+                    raise ValueError
+                cpus.extend(range(lo, hi + 1))
+            else:
+                cpus.append(int(part))
+        except ValueError:
+            raise HostSplitError(f"{where}: '{part}' is not a CPU number or range (e.g. 0, 0-1, 0+2)") from None
+    return cpus
+
+
+def parse_host_cpus(text: str, available=None) -> Dict[str, Tuple[int, ...]]:
+    """`robots=0,twin=1` (a side's CPUs: numbers, ranges `0-2`, joined by `+` or by further commas,
+    `robots=0,1,twin=2`) -> {side: CPUs}. HostSplitError for a CPU the machine lacks, a side left
+    with none, a CPU in both sides or an unknown side."""
+    available = tuple(available if available is not None else online_cpus())
+    sides: Dict[str, List[int]] = {}
+    current = None
+    for token in (t.strip() for t in text.split(",")):
+        if not token:
+            continue
+        if "=" in token:
+            name, cpus = (x.strip() for x in token.split("=", 1))
+            if name not in SIDE_NAMES:
+                raise HostSplitError(f"--host-cpus: unknown side '{name}' (sides: {', '.join(SIDE_NAMES)})")
+            current = SIDE_NAMES[name]
+            if current in sides:
+                raise HostSplitError(f"--host-cpus: side '{name}' given twice")
+            sides[current] = []
+            if not cpus:
+                continue
+            token = cpus
+        elif current is None:
+            raise HostSplitError(f"--host-cpus: '{token}' before any side (write robots=CPUS,twin=CPUS)")
+        sides[current].extend(_cpu_list(token, "--host-cpus"))
+    for side_name, side in SIDE_NAMES.items():
+        if not sides.get(side):
+            raise HostSplitError(
+                f"--host-cpus '{text}' leaves the {side_name} side with no CPU (write robots=CPUS,twin=CPUS)"
+            )
+    for side, cpus in sides.items():
+        missing = sorted(set(cpus) - set(available))
+        if missing:
+            raise HostSplitError(
+                f"--host-cpus: CPU {', '.join(map(str, missing))} is not on this machine "
+                f"(CPUs this process may use: {', '.join(map(str, available))})"
+            )
+    shared = set(sides[PHYSICAL]) & set(sides[DIGITAL])
+    if shared:
+        raise HostSplitError(f"--host-cpus: CPU {', '.join(map(str, sorted(shared)))} is in both sides")
+    return {side: tuple(sorted(set(cpus))) for side, cpus in sides.items()}
+
+
+def parse_host_quota(text: str, cpus: Dict[str, Tuple[int, ...]]) -> Dict[str, float]:
+    """`twin=0.5` -> {side: cores of CFS quota}; at most the side's CPU count, above 0."""
+    quota = {}
+    for token in (t.strip() for t in text.split(",") if t.strip()):
+        name, _, value = token.partition("=")
+        if name.strip() not in SIDE_NAMES:
+            raise HostSplitError(f"--host-quota: unknown side '{name}' (sides: {', '.join(SIDE_NAMES)})")
+        side = SIDE_NAMES[name.strip()]
+        try:
+            cores = float(value)
+        except ValueError:
+            raise HostSplitError(f"--host-quota: '{value}' is not a number of cores") from None
+        limit = len(cpus.get(side, ())) or len(online_cpus())
+        if not 0 < cores <= limit:
+            raise HostSplitError(f"--host-quota: {name}={value}: a quota is in (0, {limit}] cores for that side")
+        quota[side] = cores
+    return quota
+
+
+def default_host_cpus(available=None) -> Optional[Dict[str, Tuple[int, ...]]]:
+    """The default split for link runs: the twin gets the last half of the CPUs (rounded down, at
+    least one), the robots the rest; None on a single-CPU machine."""
+    available = tuple(available if available is not None else online_cpus())
+    if len(available) < 2:
+        return None
+    twin = max(1, len(available) // 2)
+    return {PHYSICAL: available[:-twin], DIGITAL: available[-twin:]}
+
+
+def cgroup_v1_writable(root=CGROUP_ROOT):
+    """None when this process can create cpuset and cpu groups, else why not."""
+    if os.geteuid() != 0:
+        return "not root"
+    for controller, probe in (("cpuset", "cpuset.cpus"), ("cpu", "cpu.cfs_quota_us")):
+        path = os.path.join(root, controller)
+        if not os.path.isfile(os.path.join(path, probe)):
+            return f"no cgroup v1 '{controller}' controller at {path}"
+        if not os.access(path, os.W_OK):
+            return f"{path} is not writable"
+    return None
+
+
+@dataclasses.dataclass
+class HostSplit:
+    """The sides' CPU budgets for one run; a context manager that creates and removes the groups."""
+
+    cpus: Dict[str, Tuple[int, ...]]
+    quota_cores: Dict[str, float] = dataclasses.field(default_factory=dict)
+    name: str = "cpsfleet"
+    root: str = CGROUP_ROOT
+    mode: str = "cgroup"  # "cgroup" | "taskset" | "none"
+    reason: str = ""  # why not "cgroup"
+    can_raise_priority: bool = dataclasses.field(default_factory=lambda: os.geteuid() == 0)
+    # cpu.shares per side (default 1024, a plain process's weight): against processes outside the
+    # groups on the same CPUs (other work on a shared test machine), a side with more shares gets
+    # the CPU first.
+    shares: Dict[str, int] = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def choose(cls, cpus, quota_cores=None, name="cpsfleet", root=CGROUP_ROOT, shares=None):
+        """cgroups where they are writable, else taskset, else none (cpus None: no split)."""
+        quota_cores = quota_cores or {}
+        if cpus is None:
+            return cls({}, {}, name, root, mode="none", reason="a single CPU: nothing to split")
+        why = cgroup_v1_writable(root)
+        if why is None:
+            return cls(cpus, quota_cores, name, root, shares=dict(shares or {}))
+        if shutil.which("taskset"):
+            return cls(cpus, {}, name, root, mode="taskset", reason=why)
+        return cls({}, {}, name, root, mode="none", reason=f"{why}, and no taskset")
+
+    def group(self, controller, side):
+        return os.path.join(self.root, controller, self.name, side)
+
+    def __enter__(self):
+        if self.mode != "cgroup":
+            return self
+        self._remove_stale()
+        if any(os.path.isdir(os.path.join(self.root, c, self.name)) for c in ("cpuset", "cpu")):
+            self._remove()  # a previous run killed hard left them
+        try:
+            for controller in ("cpuset", "cpu"):
+                os.makedirs(os.path.join(self.root, controller, self.name), exist_ok=True)
+            parent = os.path.join(self.root, "cpuset", self.name)
+            all_cpus = sorted({c for cpus in self.cpus.values() for c in cpus})
+            mems = _read(os.path.join(self.root, "cpuset", "cpuset.mems"))
+            _write(os.path.join(parent, "cpuset.cpus"), ",".join(map(str, all_cpus)))
+            _write(os.path.join(parent, "cpuset.mems"), mems)
+            for side, cpus in self.cpus.items():
+                os.makedirs(self.group("cpuset", side), exist_ok=True)
+                _write(os.path.join(self.group("cpuset", side), "cpuset.cpus"), ",".join(map(str, cpus)))
+                _write(os.path.join(self.group("cpuset", side), "cpuset.mems"), mems)
+                os.makedirs(self.group("cpu", side), exist_ok=True)
+                if side in self.shares:
+                    _write(os.path.join(self.group("cpu", side), "cpu.shares"), str(int(self.shares[side])))
+                quota = self.quota_cores.get(side)
+                if quota:
+                    _write(os.path.join(self.group("cpu", side), "cpu.cfs_period_us"), str(CFS_PERIOD_US))
+                    _write(os.path.join(self.group("cpu", side), "cpu.cfs_quota_us"), str(int(quota * CFS_PERIOD_US)))
+        except OSError as exc:
+            self._remove()
+            raise HostSplitError(f"could not create the sides' cgroups under {self.root}: {exc}") from exc
+        return self
+
+    def __exit__(self, *exc):
+        self._remove()
+
+    def _remove_stale(self):
+        """Remove the groups of earlier runs (`<prefix>_<pid>`) whose bringup died without cleaning up
+        (SIGKILL): their pid is gone and nothing runs in them any more."""
+        prefix, _, own_pid = self.name.rpartition("_")
+        if not prefix or not own_pid.isdigit():
+            return
+        for controller in ("cpuset", "cpu"):
+            folder = os.path.join(self.root, controller)
+            for entry in os.listdir(folder):
+                head, _, pid = entry.rpartition("_")
+                if head != prefix or not pid.isdigit() or pid == own_pid or os.path.exists(f"/proc/{pid}"):
+                    continue
+                top = os.path.join(folder, entry)
+                groups = [os.path.join(top, s) for s in os.listdir(top) if os.path.isdir(os.path.join(top, s))]
+                if any(_read(os.path.join(g, "cgroup.procs")) for g in groups + [top]):
+                    continue  # something still runs there: not ours to move
+                for g in groups + [top]:
+                    try:
+                        os.rmdir(g)
+                    except OSError:
+                        pass
+
+    def _remove(self):
+        """Remove the groups; a group still holding a process (a node that outlived stop_all) has its
+        tasks moved to the root group first, so that nothing is left behind."""
+        for controller in ("cpuset", "cpu"):
+            top = os.path.join(self.root, controller, self.name)
+            if not os.path.isdir(top):
+                continue
+            for folder in [os.path.join(top, s) for s in os.listdir(top) if os.path.isdir(os.path.join(top, s))] + [
+                top
+            ]:
+                for pid in _read(os.path.join(folder, "cgroup.procs")).split():
+                    try:
+                        _write(os.path.join(self.root, controller, "cgroup.procs"), pid)
+                    except OSError:
+                        pass  # it ended meanwhile
+                try:
+                    os.rmdir(folder)
+                except OSError:
+                    pass
+
+    def prefix(self, side, control=False) -> List[str]:
+        """argv that starts a node of `side` inside its budget (and a control node at CONTROL_NICE)."""
+        argv: List[str] = []
+        if self.mode == "cgroup" and side in self.cpus:
+            groups = [self.group("cpuset", side), self.group("cpu", side)]
+            argv += ["sh", "-c", _JOIN, "cps-host-split", str(len(groups)), *groups]
+        elif self.mode == "taskset" and side in self.cpus:
+            argv += ["taskset", "-c", ",".join(map(str, self.cpus[side]))]
+        if control and self.can_raise_priority:
+            argv += ["nice", "-n", str(CONTROL_NICE)]
+        return argv
+
+    def describe(self):
+        """What the report says about the split."""
+        sides = "; ".join(
+            f"{'robots' if side == PHYSICAL else 'twin'} CPU {','.join(map(str, cpus))}"
+            + (f" (quota {self.quota_cores[side]:g} cores)" if side in self.quota_cores else "")
+            + (f" (cpu.shares {self.shares[side]})" if side in self.shares and self.mode == "cgroup" else "")
+            for side, cpus in sorted(self.cpus.items(), reverse=True)
+        )
+        priority = (
+            f"control nodes at nice {CONTROL_NICE}"
+            if self.can_raise_priority
+            else "control nodes at the same priority as the others (lowering nice needs root)"
+        )
+        if self.mode == "cgroup":
+            return f"host split by cgroup v1 cpuset+cpu ({self.root}/{{cpuset,cpu}}/{self.name}): {sides}; {priority}"
+        if self.mode == "taskset":
+            return f"host split by taskset only (no cgroups: {self.reason}; no quota): {sides}; {priority}"
+        return f"NO host split ({self.reason}): both sides share every CPU; {priority}"
+
+
+def _read(path):
+    with open(path) as f:
+        return f.read().strip()
+
+
+def _write(path, text):
+    with open(path, "w") as f:
+        f.write(text)

@@ -1,0 +1,132 @@
+"""A trace-driven fleet: a recorded 4-robot mission replayed as 8 robots into the twin's decoder and
+map server gives 8 distinct robots in the map; a request beyond the hall's placements gets what fits."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cps_bringup.plan import SHARED
+from cps_bringup.supervisor import Supervisor
+from cps_bringup.trace_replay import RobotTrace, Trace, TraceError, placements, plan_copies, twin_specs
+from cps_fleet.fleet import load_fleet
+from cps_ros.processes import RosGraph, free_port, processes_named
+
+BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
+REPLAY = os.path.join(os.path.dirname(__file__), "..", "nodes", "trace_replay")
+HALL = (-10.0, 10.0, -7.5, 7.5)
+
+
+def _trace(**extents):
+    robots = {
+        name: RobotTrace(name, [(0.0, None)], [], [], [], np.array(corners, dtype=float))
+        for name, corners in extents.items()
+    }
+    return Trace(robots, 30.0, "synthetic")
+
+
+def test_copies_get_their_own_placement_and_time_offset():
+    trace = _trace(scout=[(-9.0, -7.0), (-5.0, -3.0)], jackal=[(-9.0, 6.0), (-8.0, 7.0)])
+    copies, note = plan_copies(trace, 5, HALL)
+    assert note is None and [c.name for c in copies] == ["jackal", "scout", "jackal_c1", "scout_c1", "jackal_c2"]
+    assert len({(c.source, c.offset_xy_m) for c in copies}) == 5
+    assert copies[0].offset_xy_m == (0.0, 0.0) and copies[2].time_offset_s > 0.0
+
+
+def test_a_replay_beyond_the_halls_placements_says_so_and_replays_what_fits():
+    """A trajectory spanning the hall but 1.5 m each way: 3 x 3 placements 1 m apart (0.3 m from the walls)."""
+    wide = [(-8.5, -6.0), (8.5, 6.0)]
+    assert len(placements(_trace(a=wide).robots["a"], HALL)) == 9
+    copies, note = plan_copies(_trace(a=wide), 20, HALL)
+    assert len(copies) == 9 and len({c.offset_xy_m for c in copies}) == 9
+    assert "asked for 20 robots" in note and "replaying 9" in note
+    with pytest.raises(TraceError):
+        plan_copies(_trace(a=wide), 0, HALL)
+
+
+COUNT_ROBOTS = """
+import json, sys, time, rospy
+from cps_msgs.msg import MapStats
+robots = sys.argv[1].split(",")
+seen = {}
+def on_stats(stats):
+    for r in stats.robots:
+        seen[r.robot] = (r.clouds_inserted, r.occupied_voxels_contributed)
+rospy.init_node("robot_count", anonymous=True)
+sub = rospy.Subscriber("/twin/map_stats", MapStats, on_stats)
+deadline = time.monotonic() + float(sys.argv[2])
+while time.monotonic() < deadline and not all(seen.get(r, (0, 0))[1] for r in robots):
+    time.sleep(0.2)
+print(json.dumps(seen))
+"""
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_four_recorded_robots_replayed_as_eight_are_eight_robots_in_the_map(open_tmp_path):
+    # Record a short 4-robot mission (the default fleet, light profile).
+    out = open_tmp_path / "recorded"
+    bag = out / "mission.bag"
+    recorded = subprocess.run(
+        [sys.executable, BRINGUP, "all", "--profile", "light", "--duration", "20", "--out", str(out)]
+        + ["--port", str(free_port()), "--record", str(bag), "--host-cpus", "none"],
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert recorded.returncode == 0 and bag.exists(), recorded.stdout[-3000:] + recorded.stderr[-2000:]
+    fleet4 = load_fleet()
+    assert len(fleet4.robots) == 4
+
+    twin_out = open_tmp_path / "twin"
+    twin_out.mkdir()
+    copies_fleet = str(twin_out / "copies.yaml")
+    plan = subprocess.run(
+        [sys.executable, REPLAY, str(bag), "--robots", "8", "--duration", "1", "--copies-fleet", copies_fleet]
+        + ["--plan-only"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert plan.returncode == 0, plan.stderr
+    copies = load_fleet(copies_fleet).robot_names
+    assert len(copies) == 8 and len(set(copies)) == 8
+
+    (twin_out / "logs").mkdir()
+    graph = RosGraph(port=free_port(), log_dir=str(twin_out / "logs"))
+    supervisor = None
+    replay = None
+    try:
+        graph.start()
+        supervisor = Supervisor(twin_specs(copies_fleet, str(twin_out), SHARED), graph, log=lambda _m: None)
+        supervisor.start_all(timeout_s=120)
+        env = dict(os.environ, ROS_MASTER_URI=graph.uri)
+        replay = subprocess.Popen(
+            [sys.executable, REPLAY, str(bag), "--robots", "8", "--duration", "40", "--copies-fleet", copies_fleet],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        counted = subprocess.run(
+            [sys.executable, "-c", COUNT_ROBOTS, ",".join(copies), "90"],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=150,
+        )
+        seen = json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0 else counted.stderr
+    finally:
+        if replay is not None:
+            replay.kill()
+            replay.wait()
+        if supervisor is not None:
+            supervisor.stop_all()
+        graph.close()
+    assert isinstance(seen, dict), seen
+    in_map = sorted(r for r in copies if seen.get(r, (0, 0))[0] > 0 and seen.get(r, (0, 0))[1] > 0)
+    assert in_map == sorted(copies), seen
+    assert not processes_named(str(twin_out))

@@ -1,0 +1,119 @@
+"""What the map server can insert, measured from its own insertion times (cps_msgs/InsertCapacity).
+
+Every insertion is recorded with its clouds, points, voxel updates (steps walked by the ray
+caster: the unit voxblox and OctoMap papers quote, per second per core) and wall time; over the
+last `window_s` the capacity at the insertion budget is
+
+    clouds_per_s = budget_fraction * clouds / busy_s       (likewise points and voxel updates)
+
+i.e. what one insertion thread would take if it were busy `budget_fraction` of every second at the
+cost per cloud it just measured. Superseded clouds (a robot's waiting cloud replaced by its newer
+one) and dropped clouds (lost: no transform, invalid, insertion failed) are counted apart.
+
+The insertion budget is also enforced (`InsertionBudget`): within each cycle of `cycle_s` the
+insertion thread works at most `budget_fraction * cycle_s`, then waits for the next cycle, so that
+publishing, services and the subscribers' deserialisation keep their share of the twin's core;
+the robots' slots meanwhile keep only their newest cloud.
+"""
+
+import collections
+import threading
+import time
+from typing import Optional
+
+from std_msgs.msg import Header
+
+from cps_msgs.msg import InsertCapacity
+
+CAPACITY_WINDOW_S = 10.0
+
+
+def voxel_updates_of(fused_map) -> Optional[int]:
+    """Voxel steps the map's ray caster has walked so far (None if this map does not count them)."""
+    return getattr(getattr(fused_map, "_grid", None), "steps", None)
+
+
+class InsertionMeter:
+    """Insertions, superseded and dropped clouds over a sliding window; thread-safe."""
+
+    def __init__(self, window_s=CAPACITY_WINDOW_S, budget_fraction=1.0, clock=time.monotonic):
+        if window_s <= 0 or not 0 < budget_fraction <= 1:
+            raise ValueError(f"window_s {window_s} must be > 0 and budget_fraction {budget_fraction} in (0, 1]")
+        self.window_s, self.budget_fraction, self.clock = window_s, budget_fraction, clock
+        self._insertions = collections.deque()  # (t, clouds, points, voxel_updates, seconds)
+        self._superseded = collections.deque()  # (t, n)
+        self._dropped = collections.deque()
+        self._lock = threading.Lock()
+
+    def inserted(self, clouds, points, voxel_updates, seconds):
+        with self._lock:
+            self._insertions.append((self.clock(), clouds, points, voxel_updates, seconds))
+
+    def superseded(self, n=1):
+        with self._lock:
+            self._superseded.append((self.clock(), n))
+
+    def dropped(self, n=1):
+        with self._lock:
+            self._dropped.append((self.clock(), n))
+
+    def _trim(self, now):
+        for queue in (self._insertions, self._superseded, self._dropped):
+            while queue and queue[0][0] < now - self.window_s:
+                queue.popleft()
+
+    def figures(self):
+        """The window's InsertCapacity fields (capacity 0 before the first insertion)."""
+        with self._lock:
+            now = self.clock()
+            self._trim(now)
+            clouds = sum(i[1] for i in self._insertions)
+            points = sum(i[2] for i in self._insertions)
+            updates = sum(i[3] for i in self._insertions)
+            busy_s = sum(i[4] for i in self._insertions)
+            superseded = sum(n for _, n in self._superseded)
+            dropped = sum(n for _, n in self._dropped)
+        rate = self.budget_fraction / busy_s if busy_s > 0 else 0.0
+        return dict(
+            window_s=self.window_s,
+            clouds_inserted=clouds,
+            busy_s=busy_s,
+            clouds_per_s=clouds * rate,
+            points_per_s=points * rate,
+            voxel_updates_per_s=updates * rate,
+            superseded=superseded,
+            dropped=dropped,
+        )
+
+    def message(self, stamp, frame_id) -> InsertCapacity:
+        return InsertCapacity(header=Header(stamp=stamp, frame_id=frame_id), **self.figures())
+
+
+class InsertionBudget:
+    """At most `fraction * cycle_s` of insertion in each cycle of `cycle_s`; thread-safe enough for
+    one insertion thread (the only caller of `spend` and `wait_s`)."""
+
+    def __init__(self, fraction, cycle_s=1.0, clock=time.monotonic):
+        if not 0 < fraction <= 1 or cycle_s <= 0:
+            raise ValueError(f"fraction {fraction} must be in (0, 1] and cycle_s {cycle_s} > 0")
+        self.fraction, self.cycle_s, self.clock = fraction, cycle_s, clock
+        self._cycle_start = None
+        self._spent_s = 0.0
+
+    def _roll(self, now):
+        if self._cycle_start is None or now - self._cycle_start >= self.cycle_s:
+            self._cycle_start, self._spent_s = now, 0.0
+
+    def spend(self, seconds):
+        self._roll(self.clock())
+        self._spent_s += seconds
+
+    def wait_s(self):
+        """How long the insertion must pause before its next cloud (0: budget left in this cycle)."""
+        if self.fraction >= 1.0:
+            return 0.0
+        now = self.clock()
+        self._roll(now)
+        if self._spent_s < self.fraction * self.cycle_s:
+            return 0.0
+        return max(0.0, self._cycle_start + self.cycle_s - now)
