@@ -344,6 +344,7 @@ def test_the_unmanaged_arm_sends_the_finest_video_and_the_operators_robot_reache
         "zenoh_bridge_twin_command",
     } <= set(on)
     assert "--lane" in on["zenoh_bridge_twin_command"].argv
+    assert on["zenoh_bridge_twin_command"].control and not on["zenoh_bridge_twin"].control
     cameras = [r.name for r in fleet.robots if r.has_depth_camera]
     assert _arg(on["topic_stats"], "_topics").count("/camera/image_raw/compressed") == len(cameras)
     assert all(f"/{r}/camera/image_raw/compressed" in _arg(on["topic_stats"], "_arrival_topics") for r in cameras)

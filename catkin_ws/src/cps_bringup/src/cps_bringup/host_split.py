@@ -8,8 +8,8 @@ groups and then execs the node (children inherit the groups). Without root, or w
 cgroup v1 hierarchy, the split falls back to `taskset` (CPUs only, no quota), or to no split when
 the machine has a single CPU, and `describe` says which.
 
-Priority: control processes (velocity mux, route control, the shared fleet control) run at nice
-CONTROL_NICE (higher priority than the sensors and clouds of their side, which stay at 0). We
+Priority: control processes (velocity mux, route control, the shared fleet control, each side's
+command-lane bridge) run at nice CONTROL_NICE (higher priority than the sensors and clouds of their side, which stay at 0). We
 choose nice rather than SCHED_RR: a real-time task inside a cgroup v1 `cpu` group needs an
 `rt_runtime_us` budget carved for that group, and a busy real-time node could starve its whole
 side; a nice of -10 gives a control node ~10x the CFS weight of a sensor node when they compete.

@@ -189,6 +189,7 @@ def plan_nodes(
                     )
                 ),
                 wait_topics=(A(names.LINK_STATE),) if lane == "main" else (),
+                control=lane == "command",  # teleop's path: above the clouds, like the mux
             )
             for lane, port in (("main", options.zenoh_port), ("command", options.zenoh_command_port))
         ]
