@@ -24,6 +24,7 @@ class MissionProgress:
     map_age_s: Dict[str, float] = dataclasses.field(default_factory=dict)
     clouds_inserted: Dict[str, int] = dataclasses.field(default_factory=dict)
     clouds_dropped: Dict[str, int] = dataclasses.field(default_factory=dict)
+    clouds_superseded: Dict[str, int] = dataclasses.field(default_factory=dict)
     voxels_contributed: Dict[str, int] = dataclasses.field(default_factory=dict)
     rates_hz: Dict[str, float] = dataclasses.field(default_factory=dict)
     allocated_mbytes_per_s: float = 0.0
@@ -186,6 +187,7 @@ class MissionMonitor:
                 self.progress.clouds_dropped[stats.robot] = (
                     stats.clouds_dropped_queue + stats.clouds_dropped_tf + stats.clouds_dropped_invalid
                 )
+                self.progress.clouds_superseded[stats.robot] = stats.clouds_superseded
                 self.progress.voxels_contributed[stats.robot] = stats.occupied_voxels_contributed
             if self._map_age_log is not None:
                 for row in map_age_rows(msg, self.progress.mission_state, time.time()):
@@ -216,6 +218,7 @@ class MissionMonitor:
                 map_age_s=dict(self.progress.map_age_s),
                 clouds_inserted=dict(self.progress.clouds_inserted),
                 clouds_dropped=dict(self.progress.clouds_dropped),
+                clouds_superseded=dict(self.progress.clouds_superseded),
                 voxels_contributed=dict(self.progress.voxels_contributed),
                 rates_hz=dict(self.progress.rates_hz),
                 managed_latency_ms=dict(self.progress.managed_latency_ms),

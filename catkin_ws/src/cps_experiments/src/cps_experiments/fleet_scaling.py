@@ -29,6 +29,7 @@ with open(sys.argv[1], "w") as stream:
                "map_file": result.map_file, "restarts": result.restarts,
                "trajectories": {r: [list(map(float, q)) for q in t] for r, t in p.trajectories.items()},
                "clouds_inserted": dict(p.clouds_inserted), "clouds_dropped": dict(p.clouds_dropped),
+               "clouds_superseded": dict(p.clouds_superseded),
                "events": [f"{e.time_s:.0f} s {e.label}: {e.what}" for e in result.events]}, stream)
 """
 

@@ -125,6 +125,9 @@ def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
     hz = {r: len(clouds.get(r, ())) / elapsed for r in robots}
     inserted = sum(summary.get("clouds_inserted", {}).values())
     dropped = sum(summary.get("clouds_dropped", {}).values())
+    # Replaced by a newer cloud of the same robot before insertion (the map server's slots): not lost
+    # information, so not a drop; reported beside it (absent from runs before the slots: NaN).
+    superseded = summary.get("clouds_superseded")
     return {
         "elapsed_s": elapsed,
         "budget_mbytes_per_s": budget,
@@ -141,6 +144,7 @@ def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
         "hz_per_robot": hz,
         "clouds_inserted": inserted,
         "clouds_dropped": dropped,
+        "clouds_superseded": sum(superseded.values()) if superseded is not None else math.nan,
         "dropped_fraction": dropped / (inserted + dropped) if inserted + dropped else math.nan,
     }
 
@@ -232,6 +236,7 @@ COLUMNS = (
     "median_hz",
     "clouds_inserted",
     "clouds_dropped",
+    "clouds_superseded",
     "dropped_fraction",
     "f1",
     "f1_fraction",
