@@ -131,45 +131,23 @@ class BandwidthManagerNode:
         self.video_level_pubs = {r: latched(r, names.VIDEO_LEVEL, UInt8) for r in self.core.camera_robots}
         self.alloc_pub = rospy.Publisher(names.ALLOCATION, BandwidthAllocationArray, queue_size=1, latch=True)
         self.bw_pub = rospy.Publisher(names.AVAILABLE_BANDWIDTH, Float64, queue_size=1, latch=True)
-        self.subs = []
-        for robot in self.core.robots:
-            self.subs.append(
-                rospy.Subscriber(
-                    names.robot_topic(robot, names.MISSION_STATE),
-                    String,
-                    self._on_mission_state,
-                    callback_args=robot,
-                    queue_size=10,
-                )
+
+        def per_robot(robot, name, kind, callback):
+            return rospy.Subscriber(names.robot_topic(robot, name), kind, callback, callback_args=robot, queue_size=10)
+
+        self.subs = [
+            per_robot(robot, name, kind, callback)
+            for robot in self.core.robots
+            for name, kind, callback in (
+                (names.MISSION_STATE, String, self._on_mission_state),
+                (names.LIMITER_STATUS, RateLimiterStatus, self._on_status),
+                (names.CONTROL_MODE_ACTIVE, String, self._on_control_mode),
             )
-            self.subs.append(
-                rospy.Subscriber(
-                    names.robot_topic(robot, names.LIMITER_STATUS),
-                    RateLimiterStatus,
-                    self._on_status,
-                    callback_args=robot,
-                    queue_size=10,
-                )
-            )
-            self.subs.append(
-                rospy.Subscriber(
-                    names.robot_topic(robot, names.CONTROL_MODE_ACTIVE),
-                    String,
-                    self._on_control_mode,
-                    callback_args=robot,
-                    queue_size=10,
-                )
-            )
-        for robot in self.core.camera_robots:
-            self.subs.append(
-                rospy.Subscriber(
-                    names.robot_topic(robot, names.VIDEO_STATUS),
-                    RateLimiterStatus,
-                    self._on_video_status,
-                    callback_args=robot,
-                    queue_size=10,
-                )
-            )
+        ]
+        self.subs += [
+            per_robot(robot, names.VIDEO_STATUS, RateLimiterStatus, self._on_video_status)
+            for robot in self.core.camera_robots
+        ]
         self.subs.append(rospy.Subscriber(names.SELECTED_ROBOT, String, self._on_selected, queue_size=10))
         self.subs.append(
             rospy.Subscriber(

@@ -67,6 +67,17 @@ def run_mission_child(argv, out_dir, log=print):
         return json.load(stream)
 
 
+def mission_summary(argv, run_dir, reuse_runs=False, log=print):
+    """The summary of the mission in `run_dir`: with `reuse_runs` read back when it finished before,
+    else run (run_mission_child; RuntimeError when it fails)."""
+    done = os.path.join(run_dir, "mission_result.json")
+    if reuse_runs and os.path.exists(done):
+        log(f"[experiments] reusing {run_dir}")
+        with open(done) as stream:
+            return json.load(stream)
+    return run_mission_child(argv, run_dir, log)
+
+
 def network_performance(stats_rows):
     """Managed topics: MB/s per window summed over robots (avg, max, std over windows with traffic)
     and latency (avg of the windows' averages, max of their maxima, pooled std), in ms."""

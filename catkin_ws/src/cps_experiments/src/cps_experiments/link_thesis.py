@@ -16,7 +16,6 @@ A stream or robot that delivered nothing is reported as such, never filled in.
 
 import bisect
 import dataclasses
-import json
 import math
 import os
 from collections import defaultdict
@@ -297,7 +296,7 @@ COLUMNS = (
 
 def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse_runs=False, log=print):
     """Run (or with reuse_runs read back) every mission; write link_thesis.csv/.md/.png into out_dir."""
-    from cps_experiments.fleet_scaling import run_mission_child
+    from cps_experiments.fleet_scaling import mission_summary
     from cps_experiments.live_scaling import score_map
     from cps_experiments.report import read_csv
     from cps_fleet.fleet import load_fleet
@@ -311,13 +310,8 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
     for thesis_run in runs():
         run_dir = os.path.abspath(os.path.join(run_root, "link_thesis", thesis_run.name))
         try:
-            done = os.path.join(run_dir, "mission_result.json")
-            if reuse_runs and os.path.exists(done):
-                with open(done) as stream:
-                    summary = json.load(stream)
-            else:
-                argv = mission_argv(thesis_run, robots, selected, run_dir, duration_s)
-                summary = run_mission_child(argv, run_dir, log)
+            argv = mission_argv(thesis_run, robots, selected, run_dir, duration_s)
+            summary = mission_summary(argv, run_dir, reuse_runs, log)
         except RuntimeError as exc:
             failures[thesis_run.name] = str(exc)
             log(f"[experiments] {exc}")

@@ -11,7 +11,6 @@ the twin is reported as missing, never filled in.
 """
 
 import dataclasses
-import json
 import math
 import os
 from collections import defaultdict
@@ -20,7 +19,7 @@ from typing import List, Optional
 import numpy as np
 
 from cps_experiments import paper
-from cps_experiments.fleet_scaling import run_mission_child
+from cps_experiments.fleet_scaling import mission_summary
 from cps_experiments.markdown import markdown_table, write_csv, write_markdown
 from cps_fleet import names
 from cps_fleet.fleet import managed_budget_mbytes_per_s
@@ -189,12 +188,7 @@ def run(
         robots = fleet_robots(fleet_file, live.robots)
         fleet = base.with_robots(robots)
         try:
-            done = os.path.join(run_dir, "mission_result.json")
-            if reuse_runs and os.path.exists(done):
-                with open(done) as stream:
-                    summary = json.load(stream)
-            else:
-                summary = run_mission_child(mission_argv(live, fleet_file, run_dir, duration_s), run_dir, log)
+            summary = mission_summary(mission_argv(live, fleet_file, run_dir, duration_s), run_dir, reuse_runs, log)
         except RuntimeError as exc:
             failures[live] = str(exc)
             log(f"[experiments] {exc}")

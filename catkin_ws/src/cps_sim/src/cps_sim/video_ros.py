@@ -10,13 +10,13 @@ import time
 
 import rospy
 from sensor_msgs.msg import CompressedImage
-from std_msgs.msg import Float64, UInt8
 
 from cps_fleet import names
 from cps_msgs.msg import RateLimiterStatus
 from cps_sim import messages
 from cps_sim.scheduling import RateMeter
-from cps_sim.video import LevelSizes, VideoControl, VideoTask, compressed_image_bytes
+from cps_sim.video import LevelSizes, VideoTask, compressed_image_bytes
+from cps_transport.video_follower import VideoFollower
 
 # The scheduler's key of a robot's video task (a robot's name has no space).
 VIDEO_KEY_SUFFIX = " video"
@@ -35,7 +35,8 @@ class RobotVideo:
         self.robot, self.sensor_frame = robot, sensor_frame
         self.key = video_key(robot)
         self.lock = threading.Lock()
-        self.control = VideoControl(streams)
+        self.follower = VideoFollower(robot, streams, self._on_setting, lock=self.lock)
+        self.control = self.follower.control
         if unmanaged:
             self.control.set_level(0)
             self.control.set_rate(streams.video_max_rate_hz)
@@ -49,38 +50,19 @@ class RobotVideo:
         def topic(relative):
             return names.robot_topic(robot, relative)
 
-        self.level_topic = names.absolute(topic(names.VIDEO_LEVEL))
-        self.rate_topic = names.absolute(topic(names.VIDEO_RATE_HZ))
         self.image_topic = names.absolute(topic(names.CAMERA_IMAGE_COMPRESSED))
         self.publisher = rospy.Publisher(self.image_topic, CompressedImage, queue_size=2)
         self.status_pub = rospy.Publisher(
             names.absolute(topic(names.VIDEO_STATUS)), RateLimiterStatus, queue_size=5, latch=True
         )
-        rospy.Subscriber(self.level_topic, UInt8, self._on_level, queue_size=5)
-        rospy.Subscriber(self.rate_topic, Float64, self._on_rate, queue_size=5)
 
     @property
     def rate_hz(self):
         return self.control.rate_hz
 
-    def _on_level(self, msg):
-        with self.lock:
-            error = self.control.set_level(msg.data)
-        if error:
-            rospy.logerr(f"{self.level_topic}: {error}")
-            return
-        self.publish_status()
-
-    def _on_rate(self, msg):
-        with self.lock:
-            error, note = self.control.set_rate(msg.data)
-            rate = self.control.rate_hz
-        if error:
-            rospy.logerr(f"{self.rate_topic}: {error}")
-            return
-        if note:
-            rospy.logwarn_throttle(10.0, f"{self.rate_topic}: {note}")
-        self.on_rate_change(self.key, rate)
+    def _on_setting(self, rate_changed):
+        if rate_changed:
+            self.on_rate_change(self.key, self.control.rate_hz)
         self.publish_status()
 
     def wanted(self):

@@ -276,48 +276,33 @@ class ManagedVideoCompressor:
     `<robot>/video_throttle/status` (1 Hz and on change) like the simulated camera."""
 
     def __init__(self, robot, streams):
-        from cps_transport.video_levels import LevelSizes, VideoControl
+        from cps_transport.video_follower import VideoFollower
+        from cps_transport.video_levels import LevelSizes
 
         def topic(relative):
             return _rt(robot, relative)
 
         self.robot = robot
         self.lock = threading.Lock()
-        self.control = VideoControl(streams)
+        self.follower = VideoFollower(robot, streams, self._on_setting, lock=self.lock)
+        self.control = self.follower.control
         self.sizes = LevelSizes(streams.video_levels)
         self.limiter = RateLimiter(self.control.rate_hz, burst=1.0)
         self.sent_meter = WindowRate()  # frames sent per second
         self.rendered = self.sent = 0
         self.mean_bytes = float("nan")
         self.input_topic, self.output_topic = topic(names.CAMERA_IMAGE), topic(names.CAMERA_IMAGE_COMPRESSED)
-        self.level_topic, self.rate_topic = topic(names.VIDEO_LEVEL), topic(names.VIDEO_RATE_HZ)
         self.report = DropReporter(self.input_topic)
         self.publisher = rospy.Publisher(self.output_topic, CompressedImage, queue_size=2)
         self.status_pub = rospy.Publisher(topic(names.VIDEO_STATUS), RateLimiterStatus, queue_size=5, latch=True)
-        self.level_sub = rospy.Subscriber(self.level_topic, UInt8, self._on_level, queue_size=5)
-        self.rate_sub = rospy.Subscriber(self.rate_topic, Float64, self._on_rate, queue_size=5)
         self.subscriber = rospy.Subscriber(self.input_topic, Image, self.on_image, queue_size=1, buff_size=1 << 24)
         self.status_timer = guarded_timer(1.0, lambda _event: self.publish_status(), f"status {robot} video")
         self.publish_status()
 
-    def _on_level(self, msg):
-        with self.lock:
-            error = self.control.set_level(msg.data)
-        if error:
-            rospy.logerr(f"{self.level_topic}: {error}")
-            return
-        self.publish_status()
-
-    def _on_rate(self, msg):
-        with self.lock:
-            error, note = self.control.set_rate(msg.data)
-            if not error:
+    def _on_setting(self, rate_changed):
+        if rate_changed:
+            with self.lock:
                 self.limiter.set_rate(self.control.rate_hz)
-        if error:
-            rospy.logerr(f"{self.rate_topic}: {error}")
-            return
-        if note:
-            rospy.logwarn_throttle(10.0, f"{self.rate_topic}: {note}")
         self.publish_status()
 
     def on_image(self, msg):
