@@ -20,6 +20,7 @@ with a new map of the same site:
 import dataclasses
 import functools
 import json
+import math
 from typing import Callable, List, Optional
 
 import numpy as np
@@ -75,6 +76,73 @@ def _clusters(index, kind, resolution_m, min_cluster_voxels):
     return sorted(out, key=lambda c: -c.voxels)
 
 
+@dataclasses.dataclass(frozen=True)
+class ChangeRules:
+    """The evidence a change needs (docs/monitoring.md says which anchor each rule comes from).
+
+    - `tolerance_voxels`: a voxel changed only if no voxel of the other map lies this near
+      (Chebyshev); 1 voxel absorbs the jitter of a surface seen from another viewpoint.
+    - `appeared_free_max_probability`: a voxel appeared only where the baseline saw firm free space
+      (occupancy probability at most this; unknown never counts).
+    - `disappeared_min_misses`: a baseline voxel disappeared only where the new mission's rays
+      passed through it at least this many times net of hits (its log-odds at or below this many
+      misses of the sensor model; 5 reaches OctoMap's free clamp 0.12 with miss 0.4).
+    - `known_neighbours`: the other map must know (free) the face neighbours of a changed voxel too,
+      except those occupied in both (DUFOMap's neighbourhood rule against single rays grazing past).
+    - `min_viewpoints`: a disappeared cluster must be in line of sight through known free space, and
+      within `max_view_range_m`, of sensor poses at least `viewpoint_separation_m` apart, this many
+      (needs the mission's robot trails; not checked without them).
+    - `min_cluster_voxels`: smaller clusters are noise (docs/monitoring.md derives the default).
+    """
+
+    tolerance_voxels: int = 1
+    min_cluster_voxels: int = 8
+    appeared_free_max_probability: float = 0.25
+    disappeared_min_misses: int = 3
+    known_neighbours: bool = False
+    min_viewpoints: int = 0
+    viewpoint_separation_m: float = 1.0
+    max_view_range_m: float = 8.0
+
+    def __post_init__(self):
+        if self.tolerance_voxels < 0 or self.min_cluster_voxels < 1 or self.disappeared_min_misses < 1:
+            raise ValueError("tolerance_voxels must be >= 0, min_cluster_voxels and disappeared_min_misses >= 1")
+        if not 0.0 < self.appeared_free_max_probability < 0.5:
+            raise ValueError("appeared_free_max_probability must be in (0, 0.5)")
+
+
+# What the twin reports by default: the strict rules of issue 25 (docs/monitoring.md).
+TRUSTED_RULES = ChangeRules(
+    tolerance_voxels=2,
+    min_cluster_voxels=16,
+    appeared_free_max_probability=0.25,
+    disappeared_min_misses=3,
+    known_neighbours=True,
+    min_viewpoints=2,
+)
+
+
+def misses_probability(misses, miss_probability):
+    """The occupancy probability a fresh voxel has after `misses` net misses, less half a miss of
+    slack (float32 log-odds and clamping): a voxel with at most this probability was missed that often."""
+    logit = (misses - 0.5) * math.log(miss_probability / (1.0 - miss_probability))
+    return 1.0 / (1.0 + math.exp(-logit))
+
+
+_FACES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.int64)
+
+
+def _neighbours_known(index, resolution_m, known_free, occupied_both):
+    """True where every face neighbour of a voxel is known free in the other map or occupied in both."""
+    if not len(index):
+        return np.zeros(0, dtype=bool)
+    ok = np.ones(len(index), dtype=bool)
+    for face in _FACES:
+        n = index + face
+        ok &= known_free(index_to_center(n, resolution_m)) | near_any(n, occupied_both, 0)
+    return ok
+
+
 def detect_changes(
     baseline_centers_m,
     current_centers_m,
@@ -83,35 +151,113 @@ def detect_changes(
     min_cluster_voxels=8,
     baseline_is_free: Optional[Callable] = None,
     current_is_free: Optional[Callable] = None,
+    excluded: Optional[Callable] = None,
+    baseline_known: Optional[Callable] = None,
+    current_known: Optional[Callable] = None,
+    disappeared_cluster_ok: Optional[Callable] = None,
 ) -> List[Change]:
-    """Clusters of voxels that appeared or disappeared between two maps (see the module docstring)."""
+    """Clusters of voxels that appeared or disappeared between two maps (see the module docstring).
+    `excluded(index)`: True for voxels no change may hold (the robots' swept volume);
+    `baseline_known`/`current_known(points)`: known free there (the neighbourhood rule);
+    `disappeared_cluster_ok(change)`: a last test of each disappeared cluster (the viewpoints)."""
     if tolerance_voxels < 0 or min_cluster_voxels < 1:
         raise ValueError("tolerance_voxels must be >= 0 and min_cluster_voxels >= 1")
     base = _index(baseline_centers_m, resolution_m)
     cur = _index(current_centers_m, resolution_m)
+    if excluded is not None:
+        base, cur = base[~excluded(base)], cur[~excluded(cur)]
     appeared = cur[~near_any(cur, base, tolerance_voxels)]
     disappeared = base[~near_any(base, cur, tolerance_voxels)]
     if baseline_is_free is not None and len(appeared):
         appeared = appeared[baseline_is_free(index_to_center(appeared, resolution_m))]
     if current_is_free is not None and len(disappeared):
         disappeared = disappeared[current_is_free(index_to_center(disappeared, resolution_m))]
-    return _clusters(appeared, "appeared", resolution_m, min_cluster_voxels) + _clusters(
-        disappeared, "disappeared", resolution_m, min_cluster_voxels
-    )
+    if baseline_known is not None or current_known is not None:
+        both = base[near_any(base, cur, 0)]
+        if baseline_known is not None and len(appeared):
+            appeared = appeared[_neighbours_known(appeared, resolution_m, baseline_known, both)]
+        if current_known is not None and len(disappeared):
+            disappeared = disappeared[_neighbours_known(disappeared, resolution_m, current_known, both)]
+    gone = _clusters(disappeared, "disappeared", resolution_m, min_cluster_voxels)
+    if disappeared_cluster_ok is not None:
+        gone = [c for c in gone if disappeared_cluster_ok(c)]
+    return _clusters(appeared, "appeared", resolution_m, min_cluster_voxels) + gone
 
 
-def detect_map_changes(baseline_map, current_map, free_max_probability=0.25, **kwargs) -> List[Change]:
-    """detect_changes for two FusedLogOddsMaps, each one's firm free space (occupancy probability at
-    most `free_max_probability`) vouching for the other's changes."""
+def sensor_positions(trails, separation_m):
+    """The sensor positions of the robots' trails (cps_mapping.robot_bodies.RobotTrails), thinned
+    greedily so that no two kept ones are closer than `separation_m`: each one a distinct viewpoint."""
+    if trails is None:
+        return np.zeros((0, 3))
+    points = [p[:3, 3] for trail in trails.trails.values() for p in trail.snapshot()[1]]
+    if not points:
+        return np.zeros((0, 3))
+    cells = np.unique(np.floor(np.asarray(points) / separation_m).astype(np.int64), axis=0)
+    return (cells + 0.5) * separation_m  # one viewpoint per separation-sized cell
+
+
+def viewpoints_of(change, positions, known_free, resolution_m, max_range_m):
+    """How many of `positions` see the change's box centre through known free space within range:
+    the segment from the sensor to the centre, up to one voxel diagonal short of it (the box's own
+    surface), sampled every half voxel, must be free in the map that says the thing is gone."""
+    if not len(positions):
+        return 0
+    target = (np.asarray(change.min_m) + change.max_m) / 2
+    count = 0
+    for position in positions:
+        offset = target - position
+        distance = float(np.linalg.norm(offset))
+        stop = distance - math.sqrt(3) * resolution_m - max(change.size_m) / 2
+        if distance > max_range_m or stop <= 0:
+            continue
+        steps = np.arange(resolution_m, stop, resolution_m / 2)
+        if len(steps) == 0 or known_free(position + steps[:, None] * (offset / distance)).all():
+            count += 1
+    return count
+
+
+def detect_map_changes(
+    baseline_map,
+    current_map,
+    free_max_probability=None,
+    rules: Optional[ChangeRules] = None,
+    swept=None,
+    current_trails=None,
+    **kwargs,
+) -> List[Change]:
+    """detect_changes for two FusedLogOddsMaps under `rules` (ChangeRules; keyword arguments
+    override its fields): `swept` (robot_bodies.SweptVolume) is excluded, `current_trails` give the
+    viewpoints of the monitoring mission."""
     if abs(baseline_map.resolution_m - current_map.resolution_m) > 1e-9:
         raise ValueError("the two maps have different resolutions")
+    rules = dataclasses.replace(rules or ChangeRules(), **kwargs)
+    if free_max_probability is not None:
+        rules = dataclasses.replace(rules, appeared_free_max_probability=free_max_probability)
+    res = current_map.resolution_m
+    miss = current_map.sensor_model.miss if hasattr(current_map, "sensor_model") else 0.4
+    gone_probability = min(rules.appeared_free_max_probability, misses_probability(rules.disappeared_min_misses, miss))
+    if free_max_probability is not None:
+        gone_probability = free_max_probability
+    cluster_ok = None
+    if rules.min_viewpoints > 0 and current_trails is not None:
+        positions = sensor_positions(current_trails, rules.viewpoint_separation_m)
+        known = functools.partial(current_map.is_free, max_probability=0.5)
+
+        def cluster_ok(change):
+            return viewpoints_of(change, positions, known, res, rules.max_view_range_m) >= rules.min_viewpoints
+
     return detect_changes(
         baseline_map.occupied_centers(),
         current_map.occupied_centers(),
-        current_map.resolution_m,
-        baseline_is_free=functools.partial(baseline_map.is_free, max_probability=free_max_probability),
-        current_is_free=functools.partial(current_map.is_free, max_probability=free_max_probability),
-        **kwargs,
+        res,
+        tolerance_voxels=rules.tolerance_voxels,
+        min_cluster_voxels=rules.min_cluster_voxels,
+        baseline_is_free=functools.partial(baseline_map.is_free, max_probability=rules.appeared_free_max_probability),
+        current_is_free=functools.partial(current_map.is_free, max_probability=gone_probability),
+        excluded=swept.contains if swept is not None and len(swept) else None,
+        baseline_known=functools.partial(baseline_map.is_free, max_probability=0.5) if rules.known_neighbours else None,
+        current_known=functools.partial(current_map.is_free, max_probability=0.5) if rules.known_neighbours else None,
+        disappeared_cluster_ok=cluster_ok,
     )
 
 

@@ -21,13 +21,14 @@ from std_srvs.srv import EmptyResponse
 
 from cps_fleet import names
 from cps_mapping import map_messages
-from cps_mapping.baseline import BaselineError, load_baseline, write_map_metadata
+from cps_mapping.baseline import BaselineError, evidence_map_path, load_baseline, read_map_trails, write_map_metadata
 from cps_mapping.change_attention import ATTENTION_RADIUS_M
-from cps_mapping.change_detection import detect_map_changes, write_report
+from cps_mapping.change_detection import TRUSTED_RULES, detect_map_changes, write_report
 from cps_mapping.cloud_input import InvalidInput, prepare_cloud
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
 from cps_mapping.markers import occupied_cells_markers
 from cps_mapping.queues import QueuedCloud, RobotQueues
+from cps_mapping.robot_bodies import RobotTrails, SweptVolume, fleet_bodies
 from cps_msgs.srv import BoundingBoxQueryResponse, LoadMapResponse, SaveMapResponse
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 
@@ -85,13 +86,15 @@ class MapServerOptions:
     change_period_s: float = _option(5.0, "change detection period", "s", low=0.0, low_open=True)
     change_report: str = _option("", "Markdown (+ .json) report written at each change detection", "path")
     change_tolerance_voxels: int = _option(
-        2,
+        TRUSTED_RULES.tolerance_voxels,
         "a voxel changed if no voxel of the other map lies this near: absorbs "
         "thin structures (fence rails) seen from other viewpoints",
         "voxels",
         low=0,
     )
-    change_min_cluster_voxels: int = _option(10, "smaller clusters of changed voxels are noise", "voxels", low=1)
+    change_min_cluster_voxels: int = _option(
+        TRUSTED_RULES.min_cluster_voxels, "smaller clusters of changed voxels are noise", "voxels", low=1
+    )
     change_attention_radius_m: float = _option(
         ATTENTION_RADIUS_M, "a robot this near a newly found change gets high link priority (0: never)", "m", low=0.0
     )
@@ -184,11 +187,16 @@ class MapServer:
             fleet.mapping, exact_free_space=options.exact_free_space, shared_ray_stop_m=options.shared_ray_stop_m
         )
         self.baseline = None
+        # The robots' sensor poses and bodies, saved with the map: change detection ignores robots.
+        self.trails = RobotTrails(fleet_bodies(fleet, self.robots))
+        self.baseline_trails = None
         if options.baseline_map:
             try:
                 self.baseline = load_baseline(options.baseline_map, fleet.mapping, options.frame_id)
+                self.baseline_trails = read_map_trails(options.baseline_map)
             except BaselineError as exc:
                 raise ValueError(f"baseline_map: {exc}") from exc
+            self.swept = SweptVolume(self.map.resolution_m).add(self.baseline_trails)
         self._map_lock = threading.Lock()
         self._counters_lock = threading.Lock()
         self.counters = {r: RobotCounters() for r in self.robots}
@@ -244,6 +252,7 @@ class MapServer:
         try:
             nodes = self.map.load(path)
             self.log.info(f"map_server: resumed from {path} ({nodes} nodes)")
+            self.trails.extend(read_map_trails(path) or RobotTrails({}))
         except Exception as exc:  # any bad map file: moved aside, never a crash loop at start-up
             aside = f"{path}.unreadable-{int(time.time())}"
             try:
@@ -255,7 +264,7 @@ class MapServer:
     def _save(self, path):
         with self._map_lock:
             saved = self.map.save(path)
-        write_map_metadata(saved, self.options.frame_id, self.map.resolution_m)
+        write_map_metadata(saved, self.options.frame_id, self.map.resolution_m, self.trails)
         return saved
 
     def autosave(self):
@@ -271,6 +280,9 @@ class MapServer:
             try:
                 path = self._save(self.options.map_file)
                 self.log.info(f"map_server: saved the map to {path} on shutdown")
+                if self.baseline is not None:  # a monitoring mission: the log-odds for change evidence
+                    with self._map_lock:
+                        self.map.save(evidence_map_path(path))
             except MapFileError as exc:
                 self.log.error(f"map_server: could not save on shutdown: {exc}")
 
@@ -314,6 +326,7 @@ class MapServer:
                 f"{msg.header.stamp.to_sec():.3f} within {self.options.tf_timeout_s} s, cloud dropped: {exc}",
             )
             return
+        self.trails.record(robot, msg.header.stamp.to_sec(), rotation, translation)
         if frame != self.sensor_frames[robot]:
             self._warn(
                 ("unexpected frame", robot),
@@ -459,6 +472,9 @@ class MapServer:
             changes = detect_map_changes(
                 self.baseline,
                 self.map,
+                rules=TRUSTED_RULES,
+                swept=self.swept.add(self.trails),
+                current_trails=self.trails,
                 tolerance_voxels=self.options.change_tolerance_voxels,
                 min_cluster_voxels=self.options.change_min_cluster_voxels,
             )
