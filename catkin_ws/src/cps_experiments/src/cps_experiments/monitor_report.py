@@ -16,6 +16,8 @@ APPEARED_COLOUR, DISAPPEARED_COLOUR = "tab:green", "tab:red"
 
 # How far from a false change the report looks for the solid it was made of.
 NEAR_SOLID_M = 0.3
+# How near a robot's recorded pose a false change counts as "near a robot".
+ROBOT_NEAR_M = 0.5
 
 
 @dataclasses.dataclass
@@ -26,6 +28,10 @@ class MonitoringResult:
     current_map: object  # FusedLogOddsMap of the monitoring mission
     changes: object  # cps_sim.site_changes.SiteChanges
     sites: tuple = ()  # the site before and after the changes
+    baseline_map: object = None  # FusedLogOddsMap of the baseline
+    baseline_trails: object = None  # robot_bodies.RobotTrails saved with the baseline, or None
+    current_trails: object = None
+    evidence: str = ""  # which file of the new map the evidence came from
 
 
 def solid_near(sites, change, margin_m=NEAR_SOLID_M):
@@ -39,29 +45,58 @@ def solid_near(sites, change, margin_m=NEAR_SOLID_M):
     return "nothing"
 
 
-def evaluate_monitoring(baseline_path, map_path, fleet, changes_path) -> MonitoringResult:
-    """Detect the changes between the two saved maps and score them against the simulator's."""
+def near_robot(result, change, margin_m=ROBOT_NEAR_M):
+    """True if a change's box comes within `margin_m` (horizontally) of a pose a robot's sensor had in
+    either mission: a robot's body, or what the swept volume did not cover of it."""
+    lo, hi = np.asarray(change.min_m[:2]) - margin_m, np.asarray(change.max_m[:2]) + margin_m
+    for trails in (result.baseline_trails, result.current_trails):
+        for trail in trails.trails.values() if trails else ():
+            xy = np.asarray([p[:2, 3] for p in trail.snapshot()[1]]).reshape(-1, 2)
+            if len(xy) and np.any(np.all((xy >= lo) & (xy <= hi), axis=1)):
+                return True
+    return False
+
+
+def load_maps(baseline_path, map_path, fleet):
+    """(baseline map, its trails or None, new map, its trails, evidence file): the new map's full
+    log-odds (`*_evidence.ot`, saved by the map server of a monitoring mission) when there is one."""
+    from cps_mapping.baseline import evidence_map_path, load_baseline, read_map_trails
+
+    baseline = load_baseline(baseline_path, fleet.mapping)
+    evidence = evidence_map_path(map_path)
+    evidence = evidence if os.path.exists(evidence) else map_path
+    current = load_baseline(evidence, fleet.mapping)
+    return baseline, read_map_trails(baseline_path), current, read_map_trails(map_path), evidence
+
+
+def evaluate_monitoring(baseline_path, map_path, fleet, changes_path, rules=None, maps=None) -> MonitoringResult:
+    """Detect the changes between the two saved maps under `rules` (default: the map server's, the
+    live detection's without its persistence) and score them against the simulator's."""
     from cps_fleet.site import load_site
-    from cps_mapping.baseline import load_baseline
-    from cps_mapping.change_detection import detect_map_changes
+    from cps_mapping.change_detection import TRUSTED_RULES, detect_map_changes
     from cps_mapping.change_scoring import score_changes
-    from cps_mapping.map_server import MapServerOptions
+    from cps_mapping.robot_bodies import SweptVolume
     from cps_sim.site_changes import expected_changes, load_site_changes
 
     site = load_site(fleet.site_path)
     changes = load_site_changes(changes_path, site)
     expected = expected_changes(site, changes)
-    baseline = load_baseline(baseline_path, fleet.mapping)
-    current = load_baseline(map_path, fleet.mapping)
-    defaults = MapServerOptions()  # what the live detection at the twin uses
+    baseline, baseline_trails, current, current_trails, evidence = maps or load_maps(baseline_path, map_path, fleet)
+    swept = SweptVolume(current.resolution_m).add(baseline_trails).add(current_trails)
     detected = detect_map_changes(
-        baseline,
-        current,
-        tolerance_voxels=defaults.change_tolerance_voxels,
-        min_cluster_voxels=defaults.change_min_cluster_voxels,
+        baseline, current, rules=rules or TRUSTED_RULES, swept=swept, current_trails=current_trails
     )
     return MonitoringResult(
-        detected, expected, score_changes(detected, expected), current, changes, (site, changes.apply(site))
+        detected,
+        expected,
+        score_changes(detected, expected),
+        current,
+        changes,
+        (site, changes.apply(site)),
+        baseline,
+        baseline_trails,
+        current_trails,
+        evidence,
     )
 
 
@@ -89,6 +124,28 @@ def draw_changes(ax, result: MonitoringResult):
     ax.plot([], [], color=APPEARED_COLOUR, lw=6, alpha=0.55, label="detected: appeared")
     ax.plot([], [], color=DISAPPEARED_COLOUR, lw=6, alpha=0.55, label="detected: disappeared")
     ax.plot([], [], color="0.3", ls="--", label="simulator's change (footprint)")
+
+
+def change_crop_lines(result, out):
+    """One crop per detected change in `out`/changes/ (cps_experiments.change_crops) and the report's
+    section showing them."""
+    from cps_experiments.change_crops import draw_change_crop
+
+    if not result.detected:
+        return []
+    os.makedirs(os.path.join(out, "changes"), exist_ok=True)
+    base, now = result.baseline_map.occupied_centers(), result.current_map.occupied_centers()
+    lines = ["## Each change: baseline beside now (top-down and side, the change outlined)", ""]
+    for i, c in enumerate(result.detected, 1):
+        m = result.score.match_of_detected(i - 1)
+        what = result.expected[m.expected_index].name if m else "false"
+        name = f"changes/change_{i}.png"
+        draw_change_crop(
+            os.path.join(out, name), c, base, now, result.current_map.resolution_m,
+            title=f"#{i} {c.kind} at ({c.centroid_m[0]:.1f}, {c.centroid_m[1]:.1f}) m: {what}",
+        )  # fmt: skip
+        lines += [f"![change {i}]({name})", ""]
+    return lines
 
 
 def _xyz(values):
@@ -120,6 +177,16 @@ def write_monitor_report(mission, mission_args, wall_time_s):
         score = result.score
         lines += [
             f"Simulator: {result.changes.describe()}.",
+            "",
+            (
+                f"Robots: the baseline's robot poses ({result.baseline_trails.pose_count()}) and this mission's "
+                f"({result.current_trails.pose_count() if result.current_trails else 0}) were saved with the maps; "
+                "the volume the robots' bodies swept is not compared."
+                if result.baseline_trails is not None
+                else "**The baseline has no robot poses** (saved before they were kept, or by another tool): "
+                "robots it saw cannot be told from the site and may come out as disappeared changes."
+            ),
+            f"Evidence: `{os.path.basename(result.evidence)}` (the new map's log-odds).",
             "",
             "## Score",
             "",
@@ -157,7 +224,8 @@ def write_monitor_report(mission, mission_args, wall_time_s):
                         c.voxels,
                         result.expected[m.expected_index].name
                         if m
-                        else f"— (false; the site has {solid_near(result.sites, c)} there)",
+                        else f"— (false; the site has {solid_near(result.sites, c)} there"
+                        + ("; near a robot's path)" if near_robot(result, c) else ")"),
                         f"{m.position_error_m:.2f}" if m else "—",
                     )
                     for i, c in enumerate(result.detected, 1)
@@ -203,6 +271,7 @@ def write_monitor_report(mission, mission_args, wall_time_s):
             title="Monitoring mission: new map, detected changes (filled) and the simulator's (dashed)",
         )
         lines += ["![top-down view with the changes](topdown.png)", ""]
+        lines += change_crop_lines(result, out)
     if os.path.exists(os.path.join(out, "gui.png")):
         lines += ["## Operator GUI during the mission", "", "![GUI screenshot](gui.png)", ""]
     lines += ["## Supervisor events", ""]

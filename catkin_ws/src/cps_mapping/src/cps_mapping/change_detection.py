@@ -261,8 +261,10 @@ def detect_map_changes(
     )
 
 
-def write_report(changes: List[Change], path, baseline_name="baseline", current_name="current"):
-    """A Markdown report (and a .json twin) of the changes; returns the Markdown path."""
+def write_report(changes: List[Change], path, baseline_name="baseline", current_name="current", tracker=None):
+    """A Markdown report (and a .json twin) of the changes; returns the Markdown path. With a
+    `tracker` (change_tracking.ChangeTracker) the .json also holds when each change was first found
+    and reported (s, the map server's clock), and the withdrawn ones."""
     lines = [
         f"# Site changes: {current_name} against {baseline_name}",
         "",
@@ -279,6 +281,19 @@ def write_report(changes: List[Change], path, baseline_name="baseline", current_
         )
     with open(path, "w") as stream:
         stream.write("\n".join(lines) + "\n")
+    rows = [dataclasses.asdict(c) for c in changes]
+    if tracker is not None:
+        for row, t in zip(rows, tracker.reported()):
+            row.update(first_seen_s=t.first_seen_s, reported_s=t.reported_s, cycles=t.cycles)
+        rows += [
+            {
+                **dataclasses.asdict(t.change),
+                "withdrawn": True,
+                "first_seen_s": t.first_seen_s,
+                "reported_s": t.reported_s,
+            }
+            for t in tracker.withdrawn
+        ]
     with open(str(path).rsplit(".", 1)[0] + ".json", "w") as stream:
-        json.dump([dataclasses.asdict(c) for c in changes], stream, indent=1)
+        json.dump(rows, stream, indent=1)
     return path

@@ -24,6 +24,7 @@ from cps_mapping import map_messages
 from cps_mapping.baseline import BaselineError, evidence_map_path, load_baseline, read_map_trails, write_map_metadata
 from cps_mapping.change_attention import ATTENTION_RADIUS_M
 from cps_mapping.change_detection import TRUSTED_RULES, detect_map_changes, write_report
+from cps_mapping.change_tracking import ChangeTracker
 from cps_mapping.cloud_input import InvalidInput, prepare_cloud
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
 from cps_mapping.markers import occupied_cells_markers
@@ -197,6 +198,7 @@ class MapServer:
             except BaselineError as exc:
                 raise ValueError(f"baseline_map: {exc}") from exc
             self.swept = SweptVolume(self.map.resolution_m).add(self.baseline_trails)
+            self.tracker = ChangeTracker()
         self._map_lock = threading.Lock()
         self._counters_lock = threading.Lock()
         self.counters = {r: RobotCounters() for r in self.robots}
@@ -478,9 +480,13 @@ class MapServer:
                 tolerance_voxels=self.options.change_tolerance_voxels,
                 min_cluster_voxels=self.options.change_min_cluster_voxels,
             )
+        tracked = self.tracker.update(changes, stamp.to_sec())  # reported after 2 cycles, withdrawn when contradicted
+        changes = [t.change for t in tracked]
         array = map_messages.change_markers(changes, self._header(stamp))
         if self.options.change_report:  # before the markers, so that whoever sees them finds the report
-            write_report(changes, self.options.change_report, self.options.baseline_map, "live map")
+            write_report(
+                changes, self.options.change_report, self.options.baseline_map, "live map", tracker=self.tracker
+            )
         self.outputs.changes(array)
         return changes
 
