@@ -31,7 +31,7 @@ class MonitoringResult:
     baseline_map: object = None  # FusedLogOddsMap of the baseline
     baseline_trails: object = None  # robot_bodies.RobotTrails saved with the baseline, or None
     current_trails: object = None
-    evidence: str = ""  # which file of the new map the evidence came from
+    evidence: str = ""  # where the new map's misses at the baseline's voxels came from
 
 
 def solid_near(sites, change, margin_m=NEAR_SOLID_M):
@@ -46,27 +46,50 @@ def solid_near(sites, change, margin_m=NEAR_SOLID_M):
 
 
 def near_robot(result, change, margin_m=ROBOT_NEAR_M):
-    """True if a change's box comes within `margin_m` (horizontally) of a pose a robot's sensor had in
-    either mission: a robot's body, or what the swept volume did not cover of it."""
-    lo, hi = np.asarray(change.min_m[:2]) - margin_m, np.asarray(change.max_m[:2]) + margin_m
+    """True if a change's box, grown by `margin_m`, holds a pose a robot's sensor had in either
+    mission: a robot's body, or what the swept volume did not cover of it."""
+    lo, hi = np.asarray(change.min_m) - margin_m, np.asarray(change.max_m) + margin_m
     for trails in (result.baseline_trails, result.current_trails):
         for trail in trails.trails.values() if trails else ():
-            xy = np.asarray([p[:2, 3] for p in trail.snapshot()[1]]).reshape(-1, 2)
-            if len(xy) and np.any(np.all((xy >= lo) & (xy <= hi), axis=1)):
+            xyz = np.asarray([p[:3, 3] for p in trail.snapshot()[1]]).reshape(-1, 3)
+            if len(xyz) and np.any(np.all((xyz >= lo) & (xyz <= hi), axis=1)):
                 return True
     return False
 
 
-def load_maps(baseline_path, map_path, fleet):
-    """(baseline map, its trails or None, new map, its trails, evidence file): the new map's full
-    log-odds (`*_evidence.ot`, saved by the map server of a monitoring mission) when there is one."""
-    from cps_mapping.baseline import evidence_map_path, load_baseline, read_map_trails
+LIVE_REPORT = "map_changes.md"  # the map server's live report in a mission's folder (cps_bringup.plan)
 
-    baseline = load_baseline(baseline_path, fleet.mapping)
-    evidence = evidence_map_path(map_path)
-    evidence = evidence if os.path.exists(evidence) else map_path
-    current = load_baseline(evidence, fleet.mapping)
-    return baseline, read_map_trails(baseline_path), current, read_map_trails(map_path), evidence
+
+@dataclasses.dataclass
+class SavedMaps:
+    """Two missions' saved maps with what was saved beside them."""
+
+    baseline: object  # FusedLogOddsMap
+    baseline_trails: object  # robot_bodies.RobotTrails or None
+    baseline_hits: object  # change_detection.VoxelLevels or None
+    current: object
+    current_trails: object
+    current_hits: object
+    current_misses: object  # VoxelLevels of the new mission's misses at the baseline's voxels, or None
+
+
+def load_maps(baseline_path, map_path, fleet) -> SavedMaps:
+    """The two maps and their sidecars: robot trails (`<map>.json`), hit levels (`<map>.hits.npz`),
+    and the new mission's misses at the baseline's voxels from the map server's last detection cycle
+    (`map_changes_miss_levels.npz`): a .bt holds only occupied/free."""
+    from cps_mapping.baseline import load_baseline, read_map_trails
+    from cps_mapping.change_detection import VoxelLevels, miss_levels_path
+
+    misses = miss_levels_path(os.path.join(os.path.dirname(os.path.abspath(map_path)), LIVE_REPORT))
+    return SavedMaps(
+        load_baseline(baseline_path, fleet.mapping),
+        read_map_trails(baseline_path),
+        VoxelLevels.of_map(baseline_path),
+        load_baseline(map_path, fleet.mapping),
+        read_map_trails(map_path),
+        VoxelLevels.of_map(map_path),
+        VoxelLevels.load(misses) if os.path.exists(misses) else None,
+    )
 
 
 def evaluate_monitoring(baseline_path, map_path, fleet, changes_path, rules=None, maps=None) -> MonitoringResult:
@@ -81,22 +104,33 @@ def evaluate_monitoring(baseline_path, map_path, fleet, changes_path, rules=None
     site = load_site(fleet.site_path)
     changes = load_site_changes(changes_path, site)
     expected = expected_changes(site, changes)
-    baseline, baseline_trails, current, current_trails, evidence = maps or load_maps(baseline_path, map_path, fleet)
-    swept = SweptVolume(current.resolution_m).add(baseline_trails).add(current_trails)
+    m = maps or load_maps(baseline_path, map_path, fleet)
+    swept = SweptVolume(m.current.resolution_m).add(m.baseline_trails).add(m.current_trails)
     detected = detect_map_changes(
-        baseline, current, rules=rules or TRUSTED_RULES, swept=swept, current_trails=current_trails
+        m.baseline,
+        m.current,
+        rules=rules or TRUSTED_RULES,
+        swept=swept,
+        current_trails=m.current_trails,
+        current_misses=m.current_misses,
+        baseline_hits=m.baseline_hits,
+        current_hits=m.current_hits,
     )
+    evidence = [
+        "misses: the last live detection cycle" if m.current_misses else "misses: map.bt only (occupied/free)",
+        "hits: both maps" if m.baseline_hits and m.current_hits else "hits: **not saved with both maps** (not tested)",
+    ]
     return MonitoringResult(
         detected,
         expected,
         score_changes(detected, expected),
-        current,
+        m.current,
         changes,
         (site, changes.apply(site)),
-        baseline,
-        baseline_trails,
-        current_trails,
-        evidence,
+        m.baseline,
+        m.baseline_trails,
+        m.current_trails,
+        "; ".join(evidence),
     )
 
 
@@ -186,7 +220,7 @@ def write_monitor_report(mission, mission_args, wall_time_s):
                 else "**The baseline has no robot poses** (saved before they were kept, or by another tool): "
                 "robots it saw cannot be told from the site and may come out as disappeared changes."
             ),
-            f"Evidence: `{os.path.basename(result.evidence)}` (the new map's log-odds).",
+            f"Evidence saved with the maps: {result.evidence}.",
             "",
             "## Score",
             "",

@@ -24,12 +24,6 @@ def metadata_path(map_path):
     return f"{map_path}.json"
 
 
-def evidence_map_path(map_path):
-    """Where a monitoring mission's map server also saves its full log-odds map (.ot) on shutdown: a
-    .bt keeps only occupied/free, the change evidence needs how often a voxel was seen free."""
-    return f"{os.path.splitext(map_path)[0]}_evidence.ot"
-
-
 def write_map_metadata(map_path, frame_id, resolution_m, robot_trails=None):
     """The sidecar of a saved map (with the robots' trails, a RobotTrails, if given); MapFileError if
     it cannot be written. Written to a temporary file first: a reader never sees half a sidecar."""

@@ -21,12 +21,13 @@ import dataclasses
 import functools
 import json
 import math
+import os
 from typing import Callable, List, Optional
 
 import numpy as np
 from scipy import ndimage
 
-from cps_mapping.fused_map import index_to_center, near_any, voxel_index
+from cps_mapping.fused_map import index_to_center, near_any, pack_index, voxel_index
 
 
 @dataclasses.dataclass
@@ -45,14 +46,19 @@ def _index(centers, resolution_m):
     return np.unique(voxel_index(pts, resolution_m), axis=0) if len(pts) else np.zeros((0, 3), np.int64)
 
 
-def _clusters(index, kind, resolution_m, min_cluster_voxels):
+def _clusters(index, kind, resolution_m, min_cluster_voxels, merge_gap_voxels=0):
+    """26-connected clusters of voxels; with `merge_gap_voxels` g, clusters at most 2 g empty voxels
+    apart are one (an item's surface cut in two by the tolerance around something next to it)."""
     if len(index) == 0:
         return []
-    lo = index.min(axis=0)
-    grid = np.zeros(tuple(index.max(axis=0) - lo + 1), dtype=bool)
+    lo = index.min(axis=0) - merge_gap_voxels
+    grid = np.zeros(tuple(index.max(axis=0) - lo + 1 + merge_gap_voxels), dtype=bool)
     local = index - lo
     grid[local[:, 0], local[:, 1], local[:, 2]] = True
-    labels, count = ndimage.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
+    cube = np.ones((3, 3, 3), dtype=bool)
+    if merge_gap_voxels > 0:
+        grid = ndimage.binary_dilation(grid, structure=cube, iterations=merge_gap_voxels)
+    labels, count = ndimage.label(grid, structure=cube)
     voxel_labels = labels[local[:, 0], local[:, 1], local[:, 2]]
     out = []
     for label in range(1, count + 1):
@@ -93,6 +99,11 @@ class ChangeRules:
       within `max_view_range_m`, of sensor poses at least `viewpoint_separation_m` apart, this many
       (needs the mission's robot trails; not checked without them).
     - `min_cluster_voxels`: smaller clusters are noise (docs/monitoring.md derives the default).
+    - `min_hits`: a changed voxel must have been seen occupied this many times net of misses in the
+      map that holds it (OctoMap's log-odds; 1: any occupied voxel): a surface seen in one or two
+      clouds, e.g. the floor seen with a lagging pose, is no equipment.
+    - `merge_gap_voxels`: clusters of one kind at most twice this many empty voxels apart are one
+      change (one item's surface, cut by the tolerance around what stands next to it).
     """
 
     tolerance_voxels: int = 1
@@ -101,6 +112,8 @@ class ChangeRules:
     disappeared_min_misses: int = 3
     known_neighbours: bool = False
     min_viewpoints: int = 0
+    merge_gap_voxels: int = 0
+    min_hits: int = 1
     viewpoint_separation_m: float = 1.0
     max_view_range_m: float = 8.0
 
@@ -119,6 +132,8 @@ TRUSTED_RULES = ChangeRules(
     disappeared_min_misses=3,
     known_neighbours=True,
     min_viewpoints=2,
+    merge_gap_voxels=1,
+    min_hits=3,
 )
 
 
@@ -155,11 +170,15 @@ def detect_changes(
     baseline_known: Optional[Callable] = None,
     current_known: Optional[Callable] = None,
     disappeared_cluster_ok: Optional[Callable] = None,
+    merge_gap_voxels=0,
+    baseline_firm: Optional[Callable] = None,
+    current_firm: Optional[Callable] = None,
 ) -> List[Change]:
     """Clusters of voxels that appeared or disappeared between two maps (see the module docstring).
     `excluded(index)`: True for voxels no change may hold (the robots' swept volume);
     `baseline_known`/`current_known(points)`: known free there (the neighbourhood rule);
-    `disappeared_cluster_ok(change)`: a last test of each disappeared cluster (the viewpoints)."""
+    `disappeared_cluster_ok(change)`: a last test of each disappeared cluster (the viewpoints);
+    `baseline_firm`/`current_firm(points)`: the voxel was seen occupied firmly enough to count as gone/new."""
     if tolerance_voxels < 0 or min_cluster_voxels < 1:
         raise ValueError("tolerance_voxels must be >= 0 and min_cluster_voxels >= 1")
     base = _index(baseline_centers_m, resolution_m)
@@ -168,6 +187,10 @@ def detect_changes(
         base, cur = base[~excluded(base)], cur[~excluded(cur)]
     appeared = cur[~near_any(cur, base, tolerance_voxels)]
     disappeared = base[~near_any(base, cur, tolerance_voxels)]
+    if current_firm is not None and len(appeared):
+        appeared = appeared[current_firm(index_to_center(appeared, resolution_m))]
+    if baseline_firm is not None and len(disappeared):
+        disappeared = disappeared[baseline_firm(index_to_center(disappeared, resolution_m))]
     if baseline_is_free is not None and len(appeared):
         appeared = appeared[baseline_is_free(index_to_center(appeared, resolution_m))]
     if current_is_free is not None and len(disappeared):
@@ -178,10 +201,10 @@ def detect_changes(
             appeared = appeared[_neighbours_known(appeared, resolution_m, baseline_known, both)]
         if current_known is not None and len(disappeared):
             disappeared = disappeared[_neighbours_known(disappeared, resolution_m, current_known, both)]
-    gone = _clusters(disappeared, "disappeared", resolution_m, min_cluster_voxels)
+    gone = _clusters(disappeared, "disappeared", resolution_m, min_cluster_voxels, merge_gap_voxels)
     if disappeared_cluster_ok is not None:
         gone = [c for c in gone if disappeared_cluster_ok(c)]
-    return _clusters(appeared, "appeared", resolution_m, min_cluster_voxels) + gone
+    return _clusters(appeared, "appeared", resolution_m, min_cluster_voxels, merge_gap_voxels) + gone
 
 
 def sensor_positions(trails, separation_m):
@@ -198,22 +221,158 @@ def sensor_positions(trails, separation_m):
 
 def viewpoints_of(change, positions, known_free, resolution_m, max_range_m):
     """How many of `positions` see the change's box centre through known free space within range:
-    the segment from the sensor to the centre, up to one voxel diagonal short of it (the box's own
-    surface), sampled every half voxel, must be free in the map that says the thing is gone."""
+    the segment from the sensor to the centre, stopped one voxel diagonal plus half the box's
+    largest side short of it (the box's own surface), sampled every half voxel, must be free in the
+    map that says the thing is gone. One free-space query for all positions."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     if not len(positions):
         return 0
     target = (np.asarray(change.min_m) + change.max_m) / 2
-    count = 0
-    for position in positions:
-        offset = target - position
-        distance = float(np.linalg.norm(offset))
-        stop = distance - math.sqrt(3) * resolution_m - max(change.size_m) / 2
-        if distance > max_range_m or stop <= 0:
-            continue
-        steps = np.arange(resolution_m, stop, resolution_m / 2)
-        if len(steps) == 0 or known_free(position + steps[:, None] * (offset / distance)).all():
-            count += 1
-    return count
+    offset = target - positions
+    distance = np.linalg.norm(offset, axis=1)
+    stop = distance - math.sqrt(3) * resolution_m - max(change.size_m) / 2
+    usable = (distance <= max_range_m) & (stop > 0)
+    if not usable.any():
+        return 0
+    step = resolution_m / 2
+    n = int(np.ceil(stop[usable].max() / step))
+    t = resolution_m + step * np.arange(n)  # distance along each segment
+    unit = offset[usable] / distance[usable, None]
+    samples = positions[usable, None, :] + t[None, :, None] * unit[:, None, :]
+    valid = t[None, :] < stop[usable, None]
+    free = np.ones(valid.shape, dtype=bool)
+    free[valid] = known_free(samples[valid])
+    return int(np.sum(free.all(axis=1)))
+
+
+class FrozenMap:
+    """What change detection reads of a FusedLogOddsMap (its occupied voxels and free-space
+    queries, as FusedLogOddsMap.is_free answers them), copied under the map lock in milliseconds so
+    that the detection runs without it: run under the lock it took seconds on the loaded 2-core
+    machine, and insertion waited (the maps went stale every detection period). Reads the map's
+    log-odds grid (`_grid`: lo, dims, log_odds) as it is at the copy."""
+
+    def __init__(self, fused):
+        self.resolution_m, self.sensor_model = fused.resolution_m, fused.sensor_model
+        self._occupied = fused.occupied_centers()
+        grid = fused._grid
+        self._lo, self._dims, self._log_odds = grid.lo.copy(), grid.dims.copy(), grid.log_odds.copy()
+
+    def occupied_centers(self):
+        return self._occupied
+
+    def hit_levels(self):
+        """(voxel index, level) of every occupied voxel: the net hits its log-odds stand for
+        (level k if log-odds >= (k - 0.5) hit log-odds, capped at MAX_HIT_LEVEL)."""
+        index = voxel_index(self._occupied, self.resolution_m)
+        rel = index - self._lo
+        log_odds = self._log_odds[np.ravel_multi_index(rel.T, self._dims)] if len(rel) else np.zeros(0, np.float32)
+        hit = math.log(self.sensor_model.hit / (1.0 - self.sensor_model.hit))
+        level = np.clip(np.floor(log_odds / hit + 0.5), 0, MAX_HIT_LEVEL).astype(np.uint8)
+        return index, level
+
+    def is_free(self, points_m, max_probability=0.5):
+        if not 0.0 < max_probability < 1.0:
+            raise ValueError(f"max_probability must be in (0, 1), got {max_probability}")
+        pts = np.asarray(points_m, dtype=np.float32).astype(np.float64).reshape(-1, 3)
+        rel = np.floor(pts * (1.0 / self.resolution_m)).astype(np.int64) - self._lo
+        inside = np.all((rel >= 0) & (rel < self._dims), axis=1)
+        out = np.zeros(len(pts), dtype=bool)
+        if not inside.any() or not self._log_odds.size:
+            return out
+        log_odds = self._log_odds[np.ravel_multi_index(rel[inside].T, self._dims)]
+        with np.errstate(invalid="ignore"):
+            out[inside] = log_odds <= np.float32(math.log(max_probability / (1.0 - max_probability)))
+        return out
+
+
+MAX_MISS_LEVEL = 6
+# OctoMap's clamp 0.97 with hit 0.7 stands for 4.1 net hits: 5 levels tell a saturated voxel.
+MAX_HIT_LEVEL = 5
+
+
+def hit_levels_path(map_path):
+    return f"{map_path}.hits.npz"
+
+
+def write_hit_levels(map_path, frozen):
+    """Beside a saved map (`<map>.hits.npz`): how firmly each occupied voxel was seen (FrozenMap.hit_levels);
+    a .bt keeps only occupied/free, and a surface seen in one or two clouds (e.g. the floor seen
+    with a lagging pose) must not count as firmly as one seen all mission long."""
+    index, level = frozen.hit_levels()
+    path = hit_levels_path(map_path)
+    with open(path + ".tmp", "wb") as stream:
+        np.savez_compressed(stream, index=index.astype(np.int32), level=level)
+    os.replace(path + ".tmp", path)
+    return path
+
+
+class VoxelLevels:
+    """A saved (voxel index, level) table (hit or miss levels): `at_least(points, level)`."""
+
+    def __init__(self, index, level):
+        packed = pack_index(np.asarray(index, dtype=np.int64).reshape(-1, 3))
+        order = np.argsort(packed)
+        self.packed, self.level = packed[order], np.asarray(level)[order]
+
+    @classmethod
+    def load(cls, path):
+        with np.load(path) as data:
+            return cls(data["index"], data["level"])
+
+    def at_least(self, points, resolution_m, level):
+        packed = pack_index(voxel_index(np.asarray(points).reshape(-1, 3), resolution_m))
+        if not len(self.packed):
+            return np.zeros(len(packed), dtype=bool)
+        at = np.clip(np.searchsorted(self.packed, packed), 0, len(self.packed) - 1)
+        return (self.packed[at] == packed) & (self.level[at] >= level)
+
+    @classmethod
+    def of_map(cls, map_path):
+        """The hit levels saved beside a map, or None (a map saved before they were kept)."""
+        path = hit_levels_path(map_path)
+        return cls.load(path) if os.path.exists(path) else None
+
+
+def miss_levels(baseline_map, current_map):
+    """(voxel index (N, 3), level uint8) for every occupied voxel of the baseline: the largest number
+    of net misses k <= MAX_MISS_LEVEL (0 if none) the current map's log-odds there stand for. A saved
+    .bt keeps only occupied/free, so this is what the evidence rule needs of a finished mission."""
+    centers = baseline_map.occupied_centers()
+    index = _index(centers, baseline_map.resolution_m)
+    points = index_to_center(index, baseline_map.resolution_m)
+    level = np.zeros(len(index), dtype=np.uint8)
+    for k in range(1, MAX_MISS_LEVEL + 1):
+        p = misses_probability(k, current_map.sensor_model.miss)
+        level[current_map.is_free(points, max_probability=p)] = k
+    return index, level
+
+
+def miss_levels_path(report_path):
+    return str(report_path).rsplit(".", 1)[0] + "_miss_levels.npz"
+
+
+def write_miss_levels(report_path, baseline_map, current_map):
+    """miss_levels beside the live report (`<report>_miss_levels.npz`), replaced atomically."""
+    index, level = miss_levels(baseline_map, current_map)
+    path = miss_levels_path(report_path)
+    with open(path + ".tmp", "wb") as stream:
+        np.savez_compressed(stream, index=index.astype(np.int32), level=level)
+    os.replace(path + ".tmp", path)
+    return path
+
+
+def _firm(fused, levels, min_hits):
+    """points -> occupied with at least `min_hits` net hits, from saved levels or a FrozenMap; None
+    (no test) for min_hits <= 1 or a map without either."""
+    if min_hits <= 1:
+        return None
+    if levels is not None:
+        return functools.partial(levels.at_least, resolution_m=fused.resolution_m, level=min_hits)
+    if isinstance(fused, FrozenMap):
+        levels = VoxelLevels(*fused.hit_levels())
+        return functools.partial(levels.at_least, resolution_m=fused.resolution_m, level=min_hits)
+    return None
 
 
 def detect_map_changes(
@@ -223,11 +382,17 @@ def detect_map_changes(
     rules: Optional[ChangeRules] = None,
     swept=None,
     current_trails=None,
+    current_misses=None,
+    baseline_hits=None,
+    current_hits=None,
     **kwargs,
 ) -> List[Change]:
     """detect_changes for two FusedLogOddsMaps under `rules` (ChangeRules; keyword arguments
     override its fields): `swept` (robot_bodies.SweptVolume) is excluded, `current_trails` give the
-    viewpoints of the monitoring mission."""
+    viewpoints of the monitoring mission; `current_misses` (VoxelLevels of miss levels) stands for the current map's
+    log-odds at the baseline's voxels when the current map was read from a .bt; `baseline_hits`,
+    `current_hits` (VoxelLevels) how firmly each map's occupied voxels were seen (the current one's
+    from its own log-odds when it is a FrozenMap)."""
     if abs(baseline_map.resolution_m - current_map.resolution_m) > 1e-9:
         raise ValueError("the two maps have different resolutions")
     rules = dataclasses.replace(rules or ChangeRules(), **kwargs)
@@ -253,11 +418,16 @@ def detect_map_changes(
         tolerance_voxels=rules.tolerance_voxels,
         min_cluster_voxels=rules.min_cluster_voxels,
         baseline_is_free=functools.partial(baseline_map.is_free, max_probability=rules.appeared_free_max_probability),
-        current_is_free=functools.partial(current_map.is_free, max_probability=gone_probability),
+        current_is_free=functools.partial(current_map.is_free, max_probability=gone_probability)
+        if current_misses is None
+        else functools.partial(current_misses.at_least, resolution_m=res, level=rules.disappeared_min_misses),
+        baseline_firm=_firm(baseline_map, baseline_hits, rules.min_hits),
+        current_firm=_firm(current_map, current_hits, rules.min_hits),
         excluded=swept.contains if swept is not None and len(swept) else None,
         baseline_known=functools.partial(baseline_map.is_free, max_probability=0.5) if rules.known_neighbours else None,
         current_known=functools.partial(current_map.is_free, max_probability=0.5) if rules.known_neighbours else None,
         disappeared_cluster_ok=cluster_ok,
+        merge_gap_voxels=rules.merge_gap_voxels,
     )
 
 

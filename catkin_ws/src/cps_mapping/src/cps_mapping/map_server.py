@@ -21,9 +21,17 @@ from std_srvs.srv import EmptyResponse
 
 from cps_fleet import names
 from cps_mapping import map_messages
-from cps_mapping.baseline import BaselineError, evidence_map_path, load_baseline, read_map_trails, write_map_metadata
+from cps_mapping.baseline import BaselineError, load_baseline, read_map_trails, write_map_metadata
 from cps_mapping.change_attention import ATTENTION_RADIUS_M
-from cps_mapping.change_detection import TRUSTED_RULES, detect_map_changes, write_report
+from cps_mapping.change_detection import (
+    TRUSTED_RULES,
+    FrozenMap,
+    VoxelLevels,
+    detect_map_changes,
+    write_hit_levels,
+    write_miss_levels,
+    write_report,
+)
 from cps_mapping.change_tracking import ChangeTracker
 from cps_mapping.cloud_input import InvalidInput, prepare_cloud
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
@@ -198,6 +206,7 @@ class MapServer:
             except BaselineError as exc:
                 raise ValueError(f"baseline_map: {exc}") from exc
             self.swept = SweptVolume(self.map.resolution_m).add(self.baseline_trails)
+            self.baseline_hits = VoxelLevels.of_map(options.baseline_map)
             self.tracker = ChangeTracker()
         self._map_lock = threading.Lock()
         self._counters_lock = threading.Lock()
@@ -266,7 +275,9 @@ class MapServer:
     def _save(self, path):
         with self._map_lock:
             saved = self.map.save(path)
+            frozen = FrozenMap(self.map)
         write_map_metadata(saved, self.options.frame_id, self.map.resolution_m, self.trails)
+        write_hit_levels(saved, frozen)  # how firmly each voxel was seen, for change detection
         return saved
 
     def autosave(self):
@@ -282,9 +293,6 @@ class MapServer:
             try:
                 path = self._save(self.options.map_file)
                 self.log.info(f"map_server: saved the map to {path} on shutdown")
-                if self.baseline is not None:  # a monitoring mission: the log-odds for change evidence
-                    with self._map_lock:
-                        self.map.save(evidence_map_path(path))
             except MapFileError as exc:
                 self.log.error(f"map_server: could not save on shutdown: {exc}")
 
@@ -470,16 +478,20 @@ class MapServer:
     def publish_changes(self, stamp):
         """What appeared or disappeared against the baseline map, as markers (and the report); returns
         the changes."""
-        with self._map_lock:
-            changes = detect_map_changes(
-                self.baseline,
-                self.map,
-                rules=TRUSTED_RULES,
-                swept=self.swept.add(self.trails),
-                current_trails=self.trails,
-                tolerance_voxels=self.options.change_tolerance_voxels,
-                min_cluster_voxels=self.options.change_min_cluster_voxels,
-            )
+        with self._map_lock:  # a copy in milliseconds: insertion goes on while the detection runs
+            current = FrozenMap(self.map)
+        changes = detect_map_changes(
+            self.baseline,
+            current,
+            rules=TRUSTED_RULES,
+            swept=self.swept.add(self.trails),
+            current_trails=self.trails,
+            baseline_hits=self.baseline_hits,
+            tolerance_voxels=self.options.change_tolerance_voxels,
+            min_cluster_voxels=self.options.change_min_cluster_voxels,
+        )
+        if self.options.change_report:  # how often the new mission saw each baseline voxel free
+            write_miss_levels(self.options.change_report, self.baseline, current)
         tracked = self.tracker.update(changes, stamp.to_sec())  # reported after 2 cycles, withdrawn when contradicted
         changes = [t.change for t in tracked]
         array = map_messages.change_markers(changes, self._header(stamp))
