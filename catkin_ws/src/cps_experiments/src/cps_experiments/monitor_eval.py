@@ -30,6 +30,7 @@ SWEEP = {
     "disappeared_min_misses": (1, 2, 3, 4, 5),
     "min_viewpoints": (0, 1, 2, 3, 4),
     "tolerance_voxels": (0, 1, 2, 3),
+    "min_hits": (1, 2, 3, 4, 5),
 }
 
 

@@ -71,6 +71,16 @@ class SavedMaps:
     current_trails: object
     current_hits: object
     current_misses: object  # VoxelLevels of the new mission's misses at the baseline's voxels, or None
+    _swept: object = None
+
+    def swept(self):
+        """The volume both missions' robot bodies swept (robot_bodies.SweptVolume), built once."""
+        from cps_mapping.robot_bodies import SweptVolume
+
+        if self._swept is None:
+            resolution_m = self.current.resolution_m
+            self._swept = SweptVolume(resolution_m).add(self.baseline_trails).add(self.current_trails)
+        return self._swept
 
 
 def load_maps(baseline_path, map_path, fleet) -> SavedMaps:
@@ -98,14 +108,13 @@ def evaluate_monitoring(baseline_path, map_path, fleet, changes_path, rules=None
     from cps_fleet.site import load_site
     from cps_mapping.change_detection import TRUSTED_RULES, detect_map_changes
     from cps_mapping.change_scoring import score_changes
-    from cps_mapping.robot_bodies import SweptVolume
     from cps_sim.site_changes import expected_changes, load_site_changes
 
     site = load_site(fleet.site_path)
     changes = load_site_changes(changes_path, site)
     expected = expected_changes(site, changes)
     m = maps or load_maps(baseline_path, map_path, fleet)
-    swept = SweptVolume(m.current.resolution_m).add(m.baseline_trails).add(m.current_trails)
+    swept = m.swept()
     detected = detect_map_changes(
         m.baseline,
         m.current,
