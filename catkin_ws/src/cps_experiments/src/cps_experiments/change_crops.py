@@ -3,13 +3,14 @@ place in the baseline beside the same place now, top-down and from the side, the
 outlined (no rospy; matplotlib Agg).
 
 Each panel shows the occupied voxels of one map within the change's box grown by `CROP_MARGIN_M`:
-top-down as the columns' highest voxel (colour = height), side as the voxels seen along y (colour
-= depth). The outline is the change's box: green appeared, red disappeared.
+top-down as the columns' highest voxel (colour = height), side as the voxels within the change's
+own y extent (grown by `SLAB_M`) seen along y (colour = depth). The outline is the change's box: green appeared, red disappeared.
 """
 
 import numpy as np
 
 CROP_MARGIN_M = 0.8
+SLAB_M = 0.1  # the side view shows the voxels within the change's y extent grown by this
 APPEARED_COLOUR, DISAPPEARED_COLOUR = "tab:green", "tab:red"
 
 
@@ -34,6 +35,8 @@ def draw_change_crop(path, change, baseline_centers_m, current_centers_m, resolu
         pts = _inside(np.asarray(centers, dtype=float).reshape(-1, 3), lo, hi)
         for row, (ax_i, ax_j, ax_c, names) in enumerate(((0, 1, 2, ("x m", "y m")), (0, 2, 1, ("x m", "z m")))):
             ax = axes[row, col]
+            if row == 1:  # the side view: only the slab of the change's own y extent
+                pts = pts[(pts[:, 1] >= change.min_m[1] - SLAB_M) & (pts[:, 1] <= change.max_m[1] + SLAB_M)]
             if len(pts):
                 order = np.argsort(pts[:, ax_c]) if row == 0 else np.argsort(-pts[:, ax_c])
                 ax.scatter(

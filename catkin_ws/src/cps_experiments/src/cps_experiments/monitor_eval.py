@@ -14,6 +14,7 @@ import dataclasses
 import json
 import math
 import os
+import subprocess
 import sys
 import time
 
@@ -46,6 +47,7 @@ def parse_args(argv):
     parser.add_argument("--link", default="auto")
     parser.add_argument("--duration", type=float, default=300.0, metavar="S")
     parser.add_argument("--no-run", action="store_true", help="score the missions already in --out")
+    parser.add_argument("--keep-done", action="store_true", help="run only the scenarios without a report in --out")
     args = parser.parse_args(argv)
     if args.scenarios < 1:
         parser.error("--scenarios must be at least 1")
@@ -227,15 +229,17 @@ def main(argv=None):
     scenarios = [(n, p, os.path.join(args.out, n)) for n, p in scenario_files(args, site, fleet)]
     wall = {}
     for name, path, out_dir in scenarios:
-        if args.no_run:
+        if args.no_run or (args.keep_done and os.path.exists(os.path.join(out_dir, "report.md"))):
             continue
-        from cps_experiments.monitor import main as monitor_main
-
         t0 = time.monotonic()
         print(f"[monitor-eval] {name}: {path}", flush=True)
-        monitor_main(
-            ["--baseline", args.baseline, "--site-changes", path, "--out", out_dir, "--robots", args.robots,
-             "--link", args.link, "--duration", str(args.duration)]
+        # One process per mission: rospy's node (the mission monitor's) is process-wide and cannot
+        # move to the next mission's master.
+        subprocess.run(
+            [sys.executable, "-c", "import sys; from cps_experiments.monitor import main; sys.exit(main(sys.argv[1:]))",
+             "--baseline", args.baseline, "--site-changes", path, "--out", out_dir, "--robots", args.robots,
+             "--link", args.link, "--duration", str(args.duration)],
+            check=False,
         )  # fmt: skip
         wall[name] = time.monotonic() - t0
     fleet_scored = robot_names_arg(fleet, args.robots.split(","))
