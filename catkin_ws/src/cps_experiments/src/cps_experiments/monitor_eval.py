@@ -32,6 +32,7 @@ SWEEP = {
     "min_viewpoints": (0, 1, 2, 3, 4),
     "tolerance_voxels": (0, 1, 2, 3),
     "min_hits": (1, 2, 3, 4, 5),
+    "merge_gap_voxels": (0, 1, 2, 3),
 }
 
 
