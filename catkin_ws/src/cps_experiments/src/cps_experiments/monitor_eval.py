@@ -33,6 +33,7 @@ SWEEP = {
     "tolerance_voxels": (0, 1, 2, 3),
     "min_hits": (1, 2, 3, 4, 5),
     "merge_gap_voxels": (0, 1, 2, 3),
+    "min_known_neighbours": (0, 4, 5, 6),
 }
 
 

@@ -140,8 +140,10 @@ class ChangeRules:
     - `disappeared_min_misses`: a baseline voxel disappeared only where the new mission's rays
       passed through it at least this many times net of hits (its log-odds at or below this many
       misses of the sensor model; 5 reaches OctoMap's free clamp 0.12 with miss 0.4).
-    - `known_neighbours`: the other map must know (free) the face neighbours of a changed voxel too,
-      except those occupied in both (DUFOMap's neighbourhood rule against single rays grazing past).
+    - `min_known_neighbours`: the other map must know (free, or occupied in both maps) at least
+      this many of the 6 face neighbours of a changed voxel (DUFOMap's neighbourhood rule against
+      single rays grazing past; 5, not 6: the neighbour inside a new item is often hidden from the
+      baseline by the item's own front, as from every viewpoint of a map made from one side).
     - `min_viewpoints`: a disappeared cluster must be in line of sight through known free space, and
       within `max_view_range_m`, of sensor poses at least `viewpoint_separation_m` apart, this many
       (needs the mission's robot trails; not checked without them).
@@ -157,7 +159,7 @@ class ChangeRules:
     min_cluster_voxels: int = 8
     appeared_free_max_probability: float = 0.25
     disappeared_min_misses: int = 3
-    known_neighbours: bool = False
+    min_known_neighbours: int = 0
     min_viewpoints: int = 0
     merge_gap_voxels: int = 0
     min_hits: int = 1
@@ -177,7 +179,7 @@ TRUSTED_RULES = ChangeRules(
     min_cluster_voxels=16,
     appeared_free_max_probability=0.25,
     disappeared_min_misses=3,
-    known_neighbours=True,
+    min_known_neighbours=5,
     min_viewpoints=2,
     merge_gap_voxels=1,
     min_hits=3,
@@ -194,15 +196,16 @@ def misses_probability(misses, miss_probability):
 _FACES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.int64)
 
 
-def _neighbours_known(index, resolution_m, known_free, occupied_both):
-    """True where every face neighbour of a voxel is known free in the other map or occupied in both."""
+def _neighbours_known(index, resolution_m, known_free, occupied_both, min_known):
+    """True where at least `min_known` face neighbours of a voxel are known free in the other map or
+    occupied in both."""
     if not len(index):
         return np.zeros(0, dtype=bool)
-    ok = np.ones(len(index), dtype=bool)
+    known = np.zeros(len(index), dtype=np.int64)
     for face in _FACES:
         n = index + face
-        ok &= known_free(index_to_center(n, resolution_m)) | near_any(n, occupied_both, 0)
-    return ok
+        known += known_free(index_to_center(n, resolution_m)) | near_any(n, occupied_both, 0)
+    return known >= min_known
 
 
 def detect_changes(
@@ -218,6 +221,7 @@ def detect_changes(
     current_known: Optional[Callable] = None,
     disappeared_cluster_ok: Optional[Callable] = None,
     merge_gap_voxels=0,
+    min_known_neighbours=6,
     baseline_firm: Optional[Callable] = None,
     current_firm: Optional[Callable] = None,
 ) -> List[Change]:
@@ -245,9 +249,11 @@ def detect_changes(
     if baseline_known is not None or current_known is not None:
         both = base[near_any(base, cur, 0)]
         if baseline_known is not None and len(appeared):
-            appeared = appeared[_neighbours_known(appeared, resolution_m, baseline_known, both)]
+            appeared = appeared[_neighbours_known(appeared, resolution_m, baseline_known, both, min_known_neighbours)]
         if current_known is not None and len(disappeared):
-            disappeared = disappeared[_neighbours_known(disappeared, resolution_m, current_known, both)]
+            disappeared = disappeared[
+                _neighbours_known(disappeared, resolution_m, current_known, both, min_known_neighbours)
+            ]
     gone = _clusters(disappeared, "disappeared", resolution_m, min_cluster_voxels, merge_gap_voxels)
     if disappeared_cluster_ok is not None:
         gone = [c for c in gone if disappeared_cluster_ok(c)]
@@ -471,8 +477,13 @@ def detect_map_changes(
         baseline_firm=_firm(baseline_map, baseline_hits, rules.min_hits),
         current_firm=_firm(current_map, current_hits, rules.min_hits),
         excluded=swept.contains if swept is not None and len(swept) else None,
-        baseline_known=functools.partial(baseline_map.is_free, max_probability=0.5) if rules.known_neighbours else None,
-        current_known=functools.partial(current_map.is_free, max_probability=0.5) if rules.known_neighbours else None,
+        baseline_known=functools.partial(baseline_map.is_free, max_probability=0.5)
+        if rules.min_known_neighbours
+        else None,
+        current_known=functools.partial(current_map.is_free, max_probability=0.5)
+        if rules.min_known_neighbours
+        else None,
+        min_known_neighbours=rules.min_known_neighbours,
         disappeared_cluster_ok=cluster_ok,
         merge_gap_voxels=rules.merge_gap_voxels,
     )
