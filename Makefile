@@ -4,7 +4,7 @@ SHELL := /bin/bash
 ENV := source ci/env.sh &&
 PYTEST_ARGS ?=
 
-.PHONY: setup test test-unit demo monitor experiments bench clean
+.PHONY: setup test test-unit demo monitor monitor-eval experiments bench clean
 
 setup:
 	@bash ci/setup.sh
@@ -22,6 +22,13 @@ demo: setup
 # The monitoring mission against the map the last `make demo` saved (out/demo/map.bt).
 monitor: setup
 	@$(ENV) python catkin_ws/src/cps_experiments/nodes/monitor $(MONITOR_ARGS)
+
+# N monitoring missions (the default changes file, then N-1 drawn from SEED) against out/demo/map.bt,
+# scored per scenario and in total, with the precision-recall curve: out/monitor-eval/results.md.
+SCENARIOS ?= 8
+SEED ?= 25
+monitor-eval: setup
+	@$(ENV) python catkin_ws/src/cps_experiments/nodes/monitor_eval --scenarios $(SCENARIOS) --seed $(SEED) $(MONITOR_EVAL_ARGS)
 
 experiments: setup
 	@$(ENV) python catkin_ws/src/cps_experiments/nodes/experiments $(EXPERIMENT_ARGS)

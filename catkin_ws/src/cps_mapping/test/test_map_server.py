@@ -281,7 +281,9 @@ def test_restarted_server_resumes_and_reports_the_change(server, rospy_node, sce
             lambda m: m.header.stamp > server.occ_msg.header.stamp and m.width > 0, what="resumed map"
         )
         assert resumed.width == len(server.occupied)
-        boxes = [m for m in changes.wait(what="map changes").markers if m.type == Marker.CUBE]
+        # a change is reported once two detection cycles found it (cps_mapping.change_tracking)
+        reported = changes.wait(lambda m: any(k.type == Marker.CUBE for k in m.markers), what="map changes")
+        boxes = [m for m in reported.markers if m.type == Marker.CUBE]
         assert len(boxes) == 1 and boxes[0].color.g > boxes[0].color.r, "crate_a must be the one appeared change"
         crate_a = next(b for b in scene_clouds[0].boxes if b.name == "crate_a")
         assert crate_a.min_m[0] - 0.2 < boxes[0].pose.position.x < crate_a.max_m[0] + 0.2

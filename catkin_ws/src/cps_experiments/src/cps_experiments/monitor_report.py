@@ -16,6 +16,8 @@ APPEARED_COLOUR, DISAPPEARED_COLOUR = "tab:green", "tab:red"
 
 # How far from a false change the report looks for the solid it was made of.
 NEAR_SOLID_M = 0.3
+# How near a robot's recorded pose a false change counts as "near a robot".
+ROBOT_NEAR_M = 0.5
 
 
 @dataclasses.dataclass
@@ -26,6 +28,10 @@ class MonitoringResult:
     current_map: object  # FusedLogOddsMap of the monitoring mission
     changes: object  # cps_sim.site_changes.SiteChanges
     sites: tuple = ()  # the site before and after the changes
+    baseline_map: object = None  # FusedLogOddsMap of the baseline
+    baseline_trails: object = None  # robot_bodies.RobotTrails saved with the baseline, or None
+    current_trails: object = None
+    evidence: str = ""  # where the new map's misses at the baseline's voxels came from
 
 
 def solid_near(sites, change, margin_m=NEAR_SOLID_M):
@@ -39,29 +45,101 @@ def solid_near(sites, change, margin_m=NEAR_SOLID_M):
     return "nothing"
 
 
-def evaluate_monitoring(baseline_path, map_path, fleet, changes_path) -> MonitoringResult:
-    """Detect the changes between the two saved maps and score them against the simulator's."""
+def near_robot(result, change, margin_m=ROBOT_NEAR_M):
+    """True if a change's box, grown by `margin_m`, holds a pose a robot's sensor had in either
+    mission: a robot's body, or what the swept volume did not cover of it."""
+    lo, hi = np.asarray(change.min_m) - margin_m, np.asarray(change.max_m) + margin_m
+    for trails in (result.baseline_trails, result.current_trails):
+        for trail in trails.trails.values() if trails else ():
+            xyz = np.asarray([p[:3, 3] for p in trail.snapshot()[1]]).reshape(-1, 3)
+            if len(xyz) and np.any(np.all((xyz >= lo) & (xyz <= hi), axis=1)):
+                return True
+    return False
+
+
+LIVE_REPORT = "map_changes.md"  # the map server's live report in a mission's folder (cps_bringup.plan)
+
+
+@dataclasses.dataclass
+class SavedMaps:
+    """Two missions' saved maps with what was saved beside them."""
+
+    baseline: object  # FusedLogOddsMap
+    baseline_trails: object  # robot_bodies.RobotTrails or None
+    baseline_hits: object  # change_detection.VoxelLevels or None
+    current: object
+    current_trails: object
+    current_hits: object
+    current_misses: object  # VoxelLevels of the new mission's misses at the baseline's voxels, or None
+    _swept: object = None
+
+    def swept(self):
+        """The volume both missions' robot bodies swept (robot_bodies.SweptVolume), built once."""
+        from cps_mapping.robot_bodies import SweptVolume
+
+        if self._swept is None:
+            resolution_m = self.current.resolution_m
+            self._swept = SweptVolume(resolution_m).add(self.baseline_trails).add(self.current_trails)
+        return self._swept
+
+
+def load_maps(baseline_path, map_path, fleet) -> SavedMaps:
+    """The two maps and their sidecars: robot trails (`<map>.json`), hit levels (`<map>.hits.npz`),
+    and the new mission's misses at the baseline's voxels from the map server's last detection cycle
+    (`map_changes_miss_levels.npz`): a .bt holds only occupied/free."""
+    from cps_mapping.baseline import load_baseline, read_map_trails
+    from cps_mapping.change_detection import VoxelLevels, miss_levels_path
+
+    misses = miss_levels_path(os.path.join(os.path.dirname(os.path.abspath(map_path)), LIVE_REPORT))
+    return SavedMaps(
+        load_baseline(baseline_path, fleet.mapping),
+        read_map_trails(baseline_path),
+        VoxelLevels.of_map(baseline_path),
+        load_baseline(map_path, fleet.mapping),
+        read_map_trails(map_path),
+        VoxelLevels.of_map(map_path),
+        VoxelLevels.load(misses) if os.path.exists(misses) else None,
+    )
+
+
+def evaluate_monitoring(baseline_path, map_path, fleet, changes_path, rules=None, maps=None) -> MonitoringResult:
+    """Detect the changes between the two saved maps under `rules` (default: the map server's, the
+    live detection's without its persistence) and score them against the simulator's."""
     from cps_fleet.site import load_site
-    from cps_mapping.baseline import load_baseline
-    from cps_mapping.change_detection import detect_map_changes
+    from cps_mapping.change_detection import TRUSTED_RULES, detect_map_changes
     from cps_mapping.change_scoring import score_changes
-    from cps_mapping.map_server import MapServerOptions
     from cps_sim.site_changes import expected_changes, load_site_changes
 
     site = load_site(fleet.site_path)
     changes = load_site_changes(changes_path, site)
     expected = expected_changes(site, changes)
-    baseline = load_baseline(baseline_path, fleet.mapping)
-    current = load_baseline(map_path, fleet.mapping)
-    defaults = MapServerOptions()  # what the live detection at the twin uses
+    m = maps or load_maps(baseline_path, map_path, fleet)
+    swept = m.swept()
     detected = detect_map_changes(
-        baseline,
-        current,
-        tolerance_voxels=defaults.change_tolerance_voxels,
-        min_cluster_voxels=defaults.change_min_cluster_voxels,
+        m.baseline,
+        m.current,
+        rules=rules or TRUSTED_RULES,
+        swept=swept,
+        current_trails=m.current_trails,
+        current_misses=m.current_misses,
+        baseline_hits=m.baseline_hits,
+        current_hits=m.current_hits,
     )
+    evidence = [
+        "misses: the last live detection cycle" if m.current_misses else "misses: map.bt only (occupied/free)",
+        "hits: both maps" if m.baseline_hits and m.current_hits else "hits: **not saved with both maps** (not tested)",
+    ]
     return MonitoringResult(
-        detected, expected, score_changes(detected, expected), current, changes, (site, changes.apply(site))
+        detected,
+        expected,
+        score_changes(detected, expected),
+        m.current,
+        changes,
+        (site, changes.apply(site)),
+        m.baseline,
+        m.baseline_trails,
+        m.current_trails,
+        "; ".join(evidence),
     )
 
 
@@ -89,6 +167,28 @@ def draw_changes(ax, result: MonitoringResult):
     ax.plot([], [], color=APPEARED_COLOUR, lw=6, alpha=0.55, label="detected: appeared")
     ax.plot([], [], color=DISAPPEARED_COLOUR, lw=6, alpha=0.55, label="detected: disappeared")
     ax.plot([], [], color="0.3", ls="--", label="simulator's change (footprint)")
+
+
+def change_crop_lines(result, out):
+    """One crop per detected change in `out`/changes/ (cps_experiments.change_crops) and the report's
+    section showing them."""
+    from cps_experiments.change_crops import draw_change_crop
+
+    if not result.detected:
+        return []
+    os.makedirs(os.path.join(out, "changes"), exist_ok=True)
+    base, now = result.baseline_map.occupied_centers(), result.current_map.occupied_centers()
+    lines = ["## Each change: baseline beside now (top-down and side, the change outlined)", ""]
+    for i, c in enumerate(result.detected, 1):
+        m = result.score.match_of_detected(i - 1)
+        what = result.expected[m.expected_index].name if m else "false"
+        name = f"changes/change_{i}.png"
+        draw_change_crop(
+            os.path.join(out, name), c, base, now, result.current_map.resolution_m,
+            title=f"#{i} {c.kind} at ({c.centroid_m[0]:.1f}, {c.centroid_m[1]:.1f}) m: {what}",
+        )  # fmt: skip
+        lines += [f"![change {i}]({name})", ""]
+    return lines
 
 
 def _xyz(values):
@@ -120,6 +220,16 @@ def write_monitor_report(mission, mission_args, wall_time_s):
         score = result.score
         lines += [
             f"Simulator: {result.changes.describe()}.",
+            "",
+            (
+                f"Robots: the baseline's robot poses ({result.baseline_trails.pose_count()}) and this mission's "
+                f"({result.current_trails.pose_count() if result.current_trails else 0}) were saved with the maps; "
+                "the volume the robots' bodies swept is not compared."
+                if result.baseline_trails is not None
+                else "**The baseline has no robot poses** (saved before they were kept, or by another tool): "
+                "robots it saw cannot be told from the site and may come out as disappeared changes."
+            ),
+            f"Evidence saved with the maps: {result.evidence}.",
             "",
             "## Score",
             "",
@@ -157,7 +267,8 @@ def write_monitor_report(mission, mission_args, wall_time_s):
                         c.voxels,
                         result.expected[m.expected_index].name
                         if m
-                        else f"— (false; the site has {solid_near(result.sites, c)} there)",
+                        else f"— (false; the site has {solid_near(result.sites, c)} there"
+                        + ("; near a robot's path)" if near_robot(result, c) else ")"),
                         f"{m.position_error_m:.2f}" if m else "—",
                     )
                     for i, c in enumerate(result.detected, 1)
@@ -203,6 +314,7 @@ def write_monitor_report(mission, mission_args, wall_time_s):
             title="Monitoring mission: new map, detected changes (filled) and the simulator's (dashed)",
         )
         lines += ["![top-down view with the changes](topdown.png)", ""]
+        lines += change_crop_lines(result, out)
     if os.path.exists(os.path.join(out, "gui.png")):
         lines += ["## Operator GUI during the mission", "", "![GUI screenshot](gui.png)", ""]
     lines += ["## Supervisor events", ""]

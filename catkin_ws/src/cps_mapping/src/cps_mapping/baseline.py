@@ -2,8 +2,12 @@
 resolution and frame (no rospy).
 
 A .bt file holds its resolution but not its frame, so the map server writes a small sidecar
-`<map>.json` (`{"frame_id": ..., "resolution_m": ...}`) next to every map it saves; a baseline
-whose sidecar names another frame is refused, one without a sidecar is taken as in `frame_id`.
+`<map>.json` (`{"frame_id": ..., "resolution_m": ..., "robot_poses": ...}`) next to every map it
+saves; a baseline whose sidecar names another frame is refused, one without a sidecar is taken as
+in `frame_id`. `robot_poses` (cps_mapping.robot_bodies.RobotTrails) are the robots' sensor poses and
+bodies during the mission that made the map, so that change detection can ignore the robots in it;
+a map without them (saved before they were kept) is still usable: `read_map_trails` returns None
+and the monitoring report says that robots seen in the baseline may come out as changes.
 """
 
 import json
@@ -20,11 +24,17 @@ def metadata_path(map_path):
     return f"{map_path}.json"
 
 
-def write_map_metadata(map_path, frame_id, resolution_m):
-    """The sidecar of a saved map; MapFileError if it cannot be written."""
+def write_map_metadata(map_path, frame_id, resolution_m, robot_trails=None):
+    """The sidecar of a saved map (with the robots' trails, a RobotTrails, if given); MapFileError if
+    it cannot be written. Written to a temporary file first: a reader never sees half a sidecar."""
+    doc = {"frame_id": frame_id, "resolution_m": resolution_m}
+    if robot_trails is not None:
+        doc["robot_poses"] = robot_trails.as_json()
+    path = metadata_path(map_path)
     try:
-        with open(metadata_path(map_path), "w") as stream:
-            json.dump({"frame_id": frame_id, "resolution_m": resolution_m}, stream)
+        with open(f"{path}.tmp", "w") as stream:
+            json.dump(doc, stream)
+        os.replace(f"{path}.tmp", path)
     except OSError as exc:
         raise MapFileError(f"cannot write {metadata_path(map_path)}: {exc}") from exc
 
@@ -42,6 +52,22 @@ def read_map_frame(map_path):
     if not isinstance(frame, str) or not frame:
         raise BaselineError(f"{path}: frame_id must be a non-empty string, got {frame!r}")
     return frame
+
+
+def read_map_trails(map_path):
+    """The robots' trails saved with a map (cps_mapping.robot_bodies.RobotTrails), or None if the
+    sidecar is missing or predates them; BaselineError if they are unreadable."""
+    from cps_mapping.robot_bodies import RobotTrails
+
+    path = metadata_path(map_path)
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path) as stream:
+            doc = json.load(stream)
+        return RobotTrails.from_json(doc["robot_poses"]) if "robot_poses" in doc else None
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+        raise BaselineError(f"{path}: unreadable robot poses ({type(exc).__name__}: {exc})") from exc
 
 
 def load_baseline(path, mapping, frame_id="map") -> FusedLogOddsMap:

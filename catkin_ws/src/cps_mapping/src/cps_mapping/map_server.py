@@ -21,14 +21,24 @@ from std_srvs.srv import EmptyResponse
 
 from cps_fleet import names
 from cps_mapping import map_messages
-from cps_mapping.baseline import BaselineError, load_baseline, write_map_metadata
+from cps_mapping.baseline import BaselineError, load_baseline, read_map_trails, write_map_metadata
 from cps_mapping.change_attention import ATTENTION_RADIUS_M
-from cps_mapping.change_detection import detect_map_changes, write_report
+from cps_mapping.change_detection import (
+    TRUSTED_RULES,
+    FrozenMap,
+    VoxelLevels,
+    detect_map_changes,
+    write_hit_levels,
+    write_miss_levels,
+    write_report,
+)
+from cps_mapping.change_tracking import ChangeTracker
 from cps_mapping.cloud_input import InvalidInput, prepare_cloud, read_leaf
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
 from cps_mapping.insert_capacity import InsertionBudget, InsertionMeter, voxel_updates_of
 from cps_mapping.markers import occupied_cells_markers
 from cps_mapping.queues import QueuedCloud, RobotQueues
+from cps_mapping.robot_bodies import RobotTrails, SweptVolume, fleet_bodies
 from cps_msgs.srv import BoundingBoxQueryResponse, LoadMapResponse, SaveMapResponse
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 
@@ -103,13 +113,15 @@ class MapServerOptions:
     change_period_s: float = _option(5.0, "change detection period", "s", low=0.0, low_open=True)
     change_report: str = _option("", "Markdown (+ .json) report written at each change detection", "path")
     change_tolerance_voxels: int = _option(
-        2,
+        TRUSTED_RULES.tolerance_voxels,
         "a voxel changed if no voxel of the other map lies this near: absorbs "
         "thin structures (fence rails) seen from other viewpoints",
         "voxels",
         low=0,
     )
-    change_min_cluster_voxels: int = _option(10, "smaller clusters of changed voxels are noise", "voxels", low=1)
+    change_min_cluster_voxels: int = _option(
+        TRUSTED_RULES.min_cluster_voxels, "smaller clusters of changed voxels are noise", "voxels", low=1
+    )
     change_attention_radius_m: float = _option(
         ATTENTION_RADIUS_M, "a robot this near a newly found change gets high link priority (0: never)", "m", low=0.0
     )
@@ -208,11 +220,18 @@ class MapServer:
             fleet.mapping, exact_free_space=options.exact_free_space, shared_ray_stop_m=options.shared_ray_stop_m
         )
         self.baseline = None
+        # The robots' sensor poses and bodies, saved with the map: change detection ignores robots.
+        self.trails = RobotTrails(fleet_bodies(fleet, self.robots))
+        self.baseline_trails = None
         if options.baseline_map:
             try:
                 self.baseline = load_baseline(options.baseline_map, fleet.mapping, options.frame_id)
+                self.baseline_trails = read_map_trails(options.baseline_map)
             except BaselineError as exc:
                 raise ValueError(f"baseline_map: {exc}") from exc
+            self.swept = SweptVolume(self.map.resolution_m).add(self.baseline_trails)
+            self.baseline_hits = VoxelLevels.of_map(options.baseline_map)
+            self.tracker = ChangeTracker()
         self._map_lock = threading.Lock()
         self._counters_lock = threading.Lock()
         self.counters = {r: RobotCounters() for r in self.robots}
@@ -273,6 +292,7 @@ class MapServer:
         try:
             nodes = self.map.load(path)
             self.log.info(f"map_server: resumed from {path} ({nodes} nodes)")
+            self.trails.extend(read_map_trails(path) or RobotTrails({}))
         except Exception as exc:  # any bad map file: moved aside, never a crash loop at start-up
             aside = f"{path}.unreadable-{int(time.time())}"
             try:
@@ -284,7 +304,9 @@ class MapServer:
     def _save(self, path):
         with self._map_lock:
             saved = self.map.save(path)
-        write_map_metadata(saved, self.options.frame_id, self.map.resolution_m)
+            frozen = FrozenMap(self.map)
+        write_map_metadata(saved, self.options.frame_id, self.map.resolution_m, self.trails)
+        write_hit_levels(saved, frozen)  # how firmly each voxel was seen, for change detection
         return saved
 
     def autosave(self):
@@ -344,6 +366,7 @@ class MapServer:
                 f"{msg.header.stamp.to_sec():.3f} within {self.options.tf_timeout_s} s, cloud dropped: {exc}",
             )
             return
+        self.trails.record(robot, msg.header.stamp.to_sec(), rotation, translation)
         if frame != self.sensor_frames[robot]:
             self._warn(
                 ("unexpected frame", robot),
@@ -507,16 +530,27 @@ class MapServer:
     def publish_changes(self, stamp):
         """What appeared or disappeared against the baseline map, as markers (and the report); returns
         the changes."""
-        with self._map_lock:
-            changes = detect_map_changes(
-                self.baseline,
-                self.map,
-                tolerance_voxels=self.options.change_tolerance_voxels,
-                min_cluster_voxels=self.options.change_min_cluster_voxels,
-            )
+        with self._map_lock:  # a copy in milliseconds: insertion goes on while the detection runs
+            current = FrozenMap(self.map)
+        changes = detect_map_changes(
+            self.baseline,
+            current,
+            rules=TRUSTED_RULES,
+            swept=self.swept.add(self.trails),
+            current_trails=self.trails,
+            baseline_hits=self.baseline_hits,
+            tolerance_voxels=self.options.change_tolerance_voxels,
+            min_cluster_voxels=self.options.change_min_cluster_voxels,
+        )
+        if self.options.change_report:  # how often the new mission saw each baseline voxel free
+            write_miss_levels(self.options.change_report, self.baseline, current)
+        tracked = self.tracker.update(changes, stamp.to_sec())  # reported after 2 cycles, withdrawn when contradicted
+        changes = [t.change for t in tracked]
         array = map_messages.change_markers(changes, self._header(stamp))
         if self.options.change_report:  # before the markers, so that whoever sees them finds the report
-            write_report(changes, self.options.change_report, self.options.baseline_map, "live map")
+            write_report(
+                changes, self.options.change_report, self.options.baseline_map, "live map", tracker=self.tracker
+            )
         self.outputs.changes(array)
         return changes
 

@@ -1,0 +1,66 @@
+"""Seeded scenarios of site changes: the same seed gives the same files, every scenario passes the
+changes file's rules and overlaps nothing, a draw that breaks a rule is said and drawn again, and a
+site with no room says so instead of producing an overlapping scene."""
+
+import dataclasses
+import math
+
+import pytest
+
+from cps_fleet.fleet import load_fleet
+from cps_fleet.site import load_site
+from cps_sim.site_change_generator import (
+    CLEARANCE_M,
+    MOVE_MAX_M,
+    MOVE_MIN_M,
+    GeneratorError,
+    generate_scenarios,
+    overlap_problem,
+    visited_areas,
+)
+from cps_sim.site_changes import load_site_changes
+
+ROBOTS = ["champ", "iris"]
+
+
+@pytest.fixture(scope="module")
+def fleet():
+    return load_fleet()
+
+
+@pytest.fixture(scope="module")
+def site(fleet):
+    return load_site(fleet.site_path)
+
+
+def _overlap(a, b):
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def test_scenarios_are_seeded_valid_and_overlap_nothing(tmp_path, site, fleet):
+    said = []
+    paths = generate_scenarios(site, fleet, ROBOTS, 6, 7, str(tmp_path / "a"), log=said.append)
+    again = generate_scenarios(site, fleet, ROBOTS, 6, 7, str(tmp_path / "b"), log=lambda _: None)
+    assert [open(p).read() for p in paths] == [open(p).read() for p in again]
+    assert said and all("drawing again" in s for s in said), "the storage area is full enough to refuse draws"
+    (storage,) = visited_areas(site, fleet, ROBOTS)
+    for path in paths:
+        changes = load_site_changes(path, site)  # the changes file's own rules
+        assert len(changes.removed) == len(changes.moved) == len(changes.added) == 1
+        move = changes.moved[0]
+        assert MOVE_MIN_M - 0.01 <= math.hypot(move.dx_m, move.dy_m) <= MOVE_MAX_M + 0.01
+        after = changes.apply(site)
+        placed = [move.name, changes.added[0].name]
+        assert overlap_problem(after, placed, [storage]) == ""
+        for name in placed:
+            x0, y0, x1, y1 = after.item(name).footprint
+            grown = (x0 - CLEARANCE_M, y0 - CLEARANCE_M, x1 + CLEARANCE_M, y1 + CLEARANCE_M)
+            assert not any(_overlap(grown, o.footprint) for o in after.equipment if o.name != name), (path, name)
+
+
+def test_a_site_without_room_says_so(tmp_path, site, fleet):
+    storage = next(a for a in site.areas if a.name == "storage")
+    tiny = dataclasses.replace(storage, x_min_m=3.0, x_max_m=3.5, y_min_m=-1.2, y_max_m=-0.8)
+    cramped = dataclasses.replace(site, areas=tuple(tiny if a is storage else a for a in site.areas))
+    with pytest.raises(GeneratorError, match="no valid draw|fewer than two"):
+        generate_scenarios(cramped, fleet, ROBOTS, 1, 3, str(tmp_path), log=lambda _: None)
