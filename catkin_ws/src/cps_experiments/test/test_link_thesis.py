@@ -53,8 +53,8 @@ def mission(tmp_path):
     _write(tmp_path / "stats.csv", header, [[T0 + s, "/x", "jackal", "True", 6, 100000] for s in range(50)])
     _write(
         tmp_path / "allocation.csv",
-        ["stamp_s", "robot", "stream", "level", "level_name"],
-        [[T0 + s, "jackal", "video", 1 if s < 20 else 2, "320x240" if s < 20 else "160x120"] for s in range(50)],
+        ["stamp_s", "budget_mbytes_per_s", "robot", "stream", "level", "level_name"],
+        [[T0 + s, 6.9, "jackal", "video", 1 if s < 20 else 2, "320x240" if s < 20 else "160x120"] for s in range(50)],
     )
     return tmp_path
 
@@ -83,6 +83,8 @@ def test_phases_streams_and_the_link_are_measured_per_phase(mission):
     assert link["offered_over_capacity_windows"] == link["windows"] == 30
     assert _row(rows, 60.0, "", "link")["offered_over_capacity_windows"] == 0
     assert link["teleop_p95_ms"] == pytest.approx(20.0, abs=1.0)
+    # The manager kept the iperf3 budget through the drop: said beside the capacity.
+    assert (link["capacity_mbytes_per_s"], link["manager_budget_mbytes_per_s"]) == (0.625, 6.9)
 
 
 def test_a_robot_that_delivered_nothing_shows_zero_never_a_filled_in_figure(mission):

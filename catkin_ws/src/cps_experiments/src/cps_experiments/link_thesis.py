@@ -225,7 +225,11 @@ def measure_run(run_dir, robots, read_csv):
         [r for r in read_csv(os.path.join(run_dir, "physical_stats.csv")) if stream_of(r.get("topic", ""))]
     )
     allocation_path = os.path.join(run_dir, "allocation.csv")
-    levels = stream_levels(read_csv(allocation_path) if os.path.exists(allocation_path) else [])
+    allocation_rows = read_csv(allocation_path) if os.path.exists(allocation_path) else []
+    levels = stream_levels(allocation_rows)
+    # The budget the manager worked with (from its available_mbps: iperf3's figure, or its estimate
+    # when estimate_bandwidth is on), beside the capacity the scenario set.
+    budgets = sorted({(csv_float(r.get("stamp_s")), csv_float(r.get("budget_mbytes_per_s"))) for r in allocation_rows})
     ends = [a[-1, 0] for a in arrivals.values() if len(a)] + [t for t in received]
     phases = capacity_phases(events, max(ends) if ends else 0.0)
     rows = []
@@ -259,6 +263,10 @@ def measure_run(run_dir, robots, read_csv):
                 "windows": len(sent),
                 "teleop_p95_ms": percentile_or_nan(teleop, 95),
                 "teleop_probes": len(teleop),
+                "capacity_mbytes_per_s": capacity_mbytes,
+                "manager_budget_mbytes_per_s": percentile_or_nan(
+                    [b for t, b in budgets if t0 <= t < t1 and math.isfinite(b)], 50
+                ),
             }
         )
     return rows
@@ -287,6 +295,8 @@ COLUMNS = (
     "offered_p95_mbytes_per_s",
     "offered_over_capacity_windows",
     "windows",
+    "capacity_mbytes_per_s",
+    "manager_budget_mbytes_per_s",
     "teleop_p95_ms",
     "teleop_probes",
     "f1_exact",
@@ -409,6 +419,10 @@ def differences(rows):
                     f"{_fmt(off['latency_p95_ms'], 0)} ms without."
                 )
         elif stream == "link":
+            out.append(
+                f"{where}: the manager's budget was {_fmt(on['manager_budget_mbytes_per_s'], 2)} MB/s for a capacity of "
+                f"{_fmt(on['capacity_mbytes_per_s'], 3)} MB/s."
+            )
             out.append(
                 f"{where}: the robots offered {_fmt(on['offered_mean_mbytes_per_s'], 2)} MB/s with the manager "
                 f"({on['offered_over_capacity_windows']} of {on['windows']} windows over capacity), "
