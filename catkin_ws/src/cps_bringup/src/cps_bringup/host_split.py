@@ -19,6 +19,8 @@ Lowering nice needs root; without it the priorities stay equal (said by `describ
 import dataclasses
 import os
 import shutil
+import sys
+import time
 from typing import Dict, List, Optional, Tuple
 
 from cps_bringup.plan import DIGITAL, PHYSICAL
@@ -28,6 +30,7 @@ SIDE_NAMES = {"robots": PHYSICAL, "twin": DIGITAL}
 CGROUP_ROOT = "/sys/fs/cgroup"
 CONTROL_NICE = -10
 CFS_PERIOD_US = 100_000
+REMOVE_SETTLE_S = 2.0  # an exiting process holds its group until reaped: milliseconds, not seconds
 
 # Writes the shell's own pid into every group given, then execs the node (argv after the groups).
 _JOIN = 'n=$1; shift; i=0; while [ $i -lt $n ]; do echo $$ > "$1/cgroup.procs" || exit 126; shift; i=$((i+1)); done; exec "$@"'
@@ -206,7 +209,12 @@ class HostSplit:
         return self
 
     def __exit__(self, *exc):
-        self._remove()
+        try:
+            self._remove()
+        except HostSplitError as err:
+            if exc[0] is None:
+                raise
+            print(f"host split: {err}", file=sys.stderr)  # do not hide the error the run ended with
 
     def _remove_stale(self):
         """Remove the groups of earlier runs (`<prefix>_<pid>`) whose bringup died without cleaning up
@@ -230,9 +238,27 @@ class HostSplit:
                     except OSError:
                         pass
 
-    def _remove(self):
+    def _remove(self, settle_s=REMOVE_SETTLE_S):
         """Remove the groups; a group still holding a process (a node that outlived stop_all) has its
-        tasks moved to the root group first, so that nothing is left behind."""
+        tasks moved to the root group first, so that nothing is left behind. A process that is
+        exiting cannot be moved and keeps its group busy until it is reaped, so the removal is
+        retried for up to `settle_s`; what still remains after that is named in the error."""
+        deadline = time.monotonic() + settle_s
+        while True:
+            busy = self._remove_once()
+            if not busy:
+                return
+            if time.monotonic() >= deadline:
+                raise HostSplitError(
+                    "could not remove the sides' cgroups, still holding processes: "
+                    + "; ".join(f"{folder}: {pids or 'a child group'}" for folder, pids in busy)
+                )
+            time.sleep(0.02)
+
+    def _remove_once(self):
+        """One pass over both controllers: move every task to the root group, then remove the groups
+        bottom-up. Returns the (group, pids) that could not be removed."""
+        busy = []
         for controller in ("cpuset", "cpu"):
             top = os.path.join(self.root, controller, self.name)
             if not os.path.isdir(top):
@@ -247,8 +273,11 @@ class HostSplit:
                         pass  # it ended meanwhile
                 try:
                     os.rmdir(folder)
-                except OSError:
+                except FileNotFoundError:
                     pass
+                except OSError:
+                    busy.append((folder, _read(os.path.join(folder, "cgroup.procs")).replace("\n", " ")))
+        return busy
 
     def prefix(self, side, control=False) -> List[str]:
         """argv that starts a node of `side` inside its budget (and a control node at CONTROL_NICE)."""
