@@ -141,3 +141,15 @@ def test_every_row_asks_for_the_same_host_split(tmp_path):
         argv = mission_argv(run, fleet, str(tmp_path), 30, split)
         assert argv[argv.index("--host-cpus") + 1] == "robots=0,twin=1"
     assert host_cpus_arg({}) is None
+
+
+def test_replay_rows_are_reported_apart_and_judged_on_the_twin_alone():
+    from cps_experiments.live_scaling import _replay_section
+
+    row = dict(
+        robots=30, sent=100, inserted=90, superseded_pct=8.0, dropped_pct=2.0, age_p95_s=0.6,
+        twin_cpu_s_per_s=0.9, replay_late_p95_s=0.02, replay_limited=False, holds=False, host_split="split",
+    )  # fmt: skip
+    text = "\n".join(_replay_section({32: row, 64: {**row, "robots": 64, "holds": True}}, 16))
+    assert "N = 32, 64 by replay" in text and "| 30 (asked 32) |" in text and "| 64 |" in text
+    assert "no F1" in text and "split" in text
