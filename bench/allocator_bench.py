@@ -22,6 +22,7 @@ import time
 
 import numpy as np
 from scipy.optimize import linprog
+from timing import median_max_ms
 
 from cps_bw_manager.allocation import RobotDemand, allocate_frequencies
 from cps_fleet import names
@@ -45,15 +46,6 @@ def _lp(demands, budget):
     )
 
 
-def _time_ms(fn, repeats):
-    samples = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        samples.append(1000.0 * (time.perf_counter() - t0))
-    return statistics.median(samples), max(samples)
-
-
 def bench_solve(repeats):
     rng = np.random.default_rng(1)
     print("solve time (median / max of %d runs, ms); budget = half of what all robots at 30 Hz need" % repeats)
@@ -62,8 +54,8 @@ def bench_solve(repeats):
     for n in (4, 10, 100, 1000):
         demands = _fleet(n, rng)
         budget = 0.5 * sum(d.message_bytes * 30.0 for d in demands) / 1e6
-        ours = _time_ms(lambda: allocate_frequencies(demands, budget), repeats)
-        anchor = _time_ms(lambda: _lp(demands, budget), max(5, repeats // 5))
+        ours = median_max_ms(lambda: allocate_frequencies(demands, budget), repeats)
+        anchor = median_max_ms(lambda: _lp(demands, budget), max(5, repeats // 5))
         rows.append((n, ours, anchor))
         print(
             f"{n:>7} {ours[0]:8.3f} / {ours[1]:6.3f} {anchor[0]:12.3f} / {anchor[1]:8.3f} {anchor[0] / ours[0]:7.1f}x"

@@ -30,12 +30,12 @@ import threading
 import time
 
 import yaml
+from live_fleet_sim import measure_cpu, process_cpu_s, start_fleet_sim
 
 from cps_fleet import names
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FLEET_YAML = os.path.join(REPO, "catkin_ws/src/cps_bringup/config/fleet.yaml")
-CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 # Free floor in the hall's aisles (cps_sim/config/hall.yaml): west and east aisles, the central
 # aisle, the north/south aisles and the corridor between tank_farm and pipe_rack.
 AISLE_SPOTS = (
@@ -99,23 +99,6 @@ def anchor_python_path(rev, folder):
     return os.path.join(target, "catkin_ws/src/cps_sim/src")
 
 
-def _cpu_s(pid):
-    try:
-        with open(f"/proc/{pid}/stat") as stream:
-            fields = stream.read().rsplit(")", 1)[1].split()
-    except FileNotFoundError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS_PER_S
-
-
-def _children(pid):
-    try:
-        with open(f"/proc/{pid}/task/{pid}/children") as stream:
-            return [int(c) for c in stream.read().split()]
-    except FileNotFoundError:
-        return []
-
-
 def run_variant(graph, fleet, label, seconds, workers, python_path=None, warmup_s=8.0):
     """Run fleet_sim for `seconds` after a warm-up; a dict of what was measured."""
     import rospy
@@ -143,33 +126,21 @@ def run_variant(graph, fleet, label, seconds, workers, python_path=None, warmup_
     if python_path:
         env["PYTHONPATH"] = python_path + os.pathsep + env.get("PYTHONPATH", "")
     node_graph = graph.attach()
-    proc = node_graph.start_node(
-        "cps_sim",
-        "fleet_sim",
-        name=f"fleet_sim_{label}",
-        env=env,
-        params={
-            "~fleet_file": fleet.path,
-            "~profile": "light",
-            "~renderer": "fast",
-            **({"~sensor_workers": workers} if workers is not None else {}),
-        },
-    )
     subs = []
     try:
-        node_graph.wait_for_topic(names.absolute(names.robot_topic(fleet.robots[-1].name, names.ODOM)), timeout_s=180)
+        proc = start_fleet_sim(
+            node_graph,
+            fleet,
+            f"fleet_sim_{label}",
+            params={"~fleet_file": fleet.path, **({"~sensor_workers": workers} if workers is not None else {})},
+            env=env,
+        )
         subs = [
             rospy.Subscriber(names.robot_topic(r.name, r.cloud_topic), rospy.AnyMsg, counter(r.name), queue_size=2)
             for r in fleet.robots
         ]
         subs.append(rospy.Subscriber(names.DIAGNOSTICS, DiagnosticArray, on_diagnostics, queue_size=50))
-        time.sleep(warmup_s)
-        pids = [proc.pid] + _children(proc.pid)
-        cpu0 = {pid: _cpu_s(pid) for pid in pids}
-        measuring.set()
-        time.sleep(seconds)
-        measuring.clear()
-        cpu = {pid: (_cpu_s(pid) - cpu0[pid]) / seconds for pid in pids}
+        cpu = measure_cpu(proc, warmup_s, seconds, measuring)
     finally:
         for sub in subs:
             sub.unregister()
@@ -196,7 +167,7 @@ def run_variant(graph, fleet, label, seconds, workers, python_path=None, warmup_
         "achieved_hz": achieved,
         "sim_cpu": cpu[proc.pid],
         "workers_cpu": sum(v for pid, v in cpu.items() if pid != proc.pid),
-        "workers": len(pids) - 1,
+        "workers": len(cpu) - 1,
         "step_ms": mean_of("step_ms_mean"),
         "step_ms_max": mean_of("step_ms_max"),
         "physics_hz": mean_of("physics_loop_hz"),
@@ -219,15 +190,9 @@ def run_control_layouts(graph, fleet, seconds, warmup_s=8.0):
     """The robots' control with fleet_sim running: a velocity_mux and a route_controller per robot
     (the anchor) against one fleet_control; {layout: (processes, core-s/s, RSS MB)}."""
     sim_graph = graph.attach()
-    sim_graph.start_node(
-        "cps_sim",
-        "fleet_sim",
-        name="fleet_sim_control",
-        params={"~fleet_file": fleet.path, "~profile": "light", "~renderer": "fast"},
-    )
     out = {}
     try:
-        sim_graph.wait_for_topic(names.absolute(names.robot_topic(fleet.robots[-1].name, names.ODOM)), timeout_s=180)
+        start_fleet_sim(sim_graph, fleet, "fleet_sim_control", params={"~fleet_file": fleet.path})
         for layout in ("per_robot", "shared"):
             node_graph = graph.attach()
             params = {"~fleet_file": fleet.path}
@@ -252,9 +217,9 @@ def run_control_layouts(graph, fleet, seconds, warmup_s=8.0):
                 for r in fleet.robot_names:
                     node_graph.wait_for_topic(names.absolute(names.robot_topic(r, names.MISSION_STATE)), timeout_s=180)
                 time.sleep(warmup_s)
-                cpu0 = {p.pid: _cpu_s(p.pid) for p in procs}
+                cpu0 = {p.pid: process_cpu_s(p.pid) for p in procs}
                 time.sleep(seconds)
-                cpu = sum(_cpu_s(p.pid) - cpu0[p.pid] for p in procs) / seconds
+                cpu = sum(process_cpu_s(p.pid) - cpu0[p.pid] for p in procs) / seconds
                 rss = sum(_rss_mb(p.pid) for p in procs)
             finally:
                 node_graph.close()

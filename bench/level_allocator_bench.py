@@ -14,10 +14,9 @@ finer levels with the rest: the knapsack, dynamic programming on its Pareto fron
 
 import argparse
 import os
-import statistics
-import time
 
 import numpy as np
+from timing import median_max_ms
 
 from cps_bw_manager.allocation import RobotDemand, allocate_frequencies
 from cps_bw_manager.level_allocation import (
@@ -89,16 +88,6 @@ def anchor_demands(demands):
     ]
 
 
-def _time_ms(fn, repeats):
-    fn()  # imports, first-call caches
-    samples = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        samples.append(1000.0 * (time.perf_counter() - t0))
-    return statistics.median(samples), max(samples)
-
-
 def run(repeats):
     rng = np.random.default_rng(24)
     demands = fleet_streams(16, rng)
@@ -108,8 +97,8 @@ def run(repeats):
     for label, fraction in (("short", 0.005), ("tight", 0.05), ("rich", 0.25), ("richer", 0.8)):
         budget = fraction * everything
         result = allocate_levels(demands, budget)
-        ours = _time_ms(lambda: allocate_levels(demands, budget), repeats)
-        old = _time_ms(lambda: allocate_frequencies(anchor, budget), repeats)
+        ours = median_max_ms(lambda: allocate_levels(demands, budget), repeats, warmup=True)
+        old = median_max_ms(lambda: allocate_frequencies(anchor, budget), repeats, warmup=True)
         rows.append((label, budget, result, ours, old))
     return rows
 

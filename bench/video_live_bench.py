@@ -20,26 +20,11 @@ import os
 import threading
 import time
 
+from live_fleet_sim import measure_cpu, start_fleet_sim
+
 from cps_fleet import names
 
 CASES = ((2, 5.0), (1, 15.0), (0, 30.0))
-
-
-def _cpu_s(pid):
-    try:
-        with open(f"/proc/{pid}/stat") as stream:
-            fields = stream.read().rsplit(")", 1)[1].split()
-    except FileNotFoundError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _children(pid):
-    try:
-        with open(f"/proc/{pid}/task/{pid}/children") as stream:
-            return [int(c) for c in stream.read().split()]
-    except FileNotFoundError:
-        return []
 
 
 def run_case(graph, fleet, level_index, rate_hz, seconds, warmup_s=6.0):
@@ -73,23 +58,14 @@ def run_case(graph, fleet, level_index, rate_hz, seconds, warmup_s=6.0):
             level.publish(UInt8(level_index))
             rate.publish(Float64(rate_hz))
             pubs += [level, rate]
-        proc = node_graph.start_node(
-            "cps_sim", "fleet_sim", name=f"fleet_sim_{level_index}", params={"~profile": "light", "~renderer": "fast"}
-        )
-        node_graph.wait_for_topic(names.absolute(names.robot_topic(fleet.robots[-1].name, names.ODOM)), timeout_s=180)
+        proc = start_fleet_sim(node_graph, fleet, f"fleet_sim_{level_index}")
         for robot in cameras:
             topic = names.absolute(names.robot_topic(robot, names.CAMERA_IMAGE_COMPRESSED))
             subs.append(rospy.Subscriber(topic, CompressedImage, on_frame, callback_args=robot, queue_size=5))
         for r in fleet.robots:
             topic = names.absolute(names.robot_topic(r.name, r.cloud_topic))
             subs.append(rospy.Subscriber(topic, rospy.AnyMsg, on_cloud, callback_args=r.name, queue_size=2))
-        time.sleep(warmup_s)
-        pids = [proc.pid] + _children(proc.pid)
-        cpu0 = {pid: _cpu_s(pid) for pid in pids}
-        measuring.set()
-        time.sleep(seconds)
-        measuring.clear()
-        cpu = sum(_cpu_s(pid) - cpu0[pid] for pid in pids) / seconds
+        cpu = sum(measure_cpu(proc, warmup_s, seconds, measuring).values())
     finally:
         for item in subs + pubs:
             item.unregister()

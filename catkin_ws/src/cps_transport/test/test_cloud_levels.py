@@ -2,6 +2,7 @@
 and the tracker that labels clouds while the voxel grid's leaf is switched (no ROS)."""
 
 import math
+import struct
 
 import numpy as np
 import pytest
@@ -11,15 +12,18 @@ from cps_msgs.msg import CompressedPointCloud2
 from cps_transport.cloud_levels import (
     LEAF_FIELD,
     LeafError,
+    LeafLedger,
     LeafTracker,
     cloud_level_leaves,
+    header_key,
     initial_leaf_m,
     leaf_of_points,
     level_of_leaf,
     nearest_level,
     one_point_per_voxel,
+    serialized_header_key,
 )
-from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError, leaf_of_compressed
+from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError, carried_leaf_m, leaf_of_compressed
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array
 from cps_transport.voxel import voxel_downsample
 
@@ -59,6 +63,44 @@ def test_leaf_survives_encode_wire_and_decode(leaf):
     assert len(decoded) == len(points)
     assert leaf_of_points(decoded) == pytest.approx(leaf, rel=1e-7)
     assert level_of_leaf(LEAVES, leaf_of_points(decoded)) == LEAVES.index(leaf)
+
+
+@pytest.mark.parametrize("leaf", LEAVES + (0.3,))
+def test_the_ledger_gives_a_relayed_cloud_the_leaf_its_payload_carries(leaf):
+    """What the rate limiter of the encoder's process gets without decoding: the serialized
+    cloud's header key finds the noted leaf, equal to the one the payload carries."""
+    import io
+
+    cloud = _cloud(voxel_downsample(_surface(2000), leaf))
+    cloud.header.stamp.secs, cloud.header.stamp.nsecs, cloud.header.frame_id = 1700000000, 123456789, "jackal/base"
+    ledger = LeafLedger()
+    ledger.note(header_key(cloud.header), carried_leaf_m(leaf))
+    buffer = io.BytesIO()
+    DracoEncoder(leaf_size_m=leaf).encode(cloud, leaf_size_m=leaf).serialize(buffer)
+    relayed = buffer.getvalue()
+    assert serialized_header_key(relayed) == (1700000000, 123456789, b"jackal/base")
+    assert ledger.leaf_of(serialized_header_key(relayed)) == leaf_of_compressed(
+        CompressedPointCloud2().deserialize(relayed)
+    )
+
+
+def test_the_ledger_answers_none_where_the_limiter_must_decode():
+    ledger = LeafLedger(clouds=3)
+    ledger.note((1, 0, b"f"), 0.1)
+    ledger.note((1, 0, b"f"), 0.1)
+    assert ledger.leaf_of((1, 0, b"f")) == 0.1
+    assert ledger.leaf_of((2, 0, b"f")) is None  # never noted
+    ledger.note((2, 0, b"f"), 0.1)
+    ledger.note((2, 0, b"f"), 0.2)  # two clouds, one key, two leaves: which one is relayed?
+    assert ledger.leaf_of((2, 0, b"f")) is None
+    ledger.note((2, 0, b"f"), 0.1)
+    assert ledger.leaf_of((2, 0, b"f")) is None  # stays ambiguous while remembered
+    for secs in (3, 4, 5):
+        ledger.note((secs, 0, b"f"), 0.2)
+    assert ledger.leaf_of((1, 0, b"f")) is None  # forgotten: more than 3 clouds ago
+    assert ledger.leaf_of((5, 0, b"f")) == 0.2
+    with pytest.raises(struct.error):
+        serialized_header_key(b"\0" * 10)
 
 
 def test_leaf_costs_a_few_bytes_and_none_without_it():

@@ -181,36 +181,36 @@ class BandwidthManagerNode:
             self.update()
 
     def _on_status(self, msg, robot):
-        try:
-            with self.lock:
-                changed = self.core.on_limiter_status(
-                    robot,
-                    msg.mean_message_bytes,
-                    msg.input_rate_hz,
-                    msg.output_rate_hz,
-                    now_s=rospy.get_time(),
-                    level=msg.level,
-                    level_mean_message_bytes=msg.level_mean_message_bytes,
-                )
-        except ValueError as exc:
-            rospy.logwarn_throttle(
-                5.0, f"bandwidth manager: {exc}; ignored ({self.core.invalid_inputs} bad inputs so far)"
+        self._take_status(
+            lambda: self.core.on_limiter_status(
+                robot,
+                msg.mean_message_bytes,
+                msg.input_rate_hz,
+                msg.output_rate_hz,
+                now_s=rospy.get_time(),
+                level=msg.level,
+                level_mean_message_bytes=msg.level_mean_message_bytes,
             )
-            return
-        if changed:
-            self.update()
+        )
 
     def _on_video_status(self, msg, robot):
+        self._take_status(
+            lambda: self.core.on_video_status(
+                robot,
+                msg.level,
+                msg.level_mean_message_bytes,
+                msg.mean_message_bytes,
+                msg.output_rate_hz,
+                now_s=rospy.get_time(),
+            )
+        )
+
+    def _take_status(self, apply):
+        """A stream's status: `apply()` (the core's on_*_status) under the lock, reallocating when it
+        says something changed; a status the core refuses is ignored, logged with the count so far."""
         try:
             with self.lock:
-                changed = self.core.on_video_status(
-                    robot,
-                    msg.level,
-                    msg.level_mean_message_bytes,
-                    msg.mean_message_bytes,
-                    msg.output_rate_hz,
-                    now_s=rospy.get_time(),
-                )
+                changed = apply()
         except ValueError as exc:
             rospy.logwarn_throttle(
                 5.0, f"bandwidth manager: {exc}; ignored ({self.core.invalid_inputs} bad inputs so far)"

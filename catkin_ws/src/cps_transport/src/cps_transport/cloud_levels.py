@@ -10,9 +10,15 @@ A level change reaches the voxel grid before the clouds it already filtered have
 encoder, so `LeafTracker` labels the clouds of a switch by what they are: a voxel grid's output
 has one point per voxel of its leaf (each centroid lies in its own voxel), and a cloud filtered at
 a finer leaf almost always has several points in some voxel of the coarser one.
+
+`LeafLedger` lets a rate limiter in the encoder's process know a forwarded cloud's leaf from the
+encoder instead of decoding the payload again.
 """
 
+import collections
 import math
+import struct
+import threading
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
@@ -27,6 +33,9 @@ LEAF_FIELD = "leaf_size_m"
 MAP_QUANTIZATION_FRACTION = 0.125
 # Two leaves within this relative difference are the same level (float32 round trips of 0.05 m).
 LEAF_RELATIVE_TOLERANCE = 1e-4
+# The clouds a LeafLedger remembers: far more than can be between the encoder and the limiter
+# (the encoder's publisher queues 2, the limiter's subscriber 5).
+LEAF_LEDGER_CLOUDS = 64
 
 
 class LeafError(ValueError):
@@ -137,3 +146,40 @@ class LeafTracker:
         # clouds come in order: the leaves set before this one's are over
         self.pending = self.pending[self.pending.index(leaf) :]
         return leaf
+
+
+def header_key(header):
+    """A cloud's key in a LeafLedger: (stamp secs, stamp nsecs, frame_id as bytes)."""
+    return header.stamp.secs, header.stamp.nsecs, header.frame_id.encode()
+
+
+def serialized_header_key(buff):
+    """header_key of a serialized message whose first field is a std_msgs/Header (seq, stamp,
+    frame_id), read without deserializing it; struct.error for a buffer shorter than a header."""
+    secs, nsecs, length = struct.unpack_from("<3I", buff, 4)
+    return secs, nsecs, bytes(buff[16 : 16 + length])
+
+
+class LeafLedger:
+    """The leaves an encoder gave the clouds it publishes, for the rate limiter of the same process
+    that relays them as raw bytes: it looks a forwarded cloud's leaf up by its header_key instead of
+    decoding the payload (cps_transport.draco.leaf_of_compressed) again. `note(key, leaf_m)` before
+    publishing, with the leaf as carried (draco.carried_leaf_m); `leaf_of(key)`: that leaf, or None
+    when the key is unknown (not noted, or over LEAF_LEDGER_CLOUDS ago) or ambiguous (clouds noted
+    with it carried different leaves), where the caller must decode. Thread-safe."""
+
+    def __init__(self, clouds=LEAF_LEDGER_CLOUDS):
+        self.clouds = int(clouds)
+        self.leaves = collections.OrderedDict()  # key -> leaf, None once ambiguous; oldest first
+        self.lock = threading.Lock()
+
+    def note(self, key, leaf_m):
+        with self.lock:
+            known = self.leaves.pop(key, leaf_m)
+            self.leaves[key] = leaf_m if known == leaf_m else None
+            while len(self.leaves) > self.clouds:
+                self.leaves.popitem(last=False)
+
+    def leaf_of(self, key) -> Optional[float]:
+        with self.lock:
+            return self.leaves.get(key)

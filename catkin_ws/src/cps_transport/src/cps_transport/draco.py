@@ -201,7 +201,7 @@ class DracoEncoder:
                 name, array = self._generic_attribute(field, values)
                 generic[name] = array
         if leaf_size_m is not None:
-            leaf = float(np.float32(leaf_size_m))  # the value the decoder's float32 field will hold
+            leaf = carried_leaf_m(leaf_size_m)
             generic[f"{LEAF_FIELD}|q8|{leaf!r}|{leaf!r}"] = np.zeros((len(xyz), 1), dtype=np.uint8)
         kwargs = dict(
             compression_level=10 - self.speed,
@@ -345,10 +345,17 @@ class DracoDecoder:
         raise DracoError(f"field '{field.name}': unknown attribute tag '{attribute['name']}'")
 
 
+def carried_leaf_m(leaf_size_m):
+    """The leaf as a cloud carries it: float32, the value the decoder's field holds and
+    `leaf_of_compressed` reads back."""
+    return float(np.float32(leaf_size_m))
+
+
 def leaf_of_compressed(msg):
     """The leaf a CompressedPointCloud2 carries (see the module docstring): None when it carries
     none, DracoError when its payload or its leaf cannot be read. Decodes the payload (about 0.4 ms
-    for 3000 points): the rate limiter reads it for the clouds it forwards only."""
+    for 3000 points): for receivers that only have the message (the per-robot rate_limiter process;
+    the shared tissue's limiter is told the leaf by its encoder, cloud_levels.LeafLedger)."""
     if not any(f.name == LEAF_FIELD for f in msg.fields):
         return None
     payload = msg.compressed_data if isinstance(msg.compressed_data, bytes) else bytes(msg.compressed_data)

@@ -11,6 +11,7 @@ and drop counters: a malformed cloud of one robot is dropped and counted there a
 import collections
 import dataclasses
 import math
+import struct
 import threading
 import time
 from typing import List, Optional, Tuple
@@ -27,13 +28,16 @@ from cps_ros.diagnostics import DropReporter
 from cps_ros.relay import relay_class, relay_message
 from cps_ros.timers import guarded_timer
 from cps_transport.cloud_levels import (
+    LeafLedger,
     LeafTracker,
     cloud_level_leaves,
+    header_key,
     level_of_leaf,
     nearest_level,
     position_tolerance_m,
+    serialized_header_key,
 )
-from cps_transport.draco import DracoEncoder, leaf_of_compressed
+from cps_transport.draco import DracoEncoder, carried_leaf_m, leaf_of_compressed
 from cps_transport.draco_transport import DracoPublisher, DracoSubscriber
 from cps_transport.image_compression import InvalidImage, compress_image, compressed_format
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
@@ -132,10 +136,20 @@ class ManagedRateLimiter:
     managed cloud's level leaves) the status also gives the level of the clouds it forwards (from
     the leaf each carries) and that level's mean size over its last LEVEL_MEAN_MESSAGES forwarded
     clouds (NaN before the first); a forwarded cloud without a readable level leaf is counted on
-    /diagnostics and leaves both as they were."""
+    /diagnostics and leaves both as they were. With `ledger` (a LeafLedger its process's encoder
+    notes) a cloud this node published is looked up there; only the others are decoded for it."""
 
     def __init__(
-        self, input_topic, output_topic, node_name, rate_hz, burst=2.0, window_s=2.0, cloud_levels_m=(), level=0
+        self,
+        input_topic,
+        output_topic,
+        node_name,
+        rate_hz,
+        burst=2.0,
+        window_s=2.0,
+        cloud_levels_m=(),
+        level=0,
+        ledger: Optional[LeafLedger] = None,
     ):
         self.limiter = RateLimiter(rate_hz, burst=burst, window_s=window_s)
         self.node_name = node_name
@@ -150,6 +164,7 @@ class ManagedRateLimiter:
         self.level = int(level)
         self.level_sizes = collections.defaultdict(lambda: collections.deque(maxlen=LEVEL_MEAN_MESSAGES))
         self.level_report = DropReporter(ns_join(node_name, "level")) if self.cloud_levels_m else None
+        self.ledger = ledger
 
         def private(name):
             return ns_join(node_name, name.lstrip("~"))
@@ -190,12 +205,13 @@ class ManagedRateLimiter:
 
     def _note_level(self, msg):
         """The forwarded cloud's level (from its leaf) and size; a status right away on a change."""
-        try:
-            cloud = CompressedPointCloud2().deserialize(msg._buff)
-            leaf = leaf_of_compressed(cloud)
-        except Exception as exc:  # DracoError, or genpy's DeserializationError for a foreign message
-            self.level_report.drop(f"level of a forwarded cloud unreadable: {exc}")
-            return
+        leaf = self._noted_leaf(msg)
+        if leaf is None:
+            try:
+                leaf = leaf_of_compressed(CompressedPointCloud2().deserialize(msg._buff))
+            except Exception as exc:  # DracoError, or genpy's DeserializationError for a foreign message
+                self.level_report.drop(f"level of a forwarded cloud unreadable: {exc}")
+                return
         level = None if leaf is None else level_of_leaf(self.cloud_levels_m, leaf)
         if level is None:
             self.level_report.drop(
@@ -209,6 +225,15 @@ class ManagedRateLimiter:
             self.level_sizes[level].append(len(msg._buff))
         if changed:
             self.publish_status()
+
+    def _noted_leaf(self, msg):
+        """The leaf the ledger has for a cloud this node published; None: decode it."""
+        if self.ledger is None or msg._connection_header.get("callerid") != rospy.get_name():
+            return None
+        try:
+            return self.ledger.leaf_of(serialized_header_key(msg._buff))
+        except struct.error:  # shorter than a header: the decode reports it
+            return None
 
     def publish_status(self):
         now = time.monotonic()
@@ -368,13 +393,21 @@ class DracoEncoderPart:
     """Subscribes a sensor_msgs/PointCloud2 topic and publishes it Draco-encoded (DracoPublisher:
     bad clouds dropped and counted). With `leaves` (a LeafTracker) each cloud carries the leaf the
     voxel grid produced it at, and Draco's position tolerance is `cloud_levels.position_tolerance_m`
-    of that leaf and `map_resolution_m`."""
+    of that leaf and `map_resolution_m`; with `ledger` too, each cloud's leaf is noted there before
+    it is published (for the rate limiter of this process)."""
 
     def __init__(
-        self, input_topic, output_topic, encoder, leaves: Optional[LeafTracker] = None, map_resolution_m=math.inf
+        self,
+        input_topic,
+        output_topic,
+        encoder,
+        leaves: Optional[LeafTracker] = None,
+        map_resolution_m=math.inf,
+        ledger: Optional[LeafLedger] = None,
     ):
         self.publisher = DracoPublisher(input_topic, encoder, topic=output_topic)
         self.leaves = leaves
+        self.ledger = ledger
         self.map_resolution_m = map_resolution_m
         self.lock = threading.Lock()
         callback = self.publisher.publish if leaves is None else self.on_cloud
@@ -396,6 +429,8 @@ class DracoEncoderPart:
             else:
                 leaf = self.leaves.leaf_m
         self.publisher.encoder.position_tolerance_m = position_tolerance_m(leaf, self.map_resolution_m)
+        if self.ledger is not None:
+            self.ledger.note(header_key(cloud.header), carried_leaf_m(leaf))
         self.publisher.publish(cloud, leaf_size_m=leaf)
 
 
@@ -494,18 +529,22 @@ class DracoDecoderPart:
 
 class RobotTissue:
     """One robot's cloud tissue on its side: Draco encoder, rate limiter and the cloud level's
-    follower, with the same topics, defaults and queue sizes as the single-node executables. (The
-    camera's JPEG video comes from the camera itself at the manager's level and rate: cps_sim.video.)"""
+    follower, with the same topics, defaults and queue sizes as the single-node executables; the
+    encoder tells the limiter each cloud's leaf (a LeafLedger), so the limiter need not decode the
+    clouds it forwards to read it. (The camera's JPEG video comes from the camera itself at the
+    manager's level and rate: cps_sim.video.)"""
 
     def __init__(self, config: RobotTissueConfig):
         self.config = config
         levels = bool(config.cloud_levels_m)
+        ledger = LeafLedger() if levels else None
         self.encoder = DracoEncoderPart(
             config.filtered,
             config.draco,
             DracoEncoder(leaf_size_m=config.leaf_size_m),
             leaves=LeafTracker(config.leaf_size_m) if levels else None,
             map_resolution_m=config.map_resolution_m,
+            ledger=ledger,
         )
         self.limiter = ManagedRateLimiter(
             config.draco,
@@ -514,6 +553,7 @@ class RobotTissue:
             config.rate_hz,
             cloud_levels_m=config.cloud_levels_m,
             level=config.initial_level,
+            ledger=ledger,
         )
         self.levels = (
             CloudLevelSwitch(config.level_topic, config.voxel_grid, config.cloud_levels_m, self.encoder.switch_leaf)
