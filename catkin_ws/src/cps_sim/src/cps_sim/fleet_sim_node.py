@@ -34,6 +34,7 @@ from cps_sim.simulation import FleetSimulation, sensor_points
 from cps_sim.site_changes import SiteMove, apply_site_changes, load_site_changes
 from cps_sim.video import video_level_errors
 from cps_sim.video_ros import RobotVideo
+from cps_sim.video_trace import VideoTraceError, VideoTracePlayer, load_video_trace
 
 CMD_TIMEOUT_S = 0.5
 
@@ -56,6 +57,8 @@ class FleetSimOptions:
     # No bandwidth manager: every camera's video at the finest level and the fleet's maximum rate
     # (the unmanaged load), not the coarse default it keeps until a manager speaks.
     video_unmanaged: bool = False
+    # A recorded video trace (cps_sim.video_trace) the cameras play instead of rendering; "": render live.
+    video_trace: str = ""
 
 
 def read_options():
@@ -89,6 +92,7 @@ def read_options():
         site_moves=moves,
         site_changes_file=rospy.get_param("~site_changes_file", ""),
         video_unmanaged=bool(rospy.get_param("~video_unmanaged", default.video_unmanaged)),
+        video_trace=str(rospy.get_param("~video_trace", default.video_trace)),
         **rates,
     )
 
@@ -127,6 +131,12 @@ class FleetSimNode:
         level_errors = video_level_errors(fleet)
         if level_errors:
             fail("bad fleet file: " + "; ".join(str(e) for e in level_errors))
+        self.video_player = None
+        if options.video_trace:
+            try:
+                self.video_player = VideoTracePlayer(load_video_trace(options.video_trace, fleet))
+            except VideoTraceError as exc:
+                fail(f"parameter ~video_trace: {exc}")
         if options.sensor_workers > 0:
             # Robots' kinematics here; rendering and ray casting in worker processes.
             self.pool = SensorWorkerPool(fleet, self.site, options.renderer, options.sensor_workers)
@@ -163,11 +173,14 @@ class FleetSimNode:
         self.step_timer = StepTimer()
         self.physics = PhysicsClock(now, options.max_physics_step_s, options.max_catch_up_s)
         rospy.loginfo(
-            "fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s",
+            "fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s; video: %s",
             fleet.profile.name,
             self.renderer,
             options.sensor_workers,
             ", ".join(self.sim.robots),
+            self.video_player.trace.describe()
+            if self.video_player
+            else "rendered live at the allocated level and rate",
         )
 
     def _robot_io(self, name, sim):
@@ -299,8 +312,11 @@ class FleetSimNode:
             stamp = time.time()
             task = video.wanted()
             if task is not None:
-                with self.lock:
-                    frame = self.sim.capture_video(task)
+                if self.video_player is not None:
+                    frame = self.video_player.frame(task)
+                else:
+                    with self.lock:
+                        frame = self.sim.capture_video(task)
                 video.publish(frame, stamp, time.time())
             self.scheduler.done(name, stamp, time.time())
             return
@@ -314,7 +330,20 @@ class FleetSimNode:
         self.scheduler.done(name, stamp, time.time())
 
     def _busy_sensors(self):
-        return [w.busy_with for w in self.pool.workers if w.busy_with]
+        """What no worker may take: the sensors being captured, and recorded videos (played here)."""
+        busy = [w.busy_with for w in self.pool.workers if w.busy_with]
+        return busy + list(self.videos) if self.video_player is not None else busy
+
+    def _play_recorded_video(self, now):
+        """Publish the due frames of the recorded videos (no worker: fetching one costs ~nothing);
+        the earliest next due time."""
+        for key, video in self.videos.items():
+            if self.scheduler.due[key] <= now:
+                task = video.wanted()
+                if task is not None:
+                    video.publish(self.video_player.frame(task), now, time.time())
+                self.scheduler.done(key, now, time.time())
+        return min((self.scheduler.due[key] for key in self.videos), default=math.inf)
 
     def _service_workers(self, now):
         """Publish finished captures and hand due sensors to idle workers; True if any work was done."""
@@ -428,12 +457,14 @@ class FleetSimNode:
             self._publish_diagnostics(now)
             self.diag_task.done(now)
         if self.pool is not None:
+            video_due = self._play_recorded_video(now) if self.video_player is not None else math.inf
             if self._service_workers(now):
                 return None
             self.pool.check_alive()
             _, due = self.scheduler.next(exclude=self._busy_sensors())
             if self.pool.idle_worker() is None:
                 due = math.inf
+            due = min(due, video_due)
         else:
             name, due = self.scheduler.next()
             if name is not None and due <= now:
