@@ -37,6 +37,8 @@ from cps_sim.video_ros import RobotVideo
 from cps_sim.video_trace import VideoTraceError, VideoTracePlayer, load_video_trace
 
 CMD_TIMEOUT_S = 0.5
+# The recorded videos' thread looks at its schedule at least this often (s).
+VIDEO_POLL_S = 0.02
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,7 +169,12 @@ class FleetSimNode:
         now = time.time()
         self.static_tf.sendTransform(self._static_transforms(now))
         rates = {n: s.rate_hz for n, s in self.sim.robots.items()}
-        rates.update({key: video.rate_hz for key, video in self.videos.items()})
+        video_rates = {key: video.rate_hz for key, video in self.videos.items()}
+        # Recorded videos: scheduled and played on their own thread (_play_recorded_video).
+        self.video_lock, self.video_stop = threading.Lock(), threading.Event()
+        self.video_scheduler = SensorScheduler(video_rates, now) if self.video_player and video_rates else None
+        if self.video_scheduler is None:
+            rates.update(video_rates)
         self.scheduler = SensorScheduler(rates, now)
         self.physics_meter = RateMeter()
         self.step_timer = StepTimer()
@@ -210,6 +217,10 @@ class FleetSimNode:
             )
 
     def _on_video_rate(self, key, rate_hz):
+        if getattr(self, "video_scheduler", None) is not None:
+            with self.video_lock:
+                self.video_scheduler.set_rate(key, rate_hz, time.time())
+            return
         with self.lock:
             scheduler = getattr(self, "scheduler", None)
             if scheduler is not None:
@@ -312,11 +323,8 @@ class FleetSimNode:
             stamp = time.time()
             task = video.wanted()
             if task is not None:
-                if self.video_player is not None:
-                    frame = self.video_player.frame(task)
-                else:
-                    with self.lock:
-                        frame = self.sim.capture_video(task)
+                with self.lock:
+                    frame = self.sim.capture_video(task)
                 video.publish(frame, stamp, time.time())
             self.scheduler.done(name, stamp, time.time())
             return
@@ -330,20 +338,24 @@ class FleetSimNode:
         self.scheduler.done(name, stamp, time.time())
 
     def _busy_sensors(self):
-        """What no worker may take: the sensors being captured, and recorded videos (played here)."""
-        busy = [w.busy_with for w in self.pool.workers if w.busy_with]
-        return busy + list(self.videos) if self.video_player is not None else busy
+        return [w.busy_with for w in self.pool.workers if w.busy_with]
 
-    def _play_recorded_video(self, now):
-        """Publish the due frames of the recorded videos (no worker: fetching one costs ~nothing);
-        the earliest next due time."""
-        for key, video in self.videos.items():
-            if self.scheduler.due[key] <= now:
-                task = video.wanted()
-                if task is not None:
-                    video.publish(self.video_player.frame(task), now, time.time())
-                self.scheduler.done(key, now, time.time())
-        return min((self.scheduler.due[key] for key in self.videos), default=math.inf)
+    def _play_recorded_video(self):
+        """The recorded videos' loop, on a thread of its own: fetching a frame costs ~nothing, but
+        on the main loop it would wait behind the clouds' publication (tens of ms each at 640x480)
+        and fall short of its rate."""
+        while not self.video_stop.is_set():
+            with self.video_lock:
+                now = time.time()
+                for key, video in self.videos.items():
+                    if self.video_scheduler.due[key] <= now:
+                        task = video.wanted()
+                        if task is not None:
+                            video.publish(self.video_player.frame(task), now, time.time())
+                        self.video_scheduler.done(key, now, time.time())
+                due = self.video_scheduler.next()[1]
+            # Woken at least every VIDEO_POLL_S: a faster rate set meanwhile takes effect.
+            self.video_stop.wait(min(max(due - time.time(), 0.0), VIDEO_POLL_S))
 
     def _service_workers(self, now):
         """Publish finished captures and hand due sensors to idle workers; True if any work was done."""
@@ -457,14 +469,12 @@ class FleetSimNode:
             self._publish_diagnostics(now)
             self.diag_task.done(now)
         if self.pool is not None:
-            video_due = self._play_recorded_video(now) if self.video_player is not None else math.inf
             if self._service_workers(now):
                 return None
             self.pool.check_alive()
             _, due = self.scheduler.next(exclude=self._busy_sensors())
             if self.pool.idle_worker() is None:
                 due = math.inf
-            due = min(due, video_due)
         else:
             name, due = self.scheduler.next()
             if name is not None and due <= now:
@@ -489,9 +499,12 @@ class FleetSimNode:
         diagnostics_period_s = 1.0 / options.diagnostics_rate_hz
         self.diag_task = Periodic(diagnostics_period_s, now + diagnostics_period_s)
         self._diag_wall_start, self._diag_sim_start = now, self.physics.sim_time_s
+        if self.video_scheduler is not None:
+            threading.Thread(target=self._play_recorded_video, name="recorded_video", daemon=True).start()
         run_realtime(self.step, self.odom_task.period_s, time.time, self._idle, rospy.is_shutdown)
 
     def close(self):
+        self.video_stop.set()
         if self.pool is not None:
             self.pool.close()
         self.sim.close()

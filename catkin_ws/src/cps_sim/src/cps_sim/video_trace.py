@@ -40,7 +40,7 @@ from cps_sim.video import VideoFrame, VideoTask
 
 TRACE_FORMAT = "cps_sim.video_trace/1"
 # 10 s of 30 Hz video per level, spread over the whole route (the sizes vary along it); the
-# paper fleet's 3 cameras x 3 levels render in about 15 s on the 2-core test machine.
+# paper fleet's 3 cameras x 3 levels render in about 30 s on the shared 2-core test machine.
 DEFAULT_FRAMES_PER_LEVEL = 300
 SAMPLING = (
     "poses evenly spaced by distance along the closed route (initial pose -> waypoints -> initial pose), "
