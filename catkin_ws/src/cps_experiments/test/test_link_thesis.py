@@ -166,3 +166,22 @@ def test_both_arms_play_the_runs_recorded_video_and_the_report_says_what_drove_t
     assert "- wifi_degraded_manager_off: video rendered live" in text
     assert "clouds (every arm): live from the simulator" in text
     assert "video: not recorded" in "\n".join(link_thesis.markdown_sections([], {}, "jackal", 80.0))
+
+
+def test_the_video_trace_is_recorded_once_into_the_run_root_and_reused_while_it_fits(tmp_path):
+    import os
+
+    from cps_fleet.fleet import load_fleet
+
+    fleet = load_fleet(profile="light").with_robots(["jackal"])
+    log = []
+    path = link_thesis.ensure_video_trace(fleet, str(tmp_path), reuse=True, log=log.append, frames_per_level=2)
+    assert path == str(tmp_path / link_thesis.VIDEO_TRACE_FILE) and os.path.exists(path)
+    recorded = os.stat(path).st_mtime_ns
+    assert link_thesis.ensure_video_trace(fleet, str(tmp_path), reuse=True, log=log.append) == path
+    assert os.stat(path).st_mtime_ns == recorded and "reusing the video trace" in log[-1]
+    # A fleet the trace cannot feed (champ was not recorded): recorded again, saying why.
+    wider = load_fleet(profile="light").with_robots(["jackal", "champ"])
+    link_thesis.ensure_video_trace(wider, str(tmp_path), reuse=True, log=log.append, frames_per_level=2)
+    assert any("camera robot 'champ' is not in it" in line and line.endswith("recording it again") for line in log)
+    assert os.stat(path).st_mtime_ns != recorded

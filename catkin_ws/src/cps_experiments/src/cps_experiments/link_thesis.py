@@ -99,10 +99,10 @@ def mission_argv(run: ThesisRun, robots, selected_robot, out_dir, duration_s, vi
 VIDEO_TRACE_FILE = "video_trace.npz"
 
 
-def ensure_video_trace(fleet, folder, reuse, log=print):
+def ensure_video_trace(fleet, folder, reuse, log=print, frames_per_level=None):
     """The recorded video every mission of the run plays: `folder`/VIDEO_TRACE_FILE, recorded for
     `fleet` (reused with `reuse` when it still matches the fleet)."""
-    from cps_sim.video_trace import VideoTraceError, load_video_trace, record_video_trace
+    from cps_sim.video_trace import DEFAULT_FRAMES_PER_LEVEL, VideoTraceError, load_video_trace, record_video_trace
 
     path = os.path.abspath(os.path.join(folder, VIDEO_TRACE_FILE))
     if reuse and os.path.exists(path):
@@ -113,7 +113,7 @@ def ensure_video_trace(fleet, folder, reuse, log=print):
         except VideoTraceError as exc:
             log(f"[experiments] {exc}; recording it again")
     log(f"[experiments] recording the cameras' video along their routes into {path}")
-    return record_video_trace(fleet, path, log=log)
+    return record_video_trace(fleet, path, frames_per_level or DEFAULT_FRAMES_PER_LEVEL, log=log)
 
 
 # --- reading a mission's files ---------------------------------------------------------------------
