@@ -184,6 +184,12 @@ def test_code_closed_to_the_node_user_is_refused_at_start_and_says_so(tmp_path, 
             ],
         )
     assert f"'nobody' (not root) but cannot read the code: {closed}" in str(info.value)
+    # A file given as a parameter (e.g. fleet_sim's ~video_trace) is checked the same way.
+    with pytest.raises(PrivilegeError) as info:
+        check_code_readable(
+            "nobody", [NodeSpec("sim", DIGITAL, (sys.executable, str(readable), f"_video_trace:={closed}"))]
+        )
+    assert f"'nobody' (not root) but cannot read an input file: {closed}" in str(info.value)
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="dropping root needs root")

@@ -357,3 +357,32 @@ def test_selecting_a_robot_without_a_camera_is_refused_before_anything_starts(tm
     with pytest.raises(BringupError, match=r"--select-robot scout: not a camera robot .*camera robots: jackal"):
         run_mission(args, log=lambda _line: None)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_video_trace_reaches_fleet_sim_only_when_asked():
+    """--video-trace: fleet_sim's ~video_trace; without it no parameter (the cameras render live, and
+    the launch files, written from the default plan, do not change)."""
+    fleet = load_fleet()
+    trace = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", video_trace="/runs/t.npz"))}
+    assert _arg(trace["fleet_sim"], "_video_trace") == "/runs/t.npz"
+    live = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x"))}
+    assert not any(a.startswith("_video_trace:=") for a in live["fleet_sim"].argv)
+
+
+def test_a_video_trace_that_cannot_feed_the_fleets_cameras_is_refused_before_anything_starts(tmp_path):
+    from cps_bringup.cli import build_parser, run_mission
+    from cps_sim.video_trace import record_video_trace
+
+    trace = str(tmp_path / "jackal.npz")
+    record_video_trace(load_fleet(profile="light").with_robots(["jackal"]), trace, 2, log=lambda _: None)
+    out = tmp_path / "out"
+    args = build_parser().parse_args(["all", "--profile", "light", "--video-trace", trace, "--out", str(out)])
+    with pytest.raises(
+        BringupError, match=r"--video-trace: video trace .* does not match .*camera robot 'champ'"
+    ) as error:
+        run_mission(args, log=lambda _line: None)
+    assert trace in str(error.value) and not out.exists()
+    args = build_parser().parse_args(["all", "--no-sim", "--video-trace", trace, "--out", str(out)])
+    with pytest.raises(BringupError, match="--video-trace feeds the simulated cameras"):
+        run_mission(args, log=lambda _line: None)
+    assert not out.exists()

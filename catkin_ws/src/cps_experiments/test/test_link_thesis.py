@@ -140,3 +140,48 @@ def test_the_report_and_plot_are_written_with_both_arms(mission, tmp_path):
     assert (tmp_path / "link_thesis.png").stat().st_size > 10000
     jackal_video = _row([r for r in rows if r["manager"] == "on"], 5.0, "jackal", "video")
     assert jackal_video["received_mean_mbytes_per_s"] == 0.0  # stats.csv measured no video topic
+
+
+def test_both_arms_play_the_runs_recorded_video_and_the_report_says_what_drove_the_link():
+    """Two cores cannot render the unmanaged arm's video live: every mission of the run gets the
+    same --video-trace, and the markdown says, per arm, where its video came from."""
+    trace = "/runs/link_thesis/video_trace.npz"
+    argvs = {
+        run.name: link_thesis.mission_argv(run, ["scout", "jackal"], "jackal", "/runs/x", 80.0, trace)
+        for run in link_thesis.runs()
+    }
+    assert all(argv[argv.index("--video-trace") + 1] == trace for argv in argvs.values())
+    assert "--bandwidth-manager" in argvs["wifi_degraded_manager_off"]
+    assert "--video-trace" not in link_thesis.mission_argv(link_thesis.runs()[0], ["jackal"], "jackal", "/x", 80.0)
+    sources = {
+        "wifi_degraded_manager_on": f"recorded frames of each camera robot's route at each video level ({trace}: ...)",
+        "wifi_degraded_manager_off": "rendered live by the simulated cameras at the allocated level and rate",
+    }
+    text = "\n".join(link_thesis.markdown_sections([], {}, "jackal", 80.0, sources))
+    assert "## What each arm offered the link" in text
+    assert (
+        f"- wifi_degraded_manager_on: video recorded frames of each camera robot's route at each video level ({trace}"
+        in text
+    )
+    assert "- wifi_degraded_manager_off: video rendered live" in text
+    assert "clouds (every arm): live from the simulator" in text
+    assert "video: not recorded" in "\n".join(link_thesis.markdown_sections([], {}, "jackal", 80.0))
+
+
+def test_the_video_trace_is_recorded_once_into_the_run_root_and_reused_while_it_fits(tmp_path):
+    import os
+
+    from cps_fleet.fleet import load_fleet
+
+    fleet = load_fleet(profile="light").with_robots(["jackal"])
+    log = []
+    path = link_thesis.ensure_video_trace(fleet, str(tmp_path), reuse=True, log=log.append, frames_per_level=2)
+    assert path == str(tmp_path / link_thesis.VIDEO_TRACE_FILE) and os.path.exists(path)
+    recorded = os.stat(path).st_mtime_ns
+    assert link_thesis.ensure_video_trace(fleet, str(tmp_path), reuse=True, log=log.append) == path
+    assert os.stat(path).st_mtime_ns == recorded and "reusing the video trace" in log[-1]
+    # A fleet the trace cannot feed (champ was not recorded): recorded again, saying why.
+    wider = load_fleet(profile="light").with_robots(["jackal", "champ"])
+    link_thesis.ensure_video_trace(wider, str(tmp_path), reuse=True, log=log.append, frames_per_level=2)
+    assert any("camera robot 'champ' is not in it" in line and line.endswith("recording it again") for line in log)
+    assert os.stat(path).st_mtime_ns != recorded

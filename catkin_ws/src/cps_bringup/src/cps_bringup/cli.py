@@ -74,6 +74,7 @@ class MissionResult:
     events: List[Event]
     restarts: Dict[str, int]
     host_split: str = "no host split (not asked)"
+    video_source: str = "not recorded"
 
 
 def build_parser():
@@ -215,6 +216,13 @@ def build_parser():
         "node and robot, to compare with",
     )
     parser.add_argument(
+        "--video-trace",
+        default=None,
+        metavar="PATH",
+        help="the cameras play this recorded video (python -m cps_sim.video_trace record) at the level and "
+        "rate they are allocated instead of rendering it: ~no CPU, the real frames' sizes (default: rendered live)",
+    )
+    parser.add_argument(
         "--kill-map-server-at",
         type=float,
         default=None,
@@ -303,6 +311,9 @@ def run_mission(args, log=print) -> MissionResult:
     split = _host_split(args, sides)  # refused here, before anything starts
     baseline, site_changes = check_monitoring_inputs(args, fleet, sides)
     replay_path = _checked_replay(args.replay, fleet, sides, log)
+    video_trace, video_source = _checked_video_trace(
+        getattr(args, "video_trace", None), fleet, sides, args, replay_path
+    )
     os.makedirs(out_dir, exist_ok=True)
     removed = clear_previous_mission(out_dir, sides)
     if removed:
@@ -326,6 +337,7 @@ def run_mission(args, log=print) -> MissionResult:
         selected_robot=selected or "",
         control_layout=args.control_layout,
         tissue_layout=args.tissue_layout,
+        video_trace=video_trace,
     )
     transport = args.transport
     if replay_path and transport == ZENOH and len(sides) == 2:
@@ -338,6 +350,7 @@ def run_mission(args, log=print) -> MissionResult:
         except HostSplitError as exc:
             raise BringupError(str(exc)) from exc
         log(f"[bringup] {split.describe()}")
+        log(f"[bringup] video: {video_source}")
         link = stack.enter_context(_link_context(args.link, log, getattr(args, "link_scenario", None), args.link_name))
         if link:
             # As the paper: the manager's B is what iperf3 measured on the link, not the nominal rate.
@@ -474,6 +487,7 @@ def run_mission(args, log=print) -> MissionResult:
             list(supervisor.events),
             supervisor.restarts(),
             split.describe(),
+            video_source,
         )
 
 
@@ -555,6 +569,33 @@ def check_monitoring_inputs(args, fleet, sides):
         except ConfigError as exc:
             raise BringupError(f"--site-changes: {exc}") from exc
     return baseline, changes
+
+
+def _checked_video_trace(path, fleet, sides, args, replay_path):
+    """(absolute trace path or None, what the cameras' video is) for --video-trace: BringupError,
+    before anything starts, for a trace that cannot feed the fleet's cameras or a run without them."""
+    not_simulated = (
+        "the robots' side's (not started here)"
+        if PHYSICAL not in sides
+        else "the real robots' cameras (--no-sim)"
+        if args.no_sim
+        else f"the replayed bag's ({replay_path})"
+        if replay_path
+        else None
+    )
+    if not path:
+        return None, not_simulated or "rendered live by the simulated cameras at the allocated level and rate"
+    if not_simulated:
+        raise BringupError(
+            "--video-trace feeds the simulated cameras: use it with `physical` or `all`, without --no-sim or --replay"
+        )
+    from cps_sim.video_trace import VideoTraceError, load_video_trace
+
+    try:
+        trace = load_video_trace(os.path.abspath(path), fleet)
+    except VideoTraceError as exc:
+        raise BringupError(f"--video-trace: {exc}") from exc
+    return trace.path, trace.describe()
 
 
 def _checked_replay(path, fleet, sides, log):

@@ -106,6 +106,9 @@ class RunOptions:
     control_layout: str = SHARED_CONTROL
     # One of TISSUE_LAYOUTS.
     tissue_layout: str = SHARED
+    # The cameras play this recorded video trace (cps_sim.video_trace) at the allocated level and
+    # rate instead of rendering it; None: rendered live.
+    video_trace: Optional[str] = None
 
 
 A = names.absolute
@@ -219,6 +222,7 @@ def plan_nodes(
                                     if options.site_changes_file
                                     else {}
                                 ),
+                                **({"video_trace": options.video_trace} if options.video_trace else {}),
                             }
                         ),
                     ),

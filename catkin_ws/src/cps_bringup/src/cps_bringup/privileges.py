@@ -67,22 +67,27 @@ def hand_over(user, out_dir, log_dir):
 
 def check_code_readable(user, specs):
     """PrivilegeError naming the first file of the code (a node's program, the python, the map
-    server's kernels) that `user` cannot read: a folder above it is closed to that user, and the
-    node would only fail later with an exit code."""
+    server's kernels) or input (a file parameter) that `user` cannot read: a folder above it is
+    closed to that user, and the node would only fail later with an exit code."""
     from cps_mapping import kernel_cache
 
     kernels = kernel_cache.cache_dir(kernel_cache.map_kernels_file())
     paths = [sys.executable, kernel_cache.map_kernels_file(), *([kernels] if os.path.isdir(kernels) else [])]
     paths += [arg for spec in specs for arg in spec.argv if os.path.isabs(arg) and os.path.isfile(arg)]
-    paths = list(dict.fromkeys(paths))
+    # Files the nodes are given as parameters (_name:=/a/file: a video trace, site changes, a baseline).
+    values = [arg.split(":=", 1)[1] for spec in specs for arg in spec.argv if arg.startswith("_") and ":=" in arg]
+    inputs = [v for v in values if os.path.isabs(v) and os.path.isfile(v)]
+    paths = list(dict.fromkeys(paths + inputs))
     probe = 'for f; do test -r "$f" || { echo "$f"; exit 1; }; done'
     check = subprocess.run([*user_prefix(user), "sh", "-c", probe, "sh", *paths], capture_output=True, text=True)
     if check.returncode != 0:
         path = check.stdout.strip() or paths[0]
+        what = "an input file" if path in inputs else "the code"
         raise PrivilegeError(
-            f"the nodes run as '{user}' (not root) but cannot read the code: {path} (a folder above "
-            f"it is closed to that user, e.g. a 0700 temporary folder). Put the checkout where "
-            f"'{user}' can read it (o+rx on the folders above it), or --run-as root"
+            f"the nodes run as '{user}' (not root) but cannot read {what}: {path} (a folder above "
+            f"it is closed to that user, e.g. a 0700 temporary folder). Put "
+            f"{'it' if path in inputs else 'the checkout'} where '{user}' can read it (o+rx on the folders "
+            "above it), or --run-as root"
         )
 
 

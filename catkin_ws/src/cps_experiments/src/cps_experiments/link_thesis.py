@@ -12,6 +12,12 @@ wrote, per phase of constant capacity:
 - teleop: the command probe's latency p95;
 - the map: F1 voxel for voxel and within ±1 voxel.
 A stream or robot that delivered nothing is reported as such, never filled in.
+
+Two cores cannot render the unmanaged arm's video (four 640x480 cameras at 30 Hz) live: the
+cameras would offer what the CPU allows, not what the arm asks, and the link would never bind. So
+both arms' cameras play one recorded video trace (cps_sim.video_trace: each robot's frames along
+its route at every level, recorded once per run of the experiment into the run root) at the level
+and rate each arm sets; the clouds stay live from the simulator. The report says so.
 """
 
 import bisect
@@ -65,7 +71,7 @@ def runs(scenarios=SCENARIOS) -> List[ThesisRun]:
     return out
 
 
-def mission_argv(run: ThesisRun, robots, selected_robot, out_dir, duration_s):
+def mission_argv(run: ThesisRun, robots, selected_robot, out_dir, duration_s, video_trace=None):
     argv = [
         "all",
         "--profile",
@@ -85,7 +91,29 @@ def mission_argv(run: ThesisRun, robots, selected_robot, out_dir, duration_s):
     ]
     if not run.manager:
         argv += ["--bandwidth-manager", "off"]
+    if video_trace:
+        argv += ["--video-trace", video_trace]
     return argv
+
+
+VIDEO_TRACE_FILE = "video_trace.npz"
+
+
+def ensure_video_trace(fleet, folder, reuse, log=print, frames_per_level=None):
+    """The recorded video every mission of the run plays: `folder`/VIDEO_TRACE_FILE, recorded for
+    `fleet` (reused with `reuse` when it still matches the fleet)."""
+    from cps_sim.video_trace import DEFAULT_FRAMES_PER_LEVEL, VideoTraceError, load_video_trace, record_video_trace
+
+    path = os.path.abspath(os.path.join(folder, VIDEO_TRACE_FILE))
+    if reuse and os.path.exists(path):
+        try:
+            load_video_trace(path, fleet)
+            log(f"[experiments] reusing the video trace {path}")
+            return path
+        except VideoTraceError as exc:
+            log(f"[experiments] {exc}; recording it again")
+    log(f"[experiments] recording the cameras' video along their routes into {path}")
+    return record_video_trace(fleet, path, frames_per_level or DEFAULT_FRAMES_PER_LEVEL, log=log)
 
 
 # --- reading a mission's files ---------------------------------------------------------------------
@@ -316,16 +344,18 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
     fleet = fleet.with_robots(robots)
     selected = next(r.name for r in fleet.robots if r.has_depth_camera)
     duration_s = duration_s or (QUICK_DURATION_S if quick else DURATION_S)
-    rows, failures = [], {}
+    rows, failures, sources = [], {}, {}
+    video_trace = ensure_video_trace(fleet, os.path.join(run_root, "link_thesis"), reuse_runs, log)
     for thesis_run in runs():
         run_dir = os.path.abspath(os.path.join(run_root, "link_thesis", thesis_run.name))
         try:
-            argv = mission_argv(thesis_run, robots, selected, run_dir, duration_s)
+            argv = mission_argv(thesis_run, robots, selected, run_dir, duration_s, video_trace)
             summary = mission_summary(argv, run_dir, reuse_runs, log)
         except RuntimeError as exc:
             failures[thesis_run.name] = str(exc)
             log(f"[experiments] {exc}")
             continue
+        sources[thesis_run.name] = summary.get("video_source", "not recorded (a run from before video_source)")
         f1_tolerant, f1_exact = score_map(summary.get("map_file"), fleet, run_dir)
         for row in measure_run(run_dir, robots, read_csv):
             row.update(scenario=thesis_run.scenario, manager="on" if thesis_run.manager else "off")
@@ -342,7 +372,9 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
         )
     write_csv(os.path.join(out_dir, "link_thesis.csv"), COLUMNS, [[_cell(r.get(c, "")) for c in COLUMNS] for r in rows])
     write_markdown(
-        os.path.join(out_dir, "link_thesis.md"), TITLE, markdown_sections(rows, failures, selected, duration_s)
+        os.path.join(out_dir, "link_thesis.md"),
+        TITLE,
+        markdown_sections(rows, failures, selected, duration_s, sources),
     )
     plot(rows, os.path.join(out_dir, "link_thesis.png"))
     return {"rows": rows, "failures": failures}
@@ -455,8 +487,9 @@ def _at(row):
 TITLE = "link_thesis: the manager against running without it"
 
 
-def markdown_sections(rows, failures, selected, duration_s):
-    """The report's sections under TITLE: setup, the issue's bar, one sentence per difference, tables."""
+def markdown_sections(rows, failures, selected, duration_s, video_sources=None):
+    """The report's sections under TITLE: setup, what drove the link in each arm, the issue's bar,
+    one sentence per difference, tables. `video_sources`: {run name: its mission's video source}."""
     sections = [
         f"{ROBOTS} robots, paper profile with video, {duration_s:g} s missions on a {LINK} link running each "
         f"scenario; the operator watches {selected}. Phases are the scenario's spans of constant capacity. "
@@ -464,6 +497,8 @@ def markdown_sections(rows, failures, selected, duration_s):
         f"stamp; staleness: age of the newest delivered message, sampled every {STALENESS_TICK_S:g} s; "
         f"offered/received: {INGRESS_WINDOW_S:g} s windows on the robots' side / at the twin, against the "
         "scenario's capacity. Machine-bound: robots' side, tissue, bridges and twin share 2 cores.",
+        "## What each arm offered the link",
+        _sources_text(video_sources or {}),
         "## The issue's bar (wifi_degraded, 5 Mbit/s phase, manager on)",
         "\n".join(
             f"- {condition}: {'held' if held else ('not measured' if held is None else 'NOT held')}"
@@ -484,6 +519,18 @@ def markdown_sections(rows, failures, selected, duration_s):
         sections += ["## Runs that failed", "\n".join(f"- {n}: {why.splitlines()[0]}" for n, why in failures.items())]
     sections.append("![link_thesis](link_thesis.png)")
     return sections
+
+
+def _sources_text(video_sources):
+    """Which arm's video came from where (each mission's own statement) and the clouds' source."""
+    lines = [f"- {name}: video {source}" for name, source in video_sources.items()] or [
+        "- video: not recorded (no mission's summary said)"
+    ]
+    lines.append(
+        "- clouds (every arm): live from the simulator's sensors (depth cameras and lidar rendered at the "
+        "profile's rate as the CPU allows), voxelized and Draco-encoded on the robots' side"
+    )
+    return "\n".join(lines)
 
 
 def _text(value):

@@ -34,8 +34,11 @@ from cps_sim.simulation import FleetSimulation, sensor_points
 from cps_sim.site_changes import SiteMove, apply_site_changes, load_site_changes
 from cps_sim.video import video_level_errors
 from cps_sim.video_ros import RobotVideo
+from cps_sim.video_trace import VideoTraceError, VideoTracePlayer, load_video_trace
 
 CMD_TIMEOUT_S = 0.5
+# The recorded videos' thread looks at its schedule at least this often (s).
+VIDEO_POLL_S = 0.02
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +59,8 @@ class FleetSimOptions:
     # No bandwidth manager: every camera's video at the finest level and the fleet's maximum rate
     # (the unmanaged load), not the coarse default it keeps until a manager speaks.
     video_unmanaged: bool = False
+    # A recorded video trace (cps_sim.video_trace) the cameras play instead of rendering; "": render live.
+    video_trace: str = ""
 
 
 def read_options():
@@ -89,6 +94,7 @@ def read_options():
         site_moves=moves,
         site_changes_file=rospy.get_param("~site_changes_file", ""),
         video_unmanaged=bool(rospy.get_param("~video_unmanaged", default.video_unmanaged)),
+        video_trace=str(rospy.get_param("~video_trace", default.video_trace)),
         **rates,
     )
 
@@ -127,6 +133,12 @@ class FleetSimNode:
         level_errors = video_level_errors(fleet)
         if level_errors:
             fail("bad fleet file: " + "; ".join(str(e) for e in level_errors))
+        self.video_player = None
+        if options.video_trace:
+            try:
+                self.video_player = VideoTracePlayer(load_video_trace(options.video_trace, fleet))
+            except VideoTraceError as exc:
+                fail(f"parameter ~video_trace: {exc}")
         if options.sensor_workers > 0:
             # Robots' kinematics here; rendering and ray casting in worker processes.
             self.pool = SensorWorkerPool(fleet, self.site, options.renderer, options.sensor_workers)
@@ -157,17 +169,25 @@ class FleetSimNode:
         now = time.time()
         self.static_tf.sendTransform(self._static_transforms(now))
         rates = {n: s.rate_hz for n, s in self.sim.robots.items()}
-        rates.update({key: video.rate_hz for key, video in self.videos.items()})
+        video_rates = {key: video.rate_hz for key, video in self.videos.items()}
+        # Recorded videos: scheduled and played on their own thread (_play_recorded_video).
+        self.video_lock, self.video_stop = threading.Lock(), threading.Event()
+        self.video_scheduler = SensorScheduler(video_rates, now) if self.video_player and video_rates else None
+        if self.video_scheduler is None:
+            rates.update(video_rates)
         self.scheduler = SensorScheduler(rates, now)
         self.physics_meter = RateMeter()
         self.step_timer = StepTimer()
         self.physics = PhysicsClock(now, options.max_physics_step_s, options.max_catch_up_s)
         rospy.loginfo(
-            "fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s",
+            "fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s; video: %s",
             fleet.profile.name,
             self.renderer,
             options.sensor_workers,
             ", ".join(self.sim.robots),
+            self.video_player.trace.describe()
+            if self.video_player
+            else "rendered live at the allocated level and rate",
         )
 
     def _robot_io(self, name, sim):
@@ -197,6 +217,10 @@ class FleetSimNode:
             )
 
     def _on_video_rate(self, key, rate_hz):
+        if getattr(self, "video_scheduler", None) is not None:
+            with self.video_lock:
+                self.video_scheduler.set_rate(key, rate_hz, time.time())
+            return
         with self.lock:
             scheduler = getattr(self, "scheduler", None)
             if scheduler is not None:
@@ -315,6 +339,23 @@ class FleetSimNode:
 
     def _busy_sensors(self):
         return [w.busy_with for w in self.pool.workers if w.busy_with]
+
+    def _play_recorded_video(self):
+        """The recorded videos' loop, on a thread of its own: fetching a frame costs ~nothing, but
+        on the main loop it would wait behind the clouds' publication (tens of ms each at 640x480)
+        and fall short of its rate."""
+        while not self.video_stop.is_set():
+            with self.video_lock:
+                now = time.time()
+                for key, video in self.videos.items():
+                    if self.video_scheduler.due[key] <= now:
+                        task = video.wanted()
+                        if task is not None:
+                            video.publish(self.video_player.frame(task), now, time.time())
+                        self.video_scheduler.done(key, now, time.time())
+                due = self.video_scheduler.next()[1]
+            # Woken at least every VIDEO_POLL_S: a faster rate set meanwhile takes effect.
+            self.video_stop.wait(min(max(due - time.time(), 0.0), VIDEO_POLL_S))
 
     def _service_workers(self, now):
         """Publish finished captures and hand due sensors to idle workers; True if any work was done."""
@@ -458,9 +499,12 @@ class FleetSimNode:
         diagnostics_period_s = 1.0 / options.diagnostics_rate_hz
         self.diag_task = Periodic(diagnostics_period_s, now + diagnostics_period_s)
         self._diag_wall_start, self._diag_sim_start = now, self.physics.sim_time_s
+        if self.video_scheduler is not None:
+            threading.Thread(target=self._play_recorded_video, name="recorded_video", daemon=True).start()
         run_realtime(self.step, self.odom_task.period_s, time.time, self._idle, rospy.is_shutdown)
 
     def close(self):
+        self.video_stop.set()
         if self.pool is not None:
             self.pool.close()
         self.sim.close()
