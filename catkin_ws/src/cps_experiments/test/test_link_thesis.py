@@ -45,12 +45,13 @@ def mission(tmp_path):
     probes = [["/tissue/command_probe", "", int((T0 + k * 0.1 - 0.02) * 1e9), T0 + k * 0.1] for k in range(500)]
     _write(tmp_path / "physical_arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], probes)
     header = ["time_s", "topic", "robot", "managed", "messages", "mean_message_bytes"]
+    # Each row counts the messages of topic_stats' 2 s sliding window, written every second.
     # Offered on the robots' side: 1 MB/s throughout (over the 0.625 MB/s of 5 Mbit/s); received: 0.6 MB/s.
-    offered = [[T0 + s, "/jackal/points_filtered/draco/managed", "jackal", "True", 10, 100000] for s in range(50)]
+    offered = [[T0 + s, "/jackal/points_filtered/draco/managed", "jackal", "True", 20, 100000] for s in range(50)]
     # The voxel grid's output never crosses the link: not offered to it.
     offered += [[T0 + s, "/jackal/points_filtered", "jackal", "False", 30, 900000] for s in range(50)]
     _write(tmp_path / "physical_stats.csv", header, offered)
-    _write(tmp_path / "stats.csv", header, [[T0 + s, "/x", "jackal", "True", 6, 100000] for s in range(50)])
+    _write(tmp_path / "stats.csv", header, [[T0 + s, "/x", "jackal", "True", 12, 100000] for s in range(50)])
     _write(
         tmp_path / "allocation.csv",
         ["stamp_s", "budget_mbytes_per_s", "robot", "stream", "level", "level_name"],
