@@ -19,7 +19,6 @@ from cps_bringup.host_split import (
 )
 from cps_bringup.plan import DIGITAL, PHYSICAL, NodeSpec
 from cps_bringup.supervisor import Supervisor
-from cps_ros.processes import free_port, processes_named
 
 BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
 MISSION_S = 20
@@ -109,64 +108,34 @@ def _nice(pid):
 @pytest.mark.slow
 @pytest.mark.skipif(cgroup_v1_writable() is not None, reason=f"cgroup v1 split unavailable: {cgroup_v1_writable()}")
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPUs to split")
-def test_bringup_places_each_side_in_its_own_cgroup(open_tmp_path):
+def test_bringup_places_each_side_in_its_own_cgroup(bringup_mission):
     """A one-robot mission with --host-cpus robots=0,twin=1: the simulator and the robot's tissue are
     in the robots' cpuset+cpu groups (CPU 0), the map server in the twin's (CPU 1), fleet control at
     CONTROL_NICE; the groups are gone after the run."""
     cpus = sorted(os.sched_getaffinity(0))[:2]
-    out, port = open_tmp_path / "split", free_port()
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            BRINGUP,
-            "all",
-            "--robots",
-            "scout",
-            "--profile",
-            "light",
-            "--duration",
-            str(MISSION_S),
-            "--out",
-            str(out),
-            "--port",
-            str(port),
-            "--host-cpus",
-            f"robots={cpus[0]},twin={cpus[1]}",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    group = f"cpsfleet_{proc.pid}"
-    log, members, cpus_read, nice = [], None, {}, None
-    try:
-        for line in proc.stdout:
-            log.append(line)
-            if "processes up" in line:
-                members = _members(group)
-                for side in members:
-                    with open(f"/sys/fs/cgroup/cpuset/{group}/{side}/cpuset.cpus") as f:
-                        cpus_read[side] = f.read().strip()
-                control = [p for p, cmd in members[PHYSICAL].items() if "fleet_control" in cmd and "nice" not in cmd]
-                nice = [_nice(p) for p in control]
-                break
-        log += proc.communicate(timeout=180)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    log = "".join(log)
-    assert proc.returncode == 0, log[-4000:]
-    assert "host split by cgroup v1 cpuset+cpu" in log, log[-3000:]
-    assert members is not None, log[-3000:]
+
+    def read_groups(mission):
+        """(members, cpus read per side, nice of fleet control) of the run's groups."""
+        group = f"cpsfleet_{mission.pid}"
+        members, cpus_read = _members(group), {}
+        for side in members:
+            with open(f"/sys/fs/cgroup/cpuset/{group}/{side}/cpuset.cpus") as f:
+                cpus_read[side] = f.read().strip()
+        control = [p for p, cmd in members[PHYSICAL].items() if "fleet_control" in cmd and "nice" not in cmd]
+        return members, cpus_read, [_nice(p) for p in control]
+
+    args = ["--robots", "scout", "--host-cpus", f"robots={cpus[0]},twin={cpus[1]}"]
+    mission = bringup_mission("split", args, read_groups, MISSION_S)
+    assert "host split by cgroup v1 cpuset+cpu" in mission.log, mission.log[-3000:]
+    assert mission.read_while_up is not None, mission.log[-3000:]
+    members, cpus_read, nice = mission.read_while_up
     physical, digital = (" | ".join(members[s].values()) for s in (PHYSICAL, DIGITAL))
     assert "fleet_sim" in physical and "cloud_tissue" in physical and "map_server" not in physical, physical
     assert "map_server" in digital and "fleet_sim" not in digital and "cloud_tissue" not in digital, digital
     assert cpus_read == {PHYSICAL: str(cpus[0]), DIGITAL: str(cpus[1])}
     assert nice and all(n == CONTROL_NICE for n in nice), (nice, physical)
     for controller in ("cpuset", "cpu"):
-        assert not os.path.exists(f"/sys/fs/cgroup/{controller}/{group}")
-    assert not processes_named(str(out))
+        assert not os.path.exists(f"/sys/fs/cgroup/{controller}/cpsfleet_{mission.pid}")
 
 
 @pytest.mark.skipif(cgroup_v1_writable() is not None, reason=f"cgroup v1 split unavailable: {cgroup_v1_writable()}")

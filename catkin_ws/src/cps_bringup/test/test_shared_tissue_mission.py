@@ -10,9 +10,7 @@ import pytest
 
 from cps_bringup.plan import DIGITAL, PHYSICAL, ZENOH, RunOptions, plan_nodes
 from cps_fleet.fleet import load_fleet
-from cps_ros.processes import free_port, processes_named
 
-BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
 FLEET8 = os.path.join(os.path.dirname(__file__), "..", "config", "fleets", "fleet8.yaml")
 MISSION_S = 15
 
@@ -48,60 +46,27 @@ print(json.dumps(counts))
 
 @pytest.mark.ros
 @pytest.mark.slow
-def test_eight_robots_run_on_the_same_tissue_processes_as_four(open_tmp_path):
+def test_eight_robots_run_on_the_same_tissue_processes_as_four(bringup_mission):
     """Eight robots (config/fleets/fleet8.yaml) come up with the default four's tissue processes, and
     the map server inserts every robot's clouds."""
-    fleet_path = FLEET8
-    fleet = load_fleet(fleet_path)
+    fleet = load_fleet(FLEET8)
     assert len(fleet.robots) == 8
-    out, port = open_tmp_path / "m8", free_port()
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            BRINGUP,
-            "all",
-            "--fleet",
-            fleet_path,
-            "--profile",
-            "light",
-            "--duration",
-            str(MISSION_S),
-            "--out",
-            str(out),
-            "--port",
-            str(port),
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    log, counts = [], {}
-    try:
-        for line in proc.stdout:
-            log.append(line)
-            if "processes up" in line:
-                counted = subprocess.run(
-                    [sys.executable, "-c", COUNT_INSERTED, ",".join(fleet.robot_names)],
-                    env=dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{port}"),
-                    capture_output=True,
-                    text=True,
-                    timeout=60,
-                )
-                counts = (
-                    json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0 else counted.stderr
-                )
-                break
-        log += proc.communicate(timeout=120)[0]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    log = "".join(log)
-    assert proc.returncode == 0, log[-4000:]
-    assert isinstance(counts, dict) and all(counts.get(r) for r in fleet.robot_names), (counts, log[-3000:])
+
+    def count_inserted(mission):
+        counted = subprocess.run(
+            [sys.executable, "-c", COUNT_INSERTED, ",".join(fleet.robot_names)],
+            env=dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{mission.port}"),
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        return json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0 else counted.stderr
+
+    mission = bringup_mission("m8", ["--fleet", FLEET8], count_inserted, MISSION_S, timeout_s=120)
+    counts, out = mission.read_while_up, mission.out
+    assert isinstance(counts, dict) and all(counts.get(r) for r in fleet.robot_names), (counts, mission.log[-3000:])
 
     four = plan_nodes(load_fleet(), options=RunOptions(out_dir=str(out), transport=ZENOH))
     for side, log_dir in ((PHYSICAL, out / "logs" / "robots"), (DIGITAL, out / "logs")):
         expected = sorted(s.label for s in four if s.side == side and "/" not in s.label)
         assert _started(str(log_dir), fleet.robot_names) == expected, side
-    assert not processes_named(str(out))

@@ -316,6 +316,20 @@ def test_leaves_read_from_the_grid_are_the_trees_leaves(two_robot_clouds):
     assert ours == dict(zip(map(tuple, np.round(rows[:, :3], 4).tolist()), rows[:, 4].tolist()))
 
 
+def test_a_log_odds_copy_holds_every_known_voxel_and_stays_as_it_was(two_robot_clouds):
+    depth, _ = two_robot_clouds
+    fused = new_map(RES)
+    fused.insert_batch(depth, 6.0, "jackal")
+    box = fused.log_odds_copy()
+    leaves = fused.leaves()
+    cells = np.ravel_multi_index((voxel_index(leaves.centers_m, RES) - box.lo).T, box.dims)
+    assert np.array_equal(box.log_odds[cells], leaves.log_odds.astype(np.float32))
+    assert np.count_nonzero(~np.isnan(box.log_odds)) == len(cells), "every other cell unknown"
+    before = box.log_odds.copy()
+    assert fused.clear_bbx([-50.0, -50.0, -50.0], [50.0, 50.0, 50.0]) == len(cells)  # in place
+    assert np.array_equal(box.log_odds, before, equal_nan=True), "a copy, not a view of the live grid"
+
+
 def test_a_far_origin_cannot_grow_the_grid_beyond_its_limit():
     fused = new_map(RES, max_grid_voxels=2_000_000)
     fused.insert_cloud(np.array([[3.0, 0.0, 0.5]]), [0.0, 0.0, 0.5], max_range_m=6.0)

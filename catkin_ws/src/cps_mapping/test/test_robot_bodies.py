@@ -36,14 +36,13 @@ def _sensor_pose(fleet, robot, x, y, yaw):
 
 
 def _body_voxels(fleet, robot, x, y, yaw):
-    """The voxels of the simulator's body box of `robot` at that pose (its surface as a map holds it)."""
-    from cps_sim.robots import spec_for
-
-    spec = spec_for(fleet.robot_types[fleet.robot(robot).type])
-    hx, hy, hz = spec.body_half_extents_m
+    """The voxels of the body box of `robot` (its type's, as the simulator builds it) at that pose
+    (its surface as a map holds it)."""
+    body = fleet.robot(robot).robot_type.body
+    hx, hy, hz = body.half_extents_m
     g = np.stack(np.meshgrid(*(np.linspace(-h, h, 9) for h in (hx, hy, hz)), indexing="ij"), -1).reshape(-1, 3)
     c, s = np.cos(yaw), np.sin(yaw)
-    world = g @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) + [x, y, spec.body_center_z_m]
+    world = g @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) + [x, y, body.center_z_m]
     return np.unique(voxel_index(world, RES), axis=0)
 
 

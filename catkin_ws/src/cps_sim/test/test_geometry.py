@@ -43,7 +43,7 @@ def test_box_in_depth_cloud_at_its_distance(sim):
     cloud = frame.cloud
     # Depth of a centre-column pixel looking slightly up (the optical axis is pitched down and
     # meets the floor first) equals where its ray meets the box face x = 2.5, within a pixel.
-    pitch = math.radians(sim.robots["jackal"].robot.spec.sensor_pitch_deg)
+    pitch = math.radians(sim.robots["jackal"].robot.robot_type.sensor_mount.pitch_deg)
     row, col = int(camera.cy - camera.fy * math.tan(pitch)) - 5, int(camera.cx)
     ray = np.array([(col - camera.cx) / camera.fx, (row - camera.cy) / camera.fy, 1.0])
     ray_map = frame.sensor_in_map[:3, :3] @ ray

@@ -144,7 +144,6 @@ def observable_surface_from_poses(fleet, ground_truth_path, trajectories):
     any position."""
     from cps_mapping.scoring import load_ground_truth
     from cps_sim.ground_truth import observable_from_positions, positions_every
-    from cps_sim.robots import spec_for
 
     truth, resolution = load_ground_truth(ground_truth_path)
     seen = []
@@ -152,7 +151,7 @@ def observable_surface_from_poses(fleet, ground_truth_path, trajectories):
         if robot not in fleet.robot_names or not len(points):
             continue
         config = fleet.robot(robot)
-        sensor_height_m = spec_for(config.robot_type).sensor_xyz_m[2]
+        sensor_height_m = config.robot_type.sensor_mount.xyz_m[2]
         sensor = positions_every(points, OBSERVABLE_POSITION_SPACING_M) + [0.0, 0.0, sensor_height_m]
         seen.append(observable_from_positions(truth, resolution, sensor, config.robot_type.max_range_m))
     return np.unique(np.vstack(seen), axis=0) if seen else None

@@ -1,13 +1,15 @@
 """Robot types as data: fleet.yaml's `robot_types:` block, read by `read_robot_types`.
 
-A type names what its robots sense (sensor kind, cloud topic, sensor frame, map max range) and how
+A type names what its robots sense (sensor kind, cloud topic, sensor frame, map max range), how
 fast they may move (VelocityLimits: the simulator clamps every executed command to them, the
-operator GUI's joystick uses them as full scale). A real robot is a new entry in fleet.yaml, not
-new code. Plain data, no ROS.
+operator GUI's joystick uses them as full scale), and their body box and sensor mount (Body,
+SensorMount: the simulator builds and mounts them, the twin keeps the bodies out of its map and of
+change detection). A real robot is a new entry in fleet.yaml, not new code. Plain data, no ROS.
 """
 
 import dataclasses
-from typing import Dict
+import math
+from typing import Dict, Tuple
 
 SENSOR_KINDS = ("lidar", "depth")
 BASES = ("wheeled", "legged", "aerial")
@@ -42,6 +44,22 @@ class VelocityLimits:
 
 
 @dataclasses.dataclass(frozen=True)
+class Body:
+    """A robot's body as a box, upright in base_link (REP 103: x forward, z up)."""
+
+    half_extents_m: Tuple[float, float, float]
+    center_z_m: float  # the box's centre above base_link
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorMount:
+    """Where the sensor sits in base_link (a depth camera's optical frame is turned from it)."""
+
+    xyz_m: Tuple[float, float, float]
+    pitch_deg: float  # positive looks down
+
+
+@dataclasses.dataclass(frozen=True)
 class RobotType:
     """One entry of fleet.yaml's robot_types."""
 
@@ -52,10 +70,38 @@ class RobotType:
     sensor_frame: str  # relative to the robot's tf prefix: <robot>/<sensor_frame>
     max_range_m: float  # the map server inserts points up to this far from the sensor
     limits: VelocityLimits
+    body: Body
+    sensor_mount: SensorMount
 
     @property
     def is_aerial(self):
         return self.base == "aerial"
+
+
+def _three_numbers(reader, key, positive=False):
+    value = reader.get(key, list)
+    if len(value) != 3 or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v > 0 or not positive)
+        for v in value
+    ):
+        raise reader.error(
+            key, f"must be three {'positive' if positive else 'finite'} numbers (x, y, z), got {value!r}"
+        )
+    return tuple(float(v) for v in value)
+
+
+def _body(reader):
+    reader.known_keys("half_extents_m", "center_z_m")
+    return Body(
+        half_extents_m=_three_numbers(reader, "half_extents_m", positive=True), center_z_m=reader.number("center_z_m")
+    )
+
+
+def _sensor_mount(reader):
+    reader.known_keys("xyz_m", "pitch_deg")
+    return SensorMount(
+        xyz_m=_three_numbers(reader, "xyz_m"), pitch_deg=reader.number("pitch_deg", low=-90.0, high=90.0)
+    )
 
 
 def read_robot_types(reader) -> Dict[str, RobotType]:
@@ -63,7 +109,9 @@ def read_robot_types(reader) -> Dict[str, RobotType]:
     with file:line for a missing or bad key)."""
     types = {}
     for name in reader.value:
-        entry = reader.child(name).known_keys("base", "sensor", "cloud_topic", "sensor_frame", "max_range_m", "limits")
+        entry = reader.child(name).known_keys(
+            "base", "sensor", "cloud_topic", "sensor_frame", "max_range_m", "limits", "body", "sensor_mount"
+        )
         base, sensor = entry.get("base", str), entry.get("sensor", str)
         if base not in BASES:
             raise entry.error("base", f"unknown base '{base}' (known: {', '.join(BASES)})")
@@ -81,6 +129,8 @@ def read_robot_types(reader) -> Dict[str, RobotType]:
             sensor_frame=entry.get("sensor_frame", str),
             max_range_m=entry.number("max_range_m", low=0.0, low_open=True),
             limits=VelocityLimits(**{key: limits.number(key, low=0.0) for key in _LIMIT_KEYS}),
+            body=_body(entry.child("body")),
+            sensor_mount=_sensor_mount(entry.child("sensor_mount")),
         )
         for key in ("max_forward_mps", "max_yaw_rate_rps", "max_linear_accel_mps2", "max_yaw_accel_rps2"):
             if getattr(types[name].limits, key) <= 0.0:

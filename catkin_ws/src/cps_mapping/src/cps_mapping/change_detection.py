@@ -303,13 +303,13 @@ class FrozenMap:
     queries, as FusedLogOddsMap.is_free answers them), copied under the map lock in milliseconds so
     that the detection runs without it: run under the lock it took seconds on the loaded 2-core
     machine, and insertion waited (the maps went stale every detection period). Reads the map's
-    log-odds grid (`_grid`: lo, dims, log_odds) as it is at the copy."""
+    log-odds as they are at the copy (FusedLogOddsMap.log_odds_copy)."""
 
     def __init__(self, fused):
         self.resolution_m, self.sensor_model = fused.resolution_m, fused.sensor_model
         self._occupied = fused.occupied_centers()
-        grid = fused._grid
-        self._lo, self._dims, self._log_odds = grid.lo.copy(), grid.dims.copy(), grid.log_odds.copy()
+        box = fused.log_odds_copy()
+        self._lo, self._dims, self._log_odds = box.lo, box.dims, box.log_odds
 
     def occupied_centers(self):
         return self._occupied

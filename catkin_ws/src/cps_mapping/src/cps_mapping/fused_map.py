@@ -60,6 +60,17 @@ class LeafArrays:
         return self.log_odds > 0.0
 
 
+@dataclasses.dataclass(frozen=True)
+class LogOddsBox:
+    """A copy of the map's log-odds at one moment: a box of `dims` voxels from grid index `lo`,
+    `log_odds` its cells flattened in C order (cell of voxel i: ravel_multi_index(i - lo, dims);
+    NaN: unknown)."""
+
+    lo: np.ndarray
+    dims: np.ndarray
+    log_odds: np.ndarray
+
+
 def voxel_index(points_m, resolution_m):
     """Integer grid index floor(p / resolution) of each point (OctoMap's voxel)."""
     return np.floor(np.asarray(points_m, dtype=np.float64) / resolution_m).astype(np.int64)
@@ -328,6 +339,12 @@ class FusedLogOddsMap:
             np.full(len(flat), self.resolution_m),
             log_odds.astype(np.float64),
         )
+
+    def log_odds_copy(self) -> LogOddsBox:
+        """The log-odds of every voxel in the grid's box, copied (for readers that must not hold
+        the map lock while they read, change detection's FrozenMap)."""
+        grid = self._grid
+        return LogOddsBox(grid.lo.copy(), grid.dims.copy(), grid.log_odds.copy())
 
     def occupied_index(self):
         """Grid indices of every occupied finest-resolution voxel (pruned leaves expanded)."""

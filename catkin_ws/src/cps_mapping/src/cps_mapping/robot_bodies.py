@@ -10,8 +10,9 @@ volume, grown by `BODY_MARGIN_M`, of both missions. Items on the site cannot sta
 drove, so the swept volume holds no real change (the scenario generator keeps its changes off the
 routes, cps_sim.site_change_generator).
 
-The body is the simulator's (cps_sim.robots.spec_for: box half extents and height above base_link,
-the sensor's mount), stored with each trail so that a map stays cleanable without the fleet file.
+The body is the fleet contract's (fleet.yaml robot_types: each type's `body` box and
+`sensor_mount`, as the simulator uses them too), stored with each trail so that a map stays
+cleanable without the fleet file.
 """
 
 import dataclasses
@@ -21,6 +22,7 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
+from cps_fleet.transforms import body_in_base, rigid_inverse, sensor_in_base
 from cps_mapping.fused_map import pack_index, voxel_index
 
 KEEP_EVERY_M = 0.05
@@ -56,17 +58,9 @@ class RobotBody:
 
 
 def body_of_type(robot_type) -> RobotBody:
-    """The body of a cps_fleet RobotType, as the simulator builds it (cps_sim.robots)."""
-    from cps_sim.robots import OPTICAL_IN_SENSOR, pose_matrix, rigid_inverse, spec_for
-
-    spec = spec_for(robot_type)
-    sx, sy, sz = spec.sensor_xyz_m
-    sensor_in_base = pose_matrix(sx, sy, sz, 0.0, math.radians(spec.sensor_pitch_deg))
-    if robot_type.sensor != "lidar":
-        sensor_in_base = sensor_in_base @ OPTICAL_IN_SENSOR
-    box_in_base = pose_matrix(0.0, 0.0, spec.body_center_z_m, 0.0)
-    box_in_sensor = rigid_inverse(sensor_in_base) @ box_in_base
-    return RobotBody(robot_type.name, tuple(spec.body_half_extents_m), tuple(map(tuple, box_in_sensor.tolist())))
+    """The body of a cps_fleet RobotType (its `body` box and `sensor_mount`), in its sensor frame."""
+    box_in_sensor = rigid_inverse(sensor_in_base(robot_type)) @ body_in_base(robot_type)
+    return RobotBody(robot_type.name, tuple(robot_type.body.half_extents_m), tuple(map(tuple, box_in_sensor.tolist())))
 
 
 def fleet_bodies(fleet, names=None) -> Dict[str, RobotBody]:

@@ -11,7 +11,8 @@ from typing import Callable, Optional, Tuple
 
 from cps_fleet.config import ConfigError
 from cps_fleet.site import check_waypoint
-from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, pose_matrix, spec_for, validate_twist
+from cps_fleet.transforms import pose_matrix
+from cps_sim.robots import MIN_FLIGHT_ALTITUDE_M, Twist, clamp_twist, spec_for, validate_twist
 
 MISSION_STATES = ("idle", "transit", "inspecting", "done")
 CONTROL_MODES = ("auto", "teleop")

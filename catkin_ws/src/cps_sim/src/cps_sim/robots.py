@@ -1,10 +1,12 @@
-"""The simulated robots: body, sensor mount, velocity limits, kinematics, joints and battery.
+"""The simulated robots: kinematics, joints and battery, with each type's body, sensor mount and
+velocity limits.
 
 Pure numpy. Robots move kinematically (their pose is integrated from the executed velocity,
 with the type's velocity and acceleration limits); odometry is that pose relative to the known
-initial pose. The simulator's bodies (ROBOT_SPECS) are modelled on the default fleet's four
-types; a fleet's own type (fleet.yaml robot_types) gets the body of its base and sensor kind and
-its own velocity limits (`spec_for`).
+initial pose. Body box, sensor mount and limits are the fleet's (fleet.yaml robot_types, a
+cps_fleet RobotType), shared with the twin; the rest (ROBOT_SPECS: model, colour, joints, route
+speed, battery) is the simulator's, modelled on the default fleet's four types; a fleet's own type
+gets the rest of its base and sensor kind (`spec_for`).
 """
 
 import dataclasses
@@ -15,6 +17,7 @@ import numpy as np
 
 from cps_fleet.fleet import ROBOT_TYPES
 from cps_fleet.robot_types import RobotType, VelocityLimits
+from cps_fleet.transforms import pose_matrix, rigid_inverse, sensor_in_base
 
 # Beyond this many times a limit a command is absurd: dropped, not clamped.
 ABSURD_FACTOR = 10.0
@@ -24,11 +27,7 @@ ABSURD_FACTOR = 10.0
 class RobotSpec:
     type: str
     model: str
-    body_half_extents_m: Tuple[float, float, float]
-    body_center_z_m: float  # body centre above base_link
     rgb: Tuple[float, float, float]
-    sensor_xyz_m: Tuple[float, float, float]  # sensor in base_link
-    sensor_pitch_deg: float  # positive looks down
     limits: Optional[VelocityLimits]  # the fleet's robot type's (spec_for), shared with the GUI's joystick
     cruise_mps: float  # the route controller's travel speed
     joint_names: Tuple[str, ...]
@@ -47,11 +46,7 @@ ROBOT_SPECS = {
     "wheeled_lidar": RobotSpec(
         type="wheeled_lidar",
         model="Agilex Scout 2.0",
-        body_half_extents_m=(0.465, 0.35, 0.125),
-        body_center_z_m=0.225,
         rgb=(0.9, 0.9, 0.9),
-        sensor_xyz_m=(0.0, 0.0, 0.55),
-        sensor_pitch_deg=0.0,
         limits=None,
         cruise_mps=0.8,
         joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
@@ -66,11 +61,7 @@ ROBOT_SPECS = {
     "wheeled_depth": RobotSpec(
         type="wheeled_depth",
         model="Clearpath Jackal",
-        body_half_extents_m=(0.254, 0.215, 0.1),
-        body_center_z_m=0.165,
         rgb=(0.95, 0.75, 0.1),
-        sensor_xyz_m=(0.26, 0.0, 0.35),
-        sensor_pitch_deg=10.0,
         limits=None,
         cruise_mps=0.8,
         joint_names=("front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"),
@@ -85,11 +76,7 @@ ROBOT_SPECS = {
     "legged_depth": RobotSpec(
         type="legged_depth",
         model="CHAMP quadruped",
-        body_half_extents_m=(0.3, 0.12, 0.07),
-        body_center_z_m=0.32,
         rgb=(0.2, 0.2, 0.22),
-        sensor_xyz_m=(0.33, 0.0, 0.40),
-        sensor_pitch_deg=10.0,
         limits=None,
         cruise_mps=0.45,
         joint_names=tuple(f"{leg}_{j}_joint" for leg in _CHAMP_LEGS for j in ("hip", "upper_leg", "lower_leg")),
@@ -102,13 +89,7 @@ ROBOT_SPECS = {
     "aerial_depth": RobotSpec(
         type="aerial_depth",
         model="3DR Iris quadrotor",
-        body_half_extents_m=(0.25, 0.25, 0.06),
-        # base_link on the ground when landed; the body stands on its landing gear and the camera
-        # hangs under its front, so a landed Iris still sees the floor (it was below it).
-        body_center_z_m=0.12,
         rgb=(0.15, 0.15, 0.15),
-        sensor_xyz_m=(0.28, 0.0, 0.06),
-        sensor_pitch_deg=45.0,
         limits=None,
         cruise_mps=1.0,
         joint_names=("rotor_0_joint", "rotor_1_joint", "rotor_2_joint", "rotor_3_joint"),
@@ -127,8 +108,8 @@ MIN_FLIGHT_ALTITUDE_M = 0.3
 AERIAL_HOVER_POWER_W = 150.0
 
 
-# The body a type of the fleet's own gets, by (base, sensor kind).
-_BODY_OF = {
+# The spec a type of the fleet's own gets, by (base, sensor kind).
+_SPEC_OF_KIND = {
     ("wheeled", "lidar"): "wheeled_lidar",
     ("wheeled", "depth"): "wheeled_depth",
     ("legged", "lidar"): "legged_depth",
@@ -139,12 +120,12 @@ _BODY_OF = {
 
 
 def spec_for(rt: RobotType):
-    """The RobotSpec of a robot type (a cps_fleet RobotType): the body named like it, else the body of
+    """The RobotSpec of a robot type (a cps_fleet RobotType): the spec named like it, else the spec of
     its base and sensor kind, with the type's velocity limits."""
     if not isinstance(rt, RobotType):
         raise TypeError(f"expected a cps_fleet RobotType (fleet.robot_types[name]), got {rt!r}")
-    body = ROBOT_SPECS.get(rt.name) or ROBOT_SPECS[_BODY_OF[(rt.base, rt.sensor)]]
-    return dataclasses.replace(body, type=rt.name, limits=rt.limits)
+    spec = ROBOT_SPECS.get(rt.name) or ROBOT_SPECS[_SPEC_OF_KIND[(rt.base, rt.sensor)]]
+    return dataclasses.replace(spec, type=rt.name, limits=rt.limits)
 
 
 @dataclasses.dataclass
@@ -200,29 +181,6 @@ def clamp_twist(twist, limits, previous=None, dt_s=None):
         vz = previous.vz + _clip(vz - previous.vz, linear)
         wz = previous.wz + _clip(wz - previous.wz, yaw)
     return Twist(float(vx), float(vy), float(vz), float(wz))
-
-
-def pose_matrix(x, y, z, yaw, pitch=0.0):
-    """4x4 transform from yaw (about z) then pitch (about the new y), translation (x, y, z)."""
-    cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
-    m = np.eye(4)
-    m[:3, :3] = np.array([[cy * cp, -sy, cy * sp], [sy * cp, cy, sy * sp], [-sp, 0.0, cp]])
-    m[:3, 3] = (x, y, z)
-    return m
-
-
-def rigid_inverse(m):
-    """The inverse of a 4x4 rigid transform (R^T, -R^T t): no LAPACK call, whose threads spun
-    for milliseconds per call on a loaded machine (fleet_sim inverts one per robot per odom)."""
-    out = np.eye(4)
-    rotation_t = m[:3, :3].T
-    out[:3, :3] = rotation_t
-    out[:3, 3] = -rotation_t @ m[:3, 3]
-    return out
-
-
-# Optical frame (z forward, x right, y down) in a body-style sensor frame (x forward, z up).
-OPTICAL_IN_SENSOR = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 
 
 class Robot:
@@ -385,12 +343,8 @@ class Robot:
         return rigid_inverse(self.odom_in_map()) @ self.base_in_map()
 
     def sensor_in_base(self):
-        """The static mount base_link -> <r>/lidar or <r>/camera_depth_optical_frame."""
-        sx, sy, sz = self.spec.sensor_xyz_m
-        mount = pose_matrix(sx, sy, sz, 0.0, math.radians(self.spec.sensor_pitch_deg))
-        if self.robot_type.sensor == "lidar":
-            return mount
-        return mount @ OPTICAL_IN_SENSOR
+        """The static mount base_link -> <r>/lidar or <r>/camera_depth_optical_frame (the type's)."""
+        return sensor_in_base(self.robot_type)
 
     def sensor_in_map(self):
         return self.base_in_map() @ self.sensor_in_base()

@@ -135,12 +135,12 @@ class SimWorld:
 
     def add_robot(self, robot):
         """A kinematic body (visual + collision box) for `robot`, so other robots see it."""
-        spec = robot.spec
+        spec, body_box = robot.spec, robot.robot_type.body
         c = self.client
-        col = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=spec.body_half_extents_m, physicsClientId=c)
+        col = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=body_box.half_extents_m, physicsClientId=c)
         vis = pybullet.createVisualShape(
             pybullet.GEOM_BOX,
-            halfExtents=spec.body_half_extents_m,
+            halfExtents=body_box.half_extents_m,
             rgbaColor=tuple(spec.rgb) + (1.0,),
             physicsClientId=c,
         )
@@ -148,22 +148,22 @@ class SimWorld:
             0.0,
             col,
             vis,
-            (robot.x, robot.y, robot.z + spec.body_center_z_m),
+            (robot.x, robot.y, robot.z + body_box.center_z_m),
             _quaternion_z(robot.yaw),
             physicsClientId=c,
         )
         self.robot_bodies[robot.name] = body
         self._robot_boxes[robot.name] = fast_sensors.BoxBody(
             body,
-            tuple(spec.body_half_extents_m),
-            (robot.x, robot.y, robot.z + spec.body_center_z_m),
+            tuple(body_box.half_extents_m),
+            (robot.x, robot.y, robot.z + body_box.center_z_m),
             robot.yaw,
             tuple(spec.rgb),
         )
         return body
 
     def sync_robot(self, robot):
-        center = (robot.x, robot.y, robot.z + robot.spec.body_center_z_m)
+        center = (robot.x, robot.y, robot.z + robot.robot_type.body.center_z_m)
         pybullet.resetBasePositionAndOrientation(
             self.robot_bodies[robot.name], center, _quaternion_z(robot.yaw), physicsClientId=self.client
         )
