@@ -359,6 +359,22 @@ def test_selecting_a_robot_without_a_camera_is_refused_before_anything_starts(tm
     assert not (tmp_path / "out").exists()
 
 
+def test_announcing_the_link_capacity_without_a_tc_link_or_without_the_twin_is_refused_before_anything_starts(
+    tmp_path,
+):
+    from cps_bringup.cli import build_parser, run_mission
+
+    out = tmp_path / "out"
+    for argv, match in (
+        (["all", "--announce-link-capacity"], "use it with --link RATE or --link-scenario NAME"),
+        (["physical", "--link", "20mbit", "--announce-link-capacity"], "where the bandwidth manager runs"),
+    ):
+        args = build_parser().parse_args([*argv, "--out", str(out)])
+        with pytest.raises(BringupError, match=match):
+            run_mission(args, log=lambda _line: None)
+        assert not out.exists()
+
+
 def test_a_video_trace_reaches_fleet_sim_only_when_asked():
     """--video-trace: fleet_sim's ~video_trace; without it no parameter (the cameras render live, and
     the launch files, written from the default plan, do not change)."""
