@@ -256,13 +256,13 @@ def test_the_budget_follows_an_announced_link_capacity(ros, graph):
         announce.publish(LinkCapacity(capacity_mbps=1.0, source="test modem"))
         msg = graph.allocation.wait(lambda m: m.available_mbps == 1.0, 10.0, "the budget from the announcement")
         assert msg.budget_mbytes_per_s == pytest.approx(0.96 * 1.0 / 8)
-        a = _wait_in_force(
+        # the limiters run rates that fit the announced budget (the sizes: measured or the levels' priors)
+        _wait_in_force(
             graph,
             lambda a: sum(x.bandwidth_mbytes_per_s for x in a.values()) <= 0.96 * 1.0 / 8 * (1 + 1e-9),
             10.0,
             "rates within the announced budget",
         )
-        assert all(x.rate_hz < 5.0 for x in a.values()), a  # 2 Mbit/s allowed ~5 Hz each; 1 Mbit/s about half
         assert rospy.wait_for_message("/tissue/available_bandwidth", Float64, timeout=10.0).data == 1.0
         for bad in (math.nan, 0.0, -1.0, math.inf):
             announce.publish(LinkCapacity(capacity_mbps=bad, source="test modem"))
