@@ -200,7 +200,13 @@ def test_both_arms_play_the_runs_recorded_video_and_the_report_says_what_drove_t
         "wifi_degraded_manager_on": f"recorded frames of each camera robot's route at each video level ({trace}: ...)",
         "wifi_degraded_manager_off": "rendered live by the simulated cameras at the allocated level and rate",
     }
-    text = "\n".join(link_thesis.markdown_sections([], {}, "jackal", 80.0, sources))
+    capacities = {
+        "wifi_degraded_manager_on_announced": "announced on /tissue/link_capacity by tc scenario wifi_degraded: ...",
+        "wifi_degraded_manager_on_iperf3": "not announced: the manager's budget from iperf3's 55.2 Mbit/s at the start",
+    }
+    text = "\n".join(link_thesis.markdown_sections([], {}, "jackal", 80.0, sources, capacities))
+    assert "- wifi_degraded_manager_on_announced: link capacity announced on /tissue/link_capacity by tc" in text
+    assert "- wifi_degraded_manager_on_iperf3: link capacity not announced: the manager's budget from iperf3" in text
     assert "## What each arm offered the link" in text
     assert (
         f"- wifi_degraded_manager_on: video recorded frames of each camera robot's route at each video level ({trace}"

@@ -378,7 +378,7 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
     fleet = fleet.with_robots(robots)
     selected = next(r.name for r in fleet.robots if r.has_depth_camera)
     duration_s = duration_s or (QUICK_DURATION_S if quick else DURATION_S)
-    rows, failures, sources = [], {}, {}
+    rows, failures, sources, capacities = [], {}, {}, {}
     video_trace = ensure_video_trace(fleet, os.path.join(run_root, "link_thesis"), reuse_runs, log)
     for thesis_run in runs():
         run_dir = os.path.abspath(os.path.join(run_root, "link_thesis", thesis_run.name))
@@ -390,6 +390,7 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
             log(f"[experiments] {exc}")
             continue
         sources[thesis_run.name] = summary.get("video_source", "not recorded (a run from before video_source)")
+        capacities[thesis_run.name] = summary.get("link_capacity", "not recorded (a run from before link_capacity)")
         f1_tolerant, f1_exact = score_map(summary.get("map_file"), fleet, run_dir)
         arm = {"scenario": thesis_run.scenario, "manager": "on" if thesis_run.manager else "off", "arm": thesis_run.arm}
         for row in measure_run(run_dir, robots, read_csv):
@@ -408,7 +409,7 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
     write_markdown(
         os.path.join(out_dir, "link_thesis.md"),
         TITLE,
-        markdown_sections(rows, failures, selected, duration_s, sources),
+        markdown_sections(rows, failures, selected, duration_s, sources, capacities),
     )
     plot(rows, os.path.join(out_dir, "link_thesis.png"))
     return {"rows": rows, "failures": failures}
@@ -532,9 +533,10 @@ def _at(row):
 TITLE = "link_thesis: the manager against running without it"
 
 
-def markdown_sections(rows, failures, selected, duration_s, video_sources=None):
-    """The report's sections under TITLE: setup, what drove the link in each arm, the issue's bar,
-    one sentence per difference, tables. `video_sources`: {run name: its mission's video source}."""
+def markdown_sections(rows, failures, selected, duration_s, video_sources=None, link_capacities=None):
+    """The report's sections under TITLE: setup, the arms, what drove the link in each arm, the
+    issue's bar, one sentence per difference, tables. `video_sources`, `link_capacities`: {run name:
+    its mission's video source / what its mission announced of the link's capacity}."""
     sections = [
         f"{ROBOTS} robots, paper profile with video, {duration_s:g} s missions on a {LINK} link running each "
         f"scenario; the operator watches {selected}. Phases are the scenario's spans of constant capacity. "
@@ -544,7 +546,8 @@ def markdown_sections(rows, failures, selected, duration_s, video_sources=None):
         "scenario's capacity. Machine-bound: robots' side, tissue, bridges and twin share 2 cores.",
         "## The arms",
         "\n".join(f"- `{arm}`: {ARM_LABELS[arm]}" for arm in ARMS)
-        + f"\n- the {REFERENCE_SCENARIO} reference: manager on, nothing announced (its link is constant)",
+        + f"\n- the {REFERENCE_SCENARIO} reference: manager on, nothing announced (its link is constant)"
+        + "".join(f"\n- {name}: link capacity {text}" for name, text in (link_capacities or {}).items()),
         "## What each arm offered the link",
         _sources_text(video_sources or {}),
         f"## The issue's bar ({JUDGED_SCENARIO}, {JUDGED_CAPACITY_MBPS:g} Mbit/s phase, judged on `{ARM_ANNOUNCED}`: "
