@@ -359,6 +359,40 @@ def test_selecting_a_robot_without_a_camera_is_refused_before_anything_starts(tm
     assert not (tmp_path / "out").exists()
 
 
+def test_announcing_the_link_capacity_without_a_tc_link_or_without_the_twin_is_refused_before_anything_starts(
+    tmp_path,
+):
+    from cps_bringup.cli import build_parser, run_mission
+
+    out = tmp_path / "out"
+    for argv, match in (
+        (["all", "--announce-link-capacity"], "use it with --link RATE or --link-scenario NAME"),
+        (["physical", "--link", "20mbit", "--announce-link-capacity"], "where the bandwidth manager runs"),
+    ):
+        args = build_parser().parse_args([*argv, "--out", str(out)])
+        with pytest.raises(BringupError, match=match):
+            run_mission(args, log=lambda _line: None)
+        assert not out.exists()
+
+
+def test_the_mission_result_says_what_the_budget_came_from_when_nothing_was_announced():
+    from types import SimpleNamespace
+
+    from cps_bringup.cli import _unannounced
+
+    link = SimpleNamespace(measured_mbps=55.24)
+    assert _unannounced(link, RunOptions(out_dir="/x")) == (
+        "not announced: the manager's budget from iperf3's 55.2 Mbit/s at the start"
+    )
+    assert (
+        _unannounced(None, RunOptions(out_dir="/x"))
+        == "not announced: the manager's budget from the configured capacity"
+    )
+    assert (
+        _unannounced(link, RunOptions(out_dir="/x", bandwidth_manager=False)) == "not announced (no bandwidth manager)"
+    )
+
+
 def test_a_video_trace_reaches_fleet_sim_only_when_asked():
     """--video-trace: fleet_sim's ~video_trace; without it no parameter (the cameras render live, and
     the launch files, written from the default plan, do not change)."""

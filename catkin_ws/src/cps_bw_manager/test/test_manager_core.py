@@ -127,6 +127,60 @@ def test_bad_settings_name_the_parameter(change, match):
         ManagerCore(["a"], dataclasses.replace(SETTINGS, **change))
 
 
+def test_an_announced_capacity_replaces_the_configured_one_as_the_budgets_basis():
+    core = _core()
+    for r in "ab":
+        core.on_limiter_status(r, 200000.0, 50.0, now_s=0.0)
+    assert core.allocate().budget_mbytes_per_s == pytest.approx(0.96 * 60.0 / 8)
+    assert core.capacity_source == "configured"
+    assert core.set_capacity_mbps(5.0, "tc scenario wifi_degraded")
+    assert core.available_mbps == 5.0
+    assert core.capacity_source == "announced by tc scenario wifi_degraded"
+    result = core.allocate()
+    assert result.budget_mbytes_per_s == pytest.approx(0.96 * 5.0 / 8)  # the reserve applied as before
+    assert result.allocated_mbytes_per_s <= result.budget_mbytes_per_s * (1 + 1e-9)
+    assert not core.set_capacity_mbps(5.0, "tc scenario wifi_degraded")  # the same: nothing changed
+    assert core.set_capacity_mbps(60.0, "tc scenario wifi_degraded")  # back up
+    assert core.allocate().budget_mbytes_per_s == pytest.approx(0.96 * 60.0 / 8)
+
+
+@pytest.mark.parametrize("bad", [math.nan, 0.0, -5.0, math.inf, -math.inf, None, "fast", True])
+def test_a_bad_announced_capacity_is_refused_and_the_last_good_one_kept(bad):
+    core = _core()
+    with pytest.raises(ValueError, match="not a capacity.*keeping the configured"):
+        core.set_capacity_mbps(bad, "modem")
+    assert core.available_mbps == 60.0 and core.invalid_inputs == 1
+    core.set_capacity_mbps(20.0, "modem")
+    with pytest.raises(ValueError, match="keeping 20 Mbit/s announced"):
+        core.set_capacity_mbps(bad, "modem")
+    assert core.available_mbps == 20.0 and core.invalid_inputs == 2
+    assert core.allocate().budget_mbytes_per_s == pytest.approx(0.96 * 20.0 / 8)
+
+
+def test_an_announced_capacity_bounds_the_estimator_and_restarts_it_there():
+    """With the estimator on, the announcement is its ceiling and new prior: a step down is
+    followed at once, a step up too (not probed up for), and no estimate goes above it."""
+    core = _core(estimator=DeliveryRateEstimator(initial_mbps=60.0))
+    for r in "ab":  # 15 Hz x 200 kB = 24 Mbit/s each forwarded, 160 Mbit/s offered
+        core.on_limiter_status(r, 200000.0, 50.0, 15.0, now_s=0.0)
+    core.on_link_stats(0.0, 48.0)
+    assert core.set_capacity_mbps(5.0, "tc", now_s=0.5)
+    assert core.available_mbps == 5.0 and core.estimator.line_rate_mbps == 5.0
+    assert core.capacity_source == "estimated online, at most the capacity announced by tc"
+    for i in range(2, 40):  # the link delivers all it can: nothing says it is wider
+        core.on_link_stats(0.5 * i, 5.0)
+        assert core.available_mbps <= 5.0 * (1 + 1e-9)
+    assert core.set_capacity_mbps(60.0, "tc", now_s=20.0)
+    assert core.available_mbps == 60.0
+    assert core.allocate().budget_mbytes_per_s == pytest.approx(0.96 * 60.0 / 8)
+
+
+def test_an_announcement_before_any_link_report_sets_the_estimators_prior():
+    core = _core(estimator=DeliveryRateEstimator(initial_mbps=60.0, min_mbps=1.0))
+    assert core.set_capacity_mbps(0.5, "modem")  # below the estimator's floor: the floor follows
+    assert core.available_mbps == 0.5 and core.estimator.min_mbps == 0.5
+
+
 def test_estimator_lowers_the_budget_when_the_link_saturates():
     core = _core(estimator=DeliveryRateEstimator(initial_mbps=60.0))
     for r in "ab":  # the limiters forward 15 Hz x 200 kB = 24 Mbit/s each, of 50 Hz offered

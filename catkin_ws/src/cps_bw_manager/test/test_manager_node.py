@@ -240,3 +240,40 @@ def test_link_down_pauses_the_allocation_and_up_resumes_it(graph, tmp_path):
         rows = list(csv.DictReader(stream))
     assert [(r["up"], r["outages"], r["peer"]) for r in rows] == [("0", "1", "robots"), ("1", "1", "robots")]
     assert float(rows[0]["since_s"]) == pytest.approx(down_at.to_sec(), abs=1e-3)
+
+
+def test_the_budget_follows_an_announced_link_capacity(ros, graph):
+    """/tissue/link_capacity as bringup's --announce-link-capacity publishes it: the budget, the
+    limiters' rates and allocation.csv follow it; a bad one is refused in the log, the last good kept."""
+    from std_msgs.msg import Float64
+
+    from cps_msgs.msg import LinkCapacity
+
+    rospy = graph.rospy
+    _wait_in_force(graph, lambda a: True, 20.0, "a first allocation on the configured 2 Mbit/s")
+    announce = rospy.Publisher("/tissue/link_capacity", LinkCapacity, queue_size=10, latch=True)
+    try:
+        announce.publish(LinkCapacity(capacity_mbps=1.0, source="test modem"))
+        msg = graph.allocation.wait(lambda m: m.available_mbps == 1.0, 10.0, "the budget from the announcement")
+        assert msg.budget_mbytes_per_s == pytest.approx(0.96 * 1.0 / 8)
+        # the limiters run rates that fit the announced budget (the sizes: measured or the levels' priors)
+        _wait_in_force(
+            graph,
+            lambda a: sum(x.bandwidth_mbytes_per_s for x in a.values()) <= 0.96 * 1.0 / 8 * (1 + 1e-9),
+            10.0,
+            "rates within the announced budget",
+        )
+        assert rospy.wait_for_message("/tissue/available_bandwidth", Float64, timeout=10.0).data == 1.0
+        for bad in (math.nan, 0.0, -1.0, math.inf):
+            announce.publish(LinkCapacity(capacity_mbps=bad, source="test modem"))
+        assert wait_for(lambda: ros.output("bandwidth_manager").count("is not a capacity") >= 4, 10.0), ros.output(
+            "bandwidth_manager"
+        )[-2000:]
+        published = graph.allocation.count
+        assert graph.allocation.wait_count(published + 2, timeout_s=10.0), "the manager stopped allocating"
+        assert graph.allocation.latest.available_mbps == 1.0  # the last good one kept
+    finally:
+        announce.unregister()
+    with open(graph.csv_path) as stream:
+        budgets = {r["available_mbps"] for r in csv.DictReader(stream)}
+    assert {"2.000", "1.000"} <= budgets

@@ -95,14 +95,19 @@ def test_a_robot_that_delivered_nothing_shows_zero_never_a_filled_in_figure(miss
     assert not any(r["robot"] == "iris" and r["stream"] == "video" for r in rows)  # no camera seen, none invented
 
 
-def test_the_issues_bar_is_judged_in_the_5_mbits_phase_with_the_manager_on(mission):
+ANNOUNCED = dict(manager="on", arm=link_thesis.ARM_ANNOUNCED)
+IPERF3 = dict(manager="on", arm=link_thesis.ARM_IPERF3)
+OFF = dict(manager="off", arm=link_thesis.ARM_OFF)
+
+
+def test_the_issues_bar_is_judged_in_the_5_mbits_phase_on_the_announced_arm_and_reported_for_the_other(mission):
     rows = [
-        dict(r, scenario="wifi_degraded", manager="on")
+        dict(r, scenario="wifi_degraded", **ANNOUNCED)
         for r in link_thesis.measure_run(str(mission), ["jackal"], read_csv)
     ]
     rows += [
-        {"scenario": "wifi_degraded", "manager": "on", "stream": "map", "f1_exact": 0.64, "f1_tolerant": 0.93},
-        {"scenario": "wifi_good", "manager": "on", "stream": "map", "f1_exact": 0.66, "f1_tolerant": 0.94},
+        {"scenario": "wifi_degraded", **ANNOUNCED, "stream": "map", "f1_exact": 0.64, "f1_tolerant": 0.93},
+        {"scenario": "wifi_good", **IPERF3, "stream": "map", "f1_exact": 0.66, "f1_tolerant": 0.94},
     ]
     verdict = link_thesis.judge(rows, "jackal")
     held = {k.split(" ")[0] + " " + k.split(" ")[1]: v for k, v in verdict.items()}
@@ -111,36 +116,73 @@ def test_the_issues_bar_is_judged_in_the_5_mbits_phase_with_the_manager_on(missi
     assert verdict["jackal's video ≥ 15 fps (lowest 10 s window)"] is False  # 5 fps at 5 Mbit/s
     assert verdict["jackal's video at ≥ 320x240"] is False  # 160x120
     assert verdict["F1 ≥ 95% of the wifi_good run's (both forms)"] is True
+    # The other manager-on arm is judged on its own rows only: here it has none but the reference's F1.
+    assert set(link_thesis.judge(rows, "jackal", link_thesis.ARM_IPERF3).values()) == {None}
+    # Its figures, once there, are its own verdict (the F1 ratio against the same reference).
+    rows += [{"scenario": "wifi_degraded", **IPERF3, "stream": "map", "f1_exact": 0.3, "f1_tolerant": 0.5}]
+    assert (
+        link_thesis.judge(rows, "jackal", link_thesis.ARM_IPERF3)["F1 ≥ 95% of the wifi_good run's (both forms)"]
+        is False
+    )
+    assert link_thesis.judge(rows, "jackal")["F1 ≥ 95% of the wifi_good run's (both forms)"] is True
 
 
 def test_differences_name_both_arms(mission):
     rows = []
-    for manager in ("on", "off"):
+    for arm in (ANNOUNCED, IPERF3, OFF):
         for r in link_thesis.measure_run(str(mission), ["jackal"], read_csv):
-            if manager == "off" and r["stream"] == "video":
+            if arm is OFF and r["stream"] == "video":
                 r = dict(r, fps_mean=r["fps_mean"] / 4, level="")
-            rows.append(dict(r, scenario="wifi_degraded", manager=manager))
+            rows.append(dict(r, scenario="wifi_degraded", **arm))
     sentences = link_thesis.differences(rows)
     video = [s for s in sentences if s.startswith("wifi_degraded, 60 Mbit/s @ 0-20 s: jackal's video")]
-    assert len(video) == 1 and "fps at 320x240 with the manager, 5.0 fps without" in video[0], sentences
+    assert len(video) == 2, sentences
+    assert "fps at 320x240 with the manager (on, announced), 5.0 fps without" in video[0], sentences
+    assert "fps at 320x240 with the manager (on, iperf3), 5.0 fps without" in video[1], sentences
     assert any("the robots offered" in s for s in sentences)
+    assert any("the manager's budget (on, announced) was" in s for s in sentences)
 
 
-def test_the_report_and_plot_are_written_with_both_arms(mission, tmp_path):
+def test_the_report_and_plot_are_written_with_every_arm(mission, tmp_path):
     rows = []
-    for manager in ("on", "off"):
+    for arm in (ANNOUNCED, IPERF3, OFF):
         rows += [
-            dict(r, scenario="wifi_degraded", manager=manager)
+            dict(r, scenario="wifi_degraded", **arm)
             for r in link_thesis.measure_run(str(mission), ["jackal"], read_csv)
         ]
     sections = link_thesis.markdown_sections(rows, {"shared_medium_manager_on": "exited 1\n..."}, "jackal", 80.0)
     text = "\n".join(sections)
     assert "## The issue's bar" in text and "not measured" in text  # no F1 rows: said, not guessed
+    judged = text.index("judged on `on_announced`: the manager on with the capacity announced")
+    reported = text.index("## The same bar for `on_iperf3`")
+    assert judged < reported and "reported, not judged" in text[reported:]
+    assert "- `on_announced`: manager on, capacity announced by the scenario" in text
     assert "shared_medium_manager_on: exited 1" in text
     link_thesis.plot(rows, str(tmp_path / "link_thesis.png"))
     assert (tmp_path / "link_thesis.png").stat().st_size > 10000
     jackal_video = _row([r for r in rows if r["manager"] == "on"], 5.0, "jackal", "video")
     assert jackal_video["received_mean_mbytes_per_s"] == 0.0  # stats.csv measured no video topic
+
+
+def test_each_scenario_has_three_arms_in_alternating_order_and_only_one_announces_the_capacity():
+    runs = link_thesis.runs()
+    assert [r.name for r in runs] == [
+        "wifi_good_manager_on_iperf3",
+        "wifi_degraded_manager_on_announced",
+        "wifi_degraded_manager_on_iperf3",
+        "wifi_degraded_manager_off",
+        "shared_medium_manager_off",
+        "shared_medium_manager_on_iperf3",
+        "shared_medium_manager_on_announced",
+    ]
+    assert [r.arm for r in runs[1:4]] == ["on_announced", "on_iperf3", "off"]
+    argvs = {r.name: link_thesis.mission_argv(r, ["scout", "jackal"], "jackal", "/runs/x", 80.0) for r in runs}
+    announcing = {name for name, argv in argvs.items() if "--announce-link-capacity" in argv}
+    assert announcing == {"wifi_degraded_manager_on_announced", "shared_medium_manager_on_announced"}
+    off = {name for name, argv in argvs.items() if "--bandwidth-manager" in argv}
+    assert off == {"wifi_degraded_manager_off", "shared_medium_manager_off"}
+    with pytest.raises(ValueError, match="needs the manager on"):
+        link_thesis.ThesisRun("wifi_degraded", False, announce_capacity=True)
 
 
 def test_both_arms_play_the_runs_recorded_video_and_the_report_says_what_drove_the_link():
@@ -158,7 +200,13 @@ def test_both_arms_play_the_runs_recorded_video_and_the_report_says_what_drove_t
         "wifi_degraded_manager_on": f"recorded frames of each camera robot's route at each video level ({trace}: ...)",
         "wifi_degraded_manager_off": "rendered live by the simulated cameras at the allocated level and rate",
     }
-    text = "\n".join(link_thesis.markdown_sections([], {}, "jackal", 80.0, sources))
+    capacities = {
+        "wifi_degraded_manager_on_announced": "announced on /tissue/link_capacity by tc scenario wifi_degraded: ...",
+        "wifi_degraded_manager_on_iperf3": "not announced: the manager's budget from iperf3's 55.2 Mbit/s at the start",
+    }
+    text = "\n".join(link_thesis.markdown_sections([], {}, "jackal", 80.0, sources, capacities))
+    assert "- wifi_degraded_manager_on_announced: link capacity announced on /tissue/link_capacity by tc" in text
+    assert "- wifi_degraded_manager_on_iperf3: link capacity not announced: the manager's budget from iperf3" in text
     assert "## What each arm offered the link" in text
     assert (
         f"- wifi_degraded_manager_on: video recorded frames of each camera robot's route at each video level ({trace}"

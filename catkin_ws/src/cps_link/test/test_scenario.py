@@ -72,3 +72,41 @@ def test_a_bad_file_names_its_line_and_the_problem(tmp_path, text, line, message
 def test_an_unknown_name_lists_the_known_ones():
     with pytest.raises(ConfigError, match="no scenario 'nosuch' \\(known: .*wifi_good"):
         load_scenario("nosuch")
+
+
+def test_the_runner_announces_the_initial_rate_and_never_a_step_it_could_not_apply(tmp_path):
+    """on_rate hears the rate at start; a rate step that failed (here: no such link) and an
+    outage are not announced: an outage is not a capacity of 0."""
+    from cps_link.scenario import ScenarioRunner
+
+    path = _write(
+        tmp_path,
+        "steps",
+        "initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 0, rate_mbps: 5}\n  - {at_s: 0, outage_s: 0.01}\n",
+    )
+    announced, lines = [], []
+    runner = ScenarioRunner(
+        "nosuchlink", load_scenario(str(path)), log=lines.append, netem=False, on_rate=lambda t, r: announced.append(r)
+    )
+    runner.start()
+    runner._thread.join(10.0)  # every event is at 0-0.01 s: the thread ends by itself
+    runner.stop()
+    assert announced == [60.0]
+    assert [kind for _, kind, _, _ in runner.applied] == ["start", "shape", "cut", "restore"]
+    assert len(runner.errors) == 3 and all("nosuchlink" in e for e in runner.errors), runner.errors
+
+
+def test_a_failing_announcement_is_logged_and_the_scenario_goes_on(tmp_path):
+    from cps_link.scenario import ScenarioRunner
+
+    path = _write(tmp_path, "flat", "initial: {rate_mbps: 20}\n")
+
+    def broken(mission_s, rate_mbps):
+        raise RuntimeError("publisher gone")
+
+    lines = []
+    runner = ScenarioRunner("nosuchlink", load_scenario(str(path)), log=lines.append, netem=False, on_rate=broken)
+    runner.start()
+    runner.stop()
+    assert runner.errors == ["announcing 20 Mbit/s failed: publisher gone"]
+    assert any("announcing 20 Mbit/s failed" in line for line in lines)

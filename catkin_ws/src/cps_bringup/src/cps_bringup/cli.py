@@ -75,6 +75,7 @@ class MissionResult:
     restarts: Dict[str, int]
     host_split: str = "no host split (not asked)"
     video_source: str = "not recorded"
+    link_capacity: str = "not recorded"
 
 
 def build_parser():
@@ -109,6 +110,13 @@ def build_parser():
         metavar="NAME",
         help="run a cps_link scenario (capacity steps, outages; cps_link/config/scenarios/NAME.yaml "
         "or a path) on the link during the mission; implies --link at its initial rate",
+    )
+    parser.add_argument(
+        "--announce-link-capacity",
+        action="store_true",
+        help="publish the link's capacity as tc sets it (the scenario's initial rate, then each rate step; "
+        "never an outage) on /tissue/link_capacity, where the bandwidth manager makes its budget from it: "
+        "the paper's known-capacity assumption (needs --link or --link-scenario, and the twin's side here)",
     )
     parser.add_argument(
         "--transport",
@@ -314,6 +322,7 @@ def run_mission(args, log=print) -> MissionResult:
     video_trace, video_source = _checked_video_trace(
         getattr(args, "video_trace", None), fleet, sides, args, replay_path
     )
+    announce = _checked_announce(args, sides)
     os.makedirs(out_dir, exist_ok=True)
     removed = clear_previous_mission(out_dir, sides)
     if removed:
@@ -438,7 +447,19 @@ def run_mission(args, log=print) -> MissionResult:
         if DIGITAL in sides:
             _record_map_server_ready(supervisor)
         recorder_log = supervisor.log_of(RECORDER)
-        runner = link.start_scenario(os.path.join(out_dir, "link_events.csv"), log) if link else None
+        if announce:
+            from cps_bringup.link import CapacityAnnouncer
+
+            announcer = CapacityAnnouncer(link, log)
+        else:
+            announcer = None
+        runner = (
+            link.start_scenario(os.path.join(out_dir, "link_events.csv"), log, on_rate=announcer and announcer.on_rate)
+            if link
+            else None
+        )
+        if announcer and not runner:
+            announcer.announce_fixed_rate()
         if runner:
             stack.callback(runner.stop)
         monitor = MissionMonitor(
@@ -488,6 +509,7 @@ def run_mission(args, log=print) -> MissionResult:
             supervisor.restarts(),
             split.describe(),
             video_source,
+            announcer.describe() if announcer else _unannounced(link, options),
         )
 
 
@@ -569,6 +591,32 @@ def check_monitoring_inputs(args, fleet, sides):
         except ConfigError as exc:
             raise BringupError(f"--site-changes: {exc}") from exc
     return baseline, changes
+
+
+def _checked_announce(args, sides):
+    """True for --announce-link-capacity on a run that can honour it; BringupError, before anything
+    starts, when there is no tc link to announce or the manager's side is not run here."""
+    if not getattr(args, "announce_link_capacity", False):
+        return False
+    if args.link in (None, "", "none") and not getattr(args, "link_scenario", None):
+        raise BringupError(
+            "--announce-link-capacity announces the tc link's rate: use it with --link RATE or --link-scenario NAME"
+        )
+    if DIGITAL not in sides:
+        raise BringupError(
+            "--announce-link-capacity publishes on the twin's master, where the bandwidth manager runs: "
+            "use it with `all` or `digital`"
+        )
+    return True
+
+
+def _unannounced(link, options):
+    """What the manager's budget was made from when no capacity was announced."""
+    if not options.bandwidth_manager:
+        return "not announced (no bandwidth manager)"
+    if link:
+        return f"not announced: the manager's budget from iperf3's {link.measured_mbps:.1f} Mbit/s at the start"
+    return "not announced: the manager's budget from the configured capacity"
 
 
 def _checked_video_trace(path, fleet, sides, args, replay_path):

@@ -49,14 +49,17 @@ class NamespacedLink:
     def netns_path(self, side):
         return f"/var/run/netns/{namespace(self.name, side)}"
 
-    def start_scenario(self, csv_path, log=print):
-        """Start the scenario's runner (mission time 0 is now); returns it, or None without one."""
+    def start_scenario(self, csv_path, log=print, on_rate=None):
+        """Start the scenario's runner (mission time 0 is now); returns it, or None without one.
+        `on_rate(mission_s, rate_mbps)`: told the rate at start and at each applied rate step."""
         if self.scenario is None:
             return None
         from cps_fleet.csv_log import CsvLog
         from cps_link.scenario import LINK_EVENTS_COLUMNS, ScenarioRunner
 
-        runner = ScenarioRunner(self.name, self.scenario, CsvLog(csv_path, LINK_EVENTS_COLUMNS), log=log)
+        runner = ScenarioRunner(
+            self.name, self.scenario, CsvLog(csv_path, LINK_EVENTS_COLUMNS), log=log, on_rate=on_rate
+        )
         runner.start()
         return runner
 
@@ -67,6 +70,45 @@ class NamespacedLink:
             f"{namespace(self.name, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s"
             + (f"; scenario {self.scenario.name}" if self.scenario else "")
         )
+
+
+class CapacityAnnouncer:
+    """Publishes the link's capacity as tc sets it on names.LINK_CAPACITY (cps_msgs/LinkCapacity,
+    latched) on this process's master, the twin's, where the bandwidth manager runs: what a link
+    that knows its rate (a modem, a Wi-Fi driver) would announce. rospy must be up."""
+
+    def __init__(self, link, log=print):
+        import rospy
+
+        from cps_fleet import names
+        from cps_msgs.msg import LinkCapacity
+
+        self.link, self.log = link, log
+        self.source = f"tc scenario {link.scenario.name}" if link.scenario else f"tc link {link.rate}"
+        self.announced = []  # (mission s, Mbit/s)
+        self._msg = LinkCapacity
+        self._pub = rospy.Publisher(names.LINK_CAPACITY, LinkCapacity, queue_size=10, latch=True)
+
+    def on_rate(self, mission_s, rate_mbps):
+        import rospy
+
+        msg = self._msg(capacity_mbps=float(rate_mbps), source=self.source)
+        msg.header.stamp = rospy.Time.now()
+        self._pub.publish(msg)
+        self.announced.append((mission_s, float(rate_mbps)))
+        self.log(f"[link] {mission_s:6.1f} s: announced {rate_mbps:g} Mbit/s on {self._pub.resolved_name}")
+
+    def announce_fixed_rate(self):
+        """A link without a scenario: its tc rate, once, at the start."""
+        from cps_link.netns_link import rate_bits_per_s
+
+        self.on_rate(0.0, rate_bits_per_s(self.link.rate) / 1e6)
+
+    def describe(self):
+        if not self.announced:
+            return f"announce asked, nothing announced ({self.source})"
+        steps = ", ".join(f"{mbps:g} Mbit/s at {t:.0f} s" for t, mbps in self.announced)
+        return f"announced on {self._pub.resolved_name} by {self.source}: {steps}"
 
 
 class InNamespace:

@@ -207,6 +207,23 @@ class DeliveryRateEstimator:
         self.estimate_mbps = self.capacity_mbps
         self.congested = self.receiver_behind = False
 
+    def announce(self, capacity_mbps, now_s=None):
+        """Who knows the link's capacity announced it: it becomes the ceiling (the line rate) and
+        the new prior, so the estimate follows a step at once in either direction and goes below
+        it only on evidence (an overuse: cross traffic the announcement does not know of). The
+        per-interval state restarts as after an outage (`now_s`: None keeps the last report's time)."""
+        mbps = float(capacity_mbps)
+        if not math.isfinite(mbps) or mbps <= 0:
+            raise ValueError(f"announced capacity must be a finite number > 0 Mbit/s, got {capacity_mbps!r}")
+        self.line_rate_mbps = mbps
+        self.min_mbps = min(self.min_mbps, mbps)
+        self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = mbps
+        now_s = self._last_now_s if now_s is None else now_s
+        if now_s is None:  # no report yet: nothing per interval to restart
+            self.estimate_mbps = self.capacity_mbps
+        else:
+            self.resume(now_s)
+
     def _reject(self, r):
         """The reason a report is unusable, or None."""
         values = (r.now_s, r.interval_s, r.delivered_mbps)

@@ -172,6 +172,10 @@ class ManagerCore:
         self.selected_robot = ""
         self.teleop = set()
         self._capacity = (math.nan, -math.inf)  # (clouds/s, reported at s)
+        # The link capacity announced by who knows it (Mbit/s, NaN: none) and who; it replaces
+        # settings.available_mbps as the budget's basis (set_capacity_mbps).
+        self.announced_mbps = math.nan
+        self.announced_source = ""
         self._now_s = -math.inf
         self.last_demands: Dict[tuple, StreamDemand] = {}
 
@@ -202,7 +206,45 @@ class ManagerCore:
 
     @property
     def available_mbps(self):
-        return self.estimator.estimate_mbps if self.estimator else self.settings.available_mbps
+        """The capacity the budget is made from: the estimate (if on), else the announced
+        capacity, else the configured one."""
+        if self.estimator:
+            return self.estimator.estimate_mbps
+        return self.announced_mbps if _positive(self.announced_mbps) else self.settings.available_mbps
+
+    @property
+    def capacity_source(self):
+        """Where available_mbps comes from, in words."""
+        announced = f"announced by {self.announced_source or 'an unnamed source'}"
+        if self.estimator:
+            return "estimated online" + (
+                f", at most the capacity {announced}" if _positive(self.announced_mbps) else ""
+            )
+        return announced if _positive(self.announced_mbps) else "configured"
+
+    def set_capacity_mbps(self, capacity_mbps, source="", now_s=None):
+        """The link's capacity announced by who knows it (cps_msgs/LinkCapacity): from the next
+        allocation the budget is made from it (reserve and headroom as before) instead of the
+        configured capacity. With the estimator on it becomes the estimator's ceiling and new prior
+        (DeliveryRateEstimator.announce). NaN, infinite or <= 0 is refused (ValueError, counted)
+        and the last good one kept: a capacity of 0 is an outage, /tissue/link_state's to report.
+        Returns True if the capacity changed."""
+        try:
+            value = float(capacity_mbps)
+        except (TypeError, ValueError):
+            value = math.nan
+        if isinstance(capacity_mbps, bool) or not _positive(value):
+            self.invalid_inputs += 1
+            kept = f"{self.announced_mbps:g} Mbit/s announced" if _positive(self.announced_mbps) else "the configured"
+            raise ValueError(
+                f"announced link capacity {capacity_mbps!r} Mbit/s from {source or 'an unnamed source'} is not a "
+                f"capacity (finite and > 0); keeping {kept} capacity"
+            )
+        changed = value != self.announced_mbps
+        self.announced_mbps, self.announced_source = value, str(source)
+        if self.estimator and changed:
+            self.estimator.announce(value, now_s)
+        return changed
 
     def on_limiter_status(
         self,

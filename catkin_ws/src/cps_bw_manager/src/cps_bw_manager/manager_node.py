@@ -26,6 +26,7 @@ from cps_msgs.msg import (
     BandwidthAllocation,
     BandwidthAllocationArray,
     InsertCapacity,
+    LinkCapacity,
     LinkState,
     RateLimiterStatus,
     TopicStatsArray,
@@ -156,12 +157,13 @@ class BandwidthManagerNode:
         )
         self.subs.append(rospy.Subscriber(names.TISSUE_STATS, TopicStatsArray, self._on_stats, queue_size=2))
         self.subs.append(rospy.Subscriber(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10))
+        self.subs.append(rospy.Subscriber(names.LINK_CAPACITY, LinkCapacity, self._on_link_capacity, queue_size=10))
         self.service = rospy.Service(names.SET_PRIORITY, SetPriority, self._on_set_priority)
         rospy.loginfo(
             "bandwidth manager: robots %s, %.1f Mbit/s (%s), reserve %.0f %%, rates %.1f..%.1f Hz",
             ", ".join(self.core.robots),
             settings.available_mbps,
-            "estimated online" if estimator else "configured",
+            self.core.capacity_source,
             100 * settings.reserve_fraction,
             settings.min_rate_hz,
             settings.max_rate_hz,
@@ -263,6 +265,24 @@ class BandwidthManagerNode:
             )
             if self.link_csv:
                 self.link_csv.write(link_state_csv_row(rospy.get_time(), self.core.link, available))
+            self.update()
+
+    def _on_link_capacity(self, msg):
+        """An announced link capacity: the budget's basis from the next allocation (made now)."""
+        try:
+            with self.lock:
+                changed = self.core.set_capacity_mbps(msg.capacity_mbps, msg.source, now_s=rospy.get_time())
+                available = self.core.available_mbps
+        except ValueError as exc:
+            rospy.logerr(f"bandwidth manager: {exc} ({self.core.invalid_inputs} bad inputs so far)")
+            return
+        if changed:
+            rospy.loginfo(
+                "bandwidth manager: link capacity %.3g Mbit/s announced by %s; allocating from %.3g Mbit/s",
+                msg.capacity_mbps,
+                msg.source or "an unnamed source",
+                available,
+            )
             self.update()
 
     def _on_set_priority(self, req):

@@ -27,6 +27,7 @@ with open(sys.argv[1], "w") as stream:
     p = result.progress
     json.dump({"ended_by": result.ended_by, "elapsed_s": result.elapsed_s, "link": result.link,
                "map_file": result.map_file, "restarts": result.restarts, "video_source": result.video_source,
+               "link_capacity": result.link_capacity,
                "trajectories": {r: [list(map(float, q)) for q in t] for r, t in p.trajectories.items()},
                "clouds_inserted": dict(p.clouds_inserted), "clouds_dropped": dict(p.clouds_dropped),
                "clouds_superseded": dict(p.clouds_superseded),

@@ -1,8 +1,14 @@
 """`link_thesis`: does the bandwidth manager earn its place when the link is the bottleneck?
 
 Four robots, the paper profile with video, over the `wifi_degraded` (60 -> 20 -> 5 -> 60 Mbit/s)
-and `shared_medium` scenarios, the manager on and off alternating in the same run, beside a
-`wifi_good` reference for the map's F1. Every figure is read back from the files each mission
+and `shared_medium` scenarios, three arms each in alternating order, beside a `wifi_good` reference
+for the map's F1 (ARMS):
+- the manager off;
+- the manager on with the link's capacity announced by the scenario (bringup
+  --announce-link-capacity: each tc rate step on /tissue/link_capacity): the paper's known-capacity
+  assumption, the arm the issue's bar is judged on;
+- the manager on without it (today's default): its budget from iperf3's figure at the start,
+  whatever the scenario does later; the bar is reported for it too, not judged. Every figure is read back from the files each mission
 wrote, per phase of constant capacity:
 - per stream (a robot's cloud or video): delivered fps (mean, and the lowest 10 s window), the level
   the manager set, latency p50/p95 (receive - capture stamp, per frame and per cloud), staleness
@@ -41,7 +47,8 @@ QUICK_DURATION_S = 30.0
 LINK = "60mbit"
 FPS_WINDOW_S = 10.0  # "every robot's clouds >= 1 Hz in every 10 s window"
 STALENESS_TICK_S = 1.0
-# The issue's bar, judged in wifi_degraded's 5 Mbit/s phase with the manager on.
+# The issue's bar, judged in wifi_degraded's 5 Mbit/s phase with the manager on and the capacity
+# announced (ARM_ANNOUNCED); reported for the manager on without it (ARM_IPERF3).
 JUDGED_SCENARIO, JUDGED_CAPACITY_MBPS = "wifi_degraded", 5.0
 TELEOP_P95_TARGET_MS = 50.0
 VIDEO_FPS_TARGET = 15.0
@@ -49,25 +56,48 @@ VIDEO_P95_TARGET_MS = 200.0
 CLOUD_MIN_HZ_TARGET = 1.0
 F1_FRACTION_TARGET = 0.95
 STREAMS = ("cloud", "video")
+# The arms (link_thesis.csv's `arm` column): the manager off; on with the capacity announced by the
+# scenario (the paper's known-capacity assumption); on with iperf3's figure at the start (the default).
+ARM_OFF, ARM_ANNOUNCED, ARM_IPERF3 = "off", "on_announced", "on_iperf3"
+ARMS = (ARM_ANNOUNCED, ARM_IPERF3, ARM_OFF)
+ARM_LABELS = {
+    ARM_OFF: "manager off",
+    ARM_ANNOUNCED: "manager on, capacity announced by the scenario (the paper's known-capacity assumption)",
+    ARM_IPERF3: "manager on, capacity from iperf3 at the start (not announced; today's default)",
+}
+ARM_SHORT = {ARM_OFF: "off", ARM_ANNOUNCED: "on, announced", ARM_IPERF3: "on, iperf3"}
 
 
 @dataclasses.dataclass(frozen=True)
 class ThesisRun:
     scenario: str
     manager: bool
+    # The scenario announces the link's capacity to the manager (--announce-link-capacity).
+    announce_capacity: bool = False
+
+    def __post_init__(self):
+        if self.announce_capacity and not self.manager:
+            raise ValueError("announcing the capacity needs the manager on")
+
+    @property
+    def arm(self):
+        return ARM_OFF if not self.manager else ARM_ANNOUNCED if self.announce_capacity else ARM_IPERF3
 
     @property
     def name(self):
-        return f"{self.scenario}_manager_{'on' if self.manager else 'off'}"
+        """The run's folder: `<scenario>_manager_<arm>`."""
+        return f"{self.scenario}_manager_{self.arm}"
 
 
 def runs(scenarios=SCENARIOS) -> List[ThesisRun]:
-    """The reference, then each scenario's two arms, their order alternating between scenarios so
-    neither arm always runs first (on a warm or a cold machine)."""
+    """The reference (manager on, nothing announced: its link is constant), then each scenario's
+    three arms, their order reversed from one scenario to the next so that no arm always runs
+    first or last (on a warm or a cold machine)."""
     out = [ThesisRun(REFERENCE_SCENARIO, True)]
+    arms = (ThesisRun("", True, True), ThesisRun("", True), ThesisRun("", False))
     for i, scenario in enumerate(scenarios):
-        arms = (True, False) if i % 2 == 0 else (False, True)
-        out += [ThesisRun(scenario, manager) for manager in arms]
+        ordered = arms if i % 2 == 0 else arms[::-1]
+        out += [dataclasses.replace(arm, scenario=scenario) for arm in ordered]
     return out
 
 
@@ -91,6 +121,8 @@ def mission_argv(run: ThesisRun, robots, selected_robot, out_dir, duration_s, vi
     ]
     if not run.manager:
         argv += ["--bandwidth-manager", "off"]
+    if run.announce_capacity:
+        argv += ["--announce-link-capacity"]
     if video_trace:
         argv += ["--video-trace", video_trace]
     return argv
@@ -255,8 +287,9 @@ def measure_run(run_dir, robots, read_csv):
     allocation_path = os.path.join(run_dir, "allocation.csv")
     allocation_rows = read_csv(allocation_path) if os.path.exists(allocation_path) else []
     levels = stream_levels(allocation_rows)
-    # The budget the manager worked with (from its available_mbps: iperf3's figure, or its estimate
-    # when estimate_bandwidth is on), beside the capacity the scenario set.
+    # The budget the manager worked with (from its available_mbps: the capacity the scenario announced
+    # in the announced arm, else iperf3's figure at the start, or its estimate when estimate_bandwidth
+    # is on), beside the capacity the scenario set.
     budgets = sorted({(csv_float(r.get("stamp_s")), csv_float(r.get("budget_mbytes_per_s"))) for r in allocation_rows})
     ends = [a[-1, 0] for a in arrivals.values() if len(a)] + [t for t in received]
     phases = capacity_phases(events, max(ends) if ends else 0.0)
@@ -305,6 +338,7 @@ def measure_run(run_dir, robots, read_csv):
 COLUMNS = (
     "scenario",
     "manager",
+    "arm",
     "phase",
     "capacity_mbps",
     "phase_s",
@@ -344,7 +378,7 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
     fleet = fleet.with_robots(robots)
     selected = next(r.name for r in fleet.robots if r.has_depth_camera)
     duration_s = duration_s or (QUICK_DURATION_S if quick else DURATION_S)
-    rows, failures, sources = [], {}, {}
+    rows, failures, sources, capacities = [], {}, {}, {}
     video_trace = ensure_video_trace(fleet, os.path.join(run_root, "link_thesis"), reuse_runs, log)
     for thesis_run in runs():
         run_dir = os.path.abspath(os.path.join(run_root, "link_thesis", thesis_run.name))
@@ -356,14 +390,15 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
             log(f"[experiments] {exc}")
             continue
         sources[thesis_run.name] = summary.get("video_source", "not recorded (a run from before video_source)")
+        capacities[thesis_run.name] = summary.get("link_capacity", "not recorded (a run from before link_capacity)")
         f1_tolerant, f1_exact = score_map(summary.get("map_file"), fleet, run_dir)
+        arm = {"scenario": thesis_run.scenario, "manager": "on" if thesis_run.manager else "off", "arm": thesis_run.arm}
         for row in measure_run(run_dir, robots, read_csv):
-            row.update(scenario=thesis_run.scenario, manager="on" if thesis_run.manager else "off")
+            row.update(arm)
             rows.append(row)
         rows.append(
             {
-                "scenario": thesis_run.scenario,
-                "manager": "on" if thesis_run.manager else "off",
+                **arm,
                 "phase": "mission",
                 "stream": "map",
                 "f1_exact": f1_exact,
@@ -374,7 +409,7 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
     write_markdown(
         os.path.join(out_dir, "link_thesis.md"),
         TITLE,
-        markdown_sections(rows, failures, selected, duration_s, sources),
+        markdown_sections(rows, failures, selected, duration_s, sources, capacities),
     )
     plot(rows, os.path.join(out_dir, "link_thesis.png"))
     return {"rows": rows, "failures": failures}
@@ -386,15 +421,17 @@ def _cell(value):
     return value
 
 
-def judge(rows, selected):
-    """The issue's bar in wifi_degraded's 5 Mbit/s phase, manager on: {condition: held (bool) or None
-    when not measured}."""
-    on = [r for r in rows if r.get("scenario") == JUDGED_SCENARIO and r.get("manager") == "on"]
+def judge(rows, selected, arm=ARM_ANNOUNCED):
+    """The issue's bar in wifi_degraded's 5 Mbit/s phase for one manager-on `arm` (the bar's own:
+    ARM_ANNOUNCED; ARM_IPERF3 to report it for the other): {condition: held (bool) or None when not
+    measured}. The F1 reference is the wifi_good run's."""
+    on = [r for r in rows if r.get("scenario") == JUDGED_SCENARIO and r.get("arm") == arm]
     phase = [r for r in on if r.get("capacity_mbps") == JUDGED_CAPACITY_MBPS]
     link = next((r for r in phase if r["stream"] == "link"), None)
     video = next((r for r in phase if r["stream"] == "video" and r["robot"] == selected), None)
     clouds = [r for r in phase if r["stream"] == "cloud"]
-    f1 = {r["scenario"]: r for r in rows if r.get("stream") == "map" and r.get("manager") == "on"}
+    f1 = {r["scenario"]: r for r in on if r.get("stream") == "map"}
+    f1.update({r["scenario"]: r for r in rows if r.get("stream") == "map" and r.get("scenario") == REFERENCE_SCENARIO})
 
     def held(value, ok):
         return None if value is None or (isinstance(value, float) and math.isnan(value)) else bool(ok(value))
@@ -426,47 +463,56 @@ def judge(rows, selected):
 
 
 def differences(rows):
-    """One sentence per difference between the arms, per scenario and phase (streams whose fps,
-    latency p95 or level differ; the link's offered load and teleop p95; the map's F1)."""
+    """One sentence per difference between each manager-on arm and the manager off, per scenario
+    and phase (streams whose fps, latency p95 or level differ; the link's offered load and teleop
+    p95; the map's F1); each sentence names its manager-on arm."""
     by_key = defaultdict(dict)
     for r in rows:
-        by_key[(r.get("scenario"), r.get("phase"), r.get("robot", ""), r.get("stream"))][r.get("manager")] = r
+        by_key[(r.get("scenario"), r.get("phase"), r.get("robot", ""), r.get("stream"))][r.get("arm")] = r
     out = []
     for (scenario, phase, robot, stream), arms in sorted(by_key.items(), key=lambda kv: tuple(map(str, kv[0]))):
-        if "on" not in arms or "off" not in arms or scenario == REFERENCE_SCENARIO:
+        if ARM_OFF not in arms or scenario == REFERENCE_SCENARIO:
             continue
-        on, off = arms["on"], arms["off"]
-        where = f"{scenario}, {phase}"
-        if stream in STREAMS:
-            what = f"{robot}'s {stream}"
-            if _differ(on["fps_mean"], off["fps_mean"], 0.1) or on.get("level") != off.get("level"):
-                out.append(
-                    f"{where}: {what} ran at {_fmt(on['fps_mean'])} fps{_at(on)} with the manager, "
-                    f"{_fmt(off['fps_mean'])} fps{_at(off)} without (lowest {FPS_WINDOW_S:g} s window "
-                    f"{_fmt(on['fps_min_window'])} vs {_fmt(off['fps_min_window'])})."
-                )
-            if _differ(on["latency_p95_ms"], off["latency_p95_ms"], 0.2):
-                out.append(
-                    f"{where}: {what} latency p95 {_fmt(on['latency_p95_ms'], 0)} ms with the manager, "
-                    f"{_fmt(off['latency_p95_ms'], 0)} ms without."
-                )
-        elif stream == "link":
+        off = arms[ARM_OFF]
+        for arm in (ARM_ANNOUNCED, ARM_IPERF3):
+            if arm in arms:
+                out += _arm_differences(f"{scenario}, {phase}", scenario, robot, stream, arms[arm], off, arm)
+    return out
+
+
+def _arm_differences(where, scenario, robot, stream, on, off, arm):
+    manager = f"with the manager ({ARM_SHORT[arm]})"
+    out = []
+    if stream in STREAMS:
+        what = f"{robot}'s {stream}"
+        if _differ(on["fps_mean"], off["fps_mean"], 0.1) or on.get("level") != off.get("level"):
             out.append(
-                f"{where}: the manager's budget was {_fmt(on['manager_budget_mbytes_per_s'], 2)} MB/s for a capacity of "
-                f"{_fmt(on['capacity_mbytes_per_s'], 3)} MB/s."
+                f"{where}: {what} ran at {_fmt(on['fps_mean'])} fps{_at(on)} {manager}, "
+                f"{_fmt(off['fps_mean'])} fps{_at(off)} without (lowest {FPS_WINDOW_S:g} s window "
+                f"{_fmt(on['fps_min_window'])} vs {_fmt(off['fps_min_window'])})."
             )
+        if _differ(on["latency_p95_ms"], off["latency_p95_ms"], 0.2):
             out.append(
-                f"{where}: the robots offered {_fmt(on['offered_mean_mbytes_per_s'], 2)} MB/s with the manager "
-                f"({on['offered_over_capacity_windows']} of {on['windows']} windows over capacity), "
-                f"{_fmt(off['offered_mean_mbytes_per_s'], 2)} MB/s without ({off['offered_over_capacity_windows']} of "
-                f"{off['windows']}); teleop p95 {_fmt(on['teleop_p95_ms'], 0)} vs {_fmt(off['teleop_p95_ms'], 0)} ms."
+                f"{where}: {what} latency p95 {_fmt(on['latency_p95_ms'], 0)} ms {manager}, "
+                f"{_fmt(off['latency_p95_ms'], 0)} ms without."
             )
-        elif stream == "map":
-            out.append(
-                f"{scenario}: the map's F1 with the manager {_fmt(on['f1_exact'], 3)} voxel for voxel and "
-                f"{_fmt(on['f1_tolerant'], 3)} within ±1 voxel; without {_fmt(off['f1_exact'], 3)} and "
-                f"{_fmt(off['f1_tolerant'], 3)}."
-            )
+    elif stream == "link":
+        out.append(
+            f"{where}: the manager's budget ({ARM_SHORT[arm]}) was {_fmt(on['manager_budget_mbytes_per_s'], 2)} MB/s "
+            f"for a capacity of {_fmt(on['capacity_mbytes_per_s'], 3)} MB/s."
+        )
+        out.append(
+            f"{where}: the robots offered {_fmt(on['offered_mean_mbytes_per_s'], 2)} MB/s {manager} "
+            f"({on['offered_over_capacity_windows']} of {on['windows']} windows over capacity), "
+            f"{_fmt(off['offered_mean_mbytes_per_s'], 2)} MB/s without ({off['offered_over_capacity_windows']} of "
+            f"{off['windows']}); teleop p95 {_fmt(on['teleop_p95_ms'], 0)} vs {_fmt(off['teleop_p95_ms'], 0)} ms."
+        )
+    elif stream == "map":
+        out.append(
+            f"{scenario}: the map's F1 {manager} {_fmt(on['f1_exact'], 3)} voxel for voxel and "
+            f"{_fmt(on['f1_tolerant'], 3)} within ±1 voxel; without {_fmt(off['f1_exact'], 3)} and "
+            f"{_fmt(off['f1_tolerant'], 3)}."
+        )
     return out
 
 
@@ -487,9 +533,10 @@ def _at(row):
 TITLE = "link_thesis: the manager against running without it"
 
 
-def markdown_sections(rows, failures, selected, duration_s, video_sources=None):
-    """The report's sections under TITLE: setup, what drove the link in each arm, the issue's bar,
-    one sentence per difference, tables. `video_sources`: {run name: its mission's video source}."""
+def markdown_sections(rows, failures, selected, duration_s, video_sources=None, link_capacities=None):
+    """The report's sections under TITLE: setup, the arms, what drove the link in each arm, the
+    issue's bar, one sentence per difference, tables. `video_sources`, `link_capacities`: {run name:
+    its mission's video source / what its mission announced of the link's capacity}."""
     sections = [
         f"{ROBOTS} robots, paper profile with video, {duration_s:g} s missions on a {LINK} link running each "
         f"scenario; the operator watches {selected}. Phases are the scenario's spans of constant capacity. "
@@ -497,15 +544,19 @@ def markdown_sections(rows, failures, selected, duration_s, video_sources=None):
         f"stamp; staleness: age of the newest delivered message, sampled every {STALENESS_TICK_S:g} s; "
         f"offered/received: {INGRESS_WINDOW_S:g} s windows on the robots' side / at the twin, against the "
         "scenario's capacity. Machine-bound: robots' side, tissue, bridges and twin share 2 cores.",
+        "## The arms",
+        "\n".join(f"- `{arm}`: {ARM_LABELS[arm]}" for arm in ARMS)
+        + f"\n- the {REFERENCE_SCENARIO} reference: manager on, nothing announced (its link is constant)"
+        + "".join(f"\n- {name}: link capacity {text}" for name, text in (link_capacities or {}).items()),
         "## What each arm offered the link",
         _sources_text(video_sources or {}),
-        "## The issue's bar (wifi_degraded, 5 Mbit/s phase, manager on)",
-        "\n".join(
-            f"- {condition}: {'held' if held else ('not measured' if held is None else 'NOT held')}"
-            for condition, held in judge(rows, selected).items()
-        ),
-        "## Differences between the arms",
-        "\n".join(f"- {s}" for s in differences(rows)) or "- no run had both arms",
+        f"## The issue's bar ({JUDGED_SCENARIO}, {JUDGED_CAPACITY_MBPS:g} Mbit/s phase, judged on `{ARM_ANNOUNCED}`: "
+        "the manager on with the capacity announced)",
+        _verdict_text(judge(rows, selected, ARM_ANNOUNCED)),
+        f"## The same bar for `{ARM_IPERF3}` (the manager on with iperf3's figure at the start; reported, not judged)",
+        _verdict_text(judge(rows, selected, ARM_IPERF3)),
+        "## Differences between the arms (each manager-on arm against the manager off)",
+        "\n".join(f"- {s}" for s in differences(rows)) or "- no run had the manager off and on",
     ]
     for title, stream in (("Streams", STREAMS), ("Link and teleop", ("link",)), ("Map", ("map",))):
         table = [r for r in rows if r.get("stream") in stream]
@@ -519,6 +570,13 @@ def markdown_sections(rows, failures, selected, duration_s, video_sources=None):
         sections += ["## Runs that failed", "\n".join(f"- {n}: {why.splitlines()[0]}" for n, why in failures.items())]
     sections.append("![link_thesis](link_thesis.png)")
     return sections
+
+
+def _verdict_text(verdict):
+    return "\n".join(
+        f"- {condition}: {'held' if held else ('not measured' if held is None else 'NOT held')}"
+        for condition, held in verdict.items()
+    )
 
 
 def _sources_text(video_sources):
@@ -540,9 +598,9 @@ def _text(value):
 
 
 def plot(rows, png_path):
-    """Per scenario, each phase's offered and received load against the capacity, both arms; and,
+    """Per scenario, each phase's offered and received load against the capacity, every arm; and,
     like the paper's Fig. 12 (MB/s per robot and stream), what each robot's cloud and video got in
-    the judged 5 Mbit/s phase, manager on beside off."""
+    the judged 5 Mbit/s phase, the arms side by side."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -553,21 +611,20 @@ def plot(rows, png_path):
         return
     fig, axes = plt.subplots(1, len(scenarios) + 1, figsize=(4.6 * (len(scenarios) + 1), 3.8), squeeze=False)
     for ax, scenario in zip(axes[0], scenarios):
-        for manager, style in (("on", "-"), ("off", "--")):
+        capacity_drawn = False
+        for arm, style in ((ARM_ANNOUNCED, "-"), (ARM_IPERF3, "-."), (ARM_OFF, "--")):
             link = [
-                r
-                for r in rows
-                if r.get("scenario") == scenario and r.get("manager") == manager and r.get("stream") == "link"
+                r for r in rows if r.get("scenario") == scenario and r.get("arm") == arm and r.get("stream") == "link"
             ]
             if not link:
                 continue
             x = np.arange(len(link))
-            ax.plot(x, [r["offered_mean_mbytes_per_s"] for r in link], style + "o", label=f"offered, manager {manager}")
-            ax.plot(
-                x, [r["received_mean_mbytes_per_s"] for r in link], style + "s", label=f"received, manager {manager}"
-            )
-            if manager == "on":
+            label = ARM_SHORT[arm]
+            ax.plot(x, [r["offered_mean_mbytes_per_s"] for r in link], style + "o", label=f"offered, manager {label}")
+            ax.plot(x, [r["received_mean_mbytes_per_s"] for r in link], style + "s", label=f"received, manager {label}")
+            if not capacity_drawn:
                 ax.plot(x, [r["capacity_mbps"] / 8.0 for r in link], "k_", markersize=22, label="capacity")
+                capacity_drawn = True
             ax.set_xticks(x, [r["phase"].split(" @")[0] for r in link], fontsize=7)
         ax.set_title(scenario)
         ax.set_ylabel("MB/s (1 s windows, phase mean)")
@@ -581,23 +638,23 @@ def plot(rows, png_path):
         and r.get("stream") in STREAMS
     ]
     robots = sorted({r["robot"] for r in judged})
-    for offset, manager in ((-0.2, "on"), (0.2, "off")):
+    for offset, arm, hatch in ((-0.28, ARM_ANNOUNCED, ""), (0.0, ARM_IPERF3, ".."), (0.28, ARM_OFF, "//")):
         bottom = np.zeros(len(robots))
         for stream, colour in (("cloud", "tab:blue"), ("video", "tab:orange")):
             got = {
                 r["robot"]: r["received_mean_mbytes_per_s"]
                 for r in judged
-                if r["manager"] == manager and r["stream"] == stream
+                if r.get("arm") == arm and r["stream"] == stream
             }
             values = np.array([got.get(robot, 0.0) for robot in robots])
             ax.bar(
                 np.arange(len(robots)) + offset,
                 values,
-                0.38,
+                0.26,
                 bottom=bottom,
                 color=colour,
-                hatch="" if manager == "on" else "//",
-                label=f"{stream}, manager {manager}",
+                hatch=hatch,
+                label=f"{stream}, manager {ARM_SHORT[arm]}",
             )
             bottom += values
     ax.axhline(JUDGED_CAPACITY_MBPS / 8.0, color="k", linestyle=":", label=f"{JUDGED_CAPACITY_MBPS:g} Mbit/s")

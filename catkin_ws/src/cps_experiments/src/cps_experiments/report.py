@@ -306,6 +306,7 @@ def write_mission_report(result, mission_args, wall_time_s):
         f"- link: {result.link}",
         f"- host split: {getattr(result, 'host_split', 'not recorded')}",
         f"- video: {getattr(result, 'video_source', 'not recorded')}",
+        f"- link capacity: {getattr(result, 'link_capacity', 'not recorded')}",
         f"- ended by: {result.ended_by} after {result.elapsed_s:.0f} s of mission "
         f"({wall_time_s:.0f} s wall time including start-up and this report)",
         "",

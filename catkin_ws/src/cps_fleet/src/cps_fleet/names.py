@@ -88,6 +88,9 @@ SET_PRIORITY = "tissue/set_priority"
 # ("" for none). It and a robot in teleop get operator-quality video first.
 SELECTED_ROBOT = "tissue/selected_robot"
 LINK_STATE = "tissue/link_state"  # cps_msgs/LinkState, published by each side's bridge
+# cps_msgs/LinkCapacity (latched): the link's capacity announced by who knows it (bringup's
+# --announce-link-capacity: the tc scenario's rate steps); the manager's budget follows it.
+LINK_CAPACITY = "tissue/link_capacity"
 # TwistStamped probes sent twin -> robots in the bridge's command class (teleop's): their latency,
 # measured on the robots' side, is the teleop command latency.
 COMMAND_PROBE = "tissue/command_probe"

@@ -203,14 +203,24 @@ def _at(where, message):
     return ConfigError(path, int(line), message)
 
 
+# The events that set the link's rate: what an announced capacity follows. A cut is not a rate of
+# 0 (the bridges' link_state reports an outage) and a restore brings back the rate in force.
+RATE_EVENTS = ("start", "shape")
+
+
 class ScenarioRunner:
     """Applies a scenario's events to link `link_name` at their mission times, in a thread; each
-    applied event is logged and written to `csv_log` (a cps_fleet CsvLog of LINK_EVENTS_COLUMNS)."""
+    applied event is logged and written to `csv_log` (a cps_fleet CsvLog of LINK_EVENTS_COLUMNS).
+    `on_rate(mission_s, rate_mbps)`: called with the rate at start and after each rate step that
+    was applied (not after a failed one, a cut or a restore); an exception in it is logged and
+    counted in `errors`, and the scenario goes on."""
 
-    def __init__(self, link_name, scenario, csv_log=None, log=print, netem=None):
+    def __init__(self, link_name, scenario, csv_log=None, log=print, netem=None, on_rate=None):
         from cps_link import netns_link
 
         self.link_name, self.scenario, self.csv_log, self.log = link_name, scenario, csv_log, log
+        self.on_rate = on_rate
+        self._announced_mbps = None  # the last rate given to on_rate
         self.netem = netns_link.netem_available() if netem is None else netem
         self.applied = []  # (mission_time_s, LinkEvent, note)
         self.errors = []
@@ -277,3 +287,16 @@ class ScenarioRunner:
                     note,
                 )
             )
+        self._announce(mission_s, kind, s, note)
+
+    def _announce(self, mission_s, kind, s, note):
+        if self.on_rate is None or kind not in RATE_EVENTS or note.startswith("FAILED"):
+            return
+        if s.rate_mbps == self._announced_mbps:
+            return  # a step of delay, jitter or loss only: the capacity did not change
+        try:
+            self.on_rate(mission_s, s.rate_mbps)
+            self._announced_mbps = s.rate_mbps
+        except Exception as exc:  # the link's steps go on without the announcement
+            self.errors.append(f"announcing {s.rate_mbps:g} Mbit/s failed: {exc}")
+            self.log(f"[link] {mission_s:6.1f} s: announcing {s.rate_mbps:g} Mbit/s failed: {exc}")
