@@ -227,6 +227,7 @@ def run(
     fleet_file=None,
     sizes=None,
     replay_sizes=None,
+    links_mbps=LINKS_MBPS,
     log=print,
 ):
     """Run (or, with reuse_runs, read back) the sweep; write fig13_live.csv/.png/.md into out_dir."""
@@ -239,7 +240,7 @@ def run(
     base = load_fleet(fleet_file)
     host_cpus = host_cpus_arg() if shaped else None
     measured, failures = {}, {}
-    for live in sweep(sizes, shaped=shaped):
+    for live in sweep(sizes, links_mbps, shaped=shaped):
         run_dir = os.path.abspath(os.path.join(run_root, "fig13_live", live.name))
         robots = fleet_robots(fleet_file, live.robots)
         fleet = base.with_robots(robots)
