@@ -21,6 +21,9 @@ import tempfile
 import time
 
 _PR_SET_PDEATHSIG = 1
+# How long stop waits for a killed process group's members to be gone: SIGKILL is not instant on a
+# loaded machine (a large process releases its memory first).
+GROUP_EXIT_WAIT_S = 5.0
 
 
 def free_port():
@@ -241,9 +244,13 @@ class RosGraph:
                 os.killpg(proc.pid, sig)
             with contextlib.suppress(subprocess.TimeoutExpired):
                 proc.wait(wait_s)
-        # The group may hold children that outlived their leader.
+        # The group may hold children that outlived their leader (a node's worker processes): killed,
+        # and waited for, so that nothing of it is left running when stop returns.
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(proc.pid, signal.SIGKILL)
+        deadline = time.monotonic() + GROUP_EXIT_WAIT_S
+        while group_members(proc.pid) and time.monotonic() < deadline:
+            time.sleep(0.02)
 
     def close(self):
         for proc in reversed(self.processes):
@@ -277,6 +284,22 @@ def _param_text(value):
 
         return yaml.safe_dump(value, default_flow_style=True).strip()
     return str(value)
+
+
+def group_members(pgid):
+    """The pids of live (not zombie) processes in process group `pgid`."""
+    members = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as stream:
+                fields = stream.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue  # it ended meanwhile
+        if fields[0] != "Z" and int(fields[2]) == pgid:
+            members.append(int(entry))
+    return members
 
 
 def processes_named(*needles):

@@ -1,0 +1,35 @@
+"""A process group's members are found, so that stopping a node waits for its workers too."""
+
+import os
+import signal
+import subprocess
+import time
+
+import pytest
+
+from cps_ros.processes import group_members
+
+pytestmark = pytest.mark.unit
+
+
+def test_a_group_with_a_worker_is_found_whole_and_is_gone_once_killed():
+    leader = subprocess.Popen(["sh", "-c", "sleep 60 & exec sleep 60"], start_new_session=True)
+    try:
+        deadline = time.monotonic() + 10
+        while len(group_members(leader.pid)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        members = group_members(leader.pid)
+        assert leader.pid in members and len(members) == 2, members
+        os.killpg(leader.pid, signal.SIGKILL)
+        leader.wait(10)  # the leader's zombie is not a member; the orphaned worker is reaped by init
+        while group_members(leader.pid) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert group_members(leader.pid) == []
+    finally:
+        if leader.poll() is None:
+            os.killpg(leader.pid, signal.SIGKILL)
+            leader.wait()
+
+
+def test_a_group_nobody_is_in_has_no_members():
+    assert group_members(2**22 + 1) == []  # above any pid_max
