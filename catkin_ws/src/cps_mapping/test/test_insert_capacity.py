@@ -75,3 +75,19 @@ def test_the_budget_pauses_the_insertion_for_the_rest_of_its_cycle():
     assert budget.wait_s() == 0.0
     with pytest.raises(ValueError):
         InsertionBudget(1.5)
+
+
+def test_voxel_updates_count_the_ray_casters_steps():
+    import numpy as np
+
+    from cps_fleet.fleet import load_fleet
+    from cps_mapping.fused_map import FusedLogOddsMap
+    from cps_mapping.insert_capacity import voxel_updates_of
+
+    fused = FusedLogOddsMap.from_mapping_config(load_fleet().mapping)
+    assert voxel_updates_of(fused) == 0
+    fused.insert_cloud(np.array([[2.0, 0.0, 1.0]]), np.array([0.0, 0.0, 1.0]))
+    walked = voxel_updates_of(fused)
+    resolution = load_fleet().mapping.resolution_m
+    assert 2.0 / resolution - 2 <= walked <= 2.0 / resolution + 2  # one ray of 2 m, a step per voxel
+    assert voxel_updates_of(object()) is None  # a map that does not count them

@@ -340,6 +340,11 @@ class FusedLogOddsMap:
             log_odds.astype(np.float64),
         )
 
+    @property
+    def voxel_updates(self) -> int:
+        """Voxel steps the ray caster has walked so far (the unit of the twin's insertion capacity)."""
+        return self._grid.steps
+
     def log_odds_copy(self) -> LogOddsBox:
         """The log-odds of every voxel in the grid's box, copied (for readers that must not hold
         the map lock while they read, change detection's FrozenMap)."""

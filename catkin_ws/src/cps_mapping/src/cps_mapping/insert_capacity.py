@@ -30,7 +30,7 @@ CAPACITY_WINDOW_S = 10.0
 
 def voxel_updates_of(fused_map) -> Optional[int]:
     """Voxel steps the map's ray caster has walked so far (None if this map does not count them)."""
-    return getattr(getattr(fused_map, "_grid", None), "steps", None)
+    return getattr(fused_map, "voxel_updates", None)
 
 
 class InsertionMeter:
