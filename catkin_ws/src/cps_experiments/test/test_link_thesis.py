@@ -6,7 +6,7 @@ import csv
 import math
 
 import pytest
-from cps_experiments import link_thesis
+from cps_experiments import fleet_scaling, link_thesis
 from cps_experiments.report import read_csv
 
 pytestmark = pytest.mark.unit
@@ -224,13 +224,13 @@ def test_the_video_trace_is_recorded_once_into_the_run_root_and_reused_while_it_
 
     fleet = load_fleet(profile="light").with_robots(["jackal"])
     log = []
-    path = link_thesis.ensure_video_trace(fleet, str(tmp_path), reuse=True, log=log.append, frames_per_level=2)
-    assert path == str(tmp_path / link_thesis.VIDEO_TRACE_FILE) and os.path.exists(path)
+    path = fleet_scaling.ensure_video_trace(fleet, str(tmp_path), reuse=True, log=log.append, frames_per_level=2)
+    assert path == str(tmp_path / fleet_scaling.VIDEO_TRACE_FILE) and os.path.exists(path)
     recorded = os.stat(path).st_mtime_ns
-    assert link_thesis.ensure_video_trace(fleet, str(tmp_path), reuse=True, log=log.append) == path
+    assert fleet_scaling.ensure_video_trace(fleet, str(tmp_path), reuse=True, log=log.append) == path
     assert os.stat(path).st_mtime_ns == recorded and "reusing the video trace" in log[-1]
     # A fleet the trace cannot feed (champ was not recorded): recorded again, saying why.
     wider = load_fleet(profile="light").with_robots(["jackal", "champ"])
-    link_thesis.ensure_video_trace(wider, str(tmp_path), reuse=True, log=log.append, frames_per_level=2)
+    fleet_scaling.ensure_video_trace(wider, str(tmp_path), reuse=True, log=log.append, frames_per_level=2)
     assert any("camera robot 'champ' is not in it" in line and line.endswith("recording it again") for line in log)
     assert os.stat(path).st_mtime_ns != recorded

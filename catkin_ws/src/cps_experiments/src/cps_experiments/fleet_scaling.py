@@ -27,7 +27,7 @@ with open(sys.argv[1], "w") as stream:
     p = result.progress
     json.dump({"ended_by": result.ended_by, "elapsed_s": result.elapsed_s, "link": result.link,
                "map_file": result.map_file, "restarts": result.restarts, "video_source": result.video_source,
-               "link_capacity": result.link_capacity,
+               "link_capacity": result.link_capacity, "host_split": result.host_split,
                "trajectories": {r: [list(map(float, q)) for q in t] for r, t in p.trajectories.items()},
                "clouds_inserted": dict(p.clouds_inserted), "clouds_dropped": dict(p.clouds_dropped),
                "clouds_superseded": dict(p.clouds_superseded),
@@ -77,6 +77,26 @@ def mission_summary(argv, run_dir, reuse_runs=False, log=print):
         with open(done) as stream:
             return json.load(stream)
     return run_mission_child(argv, run_dir, log)
+
+
+VIDEO_TRACE_FILE = "video_trace.npz"
+
+
+def ensure_video_trace(fleet, folder, reuse, log=print, frames_per_level=None):
+    """The recorded video every mission of an experiment's run plays: `folder`/VIDEO_TRACE_FILE, recorded for
+    `fleet` (reused with `reuse` when it still matches the fleet)."""
+    from cps_sim.video_trace import DEFAULT_FRAMES_PER_LEVEL, VideoTraceError, load_video_trace, record_video_trace
+
+    path = os.path.abspath(os.path.join(folder, VIDEO_TRACE_FILE))
+    if reuse and os.path.exists(path):
+        try:
+            load_video_trace(path, fleet)
+            log(f"[experiments] reusing the video trace {path}")
+            return path
+        except VideoTraceError as exc:
+            log(f"[experiments] {exc}; recording it again")
+    log(f"[experiments] recording the cameras' video along their routes into {path}")
+    return record_video_trace(fleet, path, frames_per_level or DEFAULT_FRAMES_PER_LEVEL, log=log)
 
 
 def network_performance(stats_rows):

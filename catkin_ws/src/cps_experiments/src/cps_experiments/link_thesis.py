@@ -35,6 +35,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from cps_experiments.fleet_scaling import ensure_video_trace
 from cps_experiments.markdown import csv_float, markdown_table, write_csv, write_markdown
 from cps_fleet import names
 from cps_transport.topic_stats import DEFAULT_WINDOW_S as INGRESS_WINDOW_S  # its sliding window, s
@@ -126,26 +127,6 @@ def mission_argv(run: ThesisRun, robots, selected_robot, out_dir, duration_s, vi
     if video_trace:
         argv += ["--video-trace", video_trace]
     return argv
-
-
-VIDEO_TRACE_FILE = "video_trace.npz"
-
-
-def ensure_video_trace(fleet, folder, reuse, log=print, frames_per_level=None):
-    """The recorded video every mission of the run plays: `folder`/VIDEO_TRACE_FILE, recorded for
-    `fleet` (reused with `reuse` when it still matches the fleet)."""
-    from cps_sim.video_trace import DEFAULT_FRAMES_PER_LEVEL, VideoTraceError, load_video_trace, record_video_trace
-
-    path = os.path.abspath(os.path.join(folder, VIDEO_TRACE_FILE))
-    if reuse and os.path.exists(path):
-        try:
-            load_video_trace(path, fleet)
-            log(f"[experiments] reusing the video trace {path}")
-            return path
-        except VideoTraceError as exc:
-            log(f"[experiments] {exc}; recording it again")
-    log(f"[experiments] recording the cameras' video along their routes into {path}")
-    return record_video_trace(fleet, path, frames_per_level or DEFAULT_FRAMES_PER_LEVEL, log=log)
 
 
 # --- reading a mission's files ---------------------------------------------------------------------
