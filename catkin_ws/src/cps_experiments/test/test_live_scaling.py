@@ -150,6 +150,13 @@ def test_replay_rows_are_reported_apart_and_judged_on_the_twin_alone():
         robots=30, sent=100, inserted=90, superseded_pct=8.0, dropped_pct=2.0, age_p95_s=0.6,
         twin_cpu_s_per_s=0.9, replay_late_p95_s=0.02, replay_limited=False, holds=False, host_split="split",
     )  # fmt: skip
-    text = "\n".join(_replay_section({32: row, 64: {**row, "robots": 64, "holds": True}}, 16))
+    text = "\n".join(_replay_section({32: row, 64: {**row, "robots": 64, "holds": True}}))
     assert "N = 32, 64 by replay" in text and "| 30 (asked 32) |" in text and "| 64 |" in text
     assert "no F1" in text and "split" in text
+
+
+def test_every_row_plays_the_same_recorded_video_when_given(tmp_path):
+    fleet = default_fleet_path()
+    argv = mission_argv(LiveRun(2, 60.0, False), fleet, str(tmp_path), 30, None, "/x/video_trace.npz")
+    assert argv[argv.index("--video-trace") + 1] == "/x/video_trace.npz"
+    assert "--video-trace" not in mission_argv(LiveRun(2, 60.0, False), fleet, str(tmp_path), 30)

@@ -13,6 +13,7 @@ the twin is reported as missing, never filled in.
 import dataclasses
 import math
 import os
+import re
 import subprocess
 from collections import defaultdict
 from typing import List, Optional
@@ -20,18 +21,18 @@ from typing import List, Optional
 import numpy as np
 
 from cps_experiments import paper
-from cps_experiments.fleet_scaling import mission_summary
+from cps_experiments.fleet_scaling import ensure_video_trace, mission_summary
 from cps_experiments.markdown import markdown_table, write_csv, write_markdown
 from cps_fleet import names
 from cps_fleet.fleet import managed_budget_mbytes_per_s
 
 FLEET_SIZES = (1, 2, 4, 8, 16)
-# Larger fleets than two cores can simulate: the first REPLAY_RECORDED_ROBOTS robots recorded once,
-# then replayed as N robots into the twin alone (cps_experiments.twin_replay), the twin on its own
-# CPU. Four, not sixteen: on one robots' CPU sixteen simulated robots send ~1 cloud/s each, not a
-# robot's working rate (every robot of a real fleet has its own computer).
+# Larger fleets than two cores can simulate: the default fleet (four robots, one of each type, as
+# fleet16's first four; the replay needs a plain fleet file) recorded once, then replayed as N robots
+# into the twin alone (cps_experiments.twin_replay), the twin on its own CPU. Four, not sixteen: on
+# one robots' CPU sixteen simulated robots send ~1 cloud/s each, not a robot's working rate (every
+# robot of a real fleet has its own computer).
 REPLAY_FLEET_SIZES = (32, 64)
-REPLAY_RECORDED_ROBOTS = 4
 REPLAY_DURATION_S = 30.0
 QUICK_FLEET_SIZES = (1, 2)
 LINKS_MBPS = (60.0, 10.0)
@@ -96,7 +97,7 @@ def host_cpus_arg(cpus=None):
     return f"robots={','.join(map(str, cpus[PHYSICAL]))},twin={','.join(map(str, cpus[DIGITAL]))}"
 
 
-def mission_argv(run: LiveRun, fleet_file, out_dir, duration_s, host_cpus=None):
+def mission_argv(run: LiveRun, fleet_file, out_dir, duration_s, host_cpus=None, video_trace=None):
     argv = [
         "all",
         "--fleet",
@@ -112,6 +113,8 @@ def mission_argv(run: LiveRun, fleet_file, out_dir, duration_s, host_cpus=None):
     ]
     if host_cpus:
         argv += ["--host-cpus", host_cpus]
+    if video_trace:
+        argv += ["--video-trace", video_trace]
     if not run.manager:
         argv += ["--bandwidth-manager", "off"]
     return argv
@@ -202,6 +205,7 @@ def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
         "clouds_superseded": sum(superseded.values()) if superseded is not None else math.nan,
         "dropped_fraction": dropped / (inserted + dropped) if inserted + dropped else math.nan,
         "host_split": summary.get("host_split", "not recorded"),
+        "video_source": summary.get("video_source", "not recorded"),
     }
 
 
@@ -231,6 +235,7 @@ def run(
     sizes=None,
     replay_sizes=None,
     links_mbps=LINKS_MBPS,
+    recorded_video=True,
     log=print,
 ):
     """Run (or, with reuse_runs, read back) the sweep; write fig13_live.csv/.png/.md into out_dir."""
@@ -242,6 +247,10 @@ def run(
     sizes = sizes or (QUICK_FLEET_SIZES if quick else FLEET_SIZES)
     base = load_fleet(fleet_file)
     host_cpus = host_cpus_arg() if shaped else None
+    video_trace = None
+    if recorded_video:  # the cameras play recorded frames: rendering 12 of them live is not a robot's CPU
+        largest = base.with_robots(fleet_robots(fleet_file, max(sizes)))
+        video_trace = ensure_video_trace(largest, os.path.join(run_root, "fig13_live"), True, log)
     measured, failures = {}, {}
     for live in sweep(sizes, links_mbps, shaped=shaped):
         run_dir = os.path.abspath(os.path.join(run_root, "fig13_live", live.name))
@@ -249,7 +258,7 @@ def run(
         fleet = base.with_robots(robots)
         try:
             summary = mission_summary(
-                mission_argv(live, fleet_file, run_dir, duration_s, host_cpus), run_dir, reuse_runs, log
+                mission_argv(live, fleet_file, run_dir, duration_s, host_cpus, video_trace), run_dir, reuse_runs, log
             )
         except RuntimeError as exc:
             failures[live] = str(exc)
@@ -277,12 +286,7 @@ def run(
     if replay_sizes and shaped:
         try:
             replayed = replay_rows(
-                fleet_file,
-                REPLAY_RECORDED_ROBOTS,
-                replay_sizes,
-                os.path.join(run_root, "fig13_live", "replay"),
-                duration_s,
-                log,
+                replay_sizes, os.path.join(run_root, "fig13_live", "replay"), duration_s, reuse_runs, log
             )
         except (RuntimeError, OSError, ValueError, subprocess.CalledProcessError) as exc:  # TraceError too
             failures["replay"] = str(exc)
@@ -291,21 +295,34 @@ def run(
     return {"measured": measured, "failures": failures, "replayed": replayed}
 
 
-def replay_rows(fleet_file, recorded_n, sizes, run_root, duration_s, log=print):
-    """Record the first `recorded_n` robots once (loopback, on the sweep's host boundaries), then
-    replay the trace as each N of `sizes` into the twin alone: {N: twin_replay.trial's row}."""
+def replay_rows(sizes, run_root, duration_s, reuse_runs=False, log=print):
+    """Record the default fleet once (loopback, on the sweep's host boundaries), then replay the
+    trace as each N of `sizes` into the twin alone: {N: twin_replay.trial's row} (with `reuse_runs`
+    read back from the last replay's rows.json when it has every N)."""
+    import json
+
     from cps_bringup.trace_replay import compact_trace
     from cps_experiments.twin_replay import replay_bench
-    from cps_fleet.fleet import load_fleet
+    from cps_fleet.fleet import default_fleet_path, load_fleet
 
-    record_dir = os.path.abspath(os.path.join(run_root, f"record_n{recorded_n:02d}"))
+    saved = os.path.join(run_root, "rows.json")
+    if reuse_runs and os.path.exists(saved):
+        with open(saved) as stream:
+            rows = {int(n): row for n, row in json.load(stream).items()}
+        if set(sizes) <= set(rows):
+            log(f"[experiments] reusing the replay rows in {saved}")
+            return {n: rows[n] for n in sizes}
+    fleet = load_fleet(default_fleet_path())
+    recorded_n = len(fleet.robot_names)
+    record_dir = os.path.abspath(os.path.join(run_root, "record_default_fleet"))
     bag = os.path.join(record_dir, "mission.bag")
     trace = os.path.join(record_dir, "mission.trace.bag")
-    robots = fleet_robots(fleet_file, recorded_n)
     if not os.path.exists(trace):
-        argv = mission_argv(LiveRun(recorded_n, None, False), fleet_file, record_dir, duration_s, host_cpus_arg())
+        argv = mission_argv(
+            LiveRun(recorded_n, None, False), default_fleet_path(), record_dir, duration_s, host_cpus_arg()
+        )
         mission_summary(argv + ["--record", bag], record_dir, False, log)
-        compact_trace(bag, load_fleet(fleet_file).with_robots(robots), trace, busy_only=True)
+        compact_trace(bag, fleet, trace, busy_only=True)
     rows = {}
     with replay_bench(os.path.abspath(run_root), name="cps_fig13_replay") as (run_trial, split_text):
         for n in sizes:
@@ -317,6 +334,8 @@ def replay_rows(fleet_file, recorded_n, sizes, run_root, duration_s, log=print):
                 f"{row['dropped_pct']:.2f} %, superseded {row['superseded_pct']:.1f} %, map age p95 "
                 f"{row['age_p95_s']:.2f} s, twin CPU {row['twin_cpu_s_per_s']:.2f} cores"
             )
+    with open(saved, "w") as stream:
+        json.dump(rows, stream, indent=1)
     return rows
 
 
@@ -406,7 +425,8 @@ def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped, 
         f"Each row is one `cps_bringup all --fleet {os.path.relpath(fleet_file)} --robots <first N> --duration "
         f"{duration_s:g} --link <rate>` mission (`--bandwidth-manager off` for the unmanaged rows), the first N robots "
         f"of the fleet file (mixed types, generated routes), ending when every route is done, the whole system (simulator, tissue, bridges, map "
-        f"server) on one 2-core machine, every row on the same host boundaries: {_split_text(measured)}. "
+        f"server) on one 2-core machine, every row on the same host boundaries: {_split_text(measured)}; the cameras' video: "
+        f"{_split_text(measured, 'video_source')}. "
         + (
             "Shaped links are tc-shaped veth pairs between two network namespaces; "
             if shaped
@@ -445,7 +465,7 @@ def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped, 
 
     sections += _differences(measured, load_fleet(fleet_file).link.reserve_fraction)
     if replayed:
-        sections += _replay_section(replayed, REPLAY_RECORDED_ROBOTS)
+        sections += _replay_section(replayed)
     for live, error in failures.items():
         name = live if isinstance(live, str) else live.name
         sections += [f"### {name}: failed", "```\n" + error.strip()[-1500:] + "\n```"]
@@ -456,7 +476,7 @@ def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped, 
     )
 
 
-def _replay_section(replayed, recorded_n):
+def _replay_section(replayed):
     """The replay rows: the twin alone under N replayed robots, judged on drops and map age."""
     from cps_experiments.twin_replay import MAX_AGE_P95_S, MAX_DROPPED, WARMUP_S
 
@@ -477,8 +497,9 @@ def _replay_section(replayed, recorded_n):
     ]
     return [
         f"### N = {', '.join(map(str, sorted(replayed)))} by replay against the twin",
-        f"Two cores cannot simulate these fleets. The fleet's first {recorded_n} robots were recorded once (loopback, "
-        "same host boundaries: with one robots' CPU they send at a robot's working rate, sixteen do not), and their managed clouds, odometry and tf replayed as N robots (cps_bringup.trace_replay: "
+        "Two cores cannot simulate these fleets. The default fleet (four robots, one of each type, as fleet16's "
+        "first four) was recorded once (loopback, same host boundaries: on one robots' CPU four robots send at "
+        "their working rate, sixteen do not), and their managed clouds, odometry and tf replayed as N robots (cps_bringup.trace_replay: "
         "each copy with its own name, frames and offsets in space and time, at wall-clock rate) into the twin's "
         f"decoder and map server, which ran alone on one CPU ({first['host_split']}). No simulator, no link, no "
         "manager: these rows measure the twin, not the link, and have no F1 (copies add load, not new site) and "
@@ -502,9 +523,10 @@ def _replay_section(replayed, recorded_n):
     ]
 
 
-def _split_text(measured):
-    """The runs' host split, as the missions reported it (each distinct one, if they differ)."""
-    splits = sorted({f.get("host_split", "not recorded") for f in measured.values()})
+def _split_text(measured, key="host_split"):
+    """What the missions reported of their host split (or `key`): each distinct text, if they differ."""
+    # a run's own cgroup name (its bringup's pid) is not part of the split
+    splits = sorted({re.sub(r" \(/sys/fs/cgroup/[^)]*\)", "", f.get(key, "not recorded")) for f in measured.values()})
     return " | ".join(splits) if splits else "no run"
 
 
