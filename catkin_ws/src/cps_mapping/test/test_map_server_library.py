@@ -167,6 +167,32 @@ def test_services_save_load_clear_and_reset(jackal_points, tmp_path):
     assert len(server.map.occupied_index()) == 0
 
 
+def test_an_autosave_and_a_save_request_at_once_both_succeed_and_leave_one_whole_map(jackal_points, tmp_path):
+    """link_thesis lost two missions' maps: the final save request's sidecar rename found its
+    temporary file already moved by the autosave writing the same name."""
+    import threading
+
+    server, _ = _server(tmp_path)
+    server.receive_cloud("jackal", _cloud(jackal_points))
+    server.insert_pending(timeout_s=0)
+    answers, errors = [], []
+
+    def autosaves():
+        try:
+            for _ in range(20):
+                server.autosave()
+        except Exception as exc:  # noqa: BLE001 (the test reports whatever escaped)
+            errors.append(exc)
+
+    thread = threading.Thread(target=autosaves)
+    thread.start()
+    for _ in range(20):
+        answers.append(server.on_save(SaveMapRequest(path="")))
+    thread.join()
+    assert not errors and all(a.success for a in answers), (errors, [a.message for a in answers])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["twin.bt", "twin.bt.hits.npz", "twin.bt.json"]
+
+
 def test_a_server_resumes_from_its_map_file_and_moves_an_unreadable_one_aside(jackal_points, tmp_path):
     server, _ = _server(tmp_path)
     server.receive_cloud("jackal", _cloud(jackal_points))

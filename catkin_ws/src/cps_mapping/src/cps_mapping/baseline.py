@@ -13,6 +13,7 @@ and the monitoring report says that robots seen in the baseline may come out as 
 import json
 import os
 
+from cps_mapping.atomic_file import write_atomically
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError
 
 
@@ -32,9 +33,7 @@ def write_map_metadata(map_path, frame_id, resolution_m, robot_trails=None):
         doc["robot_poses"] = robot_trails.as_json()
     path = metadata_path(map_path)
     try:
-        with open(f"{path}.tmp", "w") as stream:
-            json.dump(doc, stream)
-        os.replace(f"{path}.tmp", path)
+        write_atomically(path, lambda stream: json.dump(doc, stream), binary=False)
     except OSError as exc:
         raise MapFileError(f"cannot write {metadata_path(map_path)}: {exc}") from exc
 

@@ -27,6 +27,7 @@ from typing import Callable, List, Optional
 import numpy as np
 from scipy import ndimage
 
+from cps_mapping.atomic_file import write_atomically
 from cps_mapping.fused_map import index_to_center, pack_index, voxel_index
 from cps_mapping.fused_map import near_any as _sparse_near_any
 
@@ -353,11 +354,10 @@ def write_hit_levels(map_path, frozen):
     a .bt keeps only occupied/free, and a surface seen in one or two clouds (e.g. the floor seen
     with a lagging pose) must not count as firmly as one seen all mission long."""
     index, level = frozen.hit_levels()
-    path = hit_levels_path(map_path)
-    with open(path + ".tmp", "wb") as stream:
-        np.savez_compressed(stream, index=index.astype(np.int32), level=level)
-    os.replace(path + ".tmp", path)
-    return path
+    return write_atomically(
+        hit_levels_path(map_path),
+        lambda stream: np.savez_compressed(stream, index=index.astype(np.int32), level=level),
+    )
 
 
 class VoxelLevels:
@@ -408,11 +408,10 @@ def miss_levels_path(report_path):
 def write_miss_levels(report_path, baseline_map, current_map):
     """miss_levels beside the live report (`<report>_miss_levels.npz`), replaced atomically."""
     index, level = miss_levels(baseline_map, current_map)
-    path = miss_levels_path(report_path)
-    with open(path + ".tmp", "wb") as stream:
-        np.savez_compressed(stream, index=index.astype(np.int32), level=level)
-    os.replace(path + ".tmp", path)
-    return path
+    return write_atomically(
+        miss_levels_path(report_path),
+        lambda stream: np.savez_compressed(stream, index=index.astype(np.int32), level=level),
+    )
 
 
 def _firm(fused, levels, min_hits):

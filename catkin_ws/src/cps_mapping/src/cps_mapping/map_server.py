@@ -233,6 +233,7 @@ class MapServer:
             self.baseline_hits = VoxelLevels.of_map(options.baseline_map)
             self.tracker = ChangeTracker()
         self._map_lock = threading.Lock()
+        self._save_lock = threading.Lock()  # one save (map and sidecars) at a time
         self._counters_lock = threading.Lock()
         self.counters = {r: RobotCounters() for r in self.robots}
         self.queues = RobotQueues(self.robots, options.queue_size)
@@ -302,12 +303,18 @@ class MapServer:
             self.log.error(f"map_server: cannot resume: {exc}; moved it to {aside} and started an empty map")
 
     def _save(self, path):
-        with self._map_lock:
-            saved = self.map.save(path)
-            frozen = FrozenMap(self.map)
-        write_map_metadata(saved, self.options.frame_id, self.map.resolution_m, self.trails)
-        write_hit_levels(saved, frozen)  # how firmly each voxel was seen, for change detection
-        return saved
+        """The map and its sidecars, one save at a time (the autosave timer and a save request must
+        not interleave their files); MapFileError for any of them that cannot be written."""
+        with self._save_lock:
+            with self._map_lock:
+                saved = self.map.save(path)
+                frozen = FrozenMap(self.map)
+            write_map_metadata(saved, self.options.frame_id, self.map.resolution_m, self.trails)
+            try:
+                write_hit_levels(saved, frozen)  # how firmly each voxel was seen, for change detection
+            except OSError as exc:
+                raise MapFileError(f"cannot write the hit levels beside {saved}: {exc}") from exc
+            return saved
 
     def autosave(self):
         try:
