@@ -5,65 +5,17 @@ and keeps its last good setting on bad input."""
 import math
 
 import pytest
+from video_sim import RATE_TOLERANCE, ROBOT, WINDOW_S, dimensions, frames_at, stamp_rate_hz, video_sim
 
 from cps_harness.testing import TopicRecorder, wait_for
 
 pytestmark = pytest.mark.ros
 
-ROBOT = "jackal"
-# Measured rate: frames per second of the header stamps (the render instants) over a window of
-# WINDOW_S; it must lie within RATE_TOLERANCE of the set rate (the 2-core test machine is shared).
-WINDOW_S = 4.0
-RATE_TOLERANCE = 0.2
-
 
 @pytest.fixture(scope="module")
 def sim(ros_master, rospy_node):
-    from sensor_msgs.msg import CompressedImage
-    from std_msgs.msg import Bool, Float64, UInt8
-
-    from cps_msgs.msg import RateLimiterStatus
-
-    graph = ros_master.attach()
-    estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
-    estop.publish(Bool(True))  # the robot stands still: the scene is the same frame to frame
-    level = rospy_node.Publisher(f"/{ROBOT}/video_throttle/level", UInt8, queue_size=1, latch=True)
-    rate = rospy_node.Publisher(f"/{ROBOT}/video_throttle/rate_hz", Float64, queue_size=1, latch=True)
-    images = TopicRecorder(f"/{ROBOT}/camera/image_raw/compressed", CompressedImage, queue_size=200)
-    status = TopicRecorder(f"/{ROBOT}/video_throttle/status", RateLimiterStatus)
-    try:
-        graph.start_node("cps_sim", "fleet_sim", name="fleet_sim", params={"~profile": "light", "~robots": ROBOT})
-        graph.wait_for_topic(f"/{ROBOT}/camera/image_raw/compressed", timeout_s=60)
-        yield graph, level, rate, images, status
-    finally:
-        graph.close()
-        for thing in (estop, level, rate, images, status):
-            (thing.unregister if hasattr(thing, "unregister") else thing.close)()
-
-
-def _dimensions(msg):
-    from cps_transport.image_compression import decode_jpeg
-
-    return decode_jpeg(msg.data).shape[:2][::-1]
-
-
-def _stamp_rate_hz(messages):
-    stamps = [m.header.stamp.to_sec() for m in messages]
-    return (len(stamps) - 1) / (stamps[-1] - stamps[0])
-
-
-def _frames_at(images, width, window_s):
-    """The frames of `width` received over `window_s` once the first of them has arrived."""
-    import time
-
-    images.wait(lambda m: _dimensions(m)[0] == width, timeout_s=30, what=f"a {width}-wide frame")
-    images.take()
-    deadline = time.monotonic() + window_s
-    frames = []
-    while time.monotonic() < deadline:
-        images.wait_count(len(frames) + 1, timeout_s=10)  # returns as soon as one more arrived
-        frames = [m for _, m in images.messages]
-    return [m for m in frames if _dimensions(m)[0] == width]
+    with video_sim(ros_master, rospy_node) as running:
+        yield running
 
 
 def test_until_the_manager_speaks_the_video_is_the_coarsest_level_at_the_default_rate(sim):
@@ -71,7 +23,7 @@ def test_until_the_manager_speaks_the_video_is_the_coarsest_level_at_the_default
 
     _, _, _, images, status = sim
     first = images.wait(timeout_s=30)
-    assert _dimensions(first) == (160, 120) and first.format == "rgb8; jpeg compressed bgr8"
+    assert dimensions(first) == (160, 120) and first.format == "rgb8; jpeg compressed bgr8"
     assert first.header.frame_id == f"{ROBOT}/camera_depth_optical_frame"
     report = status.wait(lambda s: s.forwarded > 0, timeout_s=10)
     assert report.level == 2 and report.set_rate_hz == DEFAULT_VIDEO_RATE_HZ
@@ -84,9 +36,9 @@ def test_the_camera_renders_at_the_level_and_rate_it_is_told(sim, level_index, s
     _, level, rate, images, status = sim
     level.publish(UInt8(level_index))
     rate.publish(Float64(rate_hz))
-    frames = _frames_at(images, size[0], WINDOW_S + (2.0 if rate_hz < 5 else 0.0))
-    assert frames and all(_dimensions(m) == size for m in frames)
-    measured = _stamp_rate_hz(frames)
+    frames = frames_at(images, size[0], WINDOW_S + (2.0 if rate_hz < 5 else 0.0))
+    assert frames and all(dimensions(m) == size for m in frames)
+    measured = stamp_rate_hz(frames)
     assert abs(measured - rate_hz) <= RATE_TOLERANCE * rate_hz, f"{measured:.2f} Hz for {rate_hz} Hz"
     report = status.wait(lambda s: s.level == level_index and s.set_rate_hz == rate_hz, timeout_s=5)
     # The level's mean size is learned from what was sent: within 25 % of these frames' (the
@@ -102,7 +54,7 @@ def test_the_finest_level_is_rendered_at_640x480(sim):
     _, level, rate, images, status = sim
     level.publish(UInt8(0))
     rate.publish(Float64(5.0))
-    frame = images.wait(lambda m: _dimensions(m) == (640, 480), timeout_s=30, what="a 640x480 frame")
+    frame = images.wait(lambda m: dimensions(m) == (640, 480), timeout_s=30, what="a 640x480 frame")
     assert len(frame.data) > 3 * 4500  # finer than the coarsest level's prior, by far
     status.wait(lambda s: s.level == 0 and not math.isnan(s.level_mean_message_bytes), timeout_s=10)
 
@@ -131,7 +83,7 @@ def test_bad_settings_are_logged_and_the_last_good_one_kept(sim, rospy_node):
         images.wait_count(3, timeout_s=10)
         report = status.wait(lambda s: s.forwarded > 0, timeout_s=5)
         assert (report.level, report.set_rate_hz) == (1, 8.0)
-        assert all(_dimensions(m) == (320, 240) for _, m in images.take()[1:])
+        assert all(dimensions(m) == (320, 240) for _, m in images.take()[1:])
         # Rate 0, the allocator's "no room": off, said in the status, until a positive rate.
         rate.publish(Float64(0.0))
         status.wait(lambda s: s.set_rate_hz == 0.0, timeout_s=10, what="the video off")

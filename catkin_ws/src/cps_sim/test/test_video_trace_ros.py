@@ -3,16 +3,11 @@ ones) at the level and rate the manager's topics set, says so in its log, and re
 does not match the fleet before publishing anything."""
 
 import pytest
-
-from cps_harness.testing import TopicRecorder
+from video_sim import RATE_TOLERANCE, ROBOT, WINDOW_S, dimensions, frames_at, video_sim
 
 pytestmark = pytest.mark.ros
 
-ROBOT = "jackal"
 FRAMES = 6
-# As test_video_ros: frames per second of the header stamps over WINDOW_S, within RATE_TOLERANCE.
-WINDOW_S = 4.0
-RATE_TOLERANCE = 0.2
 
 
 @pytest.fixture(scope="module")
@@ -27,51 +22,8 @@ def trace_path(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def sim(ros_master, rospy_node, trace_path):
-    from sensor_msgs.msg import CompressedImage
-    from std_msgs.msg import Bool, Float64, UInt8
-
-    from cps_msgs.msg import RateLimiterStatus
-
-    graph = ros_master.attach()
-    estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
-    estop.publish(Bool(True))
-    level = rospy_node.Publisher(f"/{ROBOT}/video_throttle/level", UInt8, queue_size=1, latch=True)
-    rate = rospy_node.Publisher(f"/{ROBOT}/video_throttle/rate_hz", Float64, queue_size=1, latch=True)
-    images = TopicRecorder(f"/{ROBOT}/camera/image_raw/compressed", CompressedImage, queue_size=200)
-    status = TopicRecorder(f"/{ROBOT}/video_throttle/status", RateLimiterStatus)
-    try:
-        graph.start_node(
-            "cps_sim",
-            "fleet_sim",
-            name="fleet_sim_trace",
-            params={"~profile": "light", "~robots": ROBOT, "~video_trace": trace_path},
-        )
-        graph.wait_for_topic(f"/{ROBOT}/camera/image_raw/compressed", timeout_s=60)
-        yield graph, level, rate, images, status
-    finally:
-        graph.close()
-        for thing in (estop, level, rate, images, status):
-            (thing.unregister if hasattr(thing, "unregister") else thing.close)()
-
-
-def _dimensions(msg):
-    from cps_transport.image_compression import decode_jpeg
-
-    return decode_jpeg(msg.data).shape[:2][::-1]
-
-
-def _frames_at(images, width, window_s):
-    """The frames of `width` received over `window_s` once the first of them has arrived."""
-    import time
-
-    images.wait(lambda m: _dimensions(m)[0] == width, timeout_s=30, what=f"a {width}-wide frame")
-    images.take()
-    deadline = time.monotonic() + window_s
-    frames = []
-    while time.monotonic() < deadline:
-        images.wait_count(len(frames) + 1, timeout_s=10)
-        frames = [m for _, m in images.messages]
-    return [m for m in frames if _dimensions(m)[0] == width]
+    with video_sim(ros_master, rospy_node, name="fleet_sim_trace", video_trace=trace_path) as running:
+        yield running
 
 
 @pytest.mark.parametrize("level_index, size, rate_hz", [(0, (640, 480), 12.0), (2, (160, 120), 4.0)])
@@ -86,8 +38,8 @@ def test_the_camera_plays_the_recorded_level_at_the_rate_it_is_told(sim, trace_p
     recorded = set(trace.jpegs[(ROBOT, level_index)])
     level.publish(UInt8(level_index))
     rate.publish(Float64(rate_hz))
-    frames = _frames_at(images, size[0], WINDOW_S + (2.0 if rate_hz < 5 else 0.0))
-    assert frames and all(_dimensions(m) == size for m in frames)
+    frames = frames_at(images, size[0], WINDOW_S + (2.0 if rate_hz < 5 else 0.0))
+    assert frames and all(dimensions(m) == size for m in frames)
     # The recorded frames, not rendered ones (the robot stands still; the trace walks its route).
     assert all(bytes(m.data) in recorded for m in frames)
     assert len({bytes(m.data) for m in frames}) == min(len(frames), FRAMES)
