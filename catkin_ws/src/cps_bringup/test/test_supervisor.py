@@ -420,3 +420,28 @@ def test_a_video_trace_that_cannot_feed_the_fleets_cameras_is_refused_before_any
     with pytest.raises(BringupError, match="--video-trace feeds the simulated cameras"):
         run_mission(args, log=lambda _line: None)
     assert not out.exists()
+
+
+def test_a_process_naming_the_mission_folder_after_the_stop_is_killed_and_named(tmp_path):
+    import subprocess
+    import sys
+
+    from cps_bringup.cli import _kill_leftovers
+
+    out = tmp_path / "mission"
+    out.mkdir()
+    left = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", str(out)], start_new_session=True)
+    lines = []
+    try:
+        _kill_leftovers(str(out), lines.append)
+        left.wait(10)
+        assert left.returncode == -9
+        assert len(lines) == 1 and "1 process(es) of this mission outlived their stop" in lines[0], lines
+        assert f"time.sleep(60) {out}" in lines[0]
+        lines.clear()
+        _kill_leftovers(str(out), lines.append)  # nothing left: nothing said
+        assert lines == []
+    finally:
+        if left.poll() is None:
+            left.kill()
+            left.wait()
