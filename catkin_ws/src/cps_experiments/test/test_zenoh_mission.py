@@ -46,6 +46,7 @@ def test_one_robot_mission_over_zenoh(open_tmp_path):
         )
         assert probe.stdout.strip() != "0", "the twin's master listens on the link address"
     log = mission.log()
+    assert not mission.killed, "the mission did not stop by itself within its timeout:\n" + log[-3000:]
     assert "joined by Zenoh bridges" in log and "exited with code" not in log, log[-3000:]
     assert list((out / "logs" / "robots").glob("zenoh_bridge_robots-*.log"))
     assert (out / "map.bt").exists() and (out / "map.bt").stat().st_size > 1000
