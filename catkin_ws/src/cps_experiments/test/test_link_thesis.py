@@ -209,12 +209,19 @@ def test_both_arms_play_the_runs_recorded_video_and_the_report_says_what_drove_t
     assert "- wifi_degraded_manager_on_iperf3: link capacity not announced: the manager's budget from iperf3" in text
     assert "## What each arm offered the link" in text
     assert (
-        f"- wifi_degraded_manager_on: video recorded frames of each camera robot's route at each video level ({trace}"
+        f"- video of wifi_degraded_manager_on: recorded frames of each camera robot's route at each video level ({trace}"
         in text
     )
-    assert "- wifi_degraded_manager_off: video rendered live" in text
+    assert "- video of wifi_degraded_manager_off: rendered live" in text
     assert "clouds (every arm): live from the simulator" in text
     assert "video: not recorded" in "\n".join(link_thesis.markdown_sections([], {}, "jackal", 80.0))
+
+
+def test_arms_with_one_video_source_share_a_line_and_its_paths_are_relative_to_the_repository():
+    source = "recorded frames (/repo/out/experiments/link_thesis/video_trace.npz: 300 per level)"
+    text = link_thesis._sources_text({"a_on": source, "a_off": source, "b_off": "rendered live"}, root="/repo")
+    assert "- video of a_on, a_off: recorded frames (out/experiments/link_thesis/video_trace.npz" in text
+    assert "- video of b_off: rendered live" in text and "/repo" not in text
 
 
 def test_the_video_trace_is_recorded_once_into_the_run_root_and_reused_while_it_fits(tmp_path):

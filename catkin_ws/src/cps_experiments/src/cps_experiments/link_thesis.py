@@ -560,9 +560,14 @@ def _verdict_text(verdict):
     )
 
 
-def _sources_text(video_sources):
-    """Which arm's video came from where (each mission's own statement) and the clouds' source."""
-    lines = [f"- {name}: video {source}" for name, source in video_sources.items()] or [
+def _sources_text(video_sources, root=None):
+    """Where the video came from (each mission's own statement, one line per distinct source, its
+    paths relative to `root`, default the working folder) and the clouds' source."""
+    root = os.path.join(os.path.abspath(root or os.getcwd()), "")
+    arms = defaultdict(list)
+    for name, source in video_sources.items():
+        arms[source.replace(root, "")].append(name)
+    lines = [f"- video of {', '.join(names)}: {source}" for source, names in arms.items()] or [
         "- video: not recorded (no mission's summary said)"
     ]
     lines.append(
