@@ -30,9 +30,10 @@ import threading
 import time
 
 import yaml
-from live_fleet_sim import measure_cpu, process_cpu_s, start_fleet_sim
+from live_fleet_sim import measure_cpu, start_fleet_sim
 
 from cps_fleet import names
+from cps_ros.processes import process_cpu_s
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FLEET_YAML = os.path.join(REPO, "catkin_ws/src/cps_bringup/config/fleet.yaml")

@@ -3,26 +3,15 @@ start it on a private master and wait for its robots, then measure its CPU and i
 workers' from /proc over a window after a warm-up. Imported by scripts run as
 `python bench/<name>.py`, whose own folder is first on sys.path."""
 
-import os
 import time
 
 from cps_fleet import names
+from cps_ros.processes import process_cpu_s
 
-CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 # The benchmarks' fleet_sim: the light sensor profile and the fast renderer.
 FLEET_SIM_PARAMS = {"~profile": "light", "~renderer": "fast"}
 # How long fleet_sim may take to publish its last robot's odometry (a loaded 2-core machine).
 READY_TIMEOUT_S = 180
-
-
-def process_cpu_s(pid):
-    """CPU time (user + system) of process `pid` so far, s; 0 once it has gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as stream:
-            fields = stream.read().rsplit(")", 1)[1].split()
-    except FileNotFoundError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS_PER_S
 
 
 def children(pid):

@@ -26,10 +26,10 @@ import sys
 import time
 
 from cps_fleet import names
+from cps_ros.processes import process_cpu_s
 
 FRAME_SIZES = ((640, 480), (160, 120))
 PYBULLET_FOR_SIZE = {640: "egl", 160: "tiny"}
-CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
 def _median_ms(fn, repeats):
@@ -106,12 +106,6 @@ def bench_sensors(frames):
     return rows
 
 
-def _cpu_s(pid):
-    with open(f"/proc/{pid}/stat") as stream:
-        fields = stream.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS_PER_S  # utime + stime
-
-
 def run_sensor_loop(profile, renderer, seconds, workers, warmup_s=4.0):
     """Drive the sensor worker pool as fleet_sim does (EDF over the configured rates) with the
     robots at their sample poses; (core-seconds per second, {robot: (configured Hz, achieved Hz)})."""
@@ -142,7 +136,7 @@ def run_sensor_loop(profile, renderer, seconds, workers, warmup_s=4.0):
             now = time.time()
             if cpu_start is None and now >= measuring_from:
                 parent_start = time.process_time()
-                cpu_start = parent_start + sum(_cpu_s(w.process.pid) for w in pool.workers)
+                cpu_start = parent_start + sum(process_cpu_s(w.process.pid) for w in pool.workers)
                 counts = {name: 0 for name in sim.robots}
             if now >= stop_at:
                 break
@@ -169,7 +163,7 @@ def run_sensor_loop(profile, renderer, seconds, workers, warmup_s=4.0):
                 else:
                     time.sleep(pause_s)
         parent_s = time.process_time() - parent_start
-        cpu_s = parent_s + sum(_cpu_s(w.process.pid) for w in pool.workers) + parent_start - cpu_start
+        cpu_s = parent_s + sum(process_cpu_s(w.process.pid) for w in pool.workers) + parent_start - cpu_start
     finally:
         pool.close()
     rates = {name: (s.rate_hz, counts[name] / seconds) for name, s in sim.robots.items()}

@@ -427,12 +427,15 @@ def test_a_process_naming_the_mission_folder_after_the_stop_is_killed_and_named(
     import sys
 
     from cps_bringup.cli import _kill_leftovers
+    from cps_harness.testing import processes_named, wait_for
 
     out = tmp_path / "mission"
     out.mkdir()
     left = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", str(out)], start_new_session=True)
     lines = []
     try:
+        # Between fork and exec the child still shows pytest's command line: wait until it names the folder.
+        assert wait_for(lambda: processes_named(str(out)), timeout_s=10)
         _kill_leftovers(str(out), lines.append)
         left.wait(10)
         assert left.returncode == -9

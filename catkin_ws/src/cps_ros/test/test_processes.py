@@ -33,3 +33,15 @@ def test_a_group_with_a_worker_is_found_whole_and_is_gone_once_killed():
 
 def test_a_group_nobody_is_in_has_no_members():
     assert group_members(2**22 + 1) == []  # above any pid_max
+
+
+def test_cpu_seconds_grow_with_work_and_are_zero_for_a_process_that_is_gone():
+    from cps_ros.processes import process_cpu_s
+
+    before = process_cpu_s(os.getpid())
+    deadline = time.process_time() + 0.2
+    while time.process_time() < deadline:
+        pass
+    assert process_cpu_s(os.getpid()) >= before + 0.1
+    assert process_cpu_s(os.getpid(), waited_children=True) >= process_cpu_s(os.getpid())
+    assert process_cpu_s(2**22 + 1) == 0.0

@@ -736,42 +736,18 @@ def _robots_graph(out_dir, link):
     return graph
 
 
-def _ancestors():
-    """This process and its ancestors' pids."""
-    pids, pid = set(), os.getpid()
-    while pid > 1 and pid not in pids:
-        pids.add(pid)
-        try:
-            with open(f"/proc/{pid}/stat") as stream:
-                pid = int(stream.read().rsplit(")", 1)[1].split()[1])
-        except OSError:
-            break
-    return pids
-
-
 def _kill_leftovers(out_dir, log):
     """The guarantee that a mission leaves nothing running: after every side has stopped, a process
     still naming the mission folder (in its command line or environment) outlived its stop. It is
     killed, waited for, and named in the log, so that the leak stays visible."""
-    import signal
+    from cps_ros.processes import kill_processes_named
 
-    from cps_ros.processes import processes_named
-
-    mine = _ancestors()
-    left = [(pid, cmd) for pid, cmd in processes_named(out_dir) if pid not in mine]
-    if not left:
-        return
-    for pid, _ in left:
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.kill(pid, signal.SIGKILL)
-    deadline = time.monotonic() + 5.0
-    pids = {pid for pid, _ in left}
-    while time.monotonic() < deadline and pids & {pid for pid, _ in processes_named(out_dir)}:
-        time.sleep(0.05)  # zombies are not listed: killed is gone
-    log(
-        f"[bringup] WARNING: {len(left)} process(es) of this mission outlived their stop and were killed: "
-        + "; ".join(f"{pid} {cmd[:160]}" for pid, cmd in left)
-    )
+    left = kill_processes_named(out_dir)
+    if left:
+        log(
+            f"[bringup] WARNING: {len(left)} process(es) of this mission outlived their stop and were killed: "
+            + "; ".join(f"{pid} {cmd[:160]}" for pid, cmd in left)
+        )
 
 
 def _host_split(args, sides):

@@ -13,7 +13,7 @@ from cps_experiments.link_run import LinkRosGraph
 from cps_fleet import names
 from cps_link.netns_link import TWIN_IP, namespace
 from cps_link.zenoh_session import bridge_argv
-from cps_ros.processes import RosGraph, find_node
+from cps_ros.processes import RosGraph, find_node, process_cpu_s
 
 FIXTURES = os.path.normpath(
     os.path.join(os.path.dirname(find_node("cps_link", "zenoh_bridge")), "..", "test", "fixtures")
@@ -90,12 +90,7 @@ def start_load(graphs, streams, name):
 
 
 def cpu_s(pids):
-    total = 0.0
-    for pid in pids:
-        with contextlib.suppress(OSError):
-            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    return total
+    return sum(process_cpu_s(pid) for pid in pids)
 
 
 def bridge_pids(graphs):

@@ -17,6 +17,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from cps_ros.processes import process_cpu_s
+
 REPLAY = "trace_replay"  # cps_bringup's node script
 WARMUP_S = 8.0
 MAX_DROPPED = 0.01
@@ -93,7 +95,7 @@ def trial(graph, watch, split, bag, n, layout, duration_s, out_dir):
     try:
         supervisor.start_all(timeout_s=180)
         twin_pids = [supervisor.pid_of(s.label) for s in supervisor.specs]
-        cpu0 = sum(_cpu_s(p) for p in twin_pids)
+        cpu0 = sum(process_cpu_s(p, waited_children=True) for p in twin_pids)
         watch.clear()
         start = time.monotonic()
         shards = math.ceil(n / ROBOTS_PER_REPLAY)
@@ -119,7 +121,7 @@ def trial(graph, watch, split, bag, n, layout, duration_s, out_dir):
             replay.wait(timeout=duration_s + 120)
         end = time.monotonic()
         time.sleep(DRAIN_S)  # the last clouds through the decoder and the slots
-        cpu_s = sum(_cpu_s(p) for p in twin_pids) - cpu0
+        cpu_s = sum(process_cpu_s(p, waited_children=True) for p in twin_pids) - cpu0
     finally:
         supervisor.stop_all()
     sent, late, stalls = {}, [], []
@@ -181,16 +183,6 @@ def trial(graph, watch, split, bag, n, layout, duration_s, out_dir):
     row["replay_limited"] = summary["late_p95_s"] > MAX_REPLAY_LATE_S or bool(summary["stalls_s"])
     row["holds"] = row["dropped_pct"] <= 100 * MAX_DROPPED and row["age_p95_s"] <= MAX_AGE_P95_S
     return row
-
-
-def _cpu_s(pid):
-    """User + system CPU seconds of a process and its waited-for children (0 once it has ended)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        return sum(int(x) for x in fields[11:15]) / os.sysconf("SC_CLK_TCK")
-    except OSError:
-        return 0.0
 
 
 @contextmanager

@@ -286,6 +286,46 @@ def _param_text(value):
     return str(value)
 
 
+def process_cpu_s(pid, waited_children=False):
+    """CPU seconds (user + system) process `pid` has used so far, with `waited_children` also its
+    children's that it waited for; 0.0 once it has gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as stream:
+            fields = stream.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    ticks = sum(int(x) for x in fields[11 : 15 if waited_children else 13])
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def ancestors():
+    """This process's pid and its ancestors'."""
+    pids, pid = set(), os.getpid()
+    while pid > 1 and pid not in pids:
+        pids.add(pid)
+        try:
+            with open(f"/proc/{pid}/stat") as stream:
+                pid = int(stream.read().rsplit(")", 1)[1].split()[1])
+        except OSError:
+            break
+    return pids
+
+
+def kill_processes_named(needle, wait_s=5.0):
+    """SIGKILL every process whose command line or environment mentions `needle` (never this process
+    nor its ancestors) and wait up to `wait_s` for them to be gone; the (pid, command) killed."""
+    spared = ancestors()
+    found = [(pid, cmd) for pid, cmd in processes_named(needle) if pid not in spared]
+    for pid, _ in found:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGKILL)
+    pids = {pid for pid, _ in found}
+    deadline = time.monotonic() + wait_s
+    while pids and time.monotonic() < deadline and pids & {pid for pid, _ in processes_named(needle)}:
+        time.sleep(0.05)  # zombies are not listed: killed is gone
+    return found
+
+
 def group_members(pgid):
     """The pids of live (not zombie) processes in process group `pgid`."""
     members = []
