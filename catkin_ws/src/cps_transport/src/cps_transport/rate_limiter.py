@@ -2,9 +2,9 @@
 
 topic_tools' throttle forwards a message only if 1/rate has passed since the last one, so an
 input of 10 Hz asked for 8 Hz gives 5 Hz (every second message is 0.1 s < 0.125 s early).
-Here every message earns `rate x dt` credit and costs 1, with at most `burst` credits banked:
-the fractional credit carries over, so whenever the input is faster than the set rate the
-output averages exactly the set rate (10 Hz -> 8 Hz forwards 4 of every 5).
+Here every message earns `rate x dt` credit and costs 1, with at most `burst` whole credits
+banked (plus the fraction): the fractional credit always carries over, so whenever the input is
+faster than the set rate the output averages exactly the set rate (10 Hz -> 8 Hz forwards 4 of every 5).
 """
 
 import collections
@@ -73,7 +73,10 @@ class RateLimiter:
         self.input.add(now_s, size_bytes)
         if self._last_s is not None:
             elapsed = max(0.0, now_s - self._last_s)
-            self._credit = min(self.burst, self._credit + elapsed * self.rate_hz)
+            credit = self._credit + elapsed * self.rate_hz
+            # At most `burst` whole messages banked, but the fraction always carries over: a cap of
+            # exactly `burst` would drop it and, at burst 1, alias like topic_tools' throttle.
+            self._credit = min(credit, self.burst + credit % 1.0)
         self._last_s = now_s
         if self._credit >= 1.0:
             self._credit -= 1.0
