@@ -31,7 +31,12 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
     live = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
     backfill = TopicRecorder(f"/twin/{ROBOT}/points_backfill/draco", CompressedPointCloud2)
     poses = TopicRecorder(f"/twin/{ROBOT}/points_backfill/pose", TransformStamped)
-    link.wait(lambda m: m.up, timeout_s=20, what="the link up")
+    try:
+        link.wait(lambda m: m.up, timeout_s=20, what="the link up")
+    except AssertionError as exc:  # say why: it once failed in CI with nothing to go on
+        raise AssertionError(
+            f"{exc}\ntwin bridge:\n{ros.output('bt')[-2000:]}\nrobots bridge:\n{robots_graph.output('br')[-2000:]}"
+        ) from exc
     live.wait(timeout_s=20, what="live clouds")
 
     ros.stop(twin_bridge)
