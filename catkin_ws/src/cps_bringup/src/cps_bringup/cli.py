@@ -777,7 +777,7 @@ def _link_context(rate, log, scenario_name=None, name=None):
     if rate in (None, "", "none") and not scenario_name:
         yield None
         return
-    from cps_bringup.link import LINK_NAME, namespaced_link
+    from cps_bringup.link import namespaced_link
     from cps_link.netns_link import LinkError
     from cps_link.scenario import load_scenario
 
@@ -786,7 +786,7 @@ def _link_context(rate, log, scenario_name=None, name=None):
     except ConfigError as exc:
         raise BringupError(f"--link-scenario {scenario_name}: {exc}") from exc
     try:
-        with namespaced_link(rate, log, scenario, name or LINK_NAME) as link:
+        with namespaced_link(rate, log, scenario, name) as link:
             yield link
     except LinkError as exc:
         raise BringupError(f"--link {rate}: {exc}") from exc

@@ -11,11 +11,43 @@ import contextlib
 import ctypes
 import dataclasses
 import os
+import re
 
-from cps_link.netns_link import PHYS_IP, TWIN_IP, LinkError, ShapedLink, check_capability, link_exists, namespace
+from cps_link.netns_link import (
+    PHYS_IP,
+    TWIN_IP,
+    LinkError,
+    ShapedLink,
+    check_capability,
+    link_down,
+    link_exists,
+    list_namespaces,
+    namespace,
+)
 
-LINK_NAME = "cpsfleet"
+RUN_LINK_PREFIX = "cps"
+_RUN_NAMESPACE = re.compile(rf"^{RUN_LINK_PREFIX}(\d+)_[a-z]+$")
 _CLONE_NEWNET = 0x40000000
+
+
+def run_link_name(pid=None):
+    """The link of one bringup run, `cps<pid>` (at most 10 characters for any pid_max): two runs
+    on one machine, or a run beside a killed one's leftovers, never meet on a fixed name."""
+    return f"{RUN_LINK_PREFIX}{os.getpid() if pid is None else pid}"
+
+
+def remove_stale_run_links(log=print):
+    """Remove the links of earlier runs (`cps<pid>`) whose bringup died without removing them
+    (SIGKILL): their pid is gone. Returns the names removed."""
+    stale = set()
+    for ns in list_namespaces():
+        match = _RUN_NAMESPACE.match(ns)
+        if match and not os.path.exists(f"/proc/{match.group(1)}"):
+            stale.add(f"{RUN_LINK_PREFIX}{match.group(1)}")
+    for name in sorted(stale):
+        link_down(name)
+        log(f"[bringup] removed link {name}, left by a run that is gone")
+    return sorted(stale)
 
 
 def link_unavailable_reason():
@@ -36,12 +68,12 @@ def _setns(fd):
 
 @dataclasses.dataclass
 class NamespacedLink:
+    name: str
     rate: str
     measured_mbps: float
     scenario: object = None  # a cps_link.scenario.Scenario to run during the mission, or None
     phys_ip: str = PHYS_IP
     twin_ip: str = TWIN_IP
-    name: str = LINK_NAME
 
     def exec_prefix(self, side):
         return ["ip", "netns", "exec", namespace(self.name, side)]
@@ -141,10 +173,14 @@ class InNamespace:
 
 
 @contextlib.contextmanager
-def namespaced_link(rate, log=print, scenario=None, name=LINK_NAME):
-    """Create the link (with `scenario`: its topology and initial rate), measure it, move this
-    thread into the twin namespace; undo all on exit."""
+def namespaced_link(rate, log=print, scenario=None, name=None):
+    """Create the link (with `scenario`: its topology and initial rate; `name` None: this run's
+    own, after removing dead runs' links), measure it, move this thread into the twin namespace;
+    undo all on exit."""
     check_capability()
+    if name is None:
+        remove_stale_run_links(log)
+        name = run_link_name()
     if link_exists(name):
         raise LinkError(
             f"a link named {name} already exists (another run?); remove it with `cps_link down --name {name}`"
@@ -163,7 +199,7 @@ def namespaced_link(rate, log=print, scenario=None, name=LINK_NAME):
         try:
             _setns(target)
             try:
-                yield NamespacedLink(rate, measured, scenario, name=name)
+                yield NamespacedLink(name, rate, measured, scenario)
             finally:
                 _setns(home)
         finally:
