@@ -20,8 +20,11 @@ from cps_experiments.cut_analysis import (
 )
 from cps_experiments.mission_run import BackgroundMission
 
+from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_ros.processes import processes_named
+
+LINK = link_name("zc")
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -46,7 +49,7 @@ def _mission(out, cut):
     twin_topics = [
         t for r in ROBOTS for t in (f"/twin/{r}/points_filtered/draco/managed", f"/twin/{r}/points_backfill")
     ]
-    with BackgroundMission(out, "cpszc", ["--robots", ",".join(ROBOTS), "--duration", str(MISSION_S)]) as mission:
+    with BackgroundMission(out, LINK, ["--robots", ",".join(ROBOTS), "--duration", str(MISSION_S)]) as mission:
         mission.wait_for_line("processes up", timeout_s=300)
         mission.popen_on("twin", [sys.executable, WATCH, str(out / "twin_watch.txt"), *twin_topics], "twin_watch")
         mission.popen_on("phys", [sys.executable, WATCH, str(out / "robots_watch.txt")], "robots_watch")
@@ -97,5 +100,5 @@ def test_a_ten_second_cut_mid_mission(open_tmp_path):
     assert all(n > 0 for n in backfilled.values()), backfilled
     assert f1_cut >= F1_RATIO * f1_base, (f1_cut, f1_base)
     assert not processes_named(str(tmp_path)), processes_named(str(tmp_path))
-    assert "cpszc" not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    assert f"{LINK}_" not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
     assert LINK_STATE in open(tmp_path / "cut" / "twin_watch.txt").read()

@@ -10,6 +10,7 @@ import time
 import pytest
 from cps_experiments.link_run import LinkRosGraph, read_records, summarize
 
+from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_link.netns_link import ShapedLink
 from cps_ros.processes import find_node
@@ -100,7 +101,7 @@ def _wait_for_file_rows(path, timeout_s):
 @pytest.mark.skipif(_capable() is not None, reason=f"{_capable()}")
 @pytest.mark.timeout(150)
 def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
-    name = "cpsbwl"
+    name = link_name("bwl")
     record_path = str(tmp_path / "received.txt")
     csv_path = str(tmp_path / "allocation.csv")
     try:
@@ -191,7 +192,7 @@ def _estimates(csv_path):
 def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
     """The manager estimates the capacity from /tissue/stats (cps_transport's topic_stats on the
     digital-twin side) while `cps_link set` changes the link 60 -> 20 -> 60 Mbit/s under load."""
-    name = "cpsbwe"
+    name = link_name("bwe")
     stats_path = str(tmp_path / "stats.csv")
     csv_path = str(tmp_path / "allocation.csv")
     marks = {}

@@ -8,9 +8,12 @@ import numpy as np
 import pytest
 from cps_experiments.transport_compare import Graphs, teleop_under_saturation
 
+from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_link.netns_link import ShapedLink
 from cps_link.zenoh_session import MAKE_CERTS
+
+LINK = link_name("zt")
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 P95_LIMIT_MS = 50.0
@@ -24,7 +27,7 @@ def test_teleop_p95_under_saturation(tmp_path):
     subprocess.run([MAKE_CERTS, cert_dir], check=True, capture_output=True)
     p95 = {}
     for transport in ("tcpros", "zenoh"):
-        with ShapedLink("cpszt", rate="60mbit") as link:
+        with ShapedLink(LINK, rate="60mbit") as link:
             graphs = Graphs(link, transport, cert_dir)
             try:
                 latencies = teleop_under_saturation(graphs, str(tmp_path / f"{transport}.txt"), PHASE_S)
@@ -34,4 +37,4 @@ def test_teleop_p95_under_saturation(tmp_path):
         p95[transport] = float(np.percentile(latencies, 95))
     print(f"\nteleop p95 under saturation: zenoh {p95['zenoh']:.1f} ms, tcpros {p95['tcpros']:.1f} ms")
     assert p95["zenoh"] <= P95_LIMIT_MS, p95
-    assert not any(ns.startswith("cpszt") for ns in netns_link.list_namespaces())
+    assert not any(ns.startswith(f"{LINK}_") for ns in netns_link.list_namespaces())

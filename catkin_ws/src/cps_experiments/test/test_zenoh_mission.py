@@ -8,8 +8,11 @@ import time
 import pytest
 from cps_experiments.mission_run import BackgroundMission
 
+from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_ros.processes import processes_named
+
+LINK = link_name("zb")
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -19,7 +22,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 def test_one_robot_mission_over_zenoh(open_tmp_path):
     tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
     out = tmp_path / "mission"
-    with BackgroundMission(out, "cpszb", ["--robots", "jackal", "--duration", "120"]) as mission:
+    with BackgroundMission(out, LINK, ["--robots", "jackal", "--duration", "120"]) as mission:
         mission.wait_for_line("processes up", timeout_s=240)
         # A cloud crossed: the twin's relayed managed topic carries the robot's clouds.
         echo = mission.on_twin(["rostopic", "echo", "-n", "1", "--noarr", "/twin/jackal/points_filtered/draco/managed"])
@@ -51,4 +54,4 @@ def test_one_robot_mission_over_zenoh(open_tmp_path):
     assert list((out / "logs" / "robots").glob("zenoh_bridge_robots-*.log"))
     assert (out / "map.bt").exists() and (out / "map.bt").stat().st_size > 1000
     assert not processes_named(str(out)), processes_named(str(out))
-    assert "cpszb" not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    assert f"{LINK}_" not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout

@@ -8,6 +8,7 @@ import sys
 
 import pytest
 
+from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_link.netns_link import LinkError, ShapedLink, list_namespaces
 
@@ -32,7 +33,7 @@ def _ours(name):
 @needs_link
 @pytest.mark.slow
 def test_link_is_shaped_both_ways_changes_live_and_is_removed():
-    name = "cpstlink"
+    name = link_name("tl")
     try:
         with ShapedLink(name, rate="60mbit") as link:
             assert sorted(_ours(name)) == [f"{name}_phys", f"{name}_twin"]
@@ -54,7 +55,7 @@ def test_link_is_shaped_both_ways_changes_live_and_is_removed():
 
 @needs_link
 def test_link_is_removed_when_the_block_fails():
-    name = "cpstfail"
+    name = link_name("tf")
     with pytest.raises(RuntimeError, match="boom"):
         with ShapedLink(name):
             assert _ours(name)
@@ -65,7 +66,7 @@ def test_link_is_removed_when_the_block_fails():
 
 @needs_link
 def test_delay_and_loss_use_netem_or_say_why_not():
-    name = "cpstdelay"
+    name = link_name("td")
     try:
         netns_link.link_up(name, delay_ms=20.0, loss_pct=0.0)
     except LinkError as exc:
@@ -113,7 +114,7 @@ def test_bad_link_arguments_are_refused_before_anything_is_created(kwargs, match
 @needs_link
 @pytest.mark.slow
 def test_cli_up_measure_set_down():
-    name = "cpstcli"
+    name = link_name("tc")
 
     def cli(*args):
         return subprocess.run([sys.executable, NODE, *args], capture_output=True, text=True, timeout=60)

@@ -10,10 +10,13 @@ import time
 
 import pytest
 
+from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_link.netns_lan import SharedLan
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import RosGraph, find_node
+
+LINK = link_name("zr")
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -42,7 +45,7 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
             capture_output=True,
         )
     teleop_file, cloud_file = str(tmp_path / "teleop.txt"), str(tmp_path / "clouds.txt")
-    with SharedLan("cpszr", HOSTS) as lan:
+    with SharedLan(LINK, HOSTS) as lan:
         robots = InNamespace(RosGraph(host_ip="127.0.0.1"), f"/var/run/netns/{lan.namespace('phys')}")
         twin = InNamespace(RosGraph(host_ip="127.0.0.1"), f"/var/run/netns/{lan.namespace('twin')}")
         try:
@@ -131,4 +134,4 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
         finally:
             robots.close()
             twin.close()
-    assert not any(ns.startswith("cpszr") for ns in netns_link.list_namespaces())
+    assert not any(ns.startswith(f"{LINK}_") for ns in netns_link.list_namespaces())

@@ -4,6 +4,7 @@ capacity; the full-duplex veth gives each direction its own. Measured with iperf
 import pytest
 from test_netns_link import needs_link
 
+from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_link.netns_link import LinkError, ShapedLink, list_namespaces
 
@@ -22,8 +23,8 @@ def _bidir(name, topology):
 
 @pytest.mark.timeout(90)
 def test_both_directions_share_one_capacity_where_the_veth_gives_each_its_own():
-    up_shared, down_shared = _bidir("cpsksm", "shared")
-    up_duplex, down_duplex = _bidir("cpskdx", "duplex")
+    up_shared, down_shared = _bidir(link_name("ksm"), "shared")
+    up_duplex, down_duplex = _bidir(link_name("kdx"), "duplex")
     print(
         f"\n{RATE_MBPS:g} Mbit/s, iperf3 --bidir: shared medium {up_shared:.1f} up + {down_shared:.1f} down = "
         f"{up_shared + down_shared:.1f} Mbit/s; full-duplex veth {up_duplex:.1f} + {down_duplex:.1f} = "
@@ -36,7 +37,7 @@ def test_both_directions_share_one_capacity_where_the_veth_gives_each_its_own():
 
 @pytest.mark.timeout(60)
 def test_a_cut_link_carries_nothing_until_it_is_set_again():
-    name = "cpskcut"
+    name = link_name("kc")
     try:
         with ShapedLink(name, rate="20mbit", topology="shared") as link:
             netns_link.link_cut(name)

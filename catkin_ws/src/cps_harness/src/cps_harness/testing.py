@@ -6,12 +6,23 @@ Wait for the event a test expects (a message, a counter moving) rather than slee
 asserting that nothing changed.
 """
 
+import os
+import re
 import threading
 import time
 
 from cps_ros.processes import RosGraph, find_node, free_port, processes_named
 
-__all__ = ["RosGraph", "TopicRecorder", "find_node", "free_port", "processes_named", "wait_for"]
+__all__ = ["RosGraph", "TopicRecorder", "find_node", "free_port", "link_name", "processes_named", "wait_for"]
+
+
+def link_name(tag):
+    """A shaped link's name of this test process's own, `<tag><pid>` (a tag of 1-3 letters keeps it
+    within cps_link's 10 characters for any pid): a link a killed run left behind cannot stop the
+    next run, and two checkouts testing on one machine do not meet."""
+    if not re.fullmatch(r"[a-z]{1,3}", tag):
+        raise ValueError(f"link tag must be 1-3 lowercase letters, got {tag!r}")
+    return f"{tag}{os.getpid()}"
 
 
 def wait_for(predicate, timeout_s=10.0, poll_s=0.05):

@@ -24,7 +24,7 @@ class SharedLan(ClosingContext):
 
     def __init__(self, name, hosts, rate=None):
         _check_name(name)
-        if not hosts or any(len(f"{name}{h}") > 12 for h in hosts):
+        if not hosts or any(len(f"{name}{h}") > 15 for h in hosts):
             raise LinkError(f"host names of LAN '{name}' must be short (interface names are at most 15 characters)")
         if rate:
             rate_bits_per_s(rate)
