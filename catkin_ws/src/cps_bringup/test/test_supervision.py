@@ -3,6 +3,7 @@ injected), a GUI that fails without ending the run, a dead master noticed within
 drop root, code they cannot read refused at start, the map kernels they read without compiling,
 node output that cannot grow without bound."""
 
+import contextlib
 import os
 import pwd
 import signal
@@ -129,6 +130,55 @@ WRITER = (
     "p = rospy.Publisher('/writer/out', String, queue_size=1); "
     "open(os.path.join(sys.argv[1], 'written.csv'), 'w').write('ok'); time.sleep(600)"
 )
+
+
+KILLED_PARENT = """
+import sys
+from cps_bringup.plan import DIGITAL, NodeSpec
+from cps_bringup.privileges import user_prefix
+from cps_bringup.supervisor import Supervisor
+from cps_ros.processes import RosGraph
+graph = RosGraph(log_dir=sys.argv[1])
+graph.start()
+spec = NodeSpec("sleeper", DIGITAL, (sys.executable, "-c", "import time; time.sleep(120)"))
+supervisor = Supervisor([spec], graph, log=lambda *_: None, user_prefix=user_prefix("nobody"))
+supervisor.start_all(timeout_s=30)
+print(graph.processes[0].pid, supervisor.pid_of("sleeper"), flush=True)
+sys.stdin.read()
+"""
+
+
+def _gone(pid):
+    """Exited: no process, or a zombie nobody has reaped yet."""
+    try:
+        with open(f"/proc/{pid}/stat") as stream:
+            return stream.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="dropping root needs root")
+def test_an_unprivileged_node_dies_with_a_killed_supervisor(open_tmp_path):
+    """A bringup killed with SIGKILL cleans up nothing: its nodes must go by themselves. setpriv's
+    uid change cleared their die-with-parent signal, and a CI run killed that way left the robots'
+    nodelet manager running."""
+    log_dir = open_tmp_path / "logs"
+    hand_over("nobody", str(open_tmp_path), str(log_dir / "log"))
+    parent = subprocess.Popen(
+        [sys.executable, "-c", KILLED_PARENT, str(log_dir)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    pids = []
+    try:
+        pids = [int(p) for p in parent.stdout.readline().split()]
+        assert len(pids) == 2, "the supervisor did not start its node"
+        parent.kill()
+        parent.wait()
+        assert wait_for(lambda: all(_gone(p) for p in pids), 10), [p for p in pids if not _gone(p)]
+    finally:
+        parent.kill()
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="dropping root needs root")

@@ -28,13 +28,15 @@ def node_user(requested):
 
 
 def user_prefix(user):
-    """argv that runs a command as `user` with its primary group and no supplementary groups."""
+    """argv that runs a command as `user` with its primary group and no supplementary groups. The
+    kernel clears a process's die-with-parent signal when its uid changes: `--pdeathsig keep` sets
+    it again, or a node would outlive a bringup that was killed."""
     try:
         entry = pwd.getpwnam(user)
     except KeyError as exc:
         raise PrivilegeError(f"no user named '{user}'") from exc
     group = grp.getgrgid(entry.pw_gid).gr_name
-    return ["setpriv", f"--reuid={entry.pw_uid}", f"--regid={group}", "--clear-groups", "--"]
+    return ["setpriv", f"--reuid={entry.pw_uid}", f"--regid={group}", "--clear-groups", "--pdeathsig", "keep", "--"]
 
 
 def user_env(log_dir):
