@@ -13,6 +13,7 @@ from std_msgs.msg import Bool
 
 from cps_fleet import names
 from cps_fleet.config import ConfigError
+from cps_ros.shutdown import init_node
 from cps_sim.fleet_control import DEADMAN_S, MUX_RATE_HZ, ROUTE_RATE_HZ, ControlLoop, FleetControl
 from cps_sim.node_support import WARN_PERIOD_S, ThrottledLog, fail, load_fleet_param, load_site_for, positive_param
 from cps_sim.realtime import run_realtime
@@ -77,7 +78,7 @@ class FleetControlNode:
 
 
 def main():
-    rospy.init_node("fleet_control")
+    init_node("fleet_control")
     fleet = load_fleet_param()
     node = FleetControlNode(
         fleet,

@@ -22,6 +22,7 @@ from std_msgs.msg import Bool, String
 from cps_fleet import names
 from cps_fleet.config import ConfigError
 from cps_fleet.site import check_waypoint
+from cps_ros.shutdown import init_node
 from cps_sim import messages
 from cps_sim.controllers import CommandGate
 from cps_sim.node_support import fail, load_fleet_param, load_site_for, name_list, positive_param, twist_from_msg
@@ -511,7 +512,7 @@ class FleetSimNode:
 
 
 def main():
-    rospy.init_node("fleet_sim")
+    init_node("fleet_sim")
     fleet = load_fleet_param()
     node = FleetSimNode(fleet, read_options())
     try:

@@ -17,6 +17,7 @@ from std_msgs.msg import String
 
 from cps_fleet import names
 from cps_fleet.config import ConfigError
+from cps_ros.shutdown import init_node
 from cps_sim.controllers import RouteTracker, validate_route
 from cps_sim.fleet_control import ROUTE_RATE_HZ
 from cps_sim.node_support import fail, load_fleet_param, load_site_for, positive_param, spin_at, twist_to_msg
@@ -80,7 +81,7 @@ class RouteControllerNode:
 
 
 def main():
-    rospy.init_node("route_controller")
+    init_node("route_controller")
     fleet = load_fleet_param()
     name = rospy.get_param("~robot", "")
     if not name:

@@ -12,6 +12,7 @@ from geometry_msgs.msg import Twist as TwistMsg
 from std_msgs.msg import Bool, String
 
 from cps_fleet import names
+from cps_ros.shutdown import init_node
 from cps_sim.controllers import VelocityMux
 from cps_sim.fleet_control import DEADMAN_S, MUX_RATE_HZ
 from cps_sim.node_support import (
@@ -94,7 +95,7 @@ class VelocityMuxNode:
 
 
 def main():
-    rospy.init_node("velocity_mux")
+    init_node("velocity_mux")
     fleet = load_fleet_param()
     name = rospy.get_param("~robot", "") or rospy.get_namespace().strip("/")
     try:
