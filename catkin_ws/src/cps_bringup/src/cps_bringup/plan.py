@@ -450,6 +450,8 @@ def plan_nodes(
             )
         if options.gui_screenshot_path:
             # rviz needs an X server with OpenGL: a private Xvfb (Mesa llvmpipe) for the offscreen GUI.
+            # xvfb-run is a shell that does not pass its own end on to the GUI: the GUI asks to be sent
+            # SIGTERM when it ends, so that a killed bringup leaves no GUI behind.
             specs.append(
                 NodeSpec(
                     "gui",
@@ -461,6 +463,10 @@ def plan_nodes(
                         "-a",
                         "-s",
                         "-screen 0 1920x1200x24",
+                        "setpriv",
+                        "--pdeathsig",
+                        "TERM",
+                        "--",
                         *py(
                             "cps_gui",
                             "cps_gui",
