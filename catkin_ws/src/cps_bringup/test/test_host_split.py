@@ -3,6 +3,7 @@ each side's processes in its own cgroup (read back from /proc/<pid>/cgroup)."""
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -141,16 +142,21 @@ def test_bringup_places_each_side_in_its_own_cgroup(bringup_mission):
 @pytest.mark.skipif(cgroup_v1_writable() is not None, reason=f"cgroup v1 split unavailable: {cgroup_v1_writable()}")
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPUs to split")
 def test_groups_are_removed_even_with_a_process_left_inside_and_stale_ones_too():
-    """A node that outlived the run is moved out and the groups removed; an earlier run's empty
-    groups (its bringup killed hard, pid gone) are removed at the next start."""
+    """A node that outlived the run is moved out and the groups removed; an earlier run's groups
+    (its bringup killed hard, pid gone) are removed at the next start, and what it left running in
+    them ended: SIGTERM, then SIGKILL for one that ignores SIGTERM."""
     cpus = sorted(os.sched_getaffinity(0))[:2]
     stale = "/sys/fs/cgroup/cpu/cpsfleet_4194305/physical"  # above any pid_max: that bringup is gone
     os.makedirs(stale, exist_ok=True)
+    stale_leftover = subprocess.Popen(["sh", "-c", 'trap "" TERM; exec sleep 60'])
+    with open(os.path.join(stale, "cgroup.procs"), "w") as procs:
+        procs.write(str(stale_leftover.pid))
     name = f"cpsfleet_{os.getpid()}"
     leftover = None
     try:
         with HostSplit.choose({PHYSICAL: (cpus[0],), DIGITAL: (cpus[1],)}, name=name) as split:
             assert not os.path.exists(os.path.dirname(stale))
+            assert stale_leftover.wait(5) == -signal.SIGKILL
             # The node says where it runs (one line of its own /proc/self/cgroup), then stays.
             leftover = subprocess.Popen(
                 [*split.prefix(DIGITAL), "sh", "-c", "grep :cpuset: /proc/self/cgroup; exec cat"],
@@ -166,9 +172,10 @@ def test_groups_are_removed_even_with_a_process_left_inside_and_stale_ones_too()
         for controller in ("cpuset", "cpu"):
             assert not os.path.exists(f"/sys/fs/cgroup/{controller}/{name}")
     finally:
-        if leftover is not None:
-            leftover.kill()
-            leftover.wait()
+        for process in (leftover, stale_leftover):
+            if process is not None and process.poll() is None:
+                process.kill()
+                process.wait()
         for folder in (stale, os.path.dirname(stale)):
             if os.path.isdir(folder):
                 os.rmdir(folder)

@@ -24,7 +24,8 @@ def test_only_the_links_of_gone_runs_are_removed():
         for name in (dead, live, other):
             link_up(name, rate="10mbit")
         removed = remove_stale_run_links(log=lambda _line: None)
-        assert removed == [dead]
+        # Other gone runs' leftovers on this machine may go too; never a live one's nor another form.
+        assert dead in removed and live not in removed and other not in removed, removed
         assert not link_exists(dead)
         assert link_exists(live), "a live run's link was removed"
         assert link_exists(other), "a link not of the run form was removed"

@@ -16,14 +16,17 @@ side; a nice of -10 gives a control node ~10x the CFS weight of a sensor node wh
 Lowering nice needs root; without it the priorities stay equal (said by `describe`).
 """
 
+import contextlib
 import dataclasses
 import os
 import shutil
+import signal
 import sys
 import time
 from typing import Dict, List, Optional, Tuple
 
 from cps_bringup.plan import DIGITAL, PHYSICAL
+from cps_ros.processes import process_running
 
 # What the user writes on the command line -> the plan's side.
 SIDE_NAMES = {"robots": PHYSICAL, "twin": DIGITAL}
@@ -31,6 +34,8 @@ CGROUP_ROOT = "/sys/fs/cgroup"
 CONTROL_NICE = -10
 CFS_PERIOD_US = 100_000
 REMOVE_SETTLE_S = 2.0  # an exiting process holds its group until reaped: milliseconds, not seconds
+# How long a dead run's leftover process has between SIGTERM and SIGKILL (a node saves its map).
+STALE_TERM_GRACE_S = 3.0
 
 # Writes the shell's own pid into every group given, then execs the node (argv after the groups).
 _JOIN = 'n=$1; shift; i=0; while [ $i -lt $n ]; do echo $$ > "$1/cgroup.procs" || exit 126; shift; i=$((i+1)); done; exec "$@"'
@@ -216,27 +221,35 @@ class HostSplit:
                 raise
             print(f"host split: {err}", file=sys.stderr)  # do not hide the error the run ended with
 
-    def _remove_stale(self):
+    def _remove_stale(self, grace_s=STALE_TERM_GRACE_S, log=None):
         """Remove the groups of earlier runs (`<prefix>_<pid>`) whose bringup died without cleaning up
-        (SIGKILL): their pid is gone and nothing runs in them any more."""
+        (SIGKILL): their pid is gone or a zombie. What still runs in them is that run's leftovers (a
+        node that hung in its shutdown, the GUI's X server): each gets SIGTERM, then SIGKILL after
+        `grace_s`, as systemd stops a unit's control group, and is named on stderr."""
+        log = log or (lambda text: print(text, file=sys.stderr))
         prefix, _, own_pid = self.name.rpartition("_")
         if not prefix or not own_pid.isdigit():
             return
+        tops = []
         for controller in ("cpuset", "cpu"):
             folder = os.path.join(self.root, controller)
             for entry in os.listdir(folder):
                 head, _, pid = entry.rpartition("_")
-                if head != prefix or not pid.isdigit() or pid == own_pid or os.path.exists(f"/proc/{pid}"):
-                    continue
-                top = os.path.join(folder, entry)
-                groups = [os.path.join(top, s) for s in os.listdir(top) if os.path.isdir(os.path.join(top, s))]
-                if any(_read(os.path.join(g, "cgroup.procs")) for g in groups + [top]):
-                    continue  # something still runs there: not ours to move
-                for g in groups + [top]:
-                    try:
-                        os.rmdir(g)
-                    except OSError:
-                        pass
+                if head == prefix and pid.isdigit() and pid != own_pid and not process_running(int(pid)):
+                    tops.append(os.path.join(folder, entry))
+        groups = [os.path.join(top, s) for top in tops for s in os.listdir(top) if os.path.isdir(os.path.join(top, s))]
+        leftovers = {int(pid) for g in groups + tops for pid in _read(os.path.join(g, "cgroup.procs")).split()}
+        if leftovers:
+            log(
+                f"host split: ending {len(leftovers)} process(es) left in {', '.join(sorted(set(tops)))} by a "
+                f"run that is gone: {'; '.join(f'{pid} {_command(pid)}' for pid in sorted(leftovers))}"
+            )
+            _end_processes(leftovers, grace_s)
+        for g in groups + tops:
+            try:
+                os.rmdir(g)
+            except OSError as exc:
+                log(f"host split: could not remove {g}, left by a run that is gone: {exc}")
 
     def _remove(self, settle_s=REMOVE_SETTLE_S):
         """Remove the groups; a group still holding a process (a node that outlived stop_all) has its
@@ -309,6 +322,28 @@ class HostSplit:
         if self.mode == "taskset":
             return f"host split by taskset only (no cgroups: {self.reason}; no quota): {sides}; {priority}"
         return f"NO host split ({self.reason}): both sides share every CPU; {priority}"
+
+
+def _command(pid):
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as stream:
+            return stream.read().replace(b"\0", b" ").decode(errors="replace").strip()[:120]
+    except OSError:
+        return "(gone)"
+
+
+def _end_processes(pids, grace_s):
+    """SIGTERM `pids`, SIGKILL those still running after `grace_s`, then wait until they have ended."""
+    for sig, wait_s in ((signal.SIGTERM, grace_s), (signal.SIGKILL, REMOVE_SETTLE_S)):
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
+        deadline = time.monotonic() + wait_s
+        while any(process_running(pid) for pid in pids) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pids = {pid for pid in pids if process_running(pid)}
+        if not pids:
+            return
 
 
 def _read(path):

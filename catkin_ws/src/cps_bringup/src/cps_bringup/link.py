@@ -24,6 +24,7 @@ from cps_link.netns_link import (
     list_namespaces,
     namespace,
 )
+from cps_ros.processes import process_running
 
 RUN_LINK_PREFIX = "cps"
 _RUN_NAMESPACE = re.compile(rf"^{RUN_LINK_PREFIX}(\d+)_[a-z]+$")
@@ -38,11 +39,11 @@ def run_link_name(pid=None):
 
 def remove_stale_run_links(log=print):
     """Remove the links of earlier runs (`cps<pid>`) whose bringup died without removing them
-    (SIGKILL): their pid is gone. Returns the names removed."""
+    (SIGKILL): their pid is gone or a zombie. Returns the names removed."""
     stale = set()
     for ns in list_namespaces():
         match = _RUN_NAMESPACE.match(ns)
-        if match and not os.path.exists(f"/proc/{match.group(1)}"):
+        if match and not process_running(int(match.group(1))):
             stale.add(f"{RUN_LINK_PREFIX}{match.group(1)}")
     for name in sorted(stale):
         link_down(name)

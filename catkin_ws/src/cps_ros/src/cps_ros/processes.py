@@ -298,6 +298,16 @@ def process_cpu_s(pid, waited_children=False):
     return ticks / os.sysconf("SC_CLK_TCK")
 
 
+def process_running(pid):
+    """True while process `pid` exists and has not ended: a zombie nobody reaped (a killed run's
+    bringup whose parent never waits) has ended."""
+    try:
+        with open(f"/proc/{pid}/stat") as stream:
+            return stream.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except OSError:
+        return False
+
+
 def ancestors():
     """This process's pid and its ancestors'."""
     pids, pid = set(), os.getpid()
