@@ -1,5 +1,6 @@
 """A node that keeps rospy's locks busy (logging from its main thread, three subscribers logging
 every message of a 1 kHz publisher) and writes `shutdown hook ran` to stderr from its shutdown hook.
+Its output goes to a file: a pipe nobody reads would fill and block its logging.
 
 argv[1]: `threaded` (cps_ros.shutdown.init_node) or `rospy` (rospy's own signal handlers, the anchor);
 argv[2]: `spin` (wait for a signal) or `return` (main ends by itself, no signal).
