@@ -5,16 +5,19 @@ connection) inside the handler on the main thread. A second signal that lands wh
 logging re-enters it with logging's lock held: the connection threads wait for that lock, the
 re-entered shutdown waits for their topic lock, and the node never exits. Second signals are the
 rule, not the exception: the kernel sends a parent-death signal once per exiting thread of a killed
-multi-threaded supervisor. Here the handler only sets an event; a watcher thread runs rospy's
-shutdown, hooks included, and the interpreter waits for it before it exits.
+multi-threaded supervisor. Here the handler only appends the signal to a list, taking no lock (an
+Event's set takes one, and a second signal inside the first handler's set deadlocked on it); a
+watcher thread that looks at the list every WATCH_PERIOD_S runs rospy's shutdown, hooks included,
+and the interpreter waits for it before it exits.
 """
 
 import signal
 import threading
+import time
 
 SHUTDOWN_SIGNALS = (signal.SIGTERM, signal.SIGINT)
-# How often the watcher looks whether the main thread has ended without a signal.
-WATCH_PERIOD_S = 0.2
+# How often the watcher looks for a signal, and whether the main thread has ended without one.
+WATCH_PERIOD_S = 0.1
 
 
 def init_node(name, **kwargs):
@@ -25,28 +28,25 @@ def init_node(name, **kwargs):
     handle_shutdown_signals()
 
 
-def handle_shutdown_signals(signals=SHUTDOWN_SIGNALS):
-    """Route `signals` to rospy.signal_shutdown on a watcher thread; returns that thread."""
+def handle_shutdown_signals():
+    """Route SHUTDOWN_SIGNALS to rospy.signal_shutdown on a watcher thread."""
     import rospy
 
     received = []
-    wanted = threading.Event()
 
     def on_signal(signum, _frame):
-        received.append(signum)
-        wanted.set()
+        received.append(signum)  # atomic under the GIL, no lock to re-enter
 
     def watch():
         main = threading.main_thread()
         # Not a daemon, so that hooks such as a map's last save finish before the interpreter exits;
         # it ends by itself once the node's main thread has ended without a signal.
         while main.is_alive() and not rospy.is_shutdown():
-            if wanted.wait(WATCH_PERIOD_S):
+            if received:
                 rospy.signal_shutdown(f"signal-{received[0]}")
                 return
+            time.sleep(WATCH_PERIOD_S)
 
-    watcher = threading.Thread(target=watch, name="signal_shutdown")
-    watcher.start()
-    for signum in signals:
+    threading.Thread(target=watch, name="signal_shutdown").start()
+    for signum in SHUTDOWN_SIGNALS:
         signal.signal(signum, on_signal)
-    return watcher
