@@ -16,17 +16,15 @@ side; a nice of -10 gives a control node ~10x the CFS weight of a sensor node wh
 Lowering nice needs root; without it the priorities stay equal (said by `describe`).
 """
 
-import contextlib
 import dataclasses
 import os
 import shutil
-import signal
 import sys
 import time
 from typing import Dict, List, Optional, Tuple
 
 from cps_bringup.plan import DIGITAL, PHYSICAL
-from cps_ros.processes import process_running
+from cps_ros.processes import end_processes, process_command, process_running
 
 # What the user writes on the command line -> the plan's side.
 SIDE_NAMES = {"robots": PHYSICAL, "twin": DIGITAL}
@@ -221,12 +219,11 @@ class HostSplit:
                 raise
             print(f"host split: {err}", file=sys.stderr)  # do not hide the error the run ended with
 
-    def _remove_stale(self, grace_s=STALE_TERM_GRACE_S, log=None):
+    def _remove_stale(self, grace_s=STALE_TERM_GRACE_S):
         """Remove the groups of earlier runs (`<prefix>_<pid>`) whose bringup died without cleaning up
         (SIGKILL): their pid is gone or a zombie. What still runs in them is that run's leftovers (a
         node that hung in its shutdown, the GUI's X server): each gets SIGTERM, then SIGKILL after
         `grace_s`, as systemd stops a unit's control group, and is named on stderr."""
-        log = log or (lambda text: print(text, file=sys.stderr))
         prefix, _, own_pid = self.name.rpartition("_")
         if not prefix or not own_pid.isdigit():
             return
@@ -240,16 +237,17 @@ class HostSplit:
         groups = [os.path.join(top, s) for top in tops for s in os.listdir(top) if os.path.isdir(os.path.join(top, s))]
         leftovers = {int(pid) for g in groups + tops for pid in _read(os.path.join(g, "cgroup.procs")).split()}
         if leftovers:
-            log(
-                f"host split: ending {len(leftovers)} process(es) left in {', '.join(sorted(set(tops)))} by a "
-                f"run that is gone: {'; '.join(f'{pid} {_command(pid)}' for pid in sorted(leftovers))}"
+            print(
+                f"host split: ending {len(leftovers)} process(es) left in {', '.join(sorted(tops))} by a "
+                f"run that is gone: {'; '.join(f'{pid} {process_command(pid)}' for pid in sorted(leftovers))}",
+                file=sys.stderr,
             )
-            _end_processes(leftovers, grace_s)
+            end_processes(leftovers, grace_s, kill_wait_s=REMOVE_SETTLE_S)
         for g in groups + tops:
             try:
                 os.rmdir(g)
             except OSError as exc:
-                log(f"host split: could not remove {g}, left by a run that is gone: {exc}")
+                print(f"host split: could not remove {g}, left by a run that is gone: {exc}", file=sys.stderr)
 
     def _remove(self, settle_s=REMOVE_SETTLE_S):
         """Remove the groups; a group still holding a process (a node that outlived stop_all) has its
@@ -322,28 +320,6 @@ class HostSplit:
         if self.mode == "taskset":
             return f"host split by taskset only (no cgroups: {self.reason}; no quota): {sides}; {priority}"
         return f"NO host split ({self.reason}): both sides share every CPU; {priority}"
-
-
-def _command(pid):
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as stream:
-            return stream.read().replace(b"\0", b" ").decode(errors="replace").strip()[:120]
-    except OSError:
-        return "(gone)"
-
-
-def _end_processes(pids, grace_s):
-    """SIGTERM `pids`, SIGKILL those still running after `grace_s`, then wait until they have ended."""
-    for sig, wait_s in ((signal.SIGTERM, grace_s), (signal.SIGKILL, REMOVE_SETTLE_S)):
-        for pid in pids:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, sig)
-        deadline = time.monotonic() + wait_s
-        while any(process_running(pid) for pid in pids) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        pids = {pid for pid in pids if process_running(pid)}
-        if not pids:
-            return
 
 
 def _read(path):

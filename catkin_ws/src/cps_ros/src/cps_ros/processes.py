@@ -286,13 +286,29 @@ def _param_text(value):
     return str(value)
 
 
+def _stat_fields(pid):
+    """The fields of /proc/<pid>/stat after the command name (state first), or None once it has gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as stream:
+            return stream.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+
+
+def _proc_text(pid, name):
+    """/proc/<pid>/<name> (cmdline, environ) with its NULs as spaces, or None once it has gone."""
+    try:
+        with open(f"/proc/{pid}/{name}", "rb") as stream:
+            return stream.read().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return None
+
+
 def process_cpu_s(pid, waited_children=False):
     """CPU seconds (user + system) process `pid` has used so far, with `waited_children` also its
     children's that it waited for; 0.0 once it has gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as stream:
-            fields = stream.read().rsplit(")", 1)[1].split()
-    except OSError:
+    fields = _stat_fields(pid)
+    if fields is None:
         return 0.0
     ticks = sum(int(x) for x in fields[11 : 15 if waited_children else 13])
     return ticks / os.sysconf("SC_CLK_TCK")
@@ -301,11 +317,31 @@ def process_cpu_s(pid, waited_children=False):
 def process_running(pid):
     """True while process `pid` exists and has not ended: a zombie nobody reaped (a killed run's
     bringup whose parent never waits) has ended."""
-    try:
-        with open(f"/proc/{pid}/stat") as stream:
-            return stream.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
-    except OSError:
-        return False
+    fields = _stat_fields(pid)
+    return fields is not None and fields[0] not in ("Z", "X")
+
+
+def process_command(pid, max_chars=120):
+    """Process `pid`'s command line, cut to `max_chars`, for a log line; "(gone)" once it has gone."""
+    cmd = _proc_text(pid, "cmdline")
+    return "(gone)" if cmd is None else cmd.strip()[:max_chars]
+
+
+def end_processes(pids, grace_s, kill_wait_s=GROUP_EXIT_WAIT_S):
+    """SIGTERM `pids`, SIGKILL those still running after `grace_s`, and wait up to `kill_wait_s`
+    for them to have ended; the pids still running after that."""
+    pids = set(pids)
+    for sig, wait_s in ((signal.SIGTERM, grace_s), (signal.SIGKILL, kill_wait_s)):
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(pid, sig)
+        deadline = time.monotonic() + wait_s
+        while any(process_running(pid) for pid in pids) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pids = {pid for pid in pids if process_running(pid)}
+        if not pids:
+            break
+    return pids
 
 
 def ancestors():
@@ -313,11 +349,10 @@ def ancestors():
     pids, pid = set(), os.getpid()
     while pid > 1 and pid not in pids:
         pids.add(pid)
-        try:
-            with open(f"/proc/{pid}/stat") as stream:
-                pid = int(stream.read().rsplit(")", 1)[1].split()[1])
-        except OSError:
+        fields = _stat_fields(pid)
+        if fields is None:
             break
+        pid = int(fields[1])
     return pids
 
 
@@ -336,19 +371,17 @@ def kill_processes_named(needle, wait_s=5.0):
     return found
 
 
+def _pids():
+    return [int(entry) for entry in os.listdir("/proc") if entry.isdigit()]
+
+
 def group_members(pgid):
     """The pids of live (not zombie) processes in process group `pgid`."""
     members = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as stream:
-                fields = stream.read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue  # it ended meanwhile
-        if fields[0] != "Z" and int(fields[2]) == pgid:
-            members.append(int(entry))
+    for pid in _pids():
+        fields = _stat_fields(pid)  # None: it ended meanwhile
+        if fields is not None and fields[0] != "Z" and int(fields[2]) == pgid:
+            members.append(pid)
     return members
 
 
@@ -357,19 +390,12 @@ def processes_named(*needles):
     `needles`, e.g. a master's port (rosout learns its master only from ROS_MASTER_URI)."""
     found = []
     me = os.getpid()
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit() or int(entry) == me:
+    for pid in _pids():
+        if pid == me:
             continue
-        try:
-            with open(f"/proc/{entry}/cmdline", "rb") as stream:
-                cmd = stream.read().replace(b"\0", b" ").decode(errors="replace")
-            with open(f"/proc/{entry}/environ", "rb") as stream:
-                environ = stream.read().replace(b"\0", b" ").decode(errors="replace")
-            with open(f"/proc/{entry}/stat") as stream:
-                if stream.read().rsplit(")", 1)[1].split()[0] == "Z":
-                    continue
-        except OSError:
+        cmd, environ, fields = _proc_text(pid, "cmdline"), _proc_text(pid, "environ"), _stat_fields(pid)
+        if cmd is None or environ is None or fields is None or fields[0] == "Z":
             continue
         if any(needle in cmd or needle in environ for needle in needles):
-            found.append((int(entry), cmd.strip()))
+            found.append((pid, cmd.strip()))
     return found
