@@ -112,7 +112,9 @@ def test_classes_map_to_their_zenoh_qos():
         "/jackal/odom": (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
         "/tf_static": (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
         "/rosout": (zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP, True, False),
-        "/twin/champ/points_filtered/draco/managed": (zenoh.Priority.DATA, zenoh.CongestionControl.DROP, False, False),
+        # paced: the bridge's own send queue holds the backlog, so Zenoh blocks rather than drops
+        "/twin/champ/points_filtered/draco/managed": (zenoh.Priority.DATA, zenoh.CongestionControl.BLOCK, False, False),
+        "/jackal/camera/image_raw/compressed": (zenoh.Priority.DATA_HIGH, zenoh.CongestionControl.BLOCK, False, True),
     }
     routes = {r.to: r for r in table.routes}
     for topic, (priority, congestion, reliable, express) in expected.items():
@@ -120,6 +122,13 @@ def test_classes_map_to_their_zenoh_qos():
         assert (qos["priority"], qos["congestion_control"], qos["express"]) == (priority, congestion, express), topic
         assert (qos["reliability"] == zenoh.Reliability.RELIABLE) == reliable, topic
     assert routes["/twin/champ/points_filtered/draco/managed"].traffic.max_age_s == 1.0
+    assert {r.to for r in table.routes if r.traffic.paced} == {
+        r.to for r in table.routes if r.traffic.name in ("data", "video")
+    }
+    assert {r.to for r in table.routes if r.managed and r.from_ros} == {
+        f"/twin/{r}/points_filtered/draco/managed" for r in ROBOT_NAMES
+    } | {f"/{r}/camera/image_raw/compressed" for r in ROBOT_NAMES}
+    assert table.paced_ranks["video"] < table.paced_ranks["data"]  # the video leaves first
     assert {r.to for r in table.routes if r.latched} >= {
         "/tf_static",
         "/fleet/estop",
@@ -186,6 +195,12 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
     assert robots["transport"]["link"]["tls"]["enable_mtls"] is True
     assert robots["transport"]["link"]["tls"]["connect_private_key"].endswith("robots.key")
     assert not twin["scouting"]["multicast"]["enabled"]
+    # what waits below the bridge's own queue is small, and nothing bypasses the link through
+    # shared memory on a one-host test bed (issue 35)
+    for config in (twin, robots):
+        assert config["transport"]["shared_memory"]["enabled"] is False
+        assert config["transport"]["link"]["tx"]["batch_size"] == table.batch_bytes == 16384
+    assert table.kernel_unsent_bytes == 16384 and table.report_ms == 500
     zenoh.Config.from_json5(__import__("json").dumps(twin))
 
 

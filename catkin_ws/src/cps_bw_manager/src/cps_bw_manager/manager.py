@@ -47,6 +47,11 @@ DEFAULT_INPUT_RATE_HOLD_S = 10.0
 # it every window; a silent map server no longer bounds the clouds).
 INSERT_CAPACITY_HOLD_S = 10.0
 TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
+# The unmanaged traffic kept out of the budget is the largest measured in this many seconds of link
+# reports (odometry, tf and the rest come in bursts; a budget made from a quiet interval overruns).
+UNMANAGED_WINDOW_S = 2.0
+# A link report whose interval is outside this is not taken for the unmanaged traffic, s.
+REPORT_INTERVAL_BOUNDS_S = (0.05, 5.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,6 +183,9 @@ class ManagerCore:
         self.announced_source = ""
         self._now_s = -math.inf
         self.last_demands: Dict[tuple, StreamDemand] = {}
+        self.last_allocation: Optional[LevelAllocation] = None
+        # (report s, Mbit/s) of traffic outside the managed streams, from the bridge's link reports
+        self._unmanaged = []
 
     @property
     def paused(self):
@@ -418,6 +426,72 @@ class ManagerCore:
         after = self.estimator.update(report)
         return abs(after - before) > 0.05 * before
 
+    def allocation_binds(self):
+        """True when the last allocation held some stream below what it wants (a rate under its
+        maximum, a coarser level than its finest, or off): the fleet would send more if allowed,
+        so it is not app-limited whatever the bridge's queue says (False before any allocation)."""
+        a = self.last_allocation
+        return a is not None and any(s.rate_hz < 0.98 * s.max_rate_hz or s.level > 0 for s in a.streams)
+
+    def unmanaged_mbps(self, now_s=None):
+        """The traffic outside the managed streams the link carried lately (the largest of the last
+        UNMANAGED_WINDOW_S of link reports), Mbit/s; NaN before the first report."""
+        now_s = self._now_s if now_s is None else now_s
+        recent = [mbps for t, mbps in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
+        return max(recent) if recent else math.nan
+
+    def budget_mbytes_per_s(self, now_s=None):
+        """The managed streams' budget: the capacity less the reserve, and less the unmanaged
+        traffic measured on the link where that is more than the reserve (issue 35: at 5 Mbit/s
+        odometry, tf and the rest took 18 % of the link, the reserve 4 %)."""
+        s = self.settings
+        available = self.available_mbps
+        budget = managed_budget_mbytes_per_s(available, s.reserve_fraction)
+        unmanaged = self.unmanaged_mbps(now_s)
+        if _finite(unmanaged):
+            budget = min(budget, max(0.0, (available - unmanaged) / 8.0))
+        return budget
+
+    def on_bridge_report(
+        self,
+        now_s,
+        interval_s,
+        sender_interval_s,
+        delivered_bytes,
+        unmanaged_bytes,
+        sent_bytes,
+        app_limited,
+        rtt_s=(),
+        receiver_behind=False,
+        offered_bytes=math.nan,
+    ):
+        """One cps_msgs/LinkReport of the bridges as plain values: delivered over the twin's interval,
+        sent over the robots' (each side's own clock). The estimator (if on) takes it as rates, and
+        app-limited only when the allocation does not bind either; the unmanaged traffic is kept for
+        the budget. Returns True if the available bandwidth moved by > 5 %."""
+
+        def mbps(n_bytes, seconds):
+            return n_bytes * 8e-6 / seconds if _finite(n_bytes) and _positive(seconds) else math.nan
+
+        self._now_s = max(self._now_s, now_s) if _finite(now_s) else self._now_s
+        unmanaged = mbps(unmanaged_bytes, interval_s)
+        low, high = REPORT_INTERVAL_BOUNDS_S
+        if _finite(unmanaged) and unmanaged >= 0 and _finite(interval_s) and low <= interval_s <= high:
+            self._unmanaged = [(t, v) for t, v in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
+            self._unmanaged.append((now_s, unmanaged))
+        return self.on_link_report(
+            LinkReport(
+                now_s=now_s,
+                interval_s=interval_s,
+                delivered_mbps=mbps(delivered_bytes, interval_s),
+                sent_mbps=mbps(sent_bytes, sender_interval_s),
+                offered_mbps=mbps(offered_bytes, sender_interval_s),
+                app_limited=bool(app_limited) and not self.allocation_binds(),
+                rtt_s=tuple(rtt_s),
+                receiver_behind=bool(receiver_behind),
+            )
+        )
+
     def on_link_stats(self, now_s, delivered_mbps):
         """What exists today: the twin side's delivered Mbit/s (`/tissue/stats`) with the limiters'
         sent and offered rates; no RTT, app-limited or receiver-behind signal yet (the bridge must
@@ -521,7 +595,7 @@ class ManagerCore:
         chosen need more, the allocation is made again with that (never less than it needs)."""
         s = self.settings
         now_s = self._now_s if now_s is None else now_s
-        budget = managed_budget_mbytes_per_s(self.available_mbps, s.reserve_fraction)
+        budget = self.budget_mbytes_per_s(now_s)
         demands = self.stream_demands(now_s)
         copies = s.copies_on_link
         capacity = self.insert_capacity_clouds_per_s(now_s)
@@ -547,6 +621,7 @@ class ManagerCore:
             chosen = {a.key: a.level for a in result.streams}
         self.level_in_force.update(chosen)
         self.last_demands = {d.key: d for d in demands}
+        self.last_allocation = result
         streams = tuple(
             dataclasses.replace(
                 a,
