@@ -113,8 +113,9 @@ def test_classes_map_to_their_zenoh_qos():
         "/tf_static": (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
         "/rosout": (zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP, True, False),
         # paced: the bridge's own send queue holds the backlog, so Zenoh blocks rather than drops
-        "/twin/champ/points_filtered/draco/managed": (zenoh.Priority.DATA, zenoh.CongestionControl.BLOCK, False, False),
-        "/jackal/camera/image_raw/compressed": (zenoh.Priority.DATA_HIGH, zenoh.CongestionControl.BLOCK, False, True),
+        # (and reliable: Zenoh drops a best-effort message whatever its congestion control)
+        "/twin/champ/points_filtered/draco/managed": (zenoh.Priority.DATA, zenoh.CongestionControl.BLOCK, True, False),
+        "/jackal/camera/image_raw/compressed": (zenoh.Priority.DATA_HIGH, zenoh.CongestionControl.BLOCK, True, True),
     }
     routes = {r.to: r for r in table.routes}
     for topic, (priority, congestion, reliable, express) in expected.items():
@@ -159,6 +160,19 @@ def test_bad_table_names_file_and_line(tmp_path):
     ):
         path.write_text(base + "topics:\n" + topics)
         with pytest.raises(ConfigError, match=message):
+            load_bridge_table(str(path), ROBOT_NAMES)
+    topic = "topics:\n  - {topic: /a, from: twin, class: command}\n"
+    for extra, message in (
+        # a paced class must block in Zenoh, and be reliable (Zenoh drops best effort anyway)
+        ("  data: {priority: data, congestion: drop, reliable: true, express: false, paced: true}\n", "paced"),
+        ("  data: {priority: data, congestion: block, reliable: false, express: false, paced: true}\n", "paced"),
+    ):
+        path.write_text(base + extra + topic)
+        with pytest.raises(ConfigError, match=message):
+            load_bridge_table(str(path), ROBOT_NAMES)
+    for setting in ("batch_bytes: 100", "batch_bytes: 70000", "report_ms: 10", "kernel_unsent_bytes: -1"):
+        path.write_text(base + topic + setting + "\n")
+        with pytest.raises(ConfigError, match=setting.split(":")[0]):
             load_bridge_table(str(path), ROBOT_NAMES)
 
 

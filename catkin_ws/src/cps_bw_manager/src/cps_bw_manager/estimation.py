@@ -288,7 +288,10 @@ class DeliveryRateEstimator:
                 and (math.isnan(sent) or sent < 0.9 * self.estimate_mbps)
                 and (math.isnan(report.offered_mbps) or math.isnan(sent) or report.offered_mbps <= 1.02 * sent)
             )
-        self.congested = (deficit or rtt_overuse) and not app_limited
+        # A queue building is overuse whether or not the sender's own queue ran empty: app-limited
+        # marks the delivery-rate samples (too low to lower the capacity), not the link's deficit
+        # (issue 35: a bridge whose queue emptied between frames sent 14 Mbit/s into a 5 Mbit/s link).
+        self.congested = deficit or rtt_overuse
         if self.congested:
             self._on_overuse(now, delivered, sent)
             return self.estimate_mbps

@@ -471,7 +471,8 @@ class ManagerCore:
         the budget. Returns True if the available bandwidth moved by > 5 %."""
 
         def mbps(n_bytes, seconds):
-            return n_bytes * 8e-6 / seconds if _finite(n_bytes) and _positive(seconds) else math.nan
+            # a bad interval gives a bad rate, which the estimator refuses and counts by kind
+            return n_bytes * 8e-6 / seconds if _finite(n_bytes) and _finite(seconds) and seconds != 0 else math.nan
 
         self._now_s = max(self._now_s, now_s) if _finite(now_s) else self._now_s
         unmanaged = mbps(unmanaged_bytes, interval_s)

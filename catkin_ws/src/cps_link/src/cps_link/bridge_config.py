@@ -205,8 +205,12 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
             c.number("max_age_s", default=None, low=0.0, low_open=True) if c.has("max_age_s") else None,
             c.get("paced", bool, default=False),
         )
-        if classes[name].paced and congestion != "block":
-            raise c.error("paced", "a paced class needs congestion: block (its queue is the bridge's, not Zenoh's)")
+        if classes[name].paced and (congestion != "block" or not classes[name].reliable):
+            # Zenoh drops a best-effort message whatever its congestion control
+            raise c.error(
+                "paced",
+                "a paced class needs congestion: block and reliable: true (its queue is the bridge's, not Zenoh's)",
+            )
     routes, seen = [], {}
     for entry in top.items("topics"):
         topic = _check_topic(entry, "topic", entry.get("topic", str))

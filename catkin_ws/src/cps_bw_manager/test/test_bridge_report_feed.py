@@ -1,0 +1,136 @@
+"""ManagerCore fed the bridges' link reports (issue 35), no ROS: bytes over each side's interval as
+rates, the unmanaged traffic kept out of the budget, app-limited only when the allocation does not
+bind, and bad reports counted by kind with the capacity held."""
+
+import math
+
+import pytest
+
+from cps_bw_manager.estimation import DeliveryRateEstimator
+from cps_bw_manager.manager import UNMANAGED_WINDOW_S, ManagerCore, ManagerSettings
+from cps_fleet.fleet import load_fleet
+
+SETTINGS = ManagerSettings(
+    available_mbps=60.0, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0, headroom_messages=0.0
+)
+
+
+def _core(estimate=True, **settings):
+    import dataclasses
+
+    est = DeliveryRateEstimator(60.0, line_rate_mbps=60.0) if estimate else None
+    return ManagerCore(["a", "b"], dataclasses.replace(SETTINGS, **settings), est)
+
+
+def _mbytes(mbps, seconds):
+    return int(mbps * seconds / 8e-6)
+
+
+def _feed(core, t, delivered_mbps, sent_mbps, unmanaged_mbps=0.0, app_limited=False, interval_s=0.5, **kw):
+    return core.on_bridge_report(
+        t,
+        interval_s,
+        interval_s,
+        _mbytes(delivered_mbps, interval_s),
+        _mbytes(unmanaged_mbps, interval_s),
+        _mbytes(sent_mbps, interval_s),
+        app_limited,
+        **kw,
+    )
+
+
+def test_bytes_over_each_sides_interval_become_the_estimators_rates():
+    core = _core()
+    # delivered over the twin's 0.6 s, sent over the robots' 0.5 s: both 40 Mbit/s
+    core.on_bridge_report(1.0, 0.6, 0.5, _mbytes(40.0, 0.6), 0, _mbytes(40.0, 0.5), False, rtt_s=(0.002,))
+    assert core.estimator.capacity_mbps == 60.0 and core.estimator.overuses == 0
+    # the robots sent 40 but only 5 arrive, over 1 s: the link is full at 5 (its deficit is
+    # overuse whether or not the bridge's queue ran empty in between)
+    for i in range(2, 5):
+        _feed(core, 0.5 * i + 1.0, 5.0, 40.0, app_limited=True)
+    assert core.estimator.overuses >= 1 and core.estimator.capacity_mbps == pytest.approx(5.0)
+    assert core.available_mbps == pytest.approx(0.85 * 5.0)
+
+
+def test_the_measured_unmanaged_traffic_is_kept_out_of_the_budget():
+    core = _core(estimate=False, available_mbps=5.0)
+    reserve_only = core.budget_mbytes_per_s(0.0)
+    assert reserve_only == pytest.approx(0.96 * 5.0 / 8)
+    assert math.isnan(core.unmanaged_mbps(0.0))
+    # odometry, tf and the rest: 0.9 Mbit/s of a 5 Mbit/s link, 18 %, far above the 4 % reserve
+    _feed(core, 1.0, 4.0, 4.0, unmanaged_mbps=0.9)
+    _feed(core, 1.5, 4.0, 4.0, unmanaged_mbps=0.5)
+    assert core.unmanaged_mbps(1.5) == pytest.approx(0.9)  # the largest of the window
+    assert core.budget_mbytes_per_s(1.5) == pytest.approx((5.0 - 0.9) / 8)
+    assert core.allocate_streams(1.5).budget_mbytes_per_s == pytest.approx((5.0 - 0.9) / 8)
+    # the burst ages out of the window; a quiet link keeps the reserve as the floor
+    _feed(core, 1.5 + UNMANAGED_WINDOW_S + 0.1, 4.0, 4.0, unmanaged_mbps=0.05)
+    assert core.budget_mbytes_per_s(1.5 + UNMANAGED_WINDOW_S + 0.1) == pytest.approx(reserve_only)
+
+
+def test_app_limited_only_when_the_allocation_does_not_bind():
+    fleet = load_fleet()
+
+    def core_at(mbps):
+        core = ManagerCore(
+            ["a", "b"], SETTINGS, DeliveryRateEstimator(mbps, line_rate_mbps=60.0, min_mbps=0.1), streams=fleet.streams
+        )
+        for robot in ("a", "b"):
+            core.on_limiter_status(robot, 16000.0, 2.0, 2.0, now_s=0.0, level=0, level_mean_message_bytes=16000.0)
+        core.allocate_streams(0.0)
+        return core
+
+    assert not core_at(60.0).allocation_binds()  # two small clouds at their finest level and full rate
+    core = core_at(0.3)  # 0.3 Mbit/s cannot carry them
+    assert core.allocation_binds()
+    # the bridge's queue ran empty, but the fleet wants more than it is allowed: not app-limited,
+    # so the estimator may probe for more
+    _feed(core, 1.0, 0.15, 0.15, app_limited=True)
+    assert core.estimator.mode == "probe"
+
+
+@pytest.mark.parametrize(
+    "interval_s, delivered, sent, kind",
+    [
+        (math.nan, 10.0, 10.0, "not_finite"),
+        (0.5, math.nan, 10.0, "not_finite"),
+        (0.5, math.inf, 10.0, "not_finite"),
+        (-0.5, 10.0, 10.0, "negative"),
+        (0.5, -10.0, 10.0, "negative"),
+        (0.5, 10.0, -1.0, "negative"),
+        (0.5, 500.0, 500.0, "above_line_rate"),
+    ],
+)
+def test_bad_reports_are_counted_by_kind_and_hold_the_capacity(interval_s, delivered, sent, kind):
+    core = _core()
+    _feed(core, 1.0, 40.0, 40.0)
+    before = (core.estimator.capacity_mbps, core.available_mbps)
+    core.on_bridge_report(
+        1.5,
+        interval_s,
+        0.5,
+        delivered * 0.5 / 8e-6 if math.isfinite(delivered) else delivered,
+        0,
+        sent * 0.5 / 8e-6,
+        False,
+    )
+    assert core.estimator.ignored[kind] == 1
+    assert (core.estimator.capacity_mbps, core.available_mbps) == before
+
+
+def test_clock_steps_duplicates_and_a_silent_far_side_hold_the_capacity():
+    core = _core()
+    for i in range(1, 5):
+        _feed(core, 0.5 * i, 40.0, 40.0)
+    before = core.estimator.capacity_mbps
+    _feed(core, 2.0, 1.0, 40.0)  # the same interval again (a duplicate)
+    _feed(core, 1.0, 1.0, 40.0)  # time going backwards (a reordered interval, a clock step)
+    assert core.estimator.ignored["clock_step"] == 2
+    # a silent far side: no report for 30 s changes nothing, the estimate is held
+    assert core.estimator.capacity_mbps == before and core.available_mbps == before
+    # a report that says nothing arrived while 40 Mbit/s were sent: stalled, counted, held
+    _feed(core, 32.0, 0.0, 40.0)
+    assert core.estimator.ignored["stalled"] == 1 and core.estimator.capacity_mbps == before
+    # a bad round trip sample is counted and the rest of the report used
+    _feed(core, 32.5, 40.0, 40.0, rtt_s=(math.nan, -1.0, 0.003))
+    assert core.estimator.ignored["bad_rtt_sample"] == 2
