@@ -66,7 +66,12 @@ MEASURED_HOW = [
     "  behind the shaper: it cannot exceed the link); latency is per cloud, receive time minus capture",
     '  stamp, except where a table says "windowed".',
 ]
-ARM_NAMES = {"off": "manager off", "on_iperf3": "on, iperf3's figure", "on_announced": "on, capacity announced"}
+ARM_NAMES = {
+    "off": "manager off",
+    "on_default": "on, default (online estimate)",
+    "on_iperf3": "on, iperf3's figure",  # link_thesis runs from before issue 35
+    "on_announced": "on, capacity announced (oracle)",
+}
 
 
 def link_thesis_rows(rows, scenario="wifi_degraded", capacity_mbps=5.0):

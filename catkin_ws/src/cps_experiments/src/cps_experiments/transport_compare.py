@@ -30,10 +30,12 @@ SATURATING = {"scout": (34000, 10.0), "jackal": (142000, 30.0), "champ": (60000,
 
 
 class Graphs:
-    """Processes on either side: one master across the link (tcpros) or one per side (zenoh)."""
+    """Processes on either side: one master across the link (tcpros) or one per side (zenoh).
+    `cpus`: {side: taskset CPU list} pins each side's processes (bridges included), as bringup's
+    host split does; None: not pinned."""
 
-    def __init__(self, link, transport, cert_dir):
-        self.link, self.transport = link, transport
+    def __init__(self, link, transport, cert_dir, cpus=None):
+        self.link, self.transport, self.cpus = link, transport, cpus or {}
         self.stack = contextlib.ExitStack()
         if transport == "tcpros":
             self.tcpros = self.stack.enter_context(LinkRosGraph(link))
@@ -48,18 +50,20 @@ class Graphs:
                 self.sides[side] = graph
             robots = list(LIVE)
             self.bridges = [
-                self.sides["twin"].popen(
-                    bridge_argv(sys.executable, "twin", TWIN_IP, robots, cert_dir), name="bridge_twin"
-                ),
-                self.sides["phys"].popen(
-                    bridge_argv(sys.executable, "robots", TWIN_IP, robots, cert_dir), name="bridge_robots"
-                ),
+                self.start("twin", bridge_argv(sys.executable, "twin", TWIN_IP, robots, cert_dir), "bridge_twin"),
+                self.start("phys", bridge_argv(sys.executable, "robots", TWIN_IP, robots, cert_dir), "bridge_robots"),
             ]
 
     def start(self, side, argv, name):
+        argv = (["taskset", "-c", self.cpus[side]] if self.cpus.get(side) else []) + list(argv)
         if self.transport == "tcpros":
             return self.tcpros.start(side, argv, name)
         return self.sides[side].popen(argv, name=name)
+
+    def output(self, name):
+        if self.transport == "tcpros":
+            return self.tcpros.output(name)
+        return "\n".join(graph.output(name) for graph in self.sides.values())
 
     def stop(self, side, proc):
         graph = self.tcpros.sides[side] if self.transport == "tcpros" else self.sides[side]
