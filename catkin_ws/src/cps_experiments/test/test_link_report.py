@@ -72,8 +72,25 @@ def test_the_section_lists_the_outage_and_the_step_with_its_windows_over_budget(
     assert "| link cut (scenario) | 25.0 | 10.2 | 0.000 | " + NOT_YET in text
     assert "the Zenoh bridge does not run yet" in text
     # 60 -> 10: before it no window over 6.9 MB/s; after it the windows at 60.5 and 61.5 s exceed 1.1.
-    assert "| 60.0 | 60 → 10 | 0 of 10 | 2 of 10 | 2.5 s |" in text
+    assert "| 60.0 | 60 → 10 | 0 of 10 | 2 of 10 | 2.5 s | no estimate logged | no estimate logged |" in text
     assert "| 80.0 | 10 → 60 | 0 of 10 | 0 of 10 | 0 s (never over) |" in text
+
+
+def test_the_managers_estimate_is_set_against_each_steps_true_capacity():
+    # 57 Mbit/s until 1.5 s after the 60 -> 10 step, then 9.4; back at 57 3 s after the rise
+    estimates = [
+        {"stamp_s": str(T0 + 0.5 * k), "capacity_mbps": str(c), "estimate_mbps": str(c)}
+        for k in range(200)
+        for c in [57.0 if 0.5 * k < 61.5 or 0.5 * k >= 83.0 else 9.4]
+    ]
+    text = "\n".join(section(EVENTS, [], ALLOCATIONS, *_windows(), estimates))
+    assert "| 60.0 | 60 → 10 | 0 of 10 | 2 of 10 | 2.5 s | 1.175 of 1.250 (94%); budget 1.100 | 1.5 s |" in text
+    assert (
+        "| 80.0 | 10 → 60 | 0 of 10 | 0 of 10 | 0 s (never over) | 1.175 of 7.500 (16%); budget 6.900 | 3.0 s |" in text
+    )
+    # an estimator that never got there within the step's span says so
+    stuck = [dict(r, capacity_mbps="57.0") for r in estimates]
+    assert "(570%); budget 1.100 | never |" in "\n".join(section(EVENTS, [], ALLOCATIONS, *_windows(), stuck))
 
 
 def test_no_scenario_and_no_link_state_adds_nothing():

@@ -9,6 +9,10 @@ from cps_experiments.markdown import csv_float, markdown_table
 
 # Windows compared before and after a capacity step, s.
 STEP_SPAN_S = 10.0
+# The manager's estimate is read this long after a step, and judged within +-ESTIMATE_BAND of the
+# true capacity (issue 35: within +-15 % 2 s after every step).
+ESTIMATE_TARGET_S = 2.0
+ESTIMATE_BAND = 0.15
 NOT_YET = "n/a: the bridges count these on /diagnostics; this report does not read them yet"
 
 
@@ -83,8 +87,40 @@ def received_during(times, totals, t0, t1):
     return sum(v for t, v in zip(times, totals) if t0 <= t < t1 and math.isfinite(v))
 
 
-def section(event_rows, state_rows, allocation_rows, times, totals):
-    """Markdown lines of the link events; [] when the mission ran no scenario and saw no outage."""
+def estimate_at(estimate_rows):
+    """A function wall s -> the manager's capacity estimate (Mbit/s) in force then, from its
+    link_estimate.csv (its estimate when the estimator is off; NaN before the first row)."""
+    points = []
+    for r in estimate_rows:
+        capacity, estimate = csv_float(r.get("capacity_mbps")), csv_float(r.get("estimate_mbps"))
+        points.append((csv_float(r.get("stamp_s")), capacity if math.isfinite(capacity) else estimate))
+    points.sort()
+    times = [t for t, _ in points]
+
+    def at(t):
+        i = bisect.bisect_right(times, t) - 1
+        return points[i][1] if i >= 0 else math.nan
+
+    return at, points
+
+
+def estimate_settles(points, step_s, true_mbps, end_s, band=ESTIMATE_BAND):
+    """Seconds from `step_s` after which every estimate until `end_s` is within +-band of the true
+    capacity (inf: never; NaN: no estimate in the span)."""
+    inside = [(t, v) for t, v in points if step_s <= t < end_s]
+    if not inside:
+        return math.nan
+    settled = math.inf
+    for t, v in reversed(inside):
+        if not math.isfinite(v) or abs(v / true_mbps - 1.0) > band:
+            break
+        settled = t - step_s
+    return settled
+
+
+def section(event_rows, state_rows, allocation_rows, times, totals, estimate_rows=()):
+    """Markdown lines of the link events; [] when the mission ran no scenario and saw no outage.
+    `estimate_rows`: the manager's link_estimate.csv (its estimate against each step's capacity)."""
     if not event_rows and not state_rows:
         return []
     lines = ["## Link events", ""]
@@ -140,11 +176,16 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
     else:
         lines += ["- none", ""]
     budget = budget_at(allocation_rows)
+    estimate, estimate_points = estimate_at(estimate_rows)
     steps = []
-    for wall_s, mission_s, old, new in capacity_steps(event_rows):
+    step_list = capacity_steps(event_rows)
+    for k, (wall_s, mission_s, old, new) in enumerate(step_list):
         over_before, n_before = windows_over(times, totals, budget, wall_s - STEP_SPAN_S, wall_s)
         over_after, n_after = windows_over(times, totals, budget, wall_s, wall_s + STEP_SPAN_S)
         first_ok = _first_within(times, totals, budget, wall_s)
+        end_s = step_list[k + 1][0] if k + 1 < len(step_list) else math.inf
+        settle = estimate_settles(estimate_points, wall_s, new, min(end_s, wall_s + STEP_SPAN_S))
+        after = wall_s + ESTIMATE_TARGET_S
         steps.append(
             (
                 f"{mission_s:.1f}",
@@ -152,6 +193,10 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
                 f"{over_before} of {n_before}",
                 f"{over_after} of {n_after}",
                 first_ok,
+                f"{estimate(after) / 8:.3f} of {new / 8:.3f} ({estimate(after) / new:.0%}); budget {budget(after):.3f}"
+                if math.isfinite(estimate(after))
+                else "no estimate logged",
+                _settle_text(settle),
             )
         )
     lines += ["### Capacity steps", ""]
@@ -167,6 +212,8 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
                     "windows over budget before",
                     "after",
                     "from the step until every later window of the span is within",
+                    f"manager's estimate {ESTIMATE_TARGET_S:g} s after, MB/s of the true capacity (and its budget)",
+                    f"estimate within ±{ESTIMATE_BAND:.0%} of the true capacity from",
                 ),
                 steps,
             ),
@@ -175,6 +222,12 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
     else:
         lines += ["- none", ""]
     return lines
+
+
+def _settle_text(settle_s):
+    if math.isnan(settle_s):
+        return "no estimate logged"
+    return "never" if math.isinf(settle_s) else f"{settle_s:.1f} s"
 
 
 def _first_within(times, totals, budget, step_s):

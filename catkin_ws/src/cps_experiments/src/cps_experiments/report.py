@@ -440,6 +440,7 @@ def write_mission_report(result, mission_args, wall_time_s):
         allocation_rows,
         times,
         totals,
+        read_csv(os.path.join(out, "link_estimate.csv")),
     )
     lines += ["## Supervisor events", ""]
     lines += [f"- {e.time_s:.0f} s {e.label}: {e.what}" for e in result.events] or ["- none"]
