@@ -134,3 +134,20 @@ def test_clock_steps_duplicates_and_a_silent_far_side_hold_the_capacity():
     # a bad round trip sample is counted and the rest of the report used
     _feed(core, 32.5, 40.0, 40.0, rtt_s=(math.nan, -1.0, 0.003))
     assert core.estimator.ignored["bad_rtt_sample"] == 2
+
+
+def test_a_sender_blocked_by_the_link_shows_its_capacity_without_a_deficit():
+    """The robots' bridge hands paced frames to Zenoh with congestion block: when the link cannot
+    take them its sender waits, so what it sent equals what arrived and there is no deficit. Waiting
+    most of the interval while delivering far below the capacity is overuse: the link is full there."""
+    core = _core()
+    _feed(core, 0.5, 40.0, 40.0)
+    _feed(core, 1.0, 4.5, 4.5, sender_blocked_s=0.1)  # a short wait (a burst): not link-limited
+    assert core.estimator.overuses == 0 and core.estimator.capacity_mbps == 60.0
+    _feed(core, 1.5, 4.5, 4.5, sender_blocked_s=0.4)
+    assert core.estimator.overuses == 1 and core.estimator.capacity_mbps == pytest.approx(4.5)
+    assert core.available_mbps == pytest.approx(0.85 * 4.5)
+    # blocked again while probing at 1.2 x: it delivered the capacity, which is no news
+    core.estimator.mode = "cruise"
+    _feed(core, 6.0, 4.5, 4.5, sender_blocked_s=0.45)
+    assert core.estimator.overuses == 1

@@ -30,12 +30,14 @@ def test_an_interval_is_the_difference_of_two_reports_each_side_on_its_own_clock
     assert c.on_report(_report(1, 100.0, 1000), 5000.0) == (None, FIRST_OF_RUN)
     c.received(40_000, managed=True)
     c.received(2_000, managed=False)
-    interval, why = c.on_report(_report(2, 100.5, 51_000, offered=60_000, superseded=3, rtt_s=[0.01, 0.02]), 5000.6)
+    interval, why = c.on_report(
+        _report(2, 100.5, 51_000, offered=60_000, superseded=3, rtt_s=[0.01, 0.02], blocked_s=0.3), 5000.6
+    )
     assert why is None
     assert interval.interval_s == pytest.approx(0.6) and interval.sender_interval_s == pytest.approx(0.5)
     assert (interval.delivered_bytes, interval.unmanaged_bytes) == (42_000, 2_000)
     assert (interval.sent_bytes, interval.offered_bytes, interval.superseded) == (50_000, 59_000, 3)
-    assert interval.rtt_s == (0.01, 0.02) and not interval.receiver_behind
+    assert interval.rtt_s == (0.01, 0.02) and not interval.receiver_behind and interval.sender_blocked_s == 0.3
 
 
 def test_a_lost_report_makes_the_next_interval_longer_not_wrong():

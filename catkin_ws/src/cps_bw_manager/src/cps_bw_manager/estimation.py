@@ -66,6 +66,9 @@ class LinkReport:
     app_limited: Optional[bool] = None  # the sender's queue ran empty (it had nothing more to send)
     rtt_s: Sequence[float] = ()  # heartbeat echo round-trip times measured in the interval
     receiver_behind: Optional[bool] = None  # the far side's processing is behind (CPU; TCP rwnd_limited)
+    # the sender spent most of the interval waiting for the link to take what it sent (its queue
+    # backlogged, its writes blocked): what was delivered is what the link carries
+    link_limited: Optional[bool] = None
 
 
 class _Trendline:
@@ -278,6 +281,13 @@ class DeliveryRateEstimator:
         rtt_overuse, queue_delay_s = self._rtt(now, report.rtt_s, dt)
 
         deficit = self._deficit()
+        # a link-limited interval that delivered clearly less than the capacity believed: the link
+        # is full at what it delivered (the sender's blocked writes kept it from showing a deficit)
+        full = (
+            bool(report.link_limited)
+            and self.mode != "drain"
+            and delivered < (1.0 - self.deficit_fraction) * self.capacity_mbps - self.deficit_min_mbps
+        )
         app_limited = report.app_limited
         if app_limited is None:
             # inferred (BBR: in flight below what the pacing allowed): the sender used clearly less
@@ -291,7 +301,7 @@ class DeliveryRateEstimator:
         # A queue building is overuse whether or not the sender's own queue ran empty: app-limited
         # marks the delivery-rate samples (too low to lower the capacity), not the link's deficit
         # (issue 35: a bridge whose queue emptied between frames sent 14 Mbit/s into a 5 Mbit/s link).
-        self.congested = deficit or rtt_overuse
+        self.congested = deficit or rtt_overuse or full
         if self.congested:
             self._on_overuse(now, delivered, sent)
             return self.estimate_mbps

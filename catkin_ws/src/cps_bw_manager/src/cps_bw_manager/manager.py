@@ -50,6 +50,8 @@ TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
 # The unmanaged traffic kept out of the budget is the largest measured in this many seconds of link
 # reports (odometry, tf and the rest come in bursts; a budget made from a quiet interval overruns).
 UNMANAGED_WINDOW_S = 2.0
+# The robots' bridge's sender waited for the link at least this fraction of its interval: link-limited.
+LINK_LIMITED_FRACTION = 0.5
 # A link report whose interval is outside this is not taken for the unmanaged traffic, s.
 REPORT_INTERVAL_BOUNDS_S = (0.05, 5.0)
 
@@ -464,6 +466,7 @@ class ManagerCore:
         rtt_s=(),
         receiver_behind=False,
         offered_bytes=math.nan,
+        sender_blocked_s=0.0,
     ):
         """One cps_msgs/LinkReport of the bridges as plain values: delivered over the twin's interval,
         sent over the robots' (each side's own clock). The estimator (if on) takes it as rates, and
@@ -490,6 +493,9 @@ class ManagerCore:
                 app_limited=bool(app_limited) and not self.allocation_binds(),
                 rtt_s=tuple(rtt_s),
                 receiver_behind=bool(receiver_behind),
+                link_limited=_finite(sender_blocked_s)
+                and _positive(sender_interval_s)
+                and sender_blocked_s >= LINK_LIMITED_FRACTION * sender_interval_s,
             )
         )
 

@@ -52,6 +52,7 @@ LINK_ESTIMATE_CSV_COLUMNS = (
     "sent_mbps",
     "offered_mbps",
     "app_limited",
+    "sender_blocked_s",
     "rtt_median_ms",
     "receiver_behind",
     "receive_queue_max_bytes",
@@ -101,6 +102,7 @@ def link_estimate_csv_row(stamp_s, msg, report):
         rate(report.sent_bytes, report.sender_interval_s),
         rate(report.offered_bytes, report.sender_interval_s),
         int(report.app_limited),
+        f"{report.sender_blocked_s:.3f}",
         f"{1e3 * rtts[len(rtts) // 2]:.2f}" if rtts else "",
         int(report.receiver_behind),
         report.receive_queue_max_bytes,
@@ -367,6 +369,7 @@ class BandwidthManagerNode:
                 rtt_s=msg.rtt_s,
                 receiver_behind=msg.receiver_behind,
                 offered_bytes=msg.offered_bytes,
+                sender_blocked_s=msg.sender_blocked_s,
             )
         self.publish_estimate(msg)
         if moved:

@@ -46,7 +46,8 @@ class SenderReport:
     superseded: int
     expired: int
     app_limited: bool  # since the previous report
-    rtt_s: Sequence[float] = ()  # heartbeat round trips completed since the previous report
+    rtt_s: Sequence[float] = ()
+    blocked_s: float = 0.0  # since the previous report: how long its sender waited for the link  # heartbeat round trips completed since the previous report
     send_queue_max_bytes: int = 0  # since the previous report
     pacing_mbps: float = 0.0
     peer: str = ""
@@ -76,7 +77,7 @@ def decode_sender_report(payload) -> SenderReport:
         v = values.get(name, 0)
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise ReportError(f"link report field {name} = {v!r} is not a count")
-    for name in ("t_s", "pacing_mbps"):
+    for name in ("t_s", "pacing_mbps", "blocked_s"):
         v = values.get(name, 0.0)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise ReportError(f"link report field {name} = {v!r} is not a finite number >= 0")
@@ -103,6 +104,7 @@ class Interval:
     app_limited: bool
     rtt_s: tuple
     receiver_behind: bool
+    sender_blocked_s: float
     receive_queue_max_bytes: int
     send_queue_max_bytes: int
     superseded: int
@@ -172,6 +174,7 @@ class ReportComposer:
             app_limited=report.app_limited,
             rtt_s=tuple(report.rtt_s),
             receiver_behind=behind,
+            sender_blocked_s=report.blocked_s,
             receive_queue_max_bytes=self._queue_max,
             send_queue_max_bytes=report.send_queue_max_bytes,
             superseded=report.superseded - before.superseded,

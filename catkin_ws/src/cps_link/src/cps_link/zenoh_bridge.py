@@ -122,6 +122,7 @@ class ZenohBridge:
         self.round_trips = RoundTrips() if self.queue is not None else None
         self.composer = ReportComposer() if side == TWIN and self.main_lane else None
         self._send_queue_max, self._report_seq, self._closing = 0, 0, False
+        self._blocked_s = 0.0  # the sender thread's time inside Zenoh's put since the last report
         self.echo_pubs = {}
         self.publishers, self.replays, self.zenoh_pubs, self.ros_subs, self.zenoh_subs = {}, {}, {}, [], []
         for route in table.incoming(side):
@@ -266,11 +267,15 @@ class ZenohBridge:
                     q.cond.wait(SENDER_POLL_S if wait is None else min(wait, SENDER_POLL_S))
                     continue
             to, payload = item
+            started = time.monotonic()
             try:
                 self.zenoh_pubs[to].put(payload)
             except Exception as exc:  # a closed session: counted, the loop goes on
                 self.reporter.drop(f"{to}: put failed: {exc}")
                 continue
+            finally:
+                with self.lock:
+                    self._blocked_s += time.monotonic() - started
             q.sent(len(payload))
             self.reporter.count(sent=1, sent_bytes=len(payload))
 
@@ -510,6 +515,7 @@ class ZenohBridge:
         with self.lock:
             rtts = self.round_trips.take()
             queue_max, self._send_queue_max = self._send_queue_max, 0
+            blocked_s, self._blocked_s = self._blocked_s, 0.0
             self._report_seq += 1
             seq = self._report_seq
         rate = self.queue.pacer.rate
@@ -523,6 +529,7 @@ class ZenohBridge:
             expired=counters.dropped[EXPIRED],
             app_limited=self.queue.app_limited_since_last(now),
             rtt_s=rtts,
+            blocked_s=blocked_s,
             send_queue_max_bytes=queue_max,
             pacing_mbps=rate * 8e-6 if rate else 0.0,
             peer=self.name,
@@ -638,6 +645,7 @@ def link_report_msg(interval) -> LinkReport:
         app_limited=interval.app_limited,
         rtt_s=list(interval.rtt_s),
         receiver_behind=interval.receiver_behind,
+        sender_blocked_s=interval.sender_blocked_s,
         receive_queue_max_bytes=min(interval.receive_queue_max_bytes, 2**32 - 1),
         send_queue_max_bytes=min(interval.send_queue_max_bytes, 2**32 - 1),
         superseded=min(interval.superseded, 2**32 - 1),
