@@ -151,3 +151,44 @@ def test_a_sender_blocked_by_the_link_shows_its_capacity_without_a_deficit():
     core.estimator.mode = "cruise"
     _feed(core, 6.0, 4.5, 4.5, sender_blocked_s=0.45)
     assert core.estimator.overuses == 1
+
+
+def test_a_small_deficit_must_hold_on_two_reports_a_large_one_is_overuse_at_once():
+    """The two sides' intervals are measured on two clocks: one cloud sent at the end of the robots'
+    interval arrives in the twin's next. With deficit_reports=2 (the manager's, fed link reports) a
+    small deficit in one report is no overuse; held on a second, it is; a large one is at once."""
+    import dataclasses
+
+    def core():
+        est = DeliveryRateEstimator(60.0, line_rate_mbps=60.0, deficit_reports=2)
+        return ManagerCore(["a", "b"], dataclasses.replace(SETTINGS), est)
+
+    c = core()
+    _feed(c, 0.5, 10.0, 10.0)
+    _feed(c, 1.0, 9.0, 10.0)  # 1 Mbit/s short over the merged second: once
+    _feed(c, 1.5, 11.0, 10.0)  # ... and it arrived
+    assert c.estimator.overuses == 0
+    _feed(c, 2.0, 9.0, 10.0)
+    _feed(c, 2.5, 9.0, 10.0)  # the merged second is short once...
+    assert c.estimator.overuses == 0
+    _feed(c, 3.0, 9.0, 10.0)  # ... and again: the link is full at 9
+    assert c.estimator.overuses == 1 and c.estimator.last_overuse == "deficit"
+    assert c.estimator.capacity_mbps == pytest.approx(9.0)
+    c = core()
+    _feed(c, 0.5, 10.0, 10.0)
+    _feed(c, 1.0, 4.0, 14.0)  # 60 -> 5 Mbit/s: far more than one frame's worth short
+    assert c.estimator.overuses == 1 and c.estimator.capacity_mbps == pytest.approx(4.0)
+
+
+def test_a_rising_rtt_is_overuse_only_while_the_sender_kept_the_link_busy():
+    """Heartbeat echoes through loaded processes jitter by tens of ms; read as overuse on an idle
+    link they cut the capacity to what an app-limited fleet happened to send (live, issue 35)."""
+    core = _core()
+    for i in range(1, 8):
+        _feed(core, 0.5 * i, 3.0, 3.0, app_limited=True, rtt_s=(0.005,))
+    for i in range(8, 16):  # the echoes come back ever later, the bridge's queue empty: no overuse
+        _feed(core, 0.5 * i, 3.0, 3.0, app_limited=True, rtt_s=(0.005 + 0.08 * (i - 7),))
+    assert core.estimator.overuses == 0 and core.estimator.capacity_mbps == 60.0
+    for i in range(16, 24):  # backlogged (the link busy with what it sent), the RTT still climbing
+        _feed(core, 0.5 * i, 30.0, 30.0, app_limited=False, rtt_s=(0.65 + 0.08 * (i - 15),))
+    assert core.estimator.overuses >= 1 and core.estimator.last_overuse == "rtt"

@@ -40,6 +40,9 @@ import math
 from typing import Optional, Sequence
 
 DRAIN_FACTOR = 0.85  # GCC's cut on overuse, x the acknowledged (delivered) rate
+# With deficit_reports > 1 a deficit is overuse once it holds on that many reports in a row, or at
+# once when it is this fraction of what was sent.
+LARGE_DEFICIT_FRACTION = 0.25
 # BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
 # inside the +-15 % band the estimate is held to
 PROBE_GAIN = 1.2
@@ -69,6 +72,9 @@ class LinkReport:
     # the sender spent most of the interval waiting for the link to take what it sent (its queue
     # backlogged, its writes blocked): what was delivered is what the link carries
     link_limited: Optional[bool] = None
+    # the sender's queue stayed backlogged (it never ran empty in the interval): the link was busy
+    # with what it sent, so a rising RTT is its queue (None: taken as not app_limited)
+    link_busy: Optional[bool] = None
 
 
 class _Trendline:
@@ -136,6 +142,7 @@ class DeliveryRateEstimator:
         max_drain_s=4.0,
         queue_delay_threshold_s=0.03,
         measure_window_s=0.0,
+        deficit_reports=1,
     ):
         for name, value in (
             ("initial_mbps", initial_mbps),
@@ -155,6 +162,8 @@ class DeliveryRateEstimator:
         self.merge_window_s = float(merge_window_s)
         self.deficit_fraction = float(deficit_fraction)
         self.deficit_min_mbps = float(deficit_min_mbps)
+        # reports in a row a small deficit must hold on (the bridges' two clocks: 2; one: 1)
+        self.deficit_reports = max(1, int(deficit_reports))
         self.probe_every_s = float(probe_every_s)
         # how long a probe is held: one report interval when the reports are per interval; as long
         # as the measurement window when they are sliding averages (today's /tissue/stats: 2 s)
@@ -173,6 +182,9 @@ class DeliveryRateEstimator:
         self.mode = "cruise"  # cruise | probe | drain
         self.ignored = collections.Counter()  # reason -> reports ignored
         self.overuses = 0
+        self.overuse_reasons = collections.Counter()  # deficit | rtt | link_full -> overuses
+        self.last_overuse = ""  # the reason of the last overuse
+        self._deficit_reports = 0  # consecutive reports whose merged window showed a deficit
         self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
         self._unrefuted_mbps = self.capacity_mbps  # highest allocation target run without an overuse since
         self._rtt_samples = collections.deque()  # (now_s, smallest rtt_s, median rtt_s) per interval
@@ -204,6 +216,7 @@ class DeliveryRateEstimator:
         self._last_now_s = now_s
         self._resumed_s = now_s
         self._merged.clear()
+        self._deficit_reports = 0
         self._trend.reset()
         self._rtt_samples.clear()
         self._set_mode("cruise", now_s)
@@ -269,6 +282,7 @@ class DeliveryRateEstimator:
             self.twin_capacity_mbps = delivered
             self.congested = False
             self._merged.clear()
+            self._deficit_reports = 0
             self._trend.reset()
             return self.estimate_mbps
         if not math.isnan(sent) and sent > 0 and delivered == 0:
@@ -280,7 +294,13 @@ class DeliveryRateEstimator:
             self._merged.popleft()
         rtt_overuse, queue_delay_s = self._rtt(now, report.rtt_s, dt)
 
-        deficit = self._deficit()
+        # a small deficit must hold on two reports in a row: the two sides' intervals are measured on
+        # two clocks, and one large frame sent at the end of one interval arrives in the next; a
+        # large one (a quarter of what was sent) is no such accident
+        self._deficit_reports = self._deficit_reports + 1 if self._deficit() else 0
+        deficit = self._deficit_reports >= self.deficit_reports or (
+            self._deficit_reports >= 1 and self._deficit(LARGE_DEFICIT_FRACTION, 2.0 * self.deficit_min_mbps)
+        )
         # a link-limited interval that delivered clearly less than the capacity believed: the link
         # is full at what it delivered (the sender's blocked writes kept it from showing a deficit)
         full = (
@@ -301,7 +321,14 @@ class DeliveryRateEstimator:
         # A queue building is overuse whether or not the sender's own queue ran empty: app-limited
         # marks the delivery-rate samples (too low to lower the capacity), not the link's deficit
         # (issue 35: a bridge whose queue emptied between frames sent 14 Mbit/s into a 5 Mbit/s link).
-        self.congested = deficit or rtt_overuse or full
+        # A rising RTT is our queue only while the sender kept the link busy: heartbeat echoes through
+        # loaded processes jitter by tens of ms, and read as overuse on an idle link they cut the
+        # capacity to what an app-limited fleet happened to send (issue 35, live).
+        busy = report.link_busy if report.link_busy is not None else not app_limited
+        self.congested = deficit or full or (rtt_overuse and busy)
+        if self.congested:
+            self.last_overuse = "deficit" if deficit else "link_full" if full else "rtt"
+            self.overuse_reasons[self.last_overuse] += 1
         if self.congested:
             self._on_overuse(now, delivered, sent)
             return self.estimate_mbps
@@ -397,21 +424,25 @@ class DeliveryRateEstimator:
         self._bw_max_mbps = self._unrefuted_mbps = measured
         self._gain = PROBE_GAIN
         self._merged.clear()  # this deficit is acted upon; the next one must be new
+        self._deficit_reports = 0
         self.capacity_mbps = measured
         self.estimate_mbps = self._clip(DRAIN_FACTOR * measured)
         self.mode, self._mode_since_s = "drain", now  # a new overuse restarts the drain
         self._drain_checked = False
         self._trend.reset()  # the rise is acted upon; the next overuse must be a new rise
 
-    def _deficit(self):
-        """Over the merged window, did the link deliver clearly less than was sent (a queue building)?"""
+    def _deficit(self, fraction=None, min_mbps=None):
+        """Over the merged window, did the link deliver clearly less than was sent (a queue building)?
+        Clearly: by more than `fraction` of what was sent and `min_mbps` (default: the estimator's)."""
+        fraction = self.deficit_fraction if fraction is None else fraction
+        min_mbps = self.deficit_min_mbps if min_mbps is None else min_mbps
         known = [(i, d, s) for _, i, d, s in self._merged if not math.isnan(s)]
         if not known:
             return False
         span = sum(i for i, _, _ in known)
         delivered = sum(i * d for i, d, _ in known) / span
         sent = sum(i * s for i, _, s in known) / span
-        return sent - delivered > max(self.deficit_fraction * sent, self.deficit_min_mbps)
+        return sent - delivered > max(fraction * sent, min_mbps)
 
     def _rtt(self, now, rtt_samples, dt):
         """(GCC trendline says overuse, queueing delay s over the min-RTT floor) from this interval."""

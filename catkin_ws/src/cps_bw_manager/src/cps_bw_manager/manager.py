@@ -493,6 +493,7 @@ class ManagerCore:
                 app_limited=bool(app_limited) and not self.allocation_binds(),
                 rtt_s=tuple(rtt_s),
                 receiver_behind=bool(receiver_behind),
+                link_busy=not app_limited,
                 link_limited=_finite(sender_blocked_s)
                 and _positive(sender_interval_s)
                 and sender_blocked_s >= LINK_LIMITED_FRACTION * sender_interval_s,

@@ -60,6 +60,7 @@ LINK_ESTIMATE_CSV_COLUMNS = (
     "superseded",
     "expired",
     "pacing_mbps",
+    "overuse",
 )
 
 
@@ -82,8 +83,9 @@ def link_estimate_msg(core, true_capacity_mbps, now_s) -> LinkEstimate:
     )
 
 
-def link_estimate_csv_row(stamp_s, msg, report):
-    """One row of link_estimate.csv (LINK_ESTIMATE_CSV_COLUMNS) for a link report and its estimate."""
+def link_estimate_csv_row(stamp_s, msg, report, overuse=""):
+    """One row of link_estimate.csv (LINK_ESTIMATE_CSV_COLUMNS) for a link report, its estimate and
+    the overuse the report made the estimator see (deficit, link_full, rtt; "" none)."""
 
     def rate(n_bytes, seconds):
         return f"{n_bytes * 8e-6 / seconds:.4f}" if seconds > 0 else ""
@@ -110,6 +112,7 @@ def link_estimate_csv_row(stamp_s, msg, report):
         report.superseded,
         report.expired,
         f"{report.pacing_mbps:.3f}",
+        overuse,
     )
 
 
@@ -171,6 +174,8 @@ class BandwidthManagerNode:
                 # bridges' link reports are per interval: 0)
                 measure_window_s=estimate_window_s,
                 probe_s=max(0.5, estimate_window_s),
+                # the bridges' intervals are measured on two clocks: a small deficit must hold on two
+                deficit_reports=2 if self.estimator_input == LINK_REPORT_INPUT else 1,
             )
         video_robots = rospy.get_param("~video_robots", None)
         if video_robots is None:  # default: the fleet's camera robots
@@ -358,6 +363,8 @@ class BandwidthManagerNode:
         if self.estimator_input != LINK_REPORT_INPUT:
             return
         with self.lock:
+            est = self.core.estimator
+            overuses = est.overuses if est else 0
             moved = self.core.on_bridge_report(
                 rospy.get_time(),
                 msg.interval_s,
@@ -371,7 +378,8 @@ class BandwidthManagerNode:
                 offered_bytes=msg.offered_bytes,
                 sender_blocked_s=msg.sender_blocked_s,
             )
-        self.publish_estimate(msg)
+            overuse = est.last_overuse if est and est.overuses > overuses else ""
+        self.publish_estimate(msg, overuse)
         if moved:
             self.update()
 
@@ -379,15 +387,16 @@ class BandwidthManagerNode:
         with self.lock:
             self.true_capacity_mbps = msg.capacity_mbps if math.isfinite(msg.capacity_mbps) else math.nan
 
-    def publish_estimate(self, report):
+    def publish_estimate(self, report, overuse=""):
         """/tissue/link_estimate (and a row of link_estimate.csv): the estimate beside the true
-        capacity, and the link report it came from (None: the 1 Hz repeat)."""
+        capacity, and the link report it came from (None: the 1 Hz repeat) with the overuse it
+        made the estimator see ("" none)."""
         with self.lock:
             msg = link_estimate_msg(self.core, self.true_capacity_mbps, rospy.get_time())
         msg.header.stamp = rospy.Time.now()
         self.estimate_pub.publish(msg)
         if self.estimate_csv and report is not None:
-            self.estimate_csv.write(link_estimate_csv_row(msg.header.stamp.to_sec(), msg, report))
+            self.estimate_csv.write(link_estimate_csv_row(msg.header.stamp.to_sec(), msg, report, overuse))
 
     def _on_link_state(self, msg):
         with self.lock:
