@@ -22,7 +22,7 @@ def test_link_thesis_row_gives_each_arm_in_the_5_mbit_phase_only():
     ]
     (row,) = link_thesis_rows(rows)
     assert "manager off: offered 1.67, received 0.16 MB/s, 20 of 20" in row[2]
-    assert "on, capacity announced: offered 0.52, received 0.32 MB/s, 2 of 20" in row[2]
+    assert "on, capacity announced (oracle): offered 0.52, received 0.32 MB/s, 2 of 20" in row[2]
     assert "1.80" not in row[2]
     assert link_thesis_rows([]) == []
 
