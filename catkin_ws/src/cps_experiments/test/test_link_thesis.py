@@ -162,6 +162,12 @@ def test_the_issues_bar_is_judged_in_the_5_mbits_phase_on_the_default_arm_and_re
     assert held["every robot's"] is True
     assert verdict[VIDEO_BAR] is False  # 5 fps of 160x120 frames at 5 Mbit/s
     assert verdict["F1 ≥ 95% of the wifi_good run's (both forms)"] is True
+    # A repeat of the judged arm is judged on its own rows, against the same reference
+    again = [dict(r, repeat=2) for r in rows if r["scenario"] == "wifi_degraded"]
+    assert link_thesis.judge(rows + again, "jackal", repeat=2) == verdict
+    assert set(link_thesis.judge(rows, "jackal", repeat=2).values()) == {None}
+    text = link_thesis._repeats_text(rows + again, "jackal")
+    assert text.startswith("Run 1 of 2: ") and "\n\nRun 2 of 2: " in text and "not held" in text
     # The oracle arm is judged on its own rows only: here it has none but the reference's F1.
     assert set(link_thesis.judge(rows, "jackal", link_thesis.ARM_ANNOUNCED).values()) == {None}
     # Its figures, once there, are its own verdict (the F1 ratio against the same reference).
@@ -223,6 +229,9 @@ def test_each_scenario_has_three_arms_in_alternating_order_and_only_one_announce
         "shared_medium_manager_off",
         "shared_medium_manager_on_announced",
         "shared_medium_manager_on_default",
+        # "three runs, each holding": the judged arm twice more
+        "wifi_degraded_manager_on_default_run2",
+        "wifi_degraded_manager_on_default_run3",
     ]
     assert [r.arm for r in runs[1:4]] == ["on_default", "on_announced", "off"]
     argvs = {r.name: link_thesis.mission_argv(r, ["scout", "jackal"], "jackal", "/runs/x", 80.0) for r in runs}

@@ -60,6 +60,8 @@ STALENESS_TICK_S = 1.0
 # The issue's bar, judged in wifi_degraded's 5 Mbit/s phase with the manager on in its default
 # configuration (ARM_DEFAULT); reported for the oracle (ARM_ANNOUNCED).
 JUDGED_SCENARIO, JUDGED_CAPACITY_MBPS = "wifi_degraded", 5.0
+# "Three runs, each holding": the judged arm runs this many times (the other missions once).
+REPEATS = 3
 TELEOP_P95_TARGET_MS = 50.0
 VIDEO_FPS_TARGET = 15.0
 VIDEO_P95_TARGET_MS = 200.0
@@ -86,6 +88,7 @@ class ThesisRun:
     manager: bool
     # The scenario announces the link's capacity to the manager (--announce-link-capacity).
     announce_capacity: bool = False
+    repeat: int = 1  # the judged arm's repeats are 2, 3, ...
 
     def __post_init__(self):
         if self.announce_capacity and not self.manager:
@@ -97,19 +100,21 @@ class ThesisRun:
 
     @property
     def name(self):
-        """The run's folder: `<scenario>_manager_<arm>`."""
-        return f"{self.scenario}_manager_{self.arm}"
+        """The run's folder: `<scenario>_manager_<arm>`, `_run<k>` for the k-th repeat (k > 1)."""
+        return f"{self.scenario}_manager_{self.arm}" + (f"_run{self.repeat}" if self.repeat > 1 else "")
 
 
-def runs(scenarios=SCENARIOS) -> List[ThesisRun]:
+def runs(scenarios=SCENARIOS, repeats=REPEATS) -> List[ThesisRun]:
     """The reference (manager on, default configuration), then each scenario's three arms, their
     order reversed from one scenario to the next so that no arm always runs first or last (on a
-    warm or a cold machine)."""
+    warm or a cold machine), then the judged arm's repeats 2..`repeats`."""
     out = [ThesisRun(REFERENCE_SCENARIO, True)]
     arms = (ThesisRun("", True), ThesisRun("", True, True), ThesisRun("", False))
     for i, scenario in enumerate(scenarios):
         ordered = arms if i % 2 == 0 else arms[::-1]
         out += [dataclasses.replace(arm, scenario=scenario) for arm in ordered]
+    if JUDGED_SCENARIO in scenarios:
+        out += [ThesisRun(JUDGED_SCENARIO, True, repeat=k) for k in range(2, repeats + 1)]
     return out
 
 
@@ -393,6 +398,7 @@ COLUMNS = (
     "scenario",
     "manager",
     "arm",
+    "repeat",
     "phase",
     "capacity_mbps",
     "phase_s",
@@ -451,7 +457,12 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
         sources[thesis_run.name] = summary.get("video_source", "not recorded (a run from before video_source)")
         capacities[thesis_run.name] = summary.get("link_capacity", "not recorded (a run from before link_capacity)")
         f1_tolerant, f1_exact = score_map(summary.get("map_file"), fleet, run_dir)
-        arm = {"scenario": thesis_run.scenario, "manager": "on" if thesis_run.manager else "off", "arm": thesis_run.arm}
+        arm = {
+            "scenario": thesis_run.scenario,
+            "manager": "on" if thesis_run.manager else "off",
+            "arm": thesis_run.arm,
+            "repeat": thesis_run.repeat,
+        }
         for row in measure_run(run_dir, robots, read_csv):
             row.update(arm)
             rows.append(row)
@@ -480,17 +491,27 @@ def _cell(value):
     return value
 
 
-def judge(rows, selected, arm=ARM_DEFAULT):
+def _repeat(row):
+    return int(row.get("repeat") or 1)
+
+
+def judge(rows, selected, arm=ARM_DEFAULT, repeat=1):
     """The issue's bar in wifi_degraded's 5 Mbit/s phase for one arm (the judged one: ARM_DEFAULT;
-    the others reported): {condition: held (bool) or None when not measured}. The F1 reference is
-    the wifi_good run's."""
-    on = [r for r in rows if r.get("scenario") == JUDGED_SCENARIO and r.get("arm") == arm]
+    the others reported) and one of its repeats: {condition: held (bool) or None when not
+    measured}. The F1 reference is the wifi_good run's (its first)."""
+    on = [r for r in rows if r.get("scenario") == JUDGED_SCENARIO and r.get("arm") == arm and _repeat(r) == repeat]
     phase = [r for r in on if r.get("capacity_mbps") == JUDGED_CAPACITY_MBPS]
     link = next((r for r in phase if r["stream"] == "link"), None)
     video = next((r for r in phase if r["stream"] == "video" and r["robot"] == selected), None)
     clouds = [r for r in phase if r["stream"] == "cloud"]
     f1 = {r["scenario"]: r for r in on if r.get("stream") == "map"}
-    f1.update({r["scenario"]: r for r in rows if r.get("stream") == "map" and r.get("scenario") == REFERENCE_SCENARIO})
+    f1.update(
+        {
+            r["scenario"]: r
+            for r in rows
+            if r.get("stream") == "map" and r.get("scenario") == REFERENCE_SCENARIO and _repeat(r) == 1
+        }
+    )
 
     def held(value, ok):
         return None if value is None or (isinstance(value, float) and math.isnan(value)) else bool(ok(value))
@@ -523,6 +544,8 @@ def differences(rows):
     p95; the map's F1); each sentence names its manager-on arm."""
     by_key = defaultdict(dict)
     for r in rows:
+        if _repeat(r) != 1:
+            continue
         by_key[(r.get("scenario"), r.get("phase"), r.get("robot", ""), r.get("stream"))][r.get("arm")] = r
     out = []
     for (scenario, phase, robot, stream), arms in sorted(by_key.items(), key=lambda kv: tuple(map(str, kv[0]))):
@@ -610,7 +633,7 @@ def markdown_sections(rows, failures, selected, duration_s, video_sources=None, 
         _sources_text(video_sources or {}),
         f"## The issue's bar ({JUDGED_SCENARIO}, {JUDGED_CAPACITY_MBPS:g} Mbit/s phase, judged on `{ARM_DEFAULT}`: "
         "the manager on in its default configuration)",
-        _verdict_text(judge(rows, selected, ARM_DEFAULT)),
+        _repeats_text(rows, selected),
         f"## The same bar for `{ARM_ANNOUNCED}` (the oracle: the capacity announced by the scenario; reported, "
         "not judged)",
         _verdict_text(judge(rows, selected, ARM_ANNOUNCED)),
@@ -631,6 +654,24 @@ def markdown_sections(rows, failures, selected, duration_s, video_sources=None, 
         sections += ["## Runs that failed", "\n".join(f"- {n}: {why.splitlines()[0]}" for n, why in failures.items())]
     sections.append("![link_thesis](link_thesis.png)")
     return sections
+
+
+def _repeats_text(rows, selected):
+    """The judged arm's verdict, one block per run of it ("each holding": every one must)."""
+    repeats = sorted({_repeat(r) for r in rows if r.get("arm") == ARM_DEFAULT and r.get("scenario") == JUDGED_SCENARIO})
+    if len(repeats) <= 1:
+        return _verdict_text(judge(rows, selected, ARM_DEFAULT))
+    blocks = []
+    for k in repeats:
+        verdict = judge(rows, selected, ARM_DEFAULT, k)
+        failed = [c for c, held in verdict.items() if held is not True]
+        blocks.append(
+            f"Run {k} of {len(repeats)}: "
+            + ("every condition held" if not failed else f"{len(failed)} not held")
+            + "\n"
+            + _verdict_text(verdict)
+        )
+    return "\n\n".join(blocks)
 
 
 def _verdict_text(verdict):
@@ -672,6 +713,7 @@ def plot(rows, png_path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    rows = [r for r in rows if _repeat(r) == 1]  # each arm's first run
     scenarios = [s for s in (REFERENCE_SCENARIO, *SCENARIOS) if any(r.get("scenario") == s for r in rows)]
     if not scenarios:
         return
