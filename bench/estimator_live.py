@@ -25,15 +25,14 @@ import os
 import sys
 import time
 
-from cps_experiments.transport_compare import Graphs
+from cps_experiments.markdown import csv_float
+from cps_experiments.transport_compare import Graphs, start_estimating_manager, start_limited_load
 
-from cps_fleet import names
 from cps_fleet.csv_log import CsvLog
 from cps_harness.testing import link_name
 from cps_link.netns_link import ShapedLink, tc_rate
 from cps_link.scenario import LINK_EVENTS_COLUMNS, ScenarioRunner, load_scenario
 from cps_link.zenoh_session import default_cert_dir, ensure_certs
-from cps_ros.processes import find_node
 
 LIVE_SCENARIOS = ("wifi_degraded", "demo", "shared_medium")
 # Table 6 step 1 at full rate: 8.41 MB/s = 67 Mbit/s offered, more than any phase of the link.
@@ -60,23 +59,16 @@ class Sample:
     twin_capacity_mbps: float
 
 
-def _float(value):
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return math.nan
-
-
 def read_samples(path, t0):
     with open(path) as stream:
         return [
             Sample(
-                _float(r["stamp_s"]) - t0,
-                _float(r["capacity_mbps"]),
-                _float(r["estimate_mbps"]),
+                csv_float(r["stamp_s"]) - t0,
+                csv_float(r["capacity_mbps"]),
+                csv_float(r["estimate_mbps"]),
                 r["mode"],
-                _float(r["delivered_mbps"]),
-                _float(r["sent_mbps"]),
+                csv_float(r["delivered_mbps"]),
+                csv_float(r["sent_mbps"]),
                 r["receiver_behind"] == "1",
                 math.nan,
             )
@@ -147,39 +139,9 @@ def run_once(name, load, out_dir, scenario=None, rate_mbps=60.0, duration_s=None
         seed = link.measure_mbps(seconds=2.0)
         graphs = Graphs(link, "zenoh", cert_dir, cpus=CPUS)
         try:
-            limiter = find_node("cps_transport", "rate_limiter")
-            for r in robots:
-                graphs.start(
-                    "phys",
-                    [
-                        sys.executable,
-                        limiter,
-                        "__name:=cloud_throttle",
-                        f"__ns:=/{r}",
-                        f"~input:={names.absolute(names.robot_topic(r, names.POINTS_DRACO))}",
-                        f"~output:={names.absolute(names.managed_cloud(r))}",
-                    ],
-                    f"limiter_{r}",
-                )
-            graphs.start(
-                "phys",
-                [sys.executable, "-m", "cps_harness.cloud_load", *[f"{r}:{s}:{hz}" for r, (s, hz) in load.items()]],
-                "load",
-            )
-            graphs.start(
-                "twin",
-                [
-                    sys.executable,
-                    find_node("cps_bw_manager", "bandwidth_manager"),
-                    "__name:=bandwidth_manager",
-                    f"_robots:={','.join(robots)}",
-                    "_video_robots:=[]",  # the load has clouds only
-                    f"_available_mbps:={seed:.2f}",
-                    "_estimate_bandwidth:=true",
-                    f"_link_estimate_csv_path:={estimate_csv}",
-                    f"_csv_path:={os.path.join(out_dir, 'allocation.csv')}",
-                ],
-                "manager",
+            start_limited_load(graphs, load)
+            start_estimating_manager(
+                graphs, robots, seed, estimate_csv, f"_csv_path:={os.path.join(out_dir, 'allocation.csv')}"
             )
             _wait_rows(estimate_csv, 8, 60.0, graphs)
             if scenario is not None:

@@ -6,7 +6,6 @@ the Zenoh bridges: the manager's online estimate follows the link 60 -> 20 -> 60
 
 import csv
 import os
-import sys
 import time
 
 import pytest
@@ -172,9 +171,8 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
     `cps_link set` changes the link 60 -> 20 -> 60 Mbit/s under a load above it. Issue 23's xfail
     fed it /tissue/stats' 2 s sliding averages over TCPROS; a draining queue's burst read as
     capacity (29.6 Mbit/s "delivered" through 20) and it probed above 24 Mbit/s in 1 of 3 runs."""
-    from cps_experiments.transport_compare import Graphs
+    from cps_experiments.transport_compare import Graphs, start_estimating_manager, start_limited_load
 
-    from cps_fleet import names
     from cps_link.zenoh_session import default_cert_dir, ensure_certs
 
     name = link_name("bwe")
@@ -184,39 +182,8 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
         with ShapedLink(name, rate="60mbit") as link:
             graphs = Graphs(link, "zenoh", ensure_certs(default_cert_dir()))
             try:
-                limiter = find_node("cps_transport", "rate_limiter")
-                for r in LOAD:
-                    graphs.start(
-                        "phys",
-                        [
-                            sys.executable,
-                            limiter,
-                            "__name:=cloud_throttle",
-                            f"__ns:=/{r}",
-                            f"~input:={names.absolute(names.robot_topic(r, names.POINTS_DRACO))}",
-                            f"~output:={names.absolute(names.managed_cloud(r))}",
-                        ],
-                        f"limiter_{r}",
-                    )
-                graphs.start(
-                    "phys",
-                    [sys.executable, "-m", "cps_harness.cloud_load", *[f"{r}:{s}:{hz}" for r, (s, hz) in LOAD.items()]],
-                    "load",
-                )
-                graphs.start(
-                    "twin",
-                    [
-                        sys.executable,
-                        find_node("cps_bw_manager", "bandwidth_manager"),
-                        "__name:=bandwidth_manager",
-                        f"_robots:={','.join(LOAD)}",
-                        "_video_robots:=[]",
-                        "_available_mbps:=60.0",
-                        "_estimate_bandwidth:=true",
-                        f"_link_estimate_csv_path:={csv_path}",
-                    ],
-                    "manager",
-                )
+                start_limited_load(graphs, LOAD)
+                start_estimating_manager(graphs, list(LOAD), 60.0, csv_path)
                 _wait_for_file_rows(csv_path, 40.0)
                 time.sleep(6.0)
                 marks["drop"] = time.time()

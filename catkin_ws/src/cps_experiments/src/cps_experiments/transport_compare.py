@@ -93,6 +93,50 @@ def start_load(graphs, streams, name):
     )
 
 
+def start_limited_load(graphs, streams):
+    """cps_transport's rate limiter per robot and the cloud load above them on the robots' side: the
+    managed clouds the bandwidth manager sets the rates of (cps_harness.cloud_load's sizes and Hz)."""
+    limiter = find_node("cps_transport", "rate_limiter")
+    for r in streams:
+        graphs.start(
+            "phys",
+            [
+                sys.executable,
+                limiter,
+                "__name:=cloud_throttle",
+                f"__ns:=/{r}",
+                f"~input:={names.absolute(names.robot_topic(r, names.POINTS_DRACO))}",
+                f"~output:={names.absolute(names.managed_cloud(r))}",
+            ],
+            f"limiter_{r}",
+        )
+    graphs.start(
+        "phys",
+        [sys.executable, "-m", "cps_harness.cloud_load", *[f"{r}:{s}:{hz}" for r, (s, hz) in streams.items()]],
+        "load",
+    )
+
+
+def start_estimating_manager(graphs, robots, available_mbps, estimate_csv, *params):
+    """The bandwidth manager on the twin's side with its online estimate, seeded with
+    `available_mbps`, logging link_estimate.csv; managing `robots`' clouds only (no video)."""
+    return graphs.start(
+        "twin",
+        [
+            sys.executable,
+            find_node("cps_bw_manager", "bandwidth_manager"),
+            "__name:=bandwidth_manager",
+            f"_robots:={','.join(robots)}",
+            "_video_robots:=[]",
+            f"_available_mbps:={available_mbps:.2f}",
+            "_estimate_bandwidth:=true",
+            f"_link_estimate_csv_path:={estimate_csv}",
+            *params,
+        ],
+        "manager",
+    )
+
+
 def cpu_s(pids):
     return sum(process_cpu_s(pid) for pid in pids)
 
