@@ -42,7 +42,7 @@ from typing import Optional, Sequence
 DRAIN_FACTOR = 0.85  # GCC's cut on overuse, x the acknowledged (delivered) rate
 # With deficit_reports > 1 a deficit is overuse once it holds on that many reports in a row, or at
 # once when it is this fraction of what was sent.
-LARGE_DEFICIT_FRACTION = 0.25
+LARGE_DEFICIT_FRACTION = 0.4
 # BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
 # inside the +-15 % band the estimate is held to
 PROBE_GAIN = 1.2
@@ -143,6 +143,7 @@ class DeliveryRateEstimator:
         queue_delay_threshold_s=0.03,
         measure_window_s=0.0,
         deficit_reports=1,
+        sample_window_s=0.0,
     ):
         for name, value in (
             ("initial_mbps", initial_mbps),
@@ -164,6 +165,11 @@ class DeliveryRateEstimator:
         self.deficit_min_mbps = float(deficit_min_mbps)
         # reports in a row a small deficit must hold on (the bridges' two clocks: 2; one: 1)
         self.deficit_reports = max(1, int(deficit_reports))
+        # delivery-rate samples (and an overuse's measure of the link) over this much of the last
+        # reports, not one interval: a shaper's burst or one large frame moves a 0.5 s interval by
+        # 40 % at 5 Mbit/s (live, issue 35); 0: per report
+        self.sample_window_s = max(0.0, float(sample_window_s))
+        self._samples = collections.deque()  # (now_s, interval_s, delivered, sent)
         self.probe_every_s = float(probe_every_s)
         # how long a probe is held: one report interval when the reports are per interval; as long
         # as the measurement window when they are sliding averages (today's /tissue/stats: 2 s)
@@ -216,6 +222,7 @@ class DeliveryRateEstimator:
         self._last_now_s = now_s
         self._resumed_s = now_s
         self._merged.clear()
+        self._samples.clear()
         self._deficit_reports = 0
         self._trend.reset()
         self._rtt_samples.clear()
@@ -296,11 +303,10 @@ class DeliveryRateEstimator:
 
         # a small deficit must hold on two reports in a row: the two sides' intervals are measured on
         # two clocks, and one large frame sent at the end of one interval arrives in the next; a
-        # large one (a quarter of what was sent) is no such accident
+        # large one (LARGE_DEFICIT_FRACTION of what was sent) is no such accident
         self._deficit_reports = self._deficit_reports + 1 if self._deficit() else 0
-        deficit = self._deficit_reports >= self.deficit_reports or (
-            self._deficit_reports >= 1 and self._deficit(LARGE_DEFICIT_FRACTION, 2.0 * self.deficit_min_mbps)
-        )
+        large = self._deficit_reports >= 1 and self._deficit(LARGE_DEFICIT_FRACTION, 2.0 * self.deficit_min_mbps)
+        deficit = self._deficit_reports >= self.deficit_reports or large
         # a link-limited interval that delivered clearly less than the capacity believed: the link
         # is full at what it delivered (the sender's blocked writes kept it from showing a deficit)
         full = (
@@ -329,11 +335,20 @@ class DeliveryRateEstimator:
         if self.congested:
             self.last_overuse = "deficit" if deficit else "link_full" if full else "rtt"
             self.overuse_reasons[self.last_overuse] += 1
+        window_delivered, window_sent = self._window(now, report.interval_s, delivered, sent)
         if self.congested:
-            self._on_overuse(now, delivered, sent)
+            # a step (a large deficit, a sender blocked by the link): this interval is the new link;
+            # otherwise the window's average, not one interval's noise
+            step = large or (full and not deficit)
+            if step or self.sample_window_s <= 0:
+                self._on_overuse(now, delivered, sent)
+            else:
+                # GCC's multiplicative decrease bounds what one small overuse takes off the capacity
+                cut = max(window_delivered, DRAIN_FACTOR * self.capacity_mbps)
+                self._on_overuse(now, min(self.capacity_mbps, cut), window_sent)
             return self.estimate_mbps
 
-        sample = delivered if math.isnan(sent) else min(delivered, sent)
+        sample = window_delivered if math.isnan(window_sent) else min(window_delivered, window_sent)
         if not app_limited or sample > self._bw_max_mbps:
             # BBR: app-limited samples only count when they exceed the current estimate.
             self._bw_max_mbps = max(self._bw_max_mbps, sample)
@@ -424,12 +439,27 @@ class DeliveryRateEstimator:
         self._bw_max_mbps = self._unrefuted_mbps = measured
         self._gain = PROBE_GAIN
         self._merged.clear()  # this deficit is acted upon; the next one must be new
+        self._samples.clear()  # the link changed: samples from before the overuse are not its rate
         self._deficit_reports = 0
         self.capacity_mbps = measured
         self.estimate_mbps = self._clip(DRAIN_FACTOR * measured)
         self.mode, self._mode_since_s = "drain", now  # a new overuse restarts the drain
         self._drain_checked = False
         self._trend.reset()  # the rise is acted upon; the next overuse must be a new rise
+
+    def _window(self, now, interval_s, delivered, sent):
+        """(delivered, sent) over the last sample_window_s of reports, this one included."""
+        if self.sample_window_s <= 0:
+            return delivered, sent
+        self._samples.append((now, interval_s, delivered, sent))
+        while self._samples and self._samples[0][0] <= now - self.sample_window_s:
+            self._samples.popleft()
+        span = sum(i for _, i, _, _ in self._samples)
+        known = [(i, s) for _, i, _, s in self._samples if not math.isnan(s)]
+        return (
+            sum(i * d for _, i, d, _ in self._samples) / span,
+            sum(i * s for i, s in known) / sum(i for i, _ in known) if known else math.nan,
+        )
 
     def _deficit(self, fraction=None, min_mbps=None):
         """Over the merged window, did the link deliver clearly less than was sent (a queue building)?
