@@ -122,7 +122,7 @@ def test_classes_map_to_their_zenoh_qos():
         qos = zenoh_qos(routes[topic].traffic)
         assert (qos["priority"], qos["congestion_control"], qos["express"]) == (priority, congestion, express), topic
         assert (qos["reliability"] == zenoh.Reliability.RELIABLE) == reliable, topic
-    assert routes["/twin/champ/points_filtered/draco/managed"].traffic.max_age_s == 1.0
+    assert routes["/twin/champ/points_filtered/draco/managed"].traffic.max_age_s == 2.0
     assert {r.to for r in table.routes if r.traffic.paced} == {
         r.to for r in table.routes if r.traffic.name in ("data", "video")
     }

@@ -43,6 +43,9 @@ DRAIN_FACTOR = 0.85  # GCC's cut on overuse, x the acknowledged (delivered) rate
 # With deficit_reports > 1 a deficit is overuse once it holds on that many reports in a row, or at
 # once when it is this fraction of what was sent.
 LARGE_DEFICIT_FRACTION = 0.4
+# With sample_window_s, an overuse whose window delivered less than this x the capacity is a step
+# (measured on its own interval); above it, noise is cut by at most DRAIN_FACTOR.
+STEP_FRACTION = 0.7
 # BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
 # inside the +-15 % band the estimate is held to
 PROBE_GAIN = 1.2
@@ -144,6 +147,9 @@ class DeliveryRateEstimator:
         measure_window_s=0.0,
         deficit_reports=1,
         sample_window_s=0.0,
+        step_drain_factor=None,
+        drain_after_probe=False,
+        keep_unfilled_probe=False,
     ):
         for name, value in (
             ("initial_mbps", initial_mbps),
@@ -170,6 +176,16 @@ class DeliveryRateEstimator:
         # 40 % at 5 Mbit/s (live, issue 35); 0: per report
         self.sample_window_s = max(0.0, float(sample_window_s))
         self._samples = collections.deque()  # (now_s, interval_s, delivered, sent)
+        # After a step (a large deficit, a blocked sender) the target drains at this x the new
+        # capacity until the queue is gone (BBR drains its startup queue at 1/2.89): a shaper's
+        # queue after 20 -> 5 Mbit/s held commands 150-200 ms for 3 s (live, issue 35). None: 0.85.
+        self.step_drain_factor = DRAIN_FACTOR if step_drain_factor is None else float(step_drain_factor)
+        # After a probe that found nothing, drain at 0.85 x for as long as the probe (BBR's
+        # ProbeBW 0.75 phase): the probe's queue otherwise waits for the fleet to send less.
+        self.drain_after_probe = bool(drain_after_probe)
+        # A probe the fleet did not fill (it sent no more than before: it had no time to follow the
+        # allocation) and nothing refused keeps its level, as an app-limited one does.
+        self.keep_unfilled_probe = bool(keep_unfilled_probe)
         self.probe_every_s = float(probe_every_s)
         # how long a probe is held: one report interval when the reports are per interval; as long
         # as the measurement window when they are sliding averages (today's /tissue/stats: 2 s)
@@ -339,13 +355,13 @@ class DeliveryRateEstimator:
         if self.congested:
             # a step (a large deficit, a sender blocked by the link): this interval is the new link;
             # otherwise the window's average, not one interval's noise
-            step = large or (full and not deficit)
+            # ... or a window that delivered far below the capacity: no noise does that
+            step = large or (full and not deficit) or window_delivered < STEP_FRACTION * self.capacity_mbps
             if step or self.sample_window_s <= 0:
-                self._on_overuse(now, delivered, sent)
+                self._on_overuse(now, delivered, sent, self.step_drain_factor if step else DRAIN_FACTOR)
             else:
                 # GCC's multiplicative decrease bounds what one small overuse takes off the capacity
-                cut = max(window_delivered, DRAIN_FACTOR * self.capacity_mbps)
-                self._on_overuse(now, min(self.capacity_mbps, cut), window_sent)
+                self._on_overuse(now, max(window_delivered, DRAIN_FACTOR * self.capacity_mbps), window_sent)
             return self.estimate_mbps
 
         sample = window_delivered if math.isnan(window_sent) else min(window_delivered, window_sent)
@@ -366,7 +382,10 @@ class DeliveryRateEstimator:
             # may empty inside an interval.
             self._drain_checked = True
             queueing = math.isnan(queue_delay_s) or queue_delay_s > self.queue_delay_threshold_s
-            if delivered >= 1.02 * sent and queueing:
+            # ... or still filling (less delivered than sent, a cut measured before the step's
+            # interval was over): the link ran full, so what it delivered is its rate
+            still_full = self.sample_window_s > 0 and sent >= 1.05 * delivered
+            if (delivered >= 1.02 * sent or still_full) and queueing:
                 self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = self._clip(delivered)
                 self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)
         if self.mode == "drain":
@@ -397,13 +416,25 @@ class DeliveryRateEstimator:
             )
         if self.mode == "probe" and (kept_up or now - self._mode_since_s >= self.probe_s - 1e-6):
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
-            if kept_up or app_limited:
+            unfilled = (
+                self.keep_unfilled_probe
+                and not math.isnan(sent)
+                and sent < 1.05 * self._capacity_before_probe_mbps
+                and not self.congested
+            )
+            if kept_up or app_limited or unfilled:
                 # Nothing refused the probe's rate and the fleet got all it wanted at it: it may
                 # keep that rate (BBR keeps pacing at the last rate the path accepted), though the
                 # capacity only rises by what was measured.
                 self._unrefuted_mbps = max(self._unrefuted_mbps, self.estimate_mbps)
             self._last_probe_s = now
-            self._set_mode("cruise", now)
+            if self.drain_after_probe and not (kept_up or app_limited or unfilled):
+                # the link took no more: empty what the probe queued before cruising again
+                self._set_mode("drain", now)
+                self._drain_checked = True
+                self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)
+            else:
+                self._set_mode("cruise", now)
         self.capacity_mbps = self._clip(self._bw_max_mbps)
 
         demand_exceeds = not app_limited
@@ -432,8 +463,9 @@ class DeliveryRateEstimator:
             self.estimate_mbps = self._clip(max(self.capacity_mbps, self._unrefuted_mbps))
         return self.estimate_mbps
 
-    def _on_overuse(self, now, delivered, sent):
-        """GCC: the link is full, so what it delivered is its rate; cut the target to 0.85 x it."""
+    def _on_overuse(self, now, delivered, sent, drain_factor=DRAIN_FACTOR):
+        """GCC: the link is full, so what it delivered is its rate; cut the target to 0.85 x it
+        (`drain_factor`) until the queue has drained."""
         self.overuses += 1
         measured = self._clip(delivered)
         self._bw_max_mbps = self._unrefuted_mbps = measured
@@ -442,7 +474,7 @@ class DeliveryRateEstimator:
         self._samples.clear()  # the link changed: samples from before the overuse are not its rate
         self._deficit_reports = 0
         self.capacity_mbps = measured
-        self.estimate_mbps = self._clip(DRAIN_FACTOR * measured)
+        self.estimate_mbps = self._clip(drain_factor * measured)
         self.mode, self._mode_since_s = "drain", now  # a new overuse restarts the drain
         self._drain_checked = False
         self._trend.reset()  # the rise is acted upon; the next overuse must be a new rise
