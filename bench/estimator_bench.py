@@ -32,7 +32,7 @@ import math
 import os
 import sys
 
-from cps_bw_manager.estimation import DeliveryRateEstimator
+from cps_bw_manager.estimation import LINK_REPORT_OPTIONS, DeliveryRateEstimator
 from cps_bw_manager.legacy_estimation import LegacyDelayEstimator
 from cps_bw_manager.link_model import (
     CpuHog,
@@ -67,9 +67,14 @@ class LegacySubject(NewEstimatorSubject):
         return self.estimator.estimate_mbps
 
 
-def _new(known=None, window_s=0.0):
+def _new(known=None, window_s=0.0, live=False):
+    options = LINK_REPORT_OPTIONS if live else {}
     est = DeliveryRateEstimator(
-        LINE_RATE_MBPS, line_rate_mbps=LINE_RATE_MBPS, probe_s=max(0.5, window_s), measure_window_s=window_s
+        LINE_RATE_MBPS,
+        line_rate_mbps=LINE_RATE_MBPS,
+        probe_s=max(0.5, window_s),
+        measure_window_s=window_s,
+        **options,
     )
     return NewEstimatorSubject(est, known) if known else NewEstimatorSubject(est)
 
@@ -78,12 +83,16 @@ def _new(known=None, window_s=0.0):
 # per-interval reports (what the bridge should send) and today's 2 s sliding windows.
 SUBJECTS = {
     "new": (_new, 0.0),
+    # as manager_node builds it on the bridges' link reports (estimation.LINK_REPORT_OPTIONS), on
+    # the same simulated link
+    "new/live": (lambda: _new(live=True), 0.0),
     "old": (LegacySubject, 0.0),
     "new/today": (lambda: _new(TODAY, window_s=2.0), 2.0),  # as manager_node builds it
     "old/today": (LegacySubject, 2.0),
 }
 PAIRS = (
     ("new", "old", "per-interval reports (the bridge's LinkReport)"),
+    ("new/live", "old", "per-interval reports, the estimator as the manager runs it on the bridges' link reports"),
     ("new/today", "old/today", "today's inputs: delivered, sent, offered as 2 s sliding averages"),
 )
 

@@ -55,6 +55,20 @@ STARTUP_GAIN = 2.0  # BBR's STARTUP roughly doubles per round while delivery kee
 PROBE_GAP_FRACTION = 0.1
 
 
+# The estimator's options when fed the bridges' link reports (issue 35, from the live runs): their
+# two sides' intervals are measured on two clocks (a small deficit must hold on two reports), a
+# 0.5 s interval moves by 40 % at 5 Mbit/s with one shaper burst or one large frame (samples over a
+# second), a step's queue drains at 0.6 x, a refused probe's at 0.85 x, and a probe the fleet had
+# no time to fill (it follows an allocation in ~1 s, a probe lasts 0.5 s) keeps its level.
+LINK_REPORT_OPTIONS = dict(
+    deficit_reports=2,
+    sample_window_s=1.0,
+    step_drain_factor=0.6,
+    drain_after_probe=True,
+    keep_unfilled_probe=True,
+)
+
+
 @dataclasses.dataclass(frozen=True)
 class LinkReport:
     """One measurement interval of the link, as the manager receives it.

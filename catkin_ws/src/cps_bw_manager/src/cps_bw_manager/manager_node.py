@@ -7,7 +7,7 @@ import threading
 import rospy
 from std_msgs.msg import Float64, String, UInt8
 
-from cps_bw_manager.estimation import DeliveryRateEstimator
+from cps_bw_manager.estimation import LINK_REPORT_OPTIONS, DeliveryRateEstimator
 from cps_bw_manager.level_allocation import CLOUD
 from cps_bw_manager.manager import (
     ALLOCATION_CSV_COLUMNS,
@@ -38,10 +38,7 @@ from cps_ros.fault_report import FaultReport
 from cps_ros.timers import guarded_timer
 
 LINK_REPORT_INPUT, TISSUE_STATS_INPUT = "link_report", "tissue_stats"
-# The estimator's options fed the bridges' link reports (cps_bw_manager.estimation): drain a step's
-# queue at 0.6 x, drain each refused probe's, and keep the level of a probe the fleet had no time
-# to fill (it follows an allocation in ~1 s, a probe lasts 0.5 s).
-LIVE_ESTIMATOR_OPTIONS = dict(step_drain_factor=0.6, drain_after_probe=True, keep_unfilled_probe=True)
+
 ESTIMATOR_INPUTS = (LINK_REPORT_INPUT, TISSUE_STATS_INPUT)
 LINK_ESTIMATE_CSV_COLUMNS = (
     "stamp_s",
@@ -178,14 +175,7 @@ class BandwidthManagerNode:
                 # bridges' link reports are per interval: 0)
                 measure_window_s=estimate_window_s,
                 probe_s=max(0.5, estimate_window_s),
-                # the bridges' intervals are measured on two clocks: a small deficit must hold on two
-                deficit_reports=2 if self.estimator_input == LINK_REPORT_INPUT else 1,
-                # ... and a 0.5 s interval moves by 40 % at 5 Mbit/s with one shaper burst or one
-                # large frame: samples over a second
-                sample_window_s=1.0 if self.estimator_input == LINK_REPORT_INPUT else 0.0,
-                # live, a shaper's queue after a step down held commands for seconds, and each
-                # probe's queue for as long as the fleet kept sending (issue 35)
-                **(LIVE_ESTIMATOR_OPTIONS if self.estimator_input == LINK_REPORT_INPUT else {}),
+                **(LINK_REPORT_OPTIONS if self.estimator_input == LINK_REPORT_INPUT else {}),
             )
         video_robots = rospy.get_param("~video_robots", None)
         if video_robots is None:  # default: the fleet's camera robots
