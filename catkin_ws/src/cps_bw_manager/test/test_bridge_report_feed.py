@@ -192,3 +192,36 @@ def test_a_rising_rtt_is_overuse_only_while_the_sender_kept_the_link_busy():
     for i in range(16, 24):  # backlogged (the link busy with what it sent), the RTT still climbing
         _feed(core, 0.5 * i, 30.0, 30.0, app_limited=False, rtt_s=(0.65 + 0.08 * (i - 15),))
     assert core.estimator.overuses >= 1 and core.estimator.last_overuse == "rtt"
+
+
+def _live_core(initial=60.0):
+    from cps_bw_manager.estimation import LINK_REPORT_OPTIONS
+
+    est = DeliveryRateEstimator(initial, line_rate_mbps=60.0, **LINK_REPORT_OPTIONS)
+    return ManagerCore(["a", "b"], SETTINGS, est)
+
+
+def test_live_options_a_step_drains_its_queue_at_0_6():
+    core = _live_core()
+    _feed(core, 0.5, 40.0, 40.0)
+    # 20 -> 5: the sender waited for the link most of the interval: a step, measured on it
+    _feed(core, 1.0, 5.0, 5.0, sender_blocked_s=0.4)
+    assert core.estimator.capacity_mbps == pytest.approx(5.0) and core.estimator.last_overuse == "link_full"
+    assert core.available_mbps == pytest.approx(0.6 * 5.0) and core.estimator.mode == "drain"
+
+
+def test_live_options_a_refused_probe_drains_and_an_unfilled_one_keeps_its_level():
+    core = _live_core(initial=10.0)
+    est = core.estimator
+    _feed(core, 0.5, 10.0, 10.0)  # the fleet wants more (not app-limited): a probe to 12
+    assert est.mode == "probe" and core.available_mbps == pytest.approx(12.0)
+    _feed(core, 1.0, 10.0, 10.6)  # it sent more, the link delivered no more: refused
+    assert est.mode == "drain" and core.available_mbps == pytest.approx(0.85 * 10.0)
+    t = 1.0
+    while est.mode != "probe":  # drained (the RTT at its floor), then the next probe
+        t += 0.5
+        _feed(core, t, 10.0, 10.0, rtt_s=(0.005,))
+    level = core.available_mbps
+    t += 0.5
+    _feed(core, t, 10.0, 10.0, rtt_s=(0.005,))  # the fleet had no time to send more: kept
+    assert est.mode == "cruise" and core.available_mbps == pytest.approx(level) and level > 10.0
