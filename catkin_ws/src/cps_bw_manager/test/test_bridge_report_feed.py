@@ -225,3 +225,12 @@ def test_live_options_a_refused_probe_drains_and_an_unfilled_one_keeps_its_level
     t += 0.5
     _feed(core, t, 10.0, 10.0, rtt_s=(0.005,))  # the fleet had no time to send more: kept
     assert est.mode == "cruise" and core.available_mbps == pytest.approx(level) and level > 10.0
+
+
+def test_the_link_sockets_bytes_are_delivered_and_sent_and_all_but_the_managed_frames_is_unmanaged():
+    core = _core(estimate=False, available_mbps=5.0)
+    # 0.5 s: 200 kB of frames of which 150 kB managed; the link carried 250 kB (framing, telemetry)
+    core.on_bridge_report(
+        1.0, 0.5, 0.5, 200_000, 50_000, 200_000, False, delivered_link_bytes=250_000, sent_link_bytes=260_000
+    )
+    assert core.unmanaged_mbps(1.0) == pytest.approx(100_000 * 8e-6 / 0.5)

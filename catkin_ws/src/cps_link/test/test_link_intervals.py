@@ -128,3 +128,49 @@ def test_socket_queues_are_read_from_proc(tmp_path):
     assert tcp_queues(local_port=7447, proc_root=str(tmp_path)) == [(16, 131072)]
     assert tcp_queues(remote_port=7447, proc_root=str(tmp_path)) == [(4096, 0)]
     assert tcp_queues(local_port=1, proc_root=str(tmp_path / "none")) == []
+
+
+def test_the_link_sockets_tcp_payload_counts_and_rtt_from_tcp_info_stay_monotone_across_a_reconnection():
+    """The bridge reads its own (Zenoh's) link socket: found by port in /proc/net/tcp and by inode
+    among this process's descriptors; TCP_INFO's bytes count every byte the link carried."""
+    import socket
+    import time
+
+    from cps_link.link_report import LinkSockets
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen()
+    port = server.getsockname()[1]
+    sender, receiver = LinkSockets(remote_port=port), LinkSockets(local_port=port)
+    totals = []
+    for _ in range(2):  # a connection, then a reconnection
+        client = socket.create_connection(("127.0.0.1", port))
+        accepted, _ = server.accept()
+        client.sendall(b"x" * 50_000)
+        got = 0
+        while got < 50_000:
+            got += len(accepted.recv(65536))
+        time.sleep(0.05)
+        infos = sender.read()
+        assert len(infos) == 1 and infos[0].rtt_us > 0 and infos[0].bytes_acked >= 50_000
+        receiver.read()
+        totals.append((sender.totals()["bytes_new"], receiver.totals()["bytes_received"]))
+        client.close()
+        accepted.close()
+        time.sleep(0.05)
+    sender.read(), receiver.read()
+    assert totals[0] == (50_000, 50_000) and totals[1] == (100_000, 100_000)
+    assert sender.totals()["bytes_new"] == 100_000 and sender.read() == []  # closed: still counted
+    server.close()
+
+
+def test_an_interval_carries_the_link_sockets_bytes_beside_the_frames():
+    c = ReportComposer()
+    c.on_report(_report(1, 0.0, 0, link_sent_bytes=1_000), 10.0, link_received_bytes=900)
+    c.received(40_000, managed=True)
+    interval, _ = c.on_report(_report(2, 0.5, 40_000, link_sent_bytes=45_000), 10.5, link_received_bytes=42_000)
+    assert (interval.sent_link_bytes, interval.delivered_link_bytes) == (44_000, 41_100)
+    # not readable (0) on either side: no link bytes, the frames stand
+    interval, _ = c.on_report(_report(3, 1.0, 80_000), 11.0, link_received_bytes=0)
+    assert (interval.sent_link_bytes, interval.delivered_link_bytes) == (0, 0)

@@ -43,8 +43,7 @@ DRAIN_FACTOR = 0.85  # GCC's cut on overuse, x the acknowledged (delivered) rate
 # With deficit_reports > 1 a deficit is overuse once it holds on that many reports in a row, or at
 # once when it is this fraction of what was sent.
 LARGE_DEFICIT_FRACTION = 0.4
-# With sample_window_s, an overuse whose window delivered less than this x the capacity is a step
-# (measured on its own interval); above it, noise is cut by at most DRAIN_FACTOR.
+# ... and a confirmed deficit of a busy sender whose window delivered below this x the capacity.
 STEP_FRACTION = 0.7
 # BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
 # inside the +-15 % band the estimate is held to
@@ -61,6 +60,7 @@ PROBE_GAP_FRACTION = 0.1
 # second), a step's queue drains at 0.6 x, a refused probe's at 0.85 x, and a probe the fleet had
 # no time to fill (it follows an allocation in ~1 s, a probe lasts 0.5 s) keeps its level.
 LINK_REPORT_OPTIONS = dict(
+    deficit_min_mbps=0.5,
     deficit_reports=2,
     sample_window_s=1.0,
     step_drain_factor=0.6,
@@ -369,8 +369,14 @@ class DeliveryRateEstimator:
         if self.congested:
             # a step (a large deficit, a sender blocked by the link): this interval is the new link;
             # otherwise the window's average, not one interval's noise
-            # ... or a window that delivered far below the capacity: no noise does that
-            step = large or (full and not deficit) or window_delivered < STEP_FRACTION * self.capacity_mbps
+            # ... or a confirmed deficit while the sender kept the link busy, its window far below
+            # the capacity (an app-limited fleet's window says nothing about the link: live, such a
+            # "step" set a 60 Mbit/s link's capacity to the 2.4 Mbit/s it was sending)
+            step = (
+                large
+                or (full and not deficit)
+                or (deficit and busy and window_delivered < STEP_FRACTION * self.capacity_mbps)
+            )
             if step or self.sample_window_s <= 0:
                 self._on_overuse(now, delivered, sent, self.step_drain_factor if step else DRAIN_FACTOR)
             else:
@@ -396,9 +402,15 @@ class DeliveryRateEstimator:
             # may empty inside an interval.
             self._drain_checked = True
             queueing = math.isnan(queue_delay_s) or queue_delay_s > self.queue_delay_threshold_s
-            # ... or still filling (less delivered than sent, a cut measured before the step's
-            # interval was over): the link ran full, so what it delivered is its rate
-            still_full = self.sample_window_s > 0 and sent >= 1.05 * delivered
+            # ... or still filling (less delivered than sent, by the RTT still queueing: a cut
+            # measured before the step's interval was over): the link ran full, so what it
+            # delivered is its rate
+            still_full = (
+                self.sample_window_s > 0
+                and sent >= 1.05 * delivered
+                and not math.isnan(queue_delay_s)
+                and queue_delay_s > self.queue_delay_threshold_s
+            )
             if (delivered >= 1.02 * sent or still_full) and queueing:
                 self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = self._clip(delivered)
                 self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)

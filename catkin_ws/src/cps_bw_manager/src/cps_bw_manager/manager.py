@@ -467,11 +467,20 @@ class ManagerCore:
         receiver_behind=False,
         offered_bytes=math.nan,
         sender_blocked_s=0.0,
+        delivered_link_bytes=0,
+        sent_link_bytes=0,
     ):
         """One cps_msgs/LinkReport of the bridges as plain values: delivered over the twin's interval,
-        sent over the robots' (each side's own clock). The estimator (if on) takes it as rates, and
-        app-limited only when the allocation does not bind either; the unmanaged traffic is kept for
-        the budget. Returns True if the available bandwidth moved by > 5 %."""
+        sent over the robots' (each side's own clock). Where the link sockets' TCP payload counts are
+        there (`*_link_bytes` > 0: every byte the link carried, framing included) they are the
+        delivered and sent bytes, and the unmanaged traffic is all of it but the managed frames;
+        else the frames'. The estimator (if on) takes it as rates, and app-limited only when the
+        allocation does not bind either; the unmanaged traffic is kept for the budget. Returns True
+        if the available bandwidth moved by > 5 %."""
+        if _positive(delivered_link_bytes) and _positive(sent_link_bytes):
+            managed = delivered_bytes - unmanaged_bytes
+            delivered_bytes, sent_bytes = delivered_link_bytes, sent_link_bytes
+            unmanaged_bytes = max(0, delivered_link_bytes - managed)
 
         def mbps(n_bytes, seconds):
             # a bad interval gives a bad rate, which the estimator refuses and counts by kind

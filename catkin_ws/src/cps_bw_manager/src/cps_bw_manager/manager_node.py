@@ -51,6 +51,8 @@ LINK_ESTIMATE_CSV_COLUMNS = (
     "interval_s",
     "delivered_mbps",
     "sent_mbps",
+    "delivered_link_mbps",
+    "sent_link_mbps",
     "offered_mbps",
     "app_limited",
     "sender_blocked_s",
@@ -103,6 +105,8 @@ def link_estimate_csv_row(stamp_s, msg, report, overuse=""):
         f"{report.interval_s:.4f}",
         rate(report.delivered_bytes, report.interval_s),
         rate(report.sent_bytes, report.sender_interval_s),
+        rate(report.delivered_link_bytes, report.interval_s),
+        rate(report.sent_link_bytes, report.sender_interval_s),
         rate(report.offered_bytes, report.sender_interval_s),
         int(report.app_limited),
         f"{report.sender_blocked_s:.3f}",
@@ -377,6 +381,8 @@ class BandwidthManagerNode:
                 receiver_behind=msg.receiver_behind,
                 offered_bytes=msg.offered_bytes,
                 sender_blocked_s=msg.sender_blocked_s,
+                delivered_link_bytes=msg.delivered_link_bytes,
+                sent_link_bytes=msg.sent_link_bytes,
             )
             overuse = est.last_overuse if est and est.overuses > overuses else ""
         self.publish_estimate(msg, overuse)

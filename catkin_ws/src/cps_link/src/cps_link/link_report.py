@@ -15,6 +15,8 @@ over that time, not a count of the same bytes.
 import dataclasses
 import json
 import math
+import os
+import socket
 import struct
 from typing import List, Optional, Sequence
 
@@ -47,7 +49,11 @@ class SenderReport:
     expired: int
     app_limited: bool  # since the previous report
     rtt_s: Sequence[float] = ()
-    blocked_s: float = 0.0  # since the previous report: how long its sender waited for the link  # heartbeat round trips completed since the previous report
+    blocked_s: float = 0.0  # since the previous report: how long its sender waited for the link
+    # its link socket's TCP payload bytes sent for the first time and acked, cumulative (TCP_INFO:
+    # every byte the link carries, framing included, but the TCP/IP headers); 0: not readable
+    link_sent_bytes: int = 0
+    link_acked_bytes: int = 0  # heartbeat round trips completed since the previous report
     send_queue_max_bytes: int = 0  # since the previous report
     pacing_mbps: float = 0.0
     peer: str = ""
@@ -73,7 +79,16 @@ def decode_sender_report(payload) -> SenderReport:
     if missing:
         raise ReportError(f"link report without {', '.join(missing)}")
     values = {k: v for k, v in doc.items() if k in fields}
-    for name in ("seq", "offered_bytes", "sent_bytes", "superseded", "expired", "send_queue_max_bytes"):
+    for name in (
+        "seq",
+        "offered_bytes",
+        "sent_bytes",
+        "superseded",
+        "expired",
+        "send_queue_max_bytes",
+        "link_sent_bytes",
+        "link_acked_bytes",
+    ):
         v = values.get(name, 0)
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise ReportError(f"link report field {name} = {v!r} is not a count")
@@ -105,6 +120,10 @@ class Interval:
     rtt_s: tuple
     receiver_behind: bool
     sender_blocked_s: float
+    # TCP payload bytes (framing included) received by the twin's link socket and sent by the
+    # robots' over the two intervals (0: not readable)
+    delivered_link_bytes: int
+    sent_link_bytes: int
     receive_queue_max_bytes: int
     send_queue_max_bytes: int
     superseded: int
@@ -123,7 +142,7 @@ class ReportComposer:
         self.unmanaged_bytes = 0
         self.behind_bytes, self.behind_samples = behind_bytes, behind_samples
         self.refused = dict.fromkeys(REPORT_REFUSALS, 0)
-        self._last = None  # (SenderReport, twin s, delivered, unmanaged) closing the last interval
+        self._last = None  # (SenderReport, twin s, delivered, unmanaged, link received) closing the last interval
         self._queue_max = 0
         self._queue_high = 0
 
@@ -139,14 +158,15 @@ class ReportComposer:
         self._queue_max = max(self._queue_max, queue_bytes)
         self._queue_high += queue_bytes >= self.behind_bytes
 
-    def on_report(self, payload, now_s) -> tuple:
-        """(Interval, None) for a robots' report received at `now_s` (the twin's monotonic s), or
+    def on_report(self, payload, now_s, link_received_bytes=0) -> tuple:
+        """(Interval, None) for a robots' report received at `now_s` (the twin's monotonic s), with
+        the twin's link socket's cumulative TCP payload bytes received then (0: not readable), or
         (None, why not: one of REPORT_REFUSALS, counted)."""
         try:
             report = decode_sender_report(payload)
         except ReportError:
             return self._refuse(BAD_REPORT)
-        here = (report, now_s, self.delivered_bytes, self.unmanaged_bytes)
+        here = (report, now_s, self.delivered_bytes, self.unmanaged_bytes, link_received_bytes)
         last = self._last
         if last is None or last[0].session != report.session:
             self._start(here)
@@ -155,7 +175,12 @@ class ReportComposer:
         if report.seq <= before.seq:
             return self._refuse(OLD_REPORT)
         counters = ("offered_bytes", "sent_bytes", "superseded", "expired")
-        if any(getattr(report, c) < getattr(before, c) for c in counters) or report.t_s <= before.t_s:
+        if (
+            any(getattr(report, c) < getattr(before, c) for c in counters)
+            or report.t_s <= before.t_s
+            or 0 < link_received_bytes < last[4]  # 0: not readable now, not a counter going down
+            or 0 < report.link_sent_bytes < before.link_sent_bytes
+        ):
             self._start(here)
             return self._refuse(COUNTER_BACKWARDS)
         interval_s, sender_interval_s = now_s - last[1], report.t_s - before.t_s
@@ -175,6 +200,10 @@ class ReportComposer:
             rtt_s=tuple(report.rtt_s),
             receiver_behind=behind,
             sender_blocked_s=report.blocked_s,
+            delivered_link_bytes=link_received_bytes - last[4] if link_received_bytes and last[4] else 0,
+            sent_link_bytes=report.link_sent_bytes - before.link_sent_bytes
+            if report.link_sent_bytes and before.link_sent_bytes
+            else 0,
             receive_queue_max_bytes=self._queue_max,
             send_queue_max_bytes=report.send_queue_max_bytes,
             superseded=report.superseded - before.superseded,
@@ -237,6 +266,11 @@ def tcp_queues(local_port=None, remote_port=None, proc_root="/proc/net"):
     """[(send queue bytes, receive queue bytes)] of this network namespace's established TCP sockets
     with that local / remote port (/proc/net/tcp and tcp6: tx_queue is unacked + unsent bytes,
     rx_queue what the application has not read yet)."""
+    return [(tx, rx) for tx, rx, _ in _tcp_sockets(local_port, remote_port, proc_root)]
+
+
+def _tcp_sockets(local_port, remote_port, proc_root):
+    """[(tx_queue, rx_queue, inode)] of the established sockets with that local / remote port."""
     out = []
     for name in ("tcp", "tcp6"):
         try:
@@ -251,8 +285,121 @@ def tcp_queues(local_port=None, remote_port=None, proc_root="/proc/net"):
             try:
                 local, remote = _hex_port(parts[1]), _hex_port(parts[2])
                 tx, rx = (int(v, 16) for v in parts[4].split(":"))
+                inode = int(parts[9]) if len(parts) > 9 else 0
             except ValueError:
                 continue
             if (local_port is None or local == local_port) and (remote_port is None or remote == remote_port):
-                out.append((tx, rx))
+                out.append((tx, rx, inode))
     return out
+
+
+# struct tcp_info (linux/tcp.h), the fields read: srtt and min RTT (us), bytes acked, received and
+# sent (the TCP payload: TLS, Zenoh and the bridge's frames, every byte the link carries but the
+# TCP/IP headers), bytes not yet sent, and the time limited by the receiver's window (us).
+_TCP_INFO_LEN = 232
+_TCP_INFO_FIELDS = {
+    "rtt_us": ("I", 68),
+    "bytes_acked": ("Q", 120),
+    "bytes_received": ("Q", 128),
+    "notsent_bytes": ("I", 144),
+    "min_rtt_us": ("I", 148),
+    "rwnd_limited_us": ("Q", 176),
+    "bytes_sent": ("Q", 200),
+    "bytes_retrans": ("Q", 208),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class TcpInfo:
+    rtt_us: int
+    bytes_acked: int
+    bytes_received: int
+    notsent_bytes: int
+    min_rtt_us: int
+    rwnd_limited_us: int
+    bytes_sent: int  # retransmissions included
+    bytes_retrans: int
+
+    @property
+    def bytes_new(self):
+        """Bytes sent for the first time (what the sender put on the link, retransmissions aside)."""
+        return self.bytes_sent - self.bytes_retrans
+
+
+def parse_tcp_info(raw) -> Optional[TcpInfo]:
+    """The fields above from getsockopt(TCP_INFO)'s bytes (None when too short: an older kernel)."""
+    if len(raw) < _TCP_INFO_LEN:
+        return None
+    return TcpInfo(
+        **{name: struct.unpack_from("=" + kind, raw, at)[0] for name, (kind, at) in _TCP_INFO_FIELDS.items()}
+    )
+
+
+class LinkSockets:
+    """TCP_INFO of this process's own link sockets (Zenoh's, found by their port in /proc/net/tcp and
+    their inode among /proc/self/fd), with cumulative byte counters that stay monotone across a
+    reconnection (a new socket's counters start from the old ones' total). Not thread-safe."""
+
+    def __init__(self, local_port=None, remote_port=None, proc_root="/proc/net", fd_root="/proc/self/fd"):
+        self.local_port, self.remote_port = local_port, remote_port
+        self.proc_root, self.fd_root = proc_root, fd_root
+        self._fds = {}  # inode -> fd in this process
+        self._last = {}  # inode -> TcpInfo at the last read
+        self._base = {"bytes_new": 0, "bytes_acked": 0, "bytes_received": 0}
+
+    def _fd_of(self, inode):
+        if inode in self._fds:
+            return self._fds[inode]
+        try:
+            for name in os.listdir(self.fd_root):
+                try:
+                    if os.readlink(f"{self.fd_root}/{name}") == f"socket:[{inode}]":
+                        self._fds[inode] = int(name)
+                        return int(name)
+                except OSError:
+                    continue
+        except OSError:
+            pass
+        return None
+
+    def read(self):
+        """[TcpInfo] of the link sockets now ([] when none is ours or TCP_INFO is not readable)."""
+        out, seen = [], set()
+        for _, _, inode in _tcp_sockets(self.local_port, self.remote_port, self.proc_root):
+            fd = self._fd_of(inode) if inode else None
+            info = _tcp_info_of(fd) if fd is not None else None
+            if info is None:
+                continue
+            seen.add(inode)
+            out.append(info)
+            self._last[inode] = info
+        for inode in [i for i in self._last if i not in seen]:  # a closed socket: its bytes stay counted
+            gone = self._last.pop(inode)
+            for name in self._base:
+                self._base[name] += getattr(gone, name)
+            self._fds.pop(inode, None)
+        return out
+
+    def totals(self):
+        """{bytes_new (sent, retransmissions aside), bytes_acked, bytes_received}: cumulative over
+        every link socket so far."""
+        return {name: base + sum(getattr(i, name) for i in self._last.values()) for name, base in self._base.items()}
+
+
+def _tcp_info_of(fd):
+    """TCP_INFO of file descriptor `fd` of this process (a dup is read and closed; the socket stays)."""
+    try:
+        dup = os.dup(fd)
+    except OSError:
+        return None
+    try:
+        sock = socket.socket(fileno=dup)
+    except OSError:
+        os.close(dup)
+        return None
+    try:
+        return parse_tcp_info(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, _TCP_INFO_LEN))
+    except OSError:
+        return None
+    finally:
+        sock.close()  # closes the dup only

@@ -22,7 +22,7 @@ from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
 from cps_link.bridge_config import ROBOTS, TWIN, BridgeTable, Route, other_side
 from cps_link.bridge_wire import Frame, WireError, encode, header_frame_id, header_stamp_s
 from cps_link.link_health import LinkHealth
-from cps_link.link_report import ReportComposer, RoundTrips, SenderReport, tcp_queues
+from cps_link.link_report import LinkSockets, ReportComposer, RoundTrips, SenderReport, tcp_queues
 from cps_link.receive_path import TOPIC_TYPE_MISMATCH, ReceivePath, SendPath
 from cps_link.send_queue import DROP_RULES, EXPIRED, SUPERSEDED, SendQueue
 from cps_msgs.msg import LinkReport, LinkState
@@ -123,6 +123,14 @@ class ZenohBridge:
         self.composer = ReportComposer() if side == TWIN and self.main_lane else None
         self._send_queue_max, self._report_seq, self._closing = 0, 0, False
         self._blocked_s = 0.0  # the sender thread's time inside Zenoh's put since the last report
+        # this process's own link socket (Zenoh's): TCP_INFO for the bytes the link carried and its RTT
+        port = table.endpoint_port
+        self.link_sockets = (
+            (LinkSockets(remote_port=port) if self.queue is not None else LinkSockets(local_port=port))
+            if self.main_lane
+            else None
+        )
+        self._tcp_rtts = []  # the robots' link socket's smoothed RTT at each heartbeat since the last report
         self.echo_pubs = {}
         self.publishers, self.replays, self.zenoh_pubs, self.ros_subs, self.zenoh_subs = {}, {}, {}, [], []
         for route in table.incoming(side):
@@ -494,6 +502,8 @@ class ZenohBridge:
             sizes = [tx for tx, _ in tcp_queues(remote_port=self.table.endpoint_port)]
             with self.lock:
                 self._send_queue_max = max([self._send_queue_max, *sizes])
+                infos = self.link_sockets.read()
+                self._tcp_rtts += [i.rtt_us * 1e-6 for i in infos if i.rtt_us > 0]
         else:
             self._put_heartbeat(b"")
         if self.composer is not None:
@@ -515,7 +525,12 @@ class ZenohBridge:
         now = time.monotonic()
         counters = self.queue.snapshot()
         with self.lock:
-            rtts = self.round_trips.take()
+            echoes = self.round_trips.take()
+            # the kernel's smoothed RTT of the link socket (no Python scheduling in it) where it is
+            # readable, else the heartbeat echoes
+            rtts, self._tcp_rtts = (self._tcp_rtts or echoes), []
+            self.link_sockets.read()
+            link = self.link_sockets.totals()
             queue_max, self._send_queue_max = self._send_queue_max, 0
             blocked_s, self._blocked_s = self._blocked_s, 0.0
             self._report_seq += 1
@@ -532,6 +547,8 @@ class ZenohBridge:
             app_limited=self.queue.app_limited_since_last(now),
             rtt_s=rtts,
             blocked_s=blocked_s,
+            link_sent_bytes=link["bytes_new"],
+            link_acked_bytes=link["bytes_acked"],
             send_queue_max_bytes=queue_max,
             pacing_mbps=rate * 8e-6 if rate else 0.0,
             peer=self.name,
@@ -552,7 +569,9 @@ class ZenohBridge:
             payload = sample.payload.to_bytes()
             with self.lock:
                 self.composer.received(len(payload), managed=False)
-                interval, _ = self.composer.on_report(payload, time.monotonic())
+                self.link_sockets.read()
+                received = self.link_sockets.totals()["bytes_received"]
+                interval, _ = self.composer.on_report(payload, time.monotonic(), received)
                 refused = dict(self.composer.refused)
             self.reporter.gauge(**{f"report_{why}": n for why, n in refused.items()})
             if interval is not None:
@@ -648,6 +667,8 @@ def link_report_msg(interval) -> LinkReport:
         rtt_s=list(interval.rtt_s),
         receiver_behind=interval.receiver_behind,
         sender_blocked_s=interval.sender_blocked_s,
+        delivered_link_bytes=interval.delivered_link_bytes,
+        sent_link_bytes=interval.sent_link_bytes,
         receive_queue_max_bytes=min(interval.receive_queue_max_bytes, 2**32 - 1),
         send_queue_max_bytes=min(interval.send_queue_max_bytes, 2**32 - 1),
         superseded=min(interval.superseded, 2**32 - 1),
