@@ -66,6 +66,7 @@ LINK_REPORT_OPTIONS = dict(
     step_drain_factor=0.6,
     drain_after_probe=True,
     keep_unfilled_probe=True,
+    probe_backoff_max_s=3.0,
 )
 
 
@@ -164,6 +165,7 @@ class DeliveryRateEstimator:
         step_drain_factor=None,
         drain_after_probe=False,
         keep_unfilled_probe=False,
+        probe_backoff_max_s=None,
     ):
         for name, value in (
             ("initial_mbps", initial_mbps),
@@ -200,7 +202,14 @@ class DeliveryRateEstimator:
         # A probe the fleet did not fill (it sent no more than before: it had no time to follow the
         # allocation) and nothing refused keeps its level, as an app-limited one does.
         self.keep_unfilled_probe = bool(keep_unfilled_probe)
+        # Each refused probe doubles the wait before the next, up to this (None: no backoff): at 5
+        # Mbit/s the fleet always wants more, and a probe every 1.5 s queued 100 ms in the shaper
+        # each time (live, issue 35). A probe that was not refused resets it.
+        self.probe_backoff_max_s = probe_backoff_max_s
         self.probe_every_s = float(probe_every_s)
+        if self.probe_backoff_max_s is None:
+            self.probe_backoff_max_s = self.probe_every_s
+        self._probe_wait_s = self.probe_every_s
         # how long a probe is held: one report interval when the reports are per interval; as long
         # as the measurement window when they are sliding averages (today's /tissue/stats: 2 s)
         self.probe_s = float(probe_s)
@@ -393,9 +402,10 @@ class DeliveryRateEstimator:
             self.mode == "drain"
             and not self._drain_checked
             and not math.isnan(sent)
-            and now - self._mode_since_s >= 2 * report.interval_s - 1e-6
+            and now - self._mode_since_s >= (1 if self.sample_window_s > 0 else 2) * report.interval_s - 1e-6
         ):
-            # The first whole interval after the cut: if the queue the overuse left was still
+            # The first whole interval after the cut (the report at the cut covered the step; with
+            # reports of the sender's interval, the next one is after it; a sliding window's later): if the queue the overuse left was still
             # served all along (more delivered than sent; by the RTT, still queueing), the link ran
             # full and what it delivered is its rate (GCC's acknowledged bitrate). This corrects a
             # cut measured over an interval that straddled the step. Once only: later the queue
@@ -454,7 +464,11 @@ class DeliveryRateEstimator:
                 # capacity only rises by what was measured.
                 self._unrefuted_mbps = max(self._unrefuted_mbps, self.estimate_mbps)
             self._last_probe_s = now
-            if self.drain_after_probe and not (kept_up or app_limited or unfilled):
+            refused = not (kept_up or app_limited or unfilled)
+            self._probe_wait_s = (
+                min(self.probe_backoff_max_s, 2.0 * self._probe_wait_s) if refused else self.probe_every_s
+            )
+            if self.drain_after_probe and refused:
                 # the link took no more: empty what the probe queued before cruising again
                 self._set_mode("drain", now)
                 self._drain_checked = True
@@ -472,7 +486,7 @@ class DeliveryRateEstimator:
             self.mode == "cruise"
             and demand_exceeds
             and can_probe
-            and (quick or now - self._last_probe_s >= self.probe_every_s)
+            and (quick or now - self._last_probe_s >= self._probe_wait_s)
         ):
             self._set_mode("probe", now)
             self._capacity_before_probe_mbps = self.capacity_mbps
@@ -482,7 +496,9 @@ class DeliveryRateEstimator:
             # (its rates were cut), and an unbounded gap took a 20 Mbit/s link's estimate to 28
             # Mbit/s live (test_over_link); at most PROBE_GAP_FRACTION of the probe's own target.
             gap = max(0.0, self.estimate_mbps - sent) if not math.isnan(sent) else 0.0
-            target = self._gain * self.capacity_mbps
+            # from the level kept by the last unrefused probe (the fleet may not have filled it yet)
+            base = max(self.capacity_mbps, self._unrefuted_mbps) if self.keep_unfilled_probe else self.capacity_mbps
+            target = self._gain * base
             self.estimate_mbps = self._clip(target + min(gap, PROBE_GAP_FRACTION * target))
         elif self.mode == "cruise":
             self._gain = PROBE_GAIN if not demand_exceeds else self._gain

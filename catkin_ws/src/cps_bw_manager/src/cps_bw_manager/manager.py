@@ -50,7 +50,8 @@ TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
 # The unmanaged traffic kept out of the budget is the largest measured in this many seconds of link
 # reports (odometry, tf and the rest come in bursts; a budget made from a quiet interval overruns).
 UNMANAGED_WINDOW_S = 2.0
-# The robots' bridge's sender waited for the link at least this fraction of its interval: link-limited.
+# The robots' link socket was full in at least this fraction of its samples (or, without TCP_INFO,
+# its sender waited for Zenoh this fraction of its interval): link-limited.
 LINK_LIMITED_FRACTION = 0.5
 # A link report whose interval is outside this is not taken for the unmanaged traffic, s.
 REPORT_INTERVAL_BOUNDS_S = (0.05, 5.0)
@@ -469,18 +470,34 @@ class ManagerCore:
         sender_blocked_s=0.0,
         delivered_link_bytes=0,
         sent_link_bytes=0,
+        acked_link_bytes=0,
+        sender_socket_full=math.nan,
     ):
-        """One cps_msgs/LinkReport of the bridges as plain values: delivered over the twin's interval,
-        sent over the robots' (each side's own clock). Where the link sockets' TCP payload counts are
-        there (`*_link_bytes` > 0: every byte the link carried, framing included) they are the
-        delivered and sent bytes, and the unmanaged traffic is all of it but the managed frames;
-        else the frames'. The estimator (if on) takes it as rates, and app-limited only when the
-        allocation does not bind either; the unmanaged traffic is kept for the budget. Returns True
-        if the available bandwidth moved by > 5 %."""
-        if _positive(delivered_link_bytes) and _positive(sent_link_bytes):
-            managed = delivered_bytes - unmanaged_bytes
-            delivered_bytes, sent_bytes = delivered_link_bytes, sent_link_bytes
-            unmanaged_bytes = max(0, delivered_link_bytes - managed)
+        """One cps_msgs/LinkReport of the bridges as plain values. Where the robots' link socket's
+        TCP payload counts are there (`sent_link_bytes`, `acked_link_bytes` > 0: every byte the link
+        carried, framing included) the estimator takes what was sent and what the twin acknowledged,
+        both over the robots' interval on its clock (BBR's delivery rate; two clocks' intervals
+        misalign by a frame or more); else the frames, delivered over the twin's interval and sent
+        over the robots'. The unmanaged traffic is all the twin's socket received but the managed
+        frames (or the unmanaged frames). App-limited only when the allocation does not bind either;
+        link-limited when the robots' socket was full in at least half of its samples (else, without
+        them, when its sender waited for Zenoh half of its interval). Returns True if the available
+        bandwidth moved by > 5 %."""
+        if _positive(delivered_link_bytes):
+            unmanaged_bytes = max(0, delivered_link_bytes - (delivered_bytes - unmanaged_bytes))
+        if _positive(acked_link_bytes) and _positive(sent_link_bytes):
+            delivered_bytes, sent_bytes = acked_link_bytes, sent_link_bytes
+            delivered_interval_s = sender_interval_s
+        else:
+            delivered_interval_s = interval_s
+        if _finite(sender_socket_full):
+            link_limited = sender_socket_full >= LINK_LIMITED_FRACTION
+        else:
+            link_limited = (
+                _finite(sender_blocked_s)
+                and _positive(sender_interval_s)
+                and sender_blocked_s >= LINK_LIMITED_FRACTION * sender_interval_s
+            )
 
         def mbps(n_bytes, seconds):
             # a bad interval gives a bad rate, which the estimator refuses and counts by kind
@@ -496,16 +513,14 @@ class ManagerCore:
             LinkReport(
                 now_s=now_s,
                 interval_s=interval_s,
-                delivered_mbps=mbps(delivered_bytes, interval_s),
+                delivered_mbps=mbps(delivered_bytes, delivered_interval_s),
                 sent_mbps=mbps(sent_bytes, sender_interval_s),
                 offered_mbps=mbps(offered_bytes, sender_interval_s),
                 app_limited=bool(app_limited) and not self.allocation_binds(),
                 rtt_s=tuple(rtt_s),
                 receiver_behind=bool(receiver_behind),
                 link_busy=not app_limited,
-                link_limited=_finite(sender_blocked_s)
-                and _positive(sender_interval_s)
-                and sender_blocked_s >= LINK_LIMITED_FRACTION * sender_interval_s,
+                link_limited=link_limited,
             )
         )
 

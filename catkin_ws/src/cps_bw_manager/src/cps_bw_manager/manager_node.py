@@ -53,6 +53,8 @@ LINK_ESTIMATE_CSV_COLUMNS = (
     "sent_mbps",
     "delivered_link_mbps",
     "sent_link_mbps",
+    "acked_link_mbps",
+    "sender_socket_full",
     "offered_mbps",
     "app_limited",
     "sender_blocked_s",
@@ -107,6 +109,8 @@ def link_estimate_csv_row(stamp_s, msg, report, overuse=""):
         rate(report.sent_bytes, report.sender_interval_s),
         rate(report.delivered_link_bytes, report.interval_s),
         rate(report.sent_link_bytes, report.sender_interval_s),
+        rate(report.acked_link_bytes, report.sender_interval_s),
+        f"{report.sender_socket_full:.2f}",
         rate(report.offered_bytes, report.sender_interval_s),
         int(report.app_limited),
         f"{report.sender_blocked_s:.3f}",
@@ -383,6 +387,8 @@ class BandwidthManagerNode:
                 sender_blocked_s=msg.sender_blocked_s,
                 delivered_link_bytes=msg.delivered_link_bytes,
                 sent_link_bytes=msg.sent_link_bytes,
+                acked_link_bytes=msg.acked_link_bytes,
+                sender_socket_full=msg.sender_socket_full if msg.acked_link_bytes else math.nan,
             )
             overuse = est.last_overuse if est and est.overuses > overuses else ""
         self.publish_estimate(msg, overuse)

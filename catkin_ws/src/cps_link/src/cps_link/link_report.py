@@ -34,6 +34,10 @@ HEARTBEAT = struct.Struct("!QQ")  # sequence number, the sender's monotonic cloc
 # least RECEIVER_BEHIND_SAMPLES of the samples of one interval (sampled at every heartbeat).
 RECEIVER_BEHIND_BYTES = 131072
 RECEIVER_BEHIND_SAMPLES = 2
+# The robots' link socket is full (the link, not the sender, is the limit) when at least this much
+# waits in it not yet sent: half of bridge.yaml's kernel_unsent_bytes (16 kB), which TCP_NOTSENT_LOWAT
+# keeps it near only while the link is slower than the sender.
+SOCKET_FULL_BYTES = 8192
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +57,11 @@ class SenderReport:
     # its link socket's TCP payload bytes sent for the first time and acked, cumulative (TCP_INFO:
     # every byte the link carries, framing included, but the TCP/IP headers); 0: not readable
     link_sent_bytes: int = 0
-    link_acked_bytes: int = 0  # heartbeat round trips completed since the previous report
+    link_acked_bytes: int = 0
+    # heartbeat samples since the previous report, and of them those whose link socket held at least
+    # SOCKET_FULL_BYTES not yet sent (the link, not the sender, was the limit then)
+    socket_samples: int = 0
+    socket_full_samples: int = 0  # heartbeat round trips completed since the previous report
     send_queue_max_bytes: int = 0  # since the previous report
     pacing_mbps: float = 0.0
     peer: str = ""
@@ -88,6 +96,8 @@ def decode_sender_report(payload) -> SenderReport:
         "send_queue_max_bytes",
         "link_sent_bytes",
         "link_acked_bytes",
+        "socket_samples",
+        "socket_full_samples",
     ):
         v = values.get(name, 0)
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
@@ -124,6 +134,8 @@ class Interval:
     # robots' over the two intervals (0: not readable)
     delivered_link_bytes: int
     sent_link_bytes: int
+    acked_link_bytes: int  # the robots' link socket's, over sender_interval_s (its clock, as sent)
+    sender_socket_full: float  # fraction of the robots' samples with its link socket full
     receive_queue_max_bytes: int
     send_queue_max_bytes: int
     superseded: int
@@ -180,6 +192,7 @@ class ReportComposer:
             or report.t_s <= before.t_s
             or 0 < link_received_bytes < last[4]  # 0: not readable now, not a counter going down
             or 0 < report.link_sent_bytes < before.link_sent_bytes
+            or 0 < report.link_acked_bytes < before.link_acked_bytes
         ):
             self._start(here)
             return self._refuse(COUNTER_BACKWARDS)
@@ -204,6 +217,10 @@ class ReportComposer:
             sent_link_bytes=report.link_sent_bytes - before.link_sent_bytes
             if report.link_sent_bytes and before.link_sent_bytes
             else 0,
+            acked_link_bytes=report.link_acked_bytes - before.link_acked_bytes
+            if report.link_acked_bytes and before.link_acked_bytes
+            else 0,
+            sender_socket_full=report.socket_full_samples / report.socket_samples if report.socket_samples else 0.0,
             receive_queue_max_bytes=self._queue_max,
             send_queue_max_bytes=report.send_queue_max_bytes,
             superseded=report.superseded - before.superseded,

@@ -22,7 +22,14 @@ from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
 from cps_link.bridge_config import ROBOTS, TWIN, BridgeTable, Route, other_side
 from cps_link.bridge_wire import Frame, WireError, encode, header_frame_id, header_stamp_s
 from cps_link.link_health import LinkHealth
-from cps_link.link_report import LinkSockets, ReportComposer, RoundTrips, SenderReport, tcp_queues
+from cps_link.link_report import (
+    SOCKET_FULL_BYTES,
+    LinkSockets,
+    ReportComposer,
+    RoundTrips,
+    SenderReport,
+    tcp_queues,
+)
 from cps_link.receive_path import TOPIC_TYPE_MISMATCH, ReceivePath, SendPath
 from cps_link.send_queue import DROP_RULES, EXPIRED, SUPERSEDED, SendQueue
 from cps_msgs.msg import LinkReport, LinkState
@@ -131,6 +138,7 @@ class ZenohBridge:
             else None
         )
         self._tcp_rtts = []  # the robots' link socket's smoothed RTT at each heartbeat since the last report
+        self._socket_samples = [0, 0]  # heartbeat samples of the link socket since the last report, of them full
         self.echo_pubs = {}
         self.publishers, self.replays, self.zenoh_pubs, self.ros_subs, self.zenoh_subs = {}, {}, {}, [], []
         for route in table.incoming(side):
@@ -504,6 +512,9 @@ class ZenohBridge:
                 self._send_queue_max = max([self._send_queue_max, *sizes])
                 infos = self.link_sockets.read()
                 self._tcp_rtts += [i.rtt_us * 1e-6 for i in infos if i.rtt_us > 0]
+                if infos:
+                    self._socket_samples[0] += 1
+                    self._socket_samples[1] += any(i.notsent_bytes >= SOCKET_FULL_BYTES for i in infos)
         else:
             self._put_heartbeat(b"")
         if self.composer is not None:
@@ -532,6 +543,7 @@ class ZenohBridge:
             self.link_sockets.read()
             link = self.link_sockets.totals()
             queue_max, self._send_queue_max = self._send_queue_max, 0
+            (samples, full), self._socket_samples = self._socket_samples, [0, 0]
             blocked_s, self._blocked_s = self._blocked_s, 0.0
             self._report_seq += 1
             seq = self._report_seq
@@ -549,6 +561,8 @@ class ZenohBridge:
             blocked_s=blocked_s,
             link_sent_bytes=link["bytes_new"],
             link_acked_bytes=link["bytes_acked"],
+            socket_samples=samples,
+            socket_full_samples=full,
             send_queue_max_bytes=queue_max,
             pacing_mbps=rate * 8e-6 if rate else 0.0,
             peer=self.name,
@@ -669,6 +683,8 @@ def link_report_msg(interval) -> LinkReport:
         sender_blocked_s=interval.sender_blocked_s,
         delivered_link_bytes=interval.delivered_link_bytes,
         sent_link_bytes=interval.sent_link_bytes,
+        acked_link_bytes=interval.acked_link_bytes,
+        sender_socket_full=interval.sender_socket_full,
         receive_queue_max_bytes=min(interval.receive_queue_max_bytes, 2**32 - 1),
         send_queue_max_bytes=min(interval.send_queue_max_bytes, 2**32 - 1),
         superseded=min(interval.superseded, 2**32 - 1),
