@@ -234,3 +234,66 @@ def test_the_link_sockets_bytes_are_delivered_and_sent_and_all_but_the_managed_f
         1.0, 0.5, 0.5, 200_000, 50_000, 200_000, False, delivered_link_bytes=250_000, sent_link_bytes=260_000
     )
     assert core.unmanaged_mbps(1.0) == pytest.approx(100_000 * 8e-6 / 0.5)
+
+
+def test_the_robots_socket_sent_and_acked_over_its_own_interval_and_its_fullness_make_link_limited():
+    """With the robots' link socket's TCP_INFO, delivered is what the twin acknowledged over the
+    robots' interval (one clock with what was sent), and a socket full in most samples is the
+    link being the limit (the sender's time in Zenoh's put is not: the GIL is in it)."""
+    core = _core()
+    kbytes = 1000
+    # the twin's own interval (0.8 s) and frame counts are noise here: sent and acked are the robots'
+    core.on_bridge_report(
+        1.0,
+        0.8,
+        0.5,
+        100 * kbytes,
+        0,
+        3000 * kbytes,
+        False,
+        sent_link_bytes=2500 * kbytes,
+        acked_link_bytes=2500 * kbytes,
+        sender_socket_full=0.0,
+        sender_blocked_s=0.4,
+    )
+    assert core.estimator.overuses == 0  # the put's time without a full socket is not the link
+    core.on_bridge_report(
+        1.5,
+        0.5,
+        0.5,
+        300 * kbytes,
+        0,
+        300 * kbytes,
+        False,
+        sent_link_bytes=310 * kbytes,
+        acked_link_bytes=300 * kbytes,
+        sender_socket_full=0.8,
+    )
+    assert core.estimator.last_overuse == "link_full"
+    assert core.estimator.capacity_mbps == pytest.approx(300 * kbytes * 8e-6 / 0.5)
+
+
+def test_refused_probes_back_off_and_a_kept_one_resets_the_wait():
+    from cps_bw_manager.estimation import LINK_REPORT_OPTIONS
+
+    est = DeliveryRateEstimator(10.0, line_rate_mbps=60.0, **LINK_REPORT_OPTIONS)
+    from cps_bw_manager.estimation import LinkReport
+
+    def run(t, until, fill):
+        """Reports every 0.5 s up to `until`; the probe starts' times."""
+        starts = []
+        while t < until:
+            t += 0.5
+            before = est.mode
+            # the fleet fills a probe (or not), and the link carries no more than 10
+            sent = 10.6 if est.mode == "probe" and fill else 10.0
+            est.update(LinkReport(t, 0.5, 10.0, sent, app_limited=False, rtt_s=(0.005,), link_busy=True))
+            if before != "probe" and est.mode == "probe":
+                starts.append(t)
+        return t, starts
+
+    t, starts = run(0.0, 12.0, fill=True)  # refused each time: 1.5 s, then 3 s (the cap) apart
+    assert [round(b - a, 1) for a, b in zip(starts, starts[1:])] == [3.5, 3.5, 3.5]
+    assert est.overuses == 0 and est.capacity_mbps == pytest.approx(10.0)
+    t, starts = run(t, 20.0, fill=False)  # not filled, nothing refused: kept, and the wait resets
+    assert est.estimate_mbps > 12.0 and starts[-1] - starts[-2] < 3.0
