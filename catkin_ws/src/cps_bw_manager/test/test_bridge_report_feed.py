@@ -60,9 +60,9 @@ def test_the_measured_unmanaged_traffic_is_kept_out_of_the_budget():
     # odometry, tf and the rest: 0.9 Mbit/s of a 5 Mbit/s link, 18 %, far above the 4 % reserve
     _feed(core, 1.0, 4.0, 4.0, unmanaged_mbps=0.9)
     _feed(core, 1.5, 4.0, 4.0, unmanaged_mbps=0.5)
-    assert core.unmanaged_mbps(1.5) == pytest.approx(0.9)  # the largest of the window
-    assert core.budget_mbytes_per_s(1.5) == pytest.approx((5.0 - 0.9) / 8)
-    assert core.allocate_streams(1.5).budget_mbytes_per_s == pytest.approx((5.0 - 0.9) / 8)
+    assert core.unmanaged_mbps(1.5) == pytest.approx(0.7)  # the window's mean
+    assert core.budget_mbytes_per_s(1.5) == pytest.approx((5.0 - 0.7) / 8)
+    assert core.allocate_streams(1.5).budget_mbytes_per_s == pytest.approx((5.0 - 0.7) / 8)
     # the burst ages out of the window; a quiet link keeps the reserve as the floor
     _feed(core, 1.5 + UNMANAGED_WINDOW_S + 0.1, 4.0, 4.0, unmanaged_mbps=0.05)
     assert core.budget_mbytes_per_s(1.5 + UNMANAGED_WINDOW_S + 0.1) == pytest.approx(reserve_only)
@@ -210,21 +210,24 @@ def test_live_options_a_step_drains_its_queue_at_0_6():
     assert core.available_mbps == pytest.approx(0.6 * 5.0) and core.estimator.mode == "drain"
 
 
-def test_live_options_a_refused_probe_drains_and_an_unfilled_one_keeps_its_level():
+def test_live_options_a_probe_waits_for_the_fleet_and_a_refused_one_drains():
     core = _live_core(initial=10.0)
     est = core.estimator
     _feed(core, 0.5, 10.0, 10.0)  # the fleet wants more (not app-limited): a probe to 12
     assert est.mode == "probe" and core.available_mbps == pytest.approx(12.0)
-    _feed(core, 1.0, 10.0, 10.6)  # it sent more, the link delivered no more: refused
+    _feed(core, 1.0, 10.0, 10.0)  # not filled yet: the probe goes on (the fleet follows in ~1 s)
+    _feed(core, 1.5, 10.0, 10.0)
+    assert est.mode == "probe"
+    _feed(core, 2.0, 10.0, 10.6)  # filled, and the link delivered no more: refused
     assert est.mode == "drain" and core.available_mbps == pytest.approx(0.85 * 10.0)
-    t = 1.0
-    while est.mode != "probe":  # drained (the RTT at its floor), then the next probe
+    t = 2.0
+    while est.mode != "probe":  # drained, then (3 s later, backed off) the next probe
         t += 0.5
         _feed(core, t, 10.0, 10.0, rtt_s=(0.005,))
-    level = core.available_mbps
-    t += 0.5
-    _feed(core, t, 10.0, 10.0, rtt_s=(0.005,))  # the fleet had no time to send more: kept
-    assert est.mode == "cruise" and core.available_mbps == pytest.approx(level) and level > 10.0
+    for _ in range(3):  # the fleet never fills it: after 1.5 s it ends, refusing nothing
+        t += 0.5
+        _feed(core, t, 10.0, 10.0, rtt_s=(0.005,))
+    assert est.mode == "cruise" and est.overuses == 0 and core.available_mbps == pytest.approx(10.0)
 
 
 def test_the_link_sockets_bytes_are_delivered_and_sent_and_all_but_the_managed_frames_is_unmanaged():
@@ -274,26 +277,29 @@ def test_the_robots_socket_sent_and_acked_over_its_own_interval_and_its_fullness
 
 
 def test_refused_probes_back_off_and_a_kept_one_resets_the_wait():
-    from cps_bw_manager.estimation import LINK_REPORT_OPTIONS
+    from cps_bw_manager.estimation import LINK_REPORT_OPTIONS, LinkReport
 
     est = DeliveryRateEstimator(10.0, line_rate_mbps=60.0, **LINK_REPORT_OPTIONS)
-    from cps_bw_manager.estimation import LinkReport
 
-    def run(t, until, fill):
-        """Reports every 0.5 s up to `until`; the probe starts' times."""
+    def run(t, until, link_mbps, fill):
+        """Reports every 0.5 s up to `until`, the fleet sending `fill` x the capacity in each probe;
+        the probe starts' times."""
         starts = []
         while t < until:
             t += 0.5
             before = est.mode
-            # the fleet fills a probe (or not), and the link carries no more than 10
-            sent = 10.6 if est.mode == "probe" and fill else 10.0
-            est.update(LinkReport(t, 0.5, 10.0, sent, app_limited=False, rtt_s=(0.005,), link_busy=True))
+            sent = fill * est.capacity_mbps if est.mode == "probe" else est.capacity_mbps
+            delivered = min(sent, link_mbps)
+            est.update(LinkReport(t, 0.5, delivered, sent, app_limited=False, rtt_s=(0.005,), link_busy=True))
             if before != "probe" and est.mode == "probe":
                 starts.append(t)
         return t, starts
 
-    t, starts = run(0.0, 12.0, fill=True)  # refused each time: 1.5 s, then 3 s (the cap) apart
-    assert [round(b - a, 1) for a, b in zip(starts, starts[1:])] == [3.5, 3.5, 3.5]
+    # 4 % more each probe, 4 % short: refused each time (no deficit yet); the next waits 3 s (the
+    # cap) after each one's end, and each lasts its 1.5 s (4 % is not the 5 % that fills it)
+    t, starts = run(0.0, 12.0, link_mbps=10.0, fill=1.04)
+    assert [round(b - a, 1) for a, b in zip(starts, starts[1:])] == [4.5, 4.5]
     assert est.overuses == 0 and est.capacity_mbps == pytest.approx(10.0)
-    t, starts = run(t, 20.0, fill=False)  # not filled, nothing refused: kept, and the wait resets
-    assert est.estimate_mbps > 12.0 and starts[-1] - starts[-2] < 3.0
+    t, starts = run(t, 24.0, link_mbps=30.0, fill=1.15)  # the link grew: probes are kept and come quickly
+    assert starts[1] - starts[0] < 3.0  # a kept probe resets the wait (and doubles the next)
+    assert est.capacity_mbps == pytest.approx(30.0, rel=0.15)

@@ -57,15 +57,15 @@ PROBE_GAP_FRACTION = 0.1
 # The estimator's options when fed the bridges' link reports (issue 35, from the live runs): their
 # two sides' intervals are measured on two clocks (a small deficit must hold on two reports), a
 # 0.5 s interval moves by 40 % at 5 Mbit/s with one shaper burst or one large frame (samples over a
-# second), a step's queue drains at 0.6 x, a refused probe's at 0.85 x, and a probe the fleet had
-# no time to fill (it follows an allocation in ~1 s, a probe lasts 0.5 s) keeps its level.
+# second), a step's queue drains at 0.6 x, a refused probe's at 0.85 x (and the next waits up to 3 s),
+# and a probe the fleet has not filled yet (it follows an allocation in ~1 s) lasts up to 1.5 s.
 LINK_REPORT_OPTIONS = dict(
     deficit_min_mbps=0.5,
     deficit_reports=2,
     sample_window_s=1.0,
     step_drain_factor=0.6,
     drain_after_probe=True,
-    keep_unfilled_probe=True,
+    probe_max_s=1.5,
     probe_backoff_max_s=3.0,
 )
 
@@ -164,7 +164,7 @@ class DeliveryRateEstimator:
         sample_window_s=0.0,
         step_drain_factor=None,
         drain_after_probe=False,
-        keep_unfilled_probe=False,
+        probe_max_s=None,
         probe_backoff_max_s=None,
     ):
         for name, value in (
@@ -199,9 +199,10 @@ class DeliveryRateEstimator:
         # After a probe that found nothing, drain at 0.85 x for as long as the probe (BBR's
         # ProbeBW 0.75 phase): the probe's queue otherwise waits for the fleet to send less.
         self.drain_after_probe = bool(drain_after_probe)
-        # A probe the fleet did not fill (it sent no more than before: it had no time to follow the
-        # allocation) and nothing refused keeps its level, as an app-limited one does.
-        self.keep_unfilled_probe = bool(keep_unfilled_probe)
+        # A probe the fleet has not filled yet (it sent no more than before: it follows an
+        # allocation in about a second) goes on up to this long (None: probe_s): one that ended
+        # before the fleet followed found nothing, and live after 5 -> 60 Mbit/s no probe ever did.
+        self.probe_max_s = probe_max_s
         # Each refused probe doubles the wait before the next, up to this (None: no backoff): at 5
         # Mbit/s the fleet always wants more, and a probe every 1.5 s queued 100 ms in the shaper
         # each time (live, issue 35). A probe that was not refused resets it.
@@ -213,6 +214,7 @@ class DeliveryRateEstimator:
         # how long a probe is held: one report interval when the reports are per interval; as long
         # as the measurement window when they are sliding averages (today's /tissue/stats: 2 s)
         self.probe_s = float(probe_s)
+        self.probe_max_s = max(self.probe_s, self.probe_s if self.probe_max_s is None else float(self.probe_max_s))
         self.max_drain_s = float(max_drain_s)
         # the reports' rates are sliding averages over this window (0: per interval, as the
         # bridge's report; 2: today's /tissue/stats and limiter status)
@@ -348,9 +350,10 @@ class DeliveryRateEstimator:
         deficit = self._deficit_reports >= self.deficit_reports or large
         # a link-limited interval that delivered clearly less than the capacity believed: the link
         # is full at what it delivered (the sender's blocked writes kept it from showing a deficit)
+        # (while draining too: a cut from a window straddling a step can leave the capacity far
+        # above what the link now takes, live 48.9 Mbit/s for 4 s on a 5 Mbit/s link)
         full = (
             bool(report.link_limited)
-            and self.mode != "drain"
             and delivered < (1.0 - self.deficit_fraction) * self.capacity_mbps - self.deficit_min_mbps
         )
         app_limited = report.app_limited
@@ -381,11 +384,7 @@ class DeliveryRateEstimator:
             # ... or a confirmed deficit while the sender kept the link busy, its window far below
             # the capacity (an app-limited fleet's window says nothing about the link: live, such a
             # "step" set a 60 Mbit/s link's capacity to the 2.4 Mbit/s it was sending)
-            step = (
-                large
-                or (full and not deficit)
-                or (deficit and busy and window_delivered < STEP_FRACTION * self.capacity_mbps)
-            )
+            step = large or full or (deficit and busy and window_delivered < STEP_FRACTION * self.capacity_mbps)
             if step or self.sample_window_s <= 0:
                 self._on_overuse(now, delivered, sent, self.step_drain_factor if step else DRAIN_FACTOR)
             else:
@@ -450,21 +449,23 @@ class DeliveryRateEstimator:
                 and delivered >= 1.1 * self._capacity_before_probe_mbps
                 and delivered >= 0.97 * sent
             )
-        if self.mode == "probe" and (kept_up or now - self._mode_since_s >= self.probe_s - 1e-6):
+        probed_s = now - self._mode_since_s
+        unfilled = not math.isnan(sent) and sent < 1.05 * self._capacity_before_probe_mbps
+        if (
+            self.mode == "probe"
+            and (kept_up or probed_s >= self.probe_s - 1e-6)
+            and (kept_up or not unfilled or probed_s >= self.probe_max_s - 1e-6)
+        ):
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
-            unfilled = (
-                self.keep_unfilled_probe
-                and not math.isnan(sent)
-                and sent < 1.05 * self._capacity_before_probe_mbps
-                and not self.congested
-            )
-            if kept_up or app_limited or unfilled:
+            if kept_up or app_limited:
                 # Nothing refused the probe's rate and the fleet got all it wanted at it: it may
                 # keep that rate (BBR keeps pacing at the last rate the path accepted), though the
                 # capacity only rises by what was measured.
                 self._unrefuted_mbps = max(self._unrefuted_mbps, self.estimate_mbps)
             self._last_probe_s = now
-            refused = not (kept_up or app_limited or unfilled)
+            # refused: the link did not carry all that was sent (a fleet that sent no more than the
+            # capacity, or got all of it through, refused nothing: it may simply not need more)
+            refused = not (kept_up or app_limited) and not math.isnan(sent) and delivered < 0.97 * sent
             self._probe_wait_s = (
                 min(self.probe_backoff_max_s, 2.0 * self._probe_wait_s) if refused else self.probe_every_s
             )
@@ -497,8 +498,7 @@ class DeliveryRateEstimator:
             # Mbit/s live (test_over_link); at most PROBE_GAP_FRACTION of the probe's own target.
             gap = max(0.0, self.estimate_mbps - sent) if not math.isnan(sent) else 0.0
             # from the level kept by the last unrefused probe (the fleet may not have filled it yet)
-            base = max(self.capacity_mbps, self._unrefuted_mbps) if self.keep_unfilled_probe else self.capacity_mbps
-            target = self._gain * base
+            target = self._gain * self.capacity_mbps
             self.estimate_mbps = self._clip(target + min(gap, PROBE_GAP_FRACTION * target))
         elif self.mode == "cruise":
             self._gain = PROBE_GAIN if not demand_exceeds else self._gain

@@ -47,8 +47,9 @@ DEFAULT_INPUT_RATE_HOLD_S = 10.0
 # it every window; a silent map server no longer bounds the clouds).
 INSERT_CAPACITY_HOLD_S = 10.0
 TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
-# The unmanaged traffic kept out of the budget is the largest measured in this many seconds of link
-# reports (odometry, tf and the rest come in bursts; a budget made from a quiet interval overruns).
+# The unmanaged traffic kept out of the budget is its mean over this many seconds of link reports
+# (odometry, tf and the rest come in bursts; the twin's link bytes less its managed frames is noisy
+# per interval: the largest read up to 5 Mbit/s live on a link carrying 1-2 of it).
 UNMANAGED_WINDOW_S = 2.0
 # The robots' link socket was full in at least this fraction of its samples (or, without TCP_INFO,
 # its sender waited for Zenoh this fraction of its interval): link-limited.
@@ -437,11 +438,11 @@ class ManagerCore:
         return a is not None and any(s.rate_hz < 0.98 * s.max_rate_hz or s.level > 0 for s in a.streams)
 
     def unmanaged_mbps(self, now_s=None):
-        """The traffic outside the managed streams the link carried lately (the largest of the last
+        """The traffic outside the managed streams the link carried lately (its mean over the last
         UNMANAGED_WINDOW_S of link reports), Mbit/s; NaN before the first report."""
         now_s = self._now_s if now_s is None else now_s
-        recent = [mbps for t, mbps in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
-        return max(recent) if recent else math.nan
+        recent = [(mbps, i) for t, mbps, i in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
+        return sum(m * i for m, i in recent) / sum(i for _, i in recent) if recent else math.nan
 
     def budget_mbytes_per_s(self, now_s=None):
         """The managed streams' budget: the capacity less the reserve, and less the unmanaged
@@ -490,8 +491,9 @@ class ManagerCore:
             delivered_interval_s = sender_interval_s
         else:
             delivered_interval_s = interval_s
+        socket_full = _finite(sender_socket_full) and sender_socket_full >= LINK_LIMITED_FRACTION
         if _finite(sender_socket_full):
-            link_limited = sender_socket_full >= LINK_LIMITED_FRACTION
+            link_limited = socket_full
         else:
             link_limited = (
                 _finite(sender_blocked_s)
@@ -507,8 +509,8 @@ class ManagerCore:
         unmanaged = mbps(unmanaged_bytes, interval_s)
         low, high = REPORT_INTERVAL_BOUNDS_S
         if _finite(unmanaged) and unmanaged >= 0 and _finite(interval_s) and low <= interval_s <= high:
-            self._unmanaged = [(t, v) for t, v in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
-            self._unmanaged.append((now_s, unmanaged))
+            self._unmanaged = [(t, v, i) for t, v, i in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
+            self._unmanaged.append((now_s, unmanaged, interval_s))
         return self.on_link_report(
             LinkReport(
                 now_s=now_s,
@@ -519,7 +521,9 @@ class ManagerCore:
                 app_limited=bool(app_limited) and not self.allocation_binds(),
                 rtt_s=tuple(rtt_s),
                 receiver_behind=bool(receiver_behind),
-                link_busy=not app_limited,
+                # busy: the bridge's queue never ran empty, or its link socket stayed full (the
+                # queue can be empty at a report while the sender waits for the link)
+                link_busy=not app_limited or socket_full,
                 link_limited=link_limited,
             )
         )
