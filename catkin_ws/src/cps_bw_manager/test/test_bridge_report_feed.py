@@ -301,5 +301,5 @@ def test_refused_probes_back_off_and_a_kept_one_resets_the_wait():
     assert [round(b - a, 1) for a, b in zip(starts, starts[1:])] == [4.5, 4.5]
     assert est.overuses == 0 and est.capacity_mbps == pytest.approx(10.0)
     t, starts = run(t, 24.0, link_mbps=30.0, fill=1.15)  # the link grew: probes are kept and come quickly
-    assert starts[1] - starts[0] < 3.0  # a kept probe resets the wait (and doubles the next)
-    assert est.capacity_mbps == pytest.approx(30.0, rel=0.15)
+    # kept probes come back to back (each doubles the next): found within a few seconds
+    assert est.capacity_mbps == pytest.approx(30.0, rel=0.15) and starts[0] - 12.0 <= 3.0
