@@ -24,12 +24,8 @@ from cps_ros.processes import RosGraph, find_node, free_port
 
 ROBOT = "scout"
 HERE = os.path.dirname(os.path.abspath(__file__))
-CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace(
-    "nodes/bandwidth_manager", "test/fixtures/cloud_load.py"
-)
-TELEOP_PROBE = os.path.join(
-    os.path.dirname(find_node("cps_link", "zenoh_bridge")), "..", "test", "fixtures", "teleop_probe.py"
-)
+CLOUD_LOAD = find_node("cps_harness", "cloud_load")
+TELEOP_PROBE = find_node("cps_harness", "teleop_probe")
 LOAD = f"{ROBOT}:200000:30"
 TELEOP_HZ = 20
 

@@ -8,8 +8,8 @@ import os
 import time
 
 import pytest
-from cps_experiments.link_run import LinkRosGraph, read_records, summarize
 
+from cps_harness.link_run import LinkRosGraph, read_records, summarize
 from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_link.netns_link import ShapedLink
@@ -18,7 +18,6 @@ from cps_ros.processes import find_node
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-FIXTURES = os.path.join(HERE, "..", "..", "cps_bw_manager", "test", "fixtures")
 # robot: (mean Draco message bytes, input Hz) from Table 6 step 1 (MB/s / Hz); the lidar at 10 Hz.
 LOAD = {"scout": (34000, 10.0), "jackal": (142000, 30.0), "champ": (60000, 30.0), "iris": (67000, 30.0)}
 RESERVE = 0.04
@@ -63,10 +62,10 @@ def _start_load(graph, record_path=None):
             name=f"limiter_{r}",
         )
     if record_path:
-        graph.start_python("twin", os.path.join(FIXTURES, "link_recorder.py"), [record_path, *LOAD], name="recorder")
+        graph.start_python("twin", find_node("cps_harness", "link_recorder"), [record_path, *LOAD], name="recorder")
     graph.start_python(
         "phys",
-        os.path.join(FIXTURES, "cloud_load.py"),
+        find_node("cps_harness", "cloud_load"),
         [f"{r}:{size}:{hz}" for r, (size, hz) in LOAD.items()],
         name="load",
     )

@@ -6,9 +6,7 @@ import pytest
 
 from cps_ros.processes import RosGraph, find_node
 
-CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace(
-    "nodes/bandwidth_manager", "test/fixtures/cloud_load.py"
-)
+CLOUD_LOAD = find_node("cps_harness", "cloud_load")
 # map -> load (the frame of cloud_load.py's clouds), latched on /tf_static: the robots' bridge needs
 # it for the keyframes' poses.
 STATIC_TF = [

@@ -13,7 +13,7 @@ import pytest
 
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv, bridge_node_name
-from cps_ros.processes import free_port
+from cps_ros.processes import find_node, free_port
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -59,7 +59,7 @@ def test_commands_cross_in_their_own_lane_while_clouds_load_the_main_one(
     robots_graph.popen(
         [
             sys.executable,
-            os.path.join(HERE, "..", "..", "cps_bw_manager", "test", "fixtures", "cloud_load.py"),
+            find_node("cps_harness", "cloud_load"),
             f"{ROBOT}:200000:20",
             f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
             "__name:=heavy_load",
@@ -67,16 +67,14 @@ def test_commands_cross_in_their_own_lane_while_clouds_load_the_main_one(
         name="heavy_load",
     )
     received = str(tmp_path / "teleop.txt")
-    robots_graph.popen(
-        [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "recv", ROBOT, received], name="recv"
-    )
+    robots_graph.popen([sys.executable, find_node("cps_harness", "teleop_probe"), "recv", ROBOT, received], name="recv")
     link = TopicRecorder("/tissue/link_state", LinkState)
     clouds = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
     try:
         link.wait(lambda m: m.up, timeout_s=30, what="the link up")
         clouds.wait(lambda _m: clouds.count >= 20, timeout_s=30, what="clouds at the twin")
         ros.popen(
-            [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, str(TELEOP_HZ)],
+            [sys.executable, find_node("cps_harness", "teleop_probe"), "send", ROBOT, str(TELEOP_HZ)],
             name="send",
         )
         assert wait_for(lambda: len(_teleop_rows(received)) > 0, timeout_s=30), "no teleop at the robots"

@@ -1,4 +1,4 @@
-"""Two ROS masters joined by the two Zenoh bridges through cps_link.fault_proxy (no root): ten
+"""Two ROS masters joined by the two Zenoh bridges through cps_harness.fault_proxy (no root): ten
 faults drawn from a seed (cuts of 0.2-3 s, resets, stalls, a 1 Mbit/s throttle). After each:
 /tf reaches the twin within 1 s of the link being up, teleop commands reach the robots' side
 again, and every message the twin's bridge published on the watched topics is of the table's
@@ -13,11 +13,11 @@ import time
 
 import pytest
 
+from cps_harness.fault_proxy import FaultProxy
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.bridge_config import load_bridge_table
-from cps_link.fault_proxy import FaultProxy
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
-from cps_ros.processes import free_port
+from cps_ros.processes import find_node, free_port
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -129,11 +129,9 @@ def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, mana
     )
     teleop_file = str(tmp_path / "teleop.txt")
     robots_graph.popen(
-        [sys.executable, os.path.join(HERE, "fixtures", "fault_robot.py"), ROBOT, "20", teleop_file], name="fault_robot"
+        [sys.executable, find_node("cps_harness", "fault_robot"), ROBOT, "20", teleop_file], name="fault_robot"
     )
-    ros.popen(
-        [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, "20"], name="teleop_send"
-    )
+    ros.popen([sys.executable, find_node("cps_harness", "teleop_probe"), "send", ROBOT, "20"], name="teleop_send")
     # Clouds, kept as keyframes during the longer outages and backfilled after them (the issue's
     # mixed-up topics were the backfill poses); the manager's allocation paces the backfill.
     managed_cloud_load(ROBOT)

@@ -19,9 +19,7 @@ from cps_link.zenoh_session import MAKE_CERTS, bridge_argv, session_config
 from cps_ros.processes import find_node, free_port
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-CLOUD_LOAD = os.path.normpath(
-    os.path.join(find_node("cps_bw_manager", "bandwidth_manager"), "..", "..", "test", "fixtures", "cloud_load.py")
-)
+CLOUD_LOAD = find_node("cps_harness", "cloud_load")
 ROBOT = "scout"
 
 
@@ -79,11 +77,9 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     # A teleop command crosses twin -> robots.
     received = str(tmp_path / "teleop.txt")
     robots_graph.popen(
-        [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "recv", ROBOT, received], name="teleop_recv"
+        [sys.executable, find_node("cps_harness", "teleop_probe"), "recv", ROBOT, received], name="teleop_recv"
     )
-    ros.popen(
-        [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, "20"], name="teleop_send"
-    )
+    ros.popen([sys.executable, find_node("cps_harness", "teleop_probe"), "send", ROBOT, "20"], name="teleop_send")
     assert wait_for(lambda: os.path.exists(received) and os.path.getsize(received) > 0, timeout_s=20), (
         "no teleop command reached the robots' master"
     )

@@ -17,8 +17,8 @@ from cps_bringup.supervisor import BringupError
 from cps_fleet.fleet import PROFILES
 
 
-def choose_link(requested, log=print):
-    """'auto' → fleet.yaml's link rate when this process may create network namespaces, else
+def choose_link(requested, log=print, fleet_file=None):
+    """'auto' → the fleet file's link rate when this process may create network namespaces, else
     loopback (says why)."""
     if requested != "auto":
         return requested
@@ -30,12 +30,15 @@ def choose_link(requested, log=print):
         return "none"
     from cps_link.netns_link import fleet_rate
 
-    return fleet_rate()
+    return fleet_rate(fleet_file)
 
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="out/demo")
+    parser.add_argument("--fleet", default=None, help="fleet.yaml (default: cps_bringup/config/fleet.yaml)")
+    parser.add_argument("--port", type=int, default=None, help="the twin's roscore port (default: a free one)")
+    parser.add_argument("--record", default=None, metavar="BAG", help="also record the mission (cps_bringup --record)")
     parser.add_argument(
         "--link", default="auto", help="auto (fleet.yaml's link rate when root), none, or a rate like 20mbit"
     )
@@ -89,10 +92,13 @@ def main(argv=None):
     args = parse_args(argv)
     t0 = time.monotonic()
     out_dir = os.path.abspath(args.out)
-    link = choose_link(args.link)
+    link = choose_link(args.link, fleet_file=args.fleet)
     scenario = args.link_scenario if link != "none" and args.link_scenario != "none" else None
     mission = mission_args(
         "all",
+        fleet=args.fleet,
+        port=args.port,
+        record=args.record,
         profile=args.profile,
         out=out_dir,
         link=link,
