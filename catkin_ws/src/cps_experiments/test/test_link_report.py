@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+
 from cps_experiments.link_report import NOT_YET, bridge_outages, capacity_steps, scenario_outages, section
 
 T0 = 1000.0  # wall time of mission second 0

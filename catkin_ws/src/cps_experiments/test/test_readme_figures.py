@@ -3,6 +3,7 @@
 import json
 
 import pytest
+
 from cps_experiments import readme_figures
 
 

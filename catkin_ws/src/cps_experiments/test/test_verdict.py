@@ -7,6 +7,7 @@ import os
 import shutil
 
 import pytest
+
 from cps_experiments.demo import report_verdict
 from cps_experiments.verdict import (
     DEMO_FILES,
@@ -208,10 +209,9 @@ def test_demo_exit_code_and_console_follow_the_verdict(tmp_path, capsys, status,
 def test_the_report_of_a_folder_with_missing_and_truncated_csvs_says_incomplete(tmp_path):
     """The committed demo's CSVs, one cut off mid-row and one gone, no map: report.md is written,
     opens with INCOMPLETE and names both; nothing crashes."""
-    from cps_experiments.report import write_mission_report
-
     from cps_bringup.cli import MissionResult, mission_args
     from cps_bringup.mission import MissionProgress
+    from cps_experiments.report import write_mission_report
 
     demo = os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "docs", "results", "demo")
     out = tmp_path / "demo"
