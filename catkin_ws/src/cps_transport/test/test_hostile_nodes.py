@@ -93,9 +93,9 @@ def test_encoder_and_decoder_nodes_count_hostile_messages_and_stay_up(ros, rospy
         assert wait_for(lambda: _invalid_count(diagnostics, f"/{R}/draco_encoder") == len(clouds), timeout_s=15), (
             f"encoder counted {_invalid_count(diagnostics, f'/{R}/draco_encoder')} of {len(clouds)}"
         )
-        decoder = names.absolute(names.in_twin("draco_decoder"))
-        assert wait_for(lambda: _invalid_count(diagnostics, decoder) == len(payloads), timeout_s=15), (
-            f"decoder counted {_invalid_count(diagnostics, decoder)} of {len(payloads)}"
+        decoder_node = names.absolute(names.in_twin("draco_decoder"))
+        assert wait_for(lambda: _invalid_count(diagnostics, decoder_node) == len(payloads), timeout_s=15), (
+            f"decoder counted {_invalid_count(diagnostics, decoder_node)} of {len(payloads)}"
         )
         raw.publish(_good_cloud())
         assert decoded.wait(timeout_s=15).header.frame_id == FRAME
