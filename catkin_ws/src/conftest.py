@@ -33,6 +33,7 @@ ROS_FIXTURES = frozenset({"ros_master", "ros", "rospy_node"})
 MISSIONS = "missions"
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's, which turns the groups into the items' node ids
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if "reference_mission" in item.fixturenames or item.get_closest_marker("mission") is not None:

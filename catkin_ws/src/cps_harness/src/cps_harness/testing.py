@@ -95,3 +95,13 @@ class TopicRecorder:
 
     def close(self):
         self.sub.unregister()
+
+
+def answer_help(doc):
+    """For the harness's nodes (loads, probes, recorders): `--help` prints `doc` and exits 0 before
+    anything touches a master, as every node of the workspace does."""
+    import sys
+
+    if {"-h", "--help"} & set(sys.argv[1:]):
+        print(doc.strip())
+        sys.exit(0)
