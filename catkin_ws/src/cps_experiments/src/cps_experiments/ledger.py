@@ -74,6 +74,53 @@ def node_counters(rows) -> Dict[str, Dict[str, Dict[str, float]]]:
     return out
 
 
+def counter_series(rows) -> Dict[tuple, List[tuple]]:
+    """{(input topic, stage, what): [(time s, running total)]} of counters.csv rows, restarts summed:
+    for what a counter did between two times (`increase`)."""
+    raw = defaultdict(list)
+    for row in sorted(rows or [], key=lambda r: csv_float(r.get("time_s"))):
+        parsed = C.parse_key(row.get("key", ""))
+        value, t = csv_float(row.get("value")), csv_float(row.get("time_s"))
+        if parsed and math.isfinite(value) and math.isfinite(t):
+            raw[(row.get("node", ""), row.get("input_topic", ""), *parsed)].append((t, value))
+    out = defaultdict(list)
+    for (_, topic, stage, what), points in raw.items():
+        base, last = 0.0, 0.0
+        for t, value in points:
+            if value < last:
+                base += last
+            last = value
+            out[(topic, stage, what)].append((t, base + value))
+    return out
+
+
+def increase(series, t0_s, t1_s, stage, what, topics=None) -> int:
+    """How much `what` of `stage` grew between t0_s and t1_s, summed over input topics (all, or
+    those in `topics`): the counter's last value by t1_s less its last value before t0_s."""
+
+    def at(points, t):
+        before = [v for ts, v in points if ts <= t]
+        return before[-1] if before else 0.0
+
+    return int(
+        round(
+            sum(
+                at(points, t1_s) - at(points, t0_s)
+                for (topic, s, w), points in series.items()
+                if s == stage and w == what and (topics is None or topic in topics)
+            )
+        )
+    )
+
+
+def read_counter_series(folder):
+    """counter_series of both sides' counters files in `folder` ({} when neither was recorded)."""
+    rows = []
+    for name in (PHYSICAL_COUNTERS_CSV, COUNTERS_CSV):
+        rows += _read(os.path.join(folder, name)) or []
+    return counter_series(rows)
+
+
 def map_server_counters(map_age_rows) -> Dict[str, Dict[str, float]]:
     """{robot: {counter: total}} from map_age.csv: the map server's counters as it published them,
     its restarts summed (clouds_inserted going back is a restart); queue_length is the last one.
