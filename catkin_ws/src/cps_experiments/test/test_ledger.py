@@ -135,6 +135,11 @@ def test_a_restarted_node_counts_both_runs():
         {"time_s": "3", "node": "/n", "input_topic": "/t", "key": "invalid_messages", "value": "9"},
     ]
     assert node_counters(rows)["/t"]["decoder"]["received"] == 7
+    waiting = [  # a gauge: what is in the backfill store now, not a running count
+        {"time_s": "1", "node": "/b", "input_topic": "/m", "key": "ledger_bridge_out_backfill_waiting", "value": "7"},
+        {"time_s": "2", "node": "/b", "input_topic": "/m", "key": "ledger_bridge_out_backfill_waiting", "value": "0"},
+    ]
+    assert node_counters(waiting)["/m"]["bridge_out"]["backfill_waiting"] == 0
     servers = map_server_counters(
         [
             {"time_s": "1", "robot": R, "clouds_inserted": "10", "clouds_received": "11", "queue_length": "1"},

@@ -57,5 +57,5 @@ def test_capacity_figures_say_whether_they_are_measured_or_computed():
 def test_a_readme_without_the_markers_is_refused():
     with pytest.raises(ValueError, match="demo-figures"):
         readme_figures.readme_section("# no markers here\n")
-    with pytest.raises(ValueError, match="fig13-live-figures"):
+    with pytest.raises(ValueError, match="monitor-figures"):
         readme_figures.write_sections("<!-- demo-figures --><!-- /demo-figures -->")

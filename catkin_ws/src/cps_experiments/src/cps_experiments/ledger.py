@@ -28,6 +28,8 @@ from cps_ros import cloud_ledger as C
 PHYSICAL_COUNTERS_CSV = "physical_counters.csv"
 COUNTERS_CSV = "counters.csv"
 MAP_AGE_CSV = "map_age.csv"
+# What a node reports as it is now (not a running count): its last value counts.
+GAUGES = (C.BACKFILL_WAITING,)
 # Counters are reported once a second: a hop may have this much of a robot's clouds on the way.
 ALLOWED_UNSEEN_S = 2.0
 # The map server's counters in map_age.csv (cps_bringup.mission.MAP_SERVER_COUNTERS) that only grow.
@@ -70,7 +72,8 @@ def node_counters(rows) -> Dict[str, Dict[str, Dict[str, float]]]:
             series[(row.get("node", ""), row.get("input_topic", ""), *parsed)].append(value)
     out = defaultdict(lambda: defaultdict(dict))
     for (_, topic, stage, what), values in series.items():
-        out[topic][stage][what] = out[topic][stage].get(what, 0.0) + cumulative(values)
+        total = values[-1] if what in GAUGES else cumulative(values)
+        out[topic][stage][what] = out[topic][stage].get(what, 0.0) + total
     return out
 
 
@@ -87,7 +90,7 @@ def counter_series(rows) -> Dict[tuple, List[tuple]]:
     for (_, topic, stage, what), points in raw.items():
         base, last = 0.0, 0.0
         for t, value in points:
-            if value < last:
+            if value < last and what not in GAUGES:
                 base += last
             last = value
             out[(topic, stage, what)].append((t, base + value))
@@ -114,11 +117,9 @@ def increase(series, t0_s, t1_s, stage, what, topics=None) -> int:
 
 
 def read_counter_series(folder):
-    """counter_series of both sides' counters files in `folder` ({} when neither was recorded)."""
-    rows = []
-    for name in (PHYSICAL_COUNTERS_CSV, COUNTERS_CSV):
-        rows += _read(os.path.join(folder, name)) or []
-    return counter_series(rows)
+    """counter_series of both sides' counters files in `folder`, each side's stages from its own
+    file ({} when neither was recorded)."""
+    return counter_series(_side_rows(folder))
 
 
 def map_server_counters(map_age_rows) -> Dict[str, Dict[str, float]]:
@@ -449,11 +450,26 @@ class Ledger:
         return lines
 
 
+# Each side's stages, read from that side's file only (a side's /diagnostics may also carry the
+# other side's, relayed by the bridges, late or not at all during an outage).
+PHYSICAL_STAGES = (C.ENCODER, C.LIMITER, C.BRIDGE_OUT)
+TWIN_STAGES = (C.BRIDGE_IN, C.DECODER)
+
+
+def _side_rows(folder):
+    """counters rows of both files, each file's own side's stages only."""
+    rows = []
+    for name, stages in ((PHYSICAL_COUNTERS_CSV, PHYSICAL_STAGES), (COUNTERS_CSV, TWIN_STAGES)):
+        for row in _read(os.path.join(folder, name)) or []:
+            parsed = C.parse_key(row.get("key", ""))
+            if parsed and parsed[0] in stages:
+                rows.append(row)
+    return rows
+
+
 def read_ledger(folder, robots, duration_s=None) -> Ledger:
     """The ledger of the mission in `folder` for `robots`."""
-    physical = _read(os.path.join(folder, PHYSICAL_COUNTERS_CSV))
-    twin = _read(os.path.join(folder, COUNTERS_CSV))
-    counters = node_counters((physical or []) + (twin or []))
+    counters = node_counters(_side_rows(folder))
     map_age = _read(os.path.join(folder, MAP_AGE_CSV)) or []
     servers = map_server_counters(map_age)
     if duration_s is None:

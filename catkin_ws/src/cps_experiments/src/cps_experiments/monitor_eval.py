@@ -214,7 +214,7 @@ def live_totals(rows):
                     recall=matched / made if made else None, source="the live reports (map_changes.json)")  # fmt: skip
     matched = sum(sum(t is not None for t in r["time_to_report_s"]) for r in rows)
     return dict(matched=matched, detected=None, made=made, precision=None, recall=matched / made if made else None,
-                source="the matched changes each live report had (its false ones were not kept)")  # fmt: skip
+                source="the matched changes each live report had; its false ones were not kept")  # fmt: skip
 
 
 def _fmt(v, digits=2):

@@ -602,6 +602,10 @@ def rejudge(folder, fleet_file=None, f1_floor=None):
     from cps_fleet.fleet import load_fleet
 
     summary = read_mission_summary(folder)
+    if not os.path.exists(os.path.join(folder, MISSION_JSON)) and summary:
+        # Kept, so that the report written below (in today's format) is not what is read next time.
+        with open(os.path.join(folder, MISSION_JSON), "w") as stream:
+            json.dump(summary, stream, indent=1)
     fleet = load_fleet(fleet_file, profile=summary.get("profile") if summary.get("profile") != "not recorded" else None)
     robots = list(summary.get("robots", {})) or None
     if robots:
