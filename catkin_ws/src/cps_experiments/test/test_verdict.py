@@ -121,24 +121,21 @@ def test_a_map_age_file_without_the_published_age_fails_the_check_it_cannot_make
 
 def test_a_stale_map_during_an_outage_and_3_s_after_it_is_not_a_failure(tmp_path):
     cut = [event(0, "start", 60), event(20, "cut", 60), event(30, "restore", 60)]
-    clouds = lambda robot: [k / 2 for k in range(120) if not 20 <= k / 2 < 30]  # noqa: E731
-    ok = _judged(
-        mission(
-            tmp_path / "ok",
-            events=cut,
-            published_age=lambda r, t: t - 19.5 if 20 <= t < 32 else 0.6,
-            cloud_times=clouds,
+
+    def stale_until(name, until_s):
+        """The link cut from 20 to 30 s; the published map catches up at `until_s`."""
+        return _judged(
+            mission(
+                tmp_path / name,
+                events=cut,
+                published_age=lambda r, t: t - 19.5 if 20 <= t < until_s else 0.6,
+                cloud_times=lambda robot: [k / 2 for k in range(120) if not 20 <= k / 2 < 30],
+            )
         )
-    )
+
+    ok = stale_until("ok", 32)
     assert ok.status == PASS, ok.failures
-    late = _judged(
-        mission(
-            tmp_path / "late",
-            events=cut,
-            published_age=lambda r, t: t - 19.5 if 20 <= t < 40 else 0.6,
-            cloud_times=clouds,
-        )
-    )
+    late = stale_until("late", 40)
     assert late.status == FAIL
     assert _failed(late, "map published and fresh")[0]["at_s"] == pytest.approx(34.0)
 
