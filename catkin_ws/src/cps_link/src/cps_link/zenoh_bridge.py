@@ -102,12 +102,18 @@ class ZenohBridge:
         self.started_s = time.time()
         self.health = LinkHealth(started_s=self.started_s)
         self.reporter = DropReporter("zenoh_bridge_command" if table.lane == "command" else "zenoh_bridge")
+
         # The per-cloud ledger of this side's cloud routes (cps_link.route_ledger).
+        def ledger_reporter(topic):  # a status of its own name: the bridge's own status stays one per node
+            return DropReporter(topic, name=rospy.get_name() + "/ledger")
+
         self.sent_ledger = RouteLedger(
-            [r for r in table.outgoing(side) if r.from_ros and is_cloud_route(r)], cloud_ledger.BRIDGE_OUT, DropReporter
+            [r for r in table.outgoing(side) if r.from_ros and is_cloud_route(r)],
+            cloud_ledger.BRIDGE_OUT,
+            ledger_reporter,
         )
         self.received_ledger = RouteLedger(
-            [r for r in table.incoming(side) if is_cloud_route(r)], cloud_ledger.BRIDGE_IN, DropReporter
+            [r for r in table.incoming(side) if is_cloud_route(r)], cloud_ledger.BRIDGE_IN, ledger_reporter
         )
         self.link_pub = (
             rospy.Publisher(names.LINK_STATE, LinkState, queue_size=5, latch=True)

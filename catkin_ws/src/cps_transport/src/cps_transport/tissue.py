@@ -183,7 +183,7 @@ class ManagedRateLimiter:
         self.sequence = cloud_ledger.SequenceGaps()
         self.forward_seq = 0
         self.header_first = None
-        self.ledger_report = DropReporter(input_topic)
+        self.ledger_report = DropReporter(input_topic, name=ns_join(node_name, "ledger"))
 
         def private(name):
             return ns_join(node_name, name.lstrip("~"))
