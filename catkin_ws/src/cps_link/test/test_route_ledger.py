@@ -8,8 +8,9 @@ import struct
 import pytest
 
 from cps_link.bridge_config import load_bridge_table
-from cps_link.route_ledger import RouteLedger, header_seq, is_cloud_route, with_header_seq
+from cps_link.route_ledger import RouteLedger, is_cloud_route
 from cps_ros import cloud_ledger as C
+from cps_ros.cloud_ledger import header_seq, with_header_seq
 
 pytestmark = pytest.mark.unit
 

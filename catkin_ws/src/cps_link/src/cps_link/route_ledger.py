@@ -11,26 +11,14 @@ robots' bridge while the link was down), dropped by the receive path's kind, pub
 by this bridge, as a typed publisher would, so the decoder can count what it misses).
 """
 
-import struct
-
 from cps_fleet import names
 from cps_ros import cloud_ledger
-
-_SEQ = struct.Struct("<I")
+from cps_ros.cloud_ledger import header_seq, with_header_seq
 
 
 def is_cloud_route(route) -> bool:
     """A robot's managed cloud or its backfill keyframes (by the topic names of the contract)."""
     return route.topic.endswith("/" + names.POINTS_MANAGED) or route.to.endswith("/" + names.POINTS_BACKFILL_DRACO)
-
-
-def header_seq(body):
-    """header.seq of a serialized message that starts with a Header, or None when too short."""
-    return _SEQ.unpack_from(body, 0)[0] if len(body) >= _SEQ.size else None
-
-
-def with_header_seq(body, seq):
-    return _SEQ.pack(seq & 0xFFFFFFFF) + bytes(body[_SEQ.size :])
 
 
 class RouteLedger:

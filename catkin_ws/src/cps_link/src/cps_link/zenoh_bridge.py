@@ -22,7 +22,7 @@ from cps_link.bridge_config import ROBOTS, BridgeTable, Route, other_side
 from cps_link.bridge_wire import Frame, WireError, encode, header_frame_id, header_stamp_s
 from cps_link.link_health import LinkHealth
 from cps_link.receive_path import TOPIC_TYPE_MISMATCH, ReceivePath, SendPath
-from cps_link.route_ledger import RouteLedger, header_seq, is_cloud_route
+from cps_link.route_ledger import RouteLedger, is_cloud_route
 from cps_msgs.msg import LinkState
 from cps_ros import cloud_ledger
 from cps_ros.diagnostics import DropReporter
@@ -209,7 +209,9 @@ class ZenohBridge:
             self._keep_transforms(route.topic, msg._buff)
         if route.to in self.sent_ledger:
             self.sent_ledger.received(
-                route.to, (getattr(msg, "_connection_header", None) or {}).get("callerid", ""), header_seq(msg._buff)
+                route.to,
+                (getattr(msg, "_connection_header", None) or {}).get("callerid", ""),
+                cloud_ledger.header_seq(msg._buff),
             )
         key, frame = self.frame_of(route, msg)
         if frame is None:

@@ -9,6 +9,7 @@ frame numbers), so a cloud lost in a subscriber queue or on the link is counted 
 it, by cause, and not worked out from two other counters.
 """
 
+import struct
 import threading
 
 LEDGER_PREFIX = "ledger_"
@@ -41,6 +42,20 @@ def parse_key(name):
         if rest.startswith(stage + "_"):
             return stage, rest[len(stage) + 1 :]
     return None
+
+
+_SEQ = struct.Struct("<I")
+
+
+def header_seq(buff):
+    """header.seq of a serialized message that starts with a std_msgs/Header (None if too short)."""
+    return _SEQ.unpack_from(buff, 0)[0] if len(buff) >= _SEQ.size else None
+
+
+def with_header_seq(buff, seq):
+    """The serialized message with its header.seq set to `seq` (the rest unchanged): a relay numbers
+    what it passes on as a typed publisher would, so the next stage can count what it misses."""
+    return _SEQ.pack(seq & 0xFFFFFFFF) + bytes(buff[_SEQ.size :])
 
 
 class SequenceGaps:

@@ -51,17 +51,6 @@ LIMITER_OUTPUT_QUEUE_SIZE = 5
 LEVEL_MEAN_MESSAGES = 10
 # How long a level change waits for the voxel grid's dynamic_reconfigure service.
 VOXEL_GRID_RECONFIGURE_TIMEOUT_S = 5.0
-_SEQ = struct.Struct("<I")
-
-
-def _header_seq(buff):
-    """header.seq of a serialized message that starts with a std_msgs/Header (None if too short)."""
-    return _SEQ.unpack_from(buff, 0)[0] if len(buff) >= _SEQ.size else None
-
-
-def _with_header_seq(buff, seq):
-    """The serialized message with its header.seq set to `seq` (the rest unchanged)."""
-    return _SEQ.pack(seq & 0xFFFFFFFF) + bytes(buff[_SEQ.size :])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,7 +201,7 @@ class ManagedRateLimiter:
     def on_message(self, msg):
         if self.header_first is None:
             self.header_first = has_header_first(msg._connection_header.get("message_definition", ""))
-        seq = _header_seq(msg._buff) if self.header_first else None
+        seq = cloud_ledger.header_seq(msg._buff) if self.header_first else None
         with self.lock:
             missed = 0 if seq is None else self.sequence.note(msg._connection_header.get("callerid", ""), seq)
             forward = self.limiter.allow(time.monotonic(), len(msg._buff))
@@ -225,7 +214,7 @@ class ManagedRateLimiter:
                 self.forward_seq += 1
                 out = relay_message(self.relay_cls, msg)
                 if seq is not None:  # numbered as this limiter's output, as a typed publisher would
-                    out._buff = _with_header_seq(msg._buff, self.forward_seq)
+                    out._buff = cloud_ledger.with_header_seq(msg._buff, self.forward_seq)
         self.ledger_report.count(
             **{
                 cloud_ledger.key(cloud_ledger.LIMITER, cloud_ledger.RECEIVED): 1,
