@@ -377,11 +377,13 @@ def write_mission_report(result, mission_args, wall_time_s):
         with open(os.path.join(out, "scores.json"), "w") as stream:
             json.dump(score.as_dict(), stream, indent=2)
         plot_topdown(fused.occupied_centers(), progress.trajectories, fleet, os.path.join(out, "topdown.png"))
-    # `make demo --map-f1-floor` sets map_f1_floor on the mission's arguments; else the code default.
-    return write_report(out, fleet, getattr(mission_args, "map_f1_floor", None))
+    # `make demo --map-f1-floor(-exact)` sets them on the mission's arguments; else the code defaults.
+    return write_report(
+        out, fleet, getattr(mission_args, "map_f1_floor", None), getattr(mission_args, "map_f1_floor_exact", None)
+    )
 
 
-def write_report(out, fleet, f1_floor=None):
+def write_report(out, fleet, f1_floor=None, f1_floor_exact=None):
     """report.md, verdict.json and link.png of the mission folder `out`, from its files alone (and
     mission.json); `fleet`: the mission's (its robots and link)."""
     from cps_experiments.ledger import read_counter_series, read_ledger
@@ -574,6 +576,7 @@ def write_report(out, fleet, f1_floor=None):
         DEMO_FILES,
         ended_by=None if ended == "not recorded" else ended,
         f1_floor_within_1_voxel=MAP_F1_FLOOR_WITHIN_1_VOXEL if f1_floor is None else f1_floor,
+        f1_floor_exact=f1_floor_exact,
         robots=fleet.robot_names,
     )
     write_verdict(out, verdict)
