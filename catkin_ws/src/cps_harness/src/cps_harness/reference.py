@@ -56,6 +56,9 @@ TELEOP_ROBOT = "jackal"
 # well over half of what the site's ground truth holds within their reach; a broken transform,
 # decoder or insertion drops it far below.
 MAP_F1_FLOOR = 0.6
+# ... and voxel for voxel (three robots see less of the hall than the demo's four: their map scores
+# ~0.5, against the four robots' 0.70 that the verdict's default floor is set for).
+MAP_F1_FLOOR_EXACT = 0.4
 # Upper bound on the mission (it ends when every route is done).
 DURATION_S = 150.0
 # The GUI screenshot, seconds into the mission: while every robot still moves.
@@ -94,6 +97,7 @@ def demo_args(fleet_file, bag_path):
         "--duration", DURATION_S,
         "--screenshot-after", SCREENSHOT_AFTER_S,
         "--map-f1-floor", MAP_F1_FLOOR,
+        "--map-f1-floor-exact", MAP_F1_FLOOR_EXACT,
         "--record", bag_path,
     ]  # fmt: skip
 
