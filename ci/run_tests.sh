@@ -7,7 +7,8 @@
 set -uo pipefail
 cd "$CPS_ROOT"
 BUDGET_S=600  # the suite's budget: ten minutes of tests on this 2-core machine
-report_dir="${CPS_TEST_OUT:-$CPS_ROOT/out/test}"
+export CPS_TEST_OUT="${CPS_TEST_OUT:-$CPS_ROOT/out/test}"  # the reference mission keeps its small files here too
+report_dir="$CPS_TEST_OUT"
 mkdir -p "$report_dir"
 now() { date +%s.%N; }
 t0=$(now)

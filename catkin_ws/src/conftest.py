@@ -130,12 +130,15 @@ def rospy_node(ros_master):
 def reference_mission():
     """The reference mission (cps_harness.reference), run to its end once per test run; its
     ReferenceRun. A test that needs it calls `reference_mission.check()` first."""
-    from cps_harness.reference import run_reference
+    from cps_harness.reference import keep_for_reading, run_reference
 
     folder = _open_folder()
     try:
-        yield run_reference(folder)
+        run = run_reference(folder)
+        yield run
     finally:
+        if os.environ.get("CPS_TEST_OUT"):  # make test's report folder: what a failure needs to be read
+            keep_for_reading(folder, os.path.join(os.environ["CPS_TEST_OUT"], "reference"))
         shutil.rmtree(folder, ignore_errors=True)
 
 

@@ -218,3 +218,23 @@ def run_reference(folder):
     run.log = run.mission.log()
     run.leftovers = run.mission.leftovers()
     return run
+
+
+# What of the reference mission's folder `make test` keeps (in out/test/reference): its log, report,
+# verdict, scores, CSVs and pictures; not the map, the bag or the node logs' bulk.
+KEPT_SUFFIXES = (".log", ".md", ".json", ".csv", ".png", ".yaml")
+KEPT_MAX_BYTES = 5_000_000
+
+
+def keep_for_reading(folder, destination):
+    """Copy the small files of a reference mission's folder to `destination` (replacing it)."""
+    import shutil
+
+    shutil.rmtree(destination, ignore_errors=True)
+    for root, _dirs, files in os.walk(folder):
+        for name in files:
+            path = os.path.join(root, name)
+            if name.endswith(KEPT_SUFFIXES) and os.path.getsize(path) <= KEPT_MAX_BYTES:
+                target = os.path.join(destination, os.path.relpath(path, folder))
+                os.makedirs(os.path.dirname(target), exist_ok=True)
+                shutil.copy(path, target)
