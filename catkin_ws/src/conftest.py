@@ -9,7 +9,8 @@
 
 Every test is marked `ros` (it needs a master: it uses one of these fixtures, or says so with
 `pytest.mark.ros`) or `unit` (everything else), so `pytest -m unit` runs without ROS and the
-summary counts both kinds. A test that runs a whole mission (it uses `reference_mission`, or says
+summary counts both kinds. A package's rostest file runs as one test marked `rostest` (and `ros`).
+A test that runs a whole mission (it uses `reference_mission`, or says
 so with `pytest.mark.mission`) is also `ros`.
 
 Run in parallel (pytest-xdist, `-n 2 --dist loadgroup`, as `make test` does): every mission test
@@ -33,6 +34,7 @@ ROS_FIXTURES = frozenset({"ros_master", "ros", "rospy_node"})
 MISSIONS = "missions"
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's, which turns the groups into the items' node ids
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if "reference_mission" in item.fixturenames or item.get_closest_marker("mission") is not None:
@@ -40,7 +42,7 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.ros)
             item.add_marker(pytest.mark.xdist_group(MISSIONS))
             continue
-        if ROS_FIXTURES.intersection(item.fixturenames):
+        if ROS_FIXTURES.intersection(item.fixturenames) or item.get_closest_marker("rostest") is not None:
             item.add_marker(pytest.mark.ros)
         if item.get_closest_marker("ros") is None:
             item.add_marker(pytest.mark.unit)
@@ -73,28 +75,25 @@ def pytest_configure(config):
 
 
 def pytest_terminal_summary(terminalreporter):
-    """One line per kind, e.g. `unit: 250 passed, 0 failed, 1 skipped`."""
-    counts = {"unit": collections.Counter(), "ros": collections.Counter()}
-    for outcome in ("passed", "failed", "skipped", "error"):
+    """One line per kind, e.g. `unit: 250 passed, 0 failed, 0 skipped`: unit, ros (rostest files
+    and missions included) and, of those, rostest and mission."""
+    kinds = ("unit", "ros", "rostest", "mission")
+    counts = {kind: collections.Counter() for kind in kinds}
+    for outcome in ("passed", "failed", "skipped", "error", "xfailed", "xpassed"):
         for report in terminalreporter.stats.get(outcome, []):
             if not hasattr(report, "keywords") or (outcome == "passed" and report.when != "call"):
                 continue
-            counts["ros" if "ros" in report.keywords else "unit"][outcome] += 1
-    # ci/run_tests.sh runs the rostest .test files first and leaves their count in this file.
-    rostest_summary = os.environ.get("CPS_ROSTEST_SUMMARY")
-    rostest_line = None
-    if rostest_summary and os.path.exists(rostest_summary):
-        with open(rostest_summary) as stream:
-            rostest_line = stream.read().strip()
-    if not any(counts.values()) and not rostest_line:
+            for kind in kinds:
+                if kind in report.keywords or (kind == "ros" and "unit" not in report.keywords):
+                    counts[kind][outcome] += 1
+    if not any(counts.values()):
         return
     terminalreporter.section("tests by kind")
     for kind, c in counts.items():
         terminalreporter.write_line(
             f"{kind}: {c['passed']} passed, {c['failed'] + c['error']} failed, {c['skipped']} skipped"
+            + (f", {c['xfailed'] + c['xpassed']} xfail" if c["xfailed"] + c["xpassed"] else "")
         )
-    if rostest_line:
-        terminalreporter.write_line(rostest_line)
 
 
 @pytest.fixture(scope="session")
@@ -131,12 +130,15 @@ def rospy_node(ros_master):
 def reference_mission():
     """The reference mission (cps_harness.reference), run to its end once per test run; its
     ReferenceRun. A test that needs it calls `reference_mission.check()` first."""
-    from cps_harness.reference import run_reference
+    from cps_harness.reference import keep_for_reading, run_reference
 
     folder = _open_folder()
     try:
-        yield run_reference(folder)
+        run = run_reference(folder)
+        yield run
     finally:
+        if os.environ.get("CPS_TEST_OUT"):  # make test's report folder: what a failure needs to be read
+            keep_for_reading(folder, os.path.join(os.environ["CPS_TEST_OUT"], "reference"))
         shutil.rmtree(folder, ignore_errors=True)
 
 

@@ -32,10 +32,13 @@ def cert_dir(tmp_path_factory):
 
 
 def _diag_counter(recorder, key):
-    msg = recorder.latest
-    for status in msg.status if msg else []:
-        if status.name == "/zenoh_bridge_twin":
-            return int({kv.key: kv.value for kv in status.values}.get(key, 0))
+    """`key` in the twin bridge's newest own status (other statuses, its ledger's included, come between)."""
+    with recorder._cond:
+        messages = list(recorder.messages)
+    for _, msg in reversed(messages):
+        for status in msg.status:
+            if status.name == "/zenoh_bridge_twin":
+                return int({kv.key: kv.value for kv in status.values}.get(key, 0))
     return 0
 
 

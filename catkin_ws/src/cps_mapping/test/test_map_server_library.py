@@ -156,6 +156,36 @@ def test_stats_carry_the_snapshot_and_the_counters(jackal_points):
     assert rows["scout"].clouds_received == 0 and rows["scout"].map_age_s == float("inf")
 
 
+def test_the_published_maps_age_grows_when_the_map_is_inserted_but_not_published(jackal_points):
+    """A subscriber of the map sees the published map, not the insertions: the published age follows
+    the stamp of the robot's newest cloud in the map as last published."""
+    server, published = _server()
+    server.receive_cloud("jackal", _cloud(jackal_points))
+    server.insert_pending(timeout_s=0)
+    server.publish_stats(genpy.Time(101, 0))
+    assert published["stats"][-1].robots[0].published_map_age_s == float("inf")  # inserted, never published
+    server.publish_map(genpy.Time(101, 0))
+    later = _cloud(jackal_points)
+    later.header.stamp = genpy.Time(110, 0)
+    server.receive_cloud("jackal", later)
+    server.insert_pending(timeout_s=0)  # inserted at 110 s, the map not published again
+    server.publish_stats(genpy.Time(111, 0))
+    jackal = {r.robot: r for r in published["stats"][-1].robots}["jackal"]
+    assert jackal.map_age_s == pytest.approx(1.0) and jackal.published_map_age_s == pytest.approx(11.0)
+    server.publish_map(genpy.Time(111, 0))
+    server.publish_stats(genpy.Time(111, 0))
+    assert {r.robot: r for r in published["stats"][-1].robots}["jackal"].published_map_age_s == pytest.approx(1.0)
+
+
+def test_clouds_missing_from_the_decoders_numbers_are_counted_as_missed_upstream():
+    server, published = _server()
+    for seq in (1, 2, 5, 6, 9):  # 3, 4, 7, 8 never arrived
+        server.note_sequence("jackal", ("/cloud_decoder", "/twin/jackal/points"), seq)
+    server.note_sequence("jackal", ("/cloud_decoder", "/twin/jackal/points_backfill"), 1)  # another input
+    server.publish_stats(STAMP)
+    assert {r.robot: r for r in published["stats"][-1].robots}["jackal"].clouds_missed_upstream == 4
+
+
 def test_services_save_load_clear_and_reset(jackal_points, tmp_path):
     server, _ = _server(tmp_path)
     server.receive_cloud("jackal", _cloud(jackal_points))

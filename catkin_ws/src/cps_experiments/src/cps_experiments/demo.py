@@ -74,6 +74,14 @@ def parse_args(argv):
         "MAP_F1_FLOOR_WITHIN_1_VOXEL, for the whole fleet)",
     )
     parser.add_argument(
+        "--map-f1-floor-exact",
+        type=float,
+        default=None,
+        metavar="F1",
+        help="the verdict's floor on map F1 voxel for voxel (default: cps_experiments.verdict's "
+        "MAP_F1_FLOOR_EXACT, for the whole fleet)",
+    )
+    parser.add_argument(
         "--kill-map-server-at",
         type=float,
         default=None,
@@ -110,6 +118,7 @@ def main(argv=None):
         kill_map_server_at=args.kill_map_server_at,
     )
     mission.map_f1_floor = args.map_f1_floor
+    mission.map_f1_floor_exact = args.map_f1_floor_exact
     from cps_experiments.report import write_mission_report
 
     result = run_and_report("demo", mission, write_mission_report, t0)
