@@ -2,6 +2,7 @@
 view -> report time shorter than one detection cycle is impossible and set apart."""
 
 import pytest
+
 from cps_experiments.monitor_eval import DETECTION_CYCLE_S, live_totals, split_times
 
 pytestmark = pytest.mark.unit

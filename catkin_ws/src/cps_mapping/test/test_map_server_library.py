@@ -179,9 +179,11 @@ def test_the_published_maps_age_grows_when_the_map_is_inserted_but_not_published
 
 def test_clouds_missing_from_the_decoders_numbers_are_counted_as_missed_upstream():
     server, published = _server()
+    points = names.absolute(names.twin_points("jackal"))
+    backfill = names.absolute(names.in_twin(names.robot_topic("jackal", names.POINTS_BACKFILL)))
     for seq in (1, 2, 5, 6, 9):  # 3, 4, 7, 8 never arrived
-        server.note_sequence("jackal", ("/cloud_decoder", "/twin/jackal/points"), seq)
-    server.note_sequence("jackal", ("/cloud_decoder", "/twin/jackal/points_backfill"), 1)  # another input
+        server.note_sequence("jackal", ("/cloud_decoder", points), seq)
+    server.note_sequence("jackal", ("/cloud_decoder", backfill), 1)  # another input
     server.publish_stats(STAMP)
     assert {r.robot: r for r in published["stats"][-1].robots}["jackal"].clouds_missed_upstream == 4
 
