@@ -26,10 +26,9 @@ import sys
 import time
 
 from cps_experiments.markdown import csv_float
-from cps_experiments.transport_compare import Graphs, start_estimating_manager, start_limited_load
-
 from cps_fleet.csv_log import CsvLog
 from cps_harness.testing import link_name
+from cps_harness.transport_compare import Graphs, start_estimating_manager, start_limited_load
 from cps_link.netns_link import ShapedLink, tc_rate
 from cps_link.scenario import LINK_EVENTS_COLUMNS, ScenarioRunner, load_scenario
 from cps_link.zenoh_session import default_cert_dir, ensure_certs

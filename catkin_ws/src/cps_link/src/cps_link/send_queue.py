@@ -103,10 +103,12 @@ class Pacer:
 class SendQueue:
     """Thread-safe. `ranks`: class name -> rank (lower leaves first; classes not in it are urgent).
     The bridge calls `offer` (paced) or `urgent` from its ROS callbacks and `take` / `sent` from its
-    one sender thread."""
+    one sender thread. `on_drop(rule, item)`, if given, is told of every frame a rule drops (under
+    the queue's lock: keep it short), so the bridge can count it per route."""
 
-    def __init__(self, ranks: Dict[str, int], now_s):
+    def __init__(self, ranks: Dict[str, int], now_s, on_drop=None):
         self.ranks = dict(ranks)
+        self.on_drop = on_drop
         self.pacer = Pacer(now_s)
         self.counters = QueueCounters()
         self.cond = threading.Condition()
@@ -152,6 +154,8 @@ class SendQueue:
     def _drop(self, rule, waiting):
         self.counters.dropped[rule] += 1
         self.counters.dropped_bytes[rule] += waiting.size_bytes
+        if self.on_drop is not None:
+            self.on_drop(rule, waiting.item)
 
     def set_link_up(self, up):
         """While the link is down nothing leaves; what waited when it went down is dropped."""

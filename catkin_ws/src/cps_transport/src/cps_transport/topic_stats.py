@@ -64,6 +64,11 @@ def compressed_image_dimensions(buffer):
     return jpeg_dimensions(view[offset : offset + n])
 
 
+# counters.csv / physical_counters.csv: a node's per-cloud ledger counter (cps_ros.cloud_ledger), from
+# its /diagnostics status, each time it changed (cps_experiments.ledger reads them back).
+COUNTER_COLUMNS = ("time_s", "node", "input_topic", "key", "value")
+
+
 # topic_stats' sliding window, s (its ~window_s).
 DEFAULT_WINDOW_S = 2.0
 
