@@ -233,6 +233,7 @@ def section(event_rows, state_rows, allocation_rows, times, totals, counters=Non
         over_before, n_before = windows_over(times, totals, capacity_mbytes, wall_s - STEP_SPAN_S, wall_s)
         over_after, n_after = windows_over(times, totals, capacity_mbytes, wall_s, wall_s + STEP_SPAN_S)
         after = budget(wall_s + STEP_SPAN_S)
+        soon = budget(wall_s + ESTIMATE_TARGET_S)
         steps.append(
             (
                 f"{mission_s:.1f}",
@@ -241,7 +242,8 @@ def section(event_rows, state_rows, allocation_rows, times, totals, counters=Non
                 f"{over_after} of {n_after}",
                 f"{new / 8.0:.3f}",
                 "-" if math.isnan(after) else f"{after:.2f}" + (" (above the capacity)" if after > new / 8.0 else ""),
-                f"{estimated / 8:.3f} ({estimated / new:.0%})" if math.isfinite(estimated) else "no estimate logged",
+                _of_capacity(soon, new, "no budget logged"),
+                _of_capacity(estimated / 8, new, "no estimate logged"),
                 _settle_text(settle),
             )
         )
@@ -261,6 +263,7 @@ def section(event_rows, state_rows, allocation_rows, times, totals, counters=Non
                     "after",
                     "capacity after, MB/s",
                     f"manager's budget {STEP_SPAN_S:.0f} s after, MB/s",
+                    f"manager's budget {ESTIMATE_TARGET_S:g} s after, MB/s (of the capacity)",
                     f"manager's capacity estimate {ESTIMATE_TARGET_S:g} s after, MB/s (of the true)",
                     f"estimate within ±{ESTIMATE_BAND:.0%} of the true capacity from",
                 ),
@@ -276,6 +279,13 @@ def section(event_rows, state_rows, allocation_rows, times, totals, counters=Non
 def _mission_start(event_rows):
     start = next(r for r in event_rows if r["event"] == "start")
     return csv_float(start["wall_time_s"]) - csv_float(start["mission_time_s"])
+
+
+def _of_capacity(mbytes_per_s, capacity_mbps, missing):
+    """`x.xxx (NN%)`: MB/s and its share of the capacity (Mbit/s); `missing` when not logged."""
+    if not math.isfinite(mbytes_per_s):
+        return missing
+    return f"{mbytes_per_s:.3f} ({mbytes_per_s / (capacity_mbps / 8.0):.0%})"
 
 
 def _settle_text(settle_s):
