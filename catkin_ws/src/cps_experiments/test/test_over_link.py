@@ -24,6 +24,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 LOAD = {"scout": (34000, 10.0), "jackal": (142000, 30.0), "champ": (60000, 30.0), "iris": (67000, 30.0)}
 RESERVE = 0.04
 PHASE_S = 8.0
+ESTIMATE_BAND, ESTIMATE_SETTLE_S = 0.15, 2.0  # issue 35: within +-15 % of the true capacity 2 s after a step
 
 
 def _capable():
@@ -210,12 +211,16 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
             )
 
     def during(t0, t1):
-        return [target for t, _, target, _, _, _ in trace if t0 <= t < t1]
+        return [(capacity, target, mode) for t, capacity, target, _, _, mode in trace if t0 <= t < t1]
 
-    low = during(marks["drop"] + 4.0, marks["rise"])
+    low = during(marks["drop"] + ESTIMATE_SETTLE_S, marks["rise"])
     high = during(marks["rise"], marks["rise"] + 8.0)
     assert low and high, manager_log[-2000:]
-    # Within 4 s of the drop the estimate is at or below the new capacity (plus its probing margin)
-    # and stays there; within 8 s of the recovery it is back near the full capacity.
-    assert all(v <= 24.0 for v in low), low
-    assert max(high) >= 45.0, high
+    # The issue's bar: from 2 s after the drop the estimate of the link (capacity_mbps) is within
+    # +-15 % of 20 Mbit/s and stays there. Out of a probe the manager allocates no more than that
+    # (estimate_mbps); a probe allocates above it on purpose, for at most probe_max_s (its target is
+    # gain x the capacity plus the fleet's unfilled gap: estimation.PROBE_GAP_FRACTION).
+    assert all(abs(capacity / 20.0 - 1.0) <= ESTIMATE_BAND for capacity, _, _ in low), low
+    assert all(target <= 20.0 * (1.0 + ESTIMATE_BAND) for _, target, mode in low if mode != "probe"), low
+    # Within 8 s of the recovery the estimate is back near the full capacity.
+    assert max(capacity for capacity, _, _ in high) >= 45.0, high
