@@ -333,6 +333,20 @@ kernel here has no netem: wifi_degraded's delay, jitter and loss are not applied
 """
 
 
+def _run_conditions(scenarios, args):
+    """When, from which commit, which runs: the live figures' conditions."""
+    import datetime
+    import subprocess
+
+    commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--untracked-files=no"], capture_output=True)
+    return (
+        f"\nRun {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC from commit "
+        f"{commit.stdout.strip() or 'unknown'}{' (with uncommitted changes)' if dirty.stdout.strip() else ''}; "
+        f"scenarios: {', '.join(scenarios)}; CPU hog runs: {'no' if args.no_hog else 'yes'}. One run each.\n"
+    )
+
+
 def live_main(args):
     from estimator_live import LIVE_SCENARIOS, run_live
 
@@ -343,7 +357,7 @@ def live_main(args):
     out = os.path.join(ROOT, "docs", "benchmarks", "estimator_live.md")
     if not args.no_write:
         with open(out, "w") as stream:
-            stream.write(LIVE_HEADER + text + "\n")
+            stream.write(LIVE_HEADER + _run_conditions(scenarios, args) + text + "\n")
         print(f"\nwritten: {out}")
     print("every live target held" if ok else "a live target was missed (see the tables)")
     return 0 if ok else 1
