@@ -351,13 +351,14 @@ def live_main(args):
     from estimator_live import LIVE_SCENARIOS, run_live
 
     scenarios = args.scenarios.split(",") if args.scenarios else LIVE_SCENARIOS
+    conditions = _run_conditions(scenarios, args)  # at the start: the commit that ran
     lines, ok = run_live(args.runs_dir, scenarios, hog_runs=not args.no_hog)
     text = "\n".join(lines)
     print(text)
     out = os.path.join(ROOT, "docs", "benchmarks", "estimator_live.md")
     if not args.no_write:
         with open(out, "w") as stream:
-            stream.write(LIVE_HEADER + _run_conditions(scenarios, args) + text + "\n")
+            stream.write(LIVE_HEADER + conditions + text + "\n")
         print(f"\nwritten: {out}")
     print("every live target held" if ok else "a live target was missed (see the tables)")
     return 0 if ok else 1
