@@ -115,3 +115,17 @@ def test_app_limited_when_the_sender_finds_nothing_while_it_could_send():
     assert q.app_limited_since_last(20.0)
     assert q.app_limited_since_last(21.0)  # still empty and allowed: an idle sender is app-limited
     assert q.waiting() == (0, 0)
+
+
+def test_every_frame_a_rule_drops_is_told_with_its_rule_for_the_routes_ledger():
+    told = []
+    q = SendQueue(RANKS, now_s=0.0, on_drop=lambda rule, item: told.append((rule, item)))
+    q.offer("data", "a", 100, "a1", 0.0)
+    q.offer("data", "a", 100, "a2", 0.1)  # supersedes a1
+    q.offer("video", "v", 100, "v1", 0.1, max_age_s=0.2)
+    assert _drain(q, 0.5) == ["a2"]  # v1 expired
+    q.offer("data", "b", 100, "b1", 0.6)
+    q.set_link_up(False)
+    assert told == [(SUPERSEDED, "a1"), (EXPIRED, "v1"), (LINK_DOWN, "b1")]
+    c = q.snapshot()
+    assert sum(c.dropped.values()) == len(told)
