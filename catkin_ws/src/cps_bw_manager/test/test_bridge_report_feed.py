@@ -242,7 +242,8 @@ def test_the_link_sockets_bytes_are_delivered_and_sent_and_all_but_the_managed_f
 def test_the_robots_socket_sent_and_acked_over_its_own_interval_and_its_fullness_make_link_limited():
     """With the robots' link socket's TCP_INFO, delivered is what the twin acknowledged over the
     robots' interval (one clock with what was sent), and a socket full in most samples is the
-    link being the limit (the sender's time in Zenoh's put is not: the GIL is in it)."""
+    link being the limit (the sender's time in Zenoh's put is not: the GIL is in it); only a socket
+    full over (nearly) the whole interval makes what it delivered the link's rate."""
     core = _core()
     kbytes = 1000
     # the twin's own interval (0.8 s) and frame counts are noise here: sent and acked are the robots'
@@ -271,6 +272,20 @@ def test_the_robots_socket_sent_and_acked_over_its_own_interval_and_its_fullness
         sent_link_bytes=310 * kbytes,
         acked_link_bytes=300 * kbytes,
         sender_socket_full=0.8,
+    )
+    # full in 80 % of its samples: busy, but the interval's acked rate counts its empty part too
+    assert core.estimator.overuses == 0
+    core.on_bridge_report(
+        2.0,
+        0.5,
+        0.5,
+        300 * kbytes,
+        0,
+        300 * kbytes,
+        False,
+        sent_link_bytes=310 * kbytes,
+        acked_link_bytes=300 * kbytes,
+        sender_socket_full=1.0,
     )
     assert core.estimator.last_overuse == "link_full"
     assert core.estimator.capacity_mbps == pytest.approx(300 * kbytes * 8e-6 / 0.5)
