@@ -11,6 +11,7 @@ import synthetic_scene as sc
 from geometry_msgs.msg import Point
 from std_msgs.msg import Header
 
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_mapping import map_messages
 from cps_mapping.change_detection import Change
@@ -26,6 +27,11 @@ JACKAL_POSE = (np.array([-1.0, 2.0, 0.5]), sc.rotation_z(0.0) @ sc.OPTICAL_TO_BO
 STAMP = genpy.Time(100, 0)
 
 
+def managed(robot):
+    """A robot's managed cloud topic as the twin receives it."""
+    return names.absolute(names.managed_cloud_at_twin(robot))
+
+
 @pytest.fixture(scope="module")
 def jackal_points():
     """One depth cloud of the synthetic hall in jackal's optical frame."""
@@ -34,11 +40,13 @@ def jackal_points():
 
 
 class Published:
-    """MapOutputs whose publish callables keep every message, per output."""
+    """MapOutputs whose publish callables keep every message, per output ((robot, cloud) for points)."""
 
     def __init__(self):
         self.messages = {name: [] for name in MapOutputs.__dataclass_fields__ if name != "full_wanted"}
-        self.outputs = MapOutputs(**{name: self.messages[name].append for name in self.messages})
+        calls = {name: self.messages[name].append for name in self.messages}
+        calls["points"] = lambda robot, cloud: self.messages["points"].append((robot, cloud))
+        self.outputs = MapOutputs(**calls)
 
 
 def _transform_of(frame, _stamp):
@@ -61,10 +69,19 @@ def _cloud(points, frame=JACKAL_FRAME):
     return array_to_cloud({"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}, header=Header(stamp=STAMP, frame_id=frame))
 
 
+def drain(server):
+    """Let the insertion take every waiting cloud (inserted or dropped); how many were inserted."""
+    inserted = 0
+    while any(server.slots.length(r) for r in server.robots):
+        inserted += server.insert_pending(timeout_s=0.05)
+    return inserted
+
+
 def test_a_cloud_is_inserted_as_the_library_inserts_it(jackal_points):
-    server, _ = _server()
+    server, published = _server()
     server.receive_cloud("jackal", _cloud(jackal_points))
     assert server.insert_pending(timeout_s=0) == 1
+    assert [robot for robot, _ in published["points"]] == ["jackal"], "the inserted cloud, for displays"
     reference = type(server.map).from_mapping_config(FLEET.mapping)
     in_map = jackal_points @ JACKAL_POSE[1].T + JACKAL_POSE[0]
     reference.insert_cloud(
@@ -77,17 +94,23 @@ def test_a_cloud_is_inserted_as_the_library_inserts_it(jackal_points):
 
 
 def test_bad_clouds_are_counted_and_never_reach_the_map(jackal_points):
-    server, _ = _server(queue_size=1)
-    server.receive_cloud("jackal", _cloud(jackal_points, frame=""))  # no frame
-    server.receive_cloud("jackal", _cloud(np.full((10, 3), np.nan)))  # all NaN
+    server, _ = _server(tf_timeout_s=0.0)
+    for bad in (
+        _cloud(jackal_points, frame=""),  # no frame
+        _cloud(np.full((10, 3), np.nan)),  # all NaN
+    ):
+        server.receive_cloud("jackal", bad)
+        assert drain(server) == 0
     server.receive_cloud("scout", _cloud(jackal_points, frame="scout/lidar"))  # no transform
     server.receive_cloud("jackal", _cloud(np.vstack([jackal_points, [[1e9, 0, 0]]])))  # one absurd point
-    server.receive_cloud("jackal", _cloud(jackal_points))  # slot of 1: supersedes the one before
+    server.receive_cloud("jackal", _cloud(jackal_points))  # the slot keeps the newest: supersedes the one before
     jackal, scout = server.counters["jackal"], server.counters["scout"]
-    assert (jackal.clouds_received, jackal.clouds_dropped_invalid, jackal.points_rejected) == (4, 2, 1)
-    assert (jackal.clouds_superseded, jackal.clouds_dropped_queue, scout.clouds_dropped_tf) == (1, 0, 1)
+    assert (jackal.clouds_received, jackal.clouds_dropped_invalid, jackal.clouds_superseded) == (4, 2, 1)
     assert server.map.version == 0
-    assert server.insert_pending(timeout_s=0) == 1 and server.counters["jackal"].clouds_inserted == 1
+    assert drain(server) == 1 and server.counters["jackal"].clouds_inserted == 1
+    assert (scout.clouds_dropped_tf, jackal.points_rejected, jackal.clouds_dropped_queue) == (1, 0, 0)
+    for c in (jackal, scout):
+        assert c.clouds_accounted == c.clouds_received
 
 
 def test_robots_not_in_the_fleet_are_logged_and_ignored(caplog):
@@ -105,9 +128,11 @@ def test_unknown_robot_topics_are_warned_about_once(caplog):
     server, _ = _server()
     with caplog.at_level(logging.WARNING):
         for _ in range(2):
-            server.notice_topics(["/twin/ghost/points", "/twin/jackal/points", "/other/x/points"], "/twin/")
+            server.notice_topics(
+                [managed("ghost"), managed("jackal"), "/other/x/points_filtered/draco/managed"], "/twin/"
+            )
     assert server.unknown_robots == {"ghost"}
-    assert caplog.text.count("/twin/ghost/points is published but robot 'ghost' is not mapped") == 1
+    assert caplog.text.count(f"{managed('ghost')} is published but robot 'ghost' is not mapped") == 1
 
 
 def test_map_topics_are_published_once_per_map_version(jackal_points):
