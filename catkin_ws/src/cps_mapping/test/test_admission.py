@@ -53,10 +53,11 @@ def test_a_superseded_cloud_is_never_decoded(jackal_points):
     server.decoder = counting = CountingDecoder(server.decoder)
     for secs in range(100, 110):
         server.receive_cloud("jackal", _as_received(_compressed(jackal_points, secs, seq=secs)))
-    c = server.counters["jackal"]
+    c = server.robot_counters("jackal")
     assert (c.clouds_received, c.clouds_superseded, counting.calls) == (10, 9, 0), "admission decodes nothing"
-    assert server.slots.length("jackal") == 1
+    assert server.admission.slots.length("jackal") == 1
     assert server.insert_pending(timeout_s=0) == 1
+    c = server.robot_counters("jackal")
     assert counting.calls == 1 and c.clouds_inserted == 1 and c.newest_inserted_stamp_s == 109.0
 
 
@@ -87,20 +88,22 @@ def test_a_cloud_whose_transform_is_late_waits_in_its_slot_and_the_insertion_ser
         return JACKAL_POSE[1], JACKAL_POSE[0]
 
     server, _ = _server(robots=("jackal", "scout"), tf_timeout_s=5.0)
-    server._transform_of = transform_of
+    server.admission.transform_of = transform_of
     server.receive_cloud("jackal", _cloud(jackal_points))
-    assert server.insert_pending(timeout_s=0) == 0 and server.slots.length("jackal") == 1, "deferred, not dropped"
+    assert server.insert_pending(timeout_s=0) == 0 and server.admission.slots.length("jackal") == 1, (
+        "deferred, not dropped"
+    )
     assert server.insert_pending(timeout_s=0) == 0, "not ready again at once: no busy loop"
     known[JACKAL_FRAME] = True
     assert server.insert_pending(timeout_s=1.0) == 1
-    c = server.counters["jackal"]
+    c = server.robot_counters("jackal")
     assert (c.clouds_inserted, c.clouds_dropped_tf, c.clouds_superseded) == (1, 0, 0)
     # A newer cloud that arrives while the older one waits for its transform supersedes it.
     known[JACKAL_FRAME] = False
     server.receive_cloud("jackal", _cloud(jackal_points))
     server.insert_pending(timeout_s=0)
     server.receive_cloud("jackal", _cloud(jackal_points))
-    assert c.clouds_superseded == 1 and server.slots.length("jackal") == 1
+    assert server.robot_counters("jackal").clouds_superseded == 1 and server.admission.slots.length("jackal") == 1
 
 
 def test_backfill_keyframes_wait_in_their_own_fifo_behind_live_clouds(jackal_points):
@@ -128,13 +131,14 @@ def test_every_cloud_ends_in_one_counter_and_gaps_in_a_senders_numbers_are_misse
         server.receive_cloud("jackal", _as_received(msg))
         if msg.header.seq in (1, 5, 20, 21, 22):  # the insertion keeps up now and then
             drain(server)
-    waiting = server.slots.length("jackal")
-    c = server.counters["jackal"]
+    waiting = server.admission.slots.length("jackal")
+    c = server.robot_counters("jackal")
     assert c.clouds_received == len(stream) and c.clouds_missed == 2 + 14
     assert (c.clouds_dropped_decoder, c.clouds_dropped_tf, c.clouds_dropped_invalid) == (1, 1, 1)
     assert c.clouds_inserted == 2 and c.clouds_superseded == 2 and waiting == 1
     assert c.clouds_accounted + waiting == c.clouds_received
     drain(server)
+    c = server.robot_counters("jackal")
     assert c.clouds_accounted == c.clouds_received and c.clouds_inserted == 3
 
 
@@ -145,15 +149,15 @@ def test_bytes_of_another_type_are_dropped_by_the_decoder_cause(jackal_points):
     raw = _as_received(String(data="not a cloud"))
     server.receive_cloud("jackal", raw)
     drain(server)
-    assert server.counters["jackal"].clouds_dropped_decoder == 1
+    assert server.robot_counters("jackal").clouds_dropped_decoder == 1
     raw._connection_header = {}  # no type announced: read as the input's type, and it does not deserialize
     server.receive_cloud("jackal", raw)
     drain(server)
-    assert server.counters["jackal"].clouds_dropped_decoder == 2
+    assert server.robot_counters("jackal").clouds_dropped_decoder == 2
 
 
 def test_a_raw_cloud_arrives_and_is_inserted_as_a_compressed_one_is(jackal_points):
     server, _ = _server(robots=("jackal",))
     server.receive_cloud("jackal", _as_received(_cloud(jackal_points)))
     assert server.insert_pending(timeout_s=0) == 1
-    assert len(server.map.occupied_index()) > 0 and server.counters["jackal"].insertion_ms_avg > 0
+    assert len(server.map.occupied_index()) > 0 and server.robot_counters("jackal").insertion_ms_avg > 0

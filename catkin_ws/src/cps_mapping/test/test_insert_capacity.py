@@ -4,6 +4,7 @@ thread's CPU time; the map's snapshots and saves are built outside the map lock.
 import time
 
 import genpy
+import numpy as np
 import pytest
 import test_map_server_library as library
 from test_map_server_library import _cloud, _server
@@ -29,9 +30,9 @@ def test_a_newer_cloud_supersedes_the_waiting_one_and_the_capacity_counts_the_in
     server, published = _server(robots=("jackal",))
     for secs in (100, 101, 102):
         server.receive_cloud("jackal", _stamped(jackal_points, secs))
-    assert server.slots.length("jackal") == 1
+    assert server.admission.slots.length("jackal") == 1
     assert server.insert_pending(timeout_s=0) == 1
-    c = server.counters["jackal"]
+    c = server.robot_counters("jackal")
     assert (c.clouds_received, c.clouds_inserted, c.clouds_superseded, c.clouds_dropped_queue) == (3, 1, 2, 0)
     assert c.newest_inserted_stamp_s == 102.0
     server.publish_capacity(genpy.Time(200, 0))
@@ -55,7 +56,7 @@ def test_the_capacity_is_cpu_time_waiting_is_not_work(jackal_points):
         return library._transform_of(frame, stamp)
 
     server, published = _server(robots=("jackal",))
-    server._transform_of = slow_transform
+    server.admission.transform_of = slow_transform
     server.receive_cloud("jackal", _stamped(jackal_points, 100))
     wall_start = time.perf_counter()
     assert server.insert_pending(timeout_s=0) == 1
@@ -63,29 +64,34 @@ def test_the_capacity_is_cpu_time_waiting_is_not_work(jackal_points):
     server.publish_capacity(genpy.Time(200, 0))
     (capacity,) = published["capacity"]
     assert 0 < capacity.busy_s < wait_s / 2, capacity.busy_s
-    assert server.counters["jackal"].insertion_ms_max < wait_s / 2 * 1e3
+    assert server.robot_counters("jackal").insertion_ms_max < wait_s / 2 * 1e3
 
 
 def test_lost_clouds_are_counted_as_dropped_not_superseded(jackal_points):
     server, published = _server(tf_timeout_s=0.0)
     server.receive_cloud("scout", _cloud(jackal_points, frame="scout/lidar"))  # no transform: lost
     server.insert_pending(timeout_s=0)
+    server.receive_cloud("jackal", _cloud(np.full((10, 3), np.nan)))  # placed, then refused by the insertion
+    server.insert_pending(timeout_s=0)
     server.publish_capacity(genpy.Time(200, 0))
-    assert (published["capacity"][0].dropped, published["capacity"][0].superseded) == (1, 0)
-    assert published["capacity"][0].busy_s > 0, "what a lost cloud cost counts in the busy time"
+    assert (published["capacity"][0].dropped, published["capacity"][0].superseded) == (2, 0)
+    assert published["capacity"][0].busy_s > 0, "what a cloud the insertion refused cost counts in the busy time"
 
 
 def test_the_meter_forgets_what_left_its_window():
     now = [0.0]
-    meter = InsertionMeter(window_s=10.0, budget_fraction=0.5, clock=lambda: now[0])
+    superseded = [0]
+    meter = InsertionMeter(window_s=10.0, budget_fraction=0.5, clock=lambda: now[0], totals=lambda: (superseded[0], 0))
     meter.inserted(clouds=2, points=1000, voxel_updates=50_000, cpu_s=0.08)
     meter.spent(0.02)  # a cloud that could not be inserted
-    meter.superseded(3)
+    superseded[0] = 3
+    now[0] = 1.0
     figures = meter.figures()
     assert figures["clouds_per_s"] == pytest.approx(10.0) and figures["voxel_updates_per_s"] == pytest.approx(250_000)
     assert figures["superseded"] == 3 and figures["busy_s"] == pytest.approx(0.1)
-    now[0] = 10.5
+    now[0] = 11.5  # the insertions at 0 s and the supersessions seen at 1 s are older than the window
     assert meter.figures()["clouds_inserted"] == 0 and meter.figures()["clouds_per_s"] == 0.0
+    assert meter.figures()["superseded"] == 0
 
 
 def test_snapshots_and_saves_are_built_outside_the_map_lock(jackal_points, tmp_path, monkeypatch):

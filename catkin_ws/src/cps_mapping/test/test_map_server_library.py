@@ -72,7 +72,7 @@ def _cloud(points, frame=JACKAL_FRAME):
 def drain(server):
     """Let the insertion take every waiting cloud (inserted or dropped); how many were inserted."""
     inserted = 0
-    while any(server.slots.length(r) for r in server.robots):
+    while any(server.admission.slots.length(r) for r in server.robots):
         inserted += server.insert_pending(timeout_s=0.05)
     return inserted
 
@@ -88,7 +88,7 @@ def test_a_cloud_is_inserted_as_the_library_inserts_it(jackal_points):
         in_map, JACKAL_POSE[0], max_range_m=FLEET.mapping.max_range_m["wheeled_depth"], robot="jackal"
     )
     assert np.array_equal(server.map.occupied_index(), reference.occupied_index())
-    c = server.counters["jackal"]
+    c = server.robot_counters("jackal")
     assert (c.clouds_received, c.clouds_inserted, c.batches) == (1, 1, 1)
     assert c.points_inserted == len(jackal_points) and c.newest_inserted_stamp_s == STAMP.to_sec()
 
@@ -104,10 +104,12 @@ def test_bad_clouds_are_counted_and_never_reach_the_map(jackal_points):
     server.receive_cloud("scout", _cloud(jackal_points, frame="scout/lidar"))  # no transform
     server.receive_cloud("jackal", _cloud(np.vstack([jackal_points, [[1e9, 0, 0]]])))  # one absurd point
     server.receive_cloud("jackal", _cloud(jackal_points))  # the slot keeps the newest: supersedes the one before
-    jackal, scout = server.counters["jackal"], server.counters["scout"]
+    jackal, scout = server.robot_counters("jackal"), server.robot_counters("scout")
     assert (jackal.clouds_received, jackal.clouds_dropped_invalid, jackal.clouds_superseded) == (4, 2, 1)
     assert server.map.version == 0
-    assert drain(server) == 1 and server.counters["jackal"].clouds_inserted == 1
+    assert drain(server) == 1
+    jackal, scout = server.robot_counters("jackal"), server.robot_counters("scout")
+    assert jackal.clouds_inserted == 1
     assert (scout.clouds_dropped_tf, jackal.points_rejected, jackal.clouds_dropped_queue) == (1, 0, 0)
     for c in (jackal, scout):
         assert c.clouds_accounted == c.clouds_received

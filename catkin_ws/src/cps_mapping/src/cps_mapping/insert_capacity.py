@@ -40,13 +40,15 @@ def voxel_updates_of(fused_map) -> Optional[int]:
 class InsertionMeter:
     """Insertions, superseded and dropped clouds over a sliding window; thread-safe."""
 
-    def __init__(self, window_s=CAPACITY_WINDOW_S, budget_fraction=1.0, clock=time.monotonic):
+    def __init__(self, window_s=CAPACITY_WINDOW_S, budget_fraction=1.0, clock=time.monotonic, totals=None):
+        """`totals()`: (clouds superseded, clouds dropped) so far, counted where they happen (the
+        receive side, the insertion); the window's share is read from them at each `figures`."""
         if window_s <= 0 or not 0 < budget_fraction <= 1:
             raise ValueError(f"window_s {window_s} must be > 0 and budget_fraction {budget_fraction} in (0, 1]")
         self.window_s, self.budget_fraction, self.clock = window_s, budget_fraction, clock
         self._insertions = collections.deque()  # (t, clouds, points, voxel_updates, cpu_s)
-        self._superseded = collections.deque()  # (t, n)
-        self._dropped = collections.deque()
+        self._totals = totals or (lambda: (0, 0))
+        self._samples = collections.deque([(clock(), 0, 0)])  # (t, superseded, dropped so far), one per figures()
         self._lock = threading.Lock()
 
     def inserted(self, clouds, points, voxel_updates, cpu_s):
@@ -59,30 +61,25 @@ class InsertionMeter:
         transform): part of the cost of what it inserts."""
         self.inserted(0, 0, 0, cpu_s)
 
-    def superseded(self, n=1):
-        with self._lock:
-            self._superseded.append((self.clock(), n))
-
-    def dropped(self, n=1):
-        with self._lock:
-            self._dropped.append((self.clock(), n))
-
     def _trim(self, now):
-        for queue in (self._insertions, self._superseded, self._dropped):
-            while queue and queue[0][0] < now - self.window_s:
-                queue.popleft()
+        while self._insertions and self._insertions[0][0] < now - self.window_s:
+            self._insertions.popleft()
+        while len(self._samples) > 1 and self._samples[1][0] <= now - self.window_s:
+            self._samples.popleft()  # the oldest totals left are the window's start
 
     def figures(self):
         """The window's InsertCapacity fields (capacity 0 before the first insertion)."""
+        superseded_total, dropped_total = self._totals()
         with self._lock:
             now = self.clock()
+            self._samples.append((now, superseded_total, dropped_total))
             self._trim(now)
             clouds = sum(i[1] for i in self._insertions)
             points = sum(i[2] for i in self._insertions)
             updates = sum(i[3] for i in self._insertions)
             busy_s = sum(i[4] for i in self._insertions)
-            superseded = sum(n for _, n in self._superseded)
-            dropped = sum(n for _, n in self._dropped)
+            superseded = superseded_total - self._samples[0][1]
+            dropped = dropped_total - self._samples[0][2]
         rate = self.budget_fraction / busy_s if busy_s > 0 else 0.0
         return dict(
             window_s=self.window_s,

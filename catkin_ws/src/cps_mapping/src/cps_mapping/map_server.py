@@ -1,15 +1,14 @@
 """The multi-robot map server (paper 2.3.1, Fig. 6) without the ROS plumbing.
 
-Admission before work (issue 37): `receive_cloud` only counts a robot's cloud and holds it as it
-arrived (still Draco-compressed, even still serialized) in the robot's latest-only slot
-(`cps_mapping.queues`); a newer cloud supersedes it at the cost of a pointer swap. Whoever calls
-`insert_pending` (the node's insertion thread) takes one cloud at a time, the robot whose map is
-oldest first, and only then pays for it: deserialising, Draco decoding, the transform (an injected
-lookup that never waits: a cloud whose transform is not known yet goes back to its slot),
-preparation and insertion into one FusedLogOddsMap, all timed in the thread's CPU time. Every
-cloud ends in exactly one counter: inserted, superseded, or dropped by cause (decoder, tf,
-invalid, queue), or it still waits; gaps in a sender's sequence numbers count the clouds lost
-before they arrived. `publish_*` build the messages from a copy of the map taken in milliseconds
+Admission before work (issue 37): the receive side (`cps_mapping.admission`: in the node its own
+process) only counts a robot's cloud and holds it as it arrived (still Draco-compressed, even still
+serialized) in the robot's latest-only slot; a newer cloud supersedes it at the cost of a pointer
+swap. Whoever calls `insert_pending` (the node's insertion thread) takes one cloud at a time, the
+robot whose map is oldest first, placed by the admission's transform lookup (which never waits),
+and only then pays for it: Draco decoding, checks, preparation and insertion into one
+FusedLogOddsMap, timed in the thread's CPU time. Every cloud ends in exactly one counter: inserted,
+superseded, or dropped by cause (decoder, tf, invalid, queue), or it still waits; gaps in a
+sender's sequence numbers count the clouds lost before they arrived. `publish_*` build the messages from a copy of the map taken in milliseconds
 under the map lock (insertion goes on while they are built) and hand them to injected publish
 callables; the `on_*` service handlers take and return cps_msgs/std_srvs types. The node wires
 this to rospy; the tests drive it directly.
@@ -29,6 +28,7 @@ from std_srvs.srv import EmptyResponse
 
 from cps_fleet import names
 from cps_mapping import map_messages
+from cps_mapping.admission import Admission, PlacedCloud, TransformUnavailable, merged_counts
 from cps_mapping.baseline import BaselineError, load_baseline, read_map_trails, write_map_metadata
 from cps_mapping.change_attention import ATTENTION_RADIUS_M
 from cps_mapping.change_detection import (
@@ -41,19 +41,12 @@ from cps_mapping.change_detection import (
     write_report,
 )
 from cps_mapping.change_tracking import ChangeTracker
-from cps_mapping.cloud_input import (
-    InvalidInput,
-    UnreadableMessage,
-    prepare_cloud,
-    read_leaf,
-    read_message,
-    sender_sequence,
-)
+from cps_mapping.cloud_input import InvalidInput, prepare_cloud, read_leaf
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
 from cps_mapping.insert_capacity import InsertionBudget, InsertionMeter, voxel_updates_of
 from cps_mapping.markers import occupied_cells_markers
-from cps_mapping.queues import Arrival, RobotSlots
 from cps_mapping.robot_bodies import RobotTrails, SweptVolume, fleet_bodies
+from cps_mapping.throttled_log import ThrottledLog
 from cps_msgs.msg import CompressedPointCloud2
 from cps_msgs.srv import BoundingBoxQueryResponse, LoadMapResponse, SaveMapResponse
 from cps_transport.draco import DracoDecoder, DracoError
@@ -61,8 +54,8 @@ from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 
 _WARN_EVERY_S = 5.0
 _FRAME_WARN_EVERY_S = 30.0
-# A cloud whose transform is not known yet is tried again after this long (tf arrives at tens of Hz).
-TF_RETRY_S = 0.01
+_LEAF_WARN_EVERY_S = 300.0  # every cloud of a fleet without levels: not a line per robot every 5 s
+__all__ = ["MapOutputs", "MapServer", "MapServerOptions", "RobotCounters", "TransformUnavailable"]
 
 
 def _option(default, meaning, unit="", **bounds):
@@ -148,7 +141,8 @@ class MapServerOptions:
 
 @dataclasses.dataclass
 class RobotCounters:
-    """What RobotMapStats reports for one robot."""
+    """What RobotMapStats reports for one robot (`MapServer.robot_counters`: the admission counts,
+    kept by the slots, with what the insertion counted)."""
 
     clouds_received: int = 0
     clouds_inserted: int = 0
@@ -171,6 +165,16 @@ class RobotCounters:
     @property
     def insertion_ms_avg(self):
         return self.insertion_ms_total / self.batches if self.batches else 0.0
+
+    @property
+    def clouds_dropped(self):
+        """Lost, every cause (superseded is not lost; missed never arrived)."""
+        return (
+            self.clouds_dropped_queue
+            + self.clouds_dropped_tf
+            + self.clouds_dropped_invalid
+            + self.clouds_dropped_decoder
+        )
 
     @property
     def clouds_accounted(self):
@@ -225,10 +229,6 @@ class MapOutputs:
     points: Optional[Callable] = None
 
 
-class TransformUnavailable(Exception):
-    """No transform fixed frame <- cloud frame at the cloud's stamp."""
-
-
 class MapServer:
     """The fused map, the per-robot queues and counters, and what the node's callbacks do."""
 
@@ -237,11 +237,15 @@ class MapServer:
         fleet,
         options: MapServerOptions,
         outputs: MapOutputs,
-        transform_of: Callable,
+        transform_of: Optional[Callable],
         log: logging.Logger = logging.getLogger(__name__),
+        admission: Optional[Callable] = None,
     ):
         """`fleet`: cps_fleet's FleetConfig. `transform_of(frame, stamp)` -> (3x3 rotation, translation)
-        of `frame` in `options.frame_id`, or raises TransformUnavailable. ValueError for bad options."""
+        of `frame` in `options.frame_id`, or raises TransformUnavailable, never waiting: the lookup
+        of the receive side made here (`admission` None). `admission(robots)`: makes a receive side
+        of the same interface that runs elsewhere (the node's receive process,
+        cps_mapping.admission_process). ValueError for bad options."""
         self.options, self.outputs, self.log = options, outputs, log
         self._transform_of = transform_of
         if options.map_file and os.path.splitext(options.map_file)[1].lower() not in (".bt", ".ot"):
@@ -271,16 +275,20 @@ class MapServer:
         self._map_lock = threading.Lock()
         self._save_lock = threading.Lock()  # one save (map and sidecars) at a time
         self._counters_lock = threading.Lock()
-        self.counters = {r: RobotCounters() for r in self.robots}
-        self.slots = RobotSlots(self.robots)
+        self.counters = {r: RobotCounters() for r in self.robots}  # the insertion's; the admission's apart
+        self.admission = (
+            admission(self.robots)
+            if admission is not None
+            else Admission(self.robots, transform_of, options.tf_timeout_s, options.frame_id, log)
+        )
         self.decoder = DracoDecoder()  # the insertion thread's: only it decodes
-        self._sequences = {}  # (robot, backfill, publisher) -> last header.seq received
-        self.meter = InsertionMeter(options.capacity_window_s, options.insertion_budget_fraction)
+        self.latest_poses = {}  # sensor frame -> (rotation, translation) of its robot's last inserted cloud
+        self.meter = InsertionMeter(options.capacity_window_s, options.insertion_budget_fraction, totals=self._totals)
         self.budget = InsertionBudget(options.insertion_budget_fraction)
         self.snapshot: Optional[MapSnapshot] = None
         self._full_version = None  # the map version octomap_full last carried
         self.unknown_robots = set()
-        self._last_warned = {}
+        self._throttled = ThrottledLog(log)
         self._resume()
 
     def _select_robots(self, fleet, wanted: Sequence[str]):
@@ -308,19 +316,28 @@ class MapServer:
 
     def _warn(self, key, period_s, message, level=logging.WARNING):
         """Log `message` unless the same `key` was logged within `period_s`."""
-        now = time.monotonic()
-        if now - self._last_warned.get(key, -math.inf) >= period_s:
-            self._last_warned[key] = now
-            self.log.log(level, message)
+        self._throttled.warn(key, message, period_s, level)
+
+    def robot_counters(self, robot, admitted=None) -> RobotCounters:
+        """A copy of the robot's counters: the admission's (from `admitted`, an AdmissionCounters,
+        or asked for) and the insertion's, a cause both count summed."""
+        admitted = admitted if admitted is not None else self.admission.snapshot()[robot][0]
+        with self._counters_lock:
+            mine = self.counters[robot]
+            both = merged_counts(admitted, **{f: getattr(mine, f) for f in vars(admitted) if hasattr(mine, f)})
+            return dataclasses.replace(mine, **both)
+
+    def _totals(self):
+        """(superseded, dropped) so far, every robot and both sides (InsertCapacity's window)."""
+        admitted = self.admission.snapshot()
+        rows = [self.robot_counters(r, admitted[r][0]) for r in self.robots]
+        return sum(c.clouds_superseded for c in rows), sum(c.clouds_dropped for c in rows)
 
     def _count(self, robot, **amounts):
         with self._counters_lock:
             counters = self.counters[robot]
             for field, amount in amounts.items():
                 setattr(counters, field, getattr(counters, field) + amount)
-        lost = sum(amount for field, amount in amounts.items() if field.startswith("clouds_dropped"))
-        if lost:
-            self.meter.dropped(lost)
 
     # ---- persistence ---------------------------------------------------------------------------
 
@@ -363,7 +380,7 @@ class MapServer:
 
     def shutdown(self):
         """Stop the insertion and save to `map_file`, if set."""
-        self.slots.close()
+        self.admission.close()
         if self.options.map_file:
             try:
                 path = self._save(self.options.map_file)
@@ -374,36 +391,12 @@ class MapServer:
     # ---- input ---------------------------------------------------------------------------------
 
     def receive_cloud(self, robot, msg, backfill=False):
-        """Admission: count a robot's cloud and hold it as it arrived (a rospy.AnyMsg of a
+        """Admission (in this process): hold a robot's cloud as it arrived (a rospy.AnyMsg of a
         CompressedPointCloud2 or PointCloud2, or such a message) in its slot; nothing is decoded
         or checked here. A cloud it replaces is counted superseded; a gap in the sender's sequence
         numbers, as missed. `backfill`: a keyframe sent after a link outage (its own FIFO, served
         when no live cloud is ready). Never raises."""
-        self._count(robot, clouds_received=1)
-        self._note_sequence(robot, backfill, msg)
-        displaced = self.slots.put(Arrival(robot, msg, time.monotonic(), backfill))
-        if displaced is None:
-            return
-        if displaced.backfill:
-            self._count(robot, clouds_dropped_queue=1)
-            self._warn(
-                ("backfill", robot),
-                _WARN_EVERY_S,
-                f"map_server: {robot}: more than {self.slots.backfill_kept} backfill keyframes waiting, the oldest dropped",
-            )
-        else:
-            self._count(robot, clouds_superseded=1)
-            self.meter.superseded()
-
-    def _note_sequence(self, robot, backfill, msg):
-        sequence = sender_sequence(msg)
-        if sequence is None:
-            return
-        key = (robot, backfill, sequence[0])
-        last = self._sequences.get(key)
-        self._sequences[key] = sequence[1]
-        if last is not None and sequence[1] > last + 1:  # lower or equal: the sender restarted
-            self._count(robot, clouds_missed=sequence[1] - last - 1)
+        self.admission.receive(robot, msg, backfill)
 
     def notice_topics(self, topics: Sequence[str], namespace: str):
         """Warn once per robot whose managed cloud (`<namespace>/<robot>/points_filtered/draco/managed`)
@@ -425,19 +418,19 @@ class MapServer:
         pause_s = self.budget.wait_s()
         if pause_s > 0:
             time.sleep(pause_s)  # the insertion thread yields its core for the rest of the cycle
-        arrival = self.slots.take(timeout_s=timeout_s)
-        if arrival is None:
+        cpu_start = time.thread_time()  # waiting below costs no CPU; placing a cloud here does
+        placed = self.admission.next_cloud(timeout_s=timeout_s)
+        if placed is None:
             return 0
-        cpu_start = time.thread_time()
         try:
-            inserted = self._insert(arrival)
+            inserted = self._insert(placed)
         except Exception as exc:  # a bug here must not stop the map; say it loudly
             inserted = None
-            self._count(arrival.robot, clouds_dropped_invalid=1)
+            self._count(placed.robot, clouds_dropped_invalid=1)
             self._warn(
-                ("unexpected", arrival.robot),
+                ("unexpected", placed.robot),
                 _WARN_EVERY_S,
-                f"map_server: {arrival.robot}: cloud dropped, unexpected {type(exc).__name__}: {exc}",
+                f"map_server: {placed.robot}: cloud dropped, unexpected {type(exc).__name__}: {exc}",
                 logging.ERROR,
             )
         cpu_s = time.thread_time() - cpu_start
@@ -447,9 +440,8 @@ class MapServer:
             return 0
         points, updates, stamp_s = inserted
         self.meter.inserted(1, points, updates, cpu_s)
-        self.slots.served(arrival.robot, stamp_s)
         with self._counters_lock:
-            c = self.counters[arrival.robot]
+            c = self.counters[placed.robot]
             c.clouds_inserted += 1
             c.points_inserted += points
             c.batches += 1
@@ -462,33 +454,12 @@ class MapServer:
         self._count(robot, **{cause: 1})
         self._warn((key, robot), _WARN_EVERY_S, f"map_server: {robot}: {message}", level)
 
-    def _insert(self, arrival: Arrival):
-        """Open, place, decode, check and insert one taken cloud: (points inserted, voxel updates,
-        stamp s), or None when it went back to its slot or was dropped (counted by cause)."""
-        robot = arrival.robot
-        try:
-            msg = arrival.opened or read_message(arrival.message)
-        except UnreadableMessage as exc:
-            return self._drop(robot, "clouds_dropped_decoder", "unreadable", f"unreadable cloud dropped: {exc}")
-        arrival.opened = msg
+    def _insert(self, placed: PlacedCloud):
+        """Decode, check and insert one placed cloud: (points inserted, voxel updates, stamp s), or
+        None when it was dropped (counted by cause)."""
+        robot, msg = placed.robot, placed.message
         frame = msg.header.frame_id.lstrip("/")
-        if not frame:
-            return self._drop(robot, "clouds_dropped_invalid", "frame", "cloud without frame_id dropped")
-        try:
-            rotation, translation = self._transform_of(frame, msg.header.stamp)
-        except TransformUnavailable as exc:
-            if time.monotonic() - arrival.arrived_s < self.options.tf_timeout_s:
-                if not self.slots.defer(arrival, TF_RETRY_S):  # a newer cloud took its place meanwhile
-                    self._count(robot, clouds_superseded=1)
-                    self.meter.superseded()
-                return None
-            return self._drop(
-                robot,
-                "clouds_dropped_tf",
-                "tf",
-                f"no transform {self.options.frame_id} <- '{frame}' at {msg.header.stamp.to_sec():.3f} within "
-                f"{self.options.tf_timeout_s} s of its arrival, cloud dropped: {exc}",
-            )
+        rotation, translation = placed.rotation, placed.translation_m
         if isinstance(msg, CompressedPointCloud2):
             try:
                 msg = self.decoder.decode(msg)
@@ -513,7 +484,7 @@ class MapServer:
             self._count(robot, **{"clouds_bad_leaf" if leaf_problem else "clouds_without_leaf": 1})
             self._warn(
                 ("leaf", robot),
-                _WARN_EVERY_S,
+                _LEAF_WARN_EVERY_S,
                 f"map_server: {robot}: cloud {'with a bad leaf (' + leaf_problem + ')' if leaf_problem else 'without a leaf'}"
                 f" inserted at the map's resolution as it is",
             )
@@ -542,6 +513,7 @@ class MapServer:
                 updates_after = voxel_updates_of(self.map)
         except ValueError as exc:  # a cloud that would grow the grid beyond its bound
             return self._drop(robot, "clouds_dropped_invalid", "insertion", f"cloud not inserted: {exc}", logging.ERROR)
+        self.latest_poses[frame] = (rotation, translation)
         if self.outputs.points is not None:
             try:
                 self.outputs.points(robot, msg)
@@ -608,13 +580,13 @@ class MapServer:
         """MapStats: the published snapshot's figures and every robot's counters at `stamp`."""
         snap = self.snapshot
         contributions = snap.contributions if snap is not None else {}
-        with self._counters_lock:
-            robots = [
-                map_messages.robot_map_stats(
-                    r, self.counters[r], self.slots.length(r), stamp.to_sec(), contributions.get(r, 0)
-                )
-                for r in self.robots
-            ]
+        admitted = self.admission.snapshot()
+        robots = [
+            map_messages.robot_map_stats(
+                r, self.robot_counters(r, admitted[r][0]), admitted[r][1], stamp.to_sec(), contributions.get(r, 0)
+            )
+            for r in self.robots
+        ]
         self.outputs.stats(map_messages.map_stats(self._header(stamp), self.map.resolution_m, snap, robots))
 
     def publish_capacity(self, stamp):

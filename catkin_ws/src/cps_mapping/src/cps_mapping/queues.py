@@ -15,6 +15,11 @@ A cloud whose transform is not known yet is `defer`red (back into its slot, not 
 time) unless a newer one arrived meanwhile. Keyframes sent after a link outage (`backfill`) wait
 in a bounded FIFO per robot, each one a different place, and are served only when no live cloud
 is ready: background priority, as the link sends them within its unused budget.
+
+What admission counts (received, superseded, missed: gaps in a sender's sequence numbers, and
+keyframes beyond the FIFO) is counted here, under the slots' one lock: a received cloud takes one
+lock and no other work in the receiving thread (with a hundred robots' receive threads in one
+process, every further lock per message formed convoys that left the core idle; issue 37).
 """
 
 import collections
@@ -22,10 +27,23 @@ import dataclasses
 import math
 import threading
 import time
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 # Backfill keyframes kept per robot; beyond, the oldest is dropped (counted as a queue drop).
 BACKFILL_KEPT = 50
+
+
+@dataclasses.dataclass
+class AdmissionCounters:
+    """One robot's admission counts (cps_msgs/RobotMapStats fields of the same names)."""
+
+    clouds_received: int = 0
+    clouds_superseded: int = 0
+    clouds_missed: int = 0  # never received: gaps in the sender's sequence numbers
+    clouds_dropped_queue: int = 0  # backfill keyframes beyond the FIFO's bound
+    clouds_dropped_tf: int = 0  # no transform within the admission's timeout
+    clouds_dropped_decoder: int = 0  # bytes that are not a cloud message
+    clouds_dropped_invalid: int = 0  # no frame_id
 
 
 @dataclasses.dataclass
@@ -53,19 +71,32 @@ class RobotSlots:
         self._live: Dict[str, Optional[Arrival]] = {r: None for r in self.robots}
         self._backfill: Dict[str, collections.deque] = {r: collections.deque() for r in self.robots}
         self._newest_stamp_s: Dict[str, float] = {r: -math.inf for r in self.robots}
+        self._counts: Dict[str, AdmissionCounters] = {r: AdmissionCounters() for r in self.robots}
+        self._sequences: Dict[tuple, int] = {}  # (robot, backfill, sender) -> last number received
         self._cond = threading.Condition()
         self._closed = False
 
-    def put(self, arrival: Arrival) -> Optional[Arrival]:
-        """Hold `arrival`; returns what it displaced: the robot's waiting live cloud (superseded)
-        or, for a keyframe, the oldest one beyond the FIFO's bound (dropped); else None."""
+    def put(self, arrival: Arrival, sequence: Optional[Tuple[str, int]] = None) -> Optional[Arrival]:
+        """Hold `arrival` (with its sender's (name, sequence number), if it carries one) and count
+        it; returns what it displaced: the robot's waiting live cloud (superseded) or, for a
+        keyframe, the oldest one beyond the FIFO's bound (dropped); else None."""
         with self._cond:
+            counts = self._counts[arrival.robot]
+            counts.clouds_received += 1
+            if sequence is not None:
+                key = (arrival.robot, arrival.backfill, sequence[0])
+                last = self._sequences.get(key)
+                self._sequences[key] = sequence[1]
+                if last is not None and sequence[1] > last + 1:  # lower or equal: the sender restarted
+                    counts.clouds_missed += sequence[1] - last - 1
             if arrival.backfill:
                 fifo = self._backfill[arrival.robot]
                 fifo.append(arrival)
                 displaced = fifo.popleft() if len(fifo) > self.backfill_kept else None
+                counts.clouds_dropped_queue += displaced is not None
             else:
                 displaced, self._live[arrival.robot] = self._live[arrival.robot], arrival
+                counts.clouds_superseded += displaced is not None
             self._cond.notify()
             return displaced
 
@@ -116,13 +147,14 @@ class RobotSlots:
             return None
 
     def defer(self, arrival: Arrival, retry_s: float) -> bool:
-        """Put a taken cloud back, not ready for `retry_s`; False (not put back: the caller counts
-        it as superseded) when a newer live cloud of its robot arrived meanwhile."""
+        """Put a taken cloud back, not ready for `retry_s`; False (not put back: counted as
+        superseded) when a newer live cloud of its robot arrived meanwhile."""
         with self._cond:
             arrival.not_before_s = self.clock() + retry_s
             if arrival.backfill:
                 self._backfill[arrival.robot].appendleft(arrival)
             elif self._live[arrival.robot] is not None:
+                self._counts[arrival.robot].clouds_superseded += 1
                 return False
             else:
                 self._live[arrival.robot] = arrival
@@ -133,6 +165,22 @@ class RobotSlots:
         """The robot's map now holds a cloud stamped `stamp_s` (its map age falls)."""
         with self._cond:
             self._newest_stamp_s[robot] = max(self._newest_stamp_s[robot], stamp_s)
+
+    def count(self, robot: str, **amounts):
+        """Add to the robot's admission counts (a cloud admission dropped, by cause)."""
+        with self._cond:
+            counts = self._counts[robot]
+            for field, amount in amounts.items():
+                setattr(counts, field, getattr(counts, field) + amount)
+
+    def counts(self, robot: str) -> AdmissionCounters:
+        """A copy of the robot's admission counts."""
+        with self._cond:
+            return dataclasses.replace(self._counts[robot])
+
+    def superseded_total(self) -> int:
+        with self._cond:
+            return sum(c.clouds_superseded for c in self._counts.values())
 
     def length(self, robot: str) -> int:
         """Clouds of `robot` waiting: its live slot (0 or 1) and its backfill keyframes."""

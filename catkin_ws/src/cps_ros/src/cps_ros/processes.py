@@ -314,6 +314,22 @@ def process_cpu_s(pid, waited_children=False):
     return ticks / os.sysconf("SC_CLK_TCK")
 
 
+def descendants(pid):
+    """The pids of every running process below `pid` (its children, theirs...), e.g. a node's
+    helper processes, whose CPU `process_cpu_s` counts only once they are waited for."""
+    children = {}
+    for other in _pids():
+        fields = _stat_fields(other)
+        if fields is not None:
+            children.setdefault(int(fields[1]), []).append(other)
+    found, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), ()):
+            found.append(child)
+            todo.append(child)
+    return found
+
+
 def process_running(pid):
     """True while process `pid` exists and has not ended: a zombie nobody reaped (a killed run's
     bringup whose parent never waits) has ended."""
