@@ -161,3 +161,11 @@ def test_a_raw_cloud_arrives_and_is_inserted_as_a_compressed_one_is(jackal_point
     server.receive_cloud("jackal", _as_received(_cloud(jackal_points)))
     assert server.insert_pending(timeout_s=0) == 1
     assert len(server.map.occupied_index()) > 0 and server.robot_counters("jackal").insertion_ms_avg > 0
+
+
+def test_the_receive_process_shares_the_namespace_and_remaps_not_the_name_or_private_parameters():
+    from cps_mapping.admission_process import remappings_of
+
+    argv = ["map_server", "__ns:=/twin", "__name:=map_server_a", "__log:=/x.log", "_robots:=a,b", "x:=y"]
+    argv += ["__master:=http://h:1", "--help"]
+    assert remappings_of(argv) == ("__ns:=/twin", "x:=y", "__master:=http://h:1")

@@ -326,7 +326,7 @@ def replay_rows(sizes, run_root, duration_s, reuse_runs=False, log=print):
     rows = {}
     with replay_bench(os.path.abspath(run_root), name="cps_fig13_replay") as (run_trial, split_text):
         for n in sizes:
-            row = run_trial(n, "shared", trace, REPLAY_DURATION_S)
+            row = run_trial(n, trace, REPLAY_DURATION_S, label="fig13_live")
             row["host_split"] = split_text
             rows[n] = row
             log(
@@ -398,6 +398,8 @@ def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped, 
             + [_cell(f[c]) for c in COLUMNS[3:]]
         )
     write_csv(os.path.join(out_dir, "fig13_live.csv"), COLUMNS, rows)
+    if replayed:
+        write_replay_csv(replayed, out_dir)
     _plot(measured, os.path.join(out_dir, "fig13_live.png"))
 
     table = [
@@ -476,6 +478,16 @@ def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped, 
     )
 
 
+REPLAY_CSV = "fig13_live_replay.csv"
+
+
+def write_replay_csv(replayed, out_dir):
+    """The replay rows ({N: twin_replay.trial's row}) as fig13_live_replay.csv: every cloud by cause."""
+    from cps_experiments.twin_replay import write_rows_csv
+
+    return write_rows_csv([replayed[n] for n in sorted(replayed)], os.path.join(out_dir, REPLAY_CSV))
+
+
 def _replay_section(replayed):
     """The replay rows: the twin alone under N replayed robots, judged on drops and map age."""
     from cps_experiments.twin_replay import MAX_AGE_P95_S, MAX_DROPPED, WARMUP_S
@@ -501,11 +513,11 @@ def _replay_section(replayed):
         "first four) was recorded once (loopback, same host boundaries: on one robots' CPU four robots send at "
         "their working rate, sixteen do not), and their managed clouds, odometry and tf replayed as N robots (cps_bringup.trace_replay: "
         "each copy with its own name, frames and offsets in space and time, at wall-clock rate) into the twin's "
-        f"decoder and map server, which ran alone on one CPU ({first['host_split']}). No simulator, no link, no "
+        f"map server, which ran alone on one CPU ({first['host_split']}). No simulator, no link, no "
         "manager: these rows measure the twin, not the link, and have no F1 (copies add load, not new site) and "
         f"no teleop. Dropped = sent and neither inserted nor superseded; the N holds at ≤ {100 * MAX_DROPPED:g} % "
-        f"dropped and map age p95 ≤ {MAX_AGE_P95_S:g} s (each copy's map age at 1 Hz from {WARMUP_S:g} s after the "
-        "replay starts).",
+        f"dropped and every copy's map age p95 ≤ {MAX_AGE_P95_S:g} s (its map age at 1 Hz from {WARMUP_S:g} s after "
+        f"the first insertion). Every cloud by cause, throughput and map ages per robot: [{REPLAY_CSV}]({REPLAY_CSV}).",
         markdown_table(
             [
                 "N replayed",
