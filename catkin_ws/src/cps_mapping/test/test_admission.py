@@ -55,7 +55,7 @@ def test_a_superseded_cloud_is_never_decoded(jackal_points):
         server.receive_cloud("jackal", _as_received(_compressed(jackal_points, secs, seq=secs)))
     c = server.robot_counters("jackal")
     assert (c.clouds_received, c.clouds_superseded, counting.calls) == (10, 9, 0), "admission decodes nothing"
-    assert server.admission.slots.length("jackal") == 1
+    assert server.waiting("jackal") == 1
     assert server.insert_pending(timeout_s=0) == 1
     c = server.robot_counters("jackal")
     assert counting.calls == 1 and c.clouds_inserted == 1 and c.newest_inserted_stamp_s == 109.0
@@ -90,9 +90,7 @@ def test_a_cloud_whose_transform_is_late_waits_in_its_slot_and_the_insertion_ser
     server, _ = _server(robots=("jackal", "scout"), tf_timeout_s=5.0)
     server.admission.transform_of = transform_of
     server.receive_cloud("jackal", _cloud(jackal_points))
-    assert server.insert_pending(timeout_s=0) == 0 and server.admission.slots.length("jackal") == 1, (
-        "deferred, not dropped"
-    )
+    assert server.insert_pending(timeout_s=0) == 0 and server.waiting("jackal") == 1, "deferred, not dropped"
     assert server.insert_pending(timeout_s=0) == 0, "not ready again at once: no busy loop"
     known[JACKAL_FRAME] = True
     assert server.insert_pending(timeout_s=1.0) == 1
@@ -103,7 +101,7 @@ def test_a_cloud_whose_transform_is_late_waits_in_its_slot_and_the_insertion_ser
     server.receive_cloud("jackal", _cloud(jackal_points))
     server.insert_pending(timeout_s=0)
     server.receive_cloud("jackal", _cloud(jackal_points))
-    assert server.robot_counters("jackal").clouds_superseded == 1 and server.admission.slots.length("jackal") == 1
+    assert server.robot_counters("jackal").clouds_superseded == 1 and server.waiting("jackal") == 1
 
 
 def test_backfill_keyframes_wait_in_their_own_fifo_behind_live_clouds(jackal_points):
@@ -131,7 +129,7 @@ def test_every_cloud_ends_in_one_counter_and_gaps_in_a_senders_numbers_are_misse
         server.receive_cloud("jackal", _as_received(msg))
         if msg.header.seq in (1, 5, 20, 21, 22):  # the insertion keeps up now and then
             drain(server)
-    waiting = server.admission.slots.length("jackal")
+    waiting = server.waiting("jackal")
     c = server.robot_counters("jackal")
     assert c.clouds_received == len(stream) and c.clouds_missed == 2 + 14
     assert (c.clouds_dropped_decoder, c.clouds_dropped_tf, c.clouds_dropped_invalid) == (1, 1, 1)

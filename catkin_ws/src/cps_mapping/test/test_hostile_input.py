@@ -63,10 +63,10 @@ def test_every_hostile_cloud_is_inserted_or_dropped_and_counted(tmp_path, cloud)
     server = _Fuzz.server
     before = dict(vars(server.robot_counters("jackal")))
     server.receive_cloud("jackal", cloud)
-    assert server.admission.slots.length("jackal") == 1
+    assert server.waiting("jackal") == 1
     server.insert_pending(timeout_s=0)
     after = vars(server.robot_counters("jackal"))
-    assert after["clouds_received"] == before["clouds_received"] + 1 and server.admission.slots.length("jackal") == 0
+    assert after["clouds_received"] == before["clouds_received"] + 1 and server.waiting("jackal") == 0
     dropped = after["clouds_dropped_invalid"] - before["clouds_dropped_invalid"]
     inserted = after["clouds_inserted"] - before["clouds_inserted"]
     assert dropped + inserted == 1

@@ -30,7 +30,7 @@ def test_a_newer_cloud_supersedes_the_waiting_one_and_the_capacity_counts_the_in
     server, published = _server(robots=("jackal",))
     for secs in (100, 101, 102):
         server.receive_cloud("jackal", _stamped(jackal_points, secs))
-    assert server.admission.slots.length("jackal") == 1
+    assert server.waiting("jackal") == 1
     assert server.insert_pending(timeout_s=0) == 1
     c = server.robot_counters("jackal")
     assert (c.clouds_received, c.clouds_inserted, c.clouds_superseded, c.clouds_dropped_queue) == (3, 1, 2, 0)

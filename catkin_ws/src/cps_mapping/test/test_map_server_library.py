@@ -72,7 +72,7 @@ def _cloud(points, frame=JACKAL_FRAME):
 def drain(server):
     """Let the insertion take every waiting cloud (inserted or dropped); how many were inserted."""
     inserted = 0
-    while any(server.admission.slots.length(r) for r in server.robots):
+    while any(server.waiting(r) for r in server.robots):
         inserted += server.insert_pending(timeout_s=0.05)
     return inserted
 

@@ -128,6 +128,19 @@ def _window_rate(stats, robots, field, start, end):
     return (total(m1) - total(m0)) / (t1 - t0) if t1 > t0 else 0.0
 
 
+def cpu_ticks(cpus):
+    """(busy, total) jiffies of `cpus` so far, from /proc/stat: what every process on them used."""
+    busy = total = 0
+    with open("/proc/stat") as stream:
+        for line in stream:
+            name, *fields = line.split()
+            if name.startswith("cpu") and name[3:].isdigit() and int(name[3:]) in cpus:
+                ticks = [int(x) for x in fields[:8]]
+                idle = ticks[3] + ticks[4]  # idle, iowait
+                busy, total = busy + sum(ticks) - idle, total + sum(ticks)
+    return busy, total
+
+
 def _percentile(values, q):
     return float(np.percentile(values, q)) if len(values) else math.inf
 
@@ -162,6 +175,7 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
         twin_pids = [supervisor.pid_of(s.label) for s in supervisor.specs]
         twin_pids += [child for pid in twin_pids for child in descendants(pid)]  # the receive process
         cpu0 = sum(process_cpu_s(p) for p in twin_pids)
+        ticks0 = cpu_ticks(split.cpus.get(DIGITAL, ()))
         receive_cpu0 = sum(process_cpu_s(p) for p in twin_pids[1:])
         watch.clear()
         wall0 = time.monotonic()
@@ -181,6 +195,7 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
         time.sleep(DRAIN_S)  # the last clouds through the slots, and one more MapStats after them
         cpu_s = sum(process_cpu_s(p) for p in twin_pids) - cpu0
         receive_cpu_s = sum(process_cpu_s(p) for p in twin_pids[1:]) - receive_cpu0
+        ticks1 = cpu_ticks(split.cpus.get(DIGITAL, ()))
         wall_s = time.monotonic() - wall0
     finally:
         supervisor.stop_all()
@@ -249,6 +264,8 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
         age_bar_s=AGE_BAR_FACTOR * len(robots) / inserted_per_s if inserted_per_s > 0 else math.inf,
         twin_cpu_s_per_s=cpu_s / wall_s if wall_s > 0 else 0.0,
         receive_cpu_s_per_s=receive_cpu_s / wall_s if wall_s > 0 else 0.0,
+        # How busy the twin's CPUs were, by anything (the twin, or other work on a shared machine).
+        twin_cpus_busy=(ticks1[0] - ticks0[0]) / max(1, ticks1[1] - ticks0[1]),
         insertion_cpu_s_per_s=(cap.busy_s / cap.window_s) if cap and cap.window_s else 0.0,
         busy_s=cap.busy_s if cap else 0.0,
         capacity_window_s=cap.window_s if cap else 0.0,
@@ -287,6 +304,7 @@ CSV_COLUMNS = (
     "twin_cpu_s_per_s",
     "receive_cpu_s_per_s",
     "insertion_cpu_s_per_s",
+    "twin_cpus_busy",
     "clouds_per_s_capacity",
     "points_per_s_capacity",
     "insertion_ms_avg",

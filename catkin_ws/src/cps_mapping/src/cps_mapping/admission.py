@@ -87,6 +87,7 @@ class Admission:
             placed = self._place(arrival)
             if placed is not None:
                 self.slots.served(placed.robot, placed.stamp_s)
+                self.slots.count(placed.robot, clouds_placed=1)
                 return placed
 
     def _place(self, arrival: Arrival) -> Optional[PlacedCloud]:

@@ -152,6 +152,7 @@ class RobotCounters:
     clouds_dropped_invalid: int = 0  # the map server's own checks, or the insertion failed
     clouds_dropped_decoder: int = 0  # not deserializable or not Draco-decodable
     clouds_missed: int = 0  # never received: gaps in the sender's sequence numbers
+    clouds_placed: int = 0  # handed by the admission to the insertion
     clouds_without_leaf: int = 0  # inserted as they are (docs/cloud_levels.md)
     clouds_bad_leaf: int = 0  # leaf unreadable: inserted as they are
     points_bridged: int = 0  # surface samples added to clouds coarser than the map
@@ -326,6 +327,15 @@ class MapServer:
             mine = self.counters[robot]
             both = merged_counts(admitted, **{f: getattr(mine, f) for f in vars(admitted) if hasattr(mine, f)})
             return dataclasses.replace(mine, **both)
+
+    def waiting(self, robot, admitted=None) -> int:
+        """The robot's clouds received and not ended yet: in its slot, or placed and on their way to
+        the insertion (the receive process hands them over in batches)."""
+        counts, in_slot = admitted if admitted is not None else self.admission.snapshot()[robot]
+        with self._counters_lock:
+            mine = self.counters[robot]  # the insertion's own counts only
+            ended = mine.clouds_inserted + mine.clouds_dropped_decoder + mine.clouds_dropped_invalid
+        return in_slot + counts.clouds_placed - ended
 
     def _totals(self):
         """(superseded, dropped) so far, every robot and both sides (InsertCapacity's window)."""
@@ -583,7 +593,11 @@ class MapServer:
         admitted = self.admission.snapshot()
         robots = [
             map_messages.robot_map_stats(
-                r, self.robot_counters(r, admitted[r][0]), admitted[r][1], stamp.to_sec(), contributions.get(r, 0)
+                r,
+                self.robot_counters(r, admitted[r][0]),
+                self.waiting(r, admitted[r]),
+                stamp.to_sec(),
+                contributions.get(r, 0),
             )
             for r in self.robots
         ]

@@ -44,6 +44,7 @@ class AdmissionCounters:
     clouds_dropped_tf: int = 0  # no transform within the admission's timeout
     clouds_dropped_decoder: int = 0  # bytes that are not a cloud message
     clouds_dropped_invalid: int = 0  # no frame_id
+    clouds_placed: int = 0  # handed to the insertion, placed (its ends are the insertion's counts)
 
 
 @dataclasses.dataclass
