@@ -141,6 +141,44 @@ def cpu_ticks(cpus):
     return busy, total
 
 
+class CpuSampler:
+    """Once a second: the twin's processes' CPU (the map server, and its receive process apart) and
+    how busy the twin's CPUs were with anything, so that the figures cover the steady window only."""
+
+    def __init__(self, map_server_pid, cpus, period_s=1.0):
+        self.pids = [map_server_pid, *descendants(map_server_pid)]
+        self.cpus, self.period_s = tuple(cpus), period_s
+        self.samples = []  # (monotonic s, twin CPU s, receive CPU s, busy ticks, total ticks)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="cpu_sampler", daemon=True)
+        self._thread.start()
+
+    def _sample(self):
+        twin = sum(process_cpu_s(p) for p in self.pids)
+        receive = sum(process_cpu_s(p) for p in self.pids[1:])
+        self.samples.append((time.monotonic(), twin, receive, *cpu_ticks(self.cpus)))
+
+    def _run(self):
+        while True:
+            self._sample()
+            if self._stop.wait(self.period_s):
+                return
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join()
+
+    def over(self, start, end):
+        """(twin CPU s/s, receive CPU s/s, twin CPUs busy) between the samples nearest `start`, `end`."""
+        inside = [s for s in self.samples if start <= s[0] <= end] or self.samples
+        if len(inside) < 2:
+            return 0.0, 0.0, 0.0
+        first, last = inside[0], inside[-1]
+        wall = last[0] - first[0]
+        busy = (last[3] - first[3]) / max(1, last[4] - first[4])
+        return (last[1] - first[1]) / wall, (last[2] - first[2]) / wall, busy
+
+
 def _percentile(values, q):
     return float(np.percentile(values, q)) if len(values) else math.inf
 
@@ -167,18 +205,13 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
     supervisor = Supervisor(
         twin_specs(copies_fleet, folder), graph, log=lambda _m: None, spec_prefix=lambda spec: split.prefix(DIGITAL)
     )
-    twin_pids = []
+    sampler = None
     shards = math.ceil(n / ROBOTS_PER_REPLAY)
     tag = f"replay_{label}_{n}_{time.monotonic_ns()}"
     try:
         supervisor.start_all(timeout_s=180)
-        twin_pids = [supervisor.pid_of(s.label) for s in supervisor.specs]
-        twin_pids += [child for pid in twin_pids for child in descendants(pid)]  # the receive process
-        cpu0 = sum(process_cpu_s(p) for p in twin_pids)
-        ticks0 = cpu_ticks(split.cpus.get(DIGITAL, ()))
-        receive_cpu0 = sum(process_cpu_s(p) for p in twin_pids[1:])
+        sampler = CpuSampler(supervisor.pid_of(supervisor.specs[0].label), split.cpus.get(DIGITAL, ()))
         watch.clear()
-        wall0 = time.monotonic()
         replays = [
             graph.popen(
                 [*split.prefix(PHYSICAL), sys.executable, _replay_script(), bag, "--robots", str(n)]
@@ -193,11 +226,9 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
             replay.wait(timeout=duration_s + 120)
         end = time.monotonic()
         time.sleep(DRAIN_S)  # the last clouds through the slots, and one more MapStats after them
-        cpu_s = sum(process_cpu_s(p) for p in twin_pids) - cpu0
-        receive_cpu_s = sum(process_cpu_s(p) for p in twin_pids[1:]) - receive_cpu0
-        ticks1 = cpu_ticks(split.cpus.get(DIGITAL, ()))
-        wall_s = time.monotonic() - wall0
     finally:
+        if sampler is not None:
+            sampler.stop()
         supervisor.stop_all()
     sent, replay_dropped, late, stalls, errors = {}, 0, [], [], []
     for i in range(shards):
@@ -235,6 +266,7 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
     steady = [m for t, m in capacity if start <= t <= end]
     cap = steady[-1] if steady else (capacity[-1][1] if capacity else None)
     lost = sum(counts[c] for c in ("queue", "decoder", "tf", "map_server", "unaccounted")) + replay_dropped
+    twin_cpu, receive_cpu, cpus_busy = sampler.over(start, end)
     row = dict(
         label=label,
         asked=n,
@@ -261,11 +293,11 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
         oldest_robot_age_p95_s=oldest_p95,
         median_robot_age_p95_s=median_p95,
         oldest_over_median=oldest_p95 / median_p95 if median_p95 > 0 else math.inf,
+        robot_age_p95_s={r: _percentile(v, 95) for r, v in ages.items() if v},
         age_bar_s=AGE_BAR_FACTOR * len(robots) / inserted_per_s if inserted_per_s > 0 else math.inf,
-        twin_cpu_s_per_s=cpu_s / wall_s if wall_s > 0 else 0.0,
-        receive_cpu_s_per_s=receive_cpu_s / wall_s if wall_s > 0 else 0.0,
-        # How busy the twin's CPUs were, by anything (the twin, or other work on a shared machine).
-        twin_cpus_busy=(ticks1[0] - ticks0[0]) / max(1, ticks1[1] - ticks0[1]),
+        twin_cpu_s_per_s=twin_cpu,
+        receive_cpu_s_per_s=receive_cpu,
+        twin_cpus_busy=cpus_busy,  # by anything: the twin, or other work on a shared machine
         insertion_cpu_s_per_s=(cap.busy_s / cap.window_s) if cap and cap.window_s else 0.0,
         busy_s=cap.busy_s if cap else 0.0,
         capacity_window_s=cap.window_s if cap else 0.0,
