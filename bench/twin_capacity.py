@@ -30,12 +30,9 @@ import argparse
 import datetime
 import json
 import os
-import subprocess
-import sys
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-BRINGUP = os.path.join(ROOT, "catkin_ws", "src", "cps_bringup", "nodes", "cps_bringup")
 OUT = os.path.join(ROOT, "bench", "out", "twin_capacity")
 RESULTS = os.path.join(OUT, "results.json")
 MD = os.path.join(ROOT, "docs", "benchmarks", "twin_capacity.md")
@@ -53,6 +50,7 @@ def record_trace(profile):
     """The compacted trace of a loopback mission of the default fleet in `profile` (recorded once)."""
     from cps_bringup.trace_replay import compact_trace
     from cps_fleet.fleet import load_fleet
+    from cps_harness.mission import run_mission
 
     folder = os.path.join(OUT, f"trace_{profile}")
     bag, trace = os.path.join(folder, "mission.bag"), os.path.join(folder, "mission.trace.bag")
@@ -61,11 +59,10 @@ def record_trace(profile):
     if not os.path.exists(bag):
         os.makedirs(folder, exist_ok=True)
         print(f"recording a {RECORD_S[profile]} s {profile} mission of the default fleet into {bag} ...", flush=True)
-        subprocess.run(
-            [sys.executable, BRINGUP, "all", "--profile", profile, "--duration", str(RECORD_S[profile])]
-            + ["--out", folder, "--record", bag, "--host-cpus", "none"],
-            check=True,
-            stdout=subprocess.DEVNULL,
+        run_mission(
+            folder,
+            ["--profile", profile, "--duration", str(RECORD_S[profile]), "--record", bag, "--host-cpus", "none"],
+            timeout_s=RECORD_S[profile] + 600,
         )
     return compact_trace(bag, load_fleet(), trace, busy_only=True, min_busy_hz=MIN_BUSY_HZ[profile])
 
@@ -77,6 +74,7 @@ def placed_clouds(trace_path, profile, limit):
     import tf2_py
 
     from cps_bringup.trace_replay import load_trace
+    from cps_fleet import names
     from cps_fleet.fleet import load_fleet
     from cps_mapping.cloud_input import prepare_cloud, quaternion_matrix, read_leaf
     from cps_transport.draco import DracoDecoder
@@ -98,7 +96,7 @@ def placed_clouds(trace_path, profile, limit):
                 continue
             _, compressed = stream.pop(0)
             try:
-                tf = buffer.lookup_transform_core("map", compressed.header.frame_id, compressed.header.stamp)
+                tf = buffer.lookup_transform_core(names.MAP_FRAME, compressed.header.frame_id, compressed.header.stamp)
             except tf2_py.TransformException:
                 continue
             cloud = decoder.decode(compressed)

@@ -1,10 +1,12 @@
 """The replay trials' ledger: every cloud the replay sent ends in one cause (inserted, superseded,
 waiting, queue, decoder, tf, map server) or shows as unaccounted, never hidden."""
 
-import csv
+import math
 
-from cps_experiments.twin_replay import CAUSES, CSV_COLUMNS, ledger, write_rows_csv
-
+from cps_experiments.live_scaling import REPLAY_COLUMNS, _cell, replay_from_csv
+from cps_experiments.markdown import write_csv
+from cps_experiments.report import read_csv
+from cps_experiments.twin_replay import CAUSES, CSV_COLUMNS, holds, ledger
 from cps_msgs.msg import RobotMapStats
 
 
@@ -21,7 +23,7 @@ def test_the_causes_sum_to_what_was_sent_and_what_no_counter_saw_is_unaccounted(
             clouds_dropped_tf=1,
             queue_length=1,
             clouds_dropped_decoder=1,
-            clouds_missed=2,
+            clouds_missed_upstream=2,
         ),
         _row(clouds_received=5, clouds_inserted=2, clouds_superseded=2, clouds_dropped_invalid=1),
     ]
@@ -32,9 +34,20 @@ def test_the_causes_sum_to_what_was_sent_and_what_no_counter_saw_is_unaccounted(
     assert short["unaccounted"] == 3 and short["replay_dropped"] == 1 and sum(short[c] for c in CAUSES) == 20
 
 
-def test_rows_are_written_with_every_column(tmp_path):
-    row = {c: 1 for c in CSV_COLUMNS} | {"age_p95_s": float("inf"), "oldest_over_median": float("nan")}
-    path = write_rows_csv([row], tmp_path / "rows.csv")
-    with open(path) as stream:
-        (read,) = list(csv.DictReader(stream))
-    assert list(read) == list(CSV_COLUMNS) and read["age_p95_s"] == "inf" and read["oldest_over_median"] == ""
+def test_a_trials_row_goes_through_fig13_lives_replay_csv_with_every_cause(tmp_path):
+    row = {c: 1.5 for c in CSV_COLUMNS} | {f"clouds_{c}": 3 for c in CAUSES}
+    row |= dict(label="fig13_live", robots=32, sent=9, inserted=3, received=9, superseded=3, dropped=0)
+    row |= dict(age_p95_s=math.inf, oldest_over_median=math.nan, replay_limited=False, holds=False)
+    row |= dict(ledger_balances=True, counted_by="the nodes' counters")
+    path = tmp_path / "replay.csv"
+    write_csv(path, REPLAY_COLUMNS, [[_cell({**row, "asked": 32}.get(c, "")) for c in REPLAY_COLUMNS]])
+    (read,) = replay_from_csv(read_csv(path)).values()
+    assert set(CSV_COLUMNS) <= set(read) and read["label"] == "fig13_live" and read["ledger_balances"] is True
+    assert read["clouds_unaccounted"] == 3 and read["age_p95_s"] == math.inf and math.isnan(read["oldest_over_median"])
+
+
+def test_a_trial_holds_on_every_robots_map_age_and_never_on_a_figure_not_measured():
+    fine = dict(dropped_pct=0.5, superseded_pct=10.0, age_p95_s=0.6, oldest_robot_age_p95_s=0.9)
+    assert holds(fine)
+    assert not holds(fine | {"oldest_robot_age_p95_s": 1.2})  # the pooled p95 is fine, one robot is not
+    assert not holds(fine | {"superseded_pct": 30.0}) and not holds(fine | {"dropped_pct": math.nan})

@@ -131,7 +131,7 @@ def test_every_cloud_ends_in_one_counter_and_gaps_in_a_senders_numbers_are_misse
             drain(server)
     waiting = server.waiting("jackal")
     c = server.robot_counters("jackal")
-    assert c.clouds_received == len(stream) and c.clouds_missed == 2 + 14
+    assert c.clouds_received == len(stream) and c.clouds_missed_upstream == 2 + 14
     assert (c.clouds_dropped_decoder, c.clouds_dropped_tf, c.clouds_dropped_invalid) == (1, 1, 1)
     assert c.clouds_inserted == 2 and c.clouds_superseded == 2 and waiting == 1
     assert c.clouds_accounted + waiting == c.clouds_received
@@ -162,8 +162,10 @@ def test_a_raw_cloud_arrives_and_is_inserted_as_a_compressed_one_is(jackal_point
 
 
 def test_the_receive_process_shares_the_namespace_and_remaps_not_the_name_or_private_parameters():
+    from cps_fleet import names
     from cps_mapping.admission_process import remappings_of
 
-    argv = ["map_server", "__ns:=/twin", "__name:=map_server_a", "__log:=/x.log", "_robots:=a,b", "x:=y"]
+    ns = f"__ns:={names.absolute(names.TWIN_NS)}"
+    argv = ["map_server", ns, "__name:=map_server_a", "__log:=/x.log", "_robots:=a,b", "x:=y"]
     argv += ["__master:=http://h:1", "--help"]
-    assert remappings_of(argv) == ("__ns:=/twin", "x:=y", "__master:=http://h:1")
+    assert remappings_of(argv) == (ns, "x:=y", "__master:=http://h:1")

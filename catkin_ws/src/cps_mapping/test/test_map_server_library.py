@@ -131,7 +131,8 @@ def test_unknown_robot_topics_are_warned_about_once(caplog):
     with caplog.at_level(logging.WARNING):
         for _ in range(2):
             server.notice_topics(
-                [managed("ghost"), managed("jackal"), "/other/x/points_filtered/draco/managed"], "/twin/"
+                [managed("ghost"), managed("jackal"), names.absolute(names.managed_cloud("x"), "/other")],
+                names.absolute(names.TWIN_NS) + "/",
             )
     assert server.unknown_robots == {"ghost"}
     assert caplog.text.count(f"{managed('ghost')} is published but robot 'ghost' is not mapped") == 1
@@ -148,7 +149,7 @@ def test_map_topics_are_published_once_per_map_version(jackal_points):
     assert len(published["centers"]) == 2, "an unchanged map is not published again"
     octomap_msg, centers = published["octomap"][-1], published["centers"][-1]
     assert bytes(np.asarray(octomap_msg.data, dtype=np.int8).tobytes()) == message_fields(server.map)[3]
-    assert octomap_msg.header.frame_id == "map" and octomap_msg.id == "OcTree"
+    assert octomap_msg.header.frame_id == names.MAP_FRAME and octomap_msg.id == "OcTree"
     assert centers.width == len(server.map.occupied_index())
     grid = published["projected_map"][-1]
     assert grid.info.width * grid.info.height == len(grid.data) and grid.info.resolution == RES
@@ -172,6 +173,27 @@ def test_stats_carry_the_snapshot_and_the_counters(jackal_points):
     assert rows["jackal"].clouds_inserted == 1 and rows["jackal"].map_age_s == pytest.approx(2.0)
     assert rows["jackal"].occupied_voxels_contributed == stats.occupied_voxels
     assert rows["scout"].clouds_received == 0 and rows["scout"].map_age_s == float("inf")
+
+
+def test_the_published_maps_age_grows_when_the_map_is_inserted_but_not_published(jackal_points):
+    """A subscriber of the map sees the published map, not the insertions: the published age follows
+    the stamp of the robot's newest cloud in the map as last published."""
+    server, published = _server()
+    server.receive_cloud("jackal", _cloud(jackal_points))
+    server.insert_pending(timeout_s=0)
+    server.publish_stats(genpy.Time(101, 0))
+    assert published["stats"][-1].robots[0].published_map_age_s == float("inf")  # inserted, never published
+    server.publish_map(genpy.Time(101, 0))
+    later = _cloud(jackal_points)
+    later.header.stamp = genpy.Time(110, 0)
+    server.receive_cloud("jackal", later)
+    server.insert_pending(timeout_s=0)  # inserted at 110 s, the map not published again
+    server.publish_stats(genpy.Time(111, 0))
+    jackal = {r.robot: r for r in published["stats"][-1].robots}["jackal"]
+    assert jackal.map_age_s == pytest.approx(1.0) and jackal.published_map_age_s == pytest.approx(11.0)
+    server.publish_map(genpy.Time(111, 0))
+    server.publish_stats(genpy.Time(111, 0))
+    assert {r.robot: r for r in published["stats"][-1].robots}["jackal"].published_map_age_s == pytest.approx(1.0)
 
 
 def test_services_save_load_clear_and_reset(jackal_points, tmp_path):
@@ -234,7 +256,7 @@ def test_a_server_resumes_from_its_map_file_and_moves_an_unreadable_one_aside(ja
 def test_builders_make_the_messages_the_map_describes(jackal_points):
     server, _ = _server()
     server.map.insert_cloud(jackal_points @ JACKAL_POSE[1].T + JACKAL_POSE[0], JACKAL_POSE[0])
-    header = Header(stamp=STAMP, frame_id="map")
+    header = Header(stamp=STAMP, frame_id=names.MAP_FRAME)
     msg = map_messages.octomap_message(message_fields(server.map), header)
     rebuilt = octree_from_message(msg.binary, msg.id, msg.resolution, np.asarray(msg.data, dtype=np.int8).tobytes())
     assert rebuilt.size() == server.map.binary_tree_nodes()

@@ -55,13 +55,14 @@ def robot_map_stats(robot: str, counters, queue_length: int, now_s: float, contr
         clouds_dropped_invalid=c.clouds_dropped_invalid,
         clouds_superseded=c.clouds_superseded,
         clouds_dropped_decoder=c.clouds_dropped_decoder,
-        clouds_missed=c.clouds_missed,
         queue_length=queue_length,
         insertion_ms_avg=c.insertion_ms_avg,
         insertion_ms_max=c.insertion_ms_max,
         points_inserted=c.points_inserted,
         map_age_s=c.map_age_s(now_s),
         occupied_voxels_contributed=contributed_voxels,
+        published_map_age_s=c.published_map_age_s(now_s),
+        clouds_missed_upstream=c.clouds_missed_upstream,
     )
 
 

@@ -151,7 +151,6 @@ class RobotCounters:
     clouds_dropped_tf: int = 0
     clouds_dropped_invalid: int = 0  # the map server's own checks, or the insertion failed
     clouds_dropped_decoder: int = 0  # not deserializable or not Draco-decodable
-    clouds_missed: int = 0  # never received: gaps in the sender's sequence numbers
     clouds_placed: int = 0  # handed by the admission to the insertion
     clouds_without_leaf: int = 0  # inserted as they are (docs/cloud_levels.md)
     clouds_bad_leaf: int = 0  # leaf unreadable: inserted as they are
@@ -162,6 +161,11 @@ class RobotCounters:
     insertion_ms_total: float = 0.0  # CPU ms of the insertion thread per inserted cloud, summed
     insertion_ms_max: float = 0.0
     newest_inserted_stamp_s: Optional[float] = None
+    # Never received: gaps in the sender's header.seq (the twin's bridge numbers what it relays:
+    # lost in the subscriber queue), for the per-cloud ledger.
+    clouds_missed_upstream: int = 0
+    # The stamp of this robot's newest cloud in the map as last published (None before).
+    newest_published_stamp_s: Optional[float] = None
 
     @property
     def insertion_ms_avg(self):
@@ -193,6 +197,13 @@ class RobotCounters:
         if self.newest_inserted_stamp_s is None:
             return math.inf
         return max(0.0, now_s - self.newest_inserted_stamp_s)
+
+    def published_map_age_s(self, now_s):
+        """What a subscriber of the map sees: now - the stamp of this robot's newest cloud in the map as
+        last published (inf before), which keeps growing when the map stops being published."""
+        if self.newest_published_stamp_s is None:
+            return math.inf
+        return max(0.0, now_s - self.newest_published_stamp_s)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -563,11 +574,17 @@ class MapServer:
     def publish_map(self, stamp):
         """The map, markers, centres and projected map, if the map changed since the last call."""
         self._publish_full(stamp)
+        with self._counters_lock:  # read before the snapshot: the snapshot holds at least these clouds
+            newest = {r: c.newest_inserted_stamp_s for r, c in self.counters.items()}
         snap, changed = self.take_snapshot()
         if not changed:
             return
         out = self.outputs
         out.octomap(map_messages.octomap_message(snap.octomap_fields, self._header(stamp)))
+        with self._counters_lock:
+            for robot, stamp_s in newest.items():
+                if stamp_s is not None:
+                    self.counters[robot].newest_published_stamp_s = stamp_s
         out.markers(
             occupied_cells_markers(snap.leaf_centers_m, snap.leaf_sizes_m, self.map.resolution_m, self._header(stamp))
         )

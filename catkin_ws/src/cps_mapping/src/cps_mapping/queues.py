@@ -39,7 +39,7 @@ class AdmissionCounters:
 
     clouds_received: int = 0
     clouds_superseded: int = 0
-    clouds_missed: int = 0  # never received: gaps in the sender's sequence numbers
+    clouds_missed_upstream: int = 0  # never received: gaps in the sender's sequence numbers
     clouds_dropped_queue: int = 0  # backfill keyframes beyond the FIFO's bound
     clouds_dropped_tf: int = 0  # no transform within the admission's timeout
     clouds_dropped_decoder: int = 0  # bytes that are not a cloud message
@@ -89,7 +89,7 @@ class RobotSlots:
                 last = self._sequences.get(key)
                 self._sequences[key] = sequence[1]
                 if last is not None and sequence[1] > last + 1:  # lower or equal: the sender restarted
-                    counts.clouds_missed += sequence[1] - last - 1
+                    counts.clouds_missed_upstream += sequence[1] - last - 1
             if arrival.backfill:
                 fifo = self._backfill[arrival.robot]
                 fifo.append(arrival)
