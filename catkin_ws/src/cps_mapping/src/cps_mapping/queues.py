@@ -102,23 +102,20 @@ class RobotSlots:
             return displaced
 
     def _ready(self, now_s):
-        """The next cloud to serve (not removed) and when the first deferred one is due."""
+        """The next cloud to serve (not removed) and when the first deferred one is due: a live
+        cloud first, the robot whose map is oldest; a backfill keyframe only when no live one is
+        ready."""
+        live, due_live = self._oldest_first(((r, a) for r, a in self._live.items() if a is not None), now_s)
+        if live is not None:
+            return live, due_live
+        keyframe, due_backfill = self._oldest_first(((r, f[0]) for r, f in self._backfill.items() if f), now_s)
+        return keyframe, min(due_live, due_backfill)
+
+    def _oldest_first(self, candidates, now_s):
+        """(the ready arrival of the robot whose newest inserted stamp is oldest, the earliest time
+        a deferred one is due) among (robot, arrival) `candidates`."""
         best, best_key, due_s = None, None, math.inf
-        for robot, arrival in self._live.items():
-            if arrival is None:
-                continue
-            if arrival.not_before_s > now_s:
-                due_s = min(due_s, arrival.not_before_s)
-                continue
-            key = (self._newest_stamp_s[robot], arrival.arrived_s)
-            if best_key is None or key < best_key:
-                best, best_key = arrival, key
-        if best is not None:
-            return best, due_s
-        for robot, fifo in self._backfill.items():
-            if not fifo:
-                continue
-            arrival = fifo[0]
+        for robot, arrival in candidates:
             if arrival.not_before_s > now_s:
                 due_s = min(due_s, arrival.not_before_s)
                 continue
