@@ -187,8 +187,5 @@ def test_a_missions_files_give_its_ledger_and_its_markdown(tmp_path):
     assert all(r.balanced for r in ledger.robots.values()), [r.problems for r in ledger.robots.values()]
     assert dict(ledger.robots["scout"].drops) == {"Draco encoder → rate limiter: subscriber queue": 2}
     text = "\n".join(ledger.markdown())
-    assert (
-        "## Cloud ledger" in text
-        and "| scout | 120 | 120 | 118 | 118 | 118 | 118 | 118 | 2 | 0 | 0 | balances |" in text
-    )
+    assert "## Cloud ledger" in text and "| scout | 120 | 120 | 118 | 118 | 118 | 118 | 2 | 0 | 0 | balances |" in text
     assert "| Draco encoder → rate limiter: subscriber queue | 2 | 2 |" in text
