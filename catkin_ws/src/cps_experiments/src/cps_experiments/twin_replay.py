@@ -44,6 +44,11 @@ DRAIN_S = 3.0
 # Beyond its capacity the twin's map age p95 should stay within this many times N / inserted per s
 # (each robot served in turn: N / rate between its insertions; issue 37).
 AGE_BAR_FACTOR = 1.5
+# Issue 37's other bars on a sweep: inserted clouds/s never falls more than this below its highest
+# at a smaller N (no cliff), and the oldest robot's map age p95 stays within this many times the
+# median robot's (no robot starves).
+MAX_FALL = 0.10
+MAX_OLDEST_OVER_MEDIAN = 2.0
 # The replay keeps 20 odom -> base transforms per second per copy (recorded: ~50) and no odometry:
 # the twin's cloud path needs tf at the clouds' stamps only, and one Python replay must keep up.
 TF_RATE_HZ = 20.0
@@ -334,6 +339,28 @@ def holds(row):
         row["dropped_pct"] <= 100 * MAX_DROPPED
         and row["superseded_pct"] <= 100 * MAX_SUPERSEDED
         and age <= MAX_AGE_P95_S
+    )
+
+
+def judge_sweep(rows):
+    """Issue 37's bars on one sweep's rows (trial's dicts): the capacity (the largest N that holds,
+    measured), the worst fall of inserted clouds/s from the capacity on, freshness in proportion and
+    no robot starving beyond it, and every cloud accounted for at every N."""
+    rows = sorted(rows, key=lambda r: r["robots"])
+    capacity = max((r["robots"] for r in rows if holds(r)), default=0)
+    worst_fall, peak = 0.0, 0.0
+    for r in rows:
+        if r["robots"] >= capacity:
+            peak = max(peak, r["inserted_clouds_per_s"])
+            worst_fall = max(worst_fall, 1.0 - r["inserted_clouds_per_s"] / peak if peak else 0.0)
+    beyond = [r for r in rows if r["robots"] > capacity]
+    return dict(
+        capacity=capacity,
+        worst_fall=worst_fall,
+        no_cliff=worst_fall <= MAX_FALL,
+        fresh_beyond=all(r["age_p95_s"] <= r["age_bar_s"] for r in beyond),
+        no_starving=all(r["oldest_over_median"] <= MAX_OLDEST_OVER_MEDIAN for r in beyond),
+        ledger=all(r["clouds_unaccounted"] == 0 for r in rows),
     )
 
 
