@@ -3,10 +3,12 @@ waiting, queue, decoder, tf, map server) or shows as unaccounted, never hidden."
 
 import math
 
+import pytest
+
 from cps_experiments.live_scaling import REPLAY_COLUMNS, _cell, replay_from_csv
 from cps_experiments.markdown import write_csv
 from cps_experiments.report import read_csv
-from cps_experiments.twin_replay import CAUSES, CSV_COLUMNS, holds, ledger
+from cps_experiments.twin_replay import CAUSES, CSV_COLUMNS, holds, judge_sweep, ledger
 from cps_msgs.msg import RobotMapStats
 
 
@@ -51,3 +53,29 @@ def test_a_trial_holds_on_every_robots_map_age_and_never_on_a_figure_not_measure
     assert holds(fine)
     assert not holds(fine | {"oldest_robot_age_p95_s": 1.2})  # the pooled p95 is fine, one robot is not
     assert not holds(fine | {"superseded_pct": 30.0}) and not holds(fine | {"dropped_pct": math.nan})
+
+
+def _trial(robots, inserted_per_s, oldest_p95_s, age_p95_s=None, unaccounted=0):
+    age_p95_s = oldest_p95_s if age_p95_s is None else age_p95_s
+    return dict(
+        robots=robots,
+        dropped_pct=0.0,
+        superseded_pct=10.0 if oldest_p95_s <= 1.0 else 60.0,
+        age_p95_s=age_p95_s,
+        oldest_robot_age_p95_s=oldest_p95_s,
+        oldest_over_median=1.2,
+        inserted_clouds_per_s=inserted_per_s,
+        age_bar_s=1.5 * robots / inserted_per_s,
+        clouds_unaccounted=unaccounted,
+    )
+
+
+def test_a_sweep_is_judged_from_its_measured_capacity_on():
+    bends = [_trial(8, 70, 0.5), _trial(16, 140, 0.9), _trial(32, 150, 0.4, 0.3), _trial(64, 140, 1.3, 0.65)]
+    bends[2]["superseded_pct"] = 40.0  # fresh, but a fraction of what was sent: not held
+    verdict = judge_sweep(bends)
+    assert verdict["capacity"] == 16 and verdict["worst_fall"] == pytest.approx(1 - 140 / 150)
+    assert verdict["no_cliff"] and verdict["fresh_beyond"] and verdict["no_starving"] and verdict["ledger"]
+    breaks = bends[:3] + [_trial(64, 20, 9.0, age_p95_s=6.0, unaccounted=3)]  # the cliff issue 37 found
+    verdict = judge_sweep(breaks)
+    assert not verdict["no_cliff"] and not verdict["fresh_beyond"] and not verdict["ledger"]
