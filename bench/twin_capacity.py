@@ -323,6 +323,10 @@ def report(_args):
             "rate per core (receiving, tf, publishing and the replay's share of the core included).",
             "",
         ]
+    lines += [
+        "The run before issue 37 (the twin's decoder processes, two layouts) and its reading: "
+        "[twin_capacity_reading.md](twin_capacity_reading.md).",
+    ]
     with open(MD, "w") as f:
         f.write("\n".join(lines) + "\n")
     print(f"wrote {MD} and {PLOT}")
