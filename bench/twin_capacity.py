@@ -303,8 +303,12 @@ def report(_args):
             f"largest N run that holds (<= {100 * MAX_DROPPED:g} % of the clouds sent lost, <= "
             f"{100 * MAX_SUPERSEDED:g} % superseded, every robot's map age p95 <= {MAX_AGE_P95_S:g} s); "
             + (
-                f"the next N run, {above[0]}, does not: the capacity lies between." if above else "no larger N was run."
+                f"the next N run, {above[0]}, does not: the capacity lies between."
+                if above and verdict["capacity"]
+                else (f"no N run holds, not even {above[0]}." if above else "no larger N was run.")
             ),
+            f"- **Freshness alone** (issue 37's words: every robot's map age p95 <= {MAX_AGE_P95_S:g} s, <= "
+            f"{100 * MAX_DROPPED:g} % lost; superseded not judged): {verdict['fresh_capacity']} robots.",
             f"- **No cliff** (inserted clouds/s never more than {MAX_FALL:.0%} below its highest at a smaller N, "
             f"from the capacity to N = {max(r['robots'] for r in s['rows'])}): worst fall {verdict['worst_fall']:.1%}, "
             f"{'holds' if verdict['no_cliff'] else 'FAILS'}.",
@@ -320,12 +324,12 @@ def report(_args):
             f"The live twin inserted at most {sat['inserted_clouds_per_s']:.1f} clouds/s (N = {sat['robots']}) on "
             f"{s['twin_cpus']} CPU{'s' if s['twin_cpus'] > 1 else ''}: "
             f"{sat['inserted_clouds_per_s'] / s['twin_cpus'] / a['plain_clouds_per_cpu_s']:.1f}x plain OctoMap's "
-            "rate per core (receiving, tf, publishing and the replay's share of the core included).",
+            "rate per core (receiving, tf and publishing included; the replay runs on the other CPU).",
             "",
         ]
     lines += [
-        "The run before issue 37 (the twin's decoder processes, two layouts) and its reading: "
-        "[twin_capacity_reading.md](twin_capacity_reading.md).",
+        "What these figures say and do not say, written by hand, and the run before issue 37 (the twin's decoder "
+        "processes, two layouts) with its reading: [twin_capacity_reading.md](twin_capacity_reading.md).",
     ]
     with open(MD, "w") as f:
         f.write("\n".join(lines) + "\n")

@@ -74,7 +74,11 @@ def test_a_sweep_is_judged_from_its_measured_capacity_on():
     bends = [_trial(8, 70, 0.5), _trial(16, 140, 0.9), _trial(32, 150, 0.4, 0.3), _trial(64, 140, 1.3, 0.65)]
     bends[2]["superseded_pct"] = 40.0  # fresh, but a fraction of what was sent: not held
     verdict = judge_sweep(bends)
-    assert verdict["capacity"] == 16 and verdict["worst_fall"] == pytest.approx(1 - 140 / 150)
+    assert (
+        verdict["capacity"] == 16
+        and verdict["fresh_capacity"] == 32
+        and verdict["worst_fall"] == pytest.approx(1 - 140 / 150)
+    )
     assert verdict["no_cliff"] and verdict["fresh_beyond"] and verdict["no_starving"] and verdict["ledger"]
     breaks = bends[:3] + [_trial(64, 20, 9.0, age_p95_s=6.0, unaccounted=3)]  # the cliff issue 37 found
     verdict = judge_sweep(breaks)

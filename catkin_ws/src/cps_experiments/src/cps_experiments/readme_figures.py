@@ -179,7 +179,8 @@ def twin_capacity_paragraph(path=TWIN_CAPACITY_JSON):
         cpus = sweep["twin_cpus"]
         parts.append(
             f"{sweep['profile']} profile on {cpus} twin CPU{'s' if cpus > 1 else ''}: {verdict['capacity']} robots "
-            f"held (N run: {', '.join(str(r['robots']) for r in rows)}); at N = {last['robots']} "
+            f"held ({verdict['fresh_capacity']} by freshness alone, superseded not judged; N run: "
+            f"{', '.join(str(r['robots']) for r in rows)}); at N = {last['robots']} "
             f"{last['inserted_clouds_per_s']:.0f} clouds/s inserted, map age p95 {last['age_p95_s']:.2f} s, worst "
             f"fall of inserted clouds/s past the capacity {100 * verdict['worst_fall']:.0f} % (no cliff: "
             f"{'holds' if verdict['no_cliff'] else 'fails'}), no robot starving: "

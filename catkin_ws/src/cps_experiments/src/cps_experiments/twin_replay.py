@@ -354,8 +354,12 @@ def judge_sweep(rows):
             peak = max(peak, r["inserted_clouds_per_s"])
             worst_fall = max(worst_fall, 1.0 - r["inserted_clouds_per_s"] / peak if peak else 0.0)
     beyond = [r for r in rows if r["robots"] > capacity]
+    fresh = [r for r in rows if r["oldest_robot_age_p95_s"] <= MAX_AGE_P95_S and r["dropped_pct"] <= 100 * MAX_DROPPED]
     return dict(
         capacity=capacity,
+        # Issue 37's words alone: every robot's map age p95 <= MAX_AGE_P95_S, <= MAX_DROPPED lost
+        # (superseded not judged); beside `capacity`, never instead of it.
+        fresh_capacity=max((r["robots"] for r in fresh), default=0),
         worst_fall=worst_fall,
         no_cliff=worst_fall <= MAX_FALL,
         fresh_beyond=all(r["age_p95_s"] <= r["age_bar_s"] for r in beyond),
