@@ -160,23 +160,26 @@ def sweep(args):
     figures = anchor(trace, args.profile, cpus)
     print(json.dumps(figures), flush=True)
     replay_args = ("--profile-rates", args.profile) if args.profile != "light" else ()
+    nice = () if args.receive_nice is None else (f"_receive_nice:={args.receive_nice}",)
+    label = f"{args.profile}_{args.twin_cpus}cpu" + ("" if args.receive_nice is None else f"_nice{args.receive_nice}")
     rows = []
     started = datetime.datetime.now().isoformat(timespec="minutes")
     load_before = os.getloadavg()
     with replay_bench(OUT, twin_cpus=cpus, name="cps_twin_capacity") as (run, split_text):
         print(split_text, flush=True)
         for n in [int(x) for x in args.robots.split(",")]:
-            row = run(n, trace, args.duration, label=f"{args.profile}_{args.twin_cpus}cpu", replay_args=replay_args)
+            row = run(n, trace, args.duration, label=label, replay_args=replay_args, map_server_args=nice)
             if row["replay_limited"]:  # the machine, not the twin: once more
                 print(f"  N={n}: replay late (p95 {row['replay_late_p95_s']:.3f} s), once more", flush=True)
-                row = run(n, trace, args.duration, label=f"{args.profile}_{args.twin_cpus}cpu", replay_args=replay_args)
+                row = run(n, trace, args.duration, label=label, replay_args=replay_args, map_server_args=nice)
             rows.append(row)
             print(_line(row), flush=True)
-    key = f"{args.profile}/{args.twin_cpus}"
+    key = f"{args.profile}/{args.twin_cpus}" + ("" if args.receive_nice is None else f"/nice{args.receive_nice}")
     saved = _load()
     saved[key] = dict(
         profile=args.profile,
         twin_cpus=args.twin_cpus,
+        receive_nice=args.receive_nice,  # None: the map server's default
         split=split_text,
         trace=os.path.relpath(trace, ROOT),
         duration_s=args.duration,
@@ -289,7 +292,8 @@ def report(_args):
         a = s["anchor"]
         sat = max(s["rows"], key=lambda r: r["inserted_clouds_per_s"])
         lines += [
-            f"## {s['profile']} profile, {s['twin_cpus']} twin CPU{'s' if s['twin_cpus'] > 1 else ''}",
+            f"## {s['profile']} profile, {s['twin_cpus']} twin CPU{'s' if s['twin_cpus'] > 1 else ''}"
+            + (f", the receive process at nice {s['receive_nice']}" if s.get("receive_nice") is not None else ""),
             "",
             f"{s['split']}. Trace `{s['trace']}`; each N replays {s['duration_s']:g} s; run {s['started']}, machine "
             f"load (1/5/15 min) {', '.join(f'{x:.1f}' for x in s['load_before'])} before and "
@@ -344,6 +348,9 @@ def main():
     run.add_argument("--twin-cpus", type=int, choices=(1, 2), default=1)
     run.add_argument("--robots", default=",".join(map(str, ROBOTS)))
     run.add_argument("--duration", type=float, default=30.0, metavar="S")
+    run.add_argument(
+        "--receive-nice", type=int, default=None, help="the map server's ~receive_nice (default: its own default)"
+    )
     run.add_argument("--bag", default=None, help="a compacted trace (default: record one for the profile)")
     sub.add_parser("report", help="docs/benchmarks/twin_capacity.md and the plot from results.json")
     args = parser.parse_args()

@@ -178,7 +178,9 @@ def twin_capacity_paragraph(path=TWIN_CAPACITY_JSON):
         last = rows[-1]
         cpus = sweep["twin_cpus"]
         parts.append(
-            f"{sweep['profile']} profile on {cpus} twin CPU{'s' if cpus > 1 else ''}: {verdict['capacity']} robots "
+            f"{sweep['profile']} profile on {cpus} twin CPU{'s' if cpus > 1 else ''}"
+            + (f", receive process at nice {sweep['receive_nice']}" if sweep.get("receive_nice") is not None else "")
+            + f": {verdict['capacity']} robots "
             f"held ({verdict['fresh_capacity']} by freshness alone, superseded not judged; N run: "
             f"{', '.join(str(r['robots']) for r in rows)}); at N = {last['robots']} "
             f"{last['inserted_clouds_per_s']:.0f} clouds/s inserted, map age p95 {last['age_p95_s']:.2f} s, worst "

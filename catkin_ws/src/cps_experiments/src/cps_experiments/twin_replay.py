@@ -194,8 +194,9 @@ def _percentile(values, q):
     return float(np.percentile(values, q)) if len(values) else math.inf
 
 
-def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_args=()):
-    """One replay of `n` robots; the figures of the run (a dict, JSON-ready)."""
+def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_args=(), map_server_args=()):
+    """One replay of `n` robots (`map_server_args`: the map server's extra arguments, such as
+    private parameters); the figures of the run (a dict, JSON-ready)."""
     from cps_bringup.plan import DIGITAL, PHYSICAL
     from cps_bringup.supervisor import Supervisor
     from cps_bringup.trace_replay import twin_specs
@@ -214,7 +215,10 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
     robots = load_fleet(copies_fleet).robot_names
     note = next((line for line in plan.stdout.splitlines() if "asked for" in line), "")
     supervisor = Supervisor(
-        twin_specs(copies_fleet, folder), graph, log=lambda _m: None, spec_prefix=lambda spec: split.prefix(DIGITAL)
+        twin_specs(copies_fleet, folder, map_server_args),
+        graph,
+        log=lambda _m: None,
+        spec_prefix=lambda spec: split.prefix(DIGITAL),
     )
     sampler = None
     shards = math.ceil(n / ROBOTS_PER_REPLAY)
@@ -405,7 +409,8 @@ CSV_COLUMNS = (
 def replay_bench(out_dir, twin_cpus=None, twin_shares=16384, replay_shares=16384, name="cps_twin_replay"):
     """A private master, the twin on `twin_cpus` (default: the last CPU) and the replays on the
     others (on every CPU when the twin has them all), and this process's rospy node watching the
-    twin; yields (run(n, bag, duration_s, label="", replay_args=()), the split's description).
+    twin; yields (run(n, bag, duration_s, label="", replay_args=(), map_server_args=()), the split's
+    description).
     Everything is stopped and removed on exit."""
     from cps_bringup.host_split import HostSplit, online_cpus
     from cps_bringup.plan import DIGITAL, PHYSICAL
@@ -428,8 +433,8 @@ def replay_bench(out_dir, twin_cpus=None, twin_shares=16384, replay_shares=16384
         watch = Watch()
         try:
             yield (
-                lambda n, bag, duration_s, label="", replay_args=(): trial(
-                    graph, watch, split, bag, n, duration_s, out_dir, label, replay_args
+                lambda n, bag, duration_s, label="", replay_args=(), map_server_args=(): trial(
+                    graph, watch, split, bag, n, duration_s, out_dir, label, replay_args, map_server_args
                 ),
                 split.describe(),
             )

@@ -6,7 +6,7 @@ process 0.48 of its core: ~150 receiving threads (a rospy thread per connection)
 interpreter's lock to each other left the insertion waiting for it, the core half idle, and 86
 clouds/s inserted where 32 robots got 142. The receiving threads, the transforms and the slots
 (`cps_mapping.admission.Admission`) now run in a child process, a rospy node of their own
-(cps_fleet.names.admission_node: `<map server>_input`) at RECEIVE_NICE, and the insertion thread in
+(cps_fleet.names.admission_node: `<map server>_input`) at ~receive_nice, and the insertion thread in
 the map server's process asks it for clouds over a pipe, a batch of up to BATCH at a time, and asks
 for the next batch while it still inserts this one. The child dies with the map server
 (PR_SET_PDEATHSIG) and ends when its pipes close.
@@ -21,10 +21,6 @@ import signal
 import threading
 from typing import List, Tuple
 
-# nice of the receive process, above the map server's (CFS weight 335 against 1024 at nice 0):
-# when both want the core, the insertion gets about three quarters of it, and its CPU budget
-# (~insertion_budget_fraction) leaves the receive side the rest.
-RECEIVE_NICE = 5
 # Longest wait of the receive side for a cloud before it answers "none" (the insertion asks again).
 REQUEST_WAIT_S = 0.5
 # Clouds placed per request, at most: the receive process answers with every cloud it can place at
@@ -45,6 +41,7 @@ class AdmissionConfig:
     robots: Tuple[str, ...]
     frame_id: str
     tf_timeout_s: float
+    nice: int  # the map server's ~receive_nice: when both want the core, the insertion comes first
 
 
 def remappings_of(argv: List[str]) -> Tuple[str, ...]:
@@ -122,7 +119,7 @@ def _run(config: AdmissionConfig, next_conn, control_conn):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
     except OSError:
         pass
-    os.nice(RECEIVE_NICE)
+    os.nice(config.nice)
     import logging
 
     import rospy
