@@ -43,7 +43,9 @@ def _live(robot):
 
 
 def _backfill(robot):
-    return names.absolute(names.in_twin(names.robot_topic(robot, names.POINTS_BACKFILL)))
+    """The keyframes as the twin's bridge delivers them to the map server (still Draco: the map
+    server decodes what it inserts, issue 37)."""
+    return names.absolute(names.in_twin(names.robot_topic(robot, names.POINTS_BACKFILL_DRACO)))
 
 
 @pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
