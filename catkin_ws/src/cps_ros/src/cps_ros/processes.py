@@ -61,20 +61,24 @@ def find_node(package, node):
 
 def stop_all(procs, timeout_s=10.0):
     """SIGINT (as Ctrl-C) to each process group, then SIGTERM to those still running, then SIGKILL;
-    each signal to all at once, then waiting for all. The groups may hold children that outlived
-    their leader (a node's worker processes): killed, and waited for, so that nothing is left
-    running when this returns."""
-    for sig, wait_s in ((signal.SIGINT, timeout_s * 0.6), (signal.SIGTERM, timeout_s * 0.3), (signal.SIGKILL, 5.0)):
-        running = [p for p in procs if p.poll() is None]
+    each signal to all at once, then waiting for all. `timeout_s`: one for all, or one per process
+    (a recorder writing out its buffer gets longer than a node). The groups may hold children that
+    outlived their leader (a node's worker processes): killed, and waited for, so that nothing is
+    left running when this returns."""
+    procs = list(procs)
+    timeouts = list(timeout_s) if isinstance(timeout_s, (list, tuple)) else [timeout_s] * len(procs)
+    for sig, share in ((signal.SIGINT, 0.6), (signal.SIGTERM, 0.3), (signal.SIGKILL, None)):
+        running = [(p, t) for p, t in zip(procs, timeouts) if p.poll() is None]
         if not running:
             break
-        for proc in running:
+        for proc, _ in running:
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(proc.pid, sig)
-        deadline = time.monotonic() + wait_s
-        for proc in running:
+        start = time.monotonic()
+        for proc, t in running:
+            wait_s = 5.0 if share is None else t * share
             with contextlib.suppress(subprocess.TimeoutExpired):
-                proc.wait(max(0.0, deadline - time.monotonic()))
+                proc.wait(max(0.0, start + wait_s - time.monotonic()))
     for proc in procs:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(proc.pid, signal.SIGKILL)
