@@ -8,6 +8,7 @@ turns them into a `LevelAllocation` (`allocate_streams`; `allocate` is its cloud
 `Allocation` form). The node only wires topics to it.
 """
 
+import collections
 import dataclasses
 import math
 from typing import Dict, Optional
@@ -27,6 +28,7 @@ from cps_bw_manager.level_allocation import (
     OPERATOR_VIDEO,
     VIDEO,
     LevelAllocation,
+    ResourceUse,
     StreamDemand,
     allocate_levels,
     cloud_detail_bits,
@@ -48,6 +50,27 @@ DEFAULT_INPUT_RATE_HOLD_S = 10.0
 INSERT_CAPACITY_HOLD_S = 10.0
 TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
 
+# Compute is a resource (issue 36). A stream that delivers less than (1 - COMPUTE_SHORTFALL) of the
+# rate set on it, over COMPUTE_WINDOW_S in which the link never bound, is compute-bound (its
+# producer, not the link, limits it: BBR's app-limited): no level finer than its own is bought for
+# it until it has delivered its rate again for COMPUTE_CLEAR_S. The window is long because a cloud
+# at ~1 Hz gives its limiter two or three messages per 2 s window.
+COMPUTE_WINDOW_S = 10.0
+COMPUTE_SHORTFALL = 0.2
+COMPUTE_CLEAR_S = 30.0
+# A host's idle CPU figure (from its encoders' status) counts this long.
+HOST_STALE_S = 10.0
+# After the allocation adds to a host's CPU, that host gets no further increase until its idle
+# share has been measured again with the new work in it (the encoders' status is 1 Hz, over ~1 s).
+HOST_SETTLE_S = 3.0
+# Resource names of the allocator's rows beside the link.
+TWIN_POINTS = "twin points"
+
+
+def cpu_resource(host):
+    """The allocator's name of a robots' host's CPU (cores)."""
+    return f"cpu {host}"
+
 
 @dataclasses.dataclass(frozen=True)
 class ManagerSettings:
@@ -68,6 +91,15 @@ class ManagerSettings:
     # A status without an input rate (0 or NaN: fewer than two messages in the limiter's window)
     # keeps the robot's last input-rate cap this long before it falls back to max_rate_hz.
     input_rate_hold_s: float = DEFAULT_INPUT_RATE_HOLD_S
+    # A finished robot's bandwidth weight (issue 36: it keeps the rate its stream sustains while the
+    # link has room, and yields first when it binds); the paper pins it at min_rate_hz: pin_done.
+    done_weight: float = 0.25
+    pin_done: bool = False
+    # The share of each robots' host's cores kept idle (control loops, teleop, the bridges): the
+    # allocation adds CPU work on a host only within its idle share above this.
+    cpu_idle_reserve: float = 0.15
+    # A level finer than the one in force must fit the link with this fraction of its cost to spare.
+    upgrade_margin: float = 0.1
 
     def validate(self):
         """ValueError naming the parameter that is wrong."""
@@ -86,7 +118,14 @@ class ManagerSettings:
             or not 0 <= self.input_rate_hold_s <= 3600
         ):
             raise ValueError(f"input_rate_hold_s must be in [0, 3600] s, got {self.input_rate_hold_s!r}")
+        for name in ("cpu_idle_reserve", "upgrade_margin"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not _finite(value) or not 0 <= value <= 1:
+                raise ValueError(f"{name} must be in [0, 1], got {value!r}")
+        if not isinstance(self.pin_done, bool):
+            raise ValueError(f"pin_done must be true or false, got {self.pin_done!r}")
         for name in (
+            "done_weight",
             "min_rate_hz",
             "max_rate_hz",
             "high_priority_weight",
@@ -111,6 +150,47 @@ class LinkHealth:
     outages: int = 0
     last_outage_s: float = 0.0
     peer: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class EncoderReport:
+    """What a stream's encoder says beside its sizes (cps_msgs/RateLimiterStatus, issue 36)."""
+
+    set_rate_hz: float = math.nan  # the rate in force on the robots' side (0: a video turned off)
+    forwarded: Optional[int] = None  # messages sent so far (a counter)
+    level_mean_cpu_s: float = math.nan  # CPU seconds per message at the level reported
+    level_mean_points: float = math.nan  # points per message at that level (clouds)
+    host: str = ""  # the computer and CPUs the encoder runs on
+    host_cpus: float = math.nan  # cores of that host
+    host_idle_fraction: float = math.nan  # their idle share over the status's window
+
+    def validate(self, who):
+        """ValueError naming the field that is not a value (NaN, 0 and "" mean: not reported)."""
+        for name in ("set_rate_hz", "level_mean_cpu_s", "level_mean_points", "host_cpus"):
+            value = getattr(self, name)
+            if not (math.isnan(value) or (_finite(value) and value >= 0)):
+                raise ValueError(f"{who}: {name} {value!r} is not NaN or finite and >= 0")
+        if not (math.isnan(self.host_idle_fraction) or 0.0 <= self.host_idle_fraction <= 1.0):
+            raise ValueError(f"{who}: host_idle_fraction {self.host_idle_fraction!r} outside [0, 1]")
+        if self.forwarded is not None and (isinstance(self.forwarded, bool) or int(self.forwarded) < 0):
+            raise ValueError(f"{who}: forwarded {self.forwarded!r} is not a count")
+
+
+@dataclasses.dataclass
+class _StreamState:
+    """What the manager knows of one stream from its encoder (issue 36)."""
+
+    cpu_s: LevelSizes  # CPU seconds per message per level, learned like the sizes
+    points: Optional[LevelSizes]  # points per message per level (clouds)
+    reported: bool = False  # an encoder status arrived
+    level: Optional[int] = None  # the level its encoder runs at (None: it does not say)
+    level_since_s: float = -math.inf
+    set_rate_hz: float = math.nan
+    host: str = ""
+    # (time, forwarded counter, rate set) of its statuses, for the compute-bound judgement
+    history: collections.deque = dataclasses.field(default_factory=collections.deque)
+    compute_bound: bool = False
+    delivering_since_s: float = math.nan
 
 
 @dataclasses.dataclass
@@ -138,7 +218,7 @@ class ManagerCore:
         self.robots = list(robots)
         if not self.robots:
             raise ValueError("no robots to manage")
-        self.book = PriorityBook(self.robots)
+        self.book = PriorityBook(self.robots, pin_done=settings.pin_done)
         self.estimator = estimator
         self.measured: Dict[str, _Measured] = {r: _Measured() for r in self.robots}
         self.invalid_inputs = 0
@@ -169,6 +249,18 @@ class ManagerCore:
             self.video_measured[r] = _Measured()
         # The level each stream was last allocated (what its encoder produces once it follows).
         self.level_in_force = {key: sizes.levels - 1 for key, sizes in self.sizes.items()}
+        # Issue 36: each stream's CPU and points per level, level and rate in force, host, and
+        # whether it is compute-bound; each robots' host's idle cores (idle, cores, at s).
+        self.state: Dict[tuple, _StreamState] = {
+            key: _StreamState(
+                cpu_s=LevelSizes(sizes.priors), points=LevelSizes(sizes.priors) if key[1] == CLOUD else None
+            )
+            for key, sizes in self.sizes.items()
+        }
+        self.hosts: Dict[str, tuple] = {}
+        self._settling: Dict[str, tuple] = {}  # host -> (until s, CPU granted meanwhile)
+        self._points_capacity = (math.nan, -math.inf)  # (points/s, reported at s)
+        self._link_bound_s = -math.inf  # the last allocation in which the link's budget bound
         self.selected_robot = ""
         self.teleop = set()
         self._capacity = (math.nan, -math.inf)  # (clouds/s, reported at s)
@@ -256,11 +348,13 @@ class ManagerCore:
         now_s,
         level=None,
         level_mean_message_bytes=math.nan,
+        encoder: Optional[EncoderReport] = None,
     ):
         """A rate limiter's status received at `now_s` (s, any monotonic clock); returns True if the
         size (of any level) changed enough to re-allocate now. `level`, `level_mean_message_bytes`:
         the level the clouds were produced at and their size (RateLimiterStatus); without them the
-        mean size counts as the size of the level in force.
+        mean size counts as the size of the level in force. `encoder`: the rest of the status
+        (rate set, counter, CPU and points per message, host; issue 36).
 
         Raises KeyError for an unknown robot. A size of 0 or NaN (nothing received yet) keeps the
         old size; a negative or infinite size is counted and refused (ValueError). An input rate
@@ -272,6 +366,7 @@ class ManagerCore:
         if not _finite(now_s):
             self.invalid_inputs += 1
             raise ValueError(f"robot '{robot}': status time {now_s!r} is not a time")
+        self._check_encoder((robot, CLOUD), encoder)
         entry.output_rate_hz = float(output_rate_hz) if _finite(output_rate_hz) and output_rate_hz >= 0 else math.nan
         if not _positive(mean_message_bytes) and not (mean_message_bytes == 0 or math.isnan(mean_message_bytes)):
             self.invalid_inputs += 1
@@ -282,6 +377,7 @@ class ManagerCore:
             entry.input_rate_hz = entry.input_rate_at_s = math.nan  # held too long (or the clock went back)
         self._now_s = max(self._now_s, float(now_s))
         level_changed = self._learn((robot, CLOUD), level, level_mean_message_bytes, mean_message_bytes, now_s)
+        self._take_encoder((robot, CLOUD), level if _positive(level_mean_message_bytes) else None, encoder, now_s)
         if not _positive(mean_message_bytes):
             return level_changed
         old = entry.message_bytes
@@ -302,16 +398,25 @@ class ManagerCore:
         return False
 
     def on_video_status(
-        self, robot, level, level_mean_message_bytes, mean_message_bytes=math.nan, output_rate_hz=math.nan, *, now_s
+        self,
+        robot,
+        level,
+        level_mean_message_bytes,
+        mean_message_bytes=math.nan,
+        output_rate_hz=math.nan,
+        *,
+        now_s,
+        encoder: Optional[EncoderReport] = None,
     ):
         """A camera robot's video status (cps_msgs/RateLimiterStatus from its video pipeline);
         returns True if a level's size moved enough to re-allocate now. KeyError for a robot
-        without managed video, ValueError (counted) for a bad level, size or time."""
+        without managed video, ValueError (counted) for a bad level, size, time or `encoder` field."""
         if robot not in self.video_measured:
             raise KeyError(f"robot '{robot}' has no managed video (camera robots: {', '.join(self.camera_robots)})")
         if not _finite(now_s):
             self.invalid_inputs += 1
             raise ValueError(f"robot '{robot}': status time {now_s!r} is not a time")
+        self._check_encoder((robot, VIDEO), encoder)
         for value in (level_mean_message_bytes, mean_message_bytes):
             if not _positive(value) and not (value == 0 or math.isnan(value)):
                 self.invalid_inputs += 1
@@ -321,7 +426,75 @@ class ManagerCore:
         entry.output_rate_hz = float(output_rate_hz) if _finite(output_rate_hz) and output_rate_hz >= 0 else math.nan
         if _positive(mean_message_bytes):
             entry.message_bytes = float(mean_message_bytes)
-        return self._learn((robot, VIDEO), level, level_mean_message_bytes, mean_message_bytes, now_s)
+        changed = self._learn((robot, VIDEO), level, level_mean_message_bytes, mean_message_bytes, now_s)
+        self._take_encoder((robot, VIDEO), level, encoder, now_s)
+        return changed
+
+    def _check_encoder(self, key, encoder):
+        if encoder is None:
+            return
+        try:
+            encoder.validate(f"{key[0]}/{key[1]}")
+        except ValueError:
+            self.invalid_inputs += 1
+            raise
+
+    def _take_encoder(self, key, level, encoder, now_s):
+        """The encoder's level, rate set, costs and host (issue 36); judges compute-boundness."""
+        st = self.state[key]
+        st.reported = True
+        if level is not None and 0 <= level < self.sizes[key].levels:
+            if st.level != level:
+                st.level, st.level_since_s = int(level), float(now_s)
+        if encoder is None:
+            return
+        if _finite(encoder.set_rate_hz):
+            st.set_rate_hz = float(encoder.set_rate_hz)
+        if st.level is not None:
+            if _positive(encoder.level_mean_cpu_s):
+                st.cpu_s.report(st.level, float(encoder.level_mean_cpu_s), float(now_s))
+            if st.points is not None and _positive(encoder.level_mean_points):
+                st.points.report(st.level, float(encoder.level_mean_points), float(now_s))
+        if encoder.host:
+            st.host = encoder.host
+            if _positive(encoder.host_cpus) and _finite(encoder.host_idle_fraction):
+                cpus = float(encoder.host_cpus)
+                self.hosts[encoder.host] = (encoder.host_idle_fraction * cpus, cpus, float(now_s))
+        if encoder.forwarded is not None and _finite(encoder.set_rate_hz):
+            self._judge_compute(st, int(encoder.forwarded), float(encoder.set_rate_hz), float(now_s))
+
+    def _judge_compute(self, st, forwarded, set_rate_hz, now_s):
+        """Compute-bound: over the last COMPUTE_WINDOW_S, in which the link never bound (nor went
+        down), the stream delivered less than (1 - COMPUTE_SHORTFALL) of the mean rate set on it."""
+        history = st.history
+        if history and (forwarded < history[-1][1] or now_s < history[-1][0]):
+            history.clear()  # the encoder restarted, or the clock went back: start again
+        history.append((now_s, forwarded, set_rate_hz))
+        while len(history) > 2 and history[1][0] <= now_s - COMPUTE_WINDOW_S:
+            history.popleft()
+        start_s, start_count, _ = history[0]
+        if now_s - start_s < COMPUTE_WINDOW_S or self._link_bound_s >= start_s or self.paused:
+            return
+        allocated = sum(rate for _, _, rate in history) / len(history)
+        if allocated <= 0:
+            return
+        delivered = (forwarded - start_count) / (now_s - start_s)
+        if delivered < (1.0 - COMPUTE_SHORTFALL) * allocated:
+            st.compute_bound, st.delivering_since_s = True, math.nan
+        elif st.compute_bound:
+            if math.isnan(st.delivering_since_s):
+                st.delivering_since_s = now_s
+            elif now_s - st.delivering_since_s >= COMPUTE_CLEAR_S:
+                st.compute_bound, st.delivering_since_s = False, math.nan
+
+    def compute_bound(self, robot, stream):
+        """True while the stream is judged compute-bound (no finer level is bought for it)."""
+        return self.state[(robot, stream)].compute_bound
+
+    def reported(self, robot, stream):
+        """True once the stream's encoder has reported (before that no setpoint need be sent: it
+        runs at its own configured level and initial rate)."""
+        return self.state[(robot, stream)].reported
 
     def on_selected_robot(self, robot):
         """The operator's selected robot ("" for none; a robot not managed here selects none of
@@ -346,16 +519,19 @@ class ManagerCore:
         """The camera robots whose video gets operator quality: the selected one and every teleoperated one."""
         return {r for r in self.camera_robots if r == self.selected_robot or r in self.teleop}
 
-    def on_insert_capacity(self, clouds_per_s, now_s):
-        """The map server's insertion capacity (cps_msgs/InsertCapacity.clouds_per_s). 0 or NaN
-        (nothing measured in its window) clears it; negative or infinite is refused (ValueError,
-        counted). Returns True if the bound moved by more than 10 % (or appeared, or went)."""
+    def on_insert_capacity(self, clouds_per_s, now_s, points_per_s=math.nan):
+        """The map server's insertion capacity (cps_msgs/InsertCapacity.clouds_per_s, and
+        points_per_s: the finer levels' points are bought within it, issue 36). 0 or NaN (nothing
+        measured in its window) clears it; negative or infinite is refused (ValueError, counted).
+        Returns True if the clouds/s bound moved by more than 10 % (or appeared, or went)."""
         if not _finite(now_s):
             self.invalid_inputs += 1
             raise ValueError(f"insert capacity time {now_s!r} is not a time")
-        if not (_positive(clouds_per_s) or clouds_per_s == 0 or math.isnan(clouds_per_s)):
-            self.invalid_inputs += 1
-            raise ValueError(f"insert capacity {clouds_per_s!r} clouds/s is not a capacity")
+        for value, unit in ((clouds_per_s, "clouds/s"), (points_per_s, "points/s")):
+            if not (_positive(value) or value == 0 or math.isnan(value)):
+                self.invalid_inputs += 1
+                raise ValueError(f"insert capacity {value!r} {unit} is not a capacity")
+        self._points_capacity = (float(points_per_s) if _positive(points_per_s) else math.nan, float(now_s))
         before = self.insert_capacity_clouds_per_s(now_s)
         self._capacity = (float(clouds_per_s) if _positive(clouds_per_s) else math.nan, float(now_s))
         self._now_s = max(self._now_s, float(now_s))
@@ -371,6 +547,68 @@ class ManagerCore:
         if not _positive(value) or not 0.0 <= now_s - at_s <= INSERT_CAPACITY_HOLD_S:
             return None
         return value
+
+    def insert_capacity_points_per_s(self, now_s=None):
+        """The twin's insertion capacity in points/s in force (None: none reported lately)."""
+        now_s = self._now_s if now_s is None else now_s
+        value, at_s = self._points_capacity
+        if not _positive(value) or not 0.0 <= now_s - at_s <= INSERT_CAPACITY_HOLD_S:
+            return None
+        return value
+
+    def spare(self, now_s=None):
+        """Per resource beside the link, what the allocation may add to what the streams take now
+        (issue 36): a robots' host's idle cores above its reserve (a host that reported lately;
+        while it settles after an increase, only what was granted), and the twin's points/s not
+        used by the clouds delivered now. A resource nobody reported is absent (not bounded)."""
+        now_s = self._now_s if now_s is None else now_s
+        out = {}
+        for host, (idle_cores, cores, at_s) in self.hosts.items():
+            if not 0.0 <= now_s - at_s <= HOST_STALE_S:
+                continue
+            until_s, granted = self._settling.get(host, (-math.inf, 0.0))
+            if now_s < until_s:
+                out[cpu_resource(host)] = granted
+            else:
+                out[cpu_resource(host)] = max(0.0, idle_cores - self.settings.cpu_idle_reserve * cores)
+        capacity = self.insert_capacity_points_per_s(now_s)
+        if capacity is not None:
+            used = 0.0
+            for robot in self.robots:
+                st = self.state[(robot, CLOUD)]
+                rate = self.measured[robot].output_rate_hz  # what reaches the twin now
+                if st.level is not None and st.points.reference_level is not None and _finite(rate):
+                    used += rate * st.points.estimate(now_s)[st.level]
+            out[TWIN_POINTS] = max(0.0, capacity - used)
+        return out
+
+    def _uses(self, key, now_s):
+        """What the stream takes of the resources beside the link (ResourceUse), where known."""
+        st = self.state[key]
+        if st.level is None:
+            return ()
+        uses = []
+        if st.host and st.host in self.hosts and st.cpu_s.reference_level is not None:
+            per = st.cpu_s.estimate(now_s)
+            if key[1] == CLOUD:  # encoded at the sensor's rate, before its limiter
+                produced = self.measured[key[0]].input_rate_hz
+                if _positive(produced):
+                    uses.append(ResourceUse(cpu_resource(st.host), per, per[st.level] * produced, produced))
+            elif _finite(st.set_rate_hz):  # rendered and encoded at the rate set only
+                uses.append(ResourceUse(cpu_resource(st.host), per, per[st.level] * st.set_rate_hz))
+        if st.points is not None and st.points.reference_level is not None:
+            # at most what the sensor produces reaches the twin (the limiter's rate is set above it
+            # while the link has room, and only then are finer levels bought)
+            per = st.points.estimate(now_s)
+            produced = self.measured[key[0]].input_rate_hz
+            if _positive(produced):
+                uses.append(ResourceUse(TWIN_POINTS, per, per[st.level] * produced, produced))
+        return tuple(uses)
+
+    def _finest_level(self, key, now_s):
+        """No level finer than the one in force while the stream is compute-bound."""
+        st = self.state[key]
+        return st.level if st.compute_bound and st.level is not None else 0
 
     def on_mission_state(self, robot, state):
         return self.book.set_mission_state(self._known(robot), state)
@@ -471,6 +709,7 @@ class ManagerCore:
             d = self.book.demand(robot, math.nan, s.min_rate_hz, self.input_rate_cap_hz(robot))
             sizes = self.sizes[(robot, CLOUD)]
             detail = d.priority == 1 and len(names) > 1
+            finished = self.book.finished(robot) and not self.book.pinned_to_minimum(robot)
             out.append(
                 StreamDemand(
                     robot,
@@ -478,7 +717,7 @@ class ManagerCore:
                     sizes.estimate(now_s),
                     bits,
                     names,
-                    weight=self.weights[d.priority],
+                    weight=s.done_weight if finished else self.weights[d.priority],
                     priority=d.priority,
                     floor_rate_hz=d.min_rate_hz,
                     max_rate_hz=d.max_rate_hz,
@@ -486,6 +725,9 @@ class ManagerCore:
                     guarantee_level=0,
                     guarantee_rate_hz=d.min_rate_hz,
                     size_measured=sizes.measured(now_s),
+                    uses=self._uses((robot, CLOUD), now_s),
+                    finest_level=self._finest_level((robot, CLOUD), now_s),
+                    level_in_force=self.state[(robot, CLOUD)].level,
                 )
             )
         if self.video_levels:
@@ -510,6 +752,9 @@ class ManagerCore:
                         guarantee_level=st.operator_video_level,
                         guarantee_rate_hz=st.operator_video_rate_hz,
                         size_measured=sizes.measured(now_s),
+                        uses=self._uses((robot, VIDEO), now_s),
+                        finest_level=self._finest_level((robot, VIDEO), now_s),
+                        level_in_force=self.state[(robot, VIDEO)].level,
                     )
                 )
         return out
@@ -530,6 +775,8 @@ class ManagerCore:
             sizes = sum(d.level_bytes[levels[d.key]] for d in demands)
             return min(0.25 * budget, s.headroom_messages * sizes / 1e6 / s.window_s)
 
+        spare = self.spare(now_s)
+
         def solve(room):
             return allocate_levels(
                 demands,
@@ -537,6 +784,8 @@ class ManagerCore:
                 max_clouds_per_s=capacity,
                 floor_rate_hz=s.floor_rate_hz,
                 priority_weights=self.weights,
+                spare=spare,
+                upgrade_margin=s.upgrade_margin,
             )
 
         room = headroom(self.level_in_force)
@@ -547,6 +796,12 @@ class ManagerCore:
             chosen = {a.key: a.level for a in result.streams}
         self.level_in_force.update(chosen)
         self.last_demands = {d.key: d for d in demands}
+        if result.link_binds:
+            self._link_bound_s = max(self._link_bound_s, float(now_s))
+        for resource, increase in result.resource_increase:
+            host = resource[len(cpu_resource("")) :] if resource.startswith(cpu_resource("")) else None
+            if host is not None and increase > 0 and now_s >= self._settling.get(host, (-math.inf, 0.0))[0]:
+                self._settling[host] = (float(now_s) + HOST_SETTLE_S, increase)
         streams = tuple(
             dataclasses.replace(
                 a,

@@ -1,0 +1,121 @@
+"""Which of the allocation's levels and rates are worth sending to the robots (issue 36), no ROS.
+
+The allocator answers at every update (2 Hz, and on every input that may change it); most answers
+differ from the last one by noise (a size measured 3 % larger, an input rate 1.6 Hz instead of
+1.5 Hz). Every setpoint crosses the link, wakes the robot's encoder and is echoed by its status,
+on the robots' saturated CPU: so a stream's setpoint is sent only when it matters.
+
+- a stream's first setpoint, a level change, a video turned off or on, and a rate below what the
+  stream's rules guarantee (an operator's video, a floor) go out at once;
+- otherwise a rate goes out only if it left the deadband around the rate in force
+  (|target - sent| > `rate_deadband` x sent: hysteresis), and at most once per `min_interval_s`
+  per stream;
+- whatever was held back, the rates in force must fit the link: if they do not (the budget fell,
+  or a size grew), every stream whose target is below its rate in force gets it at once.
+
+Decisions are batched per robot: one call decides every stream, and the node sends a robot's
+changes together.
+"""
+
+import dataclasses
+import math
+from typing import Dict, List, Mapping, Optional, Tuple
+
+DEFAULT_RATE_DEADBAND = 0.2
+DEFAULT_MIN_INTERVAL_S = 5.0
+FIRST, LEVEL, ON_OFF, RULE, CHANGE, BUDGET = "first", "level", "on/off", "rule", "change", "budget"
+
+
+@dataclasses.dataclass(frozen=True)
+class Target:
+    """What the allocator wants for one stream."""
+
+    level: int
+    rate_hz: float  # 0: off
+    min_rate_hz: float = 0.0  # what the stream's kept rules guarantee
+    message_bytes: float = 0.0  # its size at `level` (the budget check)
+
+
+@dataclasses.dataclass(frozen=True)
+class Change:
+    """A setpoint to send: the stream's level and rate now in force, and why."""
+
+    key: Tuple[str, str]  # (robot, stream)
+    level: int
+    rate_hz: float
+    level_changed: bool
+    rate_changed: bool
+    reason: str
+
+
+class SetpointFilter:
+    def __init__(self, rate_deadband=DEFAULT_RATE_DEADBAND, min_interval_s=DEFAULT_MIN_INTERVAL_S):
+        if not (math.isfinite(rate_deadband) and 0 <= rate_deadband < 1):
+            raise ValueError(f"rate_deadband must be in [0, 1), got {rate_deadband!r}")
+        if not (math.isfinite(min_interval_s) and min_interval_s >= 0):
+            raise ValueError(f"min_interval_s must be >= 0 s, got {min_interval_s!r}")
+        self.rate_deadband = float(rate_deadband)
+        self.min_interval_s = float(min_interval_s)
+        self._sent: Dict[Tuple[str, str], Tuple[int, float, float]] = {}  # key -> (level, rate, at s)
+        self.sent_count = 0
+
+    def in_force(self, key) -> Optional[Tuple[int, float]]:
+        """(level, rate) last sent for the stream (None: nothing sent yet)."""
+        entry = self._sent.get(key)
+        return None if entry is None else entry[:2]
+
+    def forget(self, key):
+        """Send the stream's next setpoint as its first (its encoder restarted)."""
+        self._sent.pop(key, None)
+
+    def decide(self, now_s, targets: Mapping[Tuple[str, str], Target], budget_mbytes_per_s=math.inf):
+        """The setpoints to send now, per robot: {robot: [Change, ...]} (robots with none absent).
+        `budget_mbytes_per_s`: what the rates in force must fit (sum of rate x message_bytes)."""
+        if not math.isfinite(now_s):
+            raise ValueError(f"time {now_s!r} is not a time")
+        changes: Dict[Tuple[str, str], Change] = {}
+        for key, t in targets.items():
+            reason = self._reason(key, t, now_s)
+            if reason:
+                changes[key] = self._change(key, t, reason)
+        # The rates in force (after the changes above) must fit the link.
+        total = 0.0
+        for key, t in targets.items():
+            rate = changes[key].rate_hz if key in changes else self._sent.get(key, (0, t.rate_hz, 0))[1]
+            total += rate * t.message_bytes / 1e6
+        if total > budget_mbytes_per_s * (1 + 1e-9):
+            for key, t in targets.items():
+                if key not in changes and t.rate_hz < self._sent[key][1]:
+                    changes[key] = self._change(key, t, BUDGET)
+        out: Dict[str, List[Change]] = {}
+        for key, change in changes.items():
+            self._sent[key] = (change.level, change.rate_hz, float(now_s))
+            self.sent_count += 1
+            out.setdefault(key[0], []).append(change)
+        return out
+
+    def _reason(self, key, t: Target, now_s):
+        sent = self._sent.get(key)
+        if sent is None:
+            return FIRST
+        level, rate, at_s = sent
+        if t.level != level:
+            return LEVEL
+        if (rate == 0.0) != (t.rate_hz == 0.0):
+            return ON_OFF
+        if rate < t.min_rate_hz * (1 - 1e-9):
+            return RULE
+        if abs(t.rate_hz - rate) > self.rate_deadband * rate and now_s - at_s >= self.min_interval_s:
+            return CHANGE
+        return ""
+
+    def _change(self, key, t: Target, reason):
+        sent = self._sent.get(key)
+        return Change(
+            key=key,
+            level=t.level,
+            rate_hz=t.rate_hz,
+            level_changed=sent is None or sent[0] != t.level,
+            rate_changed=sent is None or sent[1] != t.rate_hz,
+            reason=reason,
+        )
