@@ -63,6 +63,8 @@ HOST_STALE_S = 10.0
 # After the allocation adds to a host's CPU, that host gets no further increase until its idle
 # share has been measured again with the new work in it (the encoders' status is 1 Hz, over ~1 s).
 HOST_SETTLE_S = 3.0
+# An encoder that forwarded this many messages without naming their level knows no levels.
+LEVELLESS_AFTER = 3
 # Resource names of the allocator's rows beside the link.
 TWIN_POINTS = "twin points"
 
@@ -191,6 +193,7 @@ class _StreamState:
     history: collections.deque = dataclasses.field(default_factory=collections.deque)
     compute_bound: bool = False
     delivering_since_s: float = math.nan
+    forwarded: int = 0  # the encoder's counter
 
 
 @dataclasses.dataclass
@@ -460,8 +463,10 @@ class ManagerCore:
             if _positive(encoder.host_cpus) and _finite(encoder.host_idle_fraction):
                 cpus = float(encoder.host_cpus)
                 self.hosts[encoder.host] = (encoder.host_idle_fraction * cpus, cpus, float(now_s))
-        if encoder.forwarded is not None and _finite(encoder.set_rate_hz):
-            self._judge_compute(st, int(encoder.forwarded), float(encoder.set_rate_hz), float(now_s))
+        if encoder.forwarded is not None:
+            st.forwarded = int(encoder.forwarded)
+            if _finite(encoder.set_rate_hz):
+                self._judge_compute(st, st.forwarded, float(encoder.set_rate_hz), float(now_s))
 
     def _judge_compute(self, st, forwarded, set_rate_hz, now_s):
         """Compute-bound: over the last COMPUTE_WINDOW_S, in which the link never bound (nor went
@@ -487,14 +492,26 @@ class ManagerCore:
             elif now_s - st.delivering_since_s >= COMPUTE_CLEAR_S:
                 st.compute_bound, st.delivering_since_s = False, math.nan
 
+    def compute_bound_streams(self):
+        """The (robot, stream) keys judged compute-bound now."""
+        return tuple(key for key, st in self.state.items() if st.compute_bound)
+
     def compute_bound(self, robot, stream):
         """True while the stream is judged compute-bound (no finer level is bought for it)."""
         return self.state[(robot, stream)].compute_bound
 
     def reported(self, robot, stream):
-        """True once the stream's encoder has reported (before that no setpoint need be sent: it
-        runs at its own configured level and initial rate)."""
-        return self.state[(robot, stream)].reported
+        """True once the stream's encoder has said what it runs: its level, and what that costs if
+        it reports its host's CPU; or it forwarded LEVELLESS_AFTER messages without naming a level
+        (an encoder that knows no levels, e.g. a plain rate_limiter). Before that no setpoint is
+        sent: it runs at its own configured level and initial rate, and the manager, not knowing
+        what a finer level would cost, would buy the finest everywhere at start."""
+        st = self.state[(robot, stream)]
+        if not st.reported:
+            return False
+        if st.level is None:
+            return st.forwarded >= LEVELLESS_AFTER
+        return not st.host or st.cpu_s.reference_level is not None
 
     def on_selected_robot(self, robot):
         """The operator's selected robot ("" for none; a robot not managed here selects none of
@@ -869,6 +886,12 @@ ALLOCATION_CSV_COLUMNS = (
     "stream",
     "level",
     "level_name",
+    # issue 36: level and rate_hz above are the ones in force (sent to the robots); the allocator's
+    # own answer, which the setpoint filter may have held back, and whether the stream is
+    # compute-bound
+    "target_level",
+    "target_rate_hz",
+    "compute_bound",
 )
 
 
@@ -913,19 +936,27 @@ def clouds_allocation(result: LevelAllocation, demands) -> Allocation:
     return Allocation(tuple(robots), result.budget_mbytes_per_s, allocated, result.feasible, result.status)
 
 
-def allocation_csv_rows(stamp_s, available_mbps, result, mission_states):
+def allocation_csv_rows(stamp_s, available_mbps, result, mission_states, target=None, compute_bound=()):
     """One row of allocation.csv per stream of `result` (ALLOCATION_CSV_COLUMNS): a LevelAllocation
-    (cloud and video rows, with their levels) or an Allocation (cloud rows, no level)."""
+    (cloud and video rows, with their levels) or an Allocation (cloud rows, no level). `target`:
+    the allocator's LevelAllocation when `result` is what is in force (default: the same);
+    `compute_bound`: the (robot, stream) keys judged compute-bound."""
     if isinstance(result, LevelAllocation):
+        wanted = (target or result).by_key()
         items = [
             (a.robot, a.priority, a.rate_hz, a.message_bytes, a.bandwidth_mbytes_per_s, a.share_percent, a.degraded)
             + (a.stream, a.level, a.level_name)
+            + (
+                wanted[a.key].level if a.key in wanted else "",
+                f"{wanted[a.key].rate_hz:.3f}" if a.key in wanted else "",
+                int(a.key in set(compute_bound)),
+            )
             for a in result.streams
         ]
     else:
         items = [
             (a.name, a.priority, a.rate_hz, a.message_bytes, a.bandwidth_mbytes_per_s, a.share_percent, a.degraded)
-            + (CLOUD, "", "")
+            + (CLOUD, "", "", "", f"{a.rate_hz:.3f}", 0)
             for a in result.robots
         ]
     return [
@@ -945,6 +976,23 @@ def allocation_csv_rows(stamp_s, available_mbps, result, mission_states):
             stream,
             level,
             level_name,
+            target_level,
+            target_rate,
+            bound,
         )
-        for robot, priority, rate, size, bandwidth, share, degraded, stream, level, level_name in items
+        for (
+            robot,
+            priority,
+            rate,
+            size,
+            bandwidth,
+            share,
+            degraded,
+            stream,
+            level,
+            level_name,
+            target_level,
+            target_rate,
+            bound,
+        ) in items
     ]

@@ -119,3 +119,46 @@ class SetpointFilter:
             rate_changed=sent is None or sent[1] != t.rate_hz,
             reason=reason,
         )
+
+
+def targets_of(result, demands):
+    """{key: Target} of a LevelAllocation, sizes from its `demands` ({key: StreamDemand})."""
+    out = {}
+    for a in result.streams:
+        d = demands.get(a.key)
+        size = d.level_bytes[a.level] if d is not None else a.message_bytes
+        out[a.key] = Target(a.level, a.rate_hz, a.min_rate_hz, size)
+    return out
+
+
+def in_force_allocation(result, demands, setpoints: SetpointFilter, copies=1):
+    """The LevelAllocation as the robots run it: each stream with a setpoint in force at its level
+    and rate (bandwidth and share at that level's size, every copy counted), the others as
+    allocated."""
+    import dataclasses
+
+    budget = result.budget_mbytes_per_s
+    streams = []
+    for a in result.streams:
+        held = setpoints.in_force(a.key)
+        d = demands.get(a.key)
+        if held is None or d is None or held == (a.level, a.rate_hz):
+            streams.append(a)
+            continue
+        level, rate = held
+        names = d.level_names or tuple(str(k) for k in range(len(d.level_bytes)))
+        size = d.level_bytes[level]
+        bandwidth = copies * rate * size / 1e6
+        streams.append(
+            dataclasses.replace(
+                a,
+                level=level,
+                level_name=names[level],
+                rate_hz=rate,
+                message_bytes=size,
+                bandwidth_mbytes_per_s=bandwidth,
+                share_percent=100.0 * bandwidth / budget,
+            )
+        )
+    total = sum(a.bandwidth_mbytes_per_s for a in streams)
+    return dataclasses.replace(result, streams=tuple(streams), allocated_mbytes_per_s=total)
