@@ -108,7 +108,9 @@ def test_classes_map_to_their_zenoh_qos():
     expected = {
         "/scout/cmd_vel/teleop": (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
         "/fleet/estop": (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
-        "/iris/cloud_throttle/rate_hz": (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
+        # the manager's setpoints: off teleop's lane (issue 36), never dropped
+        "/iris/cloud_throttle/rate_hz": (zenoh.Priority.INTERACTIVE_LOW, zenoh.CongestionControl.BLOCK, True, True),
+        "/iris/video_throttle/level": (zenoh.Priority.INTERACTIVE_LOW, zenoh.CongestionControl.BLOCK, True, True),
         "/jackal/odom": (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
         "/tf_static": (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
         "/rosout": (zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP, True, False),
@@ -127,7 +129,21 @@ def test_classes_map_to_their_zenoh_qos():
         "/scout/mission_state",
     }
     assert all(r.source == TWIN for r in table.routes if r.traffic.name == "command")
-    assert all(r.source == ROBOTS for r in table.routes if r.traffic.name != "command" and r.to != "/tissue/allocation")
+    assert all(
+        r.source == ROBOTS
+        for r in table.routes
+        if r.traffic.name not in ("command", "setpoint") and r.to != "/tissue/allocation"
+    )
+    assert not {r.to for r in table.for_lane("command").routes} & {
+        f"/{robot}/{topic}"
+        for robot in ROBOT_NAMES
+        for topic in (
+            "cloud_throttle/rate_hz",
+            "cloud_throttle/level",
+            "video_throttle/rate_hz",
+            "video_throttle/level",
+        )
+    }
     assert {r.to for r in table.routes if r.traffic.name == "backfill"} == {
         f"/twin/{r}/points_backfill/{kind}" for r in ROBOT_NAMES for kind in ("draco", "pose")
     }
