@@ -12,6 +12,7 @@ from cps_experiments.live_scaling import (
     mission_argv,
     sweep,
     verdict,
+    window_starts_s,
 )
 
 from cps_fleet import names
@@ -131,6 +132,20 @@ def test_the_slowest_window_counts_not_the_mission_average():
     assert min_window_rate_hz({"a": a, "b": a}, ["a", "b"], window_s=10.0) == 2.0
     assert min_window_rate_hz({"a": a}, ["a", "c"], window_s=10.0) == 0.0  # c never reached the twin
     assert min_window_rate_hz({}, ["a"], window_s=10.0) == 0.0
+
+
+def test_the_windows_overlap_and_cover_the_tail():
+    """Issue 36's plain judge: a 10 s silence straddling two back-to-back windows (5-15 s) is a
+    window at 0 Hz, and so is one in the last 10 s of a 35 s run that whole windows left out."""
+    a = [i * 0.5 for i in range(71)]  # 2 Hz for 35 s
+    straddling = [t for t in a if not 5.0 <= t < 15.0]
+    assert min_window_rate_hz({"a": straddling}, ["a"], window_s=10.0) == 0.0
+    tail = [t for t in a if not 25.0 <= t < 35.0]
+    assert min_window_rate_hz({"a": tail, "b": a}, ["a", "b"], window_s=10.0) == 0.0
+    starts = window_starts_s(0.0, 35.0, 10.0, 1.0)
+    assert starts[0] == 0.0 and starts[-1] == 25.0 and len(starts) == 26
+    assert list(window_starts_s(0.0, 25.5, 10.0, 1.0)[-2:]) == [15.0, 15.5]  # the tail's own window
+    assert len(window_starts_s(0.0, 9.0, 10.0, 1.0)) == 0
 
 
 def test_every_row_asks_for_the_same_host_split(tmp_path):
