@@ -276,3 +276,16 @@ def test_a_bad_encoder_field_is_refused_and_counted(field, value):
         core.on_limiter_status("scout", 11000.0, 5.0, now_s=0.0, encoder=EncoderReport(**{field: value}))
     assert core.invalid_inputs == 1
     assert not core.reported("scout", CLOUD)
+
+
+def test_nothing_is_bought_on_a_host_whose_idle_share_or_cost_is_not_known():
+    """The first live run bought the finest leaf for every cloud: their first statuses named the
+    host before its idle share had been measured (NaN), and an unknown spare bounded nothing."""
+    core = _manager()
+    _status(core, "scout", 0.0, forwarded=0, set_rate_hz=5.5, idle=math.nan)
+    assert core.spare(0.0)[cpu_resource("robots")] == 0.0
+    assert _by(core.allocate_streams(0.0))[("scout", CLOUD)].level == 1
+    unpriced = _manager()
+    _status(unpriced, "scout", 0.0, forwarded=0, set_rate_hz=5.5, idle=0.9, cpu_s=math.nan)
+    assert not unpriced.reported("scout", CLOUD)  # no setpoint either
+    assert _by(unpriced.allocate_streams(0.0))[("scout", CLOUD)].level == 1

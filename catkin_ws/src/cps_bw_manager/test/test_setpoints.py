@@ -89,3 +89,11 @@ def test_bad_settings_and_times_are_refused():
         SetpointFilter(min_interval_s=-1.0)
     with pytest.raises(ValueError):
         SetpointFilter().decide(math.nan, {})
+
+
+def test_while_the_link_is_idle_a_lower_rate_waits_and_a_higher_one_goes():
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(1, 1.5)})
+    assert not f.decide(10.0, {CLOUD: Target(1, 0.6)}, link_idle=True)  # nobody needs what it frees
+    assert _sent(f.decide(20.0, {CLOUD: Target(1, 2.0)}, link_idle=True))[CLOUD].rate_hz == 2.0
+    assert _sent(f.decide(30.0, {CLOUD: Target(1, 0.6)}, link_idle=False))[CLOUD].reason == CHANGE

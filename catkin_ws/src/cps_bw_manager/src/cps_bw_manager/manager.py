@@ -273,6 +273,7 @@ class ManagerCore:
         self.announced_source = ""
         self._now_s = -math.inf
         self.last_demands: Dict[tuple, StreamDemand] = {}
+        self.last_spare: Dict[str, float] = {}
 
     @property
     def paused(self):
@@ -465,8 +466,13 @@ class ManagerCore:
                 self.hosts[encoder.host] = (encoder.host_idle_fraction * cpus, cpus, float(now_s))
         if encoder.forwarded is not None:
             st.forwarded = int(encoder.forwarded)
-            if _finite(encoder.set_rate_hz):
+            # A cloud's rate is set from its input rate (+10 %) once that is known; before, at the
+            # maximum, which a sensor slower than it would "fail" to deliver.
+            known = key[1] != CLOUD or _positive(self.measured[key[0]].input_rate_hz)
+            if _finite(encoder.set_rate_hz) and known:
                 self._judge_compute(st, st.forwarded, float(encoder.set_rate_hz), float(now_s))
+            elif not known:
+                st.history.clear()
 
     def _judge_compute(self, st, forwarded, set_rate_hz, now_s):
         """Compute-bound: over the last COMPUTE_WINDOW_S, in which the link never bound (nor went
@@ -491,6 +497,15 @@ class ManagerCore:
                 st.delivering_since_s = now_s
             elif now_s - st.delivering_since_s >= COMPUTE_CLEAR_S:
                 st.compute_bound, st.delivering_since_s = False, math.nan
+
+    def cpu_spare_by_stream(self):
+        """{(robot, stream): the spare cores of its host in the last allocation} (where known)."""
+        spare = self.last_spare
+        return {
+            key: spare[cpu_resource(st.host)]
+            for key, st in self.state.items()
+            if st.host and cpu_resource(st.host) in spare
+        }
 
     def compute_bound_streams(self):
         """The (robot, stream) keys judged compute-bound now."""
@@ -575,16 +590,20 @@ class ManagerCore:
 
     def spare(self, now_s=None):
         """Per resource beside the link, what the allocation may add to what the streams take now
-        (issue 36): a robots' host's idle cores above its reserve (a host that reported lately;
-        while it settles after an increase, only what was granted), and the twin's points/s not
-        used by the clouds delivered now. A resource nobody reported is absent (not bounded)."""
+        (issue 36): a robots' host's idle cores above its reserve (while it settles after an
+        increase, only what was granted; 0 for a host an encoder names whose idle share is not
+        known: nothing is bought that cannot be priced), and the twin's points/s not used by the
+        clouds delivered now. The twin's points are absent (not bounded) until the map server
+        reports its capacity."""
         now_s = self._now_s if now_s is None else now_s
         out = {}
-        for host, (idle_cores, cores, at_s) in self.hosts.items():
-            if not 0.0 <= now_s - at_s <= HOST_STALE_S:
-                continue
+        named = {st.host for st in self.state.values() if st.host}
+        for host in named | set(self.hosts):
+            idle_cores, cores, at_s = self.hosts.get(host, (math.nan, math.nan, -math.inf))
             until_s, granted = self._settling.get(host, (-math.inf, 0.0))
-            if now_s < until_s:
+            if not 0.0 <= now_s - at_s <= HOST_STALE_S:
+                out[cpu_resource(host)] = 0.0  # named but its idle share not known (yet, or lately)
+            elif now_s < until_s:
                 out[cpu_resource(host)] = granted
             else:
                 out[cpu_resource(host)] = max(0.0, idle_cores - self.settings.cpu_idle_reserve * cores)
@@ -605,7 +624,7 @@ class ManagerCore:
         if st.level is None:
             return ()
         uses = []
-        if st.host and st.host in self.hosts and st.cpu_s.reference_level is not None:
+        if st.host and st.cpu_s.reference_level is not None:
             per = st.cpu_s.estimate(now_s)
             if key[1] == CLOUD:  # encoded at the sensor's rate, before its limiter
                 produced = self.measured[key[0]].input_rate_hz
@@ -622,10 +641,15 @@ class ManagerCore:
                 uses.append(ResourceUse(TWIN_POINTS, per, per[st.level] * produced, produced))
         return tuple(uses)
 
-    def _finest_level(self, key, now_s):
-        """No level finer than the one in force while the stream is compute-bound."""
+    def _finest_level(self, key, now_s, uses=()):
+        """No level finer than the one in force while the stream is compute-bound, or while what
+        it costs its host cannot be priced (its encoder names a host but its cost, or a cloud's
+        input rate, is not known yet)."""
         st = self.state[key]
-        return st.level if st.compute_bound and st.level is not None else 0
+        if st.level is None:
+            return 0
+        unpriced = st.host and not any(u.resource == cpu_resource(st.host) for u in uses)
+        return st.level if st.compute_bound or unpriced else 0
 
     def on_mission_state(self, robot, state):
         return self.book.set_mission_state(self._known(robot), state)
@@ -742,8 +766,8 @@ class ManagerCore:
                     guarantee_level=0,
                     guarantee_rate_hz=d.min_rate_hz,
                     size_measured=sizes.measured(now_s),
-                    uses=self._uses((robot, CLOUD), now_s),
-                    finest_level=self._finest_level((robot, CLOUD), now_s),
+                    uses=(uses := self._uses((robot, CLOUD), now_s)),
+                    finest_level=self._finest_level((robot, CLOUD), now_s, uses),
                     level_in_force=self.state[(robot, CLOUD)].level,
                 )
             )
@@ -769,8 +793,8 @@ class ManagerCore:
                         guarantee_level=st.operator_video_level,
                         guarantee_rate_hz=st.operator_video_rate_hz,
                         size_measured=sizes.measured(now_s),
-                        uses=self._uses((robot, VIDEO), now_s),
-                        finest_level=self._finest_level((robot, VIDEO), now_s),
+                        uses=(uses := self._uses((robot, VIDEO), now_s)),
+                        finest_level=self._finest_level((robot, VIDEO), now_s, uses),
                         level_in_force=self.state[(robot, VIDEO)].level,
                     )
                 )
@@ -793,6 +817,7 @@ class ManagerCore:
             return min(0.25 * budget, s.headroom_messages * sizes / 1e6 / s.window_s)
 
         spare = self.spare(now_s)
+        self.last_spare = spare
 
         def solve(room):
             return allocate_levels(
@@ -892,6 +917,8 @@ ALLOCATION_CSV_COLUMNS = (
     "target_level",
     "target_rate_hz",
     "compute_bound",
+    # the spare CPU (cores) of the host the stream's encoder runs on, as this allocation saw it
+    "cpu_spare_cores",
 )
 
 
@@ -936,11 +963,17 @@ def clouds_allocation(result: LevelAllocation, demands) -> Allocation:
     return Allocation(tuple(robots), result.budget_mbytes_per_s, allocated, result.feasible, result.status)
 
 
-def allocation_csv_rows(stamp_s, available_mbps, result, mission_states, target=None, compute_bound=()):
+def allocation_csv_rows(stamp_s, available_mbps, result, mission_states, target=None, compute_bound=(), cpu_spare=None):
     """One row of allocation.csv per stream of `result` (ALLOCATION_CSV_COLUMNS): a LevelAllocation
     (cloud and video rows, with their levels) or an Allocation (cloud rows, no level). `target`:
     the allocator's LevelAllocation when `result` is what is in force (default: the same);
-    `compute_bound`: the (robot, stream) keys judged compute-bound."""
+    `compute_bound`: the (robot, stream) keys judged compute-bound; `cpu_spare`: {key: cores}."""
+    cpu_spare = cpu_spare or {}
+
+    def spare(key):
+        value = cpu_spare.get(key, math.nan)
+        return "" if math.isnan(value) else f"{value:.3f}"
+
     if isinstance(result, LevelAllocation):
         wanted = (target or result).by_key()
         items = [
@@ -950,13 +983,14 @@ def allocation_csv_rows(stamp_s, available_mbps, result, mission_states, target=
                 wanted[a.key].level if a.key in wanted else "",
                 f"{wanted[a.key].rate_hz:.3f}" if a.key in wanted else "",
                 int(a.key in set(compute_bound)),
+                spare(a.key),
             )
             for a in result.streams
         ]
     else:
         items = [
             (a.name, a.priority, a.rate_hz, a.message_bytes, a.bandwidth_mbytes_per_s, a.share_percent, a.degraded)
-            + (CLOUD, "", "", "", f"{a.rate_hz:.3f}", 0)
+            + (CLOUD, "", "", "", f"{a.rate_hz:.3f}", 0, spare((a.name, CLOUD)))
             for a in result.robots
         ]
     return [
@@ -979,6 +1013,7 @@ def allocation_csv_rows(stamp_s, available_mbps, result, mission_states, target=
             target_level,
             target_rate,
             bound,
+            cpu,
         )
         for (
             robot,
@@ -994,5 +1029,6 @@ def allocation_csv_rows(stamp_s, available_mbps, result, mission_states, target=
             target_level,
             target_rate,
             bound,
+            cpu,
         ) in items
     ]

@@ -338,11 +338,14 @@ class BandwidthManagerNode:
                 targets = {
                     key: t for key, t in targets_of(target, self.core.last_demands).items() if self.core.reported(*key)
                 }
-                changes = self.setpoints.decide(now_s, targets, target.budget_mbytes_per_s / copies)
+                changes = self.setpoints.decide(
+                    now_s, targets, target.budget_mbytes_per_s / copies, link_idle=not target.link_binds
+                )
             result = in_force_allocation(
                 target, self.core.last_demands, self.setpoints, self.core.settings.copies_on_link
             )
             bound = self.core.compute_bound_streams()
+            cpu_spare = self.core.cpu_spare_by_stream()
         if paused:
             rospy.logwarn_throttle(5.0, f"bandwidth manager: {paused}")
         elif not target.feasible:
@@ -381,7 +384,9 @@ class BandwidthManagerNode:
         self.alloc_pub.publish(msg)
         self.bw_pub.publish(Float64(available))
         if self.csv_log:
-            for row in allocation_csv_rows(msg.header.stamp.to_sec(), available, result, states, target, bound):
+            for row in allocation_csv_rows(
+                msg.header.stamp.to_sec(), available, result, states, target, bound, cpu_spare
+            ):
                 self.csv_log.write(row)
             if self.csv_log.failed:
                 self.csv_report.report(self.csv_log.failed, csv_rows_lost=self.csv_log.rows_lost)

@@ -9,7 +9,9 @@ on the robots' saturated CPU: so a stream's setpoint is sent only when it matter
   stream's rules guarantee (an operator's video, a floor) go out at once;
 - otherwise a rate goes out only if it left the deadband around the rate in force
   (|target - sent| > `rate_deadband` x sent: hysteresis), and at most once per `min_interval_s`
-  per stream;
+  per stream; while the link is idle (no stream's rate is held back by the budget) a lower rate
+  is not sent at all: nobody needs what it frees, and a cloud's target follows its noisy input
+  rate (+10 %) there;
 - whatever was held back, the rates in force must fit the link: if they do not (the budget fell,
   or a size grew), every stream whose target is below its rate in force gets it at once.
 
@@ -68,14 +70,15 @@ class SetpointFilter:
         """Send the stream's next setpoint as its first (its encoder restarted)."""
         self._sent.pop(key, None)
 
-    def decide(self, now_s, targets: Mapping[Tuple[str, str], Target], budget_mbytes_per_s=math.inf):
+    def decide(self, now_s, targets: Mapping[Tuple[str, str], Target], budget_mbytes_per_s=math.inf, link_idle=False):
         """The setpoints to send now, per robot: {robot: [Change, ...]} (robots with none absent).
-        `budget_mbytes_per_s`: what the rates in force must fit (sum of rate x message_bytes)."""
+        `budget_mbytes_per_s`: what the rates in force must fit (sum of rate x message_bytes);
+        `link_idle`: the allocation held no rate back for the link (its lower rates wait)."""
         if not math.isfinite(now_s):
             raise ValueError(f"time {now_s!r} is not a time")
         changes: Dict[Tuple[str, str], Change] = {}
         for key, t in targets.items():
-            reason = self._reason(key, t, now_s)
+            reason = self._reason(key, t, now_s, link_idle)
             if reason:
                 changes[key] = self._change(key, t, reason)
         # The rates in force (after the changes above) must fit the link.
@@ -94,7 +97,7 @@ class SetpointFilter:
             out.setdefault(key[0], []).append(change)
         return out
 
-    def _reason(self, key, t: Target, now_s):
+    def _reason(self, key, t: Target, now_s, link_idle=False):
         sent = self._sent.get(key)
         if sent is None:
             return FIRST
@@ -105,6 +108,8 @@ class SetpointFilter:
             return ON_OFF
         if rate < t.min_rate_hz * (1 - 1e-9):
             return RULE
+        if link_idle and t.rate_hz < rate:
+            return ""
         if abs(t.rate_hz - rate) > self.rate_deadband * rate and now_s - at_s >= self.min_interval_s:
             return CHANGE
         return ""
