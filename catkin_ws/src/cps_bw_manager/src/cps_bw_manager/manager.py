@@ -574,16 +574,15 @@ class ManagerCore:
 
     def insert_capacity_clouds_per_s(self, now_s=None):
         """The twin's insertion capacity in force (None: none reported in the last INSERT_CAPACITY_HOLD_S)."""
-        now_s = self._now_s if now_s is None else now_s
-        value, at_s = self._capacity
-        if not _positive(value) or not 0.0 <= now_s - at_s <= INSERT_CAPACITY_HOLD_S:
-            return None
-        return value
+        return self._capacity_in_force(self._capacity, now_s)
 
     def insert_capacity_points_per_s(self, now_s=None):
         """The twin's insertion capacity in points/s in force (None: none reported lately)."""
+        return self._capacity_in_force(self._points_capacity, now_s)
+
+    def _capacity_in_force(self, reported, now_s):
         now_s = self._now_s if now_s is None else now_s
-        value, at_s = self._points_capacity
+        value, at_s = reported
         if not _positive(value) or not 0.0 <= now_s - at_s <= INSERT_CAPACITY_HOLD_S:
             return None
         return value
