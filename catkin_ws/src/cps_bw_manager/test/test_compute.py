@@ -180,16 +180,17 @@ def _status(core, robot, now_s, *, forwarded, set_rate_hz, level=1, idle=0.9, in
     )
 
 
-def _run(core, seconds, delivered_fraction, robot="scout", start_s=0.0):
-    """Statuses at 1 Hz for `seconds`: the encoder at leaf 0.10 (level 1), the rate set as the
-    manager allocated it, delivering `delivered_fraction` of it. Returns the levels allocated."""
+def _run(core, seconds, delivered_fraction, robot="scout", start_s=0.0, level=1):
+    """Statuses at 1 Hz for `seconds`: the encoder starting at leaf 0.10 (level 1) and following
+    the level and rate the manager allocates, delivering `delivered_fraction` of the rate. Returns
+    the levels allocated."""
     levels, forwarded, rate = [], 0.0, 5.5
     for k in range(int(seconds)):
         now = start_s + k
-        _status(core, robot, now, forwarded=int(forwarded), set_rate_hz=rate)
+        _status(core, robot, now, forwarded=int(forwarded), set_rate_hz=rate, level=level)
         a = {x.robot: x for x in core.allocate_streams(now).streams if x.stream == CLOUD}[robot]
         levels.append(a.level)
-        rate = a.rate_hz
+        rate, level = a.rate_hz, a.level
         forwarded += delivered_fraction * rate
     return levels
 
@@ -224,39 +225,80 @@ def test_no_judgement_while_the_link_binds():
     assert not core.compute_bound("scout", CLOUD)
 
 
-def test_a_host_without_idle_cpu_gets_no_finer_level_and_one_with_it_does():
+def _window(core, robot, seconds, idle, start_s=0.0, level=1):
+    """`seconds` of 1 Hz statuses of a flowing cloud at `level` on host "robots" at `idle`."""
+    for k in range(int(seconds)):
+        _status(core, robot, start_s + k, forwarded=5 * (k + 1), set_rate_hz=5.5, idle=idle, level=level)
+
+
+def test_a_host_is_bought_for_only_after_a_whole_window_idle_above_its_reserve():
     busy = _manager()
-    _status(busy, "scout", 0.0, forwarded=0, set_rate_hz=5.5, idle=0.1)  # 10 % idle < the 15 % reserve
-    assert busy.spare(0.0)[cpu_resource("robots")] == 0.0
-    assert _by(busy.allocate_streams(0.0))[("scout", CLOUD)].level == 1
+    _window(busy, "scout", 12, idle=0.1)  # 10 % idle < the 15 % reserve, > half of it: hold
+    assert busy.spare(11.0)[cpu_resource("robots")] == 0.0
+    assert _by(busy.allocate_streams(11.0))[("scout", CLOUD)].level == 1
     idle = _manager()
-    _status(idle, "scout", 0.0, forwarded=0, set_rate_hz=5.5, idle=0.9)
-    assert idle.spare(0.0)[cpu_resource("robots")] == pytest.approx(0.75)
-    assert _by(idle.allocate_streams(0.0))[("scout", CLOUD)].level == 0
+    _window(idle, "scout", 5, idle=0.9)
+    assert idle.spare(4.0)[cpu_resource("robots")] == 0.0  # not a whole window yet
+    _window(idle, "scout", 7, idle=0.9, start_s=5.0)
+    assert idle.spare(11.0)[cpu_resource("robots")] == pytest.approx(0.75)
+    assert _by(idle.allocate_streams(11.0))[("scout", CLOUD)].level == 0
+    # one dip in the window is enough to buy nothing
+    dip = _manager()
+    _window(dip, "scout", 6, idle=0.9)
+    _window(dip, "scout", 1, idle=0.1, start_s=6.0)
+    _window(dip, "scout", 6, idle=0.9, start_s=7.0)
+    assert dip.spare(12.0)[cpu_resource("robots")] == 0.0
 
 
-def test_after_an_increase_a_host_settles_before_more_is_granted():
+def test_what_was_bought_is_held_until_the_host_shows_it_and_shed_when_it_is_short():
     core = _manager(("scout", "jackal"))
     for r in ("scout", "jackal"):
-        _status(core, r, 0.0, forwarded=0, set_rate_hz=5.5, idle=0.9)
-    result = core.allocate_streams(0.0)
-    granted = dict(result.resource_increase)[cpu_resource("robots")]
-    assert granted > 0
-    assert core.spare(1.0)[cpu_resource("robots")] == pytest.approx(granted)  # measured again after
+        _window(core, r, 11, idle=0.9)
+    result = core.allocate_streams(10.0)
+    bought = dict(result.resource_increase)[cpu_resource("robots")]
+    assert bought > 0 and all(a.level == 0 for a in result.streams)
+    assert core.spare(11.0)[cpu_resource("robots")] == pytest.approx(bought)  # held while settling
+    # the encoders follow; the host now 50 % idle: what they take above the baselines, plus the rest
     for r in ("scout", "jackal"):
-        _status(core, r, HOST_SETTLE_S + 0.1, forwarded=0, set_rate_hz=5.5, idle=0.5)
-    assert core.spare(HOST_SETTLE_S + 0.1)[cpu_resource("robots")] == pytest.approx(0.35)
+        _window(core, r, 12, idle=0.5, start_s=HOST_SETTLE_S + 10.0, level=0)
+    now = HOST_SETTLE_S + 21.0
+
+    def taken():  # what the two clouds take above their baselines, at the costs measured now
+        return sum(core._above_baseline((r, CLOUD), cpu_resource("robots"), now) for r in ("scout", "jackal"))
+
+    assert taken() > 0
+    assert core.spare(now)[cpu_resource("robots")] == pytest.approx(taken() + 0.35, rel=1e-6)
+    # short: 2 % idle, below half the reserve: the extra detail is shed (down to the baselines)
+    for r in ("scout", "jackal"):
+        _window(core, r, 12, idle=0.02, start_s=now + 1.0, level=0)
+    now += 12.0
+    assert core.spare(now)[cpu_resource("robots")] == pytest.approx(max(0.0, taken() - (0.075 - 0.02)))
+    if taken() < 0.055:  # all of it: back to the baseline level
+        assert all(a.level == 1 for a in core.allocate_streams(now).streams)
 
 
 def test_the_twins_points_bound_the_finer_levels():
     core = _manager()
-    _status(core, "scout", 0.0, forwarded=0, set_rate_hz=5.5, idle=0.9)
-    # 5 Hz x 3000 points in force at leaf 0.10; the finest leaf's prior ratio (16/11) needs ~6800 more
-    core.on_insert_capacity(50.0, 0.0, points_per_s=15000.0 + 1000.0)
-    assert core.spare(0.0)[TWIN_POINTS] == pytest.approx(1000.0)
-    assert _by(core.allocate_streams(0.0))[("scout", CLOUD)].level == 1
-    core.on_insert_capacity(50.0, 1.0, points_per_s=15000.0 + 10000.0)
-    assert _by(core.allocate_streams(1.0))[("scout", CLOUD)].level == 0
+    _window(core, "scout", 11, idle=0.9)
+    # the baseline: 5 Hz x 3000 points at leaf 0.10; the finest leaf's prior ratio (16/11) needs ~6800 more
+    core.on_insert_capacity(50.0, 10.0, points_per_s=15000.0 + 1000.0)
+    assert core.spare(10.0)[TWIN_POINTS] == pytest.approx(1000.0)
+    assert _by(core.allocate_streams(10.0))[("scout", CLOUD)].level == 1
+    core.on_insert_capacity(50.0, 10.5, points_per_s=15000.0 + 10000.0)
+    assert _by(core.allocate_streams(10.5))[("scout", CLOUD)].level == 0
+
+
+def test_an_inspection_s_detail_is_bought_with_spare_and_dropped_without():
+    core = _manager()
+    _window(core, "scout", 12, idle=0.1)  # no spare
+    core.on_mission_state("scout", "inspecting")
+    result = core.allocate_streams(11.0)
+    assert _by(result)[("scout", CLOUD)].level == 1
+    assert any("inspection_detail (no CPU" in b for b in result.broken)
+    rich = _manager()
+    _window(rich, "scout", 12, idle=0.9)
+    rich.on_mission_state("scout", "inspecting")
+    assert _by(rich.allocate_streams(11.0))[("scout", CLOUD)].level == 0
 
 
 @pytest.mark.parametrize(
@@ -282,9 +324,9 @@ def test_nothing_is_bought_on_a_host_whose_idle_share_or_cost_is_not_known():
     """The first live run bought the finest leaf for every cloud: their first statuses named the
     host before its idle share had been measured (NaN), and an unknown spare bounded nothing."""
     core = _manager()
-    _status(core, "scout", 0.0, forwarded=0, set_rate_hz=5.5, idle=math.nan)
-    assert core.spare(0.0)[cpu_resource("robots")] == 0.0
-    assert _by(core.allocate_streams(0.0))[("scout", CLOUD)].level == 1
+    _window(core, "scout", 12, idle=math.nan)
+    assert core.spare(11.0)[cpu_resource("robots")] == 0.0
+    assert _by(core.allocate_streams(11.0))[("scout", CLOUD)].level == 1
     unpriced = _manager()
     _status(unpriced, "scout", 0.0, forwarded=0, set_rate_hz=5.5, idle=0.9, cpu_s=math.nan)
     assert not unpriced.reported("scout", CLOUD)  # no setpoint either

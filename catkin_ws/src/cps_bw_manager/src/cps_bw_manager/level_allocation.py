@@ -63,7 +63,9 @@ class ResourceUse:
 
     resource: str  # the resource's name: a host ("cpu <host>") or the twin ("twin points")
     per_message: Tuple[float, ...]  # amount per message at each level (finest first); inf: not known
-    in_force_per_s: float  # what the stream takes now, at its level and rate in force
+    # What the stream may take without any spare: its baseline, what it runs when nobody tells it
+    # (its encoder's configured level; the camera's default level and rate).
+    baseline_per_s: float
     # Messages per second it is produced at whatever its allocated rate (a cloud is encoded before
     # its rate limiter drops it: the sensor's rate); NaN: at the allocated rate (video is rendered
     # and encoded only at the rate set).
@@ -75,8 +77,8 @@ class ResourceUse:
         return self.per_message[level] * rate if rate > 0 else 0.0
 
     def increase(self, level, rate_hz):
-        """What it takes at `level` and `rate_hz` beyond what it takes now (never < 0)."""
-        return max(0.0, self.per_s(level, rate_hz) - self.in_force_per_s)
+        """What it takes at `level` and `rate_hz` beyond its baseline (never < 0)."""
+        return max(0.0, self.per_s(level, rate_hz) - self.baseline_per_s)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -222,8 +224,8 @@ def validate_stream(d: StreamDemand):
     for u in d.uses:
         if len(u.per_message) != n or any(not (x >= 0) for x in u.per_message):  # inf allowed, NaN not
             raise ValueError(f"{who}: {u.resource}: one amount >= 0 per level, got {u.per_message}")
-        if not (_finite(u.in_force_per_s) and u.in_force_per_s >= 0):
-            raise ValueError(f"{who}: {u.resource}: in_force_per_s must be finite and >= 0, got {u.in_force_per_s!r}")
+        if not (_finite(u.baseline_per_s) and u.baseline_per_s >= 0):
+            raise ValueError(f"{who}: {u.resource}: baseline_per_s must be finite and >= 0, got {u.baseline_per_s!r}")
         if not (math.isnan(u.produced_hz) or (_finite(u.produced_hz) and u.produced_hz >= 0)):
             raise ValueError(f"{who}: {u.resource}: produced_hz must be NaN or finite and >= 0, got {u.produced_hz!r}")
 
@@ -245,11 +247,12 @@ def allocate_levels(
     reported in `broken` and the floors hold). `floor_rate_hz`, `priority_weights`: rule 1a's
     degradation, as allocation.allocate_frequencies.
 
-    `spare` (issue 36): per resource beside the link (the streams' `uses`), how much more of it
-    the allocation may take than the streams take now (a host's idle CPU, the twin's unused
-    insertion); absent or inf: not bounded. Within it the rates above the rules' are shared by
-    weight (before the link's budget, as the insertion capacity) and finer levels are bought only
-    if they fit it as well as the link. What the rules (1a-1d) need is never bounded by it.
+    `spare` (issue 36): per resource beside the link (the streams' `uses`), how much of it the
+    allocation may take above the streams' baselines (from a host's idle CPU, the twin's
+    insertion capacity); absent or inf: not bounded. Within it the rates above the rules' are
+    shared by weight (before the link's budget, as the insertion capacity), finer levels are bought
+    only if they fit it as well as the link, and an inspection's detail (rule 1c) is kept only if
+    it fits; what the other rules need is never refused for it (it is counted).
     `upgrade_margin`: a level finer than a stream's `level_in_force` must fit the link with this
     fraction of its cost to spare (hysteresis).
     """
@@ -306,18 +309,26 @@ def allocate_levels(
     kept_guarantee = [False] * n
     required = floor.copy()
     active = np.array([not d.may_go_off for d in demands])
+    rules_use = {r: 0.0 for r in bounded}  # what the kept guarantees take above their baselines
     for rule in GUARANTEES:
         for i, d in enumerate(demands):
             if d.guarantee != rule:
                 continue
             lvl = _cheapest(sizes[i], range(d.guarantee_level + 1))
             extra = sizes[i][lvl] * d.guarantee_rate_hz - (floor_cost[i] if active[i] else 0.0)
-            if extra <= remaining + _SLACK * budget:
+            need = {u.resource: u.increase(lvl, d.guarantee_rate_hz) for u in d.uses if u.resource in bounded}
+            # Inspection detail is bought with spare like any detail; the operator's video is not refused.
+            fits = rule != INSPECTION_DETAIL or all(
+                rules_use[r] + v <= _resource_slack(bounded[r]) for r, v in need.items()
+            )
+            if extra <= remaining + _SLACK * budget and fits:
                 remaining -= extra
                 kept_guarantee[i], active[i] = True, True
                 base[i], required[i] = lvl, d.guarantee_rate_hz
+                for r, v in need.items():
+                    rules_use[r] += v
             else:
-                broken.append(f"{d.robot}/{d.stream}: {rule}")
+                broken.append(f"{d.robot}/{d.stream}: {rule}" + ("" if fits else " (no CPU or insertion to spare)"))
     for i, d in enumerate(demands):
         if d.may_go_off and not active[i]:
             if floor_cost[i] <= remaining + _SLACK * budget:
@@ -439,7 +450,7 @@ def _cap_by_resources(demands, active, base, required, cap, weight, bounded):
         grant = water_fill(w, lo, np.maximum(hi, lo), max(left, 0.0))
         for (i, u), g in zip(scaled, grant):
             per = u.per_message[base[i]]
-            rate = (u.in_force_per_s + g) / per if math.isfinite(per) else 0.0
+            rate = (u.baseline_per_s + g) / per if math.isfinite(per) else 0.0
             cap[i] = min(cap[i], max(required[i], rate))
     return cap
 

@@ -58,10 +58,13 @@ TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
 COMPUTE_WINDOW_S = 10.0
 COMPUTE_SHORTFALL = 0.2
 COMPUTE_CLEAR_S = 30.0
-# A host's idle CPU figure (from its encoders' status) counts this long.
+# A host's idle CPU: the least its flowing encoders reported over the last HOST_WINDOW_S (BBR's
+# windowed filters; a host is bought for only if it stayed idle that long, so a transient, e.g.
+# the simulator not yet at full speed, buys nothing), and stale without a report for HOST_STALE_S.
+HOST_WINDOW_S = 10.0
 HOST_STALE_S = 10.0
-# After the allocation adds to a host's CPU, that host gets no further increase until its idle
-# share has been measured again with the new work in it (the encoders' status is 1 Hz, over ~1 s).
+# After the allocation buys on a host, what it bought is held for HOST_SETTLE_S, and only idle
+# measured after that counts: the new work must show in the host's idle share first.
 HOST_SETTLE_S = 3.0
 # An encoder that forwarded this many messages without naming their level knows no levels.
 LEVELLESS_AFTER = 3
@@ -194,6 +197,10 @@ class _StreamState:
     compute_bound: bool = False
     delivering_since_s: float = math.nan
     forwarded: int = 0  # the encoder's counter
+    # What the encoder runs when nobody tells it: the level and rate of its first report (its
+    # configured level; the camera's default). Taking no more than that needs no spare CPU.
+    baseline_level: Optional[int] = None
+    baseline_rate_hz: float = math.nan
 
 
 @dataclasses.dataclass
@@ -260,8 +267,9 @@ class ManagerCore:
             )
             for key, sizes in self.sizes.items()
         }
-        self.hosts: Dict[str, tuple] = {}
-        self._settling: Dict[str, tuple] = {}  # host -> (until s, CPU granted meanwhile)
+        self.hosts: Dict[str, tuple] = {}  # host -> (cores, last report s)
+        self._idle: Dict[str, collections.deque] = {}  # host -> (s, idle cores) of its flowing encoders
+        self._settling: Dict[str, tuple] = {}  # host -> (until s, what was bought above the baselines)
         self._points_capacity = (math.nan, -math.inf)  # (points/s, reported at s)
         self._link_bound_s = -math.inf  # the last allocation in which the link's budget bound
         self.selected_robot = ""
@@ -450,22 +458,34 @@ class ManagerCore:
         if level is not None and 0 <= level < self.sizes[key].levels:
             if st.level != level:
                 st.level, st.level_since_s = int(level), float(now_s)
+            if st.baseline_level is None:
+                st.baseline_level = int(level)
         if encoder is None:
             return
         if _finite(encoder.set_rate_hz):
             st.set_rate_hz = float(encoder.set_rate_hz)
+            if math.isnan(st.baseline_rate_hz):
+                st.baseline_rate_hz = st.set_rate_hz
         if st.level is not None:
             if _positive(encoder.level_mean_cpu_s):
                 st.cpu_s.report(st.level, float(encoder.level_mean_cpu_s), float(now_s))
             if st.points is not None and _positive(encoder.level_mean_points):
                 st.points.report(st.level, float(encoder.level_mean_points), float(now_s))
+        if encoder.forwarded is not None:
+            st.forwarded = int(encoder.forwarded)
         if encoder.host:
             st.host = encoder.host
             if _positive(encoder.host_cpus) and _finite(encoder.host_idle_fraction):
                 cpus = float(encoder.host_cpus)
-                self.hosts[encoder.host] = (encoder.host_idle_fraction * cpus, cpus, float(now_s))
+                self.hosts[encoder.host] = (cpus, float(now_s))
+                if st.forwarded > 0:  # the host's idle share while its streams flow
+                    idle = self._idle.setdefault(encoder.host, collections.deque())
+                    if idle and now_s < idle[-1][0]:
+                        idle.clear()
+                    idle.append((float(now_s), encoder.host_idle_fraction * cpus))
+                    while idle and idle[0][0] < now_s - HOST_WINDOW_S - HOST_STALE_S:
+                        idle.popleft()
         if encoder.forwarded is not None:
-            st.forwarded = int(encoder.forwarded)
             # A cloud's rate is set from its input rate (+10 %) once that is known; before, at the
             # maximum, which a sensor slower than it would "fail" to deliver.
             known = key[1] != CLOUD or _positive(self.measured[key[0]].input_rate_hz)
@@ -588,56 +608,79 @@ class ManagerCore:
         return value
 
     def spare(self, now_s=None):
-        """Per resource beside the link, what the allocation may add to what the streams take now
-        (issue 36): a robots' host's idle cores above its reserve (while it settles after an
-        increase, only what was granted; 0 for a host an encoder names whose idle share is not
-        known: nothing is bought that cannot be priced), and the twin's points/s not used by the
-        clouds delivered now. The twin's points are absent (not bounded) until the map server
-        reports its capacity."""
+        """Per resource beside the link, how much of it the allocation may take above the streams'
+        baselines (issue 36). A robots' host: what its streams take above their baselines now,
+        plus its idle cores above `cpu_idle_reserve` (the least over HOST_WINDOW_S of flowing
+        streams), or minus the shortfall when that least is below half the reserve (the host is
+        short: the extra detail is shed); between the two, what they take now (hysteresis). Held
+        at what was bought for HOST_SETTLE_S after a purchase; what is taken now, for a host an
+        encoder names whose idle share is not known over a whole window. The twin's points: its
+        insertion capacity minus the clouds' baselines (absent until the map server reports it)."""
         now_s = self._now_s if now_s is None else now_s
         out = {}
+        reserve = self.settings.cpu_idle_reserve
         named = {st.host for st in self.state.values() if st.host}
-        for host in named | set(self.hosts):
-            idle_cores, cores, at_s = self.hosts.get(host, (math.nan, math.nan, -math.inf))
-            until_s, granted = self._settling.get(host, (-math.inf, 0.0))
-            if not 0.0 <= now_s - at_s <= HOST_STALE_S:
-                out[cpu_resource(host)] = 0.0  # named but its idle share not known (yet, or lately)
-            elif now_s < until_s:
-                out[cpu_resource(host)] = granted
+        for host in named:
+            resource = cpu_resource(host)
+            taken = sum(self._above_baseline(key, resource, now_s) for key, st in self.state.items() if st.host == host)
+            until_s, bought = self._settling.get(host, (-math.inf, 0.0))
+            if now_s < until_s:
+                out[resource] = max(bought, taken)
+                continue
+            cores, at_s = self.hosts.get(host, (math.nan, -math.inf))
+            window = [idle for t, idle in self._idle.get(host, ()) if t >= max(until_s, now_s - HOST_WINDOW_S)]
+            samples = [t for t, _ in self._idle.get(host, ()) if t >= until_s]
+            whole = samples and now_s - samples[0] >= HOST_WINDOW_S and 0.0 <= now_s - at_s <= HOST_STALE_S
+            if not whole or not window:
+                out[resource] = taken
+                continue
+            least = min(window)
+            if least >= reserve * cores:
+                out[resource] = taken + least - reserve * cores
+            elif least < 0.5 * reserve * cores:
+                out[resource] = max(0.0, taken - (0.5 * reserve * cores - least))
             else:
-                out[cpu_resource(host)] = max(0.0, idle_cores - self.settings.cpu_idle_reserve * cores)
+                out[resource] = taken
         capacity = self.insert_capacity_points_per_s(now_s)
         if capacity is not None:
-            used = 0.0
+            baselines = 0.0
             for robot in self.robots:
-                st = self.state[(robot, CLOUD)]
-                rate = self.measured[robot].output_rate_hz  # what reaches the twin now
-                if st.level is not None and st.points.reference_level is not None and _finite(rate):
-                    used += rate * st.points.estimate(now_s)[st.level]
-            out[TWIN_POINTS] = max(0.0, capacity - used)
+                use = next((u for u in self._uses((robot, CLOUD), now_s) if u.resource == TWIN_POINTS), None)
+                baselines += use.baseline_per_s if use else 0.0
+            out[TWIN_POINTS] = max(0.0, capacity - baselines)
         return out
+
+    def _above_baseline(self, key, resource, now_s):
+        """What the stream takes of `resource` above its baseline now (at its level and rate in force)."""
+        st = self.state[key]
+        use = next((u for u in self._uses(key, now_s) if u.resource == resource), None)
+        if use is None or st.level is None:
+            return 0.0
+        rate = st.set_rate_hz if math.isnan(use.produced_hz) else use.produced_hz
+        return use.increase(st.level, rate) if _finite(rate) else 0.0
 
     def _uses(self, key, now_s):
         """What the stream takes of the resources beside the link (ResourceUse), where known."""
         st = self.state[key]
-        if st.level is None:
+        if st.level is None or st.baseline_level is None:
             return ()
+        base = st.baseline_level
         uses = []
         if st.host and st.cpu_s.reference_level is not None:
             per = st.cpu_s.estimate(now_s)
             if key[1] == CLOUD:  # encoded at the sensor's rate, before its limiter
                 produced = self.measured[key[0]].input_rate_hz
                 if _positive(produced):
-                    uses.append(ResourceUse(cpu_resource(st.host), per, per[st.level] * produced, produced))
-            elif _finite(st.set_rate_hz):  # rendered and encoded at the rate set only
-                uses.append(ResourceUse(cpu_resource(st.host), per, per[st.level] * st.set_rate_hz))
+                    uses.append(ResourceUse(cpu_resource(st.host), per, per[base] * produced, produced))
+            elif _finite(st.baseline_rate_hz):  # rendered and encoded at the rate set only
+                uses.append(ResourceUse(cpu_resource(st.host), per, per[base] * st.baseline_rate_hz))
         if st.points is not None and st.points.reference_level is not None:
             # at most what the sensor produces reaches the twin (the limiter's rate is set above it
             # while the link has room, and only then are finer levels bought)
             per = st.points.estimate(now_s)
             produced = self.measured[key[0]].input_rate_hz
             if _positive(produced):
-                uses.append(ResourceUse(TWIN_POINTS, per, per[st.level] * produced, produced))
+                uses.append(ResourceUse(TWIN_POINTS, per, per[base] * produced, produced))
         return tuple(uses)
 
     def _finest_level(self, key, now_s, uses=()):
@@ -839,10 +882,13 @@ class ManagerCore:
         self.last_demands = {d.key: d for d in demands}
         if result.link_binds:
             self._link_bound_s = max(self._link_bound_s, float(now_s))
-        for resource, increase in result.resource_increase:
+        for resource, above in result.resource_increase:
             host = resource[len(cpu_resource("")) :] if resource.startswith(cpu_resource("")) else None
-            if host is not None and increase > 0 and now_s >= self._settling.get(host, (-math.inf, 0.0))[0]:
-                self._settling[host] = (float(now_s) + HOST_SETTLE_S, increase)
+            if host is None or now_s < self._settling.get(host, (-math.inf, 0.0))[0]:
+                continue
+            taken = sum(self._above_baseline(k, resource, now_s) for k, st in self.state.items() if st.host == host)
+            if above > taken * (1 + 1e-9) + 1e-12:  # a purchase: hold it until the host shows it
+                self._settling[host] = (float(now_s) + HOST_SETTLE_S, above)
         streams = tuple(
             dataclasses.replace(
                 a,
