@@ -331,3 +331,34 @@ def test_nothing_is_bought_on_a_host_whose_idle_share_or_cost_is_not_known():
     _status(unpriced, "scout", 0.0, forwarded=0, set_rate_hz=5.5, idle=0.9, cpu_s=math.nan)
     assert not unpriced.reported("scout", CLOUD)  # no setpoint either
     assert _by(unpriced.allocate_streams(0.0))[("scout", CLOUD)].level == 1
+
+
+def test_on_an_idle_link_the_cloud_limiters_get_slack_that_counts_as_no_use():
+    """A limiter at the sensor's input rate + 10 % drops clouds whenever the sensor speeds up;
+    on an idle link the clouds' limiters are set up to max_rate_hz with what the link leaves, and
+    that slack counts neither against the budget nor as bandwidth (the backfill's room)."""
+    from cps_bw_manager.setpoints import SetpointFilter, in_force_allocation, targets_of
+
+    core = _manager(("scout", "jackal"))
+    for r in ("scout", "jackal"):
+        _window(core, r, 3, idle=0.1)
+    result = core.allocate_streams(2.0)
+    assert not result.link_binds
+    slack = core.limiter_rates(result)
+    assert all(slack[(r, CLOUD)] == pytest.approx(30.0) for r in ("scout", "jackal"))
+    assert all(a.rate_hz == pytest.approx(5.5) for a in result.streams)  # the allocation: input + 10 %
+    f = SetpointFilter()
+    targets = targets_of(result, core.last_demands, slack)
+    sent = f.decide(2.0, targets, result.budget_mbytes_per_s)
+    assert all(c.rate_hz == pytest.approx(30.0) for cs in sent.values() for c in cs)
+    shown = in_force_allocation(result, core.last_demands, f)
+    assert shown.allocated_mbytes_per_s == pytest.approx(result.allocated_mbytes_per_s)
+    assert all(a.rate_hz == pytest.approx(30.0) for a in shown.streams)
+    # a link that binds: no slack, and the held 30 Hz is taken back at once if it would overrun
+    tight = ManagerCore(["scout"], ManagerSettings(0.2, 0.04, 1.0, 30.0), streams=FLEET.streams)
+    _window(tight, "scout", 3, idle=0.1)
+    bound = tight.allocate_streams(2.0)
+    assert bound.link_binds and tight.limiter_rates(bound) == {("scout", CLOUD): bound.streams[0].rate_hz}
+    # nor more clouds/s than the twin can insert
+    core.on_insert_capacity(40.0, 2.0)
+    assert sum(core.limiter_rates(core.allocate_streams(2.0)).values()) == pytest.approx(40.0)

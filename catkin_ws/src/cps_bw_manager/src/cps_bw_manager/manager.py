@@ -13,6 +13,8 @@ import dataclasses
 import math
 from typing import Dict, Optional
 
+import numpy as np
+
 from cps_bw_manager.allocation import (
     DEFAULT_ASSUMED_MESSAGE_BYTES,
     DEFAULT_FLOOR_RATE_HZ,
@@ -20,6 +22,7 @@ from cps_bw_manager.allocation import (
     Allocation,
     RobotAllocation,
     managed_budget_mbytes_per_s,
+    water_fill,
 )
 from cps_bw_manager.estimation import DeliveryRateEstimator, LinkReport
 from cps_bw_manager.level_allocation import (
@@ -282,6 +285,9 @@ class ManagerCore:
         self._now_s = -math.inf
         self.last_demands: Dict[tuple, StreamDemand] = {}
         self.last_spare: Dict[str, float] = {}
+        # The rate the last allocation gave each stream (before any limiter slack): what a stream
+        # must deliver not to be judged compute-bound.
+        self.allocated_rate_hz: Dict[tuple, float] = {}
 
     @property
     def paused(self):
@@ -489,8 +495,12 @@ class ManagerCore:
             # A cloud's rate is set from its input rate (+10 %) once that is known; before, at the
             # maximum, which a sensor slower than it would "fail" to deliver.
             known = key[1] != CLOUD or _positive(self.measured[key[0]].input_rate_hz)
-            if _finite(encoder.set_rate_hz) and known:
-                self._judge_compute(st, st.forwarded, float(encoder.set_rate_hz), float(now_s))
+            allocated = self.allocated_rate_hz.get(key, math.nan)
+            if _finite(encoder.set_rate_hz) and known and _finite(allocated):
+                # the rate it was allowed: the allocation's (a cloud's limiter may be set above it
+                # on an idle link: limiter_rates), or less while the setpoint filter holds it
+                rate = min(float(encoder.set_rate_hz), allocated)
+                self._judge_compute(st, st.forwarded, rate, float(now_s))
             elif not known:
                 st.history.clear()
 
@@ -880,6 +890,7 @@ class ManagerCore:
             chosen = {a.key: a.level for a in result.streams}
         self.level_in_force.update(chosen)
         self.last_demands = {d.key: d for d in demands}
+        self.allocated_rate_hz = {a.key: a.rate_hz for a in result.streams}
         if result.link_binds:
             self._link_bound_s = max(self._link_bound_s, float(now_s))
         for resource, above in result.resource_increase:
@@ -903,6 +914,52 @@ class ManagerCore:
             budget_mbytes_per_s=budget,
             allocated_mbytes_per_s=copies * result.allocated_mbytes_per_s,
         )
+
+    def limiter_rates(self, result: LevelAllocation):
+        """{key: rate} to set on the clouds' rate limiters. On a link that binds, the allocation's.
+        On an idle one (every stream at its maximum, budget left), what the allocation leaves is
+        shared among the clouds by weight as slack up to max_rate_hz: a cloud is encoded before
+        its limiter whatever its rate, so slack costs nothing, and a limiter set at its sensor's
+        input rate + 10 % drops clouds whenever the sensor speeds up (the input rate is a 2 s
+        mean, and the setpoint filter holds a rise for up to 5 s). Bandwidth is what the
+        allocation counts: slack is only used when the link has room, and it is taken back at
+        once when the link binds (the filter sends decreases as soon as the rates in force would
+        overrun the budget)."""
+        rates = {a.key: a.rate_hz for a in result.streams if a.stream == CLOUD}
+        if result.link_binds or not rates:
+            return rates
+        clouds = [a for a in result.streams if a.stream == CLOUD and a.rate_hz > 0]
+        top = np.array(
+            [
+                self.settings.min_rate_hz if self.book.pinned_to_minimum(a.robot) else self.settings.max_rate_hz
+                for a in clouds
+            ]
+        )
+        size = np.array([a.message_bytes / 1e6 for a in clouds])
+        lo = np.array([a.rate_hz for a in clouds]) * size
+        hi = np.maximum(top * size, lo)
+        copies = self.settings.copies_on_link
+        budget = result.budget_mbytes_per_s / copies
+        other = result.allocated_mbytes_per_s / copies - lo.sum()
+        headroom = self.headroom_mbytes_per_s_at(result)
+        room = budget - headroom - other
+        if room <= lo.sum():
+            return rates
+        weight = np.array([max(a.weight, 1e-9) for a in clouds])
+        b = water_fill(weight, lo, hi, room)
+        raised = b / size
+        capacity = self.insert_capacity_clouds_per_s()
+        if capacity is not None and raised.sum() > capacity:  # nor beyond the twin's clouds/s
+            allocated = lo / size
+            raised = water_fill(weight, allocated, raised, max(capacity, allocated.sum()))
+        rates.update({a.key: float(x) for a, x in zip(clouds, raised)})
+        return rates
+
+    def headroom_mbytes_per_s_at(self, result: LevelAllocation):
+        """The per-window headroom at the levels of `result` (as allocate_streams keeps it)."""
+        s = self.settings
+        sizes = sum(a.message_bytes for a in result.streams)
+        return min(0.25 * result.budget_mbytes_per_s, s.headroom_messages * sizes / 1e6 / s.window_s)
 
     def allocate(self, now_s=None) -> Allocation:
         """The clouds of `allocate_streams` as the allocation before levels (`Allocation`, one

@@ -336,7 +336,9 @@ class BandwidthManagerNode:
             if not paused:
                 copies = self.core.settings.copies_on_link
                 targets = {
-                    key: t for key, t in targets_of(target, self.core.last_demands).items() if self.core.reported(*key)
+                    key: t
+                    for key, t in targets_of(target, self.core.last_demands, self.core.limiter_rates(target)).items()
+                    if self.core.reported(*key)
                 }
                 changes = self.setpoints.decide(
                     now_s, targets, target.budget_mbytes_per_s / copies, link_idle=not target.link_binds

@@ -36,6 +36,9 @@ class Target:
     rate_hz: float  # 0: off
     min_rate_hz: float = 0.0  # what the stream's kept rules guarantee
     message_bytes: float = 0.0  # its size at `level` (the budget check)
+    # The most it can send whatever its rate (a cloud: its sensor's input rate + 10 %); a limiter
+    # set above it (slack on an idle link) counts only this much against the budget.
+    usable_hz: float = math.inf
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,10 +88,10 @@ class SetpointFilter:
         total = 0.0
         for key, t in targets.items():
             rate = changes[key].rate_hz if key in changes else self._sent.get(key, (0, t.rate_hz, 0))[1]
-            total += rate * t.message_bytes / 1e6
+            total += min(rate, t.usable_hz) * t.message_bytes / 1e6
         if total > budget_mbytes_per_s * (1 + 1e-9):
             for key, t in targets.items():
-                if key not in changes and t.rate_hz < self._sent[key][1]:
+                if key not in changes and t.rate_hz < self._sent[key][1] and t.rate_hz < t.usable_hz:
                     changes[key] = self._change(key, t, BUDGET)
         out: Dict[str, List[Change]] = {}
         for key, change in changes.items():
@@ -126,20 +129,25 @@ class SetpointFilter:
         )
 
 
-def targets_of(result, demands):
-    """{key: Target} of a LevelAllocation, sizes from its `demands` ({key: StreamDemand})."""
+def targets_of(result, demands, rates=None):
+    """{key: Target} of a LevelAllocation, sizes from its `demands` ({key: StreamDemand}); `rates`
+    {key: Hz} replaces some rates (a cloud limiter's slack: ManagerCore.limiter_rates). A cloud
+    can send no more than its allocation's maximum (its input rate + 10 %)."""
     out = {}
+    rates = rates or {}
     for a in result.streams:
         d = demands.get(a.key)
         size = d.level_bytes[a.level] if d is not None else a.message_bytes
-        out[a.key] = Target(a.level, a.rate_hz, a.min_rate_hz, size)
+        usable = a.max_rate_hz if a.stream == "cloud" else math.inf
+        out[a.key] = Target(a.level, rates.get(a.key, a.rate_hz), a.min_rate_hz, size, max(usable, a.rate_hz))
     return out
 
 
 def in_force_allocation(result, demands, setpoints: SetpointFilter, copies=1):
     """The LevelAllocation as the robots run it: each stream with a setpoint in force at its level
-    and rate (bandwidth and share at that level's size, every copy counted), the others as
-    allocated."""
+    and rate (bandwidth and share at that level's size, every copy counted; a cloud's no more than
+    its maximum: a limiter's slack above what its sensor produces is not use, and the backfill
+    takes what the allocation leaves), the others as allocated."""
     import dataclasses
 
     budget = result.budget_mbytes_per_s
@@ -153,7 +161,8 @@ def in_force_allocation(result, demands, setpoints: SetpointFilter, copies=1):
         level, rate = held
         names = d.level_names or tuple(str(k) for k in range(len(d.level_bytes)))
         size = d.level_bytes[level]
-        bandwidth = copies * rate * size / 1e6
+        usable = max(a.max_rate_hz, a.rate_hz) if a.stream == "cloud" else math.inf  # a limiter's slack is not use
+        bandwidth = copies * min(rate, usable) * size / 1e6
         streams.append(
             dataclasses.replace(
                 a,
