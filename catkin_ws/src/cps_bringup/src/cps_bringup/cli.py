@@ -269,6 +269,7 @@ MISSION_OUTPUTS = {
         "stats.csv",
         "arrivals.csv",
         "allocation.csv",
+        "setpoints.csv",
         "gui.png",
         "ground_truth.npz",
         "scores.json",
