@@ -182,8 +182,7 @@ def bench_priority_to_rate_on_link(changes):
     manager and this measurement on the digital twin, so the new rate crosses the link."""
     import json
 
-    from cps_experiments.link_run import LinkRosGraph
-
+    from cps_harness.link_run import LinkRosGraph
     from cps_link.netns_link import LinkError, ShapedLink, check_capability
     from cps_ros.processes import find_node
 
@@ -193,16 +192,7 @@ def bench_priority_to_rate_on_link(changes):
         print(f"priority change over the shaped link: skipped ({exc})")
         return None
     robots = ("scout", "jackal", "champ", "iris")
-    load = os.path.join(
-        os.path.dirname(os.path.abspath(__file__)),
-        "..",
-        "catkin_ws",
-        "src",
-        "cps_bw_manager",
-        "test",
-        "fixtures",
-        "cloud_load.py",
-    )
+    load = find_node("cps_harness", "cloud_load")
     with ShapedLink("cpsbench") as link, LinkRosGraph(link) as graph:
         limiter = find_node("cps_transport", "rate_limiter")
         for r in robots:
@@ -210,10 +200,10 @@ def bench_priority_to_rate_on_link(changes):
                 "phys",
                 limiter,
                 [
-                    "__name:=cloud_throttle",
-                    f"__ns:=/{r}",
-                    f"~input:=/{r}/points_filtered/draco",
-                    f"~output:=/{r}/points_filtered/draco/managed",
+                    f"__name:={names.CLOUD_THROTTLE}",
+                    f"__ns:={names.absolute(r)}",
+                    f"{names.INPUT}:={names.absolute(names.robot_topic(r, names.POINTS_DRACO))}",
+                    f"{names.OUTPUT}:={names.absolute(names.managed_cloud(r))}",
                 ],
                 name=f"limiter_{r}",
             )

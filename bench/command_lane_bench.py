@@ -19,17 +19,14 @@ import time
 
 import numpy as np
 
+from cps_fleet import names
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import RosGraph, find_node, free_port
 
 ROBOT = "scout"
 HERE = os.path.dirname(os.path.abspath(__file__))
-CLOUD_LOAD = find_node("cps_bw_manager", "bandwidth_manager").replace(
-    "nodes/bandwidth_manager", "test/fixtures/cloud_load.py"
-)
-TELEOP_PROBE = os.path.join(
-    os.path.dirname(find_node("cps_link", "zenoh_bridge")), "..", "test", "fixtures", "teleop_probe.py"
-)
+CLOUD_LOAD = find_node("cps_harness", "cloud_load")
+TELEOP_PROBE = find_node("cps_harness", "teleop_probe")
 LOAD = f"{ROBOT}:200000:30"
 TELEOP_HZ = 20
 
@@ -64,7 +61,7 @@ def one_run(lanes, seconds, tmp):
                 sys.executable,
                 CLOUD_LOAD,
                 LOAD,
-                f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+                f"{names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(ROBOT))}",
             ],
             name="load",
         )

@@ -1,6 +1,6 @@
 """Link-capacity estimator benchmark (issue 23): the new delivery-rate estimator against the old
-delay rule (its anchor, `cps_bw_manager.legacy_estimation`), side by side on the same SIMULATED
-traces (`cps_bw_manager.link_model`: tbf-like queue, capacity steps, outages, a CPU hog at the
+delay rule (its anchor, `cps_harness.legacy_estimation`), side by side on the same SIMULATED
+traces (`cps_harness.link_model`: tbf-like queue, capacity steps, outages, a CPU hog at the
 twin). Not a live run: no netns, no tc, no ROS.
 
 Scenarios: cps_link's `wifi_degraded`, `demo`, `shared_medium` (read, not edited) and a 60 -> 5
@@ -28,8 +28,9 @@ import os
 import sys
 
 from cps_bw_manager.estimation import DeliveryRateEstimator
-from cps_bw_manager.legacy_estimation import LegacyDelayEstimator
-from cps_bw_manager.link_model import (
+from cps_fleet import names
+from cps_harness.legacy_estimation import LegacyDelayEstimator
+from cps_harness.link_model import (
     CpuHog,
     LinkModel,
     NewEstimatorSubject,
@@ -253,10 +254,10 @@ def report(results):
     return "\n".join(lines)
 
 
-HEADER = """# Link-capacity estimator: new (delivery rate) vs old (delay rule) — SIMULATED
+HEADER = f"""# Link-capacity estimator: new (delivery rate) vs old (delay rule) — SIMULATED
 
 Written by `python bench/estimator_bench.py`. These figures come from the simulated link
-`cps_bw_manager.link_model` (fluid tbf-like queue of 4 Mbit, capacity steps and outages from
+`cps_harness.link_model` (fluid tbf-like queue of 4 Mbit, capacity steps and outages from
 cps_link's scenario files, the twin's CPU as a receiver cap with late heartbeat echoes, the
 manager's 4 % reserve, a 0.1 s control lag, 0.5 s reports). They are **not live measurements**:
 the live half of issue 23 (netns + tc, 4 robots, as root) is not run here.
@@ -265,7 +266,7 @@ Subjects, in pairs judged on the same inputs: `new` (`DeliveryRateEstimator` wit
 LinkReport field) and `old` (`LegacyDelayEstimator`, the delay rule the manager used before, fed
 delivered, one-way latency and sent) on per-interval reports, as the bridge should send them;
 `new/today` (only delivered, sent and offered, probes held 2 s, as `manager_node` builds it) and
-`old/today` on today's inputs, 2 s sliding averages like /tissue/stats and the limiters' status.
+`old/today` on today's inputs, 2 s sliding averages like {names.absolute(names.TISSUE_STATS)} and the limiters' status.
 "settle" = seconds from the step to the first report from which the capacity estimate stays
 within +-15 % of the true (tc) capacity until the next event (a report covers the 0.5 s before
 it; reports fall 0.23 s off the whole-second steps). The new estimator's allocation target

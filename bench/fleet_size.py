@@ -17,8 +17,6 @@ import csv
 import json
 import os
 import re
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -27,7 +25,6 @@ from cps_fleet import names
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = os.path.join(ROOT, "catkin_ws", "src", "cps_bringup", "config")
-BRINGUP = os.path.join(ROOT, "catkin_ws", "src", "cps_bringup", "nodes", "cps_bringup")
 HZ = os.sysconf("SC_CLK_TCK")
 SAMPLE_S = 5.0
 # topic_stats' ~window_s as cps_bringup runs it (its default).
@@ -121,29 +118,23 @@ def run_fleet(fleet_file, duration_s, out_dir):
     from cps_fleet.fleet import load_fleet
 
     fleet = load_fleet(fleet_file)
+    from cps_harness.mission import Mission
+
     started = time.monotonic()
-    proc = subprocess.Popen(
-        [sys.executable, BRINGUP, "all", "--fleet", fleet_file, "--duration", str(duration_s), "--out", out_dir],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    sampler = TreeSampler(proc.pid)
-    sampler.start()
-    log, up_at, ended_at = [], None, None
-    for line in proc.stdout:
-        log.append(line)
-        if "processes up" in line:
-            up_at = time.monotonic()
-        if "duration of" in line and "reached" in line:
-            ended_at = time.monotonic()
-    proc.wait()
+    log_path = os.path.join(out_dir, "bringup.log")
+    with Mission(
+        os.path.join(out_dir, "mission"), ["--fleet", fleet_file, "--duration", duration_s], log_path=log_path
+    ) as mission:
+        sampler = TreeSampler(mission.pid)
+        sampler.start()
+        mission.wait_until_up()
+        ended = r"duration of .* reached"
+        mission.wait_for(ended, duration_s + 120)
+        up_at, ended_at = mission.up_at, mission.seen[ended]
+        mission.finish()
     sampler.join(timeout=SAMPLE_S * 2)
     finished = time.monotonic()
-    with open(os.path.join(out_dir, "bringup.log"), "w") as stream:
-        stream.writelines(log)
-    if up_at is None or ended_at is None:
-        raise RuntimeError(f"{fleet_file}: the mission did not start or end by duration; see {out_dir}/bringup.log")
+    out_dir = os.path.join(out_dir, "mission")
     # The steady state: from 10 s after every process is up to the end of the mission.
     steady = [s for s in sampler.samples if up_at + 10.0 < s["t"] <= ended_at] or sampler.samples
     up = max(s["procs"] for s in steady)
@@ -176,14 +167,14 @@ def run_fleet(fleet_file, duration_s, out_dir):
                 "robots_side_hz": rate(
                     physical.get(names.absolute(names.robot_topic(robot.name, names.POINTS_FILTERED)), [])
                 ),
-                "twin_managed_hz": rate(twin.get(f"/twin/{robot.name}/points_filtered/draco/managed", [])),
+                "twin_managed_hz": rate(twin.get(names.absolute(names.managed_cloud_at_twin(robot.name)), [])),
                 "odom_at_twin_hz": rate(twin.get(names.absolute(names.robot_topic(robot.name, names.ODOM)), [])),
             }
         )
     return {
         "fleet": os.path.relpath(fleet_file, CONFIG),
         "robots": len(fleet.robots),
-        "exit_code": proc.returncode,
+        "exit_code": mission.returncode,
         "processes_up": up,
         "cores": sum(s["cores"] for s in steady) / len(steady),
         "load": [s["load"] for s in steady],

@@ -20,8 +20,10 @@ import tempfile
 import time
 
 import numpy as np
-from cps_experiments.cut_analysis import ages_after, read_watch
-from cps_experiments.transport_compare import (
+
+from cps_fleet import names
+from cps_harness.cut_analysis import ages_after, read_watch
+from cps_harness.transport_compare import (
     FIXTURES,
     LIVE,
     Graphs,
@@ -30,8 +32,6 @@ from cps_experiments.transport_compare import (
     start_load,
     teleop_under_saturation,
 )
-
-from cps_fleet import names
 from cps_link.netns_link import PHYS_IP, TWIN_IP, ShapedLink, namespace
 from cps_link.zenoh_session import MAKE_CERTS
 

@@ -4,10 +4,19 @@
   process); the environment points at it.
 - `ros`: a RosGraph on that master that kills the processes a test started, even on failure.
 - `rospy_node`: this test process as a rospy node on that master.
+- `reference_mission`: the reference mission (cps_harness.reference), run once per test run and
+  asserted on by many tests.
 
 Every test is marked `ros` (it needs a master: it uses one of these fixtures, or says so with
 `pytest.mark.ros`) or `unit` (everything else), so `pytest -m unit` runs without ROS and the
-summary counts both kinds.
+summary counts both kinds. A package's rostest file runs as one test marked `rostest` (and `ros`).
+A test that runs a whole mission (it uses `reference_mission`, or says
+so with `pytest.mark.mission`) is also `ros`.
+
+Run in parallel (pytest-xdist, `-n 2 --dist loadgroup`, as `make test` does): every mission test
+is in one group, `missions`, which starts first, on one worker (missions run one at a time: two at
+once would share the two cores with each other); each module of ROS tests is a group of its own (its
+module fixtures are set up once); unit tests go wherever a worker is free.
 """
 
 import collections
@@ -19,40 +28,72 @@ import pytest
 
 from cps_harness.testing import RosGraph
 
+pytest_plugins = ["cps_harness.durations"]
+
 ROS_FIXTURES = frozenset({"ros_master", "ros", "rospy_node"})
+MISSIONS = "missions"
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's, which turns the groups into the items' node ids
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        if ROS_FIXTURES.intersection(item.fixturenames):
+        if "reference_mission" in item.fixturenames or item.get_closest_marker("mission") is not None:
+            item.add_marker(pytest.mark.mission)
+            item.add_marker(pytest.mark.ros)
+            item.add_marker(pytest.mark.xdist_group(MISSIONS))
+            continue
+        if ROS_FIXTURES.intersection(item.fixturenames) or item.get_closest_marker("rostest") is not None:
             item.add_marker(pytest.mark.ros)
         if item.get_closest_marker("ros") is None:
             item.add_marker(pytest.mark.unit)
+        else:
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+    # The reference mission's tests first (they wait for it), then the missions that run alone.
+    items.sort(key=lambda item: 0 if "reference_mission" in item.fixturenames else 1)
+
+
+class MissionsFirst:
+    """xdist's loadgroup scheduler, with the missions' group sent out first: the worker that takes
+    it starts the reference mission at once, while the other worker runs the other tests."""
+
+    @staticmethod
+    def pytest_xdist_make_scheduler(config, log):
+        from xdist.scheduler import LoadGroupScheduling
+
+        class Scheduling(LoadGroupScheduling):
+            def _assign_work_unit(self, node):
+                if MISSIONS in self.workqueue:
+                    self.workqueue.move_to_end(MISSIONS, last=False)
+                super()._assign_work_unit(node)
+
+        return Scheduling(config, log)
+
+
+def pytest_configure(config):
+    if config.pluginmanager.hasplugin("xdist"):  # its hook exists only with the plugin (not with -p no:xdist)
+        config.pluginmanager.register(MissionsFirst(), "cps_missions_first")
 
 
 def pytest_terminal_summary(terminalreporter):
-    """One line per kind, e.g. `unit: 250 passed, 0 failed, 1 skipped`."""
-    counts = {"unit": collections.Counter(), "ros": collections.Counter()}
-    for outcome in ("passed", "failed", "skipped", "error"):
+    """One line per kind, e.g. `unit: 250 passed, 0 failed, 0 skipped`: unit, ros (rostest files
+    and missions included) and, of those, rostest and mission."""
+    kinds = ("unit", "ros", "rostest", "mission")
+    counts = {kind: collections.Counter() for kind in kinds}
+    for outcome in ("passed", "failed", "skipped", "error", "xfailed", "xpassed"):
         for report in terminalreporter.stats.get(outcome, []):
             if not hasattr(report, "keywords") or (outcome == "passed" and report.when != "call"):
                 continue
-            counts["ros" if "ros" in report.keywords else "unit"][outcome] += 1
-    # ci/run_tests.sh runs the rostest .test files first and leaves their count in this file.
-    rostest_summary = os.environ.get("CPS_ROSTEST_SUMMARY")
-    rostest_line = None
-    if rostest_summary and os.path.exists(rostest_summary):
-        with open(rostest_summary) as stream:
-            rostest_line = stream.read().strip()
-    if not any(counts.values()) and not rostest_line:
+            for kind in kinds:
+                if kind in report.keywords or (kind == "ros" and "unit" not in report.keywords):
+                    counts[kind][outcome] += 1
+    if not any(counts.values()):
         return
     terminalreporter.section("tests by kind")
     for kind, c in counts.items():
         terminalreporter.write_line(
             f"{kind}: {c['passed']} passed, {c['failed'] + c['error']} failed, {c['skipped']} skipped"
+            + (f", {c['xfailed'] + c['xpassed']} xfail" if c["xfailed"] + c["xpassed"] else "")
         )
-    if rostest_line:
-        terminalreporter.write_line(rostest_line)
 
 
 @pytest.fixture(scope="session")
@@ -85,14 +126,35 @@ def rospy_node(ros_master):
     rospy.signal_shutdown("tests done")
 
 
+@pytest.fixture(scope="session")
+def reference_mission():
+    """The reference mission (cps_harness.reference), run to its end once per test run; its
+    ReferenceRun. A test that needs it calls `reference_mission.check()` first."""
+    from cps_harness.reference import keep_for_reading, run_reference
+
+    folder = _open_folder()
+    try:
+        run = run_reference(folder)
+        yield run
+    finally:
+        if os.environ.get("CPS_TEST_OUT"):  # make test's report folder: what a failure needs to be read
+            keep_for_reading(folder, os.path.join(os.environ["CPS_TEST_OUT"], "reference"))
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _open_folder():
+    folder = tempfile.mkdtemp(prefix="cps-open-")
+    os.chmod(folder, 0o755)
+    return folder
+
+
 @pytest.fixture
 def open_tmp_path():
     """A temporary folder other users can reach (pytest's tmp_path is root-only): for a bringup run
     as root, whose nodes drop to an unprivileged user."""
     import pathlib
 
-    folder = tempfile.mkdtemp(prefix="cps-open-")
-    os.chmod(folder, 0o755)
+    folder = _open_folder()
     try:
         yield pathlib.Path(folder)
     finally:

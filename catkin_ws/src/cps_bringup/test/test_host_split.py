@@ -5,7 +5,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 
 import pytest
 
@@ -20,9 +19,8 @@ from cps_bringup.host_split import (
 )
 from cps_bringup.plan import DIGITAL, PHYSICAL, NodeSpec
 from cps_bringup.supervisor import Supervisor
-
-BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
-MISSION_S = 20
+from cps_harness.cgroups import group_exists, groups_of
+from cps_harness.mission import BRINGUP, program_argv
 
 
 def test_host_cpus_are_parsed_per_side():
@@ -61,7 +59,7 @@ def test_quota_and_default_split():
 def test_bringup_refuses_a_missing_cpu_before_anything_starts(open_tmp_path):
     out = open_tmp_path / "refused"
     run = subprocess.run(
-        [sys.executable, BRINGUP, "all", "--host-cpus", "robots=0,twin=64", "--out", str(out)],
+        program_argv(BRINGUP, "all", "--host-cpus", "robots=0,twin=64", "--out", out),
         capture_output=True,
         text=True,
         timeout=60,
@@ -70,73 +68,23 @@ def test_bringup_refuses_a_missing_cpu_before_anything_starts(open_tmp_path):
     assert not out.exists()
 
 
-def _groups_of(pid):
-    """{controller: group path} of a process, None if it ended."""
-    try:
-        with open(f"/proc/{pid}/cgroup") as f:
-            lines = f.read().splitlines()
-    except OSError:
-        return None
-    return {ctl: path for _, ctls, path in (line.split(":", 2) for line in lines) for ctl in ctls.split(",")}
-
-
-def _cmdline(pid):
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return f.read().replace(b"\0", b" ").decode(errors="replace")
-    except OSError:
-        return ""
-
-
-def _members(group_name):
-    """{side: {pid: cmdline}} of every process in the run's cpuset groups."""
-    members = {PHYSICAL: {}, DIGITAL: {}}
-    for pid in (int(p) for p in os.listdir("/proc") if p.isdigit()):
-        groups = _groups_of(pid)
-        for side in members:
-            if groups and groups.get("cpuset") == f"/{group_name}/{side}":
-                assert groups.get("cpu") == f"/{group_name}/{side}", (pid, groups)
-                members[side][pid] = _cmdline(pid)
-    return members
-
-
-def _nice(pid):
-    with open(f"/proc/{pid}/stat") as f:
-        return int(f.read().rsplit(")", 1)[1].split()[16])
-
-
-@pytest.mark.ros
-@pytest.mark.slow
 @pytest.mark.skipif(cgroup_v1_writable() is not None, reason=f"cgroup v1 split unavailable: {cgroup_v1_writable()}")
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPUs to split")
-def test_bringup_places_each_side_in_its_own_cgroup(bringup_mission):
-    """A one-robot mission with --host-cpus robots=0,twin=1: the simulator and the robot's tissue are
-    in the robots' cpuset+cpu groups (CPU 0), the map server in the twin's (CPU 1), fleet control at
-    CONTROL_NICE; the groups are gone after the run."""
-    cpus = sorted(os.sched_getaffinity(0))[:2]
-
-    def read_groups(mission):
-        """(members, cpus read per side, nice of fleet control) of the run's groups."""
-        group = f"cpsfleet_{mission.pid}"
-        members, cpus_read = _members(group), {}
-        for side in members:
-            with open(f"/sys/fs/cgroup/cpuset/{group}/{side}/cpuset.cpus") as f:
-                cpus_read[side] = f.read().strip()
-        control = [p for p, cmd in members[PHYSICAL].items() if "fleet_control" in cmd and "nice" not in cmd]
-        return members, cpus_read, [_nice(p) for p in control]
-
-    args = ["--robots", "scout", "--host-cpus", f"robots={cpus[0]},twin={cpus[1]}"]
-    mission = bringup_mission("split", args, read_groups, MISSION_S)
-    assert "host split by cgroup v1 cpuset+cpu" in mission.log, mission.log[-3000:]
-    assert mission.read_while_up is not None, mission.log[-3000:]
-    members, cpus_read, nice = mission.read_while_up
-    physical, digital = (" | ".join(members[s].values()) for s in (PHYSICAL, DIGITAL))
+def test_bringup_places_each_side_in_its_own_cgroup(reference_mission):
+    """The reference mission (a --link run as root: split in halves by default): the simulator and
+    the robots' tissue are in the robots' cpuset+cpu groups, the map server in the twin's, fleet
+    control at CONTROL_NICE, each side on its own CPUs; the groups are gone after the run."""
+    reference_mission.check()
+    cpus = default_host_cpus(sorted(os.sched_getaffinity(0)))
+    log, observed = reference_mission.log, reference_mission.observed
+    assert "host split by cgroup v1 cpuset+cpu" in log, log[-3000:]
+    assert observed.cgroups is not None and observed.cgroup_cpus is not None, observed.errors
+    physical, digital = (" | ".join(observed.cgroups[s].values()) for s in (PHYSICAL, DIGITAL))
     assert "fleet_sim" in physical and "cloud_tissue" in physical and "map_server" not in physical, physical
     assert "map_server" in digital and "fleet_sim" not in digital and "cloud_tissue" not in digital, digital
-    assert cpus_read == {PHYSICAL: str(cpus[0]), DIGITAL: str(cpus[1])}
-    assert nice and all(n == CONTROL_NICE for n in nice), (nice, physical)
-    for controller in ("cpuset", "cpu"):
-        assert not os.path.exists(f"/sys/fs/cgroup/{controller}/cpsfleet_{mission.pid}")
+    assert observed.cgroup_cpus == {side: ",".join(map(str, cpus[side])) for side in (PHYSICAL, DIGITAL)}
+    assert observed.control_nice and all(n == CONTROL_NICE for n in observed.control_nice), observed.control_nice
+    assert not group_exists(f"cpsfleet_{reference_mission.mission.pid}")
 
 
 @pytest.mark.skipif(cgroup_v1_writable() is not None, reason=f"cgroup v1 split unavailable: {cgroup_v1_writable()}")
@@ -165,10 +113,10 @@ def test_groups_are_removed_even_with_a_process_left_inside_and_stale_ones_too()
                 text=True,
             )
             assert leftover.stdout.readline().strip().endswith(f":cpuset:/{name}/{DIGITAL}")
-            assert _groups_of(leftover.pid)["cpu"] == f"/{name}/{DIGITAL}"
+            assert groups_of(leftover.pid)["cpu"] == f"/{name}/{DIGITAL}"
             with open(f"/sys/fs/cgroup/cpuset/{name}/{DIGITAL}/cpuset.cpus") as f:
                 assert f.read().strip() == str(cpus[1])
-        assert leftover.poll() is None and _groups_of(leftover.pid)["cpuset"] == "/"
+        assert leftover.poll() is None and groups_of(leftover.pid)["cpuset"] == "/"
         for controller in ("cpuset", "cpu"):
             assert not os.path.exists(f"/sys/fs/cgroup/{controller}/{name}")
     finally:

@@ -80,3 +80,17 @@ def test_every_imported_dependency_has_an_exec_depend(package):
     # lists cps_sim) its code must not import
     needed |= {m for m in _imports(package) if m in PACKAGES and m != package}
     assert needed <= declared, f"{package}/package.xml lacks exec_depend {sorted(needed - declared)}"
+
+
+TEST_SUPPORT = "cps_harness"
+
+
+@pytest.mark.parametrize("package", [p for p in PACKAGES if p != TEST_SUPPORT])
+def test_test_support_stays_out_of_the_runtime_path(package):
+    """A runtime package's library and nodes never import cps_harness (the tests' and benches'
+    toolkit): a robot or twin never loads test support (the manager never loads the legacy
+    estimator nor the simulated link, which live there). Nor does its package.xml declare it, even
+    as a test_depend: the harness depends on the packages whose missions it runs, and catkin orders
+    test dependencies like build dependencies (a cycle)."""
+    declared = {e.text for e in _package_xml(package) if e.tag.endswith("depend")}
+    assert TEST_SUPPORT not in _imports(package) and TEST_SUPPORT not in declared, package

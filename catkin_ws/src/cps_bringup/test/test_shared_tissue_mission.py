@@ -9,9 +9,10 @@ import sys
 import pytest
 
 from cps_bringup.plan import DIGITAL, PHYSICAL, ZENOH, RunOptions, plan_nodes
-from cps_fleet.fleet import load_fleet
+from cps_fleet.fleet import default_fleet_path, load_fleet
+from cps_harness.mission import run_mission
 
-FLEET8 = os.path.join(os.path.dirname(__file__), "..", "config", "fleets", "fleet8.yaml")
+FLEET8 = os.path.join(os.path.dirname(default_fleet_path()), "fleets", "fleet8.yaml")
 MISSION_S = 15
 
 
@@ -28,6 +29,7 @@ def _started(log_dir, robots):
 # /twin/map_stats) until every robot has some (or 45 s).
 COUNT_INSERTED = """
 import json, sys, time, rospy
+from cps_fleet import names
 from cps_msgs.msg import MapStats
 robots = sys.argv[1].split(",")
 counts = dict.fromkeys(robots, 0)
@@ -36,7 +38,7 @@ def on_stats(stats):
         if robot.robot in counts:
             counts[robot.robot] = robot.clouds_inserted
 rospy.init_node("map_insert_count", anonymous=True)
-sub = rospy.Subscriber("/twin/map_stats", MapStats, on_stats)
+sub = rospy.Subscriber(names.absolute(names.in_twin(names.MAP_STATS)), MapStats, on_stats)
 deadline = time.monotonic() + 45
 while time.monotonic() < deadline and not all(counts.values()):
     time.sleep(0.2)
@@ -44,9 +46,8 @@ print(json.dumps(counts))
 """
 
 
-@pytest.mark.ros
-@pytest.mark.slow
-def test_eight_robots_run_on_the_same_tissue_processes_as_four(bringup_mission):
+@pytest.mark.mission
+def test_eight_robots_run_on_the_same_tissue_processes_as_four(open_tmp_path):
     """Eight robots (config/fleets/fleet8.yaml) come up with the default four's tissue processes, and
     the map server inserts every robot's clouds."""
     fleet = load_fleet(FLEET8)
@@ -55,16 +56,18 @@ def test_eight_robots_run_on_the_same_tissue_processes_as_four(bringup_mission):
     def count_inserted(mission):
         counted = subprocess.run(
             [sys.executable, "-c", COUNT_INSERTED, ",".join(fleet.robot_names)],
-            env=dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{mission.port}"),
+            env=dict(os.environ, ROS_MASTER_URI=mission.twin_master_uri()),
             capture_output=True,
             text=True,
             timeout=60,
         )
         return json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0 else counted.stderr
 
-    mission = bringup_mission("m8", ["--fleet", FLEET8], count_inserted, MISSION_S, timeout_s=120)
-    counts, out = mission.read_while_up, mission.out
-    assert isinstance(counts, dict) and all(counts.get(r) for r in fleet.robot_names), (counts, mission.log[-3000:])
+    out = open_tmp_path / "m8"
+    args = ["--profile", "light", "--duration", MISSION_S, "--fleet", FLEET8]
+    mission = run_mission(out, args, while_up=count_inserted, timeout_s=120)
+    counts = mission.read_while_up
+    assert isinstance(counts, dict) and all(counts.get(r) for r in fleet.robot_names), (counts, mission.log()[-3000:])
 
     four = plan_nodes(load_fleet(), options=RunOptions(out_dir=str(out), transport=ZENOH))
     for side, log_dir in ((PHYSICAL, out / "logs" / "robots"), (DIGITAL, out / "logs")):

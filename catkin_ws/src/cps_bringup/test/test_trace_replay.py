@@ -1,5 +1,6 @@
-"""A trace-driven fleet: a recorded 4-robot mission replayed as 8 robots into the twin's decoder and
-map server gives 8 distinct robots in the map; a request beyond the hall's placements gets what fits."""
+"""A trace-driven fleet: the reference mission's recording (3 robots) replayed as 8 robots into the
+twin's decoder and map server gives 8 distinct robots in the map; a request beyond the hall's
+placements gets what fits."""
 
 import json
 import os
@@ -13,10 +14,9 @@ from cps_bringup.plan import SHARED
 from cps_bringup.supervisor import Supervisor
 from cps_bringup.trace_replay import RobotTrace, Trace, TraceError, placements, plan_copies, twin_specs
 from cps_fleet.fleet import load_fleet
-from cps_ros.processes import RosGraph, free_port, processes_named
+from cps_ros.processes import RosGraph, find_node, free_port, processes_named
 
-BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
-REPLAY = os.path.join(os.path.dirname(__file__), "..", "nodes", "trace_replay")
+REPLAY = find_node("cps_bringup", "trace_replay")
 HALL = (-10.0, 10.0, -7.5, 7.5)
 
 
@@ -49,6 +49,7 @@ def test_a_replay_beyond_the_halls_placements_says_so_and_replays_what_fits():
 
 COUNT_ROBOTS = """
 import json, sys, time, rospy
+from cps_fleet import names
 from cps_msgs.msg import MapStats
 robots = sys.argv[1].split(",")
 seen = {}
@@ -56,7 +57,7 @@ def on_stats(stats):
     for r in stats.robots:
         seen[r.robot] = (r.clouds_inserted, r.occupied_voxels_contributed)
 rospy.init_node("robot_count", anonymous=True)
-sub = rospy.Subscriber("/twin/map_stats", MapStats, on_stats)
+sub = rospy.Subscriber(names.absolute(names.in_twin(names.MAP_STATS)), MapStats, on_stats)
 deadline = time.monotonic() + float(sys.argv[2])
 while time.monotonic() < deadline and not all(seen.get(r, (0, 0))[1] for r in robots):
     time.sleep(0.2)
@@ -64,28 +65,17 @@ print(json.dumps(seen))
 """
 
 
-@pytest.mark.ros
-@pytest.mark.slow
-def test_four_recorded_robots_replayed_as_eight_are_eight_robots_in_the_map(open_tmp_path):
-    # Record a short 4-robot mission (the default fleet, light profile).
-    out = open_tmp_path / "recorded"
-    bag = out / "mission.bag"
-    recorded = subprocess.run(
-        [sys.executable, BRINGUP, "all", "--profile", "light", "--duration", "20", "--out", str(out)]
-        + ["--port", str(free_port()), "--record", str(bag), "--host-cpus", "none"],
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
-    assert recorded.returncode == 0 and bag.exists(), recorded.stdout[-3000:] + recorded.stderr[-2000:]
-    fleet4 = load_fleet()
-    assert len(fleet4.robots) == 4
+def test_recorded_robots_replayed_as_eight_are_eight_robots_in_the_map(reference_mission, open_tmp_path):
+    reference_mission.check()
+    bag = reference_mission.bag
+    recorded = load_fleet(reference_mission.fleet_file)
+    assert len(recorded.robots) < 8
 
     twin_out = open_tmp_path / "twin"
     twin_out.mkdir()
     copies_fleet = str(twin_out / "copies.yaml")
     plan = subprocess.run(
-        [sys.executable, REPLAY, str(bag), "--robots", "8", "--duration", "1", "--copies-fleet", copies_fleet]
+        [sys.executable, REPLAY, bag, "--robots", "8", "--duration", "1", "--copies-fleet", copies_fleet]
         + ["--plan-only"],
         capture_output=True,
         text=True,
@@ -105,7 +95,7 @@ def test_four_recorded_robots_replayed_as_eight_are_eight_robots_in_the_map(open
         supervisor.start_all(timeout_s=120)
         env = dict(os.environ, ROS_MASTER_URI=graph.uri)
         replay = subprocess.Popen(
-            [sys.executable, REPLAY, str(bag), "--robots", "8", "--duration", "40", "--copies-fleet", copies_fleet],
+            [sys.executable, REPLAY, bag, "--robots", "8", "--duration", "40", "--copies-fleet", copies_fleet],
             env=env,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,

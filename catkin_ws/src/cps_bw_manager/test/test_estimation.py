@@ -1,4 +1,4 @@
-"""DeliveryRateEstimator on the simulated link (cps_bw_manager.link_model), one test per target of
+"""DeliveryRateEstimator on the simulated link (cps_harness.link_model), one test per target of
 issue 23, plus its handling of bad input. Deterministic: time is simulated, jitter seeded.
 
 Targets: after a down step within +-15 % of the true capacity in <= 2 s and ingress over the
@@ -11,7 +11,7 @@ import math
 import pytest
 
 from cps_bw_manager.estimation import DeliveryRateEstimator, LinkReport
-from cps_bw_manager.link_model import (
+from cps_harness.link_model import (
     CpuHog,
     LinkModel,
     NewEstimatorSubject,

@@ -1,81 +1,78 @@
-"""The issue's cut test over real namespaces and the real link: a mission over --transport zenoh,
-the veth cut for 10 s mid-mission. Both sides report the link down within 1 s of the cut and up
-within 2 s of its end, no node restarts, no live cloud older than 1 s reaches the twin after
-recovery, the backfilled keyframes reach the map, and the map's F1 is at least 98 % of the same
-mission's without a cut (both printed). CPS_CUT_TEST_ROBOTS picks a subset (default: all four)."""
+"""A link cut over real namespaces and the real link: the reference mission's fleet and routes
+again, over --transport zenoh, the veth cut for 10 s mid-mission, and the map server killed 2 s into
+the cut (fault injection). Both sides report the link down within 1 s of the cut and up within 2 s
+of its end; no node but the killed map server restarts, and it resumes from its autosave before the
+link comes back; no live cloud older than 1 s reaches the twin after recovery; the backfilled
+keyframes reach the map; and the map's F1 is at least 98 % of the reference mission's (the same
+mission without a cut), both printed."""
 
-import os
-import subprocess
+import re
 import sys
 import time
 
 import pytest
-from cps_experiments.cut_analysis import (
-    LINK_STATE,
-    ages_after,
-    count_after,
-    describe_ages,
-    first_state_after,
-    read_watch,
-)
-from cps_experiments.mission_run import BackgroundMission
 
+from cps_fleet import names
+from cps_harness.cut_analysis import LINK_STATE, ages_after, count_after, describe_ages, first_state_after, read_watch
+from cps_harness.mission import Mission
+from cps_harness.reference import ROBOTS
 from cps_harness.testing import link_name
 from cps_link import netns_link
-from cps_ros.processes import processes_named
+from cps_ros.processes import find_node
 
 LINK = link_name("zc")
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
-HERE = os.path.dirname(os.path.abspath(__file__))
-WATCH = os.path.join(HERE, "..", "..", "cps_link", "test", "fixtures", "link_watch.py")
-ROBOTS = os.environ.get("CPS_CUT_TEST_ROBOTS", "scout,jackal,champ,iris").split(",")
-MISSION_S, CUT_AT_S, CUT_S = 110.0, 35.0, 10.0
+pytestmark = pytest.mark.mission
+# The cut, s after every process is up; the map server's kill, s into the mission (bringup's clock
+# starts with the mission, just after every process is up): within the cut, after an autosave of
+# everything inserted before it (the reference fleet autosaves every 2 s).
+CUT_AT_S, CUT_S, KILL_MAP_SERVER_AT_S = 12.0, 10.0, 14.0
 DOWN_WITHIN_S, UP_WITHIN_S, FRESH_S, F1_RATIO = 1.0, 2.0, 1.0, 0.98
 
 
-def _f1(map_file):
+def _f1(map_file, fleet_file):
     from cps_experiments.report import score_saved_map
+    from cps_fleet.fleet import load_fleet
 
-    from cps_fleet.fleet import load_fleet, robot_names_arg
-
-    fleet = robot_names_arg(load_fleet(), ROBOTS)
-    score, _ = score_saved_map(str(map_file), fleet, str(map_file) + ".ground_truth.npz")
+    score, _ = score_saved_map(str(map_file), load_fleet(fleet_file), str(map_file) + ".ground_truth.npz")
     return score.f1
 
 
-def _mission(out, cut):
-    """One mission; with `cut`, the veth goes down CUT_AT_S into it for CUT_S. Returns (mission, times)."""
-    twin_topics = [
-        t for r in ROBOTS for t in (f"/twin/{r}/points_filtered/draco/managed", f"/twin/{r}/points_backfill")
-    ]
-    with BackgroundMission(out, LINK, ["--robots", ",".join(ROBOTS), "--duration", str(MISSION_S)]) as mission:
-        mission.wait_for_line("processes up", timeout_s=300)
-        mission.popen_on("twin", [sys.executable, WATCH, str(out / "twin_watch.txt"), *twin_topics], "twin_watch")
-        mission.popen_on("phys", [sys.executable, WATCH, str(out / "robots_watch.txt")], "robots_watch")
-        times = {}
-        if cut:
-            time.sleep(CUT_AT_S)
-            times["cut"] = time.time()
-            mission.set_link(up=False)
-            time.sleep(CUT_S)
-            times["restore"] = time.time()
-            mission.set_link(up=True)
-        assert mission.wait(timeout_s=MISSION_S + 180) == 0, mission.log()[-4000:]
-    return mission, times
+def _live(robot):
+    return names.absolute(names.managed_cloud_at_twin(robot))
+
+
+def _backfill(robot):
+    return names.absolute(names.in_twin(names.robot_topic(robot, names.POINTS_BACKFILL)))
 
 
 @pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
-@pytest.mark.timeout(1500)
-def test_a_ten_second_cut_mid_mission(open_tmp_path):
-    tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
-    base, _ = _mission(tmp_path / "nocut", cut=False)
-    mission, times = _mission(tmp_path / "cut", cut=True)
-    f1_base, f1_cut = _f1(tmp_path / "nocut" / "map.bt"), _f1(tmp_path / "cut" / "map.bt")
-    twin, robots = read_watch(tmp_path / "cut" / "twin_watch.txt"), read_watch(tmp_path / "cut" / "robots_watch.txt")
-    live = [f"/twin/{r}/points_filtered/draco/managed" for r in ROBOTS]
-    ages = ages_after(twin, times["restore"], live)
-    backfilled = {r: count_after(twin, times["restore"], f"/twin/{r}/points_backfill") for r in ROBOTS}
+@pytest.mark.timeout(900)
+def test_a_ten_second_cut_mid_mission(reference_mission, open_tmp_path):
+    reference_mission.check()
+    out = open_tmp_path / "cut"
+    watch = find_node("cps_harness", "link_watch")
+    args = ["--fleet", reference_mission.fleet_file, "--kill-map-server-at", KILL_MAP_SERVER_AT_S]
+    with Mission(out, args, link="60mbit", link_name=LINK) as mission:
+        mission.wait_until_up()
+        twin_topics = [t for r in ROBOTS for t in (_live(r), _backfill(r))]
+        mission.popen_on("twin", [sys.executable, watch, str(out / "twin_watch.txt"), *twin_topics], "twin_watch")
+        mission.popen_on("phys", [sys.executable, watch, str(out / "robots_watch.txt")], "robots_watch")
+        time.sleep(CUT_AT_S)
+        times = {"cut": time.time()}
+        mission.set_link(up=False)
+        time.sleep(CUT_S)
+        times["restore"] = time.time()
+        mission.set_link(up=True)
+        mission.finish(timeout_s=600)
+    log = mission.log()
+    f1_base, f1_cut = (
+        _f1(reference_mission.out / "map.bt", reference_mission.fleet_file),
+        _f1(out / "map.bt", reference_mission.fleet_file),
+    )
+    twin, robots = read_watch(out / "twin_watch.txt"), read_watch(out / "robots_watch.txt")
+    ages = ages_after(twin, times["restore"], [_live(r) for r in ROBOTS])
+    backfilled = {r: count_after(twin, times["restore"], _backfill(r)) for r in ROBOTS}
     delays = {
         f"{side} down": (first_state_after(w, times["cut"], False) or float("inf")) - times["cut"]
         for side, w in (("twin", twin), ("robots", robots))
@@ -87,18 +84,23 @@ def test_a_ten_second_cut_mid_mission(open_tmp_path):
         }
     )
     print(
-        f"\nrobots {','.join(ROBOTS)}: F1 without cut {f1_base:.4f}, with a {CUT_S:.0f} s cut {f1_cut:.4f} "
-        f"({100 * f1_cut / f1_base:.1f} %)"
+        f"\nrobots {','.join(ROBOTS)}: F1 without cut (the reference mission) {f1_base:.4f}, with a {CUT_S:.0f} s "
+        f"cut and the map server killed in it {f1_cut:.4f} ({100 * f1_cut / f1_base:.1f} %)"
     )
     print("link state delays: " + ", ".join(f"{k} {v:.2f} s" for k, v in delays.items()))
     print(f"live clouds after recovery: {describe_ages(ages)}; backfilled keyframes: {backfilled}")
 
     for key, delay in delays.items():
         assert delay <= (DOWN_WITHIN_S if key.endswith("down") else UP_WITHIN_S), delays
-    assert "exited with code" not in mission.log() and "exited with code" not in base.log(), mission.log()[-3000:]
+    # The map server, killed, restarted once and resumed from its autosave; no other node restarted.
+    assert "map_server: killed by --kill-map-server-at" in log, log[-3000:]
+    exits = re.findall(r"\[bringup\] (\S+): exited with code", log)
+    assert exits == ["map_server"], (exits, log[-3000:])
+    assert re.search(r"map_server: exited with code -?\d+; restart 1/3", log), log[-3000:]
+    map_server_logs = sorted((out / "logs").glob("map_server-*.log"), key=lambda p: int(p.stem.split("-")[1]))
+    assert len(map_server_logs) == 2, map_server_logs
+    assert "map_server: resumed from" in map_server_logs[1].read_text()
     assert len(ages) > 0 and max(ages) <= FRESH_S, describe_ages(ages)
     assert all(n > 0 for n in backfilled.values()), backfilled
     assert f1_cut >= F1_RATIO * f1_base, (f1_cut, f1_base)
-    assert not processes_named(str(tmp_path)), processes_named(str(tmp_path))
-    assert f"{LINK}_" not in subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
-    assert LINK_STATE in open(tmp_path / "cut" / "twin_watch.txt").read()
+    assert LINK_STATE in (out / "twin_watch.txt").read_text()

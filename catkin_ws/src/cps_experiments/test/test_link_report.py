@@ -1,11 +1,15 @@
 """The report's link events from the CSVs the scenario runner and the manager write: outages with
-their durations, capacity steps with the windows over budget around them, and what is missing."""
+their durations and the clouds the bridges counted lost or kept meanwhile, capacity steps with the
+windows around them against the capacity in force and the manager's budget after them."""
 
 import math
 
 import numpy as np
 import pytest
-from cps_experiments.link_report import NOT_YET, bridge_outages, capacity_steps, scenario_outages, section
+
+from cps_experiments.ledger import counter_series
+from cps_experiments.link_report import NOT_COUNTED, bridge_outages, capacity_steps, scenario_outages, section
+from cps_fleet import names
 
 T0 = 1000.0  # wall time of mission second 0
 
@@ -67,13 +71,43 @@ def test_bridge_transitions_make_outages_and_an_unended_one_says_so():
     assert "still down at the end" in lines and "bridge saw robots down" in lines
 
 
-def test_the_section_lists_the_outage_and_the_step_with_its_windows_over_budget():
+def test_the_section_lists_the_outage_and_the_step_against_the_capacity_in_force():
     text = "\n".join(section(EVENTS, [], ALLOCATIONS, *_windows()))
-    assert "| link cut (scenario) | 25.0 | 10.2 | 0.000 | " + NOT_YET in text
+    assert "| link cut (scenario) | 25.0 | 10.2 | 0.000 | " + NOT_COUNTED in text
     assert "the Zenoh bridge does not run yet" in text
-    # 60 -> 10: before it no window over 6.9 MB/s; after it the windows at 60.5 and 61.5 s exceed 1.1.
-    assert "| 60.0 | 60 → 10 | 0 of 10 | 2 of 10 | 2.5 s |" in text
-    assert "| 80.0 | 10 → 60 | 0 of 10 | 0 of 10 | 0 s (never over) |" in text
+    # 60 -> 10 (1.25 MB/s): no window over it before; after it the 1.25 MB/s windows are not over it.
+    assert "| 60.0 | 60 → 10 | 0 of 10 | 0 of 10 | 1.250 | 1.10 |" in text
+    # 10 -> 60: the 1 MB/s windows before are within 1.25 MB/s; the budget went back to 6.9 MB/s.
+    assert "| 80.0 | 10 → 60 | 0 of 10 | 0 of 10 | 7.500 | 6.90 |" in text
+
+
+def test_a_budget_left_above_the_new_capacity_is_said_in_the_step_row():
+    stale = [dict(a, budget_mbytes_per_s="6.9") for a in ALLOCATIONS]
+    text = "\n".join(section(EVENTS, [], stale, *_windows()))
+    assert "| 60.0 | 60 → 10 | 0 of 10 | 0 of 10 | 1.250 | 6.90 (above the capacity) |" in text
+
+
+def test_the_clouds_lost_in_an_outage_come_from_the_bridges_counters():
+    """During the cut (25-35.2 s, counted to 3 s after) the robots' bridge held back 12 clouds and kept
+    2 keyframes; the twin's bridge found 20 missing numbers: 14 withheld, 6 lost on the link."""
+
+    def row(t, topic, key, value):
+        return {"time_s": str(T0 + t), "node": "/b", "input_topic": topic, "key": key, "value": str(value)}
+
+    sent, received = names.absolute(names.managed_cloud("scout")), names.absolute(names.managed_cloud_at_twin("scout"))
+    rows = [
+        row(10, sent, "ledger_bridge_out_dropped_outage", 0),
+        row(30, sent, "ledger_bridge_out_dropped_outage", 12),
+        row(31, sent, "ledger_bridge_out_backfill_kept", 2),
+        row(10, received, "ledger_bridge_in_missed", 1),
+        row(36, received, "ledger_bridge_in_missed", 21),
+        row(90, received, "ledger_bridge_in_missed", 25),  # after the outage: not its
+    ]
+    text = "\n".join(section(EVENTS, [], ALLOCATIONS, *_windows(), counter_series(rows)))
+    assert (
+        "| link cut (scenario) | 25.0 | 10.2 | 0.000 | 18 (6 on the link, 12 held back without a keyframe) | 2 kept |"
+        in text
+    )
 
 
 def test_no_scenario_and_no_link_state_adds_nothing():

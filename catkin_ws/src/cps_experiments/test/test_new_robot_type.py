@@ -1,58 +1,40 @@
 """A robot type defined only in a test's fleet file (other cloud topic, sensor frame, range and
-limits) is simulated, carried through the tissue and mapped: a real robot is data, not code."""
+limits) is simulated, carried through the tissue and mapped: a real robot is data, not code. In the
+reference mission, scout is of such a type (cps_harness.fleets.NEW_TYPE)."""
 
-import os
-import subprocess
-import sys
+import json
 
-import pytest
+from cps_fleet.fleet import load_fleet
+from cps_harness.fleets import NEW_TYPE_NAME
 
-BRINGUP = os.path.join(os.path.dirname(__file__), "..", "..", "cps_bringup", "nodes", "cps_bringup")
-FLEET_TESTS = os.path.join(os.path.dirname(__file__), "..", "..", "cps_fleet", "test")
+ROBOT = "scout"
 
 
-@pytest.mark.ros
-@pytest.mark.slow
-def test_new_type_is_simulated_and_mapped(open_tmp_path):
-    tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
-    sys.path.insert(0, FLEET_TESTS)
-    try:
-        from test_robot_types import fleet_with_new_type
-    finally:
-        sys.path.remove(FLEET_TESTS)
-    from cps_experiments.report import score_saved_map
+def _report_row(report, robot):
+    """The robot's row of the report's map server table, {column: text}."""
+    lines = report.splitlines()
+    header = next(i for i, line in enumerate(lines) if line.startswith("| robot | final state | clouds inserted"))
+    columns = [c.strip() for c in lines[header].strip("|").split("|")]
+    for line in lines[header + 2 :]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        if cells[0] == robot:
+            return dict(zip(columns, cells))
+    raise AssertionError(f"no row for {robot} in the report's map server table")
 
-    from cps_fleet.fleet import load_fleet
 
-    fleet_path = fleet_with_new_type(tmp_path)
-    out = tmp_path / "out"
-    result = subprocess.run(
-        [
-            sys.executable,
-            BRINGUP,
-            "all",
-            "--fleet",
-            str(fleet_path),
-            "--robots",
-            "scout",
-            "--duration",
-            "15",
-            "--out",
-            str(out),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    log = result.stdout + result.stderr
-    assert result.returncode == 0, log[-4000:]
+def test_new_type_is_simulated_and_mapped(reference_mission):
+    reference_mission.check()
+    fleet = load_fleet(reference_mission.fleet_file)
+    assert fleet.robot(ROBOT).type == NEW_TYPE_NAME
+    out = reference_mission.out
     sim_log = "\n".join(p.read_text() for p in (out / "logs").rglob("fleet_sim-*.log"))
-    assert "scout" in sim_log
+    assert ROBOT in sim_log
 
-    fleet = load_fleet(str(fleet_path)).with_robots(["scout"])
-    score, _ = score_saved_map(str(out / "map.bt"), fleet, str(tmp_path / "ground_truth.npz"))
-    print(
-        f"tracked_lidar scout alone, 15 s: {score.map_voxels} voxels, within ±1 voxel: precision "
-        f"{score.tolerant.precision:.3f}, F1 {score.tolerant.f1:.3f} (voxel for voxel {score.exact.f1:.3f})"
-    )
-    assert score.map_voxels > 5000 and score.tolerant.precision > 0.9, score.as_dict()
+    row = _report_row((out / "report.md").read_text(), ROBOT)
+    scores = json.loads((out / "scores.json").read_text())
+    print(f"{NEW_TYPE_NAME} {ROBOT} in the reference mission: {row}; map precision within ±1 voxel {scores}")
+    assert int(row["clouds inserted"]) > 0, row
+    assert int(row["occupied voxels last updated"]) > 5000, row
+    assert scores["precision_within_1_voxel"] > 0.9, scores

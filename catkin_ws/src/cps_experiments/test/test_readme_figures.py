@@ -1,20 +1,27 @@
-"""The README's demo figures are generated from the committed run and agree with it."""
+"""The README's figures are generated from the committed run files and agree with them: each
+section between its markers is what its files say, and a figure that differs from its file is
+caught."""
 
 import json
+import shutil
 
 import pytest
+
 from cps_experiments import readme_figures
 
+pytestmark = pytest.mark.unit
 
-def test_the_readme_quotes_the_committed_demo_run():
+
+@pytest.mark.parametrize("name", sorted(readme_figures.SECTIONS))
+def test_each_readme_section_is_what_its_committed_files_say(name):
     with open(readme_figures.README) as stream:
-        section = readme_figures.readme_section(stream.read())
-    assert section == readme_figures.demo_paragraph(), (
-        "README.md's demo figures differ from docs/results/demo: run `python -m cps_experiments.readme_figures --write`"
+        section = readme_figures.readme_section(stream.read(), name)
+    assert section == readme_figures.SECTIONS[name](), (
+        f"README.md's {name} differ from the committed files: run `python -m cps_experiments.readme_figures --write`"
     )
 
 
-def test_a_figure_that_differs_from_the_run_is_caught(tmp_path):
+def test_a_demo_figure_that_differs_from_the_run_is_caught(tmp_path):
     for name in ("verdict.json", "scores.json", "report.md"):
         (tmp_path / name).write_bytes(open(f"{readme_figures.DEMO_DIR}/{name}", "rb").read())
     scores = json.loads((tmp_path / "scores.json").read_text())
@@ -23,6 +30,33 @@ def test_a_figure_that_differs_from_the_run_is_caught(tmp_path):
     assert readme_figures.demo_paragraph(str(tmp_path)) != readme_figures.demo_paragraph()
 
 
+def test_the_fig13_live_sentence_follows_its_csv(tmp_path):
+    """The sentence that said 25 missions on 60 and 10 Mbit/s, 99.9 % F1 and 142 ms against a file of
+    15 missions on 60 Mbit/s only: the counts, links and figures now come from the file."""
+    for name in ("fig13_live.csv",):
+        shutil.copy(f"{readme_figures.RESULTS}/{name}", tmp_path / name)
+    text = readme_figures.fig13_live_paragraph(str(tmp_path))
+    assert "15 missions (the 10 Mbit/s rows were not run)" in text and "teleop p95 52 ms" in text
+    assert "92.6 % voxel for voxel and 96.1 % within ±1 voxel" in text and "is not met" in text
+    lines = (tmp_path / "fig13_live.csv").read_text().replace(",52.0,", ",45.0,").replace(",51.5025,", ",45.0,")
+    (tmp_path / "fig13_live.csv").write_text(lines)
+    assert "teleop p95 45 ms" in readme_figures.fig13_live_paragraph(str(tmp_path))
+
+
+def test_the_monitoring_headline_is_what_ran_live():
+    text = readme_figures.monitoring_paragraph()
+    assert "what ran live: recall 29/31 = 0.94" in text
+    assert "re-detected on the saved maps after each mission (not what the operator saw)" in text
+    assert "not a held-out score" in text
+
+
+def test_capacity_figures_say_whether_they_are_measured_or_computed():
+    assert "computed, not measured" in readme_figures.twin_capacity_paragraph()
+    assert "measured" in readme_figures.link_thesis_paragraph()
+
+
 def test_a_readme_without_the_markers_is_refused():
     with pytest.raises(ValueError, match="demo-figures"):
         readme_figures.readme_section("# no markers here\n")
+    with pytest.raises(ValueError, match="monitor-figures"):
+        readme_figures.write_sections("<!-- demo-figures --><!-- /demo-figures -->")

@@ -1,32 +1,21 @@
 """A mission recorded with `--record` and replayed with `--replay` through the real tissue and twin
 maps as well as the live run; bags that cannot feed the fleet are refused with the reason."""
 
-import os
 import subprocess
-import sys
 
 import pytest
 
 from cps_bringup.mission_bag import BagError, check_bag, finish_recording, record_topics, replay_topics
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
+from cps_harness.mission import BRINGUP, program_argv, run_mission
 
-BRINGUP = os.path.join(os.path.dirname(__file__), "..", "..", "cps_bringup", "nodes", "cps_bringup")
-ROBOTS = "scout,jackal"
 # The replay feeds the same clouds through the same tissue: its map scores (nearly) as the live one.
 REPLAY_F1_FRACTION = 0.95
 
 
 def _two_robots():
-    return load_fleet().with_robots(ROBOTS.split(","))
-
-
-def _bringup(*args, timeout_s=400):
-    result = subprocess.run(
-        [sys.executable, BRINGUP, "all", "--robots", ROBOTS, *args], capture_output=True, text=True, timeout=timeout_s
-    )
-    log = result.stdout + result.stderr
-    assert result.returncode == 0, log[-4000:]
-    return log
+    return load_fleet().with_robots(["scout", "jackal"])
 
 
 def _f1(map_file, fleet, tmp_path, name):
@@ -36,23 +25,22 @@ def _f1(map_file, fleet, tmp_path, name):
     return score.tolerant.f1  # within ±1 voxel
 
 
-@pytest.mark.ros
-@pytest.mark.slow
-def test_recorded_mission_replays_through_tissue_and_twin(open_tmp_path):
-    tmp_path = open_tmp_path  # the nodes run unprivileged: pytest's tmp_path is root-only
-    bag = tmp_path / "live" / "mission.bag"  # in the mission folder: the nodes (the recorder too) run unprivileged
-    _bringup("--duration", "20", "--record", str(bag), "--out", str(tmp_path / "live"))
-    info = subprocess.run(["rosbag", "info", str(bag)], capture_output=True, text=True, check=True).stdout
+@pytest.mark.mission
+def test_recorded_mission_replays_through_tissue_and_twin(reference_mission, open_tmp_path):
+    """The reference mission was recorded (--record); its bag replayed (--replay) maps as it did."""
+    reference_mission.check()
+    bag = reference_mission.bag
+    info = subprocess.run(["rosbag", "info", bag], capture_output=True, text=True, check=True).stdout
     print(info)
-    fleet = _two_robots()
+    fleet = load_fleet(reference_mission.fleet_file)
     for topic in record_topics(fleet):
         assert topic in info, f"{topic} not recorded:\n{info}"
 
-    log = _bringup("--replay", str(bag), "--out", str(tmp_path / "replay"))
-    assert "mission ended by replay" in log, log[-3000:]
+    replay = run_mission(open_tmp_path / "replay", ["--fleet", reference_mission.fleet_file, "--replay", bag])
+    assert "mission ended by replay" in replay.log(), replay.log()[-3000:]
 
-    live_f1 = _f1(tmp_path / "live" / "map.bt", fleet, tmp_path, "live")
-    replay_f1 = _f1(tmp_path / "replay" / "map.bt", fleet, tmp_path, "replay")
+    live_f1 = _f1(reference_mission.out / "map.bt", fleet, open_tmp_path, "live")
+    replay_f1 = _f1(open_tmp_path / "replay" / "map.bt", fleet, open_tmp_path, "replay")
     print(f"map F1 vs ground truth: live {live_f1:.4f}, replayed {replay_f1:.4f} ({replay_f1 / live_f1:.1%} of live)")
     assert replay_f1 >= REPLAY_F1_FRACTION * live_f1
 
@@ -72,14 +60,17 @@ def _write_bag(path, fleet, topics, frame_of=None):
             cloud = PointCloud2()
             cloud.header.stamp, cloud.header.frame_id = stamp, (frame_of or {}).get(robot.name, robot.sensor_frame)
             odom = Odometry()
-            odom.header.stamp, odom.header.frame_id = stamp, f"{robot.name}/odom"
-            for topic, msg in ((f"/{robot.name}/points", cloud), (f"/{robot.name}/odom", odom)):
+            odom.header.stamp, odom.header.frame_id = stamp, names.odom_frame(robot.name)
+            for topic, msg in (
+                (names.absolute(names.robot_topic(robot.name, names.POINTS)), cloud),
+                (names.absolute(names.robot_topic(robot.name, names.ODOM)), odom),
+            ):
                 if topic in topics:
                     bag.write(topic, msg, stamp)
-        static = TFMessage([TransformStamped(child_frame_id=f"{r}/odom") for r in fleet.robot_names])
+        static = TFMessage([TransformStamped(child_frame_id=names.odom_frame(r)) for r in fleet.robot_names])
         for t in static.transforms:
-            t.header.frame_id, t.transform.rotation.w = "map", 1.0
-        for topic in ("/tf", "/tf_static"):
+            t.header.frame_id, t.transform.rotation.w = names.MAP_FRAME, 1.0
+        for topic in (names.TF, names.TF_STATIC):
             if topic in topics:
                 bag.write(topic, static, stamp)
 
@@ -88,16 +79,22 @@ def test_bag_with_every_topic_passes(tmp_path):
     fleet = _two_robots()
     _write_bag(tmp_path / "ok.bag", fleet, replay_topics(fleet))
     contents = check_bag(str(tmp_path / "ok.bag"), fleet)
-    assert "/scout/points" in contents.topics
+    assert names.absolute(names.robot_topic("scout", names.POINTS)) in contents.topics
 
 
 def test_bag_without_topics_names_them(tmp_path):
     fleet = _two_robots()
-    topics = [t for t in replay_topics(fleet) if t not in ("/jackal/points", "/tf")]
+    topics = [
+        t
+        for t in replay_topics(fleet)
+        if t not in (names.absolute(names.robot_topic("jackal", names.POINTS)), names.TF)
+    ]
     _write_bag(tmp_path / "partial.bag", fleet, topics)
     with pytest.raises(BagError) as error:
         check_bag(str(tmp_path / "partial.bag"), fleet)
-    assert "missing topics: /jackal/points, /tf" in str(error.value)
+    assert f"missing topics: {names.absolute(names.robot_topic('jackal', names.POINTS))}, {names.TF}" in str(
+        error.value
+    )
 
 
 def test_bag_of_another_fleet_is_refused(tmp_path):
@@ -119,17 +116,16 @@ def test_bag_with_other_sensor_frames_is_refused(tmp_path):
 def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
     (tmp_path / "junk.bag").write_bytes(b"not a bag")
     result = subprocess.run(
-        [
-            sys.executable,
+        program_argv(
             BRINGUP,
             "physical",
             "--robots",
-            ROBOTS,
+            "scout,jackal",
             "--replay",
-            str(tmp_path / "junk.bag"),
+            tmp_path / "junk.bag",
             "--out",
-            str(tmp_path / "out"),
-        ],
+            tmp_path / "out",
+        ),
         capture_output=True,
         text=True,
         timeout=60,
@@ -163,7 +159,7 @@ def test_an_unclosed_recording_is_reindexed_into_place(tmp_path):
 
     assert "reindexed" in said
     assert not (tmp_path / "mission.bag.active").exists()
-    assert "/scout/points" in check_bag(str(bag), fleet).topics
+    assert names.absolute(names.robot_topic("scout", names.POINTS)) in check_bag(str(bag), fleet).topics
 
 
 def test_a_missing_recording_is_an_error_with_the_recorders_log(tmp_path):

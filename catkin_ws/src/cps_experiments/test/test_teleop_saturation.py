@@ -6,9 +6,9 @@ import subprocess
 
 import numpy as np
 import pytest
-from cps_experiments.transport_compare import Graphs, teleop_under_saturation
 
 from cps_harness.testing import link_name
+from cps_harness.transport_compare import Graphs, teleop_under_saturation
 from cps_link import netns_link
 from cps_link.netns_link import ShapedLink
 from cps_link.zenoh_session import MAKE_CERTS

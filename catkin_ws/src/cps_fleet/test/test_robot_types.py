@@ -1,12 +1,10 @@
 """Robot types as data (fleet.yaml robot_types): sensible values, file:line errors, new types."""
 
-import os
-import shutil
-
 import pytest
 
 from cps_fleet.config import ConfigError
-from cps_fleet.fleet import ROBOT_TYPES, default_fleet_path, load_fleet
+from cps_fleet.fleet import ROBOT_TYPES, load_fleet
+from cps_harness.fleets import NEW_TYPE, fleet_with_new_type
 
 
 def test_the_default_fleet_defines_the_four_types():
@@ -36,35 +34,6 @@ def test_sensor_frame_and_max_range_come_from_the_type():
         "legged_depth": 6.0,
         "aerial_depth": 6.0,
     }
-
-
-NEW_TYPE = """  tracked_lidar:   # a user's robot: only data
-    base: wheeled
-    sensor: lidar
-    cloud_topic: velodyne_points
-    sensor_frame: velodyne
-    max_range_m: 20.0
-    limits: {max_forward_mps: 1.0, max_lateral_mps: 0.0, max_vertical_mps: 0.0, max_yaw_rate_rps: 1.0,
-             max_linear_accel_mps2: 0.5, max_yaw_accel_rps2: 1.0}
-    body: {half_extents_m: [0.5, 0.4, 0.2], center_z_m: 0.3}
-    sensor_mount: {xyz_m: [0.1, 0.0, 0.7], pitch_deg: 0.0}
-"""
-
-
-def fleet_with_new_type(tmp_path, robot="scout", entry=NEW_TYPE):
-    """A copy of the default fleet where `robot` is of a type defined only in this copy."""
-    source = default_fleet_path()
-    config_dir = tmp_path / "config"
-    shutil.copytree(os.path.dirname(source), config_dir)
-    path = config_dir / "fleet.yaml"
-    site = os.path.normpath(os.path.join(os.path.dirname(source), "../../cps_sim/config/hall.yaml"))
-    text = path.read_text().replace("site: ../../cps_sim/config/hall.yaml", f"site: {site}")
-    text = text.replace("robot_types:\n", "robot_types:\n" + entry, 1)
-    old = f"  - name: {robot}\n    type: "
-    start = text.index(old) + len(old)
-    text = text[:start] + "tracked_lidar" + text[text.index("\n", start) :]
-    path.write_text(text)
-    return path
 
 
 def test_a_new_type_is_only_data(tmp_path):

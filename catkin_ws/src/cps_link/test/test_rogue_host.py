@@ -10,9 +10,10 @@ import time
 
 import pytest
 
+from cps_fleet import names
+from cps_harness.netns_lan import SharedLan
 from cps_harness.testing import link_name
 from cps_link import netns_link
-from cps_link.netns_lan import SharedLan
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import RosGraph, find_node
 
@@ -20,9 +21,7 @@ LINK = link_name("zr")
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
-CLOUD_LOAD = os.path.normpath(
-    os.path.join(find_node("cps_bw_manager", "bandwidth_manager"), "..", "..", "test", "fixtures", "cloud_load.py")
-)
+CLOUD_LOAD = find_node("cps_harness", "cloud_load")
 HOSTS = {"phys": "10.203.0.1", "twin": "10.203.0.2", "rogue": "10.203.0.3"}
 PORTS = {"main": 7447, "command": 7448}  # each lane's twin port (bridge.yaml's endpoint_port, command_port)
 ROBOT = "scout"
@@ -65,26 +64,26 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
                     sys.executable,
                     CLOUD_LOAD,
                     f"{ROBOT}:20000:5",
-                    f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+                    f"{names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(ROBOT))}",
                 ],
                 name="load",
             )
             robots.popen(
-                [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "recv", ROBOT, teleop_file],
+                [sys.executable, find_node("cps_harness", "teleop_probe"), "recv", ROBOT, teleop_file],
                 name="teleop_recv",
             )
             twin.popen(
                 [
                     sys.executable,
-                    os.path.join(HERE, "..", "..", "cps_bw_manager", "test", "fixtures", "link_recorder.py"),
+                    find_node("cps_harness", "link_recorder"),
                     cloud_file,
                     ROBOT,
-                    f"/{ROBOT}/points_filtered/draco/managed:=/twin/{ROBOT}/points_filtered/draco/managed",
+                    f"{names.absolute(names.managed_cloud(ROBOT))}:={names.absolute(names.managed_cloud_at_twin(ROBOT))}",
                 ],
                 name="recorder",
             )
             sender = twin.popen(
-                [sys.executable, os.path.join(HERE, "fixtures", "teleop_probe.py"), "send", ROBOT, "10"],
+                [sys.executable, find_node("cps_harness", "teleop_probe"), "send", ROBOT, "10"],
                 name="teleop_send",
             )
             deadline = time.monotonic() + 60
@@ -104,7 +103,7 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
                         "rogue",
                         [
                             sys.executable,
-                            os.path.join(HERE, "fixtures", "rogue.py"),
+                            find_node("cps_harness", "rogue"),
                             HOSTS["twin"],
                             str(port),
                             rogue_certs,

@@ -260,7 +260,7 @@ def _sides(side):
 # starts without them: the map server would otherwise resume from an earlier mission's map, and the
 # CSVs (appended to, so that a restarted node keeps its rows) would mix two missions.
 MISSION_OUTPUTS = {
-    PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv"),
+    PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv", "physical_counters.csv"),
     DIGITAL: (
         "map.bt",
         "map.bt.json",
@@ -268,6 +268,7 @@ MISSION_OUTPUTS = {
         "map_changes.json",
         "stats.csv",
         "arrivals.csv",
+        "counters.csv",
         "allocation.csv",
         "setpoints.csv",
         "gui.png",

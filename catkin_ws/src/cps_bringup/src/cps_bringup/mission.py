@@ -85,13 +85,33 @@ def format_progress(progress: MissionProgress, elapsed_s: float) -> str:
     )
 
 
-# map_age.csv, which the mission monitor writes and the mission verdict reads (cps_experiments.verdict).
-MAP_AGE_COLUMNS = ("time_s", "robot", "map_age_s", "mission_state", "clouds_inserted")
+# map_age.csv, which the mission monitor writes and the mission verdict and its cloud ledger read
+# (cps_experiments.verdict, cps_experiments.ledger): per robot, the map's age by insertion and as
+# published, and the map server's counters as it published them.
+MAP_SERVER_COUNTERS = (
+    "clouds_received",
+    "clouds_superseded",
+    "clouds_dropped_queue",
+    "clouds_dropped_tf",
+    "clouds_dropped_invalid",
+    "clouds_missed_upstream",
+    "queue_length",
+)
+MAP_AGE_COLUMNS = (
+    "time_s",
+    "robot",
+    "map_age_s",
+    "mission_state",
+    "clouds_inserted",
+    "published_map_age_s",
+    *MAP_SERVER_COUNTERS,
+)
 
 
 def map_age_rows(map_stats, mission_state, now_s):
-    """map_age.csv rows (MAP_AGE_COLUMNS) of one cps_msgs/MapStats message:
-    per robot, the wall time, its map age, its mission state then and its inserted clouds."""
+    """map_age.csv rows (MAP_AGE_COLUMNS) of one cps_msgs/MapStats message: per robot, the wall
+    time, its map age, its mission state then, its inserted clouds, the published map's age and the
+    map server's other counters."""
     return [
         (
             f"{now_s:.3f}",
@@ -99,6 +119,8 @@ def map_age_rows(map_stats, mission_state, now_s):
             f"{stats.map_age_s:.3f}",
             mission_state.get(stats.robot, ""),
             stats.clouds_inserted,
+            f"{stats.published_map_age_s:.3f}",
+            *(getattr(stats, name) for name in MAP_SERVER_COUNTERS),
         )
         for stats in map_stats.robots
     ]
@@ -229,7 +251,7 @@ class MissionMonitor:
         """A row per robot with no age: when the monitoring started and ended, so the verdict sees a
         map server that published nothing at the start or the end of the mission."""
         for robot in self.progress.robots:
-            self._map_age_log.write((f"{time.time():.3f}", robot, "nan", mark, ""))
+            self._map_age_log.write((f"{time.time():.3f}", robot, "nan", mark) + ("",) * (len(MAP_AGE_COLUMNS) - 4))
 
     def close(self):
         for sub in self._subs:

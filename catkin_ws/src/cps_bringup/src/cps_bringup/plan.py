@@ -59,7 +59,7 @@ class NodeSpec:
 
 MAP_SERVER = names.MAP_SERVER
 # Advertised (latched) by the map server once its kernels are loaded and a warm-up insertion ran.
-MAP_SERVER_READY = names.absolute(names.in_twin(f"{names.MAP_SERVER}/{names.READY.lstrip('~')}"))
+MAP_SERVER_READY = names.absolute(names.in_twin(names.private(names.MAP_SERVER, names.READY)))
 
 # The map server's live change report in the output folder (and its .json twin).
 CHANGE_REPORT = "map_changes.md"
@@ -318,6 +318,7 @@ def plan_nodes(
                             **common,
                             "csv_path": os.path.join(options.out_dir, "physical_stats.csv"),
                             "arrivals_csv_path": os.path.join(options.out_dir, "physical_arrivals.csv"),
+                            "counters_csv_path": os.path.join(options.out_dir, "physical_counters.csv"),
                             "arrival_topics": ",".join(
                                 [_rt(r, names.POINTS_FILTERED) for r in robots] + [A(names.COMMAND_PROBE)]
                             ),
@@ -410,6 +411,7 @@ def plan_nodes(
                             "csv_path": os.path.join(out, "stats.csv"),
                             "topics": _stats_topics(robots, measured_video),
                             "arrivals_csv_path": os.path.join(out, "arrivals.csv"),
+                            "counters_csv_path": os.path.join(out, "counters.csv"),
                             "arrival_topics": ",".join(
                                 [A(names.managed_cloud_at_twin(r)) for r in robots] + _video_topics(measured_video)
                             ),

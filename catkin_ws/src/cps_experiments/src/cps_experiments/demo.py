@@ -17,8 +17,8 @@ from cps_bringup.supervisor import BringupError
 from cps_fleet.fleet import PROFILES
 
 
-def choose_link(requested, log=print):
-    """'auto' → fleet.yaml's link rate when this process may create network namespaces, else
+def choose_link(requested, log=print, fleet_file=None):
+    """'auto' → the fleet file's link rate when this process may create network namespaces, else
     loopback (says why)."""
     if requested != "auto":
         return requested
@@ -30,12 +30,15 @@ def choose_link(requested, log=print):
         return "none"
     from cps_link.netns_link import fleet_rate
 
-    return fleet_rate()
+    return fleet_rate(fleet_file)
 
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="out/demo")
+    parser.add_argument("--fleet", default=None, help="fleet.yaml (default: cps_bringup/config/fleet.yaml)")
+    parser.add_argument("--port", type=int, default=None, help="the twin's roscore port (default: a free one)")
+    parser.add_argument("--record", default=None, metavar="BAG", help="also record the mission (cps_bringup --record)")
     parser.add_argument(
         "--link", default="auto", help="auto (fleet.yaml's link rate when root), none, or a rate like 20mbit"
     )
@@ -71,6 +74,14 @@ def parse_args(argv):
         "MAP_F1_FLOOR_WITHIN_1_VOXEL, for the whole fleet)",
     )
     parser.add_argument(
+        "--map-f1-floor-exact",
+        type=float,
+        default=None,
+        metavar="F1",
+        help="the verdict's floor on map F1 voxel for voxel (default: cps_experiments.verdict's "
+        "MAP_F1_FLOOR_EXACT, for the whole fleet)",
+    )
+    parser.add_argument(
         "--kill-map-server-at",
         type=float,
         default=None,
@@ -89,10 +100,13 @@ def main(argv=None):
     args = parse_args(argv)
     t0 = time.monotonic()
     out_dir = os.path.abspath(args.out)
-    link = choose_link(args.link)
+    link = choose_link(args.link, fleet_file=args.fleet)
     scenario = args.link_scenario if link != "none" and args.link_scenario != "none" else None
     mission = mission_args(
         "all",
+        fleet=args.fleet,
+        port=args.port,
+        record=args.record,
         profile=args.profile,
         out=out_dir,
         link=link,
@@ -104,6 +118,7 @@ def main(argv=None):
         kill_map_server_at=args.kill_map_server_at,
     )
     mission.map_f1_floor = args.map_f1_floor
+    mission.map_f1_floor_exact = args.map_f1_floor_exact
     from cps_experiments.report import write_mission_report
 
     result = run_and_report("demo", mission, write_mission_report, t0)

@@ -102,7 +102,8 @@ def ensure_video_trace(fleet, folder, reuse, log=print, frames_per_level=None):
 def network_performance(stats_rows):
     """Managed topics: MB/s per window summed over robots (avg, max, std over windows with traffic)
     and latency (avg of the windows' averages, max of their maxima, pooled std), in ms."""
-    from cps_experiments.report import _float, managed_link_windows
+    from cps_experiments.markdown import csv_float as _float
+    from cps_experiments.report import managed_link_windows
 
     _, totals = managed_link_windows(stats_rows)
     busy = totals[totals > 0]
@@ -128,7 +129,7 @@ def unmanaged_per_robot(stats_rows, robots, suffixes=("/" + names.ODOM, "/" + na
     with traffic of their summed MB/s."""
     from collections import defaultdict
 
-    from cps_experiments.report import _float
+    from cps_experiments.markdown import csv_float as _float
 
     per = defaultdict(lambda: defaultdict(float))
     for row in stats_rows:
@@ -228,8 +229,8 @@ def run(out_dir, quick=False, duration_s=None, run_root="out/experiments", reuse
         f"Each fleet ran `cps_bringup all --robots … --duration {duration_s:g} --link {link}` "
         f"(`cps_bringup.cli.run_mission`; fleet.yaml's sensor profile '{_profile()}'"
         f"{'; across the tc-shaped 60 Mbit/s veth link between two network namespaces' if link != 'none' else '; over loopback: not root, so no shaped link'}). "
-        f"Bandwidth: the managed point-cloud topics received at the twin, MB/s summed over robots per ~1 s window of "
-        f"/tissue/stats (windows with traffic); latency: receive time − capture stamp of the managed clouds "
+        f"Bandwidth: the managed point-cloud topics received at the twin, MB/s summed over robots in /tissue/stats' "
+        f"2 s sliding windows, one a second (windows with traffic); latency: receive time − capture stamp of the managed clouds "
         f"(avg of window averages, max of window maxima, pooled std). Machine: 2 cores that the whole system "
         f"shares (simulator, tissue, map server on one host), so latencies include CPU contention. Paper in "
         f"parentheses.",

@@ -1,15 +1,20 @@
 """The mission report's link events: every outage (from the scenario runner's link_events.csv and,
-when the bridge publishes /tissue/link_state, the manager's link_state.csv) and every capacity
-step with the 1 s windows over budget around it. Plain rows in, markdown lines out."""
+when the bridge publishes /tissue/link_state, the manager's link_state.csv) with the clouds the
+bridges counted lost, held back and kept for backfill meanwhile (the ledger's counters over time),
+and every capacity step with the statistics windows around it against the capacity then in force
+and the manager's budget after it. Plain rows in, markdown lines out."""
 
 import bisect
 import math
 
 from cps_experiments.markdown import csv_float, markdown_table
+from cps_ros import cloud_ledger as C
 
 # Windows compared before and after a capacity step, s.
 STEP_SPAN_S = 10.0
-NOT_YET = "n/a: the bridges count these on /diagnostics; this report does not read them yet"
+# After an outage ends, the twin's bridge counts the frames it never got with the first one it gets.
+COUNTED_AFTER_S = 3.0
+NOT_COUNTED = "not counted (no counters.csv: a mission before the ledger)"
 
 
 def scenario_outages(event_rows):
@@ -73,18 +78,45 @@ def budget_at(allocation_rows):
 
 
 def windows_over(times, totals, budget, t0, t1):
-    """(windows over the budget in force, windows) among the stats windows with time in [t0, t1)."""
+    """(windows over `budget(t)` (MB/s), windows) among the stats windows with time in [t0, t1)."""
     inside = [(t, v) for t, v in zip(times, totals) if t0 <= t < t1]
     return sum(1 for t, v in inside if v > budget(t) * (1 + 1e-9)), len(inside)
 
 
 def received_during(times, totals, t0, t1):
-    """MB the twin received (managed clouds) in [t0, t1), from ~1 s stats windows."""
+    """MB the twin received (managed streams) in [t0, t1): the 2 s sliding windows, one a second, so
+    each second's MB/s counts once (a sum of MB/s over one-second steps)."""
     return sum(v for t, v in zip(times, totals) if t0 <= t < t1 and math.isfinite(v))
 
 
-def section(event_rows, state_rows, allocation_rows, times, totals):
-    """Markdown lines of the link events; [] when the mission ran no scenario and saw no outage."""
+def outage_counts(series, start_s, end_s):
+    """(lost, held back, kept for backfill) clouds the bridges counted from start_s to COUNTED_AFTER_S
+    after end_s, over every robot (ledger.counter_series of the mission), or None without counters."""
+    from cps_experiments.ledger import increase
+
+    if not series:
+        return None
+    t1 = end_s + COUNTED_AFTER_S if math.isfinite(end_s) else math.inf
+    held = increase(series, start_s, t1, C.BRIDGE_OUT, C.DROPPED + "outage")
+    kept = increase(series, start_s, t1, C.BRIDGE_OUT, C.BACKFILL_KEPT)
+    gaps = increase(series, start_s, t1, C.BRIDGE_IN, C.MISSED)
+    # The twin's gaps include what the robots' bridge withheld on purpose; the rest was lost on the link.
+    return max(0, gaps - held - kept), held, kept
+
+
+def _outage_cells(series, start_s, end_s):
+    counts = outage_counts(series, start_s, end_s)
+    if counts is None:
+        return (NOT_COUNTED, NOT_COUNTED)
+    lost, held, kept = counts
+    return (f"{lost + held} ({lost} on the link, {held} held back without a keyframe)", f"{kept} kept")
+
+
+def section(event_rows, state_rows, allocation_rows, times, totals, counters=None):
+    """Markdown lines of the link events; [] when the mission ran no scenario and saw no outage.
+    `counters`: the mission's ledger.counter_series (for the clouds lost in each outage)."""
+    from cps_experiments import judge as J
+
     if not event_rows and not state_rows:
         return []
     lines = ["## Link events", ""]
@@ -105,8 +137,7 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
                 f"{mission_s:.1f}",
                 _seconds(duration),
                 f"{received_during(times, totals, start, end):.3f}",
-                NOT_YET,
-                NOT_YET,
+                *_outage_cells(counters, start, end),
             )
         )
     for start, duration, peer in bridge_outages(state_rows):
@@ -118,15 +149,21 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
                 f"{mission_s:.1f}" if math.isfinite(mission_s) else "-",
                 _seconds(duration),
                 f"{received_during(times, totals, start, end):.3f}",
-                NOT_YET,
-                NOT_YET,
+                *_outage_cells(counters, start, end),
             )
         )
     lines += ["### Outages", ""]
     if rows:
         lines += [
             markdown_table(
-                ("outage", "start, mission s", "duration s", "clouds received meanwhile MB", "dropped", "backfilled"),
+                (
+                    "outage",
+                    "start, mission s",
+                    "duration s",
+                    "managed MB received meanwhile (stats windows)",
+                    f"clouds lost (to {COUNTED_AFTER_S:g} s after)",
+                    "keyframes for backfill",
+                ),
                 rows,
             ),
             "",
@@ -140,33 +177,43 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
     else:
         lines += ["- none", ""]
     budget = budget_at(allocation_rows)
+    phase_list = J.phases(event_rows, max(times) if len(times) else 0.0)
+    capacity = J.capacity_in_force(phase_list)
+
+    def capacity_mbytes(t):
+        return capacity(t) / 8.0
+
     steps = []
     for wall_s, mission_s, old, new in capacity_steps(event_rows):
-        over_before, n_before = windows_over(times, totals, budget, wall_s - STEP_SPAN_S, wall_s)
-        over_after, n_after = windows_over(times, totals, budget, wall_s, wall_s + STEP_SPAN_S)
-        first_ok = _first_within(times, totals, budget, wall_s)
+        over_before, n_before = windows_over(times, totals, capacity_mbytes, wall_s - STEP_SPAN_S, wall_s)
+        over_after, n_after = windows_over(times, totals, capacity_mbytes, wall_s, wall_s + STEP_SPAN_S)
+        after = budget(wall_s + STEP_SPAN_S)
         steps.append(
             (
                 f"{mission_s:.1f}",
                 f"{old:g} → {new:g}",
                 f"{over_before} of {n_before}",
                 f"{over_after} of {n_after}",
-                first_ok,
+                f"{new / 8.0:.3f}",
+                "-" if math.isnan(after) else f"{after:.2f}" + (" (above the capacity)" if after > new / 8.0 else ""),
             )
         )
     lines += ["### Capacity steps", ""]
     if steps:
         lines += [
-            f"Managed traffic at the twin per ~1 s stats window against the manager's budget in force then, "
-            f"{STEP_SPAN_S:.0f} s before and after each step.",
+            f"Managed traffic at the twin in topic_stats' {2:g} s sliding windows (one a second) against the "
+            f"capacity the scenario set, {STEP_SPAN_S:.0f} s before and after each step, and the budget the manager "
+            f"planned with {STEP_SPAN_S:.0f} s after it. Delivered traffic cannot exceed the link: what the robots "
+            "offered against the capacity, and whether the manager followed the step, are judged in the verdict.",
             "",
             markdown_table(
                 (
                     "at mission s",
                     "Mbit/s",
-                    "windows over budget before",
+                    "windows over the capacity before",
                     "after",
-                    "from the step until every later window of the span is within",
+                    "capacity after, MB/s",
+                    f"manager's budget {STEP_SPAN_S:.0f} s after, MB/s",
                 ),
                 steps,
             ),
@@ -175,14 +222,6 @@ def section(event_rows, state_rows, allocation_rows, times, totals):
     else:
         lines += ["- none", ""]
     return lines
-
-
-def _first_within(times, totals, budget, step_s):
-    inside = [(t, v) for t, v in zip(times, totals) if step_s <= t < step_s + STEP_SPAN_S]
-    for k in range(len(inside)):
-        if all(v <= budget(t) * (1 + 1e-9) for t, v in inside[k:]):
-            return f"{inside[k][0] - step_s:.1f} s" if k else "0 s (never over)"
-    return "not within the span"
 
 
 def _mission_start(event_rows):

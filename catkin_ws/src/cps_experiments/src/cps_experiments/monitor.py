@@ -21,6 +21,13 @@ DEFAULT_ROBOTS = "champ,iris"
 SCREENSHOT_AFTER_S = 60.0
 
 
+def default_changes_file():
+    """cps_bringup's example changes file (one crate removed, one moved 1 m), found through rospkg."""
+    import rospkg
+
+    return os.path.join(rospkg.RosPack().get_path("cps_bringup"), DEFAULT_CHANGES_FILE)
+
+
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="monitor", description=__doc__.split("\n\n")[0])
     parser.add_argument("--baseline", default=DEFAULT_BASELINE, help=f"the earlier map (default {DEFAULT_BASELINE})")
@@ -42,9 +49,7 @@ def main(argv=None):
     args = parse_args(argv)
     t0 = time.monotonic()
     if args.site_changes is None:
-        import rospkg
-
-        args.site_changes = os.path.join(rospkg.RosPack().get_path("cps_bringup"), DEFAULT_CHANGES_FILE)
+        args.site_changes = default_changes_file()
     if not os.path.isfile(args.baseline):
         print(
             f"monitor: error: no baseline map at {args.baseline}: run `make demo` first (it saves the "

@@ -317,6 +317,9 @@ def write_monitor_report(mission, mission_args, wall_time_s):
         lines += change_crop_lines(result, out)
     if os.path.exists(os.path.join(out, "gui.png")):
         lines += ["## Operator GUI during the mission", "", "![GUI screenshot](gui.png)", ""]
+    from cps_experiments.ledger import read_ledger
+
+    lines += read_ledger(out, fleet.robot_names).markdown()
     lines += ["## Supervisor events", ""]
     lines += [f"- {e.time_s:.0f} s {e.label}: {e.what}" for e in mission.events] or ["- none"]
     lines += [
@@ -326,12 +329,14 @@ def write_monitor_report(mission, mission_args, wall_time_s):
         "`map.bt` (the new map), `map_changes.md`/`.json` (the twin's last live "
         "detection), `changes.json` (this report's figures), `topdown.png`, `gui.png`, `logs/`.",
     ]
-    from cps_experiments.verdict import MONITOR_FILES, judge, write_verdict
+    from cps_experiments.verdict import MONITOR_FILES, checks_table, judge, write_verdict
 
     # The new map is judged by its change detection above, not against the ground truth: no F1 floor.
-    verdict = judge(out, MONITOR_FILES, ended_by=mission.ended_by, f1_floor_within_1_voxel=None)
+    verdict = judge(
+        out, MONITOR_FILES, ended_by=mission.ended_by, f1_floor_within_1_voxel=None, robots=fleet.robot_names
+    )
     write_verdict(out, verdict)
-    lines[2:2] = verdict.lines()
+    lines[2:2] = verdict.lines() + ["### Every check", "", *checks_table(verdict), ""]
     path = os.path.join(out, "report.md")
     with open(path, "w") as stream:
         stream.write("\n".join(lines) + "\n")

@@ -1,11 +1,12 @@
-"""The README's figures of the committed demo run, generated from that run's own files.
+"""The README's figures, generated from the committed run files, each between its markers.
 
-The paragraph between `<!-- demo-figures -->` and `<!-- /demo-figures -->` in README.md is this
-module's output for `docs/results/demo/` (verdict.json, scores.json, report.md); a test fails when
-the two disagree, so the README never quotes a run other than the one committed beside it.
+Every paragraph of README.md between `<!-- NAME -->` and `<!-- /NAME -->` is this module's output
+for the committed files it names (SECTIONS), judged with cps_experiments.judge; a test fails when
+a sentence and its file disagree, so the README never quotes a run other than the one committed
+beside it, nor a figure its own file does not hold.
 
-    python -m cps_experiments.readme_figures          # print the paragraph
-    python -m cps_experiments.readme_figures --write  # put it into README.md
+    python -m cps_experiments.readme_figures          # print the sections
+    python -m cps_experiments.readme_figures --write  # put them into README.md
 """
 
 import argparse
@@ -14,10 +15,16 @@ import os
 import re
 import sys
 
-START, END = "<!-- demo-figures -->", "<!-- /demo-figures -->"
 REPO = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), *[".."] * 5))
-DEMO_DIR = os.path.join(REPO, "docs", "results", "demo")
+RESULTS = os.path.join(REPO, "docs", "results")
+DEMO_DIR = os.path.join(RESULTS, "demo")
 README = os.path.join(REPO, "README.md")
+TWIN_CAPACITY_JSON = os.path.join(REPO, "docs", "benchmarks", "twin_capacity_results.json")
+START, END = "<!-- demo-figures -->", "<!-- /demo-figures -->"  # the demo's markers (the first section)
+
+
+def markers(name):
+    return f"<!-- {name} -->", f"<!-- /{name} -->"
 
 
 def _ended_by(report_text):
@@ -46,32 +53,192 @@ def demo_paragraph(demo_dir=DEMO_DIR):
         f"{scores['f1_within_1_voxel']:.3f} (precision {scores['precision_within_1_voxel']:.3f}, recall "
         f"{scores['recall_within_1_voxel']:.3f}); {100 * scores['coverage_within_1_voxel']:.1f} % of the observable "
         f"surface ({scores['observable_voxels']} voxels; the surface from: {scores['observable_from']}) found within ±1 voxel. "
-        f"Link use, per-cloud latency and the map server's counts per robot are in its report."
+        f"Link use, per-cloud latency, the cloud ledger and every check are in its report."
     )
 
 
-def readme_section(readme_text):
-    """The text between the markers in README.md; ValueError if they are missing."""
-    start, end = readme_text.find(START), readme_text.find(END)
-    if start < 0 or end < start:
-        raise ValueError(f"README.md has no {START} ... {END} section")
-    return readme_text[start + len(START) : end].strip()
+def monitoring_paragraph(results_dir=RESULTS):
+    """The README's monitoring sentences: the committed `make monitor` run and the `make monitor-eval`
+    missions, headlined by what ran live (monitor_eval.live_totals), the re-detection on the saved
+    maps labelled as such."""
+    from cps_experiments.monitor_eval import live_totals, split_times
+
+    with open(os.path.join(results_dir, "monitor-eval", "results.json")) as stream:
+        results = json.load(stream)
+    rows = results["rows"]
+    live = live_totals(rows)
+    default = next(r for r in rows if r["scenario"] == "default")
+    default_live = sum(t is not None for t in default["time_to_report_s"])
+    total = results["total"]
+    errors = default["position_errors_m"]
+    _, impossible = split_times([t for r in rows for t in r["time_to_report_s"]])
+    precision = (
+        f"precision {live['matched']}/{live['detected']} = {live['precision']:.2f}"
+        if live["precision"] is not None
+        else "precision not known (the live reports' false changes were not kept)"
+    )
+    return (
+        "One run is committed in [docs/results/monitor/](docs/results/monitor/README.md): champ and iris back in "
+        f"the storage area after `make demo`; its live report had {default_live} of the {default['made']} changes "
+        f"the simulator made, and re-detected on its saved map after the mission all {default['matched']} were found "
+        f"within {min(errors):.2f}–{max(errors):.2f} m, nothing else. Over {len(rows)} missions on changes drawn "
+        "from a seed ([docs/results/monitor-eval/](docs/results/monitor-eval/README.md)), what ran live: recall "
+        f"{live['matched']}/{live['made']} = {live['recall']:.2f}, {precision}; re-detected on the saved maps after "
+        f"each mission (not what the operator saw): precision {total['matched']}/{total['detected']} = "
+        f"{total['precision']:.2f}, recall {total['matched']}/{total['made']} = {total['recall']:.2f}, position "
+        f"error p95 {total['position_error_p95_m']:.2f} m, {total['robot_reported']} robots reported as a change. "
+        "The detection's thresholds were tuned on these scenarios: not a held-out score"
+        + (
+            f"; {len(impossible)} first view → report times under one detection cycle are impossible and left out."
+            if impossible
+            else "."
+        )
+    )
+
+
+def fig13_live_paragraph(results_dir=RESULTS):
+    """The README's Fig. 13 live sentences from fig13_live.csv (live_scaling.verdict's bar)."""
+    from cps_experiments.live_scaling import LiveRun, measured_from_csv, verdict
+    from cps_experiments.report import read_csv
+
+    measured = measured_from_csv(read_csv(os.path.join(results_dir, "fig13_live.csv")))
+    sizes = sorted({live.robots for live in measured})
+    links = sorted({live.link_mbps for live in measured if live.link_mbps})
+    largest, link = sizes[-1], links[-1]
+    on, off = measured.get(LiveRun(largest, link, True)), measured.get(LiveRun(largest, link, False))
+    held = verdict(on)
+    failed = [name for name, c in held.items() if c.failed]
+
+    def arm(f):
+        window = f"{f['min_window_hz']:.1f} Hz" if f.get("windows_cover_mission") else "not recomputable"
+        return (
+            f"slowest robot {f['min_hz']:.2f} Hz on average (slowest 10 s window {window}), F1 "
+            f"{100 * f['f1_exact_fraction']:.1f} % voxel for voxel and {100 * f['f1_fraction']:.1f} % within ±1 voxel "
+            f"of the unconstrained run's, map server dropped {100 * f['dropped_fraction']:.1f} %, cloud latency p95 "
+            f"{f['latency_p95_ms']:.0f} ms, teleop p95 {f['teleop_p95_ms']:.0f} ms"
+        )
+
+    return (
+        "Fig. 13 run live ([fig13_live](docs/results/fig13_live.md), `experiments fig13_live`, measured): fleets of "
+        f"{sizes[0]}–{largest} mixed robots on {', '.join(f'{x:g}' for x in links)} Mbit/s, manager on and off, "
+        f"beside each fleet on loopback: {len(measured)} missions"
+        + ("" if 10.0 in links else " (the 10 Mbit/s rows were not run)")
+        + f". At {largest} robots on {link:g} Mbit/s with the manager: {arm(on)}; without: {arm(off)}. The bar "
+        f"(≥ 1 Hz in every 10 s window, no window over budget, F1 ≥ 95 % both ways, ≤ 1 % dropped, teleop p95 ≤ "
+        f"50 ms) is {'met' if not failed else 'not met; it fails on ' + '; '.join(failed)}."
+    )
+
+
+def link_thesis_paragraph(results_dir=RESULTS):
+    """The README's link_thesis sentences from link_thesis.csv (link_thesis.judge's bar)."""
+    from cps_experiments import link_thesis as L
+    from cps_experiments.report import read_csv
+
+    rows = L.rows_from_csv(read_csv(os.path.join(results_dir, "link_thesis.csv")))
+    phase = {
+        r["arm"]: r
+        for r in rows
+        if r.get("scenario") == L.JUDGED_SCENARIO
+        and r.get("stream") == "link"
+        and r.get("capacity_mbps") == L.JUDGED_CAPACITY_MBPS
+    }
+    with open(os.path.join(results_dir, L.RUNS_JSON)) as stream:
+        selected = json.load(stream)["selected"]
+    bar = L.judge(rows, selected, L.ARM_ANNOUNCED)
+    failed = [name for name, c in bar.items() if c.failed]
+
+    def arm(name):
+        r = phase[name]
+        return (
+            f"{L.ARM_SHORT[name]}: offered {r['offered_mean_mbytes_per_s']:.2f} MB/s of managed streams, the twin "
+            f"received {r['received_mean_mbytes_per_s']:.3f} ({r['received_mean_mbytes_per_s'] / r['offered_mean_mbytes_per_s']:.0%})"
+        )
+
+    return (
+        f"link_thesis ([link_thesis](docs/results/link_thesis.md), measured): four robots with video on "
+        f"{L.JUDGED_SCENARIO}; in its {L.JUDGED_CAPACITY_MBPS:g} Mbit/s phase "
+        f"({L.JUDGED_CAPACITY_MBPS / 8:.3f} MB/s), manager "
+        + "; ".join(arm(a) for a in (L.ARM_OFF, L.ARM_IPERF3, L.ARM_ANNOUNCED) if a in phase)
+        + ". The operator's bar there, with the capacity announced, is "
+        + ("met." if not failed else f"not met: {len(failed)} of {len(bar)} conditions fail ({'; '.join(failed)}).")
+    )
+
+
+def twin_capacity_paragraph(path=TWIN_CAPACITY_JSON):
+    """The README's twin capacity sentence from the committed trials (twin_replay.holds' rule)."""
+    from cps_experiments.twin_replay import MAX_SUPERSEDED, holds
+
+    with open(path) as stream:
+        saved = json.load(stream)
+    parts = []
+    for layout, result in saved["results"].items():
+        rows = result["rows"]
+        held = [r for r in rows if holds(r)]
+        best = max(held, key=lambda r: r["robots"]) if held else None
+        above = sorted(
+            (r for r in rows if not holds(r) and (best is None or r["robots"] > best["robots"])),
+            key=lambda r: r["robots"],
+        )
+        twin_fail = next((r for r in above if not r["replay_limited"]), None)
+        parts.append(
+            f"{layout}: {best['robots'] if best else 0} robots held at {best['twin_cpu_s_per_s']:.2f} cores"
+            if best
+            else f"{layout}: none held"
+        )
+        if twin_fail:
+            parts[-1] += (
+                f", not {twin_fail['robots']} ({twin_fail['superseded_pct']:.0f} % superseded, "
+                f"{twin_fail['dropped_pct']:.1f} % dropped, map age p95 {twin_fail['age_p95_s']:.2f} s)"
+            )
+    return (
+        "Twin capacity ([twin_capacity](docs/benchmarks/twin_capacity.md), measured by replaying a recorded "
+        f"mission as N robots into the twin on one shared CPU): {'; '.join(parts)}. Held means ≤ 1 % dropped, "
+        f"≤ {100 * MAX_SUPERSEDED:g} % superseded and map age p95 ≤ 1 s; robots per free core (N ÷ CPU) would be "
+        "computed, not measured."
+    )
+
+
+# README section name -> the function that writes it.
+SECTIONS = {
+    "demo-figures": demo_paragraph,
+    "monitor-figures": monitoring_paragraph,
+    "fig13-live-figures": fig13_live_paragraph,
+    "link-thesis-figures": link_thesis_paragraph,
+    "twin-capacity-figures": twin_capacity_paragraph,
+}
+
+
+def readme_section(readme_text, name="demo-figures"):
+    """The text between a section's markers in README.md; ValueError if they are missing."""
+    start, end = markers(name)
+    a, b = readme_text.find(start), readme_text.find(end)
+    if a < 0 or b < a:
+        raise ValueError(f"README.md has no {start} ... {end} section")
+    return readme_text[a + len(start) : b].strip()
+
+
+def write_sections(text):
+    """README text with every section replaced by what its files say."""
+    for name, make in SECTIONS.items():
+        readme_section(text, name)  # the markers must be there
+        start, end = markers(name)
+        a, b = text.find(start), text.find(end)
+        text = text[: a + len(start)] + "\n" + make() + "\n" + text[b:]
+    return text
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--write", action="store_true", help="replace the section in README.md")
+    parser.add_argument("--write", action="store_true", help="replace the sections in README.md")
     args = parser.parse_args(argv)
-    paragraph = demo_paragraph()
     if not args.write:
-        print(paragraph)
+        for name, make in SECTIONS.items():
+            print(f"[{name}]\n{make()}\n")
         return 0
     with open(README) as stream:
         text = stream.read()
-    readme_section(text)  # the markers must be there
-    start, end = text.find(START), text.find(END)
     with open(README, "w") as stream:
-        stream.write(text[: start + len(START)] + "\n" + paragraph + "\n" + text[end:])
+        stream.write(write_sections(text))
     return 0
 
 

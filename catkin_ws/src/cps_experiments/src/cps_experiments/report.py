@@ -25,24 +25,19 @@ def read_csv(path):
 
 
 def managed_link_windows(stats_rows, window_s=STATS_WINDOW_S):
-    """Per stats publication (≈ 1 s apart): time and the sum of managed MB/s over all robots.
+    """(times, MB/s) per statistics publication (one a second): the managed topics' (clouds and, where
+    measured, video) volume received in topic_stats' sliding window over its length (judge's
+    stats_window_volumes: messages x mean size / window_s), not topic_stats' rostopic-style rate x
+    size (a twin starved of CPU takes a backlog in one burst, and (n - 1) / span then reads many
+    times what the link can carry). A publication without numbers is left out."""
+    from cps_experiments.judge import stats_window_volumes
 
-    The volume received in the window over its length (messages x mean size / window_s), not
-    topic_stats' rostopic-style rate x size: a twin starved of CPU takes a backlog in one burst,
-    and (n - 1) / span then reads many times what the link can carry."""
-    totals = defaultdict(float)
-    for row in stats_rows:
-        if row.get("managed") == "True":
-            messages, mean_bytes = csv_float(row.get("messages")), csv_float(row.get("mean_message_bytes"))
-            value = (
-                messages * mean_bytes / window_s / 1e6
-                if math.isfinite(messages) and math.isfinite(mean_bytes)
-                else csv_float(row["bandwidth_mbytes_per_s"])
-            )
-            if math.isfinite(value):
-                totals[csv_float(row["time_s"])] += value
-    times = sorted(totals)
-    return np.array(times), np.array([totals[t] for t in times])
+    pairs = [
+        (t, v)
+        for t, v in stats_window_volumes(stats_rows, lambda r: r.get("managed") == "True", window_s)
+        if math.isfinite(v)
+    ]
+    return np.array([t for t, _ in pairs]), np.array([v for _, v in pairs])
 
 
 def latency_summary(stats_rows, managed_only=True):
@@ -185,22 +180,6 @@ def observable_text(observable_from):
     }.get(observable_from, "every truth voxel with an empty face neighbour")
 
 
-def map_quality_table(score):
-    """Report lines: precision, recall, F1 voxel for voxel and within the tolerance, each row naming it."""
-    from cps_mapping.scoring import tolerance_text
-
-    rows = [
-        (tolerance_text(m.tolerance_voxels), f"{m.precision:.3f}", f"{m.recall:.3f}", f"{m.f1:.3f}")
-        for m in (score.exact, score.tolerant)
-    ]
-    return [
-        markdown_table(("match", "precision", "recall", "F1"), rows),
-        "",
-        f"Coverage of the observable surface ({tolerance_text(score.tolerant.tolerance_voxels)}): "
-        f"{score.coverage:.3f}.",
-    ]
-
-
 STREAMS = ("cloud", "video")
 
 
@@ -284,63 +263,187 @@ def plot_link(stats_rows, allocation_rows, budget_mbytes_per_s, png_path):
     plt.close(fig)
 
 
+MISSION_JSON = "mission.json"
+
+
+def mission_summary(result, fleet, wall_time_s):
+    """What only the supervisor knows of the mission, for mission.json: the report is then a function
+    of the mission folder alone (and can be written again, by a newer judge, from it)."""
+    progress = result.progress
+    robots = {}
+    for robot in fleet.robot_names:
+        path = np.array(progress.trajectories.get(robot) or [(math.nan,) * 3])
+        length = float(np.nansum(np.linalg.norm(np.diff(path, axis=0), axis=1))) if len(path) > 1 else 0.0
+        robots[robot] = {
+            "final_state": progress.mission_state.get(robot, "?"),
+            "clouds_inserted": progress.clouds_inserted.get(robot, 0),
+            "clouds_superseded": progress.clouds_superseded.get(robot, 0),
+            "clouds_dropped": progress.clouds_dropped.get(robot, 0),
+            "voxels_contributed": progress.voxels_contributed.get(robot, 0),
+            "path_m": round(length, 2),
+            "map_age_s": progress.map_age_s.get(robot, math.nan),
+        }
+    return {
+        "robots": robots,
+        "profile": fleet.profile.name,
+        "link": result.link,
+        "host_split": getattr(result, "host_split", "not recorded"),
+        "video_source": getattr(result, "video_source", "not recorded"),
+        "link_capacity": getattr(result, "link_capacity", "not recorded"),
+        "ended_by": result.ended_by,
+        "elapsed_s": result.elapsed_s,
+        "wall_time_s": wall_time_s,
+        "events": [[e.time_s, e.label, e.what] for e in result.events],
+        "restarts": dict(result.restarts),
+        "reserve_fraction": fleet.link.reserve_fraction,
+    }
+
+
+def read_mission_summary(out):
+    """mission.json; for a folder written before it, what report.md's header says (labelled)."""
+    path = os.path.join(out, MISSION_JSON)
+    if os.path.exists(path):
+        with open(path) as stream:
+            return json.load(stream)
+    return summary_from_report(os.path.join(out, "report.md"))
+
+
+def summary_from_report(report_path):
+    """A mission summary read back from an older report.md (before mission.json): its header lines,
+    its Robots table and its supervisor events; {} without a report."""
+    import re
+
+    if not os.path.exists(report_path):
+        return {}
+    text = open(report_path).read()
+
+    def line(name):
+        match = re.search(rf"^- {name}: (.+)$", text, re.M)
+        return match.group(1).strip() if match else "not recorded"
+
+    ended = re.search(r"^- ended by: (\S+) after (\d+) s of mission \((\d+) s wall time", text, re.M)
+    robots = {}
+    for match in re.finditer(
+        r"^\| (\w+) \| (\w+) \| (\d+) \| (\d+) \| (\d+) \| ([\d.]+) \| ([\d.naninf]+) \|$", text, re.M
+    ):
+        name, state, inserted, dropped, voxels, path_m, age = match.groups()
+        robots[name] = {
+            "final_state": state,
+            "clouds_inserted": int(inserted),
+            "clouds_superseded": None,  # not shown by reports before the ledger
+            "clouds_dropped": int(dropped),
+            "voxels_contributed": int(voxels),
+            "path_m": float(path_m),
+            "map_age_s": float(age),
+        }
+    profile = re.search(r"^- robots: .+; profile: (\w+)$", text, re.M)
+    events = [
+        [float(m.group(1)), m.group(2), m.group(3)]
+        for m in re.finditer(r"^- (\d+) s ([^:]+): (.+)$", text.split("## Supervisor events")[-1].split("##")[0], re.M)
+    ]
+    return {
+        "robots": robots,
+        "profile": profile.group(1) if profile else "not recorded",
+        "link": line("link"),
+        "host_split": line("host split"),
+        "video_source": line("video"),
+        "link_capacity": line("link capacity"),
+        "ended_by": ended.group(1) if ended else "not recorded",
+        "elapsed_s": float(ended.group(2)) if ended else math.nan,
+        "wall_time_s": float(ended.group(3)) if ended else math.nan,
+        "events": events,
+        "restarts": {},
+        "read_from": "report.md (written before mission.json)",
+    }
+
+
 def write_mission_report(result, mission_args, wall_time_s):
-    """Score the map, plot the link, write report.md (and scores.json) into result.out_dir."""
+    """Score the map, write mission.json, then the report (report.md, verdict.json, plots) into
+    result.out_dir from its files."""
     from cps_experiments.topdown_map import plot_topdown
     from cps_fleet.fleet import load_fleet, robot_names_arg
 
     out = result.out_dir
     fleet = load_fleet(mission_args.fleet, profile=mission_args.profile)
     fleet = robot_names_arg(fleet, mission_args.robots.split(",") if mission_args.robots else None)
+    with open(os.path.join(out, MISSION_JSON), "w") as stream:
+        json.dump(mission_summary(result, fleet, wall_time_s), stream, indent=1)
+    progress = result.progress
+    write_trajectories(os.path.join(out, TRAJECTORIES_CSV), progress.trajectories)
+    if result.map_file and os.path.exists(result.map_file):
+        score, fused = score_saved_map(
+            result.map_file, fleet, os.path.join(out, "ground_truth.npz"), progress.trajectories
+        )
+        with open(os.path.join(out, "scores.json"), "w") as stream:
+            json.dump(score.as_dict(), stream, indent=2)
+        plot_topdown(fused.occupied_centers(), progress.trajectories, fleet, os.path.join(out, "topdown.png"))
+    # `make demo --map-f1-floor(-exact)` sets them on the mission's arguments; else the code defaults.
+    return write_report(
+        out, fleet, getattr(mission_args, "map_f1_floor", None), getattr(mission_args, "map_f1_floor_exact", None)
+    )
+
+
+def write_report(out, fleet, f1_floor=None, f1_floor_exact=None):
+    """report.md, verdict.json and link.png of the mission folder `out`, from its files alone (and
+    mission.json); `fleet`: the mission's (its robots and link)."""
+    from cps_experiments.ledger import read_counter_series, read_ledger
+    from cps_experiments.link_report import section as link_events_section
+    from cps_experiments.verdict import DEMO_FILES, MAP_F1_FLOOR_WITHIN_1_VOXEL, checks_table, judge, write_verdict
+
+    summary = read_mission_summary(out)
     stats_rows = read_csv(os.path.join(out, "stats.csv"))
     allocation_rows = read_csv(os.path.join(out, "allocation.csv"))
+    event_rows = read_csv(os.path.join(out, "link_events.csv"))
     budgets = [csv_float(r["budget_mbytes_per_s"]) for r in allocation_rows]
-    # The manager's own budget (with --link: from iperf3's measurement), else fleet.yaml's.
+    # The manager's own budget at the end (with --link: from iperf3's measurement), else fleet.yaml's.
     budget = budgets[-1] if budgets and math.isfinite(budgets[-1]) else fleet.link.budget_mbytes_per_s
-    available_mbps = csv_float(allocation_rows[-1]["available_mbps"]) if allocation_rows else fleet.link.available_mbps
-
+    ended = summary.get("ended_by", "not recorded")
     lines = [
         "# Mission report",
         "",
-        f"- robots: {', '.join(fleet.robot_names)}; profile: {fleet.profile.name}",
-        f"- link: {result.link}",
-        f"- host split: {getattr(result, 'host_split', 'not recorded')}",
-        f"- video: {getattr(result, 'video_source', 'not recorded')}",
-        f"- link capacity: {getattr(result, 'link_capacity', 'not recorded')}",
-        f"- ended by: {result.ended_by} after {result.elapsed_s:.0f} s of mission "
-        f"({wall_time_s:.0f} s wall time including start-up and this report)",
+        f"- robots: {', '.join(fleet.robot_names)}; profile: {summary.get('profile', fleet.profile.name)}",
+        f"- link: {summary.get('link', 'not recorded')}",
+        f"- host split: {summary.get('host_split', 'not recorded')}",
+        f"- video: {summary.get('video_source', 'not recorded')}",
+        f"- link capacity: {summary.get('link_capacity', 'not recorded')}",
+        f"- ended by: {ended} after {summary.get('elapsed_s', math.nan):.0f} s of mission "
+        f"({summary.get('wall_time_s', math.nan):.0f} s wall time including start-up and this report)",
         "",
     ]
+    if summary.get("read_from"):
+        lines[-1:-1] = [f"- note: these lines are read from {summary['read_from']}; judged again from the files"]
 
-    progress = result.progress
     rows = []
     for robot in fleet.robot_names:
-        path = np.array(progress.trajectories.get(robot) or [(math.nan,) * 3])
-        length = float(np.nansum(np.linalg.norm(np.diff(path, axis=0), axis=1))) if len(path) > 1 else 0.0
+        r = summary.get("robots", {}).get(robot, {})
+        superseded = r.get("clouds_superseded")
         rows.append(
             (
                 robot,
-                progress.mission_state.get(robot, "?"),
-                progress.clouds_inserted.get(robot, 0),
-                progress.clouds_dropped.get(robot, 0),
-                progress.voxels_contributed.get(robot, 0),
-                f"{length:.1f}",
-                f"{progress.map_age_s.get(robot, math.nan):.2f}",
+                r.get("final_state", "?"),
+                r.get("clouds_inserted", "-"),
+                "not recorded" if superseded is None else superseded,
+                r.get("clouds_dropped", "-"),
+                r.get("voxels_contributed", "-"),
+                f"{r.get('path_m', math.nan):.1f}",
+                f"{r.get('map_age_s', math.nan):.2f}",
             )
         )
     lines += [
         "## Robots",
         "",
-        "From the map server's live statistics at the end of the mission. Dropped clouds are "
-        "the oldest ones its bounded per-robot queues let go when insertion fell behind (or with no "
-        "transform at their stamp); every one is counted.",
+        "From the map server's live statistics at the end of the mission. *Superseded*: replaced in the robot's "
+        "one-cloud slot by a newer cloud of the same robot before it was inserted (not inserted; the newer one "
+        "was). *Dropped*: by the map server, with no transform at the cloud's stamp, an invalid cloud or a full "
+        "queue. Every other loss on the way is in the cloud ledger below.",
         "",
         markdown_table(
             (
                 "robot",
                 "final state",
                 "clouds inserted",
-                "clouds dropped",
+                "superseded",
+                "dropped by the map server",
                 "occupied voxels last updated",
                 "path m",
                 "map age s",
@@ -349,28 +452,26 @@ def write_mission_report(result, mission_args, wall_time_s):
         ),
         "",
     ]
+    lines += read_ledger(out, fleet.robot_names).markdown()
 
-    scores = None
-    write_trajectories(os.path.join(out, TRAJECTORIES_CSV), progress.trajectories)
-    if result.map_file and os.path.exists(result.map_file):
-        score, fused = score_saved_map(
-            result.map_file, fleet, os.path.join(out, "ground_truth.npz"), progress.trajectories
-        )
-        scores = score.as_dict()
-        with open(os.path.join(out, "scores.json"), "w") as stream:
-            json.dump(scores, stream, indent=2)
+    scores_path = os.path.join(out, "scores.json")
+    if os.path.exists(scores_path):
+        from cps_mapping.scoring import read_scores
+
+        with open(scores_path) as stream:
+            scores = read_scores(json.load(stream))
         lines += [
             "## Map quality against the simulator's ground truth",
             "",
-            f"Map `map.bt` ({score.map_voxels} occupied voxels at {score.resolution_m} m) against "
-            f"{score.truth_voxels} ground-truth voxels ({score.observable_voxels} on the observable surface, "
-            f"{observable_text(score.observable_from)}):",
+            f"Map `map.bt` ({scores.get('map_voxels')} occupied voxels at {scores.get('resolution_m')} m) against "
+            f"{scores.get('truth_voxels')} ground-truth voxels ({scores.get('observable_voxels')} on the observable "
+            f"surface, {observable_text(scores.get('observable_from'))}):",
             "",
-            *map_quality_table(score),
+            *scores_table(scores),
             "",
         ]
-        plot_topdown(fused.occupied_centers(), progress.trajectories, fleet, os.path.join(out, "topdown.png"))
-        lines += ["![top-down view of the fused map with the trajectories](topdown.png)", ""]
+        if os.path.exists(os.path.join(out, "topdown.png")):
+            lines += ["![top-down view of the fused map with the trajectories](topdown.png)", ""]
     else:
         lines += ["## Map quality", "", "No map was saved: see the map server's log in `logs/`.", ""]
 
@@ -380,14 +481,26 @@ def write_mission_report(result, mission_args, wall_time_s):
     split = latency_split(
         read_csv(os.path.join(out, "physical_arrivals.csv")), read_csv(os.path.join(out, "arrivals.csv"))
     )
+    from cps_experiments import judge as J
+
+    phase_list = J.phases(event_rows, float(times[-1]) if len(times) else 0.0)
+    capacity = J.capacity_in_force(phase_list)
+    over_capacity = [t for t, v in zip(times, totals) if phase_list and v > capacity(t) / 8.0]
+    reserve = summary.get("reserve_fraction", fleet.link.reserve_fraction)
     lines += [
         "## Link",
         "",
-        f"Managed point-cloud traffic received at the digital twin, per ~1 s window: avg "
-        f"{np.mean(busy) if len(busy) else 0:.3f} MB/s, max {np.max(busy) if len(busy) else 0:.3f} MB/s, "
-        f"std {np.std(busy) if len(busy) else 0:.3f} MB/s against a budget of {budget:.2f} MB/s "
-        f"({100 * (1 - fleet.link.reserve_fraction):.0f} % of {available_mbps:.1f} Mbit/s); windows over budget: "
-        f"{int(np.sum(totals > budget))} of {len(totals)}.",
+        f"Managed traffic (every robot's clouds and video) received at the digital twin in topic_stats' "
+        f"{STATS_WINDOW_S:g} s sliding windows, one every second: avg {np.mean(busy) if len(busy) else 0:.3f} MB/s, "
+        f"max {np.max(busy) if len(busy) else 0:.3f} MB/s, std {np.std(busy) if len(busy) else 0:.3f} MB/s. "
+        + (
+            f"Against the capacity the scenario set ({', '.join(f'{p.capacity_mbps:g}' for p in phase_list)} Mbit/s "
+            f"in turn): {len(over_capacity)} of {len(totals)} windows above it (delivered traffic, behind the shaper). "
+            if phase_list
+            else ""
+        )
+        + f"The manager's budget at the end: {budget:.2f} MB/s ({100 * (1 - reserve):.0f} % of what it took the link "
+        "to carry; the verdict judges it against the capacity in force, after every step).",
         "",
         "Latency is receive time at the digital twin minus the capture stamp (windowed: avg, max, p95 "
         "over the statistics windows). The split is per cloud, over the clouds that reached the twin, "
@@ -432,19 +545,18 @@ def write_mission_report(result, mission_args, wall_time_s):
         plot_link(stats_rows, allocation_rows, budget, os.path.join(out, "link.png"))
         lines += ["![bandwidth, allocated rates and latency](link.png)", ""]
 
-    from cps_experiments.link_report import section as link_events_section
-
     lines += link_events_section(
-        read_csv(os.path.join(out, "link_events.csv")),
+        event_rows,
         read_csv(os.path.join(out, "link_state.csv")),
         allocation_rows,
         times,
         totals,
+        read_counter_series(out),
     )
     lines += ["## Supervisor events", ""]
-    lines += [f"- {e.time_s:.0f} s {e.label}: {e.what}" for e in result.events] or ["- none"]
-    if result.restarts:
-        lines += [f"- restarts: {', '.join(f'{k} ×{v}' for k, v in result.restarts.items())}"]
+    lines += [f"- {t:.0f} s {label}: {what}" for t, label, what in summary.get("events", [])] or ["- none"]
+    if summary.get("restarts"):
+        lines += [f"- restarts: {', '.join(f'{k} ×{v}' for k, v in summary['restarts'].items())}"]
     lines.append("")
     if os.path.exists(os.path.join(out, "gui.png")):
         lines += ["## Operator GUI during the mission", "", "![GUI screenshot](gui.png)", ""]
@@ -452,26 +564,60 @@ def write_mission_report(result, mission_args, wall_time_s):
         "## Files",
         "",
         "`map.bt` (OctoMap, opens with octomap's tools), `ground_truth.npz`, `scores.json`, "
-        "`trajectories.csv` (each robot's recorded positions), `map_age.csv` (each robot's map age as the "
-        "map server published it), `verdict.json`, "
-        "`stats.csv` (topic statistics at the twin), `physical_stats.csv` (at the robots), `arrivals.csv` and "
-        "`physical_arrivals.csv` (per-cloud stamps and receive times there), `allocation.csv` "
-        "(bandwidth manager), `link.png`, `topdown.png`, "
-        "`gui.png`, `logs/` (every node's output).",
+        "`trajectories.csv` (each robot's recorded positions), `map_age.csv` (each robot's map age, inserted and "
+        "as published, and the map server's counters, as it published them), `verdict.json`, `mission.json` (what "
+        "the supervisor knew), `stats.csv` (topic statistics at the twin), `physical_stats.csv` (at the robots), "
+        "`arrivals.csv` and `physical_arrivals.csv` (per-cloud stamps and receive times there), `counters.csv` and "
+        "`physical_counters.csv` (each node's cloud ledger counters), `allocation.csv` (bandwidth manager), "
+        "`link.png`, `topdown.png`, `gui.png`, `logs/` (every node's output).",
     ]
-    from cps_experiments.verdict import DEMO_FILES, MAP_F1_FLOOR_WITHIN_1_VOXEL, judge, write_verdict
-
-    # `make demo --map-f1-floor` sets map_f1_floor on the mission's arguments; else the code default.
-    floor = getattr(mission_args, "map_f1_floor", None)
     verdict = judge(
         out,
         DEMO_FILES,
-        ended_by=result.ended_by,
-        f1_floor_within_1_voxel=MAP_F1_FLOOR_WITHIN_1_VOXEL if floor is None else floor,
+        ended_by=None if ended == "not recorded" else ended,
+        f1_floor_within_1_voxel=MAP_F1_FLOOR_WITHIN_1_VOXEL if f1_floor is None else f1_floor,
+        f1_floor_exact=f1_floor_exact,
+        robots=fleet.robot_names,
     )
     write_verdict(out, verdict)
-    lines[2:2] = verdict.lines()
+    lines[2:2] = verdict.lines() + ["### Every check", "", *checks_table(verdict), ""]
     path = os.path.join(out, "report.md")
     with open(path, "w") as stream:
         stream.write("\n".join(lines) + "\n")
     return path
+
+
+def scores_table(scores):
+    """Report lines of a scores.json: precision, recall, F1 voxel for voxel and within ±1 voxel, coverage."""
+    rows = [
+        (name, *(f"{scores.get(f'{k}_{suffix}', math.nan):.3f}" for k in ("precision", "recall", "f1")))
+        for name, suffix in (("voxel for voxel", "exact"), ("within ±1 voxel", "within_1_voxel"))
+    ]
+    return [
+        markdown_table(("match", "precision", "recall", "F1"), rows),
+        "",
+        f"Coverage of the observable surface (within ±1 voxel): {scores.get('coverage_within_1_voxel', math.nan):.3f}.",
+    ]
+
+
+def rejudge(folder, fleet_file=None, f1_floor=None):
+    """Write a committed mission's report and verdict again from its folder, with today's judge."""
+    from cps_fleet.fleet import load_fleet
+
+    summary = read_mission_summary(folder)
+    if not os.path.exists(os.path.join(folder, MISSION_JSON)) and summary:
+        # Kept, so that the report written below (in today's format) is not what is read next time.
+        with open(os.path.join(folder, MISSION_JSON), "w") as stream:
+            json.dump(summary, stream, indent=1)
+    fleet = load_fleet(fleet_file, profile=summary.get("profile") if summary.get("profile") != "not recorded" else None)
+    robots = list(summary.get("robots", {})) or None
+    if robots:
+        fleet = fleet.with_robots(robots)
+    return write_report(folder, fleet, f1_floor)
+
+
+if __name__ == "__main__":
+    import sys
+
+    for folder in sys.argv[1:]:
+        print(rejudge(folder))

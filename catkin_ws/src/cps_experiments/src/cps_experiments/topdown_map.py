@@ -16,6 +16,14 @@ ROBOT_COLOURS = {
     "legged_depth": "gold",
     "aerial_depth": "tab:purple",
 }
+# A type only a user's fleet file defines gets these, in the fleet's order.
+OTHER_COLOURS = ("tab:blue", "tab:orange", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
+
+
+def robot_colours(fleet):
+    """{robot: colour}: the paper's colour of its type, or one of OTHER_COLOURS for a user's type."""
+    others = iter(OTHER_COLOURS * (1 + len(fleet.robots) // len(OTHER_COLOURS)))
+    return {r.name: ROBOT_COLOURS.get(r.type) or next(others) for r in fleet.robots}
 
 
 def height_image(occupied_centers_m, resolution_m, x_range, y_range):
@@ -69,8 +77,9 @@ def plot_topdown(occupied_centers_m, trajectories, fleet, png_path, title=None, 
         x0, y0, x1, y1 = area.rectangle
         ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="0.4", ls=":", lw=1.2))
         ax.text(x0 + 0.1, y1 - 0.35, area.name, fontsize=8, color="0.3")
+    colours = robot_colours(fleet)
     for robot in fleet.robots:
-        colour = ROBOT_COLOURS[robot.type]
+        colour = colours[robot.name]
         route = fleet.route(robot.name)
         ax.plot([w.x for w in route.waypoints], [w.y for w in route.waypoints], ls="--", color=colour, lw=1, alpha=0.7)
         path = np.asarray(trajectories.get(robot.name) or np.empty((0, 3)))

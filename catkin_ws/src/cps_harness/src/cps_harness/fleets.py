@@ -1,7 +1,10 @@
-"""Larger fleets for tests and benchmarks: the default fleet.yaml with every robot copied."""
+"""Fleet files for tests and benchmarks, made from the default fleet.yaml: every robot copied, a
+robot of a type defined only in the copy, paths made absolute so a copy works from any folder."""
 
 import math
 import os
+import re
+import shutil
 
 import yaml
 
@@ -40,4 +43,53 @@ def write_fleet_with_copies(folder, copies=1, source=None):
     path = os.path.join(folder, f"fleet{len(robots)}.yaml")
     with open(path, "w") as stream:
         yaml.safe_dump(doc, stream, sort_keys=False)
+    return path
+
+
+# A user's robot type that only a fleet file defines (cps_fleet knows nothing of it).
+NEW_TYPE = """  tracked_lidar:   # a user's robot: only data
+    base: wheeled
+    sensor: lidar
+    cloud_topic: velodyne_points
+    sensor_frame: velodyne
+    max_range_m: 20.0
+    limits: {max_forward_mps: 1.0, max_lateral_mps: 0.0, max_vertical_mps: 0.0, max_yaw_rate_rps: 1.0,
+             max_linear_accel_mps2: 0.5, max_yaw_accel_rps2: 1.0}
+    body: {half_extents_m: [0.5, 0.4, 0.2], center_z_m: 0.3}
+    sensor_mount: {xyz_m: [0.1, 0.0, 0.7], pitch_deg: 0.0}
+"""
+NEW_TYPE_NAME = "tracked_lidar"
+
+
+def site_made_absolute(text, source):
+    """A fleet file's text with its `site:` path absolute (resolved from `source`'s folder), the
+    line numbers unchanged."""
+    here = os.path.dirname(os.path.abspath(source))
+    return re.sub(
+        r"^site: (\S+)$",
+        lambda m: f"site: {os.path.normpath(os.path.join(here, m.group(1)))}",
+        text,
+        count=1,
+        flags=re.M,
+    )
+
+
+def fleet_with_new_type(folder, robot="scout", entry=NEW_TYPE):
+    """A copy of the default fleet (its whole config folder, so routes resolve) in `folder`/config
+    where `robot` is of NEW_TYPE's type, defined only in this copy; its text otherwise unchanged
+    (line numbers hold for error messages). Returns the new fleet.yaml's path (a pathlib.Path)."""
+    import pathlib
+
+    from cps_fleet.fleet import default_fleet_path
+
+    source = default_fleet_path()
+    config_dir = pathlib.Path(folder) / "config"
+    shutil.copytree(os.path.dirname(source), config_dir)
+    path = config_dir / "fleet.yaml"
+    text = site_made_absolute(path.read_text(), source)
+    text = text.replace("robot_types:\n", "robot_types:\n" + entry, 1)
+    old = f"  - name: {robot}\n    type: "
+    start = text.index(old) + len(old)
+    text = text[:start] + NEW_TYPE_NAME + text[text.index("\n", start) :]
+    path.write_text(text)
     return path

@@ -95,3 +95,34 @@ class TopicRecorder:
 
     def close(self):
         self.sub.unregister()
+
+
+def answer_help(doc):
+    """For the harness's nodes (loads, probes, recorders): `--help` prints `doc` and exits 0 before
+    anything touches a master, as every node of the workspace does."""
+    import sys
+
+    if {"-h", "--help"} & set(sys.argv[1:]):
+        print(doc.strip())
+        sys.exit(0)
+
+
+def run_rostest(package, test_file, timeout_s=600.0):
+    """`rostest <package> <test_file>` as a user runs it (its own master on a free port, a private
+    ROS_HOME); the CompletedProcess, output as text."""
+    import shutil
+    import subprocess
+    import tempfile
+
+    home = tempfile.mkdtemp(prefix="cps-rostest-")
+    try:
+        return subprocess.run(
+            ["rostest", package, test_file],
+            env=dict(os.environ, ROS_HOME=home),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            timeout=timeout_s,
+        )
+    finally:
+        shutil.rmtree(home, ignore_errors=True)

@@ -33,6 +33,7 @@ class KeyframeStore:
         self.bytes = 0
         self.kept = 0
         self.evicted = 0  # oldest dropped to make room
+        self.evicted_by_robot = collections.Counter()
         self.refused = 0  # larger than the whole store
 
     def __len__(self):
@@ -53,12 +54,24 @@ class KeyframeStore:
                 return False
             self._last_stamp[keyframe.robot] = keyframe.stamp_s
             while self.bytes + keyframe.size_bytes > self.capacity_bytes:
-                self.bytes -= self._frames.popleft().size_bytes
+                evicted = self._frames.popleft()
+                self.bytes -= evicted.size_bytes
                 self.evicted += 1
+                self.evicted_by_robot[evicted.robot] += 1
             self._frames.append(keyframe)
             self.bytes += keyframe.size_bytes
             self.kept += 1
             return True
+
+    def evicted_of(self, robot):
+        """How many of `robot`'s keyframes were evicted to make room."""
+        with self._lock:
+            return self.evicted_by_robot[robot]
+
+    def waiting_of(self, robot):
+        """How many of `robot`'s keyframes are in the store now."""
+        with self._lock:
+            return sum(1 for frame in self._frames if frame.robot == robot)
 
     def peek(self):
         with self._lock:

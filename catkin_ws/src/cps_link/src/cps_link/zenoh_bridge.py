@@ -22,7 +22,9 @@ from cps_link.bridge_config import ROBOTS, BridgeTable, Route, other_side
 from cps_link.bridge_wire import Frame, WireError, encode, header_frame_id, header_stamp_s
 from cps_link.link_health import LinkHealth
 from cps_link.receive_path import TOPIC_TYPE_MISMATCH, ReceivePath, SendPath
+from cps_link.route_ledger import RouteLedger, is_cloud_route
 from cps_msgs.msg import LinkState
+from cps_ros import cloud_ledger
 from cps_ros.diagnostics import DropReporter
 
 LINK_STATE_PERIOD_S = 1.0
@@ -100,6 +102,19 @@ class ZenohBridge:
         self.started_s = time.time()
         self.health = LinkHealth(started_s=self.started_s)
         self.reporter = DropReporter("zenoh_bridge_command" if table.lane == "command" else "zenoh_bridge")
+
+        # The per-cloud ledger of this side's cloud routes (cps_link.route_ledger).
+        def ledger_reporter(topic):  # a status of its own name: the bridge's own status stays one per node
+            return DropReporter(topic, name=rospy.get_name() + "/ledger")
+
+        self.sent_ledger = RouteLedger(
+            [r for r in table.outgoing(side) if r.from_ros and is_cloud_route(r)],
+            cloud_ledger.BRIDGE_OUT,
+            ledger_reporter,
+        )
+        self.received_ledger = RouteLedger(
+            [r for r in table.incoming(side) if is_cloud_route(r)], cloud_ledger.BRIDGE_IN, ledger_reporter
+        )
         self.link_pub = (
             rospy.Publisher(names.LINK_STATE, LinkState, queue_size=5, latch=True)
             if table.publishes_link_state
@@ -192,11 +207,22 @@ class ZenohBridge:
     def _send(self, msg, route: Route):
         if self.store is not None and route.topic in TF_TOPICS:
             self._keep_transforms(route.topic, msg._buff)
+        if route.to in self.sent_ledger:
+            self.sent_ledger.received(
+                route.to,
+                (getattr(msg, "_connection_header", None) or {}).get("callerid", ""),
+                cloud_ledger.header_seq(msg._buff),
+            )
         key, frame = self.frame_of(route, msg)
         if frame is None:
+            self.sent_ledger.dropped(route.to, "type")
             return
         if self.store is not None and not self.health.up and route.to in self.backfill_robot:
-            self._keep_keyframe(self.backfill_robot[route.to], frame)
+            kept = self._keep_keyframe(self.backfill_robot[route.to], frame)
+            if kept:
+                self.sent_ledger.count(route.to, cloud_ledger.BACKFILL_KEPT)
+            else:
+                self.sent_ledger.dropped(route.to, "outage")
             return
         payload = encode(frame)
         if route.latched:
@@ -204,6 +230,7 @@ class ZenohBridge:
                 self.latched_frames[key] = payload
         self.zenoh_pubs[route.to].put(payload)
         self.reporter.count(sent=1, sent_bytes=len(payload))
+        self.sent_ledger.out(route.to)
 
     def resend_latched(self):
         """Put every latched topic's last message again (the far side drops what it already has)."""
@@ -223,10 +250,16 @@ class ZenohBridge:
         """Check one frame received by `route`'s subscriber (under `key`) and republish it; returns
         the kind of drop (counted in the diagnostics), or None when published."""
         verdict = self.receive_path.receive(route.to, key, payload, time.time())
+        if route.to in self.received_ledger:
+            frame = verdict.frame
+            self.received_ledger.received(
+                route.to, None if frame is None else (frame.source, frame.session), None if frame is None else frame.seq
+            )
         if verdict.drop is not None:
             if verdict.drop not in ("duplicates", "stale"):
                 self.reporter.drop(f"{route.to}: {verdict.drop}: {verdict.detail}")
             self.reporter.gauge(**self.receive_path.counters())
+            self.received_ledger.dropped(route.to, verdict.drop)
             return verdict.drop
         frame = verdict.frame
         cls = self._message_class(frame.msg_type)
@@ -238,13 +271,14 @@ class ZenohBridge:
         if self.store is not None and route.to == self.table.backfill.allocation_topic:
             self._on_allocation(cls().deserialize(frame.body))
         msg = rospy.AnyMsg()
-        msg._buff = frame.body
+        msg._buff = self.received_ledger.renumbered(route.to, frame.body)
         if route.latched:
             replay = self.replays[route.to]
             with replay.lock:
                 replay.messages[frame.source] = msg
         pub.publish(msg)
         self.reporter.ok(received_bytes=len(frame.body))
+        self.received_ledger.out(route.to)
         return None
 
     def _publisher(self, route, cls):
@@ -283,17 +317,18 @@ class ZenohBridge:
         threading.Thread(target=self._backfill_loop, name="backfill", daemon=True).start()
 
     def _keep_keyframe(self, robot, cloud: Frame):
-        """Keep a cloud captured during an outage as a keyframe, with its sensor's pose in the map."""
+        """Keep a cloud captured during an outage as a keyframe, with its sensor's pose in the map;
+        True when the store kept it."""
         from geometry_msgs.msg import TransformStamped
 
         if not self.store.wants(robot, cloud.stamp_s):
-            return
+            return False
         try:
             pose = self._pose_at(header_frame_id(cloud.body), cloud.stamp_s)
         except Exception as exc:  # tf2's exceptions and a cloud without a header
             self.reporter.count(backfill_no_pose=1)
             rospy.logwarn_throttle(5.0, f"{rospy.get_name()}: keyframe of {robot} without a pose: {exc}")
-            return
+            return False
         backfill = self.table.backfill
         pose_route = self.table.route(backfill.pose_to[robot])
         cloud_route = self.table.route(backfill.cloud_to[robot])
@@ -311,9 +346,9 @@ class ZenohBridge:
         cloud_msg._connection_header = {"type": cloud.msg_type, "md5sum": cloud.md5, "callerid": cloud.source}
         frames = [self.frame_of(r, m)[1] for r, m in ((pose_route, pose_msg), (cloud_route, cloud_msg))]
         if None in frames:  # counted by frame_of
-            return
+            return False
         payloads = tuple(encode(f) for f in frames)
-        self.store.offer(Keyframe(robot, cloud.stamp_s, payloads))
+        return self.store.offer(Keyframe(robot, cloud.stamp_s, payloads))
 
     def _pose_at(self, frame, stamp_s):
         """map <- frame at the cloud's capture; the newest transform if the cloud is a few ms ahead of
@@ -346,6 +381,7 @@ class ZenohBridge:
             ):
                 self.zenoh_pubs[to].put(payload)
             self.reporter.count(backfill_sent=1, backfill_sent_bytes=keyframe.size_bytes)
+            self.sent_ledger.count(backfill.source[keyframe.robot], cloud_ledger.BACKFILL_SENT)
 
     def backfill_counters(self):
         s = self.store
@@ -401,6 +437,15 @@ class ZenohBridge:
 
     def _tick(self, _event=None):
         self.reporter.gauge(**self.backfill_counters(), **self.receive_path.counters())
+        if self.store is not None:
+            for robot, to in self.table.backfill.source.items():
+                self.sent_ledger.gauge(
+                    to,
+                    **{
+                        cloud_ledger.BACKFILL_EVICTED: self.store.evicted_of(robot),
+                        cloud_ledger.BACKFILL_WAITING: self.store.waiting_of(robot),
+                    },
+                )
         if self.health.up:
             # A latched message lost on its way (its class may drop, or the far side's subscriber
             # was not there yet) is otherwise never sent again: a map server without /tf_static

@@ -60,6 +60,8 @@ def robot_map_stats(robot: str, counters, queue_length: int, now_s: float, contr
         points_inserted=c.points_inserted,
         map_age_s=c.map_age_s(now_s),
         occupied_voxels_contributed=contributed_voxels,
+        published_map_age_s=c.published_map_age_s(now_s),
+        clouds_missed_upstream=c.clouds_missed_upstream,
     )
 
 

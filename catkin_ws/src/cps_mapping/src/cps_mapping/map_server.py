@@ -40,6 +40,7 @@ from cps_mapping.markers import occupied_cells_markers
 from cps_mapping.queues import QueuedCloud, RobotQueues
 from cps_mapping.robot_bodies import RobotTrails, SweptVolume, fleet_bodies
 from cps_msgs.srv import BoundingBoxQueryResponse, LoadMapResponse, SaveMapResponse
+from cps_ros.cloud_ledger import SequenceGaps
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 
 _WARN_EVERY_S = 5.0
@@ -146,6 +147,11 @@ class RobotCounters:
     insertion_ms_total: float = 0.0
     insertion_ms_max: float = 0.0
     newest_inserted_stamp_s: Optional[float] = None
+    # The decoder's clouds that never reached this server (gaps in their header.seq: lost in the
+    # subscriber queue), for the per-cloud ledger.
+    clouds_missed_upstream: int = 0
+    # The stamp of this robot's newest cloud in the map as last published (None before).
+    newest_published_stamp_s: Optional[float] = None
 
     @property
     def insertion_ms_avg(self):
@@ -155,6 +161,13 @@ class RobotCounters:
         if self.newest_inserted_stamp_s is None:
             return math.inf
         return max(0.0, now_s - self.newest_inserted_stamp_s)
+
+    def published_map_age_s(self, now_s):
+        """What a subscriber of the map sees: now - the stamp of this robot's newest cloud in the map as
+        last published (inf before), which keeps growing when the map stops being published."""
+        if self.newest_published_stamp_s is None:
+            return math.inf
+        return max(0.0, now_s - self.newest_published_stamp_s)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -236,6 +249,7 @@ class MapServer:
         self._save_lock = threading.Lock()  # one save (map and sidecars) at a time
         self._counters_lock = threading.Lock()
         self.counters = {r: RobotCounters() for r in self.robots}
+        self.sequences = {r: SequenceGaps() for r in self.robots}
         self.queues = RobotQueues(self.robots, options.queue_size)
         self.meter = InsertionMeter(options.capacity_window_s, options.insertion_budget_fraction)
         self.budget = InsertionBudget(options.insertion_budget_fraction)
@@ -333,6 +347,13 @@ class MapServer:
                 self.log.error(f"map_server: could not save on shutdown: {exc}")
 
     # ---- input ---------------------------------------------------------------------------------
+
+    def note_sequence(self, robot, source, seq):
+        """A cloud of `robot` numbered `seq` by its publisher `source` (the node's subscriber calls
+        this before receive_cloud): the ones missing before it are counted (lost upstream)."""
+        missed = self.sequences[robot].note(source, seq)
+        if missed:
+            self._count(robot, clouds_missed_upstream=missed)
 
     def receive_cloud(self, robot, msg):
         """Check a robot's PointCloud2, move it into the fixed frame and queue it; bad ones are
@@ -494,11 +515,17 @@ class MapServer:
     def publish_map(self, stamp):
         """The map, markers, centres and projected map, if the map changed since the last call."""
         self._publish_full(stamp)
+        with self._counters_lock:  # read before the snapshot: the snapshot holds at least these clouds
+            newest = {r: c.newest_inserted_stamp_s for r, c in self.counters.items()}
         snap, changed = self.take_snapshot()
         if not changed:
             return
         out = self.outputs
         out.octomap(map_messages.octomap_message(snap.octomap_fields, self._header(stamp)))
+        with self._counters_lock:
+            for robot, stamp_s in newest.items():
+                if stamp_s is not None:
+                    self.counters[robot].newest_published_stamp_s = stamp_s
         out.markers(
             occupied_cells_markers(snap.leaf_centers_m, snap.leaf_sizes_m, self.map.resolution_m, self._header(stamp))
         )

@@ -14,8 +14,11 @@ class DropReporter:
     """Counts malformed messages of one input topic; warns (throttled) and reports the count on
     /diagnostics once a second so the topic statistics can show it."""
 
-    def __init__(self, input_topic, period_s=1.0):
+    def __init__(self, input_topic, period_s=1.0, name=None):
+        """`name`: the status's name (default the node's): a node's second reporter of one topic
+        (the per-cloud ledger's) names itself apart, so readers of the node's own status find it."""
         self.input_topic = input_topic
+        self.name = name
         self.invalid = 0
         self.processed = 0
         self.last_error = ""
@@ -47,7 +50,7 @@ class DropReporter:
     def _report(self, _event=None):
         status = DiagnosticStatus(
             level=DiagnosticStatus.WARN if self.invalid else DiagnosticStatus.OK,
-            name=rospy.get_name(),
+            name=self.name or rospy.get_name(),
             hardware_id=self.input_topic,
             message=self.last_error or "ok",
         )

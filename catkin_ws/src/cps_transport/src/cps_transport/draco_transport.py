@@ -8,6 +8,7 @@ import rospy
 from rosgraph.names import ns_join
 
 from cps_msgs.msg import CompressedPointCloud2
+from cps_ros import cloud_ledger
 from cps_ros.diagnostics import DropReporter
 from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError
 from cps_transport.pointcloud import InvalidCloud
@@ -65,13 +66,19 @@ class DracoPublisher:
 class DracoSubscriber:
     """Subscribes `<base>/draco` and calls `callback(cloud)` with each decoded
     sensor_msgs/PointCloud2 (header kept). `topic` overrides the transport topic (the decoder
-    node subscribes `.../draco/managed`). A payload that cannot be decoded is dropped and counted."""
+    node subscribes `.../draco/managed`). A payload that cannot be decoded is dropped and counted.
+    With `ledger_stage` (cps_ros.cloud_ledger's stage name) each payload is also counted in the
+    per-cloud ledger: received, the previous stage's numbers it never got, decoded or dropped."""
 
-    def __init__(self, base_topic, callback, decoder=None, topic=None, queue_size=10, buff_size=1 << 22):
+    def __init__(
+        self, base_topic, callback, decoder=None, topic=None, queue_size=10, buff_size=1 << 22, ledger_stage=None
+    ):
         self.topic = rospy.resolve_name(topic) if topic else draco_topic(base_topic)
         self.decoder = decoder if decoder is not None else DracoDecoder()
         self.callback = callback
         self.report = DropReporter(self.topic)
+        self.ledger_stage = ledger_stage
+        self.sequence = cloud_ledger.SequenceGaps()
         self._subscriber = rospy.Subscriber(
             self.topic, CompressedPointCloud2, self._on_compressed, queue_size=queue_size, buff_size=buff_size
         )
@@ -88,16 +95,30 @@ class DracoSubscriber:
         return self._subscriber.get_num_connections()
 
     def _on_compressed(self, msg):
+        if self.ledger_stage:
+            callerid = getattr(msg, "_connection_header", {}).get("callerid", "")
+            self._ledger(cloud_ledger.RECEIVED, missed=self.sequence.note(callerid, msg.header.seq))
         try:
             cloud = self.decoder.decode(msg)
         except (InvalidCloud, DracoError) as exc:
             self.report.drop(exc)
+            self._ledger(cloud_ledger.DROPPED + "decoder")
             return
         except Exception as exc:  # a payload the checks missed: still one counted drop, not a traceback
             self.report.drop(f"unexpected {type(exc).__name__}: {exc}")
+            self._ledger(cloud_ledger.DROPPED + "decoder")
             return
         self.report.ok()
         self.callback(cloud)
+        self._ledger(cloud_ledger.OUT)
+
+    def _ledger(self, what, missed=0):
+        """One count of `what` (and `missed` gaps before it) in the ledger, when this subscriber keeps one."""
+        if self.ledger_stage:
+            counts = {cloud_ledger.key(self.ledger_stage, what): 1}
+            if missed:
+                counts[cloud_ledger.key(self.ledger_stage, cloud_ledger.MISSED)] = missed
+            self.report.count(**counts)
 
     def unregister(self):
         self._subscriber.unregister()

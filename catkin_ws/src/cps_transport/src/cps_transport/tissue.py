@@ -24,6 +24,7 @@ from std_msgs.msg import Float64, UInt8
 from cps_fleet import names
 from cps_msgs.msg import CompressedPointCloud2, RateLimiterStatus
 from cps_msgs.srv import SetRate, SetRateResponse
+from cps_ros import cloud_ledger
 from cps_ros.diagnostics import DropReporter
 from cps_ros.relay import relay_class, relay_message
 from cps_ros.timers import guarded_timer
@@ -43,6 +44,7 @@ from cps_transport.draco_transport import DracoPublisher, DracoSubscriber
 from cps_transport.image_compression import InvalidImage, compress_image, compressed_format
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 from cps_transport.rate_limiter import RateLimiter, WindowRate
+from cps_transport.topic_stats import has_header_first
 
 # Clouds waiting for the link per subscriber of the managed topic.
 LIMITER_OUTPUT_QUEUE_SIZE = 5
@@ -192,6 +194,12 @@ class ManagedRateLimiter:
         self.level_sizes = collections.defaultdict(lambda: collections.deque(maxlen=LEVEL_MEAN_MESSAGES))
         self.level_report = DropReporter(ns_join(node_name, "level")) if self.cloud_levels_m else None
         self.ledger = ledger
+        # The per-cloud ledger: what came in (and the encoder's numbers it never got), what went out
+        # (numbered by this limiter, so the next stage can count what it misses) and what it held back.
+        self.sequence = cloud_ledger.SequenceGaps()
+        self.forward_seq = 0
+        self.header_first = None
+        self.ledger_report = DropReporter(input_topic, name=ns_join(node_name, "ledger"))
 
         def private(name):
             return ns_join(node_name, name.lstrip("~"))
@@ -222,15 +230,33 @@ class ManagedRateLimiter:
         return SetRateResponse(success=success, message=message, rate_hz=self.limiter.rate_hz)
 
     def on_message(self, msg):
+        if self.header_first is None:
+            self.header_first = has_header_first(msg._connection_header.get("message_definition", ""))
+        seq = cloud_ledger.header_seq(msg._buff) if self.header_first else None
         with self.lock:
+            missed = 0 if seq is None else self.sequence.note(msg._connection_header.get("callerid", ""), seq)
             forward = self.limiter.allow(time.monotonic(), len(msg._buff))
             if forward and self.publisher is None:
                 self.relay_cls = relay_class(msg._connection_header)
                 self.publisher = rospy.Publisher(
                     self.output_topic, self.relay_cls, queue_size=LIMITER_OUTPUT_QUEUE_SIZE
                 )
+            if forward:
+                self.forward_seq += 1
+                out = relay_message(self.relay_cls, msg)
+                if seq is not None:  # numbered as this limiter's output, as a typed publisher would
+                    out._buff = cloud_ledger.with_header_seq(msg._buff, self.forward_seq)
+        self.ledger_report.count(
+            **{
+                cloud_ledger.key(cloud_ledger.LIMITER, cloud_ledger.RECEIVED): 1,
+                cloud_ledger.key(cloud_ledger.LIMITER, cloud_ledger.MISSED): missed,
+                cloud_ledger.key(
+                    cloud_ledger.LIMITER, cloud_ledger.OUT if forward else cloud_ledger.DROPPED + "rate_limiter"
+                ): 1,
+            }
+        )
         if forward:
-            self.publisher.publish(relay_message(self.relay_cls, msg))
+            self.publisher.publish(out)
             if self.cloud_levels_m:
                 self._note_level(msg)
 
@@ -464,8 +490,23 @@ class DracoEncoderPart:
         self.levels_m = tuple(levels_m)
         self.map_resolution_m = map_resolution_m
         self.lock = threading.Lock()
-        callback = self.publisher.publish if leaves is None else self.on_cloud
-        self.subscriber = rospy.Subscriber(input_topic, PointCloud2, callback, queue_size=3, buff_size=1 << 24)
+        self.sequence = cloud_ledger.SequenceGaps()  # the voxel grid's numbers: what this queue lost
+        self.subscriber = rospy.Subscriber(input_topic, PointCloud2, self.on_message, queue_size=3, buff_size=1 << 24)
+
+    def on_message(self, cloud):
+        """Counts the cloud in the ledger (and the voxel grid's clouds missed before it), then encodes it."""
+        callerid = getattr(cloud, "_connection_header", {}).get("callerid", "")
+        missed = self.sequence.note(callerid, cloud.header.seq)
+        encoded = self.publisher.publish(cloud) if self.leaves is None else self.on_cloud(cloud)
+        self.publisher.report.count(
+            **{
+                cloud_ledger.key(cloud_ledger.ENCODER, cloud_ledger.RECEIVED): 1,
+                cloud_ledger.key(cloud_ledger.ENCODER, cloud_ledger.MISSED): missed,
+                cloud_ledger.key(
+                    cloud_ledger.ENCODER, cloud_ledger.OUT if encoded is not None else cloud_ledger.DROPPED + "encoder"
+                ): 1,
+            }
+        )
 
     def switch_leaf(self, leaf_m):
         """The voxel grid now produces `leaf_m`: the next clouds carry it (see LeafTracker)."""
@@ -473,6 +514,7 @@ class DracoEncoderPart:
             self.leaves.switch(leaf_m)
 
     def on_cloud(self, cloud):
+        """Encodes and publishes one cloud at its leaf; the CompressedPointCloud2, or None when dropped."""
         started = time.thread_time()
         with self.lock:
             if self.leaves.switching:
@@ -480,7 +522,7 @@ class DracoEncoderPart:
                     leaf = self.leaves.leaf_of(xyz_of(cloud_to_array(cloud)))
                 except InvalidCloud as exc:
                     self.publisher.report.drop(exc)
-                    return
+                    return None
             else:
                 leaf = self.leaves.leaf_m
         self.publisher.encoder.position_tolerance_m = position_tolerance_m(leaf, self.map_resolution_m)
@@ -491,6 +533,7 @@ class DracoEncoderPart:
             level = level_of_leaf(self.levels_m, leaf)
             if level is not None:
                 self.costs.add(level, time.thread_time() - started, cloud.width * cloud.height)
+        return sent
 
 
 class CloudLevelSwitch:
@@ -583,7 +626,9 @@ class DracoDecoderPart:
 
     def __init__(self, input_topic, output_topic):
         self.publisher = rospy.Publisher(output_topic, PointCloud2, queue_size=2)
-        self.subscriber = DracoSubscriber(None, self.publisher.publish, topic=input_topic)
+        self.subscriber = DracoSubscriber(
+            None, self.publisher.publish, topic=input_topic, ledger_stage=cloud_ledger.DECODER
+        )
 
 
 class RobotTissue:

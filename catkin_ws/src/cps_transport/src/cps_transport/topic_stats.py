@@ -39,6 +39,9 @@ def stamp_ns_from_serialized(buffer):
 # voxel grid, Draco and the rate limiter, so the robots' side's rows and the twin's join per cloud
 # (cps_experiments.report.latency_split).
 ARRIVAL_COLUMNS = ("topic", "robot", "stamp_ns", "receive_s")
+# counters.csv / physical_counters.csv: a node's per-cloud ledger counter (cps_ros.cloud_ledger), from
+# its /diagnostics status, each time it changed (cps_experiments.ledger reads them back).
+COUNTER_COLUMNS = ("time_s", "node", "input_topic", "key", "value")
 
 
 # topic_stats' sliding window, s (its ~window_s).

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from cps_bw_manager.legacy_estimation import LegacyDelayEstimator as BandwidthEstimator
+from cps_harness.legacy_estimation import LegacyDelayEstimator as BandwidthEstimator
 
 
 def _simulate(capacity_of, duration_s=40.0, dt=0.5, demand_mbps=80.0, reserve=0.04, base_ms=2.0):

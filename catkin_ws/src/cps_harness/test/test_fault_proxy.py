@@ -7,8 +7,8 @@ import time
 
 import pytest
 
+from cps_harness.fault_proxy import FaultProxy
 from cps_harness.testing import wait_for
-from cps_link.fault_proxy import FaultProxy
 
 WAIT_S = 5.0
 

@@ -1,15 +1,10 @@
-"""The simulated link and its judges (what the estimator's tests and bench rely on), and that the
-legacy estimator stays out of the manager's runtime path."""
+"""The simulated link and its judges (what the estimator's tests and bench rely on)."""
 
-import ast
 import math
-import os
-import subprocess
-import sys
 
 import pytest
 
-from cps_bw_manager.link_model import (
+from cps_harness.link_model import (
     CpuHog,
     LinkModel,
     TraceRow,
@@ -18,9 +13,6 @@ from cps_bw_manager.link_model import (
     settle_time_s,
     steps_capacity,
 )
-
-HERE = os.path.dirname(os.path.abspath(__file__))
-PACKAGE = os.path.join(HERE, "..", "src", "cps_bw_manager")
 
 
 class _Fixed:
@@ -102,13 +94,3 @@ def test_held_below_offered_only_counts_loads_under_85_percent():
         _row(2.0, 10, 10, offered=8.0, allowed=1.0, up=False),
     ]
     assert [r.t_s for r in held_below_offered(trace)] == [0.5]
-
-
-def test_the_manager_uses_one_estimator_and_never_the_legacy_one():
-    code = "import sys, cps_bw_manager.manager; sys.exit('cps_bw_manager.legacy_estimation' in sys.modules)"
-    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
-    for module in ("manager.py", "manager_node.py"):
-        with open(os.path.join(PACKAGE, module)) as stream:
-            tree = ast.parse(stream.read())
-        imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
-        assert "cps_bw_manager.legacy_estimation" not in imported and "cps_bw_manager.link_model" not in imported

@@ -3,26 +3,19 @@ master across the link (tcpros, the paper's set-up) or a master per side joined 
 bridges. Processes on either side, the cloud load, teleop latency and the bridges' CPU."""
 
 import contextlib
-import os
 import sys
 import time
 
 import numpy as np
 
-from cps_experiments.link_run import LinkRosGraph
 from cps_fleet import names
+from cps_harness.link_run import LinkRosGraph
 from cps_link.netns_link import TWIN_IP, namespace
 from cps_link.zenoh_session import bridge_argv
 from cps_ros.processes import RosGraph, find_node, process_cpu_s
 
-FIXTURES = os.path.normpath(
-    os.path.join(os.path.dirname(find_node("cps_link", "zenoh_bridge")), "..", "test", "fixtures")
-)
-CLOUD_LOAD = os.path.normpath(
-    os.path.join(
-        os.path.dirname(find_node("cps_bw_manager", "bandwidth_manager")), "..", "test", "fixtures", "cloud_load.py"
-    )
-)
+CLOUD_LOAD = find_node("cps_harness", "cloud_load")
+TELEOP_PROBE = find_node("cps_harness", "teleop_probe")
 # Within the budget of a 60 Mbit/s link (~4.9 MB/s of ~7.2): Table 6's sizes at managed rates.
 LIVE = {"scout": (34000, 10.0), "jackal": (142000, 10.0), "champ": (60000, 20.0), "iris": (67000, 20.0)}
 # Saturating: ~17 MB/s offered.
@@ -105,13 +98,9 @@ def teleop_latencies_ms(path):
 
 def teleop_under_saturation(graphs, path, seconds):
     """Teleop latencies (ms) twin -> robot at 20 Hz while the clouds saturate robots -> twin."""
-    graphs.start(
-        "phys", [sys.executable, os.path.join(FIXTURES, "teleop_probe.py"), "recv", "scout", path], "teleop_recv"
-    )
+    graphs.start("phys", [sys.executable, TELEOP_PROBE, "recv", "scout", path], "teleop_recv")
     start_load(graphs, SATURATING, "saturating_load")
     time.sleep(3.0)
-    graphs.start(
-        "twin", [sys.executable, os.path.join(FIXTURES, "teleop_probe.py"), "send", "scout", "20"], "teleop_send"
-    )
+    graphs.start("twin", [sys.executable, TELEOP_PROBE, "send", "scout", "20"], "teleop_send")
     time.sleep(seconds)
     return teleop_latencies_ms(path)

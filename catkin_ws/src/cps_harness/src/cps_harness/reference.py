@@ -1,0 +1,254 @@
+"""The reference mission: one `make demo`-style mission per test run that many tests assert on, as
+rostest fixtures serve many test cases (catkin_ws/src/conftest.py starts it once, in the
+background, as soon as the run starts).
+
+Three robots of the light profile on short routes, over the Zenoh bridges across the shaped
+60 Mbit/s link when root (loopback otherwise), each side on its own CPU (the host split), the GUI
+rendered offscreen, the mission recorded to a bag:
+- scout, of a robot type only the test's fleet file defines (NEW_TYPE: another cloud topic, sensor
+  frame and range), drives the aisle west of the storage area and back;
+- iris flies south over the storage area's west half (both crates seen from above and the side);
+- jackal drives along the pipe rack's fence.
+Its map is the baseline of the monitoring test and of the link-cut test (which fly the same routes),
+its bag is what the replay tests play. While every process is up it reads what can only be read
+then (`observe_while_up`): what each side's cgroups hold, topics on the twin, a command crossing.
+"""
+
+import dataclasses
+import os
+import time
+from typing import Dict, List
+
+import yaml
+
+from cps_fleet import names
+from cps_harness.fleets import fleet_with_new_type
+from cps_harness.mission import DEMO, Mission
+
+ROBOTS = ("scout", "iris", "jackal")
+# About 35 s of driving on a quiet machine: long enough for the link-cut test's cut (12 s after
+# every process is up, for 10 s) to have robots still driving after it.
+# scout's lidar along the aisle west of the storage area, back and down again; iris (camera pitched
+# down) flies south over its west half at 3 m, so both crates are seen from above and the side, and
+# back north over the aisle; jackal looks into the pipe rack's fenced area from its aisles (the
+# start of the default route2).
+ROUTES = {
+    "scout": (
+        {"x": 1.0, "y": 0.5, "z": 0.0, "yaw_deg": -90.0},
+        [{"x": 1.0, "y": -5.5}, {"x": 1.0, "y": 0.5}, {"x": 1.0, "y": -5.5}],
+    ),
+    "iris": (
+        {"x": 0.0, "y": 1.0, "z": 0.0, "yaw_deg": -90.0},
+        [
+            {"x": 3.2, "y": 1.0, "z": 3.0},
+            {"x": 3.2, "y": -5.0, "z": 3.0, "inspect": True},
+            {"x": 0.5, "y": -5.0, "z": 3.0},
+            {"x": 0.5, "y": 1.0, "z": 3.0, "inspect": True},
+        ],
+    ),
+    "jackal": (
+        {"x": -8.0, "y": 6.0, "z": 0.0, "yaw_deg": 0.0},
+        [
+            {"x": -6.0, "y": 6.5},
+            {"x": -4.5, "y": 6.5, "inspect": True},
+            {"x": -4.5, "y": 6.0, "inspect": True},
+            {"x": -1.0, "y": 6.5, "inspect": True},
+            {"x": -1.0, "y": 3.5, "inspect": True},
+            {"x": -1.5, "y": 3.5, "inspect": True},
+            {"x": -1.0, "y": 0.6, "inspect": True},
+            {"x": -3.0, "y": 0.6, "inspect": True},
+            {"x": -3.0, "y": 1.0, "inspect": True},
+        ],
+    ),
+}
+# The map server autosaves this often in the reference fleet (fleet.yaml's 10 s otherwise): a map
+# server killed mid-mission resumes with at most this much lost.
+AUTOSAVE_PERIOD_S = 2.0
+# The robot the teleop round trip switches to teleop and back (it stands still meanwhile).
+TELEOP_ROBOT = "jackal"
+# The demo's verdict floor on F1 within ±1 voxel for this fleet: three robots on short routes map
+# well over half of what the site's ground truth holds within their reach; a broken transform,
+# decoder or insertion drops it far below.
+MAP_F1_FLOOR = 0.6
+# ... and voxel for voxel (three robots see less of the hall than the demo's four: their map scores
+# ~0.5, against the four robots' 0.70 that the verdict's default floor is set for).
+MAP_F1_FLOOR_EXACT = 0.4
+# Upper bound on the mission (it ends when every route is done).
+DURATION_S = 150.0
+# The GUI screenshot, seconds into the mission: while every robot still moves.
+SCREENSHOT_AFTER_S = 25.0
+
+
+def write_reference_fleet(folder):
+    """The reference fleet file in `folder` (NEW_TYPE for scout, the routes above, a short
+    autosave); its path."""
+    path = fleet_with_new_type(folder, robot="scout")
+    doc = yaml.safe_load(path.read_text())
+    config_dir = os.path.dirname(path)
+    robots = []
+    for robot in doc["robots"]:
+        if robot["name"] in ROUTES:
+            pose, waypoints = ROUTES[robot["name"]]
+            route = os.path.join(folder, f"{robot['name']}_route.yaml")
+            with open(route, "w") as stream:
+                yaml.safe_dump({"waypoints": waypoints}, stream)
+            robots.append({**robot, "initial_pose": pose, "route": route})
+    doc["robots"] = robots
+    doc["site"] = os.path.normpath(os.path.join(config_dir, doc["site"]))
+    doc["mapping"]["autosave_period_s"] = AUTOSAVE_PERIOD_S
+    reference = os.path.join(folder, "reference_fleet.yaml")
+    with open(reference, "w") as stream:
+        yaml.safe_dump(doc, stream, sort_keys=False)
+    return reference
+
+
+def demo_args(fleet_file, bag_path):
+    """The demo's arguments of the reference mission: a constant link (no scenario, so that its
+    map is a baseline), the mission recorded to `bag_path`."""
+    return [
+        "--fleet", fleet_file,
+        "--link-scenario", "none",
+        "--duration", DURATION_S,
+        "--screenshot-after", SCREENSHOT_AFTER_S,
+        "--map-f1-floor", MAP_F1_FLOOR,
+        "--map-f1-floor-exact", MAP_F1_FLOOR_EXACT,
+        "--record", bag_path,
+    ]  # fmt: skip
+
+
+@dataclasses.dataclass
+class Observed:
+    """What the reference mission showed while every process was up; None where a reading failed
+    (its error is in `errors`)."""
+
+    cgroups: Dict[str, Dict[int, str]] = None  # side -> {pid: cmdline} of the host split's groups
+    cgroup_cpus: Dict[str, str] = None  # side -> cpuset.cpus
+    control_nice: List[int] = None  # nice of the fleet control process(es)
+    twin_managed_cloud: str = ""  # one relayed managed cloud of each robot, as rostopic echo printed it
+    twin_link_state: str = ""
+    teleop_active: str = ""  # TELEOP_ROBOT's active mode after the twin asked for teleop
+    auto_active: str = ""  # ... and after it asked for auto again
+    twin_master_on_link: int = None  # connect_ex to the twin's master at its link address (0 = open)
+    errors: List[str] = dataclasses.field(default_factory=list)
+
+
+def observe_while_up(mission: Mission) -> Observed:
+    """Everything the tests need from the running reference mission, read once it is up."""
+    from cps_harness.cgroups import control_nice, group_cpus, members_of_split
+
+    observed = Observed()
+    readings = {
+        "cgroups": lambda: members_of_split(f"cpsfleet_{mission.pid}"),
+        "cgroup_cpus": lambda: group_cpus(f"cpsfleet_{mission.pid}"),
+        "control_nice": lambda: control_nice(observed.cgroups or {}),
+        "twin_managed_cloud": lambda: "".join(
+            mission.echo_once("twin", names.absolute(names.managed_cloud_at_twin(r)), 30.0, "--noarr") for r in ROBOTS
+        ),
+        "twin_link_state": lambda: mission.echo_once("twin", names.absolute(names.LINK_STATE)),
+        "teleop_active": lambda: _switch_mode(mission, "teleop"),
+        "auto_active": lambda: _switch_mode(mission, "auto"),
+        "twin_master_on_link": lambda: _twin_master_on_link(mission),
+    }
+    for field, read in readings.items():
+        try:
+            setattr(observed, field, read())
+        except Exception as exc:  # noqa: BLE001 - every reading is tried; the test names what failed
+            observed.errors.append(f"{field}: {type(exc).__name__}: {exc}")
+    return observed
+
+
+def _switch_mode(mission, mode, timeout_s=30.0):
+    """Ask TELEOP_ROBOT for `mode` from the twin's side; its active mode as the robot reports it
+    back across the link (rostopic echo's text), once it says `mode` or after `timeout_s`."""
+    topic = names.absolute(names.robot_topic(TELEOP_ROBOT, names.CONTROL_MODE))
+    active_topic = names.absolute(names.robot_topic(TELEOP_ROBOT, names.CONTROL_MODE_ACTIVE))
+    publisher = mission.popen_on("twin", ["rostopic", "pub", "-l", topic, "std_msgs/String", mode], f"mode_{mode}")
+    try:
+        deadline, active = time.monotonic() + timeout_s, ""
+        while time.monotonic() < deadline and f'data: "{mode}"' not in active:
+            active = mission.echo_once("twin", active_topic, 5.0)
+            time.sleep(0.5)
+        return active
+    finally:
+        publisher.kill()
+        publisher.wait()
+
+
+def _twin_master_on_link(mission):
+    """connect_ex from the twin's namespace to its master at the link's twin address (0: it listens there)."""
+    from cps_link.netns_link import TWIN_IP
+
+    if mission.run_link_name() is None:
+        return None
+    port = int(mission.twin_master_uri().rsplit(":", 1)[1])
+    code = f"import socket; s=socket.socket(); s.settimeout(2); print(s.connect_ex(('{TWIN_IP}', {port})))"
+    return int(mission.on_twin(["python3", "-c", code]).stdout.strip())
+
+
+@dataclasses.dataclass
+class ReferenceRun:
+    """The reference mission, ended: its folder, fleet file, bag, exit code, log, what was read
+    while it was up, and what of it was left right after it ended."""
+
+    out: "os.PathLike"
+    fleet_file: str
+    bag: str
+    mission: Mission = None
+    returncode: int = None
+    log: str = ""
+    observed: Observed = None
+    leftovers: List[str] = dataclasses.field(default_factory=list)
+    error: str = ""  # why it could not run (then every test that needs it fails with this)
+
+    def check(self):
+        """AssertionError unless the mission ran and ended with 0 (its log's tail in the message)."""
+        assert not self.error, self.error
+        assert self.returncode == 0, f"the reference mission ended with {self.returncode}:\n{self.log[-4000:]}"
+
+
+# The reference mission's start, readiness and end, s (it starts while other tests run).
+UP_TIMEOUT_S = 300.0
+END_TIMEOUT_S = 600.0
+
+
+def run_reference(folder):
+    """Run the reference mission in `folder` (readable by the unprivileged nodes) to its end."""
+    import pathlib
+
+    folder = pathlib.Path(folder)
+    fleet_file = write_reference_fleet(str(folder))
+    out = folder / "reference"
+    bag = str(out / "mission.bag")  # in the mission folder: the recorder runs unprivileged too
+    run = ReferenceRun(out=out, fleet_file=fleet_file, bag=bag)
+    run.mission = Mission(out, demo_args(fleet_file, bag), program=DEMO)
+    try:
+        with run.mission:
+            run.mission.wait_until_up(UP_TIMEOUT_S)
+            run.observed = observe_while_up(run.mission)
+            run.returncode = run.mission.wait(END_TIMEOUT_S)
+    except Exception as exc:  # noqa: BLE001 - kept, and raised in every test that needs the mission
+        run.error = f"the reference mission failed: {type(exc).__name__}: {exc}"
+    run.returncode = run.mission.returncode
+    run.log = run.mission.log()
+    run.leftovers = run.mission.leftovers()
+    return run
+
+
+# What of the reference mission's folder `make test` keeps (in out/test/reference): its log, report,
+# verdict, scores, CSVs and pictures; not the map, the bag or the node logs' bulk.
+KEPT_SUFFIXES = (".log", ".md", ".json", ".csv", ".png", ".yaml")
+KEPT_MAX_BYTES = 5_000_000
+
+
+def keep_for_reading(folder, destination):
+    """Copy the small files of a reference mission's folder to `destination` (replacing it)."""
+    import shutil
+
+    shutil.rmtree(destination, ignore_errors=True)
+    for root, _dirs, files in os.walk(folder):
+        for name in files:
+            path = os.path.join(root, name)
+            if name.endswith(KEPT_SUFFIXES) and os.path.getsize(path) <= KEPT_MAX_BYTES:
+                target = os.path.join(destination, os.path.relpath(path, folder))
+                os.makedirs(os.path.dirname(target), exist_ok=True)
+                shutil.copy(path, target)
