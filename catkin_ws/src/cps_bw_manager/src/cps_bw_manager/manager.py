@@ -1109,28 +1109,7 @@ def allocation_csv_rows(stamp_s, available_mbps, result, mission_states, target=
             f"{bandwidth:.4f}",
             f"{share:.2f}",
             int(degraded),
-            stream,
-            level,
-            level_name,
-            target_level,
-            target_rate,
-            bound,
-            cpu,
+            *stream_level_target_bound_cpu,
         )
-        for (
-            robot,
-            priority,
-            rate,
-            size,
-            bandwidth,
-            share,
-            degraded,
-            stream,
-            level,
-            level_name,
-            target_level,
-            target_rate,
-            bound,
-            cpu,
-        ) in items
+        for (robot, priority, rate, size, bandwidth, share, degraded, *stream_level_target_bound_cpu) in items
     ]
