@@ -148,8 +148,6 @@ def in_force_allocation(result, demands, setpoints: SetpointFilter, copies=1):
     and rate (bandwidth and share at that level's size, every copy counted; a cloud's no more than
     its maximum: a limiter's slack above what its sensor produces is not use, and the backfill
     takes what the allocation leaves), the others as allocated."""
-    import dataclasses
-
     budget = result.budget_mbytes_per_s
     streams = []
     for a in result.streams:
