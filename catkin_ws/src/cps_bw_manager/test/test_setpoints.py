@@ -54,10 +54,10 @@ def test_at_most_one_setpoint_per_stream_per_interval_under_any_rate_noise():
     assert gaps and min(gaps) >= 5.0
 
 
-def test_a_level_change_an_off_video_and_a_broken_rule_go_out_at_once():
+def test_a_coarser_level_an_off_video_and_a_broken_rule_go_out_at_once():
     f = SetpointFilter(min_interval_s=5.0)
     f.decide(0.0, {CLOUD: Target(1, 5.0), VIDEO: Target(2, 5.0)})
-    out = _sent(f.decide(0.5, {CLOUD: Target(0, 5.0), VIDEO: Target(2, 0.0)}))
+    out = _sent(f.decide(0.5, {CLOUD: Target(2, 5.0), VIDEO: Target(2, 0.0)}))
     assert out[CLOUD].reason == LEVEL and out[CLOUD].level_changed and not out[CLOUD].rate_changed
     assert out[VIDEO].reason == ON_OFF and out[VIDEO].rate_hz == 0.0
     # the operator selects the robot: 15 Hz guaranteed, 0.5 s later
@@ -97,3 +97,30 @@ def test_while_the_link_is_idle_a_lower_rate_waits_and_a_higher_one_goes():
     assert not f.decide(10.0, {CLOUD: Target(1, 0.6)}, link_idle=True)  # nobody needs what it frees
     assert _sent(f.decide(20.0, {CLOUD: Target(1, 2.0)}, link_idle=True))[CLOUD].rate_hz == 2.0
     assert _sent(f.decide(30.0, {CLOUD: Target(1, 0.6)}, link_idle=False))[CLOUD].reason == CHANGE
+
+
+def test_a_finer_level_waits_the_interval_after_the_last_level_change_and_never_flaps():
+    """Live at 16 robots a cloud went 1, 0, 1, 0, 1 within 10 s (three changes in 200 ms): shedding
+    detail goes out at once, buying it back waits min_interval_s after the stream's last level change."""
+    f = SetpointFilter(min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(1, 5.0)})
+    assert not f.decide(1.0, {CLOUD: Target(0, 5.0)})  # finer, 1 s after the first setpoint
+    assert _sent(f.decide(3.0, {CLOUD: Target(2, 5.0)}))[CLOUD].reason == LEVEL  # coarser: at once
+    levels = []
+    for k in range(40):  # 20 s of a target flipping between two leaves at every update
+        out = _sent(f.decide(3.5 + 0.5 * k, {CLOUD: Target(1 + k % 2, 5.0)}))
+        levels += [(3.5 + 0.5 * k, out[CLOUD].level)] if CLOUD in out else []
+    finer = [t for (t, level), (_, before) in zip(levels, [(3.0, 2)] + levels) if level < before]
+    assert finer and min(b - a for a, b in zip([3.0] + finer, finer)) >= 5.0
+    assert f.in_force(CLOUD)[0] in (1, 2)
+    # a broken rule takes the finer level at once
+    g = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    g.decide(0.0, {CLOUD: Target(1, 5.0)})
+    g.decide(5.0, {CLOUD: Target(2, 5.0)})
+    change = _sent(g.decide(6.0, {CLOUD: Target(1, 5.0, min_rate_hz=8.0)}))[CLOUD]
+    assert change.reason == LEVEL and change.level == 1  # a rule needs it: at once
+    h = SetpointFilter(min_interval_s=5.0)
+    h.decide(0.0, {VIDEO: Target(1, 5.0)})
+    h.decide(8.0, {VIDEO: Target(2, 5.0)})
+    change = _sent(h.decide(10.0, {VIDEO: Target(1, 0.0)}))[VIDEO]  # turned off while a finer level waits
+    assert change.reason == ON_OFF and change.level == 2 and not change.level_changed

@@ -5,8 +5,11 @@ differ from the last one by noise (a size measured 3 % larger, an input rate 1.6
 1.5 Hz). Every setpoint crosses the link, wakes the robot's encoder and is echoed by its status,
 on the robots' saturated CPU: so a stream's setpoint is sent only when it matters.
 
-- a stream's first setpoint, a level change, a video turned off or on, and a rate below what the
+- a stream's first setpoint, a coarser level, a video turned off or on, and a rate below what the
   stream's rules guarantee (an operator's video, a floor) go out at once;
+- a finer level waits `min_interval_s` after the stream's last level change (unless a rule needs it
+  now): the allocator's choice of detail follows a noisy CPU estimate, and live at 16 robots a cloud
+  flipped between two leaves three times in 200 ms. Shedding detail is never delayed;
 - otherwise a rate goes out only if it left the deadband around the rate in force
   (|target - sent| > `rate_deadband` x sent: hysteresis), and at most once per `min_interval_s`
   per stream; while the link is idle (no stream's rate is held back by the budget) a lower rate
@@ -62,6 +65,7 @@ class SetpointFilter:
         self.rate_deadband = float(rate_deadband)
         self.min_interval_s = float(min_interval_s)
         self._sent: Dict[Tuple[str, str], Tuple[int, float, float]] = {}  # key -> (level, rate, at s)
+        self._level_at: Dict[Tuple[str, str], float] = {}  # key -> when its level last changed, s
         self.sent_count = 0
 
     def in_force(self, key) -> Optional[Tuple[int, float]]:
@@ -72,6 +76,7 @@ class SetpointFilter:
     def forget(self, key):
         """Send the stream's next setpoint as its first (its encoder restarted)."""
         self._sent.pop(key, None)
+        self._level_at.pop(key, None)
 
     def decide(self, now_s, targets: Mapping[Tuple[str, str], Target], budget_mbytes_per_s=math.inf, link_idle=False):
         """The setpoints to send now, per robot: {robot: [Change, ...]} (robots with none absent).
@@ -96,6 +101,8 @@ class SetpointFilter:
         out: Dict[str, List[Change]] = {}
         for key, change in changes.items():
             self._sent[key] = (change.level, change.rate_hz, float(now_s))
+            if change.level_changed:
+                self._level_at[key] = float(now_s)
             self.sent_count += 1
             out.setdefault(key[0], []).append(change)
         return out
@@ -105,11 +112,12 @@ class SetpointFilter:
         if sent is None:
             return FIRST
         level, rate, at_s = sent
-        if t.level != level:
+        broken_rule = rate < t.min_rate_hz * (1 - 1e-9)
+        if t.level > level or (t.level < level and (broken_rule or self._level_settled(key, now_s))):
             return LEVEL
         if (rate == 0.0) != (t.rate_hz == 0.0):
             return ON_OFF
-        if rate < t.min_rate_hz * (1 - 1e-9):
+        if broken_rule:
             return RULE
         if link_idle and t.rate_hz < rate:
             return ""
@@ -117,8 +125,14 @@ class SetpointFilter:
             return CHANGE
         return ""
 
+    def _level_settled(self, key, now_s):
+        """True when the stream's level last changed at least `min_interval_s` ago."""
+        return now_s - self._level_at.get(key, -math.inf) >= self.min_interval_s
+
     def _change(self, key, t: Target, reason):
         sent = self._sent.get(key)
+        if reason != LEVEL and sent is not None and t.level < sent[0]:
+            t = dataclasses.replace(t, level=sent[0])  # a finer level still waits (see _reason)
         return Change(
             key=key,
             level=t.level,
