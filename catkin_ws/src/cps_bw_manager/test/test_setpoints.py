@@ -119,6 +119,9 @@ def test_a_finer_level_waits_the_interval_after_the_last_level_change_and_never_
     g.decide(5.0, {CLOUD: Target(2, 5.0)})
     change = _sent(g.decide(6.0, {CLOUD: Target(1, 5.0, min_rate_hz=8.0)}))[CLOUD]
     assert change.reason == LEVEL and change.level == 1  # a rule needs it: at once
+    g.decide(7.0, {VIDEO: Target(2, 5.0)})  # the video's first setpoint
+    assert not g.decide(7.5, {VIDEO: Target(1, 5.0)})  # finer: waits
+    assert _sent(g.decide(8.0, {VIDEO: Target(1, 5.0, operator=True)}))[VIDEO].reason == LEVEL  # selected: at once
     h = SetpointFilter(min_interval_s=5.0)
     h.decide(0.0, {VIDEO: Target(1, 5.0)})
     h.decide(8.0, {VIDEO: Target(2, 5.0)})

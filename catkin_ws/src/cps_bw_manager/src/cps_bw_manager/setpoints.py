@@ -7,9 +7,10 @@ on the robots' saturated CPU: so a stream's setpoint is sent only when it matter
 
 - a stream's first setpoint, a coarser level, a video turned off or on, and a rate below what the
   stream's rules guarantee (an operator's video, a floor) go out at once;
-- a finer level waits `min_interval_s` after the stream's last level change (unless a rule needs it
-  now): the allocator's choice of detail follows a noisy CPU estimate, and live at 16 robots a cloud
-  flipped between two leaves three times in 200 ms. Shedding detail is never delayed;
+- a finer level waits `min_interval_s` after the stream's last level change, unless a rule needs
+  it now (its rate in force is below what its rules guarantee, or it is the operator's video): the
+  allocator's choice of detail follows a noisy CPU estimate, and live at 16 robots a cloud flipped
+  between two leaves three times in 200 ms. Shedding detail is never delayed;
 - otherwise a rate goes out only if it left the deadband around the rate in force
   (|target - sent| > `rate_deadband` x sent: hysteresis), and at most once per `min_interval_s`
   per stream; while the link is idle (no stream's rate is held back by the budget) a lower rate
@@ -25,6 +26,8 @@ changes together.
 import dataclasses
 import math
 from typing import Dict, List, Mapping, Optional, Tuple
+
+from cps_bw_manager.level_allocation import OPERATOR_VIDEO
 
 DEFAULT_RATE_DEADBAND = 0.2
 DEFAULT_MIN_INTERVAL_S = 5.0
@@ -42,6 +45,7 @@ class Target:
     # The most it can send whatever its rate (a cloud: its sensor's input rate + 10 %); a limiter
     # set above it (slack on an idle link) counts only this much against the budget.
     usable_hz: float = math.inf
+    operator: bool = False  # the operator's video, its guarantee kept: its level goes at once
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,7 +117,7 @@ class SetpointFilter:
             return FIRST
         level, rate, at_s = sent
         broken_rule = rate < t.min_rate_hz * (1 - 1e-9)
-        if t.level > level or (t.level < level and (broken_rule or self._level_settled(key, now_s))):
+        if t.level > level or (t.level < level and (broken_rule or t.operator or self._level_settled(key, now_s))):
             return LEVEL
         if (rate == 0.0) != (t.rate_hz == 0.0):
             return ON_OFF
@@ -153,7 +157,10 @@ def targets_of(result, demands, rates=None):
         d = demands.get(a.key)
         size = d.level_bytes[a.level] if d is not None else a.message_bytes
         usable = a.max_rate_hz if a.stream == "cloud" else math.inf
-        out[a.key] = Target(a.level, rates.get(a.key, a.rate_hz), a.min_rate_hz, size, max(usable, a.rate_hz))
+        operator = d is not None and d.guarantee == OPERATOR_VIDEO and a.guarantee_kept
+        out[a.key] = Target(
+            a.level, rates.get(a.key, a.rate_hz), a.min_rate_hz, size, max(usable, a.rate_hz), operator=operator
+        )
     return out
 
 
