@@ -243,9 +243,12 @@ def plot(saved, path):
     for key, sweep_ in sorted(saved.items()):
         rows = sorted(sweep_["rows"], key=lambda r: r["robots"])
         n = [r["robots"] for r in rows]
-        line = ax_rate.plot(n, [r["inserted_clouds_per_s"] for r in rows], "o-", label=f"{key} CPU inserted")[0]
+        name = f"{sweep_['profile']}, {sweep_['twin_cpus']} twin CPU" + (
+            f", receive nice {sweep_['receive_nice']}" if sweep_.get("receive_nice") is not None else ""
+        )
+        line = ax_rate.plot(n, [r["inserted_clouds_per_s"] for r in rows], "o-", label=f"{name}: inserted")[0]
         ax_rate.plot(n, [r["offered_clouds_per_s"] for r in rows], ":", color=line.get_color(), alpha=0.6)
-        ax_age.plot(n, [r["age_p95_s"] for r in rows], "o-", color=line.get_color(), label=f"{key} CPU p95")
+        ax_age.plot(n, [r["age_p95_s"] for r in rows], "o-", color=line.get_color(), label=f"{name}: p95")
         ax_age.plot(n, [r["age_bar_s"] for r in rows], "--", color=line.get_color(), alpha=0.5)
     ax_rate.set(xscale="log", xlabel="replayed robots N", ylabel="clouds/s", title="inserted (offered dotted)")
     ax_age.set(xscale="log", yscale="log", xlabel="replayed robots N", ylabel="map age p95 s")
