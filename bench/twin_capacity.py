@@ -240,7 +240,7 @@ def plot(saved, path):
     import matplotlib.pyplot as plt
 
     fig, (ax_rate, ax_age) = plt.subplots(1, 2, figsize=(12, 4.5))
-    for key, sweep_ in sorted(saved.items()):
+    for _key, sweep_ in sorted(saved.items()):
         rows = sorted(sweep_["rows"], key=lambda r: r["robots"])
         n = [r["robots"] for r in rows]
         name = f"{sweep_['profile']}, {sweep_['twin_cpus']} twin CPU" + (
