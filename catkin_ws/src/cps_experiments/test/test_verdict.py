@@ -13,6 +13,7 @@ import pytest
 from mission_files import T0, event, mission
 
 from cps_experiments.demo import report_verdict
+from cps_experiments.run_files import read_rows
 from cps_experiments.verdict import (
     DEMO_FILES,
     FAIL,
@@ -20,7 +21,6 @@ from cps_experiments.verdict import (
     MAP_AGE_COLUMNS,
     PASS,
     judge,
-    read_rows,
     read_verdict,
     write_verdict,
 )

@@ -22,6 +22,7 @@ from collections import defaultdict
 from typing import Dict, List, Optional
 
 from cps_experiments.markdown import csv_float, markdown_table
+from cps_experiments.run_files import read_rows
 from cps_fleet import names
 from cps_ros import cloud_ledger as C
 
@@ -46,8 +47,6 @@ MAP_SERVER_CUMULATIVE = (
 
 
 def _read(path):
-    from cps_experiments.verdict import read_rows
-
     return read_rows(path)[0] if os.path.isfile(path) else None
 
 
