@@ -21,6 +21,7 @@ import os
 from collections import defaultdict
 from typing import Dict, List, Optional
 
+from cps_bringup.mission import MAP_SERVER_COUNTERS
 from cps_experiments.markdown import csv_float, markdown_table
 from cps_experiments.run_files import read_rows
 from cps_fleet import names
@@ -33,17 +34,11 @@ MAP_AGE_CSV = "map_age.csv"
 GAUGES = (C.BACKFILL_WAITING,)
 # Counters are reported once a second: a hop may have this much of a robot's clouds on the way.
 ALLOWED_UNSEEN_S = 2.0
-# The map server's counters in map_age.csv (cps_bringup.mission.MAP_SERVER_COUNTERS) that only grow.
-MAP_SERVER_CUMULATIVE = (
-    "clouds_received",
-    "clouds_inserted",
-    "clouds_superseded",
-    "clouds_dropped_queue",
-    "clouds_dropped_tf",
-    "clouds_dropped_invalid",
-    "clouds_dropped_decoder",
-    "clouds_missed_upstream",
-)
+# The map server's queue length in map_age.csv: a gauge, its last value counts.
+MAP_SERVER_QUEUE = "queue_length"
+# The map server's counters in map_age.csv that only grow: the clouds inserted (a column of its own
+# there) and every counter but the queue's length.
+MAP_SERVER_CUMULATIVE = ("clouds_inserted",) + tuple(c for c in MAP_SERVER_COUNTERS if c != MAP_SERVER_QUEUE)
 
 
 def _read(path):
@@ -130,13 +125,13 @@ def map_server_counters(map_age_rows) -> Dict[str, Dict[str, float]]:
     for row in sorted(map_age_rows or [], key=lambda r: csv_float(r.get("time_s"))):
         if not row.get("robot") or row.get("mission_state") in ("start", "end"):
             continue
-        for name in MAP_SERVER_CUMULATIVE + ("queue_length",):
+        for name in MAP_SERVER_CUMULATIVE + (MAP_SERVER_QUEUE,):
             value = csv_float(row.get(name))
             if name in row and math.isfinite(value):
                 series[row["robot"]][name].append(value)
     return {
         robot: {
-            name: (values[-1] if name == "queue_length" else cumulative(values)) for name, values in counters.items()
+            name: (values[-1] if name == MAP_SERVER_QUEUE else cumulative(values)) for name, values in counters.items()
         }
         for robot, counters in series.items()
     }
@@ -367,7 +362,7 @@ def robot_ledger(robot, counters, map_server, duration_s, stats_captured=None, s
         ends = [
             (INSERTED, ms.get("clouds_inserted", 0.0)),
             (SUPERSEDED, ms.get("clouds_superseded", 0.0)),
-            (WAITING, ms.get("queue_length", 0.0)),
+            (WAITING, ms.get(MAP_SERVER_QUEUE, 0.0)),
         ]
         led.ends = [(what, int(n)) for what, n in ends if n or what == INSERTED] + led.ends
         b.internal(
