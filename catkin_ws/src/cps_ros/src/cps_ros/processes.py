@@ -219,13 +219,20 @@ class RosGraph:
         return self.popen(argv, name=name or node, env=env)
 
     def output(self, name):
-        """The captured output of the processes called `name` so far."""
+        """The captured output of the processes called `name` so far (every one of that name this
+        graph started, restarted ones included: `output_of` reads one)."""
         texts = []
         for proc in self.processes:
             if proc.cps_name == name and os.path.exists(proc.cps_log):
                 with open(proc.cps_log, "rb") as stream:
                     texts.append(stream.read().decode(errors="replace"))
         return "\n".join(texts)
+
+    @staticmethod
+    def output_of(proc):
+        """The captured output of the one process `proc` (started by a RosGraph) so far."""
+        with open(proc.cps_log, "rb") as stream:
+            return stream.read().decode(errors="replace")
 
     def published_topics(self):
         import rosgraph
