@@ -2,6 +2,7 @@
 cumulative counters, bad and out-of-order reports refused and counted, round trips, socket queues."""
 
 import json
+import math
 
 import pytest
 
@@ -143,6 +144,7 @@ def test_the_link_sockets_tcp_payload_counts_and_rtt_from_tcp_info_stay_monotone
     server.listen()
     port = server.getsockname()[1]
     sender, receiver = LinkSockets(remote_port=port), LinkSockets(local_port=port)
+    assert math.isnan(sender.read_s)  # no read yet: no instant its counters are true of
     totals = []
     for _ in range(2):  # a connection, then a reconnection
         client = socket.create_connection(("127.0.0.1", port))
@@ -152,7 +154,10 @@ def test_the_link_sockets_tcp_payload_counts_and_rtt_from_tcp_info_stay_monotone
         while got < 50_000:
             got += len(accepted.recv(65536))
         time.sleep(0.05)
+        before_s = time.monotonic()
         infos = sender.read()
+        # the instant of TCP_INFO's counters, which the robots' report is stamped with
+        assert before_s <= sender.read_s <= time.monotonic()
         assert len(infos) == 1 and infos[0].rtt_us > 0 and infos[0].bytes_acked >= 50_000
         receiver.read()
         totals.append((sender.totals()["bytes_new"], receiver.totals()["bytes_received"]))

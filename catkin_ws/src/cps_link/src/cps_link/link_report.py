@@ -18,6 +18,7 @@ import math
 import os
 import socket
 import struct
+import time
 from typing import List, Optional, Sequence
 
 REPORT_VERSION = 1
@@ -363,6 +364,11 @@ class LinkSockets:
         self._fds = {}  # inode -> fd in this process
         self._last = {}  # inode -> TcpInfo at the last read
         self._base = {"bytes_new": 0, "bytes_acked": 0, "bytes_received": 0}
+        # the monotonic s at which the last read's TCP_INFO were taken (NaN before one): the
+        # instant its byte counters are true of, so an interval between two reads is measured
+        # from these, not from when the caller began (the robots' report was stamped before it
+        # took the bridge's lock: up to 38 ms early live)
+        self.read_s = math.nan
 
     def _fd_of(self, inode):
         if inode in self._fds:
@@ -387,6 +393,7 @@ class LinkSockets:
             info = _tcp_info_of(fd) if fd is not None else None
             if info is None:
                 continue
+            self.read_s = time.monotonic()
             seen.add(inode)
             out.append(info)
             self._last[inode] = info
