@@ -49,7 +49,8 @@ def test_bytes_over_each_sides_interval_become_the_estimators_rates():
     for i in range(2, 5):
         _feed(core, 0.5 * i + 1.0, 5.0, 40.0, app_limited=True)
     assert core.estimator.overuses >= 1 and core.estimator.capacity_mbps == pytest.approx(5.0)
-    assert core.available_mbps == pytest.approx(0.85 * 5.0)
+    # the queue drains at the pacer (0.85 x); the fleet is allotted the capacity meanwhile
+    assert core.pacing_mbps == pytest.approx(0.85 * 5.0) and core.available_mbps == pytest.approx(5.0)
 
 
 def test_the_measured_unmanaged_traffic_is_kept_out_of_the_budget():
@@ -146,7 +147,7 @@ def test_a_sender_blocked_by_the_link_shows_its_capacity_without_a_deficit():
     assert core.estimator.overuses == 0 and core.estimator.capacity_mbps == 60.0
     _feed(core, 1.5, 4.5, 4.5, sender_blocked_s=0.4)
     assert core.estimator.overuses == 1 and core.estimator.capacity_mbps == pytest.approx(4.5)
-    assert core.available_mbps == pytest.approx(0.85 * 4.5)
+    assert core.pacing_mbps == pytest.approx(0.85 * 4.5) and core.available_mbps == pytest.approx(4.5)
     # blocked again while probing at 1.2 x: it delivered the capacity, which is no news
     core.estimator.mode = "cruise"
     _feed(core, 6.0, 4.5, 4.5, sender_blocked_s=0.45)
@@ -207,7 +208,8 @@ def test_live_options_a_step_drains_its_queue_at_0_6():
     # 20 -> 5: the sender waited for the link most of the interval: a step, measured on it
     _feed(core, 1.0, 5.0, 5.0, sender_blocked_s=0.4)
     assert core.estimator.capacity_mbps == pytest.approx(5.0) and core.estimator.last_overuse == "link_full"
-    assert core.available_mbps == pytest.approx(0.6 * 5.0) and core.estimator.mode == "drain"
+    assert core.pacing_mbps == pytest.approx(0.6 * 5.0) and core.estimator.mode == "drain"
+    assert core.available_mbps == pytest.approx(5.0)  # a drain is the pacer's, not the fleet's
 
 
 def test_live_options_a_probe_waits_for_the_fleet_and_a_refused_one_drains():
@@ -219,7 +221,8 @@ def test_live_options_a_probe_waits_for_the_fleet_and_a_refused_one_drains():
     _feed(core, 1.5, 10.0, 10.0)
     assert est.mode == "probe"
     _feed(core, 2.0, 10.0, 10.6)  # filled, and the link delivered no more: refused
-    assert est.mode == "drain" and core.available_mbps == pytest.approx(0.85 * 10.0)
+    assert est.mode == "drain" and core.pacing_mbps == pytest.approx(0.85 * 10.0)
+    assert core.available_mbps == pytest.approx(10.0)
     t = 2.0
     while est.mode != "probe":  # drained, then (3 s later, backed off) the next probe
         t += 0.5
@@ -318,3 +321,65 @@ def test_refused_probes_back_off_and_a_kept_one_resets_the_wait():
     t, starts = run(t, 24.0, link_mbps=30.0, fill=1.15)  # the link grew: probes are kept and come quickly
     # kept probes come back to back (each doubles the next): found within a few seconds
     assert est.capacity_mbps == pytest.approx(30.0, rel=0.15) and starts[0] - 12.0 <= 3.0
+
+
+def test_a_drain_takes_its_delivered_rate_for_the_link_only_if_the_socket_stayed_full():
+    """After a step the drain's first interval corrects the capacity to what the link delivered
+    only when the robots' socket was full over (nearly) all of it: a queue that emptied inside the
+    interval left part of it idle (live, a 20 Mbit/s link read 14.1 Mbit/s so)."""
+    kbytes = 1000
+
+    def step_then_drain(drain_socket_full):
+        core = _live_core(initial=25.0)
+        est = core.estimator
+
+        def report(t, acked_kbytes, sent_kbytes, full, rtt_s):
+            core.on_bridge_report(
+                t,
+                0.5,
+                0.5,
+                acked_kbytes * kbytes,
+                0,
+                sent_kbytes * kbytes,
+                False,
+                rtt_s=(rtt_s,),
+                sent_link_bytes=sent_kbytes * kbytes,
+                acked_link_bytes=acked_kbytes * kbytes,
+                sender_socket_full=full,
+            )
+
+        report(0.5, 1250, 1250, 0.0, 0.005)  # 20 Mbit/s delivered, the link not yet full
+        # the link is 20 Mbit/s (1250 kB per 0.5 s) and the estimate 25: its socket full all along
+        report(1.0, 1250, 1560, 1.0, 0.06)
+        assert est.last_overuse == "link_full" and est.mode == "drain"
+        cut = est.capacity_mbps
+        # the drain's first interval: the queue served (more delivered than sent), still queueing
+        # by the RTT; the link idle for part of it when the socket was not full all along
+        report(1.5, 900, 700, drain_socket_full, 0.08)
+        return cut, est.capacity_mbps
+
+    cut, after = step_then_drain(drain_socket_full=0.4)
+    assert after == pytest.approx(cut)  # a part-empty interval is not the link's rate
+    cut, after = step_then_drain(drain_socket_full=1.0)
+    assert after == pytest.approx(900 * kbytes * 8e-6 / 0.5)  # full throughout: it is
+
+
+def test_a_refused_probes_own_queue_does_not_cut_the_capacity_measured_before_it():
+    """Live (test_over_link): a probe to 25.3 on a 19.1 Mbit/s link was filled (26.3 sent, 19.3
+    acked) and refused; its deficit, still in the merged window on the next report, was taken for
+    a new overuse and cut the capacity to 16.3. The refusal acts on it: the capacity stays."""
+    from cps_bw_manager.estimation import LINK_REPORT_OPTIONS, LinkReport
+
+    est = DeliveryRateEstimator(19.1, line_rate_mbps=60.0, **LINK_REPORT_OPTIONS)
+    t = 0.0
+    while est.mode != "probe":  # the fleet wants more: the probe comes
+        t += 0.5
+        est.update(LinkReport(t, 0.5, 13.0, 13.0, app_limited=False, rtt_s=(0.002,), link_busy=False))
+    t += 0.5
+    est.update(LinkReport(t, 0.5, 8.0, 8.0, app_limited=False, rtt_s=(0.002,), link_busy=False))  # not filled yet
+    t += 0.5
+    est.update(LinkReport(t, 0.5, 19.3, 26.3, app_limited=False, rtt_s=(0.005,), link_busy=True))  # filled: refused
+    assert est.mode == "drain" and est.overuses == 0
+    t += 0.5
+    est.update(LinkReport(t, 0.5, 17.4, 14.6, app_limited=False, rtt_s=(0.04,), link_busy=True))  # its queue drains
+    assert est.overuses == 0 and est.capacity_mbps == pytest.approx(19.1)

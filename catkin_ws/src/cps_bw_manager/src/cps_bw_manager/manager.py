@@ -298,6 +298,8 @@ class ManagerCore:
         self._now_s = -math.inf
         self.last_demands: Dict[tuple, StreamDemand] = {}
         self.last_allocation: Optional[LevelAllocation] = None
+        # the robots' bridge reports the link (on_bridge_report), so it paces at pacing_mbps
+        self.bridge_paces = False
         # (report s, Mbit/s) of traffic outside the managed streams, from the bridge's link reports
         self._unmanaged = []
         self.last_spare: Dict[str, float] = {}
@@ -332,11 +334,25 @@ class ManagerCore:
 
     @property
     def available_mbps(self):
-        """The capacity the budget is made from: the estimate (if on), else the announced
-        capacity, else the configured one."""
+        """The capacity the budget is made from: the estimate (if on; the capacity while a queue
+        drains, where the robots' bridge paces), else the announced capacity, else the configured
+        one."""
         if self.estimator:
-            return self.estimator.estimate_mbps
+            # a drain is the robots' bridge's pacer's where it reports the link (and so paces at
+            # pacing_mbps); without it (over TCPROS) only the fleet's rates can drain a queue
+            return self.estimator.allocation_mbps if self.bridge_paces else self.estimator.estimate_mbps
         return self.announced_mbps if _positive(self.announced_mbps) else self.settings.available_mbps
+
+    @property
+    def probing(self):
+        """True while the link's estimator probes above its capacity (its raises must reach the fleet)."""
+        return bool(self.estimator) and self.estimator.mode == "probe"
+
+    @property
+    def pacing_mbps(self):
+        """The rate the robots' bridge paces what it sends at: the estimate (below the capacity
+        while a queue drains, above it while probing), else available_mbps."""
+        return self.estimator.estimate_mbps if self.estimator else self.available_mbps
 
     @property
     def capacity_source(self):
@@ -757,13 +773,15 @@ class ManagerCore:
 
     def on_link_report(self, report: LinkReport):
         """Feed the estimator (if on) one full link report (the bridge's telemetry; see
-        docs/bandwidth_manager.md); returns True if the available bandwidth moved by > 5 %.
+        docs/bandwidth_manager.md); returns True if the available bandwidth or the pacing rate
+        moved by > 5 %.
         Not fed while the link is down: an outage says nothing about the capacity."""
         if not self.estimator or self.paused:
             return False
-        before = self.estimator.estimate_mbps
-        after = self.estimator.update(report)
-        return abs(after - before) > 0.05 * before
+        before = (self.available_mbps, self.pacing_mbps)
+        self.estimator.update(report)
+        after = (self.available_mbps, self.pacing_mbps)
+        return any(abs(a - b) > 0.05 * b for a, b in zip(after, before))
 
     def allocation_binds(self):
         """True when the last allocation held some stream below what it wants (a rate under its
@@ -841,6 +859,7 @@ class ManagerCore:
             return n_bytes * 8e-6 / seconds if _finite(n_bytes) and _finite(seconds) and seconds != 0 else math.nan
 
         self._now_s = max(self._now_s, now_s) if _finite(now_s) else self._now_s
+        self.bridge_paces = True
         unmanaged = mbps(unmanaged_bytes, interval_s)
         low, high = REPORT_INTERVAL_BOUNDS_S
         if _finite(unmanaged) and unmanaged >= 0 and _finite(interval_s) and low <= interval_s <= high:

@@ -489,7 +489,7 @@ class BandwidthManagerNode:
                 rospy.logerr_throttle(5.0, f"bandwidth manager: cannot allocate: {exc}")
                 return
             self.last_result = target
-            available = self.core.available_mbps
+            available, pacing = self.core.available_mbps, self.core.pacing_mbps
             states = {r: self.core.book.mission_state(r) for r in self.core.robots}
             changes = {}
             if not paused:
@@ -500,7 +500,11 @@ class BandwidthManagerNode:
                     if self.core.reported(*key)
                 }
                 changes = self.setpoints.decide(
-                    now_s, targets, target.budget_mbytes_per_s / copies, link_idle=not target.link_binds
+                    now_s,
+                    targets,
+                    target.budget_mbytes_per_s / copies,
+                    link_idle=not target.link_binds,
+                    probing=self.core.probing,
                 )
             result = in_force_allocation(
                 target, self.core.last_demands, self.setpoints, self.core.settings.copies_on_link
@@ -515,6 +519,7 @@ class BandwidthManagerNode:
         msg = BandwidthAllocationArray()
         msg.header.stamp = rospy.Time.now()
         msg.available_mbps = available
+        msg.pacing_mbps = pacing
         msg.reserve_fraction = self.core.settings.reserve_fraction
         msg.budget_mbytes_per_s = result.budget_mbytes_per_s
         msg.allocated_mbytes_per_s = result.allocated_mbytes_per_s

@@ -470,10 +470,12 @@ class ZenohBridge:
             return pose
 
     def _on_allocation(self, allocation):
-        """The manager's allocation: the send queue paces at the capacity it allocates from (its
-        estimate of the link: every byte counts), the backfill at what it leaves unused."""
+        """The manager's allocation: the send queue paces at its pacing rate (its estimate of the
+        link: every byte counts; below the capacity it allocates from while a queue drains), else
+        at that capacity; the backfill at what it leaves unused."""
         now = time.monotonic()
-        mbps = allocation.available_mbps
+        pacing = allocation.pacing_mbps
+        mbps = pacing if math.isfinite(pacing) and pacing > 0 else allocation.available_mbps
         self.queue.set_rate(mbps * 1e6 / 8.0 if math.isfinite(mbps) and mbps > 0 else None, now)
         if self.store is not None:
             self.pacer.set_rate(
