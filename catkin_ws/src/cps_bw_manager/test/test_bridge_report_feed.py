@@ -383,3 +383,22 @@ def test_a_refused_probes_own_queue_does_not_cut_the_capacity_measured_before_it
     t += 0.5
     est.update(LinkReport(t, 0.5, 17.4, 14.6, app_limited=False, rtt_s=(0.04,), link_busy=True))  # its queue drains
     assert est.overuses == 0 and est.capacity_mbps == pytest.approx(19.1)
+
+
+def test_a_probe_the_fleet_is_still_ramping_into_goes_on_until_it_proves_the_link():
+    """Live after 20 -> 60 Mbit/s: a probe to 25.4 from 19.3 ended on its first interval with the
+    fleet at 20.6 (1.07 x) and all of it delivered, proving nothing, three times in a row. It goes
+    on while the link carries all the fleet sends, and is kept once that reaches 1.1 x."""
+    from cps_bw_manager.estimation import LINK_REPORT_OPTIONS, LinkReport
+
+    est = DeliveryRateEstimator(19.3, line_rate_mbps=60.0, **LINK_REPORT_OPTIONS)
+    t = 0.0
+    while est.mode != "probe":
+        t += 0.5
+        est.update(LinkReport(t, 0.5, 16.5, 16.5, app_limited=False, rtt_s=(0.002,), link_busy=False))
+    t += 0.5
+    est.update(LinkReport(t, 0.5, 20.6, 20.6, app_limited=False, rtt_s=(0.002,), link_busy=False))
+    assert est.mode == "probe"  # still ramping: not over
+    t += 0.5
+    est.update(LinkReport(t, 0.5, 21.8, 21.8, app_limited=False, rtt_s=(0.002,), link_busy=False))
+    assert est.capacity_mbps > 19.3 and est.estimate_mbps >= 2.0 * 19.3  # kept: the next doubles

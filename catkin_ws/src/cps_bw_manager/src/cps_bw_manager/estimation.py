@@ -463,11 +463,17 @@ class DeliveryRateEstimator:
                 and delivered >= 0.97 * sent
             )
         probed_s = now - self._mode_since_s
-        unfilled = not math.isnan(sent) and sent < 1.05 * self._capacity_before_probe_mbps
+        # Undecided: the fleet has not filled the probe yet, or it sends more and the link carried
+        # all of it but not yet 1.1 x (the fleet is still ramping up: live after 20 -> 60 Mbit/s a
+        # probe ended on its first interval at 1.07 x, refusing nothing and proving nothing, three
+        # times in a row). It goes on until kept, refused or probe_max_s.
+        undecided = not math.isnan(sent) and (
+            sent < 1.05 * self._capacity_before_probe_mbps or delivered >= 0.97 * sent
+        )
         if (
             self.mode == "probe"
             and (kept_up or probed_s >= self.probe_s - 1e-6)
-            and (kept_up or not unfilled or probed_s >= self.probe_max_s - 1e-6)
+            and (kept_up or not undecided or probed_s >= self.probe_max_s - 1e-6)
         ):
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
             if kept_up or app_limited:
