@@ -326,7 +326,7 @@ def test_refused_probes_back_off_and_a_kept_one_resets_the_wait():
 def test_a_drain_takes_its_delivered_rate_for_the_link_only_if_the_socket_stayed_full():
     """After a step the drain's first interval corrects the capacity to what the link delivered
     only when the robots' socket was full over (nearly) all of it: a queue that emptied inside the
-    interval left part of it idle (live, a 20 Mbit/s link read 14.1 Mbit/s so)."""
+    interval left part of it idle, and its delivered rate is below the link's."""
     kbytes = 1000
 
     def step_then_drain(drain_socket_full):
