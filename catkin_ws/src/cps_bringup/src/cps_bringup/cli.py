@@ -375,6 +375,8 @@ def run_mission(args, log=print) -> MissionResult:
                 zenoh_port=None if link or args.twin_address else free_port(),
                 zenoh_command_port=None if link or args.twin_address else free_port(),
             )
+            if link:  # after iperf3: from now on the hosts answer only on the bridges' ports
+                link.guard(_link_ports(options))
         specs = plan_nodes(fleet, sides=sides, options=options)
         if DIGITAL in sides:
             ensure_map_kernels(log)  # before the mission: no node compiles during it
@@ -772,6 +774,14 @@ def _host_split(args, sides):
         return HostSplit.choose(cpus, quota, name=name)
     except HostSplitError as exc:
         raise BringupError(str(exc)) from exc
+
+
+def _link_ports(options):
+    """The twin's bridge ports (both lanes): the options', else bridge.yaml's."""
+    from cps_link.bridge_config import load_bridge_table
+
+    table = load_bridge_table()
+    return (options.zenoh_port or table.endpoint_port, options.zenoh_command_port or table.command_port)
 
 
 @contextlib.contextmanager

@@ -129,6 +129,8 @@ class Observed:
     teleop_active: str = ""  # TELEOP_ROBOT's active mode after the twin asked for teleop
     auto_active: str = ""  # ... and after it asked for auto again
     twin_master_on_link: int = None  # connect_ex to the twin's master at its link address (0 = open)
+    # host (phys|twin) -> its listening ports that a connect from the other host reaches (None over loopback)
+    open_across_link: Dict[str, List[int]] = None
     errors: List[str] = dataclasses.field(default_factory=list)
 
 
@@ -148,6 +150,7 @@ def observe_while_up(mission: Mission) -> Observed:
         "teleop_active": lambda: _switch_mode(mission, "teleop"),
         "auto_active": lambda: _switch_mode(mission, "auto"),
         "twin_master_on_link": lambda: _twin_master_on_link(mission),
+        "open_across_link": lambda: _open_across_link(mission),
     }
     for field, read in readings.items():
         try:
@@ -183,6 +186,27 @@ def _twin_master_on_link(mission):
     port = int(mission.twin_master_uri().rsplit(":", 1)[1])
     code = f"import socket; s=socket.socket(); s.settimeout(2); print(s.connect_ex(('{TWIN_IP}', {port})))"
     return int(mission.on_twin(["python3", "-c", code]).stdout.strip())
+
+
+def _open_across_link(mission):
+    """For each host, which of its listening TCP ports the other host reaches (cps_link.host_guard
+    should leave the twin's bridge ports and nothing else)."""
+    import json
+    import subprocess
+    import sys
+
+    from cps_harness.port_scan import listening_ports, scan_argv
+    from cps_link.netns_link import namespace, side_ip
+
+    link = mission.run_link_name()
+    if link is None:
+        return None
+    found = {}
+    for host, other in (("twin", "phys"), ("phys", "twin")):
+        ports = listening_ports(namespace(link, host))
+        argv = ["ip", "netns", "exec", namespace(link, other), *scan_argv(sys.executable, side_ip(host), ports)]
+        found[host] = json.loads(subprocess.run(argv, check=True, capture_output=True, text=True, timeout=30).stdout)
+    return found
 
 
 @dataclasses.dataclass
