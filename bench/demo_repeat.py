@@ -3,10 +3,10 @@
 
 Each run is the demo exactly as `make demo` runs it (`nodes/demo`, the default fleet and link
 scenario), in its own folder under `--out`. A run *froze* if the demo did not end by itself within
-`--timeout-s` (killed), or if any robot's published map went without an update for longer than
-`FREEZE_S` (map_age.csv's `published_map_age_s`, the age of what the operator sees; the verdict's
-own freshness bar is 3 s, a freeze is the operator's map standing still). Every run's verdict and
-reasons are listed as the report wrote them; nothing is averaged away.
+`--timeout-s` (killed), if it wrote no verdict, or if the verdict found a robot's published map
+(what the operator sees) staler than its 3 s bar for longer than `FREEZE_S`, outside link outages
+as the verdict judges it (a map standing still while the link is cut is the cut, not a freeze).
+Every run's verdict and reasons are listed as the report wrote them; nothing is averaged away.
 
     python bench/demo_repeat.py [--runs 10] [--out out/demo_repeat] [--results docs/results/demo_repeat.md]
 
@@ -14,9 +14,9 @@ Machine-bound (2 cores); run it alone, under the heavy lock.
 """
 
 import argparse
-import csv
 import math
 import os
+import re
 import subprocess
 import sys
 import time
@@ -25,29 +25,23 @@ ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)),
 DEMO = os.path.join(ROOT, "catkin_ws", "src", "cps_experiments", "nodes", "demo")
 # The operator's map standing still this long is a freeze (the verdict's freshness bar is 3 s).
 FREEZE_S = 10.0
+MAP_CHECK = "map published and fresh"  # cps_experiments.verdict's check of the published map's age
 TIMEOUT_S = 900.0
 
 
-def longest_map_age_s(run_dir):
-    """{robot: the largest published map age (s) in map_age.csv}; NaN for a robot never published;
-    {} when the file is missing."""
-    path = os.path.join(run_dir, "map_age.csv")
-    if not os.path.exists(path):
-        return {}
-    ages = {}
-    with open(path, newline="") as stream:
-        for row in csv.DictReader(stream):
-            robot = row.get("robot")
-            if not robot or row.get("mission_state") in ("start", "end"):
-                continue
-            try:
-                age = float(row.get("published_map_age_s", "nan"))
-            except ValueError:
-                age = math.nan
-            ages.setdefault(robot, math.nan)
-            if math.isfinite(age):
-                ages[robot] = age if math.isnan(ages[robot]) else max(ages[robot], age)
-    return ages
+def stale_episodes_s(verdict):
+    """{robot: the longest episode (s) the verdict found a robot's published map staler than its bar
+    (outside link outages, start-up and a done route, as the verdict judges it)}; NaN where the
+    verdict could not tell (a NaN age)."""
+    longest = {}
+    for check in verdict.checks if verdict else []:
+        if check.get("name") != MAP_CHECK or check.get("status") != "FAIL":
+            continue
+        match = re.search(r"up to (NaN|[\d.]+) s", check.get("detail", ""))
+        age = float(match.group(1)) if match else math.nan
+        robot = check.get("robot", "")
+        longest[robot] = age if math.isnan(age) else max(age, longest.get(robot, 0.0))
+    return longest
 
 
 def run_once(run_dir, timeout_s):
@@ -75,22 +69,22 @@ def judge_run(run_dir, code, wall_s):
     from cps_experiments.verdict import read_verdict
 
     verdict = read_verdict(run_dir)
-    ages = longest_map_age_s(run_dir)
-    stale = {r: a for r, a in ages.items() if not (math.isfinite(a) and a <= FREEZE_S)}
+    episodes = stale_episodes_s(verdict)
     freeze = []
     if code is None:
         freeze.append(f"did not end within the timeout (killed after {wall_s:.0f} s)")
-    if not ages:
-        freeze.append("no map_age.csv: the map's age was not recorded")
+    if verdict is None:
+        freeze.append("not judged: no verdict written")
     freeze += [
-        f"{r}'s published map {a:.1f} s old" if math.isfinite(a) else f"{r}'s map never published"
-        for r, a in stale.items()
+        f"{r}'s published map {a:.1f} s old" if math.isfinite(a) else f"{r}'s map age unknown (NaN)"
+        for r, a in episodes.items()
+        if not (math.isfinite(a) and a <= FREEZE_S)
     ]
     return {
         "status": verdict.status if verdict else "INCOMPLETE (no verdict written)",
         "exit": "killed" if code is None else str(code),
         "wall_s": wall_s,
-        "longest_map_age_s": max((a for a in ages.values() if math.isfinite(a)), default=math.nan),
+        "longest_stale_s": max(episodes.values(), default=0.0),
         "freeze": "; ".join(freeze),
         "failures": verdict.failures if verdict else [],
     }
@@ -98,12 +92,12 @@ def judge_run(run_dir, code, wall_s):
 
 def table(rows):
     lines = [
-        "| run | verdict | exit | wall (s) | longest published map age (s) | freeze |",
+        "| run | verdict | exit | wall (s) | longest stale map (s) | freeze |",
         "|---|---|---|---|---|---|",
     ]
     for i, row in enumerate(rows, 1):
         lines.append(
-            f"| {i} | {row['status']} | {row['exit']} | {row['wall_s']:.0f} | {row['longest_map_age_s']:.1f} | "
+            f"| {i} | {row['status']} | {row['exit']} | {row['wall_s']:.0f} | {row['longest_stale_s']:.1f} | "
             f"{row['freeze'] or 'none'} |"
         )
     return lines
