@@ -124,8 +124,9 @@ def write_fleet_with_repeated_routes(folder, laps, source=None):
         with open(robot["route"]) as stream:
             route = yaml.safe_load(stream)
         there = list(route["waypoints"])
-        keys = ("x", "y", "z") if any("z" in w for w in there) else ("x", "y")
-        home = {k: robot["initial_pose"][k] for k in keys if k in robot["initial_pose"]}
+        home = {k: robot["initial_pose"][k] for k in ("x", "y")}
+        if "z" in there[0]:  # a flyer: back over its start at its first waypoint's height
+            home["z"] = there[0]["z"]
         route["waypoints"] = (there + there[-2::-1] + [home]) * laps
         robot["route"] = os.path.join(folder, f"{robot['name']}_route.yaml")
         with open(robot["route"], "w") as stream:
