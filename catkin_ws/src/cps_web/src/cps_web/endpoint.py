@@ -62,6 +62,10 @@ def parse_listen(text: str):
     return host.strip("[]"), number
 
 
+class ListenError(RuntimeError):
+    """The server could not listen where asked (port in use, address not on this host)."""
+
+
 @dataclasses.dataclass
 class Counters:
     """What happened to offers since the start, in all and per channel."""
@@ -120,14 +124,17 @@ class Endpoint:
         self._latest: Dict[str, tuple] = {}
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self.server = foxglove.start_server(
-            name=name,
-            host=host,
-            port=port,
-            server_listener=_Listener(self),
-            message_backlog_size=backlog,
-            context=self.context,
-        )
+        try:
+            self.server = foxglove.start_server(
+                name=name,
+                host=host,
+                port=port,
+                server_listener=_Listener(self),
+                message_backlog_size=backlog,
+                context=self.context,
+            )
+        except Exception as exc:  # the SDK's FoxgloveError: a port in use, an address not here
+            raise ListenError(f"the Foxglove endpoint cannot listen on {host}:{port}: {exc}") from exc
         self._worker = threading.Thread(target=self._work, name="foxglove_endpoint", daemon=True)
         self._worker.start()
 

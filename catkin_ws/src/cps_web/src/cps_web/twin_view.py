@@ -5,7 +5,7 @@ Each handler does the least on the ROS callback thread: it keeps what the period
 offers a conversion to the endpoint, which runs it on its own worker only if a viewer watches.
 """
 
-from typing import Callable, Optional
+from typing import Callable, Dict, Optional, Tuple
 
 from cps_fleet import names
 from cps_web import convert
@@ -135,6 +135,32 @@ class TwinView:
         self.endpoint.offer(HEALTH, lambda: self.health.row(now))
         self.endpoint.offer(LINK, lambda: self.link.row(now))
         self.endpoint.offer(COUNTERS, self.endpoint.snapshot)
+
+    def watched_inputs(self) -> Dict[str, Optional[Tuple[str, str, Callable]]]:
+        """The inputs subscribed only while a viewer watches what they feed: key -> (topic, message
+        type, handler), None when not wanted now. The map, changes and static tf are latched: a new
+        subscription gets their latest at once. Relative topics resolve in the twin's namespace."""
+        video = self.video_robot()
+        wanted = {
+            "map": (names.POINT_CLOUD_CENTERS, "sensor_msgs/PointCloud2", self.on_map, MAP),
+            "changes": (names.MAP_CHANGES, "visualization_msgs/MarkerArray", self.on_changes, CHANGES),
+            "tf": (names.TF, "tf2_msgs/TFMessage", self.on_tf, TF),
+            "tf_static": (names.TF_STATIC, "tf2_msgs/TFMessage", self.on_tf_static, TF),
+        }
+        out = {
+            key: (topic, kind, handler) if self.endpoint.watched(ch) else None
+            for key, (topic, kind, handler, ch) in wanted.items()
+        }
+        out["video"] = (
+            None
+            if video is None
+            else (
+                names.absolute(names.robot_topic(video, names.CAMERA_IMAGE_COMPRESSED)),
+                "sensor_msgs/CompressedImage",
+                self.on_video,
+            )
+        )
+        return out
 
     def video_robot(self) -> Optional[str]:
         """Whose video to subscribe now: the operator's selected robot (the GUI's choice, which the

@@ -1,0 +1,153 @@
+"""The foxglove_endpoint node on a private master, seen by the npm @foxglove/ws-protocol client:
+the latched map, a robot's pose and the video it subscribes only while watched; a port in use
+refused with a clear error; the MCAP recorder node's file read back."""
+
+import socket
+import struct
+import time
+
+import pytest
+
+from cps_fleet import names
+from cps_harness import foxglove_probe
+from cps_harness.testing import wait_for
+from cps_web.twin_view import MAP, VIDEO, pose_channel
+
+pytestmark = pytest.mark.ros
+
+ROBOT = "jackal"  # a camera robot of the default fleet
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _map_cloud(rospy, n):
+    from sensor_msgs.msg import PointCloud2, PointField
+    from std_msgs.msg import Header
+
+    fields = [PointField(name=k, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, k in enumerate("xyz")]
+    return PointCloud2(
+        header=Header(frame_id=names.MAP_FRAME, stamp=rospy.Time.now()),
+        height=1,
+        width=n,
+        fields=fields,
+        point_step=12,
+        row_step=12 * n,
+        data=b"".join(struct.pack("<3f", i, 0.0, 1.0) for i in range(n)),
+        is_dense=True,
+    )
+
+
+def _start_endpoint(ros, url_file, listen="127.0.0.1:0"):
+    return ros.start_node(
+        "cps_web",
+        "foxglove_endpoint",
+        name=names.FOXGLOVE_ENDPOINT,
+        namespace=names.absolute(names.TWIN_NS),
+        params={"~robots": ROBOT, "~listen": listen, "~url_file": str(url_file)},
+    )
+
+
+def test_node_serves_map_pose_and_video_to_the_npm_client(ros, rospy_node, tmp_path):
+    rospy = rospy_node
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import CompressedImage, PointCloud2
+    from std_msgs.msg import Header
+
+    map_pub = rospy.Publisher(
+        names.absolute(names.in_twin(names.POINT_CLOUD_CENTERS)), PointCloud2, queue_size=1, latch=True
+    )
+    odom_pub = rospy.Publisher(names.absolute(names.robot_topic(ROBOT, names.ODOM)), Odometry, queue_size=5)
+    video_topic = names.absolute(names.robot_topic(ROBOT, names.CAMERA_IMAGE_COMPRESSED))
+    video_pub = rospy.Publisher(video_topic, CompressedImage, queue_size=2)
+    map_pub.publish(_map_cloud(rospy, 500))
+    url_file = tmp_path / "url.txt"
+    _start_endpoint(ros, url_file)
+    assert wait_for(lambda: url_file.exists() and url_file.read_text().strip(), timeout_s=30.0), ros.output(
+        names.FOXGLOVE_ENDPOINT
+    )
+    url = url_file.read_text().strip()
+    assert video_pub.get_num_connections() == 0  # nobody watches: the video is not subscribed
+
+    import threading
+
+    stop = threading.Event()
+
+    def feed():
+        i = 0
+        while not stop.is_set():
+            odom = Odometry(header=Header(frame_id=names.odom_frame(ROBOT), stamp=rospy.Time.now()))
+            odom.pose.pose.position.x, odom.pose.pose.orientation.w = 0.1 * i, 1.0
+            odom_pub.publish(odom)
+            video_pub.publish(
+                CompressedImage(header=Header(stamp=rospy.Time.now()), format="jpeg", data=b"\xff\xd8" + b"\0" * 64)
+            )
+            i += 1
+            time.sleep(0.1)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        report = foxglove_probe.probe(url, 5.0, [MAP, VIDEO, pose_channel(ROBOT)])
+    finally:
+        stop.set()
+        feeder.join()
+    assert report["decode_errors"] == {} and report["errors"] == []
+    assert report["samples"][MAP]["points"] == 500
+    assert report["messages"].get(VIDEO, 0) >= 1, report["messages"]
+    assert report["samples"][VIDEO]["jpeg_soi"]
+    assert report["samples"][pose_channel(ROBOT)]["frame_id"] == names.odom_frame(ROBOT)
+    # The viewer left: the video is unsubscribed again.
+    assert wait_for(lambda: video_pub.get_num_connections() == 0, timeout_s=10.0), "the video unsubscribed"
+
+
+def test_port_in_use_is_a_clear_error(ros, tmp_path):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        proc = _start_endpoint(ros, tmp_path / "url.txt", listen=f"127.0.0.1:{port}")
+        assert proc.wait(timeout=30) == 2
+    assert f"{port}" in ros.output_of(proc) and not (tmp_path / "url.txt").exists()
+
+
+def test_recorder_node_writes_an_mcap_every_channel_decodes(ros, rospy_node, tmp_path):
+    rospy = rospy_node
+    from nav_msgs.msg import Odometry
+    from std_msgs.msg import Header
+
+    from cps_harness.mcap_check import read_ros1_mcap
+
+    topic = names.absolute(names.robot_topic(ROBOT, names.ODOM))
+    cloud_topic = names.absolute(names.in_twin(names.POINT_CLOUD_CENTERS)) + "_rec"
+    path = tmp_path / "mission.mcap"
+    proc = ros.start_node(
+        "cps_web",
+        "mcap_recorder",
+        name="mcap_recorder_test",
+        params={"~path": str(path), "~topics": f"{topic},{cloud_topic}"},
+    )
+    from sensor_msgs.msg import PointCloud2
+
+    odom_pub = rospy.Publisher(topic, Odometry, queue_size=10)
+    cloud_pub = rospy.Publisher(cloud_topic, PointCloud2, queue_size=10)
+    assert wait_for(lambda: odom_pub.get_num_connections() and cloud_pub.get_num_connections(), timeout_s=30.0), (
+        ros.output_of(proc)
+    )
+    for i in range(20):
+        odom = Odometry(header=Header(frame_id=names.odom_frame(ROBOT), seq=i), child_frame_id=names.base_frame(ROBOT))
+        odom.pose.pose.position.x = float(i)
+        odom_pub.publish(odom)
+        cloud_pub.publish(_map_cloud(rospy, 10 + i))
+        time.sleep(0.02)
+    time.sleep(1.0)
+    proc.terminate()
+    assert proc.wait(timeout=20) == 0, ros.output_of(proc)
+    contents = read_ros1_mcap(str(path))
+    assert contents.errors == []
+    assert contents.types == {topic: "nav_msgs/Odometry", cloud_topic: "sensor_msgs/PointCloud2"}
+    assert [m.pose.pose.position.x for m in contents.messages[topic]] == [float(i) for i in range(20)]
+    assert [m.width for m in contents.messages[cloud_topic]] == [10 + i for i in range(20)]
