@@ -34,6 +34,15 @@ class RecorderOptions:
     chunk_bytes: int = _option(4 * 1024 * 1024, "MCAP chunk size before compression", "B", low=1024)
 
 
+def parameters(kind):
+    """(name, meaning with unit and default) of each private parameter, for --help."""
+    out = []
+    for field in dataclasses.fields(kind):
+        unit = f" [{field.metadata['unit']}]" if field.metadata["unit"] else ""
+        out.append((field.name, f"{field.metadata['meaning']}{unit} (default {field.default!r})"))
+    return out
+
+
 def read_options(kind):
     """`kind` (a dataclass above) from the node's private parameters, range-checked."""
     from cps_ros.params import param
