@@ -295,6 +295,7 @@ MISSION_OUTPUTS = {
         "allocation.csv",
         "setpoints.csv",
         "gui.png",
+        WEB_URL_FILE,
         "ground_truth.npz",
         "scores.json",
         "topdown.png",

@@ -70,6 +70,12 @@ def _env(modules):
     return {**os.environ, "NODE_PATH": modules}
 
 
+def probe_argv(url: str, seconds: float, topics: List[str], modules: str) -> List[str]:
+    """The probe as one command (for running it elsewhere, e.g. on a mission's twin side): it
+    prints its JSON report as the last line of its output."""
+    return ["env", f"NODE_PATH={modules}", *_argv(url, seconds, topics, False)]
+
+
 def probe(url: str, seconds: float, topics: List[str] = (), modules: Optional[str] = None) -> dict:
     """Connect to `url` for `seconds`, subscribe `topics` (empty: all) and return the report."""
     modules = modules or install_client()
