@@ -151,3 +151,54 @@ def test_recorder_node_writes_an_mcap_every_channel_decodes(ros, rospy_node, tmp
     assert contents.types == {topic: "nav_msgs/Odometry", cloud_topic: "sensor_msgs/PointCloud2"}
     assert [m.pose.pose.position.x for m in contents.messages[topic]] == [float(i) for i in range(20)]
     assert [m.width for m in contents.messages[cloud_topic]] == [10 + i for i in range(20)]
+
+
+def test_operator_commands_from_the_viewer_are_checked_and_reach_ros(ros, rospy_node, tmp_path):
+    """Select a camera robot and raise a priority from the npm client: the selection is published
+    latched as the GUI's is, the priority goes through the manager's service; a robot that is no
+    camera robot, an unknown robot, or a request without its fields is refused with the reason."""
+    rospy = rospy_node
+    from std_msgs.msg import String
+
+    from cps_harness.testing import TopicRecorder
+    from cps_msgs.srv import SetPriority, SetPriorityResponse
+
+    asked = []
+
+    def manager(request):
+        asked.append((request.robot, request.priority))
+        return SetPriorityResponse(success=True, message=f"{request.robot} at {request.priority}")
+
+    service = rospy.Service(names.absolute(names.SET_PRIORITY), SetPriority, manager)
+    selected = TopicRecorder(names.absolute(names.SELECTED_ROBOT), String)
+    url_file = tmp_path / "url.txt"
+    proc = ros.start_node(
+        "cps_web",
+        "foxglove_endpoint",
+        name=names.FOXGLOVE_ENDPOINT,
+        namespace=names.absolute(names.TWIN_NS),
+        params={"~robots": "scout,jackal", "~listen": "127.0.0.1:0", "~url_file": str(url_file)},
+    )
+    try:
+        assert wait_for(lambda: url_file.exists() and url_file.read_text().strip(), timeout_s=30.0), ros.output_of(proc)
+        select = names.absolute(names.in_twin(names.WEB_SELECT_ROBOT))
+        priority = names.absolute(names.in_twin(names.WEB_SET_PRIORITY))
+        calls = [
+            (select, {"robot": "jackal"}),
+            (select, {"robot": "scout"}),  # scout has no camera
+            (priority, {"robot": "jackal", "high": True}),
+            (priority, {"robot": "ghost", "high": True}),
+            (priority, {"robot": "jackal"}),
+        ]
+        report = foxglove_probe.probe(url_file.read_text().strip(), 4.0, [], calls=calls)
+    finally:
+        service.shutdown()
+    assert set(report["services"]) == {select, priority}, report["services"]
+    results = [(c["response"], c["failure"]) for c in report["calls"]]
+    assert results[0] == ({"ok": True, "message": "selected jackal"}, None)
+    assert results[1][0] is None and "not a camera robot" in results[1][1]
+    assert results[2] == ({"ok": True, "message": "jackal at 1"}, None)
+    assert results[3][0] is None and "ghost" in results[3][1]
+    assert results[4][0] is None and "lacks 'high'" in results[4][1]
+    assert asked == [("jackal", 1)]
+    assert wait_for(lambda: selected.latest is not None, timeout_s=5.0) and selected.latest.data == "jackal"

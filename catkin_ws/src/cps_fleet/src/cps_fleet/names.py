@@ -128,6 +128,10 @@ WEB_VIDEO = "web/video"  # foxglove.CompressedImage: the selected robot's manage
 WEB_HEALTH = "web/health"  # JSON: per robot battery, mission state, control mode, pose age
 WEB_LINK = "web/link"  # JSON: the link's budget, allocation and capacity (plots)
 WEB_ENDPOINT = "web/endpoint"  # JSON: the endpoint's own counters (queued, dropped, converted)
+# Its services (JSON): the operator's robot (as the GUI's /tissue/selected_robot) and a robot's
+# priority (through /tissue/set_priority).
+WEB_SELECT_ROBOT = "web/select_robot"
+WEB_SET_PRIORITY = "web/set_priority"
 
 
 def web_pose(robot):

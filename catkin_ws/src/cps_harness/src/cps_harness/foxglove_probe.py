@@ -62,8 +62,11 @@ def install_client(folder: Optional[str] = None, timeout_s: float = 300.0) -> st
     return modules
 
 
-def _argv(url, seconds, topics, stall):
-    return ["node", SCRIPT, url, str(seconds), json.dumps(list(topics or [])), *(["--stall"] if stall else [])]
+def _argv(url, seconds, topics, stall, calls=()):
+    argv = ["node", SCRIPT, url, str(seconds), json.dumps(list(topics or [])), *(["--stall"] if stall else [])]
+    for service, request in calls:
+        argv += ["--call", service, json.dumps(request)]
+    return argv
 
 
 def _env(modules):
@@ -76,11 +79,16 @@ def probe_argv(url: str, seconds: float, topics: List[str], modules: str) -> Lis
     return ["env", f"NODE_PATH={modules}", *_argv(url, seconds, topics, False)]
 
 
-def probe(url: str, seconds: float, topics: List[str] = (), modules: Optional[str] = None) -> dict:
-    """Connect to `url` for `seconds`, subscribe `topics` (empty: all) and return the report."""
+def probe(url: str, seconds: float, topics: List[str] = (), modules: Optional[str] = None, calls=()) -> dict:
+    """Connect to `url` for `seconds`, subscribe `topics` (empty: all), call each (service, request
+    dict) of `calls`, and return the report."""
     modules = modules or install_client()
     result = subprocess.run(
-        _argv(url, seconds, topics, False), env=_env(modules), capture_output=True, text=True, timeout=seconds + 30
+        _argv(url, seconds, topics, False, calls),
+        env=_env(modules),
+        capture_output=True,
+        text=True,
+        timeout=seconds + 30,
     )
     if result.returncode != 0 or not result.stdout.strip():
         raise RuntimeError(f"foxglove probe failed ({result.returncode}): {result.stderr.strip()[-800:]}")

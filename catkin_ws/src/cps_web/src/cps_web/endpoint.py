@@ -18,7 +18,7 @@ from typing import Callable, Dict, Optional
 
 import foxglove
 from foxglove import channels as fx_channels
-from foxglove.websocket import ServerListener
+from foxglove.websocket import Capability, ServerListener
 
 from cps_web.convert import ENDPOINT_SCHEMA, HEALTH_SCHEMA, LINK_SCHEMA
 
@@ -105,6 +105,7 @@ class Endpoint:
         backlog: int = DEFAULT_BACKLOG,
         name: str = "cps twin",
         clock: Callable[[], float] = time.time,
+        services=(),
     ):
         """`channels`: Foxglove topic -> kind (one of the kinds above); `latched`: topics whose latest
         message a new subscriber gets at once (the map, the changes, static tf)."""
@@ -132,6 +133,9 @@ class Endpoint:
                 server_listener=_Listener(self),
                 message_backlog_size=backlog,
                 context=self.context,
+                capabilities=[Capability.Services] if services else None,
+                supported_encodings=["json"] if services else None,
+                services=list(services) or None,
             )
         except Exception as exc:  # the SDK's FoxgloveError: a port in use, an address not here
             raise ListenError(f"the Foxglove endpoint cannot listen on {host}:{port}: {exc}") from exc

@@ -61,18 +61,20 @@ def _ns(stamp) -> int:
 class TwinView:
     """The endpoint for `robots` (names), fed by the node's subscriptions."""
 
-    def __init__(self, robots, camera_robots, options, now_s: Callable[[], float], endpoint_factory=Endpoint):
+    def __init__(self, robots, camera_robots, options, now_s: Callable[[], float], commands=None):
+        """`commands`: the viewer's operator commands (cps_web.commands.OperatorCommands) or None."""
         host, port = parse_listen(options.listen)
         self.robots = list(robots)
         self.camera_robots = [r for r in self.robots if r in set(camera_robots)]
         self.now_s = now_s
-        self.endpoint = endpoint_factory(
+        self.endpoint = Endpoint(
             channels_of(self.robots),
             latched=(MAP, CHANGES),
             host=host,
             port=port,
             queue_size=options.queue_size,
             backlog=options.backlog,
+            services=commands.services() if commands else (),
         )
         self.url = f"ws://{host}:{self.endpoint.port}"
         self.trails = convert.Trails(self.robots)

@@ -4,8 +4,10 @@
 // (protobuf: the FileDescriptorSet the channel carries, via protobufjs; json: JSON.parse) and prints
 // one JSON report on stdout. With --stall it subscribes, then never reads the socket again.
 //
-// usage: node foxglove_probe.js URL SECONDS TOPICS_JSON [--stall]
+// usage: node foxglove_probe.js URL SECONDS TOPICS_JSON [--stall] [--call SERVICE REQUEST_JSON]...
 //   TOPICS_JSON: a JSON list of topics to subscribe ([] : every advertised channel)
+//   --call: call the advertised SERVICE with REQUEST_JSON (json encoding); its response or failure
+//   is in the report's `calls`, in the order given
 "use strict";
 const { FoxgloveClient } = require("@foxglove/ws-protocol");
 const WebSocket = require("ws");
@@ -15,11 +17,13 @@ const descriptor = require("protobufjs/ext/descriptor");
 const [url, secondsText, topicsJson, ...flags] = process.argv.slice(2);
 const wanted = JSON.parse(topicsJson || "[]");
 const stall = flags.includes("--stall");
+const calls = [];
+flags.forEach((flag, i) => { if (flag === "--call") calls.push({ service: flags[i + 1], request: flags[i + 2] }); });
 // The foxglove-sdk server speaks the ws-protocol spec under the subprotocol foxglove.sdk.v1; the
 // client takes whatever subprotocol its WebSocket negotiated (ws-protocol PR 916).
 const ws = new WebSocket(url, ["foxglove.sdk.v1", FoxgloveClient.SUPPORTED_SUBPROTOCOL]);
 const client = new FoxgloveClient({ ws });
-const report = { url, server: null, channels: [], messages: {}, decode_errors: {}, samples: {}, errors: [] };
+const report = { url, server: null, channels: [], services: [], calls: [], messages: {}, decode_errors: {}, samples: {}, errors: [] };
 const decoders = new Map(); // subscription id -> {topic, decode}
 
 function decoderOf(channel) {
@@ -69,6 +73,22 @@ client.on("advertise", (channels) => {
     decoders.set(client.subscribe(ch.id), { topic: ch.topic, schemaName: ch.schemaName, decode });
   }
   if (stall && decoders.size) setTimeout(() => ws._socket && ws._socket.pause(), 200);
+});
+client.on("advertiseServices", (services) => {
+  const encoder = new TextEncoder();
+  for (const service of services) report.services.push(service.name);
+  calls.forEach((call, callId) => {
+    const service = services.find((s) => s.name === call.service);
+    if (!service) return;
+    report.calls[callId] = { service: call.service, request: call.request, response: null, failure: null };
+    client.sendServiceCallRequest({ serviceId: service.id, callId, encoding: "json", data: encoder.encode(call.request) });
+  });
+});
+client.on("serviceCallResponse", ({ callId, data }) => {
+  report.calls[callId].response = JSON.parse(new TextDecoder().decode(data));
+});
+client.on("serviceCallFailure", ({ callId, message }) => {
+  report.calls[callId].failure = message;
 });
 client.on("message", ({ subscriptionId, data }) => {
   const d = decoders.get(subscriptionId);
