@@ -83,22 +83,19 @@ class OperatorCommands:
 
     def services(self) -> List[Service]:
         return [
-            Service(
-                absolute(in_twin(names.WEB_SELECT_ROBOT)),
-                schema=ServiceSchema(
-                    "cps_web/SelectRobot",
-                    request=_json_schema("cps_web/SelectRobotRequest", SELECT_REQUEST),
-                    response=_json_schema("cps_web/Response", RESPONSE),
-                ),
-                handler=lambda req: self.select_robot(req.payload),
-            ),
-            Service(
-                absolute(in_twin(names.WEB_SET_PRIORITY)),
-                schema=ServiceSchema(
-                    "cps_web/SetPriority",
-                    request=_json_schema("cps_web/SetPriorityRequest", PRIORITY_REQUEST),
-                    response=_json_schema("cps_web/Response", RESPONSE),
-                ),
-                handler=lambda req: self.set_priority(req.payload),
-            ),
+            _service(names.WEB_SELECT_ROBOT, "SelectRobot", SELECT_REQUEST, self.select_robot),
+            _service(names.WEB_SET_PRIORITY, "SetPriority", PRIORITY_REQUEST, self.set_priority),
         ]
+
+
+def _service(name, kind, request_schema, handle) -> Service:
+    """A JSON service of the twin's endpoint named `name` (a WEB_* name)."""
+    return Service(
+        absolute(in_twin(name)),
+        schema=ServiceSchema(
+            f"cps_web/{kind}",
+            request=_json_schema(f"cps_web/{kind}Request", request_schema),
+            response=_json_schema("cps_web/Response", RESPONSE),
+        ),
+        handler=lambda request: handle(request.payload),
+    )
