@@ -82,6 +82,28 @@ def bag_span(path):
         return os.path.getsize(path), bag.get_end_time() - bag.get_start_time(), bag.get_message_count()
 
 
+def counts_in_span(bag_path, mcap_path):
+    """{topic: [bag's messages, MCAP's messages]} over the MCAP's recorded span (the MCAP recorder
+    started later and stopped earlier than the bag's): a recorder that loses messages shows here,
+    and the MCAP's own `cps_recording` metadata (its dropped counts)."""
+    import rosbag
+    import rospy
+    from mcap.reader import make_reader
+
+    with open(mcap_path, "rb") as stream:
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    stats = summary.statistics
+    topic_of = {c.id: c.topic for c in summary.channels.values()}
+    counts = {topic_of[k]: [0, v] for k, v in stats.channel_message_counts.items()}
+    start, end = rospy.Time(nsecs=stats.message_start_time), rospy.Time(nsecs=stats.message_end_time)
+    with rosbag.Bag(bag_path) as bag:
+        for topic, _raw, _t in bag.read_messages(start_time=start, end_time=end, raw=True):
+            counts.setdefault(topic, [0, 0])[0] += 1
+    return counts, metadata.get("cps_recording", {})
+
+
 def recorder_argv(path, topics, name):
     return [
         sys.executable,
@@ -141,6 +163,8 @@ def main():
     for key, path in (("mcap_full", full_mcap), ("mcap_link_only", link_mcap)):
         size, span, count, errors = mcap_span(path)
         result[key] = {"bytes": size, "span_s": span, "messages": count, "decode_errors": errors}
+    result["full_counts_bag_vs_mcap"], result["mcap_full_metadata"] = counts_in_span(bag, full_mcap)
+    result["mcap_link_metadata"] = counts_in_span(bag, link_mcap)[1]
     for key in ("bag", "mcap_full", "mcap_link_only"):
         r = result[key]
         r["mb_per_min"] = r["bytes"] / 1e6 / (r["span_s"] / 60.0)

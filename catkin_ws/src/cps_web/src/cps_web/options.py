@@ -32,6 +32,10 @@ class RecorderOptions:
     path: str = _option("", "the MCAP file to write", "path")
     topics: str = _option("", "comma-separated resolved topics to record")
     chunk_bytes: int = _option(4 * 1024 * 1024, "MCAP chunk size before compression", "B", low=1024)
+    compression: str = _option("lz4", "chunk compression: lz4, zstd or none")
+    backlog_mbytes: float = _option(
+        256.0, "messages waiting for the writer; beyond it they are dropped, counted", "MB", low=1.0
+    )
 
 
 def parameters(kind):
