@@ -134,7 +134,12 @@ def test_full_queue_drops_and_counts_and_bad_input_is_counted():
         assert endpoint.wait_idle()
         snap = endpoint.snapshot()
         assert (snap["dropped"], snap["bad"], snap["logged"]) == (3, 1, 3)
-        assert snap["by_channel"][MAP] == {"queued": 1, "dropped": 0, "bad": 1, "logged": 0}
+        assert snap["by_channel"][MAP] == {"queued": 1, "dropped": 0, "bad": 1, "failed": 0, "logged": 0}
+        endpoint.offer(HEALTH, lambda: 1 / 0)  # a defect: counted, and the worker goes on
+        endpoint.offer(HEALTH, lambda: {"stamp_s": 2.0})
+        assert endpoint.wait_idle()
+        assert endpoint.snapshot()["by_channel"][HEALTH]["failed"] == 1
+        assert endpoint.snapshot()["by_channel"][HEALTH]["logged"] == 4
     finally:
         endpoint.close()
 

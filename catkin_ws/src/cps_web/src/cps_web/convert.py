@@ -8,6 +8,7 @@ counts it and goes on.
 
 import collections
 import math
+import threading
 from typing import Dict, Iterable, Optional, Sequence, Tuple
 
 from foxglove.messages import (
@@ -198,6 +199,7 @@ class Trails:
         self.step_m = step_m
         self._points: Dict[str, collections.deque] = {r: collections.deque(maxlen=max_points) for r in robots}
         self._latest: Dict[str, Tuple[str, object, object]] = {}
+        self._lock = threading.Lock()  # `add` on ROS threads, `scene` on the endpoint's worker
 
     def add(self, robot: str, odom) -> bool:
         """Take the robot's odometry; False (and nothing kept) for an unknown robot or a non-finite pose."""
@@ -206,20 +208,24 @@ class Trails:
         p, q = odom.pose.pose.position, odom.pose.pose.orientation
         if not _finite(p.x, p.y, p.z, q.x, q.y, q.z, q.w):
             return False
-        self._latest[robot] = (odom.header.frame_id, p, q, odom.header.stamp)
-        points = self._points[robot]
-        if not points or math.dist(points[-1], (p.x, p.y, p.z)) >= self.step_m:
-            points.append((p.x, p.y, p.z))
+        with self._lock:
+            self._latest[robot] = (odom.header.frame_id, p, q, odom.header.stamp)
+            points = self._points[robot]
+            if not points or math.dist(points[-1], (p.x, p.y, p.z)) >= self.step_m:
+                points.append((p.x, p.y, p.z))
         return True
 
     def scene(self) -> SceneUpdate:
         """A SceneUpdate with one entity per robot seen: an arrow at its pose and its trail, both
         in its GUI colour (cps_gui.colours, by its index in the fleet)."""
+        with self._lock:
+            latest = dict(self._latest)
+            trails = {r: list(points) for r, points in self._points.items()}
         entities = []
         for index, robot in enumerate(self.robots):
-            if robot not in self._latest:
+            if robot not in latest:
                 continue
-            frame, p, q, stamp = self._latest[robot]
+            frame, p, q, stamp = latest[robot]
             colour = _colour(robot_colour(index))
             entities.append(
                 SceneEntity(
@@ -241,7 +247,7 @@ class Trails:
                             type=LinePrimitiveLineType.LineStrip,
                             pose=_identity(),
                             thickness=0.05,
-                            points=[Point3(x=x, y=y, z=z) for x, y, z in self._points[robot]],
+                            points=[Point3(x=x, y=y, z=z) for x, y, z in trails[robot]],
                             color=colour,
                         )
                     ],
@@ -318,6 +324,7 @@ ENDPOINT_SCHEMA = {
         "queued": {"type": "integer"},
         "dropped": {"type": "integer"},
         "bad": {"type": "integer"},
+        "failed": {"type": "integer"},
         "logged": {"type": "integer"},
         "queue_length": {"type": "integer"},
         "by_channel": {"type": "object"},

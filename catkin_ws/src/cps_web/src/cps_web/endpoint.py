@@ -73,12 +73,13 @@ class Counters:
     queued: int = 0
     dropped: int = 0  # the queue was full
     bad: int = 0  # the conversion refused the message (bad input)
+    failed: int = 0  # the conversion raised anything else: a defect, logged with its traceback
     logged: int = 0
     by_channel: Dict[str, Dict[str, int]] = dataclasses.field(default_factory=dict)
 
     def count(self, topic, what):
         setattr(self, what, getattr(self, what) + 1)
-        row = self.by_channel.setdefault(topic, {"queued": 0, "dropped": 0, "bad": 0, "logged": 0})
+        row = self.by_channel.setdefault(topic, {"queued": 0, "dropped": 0, "bad": 0, "failed": 0, "logged": 0})
         row[what] += 1
 
 
@@ -198,6 +199,11 @@ class Endpoint:
             if bad <= 3 or bad % 100 == 0:
                 LOG.warning("%s: message refused (%d so far): %s", topic, bad, exc)
             return
+        except Exception:  # a defect of ours: said loudly, counted, and the worker goes on
+            with self._lock:
+                self.counters.count(topic, "failed")
+            LOG.exception("%s: conversion failed", topic)
+            return
         self.channels[topic].log(message, log_time=log_time_ns)
         with self._lock:
             self.counters.count(topic, "logged")
@@ -210,6 +216,7 @@ class Endpoint:
                 "queued": c.queued,
                 "dropped": c.dropped,
                 "bad": c.bad,
+                "failed": c.failed,
                 "logged": c.logged,
                 "queue_length": self._queue.qsize(),
                 "by_channel": {k: dict(v) for k, v in c.by_channel.items()},

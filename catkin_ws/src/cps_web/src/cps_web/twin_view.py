@@ -97,7 +97,8 @@ class TwinView:
         """Static transforms accumulate (each latched publisher sends its own); all are re-sent."""
         for t in msg.transforms:
             self._static_tf[t.child_frame_id] = t
-        self.endpoint.offer(TF, lambda: convert.frame_transforms(_Transforms(list(self._static_tf.values()))))
+        static = _Transforms(list(self._static_tf.values()))  # taken here: the worker converts later
+        self.endpoint.offer(TF, lambda: convert.frame_transforms(static))
 
     def on_odom(self, robot, msg):
         if self.trails.add(robot, msg):
