@@ -155,10 +155,11 @@ def observe_while_up(mission: Mission) -> Observed:
             mission.echo_once("twin", names.absolute(names.managed_cloud_at_twin(r)), 30.0, "--noarr") for r in ROBOTS
         ),
         "twin_link_state": lambda: mission.echo_once("twin", names.absolute(names.LINK_STATE)),
+        # Early, while every robot still drives (the readings after it may each wait up to 30 s).
+        "viewer": lambda: _watch_in_foxglove(mission),
         "teleop_active": lambda: _switch_mode(mission, "teleop"),
         "auto_active": lambda: _switch_mode(mission, "auto"),
         "twin_master_on_link": lambda: _twin_master_on_link(mission),
-        "viewer": lambda: _watch_in_foxglove(mission),
     }
     for field, read in readings.items():
         try:
@@ -262,6 +263,12 @@ def run_reference(folder):
     bag = str(out / "mission.bag")  # in the mission folder: the recorder runs unprivileged too
     run = ReferenceRun(out=out, fleet_file=fleet_file, bag=bag)
     run.mission = Mission(out, demo_args(fleet_file, bag), program=DEMO)
+    try:
+        from cps_harness.foxglove_probe import install_client
+
+        install_client()  # before the mission (a fresh clone's npm install takes seconds)
+    except Exception as exc:  # noqa: BLE001 - the viewer's reading says it again; the mission still runs
+        print(f"the npm Foxglove client is missing: {exc}")
     try:
         with run.mission:
             run.mission.wait_until_up(UP_TIMEOUT_S)
