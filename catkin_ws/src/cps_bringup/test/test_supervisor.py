@@ -2,6 +2,7 @@
 with nothing left running."""
 
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -404,6 +405,23 @@ def test_selecting_a_robot_without_a_camera_is_refused_before_anything_starts(tm
 
     args = build_parser().parse_args(["all", "--select-robot", "scout", "--out", str(tmp_path / "out")])
     with pytest.raises(BringupError, match=r"--select-robot scout: not a camera robot .*camera robots: jackal"):
+        run_mission(args, log=lambda _line: None)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["all", "--web-listen", "8765"], "--web-listen: listen address '8765': expected host:port"),
+        (["all", "--record-link-only"], "--record-link-only: give the file with --record"),
+        (["physical", "--record", "x.mcap", "--record-link-only"], "records what the twin receives"),
+    ],
+)
+def test_bad_web_and_recording_options_are_refused_before_anything_starts(tmp_path, argv, message):
+    from cps_bringup.cli import build_parser, run_mission
+
+    args = build_parser().parse_args([*argv, "--out", str(tmp_path / "out")])
+    with pytest.raises(BringupError, match=re.escape(message)):
         run_mission(args, log=lambda _line: None)
     assert not (tmp_path / "out").exists()
 

@@ -371,6 +371,8 @@ def run_mission(args, log=print) -> MissionResult:
         getattr(args, "video_trace", None), fleet, sides, args, replay_path
     )
     announce = _checked_announce(args, sides)
+    web_listen = _checked_web_listen(getattr(args, "web_listen", WEB_LISTEN))
+    record_link_only = _checked_record_link_only(args, sides)
     os.makedirs(out_dir, exist_ok=True)
     removed = clear_previous_mission(out_dir, sides)
     if removed:
@@ -396,8 +398,8 @@ def run_mission(args, log=print) -> MissionResult:
         tissue_layout=args.tissue_layout,
         video_trace=video_trace,
         web=getattr(args, "web", "on") == "on",
-        web_listen=_checked_web_listen(getattr(args, "web_listen", WEB_LISTEN)),
-        record_link_only=_checked_record_link_only(args, sides),
+        web_listen=web_listen,
+        record_link_only=record_link_only,
     )
     transport = args.transport
     if replay_path and transport == ZENOH and len(sides) == 2:
