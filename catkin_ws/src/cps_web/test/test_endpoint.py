@@ -3,17 +3,17 @@ node): channels advertised, every message decoded with its advertised schema, no
 for a channel nobody watches, the latest latched message to a late subscriber, a full queue's
 offers dropped and counted, a stalled viewer holding back nothing."""
 
-import struct
 import threading
 import time
 
 import pytest
 import rospy
-from sensor_msgs.msg import CompressedImage, PointCloud2, PointField
+from sensor_msgs.msg import CompressedImage, PointCloud2
 from std_msgs.msg import Header
 
 from cps_fleet import names
 from cps_harness import foxglove_probe
+from cps_harness.synthetic_clouds import xyz_cloud
 from cps_web import convert
 from cps_web.endpoint import Endpoint, parse_listen
 from cps_web.options import EndpointOptions
@@ -41,18 +41,7 @@ def view():
 
 
 def _map_cloud(n):
-    fields = [PointField(name=k, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, k in enumerate("xyz")]
-    data = b"".join(struct.pack("<3f", i, 0.5 * i, 1.0) for i in range(n))
-    return PointCloud2(
-        header=Header(frame_id=names.MAP_FRAME, stamp=rospy.Time(5, 0)),
-        height=1,
-        width=n,
-        fields=fields,
-        point_step=12,
-        row_step=12 * n,
-        data=data,
-        is_dense=True,
-    )
+    return xyz_cloud([(i, 0.5 * i, 1.0) for i in range(n)], names.MAP_FRAME, rospy.Time(5, 0))
 
 
 def _feed(view, stop):

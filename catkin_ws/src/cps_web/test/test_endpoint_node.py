@@ -3,13 +3,13 @@ the latched map, a robot's pose and the video it subscribes only while watched; 
 refused with a clear error; the MCAP recorder node's file read back."""
 
 import socket
-import struct
 import time
 
 import pytest
 
 from cps_fleet import names
 from cps_harness import foxglove_probe
+from cps_harness.synthetic_clouds import xyz_cloud
 from cps_harness.testing import wait_for
 from cps_web.twin_view import MAP, VIDEO, pose_channel
 
@@ -25,20 +25,7 @@ def _free_port():
 
 
 def _map_cloud(rospy, n):
-    from sensor_msgs.msg import PointCloud2, PointField
-    from std_msgs.msg import Header
-
-    fields = [PointField(name=k, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, k in enumerate("xyz")]
-    return PointCloud2(
-        header=Header(frame_id=names.MAP_FRAME, stamp=rospy.Time.now()),
-        height=1,
-        width=n,
-        fields=fields,
-        point_step=12,
-        row_step=12 * n,
-        data=b"".join(struct.pack("<3f", i, 0.0, 1.0) for i in range(n)),
-        is_dense=True,
-    )
+    return xyz_cloud([(i, 0.0, 1.0) for i in range(n)], names.MAP_FRAME, rospy.Time.now())
 
 
 def _start_endpoint(ros, url_file, listen="127.0.0.1:0"):
