@@ -20,6 +20,11 @@ status give them; `new/today` holds probes 2 s, as manager_node configures it). 
 delivered, one-way latency and sent, as the manager fed it.
 
     python bench/estimator_bench.py [--out docs/benchmarks/estimator.md] [--no-write]
+
+`--live` (root; under the heavy lock) runs the scenarios on a real shaped link instead, through the
+Zenoh bridges and their link reports (bench/estimator_live.py), into docs/benchmarks/estimator_live.md:
+
+    flock /tmp/cps-heavy.lock python bench/estimator_bench.py --live [--scenarios wifi_degraded,demo] [--no-hog]
 """
 
 import argparse
@@ -27,7 +32,7 @@ import math
 import os
 import sys
 
-from cps_bw_manager.estimation import DeliveryRateEstimator
+from cps_bw_manager.estimation import LINK_REPORT_OPTIONS, DeliveryRateEstimator
 from cps_fleet import names
 from cps_harness.legacy_estimation import LegacyDelayEstimator
 from cps_harness.link_model import (
@@ -63,9 +68,14 @@ class LegacySubject(NewEstimatorSubject):
         return self.estimator.estimate_mbps
 
 
-def _new(known=None, window_s=0.0):
+def _new(known=None, window_s=0.0, live=False):
+    options = LINK_REPORT_OPTIONS if live else {}
     est = DeliveryRateEstimator(
-        LINE_RATE_MBPS, line_rate_mbps=LINE_RATE_MBPS, probe_s=max(0.5, window_s), measure_window_s=window_s
+        LINE_RATE_MBPS,
+        line_rate_mbps=LINE_RATE_MBPS,
+        probe_s=max(0.5, window_s),
+        measure_window_s=window_s,
+        **options,
     )
     return NewEstimatorSubject(est, known) if known else NewEstimatorSubject(est)
 
@@ -74,12 +84,16 @@ def _new(known=None, window_s=0.0):
 # per-interval reports (what the bridge should send) and today's 2 s sliding windows.
 SUBJECTS = {
     "new": (_new, 0.0),
+    # as manager_node builds it on the bridges' link reports (estimation.LINK_REPORT_OPTIONS), on
+    # the same simulated link
+    "new/live": (lambda: _new(live=True), 0.0),
     "old": (LegacySubject, 0.0),
     "new/today": (lambda: _new(TODAY, window_s=2.0), 2.0),  # as manager_node builds it
     "old/today": (LegacySubject, 2.0),
 }
 PAIRS = (
     ("new", "old", "per-interval reports (the bridge's LinkReport)"),
+    ("new/live", "old", "per-interval reports, the estimator as the manager runs it on the bridges' link reports"),
     ("new/today", "old/today", "today's inputs: delivered, sent, offered as 2 s sliding averages"),
 )
 
@@ -280,7 +294,13 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=os.path.join(ROOT, "docs", "benchmarks", "estimator.md"))
     parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--live", action="store_true", help="the scenarios live on a shaped link (root)")
+    parser.add_argument("--scenarios", default=None, help="--live: comma-separated (default: all three)")
+    parser.add_argument("--no-hog", action="store_true", help="--live: skip the CPU hog runs")
+    parser.add_argument("--runs-dir", default=os.path.join(ROOT, "out", "estimator_live"))
     args = parser.parse_args(argv)
+    if args.live:
+        return live_main(args)
     results = {name: run_scenario(name) for name in ("wifi_degraded", "demo", "shared_medium", "step_60_5")}
     text = report(results)
     print(text)
@@ -297,6 +317,51 @@ def main(argv=None):
     if failed:
         print(f"new estimator misses a target in: {failed}")
     return 1 if failed else 0
+
+
+LIVE_HEADER = """# Link-capacity estimator, LIVE (issue 35)
+
+Written by `flock /tmp/cps-heavy.lock python bench/estimator_bench.py --live` (root), under the
+heavy lock, on this 2-core machine (robots' side pinned to CPU 0, twin's to CPU 1). Each run: a
+tc-shaped link between two network namespaces running a cps_link scenario, a ROS master per side
+joined by the Zenoh bridges, four rate limiters and a synthetic cloud load on the robots' side, the
+bandwidth manager with its estimator on the twin's, fed the bridges' link reports (0.5 s), seeded
+with iperf3's figure. "capacity" is the estimator's capacity of the link in bridge-frame bytes
+(Zenoh, TLS, TCP and IP headers are below it), against the true tc rate. Settle: seconds from the
+step to the first report from which it stays within +-15 % until the next event (target 2 s). The
+kernel here has no netem: wifi_degraded's delay, jitter and loss are not applied.
+"""
+
+
+def _run_conditions(scenarios, args):
+    """When, from which commit, which runs: the live figures' conditions."""
+    import datetime
+    import subprocess
+
+    commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--untracked-files=no"], capture_output=True)
+    return (
+        f"\nRun {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC from commit "
+        f"{commit.stdout.strip() or 'unknown'}{' (with uncommitted changes)' if dirty.stdout.strip() else ''}; "
+        f"scenarios: {', '.join(scenarios)}; CPU hog runs: {'no' if args.no_hog else 'yes'}. One run each.\n"
+    )
+
+
+def live_main(args):
+    from estimator_live import LIVE_SCENARIOS, run_live
+
+    scenarios = args.scenarios.split(",") if args.scenarios else LIVE_SCENARIOS
+    conditions = _run_conditions(scenarios, args)  # at the start: the commit that ran
+    lines, ok = run_live(args.runs_dir, scenarios, hog_runs=not args.no_hog)
+    text = "\n".join(lines)
+    print(text)
+    out = os.path.join(ROOT, "docs", "benchmarks", "estimator_live.md")
+    if not args.no_write:
+        with open(out, "w") as stream:
+            stream.write(LIVE_HEADER + conditions + text + "\n")
+        print(f"\nwritten: {out}")
+    print("every live target held" if ok else "a live target was missed (see the tables)")
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from cps_bringup.plan import (
     MAP_SERVER_READY,
     PER_ROBOT,
     PHYSICAL,
+    TCPROS,
     ZENOH,
     NodeSpec,
     RunOptions,
@@ -448,15 +449,21 @@ def test_the_mission_result_says_what_the_budget_came_from_when_nothing_was_anno
     from cps_bringup.cli import _unannounced
 
     link = SimpleNamespace(measured_mbps=55.24)
-    assert _unannounced(link, RunOptions(out_dir="/x")) == (
+    fleet = load_fleet()
+    assert fleet.link.estimate_bandwidth  # the default: the online estimate, over the Zenoh bridges
+    zenoh, tcpros = RunOptions(out_dir="/x", transport=ZENOH), RunOptions(out_dir="/x", transport=TCPROS)
+    assert _unannounced(link, zenoh, fleet) == (
+        "not announced: the manager's online estimate from the bridges' link reports, seeded by iperf3's "
+        "55.2 Mbit/s at the start"
+    )
+    # over TCPROS no bridge reports the link: bringup turns the estimate off
+    assert _unannounced(link, tcpros, fleet) == (
         "not announced: the manager's budget from iperf3's 55.2 Mbit/s at the start"
     )
+    assert _unannounced(None, tcpros, fleet) == "not announced: the manager's budget from the configured capacity"
     assert (
-        _unannounced(None, RunOptions(out_dir="/x"))
-        == "not announced: the manager's budget from the configured capacity"
-    )
-    assert (
-        _unannounced(link, RunOptions(out_dir="/x", bandwidth_manager=False)) == "not announced (no bandwidth manager)"
+        _unannounced(link, RunOptions(out_dir="/x", bandwidth_manager=False), fleet)
+        == "not announced (no bandwidth manager)"
     )
 
 

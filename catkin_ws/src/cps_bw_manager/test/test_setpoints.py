@@ -5,7 +5,7 @@ import random
 
 import pytest
 
-from cps_bw_manager.setpoints import BUDGET, CHANGE, FIRST, LEVEL, ON_OFF, RULE, SetpointFilter, Target
+from cps_bw_manager.setpoints import BUDGET, CHANGE, FIRST, LEVEL, ON_OFF, PROBE, RULE, SetpointFilter, Target
 
 CLOUD = ("a", "cloud")
 VIDEO = ("a", "video")
@@ -127,3 +127,13 @@ def test_a_finer_level_waits_the_interval_after_the_last_level_change_and_never_
     h.decide(8.0, {VIDEO: Target(2, 5.0)})
     change = _sent(h.decide(10.0, {VIDEO: Target(1, 0.0)}))[VIDEO]  # turned off while a finer level waits
     assert change.reason == ON_OFF and change.level == 2 and not change.level_changed
+
+
+def test_while_the_estimator_probes_a_higher_rate_goes_at_once_and_a_lower_one_still_waits():
+    """Issue 35: a probe measures nothing unless the fleet fills it within its 1.5 s."""
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(1, 5.0)})
+    assert not f.decide(1.0, {CLOUD: Target(1, 5.5)})  # not probing: held
+    change = _sent(f.decide(1.0, {CLOUD: Target(1, 5.5)}, probing=True))[CLOUD]
+    assert change.reason == PROBE and change.rate_hz == 5.5
+    assert not f.decide(1.5, {CLOUD: Target(1, 5.0)}, probing=True)  # a lower one is no probe

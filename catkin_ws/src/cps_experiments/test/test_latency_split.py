@@ -18,7 +18,7 @@ def _serialized_header(stamp_ns, frame_id=b"scout/lidar"):
 def _log(path, arrivals):
     log = CsvLog(str(path), ARRIVAL_COLUMNS)
     for topic, robot, stamp_ns, receive_s in arrivals:
-        log.write((topic, robot, stamp_from_bytes(stamp_ns), f"{receive_s:.6f}"))
+        log.write((topic, robot, stamp_from_bytes(stamp_ns), f"{receive_s:.6f}", 1000, "", ""))
     log.close()
     return read_csv(str(path))
 

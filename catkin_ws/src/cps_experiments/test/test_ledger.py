@@ -98,6 +98,23 @@ def test_each_loss_is_counted_by_the_node_that_saw_it_with_its_cause():
     assert ledger.stage(AT_TWIN) == 80 and ledger.stage(AT_MAP) == 84
 
 
+def test_clouds_the_robots_send_queue_dropped_by_rule_are_withheld_not_lost_on_the_link():
+    """The robots' bridge numbered 100 clouds and its send queue dropped 7 (5 superseded by a newer
+    one, 2 expired): the twin's bridge's 9 gaps are those 7 and 2 lost on the link."""
+    stages = _chain(100)
+    stages["bridge_out"] = {C.RECEIVED: 100, C.OUT: 93, "dropped_superseded": 5, "dropped_expired": 2}
+    stages["bridge_in"] = {C.RECEIVED: 91, C.MISSED: 9, C.OUT: 91}
+    stages["decoder"] = {C.RECEIVED: 91, C.OUT: 91}
+    server = {"clouds_received": 91, "clouds_inserted": 91}
+    ledger = robot_ledger(R, _counters(**stages), server, duration_s=50)
+    assert ledger.balanced, ledger.problems
+    assert dict(ledger.drops) == {
+        "robots' bridge's send queue: superseded": 5,
+        "robots' bridge's send queue: expired": 2,
+        "link: put on the link, never received": 2,
+    }
+
+
 def test_a_map_server_that_decodes_what_it_inserts_closes_the_ledger_without_a_decoder_process():
     """Issue 37: the twin's bridge hands the map server its live clouds and the keyframes after an
     outage still compressed; the map server missed 2 in its subscriber queue and found 10 undecodable."""

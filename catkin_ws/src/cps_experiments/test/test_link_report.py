@@ -110,5 +110,23 @@ def test_the_clouds_lost_in_an_outage_come_from_the_bridges_counters():
     )
 
 
+def test_the_managers_estimate_is_set_against_each_steps_true_capacity():
+    # 57 Mbit/s until 1.5 s after the 60 -> 10 step, then 9.4; back at 57 3 s after the rise
+    estimates = [
+        {"stamp_s": str(T0 + 0.5 * k), "capacity_mbps": str(c), "estimate_mbps": str(c)}
+        for k in range(200)
+        for c in [57.0 if 0.5 * k < 61.5 or 0.5 * k >= 83.0 else 9.4]
+    ]
+    text = "\n".join(section(EVENTS, [], ALLOCATIONS, *_windows(), estimate_rows=estimates))
+    # the budget 2 s after each step (1.1 of 1.25 MB/s, 6.9 of 7.5), beside the estimate then
+    assert "| 60.0 | 60 → 10 | 0 of 10 | 0 of 10 | 1.250 | 1.10 | 1.100 (88%) | 1.175 (94%) | 1.5 s |" in text
+    assert "| 80.0 | 10 → 60 | 0 of 10 | 0 of 10 | 7.500 | 6.90 | 6.900 (92%) | 1.175 (16%) | 3.0 s |" in text
+    # an estimator that never got there within the step's span says so
+    stuck = [dict(r, capacity_mbps="57.0") for r in estimates]
+    assert "| 1.10 | 1.100 (88%) | 7.125 (570%) | never |" in "\n".join(
+        section(EVENTS, [], ALLOCATIONS, *_windows(), estimate_rows=stuck)
+    )
+
+
 def test_no_scenario_and_no_link_state_adds_nothing():
     assert section([], [], ALLOCATIONS, *_windows()) == []

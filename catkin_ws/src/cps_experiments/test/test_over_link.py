@@ -1,7 +1,8 @@
-"""Over the real shaped link (60 Mbit/s tbf between two namespaces, TCPROS across it): four robots
-publish realistic compressed clouds (Table 6 sizes) through cps_transport's rate limiters.
-Manager on: every 1 s window of consumed bandwidth stays within the budget and latency p95 < 100 ms
-(the paper's bound). Manager off: the same load overruns the link and latency grows. Both printed."""
+"""Over the real shaped link (60 Mbit/s tbf between two namespaces): four robots publish realistic
+compressed clouds (Table 6 sizes) through cps_transport's rate limiters. Over TCPROS across the
+link, manager on: every 1 s window of consumed bandwidth stays within the budget and latency p95 <
+100 ms (the paper's bound); manager off: the same load overruns the link and latency grows. Over
+the Zenoh bridges: the manager's online estimate follows the link 60 -> 20 -> 60 Mbit/s."""
 
 import csv
 import os
@@ -23,6 +24,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 LOAD = {"scout": (34000, 10.0), "jackal": (142000, 30.0), "champ": (60000, 30.0), "iris": (67000, 30.0)}
 RESERVE = 0.04
 PHASE_S = 8.0
+ESTIMATE_BAND, ESTIMATE_SETTLE_S = 0.15, 2.0  # issue 35: within +-15 % of the true capacity 2 s after a step
 
 
 def _capable():
@@ -70,23 +72,6 @@ def _start_load(graph, record_path=None):
         find_node("cps_harness", "cloud_load"),
         [f"{r}:{size}:{hz}" for r, (size, hz) in LOAD.items()],
         name="load",
-    )
-
-
-def _start_topic_stats(graph, stats_path, window_s):
-    """cps_transport's topic_stats on the twin (one more copy of every managed topic on the link),
-    publishing at 2 Hz into stats_path: the manager's estimator input."""
-    graph.start_python(
-        "twin",
-        find_node("cps_transport", "topic_stats"),
-        [
-            "__name:=topic_stats",
-            f"_window_s:={window_s}",
-            "_publish_rate_hz:=2.0",
-            f"_csv_path:={stats_path}",
-            "_topics:=" + ",".join(names.absolute(names.managed_cloud(r)) for r in LOAD),
-        ],
-        name="topic_stats",
     )
 
 
@@ -161,91 +146,81 @@ def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
     assert off.latency_p95_ms > 2 * on.latency_p95_ms and off.latency_p95_ms > 100.0
 
 
-def _delivered(stats_path):
-    """(time, (delivered Mbit/s over the managed topics, worst latency avg ms)) from topic_stats' CSV."""
-    by_time = {}
-    with open(stats_path) as stream:
-        for row in csv.DictReader(stream):
-            t = float(row["time_s"])
-            mbps, lat = by_time.get(t, (0.0, 0.0))
-            latency = float(row["latency_avg_ms"]) if row["latency_avg_ms"] else 0.0
-            by_time[t] = (mbps + 8 * float(row["bandwidth_mbytes_per_s"] or 0.0), max(lat, latency))
-    return sorted(by_time.items())
-
-
 def _estimates(csv_path):
-    """(time, available Mbit/s) per manager update from its CSV log."""
-    seen = {}
+    """(time, capacity Mbit/s, allocation target Mbit/s, delivered Mbit/s, sent Mbit/s, mode) per link
+    report from the manager's link_estimate.csv."""
+    rows = []
     with open(csv_path) as stream:
         for row in csv.DictReader(stream):
-            seen[float(row["stamp_s"])] = float(row["available_mbps"])
-    return sorted(seen.items())
+            rows.append(
+                (
+                    float(row["stamp_s"]),
+                    float(row["capacity_mbps"]),
+                    float(row["estimate_mbps"]),
+                    float(row["delivered_mbps"] or "nan"),
+                    float(row["sent_mbps"] or "nan"),
+                    row["mode"],
+                )
+            )
+    return rows
 
 
 @pytest.mark.skipif(_capable() is not None, reason=f"{_capable()}")
-@pytest.mark.timeout(150)
-# Traced, not fixed (issue 23): fed /tissue/stats' 2 s sliding averages, the delivery-rate estimator
-# reads a draining queue's burst (29.6 Mbit/s "delivered" through a 20 Mbit/s shaper) as capacity
-# and probes above 24 Mbit/s in 1 of 3 runs here; it needs the bridge's per-interval delivery
-# reports. It is off by default (fleet.yaml estimate_bandwidth: false); the test still runs and its
-# trace is printed, so an XPASS or XFAIL shows in every run.
-@pytest.mark.xfail(strict=False, reason="issue 23: the estimator on 2 s averages probes above the link after a drop")
+@pytest.mark.timeout(180)
 def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
-    """The manager estimates the capacity from /tissue/stats (cps_transport's topic_stats on the
-    digital-twin side) while `cps_link set` changes the link 60 -> 20 -> 60 Mbit/s under load."""
+    """The manager estimates the capacity from the Zenoh bridges' link reports (per 0.5 s interval:
+    delivered at the twin, sent by the robots' bridge, app-limited, heartbeat round trips) while
+    `cps_link set` changes the link 60 -> 20 -> 60 Mbit/s under a load above it. Issue 23's xfail
+    fed it /tissue/stats' 2 s sliding averages over TCPROS; a draining queue's burst read as
+    capacity (29.6 Mbit/s "delivered" through 20) and it probed above 24 Mbit/s in 1 of 3 runs."""
+    from cps_harness.transport_compare import Graphs, start_estimating_manager, start_limited_load
+    from cps_link.zenoh_session import default_cert_dir, ensure_certs
+
     name = link_name("bwe")
-    stats_path = str(tmp_path / "stats.csv")
-    csv_path = str(tmp_path / "allocation.csv")
+    csv_path = str(tmp_path / "link_estimate.csv")
     marks = {}
     try:
-        with ShapedLink(name, rate="60mbit") as link, LinkRosGraph(link) as graph:
-            _start_load(graph)
-            _start_topic_stats(graph, stats_path, window_s=2.0)
-            graph.start_python(
-                "twin",
-                find_node("cps_bw_manager", "bandwidth_manager"),
-                [
-                    "__name:=bandwidth_manager",
-                    "_available_mbps:=60.0",
-                    "_estimate_bandwidth:=true",
-                    f"_csv_path:={csv_path}",
-                ],
-                name="manager",
-            )
-            _wait_for_file_rows(csv_path, 40.0)
-            _wait_for_file_rows(stats_path, 40.0)
-            time.sleep(6.0)
-            marks["drop"] = time.time()
-            link.set_rate("20mbit")
-            time.sleep(10.0)
-            marks["rise"] = time.time()
-            link.set_rate("60mbit")
-            time.sleep(9.0)
-            marks["end"] = time.time()
-            manager_log = graph.output("manager")
+        with ShapedLink(name, rate="60mbit") as link:
+            graphs = Graphs(link, "zenoh", ensure_certs(default_cert_dir()))
+            try:
+                start_limited_load(graphs, LOAD)
+                start_estimating_manager(graphs, list(LOAD), 60.0, csv_path)
+                _wait_for_file_rows(csv_path, 40.0)
+                time.sleep(6.0)
+                marks["drop"] = time.time()
+                link.set_rate("20mbit")
+                time.sleep(10.0)
+                marks["rise"] = time.time()
+                link.set_rate("60mbit")
+                time.sleep(9.0)
+                marks["end"] = time.time()
+                manager_log = graphs.output("manager")
+            finally:
+                graphs.close()
     finally:
         netns_link.link_down(name)
 
     trace = _estimates(csv_path)
-    delivered = _delivered(stats_path)
-    print(
-        "\nestimate of the available bandwidth while the link goes 60 -> 20 -> 60 Mbit/s "
-        "(delivered: topic_stats at the digital twin, 2 s window):"
-    )
-    for t, mbps in trace:
+    print("\nestimate of the link while it goes 60 -> 20 -> 60 Mbit/s (the bridges' link reports):")
+    for t, capacity, target, delivered, sent, mode in trace:
         if marks["drop"] - 4 <= t <= marks["end"]:
             phase = "60" if t < marks["drop"] else "20" if t < marks["rise"] else "60"
-            near = [v for ts, v in delivered if abs(ts - t) < 0.3]
-            shown = f"{near[0][0]:5.1f} Mbit/s, latency {near[0][1]:5.0f} ms" if near else ""
-            print(f"  t={t - marks['drop']:+6.1f} s link {phase} Mbit/s: estimate {mbps:5.1f}   delivered {shown}")
+            print(
+                f"  t={t - marks['drop']:+6.1f} s link {phase}: capacity {capacity:5.1f} target {target:5.1f} ({mode}); "
+                f"delivered {delivered:5.1f} sent {sent:5.1f} Mbit/s"
+            )
 
     def during(t0, t1):
-        return [mbps for t, mbps in trace if t0 <= t < t1]
+        return [(capacity, target, mode) for t, capacity, target, _, _, mode in trace if t0 <= t < t1]
 
-    low = during(marks["drop"] + 4.0, marks["rise"])
+    low = during(marks["drop"] + ESTIMATE_SETTLE_S, marks["rise"])
     high = during(marks["rise"], marks["rise"] + 8.0)
     assert low and high, manager_log[-2000:]
-    # Within 4 s of the drop the estimate is at or below the new capacity (plus its probing margin)
-    # and stays there; within 8 s of the recovery it is back near the full capacity.
-    assert all(v <= 24.0 for v in low), low
-    assert max(high) >= 45.0, high
+    # The issue's bar: from 2 s after the drop the estimate of the link (capacity_mbps) is within
+    # +-15 % of 20 Mbit/s and stays there. Out of a probe the manager allocates no more than that
+    # (estimate_mbps); a probe allocates above it on purpose, for at most probe_max_s (its target is
+    # gain x the capacity plus the fleet's unfilled gap: estimation.PROBE_GAP_FRACTION).
+    assert all(abs(capacity / 20.0 - 1.0) <= ESTIMATE_BAND for capacity, _, _ in low), low
+    assert all(target <= 20.0 * (1.0 + ESTIMATE_BAND) for _, target, mode in low if mode != "probe"), low
+    # Within 8 s of the recovery the estimate is back near the full capacity.
+    assert max(capacity for capacity, _, _ in high) >= 45.0, high

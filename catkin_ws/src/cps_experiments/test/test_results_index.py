@@ -32,7 +32,9 @@ def test_link_thesis_row_gives_each_arm_in_the_5_mbit_phase_only_and_received_of
     ]
     (row,) = link_thesis_rows(rows)
     assert "manager off: offered 1.67, received 0.155 MB/s of managed streams (9%), 20 of 20" in row[2]
-    assert "on, capacity announced: offered 0.52, received 0.215 MB/s of managed streams (41%), 2 of 20" in row[2]
+    assert (
+        "on, capacity announced (oracle): offered 0.52, received 0.215 MB/s of managed streams (41%), 2 of 20" in row[2]
+    )
     assert "1.80" not in row[2]
     assert link_thesis_rows([]) == []
 

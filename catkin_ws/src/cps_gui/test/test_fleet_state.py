@@ -10,6 +10,7 @@ from cps_gui.fleet_state import (
     Allocation,
     FleetState,
     ImageFrame,
+    LinkEstimateFigures,
     Pose,
     RateMeter,
     RobotAllocation,
@@ -107,6 +108,19 @@ def test_plot_series_from_stats_and_allocation(state, clock):
     assert per_robot["scout"]["latency"][1] == [35.0, 35.0]
     assert per_robot["iris"]["bandwidth"] == ([], [])
     assert budget[1] == [6.9] and stats_age == pytest.approx(0.0)
+
+
+def test_the_link_estimate_is_plotted_beside_the_true_capacity(state, clock):
+    assert state.link_estimate() == (None, ([], []), ([], []))
+    state.set_link_estimate(LinkEstimateFigures(57.0, 57.0, "cruise", math.nan, math.nan))  # no oracle
+    clock.t += 0.5
+    figures = LinkEstimateFigures(4.6, 3.9, "drain", 5.0, 0.92)
+    state.set_link_estimate(figures)
+    last, (t, estimate), (t_true, true) = state.link_estimate()
+    assert last == figures and estimate == pytest.approx([57.0 / 8, 3.9 / 8]) and true == [5.0 / 8]
+    assert t_true == t[1:]
+    assert figures.text() == "estimate 3.9 Mbit/s (drain), true 5.0 Mbit/s (oracle), ratio 0.92"
+    assert LinkEstimateFigures(57.0, 57.0, "cruise", math.nan, math.nan).text() == "estimate 57.0 Mbit/s (cruise)"
 
 
 def test_unknown_robots_are_counted_and_change_nothing(state):

@@ -135,14 +135,29 @@ def test_classes_map_to_their_zenoh_qos():
         robot_topic("jackal", names.ODOM): (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
         names.TF_STATIC: (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
         names.ROSOUT: (zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP, True, False),
-        champ_cloud: (zenoh.Priority.DATA, zenoh.CongestionControl.DROP, False, False),
+        # paced: the bridge's own send queue holds the backlog, so Zenoh blocks rather than drops
+        # (and reliable: Zenoh drops a best-effort message whatever its congestion control)
+        champ_cloud: (zenoh.Priority.DATA, zenoh.CongestionControl.BLOCK, True, False),
+        robot_topic("jackal", names.CAMERA_IMAGE_COMPRESSED): (
+            zenoh.Priority.DATA_HIGH,
+            zenoh.CongestionControl.BLOCK,
+            True,
+            True,
+        ),
     }
     routes = {r.to: r for r in table.routes}
     for topic, (priority, congestion, reliable, express) in expected.items():
         qos = zenoh_qos(routes[topic].traffic)
         assert (qos["priority"], qos["congestion_control"], qos["express"]) == (priority, congestion, express), topic
         assert (qos["reliability"] == zenoh.Reliability.RELIABLE) == reliable, topic
-    assert routes[champ_cloud].traffic.max_age_s == 1.0
+    assert routes[champ_cloud].traffic.max_age_s == 2.0
+    assert {r.to for r in table.routes if r.traffic.paced} == {
+        r.to for r in table.routes if r.traffic.name in ("data", "video")
+    }
+    assert {r.to for r in table.routes if r.managed and r.from_ros} == {
+        names.absolute(names.managed_cloud_at_twin(r)) for r in ROBOT_NAMES
+    } | {robot_topic(r, names.CAMERA_IMAGE_COMPRESSED) for r in ROBOT_NAMES}
+    assert table.paced_ranks["video"] < table.paced_ranks["data"]  # the video leaves first
     assert {r.to for r in table.routes if r.latched} >= {
         names.TF_STATIC,
         names.ESTOP,
@@ -187,6 +202,19 @@ def test_bad_table_names_file_and_line(tmp_path):
         path.write_text(base + "topics:\n" + topics)
         with pytest.raises(ConfigError, match=message):
             load_bridge_table(str(path), ROBOT_NAMES)
+    topic = "topics:\n  - {topic: /a, from: twin, class: command}\n"
+    for extra, message in (
+        # a paced class must block in Zenoh, and be reliable (Zenoh drops best effort anyway)
+        ("  data: {priority: data, congestion: drop, reliable: true, express: false, paced: true}\n", "paced"),
+        ("  data: {priority: data, congestion: block, reliable: false, express: false, paced: true}\n", "paced"),
+    ):
+        path.write_text(base + extra + topic)
+        with pytest.raises(ConfigError, match=message):
+            load_bridge_table(str(path), ROBOT_NAMES)
+    for setting in ("batch_bytes: 100", "batch_bytes: 70000", "report_ms: 10", "kernel_unsent_bytes: -1"):
+        path.write_text(base + topic + setting + "\n")
+        with pytest.raises(ConfigError, match=setting.split(":")[0]):
+            load_bridge_table(str(path), ROBOT_NAMES)
 
 
 def test_link_health_counts_outages_and_their_length():
@@ -222,6 +250,12 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
     assert robots["transport"]["link"]["tls"]["enable_mtls"] is True
     assert robots["transport"]["link"]["tls"]["connect_private_key"].endswith("robots.key")
     assert not twin["scouting"]["multicast"]["enabled"]
+    # what waits below the bridge's own queue is small, and nothing bypasses the link through
+    # shared memory on a one-host test bed (issue 35)
+    for config in (twin, robots):
+        assert config["transport"]["shared_memory"]["enabled"] is False
+        assert config["transport"]["link"]["tx"]["batch_size"] == table.batch_bytes == 16384
+    assert table.kernel_unsent_bytes == 16384 and table.report_ms == 500
     zenoh.Config.from_json5(__import__("json").dumps(twin))
 
 

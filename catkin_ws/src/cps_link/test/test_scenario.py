@@ -25,6 +25,8 @@ def test_the_shipped_scenarios_parse():
     assert (degraded.initial.delay_ms, degraded.initial.jitter_ms, degraded.initial.loss_pct) == (20, 10, 2)
     assert _timeline(degraded) == [(20, "shape", 20), (40, "shape", 5), (60, "shape", 60)]
     assert load_scenario("shared_medium").topology == "shared"
+    # Wi-Fi is one medium both ways: the degraded scenarios too (teleop shares the shaper, issue 35)
+    assert degraded.topology == "shared" and load_scenario("degraded_with_outage").topology == "shared"
     assert _timeline(load_scenario("demo")) == [
         (25, "cut", 60),
         (35, "restore", 60),

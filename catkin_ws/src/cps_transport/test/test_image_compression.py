@@ -1,6 +1,8 @@
 """JPEG camera compression: round trip within a PSNR bound, the compressed plugin's format
 strings, encodings and bad input."""
 
+import io
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,7 @@ from cps_transport.image_compression import (
     encode_jpeg,
     format_encoding,
     image_pixels,
+    jpeg_dimensions,
     psnr_db,
 )
 
@@ -99,3 +102,30 @@ def test_damaged_payloads_are_refused():
     Image.fromarray(camera_test_image(8, 8)).save(png, "PNG")
     with pytest.raises(InvalidImage, match="not JPEG"):
         decode_jpeg(png.getvalue())
+
+
+@pytest.mark.parametrize("width, height", [(640, 480), (320, 240), (160, 120), (17, 9)])
+def test_a_jpegs_dimensions_are_read_from_its_frame_header(width, height):
+    data = encode_jpeg(np.zeros((height, width, 3), np.uint8), quality=75)
+    assert jpeg_dimensions(data) == (width, height)
+    assert jpeg_dimensions(encode_jpeg(np.zeros((height, width), np.uint8))) == (width, height)
+
+
+def test_a_payload_without_a_frame_header_has_no_dimensions():
+    data = encode_jpeg(np.zeros((8, 8, 3), np.uint8))
+    for bad in (b"", b"\xff\xd8", b"not a jpeg", data[:20], b"\xff\xd8\xff\xda\x00\x02"):
+        assert jpeg_dimensions(bad) is None, bad
+
+
+def test_a_serialized_compressed_images_dimensions():
+    from sensor_msgs.msg import CompressedImage
+
+    from cps_transport.topic_stats import compressed_image_dimensions
+
+    msg = CompressedImage(format="rgb8; jpeg compressed bgr8", data=encode_jpeg(np.zeros((240, 320, 3), np.uint8)))
+    msg.header.frame_id = "jackal/camera"
+    buff = io.BytesIO()
+    msg.serialize(buff)
+    assert compressed_image_dimensions(buff.getvalue()) == (320, 240)
+    assert compressed_image_dimensions(buff.getvalue()[:40]) is None
+    assert compressed_image_dimensions(b"\x00" * 8) is None

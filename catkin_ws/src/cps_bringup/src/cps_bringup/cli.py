@@ -503,10 +503,11 @@ def run_mission(args, log=print) -> MissionResult:
         if DIGITAL in sides:
             _record_map_server_ready(supervisor)
         recorder_log = supervisor.log_of(RECORDER)
-        if announce:
+        if link and DIGITAL in sides:
             from cps_bringup.link import CapacityAnnouncer
 
-            announcer = CapacityAnnouncer(link, log)
+            # the true capacity always goes to the oracle topic; to the manager only when announced
+            announcer = CapacityAnnouncer(link, log, to_manager=announce)
         else:
             announcer = None
         runner = (
@@ -565,7 +566,7 @@ def run_mission(args, log=print) -> MissionResult:
             supervisor.restarts(),
             split.describe(),
             video_source,
-            announcer.describe() if announcer else _unannounced(link, options),
+            announcer.describe() if announce else _unannounced(link, options, fleet),
         )
 
 
@@ -666,13 +667,14 @@ def _checked_announce(args, sides):
     return True
 
 
-def _unannounced(link, options):
+def _unannounced(link, options, fleet):
     """What the manager's budget was made from when no capacity was announced."""
     if not options.bandwidth_manager:
         return "not announced (no bandwidth manager)"
-    if link:
-        return f"not announced: the manager's budget from iperf3's {link.measured_mbps:.1f} Mbit/s at the start"
-    return "not announced: the manager's budget from the configured capacity"
+    start = f"iperf3's {link.measured_mbps:.1f} Mbit/s at the start" if link else "the configured capacity"
+    if fleet.link.estimate_bandwidth and options.transport == ZENOH:
+        return f"not announced: the manager's online estimate from the bridges' link reports, seeded by {start}"
+    return f"not announced: the manager's budget from {start}"
 
 
 def _checked_video_trace(path, fleet, sides, args, replay_path):

@@ -116,27 +116,35 @@ class NamespacedLink:
 
 
 class CapacityAnnouncer:
-    """Publishes the link's capacity as tc sets it on names.LINK_CAPACITY (cps_msgs/LinkCapacity,
-    latched) on this process's master, the twin's, where the bandwidth manager runs: what a link
-    that knows its rate (a modem, a Wi-Fi driver) would announce. rospy must be up."""
+    """Publishes the link's capacity as tc sets it (cps_msgs/LinkCapacity, latched) on this
+    process's master, the twin's, where the bandwidth manager runs: always on
+    names.LINK_TRUE_CAPACITY, the test bed's oracle that the GUI and the reports set the manager's
+    estimate against; with `to_manager` also on names.LINK_CAPACITY, what a link that knows its rate
+    (a modem, a Wi-Fi driver) would announce and the manager allocates from. rospy must be up."""
 
-    def __init__(self, link, log=print):
+    def __init__(self, link, log=print, to_manager=True):
         import rospy
 
         from cps_fleet import names
         from cps_msgs.msg import LinkCapacity
 
-        self.link, self.log = link, log
+        self.link, self.log, self.to_manager = link, log, to_manager
         self.source = f"tc scenario {link.scenario.name}" if link.scenario else f"tc link {link.rate}"
         self.announced = []  # (mission s, Mbit/s)
         self._msg = LinkCapacity
-        self._pub = rospy.Publisher(names.LINK_CAPACITY, LinkCapacity, queue_size=10, latch=True)
+        self._oracle = rospy.Publisher(names.LINK_TRUE_CAPACITY, LinkCapacity, queue_size=10, latch=True)
+        self._pub = (
+            rospy.Publisher(names.LINK_CAPACITY, LinkCapacity, queue_size=10, latch=True) if to_manager else None
+        )
 
     def on_rate(self, mission_s, rate_mbps):
         import rospy
 
         msg = self._msg(capacity_mbps=float(rate_mbps), source=self.source)
         msg.header.stamp = rospy.Time.now()
+        self._oracle.publish(msg)
+        if self._pub is None:
+            return
         self._pub.publish(msg)
         self.announced.append((mission_s, float(rate_mbps)))
         self.log(f"[link] {mission_s:6.1f} s: announced {rate_mbps:g} Mbit/s on {self._pub.resolved_name}")
@@ -148,6 +156,8 @@ class CapacityAnnouncer:
         self.on_rate(0.0, rate_bits_per_s(self.link.rate) / 1e6)
 
     def describe(self):
+        if self._pub is None:
+            return f"not announced to the manager ({self.source} only on {self._oracle.resolved_name}, the oracle)"
         if not self.announced:
             return f"announce asked, nothing announced ({self.source})"
         steps = ", ".join(f"{mbps:g} Mbit/s at {t:.0f} s" for t, mbps in self.announced)

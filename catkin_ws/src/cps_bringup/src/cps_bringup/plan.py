@@ -446,6 +446,9 @@ def plan_nodes(
                                 "robots": ",".join(robots),
                                 "csv_path": os.path.join(out, "allocation.csv"),
                                 "link_state_csv_path": os.path.join(out, "link_state.csv"),
+                                "link_estimate_csv_path": os.path.join(out, "link_estimate.csv"),
+                                # over TCPROS no bridge reports the link: the configured capacity
+                                **({"estimate_bandwidth": False} if options.transport == TCPROS else {}),
                                 "setpoints_csv_path": os.path.join(out, "setpoints.csv"),
                                 **({"selected_robot": options.selected_robot} if options.selected_robot else {}),
                                 **(

@@ -40,6 +40,11 @@ import math
 from typing import Optional, Sequence
 
 DRAIN_FACTOR = 0.85  # GCC's cut on overuse, x the acknowledged (delivered) rate
+# With deficit_reports > 1 a deficit is overuse once it holds on that many reports in a row, or at
+# once when it is this fraction of what was sent.
+LARGE_DEFICIT_FRACTION = 0.4
+# ... and a confirmed deficit of a busy sender whose window delivered below this x the capacity.
+STEP_FRACTION = 0.7
 # BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
 # inside the +-15 % band the estimate is held to
 PROBE_GAIN = 1.2
@@ -47,6 +52,22 @@ STARTUP_GAIN = 2.0  # BBR's STARTUP roughly doubles per round while delivery kee
 # A probe adds the gap between the estimate and what the fleet sends, up to this fraction of its
 # target (the manager's reserve and per-message headroom are a few per cent).
 PROBE_GAP_FRACTION = 0.1
+
+
+# The estimator's options when fed the bridges' link reports (issue 35, from the live runs): their
+# two sides' intervals are measured on two clocks (a small deficit must hold on two reports), a
+# 0.5 s interval moves by 40 % at 5 Mbit/s with one shaper burst or one large frame (samples over a
+# second), a step's queue drains at 0.6 x, a refused probe's at 0.85 x (and the next waits up to 3 s),
+# and a probe the fleet has not filled yet (it follows an allocation in ~1 s) lasts up to 1.5 s.
+LINK_REPORT_OPTIONS = dict(
+    deficit_min_mbps=0.5,
+    deficit_reports=2,
+    sample_window_s=1.0,
+    step_drain_factor=0.6,
+    drain_after_probe=True,
+    probe_max_s=1.5,
+    probe_backoff_max_s=3.0,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +87,12 @@ class LinkReport:
     app_limited: Optional[bool] = None  # the sender's queue ran empty (it had nothing more to send)
     rtt_s: Sequence[float] = ()  # heartbeat echo round-trip times measured in the interval
     receiver_behind: Optional[bool] = None  # the far side's processing is behind (CPU; TCP rwnd_limited)
+    # the sender spent most of the interval waiting for the link to take what it sent (its queue
+    # backlogged, its writes blocked): what was delivered is what the link carries
+    link_limited: Optional[bool] = None
+    # the sender's queue stayed backlogged (it never ran empty in the interval): the link was busy
+    # with what it sent, so a rising RTT is its queue (None: taken as not app_limited)
+    link_busy: Optional[bool] = None
 
 
 class _Trendline:
@@ -133,6 +160,12 @@ class DeliveryRateEstimator:
         max_drain_s=4.0,
         queue_delay_threshold_s=0.03,
         measure_window_s=0.0,
+        deficit_reports=1,
+        sample_window_s=0.0,
+        step_drain_factor=None,
+        drain_after_probe=False,
+        probe_max_s=None,
+        probe_backoff_max_s=None,
     ):
         for name, value in (
             ("initial_mbps", initial_mbps),
@@ -152,10 +185,36 @@ class DeliveryRateEstimator:
         self.merge_window_s = float(merge_window_s)
         self.deficit_fraction = float(deficit_fraction)
         self.deficit_min_mbps = float(deficit_min_mbps)
+        # reports in a row a small deficit must hold on (the bridges' two clocks: 2; one: 1)
+        self.deficit_reports = max(1, int(deficit_reports))
+        # delivery-rate samples (and an overuse's measure of the link) over this much of the last
+        # reports, not one interval: a shaper's burst or one large frame moves a 0.5 s interval by
+        # 40 % at 5 Mbit/s (live, issue 35); 0: per report
+        self.sample_window_s = max(0.0, float(sample_window_s))
+        self._samples = collections.deque()  # (now_s, interval_s, delivered, sent)
+        # After a step (a large deficit, a blocked sender) the target drains at this x the new
+        # capacity until the queue is gone (BBR drains its startup queue at 1/2.89): a shaper's
+        # queue after 20 -> 5 Mbit/s held commands 150-200 ms for 3 s (live, issue 35). None: 0.85.
+        self.step_drain_factor = DRAIN_FACTOR if step_drain_factor is None else float(step_drain_factor)
+        # After a probe that found nothing, drain at 0.85 x for as long as the probe (BBR's
+        # ProbeBW 0.75 phase): the probe's queue otherwise waits for the fleet to send less.
+        self.drain_after_probe = bool(drain_after_probe)
+        # A probe the fleet has not filled yet (it sent no more than before: it follows an
+        # allocation in about a second) goes on up to this long (None: probe_s): one that ended
+        # before the fleet followed found nothing, and live after 5 -> 60 Mbit/s no probe ever did.
+        self.probe_max_s = probe_max_s
+        # Each refused probe doubles the wait before the next, up to this (None: no backoff): at 5
+        # Mbit/s the fleet always wants more, and a probe every 1.5 s queued 100 ms in the shaper
+        # each time (live, issue 35). A probe that was not refused resets it.
+        self.probe_backoff_max_s = probe_backoff_max_s
         self.probe_every_s = float(probe_every_s)
+        if self.probe_backoff_max_s is None:
+            self.probe_backoff_max_s = self.probe_every_s
+        self._probe_wait_s = self.probe_every_s
         # how long a probe is held: one report interval when the reports are per interval; as long
         # as the measurement window when they are sliding averages (today's /tissue/stats: 2 s)
         self.probe_s = float(probe_s)
+        self.probe_max_s = max(self.probe_s, self.probe_s if self.probe_max_s is None else float(self.probe_max_s))
         self.max_drain_s = float(max_drain_s)
         # the reports' rates are sliding averages over this window (0: per interval, as the
         # bridge's report; 2: today's /tissue/stats and limiter status)
@@ -170,6 +229,9 @@ class DeliveryRateEstimator:
         self.mode = "cruise"  # cruise | probe | drain
         self.ignored = collections.Counter()  # reason -> reports ignored
         self.overuses = 0
+        self.overuse_reasons = collections.Counter()  # deficit | rtt | link_full -> overuses
+        self.last_overuse = ""  # the reason of the last overuse
+        self._deficit_reports = 0  # consecutive reports whose merged window showed a deficit
         self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
         self._unrefuted_mbps = self.capacity_mbps  # highest allocation target run without an overuse since
         self._rtt_samples = collections.deque()  # (now_s, smallest rtt_s, median rtt_s) per interval
@@ -181,6 +243,15 @@ class DeliveryRateEstimator:
         self._capacity_before_probe_mbps = math.nan
         self._drain_checked = False  # the drain's one correction of the capacity was made
         self._gain = PROBE_GAIN
+
+    @property
+    def allocation_mbps(self):
+        """The rate the fleet is allotted from: the estimate, but the capacity while a queue drains.
+        A drain is the pacer's (BBR lowers its pacing gain, not what the application may send):
+        sent to the robots' rate limiters as setpoints, whose raises wait out a hold (issue 36:
+        5 s per stream), a 1 s drain kept the fleet far below the link for 5 s and more, left
+        every probe unfilled and hid a 20 -> 60 Mbit/s step (live, test_over_link)."""
+        return max(self.estimate_mbps, self.capacity_mbps) if self.mode == "drain" else self.estimate_mbps
 
     @property
     def ignored_samples(self):
@@ -201,6 +272,8 @@ class DeliveryRateEstimator:
         self._last_now_s = now_s
         self._resumed_s = now_s
         self._merged.clear()
+        self._samples.clear()
+        self._deficit_reports = 0
         self._trend.reset()
         self._rtt_samples.clear()
         self._set_mode("cruise", now_s)
@@ -266,6 +339,7 @@ class DeliveryRateEstimator:
             self.twin_capacity_mbps = delivered
             self.congested = False
             self._merged.clear()
+            self._deficit_reports = 0
             self._trend.reset()
             return self.estimate_mbps
         if not math.isnan(sent) and sent > 0 and delivered == 0:
@@ -277,7 +351,20 @@ class DeliveryRateEstimator:
             self._merged.popleft()
         rtt_overuse, queue_delay_s = self._rtt(now, report.rtt_s, dt)
 
-        deficit = self._deficit()
+        # a small deficit must hold on two reports in a row: the two sides' intervals are measured on
+        # two clocks, and one large frame sent at the end of one interval arrives in the next; a
+        # large one (LARGE_DEFICIT_FRACTION of what was sent) is no such accident
+        self._deficit_reports = self._deficit_reports + 1 if self._deficit() else 0
+        large = self._deficit_reports >= 1 and self._deficit(LARGE_DEFICIT_FRACTION, 2.0 * self.deficit_min_mbps)
+        deficit = self._deficit_reports >= self.deficit_reports or large
+        # a link-limited interval that delivered clearly less than the capacity believed: the link
+        # is full at what it delivered (the sender's blocked writes kept it from showing a deficit)
+        # (while draining too: a cut from a window straddling a step can leave the capacity far
+        # above what the link now takes, live 48.9 Mbit/s for 4 s on a 5 Mbit/s link)
+        full = (
+            bool(report.link_limited)
+            and delivered < (1.0 - self.deficit_fraction) * self.capacity_mbps - self.deficit_min_mbps
+        )
         app_limited = report.app_limited
         if app_limited is None:
             # inferred (BBR: in flight below what the pacing allowed): the sender used clearly less
@@ -288,12 +375,33 @@ class DeliveryRateEstimator:
                 and (math.isnan(sent) or sent < 0.9 * self.estimate_mbps)
                 and (math.isnan(report.offered_mbps) or math.isnan(sent) or report.offered_mbps <= 1.02 * sent)
             )
-        self.congested = (deficit or rtt_overuse) and not app_limited
+        # A queue building is overuse whether or not the sender's own queue ran empty: app-limited
+        # marks the delivery-rate samples (too low to lower the capacity), not the link's deficit
+        # (issue 35: a bridge whose queue emptied between frames sent 14 Mbit/s into a 5 Mbit/s link).
+        # A rising RTT is our queue only while the sender kept the link busy: heartbeat echoes through
+        # loaded processes jitter by tens of ms, and read as overuse on an idle link they cut the
+        # capacity to what an app-limited fleet happened to send (issue 35, live).
+        busy = report.link_busy if report.link_busy is not None else not app_limited
+        self.congested = deficit or full or (rtt_overuse and busy)
         if self.congested:
-            self._on_overuse(now, delivered, sent)
+            self.last_overuse = "deficit" if deficit else "link_full" if full else "rtt"
+            self.overuse_reasons[self.last_overuse] += 1
+        window_delivered, window_sent = self._window(now, report.interval_s, delivered, sent)
+        if self.congested:
+            # a step (a large deficit, a sender blocked by the link): this interval is the new link;
+            # otherwise the window's average, not one interval's noise
+            # ... or a confirmed deficit while the sender kept the link busy, its window far below
+            # the capacity (an app-limited fleet's window says nothing about the link: live, such a
+            # "step" set a 60 Mbit/s link's capacity to the 2.4 Mbit/s it was sending)
+            step = large or full or (deficit and busy and window_delivered < STEP_FRACTION * self.capacity_mbps)
+            if step or self.sample_window_s <= 0:
+                self._on_overuse(now, delivered, sent, self.step_drain_factor if step else DRAIN_FACTOR)
+            else:
+                # GCC's multiplicative decrease bounds what one small overuse takes off the capacity
+                self._on_overuse(now, max(window_delivered, DRAIN_FACTOR * self.capacity_mbps), window_sent)
             return self.estimate_mbps
 
-        sample = delivered if math.isnan(sent) else min(delivered, sent)
+        sample = window_delivered if math.isnan(window_sent) else min(window_delivered, window_sent)
         if not app_limited or sample > self._bw_max_mbps:
             # BBR: app-limited samples only count when they exceed the current estimate.
             self._bw_max_mbps = max(self._bw_max_mbps, sample)
@@ -302,16 +410,30 @@ class DeliveryRateEstimator:
             self.mode == "drain"
             and not self._drain_checked
             and not math.isnan(sent)
-            and now - self._mode_since_s >= 2 * report.interval_s - 1e-6
+            and now - self._mode_since_s >= (1 if self.sample_window_s > 0 else 2) * report.interval_s - 1e-6
         ):
-            # The first whole interval after the cut: if the queue the overuse left was still
+            # The first whole interval after the cut (the report at the cut covered the step; with
+            # reports of the sender's interval, the next one is after it; a sliding window's later): if the queue the overuse left was still
             # served all along (more delivered than sent; by the RTT, still queueing), the link ran
             # full and what it delivered is its rate (GCC's acknowledged bitrate). This corrects a
             # cut measured over an interval that straddled the step. Once only: later the queue
             # may empty inside an interval.
             self._drain_checked = True
             queueing = math.isnan(queue_delay_s) or queue_delay_s > self.queue_delay_threshold_s
-            if delivered >= 1.02 * sent and queueing:
+            # ... or still filling (less delivered than sent, by the RTT still queueing: a cut
+            # measured before the step's interval was over): the link ran full, so what it
+            # delivered is its rate
+            still_full = (
+                self.sample_window_s > 0
+                and sent >= 1.05 * delivered
+                and not math.isnan(queue_delay_s)
+                and queue_delay_s > self.queue_delay_threshold_s
+            )
+            # ... and only if the link was full over the whole interval where the sender says so
+            # (its socket full in nearly every sample): a queue that emptied inside the interval
+            # left part of it idle, and its delivered rate is below the link's
+            whole = report.link_limited is None or bool(report.link_limited)
+            if (delivered >= 1.02 * sent or still_full) and queueing and whole:
                 self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = self._clip(delivered)
                 self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)
         if self.mode == "drain":
@@ -340,7 +462,19 @@ class DeliveryRateEstimator:
                 and delivered >= 1.1 * self._capacity_before_probe_mbps
                 and delivered >= 0.97 * sent
             )
-        if self.mode == "probe" and (kept_up or now - self._mode_since_s >= self.probe_s - 1e-6):
+        probed_s = now - self._mode_since_s
+        # Undecided: the fleet has not filled the probe yet, or it sends more and the link carried
+        # all of it but not yet 1.1 x (the fleet is still ramping up: live after 20 -> 60 Mbit/s a
+        # probe ended on its first interval at 1.07 x, refusing nothing and proving nothing, three
+        # times in a row). It goes on until kept, refused or probe_max_s.
+        undecided = not math.isnan(sent) and (
+            sent < 1.05 * self._capacity_before_probe_mbps or delivered >= 0.97 * sent
+        )
+        if (
+            self.mode == "probe"
+            and (kept_up or probed_s >= self.probe_s - 1e-6)
+            and (kept_up or not undecided or probed_s >= self.probe_max_s - 1e-6)
+        ):
             self._gain = STARTUP_GAIN if kept_up else PROBE_GAIN
             if kept_up or app_limited:
                 # Nothing refused the probe's rate and the fleet got all it wanted at it: it may
@@ -348,7 +482,27 @@ class DeliveryRateEstimator:
                 # capacity only rises by what was measured.
                 self._unrefuted_mbps = max(self._unrefuted_mbps, self.estimate_mbps)
             self._last_probe_s = now
-            self._set_mode("cruise", now)
+            # refused: the link did not carry all that was sent (a fleet that sent no more than the
+            # capacity, or got all of it through, refused nothing: it may simply not need more)
+            refused = not (kept_up or app_limited) and not math.isnan(sent) and delivered < 0.97 * sent
+            self._probe_wait_s = (
+                min(self.probe_backoff_max_s, 2.0 * self._probe_wait_s) if refused else self.probe_every_s
+            )
+            if refused:
+                # The probe's queue is acted upon here (its deficit says the link is below the
+                # probe's rate, not below the capacity measured before it): the next deficit must
+                # be new, as after an overuse. Live, the probe's own deficit, still in the merged
+                # window on the next report, cut a 19.1 Mbit/s capacity to 16.3 (0.85 x).
+                self._merged.clear()
+                self._deficit_reports = 0
+                self._trend.reset()
+            if self.drain_after_probe and refused:
+                # the link took no more: empty what the probe queued before cruising again
+                self._set_mode("drain", now)
+                self._drain_checked = True
+                self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)
+            else:
+                self._set_mode("cruise", now)
         self.capacity_mbps = self._clip(self._bw_max_mbps)
 
         demand_exceeds = not app_limited
@@ -360,7 +514,7 @@ class DeliveryRateEstimator:
             self.mode == "cruise"
             and demand_exceeds
             and can_probe
-            and (quick or now - self._last_probe_s >= self.probe_every_s)
+            and (quick or now - self._last_probe_s >= self._probe_wait_s)
         ):
             self._set_mode("probe", now)
             self._capacity_before_probe_mbps = self.capacity_mbps
@@ -370,6 +524,7 @@ class DeliveryRateEstimator:
             # (its rates were cut), and an unbounded gap took a 20 Mbit/s link's estimate to 28
             # Mbit/s live (test_over_link); at most PROBE_GAP_FRACTION of the probe's own target.
             gap = max(0.0, self.estimate_mbps - sent) if not math.isnan(sent) else 0.0
+            # from the level kept by the last unrefused probe (the fleet may not have filled it yet)
             target = self._gain * self.capacity_mbps
             self.estimate_mbps = self._clip(target + min(gap, PROBE_GAP_FRACTION * target))
         elif self.mode == "cruise":
@@ -377,28 +532,48 @@ class DeliveryRateEstimator:
             self.estimate_mbps = self._clip(max(self.capacity_mbps, self._unrefuted_mbps))
         return self.estimate_mbps
 
-    def _on_overuse(self, now, delivered, sent):
-        """GCC: the link is full, so what it delivered is its rate; cut the target to 0.85 x it."""
+    def _on_overuse(self, now, delivered, sent, drain_factor=DRAIN_FACTOR):
+        """GCC: the link is full, so what it delivered is its rate; cut the target to 0.85 x it
+        (`drain_factor`) until the queue has drained."""
         self.overuses += 1
         measured = self._clip(delivered)
         self._bw_max_mbps = self._unrefuted_mbps = measured
         self._gain = PROBE_GAIN
         self._merged.clear()  # this deficit is acted upon; the next one must be new
+        self._samples.clear()  # the link changed: samples from before the overuse are not its rate
+        self._deficit_reports = 0
         self.capacity_mbps = measured
-        self.estimate_mbps = self._clip(DRAIN_FACTOR * measured)
+        self.estimate_mbps = self._clip(drain_factor * measured)
         self.mode, self._mode_since_s = "drain", now  # a new overuse restarts the drain
         self._drain_checked = False
         self._trend.reset()  # the rise is acted upon; the next overuse must be a new rise
 
-    def _deficit(self):
-        """Over the merged window, did the link deliver clearly less than was sent (a queue building)?"""
+    def _window(self, now, interval_s, delivered, sent):
+        """(delivered, sent) over the last sample_window_s of reports, this one included."""
+        if self.sample_window_s <= 0:
+            return delivered, sent
+        self._samples.append((now, interval_s, delivered, sent))
+        while self._samples and self._samples[0][0] <= now - self.sample_window_s:
+            self._samples.popleft()
+        span = sum(i for _, i, _, _ in self._samples)
+        known = [(i, s) for _, i, _, s in self._samples if not math.isnan(s)]
+        return (
+            sum(i * d for _, i, d, _ in self._samples) / span,
+            sum(i * s for i, s in known) / sum(i for i, _ in known) if known else math.nan,
+        )
+
+    def _deficit(self, fraction=None, min_mbps=None):
+        """Over the merged window, did the link deliver clearly less than was sent (a queue building)?
+        Clearly: by more than `fraction` of what was sent and `min_mbps` (default: the estimator's)."""
+        fraction = self.deficit_fraction if fraction is None else fraction
+        min_mbps = self.deficit_min_mbps if min_mbps is None else min_mbps
         known = [(i, d, s) for _, i, d, s in self._merged if not math.isnan(s)]
         if not known:
             return False
         span = sum(i for i, _, _ in known)
         delivered = sum(i * d for i, d, _ in known) / span
         sent = sum(i * s for i, _, s in known) / span
-        return sent - delivered > max(self.deficit_fraction * sent, self.deficit_min_mbps)
+        return sent - delivered > max(fraction * sent, min_mbps)
 
     def _rtt(self, now, rtt_samples, dt):
         """(GCC trendline says overuse, queueing delay s over the min-RTT floor) from this interval."""

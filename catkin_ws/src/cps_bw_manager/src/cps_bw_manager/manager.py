@@ -52,6 +52,19 @@ DEFAULT_INPUT_RATE_HOLD_S = 10.0
 # it every window; a silent map server no longer bounds the clouds).
 INSERT_CAPACITY_HOLD_S = 10.0
 TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
+# The unmanaged traffic kept out of the budget is its mean over this many seconds of link reports
+# (odometry, tf and the rest come in bursts; the twin's link bytes less its managed frames is noisy
+# per interval: the largest read up to 5 Mbit/s live on a link carrying 1-2 of it).
+UNMANAGED_WINDOW_S = 2.0
+# The robots' link socket was full in at least this fraction of its samples (or, without TCP_INFO,
+# its sender waited for Zenoh this fraction of its interval): the link kept busy.
+LINK_LIMITED_FRACTION = 0.5
+# ... and in at least this fraction: the link was the limit over the whole interval, so what it
+# delivered is the link's rate (a step). A socket full in 80 % of its samples read 23 % low live
+# (15.45 Mbit/s on a 20 Mbit/s link): the interval's acked rate counts its empty part too.
+LINK_FULL_STEP_FRACTION = 0.95
+# A link report whose interval is outside this is not taken for the unmanaged traffic, s.
+REPORT_INTERVAL_BOUNDS_S = (0.05, 5.0)
 
 # Compute is a resource (issue 36). A stream that delivers less than (1 - COMPUTE_SHORTFALL) of the
 # rate set on it, over COMPUTE_WINDOW_S in which the link never bound, is compute-bound (its
@@ -284,6 +297,11 @@ class ManagerCore:
         self.announced_source = ""
         self._now_s = -math.inf
         self.last_demands: Dict[tuple, StreamDemand] = {}
+        self.last_allocation: Optional[LevelAllocation] = None
+        # the robots' bridge reports the link (on_bridge_report), so it paces at pacing_mbps
+        self.bridge_paces = False
+        # (report s, Mbit/s) of traffic outside the managed streams, from the bridge's link reports
+        self._unmanaged = []
         self.last_spare: Dict[str, float] = {}
         # The rate the last allocation gave each stream (before any limiter slack): what a stream
         # must deliver not to be judged compute-bound.
@@ -316,11 +334,25 @@ class ManagerCore:
 
     @property
     def available_mbps(self):
-        """The capacity the budget is made from: the estimate (if on), else the announced
-        capacity, else the configured one."""
+        """The capacity the budget is made from: the estimate (if on; the capacity while a queue
+        drains, where the robots' bridge paces), else the announced capacity, else the configured
+        one."""
         if self.estimator:
-            return self.estimator.estimate_mbps
+            # a drain is the robots' bridge's pacer's where it reports the link (and so paces at
+            # pacing_mbps); without it (over TCPROS) only the fleet's rates can drain a queue
+            return self.estimator.allocation_mbps if self.bridge_paces else self.estimator.estimate_mbps
         return self.announced_mbps if _positive(self.announced_mbps) else self.settings.available_mbps
+
+    @property
+    def probing(self):
+        """True while the link's estimator probes above its capacity (its raises must reach the fleet)."""
+        return bool(self.estimator) and self.estimator.mode == "probe"
+
+    @property
+    def pacing_mbps(self):
+        """The rate the robots' bridge paces what it sends at: the estimate (below the capacity
+        while a queue drains, above it while probing), else available_mbps."""
+        return self.estimator.estimate_mbps if self.estimator else self.available_mbps
 
     @property
     def capacity_source(self):
@@ -741,13 +773,114 @@ class ManagerCore:
 
     def on_link_report(self, report: LinkReport):
         """Feed the estimator (if on) one full link report (the bridge's telemetry; see
-        docs/bandwidth_manager.md); returns True if the available bandwidth moved by > 5 %.
+        docs/bandwidth_manager.md); returns True if the available bandwidth or the pacing rate
+        moved by > 5 %.
         Not fed while the link is down: an outage says nothing about the capacity."""
         if not self.estimator or self.paused:
             return False
-        before = self.estimator.estimate_mbps
-        after = self.estimator.update(report)
-        return abs(after - before) > 0.05 * before
+        before = (self.available_mbps, self.pacing_mbps)
+        self.estimator.update(report)
+        after = (self.available_mbps, self.pacing_mbps)
+        return any(abs(a - b) > 0.05 * b for a, b in zip(after, before))
+
+    def allocation_binds(self):
+        """True when the last allocation held some stream below what it wants (a rate under its
+        maximum, a coarser level than its finest, or off): the fleet would send more if allowed,
+        so it is not app-limited whatever the bridge's queue says (False before any allocation)."""
+        a = self.last_allocation
+        return a is not None and any(s.rate_hz < 0.98 * s.max_rate_hz or s.level > 0 for s in a.streams)
+
+    def unmanaged_mbps(self, now_s=None):
+        """The traffic outside the managed streams the link carried lately (its mean over the last
+        UNMANAGED_WINDOW_S of link reports), Mbit/s; NaN before the first report."""
+        now_s = self._now_s if now_s is None else now_s
+        recent = [(mbps, i) for t, mbps, i in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
+        return sum(m * i for m, i in recent) / sum(i for _, i in recent) if recent else math.nan
+
+    def budget_mbytes_per_s(self, now_s=None):
+        """The managed streams' budget: the capacity less the reserve, and less the unmanaged
+        traffic measured on the link where that is more than the reserve (issue 35: at 5 Mbit/s
+        odometry, tf and the rest took 18 % of the link, the reserve 4 %)."""
+        s = self.settings
+        available = self.available_mbps
+        budget = managed_budget_mbytes_per_s(available, s.reserve_fraction)
+        unmanaged = self.unmanaged_mbps(now_s)
+        if _finite(unmanaged):
+            budget = min(budget, max(0.0, (available - unmanaged) / 8.0))
+        return budget
+
+    def on_bridge_report(
+        self,
+        now_s,
+        interval_s,
+        sender_interval_s,
+        delivered_bytes,
+        unmanaged_bytes,
+        sent_bytes,
+        app_limited,
+        rtt_s=(),
+        receiver_behind=False,
+        offered_bytes=math.nan,
+        sender_blocked_s=0.0,
+        delivered_link_bytes=0,
+        sent_link_bytes=0,
+        acked_link_bytes=0,
+        sender_socket_full=math.nan,
+    ):
+        """One cps_msgs/LinkReport of the bridges as plain values. Where the robots' link socket's
+        TCP payload counts are there (`sent_link_bytes`, `acked_link_bytes` > 0: every byte the link
+        carried, framing included) the estimator takes what was sent and what the twin acknowledged,
+        both over the robots' interval on its clock (BBR's delivery rate; two clocks' intervals
+        misalign by a frame or more); else the frames, delivered over the twin's interval and sent
+        over the robots'. The unmanaged traffic is all the twin's socket received but the managed
+        frames (or the unmanaged frames). App-limited only when the allocation does not bind either;
+        link-limited when the robots' socket was full in nearly all its samples (else, without
+        them, when its sender waited for Zenoh half of its interval). Returns True if the available
+        bandwidth moved by > 5 %."""
+        if _positive(delivered_link_bytes):
+            unmanaged_bytes = max(0, delivered_link_bytes - (delivered_bytes - unmanaged_bytes))
+        if _positive(acked_link_bytes) and _positive(sent_link_bytes):
+            delivered_bytes, sent_bytes = acked_link_bytes, sent_link_bytes
+            delivered_interval_s = sender_interval_s
+        else:
+            delivered_interval_s = interval_s
+        socket_full = _finite(sender_socket_full) and sender_socket_full >= LINK_LIMITED_FRACTION
+        if _finite(sender_socket_full):
+            link_limited = sender_socket_full >= LINK_FULL_STEP_FRACTION
+        else:
+            link_limited = (
+                _finite(sender_blocked_s)
+                and _positive(sender_interval_s)
+                and sender_blocked_s >= LINK_LIMITED_FRACTION * sender_interval_s
+            )
+
+        def mbps(n_bytes, seconds):
+            # a bad interval gives a bad rate, which the estimator refuses and counts by kind
+            return n_bytes * 8e-6 / seconds if _finite(n_bytes) and _finite(seconds) and seconds != 0 else math.nan
+
+        self._now_s = max(self._now_s, now_s) if _finite(now_s) else self._now_s
+        self.bridge_paces = True
+        unmanaged = mbps(unmanaged_bytes, interval_s)
+        low, high = REPORT_INTERVAL_BOUNDS_S
+        if _finite(unmanaged) and unmanaged >= 0 and _finite(interval_s) and low <= interval_s <= high:
+            self._unmanaged = [(t, v, i) for t, v, i in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
+            self._unmanaged.append((now_s, unmanaged, interval_s))
+        return self.on_link_report(
+            LinkReport(
+                now_s=now_s,
+                interval_s=interval_s,
+                delivered_mbps=mbps(delivered_bytes, delivered_interval_s),
+                sent_mbps=mbps(sent_bytes, sender_interval_s),
+                offered_mbps=mbps(offered_bytes, sender_interval_s),
+                app_limited=bool(app_limited) and not self.allocation_binds(),
+                rtt_s=tuple(rtt_s),
+                receiver_behind=bool(receiver_behind),
+                # busy: the bridge's queue never ran empty, or its link socket stayed full (the
+                # queue can be empty at a report while the sender waits for the link)
+                link_busy=not app_limited or socket_full,
+                link_limited=link_limited,
+            )
+        )
 
     def on_link_stats(self, now_s, delivered_mbps):
         """What exists today: the twin side's delivered Mbit/s (`/tissue/stats`) with the limiters'
@@ -859,7 +992,7 @@ class ManagerCore:
         chosen need more, the allocation is made again with that (never less than it needs)."""
         s = self.settings
         now_s = self._now_s if now_s is None else now_s
-        budget = managed_budget_mbytes_per_s(self.available_mbps, s.reserve_fraction)
+        budget = self.budget_mbytes_per_s(now_s)
         demands = self.stream_demands(now_s)
         copies = s.copies_on_link
         capacity = self.insert_capacity_clouds_per_s(now_s)
@@ -890,6 +1023,7 @@ class ManagerCore:
             chosen = {a.key: a.level for a in result.streams}
         self.level_in_force.update(chosen)
         self.last_demands = {d.key: d for d in demands}
+        self.last_allocation = result
         self.allocated_rate_hz = {a.key: a.rate_hz for a in result.streams}
         if result.link_binds:
             self._link_bound_s = max(self._link_bound_s, float(now_s))

@@ -7,7 +7,7 @@ import threading
 import rospy
 from std_msgs.msg import Float64, String, UInt8
 
-from cps_bw_manager.estimation import DeliveryRateEstimator
+from cps_bw_manager.estimation import LINK_REPORT_OPTIONS, DeliveryRateEstimator
 from cps_bw_manager.level_allocation import CLOUD
 from cps_bw_manager.manager import (
     ALLOCATION_CSV_COLUMNS,
@@ -35,6 +35,8 @@ from cps_msgs.msg import (
     BandwidthAllocationArray,
     InsertCapacity,
     LinkCapacity,
+    LinkEstimate,
+    LinkReport,
     LinkState,
     RateLimiterStatus,
     TopicStatsArray,
@@ -42,6 +44,93 @@ from cps_msgs.msg import (
 from cps_msgs.srv import SetPriority, SetPriorityResponse
 from cps_ros.fault_report import FaultReport
 from cps_ros.timers import guarded_timer
+
+LINK_REPORT_INPUT, TISSUE_STATS_INPUT = "link_report", "tissue_stats"
+
+ESTIMATOR_INPUTS = (LINK_REPORT_INPUT, TISSUE_STATS_INPUT)
+LINK_ESTIMATE_CSV_COLUMNS = (
+    "stamp_s",
+    "capacity_mbps",
+    "estimate_mbps",
+    "mode",
+    "true_capacity_mbps",
+    "ratio",
+    "unmanaged_mbps",
+    "interval_s",
+    "delivered_mbps",
+    "sent_mbps",
+    "delivered_link_mbps",
+    "sent_link_mbps",
+    "acked_link_mbps",
+    "sender_socket_full",
+    "offered_mbps",
+    "app_limited",
+    "sender_blocked_s",
+    "rtt_median_ms",
+    "receiver_behind",
+    "receive_queue_max_bytes",
+    "send_queue_max_bytes",
+    "superseded",
+    "expired",
+    "pacing_mbps",
+    "overuse",
+)
+
+
+def link_estimate_msg(core, true_capacity_mbps, now_s) -> LinkEstimate:
+    """cps_msgs/LinkEstimate of the manager's state (not stamped)."""
+    est = core.estimator
+    capacity = est.capacity_mbps if est else math.nan
+    true = true_capacity_mbps if math.isfinite(true_capacity_mbps) and true_capacity_mbps > 0 else math.nan
+    return LinkEstimate(
+        capacity_mbps=capacity,
+        estimate_mbps=core.available_mbps,
+        mode=est.mode if est else "off",
+        source=core.capacity_source,
+        true_capacity_mbps=true,
+        ratio=(capacity if est else core.available_mbps) / true if math.isfinite(true) else math.nan,
+        unmanaged_mbps=core.unmanaged_mbps(now_s),
+        twin_capacity_mbps=est.twin_capacity_mbps if est else math.nan,
+        receiver_behind=bool(est and est.receiver_behind),
+        ignored_reports=est.ignored_samples if est else 0,
+    )
+
+
+def link_estimate_csv_row(stamp_s, msg, report, overuse=""):
+    """One row of link_estimate.csv (LINK_ESTIMATE_CSV_COLUMNS) for a link report, its estimate and
+    the overuse the report made the estimator see (deficit, link_full, rtt; "" none)."""
+
+    def rate(n_bytes, seconds):
+        return f"{n_bytes * 8e-6 / seconds:.4f}" if seconds > 0 else ""
+
+    rtts = sorted(report.rtt_s)
+    return (
+        f"{stamp_s:.3f}",
+        f"{msg.capacity_mbps:.4f}",
+        f"{msg.estimate_mbps:.4f}",
+        msg.mode,
+        f"{msg.true_capacity_mbps:.4f}" if math.isfinite(msg.true_capacity_mbps) else "",
+        f"{msg.ratio:.4f}" if math.isfinite(msg.ratio) else "",
+        f"{msg.unmanaged_mbps:.4f}" if math.isfinite(msg.unmanaged_mbps) else "",
+        f"{report.interval_s:.4f}",
+        rate(report.delivered_bytes, report.interval_s),
+        rate(report.sent_bytes, report.sender_interval_s),
+        rate(report.delivered_link_bytes, report.interval_s),
+        rate(report.sent_link_bytes, report.sender_interval_s),
+        rate(report.acked_link_bytes, report.sender_interval_s),
+        f"{report.sender_socket_full:.2f}",
+        rate(report.offered_bytes, report.sender_interval_s),
+        int(report.app_limited),
+        f"{report.sender_blocked_s:.3f}",
+        f"{1e3 * rtts[len(rtts) // 2]:.2f}" if rtts else "",
+        int(report.receiver_behind),
+        report.receive_queue_max_bytes,
+        report.send_queue_max_bytes,
+        report.superseded,
+        report.expired,
+        f"{report.pacing_mbps:.3f}",
+        overuse,
+    )
 
 
 def _param(name, default, kind):
@@ -85,7 +174,15 @@ class BandwidthManagerNode:
         if not math.isfinite(self.update_rate_hz) or self.update_rate_hz < 1.0:
             raise ValueError(f"parameter ~update_rate_hz must be >= 1 Hz, got {self.update_rate_hz}")
         estimator = None
-        estimate_window_s = _param("~estimate_window_s", 2.0, float)
+        # What the estimator is fed: the bridges' per-interval link reports (default), or over a
+        # TCPROS link (no bridge) /tissue/stats with the limiters' status, 2 s sliding averages.
+        self.estimator_input = _param("~estimator_input", LINK_REPORT_INPUT, str)
+        if self.estimator_input not in ESTIMATOR_INPUTS:
+            raise ValueError(
+                f"parameter ~estimator_input must be one of {', '.join(ESTIMATOR_INPUTS)}, got {self.estimator_input!r}"
+            )
+        default_window_s = 0.0 if self.estimator_input == LINK_REPORT_INPUT else 2.0
+        estimate_window_s = _param("~estimate_window_s", default_window_s, float)
         if not math.isfinite(estimate_window_s) or not 0 <= estimate_window_s <= 10:
             raise ValueError(f"parameter ~estimate_window_s must be in [0, 10] s, got {estimate_window_s}")
         if _param("~estimate_bandwidth", link.estimate_bandwidth, bool):
@@ -94,10 +191,11 @@ class BandwidthManagerNode:
                 line_rate_mbps=_param("~max_estimate_mbps", settings.available_mbps, float),
                 min_mbps=_param("~min_estimate_mbps", 1.0, float),
                 # /tissue/stats and the limiters' status are 2 s sliding averages: a probe shorter
-                # than that is not seen, and after an outage the window still holds it (a bridge
-                # reporting per interval allows 0)
+                # than that is not seen, and after an outage the window still holds it (the
+                # bridges' link reports are per interval: 0)
                 measure_window_s=estimate_window_s,
                 probe_s=max(0.5, estimate_window_s),
+                **(LINK_REPORT_OPTIONS if self.estimator_input == LINK_REPORT_INPUT else {}),
             )
         video_robots = rospy.get_param("~video_robots", None)
         if video_robots is None:  # default: the fleet's camera robots
@@ -132,6 +230,16 @@ class BandwidthManagerNode:
             else None
         )
         self.last_result = None
+        # The test bed's true capacity (an oracle: only to label the estimate), Mbit/s.
+        self.true_capacity_mbps = math.nan
+        estimate_csv_path = rospy.get_param("~link_estimate_csv_path", "")
+        self.estimate_csv = (
+            CsvLog(estimate_csv_path, LINK_ESTIMATE_CSV_COLUMNS, max_bytes=csv_max_bytes, on_failure=rospy.logerr)
+            if estimate_csv_path
+            else None
+        )
+        self.estimate_pub = rospy.Publisher(names.LINK_ESTIMATE, LinkEstimate, queue_size=5)
+
         # Issue 36: only the setpoints that matter go out (setpoints.py), and each one is logged.
         self.setpoints = SetpointFilter(
             rate_deadband=_param("~setpoint_deadband", DEFAULT_RATE_DEADBAND, float),
@@ -180,6 +288,10 @@ class BandwidthManagerNode:
         self.subs.append(rospy.Subscriber(names.TISSUE_STATS, TopicStatsArray, self._on_stats, queue_size=2))
         self.subs.append(rospy.Subscriber(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10))
         self.subs.append(rospy.Subscriber(names.LINK_CAPACITY, LinkCapacity, self._on_link_capacity, queue_size=10))
+        self.subs.append(rospy.Subscriber(names.LINK_REPORT, LinkReport, self._on_link_report, queue_size=10))
+        self.subs.append(
+            rospy.Subscriber(names.LINK_TRUE_CAPACITY, LinkCapacity, self._on_true_capacity, queue_size=10)
+        )
         self.service = rospy.Service(names.SET_PRIORITY, SetPriority, self._on_set_priority)
         rospy.loginfo(
             "bandwidth manager: robots %s, %.1f Mbit/s (%s), reserve %.0f %%, rates %.1f..%.1f Hz",
@@ -192,6 +304,7 @@ class BandwidthManagerNode:
         )
         self.update()
         self.timer = guarded_timer(1.0 / self.update_rate_hz, lambda _: self.update(), "allocation")
+        self.estimate_timer = guarded_timer(1.0, lambda _: self.publish_estimate(None), "link estimate")
 
     def _on_mission_state(self, msg, robot):
         try:
@@ -270,11 +383,57 @@ class BandwidthManagerNode:
             self.update()
 
     def _on_stats(self, msg):
+        if self.estimator_input != TISSUE_STATS_INPUT:
+            return
         delivered_mbps, _ = link_totals(msg.topics)  # one-way latency is not used (issue 23)
         with self.lock:
             moved = self.core.on_link_stats(rospy.get_time(), delivered_mbps)
         if moved:
             self.update()
+
+    def _on_link_report(self, msg):
+        """One interval of the bridges' link report: the estimator's input and the unmanaged traffic."""
+        if self.estimator_input != LINK_REPORT_INPUT:
+            return
+        with self.lock:
+            est = self.core.estimator
+            overuses = est.overuses if est else 0
+            moved = self.core.on_bridge_report(
+                rospy.get_time(),
+                msg.interval_s,
+                msg.sender_interval_s,
+                msg.delivered_bytes,
+                msg.unmanaged_bytes,
+                msg.sent_bytes,
+                msg.app_limited,
+                rtt_s=msg.rtt_s,
+                receiver_behind=msg.receiver_behind,
+                offered_bytes=msg.offered_bytes,
+                sender_blocked_s=msg.sender_blocked_s,
+                delivered_link_bytes=msg.delivered_link_bytes,
+                sent_link_bytes=msg.sent_link_bytes,
+                acked_link_bytes=msg.acked_link_bytes,
+                sender_socket_full=msg.sender_socket_full if msg.acked_link_bytes else math.nan,
+            )
+            overuse = est.last_overuse if est and est.overuses > overuses else ""
+        self.publish_estimate(msg, overuse)
+        if moved:
+            self.update()
+
+    def _on_true_capacity(self, msg):
+        with self.lock:
+            self.true_capacity_mbps = msg.capacity_mbps if math.isfinite(msg.capacity_mbps) else math.nan
+
+    def publish_estimate(self, report, overuse=""):
+        """/tissue/link_estimate (and a row of link_estimate.csv): the estimate beside the true
+        capacity, and the link report it came from (None: the 1 Hz repeat) with the overuse it
+        made the estimator see ("" none)."""
+        with self.lock:
+            msg = link_estimate_msg(self.core, self.true_capacity_mbps, rospy.get_time())
+        msg.header.stamp = rospy.Time.now()
+        self.estimate_pub.publish(msg)
+        if self.estimate_csv and report is not None:
+            self.estimate_csv.write(link_estimate_csv_row(msg.header.stamp.to_sec(), msg, report, overuse))
 
     def _on_link_state(self, msg):
         with self.lock:
@@ -330,7 +489,7 @@ class BandwidthManagerNode:
                 rospy.logerr_throttle(5.0, f"bandwidth manager: cannot allocate: {exc}")
                 return
             self.last_result = target
-            available = self.core.available_mbps
+            available, pacing = self.core.available_mbps, self.core.pacing_mbps
             states = {r: self.core.book.mission_state(r) for r in self.core.robots}
             changes = {}
             if not paused:
@@ -341,7 +500,11 @@ class BandwidthManagerNode:
                     if self.core.reported(*key)
                 }
                 changes = self.setpoints.decide(
-                    now_s, targets, target.budget_mbytes_per_s / copies, link_idle=not target.link_binds
+                    now_s,
+                    targets,
+                    target.budget_mbytes_per_s / copies,
+                    link_idle=not target.link_binds,
+                    probing=self.core.probing,
                 )
             result = in_force_allocation(
                 target, self.core.last_demands, self.setpoints, self.core.settings.copies_on_link
@@ -356,6 +519,7 @@ class BandwidthManagerNode:
         msg = BandwidthAllocationArray()
         msg.header.stamp = rospy.Time.now()
         msg.available_mbps = available
+        msg.pacing_mbps = pacing
         msg.reserve_fraction = self.core.settings.reserve_fraction
         msg.budget_mbytes_per_s = result.budget_mbytes_per_s
         msg.allocated_mbytes_per_s = result.allocated_mbytes_per_s
@@ -420,7 +584,7 @@ class BandwidthManagerNode:
                     )
 
     def close(self):
-        for log in (self.csv_log, self.link_csv, self.setpoints_csv):
+        for log in (self.csv_log, self.link_csv, self.estimate_csv, self.setpoints_csv):
             if log:
                 log.close()
 

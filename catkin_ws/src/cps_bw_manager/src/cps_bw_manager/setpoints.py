@@ -17,7 +17,11 @@ on the robots' saturated CPU: so a stream's setpoint is sent only when it matter
   is not sent at all: nobody needs what it frees, and a cloud's target follows its noisy input
   rate (+10 %) there;
 - whatever was held back, the rates in force must fit the link: if they do not (the budget fell,
-  or a size grew), every stream whose target is below its rate in force gets it at once.
+  or a size grew), every stream whose target is below its rate in force gets it at once;
+- while the link's estimator probes (issue 35), a higher rate goes out at once: a probe measures
+  nothing unless the fleet fills it within its 1.5 s, and held 5 s per stream no probe was ever
+  filled live (a 20 -> 60 Mbit/s step went unseen). Probes come at most every 1.5 s, backing off
+  to 3 s while refused, and only while the fleet wants more than it is given.
 
 Decisions are batched per robot: one call decides every stream, and the node sends a robot's
 changes together.
@@ -31,7 +35,7 @@ from cps_bw_manager.level_allocation import OPERATOR_VIDEO
 
 DEFAULT_RATE_DEADBAND = 0.2
 DEFAULT_MIN_INTERVAL_S = 5.0
-FIRST, LEVEL, ON_OFF, RULE, CHANGE, BUDGET = "first", "level", "on/off", "rule", "change", "budget"
+FIRST, LEVEL, ON_OFF, RULE, CHANGE, BUDGET, PROBE = "first", "level", "on/off", "rule", "change", "budget", "probe"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,15 +86,23 @@ class SetpointFilter:
         self._sent.pop(key, None)
         self._level_at.pop(key, None)
 
-    def decide(self, now_s, targets: Mapping[Tuple[str, str], Target], budget_mbytes_per_s=math.inf, link_idle=False):
+    def decide(
+        self,
+        now_s,
+        targets: Mapping[Tuple[str, str], Target],
+        budget_mbytes_per_s=math.inf,
+        link_idle=False,
+        probing=False,
+    ):
         """The setpoints to send now, per robot: {robot: [Change, ...]} (robots with none absent).
         `budget_mbytes_per_s`: what the rates in force must fit (sum of rate x message_bytes);
-        `link_idle`: the allocation held no rate back for the link (its lower rates wait)."""
+        `link_idle`: the allocation held no rate back for the link (its lower rates wait);
+        `probing`: the link's estimator probes above its capacity (higher rates go at once)."""
         if not math.isfinite(now_s):
             raise ValueError(f"time {now_s!r} is not a time")
         changes: Dict[Tuple[str, str], Change] = {}
         for key, t in targets.items():
-            reason = self._reason(key, t, now_s, link_idle)
+            reason = self._reason(key, t, now_s, link_idle, probing)
             if reason:
                 changes[key] = self._change(key, t, reason)
         # The rates in force (after the changes above) must fit the link.
@@ -111,7 +123,7 @@ class SetpointFilter:
             out.setdefault(key[0], []).append(change)
         return out
 
-    def _reason(self, key, t: Target, now_s, link_idle=False):
+    def _reason(self, key, t: Target, now_s, link_idle=False, probing=False):
         sent = self._sent.get(key)
         if sent is None:
             return FIRST
@@ -125,6 +137,8 @@ class SetpointFilter:
             return RULE
         if link_idle and t.rate_hz < rate:
             return ""
+        if probing and t.rate_hz > rate * (1 + 1e-9):
+            return PROBE
         if abs(t.rate_hz - rate) > self.rate_deadband * rate and now_s - at_s >= self.min_interval_s:
             return CHANGE
         return ""

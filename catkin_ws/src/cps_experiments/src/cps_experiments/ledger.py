@@ -290,12 +290,25 @@ def robot_ledger(robot, counters, map_server, duration_s, stats_captured=None, s
         arrive("robots' bridge", out, "subscriber queue")
         b.drop("link down: the robots' bridge held it back, no keyframe kept", out[C.DROPPED + "outage"])
         b.drop("robots' bridge: not of the topic's type", out[C.DROPPED + "type"])
+        # Numbered, then dropped by its send queue's rules (cps_link.send_queue) or a failed put.
+        queue_drops = {
+            what: n
+            for what, n in out.items()
+            if what.startswith(C.DROPPED) and what not in (C.DROPPED + "outage", C.DROPPED + "type")
+        }
+        for what, n in sorted(queue_drops.items()):
+            b.drop(f"robots' bridge's send queue: {what[len(C.DROPPED) :].replace('_', ' ')}", n)
         kept = out[C.BACKFILL_KEPT]
         b.internal(
             "robots' bridge",
-            out[C.RECEIVED] - out[C.OUT] - out[C.DROPPED + "outage"] - out[C.DROPPED + "type"] - kept,
+            out[C.RECEIVED]
+            - out[C.OUT]
+            - out[C.DROPPED + "outage"]
+            - out[C.DROPPED + "type"]
+            - sum(queue_drops.values())
+            - kept,
         )
-        withheld = out[C.DROPPED + "outage"] + kept
+        withheld = out[C.DROPPED + "outage"] + sum(queue_drops.values()) + kept
         if kept:
             evicted, backfill_sent = out[C.BACKFILL_EVICTED], out[C.BACKFILL_SENT]
             waiting = out[C.BACKFILL_WAITING]

@@ -15,6 +15,12 @@ STEP_SPAN_S = 10.0
 # After an outage ends, the twin's bridge counts the frames it never got with the first one it gets.
 COUNTED_AFTER_S = 3.0
 NOT_COUNTED = "not counted (no counters.csv: a mission before the ledger)"
+# The manager's estimate is read this long after a step, and judged within +-ESTIMATE_BAND of the
+# true capacity (issue 35: within +-15 % 2 s after every step).
+ESTIMATE_TARGET_S = 2.0
+ESTIMATE_BAND = 0.15
+# The robots' bridge's send queue's drop rules (cps_link.send_queue): clouds withheld on purpose.
+QUEUE_DROPS = ("superseded", "expired", "link_down", "put_failed")
 
 
 def scenario_outages(event_rows):
@@ -97,7 +103,9 @@ def outage_counts(series, start_s, end_s):
     if not series:
         return None
     t1 = end_s + COUNTED_AFTER_S if math.isfinite(end_s) else math.inf
-    held = increase(series, start_s, t1, C.BRIDGE_OUT, C.DROPPED + "outage")
+    held = increase(series, start_s, t1, C.BRIDGE_OUT, C.DROPPED + "outage") + sum(
+        increase(series, start_s, t1, C.BRIDGE_OUT, C.DROPPED + rule) for rule in QUEUE_DROPS
+    )
     kept = increase(series, start_s, t1, C.BRIDGE_OUT, C.BACKFILL_KEPT)
     gaps = increase(series, start_s, t1, C.BRIDGE_IN, C.MISSED)
     # The twin's gaps include what the robots' bridge withheld on purpose; the rest was lost on the link.
@@ -112,9 +120,41 @@ def _outage_cells(series, start_s, end_s):
     return (f"{lost + held} ({lost} on the link, {held} held back without a keyframe)", f"{kept} kept")
 
 
-def section(event_rows, state_rows, allocation_rows, times, totals, counters=None):
+def estimate_at(estimate_rows):
+    """A function wall s -> the manager's capacity estimate (Mbit/s) in force then, from its
+    link_estimate.csv (its estimate when the estimator is off; NaN before the first row)."""
+    points = []
+    for r in estimate_rows:
+        capacity, estimate = csv_float(r.get("capacity_mbps")), csv_float(r.get("estimate_mbps"))
+        points.append((csv_float(r.get("stamp_s")), capacity if math.isfinite(capacity) else estimate))
+    points.sort()
+    times = [t for t, _ in points]
+
+    def at(t):
+        i = bisect.bisect_right(times, t) - 1
+        return points[i][1] if i >= 0 else math.nan
+
+    return at, points
+
+
+def estimate_settles(points, step_s, true_mbps, end_s, band=ESTIMATE_BAND):
+    """Seconds from `step_s` after which every estimate until `end_s` is within +-band of the true
+    capacity (inf: never; NaN: no estimate in the span)."""
+    inside = [(t, v) for t, v in points if step_s <= t < end_s]
+    if not inside:
+        return math.nan
+    settled = math.inf
+    for t, v in reversed(inside):
+        if not math.isfinite(v) or abs(v / true_mbps - 1.0) > band:
+            break
+        settled = t - step_s
+    return settled
+
+
+def section(event_rows, state_rows, allocation_rows, times, totals, counters=None, estimate_rows=()):
     """Markdown lines of the link events; [] when the mission ran no scenario and saw no outage.
-    `counters`: the mission's ledger.counter_series (for the clouds lost in each outage)."""
+    `counters`: the mission's ledger.counter_series (for the clouds lost in each outage);
+    `estimate_rows`: the manager's link_estimate.csv (its estimate against each step's capacity)."""
     from cps_experiments import judge as J
 
     if not event_rows and not state_rows:
@@ -183,11 +223,17 @@ def section(event_rows, state_rows, allocation_rows, times, totals, counters=Non
     def capacity_mbytes(t):
         return capacity(t) / 8.0
 
+    estimate, estimate_points = estimate_at(estimate_rows)
     steps = []
-    for wall_s, mission_s, old, new in capacity_steps(event_rows):
+    step_list = capacity_steps(event_rows)
+    for k, (wall_s, mission_s, old, new) in enumerate(step_list):
+        end_s = step_list[k + 1][0] if k + 1 < len(step_list) else math.inf
+        settle = estimate_settles(estimate_points, wall_s, new, min(end_s, wall_s + STEP_SPAN_S))
+        estimated = estimate(wall_s + ESTIMATE_TARGET_S)
         over_before, n_before = windows_over(times, totals, capacity_mbytes, wall_s - STEP_SPAN_S, wall_s)
         over_after, n_after = windows_over(times, totals, capacity_mbytes, wall_s, wall_s + STEP_SPAN_S)
         after = budget(wall_s + STEP_SPAN_S)
+        soon = budget(wall_s + ESTIMATE_TARGET_S)
         steps.append(
             (
                 f"{mission_s:.1f}",
@@ -196,6 +242,9 @@ def section(event_rows, state_rows, allocation_rows, times, totals, counters=Non
                 f"{over_after} of {n_after}",
                 f"{new / 8.0:.3f}",
                 "-" if math.isnan(after) else f"{after:.2f}" + (" (above the capacity)" if after > new / 8.0 else ""),
+                _of_capacity(soon, new, "no budget logged"),
+                _of_capacity(estimated / 8, new, "no estimate logged"),
+                _settle_text(settle),
             )
         )
     lines += ["### Capacity steps", ""]
@@ -214,6 +263,9 @@ def section(event_rows, state_rows, allocation_rows, times, totals, counters=Non
                     "after",
                     "capacity after, MB/s",
                     f"manager's budget {STEP_SPAN_S:.0f} s after, MB/s",
+                    f"manager's budget {ESTIMATE_TARGET_S:g} s after, MB/s (of the capacity)",
+                    f"manager's capacity estimate {ESTIMATE_TARGET_S:g} s after, MB/s (of the true)",
+                    f"estimate within ±{ESTIMATE_BAND:.0%} of the true capacity from",
                 ),
                 steps,
             ),
@@ -227,6 +279,19 @@ def section(event_rows, state_rows, allocation_rows, times, totals, counters=Non
 def _mission_start(event_rows):
     start = next(r for r in event_rows if r["event"] == "start")
     return csv_float(start["wall_time_s"]) - csv_float(start["mission_time_s"])
+
+
+def _of_capacity(mbytes_per_s, capacity_mbps, missing):
+    """`x.xxx (NN%)`: MB/s and its share of the capacity (Mbit/s); `missing` when not logged."""
+    if not math.isfinite(mbytes_per_s):
+        return missing
+    return f"{mbytes_per_s:.3f} ({mbytes_per_s / (capacity_mbps / 8.0):.0%})"
+
+
+def _settle_text(settle_s):
+    if math.isnan(settle_s):
+        return "no estimate logged"
+    return "never" if math.isinf(settle_s) else f"{settle_s:.1f} s"
 
 
 def _seconds(value):

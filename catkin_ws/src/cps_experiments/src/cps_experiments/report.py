@@ -552,6 +552,7 @@ def write_report(out, fleet, f1_floor=None, f1_floor_exact=None):
         times,
         totals,
         read_counter_series(out),
+        read_csv(os.path.join(out, "link_estimate.csv")),
     )
     lines += ["## Supervisor events", ""]
     lines += [f"- {t:.0f} s {label}: {what}" for t, label, what in summary.get("events", [])] or ["- none"]

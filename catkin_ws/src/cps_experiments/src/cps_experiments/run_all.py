@@ -131,7 +131,12 @@ def figures_how_table():
     return markdown_table(("figure", "window", "tolerance / bar", "where it is measured"), FIGURES_HOW)
 
 
-ARM_NAMES = {"off": "manager off", "on_iperf3": "on, iperf3's figure", "on_announced": "on, capacity announced"}
+ARM_NAMES = {
+    "off": "manager off",
+    "on_default": "on, default (online estimate)",
+    "on_iperf3": "on, iperf3's figure",  # link_thesis runs from before issue 35
+    "on_announced": "on, capacity announced (oracle)",
+}
 
 
 def link_thesis_rows(rows, scenario="wifi_degraded", capacity_mbps=5.0):

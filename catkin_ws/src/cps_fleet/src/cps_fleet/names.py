@@ -91,6 +91,16 @@ LINK_STATE = "tissue/link_state"  # cps_msgs/LinkState, published by each side's
 # cps_msgs/LinkCapacity (latched): the link's capacity announced by who knows it (bringup's
 # --announce-link-capacity: the tc scenario's rate steps); the manager's budget follows it.
 LINK_CAPACITY = "tissue/link_capacity"
+# cps_msgs/LinkReport, ~2 Hz, from the twin's bridge (main lane): one measurement interval of the
+# link robots -> twin (delivered, sent, offered, app-limited, heartbeat RTTs, receiver behind); the
+# bandwidth manager's estimator input (issue 35).
+LINK_REPORT = "tissue/link_report"
+# cps_msgs/LinkEstimate, from the bandwidth manager: its capacity estimate beside the true capacity
+# (when the test bed says it) and their ratio, for the GUI and reports.
+LINK_ESTIMATE = "tissue/link_estimate"
+# cps_msgs/LinkCapacity (latched): the test bed's tc rate as it changes, an ORACLE for reports and
+# the GUI only (bringup with a tc link); the manager labels its estimate with it, never allocates from it.
+LINK_TRUE_CAPACITY = "tissue/link_true_capacity"
 # TwistStamped probes sent twin -> robots in the bridge's command class (teleop's): their latency,
 # measured on the robots' side, is the teleop command latency.
 COMMAND_PROBE = "tissue/command_probe"

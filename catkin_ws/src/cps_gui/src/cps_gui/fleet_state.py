@@ -188,6 +188,26 @@ class RateMeter:
         return count / span, size / span / 1e6
 
 
+@dataclasses.dataclass(frozen=True)
+class LinkEstimateFigures:
+    """What the GUI shows of cps_msgs/LinkEstimate, Mbit/s."""
+
+    capacity_mbps: float
+    estimate_mbps: float
+    mode: str
+    true_capacity_mbps: float  # the test bed's oracle; NaN when unknown
+    ratio: float
+
+    def text(self):
+        """One line: the estimate, its mode, and beside it the true capacity with the ratio."""
+        out = f"estimate {self.estimate_mbps:.1f} Mbit/s ({self.mode})"
+        if math.isfinite(self.true_capacity_mbps):
+            out += f", true {self.true_capacity_mbps:.1f} Mbit/s (oracle)"
+        if math.isfinite(self.ratio):
+            out += f", ratio {self.ratio:.2f}"
+        return out
+
+
 class _Series:
     """A bounded history of (t, value) samples for a plot."""
 
@@ -251,6 +271,10 @@ class FleetState:
         self._map_changes: Tuple[MapChange, ...] = ()
         self._map_changes_version = 0
         self._available_mbps = math.nan
+        # The manager's link estimate and the test bed's true capacity (an oracle), MB/s histories.
+        self._estimate_series = _Series(history_len)
+        self._true_capacity_series = _Series(history_len)
+        self._link_estimate: Optional[LinkEstimateFigures] = None
         self._map = None
         self._map_version = 0
         self._map_received_s = -math.inf
@@ -356,6 +380,21 @@ class FleetState:
     def set_available_bandwidth(self, mbps):
         with self._lock:
             self._available_mbps = mbps
+
+    def set_link_estimate(self, figures: "LinkEstimateFigures"):
+        """A /tissue/link_estimate: its estimate and (when known) the true capacity join the plot."""
+        with self._lock:
+            self._link_estimate = figures
+            t = self._t()
+            if math.isfinite(figures.estimate_mbps):
+                self._estimate_series.add(t, figures.estimate_mbps / 8.0)
+            if math.isfinite(figures.true_capacity_mbps):
+                self._true_capacity_series.add(t, figures.true_capacity_mbps / 8.0)
+
+    def link_estimate(self):
+        """(the last LinkEstimateFigures or None, estimate (t, MB/s), true capacity (t, MB/s))."""
+        with self._lock:
+            return self._link_estimate, self._estimate_series.copy(), self._true_capacity_series.copy()
 
     def set_link_state(self, up, down_for_s, outages, last_outage_s, peer):
         """A /tissue/link_state message; `down_for_s`: how long the link has been down when it arrived."""

@@ -23,6 +23,7 @@ from cps_gui import topview
 from cps_gui.fleet_state import (
     Allocation,
     ImageFrame,
+    LinkEstimateFigures,
     MapChange,
     Pose,
     RobotAllocation,
@@ -30,7 +31,14 @@ from cps_gui.fleet_state import (
     TopicFigures,
     VideoStatus,
 )
-from cps_msgs.msg import BandwidthAllocationArray, LinkState, MapStats, RateLimiterStatus, TopicStatsArray
+from cps_msgs.msg import (
+    BandwidthAllocationArray,
+    LinkEstimate,
+    LinkState,
+    MapStats,
+    RateLimiterStatus,
+    TopicStatsArray,
+)
 from cps_msgs.srv import SetPriority, SetPriorityRequest
 from cps_ros.timers import guarded_timer
 from cps_transport.image_compression import InvalidImage, decode_jpeg
@@ -79,6 +87,14 @@ class FleetRosIO:
         sub(names.AVAILABLE_BANDWIDTH, Float64, lambda m: state.set_available_bandwidth(m.data))
         sub(names.in_twin(names.MAP_STATS), MapStats, self._on_map_stats)
         sub(names.LINK_STATE, LinkState, self._on_link_state, queue_size=10)
+        sub(
+            names.LINK_ESTIMATE,
+            LinkEstimate,
+            lambda m: state.set_link_estimate(
+                LinkEstimateFigures(m.capacity_mbps, m.estimate_mbps, m.mode, m.true_capacity_mbps, m.ratio)
+            ),
+            queue_size=5,
+        )
         sub(names.in_twin(names.PROJECTED_MAP), OccupancyGrid, self._on_projected_map, buff_size=2**24)
         sub(names.ROSOUT_AGG, Log, self._on_log, queue_size=100)
         sub(

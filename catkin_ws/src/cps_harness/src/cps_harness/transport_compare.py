@@ -23,10 +23,12 @@ SATURATING = {"scout": (34000, 10.0), "jackal": (142000, 30.0), "champ": (60000,
 
 
 class Graphs:
-    """Processes on either side: one master across the link (tcpros) or one per side (zenoh)."""
+    """Processes on either side: one master across the link (tcpros) or one per side (zenoh).
+    `cpus`: {side: taskset CPU list} pins each side's processes (bridges included), as bringup's
+    host split does; None: not pinned."""
 
-    def __init__(self, link, transport, cert_dir):
-        self.link, self.transport = link, transport
+    def __init__(self, link, transport, cert_dir, cpus=None):
+        self.link, self.transport, self.cpus = link, transport, cpus or {}
         self.stack = contextlib.ExitStack()
         if transport == "tcpros":
             self.tcpros = self.stack.enter_context(LinkRosGraph(link))
@@ -41,18 +43,20 @@ class Graphs:
                 self.sides[side] = graph
             robots = list(LIVE)
             self.bridges = [
-                self.sides["twin"].popen(
-                    bridge_argv(sys.executable, "twin", TWIN_IP, robots, cert_dir), name="bridge_twin"
-                ),
-                self.sides["phys"].popen(
-                    bridge_argv(sys.executable, "robots", TWIN_IP, robots, cert_dir), name="bridge_robots"
-                ),
+                self.start("twin", bridge_argv(sys.executable, "twin", TWIN_IP, robots, cert_dir), "bridge_twin"),
+                self.start("phys", bridge_argv(sys.executable, "robots", TWIN_IP, robots, cert_dir), "bridge_robots"),
             ]
 
     def start(self, side, argv, name):
+        argv = (["taskset", "-c", self.cpus[side]] if self.cpus.get(side) else []) + list(argv)
         if self.transport == "tcpros":
             return self.tcpros.start(side, argv, name)
         return self.sides[side].popen(argv, name=name)
+
+    def output(self, name):
+        if self.transport == "tcpros":
+            return self.tcpros.output(name)
+        return "\n".join(graph.output(name) for graph in self.sides.values())
 
     def stop(self, side, proc):
         graph = self.tcpros.sides[side] if self.transport == "tcpros" else self.sides[side]
@@ -79,6 +83,50 @@ def start_load(graphs, streams, name):
             ],
         ],
         name,
+    )
+
+
+def start_limited_load(graphs, streams):
+    """cps_transport's rate limiter per robot and the cloud load above them on the robots' side: the
+    managed clouds the bandwidth manager sets the rates of (cps_harness's cloud_load node: its sizes and Hz)."""
+    limiter = find_node("cps_transport", "rate_limiter")
+    for r in streams:
+        graphs.start(
+            "phys",
+            [
+                sys.executable,
+                limiter,
+                "__name:=cloud_throttle",
+                f"__ns:=/{r}",
+                f"~input:={names.absolute(names.robot_topic(r, names.POINTS_DRACO))}",
+                f"~output:={names.absolute(names.managed_cloud(r))}",
+            ],
+            f"limiter_{r}",
+        )
+    graphs.start(
+        "phys",
+        [sys.executable, CLOUD_LOAD, *[f"{r}:{s}:{hz}" for r, (s, hz) in streams.items()]],
+        "load",
+    )
+
+
+def start_estimating_manager(graphs, robots, available_mbps, estimate_csv, *params):
+    """The bandwidth manager on the twin's side with its online estimate, seeded with
+    `available_mbps`, logging link_estimate.csv; managing `robots`' clouds only (no video)."""
+    return graphs.start(
+        "twin",
+        [
+            sys.executable,
+            find_node("cps_bw_manager", "bandwidth_manager"),
+            "__name:=bandwidth_manager",
+            f"_robots:={','.join(robots)}",
+            "_video_robots:=[]",
+            f"_available_mbps:={available_mbps:.2f}",
+            "_estimate_bandwidth:=true",
+            f"_link_estimate_csv_path:={estimate_csv}",
+            *params,
+        ],
+        "manager",
     )
 
 

@@ -35,6 +35,9 @@ class TrafficClass:
     reliable: bool
     express: bool
     max_age_s: Optional[float] = None  # receiving side drops older header stamps
+    # Waits in the robots' bridge's send queue (paced, newest per topic and source, expired after
+    # max_age_s: cps_link.send_queue) instead of going out at once.
+    paced: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +54,9 @@ class Route:
     from_ros: bool = True
     # The message type, where the table names it ("" = the type of the first frame accepted).
     msg_type: str = ""
+    # One of the bandwidth manager's streams (its budget covers it); the rest of what crosses is
+    # counted as unmanaged traffic in the link report.
+    managed: bool = False
 
     def key(self, prefix):
         """The Zenoh key expression this topic travels on."""
@@ -85,6 +91,20 @@ class BridgeTable:
     # Where the twin's command lane listens (the main lane and `all` use endpoint_port).
     command_port: int = 0
     lane: str = "all"
+    # Zenoh's batch size on the link, bytes (a batch is written whole; smaller batches let a
+    # higher-priority message in sooner at a low rate).
+    batch_bytes: int = 65535
+    # At most this many bytes not yet sent may wait in a host's TCP socket (net.ipv4.tcp_notsent_lowat:
+    # cps_link sets it in the test bed's namespaces; on real hosts a sysctl). 0: not set.
+    kernel_unsent_bytes: int = 0
+    # The robots' bridge's link report period, ms (cps_link.link_report).
+    report_ms: int = 500
+
+    @property
+    def paced_ranks(self):
+        """Paced class -> its rank in the send queue (higher Zenoh priority first)."""
+        paced = [c for c in self.classes.values() if c.paced]
+        return {c.name: PRIORITIES.index(c.priority) for c in paced}
 
     def for_lane(self, lane):
         """The part of the table one lane's bridge process carries, on that lane's port."""
@@ -130,6 +150,17 @@ class BridgeTable:
     def peer_heartbeat_keys(self, side):
         return f"{self.key_prefix}/heartbeat/{self._scope(other_side(side))}/**"
 
+    def echo_key(self, robots_name):
+        """Where the twin echoes the heartbeats of the robots' bridge `robots_name` (round trips)."""
+        return f"{self.key_prefix}/echo/{self._scope(ROBOTS)}/{robots_name}"
+
+    def report_key(self, robots_name):
+        """Where the robots' bridge `robots_name` puts its link report counters."""
+        return f"{self.key_prefix}/linkreport/{self._scope(ROBOTS)}/{robots_name}"
+
+    def report_keys(self):
+        return f"{self.key_prefix}/linkreport/{self._scope(ROBOTS)}/**"
+
 
 def other_side(side):
     if side not in SIDES:
@@ -172,7 +203,14 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
             c.get("reliable", bool),
             c.get("express", bool),
             c.number("max_age_s", default=None, low=0.0, low_open=True) if c.has("max_age_s") else None,
+            c.get("paced", bool, default=False),
         )
+        if classes[name].paced and (congestion != "block" or not classes[name].reliable):
+            # Zenoh drops a best-effort message whatever its congestion control
+            raise c.error(
+                "paced",
+                "a paced class needs congestion: block and reliable: true (its queue is the bridge's, not Zenoh's)",
+            )
     routes, seen = [], {}
     for entry in top.items("topics"):
         topic = _check_topic(entry, "topic", entry.get("topic", str))
@@ -183,6 +221,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         traffic = _class_of(entry, classes)
         latched = entry.get("latched", bool, default=False)
         msg_type = entry.get("type", str, default="")
+        managed = entry.get("managed", bool, default=False)
         if msg_type and msg_type.count("/") != 1:
             raise entry.error("type", f"'{msg_type}' is not a ROS message type (package/Name)")
         per_robot = ROBOT_PLACEHOLDER in topic or ROBOT_PLACEHOLDER in to
@@ -195,12 +234,16 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
                 latched,
                 robot,
                 msg_type=msg_type,
+                managed=managed,
             )
             if route.to in seen:
                 raise entry.error("topic", f"'{route.to}' crosses twice (also at line {seen[route.to]})")
             seen[route.to] = doc.line(entry.key_path)
             routes.append(route)
     backfill = _backfill(top, doc, classes, robots, routes, seen) if top.has("backfill") else None
+    for key, low, high in (("batch_bytes", 1024, 65535), ("kernel_unsent_bytes", 0, 2**31), ("report_ms", 100, 5000)):
+        if top.has(key) and not low <= top.get(key, int) <= high:
+            raise top.error(key, f"must be in [{low}, {high}], got {top.get(key, int)}")
     if top.get("command_port", int) == top.get("endpoint_port", int):
         raise top.error("command_port", "the command lane needs a port of its own (it equals endpoint_port)")
     if COMMAND_CLASS not in classes:
@@ -218,6 +261,9 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         classes=classes,
         routes=tuple(routes),
         backfill=backfill,
+        batch_bytes=top.get("batch_bytes", int, default=65535),
+        kernel_unsent_bytes=top.get("kernel_unsent_bytes", int, default=0),
+        report_ms=top.get("report_ms", int, default=500),
     )
 
 
@@ -248,6 +294,7 @@ def _backfill(top, doc, classes, robots, routes, seen):
                     robot=robot,
                     from_ros=False,
                     msg_type=POSE_TYPE if key == "pose_to" else by_topic[topic].msg_type,
+                    managed=True,  # paced within the manager's unused budget
                 )
             )
     return Backfill(

@@ -81,6 +81,26 @@ def fleet_rate(fleet_file=None):
         raise LinkError(f"no link rate given and none from the fleet file: {exc}") from exc
 
 
+# The kernel's bound on a TCP socket's unsent bytes (tcp_notsent_lowat), per network namespace.
+UNSENT_SYSCTL = "net.ipv4.tcp_notsent_lowat"
+
+
+def bridge_unsent_bytes():
+    """The bound the bridge table (config/bridge.yaml `kernel_unsent_bytes`) asks of every host."""
+    from cps_link.bridge_config import load_bridge_table
+
+    try:
+        return load_bridge_table().kernel_unsent_bytes
+    except ConfigError as exc:
+        raise LinkError(f"cannot read the bridge table for kernel_unsent_bytes: {exc}") from exc
+
+
+def set_unsent_limit(ns, unsent_bytes):
+    """At most `unsent_bytes` not yet sent in each TCP socket of namespace `ns` (0: leave it)."""
+    if unsent_bytes:
+        _run(["ip", "netns", "exec", ns, "sysctl", "-q", "-w", f"{UNSENT_SYSCTL}={int(unsent_bytes)}"])
+
+
 def namespace(name, side):
     if side not in SIDES:
         raise LinkError(f"side must be one of {', '.join(SIDES)}, got '{side}'")
@@ -183,9 +203,12 @@ def link_up(
     jitter_ms=0.0,
     topology="duplex",
     with_netem=False,
+    unsent_bytes=None,
 ):
     """Create both namespaces, the veth pair, addresses, loopbacks and the shaping on both ends
-    (`rate` None: fleet.yaml's link rate; topology "shared": see the module). Returns the rate."""
+    (`rate` None: fleet.yaml's link rate; topology "shared": see the module), and bound every TCP
+    socket's unsent bytes in both (`unsent_bytes` None: the bridge table's, 0: the kernel's
+    default, unbounded). Returns the rate."""
     _check_name(name)
     rate = rate or fleet_rate()
     _check_shaping_args(rate, delay_ms, loss_pct, queue_ms, jitter_ms)
@@ -224,6 +247,7 @@ def link_up(
             _run(["ip", "-n", ns, "addr", "add", f"{side_ip(side)}/{PREFIX_LEN}", "dev", dev])
             _run(["ip", "-n", ns, "link", "set", "lo", "up"])
             _run(["ip", "-n", ns, "link", "set", dev, "up"])
+            set_unsent_limit(ns, bridge_unsent_bytes() if unsent_bytes is None else unsent_bytes)
         for ns, dev in shaped_devices(name):
             for cmd in _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, "add", jitter_ms, with_netem):
                 result = _run(cmd, check=False)
@@ -494,9 +518,11 @@ class ShapedLink:
         jitter_ms=0.0,
         topology="duplex",
         with_netem=False,
+        unsent_bytes=None,
     ):
         self.name, self.delay_ms, self.loss_pct, self.queue_ms = name, delay_ms, loss_pct, queue_ms
         self.jitter_ms, self.topology, self.with_netem = jitter_ms, topology, with_netem
+        self.unsent_bytes = unsent_bytes
         self.rate = rate or fleet_rate()
 
     def __enter__(self):
@@ -509,6 +535,7 @@ class ShapedLink:
             self.jitter_ms,
             self.topology,
             self.with_netem,
+            self.unsent_bytes,
         )
         return self
 

@@ -6,6 +6,7 @@ Debian 12 packages image_transport but not that plugin; this module (Pillow, no 
 """
 
 import io
+import struct
 
 import numpy as np
 from PIL import Image as PilImage
@@ -138,3 +139,36 @@ def camera_test_image(width=320, height=240, seed=0):
         image[y0 : y0 + height // 3, x0 : x0 + width // 12] = [(40 * i) % 255, 200 - 25 * i, 60 + 30 * i]
     image += rng.normal(0.0, 3.0, image.shape)
     return np.clip(image, 0, 255).astype(np.uint8)
+
+
+# JPEG start-of-frame markers (baseline, extended, progressive, lossless; not DHT/JPG/DAC).
+_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def jpeg_dimensions(data):
+    """(width, height) from a JPEG file's start-of-frame header without decoding it, or None when
+    `data` is not a JPEG or has no frame header (as delivered: what the receiver would show)."""
+    view = memoryview(data)
+    if len(view) < 4 or view[0] != 0xFF or view[1] != 0xD8:
+        return None
+    i = 2
+    while i + 4 <= len(view):
+        if view[i] != 0xFF:
+            return None
+        marker = view[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # no length
+            i += 2
+            continue
+        (length,) = struct.unpack_from(">H", view, i + 2)
+        if marker in _SOF:
+            if i + 9 > len(view):
+                return None
+            height, width = struct.unpack_from(">HH", view, i + 5)
+            return width, height
+        if marker == 0xDA:  # start of scan before any frame header
+            return None
+        i += 2 + length
+    return None

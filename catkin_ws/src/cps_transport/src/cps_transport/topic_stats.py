@@ -38,7 +38,32 @@ def stamp_ns_from_serialized(buffer):
 # One row per stamped message (cps_fleet.csv_log.CsvLog): the same capture stamp travels through
 # voxel grid, Draco and the rate limiter, so the robots' side's rows and the twin's join per cloud
 # (cps_experiments.report.latency_split).
-ARRIVAL_COLUMNS = ("topic", "robot", "stamp_ns", "receive_s")
+# bytes: the serialized message; width, height: a sensor_msgs/CompressedImage's JPEG as delivered
+# (empty for anything else), so a video's resolution is judged as the operator gets it.
+ARRIVAL_COLUMNS = ("topic", "robot", "stamp_ns", "receive_s", "bytes", "width", "height")
+COMPRESSED_IMAGE_TYPE = "sensor_msgs/CompressedImage"
+
+
+def compressed_image_dimensions(buffer):
+    """(width, height) of the JPEG in a serialized sensor_msgs/CompressedImage (header, format,
+    data), or None when it is not one."""
+    from cps_transport.image_compression import jpeg_dimensions
+
+    view = memoryview(buffer)
+    try:
+        offset = 12  # header: seq, stamp
+        for _ in range(2):  # header.frame_id, format
+            (n,) = struct.unpack_from("<I", view, offset)
+            offset += 4 + n
+        (n,) = struct.unpack_from("<I", view, offset)
+    except struct.error:
+        return None
+    offset += 4
+    if offset + n > len(view):
+        return None
+    return jpeg_dimensions(view[offset : offset + n])
+
+
 # counters.csv / physical_counters.csv: a node's per-cloud ledger counter (cps_ros.cloud_ledger), from
 # its /diagnostics status, each time it changed (cps_experiments.ledger reads them back).
 COUNTER_COLUMNS = ("time_s", "node", "input_topic", "key", "value")

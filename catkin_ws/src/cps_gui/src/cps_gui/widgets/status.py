@@ -87,6 +87,16 @@ class StatusPane(QWidget):
                 [], [], pen=pg.mkPen((0, 0, 0), width=2, style=Qt.DashLine), name="budget"
             )
         )
+        # The manager's estimate of the link (what its budget is made from) and, on the test bed,
+        # the true capacity the scenario set (an oracle the manager never allocates from).
+        self.estimate_curve = _without_segments(
+            self.plot_items["bandwidth"].plot([], [], pen=pg.mkPen((30, 90, 200), width=2), name="link estimate")
+        )
+        self.true_capacity_curve = _without_segments(
+            self.plot_items["bandwidth"].plot(
+                [], [], pen=pg.mkPen((120, 120, 120), width=2, style=Qt.DotLine), name="true capacity (oracle)"
+            )
+        )
 
         self.link_label = QLabel("link: no data")
         self.link_lost_banner = QLabel("")
@@ -154,6 +164,9 @@ class StatusPane(QWidget):
         for (name, stream), (t, top) in stacked_streams(self.state.stream_series()).items():
             self.stack_curves[(name, stream)].setData(t, top)
         self.budget_curve.setData(*budget)
+        estimate, estimate_series, true_series = self.state.link_estimate()
+        self.estimate_curve.setData(*estimate_series)
+        self.true_capacity_curve.setData(*true_series)
         available_mbps, allocation, allocation_age_s = self.state.link_summary()
         parts = [_age_text("stats", stats_age_s), _age_text("allocation", allocation_age_s)]
         if allocation is not None:
@@ -161,7 +174,9 @@ class StatusPane(QWidget):
                 f"budget {allocation.budget_mbytes_per_s:.2f} MB/s, allocated "
                 f"{allocation.allocated_mbytes_per_s:.2f} MB/s" + ("" if allocation.feasible else " (INFEASIBLE)")
             )
-        if math.isfinite(available_mbps):
+        if estimate is not None:
+            parts.append(f"link {estimate.text()}")
+        elif math.isfinite(available_mbps):
             parts.append(f"link {available_mbps:.1f} Mbit/s")
         self.link_label.setText(" | ".join(parts))
         stale = self.state.is_stale(stats_age_s) or (allocation is not None and self.state.is_stale(allocation_age_s))

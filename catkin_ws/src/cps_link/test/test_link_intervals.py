@@ -1,0 +1,181 @@
+"""The link report's parts (cps_link.link_report), no ROS: the twin's intervals from the robots'
+cumulative counters, bad and out-of-order reports refused and counted, round trips, socket queues."""
+
+import json
+import math
+
+import pytest
+
+from cps_link.link_report import (
+    BAD_REPORT,
+    COUNTER_BACKWARDS,
+    FIRST_OF_RUN,
+    OLD_REPORT,
+    RECEIVER_BEHIND_BYTES,
+    ReportComposer,
+    RoundTrips,
+    SenderReport,
+    decode_sender_report,
+    tcp_queues,
+)
+
+
+def _report(seq, t_s, sent, offered=None, session="run1", **extra):
+    fields = dict(superseded=0, expired=0, app_limited=False)
+    fields.update(extra)
+    return SenderReport(session, seq, t_s, offered if offered is not None else sent, sent, **fields).encode()
+
+
+def test_an_interval_is_the_difference_of_two_reports_each_side_on_its_own_clock():
+    c = ReportComposer()
+    assert c.on_report(_report(1, 100.0, 1000), 5000.0) == (None, FIRST_OF_RUN)
+    c.received(40_000, managed=True)
+    c.received(2_000, managed=False)
+    interval, why = c.on_report(
+        _report(2, 100.5, 51_000, offered=60_000, superseded=3, rtt_s=[0.01, 0.02], blocked_s=0.3), 5000.6
+    )
+    assert why is None
+    assert interval.interval_s == pytest.approx(0.6) and interval.sender_interval_s == pytest.approx(0.5)
+    assert (interval.delivered_bytes, interval.unmanaged_bytes) == (42_000, 2_000)
+    assert (interval.sent_bytes, interval.offered_bytes, interval.superseded) == (50_000, 59_000, 3)
+    assert interval.rtt_s == (0.01, 0.02) and not interval.receiver_behind and interval.sender_blocked_s == 0.3
+
+
+def test_a_lost_report_makes_the_next_interval_longer_not_wrong():
+    c = ReportComposer()
+    c.on_report(_report(1, 0.0, 0), 10.0)
+    c.received(10_000, managed=True)
+    # report 2 lost on the way
+    c.received(10_000, managed=True)
+    interval, _ = c.on_report(_report(3, 1.0, 20_000), 11.0)
+    assert (interval.sent_bytes, interval.delivered_bytes, interval.sender_interval_s) == (20_000, 20_000, 1.0)
+
+
+def test_duplicated_reordered_bad_and_backwards_reports_are_refused_and_counted():
+    c = ReportComposer()
+    c.on_report(_report(1, 0.0, 0), 10.0)
+    assert c.on_report(_report(2, 0.5, 100), 10.5)[1] is None
+    assert c.on_report(_report(2, 0.5, 100), 10.6) == (None, OLD_REPORT)  # duplicated
+    assert c.on_report(_report(1, 0.0, 0), 10.7) == (None, OLD_REPORT)  # reordered
+    for bad in (
+        b"not json",
+        b"[]",
+        json.dumps({"v": 1, "session": "run1", "seq": 3}).encode(),  # fields missing
+        _report(3, float("nan"), 10),
+        _report(3, 1.0, -5),
+        json.dumps({"v": 99}).encode(),
+    ):
+        assert c.on_report(bad, 11.0) == (None, BAD_REPORT), bad
+    # a counter going down within a run: refused, and the intervals restart from it
+    assert c.on_report(_report(3, 1.0, 50), 11.0) == (None, COUNTER_BACKWARDS)
+    assert c.on_report(_report(4, 1.5, 150), 11.5)[0].sent_bytes == 100
+    # the robots' bridge restarted: a new run starts the intervals again
+    assert c.on_report(_report(1, 0.0, 0, session="run2"), 12.0) == (None, FIRST_OF_RUN)
+    # a silent far side: the next report after more than MAX_INTERVAL_S restarts the intervals
+    assert c.on_report(_report(2, 60.0, 10, session="run2"), 72.0) == (None, FIRST_OF_RUN)
+    assert c.refused == {BAD_REPORT: 6, OLD_REPORT: 2, FIRST_OF_RUN: 3, COUNTER_BACKWARDS: 1}
+
+
+def test_the_decoder_names_what_is_wrong():
+    decoded = decode_sender_report(_report(7, 1.5, 10, rtt_s=[0.1]))
+    assert (decoded.seq, decoded.t_s, decoded.rtt_s) == (7, 1.5, (0.1,))
+    for payload, word in (
+        (_report(7, 1.5, 10, rtt_s=["x"]), "rtt_s"),
+        (_report(7, 1.5, 10, superseded=-1), "superseded"),
+        (_report(7, 1.5, 10, pacing_mbps=float("inf")), "pacing_mbps"),
+    ):
+        try:
+            decode_sender_report(payload)
+        except ValueError as exc:
+            assert word in str(exc)
+        else:
+            raise AssertionError(f"{payload!r} decoded")
+
+
+def test_the_receiver_is_behind_only_when_its_socket_queue_stays_high():
+    c = ReportComposer()
+    c.on_report(_report(1, 0.0, 0), 0.0)
+    c.sample_receive_queue(RECEIVER_BEHIND_BYTES + 1)  # one burst: not behind
+    c.sample_receive_queue(0)
+    c.sample_receive_queue(None)  # no socket found
+    interval, _ = c.on_report(_report(2, 0.5, 0), 0.5)
+    assert not interval.receiver_behind and interval.receive_queue_max_bytes == RECEIVER_BEHIND_BYTES + 1
+    c.sample_receive_queue(RECEIVER_BEHIND_BYTES)
+    c.sample_receive_queue(2 * RECEIVER_BEHIND_BYTES)
+    assert c.on_report(_report(3, 1.0, 0), 1.0)[0].receiver_behind
+    assert not c.on_report(_report(4, 1.5, 0), 1.5)[0].receiver_behind  # each interval on its own
+
+
+def test_round_trips_count_each_echo_once():
+    rt = RoundTrips(keep=4)
+    first = rt.heartbeat(1_000_000_000)
+    second = rt.heartbeat(1_100_000_000)
+    assert rt.echo(second, 1_130_000_000) == pytest.approx(0.03)
+    assert rt.echo(second, 1_140_000_000) is None  # a repeated echo
+    assert rt.echo(b"junk", 1_140_000_000) is None
+    assert rt.echo(first, 1_200_000_000) == pytest.approx(0.2)
+    for i in range(5):
+        rt.heartbeat(2_000_000_000 + i)
+    assert rt.take() == pytest.approx([0.03, 0.2]) and rt.take() == []
+
+
+def test_socket_queues_are_read_from_proc(tmp_path):
+    (tmp_path / "tcp").write_text(
+        "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n"
+        "   0: 0201C90A:1D17 0101C90A:B5E2 01 00000010:00020000 00:00000000 00000000     0        0 1\n"
+        "   1: 0101C90A:B5E2 0201C90A:1D17 01 00001000:00000000 00:00000000 00000000     0        0 2\n"
+        "   2: 00000000:1D17 00000000:0000 0A 00000000:00000000 00:00000000 00000000     0        0 3\n"
+    )
+    assert tcp_queues(local_port=7447, proc_root=str(tmp_path)) == [(16, 131072)]
+    assert tcp_queues(remote_port=7447, proc_root=str(tmp_path)) == [(4096, 0)]
+    assert tcp_queues(local_port=1, proc_root=str(tmp_path / "none")) == []
+
+
+def test_the_link_sockets_tcp_payload_counts_and_rtt_from_tcp_info_stay_monotone_across_a_reconnection():
+    """The bridge reads its own (Zenoh's) link socket: found by port in /proc/net/tcp and by inode
+    among this process's descriptors; TCP_INFO's bytes count every byte the link carried."""
+    import socket
+    import time
+
+    from cps_link.link_report import LinkSockets
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen()
+    port = server.getsockname()[1]
+    sender, receiver = LinkSockets(remote_port=port), LinkSockets(local_port=port)
+    assert math.isnan(sender.read_s)  # no read yet: no instant its counters are true of
+    totals = []
+    for _ in range(2):  # a connection, then a reconnection
+        client = socket.create_connection(("127.0.0.1", port))
+        accepted, _ = server.accept()
+        client.sendall(b"x" * 50_000)
+        got = 0
+        while got < 50_000:
+            got += len(accepted.recv(65536))
+        time.sleep(0.05)
+        before_s = time.monotonic()
+        infos = sender.read()
+        # the instant of TCP_INFO's counters, which the robots' report is stamped with
+        assert before_s <= sender.read_s <= time.monotonic()
+        assert len(infos) == 1 and infos[0].rtt_us > 0 and infos[0].bytes_acked >= 50_000
+        receiver.read()
+        totals.append((sender.totals()["bytes_new"], receiver.totals()["bytes_received"]))
+        client.close()
+        accepted.close()
+        time.sleep(0.05)
+    sender.read(), receiver.read()
+    assert totals[0] == (50_000, 50_000) and totals[1] == (100_000, 100_000)
+    assert sender.totals()["bytes_new"] == 100_000 and sender.read() == []  # closed: still counted
+    server.close()
+
+
+def test_an_interval_carries_the_link_sockets_bytes_beside_the_frames():
+    c = ReportComposer()
+    c.on_report(_report(1, 0.0, 0, link_sent_bytes=1_000), 10.0, link_received_bytes=900)
+    c.received(40_000, managed=True)
+    interval, _ = c.on_report(_report(2, 0.5, 40_000, link_sent_bytes=45_000), 10.5, link_received_bytes=42_000)
+    assert (interval.sent_link_bytes, interval.delivered_link_bytes) == (44_000, 41_100)
+    # not readable (0) on either side: no link bytes, the frames stand
+    interval, _ = c.on_report(_report(3, 1.0, 80_000), 11.0, link_received_bytes=0)
+    assert (interval.sent_link_bytes, interval.delivered_link_bytes) == (0, 0)
