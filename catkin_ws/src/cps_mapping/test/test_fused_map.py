@@ -371,6 +371,8 @@ def test_first_seen_stamps_are_the_first_cloud_that_crossed_or_hit_each_voxel(tw
     centres = stamped.leaves().centers_m
     by_lidar_only = centres[[p not in by_depth for p in pack_index(voxel_index(centres, RES)).tolist()]]
     assert len(by_lidar_only) and np.all(stamped.first_seen_s(by_lidar_only) == later)
-    assert np.isnan(stamped.first_seen_s([[500.0, 500.0, 0.5]])).all() and np.isnan(plain.first_seen_s(seen_first)).all()
+    assert (
+        np.isnan(stamped.first_seen_s([[500.0, 500.0, 0.5]])).all() and np.isnan(plain.first_seen_s(seen_first)).all()
+    )
     with pytest.raises(ValueError, match="stamps for"):
         stamped.insert_batch(depth, 6.0, "jackal", stamps_s=[1.0])
