@@ -58,6 +58,20 @@ def test_scenarios_are_seeded_valid_and_overlap_nothing(tmp_path, site, fleet):
             assert not any(_overlap(grown, o.footprint) for o in after.equipment if o.name != name), (path, name)
 
 
+def test_the_whole_fleet_changes_every_area_and_thin_layered_structure(tmp_path, site, fleet):
+    """With the whole fleet every fenced area is visited, and shelving and pipe racks are changed
+    too (issue 39: the false changes came from thin, layered structure)."""
+    robots = fleet.robot_names
+    assert {a.name for a in visited_areas(site, fleet, robots)} == {a.name for a in site.areas}
+    paths = generate_scenarios(site, fleet, robots, 30, 11, str(tmp_path), log=lambda _: None)
+    changed = [load_site_changes(p, site) for p in paths]
+    names = [n for c in changed for n in (*c.removed, *(m.name for m in c.moved))]
+    types = {site.item(n).type for n in names}
+    assert {"shelving", "pipe_run"} <= types, types
+    areas = {a.name for c in changed for a in site.areas for e in c.added if a.contains_xy(e.x, e.y)}
+    assert areas == {a.name for a in site.areas}
+
+
 def test_a_site_without_room_says_so(tmp_path, site, fleet):
     storage = next(a for a in site.areas if a.name == "storage")
     tiny = dataclasses.replace(storage, x_min_m=3.0, x_max_m=3.5, y_min_m=-1.2, y_max_m=-0.8)
