@@ -200,10 +200,10 @@ def bench_priority_to_rate_on_link(changes):
                 "phys",
                 limiter,
                 [
-                    "__name:=cloud_throttle",
-                    f"__ns:=/{r}",
-                    f"~input:=/{r}/points_filtered/draco",
-                    f"~output:=/{r}/points_filtered/draco/managed",
+                    f"__name:={names.CLOUD_THROTTLE}",
+                    f"__ns:={names.absolute(r)}",
+                    f"{names.INPUT}:={names.absolute(names.robot_topic(r, names.POINTS_DRACO))}",
+                    f"{names.OUTPUT}:={names.absolute(names.managed_cloud(r))}",
                 ],
                 name=f"limiter_{r}",
             )

@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from cps_fleet import names
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import RosGraph, find_node, free_port
 
@@ -60,7 +61,7 @@ def one_run(lanes, seconds, tmp):
                 sys.executable,
                 CLOUD_LOAD,
                 LOAD,
-                f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+                f"{names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(ROBOT))}",
             ],
             name="load",
         )

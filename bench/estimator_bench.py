@@ -28,6 +28,7 @@ import os
 import sys
 
 from cps_bw_manager.estimation import DeliveryRateEstimator
+from cps_fleet import names
 from cps_harness.legacy_estimation import LegacyDelayEstimator
 from cps_harness.link_model import (
     CpuHog,
@@ -253,7 +254,7 @@ def report(results):
     return "\n".join(lines)
 
 
-HEADER = """# Link-capacity estimator: new (delivery rate) vs old (delay rule) — SIMULATED
+HEADER = f"""# Link-capacity estimator: new (delivery rate) vs old (delay rule) — SIMULATED
 
 Written by `python bench/estimator_bench.py`. These figures come from the simulated link
 `cps_harness.link_model` (fluid tbf-like queue of 4 Mbit, capacity steps and outages from
@@ -265,7 +266,7 @@ Subjects, in pairs judged on the same inputs: `new` (`DeliveryRateEstimator` wit
 LinkReport field) and `old` (`LegacyDelayEstimator`, the delay rule the manager used before, fed
 delivered, one-way latency and sent) on per-interval reports, as the bridge should send them;
 `new/today` (only delivered, sent and offered, probes held 2 s, as `manager_node` builds it) and
-`old/today` on today's inputs, 2 s sliding averages like /tissue/stats and the limiters' status.
+`old/today` on today's inputs, 2 s sliding averages like {names.absolute(names.TISSUE_STATS)} and the limiters' status.
 "settle" = seconds from the step to the first report from which the capacity estimate stays
 within +-15 % of the true (tc) capacity until the next event (a report covers the 0.5 s before
 it; reports fall 0.23 s off the whole-second steps). The new estimator's allocation target

@@ -101,7 +101,9 @@ class Feeder:
             def relay(msg, twin=twin, r=r):
                 if "pub" not in twin:
                     twin["cls"] = relay_class(msg._connection_header)
-                    twin["pub"] = rospy.Publisher(f"/twin/{r}/points_filtered/draco/managed", twin["cls"], queue_size=5)
+                    twin["pub"] = rospy.Publisher(
+                        names.absolute(names.managed_cloud_at_twin(r)), twin["cls"], queue_size=5
+                    )
                 twin["pub"].publish(relay_message(twin["cls"], msg))
 
             self.relays.append(
@@ -109,7 +111,12 @@ class Feeder:
             )
             self.subs.append(
                 rospy.Subscriber(
-                    f"/twin/{r}/points", rospy.AnyMsg, self._count, callback_args=r, queue_size=5, buff_size=1 << 24
+                    names.absolute(names.twin_points(r)),
+                    rospy.AnyMsg,
+                    self._count,
+                    callback_args=r,
+                    queue_size=5,
+                    buff_size=1 << 24,
                 )
             )
         self.stop = threading.Event()

@@ -20,8 +20,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-from cps_experiments import paper  # noqa: E402
 
+from cps_experiments import paper  # noqa: E402
 from cps_fleet.fleet import load_fleet  # noqa: E402
 from cps_transport.draco import DracoDecoder, DracoEncoder  # noqa: E402
 from cps_transport.pointcloud import cloud_to_array, xyz_of  # noqa: E402

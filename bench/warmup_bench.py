@@ -60,8 +60,8 @@ def one_start(graph, rospy, mode, run, tmp):
         subprocess.run([sys.executable, "-m", "cps_mapping.build_kernels"], env=env, check=True, capture_output=True)
         build_s = time.monotonic() - t0
     name = f"map_server_{mode}_{run}"
-    ready = TopicRecorder(names.absolute(names.in_twin(f"{name}/{names.READY.lstrip('~')}")), DiagnosticStatus)
-    octomap = TopicRecorder(names.absolute(names.in_twin(f"{name}/{names.OCTOMAP_BINARY}")), Octomap)
+    ready = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.READY))), DiagnosticStatus)
+    octomap = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.OCTOMAP_BINARY))), Octomap)
     publisher = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=1)
     try:
         started_at = time.monotonic()
@@ -69,9 +69,9 @@ def one_start(graph, rospy, mode, run, tmp):
             [
                 sys.executable,
                 os.path.join(checkout, "nodes", "map_server"),
-                "__ns:=/twin",
+                f"__ns:={names.absolute(names.TWIN_NS)}",
                 f"__name:={name}",
-                f"octomap_binary:=/twin/{name}/octomap_binary",
+                f"{names.OCTOMAP_BINARY}:={names.absolute(names.in_twin(names.private(name, names.OCTOMAP_BINARY)))}",
                 "_robots:=jackal",
                 f"_map_file:={os.path.join(tmp, name + '.bt')}",
                 "_publish_period_s:=0.05",

@@ -8,6 +8,7 @@ import sys
 
 import pytest
 
+from cps_fleet import names
 from cps_ros.processes import RosGraph
 
 SRC = os.path.normpath(os.path.join(os.path.dirname(__file__), "..", ".."))
@@ -90,7 +91,7 @@ def test_a_node_starts_from_the_install_space(install_space, tmp_path):
             [
                 "bash",
                 "-c",
-                f"source {install_space}/setup.bash && exec rosrun cps_mapping map_server __ns:=/twin "
+                f"source {install_space}/setup.bash && exec rosrun cps_mapping map_server __ns:={names.absolute(names.TWIN_NS)} "
                 f"_map_file:={tmp_path / 'map.bt'}",
             ],
             env={**_clean_env(), "ROS_MASTER_URI": graph.uri, "ROS_HOME": str(tmp_path)},
@@ -99,11 +100,19 @@ def test_a_node_starts_from_the_install_space(install_space, tmp_path):
             start_new_session=True,
         )
         try:
-            graph.wait_for_topic("/twin/octomap_binary", timeout_s=60)
-            graph.wait_for_service("/twin/map_server/clear_bbx", timeout_s=30)
+            graph.wait_for_topic(names.absolute(names.in_twin(names.OCTOMAP_BINARY)), timeout_s=60)
+            graph.wait_for_service(
+                names.absolute(names.in_twin(names.private(names.MAP_SERVER, names.CLEAR_BBX))), timeout_s=30
+            )
             # catkin_make install built the kernels in the install space: the node compiled nothing.
             ready = subprocess.run(
-                ["rostopic", "echo", "-n", "1", "/twin/map_server/ready/message"],
+                [
+                    "rostopic",
+                    "echo",
+                    "-n",
+                    "1",
+                    names.absolute(names.in_twin(names.private(names.MAP_SERVER, names.READY))) + "/message",
+                ],
                 env={**os.environ, "ROS_MASTER_URI": graph.uri},
                 capture_output=True,
                 text=True,

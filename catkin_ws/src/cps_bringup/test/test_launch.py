@@ -7,6 +7,7 @@ import sys
 
 import pytest
 
+from cps_fleet import names
 from cps_ros.processes import RosGraph
 
 
@@ -29,17 +30,19 @@ def test_roslaunch_brings_the_digital_side_up(tmp_path):
         launch = graph.popen(["roslaunch", str(launch_dir / "digital.launch"), f"out:={out}"], name="roslaunch")
         try:
             for topic in (
-                "/twin/octomap_binary",
-                "/twin/octomap_point_cloud_centers",
-                "/twin/occupied_cells_vis_array",
-                "/twin/projected_map",
-                "/twin/map_stats",
-                "/tissue/allocation",
-                "/tissue/stats",
-                "/twin/jackal/points",
+                names.absolute(names.in_twin(names.OCTOMAP_BINARY)),
+                names.absolute(names.in_twin(names.POINT_CLOUD_CENTERS)),
+                names.absolute(names.in_twin(names.OCCUPIED_CELLS)),
+                names.absolute(names.in_twin(names.PROJECTED_MAP)),
+                names.absolute(names.in_twin(names.MAP_STATS)),
+                names.absolute(names.ALLOCATION),
+                names.absolute(names.TISSUE_STATS),
+                names.absolute(names.twin_points("jackal")),
             ):
                 graph.wait_for_topic(topic, timeout_s=90)
-            graph.wait_for_service("/twin/map_server/clear_bbx", timeout_s=30)
+            graph.wait_for_service(
+                names.absolute(names.in_twin(names.private(names.MAP_SERVER, names.CLEAR_BBX))), timeout_s=30
+            )
         finally:
             graph.stop(launch, timeout_s=20)
     assert (out / "map.bt").exists(), "the map server saves into $(arg out) on shutdown"

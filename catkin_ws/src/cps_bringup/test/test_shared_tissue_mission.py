@@ -29,6 +29,7 @@ def _started(log_dir, robots):
 # /twin/map_stats) until every robot has some (or 45 s).
 COUNT_INSERTED = """
 import json, sys, time, rospy
+from cps_fleet import names
 from cps_msgs.msg import MapStats
 robots = sys.argv[1].split(",")
 counts = dict.fromkeys(robots, 0)
@@ -37,7 +38,7 @@ def on_stats(stats):
         if robot.robot in counts:
             counts[robot.robot] = robot.clouds_inserted
 rospy.init_node("map_insert_count", anonymous=True)
-sub = rospy.Subscriber("/twin/map_stats", MapStats, on_stats)
+sub = rospy.Subscriber(names.absolute(names.in_twin(names.MAP_STATS)), MapStats, on_stats)
 deadline = time.monotonic() + 45
 while time.monotonic() < deadline and not all(counts.values()):
     time.sleep(0.2)

@@ -36,26 +36,29 @@ def test_plan_wires_every_robot_through_the_tissue_to_the_map():
     for robot in fleet.robots:
         r = robot.name
         voxel = " ".join(specs[f"{r}/voxel_grid"].argv)
-        assert f"~input:=/{r}/points " in voxel and f"~output:=/{r}/points_filtered" in voxel
+        assert f"{names.INPUT}:={names.absolute(names.robot_topic(r, robot.cloud_topic))} " in voxel
+        assert f"{names.OUTPUT}:={names.absolute(names.robot_topic(r, names.POINTS_FILTERED))}" in voxel
         assert f"_leaf_size:={initial_leaf_m(fleet, robot)}" in voxel and "_filter_field_name:= " in voxel + " "
-        assert f"~output:=/{r}/points_filtered/draco/managed" in " ".join(specs[f"{r}/cloud_throttle"].argv)
-        assert "__name:=cloud_throttle" in specs[f"{r}/cloud_throttle"].argv
+        throttle = specs[names.robot_topic(r, names.CLOUD_THROTTLE)].argv
+        assert f"{names.OUTPUT}:={names.absolute(names.managed_cloud(r))}" in " ".join(throttle)
+        assert f"__name:={names.CLOUD_THROTTLE}" in throttle
         # Exactly one subscriber of the managed topic crosses the link: the twin-side relay.
         relay = specs[f"{r}/link_relay"]
         assert relay.side == DIGITAL and relay.argv[3:5] == (
-            f"/{r}/points_filtered/draco/managed",
-            f"/twin/{r}/points_filtered/draco/managed",
+            names.absolute(names.managed_cloud(r)),
+            names.absolute(names.managed_cloud_at_twin(r)),
         )
         crossing = [
             s.label
             for s in specs.values()
             if s.side == DIGITAL
             and s is not relay
-            and any(f"/{r}/points_filtered/draco/managed" == a.split(":=")[-1] for a in s.argv)
+            and any(names.absolute(names.managed_cloud(r)) == a.split(":=")[-1] for a in s.argv)
         ]
         assert crossing == [], crossing
         decoder = " ".join(specs[f"{r}/draco_decoder"].argv)
-        assert f"~input:=/twin/{r}/points_filtered/draco/managed" in decoder and f"~output:=/twin/{r}/points" in decoder
+        assert f"{names.INPUT}:={names.absolute(names.managed_cloud_at_twin(r))}" in decoder
+        assert f"{names.OUTPUT}:={names.absolute(names.twin_points(r))}" in decoder
         assert specs[f"{r}/draco_decoder"].side == DIGITAL and specs[f"{r}/draco_encoder"].side == PHYSICAL
         # The camera encodes its own video at the manager's level (cps_sim.video): no compressor.
         assert f"{r}/image_compressor" not in specs
@@ -81,15 +84,20 @@ def test_shared_plan_wires_every_robot_through_fixed_tissue_processes():
     for label, side in (("voxel_grid_loader", PHYSICAL), ("cloud_tissue", PHYSICAL), ("cloud_decoder", DIGITAL)):
         assert specs[label].side == side and _arg(specs[label], "_robots") == ",".join(robots)
         assert _arg(specs[label], "_fleet_file") == fleet.path
-    assert _arg(specs["voxel_grid_loader"], "_manager") == "/tissue_nodelet_manager"
+    assert _arg(specs["voxel_grid_loader"], "_manager") == names.absolute(names.TISSUE_NODELET_MANAGER)
     assert specs["voxel_grid_loader"].after == ("nodelet_manager",)
     assert _arg(specs["cloud_decoder"], "_backfill") == "true"
     for robot in fleet.robots:
         r = robot.name
-        assert f"/{r}/points_filtered" in specs["voxel_grid_loader"].wait_topics
-        assert f"/{r}/points_filtered/draco" in specs["cloud_tissue"].wait_topics
-        assert f"/{r}/camera/image_raw/compressed" not in specs["cloud_tissue"].wait_topics  # the camera encodes it
-        assert {f"/twin/{r}/points", f"/twin/{r}/points_backfill"} <= set(specs["cloud_decoder"].wait_topics)
+        assert names.absolute(names.robot_topic(r, names.POINTS_FILTERED)) in specs["voxel_grid_loader"].wait_topics
+        assert names.absolute(names.robot_topic(r, names.POINTS_DRACO)) in specs["cloud_tissue"].wait_topics
+        assert (
+            names.absolute(names.robot_topic(r, names.CAMERA_IMAGE_COMPRESSED)) not in specs["cloud_tissue"].wait_topics
+        )  # the camera encodes it
+        assert {
+            names.absolute(names.twin_points(r)),
+            names.absolute(names.in_twin(names.robot_topic(r, names.POINTS_BACKFILL))),
+        } <= set(specs["cloud_decoder"].wait_topics)
 
 
 def _with_copies(fleet, copies):
@@ -164,7 +172,9 @@ def test_plan_control_layouts_shared_and_per_robot():
     argv = " ".join(control[0].argv)
     assert "__name:=fleet_control" in argv and f"_robots:={','.join(fleet.robot_names)}" in argv
     assert f"_fleet_file:={fleet.path}" in argv and "__ns" not in argv
-    assert set(control[0].wait_topics) == {f"/{r}/{t}" for r in fleet.robot_names for t in ("cmd_vel", "mission_state")}
+    assert set(control[0].wait_topics) == {
+        names.absolute(names.robot_topic(r, t)) for r in fleet.robot_names for t in (names.CMD_VEL, names.MISSION_STATE)
+    }
     assert control[0].after == ("fleet_sim",)
 
     per_robot = plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x", control_layout="per_robot"))
@@ -292,7 +302,13 @@ def test_shipped_launch_files_are_the_plan_and_parse_with_roslaunch():
     )
     assert listed.returncode == 0, listed.stderr
     nodes = set(listed.stdout.split())
-    assert {"/fleet_sim", "/twin/map_server", "/cloud_tissue", "/voxel_grid_loader", "/twin/cloud_decoder"} <= nodes
+    assert {
+        "/fleet_sim",
+        names.absolute(names.in_twin(names.MAP_SERVER)),
+        "/cloud_tissue",
+        "/voxel_grid_loader",
+        names.absolute(names.in_twin("cloud_decoder")),
+    } <= nodes
     assert len(nodes) == len(plan_nodes(load_fleet(), options=RunOptions(out_dir="/tmp/x")))
 
 
@@ -351,8 +367,12 @@ def test_the_unmanaged_arm_sends_the_finest_video_and_the_operators_robot_reache
     assert "--lane" in on["zenoh_bridge_twin_command"].argv
     assert on["zenoh_bridge_twin_command"].control and not on["zenoh_bridge_twin"].control
     cameras = [r.name for r in fleet.robots if r.has_depth_camera]
-    assert _arg(on["topic_stats"], "_topics").count("/camera/image_raw/compressed") == len(cameras)
-    assert all(f"/{r}/camera/image_raw/compressed" in _arg(on["topic_stats"], "_arrival_topics") for r in cameras)
+    assert _arg(on["topic_stats"], "_topics").count("/" + names.CAMERA_IMAGE_COMPRESSED) == len(cameras)
+    assert all(
+        names.absolute(names.robot_topic(r, names.CAMERA_IMAGE_COMPRESSED))
+        in _arg(on["topic_stats"], "_arrival_topics")
+        for r in cameras
+    )
 
 
 def test_selecting_a_robot_without_a_camera_is_refused_before_anything_starts(tmp_path):

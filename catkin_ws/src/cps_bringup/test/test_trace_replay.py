@@ -49,6 +49,7 @@ def test_a_replay_beyond_the_halls_placements_says_so_and_replays_what_fits():
 
 COUNT_ROBOTS = """
 import json, sys, time, rospy
+from cps_fleet import names
 from cps_msgs.msg import MapStats
 robots = sys.argv[1].split(",")
 seen = {}
@@ -56,7 +57,7 @@ def on_stats(stats):
     for r in stats.robots:
         seen[r.robot] = (r.clouds_inserted, r.occupied_voxels_contributed)
 rospy.init_node("robot_count", anonymous=True)
-sub = rospy.Subscriber("/twin/map_stats", MapStats, on_stats)
+sub = rospy.Subscriber(names.absolute(names.in_twin(names.MAP_STATS)), MapStats, on_stats)
 deadline = time.monotonic() + float(sys.argv[2])
 while time.monotonic() < deadline and not all(seen.get(r, (0, 0))[1] for r in robots):
     time.sleep(0.2)

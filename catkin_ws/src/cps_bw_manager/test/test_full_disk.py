@@ -5,6 +5,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder
 
 pytestmark = pytest.mark.ros
@@ -23,9 +24,9 @@ def test_stats_and_allocation_keep_publishing_on_a_full_disk(ros, rospy_node):
 
     from cps_msgs.msg import BandwidthAllocationArray, TopicStatsArray
 
-    diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
-    stats = TopicRecorder("/tissue/stats", TopicStatsArray)
-    allocation = TopicRecorder("/tissue/allocation", BandwidthAllocationArray)
+    diagnostics = TopicRecorder(names.DIAGNOSTICS, DiagnosticArray)
+    stats = TopicRecorder(names.absolute(names.TISSUE_STATS), TopicStatsArray)
+    allocation = TopicRecorder(names.absolute(names.ALLOCATION), BandwidthAllocationArray)
     try:
         stats_node = ros.start_node(
             "cps_transport",
@@ -53,9 +54,11 @@ def test_stats_and_allocation_keep_publishing_on_a_full_disk(ros, rospy_node):
         assert all("No space left on device" in m for m in seen.values())
         counts = stats.count, allocation.count
         # Both publish at 4 Hz: 8 more each within 10 s, or they stopped.
-        assert stats.wait_count(counts[0] + 8, timeout_s=10.0), "topic_stats stopped publishing /tissue/stats"
+        assert stats.wait_count(counts[0] + 8, timeout_s=10.0), (
+            f"topic_stats stopped publishing {names.absolute(names.TISSUE_STATS)}"
+        )
         assert allocation.wait_count(counts[1] + 8, timeout_s=10.0), (
-            "the bandwidth manager stopped publishing /tissue/allocation"
+            f"the bandwidth manager stopped publishing {names.absolute(names.ALLOCATION)}"
         )
         assert stats_node.poll() is None and manager.poll() is None
     finally:

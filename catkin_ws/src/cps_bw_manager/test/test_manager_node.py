@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 
 pytestmark = pytest.mark.ros
@@ -30,8 +31,11 @@ def graph(ros, rospy_node, tmp_path):
             "cps_transport",
             "rate_limiter",
             name="cloud_throttle",
-            namespace=f"/{r}",
-            remap={"~input": f"/{r}/points_filtered/draco", "~output": f"/{r}/points_filtered/draco/managed"},
+            namespace=names.absolute(r),
+            remap={
+                "~input": names.absolute(names.robot_topic(r, names.POINTS_DRACO)),
+                "~output": names.absolute(names.managed_cloud(r)),
+            },
         )
     csv_path = tmp_path / "allocation.csv"
     ros.start_node(
@@ -47,9 +51,17 @@ def graph(ros, rospy_node, tmp_path):
             "~link_state_csv_path": str(tmp_path / "link_state.csv"),
         },
     )
-    ros.wait_for_service("/tissue/set_priority")
-    pubs = {r: rospy.Publisher(f"/{r}/points_filtered/draco", CompressedPointCloud2, queue_size=2) for r in ROBOTS}
-    mission = {r: rospy.Publisher(f"/{r}/mission_state", String, queue_size=1, latch=True) for r in ROBOTS}
+    ros.wait_for_service(names.absolute(names.SET_PRIORITY))
+    pubs = {
+        r: rospy.Publisher(
+            names.absolute(names.robot_topic(r, names.POINTS_DRACO)), CompressedPointCloud2, queue_size=2
+        )
+        for r in ROBOTS
+    }
+    mission = {
+        r: rospy.Publisher(names.absolute(names.robot_topic(r, names.MISSION_STATE)), String, queue_size=1, latch=True)
+        for r in ROBOTS
+    }
     stop = threading.Event()
 
     def feed():
@@ -62,8 +74,10 @@ def graph(ros, rospy_node, tmp_path):
 
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
-    allocation = TopicRecorder("/tissue/allocation", BandwidthAllocationArray)
-    status = {r: TopicRecorder(f"/{r}/cloud_throttle/status", RateLimiterStatus) for r in ROBOTS}
+    allocation = TopicRecorder(names.absolute(names.ALLOCATION), BandwidthAllocationArray)
+    status = {
+        r: TopicRecorder(names.absolute(names.robot_topic(r, names.LIMITER_STATUS)), RateLimiterStatus) for r in ROBOTS
+    }
     try:
         yield SimpleNamespace(rospy=rospy, mission=mission, csv_path=csv_path, allocation=allocation, status=status)
     finally:
@@ -100,7 +114,7 @@ def _wait_in_force(graph, expected, timeout_s, what):
 def test_rates_from_the_measured_sizes_fit_the_budget(graph):
     from std_msgs.msg import Float64
 
-    available = graph.rospy.wait_for_message("/tissue/available_bandwidth", Float64, timeout=10.0)
+    available = graph.rospy.wait_for_message(names.absolute(names.AVAILABLE_BANDWIDTH), Float64, timeout=10.0)
     assert available.data == pytest.approx(2.0)
     budget = 0.96 * 2.0 / 8.0
     # Sizes measured by the limiters (serialized message, a little above the payload); equal shares.
@@ -139,7 +153,7 @@ def test_mission_states_and_the_operator_set_priorities_and_the_csv_logs_them(gr
     graph.mission["jackal"].publish(String("done"))
     _wait_in_force(graph, lambda a: a["jackal"].rate_hz == pytest.approx(1.0), 5.0, "jackal at 1 Hz")
 
-    set_priority = graph.rospy.ServiceProxy("/tissue/set_priority", SetPriority)
+    set_priority = graph.rospy.ServiceProxy(names.absolute(names.SET_PRIORITY), SetPriority)
     bad = set_priority(robot="nobody", priority=1)
     assert not bad.success and "unknown robot" in bad.message
     bad = set_priority(robot="jackal", priority=2)
@@ -165,7 +179,9 @@ def test_bad_input_on_the_wire_does_not_stop_the_manager(ros, graph):
     from cps_msgs.msg import RateLimiterStatus
 
     first = graph.allocation.wait(what="a first allocation")
-    bogus = graph.rospy.Publisher("/scout/cloud_throttle/status", RateLimiterStatus, queue_size=5)
+    bogus = graph.rospy.Publisher(
+        names.absolute(names.robot_topic("scout", names.LIMITER_STATUS)), RateLimiterStatus, queue_size=5
+    )
     assert wait_for(lambda: bogus.get_num_connections() > 0, 10.0), "the manager never subscribed"
     for size in (-5.0, math.inf):
         bogus.publish(RateLimiterStatus(mean_message_bytes=size, input_rate_hz=10.0))
@@ -208,8 +224,8 @@ def test_link_down_pauses_the_allocation_and_up_resumes_it(graph, tmp_path):
 
     rospy = graph.rospy
     _wait_in_force(graph, lambda a: True, 20.0, "a first allocation")
-    link = rospy.Publisher("/tissue/link_state", LinkState, queue_size=10, latch=True)
-    rates = TopicRecorder("/scout/cloud_throttle/rate_hz", Float64)
+    link = rospy.Publisher(names.absolute(names.LINK_STATE), LinkState, queue_size=10, latch=True)
+    rates = TopicRecorder(names.absolute(names.robot_topic("scout", names.LIMITER_RATE_HZ)), Float64)
     try:
         assert rates.wait(timeout_s=10.0)  # the latched rate
         down_at = rospy.Time.now()
@@ -251,7 +267,7 @@ def test_the_budget_follows_an_announced_link_capacity(ros, graph):
 
     rospy = graph.rospy
     _wait_in_force(graph, lambda a: True, 20.0, "a first allocation on the configured 2 Mbit/s")
-    announce = rospy.Publisher("/tissue/link_capacity", LinkCapacity, queue_size=10, latch=True)
+    announce = rospy.Publisher(names.absolute(names.LINK_CAPACITY), LinkCapacity, queue_size=10, latch=True)
     try:
         announce.publish(LinkCapacity(capacity_mbps=1.0, source="test modem"))
         msg = graph.allocation.wait(lambda m: m.available_mbps == 1.0, 10.0, "the budget from the announcement")
@@ -263,7 +279,7 @@ def test_the_budget_follows_an_announced_link_capacity(ros, graph):
             10.0,
             "rates within the announced budget",
         )
-        assert rospy.wait_for_message("/tissue/available_bandwidth", Float64, timeout=10.0).data == 1.0
+        assert rospy.wait_for_message(names.absolute(names.AVAILABLE_BANDWIDTH), Float64, timeout=10.0).data == 1.0
         for bad in (math.nan, 0.0, -1.0, math.inf):
             announce.publish(LinkCapacity(capacity_mbps=bad, source="test modem"))
         assert wait_for(lambda: ros.output("bandwidth_manager").count("is not a capacity") >= 4, 10.0), ros.output(

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder
 
 pytestmark = pytest.mark.ros
@@ -28,13 +29,17 @@ def graph(ros, rospy_node):
         name="bandwidth_manager",
         params={"~robots": list(ROBOTS), "~available_mbps": 4.0, "~update_rate_hz": UPDATE_RATE_HZ},
     )
-    ros.wait_for_service("/tissue/set_priority")
-    allocation = TopicRecorder("/tissue/allocation", BandwidthAllocationArray)
-    video_level = TopicRecorder("/jackal/video_throttle/level", UInt8)
-    video_rate = TopicRecorder("/jackal/video_throttle/rate_hz", Float64)
-    cloud_rates = {r: TopicRecorder(f"/{r}/cloud_throttle/rate_hz", Float64) for r in ROBOTS}
-    selected = rospy.Publisher("/tissue/selected_robot", String, queue_size=1, latch=True)
-    capacity = rospy.Publisher("/twin/insert_capacity", InsertCapacity, queue_size=1, latch=True)
+    ros.wait_for_service(names.absolute(names.SET_PRIORITY))
+    allocation = TopicRecorder(names.absolute(names.ALLOCATION), BandwidthAllocationArray)
+    video_level = TopicRecorder(names.absolute(names.robot_topic("jackal", names.VIDEO_LEVEL)), UInt8)
+    video_rate = TopicRecorder(names.absolute(names.robot_topic("jackal", names.VIDEO_RATE_HZ)), Float64)
+    cloud_rates = {
+        r: TopicRecorder(names.absolute(names.robot_topic(r, names.LIMITER_RATE_HZ)), Float64) for r in ROBOTS
+    }
+    selected = rospy.Publisher(names.absolute(names.SELECTED_ROBOT), String, queue_size=1, latch=True)
+    capacity = rospy.Publisher(
+        names.absolute(names.in_twin(names.INSERT_CAPACITY)), InsertCapacity, queue_size=1, latch=True
+    )
     recorders = [allocation, video_level, video_rate, *cloud_rates.values()]
     try:
         yield SimpleNamespace(
@@ -95,7 +100,9 @@ def test_a_lower_insertion_capacity_lowers_the_fleets_cloud_rates(graph):
     first = graph.allocation.wait(lambda m: len(m.allocations) > 0, 20.0, "a first allocation")
     clouds_before = sum(a.rate_hz for a in first.allocations if a.stream == "cloud")
     assert clouds_before > 6.0  # 4 Mbit/s carries the three clouds well above 2 Hz each
-    assert _wait_connected(graph.capacity), "the manager never subscribed to /twin/insert_capacity"
+    assert _wait_connected(graph.capacity), (
+        f"the manager never subscribed to {names.absolute(names.in_twin(names.INSERT_CAPACITY))}"
+    )
     stamp = graph.rospy.Time.now()
     graph.capacity.publish(graph.InsertCapacity(window_s=2.0, clouds_per_s=6.0, points_per_s=1e6))
     held = graph.allocation.wait(

@@ -59,11 +59,12 @@ def mission(
             )
     rows += [(f"{T0 + duration_s:.3f}", r, "nan", "end") + ("",) * (len(MAP_AGE_COLUMNS) - 4) for r in ROBOTS]
     write_csv(folder / "map_age.csv", MAP_AGE_COLUMNS, rows)
-    managed = "/" + names.POINTS_MANAGED
     arrivals = [
-        (f"/twin/{r}{managed}", r, int((T0 + t - 0.05) * 1e9), f"{T0 + t:.6f}") for r in ROBOTS for t in clouds[r]
+        ("/" + names.managed_cloud_at_twin(r), r, int((T0 + t - 0.05) * 1e9), f"{T0 + t:.6f}")
+        for r in ROBOTS
+        for t in clouds[r]
     ]
-    video = "/jackal/" + names.CAMERA_IMAGE_COMPRESSED
+    video = names.absolute(names.robot_topic("jackal", names.CAMERA_IMAGE_COMPRESSED))
     arrivals += [
         (video, "jackal", int((T0 + k / 10 - 0.03) * 1e9), f"{T0 + k / 10:.6f}") for k in range(duration_s * 10)
     ]
@@ -71,19 +72,26 @@ def mission(
     probe = names.absolute(names.COMMAND_PROBE)
     physical = [(probe, "", int((T0 + k / 10 - 0.01) * 1e9), f"{T0 + k / 10:.6f}") for k in range(duration_s * 10)]
     physical += [
-        (f"/{r}/{names.POINTS_FILTERED}", r, int((T0 + t - 0.1) * 1e9), f"{T0 + t - 0.09:.6f}")
+        (
+            names.absolute(names.robot_topic(r, names.POINTS_FILTERED)),
+            r,
+            int((T0 + t - 0.1) * 1e9),
+            f"{T0 + t - 0.09:.6f}",
+        )
         for r in ROBOTS
         for t in clouds[r]
     ]
     write_csv(folder / "physical_arrivals.csv", ("topic", "robot", "stamp_ns", "receive_s"), physical)
     stats_columns = ("time_s", "topic", "robot", "managed", "messages", "mean_message_bytes")
-    offered = [(T0 + s, f"/{r}{managed}", r, "True", 4, 20000) for s in range(1, duration_s) for r in ROBOTS]
+    offered = [
+        (T0 + s, "/" + names.managed_cloud(r), r, "True", 4, 20000) for s in range(1, duration_s) for r in ROBOTS
+    ]
     offered += [(T0 + s, video, "jackal", "True", 20, 5000) for s in range(1, duration_s)]
     write_csv(folder / "physical_stats.csv", stats_columns, offered)
     write_csv(
         folder / "stats.csv",
         stats_columns,
-        [(T0 + s, f"/twin/scout{managed}", "scout", "True", 4, 20000) for s in range(duration_s)],
+        [(T0 + s, "/" + names.managed_cloud_at_twin("scout"), "scout", "True", 4, 20000) for s in range(duration_s)],
     )
     write_csv(
         folder / "allocation.csv",
@@ -107,32 +115,38 @@ def write_counters(folder, captured, stats_times, lost_in_limiter_queue=0):
     for r, n in captured.items():
         lost = lost_in_limiter_queue
         stages = [
-            (physical, "/cloud_tissue", f"/{r}/{names.POINTS_FILTERED}", C.ENCODER, {C.RECEIVED: n, C.OUT: n}),
             (
                 physical,
                 "/cloud_tissue",
-                f"/{r}/{names.POINTS_DRACO}",
+                names.absolute(names.robot_topic(r, names.POINTS_FILTERED)),
+                C.ENCODER,
+                {C.RECEIVED: n, C.OUT: n},
+            ),
+            (
+                physical,
+                "/cloud_tissue",
+                names.absolute(names.robot_topic(r, names.POINTS_DRACO)),
                 C.LIMITER,
                 {C.RECEIVED: n - lost, C.MISSED: lost, C.OUT: n - lost},
             ),
             (
                 physical,
                 "/zenoh_bridge",
-                f"/{r}/{names.POINTS_MANAGED}",
+                names.absolute(names.managed_cloud(r)),
                 C.BRIDGE_OUT,
                 {C.RECEIVED: n - lost, C.OUT: n - lost},
             ),
             (
                 twin,
                 "/zenoh_bridge",
-                f"/twin/{r}/{names.POINTS_MANAGED}",
+                names.absolute(names.managed_cloud_at_twin(r)),
                 C.BRIDGE_IN,
                 {C.RECEIVED: n - lost, C.OUT: n - lost},
             ),
             (
                 twin,
                 "/cloud_decoder",
-                f"/twin/{r}/{names.POINTS_MANAGED}",
+                names.absolute(names.managed_cloud_at_twin(r)),
                 C.DECODER,
                 {C.RECEIVED: n - lost, C.OUT: n - lost},
             ),

@@ -5,6 +5,7 @@ missing value that fails its check."""
 import math
 
 import pytest
+
 from cps_experiments import judge as J
 
 pytestmark = pytest.mark.unit
@@ -99,7 +100,7 @@ def test_nan_or_missing_fails_its_check_and_every_failure_names_the_check_the_ro
 def test_stats_windows_measure_any_topic_set_the_same_way_and_a_row_without_numbers_is_missing():
     rows = [
         {"time_s": "1", "topic": "/a/managed", "messages": "4", "mean_message_bytes": "500000"},
-        {"time_s": "1", "topic": "/a/odom", "messages": "100", "mean_message_bytes": "100"},
+        {"time_s": "1", "topic": "/a/other", "messages": "100", "mean_message_bytes": "100"},
         {"time_s": "2", "topic": "/a/managed", "messages": "", "mean_message_bytes": ""},
     ]
     managed = J.stats_window_volumes(rows, lambda r: r["topic"].endswith("managed"), 2.0)

@@ -3,8 +3,9 @@
 import struct
 
 import pytest
-from cps_experiments.report import latency_split, read_csv
 
+from cps_experiments.report import latency_split, read_csv
+from cps_fleet import names
 from cps_fleet.csv_log import CsvLog
 from cps_transport.topic_stats import ARRIVAL_COLUMNS, stamp_ns_from_serialized
 
@@ -34,12 +35,16 @@ def test_split_is_per_cloud_over_the_clouds_that_reached_the_twin(tmp_path):
     physical, twin = [], []
     for stamp, robot_s, tissue in zip(capture_ns, robot_side_s, tissue_s):
         filtered = stamp * 1e-9 + robot_s
-        physical.append(("/scout/points_filtered", "scout", stamp, filtered))
+        physical.append((names.absolute(names.robot_topic("scout", names.POINTS_FILTERED)), "scout", stamp, filtered))
         if tissue is not None:
-            twin.append(("/twin/scout/points_filtered/draco/managed", "scout", stamp, filtered + tissue))
+            twin.append((names.absolute(names.managed_cloud_at_twin("scout")), "scout", stamp, filtered + tissue))
     # A cloud of another robot with the same stamp must not join scout's.
-    twin.append(("/twin/jackal/points_filtered/draco/managed", "jackal", capture_ns[2], capture_ns[2] * 1e-9 + 0.2))
-    twin.append(("/scout/odom", "scout", capture_ns[3], capture_ns[3] * 1e-9 + 0.001))  # not a managed cloud
+    twin.append(
+        (names.absolute(names.managed_cloud_at_twin("jackal")), "jackal", capture_ns[2], capture_ns[2] * 1e-9 + 0.2)
+    )
+    twin.append(
+        (names.absolute(names.robot_topic("scout", names.ODOM)), "scout", capture_ns[3], capture_ns[3] * 1e-9 + 0.001)
+    )  # not a managed cloud
     split = latency_split(_log(tmp_path / "physical_arrivals.csv", physical), _log(tmp_path / "arrivals.csv", twin))
 
     assert set(split) == {"scout"}

@@ -3,6 +3,8 @@ node that saw it gave, the clouds still on their way when counting stopped, and 
 many) when a node's counts do not add up or were never recorded."""
 
 import pytest
+from mission_files import mission
+
 from cps_experiments.ledger import (
     AT_MAP,
     AT_TWIN,
@@ -16,8 +18,7 @@ from cps_experiments.ledger import (
     read_ledger,
     robot_ledger,
 )
-from mission_files import mission
-
+from cps_fleet import names
 from cps_ros import cloud_ledger as C
 
 pytestmark = pytest.mark.unit
@@ -27,11 +28,11 @@ R = "scout"
 def _counters(**stages):
     """node_counters-like {topic: {stage: {what: n}}} for scout."""
     topics = {
-        C.ENCODER: f"/{R}/points_filtered",
-        C.LIMITER: f"/{R}/points_filtered/draco",
-        C.BRIDGE_OUT: f"/{R}/points_filtered/draco/managed",
-        C.BRIDGE_IN: f"/twin/{R}/points_filtered/draco/managed",
-        C.DECODER: f"/twin/{R}/points_filtered/draco/managed",
+        C.ENCODER: names.absolute(names.robot_topic(R, names.POINTS_FILTERED)),
+        C.LIMITER: names.absolute(names.robot_topic(R, names.POINTS_DRACO)),
+        C.BRIDGE_OUT: names.absolute(names.managed_cloud(R)),
+        C.BRIDGE_IN: names.absolute(names.managed_cloud_at_twin(R)),
+        C.DECODER: names.absolute(names.managed_cloud_at_twin(R)),
     }
     out = {}
     for stage, values in stages.items():
@@ -79,7 +80,7 @@ def test_each_loss_is_counted_by_the_node_that_saw_it_with_its_cause():
     stages["bridge_in"] = {C.RECEIVED: 82, C.MISSED: 15, C.OUT: 80, "dropped_stale": 2}
     stages["decoder"] = {C.RECEIVED: 80, C.OUT: 80}
     counters = _counters(**stages)
-    counters[f"/twin/{R}/points_backfill/draco"] = {
+    counters[names.absolute(names.in_twin(names.robot_topic(R, names.POINTS_BACKFILL_DRACO)))] = {
         C.BRIDGE_IN: {C.RECEIVED: 4, C.OUT: 4},
         C.DECODER: {C.RECEIVED: 4, C.OUT: 4},
     }

@@ -32,7 +32,6 @@ DOWN_WITHIN_S, UP_WITHIN_S, FRESH_S, F1_RATIO = 1.0, 2.0, 1.0, 0.98
 
 def _f1(map_file, fleet_file):
     from cps_experiments.report import score_saved_map
-
     from cps_fleet.fleet import load_fleet
 
     score, _ = score_saved_map(str(map_file), load_fleet(fleet_file), str(map_file) + ".ground_truth.npz")

@@ -3,6 +3,7 @@ manager allocated it, from allocation.csv rows (with and without the `stream` co
 
 import numpy as np
 import pytest
+
 from cps_experiments.report import allocated_streams, plot_link
 
 

@@ -6,8 +6,10 @@ import math
 
 import numpy as np
 import pytest
+
 from cps_experiments.ledger import counter_series
 from cps_experiments.link_report import NOT_COUNTED, bridge_outages, capacity_steps, scenario_outages, section
+from cps_fleet import names
 
 T0 = 1000.0  # wall time of mission second 0
 
@@ -92,13 +94,14 @@ def test_the_clouds_lost_in_an_outage_come_from_the_bridges_counters():
     def row(t, topic, key, value):
         return {"time_s": str(T0 + t), "node": "/b", "input_topic": topic, "key": key, "value": str(value)}
 
+    sent, received = names.absolute(names.managed_cloud("scout")), names.absolute(names.managed_cloud_at_twin("scout"))
     rows = [
-        row(10, "/scout/m", "ledger_bridge_out_dropped_outage", 0),
-        row(30, "/scout/m", "ledger_bridge_out_dropped_outage", 12),
-        row(31, "/scout/m", "ledger_bridge_out_backfill_kept", 2),
-        row(10, "/twin/scout/m", "ledger_bridge_in_missed", 1),
-        row(36, "/twin/scout/m", "ledger_bridge_in_missed", 21),
-        row(90, "/twin/scout/m", "ledger_bridge_in_missed", 25),  # after the outage: not its
+        row(10, sent, "ledger_bridge_out_dropped_outage", 0),
+        row(30, sent, "ledger_bridge_out_dropped_outage", 12),
+        row(31, sent, "ledger_bridge_out_backfill_kept", 2),
+        row(10, received, "ledger_bridge_in_missed", 1),
+        row(36, received, "ledger_bridge_in_missed", 21),
+        row(90, received, "ledger_bridge_in_missed", 25),  # after the outage: not its
     ]
     text = "\n".join(section(EVENTS, [], ALLOCATIONS, *_windows(), counter_series(rows)))
     assert (

@@ -7,13 +7,16 @@ import csv
 import math
 
 import pytest
+
 from cps_experiments import fleet_scaling, link_thesis
 from cps_experiments.report import read_csv
+from cps_fleet import names
 
 pytestmark = pytest.mark.unit
 T0 = 1000.0  # wall s of the scenario's start
-CLOUD = "/twin/{}/points_filtered/draco/managed"
-VIDEO = "/twin/{}/camera/image_raw/compressed"
+# Templates: .format(robot).
+CLOUD = names.absolute(names.managed_cloud_at_twin("{}"))
+VIDEO = names.absolute(names.in_twin(names.robot_topic("{}", names.CAMERA_IMAGE_COMPRESSED)))
 
 
 def _write(path, header, rows):
@@ -43,14 +46,19 @@ def mission(tmp_path):
         arrivals.append([VIDEO.format("jackal"), "jackal", int((t - 0.05) * 1e9), t])
         t += 0.05 if t < T0 + 20 else 0.2
     _write(tmp_path / "arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], arrivals)
-    probes = [["/tissue/command_probe", "", int((T0 + k * 0.1 - 0.02) * 1e9), T0 + k * 0.1] for k in range(500)]
+    probes = [
+        [names.absolute(names.COMMAND_PROBE), "", int((T0 + k * 0.1 - 0.02) * 1e9), T0 + k * 0.1] for k in range(500)
+    ]
     _write(tmp_path / "physical_arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], probes)
     header = ["time_s", "topic", "robot", "managed", "messages", "mean_message_bytes"]
     # Each row counts the messages of topic_stats' 2 s sliding window, written every second.
     # Offered on the robots' side: 1 MB/s throughout (over the 0.625 MB/s of 5 Mbit/s); received: 0.6 MB/s.
-    offered = [[T0 + s, "/jackal/points_filtered/draco/managed", "jackal", "True", 20, 100000] for s in range(50)]
+    offered = [[T0 + s, names.absolute(names.managed_cloud("jackal")), "jackal", "True", 20, 100000] for s in range(50)]
     # The voxel grid's output never crosses the link: not offered to it.
-    offered += [[T0 + s, "/jackal/points_filtered", "jackal", "False", 30, 900000] for s in range(50)]
+    offered += [
+        [T0 + s, names.absolute(names.robot_topic("jackal", names.POINTS_FILTERED)), "jackal", "False", 30, 900000]
+        for s in range(50)
+    ]
     _write(tmp_path / "physical_stats.csv", header, offered)
     _write(tmp_path / "stats.csv", header, [[T0 + s, "/x", "jackal", "True", 12, 100000] for s in range(50)])
     _write(
@@ -268,12 +276,13 @@ def test_both_arms_play_the_runs_recorded_video_and_the_report_says_what_drove_t
         "wifi_degraded_manager_on": f"recorded frames of each camera robot's route at each video level ({trace}: ...)",
         "wifi_degraded_manager_off": "rendered live by the simulated cameras at the allocated level and rate",
     }
+    announced_on = names.absolute(names.LINK_CAPACITY)
     capacities = {
-        "wifi_degraded_manager_on_announced": "announced on /tissue/link_capacity by tc scenario wifi_degraded: ...",
+        "wifi_degraded_manager_on_announced": f"announced on {announced_on} by tc scenario wifi_degraded: ...",
         "wifi_degraded_manager_on_iperf3": "not announced: the manager's budget from iperf3's 55.2 Mbit/s at the start",
     }
     text = "\n".join(link_thesis.markdown_sections([], {}, "jackal", 80.0, sources, capacities))
-    assert "- wifi_degraded_manager_on_announced: link capacity announced on /tissue/link_capacity by tc" in text
+    assert f"- wifi_degraded_manager_on_announced: link capacity announced on {announced_on} by tc" in text
     assert "- wifi_degraded_manager_on_iperf3: link capacity not announced: the manager's budget from iperf3" in text
     assert "## What each arm offered the link" in text
     assert (

@@ -4,6 +4,7 @@ import csv
 import math
 
 import pytest
+
 from cps_experiments.live_scaling import (
     LiveRun,
     host_cpus_arg,
@@ -13,7 +14,6 @@ from cps_experiments.live_scaling import (
     sweep,
     verdict,
 )
-
 from cps_fleet import names
 from cps_fleet.config import ConfigError
 from cps_fleet.fleet import default_fleet_path
@@ -35,20 +35,21 @@ def _mission_files(folder, budget=7.0, windows=(1.0, 8.0, 2.0)):
         folder / "stats.csv",
         ["time_s", "topic", "robot", "managed", "messages", "mean_message_bytes", "bandwidth_mbytes_per_s"],
         [
-            [f"{t}.0", f"/twin/{r}/points_filtered/draco/managed", r, "True", 10, mbps / 2 * 2.0 / 10 * 1e6, 40.0]
+            [f"{t}.0", names.absolute(names.managed_cloud_at_twin(r)), r, "True", 10, mbps / 2 * 2.0 / 10 * 1e6, 40.0]
             for t, mbps in enumerate(windows)
             for r in ("a", "b")
         ],
     )
     _write(folder / "allocation.csv", ["time_s", "budget_mbytes_per_s"], [["0.0", budget]])
     # a: 10 clouds at 20 ms; b: 5 clouds at 40 ms (one at 400 ms); c: none reached the twin.
-    arrivals = [("/twin/a/points_filtered/draco/managed", "a", int(i * 1e9), i + 0.020) for i in range(10)]
+    arrivals = [(names.absolute(names.managed_cloud_at_twin("a")), "a", int(i * 1e9), i + 0.020) for i in range(10)]
     arrivals += [
-        ("/twin/b/points_filtered/draco/managed", "b", int(i * 1e9), i + (0.4 if i == 4 else 0.040)) for i in range(5)
+        (names.absolute(names.managed_cloud_at_twin("b")), "b", int(i * 1e9), i + (0.4 if i == 4 else 0.040))
+        for i in range(5)
     ]
     _write(folder / "arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], arrivals)
     probes = [(names.absolute(names.COMMAND_PROBE), "", int(i * 1e8), i * 0.1 + 0.003) for i in range(20)]
-    probes += [("/a/points_filtered", "a", int(1e9), 1.05)]
+    probes += [(names.absolute(names.robot_topic("a", names.POINTS_FILTERED)), "a", int(1e9), 1.05)]
     _write(folder / "physical_arrivals.csv", ["topic", "robot", "stamp_ns", "receive_s"], probes)
 
 

@@ -4,6 +4,7 @@ mission without a live report counted as missing rather than as perfect, and the
 tuning seed as a held-out score."""
 
 import pytest
+
 from cps_experiments.monitor_eval import TUNING_SEEDS, parse_args, totals, verdict
 
 pytestmark = pytest.mark.unit

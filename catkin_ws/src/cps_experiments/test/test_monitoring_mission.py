@@ -9,8 +9,8 @@ and the bad inputs of a monitoring mission are refused before anything starts.""
 import subprocess
 
 import pytest
-from cps_experiments.monitor import default_changes_file
 
+from cps_experiments.monitor import default_changes_file
 from cps_harness.mission import BRINGUP, program_argv, run_mission
 
 MAX_POSITION_ERROR_M = 0.2
@@ -20,7 +20,6 @@ MAX_POSITION_ERROR_M = 0.2
 def test_removed_and_moved_crates_are_found(reference_mission, open_tmp_path):
     reference_mission.check()
     from cps_experiments.monitor_report import evaluate_monitoring
-
     from cps_fleet.fleet import load_fleet
 
     changes = default_changes_file()

@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.link_run import LinkRosGraph, read_records, summarize
 from cps_harness.testing import link_name
 from cps_link import netns_link
@@ -34,9 +35,10 @@ def _capable():
 
 def _set_all_rates(graph, rate_hz):
     """Stand-in for `rostopic pub` to every limiter's rate_hz topic (the manager is not running)."""
+    rate_topics = [names.absolute(names.robot_topic(r, names.LIMITER_RATE_HZ)) for r in LOAD]
     code = (
         "import rospy,time; from std_msgs.msg import Float64; rospy.init_node('set_rates', anonymous=True);"
-        f"pubs=[rospy.Publisher('/%s/cloud_throttle/rate_hz' % r, Float64, queue_size=1, latch=True) for r in {list(LOAD)}];"
+        f"pubs=[rospy.Publisher(t, Float64, queue_size=1, latch=True) for t in {rate_topics}];"
         f"time.sleep(1.5); [p.publish(Float64({rate_hz})) for p in pubs]; time.sleep(1.0)"
     )
     result = graph.run_python("twin", code)
@@ -54,10 +56,10 @@ def _start_load(graph, record_path=None):
             "phys",
             limiter,
             [
-                "__name:=cloud_throttle",
-                f"__ns:=/{r}",
-                f"~input:=/{r}/points_filtered/draco",
-                f"~output:=/{r}/points_filtered/draco/managed",
+                f"__name:={names.CLOUD_THROTTLE}",
+                f"__ns:={names.absolute(r)}",
+                f"{names.INPUT}:={names.absolute(names.robot_topic(r, names.POINTS_DRACO))}",
+                f"{names.OUTPUT}:={names.absolute(names.managed_cloud(r))}",
             ],
             name=f"limiter_{r}",
         )
@@ -82,7 +84,7 @@ def _start_topic_stats(graph, stats_path, window_s):
             f"_window_s:={window_s}",
             "_publish_rate_hz:=2.0",
             f"_csv_path:={stats_path}",
-            "_topics:=" + ",".join(f"/{r}/points_filtered/draco/managed" for r in LOAD),
+            "_topics:=" + ",".join(names.absolute(names.managed_cloud(r)) for r in LOAD),
         ],
         name="topic_stats",
     )

@@ -6,6 +6,7 @@ import json
 import shutil
 
 import pytest
+
 from cps_experiments import readme_figures
 
 pytestmark = pytest.mark.unit

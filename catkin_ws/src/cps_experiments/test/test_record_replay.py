@@ -6,6 +6,7 @@ import subprocess
 import pytest
 
 from cps_bringup.mission_bag import BagError, check_bag, finish_recording, record_topics, replay_topics
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_harness.mission import BRINGUP, program_argv, run_mission
 
@@ -59,14 +60,17 @@ def _write_bag(path, fleet, topics, frame_of=None):
             cloud = PointCloud2()
             cloud.header.stamp, cloud.header.frame_id = stamp, (frame_of or {}).get(robot.name, robot.sensor_frame)
             odom = Odometry()
-            odom.header.stamp, odom.header.frame_id = stamp, f"{robot.name}/odom"
-            for topic, msg in ((f"/{robot.name}/points", cloud), (f"/{robot.name}/odom", odom)):
+            odom.header.stamp, odom.header.frame_id = stamp, names.odom_frame(robot.name)
+            for topic, msg in (
+                (names.absolute(names.robot_topic(robot.name, names.POINTS)), cloud),
+                (names.absolute(names.robot_topic(robot.name, names.ODOM)), odom),
+            ):
                 if topic in topics:
                     bag.write(topic, msg, stamp)
-        static = TFMessage([TransformStamped(child_frame_id=f"{r}/odom") for r in fleet.robot_names])
+        static = TFMessage([TransformStamped(child_frame_id=names.odom_frame(r)) for r in fleet.robot_names])
         for t in static.transforms:
-            t.header.frame_id, t.transform.rotation.w = "map", 1.0
-        for topic in ("/tf", "/tf_static"):
+            t.header.frame_id, t.transform.rotation.w = names.MAP_FRAME, 1.0
+        for topic in (names.TF, names.TF_STATIC):
             if topic in topics:
                 bag.write(topic, static, stamp)
 
@@ -75,16 +79,22 @@ def test_bag_with_every_topic_passes(tmp_path):
     fleet = _two_robots()
     _write_bag(tmp_path / "ok.bag", fleet, replay_topics(fleet))
     contents = check_bag(str(tmp_path / "ok.bag"), fleet)
-    assert "/scout/points" in contents.topics
+    assert names.absolute(names.robot_topic("scout", names.POINTS)) in contents.topics
 
 
 def test_bag_without_topics_names_them(tmp_path):
     fleet = _two_robots()
-    topics = [t for t in replay_topics(fleet) if t not in ("/jackal/points", "/tf")]
+    topics = [
+        t
+        for t in replay_topics(fleet)
+        if t not in (names.absolute(names.robot_topic("jackal", names.POINTS)), names.TF)
+    ]
     _write_bag(tmp_path / "partial.bag", fleet, topics)
     with pytest.raises(BagError) as error:
         check_bag(str(tmp_path / "partial.bag"), fleet)
-    assert "missing topics: /jackal/points, /tf" in str(error.value)
+    assert f"missing topics: {names.absolute(names.robot_topic('jackal', names.POINTS))}, {names.TF}" in str(
+        error.value
+    )
 
 
 def test_bag_of_another_fleet_is_refused(tmp_path):
@@ -149,7 +159,7 @@ def test_an_unclosed_recording_is_reindexed_into_place(tmp_path):
 
     assert "reindexed" in said
     assert not (tmp_path / "mission.bag.active").exists()
-    assert "/scout/points" in check_bag(str(bag), fleet).topics
+    assert names.absolute(names.robot_topic("scout", names.POINTS)) in check_bag(str(bag), fleet).topics
 
 
 def test_a_missing_recording_is_an_error_with_the_recorders_log(tmp_path):

@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 import pytest
+
 from cps_experiments.report import read_trajectories, score_saved_map, write_trajectories
 
 DEMO_MAP = os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "docs", "results", "demo", "map.bt")

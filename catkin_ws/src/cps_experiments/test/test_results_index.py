@@ -1,6 +1,7 @@
 """docs/results/README.md's headline rows come from the experiments' CSVs, not from hand edits."""
 
 import pytest
+
 from cps_experiments.run_all import MEASURED_HOW, fig13_live_rows, link_thesis_rows, write_index
 
 pytestmark = pytest.mark.unit

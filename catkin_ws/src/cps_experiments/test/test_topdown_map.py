@@ -3,8 +3,8 @@ types, others for a type only a user's fleet file defines (the demo's report dra
 mission)."""
 
 import numpy as np
-from cps_experiments.topdown_map import OTHER_COLOURS, ROBOT_COLOURS, plot_topdown, robot_colours
 
+from cps_experiments.topdown_map import OTHER_COLOURS, ROBOT_COLOURS, plot_topdown, robot_colours
 from cps_fleet.fleet import load_fleet
 from cps_harness.fleets import fleet_with_new_type
 

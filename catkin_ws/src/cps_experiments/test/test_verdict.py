@@ -10,6 +10,8 @@ import os
 import shutil
 
 import pytest
+from mission_files import T0, event, mission
+
 from cps_experiments.demo import report_verdict
 from cps_experiments.verdict import (
     DEMO_FILES,
@@ -22,7 +24,6 @@ from cps_experiments.verdict import (
     read_verdict,
     write_verdict,
 )
-from mission_files import T0, event, mission
 
 pytestmark = pytest.mark.unit
 
@@ -274,10 +275,9 @@ def test_map_stats_messages_logged_by_the_mission_monitor_are_what_the_verdict_r
 def test_the_report_of_a_folder_with_missing_and_truncated_csvs_says_incomplete(tmp_path):
     """The committed demo's CSVs, one cut off mid-row and one gone, no map: report.md is written,
     opens with its verdict and names both; nothing crashes."""
-    from cps_experiments.report import write_mission_report
-
     from cps_bringup.cli import MissionResult, mission_args
     from cps_bringup.mission import MissionProgress
+    from cps_experiments.report import write_mission_report
 
     demo = os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "docs", "results", "demo")
     out = tmp_path / "demo"

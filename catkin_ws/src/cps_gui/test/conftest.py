@@ -8,6 +8,8 @@ import time
 import pytest
 import yaml
 
+from cps_fleet import names
+
 TEST_PREFIX = "guitest_"
 
 
@@ -78,7 +80,7 @@ def odom_frames_in_map(rospy_node, test_fleet_file):
         pose = robot.initial_pose
         t = TransformStamped()
         t.header.stamp = rospy_node.Time.now()
-        t.header.frame_id, t.child_frame_id = "map", f"{robot.name}/odom"
+        t.header.frame_id, t.child_frame_id = names.MAP_FRAME, names.odom_frame(robot.name)
         t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = pose.x, pose.y, pose.z
         t.transform.rotation.z, t.transform.rotation.w = math.sin(pose.yaw_rad / 2), math.cos(pose.yaw_rad / 2)
         transforms.append(t)

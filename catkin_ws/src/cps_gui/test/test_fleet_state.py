@@ -5,6 +5,7 @@ import threading
 
 import pytest
 
+from cps_fleet import names
 from cps_gui.fleet_state import (
     Allocation,
     FleetState,
@@ -80,7 +81,9 @@ def test_alarms_for_low_battery_degraded_link_slow_link_and_dropped_clouds(state
     clock.t += 1.0
     state.set_pose("iris", Pose(0, 0, 1, 0, 0))
     state.set_allocation(Allocation(1.0, 0.5, 8.0, True, (RobotAllocation("iris", 0, 5.0, 0.5, 50.0, False),)))
-    state.set_tissue_stats([TopicFigures("/iris/points_filtered/draco/managed", "iris", True, 5.0, 0.5, 1500.0, 0.1)])
+    state.set_tissue_stats(
+        [TopicFigures(names.absolute(names.managed_cloud("iris")), "iris", True, 5.0, 0.5, 1500.0, 0.1)]
+    )
     assert rows(state)["iris"].link_state == "slow"
     clock.t += 10.0
     state.set_pose("iris", Pose(0, 0, 1, 0, 0))
@@ -89,9 +92,9 @@ def test_alarms_for_low_battery_degraded_link_slow_link_and_dropped_clouds(state
 
 def test_plot_series_from_stats_and_allocation(state, clock):
     stats = [
-        TopicFigures("/scout/points_filtered/draco/managed", "scout", True, 4.0, 0.6, 35.0, 0.1),
-        TopicFigures("/scout/odom", "scout", False, 20.0, 0.01, 2.0, 0.05),
-        TopicFigures("/tf", "", False, 100.0, 0.05, math.nan, 0.0),
+        TopicFigures(names.absolute(names.managed_cloud("scout")), "scout", True, 4.0, 0.6, 35.0, 0.1),
+        TopicFigures(names.absolute(names.robot_topic("scout", names.ODOM)), "scout", False, 20.0, 0.01, 2.0, 0.05),
+        TopicFigures(names.TF, "", False, 100.0, 0.05, math.nan, 0.0),
     ]
     state.set_tissue_stats(stats)
     state.set_allocation(Allocation(6.9, 0.6, 60.0, True, (RobotAllocation("scout", 0, 4.0, 0.6, 100.0, False),)))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from conftest import TEST_PREFIX, spin_for, spin_until
 
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_gui import joystick
 from cps_harness.testing import TopicRecorder
@@ -85,7 +86,7 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
     assert teleop.strafe_check.isVisibleTo(teleop) == joystick.speed_limits(robot_type).can_strafe
     assert teleop.climb_slider.isVisibleTo(teleop) == joystick.speed_limits(robot_type).can_climb
     teleop.strafe_check.setChecked(strafe)
-    rec = TopicRecorder(f"/{robot}/cmd_vel/teleop", Twist)
+    rec = TopicRecorder(names.absolute(names.robot_topic(robot, names.CMD_VEL_TELEOP)), Twist)
     try:
         _wait_connected(qapp, window.plugin.io.teleop_pubs[robot])
         if climb:
@@ -128,7 +129,7 @@ def test_keys_drive_only_while_the_pane_has_focus(window, qapp, rospy_node):
 
     teleop = window.plugin.teleop
     teleop.select_robot(JACKAL)
-    rec = TopicRecorder(f"/{JACKAL}/cmd_vel/teleop", Twist)
+    rec = TopicRecorder(names.absolute(names.robot_topic(JACKAL, names.CMD_VEL_TELEOP)), Twist)
     try:
         _wait_connected(qapp, window.plugin.io.teleop_pubs[JACKAL])
         QTest.keyPress(window.plugin.status.filter_edit, Qt.Key_W)
@@ -153,15 +154,15 @@ def test_mode_switch_stop_all_and_takeoff_reach_their_topics(window, qapp, rospy
         "cps_sim",
         "velocity_mux",
         name="velocity_mux",
-        namespace=f"/{IRIS}",
+        namespace=names.absolute(IRIS),
         params={"~robot": IRIS, "~fleet_file": test_fleet_file},
     )
     spin_until(qapp, lambda: window.plugin.status.table.item(3, 1).text() == "auto", 30, "the mux's initial mode")
     teleop = window.plugin.teleop
     teleop.select_robot(IRIS)
-    mode = TopicRecorder(f"/{IRIS}/control_mode", String)
-    estop = TopicRecorder("/fleet/estop", Bool)
-    flight = TopicRecorder(f"/{IRIS}/flight_command", String)
+    mode = TopicRecorder(names.absolute(names.robot_topic(IRIS, names.CONTROL_MODE)), String)
+    estop = TopicRecorder(names.ESTOP, Bool)
+    flight = TopicRecorder(names.absolute(names.robot_topic(IRIS, names.FLIGHT_COMMAND)), String)
     try:
         _wait_connected(qapp, window.plugin.io.flight_pubs[IRIS])
         teleop.teleop_radio.click()
@@ -199,7 +200,7 @@ def test_priority_toggle_calls_the_manager_and_reverts_on_refusal(window, qapp, 
         calls.append((req.robot, req.priority))
         return SetPriorityResponse(success=answer["success"], message="" if answer["success"] else "no such robot")
 
-    service = rospy_node.Service("/tissue/set_priority", SetPriority, handle)
+    service = rospy_node.Service(names.absolute(names.SET_PRIORITY), SetPriority, handle)
     teleop = window.plugin.teleop
     try:
         teleop.select_robot(CHAMP)
@@ -228,7 +229,7 @@ def _stats_messages(rospy_node, bandwidth):
     for i, robot in enumerate((SCOUT, JACKAL)):
         stats.topics.append(
             TopicStats(
-                topic=f"/{robot}/points_filtered/draco/managed",
+                topic=names.absolute(names.managed_cloud(robot)),
                 robot=robot,
                 managed=True,
                 rate_hz=5.0 + i,
@@ -261,12 +262,16 @@ def scout_stream(window, qapp, rospy_node):
     from cps_msgs.msg import BandwidthAllocationArray, MapStats, RobotMapStats, TopicStatsArray
 
     pubs = {
-        "stats": rospy_node.Publisher("/tissue/stats", TopicStatsArray, queue_size=5),
-        "alloc": rospy_node.Publisher("/tissue/allocation", BandwidthAllocationArray, queue_size=5),
-        "map": rospy_node.Publisher("/twin/map_stats", MapStats, queue_size=5),
-        "odom": rospy_node.Publisher(f"/{SCOUT}/odom", Odometry, queue_size=5),
-        "battery": rospy_node.Publisher(f"/{SCOUT}/battery", BatteryState, queue_size=5),
-        "mission": rospy_node.Publisher(f"/{SCOUT}/mission_state", String, queue_size=1, latch=True),
+        "stats": rospy_node.Publisher(names.absolute(names.TISSUE_STATS), TopicStatsArray, queue_size=5),
+        "alloc": rospy_node.Publisher(names.absolute(names.ALLOCATION), BandwidthAllocationArray, queue_size=5),
+        "map": rospy_node.Publisher(names.absolute(names.in_twin(names.MAP_STATS)), MapStats, queue_size=5),
+        "odom": rospy_node.Publisher(names.absolute(names.robot_topic(SCOUT, names.ODOM)), Odometry, queue_size=5),
+        "battery": rospy_node.Publisher(
+            names.absolute(names.robot_topic(SCOUT, names.BATTERY)), BatteryState, queue_size=5
+        ),
+        "mission": rospy_node.Publisher(
+            names.absolute(names.robot_topic(SCOUT, names.MISSION_STATE)), String, queue_size=1, latch=True
+        ),
     }
 
     def publish():
@@ -360,7 +365,7 @@ def test_link_lost_banner_and_red_data_ages_while_link_state_says_down(window, q
     from cps_msgs.msg import LinkState
 
     status = window.plugin.status
-    link = rospy_node.Publisher("/tissue/link_state", LinkState, queue_size=5, latch=True)
+    link = rospy_node.Publisher(names.absolute(names.LINK_STATE), LinkState, queue_size=5, latch=True)
     try:
         scout_stream()
         assert not status.link_lost_banner.isVisible()
@@ -385,8 +390,10 @@ def _is_red(item):
 def test_speedometer_and_top_view_follow_odometry_and_the_projected_map(window, qapp, rospy_node):
     from nav_msgs.msg import OccupancyGrid, Odometry
 
-    odom_pub = rospy_node.Publisher(f"/{JACKAL}/odom", Odometry, queue_size=5)
-    map_pub = rospy_node.Publisher("/twin/projected_map", OccupancyGrid, queue_size=1, latch=True)
+    odom_pub = rospy_node.Publisher(names.absolute(names.robot_topic(JACKAL, names.ODOM)), Odometry, queue_size=5)
+    map_pub = rospy_node.Publisher(
+        names.absolute(names.in_twin(names.PROJECTED_MAP)), OccupancyGrid, queue_size=1, latch=True
+    )
     teleop, top = window.plugin.teleop, window.plugin.topview
     teleop.select_robot(JACKAL)
     try:
@@ -425,7 +432,7 @@ def test_speedometer_and_top_view_follow_odometry_and_the_projected_map(window, 
 def test_video_pane_finds_image_topics_and_shows_rate_and_staleness(window, qapp, rospy_node):
     from sensor_msgs.msg import Image
 
-    topic = f"/{CHAMP}/camera/image_raw"
+    topic = names.absolute(names.robot_topic(CHAMP, names.CAMERA_IMAGE))
     pub = rospy_node.Publisher(topic, Image, queue_size=2)
     video = window.plugin.video
     try:
@@ -458,7 +465,7 @@ def test_video_pane_prefers_and_shows_the_compressed_camera(window, qapp, rospy_
 
     from cps_transport.image_compression import compressed_format, encode_jpeg
 
-    raw_topic = f"/{JACKAL}/camera/image_raw"
+    raw_topic = names.absolute(names.robot_topic(JACKAL, names.CAMERA_IMAGE))
     jpeg_topic = raw_topic + "/compressed"
     raw_pub = rospy_node.Publisher(raw_topic, Image, queue_size=2)
     jpeg_pub = rospy_node.Publisher(jpeg_topic, CompressedImage, queue_size=2)
@@ -565,7 +572,9 @@ def test_video_layer_is_stacked_from_the_robots_video_status(window, qapp, rospy
     from cps_msgs.msg import RateLimiterStatus
 
     status = window.plugin.status
-    pub = rospy_node.Publisher(f"/{JACKAL}/video_throttle/status", RateLimiterStatus, queue_size=1, latch=True)
+    pub = rospy_node.Publisher(
+        names.absolute(names.robot_topic(JACKAL, names.VIDEO_STATUS)), RateLimiterStatus, queue_size=1, latch=True
+    )
     try:
         _wait_connected(qapp, pub)
         pub.publish(_video_status(1, 15.0, 10.0, 6000.0))  # 10 Hz x 6 kB = 0.06 MB/s
@@ -593,10 +602,12 @@ def test_selecting_a_robot_publishes_it_and_shows_its_video_level_fps_latency_an
 
     video = window.plugin.video
     assert [video.robot_combo.itemData(i) for i in range(video.robot_combo.count())] == [JACKAL, CHAMP, IRIS]
-    selected = TopicRecorder("/tissue/selected_robot", String)
-    topic = f"/{CHAMP}/camera/image_raw/compressed"
+    selected = TopicRecorder(names.absolute(names.SELECTED_ROBOT), String)
+    topic = names.absolute(names.robot_topic(CHAMP, names.CAMERA_IMAGE_COMPRESSED))
     image_pub = rospy_node.Publisher(topic, CompressedImage, queue_size=5)
-    status_pub = rospy_node.Publisher(f"/{CHAMP}/video_throttle/status", RateLimiterStatus, queue_size=1, latch=True)
+    status_pub = rospy_node.Publisher(
+        names.absolute(names.robot_topic(CHAMP, names.VIDEO_STATUS)), RateLimiterStatus, queue_size=1, latch=True
+    )
     try:
         # Latched: a late subscriber hears the robot selected at start-up.
         assert selected.wait(timeout_s=10).data == video.robot

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from conftest import TEST_PREFIX
 
+from cps_fleet import names
 from cps_harness.testing import find_node
 
 MARKER_RGB = (0, 255, 0)
@@ -135,7 +136,7 @@ def _map_messages(rospy):
     from visualization_msgs.msg import Marker, MarkerArray
 
     marker = Marker(type=Marker.CUBE_LIST, action=Marker.ADD, ns="occupied", id=0)
-    marker.header.frame_id = "map"
+    marker.header.frame_id = names.MAP_FRAME
     marker.pose.orientation.w = 1.0
     marker.scale.x = marker.scale.y = marker.scale.z = 0.2
     marker.color = ColorRGBA(MARKER_RGB[0] / 255.0, MARKER_RGB[1] / 255.0, MARKER_RGB[2] / 255.0, 1.0)
@@ -143,7 +144,7 @@ def _map_messages(rospy):
     markers = MarkerArray(markers=[marker])
 
     grid = OccupancyGrid()
-    grid.header.frame_id = "map"
+    grid.header.frame_id = names.MAP_FRAME
     grid.info.width, grid.info.height, grid.info.resolution = 240, 160, 0.1
     grid.info.origin.position.x, grid.info.origin.position.y = -12.0, -8.0
     cells = np.zeros((160, 240), np.int8)
@@ -169,10 +170,16 @@ class _LiveFleet:
 
         self.rospy = rospy
         self.names = [TEST_PREFIX + n for n in ("scout", "jackal", "champ", "iris")]
-        self.odom = {n: rospy.Publisher(f"/{n}/odom", Odometry, queue_size=2) for n in self.names}
-        self.battery = {n: rospy.Publisher(f"/{n}/battery", BatteryState, queue_size=2) for n in self.names}
-        self.stats = rospy.Publisher("/tissue/stats", TopicStatsArray, queue_size=2)
-        self.alloc = rospy.Publisher("/tissue/allocation", BandwidthAllocationArray, queue_size=2)
+        self.odom = {
+            n: rospy.Publisher(names.absolute(names.robot_topic(n, names.ODOM)), Odometry, queue_size=2)
+            for n in self.names
+        }
+        self.battery = {
+            n: rospy.Publisher(names.absolute(names.robot_topic(n, names.BATTERY)), BatteryState, queue_size=2)
+            for n in self.names
+        }
+        self.stats = rospy.Publisher(names.absolute(names.TISSUE_STATS), TopicStatsArray, queue_size=2)
+        self.alloc = rospy.Publisher(names.absolute(names.ALLOCATION), BandwidthAllocationArray, queue_size=2)
         self.start = time.monotonic()
 
     def publish(self):
@@ -188,7 +195,7 @@ class _LiveFleet:
         )
         for i, name in enumerate(self.names):
             odom = Odometry()
-            odom.header.frame_id = "map"  # no map -> <r>/odom tf in this test
+            odom.header.frame_id = names.MAP_FRAME  # no map -> <r>/odom tf in this test
             odom.pose.pose.position.x = 0.3 * t
             odom.pose.pose.orientation.w = 1.0
             odom.twist.twist.linear.x = 0.3
@@ -197,7 +204,7 @@ class _LiveFleet:
             mbytes = 1.0 + 0.5 * i + 0.2 * np.sin(t + i)
             stats.topics.append(
                 TopicStats(
-                    topic=f"/{name}/points_filtered/draco/managed",
+                    topic=names.absolute(names.managed_cloud(name)),
                     robot=name,
                     managed=True,
                     rate_hz=4.0 + i,
@@ -226,9 +233,15 @@ def test_screenshot_of_the_live_gui_shows_the_map_in_3d_and_top_view_and_a_camer
 
     markers, grid, image = _map_messages(rospy_node)
     live = _LiveFleet(rospy_node)
-    marker_pub = rospy_node.Publisher("/twin/occupied_cells_vis_array", MarkerArray, queue_size=1, latch=True)
-    grid_pub = rospy_node.Publisher("/twin/projected_map", OccupancyGrid, queue_size=1, latch=True)
-    image_pub = rospy_node.Publisher(f"/{TEST_PREFIX}jackal/camera/image_raw", Image, queue_size=1)
+    marker_pub = rospy_node.Publisher(
+        names.absolute(names.in_twin(names.OCCUPIED_CELLS)), MarkerArray, queue_size=1, latch=True
+    )
+    grid_pub = rospy_node.Publisher(
+        names.absolute(names.in_twin(names.PROJECTED_MAP)), OccupancyGrid, queue_size=1, latch=True
+    )
+    image_pub = rospy_node.Publisher(
+        names.absolute(names.robot_topic(TEST_PREFIX + "jackal", names.CAMERA_IMAGE)), Image, queue_size=1
+    )
     png = str(tmp_path / "fleet_gui.png")
     try:
         marker_pub.publish(markers)

@@ -4,6 +4,7 @@ list, and the views can centre on a change; the list pane shows and selects chan
 import pytest
 from std_msgs.msg import Header
 
+from cps_fleet import names
 from cps_gui.fleet_state import FleetState
 from cps_gui.ros_io import map_changes_of
 from cps_gui.topview import focus_bounds
@@ -30,7 +31,7 @@ def _changes():
 
 
 def test_markers_of_the_map_server_become_the_change_list():
-    changes = map_changes_of(change_markers(_changes(), Header(frame_id="map")))
+    changes = map_changes_of(change_markers(_changes(), Header(frame_id=names.MAP_FRAME)))
     assert [c.kind for c in changes] == ["disappeared", "appeared", "moved"]
     assert changes[0].center_m == pytest.approx((3.2, -1.0, 0.5))
     assert changes[1].size_m == pytest.approx((0.8, 0.2, 1.6)) and changes[1].from_m is None
@@ -39,7 +40,7 @@ def test_markers_of_the_map_server_become_the_change_list():
     version, _ = state.map_changes()
     state.set_map_changes(changes)
     assert state.map_changes() == (version + 1, tuple(changes))
-    assert map_changes_of(change_markers([], Header(frame_id="map"))) == []
+    assert map_changes_of(change_markers([], Header(frame_id=names.MAP_FRAME))) == []
 
 
 def test_focus_is_a_square_around_the_change():
@@ -53,7 +54,7 @@ def test_change_pane_lists_and_selects(qapp):
     state = FleetState([("champ", "legged_depth")])
     selected = []
     pane = ChangesPane(state, selected.append)
-    state.set_map_changes(map_changes_of(change_markers(_changes(), Header(frame_id="map"))))
+    state.set_map_changes(map_changes_of(change_markers(_changes(), Header(frame_id=names.MAP_FRAME))))
     pane.refresh()
     assert pane.list.count() == 3 and "1 appeared, 1 disappeared, 1 moved" in pane.title.text()
     assert pane.list.item(0).text().startswith("disappeared: 1.0 x 1.0 x 1.0 m at (3.2, -1.0")

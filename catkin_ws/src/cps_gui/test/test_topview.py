@@ -108,8 +108,11 @@ def test_shipped_rviz_config_is_the_generated_one_for_the_default_fleet():
     fleet = load_fleet()
     assert shipped == rviz_config.dump(rviz_config.fleet_rviz_config(fleet))
     for robot in fleet.robots:
-        assert f"/twin/{robot.name}/points" in shipped and f"/{robot.name}/odom" in shipped
-    assert "Fixed Frame: map" in shipped and names.in_twin(names.OCCUPIED_CELLS) in shipped
+        assert (
+            names.absolute(names.twin_points(robot.name)) in shipped
+            and names.absolute(names.robot_topic(robot.name, names.ODOM)) in shipped
+        )
+    assert f"Fixed Frame: {names.MAP_FRAME}" in shipped and names.in_twin(names.OCCUPIED_CELLS) in shipped
 
 
 def _frame(encoding, width, height, data, step=0):

@@ -6,6 +6,7 @@ import textwrap
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import RosGraph, processes_named
 
 TALKER = textwrap.dedent("""
@@ -82,6 +83,6 @@ def test_messages_import_from_the_venv_python():
 def test_a_private_master_leaves_this_process_pointed_where_it_was():
     before = {k: os.environ.get(k) for k in ("ROS_MASTER_URI", "ROS_IP")}
     with RosGraph() as graph:
-        graph.wait_for_topic("/rosout_agg", timeout_s=20)
+        graph.wait_for_topic(names.ROSOUT_AGG, timeout_s=20)
         assert {k: os.environ.get(k) for k in before} == before
     assert {k: os.environ.get(k) for k in before} == before

@@ -4,6 +4,7 @@ import sys
 
 import pytest
 
+from cps_fleet import names
 from cps_ros.processes import RosGraph, find_node
 
 CLOUD_LOAD = find_node("cps_harness", "cloud_load")
@@ -45,11 +46,11 @@ def managed_cloud_load(rospy_node, robots_graph, request):
                 sys.executable,
                 CLOUD_LOAD,
                 f"{robot}:20000:5",
-                f"/{robot}/points_filtered/draco:=/{robot}/points_filtered/draco/managed",
+                f"{names.absolute(names.robot_topic(robot, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(robot))}",
             ],
             name="load",
         )
-        allocation = rospy_node.Publisher("/tissue/allocation", BandwidthAllocationArray, queue_size=1)
+        allocation = rospy_node.Publisher(names.absolute(names.ALLOCATION), BandwidthAllocationArray, queue_size=1)
         timer = rospy_node.Timer(
             rospy_node.Duration(0.5),
             lambda _e: allocation.publish(

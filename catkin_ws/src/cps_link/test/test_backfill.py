@@ -8,6 +8,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import free_port
@@ -27,10 +28,14 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
     twin_bridge = ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], certs, port), name="bt")
     robots_graph.popen(bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], certs, port), name="br")
     managed_cloud_load(ROBOT)
-    link = TopicRecorder("/tissue/link_state", LinkState)
-    live = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
-    backfill = TopicRecorder(f"/twin/{ROBOT}/points_backfill/draco", CompressedPointCloud2)
-    poses = TopicRecorder(f"/twin/{ROBOT}/points_backfill/pose", TransformStamped)
+    link = TopicRecorder(names.absolute(names.LINK_STATE), LinkState)
+    live = TopicRecorder(names.absolute(names.managed_cloud_at_twin(ROBOT)), CompressedPointCloud2)
+    backfill = TopicRecorder(
+        names.absolute(names.in_twin(names.robot_topic(ROBOT, names.POINTS_BACKFILL_DRACO))), CompressedPointCloud2
+    )
+    poses = TopicRecorder(
+        names.absolute(names.in_twin(names.robot_topic(ROBOT, names.POINTS_BACKFILL_POSE))), TransformStamped
+    )
     try:
         link.wait(lambda m: m.up, timeout_s=20, what="the link up")
     except AssertionError as exc:  # say why: it once failed in CI with nothing to go on
@@ -60,7 +65,7 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
     for stamp in stamps:
         pose = pose_by_stamp[stamp]
         t = pose.transform.translation
-        assert (pose.header.frame_id, pose.child_frame_id, t.x, t.y, t.z) == ("map", "load", 1.0, 2.0, 3.0)
+        assert (pose.header.frame_id, pose.child_frame_id, t.x, t.y, t.z) == (names.MAP_FRAME, "load", 1.0, 2.0, 3.0)
     # The live stream resumed fresh (nothing older than the data class's bound was republished).
     ages = [
         arrival + wall_minus_monotonic - m.header.stamp.to_sec()

@@ -8,6 +8,7 @@ import pytest
 import roslib.message
 import zenoh
 
+from cps_fleet import names
 from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
 from cps_link.bridge_config import ROBOTS, TWIN, ConfigError, load_bridge_table
 from cps_link.bridge_wire import Frame, WireError, decode, encode, header_stamp_s, is_stale
@@ -105,34 +106,57 @@ def test_staleness_only_for_stamped_messages_past_the_bound():
 
 def test_classes_map_to_their_zenoh_qos():
     table = load_bridge_table(robots=ROBOT_NAMES)
+
+    def robot_topic(robot, name):
+        return names.absolute(names.robot_topic(robot, name))
+
+    champ_cloud = names.absolute(names.managed_cloud_at_twin("champ"))
     expected = {
-        "/scout/cmd_vel/teleop": (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
-        "/fleet/estop": (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
-        "/iris/cloud_throttle/rate_hz": (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
-        "/jackal/odom": (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
-        "/tf_static": (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
-        "/rosout": (zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP, True, False),
-        "/twin/champ/points_filtered/draco/managed": (zenoh.Priority.DATA, zenoh.CongestionControl.DROP, False, False),
+        robot_topic("scout", names.CMD_VEL_TELEOP): (
+            zenoh.Priority.REAL_TIME,
+            zenoh.CongestionControl.BLOCK,
+            True,
+            True,
+        ),
+        names.ESTOP: (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
+        robot_topic("iris", names.LIMITER_RATE_HZ): (
+            zenoh.Priority.REAL_TIME,
+            zenoh.CongestionControl.BLOCK,
+            True,
+            True,
+        ),
+        robot_topic("jackal", names.ODOM): (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
+        names.TF_STATIC: (zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, True),
+        names.ROSOUT: (zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP, True, False),
+        champ_cloud: (zenoh.Priority.DATA, zenoh.CongestionControl.DROP, False, False),
     }
     routes = {r.to: r for r in table.routes}
     for topic, (priority, congestion, reliable, express) in expected.items():
         qos = zenoh_qos(routes[topic].traffic)
         assert (qos["priority"], qos["congestion_control"], qos["express"]) == (priority, congestion, express), topic
         assert (qos["reliability"] == zenoh.Reliability.RELIABLE) == reliable, topic
-    assert routes["/twin/champ/points_filtered/draco/managed"].traffic.max_age_s == 1.0
+    assert routes[champ_cloud].traffic.max_age_s == 1.0
     assert {r.to for r in table.routes if r.latched} >= {
-        "/tf_static",
-        "/fleet/estop",
-        "/scout/control_mode",
-        "/scout/mission_state",
+        names.TF_STATIC,
+        names.ESTOP,
+        robot_topic("scout", names.CONTROL_MODE),
+        robot_topic("scout", names.MISSION_STATE),
     }
     assert all(r.source == TWIN for r in table.routes if r.traffic.name == "command")
-    assert all(r.source == ROBOTS for r in table.routes if r.traffic.name != "command" and r.to != "/tissue/allocation")
+    assert all(
+        r.source == ROBOTS
+        for r in table.routes
+        if r.traffic.name != "command" and r.to != names.absolute(names.ALLOCATION)
+    )
     assert {r.to for r in table.routes if r.traffic.name == "backfill"} == {
-        f"/twin/{r}/points_backfill/{kind}" for r in ROBOT_NAMES for kind in ("draco", "pose")
+        names.absolute(names.in_twin(names.robot_topic(r, kind)))
+        for r in ROBOT_NAMES
+        for kind in (names.POINTS_BACKFILL_DRACO, names.POINTS_BACKFILL_POSE)
     }
-    assert zenoh_qos(routes["/twin/iris/points_backfill/draco"].traffic)["priority"] == zenoh.Priority.BACKGROUND
-    assert routes["/twin/scout/points_filtered/draco/managed"].topic == "/scout/points_filtered/draco/managed"
+    iris_backfill = names.absolute(names.in_twin(names.robot_topic("iris", names.POINTS_BACKFILL_DRACO)))
+    assert zenoh_qos(routes[iris_backfill].traffic)["priority"] == zenoh.Priority.BACKGROUND
+    scout_cloud = names.absolute(names.managed_cloud("scout"))
+    assert routes[names.absolute(names.managed_cloud_at_twin("scout"))].topic == scout_cloud
 
 
 def test_bad_table_names_file_and_line(tmp_path):
@@ -242,7 +266,7 @@ def test_the_command_lane_carries_the_command_class_alone_on_its_own_port_and_ke
     assert {r.traffic.name for r in command.routes} == {"command"}
     assert "command" not in {r.traffic.name for r in main.routes}
     assert sorted(r.to for r in command.routes + main.routes) == sorted(r.to for r in table.routes)  # none lost
-    assert "/scout/cmd_vel/teleop" in {r.to for r in command.routes}
+    assert names.absolute(names.robot_topic("scout", names.CMD_VEL_TELEOP)) in {r.to for r in command.routes}
     assert (command.endpoint_port, main.endpoint_port) == (table.command_port, table.endpoint_port)
     assert command.endpoint_port != main.endpoint_port
     assert command.backfill is None and main.backfill is not None

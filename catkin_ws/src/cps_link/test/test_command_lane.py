@@ -11,6 +11,7 @@ import sys
 import numpy as np
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv, bridge_node_name
 from cps_ros.processes import find_node, free_port
@@ -61,15 +62,15 @@ def test_commands_cross_in_their_own_lane_while_clouds_load_the_main_one(
             sys.executable,
             find_node("cps_harness", "cloud_load"),
             f"{ROBOT}:200000:20",
-            f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+            f"{names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(ROBOT))}",
             "__name:=heavy_load",
         ],
         name="heavy_load",
     )
     received = str(tmp_path / "teleop.txt")
     robots_graph.popen([sys.executable, find_node("cps_harness", "teleop_probe"), "recv", ROBOT, received], name="recv")
-    link = TopicRecorder("/tissue/link_state", LinkState)
-    clouds = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
+    link = TopicRecorder(names.absolute(names.LINK_STATE), LinkState)
+    clouds = TopicRecorder(names.absolute(names.managed_cloud_at_twin(ROBOT)), CompressedPointCloud2)
     try:
         link.wait(lambda m: m.up, timeout_s=30, what="the link up")
         clouds.wait(lambda _m: clouds.count >= 20, timeout_s=30, what="clouds at the twin")
@@ -94,13 +95,16 @@ def test_commands_cross_in_their_own_lane_while_clouds_load_the_main_one(
         twin_subs, twin_pubs = _subscriptions(os.environ["ROS_MASTER_URI"], bridge_node_name("twin", "command"))
         main_subs, _ = _subscriptions(os.environ["ROS_MASTER_URI"], bridge_node_name("twin", "main"))
         assert bridge_node_name("twin", "main") != bridge_node_name("twin", "command")
-        assert f"/{ROBOT}/cmd_vel/teleop" in twin_subs and f"/{ROBOT}/cmd_vel/teleop" not in main_subs
+        assert (
+            names.absolute(names.robot_topic(ROBOT, names.CMD_VEL_TELEOP)) in twin_subs
+            and names.absolute(names.robot_topic(ROBOT, names.CMD_VEL_TELEOP)) not in main_subs
+        )
         assert not any("points" in t for t in twin_subs), twin_subs
         robot_subs, robot_pubs = _subscriptions(robots_graph.uri, bridge_node_name("robots", "command"))
         assert not any("points" in t for t in robot_subs), robot_subs
         for pubs, side in ((twin_pubs, "twin"), (robot_pubs, "robots")):
-            assert pubs.get("/tissue/link_state") == ["/" + bridge_node_name(side, "main")], pubs.get(
-                "/tissue/link_state"
+            assert pubs.get(names.absolute(names.LINK_STATE)) == ["/" + bridge_node_name(side, "main")], pubs.get(
+                names.absolute(names.LINK_STATE)
             )
     finally:
         link.close()

@@ -13,6 +13,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.fault_proxy import FaultProxy
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.bridge_config import load_bridge_table
@@ -30,13 +31,13 @@ TF_WITHIN_S = 1.0
 LINK_BACK_WITHIN_S = 8.0
 TELEOP_WITHIN_S = 5.0
 WATCHED = (
-    "/tf",
-    f"/{ROBOT}/odom",
-    f"/{ROBOT}/camera/camera_info",
-    f"/{ROBOT}/control_mode/active",
-    f"/twin/{ROBOT}/points_filtered/draco/managed",
-    f"/twin/{ROBOT}/points_backfill/pose",
-    f"/twin/{ROBOT}/points_backfill/draco",
+    names.TF,
+    names.absolute(names.robot_topic(ROBOT, names.ODOM)),
+    names.absolute(names.robot_topic(ROBOT, names.CAMERA_INFO)),
+    names.absolute(names.robot_topic(ROBOT, names.CONTROL_MODE_ACTIVE)),
+    names.absolute(names.managed_cloud_at_twin(ROBOT)),
+    names.absolute(names.in_twin(names.robot_topic(ROBOT, names.POINTS_BACKFILL_POSE))),
+    names.absolute(names.in_twin(names.robot_topic(ROBOT, names.POINTS_BACKFILL_DRACO))),
 )
 
 
@@ -135,14 +136,14 @@ def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, mana
     # Clouds, kept as keyframes during the longer outages and backfilled after them (the issue's
     # mixed-up topics were the backfill poses); the manager's allocation paces the backfill.
     managed_cloud_load(ROBOT)
-    link = TopicRecorder("/tissue/link_state", LinkState)
-    diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
+    link = TopicRecorder(names.absolute(names.LINK_STATE), LinkState)
+    diagnostics = TopicRecorder(names.DIAGNOSTICS, DiagnosticArray)
     types = TypeWatch(rospy_node, table)
-    tf = types.arrivals["/tf"]
+    tf = types.arrivals[names.TF]
     for done in (link.close, diagnostics.close, types.close):
         request.addfinalizer(done)
     link.wait(lambda m: m.up, timeout_s=30, what="the link up")
-    assert wait_for(lambda: tf, timeout_s=20), "no /tf at the twin"
+    assert wait_for(lambda: tf, timeout_s=20), f"no {names.TF} at the twin"
     assert wait_for(lambda: _teleop_after(teleop_file, 0.0) is not None, timeout_s=20), "no teleop at the robots"
 
     rows = []
@@ -173,7 +174,7 @@ def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, mana
                 last_down = max(a for a, m in link.messages if not m.up)
                 t_up = max(t_restored, min(a for a, m in link.messages if m.up and a > last_down))
         assert wait_for(lambda: _arrived_after(tf, t_up) is not None, timeout_s=LINK_BACK_WITHIN_S), (
-            f"{kind}: no /tf at the twin after the link came back"
+            f"{kind}: no {names.TF} at the twin after the link came back"
         )
         tf_delay_s = _arrived_after(tf, t_up) - t_up
         assert wait_for(
@@ -184,7 +185,7 @@ def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, mana
         rows.append((kind, held_s, went_down, t_up - t_restored, tf_delay_s, teleop_delay_s))
         print(
             f"{kind:8s} held {held_s:4.2f} s  link down: {str(went_down):5s}  link up after "
-            f"{t_up - t_restored:5.2f} s  /tf after {tf_delay_s:5.2f} s  teleop after {teleop_delay_s:5.2f} s"
+            f"{t_up - t_restored:5.2f} s  {names.TF} after {tf_delay_s:5.2f} s  teleop after {teleop_delay_s:5.2f} s"
         )
         assert tf_delay_s <= TF_WITHIN_S, rows[-1]
 
@@ -200,5 +201,7 @@ def test_ten_random_faults_through_the_proxy(rospy_node, ros, robots_graph, mana
     assert types.received > 0
     if any(kind == "cut" and down and held_s >= 1.5 for kind, held_s, down, *_ in rows):
         # An outage longer than a keyframe period: keyframes were kept and crossed after it.
-        assert types.arrivals[f"/twin/{ROBOT}/points_backfill/pose"], "no backfill after the outages"
+        assert types.arrivals[names.absolute(names.in_twin(names.robot_topic(ROBOT, names.POINTS_BACKFILL_POSE)))], (
+            "no backfill after the outages"
+        )
     assert types.mismatched == [] and types.undecodable == [], (types.mismatched[:5], types.undecodable[:5])

@@ -7,6 +7,7 @@ import struct
 import pytest
 import roslib.message
 
+from cps_fleet import names
 from cps_link.bridge_config import load_bridge_table
 from cps_link.bridge_wire import Frame, decode, encode, new_session_id
 from cps_link.receive_path import DROP_KINDS, ReceivePath, SendPath
@@ -46,20 +47,20 @@ def _receive(path, table, to, payload, key=None, now_s=T0_S):
 
 def test_a_good_frame_is_published_on_its_topic_with_its_type(table):
     path = _path(table)
-    verdict = _receive(path, table, "/tf", encode(_frame("/tf", "tf2_msgs/TFMessage")))
-    assert verdict.drop is None and verdict.frame.topic == "/tf" and verdict.frame.msg_type == "tf2_msgs/TFMessage"
-    assert path.topic_type("/tf") == ("tf2_msgs/TFMessage", md5_of("tf2_msgs/TFMessage"))
+    verdict = _receive(path, table, names.TF, encode(_frame(names.TF, "tf2_msgs/TFMessage")))
+    assert verdict.drop is None and verdict.frame.topic == names.TF and verdict.frame.msg_type == "tf2_msgs/TFMessage"
+    assert path.topic_type(names.TF) == ("tf2_msgs/TFMessage", md5_of("tf2_msgs/TFMessage"))
     assert sum(path.counts.values()) == 0
 
 
 def test_issue_22_a_tf_frame_on_the_backfill_pose_route_is_dropped_and_never_retypes_it(table):
     """The issue's run: /tf, odom and camera_info frames reached the backfill pose subscribers."""
     path = _path(table)
-    pose = "/twin/scout/points_backfill/pose"
+    pose = names.absolute(names.in_twin(names.robot_topic("scout", names.POINTS_BACKFILL_POSE)))
     for to, msg_type in (
-        ("/tf", "tf2_msgs/TFMessage"),
-        ("/jackal/odom", "nav_msgs/Odometry"),
-        ("/scout/camera/camera_info", "sensor_msgs/CameraInfo"),
+        (names.TF, "tf2_msgs/TFMessage"),
+        (names.absolute(names.robot_topic("jackal", names.ODOM)), "nav_msgs/Odometry"),
+        (names.absolute(names.robot_topic("scout", names.CAMERA_INFO)), "sensor_msgs/CameraInfo"),
     ):
         # Under the pose route's key (Zenoh resolved the wrong key) and under its own (wrong callback).
         payload = encode(_frame(to, msg_type))
@@ -73,7 +74,7 @@ def test_issue_22_a_tf_frame_on_the_backfill_pose_route_is_dropped_and_never_ret
 
 def test_each_bad_input_is_dropped_and_counted_by_kind(table):
     path = _path(table)
-    to = "/scout/control_mode/active"
+    to = names.absolute(names.robot_topic("scout", names.CONTROL_MODE_ACTIVE))
     good = encode(_frame(to, "std_msgs/String", body=b"\x04\x00\x00\x00auto"))
     flipped = bytearray(good)
     flipped[-1] ^= 0x01
@@ -95,13 +96,24 @@ def test_each_bad_input_is_dropped_and_counted_by_kind(table):
         (encode(Frame(b"s" * 16, 1, math.nan, "std_msgs/String", "0" * 32, "/sim", b"", topic=to)), "md5_mismatch"),
         (encode(_frame(to, "std_msgs/Bool")), "topic_type_mismatch"),  # a real type, not this topic's
         (encode(_frame("/scout/not_in_the_table", "std_msgs/String")), "unlisted_topic"),
-        (encode(_frame("/scout/cmd_vel/teleop", "geometry_msgs/Twist")), "unlisted_topic"),  # the other way
-        (encode(_frame("/scout/mission_state", "std_msgs/String")), "wrong_topic"),
+        (
+            encode(_frame(names.absolute(names.robot_topic("scout", names.CMD_VEL_TELEOP)), "geometry_msgs/Twist")),
+            "unlisted_topic",
+        ),  # the other way
+        (
+            encode(_frame(names.absolute(names.robot_topic("scout", names.MISSION_STATE)), "std_msgs/String")),
+            "wrong_topic",
+        ),
     ]
     for payload, kind in cases:
         verdict = _receive(path, table, to, payload)
         assert verdict.drop == kind, (payload[:60], verdict)
-    assert _receive(path, table, to, good, key="cps/topic/scout/mission_state").drop == "key_mismatch"
+    assert (
+        _receive(
+            path, table, to, good, key="cps/topic" + names.absolute(names.robot_topic("scout", names.MISSION_STATE))
+        ).drop
+        == "key_mismatch"
+    )
     expected = {}
     for _, kind in cases:
         expected[kind] = expected.get(kind, 0) + 1
@@ -116,7 +128,7 @@ def test_each_bad_input_is_dropped_and_counted_by_kind(table):
 
 
 def test_a_restarted_sender_starts_afresh_and_its_old_run_is_refused_while_the_new_one_talks(table):
-    to = "/fleet/estop"
+    to = names.ESTOP
     path = ReceivePath(table.incoming("robots"), table.key_prefix, md5_of)
     old, new = new_session_id(1_000), new_session_id(2_000)
     key = table.route(to).key(table.key_prefix)
@@ -136,7 +148,7 @@ def test_a_restarted_sender_starts_afresh_and_its_old_run_is_refused_while_the_n
 
 def test_stale_stamped_data_is_dropped_and_counted(table):
     path = _path(table)
-    to = "/twin/scout/points_filtered/draco/managed"
+    to = names.absolute(names.managed_cloud_at_twin("scout"))
     body = struct.pack("<III", 0, int(T0_S), 0) + b"\x00" * 40
     assert (
         _receive(
@@ -152,10 +164,11 @@ def test_stale_stamped_data_is_dropped_and_counted(table):
 
 
 def test_the_sender_puts_the_topic_in_every_frame_and_refuses_a_second_type():
-    send = SendPath(table_types={"/tf": "tf2_msgs/TFMessage"})
-    frame = send.frame("/scout/odom", "/sim", "nav_msgs/Odometry", "m1", math.nan, b"x")
-    assert decode(encode(frame)).topic == "/scout/odom" and frame.seq == 1
-    assert send.frame("/scout/odom", "/sim", "nav_msgs/Odometry", "m1", math.nan, b"y").seq == 2
-    assert send.frame("/scout/odom", "/other", "std_msgs/String", "m2", math.nan, b"z") is None
-    assert send.frame("/tf", "/sim", "tf2_msgs/TFMessage_", "m3", math.nan, b"z") is None  # not the table's
+    send = SendPath(table_types={names.TF: "tf2_msgs/TFMessage"})
+    odom = names.absolute(names.robot_topic("scout", names.ODOM))
+    frame = send.frame(odom, "/sim", "nav_msgs/Odometry", "m1", math.nan, b"x")
+    assert decode(encode(frame)).topic == odom and frame.seq == 1
+    assert send.frame(odom, "/sim", "nav_msgs/Odometry", "m1", math.nan, b"y").seq == 2
+    assert send.frame(odom, "/other", "std_msgs/String", "m2", math.nan, b"z") is None
+    assert send.frame(names.TF, "/sim", "tf2_msgs/TFMessage_", "m3", math.nan, b"z") is None  # not the table's
     assert send.counts["topic_type_mismatch"] == 2

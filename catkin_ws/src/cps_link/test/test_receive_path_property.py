@@ -17,6 +17,7 @@ import roslib.message
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from cps_fleet import names
 from cps_link.bridge_config import load_bridge_table
 from cps_link.bridge_wire import decode, encode, is_stale, new_session_id
 from cps_link.receive_path import DROP_KINDS, SESSION_HOLD_S, WIRE_KINDS, ReceivePath, SendPath
@@ -24,15 +25,20 @@ from cps_link.receive_path import DROP_KINDS, SESSION_HOLD_S, WIRE_KINDS, Receiv
 ROBOTS = ("scout", "jackal")
 TABLE = load_bridge_table(robots=ROBOTS)
 TOPICS = (
-    "/tf",
-    "/scout/odom",
-    "/jackal/odom",
-    "/scout/control_mode/active",
-    "/jackal/mission_state",
-    "/twin/scout/points_filtered/draco/managed",
-    "/scout/camera/camera_info",
+    names.TF,
+    names.absolute(names.robot_topic("scout", names.ODOM)),
+    names.absolute(names.robot_topic("jackal", names.ODOM)),
+    names.absolute(names.robot_topic("scout", names.CONTROL_MODE_ACTIVE)),
+    names.absolute(names.robot_topic("jackal", names.MISSION_STATE)),
+    names.absolute(names.managed_cloud_at_twin("scout")),
+    names.absolute(names.robot_topic("scout", names.CAMERA_INFO)),
 )
-BACKFILL = {"scout": ("/twin/scout/points_backfill/pose", "/twin/scout/points_backfill/draco")}
+BACKFILL = {
+    "scout": (
+        names.absolute(names.in_twin(names.robot_topic("scout", names.POINTS_BACKFILL_POSE))),
+        names.absolute(names.in_twin(names.robot_topic("scout", names.POINTS_BACKFILL_DRACO))),
+    )
+}
 ROUTES = {r.to: r for r in TABLE.incoming("twin")}
 SOURCES = ("/fleet_sim", "/robot_state_publisher")
 # A type that is a real type of this side but no topic's below (an intruder's or a stray publisher's).
@@ -90,7 +96,7 @@ class World:
             self.latched[(topic, source)] = payload
         if self.up:
             self.in_flight.append((topic, payload))
-        elif topic == "/twin/scout/points_filtered/draco/managed":
+        elif topic == names.absolute(names.managed_cloud_at_twin("scout")):
             # A keyframe: its pose, then the cloud, on the backfill routes.
             for to, msg_type in zip(BACKFILL["scout"], ("geometry_msgs/TransformStamped", ROUTES[topic].msg_type)):
                 f = self.sender.frame(

@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.netns_lan import SharedLan
 from cps_harness.testing import link_name
 from cps_link import netns_link
@@ -63,7 +64,7 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
                     sys.executable,
                     CLOUD_LOAD,
                     f"{ROBOT}:20000:5",
-                    f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+                    f"{names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(ROBOT))}",
                 ],
                 name="load",
             )
@@ -77,7 +78,7 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
                     find_node("cps_harness", "link_recorder"),
                     cloud_file,
                     ROBOT,
-                    f"/{ROBOT}/points_filtered/draco/managed:=/twin/{ROBOT}/points_filtered/draco/managed",
+                    f"{names.absolute(names.managed_cloud(ROBOT))}:={names.absolute(names.managed_cloud_at_twin(ROBOT))}",
                 ],
                 name="recorder",
             )

@@ -7,6 +7,7 @@ import struct
 
 import pytest
 
+from cps_fleet import names
 from cps_link.bridge_config import load_bridge_table
 from cps_link.route_ledger import RouteLedger, is_cloud_route
 from cps_ros import cloud_ledger as C
@@ -54,5 +55,5 @@ def test_the_twins_bridge_numbers_what_it_republishes():
     first = received.renumbered(incoming[0].to, body)
     second = received.renumbered(incoming[0].to, body)
     assert (header_seq(first), header_seq(second)) == (1, 2) and first[4:] == body[4:]
-    assert received.renumbered("/scout/odom", body) == body
+    assert received.renumbered(names.absolute(names.robot_topic("scout", names.ODOM)), body) == body
     assert header_seq(with_header_seq(b"\0\0\0\0x", 2**32 + 5)) == 5

@@ -12,6 +12,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.bridge_config import load_bridge_table
 from cps_link.bridge_wire import Frame, encode
@@ -54,10 +55,10 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     robots_bridge = robots_graph.popen(
         bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], cert_dir, port), name="bridge_robots"
     )
-    link = TopicRecorder("/tissue/link_state", LinkState)
-    clouds = TopicRecorder(f"/twin/{ROBOT}/points_filtered/draco/managed", CompressedPointCloud2)
-    diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
-    estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+    link = TopicRecorder(names.absolute(names.LINK_STATE), LinkState)
+    clouds = TopicRecorder(names.absolute(names.managed_cloud_at_twin(ROBOT)), CompressedPointCloud2)
+    diagnostics = TopicRecorder(names.DIAGNOSTICS, DiagnosticArray)
+    estop = rospy_node.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
     # This process's master serves later tests too: a latched e-stop left behind would hold their robots.
     for done in (estop.unregister, link.close, clouds.close, diagnostics.close):
         request.addfinalizer(done)
@@ -70,7 +71,7 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
             sys.executable,
             CLOUD_LOAD,
             f"{ROBOT}:20000:5",
-            f"/{ROBOT}/points_filtered/draco:=/{ROBOT}/points_filtered/draco/managed",
+            f"{names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO))}:={names.absolute(names.managed_cloud(ROBOT))}",
         ],
         name="load",
     )
@@ -89,7 +90,7 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
 
     # The latched e-stop reached the robots' side.
     echo = subprocess.run(
-        ["rostopic", "echo", "-n", "1", "/fleet/estop"],
+        ["rostopic", "echo", "-n", "1", names.ESTOP],
         env=robots_graph.env,
         capture_output=True,
         text=True,
@@ -109,7 +110,7 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     up = link.wait(lambda m: m.up, timeout_s=20, what="the link up again")
     assert up.last_outage_s > 0
     echo = subprocess.run(
-        ["rostopic", "echo", "-n", "1", "/fleet/estop"],
+        ["rostopic", "echo", "-n", "1", names.ESTOP],
         env=robots_graph.env,
         capture_output=True,
         text=True,
@@ -124,9 +125,9 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     config = session_config(table, "robots", "127.0.0.1", cert_dir)
     config["connect"]["endpoints"] = [f"tls/127.0.0.1:{port}"]
     with zenoh.open(zenoh.Config.from_json5(json.dumps(config))) as session:
-        key = f"cps/topic/twin/{ROBOT}/points_filtered/draco/managed"
+        to = names.absolute(names.managed_cloud_at_twin(ROBOT))
+        key = f"cps/topic{to}"
         time.sleep(1.0)
-        to = f"/twin/{ROBOT}/points_filtered/draco/managed"
         good = encode(
             Frame(
                 b"i" * 16,
@@ -160,7 +161,7 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
                     TFMessage._md5sum,
                     "/intruder",
                     b"\x00\x00\x00\x00",
-                    topic="/tf",
+                    topic=names.TF,
                 )
             ),
         )

@@ -19,6 +19,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.warm_start import checkout_env, copy_checkout, static_sensor_transform, wall_cloud
 from cps_mapping.kernel_cache import KERNEL_FOLDER
 
@@ -118,16 +119,16 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
     rospy = rospy_node
     path, _ = checkout
     name = "cold_map_server"
-    ready = TopicRecorder(f"/twin/{name}/ready", DiagnosticStatus)
-    octomap = TopicRecorder("/twin/octomap_binary", Octomap)
-    publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
+    ready = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.READY))), DiagnosticStatus)
+    octomap = TopicRecorder(names.absolute(names.in_twin(names.OCTOMAP_BINARY)), Octomap)
+    publisher = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=1)
     tf_keep = static_sensor_transform(rospy, SENSOR_FRAME)
     try:
         ros.popen(
             [
                 sys.executable,
                 os.path.join(path, "nodes", "map_server"),
-                "__ns:=/twin",
+                f"__ns:={names.absolute(names.TWIN_NS)}",
                 f"__name:={name}",
                 "_robots:=jackal",
                 f"_map_file:={tmp_path / 'map.bt'}",
@@ -171,18 +172,18 @@ def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node,
     rospy = rospy_node
     path = copy_checkout(PACKAGE, str(tmp_path / "unbuilt" / "cps_mapping"), with_cache=False)
     name = "unbuilt_map_server"
-    ready = TopicRecorder(f"/twin/{name}/ready", DiagnosticStatus)
-    octomap = TopicRecorder(f"/twin/{name}/octomap_binary", Octomap)
-    publisher = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=1)
+    ready = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.READY))), DiagnosticStatus)
+    octomap = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.OCTOMAP_BINARY))), Octomap)
+    publisher = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=1)
     tf_keep = static_sensor_transform(rospy, SENSOR_FRAME)
     try:
         ros.popen(
             [
                 sys.executable,
                 os.path.join(path, "nodes", "map_server"),
-                "__ns:=/twin",
+                f"__ns:={names.absolute(names.TWIN_NS)}",
                 f"__name:={name}",
-                f"octomap_binary:=/twin/{name}/octomap_binary",
+                f"{names.OCTOMAP_BINARY}:={names.absolute(names.in_twin(names.private(name, names.OCTOMAP_BINARY)))}",
                 "_robots:=jackal",
                 f"_map_file:={tmp_path / 'map.bt'}",
                 "_publish_period_s:=0.05",

@@ -13,6 +13,7 @@ import synthetic_scene as sc
 from fleet_model import new_map
 from scipy.spatial.transform import Rotation
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_mapping.fused_map import pack_index, voxel_index
 
@@ -33,7 +34,7 @@ def _static_tf(frames):
     for child, (origin, rotation) in frames.items():
         t = TransformStamped()
         t.header.stamp = rospy.Time.now()
-        t.header.frame_id, t.child_frame_id = "map", child
+        t.header.frame_id, t.child_frame_id = names.MAP_FRAME, child
         t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = origin.tolist()
         x, y, z, w = Rotation.from_matrix(rotation).as_quat()
         t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z, t.transform.rotation.w = x, y, z, w
@@ -51,7 +52,7 @@ def _moving_tf(child, pose):
     broadcaster = tf2_ros.TransformBroadcaster()
     t = TransformStamped()
     t.header.stamp = rospy.Time.now()
-    t.header.frame_id, t.child_frame_id = "map", child
+    t.header.frame_id, t.child_frame_id = names.MAP_FRAME, child
     t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = pose[0].tolist()
     t.transform.rotation.w = 1.0
     for _ in range(3):
@@ -99,8 +100,10 @@ def _start(graph, map_file, name, **extra):
         "~max_points_range_m": 200.0,
     }
     params.update({f"~{k}": v for k, v in extra.items()})
-    proc = graph.start_node("cps_mapping", "map_server", name=name, namespace="/twin", params=params)
-    graph.wait_for_service(f"/twin/{name}/clear_bbx", timeout_s=30)
+    proc = graph.start_node(
+        "cps_mapping", "map_server", name=name, namespace=names.absolute(names.TWIN_NS), params=params
+    )
+    graph.wait_for_service(names.absolute(names.in_twin(names.private(name, names.CLEAR_BBX))), timeout_s=30)
     return proc
 
 
@@ -125,12 +128,12 @@ def server(ros_master, rospy_node, scene_clouds, tmp_path_factory):
     s = types.SimpleNamespace(graph=graph, tmp=tmp, map_file=tmp / "twin.bt")
     s.tf_keep = _static_tf({"jackal/camera_depth_optical_frame": JACKAL, "scout/lidar": SCOUT})
     s.proc = _start(graph, s.map_file, "map_server_a")
-    s.stats = TopicRecorder("/twin/map_stats", MapStats)
-    s.centers = TopicRecorder("/twin/octomap_point_cloud_centers", PointCloud2)
-    s.binary = TopicRecorder("/twin/octomap_binary", Octomap)
-    s.pub_j = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=5)
-    s.pub_s = rospy.Publisher("/twin/scout/points", PointCloud2, queue_size=5)
-    s.pub_ghost = rospy.Publisher("/twin/ghost/points", PointCloud2, queue_size=1)
+    s.stats = TopicRecorder(names.absolute(names.in_twin(names.MAP_STATS)), MapStats)
+    s.centers = TopicRecorder(names.absolute(names.in_twin(names.POINT_CLOUD_CENTERS)), PointCloud2)
+    s.binary = TopicRecorder(names.absolute(names.in_twin(names.OCTOMAP_BINARY)), Octomap)
+    s.pub_j = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=5)
+    s.pub_s = rospy.Publisher(names.absolute(names.twin_points("scout")), PointCloud2, queue_size=5)
+    s.pub_ghost = rospy.Publisher(names.absolute(names.twin_points("ghost")), PointCloud2, queue_size=1)
     assert wait_for(lambda: s.pub_j.get_num_connections() and s.pub_s.get_num_connections(), timeout_s=20)
     try:
         # Depth clouds carry NaN (no return) as the decoder delivers them.
@@ -204,14 +207,18 @@ def test_bad_input_is_counted_and_leaves_the_map(server, rospy_node, scene_cloud
     assert server.proc.poll() is None
     from cps_msgs.srv import SaveMap
 
-    saved = rospy.ServiceProxy("/twin/save_map", SaveMap)(str(server.tmp / "after_bad_input.bt"))
+    saved = rospy.ServiceProxy(names.absolute(names.in_twin(names.SAVE_MAP)), SaveMap)(
+        str(server.tmp / "after_bad_input.bt")
+    )
     assert saved.success, saved.message
     assert _occupied_count(server.tmp / "after_bad_input.bt") == len(server.occupied), "bad input changed the map"
 
 
 def test_unknown_robot_is_named_and_ignored(server):
     assert "~robots names 'ghost', which is not in the fleet" in server.graph.output("map_server_a")
-    unmapped = re.compile(r"/twin/ghost/points is published but robot 'ghost' is not mapped")
+    unmapped = re.compile(
+        re.escape(names.absolute(names.twin_points("ghost"))) + " is published but robot 'ghost' is not mapped"
+    )
     assert wait_for(lambda: unmapped.search(server.graph.output("map_server_a")), timeout_s=20), (
         "the unknown robot's topic was not reported"
     )
@@ -225,8 +232,8 @@ def test_refused_loads_leave_the_map_and_services_work(server, rospy_node, scene
     from cps_msgs.srv import BoundingBoxQuery, LoadMap, SaveMap
 
     tmp, before = server.tmp, len(server.occupied)
-    save = rospy.ServiceProxy("/twin/save_map", SaveMap)
-    load = rospy.ServiceProxy("/twin/load_map", LoadMap)
+    save = rospy.ServiceProxy(names.absolute(names.in_twin(names.SAVE_MAP)), SaveMap)
+    load = rospy.ServiceProxy(names.absolute(names.in_twin(names.LOAD_MAP)), LoadMap)
     saved = save(str(tmp / "copy.ot"))
     assert saved.success, saved.message
     assert save(str(tmp / "before_loads.bt")).success
@@ -241,14 +248,16 @@ def test_refused_loads_leave_the_map_and_services_work(server, rospy_node, scene
     )
 
     crate_a = next(b for b in scene_clouds[0].boxes if b.name == "crate_a")
-    full = TopicRecorder("/twin/octomap_full", Octomap)
+    full = TopicRecorder(names.absolute(names.in_twin(names.OCTOMAP_FULL)), Octomap)
     try:
         # As octomap_server's: the full tree (log-odds of every known voxel), not the binary one.
         message = full.wait(lambda m: len(m.data) > 0, what="octomap_full")
         assert not message.binary and message.id == "OcTree" and message.resolution == pytest.approx(RES)
     finally:
         full.close()
-    clear_bbx = rospy.ServiceProxy("/twin/map_server_a/clear_bbx", BoundingBoxQuery)
+    clear_bbx = rospy.ServiceProxy(
+        names.absolute(names.in_twin(names.private("map_server_a", names.CLEAR_BBX))), BoundingBoxQuery
+    )
     with pytest.raises(rospy.ServiceException, match="below min"):
         clear_bbx(Point(*crate_a.max_m), Point(*crate_a.min_m))
     clear_bbx(Point(*crate_a.min_m), Point(*crate_a.max_m))
@@ -267,7 +276,7 @@ def test_restarted_server_resumes_and_reports_the_change(server, rospy_node, sce
     server.graph.stop(server.proc)
     assert server.map_file.exists(), "the server saves on shutdown"
     tmp = server.tmp
-    changes = TopicRecorder("/twin/map_changes", MarkerArray)
+    changes = TopicRecorder(names.absolute(names.in_twin(names.MAP_CHANGES)), MarkerArray)
     proc = _start(
         server.graph,
         server.map_file,
@@ -288,7 +297,7 @@ def test_restarted_server_resumes_and_reports_the_change(server, rospy_node, sce
         crate_a = next(b for b in scene_clouds[0].boxes if b.name == "crate_a")
         assert crate_a.min_m[0] - 0.2 < boxes[0].pose.position.x < crate_a.max_m[0] + 0.2
         assert "appeared" in (tmp / "changes.md").read_text()
-        rospy.ServiceProxy("/twin/map_server_b/reset", Empty)()
+        rospy.ServiceProxy(names.absolute(names.in_twin(names.private("map_server_b", names.RESET))), Empty)()
         server.centers.wait(lambda m: m.width == 0, what="reset")
     finally:
         server.graph.stop(proc)

@@ -9,6 +9,7 @@ import re
 import pytest
 from hostile_maps import COARSE_LEAF_BT, far_apart_bt
 
+from cps_fleet import names
 from cps_harness.hostile_clouds import packed_cloud, refused_clouds
 from cps_harness.testing import TopicRecorder, wait_for
 
@@ -24,7 +25,7 @@ def _static_tf():
     broadcaster = tf2_ros.StaticTransformBroadcaster()
     t = TransformStamped()
     t.header.stamp = rospy.Time.now()
-    t.header.frame_id, t.child_frame_id = "map", FRAME
+    t.header.frame_id, t.child_frame_id = names.MAP_FRAME, FRAME
     t.transform.translation.z = 0.5
     t.transform.rotation.w = 1.0
     broadcaster.sendTransform([t])
@@ -47,12 +48,12 @@ def test_map_server_survives_hostile_maps_clouds_and_paths(ros, rospy_node, tmp_
     mission.mkdir()
     (mission / "map.bt").write_bytes(COARSE_LEAF_BT)
     tf_keep = _static_tf()
-    stats = TopicRecorder("/twin/map_stats", MapStats)
+    stats = TopicRecorder(names.absolute(names.in_twin(names.MAP_STATS)), MapStats)
     proc = ros.start_node(
         "cps_mapping",
         "map_server",
         name="map_server_hostile",
-        namespace="/twin",
+        namespace=names.absolute(names.TWIN_NS),
         params={
             "~robots": "jackal",
             "~map_file": str(mission / "map.bt"),
@@ -61,9 +62,9 @@ def test_map_server_survives_hostile_maps_clouds_and_paths(ros, rospy_node, tmp_
             "~autosave_period_s": 0.0,
         },
     )
-    points = rospy.Publisher("/twin/jackal/points", PointCloud2, queue_size=20)
+    points = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=20)
     try:
-        ros.wait_for_service("/twin/save_map", timeout_s=60)
+        ros.wait_for_service(names.absolute(names.in_twin(names.SAVE_MAP)), timeout_s=60)
         output = ros.output("map_server_hostile")
         assert re.search(r"cannot resume: .*max_grid_voxels.*moved it to .*map\.bt\.unreadable-\d+", output), output
         assert not (mission / "map.bt").exists()
@@ -85,8 +86,8 @@ def test_map_server_survives_hostile_maps_clouds_and_paths(ros, rospy_node, tmp_
             what=f"{len(hostile)} hostile clouds counted",
         )
 
-        save = rospy.ServiceProxy("/twin/save_map", SaveMap)
-        load = rospy.ServiceProxy("/twin/load_map", LoadMap)
+        save = rospy.ServiceProxy(names.absolute(names.in_twin(names.SAVE_MAP)), SaveMap)
+        load = rospy.ServiceProxy(names.absolute(names.in_twin(names.LOAD_MAP)), LoadMap)
         assert save(str(mission / "before.bt")).success
         (mission / "coarse.bt").write_bytes(COARSE_LEAF_BT)
         far_apart_bt(mission / "far.bt")

@@ -11,6 +11,7 @@ import synthetic_scene as sc
 from geometry_msgs.msg import Point
 from std_msgs.msg import Header
 
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_mapping import map_messages
 from cps_mapping.change_detection import Change
@@ -105,9 +106,17 @@ def test_unknown_robot_topics_are_warned_about_once(caplog):
     server, _ = _server()
     with caplog.at_level(logging.WARNING):
         for _ in range(2):
-            server.notice_topics(["/twin/ghost/points", "/twin/jackal/points", "/other/x/points"], "/twin/")
+            server.notice_topics(
+                [
+                    names.absolute(names.twin_points("ghost")),
+                    names.absolute(names.twin_points("jackal")),
+                    names.absolute(names.robot_topic("x", names.POINTS), "/other"),
+                ],
+                names.absolute(names.TWIN_NS) + "/",
+            )
     assert server.unknown_robots == {"ghost"}
-    assert caplog.text.count("/twin/ghost/points is published but robot 'ghost' is not mapped") == 1
+    unmapped = f"{names.absolute(names.twin_points('ghost'))} is published but robot 'ghost' is not mapped"
+    assert caplog.text.count(unmapped) == 1
 
 
 def test_map_topics_are_published_once_per_map_version(jackal_points):
@@ -121,7 +130,7 @@ def test_map_topics_are_published_once_per_map_version(jackal_points):
     assert len(published["centers"]) == 2, "an unchanged map is not published again"
     octomap_msg, centers = published["octomap"][-1], published["centers"][-1]
     assert bytes(np.asarray(octomap_msg.data, dtype=np.int8).tobytes()) == message_fields(server.map)[3]
-    assert octomap_msg.header.frame_id == "map" and octomap_msg.id == "OcTree"
+    assert octomap_msg.header.frame_id == names.MAP_FRAME and octomap_msg.id == "OcTree"
     assert centers.width == len(server.map.occupied_index())
     grid = published["projected_map"][-1]
     assert grid.info.width * grid.info.height == len(grid.data) and grid.info.resolution == RES
@@ -170,9 +179,11 @@ def test_the_published_maps_age_grows_when_the_map_is_inserted_but_not_published
 
 def test_clouds_missing_from_the_decoders_numbers_are_counted_as_missed_upstream():
     server, published = _server()
+    points = names.absolute(names.twin_points("jackal"))
+    backfill = names.absolute(names.in_twin(names.robot_topic("jackal", names.POINTS_BACKFILL)))
     for seq in (1, 2, 5, 6, 9):  # 3, 4, 7, 8 never arrived
-        server.note_sequence("jackal", ("/cloud_decoder", "/twin/jackal/points"), seq)
-    server.note_sequence("jackal", ("/cloud_decoder", "/twin/jackal/points_backfill"), 1)  # another input
+        server.note_sequence("jackal", ("/cloud_decoder", points), seq)
+    server.note_sequence("jackal", ("/cloud_decoder", backfill), 1)  # another input
     server.publish_stats(STAMP)
     assert {r.robot: r for r in published["stats"][-1].robots}["jackal"].clouds_missed_upstream == 4
 
@@ -237,7 +248,7 @@ def test_a_server_resumes_from_its_map_file_and_moves_an_unreadable_one_aside(ja
 def test_builders_make_the_messages_the_map_describes(jackal_points):
     server, _ = _server()
     server.map.insert_cloud(jackal_points @ JACKAL_POSE[1].T + JACKAL_POSE[0], JACKAL_POSE[0])
-    header = Header(stamp=STAMP, frame_id="map")
+    header = Header(stamp=STAMP, frame_id=names.MAP_FRAME)
     msg = map_messages.octomap_message(message_fields(server.map), header)
     rebuilt = octree_from_message(msg.binary, msg.id, msg.resolution, np.asarray(msg.data, dtype=np.int8).tobytes())
     assert rebuilt.size() == server.map.binary_tree_nodes()

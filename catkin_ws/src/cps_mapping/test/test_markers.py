@@ -8,6 +8,7 @@ from geometry_msgs.msg import Point
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from cps_fleet import names
 from cps_mapping.fused_map import height_colors
 from cps_mapping.markers import occupied_cells_markers
 
@@ -47,7 +48,7 @@ def test_serialized_markers_are_the_bytes_genpy_writes_and_read_back():
     rng = np.random.default_rng(3)
     centers = rng.uniform([-10, -7, 0], [10, 7, 3], size=(500, 3))
     sizes = rng.choice([RES, 2 * RES, 8 * RES], size=500)
-    header = Header(seq=0, stamp=rospy.Time(1795434700, 123), frame_id="map")
+    header = Header(seq=0, stamp=rospy.Time(1795434700, 123), frame_id=names.MAP_FRAME)
     ours = occupied_cells_markers(centers, sizes, RES, header)
     assert _bytes(ours) == _bytes(_genpy_markers(centers, sizes, header))
     back = MarkerArray().deserialize(_bytes(ours))
@@ -58,7 +59,7 @@ def test_serialized_markers_are_the_bytes_genpy_writes_and_read_back():
 
 
 def test_an_empty_map_publishes_one_delete_marker():
-    header = Header(frame_id="map")
+    header = Header(frame_id=names.MAP_FRAME)
     ours = occupied_cells_markers(np.zeros((0, 3)), np.zeros(0), RES, header)
     assert _bytes(ours) == _bytes(_genpy_markers(np.zeros((0, 3)), np.zeros(0), header))
     back = MarkerArray().deserialize(_bytes(ours))

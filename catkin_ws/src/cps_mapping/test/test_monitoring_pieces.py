@@ -9,6 +9,7 @@ import types
 import numpy as np
 import pytest
 
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_mapping.baseline import BaselineError, load_baseline, write_map_metadata
 from cps_mapping.change_attention import ChangeAttention
@@ -32,8 +33,8 @@ def _saved_map(path, resolution_m, mapping):
 
 def test_baseline_in_the_same_resolution_and_frame_loads(tmp_path, mapping):
     path = _saved_map(tmp_path / "a.bt", mapping.resolution_m, mapping)
-    write_map_metadata(path, "map", mapping.resolution_m)
-    assert len(load_baseline(path, mapping, "map").occupied_centers()) >= 2
+    write_map_metadata(path, names.MAP_FRAME, mapping.resolution_m)
+    assert len(load_baseline(path, mapping, names.MAP_FRAME).occupied_centers()) >= 2
 
 
 @pytest.mark.parametrize("problem", ["missing", "corrupt", "resolution", "frame", "none"])
@@ -47,7 +48,7 @@ def test_bad_baselines_are_refused_with_the_reason(tmp_path, mapping, problem):
         _saved_map(path, mapping.resolution_m, mapping)
         write_map_metadata(path, "odom", mapping.resolution_m)
     with pytest.raises(BaselineError) as info:
-        load_baseline(path if problem != "none" else "", mapping, "map")
+        load_baseline(path if problem != "none" else "", mapping, names.MAP_FRAME)
     words = {
         "missing": "does not exist",
         "corrupt": path,

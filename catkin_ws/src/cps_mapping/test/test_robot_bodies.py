@@ -8,6 +8,7 @@ import types
 import numpy as np
 import pytest
 
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_mapping.baseline import BaselineError, read_map_trails, write_map_metadata
 from cps_mapping.change_detection import detect_changes
@@ -66,11 +67,11 @@ def test_poses_are_thinned_saved_with_the_map_and_read_back(tmp_path, fleet):
     assert sum(kept) == 3, "one kept every 0.05 m"
     assert not trails.record("nobody", 0.0, rotation, translation)
     path = str(tmp_path / "map.bt")
-    write_map_metadata(path, "map", RES, trails)
+    write_map_metadata(path, names.MAP_FRAME, RES, trails)
     back = read_map_trails(path)
     assert back.pose_count() == 3 and back.trails["champ"].body == trails.trails["champ"].body
     np.testing.assert_allclose(back.trails["champ"].poses[-1], trails.trails["champ"].poses[-1], atol=1e-5)
-    write_map_metadata(path, "map", RES)  # a map saved without poses: usable, and says so
+    write_map_metadata(path, names.MAP_FRAME, RES)  # a map saved without poses: usable, and says so
     assert read_map_trails(path) is None
     assert read_map_trails(str(tmp_path / "none.bt")) is None
     doc = json.load(open(path + ".json"))

@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 
 pytestmark = pytest.mark.ros
@@ -16,8 +17,8 @@ pytestmark = pytest.mark.ros
 HERE = os.path.dirname(os.path.abspath(__file__))
 # A GUI stand-in in its own process: publishes the e-stop state latched, then dies when killed.
 GUI = (
-    "import sys, rospy; from std_msgs.msg import Bool; rospy.init_node('gui', anonymous=True); "
-    "p = rospy.Publisher('/fleet/estop', Bool, queue_size=1, latch=True); "
+    "import sys, rospy; from std_msgs.msg import Bool; from cps_fleet import names; "
+    "rospy.init_node('gui', anonymous=True); p = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True); "
     "p.publish(Bool(sys.argv[1] == 'on')); rospy.spin()"
 )
 
@@ -39,7 +40,12 @@ def _publish_for(pub, msg, seconds, rate_hz=20.0):
 
 def _start_mux(graph, env=None):
     return graph.start_node(
-        "cps_sim", "velocity_mux", name="velocity_mux", namespace="/jackal", params={"~robot": "jackal"}, env=env
+        "cps_sim",
+        "velocity_mux",
+        name="velocity_mux",
+        namespace=names.absolute("jackal"),
+        params={"~robot": "jackal"},
+        env=env,
     )
 
 
@@ -57,7 +63,7 @@ def sim(ros_master, rospy_node):
             name="fleet_sim_jackal",
             params={"~profile": "light", "~robots": "jackal", "~sensor_workers": 0},
         )
-        graph.wait_for_topic("/jackal/odom", timeout_s=90)
+        graph.wait_for_topic(names.absolute(names.robot_topic("jackal", names.ODOM)), timeout_s=90)
         yield graph
     finally:
         graph.close()
@@ -73,8 +79,8 @@ def test_stop_all_cannot_be_bypassed_by_publishing_cmd_vel_directly(sim, rospy_n
     from nav_msgs.msg import Odometry
 
     gui = _start_gui(sim, "on")
-    odom = TopicRecorder("/jackal/odom", Odometry)
-    direct = rospy_node.Publisher("/jackal/cmd_vel", Twist, queue_size=5)
+    odom = TopicRecorder(names.absolute(names.robot_topic("jackal", names.ODOM)), Odometry)
+    direct = rospy_node.Publisher(names.absolute(names.robot_topic("jackal", names.CMD_VEL)), Twist, queue_size=5)
     try:
         assert wait_for(lambda: "e-stop state heard (on)" in sim.output("fleet_sim_jackal"), 20)
         before = _position(odom)
@@ -101,12 +107,12 @@ def _moves(direct, odom):
 def test_a_mux_restarted_after_the_gui_has_gone_starts_stopped(sim, rospy_node):
     from geometry_msgs.msg import Twist
 
-    executed = TopicRecorder("/jackal/cmd_vel", Twist)
-    auto = rospy_node.Publisher("/jackal/cmd_vel/auto", Twist, queue_size=5)
+    executed = TopicRecorder(names.absolute(names.robot_topic("jackal", names.CMD_VEL)), Twist)
+    auto = rospy_node.Publisher(names.absolute(names.robot_topic("jackal", names.CMD_VEL_AUTO)), Twist, queue_size=5)
     gui = _start_gui(sim, "off")
     mux = _start_mux(sim)
     try:
-        sim.wait_for_topic("/jackal/cmd_vel", timeout_s=30)
+        sim.wait_for_topic(names.absolute(names.robot_topic("jackal", names.CMD_VEL)), timeout_s=30)
         assert wait_for(lambda: "e-stop state heard (off)" in sim.output("velocity_mux"), 20)
         _publish_for(auto, _twist(0.3), seconds=1.0)
         assert wait_for(lambda: executed.latest is not None and executed.latest.linear.x > 0.0, 5)
@@ -138,9 +144,13 @@ def test_the_mux_deadman_survives_its_wall_clock_stepping_back_30_s(sim, rospy_n
         "CPS_TEST_CLOCK_STEP_FILE": str(step_file),
         "CPS_TEST_CLOCK_STEP_S": "-30",
     }
-    executed = TopicRecorder("/jackal/cmd_vel", Twist)
-    teleop = rospy_node.Publisher("/jackal/cmd_vel/teleop", Twist, queue_size=5)
-    mode = rospy_node.Publisher("/jackal/control_mode", String, queue_size=1, latch=True)
+    executed = TopicRecorder(names.absolute(names.robot_topic("jackal", names.CMD_VEL)), Twist)
+    teleop = rospy_node.Publisher(
+        names.absolute(names.robot_topic("jackal", names.CMD_VEL_TELEOP)), Twist, queue_size=5
+    )
+    mode = rospy_node.Publisher(
+        names.absolute(names.robot_topic("jackal", names.CONTROL_MODE)), String, queue_size=1, latch=True
+    )
     gui = _start_gui(sim, "off")
     mux = _start_mux(sim, env=env)
     try:

@@ -6,6 +6,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_fleet.fleet import default_fleet_path, load_fleet
 from cps_harness.testing import TopicRecorder
 
@@ -19,8 +20,13 @@ def test_fleet_sim_runs_the_sixteen_robot_fleet(ros, rospy_node):
     from sensor_msgs.msg import PointCloud2
 
     fleet = load_fleet(FLEET16, profile="light")
-    odom = {r.name: TopicRecorder(f"/{r.name}/odom", Odometry) for r in fleet.robots}
-    clouds = {r.name: TopicRecorder(f"/{r.name}/{r.cloud_topic}", PointCloud2) for r in fleet.robots}
+    odom = {
+        r.name: TopicRecorder(names.absolute(names.robot_topic(r.name, names.ODOM)), Odometry) for r in fleet.robots
+    }
+    clouds = {
+        r.name: TopicRecorder(names.absolute(names.robot_topic(r.name, r.cloud_topic)), PointCloud2)
+        for r in fleet.robots
+    }
     try:
         # Its own name: private parameters outlive the node on the session's master, and a later
         # test's `fleet_sim` would read this one's ~fleet_file.
@@ -30,7 +36,7 @@ def test_fleet_sim_runs_the_sixteen_robot_fleet(ros, rospy_node):
         deadline = time.monotonic() + 50.0
         for robot in fleet.robots:
             first = odom[robot.name].wait(timeout_s=max(deadline - time.monotonic(), 1.0))
-            assert first.header.frame_id == f"{robot.name}/odom"
+            assert first.header.frame_id == names.odom_frame(robot.name)
             cloud = clouds[robot.name].wait(timeout_s=max(deadline - time.monotonic(), 1.0))
             assert cloud.header.frame_id == robot.sensor_frame and cloud.width * cloud.height > 0, robot.name
     finally:

@@ -4,6 +4,7 @@ fleet's e-stop stopping both."""
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 
 pytestmark = pytest.mark.ros
@@ -26,7 +27,7 @@ def fleet(ros, rospy_node):
     from std_msgs.msg import Bool, String
 
     # Latched before the nodes start, as the bringup's keeper does: every robot must hear it.
-    estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+    estop = rospy_node.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
     estop.publish(Bool(False))
     ros.start_node(
         "cps_sim",
@@ -36,11 +37,21 @@ def fleet(ros, rospy_node):
     )
     ros.start_node("cps_sim", "fleet_control", name="fleet_control", params={"~robots": ",".join(ROBOTS)})
     io = {
-        "executed": {r: TopicRecorder(f"/{r}/cmd_vel", Twist) for r in ROBOTS},
-        "state": {r: TopicRecorder(f"/{r}/mission_state", String) for r in ROBOTS},
-        "active": {r: TopicRecorder(f"/{r}/control_mode/active", String) for r in ROBOTS},
-        "mode": {r: rospy_node.Publisher(f"/{r}/control_mode", String, queue_size=1, latch=True) for r in ROBOTS},
-        "teleop": {r: rospy_node.Publisher(f"/{r}/cmd_vel/teleop", Twist, queue_size=5) for r in ROBOTS},
+        "executed": {r: TopicRecorder(names.absolute(names.robot_topic(r, names.CMD_VEL)), Twist) for r in ROBOTS},
+        "state": {r: TopicRecorder(names.absolute(names.robot_topic(r, names.MISSION_STATE)), String) for r in ROBOTS},
+        "active": {
+            r: TopicRecorder(names.absolute(names.robot_topic(r, names.CONTROL_MODE_ACTIVE)), String) for r in ROBOTS
+        },
+        "mode": {
+            r: rospy_node.Publisher(
+                names.absolute(names.robot_topic(r, names.CONTROL_MODE)), String, queue_size=1, latch=True
+            )
+            for r in ROBOTS
+        },
+        "teleop": {
+            r: rospy_node.Publisher(names.absolute(names.robot_topic(r, names.CMD_VEL_TELEOP)), Twist, queue_size=5)
+            for r in ROBOTS
+        },
         "estop": estop,
     }
     try:
@@ -86,10 +97,14 @@ def test_one_process_drives_two_robots_isolates_a_nan_and_the_estop_stops_both(f
 
     send({"jackal": float("nan")}, n=5)
     fleet["executed"]["jackal"].wait(lambda m: m.linear.x == 0.0, timeout_s=2, what="jackal holding after a NaN")
-    assert wait_for(lambda: "/jackal/cmd_vel/teleop: dropped" in ros.output("fleet_control"), 5), ros.output(
-        "fleet_control"
-    )[-2000:]
-    assert "/champ/cmd_vel/teleop: dropped" not in ros.output("fleet_control")
+    dropped = "{}: dropped".format
+    jackal_teleop, champ_teleop = (
+        names.absolute(names.robot_topic(r, names.CMD_VEL_TELEOP)) for r in ("jackal", "champ")
+    )
+    assert wait_for(lambda: dropped(jackal_teleop) in ros.output("fleet_control"), 5), ros.output("fleet_control")[
+        -2000:
+    ]
+    assert dropped(champ_teleop) not in ros.output("fleet_control")
     assert fleet["executed"]["champ"].latest.linear.x == pytest.approx(speeds["champ"], abs=0.02)
 
     send(n=3)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from rostest_support import quat_yaw, start_robot_nodes
 
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_harness.testing import TopicRecorder
 from cps_sim.messages import cloud_to_array
@@ -28,13 +29,13 @@ def running_fleet(ros_master, rospy_node):
     states are recorded from before the start."""
     from std_msgs.msg import Bool, String
 
-    states = {r: TopicRecorder(f"/{r}/mission_state", String) for r in ROBOTS}
+    states = {r: TopicRecorder(names.absolute(names.robot_topic(r, names.MISSION_STATE)), String) for r in ROBOTS}
     graph = ros_master.attach()
-    estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+    estop = rospy_node.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
     estop.publish(Bool(False))  # the mux and the simulator hold until they hear the state
     try:
         graph.start_node("cps_sim", "fleet_sim", name="fleet_sim", params={"~profile": "light"})
-        graph.wait_for_topic("/scout/points", timeout_s=60)
+        graph.wait_for_topic(names.absolute(names.robot_topic("scout", names.POINTS)), timeout_s=60)
         for robot in ROBOTS:
             start_robot_nodes(graph, robot)
         yield states
@@ -64,7 +65,7 @@ def test_depth_clouds_are_organized_rgb_clouds_in_the_optical_frame(record, flee
 
     light = fleet.profile.depth_camera
     for robot in DEPTH_ROBOTS:
-        cloud = record(f"/{robot}/points", PointCloud2).wait(timeout_s=60)
+        cloud = record(names.absolute(names.robot_topic(robot, names.POINTS)), PointCloud2).wait(timeout_s=60)
         assert (cloud.height, cloud.width, cloud.point_step) == (light.height, light.width, 32)
         assert [f.name for f in cloud.fields] == ["x", "y", "z", "rgb"] and not cloud.is_dense
         assert cloud.header.frame_id == f"{robot}/camera_depth_optical_frame"
@@ -73,7 +74,7 @@ def test_depth_clouds_are_organized_rgb_clouds_in_the_optical_frame(record, flee
 def test_lidar_scan_is_an_unorganized_velodyne_cloud(record):
     from sensor_msgs.msg import PointCloud2
 
-    scan = record("/scout/points", PointCloud2).wait(timeout_s=60)
+    scan = record(names.absolute(names.robot_topic("scout", names.POINTS)), PointCloud2).wait(timeout_s=60)
     assert scan.header.frame_id == "scout/lidar" and scan.height == 1
     assert [f.name for f in scan.fields] == ["x", "y", "z", "intensity", "ring", "time"]
     assert np.all(np.isfinite(cloud_to_array(scan)["x"]))
@@ -83,9 +84,9 @@ def test_camera_image_and_info_match_the_profile(record, fleet):
     from sensor_msgs.msg import CameraInfo, Image
 
     light = fleet.profile.depth_camera
-    img = record("/jackal/camera/image_raw", Image).wait(timeout_s=30)
+    img = record(names.absolute(names.robot_topic("jackal", names.CAMERA_IMAGE)), Image).wait(timeout_s=30)
     assert (img.encoding, img.width, img.height) == ("rgb8", light.width, light.height)
-    info = record("/jackal/camera/camera_info", CameraInfo).wait(timeout_s=30)
+    info = record(names.absolute(names.robot_topic("jackal", names.CAMERA_INFO)), CameraInfo).wait(timeout_s=30)
     assert info.K[0] > 0 and info.header.frame_id == "jackal/camera_depth_optical_frame"
 
 
@@ -93,15 +94,18 @@ def test_joints_battery_and_diagnostics(record):
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import BatteryState, JointState
 
-    assert len(record("/champ/joint_states", JointState).wait(timeout_s=30).name) == 12
-    bat = record("/scout/battery", BatteryState).wait(timeout_s=30)
+    assert (
+        len(record(names.absolute(names.robot_topic("champ", names.JOINT_STATES)), JointState).wait(timeout_s=30).name)
+        == 12
+    )
+    bat = record(names.absolute(names.robot_topic("scout", names.BATTERY)), BatteryState).wait(timeout_s=30)
     assert 0.0 < bat.percentage <= 1.0 and bat.voltage > 0 and bat.current < 0
-    diag = record("/diagnostics", DiagnosticArray).wait(
+    diag = record(names.DIAGNOSTICS, DiagnosticArray).wait(
         lambda m: any(s.name == "cps_sim: fleet" for s in m.status), timeout_s=10, what="fleet_sim's diagnostics"
     )
-    names = [s.name for s in diag.status]
-    assert "cps_sim: scout lidar" in names and "cps_sim: iris depth_camera" in names
-    fleet_values = {kv.key: kv.value for kv in diag.status[names.index("cps_sim: fleet")].values}
+    statuses = [s.name for s in diag.status]
+    assert "cps_sim: scout lidar" in statuses and "cps_sim: iris depth_camera" in statuses
+    fleet_values = {kv.key: kv.value for kv in diag.status[statuses.index("cps_sim: fleet")].values}
     assert float(fleet_values["real_time_factor"]) > 0
 
 
@@ -114,14 +118,16 @@ def test_tf_map_to_odom_is_the_initial_pose_and_odometry_uses_the_robots_frames(
     listener = tf2_ros.TransformListener(buffer)
     try:
         for robot in ROBOTS:
-            msg = record(f"/{robot}/odom", Odometry).wait(timeout_s=30)
-            assert (msg.header.frame_id, msg.child_frame_id) == (f"{robot}/odom", f"{robot}/base_link")
+            msg = record(names.absolute(names.robot_topic(robot, names.ODOM)), Odometry).wait(timeout_s=30)
+            assert (msg.header.frame_id, msg.child_frame_id) == (names.odom_frame(robot), names.base_frame(robot))
             pose = fleet.robot(robot).initial_pose
-            static = buffer.lookup_transform("map", f"{robot}/odom", rospy.Time(0), rospy.Duration(10))
+            static = buffer.lookup_transform(
+                names.MAP_FRAME, names.odom_frame(robot), rospy.Time(0), rospy.Duration(10)
+            )
             t = static.transform.translation
             assert (t.x, t.y) == pytest.approx((pose.x, pose.y), abs=1e-6)
             assert quat_yaw(static.transform.rotation) == pytest.approx(pose.yaw_rad, abs=1e-6)
-            buffer.lookup_transform("map", fleet.robot(robot).sensor_frame, rospy.Time(0), rospy.Duration(10))
+            buffer.lookup_transform(names.MAP_FRAME, fleet.robot(robot).sensor_frame, rospy.Time(0), rospy.Duration(10))
     finally:
         del listener
 
@@ -133,8 +139,8 @@ def test_every_route_runs_to_done_through_inspecting(running_fleet, record, flee
     from sensor_msgs.msg import BatteryState
 
     rospy = rospy_node
-    battery = record("/scout/battery", BatteryState)
-    odom = record("/scout/odom", Odometry)
+    battery = record(names.absolute(names.robot_topic("scout", names.BATTERY)), BatteryState)
+    odom = record(names.absolute(names.robot_topic("scout", names.ODOM)), Odometry)
     first_battery = battery.wait(timeout_s=30)
     for robot, states in running_fleet.items():
         states.wait(lambda m: m.data == "done", timeout_s=180, what=f"{robot}'s mission done")
@@ -145,7 +151,9 @@ def test_every_route_runs_to_done_through_inspecting(running_fleet, record, flee
     listener = tf2_ros.TransformListener(buffer)
     try:
         last = fleet.route("scout").waypoints[-1]
-        map_to_base = buffer.lookup_transform("map", "scout/base_link", rospy.Time(0), rospy.Duration(5))
+        map_to_base = buffer.lookup_transform(
+            names.MAP_FRAME, names.base_frame("scout"), rospy.Time(0), rospy.Duration(5)
+        )
     finally:
         del listener
     p = map_to_base.transform.translation

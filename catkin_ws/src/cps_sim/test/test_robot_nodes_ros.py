@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from rostest_support import start_robot_nodes
 
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_sim.messages import cloud_to_array
@@ -28,16 +29,20 @@ class Jackal:
             name="fleet_sim_jackal",
             params={"~profile": "light", "~robots": "jackal", "~sensor_workers": 0},
         )
-        graph.wait_for_topic("/jackal/odom", timeout_s=60)
+        graph.wait_for_topic(names.absolute(names.robot_topic("jackal", names.ODOM)), timeout_s=60)
         start_robot_nodes(graph, "jackal")
-        self.odom = TopicRecorder("/jackal/odom", Odometry)
-        self.executed = TopicRecorder("/jackal/cmd_vel", Twist)
-        self.state = TopicRecorder("/jackal/mission_state", String)
-        self.active_mode = TopicRecorder("/jackal/control_mode/active", String)
-        self.mode = rospy.Publisher("/jackal/control_mode", String, queue_size=1, latch=True)
-        self.teleop = rospy.Publisher("/jackal/cmd_vel/teleop", Twist, queue_size=5)
-        self.direct = rospy.Publisher("/jackal/cmd_vel", Twist, queue_size=5)
-        self.estop = rospy.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+        self.odom = TopicRecorder(names.absolute(names.robot_topic("jackal", names.ODOM)), Odometry)
+        self.executed = TopicRecorder(names.absolute(names.robot_topic("jackal", names.CMD_VEL)), Twist)
+        self.state = TopicRecorder(names.absolute(names.robot_topic("jackal", names.MISSION_STATE)), String)
+        self.active_mode = TopicRecorder(names.absolute(names.robot_topic("jackal", names.CONTROL_MODE_ACTIVE)), String)
+        self.mode = rospy.Publisher(
+            names.absolute(names.robot_topic("jackal", names.CONTROL_MODE)), String, queue_size=1, latch=True
+        )
+        self.teleop = rospy.Publisher(
+            names.absolute(names.robot_topic("jackal", names.CMD_VEL_TELEOP)), Twist, queue_size=5
+        )
+        self.direct = rospy.Publisher(names.absolute(names.robot_topic("jackal", names.CMD_VEL)), Twist, queue_size=5)
+        self.estop = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
         self.estop.publish(Bool(False))  # the mux and the simulator hold until they hear the state
 
     def set_mode(self, mode):
@@ -148,7 +153,7 @@ def _assert_cloud_lands_in_the_hall_via_tf(rospy, robot):
     buffer = tf2_ros.Buffer()
     listener = tf2_ros.TransformListener(buffer)
     listening_since = rospy.Time.now()
-    cloud = TopicRecorder(f"/{robot}/points", PointCloud2)
+    cloud = TopicRecorder(names.absolute(names.robot_topic(robot, names.POINTS)), PointCloud2)
     try:
         # tf must cover the stamp
         msg = cloud.wait(
@@ -156,7 +161,7 @@ def _assert_cloud_lands_in_the_hall_via_tf(rospy, robot):
             timeout_s=30,
             what="a cloud stamped after tf is heard",
         )
-        tf = buffer.lookup_transform("map", msg.header.frame_id, msg.header.stamp, rospy.Duration(10))
+        tf = buffer.lookup_transform(names.MAP_FRAME, msg.header.frame_id, msg.header.stamp, rospy.Duration(10))
     finally:
         cloud.close()
         del listener
@@ -217,7 +222,7 @@ def test_route_with_waypoint_in_equipment_fails_with_file_and_line(ros, tmp_path
         "cps_sim",
         "route_controller",
         name="route_bad",
-        namespace="/scout",
+        namespace=names.absolute("scout"),
         params={"~robot": "scout", "~fleet_file": str(path)},
     )
     assert _wait_exit(proc) != 0

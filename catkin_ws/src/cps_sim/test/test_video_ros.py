@@ -7,6 +7,7 @@ import math
 import pytest
 from video_sim import RATE_TOLERANCE, ROBOT, WINDOW_S, dimensions, frames_at, stamp_rate_hz, video_sim
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 
 pytestmark = pytest.mark.ros
@@ -64,9 +65,9 @@ def test_bad_settings_are_logged_and_the_last_good_one_kept(sim, rospy_node):
     from std_msgs.msg import Float64, UInt8
 
     _, level, rate, images, status = sim
-    log = TopicRecorder("/rosout_agg", Log)
+    log = TopicRecorder(names.ROSOUT_AGG, Log)
     try:
-        assert wait_for(lambda: log.sub.get_num_connections() > 0, timeout_s=10), "no connection to /rosout_agg"
+        assert wait_for(lambda: log.sub.get_num_connections() > 0, timeout_s=10), f"no connection to {names.ROSOUT_AGG}"
         level.publish(UInt8(1))
         rate.publish(Float64(8.0))
         status.wait(lambda s: s.level == 1 and s.set_rate_hz == 8.0, timeout_s=10)

@@ -5,6 +5,8 @@ of its frames and status. Shared by test_video_ros and test_video_trace_ros."""
 import contextlib
 import time
 
+from cps_fleet import names
+
 ROBOT = "jackal"
 # Measured rate: frames per second of the header stamps (the render instants) over a window of
 # WINDOW_S; it must lie within RATE_TOLERANCE of the set rate (the 2-core test machine is shared).
@@ -23,16 +25,22 @@ def video_sim(ros_master, rospy_node, name="fleet_sim", **params):
     from cps_msgs.msg import RateLimiterStatus
 
     graph = ros_master.attach()
-    estop = rospy_node.Publisher("/fleet/estop", Bool, queue_size=1, latch=True)
+    estop = rospy_node.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
     estop.publish(Bool(True))  # the robot stands still: the scene is the same frame to frame
-    level = rospy_node.Publisher(f"/{ROBOT}/video_throttle/level", UInt8, queue_size=1, latch=True)
-    rate = rospy_node.Publisher(f"/{ROBOT}/video_throttle/rate_hz", Float64, queue_size=1, latch=True)
-    images = TopicRecorder(f"/{ROBOT}/camera/image_raw/compressed", CompressedImage, queue_size=200)
-    status = TopicRecorder(f"/{ROBOT}/video_throttle/status", RateLimiterStatus)
+    level = rospy_node.Publisher(
+        names.absolute(names.robot_topic(ROBOT, names.VIDEO_LEVEL)), UInt8, queue_size=1, latch=True
+    )
+    rate = rospy_node.Publisher(
+        names.absolute(names.robot_topic(ROBOT, names.VIDEO_RATE_HZ)), Float64, queue_size=1, latch=True
+    )
+    images = TopicRecorder(
+        names.absolute(names.robot_topic(ROBOT, names.CAMERA_IMAGE_COMPRESSED)), CompressedImage, queue_size=200
+    )
+    status = TopicRecorder(names.absolute(names.robot_topic(ROBOT, names.VIDEO_STATUS)), RateLimiterStatus)
     try:
         private = {"~profile": "light", "~robots": ROBOT, **{f"~{k}": v for k, v in params.items()}}
         graph.start_node("cps_sim", "fleet_sim", name=name, params=private)
-        graph.wait_for_topic(f"/{ROBOT}/camera/image_raw/compressed", timeout_s=60)
+        graph.wait_for_topic(names.absolute(names.robot_topic(ROBOT, names.CAMERA_IMAGE_COMPRESSED)), timeout_s=60)
         yield graph, level, rate, images, status
     finally:
         graph.close()

@@ -62,17 +62,23 @@ def _start_per_robot(ros, fleet):
         "cps_transport",
         "draco_encoder",
         name="draco_encoder",
-        namespace=f"/{ROBOT}",
+        namespace=names.absolute(ROBOT),
         params={"~cloud_levels": True},
-        remap={"~input": f"/{ROBOT}/{names.POINTS_FILTERED}", "~output": f"/{ROBOT}/{names.POINTS_DRACO}"},
+        remap={
+            "~input": names.absolute(names.robot_topic(ROBOT, names.POINTS_FILTERED)),
+            "~output": names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO)),
+        },
     )
     ros.start_node(
         "cps_transport",
         "rate_limiter",
         name=names.CLOUD_THROTTLE,
-        namespace=f"/{ROBOT}",
+        namespace=names.absolute(ROBOT),
         params={"~cloud_levels": True, "~rate_hz": 30.0},
-        remap={"~input": f"/{ROBOT}/{names.POINTS_DRACO}", "~output": f"/{ROBOT}/{names.POINTS_MANAGED}"},
+        remap={
+            "~input": names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO)),
+            "~output": names.absolute(names.robot_topic(ROBOT, names.POINTS_MANAGED)),
+        },
     )
     return "draco_encoder", names.CLOUD_THROTTLE, restart_voxel_grid
 
@@ -91,11 +97,15 @@ def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros,
     leaves = cloud_level_leaves(fleet)
     start_leaf = initial_leaf_m(fleet, fleet.robot(ROBOT))
     follower, limiter, restart_voxel_grid = start(ros, fleet)
-    managed = TopicRecorder(f"/{ROBOT}/{names.POINTS_MANAGED}", CompressedPointCloud2)
-    filtered = TopicRecorder(f"/{ROBOT}/{names.POINTS_FILTERED}", PointCloud2)
-    status = TopicRecorder(f"/{ROBOT}/{names.LIMITER_STATUS}", RateLimiterStatus)
-    level_pub = rospy.Publisher(f"/{ROBOT}/{names.LIMITER_LEVEL}", UInt8, queue_size=1, latch=True)
-    cloud_pub = rospy.Publisher(f"/{ROBOT}/{fleet.robot(ROBOT).cloud_topic}", PointCloud2, queue_size=2)
+    managed = TopicRecorder(names.absolute(names.robot_topic(ROBOT, names.POINTS_MANAGED)), CompressedPointCloud2)
+    filtered = TopicRecorder(names.absolute(names.robot_topic(ROBOT, names.POINTS_FILTERED)), PointCloud2)
+    status = TopicRecorder(names.absolute(names.robot_topic(ROBOT, names.LIMITER_STATUS)), RateLimiterStatus)
+    level_pub = rospy.Publisher(
+        names.absolute(names.robot_topic(ROBOT, names.LIMITER_LEVEL)), UInt8, queue_size=1, latch=True
+    )
+    cloud_pub = rospy.Publisher(
+        names.absolute(names.robot_topic(ROBOT, fleet.robot(ROBOT).cloud_topic)), PointCloud2, queue_size=2
+    )
     cloud = depth_camera_cloud(width=320, height=240, far_m=8.0)
 
     def feed_until(predicate, timeout_s=60.0):
@@ -113,7 +123,7 @@ def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros,
         return lambda msg: abs(leaf_of_compressed(msg) - leaf) < 1e-6
 
     try:
-        ros.wait_for_topic(f"/{ROBOT}/{names.POINTS_FILTERED}", timeout_s=60)
+        ros.wait_for_topic(names.absolute(names.robot_topic(ROBOT, names.POINTS_FILTERED)), timeout_s=60)
         assert feed_until(leaf_is(start_leaf)), ros.output(follower)[-3000:] + ros.output(limiter)[-2000:]
         for level in (2, 0):
             level_pub.publish(UInt8(data=level))
@@ -187,19 +197,24 @@ def test_a_level_published_before_the_voxel_grid_is_up_is_set_when_it_comes(ros,
     fleet = load_fleet()
     leaves = cloud_level_leaves(fleet)
     robot = fleet.robot(ROBOT)
-    level_pub = rospy.Publisher(f"/{ROBOT}/{names.LIMITER_LEVEL}", UInt8, queue_size=1, latch=True)
+    level_pub = rospy.Publisher(
+        names.absolute(names.robot_topic(ROBOT, names.LIMITER_LEVEL)), UInt8, queue_size=1, latch=True
+    )
     level_pub.publish(UInt8(data=2))
     ros.start_node(
         "cps_transport",
         "draco_encoder",
         name="draco_encoder",
-        namespace=f"/{ROBOT}",
+        namespace=names.absolute(ROBOT),
         params={"~cloud_levels": True},
-        remap={"~input": f"/{ROBOT}/{names.POINTS_FILTERED}", "~output": f"/{ROBOT}/{names.POINTS_DRACO}"},
+        remap={
+            "~input": names.absolute(names.robot_topic(ROBOT, names.POINTS_FILTERED)),
+            "~output": names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO)),
+        },
     )
-    draco = TopicRecorder(f"/{ROBOT}/{names.POINTS_DRACO}", CompressedPointCloud2)
-    filtered = TopicRecorder(f"/{ROBOT}/{names.POINTS_FILTERED}", PointCloud2)
-    cloud_pub = rospy.Publisher(f"/{ROBOT}/{robot.cloud_topic}", PointCloud2, queue_size=2)
+    draco = TopicRecorder(names.absolute(names.robot_topic(ROBOT, names.POINTS_DRACO)), CompressedPointCloud2)
+    filtered = TopicRecorder(names.absolute(names.robot_topic(ROBOT, names.POINTS_FILTERED)), PointCloud2)
+    cloud_pub = rospy.Publisher(names.absolute(names.robot_topic(ROBOT, robot.cloud_topic)), PointCloud2, queue_size=2)
     cloud = depth_camera_cloud(width=320, height=240, far_m=8.0)
     try:
         assert wait_for(lambda: "did not take leaf 0.2 m" in ros.output("draco_encoder"), timeout_s=60), ros.output(

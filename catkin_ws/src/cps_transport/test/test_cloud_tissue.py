@@ -4,6 +4,7 @@ keeps its own topics, rate and drop counts, and one robot's malformed clouds sto
 import numpy as np
 import pytest
 
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_harness.hostile_clouds import packed_cloud, refused_clouds
 from cps_harness.testing import TopicRecorder, wait_for
@@ -19,13 +20,12 @@ def test_robot_configs_come_from_the_fleet_file():
     assert list(configs) == fleet.robot_names
     for robot in fleet.robots:
         c = configs[robot.name]
-        base = f"/{robot.name}/points_filtered"
+        base = names.absolute(names.robot_topic(robot.name, names.POINTS_FILTERED))
         assert (c.filtered, c.draco, c.managed) == (base, f"{base}/draco", f"{base}/draco/managed")
-        assert c.throttle_node == f"/{robot.name}/cloud_throttle"
+        assert c.throttle_node == names.absolute(names.robot_topic(robot.name, names.CLOUD_THROTTLE))
         assert c.leaf_size_m == initial_leaf_m(fleet, robot) and c.rate_hz == fleet.link.min_rate_hz
-        assert (
-            c.cloud_levels_m[c.initial_level] == c.leaf_size_m
-            and c.level_topic == f"/{robot.name}/cloud_throttle/level"
+        assert c.cloud_levels_m[c.initial_level] == c.leaf_size_m and c.level_topic == names.absolute(
+            names.robot_topic(robot.name, names.LIMITER_LEVEL)
         )
     assert [c.robot for c in robot_tissue_configs(fleet, ["iris", "scout"])] == ["iris", "scout"]
     with pytest.raises(KeyError, match="robot 'nope' is not in the fleet"):
@@ -35,8 +35,13 @@ def test_robot_configs_come_from_the_fleet_file():
 def test_robot_list_and_twin_topics():
     assert parse_robot_list(" a, b ,,c") == ["a", "b", "c"]
     assert parse_robot_list("") is None and parse_robot_list(["x"]) == ["x"]
-    assert twin_cloud_topics("r", backfill=False) == [("/twin/r/points_filtered/draco/managed", "/twin/r/points")]
-    assert twin_cloud_topics("r", backfill=True)[1] == ("/twin/r/points_backfill/draco", "/twin/r/points_backfill")
+    assert twin_cloud_topics("r", backfill=False) == [
+        (names.absolute(names.managed_cloud_at_twin("r")), names.absolute(names.twin_points("r")))
+    ]
+    assert twin_cloud_topics("r", backfill=True)[1] == (
+        names.absolute(names.in_twin(names.robot_topic("r", names.POINTS_BACKFILL_DRACO))),
+        names.absolute(names.in_twin(names.robot_topic("r", names.POINTS_BACKFILL))),
+    )
 
 
 def test_loader_requests_carry_what_nodelet_load_passes():
@@ -46,10 +51,13 @@ def test_loader_requests_carry_what_nodelet_load_passes():
     for robot, request in zip(fleet.robots, voxel_grid_requests(fleet)):
         argv = voxel_nodelet_args(robot, manager="/m", leaf_size_m=initial_leaf_m(fleet, robot))
         assert request.type == argv[4] == "pcl/VoxelGrid"
-        assert f"__name:={request.name.rsplit('/', 1)[1]}" in argv and f"__ns:=/{robot.name}" in argv
+        assert f"__name:={request.name.rsplit('/', 1)[1]}" in argv and f"__ns:={names.absolute(robot.name)}" in argv
         sources, targets = request.resolved_remappings()
         assert sources == [f"{request.name}/input", f"{request.name}/output"]
-        assert targets == [f"/{robot.name}/{robot.cloud_topic}", f"/{robot.name}/points_filtered"]
+        assert targets == [
+            names.absolute(names.robot_topic(robot.name, robot.cloud_topic)),
+            names.absolute(names.robot_topic(robot.name, names.POINTS_FILTERED)),
+        ]
         assert [f"_{k}:={v}" for k, v in request.params.items()] == [a for a in argv if a[0] == "_" and a[1] != "_"]
         assert request.params["leaf_size"] == initial_leaf_m(fleet, robot) and request.params["filter_field_name"] == ""
     relative = NodeletRequest("/a/vg", "t", {"in": "pts", "~out": "/abs"}, {})
@@ -89,24 +97,38 @@ def test_one_robots_malformed_clouds_stop_no_other_robot(ros, rospy_node):
         "cps_transport",
         "cloud_decoder",
         name="cloud_decoder",
-        namespace="/twin",
+        namespace=names.absolute(names.TWIN_NS),
         params={"~robots": f"{bad},{good[0]}", "~backfill": True},
     )
-    diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
-    managed = {r: TopicRecorder(f"/{r}/points_filtered/draco/managed", CompressedPointCloud2) for r in good}
-    status = {r: TopicRecorder(f"/{r}/cloud_throttle/status", RateLimiterStatus) for r in (bad, *good)}
-    twin = TopicRecorder(f"/twin/{good[0]}/points", PointCloud2)
-    backfill = TopicRecorder(f"/twin/{good[0]}/points_backfill", PointCloud2)
-    raw = {r: rospy.Publisher(f"/{r}/points_filtered", PointCloud2, queue_size=20) for r in (bad, *good)}
+    diagnostics = TopicRecorder(names.DIAGNOSTICS, DiagnosticArray)
+    managed = {r: TopicRecorder(names.absolute(names.managed_cloud(r)), CompressedPointCloud2) for r in good}
+    status = {
+        r: TopicRecorder(names.absolute(names.robot_topic(r, names.LIMITER_STATUS)), RateLimiterStatus)
+        for r in (bad, *good)
+    }
+    twin = TopicRecorder(names.absolute(names.twin_points(good[0])), PointCloud2)
+    backfill = TopicRecorder(
+        names.absolute(names.in_twin(names.robot_topic(good[0], names.POINTS_BACKFILL))), PointCloud2
+    )
+    raw = {
+        r: rospy.Publisher(names.absolute(names.robot_topic(r, names.POINTS_FILTERED)), PointCloud2, queue_size=20)
+        for r in (bad, *good)
+    }
     to_twin = {
-        r: rospy.Publisher(f"/twin/{r}/points_filtered/draco/managed", CompressedPointCloud2, queue_size=20)
+        r: rospy.Publisher(names.absolute(names.managed_cloud_at_twin(r)), CompressedPointCloud2, queue_size=20)
         for r in (bad, good[0])
     }
     relay = rospy.Subscriber(
-        f"/{good[0]}/points_filtered/draco/managed", CompressedPointCloud2, to_twin[good[0]].publish
+        names.absolute(names.managed_cloud(good[0])), CompressedPointCloud2, to_twin[good[0]].publish
     )
-    backfill_in = rospy.Publisher(f"/twin/{good[0]}/points_backfill/draco", CompressedPointCloud2, queue_size=5)
-    rate = rospy.Publisher(f"/{good[1]}/cloud_throttle/rate_hz", Float64, queue_size=1, latch=True)
+    backfill_in = rospy.Publisher(
+        names.absolute(names.in_twin(names.robot_topic(good[0], names.POINTS_BACKFILL_DRACO))),
+        CompressedPointCloud2,
+        queue_size=5,
+    )
+    rate = rospy.Publisher(
+        names.absolute(names.robot_topic(good[1], names.LIMITER_RATE_HZ)), Float64, queue_size=1, latch=True
+    )
     try:
         assert wait_for(
             lambda: all(p.get_num_connections() for p in (*raw.values(), *to_twin.values())), timeout_s=30
@@ -126,20 +148,23 @@ def test_one_robots_malformed_clouds_stop_no_other_robot(ros, rospy_node):
         assert decoded.header.frame_id == f"{good[0]}/lidar" and decoded.width > 0
         backfill_in.publish(managed[good[0]].latest)
         assert backfill.wait(timeout_s=10).header.frame_id == f"{good[0]}/lidar"
+
+        def filtered(r):
+            return names.absolute(names.robot_topic(r, names.POINTS_FILTERED))
+
         assert wait_for(
-            lambda: int(_status(diagnostics, f"/{bad}/points_filtered").get("invalid_messages", 0)) >= 10, timeout_s=10
-        ), _status(diagnostics, f"/{bad}/points_filtered")
+            lambda: int(_status(diagnostics, filtered(bad)).get("invalid_messages", 0)) >= 10, timeout_s=10
+        ), _status(diagnostics, filtered(bad))
+        bad_at_twin = names.absolute(names.managed_cloud_at_twin(bad))
         assert wait_for(
-            lambda: (
-                int(_status(diagnostics, f"/twin/{bad}/points_filtered/draco/managed").get("invalid_messages", 0)) >= 10
-            ),
+            lambda: int(_status(diagnostics, bad_at_twin).get("invalid_messages", 0)) >= 10,
             timeout_s=10,
         )
         for r in good:
-            assert wait_for(
-                lambda: _status(diagnostics, f"/{r}/points_filtered").get("processed") == "12", timeout_s=10
-            ), _status(diagnostics, f"/{r}/points_filtered")
-            assert _status(diagnostics, f"/{r}/points_filtered")["invalid_messages"] == "0"
+            assert wait_for(lambda: _status(diagnostics, filtered(r)).get("processed") == "12", timeout_s=10), _status(
+                diagnostics, filtered(r)
+            )
+            assert _status(diagnostics, filtered(r))["invalid_messages"] == "0"
         assert status[bad].latest.received == 0 and status[good[0]].latest.set_rate_hz == load_fleet().link.min_rate_hz
         assert tissue.poll() is None and decoder.poll() is None
     finally:
@@ -184,9 +209,14 @@ def test_one_loader_puts_every_robots_voxel_grid_into_one_manager(ros, rospy_nod
         name="voxel_grid_loader",
         params={"~robots": ",".join(robots), "~manager": "/vg_manager"},
     )
-    filtered = {r: TopicRecorder(f"/{r}/points_filtered", PointCloud2) for r in robots}
+    filtered = {
+        r: TopicRecorder(names.absolute(names.robot_topic(r, names.POINTS_FILTERED)), PointCloud2) for r in robots
+    }
     fleet = load_fleet()
-    pubs = {r: rospy.Publisher(f"/{r}/{fleet.robot(r).cloud_topic}", PointCloud2, queue_size=2) for r in robots}
+    pubs = {
+        r: rospy.Publisher(names.absolute(names.robot_topic(r, fleet.robot(r).cloud_topic)), PointCloud2, queue_size=2)
+        for r in robots
+    }
     listing = rospy.ServiceProxy("/vg_manager/list", NodeletList)
     try:
         ros.wait_for_service("/vg_manager/list", timeout_s=30)

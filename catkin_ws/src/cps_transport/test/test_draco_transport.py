@@ -7,6 +7,7 @@ import threading
 import numpy as np
 import pytest
 
+from cps_fleet import names
 from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_harness.testing import wait_for
 from cps_transport.pointcloud import array_to_cloud, cloud_to_array, xyz_of
@@ -20,7 +21,7 @@ def test_round_trip_and_corrupt_payload_counted(ros, rospy_node):
     from cps_msgs.msg import CompressedPointCloud2
     from cps_transport.draco_transport import DracoPublisher, DracoSubscriber
 
-    base = "/dtp1/points_filtered"
+    base = names.absolute(names.robot_topic("dtp1", names.POINTS_FILTERED))
     received, got = [], threading.Event()
 
     def on_cloud(cloud):

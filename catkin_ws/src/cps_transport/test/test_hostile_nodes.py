@@ -4,6 +4,7 @@ one on /diagnostics, and the next good cloud still crosses."""
 import numpy as np
 import pytest
 
+from cps_fleet import names
 from cps_harness.hostile_clouds import packed_cloud, refused_clouds, wire_copy
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_transport.draco import DracoEncoder
@@ -60,21 +61,26 @@ def test_encoder_and_decoder_nodes_count_hostile_messages_and_stay_up(ros, rospy
         "cps_transport",
         "draco_encoder",
         name="draco_encoder",
-        namespace=f"/{R}",
+        namespace=names.absolute(R),
         params={"~leaf_size_m": 0.1, "~fields": "all"},
-        remap={"~input": f"/{R}/points_filtered"},
+        remap={"~input": names.absolute(names.robot_topic(R, names.POINTS_FILTERED))},
     )
     decoder = ros.start_node(
         "cps_transport",
         "draco_decoder",
         name="draco_decoder",
-        namespace="/twin",
-        remap={"~input": f"/{R}/points_filtered/draco", "~output": f"/twin/{R}/points"},
+        namespace=names.absolute(names.TWIN_NS),
+        remap={
+            "~input": names.absolute(names.robot_topic(R, names.POINTS_DRACO)),
+            "~output": names.absolute(names.twin_points(R)),
+        },
     )
-    diagnostics = TopicRecorder("/diagnostics", DiagnosticArray)
-    decoded = TopicRecorder(f"/twin/{R}/points", PointCloud2)
-    raw = rospy.Publisher(f"/{R}/points_filtered", PointCloud2, queue_size=20)
-    compressed = rospy.Publisher(f"/{R}/points_filtered/draco", CompressedPointCloud2, queue_size=20)
+    diagnostics = TopicRecorder(names.DIAGNOSTICS, DiagnosticArray)
+    decoded = TopicRecorder(names.absolute(names.twin_points(R)), PointCloud2)
+    raw = rospy.Publisher(names.absolute(names.robot_topic(R, names.POINTS_FILTERED)), PointCloud2, queue_size=20)
+    compressed = rospy.Publisher(
+        names.absolute(names.robot_topic(R, names.POINTS_DRACO)), CompressedPointCloud2, queue_size=20
+    )
     try:
         assert wait_for(lambda: raw.get_num_connections() >= 1 and compressed.get_num_connections() >= 1, timeout_s=20)
         clouds, payloads = refused_clouds(FRAME), _refused_payloads()
@@ -87,8 +93,9 @@ def test_encoder_and_decoder_nodes_count_hostile_messages_and_stay_up(ros, rospy
         assert wait_for(lambda: _invalid_count(diagnostics, f"/{R}/draco_encoder") == len(clouds), timeout_s=15), (
             f"encoder counted {_invalid_count(diagnostics, f'/{R}/draco_encoder')} of {len(clouds)}"
         )
-        assert wait_for(lambda: _invalid_count(diagnostics, "/twin/draco_decoder") == len(payloads), timeout_s=15), (
-            f"decoder counted {_invalid_count(diagnostics, '/twin/draco_decoder')} of {len(payloads)}"
+        decoder_node = names.absolute(names.in_twin("draco_decoder"))
+        assert wait_for(lambda: _invalid_count(diagnostics, decoder_node) == len(payloads), timeout_s=15), (
+            f"decoder counted {_invalid_count(diagnostics, decoder_node)} of {len(payloads)}"
         )
         raw.publish(_good_cloud())
         assert decoded.wait(timeout_s=15).header.frame_id == FRAME

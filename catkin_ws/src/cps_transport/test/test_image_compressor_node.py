@@ -6,6 +6,7 @@ import time
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import wait_for
 from cps_transport.image_compression import camera_test_image, decode_jpeg, psnr_db
 
@@ -42,12 +43,12 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
         name="image_compressor",
         namespace="/ic1/camera",
         params={"~jpeg_quality": 80},
-        remap={"~input": "/ic1/camera/image_raw"},
+        remap={"~input": names.absolute(names.robot_topic("ic1", names.CAMERA_IMAGE))},
     )
-    ros.wait_for_topic("/ic1/camera/image_raw/compressed", timeout_s=20)
+    ros.wait_for_topic(names.absolute(names.robot_topic("ic1", names.CAMERA_IMAGE_COMPRESSED)), timeout_s=20)
     diagnostics = []
-    diag_sub = rospy.Subscriber("/diagnostics", DiagnosticArray, diagnostics.append)
-    raw_pub = rospy.Publisher("/ic1/camera/image_raw", Image, queue_size=10)
+    diag_sub = rospy.Subscriber(names.DIAGNOSTICS, DiagnosticArray, diagnostics.append)
+    raw_pub = rospy.Publisher(names.absolute(names.robot_topic("ic1", names.CAMERA_IMAGE)), Image, queue_size=10)
     received, got = [], threading.Event()
     out_sub = None
     try:
@@ -65,7 +66,9 @@ def test_compressor_is_lazy_counts_bad_encodings_and_delivers_the_next_image(ros
             received.append(msg)
             got.set()
 
-        out_sub = rospy.Subscriber("/ic1/camera/image_raw/compressed", CompressedImage, on_compressed)
+        out_sub = rospy.Subscriber(
+            names.absolute(names.robot_topic("ic1", names.CAMERA_IMAGE_COMPRESSED)), CompressedImage, on_compressed
+        )
         assert wait_for(lambda: out_sub.get_num_connections() > 0)
         good, rgb = _image(rospy)
         # Until the node's publisher sees this subscriber too, frames are skipped as unwatched.
@@ -106,7 +109,7 @@ def test_rate_cap_and_remapped_output(ros, rospy_node):
     ros.wait_for_topic("/ic2/video", timeout_s=20)
     received, diagnostics = [], []
     out_sub = rospy.Subscriber("/ic2/video", CompressedImage, received.append)
-    diag_sub = rospy.Subscriber("/diagnostics", DiagnosticArray, diagnostics.append)
+    diag_sub = rospy.Subscriber(names.DIAGNOSTICS, DiagnosticArray, diagnostics.append)
     raw_pub = rospy.Publisher("/ic2/image_raw", Image, queue_size=10)
     try:
         assert wait_for(lambda: raw_pub.get_num_connections() > 0 and out_sub.get_num_connections() > 0)

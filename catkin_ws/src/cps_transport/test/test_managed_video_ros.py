@@ -6,6 +6,7 @@ import threading
 
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_transport.image_compression import camera_test_image, decode_jpeg
 
@@ -26,10 +27,12 @@ def camera(ros, rospy_node):
     from cps_msgs.msg import RateLimiterStatus
 
     ros.start_node("cps_transport", "image_compressor", name="image_compressor", params={"~robot": ROBOT})
-    ros.wait_for_topic(f"/{ROBOT}/video_throttle/status", timeout_s=20)
-    raw = rospy_node.Publisher(f"/{ROBOT}/camera/image_raw", Image, queue_size=2)
-    images = TopicRecorder(f"/{ROBOT}/camera/image_raw/compressed", CompressedImage, queue_size=200)
-    status = TopicRecorder(f"/{ROBOT}/video_throttle/status", RateLimiterStatus)
+    ros.wait_for_topic(names.absolute(names.robot_topic(ROBOT, names.VIDEO_STATUS)), timeout_s=20)
+    raw = rospy_node.Publisher(names.absolute(names.robot_topic(ROBOT, names.CAMERA_IMAGE)), Image, queue_size=2)
+    images = TopicRecorder(
+        names.absolute(names.robot_topic(ROBOT, names.CAMERA_IMAGE_COMPRESSED)), CompressedImage, queue_size=200
+    )
+    status = TopicRecorder(names.absolute(names.robot_topic(ROBOT, names.VIDEO_STATUS)), RateLimiterStatus)
     rgb = camera_test_image(640, 480)
     stop = threading.Event()
 
@@ -64,8 +67,12 @@ def test_raw_frames_are_shrunk_to_the_level_at_the_rate_set(camera, rospy_node):
     images, status = camera
     first = images.wait(timeout_s=20)
     assert _size(first) == (160, 120)  # the coarsest level until the manager speaks
-    level = rospy_node.Publisher(f"/{ROBOT}/video_throttle/level", UInt8, queue_size=1, latch=True)
-    rate = rospy_node.Publisher(f"/{ROBOT}/video_throttle/rate_hz", Float64, queue_size=1, latch=True)
+    level = rospy_node.Publisher(
+        names.absolute(names.robot_topic(ROBOT, names.VIDEO_LEVEL)), UInt8, queue_size=1, latch=True
+    )
+    rate = rospy_node.Publisher(
+        names.absolute(names.robot_topic(ROBOT, names.VIDEO_RATE_HZ)), Float64, queue_size=1, latch=True
+    )
     try:
         level.publish(UInt8(1))
         rate.publish(Float64(8.0))

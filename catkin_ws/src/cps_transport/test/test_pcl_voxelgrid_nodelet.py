@@ -6,6 +6,8 @@ import threading
 import numpy as np
 import pytest
 
+from cps_fleet import names
+
 pytestmark = pytest.mark.ros
 
 
@@ -99,10 +101,16 @@ def test_voxel_nodelet_args_match_numpy_voxel_downsample(ros, rospy_node):
     rospy = rospy_node
     robot = dataclasses.replace(load_fleet().robot("jackal"), name="vgtest")
     ros.popen(voxel_nodelet_args(robot), name="voxel_args")
-    ros.wait_for_topic("/vgtest/points_filtered", timeout_s=30)
+    ros.wait_for_topic(names.absolute(names.robot_topic("vgtest", names.POINTS_FILTERED)), timeout_s=30)
     received, got = [], threading.Event()
-    sub = rospy.Subscriber("/vgtest/points_filtered", PointCloud2, lambda m: (received.append(m), got.set()))
-    pub = rospy.Publisher("/vgtest/points", PointCloud2, queue_size=1, latch=True)
+    sub = rospy.Subscriber(
+        names.absolute(names.robot_topic("vgtest", names.POINTS_FILTERED)),
+        PointCloud2,
+        lambda m: (received.append(m), got.set()),
+    )
+    pub = rospy.Publisher(
+        names.absolute(names.robot_topic("vgtest", names.POINTS)), PointCloud2, queue_size=1, latch=True
+    )
     cloud = depth_camera_cloud(width=320, height=240)
     try:
         for _ in range(100):

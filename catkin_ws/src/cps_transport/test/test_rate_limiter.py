@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import wait_for
 from cps_transport.rate_limiter import RateLimiter, WindowRate
 
@@ -112,12 +113,12 @@ def limiter(ros, rospy_node):
     ros.start_node(
         "cps_transport",
         "rate_limiter",
-        name="cloud_throttle",
+        name=names.CLOUD_THROTTLE,
         namespace=NS,
         params={"~rate_hz": 30.0},
         remap={"~input": f"{NS}/in", "~output": f"{NS}/out"},
     )
-    ros.wait_for_service(f"{NS}/cloud_throttle/set_rate", timeout_s=20)
+    ros.wait_for_service(names.robot_topic(NS, names.private(names.CLOUD_THROTTLE, names.SET_RATE)), timeout_s=20)
     state = SimpleNamespace(rospy=rospy, arrivals=[], statuses=[], lock=threading.Lock())
 
     def on_out(_msg):
@@ -125,7 +126,7 @@ def limiter(ros, rospy_node):
             state.arrivals.append(time.monotonic())
 
     out_sub = rospy.Subscriber(f"{NS}/out", PointCloud2, on_out)
-    status_sub = rospy.Subscriber(f"{NS}/cloud_throttle/status", RateLimiterStatus, state.statuses.append)
+    status_sub = rospy.Subscriber(names.robot_topic(NS, names.LIMITER_STATUS), RateLimiterStatus, state.statuses.append)
     pub = rospy.Publisher(f"{NS}/in", PointCloud2, queue_size=10)
     stop = threading.Event()
     message = PointCloud2(height=1, width=100, point_step=16, row_step=MESSAGE_BYTES, data=bytes(MESSAGE_BYTES))
@@ -139,8 +140,10 @@ def limiter(ros, rospy_node):
 
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
-    state.set_rate = rospy.ServiceProxy(f"{NS}/cloud_throttle/set_rate", SetRate)
-    state.rate_topic = rospy.Publisher(f"{NS}/cloud_throttle/rate_hz", Float64, queue_size=1, latch=True)
+    state.set_rate = rospy.ServiceProxy(
+        names.robot_topic(NS, names.private(names.CLOUD_THROTTLE, names.SET_RATE)), SetRate
+    )
+    state.rate_topic = rospy.Publisher(names.robot_topic(NS, names.LIMITER_RATE_HZ), Float64, queue_size=1, latch=True)
     try:
         ros.wait_for_topic(f"{NS}/out", timeout_s=20)
         yield state

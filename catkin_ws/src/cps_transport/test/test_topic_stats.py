@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from cps_fleet import names
 from cps_harness.testing import wait_for
 from cps_transport.topic_stats import TopicWindow, has_header_first, stamp_ns_from_serialized
 
@@ -72,7 +73,9 @@ def test_node_agrees_with_rostopic_hz_and_bw(ros, rospy_node, tmp_path):
     )
     pub = rospy.Publisher(topic, PointCloud2, queue_size=10)
     stats = []
-    sub = rospy.Subscriber("/ts_test/tissue/stats", TopicStatsArray, stats.append)  # relative, in its namespace
+    sub = rospy.Subscriber(
+        names.absolute(names.TISSUE_STATS, "/ts_test"), TopicStatsArray, stats.append
+    )  # relative, in its namespace
     stop = threading.Event()
 
     def feed(rate_hz=20.0):
@@ -142,8 +145,6 @@ def test_default_topics_come_from_the_fleet():
     module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
     loader.exec_module(module)
     fleet = load_fleet()
-    from cps_fleet import names
-
     # Relative names, resolved in the node's namespace (the root namespace here).
     topics = [names.absolute(t) for t in module.fleet_topics(fleet)]
     for robot in fleet.robots:

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from cps_fleet import names
 from cps_harness.synthetic_clouds import depth_camera_cloud
 from cps_harness.testing import wait_for
 from cps_transport.draco import DracoEncoder
@@ -43,33 +44,40 @@ def pipeline(ros, rospy_node):
         "cps_transport",
         "draco_encoder",
         name="draco_encoder",
-        namespace=f"/{R}",
+        namespace=names.absolute(R),
         params={"~leaf_size_m": 0.1, "~fields": "xyz,rgb"},
-        remap={"~input": f"/{R}/points_filtered"},
+        remap={"~input": names.absolute(names.robot_topic(R, names.POINTS_FILTERED))},
     )
     ros.start_node(
         "cps_transport",
         "draco_decoder",
         name="draco_decoder",
-        namespace="/twin",
-        remap={"~input": f"/{R}/points_filtered/draco", "~output": f"/twin/{R}/points"},
+        namespace=names.absolute(names.TWIN_NS),
+        remap={
+            "~input": names.absolute(names.robot_topic(R, names.POINTS_DRACO)),
+            "~output": names.absolute(names.twin_points(R)),
+        },
     )
     ros.start_node(
         "cps_transport",
         "topic_stats",
         name="topic_stats",
-        namespace=f"/{R}",
-        params={"~topics": [f"/{R}/points_filtered/draco"], "~publish_rate_hz": 4.0},
+        namespace=names.absolute(R),
+        params={"~topics": [names.absolute(names.robot_topic(R, names.POINTS_DRACO))], "~publish_rate_hz": 4.0},
     )
-    ros.wait_for_topic(f"/{R}/points_filtered/draco", timeout_s=20)
-    ros.wait_for_topic(f"/twin/{R}/points", timeout_s=20)
+    ros.wait_for_topic(names.absolute(names.robot_topic(R, names.POINTS_DRACO)), timeout_s=20)
+    ros.wait_for_topic(names.absolute(names.twin_points(R)), timeout_s=20)
 
     p = SimpleNamespace(rospy=rospy)
-    out_sub, p.decoded, p.got = _collect(rospy, f"/twin/{R}/points", PointCloud2)
-    stats_sub, p.stats, _ = _collect(rospy, f"/{R}/tissue/stats", TopicStatsArray)  # relative, in its namespace
-    diag_sub, p.diagnostics, _ = _collect(rospy, "/diagnostics", DiagnosticArray)
-    p.raw_pub = rospy.Publisher(f"/{R}/points_filtered", PointCloud2, queue_size=10)
-    p.compressed_pub = rospy.Publisher(f"/{R}/points_filtered/draco", CompressedPointCloud2, queue_size=10)
+    out_sub, p.decoded, p.got = _collect(rospy, names.absolute(names.twin_points(R)), PointCloud2)
+    stats_sub, p.stats, _ = _collect(
+        rospy, names.absolute(names.TISSUE_STATS, names.absolute(R)), TopicStatsArray
+    )  # relative, in its namespace
+    diag_sub, p.diagnostics, _ = _collect(rospy, names.DIAGNOSTICS, DiagnosticArray)
+    p.raw_pub = rospy.Publisher(names.absolute(names.robot_topic(R, names.POINTS_FILTERED)), PointCloud2, queue_size=10)
+    p.compressed_pub = rospy.Publisher(
+        names.absolute(names.robot_topic(R, names.POINTS_DRACO)), CompressedPointCloud2, queue_size=10
+    )
 
     points = cloud_to_array(depth_camera_cloud(width=160, height=120))
     p.centroids, extras = voxel_downsample(xyz_of(points), 0.1, {"rgb": points["rgb"]})
@@ -132,15 +140,15 @@ def test_decoder_drops_bad_payloads_counts_them_in_the_stats_and_decodes_the_nex
     good.header.stamp = p.rospy.Time.now()
     p.compressed_pub.publish(good)
     assert wait_for(lambda: any(m.header.stamp == good.header.stamp for m in p.decoded), 15.0)
-    assert wait_for(lambda: _reported_invalid(p.diagnostics, "/twin/draco_decoder") == 3), (
-        _reported_invalid(p.diagnostics, "/twin/draco_decoder"),
+    assert wait_for(lambda: _reported_invalid(p.diagnostics, names.absolute(names.in_twin("draco_decoder"))) == 3), (
+        _reported_invalid(p.diagnostics, names.absolute(names.in_twin("draco_decoder"))),
         ros.output("draco_decoder")[-1500:],
     )
 
     def invalid_in_stats():
         for array in reversed(p.stats):
             for item in array.topics:
-                if item.topic == f"/{R}/points_filtered/draco":
+                if item.topic == names.absolute(names.robot_topic(R, names.POINTS_DRACO)):
                     return item.invalid_messages
         return None
 

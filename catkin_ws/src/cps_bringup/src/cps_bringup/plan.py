@@ -59,7 +59,7 @@ class NodeSpec:
 
 MAP_SERVER = names.MAP_SERVER
 # Advertised (latched) by the map server once its kernels are loaded and a warm-up insertion ran.
-MAP_SERVER_READY = names.absolute(names.in_twin(f"{names.MAP_SERVER}/{names.READY.lstrip('~')}"))
+MAP_SERVER_READY = names.absolute(names.in_twin(names.private(names.MAP_SERVER, names.READY)))
 
 # The map server's live change report in the output folder (and its .json twin).
 CHANGE_REPORT = "map_changes.md"

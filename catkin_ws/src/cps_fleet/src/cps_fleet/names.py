@@ -127,6 +127,12 @@ def in_twin(name):
     return f"{TWIN_NS}/{name}"
 
 
+def private(node, name):
+    """The private `name` (`~name`) of the node `node`, as seen from where `node` is named:
+    `private("map_server", READY)` -> `map_server/ready`."""
+    return f"{node}/{name.lstrip('~')}"
+
+
 def managed_cloud(robot):
     """The robot's managed cloud on the robots' side (what its rate limiter publishes)."""
     return robot_topic(robot, POINTS_MANAGED)

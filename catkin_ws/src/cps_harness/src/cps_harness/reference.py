@@ -26,14 +26,25 @@ from cps_harness.fleets import fleet_with_new_type
 from cps_harness.mission import DEMO, Mission
 
 ROBOTS = ("scout", "iris", "jackal")
-# scout's lidar along the aisle west of the storage area and back; iris (camera pitched down) flies
-# south over its west half at 3 m, so both crates are seen from above and the side; jackal looks
-# into the pipe rack's fenced area from its aisles (the start of the default route2).
+# About 35 s of driving on a quiet machine: long enough for the link-cut test's cut (12 s after
+# every process is up, for 10 s) to have robots still driving after it.
+# scout's lidar along the aisle west of the storage area, back and down again; iris (camera pitched
+# down) flies south over its west half at 3 m, so both crates are seen from above and the side, and
+# back north over the aisle; jackal looks into the pipe rack's fenced area from its aisles (the
+# start of the default route2).
 ROUTES = {
-    "scout": ({"x": 1.0, "y": 0.5, "z": 0.0, "yaw_deg": -90.0}, [{"x": 1.0, "y": -5.5}, {"x": 1.0, "y": 0.0}]),
+    "scout": (
+        {"x": 1.0, "y": 0.5, "z": 0.0, "yaw_deg": -90.0},
+        [{"x": 1.0, "y": -5.5}, {"x": 1.0, "y": 0.5}, {"x": 1.0, "y": -5.5}],
+    ),
     "iris": (
         {"x": 0.0, "y": 1.0, "z": 0.0, "yaw_deg": -90.0},
-        [{"x": 3.2, "y": 1.0, "z": 3.0}, {"x": 3.2, "y": -5.0, "z": 3.0, "inspect": True}],
+        [
+            {"x": 3.2, "y": 1.0, "z": 3.0},
+            {"x": 3.2, "y": -5.0, "z": 3.0, "inspect": True},
+            {"x": 0.5, "y": -5.0, "z": 3.0},
+            {"x": 0.5, "y": 1.0, "z": 3.0, "inspect": True},
+        ],
     ),
     "jackal": (
         {"x": -8.0, "y": 6.0, "z": 0.0, "yaw_deg": 0.0},
@@ -44,6 +55,9 @@ ROUTES = {
             {"x": -1.0, "y": 6.5, "inspect": True},
             {"x": -1.0, "y": 3.5, "inspect": True},
             {"x": -1.5, "y": 3.5, "inspect": True},
+            {"x": -1.0, "y": 0.6, "inspect": True},
+            {"x": -3.0, "y": 0.6, "inspect": True},
+            {"x": -3.0, "y": 1.0, "inspect": True},
         ],
     ),
 }

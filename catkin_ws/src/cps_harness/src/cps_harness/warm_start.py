@@ -7,6 +7,8 @@ import shutil
 
 import numpy as np
 
+from cps_fleet import names
+
 
 def copy_checkout(package_dir, target_dir, with_cache=False):
     """The package's nodes and Python at `target_dir`, with or without its caches (__pycache__)."""
@@ -40,7 +42,7 @@ def static_sensor_transform(rospy, frame_id, height_m=0.5):
     broadcaster = tf2_ros.StaticTransformBroadcaster()
     t = TransformStamped()
     t.header.stamp = rospy.Time.now()
-    t.header.frame_id, t.child_frame_id = "map", frame_id
+    t.header.frame_id, t.child_frame_id = names.MAP_FRAME, frame_id
     t.transform.translation.z = height_m
     t.transform.rotation.w = 1.0
     broadcaster.sendTransform(t)
