@@ -58,20 +58,26 @@ def read_map_frame(map_path):
     return frame
 
 
-def read_map_trails(map_path):
-    """The robots' trails saved with a map (cps_mapping.robot_bodies.RobotTrails), or None if the
-    sidecar is missing or predates them; BaselineError if they are unreadable."""
-    from cps_mapping.robot_bodies import RobotTrails
-
+def _read_sidecar_entry(map_path, key, parse, what):
+    """`parse(doc[key])` of a saved map's sidecar, or None if the sidecar is missing or predates
+    `key`; BaselineError (naming `what`) if it is unreadable."""
     path = metadata_path(map_path)
     if not os.path.exists(path):
         return None
     try:
         with open(path) as stream:
             doc = json.load(stream)
-        return RobotTrails.from_json(doc["robot_poses"]) if "robot_poses" in doc else None
+        return parse(doc[key]) if key in doc else None
     except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
-        raise BaselineError(f"{path}: unreadable robot poses ({type(exc).__name__}: {exc})") from exc
+        raise BaselineError(f"{path}: unreadable {what} ({type(exc).__name__}: {exc})") from exc
+
+
+def read_map_trails(map_path):
+    """The robots' trails saved with a map (cps_mapping.robot_bodies.RobotTrails), or None if the
+    sidecar is missing or predates them; BaselineError if they are unreadable."""
+    from cps_mapping.robot_bodies import RobotTrails
+
+    return _read_sidecar_entry(map_path, "robot_poses", RobotTrails.from_json, "robot poses")
 
 
 def read_map_views(map_path):
@@ -79,15 +85,7 @@ def read_map_views(map_path):
     None if the sidecar is missing or predates them; BaselineError if they are unreadable."""
     from cps_mapping.sensor_views import SensorViews
 
-    path = metadata_path(map_path)
-    if not os.path.exists(path):
-        return None
-    try:
-        with open(path) as stream:
-            doc = json.load(stream)
-        return SensorViews.from_json(doc["sensor_views"]) if "sensor_views" in doc else None
-    except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
-        raise BaselineError(f"{path}: unreadable sensor views ({type(exc).__name__}: {exc})") from exc
+    return _read_sidecar_entry(map_path, "sensor_views", SensorViews.from_json, "sensor views")
 
 
 def load_baseline(path, mapping, frame_id="map") -> FusedLogOddsMap:
