@@ -58,6 +58,8 @@ def install_space(tmp_path_factory):
         timeout=900,
     )
     assert result.returncode == 0, (result.stdout + result.stderr)[-4000:]
+    # The source tree's kernels (built by the set-up before any test) are reused, not compiled again.
+    assert "map server kernels copied from" in result.stdout, result.stdout[-4000:]
     return tmp / "install"
 
 

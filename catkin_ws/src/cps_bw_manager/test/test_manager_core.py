@@ -66,17 +66,35 @@ def test_input_rate_caps_the_maximum_and_frees_bandwidth_for_the_others():
     assert rates["b"] == pytest.approx((7.2 - 5.5 * 0.3) / 0.3)
 
 
-def test_done_robot_drops_to_minimum_and_operator_can_raise_it():
+def test_a_done_robot_yields_first_when_the_link_binds_and_the_operator_can_raise_it():
     core = _core()
     for r in "ab":
         core.on_limiter_status(r, 300000.0, 50.0, now_s=0.0)
         core.on_mission_state(r, "inspecting")
     assert core.on_mission_state("a", "done")
-    assert core.allocate().rates_hz()["a"] == pytest.approx(1.0)
+    rates = core.allocate().rates_hz()
+    # 7.2 MB/s of 0.3 MB clouds: 24 Hz shared by weight, the finished robot's 0.25 against 4.
+    assert rates["a"] == pytest.approx(24.0 * 0.25 / 4.25) and rates["b"] == pytest.approx(24.0 * 4.0 / 4.25)
     ok, message = core.set_priority("a", 1)
     assert ok and "until its mission state changes" in message
     rates = core.allocate().rates_hz()
     assert rates["a"] == pytest.approx(rates["b"])
+
+
+def test_a_done_robot_keeps_the_rate_its_stream_sustains_while_the_link_has_room():
+    """Issue 36: nothing pinned without a reason (it was pinned at 1 Hz, capping the fleet's
+    slowest window); the paper's pin is still there as pin_done."""
+    core = _core()
+    for r in "ab":
+        core.on_limiter_status(r, 30000.0, 5.0, now_s=0.0)  # 5 Hz sensors, 0.15 MB/s each: room
+    core.on_mission_state("a", "done")
+    assert core.allocate().rates_hz()["a"] == pytest.approx(5.5)  # its input rate + 10 %
+    import dataclasses
+
+    paper = ManagerCore(["a", "b"], dataclasses.replace(SETTINGS, pin_done=True))
+    paper.on_limiter_status("a", 30000.0, 5.0, now_s=0.0)
+    paper.on_mission_state("a", "done")
+    assert paper.allocate().rates_hz()["a"] == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("robot, priority", [("nobody", 1), ("a", 2), ("a", 255)])

@@ -41,6 +41,7 @@ def graph(ros, rospy_node):
         names.absolute(names.in_twin(names.INSERT_CAPACITY)), InsertCapacity, queue_size=1, latch=True
     )
     recorders = [allocation, video_level, video_rate, *cloud_rates.values()]
+    encoders = _Encoders(rospy, ROBOTS, ("jackal", "champ"))
     try:
         yield SimpleNamespace(
             rospy=rospy,
@@ -54,10 +55,66 @@ def graph(ros, rospy_node):
             String=String,
         )
     finally:
+        encoders.stop()
         for recorder in recorders:
             recorder.close()
         selected.unregister()
         capacity.unregister()
+
+
+class _Encoders:
+    """The robots' encoders as the manager hears them: every robot's cloud at leaf 0.10 (level 1,
+    11 kB) and every camera robot's video at 160x120 (level 2, 2.5 kB), statuses at 2 Hz (the
+    manager sends a stream no setpoint before its encoder said what it runs)."""
+
+    def __init__(self, rospy, robots, cameras):
+        import threading
+
+        from cps_msgs.msg import RateLimiterStatus
+
+        self.stop_event = threading.Event()
+        pubs = [
+            (
+                rospy.Publisher(
+                    names.absolute(names.robot_topic(r, names.LIMITER_STATUS)), RateLimiterStatus, queue_size=2
+                ),
+                1,
+                11000.0,
+            )
+            for r in robots
+        ] + [
+            (
+                rospy.Publisher(
+                    names.absolute(names.robot_topic(r, names.VIDEO_STATUS)), RateLimiterStatus, queue_size=2
+                ),
+                2,
+                2500.0,
+            )
+            for r in cameras
+        ]
+
+        def run():
+            while not self.stop_event.wait(0.5):
+                for pub, level, size in pubs:
+                    pub.publish(
+                        RateLimiterStatus(
+                            mean_message_bytes=size,
+                            input_rate_hz=5.0,
+                            output_rate_hz=5.0,
+                            level=level,
+                            level_mean_message_bytes=size,
+                        )
+                    )
+
+        self.pubs = [p for p, _, _ in pubs]
+        self.thread = threading.Thread(target=run, daemon=True)
+        self.thread.start()
+
+    def stop(self):
+        self.stop_event.set()
+        self.thread.join(2.0)
+        for pub in self.pubs:
+            pub.unregister()
 
 
 def _streams(msg):

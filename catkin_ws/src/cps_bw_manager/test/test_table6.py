@@ -55,14 +55,14 @@ def test_per_robot_maximum_caps_a_slow_sensor():
 
 
 def test_operator_raises_a_finished_robot_back():
-    book = PriorityBook(ROBOTS)
+    book = PriorityBook(ROBOTS, pin_done=True)  # the paper's policy
     for robot in ROBOTS:
         book.set_mission_state(robot, "inspecting")
     book.set_mission_state("iris", "done")
-    assert book.demand("iris", 50000.0, 1.0, 30.0).max_rate_hz == 1.0
+    assert book.demand("iris", 50000.0, 1.0, 30.0).max_rate_hz == 1.0 and book.finished("iris")
     assert book.set_operator_priority("iris", 1)
     demand = book.demand("iris", 50000.0, 1.0, 30.0)
-    assert demand.priority == 1 and demand.max_rate_hz == 30.0
+    assert demand.priority == 1 and demand.max_rate_hz == 30.0 and not book.finished("iris")
     # The override lasts until the mission state changes again.
     book.set_mission_state("iris", "transit")
     assert book.priority("iris") == 0
@@ -85,3 +85,11 @@ def test_bad_operator_priority_is_a_clear_error(robot, priority, error):
 def test_unknown_mission_state_is_a_clear_error():
     with pytest.raises(ValueError, match="mission state"):
         PriorityBook(ROBOTS).set_mission_state("iris", "flying")
+
+
+def test_a_finished_robot_is_not_pinned_unless_the_paper_policy_is_asked():
+    book = PriorityBook(ROBOTS)
+    book.set_mission_state("iris", "done")
+    demand = book.demand("iris", 50000.0, 1.0, 30.0)
+    assert book.finished("iris") and not book.pinned_to_minimum("iris")
+    assert demand.priority == 0 and demand.max_rate_hz == 30.0

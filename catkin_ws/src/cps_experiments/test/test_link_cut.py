@@ -2,7 +2,10 @@
 again, over --transport zenoh, the veth cut for 10 s mid-mission, and the map server killed 2 s into
 the cut (fault injection). Both sides report the link down within 1 s of the cut and up within 2 s
 of its end; no node but the killed map server restarts, and it resumes from its autosave before the
-link comes back; no live cloud older than 1 s reaches the twin after recovery; the backfilled
+link comes back; no live cloud captured more than 1 s before the link came back reaches the twin
+after it (nothing waits through the cut: the backfilled keyframes are its only way across); the
+clouds' latency after recovery is printed beside the reference mission's (it is the machine's load
+as much as the link's: 0.2-0.5 s p95 quiet, up to 1 s with the other worker's tests); the backfilled
 keyframes reach the map; and the map's F1 is at least 98 % of the reference mission's (the same
 mission without a cut), both printed."""
 
@@ -10,10 +13,19 @@ import re
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from cps_fleet import names
-from cps_harness.cut_analysis import LINK_STATE, ages_after, count_after, describe_ages, first_state_after, read_watch
+from cps_harness.cut_analysis import (
+    LINK_STATE,
+    ages_after,
+    captured_before,
+    count_after,
+    describe_ages,
+    first_state_after,
+    read_watch,
+)
 from cps_harness.mission import Mission
 from cps_harness.reference import ROBOTS
 from cps_harness.testing import link_name
@@ -46,6 +58,16 @@ def _backfill(robot):
     return names.absolute(names.in_twin(names.robot_topic(robot, names.POINTS_BACKFILL)))
 
 
+def _reference_latencies(reference_mission):
+    """Receive - stamp (s) of the reference mission's live clouds at the twin (its arrivals.csv)."""
+    import csv
+
+    live = {_live(r) for r in ROBOTS}
+    with open(reference_mission.out / "arrivals.csv") as stream:
+        rows = [r for r in csv.DictReader(stream) if r["topic"] in live]
+    return np.array([float(r["receive_s"]) - int(r["stamp_ns"]) / 1e9 for r in rows])
+
+
 @pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
 @pytest.mark.timeout(900)
 def test_a_ten_second_cut_mid_mission(reference_mission, open_tmp_path):
@@ -72,6 +94,7 @@ def test_a_ten_second_cut_mid_mission(reference_mission, open_tmp_path):
     )
     twin, robots = read_watch(out / "twin_watch.txt"), read_watch(out / "robots_watch.txt")
     ages = ages_after(twin, times["restore"], [_live(r) for r in ROBOTS])
+    held = captured_before(twin, times["restore"], [_live(r) for r in ROBOTS])
     backfilled = {r: count_after(twin, times["restore"], _backfill(r)) for r in ROBOTS}
     delays = {
         f"{side} down": (first_state_after(w, times["cut"], False) or float("inf")) - times["cut"]
@@ -88,7 +111,11 @@ def test_a_ten_second_cut_mid_mission(reference_mission, open_tmp_path):
         f"cut and the map server killed in it {f1_cut:.4f} ({100 * f1_cut / f1_base:.1f} %)"
     )
     print("link state delays: " + ", ".join(f"{k} {v:.2f} s" for k, v in delays.items()))
-    print(f"live clouds after recovery: {describe_ages(ages)}; backfilled keyframes: {backfilled}")
+    print(
+        f"live clouds after recovery: latency {describe_ages(ages)} (the reference mission's, no cut: "
+        f"{describe_ages(_reference_latencies(reference_mission))}); captured before the link came back: "
+        f"{describe_ages(held[held > 0])}; backfilled keyframes: {backfilled}"
+    )
 
     for key, delay in delays.items():
         assert delay <= (DOWN_WITHIN_S if key.endswith("down") else UP_WITHIN_S), delays
@@ -100,7 +127,9 @@ def test_a_ten_second_cut_mid_mission(reference_mission, open_tmp_path):
     map_server_logs = sorted((out / "logs").glob("map_server-*.log"), key=lambda p: int(p.stem.split("-")[1]))
     assert len(map_server_logs) == 2, map_server_logs
     assert "map_server: resumed from" in map_server_logs[1].read_text()
-    assert len(ages) > 0 and max(ages) <= FRESH_S, describe_ages(ages)
+    assert len(held) > 0 and max(held) <= FRESH_S, (
+        f"captured up to {max(held, default=float('nan')):.2f} s before the link came back"
+    )
     assert all(n > 0 for n in backfilled.values()), backfilled
     assert f1_cut >= F1_RATIO * f1_base, (f1_cut, f1_base)
     assert LINK_STATE in (out / "twin_watch.txt").read_text()

@@ -6,11 +6,15 @@ import math
 import pytest
 
 from cps_experiments.live_scaling import (
+    COMPARED,
     LiveRun,
     host_cpus_arg,
     measure_run,
     min_window_rate_hz,
     mission_argv,
+    never_worse,
+    setpoint_figures,
+    spread,
     sweep,
     verdict,
 )
@@ -140,6 +144,16 @@ def test_the_slowest_window_counts_not_the_mission_average():
     assert min_window_rate_hz({}, ["a"], window_s=10.0) == 0.0
 
 
+def test_the_windows_overlap_and_cover_the_tail():
+    """Issue 36's plain judge: a 10 s silence straddling two back-to-back windows (5-15 s) is a
+    window at 0 Hz, and so is one in the last 10 s of a 35 s run that whole windows left out."""
+    a = [i * 0.5 for i in range(71)]  # 2 Hz for 35 s
+    straddling = [t for t in a if not 5.0 <= t < 15.0]
+    assert min_window_rate_hz({"a": straddling}, ["a"], window_s=10.0) == 0.0
+    tail = [t for t in a if not 25.0 <= t < 35.0]
+    assert min_window_rate_hz({"a": tail, "b": a}, ["a", "b"], window_s=10.0) == 0.0
+
+
 def test_every_row_asks_for_the_same_host_split(tmp_path):
     fleet = default_fleet_path()
     split = host_cpus_arg({"physical": (0,), "digital": (1,)})
@@ -167,3 +181,54 @@ def test_every_row_plays_the_same_recorded_video_when_given(tmp_path):
     argv = mission_argv(LiveRun(2, 60.0, False), fleet, str(tmp_path), 30, None, "/x/video_trace.npz")
     assert argv[argv.index("--video-trace") + 1] == "/x/video_trace.npz"
     assert "--video-trace" not in mission_argv(LiveRun(2, 60.0, False), fleet, str(tmp_path), 30)
+
+
+def test_setpoints_are_counted_per_stream_and_in_steady_state():
+    rows = [{"stamp_s": "0.0", "robot": "a", "stream": "cloud", "level_sent": "1", "rate_sent": "1"}]
+    rows += [
+        {"stamp_s": f"{t}", "robot": "a", "stream": "video", "level_sent": "0", "rate_sent": "1"} for t in (20, 22)
+    ]
+    rows += [{"stamp_s": "40.0", "robot": "b", "stream": "cloud", "level_sent": "0", "rate_sent": "1"}]
+    f = setpoint_figures(rows, elapsed_s=40.0, steady_from_s=15.0)
+    assert f["setpoints_per_s"] == pytest.approx(4 / 40.0) and f["setpoint_messages_per_s"] == pytest.approx(5 / 40.0)
+    assert f["steady_setpoints_max_per_stream_window"] == 2  # a's video twice within 5 s
+    assert f["steady_setpoints_per_stream_window"] == pytest.approx(3 / 3 / (25.0 / 5.0))
+    assert all(math.isnan(v) for v in setpoint_figures(None, 40.0, 15.0).values())
+
+
+def test_the_watched_video_is_measured_at_the_twin(tmp_path):
+    _mission_files(tmp_path)
+    video = names.absolute(names.robot_topic("b", names.CAMERA_IMAGE_COMPRESSED))
+    with open(tmp_path / "arrivals.csv", "a", newline="") as stream:
+        csv.writer(stream).writerows([(video, "b", int(i * 0.5e9), i * 0.5 + 0.030) for i in range(18)])
+    figures = measure_run(str(tmp_path), {"elapsed_s": 10.0}, ["a", "b"], 7.0, watched="b")
+    assert figures["video_hz"] == pytest.approx(1.8) and figures["video_latency_p95_ms"] == pytest.approx(30.0, abs=1)
+    # the clouds span 9 s: the judge's one partial window over that span, 18 frames in it
+    assert figures["video_min_window_hz"] == pytest.approx(2.0, rel=1e-3)
+    assert math.isnan(measure_run(str(tmp_path), {"elapsed_s": 10.0}, ["a", "b"], 7.0)["video_hz"])
+
+
+def test_repeats_come_after_the_first_sweep_and_name_their_folder():
+    runs = sweep((1, 16), repeats={16: 3})
+    assert runs[:10] == sweep((1, 16))
+    assert {r.name for r in runs[10:]} >= {"n16_60mbit_manager_on_r1", "n16_60mbit_manager_off_r2"}
+    assert len(runs) == 10 + 2 * 5 and all(r.robots == 16 for r in runs[10:])
+
+
+def _figures(**values):
+    base = {key: 1.0 for key, _, _ in COMPARED}
+    return {**base, **values}
+
+
+def test_on_is_judged_against_off_beyond_the_measured_spread():
+    measured = {
+        LiveRun(16, 60.0, True): _figures(min_window_hz=1.0, teleop_p95_ms=20.0),
+        LiveRun(16, 60.0, True, 1): _figures(min_window_hz=1.2, teleop_p95_ms=22.0),
+        LiveRun(16, 60.0, False): _figures(min_window_hz=1.25, teleop_p95_ms=10.0),
+        LiveRun(16, 60.0, False, 1): _figures(min_window_hz=1.25, teleop_p95_ms=12.0),
+    }
+    assert spread(measured)["min_window_hz"] == pytest.approx(0.2)
+    row = never_worse(measured)[(16, 60.0)]
+    assert row["min_window_hz"][2] == "same"  # 1.1 against 1.25: within the spread of 0.2
+    assert row["teleop_p95_ms"][2] == "worse"  # 21 ms against 11 ms, spread 2 ms
+    assert row["f1"][2] == "same"

@@ -119,8 +119,15 @@ def test_classes_map_to_their_zenoh_qos():
             True,
         ),
         names.ESTOP: (zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, True),
+        # the manager's setpoints: off teleop's lane (issue 36), never dropped
         robot_topic("iris", names.LIMITER_RATE_HZ): (
-            zenoh.Priority.REAL_TIME,
+            zenoh.Priority.INTERACTIVE_LOW,
+            zenoh.CongestionControl.BLOCK,
+            True,
+            True,
+        ),
+        robot_topic("iris", names.VIDEO_LEVEL): (
+            zenoh.Priority.INTERACTIVE_LOW,
             zenoh.CongestionControl.BLOCK,
             True,
             True,
@@ -146,8 +153,13 @@ def test_classes_map_to_their_zenoh_qos():
     assert all(
         r.source == ROBOTS
         for r in table.routes
-        if r.traffic.name != "command" and r.to != names.absolute(names.ALLOCATION)
+        if r.traffic.name not in ("command", "setpoint") and r.to != names.absolute(names.ALLOCATION)
     )
+    assert not {r.to for r in table.for_lane("command").routes} & {
+        robot_topic(robot, topic)
+        for robot in ROBOT_NAMES
+        for topic in (names.LIMITER_RATE_HZ, names.LIMITER_LEVEL, names.VIDEO_RATE_HZ, names.VIDEO_LEVEL)
+    }
     assert {r.to for r in table.routes if r.traffic.name == "backfill"} == {
         names.absolute(names.in_twin(names.robot_topic(r, kind)))
         for r in ROBOT_NAMES

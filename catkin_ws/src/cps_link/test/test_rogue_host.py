@@ -97,8 +97,9 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
             )
             twin.stop(sender)
 
-            for lane, port in PORTS.items():  # both lanes' ports, the command lane's above all
-                rogue = subprocess.run(
+            # Both lanes' ports at once, the command lane's above all.
+            rogues = {
+                lane: subprocess.Popen(
                     lan.argv(
                         "rogue",
                         [
@@ -113,12 +114,21 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
                             f"{HOSTS['twin']}:11311",
                         ],
                     ),
-                    capture_output=True,
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.PIPE,
                     text=True,
-                    timeout=120,
                 )
-                assert rogue.returncode == 0, rogue.stderr[-3000:]
-                results = json.loads(rogue.stdout.strip().splitlines()[-1])
+                for lane, port in PORTS.items()
+            }
+            try:
+                said = {lane: rogue.communicate(timeout=120) for lane, rogue in rogues.items()}
+            finally:
+                for rogue in rogues.values():
+                    rogue.kill()
+                    rogue.wait()
+            for lane, (stdout, stderr) in said.items():
+                assert rogues[lane].returncode == 0, stderr[-3000:]
+                results = json.loads(stdout.strip().splitlines()[-1])
                 print(lane, json.dumps(results, indent=1))
                 for name in ("plain_tcp", "tls_own_ca", "tls_fleet_ca_own_cert", "tls_fleet_ca_no_cert"):
                     attempt = results[name]

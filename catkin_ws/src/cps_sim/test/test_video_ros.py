@@ -47,6 +47,8 @@ def test_the_camera_renders_at_the_level_and_rate_it_is_told(sim, level_index, s
     sent = sum(len(m.data) for m in frames) / len(frames)
     assert report.level_mean_message_bytes == pytest.approx(sent, rel=0.25)
     assert report.level_mean_message_bytes > len(frames[-1].data)  # header and format counted too
+    # issue 36: what a frame at this level costs the robots' side, and on which CPUs
+    assert report.level_mean_cpu_s > 0 and report.host and report.host_cpus >= 1
 
 
 def test_the_finest_level_is_rendered_at_640x480(sim):

@@ -141,17 +141,26 @@ def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros,
                 what=f"status at level {level}",
             )
             assert 0 < last.level_mean_message_bytes
-        sizes = {}
+        sizes, points = {}, {}
         # The status' level mean is the size at that level only: the fine level's is larger.
         for level in (2, 0):
             level_pub.publish(UInt8(data=level))
             assert feed_until(leaf_is(leaves[level]))
-            sizes[level] = status.wait(
+            report = status.wait(
                 lambda s, level=level: s.level == level and math.isfinite(s.level_mean_message_bytes),
                 timeout_s=20,
-            ).level_mean_message_bytes
+            )
+            sizes[level], points[level] = report.level_mean_message_bytes, report.level_mean_points
+            # issue 36: where the limiter runs, and (the shared tissue, whose encoder is in the
+            # limiter's process) what the level costs the robots' side
+            assert report.host and report.host_cpus >= 1, report
+            assert math.isnan(report.host_idle_fraction) or 0 <= report.host_idle_fraction <= 1
+            if start is _start_shared:
+                assert report.level_mean_cpu_s > 0 and report.level_mean_points > 0, report
         # (this 320 x 240 view: 0.05 m clouds are 2.8-3.5x the 0.2 m ones, measured; 2x is the bound)
         assert sizes[0] > 2 * sizes[2], sizes
+        if start is _start_shared:
+            assert points[0] > 2 * points[2], points
         if restart_voxel_grid is not None:
             # level 0 (0.05 m) in force; a voxel grid back at its initial 0.10 m is set to 0.05 m again
             restart_voxel_grid()

@@ -88,6 +88,7 @@ def test_raw_frames_are_shrunk_to_the_level_at_the_rate_set(camera, rospy_node):
         report = status.wait(lambda s: s.level == 1 and s.level_mean_message_bytes > 0, timeout_s=5)
         sent = sum(len(m.data) for m in frames) / len(frames)
         assert report.level_mean_message_bytes == pytest.approx(sent, rel=0.1)  # one picture: sizes alike
+        assert report.level_mean_cpu_s > 0 and report.host  # issue 36: shrink + encode + publish
         rate.publish(Float64(float("nan")))
         level.publish(UInt8(9))
         images.take()

@@ -270,6 +270,7 @@ MISSION_OUTPUTS = {
         "arrivals.csv",
         "counters.csv",
         "allocation.csv",
+        "setpoints.csv",
         "gui.png",
         "ground_truth.npz",
         "scores.json",

@@ -438,6 +438,7 @@ def plan_nodes(
                                 "robots": ",".join(robots),
                                 "csv_path": os.path.join(out, "allocation.csv"),
                                 "link_state_csv_path": os.path.join(out, "link_state.csv"),
+                                "setpoints_csv_path": os.path.join(out, "setpoints.csv"),
                                 **({"selected_robot": options.selected_robot} if options.selected_robot else {}),
                                 **(
                                     {"available_mbps": round(options.available_mbps, 2)}

@@ -16,7 +16,7 @@ import time
 from typing import Callable, Dict, List, Optional
 
 from cps_bringup.plan import NodeSpec
-from cps_ros.processes import RosGraph
+from cps_ros.processes import RosGraph, stop_all
 
 
 class BringupError(RuntimeError):
@@ -264,9 +264,11 @@ class Supervisor:
         return {label: r.restarts for label, r in self.running.items() if r.restarts}
 
     def stop_all(self):
-        """Stop in reverse start order (consumers before producers), then the master."""
-        for label, running in reversed(list(self.running.items())):
-            self._graph(label).stop(running.proc, timeout_s=running.spec.stop_timeout_s)
+        """Stop every node at once (SIGINT, each within its own stop timeout, then SIGTERM and
+        SIGKILL: cps_ros.processes.stop_all), as Ctrl-C on a terminal would; the masters stay up
+        until the caller closes them. One after another, a mission's 17 processes took 8 s."""
+        stopping = list(self.running.values())
+        stop_all([r.proc for r in stopping], [r.spec.stop_timeout_s for r in stopping])
         self.running.clear()
 
     def pid_of(self, label):

@@ -39,7 +39,7 @@ before it degrades in rate, and never below its floor while the floors fit.
 
 import dataclasses
 import math
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -54,6 +54,31 @@ GUARANTEES = (OPERATOR_VIDEO, INSPECTION_DETAIL)  # precedence order of rule 1b,
 _BYTES_PER_MB = 1e6
 # A rule that fits within this fraction of the budget fits (float rounding of sums of products).
 _SLACK = 1e-12
+
+
+@dataclasses.dataclass(frozen=True)
+class ResourceUse:
+    """What one stream takes of a resource beside the link: the CPU of the robots' host its encoder
+    runs on (cores), or the twin's insertion (points/s). Issue 36: compute is a resource."""
+
+    resource: str  # the resource's name: a host ("cpu <host>") or the twin ("twin points")
+    per_message: Tuple[float, ...]  # amount per message at each level (finest first); inf: not known
+    # What the stream may take without any spare: its baseline, what it runs when nobody tells it
+    # (its encoder's configured level; the camera's default level and rate).
+    baseline_per_s: float
+    # Messages per second it is produced at whatever its allocated rate (a cloud is encoded before
+    # its rate limiter drops it: the sensor's rate); NaN: at the allocated rate (video is rendered
+    # and encoded only at the rate set).
+    produced_hz: float = math.nan
+
+    def per_s(self, level, rate_hz):
+        """What the stream takes at `level` and `rate_hz`."""
+        rate = self.produced_hz if math.isfinite(self.produced_hz) else rate_hz
+        return self.per_message[level] * rate if rate > 0 else 0.0
+
+    def increase(self, level, rate_hz):
+        """What it takes at `level` and `rate_hz` beyond its baseline (never < 0)."""
+        return max(0.0, self.per_s(level, rate_hz) - self.baseline_per_s)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +99,16 @@ class StreamDemand:
     guarantee_level: int = 0  # at this level or finer ...
     guarantee_rate_hz: float = 0.0  # ... at least this rate
     size_measured: Tuple[bool, ...] = ()
+    # Issue 36. Resources beside the link (a host's CPU, the twin's insertion) and what this stream
+    # takes of them; a resource with a finite spare in allocate_levels(spare=...) bounds what the
+    # allocation may add to the stream's use beyond what it takes now.
+    uses: Tuple[ResourceUse, ...] = ()
+    # No level finer than this is bought with spare budget (stage 3): a compute-bound stream's
+    # level in force. Rules 1b/1c are not bound by it.
+    finest_level: int = 0
+    # The level its encoder runs at now (None: not known); a finer level must fit the link with
+    # allocate_levels' `upgrade_margin` to spare (hysteresis against levels flapping).
+    level_in_force: Optional[int] = None
 
     @property
     def key(self):
@@ -116,6 +151,11 @@ class LevelAllocation:
     status: str
     broken: Tuple[str, ...]  # "<robot>/<stream>: <rule>" for every rule that did not fit
     detail_value: float  # the objective of stage 3 (sum of w x bits above the base levels)
+    # True when the link's budget shares the rates (stage 2 binds); False when every stream runs
+    # at its maximum rate and budget is left (the link is idle: stage 3).
+    link_binds: bool = True
+    # Per resource with a finite spare: what the allocation adds to its use beyond what is in force.
+    resource_increase: Tuple[Tuple[str, float], ...] = ()
 
     def by_key(self) -> Dict[Tuple[str, str], StreamAllocation]:
         return {(a.robot, a.stream): a for a in self.streams}
@@ -145,6 +185,9 @@ def validate_stream(d: StreamDemand):
             and 0 < d.weight < math.inf
             and 0 < d.floor_rate_hz <= d.max_rate_hz < math.inf
             and not d.guarantee
+            and not d.uses
+            and d.finest_level == 0
+            and d.level_in_force is None
         ):
             return
     except TypeError:
@@ -169,6 +212,22 @@ def validate_stream(d: StreamDemand):
             raise ValueError(f"{who}: guarantee_level {d.guarantee_level} outside the {n} levels")
         if not _finite(d.guarantee_rate_hz) or not d.floor_rate_hz <= d.guarantee_rate_hz <= d.max_rate_hz:
             raise ValueError(f"{who}: guarantee_rate_hz {d.guarantee_rate_hz!r} outside [floor, max] rate")
+    if isinstance(d.finest_level, bool) or not isinstance(d.finest_level, int) or not 0 <= d.finest_level < n:
+        raise ValueError(f"{who}: finest_level {d.finest_level!r} outside the {n} levels")
+    if d.level_in_force is not None and (
+        isinstance(d.level_in_force, bool) or not isinstance(d.level_in_force, int) or not 0 <= d.level_in_force < n
+    ):
+        raise ValueError(f"{who}: level_in_force {d.level_in_force!r} outside the {n} levels")
+    resources = [u.resource for u in d.uses]
+    if len(set(resources)) != len(resources):
+        raise ValueError(f"{who}: one use per resource, got {resources}")
+    for u in d.uses:
+        if len(u.per_message) != n or any(not (x >= 0) for x in u.per_message):  # inf allowed, NaN not
+            raise ValueError(f"{who}: {u.resource}: one amount >= 0 per level, got {u.per_message}")
+        if not (_finite(u.baseline_per_s) and u.baseline_per_s >= 0):
+            raise ValueError(f"{who}: {u.resource}: baseline_per_s must be finite and >= 0, got {u.baseline_per_s!r}")
+        if not (math.isnan(u.produced_hz) or (_finite(u.produced_hz) and u.produced_hz >= 0)):
+            raise ValueError(f"{who}: {u.resource}: produced_hz must be NaN or finite and >= 0, got {u.produced_hz!r}")
 
 
 def allocate_levels(
@@ -178,6 +237,8 @@ def allocate_levels(
     max_clouds_per_s: Optional[float] = None,
     floor_rate_hz: float = DEFAULT_FLOOR_RATE_HZ,
     priority_weights=None,
+    spare: Optional[Mapping[str, float]] = None,
+    upgrade_margin: float = 0.0,
 ) -> LevelAllocation:
     """Level and rate for every stream (module docstring). ValueError for bad input.
 
@@ -185,9 +246,26 @@ def allocate_levels(
     weighted water-filling share (never below their floors: a capacity below the floors is
     reported in `broken` and the floors hold). `floor_rate_hz`, `priority_weights`: rule 1a's
     degradation, as allocation.allocate_frequencies.
+
+    `spare` (issue 36): per resource beside the link (the streams' `uses`), how much of it the
+    allocation may take above the streams' baselines (from a host's idle CPU, the twin's
+    insertion capacity); absent or inf: not bounded. Within it the rates above the rules' are
+    shared by weight (before the link's budget, as the insertion capacity), finer levels are bought
+    only if they fit it as well as the link, and an inspection's detail (rule 1c) is kept only if
+    it fits; what the other rules need is never refused for it (it is counted).
+    `upgrade_margin`: a level finer than a stream's `level_in_force` must fit the link with this
+    fraction of its cost to spare (hysteresis).
     """
     if not _finite(budget_mbytes_per_s) or budget_mbytes_per_s <= 0:
         raise ValueError(f"budget must be > 0 MB/s, got {budget_mbytes_per_s!r}")
+    if not _finite(upgrade_margin) or not 0 <= upgrade_margin <= 1:
+        raise ValueError(f"upgrade_margin must be in [0, 1], got {upgrade_margin!r}")
+    bounded = {}
+    for name, value in (spare or {}).items():
+        if not (value >= 0):  # NaN or negative
+            raise ValueError(f"spare {name!r} must be >= 0 (inf: not bounded), got {value!r}")
+        if math.isfinite(value):
+            bounded[name] = float(value)
     if max_clouds_per_s is not None and (not _finite(max_clouds_per_s) or max_clouds_per_s < 0):
         raise ValueError(f"max_clouds_per_s must be finite and >= 0, got {max_clouds_per_s!r}")
     keys = [d.key for d in demands]
@@ -231,18 +309,26 @@ def allocate_levels(
     kept_guarantee = [False] * n
     required = floor.copy()
     active = np.array([not d.may_go_off for d in demands])
+    rules_use = {r: 0.0 for r in bounded}  # what the kept guarantees take above their baselines
     for rule in GUARANTEES:
         for i, d in enumerate(demands):
             if d.guarantee != rule:
                 continue
             lvl = _cheapest(sizes[i], range(d.guarantee_level + 1))
             extra = sizes[i][lvl] * d.guarantee_rate_hz - (floor_cost[i] if active[i] else 0.0)
-            if extra <= remaining + _SLACK * budget:
+            need = {u.resource: u.increase(lvl, d.guarantee_rate_hz) for u in d.uses if u.resource in bounded}
+            # Inspection detail is bought with spare like any detail; the operator's video is not refused.
+            fits = rule != INSPECTION_DETAIL or all(
+                rules_use[r] + v <= _resource_slack(bounded[r]) for r, v in need.items()
+            )
+            if extra <= remaining + _SLACK * budget and fits:
                 remaining -= extra
                 kept_guarantee[i], active[i] = True, True
                 base[i], required[i] = lvl, d.guarantee_rate_hz
+                for r, v in need.items():
+                    rules_use[r] += v
             else:
-                broken.append(f"{d.robot}/{d.stream}: {rule}")
+                broken.append(f"{d.robot}/{d.stream}: {rule}" + ("" if fits else " (no CPU or insertion to spare)"))
     for i, d in enumerate(demands):
         if d.may_go_off and not active[i]:
             if floor_cost[i] <= remaining + _SLACK * budget:
@@ -254,6 +340,8 @@ def allocate_levels(
     # Stage 2: rates at the base levels.
     size_base = np.array([sizes[i][base[i]] for i in range(n)])
     cap = np.maximum(fmax, required)
+    if bounded:
+        cap = _cap_by_resources(demands, active, base, required, cap, weight, bounded)
     lo = np.where(active, size_base * required, 0.0)
     hi = np.where(active, size_base * cap, 0.0)
     level = list(base)
@@ -266,15 +354,30 @@ def allocate_levels(
     # Stage 3: finer levels at the maximum rate, with what every stream at its maximum leaves.
     leftover = budget - hi.sum()
     if leftover > 0:
+        resource_left = {
+            r: bounded[r] - sum(u.increase(base[i], cap[i]) for i in on for u in demands[i].uses if u.resource == r)
+            for r in bounded
+        }
         options = []
         for i in on:
-            top = demands[i].guarantee_level if kept_guarantee[i] else len(sizes[i]) - 1
+            d = demands[i]
+            top = d.guarantee_level if kept_guarantee[i] else len(sizes[i]) - 1
             allowed = range(min(top, len(sizes[i]) - 1) + 1) if kept_guarantee[i] else range(len(sizes[i]))
             for lvl in allowed:
                 gain = weight[i] * (bits[i][lvl] - bits[i][base[i]])
-                if lvl != base[i] and gain > 0:
-                    options.append((i, lvl, (sizes[i][lvl] - size_base[i]) * cap[i], gain))
-        choice, detail_value = choose_levels(options, leftover + _SLACK * budget)
+                if lvl == base[i] or gain <= 0 or lvl < d.finest_level:
+                    continue
+                cost = (sizes[i][lvl] - size_base[i]) * cap[i]
+                if d.level_in_force is not None and lvl < d.level_in_force:
+                    cost *= 1.0 + upgrade_margin
+                extra = {
+                    u.resource: u.increase(lvl, cap[i]) - u.increase(base[i], cap[i])
+                    for u in d.uses
+                    if u.resource in bounded
+                }
+                if all(math.isfinite(v) for v in extra.values()):
+                    options.append((i, lvl, cost, gain, extra))
+        choice, detail_value = choose_levels_within(options, leftover + _SLACK * budget, resource_left)
         for i, lvl in choice.items():
             level[i] = lvl
         rate = np.where(active, cap, 0.0)
@@ -307,7 +410,80 @@ def allocate_levels(
         for i, d in enumerate(demands)
     )
     feasible = not broken
-    return LevelAllocation(streams, budget, float(b.sum()), feasible, status, tuple(broken), float(detail_value))
+    increase = tuple(
+        (r, float(sum(u.increase(level[i], rate[i]) for i in on for u in demands[i].uses if u.resource == r)))
+        for r in sorted(bounded)
+    )
+    return LevelAllocation(
+        streams,
+        budget,
+        float(b.sum()),
+        feasible,
+        status,
+        tuple(broken),
+        float(detail_value),
+        link_binds=not leftover > 0,
+        resource_increase=increase,
+    )
+
+
+def _cap_by_resources(demands, active, base, required, cap, weight, bounded):
+    """The streams' maximum rates within each bounded resource's spare (issue 36): a stream whose
+    use grows with its rate (a video rendered at the rate set) may add to what it takes now its
+    weighted water-filling share of the spare, at its base level; never below its rules' rate.
+    A stream produced at a fixed rate (a cloud encoded before its limiter) takes what its level
+    costs whatever its rate: its increase at the base level comes off the spare first."""
+    cap = cap.copy()
+    for r, spare in bounded.items():
+        members = [(i, u) for i, d in enumerate(demands) if active[i] for u in d.uses if u.resource == r]
+        left = spare - sum(u.increase(base[i], 0.0) for i, u in members if math.isfinite(u.produced_hz))
+        scaled = [(i, u) for i, u in members if not math.isfinite(u.produced_hz) and u.per_message[base[i]] > 0]
+        if not scaled:
+            continue
+        lo = np.array([u.increase(base[i], required[i]) for i, u in scaled])
+        hi = np.array([u.increase(base[i], cap[i]) for i, u in scaled])
+        if not np.all(np.isfinite(hi)):  # a cost not known: no more than the rules' rate or what is in force
+            hi = np.where(np.isfinite(hi), hi, lo)
+        if hi.sum() <= left:
+            continue
+        w = np.array([weight[i] for i, _ in scaled])
+        grant = water_fill(w, lo, np.maximum(hi, lo), max(left, 0.0))
+        for (i, u), g in zip(scaled, grant):
+            per = u.per_message[base[i]]
+            rate = (u.baseline_per_s + g) / per if math.isfinite(per) else 0.0
+            cap[i] = min(cap[i], max(required[i], rate))
+    return cap
+
+
+def choose_levels_within(options, leftover, resource_left):
+    """choose_levels with resources beside the link: options are (stream, level, link cost, gain,
+    {resource: cost}) and every resource's total cost must stay within resource_left[resource].
+    Exact: options that alone exceed a resource are dropped; if no option left costs any bounded
+    resource it is choose_levels' knapsack, else scipy's milp with one row per resource."""
+    rows = sorted(resource_left)
+    kept = []
+    for i, lvl, cost, gain, extra in options:
+        costs = [max(0.0, extra.get(r, 0.0)) for r in rows]
+        if all(c <= _resource_slack(resource_left[r]) for c, r in zip(costs, rows)):
+            kept.append((i, lvl, cost, gain, costs))
+    if not any(c > 0 for *_, costs in kept for c in costs):
+        return choose_levels([(i, lvl, cost, gain) for i, lvl, cost, gain, _ in kept], leftover)
+    limits = np.array([leftover] + [_resource_slack(resource_left[r]) for r in rows])
+    best = {}
+    for i, lvl, cost, gain, costs in kept:
+        if gain > 0 and (i not in best or gain > best[i][3]):
+            best[i] = (i, lvl, cost, gain, costs)
+    totals = np.sum([[o[2]] + list(o[4]) for o in best.values()], axis=0) if best else np.zeros(len(limits))
+    if np.all(totals <= limits):  # every stream's best fits
+        return {i: o[1] for i, o in best.items()}, float(sum(o[3] for o in best.values()))
+    return _choose_levels_milp_rows(
+        [(i, lvl, [cost] + list(costs), gain) for i, lvl, cost, gain, costs in kept], limits
+    )
+
+
+def _resource_slack(left):
+    """A resource's leftover with float rounding allowed for (never below 0)."""
+    return max(0.0, left) * (1 + 1e-12) + 1e-15
 
 
 def choose_levels(options, leftover):
@@ -362,24 +538,39 @@ FRONTIER_LIMIT = 20000
 
 def _choose_levels_milp(options, leftover):
     """The same knapsack by scipy.optimize.milp (HiGHS)."""
+    return _choose_levels_milp_rows([(i, lvl, [cost], gain) for i, lvl, cost, gain in options], np.array([leftover]))
+
+
+def _choose_levels_milp_rows(options, limits):
+    """The knapsack with one row per resource: options (stream, level, [cost per row], gain),
+    row k's total cost <= limits[k], at most one option per stream; milp (HiGHS)."""
     from scipy.optimize import Bounds, LinearConstraint, milp
 
     options = [o for o in options if o[3] > 0]
     if not options:
         return {}, 0.0
-    costs = np.array([o[2] for o in options])
+    limits = np.asarray(limits, dtype=float)
+    costs = np.array([o[2] for o in options], dtype=float).T  # rows x options
     gains = np.array([o[3] for o in options])
     streams = sorted({o[0] for o in options})
     one_per_stream = np.zeros((len(streams), len(options)))
     for k, o in enumerate(options):
         one_per_stream[streams.index(o[0]), k] = 1.0
-    # Scaled to a leftover of 1 and a largest gain of 1 (sizes in MB x rates give costs of 1e-6).
+    # Each row scaled to a leftover of 1 and the gains to a largest of 1 (sizes in MB x rates give
+    # costs of 1e-6); a row with nothing left admits only options that cost it nothing.
+    free = limits <= 0
+    if np.any(free):
+        usable = ~np.any(costs[free] > 0, axis=0)
+        if not usable.any():
+            return {}, 0.0
+        options = [o for o, ok in zip(options, usable) if ok]
+        return _choose_levels_milp_rows(options, np.where(free, 1.0, limits))
     result = milp(
         -gains / gains.max(),
         integrality=np.ones(len(options)),
         bounds=Bounds(0, 1),
         constraints=[
-            LinearConstraint(costs[None, :] / leftover, -np.inf, 1.0),
+            LinearConstraint(costs / limits[:, None], -np.inf, 1.0),
             LinearConstraint(one_per_stream, -np.inf, 1.0),
         ],
         # HiGHS' presolve loses an option whose cost is ~1e-6 of the leftover (returns "optimal"
@@ -389,7 +580,7 @@ def _choose_levels_milp(options, leftover):
     if result.x is None:  # cannot happen (all zeros is feasible); keep the base levels
         return {}, 0.0
     chosen = [k for k in range(len(options)) if result.x[k] > 0.5]
-    if costs[chosen].sum() > leftover:  # solver tolerance: drop to the base levels rather than overrun
+    if np.any(costs[:, chosen].sum(axis=1) > limits):  # solver tolerance: the base levels rather than overrun
         return {}, 0.0
     return {options[k][0]: options[k][1] for k in chosen}, float(gains[chosen].sum())
 

@@ -8,9 +8,12 @@ turns them into a `LevelAllocation` (`allocate_streams`; `allocate` is its cloud
 `Allocation` form). The node only wires topics to it.
 """
 
+import collections
 import dataclasses
 import math
 from typing import Dict, Optional
+
+import numpy as np
 
 from cps_bw_manager.allocation import (
     DEFAULT_ASSUMED_MESSAGE_BYTES,
@@ -19,6 +22,7 @@ from cps_bw_manager.allocation import (
     Allocation,
     RobotAllocation,
     managed_budget_mbytes_per_s,
+    water_fill,
 )
 from cps_bw_manager.estimation import DeliveryRateEstimator, LinkReport
 from cps_bw_manager.level_allocation import (
@@ -27,6 +31,7 @@ from cps_bw_manager.level_allocation import (
     OPERATOR_VIDEO,
     VIDEO,
     LevelAllocation,
+    ResourceUse,
     StreamDemand,
     allocate_levels,
     cloud_detail_bits,
@@ -48,6 +53,32 @@ DEFAULT_INPUT_RATE_HOLD_S = 10.0
 INSERT_CAPACITY_HOLD_S = 10.0
 TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
 
+# Compute is a resource (issue 36). A stream that delivers less than (1 - COMPUTE_SHORTFALL) of the
+# rate set on it, over COMPUTE_WINDOW_S in which the link never bound, is compute-bound (its
+# producer, not the link, limits it: BBR's app-limited): no level finer than its own is bought for
+# it until it has delivered its rate again for COMPUTE_CLEAR_S. The window is long because a cloud
+# at ~1 Hz gives its limiter two or three messages per 2 s window.
+COMPUTE_WINDOW_S = 10.0
+COMPUTE_SHORTFALL = 0.2
+COMPUTE_CLEAR_S = 30.0
+# A host's idle CPU: the least its flowing encoders reported over the last HOST_WINDOW_S (BBR's
+# windowed filters; a host is bought for only if it stayed idle that long, so a transient, e.g.
+# the simulator not yet at full speed, buys nothing), and stale without a report for HOST_STALE_S.
+HOST_WINDOW_S = 10.0
+HOST_STALE_S = 10.0
+# After the allocation buys on a host, what it bought is held for HOST_SETTLE_S, and only idle
+# measured after that counts: the new work must show in the host's idle share first.
+HOST_SETTLE_S = 3.0
+# An encoder that forwarded this many messages without naming their level knows no levels.
+LEVELLESS_AFTER = 3
+# Resource names of the allocator's rows beside the link.
+TWIN_POINTS = "twin points"
+
+
+def cpu_resource(host):
+    """The allocator's name of a robots' host's CPU (cores)."""
+    return f"cpu {host}"
+
 
 @dataclasses.dataclass(frozen=True)
 class ManagerSettings:
@@ -68,6 +99,15 @@ class ManagerSettings:
     # A status without an input rate (0 or NaN: fewer than two messages in the limiter's window)
     # keeps the robot's last input-rate cap this long before it falls back to max_rate_hz.
     input_rate_hold_s: float = DEFAULT_INPUT_RATE_HOLD_S
+    # A finished robot's bandwidth weight (issue 36: it keeps the rate its stream sustains while the
+    # link has room, and yields first when it binds); the paper pins it at min_rate_hz: pin_done.
+    done_weight: float = 0.25
+    pin_done: bool = False
+    # The share of each robots' host's cores kept idle (control loops, teleop, the bridges): the
+    # allocation adds CPU work on a host only within its idle share above this.
+    cpu_idle_reserve: float = 0.15
+    # A level finer than the one in force must fit the link with this fraction of its cost to spare.
+    upgrade_margin: float = 0.1
 
     def validate(self):
         """ValueError naming the parameter that is wrong."""
@@ -86,7 +126,14 @@ class ManagerSettings:
             or not 0 <= self.input_rate_hold_s <= 3600
         ):
             raise ValueError(f"input_rate_hold_s must be in [0, 3600] s, got {self.input_rate_hold_s!r}")
+        for name in ("cpu_idle_reserve", "upgrade_margin"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not _finite(value) or not 0 <= value <= 1:
+                raise ValueError(f"{name} must be in [0, 1], got {value!r}")
+        if not isinstance(self.pin_done, bool):
+            raise ValueError(f"pin_done must be true or false, got {self.pin_done!r}")
         for name in (
+            "done_weight",
             "min_rate_hz",
             "max_rate_hz",
             "high_priority_weight",
@@ -111,6 +158,52 @@ class LinkHealth:
     outages: int = 0
     last_outage_s: float = 0.0
     peer: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class EncoderReport:
+    """What a stream's encoder says beside its sizes (cps_msgs/RateLimiterStatus, issue 36)."""
+
+    set_rate_hz: float = math.nan  # the rate in force on the robots' side (0: a video turned off)
+    forwarded: Optional[int] = None  # messages sent so far (a counter)
+    level_mean_cpu_s: float = math.nan  # CPU seconds per message at the level reported
+    level_mean_points: float = math.nan  # points per message at that level (clouds)
+    host: str = ""  # the computer and CPUs the encoder runs on
+    host_cpus: float = math.nan  # cores of that host
+    host_idle_fraction: float = math.nan  # their idle share over the status's window
+
+    def validate(self, who):
+        """ValueError naming the field that is not a value (NaN, 0 and "" mean: not reported)."""
+        for name in ("set_rate_hz", "level_mean_cpu_s", "level_mean_points", "host_cpus"):
+            value = getattr(self, name)
+            if not (math.isnan(value) or (_finite(value) and value >= 0)):
+                raise ValueError(f"{who}: {name} {value!r} is not NaN or finite and >= 0")
+        if not (math.isnan(self.host_idle_fraction) or 0.0 <= self.host_idle_fraction <= 1.0):
+            raise ValueError(f"{who}: host_idle_fraction {self.host_idle_fraction!r} outside [0, 1]")
+        if self.forwarded is not None and (isinstance(self.forwarded, bool) or int(self.forwarded) < 0):
+            raise ValueError(f"{who}: forwarded {self.forwarded!r} is not a count")
+
+
+@dataclasses.dataclass
+class _StreamState:
+    """What the manager knows of one stream from its encoder (issue 36)."""
+
+    cpu_s: LevelSizes  # CPU seconds per message per level, learned like the sizes
+    points: Optional[LevelSizes]  # points per message per level (clouds)
+    reported: bool = False  # an encoder status arrived
+    level: Optional[int] = None  # the level its encoder runs at (None: it does not say)
+    level_since_s: float = -math.inf
+    set_rate_hz: float = math.nan
+    host: str = ""
+    # (time, forwarded counter, rate set) of its statuses, for the compute-bound judgement
+    history: collections.deque = dataclasses.field(default_factory=collections.deque)
+    compute_bound: bool = False
+    delivering_since_s: float = math.nan
+    forwarded: int = 0  # the encoder's counter
+    # What the encoder runs when nobody tells it: the level and rate of its first report (its
+    # configured level; the camera's default). Taking no more than that needs no spare CPU.
+    baseline_level: Optional[int] = None
+    baseline_rate_hz: float = math.nan
 
 
 @dataclasses.dataclass
@@ -138,7 +231,7 @@ class ManagerCore:
         self.robots = list(robots)
         if not self.robots:
             raise ValueError("no robots to manage")
-        self.book = PriorityBook(self.robots)
+        self.book = PriorityBook(self.robots, pin_done=settings.pin_done)
         self.estimator = estimator
         self.measured: Dict[str, _Measured] = {r: _Measured() for r in self.robots}
         self.invalid_inputs = 0
@@ -169,6 +262,19 @@ class ManagerCore:
             self.video_measured[r] = _Measured()
         # The level each stream was last allocated (what its encoder produces once it follows).
         self.level_in_force = {key: sizes.levels - 1 for key, sizes in self.sizes.items()}
+        # Issue 36: each stream's CPU and points per level, level and rate in force, host, and
+        # whether it is compute-bound; each robots' host's idle cores (idle, cores, at s).
+        self.state: Dict[tuple, _StreamState] = {
+            key: _StreamState(
+                cpu_s=LevelSizes(sizes.priors), points=LevelSizes(sizes.priors) if key[1] == CLOUD else None
+            )
+            for key, sizes in self.sizes.items()
+        }
+        self.hosts: Dict[str, tuple] = {}  # host -> (cores, last report s)
+        self._idle: Dict[str, collections.deque] = {}  # host -> (s, idle cores) of its flowing encoders
+        self._settling: Dict[str, tuple] = {}  # host -> (until s, what was bought above the baselines)
+        self._points_capacity = (math.nan, -math.inf)  # (points/s, reported at s)
+        self._link_bound_s = -math.inf  # the last allocation in which the link's budget bound
         self.selected_robot = ""
         self.teleop = set()
         self._capacity = (math.nan, -math.inf)  # (clouds/s, reported at s)
@@ -178,6 +284,10 @@ class ManagerCore:
         self.announced_source = ""
         self._now_s = -math.inf
         self.last_demands: Dict[tuple, StreamDemand] = {}
+        self.last_spare: Dict[str, float] = {}
+        # The rate the last allocation gave each stream (before any limiter slack): what a stream
+        # must deliver not to be judged compute-bound.
+        self.allocated_rate_hz: Dict[tuple, float] = {}
 
     @property
     def paused(self):
@@ -256,11 +366,13 @@ class ManagerCore:
         now_s,
         level=None,
         level_mean_message_bytes=math.nan,
+        encoder: Optional[EncoderReport] = None,
     ):
         """A rate limiter's status received at `now_s` (s, any monotonic clock); returns True if the
         size (of any level) changed enough to re-allocate now. `level`, `level_mean_message_bytes`:
         the level the clouds were produced at and their size (RateLimiterStatus); without them the
-        mean size counts as the size of the level in force.
+        mean size counts as the size of the level in force. `encoder`: the rest of the status
+        (rate set, counter, CPU and points per message, host; issue 36).
 
         Raises KeyError for an unknown robot. A size of 0 or NaN (nothing received yet) keeps the
         old size; a negative or infinite size is counted and refused (ValueError). An input rate
@@ -272,6 +384,7 @@ class ManagerCore:
         if not _finite(now_s):
             self.invalid_inputs += 1
             raise ValueError(f"robot '{robot}': status time {now_s!r} is not a time")
+        self._check_encoder((robot, CLOUD), encoder)
         entry.output_rate_hz = float(output_rate_hz) if _finite(output_rate_hz) and output_rate_hz >= 0 else math.nan
         if not _positive(mean_message_bytes) and not (mean_message_bytes == 0 or math.isnan(mean_message_bytes)):
             self.invalid_inputs += 1
@@ -282,6 +395,7 @@ class ManagerCore:
             entry.input_rate_hz = entry.input_rate_at_s = math.nan  # held too long (or the clock went back)
         self._now_s = max(self._now_s, float(now_s))
         level_changed = self._learn((robot, CLOUD), level, level_mean_message_bytes, mean_message_bytes, now_s)
+        self._take_encoder((robot, CLOUD), level if _positive(level_mean_message_bytes) else None, encoder, now_s)
         if not _positive(mean_message_bytes):
             return level_changed
         old = entry.message_bytes
@@ -302,16 +416,25 @@ class ManagerCore:
         return False
 
     def on_video_status(
-        self, robot, level, level_mean_message_bytes, mean_message_bytes=math.nan, output_rate_hz=math.nan, *, now_s
+        self,
+        robot,
+        level,
+        level_mean_message_bytes,
+        mean_message_bytes=math.nan,
+        output_rate_hz=math.nan,
+        *,
+        now_s,
+        encoder: Optional[EncoderReport] = None,
     ):
         """A camera robot's video status (cps_msgs/RateLimiterStatus from its video pipeline);
         returns True if a level's size moved enough to re-allocate now. KeyError for a robot
-        without managed video, ValueError (counted) for a bad level, size or time."""
+        without managed video, ValueError (counted) for a bad level, size, time or `encoder` field."""
         if robot not in self.video_measured:
             raise KeyError(f"robot '{robot}' has no managed video (camera robots: {', '.join(self.camera_robots)})")
         if not _finite(now_s):
             self.invalid_inputs += 1
             raise ValueError(f"robot '{robot}': status time {now_s!r} is not a time")
+        self._check_encoder((robot, VIDEO), encoder)
         for value in (level_mean_message_bytes, mean_message_bytes):
             if not _positive(value) and not (value == 0 or math.isnan(value)):
                 self.invalid_inputs += 1
@@ -321,7 +444,119 @@ class ManagerCore:
         entry.output_rate_hz = float(output_rate_hz) if _finite(output_rate_hz) and output_rate_hz >= 0 else math.nan
         if _positive(mean_message_bytes):
             entry.message_bytes = float(mean_message_bytes)
-        return self._learn((robot, VIDEO), level, level_mean_message_bytes, mean_message_bytes, now_s)
+        changed = self._learn((robot, VIDEO), level, level_mean_message_bytes, mean_message_bytes, now_s)
+        self._take_encoder((robot, VIDEO), level, encoder, now_s)
+        return changed
+
+    def _check_encoder(self, key, encoder):
+        if encoder is None:
+            return
+        try:
+            encoder.validate(f"{key[0]}/{key[1]}")
+        except ValueError:
+            self.invalid_inputs += 1
+            raise
+
+    def _take_encoder(self, key, level, encoder, now_s):
+        """The encoder's level, rate set, costs and host (issue 36); judges compute-boundness."""
+        st = self.state[key]
+        st.reported = True
+        if level is not None and 0 <= level < self.sizes[key].levels:
+            if st.level != level:
+                st.level, st.level_since_s = int(level), float(now_s)
+            if st.baseline_level is None:
+                st.baseline_level = int(level)
+        if encoder is None:
+            return
+        if _finite(encoder.set_rate_hz):
+            st.set_rate_hz = float(encoder.set_rate_hz)
+            if math.isnan(st.baseline_rate_hz):
+                st.baseline_rate_hz = st.set_rate_hz
+        if st.level is not None:
+            if _positive(encoder.level_mean_cpu_s):
+                st.cpu_s.report(st.level, float(encoder.level_mean_cpu_s), float(now_s))
+            if st.points is not None and _positive(encoder.level_mean_points):
+                st.points.report(st.level, float(encoder.level_mean_points), float(now_s))
+        if encoder.forwarded is not None:
+            st.forwarded = int(encoder.forwarded)
+        if encoder.host:
+            st.host = encoder.host
+            if _positive(encoder.host_cpus) and _finite(encoder.host_idle_fraction):
+                cpus = float(encoder.host_cpus)
+                self.hosts[encoder.host] = (cpus, float(now_s))
+                if st.forwarded > 0:  # the host's idle share while its streams flow
+                    idle = self._idle.setdefault(encoder.host, collections.deque())
+                    if idle and now_s < idle[-1][0]:
+                        idle.clear()
+                    idle.append((float(now_s), encoder.host_idle_fraction * cpus))
+                    while idle and idle[0][0] < now_s - HOST_WINDOW_S - HOST_STALE_S:
+                        idle.popleft()
+        if encoder.forwarded is not None:
+            # A cloud's rate is set from its input rate (+10 %) once that is known; before, at the
+            # maximum, which a sensor slower than it would "fail" to deliver.
+            known = key[1] != CLOUD or _positive(self.measured[key[0]].input_rate_hz)
+            allocated = self.allocated_rate_hz.get(key, math.nan)
+            if _finite(encoder.set_rate_hz) and known and _finite(allocated):
+                # the rate it was allowed: the allocation's (a cloud's limiter may be set above it
+                # on an idle link: limiter_rates), or less while the setpoint filter holds it
+                rate = min(float(encoder.set_rate_hz), allocated)
+                self._judge_compute(st, st.forwarded, rate, float(now_s))
+            elif not known:
+                st.history.clear()
+
+    def _judge_compute(self, st, forwarded, set_rate_hz, now_s):
+        """Compute-bound: over the last COMPUTE_WINDOW_S, in which the link never bound (nor went
+        down), the stream delivered less than (1 - COMPUTE_SHORTFALL) of the mean rate set on it."""
+        history = st.history
+        if history and (forwarded < history[-1][1] or now_s < history[-1][0]):
+            history.clear()  # the encoder restarted, or the clock went back: start again
+        history.append((now_s, forwarded, set_rate_hz))
+        while len(history) > 2 and history[1][0] <= now_s - COMPUTE_WINDOW_S:
+            history.popleft()
+        start_s, start_count, _ = history[0]
+        if now_s - start_s < COMPUTE_WINDOW_S or self._link_bound_s >= start_s or self.paused:
+            return
+        allocated = sum(rate for _, _, rate in history) / len(history)
+        if allocated <= 0:
+            return
+        delivered = (forwarded - start_count) / (now_s - start_s)
+        if delivered < (1.0 - COMPUTE_SHORTFALL) * allocated:
+            st.compute_bound, st.delivering_since_s = True, math.nan
+        elif st.compute_bound:
+            if math.isnan(st.delivering_since_s):
+                st.delivering_since_s = now_s
+            elif now_s - st.delivering_since_s >= COMPUTE_CLEAR_S:
+                st.compute_bound, st.delivering_since_s = False, math.nan
+
+    def cpu_spare_by_stream(self):
+        """{(robot, stream): the spare cores of its host in the last allocation} (where known)."""
+        spare = self.last_spare
+        return {
+            key: spare[cpu_resource(st.host)]
+            for key, st in self.state.items()
+            if st.host and cpu_resource(st.host) in spare
+        }
+
+    def compute_bound_streams(self):
+        """The (robot, stream) keys judged compute-bound now."""
+        return tuple(key for key, st in self.state.items() if st.compute_bound)
+
+    def compute_bound(self, robot, stream):
+        """True while the stream is judged compute-bound (no finer level is bought for it)."""
+        return self.state[(robot, stream)].compute_bound
+
+    def reported(self, robot, stream):
+        """True once the stream's encoder has said what it runs: its level, and what that costs if
+        it reports its host's CPU; or it forwarded LEVELLESS_AFTER messages without naming a level
+        (an encoder that knows no levels, e.g. a plain rate_limiter). Before that no setpoint is
+        sent: it runs at its own configured level and initial rate, and the manager, not knowing
+        what a finer level would cost, would buy the finest everywhere at start."""
+        st = self.state[(robot, stream)]
+        if not st.reported:
+            return False
+        if st.level is None:
+            return st.forwarded >= LEVELLESS_AFTER
+        return not st.host or st.cpu_s.reference_level is not None
 
     def on_selected_robot(self, robot):
         """The operator's selected robot ("" for none; a robot not managed here selects none of
@@ -346,16 +581,19 @@ class ManagerCore:
         """The camera robots whose video gets operator quality: the selected one and every teleoperated one."""
         return {r for r in self.camera_robots if r == self.selected_robot or r in self.teleop}
 
-    def on_insert_capacity(self, clouds_per_s, now_s):
-        """The map server's insertion capacity (cps_msgs/InsertCapacity.clouds_per_s). 0 or NaN
-        (nothing measured in its window) clears it; negative or infinite is refused (ValueError,
-        counted). Returns True if the bound moved by more than 10 % (or appeared, or went)."""
+    def on_insert_capacity(self, clouds_per_s, now_s, points_per_s=math.nan):
+        """The map server's insertion capacity (cps_msgs/InsertCapacity.clouds_per_s, and
+        points_per_s: the finer levels' points are bought within it, issue 36). 0 or NaN (nothing
+        measured in its window) clears it; negative or infinite is refused (ValueError, counted).
+        Returns True if the clouds/s bound moved by more than 10 % (or appeared, or went)."""
         if not _finite(now_s):
             self.invalid_inputs += 1
             raise ValueError(f"insert capacity time {now_s!r} is not a time")
-        if not (_positive(clouds_per_s) or clouds_per_s == 0 or math.isnan(clouds_per_s)):
-            self.invalid_inputs += 1
-            raise ValueError(f"insert capacity {clouds_per_s!r} clouds/s is not a capacity")
+        for value, unit in ((clouds_per_s, "clouds/s"), (points_per_s, "points/s")):
+            if not (_positive(value) or value == 0 or math.isnan(value)):
+                self.invalid_inputs += 1
+                raise ValueError(f"insert capacity {value!r} {unit} is not a capacity")
+        self._points_capacity = (float(points_per_s) if _positive(points_per_s) else math.nan, float(now_s))
         before = self.insert_capacity_clouds_per_s(now_s)
         self._capacity = (float(clouds_per_s) if _positive(clouds_per_s) else math.nan, float(now_s))
         self._now_s = max(self._now_s, float(now_s))
@@ -366,11 +604,104 @@ class ManagerCore:
 
     def insert_capacity_clouds_per_s(self, now_s=None):
         """The twin's insertion capacity in force (None: none reported in the last INSERT_CAPACITY_HOLD_S)."""
+        return self._capacity_in_force(self._capacity, now_s)
+
+    def insert_capacity_points_per_s(self, now_s=None):
+        """The twin's insertion capacity in points/s in force (None: none reported lately)."""
+        return self._capacity_in_force(self._points_capacity, now_s)
+
+    def _capacity_in_force(self, reported, now_s):
         now_s = self._now_s if now_s is None else now_s
-        value, at_s = self._capacity
+        value, at_s = reported
         if not _positive(value) or not 0.0 <= now_s - at_s <= INSERT_CAPACITY_HOLD_S:
             return None
         return value
+
+    def spare(self, now_s=None):
+        """Per resource beside the link, how much of it the allocation may take above the streams'
+        baselines (issue 36). A robots' host: what its streams take above their baselines now,
+        plus its idle cores above `cpu_idle_reserve` (the least over HOST_WINDOW_S of flowing
+        streams), or minus the shortfall when that least is below half the reserve (the host is
+        short: the extra detail is shed); between the two, what they take now (hysteresis). Held
+        at what was bought for HOST_SETTLE_S after a purchase; what is taken now, for a host an
+        encoder names whose idle share is not known over a whole window. The twin's points: its
+        insertion capacity minus the clouds' baselines (absent until the map server reports it)."""
+        now_s = self._now_s if now_s is None else now_s
+        out = {}
+        reserve = self.settings.cpu_idle_reserve
+        named = {st.host for st in self.state.values() if st.host}
+        for host in named:
+            resource = cpu_resource(host)
+            taken = sum(self._above_baseline(key, resource, now_s) for key, st in self.state.items() if st.host == host)
+            until_s, bought = self._settling.get(host, (-math.inf, 0.0))
+            if now_s < until_s:
+                out[resource] = max(bought, taken)
+                continue
+            cores, at_s = self.hosts.get(host, (math.nan, -math.inf))
+            window = [idle for t, idle in self._idle.get(host, ()) if t >= max(until_s, now_s - HOST_WINDOW_S)]
+            samples = [t for t, _ in self._idle.get(host, ()) if t >= until_s]
+            whole = samples and now_s - samples[0] >= HOST_WINDOW_S and 0.0 <= now_s - at_s <= HOST_STALE_S
+            if not whole or not window:
+                out[resource] = taken
+                continue
+            least = min(window)
+            if least >= reserve * cores:
+                out[resource] = taken + least - reserve * cores
+            elif least < 0.5 * reserve * cores:
+                out[resource] = max(0.0, taken - (0.5 * reserve * cores - least))
+            else:
+                out[resource] = taken
+        capacity = self.insert_capacity_points_per_s(now_s)
+        if capacity is not None:
+            baselines = 0.0
+            for robot in self.robots:
+                use = next((u for u in self._uses((robot, CLOUD), now_s) if u.resource == TWIN_POINTS), None)
+                baselines += use.baseline_per_s if use else 0.0
+            out[TWIN_POINTS] = max(0.0, capacity - baselines)
+        return out
+
+    def _above_baseline(self, key, resource, now_s):
+        """What the stream takes of `resource` above its baseline now (at its level and rate in force)."""
+        st = self.state[key]
+        use = next((u for u in self._uses(key, now_s) if u.resource == resource), None)
+        if use is None or st.level is None:
+            return 0.0
+        rate = st.set_rate_hz if math.isnan(use.produced_hz) else use.produced_hz
+        return use.increase(st.level, rate) if _finite(rate) else 0.0
+
+    def _uses(self, key, now_s):
+        """What the stream takes of the resources beside the link (ResourceUse), where known."""
+        st = self.state[key]
+        if st.level is None or st.baseline_level is None:
+            return ()
+        base = st.baseline_level
+        uses = []
+        if st.host and st.cpu_s.reference_level is not None:
+            per = st.cpu_s.estimate(now_s)
+            if key[1] == CLOUD:  # encoded at the sensor's rate, before its limiter
+                produced = self.measured[key[0]].input_rate_hz
+                if _positive(produced):
+                    uses.append(ResourceUse(cpu_resource(st.host), per, per[base] * produced, produced))
+            elif _finite(st.baseline_rate_hz):  # rendered and encoded at the rate set only
+                uses.append(ResourceUse(cpu_resource(st.host), per, per[base] * st.baseline_rate_hz))
+        if st.points is not None and st.points.reference_level is not None:
+            # at most what the sensor produces reaches the twin (the limiter's rate is set above it
+            # while the link has room, and only then are finer levels bought)
+            per = st.points.estimate(now_s)
+            produced = self.measured[key[0]].input_rate_hz
+            if _positive(produced):
+                uses.append(ResourceUse(TWIN_POINTS, per, per[base] * produced, produced))
+        return tuple(uses)
+
+    def _finest_level(self, key, now_s, uses=()):
+        """No level finer than the one in force while the stream is compute-bound, or while what
+        it costs its host cannot be priced (its encoder names a host but its cost, or a cloud's
+        input rate, is not known yet)."""
+        st = self.state[key]
+        if st.level is None:
+            return 0
+        unpriced = st.host and not any(u.resource == cpu_resource(st.host) for u in uses)
+        return st.level if st.compute_bound or unpriced else 0
 
     def on_mission_state(self, robot, state):
         return self.book.set_mission_state(self._known(robot), state)
@@ -471,6 +802,7 @@ class ManagerCore:
             d = self.book.demand(robot, math.nan, s.min_rate_hz, self.input_rate_cap_hz(robot))
             sizes = self.sizes[(robot, CLOUD)]
             detail = d.priority == 1 and len(names) > 1
+            finished = self.book.finished(robot) and not self.book.pinned_to_minimum(robot)
             out.append(
                 StreamDemand(
                     robot,
@@ -478,7 +810,7 @@ class ManagerCore:
                     sizes.estimate(now_s),
                     bits,
                     names,
-                    weight=self.weights[d.priority],
+                    weight=s.done_weight if finished else self.weights[d.priority],
                     priority=d.priority,
                     floor_rate_hz=d.min_rate_hz,
                     max_rate_hz=d.max_rate_hz,
@@ -486,6 +818,9 @@ class ManagerCore:
                     guarantee_level=0,
                     guarantee_rate_hz=d.min_rate_hz,
                     size_measured=sizes.measured(now_s),
+                    uses=(uses := self._uses((robot, CLOUD), now_s)),
+                    finest_level=self._finest_level((robot, CLOUD), now_s, uses),
+                    level_in_force=self.state[(robot, CLOUD)].level,
                 )
             )
         if self.video_levels:
@@ -510,6 +845,9 @@ class ManagerCore:
                         guarantee_level=st.operator_video_level,
                         guarantee_rate_hz=st.operator_video_rate_hz,
                         size_measured=sizes.measured(now_s),
+                        uses=(uses := self._uses((robot, VIDEO), now_s)),
+                        finest_level=self._finest_level((robot, VIDEO), now_s, uses),
+                        level_in_force=self.state[(robot, VIDEO)].level,
                     )
                 )
         return out
@@ -530,6 +868,9 @@ class ManagerCore:
             sizes = sum(d.level_bytes[levels[d.key]] for d in demands)
             return min(0.25 * budget, s.headroom_messages * sizes / 1e6 / s.window_s)
 
+        spare = self.spare(now_s)
+        self.last_spare = spare
+
         def solve(room):
             return allocate_levels(
                 demands,
@@ -537,6 +878,8 @@ class ManagerCore:
                 max_clouds_per_s=capacity,
                 floor_rate_hz=s.floor_rate_hz,
                 priority_weights=self.weights,
+                spare=spare,
+                upgrade_margin=s.upgrade_margin,
             )
 
         room = headroom(self.level_in_force)
@@ -547,6 +890,16 @@ class ManagerCore:
             chosen = {a.key: a.level for a in result.streams}
         self.level_in_force.update(chosen)
         self.last_demands = {d.key: d for d in demands}
+        self.allocated_rate_hz = {a.key: a.rate_hz for a in result.streams}
+        if result.link_binds:
+            self._link_bound_s = max(self._link_bound_s, float(now_s))
+        for resource, above in result.resource_increase:
+            host = resource[len(cpu_resource("")) :] if resource.startswith(cpu_resource("")) else None
+            if host is None or now_s < self._settling.get(host, (-math.inf, 0.0))[0]:
+                continue
+            taken = sum(self._above_baseline(k, resource, now_s) for k, st in self.state.items() if st.host == host)
+            if above > taken * (1 + 1e-9) + 1e-12:  # a purchase: hold it until the host shows it
+                self._settling[host] = (float(now_s) + HOST_SETTLE_S, above)
         streams = tuple(
             dataclasses.replace(
                 a,
@@ -561,6 +914,52 @@ class ManagerCore:
             budget_mbytes_per_s=budget,
             allocated_mbytes_per_s=copies * result.allocated_mbytes_per_s,
         )
+
+    def limiter_rates(self, result: LevelAllocation):
+        """{key: rate} to set on the clouds' rate limiters. On a link that binds, the allocation's.
+        On an idle one (every stream at its maximum, budget left), what the allocation leaves is
+        shared among the clouds by weight as slack up to max_rate_hz: a cloud is encoded before
+        its limiter whatever its rate, so slack costs nothing, and a limiter set at its sensor's
+        input rate + 10 % drops clouds whenever the sensor speeds up (the input rate is a 2 s
+        mean, and the setpoint filter holds a rise for up to 5 s). Bandwidth is what the
+        allocation counts: slack is only used when the link has room, and it is taken back at
+        once when the link binds (the filter sends decreases as soon as the rates in force would
+        overrun the budget)."""
+        rates = {a.key: a.rate_hz for a in result.streams if a.stream == CLOUD}
+        if result.link_binds or not rates:
+            return rates
+        clouds = [a for a in result.streams if a.stream == CLOUD and a.rate_hz > 0]
+        top = np.array(
+            [
+                self.settings.min_rate_hz if self.book.pinned_to_minimum(a.robot) else self.settings.max_rate_hz
+                for a in clouds
+            ]
+        )
+        size = np.array([a.message_bytes / 1e6 for a in clouds])
+        lo = np.array([a.rate_hz for a in clouds]) * size
+        hi = np.maximum(top * size, lo)
+        copies = self.settings.copies_on_link
+        budget = result.budget_mbytes_per_s / copies
+        other = result.allocated_mbytes_per_s / copies - lo.sum()
+        headroom = self.headroom_mbytes_per_s_at(result)
+        room = budget - headroom - other
+        if room <= lo.sum():
+            return rates
+        weight = np.array([max(a.weight, 1e-9) for a in clouds])
+        b = water_fill(weight, lo, hi, room)
+        raised = b / size
+        capacity = self.insert_capacity_clouds_per_s()
+        if capacity is not None and raised.sum() > capacity:  # nor beyond the twin's clouds/s
+            allocated = lo / size
+            raised = water_fill(weight, allocated, raised, max(capacity, allocated.sum()))
+        rates.update({a.key: float(x) for a, x in zip(clouds, raised)})
+        return rates
+
+    def headroom_mbytes_per_s_at(self, result: LevelAllocation):
+        """The per-window headroom at the levels of `result` (as allocate_streams keeps it)."""
+        s = self.settings
+        sizes = sum(a.message_bytes for a in result.streams)
+        return min(0.25 * result.budget_mbytes_per_s, s.headroom_messages * sizes / 1e6 / s.window_s)
 
     def allocate(self, now_s=None) -> Allocation:
         """The clouds of `allocate_streams` as the allocation before levels (`Allocation`, one
@@ -614,6 +1013,14 @@ ALLOCATION_CSV_COLUMNS = (
     "stream",
     "level",
     "level_name",
+    # issue 36: level and rate_hz above are the ones in force (sent to the robots); the allocator's
+    # own answer, which the setpoint filter may have held back, and whether the stream is
+    # compute-bound
+    "target_level",
+    "target_rate_hz",
+    "compute_bound",
+    # the spare CPU (cores) of the host the stream's encoder runs on, as this allocation saw it
+    "cpu_spare_cores",
 )
 
 
@@ -658,19 +1065,34 @@ def clouds_allocation(result: LevelAllocation, demands) -> Allocation:
     return Allocation(tuple(robots), result.budget_mbytes_per_s, allocated, result.feasible, result.status)
 
 
-def allocation_csv_rows(stamp_s, available_mbps, result, mission_states):
+def allocation_csv_rows(stamp_s, available_mbps, result, mission_states, target=None, compute_bound=(), cpu_spare=None):
     """One row of allocation.csv per stream of `result` (ALLOCATION_CSV_COLUMNS): a LevelAllocation
-    (cloud and video rows, with their levels) or an Allocation (cloud rows, no level)."""
+    (cloud and video rows, with their levels) or an Allocation (cloud rows, no level). `target`:
+    the allocator's LevelAllocation when `result` is what is in force (default: the same);
+    `compute_bound`: the (robot, stream) keys judged compute-bound; `cpu_spare`: {key: cores}."""
+    cpu_spare = cpu_spare or {}
+
+    def spare(key):
+        value = cpu_spare.get(key, math.nan)
+        return "" if math.isnan(value) else f"{value:.3f}"
+
     if isinstance(result, LevelAllocation):
+        wanted = (target or result).by_key()
         items = [
             (a.robot, a.priority, a.rate_hz, a.message_bytes, a.bandwidth_mbytes_per_s, a.share_percent, a.degraded)
             + (a.stream, a.level, a.level_name)
+            + (
+                wanted[a.key].level if a.key in wanted else "",
+                f"{wanted[a.key].rate_hz:.3f}" if a.key in wanted else "",
+                int(a.key in set(compute_bound)),
+                spare(a.key),
+            )
             for a in result.streams
         ]
     else:
         items = [
             (a.name, a.priority, a.rate_hz, a.message_bytes, a.bandwidth_mbytes_per_s, a.share_percent, a.degraded)
-            + (CLOUD, "", "")
+            + (CLOUD, "", "", "", f"{a.rate_hz:.3f}", 0, spare((a.name, CLOUD)))
             for a in result.robots
         ]
     return [
@@ -687,9 +1109,7 @@ def allocation_csv_rows(stamp_s, available_mbps, result, mission_states):
             f"{bandwidth:.4f}",
             f"{share:.2f}",
             int(degraded),
-            stream,
-            level,
-            level_name,
+            *stream_level_target_bound_cpu,
         )
-        for robot, priority, rate, size, bandwidth, share, degraded, stream, level, level_name in items
+        for (robot, priority, rate, size, bandwidth, share, degraded, *stream_level_target_bound_cpu) in items
     ]

@@ -13,11 +13,19 @@ from cps_bw_manager.manager import (
     ALLOCATION_CSV_COLUMNS,
     DEFAULT_INPUT_RATE_HOLD_S,
     LINK_STATE_CSV_COLUMNS,
+    EncoderReport,
     ManagerCore,
     ManagerSettings,
     allocation_csv_rows,
     link_state_csv_row,
     link_totals,
+)
+from cps_bw_manager.setpoints import (
+    DEFAULT_MIN_INTERVAL_S,
+    DEFAULT_RATE_DEADBAND,
+    SetpointFilter,
+    in_force_allocation,
+    targets_of,
 )
 from cps_fleet import names
 from cps_fleet.csv_log import CsvLog
@@ -67,6 +75,10 @@ class BandwidthManagerNode:
             headroom_messages=_param("~headroom_messages", 1.0, float),
             copies_on_link=_param("~copies_on_link", 1, int),
             input_rate_hold_s=_param("~input_rate_hold_s", DEFAULT_INPUT_RATE_HOLD_S, float),
+            done_weight=_param("~done_weight", ManagerSettings.done_weight, float),
+            pin_done=_param("~pin_done", ManagerSettings.pin_done, bool),
+            cpu_idle_reserve=_param("~cpu_idle_reserve", ManagerSettings.cpu_idle_reserve, float),
+            upgrade_margin=_param("~upgrade_margin", ManagerSettings.upgrade_margin, float),
         )
         settings.validate()  # before the estimator, which would refuse a bad rate less clearly
         self.update_rate_hz = _param("~update_rate_hz", 2.0, float)
@@ -120,8 +132,18 @@ class BandwidthManagerNode:
             else None
         )
         self.last_result = None
-
-        self.last_levels = None
+        # Issue 36: only the setpoints that matter go out (setpoints.py), and each one is logged.
+        self.setpoints = SetpointFilter(
+            rate_deadband=_param("~setpoint_deadband", DEFAULT_RATE_DEADBAND, float),
+            min_interval_s=_param("~setpoint_min_interval_s", DEFAULT_MIN_INTERVAL_S, float),
+        )
+        self.setpoint_messages = 0
+        setpoints_csv_path = rospy.get_param("~setpoints_csv_path", "")
+        self.setpoints_csv = (
+            CsvLog(setpoints_csv_path, SETPOINT_CSV_COLUMNS, max_bytes=csv_max_bytes, on_failure=rospy.logerr)
+            if setpoints_csv_path
+            else None
+        )
 
         def latched(robot, name, kind):
             return rospy.Publisher(names.robot_topic(robot, name), kind, queue_size=1, latch=True)
@@ -192,6 +214,7 @@ class BandwidthManagerNode:
                 now_s=rospy.get_time(),
                 level=msg.level,
                 level_mean_message_bytes=msg.level_mean_message_bytes,
+                encoder=encoder_report(msg),
             )
         )
 
@@ -204,6 +227,7 @@ class BandwidthManagerNode:
                 msg.mean_message_bytes,
                 msg.output_rate_hz,
                 now_s=rospy.get_time(),
+                encoder=encoder_report(msg),
             )
         )
 
@@ -238,7 +262,7 @@ class BandwidthManagerNode:
     def _on_insert_capacity(self, msg):
         try:
             with self.lock:
-                changed = self.core.on_insert_capacity(msg.clouds_per_s, rospy.get_time())
+                changed = self.core.on_insert_capacity(msg.clouds_per_s, rospy.get_time(), msg.points_per_s)
         except ValueError as exc:
             rospy.logwarn_throttle(5.0, f"bandwidth manager: {exc}; ignored")
             return
@@ -294,30 +318,41 @@ class BandwidthManagerNode:
         return SetPriorityResponse(success=ok, message=message)
 
     def update(self):
-        """Allocate, set every limiter's and every video's level and rate, publish and log the allocation."""
+        """Allocate; send the levels and rates that matter (SetpointFilter: a robot's changes
+        together, only for streams whose encoder has reported); publish and log the allocation
+        in force."""
         with self.lock:
             now_s = rospy.get_time()
             paused = self.core.pause_status(now_s)
             try:
-                result = self.last_result if paused and self.last_result else self.core.allocate_streams(now_s)
+                target = self.last_result if paused and self.last_result else self.core.allocate_streams(now_s)
             except ValueError as exc:
                 rospy.logerr_throttle(5.0, f"bandwidth manager: cannot allocate: {exc}")
                 return
-            self.last_result = result
+            self.last_result = target
             available = self.core.available_mbps
             states = {r: self.core.book.mission_state(r) for r in self.core.robots}
+            changes = {}
+            if not paused:
+                copies = self.core.settings.copies_on_link
+                targets = {
+                    key: t
+                    for key, t in targets_of(target, self.core.last_demands, self.core.limiter_rates(target)).items()
+                    if self.core.reported(*key)
+                }
+                changes = self.setpoints.decide(
+                    now_s, targets, target.budget_mbytes_per_s / copies, link_idle=not target.link_binds
+                )
+            result = in_force_allocation(
+                target, self.core.last_demands, self.setpoints, self.core.settings.copies_on_link
+            )
+            bound = self.core.compute_bound_streams()
+            cpu_spare = self.core.cpu_spare_by_stream()
         if paused:
             rospy.logwarn_throttle(5.0, f"bandwidth manager: {paused}")
-        elif not result.feasible:
-            rospy.logwarn_throttle(5.0, f"bandwidth manager: {result.status}")
-        for a in result.streams if not paused else ():
-            # the level first: the encoder switches, then the rate for that level applies
-            if a.stream == CLOUD:
-                self.level_pubs[a.robot].publish(UInt8(a.level))
-                self.rate_pubs[a.robot].publish(Float64(a.rate_hz))
-            else:
-                self.video_level_pubs[a.robot].publish(UInt8(a.level))
-                self.video_rate_pubs[a.robot].publish(Float64(a.rate_hz))
+        elif not target.feasible:
+            rospy.logwarn_throttle(5.0, f"bandwidth manager: {target.status}")
+        self._send(now_s, changes)
         msg = BandwidthAllocationArray()
         msg.header.stamp = rospy.Time.now()
         msg.available_mbps = available
@@ -351,12 +386,57 @@ class BandwidthManagerNode:
         self.alloc_pub.publish(msg)
         self.bw_pub.publish(Float64(available))
         if self.csv_log:
-            for row in allocation_csv_rows(msg.header.stamp.to_sec(), available, result, states):
+            for row in allocation_csv_rows(
+                msg.header.stamp.to_sec(), available, result, states, target, bound, cpu_spare
+            ):
                 self.csv_log.write(row)
             if self.csv_log.failed:
                 self.csv_report.report(self.csv_log.failed, csv_rows_lost=self.csv_log.rows_lost)
 
+    def _send(self, now_s, changes):
+        """Publish a robot's changed levels and rates together (the level first: the encoder
+        switches, then the rate for that level applies), each field only if it changed."""
+        for robot, items in changes.items():
+            for c in items:
+                cloud = c.key[1] == CLOUD
+                if c.level_changed:
+                    (self.level_pubs if cloud else self.video_level_pubs)[robot].publish(UInt8(c.level))
+                    self.setpoint_messages += 1
+                if c.rate_changed:
+                    (self.rate_pubs if cloud else self.video_rate_pubs)[robot].publish(Float64(c.rate_hz))
+                    self.setpoint_messages += 1
+                if self.setpoints_csv:
+                    self.setpoints_csv.write(
+                        (
+                            f"{now_s:.3f}",
+                            robot,
+                            c.key[1],
+                            c.level,
+                            f"{c.rate_hz:.3f}",
+                            int(c.level_changed),
+                            int(c.rate_changed),
+                            c.reason,
+                        )
+                    )
+
     def close(self):
-        for log in (self.csv_log, self.link_csv):
+        for log in (self.csv_log, self.link_csv, self.setpoints_csv):
             if log:
                 log.close()
+
+
+# setpoints.csv: one row per stream per setpoint sent (the level and/or the rate that changed).
+SETPOINT_CSV_COLUMNS = ("stamp_s", "robot", "stream", "level", "rate_hz", "level_sent", "rate_sent", "reason")
+
+
+def encoder_report(msg) -> EncoderReport:
+    """The issue-36 fields of a cps_msgs/RateLimiterStatus."""
+    return EncoderReport(
+        set_rate_hz=msg.set_rate_hz,
+        forwarded=msg.forwarded,
+        level_mean_cpu_s=msg.level_mean_cpu_s,
+        level_mean_points=msg.level_mean_points,
+        host=msg.host,
+        host_cpus=msg.host_cpus,
+        host_idle_fraction=msg.host_idle_fraction,
+    )

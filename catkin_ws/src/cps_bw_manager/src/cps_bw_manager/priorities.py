@@ -8,11 +8,15 @@ others share the rest. Mapping used here:
 |---------------------------|----------|-------------------------|
 | (none yet), idle, transit | 0        | [min, max]              |
 | inspecting                | 1        | [min, max]              |
-| done                      | 0        | [min, min] (pinned)     |
+| done                      | 0        | [min, max], finished    |
+
+A finished robot keeps the rate its stream can sustain while the link has room and yields first
+when it does not (the manager gives it a lower weight: ManagerSettings.done_weight); nothing is
+pinned without a reason (issue 36). The paper pins it at the minimum (Table 6 steps 6-9: "reduced
+to 1 Hz"): `PriorityBook(robots, pin_done=True)`, [min, min], which table6 uses to reproduce them.
 
 An operator priority (`/tissue/set_priority`) overrides the automatic one until the robot's mission
-state changes again. A done robot set to 1 by the operator gets [min, max] back; set to 0 it stays
-pinned at the minimum.
+state changes again. A done robot set to 1 by the operator is no longer finished (nor pinned).
 """
 
 import dataclasses
@@ -33,8 +37,9 @@ class _RobotState:
 class PriorityBook:
     """Automatic priorities from mission states plus operator overrides, for a fixed set of robots."""
 
-    def __init__(self, robots: Iterable[str]):
+    def __init__(self, robots: Iterable[str], pin_done: bool = False):
         self._robots: Dict[str, _RobotState] = {name: _RobotState() for name in robots}
+        self.pin_done = bool(pin_done)
 
     @property
     def robots(self):
@@ -73,12 +78,16 @@ class PriorityBook:
             return entry.operator_priority
         return 1 if entry.mission_state == "inspecting" else 0
 
-    def pinned_to_minimum(self, robot):
-        """A robot whose route is done needs no more than the minimum rate unless raised to 1."""
+    def finished(self, robot):
+        """A robot whose route is done and whom the operator did not raise to 1."""
         return self._entry(robot).mission_state == "done" and self.priority(robot) == 0
 
+    def pinned_to_minimum(self, robot):
+        """The paper's policy (pin_done): a finished robot needs no more than the minimum rate."""
+        return self.pin_done and self.finished(robot)
+
     def effective(self, robot):
-        return self.priority(robot), self.pinned_to_minimum(robot)
+        return self.priority(robot), self.finished(robot)
 
     def demand(self, robot, message_bytes, min_rate_hz, max_rate_hz):
         """The allocator's input for `robot`: priority and bounds from its state and the operator."""

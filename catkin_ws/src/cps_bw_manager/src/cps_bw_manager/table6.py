@@ -55,7 +55,7 @@ def run_table6_steps(
 ) -> List[Tuple[int, frozenset, Allocation]]:
     """(step, finished robots, Allocation) for the nine steps; `max_rate_hz` may be per robot
     (e.g. capped by each sensor's rate)."""
-    book = PriorityBook(TABLE6_ROBOTS)
+    book = PriorityBook(TABLE6_ROBOTS, pin_done=True)  # the paper's finished robots, "reduced to 1 Hz"
     steps = []
     for step in range(1, len(PAPER_TABLE6) + 1):
         done = TABLE6_FINISHED_BY_STEP[step]

@@ -49,30 +49,51 @@ RATE_WINDOW_S = 10.0
 F1_FRACTION_TARGET = 0.95
 DROPPED_FRACTION_TARGET = 0.01
 TELEOP_P95_TARGET_MS = 50.0
+# Setpoints: at most one per stream per SETPOINT_WINDOW_S in steady state (issue 36), counted from
+# SETPOINT_WARMUP_S after the first cloud reached the twin (the encoders' first reports and sizes).
+SETPOINT_WINDOW_S = 5.0
+SETPOINT_WARMUP_S = 15.0
+SETPOINT_COLUMNS = (
+    "setpoints_per_s",
+    "setpoint_messages_per_s",
+    "steady_setpoints_max_per_stream_window",
+    "steady_setpoints_per_stream_window",
+)
 
 
 @dataclasses.dataclass(frozen=True)
 class LiveRun:
-    """One mission of the sweep. link_mbps None: unconstrained (loopback, no shaping)."""
+    """One mission of the sweep. link_mbps None: unconstrained (loopback, no shaping). repeat: the
+    how-manieth run of the same row (0 the first), to measure the run-to-run spread."""
 
     robots: int
     link_mbps: Optional[float]
     manager: bool
+    repeat: int = 0
 
     @property
     def name(self):
         link = f"{self.link_mbps:g}mbit" if self.link_mbps else "unconstrained"
-        return f"n{self.robots:02d}_{link}_manager_{'on' if self.manager else 'off'}"
+        again = f"_r{self.repeat}" if self.repeat else ""
+        return f"n{self.robots:02d}_{link}_manager_{'on' if self.manager else 'off'}{again}"
+
+    @property
+    def arm(self):
+        """The row without its repeat."""
+        return (self.robots, self.link_mbps, self.manager)
 
 
-def sweep(sizes=FLEET_SIZES, links_mbps=LINKS_MBPS, shaped=True) -> List[LiveRun]:
+def sweep(sizes=FLEET_SIZES, links_mbps=LINKS_MBPS, shaped=True, repeats=None) -> List[LiveRun]:
     """Per N: the unconstrained reference (loopback, no manager: every cloud sent), then each link with
-    the manager on and off."""
+    the manager on and off; `repeats` {N: runs of each of N's rows} (default one), the repeats after
+    the whole first sweep so that a slow drift of the machine shows as spread, not as a difference."""
     runs = []
     for n in sizes:
         runs.append(LiveRun(n, None, False))
         if shaped:
             runs += [LiveRun(n, mbps, manager) for mbps in links_mbps for manager in (True, False)]
+    for k in range(1, max((repeats or {}).values(), default=1)):
+        runs += [dataclasses.replace(r, repeat=k) for r in list(runs) if r.repeat == 0 and repeats.get(r.robots, 1) > k]
     return runs
 
 
@@ -99,6 +120,15 @@ def host_cpus_arg(cpus=None):
     return f"robots={','.join(map(str, cpus[PHYSICAL]))},twin={','.join(map(str, cpus[DIGITAL]))}"
 
 
+def watched_robot(fleet_file, n):
+    """The operator's robot of an N-robot row: the first camera robot among the first N ("" if none)."""
+    from cps_fleet.fleet import load_fleet
+
+    fleet = load_fleet(fleet_file)
+    robots = fleet_robots(fleet_file, n)
+    return next((r.name for r in fleet.robots if r.name in robots and r.has_depth_camera), "")
+
+
 def mission_argv(run: LiveRun, fleet_file, out_dir, duration_s, host_cpus=None, video_trace=None):
     argv = [
         "all",
@@ -117,6 +147,9 @@ def mission_argv(run: LiveRun, fleet_file, out_dir, duration_s, host_cpus=None, 
         argv += ["--host-cpus", host_cpus]
     if video_trace:
         argv += ["--video-trace", video_trace]
+    watched = watched_robot(fleet_file, run.robots)
+    if watched:  # the operator watches one robot's video in every row (the manager raises it)
+        argv += ["--select-robot", watched]
     if not run.manager:
         argv += ["--bandwidth-manager", "off"]
     return argv
@@ -159,8 +192,50 @@ def min_window_rate_hz(times_by_robot, robots, window_s=RATE_WINDOW_S, span=None
     return min((w.rate_hz for w in lows if w is not None), default=math.nan)
 
 
-def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
-    """The sweep's figures for one finished mission, from the files in `run_dir`."""
+def _lowest_rate_hz(times_s, span):
+    """The lowest RATE_WINDOW_S window's rate of `times_s` over `span` (judge's windows); NaN without one."""
+    low = J.lowest_window(times_s, *span, RATE_WINDOW_S) if span else None
+    return low.rate_hz if low is not None else math.nan
+
+
+def setpoint_figures(rows, elapsed_s, steady_from_s, window_s=SETPOINT_WINDOW_S):
+    """From setpoints.csv's rows (one per stream per setpoint sent): setpoints per second over the
+    mission, messages per second (a level and a rate are two), and in steady state (from
+    `steady_from_s`) the most setpoints any stream got in any `window_s` and the mean per stream per
+    `window_s`. NaN without the file (manager off)."""
+    if rows is None:
+        return {k: math.nan for k in SETPOINT_COLUMNS}
+    times = defaultdict(list)
+    messages = 0
+    for row in rows:
+        try:
+            t = float(row["stamp_s"])
+            messages += int(row["level_sent"]) + int(row["rate_sent"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        times[(row["robot"], row["stream"])].append(t)
+    steady = {k: sorted(t for t in v if t >= steady_from_s) for k, v in times.items()}
+    worst = 0
+    for stamps in steady.values():
+        stamps = np.asarray(stamps)
+        if len(stamps):
+            worst = max(
+                worst, int((np.searchsorted(stamps, stamps + window_s, side="left") - np.arange(len(stamps))).max())
+            )
+    end = max((t for v in times.values() for t in v), default=steady_from_s)
+    span = max(end - steady_from_s, window_s)
+    streams = max(len(times), 1)
+    return {
+        "setpoints_per_s": sum(len(v) for v in times.values()) / max(elapsed_s, 1e-9),
+        "setpoint_messages_per_s": messages / max(elapsed_s, 1e-9),
+        "steady_setpoints_max_per_stream_window": worst,
+        "steady_setpoints_per_stream_window": sum(len(v) for v in steady.values()) / streams / (span / window_s),
+    }
+
+
+def measure_run(run_dir, summary, robots, budget_mbytes_per_s, watched=""):
+    """The sweep's figures for one finished mission, from the files in `run_dir`; `watched`: the
+    robot whose video the operator watches."""
     from cps_experiments.report import managed_link_windows, read_csv
 
     stats = read_csv(os.path.join(run_dir, "stats.csv"))
@@ -182,7 +257,25 @@ def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
     # Replaced by a newer cloud of the same robot before insertion (the map server's slots): not lost
     # information, so not a drop; reported beside it (absent from runs before the slots: NaN).
     superseded = summary.get("clouds_superseded")
+    cloud_times = _arrival_times_s(arrivals, "/" + names.POINTS_MANAGED)
+    every = [t for v in cloud_times.values() for t in v]
+    # the watched video's windows cover the same span as the clouds' (the judge's windows)
+    span = (min(every), max(every) + 1e-6) if every else None
+    video_suffix = names.absolute(names.robot_topic(watched, names.CAMERA_IMAGE_COMPRESSED)) if watched else None
+    video_ms = _arrival_latencies_ms(arrivals, video_suffix).get(watched, []) if watched else []
+    video_times = _arrival_times_s(arrivals, video_suffix).get(watched, []) if watched else []
+    setpoints_path = os.path.join(run_dir, "setpoints.csv")
+    setpoints = setpoint_figures(
+        read_csv(setpoints_path) if os.path.exists(setpoints_path) else None,
+        elapsed,
+        (min(every) if every else 0.0) + SETPOINT_WARMUP_S,
+    )
     return {
+        **setpoints,
+        "watched_robot": watched,
+        "video_hz": len(video_times) / elapsed if watched else math.nan,
+        "video_min_window_hz": _lowest_rate_hz(video_times, span) if watched else math.nan,
+        "video_latency_p95_ms": float(np.percentile(video_ms, 95)) if len(video_ms) else math.nan,
         "elapsed_s": elapsed,
         "budget_mbytes_per_s": budget,
         "windows": int(len(totals)),
@@ -195,7 +288,7 @@ def measure_run(run_dir, summary, robots, budget_mbytes_per_s):
         "robots_reached": sum(1 for r in robots if hz[r] > 0),
         "min_hz": min(hz.values()) if hz else 0.0,
         "median_hz": float(np.median(list(hz.values()))) if hz else 0.0,
-        "min_window_hz": min_window_rate_hz(_arrival_times_s(arrivals, "/" + names.POINTS_MANAGED), robots),
+        "min_window_hz": min_window_rate_hz(cloud_times, robots),
         "windows_cover_mission": True,
         "hz_per_robot": hz,
         "clouds_inserted": inserted,
@@ -234,9 +327,11 @@ def run(
     replay_sizes=None,
     links_mbps=LINKS_MBPS,
     recorded_video=True,
+    repeats=None,
     log=print,
 ):
-    """Run (or, with reuse_runs, read back) the sweep; write fig13_live.csv/.png/.md into out_dir."""
+    """Run (or, with reuse_runs, read back) the sweep; write fig13_live.csv/.png/.md into out_dir.
+    `repeats`: {N: runs of each of N's rows} for the run-to-run spread (default: one each)."""
     from cps_fleet.fleet import load_fleet
 
     fleet_file = os.path.abspath(fleet_file or default_fleet_file())
@@ -250,7 +345,7 @@ def run(
         largest = base.with_robots(fleet_robots(fleet_file, max(sizes)))
         video_trace = ensure_video_trace(largest, os.path.join(run_root, "fig13_live"), True, log)
     measured, failures = {}, {}
-    for live in sweep(sizes, links_mbps, shaped=shaped):
+    for live in sweep(sizes, links_mbps, shaped=shaped, repeats=repeats):
         run_dir = os.path.abspath(os.path.join(run_root, "fig13_live", live.name))
         robots = fleet_robots(fleet_file, live.robots)
         fleet = base.with_robots(robots)
@@ -264,7 +359,11 @@ def run(
             continue
         link_mbps = live.link_mbps or base.link.available_mbps
         figures = measure_run(
-            run_dir, summary, robots, managed_budget_mbytes_per_s(link_mbps, base.link.reserve_fraction)
+            run_dir,
+            summary,
+            robots,
+            managed_budget_mbytes_per_s(link_mbps, base.link.reserve_fraction),
+            watched_robot(fleet_file, live.robots),
         )
         # "f1" is within ±1 voxel (the column's name predates the exact figure).
         figures["f1"], figures["f1_exact"] = score_map(summary.get("map_file"), fleet, run_dir)
@@ -275,10 +374,11 @@ def run(
             f"budget, F1 within ±1 voxel {figures['f1']:.3f} (voxel for voxel {figures['f1_exact']:.3f})"
         )
     for live, figures in measured.items():
-        reference = measured.get(LiveRun(live.robots, None, False))
+        # against the mean of the same N's unconstrained runs
+        references = [f for r, f in measured.items() if r.arm == (live.robots, None, False)]
         for key in ("f1", "f1_exact"):
-            ok = reference and reference[key] > 0
-            figures[f"{key}_fraction"] = figures[key] / reference[key] if ok else math.nan
+            values = [f[key] for f in references if f[key] > 0]
+            figures[f"{key}_fraction"] = figures[key] / float(np.mean(values)) if values else math.nan
     replay_sizes = () if quick else (REPLAY_FLEET_SIZES if replay_sizes is None else replay_sizes)
     replayed = {}
     if replay_sizes and shaped:
@@ -341,6 +441,7 @@ COLUMNS = (
     "robots",
     "link_mbps",
     "manager",
+    "repeat",
     "robots_reached",
     "elapsed_s",
     "windows",
@@ -363,7 +464,11 @@ COLUMNS = (
     "f1_fraction",
     "f1_exact",
     "f1_exact_fraction",
-)
+    "watched_robot",
+    "video_hz",
+    "video_min_window_hz",
+    "video_latency_p95_ms",
+) + SETPOINT_COLUMNS
 
 
 def _cell(value):
@@ -432,16 +537,19 @@ REPLAY_COLUMNS = (
 )
 
 
+def _order(kv):
+    live = kv[0]
+    return (live.robots, -(live.link_mbps or 1e9), not live.manager, live.repeat)
+
+
 def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped, replayed=None):
     """fig13_live.csv, fig13_live_replay.csv and fig13_live_runs.json (what only the sweep knew), then
     the report from them (write_report)."""
     rows = []
-    for live, f in sorted(
-        measured.items(), key=lambda kv: (kv[0].robots, -(kv[0].link_mbps or 1e9), not kv[0].manager)
-    ):
+    for live, f in sorted(measured.items(), key=_order):
         rows.append(
-            [live.robots, live.link_mbps or "unconstrained", "on" if live.manager else "off"]
-            + [_cell(f.get(c, math.nan)) for c in COLUMNS[3:]]
+            [live.robots, live.link_mbps or "unconstrained", "on" if live.manager else "off", live.repeat]
+            + [_cell(f.get(c, math.nan)) for c in COLUMNS[4:]]
         )
     write_csv(os.path.join(out_dir, "fig13_live.csv"), COLUMNS, rows)
     if replayed:
@@ -477,9 +585,10 @@ def measured_from_csv(csv_rows):
     out = {}
     for raw in csv_rows:
         link = None if raw["link_mbps"] == "unconstrained" else float(raw["link_mbps"])
-        live = LiveRun(int(raw["robots"]), link, raw["manager"] == "on")
-        figures = {k: csv_float(v) for k, v in raw.items() if k not in ("robots", "link_mbps", "manager")}
+        live = LiveRun(int(raw["robots"]), link, raw["manager"] == "on", int(raw.get("repeat") or 0))
+        figures = {k: csv_float(v) for k, v in raw.items() if k not in ("robots", "link_mbps", "manager", "repeat")}
         figures["windows_cover_mission"] = raw.get("windows_cover_mission") == "True"
+        figures["watched_robot"] = raw.get("watched_robot") or ""
         for k in (
             "robots_reached",
             "windows",
@@ -522,7 +631,7 @@ def write_report(out_dir):
         [
             live.robots,
             f"{live.link_mbps:g}" if live.link_mbps else "none",
-            "on" if live.manager else "off",
+            ("on" if live.manager else "off") + (f" (run {live.repeat + 1})" if live.repeat else ""),
             f"{f['robots_reached']}/{live.robots}",
             f"{f['windows_over_budget']}/{f['windows']}",
             f"{f['max_window_mbytes_per_s']:.2f} / {f['budget_mbytes_per_s']:.2f}",
@@ -534,10 +643,10 @@ def write_report(out_dir):
             f"{f['clouds_superseded']:g}",
             f"{f.get('f1_exact', math.nan):.3f} / {f['f1']:.3f}",
             f"{f.get('f1_exact_fraction', math.nan):.1%} / {f.get('f1_fraction', math.nan):.1%}",
+            _video_cell(f),
+            _setpoint_cell(f),
         ]
-        for live, f in sorted(
-            measured.items(), key=lambda kv: (kv[0].robots, -(kv[0].link_mbps or 1e9), not kv[0].manager)
-        )
+        for live, f in sorted(measured.items(), key=_order)
     ]
     sections = [
         f"Each row is one `cps_bringup all --fleet {info['fleet_file']} --robots <first N> --duration "
@@ -577,6 +686,8 @@ def write_report(out_dir):
                 "superseded in its slots",
                 "F1 voxel for voxel / within ±1 voxel",
                 "F1 / unconstrained (voxel / ±1)",
+                f"watched video: Hz mean / slowest {RATE_WINDOW_S:g} s window, latency p95 ms",
+                f"setpoints/s (messages/s); steady: most per stream in {SETPOINT_WINDOW_S:g} s, mean",
             ],
             table,
         ),
@@ -590,6 +701,7 @@ def write_report(out_dir):
             "whole one unseen, so the bar is judged from the slowest robot's mean rate (no window covering the "
             "mission can be above it), and a figure not measured fails.",
         )
+    sections += _judgement(measured)
     sections += _differences(measured, info["reserve_fraction"])
     if replayed:
         sections += _replay_section(replayed, info["replay_host_split"])
@@ -600,6 +712,94 @@ def write_report(out_dir):
         "Fig. 13 live: fleets of 1–16 robots sharing one link, manager on and off",
         sections,
     )
+
+
+def _video_cell(f):
+    if not f.get("watched_robot"):
+        return "no camera"
+    return (
+        f"{f['watched_robot']}: {f['video_hz']:.1f} / {f['video_min_window_hz']:.1f}, {f['video_latency_p95_ms']:.0f}"
+    )
+
+
+def _setpoint_cell(f):
+    if not math.isfinite(f.get("setpoints_per_s", math.nan)):
+        return "—"
+    return (
+        f"{f['setpoints_per_s']:.2f} ({f['setpoint_messages_per_s']:.2f}); "
+        f"{f['steady_setpoints_max_per_stream_window']:.0f}, {f['steady_setpoints_per_stream_window']:.2f}"
+    )
+
+
+# The rows the issue judges manager on against off by: (key, label, True when larger is better).
+COMPARED = (
+    ("min_window_hz", f"slowest {RATE_WINDOW_S:g} s window Hz", True),
+    ("latency_p95_ms", "cloud latency p95 ms", False),
+    ("teleop_p95_ms", "teleop p95 ms", False),
+    ("f1_exact", "F1 voxel for voxel", True),
+    ("f1", "F1 within ±1 voxel", True),
+    ("video_min_window_hz", f"watched video, slowest {RATE_WINDOW_S:g} s window Hz", True),
+)
+
+
+def arms(measured):
+    """{(N, link, manager): [figures of each run]}."""
+    out = defaultdict(list)
+    for live, f in sorted(measured.items(), key=_order):
+        out[live.arm].append(f)
+    return out
+
+
+def spread(measured):
+    """Per compared figure, the run-to-run spread: the largest range (max - min) over the repeats of
+    any one row (NaN when no row was repeated)."""
+    out = {}
+    for key, _, _ in COMPARED:
+        ranges = [
+            max(v) - min(v)
+            for runs in arms(measured).values()
+            if len(runs) > 1
+            for v in [[f[key] for f in runs if math.isfinite(f.get(key, math.nan))]]
+            if len(v) > 1
+        ]
+        out[key] = max(ranges) if ranges else math.nan
+    return out
+
+
+def never_worse(measured):
+    """Per (N, link) with both arms: per compared figure (the mean over each arm's runs), on, off,
+    and whether on is worse than off by more than the spread ("worse"), within it ("same") or
+    better."""
+    groups, tolerance = arms(measured), spread(measured)
+    out = {}
+    for (n, link, manager), on_runs in groups.items():
+        off_runs = groups.get((n, link, False))
+        if not manager or link is None or not off_runs:
+            continue
+        row = {}
+        for key, label, larger_better in COMPARED:
+            on = finite_mean(f.get(key, math.nan) for f in on_runs)
+            off = finite_mean(f.get(key, math.nan) for f in off_runs)
+            gain = (on - off) if larger_better else (off - on)
+            margin = tolerance[key] if math.isfinite(tolerance[key]) else 0.0
+            verdict_text = (
+                "n/a"
+                if not math.isfinite(gain)
+                else "worse"
+                if gain < -margin
+                else "better"
+                if gain > margin
+                else "same"
+            )
+            row[key] = (on, off, verdict_text)
+        out[(n, link)] = row
+    return out
+
+
+def finite_mean(values):
+    """The mean of the finite `values`; NaN without one."""
+    values = [v for v in values if math.isfinite(v)]
+    return float(np.mean(values)) if values else math.nan
 
 
 def _replay_section(replayed, host_split):
@@ -656,6 +856,43 @@ def _replay_section(replayed, host_split):
             table,
         ),
     ]
+
+
+def _judgement(measured):
+    """Manager on against off in every row with both arms, beyond the measured run-to-run spread."""
+    tolerance = spread(measured)
+    judged = never_worse(measured)
+    if not judged:
+        return []
+    lines = [
+        "### Manager on against off (issue 36)",
+        "Each figure is the mean over a row's runs; 'worse' means worse by more than the run-to-run spread, "
+        "the largest range (max − min) of that figure over the repeats of any one row: "
+        + ", ".join(
+            f"{label} {tolerance[key]:.3g}" if math.isfinite(tolerance[key]) else f"{label} not measured (no repeats)"
+            for key, label, _ in COMPARED
+        )
+        + ".",
+    ]
+    table = []
+    for (n, link), row in sorted(judged.items(), key=lambda kv: (kv[0][0], -kv[0][1])):
+        table.append(
+            [n, f"{link:g}"]
+            + [
+                f"{on:.3g} / {off:.3g}: {word}" if math.isfinite(on) or math.isfinite(off) else "n/a"
+                for key, _, _ in COMPARED
+                for on, off, word in [row[key]]
+            ]
+        )
+    lines.append(markdown_table(["N", "link Mbit/s"] + [f"{label}, on / off" for _, label, _ in COMPARED], table))
+    worse = [
+        f"N = {n} at {link:g} Mbit/s: {label}"
+        for (n, link), row in judged.items()
+        for key, label, _ in COMPARED
+        if row[key][2] == "worse"
+    ]
+    lines.append("Rows where the manager is worse beyond the spread: " + ("; ".join(worse) if worse else "none") + ".")
+    return lines
 
 
 def _split_text(measured, key="host_split"):
@@ -748,9 +985,17 @@ def _plot(measured, png_path):
         (None, False): ("k:", "unconstrained (loopback, every cloud sent)"),
     }
     for (link, manager), (style, label) in styles.items():
-        runs = sorted(
-            (live.robots, f) for live, f in measured.items() if live.link_mbps == link and live.manager == manager
-        )
+        runs = [  # the mean of each N's runs
+            (
+                n,
+                {
+                    k: finite_mean(f[k] for f in fs)
+                    for k in ("min_hz", "max_window_mbytes_per_s", "budget_mbytes_per_s", "f1")
+                },
+            )
+            for (n, arm_link, arm_manager), fs in sorted(arms(measured).items(), key=lambda kv: kv[0][0])
+            if arm_link == link and arm_manager == manager
+        ]
         if not runs:
             continue
         n = [r for r, _ in runs]

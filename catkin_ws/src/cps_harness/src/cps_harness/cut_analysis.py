@@ -45,6 +45,14 @@ def ages_after(watch: Watch, t_s, topics) -> np.ndarray:
     )
 
 
+def captured_before(watch: Watch, t_s, topics) -> np.ndarray:
+    """t_s - stamp (s) of every message of `topics` received after t_s: how long before t_s it was
+    captured (negative: captured after it). A message that waited through a cut shows the wait."""
+    return np.array(
+        [t_s - stamp for topic in topics for recv, stamp, _ in watch.messages.get(topic, []) if recv >= t_s]
+    )
+
+
 def count_after(watch: Watch, t_s, topic) -> int:
     return sum(1 for recv, _, _ in watch.messages.get(topic, []) if recv >= t_s)
 

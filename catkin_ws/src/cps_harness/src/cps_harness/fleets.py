@@ -46,6 +46,24 @@ def write_fleet_with_copies(folder, copies=1, source=None):
     return path
 
 
+def write_fleet_with_short_routes(folder, waypoints, source=None):
+    """`source` (default: cps_bringup's fleet.yaml) with each robot's route cut to its first
+    `waypoints` waypoints (route files written into `folder`), so that a test sees every route run
+    to `done` in seconds; paths made absolute. Returns the new file's path."""
+    doc = fleet_doc_with_absolute_paths(source)
+    for robot in doc["robots"]:
+        with open(robot["route"]) as stream:
+            route = yaml.safe_load(stream)
+        route["waypoints"] = route["waypoints"][:waypoints]
+        robot["route"] = os.path.join(folder, f"{robot['name']}_route.yaml")
+        with open(robot["route"], "w") as stream:
+            yaml.safe_dump(route, stream, sort_keys=False)
+    path = os.path.join(folder, "fleet_short_routes.yaml")
+    with open(path, "w") as stream:
+        yaml.safe_dump(doc, stream, sort_keys=False)
+    return path
+
+
 # A user's robot type that only a fleet file defines (cps_fleet knows nothing of it).
 NEW_TYPE = """  tracked_lidar:   # a user's robot: only data
     base: wheeled

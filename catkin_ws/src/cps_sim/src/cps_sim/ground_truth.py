@@ -9,6 +9,7 @@ The floor is included: its top surface z = 0 lies in the voxel layer just below 
 import numpy as np
 
 from cps_sim.geometry import surface_points
+from cps_sim.line_of_sight import march_is_clear
 
 
 def occupied_voxels(site, resolution_m, include_floor=True):
@@ -57,7 +58,7 @@ def positions_every(positions_m, spacing_m):
     return np.array(kept).reshape(-1, 3)
 
 
-def observable_from_positions(truth_centers_m, resolution_m, sensor_positions_m, max_range_m, chunk=4096):
+def observable_from_positions(truth_centers_m, resolution_m, sensor_positions_m, max_range_m):
     """The truth voxels in line of sight of at least one sensor position, within `max_range_m`.
 
     The simulator's ground truth ray-cast from where the sensors actually were, so the observable
@@ -80,28 +81,13 @@ def observable_from_positions(truth_centers_m, resolution_m, sensor_positions_m,
     seen = np.zeros(len(truth), dtype=bool)
     step_m = res / 2.0
     for origin in positions:
+        # A sensor inside a truth voxel (on the floor, in a wall) sees nothing from there.
+        start_cell = np.floor(origin / res).astype(np.int64) - lo
+        if ((start_cell >= 0) & (start_cell < dims)).all() and occupied[tuple(start_cell)]:
+            continue
         todo = np.flatnonzero(~seen & (np.linalg.norm(truth - origin, axis=1) <= max_range_m))
-        for start in range(0, len(todo), chunk):
-            which = todo[start : start + chunk]
-            # The voxel's point nearest the sensor: a ray to its centre would graze its neighbours.
-            target = np.clip(origin, truth[which] - res / 2, truth[which] + res / 2)
-            length = np.linalg.norm(target - origin, axis=1)
-            steps = int(np.ceil(length.max() / step_m)) if len(length) else 0
-            blocked = np.zeros(len(which), dtype=bool)
-            for k in range(1, steps):
-                along = k * step_m
-                active = along < length - 1e-6
-                if not active.any():
-                    break
-                p = origin + (target[active] - origin) * (along / length[active])[:, None]
-                cell = np.floor(p / res).astype(np.int64) - lo
-                inside = ((cell >= 0) & (cell < dims)).all(axis=1)
-                hit = np.zeros(len(cell), dtype=bool)
-                hit[inside] = occupied[tuple(cell[inside].T)]
-                blocked[np.flatnonzero(active)[hit]] = True
-            # A sensor inside a truth voxel (on the floor, in a wall) sees nothing from there.
-            start_cell = np.floor(origin / res).astype(np.int64) - lo
-            if ((start_cell >= 0) & (start_cell < dims)).all() and occupied[tuple(start_cell)]:
-                blocked[:] = True
-            seen[which[~blocked]] = True
+        # The voxel's point nearest the sensor: a ray to its centre would graze its neighbours.
+        target = np.clip(origin, truth[todo] - res / 2, truth[todo] + res / 2)
+        length = np.linalg.norm(target - origin, axis=1)
+        seen[todo[march_is_clear(origin, target, length, occupied, lo, res, step_m)]] = True
     return truth[seen]

@@ -16,6 +16,7 @@ from cps_msgs.msg import RateLimiterStatus
 from cps_sim import messages
 from cps_sim.scheduling import RateMeter
 from cps_sim.video import LevelSizes, VideoTask, compressed_image_bytes
+from cps_transport import host_cpu
 from cps_transport.video_follower import VideoFollower
 
 # The scheduler's key of a robot's video task (a robot's name has no space).
@@ -41,6 +42,10 @@ class RobotVideo:
             self.control.set_level(0)
             self.control.set_rate(streams.video_max_rate_hz)
         self.sizes = LevelSizes(streams.video_levels)
+        # Per level: what a frame cost this side, rendering (or fetching a recorded one), encoding
+        # and publishing it, s (issue 36: the manager buys finer video only where the CPU exists).
+        self.cpu_s = LevelSizes(streams.video_levels)
+        self.host_cpu = host_cpu.shared()
         self.sent_meter = RateMeter()
         self.rendered = 0
         self.sent = 0
@@ -81,17 +86,21 @@ class RobotVideo:
         msg = CompressedImage(format=frame.format, data=frame.jpeg.tobytes())
         msg.header.stamp = messages.stamp(stamp_s)
         msg.header.frame_id = self.sensor_frame
+        started = time.perf_counter()
         self.publisher.publish(msg)
+        cost_s = frame.render_s + frame.encode_s + time.perf_counter() - started
         size = compressed_image_bytes(msg.header.frame_id, msg.format, len(msg.data))
         with self.lock:
             self.rendered += 1
             self.sent += 1
             self.sizes.add(frame.level_index, size)
+            self.cpu_s.add(frame.level_index, cost_s)
             self.mean_bytes = size if self.mean_bytes != self.mean_bytes else 0.9 * self.mean_bytes + 0.1 * size
             self.sent_meter.tick(now_s)
 
     def publish_status(self, now_s=None):
         now_s = time.time() if now_s is None else now_s
+        idle = self.host_cpu.idle_fraction()
         with self.lock:
             index = self.control.level_index
             status = RateLimiterStatus(
@@ -105,6 +114,11 @@ class RobotVideo:
                 forwarded=self.sent,
                 level=index,
                 level_mean_message_bytes=self.sizes.mean(index),
+                level_mean_cpu_s=self.cpu_s.mean(index),
+                level_mean_points=float("nan"),
+                host=self.host_cpu.host,
+                host_cpus=self.host_cpu.cores,
+                host_idle_fraction=idle,
             )
         status.header.stamp = rospy.Time.now()
         self.status_pub.publish(status)

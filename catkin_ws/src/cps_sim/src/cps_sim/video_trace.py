@@ -170,7 +170,8 @@ class VideoTrace:
 
     def describe(self):
         return (
-            f"recorded frames of each camera robot's route at each video level ({self.path}: "
+            # The file's name only: a report read elsewhere must not carry this machine's folders.
+            f"recorded frames of each camera robot's route at each video level ({os.path.basename(self.path)}: "
             f"{self.frames_per_level} per level, {self.meta['renderer']} renderer), played at the level and rate "
             "the camera is set to (the manager's, or without it the finest at the maximum rate)"
         )

@@ -28,6 +28,7 @@ from cps_ros import cloud_ledger
 from cps_ros.diagnostics import DropReporter
 from cps_ros.relay import relay_class, relay_message
 from cps_ros.timers import guarded_timer
+from cps_transport import host_cpu
 from cps_transport.cloud_levels import (
     LeafLedger,
     LeafTracker,
@@ -49,6 +50,29 @@ from cps_transport.topic_stats import has_header_first
 LIMITER_OUTPUT_QUEUE_SIZE = 5
 # A level's mean size in the limiter's status: over its last this many forwarded messages.
 LEVEL_MEAN_MESSAGES = 10
+
+
+class LevelCosts:
+    """Per level, what the encoder's last LEVEL_MEAN_MESSAGES messages cost the robots' side (CPU
+    seconds) and held (points): what the status reports (issue 36). Thread-safe."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._costs = collections.defaultdict(lambda: collections.deque(maxlen=LEVEL_MEAN_MESSAGES))
+
+    def add(self, level, cpu_s, points=math.nan):
+        with self._lock:
+            self._costs[level].append((float(cpu_s), float(points)))
+
+    def mean(self, level):
+        """(CPU s, points) per message at `level` (NaN, NaN before its first)."""
+        with self._lock:
+            costs = list(self._costs.get(level, ()))
+        if not costs:
+            return math.nan, math.nan
+        return sum(c for c, _ in costs) / len(costs), sum(p for _, p in costs) / len(costs)
+
+
 # How long a level change waits for the voxel grid's dynamic_reconfigure service.
 VOXEL_GRID_RECONFIGURE_TIMEOUT_S = 5.0
 
@@ -152,8 +176,11 @@ class ManagedRateLimiter:
         cloud_levels_m=(),
         level=0,
         ledger: Optional[LeafLedger] = None,
+        costs: Optional[LevelCosts] = None,
     ):
         self.limiter = RateLimiter(rate_hz, burst=burst, window_s=window_s)
+        self.costs = costs  # the encoder's cost per level (its process's encoder; None: not known)
+        self.host_cpu = host_cpu.shared()
         self.node_name = node_name
         self.lock = threading.Lock()
         self.input_topic = input_topic
@@ -185,13 +212,17 @@ class ManagedRateLimiter:
         self.publish_status()
 
     def set_rate(self, rate_hz):
+        """The status is echoed only when the rate changed (issue 36: a setpoint repeated is not news)."""
         try:
             with self.lock:
+                before = self.limiter.rate_hz
                 self.limiter.set_rate(rate_hz)
+                changed = self.limiter.rate_hz != before
         except ValueError as exc:
             rospy.logwarn(f"{self.node_name}: rate not changed: {exc}")
             return False, str(exc)
-        self.publish_status()
+        if changed:
+            self.publish_status()
         return True, f"rate set to {self.limiter.rate_hz} Hz"
 
     def on_set_rate(self, request):
@@ -263,7 +294,9 @@ class ManagedRateLimiter:
 
     def publish_status(self):
         now = time.monotonic()
+        idle = self.host_cpu.idle_fraction()
         with self.lock:
+            cpu_s, points = self.costs.mean(self.level) if self.costs is not None else (math.nan, math.nan)
             status = RateLimiterStatus(
                 input_topic=self.input_topic,
                 output_topic=self.output_topic,
@@ -275,6 +308,11 @@ class ManagedRateLimiter:
                 forwarded=self.limiter.forwarded,
                 level=self.level,
                 level_mean_message_bytes=self._level_mean_bytes(),
+                level_mean_cpu_s=cpu_s,
+                level_mean_points=points,
+                host=self.host_cpu.host,
+                host_cpus=self.host_cpu.cores,
+                host_idle_fraction=idle,
             )
         status.header.stamp = rospy.Time.now()
         self.status_pub.publish(status)
@@ -338,6 +376,8 @@ class ManagedVideoCompressor:
         self.follower = VideoFollower(robot, streams, self._on_setting, lock=self.lock)
         self.control = self.follower.control
         self.sizes = LevelSizes(streams.video_levels)
+        self.cpu_s = LevelSizes(streams.video_levels)  # per level: seconds to shrink, encode and publish a frame
+        self.host_cpu = host_cpu.shared()
         self.limiter = RateLimiter(self.control.rate_hz, burst=1.0)
         self.sent_meter = WindowRate()  # frames sent per second
         self.rendered = self.sent = 0
@@ -376,6 +416,7 @@ class ManagedVideoCompressor:
                 f"{self.input_topic}: {msg.width}x{msg.height} cannot give video level {level.name} (aspect ratio)",
             )
             return
+        started = time.thread_time()
         try:
             pixels = resize_pixels(
                 image_pixels(msg.encoding, msg.width, msg.height, msg.step, msg.data), level.width, level.height
@@ -386,17 +427,20 @@ class ManagedVideoCompressor:
             return
         out = CompressedImage(header=msg.header, format=compressed_format(msg.encoding), data=data)
         self.publisher.publish(out)
+        cpu_s = time.thread_time() - started
         size = compressed_image_bytes(msg.header.frame_id, out.format, len(data))
         self.report.ok(raw_bytes=len(msg.data), compressed_bytes=len(data))
         with self.lock:
             self.rendered += 1
             self.sent += 1
             self.sizes.add(index, size)
+            self.cpu_s.add(index, cpu_s)
             self.mean_bytes = size if self.mean_bytes != self.mean_bytes else 0.9 * self.mean_bytes + 0.1 * size
             self.sent_meter.add(now, size)
 
     def publish_status(self):
         now = time.monotonic()
+        idle = self.host_cpu.idle_fraction()
         with self.lock:
             index = self.control.level_index
             status = RateLimiterStatus(
@@ -410,6 +454,11 @@ class ManagedVideoCompressor:
                 forwarded=self.sent,
                 level=index,
                 level_mean_message_bytes=self.sizes.mean(index),
+                level_mean_cpu_s=self.cpu_s.mean(index),
+                level_mean_points=math.nan,
+                host=self.host_cpu.host,
+                host_cpus=self.host_cpu.cores,
+                host_idle_fraction=idle,
             )
         status.header.stamp = rospy.Time.now()
         self.status_pub.publish(status)
@@ -430,10 +479,15 @@ class DracoEncoderPart:
         leaves: Optional[LeafTracker] = None,
         map_resolution_m=math.inf,
         ledger: Optional[LeafLedger] = None,
+        costs: Optional[LevelCosts] = None,
+        levels_m=(),
     ):
         self.publisher = DracoPublisher(input_topic, encoder, topic=output_topic)
         self.leaves = leaves
         self.ledger = ledger
+        # With `costs` and the levels' leaves: each cloud's CPU time and points, noted per level.
+        self.costs = costs
+        self.levels_m = tuple(levels_m)
         self.map_resolution_m = map_resolution_m
         self.lock = threading.Lock()
         self.sequence = cloud_ledger.SequenceGaps()  # the voxel grid's numbers: what this queue lost
@@ -461,6 +515,7 @@ class DracoEncoderPart:
 
     def on_cloud(self, cloud):
         """Encodes and publishes one cloud at its leaf; the CompressedPointCloud2, or None when dropped."""
+        started = time.thread_time()
         with self.lock:
             if self.leaves.switching:
                 try:
@@ -473,7 +528,12 @@ class DracoEncoderPart:
         self.publisher.encoder.position_tolerance_m = position_tolerance_m(leaf, self.map_resolution_m)
         if self.ledger is not None:
             self.ledger.note(header_key(cloud.header), carried_leaf_m(leaf))
-        return self.publisher.publish(cloud, leaf_size_m=leaf)
+        sent = self.publisher.publish(cloud, leaf_size_m=leaf)
+        if sent is not None and self.costs is not None:
+            level = level_of_leaf(self.levels_m, leaf)
+            if level is not None:
+                self.costs.add(level, time.thread_time() - started, cloud.width * cloud.height)
+        return sent
 
 
 class CloudLevelSwitch:
@@ -582,6 +642,7 @@ class RobotTissue:
         self.config = config
         levels = bool(config.cloud_levels_m)
         ledger = LeafLedger() if levels else None
+        costs = LevelCosts() if levels else None
         self.encoder = DracoEncoderPart(
             config.filtered,
             config.draco,
@@ -589,6 +650,8 @@ class RobotTissue:
             leaves=LeafTracker(config.leaf_size_m) if levels else None,
             map_resolution_m=config.map_resolution_m,
             ledger=ledger,
+            costs=costs,
+            levels_m=config.cloud_levels_m,
         )
         self.limiter = ManagedRateLimiter(
             config.draco,
@@ -598,6 +661,7 @@ class RobotTissue:
             cloud_levels_m=config.cloud_levels_m,
             level=config.initial_level,
             ledger=ledger,
+            costs=costs,
         )
         self.levels = (
             CloudLevelSwitch(config.level_topic, config.voxel_grid, config.cloud_levels_m, self.encoder.switch_leaf)

@@ -13,8 +13,9 @@ from cps_transport.video_levels import VideoControl
 
 class VideoFollower:
     """Subscribes `<robot>/video_throttle/level` and `rate_hz` and keeps the last good setting in
-    `control` (a bad one is logged and refused); after each applied setting calls
-    `on_change(rate_changed)` outside the lock."""
+    `control` (a bad one is logged and refused); after each setting that changed something calls
+    `on_change(rate_changed)` outside the lock (a setpoint repeated is not news: no status echo, no
+    reschedule; issue 36)."""
 
     def __init__(self, robot, streams, on_change, lock=None):
         self.control = VideoControl(streams)
@@ -29,18 +30,24 @@ class VideoFollower:
 
     def _on_level(self, msg):
         with self.lock:
+            before = self.control.level_index
             error = self.control.set_level(msg.data)
+            changed = self.control.level_index != before
         if error:
             rospy.logerr(f"{self.level_topic}: {error}")
             return
-        self.on_change(False)
+        if changed:
+            self.on_change(False)
 
     def _on_rate(self, msg):
         with self.lock:
+            before = (self.control.rate_hz, self.control.off)
             error, note = self.control.set_rate(msg.data)
+            changed = (self.control.rate_hz, self.control.off) != before
         if error:
             rospy.logerr(f"{self.rate_topic}: {error}")
             return
         if note:
             rospy.logwarn_throttle(10.0, f"{self.rate_topic}: {note}")
-        self.on_change(True)
+        if changed:
+            self.on_change(True)

@@ -1,0 +1,197 @@
+"""Which of the allocation's levels and rates are worth sending to the robots (issue 36), no ROS.
+
+The allocator answers at every update (2 Hz, and on every input that may change it); most answers
+differ from the last one by noise (a size measured 3 % larger, an input rate 1.6 Hz instead of
+1.5 Hz). Every setpoint crosses the link, wakes the robot's encoder and is echoed by its status,
+on the robots' saturated CPU: so a stream's setpoint is sent only when it matters.
+
+- a stream's first setpoint, a coarser level, a video turned off or on, and a rate below what the
+  stream's rules guarantee (an operator's video, a floor) go out at once;
+- a finer level waits `min_interval_s` after the stream's last level change, unless a rule needs
+  it now (its rate in force is below what its rules guarantee, or it is the operator's video): the
+  allocator's choice of detail follows a noisy CPU estimate, and live at 16 robots a cloud flipped
+  between two leaves three times in 200 ms. Shedding detail is never delayed;
+- otherwise a rate goes out only if it left the deadband around the rate in force
+  (|target - sent| > `rate_deadband` x sent: hysteresis), and at most once per `min_interval_s`
+  per stream; while the link is idle (no stream's rate is held back by the budget) a lower rate
+  is not sent at all: nobody needs what it frees, and a cloud's target follows its noisy input
+  rate (+10 %) there;
+- whatever was held back, the rates in force must fit the link: if they do not (the budget fell,
+  or a size grew), every stream whose target is below its rate in force gets it at once.
+
+Decisions are batched per robot: one call decides every stream, and the node sends a robot's
+changes together.
+"""
+
+import dataclasses
+import math
+from typing import Dict, List, Mapping, Optional, Tuple
+
+from cps_bw_manager.level_allocation import OPERATOR_VIDEO
+
+DEFAULT_RATE_DEADBAND = 0.2
+DEFAULT_MIN_INTERVAL_S = 5.0
+FIRST, LEVEL, ON_OFF, RULE, CHANGE, BUDGET = "first", "level", "on/off", "rule", "change", "budget"
+
+
+@dataclasses.dataclass(frozen=True)
+class Target:
+    """What the allocator wants for one stream."""
+
+    level: int
+    rate_hz: float  # 0: off
+    min_rate_hz: float = 0.0  # what the stream's kept rules guarantee
+    message_bytes: float = 0.0  # its size at `level` (the budget check)
+    # The most it can send whatever its rate (a cloud: its sensor's input rate + 10 %); a limiter
+    # set above it (slack on an idle link) counts only this much against the budget.
+    usable_hz: float = math.inf
+    operator: bool = False  # the operator's video, its guarantee kept: its level goes at once
+
+
+@dataclasses.dataclass(frozen=True)
+class Change:
+    """A setpoint to send: the stream's level and rate now in force, and why."""
+
+    key: Tuple[str, str]  # (robot, stream)
+    level: int
+    rate_hz: float
+    level_changed: bool
+    rate_changed: bool
+    reason: str
+
+
+class SetpointFilter:
+    def __init__(self, rate_deadband=DEFAULT_RATE_DEADBAND, min_interval_s=DEFAULT_MIN_INTERVAL_S):
+        if not (math.isfinite(rate_deadband) and 0 <= rate_deadband < 1):
+            raise ValueError(f"rate_deadband must be in [0, 1), got {rate_deadband!r}")
+        if not (math.isfinite(min_interval_s) and min_interval_s >= 0):
+            raise ValueError(f"min_interval_s must be >= 0 s, got {min_interval_s!r}")
+        self.rate_deadband = float(rate_deadband)
+        self.min_interval_s = float(min_interval_s)
+        self._sent: Dict[Tuple[str, str], Tuple[int, float, float]] = {}  # key -> (level, rate, at s)
+        self._level_at: Dict[Tuple[str, str], float] = {}  # key -> when its level last changed, s
+        self.sent_count = 0
+
+    def in_force(self, key) -> Optional[Tuple[int, float]]:
+        """(level, rate) last sent for the stream (None: nothing sent yet)."""
+        entry = self._sent.get(key)
+        return None if entry is None else entry[:2]
+
+    def forget(self, key):
+        """Send the stream's next setpoint as its first (its encoder restarted)."""
+        self._sent.pop(key, None)
+        self._level_at.pop(key, None)
+
+    def decide(self, now_s, targets: Mapping[Tuple[str, str], Target], budget_mbytes_per_s=math.inf, link_idle=False):
+        """The setpoints to send now, per robot: {robot: [Change, ...]} (robots with none absent).
+        `budget_mbytes_per_s`: what the rates in force must fit (sum of rate x message_bytes);
+        `link_idle`: the allocation held no rate back for the link (its lower rates wait)."""
+        if not math.isfinite(now_s):
+            raise ValueError(f"time {now_s!r} is not a time")
+        changes: Dict[Tuple[str, str], Change] = {}
+        for key, t in targets.items():
+            reason = self._reason(key, t, now_s, link_idle)
+            if reason:
+                changes[key] = self._change(key, t, reason)
+        # The rates in force (after the changes above) must fit the link.
+        total = 0.0
+        for key, t in targets.items():
+            rate = changes[key].rate_hz if key in changes else self._sent.get(key, (0, t.rate_hz, 0))[1]
+            total += min(rate, t.usable_hz) * t.message_bytes / 1e6
+        if total > budget_mbytes_per_s * (1 + 1e-9):
+            for key, t in targets.items():
+                if key not in changes and t.rate_hz < self._sent[key][1] and t.rate_hz < t.usable_hz:
+                    changes[key] = self._change(key, t, BUDGET)
+        out: Dict[str, List[Change]] = {}
+        for key, change in changes.items():
+            self._sent[key] = (change.level, change.rate_hz, float(now_s))
+            if change.level_changed:
+                self._level_at[key] = float(now_s)
+            self.sent_count += 1
+            out.setdefault(key[0], []).append(change)
+        return out
+
+    def _reason(self, key, t: Target, now_s, link_idle=False):
+        sent = self._sent.get(key)
+        if sent is None:
+            return FIRST
+        level, rate, at_s = sent
+        broken_rule = rate < t.min_rate_hz * (1 - 1e-9)
+        if t.level > level or (t.level < level and (broken_rule or t.operator or self._level_settled(key, now_s))):
+            return LEVEL
+        if (rate == 0.0) != (t.rate_hz == 0.0):
+            return ON_OFF
+        if broken_rule:
+            return RULE
+        if link_idle and t.rate_hz < rate:
+            return ""
+        if abs(t.rate_hz - rate) > self.rate_deadband * rate and now_s - at_s >= self.min_interval_s:
+            return CHANGE
+        return ""
+
+    def _level_settled(self, key, now_s):
+        """True when the stream's level last changed at least `min_interval_s` ago."""
+        return now_s - self._level_at.get(key, -math.inf) >= self.min_interval_s
+
+    def _change(self, key, t: Target, reason):
+        sent = self._sent.get(key)
+        if reason != LEVEL and sent is not None and t.level < sent[0]:
+            t = dataclasses.replace(t, level=sent[0])  # a finer level still waits (see _reason)
+        return Change(
+            key=key,
+            level=t.level,
+            rate_hz=t.rate_hz,
+            level_changed=sent is None or sent[0] != t.level,
+            rate_changed=sent is None or sent[1] != t.rate_hz,
+            reason=reason,
+        )
+
+
+def targets_of(result, demands, rates=None):
+    """{key: Target} of a LevelAllocation, sizes from its `demands` ({key: StreamDemand}); `rates`
+    {key: Hz} replaces some rates (a cloud limiter's slack: ManagerCore.limiter_rates). A cloud
+    can send no more than its allocation's maximum (its input rate + 10 %)."""
+    out = {}
+    rates = rates or {}
+    for a in result.streams:
+        d = demands.get(a.key)
+        size = d.level_bytes[a.level] if d is not None else a.message_bytes
+        usable = a.max_rate_hz if a.stream == "cloud" else math.inf
+        operator = d is not None and d.guarantee == OPERATOR_VIDEO and a.guarantee_kept
+        out[a.key] = Target(
+            a.level, rates.get(a.key, a.rate_hz), a.min_rate_hz, size, max(usable, a.rate_hz), operator=operator
+        )
+    return out
+
+
+def in_force_allocation(result, demands, setpoints: SetpointFilter, copies=1):
+    """The LevelAllocation as the robots run it: each stream with a setpoint in force at its level
+    and rate (bandwidth and share at that level's size, every copy counted; a cloud's no more than
+    its maximum: a limiter's slack above what its sensor produces is not use, and the backfill
+    takes what the allocation leaves), the others as allocated."""
+    budget = result.budget_mbytes_per_s
+    streams = []
+    for a in result.streams:
+        held = setpoints.in_force(a.key)
+        d = demands.get(a.key)
+        if held is None or d is None or held == (a.level, a.rate_hz):
+            streams.append(a)
+            continue
+        level, rate = held
+        names = d.level_names or tuple(str(k) for k in range(len(d.level_bytes)))
+        size = d.level_bytes[level]
+        usable = max(a.max_rate_hz, a.rate_hz) if a.stream == "cloud" else math.inf  # a limiter's slack is not use
+        bandwidth = copies * min(rate, usable) * size / 1e6
+        streams.append(
+            dataclasses.replace(
+                a,
+                level=level,
+                level_name=names[level],
+                rate_hz=rate,
+                message_bytes=size,
+                bandwidth_mbytes_per_s=bandwidth,
+                share_percent=100.0 * bandwidth / budget,
+            )
+        )
+    total = sum(a.bandwidth_mbytes_per_s for a in streams)
+    return dataclasses.replace(result, streams=tuple(streams), allocated_mbytes_per_s=total)

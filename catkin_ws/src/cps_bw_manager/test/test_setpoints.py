@@ -1,0 +1,129 @@
+"""SetpointFilter: hysteresis, the minimum interval, what goes out at once, and the budget."""
+
+import math
+import random
+
+import pytest
+
+from cps_bw_manager.setpoints import BUDGET, CHANGE, FIRST, LEVEL, ON_OFF, RULE, SetpointFilter, Target
+
+CLOUD = ("a", "cloud")
+VIDEO = ("a", "video")
+OTHER = ("b", "cloud")
+
+
+def _sent(out):
+    return {c.key: c for changes in out.values() for c in changes}
+
+
+def test_the_first_setpoint_goes_out_and_is_batched_per_robot():
+    f = SetpointFilter()
+    out = f.decide(0.0, {CLOUD: Target(1, 5.0), VIDEO: Target(2, 5.0), OTHER: Target(1, 3.0)})
+    assert set(out) == {"a", "b"} and len(out["a"]) == 2
+    assert all(c.reason == FIRST and c.level_changed and c.rate_changed for c in _sent(out).values())
+    assert f.in_force(CLOUD) == (1, 5.0) and f.sent_count == 3
+
+
+def test_noise_inside_the_deadband_sends_nothing_however_long_it_lasts():
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(1, 5.0)})
+    rng = random.Random(3)
+    for k in range(1, 2000):  # 1000 s of updates at 2 Hz, the target wandering +-19 %
+        assert not f.decide(k * 0.5, {CLOUD: Target(1, 5.0 * (1 + rng.uniform(-0.19, 0.19)))})
+    assert f.sent_count == 1
+
+
+def test_a_material_rate_change_waits_for_the_minimum_interval():
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(1, 5.0)})
+    assert not f.decide(1.0, {CLOUD: Target(1, 8.0)})  # material, but 1 s after the last
+    assert not f.decide(4.9, {CLOUD: Target(1, 8.0)})
+    change = _sent(f.decide(5.0, {CLOUD: Target(1, 8.0)}))[CLOUD]
+    assert change.reason == CHANGE and change.rate_hz == 8.0 and not change.level_changed
+
+
+def test_at_most_one_setpoint_per_stream_per_interval_under_any_rate_noise():
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    rng = random.Random(7)
+    times = {}
+    for k in range(4000):
+        now = k * 0.25
+        for key, changes in _sent(f.decide(now, {CLOUD: Target(1, rng.uniform(0.5, 30.0))})).items():
+            times.setdefault(key, []).append(now)
+    gaps = [b - a for a, b in zip(times[CLOUD], times[CLOUD][1:])]
+    assert gaps and min(gaps) >= 5.0
+
+
+def test_a_coarser_level_an_off_video_and_a_broken_rule_go_out_at_once():
+    f = SetpointFilter(min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(1, 5.0), VIDEO: Target(2, 5.0)})
+    out = _sent(f.decide(0.5, {CLOUD: Target(2, 5.0), VIDEO: Target(2, 0.0)}))
+    assert out[CLOUD].reason == LEVEL and out[CLOUD].level_changed and not out[CLOUD].rate_changed
+    assert out[VIDEO].reason == ON_OFF and out[VIDEO].rate_hz == 0.0
+    # the operator selects the robot: 15 Hz guaranteed, 0.5 s later
+    out = _sent(f.decide(1.0, {VIDEO: Target(2, 15.0, min_rate_hz=15.0)}))
+    assert out[VIDEO].reason == ON_OFF
+    f.decide(10.0, {VIDEO: Target(2, 5.0)})  # after the interval: down to 5 Hz
+    out = _sent(f.decide(10.5, {VIDEO: Target(1, 15.0, min_rate_hz=15.0)}))
+    assert out[VIDEO].reason == LEVEL
+    f.decide(20.0, {VIDEO: Target(1, 5.0)})
+    assert _sent(f.decide(20.5, {VIDEO: Target(1, 15.0, min_rate_hz=15.0)}))[VIDEO].reason == RULE
+
+
+def test_held_decreases_go_out_as_soon_as_the_rates_in_force_overrun_the_budget():
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    targets = {CLOUD: Target(1, 10.0, message_bytes=100000.0), OTHER: Target(1, 10.0, message_bytes=100000.0)}
+    f.decide(0.0, targets, budget_mbytes_per_s=2.0)
+    # The budget drops by 10 %: each target 9 Hz, inside the deadband, but 20 Hz x 0.1 MB > 1.8 MB/s.
+    lower = {k: Target(1, 9.0, message_bytes=100000.0) for k in targets}
+    out = _sent(f.decide(1.0, lower, budget_mbytes_per_s=1.8))
+    assert {c.reason for c in out.values()} == {BUDGET} and all(c.rate_hz == 9.0 for c in out.values())
+    # Within the budget a held decrease stays held.
+    assert not f.decide(2.0, {k: Target(1, 8.0, message_bytes=100000.0) for k in targets}, budget_mbytes_per_s=1.8)
+
+
+def test_bad_settings_and_times_are_refused():
+    with pytest.raises(ValueError):
+        SetpointFilter(rate_deadband=1.0)
+    with pytest.raises(ValueError):
+        SetpointFilter(min_interval_s=-1.0)
+    with pytest.raises(ValueError):
+        SetpointFilter().decide(math.nan, {})
+
+
+def test_while_the_link_is_idle_a_lower_rate_waits_and_a_higher_one_goes():
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(1, 1.5)})
+    assert not f.decide(10.0, {CLOUD: Target(1, 0.6)}, link_idle=True)  # nobody needs what it frees
+    assert _sent(f.decide(20.0, {CLOUD: Target(1, 2.0)}, link_idle=True))[CLOUD].rate_hz == 2.0
+    assert _sent(f.decide(30.0, {CLOUD: Target(1, 0.6)}, link_idle=False))[CLOUD].reason == CHANGE
+
+
+def test_a_finer_level_waits_the_interval_after_the_last_level_change_and_never_flaps():
+    """Live at 16 robots a cloud went 1, 0, 1, 0, 1 within 10 s (three changes in 200 ms): shedding
+    detail goes out at once, buying it back waits min_interval_s after the stream's last level change."""
+    f = SetpointFilter(min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(1, 5.0)})
+    assert not f.decide(1.0, {CLOUD: Target(0, 5.0)})  # finer, 1 s after the first setpoint
+    assert _sent(f.decide(3.0, {CLOUD: Target(2, 5.0)}))[CLOUD].reason == LEVEL  # coarser: at once
+    levels = []
+    for k in range(40):  # 20 s of a target flipping between two leaves at every update
+        out = _sent(f.decide(3.5 + 0.5 * k, {CLOUD: Target(1 + k % 2, 5.0)}))
+        levels += [(3.5 + 0.5 * k, out[CLOUD].level)] if CLOUD in out else []
+    finer = [t for (t, level), (_, before) in zip(levels, [(3.0, 2)] + levels) if level < before]
+    assert finer and min(b - a for a, b in zip([3.0] + finer, finer)) >= 5.0
+    assert f.in_force(CLOUD)[0] in (1, 2)
+    # a broken rule takes the finer level at once
+    g = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    g.decide(0.0, {CLOUD: Target(1, 5.0)})
+    g.decide(5.0, {CLOUD: Target(2, 5.0)})
+    change = _sent(g.decide(6.0, {CLOUD: Target(1, 5.0, min_rate_hz=8.0)}))[CLOUD]
+    assert change.reason == LEVEL and change.level == 1  # a rule needs it: at once
+    g.decide(7.0, {VIDEO: Target(2, 5.0)})  # the video's first setpoint
+    assert not g.decide(7.5, {VIDEO: Target(1, 5.0)})  # finer: waits
+    assert _sent(g.decide(8.0, {VIDEO: Target(1, 5.0, operator=True)}))[VIDEO].reason == LEVEL  # selected: at once
+    h = SetpointFilter(min_interval_s=5.0)
+    h.decide(0.0, {VIDEO: Target(1, 5.0)})
+    h.decide(8.0, {VIDEO: Target(2, 5.0)})
+    change = _sent(h.decide(10.0, {VIDEO: Target(1, 0.0)}))[VIDEO]  # turned off while a finer level waits
+    assert change.reason == ON_OFF and change.level == 2 and not change.level_changed
