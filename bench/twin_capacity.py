@@ -1,279 +1,370 @@
 #!/usr/bin/env python3
-"""How many robots one twin core holds: a recorded mission replayed as N robots into the twin alone.
+"""How the twin bends under more robots than it can serve (issue 37): a recorded mission replayed as
+N = 8 ... 128 robots into the twin alone, on one and on two twin CPUs, light and paper profiles.
 
-The twin's cloud path (the decoder(s) and the map server, as bringup plans them) runs in a cgroup
-v1 cpuset of ONE CPU (`--twin-cpu`); the replay (cps_bringup.trace_replay: the trace's managed Draco
-clouds, odometry and tf as N copies with their own names, frames and offsets in space and time, at
-wall-clock rate, into the twin's decoder inputs) and this process run on the other CPUs. No
-simulator, no link: this measures the twin side alone.
+The twin's cloud path is the map server (its receive process takes the managed Draco clouds as the
+link delivers them; the insertion decodes only what it inserts) in a cgroup v1 cpuset of
+`--twin-cpus` CPUs; the replay (cps_bringup.trace_replay: the trace's managed clouds and tf as N
+copies with their own names, frames and offsets in space and time, at wall-clock rate, published
+synchronously so that nothing is dropped unseen before the twin) runs on the other CPU (with two
+twin CPUs on a two-core machine: on the same two, at the same cpu.shares). Per N, from the nodes'
+own counters (cps_experiments.twin_replay): clouds sent, inserted, superseded and dropped by cause
+(they sum to sent), inserted clouds and points per second, map age p95 (every robot pooled; per
+robot, the oldest against the median), twin CPU and the insertion's CPU.
 
-Per N, over a replay of `--duration` s: clouds sent (the replay's count), received, inserted and
-superseded by the map server (its MapStats), and the map age p95 over every copy's 1 Hz map_age_s
-from `WARMUP_S` after the replay starts to its end. A cloud is *dropped* when it was sent and
-neither inserted nor superseded by a newer cloud of the same robot (lost in a transport queue, or
-dropped by the map server): dropped % = 1 - (inserted + superseded) / sent. N holds when dropped
-<= 1 % and map age p95 <= 1 s. N grows by doubling from `--start` until one fails, then bisects.
+The anchor, measured in the same run on the same clouds (the trace's, decoded and placed with its
+tf) on the twin's CPU: plain sequential OctoMap insertion (octomap-python's insertPointCloud per
+cloud, what octomap_server does), and the map server's own per-cloud path run alone (decode,
+prepare, insert), both in CPU time of one thread.
 
-Layouts, in the same run: `shared` (today's default: one cloud_decoder for every robot) and the
-anchor `per_robot` (one draco_decoder process per robot, the per-process layout kept to compare).
-The map server's InsertCapacity at the largest N that holds gives voxel updates per second per core.
+    python bench/twin_capacity.py sweep --profile light --twin-cpus 1 [--robots 8,16,...] [--duration 30]
+    python bench/twin_capacity.py report    # docs/benchmarks/twin_capacity.md and its plot
 
-    python bench/twin_capacity.py [--bag out/trace4/mission.bag] [--duration 30] [--layouts shared,per_robot]
-
-Without --bag it records one: a 45 s loopback mission of the default fleet, light profile. Needs
-root for the cgroup (else it runs unsplit and says so). Figures into docs/benchmarks/twin_capacity.md.
+A sweep records its trace first when there is none (a loopback mission of the default fleet; the
+paper profile's simulator reaches ~6 % of its camera rate on two cores, so its trace is replayed at
+the profile's sensor rates: each robot's trace stretched in time, trace_replay --profile-rates).
+Needs root for the cgroups (else it runs unsplit and says so). Run it under the heavy lock.
 """
 
 import argparse
+import datetime
 import json
 import os
-import subprocess
-import sys
-
-from cps_experiments.twin_replay import MAX_AGE_P95_S, MAX_DROPPED, MAX_SUPERSEDED, WARMUP_S, holds, replay_bench
+import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-BRINGUP = os.path.join(ROOT, "catkin_ws", "src", "cps_bringup", "nodes", "cps_bringup")
+OUT = os.path.join(ROOT, "bench", "out", "twin_capacity")
+# The sweeps, committed: {"sweeps": {"<profile>/<twin CPUs>": sweep}} (the report and the README read it).
+RESULTS = os.path.join(ROOT, "docs", "benchmarks", "twin_capacity_results.json")
+MD = os.path.join(ROOT, "docs", "benchmarks", "twin_capacity.md")
+PLOT = os.path.join(ROOT, "docs", "benchmarks", "figures", "twin_capacity.png")
+ROBOTS = (8, 12, 16, 24, 32, 48, 64, 96, 128)
+RECORD_S = {"light": 60, "paper": 90}
+MIN_BUSY_HZ = {"light": 3, "paper": 1}
+ANCHOR_CLOUDS = 240
 
 
-def record_trace(out_dir, profile, duration_s=45):
-    bag = os.path.join(out_dir, "mission.bag")
-    print(f"recording a {duration_s} s {profile} mission of the default fleet into {bag} ...", flush=True)
-    subprocess.run(
-        [sys.executable, BRINGUP, "all", "--profile", profile, "--duration", str(duration_s), "--out", out_dir]
-        + ["--record", bag, "--host-cpus", "none"],
-        check=True,
-        stdout=subprocess.DEVNULL,
+def record_trace(profile):
+    """The compacted trace of a loopback mission of the default fleet in `profile` (recorded once)."""
+    from cps_bringup.trace_replay import compact_trace
+    from cps_fleet.fleet import load_fleet
+    from cps_harness.mission import run_mission
+
+    folder = os.path.join(OUT, f"trace_{profile}")
+    bag, trace = os.path.join(folder, "mission.bag"), os.path.join(folder, "mission.trace.bag")
+    if os.path.exists(trace):
+        return trace
+    if not os.path.exists(bag):
+        os.makedirs(folder, exist_ok=True)
+        print(f"recording a {RECORD_S[profile]} s {profile} mission of the default fleet into {bag} ...", flush=True)
+        run_mission(
+            folder,
+            ["--profile", profile, "--duration", str(RECORD_S[profile]), "--record", bag, "--host-cpus", "none"],
+            timeout_s=RECORD_S[profile] + 600,
+        )
+    return compact_trace(bag, load_fleet(), trace, busy_only=True, min_busy_hz=MIN_BUSY_HZ[profile])
+
+
+def placed_clouds(trace_path, profile, limit):
+    """[(robot, decoded PointCloud2 message, points in map, origin, max range)] of the trace's first
+    clouds, round-robin over its robots, placed with the trace's own tf."""
+    import genpy
+    import tf2_py
+
+    from cps_bringup.trace_replay import load_trace
+    from cps_fleet import names
+    from cps_fleet.fleet import load_fleet
+    from cps_mapping.cloud_input import prepare_cloud, quaternion_matrix, read_leaf
+    from cps_transport.draco import DracoDecoder
+    from cps_transport.pointcloud import cloud_to_array, xyz_of
+
+    fleet = load_fleet(profile=profile)
+    trace = load_trace(trace_path, fleet)
+    buffer = tf2_py.BufferCore(genpy.Duration(3600))
+    for robot in trace.robots.values():
+        for t in robot.tf_static:
+            buffer.set_transform_static(t, "bench")
+        for _, t in robot.tf:
+            buffer.set_transform(t, "bench")
+    decoder, out = DracoDecoder(), []
+    streams = {name: list(robot.clouds) for name, robot in trace.robots.items()}
+    while len(out) < limit and any(streams.values()):
+        for name, stream in streams.items():
+            if not stream or len(out) >= limit:
+                continue
+            _, compressed = stream.pop(0)
+            try:
+                tf = buffer.lookup_transform_core(names.MAP_FRAME, compressed.header.frame_id, compressed.header.stamp)
+            except tf2_py.TransformException:
+                continue
+            cloud = decoder.decode(compressed)
+            points = cloud_to_array(cloud)
+            q, t = tf.transform.rotation, tf.transform.translation
+            leaf, _ = read_leaf(points)
+            prepared = prepare_cloud(
+                xyz_of(points), quaternion_matrix(q.x, q.y, q.z, q.w), (t.x, t.y, t.z), 200.0, leaf, 0.1
+            )
+            max_range = fleet.mapping.max_range_m[fleet.robot(name).type]
+            out.append((name, compressed, prepared.points_m, prepared.origin_m, max_range, (q, t)))
+    return fleet, out
+
+
+def anchor(trace_path, profile, twin_cpus):
+    """Plain sequential OctoMap insertion and the map server's own per-cloud path, on the same
+    clouds, one thread pinned to the twin's CPUs: clouds and points per CPU-second."""
+    from cps_mapping.cloud_input import prepare_cloud, quaternion_matrix, read_leaf
+    from cps_mapping.fused_map import FusedLogOddsMap, new_octree
+    from cps_mapping.log_odds_grid import warm_up
+    from cps_transport.draco import DracoDecoder
+    from cps_transport.pointcloud import cloud_to_array, xyz_of
+
+    fleet, clouds = placed_clouds(trace_path, profile, ANCHOR_CLOUDS)
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, set(twin_cpus))
+    try:
+        warm_up()
+        tree = new_octree(fleet.mapping.resolution_m, fleet.mapping.sensor_model)
+        start = time.thread_time()
+        for _, _, points, origin, max_range, _ in clouds:
+            tree.insertPointCloud(points, origin, maxrange=max_range)
+        plain_s = time.thread_time() - start
+        fused, decoder = FusedLogOddsMap.from_mapping_config(fleet.mapping), DracoDecoder()
+        start = time.thread_time()
+        for robot, compressed, _, _, max_range, (q, t) in clouds:
+            points = cloud_to_array(decoder.decode(compressed))
+            leaf, _ = read_leaf(points)
+            prepared = prepare_cloud(
+                xyz_of(points), quaternion_matrix(q.x, q.y, q.z, q.w), (t.x, t.y, t.z), 200.0, leaf, 0.1
+            )
+            fused.insert_cloud(prepared.points_m, prepared.origin_m, max_range_m=max_range, robot=robot)
+        ours_s = time.thread_time() - start
+    finally:
+        os.sched_setaffinity(0, before)
+    points = sum(len(c[2]) for c in clouds)
+    return dict(
+        clouds=len(clouds),
+        points=points,
+        plain_clouds_per_cpu_s=len(clouds) / plain_s,
+        plain_points_per_cpu_s=points / plain_s,
+        ours_clouds_per_cpu_s=len(clouds) / ours_s,
+        ours_points_per_cpu_s=points / ours_s,
     )
-    return bag
 
 
-def search(run, start_n, max_n):
-    """Doubling from start_n until one fails (or max_n), then bisect; every row run. A trial whose
-    replay stalled or ran late is run once more; limited again, the search stops there: the machine,
-    not the twin, was the limit (said in the report)."""
-    rows, good, bad = [], 0, None
+def sweep(args):
+    from cps_experiments.twin_replay import replay_bench
 
-    def judged(n):
-        row = run(n)
-        rows.append(row)
-        print(_line(row), flush=True)
-        if not row["holds"] and row["replay_limited"]:
-            row = run(n)
+    trace = args.bag or record_trace(args.profile)
+    cpus = tuple(range(os.cpu_count()))[-args.twin_cpus :]
+    print(f"anchor on CPU {cpus} ...", flush=True)
+    figures = anchor(trace, args.profile, cpus)
+    print(json.dumps(figures), flush=True)
+    replay_args = ("--profile-rates", args.profile) if args.profile != "light" else ()
+    nice = () if args.receive_nice is None else (f"_receive_nice:={args.receive_nice}",)
+    label = f"{args.profile}_{args.twin_cpus}cpu" + ("" if args.receive_nice is None else f"_nice{args.receive_nice}")
+    rows = []
+    started = datetime.datetime.now().isoformat(timespec="minutes")
+    load_before = os.getloadavg()
+    with replay_bench(OUT, twin_cpus=cpus, name="cps_twin_capacity") as (run, split_text):
+        print(split_text, flush=True)
+        for n in [int(x) for x in args.robots.split(",")]:
+            row = run(n, trace, args.duration, label=label, replay_args=replay_args, map_server_args=nice)
+            if row["replay_limited"]:  # the machine, not the twin: once more
+                print(f"  N={n}: replay late (p95 {row['replay_late_p95_s']:.3f} s), once more", flush=True)
+                row = run(n, trace, args.duration, label=label, replay_args=replay_args, map_server_args=nice)
             rows.append(row)
             print(_line(row), flush=True)
-        return row
+    key = f"{args.profile}/{args.twin_cpus}" + ("" if args.receive_nice is None else f"/nice{args.receive_nice}")
+    saved = _load()
+    saved[key] = dict(
+        profile=args.profile,
+        twin_cpus=args.twin_cpus,
+        receive_nice=args.receive_nice,  # None: the map server's default
+        split=split_text,
+        trace=os.path.relpath(trace, ROOT),
+        duration_s=args.duration,
+        started=started,
+        load_before=load_before,
+        load_after=os.getloadavg(),
+        anchor=figures,
+        rows=rows,
+    )
+    with open(RESULTS, "w") as f:
+        json.dump({"sweeps": saved}, f, indent=1, default=float)
+    print(f"saved {key} into {RESULTS}")
 
-    n = start_n
-    while n <= max_n:
-        row = judged(n)
-        if not row["holds"] and row["replay_limited"]:
-            return good, rows
-        if row["robots"] < n:  # the trace could not place more: no larger N to try
-            good = row["robots"] if row["holds"] else good
-            bad = None if row["holds"] else row["robots"]
-            break
-        if row["holds"]:
-            good = n
-            n *= 2
-        else:
-            bad = n
-            break
-    while bad is not None and bad - good > max(1, good // 4):
-        n = (good + bad) // 2
-        row = judged(n)
-        if not row["holds"] and row["replay_limited"]:
-            return good, rows
-        good, bad = (n, bad) if row["holds"] else (good, n)
-    return good, rows
+
+def _load():
+    """{key: sweep} saved so far; {} for none, or for issue 26's file (its layouts: in git history)."""
+    if not os.path.exists(RESULTS):
+        return {}
+    with open(RESULTS) as f:
+        return json.load(f).get("sweeps", {})
 
 
 def _line(r):
     return (
-        f"  {r['layout']:9s} N={r['robots']:3d}: sent {r['sent']:5d}, inserted {r['inserted']:5d}, superseded "
-        f"{r['superseded_pct']:5.1f} %, dropped {r['dropped_pct']:5.2f} %, map age p95 {r['age_p95_s']:.2f} s, twin "
-        f"CPU {r['twin_cpu_s_per_s']:.2f} cores, capacity {r['clouds_per_s_capacity']:.0f} clouds/s "
-        f"{r['voxel_updates_per_s_capacity'] / 1e6:.2f} M voxel updates/s, replay late p95 {r['replay_late_p95_s']:.3f} s"
-        f" -> {'holds' if r['holds'] else 'fails'}{' (replay-limited)' if r['replay_limited'] else ''}"
+        f"  N={r['robots']:3d}: offered {r['offered_clouds_per_s']:6.1f}/s inserted {r['inserted_clouds_per_s']:6.1f}/s "
+        f"({r['inserted_points_per_s'] / 1e3:5.0f} k pts/s), superseded {r['superseded_pct']:5.1f} %, dropped "
+        f"{r['dropped_pct']:5.2f} %, unaccounted {r['clouds_unaccounted']}, age p95 {r['age_p95_s']:.2f} s (oldest "
+        f"robot {r['oldest_robot_age_p95_s']:.2f}, median {r['median_robot_age_p95_s']:.2f}, bar {r['age_bar_s']:.2f}), "
+        f"twin CPU {r['twin_cpu_s_per_s']:.2f} (receive {r['receive_cpu_s_per_s']:.2f}, insertion "
+        f"{r['insertion_cpu_s_per_s']:.2f}), replay late {r['replay_late_p95_s']:.3f} s"
     )
 
 
-def report(results, split_text, args, bag):
+def _table(rows):
+    head = (
+        "| N | offered clouds/s | inserted clouds/s | points/s | superseded | queue | decoder | tf | map server | "
+        "waiting | unaccounted | sent | map age p50 / p95 s | oldest / median robot p95 s | bar 1.5 N/R s | "
+        "twin CPU (receive, insertion) | replay late p95 s |"
+    )
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in sorted(rows, key=lambda r: r["robots"]):
+        lines.append(
+            f"| {r['robots']} | {r['offered_clouds_per_s']:.0f} | {r['inserted_clouds_per_s']:.1f} | "
+            f"{r['inserted_points_per_s'] / 1e3:.0f} k | {r['clouds_superseded']} | {r['clouds_queue']} | "
+            f"{r['clouds_decoder']} | {r['clouds_tf']} | {r['clouds_map_server']} | {r['clouds_waiting']} | "
+            f"{r['clouds_unaccounted']} | {r['sent']} | {r['age_p50_s']:.2f} / {r['age_p95_s']:.2f} | "
+            f"{r['oldest_robot_age_p95_s']:.2f} / {r['median_robot_age_p95_s']:.2f} | {r['age_bar_s']:.2f} | "
+            f"{r['twin_cpu_s_per_s']:.2f} ({r['receive_cpu_s_per_s']:.2f}, {r['insertion_cpu_s_per_s']:.2f}) | "
+            f"{r['replay_late_p95_s']:.3f}{' (limited)' if r['replay_limited'] else ''} |"
+        )
+    return lines
+
+
+def plot(saved, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_rate, ax_age) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for _key, sweep_ in sorted(saved.items()):
+        rows = sorted(sweep_["rows"], key=lambda r: r["robots"])
+        n = [r["robots"] for r in rows]
+        name = f"{sweep_['profile']}, {sweep_['twin_cpus']} twin CPU" + (
+            f", receive nice {sweep_['receive_nice']}" if sweep_.get("receive_nice") is not None else ""
+        )
+        line = ax_rate.plot(n, [r["inserted_clouds_per_s"] for r in rows], "o-", label=f"{name}: inserted")[0]
+        ax_rate.plot(n, [r["offered_clouds_per_s"] for r in rows], ":", color=line.get_color(), alpha=0.6)
+        ax_age.plot(n, [r["age_p95_s"] for r in rows], "o-", color=line.get_color(), label=f"{name}: p95")
+        ax_age.plot(n, [r["age_bar_s"] for r in rows], "--", color=line.get_color(), alpha=0.5)
+    ax_rate.set(xscale="log", xlabel="replayed robots N", ylabel="clouds/s", title="inserted (offered dotted)")
+    ax_age.set(xscale="log", yscale="log", xlabel="replayed robots N", ylabel="map age p95 s")
+    ax_age.set_title("map age p95 (dashed: the bar 1.5 N / inserted per s)")
+    ax_age.axhline(1.0, color="grey", lw=0.8)
+    for ax in (ax_rate, ax_age):
+        ax.set_xticks(ROBOTS)
+        ax.set_xticklabels([str(n) for n in ROBOTS])
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+def report(_args):
+    from cps_experiments.twin_replay import (
+        MAX_AGE_P95_S,
+        MAX_DROPPED,
+        MAX_FALL,
+        MAX_OLDEST_OVER_MEDIAN,
+        MAX_SUPERSEDED,
+        judge_sweep,
+    )
+
+    saved = _load()
+    plot(saved, PLOT)
     lines = [
-        "# Twin capacity: robots per twin core (issue 26)",
+        "# Twin capacity: a twin that bends and never breaks (issue 37)",
         "",
-        "Generated by `bench/twin_capacity.py`. A recorded mission's managed clouds, odometry and tf are "
-        "replayed as N robots (cps_bringup.trace_replay) into the twin's decoder(s) and map server, which run "
-        f"on one CPU. {split_text}. Trace: `{bag}` ({args.profile} profile, 4 robots); each trial replays "
-        f"{args.duration:.0f} s at wall-clock rate.",
+        f"Generated by `bench/twin_capacity.py report` from `{os.path.relpath(RESULTS, ROOT)}` (the sweeps below, "
+        "each one run under the heavy lock). A recorded mission's managed clouds and tf are replayed as N robots "
+        "(cps_bringup.trace_replay) into the twin alone: the map server, whose receive process holds each robot's "
+        "latest cloud as it arrived and whose insertion decodes and inserts only what it takes, the robot whose map "
+        "is oldest first. Every cloud is accounted for by the nodes' own counters: sent (the replay's publish() "
+        "returned) = inserted + superseded + dropped by cause + still waiting + unaccounted.",
         "",
-        f"A N holds when dropped <= {100 * MAX_DROPPED:g} % of the clouds sent, superseded <= "
-        f"{100 * MAX_SUPERSEDED:g} % (the map server's slot of one per robot keeps the newest: a superseded cloud "
-        "is not lost, but not inserted either; past a quarter the twin inserts a fraction of what it is sent) and "
-        f"map age p95 <= {MAX_AGE_P95_S:g} s (every copy's map_age_s at 1 Hz from {WARMUP_S:g} s after the replay "
-        "starts to its end); a figure not measured does not hold. "
-        + (
-            "**Re-judged** from the trials of the run below (their figures unchanged): dropped and superseded in "
-            "these trials are differences of other counters (superseded = received - inserted - the map server's "
-            "drops - waiting; dropped = sent - inserted - superseded - waiting), not the nodes' counts by cause; "
-            "the replay's own late figure is taken before publish(); the CPU share counted from before the "
-            "replay began over a span from its first insertion (an overestimate)."
-            if any(str(r.get("counted_by", "")).startswith("differences") for _, rows in results.values() for r in rows)
-            else "Dropped and superseded are the nodes' own counts (the decoder's ledger, the map server's)."
-        ),
+        f"![twin capacity]({os.path.relpath(PLOT, os.path.dirname(MD))})",
         "",
-        "**Contended machine:** two cores shared with other sessions' builds and tests while this ran; the twin's "
-        "CPU was not idle-exclusive. Treat the figures as a lower bound of one free core.",
-        "",
-        "| layout | largest N held on the (shared) twin CPU | twin CPU at that N (cores) | computed, not measured: "
-        "N / twin CPU (as if a free core scaled linearly) | voxel updates/s per core of insertion | ratio to the "
-        "anchor (of the computed figure) |",
-        "|---|---|---|---|---|---|",
     ]
-    per_free_core = {}
-    for layout, (good, rows) in results.items():
-        best = next((r for r in rows if r["robots"] == good and r["holds"]), None)
-        per_free_core[layout] = best["robots"] / best["twin_cpu_s_per_s"] if best and best["twin_cpu_s_per_s"] else None
-    anchor = per_free_core.get("per_robot")
-    for layout, (good, rows) in results.items():
-        best = next((r for r in rows if r["robots"] == good and r["holds"]), None)
-        per_core = f"{best['insertion_voxel_updates_per_busy_s'] / 1e6:.2f} M" if best else "-"
-        free = per_free_core[layout]
-        ratio = f"{free / anchor:.2f}x" if free and anchor else "-"
-        cpu = f"{best['twin_cpu_s_per_s']:.2f}" if best else "-"
-        # Machine-limited only when no trial above the largest N held failed on the twin itself.
-        above = [r for r in rows if r["robots"] > good and not r["holds"]]
-        limited = bool(above) and all(r["replay_limited"] for r in above)
-        held = f">= {good} (beyond: the replay stalled, machine-limited)" if limited else str(good)
-        lines.append(f"| {layout} | {held} | {cpu} | {f'{free:.0f}' if free else '-'} | {per_core} | {ratio} |")
+    for key, s in sorted(saved.items()):
+        verdict = judge_sweep(s["rows"])
+        above = sorted(r["robots"] for r in s["rows"] if r["robots"] > verdict["capacity"])
+        a = s["anchor"]
+        sat = max(s["rows"], key=lambda r: r["inserted_clouds_per_s"])
+        lines += [
+            f"## {s['profile']} profile, {s['twin_cpus']} twin CPU{'s' if s['twin_cpus'] > 1 else ''}"
+            + (f", the receive process at nice {s['receive_nice']}" if s.get("receive_nice") is not None else ""),
+            "",
+            f"{s['split']}. Trace `{s['trace']}`; each N replays {s['duration_s']:g} s; run {s['started']}, machine "
+            f"load (1/5/15 min) {', '.join(f'{x:.1f}' for x in s['load_before'])} before and "
+            f"{', '.join(f'{x:.1f}' for x in s['load_after'])} after (a shared 2-core machine: figures are "
+            "machine-bound).",
+            "",
+            *_table(s["rows"]),
+            "",
+            f"- **Capacity, measured:** {verdict['capacity']} robots on {s['twin_cpus']} twin CPU"
+            f"{'s' if s['twin_cpus'] > 1 else ''} ({verdict['capacity'] / s['twin_cpus']:g} per twin core): the "
+            f"largest N run that holds (<= {100 * MAX_DROPPED:g} % of the clouds sent lost, <= "
+            f"{100 * MAX_SUPERSEDED:g} % superseded, every robot's map age p95 <= {MAX_AGE_P95_S:g} s); "
+            + (
+                f"the next N run, {above[0]}, does not: the capacity lies between."
+                if above and verdict["capacity"]
+                else (f"no N run holds, not even {above[0]}." if above else "no larger N was run.")
+            ),
+            f"- **Freshness alone** (issue 37's words: every robot's map age p95 <= {MAX_AGE_P95_S:g} s, <= "
+            f"{100 * MAX_DROPPED:g} % lost; superseded not judged): {verdict['fresh_capacity']} robots.",
+            f"- **No cliff** (inserted clouds/s never more than {MAX_FALL:.0%} below its highest at a smaller N, "
+            f"from the capacity to N = {max(r['robots'] for r in s['rows'])}): worst fall {verdict['worst_fall']:.1%}, "
+            f"{'holds' if verdict['no_cliff'] else 'FAILS'}.",
+            f"- **Freshness beyond capacity** (map age p95 <= 1.5 N / inserted per s): "
+            f"{'holds' if verdict['fresh_beyond'] else 'FAILS'}; **no robot starves** (oldest robot's p95 within "
+            f"{MAX_OLDEST_OVER_MEDIAN:g}x the median robot's): {'holds' if verdict['no_starving'] else 'FAILS'}.",
+            f"- **Drops by cause sum to sent:** {'every N' if verdict['ledger'] else 'NOT for every N'}.",
+            f"- **Anchor, same run, same {a['clouds']} clouds ({a['points'] / a['clouds']:.0f} points each on "
+            f"average), one thread on the twin's CPU:** plain sequential OctoMap insertion "
+            f"{a['plain_clouds_per_cpu_s']:.1f} clouds (= {a['plain_points_per_cpu_s'] / 1e3:.0f} k points) per "
+            f"CPU-second; the map server's own per-cloud path alone (Draco decode, prepare, insert) "
+            f"{a['ours_clouds_per_cpu_s']:.1f} clouds per CPU-second ({a['ours_clouds_per_cpu_s'] / a['plain_clouds_per_cpu_s']:.1f}x). "
+            f"The live twin inserted at most {sat['inserted_clouds_per_s']:.1f} clouds/s (N = {sat['robots']}) on "
+            f"{s['twin_cpus']} CPU{'s' if s['twin_cpus'] > 1 else ''}: "
+            f"{sat['inserted_clouds_per_s'] / s['twin_cpus'] / a['plain_clouds_per_cpu_s']:.1f}x plain OctoMap's "
+            "rate per core (receiving, tf and publishing included; the replay runs on the other CPU).",
+            "",
+        ]
     lines += [
-        "",
-        "Voxel updates per second per core = the map server's InsertCapacity voxel_updates_per_s at the largest "
-        "N held, divided by its insertion budget (0.8): ray-caster voxel steps per second of insertion time on "
-        "that core (the unit voxblox and OctoMap quote).",
-        "",
-        "Insertion busy = the map server's insertion wall time per second (InsertCapacity busy_s / window_s, "
-        "the last window of the trial); the twin's CPU (decoder(s) and map server, from /proc) less the "
-        "insertion is decoding, deserialising and publishing. Wall time counts preemption too.",
-        "",
-        "## Every trial",
-        "",
-        "| layout | N | sent | inserted | superseded % | dropped % | map age p95 s | twin CPU (cores) | "
-        "insertion busy (s per s) | capacity clouds/s | capacity M voxel updates/s | replay late p95 s | holds |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "What these figures say and do not say, written by hand, and the run before issue 37 (the twin's decoder "
+        "processes, two layouts) with its reading: [twin_capacity_reading.md](twin_capacity_reading.md).",
     ]
-    for layout, (_, rows) in results.items():
-        for r in rows:
-            lines.append(
-                f"| {layout} | {r['robots']}{' (asked ' + str(r['asked']) + ')' if r['robots'] != r['asked'] else ''} "
-                f"| {r['sent']} | {r['inserted']} | {r['superseded_pct']:.1f} | {r['dropped_pct']:.2f} | "
-                f"{r['age_p95_s']:.2f} | {r['twin_cpu_s_per_s']:.2f} | "
-                f"{r['busy_s'] / r['window_s'] if r['window_s'] else 0:.2f} | {r['clouds_per_s_capacity']:.0f} | "
-                f"{r['voxel_updates_per_s_capacity'] / 1e6:.2f} | {r['replay_late_p95_s']:.3f} | "
-                f"{'yes' if r['holds'] else 'no'}{' (replay-limited)' if r['replay_limited'] else ''} |"
-            )
-    notes = sorted({r["note"] for _, rows in results.values() for r in rows if r["note"]})
-    if notes:
-        lines += ["", *[f"- {n}" for n in notes]]
-    return "\n".join(lines) + "\n"
-
-
-def _hand_written(path):
-    """The reading written by hand after a run (appended as it is), or nothing."""
-    if not path or not os.path.exists(path):
-        return ""
-    with open(path) as f:
-        return "\n" + f.read()
-
-
-def _stop_on_sigterm():
-    import signal
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")  # the cgroups and the master are cleaned up
-
-    signal.signal(signal.SIGTERM, handler)
+    with open(MD, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    print(f"wrote {MD} and {PLOT}")
 
 
 def main():
-    _stop_on_sigterm()
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--bag", default=None, help="a mission bag (default: record one)")
-    parser.add_argument("--profile", default="light", help="the profile the trace was (or is) recorded with")
-    parser.add_argument("--duration", type=float, default=30.0, metavar="S")
-    parser.add_argument("--layouts", default="shared,per_robot")
-    parser.add_argument("--start", type=int, default=4)
-    parser.add_argument("--max", type=int, default=128)
-    parser.add_argument(
-        "--twin-shares",
-        type=int,
-        default=16384,
-        help="the twin group's cpu.shares: on a machine shared with other work, the twin gets its CPU first "
-        "(a plain process weighs 1024), the closest this machine comes to a free core",
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("sweep", help="one profile on one number of twin CPUs; results into results.json")
+    run.add_argument("--profile", choices=("light", "paper"), default="light")
+    run.add_argument("--twin-cpus", type=int, choices=(1, 2), default=1)
+    run.add_argument("--robots", default=",".join(map(str, ROBOTS)))
+    run.add_argument("--duration", type=float, default=30.0, metavar="S")
+    run.add_argument(
+        "--receive-nice", type=int, default=None, help="the map server's ~receive_nice (default: its own default)"
     )
-    parser.add_argument("--replay-shares", type=int, default=16384, help="the replay's cpu.shares (it must keep time)")
-    parser.add_argument("--twin-cpu", type=int, default=None, help="the twin's CPU (default: the last)")
-    parser.add_argument("--out", default=os.path.join(ROOT, "bench", "out", "twin_capacity"))
-    parser.add_argument("--split-text", default="", help=argparse.SUPPRESS)
-    parser.add_argument("--from-json", default=None, help="only write the report from an earlier results.json")
-    parser.add_argument("--rejudge", action="store_true", help="with --from-json: judge its trials again")
-    parser.add_argument(
-        "--md-notes",
-        default=os.path.join(ROOT, "docs", "benchmarks", "twin_capacity_reading.md"),
-        help="what is written by hand about the run, appended to the report",
-    )
-    parser.add_argument("--md", default=os.path.join(ROOT, "docs", "benchmarks", "twin_capacity.md"))
+    run.add_argument("--bag", default=None, help="a compacted trace (default: record one for the profile)")
+    sub.add_parser("report", help="docs/benchmarks/twin_capacity.md and the plot from results.json")
     args = parser.parse_args()
-
-    if args.from_json:
-        with open(args.from_json) as f:
-            saved = json.load(f)
-        if "results" not in saved:  # the first format: {layout: rows}
-            held = {k: [r["robots"] for r in rows if r["holds"]] for k, rows in saved.items()}
-            saved = dict(
-                results={k: dict(good=max(held[k], default=0), rows=rows) for k, rows in saved.items()},
-                split=args.split_text,
-                bag=args.bag,
-            )
-        results = {k: (v["good"], v["rows"]) for k, v in saved["results"].items()}
-        if args.rejudge:  # today's rule on the trials as they ran (their figures unchanged)
-            for layout, (_, rows) in results.items():
-                for r in rows:
-                    r["holds"] = holds(r)
-                results[layout] = (max((r["robots"] for r in rows if r["holds"]), default=0), rows)
-        with open(args.md, "w") as f:
-            f.write(report(results, saved["split"], args, saved["bag"]) + _hand_written(args.md_notes))
-        return
-
-    os.makedirs(args.out, exist_ok=True)
-    bag = args.bag or record_trace(os.path.join(args.out, "trace"), args.profile)
-    if not bag.endswith(".trace.bag"):
-        from cps_bringup.trace_replay import compact_trace
-        from cps_fleet.fleet import load_fleet
-
-        compact = os.path.join(args.out, os.path.basename(bag).replace(".bag", "") + ".trace.bag")
-        if not os.path.exists(compact):
-            compact_trace(bag, load_fleet(), compact, busy_only=True)
-        bag = compact
-    results = {}
-    with replay_bench(args.out, args.twin_cpu, args.twin_shares, args.replay_shares, name="cps_twin_capacity") as (
-        run,
-        split_text,
-    ):
-        print(split_text, flush=True)
-        for layout in args.layouts.split(","):
-            print(f"{layout}:", flush=True)
-            results[layout] = search(lambda n, layout=layout: run(n, layout, bag, args.duration), args.start, args.max)
-    text = report(results, split_text, args, os.path.relpath(bag, ROOT))
-    saved = {k: dict(good=v[0], rows=v[1]) for k, v in results.items()}
-    # Beside the report, committed with it: the trials the report is written from (--from-json).
-    for path in (os.path.join(args.out, "results.json"), os.path.splitext(args.md)[0] + "_results.json"):
-        with open(path, "w") as f:
-            json.dump(dict(results=saved, split=split_text, bag=os.path.relpath(bag, ROOT)), f, indent=1)
-    with open(args.md, "w") as f:
-        f.write(text + _hand_written(args.md_notes))
-    print(text)
+    {"sweep": sweep, "report": report}[args.command](args)
 
 
 if __name__ == "__main__":
+    import signal
+
+    def _stop(signum, _frame):
+        raise KeyboardInterrupt(f"signal {signum}")  # the cgroups and the master are cleaned up
+
+    signal.signal(signal.SIGTERM, _stop)
     main()

@@ -27,7 +27,13 @@ import tempfile
 import time
 
 from cps_fleet import names
-from cps_harness.warm_start import checkout_env, copy_checkout, static_sensor_transform, wall_cloud
+from cps_harness.warm_start import (
+    checkout_env,
+    copy_checkout,
+    managed_cloud_topic,
+    managed_wall_cloud,
+    static_sensor_transform,
+)
 
 PACKAGE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "catkin_ws", "src", "cps_mapping")
 SENSOR_FRAME = "jackal/camera_depth_optical_frame"
@@ -47,10 +53,9 @@ def inserted_after(octomap, sent_at_s, timeout_s=180.0):
 def one_start(graph, rospy, mode, run, tmp):
     """Start a map server from a fresh checkout in `mode`; its figures."""
     from diagnostic_msgs.msg import DiagnosticStatus
-    from sensor_msgs.msg import PointCloud2
 
     from cps_harness.testing import TopicRecorder, wait_for
-    from cps_msgs.msg import Octomap
+    from cps_msgs.msg import CompressedPointCloud2, Octomap
 
     checkout = copy_checkout(PACKAGE, os.path.join(tmp, f"{mode}_{run}", "cps_mapping"))
     env = checkout_env(checkout)
@@ -62,7 +67,7 @@ def one_start(graph, rospy, mode, run, tmp):
     name = f"map_server_{mode}_{run}"
     ready = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.READY))), DiagnosticStatus)
     octomap = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.OCTOMAP_BINARY))), Octomap)
-    publisher = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=1)
+    publisher = rospy.Publisher(managed_cloud_topic("jackal"), CompressedPointCloud2, queue_size=1)
     try:
         started_at = time.monotonic()
         proc = graph.popen(
@@ -82,12 +87,12 @@ def one_start(graph, rospy, mode, run, tmp):
         )
         assert wait_for(lambda: publisher.get_num_connections(), timeout_s=60), f"{name} did not subscribe"
         early_sent_at = time.monotonic()
-        publisher.publish(wall_cloud(rospy, SENSOR_FRAME, 0.0))
+        publisher.publish(managed_wall_cloud(rospy, SENSOR_FRAME, 0.0))
         status = ready.wait(timeout_s=300, what=f"{name} ready")
         ready_at = ready.messages[0][0]
         early_inserted_at = inserted_after(octomap, early_sent_at)
         late_sent_at = time.monotonic()
-        publisher.publish(wall_cloud(rospy, SENSOR_FRAME, 5.0))
+        publisher.publish(managed_wall_cloud(rospy, SENSOR_FRAME, 5.0))
         late_inserted_at = inserted_after(octomap, late_sent_at)
         values = {kv.key: kv.value for kv in status.values}
         graph.stop(proc)

@@ -89,6 +89,22 @@ def test_bringup_places_each_side_in_its_own_cgroup(reference_mission):
 
 @pytest.mark.skipif(cgroup_v1_writable() is not None, reason=f"cgroup v1 split unavailable: {cgroup_v1_writable()}")
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs 2 CPUs to split")
+@pytest.mark.skipif(cgroup_v1_writable() is not None, reason=f"cgroup v1 split unavailable: {cgroup_v1_writable()}")
+def test_the_sides_shares_weigh_against_other_work_too():
+    """The run's group carries the sides' shares summed: otherwise it weighs as one plain process
+    against everything outside it, whatever the sides ask."""
+    cpus = sorted(os.sched_getaffinity(0))
+    name = f"cpsfleet_shares_{os.getpid()}"
+    sides = {PHYSICAL: (cpus[0],), DIGITAL: (cpus[-1],)}
+    with HostSplit.choose(sides, name=name, shares={PHYSICAL: 2048, DIGITAL: 16384}):
+        read = {
+            group: open(f"/sys/fs/cgroup/cpu/{name}{group}/cpu.shares").read().strip()
+            for group in ("", f"/{PHYSICAL}", f"/{DIGITAL}")
+        }
+    assert read == {"": "18432", f"/{PHYSICAL}": "2048", f"/{DIGITAL}": "16384"}
+    assert not os.path.exists(f"/sys/fs/cgroup/cpu/{name}")
+
+
 def test_groups_are_removed_even_with_a_process_left_inside_and_stale_ones_too():
     """A node that outlived the run is moved out and the groups removed; an earlier run's groups
     (its bringup killed hard, pid gone) are removed at the next start, and what it left running in

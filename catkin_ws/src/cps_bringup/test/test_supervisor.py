@@ -56,10 +56,8 @@ def test_plan_wires_every_robot_through_the_tissue_to_the_map():
             and any(names.absolute(names.managed_cloud(r)) == a.split(":=")[-1] for a in s.argv)
         ]
         assert crossing == [], crossing
-        decoder = " ".join(specs[f"{r}/draco_decoder"].argv)
-        assert f"{names.INPUT}:={names.absolute(names.managed_cloud_at_twin(r))}" in decoder
-        assert f"{names.OUTPUT}:={names.absolute(names.twin_points(r))}" in decoder
-        assert specs[f"{r}/draco_decoder"].side == DIGITAL and specs[f"{r}/draco_encoder"].side == PHYSICAL
+        # The map server decodes what it inserts: no decoder process on the twin (issue 37).
+        assert f"{r}/draco_decoder" not in specs and specs[f"{r}/draco_encoder"].side == PHYSICAL
         # The camera encodes its own video at the manager's level (cps_sim.video): no compressor.
         assert f"{r}/image_compressor" not in specs
     assert specs["map_server"].side == DIGITAL
@@ -71,7 +69,7 @@ def _arg(spec, key):
 
 
 def test_shared_plan_wires_every_robot_through_fixed_tissue_processes():
-    """The default layout: one loader, one cloud_tissue, one cloud_decoder carry every robot."""
+    """The default layout: one loader and one cloud_tissue carry every robot; the twin has no decoder."""
     fleet = load_fleet()
     specs = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", transport=ZENOH))}
     robots = fleet.robot_names
@@ -81,12 +79,12 @@ def test_shared_plan_wires_every_robot_through_fixed_tissue_processes():
         if label.split("/")[-1]
         in ("voxel_grid", "draco_encoder", "cloud_throttle", "image_compressor", "draco_decoder", "backfill_decoder")
     ]
-    for label, side in (("voxel_grid_loader", PHYSICAL), ("cloud_tissue", PHYSICAL), ("cloud_decoder", DIGITAL)):
+    for label, side in (("voxel_grid_loader", PHYSICAL), ("cloud_tissue", PHYSICAL)):
         assert specs[label].side == side and _arg(specs[label], "_robots") == ",".join(robots)
         assert _arg(specs[label], "_fleet_file") == fleet.path
+    assert "cloud_decoder" not in specs
     assert _arg(specs["voxel_grid_loader"], "_manager") == names.absolute(names.TISSUE_NODELET_MANAGER)
     assert specs["voxel_grid_loader"].after == ("nodelet_manager",)
-    assert _arg(specs["cloud_decoder"], "_backfill") == "true"
     for robot in fleet.robots:
         r = robot.name
         assert names.absolute(names.robot_topic(r, names.POINTS_FILTERED)) in specs["voxel_grid_loader"].wait_topics
@@ -94,10 +92,6 @@ def test_shared_plan_wires_every_robot_through_fixed_tissue_processes():
         assert (
             names.absolute(names.robot_topic(r, names.CAMERA_IMAGE_COMPRESSED)) not in specs["cloud_tissue"].wait_topics
         )  # the camera encodes it
-        assert {
-            names.absolute(names.twin_points(r)),
-            names.absolute(names.in_twin(names.robot_topic(r, names.POINTS_BACKFILL))),
-        } <= set(specs["cloud_decoder"].wait_topics)
 
 
 def _with_copies(fleet, copies):
@@ -110,8 +104,9 @@ def _with_copies(fleet, copies):
 
 @pytest.mark.parametrize("layout", ["shared", PER_ROBOT])
 def test_tissue_processes_per_side_do_not_grow_with_the_fleet_in_the_shared_layout(layout):
-    """4 and 8 robots: the same tissue processes on each side when shared, more with every robot
-    when per_robot (the per-robot cps_sim nodes are not the tissue)."""
+    """4 and 8 robots: the same tissue processes on the robots' side when shared, more with every
+    robot when per_robot (the per-robot cps_sim nodes are not the tissue); on the twin the same in
+    both (over Zenoh: no relay, and the map server decodes)."""
     four = load_fleet()
     eight = _with_copies(four, 1)
     assert len(eight.robots) == 8
@@ -128,11 +123,11 @@ def test_tissue_processes_per_side_do_not_grow_with_the_fleet_in_the_shared_layo
         }
 
     small, large = tissue(four), tissue(eight)
-    for side in (PHYSICAL, DIGITAL):
-        if layout == "shared":
-            assert small[side] == large[side], side
-        else:
-            assert len(large[side]) > len(small[side]), side
+    assert small[DIGITAL] == large[DIGITAL], "the twin has no per-robot tissue process (issue 37)"
+    if layout == "shared":
+        assert small[PHYSICAL] == large[PHYSICAL]
+    else:
+        assert len(large[PHYSICAL]) > len(small[PHYSICAL])
 
 
 def test_plan_rejects_an_unknown_tissue_layout():
@@ -307,7 +302,6 @@ def test_shipped_launch_files_are_the_plan_and_parse_with_roslaunch():
         names.absolute(names.in_twin(names.MAP_SERVER)),
         "/cloud_tissue",
         "/voxel_grid_loader",
-        names.absolute(names.in_twin("cloud_decoder")),
     } <= nodes
     assert len(nodes) == len(plan_nodes(load_fleet(), options=RunOptions(out_dir="/tmp/x")))
 

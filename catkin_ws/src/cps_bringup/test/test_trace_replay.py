@@ -1,6 +1,6 @@
 """A trace-driven fleet: the reference mission's recording (3 robots) replayed as 8 robots into the
-twin's decoder and map server gives 8 distinct robots in the map; a request beyond the hall's
-placements gets what fits."""
+twin's map server gives 8 distinct robots in the map; a request beyond the hall's placements gets
+what fits."""
 
 import json
 import os
@@ -10,9 +10,9 @@ import sys
 import numpy as np
 import pytest
 
-from cps_bringup.plan import SHARED
 from cps_bringup.supervisor import Supervisor
 from cps_bringup.trace_replay import RobotTrace, Trace, TraceError, placements, plan_copies, twin_specs
+from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_ros.processes import RosGraph, find_node, free_port, processes_named
 
@@ -45,6 +45,55 @@ def test_a_replay_beyond_the_halls_placements_says_so_and_replays_what_fits():
     assert "asked for 20 robots" in note and "replaying 9" in note
     with pytest.raises(TraceError):
         plan_copies(_trace(a=wide), 0, HALL)
+
+
+def _header_msg(frame):
+    from sensor_msgs.msg import PointCloud2
+
+    msg = PointCloud2()
+    msg.header.frame_id = frame
+    return msg
+
+
+def test_a_robot_played_at_another_rate_keeps_its_clouds_at_their_poses_and_the_replay_counts_its_own_drops():
+    """Time scale 0.5: the robot's 4 s trace (clouds at 1, 2, 3, 4 s) plays in 2 s, looping. A publish()
+    that raises is the replay's own drop; lateness is measured when publish() has returned."""
+    from geometry_msgs.msg import TransformStamped
+
+    from cps_bringup.trace_replay import Copy, Player
+
+    tf = TransformStamped()
+    tf.header.frame_id, tf.child_frame_id = names.odom_frame("a"), names.base_frame("a")
+    clouds = [(t, _header_msg("a/lidar")) for t in (1.0, 2.0, 3.0, 4.0)]
+    trace = Trace(
+        {"a": RobotTrace("a", clouds, [], [(t, tf) for t in (0.5, 1.5, 2.5, 3.5)], [], np.zeros((1, 2)))}, 4.0, ""
+    )
+    now = [0.0]
+    sent = []
+
+    def publish_cloud(name, msg):
+        now[0] += 0.05  # a publish that blocks 50 ms
+        if len(sent) == 1:
+            sent.append(None)
+            raise OSError("link closed")
+        sent.append((name, msg.header.stamp))
+
+    player = Player(
+        trace,
+        [Copy("a", "a", (0.0, 0.0), 0.0)],
+        publish_cloud,
+        lambda _transforms: None,
+        lambda *_args: None,
+        clock=lambda: now[0],
+        time_scale={"a": 0.5},
+    )
+    player._stop.wait = lambda delay: now.__setitem__(0, now[0] + delay) or False
+    player.run(2.2, lambda s: s)
+    # Due at 0.0 (4 s, looped), 0.5 (raised), 1.0, 1.5 and 2.0 (the loop's second turn).
+    assert [stamp for _, stamp in (s for s in sent if s)] == pytest.approx([0.0, 1.0, 1.5, 2.0])
+    assert player.sent_clouds == {"a": 4} and player.dropped_clouds == {"a": 1}
+    assert player.publish_errors == ["a: OSError: link closed"]
+    assert player.cloud_lateness_s == pytest.approx([0.05] * 4)
 
 
 COUNT_ROBOTS = """
@@ -91,7 +140,7 @@ def test_recorded_robots_replayed_as_eight_are_eight_robots_in_the_map(reference
     replay = None
     try:
         graph.start()
-        supervisor = Supervisor(twin_specs(copies_fleet, str(twin_out), SHARED), graph, log=lambda _m: None)
+        supervisor = Supervisor(twin_specs(copies_fleet, str(twin_out)), graph, log=lambda _m: None)
         supervisor.start_all(timeout_s=120)
         env = dict(os.environ, ROS_MASTER_URI=graph.uri)
         replay = subprocess.Popen(

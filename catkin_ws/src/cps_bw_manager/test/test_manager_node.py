@@ -18,6 +18,20 @@ ROBOTS = ("scout", "jackal")
 PAYLOAD_BYTES = 20000
 
 
+def _start_limiter(ros, robot):
+    """The robot's cloud rate limiter, between its Draco topic and its managed one."""
+    ros.start_node(
+        "cps_transport",
+        "rate_limiter",
+        name=names.CLOUD_THROTTLE,
+        namespace=names.absolute(robot),
+        remap={
+            names.INPUT: names.absolute(names.robot_topic(robot, names.POINTS_DRACO)),
+            names.OUTPUT: names.absolute(names.managed_cloud(robot)),
+        },
+    )
+
+
 @pytest.fixture
 def graph(ros, rospy_node, tmp_path):
     """Two rate limiters fed at 20 Hz with 20 kB clouds, and the manager on a 2 Mbit/s budget."""
@@ -27,16 +41,7 @@ def graph(ros, rospy_node, tmp_path):
     from cps_msgs.msg import BandwidthAllocationArray, CompressedPointCloud2, RateLimiterStatus
 
     for r in ROBOTS:
-        ros.start_node(
-            "cps_transport",
-            "rate_limiter",
-            name="cloud_throttle",
-            namespace=names.absolute(r),
-            remap={
-                "~input": names.absolute(names.robot_topic(r, names.POINTS_DRACO)),
-                "~output": names.absolute(names.managed_cloud(r)),
-            },
-        )
+        _start_limiter(ros, r)
     csv_path = tmp_path / "allocation.csv"
     ros.start_node(
         "cps_bw_manager",
@@ -311,16 +316,7 @@ def test_steady_clouds_get_few_setpoints_and_limiters_echo_only_changes(ros, ros
     from cps_msgs.msg import CompressedPointCloud2, RateLimiterStatus
 
     robot = "scout"
-    ros.start_node(
-        "cps_transport",
-        "rate_limiter",
-        name="cloud_throttle",
-        namespace=f"/{robot}",
-        remap={
-            "~input": names.absolute(names.robot_topic(robot, names.POINTS_DRACO)),
-            "~output": names.absolute(names.managed_cloud(robot)),
-        },
-    )
+    _start_limiter(ros, robot)
     setpoints_csv = tmp_path / "setpoints.csv"
     ros.start_node(
         "cps_bw_manager",

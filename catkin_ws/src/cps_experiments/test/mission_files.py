@@ -6,7 +6,7 @@ argument changes one thing, so that a test shows what one fault does to the verd
 import csv
 import json
 
-from cps_bringup.mission import MAP_AGE_COLUMNS
+from cps_bringup.mission import MAP_AGE_COLUMNS, MAP_SERVER_COUNTERS
 from cps_fleet import names
 from cps_ros import cloud_ledger as C
 from cps_transport.topic_stats import COUNTER_COLUMNS
@@ -55,7 +55,8 @@ def mission(
             inserted = sum(1 for c in clouds[r] if c < t)
             rows.append(
                 (f"{T0 + t:.3f}", r, inserted_age(r, t), state(r, t), inserted, published_age(r, t))
-                + (inserted, 0, 0, 0, 0, 0, 0)
+                + (inserted,)  # clouds_received; every other counter 0
+                + (0,) * (len(MAP_SERVER_COUNTERS) - 1)
             )
     rows += [(f"{T0 + duration_s:.3f}", r, "nan", "end") + ("",) * (len(MAP_AGE_COLUMNS) - 4) for r in ROBOTS]
     write_csv(folder / "map_age.csv", MAP_AGE_COLUMNS, rows)
@@ -141,13 +142,6 @@ def write_counters(folder, captured, stats_times, lost_in_limiter_queue=0):
                 "/zenoh_bridge",
                 names.absolute(names.managed_cloud_at_twin(r)),
                 C.BRIDGE_IN,
-                {C.RECEIVED: n - lost, C.OUT: n - lost},
-            ),
-            (
-                twin,
-                "/cloud_decoder",
-                names.absolute(names.managed_cloud_at_twin(r)),
-                C.DECODER,
                 {C.RECEIVED: n - lost, C.OUT: n - lost},
             ),
         ]

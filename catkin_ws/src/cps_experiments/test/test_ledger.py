@@ -98,6 +98,36 @@ def test_each_loss_is_counted_by_the_node_that_saw_it_with_its_cause():
     assert ledger.stage(AT_TWIN) == 80 and ledger.stage(AT_MAP) == 84
 
 
+def test_a_map_server_that_decodes_what_it_inserts_closes_the_ledger_without_a_decoder_process():
+    """Issue 37: the twin's bridge hands the map server its live clouds and the keyframes after an
+    outage still compressed; the map server missed 2 in its subscriber queue and found 10 undecodable."""
+    stages = _chain(100)
+    del stages["decoder"]
+    stages["bridge_out"] = {C.RECEIVED: 100, C.OUT: 96, C.BACKFILL_KEPT: 4, C.BACKFILL_SENT: 4}
+    stages["bridge_in"] = {C.RECEIVED: 96, C.MISSED: 4, C.OUT: 96}
+    counters = _counters(**stages)
+    counters[names.absolute(names.in_twin(names.robot_topic(R, names.POINTS_BACKFILL_DRACO)))] = {
+        C.BRIDGE_IN: {C.RECEIVED: 4, C.OUT: 4},
+    }
+    server = {
+        "clouds_received": 98,
+        "clouds_missed_upstream": 2,
+        "clouds_inserted": 71,
+        "clouds_superseded": 16,
+        "clouds_dropped_decoder": 10,
+        "queue_length": 1,
+    }
+    ledger = robot_ledger(R, counters, server, duration_s=50)
+    assert ledger.balanced and not ledger.problems, ledger.problems
+    assert dict(ledger.drops) == {
+        "twin's bridge → map server: subscriber queue": 2,
+        "map server: undecodable cloud": 10,
+    }
+    assert ledger.stage(AT_MAP) == 98
+    server["clouds_dropped_decoder"] = 0  # the undecodable clouds in no counter
+    assert robot_ledger(R, counters, server, duration_s=50).unaccounted == 10
+
+
 def test_clouds_on_their_way_when_counting_stopped_are_in_flight_up_to_two_seconds_of_them():
     stages = _chain(100)
     stages["decoder"] = {C.RECEIVED: 97, C.OUT: 97}  # 3 still between the bridge and the decoder
@@ -157,8 +187,5 @@ def test_a_missions_files_give_its_ledger_and_its_markdown(tmp_path):
     assert all(r.balanced for r in ledger.robots.values()), [r.problems for r in ledger.robots.values()]
     assert dict(ledger.robots["scout"].drops) == {"Draco encoder → rate limiter: subscriber queue": 2}
     text = "\n".join(ledger.markdown())
-    assert (
-        "## Cloud ledger" in text
-        and "| scout | 120 | 120 | 118 | 118 | 118 | 118 | 118 | 2 | 0 | 0 | balances |" in text
-    )
+    assert "## Cloud ledger" in text and "| scout | 120 | 120 | 118 | 118 | 118 | 118 | 2 | 0 | 0 | balances |" in text
     assert "| Draco encoder → rate limiter: subscriber queue | 2 | 2 |" in text

@@ -55,17 +55,18 @@ def _live(robot):
 
 
 def _backfill(robot):
-    return names.absolute(names.in_twin(names.robot_topic(robot, names.POINTS_BACKFILL)))
+    """The keyframes as the twin's bridge delivers them to the map server (still Draco: the map
+    server decodes what it inserts, issue 37)."""
+    return names.absolute(names.in_twin(names.robot_topic(robot, names.POINTS_BACKFILL_DRACO)))
 
 
 def _reference_latencies(reference_mission):
     """Receive - stamp (s) of the reference mission's live clouds at the twin (its arrivals.csv)."""
-    import csv
+    from cps_experiments.run_files import read_rows
 
     live = {_live(r) for r in ROBOTS}
-    with open(reference_mission.out / "arrivals.csv") as stream:
-        rows = [r for r in csv.DictReader(stream) if r["topic"] in live]
-    return np.array([float(r["receive_s"]) - int(r["stamp_ns"]) / 1e9 for r in rows])
+    rows, _ = read_rows(str(reference_mission.out / "arrivals.csv"))
+    return np.array([float(r["receive_s"]) - int(r["stamp_ns"]) / 1e9 for r in rows if r["topic"] in live])
 
 
 @pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")

@@ -57,7 +57,8 @@ def test_the_monitoring_headline_is_what_ran_live():
 
 
 def test_capacity_figures_say_whether_they_are_measured_or_computed():
-    assert "computed, not measured" in readme_figures.twin_capacity_paragraph()
+    twin = readme_figures.twin_capacity_paragraph()
+    assert "measured by replaying" in twin and "computed" not in twin  # robots held per N run, nothing scaled
     assert "measured" in readme_figures.link_thesis_paragraph()
 
 

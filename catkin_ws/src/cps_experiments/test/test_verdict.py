@@ -13,6 +13,7 @@ import pytest
 from mission_files import T0, event, mission
 
 from cps_experiments.demo import report_verdict
+from cps_experiments.run_files import read_rows
 from cps_experiments.verdict import (
     DEMO_FILES,
     FAIL,
@@ -20,7 +21,6 @@ from cps_experiments.verdict import (
     MAP_AGE_COLUMNS,
     PASS,
     judge,
-    read_rows,
     read_verdict,
     write_verdict,
 )
@@ -165,7 +165,7 @@ def test_a_done_robot_is_not_judged_on_its_map_age_nor_its_clouds(tmp_path):
 
 def test_a_ledger_that_does_not_balance_is_incomplete_by_how_much(tmp_path):
     folder = mission(tmp_path / "m")
-    counters = (folder / "counters.csv").read_text().replace(",ledger_decoder_out,120", ",ledger_decoder_out,110")
+    counters = (folder / "counters.csv").read_text().replace(",ledger_bridge_in_out,120", ",ledger_bridge_in_out,110")
     (folder / "counters.csv").write_text(counters)
     verdict = _judged(folder)
     assert verdict.status == INCOMPLETE and verdict.exit_code == 4

@@ -85,31 +85,38 @@ class Mission:
         )
 
 
-def _from_above(fleet, times=3):
+def _along(board):
+    """Viewpoints 1 m apart along the board (at least two)."""
+    (x0, x1) = board["x"]
+    return np.linspace(x0 + 0.5, x1 - 0.5, max(2, int(round(x1 - x0))))
+
+
+def _from_above(fleet, times=3, board=BOARD):
     """A drone over the aisle at 3 m looking down at the board (as iris in the reference mission)."""
     mission = Mission(fleet)
-    top = _grid(BOARD["x"], BOARD["y"], BOARD["z"][1])
-    floor = _grid((2.5, 6.5), (1.0, 2.25), 0.0)
+    top = _grid(board["x"], board["y"], board["z"][1])
+    floor = _grid((2.5, 6.5), (1.0, board["y"][0] - 0.05), 0.0)
     wall = _grid((2.5, 6.5), WALL_Y, (1.0, 2.0))
     for _ in range(times):
-        for x in (3.5, 4.5, 5.5):
+        for x in _along(board):
             origin = np.array([x, 1.0, 3.0])
             mission.see("iris", origin, _looking([0.0, 1.5, -2.2]), np.vstack([top, floor, wall]), 6.0)
     return mission
 
 
-def _grazing_clouds():
+def _grazing_clouds(board=BOARD):
     """[(origin, points)]: a lidar at the board's height in the aisle: it hits the board's front
     edge and the wall, and its rays to the wall pass just over the board, inside its voxel layer."""
-    edge = _grid(BOARD["x"], BOARD["y"][0], BOARD["z"])
+    edge = _grid(board["x"], board["y"][0], board["z"])
     wall = _grid((2.5, 6.5), WALL_Y, (0.86, 1.3))
-    floor = _grid((2.5, 6.5), (0.5, 2.25), 0.0)
-    return [(np.array([x, 0.0, 0.86]), np.vstack([edge, wall, floor])) for x in np.arange(3.0, 6.01, 0.5)]
+    floor = _grid((2.5, 6.5), (0.5, board["y"][0] - 0.05), 0.0)
+    xs = np.arange(board["x"][0], board["x"][1] + 0.01, 0.5)
+    return [(np.array([x, 0.0, 0.86]), np.vstack([edge, wall, floor])) for x in xs]
 
 
-def _grazing(fleet):
+def _grazing(fleet, board=BOARD):
     mission = Mission(fleet)
-    for origin, points in _grazing_clouds():
+    for origin, points in _grazing_clouds(board):
         mission.see("scout", origin, np.eye(3), points)
     return mission
 
@@ -128,6 +135,30 @@ def test_a_thin_board_seen_from_above_then_only_at_a_grazing_angle_is_no_change(
     assert grazing.detect_against(above) == []
     # ... nor, the other way round, could the grazing baseline say the place was free.
     assert above.detect_against(grazing) == []
+
+
+# The sheet of the fresh-clone runs' false change (main, 2026-11-28): shelving_2's 4 cm board at
+# 0.8 m, found 'disappeared' as one voxel layer 1.5 x 0.7 x 0.1 m though the shelving stood.
+SHEET_OF_THE_FRESH_CLONE_RUNS = dict(x=(3.0, 4.5), y=(2.2, 2.9), z=(0.80, 0.84))
+
+
+def test_the_fresh_clone_runs_sheet_kept_by_one_mission_and_carved_by_the_other_is_no_change(fleet):
+    """That 1.5 x 0.7 m sheet, one voxel high, kept by the mission that saw it from above and
+    carved free by the one that only grazed it: without the thin-surface rules it is the reported
+    change (either way round); with TRUSTED_RULES (the sheet rule and the never-hit rule; no
+    height rule) it is no change either way."""
+    board = SHEET_OF_THE_FRESH_CLONE_RUNS
+    above, grazing = _from_above(fleet, board=board), _grazing(fleet, board=board)
+    inside = _grid((3.05, 4.45), (2.45, 2.85), 0.85, step=0.1)
+    assert above.map.is_free(inside).sum() == 0 and grazing.map.is_free(inside, 0.25).mean() > 0.9
+    for baseline, current, kind in ((above, grazing, "disappeared"), (grazing, above, "appeared")):
+        old = current.detect_against_without_the_thin_surface_rules(baseline)
+        assert [c.kind for c in old] == [kind], old
+        (sx, sy, sz) = old[0].size_m
+        assert sz <= 0.1 + 1e-9 and 1.2 <= sx <= 1.6 and 0.2 <= sy <= 0.8, old[0]
+        assert 0.8 <= old[0].min_m[2] and old[0].max_m[2] <= 0.9
+        assert current.detect_against(baseline) == [], kind
+    assert not hasattr(TRUSTED_RULES, "min_height_voxels")
 
 
 def test_a_board_gone_is_reported_when_seen_from_above(fleet):

@@ -197,7 +197,7 @@ def test_map_server_inserts_a_cloud_at_the_leaf_it_carries(coarse_view):
     server = _server()
     server.receive_cloud("jackal", _cloud(coarse_view, leaf=0.2))
     assert server.insert_pending(timeout_s=0) == 1
-    c = server.counters["jackal"]
+    c = server.robot_counters("jackal")
     assert c.points_bridged > 0 and c.points_inserted == len(coarse_view) + c.points_bridged
     assert (c.clouds_without_leaf, c.clouds_bad_leaf, c.clouds_dropped_invalid) == (0, 0, 0)
 
@@ -217,7 +217,7 @@ def test_a_cloud_without_a_usable_leaf_is_counted_and_inserted_as_it_is(coarse_v
     points = coarse_view[:2] if isinstance(leaf, list) else coarse_view
     server.receive_cloud("jackal", _cloud(points, leaf=leaf if not isinstance(leaf, list) else np.asarray(leaf)))
     assert server.insert_pending(timeout_s=0) == 1
-    c = server.counters["jackal"]
+    c = server.robot_counters("jackal")
     assert getattr(c, counter) == 1 and c.clouds_inserted == 1 and c.clouds_dropped_invalid == 0
     assert c.points_bridged == 0 and c.points_inserted == len(points)
     assert "inserted at the map's resolution as it is" in caplog.text

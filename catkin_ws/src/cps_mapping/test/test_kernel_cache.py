@@ -20,7 +20,13 @@ import time
 import pytest
 
 from cps_fleet import names
-from cps_harness.warm_start import checkout_env, copy_checkout, static_sensor_transform, wall_cloud
+from cps_harness.warm_start import (
+    checkout_env,
+    copy_checkout,
+    managed_cloud_topic,
+    managed_wall_cloud,
+    static_sensor_transform,
+)
 from cps_mapping.kernel_cache import KERNEL_FOLDER
 
 pytestmark = pytest.mark.slow
@@ -111,17 +117,16 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
     """The node of a fresh checkout (its cache built by the set-up, nothing warmed before) says it
     is ready with no kernel compiled, and inserts the first cloud within 1 s of its arrival."""
     from diagnostic_msgs.msg import DiagnosticStatus
-    from sensor_msgs.msg import PointCloud2
 
     from cps_harness.testing import TopicRecorder, wait_for
-    from cps_msgs.msg import Octomap
+    from cps_msgs.msg import CompressedPointCloud2, Octomap
 
     rospy = rospy_node
     path, _ = checkout
     name = "cold_map_server"
     ready = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.READY))), DiagnosticStatus)
     octomap = TopicRecorder(names.absolute(names.in_twin(names.OCTOMAP_BINARY)), Octomap)
-    publisher = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=1)
+    publisher = rospy.Publisher(managed_cloud_topic("jackal"), CompressedPointCloud2, queue_size=1)
     tf_keep = static_sensor_transform(rospy, SENSOR_FRAME)
     try:
         ros.popen(
@@ -144,7 +149,7 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
         assert status.level == DiagnosticStatus.OK and values["kernels_compiled"] == "", status
         assert wait_for(lambda: publisher.get_num_connections(), timeout_s=20), "the map server did not subscribe"
         published_at = time.monotonic()
-        publisher.publish(wall_cloud(rospy, SENSOR_FRAME))
+        publisher.publish(managed_wall_cloud(rospy, SENSOR_FRAME))
         octomap.wait(lambda m: len(m.data) > 0, timeout_s=10, what="the first cloud in the map")
         arrived_at = next(t for t, m in octomap.messages if t >= published_at and len(m.data) > 0)
         print(
@@ -164,17 +169,16 @@ def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node,
     """No build step (a checkout without its kernels): the node compiles before it is ready and says
     so; a cloud sent once it subscribed, before its ready, waits in the queue and reaches the map."""
     from diagnostic_msgs.msg import DiagnosticStatus
-    from sensor_msgs.msg import PointCloud2
 
     from cps_harness.testing import TopicRecorder, wait_for
-    from cps_msgs.msg import Octomap
+    from cps_msgs.msg import CompressedPointCloud2, Octomap
 
     rospy = rospy_node
     path = copy_checkout(PACKAGE, str(tmp_path / "unbuilt" / "cps_mapping"), with_cache=False)
     name = "unbuilt_map_server"
     ready = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.READY))), DiagnosticStatus)
     octomap = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.OCTOMAP_BINARY))), Octomap)
-    publisher = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=1)
+    publisher = rospy.Publisher(managed_cloud_topic("jackal"), CompressedPointCloud2, queue_size=1)
     tf_keep = static_sensor_transform(rospy, SENSOR_FRAME)
     try:
         ros.popen(
@@ -193,7 +197,7 @@ def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node,
             env=checkout_env(path),
         )
         assert wait_for(lambda: publisher.get_num_connections(), timeout_s=60), "the map server did not subscribe"
-        publisher.publish(wall_cloud(rospy, SENSOR_FRAME))
+        publisher.publish(managed_wall_cloud(rospy, SENSOR_FRAME))
         assert ready.count == 0, "ready before the cloud was sent: this test needs the cloud to arrive first"
         status = ready.wait(timeout_s=300, what="the map server's ready")
         values = {kv.key: kv.value for kv in status.values}

@@ -1,7 +1,8 @@
-"""The map_server node end to end: two robots with different known poses land in one map at the
-right places; bad inputs (NaN, unknown frame, no transform, empty, absurd points, unknown robot,
-corrupt or wrong-type map files) are counted and never cost the map; save, load, reset,
-clear_bbx; a restarted server resumes from its save. The tests share one running server, in order."""
+"""The map_server node end to end: two robots' managed (Draco) clouds with different known poses
+land in one map at the right places, and each inserted cloud comes out decoded on <r>/points; bad
+inputs (a corrupt payload, unknown frame, no transform, absurd points, unknown robot, corrupt or
+wrong-type map files) are counted by cause and never cost the map; save, load, reset, clear_bbx; a
+restarted server resumes from its save. The tests share one running server, in order."""
 
 import re
 import time
@@ -72,8 +73,32 @@ def _cloud(points_sensor, frame, stamp=None):
     )
 
 
+def _compressed(points_sensor, frame, stamp=None):
+    """The cloud as the link delivers it to the twin: Draco, lossless (the map test compares voxels)."""
+    from cps_transport.draco import DracoEncoder
+
+    return DracoEncoder(lossless=True).encode(_cloud(points_sensor, frame, stamp))
+
+
+def _managed(robot):
+    return names.absolute(names.managed_cloud_at_twin(robot))
+
+
 def _stats(msg):
     return {r.robot: r for r in msg.robots}
+
+
+def _accounted(row):
+    """Received clouds that reached an end (cps_msgs/RobotMapStats' ledger), and the waiting ones."""
+    return (
+        row.clouds_inserted
+        + row.clouds_superseded
+        + row.clouds_dropped_queue
+        + row.clouds_dropped_tf
+        + row.clouds_dropped_invalid
+        + row.clouds_dropped_decoder
+        + row.queue_length
+    )
 
 
 def _centers(msg):
@@ -120,7 +145,7 @@ def server(ros_master, rospy_node, scene_clouds, tmp_path_factory):
     rospy = rospy_node
     from sensor_msgs.msg import PointCloud2
 
-    from cps_msgs.msg import MapStats, Octomap
+    from cps_msgs.msg import CompressedPointCloud2, MapStats, Octomap
 
     _, depth_sensor, lidar_sensor = scene_clouds
     graph = ros_master.attach()
@@ -131,15 +156,17 @@ def server(ros_master, rospy_node, scene_clouds, tmp_path_factory):
     s.stats = TopicRecorder(names.absolute(names.in_twin(names.MAP_STATS)), MapStats)
     s.centers = TopicRecorder(names.absolute(names.in_twin(names.POINT_CLOUD_CENTERS)), PointCloud2)
     s.binary = TopicRecorder(names.absolute(names.in_twin(names.OCTOMAP_BINARY)), Octomap)
-    s.pub_j = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=5)
-    s.pub_s = rospy.Publisher(names.absolute(names.twin_points("scout")), PointCloud2, queue_size=5)
-    s.pub_ghost = rospy.Publisher(names.absolute(names.twin_points("ghost")), PointCloud2, queue_size=1)
+    s.pub_j = rospy.Publisher(_managed("jackal"), CompressedPointCloud2, queue_size=5)
+    s.pub_s = rospy.Publisher(_managed("scout"), CompressedPointCloud2, queue_size=5)
+    s.pub_ghost = rospy.Publisher(_managed("ghost"), CompressedPointCloud2, queue_size=1)
+    s.decoded = TopicRecorder(names.absolute(names.twin_points("jackal")), PointCloud2)
     assert wait_for(lambda: s.pub_j.get_num_connections() and s.pub_s.get_num_connections(), timeout_s=20)
+    assert wait_for(lambda: s.decoded.sub.get_num_connections(), timeout_s=20)
     try:
-        # Depth clouds carry NaN (no return) as the decoder delivers them.
+        # Depth clouds carry NaN (no return): the encoder strips them.
         with_nan = np.vstack([depth_sensor, np.full((500, 3), np.nan)])
-        s.pub_j.publish(_cloud(with_nan, "jackal/camera_depth_optical_frame"))
-        s.pub_s.publish(_cloud(lidar_sensor, "scout/lidar"))
+        s.pub_j.publish(_compressed(with_nan, "jackal/camera_depth_optical_frame"))
+        s.pub_s.publish(_compressed(lidar_sensor, "scout/lidar"))
         # Stats carry the published snapshot's figures: once both robots contribute to it, the
         # centres of that snapshot (or a later one) are out.
         first = s.stats.wait(
@@ -151,7 +178,7 @@ def server(ros_master, rospy_node, scene_clouds, tmp_path_factory):
         yield s
     finally:
         graph.close()
-        for recorder in (s.stats, s.centers, s.binary):
+        for recorder in (s.stats, s.centers, s.binary, s.decoded):
             recorder.close()
         for pub in (s.pub_j, s.pub_s, s.pub_ghost):
             pub.unregister()
@@ -171,6 +198,9 @@ def test_two_robots_land_in_one_map_at_the_right_places(server, scene_clouds):
         assert near.sum() > 20, f"{crate} ({robot}'s view) is not in the fused map"
     assert server.stats.latest.occupied_voxels == len(server.occupied)
     assert server.binary.wait(lambda m: len(m.data) > 0).id == "OcTree"
+    decoded = server.decoded.wait(lambda m: m.width > 0, what="jackal's inserted cloud, decoded")
+    assert decoded.header.frame_id == "jackal/camera_depth_optical_frame"
+    assert decoded.width == np.isfinite(scene_clouds[1]).all(axis=1).sum()
 
 
 def test_bad_input_is_counted_and_leaves_the_map(server, rospy_node, scene_clouds):
@@ -179,31 +209,38 @@ def test_bad_input_is_counted_and_leaves_the_map(server, rospy_node, scene_cloud
     absurd = np.vstack([depth_sensor[:50], [[1e9, 0, 0], [0, 1e30, 0]]])
     _moving_tf("scout/moving_lidar", SCOUT)
     optical = "jackal/camera_depth_optical_frame"
-    for pub, msg in (
-        (server.pub_j, _cloud(np.full((100, 3), np.nan), optical)),  # all NaN
-        (server.pub_j, _cloud(np.zeros((0, 3)), optical)),  # empty
-        (server.pub_s, _cloud(lidar_sensor[:100], "nowhere/lidar")),  # unknown frame
+    corrupt = _compressed(depth_sensor[:100], optical)
+    corrupt.compressed_data = bytes(len(corrupt.compressed_data))  # zeros: not Draco
+    inserted = _stats(server.stats.latest)["jackal"].clouds_inserted
+    for robot, pub, msg in (
+        ("jackal", server.pub_j, corrupt),
+        ("scout", server.pub_s, _compressed(lidar_sensor[:100], "nowhere/lidar")),  # unknown frame
         (
+            "scout",
             server.pub_s,
-            _cloud(
+            _compressed(
                 lidar_sensor[:100],
                 "scout/moving_lidar",  # no tf at stamp
                 rospy.Time.now() + rospy.Duration(60.0),
             ),
         ),
-        (server.pub_j, _cloud(absurd, optical)),
-    ):  # absurd points
+        ("jackal", server.pub_j, _compressed(absurd, optical)),  # absurd points
+    ):
+        received = _stats(server.stats.latest)[robot].clouds_received
         pub.publish(msg)
-        time.sleep(0.5)  # pacing only: the subscriber queue holds 2 and waits up to tf_timeout_s per cloud
-    # The counters move only once each cloud went through (the absurd one's 50 points inserted).
-    server.stats.wait(
-        lambda m: (
-            _stats(m)["jackal"].clouds_dropped_invalid >= 2
-            and _stats(m)["scout"].clouds_dropped_tf >= 2
-            and _stats(m)["jackal"].clouds_inserted >= 2
-        ),
-        what="bad inputs counted",
-    )
+        # One at a time: a robot's slot keeps only its newest cloud, a newer one would supersede it.
+        server.stats.wait(
+            lambda m, robot=robot, received=received: (
+                _stats(m)[robot].clouds_received == received + 1
+                and _accounted(_stats(m)[robot]) == received + 1
+                and _stats(m)[robot].queue_length == 0
+            ),
+            what=f"{robot}'s cloud through",
+        )
+    # The absurd cloud's 50 points inserted; the others dropped, each by its cause.
+    latest = _stats(server.stats.latest)
+    assert latest["jackal"].clouds_dropped_decoder == 1 and latest["scout"].clouds_dropped_tf == 2
+    assert latest["jackal"].clouds_inserted == inserted + 1 and latest["jackal"].clouds_superseded == 0
     assert server.proc.poll() is None
     from cps_msgs.srv import SaveMap
 
@@ -216,9 +253,7 @@ def test_bad_input_is_counted_and_leaves_the_map(server, rospy_node, scene_cloud
 
 def test_unknown_robot_is_named_and_ignored(server):
     assert "~robots names 'ghost', which is not in the fleet" in server.graph.output("map_server_a")
-    unmapped = re.compile(
-        re.escape(names.absolute(names.twin_points("ghost"))) + " is published but robot 'ghost' is not mapped"
-    )
+    unmapped = re.compile(re.escape(_managed("ghost")) + " is published but robot 'ghost' is not mapped")
     assert wait_for(lambda: unmapped.search(server.graph.output("map_server_a")), timeout_s=20), (
         "the unknown robot's topic was not reported"
     )

@@ -1,5 +1,6 @@
 """The map_server node against hostile input: a map file too large for the grid at resume is
-moved aside and the node starts empty; hostile clouds are counted in map_stats and cost nothing;
+moved aside and the node starts empty; hostile clouds (raw PointCloud2 on its input, which it
+reads by the type its publisher announces) are counted in map_stats and cost nothing;
 load_map of too-large maps is refused with the running map unchanged; save_map and load_map
 refuse paths outside the map folder (/etc/x)."""
 
@@ -62,7 +63,7 @@ def test_map_server_survives_hostile_maps_clouds_and_paths(ros, rospy_node, tmp_
             "~autosave_period_s": 0.0,
         },
     )
-    points = rospy.Publisher(names.absolute(names.twin_points("jackal")), PointCloud2, queue_size=20)
+    points = rospy.Publisher(names.absolute(names.managed_cloud_at_twin("jackal")), PointCloud2, queue_size=20)
     try:
         ros.wait_for_service(names.absolute(names.in_twin(names.SAVE_MAP)), timeout_s=60)
         output = ros.output("map_server_hostile")
@@ -76,12 +77,16 @@ def test_map_server_survives_hostile_maps_clouds_and_paths(ros, rospy_node, tmp_
         points.publish(good)
         stats.wait(lambda m: _jackal(m).clouds_inserted == 1 and m.occupied_voxels > 0, what="the good cloud")
         hostile = refused_clouds(FRAME)
-        for msg in hostile.values():
+        for count, msg in enumerate(hostile.values(), start=1):
             msg.header.stamp = rospy.Time.now()
             points.publish(msg)
-            rospy.sleep(0.1)  # the subscriber queue holds 2
+            # One at a time: the robot's slot keeps only its newest cloud, a newer one would supersede it.
+            stats.wait(
+                lambda m, count=count: _jackal(m).clouds_received == 1 + count and _jackal(m).queue_length == 0,
+                what=f"hostile cloud {count} through",
+            )
         stats.wait(
-            lambda m: _jackal(m).clouds_dropped_invalid == len(hostile),
+            lambda m: _jackal(m).clouds_dropped_invalid == len(hostile) and _jackal(m).clouds_superseded == 0,
             timeout_s=20,
             what=f"{len(hostile)} hostile clouds counted",
         )

@@ -219,9 +219,9 @@ def build_parser():
         "--tissue-layout",
         choices=TISSUE_LAYOUTS,
         default=SHARED,
-        help="shared: a fixed number of tissue processes per side for any fleet (one nodelet "
-        "manager and loader, one cloud_tissue, one cloud_decoder); per_robot: one process per "
-        "node and robot, to compare with",
+        help="shared: a fixed number of robots' tissue processes for any fleet (one nodelet "
+        "manager and loader, one cloud_tissue; the twin's map server decodes what it inserts); "
+        "per_robot: one process per node and robot, to compare with",
     )
     parser.add_argument(
         "--video-trace",

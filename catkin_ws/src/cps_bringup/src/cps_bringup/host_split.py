@@ -31,6 +31,7 @@ SIDE_NAMES = {"robots": PHYSICAL, "twin": DIGITAL}
 CGROUP_ROOT = "/sys/fs/cgroup"
 CONTROL_NICE = -10
 CFS_PERIOD_US = 100_000
+MAX_CPU_SHARES = 262144  # the kernel's bound on cpu.shares
 REMOVE_SETTLE_S = 2.0  # an exiting process holds its group until reaped: milliseconds, not seconds
 # How long a dead run's leftover process has between SIGTERM and SIGKILL (a node saves its map).
 STALE_TERM_GRACE_S = 3.0
@@ -190,6 +191,13 @@ class HostSplit:
         try:
             for controller in ("cpuset", "cpu"):
                 os.makedirs(os.path.join(self.root, controller, self.name), exist_ok=True)
+            if self.shares:
+                # The sides' groups sit in the run's group, and that one competes with the processes
+                # outside it: without its own weight (1024, one plain process's) the sides' shares
+                # only weigh them against each other (a twin at 16384 shares got half its CPU
+                # beside one busy process of other work; issue 37).
+                parent_shares = min(sum(int(v) for v in self.shares.values()), MAX_CPU_SHARES)
+                _write(os.path.join(self.root, "cpu", self.name, "cpu.shares"), str(parent_shares))
             parent = os.path.join(self.root, "cpuset", self.name)
             all_cpus = sorted({c for cpus in self.cpus.values() for c in cpus})
             mems = _read(os.path.join(self.root, "cpuset", "cpuset.mems"))

@@ -94,6 +94,7 @@ MAP_SERVER_COUNTERS = (
     "clouds_dropped_queue",
     "clouds_dropped_tf",
     "clouds_dropped_invalid",
+    "clouds_dropped_decoder",
     "clouds_missed_upstream",
     "queue_length",
 )

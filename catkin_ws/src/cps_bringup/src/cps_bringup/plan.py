@@ -24,11 +24,12 @@ SHARED_CONTROL, PER_ROBOT_CONTROL = "shared", "per_robot"
 CONTROL_LAYOUTS = (SHARED_CONTROL, PER_ROBOT_CONTROL)
 FLEET_CONTROL = "fleet_control"
 VOXEL_MANAGER = names.absolute(names.TISSUE_NODELET_MANAGER)
-# The tissue's processes: "shared", a fixed number per side whatever the fleet's size (one nodelet
-# manager + one loader for every robot's voxel grid, one cloud_tissue, one cloud_decoder); or
-# "per_robot", one process per node and robot (nodelet load, draco_encoder, rate_limiter,
-# draco_decoder), kept to compare with. The camera robots' JPEG video is the simulated camera's
-# own, at the bandwidth manager's level and rate (cps_sim.video): no compressor process.
+# The robots' tissue processes: "shared", a fixed number whatever the fleet's size (one nodelet
+# manager + one loader for every robot's voxel grid, one cloud_tissue); or "per_robot", one process
+# per node and robot (nodelet load, draco_encoder, rate_limiter), kept to compare with. The twin has
+# no decoder process: the map server takes the managed clouds as the link delivers them and decodes
+# only those it inserts (issue 37). The camera robots' JPEG video is the simulated camera's own, at
+# the bandwidth manager's level and rate (cps_sim.video): no compressor process.
 SHARED, PER_ROBOT = "shared", "per_robot"
 TISSUE_LAYOUTS = (SHARED, PER_ROBOT)
 
@@ -341,7 +342,7 @@ def plan_nodes(
             specs += bridges(DIGITAL, "twin")
         for r in robots:
             # The one subscriber of the managed topic across the link; everything on the twin
-            # (decoder, statistics) reads the relay, so the link carries each cloud once. Over
+            # (map server, statistics) reads the relay, so the link carries each cloud once. Over
             # Zenoh the twin's bridge publishes the relayed name itself.
             relayed = A(names.managed_cloud_at_twin(r))
             if options.transport == TCPROS:
@@ -361,10 +362,6 @@ def plan_nodes(
                         wait_topics=(relayed,),
                     )
                 )
-            if options.tissue_layout == PER_ROBOT:
-                specs += _twin_tissue_per_robot(r, options.transport == ZENOH, py)
-        if options.tissue_layout != PER_ROBOT:
-            specs += _twin_tissue_shared(fleet, options.transport == ZENOH, py)
         specs.append(
             NodeSpec(
                 MAP_SERVER,
@@ -596,68 +593,6 @@ def _robot_tissue_shared(fleet, py, initial_rate_hz):
             # starts once this process (every robot's encoder) is up.
             wait_topics=tuple(_rt(robot.name, names.POINTS_DRACO) for robot in fleet.robots),
         ),
-    ]
-
-
-def _twin_tissue_per_robot(r, backfill, py):
-    """The per_robot layout: a decoder process per robot (and one for its backfill keyframes)."""
-    specs = [
-        NodeSpec(
-            f"{r}/draco_decoder",
-            DIGITAL,
-            py(
-                "cps_transport",
-                "draco_decoder",
-                f"__ns:={_tw(r)}",
-                "__name:=draco_decoder",
-                f"{names.INPUT}:={A(names.managed_cloud_at_twin(r))}",
-                f"{names.OUTPUT}:={A(names.twin_points(r))}",
-            ),
-            wait_topics=(A(names.twin_points(r)),),
-        )
-    ]
-    if backfill:
-        # Keyframes the robots' bridge kept during an outage, sent after it (cps_link backfill).
-        specs.append(
-            NodeSpec(
-                f"{r}/backfill_decoder",
-                DIGITAL,
-                py(
-                    "cps_transport",
-                    "draco_decoder",
-                    f"__ns:={_tw(r)}",
-                    "__name:=backfill_decoder",
-                    f"{names.INPUT}:={_tw(names.robot_topic(r, names.POINTS_BACKFILL_DRACO))}",
-                    f"{names.OUTPUT}:={_tw(names.robot_topic(r, names.POINTS_BACKFILL))}",
-                ),
-                wait_topics=(_tw(names.robot_topic(r, names.POINTS_BACKFILL)),),
-            )
-        )
-    return specs
-
-
-def _twin_tissue_shared(fleet, backfill, py):
-    """The shared layout: /twin/cloud_decoder decodes every robot's managed (and backfill) clouds."""
-    return [
-        NodeSpec(
-            "cloud_decoder",
-            DIGITAL,
-            py(
-                "cps_transport",
-                "cloud_decoder",
-                f"__ns:={A(names.TWIN_NS)}",
-                "__name:=cloud_decoder",
-                *_args({"fleet_file": fleet.path, "robots": ",".join(fleet.robot_names), "backfill": backfill}),
-            ),
-            wait_topics=tuple(
-                t
-                for r in fleet.robot_names
-                for t in (
-                    A(names.twin_points(r)),
-                    *((_tw(names.robot_topic(r, names.POINTS_BACKFILL)),) if backfill else ()),
-                )
-            ),
-        )
     ]
 
 

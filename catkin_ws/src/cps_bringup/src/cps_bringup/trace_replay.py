@@ -10,6 +10,12 @@ trace, which loops). Everything is published at wall-clock rate, stamped with th
 it is sent, into the twin's inputs: `/twin/<copy>/points_filtered/draco/managed` (what the link
 relay or bridge would deliver), `/tf`, `/tf_static` and `/<copy>/odom`.
 
+The clouds and tf are published synchronously (rospy publishers without a queue): `publish()`
+returns once the message is written to every subscriber's socket, so nothing is dropped silently
+in a publisher queue; a twin that does not read its sockets holds the replay back instead, and that
+shows as the replay's lateness, measured when `publish()` returns. A publish that raises is
+counted as the replay's own drop.
+
 A copy replays the recorded clouds seen from a shifted pose: it offers the twin the same load as a
 robot of that type would (clouds, points, rays), not new information about the site. A request for
 more robots than the hall has placements for is told what it can have and gets that, never two
@@ -29,6 +35,7 @@ import os
 import sys
 import threading
 import time
+import warnings
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
@@ -42,7 +49,8 @@ from cps_fleet.fleet import FleetConfig, load_fleet
 PLACEMENT_STEP_M = 1.0
 WALL_MARGIN_M = 0.3
 MAX_PLACEMENTS_PER_ROBOT = 64
-# compact_trace(busy_only): a robot sending fewer clouds per second is starting or done.
+# compact_trace(busy_only): a robot sending fewer clouds per second is starting or done (a paper
+# profile mission on two cores records ~1.5 clouds/s per camera: its compaction asks for less).
 MIN_BUSY_HZ = 3
 # A replay later than this has stalled: it resumes from the present (Player.run).
 STALL_S = 0.5
@@ -120,11 +128,11 @@ def load_trace(bag_path: str, fleet: FleetConfig) -> Trace:
     return Trace(found, duration, bag_path)
 
 
-def compact_trace(bag_path: str, fleet: FleetConfig, out_path: str, busy_only=False) -> str:
+def compact_trace(bag_path: str, fleet: FleetConfig, out_path: str, busy_only=False, min_busy_hz=MIN_BUSY_HZ) -> str:
     """A copy of the bag with only what a replay reads (managed clouds, odometry, tf): a mission bag
     also holds the raw sensor streams, ~30x larger and slow to scan. `busy_only`: only the part where
     every robot sends clouds at its working rate (from the last robot's first cloud to the first
-    second in which a robot sends fewer than MIN_BUSY_HZ), not the start-up nor the robots done;
+    second in which a robot sends fewer than `min_busy_hz`), not the start-up nor the robots done;
     /tf_static is kept whole."""
     import rosbag
 
@@ -140,7 +148,7 @@ def compact_trace(bag_path: str, fleet: FleetConfig, out_path: str, busy_only=Fa
             for s in stamps.values():
                 s = np.asarray(s)
                 for second in np.arange(start, s[-1], 1.0):
-                    if np.count_nonzero((s >= second) & (s < second + 1.0)) < MIN_BUSY_HZ:
+                    if np.count_nonzero((s >= second) & (s < second + 1.0)) < min_busy_hz:
                         end = min(end, second)
                         break
                 else:
@@ -261,20 +269,18 @@ def write_copies_fleet(fleet: FleetConfig, copies: List[Copy], path: str) -> str
     return path
 
 
-def twin_specs(copies_fleet_path: str, out_dir: str, tissue_layout: str, map_server_args=()):
-    """The twin's cloud path for the copies: the decoder(s) of `tissue_layout` and the map server, as
-    bringup plans them (no bridge, relay, manager or GUI: the replay feeds the decoders' input)."""
-    from cps_bringup.plan import DIGITAL, MAP_SERVER, PER_ROBOT, RunOptions, plan_nodes
+def twin_specs(copies_fleet_path: str, out_dir: str, map_server_args=()):
+    """The twin's cloud path for the copies: the map server as bringup plans it (no bridge, relay,
+    manager or GUI: the replay feeds the map server's inputs, as the link would)."""
+    from cps_bringup.plan import DIGITAL, MAP_SERVER, RunOptions, plan_nodes
 
     fleet = load_fleet(copies_fleet_path)
-    options = RunOptions(out_dir=out_dir, tissue_layout=tissue_layout, map_file=os.path.join(out_dir, "map.bt"))
+    options = RunOptions(out_dir=out_dir, map_file=os.path.join(out_dir, "map.bt"))
     keep = []
     for spec in plan_nodes(fleet, sides=(DIGITAL,), options=options):
-        decoder = spec.label == "cloud_decoder" if tissue_layout != PER_ROBOT else spec.label.endswith("/draco_decoder")
         if spec.label == MAP_SERVER:
             spec = dataclasses.replace(spec, argv=(*spec.argv, *map_server_args))
-        if decoder or spec.label == MAP_SERVER:
-            keep.append(dataclasses.replace(spec, after=tuple(a for a in spec.after if a == MAP_SERVER)))
+            keep.append(dataclasses.replace(spec, after=()))
     return keep
 
 
@@ -296,18 +302,23 @@ class Player:
         clock=time.time,
         tf_period_s=0.0,
         odometry=True,
+        time_scale=None,
     ):
         """`publish_cloud(copy_name, msg)`, `publish_tf(transforms)`, `publish_odom(copy_name, msg)`;
-        `tf_period_s`: keep one recorded odom -> base transform per period (0: all); `odometry`: False
-        leaves odometry out (the twin's cloud path does not read it)."""
+        `tf_period_s`: keep one recorded odom -> base transform per period of replay time (0: all);
+        `odometry`: False leaves odometry out (the twin's cloud path does not read it); `time_scale`:
+        {recorded robot: replay seconds per recorded second} (default 1: as recorded)."""
         self.trace, self.copies = trace, copies
         self.tf_period_s, self.odometry = tf_period_s, odometry
-        self.cloud_lateness_s: List[float] = []
+        self.time_scale = dict(time_scale or {})
+        self.cloud_lateness_s: List[float] = []  # when publish() returned, after the cloud was due
         self.stalls_s: List[float] = []
         self.publish_cloud, self.publish_tf, self.publish_odom = publish_cloud, publish_tf, publish_odom
         self.clock = clock
         self._stop = threading.Event()
         self.sent_clouds = {c.name: 0 for c in copies}
+        self.dropped_clouds = {c.name: 0 for c in copies}  # publish() raised
+        self.publish_errors: List[str] = []
 
     def static_transforms(self, stamp):
         """Every copy's static tf (map -> odom moved by its placement, its sensor mounts), renamed."""
@@ -325,24 +336,28 @@ class Player:
         return out
 
     def _events(self, c: Copy):
-        """(seconds after the replay's start, kind, message) of one copy, looping the trace."""
+        """(seconds after the replay's start, kind, message) of one copy, looping the trace (its
+        time stretched by the robot's `time_scale`)."""
         robot = self.trace.robots[c.source]
+        scale = self.time_scale.get(c.source, 1.0)
         tf, last = [], {}
         for t, m in robot.tf:
-            if t - last.get(m.child_frame_id, -math.inf) >= self.tf_period_s:
-                last[m.child_frame_id] = t
-                tf.append((t, 0, "tf", m))
-        odom = [(t, 1, "odom", m) for t, m in robot.odom] if self.odometry else []
-        events = sorted(tf + odom + [(t, 2, "cloud", m) for t, m in robot.clouds], key=lambda e: (e[0], e[1]))
+            if t * scale - last.get(m.child_frame_id, -math.inf) >= self.tf_period_s:
+                last[m.child_frame_id] = t * scale
+                tf.append((t * scale, 0, "tf", m))
+        odom = [(t * scale, 1, "odom", m) for t, m in robot.odom] if self.odometry else []
+        clouds = [(t * scale, 2, "cloud", m) for t, m in robot.clouds]
+        events = sorted(tf + odom + clouds, key=lambda e: (e[0], e[1]))
+        offset_s = c.time_offset_s * scale
         # At its start a copy first sends each frame's transform nearest its time offset, so that its
         # first clouds find tf (the trace's order resumes after).
         nearest = {}
         for t, _, _, m in tf:
             best = nearest.get(m.child_frame_id)
-            if best is None or abs(t - c.time_offset_s) < abs(best[0] - c.time_offset_s):
+            if best is None or abs(t - offset_s) < abs(best[0] - offset_s):
                 nearest[m.child_frame_id] = (t, m)
-        period = max(self.trace.duration_s, 1e-3)
-        shifted = sorted(((t - c.time_offset_s) % period, order, kind, m) for t, order, kind, m in events)
+        period = max(self.trace.duration_s * scale, 1e-3)
+        shifted = sorted(((t - offset_s) % period, order, kind, m) for t, order, kind, m in events)
         for _, m in nearest.values():
             yield 0.0, "tf", m
         loop = 0
@@ -374,14 +389,14 @@ class Player:
                 delay = 0.0
             if delay > 0 and self._stop.wait(delay):
                 break
-            if kind == "cloud":
-                self.cloud_lateness_s.append(max(0.0, -delay))
-            self._send(by_name[name], kind, m, stamp_of(start + t))
+            if self._send(by_name[name], kind, m, stamp_of(start + t)) and kind == "cloud":
+                self.cloud_lateness_s.append(max(0.0, self.clock() - (start + t)))
             nt, nkind, nm = next(streams[name])
             heapq.heappush(heap, (nt, count, name, nkind, nm))
             count += 1
 
     def _send(self, c: Copy, kind, msg, stamp):
+        """Publish one event of copy `c` (restamped, renamed); False for a cloud whose publish raised."""
         msg = copying.copy(msg)  # a shallow copy: the payload is shared, the header is new
         if kind == "tf":
             msg.header = copying.copy(msg.header)
@@ -389,19 +404,43 @@ class Player:
             msg.header.frame_id = _rename(msg.header.frame_id, c.source, c.name)
             msg.child_frame_id = _rename(msg.child_frame_id, c.source, c.name)
             self.publish_tf([msg])
-            return
+            return True
         msg.header = copying.copy(msg.header)
         msg.header.stamp = stamp
         msg.header.frame_id = _rename(msg.header.frame_id, c.source, c.name)
         if kind == "odom":
             msg.child_frame_id = _rename(msg.child_frame_id, c.source, c.name)
             self.publish_odom(c.name, msg)
-        else:
+            return True
+        try:
             self.publish_cloud(c.name, msg)
-            self.sent_clouds[c.name] += 1
+        except Exception as exc:  # rospy raises ROSException / ROSSerializationException on a closed link
+            self.dropped_clouds[c.name] += 1
+            if len(self.publish_errors) < 10:
+                self.publish_errors.append(f"{c.name}: {type(exc).__name__}: {exc}")
+            return False
+        self.sent_clouds[c.name] += 1
+        return True
 
     def stop(self):
         self._stop.set()
+
+
+def profile_time_scales(trace: Trace, fleet: FleetConfig, profile: str) -> Dict[str, float]:
+    """{recorded robot: time scale} that plays each robot's clouds at its sensor's rate in `profile`
+    (fleet.yaml's profiles): a simulator that could not keep the paper profile's rates on two cores
+    recorded its clouds slower; stretching the robot's whole trace (clouds, tf, odometry alike)
+    keeps every cloud at the pose it was taken from. TraceError for an unknown profile."""
+    try:
+        rates = fleet.with_profile(profile).profile
+    except KeyError as exc:
+        raise TraceError(str(exc)) from exc
+    scales = {}
+    for name, robot in trace.robots.items():
+        recorded_hz = len(robot.clouds) / max(trace.duration_s, 1e-3)
+        target_hz = rates.lidar.rate_hz if fleet.robot(name).has_lidar else rates.depth_camera.rate_hz
+        scales[name] = recorded_hz / target_hz
+    return scales
 
 
 def build_parser():
@@ -432,6 +471,13 @@ def build_parser():
         "--no-odom", action="store_true", help="leave odometry out (the twin's cloud path needs tf only)"
     )
     parser.add_argument("--step", type=float, default=PLACEMENT_STEP_M, metavar="M", help="placement grid pitch")
+    parser.add_argument(
+        "--profile-rates",
+        default=None,
+        metavar="PROFILE",
+        help="play each robot's clouds at its sensor's rate in this fleet profile (e.g. paper), the robot's "
+        "trace stretched in time (default: as recorded)",
+    )
     return parser
 
 
@@ -445,6 +491,7 @@ def main(argv=None, log=print):
         shard, shards = (int(x) for x in args.shard.split("/"))
         if not 0 <= shard < shards:
             raise TraceError(f"--shard {args.shard}: I/K with 0 <= I < K")
+        time_scale = profile_time_scales(trace, fleet, args.profile_rates) if args.profile_rates else {}
     except TraceError as exc:
         print(f"trace_replay: error: {exc}", file=sys.stderr)
         return 2
@@ -469,17 +516,21 @@ def main(argv=None, log=print):
 
     # One node name per shard: a second node of the same name would shut the first one down.
     rospy.init_node("trace_replay" if shards == 1 else f"trace_replay_{shard}_of_{shards}", disable_signals=True)
-    cloud_pubs = {
-        c.name: rospy.Publisher(
-            names.absolute(names.managed_cloud_at_twin(c.name)), CompressedPointCloud2, queue_size=5
-        )
-        for c in copies
-    }
+    # queue_size None: synchronous, nothing dropped unseen in a publisher queue (module docstring);
+    # rospy warns that it is meant for few publishers, and that is the point here.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SyntaxWarning)
+        cloud_pubs = {
+            c.name: rospy.Publisher(
+                names.absolute(names.managed_cloud_at_twin(c.name)), CompressedPointCloud2, queue_size=None
+            )
+            for c in copies
+        }
+        tf_pub = rospy.Publisher(names.TF, TFMessage, queue_size=None)
     odom_pubs = {
         c.name: rospy.Publisher(names.absolute(names.robot_topic(c.name, names.ODOM)), Odometry, queue_size=5)
         for c in copies
     }
-    tf_pub = rospy.Publisher(names.TF, TFMessage, queue_size=100)
     static_pub = rospy.Publisher(names.TF_STATIC, TFMessage, queue_size=1, latch=True)
     player = Player(
         trace,
@@ -489,6 +540,7 @@ def main(argv=None, log=print):
         lambda name, m: odom_pubs[name].publish(m),
         tf_period_s=1.0 / args.tf_rate if args.tf_rate > 0 else 0.0,
         odometry=not args.no_odom,
+        time_scale=time_scale,
     )
     if args.wait_for_subscribers > 0:
         deadline = time.monotonic() + args.wait_for_subscribers
@@ -509,6 +561,8 @@ def main(argv=None, log=print):
     late = sorted(player.cloud_lateness_s) or [0.0]
     summary = dict(
         sent=player.sent_clouds,
+        dropped=player.dropped_clouds,
+        publish_errors=player.publish_errors,
         late_p95_s=late[int(0.95 * (len(late) - 1))],
         late_max_s=late[-1],
         stalls_s=[round(x, 3) for x in player.stalls_s],

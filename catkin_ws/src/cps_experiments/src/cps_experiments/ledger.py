@@ -21,7 +21,9 @@ import os
 from collections import defaultdict
 from typing import Dict, List, Optional
 
+from cps_bringup.mission import MAP_SERVER_COUNTERS
 from cps_experiments.markdown import csv_float, markdown_table
+from cps_experiments.run_files import read_rows
 from cps_fleet import names
 from cps_ros import cloud_ledger as C
 
@@ -32,21 +34,14 @@ MAP_AGE_CSV = "map_age.csv"
 GAUGES = (C.BACKFILL_WAITING,)
 # Counters are reported once a second: a hop may have this much of a robot's clouds on the way.
 ALLOWED_UNSEEN_S = 2.0
-# The map server's counters in map_age.csv (cps_bringup.mission.MAP_SERVER_COUNTERS) that only grow.
-MAP_SERVER_CUMULATIVE = (
-    "clouds_received",
-    "clouds_inserted",
-    "clouds_superseded",
-    "clouds_dropped_queue",
-    "clouds_dropped_tf",
-    "clouds_dropped_invalid",
-    "clouds_missed_upstream",
-)
+# The map server's queue length in map_age.csv: a gauge, its last value counts.
+MAP_SERVER_QUEUE = "queue_length"
+# The map server's counters in map_age.csv that only grow: the clouds inserted (a column of its own
+# there) and every counter but the queue's length.
+MAP_SERVER_CUMULATIVE = ("clouds_inserted",) + tuple(c for c in MAP_SERVER_COUNTERS if c != MAP_SERVER_QUEUE)
 
 
 def _read(path):
-    from cps_experiments.verdict import read_rows
-
     return read_rows(path)[0] if os.path.isfile(path) else None
 
 
@@ -130,13 +125,13 @@ def map_server_counters(map_age_rows) -> Dict[str, Dict[str, float]]:
     for row in sorted(map_age_rows or [], key=lambda r: csv_float(r.get("time_s"))):
         if not row.get("robot") or row.get("mission_state") in ("start", "end"):
             continue
-        for name in MAP_SERVER_CUMULATIVE + ("queue_length",):
+        for name in MAP_SERVER_CUMULATIVE + (MAP_SERVER_QUEUE,):
             value = csv_float(row.get(name))
             if name in row and math.isfinite(value):
                 series[row["robot"]][name].append(value)
     return {
         robot: {
-            name: (values[-1] if name == "queue_length" else cumulative(values)) for name, values in counters.items()
+            name: (values[-1] if name == MAP_SERVER_QUEUE else cumulative(values)) for name, values in counters.items()
         }
         for robot, counters in series.items()
     }
@@ -233,6 +228,9 @@ def robot_ledger(robot, counters, map_server, duration_s, stats_captured=None, s
     out, inn, dec = stage("managed", C.BRIDGE_OUT), stage("at_twin", C.BRIDGE_IN), stage("at_twin", C.DECODER)
     back_in, back_dec = stage("backfill", C.BRIDGE_IN), stage("backfill", C.DECODER)
     ms = map_server or {}
+    # The map server decodes what it inserts (issue 37: no decoder process on the twin) when it
+    # counts undecodable clouds; then the twin's bridge hands it the clouds still compressed.
+    server_decodes = "clouds_dropped_decoder" in ms
     captured_guess = enc[C.RECEIVED] + enc[C.MISSED] if enc else (stats_captured or 0)
     rate = captured_guess / duration_s if duration_s and duration_s > 0 else 0.0
     b = _Builder(robot, math.ceil(ALLOWED_UNSEEN_S * rate) if rate else 0)
@@ -247,7 +245,7 @@ def robot_ledger(robot, counters, map_server, duration_s, stats_captured=None, s
             ("decoder", dec),
             ("map server", "clouds_received" in ms or None),
         )
-        if not found
+        if not found and not (label == "decoder" and server_decodes)
     ]
     if missing:
         led.problems.append(f"counters not recorded: {', '.join(missing)}")
@@ -348,6 +346,8 @@ def robot_ledger(robot, counters, map_server, duration_s, stats_captured=None, s
         previous = ("decoder", decoded)
     if dec or back_dec:
         led.stages.append((DECODED, int(decoded)))
+    elif server_decodes and back_in:  # both of the twin's bridge's outputs reach the map server
+        previous = ("twin's bridge", (inn[C.OUT] if inn else 0.0) + back_in[C.OUT])
     if "clouds_received" in ms:
         received = ms["clouds_received"] + ms.get("clouds_missed_upstream", 0.0)
         if previous is not None:
@@ -358,10 +358,11 @@ def robot_ledger(robot, counters, map_server, duration_s, stats_captured=None, s
         b.drop("map server: no transform at the cloud's stamp", ms.get("clouds_dropped_tf", 0))
         b.drop("map server: invalid cloud", ms.get("clouds_dropped_invalid", 0))
         b.drop("map server: queue full", ms.get("clouds_dropped_queue", 0))
+        b.drop("map server: undecodable cloud", ms.get("clouds_dropped_decoder", 0))
         ends = [
             (INSERTED, ms.get("clouds_inserted", 0.0)),
             (SUPERSEDED, ms.get("clouds_superseded", 0.0)),
-            (WAITING, ms.get("queue_length", 0.0)),
+            (WAITING, ms.get(MAP_SERVER_QUEUE, 0.0)),
         ]
         led.ends = [(what, int(n)) for what, n in ends if n or what == INSERTED] + led.ends
         b.internal(
@@ -370,7 +371,8 @@ def robot_ledger(robot, counters, map_server, duration_s, stats_captured=None, s
             - sum(n for _, n in ends)
             - ms.get("clouds_dropped_tf", 0)
             - ms.get("clouds_dropped_invalid", 0)
-            - ms.get("clouds_dropped_queue", 0),
+            - ms.get("clouds_dropped_queue", 0)
+            - ms.get("clouds_dropped_decoder", 0),
         )
     elif "clouds_inserted" in ms:
         led.ends = [(INSERTED, int(ms["clouds_inserted"]))] + led.ends

@@ -25,6 +25,7 @@ from cps_experiments import judge as J
 from cps_experiments import paper
 from cps_experiments.fleet_scaling import ensure_video_trace, mission_summary
 from cps_experiments.markdown import csv_float, markdown_table, write_csv, write_markdown
+from cps_experiments.twin_replay import CSV_COLUMNS
 from cps_fleet import names
 from cps_fleet.fleet import managed_budget_mbytes_per_s
 
@@ -424,7 +425,7 @@ def replay_rows(sizes, run_root, duration_s, reuse_runs=False, log=print):
     rows = {}
     with replay_bench(os.path.abspath(run_root), name="cps_fig13_replay") as (run_trial, split_text):
         for n in sizes:
-            row = run_trial(n, "shared", trace, REPLAY_DURATION_S)
+            row = run_trial(n, trace, REPLAY_DURATION_S, label="fig13_live")
             row["host_split"] = split_text
             rows[n] = row
             log(
@@ -518,23 +519,11 @@ def verdict(figures):
 
 RUNS_JSON = "fig13_live_runs.json"
 REPLAY_CSV = "fig13_live_replay.csv"
-REPLAY_COLUMNS = (
-    "asked",
-    "robots",
-    "sent",
-    "received",
-    "inserted",
-    "superseded",
-    "dropped",
-    "superseded_pct",
-    "dropped_pct",
-    "age_p95_s",
-    "twin_cpu_s_per_s",
-    "replay_late_p95_s",
-    "replay_limited",
-    "holds",
-    "counted_by",
-)
+# twin_replay.trial's row: every cloud by cause (twin_replay.CSV_COLUMNS), then the totals.
+REPLAY_COLUMNS = ("asked", *CSV_COLUMNS, "received", "inserted", "superseded", "dropped", "counted_by")
+# Columns of REPLAY_COLUMNS that are not numbers.
+REPLAY_TEXT_COLUMNS = ("label", "counted_by")
+REPLAY_BOOL_COLUMNS = ("replay_limited", "ledger_balances", "holds")
 
 
 def _order(kv):
@@ -607,8 +596,8 @@ def replay_from_csv(csv_rows):
     """{asked N: replay row} of fig13_live_replay.csv."""
     out = {}
     for raw in csv_rows:
-        row = {k: (raw[k] == "True" if k in ("replay_limited", "holds") else csv_float(raw[k])) for k in raw}
-        row["counted_by"] = raw.get("counted_by", "")
+        row = {k: (raw[k] == "True" if k in REPLAY_BOOL_COLUMNS else csv_float(raw[k])) for k in raw}
+        row.update({k: raw.get(k, "") for k in REPLAY_TEXT_COLUMNS})
         for k in ("asked", "robots", "sent", "inserted"):
             row[k] = int(row[k])
         out[row["asked"]] = row
@@ -827,7 +816,7 @@ def _replay_section(replayed, host_split):
         "first four) was recorded once (loopback, same host boundaries: on one robots' CPU four robots send at "
         "their working rate, sixteen do not), and their managed clouds, odometry and tf replayed as N robots (cps_bringup.trace_replay: "
         "each copy with its own name, frames and offsets in space and time, at wall-clock rate) into the twin's "
-        f"decoder and map server, which ran alone on one CPU ({host_split}). No simulator, no link, no "
+        f"map server (which decodes what it inserts), alone on one CPU ({host_split}). No simulator, no link, no "
         "manager: these rows measure the twin, not the link, and have no F1 (copies add load, not new site) and "
         "no teleop. The N holds as cps_experiments.twin_replay.holds says: at most "
         f"{100 * MAX_DROPPED:g} % of the clouds sent dropped, at most {100 * MAX_SUPERSEDED:g} % superseded and map "
@@ -839,7 +828,8 @@ def _replay_section(replayed, host_split):
             "counting it, its late figure is taken before publish(), and the twin's CPU share counted time "
             "before the replay began."
             if any(str(r.get("counted_by", "")).startswith("differences") for r in replayed.values())
-            else "Dropped is counted by cause by the nodes (the decoder's ledger, the map server's counters)."
+            else "Dropped is counted by cause by the nodes (the replay's publishers, the map server's counters); "
+            f"every cause, throughput and map ages per robot: [{REPLAY_CSV}]({REPLAY_CSV})."
         ),
         markdown_table(
             [

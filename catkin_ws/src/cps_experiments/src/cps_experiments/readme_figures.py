@@ -155,36 +155,37 @@ def link_thesis_paragraph(results_dir=RESULTS):
 
 
 def twin_capacity_paragraph(path=TWIN_CAPACITY_JSON):
-    """The README's twin capacity sentence from the committed trials (twin_replay.holds' rule)."""
-    from cps_experiments.twin_replay import MAX_SUPERSEDED, holds
+    """The README's twin capacity sentence from the committed sweeps (bench/twin_capacity.py: issue
+    37's bars, cps_experiments.twin_replay.judge_sweep)."""
+    from cps_experiments.twin_replay import MAX_FALL, MAX_SUPERSEDED, judge_sweep
 
     with open(path) as stream:
-        saved = json.load(stream)
+        sweeps = json.load(stream).get("sweeps", {})
     parts = []
-    for layout, result in saved["results"].items():
-        rows = result["rows"]
-        held = [r for r in rows if holds(r)]
-        best = max(held, key=lambda r: r["robots"]) if held else None
-        above = sorted(
-            (r for r in rows if not holds(r) and (best is None or r["robots"] > best["robots"])),
-            key=lambda r: r["robots"],
-        )
-        twin_fail = next((r for r in above if not r["replay_limited"]), None)
+    for _key, sweep in sorted(sweeps.items()):
+        rows = sorted(sweep["rows"], key=lambda r: r["robots"])
+        verdict = judge_sweep(rows)
+        last = rows[-1]
+        cpus = sweep["twin_cpus"]
         parts.append(
-            f"{layout}: {best['robots'] if best else 0} robots held at {best['twin_cpu_s_per_s']:.2f} cores"
-            if best
-            else f"{layout}: none held"
+            f"{sweep['profile']} profile on {cpus} twin CPU{'s' if cpus > 1 else ''}"
+            + (f", receive process at nice {sweep['receive_nice']}" if sweep.get("receive_nice") is not None else "")
+            + f": {verdict['capacity']} robots "
+            f"held ({verdict['fresh_capacity']} by freshness alone, superseded not judged; N run: "
+            f"{', '.join(str(r['robots']) for r in rows)}); at N = {last['robots']} "
+            f"{last['inserted_clouds_per_s']:.0f} clouds/s inserted, map age p95 {last['age_p95_s']:.2f} s, worst "
+            f"fall of inserted clouds/s past the capacity {100 * verdict['worst_fall']:.0f} % (no cliff: "
+            f"{'holds' if verdict['no_cliff'] else 'fails'}), no robot starving: "
+            f"{'holds' if verdict['no_starving'] else 'fails'}, every cloud accounted for: "
+            f"{'yes' if verdict['ledger'] else 'no'}"
         )
-        if twin_fail:
-            parts[-1] += (
-                f", not {twin_fail['robots']} ({twin_fail['superseded_pct']:.0f} % superseded, "
-                f"{twin_fail['dropped_pct']:.1f} % dropped, map age p95 {twin_fail['age_p95_s']:.2f} s)"
-            )
+    measured = "; ".join(parts) if parts else "no sweep committed"
     return (
         "Twin capacity ([twin_capacity](docs/benchmarks/twin_capacity.md), measured by replaying a recorded "
-        f"mission as N robots into the twin on one shared CPU): {'; '.join(parts)}. Held means ≤ 1 % dropped, "
-        f"≤ {100 * MAX_SUPERSEDED:g} % superseded and map age p95 ≤ 1 s; robots per free core (N ÷ CPU) would be "
-        "computed, not measured."
+        f"mission as N robots into the twin alone, under the heavy lock on a shared 2-core machine): {measured}. "
+        f"Held means ≤ 1 % of the clouds sent lost, ≤ {100 * MAX_SUPERSEDED:g} % superseded and every robot's map "
+        f"age p95 ≤ 1 s; no cliff means inserted clouds/s never more than {100 * MAX_FALL:g} % below its highest "
+        "at a smaller N."
     )
 
 

@@ -34,7 +34,6 @@ truncated, the ledger does not balance, or the mission ended before every route 
 wins over INCOMPLETE (what is missing is listed too). PASS: every check ran and none failed.
 """
 
-import csv
 import dataclasses
 import json
 import math
@@ -47,6 +46,7 @@ import numpy as np
 from cps_bringup.mission import MAP_AGE_COLUMNS  # noqa: F401 (the mission monitor writes map_age.csv)
 from cps_experiments import judge as J
 from cps_experiments.markdown import csv_float
+from cps_experiments.run_files import read_rows
 from cps_fleet import names
 
 PASS, FAIL, INCOMPLETE = "PASS", "FAIL", "INCOMPLETE"
@@ -131,39 +131,6 @@ class Verdict:
 
     def as_dict(self):
         return dataclasses.asdict(self)
-
-
-def read_rows(path):
-    """(rows as dicts, problems): the rows of a CSV, and what is wrong with the file (missing, empty,
-    rows with the wrong number of fields, a last line cut off). Bad rows are kept out of the rows
-    and counted in the problems, never dropped silently."""
-    name = os.path.basename(path)
-    if not os.path.isfile(path):
-        return [], [f"{name} is missing"]
-    with open(path, newline="") as stream:
-        text = stream.read()
-    if not text.strip():
-        return [], [f"{name} is empty"]
-    records = list(csv.reader(text.splitlines()))
-    header, body = records[0], records[1:]
-    rows, bad = [], []
-    for line, record in enumerate(body, start=2):
-        if len(record) != len(header):
-            bad.append(line)
-        else:
-            rows.append(dict(zip(header, record)))
-    problems = []
-    if not text.endswith("\n") and body and (len(body) + 1) not in bad:
-        bad.append(len(body) + 1)
-        rows.pop()
-    if bad:
-        problems.append(
-            f"{name}: {len(bad)} truncated row(s) (line {', '.join(map(str, sorted(bad)[:5]))}"
-            f"{', ...' if len(bad) > 5 else ''}), not counted in the figures"
-        )
-    if not body:
-        problems.append(f"{name} has a header and no rows")
-    return rows, problems
 
 
 def outage_windows(folder):

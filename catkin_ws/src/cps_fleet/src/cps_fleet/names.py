@@ -117,6 +117,12 @@ CLEAR_BBX = "~clear_bbx"
 READY = "~ready"
 
 
+def admission_node(map_server_name):
+    """The map server's receive process, a node of its own beside it (`map_server` ->
+    `map_server_input`): it subscribes the robots' managed clouds and tf (issue 37)."""
+    return f"{map_server_name}_input"
+
+
 def robot_topic(robot, name):
     """`name` in the robot's namespace, relative: `<robot>/<name>`."""
     return f"{robot}/{name}"

@@ -34,6 +34,19 @@ def wall_cloud(rospy, frame_id, offset_m=0.0):
     return point_cloud2.create_cloud_xyz32(Header(stamp=rospy.Time.now(), frame_id=frame_id), pts)
 
 
+def managed_wall_cloud(rospy, frame_id, offset_m=0.0):
+    """`wall_cloud` as the link delivers it to the map server: Draco-compressed (cps_msgs/
+    CompressedPointCloud2, for `managed_cloud_topic`)."""
+    from cps_transport.draco import DracoEncoder
+
+    return DracoEncoder(lossless=True).encode(wall_cloud(rospy, frame_id, offset_m))
+
+
+def managed_cloud_topic(robot):
+    """Where the map server takes a robot's clouds: the managed cloud as relayed at the twin."""
+    return names.absolute(names.managed_cloud_at_twin(robot))
+
+
 def static_sensor_transform(rospy, frame_id, height_m=0.5):
     """map -> `frame_id`, `height_m` up, latched on /tf_static; keep the returned broadcaster."""
     import tf2_ros

@@ -4,26 +4,20 @@ high priority through cps_bw_manager's /tissue/set_priority (the paper's section
 from cps_fleet import names
 
 
-def change_detection_timer(server, options, log, transform_of):
+def change_detection_timer(server, options, log):
     """The timer callback: publish the changes, then ask /tissue/set_priority for high priority for
-    each robot near a change new since the last detection."""
+    each robot near a change new since the last detection (where its last inserted cloud was taken)."""
     import rospy
 
     from cps_mapping.change_attention import ChangeAttention
-    from cps_mapping.map_server import TransformUnavailable
     from cps_msgs.srv import SetPriority
 
     attention = ChangeAttention(options.change_attention_radius_m) if options.change_attention_radius_m > 0 else None
     set_priority = rospy.ServiceProxy(names.absolute(names.SET_PRIORITY), SetPriority)  # the map server is in /twin
 
     def positions():
-        out = {}
-        for robot, frame in server.sensor_frames.items():
-            try:
-                out[robot] = transform_of(frame, rospy.Time(0))[1][:2]
-            except TransformUnavailable:
-                pass
-        return out
+        poses = dict(server.latest_poses)
+        return {robot: poses[frame][1][:2] for robot, frame in server.sensor_frames.items() if frame in poses}
 
     def detect(_event):
         changes = server.publish_changes(rospy.Time.now())

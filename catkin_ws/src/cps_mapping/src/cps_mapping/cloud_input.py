@@ -14,10 +14,13 @@ leaves the two leaf cubes' box, so nothing is added beyond the leaf's own uncert
 """
 
 import dataclasses
-from typing import Optional
+import struct
+from typing import Optional, Tuple
 
 import numpy as np
+from sensor_msgs.msg import PointCloud2
 
+from cps_msgs.msg import CompressedPointCloud2
 from cps_transport.cloud_levels import LeafError, leaf_of_points
 
 # The largest leaf taken as one (pcl_ros's VoxelGrid takes at most 1 m); larger: a bad leaf.
@@ -31,6 +34,47 @@ _HALF_NEIGHBOURS = np.array(
 
 class InvalidInput(ValueError):
     """A cloud the map must not take (empty, nothing finite, or every point absurdly far)."""
+
+
+class UnreadableMessage(ValueError):
+    """Serialized bytes that are not a cloud message of a type the map server takes."""
+
+
+# The message types a map server input may carry, by the type name a publisher announces.
+CLOUD_TYPES = {cls._type: cls for cls in (CompressedPointCloud2, PointCloud2)}
+
+
+def _serialized(message):
+    """The bytes of a rospy.AnyMsg (kept as it arrived), or None for a message object."""
+    return getattr(message, "_buff", None)
+
+
+def read_message(message, default_type=CompressedPointCloud2):
+    """A cloud message from what a subscriber received: a rospy.AnyMsg is deserialized as the type
+    its publisher announced (connection header; `default_type` without one), a message object is
+    returned as it is. UnreadableMessage for another type or bytes that do not deserialize."""
+    data = _serialized(message)
+    if data is None:
+        return message
+    announced = (getattr(message, "_connection_header", None) or {}).get("type")
+    cls = CLOUD_TYPES.get(announced, None if announced else default_type)
+    if cls is None:
+        raise UnreadableMessage(f"type {announced}, not one of {', '.join(CLOUD_TYPES)}")
+    try:
+        return cls().deserialize(data)
+    except Exception as exc:  # genpy raises struct.error, DeserializationError, IndexError...
+        raise UnreadableMessage(f"{len(data)} bytes do not deserialize as {cls._type}: {exc}") from exc
+
+
+def sender_sequence(message) -> Optional[Tuple[str, int]]:
+    """(publisher, header.seq) of a received cloud, read without deserializing it: rospy and roscpp
+    number every message a publisher sends, so a gap is a message lost on the way. None when the
+    message carries no number (a message object handed over in-process)."""
+    data = _serialized(message)
+    if data is None or len(data) < 4:
+        return None
+    publisher = (getattr(message, "_connection_header", None) or {}).get("callerid", "")
+    return publisher, struct.unpack_from("<I", data, 0)[0]
 
 
 @dataclasses.dataclass

@@ -56,6 +56,7 @@ def robot_map_stats(robot: str, counters, queue_length: int, now_s: float, contr
         clouds_dropped_tf=c.clouds_dropped_tf,
         clouds_dropped_invalid=c.clouds_dropped_invalid,
         clouds_superseded=c.clouds_superseded,
+        clouds_dropped_decoder=c.clouds_dropped_decoder,
         queue_length=queue_length,
         insertion_ms_avg=c.insertion_ms_avg,
         insertion_ms_max=c.insertion_ms_max,

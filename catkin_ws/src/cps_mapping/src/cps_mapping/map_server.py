@@ -1,8 +1,15 @@
 """The multi-robot map server (paper 2.3.1, Fig. 6) without the ROS plumbing.
 
-Every robot's cloud is moved into the fixed frame (an injected transform lookup), queued per
-robot (bounded, fair) and inserted into one FusedLogOddsMap by whoever calls `insert_pending`
-(the node's worker thread). `publish_*` build the messages and hand them to injected publish
+Admission before work (issue 37): the receive side (`cps_mapping.admission`: in the node its own
+process) only counts a robot's cloud and holds it as it arrived (still Draco-compressed, even still
+serialized) in the robot's latest-only slot; a newer cloud supersedes it at the cost of a pointer
+swap. Whoever calls `insert_pending` (the node's insertion thread) takes one cloud at a time, the
+robot whose map is oldest first, placed by the admission's transform lookup (which never waits),
+and only then pays for it: Draco decoding, checks, preparation and insertion into one
+FusedLogOddsMap, timed in the thread's CPU time. Every cloud ends in exactly one counter: inserted,
+superseded, or dropped by cause (decoder, tf, invalid, queue), or it still waits; gaps in a
+sender's sequence numbers count the clouds lost before they arrived. `publish_*` build the messages from a copy of the map taken in milliseconds
+under the map lock (insertion goes on while they are built) and hand them to injected publish
 callables; the `on_*` service handlers take and return cps_msgs/std_srvs types. The node wires
 this to rospy; the tests drive it directly.
 """
@@ -21,6 +28,7 @@ from std_srvs.srv import EmptyResponse
 
 from cps_fleet import names
 from cps_mapping import map_messages
+from cps_mapping.admission import Admission, PlacedCloud, TransformUnavailable, merged_counts
 from cps_mapping.baseline import BaselineError, load_baseline, read_map_trails, read_map_views, write_map_metadata
 from cps_mapping.change_attention import ATTENTION_RADIUS_M
 from cps_mapping.change_detection import (
@@ -38,15 +46,18 @@ from cps_mapping.cloud_input import InvalidInput, prepare_cloud, read_leaf
 from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
 from cps_mapping.insert_capacity import InsertionBudget, InsertionMeter, voxel_updates_of
 from cps_mapping.markers import occupied_cells_markers
-from cps_mapping.queues import QueuedCloud, RobotQueues
 from cps_mapping.robot_bodies import RobotTrails, SweptVolume, fleet_bodies
 from cps_mapping.sensor_views import SensorViews, fleet_fields_of_view
+from cps_mapping.throttled_log import ThrottledLog
+from cps_msgs.msg import CompressedPointCloud2
 from cps_msgs.srv import BoundingBoxQueryResponse, LoadMapResponse, SaveMapResponse
-from cps_ros.cloud_ledger import SequenceGaps
+from cps_transport.draco import DracoDecoder, DracoError
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 
 _WARN_EVERY_S = 5.0
 _FRAME_WARN_EVERY_S = 30.0
+_LEAF_WARN_EVERY_S = 300.0  # every cloud of a fleet without levels: not a line per robot every 5 s
+__all__ = ["MapOutputs", "MapServer", "MapServerOptions", "RobotCounters", "TransformUnavailable"]
 
 
 def _option(default, meaning, unit="", **bounds):
@@ -65,17 +76,25 @@ class MapServerOptions:
         "robots to map (list or comma string; empty: the whole fleet); names not in the fleet are logged and ignored",
     )
     frame_id: str = _option("map", "fixed frame")
-    tf_timeout_s: float = _option(0.5, "longest wait for a cloud's transform, then it is dropped", "s", low=0.0)
-    queue_size: int = _option(
-        1,
-        "clouds held per robot (1: only its latest, as voxblox); a newer cloud supersedes the oldest waiting one",
-        "clouds",
-        low=1,
+    tf_timeout_s: float = _option(
+        0.5,
+        "a cloud whose transform is still unknown this long after it arrived is dropped (the insertion "
+        "never waits for one: it serves other robots meanwhile)",
+        "s",
+        low=0.0,
+    )
+    receive_nice: int = _option(
+        5,
+        "nice of the receive process (its subscribers, transforms and slots), above the map server's: "
+        "at 5 (CFS weight 335 against 1024) the insertion gets about three quarters of a core both want",
+        "",
+        low=0,
+        high=19,
     )
     insertion_budget_fraction: float = _option(
         0.8,
-        "share of each second the insertion may work (the rest: publishing, services, subscribers); "
-        "InsertCapacity's capacity is at this share",
+        "CPU share of each second the insertion thread may use (the rest: publishing, services, "
+        "subscribers); InsertCapacity's capacity is at this share",
         "",
         low=0.0,
         low_open=True,
@@ -132,25 +151,28 @@ class MapServerOptions:
 
 @dataclasses.dataclass
 class RobotCounters:
-    """What RobotMapStats reports for one robot."""
+    """What RobotMapStats reports for one robot (`MapServer.robot_counters`: the admission counts,
+    kept by the slots, with what the insertion counted)."""
 
     clouds_received: int = 0
     clouds_inserted: int = 0
-    clouds_dropped_queue: int = 0  # none since the slots keep the newest: superseded is not lost
-    clouds_superseded: int = 0
+    clouds_dropped_queue: int = 0  # backfill keyframes beyond their FIFO's bound
+    clouds_superseded: int = 0  # replaced in the slot by a newer cloud before insertion
     clouds_dropped_tf: int = 0
-    clouds_dropped_invalid: int = 0
+    clouds_dropped_invalid: int = 0  # the map server's own checks, or the insertion failed
+    clouds_dropped_decoder: int = 0  # not deserializable or not Draco-decodable
+    clouds_placed: int = 0  # handed by the admission to the insertion
     clouds_without_leaf: int = 0  # inserted as they are (docs/cloud_levels.md)
     clouds_bad_leaf: int = 0  # leaf unreadable: inserted as they are
     points_bridged: int = 0  # surface samples added to clouds coarser than the map
     points_inserted: int = 0
     points_rejected: int = 0
-    batches: int = 0
-    insertion_ms_total: float = 0.0
+    batches: int = 0  # insertions (one cloud each)
+    insertion_ms_total: float = 0.0  # CPU ms of the insertion thread per inserted cloud, summed
     insertion_ms_max: float = 0.0
     newest_inserted_stamp_s: Optional[float] = None
-    # The decoder's clouds that never reached this server (gaps in their header.seq: lost in the
-    # subscriber queue), for the per-cloud ledger.
+    # Never received: gaps in the sender's header.seq (the twin's bridge numbers what it relays:
+    # lost in the subscriber queue), for the per-cloud ledger.
     clouds_missed_upstream: int = 0
     # The stamp of this robot's newest cloud in the map as last published (None before).
     newest_published_stamp_s: Optional[float] = None
@@ -158,6 +180,28 @@ class RobotCounters:
     @property
     def insertion_ms_avg(self):
         return self.insertion_ms_total / self.batches if self.batches else 0.0
+
+    @property
+    def clouds_dropped(self):
+        """Lost, every cause (superseded is not lost; missed never arrived)."""
+        return (
+            self.clouds_dropped_queue
+            + self.clouds_dropped_tf
+            + self.clouds_dropped_invalid
+            + self.clouds_dropped_decoder
+        )
+
+    @property
+    def clouds_accounted(self):
+        """Received clouds that reached an end (inserted, superseded or dropped by a cause)."""
+        return (
+            self.clouds_inserted
+            + self.clouds_superseded
+            + self.clouds_dropped_queue
+            + self.clouds_dropped_tf
+            + self.clouds_dropped_invalid
+            + self.clouds_dropped_decoder
+        )
 
     def map_age_s(self, now_s):
         if self.newest_inserted_stamp_s is None:
@@ -174,7 +218,8 @@ class RobotCounters:
 
 @dataclasses.dataclass(frozen=True)
 class MapSnapshot:
-    """What the publishers send for one map version, taken under the map lock."""
+    """What the publishers send for one map version, built from a copy of the map taken under the
+    map lock (in milliseconds) and read outside it."""
 
     version: int
     leaf_centers_m: np.ndarray
@@ -202,10 +247,8 @@ class MapOutputs:
     full_wanted: Callable = lambda: True
     # cps_msgs/InsertCapacity (insert_capacity.py), once a second.
     capacity: Optional[Callable] = None
-
-
-class TransformUnavailable(Exception):
-    """No transform fixed frame <- cloud frame at the cloud's stamp."""
+    # points(robot, PointCloud2): each inserted cloud as decoded (sensor frame), for displays.
+    points: Optional[Callable] = None
 
 
 class MapServer:
@@ -216,11 +259,15 @@ class MapServer:
         fleet,
         options: MapServerOptions,
         outputs: MapOutputs,
-        transform_of: Callable,
+        transform_of: Optional[Callable],
         log: logging.Logger = logging.getLogger(__name__),
+        admission: Optional[Callable] = None,
     ):
         """`fleet`: cps_fleet's FleetConfig. `transform_of(frame, stamp)` -> (3x3 rotation, translation)
-        of `frame` in `options.frame_id`, or raises TransformUnavailable. ValueError for bad options."""
+        of `frame` in `options.frame_id`, or raises TransformUnavailable, never waiting: the lookup
+        of the receive side made here (`admission` None). `admission(robots)`: makes a receive side
+        of the same interface that runs elsewhere (the node's receive process,
+        cps_mapping.admission_process). ValueError for bad options."""
         self.options, self.outputs, self.log = options, outputs, log
         self._transform_of = transform_of
         if options.map_file and os.path.splitext(options.map_file)[1].lower() not in (".bt", ".ot"):
@@ -257,15 +304,20 @@ class MapServer:
         self._map_lock = threading.Lock()
         self._save_lock = threading.Lock()  # one save (map and sidecars) at a time
         self._counters_lock = threading.Lock()
-        self.counters = {r: RobotCounters() for r in self.robots}
-        self.sequences = {r: SequenceGaps() for r in self.robots}
-        self.queues = RobotQueues(self.robots, options.queue_size)
-        self.meter = InsertionMeter(options.capacity_window_s, options.insertion_budget_fraction)
+        self.counters = {r: RobotCounters() for r in self.robots}  # the insertion's; the admission's apart
+        self.admission = (
+            admission(self.robots)
+            if admission is not None
+            else Admission(self.robots, transform_of, options.tf_timeout_s, options.frame_id, log)
+        )
+        self.decoder = DracoDecoder()  # the insertion thread's: only it decodes
+        self.latest_poses = {}  # sensor frame -> (rotation, translation) of its robot's last inserted cloud
+        self.meter = InsertionMeter(options.capacity_window_s, options.insertion_budget_fraction, totals=self._totals)
         self.budget = InsertionBudget(options.insertion_budget_fraction)
         self.snapshot: Optional[MapSnapshot] = None
         self._full_version = None  # the map version octomap_full last carried
         self.unknown_robots = set()
-        self._last_warned = {}
+        self._throttled = ThrottledLog(log)
         self._resume()
 
     def _select_robots(self, fleet, wanted: Sequence[str]):
@@ -287,25 +339,43 @@ class MapServer:
         free = "exact" if o.exact_free_space else f"shared-origin casting (stop {o.shared_ray_stop_m} m)"
         return (
             f"map_server: robots {', '.join(self.robots)}; resolution {self.map.resolution_m} m; "
-            f"max range {self.max_range_m}; queue {o.queue_size}; map file '{o.map_file or '(none)'}'; "
+            f"max range {self.max_range_m}; latest-only slots, oldest map first; map file '{o.map_file or '(none)'}'; "
             f"free space {free}"
         )
 
     def _warn(self, key, period_s, message, level=logging.WARNING):
         """Log `message` unless the same `key` was logged within `period_s`."""
-        now = time.monotonic()
-        if now - self._last_warned.get(key, -math.inf) >= period_s:
-            self._last_warned[key] = now
-            self.log.log(level, message)
+        self._throttled.warn(key, message, period_s, level)
+
+    def robot_counters(self, robot, admitted=None) -> RobotCounters:
+        """A copy of the robot's counters: the admission's (from `admitted`, an AdmissionCounters,
+        or asked for) and the insertion's, a cause both count summed."""
+        admitted = admitted if admitted is not None else self.admission.snapshot()[robot][0]
+        with self._counters_lock:
+            mine = self.counters[robot]
+            both = merged_counts(admitted, **{f: getattr(mine, f) for f in vars(admitted) if hasattr(mine, f)})
+            return dataclasses.replace(mine, **both)
+
+    def waiting(self, robot, admitted=None) -> int:
+        """The robot's clouds received and not ended yet: in its slot, or placed and on their way to
+        the insertion (the receive process hands them over in batches)."""
+        counts, in_slot = admitted if admitted is not None else self.admission.snapshot()[robot]
+        with self._counters_lock:
+            mine = self.counters[robot]  # the insertion's own counts only
+            ended = mine.clouds_inserted + mine.clouds_dropped_decoder + mine.clouds_dropped_invalid
+        return in_slot + counts.clouds_placed - ended
+
+    def _totals(self):
+        """(superseded, dropped) so far, every robot and both sides (InsertCapacity's window)."""
+        admitted = self.admission.snapshot()
+        rows = [self.robot_counters(r, admitted[r][0]) for r in self.robots]
+        return sum(c.clouds_superseded for c in rows), sum(c.clouds_dropped for c in rows)
 
     def _count(self, robot, **amounts):
         with self._counters_lock:
             counters = self.counters[robot]
             for field, amount in amounts.items():
                 setattr(counters, field, getattr(counters, field) + amount)
-        lost = sum(amount for field, amount in amounts.items() if field.startswith("clouds_dropped"))
-        if lost:
-            self.meter.dropped(lost)
 
     # ---- persistence ---------------------------------------------------------------------------
 
@@ -328,14 +398,15 @@ class MapServer:
 
     def _save(self, path):
         """The map and its sidecars, one save at a time (the autosave timer and a save request must
-        not interleave their files); MapFileError for any of them that cannot be written."""
+        not interleave their files); MapFileError for any of them that cannot be written. The map
+        is copied under the map lock (milliseconds) and written from the copy: insertion goes on."""
         with self._save_lock:
             with self._map_lock:
-                saved = self.map.save(path)
-                frozen = FrozenMap(self.map)
-            write_map_metadata(saved, self.options.frame_id, self.map.resolution_m, self.trails, self.views)
+                frozen = self.map.frozen_copy()
+            saved = frozen.save(path)
+            write_map_metadata(saved, self.options.frame_id, frozen.resolution_m, self.trails, self.views)
             try:
-                write_hit_levels(saved, frozen)  # how firmly each voxel was seen, for change detection
+                write_hit_levels(saved, FrozenMap(frozen))  # how firmly each voxel was seen, for change detection
             except OSError as exc:
                 raise MapFileError(f"cannot write the hit levels beside {saved}: {exc}") from exc
             return saved
@@ -348,7 +419,7 @@ class MapServer:
 
     def shutdown(self):
         """Stop the insertion and save to `map_file`, if set."""
-        self.queues.close()
+        self.admission.close()
         if self.options.map_file:
             try:
                 path = self._save(self.options.map_file)
@@ -358,54 +429,89 @@ class MapServer:
 
     # ---- input ---------------------------------------------------------------------------------
 
-    def note_sequence(self, robot, source, seq):
-        """A cloud of `robot` numbered `seq` by its publisher `source` (the node's subscriber calls
-        this before receive_cloud): the ones missing before it are counted (lost upstream)."""
-        missed = self.sequences[robot].note(source, seq)
-        if missed:
-            self._count(robot, clouds_missed_upstream=missed)
+    def receive_cloud(self, robot, msg, backfill=False):
+        """Admission (in this process): hold a robot's cloud as it arrived (a rospy.AnyMsg of a
+        CompressedPointCloud2 or PointCloud2, or such a message) in its slot; nothing is decoded
+        or checked here. A cloud it replaces is counted superseded; a gap in the sender's sequence
+        numbers, as missed. `backfill`: a keyframe sent after a link outage (its own FIFO, served
+        when no live cloud is ready). Never raises."""
+        self.admission.receive(robot, msg, backfill)
 
-    def receive_cloud(self, robot, msg):
-        """Check a robot's PointCloud2, move it into the fixed frame and queue it; bad ones are
-        counted. Never raises: what the checks miss is still dropped, counted and logged."""
-        self._count(robot, clouds_received=1)
+    def notice_topics(self, topics: Sequence[str], namespace: str):
+        """Warn once per robot whose managed cloud (`<namespace>/<robot>/points_filtered/draco/managed`)
+        is among `topics` but is not mapped."""
+        for topic in topics:
+            robot = names.robot_of_topic(topic, names.POINTS_MANAGED, namespace)
+            if robot and robot not in self.robots and robot not in self.unknown_robots:
+                self.unknown_robots.add(robot)
+                self.log.warning(
+                    f"map_server: {topic} is published but robot '{robot}' is not mapped "
+                    f"(fleet/~robots: {', '.join(self.robots)}); its clouds are ignored "
+                    f"({len(self.unknown_robots)} unknown robot(s) seen)"
+                )
+
+    def insert_pending(self, timeout_s=0.5):
+        """Take the next cloud (the robot whose map is oldest; waiting up to `timeout_s` for one,
+        and first for the next budget cycle if this one's CPU budget is spent) and insert it; the
+        number of clouds inserted (0 or 1). Its whole cost, in the thread's CPU time, is measured."""
+        pause_s = self.budget.wait_s()
+        if pause_s > 0:
+            time.sleep(pause_s)  # the insertion thread yields its core for the rest of the cycle
+        cpu_start = time.thread_time()  # waiting below costs no CPU; placing a cloud here does
+        placed = self.admission.next_cloud(timeout_s=timeout_s)
+        if placed is None:
+            return 0
         try:
-            self._receive_cloud(robot, msg)
-        except Exception as exc:
-            self._count(robot, clouds_dropped_invalid=1)
+            inserted = self._insert(placed)
+        except Exception as exc:  # a bug here must not stop the map; say it loudly
+            inserted = None
+            self._count(placed.robot, clouds_dropped_invalid=1)
             self._warn(
-                ("unexpected", robot),
+                ("unexpected", placed.robot),
                 _WARN_EVERY_S,
-                f"map_server: {robot}: cloud dropped, unexpected {type(exc).__name__}: {exc}",
+                f"map_server: {placed.robot}: cloud dropped, unexpected {type(exc).__name__}: {exc}",
                 logging.ERROR,
             )
+        cpu_s = time.thread_time() - cpu_start
+        self.budget.spend(cpu_s)
+        if inserted is None:
+            self.meter.spent(cpu_s)
+            return 0
+        points, updates, stamp_s = inserted
+        self.meter.inserted(1, points, updates, cpu_s)
+        with self._counters_lock:
+            c = self.counters[placed.robot]
+            c.clouds_inserted += 1
+            c.points_inserted += points
+            c.batches += 1
+            c.insertion_ms_total += cpu_s * 1e3
+            c.insertion_ms_max = max(c.insertion_ms_max, cpu_s * 1e3)
+            c.newest_inserted_stamp_s = max(stamp_s, c.newest_inserted_stamp_s or stamp_s)
+        return 1
 
-    def _receive_cloud(self, robot, msg):
+    def _drop(self, robot, cause, key, message, level=logging.WARNING):
+        self._count(robot, **{cause: 1})
+        self._warn((key, robot), _WARN_EVERY_S, f"map_server: {robot}: {message}", level)
+
+    def _insert(self, placed: PlacedCloud):
+        """Decode, check and insert one placed cloud: (points inserted, voxel updates, stamp s), or
+        None when it was dropped (counted by cause)."""
+        robot, msg = placed.robot, placed.message
         frame = msg.header.frame_id.lstrip("/")
-        if not frame:
-            self._count(robot, clouds_dropped_invalid=1)
-            self._warn(("frame", robot), _WARN_EVERY_S, f"map_server: {robot}: cloud without frame_id dropped")
-            return
+        rotation, translation = placed.rotation, placed.translation_m
+        if isinstance(msg, CompressedPointCloud2):
+            try:
+                msg = self.decoder.decode(msg)
+            except (DracoError, InvalidCloud) as exc:
+                return self._drop(robot, "clouds_dropped_decoder", "draco", f"undecodable cloud dropped: {exc}")
         try:
             points = cloud_to_array(msg)
             xyz = xyz_of(points)
         except InvalidCloud as exc:
-            self._count(robot, clouds_dropped_invalid=1)
-            self._warn(("malformed", robot), _WARN_EVERY_S, f"map_server: {robot}: malformed cloud dropped: {exc}")
-            return
-        try:
-            rotation, translation = self._transform_of(frame, msg.header.stamp)
-        except TransformUnavailable as exc:
-            self._count(robot, clouds_dropped_tf=1)
-            self._warn(
-                ("tf", robot),
-                _WARN_EVERY_S,
-                f"map_server: {robot}: no transform {self.options.frame_id} <- '{frame}' at "
-                f"{msg.header.stamp.to_sec():.3f} within {self.options.tf_timeout_s} s, cloud dropped: {exc}",
-            )
-            return
-        self.trails.record(robot, msg.header.stamp.to_sec(), rotation, translation)
-        self.views.received(robot, msg.header.stamp.to_sec(), rotation, translation)
+            return self._drop(robot, "clouds_dropped_invalid", "malformed", f"malformed cloud dropped: {exc}")
+        stamp_s = msg.header.stamp.to_sec()
+        self.trails.record(robot, stamp_s, rotation, translation)
+        self.views.received(robot, stamp_s, rotation, translation)
         if frame != self.sensor_frames[robot]:
             self._warn(
                 ("unexpected frame", robot),
@@ -418,7 +524,7 @@ class MapServer:
             self._count(robot, **{"clouds_bad_leaf" if leaf_problem else "clouds_without_leaf": 1})
             self._warn(
                 ("leaf", robot),
-                _WARN_EVERY_S,
+                _LEAF_WARN_EVERY_S,
                 f"map_server: {robot}: cloud {'with a bad leaf (' + leaf_problem + ')' if leaf_problem else 'without a leaf'}"
                 f" inserted at the map's resolution as it is",
             )
@@ -427,9 +533,7 @@ class MapServer:
                 xyz, rotation, translation, self.options.max_points_range_m, leaf, self.map.resolution_m
             )
         except InvalidInput as exc:
-            self._count(robot, clouds_dropped_invalid=1)
-            self._warn(("invalid", robot), _WARN_EVERY_S, f"map_server: {robot}: cloud dropped: {exc}")
-            return
+            return self._drop(robot, "clouds_dropped_invalid", "invalid", f"cloud dropped: {exc}")
         if cloud.bridged:
             self._count(robot, points_bridged=cloud.bridged)
         if cloud.absurd:
@@ -440,87 +544,47 @@ class MapServer:
                 f"map_server: {robot}: {cloud.absurd} points farther than {self.options.max_points_range_m} m "
                 f"(~max_points_range_m) removed",
             )
-        if self.queues.put(QueuedCloud(robot, cloud.points_m, cloud.origin_m, msg.header.stamp.to_sec())):
-            self._count(robot, clouds_superseded=1)
-            self.meter.superseded()
-
-    def notice_topics(self, topics: Sequence[str], namespace: str):
-        """Warn once per robot whose `<namespace>/<robot>/points` is among `topics` but is not mapped."""
-        for topic in topics:
-            robot = names.robot_of_topic(topic, names.POINTS, namespace)
-            if robot and robot not in self.robots and robot not in self.unknown_robots:
-                self.unknown_robots.add(robot)
-                self.log.warning(
-                    f"map_server: {topic} is published but robot '{robot}' is not mapped "
-                    f"(fleet/~robots: {', '.join(self.robots)}); its clouds are ignored "
-                    f"({len(self.unknown_robots)} unknown robot(s) seen)"
-                )
-
-    def insert_pending(self, timeout_s=0.5):
-        """Insert the waiting clouds of the next robot (waiting up to `timeout_s` for one, and first
-        for the next budget cycle if this one's insertion budget is spent); how many were taken."""
-        pause_s = self.budget.wait_s()
-        if pause_s > 0:
-            time.sleep(pause_s)  # the insertion thread yields its core for the rest of the cycle
-        batch = self.queues.take(timeout_s=timeout_s)
-        if not batch:
-            return 0
-        robot = batch[0].robot
         try:
             with self._map_lock:
                 updates_before = voxel_updates_of(self.map)
                 result = self.map.insert_batch(
-                    [(c.points_m, c.origin_m) for c in batch],
-                    max_range_m=self.max_range_m[robot],
-                    robot=robot,
-                    stamps_s=[c.stamp_s for c in batch],
+                    [(cloud.points_m, cloud.origin_m)], max_range_m=self.max_range_m[robot], robot=robot, stamps_s=[stamp_s]
                 )
                 updates_after = voxel_updates_of(self.map)
-        except Exception as exc:  # a bug here must not stop the map; say it loudly
-            self._count(robot, clouds_dropped_invalid=len(batch))
-            self._warn(
-                ("insertion", robot),
-                _WARN_EVERY_S,
-                f"map_server: {robot}: insertion failed, {len(batch)} clouds lost: {exc}",
-                logging.ERROR,
-            )
-            return len(batch)
-        self.views.inserted(robot, [c.stamp_s for c in batch])  # viewpoints: only clouds in the map
-        elapsed_ms = result.seconds * 1e3
-        newest_s = max(c.stamp_s for c in batch)
-        self.budget.spend(result.seconds)
+        except ValueError as exc:  # a cloud that would grow the grid beyond its bound
+            return self._drop(robot, "clouds_dropped_invalid", "insertion", f"cloud not inserted: {exc}", logging.ERROR)
+        self.views.inserted(robot, [stamp_s])  # viewpoints: only clouds in the map
+        self.latest_poses[frame] = (rotation, translation)
+        if self.outputs.points is not None:
+            try:
+                self.outputs.points(robot, msg)
+            except Exception as exc:  # a display's topic must not cost the map its cloud
+                self._warn(("points", robot), _WARN_EVERY_S, f"map_server: {robot}: decoded cloud not published: {exc}")
         updates = updates_after - updates_before if None not in (updates_before, updates_after) else 0
-        self.meter.inserted(len(batch), result.points_inserted, max(0, updates), result.seconds)
-        with self._counters_lock:
-            c = self.counters[robot]
-            c.clouds_inserted += len(batch)
-            c.points_inserted += result.points_inserted
-            c.batches += 1
-            c.insertion_ms_total += elapsed_ms
-            c.insertion_ms_max = max(c.insertion_ms_max, elapsed_ms)
-            c.newest_inserted_stamp_s = max(newest_s, c.newest_inserted_stamp_s or newest_s)
-        return len(batch)
+        return result.points_inserted, max(0, updates), stamp_s
 
     # ---- output --------------------------------------------------------------------------------
 
     def take_snapshot(self):
-        """(snapshot of the current map version, whether it is new)."""
+        """(snapshot of the current map version, whether it is new). Only the copy is made under
+        the map lock; the views are read from the copy."""
         with self._map_lock:
             if self.snapshot is not None and self.snapshot.version == self.map.version:
                 return self.snapshot, False
-            centers, sizes = self.map.occupied_leaves()
-            grid, origin = self.map.projected_grid(self.options.projected_min_z_m, self.options.projected_max_z_m)
-            snapshot = MapSnapshot(
-                version=self.map.version,
-                leaf_centers_m=centers,
-                leaf_sizes_m=sizes,
-                grid=grid,
-                grid_origin_m=origin,
-                octomap_fields=message_fields(self.map, binary=True),
-                contributions=self.map.contributions(),
-                tree_nodes=self.map.binary_tree_nodes(),
-                memory_bytes=self.map.memory_bytes(),
-            )
+            frozen = self.map.frozen_copy()
+        centers, sizes = frozen.occupied_leaves()
+        grid, origin = frozen.projected_grid(self.options.projected_min_z_m, self.options.projected_max_z_m)
+        snapshot = MapSnapshot(
+            version=frozen.version,
+            leaf_centers_m=centers,
+            leaf_sizes_m=sizes,
+            grid=grid,
+            grid_origin_m=origin,
+            octomap_fields=message_fields(frozen, binary=True),
+            contributions=frozen.contributions(),
+            tree_nodes=frozen.binary_tree_nodes(),
+            memory_bytes=frozen.memory_bytes(),  # the grid and the .bt, as the map holds them
+        )
         self.snapshot = snapshot
         return snapshot, True
 
@@ -555,20 +619,25 @@ class MapServer:
         if out.octomap_full is None or not out.full_wanted() or self._full_version == self.map.version:
             return
         with self._map_lock:
-            self._full_version, fields = self.map.version, message_fields(self.map, binary=False)
+            frozen = self.map.frozen_copy()
+        self._full_version, fields = frozen.version, message_fields(frozen, binary=False)
         out.octomap_full(map_messages.octomap_message(fields, self._header(stamp)))
 
     def publish_stats(self, stamp):
         """MapStats: the published snapshot's figures and every robot's counters at `stamp`."""
         snap = self.snapshot
         contributions = snap.contributions if snap is not None else {}
-        with self._counters_lock:
-            robots = [
-                map_messages.robot_map_stats(
-                    r, self.counters[r], self.queues.length(r), stamp.to_sec(), contributions.get(r, 0)
-                )
-                for r in self.robots
-            ]
+        admitted = self.admission.snapshot()
+        robots = [
+            map_messages.robot_map_stats(
+                r,
+                self.robot_counters(r, admitted[r][0]),
+                self.waiting(r, admitted[r]),
+                stamp.to_sec(),
+                contributions.get(r, 0),
+            )
+            for r in self.robots
+        ]
         self.outputs.stats(map_messages.map_stats(self._header(stamp), self.map.resolution_m, snap, robots))
 
     def publish_capacity(self, stamp):
@@ -580,7 +649,8 @@ class MapServer:
         """What appeared or disappeared against the baseline map, as markers (and the report); returns
         the changes."""
         with self._map_lock:  # a copy in milliseconds: insertion goes on while the detection runs
-            current = FrozenMap(self.map)
+            frozen = self.map.frozen_copy()
+        current = FrozenMap(frozen)  # its scans (occupied, ever hit) read the copy, off the lock
         changes = detect_map_changes(
             self.baseline,
             current,

@@ -1,77 +1,199 @@
-"""Per-robot cloud slots served round-robin (as voxblox's node keeps only what it can integrate).
+"""Admission before work: one latest-only slot per robot, holding each cloud as it arrived.
 
-The map server's subscriber callbacks `put` clouds (already in `map`); one worker thread `take`s
-every waiting cloud of the next robot in turn and inserts them as one batch. A robot's slot holds
-at most `queue_size` clouds (default 1: only its latest); a newer cloud supersedes the oldest
-waiting one, which is counted as superseded, not as lost information: the newer view of the same
-robot's surroundings replaces it, and a robot never waits behind another's backlog.
+The map server's subscriber callbacks `put` what arrived (the serialized message, still Draco
+compressed: nothing decoded, transformed or checked); the insertion thread `take`s one cloud at a
+time and only then pays for it. A newer cloud of the same robot replaces the waiting one, which
+is superseded (counted, not lost information: the newer view replaces it) and cost one pointer
+swap, as roscpp's lazy deserialisation gives voxblox and octomap_server.
+
+Service order: the robot whose map is oldest first (the smallest stamp of its newest inserted
+cloud; never inserted first of all; ties: the cloud that waited longest). Under more load than the
+insertion can serve, every robot is then served in turn and the map ages grow alike: freshness
+degrades in proportion, no robot starves.
+
+A cloud whose transform is not known yet is `defer`red (back into its slot, not ready before a
+time) unless a newer one arrived meanwhile. Keyframes sent after a link outage (`backfill`) wait
+in a bounded FIFO per robot, each one a different place, and are served only when no live cloud
+is ready: background priority, as the link sends them within its unused budget.
+
+What admission counts (received, superseded, missed: gaps in a sender's sequence numbers, and
+keyframes beyond the FIFO) is counted here, under the slots' one lock: a received cloud takes one
+lock and no other work in the receiving thread (with a hundred robots' receive threads in one
+process, every further lock per message formed convoys that left the core idle; issue 37).
 """
 
 import collections
 import dataclasses
+import math
 import threading
-from typing import Dict, List
+import time
+from typing import Callable, Dict, List, Optional, Tuple
 
-import numpy as np
+# Backfill keyframes kept per robot; beyond, the oldest is dropped (counted as a queue drop).
+BACKFILL_KEPT = 50
 
 
 @dataclasses.dataclass
-class QueuedCloud:
+class AdmissionCounters:
+    """One robot's admission counts (cps_msgs/RobotMapStats fields of the same names)."""
+
+    clouds_received: int = 0
+    clouds_superseded: int = 0
+    clouds_missed_upstream: int = 0  # never received: gaps in the sender's sequence numbers
+    clouds_dropped_queue: int = 0  # backfill keyframes beyond the FIFO's bound
+    clouds_dropped_tf: int = 0  # no transform within the admission's timeout
+    clouds_dropped_decoder: int = 0  # bytes that are not a cloud message
+    clouds_dropped_invalid: int = 0  # no frame_id
+    clouds_placed: int = 0  # handed to the insertion, placed (its ends are the insertion's counts)
+
+
+@dataclasses.dataclass
+class Arrival:
+    """A cloud as it arrived: `message` is a rospy.AnyMsg (serialized bytes), a
+    cps_msgs/CompressedPointCloud2 or a sensor_msgs/PointCloud2, untouched until taken."""
+
     robot: str
-    points_m: np.ndarray
-    origin_m: np.ndarray
-    stamp_s: float
+    message: object
+    arrived_s: float  # monotonic
+    backfill: bool = False
+    not_before_s: float = -math.inf  # deferred until then (its transform was not known yet)
+    opened: object = None  # what the inserter read of it before deferring it (not read twice)
 
 
-class RobotQueues:
-    """One bounded slot per robot (newest clouds win), served round-robin; thread-safe."""
+class RobotSlots:
+    """One latest-only slot and one backfill FIFO per robot, served oldest map first; thread-safe."""
 
-    def __init__(self, robots: List[str], queue_size: int):
-        if queue_size < 1:
-            raise ValueError(f"queue_size must be >= 1, got {queue_size}")
+    def __init__(self, robots: List[str], backfill_kept: int = BACKFILL_KEPT, clock: Callable = time.monotonic):
+        if backfill_kept < 1:
+            raise ValueError(f"backfill_kept must be >= 1, got {backfill_kept}")
         self.robots = list(robots)
-        self.queue_size = queue_size
-        self._queues: Dict[str, collections.deque] = {r: collections.deque() for r in self.robots}
+        self.backfill_kept = backfill_kept
+        self.clock = clock
+        self._live: Dict[str, Optional[Arrival]] = {r: None for r in self.robots}
+        self._backfill: Dict[str, collections.deque] = {r: collections.deque() for r in self.robots}
+        self._newest_stamp_s: Dict[str, float] = {r: -math.inf for r in self.robots}
+        self._counts: Dict[str, AdmissionCounters] = {r: AdmissionCounters() for r in self.robots}
+        self._sequences: Dict[tuple, int] = {}  # (robot, backfill, sender) -> last number received
         self._cond = threading.Condition()
-        self._next = 0
         self._closed = False
 
-    def put(self, cloud: QueuedCloud):
-        """Hold a cloud; returns True if it superseded the robot's oldest waiting cloud."""
+    def put(self, arrival: Arrival, sequence: Optional[Tuple[str, int]] = None) -> Optional[Arrival]:
+        """Hold `arrival` (with its sender's (name, sequence number), if it carries one) and count
+        it; returns what it displaced: the robot's waiting live cloud (superseded) or, for a
+        keyframe, the oldest one beyond the FIFO's bound (dropped); else None."""
         with self._cond:
-            queue = self._queues[cloud.robot]
-            superseded = False
-            if len(queue) >= self.queue_size:
-                queue.popleft()
-                superseded = True
-            queue.append(cloud)
+            counts = self._counts[arrival.robot]
+            counts.clouds_received += 1
+            if sequence is not None:
+                key = (arrival.robot, arrival.backfill, sequence[0])
+                last = self._sequences.get(key)
+                self._sequences[key] = sequence[1]
+                if last is not None and sequence[1] > last + 1:  # lower or equal: the sender restarted
+                    counts.clouds_missed_upstream += sequence[1] - last - 1
+            if arrival.backfill:
+                fifo = self._backfill[arrival.robot]
+                fifo.append(arrival)
+                displaced = fifo.popleft() if len(fifo) > self.backfill_kept else None
+                counts.clouds_dropped_queue += displaced is not None
+            else:
+                displaced, self._live[arrival.robot] = self._live[arrival.robot], arrival
+                counts.clouds_superseded += displaced is not None
             self._cond.notify()
-            return superseded
+            return displaced
 
-    def take(self, timeout_s=None) -> List[QueuedCloud]:
-        """All queued clouds of the next robot (round-robin) that has any; [] on timeout or close."""
-        with self._cond:
-            if not self._cond.wait_for(lambda: self._closed or any(self._queues.values()), timeout_s):
-                return []
-            if self._closed:
-                return []
-            for step in range(len(self.robots)):
-                robot = self.robots[(self._next + step) % len(self.robots)]
-                if self._queues[robot]:
-                    self._next = (self._next + step + 1) % len(self.robots)
-                    batch = list(self._queues[robot])
-                    self._queues[robot].clear()
-                    return batch
-            return []
+    def _ready(self, now_s):
+        """The next cloud to serve (not removed) and when the first deferred one is due: a live
+        cloud first, the robot whose map is oldest; a backfill keyframe only when no live one is
+        ready."""
+        live, due_live = self._oldest_first(((r, a) for r, a in self._live.items() if a is not None), now_s)
+        if live is not None:
+            return live, due_live
+        keyframe, due_backfill = self._oldest_first(((r, f[0]) for r, f in self._backfill.items() if f), now_s)
+        return keyframe, min(due_live, due_backfill)
 
-    def length(self, robot):
-        with self._cond:
-            return len(self._queues[robot])
+    def _oldest_first(self, candidates, now_s):
+        """(the ready arrival of the robot whose newest inserted stamp is oldest, the earliest time
+        a deferred one is due) among (robot, arrival) `candidates`."""
+        best, best_key, due_s = None, None, math.inf
+        for robot, arrival in candidates:
+            if arrival.not_before_s > now_s:
+                due_s = min(due_s, arrival.not_before_s)
+                continue
+            key = (self._newest_stamp_s[robot], arrival.arrived_s)
+            if best_key is None or key < best_key:
+                best, best_key = arrival, key
+        return best, due_s
 
-    def clear(self):
+    def take(self, timeout_s: Optional[float] = None) -> Optional[Arrival]:
+        """The next cloud to insert (removed from its slot), waiting up to `timeout_s` (None:
+        forever) for one; None on timeout or once closed."""
+        deadline = None if timeout_s is None else self.clock() + timeout_s
         with self._cond:
-            for queue in self._queues.values():
-                queue.clear()
+            while not self._closed:
+                now = self.clock()
+                arrival, due_s = self._ready(now)
+                if arrival is not None:
+                    if arrival.backfill:
+                        self._backfill[arrival.robot].popleft()
+                    else:
+                        self._live[arrival.robot] = None
+                    return arrival
+                wake_s = min(due_s, deadline if deadline is not None else math.inf)
+                if wake_s <= now:
+                    return None
+                self._cond.wait(None if math.isinf(wake_s) else wake_s - now)
+            return None
+
+    def defer(self, arrival: Arrival, retry_s: float) -> bool:
+        """Put a taken cloud back, not ready for `retry_s`; False (not put back: counted as
+        superseded) when a newer live cloud of its robot arrived meanwhile."""
+        with self._cond:
+            arrival.not_before_s = self.clock() + retry_s
+            if arrival.backfill:
+                self._backfill[arrival.robot].appendleft(arrival)
+            elif self._live[arrival.robot] is not None:
+                self._counts[arrival.robot].clouds_superseded += 1
+                return False
+            else:
+                self._live[arrival.robot] = arrival
+            self._cond.notify()
+            return True
+
+    def served(self, robot: str, stamp_s: float):
+        """The robot's map now holds a cloud stamped `stamp_s` (its map age falls)."""
+        with self._cond:
+            self._newest_stamp_s[robot] = max(self._newest_stamp_s[robot], stamp_s)
+
+    def count(self, robot: str, **amounts):
+        """Add to the robot's admission counts (a cloud admission dropped, by cause)."""
+        with self._cond:
+            counts = self._counts[robot]
+            for field, amount in amounts.items():
+                setattr(counts, field, getattr(counts, field) + amount)
+
+    def counts(self, robot: str) -> AdmissionCounters:
+        """A copy of the robot's admission counts."""
+        with self._cond:
+            return dataclasses.replace(self._counts[robot])
+
+    def superseded_total(self) -> int:
+        with self._cond:
+            return sum(c.clouds_superseded for c in self._counts.values())
+
+    def length(self, robot: str) -> int:
+        """Clouds of `robot` waiting: its live slot (0 or 1) and its backfill keyframes."""
+        with self._cond:
+            return (self._live[robot] is not None) + len(self._backfill[robot])
+
+    def clear(self) -> List[Arrival]:
+        """Empty every slot; returns what was waiting (the caller counts it)."""
+        with self._cond:
+            dropped = [a for a in self._live.values() if a is not None]
+            dropped += [a for fifo in self._backfill.values() for a in fifo]
+            self._live = {r: None for r in self.robots}
+            for fifo in self._backfill.values():
+                fifo.clear()
+            return dropped
 
     def close(self):
         with self._cond:

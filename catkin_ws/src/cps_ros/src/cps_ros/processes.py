@@ -219,13 +219,20 @@ class RosGraph:
         return self.popen(argv, name=name or node, env=env)
 
     def output(self, name):
-        """The captured output of the processes called `name` so far."""
+        """The captured output of the processes called `name` so far (every one of that name this
+        graph started, restarted ones included: `output_of` reads one)."""
         texts = []
         for proc in self.processes:
             if proc.cps_name == name and os.path.exists(proc.cps_log):
                 with open(proc.cps_log, "rb") as stream:
                     texts.append(stream.read().decode(errors="replace"))
         return "\n".join(texts)
+
+    @staticmethod
+    def output_of(proc):
+        """The captured output of the one process `proc` (started by a RosGraph) so far."""
+        with open(proc.cps_log, "rb") as stream:
+            return stream.read().decode(errors="replace")
 
     def published_topics(self):
         import rosgraph
@@ -330,6 +337,22 @@ def process_cpu_s(pid, waited_children=False):
         return 0.0
     ticks = sum(int(x) for x in fields[11 : 15 if waited_children else 13])
     return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def descendants(pid):
+    """The pids of every running process below `pid` (its children, theirs...), e.g. a node's
+    helper processes, whose CPU `process_cpu_s` counts only once they are waited for."""
+    children = {}
+    for other in _pids():
+        fields = _stat_fields(other)
+        if fields is not None:
+            children.setdefault(int(fields[1]), []).append(other)
+    found, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), ()):
+            found.append(child)
+            todo.append(child)
+    return found
 
 
 def process_running(pid):

@@ -1,0 +1,234 @@
+"""The map server's receive side in its own process (issue 37), and the insertion's client of it.
+
+Measured at 128 replayed robots with every thread in one process (one core, light profile): the
+insertion thread sat in its own code 74 % of the time yet used 0.09 s of CPU per second, and the
+process 0.48 of its core: ~150 receiving threads (a rospy thread per connection) handing the
+interpreter's lock to each other left the insertion waiting for it, the core half idle, and 86
+clouds/s inserted where 32 robots got 142. The receiving threads, the transforms and the slots
+(`cps_mapping.admission.Admission`) now run in a child process, a rospy node of their own
+(cps_fleet.names.admission_node: `<map server>_input`) at ~receive_nice, and the insertion thread in
+the map server's process asks it for clouds over a pipe, a batch of up to BATCH at a time, and asks
+for the next batch while it still inserts this one. The child dies with the map server
+(PR_SET_PDEATHSIG) and ends when its pipes close.
+"""
+
+import collections
+import ctypes
+import dataclasses
+import multiprocessing
+import os
+import signal
+import threading
+from typing import List, Tuple
+
+# Longest wait of the receive side for a cloud before it answers "none" (the insertion asks again).
+REQUEST_WAIT_S = 0.5
+# Clouds placed per request, at most: the receive process answers with every cloud it can place at
+# once, up to BATCH, and the insertion asks for more while it still holds some. Each answer costs the
+# receive process one turn at its interpreter's lock among its receiving threads (up to the 5 ms
+# switch interval): one cloud per turn held the twin near 160 clouds/s however many robots sent.
+BATCH = 4
+READY_TIMEOUT_S = 60.0
+_PR_SET_PDEATHSIG = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class AdmissionConfig:
+    """What the receive process needs of the map server's settings."""
+
+    node_name: str
+    remappings: Tuple[str, ...]  # the map server's command-line remappings (__ns:=..., topic:=...)
+    robots: Tuple[str, ...]
+    frame_id: str
+    tf_timeout_s: float
+    nice: int  # the map server's ~receive_nice: when both want the core, the insertion comes first
+
+
+def remappings_of(argv: List[str]) -> Tuple[str, ...]:
+    """The remapping arguments of a node's argv that its receive process shares: the namespace and
+    topic remaps, not its name, log file or private parameters."""
+
+    def shared(arg):
+        if ":=" not in arg or arg.startswith(("__name:=", "__log:=")):
+            return False
+        return arg.startswith("__") or not arg.startswith("_")  # __ns, __master...; not _private:=
+
+    return tuple(a for a in argv if shared(a))
+
+
+class AdmissionClient:
+    """The receive process, seen from the insertion: `next_cloud`, `snapshot`, `close` (the
+    interface of cps_mapping.admission.Admission, without `receive`: the process receives)."""
+
+    def __init__(self, config: AdmissionConfig):
+        context = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked rospy state
+        self._next, child_next = context.Pipe()
+        self._control, child_control = context.Pipe()
+        self.process = context.Process(
+            target=_run, args=(config, child_next, child_control), name=config.node_name, daemon=True
+        )
+        self.process.start()
+        child_next.close()
+        child_control.close()
+        self._control_lock = threading.Lock()
+        self._in_flight = False
+        self._placed = collections.deque()  # placed clouds received, not yet taken by the insertion
+        if not self._control.poll(READY_TIMEOUT_S):
+            self.process.terminate()
+            raise RuntimeError(f"the receive process {config.node_name} did not start within {READY_TIMEOUT_S} s")
+        self._control.recv()  # "ready": subscribed
+
+    def next_cloud(self, timeout_s=None):
+        """The next placed cloud (cps_mapping.admission.PlacedCloud), waiting up to `timeout_s`;
+        None if none came. A request for the next batch is in flight while this one is inserted."""
+        try:
+            if not self._placed or self._in_flight:
+                if not self._in_flight:
+                    self._next.send(BATCH)
+                    self._in_flight = True
+                if self._next.poll(0 if self._placed else timeout_s):
+                    self._placed.extend(self._next.recv())
+                    self._in_flight = False
+            if not self._in_flight and len(self._placed) < BATCH:
+                self._next.send(BATCH)
+                self._in_flight = True
+        except (EOFError, OSError, BrokenPipeError):  # the process ended (shutdown)
+            return None
+        return self._placed.popleft() if self._placed else None
+
+    def snapshot(self):
+        """{robot: (AdmissionCounters, clouds waiting)} of the receive process."""
+        with self._control_lock:
+            self._control.send("snapshot")
+            return self._control.recv()
+
+    def close(self):
+        try:
+            with self._control_lock:
+                self._control.send("close")
+        except (OSError, BrokenPipeError):
+            pass
+        self.process.join(timeout=5.0)
+        if self.process.is_alive():
+            self.process.terminate()
+
+
+def _run(config: AdmissionConfig, next_conn, control_conn):
+    """The receive process: subscribers, transforms and slots; answers the insertion's requests."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+    os.nice(config.nice)
+    import logging
+
+    import rospy
+    import tf2_py
+    from geometry_msgs.msg import TransformStamped
+
+    from cps_fleet import names
+    from cps_mapping.admission import Admission, TransformUnavailable
+    from cps_mapping.cloud_input import quaternion_matrix
+    from cps_mapping.transforms import LazyTransforms
+    from cps_ros.shutdown import init_node
+
+    init_node(config.node_name, argv=[config.node_name, *config.remappings])
+    log = logging.getLogger(f"rosout.{config.node_name}")
+    transforms = LazyTransforms()  # /tf read when a cloud is placed, not in the receiving threads
+    backfill_poses = BackfillPoses()
+
+    def transform_of(frame, stamp):
+        tf = backfill_poses.take(frame, stamp.to_nsec())
+        try:
+            tf = tf or transforms.lookup(config.frame_id, frame, stamp)
+        except tf2_py.TransformException as exc:
+            raise TransformUnavailable(str(exc)) from exc
+        t, q = tf.transform.translation, tf.transform.rotation
+        return quaternion_matrix(q.x, q.y, q.z, q.w), (t.x, t.y, t.z)
+
+    admission = Admission(list(config.robots), transform_of, config.tf_timeout_s, config.frame_id, log)
+    rospy.Subscriber(names.TF, rospy.AnyMsg, transforms.received, queue_size=None, buff_size=2**22)
+    rospy.Subscriber(names.TF_STATIC, rospy.AnyMsg, lambda m: transforms.received(m, static=True), queue_size=None)
+    # rospy.AnyMsg: nothing deserialized in the receiving threads, and no subscriber queue bound
+    # (queue_size None): what rospy reads reaches the slot, where it is counted.
+    for robot in config.robots:
+        rospy.Subscriber(
+            names.managed_cloud(robot),
+            rospy.AnyMsg,
+            lambda msg, r: admission.receive(r, msg),
+            callback_args=robot,
+            queue_size=None,
+            buff_size=2**24,
+        )
+        rospy.Subscriber(
+            names.robot_topic(robot, names.POINTS_BACKFILL_DRACO),
+            rospy.AnyMsg,
+            lambda msg, r: admission.receive(r, msg, backfill=True),
+            callback_args=robot,
+            queue_size=None,
+            buff_size=2**24,
+        )
+        rospy.Subscriber(
+            names.robot_topic(robot, names.POINTS_BACKFILL_POSE), TransformStamped, backfill_poses.keep, queue_size=50
+        )
+    clock = {"last": rospy.Time.now()}
+
+    def serve_next():
+        while True:
+            try:
+                batch = next_conn.recv()
+            except (EOFError, OSError):
+                return
+            first = admission.next_cloud(timeout_s=REQUEST_WAIT_S)
+            placed = [first] if first is not None else []
+            while placed and len(placed) < batch:  # what else is ready now, without waiting
+                more = admission.next_cloud(timeout_s=0)
+                if more is None:
+                    break
+                placed.append(more)
+            now = rospy.Time.now()
+            if now < clock["last"]:  # a replayed bag looped: its transforms start again
+                log.warning(f"{config.node_name}: time went back {(clock['last'] - now).to_sec():.1f} s: tf cleared")
+                transforms.clear()
+            clock["last"] = now
+            transforms.catch_up()
+            try:
+                next_conn.send(placed)
+            except (OSError, BrokenPipeError):
+                return
+
+    threading.Thread(target=serve_next, name="serve_next", daemon=True).start()
+    control_conn.send("ready")
+    while True:
+        try:
+            request = control_conn.recv()
+        except (EOFError, OSError):
+            break
+        if request == "close":
+            break
+        control_conn.send(admission.snapshot())
+    admission.close()
+    rospy.signal_shutdown("the map server closed its receive process")
+
+
+class BackfillPoses:
+    """Poses of backfill keyframes (geometry_msgs/TransformStamped, sent just before each) waiting
+    for their cloud, by (sensor frame, stamp ns); the oldest forgotten beyond KEPT."""
+
+    KEPT = 200
+
+    def __init__(self):
+        import collections
+
+        self._poses = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    def keep(self, msg):
+        with self._lock:
+            self._poses[(msg.child_frame_id.lstrip("/"), msg.header.stamp.to_nsec())] = msg
+            while len(self._poses) > self.KEPT:
+                self._poses.popitem(last=False)
+
+    def take(self, frame, stamp_ns):
+        with self._lock:
+            return self._poses.pop((frame, stamp_ns), None)

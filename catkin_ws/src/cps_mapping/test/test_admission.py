@@ -1,0 +1,171 @@
+"""Admission before work (issue 37), without a master: a cloud is held as it arrived and costs
+nothing until the insertion takes it (a superseded one is never deserialized nor decoded), robots
+are served oldest map first, a cloud whose transform is late waits in its slot instead of blocking
+the insertion, keyframes after an outage wait in their own FIFO, and every cloud ends in exactly one
+counter (the ledger balances, gaps in the senders' sequence numbers included)."""
+
+import io
+
+import genpy
+import pytest
+import rospy
+import test_map_server_library as library
+from test_map_server_library import JACKAL_FRAME, JACKAL_POSE, _cloud, _server, drain
+
+from cps_mapping.map_server import TransformUnavailable
+from cps_mapping.queues import Arrival, RobotSlots
+from cps_transport.draco import DracoEncoder
+
+
+@pytest.fixture(scope="module")
+def jackal_points():
+    return library.jackal_points.__wrapped__()
+
+
+class CountingDecoder:
+    """The server's Draco decoder, counting its calls."""
+
+    def __init__(self, decoder):
+        self.decoder, self.calls = decoder, 0
+
+    def decode(self, msg):
+        self.calls += 1
+        return self.decoder.decode(msg)
+
+
+def _compressed(points, secs, seq=0, frame=JACKAL_FRAME):
+    msg = DracoEncoder(leaf_size_m=0.1).encode(_cloud(points, frame=frame))
+    msg.header.stamp, msg.header.seq = genpy.Time(secs, 0), seq
+    return msg
+
+
+def _as_received(msg, publisher="/replay"):
+    """What a rospy.AnyMsg subscriber hands over: the serialized bytes and the connection header."""
+    buffer = io.BytesIO()
+    msg.serialize(buffer)
+    raw = rospy.AnyMsg().deserialize(buffer.getvalue())
+    raw._connection_header = {"type": msg._type, "callerid": publisher}
+    return raw
+
+
+def test_a_superseded_cloud_is_never_decoded(jackal_points):
+    server, _ = _server(robots=("jackal",))
+    server.decoder = counting = CountingDecoder(server.decoder)
+    for secs in range(100, 110):
+        server.receive_cloud("jackal", _as_received(_compressed(jackal_points, secs, seq=secs)))
+    c = server.robot_counters("jackal")
+    assert (c.clouds_received, c.clouds_superseded, counting.calls) == (10, 9, 0), "admission decodes nothing"
+    assert server.waiting("jackal") == 1
+    assert server.insert_pending(timeout_s=0) == 1
+    c = server.robot_counters("jackal")
+    assert counting.calls == 1 and c.clouds_inserted == 1 and c.newest_inserted_stamp_s == 109.0
+
+
+def test_the_robot_whose_map_is_oldest_is_served_first(jackal_points):
+    slots = RobotSlots(["a", "b", "c"], clock=lambda: 0.0)
+    slots.served("a", 50.0)
+    slots.served("b", 10.0)  # b's map is the oldest that has one; c has none at all
+    for robot in ("a", "b", "c"):
+        slots.put(Arrival(robot, None, arrived_s={"a": 1.0, "b": 2.0, "c": 3.0}[robot]))
+    assert [slots.take(timeout_s=0).robot for _ in range(3)] == ["c", "b", "a"]
+    # Under overload every robot is served in turn: after an insertion its map is the freshest.
+    order = []
+    for step in range(6):
+        for robot in ("a", "b", "c"):
+            slots.put(Arrival(robot, None, arrived_s=float(step)))
+        taken = slots.take(timeout_s=0)
+        slots.served(taken.robot, 100.0 + step)
+        order.append(taken.robot)
+    assert sorted(order[:3]) == ["a", "b", "c"] and order[3:] == order[:3]
+
+
+def test_a_cloud_whose_transform_is_late_waits_in_its_slot_and_the_insertion_serves_others(jackal_points):
+    known = {JACKAL_FRAME: False}
+
+    def transform_of(frame, _stamp):
+        if not known.get(frame):
+            raise TransformUnavailable(f"{frame} not yet")
+        return JACKAL_POSE[1], JACKAL_POSE[0]
+
+    server, _ = _server(robots=("jackal", "scout"), tf_timeout_s=5.0)
+    server.admission.transform_of = transform_of
+    server.receive_cloud("jackal", _cloud(jackal_points))
+    assert server.insert_pending(timeout_s=0) == 0 and server.waiting("jackal") == 1, "deferred, not dropped"
+    assert server.insert_pending(timeout_s=0) == 0, "not ready again at once: no busy loop"
+    known[JACKAL_FRAME] = True
+    assert server.insert_pending(timeout_s=1.0) == 1
+    c = server.robot_counters("jackal")
+    assert (c.clouds_inserted, c.clouds_dropped_tf, c.clouds_superseded) == (1, 0, 0)
+    # A newer cloud that arrives while the older one waits for its transform supersedes it.
+    known[JACKAL_FRAME] = False
+    server.receive_cloud("jackal", _cloud(jackal_points))
+    server.insert_pending(timeout_s=0)
+    server.receive_cloud("jackal", _cloud(jackal_points))
+    assert server.robot_counters("jackal").clouds_superseded == 1 and server.waiting("jackal") == 1
+
+
+def test_backfill_keyframes_wait_in_their_own_fifo_behind_live_clouds(jackal_points):
+    slots = RobotSlots(["a"], backfill_kept=2, clock=lambda: 0.0)
+    keyframes = [Arrival("a", k, arrived_s=float(k), backfill=True) for k in range(3)]
+    assert [slots.put(k) for k in keyframes[:2]] == [None, None]
+    assert slots.put(keyframes[2]) is keyframes[0], "beyond the bound the oldest keyframe goes"
+    slots.put(Arrival("a", "live", arrived_s=9.0))
+    assert [slots.take(timeout_s=0).message for _ in range(3)] == ["live", 1, 2]
+    assert slots.take(timeout_s=0) is None
+
+
+def test_every_cloud_ends_in_one_counter_and_gaps_in_a_senders_numbers_are_missed(jackal_points):
+    """The drop ledger: received = inserted + superseded + dropped by cause + waiting, and what the
+    sender numbered but never delivered is missed."""
+    server, _ = _server(robots=("jackal",), tf_timeout_s=0.0)
+    good = [_compressed(jackal_points, 100 + k, seq=k) for k in range(8)]
+    corrupt = _compressed(jackal_points, 120, seq=20)
+    corrupt.compressed_data = b"\x00" * 40  # not Draco
+    unplaced = _compressed(jackal_points, 121, seq=21, frame="jackal/nowhere")  # no transform
+    frameless = _compressed(jackal_points, 122, seq=22, frame="")
+    # 3, 4 and 6-19 never arrive; good[7] after seq 22: its sender restarted, no gap.
+    stream = [good[0], good[1], good[2], good[5], corrupt, unplaced, frameless, good[7]]
+    for msg in stream:
+        server.receive_cloud("jackal", _as_received(msg))
+        if msg.header.seq in (1, 5, 20, 21, 22):  # the insertion keeps up now and then
+            drain(server)
+    waiting = server.waiting("jackal")
+    c = server.robot_counters("jackal")
+    assert c.clouds_received == len(stream) and c.clouds_missed_upstream == 2 + 14
+    assert (c.clouds_dropped_decoder, c.clouds_dropped_tf, c.clouds_dropped_invalid) == (1, 1, 1)
+    assert c.clouds_inserted == 2 and c.clouds_superseded == 2 and waiting == 1
+    assert c.clouds_accounted + waiting == c.clouds_received
+    drain(server)
+    c = server.robot_counters("jackal")
+    assert c.clouds_accounted == c.clouds_received and c.clouds_inserted == 3
+
+
+def test_bytes_of_another_type_are_dropped_by_the_decoder_cause(jackal_points):
+    from std_msgs.msg import String
+
+    server, _ = _server(robots=("jackal",))
+    raw = _as_received(String(data="not a cloud"))
+    server.receive_cloud("jackal", raw)
+    drain(server)
+    assert server.robot_counters("jackal").clouds_dropped_decoder == 1
+    raw._connection_header = {}  # no type announced: read as the input's type, and it does not deserialize
+    server.receive_cloud("jackal", raw)
+    drain(server)
+    assert server.robot_counters("jackal").clouds_dropped_decoder == 2
+
+
+def test_a_raw_cloud_arrives_and_is_inserted_as_a_compressed_one_is(jackal_points):
+    server, _ = _server(robots=("jackal",))
+    server.receive_cloud("jackal", _as_received(_cloud(jackal_points)))
+    assert server.insert_pending(timeout_s=0) == 1
+    assert len(server.map.occupied_index()) > 0 and server.robot_counters("jackal").insertion_ms_avg > 0
+
+
+def test_the_receive_process_shares_the_namespace_and_remaps_not_the_name_or_private_parameters():
+    from cps_fleet import names
+    from cps_mapping.admission_process import remappings_of
+
+    ns = f"__ns:={names.absolute(names.TWIN_NS)}"
+    argv = ["map_server", ns, "__name:=map_server_a", "__log:=/x.log", "_robots:=a,b", "x:=y"]
+    argv += ["__master:=http://h:1", "--help"]
+    assert remappings_of(argv) == (ns, "x:=y", "__master:=http://h:1")
