@@ -86,48 +86,36 @@ def change_markers(changes, header: Header) -> MarkerArray:
     array = MarkerArray(markers=[Marker(header=header, ns="map_changes", action=Marker.DELETEALL)])
     for i, change in enumerate(changes):
         rgba = _CHANGE_RGBA.get(change.kind, _DISAPPEARED_RGBA)
-        box = Marker(
-            header=header,
-            ns="map_changes",
-            id=3 * i + 1,
-            type=Marker.CUBE,
-            action=Marker.ADD,
-            color=ColorRGBA(*rgba),
-            text=change.kind,
-        )
-        box.pose.position = Point(*((np.asarray(change.min_m) + change.max_m) / 2).tolist())
-        box.pose.orientation.w = 1.0
+        box = _change_marker(header, 3 * i + 1, Marker.CUBE, rgba, change.kind)
+        box.pose.position = Point(*box_centre(change))
         box.scale.x, box.scale.y, box.scale.z = change.size_m
         moved = getattr(change, "displacement_m", None)
         label = f"moved {np.hypot(moved[0], moved[1]):.2f} m" if moved else f"{change.kind} {change.volume_m3:.2f} m3"
-        text = Marker(
-            header=header,
-            ns="map_changes",
-            id=3 * i + 2,
-            type=Marker.TEXT_VIEW_FACING,
-            action=Marker.ADD,
-            color=ColorRGBA(1.0, 1.0, 1.0, 1.0),
-            text=label,
-        )
+        text = _change_marker(header, 3 * i + 2, Marker.TEXT_VIEW_FACING, (1.0, 1.0, 1.0, 1.0), label)
         text.pose.position = Point(change.centroid_m[0], change.centroid_m[1], change.max_m[2] + _CHANGE_TEXT_LIFT_M)
-        text.pose.orientation.w = 1.0
         text.scale.z = 0.3
         array.markers += [box, text]
         if moved and getattr(change, "from_m", None) is not None:
-            arrow = Marker(
-                header=header,
-                ns="map_changes",
-                id=3 * i + 3,
-                type=Marker.ARROW,
-                action=Marker.ADD,
-                color=ColorRGBA(*rgba[:3], 1.0),
-                text="moved from",
-            )
-            arrow.pose.orientation.w = 1.0
+            arrow = _change_marker(header, 3 * i + 3, Marker.ARROW, (*rgba[:3], 1.0), "moved from")
             arrow.points = [Point(*change.from_m), Point(*box_centre(change))]
             arrow.scale.x, arrow.scale.y, arrow.scale.z = 0.05, 0.15, 0.2  # shaft, head diameters; head length
             array.markers.append(arrow)
     return array
+
+
+def _change_marker(header, marker_id, marker_type, rgba, text):
+    """One marker of ns `map_changes` (added, identity orientation)."""
+    marker = Marker(
+        header=header,
+        ns="map_changes",
+        id=marker_id,
+        type=marker_type,
+        action=Marker.ADD,
+        color=ColorRGBA(*rgba),
+        text=text,
+    )
+    marker.pose.orientation.w = 1.0
+    return marker
 
 
 def box_centre(change):

@@ -548,7 +548,10 @@ class MapServer:
             with self._map_lock:
                 updates_before = voxel_updates_of(self.map)
                 result = self.map.insert_batch(
-                    [(cloud.points_m, cloud.origin_m)], max_range_m=self.max_range_m[robot], robot=robot, stamps_s=[stamp_s]
+                    [(cloud.points_m, cloud.origin_m)],
+                    max_range_m=self.max_range_m[robot],
+                    robot=robot,
+                    stamps_s=[stamp_s],
                 )
                 updates_after = voxel_updates_of(self.map)
         except ValueError as exc:  # a cloud that would grow the grid beyond its bound
