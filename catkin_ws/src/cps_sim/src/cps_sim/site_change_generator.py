@@ -9,7 +9,8 @@ structure) as well as crates, drums, tanks and columns; a moved or added item ma
 the fence as `CLEARANCE_M`. A scenario is written as a changes file and read back by
 `cps_sim.site_changes.load_site_changes` (the existing rules: known names, inside the hall), and
 checked for overlap: every moved or added item's footprint, grown by `CLEARANCE_M`, stays inside
-its fenced area and clear of every other item. A draw that breaks a rule is said (`log`) and drawn
+its fenced area and clear of every other item and of the place a removed item left (an item moved
+into that place would leave no voxel that could appear, and the scenario no one right answer). A draw that breaks a rule is said (`log`) and drawn
 again, up to `MAX_DRAWS` times; it never yields an overlapping scene.
 """
 
@@ -95,9 +96,10 @@ def _area_of(item, areas):
     return None
 
 
-def overlap_problem(site, names: Sequence[str], areas) -> str:
+def overlap_problem(site, names: Sequence[str], areas, vacated: Sequence = ()) -> str:
     """'' if each named item of `site` lies inside a fenced area of `areas` (by CLEARANCE_M) and its
-    footprint grown by CLEARANCE_M touches no other item's; else what is wrong."""
+    footprint grown by CLEARANCE_M touches no other item's, nor any of `vacated` (the footprints of
+    removed items, as (name, footprint)); else what is wrong."""
     for name in names:
         item = site.item(name)
         area = _area_of(item, areas)
@@ -107,6 +109,9 @@ def overlap_problem(site, names: Sequence[str], areas) -> str:
         for other in site.equipment:
             if other.name != name and _overlap(grown, other.footprint):
                 return f"'{name}' would overlap '{other.name}' (with {CLEARANCE_M} m clearance)"
+        for gone, footprint in vacated:
+            if _overlap(grown, footprint):
+                return f"'{name}' would stand where removed '{gone}' stood (with {CLEARANCE_M} m clearance)"
     return ""
 
 
@@ -179,7 +184,10 @@ def generate_scenarios(site, fleet, robot_names, count, seed, out_dir, log: Call
                 log(f"site_change_generator: scenario {index} draw {attempt}: {exc}; drawing again")
                 continue
             problem = overlap_problem(
-                changes.apply(site), [m.name for m in changes.moved] + [a.name for a in changes.added], areas
+                changes.apply(site),
+                [m.name for m in changes.moved] + [a.name for a in changes.added],
+                areas,
+                vacated=[(name, site.item(name).footprint) for name in changes.removed],
             )
             if problem:
                 log(f"site_change_generator: scenario {index} draw {attempt}: {problem}; drawing again")
