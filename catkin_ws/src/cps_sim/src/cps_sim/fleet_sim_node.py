@@ -330,9 +330,9 @@ class FleetSimNode:
             self.scheduler.done(name, stamp, time.time())
             return
         sim = self.sim.robots[name]
+        stamp, _ = self._state_for_capture()
         with self.lock:
             sensor_pose = sim.robot.sensor_in_map()
-        stamp = time.time()
         frame = sim.sensor.capture(sensor_pose)
         self._record_capture_ms(name, 1000.0 * (time.time() - stamp))
         self._publish_frame(name, frame, stamp)
@@ -357,6 +357,19 @@ class FleetSimNode:
                 due = self.video_scheduler.next()[1]
             # Woken at least every VIDEO_POLL_S: a faster rate set meanwhile takes effect.
             self.video_stop.wait(min(max(due - time.time(), 0.0), VIDEO_POLL_S))
+
+    def _state_for_capture(self):
+        """(stamp, the robots' poses at that wall time): the physics brought up to the stamp first,
+        so that a cloud's stamp is the time of the pose it is rendered from (tf at the stamp, which
+        carries the state at each publication, then gives that pose). Before, the poses were the
+        physics' as of the loop's start (up to a step behind) and the stamp was taken after the
+        loop had published the finished captures: under load a cloud was stamped up to hundreds of
+        ms after its pose, and the twin placed it where the robot was that much later (a turning
+        robot's clouds rotated, issue 39's false change at tank_3)."""
+        stamp = time.time()
+        self._advance_physics(stamp, exact=True)
+        with self.lock:
+            return stamp, self.sim.poses()
 
     def _service_workers(self, now):
         """Publish finished captures and hand due sensors to idle workers; True if any work was done."""
@@ -383,9 +396,8 @@ class FleetSimNode:
                     self.scheduler.done(name, now, now)
                     worked = True
                     continue
-            with self.lock:
-                poses = self.sim.poses()
-            self.pool.request(worker, name, poses, time.time(), task=task)
+            stamp, poses = self._state_for_capture()
+            self.pool.request(worker, name, poses, stamp, task=task)
             worked = True
         return worked
 
