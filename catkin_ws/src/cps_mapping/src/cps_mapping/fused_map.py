@@ -352,8 +352,9 @@ class FusedLogOddsMap:
 
     def frozen_copy(self) -> "FusedLogOddsMap":
         """An independent copy of the map (its grid's arrays copied: milliseconds, 6 bytes per
-        voxel, 10 with first-seen stamps) for readers that must not hold the map lock while they read or write it (the
-        publisher's snapshot, a save): the live map goes on taking clouds meanwhile."""
+        voxel, 10 with first-seen stamps) for readers that must not hold the map lock while they
+        read or write it (the publisher's snapshot, a save, change detection): the live map goes on
+        taking clouds meanwhile."""
         clone = copy.copy(self)
         grid = clone._grid = copy.copy(self._grid)
         grid.log_odds, grid.owner, grid.stamp = grid.log_odds.copy(), grid.owner.copy(), grid.stamp.copy()
