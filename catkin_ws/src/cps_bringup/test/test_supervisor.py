@@ -2,6 +2,7 @@
 with nothing left running."""
 
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -201,6 +202,41 @@ def test_plan_without_the_manager_and_with_the_command_probe():
     assert any(names.absolute(names.COMMAND_PROBE) in arg for arg in managed["physical_stats"].argv)
 
 
+def test_plan_starts_the_foxglove_endpoint_on_the_twin_unless_off():
+    fleet = load_fleet()
+    on = {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", web_listen="0.0.0.0:9000"))}
+    off = {s.label for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", web=False))}
+    endpoint = on[names.FOXGLOVE_ENDPOINT]
+    assert names.FOXGLOVE_ENDPOINT not in off
+    assert endpoint.side == DIGITAL and not endpoint.essential and MAP_SERVER in endpoint.after
+    assert "_listen:=0.0.0.0:9000" in endpoint.argv and f"__ns:={names.absolute(names.TWIN_NS)}" in endpoint.argv
+    physical_only = plan_nodes(fleet, sides=(PHYSICAL,), options=RunOptions(out_dir="/tmp/x"))
+    assert names.FOXGLOVE_ENDPOINT not in {s.label for s in physical_only}
+
+
+def test_plan_records_mcap_and_only_the_links_streams_on_the_twin():
+    from cps_bringup.mission_bag import record_topics
+    from cps_bringup.plan import RECORDER
+    from cps_web.mcap_recording import link_topics
+
+    fleet = load_fleet()
+
+    def recorder(**kw):
+        return {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", **kw))}[RECORDER]
+
+    bag = recorder(record_path="/tmp/x/m.bag")
+    assert bag.argv[:2] == ("rosbag", "record") and bag.side == PHYSICAL
+    full = recorder(record_path="/tmp/x/m.mcap")
+    assert full.argv[1].endswith("mcap_recorder") and full.side == PHYSICAL
+    assert f"_topics:={','.join(record_topics(fleet))}" in full.argv
+    link = recorder(record_path="/tmp/x/m.mcap", record_link_only=True)
+    cameras = [r.name for r in fleet.robots if r.has_depth_camera]
+    assert link.side == DIGITAL and f"_topics:={','.join(link_topics(fleet.robot_names, cameras))}" in link.argv
+    topics = link_topics(fleet.robot_names, cameras)
+    assert names.absolute(names.managed_cloud_at_twin("scout")) in topics
+    assert not any(t.endswith("/" + fleet.robot("scout").cloud_topic) for t in topics)  # no raw clouds
+
+
 def _python_spec(label, code, wait_topics=(), restart_limit=0):
     return NodeSpec(
         label, PHYSICAL, (sys.executable, "-c", code), wait_topics=tuple(wait_topics), restart_limit=restart_limit
@@ -374,6 +410,23 @@ def test_selecting_a_robot_without_a_camera_is_refused_before_anything_starts(tm
 
     args = build_parser().parse_args(["all", "--select-robot", "scout", "--out", str(tmp_path / "out")])
     with pytest.raises(BringupError, match=r"--select-robot scout: not a camera robot .*camera robots: jackal"):
+        run_mission(args, log=lambda _line: None)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["all", "--web-listen", "8765"], "--web-listen: listen address '8765': expected host:port"),
+        (["all", "--record-link-only"], "--record-link-only: give the file with --record"),
+        (["physical", "--record", "x.mcap", "--record-link-only"], "records what the twin receives"),
+    ],
+)
+def test_bad_web_and_recording_options_are_refused_before_anything_starts(tmp_path, argv, message):
+    from cps_bringup.cli import build_parser, run_mission
+
+    args = build_parser().parse_args([*argv, "--out", str(tmp_path / "out")])
+    with pytest.raises(BringupError, match=re.escape(message)):
         run_mission(args, log=lambda _line: None)
     assert not (tmp_path / "out").exists()
 

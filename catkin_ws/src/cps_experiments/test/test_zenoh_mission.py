@@ -1,16 +1,23 @@
 """The reference mission across the real shaped link with the Zenoh transport (cps_bringup's
 default): a master per side, each on its own host's loopback, joined only by the two bridges. Every
 robot's clouds reach the twin, the link is up, and a command from the twin reaches the robot, which
-executes it (its active mode comes back), both ways (teleop, then auto again)."""
+executes it (its active mode comes back), both ways (teleop, then auto again); from the other host
+only the twin's bridge ports answer."""
 
 import pytest
 
 from cps_harness.reference import ROBOTS, TELEOP_ROBOT
 from cps_link import netns_link
+from cps_link.bridge_config import load_bridge_table
 
 pytestmark = pytest.mark.skipif(
     netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}"
 )
+
+
+def _link_ports():
+    table = load_bridge_table()
+    return table.endpoint_port, table.command_port
 
 
 def test_clouds_cross_and_the_link_is_up(reference_mission):
@@ -34,6 +41,10 @@ def test_no_ros_port_is_on_the_link_and_the_mission_stopped_by_itself(reference_
     observed, log = reference_mission.observed, reference_mission.log
     # The twin's master is not reachable at its link address.
     assert observed.twin_master_on_link not in (None, 0), observed.twin_master_on_link
+    # One open port per host (issue 38): of every port either host listens on (rosout's and the
+    # nodelet manager's XML-RPC servers bind 0.0.0.0), the other reaches the twin's bridges only.
+    link_ports = sorted(_link_ports())
+    assert observed.open_across_link == {"twin": link_ports, "phys": []}, observed.open_across_link
     assert not reference_mission.mission.killed, "the mission did not stop by itself:\n" + log[-3000:]
     assert "joined by Zenoh bridges" in log and "exited with code" not in log, log[-3000:]
     assert list((reference_mission.out / "logs" / "robots").glob("zenoh_bridge_robots-*.log"))

@@ -12,8 +12,10 @@ import pytest
 
 from cps_fleet import names
 from cps_harness.netns_lan import SharedLan
+from cps_harness.port_scan import listening_ports, scan_argv
 from cps_harness.testing import link_name
 from cps_link import netns_link
+from cps_link.host_guard import guard_argv
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import RosGraph, find_node
 
@@ -25,6 +27,19 @@ CLOUD_LOAD = find_node("cps_harness", "cloud_load")
 HOSTS = {"phys": "10.203.0.1", "twin": "10.203.0.2", "rogue": "10.203.0.3"}
 PORTS = {"main": 7447, "command": 7448}  # each lane's twin port (bridge.yaml's endpoint_port, command_port)
 ROBOT = "scout"
+
+
+def _scan(lan, host):
+    """The listening ports of `host` that a connect from the rogue host reaches."""
+    listening = listening_ports(lan.namespace(host))
+    out = subprocess.run(
+        lan.argv("rogue", scan_argv(sys.executable, HOSTS[host], listening)),
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=30,
+    ).stdout
+    return json.loads(out.strip().splitlines()[-1])
 
 
 def _lines(path):
@@ -140,6 +155,22 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
             assert not executed, f"a rogue command reached the robot: {executed}"
             # The fleet's own path still works after the attempts.
             assert len(_lines(cloud_file)) > 3
+
+            # One open port per host (issue 38). Unguarded, the rogue reaches ports beyond the link's
+            # (roscpp's XML-RPC servers bind 0.0.0.0 whatever ROS_IP says: rosout's on both hosts).
+            before = {host: _scan(lan, host) for host in ("phys", "twin")}
+            link_ports = sorted(PORTS.values())
+            assert any(set(found) - set(link_ports) for found in before.values()), before
+            for host in ("phys", "twin"):
+                for argv in guard_argv(lan.namespace(host), host, link_ports, HOSTS["twin"]):
+                    subprocess.run(argv, check=True)
+            after = {host: _scan(lan, host) for host in ("phys", "twin")}
+            print("open from the rogue host, unguarded:", before, "guarded:", after)
+            assert after == {"phys": [], "twin": link_ports}, (before, after)
+            # and the fleet's connections, made before the guard, still carry clouds
+            carried = len(_lines(cloud_file))
+            time.sleep(2.0)
+            assert len(_lines(cloud_file)) > carried, "no cloud crossed after the hosts were guarded"
         finally:
             robots.close()
             twin.close()

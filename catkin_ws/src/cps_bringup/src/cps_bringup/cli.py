@@ -29,6 +29,8 @@ from cps_bringup.plan import (
     TCPROS,
     TISSUE_LAYOUTS,
     TRANSPORTS,
+    WEB_LISTEN,
+    WEB_URL_FILE,
     ZENOH,
     RunOptions,
     plan_nodes,
@@ -190,9 +192,30 @@ def build_parser():
     parser.add_argument(
         "--record",
         default=None,
-        metavar="BAG",
+        metavar="BAG|FILE.mcap",
         help="record the mission (sensor, odometry, tf topics and the twin's managed inputs) "
-        "to this rosbag with rosbag record",
+        "to this rosbag with rosbag record, or, for a name ending in .mcap, to MCAP with the ROS 1 message "
+        "definitions (cps_web's recorder: Foxglove, Lichtblick and the mcap tools read it)",
+    )
+    parser.add_argument(
+        "--record-link-only",
+        action="store_true",
+        help="with --record: only what crosses the link, as the twin receives it (the managed clouds and "
+        "video, tf, odometry, battery, joint states, mission state), recorded on the twin's side",
+    )
+    parser.add_argument(
+        "--web",
+        choices=("on", "off"),
+        default="on",
+        help="the twin's Foxglove WebSocket endpoint (cps_web) for Foxglove or Lichtblick: map, poses and "
+        "trails, change clusters, the selected robot's video, fleet health, the link (default: on)",
+    )
+    parser.add_argument(
+        "--web-listen",
+        default=WEB_LISTEN,
+        metavar="HOST:PORT",
+        help=f"where the endpoint listens (default {WEB_LISTEN}: the twin's host only; port 0: any free one, "
+        f"written to <out>/{WEB_URL_FILE})",
     )
     parser.add_argument(
         "--replay",
@@ -272,6 +295,7 @@ MISSION_OUTPUTS = {
         "allocation.csv",
         "setpoints.csv",
         "gui.png",
+        WEB_URL_FILE,
         "ground_truth.npz",
         "scores.json",
         "topdown.png",
@@ -296,6 +320,28 @@ def clear_previous_mission(out_dir, sides):
                 os.remove(path)
                 removed.append(name)
     return removed
+
+
+def _checked_web_listen(text):
+    """--web-listen as host:port, or BringupError before anything starts."""
+    from cps_web.endpoint import parse_listen
+
+    try:
+        parse_listen(text)
+    except ValueError as exc:
+        raise BringupError(f"--web-listen: {exc}") from exc
+    return text
+
+
+def _checked_record_link_only(args, sides):
+    """--record-link-only needs --record and the twin's side (what arrives there is what it records)."""
+    if not getattr(args, "record_link_only", False):
+        return False
+    if not args.record:
+        raise BringupError("--record-link-only: give the file with --record FILE.mcap (or a .bag)")
+    if DIGITAL not in sides:
+        raise BringupError("--record-link-only records what the twin receives: run the digital side here")
+    return True
 
 
 def _terminate_on_sigterm():
@@ -325,6 +371,8 @@ def run_mission(args, log=print) -> MissionResult:
         getattr(args, "video_trace", None), fleet, sides, args, replay_path
     )
     announce = _checked_announce(args, sides)
+    web_listen = _checked_web_listen(getattr(args, "web_listen", WEB_LISTEN))
+    record_link_only = _checked_record_link_only(args, sides)
     os.makedirs(out_dir, exist_ok=True)
     removed = clear_previous_mission(out_dir, sides)
     if removed:
@@ -349,6 +397,9 @@ def run_mission(args, log=print) -> MissionResult:
         control_layout=args.control_layout,
         tissue_layout=args.tissue_layout,
         video_trace=video_trace,
+        web=getattr(args, "web", "on") == "on",
+        web_listen=web_listen,
+        record_link_only=record_link_only,
     )
     transport = args.transport
     if replay_path and transport == ZENOH and len(sides) == 2:
@@ -375,6 +426,8 @@ def run_mission(args, log=print) -> MissionResult:
                 zenoh_port=None if link or args.twin_address else free_port(),
                 zenoh_command_port=None if link or args.twin_address else free_port(),
             )
+            if link:  # after iperf3: from now on the hosts answer only on the bridges' ports
+                link.guard(_link_ports(options))
         specs = plan_nodes(fleet, sides=sides, options=options)
         if DIGITAL in sides:
             ensure_map_kernels(log)  # before the mission: no node compiles during it
@@ -772,6 +825,14 @@ def _host_split(args, sides):
         return HostSplit.choose(cpus, quota, name=name)
     except HostSplitError as exc:
         raise BringupError(str(exc)) from exc
+
+
+def _link_ports(options):
+    """The twin's bridge ports (both lanes): the options', else bridge.yaml's."""
+    from cps_link.bridge_config import load_bridge_table
+
+    table = load_bridge_table()
+    return (options.zenoh_port or table.endpoint_port, options.zenoh_command_port or table.command_port)
 
 
 @contextlib.contextmanager

@@ -137,6 +137,8 @@ def finish_recording(path: str, recorder_log: str = None) -> str:
     import os
     import subprocess
 
+    if path.lower().endswith(".mcap"):
+        return _finished_mcap(path, recorder_log)
     if os.path.exists(path):
         return f"recorded {path}"
     active = path + ".active"
@@ -159,3 +161,35 @@ def finish_recording(path: str, recorder_log: str = None) -> str:
     raise BagError(
         f"no bag was written to {path} (nor {active}); the recorder's log {recorder_log or '(none)'} ends:\n{tail}"
     )
+
+
+# An MCAP file starts and ends with this magic; a recorder that did not finish left no closing one.
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _log_tail(recorder_log):
+    import os
+
+    if recorder_log and os.path.exists(recorder_log):
+        with open(recorder_log, errors="replace") as log:
+            return "".join(log.readlines()[-8:])
+    return ""
+
+
+def _finished_mcap(path: str, recorder_log: str = None) -> str:
+    """The MCAP at `path` if its recorder finished it (summary and closing magic written), else
+    BagError with the recorder's last log lines: a recorder killed mid-chunk loses that chunk."""
+    import os
+
+    if not os.path.exists(path):
+        raise BagError(f"no MCAP was written to {path}; the recorder's log ends:\n{_log_tail(recorder_log)}")
+    with open(path, "rb") as stream:
+        head = stream.read(len(MCAP_MAGIC))
+        stream.seek(max(0, os.path.getsize(path) - len(MCAP_MAGIC)))
+        tail = stream.read()
+    if head != MCAP_MAGIC or tail != MCAP_MAGIC:
+        raise BagError(
+            f"{path} was not finished by its recorder (no closing MCAP magic: its last chunk is lost and it "
+            f"has no index); the recorder's log ends:\n{_log_tail(recorder_log)}"
+        )
+    return f"recorded {path} ({os.path.getsize(path) / 1e6:.1f} MB, MCAP)"

@@ -65,6 +65,11 @@ MAP_SERVER_READY = names.absolute(names.in_twin(names.private(names.MAP_SERVER, 
 # The map server's live change report in the output folder (and its .json twin).
 CHANGE_REPORT = "map_changes.md"
 
+# The Foxglove endpoint's default address: the twin's host only (cps_web.endpoint), and the file in
+# the output folder where it writes its ws:// URL once it listens.
+WEB_LISTEN = "127.0.0.1:8765"
+WEB_URL_FILE = "foxglove_url.txt"
+
 # When the GUI screenshot is taken, s after the GUI starts: during the light profile's missions.
 GUI_SCREENSHOT_AFTER_S = 35.0
 
@@ -110,6 +115,12 @@ class RunOptions:
     # The cameras play this recorded video trace (cps_sim.video_trace) at the allocated level and
     # rate instead of rendering it; None: rendered live.
     video_trace: Optional[str] = None
+    # The twin's Foxglove WebSocket endpoint (cps_web) and where it listens (host:port; port 0: any
+    # free one, written to WEB_URL_FILE in the output folder).
+    web: bool = True
+    web_listen: str = WEB_LISTEN
+    # Record only what crosses the link, as the twin receives it (cps_web.mcap_recording.link_topics).
+    record_link_only: bool = False
 
 
 A = names.absolute
@@ -448,6 +459,31 @@ def plan_nodes(
                     wait_topics=(A(names.ALLOCATION),),
                 )
             )
+        if options.web:
+            # A viewer's endpoint: its death is noted and the mission goes on, like the GUI's.
+            specs.append(
+                NodeSpec(
+                    names.FOXGLOVE_ENDPOINT,
+                    DIGITAL,
+                    py(
+                        "cps_web",
+                        "foxglove_endpoint",
+                        f"__ns:={A(names.TWIN_NS)}",
+                        f"__name:={names.FOXGLOVE_ENDPOINT}",
+                        *_args(
+                            {
+                                **common,
+                                "robots": ",".join(robots),
+                                "listen": options.web_listen,
+                                "url_file": os.path.join(out, WEB_URL_FILE),
+                            }
+                        ),
+                    ),
+                    restart_limit=2,
+                    essential=False,
+                    after=(MAP_SERVER,),
+                )
+            )
         if options.gui_screenshot_path:
             # rviz needs an X server with OpenGL: a private Xvfb (Mesa llvmpipe) for the offscreen GUI.
             # xvfb-run is a shell that does not pass its own end on to the GUI: the GUI asks to be sent
@@ -486,7 +522,7 @@ def plan_nodes(
                     after=("map_server",),
                 )
             )
-    specs += _bag_specs(fleet, sides, options, specs)
+    specs += _bag_specs(fleet, sides, options, specs, py)
     return specs
 
 
@@ -599,10 +635,11 @@ def _robot_tissue_shared(fleet, py, initial_rate_hz):
 REPLAY, RECORDER = "mission_replay", "mission_recorder"
 
 
-def _bag_specs(fleet, sides, options, planned):
-    """rosbag record of the mission and rosbag play of a recorded one (after everything else is up).
+def _bag_specs(fleet, sides, options, planned, py):
+    """The mission's recorder (rosbag record, or cps_web's MCAP recorder for a .mcap path) and rosbag
+    play of a recorded bag (after everything else is up).
 
-    The bag is LZ4-compressed: raw clouds are most of it, and a third of the bytes is less for a slow
+    A bag is LZ4-compressed: raw clouds are most of it, and a third of the bytes is less for a slow
     disk to take in before the recorder's stop timeout."""
     from cps_bringup.mission_bag import record_topics, replay_topics
 
@@ -611,15 +648,24 @@ def _bag_specs(fleet, sides, options, planned):
 
     specs = []
     if options.record_path:
-        specs.append(
-            NodeSpec(
-                RECORDER,
-                PHYSICAL if PHYSICAL in sides else DIGITAL,
-                ("rosbag", "record", "--lz4", "-O", options.record_path, f"__name:={RECORDER}", *record_topics(fleet)),
-                restart_limit=0,
-                stop_timeout_s=RECORDER_STOP_TIMEOUT_S,
+        if options.record_link_only:  # what the twin receives: recorded on its side
+            from cps_web.mcap_recording import link_topics
+
+            side = DIGITAL
+            topics = link_topics(fleet.robot_names, [r.name for r in fleet.robots if r.has_depth_camera])
+        else:
+            side = PHYSICAL if PHYSICAL in sides else DIGITAL
+            topics = record_topics(fleet)
+        if is_mcap(options.record_path):
+            argv = py(
+                "cps_web",
+                "mcap_recorder",
+                f"__name:={RECORDER}",
+                *_args({"path": options.record_path, "topics": ",".join(topics)}),
             )
-        )
+        else:
+            argv = ("rosbag", "record", "--lz4", "-O", options.record_path, f"__name:={RECORDER}", *topics)
+        specs.append(NodeSpec(RECORDER, side, argv, restart_limit=0, stop_timeout_s=RECORDER_STOP_TIMEOUT_S))
     if options.replay_path and PHYSICAL in sides:
         # --clock: every node runs on the bag's time (/use_sim_time); -d: subscribers connect first.
         specs.append(
@@ -643,6 +689,11 @@ def _bag_specs(fleet, sides, options, planned):
             )
         )
     return specs
+
+
+def is_mcap(path: str) -> bool:
+    """`--record FILE.mcap` records MCAP (cps_web's recorder); any other name a ROS 1 bag."""
+    return path.lower().endswith(".mcap")
 
 
 # rosbag record's buffer at the end of a mission: up to a few hundred MB to write out.

@@ -82,6 +82,12 @@ def parse_args(argv):
         "MAP_F1_FLOOR_EXACT, for the whole fleet)",
     )
     parser.add_argument(
+        "--web-listen",
+        default=None,
+        metavar="HOST:PORT",
+        help="where the twin's Foxglove endpoint listens (cps_bringup --web-listen; default its own)",
+    )
+    parser.add_argument(
         "--kill-map-server-at",
         type=float,
         default=None,
@@ -116,6 +122,7 @@ def main(argv=None):
         link_scenario=scenario,
         robots=args.robots,
         kill_map_server_at=args.kill_map_server_at,
+        **({"web_listen": args.web_listen} if args.web_listen else {}),
     )
     mission.map_f1_floor = args.map_f1_floor
     mission.map_f1_floor_exact = args.map_f1_floor_exact

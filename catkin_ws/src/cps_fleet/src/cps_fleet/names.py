@@ -116,6 +116,28 @@ CLEAR_BBX = "~clear_bbx"
 # insertion ran: the first cloud after it is inserted at full speed (bringup starts the clouds then).
 READY = "~ready"
 
+# --- the twin's Foxglove endpoint (cps_web), relative to the twin's namespace -----------------------
+# Its node, and its channels: Foxglove topics (not ROS topics) that a Foxglove or Lichtblick viewer
+# subscribes over the endpoint's WebSocket, named like the ROS graph (`twin/web/map`).
+FOXGLOVE_ENDPOINT = "foxglove_endpoint"
+WEB_MAP = "web/map"  # foxglove.PointCloud: the fused map's occupied voxel centres
+WEB_TF = "web/tf"  # foxglove.FrameTransforms: /tf and /tf_static
+WEB_FLEET = "web/fleet"  # foxglove.SceneUpdate: each robot's pose (arrow) and trail, its GUI colour
+WEB_CHANGES = "web/changes"  # foxglove.SceneUpdate: the change clusters, the GUI's colours
+WEB_VIDEO = "web/video"  # foxglove.CompressedImage: the selected robot's managed video as it arrives
+WEB_HEALTH = "web/health"  # JSON: per robot battery, mission state, control mode, pose age
+WEB_LINK = "web/link"  # JSON: the link's budget, allocation and capacity (plots)
+WEB_ENDPOINT = "web/endpoint"  # JSON: the endpoint's own counters (queued, dropped, converted)
+# Its services (JSON): the operator's robot (as the GUI's /tissue/selected_robot) and a robot's
+# priority (through /tissue/set_priority).
+WEB_SELECT_ROBOT = "web/select_robot"
+WEB_SET_PRIORITY = "web/set_priority"
+
+
+def web_pose(robot):
+    """The robot's pose channel (foxglove.PoseInFrame), relative to the twin's namespace."""
+    return f"web/{robot}/pose"
+
 
 def admission_node(map_server_name):
     """The map server's receive process, a node of its own beside it (`map_server` ->

@@ -111,3 +111,27 @@ def fleet_with_new_type(folder, robot="scout", entry=NEW_TYPE):
     text = text[:start] + NEW_TYPE_NAME + text[text.index("\n", start) :]
     path.write_text(text)
     return path
+
+
+def write_fleet_with_repeated_routes(folder, laps, source=None):
+    """`source` (default: cps_bringup's fleet.yaml) with each robot's route driven `laps` times
+    (there and back along its waypoints, so a lap ends where it started), for a soak that needs the
+    robots moving for many minutes; paths made absolute. Returns the new file's path."""
+    if laps < 1:
+        raise ValueError(f"laps must be at least 1, got {laps}")
+    doc = fleet_doc_with_absolute_paths(source)
+    for robot in doc["robots"]:
+        with open(robot["route"]) as stream:
+            route = yaml.safe_load(stream)
+        there = list(route["waypoints"])
+        home = {k: robot["initial_pose"][k] for k in ("x", "y")}
+        if "z" in there[0]:  # a flyer: back over its start at its first waypoint's height
+            home["z"] = there[0]["z"]
+        route["waypoints"] = (there + there[-2::-1] + [home]) * laps
+        robot["route"] = os.path.join(folder, f"{robot['name']}_route.yaml")
+        with open(robot["route"], "w") as stream:
+            yaml.safe_dump(route, stream, sort_keys=False)
+    path = os.path.join(folder, f"fleet_{laps}_laps.yaml")
+    with open(path, "w") as stream:
+        yaml.safe_dump(doc, stream, sort_keys=False)
+    return path

@@ -15,6 +15,7 @@ then (`observe_while_up`): what each side's cgroups hold, topics on the twin, a 
 """
 
 import dataclasses
+import json
 import os
 import time
 from typing import Dict, List
@@ -73,6 +74,11 @@ MAP_F1_FLOOR = 0.6
 # ... and voxel for voxel (three robots see less of the hall than the demo's four: their map scores
 # ~0.5, against the four robots' 0.70 that the verdict's default floor is set for).
 MAP_F1_FLOOR_EXACT = 0.4
+# The Foxglove endpoint on any free port of the twin's host (it writes its URL to the out folder):
+# other missions may run at the same time.
+WEB_LISTEN = "127.0.0.1:0"
+# How long the npm Foxglove client watches the running twin, s.
+VIEWER_S = 6.0
 # Upper bound on the mission (it ends when every route is done).
 DURATION_S = 150.0
 # The GUI screenshot, seconds into the mission: while every robot still moves.
@@ -113,6 +119,7 @@ def demo_args(fleet_file, bag_path):
         "--map-f1-floor", MAP_F1_FLOOR,
         "--map-f1-floor-exact", MAP_F1_FLOOR_EXACT,
         "--record", bag_path,
+        "--web-listen", WEB_LISTEN,
     ]  # fmt: skip
 
 
@@ -129,6 +136,11 @@ class Observed:
     teleop_active: str = ""  # TELEOP_ROBOT's active mode after the twin asked for teleop
     auto_active: str = ""  # ... and after it asked for auto again
     twin_master_on_link: int = None  # connect_ex to the twin's master at its link address (0 = open)
+    # host (phys|twin) -> its listening ports that a connect from the other host reaches (None over loopback)
+    open_across_link: Dict[str, List[int]] = None
+    # The npm @foxglove/ws-protocol client's report on the twin's Foxglove endpoint (VIEWER_S of it,
+    # run on the twin's side): cps_harness.foxglove_probe.
+    viewer: dict = None
     errors: List[str] = dataclasses.field(default_factory=list)
 
 
@@ -145,9 +157,12 @@ def observe_while_up(mission: Mission) -> Observed:
             mission.echo_once("twin", names.absolute(names.managed_cloud_at_twin(r)), 30.0, "--noarr") for r in ROBOTS
         ),
         "twin_link_state": lambda: mission.echo_once("twin", names.absolute(names.LINK_STATE)),
+        # Early, while every robot still drives (the readings after it may each wait up to 30 s).
+        "viewer": lambda: _watch_in_foxglove(mission),
         "teleop_active": lambda: _switch_mode(mission, "teleop"),
         "auto_active": lambda: _switch_mode(mission, "auto"),
         "twin_master_on_link": lambda: _twin_master_on_link(mission),
+        "open_across_link": lambda: _open_across_link(mission),
     }
     for field, read in readings.items():
         try:
@@ -174,6 +189,36 @@ def _switch_mode(mission, mode, timeout_s=30.0):
         publisher.wait()
 
 
+def viewer_topics():
+    """What the viewer subscribes on the twin's endpoint: the map, a pose, the video, the changes
+    (none in this mission: it has no baseline), the fleet's scene, health and the link."""
+    from cps_web import twin_view
+
+    return [
+        twin_view.MAP,
+        twin_view.pose_channel(TELEOP_ROBOT),
+        twin_view.VIDEO,
+        twin_view.CHANGES,
+        twin_view.FLEET,
+        twin_view.HEALTH,
+        twin_view.LINK,
+    ]
+
+
+def _watch_in_foxglove(mission):
+    """The npm Foxglove client's report after VIEWER_S on the twin's endpoint, run on the twin's side."""
+    from cps_bringup.plan import WEB_URL_FILE
+    from cps_harness.foxglove_probe import install_client, probe_argv
+
+    with open(os.path.join(mission.out_dir, WEB_URL_FILE)) as stream:
+        url = stream.read().strip()
+    argv = probe_argv(url, VIEWER_S, viewer_topics(), install_client())
+    result = mission.on_twin(argv, timeout_s=VIEWER_S + 30)
+    if result.returncode != 0 or not result.stdout.strip():
+        raise RuntimeError(f"the Foxglove client failed ({result.returncode}): {result.stderr[-800:]}")
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
 def _twin_master_on_link(mission):
     """connect_ex from the twin's namespace to its master at the link's twin address (0: it listens there)."""
     from cps_link.netns_link import TWIN_IP
@@ -183,6 +228,27 @@ def _twin_master_on_link(mission):
     port = int(mission.twin_master_uri().rsplit(":", 1)[1])
     code = f"import socket; s=socket.socket(); s.settimeout(2); print(s.connect_ex(('{TWIN_IP}', {port})))"
     return int(mission.on_twin(["python3", "-c", code]).stdout.strip())
+
+
+def _open_across_link(mission):
+    """For each host, which of its listening TCP ports the other host reaches (cps_link.host_guard
+    should leave the twin's bridge ports and nothing else)."""
+    import json
+    import subprocess
+    import sys
+
+    from cps_harness.port_scan import listening_ports, scan_argv
+    from cps_link.netns_link import namespace, side_ip
+
+    link = mission.run_link_name()
+    if link is None:
+        return None
+    found = {}
+    for host, other in (("twin", "phys"), ("phys", "twin")):
+        ports = listening_ports(namespace(link, host))
+        argv = ["ip", "netns", "exec", namespace(link, other), *scan_argv(sys.executable, side_ip(host), ports)]
+        found[host] = json.loads(subprocess.run(argv, check=True, capture_output=True, text=True, timeout=30).stdout)
+    return found
 
 
 @dataclasses.dataclass
@@ -221,6 +287,12 @@ def run_reference(folder):
     bag = str(out / "mission.bag")  # in the mission folder: the recorder runs unprivileged too
     run = ReferenceRun(out=out, fleet_file=fleet_file, bag=bag)
     run.mission = Mission(out, demo_args(fleet_file, bag), program=DEMO)
+    try:
+        from cps_harness.foxglove_probe import install_client
+
+        install_client()  # before the mission (a fresh clone's npm install takes seconds)
+    except Exception as exc:  # noqa: BLE001 - the viewer's reading says it again; the mission still runs
+        print(f"the npm Foxglove client is missing: {exc}")
     try:
         with run.mission:
             run.mission.wait_until_up(UP_TIMEOUT_S)

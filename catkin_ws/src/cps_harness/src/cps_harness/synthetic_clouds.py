@@ -110,6 +110,13 @@ def lidar_cloud(
     return _message(points, fields, 1, len(xyz), 22, stamp, frame_id, is_dense=True)
 
 
+def xyz_cloud(xyz, frame_id, stamp=None):
+    """A PointCloud2 of float32 x, y, z only (as the map server's voxel centres) from an (N, 3) array."""
+    points = np.ascontiguousarray(np.asarray(xyz, dtype="<f4").reshape(-1, 3))
+    fields = [PointField(name=k, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, k in enumerate("xyz")]
+    return _message(points, fields, 1, len(points), 12, stamp, frame_id, is_dense=True)
+
+
 def _message(points, fields, height, width, point_step, stamp, frame_id, is_dense):
     msg = PointCloud2()
     if stamp is not None:

@@ -415,6 +415,16 @@ def link_down(name="cps"):
         raise LinkError(f"could not remove namespaces {left}")
 
 
+def guard_hosts(name, link_ports, sides=SIDES):
+    """Leave only `link_ports` (the Zenoh bridges' listeners on the twin) reachable between the
+    hosts (`sides`) of link `name` (cps_link.host_guard says how and why); undone with the namespaces."""
+    from cps_link.host_guard import guard_argv
+
+    for side in sides:
+        for argv in guard_argv(namespace(name, side), side, link_ports, TWIN_IP):
+            _run(argv)
+
+
 def netns_argv(name, side, argv, env=None):
     """argv that runs `argv` inside one side's namespace with `env` (e.g. ROS_IP) set."""
     assignments = [f"{k}={v}" for k, v in (env or {}).items()]

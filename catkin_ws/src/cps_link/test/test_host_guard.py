@@ -1,0 +1,118 @@
+"""The host guard: from the other host only the link's ports answer (the twin listens on them, the
+robots' host connects to them), over a real link's two namespaces; its rules and its refusals."""
+
+import json
+import socket
+import subprocess
+import sys
+
+import pytest
+
+from cps_harness.port_scan import scan_argv
+from cps_harness.testing import link_name
+from cps_link import netns_link
+from cps_link.host_guard import GUARD_PRIORITY, guard_argv, guard_rules
+from cps_link.netns_link import PHYS_IP, TWIN_IP, ShapedLink, guard_hosts, namespace, netns_argv
+
+LINK_PORTS = (7447, 7448)
+OTHER_PORT = 41035  # a roscpp XML-RPC server's kind of port, on 0.0.0.0
+
+
+def test_the_twin_answers_from_its_listeners_and_the_robots_reach_only_them():
+    twin = guard_rules("twin", [7448, 7447, 7447], TWIN_IP)
+    assert twin[:2] == [
+        ["priority", str(GUARD_PRIORITY), "ipproto", "tcp", "sport", "7447", "lookup", "main"],
+        ["priority", str(GUARD_PRIORITY), "ipproto", "tcp", "sport", "7448", "lookup", "main"],
+    ]
+    robots = guard_rules("phys", LINK_PORTS, TWIN_IP)
+    assert robots[0] == ["priority", str(GUARD_PRIORITY), "to", f"{TWIN_IP}/32", "ipproto", "tcp", "dport", "7447"] + [
+        "lookup",
+        "main",
+    ]
+    for rules in (twin, robots):  # then every other TCP and UDP packet leaving the host
+        assert rules[-2:] == [
+            ["priority", str(GUARD_PRIORITY + 1), "ipproto", "tcp", "prohibit"],
+            ["priority", str(GUARD_PRIORITY + 1), "ipproto", "udp", "prohibit"],
+        ]
+
+
+@pytest.mark.parametrize(
+    "side, ports, match",
+    [
+        ("rogue", LINK_PORTS, "side must be"),
+        ("twin", [], "link ports"),
+        ("phys", [0], "link ports"),
+        ("twin", [70000], "link ports"),
+    ],
+)
+def test_bad_guard_arguments_are_refused(side, ports, match):
+    with pytest.raises(ValueError, match=match):
+        guard_rules(side, ports, TWIN_IP)
+
+
+def _listen(name, side, ports):
+    """A process in `side`'s namespace listening on `ports` on every address until killed."""
+    code = (
+        "import socket, sys, time\n"
+        "held = []\n"
+        "for p in sys.argv[1:]:\n"
+        "    s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)\n"
+        "    s.bind(('0.0.0.0', int(p))); s.listen(8); held.append(s)\n"
+        "print('up', flush=True)\n"
+        "time.sleep(120)\n"
+    )
+    proc = subprocess.Popen(
+        netns_argv(name, side, [sys.executable, "-c", code, *map(str, ports)]), stdout=subprocess.PIPE, text=True
+    )
+    assert proc.stdout.readline().strip() == "up"
+    return proc
+
+
+def _open_from(name, side, host, ports):
+    out = subprocess.run(
+        netns_argv(name, side, scan_argv(sys.executable, host, ports)), check=True, capture_output=True, text=True
+    ).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
+def test_guarded_hosts_answer_each_other_only_on_the_link_ports():
+    name = link_name("hg")
+    with ShapedLink(name, rate="60mbit"):
+        twin = _listen(name, "twin", (*LINK_PORTS, OTHER_PORT))
+        robots = _listen(name, "phys", (OTHER_PORT,))
+        try:
+            # Unguarded, each host reaches every listener of the other.
+            assert _open_from(name, "phys", TWIN_IP, (*LINK_PORTS, OTHER_PORT)) == [*LINK_PORTS, OTHER_PORT]
+            assert _open_from(name, "twin", PHYS_IP, (OTHER_PORT,)) == [OTHER_PORT]
+            # The twin guarded alone: it answers the (unguarded) robots' host on its link ports only.
+            for argv in guard_argv(namespace(name, "twin"), "twin", LINK_PORTS, TWIN_IP):
+                subprocess.run(argv, check=True)
+            assert _open_from(name, "phys", TWIN_IP, (*LINK_PORTS, OTHER_PORT)) == list(LINK_PORTS)
+            # Both guarded (as bringup does): the robots' host answers nothing and still reaches them.
+            guard_hosts(name, LINK_PORTS, sides=("phys",))
+            assert _open_from(name, "twin", PHYS_IP, (OTHER_PORT,)) == []
+            assert _open_from(name, "phys", TWIN_IP, (*LINK_PORTS, OTHER_PORT)) == list(LINK_PORTS)
+            # Loopback inside each host is untouched (each side's ROS graph lives there).
+            assert _open_from(name, "twin", "127.0.0.1", (OTHER_PORT,)) == [OTHER_PORT]
+        finally:
+            for proc in (twin, robots):
+                proc.kill()
+                proc.wait()
+    assert not [ns for ns in netns_link.list_namespaces() if ns.startswith(f"{name}_")]
+
+
+def test_the_scan_tells_open_from_closed():
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    port = server.getsockname()[1]
+    closed = socket.socket()
+    closed.bind(("127.0.0.1", 0))
+    try:
+        from cps_harness.port_scan import open_ports
+
+        assert open_ports("127.0.0.1", [port, closed.getsockname()[1]]) == [port]
+    finally:
+        server.close()
+        closed.close()

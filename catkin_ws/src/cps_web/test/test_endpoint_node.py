@@ -1,0 +1,191 @@
+"""The foxglove_endpoint node on a private master, seen by the npm @foxglove/ws-protocol client:
+the latched map, a robot's pose and the video it subscribes only while watched; a port in use
+refused with a clear error; the MCAP recorder node's file read back."""
+
+import socket
+import time
+
+import pytest
+
+from cps_fleet import names
+from cps_harness import foxglove_probe
+from cps_harness.synthetic_clouds import xyz_cloud
+from cps_harness.testing import wait_for
+from cps_web.twin_view import MAP, VIDEO, pose_channel
+
+pytestmark = pytest.mark.ros
+
+ROBOT = "jackal"  # a camera robot of the default fleet
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _map_cloud(rospy, n):
+    return xyz_cloud([(i, 0.0, 1.0) for i in range(n)], names.MAP_FRAME, rospy.Time.now())
+
+
+def _start_endpoint(ros, url_file, listen="127.0.0.1:0"):
+    return ros.start_node(
+        "cps_web",
+        "foxglove_endpoint",
+        name=names.FOXGLOVE_ENDPOINT,
+        namespace=names.absolute(names.TWIN_NS),
+        params={"~robots": ROBOT, "~listen": listen, "~url_file": str(url_file)},
+    )
+
+
+def test_node_serves_map_pose_and_video_to_the_npm_client(ros, rospy_node, tmp_path):
+    rospy = rospy_node
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import CompressedImage, PointCloud2
+    from std_msgs.msg import Header
+
+    map_pub = rospy.Publisher(
+        names.absolute(names.in_twin(names.POINT_CLOUD_CENTERS)), PointCloud2, queue_size=1, latch=True
+    )
+    odom_pub = rospy.Publisher(names.absolute(names.robot_topic(ROBOT, names.ODOM)), Odometry, queue_size=5)
+    video_topic = names.absolute(names.robot_topic(ROBOT, names.CAMERA_IMAGE_COMPRESSED))
+    video_pub = rospy.Publisher(video_topic, CompressedImage, queue_size=2)
+    map_pub.publish(_map_cloud(rospy, 500))
+    url_file = tmp_path / "url.txt"
+    _start_endpoint(ros, url_file)
+    assert wait_for(lambda: url_file.exists() and url_file.read_text().strip(), timeout_s=30.0), ros.output(
+        names.FOXGLOVE_ENDPOINT
+    )
+    url = url_file.read_text().strip()
+    assert video_pub.get_num_connections() == 0  # nobody watches: the video is not subscribed
+
+    import threading
+
+    stop = threading.Event()
+
+    def feed():
+        i = 0
+        while not stop.is_set():
+            odom = Odometry(header=Header(frame_id=names.odom_frame(ROBOT), stamp=rospy.Time.now()))
+            odom.pose.pose.position.x, odom.pose.pose.orientation.w = 0.1 * i, 1.0
+            odom_pub.publish(odom)
+            video_pub.publish(
+                CompressedImage(header=Header(stamp=rospy.Time.now()), format="jpeg", data=b"\xff\xd8" + b"\0" * 64)
+            )
+            i += 1
+            time.sleep(0.1)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        report = foxglove_probe.probe(url, 5.0, [MAP, VIDEO, pose_channel(ROBOT)])
+    finally:
+        stop.set()
+        feeder.join()
+    assert report["decode_errors"] == {} and report["errors"] == []
+    assert report["samples"][MAP]["points"] == 500
+    assert report["messages"].get(VIDEO, 0) >= 1, report["messages"]
+    assert report["samples"][VIDEO]["jpeg_soi"]
+    assert report["samples"][pose_channel(ROBOT)]["frame_id"] == names.odom_frame(ROBOT)
+    # The viewer left: the video is unsubscribed again.
+    assert wait_for(lambda: video_pub.get_num_connections() == 0, timeout_s=10.0), "the video unsubscribed"
+
+
+def test_port_in_use_is_a_clear_error(ros, tmp_path):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        proc = _start_endpoint(ros, tmp_path / "url.txt", listen=f"127.0.0.1:{port}")
+        assert proc.wait(timeout=30) == 2
+    assert f"{port}" in ros.output_of(proc) and not (tmp_path / "url.txt").exists()
+
+
+def test_recorder_node_writes_an_mcap_every_channel_decodes(ros, rospy_node, tmp_path):
+    rospy = rospy_node
+    from nav_msgs.msg import Odometry
+    from std_msgs.msg import Header
+
+    from cps_harness.mcap_check import read_ros1_mcap
+
+    topic = names.absolute(names.robot_topic(ROBOT, names.ODOM))
+    cloud_topic = names.absolute(names.in_twin(names.POINT_CLOUD_CENTERS)) + "_rec"
+    path = tmp_path / "mission.mcap"
+    proc = ros.start_node(
+        "cps_web",
+        "mcap_recorder",
+        name="mcap_recorder_test",
+        params={"~path": str(path), "~topics": f"{topic},{cloud_topic}"},
+    )
+    from sensor_msgs.msg import PointCloud2
+
+    odom_pub = rospy.Publisher(topic, Odometry, queue_size=10)
+    cloud_pub = rospy.Publisher(cloud_topic, PointCloud2, queue_size=10)
+    assert wait_for(lambda: odom_pub.get_num_connections() and cloud_pub.get_num_connections(), timeout_s=30.0), (
+        ros.output_of(proc)
+    )
+    for i in range(20):
+        odom = Odometry(header=Header(frame_id=names.odom_frame(ROBOT), seq=i), child_frame_id=names.base_frame(ROBOT))
+        odom.pose.pose.position.x = float(i)
+        odom_pub.publish(odom)
+        cloud_pub.publish(_map_cloud(rospy, 10 + i))
+        time.sleep(0.02)
+    time.sleep(1.0)
+    proc.terminate()
+    assert proc.wait(timeout=20) == 0, ros.output_of(proc)
+    contents = read_ros1_mcap(str(path))
+    assert contents.errors == []
+    assert contents.types == {topic: "nav_msgs/Odometry", cloud_topic: "sensor_msgs/PointCloud2"}
+    assert [m.pose.pose.position.x for m in contents.messages[topic]] == [float(i) for i in range(20)]
+    assert [m.width for m in contents.messages[cloud_topic]] == [10 + i for i in range(20)]
+
+
+def test_operator_commands_from_the_viewer_are_checked_and_reach_ros(ros, rospy_node, tmp_path):
+    """Select a camera robot and raise a priority from the npm client: the selection is published
+    latched as the GUI's is, the priority goes through the manager's service; a robot that is no
+    camera robot, an unknown robot, or a request without its fields is refused with the reason."""
+    rospy = rospy_node
+    from std_msgs.msg import String
+
+    from cps_harness.testing import TopicRecorder
+    from cps_msgs.srv import SetPriority, SetPriorityResponse
+
+    asked = []
+
+    def manager(request):
+        asked.append((request.robot, request.priority))
+        return SetPriorityResponse(success=True, message=f"{request.robot} at {request.priority}")
+
+    service = rospy.Service(names.absolute(names.SET_PRIORITY), SetPriority, manager)
+    selected = TopicRecorder(names.absolute(names.SELECTED_ROBOT), String)
+    url_file = tmp_path / "url.txt"
+    proc = ros.start_node(
+        "cps_web",
+        "foxglove_endpoint",
+        name=names.FOXGLOVE_ENDPOINT,
+        namespace=names.absolute(names.TWIN_NS),
+        params={"~robots": "scout,jackal", "~listen": "127.0.0.1:0", "~url_file": str(url_file)},
+    )
+    try:
+        assert wait_for(lambda: url_file.exists() and url_file.read_text().strip(), timeout_s=30.0), ros.output_of(proc)
+        select = names.absolute(names.in_twin(names.WEB_SELECT_ROBOT))
+        priority = names.absolute(names.in_twin(names.WEB_SET_PRIORITY))
+        calls = [
+            (select, {"robot": "jackal"}),
+            (select, {"robot": "scout"}),  # scout has no camera
+            (priority, {"robot": "jackal", "high": True}),
+            (priority, {"robot": "ghost", "high": True}),
+            (priority, {"robot": "jackal"}),
+        ]
+        report = foxglove_probe.probe(url_file.read_text().strip(), 4.0, [], calls=calls)
+    finally:
+        service.shutdown()
+    assert set(report["services"]) == {select, priority}, report["services"]
+    results = [(c["response"], c["failure"]) for c in report["calls"]]
+    assert results[0] == ({"ok": True, "message": "selected jackal"}, None)
+    assert results[1][0] is None and "not a camera robot" in results[1][1]
+    assert results[2] == ({"ok": True, "message": "jackal at 1"}, None)
+    assert results[3][0] is None and "ghost" in results[3][1]
+    assert results[4][0] is None and "lacks 'high'" in results[4][1]
+    assert asked == [("jackal", 1)]
+    assert wait_for(lambda: selected.latest is not None, timeout_s=5.0) and selected.latest.data == "jackal"

@@ -1,0 +1,75 @@
+"""An MCAP we write, read back by the PyPI mcap reader and mcap-ros1-support's decoder (classes
+built from the definitions stored in the file): every channel decodes; what is dropped is counted
+in the file; a message without its definition is refused."""
+
+import io
+
+import pytest
+from mcap.reader import make_reader
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+
+from cps_fleet import names
+from cps_harness.mcap_check import read_ros1_mcap
+from cps_web.mcap_recording import McapRecording, RecordingError, link_topics
+
+
+def _raw(msg):
+    buff = io.BytesIO()
+    msg.serialize(buff)
+    return buff.getvalue()
+
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd", "none"])
+def test_every_channel_decodes_with_its_stored_definition(tmp_path, compression):
+    path = str(tmp_path / "m.mcap")
+    recording = McapRecording(path, chunk_bytes=4096, compression=compression)
+    odom_topic = names.absolute(names.robot_topic("jackal", names.ODOM))
+    cloud_topic = names.absolute(names.managed_cloud_at_twin("jackal"))
+    for i in range(50):
+        odom = Odometry(header=Header(seq=i, frame_id=names.odom_frame("jackal")))
+        odom.pose.pose.position.x = float(i)
+        recording.write(odom_topic, odom._type, Odometry._full_text, _raw(odom), log_time_ns=1_000 + i)
+        cloud = PointCloud2(header=Header(seq=i), width=i, data=bytes(i))
+        recording.write(cloud_topic, cloud._type, PointCloud2._full_text, _raw(cloud), log_time_ns=1_000 + i)
+    recording.close()
+    contents = read_ros1_mcap(path)
+    assert contents.profile == "ros1" and contents.errors == []
+    assert contents.types == {odom_topic: "nav_msgs/Odometry", cloud_topic: "sensor_msgs/PointCloud2"}
+    assert [m.pose.pose.position.x for m in contents.messages[odom_topic]] == [float(i) for i in range(50)]
+    assert [m.width for m in contents.messages[cloud_topic]] == list(range(50))
+    with open(path, "rb") as stream:
+        metadata = {m.name: m.metadata for m in make_reader(stream).iter_metadata()}
+    assert metadata["cps_recording"] == {"messages": "100", "refused": "0", "dropped": "{}"}
+
+
+def test_a_full_backlog_drops_and_the_file_says_so(tmp_path):
+    path = str(tmp_path / "m.mcap")
+    recording = McapRecording(path, backlog_bytes=10)  # less than one message
+    odom = Odometry()
+    for _ in range(3):
+        recording.write("/x", odom._type, Odometry._full_text, _raw(odom))
+    recording.close()
+    assert recording.dropped == {"/x": 3} and recording.messages == 0
+    with open(path, "rb") as stream:
+        metadata = {m.name: m.metadata for m in make_reader(stream).iter_metadata()}
+    assert metadata["cps_recording"]["dropped"] == '{"/x": 3}'
+
+
+def test_a_message_without_definition_is_refused(tmp_path):
+    recording = McapRecording(str(tmp_path / "m.mcap"))
+    with pytest.raises(RecordingError, match="without its type or definition"):
+        recording.write("/x", "nav_msgs/Odometry", "", b"")
+    recording.close()
+    assert recording.refused == 1
+    with pytest.raises(ValueError, match="compression 'gzip'"):
+        McapRecording(str(tmp_path / "n.mcap"), compression="gzip")
+
+
+def test_link_topics_are_what_crosses_the_link():
+    topics = link_topics(["scout", "jackal"], ["jackal"])
+    assert names.absolute(names.managed_cloud_at_twin("scout")) in topics
+    assert names.absolute(names.robot_topic("jackal", names.CAMERA_IMAGE_COMPRESSED)) in topics
+    assert names.absolute(names.robot_topic("scout", names.CAMERA_IMAGE_COMPRESSED)) not in topics
+    assert {names.TF, names.TF_STATIC} <= set(topics)
