@@ -187,6 +187,11 @@ def test_plan_of_one_side_and_a_subset():
     specs = plan_nodes(fleet, sides=(DIGITAL,), options=RunOptions(out_dir="/tmp/x"))
     assert {s.side for s in specs} == {DIGITAL}
     assert not any("scout" in s.label for s in specs)
+    # the GUI shows this mission's robots only (issue 39: a monitoring mission sends back two)
+    fleet = load_fleet().with_robots(["champ", "iris"])
+    options = RunOptions(out_dir="/tmp/x", gui_screenshot_path="/tmp/x/gui.png")
+    gui = next(s for s in plan_nodes(fleet, options=options) if s.label == "gui")
+    assert gui.argv[gui.argv.index("--robots") + 1] == "champ,iris"
 
 
 def test_plan_without_the_manager_and_with_the_command_probe():

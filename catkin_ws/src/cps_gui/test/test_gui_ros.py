@@ -639,3 +639,33 @@ def test_selecting_a_robot_publishes_it_and_shows_its_video_level_fps_latency_an
         selected.close()
         image_pub.unregister()
         status_pub.unregister()
+
+
+def test_the_roster_and_selectors_hold_this_missions_robots_only(qapp, rospy_node, test_fleet_file, tmp_path):
+    """A monitoring mission sends back champ and iris: the GUI lists those two (not the others as
+    "never"/"no data") and its selectors start on one of them, even when the saved settings name a
+    robot of the fleet that is not in this mission."""
+    from cps_gui.host import OperatorWindow
+
+    path = str(tmp_path / "roster.ini")
+    earlier = OperatorWindow(path, fleet_file=test_fleet_file, with_rviz=False)
+    earlier.plugin.teleop.select_robot(JACKAL)
+    earlier.plugin.video.select_robot(JACKAL)
+    earlier.close()
+    mission = (CHAMP, IRIS)
+    win = OperatorWindow(path, fleet_file=test_fleet_file, with_rviz=False, robots=mission)
+    win.show()
+    try:
+        spin_for(qapp, 0.5)
+        plugin = win.plugin
+        table = plugin.status.table
+        assert [table.item(row, 0).text() for row in range(table.rowCount())] == list(mission)
+        video = [plugin.video.robot_combo.itemData(i) for i in range(plugin.video.robot_combo.count())]
+        teleop = [plugin.teleop.robot_combo.itemData(i) for i in range(plugin.teleop.robot_combo.count())]
+        assert video == list(mission) and teleop == list(mission)
+        assert plugin.video.robot in mission and plugin.teleop.robot.name in mission
+        assert set(plugin.state.robot_names) == set(mission)
+    finally:
+        win.close()
+    with pytest.raises(ValueError, match="unknown robot"):
+        OperatorWindow(path, fleet_file=test_fleet_file, with_rviz=False, robots=("nobody",))

@@ -77,3 +77,24 @@ def test_tolerance_and_cluster_size_filter_jitter():
     changes = detect_changes(base, np.vstack([base, box]), RES)
     assert len(changes) == 1 and changes[0].kind == "appeared"
     assert changes[0].voxels < len(box), "the box's bottom layer touches the floor and falls within tolerance"
+
+
+@pytest.mark.parametrize("dx_m, dy_m", [(0.0, 0.5), (0.3, -0.6), (0.0, 1.5)])
+def test_a_moved_crate_is_one_moved_change_with_its_displacement(site, baseline, dx_m, dy_m):
+    """A move shorter than the crate (0.5 m of 1 m: only slivers change) or longer is one change,
+    displaced by the move within a voxel (issue 39: moves were two changes 0.46 m off)."""
+    from cps_mapping.change_detection import ChangeRules
+
+    crate = site.item("crate_2")
+    changes = detect_map_changes(
+        baseline, _mission(site.moved("crate_2", dx_m, dy_m)), rules=ChangeRules(move_radius_m=5.0)
+    )
+    assert [c.kind for c in changes] == ["moved"], [(c.kind, c.centroid_m, c.voxels) for c in changes]
+    (move,) = changes
+    assert move.displacement_m[0] == pytest.approx(dx_m, abs=0.1) and move.displacement_m[1] == pytest.approx(
+        dy_m, abs=0.1
+    )
+    assert move.from_m[0] == pytest.approx(crate.x, abs=0.2) and move.from_m[1] == pytest.approx(crate.y, abs=0.2)
+    assert move.place_m[0] == pytest.approx(crate.x + dx_m, abs=0.2) and move.place_m[1] == pytest.approx(
+        crate.y + dy_m, abs=0.2
+    )

@@ -342,3 +342,37 @@ def test_a_far_origin_cannot_grow_the_grid_beyond_its_limit():
         fused.insert_cloud(np.array([[150.0, 150.0, 0.5]]), [0.0, 0.0, 0.5], max_range_m=-1.0)
     fused.insert_batch([near], max_range_m=6.0, robot="jackal")
     assert len(_set(fused.occupied_index())) == len(before) + 1
+
+
+@pytest.mark.parametrize("exact", [True, False])
+def test_first_seen_stamps_are_the_first_cloud_that_crossed_or_hit_each_voxel(two_robot_clouds, exact):
+    """A monitoring mission times a change from the cloud that first saw its place (issue 39): each
+    voxel keeps the stamp of the first cloud whose ray crossed or ended in it, through the grid's
+    growth, and the map is the same map with or without the stamps."""
+    depth, lidar = two_robot_clouds
+    plain, stamped = new_map(RES, exact_free_space=exact), new_map(RES, exact_free_space=exact, first_seen_stamps=True)
+    stamps = [1000.0 + 0.5 * k for k in range(len(depth))]
+    for fused in (plain, stamped):
+        fused.insert_batch(depth, 6.0, "jackal", stamps_s=stamps if fused is stamped else None)
+    later = 2000.0
+    for fused in (plain, stamped):  # the lidar far away: the grid grows, the stamps move with it
+        fused.insert_batch(lidar, 12.0, "scout", stamps_s=[later] * len(lidar) if fused is stamped else None)
+    assert np.array_equal(plain.log_odds_copy().log_odds, stamped.log_odds_copy().log_odds, equal_nan=True)
+    box = stamped.log_odds_copy()
+    known = ~np.isnan(box.log_odds)
+    assert np.array_equal(known, ~np.isnan(box.first_seen_s)), "every known voxel has a first stamp"
+    first_only = new_map(RES, exact_free_space=exact)
+    first_only.insert_batch(depth[:1], 6.0, "jackal")
+    seen_first = first_only.leaves().centers_m
+    assert np.all(stamped.first_seen_s(seen_first) == stamps[0]), "what the first cloud saw keeps its stamp"
+    depth_only = new_map(RES, exact_free_space=exact)
+    depth_only.insert_batch(depth, 6.0, "jackal")
+    by_depth = set(pack_index(voxel_index(depth_only.leaves().centers_m, RES)).tolist())
+    centres = stamped.leaves().centers_m
+    by_lidar_only = centres[[p not in by_depth for p in pack_index(voxel_index(centres, RES)).tolist()]]
+    assert len(by_lidar_only) and np.all(stamped.first_seen_s(by_lidar_only) == later)
+    assert (
+        np.isnan(stamped.first_seen_s([[500.0, 500.0, 0.5]])).all() and np.isnan(plain.first_seen_s(seen_first)).all()
+    )
+    with pytest.raises(ValueError, match="stamps for"):
+        stamped.insert_batch(depth, 6.0, "jackal", stamps_s=[1.0])

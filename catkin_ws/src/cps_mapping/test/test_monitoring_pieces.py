@@ -2,6 +2,8 @@
 resolution, other frame), scoring detected changes against the simulator's, and which robots get
 a closer look at a new change."""
 
+import dataclasses
+import math
 import types
 
 import numpy as np
@@ -110,3 +112,49 @@ def test_robots_near_a_new_change_are_raised_once():
     assert len(asked) == 1, "positions are looked up only for new changes"
     far = _change("appeared", 8.5, 5.5)
     assert attention.robots_to_raise([grown, far], positions) == [("iris", far)]
+
+
+def _moved(x, y, dx, dy, size=0.8):
+    change = _change("moved", x, y, size)
+    return dataclasses.replace(change, displacement_m=(dx, dy, 0.0), from_m=(x - dx, y - dy, 0.5))
+
+
+def _expected_move(name, x, y, dx, dy, size=1.0):
+    return types.SimpleNamespace(
+        name=name, kind="moved", centroid_m=(x, y, 0.5), size_m=(size, size, 1.0), displacement_m=(dx, dy, 0.0),
+        from_centroid_m=(x - dx, y - dy, 0.5), from_size_m=(size, size, 1.0),
+    )  # fmt: skip
+
+
+def test_a_move_is_scored_as_one_change_by_its_displacement():
+    expected = [_expected_move("crate_4", 3.0, -3.5, 0.0, 1.0), _expected("crate_2", "disappeared", 3.2, -1.0)]
+    detected = [
+        _moved(3.05, -3.45, 0.04, 0.93),  # where it went, from where, by how much
+        _change("disappeared", 3.0, -4.5),  # a move's half on its own matches nothing
+        _change("appeared", 3.0, -3.5),
+        _moved(3.2, -1.0, 0.0, 0.5),  # right place, but crate_2 did not move
+    ]
+    score = score_changes(detected, expected)
+    assert (len(score.matches), score.detected, score.expected) == (1, 4, 2)
+    match = score.match_of_expected(0)
+    assert match.detected_index == 0 and match.position_error_m == pytest.approx(math.hypot(0.04, 0.07), abs=1e-4)
+    wrong_origin = _moved(3.0, -3.5, 0.0, 3.0)  # placed right, but came from 3 m away
+    assert score_changes([wrong_origin], expected[:1]).matches == ()
+
+
+def test_coverage_says_which_regions_the_new_mission_did_not_see_again(mapping):
+    from cps_mapping.change_coverage import coverage, reobserved
+    from cps_mapping.change_detection import TRUSTED_RULES
+
+    wall_a = np.stack(np.meshgrid([2.05], np.arange(-0.95, 1.0, 0.1), np.arange(0.05, 1.0, 0.1)), -1).reshape(-1, 3)
+    wall_b = wall_a + [0.0, 4.0, 0.0]
+    baseline = FusedLogOddsMap(mapping.resolution_m, mapping.sensor_model)
+    for _ in range(3):
+        baseline.insert_batch([(wall_a, np.array([0.0, 0.0, 0.5])), (wall_b, np.array([0.0, 4.0, 0.5]))], 10.0, "r")
+    current = FusedLogOddsMap(mapping.resolution_m, mapping.sensor_model)
+    for _ in range(3):  # the new mission looks at wall a only
+        current.insert_batch([(wall_a, np.array([0.0, 0.0, 0.5]))], 10.0, "r")
+    _, centres, seen = reobserved(baseline, current, TRUSTED_RULES)
+    table = {c.name: c for c in coverage(centres, seen, {"a": lambda p: p[:, 1] < 2.0}, rest="b")}
+    assert table["a"].seen_again and table["a"].fraction == 1.0
+    assert not table["b"].seen_again and table["b"].voxels == len(wall_b) and table["b"].reobserved == 0

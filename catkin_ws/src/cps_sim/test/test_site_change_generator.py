@@ -56,6 +56,34 @@ def test_scenarios_are_seeded_valid_and_overlap_nothing(tmp_path, site, fleet):
             x0, y0, x1, y1 = after.item(name).footprint
             grown = (x0 - CLEARANCE_M, y0 - CLEARANCE_M, x1 + CLEARANCE_M, y1 + CLEARANCE_M)
             assert not any(_overlap(grown, o.footprint) for o in after.equipment if o.name != name), (path, name)
+            removed = site.item(changes.removed[0]).footprint
+            assert not _overlap(grown, removed), (path, name, "stands where the removed item stood")
+
+
+def test_nothing_moved_or_added_stands_where_a_removed_item_stood(site, fleet):
+    """seed3901_pair_1 moved drum_5 into the place of tank_4, removed in the same scenario: the
+    baseline had the tank there, so nothing there could appear and the move had no right answer."""
+    (storage,) = visited_areas(site, fleet, ROBOTS)
+    drum, tank = site.item("drum_5"), site.item("tank_4")
+    dx = (tank.footprint[0] + tank.footprint[2] - drum.footprint[0] - drum.footprint[2]) / 2
+    dy = (tank.footprint[1] + tank.footprint[3] - drum.footprint[1] - drum.footprint[3]) / 2
+    after = site.without("tank_4").moved("drum_5", dx, dy)
+    problem = overlap_problem(after, ["drum_5"], [storage], vacated=[("tank_4", tank.footprint)])
+    assert "where removed 'tank_4' stood" in problem, problem
+
+
+def test_the_whole_fleet_changes_every_area_and_thin_layered_structure(tmp_path, site, fleet):
+    """With the whole fleet every fenced area is visited, and shelving and pipe racks are changed
+    too (issue 39: the false changes came from thin, layered structure)."""
+    robots = fleet.robot_names
+    assert {a.name for a in visited_areas(site, fleet, robots)} == {a.name for a in site.areas}
+    paths = generate_scenarios(site, fleet, robots, 30, 11, str(tmp_path), log=lambda _: None)
+    changed = [load_site_changes(p, site) for p in paths]
+    names = [n for c in changed for n in (*c.removed, *(m.name for m in c.moved))]
+    types = {site.item(n).type for n in names}
+    assert {"shelving", "pipe_run"} <= types, types
+    areas = {a.name for c in changed for a in site.areas for e in c.added if a.contains_xy(e.x, e.y)}
+    assert areas == {a.name for a in site.areas}
 
 
 def test_a_site_without_room_says_so(tmp_path, site, fleet):

@@ -515,6 +515,8 @@ def plan_nodes(
                             str(options.gui_screenshot_after_s),
                             "--fleet-file",
                             fleet.path,
+                            "--robots",  # this mission's robots only (a monitoring mission sends back some)
+                            ",".join(fleet.robot_names),
                         ),
                     ),
                     restart_limit=0,

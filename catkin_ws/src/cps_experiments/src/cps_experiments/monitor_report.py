@@ -1,6 +1,9 @@
 """The monitoring mission's report: what changed on the site, as the twin found it (the saved map
 against the baseline) and as the simulator made it (the site model + the changes file), matched:
-precision, recall, each match's position error, and a top-down picture with the changes marked.
+precision, recall, each match's position error, and a top-down picture with the changes marked;
+and what the mission did not see again (the baseline's equipment and areas it did not re-observe
+well enough to confirm or deny a change: cps_mapping.change_coverage), with the recall over the
+changes it could see and over all.
 """
 
 import dataclasses
@@ -11,7 +14,10 @@ import numpy as np
 
 from cps_experiments.markdown import markdown_table
 
-APPEARED_COLOUR, DISAPPEARED_COLOUR = "tab:green", "tab:red"
+APPEARED_COLOUR, DISAPPEARED_COLOUR, MOVED_COLOUR = "tab:green", "tab:red", "tab:blue"
+COLOURS = {"appeared": APPEARED_COLOUR, "disappeared": DISAPPEARED_COLOUR, "moved": MOVED_COLOUR}
+# How far around an item's solids its baseline voxels are counted as its own (one voxel).
+ITEM_MARGIN_M = 0.1
 
 
 # How far from a false change the report looks for the solid it was made of.
@@ -32,6 +38,13 @@ class MonitoringResult:
     baseline_trails: object = None  # robot_bodies.RobotTrails saved with the baseline, or None
     current_trails: object = None
     evidence: str = ""  # where the new map's misses at the baseline's voxels came from
+    coverage: list = ()  # cps_mapping.change_coverage.Coverage of each item and area of the baseline's site
+    reobserved: tuple = ()  # per expected change: did the mission see its place(s) again
+
+    def recall_reobserved(self):
+        """(matched, made) over the changes in places the mission re-observed."""
+        seen = [i for i, ok in enumerate(self.reobserved) if ok]
+        return sum(self.score.match_of_expected(i) is not None for i in seen), len(seen)
 
 
 def solid_near(sites, change, margin_m=NEAR_SOLID_M):
@@ -61,6 +74,39 @@ LIVE_REPORT = "map_changes.md"  # the map server's live report in a mission's fo
 
 
 @dataclasses.dataclass
+class LiveReport:
+    """What the twin reported while the mission ran (its last live report, map_changes.json): the
+    changes it reported and did not withdraw, and when (the map server's clock)."""
+
+    changes: list  # cps_mapping.change_detection.Change
+    reported_s: list  # when each was first reported
+    first_view_s: list  # the stamp of the first cloud that saw each one's place (None: not known)
+    withdrawn: int  # reported once, withdrawn by a later cycle
+
+    def times_s(self):
+        """First view -> report (s) of each change, None where its first view is not known."""
+        return [None if v is None else r - v for r, v in zip(self.reported_s, self.first_view_s)]
+
+
+def read_live_report(out_dir):
+    """The mission's LiveReport, or None if the map server wrote none."""
+    from cps_mapping.change_detection import Change
+
+    path = os.path.join(out_dir, LIVE_REPORT.rsplit(".", 1)[0] + ".json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as stream:
+        rows = json.load(stream)
+    kept = [r for r in rows if not r.get("withdrawn") and r.get("reported_s") is not None]
+    return LiveReport(
+        [Change.from_dict(r) for r in kept],
+        [r["reported_s"] for r in kept],
+        [r.get("first_view_s") for r in kept],
+        sum(bool(r.get("withdrawn")) for r in rows),
+    )
+
+
+@dataclasses.dataclass
 class SavedMaps:
     """Two missions' saved maps with what was saved beside them."""
 
@@ -71,6 +117,10 @@ class SavedMaps:
     current_trails: object
     current_hits: object
     current_misses: object  # VoxelLevels of the new mission's misses at the baseline's voxels, or None
+    baseline_views: object = None  # sensor_views.SensorViews saved with the baseline, or None
+    current_views: object = None
+    baseline_ever_hit: object = None  # voxel indices each mission's robots ever hit, or None
+    current_ever_hit: object = None
     _swept: object = None
 
     def swept(self):
@@ -84,11 +134,12 @@ class SavedMaps:
 
 
 def load_maps(baseline_path, map_path, fleet) -> SavedMaps:
-    """The two maps and their sidecars: robot trails (`<map>.json`), hit levels (`<map>.hits.npz`),
-    and the new mission's misses at the baseline's voxels from the map server's last detection cycle
-    (`map_changes_miss_levels.npz`): a .bt holds only occupied/free."""
-    from cps_mapping.baseline import load_baseline, read_map_trails
-    from cps_mapping.change_detection import VoxelLevels, miss_levels_path
+    """The two maps and their sidecars: robot trails and sensor views (`<map>.json`), hit levels
+    and ever-hit voxels (`<map>.hits.npz`), and the new mission's misses at the baseline's voxels
+    from the map server's last detection cycle (`map_changes_miss_levels.npz`): a .bt holds only
+    occupied/free."""
+    from cps_mapping.baseline import load_baseline, read_map_trails, read_map_views
+    from cps_mapping.change_detection import VoxelLevels, miss_levels_path, read_ever_hit
 
     misses = miss_levels_path(os.path.join(os.path.dirname(os.path.abspath(map_path)), LIVE_REPORT))
     return SavedMaps(
@@ -99,6 +150,10 @@ def load_maps(baseline_path, map_path, fleet) -> SavedMaps:
         read_map_trails(map_path),
         VoxelLevels.of_map(map_path),
         VoxelLevels.load(misses) if os.path.exists(misses) else None,
+        read_map_views(baseline_path),
+        read_map_views(map_path),
+        read_ever_hit(baseline_path),
+        read_ever_hit(map_path),
     )
 
 
@@ -115,12 +170,18 @@ def evaluate_monitoring(baseline_path, map_path, fleet, changes_path, rules=None
     expected = expected_changes(site, changes)
     m = maps or load_maps(baseline_path, map_path, fleet)
     swept = m.swept()
+    rules = rules or TRUSTED_RULES
     detected = detect_map_changes(
         m.baseline,
         m.current,
-        rules=rules or TRUSTED_RULES,
+        rules=rules,
         swept=swept,
         current_trails=m.current_trails,
+        baseline_trails=m.baseline_trails,
+        current_views=m.current_views,
+        baseline_views=m.baseline_views,
+        baseline_ever_hit=m.baseline_ever_hit,
+        current_ever_hit=m.current_ever_hit,
         current_misses=m.current_misses,
         baseline_hits=m.baseline_hits,
         current_hits=m.current_hits,
@@ -128,7 +189,14 @@ def evaluate_monitoring(baseline_path, map_path, fleet, changes_path, rules=None
     evidence = [
         "misses: the last live detection cycle" if m.current_misses else "misses: map.bt only (occupied/free)",
         "hits: both maps" if m.baseline_hits and m.current_hits else "hits: **not saved with both maps** (not tested)",
+        "voxels ever hit: both maps"
+        if m.baseline_ever_hit is not None and m.current_ever_hit is not None
+        else "voxels ever hit: **not saved with both maps** (not tested)",
+        "viewpoints: the inserted clouds' (with their fields of view)"
+        if m.current_views is not None
+        else "viewpoints: **every pose of the robots' trails** (the sensor views were not saved)",
     ]
+    coverage, reobserved = site_coverage(m, site, changes, expected, rules, swept)
     return MonitoringResult(
         detected,
         expected,
@@ -140,7 +208,60 @@ def evaluate_monitoring(baseline_path, map_path, fleet, changes_path, rules=None
         m.baseline_trails,
         m.current_trails,
         "; ".join(evidence),
+        coverage,
+        reobserved,
     )
+
+
+def _holds(primitives, margin_m=ITEM_MARGIN_M):
+    """points -> mask: inside any of `primitives` grown by `margin_m`."""
+
+    def holds(points):
+        mask = np.zeros(len(points), dtype=bool)
+        for prim in primitives:
+            mask |= prim.contains(points, margin_m)
+        return mask
+
+    return holds
+
+
+def _in_area(area, margin_m=0.2):
+    x0, y0, x1, y1 = area.rectangle
+    return lambda p: (
+        (p[:, 0] >= x0 - margin_m)
+        & (p[:, 0] <= x1 + margin_m)
+        & (p[:, 1] >= y0 - margin_m)
+        & (p[:, 1] <= y1 + margin_m)
+    )
+
+
+def site_coverage(maps, site, changes, expected, rules, swept):
+    """([Coverage] of each item and fenced area of the baseline's site, then the rest of the hall),
+    and per expected change whether the mission saw its place(s) again: an item gone or moved from
+    a place re-observed (cps_mapping.change_coverage), an item new or moved to a place the mission
+    saw it at (at least `min_cluster_voxels` occupied voxels of its solids in the new map) and the
+    baseline had seen (at least half of those known free in the baseline)."""
+    from cps_mapping.change_coverage import REOBSERVED_FRACTION, coverage, reobserved
+
+    _, centers, seen = reobserved(maps.baseline, maps.current, rules, swept, maps.current_misses)
+    regions = {item.name: _holds(item.primitives()) for item in site.equipment}
+    regions.update({f"{area.name} (fenced area)": _in_area(area) for area in site.areas})
+    table = coverage(centers, seen, regions, rest="the rest of the hall (walls, aisles)")
+    by_name = {c.name: c for c in table}
+    after = changes.apply(site)
+    now = maps.current.occupied_centers()
+
+    def seen_now(item):
+        inside = now[_holds(item.primitives())(now)] if len(now) else now
+        known = maps.baseline.is_free(inside, max_probability=0.5) if len(inside) else np.zeros(0, bool)
+        return len(inside) >= rules.min_cluster_voxels and known.mean() >= REOBSERVED_FRACTION
+
+    flags = []
+    for e in expected:
+        gone_ok = by_name[e.name].seen_again if e.kind in ("disappeared", "moved") else True
+        new_ok = seen_now(after.item(e.name)) if e.kind in ("appeared", "moved") else True
+        flags.append(bool(gone_ok and new_ok))
+    return table, tuple(flags)
 
 
 def draw_changes(ax, result: MonitoringResult):
@@ -148,25 +269,28 @@ def draw_changes(ax, result: MonitoringResult):
     from matplotlib.patches import Rectangle
 
     for e in result.expected:
-        colour = APPEARED_COLOUR if e.kind == "appeared" else DISAPPEARED_COLOUR
-        ax.add_patch(
-            Rectangle(
-                (e.centroid_m[0] - e.size_m[0] / 2, e.centroid_m[1] - e.size_m[1] / 2),
-                e.size_m[0],
-                e.size_m[1],
-                fill=False,
-                ec=colour,
-                ls="--",
-                lw=1.5,
+        boxes = [(e.centroid_m, e.size_m)] + ([(e.from_centroid_m, e.from_size_m)] if e.kind == "moved" else [])
+        for centre, size in boxes:
+            ax.add_patch(
+                Rectangle(
+                    (centre[0] - size[0] / 2, centre[1] - size[1] / 2),
+                    size[0],
+                    size[1],
+                    fill=False,
+                    ec=COLOURS[e.kind],
+                    ls="--",
+                    lw=1.5,
+                )
             )
-        )
     for i, c in enumerate(result.detected, 1):
-        colour = APPEARED_COLOUR if c.kind == "appeared" else DISAPPEARED_COLOUR
+        colour = COLOURS.get(c.kind, DISAPPEARED_COLOUR)
         ax.add_patch(Rectangle(c.min_m[:2], c.size_m[0], c.size_m[1], fc=colour, ec="k", alpha=0.55, lw=1))
+        if c.from_m is not None:  # a move: an arrow from where the item stood
+            ax.annotate("", c.place_m, xytext=c.from_m[:2], arrowprops=dict(arrowstyle="->", color=colour, lw=1.5))
         ax.annotate(f"{i}", c.centroid_m[:2], xytext=(6, 6), textcoords="offset points", fontsize=9, weight="bold")
-    ax.plot([], [], color=APPEARED_COLOUR, lw=6, alpha=0.55, label="detected: appeared")
-    ax.plot([], [], color=DISAPPEARED_COLOUR, lw=6, alpha=0.55, label="detected: disappeared")
-    ax.plot([], [], color="0.3", ls="--", label="simulator's change (footprint)")
+    for kind, colour in COLOURS.items():
+        ax.plot([], [], color=colour, lw=6, alpha=0.55, label=f"detected: {kind}")
+    ax.plot([], [], color="0.3", ls="--", label="simulator's change (footprint; a move: both)")
 
 
 def change_crop_lines(result, out):
@@ -195,6 +319,44 @@ def _xyz(values):
     return ", ".join(f"{v:.2f}" for v in values)
 
 
+def _moved_by(values):
+    return f"{values[0]:+.2f}, {values[1]:+.2f}" if values is not None else "—"
+
+
+def coverage_lines(result):
+    """The report's section on what the mission did not see again, and the recall over what it did."""
+    from cps_mapping.change_coverage import REOBSERVED_FRACTION
+
+    score = result.score
+    matched, seen = result.recall_reobserved()
+    missing = [c for c in result.coverage if c.voxels and not c.seen_again]
+    lines = [
+        "## What this mission did not see again",
+        "",
+        f"A baseline voxel is re-observed when this mission saw it occupied again (within the detection's "
+        f"tolerance) or saw through it often enough to call it gone; an item or area with less than "
+        f"{REOBSERVED_FRACTION:.0%} of its baseline voxels re-observed cannot be confirmed or denied: "
+        "a change there would be missed without a word. Send a robot there.",
+        "",
+    ]
+    lines += [
+        markdown_table(
+            ("item or area", "baseline voxels", "re-observed"),
+            [(c.name, c.voxels, f"{c.fraction:.0%}") for c in sorted(missing, key=lambda c: c.fraction)],
+        )
+        if missing
+        else "Every item and area of the baseline was re-observed.",
+        "",
+        f"Recall over the changes in places this mission re-observed: {matched}/{seen}"
+        + (f" = {matched / seen:.2f}" if seen else "")
+        + f"; over all: {len(score.matches)}/{score.expected}"
+        + (f" = {score.recall:.2f}" if score.expected else "")
+        + ".",
+        "",
+    ]
+    return lines
+
+
 def write_monitor_report(mission, mission_args, wall_time_s):
     """report.md, changes.json and topdown.png in the mission's output folder; returns report.md's path."""
     from cps_experiments.topdown_map import plot_topdown
@@ -218,6 +380,10 @@ def write_monitor_report(mission, mission_args, wall_time_s):
     else:
         result = evaluate_monitoring(mission_args.baseline, mission.map_file, fleet, mission_args.site_changes)
         score = result.score
+        from cps_mapping.change_scoring import score_changes
+
+        live = read_live_report(out)
+        live_score = score_changes(live.changes, result.expected) if live is not None else None
         lines += [
             f"Simulator: {result.changes.describe()}.",
             "",
@@ -234,14 +400,23 @@ def write_monitor_report(mission, mission_args, wall_time_s):
             "## Score",
             "",
             markdown_table(
-                ("changes detected", "changes made", "precision", "recall"),
-                [(score.detected, score.expected, f"{score.precision:.2f}", f"{score.recall:.2f}")],
+                ("", "changes detected", "changes made", "precision", "recall"),
+                [
+                    (what, s.detected, s.expected, f"{s.precision:.2f}", f"{s.recall:.2f}")
+                    for what, s in (
+                        [("**live: what the twin reported while the mission ran**", live_score)]
+                        if live_score is not None
+                        else []
+                    )
+                    + [("re-detected on the saved maps after the mission", score)]
+                ],
             ),
             "",
             "A detected change is placed at the centre of its box (a surface seen from one side pulls the "
             "voxels' mean centroid toward that side) and matches a made one of the same kind whose footprint "
-            "(grown by 0.5 m) holds that place. Position error: horizontal distance from there to the centre "
-            "of the item's footprint. Only places the monitoring mission saw free or occupied count "
+            "(grown by 0.5 m) holds that place; a move is one change (where the item went, and where it came "
+            "from). Position error: horizontal distance from there to the centre of the item's footprint; of a "
+            "move, the error of its displacement. Only places the monitoring mission saw free or occupied count "
             "(the free-space rule of `cps_mapping.change_detection`).",
             "",
             "## Changes the twin detected (saved map against the baseline)",
@@ -252,6 +427,7 @@ def write_monitor_report(mission, mission_args, wall_time_s):
                     "kind",
                     "centroid x, y, z m",
                     "size x, y, z m",
+                    "moved by x, y m",
                     "volume m³",
                     "voxels",
                     "matches",
@@ -263,6 +439,7 @@ def write_monitor_report(mission, mission_args, wall_time_s):
                         c.kind,
                         _xyz(c.centroid_m),
                         _xyz(c.size_m),
+                        _moved_by(c.displacement_m),
                         f"{c.volume_m3:.3f}",
                         c.voxels,
                         result.expected[m.expected_index].name
@@ -279,28 +456,42 @@ def write_monitor_report(mission, mission_args, wall_time_s):
             "## Changes the simulator made",
             "",
             markdown_table(
-                ("item", "kind", "centre x, y, z m", "size x, y, z m", "detected as", "position error m"),
+                (
+                    "item",
+                    "kind",
+                    "centre x, y, z m",
+                    "size x, y, z m",
+                    "moved by x, y m",
+                    "re-observed",
+                    "detected as",
+                    "position error m",
+                ),
                 [
                     (
                         e.name,
                         e.kind,
                         _xyz(e.centroid_m),
                         _xyz(e.size_m),
+                        _moved_by(e.displacement_m),
+                        "yes" if seen else "**no**",
                         f"#{m.detected_index + 1}" if m else "missed",
                         f"{m.position_error_m:.2f}" if m else "—",
                     )
-                    for i, e in enumerate(result.expected)
+                    for i, (e, seen) in enumerate(zip(result.expected, result.reobserved))
                     for m in [score.match_of_expected(i)]
                 ],
             ),
             "",
         ]
+        lines += coverage_lines(result)
         with open(os.path.join(out, "changes.json"), "w") as stream:
             json.dump(
                 {
                     "detected": [dataclasses.asdict(c) for c in result.detected],
                     "expected": [dataclasses.asdict(e) for e in result.expected],
                     "score": score.as_dict(),
+                    "reobserved": list(result.reobserved),
+                    "coverage": [dataclasses.asdict(c) for c in result.coverage],
                 },
                 stream,
                 indent=1,

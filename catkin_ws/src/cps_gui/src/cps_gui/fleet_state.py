@@ -100,12 +100,14 @@ class RobotMapFigures:
 
 @dataclasses.dataclass(frozen=True)
 class MapChange:
-    """One change the twin found against the baseline map: kind ("appeared"/"disappeared"), the
-    centre and size (x, y, z) of its box in `map`, metres."""
+    """One change the twin found against the baseline map: kind ("appeared"/"disappeared"/"moved"),
+    the centre and size (x, y, z) of its box in `map` (a move: where the item stands now), metres;
+    a move's `from_m`: the centre of the box it left."""
 
     kind: str
     center_m: Tuple[float, float, float]
     size_m: Tuple[float, float, float]
+    from_m: Optional[Tuple[float, float, float]] = None
 
     @property
     def volume_m3(self):

@@ -116,6 +116,11 @@ def parse_args(argv):
         help=f"ini file the window layout and choices persist in (default {DEFAULT_SETTINGS_PATH})",
     )
     parser.add_argument("--fleet-file", default=None, help="fleet.yaml (default: CPS_FLEET_FILE or cps_bringup's)")
+    parser.add_argument(
+        "--robots",
+        default=None,
+        help="comma-separated robots of this mission (default: the whole fleet); the GUI shows only these",
+    )
     parser.add_argument("--no-rviz", action="store_true", help="leave the rviz 3D pane out (no OpenGL needed)")
     parser.add_argument(
         "--stale-after",
@@ -159,7 +164,11 @@ def main(argv=None):
     rospy.init_node("cps_gui", disable_signals=True)
     app = QApplication.instance() or QApplication(argv[:1])
     window = OperatorWindow(
-        args.settings, fleet_file=args.fleet_file, with_rviz=not args.no_rviz, stale_after_s=args.stale_after
+        args.settings,
+        fleet_file=args.fleet_file,
+        with_rviz=not args.no_rviz,
+        stale_after_s=args.stale_after,
+        robots=args.robots.split(",") if args.robots else None,
     )
     if args.screenshot:
         window.resize(*args.size)

@@ -22,16 +22,18 @@ REFRESH_PERIOD_MS = 200
 
 
 class FleetOperatorPlugin(_PluginBase):
-    """fleet_file: fleet.yaml (default: CPS_FLEET_FILE or cps_bringup's). with_rviz: embed the rviz
-    pane (default: unless CPS_GUI_NO_RVIZ=1; rviz needs X with OpenGL). stale_after_s: age at
-    which data is drawn red."""
+    """fleet_file: fleet.yaml (default: CPS_FLEET_FILE or cps_bringup's). robots: the mission's
+    robots, a subset of the fleet's (default: all of them); the roster, selectors and views show
+    only these (a monitoring mission sends back two robots: the others have no data to show).
+    with_rviz: embed the rviz pane (default: unless CPS_GUI_NO_RVIZ=1; rviz needs X with
+    OpenGL). stale_after_s: age at which data is drawn red."""
 
-    def __init__(self, context, fleet_file=None, with_rviz=None, stale_after_s=2.0):
+    def __init__(self, context, fleet_file=None, with_rviz=None, stale_after_s=2.0, robots=None):
         super().__init__(context)
         self.setObjectName("FleetOperatorPlugin")
         import rospy
 
-        from cps_fleet.fleet import load_fleet
+        from cps_fleet.fleet import load_fleet, robot_names_arg
         from cps_gui.ros_io import FleetRosIO
         from cps_gui.widgets.changes import ChangesPane
         from cps_gui.widgets.status import StatusPane
@@ -41,7 +43,7 @@ class FleetOperatorPlugin(_PluginBase):
 
         if with_rviz is None:
             with_rviz = os.environ.get("CPS_GUI_NO_RVIZ", "") not in ("1", "true")
-        self.fleet = load_fleet(fleet_file)
+        self.fleet = robot_names_arg(load_fleet(fleet_file), list(robots) if robots else None)
         self.state = FleetState([(r.name, r.type) for r in self.fleet.robots], stale_after_s=stale_after_s)
         self.io = FleetRosIO(self.fleet, self.state)
         fences, problem = topview.load_fences(self.fleet.site_path)

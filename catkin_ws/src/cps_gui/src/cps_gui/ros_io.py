@@ -6,6 +6,7 @@ or a service (topic discovery, /tissue/set_priority) runs on a worker thread and
 through a callback, so the GUI thread never waits on the network.
 """
 
+import dataclasses
 import math
 import threading
 
@@ -51,12 +52,18 @@ LOG_LEVELS = {Log.DEBUG: "DEBUG", Log.INFO: "INFO", Log.WARN: "WARN", Log.ERROR:
 
 
 def map_changes_of(msg):
-    """The MapChanges of a /twin/map_changes MarkerArray: its boxes, whose `text` is the kind."""
+    """The MapChanges of a /twin/map_changes MarkerArray: its boxes, whose `text` is the kind; a
+    move's arrow ("moved from", after its box) says where the item stood."""
     out = []
     for marker in msg.markers:
-        if marker.type == Marker.CUBE and marker.action == Marker.ADD and marker.text in ("appeared", "disappeared"):
+        if marker.action != Marker.ADD:
+            continue
+        if marker.type == Marker.CUBE and marker.text in ("appeared", "disappeared", "moved"):
             p, s = marker.pose.position, marker.scale
             out.append(MapChange(marker.text, (p.x, p.y, p.z), (s.x, s.y, s.z)))
+        elif marker.type == Marker.ARROW and marker.text == "moved from" and out and len(marker.points) == 2:
+            p = marker.points[0]
+            out[-1] = dataclasses.replace(out[-1], from_m=(p.x, p.y, p.z))
     return out
 
 

@@ -15,7 +15,7 @@ FREE_RGB = (235, 235, 235)
 OCCUPIED_RGB = (20, 20, 20)
 UNKNOWN_RGB = (150, 160, 170)
 # Site changes against the baseline map: appeared green, disappeared red.
-CHANGE_RGB = {"appeared": (46, 160, 67), "disappeared": (211, 47, 47)}
+CHANGE_RGB = {"appeared": (46, 160, 67), "disappeared": (211, 47, 47), "moved": (30, 100, 230)}
 # Half the side of the square the top view shows around a change the operator selected.
 FOCUS_HALF_SIDE_M = 3.0
 # Occupancy values (0..100) at or above this are drawn occupied.

@@ -5,7 +5,9 @@ A .bt file holds its resolution but not its frame, so the map server writes a sm
 `<map>.json` (`{"frame_id": ..., "resolution_m": ..., "robot_poses": ...}`) next to every map it
 saves; a baseline whose sidecar names another frame is refused, one without a sidecar is taken as
 in `frame_id`. `robot_poses` (cps_mapping.robot_bodies.RobotTrails) are the robots' sensor poses and
-bodies during the mission that made the map, so that change detection can ignore the robots in it;
+bodies during the mission that made the map, so that change detection can ignore the robots in it,
+and `sensor_views` (cps_mapping.sensor_views.SensorViews) where the clouds it inserted were taken
+from and what each sensor could see, its viewpoints;
 a map without them (saved before they were kept) is still usable: `read_map_trails` returns None
 and the monitoring report says that robots seen in the baseline may come out as changes.
 """
@@ -25,12 +27,15 @@ def metadata_path(map_path):
     return f"{map_path}.json"
 
 
-def write_map_metadata(map_path, frame_id, resolution_m, robot_trails=None):
-    """The sidecar of a saved map (with the robots' trails, a RobotTrails, if given); MapFileError if
-    it cannot be written. Written to a temporary file first: a reader never sees half a sidecar."""
+def write_map_metadata(map_path, frame_id, resolution_m, robot_trails=None, sensor_views=None):
+    """The sidecar of a saved map (with the robots' trails, a RobotTrails, and the inserted clouds'
+    SensorViews, if given); MapFileError if it cannot be written. Written to a temporary file first:
+    a reader never sees half a sidecar."""
     doc = {"frame_id": frame_id, "resolution_m": resolution_m}
     if robot_trails is not None:
         doc["robot_poses"] = robot_trails.as_json()
+    if sensor_views is not None:
+        doc["sensor_views"] = sensor_views.as_json()
     path = metadata_path(map_path)
     try:
         write_atomically(path, lambda stream: json.dump(doc, stream), binary=False)
@@ -53,20 +58,34 @@ def read_map_frame(map_path):
     return frame
 
 
-def read_map_trails(map_path):
-    """The robots' trails saved with a map (cps_mapping.robot_bodies.RobotTrails), or None if the
-    sidecar is missing or predates them; BaselineError if they are unreadable."""
-    from cps_mapping.robot_bodies import RobotTrails
-
+def _read_sidecar_entry(map_path, key, parse, what):
+    """`parse(doc[key])` of a saved map's sidecar, or None if the sidecar is missing or predates
+    `key`; BaselineError (naming `what`) if it is unreadable."""
     path = metadata_path(map_path)
     if not os.path.exists(path):
         return None
     try:
         with open(path) as stream:
             doc = json.load(stream)
-        return RobotTrails.from_json(doc["robot_poses"]) if "robot_poses" in doc else None
+        return parse(doc[key]) if key in doc else None
     except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
-        raise BaselineError(f"{path}: unreadable robot poses ({type(exc).__name__}: {exc})") from exc
+        raise BaselineError(f"{path}: unreadable {what} ({type(exc).__name__}: {exc})") from exc
+
+
+def read_map_trails(map_path):
+    """The robots' trails saved with a map (cps_mapping.robot_bodies.RobotTrails), or None if the
+    sidecar is missing or predates them; BaselineError if they are unreadable."""
+    from cps_mapping.robot_bodies import RobotTrails
+
+    return _read_sidecar_entry(map_path, "robot_poses", RobotTrails.from_json, "robot poses")
+
+
+def read_map_views(map_path):
+    """The inserted clouds' viewpoints saved with a map (cps_mapping.sensor_views.SensorViews), or
+    None if the sidecar is missing or predates them; BaselineError if they are unreadable."""
+    from cps_mapping.sensor_views import SensorViews
+
+    return _read_sidecar_entry(map_path, "sensor_views", SensorViews.from_json, "sensor views")
 
 
 def load_baseline(path, mapping, frame_id="map") -> FusedLogOddsMap:

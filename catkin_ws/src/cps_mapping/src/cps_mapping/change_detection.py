@@ -14,7 +14,12 @@ with a new map of the same site:
   next mission sees it face on (because what hid it moved) it must not count as appeared;
 - changed voxels are grouped into 26-connected clusters; clusters smaller than
   `min_cluster_voxels` are noise. Each cluster has a centroid, an axis-aligned size and a
-  volume (voxels x resolution^3).
+  volume (voxels x resolution^3);
+- a disappeared and an appeared cluster that are one item moved become one *moved* change
+  (`pair_moves`): the horizontal shift that lays the baseline's voxels around the disappeared
+  cluster onto the new map's around the appeared one, found by correlation, explains both;
+- with the new map's first-seen stamps (`seen_s`), each change says when the first cloud that
+  saw its place was taken (`first_view_s`).
 """
 
 import dataclasses
@@ -34,13 +39,32 @@ from cps_mapping.fused_map import near_any as _sparse_near_any
 
 @dataclasses.dataclass
 class Change:
-    kind: str  # "appeared" or "disappeared"
+    kind: str  # "appeared", "disappeared" or "moved"
     voxels: int
     centroid_m: tuple
     size_m: tuple  # extent along x, y, z
     volume_m3: float
     min_m: tuple
     max_m: tuple
+    # When the first cloud that saw the change's place was taken (s, the clouds' clock), if known.
+    first_view_s: Optional[float] = None
+    # A move: the box is the item where it stands now; it was displaced by this (m) from `from_m`
+    # (the centre of its box before).
+    displacement_m: Optional[tuple] = None
+    from_m: Optional[tuple] = None
+
+    @property
+    def place_m(self):
+        """(x, y) of the change: the centre of its box (a surface seen from one side pulls the
+        voxels' mean toward that side)."""
+        return ((self.min_m[0] + self.max_m[0]) / 2, (self.min_m[1] + self.max_m[1]) / 2)
+
+    @classmethod
+    def from_dict(cls, doc):
+        """A change as `dataclasses.asdict` wrote it (a report's .json), other keys ignored."""
+        fields = {f.name for f in dataclasses.fields(cls)}
+        kept = {k: tuple(v) if isinstance(v, list) else v for k, v in doc.items() if k in fields}
+        return cls(**kept)
 
 
 def near_any(index, other_index, tolerance_voxels):
@@ -90,9 +114,27 @@ def _merge_boxes(index, labels, count, gap_voxels):
     return np.array([root(label) for label in range(count + 1)])[labels]
 
 
+def _change_of(kind, members, resolution_m, **extra):
+    """The Change of a cluster of voxel indices."""
+    centers = index_to_center(members, resolution_m)
+    lo_m = members.min(axis=0) * resolution_m
+    hi_m = (members.max(axis=0) + 1) * resolution_m
+    return Change(
+        kind=kind,
+        voxels=int(len(members)),
+        centroid_m=tuple(np.round(centers.mean(axis=0), 4).tolist()),
+        size_m=tuple(np.round(hi_m - lo_m, 4).tolist()),
+        volume_m3=float(len(members) * resolution_m**3),
+        min_m=tuple(np.round(lo_m, 4).tolist()),
+        max_m=tuple(np.round(hi_m, 4).tolist()),
+        **extra,
+    )
+
+
 def _clusters(index, kind, resolution_m, min_cluster_voxels, merge_gap_voxels=0):
-    """26-connected clusters of voxels; with `merge_gap_voxels` g, clusters at most 2 g empty voxels
-    apart are one (an item's surface cut in two by the tolerance around something next to it)."""
+    """[(Change, its voxel indices)]: 26-connected clusters of voxels; with `merge_gap_voxels` g,
+    clusters at most 2 g empty voxels apart are one (an item's surface cut in two by the tolerance
+    around something next to it)."""
     if len(index) == 0:
         return []
     lo = index.min(axis=0) - merge_gap_voxels
@@ -113,21 +155,8 @@ def _clusters(index, kind, resolution_m, min_cluster_voxels, merge_gap_voxels=0)
             continue
         if len(members) < min_cluster_voxels:
             continue
-        centers = index_to_center(members, resolution_m)
-        lo_m = members.min(axis=0) * resolution_m
-        hi_m = (members.max(axis=0) + 1) * resolution_m
-        out.append(
-            Change(
-                kind=kind,
-                voxels=int(len(members)),
-                centroid_m=tuple(np.round(centers.mean(axis=0), 4).tolist()),
-                size_m=tuple(np.round(hi_m - lo_m, 4).tolist()),
-                volume_m3=float(len(members) * resolution_m**3),
-                min_m=tuple(np.round(lo_m, 4).tolist()),
-                max_m=tuple(np.round(hi_m, 4).tolist()),
-            )
-        )
-    return sorted(out, key=lambda c: -c.voxels)
+        out.append((_change_of(kind, members, resolution_m), members))
+    return sorted(out, key=lambda cm: -cm[0].voxels)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,12 +183,15 @@ class ChangeRules:
       clouds, e.g. the floor seen with a lagging pose, is no equipment.
     - `merge_gap_voxels`: clusters of one kind at most twice this many empty voxels apart are one
       change (one item's surface, cut by the tolerance around what stands next to it).
-    - `min_height_voxels`: a change must span at least this many voxels in height. The ground
-      robots' lidars (+-15 deg) meet a horizontal surface thinner than a voxel (a 4 cm shelf board
-      in a 10 cm voxel, a fence rail, a patch of floor) at a grazing angle: its voxel is both hit
-      and passed through, and which way it ends depends on where the sensors stood, so a flat
-      sheet one mission kept and the other carved free is no evidence (1: not checked; a change
-      of something that thin is beyond what the grid can attest).
+    - `sheet_min_incidence_deg`: a change that is a thin sheet (`sheet_axis`: a shelf board, a
+      patch of floor) needs its `min_viewpoints` from lines of sight that meet its plane at least
+      this steeply, in the map that says it is not there (the new mission's for a disappeared
+      sheet, the baseline mission's for an appeared one): rays at a grazing angle cross the voxels
+      of a thin surface without touching it, and carve it out of one mission's map and not the
+      other's (docs/monitoring.md; 0: not checked).
+    - `move_radius_m`: a disappeared and an appeared cluster this near (box centres) that one
+      horizontal shift explains (at least `move_min_explained` of each) are one moved item
+      (`pair_moves`; 0: never paired).
     """
 
     tolerance_voxels: int = 1
@@ -172,16 +204,33 @@ class ChangeRules:
     min_hits: int = 1
     viewpoint_separation_m: float = 1.0
     max_view_range_m: float = 8.0
-    min_height_voxels: int = 1
+    move_radius_m: float = 0.0
+    move_min_explained: float = 0.6
+    sheet_min_incidence_deg: float = 0.0
 
     def __post_init__(self):
         if self.tolerance_voxels < 0 or self.min_cluster_voxels < 1 or self.disappeared_min_misses < 1:
             raise ValueError("tolerance_voxels must be >= 0, min_cluster_voxels and disappeared_min_misses >= 1")
-        if self.min_height_voxels < 1:
-            raise ValueError("min_height_voxels must be >= 1")
         if not 0.0 < self.appeared_free_max_probability < 0.5:
             raise ValueError("appeared_free_max_probability must be in (0, 0.5)")
 
+
+# How far apart (box centres) a move's two halves may be: the longest item of the hall (a 4 m pipe
+# run) moved by its own length leaves slivers 4 m apart.
+MOVE_RADIUS_M = 5.0
+
+# A thin surface seen at incidence theta: each ray crosses ~1/tan(theta) voxels of the surface's
+# layer and meets the surface in one of them, the others get a miss. With OctoMap's hit 0.7 / miss
+# 0.4 (log-odds +0.85 / -0.41) a surface still there stays occupied while 1/tan(theta) - 1 < 2.1
+# (theta > 18 deg) and is carved free below; 30 deg (0.7 misses per hit) keeps a margin. A lidar
+# (+-15 deg) never sees a horizontal sheet that steeply: only a view from above or below does.
+SHEET_MIN_INCIDENCE_DEG = 30.0
+# An appeared sheet: the baseline saw its place free from at least this many steep viewpoints (a
+# disappeared one needs `min_viewpoints` of the new mission, issue 25's rule for every disappearance).
+APPEARED_SHEET_VIEWPOINTS = 1
+# A sheet: at most this many voxels thick, at least SHEET_ASPECT times longer along both other axes.
+SHEET_MAX_VOXELS = 2
+SHEET_ASPECT = 3
 
 # What the twin reports by default: the strict rules of issue 25 (docs/monitoring.md).
 TRUSTED_RULES = ChangeRules(
@@ -193,7 +242,8 @@ TRUSTED_RULES = ChangeRules(
     min_viewpoints=2,
     merge_gap_voxels=1,
     min_hits=3,
-    min_height_voxels=2,
+    move_radius_m=MOVE_RADIUS_M,
+    sheet_min_incidence_deg=SHEET_MIN_INCIDENCE_DEG,
 )
 
 
@@ -231,26 +281,40 @@ def detect_changes(
     baseline_known: Optional[Callable] = None,
     current_known: Optional[Callable] = None,
     disappeared_cluster_ok: Optional[Callable] = None,
+    appeared_cluster_ok: Optional[Callable] = None,
     merge_gap_voxels=0,
     min_known_neighbours=6,
     baseline_firm: Optional[Callable] = None,
     current_firm: Optional[Callable] = None,
-    min_height_voxels=1,
+    seen_s: Optional[Callable] = None,
+    move_radius_m=0.0,
+    move_min_explained=0.6,
+    baseline_hit_index=None,
+    current_hit_index=None,
 ) -> List[Change]:
     """Clusters of voxels that appeared or disappeared between two maps (see the module docstring).
     `excluded(index)`: True for voxels no change may hold (the robots' swept volume);
     `baseline_known`/`current_known(points)`: known free there (the neighbourhood rule);
-    `disappeared_cluster_ok(change)`: a last test of each disappeared cluster (the viewpoints);
+    `disappeared_cluster_ok(change)`, `appeared_cluster_ok(change)`: a last test of each cluster (the viewpoints);
     `baseline_firm`/`current_firm(points)`: the voxel was seen occupied firmly enough to count as gone/new;
-    `min_height_voxels`: flatter clusters are dropped (ChangeRules says why)."""
-    if tolerance_voxels < 0 or min_cluster_voxels < 1 or min_height_voxels < 1:
-        raise ValueError("tolerance_voxels must be >= 0, min_cluster_voxels and min_height_voxels >= 1")
+    `seen_s(points)`: when the new map first saw each point's voxel (each change's first view);
+    `move_radius_m` > 0: pair moves within it (`pair_moves`, with `move_min_explained`);
+    `baseline_hit_index`/`current_hit_index`: the voxels each map's robots ever hit (FusedLogOddsMap.hit_index):
+    nothing appeared (disappeared) within the tolerance of a voxel the baseline (new) mission ever hit."""
+    if tolerance_voxels < 0 or min_cluster_voxels < 1:
+        raise ValueError("tolerance_voxels must be >= 0 and min_cluster_voxels >= 1")
     base = _index(baseline_centers_m, resolution_m)
     cur = _index(current_centers_m, resolution_m)
     if excluded is not None:
         base, cur = base[~excluded(base)], cur[~excluded(cur)]
     appeared = cur[~near_any(cur, base, tolerance_voxels)]
     disappeared = base[~near_any(base, cur, tolerance_voxels)]
+    # A voxel a mission's sensor ever hit held something during that mission: the rays that crossed
+    # it later may have passed beside a thin surface inside it (DUFOMap: void only where never hit).
+    if baseline_hit_index is not None and len(appeared):
+        appeared = appeared[~near_any(appeared, baseline_hit_index, tolerance_voxels)]
+    if current_hit_index is not None and len(disappeared):
+        disappeared = disappeared[~near_any(disappeared, current_hit_index, tolerance_voxels)]
     if current_firm is not None and len(appeared):
         appeared = appeared[current_firm(index_to_center(appeared, resolution_m))]
     if baseline_firm is not None and len(disappeared):
@@ -269,28 +333,196 @@ def detect_changes(
             ]
     gone = _clusters(disappeared, "disappeared", resolution_m, min_cluster_voxels, merge_gap_voxels)
     if disappeared_cluster_ok is not None:
-        gone = [c for c in gone if disappeared_cluster_ok(c)]
-    found = _clusters(appeared, "appeared", resolution_m, min_cluster_voxels, merge_gap_voxels) + gone
-    return [c for c in found if c.size_m[2] >= (min_height_voxels - 0.5) * resolution_m]
+        gone = [(c, m) for c, m in gone if disappeared_cluster_ok(c)]
+    new = _clusters(appeared, "appeared", resolution_m, min_cluster_voxels, merge_gap_voxels)
+    if appeared_cluster_ok is not None:
+        new = [(c, m) for c, m in new if appeared_cluster_ok(c)]
+    if seen_s is not None:
+        for change, members in new + gone:
+            change.first_view_s = _earliest(seen_s(index_to_center(members, resolution_m)))
+    if move_radius_m > 0:
+        return pair_moves(new, gone, base, cur, resolution_m, move_radius_m, move_min_explained)
+    return [c for c, _ in new + gone]
+
+
+def _earliest(stamps):
+    stamps = np.asarray(stamps, dtype=np.float64)
+    stamps = stamps[np.isfinite(stamps)]
+    return round(float(stamps.min()), 3) if len(stamps) else None
+
+
+# Voxels at or below this layer above the floor are left out of a move's correlation: the floor is
+# in both maps under every item and would pull the shift toward none.
+_FLOOR_LAYERS = 1
+
+
+def _region(index, lo, hi):
+    return index[np.all((index >= lo) & (index <= hi), axis=1)]
+
+
+def _best_shift(before, after, min_shift_voxels):
+    """(shift (dx, dy) in voxels, sub-voxel refined, float; votes) that lays most of `before`'s
+    voxels onto `after`'s in the same layer, at least `min_shift_voxels` long; None if none."""
+    votes = {}
+    for z in np.intersect1d(before[:, 2], after[:, 2]):
+        b, a = before[before[:, 2] == z][:, :2], after[after[:, 2] == z][:, :2]
+        d = (a[None, :, :] - b[:, None, :]).reshape(-1, 2)
+        keys, counts = np.unique(d, axis=0, return_counts=True)
+        for k, c in zip(map(tuple, keys), counts):
+            votes[k] = votes.get(k, 0) + int(c)
+    candidates = [(c, k) for k, c in votes.items() if max(abs(k[0]), abs(k[1])) >= min_shift_voxels]
+    if not candidates:
+        return None
+    count, (dx, dy) = max(candidates)
+    # the votes' mean over the peak's 3 x 3 neighbourhood: the shift between voxel steps
+    near = [((dx + i, dy + j), votes.get((dx + i, dy + j), 0)) for i in (-1, 0, 1) for j in (-1, 0, 1)]
+    weight = sum(w for _, w in near)
+    refined = (sum(k[0] * w for k, w in near) / weight, sum(k[1] * w for k, w in near) / weight)
+    return refined, (dx, dy), count
+
+
+def _explained(index, shift, other, tolerance_voxels=1):
+    """Fraction of `index`'s voxels that, shifted by `shift` (dx, dy), lie within the tolerance of `other`."""
+    if not len(index) or not len(other):
+        return 0.0
+    moved = index + np.array([shift[0], shift[1], 0])
+    return float(near_any(moved, other, tolerance_voxels).mean())
+
+
+def pair_moves(appeared, disappeared, base, cur, resolution_m, radius_m, min_explained):
+    """The changes, with each disappeared and appeared cluster that are one item moved replaced by
+    one "moved" change. `appeared`/`disappeared`: [(Change, voxel indices)]; `base`/`cur`: the
+    two maps' occupied voxel indices (robots' volume left out).
+
+    A pair within `radius_m` (box centres, horizontally) is a move when one horizontal shift, found
+    by correlating the baseline's voxels with the new map's over both clusters' boxes (one voxel
+    around; the floor and shifts under 2 voxels left out: what stood still), lays at least
+    `min_explained` of the disappeared cluster onto the new map and of the appeared one, shifted
+    back, onto the baseline. A move shorter than the item leaves only slivers (the side it left and
+    the side it took); the correlation still finds the whole item's shift. Best pairs first."""
+    floor_z = None
+    candidates = []
+    for i, (a, a_members) in enumerate(appeared):
+        for j, (d, d_members) in enumerate(disappeared):
+            if math.dist(a.place_m, d.place_m) > radius_m:
+                continue
+            lo = np.minimum(a_members.min(axis=0), d_members.min(axis=0)) - 1
+            hi = np.maximum(a_members.max(axis=0), d_members.max(axis=0)) + 1
+            if floor_z is None:
+                floor_z = _floor_layer(base, cur)
+            lo[2] = max(lo[2], floor_z + _FLOOR_LAYERS + 1)
+            before, after = _region(base, lo, hi), _region(cur, lo, hi)
+            if not len(before) or not len(after):
+                continue
+            shift = _best_shift(before, after, 2)
+            if shift is None:
+                continue
+            refined, step, votes = shift
+            gone_ok = _explained(d_members, step, cur)
+            new_ok = _explained(a_members, (-step[0], -step[1]), base)
+            if min(gone_ok, new_ok) >= min_explained:
+                candidates.append((min(gone_ok, new_ok), votes, i, j, refined, step, before, after))
+    used_a, used_d, moves = set(), set(), []
+    for _, _, i, j, refined, step, before, after in sorted(candidates, key=lambda c: (-c[0], -c[1])):
+        if i in used_a or j in used_d:
+            continue
+        used_a.add(i)
+        used_d.add(j)
+        item = np.vstack([disappeared[j][1], before[near_any(before + [step[0], step[1], 0], after, 1)]])
+        moves.append(_move(appeared[i][0], disappeared[j][0], refined, step, np.unique(item, axis=0), resolution_m))
+    rest = [c for k, (c, _) in enumerate(appeared) if k not in used_a]
+    rest += [c for k, (c, _) in enumerate(disappeared) if k not in used_d]
+    return moves + rest
+
+
+def _floor_layer(base, cur):
+    """The floor's voxel layer: the lowest layer that holds many voxels of either map."""
+    both = np.concatenate([base[:, 2], cur[:, 2]])
+    if not len(both):
+        return 0
+    layers, counts = np.unique(both, return_counts=True)
+    return int(layers[np.argmax(counts >= 0.5 * counts.max())])
+
+
+def _move(a, d, shift_voxels, step, item, resolution_m):
+    """One "moved" change from appeared `a` and disappeared `d`: the item (its baseline voxels
+    `item`: the disappeared cluster and what moved with it) now, displaced by `shift_voxels`
+    (`step` rounded) from where it was."""
+    now = _change_of("moved", item + [step[0], step[1], 0], resolution_m)
+    displacement = np.array([shift_voxels[0], shift_voxels[1], 0.0]) * resolution_m
+    old_box = _change_of("moved", item, resolution_m)
+    now.voxels = a.voxels + d.voxels
+    now.volume_m3 = float(now.voxels * resolution_m**3)
+    now.displacement_m = tuple(np.round(displacement, 4).tolist())
+    now.from_m = tuple(np.round((np.asarray(old_box.min_m) + old_box.max_m) / 2, 4).tolist())
+    views = [t for t in (a.first_view_s, d.first_view_s) if t is not None]
+    now.first_view_s = min(views) if views else None
+    return now
+
+
+def _seen_through(sources, fused, rules, resolution_m, every_cluster, min_viewpoints):
+    """cluster -> True if `min_viewpoints` viewpoints saw it through `fused`'s known free space (a
+    sheet only from steep enough: `rules.sheet_min_incidence_deg`); with `every_cluster` False a
+    cluster that is no sheet passes untested. `sources`: a mission's
+    SensorViews (the inserted clouds that had the cluster in view) or, for a map saved without them,
+    its RobotTrails (every pose, wherever it looked)."""
+    views = sources if hasattr(sources, "positions_seeing") else None
+    positions = None if views is not None else sensor_positions(sources, rules.viewpoint_separation_m)
+    known = functools.partial(fused.is_free, max_probability=0.5)
+
+    def ok(change):
+        if not every_cluster and sheet_axis(change, resolution_m) is None:
+            return True
+        here = positions
+        if views is not None:
+            target = (np.asarray(change.min_m) + change.max_m) / 2
+            here = distinct_positions(
+                views.positions_seeing(target, rules.max_view_range_m), rules.viewpoint_separation_m
+            )
+        seen = viewpoints_of(change, here, known, resolution_m, rules.max_view_range_m, rules.sheet_min_incidence_deg)
+        return seen >= min_viewpoints
+
+    return ok
+
+
+def distinct_positions(points, separation_m):
+    """One of the points per `separation_m` cell they fall in (the first): each a distinct
+    viewpoint, where a sensor was (not the cell's centre, up to 0.87 cell away from any)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not len(points):
+        return points
+    _, first = np.unique(np.floor(points / separation_m).astype(np.int64), axis=0, return_index=True)
+    return points[np.sort(first)]
 
 
 def sensor_positions(trails, separation_m):
-    """The sensor positions of the robots' trails (cps_mapping.robot_bodies.RobotTrails), thinned
-    greedily so that no two kept ones are closer than `separation_m`: each one a distinct viewpoint."""
+    """The sensor positions of the robots' trails (cps_mapping.robot_bodies.RobotTrails), one per
+    `separation_m` cell: each one a distinct viewpoint."""
     if trails is None:
         return np.zeros((0, 3))
     points = [p[:3, 3] for trail in trails.trails.values() for p in trail.snapshot()[1]]
-    if not points:
-        return np.zeros((0, 3))
-    cells = np.unique(np.floor(np.asarray(points) / separation_m).astype(np.int64), axis=0)
-    return (cells + 0.5) * separation_m  # one viewpoint per separation-sized cell
+    return distinct_positions(points, separation_m)
 
 
-def viewpoints_of(change, positions, known_free, resolution_m, max_range_m):
+def sheet_axis(change, resolution_m):
+    """The axis (0, 1, 2) a change's box is thin along if it is a sheet (at most SHEET_MAX_VOXELS
+    thick and at least SHEET_ASPECT times that along both other axes: a shelf board, a patch of
+    floor, one face of an item), else None."""
+    extent = np.round(np.asarray(change.size_m) / resolution_m).astype(int)
+    axis = int(np.argmin(extent))
+    others = np.delete(extent, axis)
+    if extent[axis] <= SHEET_MAX_VOXELS and np.all(others >= SHEET_ASPECT * extent[axis]):
+        return axis
+    return None
+
+
+def viewpoints_of(change, positions, known_free, resolution_m, max_range_m, sheet_min_incidence_deg=0.0):
     """How many of `positions` see the change's box centre through known free space within range:
     the segment from the sensor to the centre, stopped one voxel diagonal plus half the box's
     largest side short of it (the box's own surface), sampled every half voxel, must be free in the
-    map that says the thing is gone. One free-space query for all positions."""
+    map that says the thing is gone. One free-space query for all positions. A sheet (`sheet_axis`)
+    counts only positions whose line of sight meets its plane at `sheet_min_incidence_deg` or more:
+    a ray at a grazing angle passes through the voxels of a thin surface without touching it."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     if not len(positions):
         return 0
@@ -299,6 +531,10 @@ def viewpoints_of(change, positions, known_free, resolution_m, max_range_m):
     distance = np.linalg.norm(offset, axis=1)
     stop = distance - math.sqrt(3) * resolution_m - max(change.size_m) / 2
     usable = (distance <= max_range_m) & (stop > 0)
+    axis = sheet_axis(change, resolution_m) if sheet_min_incidence_deg > 0 else None
+    if axis is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            usable &= np.abs(offset[:, axis]) >= math.sin(math.radians(sheet_min_incidence_deg)) * distance
     if not usable.any():
         return 0
     step = resolution_m / 2
@@ -322,11 +558,17 @@ class FrozenMap:
     def __init__(self, fused):
         self.resolution_m, self.sensor_model = fused.resolution_m, fused.sensor_model
         self._occupied = fused.occupied_centers()
+        self._hit_index = fused.hit_index()
         box = fused.log_odds_copy()
         self._lo, self._dims, self._log_odds = box.lo, box.dims, box.log_odds
+        self._first_seen = box.first_seen_s
 
     def occupied_centers(self):
         return self._occupied
+
+    def hit_index(self):
+        """FusedLogOddsMap.hit_index as at the copy."""
+        return self._hit_index
 
     def hit_levels(self):
         """(voxel index, level) of every occupied voxel: the net hits its log-odds stand for
@@ -337,6 +579,24 @@ class FrozenMap:
         hit = math.log(self.sensor_model.hit / (1.0 - self.sensor_model.hit))
         level = np.clip(np.floor(log_odds / hit + 0.5), 0, MAX_HIT_LEVEL).astype(np.uint8)
         return index, level
+
+    def _cells(self, points_m):
+        """(flat cell, inside the box) of each point's voxel."""
+        pts = np.asarray(points_m, dtype=np.float32).astype(np.float64).reshape(-1, 3)
+        rel = np.floor(pts * (1.0 / self.resolution_m)).astype(np.int64) - self._lo
+        inside = np.all((rel >= 0) & (rel < self._dims), axis=1)
+        flat = np.zeros(len(pts), dtype=np.int64)
+        if inside.any():
+            flat[inside] = np.ravel_multi_index(rel[inside].T, self._dims)
+        return flat, inside
+
+    def first_seen_s(self, points_m):
+        """When each point's voxel was first seen (FusedLogOddsMap.first_seen_s), as at the copy."""
+        flat, inside = self._cells(points_m)
+        out = np.full(len(flat), np.nan)
+        if self._first_seen is not None:
+            out[inside] = self._first_seen[flat[inside]]
+        return out
 
     def is_free(self, points_m, max_probability=0.5):
         if not 0.0 < max_probability < 1.0:
@@ -363,14 +623,27 @@ def hit_levels_path(map_path):
 
 
 def write_hit_levels(map_path, frozen):
-    """Beside a saved map (`<map>.hits.npz`): how firmly each occupied voxel was seen (FrozenMap.hit_levels);
-    a .bt keeps only occupied/free, and a surface seen in one or two clouds (e.g. the floor seen
-    with a lagging pose) must not count as firmly as one seen all mission long."""
+    """Beside a saved map (`<map>.hits.npz`): how firmly each occupied voxel was seen (FrozenMap.hit_levels)
+    and every voxel ever hit (`ever_hit`, FrozenMap.hit_index); a .bt keeps only occupied/free, and
+    a surface seen in one or two clouds (e.g. the floor seen with a lagging pose) must not count as
+    firmly as one seen all mission long."""
     index, level = frozen.hit_levels()
+    ever = frozen.hit_index()
     return write_atomically(
         hit_levels_path(map_path),
-        lambda stream: np.savez_compressed(stream, index=index.astype(np.int32), level=level),
+        lambda stream: np.savez_compressed(
+            stream, index=index.astype(np.int32), level=level, ever_hit=ever.astype(np.int32)
+        ),
     )
+
+
+def read_ever_hit(map_path):
+    """The voxels a saved map's robots ever hit (write_hit_levels), or None if not saved."""
+    path = hit_levels_path(map_path)
+    if not os.path.exists(path):
+        return None
+    with np.load(path) as data:
+        return data["ever_hit"].astype(np.int64) if "ever_hit" in data.files else None
 
 
 class VoxelLevels:
@@ -450,6 +723,11 @@ def detect_map_changes(
     current_misses=None,
     baseline_hits=None,
     current_hits=None,
+    baseline_trails=None,
+    baseline_ever_hit=None,
+    current_ever_hit=None,
+    current_views=None,
+    baseline_views=None,
     **kwargs,
 ) -> List[Change]:
     """detect_changes for two FusedLogOddsMaps under `rules` (ChangeRules; keyword arguments
@@ -457,7 +735,12 @@ def detect_map_changes(
     viewpoints of the monitoring mission; `current_misses` (VoxelLevels of miss levels) stands for the current map's
     log-odds at the baseline's voxels when the current map was read from a .bt; `baseline_hits`,
     `current_hits` (VoxelLevels) how firmly each map's occupied voxels were seen (the current one's
-    from its own log-odds when it is a FrozenMap)."""
+    from its own log-odds when it is a FrozenMap); `baseline_trails` the baseline mission's
+    viewpoints (the sheet rule of an appeared cluster); `current_views`, `baseline_views`
+    (sensor_views.SensorViews) the viewpoints of the clouds each map inserted, with their fields of
+    view, used instead of the trails when given; `baseline_ever_hit`, `current_ever_hit` the
+    voxels each map's robots ever hit (read_ever_hit; the current one's from the map itself when it
+    is a FrozenMap or a live map)."""
     if abs(baseline_map.resolution_m - current_map.resolution_m) > 1e-9:
         raise ValueError("the two maps have different resolutions")
     rules = dataclasses.replace(rules or ChangeRules(), **kwargs)
@@ -468,13 +751,13 @@ def detect_map_changes(
     gone_probability = min(rules.appeared_free_max_probability, misses_probability(rules.disappeared_min_misses, miss))
     if free_max_probability is not None:
         gone_probability = free_max_probability
-    cluster_ok = None
-    if rules.min_viewpoints > 0 and current_trails is not None:
-        positions = sensor_positions(current_trails, rules.viewpoint_separation_m)
-        known = functools.partial(current_map.is_free, max_probability=0.5)
-
-        def cluster_ok(change):
-            return viewpoints_of(change, positions, known, res, rules.max_view_range_m) >= rules.min_viewpoints
+    cluster_ok = appeared_ok = None
+    current_sources = current_views if current_views is not None else current_trails
+    baseline_sources = baseline_views if baseline_views is not None else baseline_trails
+    if rules.min_viewpoints > 0 and current_sources is not None:
+        cluster_ok = _seen_through(current_sources, current_map, rules, res, True, rules.min_viewpoints)
+    if rules.sheet_min_incidence_deg > 0 and baseline_sources is not None:
+        appeared_ok = _seen_through(baseline_sources, baseline_map, rules, res, False, APPEARED_SHEET_VIEWPOINTS)
 
     return detect_changes(
         baseline_map.occupied_centers(),
@@ -497,9 +780,21 @@ def detect_map_changes(
         else None,
         min_known_neighbours=rules.min_known_neighbours,
         disappeared_cluster_ok=cluster_ok,
+        appeared_cluster_ok=appeared_ok,
         merge_gap_voxels=rules.merge_gap_voxels,
-        min_height_voxels=rules.min_height_voxels,
+        seen_s=getattr(current_map, "first_seen_s", None),
+        baseline_hit_index=baseline_ever_hit,
+        current_hit_index=current_ever_hit if current_ever_hit is not None else _hit_index_of(current_map),
+        move_radius_m=rules.move_radius_m,
+        move_min_explained=rules.move_min_explained,
     )
+
+
+def _hit_index_of(fused):
+    """A live map's (or FrozenMap's) ever-hit voxels; None for a map read from a file (no owners)."""
+    if isinstance(fused, FrozenMap) or getattr(fused, "hit_index", None) is not None and len(fused.hit_index()):
+        return fused.hit_index()
+    return None
 
 
 def write_report(changes: List[Change], path, baseline_name="baseline", current_name="current", tracker=None):
@@ -510,15 +805,17 @@ def write_report(changes: List[Change], path, baseline_name="baseline", current_
         f"# Site changes: {current_name} against {baseline_name}",
         "",
         f"{sum(c.kind == 'appeared' for c in changes)} appeared, "
-        f"{sum(c.kind == 'disappeared' for c in changes)} disappeared.",
+        f"{sum(c.kind == 'disappeared' for c in changes)} disappeared, "
+        f"{sum(c.kind == 'moved' for c in changes)} moved.",
         "",
-        "| # | change | centroid x, y, z (m) | size x, y, z (m) | volume (m³) | voxels |",
-        "|---|---|---|---|---|---|",
+        "| # | change | centroid x, y, z (m) | size x, y, z (m) | volume (m³) | voxels | moved by x, y (m) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for i, c in enumerate(changes, 1):
+        moved = f"{c.displacement_m[0]:+.2f}, {c.displacement_m[1]:+.2f}" if c.displacement_m else "—"
         lines.append(
             f"| {i} | {c.kind} | {', '.join(f'{v:.2f}' for v in c.centroid_m)} | "
-            f"{', '.join(f'{v:.2f}' for v in c.size_m)} | {c.volume_m3:.3f} | {c.voxels} |"
+            f"{', '.join(f'{v:.2f}' for v in c.size_m)} | {c.volume_m3:.3f} | {c.voxels} | {moved} |"
         )
     with open(path, "w") as stream:
         stream.write("\n".join(lines) + "\n")
@@ -526,12 +823,14 @@ def write_report(changes: List[Change], path, baseline_name="baseline", current_
     if tracker is not None:
         for row, t in zip(rows, tracker.reported()):
             row.update(first_seen_s=t.first_seen_s, reported_s=t.reported_s, cycles=t.cycles)
+            row["first_view_s"] = t.first_view_s
         rows += [
             {
                 **dataclasses.asdict(t.change),
                 "withdrawn": True,
                 "first_seen_s": t.first_seen_s,
                 "reported_s": t.reported_s,
+                "first_view_s": t.first_view_s,
             }
             for t in tracker.withdrawn
         ]

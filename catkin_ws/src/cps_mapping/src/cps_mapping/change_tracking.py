@@ -4,7 +4,9 @@ finds it (later evidence contradicts it: the place was seen occupied again, or i
 apart). Dynablox and DUFOMap both wait for repeated evidence before they call space free or
 dynamic (docs/monitoring.md).
 
-The same change in two cycles: same kind, box centres within `same_change_m` horizontally.
+The same change in two cycles: same kind, box centres within `same_change_m` horizontally. Its
+first view is the earliest any cycle found (the stamp of the first cloud that saw its place): the
+change grows as more of it is seen, and a later cycle's cluster may start from a later cloud.
 """
 
 import dataclasses
@@ -21,6 +23,7 @@ class TrackedChange:
     first_seen_s: float  # the first cycle that found it
     cycles: int  # consecutive cycles that found it
     reported_s: Optional[float] = None  # when it was first reported (min_cycles reached)
+    first_view_s: Optional[float] = None  # the first cloud that saw its place (its stamp), if known
 
 
 def _place(change):
@@ -55,6 +58,8 @@ class ChangeTracker:
             else:
                 pool.remove(t)
             t.change, t.cycles = change, t.cycles + 1
+            views = [v for v in (t.first_view_s, getattr(change, "first_view_s", None)) if v is not None]
+            t.first_view_s = min(views) if views else None
             if t.reported_s is None and t.cycles >= self.min_cycles:
                 t.reported_s = now_s
             kept.append(t)

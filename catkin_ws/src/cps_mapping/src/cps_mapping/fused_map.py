@@ -20,7 +20,7 @@ import dataclasses
 import math
 import os
 import tempfile
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import octomap
@@ -70,6 +70,7 @@ class LogOddsBox:
     lo: np.ndarray
     dims: np.ndarray
     log_odds: np.ndarray
+    first_seen_s: np.ndarray = None  # per cell, when first seen (s; NaN: not seen); None: not kept
 
 
 def voxel_index(points_m, resolution_m):
@@ -177,7 +178,13 @@ class FusedLogOddsMap:
     """
 
     def __init__(
-        self, resolution_m, sensor_model, max_grid_voxels=200_000_000, exact_free_space=False, shared_ray_stop_m=0.3
+        self,
+        resolution_m,
+        sensor_model,
+        max_grid_voxels=200_000_000,
+        exact_free_space=False,
+        shared_ray_stop_m=0.3,
+        first_seen_stamps=False,
     ):
         """`sensor_model`: hit, miss, min, max probabilities (fleet.yaml `mapping.sensor_model`).
         Every cloud is cast from its own origin. `max_grid_voxels` bounds the log-odds grid (6 bytes per voxel; default 1.2 GB): a batch that would grow it beyond is
@@ -187,7 +194,9 @@ class FusedLogOddsMap:
         in a row that its cloud already cleared (shared-origin casting, several times faster,
         approximate: see `cps_mapping.log_odds_grid`; 0.3 m: >= 99.7 % of plain insertion's
         occupied voxels agree on the paper fleet's clouds at 0.1 and 0.05 m; longer is more exact
-        and slower)."""
+        and slower). `first_seen_stamps`: keep when each voxel was first seen (the stamp of the first
+        cloud that saw it, `first_seen_s`; 4 more bytes per voxel): a monitoring mission times its
+        changes from them."""
         if not resolution_m > 0:
             raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
         self.resolution_m = float(resolution_m)
@@ -197,6 +206,7 @@ class FusedLogOddsMap:
             raise ValueError(f"shared_ray_stop_m must be > 0, got {shared_ray_stop_m}")
         self.exact_free_space = bool(exact_free_space)
         self.shared_ray_stop_m = float(shared_ray_stop_m)
+        self.first_seen_stamps = bool(first_seen_stamps)
         self._stop_run = max(1, math.ceil(self.shared_ray_stop_m / self.resolution_m - 1e-9))
         self._robots: List[str] = [_UNKNOWN_ROBOT]
         self.version = 0
@@ -257,6 +267,7 @@ class FusedLogOddsMap:
             tree.getProbMissLog(),
             tree.getClampingThresMinLog(),
             tree.getClampingThresMaxLog(),
+            first_seen=self.first_seen_stamps,
         )
 
     # ---- insertion -------------------------------------------------------------------------
@@ -265,8 +276,16 @@ class FusedLogOddsMap:
         """Insert one cloud (N x 3, map frame) seen from `origin_m`."""
         return self.insert_batch([(points_m, origin_m)], max_range_m=max_range_m, robot=robot)
 
-    def insert_batch(self, clouds: Sequence[Tuple[np.ndarray, np.ndarray]], max_range_m=-1.0, robot=_UNKNOWN_ROBOT):
-        """Insert consecutive clouds of one robot, in order, each as octomap_server would.
+    def insert_batch(
+        self,
+        clouds: Sequence[Tuple[np.ndarray, np.ndarray]],
+        max_range_m=-1.0,
+        robot=_UNKNOWN_ROBOT,
+        stamps_s: Optional[Sequence[float]] = None,
+    ):
+        """Insert consecutive clouds of one robot, in order, each as octomap_server would;
+        `stamps_s` (one per cloud) are kept where a cloud is the first to see a voxel
+        (`first_seen_stamps`).
 
         A point within `max_range_m` of its cloud's origin is a hit and clears the voxels to it;
         a point beyond clears up to max range only (<= 0: no limit). Non-finite points are
@@ -297,12 +316,20 @@ class FusedLogOddsMap:
                     f"(sensor origin far from the map?); nothing inserted"
                 )
         robot_id = self._robot_id(robot)
+        if stamps_s is not None and len(stamps_s) != len(prepared):
+            raise ValueError(f"{len(stamps_s)} stamps for {len(prepared)} clouds; nothing inserted")
         cast = 0
-        for origin, cloud in prepared:
+        for k, (origin, cloud) in enumerate(prepared):
             if len(cloud[0]) == 0:
                 continue
             grid.integrate_cloud(
-                cloud, origin, max_range_m, robot_id, exact=self.exact_free_space, stop_run=self._stop_run
+                cloud,
+                origin,
+                max_range_m,
+                robot_id,
+                exact=self.exact_free_space,
+                stop_run=self._stop_run,
+                stamp_s=math.nan if stamps_s is None else float(stamps_s[k]),
             )
             cast += 1
         if inserted:
@@ -325,11 +352,13 @@ class FusedLogOddsMap:
 
     def frozen_copy(self) -> "FusedLogOddsMap":
         """An independent copy of the map (its grid's arrays copied: milliseconds, 6 bytes per
-        voxel) for readers that must not hold the map lock while they read or write it (the
-        publisher's snapshot, a save): the live map goes on taking clouds meanwhile."""
+        voxel, 10 with first-seen stamps) for readers that must not hold the map lock while they
+        read or write it (the publisher's snapshot, a save, change detection): the live map goes on
+        taking clouds meanwhile."""
         clone = copy.copy(self)
         grid = clone._grid = copy.copy(self._grid)
         grid.log_odds, grid.owner, grid.stamp = grid.log_odds.copy(), grid.owner.copy(), grid.stamp.copy()
+        grid.first_seen = grid.first_seen.copy()  # empty unless kept (4 more bytes per voxel)
         grid.lo, grid.dims = grid.lo.copy(), grid.dims.copy()
         clone._robots = list(self._robots)
         clone._tree_cache = None
@@ -362,7 +391,22 @@ class FusedLogOddsMap:
         """The log-odds of every voxel in the grid's box, copied (for readers that must not hold
         the map lock while they read, change detection's FrozenMap)."""
         grid = self._grid
-        return LogOddsBox(grid.lo.copy(), grid.dims.copy(), grid.log_odds.copy())
+        seen = None
+        if grid.keeps_first_seen:
+            seen = grid.first_seen.astype(np.float64) + grid.epoch_s
+        return LogOddsBox(grid.lo.copy(), grid.dims.copy(), grid.log_odds.copy(), seen)
+
+    def first_seen_s(self, points_m):
+        """When each point's voxel was first seen (the stamp of the first cloud whose ray crossed
+        or ended in it, s); NaN where unknown, or stamps not kept (`first_seen_stamps`)."""
+        grid = self._grid
+        return grid.first_seen_s(grid.flat(grid.index_of(np.asarray(points_m, dtype=np.float64).reshape(-1, 3))))
+
+    def hit_index(self):
+        """Grid indices of every voxel a named robot's cloud hit since the map started (occupied
+        now or not; loaded voxels and clouds of no robot have no owner): something stood there
+        while this map was made, whatever the rays that crossed it later said."""
+        return self._grid.index_of_flat(np.flatnonzero(self._grid.owner))
 
     def occupied_index(self):
         """Grid indices of every occupied finest-resolution voxel (pruned leaves expanded)."""

@@ -19,6 +19,11 @@ other voxel at exact corner ties. On the paper fleet's clouds (bench/mapping_ben
 after 1 voxel leaves 1-3 % of the occupied voxels that exact insertion clears, after 0.3 m of
 voxels 0.3 % (and walks 8x (0.1 m) / 3.5x (0.05 m) fewer voxels than exact casting).
 
+Asked for (`first_seen=True`, a monitoring mission's map), the grid also keeps when each voxel
+was first seen: the stamp of the first cloud whose ray crossed or ended in it (float32 seconds
+from the grid's epoch, its first stamped cloud; NaN: not seen by a stamped cloud), so that a
+change is timed from the cloud that first saw its place, not from an estimate of who could have.
+
 Nothing else is kept per voxel: there is no OcTree to keep in step. `binary_tree_bytes` writes
 OctoMap's binary (.bt) stream straight from the grid (max likelihood, pruned, byte for byte what
 `writeBinary` of the same tree writes) and `full_tree` builds an OcTree with every voxel's
@@ -56,6 +61,13 @@ def _add(log_odds, flat, delta, clamp_min, clamp_max):
     elif new > clamp_max:
         new = clamp_max
     log_odds[flat] = new
+
+
+@kernel_cache.njit(nogil=True, inline="always")
+def _seen(first_seen, log_odds, flat, t):
+    """A voxel not yet known is seen now, by the cloud of stamp `t` (only if the grid keeps stamps)."""
+    if first_seen.shape[0] > 0 and math.isnan(log_odds[flat]):
+        first_seen[flat] = t
 
 
 @kernel_cache.njit(nogil=True)
@@ -112,10 +124,13 @@ def _integrate(
     clamp_max,
     exact,
     stop_run,
+    first_seen,
+    t,
 ):
     """One cloud into the grid (see the module docstring); returns the voxel steps walked.
     exact: OctoMap's computeRayKeys from the origin; else back from each endpoint, stopping after
-    `stop_run` consecutive voxels this cloud already cleared."""
+    `stop_run` consecutive voxels this cloud already cleared. `first_seen` (empty: not kept) gets
+    `t` at every voxel this cloud is the first to see."""
     res_factor = 1.0 / resolution
     n = points.shape[0]
     ends = np.empty((n, 3), dtype=np.float32)
@@ -135,6 +150,7 @@ def _integrate(
             if stamp[flat] != hit_code:
                 stamp[flat] = hit_code
                 owner[flat] = robot_id
+                _seen(first_seen, log_odds, flat, t)
                 _add(log_odds, flat, hit, clamp_min, clamp_max)
         else:
             f = np.float32(norm)
@@ -190,6 +206,7 @@ def _integrate(
             s = stamp[flat]
             if s != free_code and s != hit_code:
                 stamp[flat] = free_code
+                _seen(first_seen, log_odds, flat, t)
                 _add(log_odds, flat, miss, clamp_min, clamp_max)
         while True:
             if tmx < tmy:
@@ -221,6 +238,7 @@ def _integrate(
             elif s != hit_code:
                 run = 0
                 stamp[flat] = free_code
+                _seen(first_seen, log_odds, flat, t)
                 _add(log_odds, flat, miss, clamp_min, clamp_max)
             if at_target:
                 break
@@ -402,13 +420,16 @@ def _max_range_arg(max_range_m):
 
 
 class LogOddsGrid:
-    """Finest-voxel log-odds (float32, NaN = unknown) and last-hitting robot over a growing box.
+    """Finest-voxel log-odds (float32, NaN = unknown) and last-hitting robot over a growing box;
+    with `first_seen`, when each voxel was first seen (see the module docstring).
 
     Voxel i (grid index floor(p / resolution) as OctoMap computes it) is cell i - lo.
     """
 
-    def __init__(self, resolution_m, hit_log, miss_log, clamp_min_log, clamp_max_log):
+    def __init__(self, resolution_m, hit_log, miss_log, clamp_min_log, clamp_max_log, first_seen=False):
         self.resolution_m = float(resolution_m)
+        self.keeps_first_seen = bool(first_seen)
+        self.epoch_s = math.nan  # the stamp first_seen counts from: the first stamped cloud's
         self.hit, self.miss = np.float32(hit_log), np.float32(miss_log)
         self.clamp_min, self.clamp_max = np.float32(clamp_min_log), np.float32(clamp_max_log)
         self.lo = np.zeros(3, dtype=np.int64)
@@ -422,6 +443,7 @@ class LogOddsGrid:
         self.log_odds = np.full(size, np.nan, dtype=np.float32)
         self.owner = np.zeros(size, dtype=np.uint8)
         self.stamp = np.zeros(size, dtype=np.uint8)  # 2 c: cleared by cloud c, 2 c + 1: hit by it
+        self.first_seen = np.full(size if self.keeps_first_seen else 0, np.nan, dtype=np.float32)
         self.lo, self.dims = lo.astype(np.int64), dims.astype(np.int64)
 
     # ---- indexing ------------------------------------------------------------------------
@@ -472,22 +494,30 @@ class LogOddsGrid:
         if grown is None:
             return
         new_lo, new_hi = grown
-        old = (self.log_odds, self.owner, self.lo, self.dims)
+        old = (self.log_odds, self.owner, self.lo, self.dims, self.first_seen)
         self._allocate(new_lo, new_hi - new_lo)
         if old[3].all():
             offset = old[2] - self.lo
             sl = tuple(slice(o, o + d) for o, d in zip(offset, old[3]))
             self.log_odds.reshape(tuple(self.dims))[sl] = old[0].reshape(tuple(old[3]))
             self.owner.reshape(tuple(self.dims))[sl] = old[1].reshape(tuple(old[3]))
+            if self.keeps_first_seen:
+                self.first_seen.reshape(tuple(self.dims))[sl] = old[4].reshape(tuple(old[3]))
 
     # ---- insertion -----------------------------------------------------------------------
 
-    def integrate_cloud(self, prepared, origin_m, max_range_m, robot_id, exact=True, stop_run=1):
+    def integrate_cloud(self, prepared, origin_m, max_range_m, robot_id, exact=True, stop_run=1, stamp_s=math.nan):
         """Insert one cloud, as `prepare` returned it (map frame): exact as OctoMap's
-        insertPointCloud, or with shared-origin casting (`exact=False`, see the module docstring)."""
+        insertPointCloud, or with shared-origin casting (`exact=False`, see the module docstring).
+        `stamp_s`: the cloud's stamp, kept where it is the first to see a voxel (with first_seen)."""
         points, lo, hi = prepared
         if len(points) == 0:
             return
+        t = math.nan
+        if self.keeps_first_seen and math.isfinite(stamp_s):
+            if math.isnan(self.epoch_s):
+                self.epoch_s = float(stamp_s)
+            t = stamp_s - self.epoch_s
         self.ensure(lo, hi)
         self._cloud_id += 1
         if self._cloud_id > 127:  # one byte of stamp per voxel: start over every 127 clouds
@@ -512,12 +542,24 @@ class LogOddsGrid:
             self.clamp_max,
             bool(exact),
             np.int64(stop_run),
+            self.first_seen,
+            np.float32(t),
         )
 
     @property
     def nbytes(self):
-        """Memory of the grid's arrays (6 bytes per voxel of the box)."""
-        return int(self.log_odds.nbytes + self.owner.nbytes + self.stamp.nbytes)
+        """Memory of the grid's arrays (6 bytes per voxel of the box; 10 with first_seen)."""
+        return int(self.log_odds.nbytes + self.owner.nbytes + self.stamp.nbytes + self.first_seen.nbytes)
+
+    def first_seen_s(self, flat):
+        """The stamp (s) of the first cloud that saw each cell (`flat`, -1: outside); NaN where
+        not kept, not seen, or seen by a cloud without a stamp."""
+        flat = np.asarray(flat, dtype=np.int64)
+        out = np.full(len(flat), np.nan)
+        if self.keeps_first_seen and len(flat):
+            inside = flat >= 0
+            out[inside] = self.first_seen[flat[inside]].astype(np.float64) + self.epoch_s
+        return out
 
     def set_values(self, flat, values):
         """Set voxels (e.g. clear_bbx)."""
@@ -580,6 +622,8 @@ def warm_up():
     cloud = grid.prepare(np.array([[1.0, 0.0, 0.0], [9.0, 0.0, 0.0]]), np.zeros(3), 5.0)
     for exact in (True, False):
         grid.integrate_cloud(cloud, np.zeros(3), 5.0, 0, exact=exact)
+    seen = LogOddsGrid(0.1, 0.85, -0.4, -2.0, 3.5, first_seen=True)  # the same kernel, stamps kept
+    seen.integrate_cloud(seen.prepare(np.array([[1.0, 0.0, 0.0]]), np.zeros(3), 5.0), np.zeros(3), 5.0, 0, stamp_s=1.0)
     grid.binary_tree_file()
     load_s = time.monotonic() - t0
     angles = np.linspace(0.0, 2.0 * np.pi, WARMUP_POINTS, endpoint=False)

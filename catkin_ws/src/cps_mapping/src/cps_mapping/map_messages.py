@@ -13,6 +13,8 @@ from cps_transport.pointcloud import array_to_cloud
 
 _APPEARED_RGBA = (0.1, 0.9, 0.1, 0.6)
 _DISAPPEARED_RGBA = (0.9, 0.1, 0.1, 0.6)
+_MOVED_RGBA = (0.1, 0.4, 0.95, 0.6)
+_CHANGE_RGBA = {"appeared": _APPEARED_RGBA, "disappeared": _DISAPPEARED_RGBA, "moved": _MOVED_RGBA}
 _CHANGE_TEXT_LIFT_M = 0.3
 
 
@@ -77,34 +79,44 @@ def map_stats(header: Header, resolution_m: float, snapshot, robots: Sequence[Ro
 
 
 def change_markers(changes, header: Header) -> MarkerArray:
-    """A DELETEALL, then per `change_detection.Change` a green (appeared) or red (disappeared) box
-    (its `text` the kind, for readers other than rviz) and a text above it, ns `map_changes`."""
+    """A DELETEALL, then per `change_detection.Change` a green (appeared), red (disappeared) or blue
+    (moved: where the item stands now) box (its `text` the kind, for readers other than rviz), a
+    text above it and, for a move, an arrow from where the item stood (its `text` "moved from"),
+    ns `map_changes`."""
     array = MarkerArray(markers=[Marker(header=header, ns="map_changes", action=Marker.DELETEALL)])
     for i, change in enumerate(changes):
-        rgba = _APPEARED_RGBA if change.kind == "appeared" else _DISAPPEARED_RGBA
-        box = Marker(
-            header=header,
-            ns="map_changes",
-            id=2 * i + 1,
-            type=Marker.CUBE,
-            action=Marker.ADD,
-            color=ColorRGBA(*rgba),
-            text=change.kind,
-        )
-        box.pose.position = Point(*((np.asarray(change.min_m) + change.max_m) / 2).tolist())
-        box.pose.orientation.w = 1.0
+        rgba = _CHANGE_RGBA.get(change.kind, _DISAPPEARED_RGBA)
+        box = _change_marker(header, 3 * i + 1, Marker.CUBE, rgba, change.kind)
+        box.pose.position = Point(*box_centre(change))
         box.scale.x, box.scale.y, box.scale.z = change.size_m
-        text = Marker(
-            header=header,
-            ns="map_changes",
-            id=2 * i + 2,
-            type=Marker.TEXT_VIEW_FACING,
-            action=Marker.ADD,
-            color=ColorRGBA(1.0, 1.0, 1.0, 1.0),
-            text=f"{change.kind} {change.volume_m3:.2f} m3",
-        )
+        moved = getattr(change, "displacement_m", None)
+        label = f"moved {np.hypot(moved[0], moved[1]):.2f} m" if moved else f"{change.kind} {change.volume_m3:.2f} m3"
+        text = _change_marker(header, 3 * i + 2, Marker.TEXT_VIEW_FACING, (1.0, 1.0, 1.0, 1.0), label)
         text.pose.position = Point(change.centroid_m[0], change.centroid_m[1], change.max_m[2] + _CHANGE_TEXT_LIFT_M)
-        text.pose.orientation.w = 1.0
         text.scale.z = 0.3
         array.markers += [box, text]
+        if moved and getattr(change, "from_m", None) is not None:
+            arrow = _change_marker(header, 3 * i + 3, Marker.ARROW, (*rgba[:3], 1.0), "moved from")
+            arrow.points = [Point(*change.from_m), Point(*box_centre(change))]
+            arrow.scale.x, arrow.scale.y, arrow.scale.z = 0.05, 0.15, 0.2  # shaft, head diameters; head length
+            array.markers.append(arrow)
     return array
+
+
+def _change_marker(header, marker_id, marker_type, rgba, text):
+    """One marker of ns `map_changes` (added, identity orientation)."""
+    marker = Marker(
+        header=header,
+        ns="map_changes",
+        id=marker_id,
+        type=marker_type,
+        action=Marker.ADD,
+        color=ColorRGBA(*rgba),
+        text=text,
+    )
+    marker.pose.orientation.w = 1.0
+    return marker
+
+
+def box_centre(change):
+    return ((np.asarray(change.min_m) + change.max_m) / 2).tolist()

@@ -29,13 +29,14 @@ from std_srvs.srv import EmptyResponse
 from cps_fleet import names
 from cps_mapping import map_messages
 from cps_mapping.admission import Admission, PlacedCloud, TransformUnavailable, merged_counts
-from cps_mapping.baseline import BaselineError, load_baseline, read_map_trails, write_map_metadata
+from cps_mapping.baseline import BaselineError, load_baseline, read_map_trails, read_map_views, write_map_metadata
 from cps_mapping.change_attention import ATTENTION_RADIUS_M
 from cps_mapping.change_detection import (
     TRUSTED_RULES,
     FrozenMap,
     VoxelLevels,
     detect_map_changes,
+    read_ever_hit,
     write_hit_levels,
     write_miss_levels,
     write_report,
@@ -46,6 +47,7 @@ from cps_mapping.fused_map import FusedLogOddsMap, MapFileError, message_fields
 from cps_mapping.insert_capacity import InsertionBudget, InsertionMeter, voxel_updates_of
 from cps_mapping.markers import occupied_cells_markers
 from cps_mapping.robot_bodies import RobotTrails, SweptVolume, fleet_bodies
+from cps_mapping.sensor_views import SensorViews, fleet_fields_of_view
 from cps_mapping.throttled_log import ThrottledLog
 from cps_msgs.msg import CompressedPointCloud2
 from cps_msgs.srv import BoundingBoxQueryResponse, LoadMapResponse, SaveMapResponse
@@ -277,16 +279,23 @@ class MapServer:
         self.max_range_m = {r.name: fleet.mapping.max_range_m.get(r.type, -1.0) for r in mapped}
         self.sensor_frames = {r.name: r.sensor_frame for r in mapped}
         self.map = FusedLogOddsMap.from_mapping_config(
-            fleet.mapping, exact_free_space=options.exact_free_space, shared_ray_stop_m=options.shared_ray_stop_m
+            fleet.mapping,
+            exact_free_space=options.exact_free_space,
+            shared_ray_stop_m=options.shared_ray_stop_m,
+            first_seen_stamps=bool(options.baseline_map),  # a change is timed from the cloud that first saw it
         )
         self.baseline = None
         # The robots' sensor poses and bodies, saved with the map: change detection ignores robots.
         self.trails = RobotTrails(fleet_bodies(fleet, self.robots))
-        self.baseline_trails = None
+        # Where the inserted clouds were taken from and what they could see: change detection's viewpoints.
+        self.views = SensorViews(fleet_fields_of_view(fleet, self.robots))
+        self.baseline_trails = self.baseline_views = self.baseline_ever_hit = None
         if options.baseline_map:
             try:
                 self.baseline = load_baseline(options.baseline_map, fleet.mapping, options.frame_id)
                 self.baseline_trails = read_map_trails(options.baseline_map)
+                self.baseline_views = read_map_views(options.baseline_map)
+                self.baseline_ever_hit = read_ever_hit(options.baseline_map)
             except BaselineError as exc:
                 raise ValueError(f"baseline_map: {exc}") from exc
             self.swept = SweptVolume(self.map.resolution_m).add(self.baseline_trails)
@@ -378,6 +387,7 @@ class MapServer:
             nodes = self.map.load(path)
             self.log.info(f"map_server: resumed from {path} ({nodes} nodes)")
             self.trails.extend(read_map_trails(path) or RobotTrails({}))
+            self.views.extend(read_map_views(path))
         except Exception as exc:  # any bad map file: moved aside, never a crash loop at start-up
             aside = f"{path}.unreadable-{int(time.time())}"
             try:
@@ -394,7 +404,7 @@ class MapServer:
             with self._map_lock:
                 frozen = self.map.frozen_copy()
             saved = frozen.save(path)
-            write_map_metadata(saved, self.options.frame_id, frozen.resolution_m, self.trails)
+            write_map_metadata(saved, self.options.frame_id, frozen.resolution_m, self.trails, self.views)
             try:
                 write_hit_levels(saved, FrozenMap(frozen))  # how firmly each voxel was seen, for change detection
             except OSError as exc:
@@ -501,6 +511,7 @@ class MapServer:
             return self._drop(robot, "clouds_dropped_invalid", "malformed", f"malformed cloud dropped: {exc}")
         stamp_s = msg.header.stamp.to_sec()
         self.trails.record(robot, stamp_s, rotation, translation)
+        self.views.received(robot, stamp_s, rotation, translation)
         if frame != self.sensor_frames[robot]:
             self._warn(
                 ("unexpected frame", robot),
@@ -536,12 +547,16 @@ class MapServer:
         try:
             with self._map_lock:
                 updates_before = voxel_updates_of(self.map)
-                result = self.map.insert_cloud(
-                    cloud.points_m, cloud.origin_m, max_range_m=self.max_range_m[robot], robot=robot
+                result = self.map.insert_batch(
+                    [(cloud.points_m, cloud.origin_m)],
+                    max_range_m=self.max_range_m[robot],
+                    robot=robot,
+                    stamps_s=[stamp_s],
                 )
                 updates_after = voxel_updates_of(self.map)
         except ValueError as exc:  # a cloud that would grow the grid beyond its bound
             return self._drop(robot, "clouds_dropped_invalid", "insertion", f"cloud not inserted: {exc}", logging.ERROR)
+        self.views.inserted(robot, [stamp_s])  # viewpoints: only clouds in the map
         self.latest_poses[frame] = (rotation, translation)
         if self.outputs.points is not None:
             try:
@@ -637,13 +652,18 @@ class MapServer:
         """What appeared or disappeared against the baseline map, as markers (and the report); returns
         the changes."""
         with self._map_lock:  # a copy in milliseconds: insertion goes on while the detection runs
-            current = FrozenMap(self.map)
+            frozen = self.map.frozen_copy()
+        current = FrozenMap(frozen)  # its scans (occupied, ever hit) read the copy, off the lock
         changes = detect_map_changes(
             self.baseline,
             current,
             rules=TRUSTED_RULES,
             swept=self.swept.add(self.trails),
             current_trails=self.trails,
+            current_views=self.views,
+            baseline_trails=self.baseline_trails,
+            baseline_views=self.baseline_views,
+            baseline_ever_hit=self.baseline_ever_hit,
             baseline_hits=self.baseline_hits,
             tolerance_voxels=self.options.change_tolerance_voxels,
             min_cluster_voxels=self.options.change_min_cluster_voxels,

@@ -179,6 +179,9 @@ class FleetSimNode:
         self.scheduler = SensorScheduler(rates, now)
         self.physics_meter = RateMeter()
         self.step_timer = StepTimer()
+        # How far behind its stamp the physics was when each capture was asked for, since the start:
+        # the skew between a cloud's stamp and its pose that _state_for_capture removes.
+        self.capture_lag = StepTimer()
         self.physics = PhysicsClock(now, options.max_physics_step_s, options.max_catch_up_s)
         rospy.loginfo(
             "fleet_sim: %s profile, renderer %s, %d sensor worker process(es), robots %s; video: %s",
@@ -330,9 +333,9 @@ class FleetSimNode:
             self.scheduler.done(name, stamp, time.time())
             return
         sim = self.sim.robots[name]
+        stamp, _ = self._state_for_capture()
         with self.lock:
             sensor_pose = sim.robot.sensor_in_map()
-        stamp = time.time()
         frame = sim.sensor.capture(sensor_pose)
         self._record_capture_ms(name, 1000.0 * (time.time() - stamp))
         self._publish_frame(name, frame, stamp)
@@ -357,6 +360,20 @@ class FleetSimNode:
                 due = self.video_scheduler.next()[1]
             # Woken at least every VIDEO_POLL_S: a faster rate set meanwhile takes effect.
             self.video_stop.wait(min(max(due - time.time(), 0.0), VIDEO_POLL_S))
+
+    def _state_for_capture(self):
+        """(stamp, the robots' poses at that wall time): the physics brought up to the stamp first,
+        so that a cloud's stamp is the time of the pose it is rendered from (tf at the stamp, which
+        carries the state at each publication, then gives that pose). Before, the poses were the
+        physics' as of the loop's start (up to a step behind) and the stamp was taken after the
+        loop had published the finished captures: under load a cloud was stamped up to hundreds of
+        ms after its pose, and the twin placed it where the robot was that much later (a turning
+        robot's clouds rotated, issue 39's false change at tank_3)."""
+        stamp = time.time()
+        self.capture_lag.add(max(0.0, stamp - (self.physics.wall_start_s + self.physics.sim_time_s)))
+        self._advance_physics(stamp, exact=True)
+        with self.lock:
+            return stamp, self.sim.poses()
 
     def _service_workers(self, now):
         """Publish finished captures and hand due sensors to idle workers; True if any work was done."""
@@ -383,9 +400,8 @@ class FleetSimNode:
                     self.scheduler.done(name, now, now)
                     worked = True
                     continue
-            with self.lock:
-                poses = self.sim.poses()
-            self.pool.request(worker, name, poses, time.time(), task=task)
+            stamp, poses = self._state_for_capture()
+            self.pool.request(worker, name, poses, stamp, task=task)
             worked = True
         return worked
 
@@ -410,6 +426,8 @@ class FleetSimNode:
             KeyValue("physics_loop_hz", f"{self.physics_meter.rate_hz(now):.1f}"),
             KeyValue("step_ms_mean", f"{self.step_timer.mean_ms:.2f}"),
             KeyValue("step_ms_max", f"{self.step_timer.max_ms:.1f}"),
+            KeyValue("capture_pose_lag_ms_mean", f"{self.capture_lag.mean_ms:.1f}"),
+            KeyValue("capture_pose_lag_ms_max", f"{self.capture_lag.max_ms:.1f}"),
         ]
         self.step_timer.reset()
         array.status.append(fleet_status)
@@ -438,7 +456,10 @@ class FleetSimNode:
         for video in self.videos.values():
             video.publish_status(now)
         rospy.loginfo_throttle(
-            10.0, f"fleet_sim: achieved sensor rates {', '.join(summary)}; real-time factor {rtf:.2f}"
+            10.0,
+            f"fleet_sim: achieved sensor rates {', '.join(summary)}; real-time factor {rtf:.2f}; physics brought "
+            f"up to each capture's stamp by {self.capture_lag.mean_ms:.1f} ms on average, at most "
+            f"{self.capture_lag.max_ms:.1f} ms, over {self.capture_lag.count} captures",
         )
 
     def step(self, now):

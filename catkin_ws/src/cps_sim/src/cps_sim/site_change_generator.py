@@ -3,10 +3,14 @@
 Each scenario removes one item, moves another by `MOVE_MIN_M`..`MOVE_MAX_M` in a random direction,
 and adds a new box or cylinder, all inside the fenced areas the monitoring robots' routes pass
 within `VISIT_RADIUS_M` of (the areas they inspect; the robots drive and fly outside or over the
-fences, so nothing is placed on a route). A scenario is written as a changes file and read back by
+fences, so nothing is placed on a route): with the whole fleet, every area of the hall. Any item
+of those areas may be removed or moved (`CHANGED_TYPES`): shelving and pipe racks (thin, layered
+structure) as well as crates, drums, tanks and columns; a moved or added item may stand as near
+the fence as `CLEARANCE_M`. A scenario is written as a changes file and read back by
 `cps_sim.site_changes.load_site_changes` (the existing rules: known names, inside the hall), and
 checked for overlap: every moved or added item's footprint, grown by `CLEARANCE_M`, stays inside
-its fenced area and clear of every other item. A draw that breaks a rule is said (`log`) and drawn
+its fenced area and clear of every other item and of the place a removed item left (an item moved
+into that place would leave no voxel that could appear, and the scenario no one right answer). A draw that breaks a rule is said (`log`) and drawn
 again, up to `MAX_DRAWS` times; it never yields an overlapping scene.
 """
 
@@ -24,6 +28,8 @@ CLEARANCE_M = 0.2
 BOX_SIDE_M, BOX_HEIGHT_M = (0.4, 1.0), (0.5, 1.4)
 CYLINDER_RADIUS_M, CYLINDER_HEIGHT_M = (0.2, 0.4), (0.6, 1.4)
 MAX_DRAWS = 200
+# What a scenario may remove or move: every equipment type of the hall.
+CHANGED_TYPES = ("crate", "drum", "tank", "vertical_cylinder", "shelving", "pipe_run")
 
 
 class GeneratorError(RuntimeError):
@@ -90,9 +96,10 @@ def _area_of(item, areas):
     return None
 
 
-def overlap_problem(site, names: Sequence[str], areas) -> str:
+def overlap_problem(site, names: Sequence[str], areas, vacated: Sequence = ()) -> str:
     """'' if each named item of `site` lies inside a fenced area of `areas` (by CLEARANCE_M) and its
-    footprint grown by CLEARANCE_M touches no other item's; else what is wrong."""
+    footprint grown by CLEARANCE_M touches no other item's, nor any of `vacated` (the footprints of
+    removed items, as (name, footprint)); else what is wrong."""
     for name in names:
         item = site.item(name)
         area = _area_of(item, areas)
@@ -102,14 +109,17 @@ def overlap_problem(site, names: Sequence[str], areas) -> str:
         for other in site.equipment:
             if other.name != name and _overlap(grown, other.footprint):
                 return f"'{name}' would overlap '{other.name}' (with {CLEARANCE_M} m clearance)"
+        for gone, footprint in vacated:
+            if _overlap(grown, footprint):
+                return f"'{name}' would stand where removed '{gone}' stood (with {CLEARANCE_M} m clearance)"
     return ""
 
 
 def _draw(rng, site, areas, index):
     """One candidate changes document (the YAML mapping)."""
-    candidates = [e for e in site.equipment if _area_of(e, areas) is not None and e.type in ("crate", "drum", "tank")]
+    candidates = [e for e in site.equipment if _area_of(e, areas) is not None and e.type in CHANGED_TYPES]
     if len(candidates) < 2:
-        raise GeneratorError(f"fewer than two crates, drums or tanks in the visited areas {[a.name for a in areas]}")
+        raise GeneratorError(f"fewer than two items to change in the visited areas {[a.name for a in areas]}")
     removed, moved = rng.choice(len(candidates), size=2, replace=False)
     distance, heading = rng.uniform(MOVE_MIN_M, MOVE_MAX_M), rng.uniform(0.0, 2 * math.pi)
     area = areas[rng.integers(len(areas))]
@@ -174,7 +184,10 @@ def generate_scenarios(site, fleet, robot_names, count, seed, out_dir, log: Call
                 log(f"site_change_generator: scenario {index} draw {attempt}: {exc}; drawing again")
                 continue
             problem = overlap_problem(
-                changes.apply(site), [m.name for m in changes.moved] + [a.name for a in changes.added], areas
+                changes.apply(site),
+                [m.name for m in changes.moved] + [a.name for a in changes.added],
+                areas,
+                vacated=[(name, site.item(name).footprint) for name in changes.removed],
             )
             if problem:
                 log(f"site_change_generator: scenario {index} draw {attempt}: {problem}; drawing again")

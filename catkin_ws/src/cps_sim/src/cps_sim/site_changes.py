@@ -12,7 +12,7 @@ is the simulator's truth of what a change detector should find.
 """
 
 import dataclasses
-from typing import Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -143,30 +143,45 @@ def load_site_changes(path, site) -> SiteChanges:
 
 @dataclasses.dataclass(frozen=True)
 class ExpectedChange:
-    """One change the simulator made: which item, appeared or disappeared, where (its solid's
-    axis-aligned box in map)."""
+    """One change the simulator made: which item, appeared, disappeared or moved, where (its solid's
+    axis-aligned box in map; a moved item's where it stands now, with the box it left)."""
 
     name: str
     kind: str
     centroid_m: Tuple[float, float, float]
     size_m: Tuple[float, float, float]
+    displacement_m: Optional[Tuple[float, float, float]] = None  # a move: by how much (m)
+    from_centroid_m: Optional[Tuple[float, float, float]] = None  # a move: the box it left
+    from_size_m: Optional[Tuple[float, float, float]] = None
+
+
+def _box(item):
+    lows, highs = zip(*(p.aabb() for p in item.primitives()))
+    lo, hi = np.min(lows, axis=0), np.max(highs, axis=0)
+    return tuple(np.round((lo + hi) / 2, 4).tolist()), tuple(np.round(hi - lo, 4).tolist())
 
 
 def _expected(item, kind):
-    lows, highs = zip(*(p.aabb() for p in item.primitives()))
-    lo, hi = np.min(lows, axis=0), np.max(highs, axis=0)
-    return ExpectedChange(
-        item.name, kind, tuple(np.round((lo + hi) / 2, 4).tolist()), tuple(np.round(hi - lo, 4).tolist())
-    )
+    return ExpectedChange(item.name, kind, *_box(item))
 
 
 def expected_changes(site, changes: SiteChanges):
     """What a detector comparing maps of `site` before and after `changes` should find: a removed
-    item disappeared, a moved one disappeared at its old place and appeared at its new one, an
-    added one appeared."""
+    item disappeared, an added one appeared, a moved one moved (one change: where it went, from
+    where, by how much)."""
     after = changes.apply(site)
     out = [_expected(site.item(name), "disappeared") for name in changes.removed]
     for move in changes.moved:
-        out += [_expected(site.item(move.name), "disappeared"), _expected(after.item(move.name), "appeared")]
+        before = _box(site.item(move.name))
+        out.append(
+            ExpectedChange(
+                move.name,
+                "moved",
+                *_box(after.item(move.name)),
+                displacement_m=(move.dx_m, move.dy_m, 0.0),
+                from_centroid_m=before[0],
+                from_size_m=before[1],
+            )
+        )
     out += [_expected(item, "appeared") for item in changes.added]
     return out

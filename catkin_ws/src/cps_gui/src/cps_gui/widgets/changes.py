@@ -11,7 +11,10 @@ from cps_gui.topview import CHANGE_RGB
 def change_text(change):
     x, y, z = change.center_m
     sx, sy, sz = change.size_m
-    return f"{change.kind}: {sx:.1f} x {sy:.1f} x {sz:.1f} m at ({x:.1f}, {y:.1f}, {z:.1f})"
+    text = f"{change.kind}: {sx:.1f} x {sy:.1f} x {sz:.1f} m at ({x:.1f}, {y:.1f}, {z:.1f})"
+    if change.from_m is not None:
+        text += f" from ({change.from_m[0]:.1f}, {change.from_m[1]:.1f})"
+    return text
 
 
 class ChangesPane(QWidget):
@@ -37,10 +40,10 @@ class ChangesPane(QWidget):
             return
         self._version, self._changes = version, changes
         self.list.clear()
-        appeared = sum(c.kind == "appeared" for c in changes)
+        counts = {kind: sum(c.kind == kind for c in changes) for kind in ("appeared", "disappeared", "moved")}
         self.title.setText(
-            f"Site changes: {appeared} appeared, {len(changes) - appeared} disappeared "
-            f"(click one to centre the views on it)"
+            f"Site changes: {counts['appeared']} appeared, {counts['disappeared']} disappeared, "
+            f"{counts['moved']} moved (click one to centre the views on it)"
         )
         for change in changes:
             item = QListWidgetItem(change_text(change))

@@ -84,6 +84,8 @@ class TopViewPane(QWidget):
             colour.setAlpha(120)
             painter.setBrush(QBrush(colour))
             painter.drawRect(QRectF(x0 - 2, y0 - 2, x1 - x0 + 4, y1 - y0 + 4))
+            if change.from_m is not None:  # a move: a line from where the item stood
+                painter.drawLine(QPointF(*to_screen(*change.from_m[:2])), QPointF(*to_screen(cx, cy)))
 
         for index, robot in enumerate(self.fleet.robots):
             colour = QColor(*robot_colour(index))
