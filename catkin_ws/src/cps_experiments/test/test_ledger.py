@@ -115,6 +115,26 @@ def test_clouds_the_robots_send_queue_dropped_by_rule_are_withheld_not_lost_on_t
     }
 
 
+def test_clouds_withheld_at_the_end_are_not_gaps_yet_and_beyond_the_allowance_are_unaccounted():
+    """The robots' send queue dropped the last cloud it numbered before counting stopped: no later
+    frame has shown the twin that gap yet (the reference mission of 2026-11-28 11:30: -1). Many
+    more withheld than the twin's gaps is still an imbalance."""
+    stages = _chain(100)
+    stages["bridge_out"] = {C.RECEIVED: 100, C.OUT: 96, "dropped_superseded": 4}
+    stages["bridge_in"] = {C.RECEIVED: 96, C.MISSED: 3, C.OUT: 96}
+    stages["decoder"] = {C.RECEIVED: 96, C.OUT: 96}
+    server = {"clouds_received": 96, "clouds_inserted": 96}
+    ledger = robot_ledger(R, _counters(**stages), server, duration_s=50)
+    assert ledger.balanced, ledger.problems
+    assert ledger.in_flight == 1 and "link: put on the link, never received" not in dict(ledger.drops)
+    stages["bridge_out"] = {C.RECEIVED: 100, C.OUT: 60, "dropped_superseded": 40}
+    stages["bridge_in"] = {C.RECEIVED: 60, C.MISSED: 3, C.OUT: 60}
+    stages["decoder"] = {C.RECEIVED: 60, C.OUT: 60}
+    server = {"clouds_received": 60, "clouds_inserted": 60}
+    ledger = robot_ledger(R, _counters(**stages), server, duration_s=50)
+    assert not ledger.balanced and any("withheld clouds" in p for p in ledger.problems), ledger.problems
+
+
 def test_a_map_server_that_decodes_what_it_inserts_closes_the_ledger_without_a_decoder_process():
     """Issue 37: the twin's bridge hands the map server its live clouds and the keyframes after an
     outage still compressed; the map server missed 2 in its subscriber queue and found 10 undecodable."""
