@@ -10,6 +10,7 @@ import pytest
 
 from cps_bringup.host_split import (
     CONTROL_NICE,
+    MISSION_SIDE_SHARES,
     HostSplit,
     HostSplitError,
     cgroup_v1_writable,
@@ -83,6 +84,9 @@ def test_bringup_places_each_side_in_its_own_cgroup(reference_mission):
     assert "fleet_sim" in physical and "cloud_tissue" in physical and "map_server" not in physical, physical
     assert "map_server" in digital and "fleet_sim" not in digital and "cloud_tissue" not in digital, digital
     assert observed.cgroup_cpus == {side: ",".join(map(str, cpus[side])) for side in (PHYSICAL, DIGITAL)}
+    # Each side weighs as a host against other work on its CPU, not as one process.
+    shares = MISSION_SIDE_SHARES
+    assert observed.cgroup_shares == {"": 2 * shares, PHYSICAL: shares, DIGITAL: shares}, observed.cgroup_shares
     assert observed.control_nice and all(n == CONTROL_NICE for n in observed.control_nice), observed.control_nice
     assert not group_exists(f"cpsfleet_{reference_mission.mission.pid}")
 

@@ -810,7 +810,13 @@ def _kill_leftovers(out_dir, log):
 def _host_split(args, sides):
     """The sides' CPU budgets: --host-cpus, else halves for a two-side --link run as root, else none.
     BringupError for a split the machine cannot honour."""
-    from cps_bringup.host_split import HostSplit, default_host_cpus, parse_host_cpus, parse_host_quota
+    from cps_bringup.host_split import (
+        MISSION_SIDE_SHARES,
+        HostSplit,
+        default_host_cpus,
+        parse_host_cpus,
+        parse_host_quota,
+    )
 
     text = getattr(args, "host_cpus", None)
     quota_text = getattr(args, "host_quota", None)
@@ -824,7 +830,7 @@ def _host_split(args, sides):
         cpus = parse_host_cpus(text) if text else default_host_cpus()
         quota = parse_host_quota(quota_text, cpus or {}) if quota_text else {}
         name = f"cpsfleet_{args.link_name}" if getattr(args, "link_name", None) else f"cpsfleet_{os.getpid()}"
-        return HostSplit.choose(cpus, quota, name=name)
+        return HostSplit.choose(cpus, quota, name=name, shares=dict.fromkeys(cpus or {}, MISSION_SIDE_SHARES))
     except HostSplitError as exc:
         raise BringupError(str(exc)) from exc
 

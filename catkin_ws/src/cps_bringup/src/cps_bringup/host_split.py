@@ -32,6 +32,12 @@ CGROUP_ROOT = "/sys/fs/cgroup"
 CONTROL_NICE = -10
 CFS_PERIOD_US = 100_000
 MAX_CPU_SHARES = 262144  # the kernel's bound on cpu.shares
+# Each side's cpu.shares in a mission (8 plain processes' weight): a side stands for a host whose
+# 8-17 nodes would each weigh 1024 without the split, so other work on the same CPUs (another
+# test worker, a benchmark's load) must not weigh as much as the whole side. At the default 1024
+# the run's group weighed as one process, and a reference mission beside one busy test process
+# got half its twin CPU and failed its map-freshness bar (2026-11-28).
+MISSION_SIDE_SHARES = 8192
 REMOVE_SETTLE_S = 2.0  # an exiting process holds its group until reaped: milliseconds, not seconds
 # How long a dead run's leftover process has between SIGTERM and SIGKILL (a node saves its map).
 STALE_TERM_GRACE_S = 3.0

@@ -41,6 +41,15 @@ def group_cpus(group_name):
     return cpus
 
 
+def group_shares(group_name):
+    """{side: cpu.shares} of the run's groups, and the run's own group's under "" (their sum)."""
+    shares = {}
+    for side in ("", *SIDES):
+        with open(os.path.join("/sys/fs/cgroup/cpu", group_name, side, "cpu.shares")) as f:
+            shares[side] = int(f.read().strip())
+    return shares
+
+
 def nice_of(pid):
     with open(f"/proc/{pid}/stat") as f:
         return int(f.read().rsplit(")", 1)[1].split()[16])  # field 19 of stat: nice

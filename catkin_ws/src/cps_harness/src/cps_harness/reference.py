@@ -130,6 +130,7 @@ class Observed:
 
     cgroups: Dict[str, Dict[int, str]] = None  # side -> {pid: cmdline} of the host split's groups
     cgroup_cpus: Dict[str, str] = None  # side -> cpuset.cpus
+    cgroup_shares: Dict[str, int] = None  # side (and "" for the run's group) -> cpu.shares
     control_nice: List[int] = None  # nice of the fleet control process(es)
     twin_managed_cloud: str = ""  # one relayed managed cloud of each robot, as rostopic echo printed it
     twin_link_state: str = ""
@@ -146,12 +147,13 @@ class Observed:
 
 def observe_while_up(mission: Mission) -> Observed:
     """Everything the tests need from the running reference mission, read once it is up."""
-    from cps_harness.cgroups import control_nice, group_cpus, members_of_split
+    from cps_harness.cgroups import control_nice, group_cpus, group_shares, members_of_split
 
     observed = Observed()
     readings = {
         "cgroups": lambda: members_of_split(f"cpsfleet_{mission.pid}"),
         "cgroup_cpus": lambda: group_cpus(f"cpsfleet_{mission.pid}"),
+        "cgroup_shares": lambda: group_shares(f"cpsfleet_{mission.pid}"),
         "control_nice": lambda: control_nice(observed.cgroups or {}),
         "twin_managed_cloud": lambda: "".join(
             mission.echo_once("twin", names.absolute(names.managed_cloud_at_twin(r)), 30.0, "--noarr") for r in ROBOTS
