@@ -45,3 +45,21 @@ def test_cpu_seconds_grow_with_work_and_are_zero_for_a_process_that_is_gone():
     assert process_cpu_s(os.getpid()) >= before + 0.1
     assert process_cpu_s(os.getpid(), waited_children=True) >= process_cpu_s(os.getpid())
     assert process_cpu_s(2**22 + 1) == 0.0
+
+
+def test_a_free_port_is_below_the_ephemeral_range_and_bindable():
+    """No outgoing connection can be handed the port between the draw and the listener's bind."""
+    import socket
+
+    from cps_ros.processes import LISTEN_PORT_LOW, _ephemeral_low, free_port
+
+    ports = {free_port() for _ in range(20)}
+    assert all(LISTEN_PORT_LOW <= p < _ephemeral_low() for p in ports), ports
+    assert len(ports) > 15  # drawn at random: parallel workers do not collide
+    held = socket.socket()
+    try:
+        held.bind(("127.0.0.1", free_port()))
+        held.listen(1)
+        assert free_port() != held.getsockname()[1]
+    finally:
+        held.close()

@@ -12,6 +12,7 @@ and the test fixtures (`cps_harness.testing`) both build on it.
 import contextlib
 import ctypes
 import os
+import random
 import shutil
 import signal
 import socket
@@ -26,10 +27,43 @@ _PR_SET_PDEATHSIG = 1
 GROUP_EXIT_WAIT_S = 5.0
 
 
-def free_port():
-    """A TCP port nobody listens on right now."""
+# Listeners' ports are drawn below the kernel's ephemeral range. A port bind(0) hands out is one the
+# kernel may also give any outgoing connection between our check and the listener's bind: a loopback
+# Zenoh bridge's port, free when chosen, was held by someone else's connection for the 30 s of its
+# restarts (final5, 2026-11-28). Below that range only another listener can take it.
+LISTEN_PORT_LOW = 20000
+EPHEMERAL_RANGE = "/proc/sys/net/ipv4/ip_local_port_range"
+
+
+def _ephemeral_low():
+    try:
+        with open(EPHEMERAL_RANGE) as stream:
+            return int(stream.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768  # Linux's default
+
+
+def _bindable(port):
     with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as sock:
-        sock.bind(("127.0.0.1", 0))
+        try:
+            sock.bind(("0.0.0.0", port))  # conflicts with a listener on any address
+        except OSError:
+            return False
+    return True
+
+
+def free_port():
+    """A TCP port nobody listens on right now, below the ephemeral range (drawn at random, so that
+    parallel test workers do not draw the same one)."""
+    high = _ephemeral_low() - 1
+    if high > LISTEN_PORT_LOW:
+        draw = random.SystemRandom()
+        for _ in range(200):
+            port = draw.randint(LISTEN_PORT_LOW, high)
+            if _bindable(port):
+                return port
+    with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as sock:
+        sock.bind(("127.0.0.1", 0))  # no room below the ephemeral range: the kernel's pick
         return sock.getsockname()[1]
 
 
