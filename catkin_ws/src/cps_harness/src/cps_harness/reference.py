@@ -150,21 +150,23 @@ def observe_while_up(mission: Mission) -> Observed:
     from cps_harness.cgroups import control_nice, group_cpus, group_shares, members_of_split
 
     observed = Observed()
+    # The teleop robot is switched to teleop first and back to auto last: it stands still in between,
+    # so the mission (which ends when every route is done) stays up for every reading. Read after
+    # the routes, they failed on a machine fast enough to drive them in 30 s (final6, 2026-11-28).
     readings = {
         "cgroups": lambda: members_of_split(f"cpsfleet_{mission.pid}"),
         "cgroup_cpus": lambda: group_cpus(f"cpsfleet_{mission.pid}"),
         "cgroup_shares": lambda: group_shares(f"cpsfleet_{mission.pid}"),
         "control_nice": lambda: control_nice(observed.cgroups or {}),
+        "teleop_active": lambda: _switch_mode(mission, "teleop"),
         "twin_managed_cloud": lambda: "".join(
             mission.echo_once("twin", names.absolute(names.managed_cloud_at_twin(r)), 30.0, "--noarr") for r in ROBOTS
         ),
         "twin_link_state": lambda: mission.echo_once("twin", names.absolute(names.LINK_STATE)),
-        # Early, while every robot still drives (the readings after it may each wait up to 30 s).
         "viewer": lambda: _watch_in_foxglove(mission),
-        "teleop_active": lambda: _switch_mode(mission, "teleop"),
-        "auto_active": lambda: _switch_mode(mission, "auto"),
         "twin_master_on_link": lambda: _twin_master_on_link(mission),
         "open_across_link": lambda: _open_across_link(mission),
+        "auto_active": lambda: _switch_mode(mission, "auto"),
     }
     for field, read in readings.items():
         try:
