@@ -185,7 +185,11 @@ def _switch_mode(mission, mode, timeout_s=30.0):
     try:
         deadline, active = time.monotonic() + timeout_s, ""
         while time.monotonic() < deadline and f'data: "{mode}"' not in active:
-            active = mission.echo_once("twin", active_topic, 5.0)
+            # Each echo may use what is left of the wait: the topic is latched, so an echo returns as
+            # soon as it has started and subscribed, but under a mission whose sides take the CPU
+            # first (their cpu.shares) rostopic's start alone can take over 5 s (final7: every 5 s
+            # echo came back empty while the robot had switched).
+            active = mission.echo_once("twin", active_topic, max(5.0, deadline - time.monotonic()))
             time.sleep(0.5)
         return active
     finally:
