@@ -21,6 +21,8 @@ import subprocess
 import sys
 import time
 
+from cps_experiments.verdict import read_verdict
+
 ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 DEMO = os.path.join(ROOT, "catkin_ws", "src", "cps_experiments", "nodes", "demo")
 # The operator's map standing still this long is a freeze (the verdict's freshness bar is 3 s).
@@ -65,9 +67,6 @@ def run_once(run_dir, timeout_s):
 
 def judge_run(run_dir, code, wall_s):
     """One table row: verdict, freeze and why."""
-    sys.path.insert(0, os.path.join(ROOT, "catkin_ws", "src", "cps_experiments", "src"))
-    from cps_experiments.verdict import read_verdict
-
     verdict = read_verdict(run_dir)
     episodes = stale_episodes_s(verdict)
     freeze = []

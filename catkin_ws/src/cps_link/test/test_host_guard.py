@@ -59,7 +59,8 @@ def _listen(name, side, ports):
         "    s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)\n"
         "    s.bind(('0.0.0.0', int(p))); s.listen(8); held.append(s)\n"
         "print('up', flush=True)\n"
-        "time.sleep(120)\n"
+        "import signal\n"
+        "signal.pause()  # until the test kills it\n"
     )
     proc = subprocess.Popen(
         netns_argv(name, side, [sys.executable, "-c", code, *map(str, ports)]), stdout=subprocess.PIPE, text=True

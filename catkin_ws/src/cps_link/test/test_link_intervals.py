@@ -6,6 +6,7 @@ import math
 
 import pytest
 
+from cps_harness.testing import wait_for
 from cps_link.link_report import (
     BAD_REPORT,
     COUNTER_BACKWARDS,
@@ -153,7 +154,7 @@ def test_the_link_sockets_tcp_payload_counts_and_rtt_from_tcp_info_stay_monotone
         got = 0
         while got < 50_000:
             got += len(accepted.recv(65536))
-        time.sleep(0.05)
+        assert wait_for(lambda: any(i.bytes_acked >= 50_000 for i in sender.read()), 5.0)  # the ACKs are back
         before_s = time.monotonic()
         infos = sender.read()
         # the instant of TCP_INFO's counters, which the robots' report is stamped with
@@ -163,7 +164,6 @@ def test_the_link_sockets_tcp_payload_counts_and_rtt_from_tcp_info_stay_monotone
         totals.append((sender.totals()["bytes_new"], receiver.totals()["bytes_received"]))
         client.close()
         accepted.close()
-        time.sleep(0.05)
     sender.read(), receiver.read()
     assert totals[0] == (50_000, 50_000) and totals[1] == (100_000, 100_000)
     assert sender.totals()["bytes_new"] == 100_000 and sender.read() == []  # closed: still counted

@@ -14,6 +14,7 @@ from std_msgs.msg import Header
 from cps_fleet import names
 from cps_harness import foxglove_probe
 from cps_harness.synthetic_clouds import xyz_cloud
+from cps_harness.testing import wait_for
 from cps_web import convert
 from cps_web.endpoint import Endpoint, parse_listen
 from cps_web.options import EndpointOptions
@@ -61,7 +62,7 @@ def _feed(view, stop):
         view.send_scene()
         view.send_status()
         i += 1
-        time.sleep(0.1)
+        stop.wait(0.1)  # 10 Hz, and ends at once when told
 
 
 def test_listen_address_is_checked():
@@ -114,7 +115,7 @@ def test_full_queue_drops_and_counts_and_bad_input_is_counted():
     endpoint.watched = lambda topic: True  # as if a viewer subscribed: the queue is what is tested
     try:
         assert endpoint.offer(HEALTH, lambda: gate.wait() and {"stamp_s": 0.0})  # the worker blocks on it
-        time.sleep(0.2)
+        assert wait_for(lambda: endpoint.snapshot()["queue_length"] == 0, 5.0)  # the worker took it, and waits
         accepted = [endpoint.offer(HEALTH, lambda: {"stamp_s": 1.0}) for _ in range(5)]
         assert accepted == [True, True, False, False, False]
         gate.set()
@@ -138,11 +139,8 @@ def test_a_stalled_viewer_holds_back_no_offer(view, npm_client):
     worker still logs everything queued: the SDK's per-viewer backlog drops for that viewer."""
     stalled = foxglove_probe.stalled_viewer(view.url, 6.0, modules=npm_client)
     try:
-        deadline = time.monotonic() + 5.0
-        while not view.endpoint.watched(MAP) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert view.endpoint.watched(MAP), "the stalled viewer never subscribed"
-        time.sleep(0.5)  # it has paused its socket by now
+        assert wait_for(lambda: view.endpoint.watched(MAP), 5.0), "the stalled viewer never subscribed"
+        assert foxglove_probe.wait_paused(stalled), "the stalled viewer never said it stopped reading"
         big = _map_cloud(50_000)  # 600 kB a message
         for _ in range(200):
             view.on_map(big)

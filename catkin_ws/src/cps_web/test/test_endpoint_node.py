@@ -3,19 +3,19 @@ the latched map, a robot's pose and the video it subscribes only while watched; 
 refused with a clear error; the MCAP recorder node's file read back."""
 
 import socket
-import time
 
 import pytest
 
 from cps_fleet import names
 from cps_harness import foxglove_probe
 from cps_harness.synthetic_clouds import xyz_cloud
-from cps_harness.testing import wait_for
+from cps_harness.testing import messages_received, wait_for
 from cps_web.twin_view import MAP, VIDEO, pose_channel
 
 pytestmark = pytest.mark.ros
 
 ROBOT = "jackal"  # a camera robot of the default fleet
+SENT = 20  # messages of each topic the recorder test publishes
 
 
 def _free_port():
@@ -73,7 +73,7 @@ def test_node_serves_map_pose_and_video_to_the_npm_client(ros, rospy_node, tmp_p
                 CompressedImage(header=Header(stamp=rospy.Time.now()), format="jpeg", data=b"\xff\xd8" + b"\0" * 64)
             )
             i += 1
-            time.sleep(0.1)
+            stop.wait(0.1)  # 10 Hz, and ends at once when told
 
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
@@ -119,25 +119,27 @@ def test_recorder_node_writes_an_mcap_every_channel_decodes(ros, rospy_node, tmp
     )
     from sensor_msgs.msg import PointCloud2
 
-    odom_pub = rospy.Publisher(topic, Odometry, queue_size=10)
-    cloud_pub = rospy.Publisher(cloud_topic, PointCloud2, queue_size=10)
+    odom_pub = rospy.Publisher(topic, Odometry, queue_size=SENT)
+    cloud_pub = rospy.Publisher(cloud_topic, PointCloud2, queue_size=SENT)
     assert wait_for(lambda: odom_pub.get_num_connections() and cloud_pub.get_num_connections(), timeout_s=30.0), (
         ros.output_of(proc)
     )
-    for i in range(20):
+    for i in range(SENT):
         odom = Odometry(header=Header(frame_id=names.odom_frame(ROBOT), seq=i), child_frame_id=names.base_frame(ROBOT))
         odom.pose.pose.position.x = float(i)
         odom_pub.publish(odom)
         cloud_pub.publish(_map_cloud(rospy, 10 + i))
-        time.sleep(0.02)
-    time.sleep(1.0)
+    recorder = names.absolute("mcap_recorder_test")
+    assert wait_for(
+        lambda: min(messages_received(recorder, t) for t in (topic, cloud_topic)) >= SENT, timeout_s=20.0
+    ), ros.output_of(proc)  # every message in the recorder before it is stopped
     proc.terminate()
     assert proc.wait(timeout=20) == 0, ros.output_of(proc)
     contents = read_ros1_mcap(str(path))
     assert contents.errors == []
     assert contents.types == {topic: "nav_msgs/Odometry", cloud_topic: "sensor_msgs/PointCloud2"}
-    assert [m.pose.pose.position.x for m in contents.messages[topic]] == [float(i) for i in range(20)]
-    assert [m.width for m in contents.messages[cloud_topic]] == [10 + i for i in range(20)]
+    assert [m.pose.pose.position.x for m in contents.messages[topic]] == [float(i) for i in range(SENT)]
+    assert [m.width for m in contents.messages[cloud_topic]] == [10 + i for i in range(SENT)]
 
 
 def test_operator_commands_from_the_viewer_are_checked_and_reach_ros(ros, rospy_node, tmp_path):

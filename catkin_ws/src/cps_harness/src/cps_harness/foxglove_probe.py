@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from typing import List, Optional
 
 # The client and what it needs to decode the SDK's protobuf schemas, pinned.
@@ -102,6 +103,20 @@ def stalled_viewer(url: str, seconds: float, modules: Optional[str] = None) -> s
     return subprocess.Popen(
         _argv(url, seconds, [], True), env=_env(modules), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
+
+
+def wait_paused(stalled: subprocess.Popen, timeout_s: float = 10.0) -> bool:
+    """True once a `stalled_viewer` says it has subscribed and stopped reading its socket."""
+    import selectors
+
+    with selectors.DefaultSelector() as selector:
+        selector.register(stalled.stderr, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and selector.select(deadline - time.monotonic()):
+            line = stalled.stderr.readline()
+            if not line or line.strip() == "paused":
+                return bool(line)
+    return False
 
 
 if __name__ == "__main__":  # python -m cps_harness.foxglove_probe ws://127.0.0.1:8765 [seconds]

@@ -97,6 +97,19 @@ class TopicRecorder:
         self.sub.unregister()
 
 
+def messages_received(node, topic, caller_id="/cps_test"):
+    """How many messages `node`'s subscription to `topic` has received so far, from its own bus
+    statistics (XML-RPC getBusStats, which every ROS node serves): the event a test waits for
+    before it stops a node that must have had them."""
+    import xmlrpc.client
+
+    import rosgraph
+
+    uri = rosgraph.Master(caller_id).lookupNode(node)
+    _code, _message, (_published, subscribed, _services) = xmlrpc.client.ServerProxy(uri).getBusStats(caller_id)
+    return sum(conn[2] for name, conns in subscribed if name == topic for conn in conns)
+
+
 def answer_help(doc):
     """For the harness's nodes (loads, probes, recorders): `--help` prints `doc` and exits 0 before
     anything touches a master, as every node of the workspace does."""

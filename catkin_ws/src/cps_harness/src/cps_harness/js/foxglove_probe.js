@@ -72,7 +72,12 @@ client.on("advertise", (channels) => {
     }
     decoders.set(client.subscribe(ch.id), { topic: ch.topic, schemaName: ch.schemaName, decode });
   }
-  if (stall && decoders.size) setTimeout(() => ws._socket && ws._socket.pause(), 200);
+  if (stall && decoders.size) {
+    setTimeout(() => {
+      if (ws._socket) ws._socket.pause();
+      process.stderr.write("paused\n"); // the caller waits for this line, not for a time
+    }, 200);
+  }
 });
 client.on("advertiseServices", (services) => {
   const encoder = new TextEncoder();
