@@ -127,7 +127,6 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     with zenoh.open(zenoh.Config.from_json5(json.dumps(config))) as session:
         to = names.absolute(names.managed_cloud_at_twin(ROBOT))
         key = f"cps/topic{to}"
-        time.sleep(1.0)
         good = encode(
             Frame(
                 b"i" * 16,
@@ -140,7 +139,13 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
                 topic=to,
             )
         )
-        session.put(key, good[:-3] + b"xyz")
+        # A new peer's puts reach the twin bridge only once its subscription has been matched: a
+        # corrupt frame (rejected at the CRC, before any sequence state) is re-sent until counted.
+        assert wait_for(
+            lambda: session.put(key, good[:-3] + b"xyz") or _diag_counter(diagnostics, "corrupt") >= 1,
+            timeout_s=20,
+            poll_s=1.0,
+        ), "the keyed peer's corrupt frame was never counted"
         session.put(
             key,
             encode(
@@ -176,7 +181,7 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
         ), diagnostics.latest
         # The intact frame is delivered once; its duplicate, the corrupt and the mistyped one never.
         assert wait_for(lambda: _intruder_checks(clouds), timeout_s=10), "the intact frame was not delivered"
-    time.sleep(1.0)
+    # Its duplicate was counted above (dropped, never published), so one stays one.
     assert _intruder_checks(clouds) == 1
 
 
