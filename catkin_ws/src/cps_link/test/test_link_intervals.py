@@ -17,7 +17,6 @@ from cps_link.link_report import (
     RoundTrips,
     SenderReport,
     decode_sender_report,
-    tcp_queues,
 )
 
 
@@ -120,16 +119,55 @@ def test_round_trips_count_each_echo_once():
     assert rt.take() == pytest.approx([0.03, 0.2]) and rt.take() == []
 
 
-def test_socket_queues_are_read_from_proc(tmp_path):
-    (tmp_path / "tcp").write_text(
-        "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode\n"
-        "   0: 0201C90A:1D17 0101C90A:B5E2 01 00000010:00020000 00:00000000 00000000     0        0 1\n"
-        "   1: 0101C90A:B5E2 0201C90A:1D17 01 00001000:00000000 00:00000000 00000000     0        0 2\n"
-        "   2: 00000000:1D17 00000000:0000 0A 00000000:00000000 00:00000000 00000000     0        0 3\n"
-    )
-    assert tcp_queues(local_port=7447, proc_root=str(tmp_path)) == [(16, 131072)]
-    assert tcp_queues(remote_port=7447, proc_root=str(tmp_path)) == [(4096, 0)]
-    assert tcp_queues(local_port=1, proc_root=str(tmp_path / "none")) == []
+def test_link_sockets_give_each_sockets_queues():
+    """The send queue (unacked and unsent bytes) and the receive queue (unread) of the link sockets,
+    as /proc/net/tcp's tx_queue and rx_queue say them."""
+    import socket
+
+    from cps_link.link_report import LinkSockets
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        with socket.create_connection(("127.0.0.1", port)) as client, server.accept()[0] as accepted:
+            client.setblocking(False)
+            sent = 0
+            try:  # the receiver never reads: its window fills, then the sender's buffer
+                while True:
+                    sent += client.send(b"x" * 65536)
+            except BlockingIOError:
+                pass
+            sender, receiver = LinkSockets(remote_port=port), LinkSockets(local_port=port)
+
+            def queues():
+                (out,), (inbound,) = sender.read(), receiver.read()
+                return out.send_queue_bytes, inbound.receive_queue_bytes
+
+            # every byte sent waits in one of the two (once the ACKs in flight are back)
+            assert wait_for(lambda: sum(queues()) == sent, 5.0), (queues(), sent)
+            assert min(queues()) > 0
+
+
+def test_link_sockets_look_for_new_sockets_only_when_one_closed_or_after_the_rescan_period():
+    import socket
+
+    from cps_link.link_report import LinkSockets
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        sender = LinkSockets(remote_port=port, rescan_s=3600.0)
+        first = socket.create_connection(("127.0.0.1", port))
+        assert len(sender.read()) == 1
+        with socket.create_connection(("127.0.0.1", port)) as second:
+            assert len(sender.read()) == 1  # the second is not looked for while the first is open
+            first.close()
+            (info,) = sender.read()  # the first closed: looked again, the second found
+            second.sendall(b"y" * 1000)
+            assert wait_for(lambda: sender.read()[0].bytes_acked >= 1000, 5.0)
+        server.accept()[0].close()
 
 
 def test_the_link_sockets_tcp_payload_counts_and_rtt_from_tcp_info_stay_monotone_across_a_reconnection():

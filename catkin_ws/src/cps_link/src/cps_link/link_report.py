@@ -13,11 +13,13 @@ over that time, not a count of the same bytes.
 """
 
 import dataclasses
+import fcntl
 import json
 import math
 import os
 import socket
 import struct
+import termios
 import time
 from typing import List, Optional, Sequence
 
@@ -280,13 +282,6 @@ def _hex_port(address):
     return int(address.rsplit(":", 1)[1], 16)
 
 
-def tcp_queues(local_port=None, remote_port=None, proc_root="/proc/net"):
-    """[(send queue bytes, receive queue bytes)] of this network namespace's established TCP sockets
-    with that local / remote port (/proc/net/tcp and tcp6: tx_queue is unacked + unsent bytes,
-    rx_queue what the application has not read yet)."""
-    return [(tx, rx) for tx, rx, _ in _tcp_sockets(local_port, remote_port, proc_root)]
-
-
 def _tcp_sockets(local_port, remote_port, proc_root):
     """[(tx_queue, rx_queue, inode)] of the established sockets with that local / remote port."""
     out = []
@@ -337,6 +332,10 @@ class TcpInfo:
     rwnd_limited_us: int
     bytes_sent: int  # retransmissions included
     bytes_retrans: int
+    # The socket's queues (ioctl SIOCOUTQ / SIOCINQ, /proc/net/tcp's tx_queue and rx_queue): bytes
+    # unacked or not yet sent, and received but not yet read by the application.
+    send_queue_bytes: int = 0
+    receive_queue_bytes: int = 0
 
     @property
     def bytes_new(self):
@@ -353,14 +352,31 @@ def parse_tcp_info(raw) -> Optional[TcpInfo]:
     )
 
 
-class LinkSockets:
-    """TCP_INFO of this process's own link sockets (Zenoh's, found by their port in /proc/net/tcp and
-    their inode among /proc/self/fd), with cumulative byte counters that stay monotone across a
-    reconnection (a new socket's counters start from the old ones' total). Not thread-safe."""
+# How often LinkSockets looks in /proc/net/tcp for a new link socket while its known ones stay open.
+# Parsing every socket of the namespace at each 10 Hz heartbeat was half of each bridge's CPU in the
+# reference mission (2026-11-28); a closed one is noticed at the next read.
+LINK_SOCKET_RESCAN_S = 1.0
 
-    def __init__(self, local_port=None, remote_port=None, proc_root="/proc/net", fd_root="/proc/self/fd"):
+
+class LinkSockets:
+    """TCP_INFO and queues of this process's own link sockets (Zenoh's, found by their port in
+    /proc/net/tcp and their inode among /proc/self/fd), with cumulative byte counters that stay
+    monotone across a reconnection (a new socket's counters start from the old ones' total).
+    Not thread-safe."""
+
+    def __init__(
+        self,
+        local_port=None,
+        remote_port=None,
+        proc_root="/proc/net",
+        fd_root="/proc/self/fd",
+        rescan_s=LINK_SOCKET_RESCAN_S,
+    ):
         self.local_port, self.remote_port = local_port, remote_port
         self.proc_root, self.fd_root = proc_root, fd_root
+        self.rescan_s = rescan_s
+        self._scanned_s = -math.inf  # monotonic s of the last look in /proc/net/tcp
+        self._inodes = []  # the link sockets' inodes it found there
         self._fds = {}  # inode -> fd in this process
         self._last = {}  # inode -> TcpInfo at the last read
         self._base = {"bytes_new": 0, "bytes_acked": 0, "bytes_received": 0}
@@ -385,11 +401,25 @@ class LinkSockets:
             pass
         return None
 
+    def _still_open(self, inode):
+        fd = self._fds.get(inode)
+        try:
+            return fd is not None and os.readlink(f"{self.fd_root}/{fd}") == f"socket:[{inode}]"
+        except OSError:
+            return False
+
+    def _link_inodes(self):
+        now = time.monotonic()
+        if now - self._scanned_s >= self.rescan_s or not all(self._still_open(i) for i in self._inodes):
+            self._scanned_s = now
+            self._inodes = [i for _, _, i in _tcp_sockets(self.local_port, self.remote_port, self.proc_root) if i]
+        return self._inodes
+
     def read(self):
         """[TcpInfo] of the link sockets now ([] when none is ours or TCP_INFO is not readable)."""
         out, seen = [], set()
-        for _, _, inode in _tcp_sockets(self.local_port, self.remote_port, self.proc_root):
-            fd = self._fd_of(inode) if inode else None
+        for inode in self._link_inodes():
+            fd = self._fd_of(inode)
             info = _tcp_info_of(fd) if fd is not None else None
             if info is None:
                 continue
@@ -410,6 +440,9 @@ class LinkSockets:
         return {name: base + sum(getattr(i, name) for i in self._last.values()) for name, base in self._base.items()}
 
 
+_SIOCINQ, _SIOCOUTQ = termios.FIONREAD, termios.TIOCOUTQ  # linux/sockios.h: the same numbers
+
+
 def _tcp_info_of(fd):
     """TCP_INFO of file descriptor `fd` of this process (a dup is read and closed; the socket stays)."""
     try:
@@ -422,7 +455,11 @@ def _tcp_info_of(fd):
         os.close(dup)
         return None
     try:
-        return parse_tcp_info(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, _TCP_INFO_LEN))
+        info = parse_tcp_info(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, _TCP_INFO_LEN))
+        if info is None:
+            return None
+        send, receive = (struct.unpack("i", fcntl.ioctl(dup, op, b"\0" * 4))[0] for op in (_SIOCOUTQ, _SIOCINQ))
+        return dataclasses.replace(info, send_queue_bytes=send, receive_queue_bytes=receive)
     except OSError:
         return None
     finally:

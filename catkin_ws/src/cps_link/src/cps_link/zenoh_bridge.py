@@ -28,7 +28,6 @@ from cps_link.link_report import (
     ReportComposer,
     RoundTrips,
     SenderReport,
-    tcp_queues,
 )
 from cps_link.receive_path import TOPIC_TYPE_MISMATCH, ReceivePath, SendPath
 from cps_link.route_ledger import RouteLedger, is_cloud_route
@@ -555,10 +554,9 @@ class ZenohBridge:
             with self.lock:
                 payload = self.round_trips.heartbeat(time.monotonic_ns())
             self._put_heartbeat(payload)
-            sizes = [tx for tx, _ in tcp_queues(remote_port=self.table.endpoint_port)]
             with self.lock:
-                self._send_queue_max = max([self._send_queue_max, *sizes])
                 infos = self.link_sockets.read()
+                self._send_queue_max = max([self._send_queue_max, *(i.send_queue_bytes for i in infos)])
                 self._tcp_rtts += [i.rtt_us * 1e-6 for i in infos if i.rtt_us > 0]
                 if infos:
                     self._socket_samples[0] += 1
@@ -566,8 +564,8 @@ class ZenohBridge:
         else:
             self._put_heartbeat(b"")
         if self.composer is not None:
-            sizes = [rx for _, rx in tcp_queues(local_port=self.table.endpoint_port)]
             with self.lock:
+                sizes = [i.receive_queue_bytes for i in self.link_sockets.read()]
                 self.composer.sample_receive_queue(max(sizes) if sizes else None)
         with self.lock:
             down = self.health.expire(time.time(), self.table.heartbeat_timeout_ms / 1000.0)
