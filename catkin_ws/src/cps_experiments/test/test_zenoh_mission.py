@@ -23,7 +23,7 @@ def _link_ports():
 def test_clouds_cross_and_the_link_is_up(reference_mission):
     reference_mission.check()
     observed = reference_mission.observed
-    assert not observed.errors, observed.errors
+    assert not observed.errors, (observed.errors, observed.reading_s)
     # A cloud crossed: the twin's relayed managed topic carries each robot's clouds.
     assert observed.twin_managed_cloud.count("compressed_data:") == len(ROBOTS), observed.twin_managed_cloud
     assert "up: True" in observed.twin_link_state, observed.twin_link_state

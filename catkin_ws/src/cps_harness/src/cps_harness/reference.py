@@ -143,6 +143,9 @@ class Observed:
     # run on the twin's side): cps_harness.foxglove_probe.
     viewer: dict = None
     errors: List[str] = dataclasses.field(default_factory=list)
+    # field -> how long its reading took, s. The readers run behind the sides' CPU shares, so one
+    # after the other: read at once they only shared that remainder (each of six took 30-36 s).
+    reading_s: Dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 def observe_while_up(mission: Mission) -> Observed:
@@ -169,10 +172,12 @@ def observe_while_up(mission: Mission) -> Observed:
         "auto_active": lambda: _switch_mode(mission, "auto"),
     }
     for field, read in readings.items():
+        start = time.monotonic()
         try:
             setattr(observed, field, read())
         except Exception as exc:  # noqa: BLE001 - every reading is tried; the test names what failed
             observed.errors.append(f"{field}: {type(exc).__name__}: {exc}")
+        observed.reading_s[field] = round(time.monotonic() - start, 2)
     return observed
 
 
