@@ -329,11 +329,11 @@ def test_a_drain_takes_its_delivered_rate_for_the_link_only_if_the_socket_stayed
     interval left part of it idle, and its delivered rate is below the link's."""
     kbytes = 1000
 
-    def step_then_drain(drain_socket_full):
+    def step_then_drain(drain_socket_full, drain_rtts_s=(0.08,)):
         core = _live_core(initial=25.0)
         est = core.estimator
 
-        def report(t, acked_kbytes, sent_kbytes, full, rtt_s):
+        def report(t, acked_kbytes, sent_kbytes, full, rtts_s):
             core.on_bridge_report(
                 t,
                 0.5,
@@ -342,26 +342,33 @@ def test_a_drain_takes_its_delivered_rate_for_the_link_only_if_the_socket_stayed
                 0,
                 sent_kbytes * kbytes,
                 False,
-                rtt_s=(rtt_s,),
+                rtt_s=tuple(rtts_s),
                 sent_link_bytes=sent_kbytes * kbytes,
                 acked_link_bytes=acked_kbytes * kbytes,
                 sender_socket_full=full,
             )
 
-        report(0.5, 1250, 1250, 0.0, 0.005)  # 20 Mbit/s delivered, the link not yet full
+        report(0.5, 1250, 1250, 0.0, (0.005,))  # 20 Mbit/s delivered, the link not yet full
         # the link is 20 Mbit/s (1250 kB per 0.5 s) and the estimate 25: its socket full all along
-        report(1.0, 1250, 1560, 1.0, 0.06)
+        report(1.0, 1250, 1560, 1.0, (0.06,))
         assert est.last_overuse == "link_full" and est.mode == "drain"
         cut = est.capacity_mbps
         # the drain's first interval: the queue served (more delivered than sent), still queueing
         # by the RTT; the link idle for part of it when the socket was not full all along
-        report(1.5, 900, 700, drain_socket_full, 0.08)
+        report(1.5, 900, 700, drain_socket_full, drain_rtts_s)
         return cut, est.capacity_mbps
 
     cut, after = step_then_drain(drain_socket_full=0.4)
     assert after == pytest.approx(cut)  # a part-empty interval is not the link's rate
     cut, after = step_then_drain(drain_socket_full=1.0)
     assert after == pytest.approx(900 * kbytes * 8e-6 / 0.5)  # full throughout: it is
+    # The draining sender's socket is rarely full (it sends below the link on purpose): where every
+    # heartbeat of the interval still saw the queue (its smallest RTT too), the link was busy all along.
+    cut, after = step_then_drain(drain_socket_full=0.4, drain_rtts_s=(0.07, 0.08, 0.08, 0.09, 0.1))
+    assert after == pytest.approx(900 * kbytes * 8e-6 / 0.5)
+    # ... not where one of them found it empty.
+    cut, after = step_then_drain(drain_socket_full=0.4, drain_rtts_s=(0.006, 0.08, 0.08, 0.09, 0.1))
+    assert after == pytest.approx(cut)
 
 
 def test_a_refused_probes_own_queue_does_not_cut_the_capacity_measured_before_it():

@@ -45,6 +45,8 @@ DRAIN_FACTOR = 0.85  # GCC's cut on overuse, x the acknowledged (delivered) rate
 LARGE_DEFICIT_FRACTION = 0.4
 # ... and a confirmed deficit of a busy sender whose window delivered below this x the capacity.
 STEP_FRACTION = 0.7
+# RTT samples of one interval from which its smallest says whether the queue emptied inside it.
+WHOLE_INTERVAL_RTT_SAMPLES = 3
 # BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
 # inside the +-15 % band the estimate is held to
 PROBE_GAIN = 1.2
@@ -349,7 +351,7 @@ class DeliveryRateEstimator:
         self._merged.append((now, report.interval_s, delivered, sent))
         while self._merged and self._merged[0][0] <= now - self.merge_window_s:
             self._merged.popleft()
-        rtt_overuse, queue_delay_s = self._rtt(now, report.rtt_s, dt)
+        rtt_overuse, queue_delay_s, least_queue_delay_s = self._rtt(now, report.rtt_s, dt)
 
         # a small deficit must hold on two reports in a row: the two sides' intervals are measured on
         # two clocks, and one large frame sent at the end of one interval arrives in the next; a
@@ -432,7 +434,15 @@ class DeliveryRateEstimator:
             # ... and only if the link was full over the whole interval where the sender says so
             # (its socket full in nearly every sample): a queue that emptied inside the interval
             # left part of it idle, and its delivered rate is below the link's
-            whole = report.link_limited is None or bool(report.link_limited)
+            # ... or where even the interval's smallest RTT sample was queueing: the queue never
+            # emptied, so the link was busy all along though the draining sender's socket was not
+            # full (live, under a loaded machine, a 60 -> 20 Mbit/s step's straddling interval left
+            # the capacity at 23.5 for 2.5 s because that socket was not full; 2026-11-28)
+            whole = (
+                report.link_limited is None
+                or bool(report.link_limited)
+                or least_queue_delay_s > self.queue_delay_threshold_s
+            )
             if (delivered >= 1.02 * sent or still_full) and queueing and whole:
                 self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = self._clip(delivered)
                 self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)
@@ -576,17 +586,22 @@ class DeliveryRateEstimator:
         return sent - delivered > max(fraction * sent, min_mbps)
 
     def _rtt(self, now, rtt_samples, dt):
-        """(GCC trendline says overuse, queueing delay s over the min-RTT floor) from this interval."""
+        """(GCC trendline says overuse, queueing delay s over the min-RTT floor, and that of the
+        interval's smallest sample) from this interval (NaN delays without a sample)."""
         good = sorted(r for r in rtt_samples if isinstance(r, (int, float)) and math.isfinite(r) and 0 < r < 60)
         if len(good) < len(tuple(rtt_samples)):
             self.ignored["bad_rtt_sample"] += len(tuple(rtt_samples)) - len(good)
         if not good:
-            return False, math.nan
+            return False, math.nan, math.nan
         rtt = good[len(good) // 2]  # median: a burst of late echoes is one interval's worth, not many
         self._rtt_samples.append((now, good[0], rtt))
         while self._rtt_samples and self._rtt_samples[0][0] < now - self.min_rtt_window_s:
             self._rtt_samples.popleft()
         # queueing delay against the floor of the interval medians, so jitter is not queueing
-        queue_delay_s = max(0.0, rtt - min(m for _, _, m in self._rtt_samples))
+        floor = min(m for _, _, m in self._rtt_samples)
+        queue_delay_s = max(0.0, rtt - floor)
         overuse = self._trend.update(now, 1000.0 * queue_delay_s, dt)
-        return overuse and queue_delay_s > self.queue_delay_threshold_s, queue_delay_s
+        # the smallest sample says the queue never emptied only if there are a few (a report
+        # carries one per heartbeat: five in 0.5 s)
+        least = max(0.0, good[0] - floor) if len(good) >= WHOLE_INTERVAL_RTT_SAMPLES else math.nan
+        return overuse and queue_delay_s > self.queue_delay_threshold_s, queue_delay_s, least
