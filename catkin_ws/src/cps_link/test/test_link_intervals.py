@@ -130,7 +130,7 @@ def test_link_sockets_give_each_sockets_queues():
         server.bind(("127.0.0.1", 0))
         server.listen()
         port = server.getsockname()[1]
-        with socket.create_connection(("127.0.0.1", port)) as client, server.accept()[0] as accepted:
+        with socket.create_connection(("127.0.0.1", port)) as client, server.accept()[0]:
             client.setblocking(False)
             sent = 0
             try:  # the receiver never reads: its window fills, then the sender's buffer
