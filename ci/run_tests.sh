@@ -17,7 +17,10 @@ t0=$(now)
 lint_rc=0
 ruff check . && ruff format --check . || lint_rc=1
 if [ "$lint_rc" -eq 0 ]; then echo "ruff: lint and format clean"; else echo "ruff: findings above; the run fails" >&2; fi
-parallel=(-n 2 --dist loadgroup)
+# --max-worker-restart 0: a worker that dies (final9: the kernel's OOM killer) ends the run with a
+# failure. Replaced, pytest-xdist 3.6's loadgroup scheduler left both workers waiting for work
+# forever (pytest-xdist issues 1323 and 1327): CI would have hung to its 90 min.
+parallel=(-n 2 --dist loadgroup --max-worker-restart 0)
 for arg in "$@"; do
   case "$arg" in -n|-n*|--numprocesses*|-p) parallel=() ;; esac
 done
