@@ -1,5 +1,6 @@
 """The durations plugin: a run's table gives each test's wall and CPU time, the CPU of the child
-processes a test reaped included, with and without xdist workers; junit.xml keeps the CPU time."""
+processes a test reaped included, with and without xdist workers; junit.xml keeps the CPU time.
+Each test's memory growth is in the table, and a worker past the memory guard stops naming its test."""
 
 import re
 import subprocess
@@ -57,3 +58,53 @@ def _slowest_rows(text):
 def test_the_table_without_cpu_figures_reads_zero():
     text = table({"a/b.py::t": 2.0}, {"a/b.py::t": "passed"}, {}, 3.0)
     assert "| a/b.py::t | passed | 2.0 | 0.0 |" in text and "their CPU time" in text
+
+
+GROW_MB = 300
+MEMORY_TESTS = f"""
+import os, time
+
+held = []
+
+def test_small():
+    pass
+
+def test_grows():
+    held.append(bytearray({GROW_MB} * 1000 * 1000))
+    if os.environ.get("CPS_MEMORY_GUARD_MB"):
+        time.sleep(10)  # held long enough for the guard's sampling
+"""
+
+
+def _run(tmp_path, tests, *options, env=None):
+    import os
+
+    (tmp_path / "test_sample.py").write_text(tests)
+    out = tmp_path / "report" / "durations.md"
+    result = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "cps_harness.durations", *options]
+        + [f"--rootdir={tmp_path}", f"--durations-table={out}", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+        env={**os.environ, **(env or {})},
+    )
+    return result, out
+
+
+def test_the_test_that_grew_its_worker_heads_the_memory_table(tmp_path):
+    result, out = _run(tmp_path, MEMORY_TESTS)
+    assert result.returncode == 0, result.stdout + result.stderr
+    section = out.read_text().split("memory grew most in", 1)[1]
+    rows = re.findall(r"^\| (\S+) \| (\d+) \| (\d+) \|$", section, re.M)
+    assert rows[0][0] == "test_sample.py::test_grows" and int(rows[0][1]) >= GROW_MB * 0.95, rows
+
+
+@pytest.mark.parametrize("workers", [[], ["-n", "2", "--max-worker-restart", "0"]])
+def test_a_worker_past_the_memory_guard_stops_and_names_its_test(tmp_path, workers):
+    result, out = _run(tmp_path, MEMORY_TESTS, *workers, env={"CPS_MEMORY_GUARD_MB": str(GROW_MB)})
+    assert result.returncode != 0, result.stdout + result.stderr
+    (guard,) = (tmp_path / "report").glob("memory_guard_*.txt")
+    text = guard.read_text()
+    assert text.startswith("test_sample.py::test_grows: this worker reached") and "test_grows" in text, text

@@ -8,11 +8,18 @@ Beside the wall time, each test's CPU time (`cpu_s` in its report's user propert
 junit.xml): its worker's own plus that of every child process the test reaped (the nodes and
 missions it started), from set-up to tear-down. On two shared cores the wall time says how long a
 test waited; the CPU time says what it cost the others (the reference mission's is its first
-test's set-up)."""
+test's set-up).
+
+And its worker's memory: the resident size after the test and how much it grew in it (`rss_mb`,
+`rss_growth_mb`), with the tests it grew most in. A worker past MEMORY_GUARD_MB writes every
+thread's stack and the running test to the report folder and exits: final9's worker grew to 23.8 GB
+and the kernel's OOM killer took it, naming no test."""
 
 import collections
+import faulthandler
 import os
 import resource
+import threading
 import time
 
 import pytest
@@ -32,11 +39,15 @@ class Durations:
         self.outcome = {}
         self.worker = {}
         self.cpu_s = collections.Counter()  # nodeid -> CPU s (the worker's and its reaped children's)
+        self.rss = {}  # nodeid -> (its worker's resident MB after it, MB grown in it)
 
     @pytest.hookimpl
     def pytest_runtest_logreport(self, report):
         self.seconds[report.nodeid] += report.duration
-        self.cpu_s[report.nodeid] += dict(report.user_properties).get(CPU_PROPERTY, 0.0)
+        properties = dict(report.user_properties)
+        self.cpu_s[report.nodeid] += properties.get(CPU_PROPERTY, 0.0)
+        if RSS_PROPERTY in properties:
+            self.rss[report.nodeid] = (properties[RSS_PROPERTY], properties.get(RSS_GROWTH_PROPERTY, 0.0))
         if report.when == "call" or report.outcome != "passed":
             self.outcome[report.nodeid] = report.outcome
         node = getattr(report, "node", None)
@@ -48,7 +59,7 @@ class Durations:
         wall_s = time.monotonic() - self.started
         os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
         with open(self.path, "w") as stream:
-            stream.write(table(self.seconds, self.outcome, self.worker, wall_s, self.cpu_s))
+            stream.write(table(self.seconds, self.outcome, self.worker, wall_s, self.cpu_s, self.rss))
 
 
 def _package(nodeid):
@@ -60,9 +71,9 @@ def _file(nodeid):
     return nodeid.split("::", 1)[0]
 
 
-def table(seconds, outcome, worker, wall_s, cpu_s=None):
+def table(seconds, outcome, worker, wall_s, cpu_s=None, rss=None):
     """The markdown table of a run: per package, per file, the slowest tests, per worker (wall s and
-    CPU s)."""
+    CPU s), and the tests their worker's memory grew most in (rss: nodeid -> (MB after, MB grown))."""
     seconds, cpu_s = collections.Counter(seconds), collections.Counter(cpu_s or {})
     total, total_cpu = sum(seconds.values()), sum(cpu_s.values())
     lines = [
@@ -96,10 +107,30 @@ def table(seconds, outcome, worker, wall_s, cpu_s=None):
     )
     lines.extend([f"## The {TOP_TESTS} costliest tests in CPU", "", "| test | s | CPU s |", "|---|---|---|"])
     lines.extend(f"| {n} | {seconds.get(n, 0.0):.1f} | {c:.1f} |" for n, c in cpu_s.most_common(TOP_TESTS))
+    if rss:
+        grown = sorted(rss.items(), key=lambda item: -item[1][1])[:TOP_MEMORY_TESTS]
+        lines.extend(
+            [
+                "",
+                f"## The {TOP_MEMORY_TESTS} tests their worker's memory grew most in",
+                "",
+                f"Largest resident size of a worker after a test: {max(after for after, _ in rss.values()):.0f} MB.",
+                "",
+                "| test | grew MB | resident MB after |",
+                "|---|---|---|",
+            ]
+        )
+        lines.extend(f"| {n} | {growth:.0f} | {after:.0f} |" for n, (after, growth) in grown)
     return "\n".join(lines) + "\n"
 
 
 CPU_PROPERTY = "cpu_s"
+RSS_PROPERTY, RSS_GROWTH_PROPERTY = "rss_mb", "rss_growth_mb"
+TOP_MEMORY_TESTS = 10
+# A worker this large is a leak (24 GB hold two workers and the missions' nodes): the guard stops
+# it before the kernel's OOM killer takes it, or a mission's node. CPS_MEMORY_GUARD_MB overrides it.
+MEMORY_GUARD_MB = 8000
+MEMORY_GUARD_PERIOD_S = 0.5
 
 
 def _cpu_s():
@@ -108,9 +139,38 @@ def _cpu_s():
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
+def _rss_mb():
+    """This process's resident size, MB (0 where /proc cannot say)."""
+    try:
+        with open("/proc/self/statm") as stream:
+            return int(stream.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+_running = {"test": "(between tests)"}
+
+
+def _guard_memory(folder, limit_mb=MEMORY_GUARD_MB):
+    """Until the process ends: past `limit_mb`, write the running test and every thread's stack to
+    `folder` and exit (pytest-xdist reports the test its worker died in)."""
+    while True:
+        time.sleep(MEMORY_GUARD_PERIOD_S)
+        rss_mb = _rss_mb()
+        if rss_mb > limit_mb:
+            os.makedirs(folder, exist_ok=True)
+            with open(os.path.join(folder, f"memory_guard_{os.getpid()}.txt"), "w") as out:
+                out.write(f"{_running['test']}: this worker reached {rss_mb:.0f} MB (guard {limit_mb:.0f} MB)\n")
+                out.flush()
+                faulthandler.dump_traceback(out, all_threads=True)
+            os._exit(70)
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item):
     item._cps_cpu_start_s = _cpu_s()
+    item._cps_rss_start_mb = _rss_mb()
+    _running["test"] = item.nodeid
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -119,10 +179,21 @@ def pytest_runtest_makereport(item, call):
     outcome = yield
     start = getattr(item, "_cps_cpu_start_s", None)
     if call.when == "teardown" and start is not None:
-        outcome.get_result().user_properties.append((CPU_PROPERTY, round(_cpu_s() - start, 2)))
+        rss_mb = _rss_mb()
+        outcome.get_result().user_properties.extend(
+            [
+                (CPU_PROPERTY, round(_cpu_s() - start, 2)),
+                (RSS_PROPERTY, round(rss_mb, 1)),
+                (RSS_GROWTH_PROPERTY, round(rss_mb - getattr(item, "_cps_rss_start_mb", rss_mb), 1)),
+            ]
+        )
 
 
 def pytest_configure(config):
     path = config.getoption("--durations-table")
+    if path:  # make test's run: every process that runs tests guards its memory
+        folder = os.path.dirname(os.path.abspath(path))
+        limit_mb = float(os.environ.get("CPS_MEMORY_GUARD_MB", MEMORY_GUARD_MB))
+        threading.Thread(target=_guard_memory, args=(folder, limit_mb), name="cps_memory_guard", daemon=True).start()
     if path and not hasattr(config, "workerinput"):  # the controller (or a run without xdist)
         config.pluginmanager.register(Durations(path), "cps_durations_table")
