@@ -96,6 +96,39 @@ def test_a_robot_played_at_another_rate_keeps_its_clouds_at_their_poses_and_the_
     assert player.cloud_lateness_s == pytest.approx([0.05] * 4)
 
 
+def test_messages_recorded_at_the_same_instant_replay_in_their_recorded_order():
+    """final10: the reference bag held two odometry messages of one stamp, and sorting the events
+    compared the messages themselves (a TypeError that stopped the replay before its first cloud)."""
+    from nav_msgs.msg import Odometry
+
+    from cps_bringup.trace_replay import Copy, Player
+
+    first, second = Odometry(), Odometry()
+    first.child_frame_id, second.child_frame_id = "first", "second"
+    trace = Trace(
+        {
+            "a": RobotTrace(
+                "a", [(1.0, _header_msg("a/lidar"))], [(1.0, first), (1.0, second)], [], [], np.zeros((1, 2))
+            )
+        },
+        2.0,
+        "",
+    )
+    now = [0.0]
+    odometry = []
+    player = Player(
+        trace,
+        [Copy("a", "a", (0.0, 0.0), 0.0)],
+        lambda *_args: None,
+        lambda _transforms: None,
+        lambda _name, msg: odometry.append(msg.child_frame_id),
+        clock=lambda: now[0],
+    )
+    player._stop.wait = lambda delay: now.__setitem__(0, now[0] + delay) or False
+    player.run(1.5, lambda s: s)
+    assert odometry == ["first", "second"]
+
+
 COUNT_ROBOTS = """
 import json, sys, time, rospy
 from cps_fleet import names
@@ -159,13 +192,20 @@ def test_recorded_robots_replayed_as_eight_are_eight_robots_in_the_map(reference
         )
         seen = json.loads(counted.stdout.strip().splitlines()[-1]) if counted.returncode == 0 else counted.stderr
     finally:
+        replay_log = ""
         if replay is not None:
             replay.kill()
-            replay.wait()
+            replay_log = replay.communicate()[0]
+        map_log = _map_server_log(twin_out / "logs")
         if supervisor is not None:
             supervisor.stop_all()
         graph.close()
     assert isinstance(seen, dict), seen
     in_map = sorted(r for r in copies if seen.get(r, (0, 0))[0] > 0 and seen.get(r, (0, 0))[1] > 0)
-    assert in_map == sorted(copies), seen
+    assert in_map == sorted(copies), f"{seen}\nthe replay:\n{replay_log[-3000:]}\nthe map server:\n{map_log[-3000:]}"
     assert not processes_named(str(twin_out))
+
+
+def _map_server_log(folder):
+    """The map server's log(s) in the twin's log folder ('' if none)."""
+    return "".join(path.read_text(errors="replace") for path in sorted(folder.rglob("map_server*.log")))

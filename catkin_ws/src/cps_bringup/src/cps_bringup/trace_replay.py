@@ -357,7 +357,11 @@ class Player:
             if best is None or abs(t - offset_s) < abs(best[0] - offset_s):
                 nearest[m.child_frame_id] = (t, m)
         period = max(self.trace.duration_s * scale, 1e-3)
-        shifted = sorted(((t - offset_s) % period, order, kind, m) for t, order, kind, m in events)
+        # by time and kind only (stable: messages recorded at the same instant keep their order; they
+        # do not compare, and a recording with two odometry messages of one stamp stopped the replay)
+        shifted = sorted(
+            (((t - offset_s) % period, order, kind, m) for t, order, kind, m in events), key=lambda e: e[:2]
+        )
         for _, m in nearest.values():
             yield 0.0, "tf", m
         loop = 0
