@@ -3,9 +3,11 @@
 
 Each run is the demo exactly as `make demo` runs it (`nodes/demo`, the default fleet and link
 scenario), in its own folder under `--out`. A run *froze* if the demo did not end by itself within
-`--timeout-s` (killed), if it wrote no verdict, or if the verdict found a robot's published map
+`--timeout-s` (killed), if it wrote no verdict, if the verdict found a robot's published map
 (what the operator sees) staler than its 3 s bar for longer than `FREEZE_S`, outside link outages
-as the verdict judges it (a map standing still while the link is cut is the cut, not a freeze).
+as the verdict judges it (a map standing still while the link is cut is the cut, not a freeze), or
+if the twin's bridge held the link down for longer than `FREEZE_S` while the scenario had it up
+(the verdict's outages are the bridges', so a link that never comes back would hide a freeze).
 Every run's verdict and reasons are listed as the report wrote them; nothing is averaged away.
 
     python bench/demo_repeat.py [--runs 10] [--out out/demo_repeat] [--results docs/results/demo_repeat.md]
@@ -14,6 +16,7 @@ Machine-bound (2 cores); run it alone, under the heavy lock.
 """
 
 import argparse
+import json
 import math
 import os
 import re
@@ -29,6 +32,7 @@ DEMO = os.path.join(ROOT, "catkin_ws", "src", "cps_experiments", "nodes", "demo"
 FREEZE_S = 10.0
 MAP_CHECK = "map published and fresh"  # cps_experiments.verdict's check of the published map's age
 TIMEOUT_S = 900.0
+RUN_FILE = "demo_repeat_run.json"  # a run's exit code and wall time, for --judge-only
 
 
 def stale_episodes_s(verdict):
@@ -43,6 +47,50 @@ def stale_episodes_s(verdict):
         age = float(match.group(1)) if match else math.nan
         robot = check.get("robot", "")
         longest[robot] = age if math.isnan(age) else max(age, longest.get(robot, 0.0))
+    return longest
+
+
+def _rows(path):
+    import csv
+
+    try:
+        with open(path) as stream:
+            return list(csv.DictReader(stream))
+    except OSError:
+        return []
+
+
+def link_down_outside_cuts_s(run_dir):
+    """The longest time (s) the twin's bridge held the link down while the scenario had it up
+    (link_state.csv against link_events.csv's cut/restore, wall clock, to the mission's end). The
+    verdict leaves the bridges' outages out of the map's freshness, so a link that never came back
+    after a cut (run 4 of the first ten, 2026-11-28) froze the map for 385 s unseen."""
+    events = _rows(os.path.join(run_dir, "link_events.csv"))
+    states = _rows(os.path.join(run_dir, "link_state.csv"))
+    ages = _rows(os.path.join(run_dir, "map_age.csv"))
+    if not states:
+        return 0.0
+    end_s = max([float(r["time_s"]) for r in ages if r.get("time_s")] + [float(states[-1]["stamp_s"])])
+    cuts, cut_at = [], None
+    for e in events:
+        if e["event"] == "cut":
+            cut_at = float(e["wall_time_s"])
+        elif e["event"] == "restore" and cut_at is not None:
+            cuts.append((cut_at, float(e["wall_time_s"])))
+            cut_at = None
+    if cut_at is not None:
+        cuts.append((cut_at, end_s))
+    longest = 0.0
+    for row, nxt in zip(states, states[1:] + [None]):
+        if row["up"] != "0":
+            continue
+        start, stop = float(row["stamp_s"]), float(nxt["stamp_s"]) if nxt else end_s
+        for cut_start, cut_stop in sorted(cuts):  # what is left of the episode outside the cuts
+            if cut_stop <= start or cut_start >= stop:
+                continue
+            longest = max(longest, cut_start - start)
+            start = max(start, cut_stop)
+        longest = max(longest, stop - start)
     return longest
 
 
@@ -62,7 +110,20 @@ def run_once(run_dir, timeout_s):
                 proc.kill()
                 proc.wait()
             code = None
-    return code, time.monotonic() - t0
+    wall_s = time.monotonic() - t0
+    with open(os.path.join(run_dir, RUN_FILE), "w") as stream:
+        json.dump({"exit": code, "wall_s": wall_s}, stream)
+    return code, wall_s
+
+
+def read_run(run_dir):
+    """(exit code or None if killed, wall s) that run_once wrote for `run_dir`; ('?', NaN) without it."""
+    try:
+        with open(os.path.join(run_dir, RUN_FILE)) as stream:
+            run = json.load(stream)
+        return run["exit"], float(run["wall_s"])
+    except (OSError, ValueError, KeyError):
+        return "?", math.nan
 
 
 def judge_run(run_dir, code, wall_s):
@@ -79,6 +140,9 @@ def judge_run(run_dir, code, wall_s):
         for r, a in episodes.items()
         if not (math.isfinite(a) and a <= FREEZE_S)
     ]
+    link_down_s = link_down_outside_cuts_s(run_dir)
+    if link_down_s > FREEZE_S:
+        freeze.append(f"the twin's bridge held the link down {link_down_s:.0f} s while the scenario had it up")
     return {
         "status": verdict.status if verdict else "INCOMPLETE (no verdict written)",
         "exit": "killed" if code is None else str(code),
@@ -108,13 +172,16 @@ def main(argv=None):
     parser.add_argument("--out", default=os.path.join(ROOT, "out", "demo_repeat"))
     parser.add_argument("--results", default=None, help="also write the table (Markdown) here")
     parser.add_argument("--timeout-s", type=float, default=TIMEOUT_S)
+    parser.add_argument(
+        "--judge-only", action="store_true", help="judge the runs already in --out (exit codes and wall times unknown)"
+    )
     args = parser.parse_args(argv)
     if args.runs < 1:
         parser.error("--runs must be at least 1")
     rows = []
     for i in range(1, args.runs + 1):
         run_dir = os.path.join(os.path.abspath(args.out), f"run_{i:02d}")
-        code, wall_s = run_once(run_dir, args.timeout_s)
+        code, wall_s = read_run(run_dir) if args.judge_only else run_once(run_dir, args.timeout_s)
         rows.append(judge_run(run_dir, code, wall_s))
         print("\n".join(table(rows)[-1:]), flush=True)
     passed = sum(r["status"] == "PASS" for r in rows)
@@ -123,8 +190,9 @@ def main(argv=None):
         "# `make demo` repeated (bench/demo_repeat.py)",
         "",
         f"{args.runs} demos from one checkout, one after another: **{passed} of {args.runs} PASS, "
-        f"{frozen} froze** (a freeze: the demo did not end by itself, or a robot's published map stood "
-        f"still over {FREEZE_S:.0f} s). Machine-bound: 2 cores.",
+        f"{frozen} froze** (a freeze: the demo did not end by itself, a robot's published map stood "
+        f"still over {FREEZE_S:.0f} s, or the twin's bridge held the link down over {FREEZE_S:.0f} s while "
+        "the scenario had it up). Machine-bound: 2 cores.",
         "",
         *table(rows),
         "",
