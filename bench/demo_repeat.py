@@ -24,6 +24,7 @@ import subprocess
 import sys
 import time
 
+from cps_experiments.run_files import read_rows
 from cps_experiments.verdict import read_verdict
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
@@ -50,24 +51,14 @@ def stale_episodes_s(verdict):
     return longest
 
 
-def _rows(path):
-    import csv
-
-    try:
-        with open(path) as stream:
-            return list(csv.DictReader(stream))
-    except OSError:
-        return []
-
-
 def link_down_outside_cuts_s(run_dir):
     """The longest time (s) the twin's bridge held the link down while the scenario had it up
     (link_state.csv against link_events.csv's cut/restore, wall clock, to the mission's end). The
     verdict leaves the bridges' outages out of the map's freshness, so a link that never came back
     after a cut (run 4 of the first ten, 2026-11-28) froze the map for 385 s unseen."""
-    events = _rows(os.path.join(run_dir, "link_events.csv"))
-    states = _rows(os.path.join(run_dir, "link_state.csv"))
-    ages = _rows(os.path.join(run_dir, "map_age.csv"))
+    events, states, ages = (
+        read_rows(os.path.join(run_dir, name))[0] for name in ("link_events.csv", "link_state.csv", "map_age.csv")
+    )
     if not states:
         return 0.0
     end_s = max([float(r["time_s"]) for r in ages if r.get("time_s")] + [float(states[-1]["stamp_s"])])

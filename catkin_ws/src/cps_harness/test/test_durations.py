@@ -25,16 +25,8 @@ def test_sleeps():
 
 @pytest.mark.parametrize("workers", [[], ["-n", "2"]])
 def test_a_childs_cpu_is_its_tests_and_a_sleep_costs_none(tmp_path, workers):
-    (tmp_path / "test_sample.py").write_text(TESTS)
-    out, junit = tmp_path / "durations.md", tmp_path / "junit.xml"
-    result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "cps_harness.durations", *workers]
-        + [f"--rootdir={tmp_path}", f"--durations-table={out}", f"--junitxml={junit}", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        cwd=tmp_path,
-    )
+    junit = tmp_path / "junit.xml"
+    result, out = _run(tmp_path, TESTS, *workers, f"--junitxml={junit}")
     assert result.returncode == 0, result.stdout + result.stderr
     rows = {m.group(1): (float(m.group(2)), float(m.group(3))) for m in _slowest_rows(out.read_text())}
     child_s, child_cpu = rows["test_sample.py::test_child_burns_cpu"]

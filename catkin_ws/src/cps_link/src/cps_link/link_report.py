@@ -412,7 +412,10 @@ class LinkSockets:
         now = time.monotonic()
         if now - self._scanned_s >= self.rescan_s or not all(self._still_open(i) for i in self._inodes):
             self._scanned_s = now
-            self._inodes = [i for _, _, i in _tcp_sockets(self.local_port, self.remote_port, self.proc_root) if i]
+            # this process's own only: another's socket on the port has no descriptor here, and
+            # kept, it would read as closed at every read and bring the scan back each time
+            found = _tcp_sockets(self.local_port, self.remote_port, self.proc_root)
+            self._inodes = [i for _, _, i in found if i and self._fd_of(i) is not None]
         return self._inodes
 
     def read(self):
