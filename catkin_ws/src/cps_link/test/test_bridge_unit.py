@@ -211,7 +211,9 @@ def test_bad_table_names_file_and_line(tmp_path):
         path.write_text(base + extra + topic)
         with pytest.raises(ConfigError, match=message):
             load_bridge_table(str(path), ROBOT_NAMES)
-    for setting in ("batch_bytes: 100", "batch_bytes: 70000", "report_ms: 10", "kernel_unsent_bytes: -1"):
+    settings = ("batch_bytes: 100", "batch_bytes: 70000", "report_ms: 10", "kernel_unsent_bytes: -1")
+    # a reopen sooner than a heartbeat timeout would reopen a session whose peer is merely late
+    for setting in settings + ("reopen_after_ms: 500",):
         path.write_text(base + topic + setting + "\n")
         with pytest.raises(ConfigError, match=setting.split(":")[0]):
             load_bridge_table(str(path), ROBOT_NAMES)
@@ -239,6 +241,21 @@ def test_a_silent_peer_is_gone_after_the_heartbeat_timeout_even_with_its_token()
     assert health.heard("robots", 12.5) and health.last_outage_s == pytest.approx(10.0)
 
 
+def test_a_token_held_without_heartbeats_is_a_deaf_session_and_closing_it_takes_every_token():
+    """The half-open session seen after outages: the robots' token came back, their heartbeats did
+    not. The silence counts from the token's arrival; a heartbeat clears it."""
+    health = LinkHealth(started_s=0.0)
+    assert health.token_put("robots", 10.0) and health.up
+    assert health.deaf(12.9, after_s=3.0) == []
+    assert health.expire(11.0, timeout_s=0.7) and not health.up  # the heartbeat timeout says down first
+    assert health.deaf(13.1, after_s=3.0) == ["robots"]
+    assert health.heard("robots", 13.2) and health.deaf(13.3, after_s=3.0) == []
+    assert health.session_closed(14.0) and not health.up and health.tokens == set()
+    assert health.deaf(30.0, after_s=3.0) == [] and not health.session_closed(30.0)
+    assert health.token_put("robots", 31.0) and not health.token_deleted("scout", 31.5)
+    assert health.token_deleted("robots", 32.0) and health.deaf(40.0, after_s=3.0) == []
+
+
 def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path):
     for name in ("ca.pem", "twin.pem", "twin.key", "robots.pem", "robots.key"):
         (tmp_path / name).write_text("x")
@@ -256,6 +273,7 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
         assert config["transport"]["shared_memory"]["enabled"] is False
         assert config["transport"]["link"]["tx"]["batch_size"] == table.batch_bytes == 16384
     assert table.kernel_unsent_bytes == 16384 and table.report_ms == 500
+    assert table.reopen_after_ms == 3000 > table.heartbeat_timeout_ms
     zenoh.Config.from_json5(__import__("json").dumps(twin))
 
 

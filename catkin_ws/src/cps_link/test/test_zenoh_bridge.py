@@ -14,7 +14,7 @@ import pytest
 
 from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
-from cps_link.bridge_config import load_bridge_table
+from cps_link.bridge_config import load_bridge_table, other_side
 from cps_link.bridge_wire import Frame, encode
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv, session_config
 from cps_ros.processes import find_node, free_port
@@ -200,3 +200,53 @@ def cloud_bytes(received):
     buff = io.BytesIO()
     cloud.serialize(buff)
     return buff.getvalue()
+
+
+@pytest.mark.parametrize("side", ["twin", "robots"])
+@pytest.mark.timeout(90)
+def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, robots_graph, cert_dir):
+    """The state seen after outages (demo_repeat run 4, CI's link cut): the other side's token is
+    there, its heartbeats never come. A peer that holds the token and sends no heartbeat makes the
+    bridge close its session and open a new one (its token goes and comes back) after bridge.yaml's
+    reopen_after_ms; once the peer's heartbeats come, the link is up and stays up."""
+    import zenoh
+
+    from cps_msgs.msg import LinkState
+
+    port = free_port()
+    table = load_bridge_table(robots=[ROBOT])
+    graph = ros if side == "twin" else robots_graph
+    graph.popen(bridge_argv(sys.executable, side, "127.0.0.1", [ROBOT], cert_dir, port), name=f"bridge_{side}")
+    peer = other_side(side)
+    config = session_config(table, peer, "127.0.0.1", cert_dir)
+    endpoint = f"tls/127.0.0.1:{port}"
+    config["listen" if peer == "twin" else "connect"]["endpoints"] = [endpoint]
+    tokens = []  # (monotonic s, kind) of the bridge's liveliness token, as the peer sees it
+    with zenoh.open(zenoh.Config.from_json5(json.dumps(config))) as session:
+        watch = session.liveliness().declare_subscriber(
+            table.liveliness_key(side, side), lambda s: tokens.append((time.monotonic(), str(s.kind))), history=True
+        )
+        token = session.liveliness().declare_token(table.liveliness_key(peer, peer))
+        assert wait_for(lambda: any("PUT" in k for _, k in tokens), timeout_s=30), "the bridge never came up"
+        first_s = next(t for t, k in tokens if "PUT" in k)
+        # No heartbeat from the peer: the bridge closes its session (its token goes) and opens another.
+        assert wait_for(lambda: sum("PUT" in k for _, k in tokens) >= 2, timeout_s=30), f"never reopened: {tokens}"
+        gone_s = next(t for t, k in tokens if "DELETE" in k)
+        reopen_s = table.reopen_after_ms / 1000.0
+        assert reopen_s <= gone_s - first_s < reopen_s + 5.0, tokens
+        # The peer's heartbeats come: the link is up on the bridge's side and no more reopens follow.
+        heartbeat = session.declare_publisher(table.heartbeat_key(peer, peer))
+        state = []
+        sub = (
+            rospy_node.Subscriber(names.LINK_STATE, LinkState, lambda m: state.append(m.up)) if side == "twin" else None
+        )
+        beating_s, seen = time.monotonic(), len(tokens)
+        while time.monotonic() - beating_s < reopen_s + 2.0:
+            heartbeat.put(b"")
+            time.sleep(table.heartbeat_ms / 1000.0)
+        assert len(tokens) == seen, f"reopened although heartbeats came: {tokens[seen:]}"
+        if sub is not None:
+            sub.unregister()
+            assert state and state[-1], "the twin's link state is not up with the peer's heartbeats"
+        token.undeclare()
+        watch.undeclare()

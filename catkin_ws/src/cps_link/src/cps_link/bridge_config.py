@@ -97,6 +97,9 @@ class BridgeTable:
     # At most this many bytes not yet sent may wait in a host's TCP socket (net.ipv4.tcp_notsent_lowat:
     # cps_link sets it in the test bed's namespaces; on real hosts a sysctl). 0: not set.
     kernel_unsent_bytes: int = 0
+    # The other side's liveliness token there but none of its heartbeats for this long, ms: the
+    # bridge closes its Zenoh session and opens a new one (cps_link.link_health.LinkHealth.deaf).
+    reopen_after_ms: int = 3000
     # The robots' bridge's link report period, ms (cps_link.link_report).
     report_ms: int = 500
 
@@ -241,7 +244,8 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
             seen[route.to] = doc.line(entry.key_path)
             routes.append(route)
     backfill = _backfill(top, doc, classes, robots, routes, seen) if top.has("backfill") else None
-    for key, low, high in (("batch_bytes", 1024, 65535), ("kernel_unsent_bytes", 0, 2**31), ("report_ms", 100, 5000)):
+    limits = (("batch_bytes", 1024, 65535), ("kernel_unsent_bytes", 0, 2**31), ("report_ms", 100, 5000))
+    for key, low, high in limits + (("reopen_after_ms", top.get("heartbeat_timeout_ms", int) + 1, 600_000),):
         if top.has(key) and not low <= top.get(key, int) <= high:
             raise top.error(key, f"must be in [{low}, {high}], got {top.get(key, int)}")
     if top.get("command_port", int) == top.get("endpoint_port", int):
@@ -264,6 +268,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         batch_bytes=top.get("batch_bytes", int, default=65535),
         kernel_unsent_bytes=top.get("kernel_unsent_bytes", int, default=0),
         report_ms=top.get("report_ms", int, default=500),
+        reopen_after_ms=top.get("reopen_after_ms", int, default=BridgeTable.reopen_after_ms),
     )
 
 

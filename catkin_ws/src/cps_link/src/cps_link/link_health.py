@@ -1,6 +1,7 @@
 """The link's health as one bridge sees it (ROS-free): the other side's liveliness tokens come and
 go, and its heartbeats stop. The token alone is not enough: a bridge whose transport is stuck
-behind a full send buffer may not see the session end until the link is back."""
+behind a full send buffer may not see the session end until the link is back. A token held while
+its heartbeats stay away is a session that carries one way only (`deaf`)."""
 
 import dataclasses
 
@@ -16,6 +17,7 @@ class LinkHealth:
     last_outage_s: float = 0.0
     ever_up: bool = False
     last_heard: dict = dataclasses.field(default_factory=dict)
+    tokens: set = dataclasses.field(default_factory=set)  # the peers whose liveliness tokens are there
 
     def __post_init__(self):
         if self.since_s is None:
@@ -46,6 +48,25 @@ class LinkHealth:
         self.ever_up = True
         self.since_s = now_s
         return True
+
+    def token_put(self, name, now_s):
+        """A peer's liveliness token appeared; True when the link changed to up."""
+        self.tokens.add(name)
+        return self.peer_alive(name, now_s)
+
+    def token_deleted(self, name, now_s):
+        """A peer's liveliness token disappeared; True when the link changed to down."""
+        self.tokens.discard(name)
+        return self.peer_gone(name, now_s)
+
+    def deaf(self, now_s, after_s):
+        """The peers whose token is there but that were not heard for after_s (since the token
+        came, at the latest): their session carries this side's way only."""
+        return sorted(n for n in self.tokens if now_s - self.last_heard.get(n, now_s) > after_s)
+
+    def session_closed(self, now_s):
+        """This side closed its session: every token goes with it; True when the link changed to down."""
+        return any([self.token_deleted(n, now_s) for n in sorted(self.tokens)])
 
     def peer_gone(self, name, now_s):
         """A peer's token disappeared; True when the link changed to down (one more outage)."""

@@ -9,6 +9,7 @@ source's last message for late subscribers and are re-sent when the link comes b
 tokens tell each side within a lease whether the other is there: /tissue/link_state.
 """
 
+import dataclasses
 import io
 import math
 import threading
@@ -99,11 +100,62 @@ class _LatchedReplay(rospy.SubscribeListener):
             peer_publish(msg)
 
 
-class ZenohBridge:
-    """Carries `table`'s topics between this side's ROS master and `session` (an open Zenoh session)."""
+@dataclasses.dataclass
+class _Declared:
+    """What the bridge declared on one Zenoh session, closed with it. Its puts count a failure
+    (the session closed under them while it is reopened) instead of raising."""
 
-    def __init__(self, table: BridgeTable, side, session, name, endpoint="", backfill_store_bytes=None):
-        self.table, self.side, self.session, self.name = table, side, session, name
+    session: object
+    pubs: dict = dataclasses.field(default_factory=dict)  # outgoing route's `to` -> publisher
+    subs: list = dataclasses.field(default_factory=list)
+    token: object = None
+    heartbeat_pub: object = None
+    report_pub: object = None
+    echo_pubs: dict = dataclasses.field(default_factory=dict)  # key -> publisher
+
+    def put(self, to, payload, reporter):
+        """Put on route `to`'s publisher; False (counted) when Zenoh refused it."""
+        return self._put(self.pubs[to], payload, reporter, to)
+
+    def put_heartbeat(self, payload, reporter):
+        return self._put(self.heartbeat_pub, payload, reporter, "heartbeat")
+
+    def put_report(self, payload, reporter):
+        return self._put(self.report_pub, payload, reporter, "link report")
+
+    def echo(self, key, payload, reporter):
+        """Send a heartbeat straight back on `key` (declared on first use)."""
+        try:
+            if key not in self.echo_pubs:
+                self.echo_pubs[key] = self.session.declare_publisher(
+                    key,
+                    priority=zenoh_qos_priority("real_time"),
+                    express=True,
+                    congestion_control=zenoh_congestion("drop"),
+                )
+        except Exception as exc:  # zenoh's ZError on a closed session
+            reporter.drop(f"heartbeat echo: {exc}")
+            return False
+        return self._put(self.echo_pubs[key], payload, reporter, "heartbeat echo")
+
+    @staticmethod
+    def _put(pub, payload, reporter, what):
+        try:
+            pub.put(payload)
+            return True
+        except Exception as exc:  # zenoh's ZError on a closed session
+            reporter.drop(f"{what}: put failed: {exc}")
+            return False
+
+
+class ZenohBridge:
+    """Carries `table`'s topics between this side's ROS master and `session` (an open Zenoh session);
+    `session_factory()` opens another when that one carries one way only (None: never reopened)."""
+
+    def __init__(
+        self, table: BridgeTable, side, session, name, endpoint="", backfill_store_bytes=None, session_factory=None
+    ):
+        self.table, self.side, self.name = table, side, name
         self.peer_side = other_side(side)
         self.endpoint = endpoint
         self.lock = threading.Lock()
@@ -157,18 +209,11 @@ class ZenohBridge:
         )
         self._tcp_rtts = []  # the robots' link socket's smoothed RTT at each heartbeat since the last report
         self._socket_samples = [0, 0]  # heartbeat samples of the link socket since the last report, of them full
-        self.echo_pubs = {}
-        self.publishers, self.replays, self.zenoh_pubs, self.ros_subs, self.zenoh_subs = {}, {}, {}, [], []
-        for route in table.incoming(side):
-            self.zenoh_subs.append(
-                session.declare_subscriber(
-                    route.key(table.key_prefix), lambda sample, r=route: self._receive(sample, r)
-                )
-            )
+        self.publishers, self.replays, self.ros_subs = {}, {}, []
+        self.session_factory = session_factory
+        self._reopening = False
+        self.z = self._declare(session)
         for route in table.outgoing(side):
-            self.zenoh_pubs[route.to] = session.declare_publisher(
-                route.key(table.key_prefix), **zenoh_qos(route.traffic)
-            )
             if not route.from_ros:
                 continue
             self.ros_subs.append(
@@ -182,38 +227,92 @@ class ZenohBridge:
                     tcp_nodelay=True,
                 )
             )
-        self.token = session.liveliness().declare_token(table.liveliness_key(side, name))
-        self.liveliness_sub = session.liveliness().declare_subscriber(
-            table.peer_liveliness_keys(side), self._on_liveliness, history=True
-        )
-        self.heartbeat_pub = session.declare_publisher(
-            table.heartbeat_key(side, name),
-            priority=zenoh_qos_priority("real_time"),
-            express=True,
-            congestion_control=zenoh_congestion("drop"),
-        )
-        self.heartbeat_sub = session.declare_subscriber(table.peer_heartbeat_keys(side), self._on_heartbeat)
-        self.report_timer = self.report_pub = self.report_sub = self.echo_sub = self.link_report_pub = None
+        self.report_timer = self.link_report_pub = None
         if self.queue is not None:
-            self.echo_sub = session.declare_subscriber(table.echo_key(name), self._on_echo)
-            # real_time, with the heartbeats: on interactive_high, behind the telemetry, Zenoh dropped
-            # reports for 2.7 s after a 20 -> 5 Mbit/s step (its queue congested), just when they count
-            self.report_pub = session.declare_publisher(
-                table.report_key(name),
-                priority=zenoh_qos_priority("real_time"),
-                express=True,
-                congestion_control=zenoh_congestion("drop"),
-            )
             threading.Thread(target=self._sender_loop, name="sender", daemon=True).start()
             self.report_timer = rospy.Timer(rospy.Duration(table.report_ms / 1000.0), self._report)
         if self.composer is not None:
             self.link_report_pub = rospy.Publisher(names.LINK_REPORT, LinkReport, queue_size=10)
-            self.report_sub = session.declare_subscriber(table.report_keys(), self._on_report)
         if self.main_lane:
             _warn_unsent_limit(table.kernel_unsent_bytes)
         self._publish_link_state()
         self.timer = rospy.Timer(rospy.Duration(LINK_STATE_PERIOD_S), self._tick)
         self.heartbeat_timer = rospy.Timer(rospy.Duration(table.heartbeat_ms / 1000.0), self._heartbeat)
+
+    def _declare(self, session):
+        """Declare on `session` everything this bridge carries: one _Declared, closed together."""
+        table, side = self.table, self.side
+        z = _Declared(session=session)
+        for route in table.incoming(side):
+            z.subs.append(
+                session.declare_subscriber(
+                    route.key(table.key_prefix), lambda sample, r=route: self._receive(sample, r)
+                )
+            )
+        for route in table.outgoing(side):
+            z.pubs[route.to] = session.declare_publisher(route.key(table.key_prefix), **zenoh_qos(route.traffic))
+        z.token = session.liveliness().declare_token(table.liveliness_key(side, self.name))
+        z.subs.append(
+            session.liveliness().declare_subscriber(table.peer_liveliness_keys(side), self._on_liveliness, history=True)
+        )
+        z.heartbeat_pub = session.declare_publisher(
+            table.heartbeat_key(side, self.name),
+            priority=zenoh_qos_priority("real_time"),
+            express=True,
+            congestion_control=zenoh_congestion("drop"),
+        )
+        z.subs.append(session.declare_subscriber(table.peer_heartbeat_keys(side), self._on_heartbeat))
+        if self.queue is not None:
+            z.subs.append(session.declare_subscriber(table.echo_key(self.name), self._on_echo))
+            # real_time, with the heartbeats: on interactive_high, behind the telemetry, Zenoh dropped
+            # reports for 2.7 s after a 20 -> 5 Mbit/s step (its queue congested), just when they count
+            z.report_pub = session.declare_publisher(
+                table.report_key(self.name),
+                priority=zenoh_qos_priority("real_time"),
+                express=True,
+                congestion_control=zenoh_congestion("drop"),
+            )
+        if self.composer is not None:
+            z.subs.append(session.declare_subscriber(table.report_keys(), self._on_report))
+        return z
+
+    # --- the session: reopened when it carries one way only ----------------------------------
+    def _watch_session(self, now_s):
+        """Reopen the session (on a thread of its own) when the other side's token is there but
+        its heartbeats are not: a transport that came back after an outage carrying this side's
+        way only stays so until the next outage (bridge.yaml reopen_after_ms)."""
+        if self.session_factory is None or self._reopening:
+            return
+        with self.lock:
+            deaf = self.health.deaf(now_s, self.table.reopen_after_ms / 1000.0)
+        if deaf:
+            self._reopening = True
+            threading.Thread(target=self._reopen, args=(deaf,), name="reopen", daemon=True).start()
+
+    def _reopen(self, deaf):
+        rospy.logwarn(
+            f"{rospy.get_name()}: {self.peer_side} bridge {', '.join(map(repr, deaf))} holds its liveliness "
+            f"token but sent no heartbeat for {self.table.reopen_after_ms} ms: reopening the Zenoh session"
+        )
+        old = self.z
+        try:
+            old.session.close()
+        except Exception as exc:  # zenoh's ZError: the old session is dropped either way
+            rospy.logwarn(f"{rospy.get_name()}: closing the Zenoh session: {exc}")
+        with self.lock:
+            down = self.health.session_closed(time.time())
+        self._link_changed(False, down, "", "this side reopens its session")
+        self.reporter.count(sessions_reopened=1)
+        delay_s = self.table.heartbeat_ms / 1000.0
+        while not rospy.is_shutdown() and not self._closing:
+            try:
+                self.z = self._declare(self.session_factory())
+                break
+            except Exception as exc:  # the port not yet free, a bad certificate: said, tried again
+                rospy.logwarn_throttle(5.0, f"{rospy.get_name()}: reopening the Zenoh session: {exc}; trying again")
+                time.sleep(delay_s)
+                delay_s = min(2 * delay_s, self.table.retry_max_ms / 1000.0)
+        self._reopening = False
 
     # --- outgoing ---------------------------------------------------------------------------
     def _message_class(self, msg_type):
@@ -290,7 +389,8 @@ class ZenohBridge:
 
     def _put_now(self, to, payload):
         """Put a frame that does not wait (charged to the pacer: the pace covers every byte)."""
-        self.zenoh_pubs[to].put(payload)
+        if not self.z.put(to, payload, self.reporter):
+            return
         if self.queue is not None:
             self.queue.urgent(len(payload), time.monotonic())
 
@@ -316,14 +416,11 @@ class ZenohBridge:
                     continue
             to, payload = item
             started = time.monotonic()
-            try:
-                self.zenoh_pubs[to].put(payload)
-            except Exception as exc:  # a closed session: counted, the loop goes on
-                self.reporter.drop(f"{to}: put failed: {exc}")
+            put = self.z.put(to, payload, self.reporter)
+            with self.lock:
+                self._blocked_s += time.monotonic() - started
+            if not put:
                 continue
-            finally:
-                with self.lock:
-                    self._blocked_s += time.monotonic() - started
             q.sent(len(payload))
             self.reporter.count(sent=1, sent_bytes=len(payload))
             self.sent_ledger.out(to)
@@ -517,10 +614,10 @@ class ZenohBridge:
         peer = str(sample.key_expr).rsplit("/", 1)[-1]
         with self.lock:
             if sample.kind == zenoh.SampleKind.PUT:
-                up = self.health.peer_alive(peer, time.time())
+                up = self.health.token_put(peer, time.time())
                 down = False
             else:
-                up, down = False, self.health.peer_gone(peer, time.time())
+                up, down = False, self.health.token_deleted(peer, time.time())
         self._link_changed(up, down, peer, "its liveliness token")
 
     def _on_heartbeat(self, sample):
@@ -528,22 +625,12 @@ class ZenohBridge:
         if self.composer is not None:
             # the robots' heartbeat goes straight back: their round trip over the link
             payload = sample.payload.to_bytes()
-            self._echo_pub(peer).put(payload)
+            self.z.echo(self.table.echo_key(peer), payload, self.reporter)
             with self.lock:
                 self.composer.received(len(payload), managed=False)
         with self.lock:
             up = self.health.heard(peer, time.time())
         self._link_changed(up, False, peer, "its heartbeat")
-
-    def _echo_pub(self, peer):
-        if peer not in self.echo_pubs:
-            self.echo_pubs[peer] = self.session.declare_publisher(
-                self.table.echo_key(peer),
-                priority=zenoh_qos_priority("real_time"),
-                express=True,
-                congestion_control=zenoh_congestion("drop"),
-            )
-        return self.echo_pubs[peer]
 
     def _on_echo(self, sample):
         with self.lock:
@@ -567,12 +654,14 @@ class ZenohBridge:
             with self.lock:
                 sizes = [i.receive_queue_bytes for i in self.link_sockets.read()]
                 self.composer.sample_receive_queue(max(sizes) if sizes else None)
+        now_s = time.time()
         with self.lock:
-            down = self.health.expire(time.time(), self.table.heartbeat_timeout_ms / 1000.0)
+            down = self.health.expire(now_s, self.table.heartbeat_timeout_ms / 1000.0)
         self._link_changed(False, down, "", f"no heartbeat for {self.table.heartbeat_timeout_ms} ms")
+        self._watch_session(now_s)
 
     def _put_heartbeat(self, payload):
-        self.heartbeat_pub.put(payload)
+        self.z.put_heartbeat(payload, self.reporter)
         if self.queue is not None:
             self.queue.urgent(len(payload), time.monotonic())
 
@@ -618,7 +707,7 @@ class ZenohBridge:
             peer=self.name,
         )
         payload = report.encode()
-        self.report_pub.put(payload)
+        self.z.put_report(payload, self.reporter)
         self.queue.urgent(len(payload), now)
         self.reporter.gauge(
             **{f"queue_{rule}": counters.dropped[rule] for rule in DROP_RULES},
@@ -707,7 +796,12 @@ class ZenohBridge:
             self.report_timer.shutdown()
         for sub in self.ros_subs:
             sub.unregister()
-        self.token.undeclare()
+        z = self.z
+        for step in (z.token.undeclare, z.session.close):
+            try:
+                step()
+            except Exception as exc:  # zenoh's ZError: closed already, by a reopen under way
+                rospy.logdebug(f"{rospy.get_name()}: closing: {exc}")
 
 
 def _await_subscribers(pub, topic, timeout_s):
