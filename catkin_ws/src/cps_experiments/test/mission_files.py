@@ -41,8 +41,10 @@ def mission(
     f1=(0.7, 0.95),
     counters=True,
     lost_in_limiter_queue=0,
+    link_down=(),
 ):
-    """Write the mission into `folder` (a pathlib.Path); returns it. Times are mission seconds."""
+    """Write the mission into `folder` (a pathlib.Path); returns it. Times are mission seconds;
+    link_down: (from, to) of each outage the twin's bridge reported (link_state.csv)."""
     folder.mkdir(parents=True, exist_ok=True)
     events = events if events is not None else [event(0, "start", 60)]
     write_csv(folder / "link_events.csv", EVENT_COLUMNS, events)
@@ -99,6 +101,15 @@ def mission(
         ("stamp_s", "budget_mbytes_per_s", "robot", "stream", "rate_hz"),
         [(T0 + s + 0.5, budget(s + 0.5), r, "cloud", 2.0) for s in range(duration_s) for r in ROBOTS]
         + [(T0 + s + 0.5, budget(s + 0.5), "jackal", "video", 10.0) for s in range(duration_s)],
+    )
+    states = [(T0, 1, T0, 0, 0.0, "robots", 60.0)]
+    for k, (down_s, up_s) in enumerate(link_down):
+        states.append((T0 + down_s, 0, T0 + down_s, k + 1, 0.0, "robots", 60.0))
+        states.append((T0 + up_s, 1, T0 + up_s, k + 1, up_s - down_s, "robots", 60.0))
+    write_csv(
+        folder / "link_state.csv",
+        ("stamp_s", "up", "since_s", "outages", "last_outage_s", "peer", "available_mbps"),
+        [s for s in states if s[0] < T0 + duration_s],
     )
     write_csv(folder / "trajectories.csv", ("robot", "sample", "x_m", "y_m", "z_m"), [("scout", 0, 0, 0, 0)])
     (folder / "map.bt").write_bytes(b"# Octomap OcTree binary file\n")

@@ -141,6 +141,27 @@ def test_a_stale_map_during_an_outage_and_3_s_after_it_is_not_a_failure(tmp_path
     assert _failed(late, "map published and fresh")[0]["at_s"] == pytest.approx(34.0)
 
 
+def test_an_outage_the_scenario_did_not_cut_is_judged_and_one_without_a_scenario_is_excused(tmp_path):
+    """demo_repeat run 4: the scenario restored the link at 30 s, the twin's bridge held it down
+    from 31 s to the end and the map stood still: not excused. The same link state on a real link
+    (no scenario) is all that is known of its outages: excused."""
+    cut = [event(0, "start", 60), event(20, "cut", 60), event(30, "restore", 60)]
+    frozen = {
+        "published_age": lambda r, t: t - 19.5 if t >= 20 else 0.6,
+        "cloud_times": lambda robot: [k / 2 for k in range(40)],
+        "link_down": [(20.5, 30.2), (31.0, 99.0)],
+    }
+    verdict = _judged(mission(tmp_path / "frozen", events=cut, **frozen))
+    assert verdict.status == FAIL
+    assert _failed(verdict, "map published and fresh")[0]["at_s"] == pytest.approx(34.0)
+    assert _failed(verdict, "clouds arriving")
+    recovered = dict(frozen, published_age=lambda r, t: t - 19.5 if 20 <= t < 32 else 0.6, link_down=[(20.5, 30.2)])
+    recovered["cloud_times"] = lambda robot: [k / 2 for k in range(120) if not 20 <= k / 2 < 30]
+    assert _judged(mission(tmp_path / "recovered", events=cut, **recovered)).status == PASS
+    real = dict(recovered, published_age=lambda r, t: t - 19.5 if 20 <= t < 32 else 0.6, link_down=[(20.0, 30.0)])
+    assert _judged(mission(tmp_path / "real", events=[], **real)).status == PASS
+
+
 def test_a_robot_whose_clouds_stop_fails_at_the_window_where_they_stopped(tmp_path):
     clouds = lambda robot: [k / 2 for k in range(120) if robot != "jackal" or k / 2 < 40]  # noqa: E731
     verdict = _judged(mission(tmp_path / "m", cloud_times=clouds))

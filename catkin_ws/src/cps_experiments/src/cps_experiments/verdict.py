@@ -10,8 +10,9 @@ the mission's start: link_events.csv's start, else the mission monitor's first r
 - **map published and fresh**, per robot: the age of that robot's newest cloud in the map as the map
   server last *published* it (map_age.csv `published_map_age_s`; not the insertion stamps, which a
   map server that inserts but stops publishing keeps fresh) at most MAP_STALE_AFTER_S while the
-  robot works, outside link outages and AFTER_OUTAGE_S after each, from MAP_START_GRACE_S after the
-  monitoring started (a map server restart gets the grace again). Not recorded: FAIL.
+  robot works, outside link outages (the scenario's cuts when it ran one: `outage_windows`) and
+  AFTER_OUTAGE_S after each, from MAP_START_GRACE_S after the monitoring started (a map server
+  restart gets the grace again). Not recorded: FAIL.
 - **map server heard**: no silence of its statistics longer than MAP_STATS_GAP_S (a restart, a hang),
   and the first within MAP_START_GRACE_S of the monitoring's start.
 - **clouds arriving**, per robot: its managed clouds at the twin (arrivals.csv) at least MIN_CLOUD_HZ
@@ -134,14 +135,19 @@ class Verdict:
 
 
 def outage_windows(folder):
-    """[(start wall s, end wall s)] of every link outage (scenario cuts and the bridge's link state),
-    each extended by AFTER_OUTAGE_S; an outage still on at the end lasts forever."""
+    """[(start wall s, end wall s)] of the link outages the checks excuse, each extended by
+    AFTER_OUTAGE_S; an outage still on at the end lasts forever. A mission that ran a link scenario
+    (link_events.csv starts) is excused its scenario's cuts only: an outage its bridges report
+    outside them (a link that did not come back) is the operator's to feel, and judged. Without a
+    scenario (a real link) the bridges' link state is all there is to know of outages."""
     from cps_experiments.link_report import bridge_outages, scenario_outages
 
     events, _ = read_rows(os.path.join(folder, "link_events.csv"))
-    states, _ = read_rows(os.path.join(folder, "link_state.csv"))
-    windows = [(start, start + duration) for start, _, duration in scenario_outages(events)]
-    windows += [(start, start + duration) for start, duration, _ in bridge_outages(states)]
+    if any(r.get("event") == "start" for r in events):
+        windows = [(start, start + duration) for start, _, duration in scenario_outages(events)]
+    else:
+        states, _ = read_rows(os.path.join(folder, "link_state.csv"))
+        windows = [(start, start + duration) for start, duration, _ in bridge_outages(states)]
     return [
         (start, end + AFTER_OUTAGE_S if math.isfinite(end) else math.inf)
         for start, end in windows
