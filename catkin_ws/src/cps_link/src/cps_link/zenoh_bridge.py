@@ -209,6 +209,8 @@ class ZenohBridge:
         )
         self._tcp_rtts = []  # the robots' link socket's smoothed RTT at each heartbeat since the last report
         self._socket_samples = [0, 0]  # heartbeat samples of the link socket since the last report, of them full
+        # the link socket's received bytes at the last heartbeat, and when (time.time()) they last grew
+        self._socket_received, self._socket_heard_s = 0, -math.inf
         self.publishers, self.replays, self.ros_subs = {}, {}, []
         self.session_factory = session_factory
         self._reopening = False
@@ -278,13 +280,24 @@ class ZenohBridge:
 
     # --- the session: reopened when it carries one way only ----------------------------------
     def _watch_session(self, now_s):
-        """Reopen the session (on a thread of its own) when the other side's token is there but
-        its heartbeats are not: a transport that came back after an outage carrying this side's
-        way only stays so until the next outage (bridge.yaml reopen_after_ms)."""
+        """Reopen the session (on a thread of its own) when the other side's token is there and
+        its transport is talking, but its heartbeats do not come: a transport that came back after
+        an outage carrying this side's way only stays so until the next outage (bridge.yaml
+        reopen_after_ms). The transport talks when the link socket received bytes within that
+        time (its keep-alives at least): in a cut the robots' bridge keeps the twin's token until
+        the link is back, and hears nothing. A lane without a link socket read (the command lane)
+        leaves it to the twin's side, which drops a cut peer's token within the lease."""
         if self.session_factory is None or self._reopening:
             return
+        after_s = self.table.reopen_after_ms / 1000.0
+        if self.link_sockets is not None:
+            talking = now_s - self._socket_heard_s <= after_s
+        else:
+            talking = self.side == TWIN
+        if not talking:
+            return
         with self.lock:
-            deaf = self.health.deaf(now_s, self.table.reopen_after_ms / 1000.0)
+            deaf = self.health.deaf(now_s, after_s)
         if deaf:
             self._reopening = True
             threading.Thread(target=self._reopen, args=(deaf,), name="reopen", daemon=True).start()
@@ -656,6 +669,10 @@ class ZenohBridge:
                 self.composer.sample_receive_queue(max(sizes) if sizes else None)
         now_s = time.time()
         with self.lock:
+            if self.link_sockets is not None:
+                received = self.link_sockets.totals()["bytes_received"]
+                if received != self._socket_received:
+                    self._socket_received, self._socket_heard_s = received, now_s
             down = self.health.expire(now_s, self.table.heartbeat_timeout_ms / 1000.0)
         self._link_changed(False, down, "", f"no heartbeat for {self.table.heartbeat_timeout_ms} ms")
         self._watch_session(now_s)
