@@ -2,13 +2,16 @@
 is either coded or refused with InvalidCloud/DracoError (the reason a node counts); nothing else
 escapes, and what comes out is a cloud the readers accept with finite coordinates."""
 
+import struct
+
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sensor_msgs.msg import PointField
 
 from cps_harness.hostile_clouds import FIELD_NAMES, hostile_clouds, hostile_value_clouds, packed_cloud, wire_copy
-from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError
+from cps_transport.cloud_levels import LEAF_FIELD
+from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError, declared_points, leaf_of_compressed
 from cps_transport.pointcloud import InvalidCloud, cloud_to_array, xyz_of
 
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -101,6 +104,48 @@ def test_the_decoder_decodes_or_refuses_every_payload(compressed):
         _decodes_to_finite_points(compressed)
     except (InvalidCloud, DracoError):
         pass
+
+
+def test_a_payload_declaring_more_points_than_its_cloud_is_refused_before_decoding():
+    """One flipped bit in the point count asked Draco for 1.07 G points: the fuzz test's worker grew
+    to 8 GB and was killed. The header is read first; nothing is allocated for a count the message
+    does not have room for, and a header that cannot be read is refused with the reason."""
+    msg = wire_copy(GOOD_COMPRESSED[0])
+    payload = bytes(msg.compressed_data)
+    assert declared_points(payload) == msg.height * msg.width
+    for count in (2**30, msg.height * msg.width + 1, 0, -5):
+        msg.compressed_data = payload[:11] + struct.pack("<i", count) + payload[15:]
+        try:
+            DECODER.decode(msg)
+            raise AssertionError(f"decoded a payload declaring {count} points")
+        except DracoError as exc:
+            assert f"declares {count} points" in str(exc)
+    # the rate limiter reads a cloud's leaf by decoding it: bounded the same way
+    leafy = wire_copy(msg)
+    leafy.compressed_data = payload[:11] + struct.pack("<i", 2**30) + payload[15:]
+    leafy.fields = list(leafy.fields) + [PointField(name=LEAF_FIELD, offset=12, datatype=PointField.FLOAT32, count=1)]
+    try:
+        leaf_of_compressed(leafy)
+        raise AssertionError("read the leaf of a payload declaring 2**30 points")
+    except DracoError as exc:
+        assert f"declares {2**30} points" in str(exc)
+    # metadata (the encoder's attribute names) whose one entry states a 268 MB value: Draco would
+    # allocate it before finding the payload short
+    huge_entry = payload[:9] + b"\x00\x80" + b"\x00" + b"\x01" + b"\x01a" + b"\xff\xff\xff\x7f" + b"\x00" * 8
+    for bad, words in (
+        (b"DRACX" + payload[5:], "no DRACO magic"),
+        (payload[:5] + b"\x01" + payload[6:], "version 1."),
+        (payload[:7] + b"\x01" + payload[8:], "not a point cloud"),
+        (payload[:8], "shorter than a Draco header"),
+        (payload[:13], "point count of 4 bytes at byte 11 runs past the payload's 13 bytes"),
+        (huge_entry, "metadata value of 268435455 bytes"),
+    ):
+        msg.compressed_data = bad
+        try:
+            DECODER.decode(msg)
+            raise AssertionError(f"decoded a payload with {words}")
+        except DracoError as exc:
+            assert words in str(exc), exc
 
 
 def test_a_cloud_with_x_of_count_3_or_a_point_beyond_the_coder_is_refused():

@@ -29,6 +29,7 @@ How the fields are carried:
 
 import dataclasses
 import math
+import struct
 import time
 
 import DracoPy
@@ -53,6 +54,77 @@ _FLOAT32_ULP = 2.0**-23  # relative spacing of float32: decoded coordinates are 
 
 class DracoError(ValueError):
     """A compressed payload that cannot be decoded into the cloud its message describes."""
+
+
+# A Draco bitstream's header (draco/compression/decode.cc): magic, version major and minor, encoder
+# type, method, flags; then its metadata if the flag says so (the encoder keeps the attributes'
+# names there), then a point cloud's point count (int32).
+_DRACO_HEADER = struct.Struct("<5sBBBBH")
+_DRACO_POINT_CLOUD, _DRACO_METADATA_FLAG, _DRACO_MAJOR = 0, 0x8000, 2
+# Metadata nested deeper than this is refused (ours is one level).
+_DRACO_METADATA_DEPTH = 8
+
+
+def declared_points(payload):
+    """The number of points a Draco point-cloud bitstream says it holds, read from its header before
+    any decoding: Draco allocates for that number (and for each metadata entry's stated size), and
+    one flipped bit in the count asked for 1.07 G points (an 8 GB process, killed; found by the
+    fuzz test under the suite's memory guard). DracoError when the payload is not a Draco 2.x point
+    cloud, or its metadata states more bytes than the payload holds."""
+    if len(payload) < _DRACO_HEADER.size:
+        raise DracoError(f"payload of {len(payload)} bytes is shorter than a Draco header")
+    magic, major, minor, kind, _method, flags = _DRACO_HEADER.unpack_from(payload)
+    if magic != b"DRACO":
+        raise DracoError("not a Draco bitstream (no DRACO magic)")
+    if major != _DRACO_MAJOR:
+        raise DracoError(f"Draco bitstream version {major}.{minor} is not read (only {_DRACO_MAJOR}.x)")
+    if kind != _DRACO_POINT_CLOUD:
+        raise DracoError(f"Draco bitstream of encoder type {kind}, not a point cloud")
+    reader = _DracoReader(payload, _DRACO_HEADER.size)
+    if flags & _DRACO_METADATA_FLAG:
+        for _ in range(reader.varint("attribute metadata count")):
+            reader.varint("attribute id")
+            reader.skip_metadata(0)
+        reader.skip_metadata(0)
+    return reader.int32("point count")
+
+
+class _DracoReader:
+    """Walks a Draco bitstream's header fields as Draco's decoder reads them, bounded by the payload."""
+
+    def __init__(self, payload, offset):
+        self.payload, self.offset = payload, offset
+
+    def _take(self, n, what):
+        if n > len(self.payload) - self.offset:
+            raise DracoError(
+                f"Draco {what} of {n} bytes at byte {self.offset} runs past the payload's {len(self.payload)} bytes"
+            )
+        start, self.offset = self.offset, self.offset + n
+        return self.payload[start : self.offset]
+
+    def varint(self, what):
+        """An unsigned LEB128 varint of at most 5 bytes (Draco's DecodeVarint for uint32)."""
+        value = 0
+        for shift in range(0, 35, 7):
+            byte = self._take(1, what)[0]
+            value |= (byte & 0x7F) << shift
+            if not byte & 0x80:
+                return value
+        raise DracoError(f"Draco {what}: a varint longer than 5 bytes")
+
+    def int32(self, what):
+        return struct.unpack("<i", self._take(4, what))[0]
+
+    def skip_metadata(self, depth):
+        if depth > _DRACO_METADATA_DEPTH:
+            raise DracoError(f"Draco metadata nested deeper than {_DRACO_METADATA_DEPTH}")
+        for _ in range(self.varint("metadata entry count")):
+            self._take(self._take(1, "metadata name length")[0], "metadata name")
+            self._take(self.varint("metadata value size"), "metadata value")
+        for _ in range(self.varint("sub-metadata count")):
+            self._take(self._take(1, "sub-metadata name length")[0], "sub-metadata name")
+            self.skip_metadata(depth + 1)
 
 
 def parse_fields(spec):
@@ -282,11 +354,7 @@ class DracoDecoder:
             validate_cloud_layout(1, 1, 1, 1, 1, fields, require_xyz=True)
         except InvalidCloud as exc:
             raise DracoError(f"fields of the compressed cloud: {exc}") from exc
-        payload = msg.compressed_data if isinstance(msg.compressed_data, bytes) else bytes(msg.compressed_data)
-        try:
-            decoded = DracoPy.decode(payload)
-        except Exception as exc:  # DracoPy raises its own exceptions for corrupt buffers
-            raise DracoError(f"corrupt Draco payload ({len(payload)} bytes): {exc}") from exc
+        decoded = _decode_payload(msg)
         points = np.asarray(decoded.points)
         if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
             raise DracoError(f"payload decoded to positions of shape {points.shape}")
@@ -345,6 +413,21 @@ class DracoDecoder:
         raise DracoError(f"field '{field.name}': unknown attribute tag '{attribute['name']}'")
 
 
+def _decode_payload(msg):
+    """DracoPy's decoding of a CompressedPointCloud2's payload, once its header says it holds no
+    more points than the message's height x width (`declared_points`); DracoError otherwise."""
+    payload = msg.compressed_data if isinstance(msg.compressed_data, bytes) else bytes(msg.compressed_data)
+    declared = declared_points(payload)
+    if not 0 < declared <= msg.height * msg.width:
+        raise DracoError(
+            f"payload declares {declared} points, the cloud had {msg.height * msg.width}: refused before decoding"
+        )
+    try:
+        return DracoPy.decode(payload)
+    except Exception as exc:  # DracoPy raises its own exceptions for corrupt buffers
+        raise DracoError(f"corrupt Draco payload ({len(payload)} bytes): {exc}") from exc
+
+
 def carried_leaf_m(leaf_size_m):
     """The leaf as a cloud carries it: float32, the value the decoder's field holds and
     `leaf_of_compressed` reads back."""
@@ -358,11 +441,7 @@ def leaf_of_compressed(msg):
     the shared tissue's limiter is told the leaf by its encoder, cloud_levels.LeafLedger)."""
     if not any(f.name == LEAF_FIELD for f in msg.fields):
         return None
-    payload = msg.compressed_data if isinstance(msg.compressed_data, bytes) else bytes(msg.compressed_data)
-    try:
-        decoded = DracoPy.decode(payload)
-    except Exception as exc:  # DracoPy raises its own exceptions for corrupt buffers
-        raise DracoError(f"corrupt Draco payload ({len(payload)} bytes): {exc}") from exc
+    decoded = _decode_payload(msg)
     for attribute in decoded.attributes:
         tag = (attribute.get("name") or "").split("|")
         if tag[0] == LEAF_FIELD:
