@@ -250,6 +250,8 @@ def test_a_token_held_without_heartbeats_is_a_deaf_session_and_closing_it_takes_
     assert health.expire(11.0, timeout_s=0.7) and not health.up  # the heartbeat timeout says down first
     assert health.deaf(13.1, after_s=3.0) == ["robots"]
     assert health.heard("robots", 13.2) and health.deaf(13.3, after_s=3.0) == []
+    # a transport that began to talk at 15 s (a restore) counts its silence from then, not from 13.2 s
+    assert health.deaf(17.0, after_s=3.0, since_s=15.0) == [] and health.deaf(18.1, after_s=3.0, since_s=15.0)
     assert health.session_closed(14.0) and not health.up and health.tokens == set()
     assert health.deaf(30.0, after_s=3.0) == [] and not health.session_closed(30.0)
     assert health.token_put("robots", 31.0) and not health.token_deleted("scout", 31.5)

@@ -59,10 +59,11 @@ class LinkHealth:
         self.tokens.discard(name)
         return self.peer_gone(name, now_s)
 
-    def deaf(self, now_s, after_s):
-        """The peers whose token is there but that were not heard for after_s (since the token
-        came, at the latest): their session carries this side's way only."""
-        return sorted(n for n in self.tokens if now_s - self.last_heard.get(n, now_s) > after_s)
+    def deaf(self, now_s, after_s, since_s=float("-inf")):
+        """The peers whose token is there but that were not heard for after_s, counted from their
+        token's coming or their last heartbeat, and from `since_s` at the earliest (since when the
+        transport has been talking): their session carries this side's way only."""
+        return sorted(n for n in self.tokens if now_s - max(self.last_heard.get(n, now_s), since_s) > after_s)
 
     def session_closed(self, now_s):
         """This side closed its session: every token goes with it; True when the link changed to down."""

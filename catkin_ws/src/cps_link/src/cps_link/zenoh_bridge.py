@@ -209,8 +209,9 @@ class ZenohBridge:
         )
         self._tcp_rtts = []  # the robots' link socket's smoothed RTT at each heartbeat since the last report
         self._socket_samples = [0, 0]  # heartbeat samples of the link socket since the last report, of them full
-        # the link socket's received bytes at the last heartbeat, and when (time.time()) they last grew
-        self._socket_received, self._socket_heard_s = 0, -math.inf
+        # the link socket's received bytes at the last heartbeat, when (time.time()) they last grew,
+        # and since when they have grown without a gap of a heartbeat timeout (the transport talks)
+        self._socket_received, self._socket_heard_s, self._socket_talking_since_s = 0, -math.inf, -math.inf
         self.publishers, self.replays, self.ros_subs = {}, {}, []
         self.session_factory = session_factory
         self._reopening = False
@@ -283,21 +284,25 @@ class ZenohBridge:
         """Reopen the session (on a thread of its own) when the other side's token is there and
         its transport is talking, but its heartbeats do not come: a transport that came back after
         an outage carrying this side's way only stays so until the next outage (bridge.yaml
-        reopen_after_ms). The transport talks when the link socket received bytes within that
-        time (its keep-alives at least): in a cut the robots' bridge keeps the twin's token until
-        the link is back, and hears nothing. A lane without a link socket read (the command lane)
-        leaves it to the twin's side, which drops a cut peer's token within the lease."""
+        reopen_after_ms). The transport talks while the link socket receives bytes without a gap of
+        a heartbeat timeout (its keep-alives at least), and the silence counts from when it began
+        to: in a cut the robots' bridge keeps the twin's token until the link is back and hears
+        nothing, and at the restore its socket talks before the twin's heartbeats come. A lane
+        without a link socket read (the command lane) leaves it to the twin's side, which drops a
+        cut peer's token within the lease."""
         if self.session_factory is None or self._reopening:
             return
         after_s = self.table.reopen_after_ms / 1000.0
         if self.link_sockets is not None:
-            talking = now_s - self._socket_heard_s <= after_s
+            if now_s - self._socket_heard_s > self.table.heartbeat_timeout_ms / 1000.0:
+                return  # the transport is not talking (a cut)
+            since_s = self._socket_talking_since_s  # a restore: heartbeats have had no time yet
+        elif self.side == TWIN:
+            since_s = -math.inf
         else:
-            talking = self.side == TWIN
-        if not talking:
             return
         with self.lock:
-            deaf = self.health.deaf(now_s, after_s)
+            deaf = self.health.deaf(now_s, after_s, since_s)
         if deaf:
             self._reopening = True
             threading.Thread(target=self._reopen, args=(deaf,), name="reopen", daemon=True).start()
@@ -672,6 +677,8 @@ class ZenohBridge:
             if self.link_sockets is not None:
                 received = self.link_sockets.totals()["bytes_received"]
                 if received != self._socket_received:
+                    if now_s - self._socket_heard_s > self.table.heartbeat_timeout_ms / 1000.0:
+                        self._socket_talking_since_s = now_s
                     self._socket_received, self._socket_heard_s = received, now_s
             down = self.health.expire(now_s, self.table.heartbeat_timeout_ms / 1000.0)
         self._link_changed(False, down, "", f"no heartbeat for {self.table.heartbeat_timeout_ms} ms")
