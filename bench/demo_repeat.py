@@ -7,10 +7,11 @@ scenario), in its own folder under `--out`. A run *froze* if the demo did not en
 (what the operator sees) staler than its 3 s bar for longer than `FREEZE_S`, outside link outages
 as the verdict judges it (a map standing still while the link is cut is the cut, not a freeze), or
 if the twin's bridge held the link down for longer than `FREEZE_S` while the scenario had it up
-(the verdict's outages are the bridges', so a link that never comes back would hide a freeze).
-Every run's verdict and reasons are listed as the report wrote them; nothing is averaged away.
+(a link that never came back). Every run's verdict and reasons are listed as the report wrote them
+(or, with --rejudge, as today's verdict judges the same files); nothing is averaged away.
 
     python bench/demo_repeat.py [--runs 10] [--out out/demo_repeat] [--results docs/results/demo_repeat.md]
+    python bench/demo_repeat.py --judge-only [--rejudge] --out out/demo_repeat
 
 Machine-bound (2 cores); run it alone, under the heavy lock.
 """
@@ -25,7 +26,7 @@ import sys
 import time
 
 from cps_experiments.run_files import read_rows
-from cps_experiments.verdict import read_verdict
+from cps_experiments.verdict import judge, read_verdict, write_verdict
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 DEMO = os.path.join(ROOT, "catkin_ws", "src", "cps_experiments", "nodes", "demo")
@@ -117,6 +118,18 @@ def read_run(run_dir):
         return "?", math.nan
 
 
+def rejudge(run_dir):
+    """Judge `run_dir` again with today's verdict: how the mission ended from its mission.json, the
+    F1 floors from the verdict it wrote; verdict.json rewritten."""
+    old = read_verdict(run_dir)
+    with open(os.path.join(run_dir, "mission.json")) as stream:
+        ended_by = json.load(stream).get("ended_by")
+    floors = {}
+    if old is not None:
+        floors = {"f1_floor_within_1_voxel": old.f1_floor_within_1_voxel, "f1_floor_exact": old.f1_floor_exact}
+    write_verdict(run_dir, judge(run_dir, ended_by=ended_by, **floors))
+
+
 def judge_run(run_dir, code, wall_s):
     """One table row: verdict, freeze and why."""
     verdict = read_verdict(run_dir)
@@ -166,13 +179,20 @@ def main(argv=None):
     parser.add_argument(
         "--judge-only", action="store_true", help="judge the runs already in --out (exit codes and wall times unknown)"
     )
+    parser.add_argument(
+        "--rejudge", action="store_true", help="with --judge-only: judge each run's files again with today's verdict"
+    )
     args = parser.parse_args(argv)
     if args.runs < 1:
         parser.error("--runs must be at least 1")
+    if args.rejudge and not args.judge_only:
+        parser.error("--rejudge needs --judge-only")
     rows = []
     for i in range(1, args.runs + 1):
         run_dir = os.path.join(os.path.abspath(args.out), f"run_{i:02d}")
         code, wall_s = read_run(run_dir) if args.judge_only else run_once(run_dir, args.timeout_s)
+        if args.rejudge:
+            rejudge(run_dir)
         rows.append(judge_run(run_dir, code, wall_s))
         print("\n".join(table(rows)[-1:]), flush=True)
     passed = sum(r["status"] == "PASS" for r in rows)
