@@ -61,6 +61,17 @@ def _backfill(robot):
     return names.absolute(names.in_twin(names.robot_topic(robot, names.POINTS_BACKFILL_DRACO)))
 
 
+def _bridge_lines(out):
+    """The main lanes' bridges' link up/down and session reopen lines (their node logs)."""
+    lines = []
+    for log in [
+        *(out / "logs").glob("zenoh_bridge_twin-*.log"),
+        *(out / "logs" / "robots").glob("zenoh_bridge_robots-*.log"),
+    ]:
+        lines += [line for line in log.read_text().splitlines() if re.search(r"link (up|down)|reopen", line)]
+    return "\n".join(sorted(lines, key=lambda line: line.split("]")[1:2]))
+
+
 def _reference_latencies(reference_mission):
     """Receive - stamp (s) of the reference mission's live clouds at the twin (its arrivals.csv)."""
     from cps_experiments.run_files import read_rows
@@ -113,6 +124,7 @@ def test_a_ten_second_cut_mid_mission(reference_mission, open_tmp_path):
         f"cut and the map server killed in it {f1_cut:.4f} ({100 * f1_cut / f1_base:.1f} %)"
     )
     print("link state delays: " + ", ".join(f"{k} {v:.2f} s" for k, v in delays.items()))
+    print("the main lanes' bridges said:\n" + _bridge_lines(out))
     print(
         f"live clouds after recovery: latency {describe_ages(ages)} (the reference mission's, no cut: "
         f"{describe_ages(_reference_latencies(reference_mission))}); captured before the link came back: "

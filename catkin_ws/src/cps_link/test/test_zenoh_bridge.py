@@ -6,6 +6,7 @@ duplicates delivered once."""
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import time
@@ -204,7 +205,7 @@ def cloud_bytes(received):
 
 @pytest.mark.parametrize("side", ["twin", "robots"])
 @pytest.mark.timeout(90)
-def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, robots_graph, cert_dir):
+def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, robots_graph, cert_dir, tmp_path):
     """The state seen after outages (demo_repeat run 4, CI's link cut): the other side's token is
     there, its heartbeats never come. A peer that holds the token and sends no heartbeat makes the
     bridge close its session and open a new one (its token goes and comes back) after bridge.yaml's
@@ -214,9 +215,15 @@ def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, 
     from cps_msgs.msg import LinkState
 
     port = free_port()
-    table = load_bridge_table(robots=[ROBOT])
+    # bridge.yaml with a 2 s reopen (10 s in the fleet's): the rule is the same, the test shorter
+    default = load_bridge_table(robots=[ROBOT])
+    path = tmp_path / "bridge.yaml"
+    path.write_text(re.sub(r"(?m)^reopen_after_ms: \d+$", "reopen_after_ms: 2000", open(default.path).read(), count=1))
+    table = load_bridge_table(str(path), robots=[ROBOT])
+    assert table.reopen_after_ms == 2000
     graph = ros if side == "twin" else robots_graph
-    graph.popen(bridge_argv(sys.executable, side, "127.0.0.1", [ROBOT], cert_dir, port), name=f"bridge_{side}")
+    argv = bridge_argv(sys.executable, side, "127.0.0.1", [ROBOT], cert_dir, port) + ["--table", str(path)]
+    graph.popen(argv, name=f"bridge_{side}")
     peer = other_side(side)
     config = session_config(table, peer, "127.0.0.1", cert_dir)
     endpoint = f"tls/127.0.0.1:{port}"
