@@ -120,6 +120,15 @@ def test_a_payload_declaring_more_points_than_its_cloud_is_refused_before_decodi
             raise AssertionError(f"decoded a payload declaring {count} points")
         except DracoError as exc:
             assert f"declares {count} points" in str(exc)
+    # a message whose own size is as hostile as its payload's count
+    huge = wire_copy(msg)
+    huge.height, huge.width = 1, 2**30
+    huge.compressed_data = payload[:11] + struct.pack("<i", 2**30) + payload[15:]
+    try:
+        DECODER.decode(huge)
+        raise AssertionError("decoded a payload of 2**30 points in a message of as many")
+    except DracoError as exc:
+        assert "byte limit of a cloud" in str(exc)
     # the rate limiter reads a cloud's leaf by decoding it: bounded the same way
     leafy = wire_copy(msg)
     leafy.compressed_data = payload[:11] + struct.pack("<i", 2**30) + payload[15:]

@@ -97,8 +97,8 @@ class BridgeTable:
     # At most this many bytes not yet sent may wait in a host's TCP socket (net.ipv4.tcp_notsent_lowat:
     # cps_link sets it in the test bed's namespaces; on real hosts a sysctl). 0: not set.
     kernel_unsent_bytes: int = 0
-    # The other side's liveliness token there but none of its heartbeats for this long, ms: the
-    # bridge closes its Zenoh session and opens a new one (cps_link.link_health.LinkHealth.deaf).
+    # The other side's liveliness token there, its transport talking, but none of its heartbeats for
+    # this long, ms: the bridge closes its Zenoh session and opens a new one (LinkHealth.deaf).
     reopen_after_ms: int = 10000
     # The robots' bridge's link report period, ms (cps_link.link_report).
     report_ms: int = 500

@@ -39,6 +39,7 @@ from sensor_msgs.msg import PointField
 from cps_msgs.msg import CompressedPointCloud2
 from cps_transport.cloud_levels import LEAF_FIELD
 from cps_transport.pointcloud import (
+    MAX_CLOUD_BYTES,
     InvalidCloud,
     array_to_cloud,
     cloud_dtype,
@@ -61,6 +62,8 @@ class DracoError(ValueError):
 # names there), then a point cloud's point count (int32).
 _DRACO_HEADER = struct.Struct("<5sBBBBH")
 _DRACO_POINT_CLOUD, _DRACO_METADATA_FLAG, _DRACO_MAJOR = 0, 0x8000, 2
+# A decoded point's position: three float32.
+_POSITION_BYTES = 12
 # Metadata nested deeper than this is refused (ours is one level).
 _DRACO_METADATA_DEPTH = 8
 
@@ -415,13 +418,17 @@ class DracoDecoder:
 
 def _decode_payload(msg):
     """DracoPy's decoding of a CompressedPointCloud2's payload, once its header says it holds no
-    more points than the message's height x width (`declared_points`); DracoError otherwise."""
+    more points than the message's height x width (`declared_points`), whose positions alone stay
+    within the readers' MAX_CLOUD_BYTES (the message's size is the sender's word too); DracoError
+    otherwise."""
     payload = msg.compressed_data if isinstance(msg.compressed_data, bytes) else bytes(msg.compressed_data)
     declared = declared_points(payload)
     if not 0 < declared <= msg.height * msg.width:
         raise DracoError(
             f"payload declares {declared} points, the cloud had {msg.height * msg.width}: refused before decoding"
         )
+    if declared * _POSITION_BYTES > MAX_CLOUD_BYTES:
+        raise DracoError(f"payload declares {declared} points, over the {MAX_CLOUD_BYTES}-byte limit of a cloud")
     try:
         return DracoPy.decode(payload)
     except Exception as exc:  # DracoPy raises its own exceptions for corrupt buffers
