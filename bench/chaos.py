@@ -80,10 +80,17 @@ def inject(mission, fault):
 
 
 def _pids_of(mission, target):
-    """The pids of the mission's processes whose command line names `target` (its node, not a wrapper)."""
+    """The pids of the mission's processes whose ROS node name is `target` (`__name:=target` on its
+    command line: a wrapper has none). A substring match also took `zenoh_bridge_twin_command`
+    for `zenoh_bridge_twin`: the command lane's bridge was killed with the main one, and counted
+    as a second process after the restart."""
     from cps_ros.processes import processes_named
 
-    return [pid for pid, cmd in processes_named(str(mission.out_dir)) if target in cmd and "nice" not in cmd.split()[0]]
+    return [
+        pid
+        for pid, cmd in processes_named(str(mission.out_dir))
+        if f"__name:={target}" in cmd.split() and "nice" not in cmd.split()[0]
+    ]
 
 
 def _read(path):
