@@ -143,6 +143,8 @@ def run(args):
             if error:
                 row.failures.insert(0, error)
             after = {k: v for path in diag.values() for k, v in chaos.read_mismatch_counters(path).items()}
+            if not after:  # a missing value fails its check: the recorders heard no counter
+                row.failures.append("the bridges' mismatch counters were not recorded")
             row.mismatches = chaos.mismatch_growth(before, after)
             if row.mismatches:
                 row.failures.append(f"frames to the wrong topic or type: {row.mismatches}")

@@ -68,14 +68,29 @@ def test_mismatch_counters_read_back_and_only_growth_counts(tmp_path):
     path = tmp_path / "diag.jsonl"
     assert chaos.read_mismatch_counters(path) == {}
     lines = [
-        {"node": "zenoh_bridge_twin", "key": "md5_mismatch", "value": "0"},
-        {"node": "zenoh_bridge_twin", "key": "md5_mismatch", "value": "2"},
+        {"node": "zenoh_bridge_twin", "key": "drop_md5_mismatch", "value": "0"},
+        {"node": "zenoh_bridge_twin", "key": "drop_md5_mismatch", "value": "2"},
     ]
     path.write_text("".join(json.dumps(line) + "\n" for line in lines) + "not json\n")
     after = chaos.read_mismatch_counters(path)
-    assert after == {"zenoh_bridge_twin/md5_mismatch": 2.0}
-    assert chaos.mismatch_growth({"zenoh_bridge_twin/md5_mismatch": 2.0}, after) == {}
-    assert chaos.mismatch_growth({}, after) == {"zenoh_bridge_twin/md5_mismatch": 2.0}
+    assert after == {"zenoh_bridge_twin/drop_md5_mismatch": 2.0}
+    assert chaos.mismatch_growth({"zenoh_bridge_twin/drop_md5_mismatch": 2.0}, after) == {}
+    assert chaos.mismatch_growth({}, after) == {"zenoh_bridge_twin/drop_md5_mismatch": 2.0}
+
+
+def test_the_mismatch_keys_are_the_names_the_bridges_report():
+    """The receive path's diagnostics keys (every kind, zeros included) hold each mismatch key it
+    counts; the other two are the bridge's own counters, named in its source."""
+    import inspect
+
+    from cps_link import zenoh_bridge
+    from cps_link.receive_path import ReceivePath
+
+    reported = set(ReceivePath([], "cps", lambda msg_type: "").counters())
+    own = [k for k in chaos.MISMATCH_KEYS if k not in reported]
+    assert own == ["send_topic_type_mismatch", "publisher_type_mismatch"]
+    source = inspect.getsource(zenoh_bridge)
+    assert all(f"count({k}=1)" in source for k in own)
 
 
 @pytest.mark.ros
