@@ -6,6 +6,7 @@ duplicates delivered once."""
 import json
 import math
 import os
+import pathlib
 import re
 import subprocess
 import sys
@@ -218,7 +219,9 @@ def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, 
     # bridge.yaml with a 2 s reopen (10 s in the fleet's): the rule is the same, the test shorter
     default = load_bridge_table(robots=[ROBOT])
     path = tmp_path / "bridge.yaml"
-    path.write_text(re.sub(r"(?m)^reopen_after_ms: \d+$", "reopen_after_ms: 2000", open(default.path).read(), count=1))
+    path.write_text(
+        re.sub(r"(?m)^reopen_after_ms: \d+$", "reopen_after_ms: 2000", pathlib.Path(default.path).read_text(), count=1)
+    )
     table = load_bridge_table(str(path), robots=[ROBOT])
     assert table.reopen_after_ms == 2000
     graph = ros if side == "twin" else robots_graph
