@@ -44,8 +44,8 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
         ) from exc
     live.wait(timeout_s=20, what="live clouds")
 
+    t_stop = time.time()
     ros.stop(twin_bridge)
-    t_down = time.time()
     time.sleep(4.5)
     t_up = time.time()
     ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], certs, port), name="bt")
@@ -56,9 +56,16 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
     first_live_after = min(
         m.header.stamp.to_sec() for arrival, m in live.messages if arrival + wall_minus_monotonic > t_up
     )
+    last_live_before = max(
+        m.header.stamp.to_sec() for arrival, m in live.messages if arrival + wall_minus_monotonic < t_stop
+    )
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps), stamps  # oldest first, each once
-    # Captured while the twin was away: after the cut, before live clouds flowed again.
-    assert all(t_down - 1.0 <= s < first_live_after for s in stamps), (t_down, first_live_after, stamps)
+    # They fill the gap: newer than the last live cloud the twin had, older than the first after it came
+    # back. (Not bounded by the stop's wall time: a cloud published just before it can reach the robots'
+    # bridge after it has seen the twin go; under CI's load one did, 1.06 s before the stop returned.)
+    gap = (last_live_before, first_live_after)
+    assert all(last_live_before < s < first_live_after for s in stamps), (gap, t_stop, stamps)
+    assert stamps[0] - t_stop < 2.0, (t_stop, stamps)  # kept from the start of the outage
     assert all(b - a >= 0.99 for a, b in zip(stamps, stamps[1:])), stamps  # one per keyframe period
     assert 3 <= len(stamps) <= 12, stamps
     pose_by_stamp = {m.header.stamp.to_sec(): m for _, m in poses.messages}
