@@ -258,6 +258,36 @@ def test_a_token_held_without_heartbeats_is_a_deaf_session_and_closing_it_takes_
     assert health.token_deleted("robots", 32.0) and health.deaf(40.0, after_s=3.0) == []
 
 
+def test_a_peer_heard_that_never_echoes_this_side_is_an_unheard_session():
+    """The one-way session seen from the robots' side: the twin's token and heartbeats come, its
+    echoes of the robots' heartbeats do not. Echoes from before the outage do not count."""
+    health = LinkHealth(started_s=0.0)
+    assert health.token_put("twin", 1.0) and not health.heard_back()
+    assert health.echoed(1.2) == pytest.approx(0.2) and health.heard_back()
+    assert health.echoed(1.3) is None  # only the first echo of an up period is reported
+    assert not health.unheard(100.0, after_s=3.0)
+    assert health.token_deleted("twin", 5.0) and not health.heard_back()
+    assert health.token_put("twin", 15.0) and not health.heard_back()
+    assert not health.heard("twin", 15.1) and not health.unheard(17.9, after_s=3.0)  # already up
+    assert health.unheard(18.1, after_s=3.0) and not health.heard_back()
+    assert health.echoed(18.2) == pytest.approx(3.2) and not health.unheard(30.0, after_s=3.0)
+
+
+def test_the_socket_talks_from_its_first_bytes_after_a_silence_and_the_first_heartbeat_is_timed():
+    health = LinkHealth(started_s=0.0)
+    assert health.socket_talking(1.0, gap_s=0.7) is None
+    health.socket_bytes(100, 1.0, gap_s=0.7)
+    health.socket_bytes(100, 1.5, gap_s=0.7)  # no new bytes: still talking (within the gap)
+    assert health.socket_talking(1.6, gap_s=0.7) == 1.0
+    assert health.socket_talking(1.8, gap_s=0.7) is None  # silent longer than the gap: a cut
+    health.socket_bytes(250, 12.0, gap_s=0.7)
+    health.socket_bytes(300, 12.5, gap_s=0.7)
+    assert health.socket_talking(12.6, gap_s=0.7) == 12.0  # talking again since the restore
+    assert health.token_put("robots", 12.1)
+    assert health.first_heartbeat_after_token("robots", 12.4) == pytest.approx(0.3)
+    assert health.first_heartbeat_after_token("robots", 12.5) is None
+
+
 def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path):
     for name in ("ca.pem", "twin.pem", "twin.key", "robots.pem", "robots.key"):
         (tmp_path / name).write_text("x")

@@ -210,7 +210,8 @@ def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, 
     """The state seen after outages (demo_repeat run 4, CI's link cut): the other side's token is
     there, its heartbeats never come. A peer that holds the token and sends no heartbeat makes the
     bridge close its session and open a new one (its token goes and comes back) after bridge.yaml's
-    reopen_after_ms; once the peer's heartbeats come, the link is up and stays up."""
+    reopen_after_ms; so does, on the robots' side, a twin whose heartbeats come but that echoes
+    none of the robots'. Once the peer's heartbeats (and echoes) come, the link is up and stays up."""
     import zenoh
 
     from cps_msgs.msg import LinkState
@@ -244,19 +245,45 @@ def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, 
         gone_s = next(t for t, k in tokens if "DELETE" in k)
         reopen_s = table.reopen_after_ms / 1000.0
         assert reopen_s <= gone_s - first_s < reopen_s + 5.0, tokens
-        # The peer's heartbeats come: the link is up on the bridge's side and no more reopens follow.
         heartbeat = session.declare_publisher(table.heartbeat_key(peer, peer))
+
+        def beat_for(seconds):
+            start_s = time.monotonic()
+            while time.monotonic() - start_s < seconds:
+                heartbeat.put(b"")
+                time.sleep(table.heartbeat_ms / 1000.0)
+
+        if side == "robots":
+            # The other way round: the twin's heartbeats come, the robots' never come back as its
+            # echoes (the twin does not hear them). The robots' bridge reopens too.
+            seen = len(tokens)
+            beat_for(reopen_s + 5.0)
+            assert len(tokens) >= seen + 2, f"never reopened while unheard: {tokens[seen:]}"
+            # the twin echoes every robots' heartbeat from now on, as the twin's bridge does
+            echoes = {}
+
+            def echo(sample):
+                name = str(sample.key_expr).rsplit("/", 1)[-1]
+                if name not in echoes:
+                    echoes[name] = session.declare_publisher(table.echo_key(name))
+                echoes[name].put(sample.payload.to_bytes())
+
+            echo_sub = session.declare_subscriber(table.peer_heartbeat_keys("twin"), echo)
+            beat_for(1.5)  # a reopen decided before the first echo came finishes
+            assert wait_for(lambda: "PUT" in tokens[-1][1], timeout_s=10), tokens
+        # The peer's heartbeats come (and its echoes): the link is up on the bridge's side and no
+        # more reopens follow.
         state = []
         sub = (
             rospy_node.Subscriber(names.LINK_STATE, LinkState, lambda m: state.append(m.up)) if side == "twin" else None
         )
-        beating_s, seen = time.monotonic(), len(tokens)
-        while time.monotonic() - beating_s < reopen_s + 2.0:
-            heartbeat.put(b"")
-            time.sleep(table.heartbeat_ms / 1000.0)
+        seen = len(tokens)
+        beat_for(reopen_s + 2.0)
         assert len(tokens) == seen, f"reopened although heartbeats came: {tokens[seen:]}"
         if sub is not None:
             sub.unregister()
             assert state and state[-1], "the twin's link state is not up with the peer's heartbeats"
+        else:
+            echo_sub.undeclare()
         token.undeclare()
         watch.undeclare()

@@ -1,9 +1,11 @@
 """The link's health as one bridge sees it (ROS-free): the other side's liveliness tokens come and
 go, and its heartbeats stop. The token alone is not enough: a bridge whose transport is stuck
 behind a full send buffer may not see the session end until the link is back. A token held while
-its heartbeats stay away is a session that carries one way only (`deaf`)."""
+its heartbeats stay away is a session that carries one way only (`deaf`); so is a peer heard while
+its echoes of this side's heartbeats never come back (`unheard`, where the peer echoes them)."""
 
 import dataclasses
+import math
 
 
 @dataclasses.dataclass
@@ -18,6 +20,15 @@ class LinkHealth:
     ever_up: bool = False
     last_heard: dict = dataclasses.field(default_factory=dict)
     tokens: set = dataclasses.field(default_factory=set)  # the peers whose liveliness tokens are there
+    # when the peer last echoed one of this side's heartbeats (the side that asks for echoes)
+    last_echo_s: float = -math.inf
+    # the link socket: its received bytes, when they last grew, and since when they have grown
+    # without a gap longer than the caller's (the transport talks)
+    socket_received: int = 0
+    socket_heard_s: float = -math.inf
+    socket_talking_since_s: float = -math.inf
+    # the peers whose token came and that were not heard since: when it came
+    token_unheard_since: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         if self.since_s is None:
@@ -30,6 +41,40 @@ class LinkHealth:
     def heard(self, name, now_s):
         """A peer's heartbeat; True when the link changed to up."""
         return self.peer_alive(name, now_s)
+
+    def first_heartbeat_after_token(self, name, now_s):
+        """Seconds from the peer's token to this, its first heartbeat after it (None if not the first)."""
+        since_s = self.token_unheard_since.pop(name, None)
+        return None if since_s is None else now_s - since_s
+
+    def echoed(self, now_s):
+        """The peer echoed one of this side's heartbeats; seconds since the link came up when this is
+        the first echo of this up period (None otherwise)."""
+        first = self.up and self.last_echo_s < self.since_s
+        self.last_echo_s = now_s
+        return now_s - self.since_s if first else None
+
+    def heard_back(self):
+        """Up, and the peer has echoed this side's heartbeats since: it hears this side."""
+        return self.up and self.last_echo_s >= self.since_s
+
+    def unheard(self, now_s, after_s):
+        """Up for more than after_s without one echo: the peer is heard, this side is not (a session
+        that carries the peer's way only)."""
+        return self.up and self.last_echo_s < self.since_s and now_s - self.since_s > after_s
+
+    def socket_bytes(self, received, now_s, gap_s):
+        """The link socket's received byte count at now_s (`gap_s`: the longest silence that still
+        counts as talking)."""
+        if received != self.socket_received:
+            if now_s - self.socket_heard_s > gap_s:
+                self.socket_talking_since_s = now_s
+            self.socket_received, self.socket_heard_s = received, now_s
+
+    def socket_talking(self, now_s, gap_s):
+        """Since when the link socket has been receiving bytes without a gap longer than gap_s (None:
+        it is silent now, as in a cut)."""
+        return None if now_s - self.socket_heard_s > gap_s else self.socket_talking_since_s
 
     def expire(self, now_s, timeout_s):
         """Peers not heard for timeout_s are gone; True when the link changed to down."""
@@ -52,11 +97,13 @@ class LinkHealth:
     def token_put(self, name, now_s):
         """A peer's liveliness token appeared; True when the link changed to up."""
         self.tokens.add(name)
+        self.token_unheard_since[name] = now_s
         return self.peer_alive(name, now_s)
 
     def token_deleted(self, name, now_s):
         """A peer's liveliness token disappeared; True when the link changed to down."""
         self.tokens.discard(name)
+        self.token_unheard_since.pop(name, None)
         return self.peer_gone(name, now_s)
 
     def deaf(self, now_s, after_s, since_s=float("-inf")):

@@ -110,6 +110,7 @@ class _Declared:
     subs: list = dataclasses.field(default_factory=list)
     token: object = None
     heartbeat_pub: object = None
+    heartbeat_matching: object = None  # the listener of whether the peer subscribes to our heartbeats
     report_pub: object = None
     echo_pubs: dict = dataclasses.field(default_factory=dict)  # key -> publisher
 
@@ -209,9 +210,6 @@ class ZenohBridge:
         )
         self._tcp_rtts = []  # the robots' link socket's smoothed RTT at each heartbeat since the last report
         self._socket_samples = [0, 0]  # heartbeat samples of the link socket since the last report, of them full
-        # the link socket's received bytes at the last heartbeat, when (time.time()) they last grew,
-        # and since when they have grown without a gap of a heartbeat timeout (the transport talks)
-        self._socket_received, self._socket_heard_s, self._socket_talking_since_s = 0, -math.inf, -math.inf
         self.publishers, self.replays, self.ros_subs = {}, {}, []
         self.session_factory = session_factory
         self._reopening = False
@@ -264,6 +262,7 @@ class ZenohBridge:
             express=True,
             congestion_control=zenoh_congestion("drop"),
         )
+        z.heartbeat_matching = z.heartbeat_pub.declare_matching_listener(self._on_heartbeat_matching)
         z.subs.append(session.declare_subscriber(table.peer_heartbeat_keys(side), self._on_heartbeat))
         if self.queue is not None:
             z.subs.append(session.declare_subscriber(table.echo_key(self.name), self._on_echo))
@@ -289,29 +288,38 @@ class ZenohBridge:
         to: in a cut the robots' bridge keeps the twin's token until the link is back and hears
         nothing, and at the restore its socket talks before the twin's heartbeats come. A lane
         without a link socket read (the command lane) leaves it to the twin's side, which drops a
-        cut peer's token within the lease."""
+        cut peer's token within the lease. The robots' main lane, whose heartbeats the twin echoes,
+        also reopens when it hears the twin but none of its own heartbeats came back since the link
+        came up (the other way round)."""
         if self.session_factory is None or self._reopening:
             return
         after_s = self.table.reopen_after_ms / 1000.0
-        if self.link_sockets is not None:
-            if now_s - self._socket_heard_s > self.table.heartbeat_timeout_ms / 1000.0:
-                return  # the transport is not talking (a cut)
-            since_s = self._socket_talking_since_s  # a restore: heartbeats have had no time yet
-        elif self.side == TWIN:
-            since_s = -math.inf
+        gap_s = self.table.heartbeat_timeout_ms / 1000.0
+        with self.lock:
+            if self.link_sockets is not None:
+                since_s = self.health.socket_talking(now_s, gap_s)  # a restore: heartbeats have had no time yet
+                if since_s is None:
+                    return  # the transport is not talking (a cut)
+            elif self.side == TWIN:
+                since_s = -math.inf
+            else:
+                return
+            deaf = self.health.deaf(now_s, after_s, since_s)
+            unheard = self.round_trips is not None and self.health.unheard(now_s, after_s)
+        if deaf:
+            why = (
+                f"{self.peer_side} bridge {', '.join(map(repr, deaf))} holds its liveliness token but sent "
+                f"no heartbeat for {self.table.reopen_after_ms} ms"
+            )
+        elif unheard:
+            why = f"{self.peer_side} bridge is heard but echoed none of this side's heartbeats for {self.table.reopen_after_ms} ms"
         else:
             return
-        with self.lock:
-            deaf = self.health.deaf(now_s, after_s, since_s)
-        if deaf:
-            self._reopening = True
-            threading.Thread(target=self._reopen, args=(deaf,), name="reopen", daemon=True).start()
+        self._reopening = True
+        threading.Thread(target=self._reopen, args=(why,), name="reopen", daemon=True).start()
 
-    def _reopen(self, deaf):
-        rospy.logwarn(
-            f"{rospy.get_name()}: {self.peer_side} bridge {', '.join(map(repr, deaf))} holds its liveliness "
-            f"token but sent no heartbeat for {self.table.reopen_after_ms} ms: reopening the Zenoh session"
-        )
+    def _reopen(self, why):
+        rospy.logwarn(f"{rospy.get_name()}: {why}: reopening the Zenoh session")
         old = self.z
         try:
             old.session.close()
@@ -387,7 +395,7 @@ class ZenohBridge:
         if frame is None:
             self.sent_ledger.dropped(route.to, "type")
             return
-        if self.store is not None and not self.health.up and route.to in self.backfill_robot:
+        if self.store is not None and not self._carries() and route.to in self.backfill_robot:
             kept = self._keep_keyframe(self.backfill_robot[route.to], frame)
             if kept:
                 self.sent_ledger.count(route.to, cloud_ledger.BACKFILL_KEPT)
@@ -600,7 +608,7 @@ class ZenohBridge:
         backfill = self.table.backfill
         while not rospy.is_shutdown():
             time.sleep(BACKFILL_POLL_S)
-            keyframe = self.store.peek() if self.health.up else None
+            keyframe = self.store.peek() if self._carries() else None
             if keyframe is None or not self.pacer.take(keyframe.size_bytes, time.monotonic()):
                 continue
             keyframe = self.store.pop()
@@ -646,13 +654,41 @@ class ZenohBridge:
             self.z.echo(self.table.echo_key(peer), payload, self.reporter)
             with self.lock:
                 self.composer.received(len(payload), managed=False)
+        now_s = time.time()
         with self.lock:
-            up = self.health.heard(peer, time.time())
+            up = self.health.heard(peer, now_s)
+            after_token_s = self.health.first_heartbeat_after_token(peer, now_s)
+        if after_token_s is not None:
+            rospy.loginfo(
+                f"{rospy.get_name()}: {self.peer_side} bridge '{peer}': its first heartbeat "
+                f"{after_token_s * 1000:.0f} ms after its token"
+            )
         self._link_changed(up, False, peer, "its heartbeat")
+
+    def _on_heartbeat_matching(self, status):
+        """Zenoh's own view of whether the peer subscribes to this side's heartbeats: a transport
+        whose peer's declarations were lost sends nothing while both sides hold each other's token."""
+        rospy.loginfo(
+            f"{rospy.get_name()}: the {self.peer_side} side "
+            f"{'subscribes' if status.matching else 'no longer subscribes'} to this side's heartbeats"
+        )
 
     def _on_echo(self, sample):
         with self.lock:
             self.round_trips.echo(sample.payload.to_bytes(), time.monotonic_ns())
+            first_after_s = self.health.echoed(time.time())
+        if first_after_s is not None:
+            rospy.loginfo(
+                f"{rospy.get_name()}: the {self.peer_side} bridge hears this side: its first echo "
+                f"{first_after_s * 1000:.0f} ms after the link came up"
+            )
+
+    def _carries(self):
+        """The link carries this side's messages: up, and where the twin echoes this side's
+        heartbeats, heard back since (a session that carries only the twin's way does not: a
+        keyframe sent into it is lost, one kept waits for the reopen)."""
+        with self.lock:
+            return self.health.heard_back() if self.round_trips is not None else self.health.up
 
     def _heartbeat(self, _event=None):
         if self.round_trips is not None:
@@ -676,10 +712,7 @@ class ZenohBridge:
         with self.lock:
             if self.link_sockets is not None:
                 received = self.link_sockets.totals()["bytes_received"]
-                if received != self._socket_received:
-                    if now_s - self._socket_heard_s > self.table.heartbeat_timeout_ms / 1000.0:
-                        self._socket_talking_since_s = now_s
-                    self._socket_received, self._socket_heard_s = received, now_s
+                self.health.socket_bytes(received, now_s, self.table.heartbeat_timeout_ms / 1000.0)
             down = self.health.expire(now_s, self.table.heartbeat_timeout_ms / 1000.0)
         self._link_changed(False, down, "", f"no heartbeat for {self.table.heartbeat_timeout_ms} ms")
         self._watch_session(now_s)
