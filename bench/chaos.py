@@ -50,7 +50,7 @@ def inject(mission, fault):
         finally:
             link_set(mission.run_link_name(), LINK_RATE)
     elif fault.kind == chaos.KILL:
-        pids = _pids_of(mission, fault.target)
+        pids = _pids_of(mission, _kill_target(mission, fault.target))
         if not pids:
             raise RuntimeError(f"no running {fault.target} to kill")
         for pid in pids:
@@ -77,6 +77,12 @@ def inject(mission, fault):
         viewer.wait(fault.duration_s + 30)
     else:
         raise ValueError(f"unknown fault {fault.kind}")
+
+
+def _kill_target(mission, target):
+    """The process a kill of `target` hits: its own, or in this mission's layout its host's."""
+    host = chaos.KILL_HOSTS.get(target)
+    return host if host and not _pids_of(mission, target) and _pids_of(mission, host) else target
 
 
 def _pids_of(mission, target):
@@ -124,6 +130,9 @@ def run(args):
                 break
             before = {k: v for path in diag.values() for k, v in chaos.read_mismatch_counters(path).items()}
             start = time.time()
+            described = fault.describe()
+            if fault.kind == chaos.KILL and _kill_target(mission, fault.target) != fault.target:
+                described += f" (runs in {_kill_target(mission, fault.target)} in this layout)"
             try:
                 inject(mission, fault)
                 error = None
@@ -132,7 +141,7 @@ def run(args):
             end = time.time()
             time.sleep(chaos.RECOVERY_S + chaos.CHECK_WINDOW_S + 1.0)
             row = chaos.judge_fault(
-                chaos.Row(i, fault.describe(), start, end),
+                chaos.Row(i, described, start, end),
                 robots,
                 _read(os.path.join(mission_dir, "map_age.csv")),
                 _read(os.path.join(mission_dir, "arrivals.csv")),
@@ -149,9 +158,10 @@ def run(args):
             if row.mismatches:
                 row.failures.append(f"frames to the wrong topic or type: {row.mismatches}")
             if fault.kind == chaos.KILL:
-                alive = _pids_of(mission, fault.target)
+                killed = _kill_target(mission, fault.target)
+                alive = _pids_of(mission, killed)
                 if len(alive) != 1:
-                    row.failures.append(f"{len(alive)} {fault.target} processes after the restart (1 expected)")
+                    row.failures.append(f"{len(alive)} {killed} processes after the restart (1 expected)")
             rows.append(row)
             print(_line(row), flush=True)
         mission.stop()

@@ -42,6 +42,9 @@ HOG_S = 10.0
 VIEWER_S = 10.0
 # Process-name fragments of the nodes a kill may hit (every one restarted by the supervisor).
 KILL_TARGETS = ("map_server", "zenoh_bridge_twin", "zenoh_bridge_robots", "cloud_tissue", "cloud_throttle")
+# Where a target runs inside another process in some tissue layout (the shared layout's cloud_tissue
+# runs every robot's limiter): a kill of it kills its host. The draw stays the same for every layout.
+KILL_HOSTS = {"cloud_throttle": "cloud_tissue"}
 
 # The invariants' window: from the fault's end + RECOVERY_S, for CHECK_WINDOW_S.
 RECOVERY_S = 3.0
