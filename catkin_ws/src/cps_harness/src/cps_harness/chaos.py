@@ -22,6 +22,8 @@ from typing import Dict, List, Optional
 from cps_link.receive_path import (
     KEY_MISMATCH,
     MD5_MISMATCH,
+    PUBLISHER_TYPE_MISMATCH,
+    SEND_TOPIC_TYPE_MISMATCH,
     TOPIC_TYPE_MISMATCH,
     UNKNOWN_TYPE,
     UNLISTED_TOPIC,
@@ -58,7 +60,7 @@ TELEOP_P95_MS = 50.0
 MISMATCH_KEYS = tuple(
     f"drop_{kind}"
     for kind in (KEY_MISMATCH, WRONG_TOPIC, UNLISTED_TOPIC, UNKNOWN_TYPE, MD5_MISMATCH, TOPIC_TYPE_MISMATCH)
-) + ("send_topic_type_mismatch", "publisher_type_mismatch")
+) + (SEND_TOPIC_TYPE_MISMATCH, PUBLISHER_TYPE_MISMATCH)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -38,6 +38,11 @@ TOPIC_TYPE_MISMATCH = "topic_type_mismatch"  # the topic has another type (table
 OLD_SESSION = "old_session"  # from a sender's run older than the one heard lately
 DUPLICATE = "duplicates"
 STALE = "stale"
+# The bridge's own counters of a type mismatch outside the receive path's verdicts: a ROS message
+# of another type than its route's on the way out, a frame for a publisher of another type on the
+# way in (never: the receive path keeps one type per topic).
+SEND_TOPIC_TYPE_MISMATCH = "send_topic_type_mismatch"
+PUBLISHER_TYPE_MISMATCH = "publisher_type_mismatch"
 WIRE_KINDS = (TRUNCATED, NOT_A_FRAME, BAD_VERSION, BAD_CRC)
 DROP_KINDS = WIRE_KINDS + (
     KEY_MISMATCH,

@@ -30,7 +30,13 @@ from cps_link.link_report import (
     RoundTrips,
     SenderReport,
 )
-from cps_link.receive_path import TOPIC_TYPE_MISMATCH, ReceivePath, SendPath
+from cps_link.receive_path import (
+    PUBLISHER_TYPE_MISMATCH,
+    SEND_TOPIC_TYPE_MISMATCH,
+    TOPIC_TYPE_MISMATCH,
+    ReceivePath,
+    SendPath,
+)
 from cps_link.route_ledger import RouteLedger, is_cloud_route
 from cps_link.send_queue import DROP_RULES, EXPIRED, SUPERSEDED, SendQueue
 from cps_msgs.msg import LinkReport, LinkState
@@ -368,7 +374,7 @@ class ZenohBridge:
                 pass
         frame = self.send_path.frame(route.to, source, msg_type, md5, stamp, msg._buff)
         if frame is None:
-            self.reporter.count(send_topic_type_mismatch=1)
+            self.reporter.count(**{SEND_TOPIC_TYPE_MISMATCH: 1})
             self.reporter.drop(f"{route.topic}: {msg_type} from {source} is not the topic's type")
         return (route.to, source), frame
 
@@ -493,7 +499,7 @@ class ZenohBridge:
         cls = self._message_class(frame.msg_type)
         pub = self._publisher(route, cls)
         if (pub.type, pub.md5sum) != (frame.msg_type, frame.md5):  # never: the receive path keeps one type
-            self.reporter.count(publisher_type_mismatch=1)
+            self.reporter.count(**{PUBLISHER_TYPE_MISMATCH: 1})
             self.reporter.drop(f"{route.to}: {frame.msg_type} for a publisher of {pub.type}")
             return TOPIC_TYPE_MISMATCH
         if self.queue is not None and route.to == names.absolute(names.ALLOCATION):
