@@ -305,7 +305,7 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
         assert config["transport"]["shared_memory"]["enabled"] is False
         assert config["transport"]["link"]["tx"]["batch_size"] == table.batch_bytes == 16384
     assert table.kernel_unsent_bytes == 16384 and table.report_ms == 500
-    assert table.reopen_after_ms == 10000 > table.heartbeat_timeout_ms
+    assert table.reopen_after_ms == 5000 > table.heartbeat_timeout_ms
     zenoh.Config.from_json5(__import__("json").dumps(twin))
 
 

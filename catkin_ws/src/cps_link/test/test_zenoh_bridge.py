@@ -217,7 +217,7 @@ def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, 
     from cps_msgs.msg import LinkState
 
     port = free_port()
-    # bridge.yaml with a 2 s reopen (10 s in the fleet's): the rule is the same, the test shorter
+    # bridge.yaml with a 2 s reopen (5 s in the fleet's): the rule is the same, the test shorter
     default = load_bridge_table(robots=[ROBOT])
     path = tmp_path / "bridge.yaml"
     path.write_text(

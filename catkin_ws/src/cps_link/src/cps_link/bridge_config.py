@@ -99,7 +99,7 @@ class BridgeTable:
     kernel_unsent_bytes: int = 0
     # The other side's liveliness token there, its transport talking, but none of its heartbeats for
     # this long, ms: the bridge closes its Zenoh session and opens a new one (LinkHealth.deaf).
-    reopen_after_ms: int = 10000
+    reopen_after_ms: int = 5000
     # The robots' bridge's link report period, ms (cps_link.link_report).
     report_ms: int = 500
 
