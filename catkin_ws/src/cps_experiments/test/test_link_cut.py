@@ -2,7 +2,7 @@
 again, over --transport zenoh, the veth cut for 10 s mid-mission, and the map server killed 2 s into
 the cut (fault injection). Both sides report the link down within 1 s of the cut and up within 2 s
 of its end; no node but the killed map server restarts, and it resumes from its autosave before the
-link comes back; the robots' bridge does not take the cut for a one-way session (no reopen); no
+link comes back; the robots' bridge does not take the cut for a one-way session (no reopen for it); no
 live cloud captured more than 1 s before the link came back reaches the twin after it (nothing
 waits through the cut: the backfilled keyframes are its only way across); the clouds' latency
 after recovery is printed beside the reference mission's (it is the machine's load as much as the
@@ -142,9 +142,13 @@ def test_a_ten_second_cut_mid_mission(reference_mission, open_tmp_path):
     assert len(map_server_logs) == 2, map_server_logs
     assert "map_server: resumed from" in map_server_logs[1].read_text()
     # A cut is not a session that carries one way (cps_link bridge.yaml reopen_after_ms): the robots'
-    # bridge, which keeps the twin's token through it and hears nothing, does not reopen its session.
+    # bridge, which keeps the twin's token through it and hears nothing, does not reopen its session
+    # for the twin's silence. (It may after the restore, for the one-way session Zenoh sometimes
+    # leaves: the twin heard, its echoes of the robots' heartbeats never coming. That reopen is the
+    # cure, printed above with the bridges' lines.)
     robots_bridge_logs = list((out / "logs" / "robots").glob("zenoh_bridge_robots-*.log"))
-    assert robots_bridge_logs and not any("reopening the Zenoh session" in p.read_text() for p in robots_bridge_logs)
+    reopens = [line for p in robots_bridge_logs for line in p.read_text().splitlines() if "reopening the Zenoh" in line]
+    assert robots_bridge_logs and not [line for line in reopens if "sent no heartbeat" in line], reopens
     assert len(held) > 0 and max(held) <= FRESH_S, (
         f"captured up to {max(held, default=float('nan')):.2f} s before the link came back"
     )
