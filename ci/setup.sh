@@ -4,7 +4,7 @@
 #   2. .venv made from /usr/bin/python3 with --system-site-packages, pinned ci/requirements.txt
 #   3. catkin_make of catkin_ws (only when a package's build files changed)
 #   4. the map server's numba kernels, compiled next to their source and keyed by its content
-#      (cps_mapping.kernel_cache): no node compiles them during a mission
+#      (cps_mapping.kernel_cache): no node compiles them during a mission; and the workspace's .pyc
 #   5. the pcl_ros plugin-path fix, so that nodelet can load pcl/VoxelGrid
 #   6. the fleet's TLS keys and certificates for the Zenoh bridges in .certs (outside git)
 #
@@ -79,6 +79,16 @@ fi
 # Quick when built: the cache folder's key is the source's hash (+ numba and Python versions).
 PYTHONPATH="$ws/src/cps_mapping/src${PYTHONPATH:+:$PYTHONPATH}" "$venv/bin/python" -m cps_mapping.build_kernels \
   >/tmp/cps-kernels.log 2>&1 || die "building the map server's kernels failed (see /tmp/cps-kernels.log): $(tail -3 /tmp/cps-kernels.log)"
+
+# --- 4b. the workspace's bytecode ------------------------------------------------------------
+# Every node, tool and test process imports the workspace's modules; with no .pyc beside them each
+# compiles them anew at its start (~1.5 CPU-s a process: a mission starts ~17, the test suite
+# hundreds). Nothing writes them otherwise: the nodes run as `nobody`, who cannot write here, and
+# PYTHONDONTWRITEBYTECODE (set on some machines) stops everyone else. compileall writes them
+# regardless and skips those up to date; an edited module's stale .pyc is seen by its mtime and
+# compiled in memory, as before.
+"$venv/bin/python" -m compileall -q -j 0 -x '/numba_kernels/' "$ws/src" "$ws/devel/lib" >/tmp/cps-compileall.log 2>&1 \
+  || die "compiling the workspace's Python failed (see /tmp/cps-compileall.log): $(tail -3 /tmp/cps-compileall.log)"
 
 # --- 5. pcl_ros plugin path ----------------------------------------------------------------
 # Debian's pcl_ros nodelet description names "lib/libpcl_ros_filters"; pluginlib looks for it as

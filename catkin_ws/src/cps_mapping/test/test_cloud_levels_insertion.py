@@ -3,6 +3,8 @@ view of a room with a crate, voxelized in the camera's frame at 0.05 m and at 0.
 VoxelGrid does on the robot), inserted from two poses, against the voxels the camera's dense
 returns fall in (the truth). And the map server reads the leaf each cloud carries."""
 
+import functools
+
 import genpy
 import numpy as np
 import pytest
@@ -58,25 +60,39 @@ def _through_draco(cloud, leaf_m):
     return xyz_of(points)
 
 
+@functools.lru_cache(maxsize=1)
+def _views():
+    """The room seen from each of POSES at 640 x 480, rendered once per run (every insertion below
+    sees the same views; the arrays are only read): ((origin, rotation, returns in the camera
+    frame) per view, every dense return in map, the truth voxel keys they fall in)."""
+    views, dense_all = [], []
+    for origin, yaw in POSES:
+        dense = sc.depth_camera_cloud(ROOM, origin, yaw, width=640, height=480, far_m=8.0)
+        rotation = sc.rotation_z(yaw) @ sc.OPTICAL_TO_BODY
+        views.append((origin, rotation, sc.to_sensor_frame(dense, origin, rotation).astype(np.float32)))
+        dense_all.append(dense)
+    dense = np.vstack(dense_all)
+    truth = np.unique(_keys(dense), axis=0)
+    for array in (dense, truth, *(view[2] for view in views)):
+        array.flags.writeable = False
+    return tuple(views), dense, truth
+
+
 def _insert(leaf_m, carry_leaf=True, draco=False):
     """(map, truth voxel keys, dense returns in map, surface samples added): the room seen from
     POSES at 640 x 480, each view voxelized at `leaf_m` in the camera frame (and sent through
     Draco with `draco`)."""
     fused = FusedLogOddsMap(RES, FLEET.mapping.sensor_model)
-    dense_all, bridged = [], 0
-    for origin, yaw in POSES:
-        dense = sc.depth_camera_cloud(ROOM, origin, yaw, width=640, height=480, far_m=8.0)
-        dense_all.append(dense)
-        rotation = sc.rotation_z(yaw) @ sc.OPTICAL_TO_BODY
-        in_camera = sc.to_sensor_frame(dense, origin, rotation).astype(np.float32)
+    views, dense, truth = _views()
+    bridged = 0
+    for origin, rotation, in_camera in views:
         cloud = voxel_downsample(in_camera, leaf_m)
         if draco:
             cloud = _through_draco(cloud, leaf_m)
         prepared = prepare_cloud(cloud, rotation, origin, 100.0, leaf_m if carry_leaf else None, RES)
         bridged += prepared.bridged
         fused.insert_cloud(prepared.points_m, prepared.origin_m)
-    dense = np.vstack(dense_all)
-    return fused, np.unique(_keys(dense), axis=0), dense, bridged
+    return fused, truth, dense, bridged
 
 
 def _figures(fused, truth, dense):

@@ -4,11 +4,14 @@ Each test starts from a fresh checkout: a copy of this package's source at a new
 kernel cache (`checkout` fixture), built as `make setup` builds it. So no test here depends on a
 cache that another test, or the workspace, warmed.
 - a copy of a built checkout at another path, with an older or a newer mtime, compiles nothing
-  (numba's own cache keys by path and mtime and recompiled there); an edited source compiles anew;
+  (numba's own cache keys by path and mtime and recompiled there);
 - cold start: the map server node started from the fresh checkout reports ready with every kernel
   loaded from that cache, and the first cloud that reaches it is inserted within 1 s;
-- a node whose kernels are not built compiles them before it is ready (and says so), and a cloud
-  that arrives meanwhile is queued and inserted, not lost.
+- an edited source never gets the old kernels: a node started from a built checkout whose source
+  was then edited (the old kernels still beside it) finds none for its source, so its kernels are
+  not built; it compiles them before it is ready (and says so), and a cloud that arrives meanwhile
+  is queued and inserted, not lost. (One cold compile proves both: the edited source and the
+  unbuilt node were two tests of ~11 CPU-s each, each compiling every kernel.)
 """
 
 import json
@@ -104,14 +107,6 @@ def test_kernels_built_elsewhere_serve_a_copy_at_another_path_and_mtime(checkout
     assert result["compiled"] == [], f"compiled at use: {result['compiled']}"
 
 
-def test_an_edited_source_never_gets_the_old_kernels(checkout, tmp_path):
-    edited = copy_checkout(checkout[0], str(tmp_path / "edited"), with_cache=True)
-    with open(_module_file(edited), "a") as stream:
-        stream.write("\n# an edit\n")
-    result = _exercise(edited)
-    assert "_integrate" in result["compiled"], result
-
-
 @pytest.mark.ros
 def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node, tmp_path):
     """The node of a fresh checkout (its cache built by the set-up, nothing warmed before) says it
@@ -165,16 +160,25 @@ def test_cold_start_first_cloud_is_inserted_within_1_s(checkout, ros, rospy_node
 
 
 @pytest.mark.ros
-def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node, tmp_path):
-    """No build step (a checkout without its kernels): the node compiles before it is ready and says
-    so; a cloud sent once it subscribed, before its ready, waits in the queue and reaches the map."""
+def test_an_edited_source_never_gets_the_old_kernels_and_a_cloud_sent_during_the_warm_up_is_inserted(
+    checkout, ros, rospy_node, tmp_path
+):
+    """The built checkout copied with its kernels, then its source edited: the old kernels are
+    there, and none is for this source. The node compiles before it is ready and says so; a cloud
+    sent once it subscribed, before its ready, waits in the queue and reaches the map."""
     from diagnostic_msgs.msg import DiagnosticStatus
 
     from cps_harness.testing import TopicRecorder, wait_for
+    from cps_mapping.kernel_cache import cache_dir
     from cps_msgs.msg import CompressedPointCloud2, Octomap
 
     rospy = rospy_node
-    path = copy_checkout(PACKAGE, str(tmp_path / "unbuilt" / "cps_mapping"), with_cache=False)
+    path = copy_checkout(checkout[0], str(tmp_path / "edited" / "cps_mapping"), with_cache=True)
+    old_kernels = cache_dir(_module_file(path))
+    assert os.listdir(old_kernels), "the copy must carry the kernels built for the unedited source"
+    with open(_module_file(path), "a") as stream:
+        stream.write("\n# an edit\n")
+    assert cache_dir(_module_file(path)) != old_kernels
     name = "unbuilt_map_server"
     ready = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.READY))), DiagnosticStatus)
     octomap = TopicRecorder(names.absolute(names.in_twin(names.private(name, names.OCTOMAP_BINARY))), Octomap)
@@ -202,6 +206,7 @@ def test_a_cloud_sent_during_the_warm_up_is_queued_and_inserted(ros, rospy_node,
         status = ready.wait(timeout_s=300, what="the map server's ready")
         values = {kv.key: kv.value for kv in status.values}
         assert status.level == DiagnosticStatus.WARN and "_integrate" in values["kernels_compiled"], status
+        assert values["kernel_cache_dir"] == cache_dir(_module_file(path)) != old_kernels, values
         assert values["clouds_queued_before_ready"] == "1", status
         octomap.wait(lambda m: len(m.data) > 0, timeout_s=10, what="the queued cloud in the map")
     finally:

@@ -3,15 +3,18 @@ stopping where its cloud already cleared. Approximate by design: it must keep >=
 occupied voxels of exact insertion (OctoMap's) and never touch an endpoint's hit; the exact
 mode must stay exact, and the .bt written from the grid must equal OctoMap's own writeBinary."""
 
+import inspect
+
 import numpy as np
 import octomap
 import pytest
 import synthetic_scene as sc
 from fleet_model import new_map, plain_tree
 
-from cps_mapping.fused_map import _finest_voxels, octree_from_bytes, pack_index
+from cps_mapping.fused_map import FusedLogOddsMap, _finest_voxels, octree_from_bytes, pack_index
 
 RES = 0.1
+_STOP_DEFAULT_M = inspect.signature(FusedLogOddsMap).parameters["shared_ray_stop_m"].default
 
 
 def _set(index):
@@ -37,10 +40,26 @@ def _build(clouds, resolution_m, **kwargs):
     return fused
 
 
+@pytest.fixture(scope="module")
+def built(clouds):
+    """_build of `clouds`, once per set of arguments in this module: the tests only read the maps
+    (the same map built again is the same map), and 11 builds were 7 different ones."""
+    maps = {}
+    defaults = {"exact_free_space": True, "shared_ray_stop_m": _STOP_DEFAULT_M}
+
+    def get(resolution_m, **kwargs):
+        key = (resolution_m, tuple(sorted({**defaults, **kwargs}.items())))
+        if key not in maps:
+            maps[key] = _build(clouds, resolution_m, **kwargs)
+        return maps[key]
+
+    return get
+
+
 @pytest.mark.parametrize("resolution_m", [0.1, 0.05])
-def test_shared_origin_casting_agrees_with_exact_insertion(clouds, resolution_m):
-    exact = _build(clouds, resolution_m)
-    fast = _build(clouds, resolution_m, exact_free_space=False)
+def test_shared_origin_casting_agrees_with_exact_insertion(built, resolution_m):
+    exact = built(resolution_m)
+    fast = built(resolution_m, exact_free_space=False)
     ours, theirs = _set(fast.occupied_index()), _set(exact.occupied_index())
     assert len(theirs) > 2000
     both = len(ours & theirs)
@@ -52,11 +71,11 @@ def test_shared_origin_casting_agrees_with_exact_insertion(clouds, resolution_m)
     assert 0.95 < known_fast / known_exact < 1.01, known_fast / known_exact
 
 
-def test_a_longer_stop_is_at_least_as_close_to_exact(clouds):
-    exact = _set(_build(clouds, 0.05).occupied_index())
+def test_a_longer_stop_is_at_least_as_close_to_exact(built):
+    exact = _set(built(0.05).occupied_index())
     agreement = []
     for stop_m in (0.05, 0.3, 1e6):
-        fast = _set(_build(clouds, 0.05, exact_free_space=False, shared_ray_stop_m=stop_m).occupied_index())
+        fast = _set(built(0.05, exact_free_space=False, shared_ray_stop_m=stop_m).occupied_index())
         agreement.append(len(fast & exact) / len(fast | exact))
     assert agreement[0] <= agreement[1] + 1e-3 and agreement[1] <= agreement[2] + 1e-3, agreement
     assert agreement[2] > 0.995, "without stopping only the reverse traversal's corner ties differ"
@@ -75,8 +94,8 @@ def test_shared_origin_casting_keeps_octomaps_rules():
     assert len(fused.occupied_index()) == 2
 
 
-def test_exact_mode_equals_octomap_on_the_synthetic_hall(clouds):
-    fused = _build(clouds, RES)
+def test_exact_mode_equals_octomap_on_the_synthetic_hall(clouds, built):
+    fused = built(RES)
     plain = plain_tree(RES)
     for k in range(5):
         for robot, frames, max_range in clouds:
@@ -94,8 +113,8 @@ def test_exact_mode_equals_octomap_on_the_synthetic_hall(clouds):
 
 
 @pytest.mark.parametrize("exact", [True, False])
-def test_binary_stream_from_the_grid_is_octomaps_own(clouds, exact):
-    fused = _build(clouds, 0.05, exact_free_space=exact)
+def test_binary_stream_from_the_grid_is_octomaps_own(built, exact):
+    fused = built(0.05, exact_free_space=exact)
     copy = octree_from_bytes(fused.to_bytes(binary=False))
     assert fused.to_bytes(binary=True) == copy.writeBinary()
     assert fused.binary_tree_nodes() == copy.size()

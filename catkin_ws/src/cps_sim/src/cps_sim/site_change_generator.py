@@ -115,11 +115,16 @@ def overlap_problem(site, names: Sequence[str], areas, vacated: Sequence = ()) -
     return ""
 
 
-def _draw(rng, site, areas, index):
-    """One candidate changes document (the YAML mapping)."""
-    candidates = [e for e in site.equipment if _area_of(e, areas) is not None and e.type in CHANGED_TYPES]
+def _candidates(site, areas):
+    """The items a draw may remove or move: those of CHANGED_TYPES standing in a visited area."""
+    candidates = [e for e in site.equipment if e.type in CHANGED_TYPES and _area_of(e, areas) is not None]
     if len(candidates) < 2:
         raise GeneratorError(f"fewer than two items to change in the visited areas {[a.name for a in areas]}")
+    return candidates
+
+
+def _draw(rng, candidates, areas, index):
+    """One candidate changes document (the YAML mapping)."""
     removed, moved = rng.choice(len(candidates), size=2, replace=False)
     distance, heading = rng.uniform(MOVE_MIN_M, MOVE_MAX_M), rng.uniform(0.0, 2 * math.pi)
     area = areas[rng.integers(len(areas))]
@@ -166,13 +171,14 @@ def generate_scenarios(site, fleet, robot_names, count, seed, out_dir, log: Call
     areas = visited_areas(site, fleet, robot_names)
     if not areas:
         raise GeneratorError(f"the routes of {', '.join(robot_names)} pass no fenced area within {VISIT_RADIUS_M} m")
+    candidates = _candidates(site, areas)  # the same for every draw (they only read the site)
     rng = np.random.default_rng(seed)
     os.makedirs(out_dir, exist_ok=True)
     paths = []
     for index in range(count):
         path = os.path.join(out_dir, f"scenario_{index}.yaml")
         for attempt in range(1, MAX_DRAWS + 1):
-            doc = _draw(rng, site, areas, index)
+            doc = _draw(rng, candidates, areas, index)
             with open(path, "w") as stream:
                 stream.write(
                     f"# generated: seed {seed}, scenario {index}, draw {attempt} (cps_sim.site_change_generator)\n"
