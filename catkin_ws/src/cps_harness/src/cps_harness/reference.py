@@ -320,8 +320,9 @@ def run_reference(folder):
 
 
 # What of the reference mission's folder `make test` keeps (in out/test/reference): its log, report,
-# verdict, scores, CSVs and pictures; not the map, the bag or the node logs' bulk.
-KEPT_SUFFIXES = (".log", ".md", ".json", ".csv", ".png", ".yaml")
+# verdict, scores, CSVs, pictures, and its map with the map's sidecars (a few 100 kB: the baseline a
+# failed monitoring test is traced with); not the bag or the node logs' bulk.
+KEPT_SUFFIXES = (".log", ".md", ".json", ".csv", ".png", ".yaml", ".bt", ".npz")
 KEPT_MAX_BYTES = 5_000_000
 
 
