@@ -82,7 +82,7 @@ VIEWER_S = 6.0
 # Upper bound on the mission (it ends when every route is done). The readings of `observe_while_up`
 # hold TELEOP_ROBOT in teleop while they run: under load (the heavy lock, two busy loops, 2 cores;
 # issue 39's test runs of 2026-11-28) they took 147 s in one run, and in another jackal was still in
-# teleop when 150 s ended the mission (exit 4, every test on the reference mission failed with it).
+# teleop when 150 s ended the mission (exit 4: every test on the reference mission then fails).
 DURATION_S = 240.0
 # The GUI screenshot, seconds into the mission: while every robot still moves.
 SCREENSHOT_AFTER_S = 25.0
