@@ -6,6 +6,7 @@ change, by its displacement), with no other change (no robot, no place seen from
 issue 25; no thin shelf board grazed in one mission and seen from above in the other: issue 39);
 and the bad inputs of a monitoring mission are refused before anything starts."""
 
+import os
 import subprocess
 
 import numpy as np
@@ -14,6 +15,7 @@ import pytest
 from cps_experiments.monitor import default_changes_file
 from cps_fleet.fleet import load_fleet
 from cps_harness.mission import BRINGUP, program_argv, run_mission
+from cps_harness.reference import keep_for_reading
 
 MAX_POSITION_ERROR_M = 0.2
 
@@ -46,8 +48,6 @@ def _known_inside_tanks(map_path, fleet):
 @pytest.mark.mission
 def test_removed_and_moved_crates_are_found(reference_mission, open_tmp_path):
     reference_mission.check()
-    from cps_experiments.monitor_report import evaluate_monitoring
-
     changes = default_changes_file()
     fleet_file, baseline = reference_mission.fleet_file, str(reference_mission.out / "map.bt")
     # The baseline's clouds were placed where they were seen (no voxel known inside a closed tank).
@@ -55,6 +55,19 @@ def test_removed_and_moved_crates_are_found(reference_mission, open_tmp_path):
     monitor = open_tmp_path / "monitor"
     args = ["--fleet", fleet_file, "--duration", 120]
     mission = run_mission(monitor, [*args, "--baseline", baseline, "--site-changes", changes])
+    try:
+        _check_monitoring(mission, monitor, fleet_file, baseline, changes)
+    except BaseException:
+        # What a failure needs to be traced (its maps, sidecars, live report, logs), beside the
+        # reference mission's (make test's report folder): the mission's folder is deleted after.
+        if os.environ.get("CPS_TEST_OUT"):
+            keep_for_reading(monitor, os.path.join(os.environ["CPS_TEST_OUT"], "monitoring"))
+        raise
+
+
+def _check_monitoring(mission, monitor, fleet_file, baseline, changes):
+    from cps_experiments.monitor_report import evaluate_monitoring
+
     assert "every robot finished its route" in mission.log(), mission.log()[-3000:]
 
     fleet = load_fleet(fleet_file)

@@ -257,3 +257,46 @@ def test_a_removal_seen_through_a_gap_is_reported_once_enough_viewpoints_saw_it(
     assert [c.kind for c in changes] == ["disappeared"], changes
     (x0, y0, _), (x1, y1, _) = CRATE
     assert x0 - 0.1 <= changes[0].place_m[0] <= x1 + 0.1 and y0 - 0.1 <= changes[0].place_m[1] <= y1 + 0.1
+
+
+# crate_2 of the hall behind the storage area's fence (x = 2 m; a 4 cm rail centred at 0.6 m, half
+# the 1.2 m fence), and the lidar of scout driving the aisle west of it at 0.7 m.
+CRATE_BEHIND_FENCE = ((2.7, -1.5, 0.0), (3.7, -0.5, 1.0))
+RAIL = dict(x=(1.98, 2.02), z=(0.58, 0.62))
+LIDAR_Z = 0.7
+
+
+def test_a_removal_behind_a_thin_rail_at_the_lidars_height_is_seen_past_the_rail(fleet):
+    """Issue 39 (a full test run missed crate_2's removal): the viewpoint rule drew one line to the
+    box centre, which from a lidar at 0.7 m runs inside the voxel layer of the fence's rail at 0.6 m;
+    the rail's voxels the mission hit blocked that line from every position in the aisle though
+    the lidar's rays passed over the rail and through the crate's place. A position sees a change
+    if its line to one of the change's voxels is clear."""
+    from cps_mapping.change_detection import viewpoints_of
+
+    lo, hi = CRATE_BEHIND_FENCE
+    floor = _grid((2.1, 4.4), (-2.5, 0.5), 0.0)
+    back_wall = _grid(4.5, (-2.5, 0.5), (0.0, 1.4))
+    baseline = Mission(fleet)
+    for _ in range(3):
+        for y in (-2.0, -1.0, 0.0):
+            baseline.see("iris", np.array([2.2, y, 3.0]), _looking([1.0, 0.0, -2.0]), _box_surface(lo, hi), 6.0)
+    gone = Mission(fleet)
+    rail = _grid(RAIL["x"][0], (-3.0, 1.0), RAIL["z"], step=0.02)
+    for _ in range(3):
+        for y in (-3.0, -2.0, -1.0, 0.0, 1.0):
+            origin = np.array([1.0, y, LIDAR_Z])
+            behind = np.vstack([floor, back_wall])
+            t = (RAIL["x"][0] - origin[0]) / (behind[:, 0] - origin[0])
+            z_at_rail = origin[2] + t * (behind[:, 2] - origin[2])
+            past_rail = (z_at_rail < RAIL["z"][0]) | (z_at_rail > RAIL["z"][1])  # the rest hit the rail
+            gone.see("scout", origin, np.eye(3), np.vstack([behind[past_rail], rail]))
+    changes = gone.detect_against(baseline)
+    assert [c.kind for c in changes] == ["disappeared"], changes
+    (place_x, place_y), change = changes[0].place_m, changes[0]
+    assert abs(place_x - 3.2) <= 0.2 and abs(place_y + 1.0) <= 0.2, change
+    # The cause: no line to the box centre passes the rail's voxels.
+    centre_only = viewpoints_of(
+        change, gone.views.positions_seeing(np.array([3.2, -1.0, 0.6]), 8.0), FrozenMap(gone.map).is_free, RES, 8.0
+    )
+    assert centre_only < TRUSTED_RULES.min_viewpoints, centre_only
