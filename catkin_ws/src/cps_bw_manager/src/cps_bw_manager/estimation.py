@@ -56,6 +56,36 @@ STARTUP_GAIN = 2.0  # BBR's STARTUP roughly doubles per round while delivery kee
 PROBE_GAP_FRACTION = 0.1
 
 
+# Probe trains (cps_link.probe_train; libwebrtc's probe_bitrate_estimator.cc): a train received
+# faster than this x its send rate measured nothing of the link ...
+TRAIN_MAX_VALID_RATIO = 2.0
+# ... one received at least this x its send rate found no bottleneck: the link carries at least
+# that much (a lower bound); one received slower came out at the bottleneck's rate.
+TRAIN_UNSATURATED_RATIO = 0.9
+TRAIN_BOTTLENECK = "bottleneck"
+TRAIN_LOWER_BOUND = "lower_bound"
+
+
+def train_sample(arrival_mbps, sent_mbps, line_rate_mbps):
+    """(kind, Mbit/s) of one probe train received at `arrival_mbps` that was sent at `sent_mbps`:
+    (TRAIN_BOTTLENECK, the link's capacity) when it came out slower than sent,
+    (TRAIN_LOWER_BOUND, what the link carried at least) when it arrived at the rate sent, or
+    (why it says nothing, NaN): train_not_finite, train_not_positive, train_above_line_rate,
+    train_faster_than_sent."""
+    values = (arrival_mbps, sent_mbps)
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values):
+        return "train_not_finite", math.nan
+    if arrival_mbps <= 0 or sent_mbps <= 0:
+        return "train_not_positive", math.nan
+    if arrival_mbps > 1.05 * line_rate_mbps:
+        return "train_above_line_rate", math.nan
+    if arrival_mbps > TRAIN_MAX_VALID_RATIO * sent_mbps:
+        return "train_faster_than_sent", math.nan
+    if arrival_mbps >= TRAIN_UNSATURATED_RATIO * sent_mbps:
+        return TRAIN_LOWER_BOUND, min(arrival_mbps, sent_mbps)
+    return TRAIN_BOTTLENECK, arrival_mbps
+
+
 # The estimator's options when fed the bridges' link reports (issue 35, from the live runs): their
 # two sides' intervals are measured on two clocks (a small deficit must hold on two reports), a
 # 0.5 s interval moves by 40 % at 5 Mbit/s with one shaper burst or one large frame (samples over a
@@ -95,6 +125,10 @@ class LinkReport:
     # the sender's queue stayed backlogged (it never ran empty in the interval): the link was busy
     # with what it sent, so a rising RTT is its queue (None: taken as not app_limited)
     link_busy: Optional[bool] = None
+    # a probe train measured in the interval (cps_link.probe_train): its arrival rate over its
+    # measured part and the rate it was sent at (NaN: no train)
+    train_mbps: float = math.nan
+    train_sent_mbps: float = math.nan
 
 
 class _Trendline:
@@ -232,6 +266,7 @@ class DeliveryRateEstimator:
         self.ignored = collections.Counter()  # reason -> reports ignored
         self.overuses = 0
         self.overuse_reasons = collections.Counter()  # deficit | rtt | link_full -> overuses
+        self.trains = collections.Counter()  # bottleneck | lower_bound -> probe trains taken
         self.last_overuse = ""  # the reason of the last overuse
         self._deficit_reports = 0  # consecutive reports whose merged window showed a deficit
         self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
@@ -339,6 +374,8 @@ class DeliveryRateEstimator:
             # rwnd-limited: the twin's CPU, not the link. Its rate is the twin's capacity. The
             # deficit and the RTT rise it causes are not the link's: forget them.
             self.twin_capacity_mbps = delivered
+            if not (isinstance(report.train_mbps, float) and math.isnan(report.train_mbps)):
+                self.ignored["train_receiver_behind"] += 1  # its arrival was the twin's pace
             self.congested = False
             self._merged.clear()
             self._deficit_reports = 0
@@ -348,6 +385,7 @@ class DeliveryRateEstimator:
             # Nothing arrived although the sender sent: an outage in the making (liveliness decides).
             self.ignored["stalled"] += 1
             return self.estimate_mbps
+        self._take_train(report)
         self._merged.append((now, report.interval_s, delivered, sent))
         while self._merged and self._merged[0][0] <= now - self.merge_window_s:
             self._merged.popleft()
@@ -541,6 +579,32 @@ class DeliveryRateEstimator:
             self._gain = PROBE_GAIN if not demand_exceeds else self._gain
             self.estimate_mbps = self._clip(max(self.capacity_mbps, self._unrefuted_mbps))
         return self.estimate_mbps
+
+    def _take_train(self, report):
+        """A probe train's sample (train_sample): a bottleneck measured is the link's capacity, in
+        either direction (the fleet sends too little for its own samples to say); a lower bound
+        only raises it. Bad samples are counted by kind in `ignored` and change nothing."""
+        if isinstance(report.train_mbps, float) and math.isnan(report.train_mbps):
+            return  # no train in this interval
+        kind, mbps = train_sample(report.train_mbps, report.train_sent_mbps, self.line_rate_mbps)
+        if math.isnan(mbps):
+            self.ignored[kind] += 1
+            return
+        self.trains[kind] += 1
+        if kind == TRAIN_LOWER_BOUND and mbps <= self.capacity_mbps:
+            return
+        measured = self._clip(mbps)
+        if abs(measured - self.capacity_mbps) > self.deficit_fraction * self.capacity_mbps:
+            # the link changed: samples from before are not its rate
+            self._samples.clear()
+            self._merged.clear()
+            self._deficit_reports = 0
+        self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = measured
+        if self.mode != "drain":
+            self._set_mode("cruise", report.now_s)
+            self.estimate_mbps = measured
+        else:
+            self.estimate_mbps = min(self.estimate_mbps, measured)
 
     def _on_overuse(self, now, delivered, sent, drain_factor=DRAIN_FACTOR):
         """GCC: the link is full, so what it delivered is its rate; cut the target to 0.85 x it
