@@ -64,6 +64,14 @@ TRAIN_MAX_VALID_RATIO = 2.0
 TRAIN_UNSATURATED_RATIO = 0.9
 TRAIN_BOTTLENECK = "bottleneck"
 TRAIN_LOWER_BOUND = "lower_bound"
+# A bottleneck below the capacity but above this x it is taken only when the next train confirms it
+# (the larger of the two: the link carried that much): on a 60 Mbit/s link single trains read
+# 38-54 Mbit/s (live, timing on a loaded 2-core machine), a step down reads far below.
+TRAIN_STEP_FRACTION = 0.7
+TRAIN_HELD = "bottleneck_held"  # such a reading, waiting for the next train
+# While a train was measured this recently the estimator does not probe by raising the allocation:
+# the trains measure the link, up steps included (a train at 4 x the capacity). s.
+TRAIN_FRESH_S = 12.0
 
 
 def train_sample(arrival_mbps, sent_mbps, line_rate_mbps):
@@ -266,7 +274,9 @@ class DeliveryRateEstimator:
         self.ignored = collections.Counter()  # reason -> reports ignored
         self.overuses = 0
         self.overuse_reasons = collections.Counter()  # deficit | rtt | link_full -> overuses
-        self.trains = collections.Counter()  # bottleneck | lower_bound -> probe trains taken
+        self.trains = collections.Counter()  # bottleneck | bottleneck_held | lower_bound -> trains
+        self._train_s = -math.inf  # the last valid train's report
+        self._train_held_mbps = math.nan  # a small bottleneck reading waiting for the next train
         self.last_overuse = ""  # the reason of the last overuse
         self._deficit_reports = 0  # consecutive reports whose merged window showed a deficit
         self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
@@ -563,6 +573,7 @@ class DeliveryRateEstimator:
             and demand_exceeds
             and can_probe
             and (quick or now - self._last_probe_s >= self._probe_wait_s)
+            and now - self._train_s >= TRAIN_FRESH_S
         ):
             self._set_mode("probe", now)
             self._capacity_before_probe_mbps = self.capacity_mbps
@@ -582,29 +593,43 @@ class DeliveryRateEstimator:
 
     def _take_train(self, report):
         """A probe train's sample (train_sample): a bottleneck measured is the link's capacity, in
-        either direction (the fleet sends too little for its own samples to say); a lower bound
-        only raises it. Bad samples are counted by kind in `ignored` and change nothing."""
+        either direction (the fleet sends too little for its own samples to say), at once when it
+        is above the capacity or below TRAIN_STEP_FRACTION of it, else once the next train confirms
+        it; a lower bound only raises it. Bad samples are counted by kind in `ignored` and change
+        nothing."""
         if isinstance(report.train_mbps, float) and math.isnan(report.train_mbps):
             return  # no train in this interval
         kind, mbps = train_sample(report.train_mbps, report.train_sent_mbps, self.line_rate_mbps)
         if math.isnan(mbps):
             self.ignored[kind] += 1
             return
-        self.trains[kind] += 1
-        if kind == TRAIN_LOWER_BOUND and mbps <= self.capacity_mbps:
-            return
+        self._train_s = report.now_s
         measured = self._clip(mbps)
+        held, self._train_held_mbps = self._train_held_mbps, math.nan
+        if kind == TRAIN_LOWER_BOUND:
+            self.trains[kind] += 1
+            if measured <= self.capacity_mbps:
+                return
+        elif TRAIN_STEP_FRACTION * self.capacity_mbps <= measured < self.capacity_mbps:
+            if math.isnan(held):
+                self._train_held_mbps = measured
+                self.trains[TRAIN_HELD] += 1
+                return
+            measured = max(measured, held)
+            self.trains[kind] += 1
+        else:
+            self.trains[kind] += 1
         if abs(measured - self.capacity_mbps) > self.deficit_fraction * self.capacity_mbps:
             # the link changed: samples from before are not its rate
             self._samples.clear()
             self._merged.clear()
             self._deficit_reports = 0
         self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = measured
-        if self.mode != "drain":
+        if self.mode == "drain":
+            self.estimate_mbps = min(self.estimate_mbps, measured)
+        else:
             self._set_mode("cruise", report.now_s)
             self.estimate_mbps = measured
-        else:
-            self.estimate_mbps = min(self.estimate_mbps, measured)
 
     def _on_overuse(self, now, delivered, sent, drain_factor=DRAIN_FACTOR):
         """GCC: the link is full, so what it delivered is its rate; cut the target to 0.85 x it
