@@ -137,6 +137,9 @@ class LinkReport:
     # measured part and the rate it was sent at (NaN: no train)
     train_mbps: float = math.nan
     train_sent_mbps: float = math.nan
+    # a probe train was on the link in the interval (sent or received): its deficit or surplus is
+    # the train's queue, not the fleet's, and the train's own measure is the interval's
+    train_on_link: bool = False
 
 
 class _Trendline:
@@ -396,6 +399,16 @@ class DeliveryRateEstimator:
             self.ignored["stalled"] += 1
             return self.estimate_mbps
         self._take_train(report)
+        if report.train_on_link:
+            # a train's queue is no overuse (live, it read as a deficit and cut a 10 Mbit/s link's
+            # capacity to the 7.9 Mbit/s its 0.5 s interval delivered): the interval is the train's
+            self.trains["interval"] += 1
+            self._merged.clear()
+            self._samples.clear()
+            self._deficit_reports = 0
+            self.congested = False
+            self.capacity_mbps = self._clip(self._bw_max_mbps)
+            return self.estimate_mbps
         self._merged.append((now, report.interval_s, delivered, sent))
         while self._merged and self._merged[0][0] <= now - self.merge_window_s:
             self._merged.popleft()

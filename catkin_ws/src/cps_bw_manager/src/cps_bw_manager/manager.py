@@ -56,9 +56,6 @@ TELEOP_MODE = "teleop"  # cps_sim's control modes: auto, teleop
 # (odometry, tf and the rest come in bursts; the twin's link bytes less its managed frames is noisy
 # per interval: the largest read up to 5 Mbit/s live on a link carrying 1-2 of it).
 UNMANAGED_WINDOW_S = 2.0
-# The probe trains' cost in the budget is their mean over this long (a train every 0.7-10 s: over
-# the unmanaged traffic's 2 s a train's 256 kB would come and go).
-PROBE_WINDOW_S = 10.0
 # The robots' link socket was full in at least this fraction of its samples (or, without TCP_INFO,
 # its sender waited for Zenoh this fraction of its interval): the link kept busy.
 LINK_LIMITED_FRACTION = 0.5
@@ -305,8 +302,8 @@ class ManagerCore:
         self.bridge_paces = False
         # (report s, Mbit/s) of traffic outside the managed streams, from the bridge's link reports
         self._unmanaged = []
-        # (report s, bytes, interval s) of probe trains' frames, from the bridge's link reports
-        self._probes = []
+        # what the robots' bridge's probe trains cost the link now (its last link report), Mbit/s
+        self._probe_cost_mbps = 0.0
         self.last_spare: Dict[str, float] = {}
         # The rate the last allocation gave each stream (before any limiter slack): what a stream
         # must deliver not to be judged compute-bound.
@@ -802,13 +799,10 @@ class ManagerCore:
         recent = [(mbps, i) for t, mbps, i in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
         return sum(m * i for m, i in recent) / sum(i for _, i in recent) if recent else math.nan
 
-    def probe_mbps(self, now_s=None):
-        """What the probe trains cost the link lately (their mean over PROBE_WINDOW_S), Mbit/s; NaN
-        before the first report."""
-        now_s = self._now_s if now_s is None else now_s
-        recent = [(b, i) for t, b, i in self._probes if t > now_s - PROBE_WINDOW_S]
-        span = sum(i for _, i in recent)
-        return sum(b for b, _ in recent) * 8e-6 / span if recent and span > 0 else math.nan
+    def probe_mbps(self):
+        """What the robots' bridge's probe trains cost the link on average now, Mbit/s (its last link
+        report: their bytes over their period at the capacity it was told; 0 without trains)."""
+        return self._probe_cost_mbps
 
     def budget_mbytes_per_s(self, now_s=None):
         """The managed streams' budget: the capacity less the reserve, and less the unmanaged
@@ -818,9 +812,8 @@ class ManagerCore:
         available = self.available_mbps
         budget = managed_budget_mbytes_per_s(available, s.reserve_fraction)
         unmanaged = self.unmanaged_mbps(now_s)
-        probes = self.probe_mbps(now_s)
         if _finite(unmanaged):
-            outside = unmanaged + (probes if _finite(probes) else 0.0)
+            outside = unmanaged + self.probe_mbps()
             budget = min(budget, max(0.0, (available - outside) / 8.0))
         return budget
 
@@ -846,6 +839,7 @@ class ManagerCore:
         probe_train_bytes=0,
         probe_train_spread_s=0.0,
         probe_train_sent_mbps=0.0,
+        probe_cost_mbps=0.0,
     ):
         """One cps_msgs/LinkReport of the bridges as plain values. Where the robots' link socket's
         TCP payload counts are there (`sent_link_bytes`, `acked_link_bytes` > 0: every byte the link
@@ -856,8 +850,8 @@ class ManagerCore:
         frames (or the unmanaged frames). App-limited only when the allocation does not bind either;
         link-limited when the robots' socket was full in nearly all its samples (else, without
         them, when its sender waited for Zenoh half of its interval). The probe trains' frames
-        (`probe_bytes`, in delivered and unmanaged) are their own part of the budget (their mean over
-        PROBE_WINDOW_S), and the last train's measure (`probe_train_bytes` over
+        (`probe_bytes`, in delivered and unmanaged) are their own part of the budget (their mean cost
+        at the robots' bridge's period now, `probe_cost_mbps`), and the last train's measure (`probe_train_bytes` over
         `probe_train_spread_s`, sent at `probe_train_sent_mbps`) is a capacity sample of its own.
         Returns True if the available bandwidth moved by > 5 %."""
         probe_bytes = probe_bytes if _finite(probe_bytes) and probe_bytes > 0 else 0
@@ -894,8 +888,8 @@ class ManagerCore:
         if _finite(unmanaged) and unmanaged >= 0 and _finite(interval_s) and low <= interval_s <= high:
             self._unmanaged = [(t, v, i) for t, v, i in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
             self._unmanaged.append((now_s, unmanaged, interval_s))
-            self._probes = [(t, b, i) for t, b, i in self._probes if t > now_s - PROBE_WINDOW_S]
-            self._probes.append((now_s, probe_bytes, interval_s))
+        if _finite(probe_cost_mbps) and probe_cost_mbps >= 0:
+            self._probe_cost_mbps = float(probe_cost_mbps)
         has_train = _positive(probe_train_bytes) and _positive(probe_train_spread_s)
         return self.on_link_report(
             LinkReport(
@@ -913,6 +907,7 @@ class ManagerCore:
                 link_limited=link_limited,
                 train_mbps=mbps(probe_train_bytes, probe_train_spread_s) if has_train else math.nan,
                 train_sent_mbps=float(probe_train_sent_mbps) if has_train else math.nan,
+                train_on_link=bool(probe_bytes) or (_finite(probe_sent_bytes) and probe_sent_bytes > 0),
             )
         )
 

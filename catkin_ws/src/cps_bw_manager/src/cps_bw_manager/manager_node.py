@@ -427,6 +427,7 @@ class BandwidthManagerNode:
                 probe_train_bytes=msg.probe_train_bytes,
                 probe_train_spread_s=msg.probe_train_spread_s,
                 probe_train_sent_mbps=msg.probe_train_sent_mbps,
+                probe_cost_mbps=msg.probe_cost_mbps,
             )
             overuse = est.last_overuse if est and est.overuses > overuses else ""
         self.publish_estimate(msg, overuse)

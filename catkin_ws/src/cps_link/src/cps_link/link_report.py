@@ -68,8 +68,9 @@ class SenderReport:
     send_queue_max_bytes: int = 0  # since the previous report
     pacing_mbps: float = 0.0
     peer: str = ""
-    # probe trains' bytes put on the link, cumulative (cps_link.probe_train)
+    # probe trains' bytes put on the link, cumulative, and their mean cost now (cps_link.probe_train)
     probe_sent_bytes: int = 0
+    probe_cost_mbps: float = 0.0
 
     def encode(self) -> bytes:
         return json.dumps({"v": REPORT_VERSION, **dataclasses.asdict(self), "rtt_s": list(self.rtt_s)}).encode()
@@ -108,7 +109,7 @@ def decode_sender_report(payload) -> SenderReport:
         v = values.get(name, 0)
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise ReportError(f"link report field {name} = {v!r} is not a count")
-    for name in ("t_s", "pacing_mbps", "blocked_s"):
+    for name in ("t_s", "pacing_mbps", "blocked_s", "probe_cost_mbps"):
         v = values.get(name, 0.0)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise ReportError(f"link report field {name} = {v!r} is not a finite number >= 0")
@@ -158,6 +159,7 @@ class Interval:
     probe_train_bytes: int = 0
     probe_train_spread_s: float = 0.0
     probe_train_sent_mbps: float = 0.0
+    probe_cost_mbps: float = 0.0  # the trains' mean cost at the robots' bridge's period now
 
 
 class ReportComposer:
@@ -259,6 +261,7 @@ class ReportComposer:
             probe_train_bytes=train.bytes if train else 0,
             probe_train_spread_s=train.spread_s if train else 0.0,
             probe_train_sent_mbps=train.sent_mbps if train else 0.0,
+            probe_cost_mbps=report.probe_cost_mbps,
         )
         self._start(here)
         return interval, None

@@ -158,6 +158,13 @@ class TrainSchedule:
             and now_s - self.last_train_s >= train_period_s(self.capacity_mbps, self.train_bytes)
         )
 
+    def cost_mbps(self):
+        """What the trains cost the link on average at the capacity believed now, Mbit/s (0 before one
+        is known): the budget keeps it out of the managed streams' share."""
+        if not math.isfinite(self.capacity_mbps):
+            return 0.0
+        return self.train_bytes * 8e-6 / train_period_s(self.capacity_mbps, self.train_bytes)
+
     def start(self, now_s) -> "TrainPlan":
         """The next train (its id, sizes and pace), started at `now_s`."""
         self.trains += 1

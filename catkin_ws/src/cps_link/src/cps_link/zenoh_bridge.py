@@ -752,6 +752,7 @@ class ZenohBridge:
             pacing_mbps=rate * 8e-6 if rate else 0.0,
             peer=self.name,
             probe_sent_bytes=self._probe_sent_bytes,
+            probe_cost_mbps=self.trains.cost_mbps(),
         )
         with self.lock:
             self.trains.app_limited = report.app_limited
@@ -952,6 +953,7 @@ def link_report_msg(interval) -> LinkReport:
         probe_train_bytes=interval.probe_train_bytes,
         probe_train_spread_s=interval.probe_train_spread_s,
         probe_train_sent_mbps=interval.probe_train_sent_mbps,
+        probe_cost_mbps=interval.probe_cost_mbps,
     )
     msg.header.stamp = rospy.Time.now()
     return msg
