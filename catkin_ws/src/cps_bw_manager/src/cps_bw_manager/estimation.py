@@ -66,7 +66,7 @@ TRAIN_BOTTLENECK = "bottleneck"
 TRAIN_LOWER_BOUND = "lower_bound"
 # A bottleneck below the capacity but above this x it is taken only when the next train confirms it
 # (the larger of the two: the link carried that much): on a 60 Mbit/s link single trains read
-# 38-54 Mbit/s (live, timing on a loaded 2-core machine), a step down reads far below.
+# 36-81 Mbit/s (live, make demo on a loaded 2-core machine), a step down reads far below.
 TRAIN_STEP_FRACTION = 0.7
 TRAIN_HELD = "bottleneck_held"  # such a reading, waiting for the next train
 # While a train was measured this recently the estimator does not probe by raising the allocation:

@@ -245,8 +245,9 @@ def sent_rate_mbps(since: ProbeHeader, last: ProbeHeader, message_bytes):
 
 class TrainArrivals:
     """The twin's side: `arrival` per probe message with the link's cumulative received bytes then;
-    a train complete (its last message, or a later train's first) gives a TrainMeasure or a refusal
-    counted in `refused`. Not thread-safe: the bridge calls it under its lock."""
+    a train's last message gives its TrainMeasure or a refusal counted in `refused`; a train cut
+    short (a later train's first message, or `expire`) is counted incomplete. Not thread-safe: the
+    bridge calls it under its lock."""
 
     def __init__(self, timeout_s=PROBE_TRAIN_TIMEOUT_S, min_fraction=PROBE_MIN_RECEIVED_FRACTION):
         self.timeout_s, self.min_fraction = timeout_s, min_fraction
