@@ -99,6 +99,21 @@ def test_a_small_shortfall_waits_for_the_next_train_and_takes_the_larger():
     assert est.capacity_mbps == pytest.approx(LINE_MBPS)  # (clipped to the line rate)
 
 
+def test_a_held_reading_confirms_nothing_once_the_capacity_moved():
+    # live (test_over_link): a 57 Mbit/s reading held on the 60 Mbit/s link, then the 60 -> 20 step
+    # seen by the fleet's own deficit, then a train reading 19.2: the held 57 must not be its
+    # confirmation (it set the capacity to 57 on the 20 Mbit/s link)
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_report(2.0, train=50.0, sent=231.0))
+    assert est.trains[TRAIN_HELD] == 1
+    est.capacity_mbps = est._bw_max_mbps = est._unrefuted_mbps = 19.8  # what an overuse leaves
+    est.update(_report(3.0, train=19.2, sent=79.0))
+    assert est.capacity_mbps == pytest.approx(19.8)  # held, not "confirmed" at 50
+    assert est.trains[TRAIN_HELD] == 2
+    est.update(_report(4.0, train=19.0, sent=79.0))
+    assert est.capacity_mbps == pytest.approx(19.2)
+
+
 def test_a_lower_bound_only_raises_and_restores_a_false_low_reading():
     est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
     est.update(_report(2.0, train=20.0, sent=231.0))  # a false low (live: 20 Mbit/s on 60), at once

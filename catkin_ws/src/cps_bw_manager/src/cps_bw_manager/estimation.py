@@ -282,7 +282,8 @@ class DeliveryRateEstimator:
         self.overuse_reasons = collections.Counter()  # deficit | rtt | link_full -> overuses
         self.trains = collections.Counter()  # bottleneck | bottleneck_held | lower_bound -> trains
         self._train_s = -math.inf  # the last valid train's report
-        self._train_held_mbps = math.nan  # a small bottleneck reading waiting for the next train
+        # a small bottleneck reading waiting for the next train, and the capacity it was held against
+        self._train_held = (math.nan, math.nan)
         self.last_overuse = ""  # the reason of the last overuse
         self._deficit_reports = 0  # consecutive reports whose merged window showed a deficit
         self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
@@ -621,14 +622,18 @@ class DeliveryRateEstimator:
             return
         self._train_s = report.now_s
         measured = self._clip(mbps)
-        held, self._train_held_mbps = self._train_held_mbps, math.nan
+        # a held reading counts only against the capacity it was held against: live (test_over_link)
+        # one held on the 60 Mbit/s link "confirmed" a 19 Mbit/s reading after the 60 -> 20 step
+        (held, held_against), self._train_held = self._train_held, (math.nan, math.nan)
+        if held_against != self.capacity_mbps:
+            held = math.nan
         if kind == TRAIN_LOWER_BOUND:
             self.trains[kind] += 1
             if measured <= self.capacity_mbps:
                 return
         elif TRAIN_STEP_FRACTION * self.capacity_mbps <= measured < self.capacity_mbps:
             if math.isnan(held):
-                self._train_held_mbps = measured
+                self._train_held = (measured, self.capacity_mbps)
                 self.trains[TRAIN_HELD] += 1
                 return
             measured = max(measured, held)
