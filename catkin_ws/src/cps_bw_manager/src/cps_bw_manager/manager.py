@@ -302,6 +302,8 @@ class ManagerCore:
         self.bridge_paces = False
         # (report s, Mbit/s) of traffic outside the managed streams, from the bridge's link reports
         self._unmanaged = []
+        # what the robots' bridge's probe trains cost the link now (its last link report), Mbit/s
+        self._probe_cost_mbps = 0.0
         self.last_spare: Dict[str, float] = {}
         # The rate the last allocation gave each stream (before any limiter slack): what a stream
         # must deliver not to be judged compute-bound.
@@ -797,6 +799,11 @@ class ManagerCore:
         recent = [(mbps, i) for t, mbps, i in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
         return sum(m * i for m, i in recent) / sum(i for _, i in recent) if recent else math.nan
 
+    def probe_mbps(self):
+        """What the robots' bridge's probe trains cost the link on average now, Mbit/s (its last link
+        report: their bytes over their period at the capacity it was told; 0 without trains)."""
+        return self._probe_cost_mbps
+
     def budget_mbytes_per_s(self, now_s=None):
         """The managed streams' budget: the capacity less the reserve, and less the unmanaged
         traffic measured on the link where that is more than the reserve (issue 35: at 5 Mbit/s
@@ -806,7 +813,8 @@ class ManagerCore:
         budget = managed_budget_mbytes_per_s(available, s.reserve_fraction)
         unmanaged = self.unmanaged_mbps(now_s)
         if _finite(unmanaged):
-            budget = min(budget, max(0.0, (available - unmanaged) / 8.0))
+            outside = unmanaged + self.probe_mbps()
+            budget = min(budget, max(0.0, (available - outside) / 8.0))
         return budget
 
     def on_bridge_report(
@@ -826,6 +834,12 @@ class ManagerCore:
         sent_link_bytes=0,
         acked_link_bytes=0,
         sender_socket_full=math.nan,
+        probe_bytes=0,
+        probe_sent_bytes=0,
+        probe_train_bytes=0,
+        probe_train_spread_s=0.0,
+        probe_train_sent_mbps=0.0,
+        probe_cost_mbps=0.0,
     ):
         """One cps_msgs/LinkReport of the bridges as plain values. Where the robots' link socket's
         TCP payload counts are there (`sent_link_bytes`, `acked_link_bytes` > 0: every byte the link
@@ -835,10 +849,19 @@ class ManagerCore:
         over the robots'. The unmanaged traffic is all the twin's socket received but the managed
         frames (or the unmanaged frames). App-limited only when the allocation does not bind either;
         link-limited when the robots' socket was full in nearly all its samples (else, without
-        them, when its sender waited for Zenoh half of its interval). Returns True if the available
-        bandwidth moved by > 5 %."""
+        them, when its sender waited for Zenoh half of its interval). The probe trains' frames
+        (`probe_bytes`, in delivered and unmanaged) are their own part of the budget (their mean cost
+        at the robots' bridge's period now, `probe_cost_mbps`), and the last train's measure (`probe_train_bytes` over
+        `probe_train_spread_s`, sent at `probe_train_sent_mbps`) is a capacity sample of its own.
+        Returns True if the available bandwidth moved by > 5 %."""
+        probe_bytes = probe_bytes if _finite(probe_bytes) and probe_bytes > 0 else 0
         if _positive(delivered_link_bytes):
             unmanaged_bytes = max(0, delivered_link_bytes - (delivered_bytes - unmanaged_bytes))
+        # the frames' path: the robots' bridge counts no probe frame in what it sent (they bypass its
+        # queue), the twin counts them in what it received
+        if probe_bytes:
+            unmanaged_bytes = max(0, unmanaged_bytes - probe_bytes)
+            delivered_bytes = max(0, delivered_bytes - probe_bytes)
         if _positive(acked_link_bytes) and _positive(sent_link_bytes):
             delivered_bytes, sent_bytes = acked_link_bytes, sent_link_bytes
             delivered_interval_s = sender_interval_s
@@ -865,6 +888,9 @@ class ManagerCore:
         if _finite(unmanaged) and unmanaged >= 0 and _finite(interval_s) and low <= interval_s <= high:
             self._unmanaged = [(t, v, i) for t, v, i in self._unmanaged if t > now_s - UNMANAGED_WINDOW_S]
             self._unmanaged.append((now_s, unmanaged, interval_s))
+        if _finite(probe_cost_mbps) and probe_cost_mbps >= 0:
+            self._probe_cost_mbps = float(probe_cost_mbps)
+        has_train = _positive(probe_train_bytes) and _positive(probe_train_spread_s)
         return self.on_link_report(
             LinkReport(
                 now_s=now_s,
@@ -879,6 +905,9 @@ class ManagerCore:
                 # queue can be empty at a report while the sender waits for the link)
                 link_busy=not app_limited or socket_full,
                 link_limited=link_limited,
+                train_mbps=mbps(probe_train_bytes, probe_train_spread_s) if has_train else math.nan,
+                train_sent_mbps=float(probe_train_sent_mbps) if has_train else math.nan,
+                train_on_link=bool(probe_bytes) or (_finite(probe_sent_bytes) and probe_sent_bytes > 0),
             )
         )
 

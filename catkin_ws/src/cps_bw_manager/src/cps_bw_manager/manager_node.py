@@ -74,6 +74,10 @@ LINK_ESTIMATE_CSV_COLUMNS = (
     "expired",
     "pacing_mbps",
     "overuse",
+    "probe_mbps",
+    "probe_trains",
+    "probe_train_mbps",
+    "probe_train_sent_mbps",
 )
 
 
@@ -130,6 +134,10 @@ def link_estimate_csv_row(stamp_s, msg, report, overuse=""):
         report.expired,
         f"{report.pacing_mbps:.3f}",
         overuse,
+        rate(report.probe_bytes, report.interval_s),
+        report.probe_trains,
+        rate(report.probe_train_bytes, report.probe_train_spread_s) if report.probe_train_bytes else "",
+        f"{report.probe_train_sent_mbps:.3f}" if report.probe_train_bytes else "",
     )
 
 
@@ -414,6 +422,12 @@ class BandwidthManagerNode:
                 sent_link_bytes=msg.sent_link_bytes,
                 acked_link_bytes=msg.acked_link_bytes,
                 sender_socket_full=msg.sender_socket_full if msg.acked_link_bytes else math.nan,
+                probe_bytes=msg.probe_bytes,
+                probe_sent_bytes=msg.probe_sent_bytes,
+                probe_train_bytes=msg.probe_train_bytes,
+                probe_train_spread_s=msg.probe_train_spread_s,
+                probe_train_sent_mbps=msg.probe_train_sent_mbps,
+                probe_cost_mbps=msg.probe_cost_mbps,
             )
             overuse = est.last_overuse if est and est.overuses > overuses else ""
         self.publish_estimate(msg, overuse)

@@ -164,6 +164,13 @@ class BridgeTable:
     def report_keys(self):
         return f"{self.key_prefix}/linkreport/{self._scope(ROBOTS)}/**"
 
+    def probe_key(self, robots_name):
+        """Where the robots' bridge `robots_name` puts its probe trains (cps_link.probe_train)."""
+        return f"{self.key_prefix}/probe/{self._scope(ROBOTS)}/{robots_name}"
+
+    def probe_keys(self):
+        return f"{self.key_prefix}/probe/{self._scope(ROBOTS)}/**"
+
 
 def other_side(side):
     if side not in SIDES:

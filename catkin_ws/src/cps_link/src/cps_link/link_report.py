@@ -68,6 +68,9 @@ class SenderReport:
     send_queue_max_bytes: int = 0  # since the previous report
     pacing_mbps: float = 0.0
     peer: str = ""
+    # probe trains' bytes put on the link, cumulative, and their mean cost now (cps_link.probe_train)
+    probe_sent_bytes: int = 0
+    probe_cost_mbps: float = 0.0
 
     def encode(self) -> bytes:
         return json.dumps({"v": REPORT_VERSION, **dataclasses.asdict(self), "rtt_s": list(self.rtt_s)}).encode()
@@ -101,11 +104,12 @@ def decode_sender_report(payload) -> SenderReport:
         "link_acked_bytes",
         "socket_samples",
         "socket_full_samples",
+        "probe_sent_bytes",
     ):
         v = values.get(name, 0)
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise ReportError(f"link report field {name} = {v!r} is not a count")
-    for name in ("t_s", "pacing_mbps", "blocked_s"):
+    for name in ("t_s", "pacing_mbps", "blocked_s", "probe_cost_mbps"):
         v = values.get(name, 0.0)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
             raise ReportError(f"link report field {name} = {v!r} is not a finite number >= 0")
@@ -145,6 +149,17 @@ class Interval:
     expired: int
     pacing_mbps: float
     peer: str
+    # probe trains (cps_link.probe_train): their frames the twin received in the interval (in
+    # delivered_bytes and unmanaged_bytes too) and the robots' bridge sent over its interval
+    probe_bytes: int = 0
+    probe_sent_bytes: int = 0
+    # trains measured in the interval, and the last one's measured part: the link bytes that
+    # arrived after its first message, over how long, and the rate it was sent at (0: none)
+    probe_trains: int = 0
+    probe_train_bytes: int = 0
+    probe_train_spread_s: float = 0.0
+    probe_train_sent_mbps: float = 0.0
+    probe_cost_mbps: float = 0.0  # the trains' mean cost at the robots' bridge's period now
 
 
 class ReportComposer:
@@ -160,11 +175,19 @@ class ReportComposer:
         self._last = None  # (SenderReport, twin s, delivered, unmanaged, link received) closing the last interval
         self._queue_max = 0
         self._queue_high = 0
+        self.probe_bytes = 0  # cumulative
+        self._trains = []  # TrainMeasure of the interval
 
-    def received(self, size_bytes, managed):
+    def received(self, size_bytes, managed, probe=False):
         self.delivered_bytes += size_bytes
         if not managed:
             self.unmanaged_bytes += size_bytes
+        if probe:
+            self.probe_bytes += size_bytes
+
+    def train_measured(self, measure):
+        """A probe train measured (cps_link.probe_train.TrainMeasure): the interval reports the last."""
+        self._trains.append(measure)
 
     def sample_receive_queue(self, queue_bytes):
         """One sample of the link socket's receive queue (None: no socket found)."""
@@ -181,7 +204,7 @@ class ReportComposer:
             report = decode_sender_report(payload)
         except ReportError:
             return self._refuse(BAD_REPORT)
-        here = (report, now_s, self.delivered_bytes, self.unmanaged_bytes, link_received_bytes)
+        here = (report, now_s, self.delivered_bytes, self.unmanaged_bytes, link_received_bytes, self.probe_bytes)
         last = self._last
         if last is None or last[0].session != report.session:
             self._start(here)
@@ -196,6 +219,7 @@ class ReportComposer:
             or 0 < link_received_bytes < last[4]  # 0: not readable now, not a counter going down
             or 0 < report.link_sent_bytes < before.link_sent_bytes
             or 0 < report.link_acked_bytes < before.link_acked_bytes
+            or report.probe_sent_bytes < before.probe_sent_bytes
         ):
             self._start(here)
             return self._refuse(COUNTER_BACKWARDS)
@@ -204,6 +228,7 @@ class ReportComposer:
             self._start(here)
             return self._refuse(FIRST_OF_RUN)
         behind = self._queue_high >= self.behind_samples
+        train = self._trains[-1] if self._trains else None
         interval = Interval(
             seq=report.seq,
             interval_s=interval_s,
@@ -230,6 +255,13 @@ class ReportComposer:
             expired=report.expired - before.expired,
             pacing_mbps=report.pacing_mbps,
             peer=report.peer,
+            probe_bytes=self.probe_bytes - last[5],
+            probe_sent_bytes=report.probe_sent_bytes - before.probe_sent_bytes,
+            probe_trains=len(self._trains),
+            probe_train_bytes=train.bytes if train else 0,
+            probe_train_spread_s=train.spread_s if train else 0.0,
+            probe_train_sent_mbps=train.sent_mbps if train else 0.0,
+            probe_cost_mbps=report.probe_cost_mbps,
         )
         self._start(here)
         return interval, None
@@ -237,6 +269,7 @@ class ReportComposer:
     def _start(self, here):
         self._last = here
         self._queue_max = self._queue_high = 0
+        self._trains = []
 
     def _refuse(self, why):
         self.refused[why] += 1
@@ -308,7 +341,8 @@ def _tcp_sockets(local_port, remote_port, proc_root):
 
 # struct tcp_info (linux/tcp.h), the fields read: srtt and min RTT (us), bytes acked, received and
 # sent (the TCP payload: TLS, Zenoh and the bridge's frames, every byte the link carries but the
-# TCP/IP headers), bytes not yet sent, and the time limited by the receiver's window (us).
+# TCP/IP headers), bytes not yet sent, the time limited by the receiver's window (us), and how long
+# ago data last arrived (ms: a probe train's end, cps_link.probe_train).
 _TCP_INFO_LEN = 232
 _TCP_INFO_FIELDS = {
     "rtt_us": ("I", 68),
@@ -319,6 +353,7 @@ _TCP_INFO_FIELDS = {
     "rwnd_limited_us": ("Q", 176),
     "bytes_sent": ("Q", 200),
     "bytes_retrans": ("Q", 208),
+    "last_data_recv_ms": ("I", 52),
 }
 
 
@@ -336,6 +371,7 @@ class TcpInfo:
     # unacked or not yet sent, and received but not yet read by the application.
     send_queue_bytes: int = 0
     receive_queue_bytes: int = 0
+    last_data_recv_ms: int = 0  # how long ago the socket last received data (the kernel's, ms)
 
     @property
     def bytes_new(self):

@@ -30,6 +30,7 @@ from cps_link.link_report import (
     RoundTrips,
     SenderReport,
 )
+from cps_link.probe_train import TrainArrivals, TrainSchedule
 from cps_link.receive_path import (
     PUBLISHER_TYPE_MISMATCH,
     SEND_TOPIC_TYPE_MISMATCH,
@@ -64,6 +65,8 @@ POSE_TOLERANCE_S = 0.1
 TF_TOPICS = {names.TF: False, names.TF_STATIC: True}
 # The sender thread looks at its queue at least this often, s (a new frame wakes it at once).
 SENDER_POLL_S = 0.2
+# The robots' bridge looks this often whether a probe train is due, s (cps_link.probe_train).
+PROBE_POLL_S = 0.05
 # The host's bound on a TCP socket's unsent bytes (cps_link.netns_link.UNSENT_SYSCTL).
 UNSENT_SYSCTL_PATH = "/proc/sys/net/ipv4/tcp_notsent_lowat"
 
@@ -118,6 +121,7 @@ class _Declared:
     heartbeat_pub: object = None
     heartbeat_matching: object = None  # the listener of whether the peer subscribes to our heartbeats
     report_pub: object = None
+    probe_pub: object = None
     echo_pubs: dict = dataclasses.field(default_factory=dict)  # key -> publisher
 
     def put(self, to, payload, reporter):
@@ -129,6 +133,9 @@ class _Declared:
 
     def put_report(self, payload, reporter):
         return self._put(self.report_pub, payload, reporter, "link report")
+
+    def put_probe(self, payload, reporter):
+        return self._put(self.probe_pub, payload, reporter, "probe train")
 
     def echo(self, key, payload, reporter):
         """Send a heartbeat straight back on `key` (declared on first use)."""
@@ -205,6 +212,10 @@ class ZenohBridge:
         )
         self.round_trips = RoundTrips() if self.queue is not None else None
         self.composer = ReportComposer() if side == TWIN and self.main_lane else None
+        # probe trains while the fleet sends too little to fill the link (cps_link.probe_train)
+        self.trains = TrainSchedule() if self.queue is not None else None
+        self.train_arrivals = TrainArrivals() if self.composer is not None else None
+        self._probe_sent_bytes = 0
         self._send_queue_max, self._report_seq, self._closing = 0, 0, False
         self._blocked_s = 0.0  # the sender thread's time inside Zenoh's put since the last report
         # this process's own link socket (Zenoh's): TCP_INFO for the bytes the link carried and its RTT
@@ -237,6 +248,7 @@ class ZenohBridge:
         self.report_timer = self.link_report_pub = None
         if self.queue is not None:
             threading.Thread(target=self._sender_loop, name="sender", daemon=True).start()
+            threading.Thread(target=self._probe_loop, name="probe", daemon=True).start()
             self.report_timer = rospy.Timer(rospy.Duration(table.report_ms / 1000.0), self._report)
         if self.composer is not None:
             self.link_report_pub = rospy.Publisher(names.LINK_REPORT, LinkReport, queue_size=10)
@@ -280,8 +292,16 @@ class ZenohBridge:
                 express=True,
                 congestion_control=zenoh_congestion("drop"),
             )
+            # the lowest priority: every data frame goes first; blocked, not dropped, so a train
+            # is whole (its own thread waits, not the data's sender)
+            z.probe_pub = session.declare_publisher(
+                table.probe_key(self.name),
+                priority=zenoh_qos_priority("background"),
+                congestion_control=zenoh_congestion("block"),
+            )
         if self.composer is not None:
             z.subs.append(session.declare_subscriber(table.report_keys(), self._on_report))
+            z.subs.append(session.declare_subscriber(table.probe_keys(), self._on_probe))
         return z
 
     # --- the session: reopened when it carries one way only ----------------------------------
@@ -602,6 +622,8 @@ class ZenohBridge:
         link: every byte counts; below the capacity it allocates from while a queue drains), else
         at that capacity; the backfill at what it leaves unused."""
         now = time.monotonic()
+        with self.lock:
+            self.trains.set_capacity(allocation.available_mbps)
         pacing = allocation.pacing_mbps
         mbps = pacing if math.isfinite(pacing) and pacing > 0 else allocation.available_mbps
         self.queue.set_rate(mbps * 1e6 / 8.0 if math.isfinite(mbps) and mbps > 0 else None, now)
@@ -768,7 +790,11 @@ class ZenohBridge:
             send_queue_max_bytes=queue_max,
             pacing_mbps=rate * 8e-6 if rate else 0.0,
             peer=self.name,
+            probe_sent_bytes=self._probe_sent_bytes,
+            probe_cost_mbps=self.trains.cost_mbps(),
         )
+        with self.lock:
+            self.trains.app_limited = report.app_limited
         payload = report.encode()
         self.z.put_report(payload, self.reporter)
         self.queue.urgent(len(payload), now)
@@ -787,6 +813,7 @@ class ZenohBridge:
                 self.composer.received(len(payload), managed=False)
                 self.link_sockets.read()
                 received = self.link_sockets.totals()["bytes_received"]
+                self.train_arrivals.expire(time.monotonic())
                 interval, _ = self.composer.on_report(payload, time.monotonic(), received)
                 refused = dict(self.composer.refused)
             self.reporter.gauge(**{f"report_{why}": n for why, n in refused.items()})
@@ -795,9 +822,61 @@ class ZenohBridge:
         except Exception as exc:  # a zenoh callback must never die
             self.reporter.drop(f"link report: {exc}")
 
+    # --- probe trains (cps_link.probe_train) ---------------------------------------------------
+    def _probe_loop(self):
+        """The robots' side: a train when one is due (app-limited, link up, its period passed)."""
+        while not rospy.is_shutdown() and not self._closing:
+            time.sleep(PROBE_POLL_S)
+            with self.lock:
+                plan = self.trains.start(time.monotonic()) if self.trains.due(time.monotonic()) else None
+            if plan is not None:
+                self._send_train(plan)
+
+    def _send_train(self, plan):
+        """Put the train's messages at its pace (its own thread: a blocked put holds no data)."""
+        sent = 0
+        for index in range(plan.count):
+            if index:
+                wait = plan.started_s + plan.due_s(index) - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+            payload = plan.message(index, time.monotonic())
+            started = time.monotonic()
+            put = self.z.put_probe(payload, self.reporter)
+            plan.put_took(time.monotonic() - started)
+            if not put:
+                break
+            sent += len(payload)
+            with self.lock:
+                self._probe_sent_bytes += len(payload)
+        self.reporter.count(probe_trains_sent=1, probe_sent_bytes=sent)
+
+    def _on_probe(self, sample):
+        """The twin's side: one probe message, timed with the link's bytes received then."""
+        try:
+            payload = sample.payload.to_bytes()
+            with self.lock:
+                self.composer.received(len(payload), managed=False, probe=True)
+                read = self.link_sockets.read()
+                if read:
+                    now, link_bytes = self.link_sockets.read_s, self.link_sockets.totals()["bytes_received"]
+                    idle_s = min(i.last_data_recv_ms for i in read) * 1e-3
+                else:  # no TCP_INFO: the frames this bridge received
+                    now, link_bytes, idle_s = time.monotonic(), self.composer.delivered_bytes, 0.0
+                measure = self.train_arrivals.arrival(payload, now, link_bytes, idle_s)
+                if measure is not None:
+                    self.composer.train_measured(measure)
+                refused = dict(self.train_arrivals.refused)
+                measured = self.train_arrivals.measured
+            self.reporter.gauge(probe_trains_measured=measured, **{f"probe_{why}": n for why, n in refused.items()})
+        except Exception as exc:  # a zenoh callback must never die
+            self.reporter.drop(f"probe train: {exc}")
+
     def _link_changed(self, up, down, peer, why):
         if self.queue is not None and (up or down):
             self.queue.set_link_up(self.health.up)
+            with self.lock:
+                self.trains.link_up = self.health.up
         if up:
             rospy.loginfo(f"{rospy.get_name()}: link up: {self.peer_side} bridge '{peer}' is there ({why})")
             self.resend_latched()
@@ -907,6 +986,13 @@ def link_report_msg(interval) -> LinkReport:
         expired=min(interval.expired, 2**32 - 1),
         pacing_mbps=interval.pacing_mbps,
         peer=interval.peer,
+        probe_bytes=interval.probe_bytes,
+        probe_sent_bytes=interval.probe_sent_bytes,
+        probe_trains=interval.probe_trains,
+        probe_train_bytes=interval.probe_train_bytes,
+        probe_train_spread_s=interval.probe_train_spread_s,
+        probe_train_sent_mbps=interval.probe_train_sent_mbps,
+        probe_cost_mbps=interval.probe_cost_mbps,
     )
     msg.header.stamp = rospy.Time.now()
     return msg

@@ -1,0 +1,206 @@
+"""Probe trains as capacity samples (estimation.train_sample and the estimator's rule, issue 35):
+a train that came out slower than it was sent measures the link, one that arrived at its pace only
+bounds it from below; bad ones are counted by kind and change nothing. And the manager's feed: a
+train's interval is no overuse, the trains' cost is kept out of the budget."""
+
+import math
+
+import pytest
+
+from cps_bw_manager.estimation import (
+    LINK_REPORT_OPTIONS,
+    TRAIN_BOTTLENECK,
+    TRAIN_FRESH_S,
+    TRAIN_HELD,
+    TRAIN_LOWER_BOUND,
+    DeliveryRateEstimator,
+    LinkReport,
+    train_sample,
+)
+from cps_bw_manager.manager import ManagerCore, ManagerSettings
+
+LINE_MBPS = 57.77
+
+
+@pytest.mark.parametrize(
+    "arrival, sent, kind, mbps",
+    [
+        (9.6, 230.0, TRAIN_BOTTLENECK, 9.6),  # 60 -> 10 Mbit/s: the train came out at the link's rate
+        (54.0, 230.0, TRAIN_BOTTLENECK, 54.0),
+        (38.0, 40.0, TRAIN_LOWER_BOUND, 38.0),  # arrived at its pace: the link carries at least that
+        (45.0, 40.0, TRAIN_LOWER_BOUND, 40.0),  # the fleet's frames beside it: no more than was sent
+        (103.0, 79.0, TRAIN_LOWER_BOUND, 79.0),  # above the line, at its pace: the estimator clips it
+        (81.0, 40.0, "train_faster_than_sent", math.nan),
+        (70.0, 230.0, "train_above_line_rate", math.nan),
+        (math.nan, 230.0, "train_not_finite", math.nan),
+        (9.6, math.inf, "train_not_finite", math.nan),
+        (0.0, 230.0, "train_not_positive", math.nan),
+        (9.6, -1.0, "train_not_positive", math.nan),
+    ],
+)
+def test_train_sample_kinds(arrival, sent, kind, mbps):
+    got_kind, got = train_sample(arrival, sent, LINE_MBPS)
+    assert got_kind == kind
+    assert got == pytest.approx(mbps, nan_ok=True)
+
+
+def _estimator():
+    return DeliveryRateEstimator(LINE_MBPS, line_rate_mbps=LINE_MBPS, **LINK_REPORT_OPTIONS)
+
+
+def _report(now_s, train=math.nan, sent=math.nan, on_link=None, fleet_mbps=3.0):
+    """An app-limited interval of a fleet sending `fleet_mbps`, with or without a train's measure."""
+    return LinkReport(
+        now_s=now_s,
+        interval_s=0.5,
+        delivered_mbps=fleet_mbps,
+        sent_mbps=fleet_mbps,
+        offered_mbps=fleet_mbps,
+        app_limited=True,
+        rtt_s=(0.003,),
+        link_busy=False,
+        link_limited=False,
+        train_mbps=train,
+        train_sent_mbps=sent,
+        train_on_link=not math.isnan(train) if on_link is None else on_link,
+    )
+
+
+def _run(est, reports):
+    for r in reports:
+        est.update(r)
+    return est
+
+
+def test_an_app_limited_fleet_alone_never_sees_a_step_down():
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 40)])
+    assert est.capacity_mbps == pytest.approx(LINE_MBPS)  # why the trains exist
+
+
+def test_a_train_that_came_out_slower_sets_the_capacity_at_once_after_a_step_down():
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 10)])
+    est.update(_report(5.0, train=9.6, sent=231.0))
+    assert est.capacity_mbps == pytest.approx(9.6) and est.estimate_mbps == pytest.approx(9.6)
+    assert est.mode == "cruise" and est.trains[TRAIN_BOTTLENECK] == 1
+    # the fleet's app-limited intervals after it do not raise it, and no allocation probe above it
+    # while trains measure the link
+    _run(est, [_report(5.0 + 0.5 * i) for i in range(1, 20)])
+    assert est.capacity_mbps == pytest.approx(9.6) and est.estimate_mbps == pytest.approx(9.6)
+
+
+def test_a_small_shortfall_waits_for_the_next_train_and_takes_the_larger():
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_report(2.0, train=50.0, sent=231.0))  # 0.87 x the capacity: held
+    assert est.capacity_mbps == pytest.approx(LINE_MBPS) and est.trains[TRAIN_HELD] == 1
+    est.update(_report(3.0, train=56.5, sent=231.0))  # above the held reading, below the capacity: taken
+    assert est.capacity_mbps == pytest.approx(56.5)
+    est.update(_report(4.0, train=52.0, sent=231.0))  # a new small shortfall, held again
+    est.update(_report(5.0, train=60.0, sent=231.0))  # a train above the capacity ends the wait
+    assert est.capacity_mbps == pytest.approx(LINE_MBPS)  # (clipped to the line rate)
+
+
+def test_a_held_reading_confirms_nothing_once_the_capacity_moved():
+    # live (test_over_link): a 57 Mbit/s reading held on the 60 Mbit/s link, then the 60 -> 20 step
+    # seen by the fleet's own deficit, then a train reading 19.2: the held 57 must not be its
+    # confirmation (it set the capacity to 57 on the 20 Mbit/s link)
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_report(2.0, train=50.0, sent=231.0))
+    assert est.trains[TRAIN_HELD] == 1
+    est.capacity_mbps = est._bw_max_mbps = est._unrefuted_mbps = 19.8  # what an overuse leaves
+    est.update(_report(3.0, train=19.2, sent=79.0))
+    assert est.capacity_mbps == pytest.approx(19.8)  # held, not "confirmed" at 50
+    assert est.trains[TRAIN_HELD] == 2
+    est.update(_report(4.0, train=19.0, sent=79.0))
+    assert est.capacity_mbps == pytest.approx(19.2)
+
+
+def test_a_lower_bound_only_raises_and_restores_a_false_low_reading():
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_report(2.0, train=20.0, sent=231.0))  # a false low (live: 20 Mbit/s on 60), at once
+    assert est.capacity_mbps == pytest.approx(20.0)
+    est.update(_report(3.0, train=15.0, sent=16.0))  # arrived at a pace below the capacity: nothing
+    assert est.capacity_mbps == pytest.approx(20.0)
+    est.update(_report(5.0, train=103.0, sent=80.0))  # the next train at 4 x went through at its pace
+    assert est.capacity_mbps == pytest.approx(LINE_MBPS)
+    assert est.trains[TRAIN_LOWER_BOUND] == 2
+
+
+def test_bad_trains_are_counted_by_kind_and_hold_the_capacity():
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    for i, (train, sent) in enumerate(((math.nan, 1.0), (81.0, 40.0), (70.0, 230.0), (0.0, 230.0), (9.6, math.inf))):
+        est.update(_report(2.0 + 0.5 * i, train=train, sent=sent, on_link=True))
+    assert est.capacity_mbps == pytest.approx(LINE_MBPS)
+    assert est.ignored["train_faster_than_sent"] == 1
+    assert est.ignored["train_above_line_rate"] == 1
+    assert est.ignored["train_not_positive"] == 1
+    assert est.ignored["train_not_finite"] == 1  # NaN arrival: no train at all, not counted
+    # a train through a receiver that was behind measured the twin's pace
+    behind = _report(5.0, train=9.6, sent=231.0)
+    est.update(LinkReport(**{**behind.__dict__, "receiver_behind": True}))
+    assert est.ignored["train_receiver_behind"] == 1
+    assert est.capacity_mbps == pytest.approx(LINE_MBPS)
+
+
+def test_a_trains_interval_is_no_overuse():
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 10)])
+    # the train's 384 kB still queued at the report: sent far above delivered (live: read as a
+    # deficit, it cut a 10 Mbit/s link's capacity to the 7.9 Mbit/s the interval delivered)
+    queued = [
+        LinkReport(**{**_report(t, on_link=True).__dict__, "sent_mbps": 9.0, "delivered_mbps": 5.0}) for t in (5.0, 5.5)
+    ]
+    _run(est, queued)
+    assert est.overuses == 0 and est.capacity_mbps == pytest.approx(LINE_MBPS)
+    # the same intervals without a train are an overuse
+    est2 = _run(_estimator(), [_report(0.5 * i) for i in range(1, 10)])
+    _run(est2, [LinkReport(**{**r.__dict__, "train_on_link": False}) for r in queued])
+    assert est2.overuses == 1
+
+
+def test_an_allocation_probe_waits_while_trains_measure():
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_report(2.0, train=9.6, sent=231.0))
+    # the fleet wants more (not app-limited): no 1.2 x probe while the last train is fresh
+    wanting = [
+        LinkReport(**{**_report(2.0 + 0.5 * i, fleet_mbps=8.0).__dict__, "app_limited": False, "link_busy": True})
+        for i in range(1, int(2 * TRAIN_FRESH_S))
+    ]
+    modes = set()
+    for r in wanting:
+        est.update(r)
+        modes.add(est.mode)
+    assert "probe" not in modes
+    for i in range(int(2 * TRAIN_FRESH_S), int(2 * TRAIN_FRESH_S) + 8):
+        est.update(LinkReport(**{**wanting[0].__dict__, "now_s": 2.0 + 0.5 * i}))
+        modes.add(est.mode)
+    assert "probe" in modes  # once no train has come for TRAIN_FRESH_S
+
+
+def test_the_manager_takes_the_train_and_keeps_its_cost_out_of_the_budget():
+    settings = ManagerSettings(available_mbps=LINE_MBPS, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0)
+    core = ManagerCore(["scout"], settings, _estimator())
+    common = dict(app_limited=True, rtt_s=(0.003,), sent_link_bytes=187_500, acked_link_bytes=187_500)
+    for i in range(1, 6):
+        core.on_bridge_report(0.5 * i, 0.5, 0.5, 187_500, 62_500, 187_500, delivered_link_bytes=187_500, **common)
+    assert core.budget_mbytes_per_s() == pytest.approx(0.96 * LINE_MBPS / 8)
+    # a train measured: 96 kB of its second half's link bytes over 80 ms (9.6 Mbit/s), sent at 231;
+    # its 384 kB counted as probe bytes, not as the fleet's unmanaged traffic; its cost now 0.48 Mbit/s
+    core.on_bridge_report(
+        3.0,
+        0.5,
+        0.5,
+        187_500 + 384_000,
+        62_500 + 384_000,
+        187_500,
+        delivered_link_bytes=187_500 + 384_000,
+        probe_bytes=384_000,
+        probe_sent_bytes=384_000,
+        probe_train_bytes=96_000,
+        probe_train_spread_s=0.08,
+        probe_train_sent_mbps=231.0,
+        probe_cost_mbps=0.48,
+        **common,
+    )
+    assert core.estimator.capacity_mbps == pytest.approx(9.6)
+    assert core.unmanaged_mbps() == pytest.approx(1.0)  # 62.5 kB per 0.5 s, the train left out
+    assert core.probe_mbps() == pytest.approx(0.48)
+    assert core.budget_mbytes_per_s() == pytest.approx((9.6 - 1.0 - 0.48) / 8)

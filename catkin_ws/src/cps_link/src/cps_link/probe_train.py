@@ -1,0 +1,333 @@
+"""Probe trains: the link's capacity measured while the fleet has too little to send (issue 35), no
+ROS, no Zenoh.
+
+A fleet that offers 3 Mbit/s never fills a 10 Mbit/s link, so nothing it sends says the link went
+from 60 to 10 Mbit/s. The robots' bridge then sends, now and then, a short train of padding on a
+probe route of its own (Zenoh's lowest priority: data always goes first), paced at 4 x the
+capacity it believes; the twin's bridge times the train's arrival. Mirrored from libwebrtc's
+application-limited (ALR) probing: `bitrate_prober.cc` sends a cluster of packets at a target
+rate, `probe_bitrate_estimator.cc` takes the receive rate over the cluster (the first packet's
+size left out, as it arrived before the interval began) and compares it with the send rate: a
+cluster received at less than 0.9 x its send rate found the bottleneck; one received at its send
+rate proves only that the link carries that much. Ours differ where the link differs:
+
+- the receive side counts every byte its link socket received while the train arrived (TCP_INFO's
+  bytes_received read at each probe message, or the bridge's frames where that is not readable):
+  the fleet's own frames overtake the train in Zenoh's priorities and share the link with it;
+- the rate is taken over the train's second half (from the arrival of the message that completes
+  half its bytes to the last): a token-bucket shaper (the test bed's tc tbf, burst max(128 kB, 4 ms))
+  and Wi-Fi's aggregation pass a train's head at the sender's rate, so a whole-train rate of a
+  384 kB train read 1.4-2 x a 5-20 Mbit/s link (test_probe_train); the second half is served at
+  the bottleneck once the head has used up the burst;
+- the train's cost is bounded by the capacity believed: its period is the train's bytes over
+  PROBE_COST_FRACTION of it, so a train costs that fraction of the link on average, and a high
+  capacity (where a step down matters most) is probed often. libwebrtc probes in ALR every 5 s;
+  issue 35's bar (the estimate within 2 s of a 60 -> 10 Mbit/s step) needs about 1 s at 60 Mbit/s;
+- the train is paced at 4 x, not libwebrtc's 2 x, and the send rate compared with is that of the
+  measured part (a sender that stalled there sent it slowly: its arrival is no bottleneck).
+"""
+
+import dataclasses
+import math
+import struct
+from typing import Optional
+
+# A train: messages of this many bytes (a Zenoh batch of the bridge table's 16 kB holds one), and
+# this many bytes in all. A token bucket of burst B (the test bed's tbf: 128 kB) passes the first
+# B x S / (S - R) bytes of a train sent at S into a link of R at the sender's pace; the second half
+# is measured after it only if that is less than half the train: 171 kB at S = 4 R, so 384 kB.
+# (The first live run's 256 kB trains at 2 x read a 10 Mbit/s link at 10.9 and 11.8 Mbit/s.)
+PROBE_MESSAGE_BYTES = 16000
+PROBE_TRAIN_BYTES = 24 * PROBE_MESSAGE_BYTES
+# The train is paced at this x the capacity believed (libwebrtc's ALR probes go at 2 x its
+# estimate; 4 x here, for the shaper's burst above): a link that kept its capacity comes out slower
+# than sent (its capacity measured); one that grew by 4 x carries it all (a lower bound).
+PROBE_SEND_GAIN = 4.0
+# On average a train costs at most this fraction of the capacity believed (its period follows).
+PROBE_COST_FRACTION = 0.05
+# ... but the trains are at least this far apart, and at most this far (a low capacity is probed
+# rarely: 384 kB at 5 % of 10 Mbit/s is one train per 6.1 s; at 5 Mbit/s the 10 s bound, 6.1 %), s.
+PROBE_MIN_PERIOD_S = 0.5
+PROBE_MAX_PERIOD_S = 10.0
+# The twin gives up a train whose last message has not come this long after its first, s
+# (libwebrtc's kMaxProbeInterval is 1 s); its messages are counted, its rate is not measured.
+PROBE_TRAIN_TIMEOUT_S = 2.0
+# A train is measured from at least this fraction of its messages (libwebrtc: 0.8).
+PROBE_MIN_RECEIVED_FRACTION = 0.8
+
+# version, train id, message index, messages in the train, train bytes, the rate it is paced at
+# (Mbit/s), and on each message the sender's spread so far (from the first message's put to this
+# one's, s) and how much of it the sender spent blocked in Zenoh's puts (the link held it back).
+_HEADER = struct.Struct("!BIHHIddd")
+PROBE_VERSION = 1
+
+# Why the twin does not measure a train (each counted).
+BAD_PROBE = "bad_probe"  # not a probe message, or a field out of range
+INCOMPLETE = "incomplete"  # fewer than PROBE_MIN_RECEIVED_FRACTION of its messages came in time
+TOO_SHORT = "too_short"  # its measured part arrived in no time (one read of the socket)
+# most of its measured part's frames had arrived before the twin's bridge took its first message
+# (the link moved less than RECEIVER_LATE_FRACTION of them after it): the twin's pace, not the
+# link's. (Some may have: a shaper's burst can carry the head past the train's half.)
+RECEIVER_LATE = "receiver_late"
+RECEIVER_LATE_FRACTION = 0.5
+PROBE_REFUSALS = (BAD_PROBE, INCOMPLETE, TOO_SHORT, RECEIVER_LATE)
+
+
+@dataclasses.dataclass(frozen=True)
+class ProbeHeader:
+    train: int
+    index: int
+    count: int
+    train_bytes: int
+    target_mbps: float
+    sent_spread_s: float  # from the first message's put to this one's
+    sent_blocked_s: float  # of that, the time the sender waited inside earlier puts (Zenoh's queue full)
+
+    def encode(self, size_bytes) -> bytes:
+        head = _HEADER.pack(
+            PROBE_VERSION,
+            self.train,
+            self.index,
+            self.count,
+            self.train_bytes,
+            self.target_mbps,
+            self.sent_spread_s,
+            self.sent_blocked_s,
+        )
+        return head + bytes(max(0, size_bytes - len(head)))
+
+
+class ProbeError(ValueError):
+    pass
+
+
+def decode_probe(payload) -> ProbeHeader:
+    """The header of one probe message; ProbeError for anything else."""
+    raw = bytes(payload)
+    if len(raw) < _HEADER.size:
+        raise ProbeError(f"a probe message of {len(raw)} bytes is shorter than its header")
+    version, train, index, count, train_bytes, target, spread, blocked = _HEADER.unpack_from(raw)
+    if version != PROBE_VERSION:
+        raise ProbeError(f"probe version {version}, not {PROBE_VERSION}")
+    if not 0 <= index < count or train_bytes <= 0:
+        raise ProbeError(f"probe message {index} of {count} in a train of {train_bytes} bytes")
+    for name, v in (("target_mbps", target), ("sent_spread_s", spread), ("sent_blocked_s", blocked)):
+        if not math.isfinite(v) or v < 0:
+            raise ProbeError(f"probe field {name} = {v!r} is not a finite number >= 0")
+    if target <= 0:
+        raise ProbeError("probe target rate 0")
+    return ProbeHeader(train, index, count, train_bytes, target, spread, blocked)
+
+
+def train_period_s(capacity_mbps, train_bytes=PROBE_TRAIN_BYTES, cost_fraction=PROBE_COST_FRACTION):
+    """How far apart trains go so that they cost `cost_fraction` of `capacity_mbps` on average, s."""
+    if not (math.isfinite(capacity_mbps) and capacity_mbps > 0):
+        return PROBE_MAX_PERIOD_S
+    period = train_bytes * 8e-6 / (cost_fraction * capacity_mbps)
+    return min(PROBE_MAX_PERIOD_S, max(PROBE_MIN_PERIOD_S, period))
+
+
+def probe_cost_fraction(link_mbps, capacity_mbps, train_bytes=PROBE_TRAIN_BYTES):
+    """What the trains cost of a `link_mbps` link while the sender believes `capacity_mbps`."""
+    return train_bytes * 8e-6 / train_period_s(capacity_mbps, train_bytes) / link_mbps
+
+
+class TrainSchedule:
+    """The robots' side: when a train is due (the sender app-limited in its last report interval, the
+    link up, a period of the capacity believed since the last one) and what it is. Not thread-safe."""
+
+    def __init__(self, train_bytes=PROBE_TRAIN_BYTES, message_bytes=PROBE_MESSAGE_BYTES, gain=PROBE_SEND_GAIN):
+        if message_bytes < _HEADER.size or train_bytes < 2 * message_bytes:
+            raise ValueError(f"a train of {train_bytes} bytes in messages of {message_bytes} is not a train")
+        self.train_bytes, self.message_bytes, self.gain = int(train_bytes), int(message_bytes), float(gain)
+        self.capacity_mbps = math.nan
+        self.app_limited = False
+        self.link_up = True
+        self.last_train_s = -math.inf
+        self.trains = 0
+
+    def set_capacity(self, capacity_mbps):
+        if math.isfinite(capacity_mbps) and capacity_mbps > 0:
+            self.capacity_mbps = float(capacity_mbps)
+
+    def due(self, now_s) -> bool:
+        return (
+            self.app_limited
+            and self.link_up
+            and math.isfinite(self.capacity_mbps)
+            and now_s - self.last_train_s >= train_period_s(self.capacity_mbps, self.train_bytes)
+        )
+
+    def cost_mbps(self):
+        """What the trains cost the link on average at the capacity believed now, Mbit/s (0 before one
+        is known): the budget keeps it out of the managed streams' share."""
+        if not math.isfinite(self.capacity_mbps):
+            return 0.0
+        return self.train_bytes * 8e-6 / train_period_s(self.capacity_mbps, self.train_bytes)
+
+    def start(self, now_s) -> "TrainPlan":
+        """The next train (its id, sizes and pace), started at `now_s`."""
+        self.trains += 1
+        self.last_train_s = now_s
+        count = self.train_bytes // self.message_bytes
+        return TrainPlan(self.trains & 0xFFFFFFFF, count, self.message_bytes, self.gain * self.capacity_mbps)
+
+
+@dataclasses.dataclass
+class TrainPlan:
+    """One train as the sender paces it: message k is due `due_s(k)` after the first."""
+
+    train: int
+    count: int
+    message_bytes: int
+    target_mbps: float
+    blocked_s: float = 0.0
+    started_s: float = math.nan
+
+    @property
+    def train_bytes(self):
+        return self.count * self.message_bytes
+
+    def due_s(self, index):
+        return index * self.message_bytes * 8e-6 / self.target_mbps
+
+    def message(self, index, now_s) -> bytes:
+        """Message `index` as put at `now_s` (the first one starts the train's clock)."""
+        if index == 0:
+            self.started_s = now_s
+        header = ProbeHeader(
+            self.train,
+            index,
+            self.count,
+            self.train_bytes,
+            self.target_mbps,
+            max(0.0, now_s - self.started_s),
+            self.blocked_s,
+        )
+        return header.encode(self.message_bytes)
+
+    def put_took(self, seconds):
+        """One put's time: more than a millisecond is the sender held back by Zenoh's full queue."""
+        if seconds > 1e-3:
+            self.blocked_s += seconds
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainMeasure:
+    """One train as the twin measured it: `bytes` arrived over the link in `spread_s` between the first
+    and last message of its measured part (the second half), against the rate it was sent at."""
+
+    train: int
+    messages: int
+    bytes: int
+    spread_s: float
+    sent_mbps: float
+    whole_bytes: int  # the same over the whole train, first to last message (for the record)
+    whole_spread_s: float
+
+    @property
+    def arrival_mbps(self):
+        return self.bytes * 8e-6 / self.spread_s
+
+
+def sent_rate_mbps(since: ProbeHeader, last: ProbeHeader, message_bytes):
+    """The rate the messages from `since` to `last` were handed to the link: the train's target
+    unless its sender could not keep it for its own reasons (a starved CPU, not the link holding
+    it back in Zenoh's puts). Over the same part of the train as its arrival is measured: a sender
+    that stalled in the second half sent it slowly, and its slow arrival is no bottleneck. The
+    last message's size is left out (it was put at the end of the spread), as libwebrtc does."""
+    spread_s = last.sent_spread_s - since.sent_spread_s
+    free_s = spread_s - (last.sent_blocked_s - since.sent_blocked_s)
+    if last.index <= since.index or free_s <= 0:
+        return last.target_mbps
+    return min(last.target_mbps, (last.index - since.index) * message_bytes * 8e-6 / free_s)
+
+
+class TrainArrivals:
+    """The twin's side: `arrival` per probe message with the link's cumulative received bytes then;
+    a train's last message gives its TrainMeasure or a refusal counted in `refused`; a train cut
+    short (a later train's first message, or `expire`) is counted incomplete. Not thread-safe: the
+    bridge calls it under its lock."""
+
+    def __init__(self, timeout_s=PROBE_TRAIN_TIMEOUT_S, min_fraction=PROBE_MIN_RECEIVED_FRACTION):
+        self.timeout_s, self.min_fraction = timeout_s, min_fraction
+        self.refused = dict.fromkeys(PROBE_REFUSALS, 0)
+        self.measured = 0
+        self.received_bytes = 0  # every probe message's bytes, measured or not
+        self._train = None  # (header of the first message seen, [(t, link bytes, train bytes so far, header)])
+
+    def arrival(self, payload, now_s, link_bytes, idle_s=0.0) -> Optional[TrainMeasure]:
+        """One probe message taken at `now_s` (monotonic s) when the link had delivered `link_bytes`
+        in all (cumulative, the message included) and had been silent for `idle_s` (the kernel's
+        last_data_recv: a message taken after the train's end says when the end came). Returns the
+        measure of a train this message completes, else None."""
+        size = len(payload)
+        self.received_bytes += size
+        try:
+            header = decode_probe(payload)
+        except ProbeError:
+            self.refused[BAD_PROBE] += 1
+            return None
+        train = self._train
+        if train is not None and (train[0].train != header.train or now_s - train[1][0][0] > self.timeout_s):
+            self._give_up()
+            train = None
+        if train is None:
+            train = self._train = (header, [])
+        samples = train[1]
+        so_far = (samples[-1][2] if samples else 0) + size
+        samples.append((now_s, link_bytes, so_far, header, max(0.0, idle_s)))
+        if header.index == header.count - 1:
+            self._train = None
+            return self._measure(samples)
+        return None
+
+    def expire(self, now_s):
+        """Give up a train whose last message is overdue (the bridge calls it now and then)."""
+        if self._train is not None and now_s - self._train[1][0][0] > self.timeout_s:
+            self._give_up()
+
+    def _give_up(self):
+        self._train = None
+        self.refused[INCOMPLETE] += 1
+
+    def _measure(self, samples) -> Optional[TrainMeasure]:
+        last = samples[-1][3]
+        if len(samples) < self.min_fraction * last.count:
+            self.refused[INCOMPLETE] += 1
+            return None
+        measure = measure_train(samples, last.train_bytes // last.count)
+        if not isinstance(measure, TrainMeasure):
+            self.refused[measure] += 1
+            return None
+        self.measured += 1
+        return measure
+
+
+def measure_train(samples, message_bytes):
+    """The TrainMeasure of one train's arrivals [(t, link bytes, train bytes so far, header, idle s)],
+    or why not (TOO_SHORT, RECEIVER_LATE). The measured part starts at the message that completes
+    half the train's bytes (the head may have passed a shaper's burst at the sender's rate) and ends
+    when the link last received data before the last message was taken."""
+    if len(samples) < 2:
+        return TOO_SHORT
+    total = samples[-1][2]
+    mid = next(i for i, s in enumerate(samples) if s[2] >= total / 2.0)
+    mid = min(mid, len(samples) - 2)
+    first, half, last = samples[0], samples[mid], samples[-1]
+    end_s = max(last[0] - last[4], half[0])
+    spread = end_s - half[0]
+    moved = last[1] - half[1]
+    if spread <= 0 or moved <= 0:
+        return TOO_SHORT
+    if moved < RECEIVER_LATE_FRACTION * (total - half[2]):
+        return RECEIVER_LATE
+    return TrainMeasure(
+        train=last[3].train,
+        messages=len(samples),
+        bytes=int(moved),
+        spread_s=spread,
+        sent_mbps=sent_rate_mbps(half[3], last[3], message_bytes),
+        whole_bytes=int(last[1] - first[1]),
+        whole_spread_s=end_s - first[0],
+    )

@@ -1,0 +1,215 @@
+"""Probe trains (cps_link.probe_train): their cost and period, the message codec, when the robots'
+bridge sends one, and how the twin measures one, through a simulated token-bucket shaper like the
+test bed's tc tbf (its burst passes a train's head at the sender's rate)."""
+
+import math
+import random
+
+import pytest
+
+from cps_link.probe_train import (
+    BAD_PROBE,
+    INCOMPLETE,
+    PROBE_COST_FRACTION,
+    PROBE_MAX_PERIOD_S,
+    PROBE_MESSAGE_BYTES,
+    PROBE_MIN_PERIOD_S,
+    PROBE_TRAIN_BYTES,
+    RECEIVER_LATE,
+    ProbeError,
+    ProbeHeader,
+    TrainArrivals,
+    TrainSchedule,
+    decode_probe,
+    probe_cost_fraction,
+    sent_rate_mbps,
+    train_period_s,
+)
+
+TBF_BURST_BYTES = 128_000  # the test bed's tbf burst: max(128 kB, 4 ms at the rate)
+SEGMENT_BYTES = 1448
+
+
+def test_a_train_costs_its_fraction_of_the_capacity_believed():
+    # 384 kB every period: 5 % of the capacity believed on average
+    assert PROBE_TRAIN_BYTES == 384_000
+    assert train_period_s(57.77) == pytest.approx(384_000 * 8e-6 / (0.05 * 57.77))  # 1.06 s
+    assert train_period_s(57.77) < 1.1
+    assert train_period_s(10.0) == pytest.approx(6.144)
+    assert train_period_s(5.0) == PROBE_MAX_PERIOD_S  # 12.3 s at 5 %: the bound, 6.1 %
+    assert train_period_s(1.0) == PROBE_MAX_PERIOD_S
+    assert train_period_s(1000.0) == PROBE_MIN_PERIOD_S
+    assert train_period_s(math.nan) == PROBE_MAX_PERIOD_S
+    # once the capacity is known, 5 % of a 10 Mbit/s link and 6.1 % of a 5 Mbit/s one; before a
+    # step down is seen, trains paced for 60 Mbit/s cost 29 % of a 10 Mbit/s link (one or two)
+    assert probe_cost_fraction(10.0, 10.0) == pytest.approx(PROBE_COST_FRACTION)
+    assert probe_cost_fraction(5.0, 5.0) == pytest.approx(0.0614, abs=0.0001)
+    assert probe_cost_fraction(10.0, 57.77) == pytest.approx(0.289, abs=0.001)
+
+
+def test_the_header_round_trips_and_bad_ones_are_refused():
+    header = ProbeHeader(7, 3, 24, PROBE_TRAIN_BYTES, 115.5, 0.004, 0.001)
+    payload = header.encode(PROBE_MESSAGE_BYTES)
+    assert len(payload) == PROBE_MESSAGE_BYTES
+    assert decode_probe(payload) == header
+    for bad in (
+        b"short",
+        ProbeHeader(7, 16, 16, 1, 1.0, 0.0, 0.0).encode(100),  # index past the count
+        ProbeHeader(7, 0, 16, 1, math.nan, 0.0, 0.0).encode(100),
+        ProbeHeader(7, 0, 16, 1, 0.0, 0.0, 0.0).encode(100),
+        ProbeHeader(7, 0, 16, 1, 1.0, -1.0, 0.0).encode(100),
+        b"\x09" + payload[1:],  # another version
+    ):
+        with pytest.raises(ProbeError):
+            decode_probe(bad)
+
+
+def test_a_train_goes_only_while_app_limited_with_the_link_up_and_its_period_passed():
+    schedule = TrainSchedule()
+    assert not schedule.due(100.0)  # no capacity known yet
+    schedule.set_capacity(57.77)
+    assert not schedule.due(100.0)  # not app-limited
+    schedule.app_limited = True
+    assert schedule.due(100.0)
+    schedule.link_up = False
+    assert not schedule.due(100.0)
+    schedule.link_up = True
+    plan = schedule.start(100.0)
+    assert plan.count == 24 and plan.train_bytes == PROBE_TRAIN_BYTES
+    assert plan.target_mbps == pytest.approx(4 * 57.77)
+    assert plan.due_s(15) == pytest.approx(15 * 16000 * 8e-6 / (4 * 57.77))
+    assert not schedule.due(100.5)
+    assert schedule.due(100.0 + train_period_s(57.77) + 1e-9)
+    schedule.set_capacity(math.nan)  # a bad capacity keeps the last
+    assert schedule.capacity_mbps == 57.77
+    with pytest.raises(ValueError):
+        TrainSchedule(train_bytes=10_000, message_bytes=16_000)
+
+
+def test_the_send_rate_leaves_out_the_time_the_link_held_the_sender():
+    # the second half, messages 12 to 23: 11 before the last in 40 ms, 30 ms of it blocked in
+    # Zenoh's puts: the sender offered 11 x 16 kB in 10 ms (141 Mbit/s), capped at its target
+    half = ProbeHeader(1, 12, 24, PROBE_TRAIN_BYTES, 115.0, 0.010, 0.002)
+    held = ProbeHeader(1, 23, 24, PROBE_TRAIN_BYTES, 115.0, 0.050, 0.032)
+    assert sent_rate_mbps(half, held, 16000) == 115.0
+    # a sender that stalled in the second half (nothing blocked it) for 100 ms: its own 14 Mbit/s,
+    # though the first half went at its pace
+    stalled = ProbeHeader(1, 23, 24, PROBE_TRAIN_BYTES, 115.0, 0.110, 0.002)
+    assert sent_rate_mbps(half, stalled, 16000) == pytest.approx(11 * 16000 * 8e-6 / 0.1)
+    assert sent_rate_mbps(held, held, 16000) == 115.0
+    plan = TrainSchedule().start(0.0)
+    plan.put_took(0.0005)  # a put that did not wait
+    plan.put_took(0.02)
+    assert plan.blocked_s == pytest.approx(0.02)
+
+
+def _through_tbf(rate_mbps, train_mbps, fleet_mbps, seed, delay_max_s=0.004, burst=TBF_BURST_BYTES):
+    """The twin's (t, link bytes, idle s) at each probe message of one train sent at train_mbps through
+    a token bucket of `burst` bytes at rate_mbps (full at the start: the fleet sends less), with the
+    fleet's own frames at fleet_mbps beside it and a random delay before the twin takes each message."""
+    rng = random.Random(seed)
+    rate = rate_mbps * 1e6 / 8
+    segments = []  # (handed to the shaper s, bytes, probe message index or None when it ends one)
+    for k in range(24):
+        t = k * PROBE_MESSAGE_BYTES / (train_mbps * 1e6 / 8)
+        left = PROBE_MESSAGE_BYTES
+        while left > 0:
+            size = min(SEGMENT_BYTES, left)
+            left -= size
+            segments.append((t, size, k if left == 0 else None))
+    t = 0.0
+    while t < 1.0:  # the fleet's 1 kB frames
+        segments.append((t, 1000, None))
+        t += 1000 / (fleet_mbps * 1e6 / 8)
+    segments.sort(key=lambda s: s[0])
+    tokens, now, out = float(burst), 0.0, []
+    for handed, size, index in segments:
+        start = max(handed, now)
+        tokens = min(burst, tokens + (start - now) * rate)
+        if tokens < size:
+            start += (size - tokens) / rate
+            tokens = float(size)
+        tokens -= size
+        now = start
+        out.append((start, size, index))
+    arrivals = [t for t, _, _ in out]
+    cumulative = []
+    total = 0
+    for _, size, _ in out:
+        total += size
+        cumulative.append(total)
+
+    def link_at(t):
+        i = max((j for j, a in enumerate(arrivals) if a <= t), default=-1)
+        return (cumulative[i], t - arrivals[i]) if i >= 0 else (0, t)
+
+    taken, samples = 0.0, []
+    for t_arrived, _, index in out:
+        if index is None:
+            continue
+        taken = max(taken, t_arrived) + rng.uniform(0, delay_max_s)
+        link, idle = link_at(taken)
+        samples.append((index, taken, link, idle))
+    return samples
+
+
+def _feed(arrivals, samples, target_mbps, train=1):
+    header_of = {
+        k: ProbeHeader(
+            train, k, 24, PROBE_TRAIN_BYTES, target_mbps, k * PROBE_MESSAGE_BYTES * 8e-6 / target_mbps, 0.0
+        ).encode(PROBE_MESSAGE_BYTES)
+        for k in range(24)
+    }
+    out = None
+    for index, t, link, idle in samples:
+        out = arrivals.arrival(header_of[index], t, link, idle) or out
+    return out
+
+
+@pytest.mark.parametrize("rate_mbps", [5.0, 10.0, 20.0])
+@pytest.mark.parametrize("seed", range(5))
+def test_a_train_through_a_token_bucket_measures_its_rate_from_its_second_half(rate_mbps, seed):
+    arrivals = TrainArrivals()
+    samples = _through_tbf(rate_mbps, train_mbps=4 * rate_mbps, fleet_mbps=3.0, seed=seed)
+    measure = _feed(arrivals, samples, 4 * rate_mbps)
+    assert measure is not None and arrivals.measured == 1
+    # TCP payload here is what the shaper passes: the measure is the shaper's rate within 5 %
+    assert measure.arrival_mbps == pytest.approx(rate_mbps, rel=0.05)
+    # the whole train, head included, read far above it: the burst passed the head at 115 Mbit/s
+    whole = measure.whole_bytes * 8e-6 / measure.whole_spread_s
+    assert whole > 1.3 * rate_mbps
+    assert measure.sent_mbps == pytest.approx(4 * rate_mbps)
+
+
+def test_a_train_the_link_carries_at_its_pace_arrives_at_its_pace():
+    arrivals = TrainArrivals()
+    samples = _through_tbf(60.0, train_mbps=20.0, fleet_mbps=3.0, seed=1, delay_max_s=0.0005)
+    measure = _feed(arrivals, samples, 20.0)
+    # the fleet's frames share the link with it: a little above the train's own pace
+    assert 0.9 * 20.0 <= measure.arrival_mbps <= 1.3 * 20.0
+
+
+def test_trains_that_cannot_be_measured_are_counted_by_kind():
+    arrivals = TrainArrivals()
+    samples = _through_tbf(10.0, train_mbps=115.5, fleet_mbps=3.0, seed=2)
+    # six of 24 messages lost: fewer than 80 %
+    assert _feed(arrivals, [s for s in samples if s[0] not in (3, 4, 5, 6, 7, 8)], 115.5) is None
+    assert arrivals.refused[INCOMPLETE] == 1
+    # a train cut short by the next one's first message
+    _feed(arrivals, samples[:5], 115.5, train=2)
+    assert _feed(arrivals, samples, 115.5, train=3) is not None
+    assert arrivals.refused[INCOMPLETE] == 2
+    # a train whose last message never comes, given up after the timeout
+    _feed(arrivals, samples[:5], 115.5, train=4)
+    arrivals.expire(samples[0][1] + 10.0)
+    assert arrivals.refused[INCOMPLETE] == 3
+    # not a probe message
+    assert arrivals.arrival(b"garbage", 1.0, 100) is None
+    assert arrivals.refused[BAD_PROBE] == 1
+    # the twin took the second half's messages after the link had moved them all (it was behind):
+    # the link moved fewer bytes after the first of them than the train's frames after it
+    late = [(i, 5.0 + 0.001 * i, samples[-1][2] + 1000 * i, 0.0) for i, _, _, _ in samples]
+    assert _feed(arrivals, late, 115.5, train=5) is None
+    assert arrivals.refused[RECEIVER_LATE] == 1
+    assert arrivals.measured == 1
+    assert arrivals.received_bytes > 0

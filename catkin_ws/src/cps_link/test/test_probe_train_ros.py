@@ -1,0 +1,64 @@
+"""A probe train crosses the two bridges on loopback and the twin measures it (cps_link.probe_train):
+the robots' bridge, app-limited (nothing to send but its telemetry) and told a capacity by the
+manager's allocation, sends trains on its probe route; the twin's link reports carry their bytes
+and each measured train's rate against the rate it was sent at."""
+
+import subprocess
+import sys
+
+import pytest
+
+from cps_fleet import names
+from cps_harness.testing import TopicRecorder
+from cps_link.probe_train import PROBE_TRAIN_BYTES, train_period_s
+from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
+from cps_ros.processes import free_port
+
+ROBOT = "scout"
+CAPACITY_MBPS = 40.0
+
+
+@pytest.fixture(scope="module")
+def cert_dir(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("certs") / "certs")
+    subprocess.run([MAKE_CERTS, path], check=True, capture_output=True)
+    return path
+
+
+@pytest.mark.timeout(90)
+def test_a_probe_train_crosses_and_is_measured(rospy_node, ros, robots_graph, cert_dir, request):
+    from cps_msgs.msg import BandwidthAllocationArray, LinkReport
+
+    port = free_port()
+    ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], cert_dir, port), name="bridge_twin")
+    robots_graph.popen(
+        bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], cert_dir, port), name="bridge_robots"
+    )
+    reports = TopicRecorder(names.absolute(names.LINK_REPORT), LinkReport)
+    allocation = rospy_node.Publisher(names.absolute(names.ALLOCATION), BandwidthAllocationArray, queue_size=1)
+    timer = rospy_node.Timer(
+        rospy_node.Duration(0.5),
+        lambda _e: allocation.publish(BandwidthAllocationArray(available_mbps=CAPACITY_MBPS)),
+    )
+    for done in (timer.shutdown, allocation.unregister, reports.close):
+        request.addfinalizer(done)
+
+    report = reports.wait(lambda m: m.probe_trains >= 1, timeout_s=45, what="a link report with a measured train")
+    # one train in a report: its second half's link bytes (the train's frames and whatever crossed
+    # beside them) over a spread, sent at 4 x the capacity the allocation said (or what the sender
+    # managed below it)
+    assert report.probe_train_bytes >= PROBE_TRAIN_BYTES // 2 * 0.5
+    assert 0 < report.probe_train_spread_s < 2.0
+    assert 0 < report.probe_train_sent_mbps <= 4 * CAPACITY_MBPS + 1e-6
+    # every probe byte the twin received is counted, the sender's too
+    seen = [m for _, m in reports.take()]
+    probe_bytes = sum(m.probe_bytes for m in seen)
+    sent_bytes = sum(m.probe_sent_bytes for m in seen)
+    assert probe_bytes >= PROBE_TRAIN_BYTES * 0.8 and sent_bytes >= PROBE_TRAIN_BYTES * 0.8
+    # loopback is no bottleneck at 160 Mbit/s: the train arrives at about the rate it was sent
+    arrival_mbps = report.probe_train_bytes * 8e-6 / report.probe_train_spread_s
+    assert 0.5 * report.probe_train_sent_mbps <= arrival_mbps, (arrival_mbps, report.probe_train_sent_mbps)
+    # trains keep their period: no second train within it of the first
+    trains = sum(m.probe_trains for m in seen)
+    span_s = sum(m.interval_s for m in seen)
+    assert trains <= span_s / train_period_s(CAPACITY_MBPS) + 2
