@@ -63,8 +63,10 @@ venv_ok || die ".venv still cannot import rospy/numpy/yaml after set-up"
 # --- 3. catkin workspace -------------------------------------------------------------------
 ws="$root/catkin_ws"
 stamp="$ws/devel/.cps_built"
-if [ ! -f "$stamp" ] || [ -n "$(find "$ws/src" \( -name package.xml -o -name CMakeLists.txt -o -name setup.py \
-     -o -name '*.msg' -o -name '*.srv' -o -path '*/nodes/*' \) -newer "$stamp" -print -quit)" ]; then
+# (__pycache__ is not a build file: a test that imports a node script as a module writes one
+# under nodes/, and every later set-up took it for a changed node.)
+if [ ! -f "$stamp" ] || [ -n "$(find "$ws/src" -name __pycache__ -prune -o \( -name package.xml -o -name CMakeLists.txt \
+     -o -name setup.py -o -name '*.msg' -o -name '*.srv' -o -path '*/nodes/*' \) -newer "$stamp" -print -quit)" ]; then
   say "catkin_make"
   (
     cd "$ws"
