@@ -1,6 +1,9 @@
 """Every robot's tissue in one process (cloud_tissue, cloud_decoder, voxel_grid_loader): each robot
 keeps its own topics, rate and drop counts, and one robot's malformed clouds stop nobody else's."""
 
+import os
+import signal
+
 import numpy as np
 import pytest
 
@@ -190,6 +193,13 @@ def _listed(listing):
 
 
 @pytest.mark.ros
+def _stacks(ros, proc, name):
+    """The node's output with every thread's stack (cps_ros.shutdown.init_node's SIGUSR1)."""
+    os.kill(proc.pid, signal.SIGUSR1)
+    wait_for(lambda: "most recent call first" in ros.output(name), timeout_s=5)
+    return ros.output(name)[-6000:]
+
+
 def test_one_loader_puts_every_robots_voxel_grid_into_one_manager(ros, rospy_node, tmp_path):
     """voxel_grid_loader loads two robots' pcl/VoxelGrid into one manager (clouds come out
     filtered per robot), loads them again into a restarted manager, unloads them when stopped,
@@ -232,9 +242,11 @@ def test_one_loader_puts_every_robots_voxel_grid_into_one_manager(ros, rospy_nod
         ros.stop(manager)
         manager = ros.popen(["rosrun", "nodelet", "nodelet", "manager", "__name:=vg_manager"], name="vg_manager2")
         ros.wait_for_service("/vg_manager/list", timeout_s=30)
+        # final20 (a full run): the loader never reloaded into the restarted manager, and said
+        # nothing. Its threads' stacks say where it waited, should it happen again.
         assert wait_for(
             lambda: sorted(_listed(listing) or ()) == ["/jackal/voxel_grid", "/scout/voxel_grid"], timeout_s=30
-        ), ros.output("voxel_grid_loader")[-2000:]
+        ), _stacks(ros, loader, "voxel_grid_loader")
         ros.stop(loader)
         assert wait_for(lambda: _listed(listing) == [], timeout_s=10), _listed(listing)
 

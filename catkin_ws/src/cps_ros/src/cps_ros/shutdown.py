@@ -21,11 +21,16 @@ WATCH_PERIOD_S = 0.1
 
 
 def init_node(name, **kwargs):
-    """rospy.init_node(name, **kwargs) with the shutdown signals handled by `handle_shutdown_signals`."""
+    """rospy.init_node(name, **kwargs) with the shutdown signals handled by `handle_shutdown_signals`;
+    `kill -USR1 <pid>` prints every thread's stack to the node's stderr (its log): what a node
+    waits on when it hangs."""
+    import faulthandler
+
     import rospy
 
     rospy.init_node(name, disable_signals=True, **kwargs)
     handle_shutdown_signals()
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
 
 def handle_shutdown_signals():
