@@ -931,7 +931,11 @@ class ZenohBridge:
         self.link_pub.publish(msg)
 
     def close(self):
-        self._closing = True
+        """Stop the timers and ROS subscriptions, take the token back and close the session (once)."""
+        with self.lock:
+            if self._closing:
+                return
+            self._closing = True
         self.timer.shutdown()
         self.heartbeat_timer.shutdown()
         if self.report_timer is not None:
