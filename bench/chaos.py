@@ -33,8 +33,9 @@ LINK_RATE = "60mbit"
 WARM_UP_S = 10.0
 
 
-def inject(mission, fault):
-    """Inject `fault` into the running mission; returns when it is over (its end)."""
+def inject(mission, fault, kill_target=None):
+    """Inject `fault` into the running mission; returns when it is over (its end). A kill hits
+    `kill_target` (`_kill_target`'s process for the fault's target)."""
     from cps_link.netns_link import link_set, tc_rate
 
     if fault.kind == chaos.LINK_CUT:
@@ -50,7 +51,7 @@ def inject(mission, fault):
         finally:
             link_set(mission.run_link_name(), LINK_RATE)
     elif fault.kind == chaos.KILL:
-        pids = _pids_of(mission, _kill_target(mission, fault.target))
+        pids = _pids_of(mission, kill_target or fault.target)
         if not pids:
             raise RuntimeError(f"no running {fault.target} to kill")
         for pid in pids:
@@ -131,10 +132,11 @@ def run(args):
             before = {k: v for path in diag.values() for k, v in chaos.read_mismatch_counters(path).items()}
             start = time.time()
             described = fault.describe()
-            if fault.kind == chaos.KILL and _kill_target(mission, fault.target) != fault.target:
-                described += f" (runs in {_kill_target(mission, fault.target)} in this layout)"
+            killed = _kill_target(mission, fault.target) if fault.kind == chaos.KILL else None
+            if killed and killed != fault.target:
+                described += f" (runs in {killed} in this layout)"
             try:
-                inject(mission, fault)
+                inject(mission, fault, killed)
                 error = None
             except Exception as exc:  # noqa: BLE001 - a fault that cannot be injected is a row's failure
                 error = f"not injected: {type(exc).__name__}: {exc}"
@@ -158,7 +160,6 @@ def run(args):
             if row.mismatches:
                 row.failures.append(f"frames to the wrong topic or type: {row.mismatches}")
             if fault.kind == chaos.KILL:
-                killed = _kill_target(mission, fault.target)
                 alive = _pids_of(mission, killed)
                 if len(alive) != 1:
                     row.failures.append(f"{len(alive)} {killed} processes after the restart (1 expected)")
