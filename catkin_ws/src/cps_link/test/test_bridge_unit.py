@@ -213,10 +213,15 @@ def test_bad_table_names_file_and_line(tmp_path):
             load_bridge_table(str(path), ROBOT_NAMES)
     settings = ("batch_bytes: 100", "batch_bytes: 70000", "report_ms: 10", "kernel_unsent_bytes: -1")
     # a reopen sooner than a heartbeat timeout would reopen a session whose peer is merely late
-    for setting in settings + ("reopen_after_ms: 500",):
+    # and the robots' unheard rule must come before the twin's deaf one
+    for setting in settings + ("reopen_after_ms: 500", "unheard_after_ms: 600", "unheard_after_ms: 5000"):
         path.write_text(base + topic + setting + "\n")
         with pytest.raises(ConfigError, match=setting.split(":")[0]):
             load_bridge_table(str(path), ROBOT_NAMES)
+    # a deaf rule shortened below the default unheard rule is refused too, naming the latter
+    path.write_text(base + topic + "reopen_after_ms: 1500\n")
+    with pytest.raises(ConfigError, match="unheard_after_ms"):
+        load_bridge_table(str(path), ROBOT_NAMES)
 
 
 def test_link_health_counts_outages_and_their_length():
@@ -305,7 +310,7 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
         assert config["transport"]["shared_memory"]["enabled"] is False
         assert config["transport"]["link"]["tx"]["batch_size"] == table.batch_bytes == 16384
     assert table.kernel_unsent_bytes == 16384 and table.report_ms == 500
-    assert table.reopen_after_ms == 5000 > table.heartbeat_timeout_ms
+    assert table.reopen_after_ms == 5000 > table.unheard_after_ms == 2000 > table.heartbeat_timeout_ms
     zenoh.Config.from_json5(__import__("json").dumps(twin))
 
 

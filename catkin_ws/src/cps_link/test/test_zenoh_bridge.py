@@ -215,20 +215,20 @@ def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, 
     there, its heartbeats never come. A peer that holds the token and sends no heartbeat makes the
     bridge close its session and open a new one (its token goes and comes back) after bridge.yaml's
     reopen_after_ms; so does, on the robots' side, a twin whose heartbeats come but that echoes
-    none of the robots'. Once the peer's heartbeats (and echoes) come, the link is up and stays up."""
+    none of the robots' (after unheard_after_ms). Once the peer's heartbeats (and echoes) come, the link is up and stays up."""
     import zenoh
 
     from cps_msgs.msg import LinkState
 
     port = free_port()
-    # bridge.yaml with a 2 s reopen (5 s in the fleet's): the rule is the same, the test shorter
+    # bridge.yaml with a 2 s deaf and 1 s unheard reopen (5 s and 2 s in the fleet's): the rules are
+    # the same, the test shorter
     default = load_bridge_table(robots=[ROBOT])
     path = tmp_path / "bridge.yaml"
-    path.write_text(
-        re.sub(r"(?m)^reopen_after_ms: \d+$", "reopen_after_ms: 2000", pathlib.Path(default.path).read_text(), count=1)
-    )
+    text = re.sub(r"(?m)^reopen_after_ms: \d+$", "reopen_after_ms: 2000", pathlib.Path(default.path).read_text())
+    path.write_text(re.sub(r"(?m)^unheard_after_ms: \d+$", "unheard_after_ms: 1000", text))
     table = load_bridge_table(str(path), robots=[ROBOT])
-    assert table.reopen_after_ms == 2000
+    assert (table.reopen_after_ms, table.unheard_after_ms) == (2000, 1000)
     graph = ros if side == "twin" else robots_graph
     argv = bridge_argv(sys.executable, side, "127.0.0.1", [ROBOT], cert_dir, port) + ["--table", str(path)]
     graph.popen(argv, name=f"bridge_{side}")
@@ -247,7 +247,8 @@ def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, 
         # No heartbeat from the peer: the bridge closes its session (its token goes) and opens another.
         assert wait_for(lambda: sum("PUT" in k for _, k in tokens) >= 2, timeout_s=30), f"never reopened: {tokens}"
         gone_s = next(t for t, k in tokens if "DELETE" in k)
-        reopen_s = table.reopen_after_ms / 1000.0
+        # (the robots' bridge, up on the twin's token, finds it unheard before it finds it deaf)
+        reopen_s = (table.reopen_after_ms if side == "twin" else table.unheard_after_ms) / 1000.0
         assert reopen_s <= gone_s - first_s < reopen_s + 5.0, tokens
         heartbeat = session.declare_publisher(table.heartbeat_key(peer, peer))
 

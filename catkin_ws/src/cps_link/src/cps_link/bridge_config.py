@@ -100,6 +100,10 @@ class BridgeTable:
     # The other side's liveliness token there, its transport talking, but none of its heartbeats for
     # this long, ms: the bridge closes its Zenoh session and opens a new one (LinkHealth.deaf).
     reopen_after_ms: int = 5000
+    # The robots' main lane: the twin heard but none of this side's heartbeats echoed since the link
+    # came up for this long, ms (LinkHealth.unheard): the same stall as the twin's deaf one, seen
+    # sooner, so the robots' side cures it before the twin's rule fires and only one side reopens.
+    unheard_after_ms: int = 2000
     # The robots' bridge's link report period, ms (cps_link.link_report).
     report_ms: int = 500
 
@@ -252,9 +256,22 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
             routes.append(route)
     backfill = _backfill(top, doc, classes, robots, routes, seen) if top.has("backfill") else None
     limits = (("batch_bytes", 1024, 65535), ("kernel_unsent_bytes", 0, 2**31), ("report_ms", 100, 5000))
-    for key, low, high in limits + (("reopen_after_ms", top.get("heartbeat_timeout_ms", int) + 1, 600_000),):
+    for key, low, high in limits:
         if top.has(key) and not low <= top.get(key, int) <= high:
             raise top.error(key, f"must be in [{low}, {high}], got {top.get(key, int)}")
+    # a reopen sooner than a heartbeat timeout reopens a session whose peer is merely late; the
+    # robots' unheard rule fires before the twin's deaf one, or both sides reopen for one stall
+    timeout_ms = top.get("heartbeat_timeout_ms", int)
+    reopen_ms = top.get("reopen_after_ms", int, default=BridgeTable.reopen_after_ms)
+    unheard_ms = top.get("unheard_after_ms", int, default=BridgeTable.unheard_after_ms)
+    for key, value, low, high in (
+        ("reopen_after_ms", reopen_ms, timeout_ms + 1, 600_000),
+        ("unheard_after_ms", unheard_ms, timeout_ms + 1, reopen_ms - 1),
+    ):
+        if not low <= value <= high:
+            if top.has(key):
+                raise top.error(key, f"must be in [{low}, {high}], got {value}")
+            raise top.error(None, f"{key} (not set: {value} by default) must be in [{low}, {high}]")
     if top.get("command_port", int) == top.get("endpoint_port", int):
         raise top.error("command_port", "the command lane needs a port of its own (it equals endpoint_port)")
     if COMMAND_CLASS not in classes:
@@ -275,7 +292,8 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         batch_bytes=top.get("batch_bytes", int, default=65535),
         kernel_unsent_bytes=top.get("kernel_unsent_bytes", int, default=0),
         report_ms=top.get("report_ms", int, default=500),
-        reopen_after_ms=top.get("reopen_after_ms", int, default=BridgeTable.reopen_after_ms),
+        reopen_after_ms=reopen_ms,
+        unheard_after_ms=unheard_ms,
     )
 
 

@@ -316,7 +316,8 @@ class ZenohBridge:
         without a link socket read (the command lane) leaves it to the twin's side, which drops a
         cut peer's token within the lease. The robots' main lane, whose heartbeats the twin echoes,
         also reopens when it hears the twin but none of its own heartbeats came back since the link
-        came up (the other way round)."""
+        came up (the other way round; unheard_after_ms, sooner than the twin's deaf rule for the
+        same stall, so that one side reopens)."""
         if self.session_factory is None or self._reopening:
             return
         after_s = self.table.reopen_after_ms / 1000.0
@@ -331,14 +332,14 @@ class ZenohBridge:
             else:
                 return
             deaf = self.health.deaf(now_s, after_s, since_s)
-            unheard = self.round_trips is not None and self.health.unheard(now_s, after_s)
+            unheard = self.round_trips is not None and self.health.unheard(now_s, self.table.unheard_after_ms / 1000.0)
         if deaf:
             why = (
                 f"{self.peer_side} bridge {', '.join(map(repr, deaf))} holds its liveliness token but sent "
                 f"no heartbeat for {self.table.reopen_after_ms} ms"
             )
         elif unheard:
-            why = f"{self.peer_side} bridge is heard but echoed none of this side's heartbeats for {self.table.reopen_after_ms} ms"
+            why = f"{self.peer_side} bridge is heard but echoed none of this side's heartbeats for {self.table.unheard_after_ms} ms"
         else:
             return
         self._reopening = True
