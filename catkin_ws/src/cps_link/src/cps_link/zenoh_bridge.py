@@ -128,14 +128,10 @@ class _Declared:
         """Put on route `to`'s publisher; False (counted) when Zenoh refused it."""
         return self._put(self.pubs[to], payload, reporter, to)
 
-    def put_heartbeat(self, payload, reporter):
-        return self._put(self.heartbeat_pub, payload, reporter, "heartbeat")
-
-    def put_report(self, payload, reporter):
-        return self._put(self.report_pub, payload, reporter, "link report")
-
-    def put_probe(self, payload, reporter):
-        return self._put(self.probe_pub, payload, reporter, "probe train")
+    def put_own(self, kind, payload, reporter):
+        """Put on the bridge's own publisher of `kind` (heartbeat, link report, probe train)."""
+        pub = {"heartbeat": self.heartbeat_pub, "link report": self.report_pub, "probe train": self.probe_pub}[kind]
+        return self._put(pub, payload, reporter, kind)
 
     def echo(self, key, payload, reporter):
         """Send a heartbeat straight back on `key` (declared on first use)."""
@@ -747,7 +743,7 @@ class ZenohBridge:
         self._watch_session(now_s)
 
     def _put_heartbeat(self, payload):
-        self.z.put_heartbeat(payload, self.reporter)
+        self.z.put_own("heartbeat", payload, self.reporter)
         if self.queue is not None:
             self.queue.urgent(len(payload), time.monotonic())
 
@@ -797,7 +793,7 @@ class ZenohBridge:
         with self.lock:
             self.trains.app_limited = report.app_limited
         payload = report.encode()
-        self.z.put_report(payload, self.reporter)
+        self.z.put_own("link report", payload, self.reporter)
         self.queue.urgent(len(payload), now)
         self.reporter.gauge(
             **{f"queue_{rule}": counters.dropped[rule] for rule in DROP_RULES},
@@ -843,7 +839,7 @@ class ZenohBridge:
                     time.sleep(wait)
             payload = plan.message(index, time.monotonic())
             started = time.monotonic()
-            put = self.z.put_probe(payload, self.reporter)
+            put = self.z.put_own("probe train", payload, self.reporter)
             plan.put_took(time.monotonic() - started)
             if not put:
                 break
