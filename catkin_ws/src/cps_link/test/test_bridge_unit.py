@@ -214,7 +214,14 @@ def test_bad_table_names_file_and_line(tmp_path):
     settings = ("batch_bytes: 100", "batch_bytes: 70000", "report_ms: 10", "kernel_unsent_bytes: -1")
     # a reopen sooner than a heartbeat timeout would reopen a session whose peer is merely late
     # and the robots' unheard rule must come before the twin's deaf one
-    for setting in settings + ("reopen_after_ms: 500", "unheard_after_ms: 600", "unheard_after_ms: 5000"):
+    for setting in settings + (
+        "reopen_after_ms: 500",
+        "unheard_after_ms: 600",
+        "unheard_after_ms: 5000",
+        # the orphan rule needs two heartbeats, and comes before the unheard one
+        "orphan_after_ms: 150",
+        "orphan_after_ms: 2000",
+    ):
         path.write_text(base + topic + setting + "\n")
         with pytest.raises(ConfigError, match=setting.split(":")[0]):
             load_bridge_table(str(path), ROBOT_NAMES)
@@ -278,6 +285,27 @@ def test_a_peer_heard_that_never_echoes_this_side_is_an_unheard_session():
     assert health.echoed(18.2) == pytest.approx(3.2) and not health.unheard(30.0, after_s=3.0)
 
 
+def test_a_peer_heard_while_the_session_lists_no_transport_to_it_is_an_orphaned_session():
+    """Zenoh's stale close removed the new transport: the peer's heartbeats still arrive, the
+    session lists no peer. Only a heartbeat after the listing stopped counts (a peer that closed
+    its transport stops being heard), and only while up."""
+    health = LinkHealth(started_s=0.0)
+    health.transports_listed(0, 0.5)  # down: nothing to say
+    assert health.token_put("twin", 1.0) and health.unlisted_since_s is None
+    health.transports_listed(1, 1.1)
+    assert not health.orphaned(5.0, after_s=0.3)
+    health.transports_listed(0, 2.0)  # the transport went; no heartbeat since
+    assert not health.orphaned(2.5, after_s=0.3)
+    assert not health.heard("twin", 2.1) and not health.orphaned(2.25, after_s=0.3)  # too soon
+    assert health.orphaned(2.35, after_s=0.3)
+    health.transports_listed(1, 2.4)  # a transport listed again: no longer
+    assert not health.orphaned(3.0, after_s=0.3)
+    health.transports_listed(0, 3.1)
+    assert health.token_deleted("twin", 3.2)  # the link went down: the listing says nothing
+    health.transports_listed(0, 3.3)
+    assert health.unlisted_since_s is None and not health.orphaned(9.0, after_s=0.3)
+
+
 def test_the_socket_talks_from_its_first_bytes_after_a_silence_and_the_first_heartbeat_is_timed():
     health = LinkHealth(started_s=0.0)
     assert health.socket_talking(1.0, gap_s=0.7) is None
@@ -311,6 +339,7 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
         assert config["transport"]["link"]["tx"]["batch_size"] == table.batch_bytes == 16384
     assert table.kernel_unsent_bytes == 16384 and table.report_ms == 500
     assert table.reopen_after_ms == 5000 > table.unheard_after_ms == 2000 > table.heartbeat_timeout_ms
+    assert table.orphan_after_ms == 300 >= 2 * table.heartbeat_ms
     zenoh.Config.from_json5(__import__("json").dumps(twin))
 
 

@@ -104,6 +104,9 @@ class BridgeTable:
     # came up for this long, ms (LinkHealth.unheard): the same stall as the twin's deaf one, seen
     # sooner, so the robots' side cures it before the twin's rule fires and only one side reopens.
     unheard_after_ms: int = 2000
+    # The peer heard while the session has listed no transport to it for this long, ms
+    # (LinkHealth.orphaned): reopen at once.
+    orphan_after_ms: int = 300
     # The robots' bridge's link report period, ms (cps_link.link_report).
     report_ms: int = 500
 
@@ -264,9 +267,13 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
     timeout_ms = top.get("heartbeat_timeout_ms", int)
     reopen_ms = top.get("reopen_after_ms", int, default=BridgeTable.reopen_after_ms)
     unheard_ms = top.get("unheard_after_ms", int, default=BridgeTable.unheard_after_ms)
+    orphan_ms = top.get("orphan_after_ms", int, default=BridgeTable.orphan_after_ms)
+    # the orphan rule needs a heartbeat after the session stopped listing the peer's transport
+    beat_ms = top.get("heartbeat_ms", int)
     for key, value, low, high in (
         ("reopen_after_ms", reopen_ms, timeout_ms + 1, 600_000),
         ("unheard_after_ms", unheard_ms, timeout_ms + 1, reopen_ms - 1),
+        ("orphan_after_ms", orphan_ms, 2 * beat_ms, unheard_ms - 1),
     ):
         if not low <= value <= high:
             if top.has(key):
@@ -294,6 +301,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         report_ms=top.get("report_ms", int, default=500),
         reopen_after_ms=reopen_ms,
         unheard_after_ms=unheard_ms,
+        orphan_after_ms=orphan_ms,
     )
 
 

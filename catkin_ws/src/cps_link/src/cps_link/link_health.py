@@ -2,7 +2,9 @@
 go, and its heartbeats stop. The token alone is not enough: a bridge whose transport is stuck
 behind a full send buffer may not see the session end until the link is back. A token held while
 its heartbeats stay away is a session that carries one way only (`deaf`); so is a peer heard while
-its echoes of this side's heartbeats never come back (`unheard`, where the peer echoes them)."""
+its echoes of this side's heartbeats never come back (`unheard`, where the peer echoes them), and
+so is a peer heard while the session lists no transport to it (`orphaned`: Zenoh's close of the
+transport before an outage, finishing after the new one opened, removed the new one)."""
 
 import dataclasses
 import math
@@ -29,6 +31,9 @@ class LinkHealth:
     socket_talking_since_s: float = -math.inf
     # the peers whose token came and that were not heard since: when it came
     token_unheard_since: dict = dataclasses.field(default_factory=dict)
+    # since when the Zenoh session has listed no transport to a peer while the link was up (None:
+    # it lists one, or the link is down)
+    unlisted_since_s: float = None
 
     def __post_init__(self):
         if self.since_s is None:
@@ -105,6 +110,23 @@ class LinkHealth:
         self.tokens.discard(name)
         self.token_unheard_since.pop(name, None)
         return self.peer_gone(name, now_s)
+
+    def transports_listed(self, count, now_s):
+        """How many transports to peers the Zenoh session listed at now_s."""
+        if count or not self.up:
+            self.unlisted_since_s = None
+        elif self.unlisted_since_s is None:
+            self.unlisted_since_s = now_s
+
+    def orphaned(self, now_s, after_s):
+        """Up, the session has listed no transport to the peer for after_s, and the peer was heard
+        after it stopped listing one: the transport still receives, but Zenoh's transport manager no
+        longer holds it, so nothing this side puts goes out (a session that carries the peer's way
+        only, seen from this side at once)."""
+        since_s = self.unlisted_since_s
+        if since_s is None or now_s - since_s < after_s:
+            return False
+        return max(self.last_heard.values(), default=-math.inf) > since_s
 
     def deaf(self, now_s, after_s, since_s=float("-inf")):
         """The peers whose token is there but that were not heard for after_s, counted from their

@@ -302,40 +302,54 @@ class ZenohBridge:
 
     # --- the session: reopened when it carries one way only ----------------------------------
     def _watch_session(self, now_s):
-        """Reopen the session (on a thread of its own) when the other side's token is there and
-        its transport is talking, but its heartbeats do not come: a transport that came back after
-        an outage carrying this side's way only stays so until the next outage (bridge.yaml
-        reopen_after_ms). The transport talks while the link socket receives bytes without a gap of
-        a heartbeat timeout (its keep-alives at least), and the silence counts from when it began
-        to: in a cut the robots' bridge keeps the twin's token until the link is back and hears
-        nothing, and at the restore its socket talks before the twin's heartbeats come. A lane
-        without a link socket read (the command lane) leaves it to the twin's side, which drops a
-        cut peer's token within the lease. The robots' main lane, whose heartbeats the twin echoes,
-        also reopens when it hears the twin but none of its own heartbeats came back since the link
-        came up (the other way round; unheard_after_ms, sooner than the twin's deaf rule for the
-        same stall, so that one side reopens)."""
+        """Reopen the session (on a thread of its own) when it carries the other side's way only.
+        Three rules, the first that holds:
+        - orphaned (bridge.yaml orphan_after_ms, any lane, either side): the peer is heard but the
+          session lists no transport to it. Zenoh 1.10.2's close of the transport from before an
+          outage can finish after the new one to the same peer opened (the old link's close waits
+          on the cut link; the restore lets it finish) and then removes the new one from its
+          transport manager by the peer's id: what arrives is still delivered, what this side puts
+          finds no transport (the Zenoh debug log of a stalled restore, cps_link README).
+        - unheard (unheard_after_ms, the robots' main lane, whose heartbeats the twin echoes): the
+          twin is heard but has echoed none of this side's heartbeats since the link came up; sooner
+          than the twin's deaf rule for the same stall, so that one side reopens.
+        - deaf (reopen_after_ms): the other side's token is there and its transport is talking, but
+          its heartbeats do not come. The transport talks while the link socket receives bytes
+          without a gap of a heartbeat timeout (its keep-alives at least), and the silence counts
+          from when it began to: in a cut the robots' bridge keeps the twin's token until the link
+          is back and hears nothing, and at the restore its socket talks before the twin's
+          heartbeats come. A lane without a link socket read (the command lane) leaves it to the
+          twin's side, which drops a cut peer's token within the lease."""
         if self.session_factory is None or self._reopening:
             return
         after_s = self.table.reopen_after_ms / 1000.0
         gap_s = self.table.heartbeat_timeout_ms / 1000.0
         with self.lock:
+            orphaned = self.health.orphaned(now_s, self.table.orphan_after_ms / 1000.0)
             if self.link_sockets is not None:
                 since_s = self.health.socket_talking(now_s, gap_s)  # a restore: heartbeats have had no time yet
-                if since_s is None:
-                    return  # the transport is not talking (a cut)
-            elif self.side == TWIN:
-                since_s = -math.inf
             else:
-                return
-            deaf = self.health.deaf(now_s, after_s, since_s)
-            unheard = self.round_trips is not None and self.health.unheard(now_s, self.table.unheard_after_ms / 1000.0)
-        if deaf:
+                since_s = -math.inf if self.side == TWIN else None
+            # None: the transport is not talking (a cut), or a robots' lane without a socket read
+            talking = since_s is not None
+            deaf = self.health.deaf(now_s, after_s, since_s) if talking else []
+            unheard = (
+                talking
+                and self.round_trips is not None
+                and self.health.unheard(now_s, self.table.unheard_after_ms / 1000.0)
+            )
+        if orphaned:
+            why = (
+                f"{self.peer_side} bridge is heard but the Zenoh session has listed no transport to it "
+                f"for {self.table.orphan_after_ms} ms"
+            )
+        elif unheard:
+            why = f"{self.peer_side} bridge is heard but echoed none of this side's heartbeats for {self.table.unheard_after_ms} ms"
+        elif deaf:
             why = (
                 f"{self.peer_side} bridge {', '.join(map(repr, deaf))} holds its liveliness token but sent "
                 f"no heartbeat for {self.table.reopen_after_ms} ms"
             )
-        elif unheard:
-            why = f"{self.peer_side} bridge is heard but echoed none of this side's heartbeats for {self.table.unheard_after_ms} ms"
         else:
             return
         self._reopening = True
@@ -733,14 +747,24 @@ class ZenohBridge:
             with self.lock:
                 sizes = [i.receive_queue_bytes for i in self.link_sockets.read()]
                 self.composer.sample_receive_queue(max(sizes) if sizes else None)
+        listed = self._transports_listed()
         now_s = time.time()
         with self.lock:
+            if listed is not None:
+                self.health.transports_listed(listed, now_s)
             if self.link_sockets is not None:
                 received = self.link_sockets.totals()["bytes_received"]
                 self.health.socket_bytes(received, now_s, self.table.heartbeat_timeout_ms / 1000.0)
             down = self.health.expire(now_s, self.table.heartbeat_timeout_ms / 1000.0)
         self._link_changed(False, down, "", f"no heartbeat for {self.table.heartbeat_timeout_ms} ms")
         self._watch_session(now_s)
+
+    def _transports_listed(self):
+        """How many transports to peers the Zenoh session lists (None: closed under a reopen)."""
+        try:
+            return len(list(self.z.session.info.peers_zid()))
+        except Exception:  # zenoh's ZError: the session closed while it is reopened
+            return None
 
     def _put_heartbeat(self, payload):
         self.z.put_own("heartbeat", payload, self.reporter)
