@@ -211,7 +211,13 @@ def test_bad_table_names_file_and_line(tmp_path):
         path.write_text(base + extra + topic)
         with pytest.raises(ConfigError, match=message):
             load_bridge_table(str(path), ROBOT_NAMES)
-    settings = ("batch_bytes: 100", "batch_bytes: 70000", "report_ms: 10", "kernel_unsent_bytes: -1")
+    settings = (
+        "batch_bytes: 100",
+        "batch_bytes: 70000",
+        "report_ms: 10",
+        "kernel_unsent_bytes: -1",
+        "tcp_user_timeout_ms: -1",
+    )
     # a reopen sooner than a heartbeat timeout would reopen a session whose peer is merely late
     # and the robots' unheard rule must come before the twin's deaf one
     for setting in settings + (
@@ -340,6 +346,7 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
     assert table.kernel_unsent_bytes == 16384 and table.report_ms == 500
     assert table.reopen_after_ms == 5000 > table.unheard_after_ms == 2000 > table.heartbeat_timeout_ms
     assert table.orphan_after_ms == 300 >= 2 * table.heartbeat_ms
+    assert table.tcp_user_timeout_ms == 1000
     zenoh.Config.from_json5(__import__("json").dumps(twin))
 
 

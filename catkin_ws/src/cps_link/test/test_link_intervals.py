@@ -149,6 +149,33 @@ def test_link_sockets_give_each_sockets_queues():
             assert min(queues()) > 0
 
 
+def test_link_sockets_set_the_kernels_user_timeout_on_each_link_socket_once():
+    """bridge.yaml tcp_user_timeout_ms: the kernel ends a link connection whose data stays
+    unacknowledged that long, so Zenoh's close of a cut transport does not wait for the restore."""
+    import socket
+
+    from cps_link.link_report import LinkSockets
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        with socket.create_connection(("127.0.0.1", port)) as client, server.accept()[0] as accepted:
+            untouched = LinkSockets(remote_port=port)
+            assert len(untouched.read()) == 1
+            assert client.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT) == 0
+            sender, receiver = (
+                LinkSockets(remote_port=port, user_timeout_ms=1000),
+                LinkSockets(local_port=port, user_timeout_ms=1500),
+            )
+            assert len(sender.read()) == 1 and len(receiver.read()) == 1
+            assert client.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT) == 1000
+            assert accepted.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT) == 1500
+            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, 7)
+            sender.read()  # set once per socket, not at every read
+            assert client.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT) == 7
+
+
 def test_link_sockets_look_for_new_sockets_only_when_one_closed_or_after_the_rescan_period():
     import socket
 

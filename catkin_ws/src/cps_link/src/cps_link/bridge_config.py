@@ -107,6 +107,9 @@ class BridgeTable:
     # The peer heard while the session has listed no transport to it for this long, ms
     # (LinkHealth.orphaned): reopen at once.
     orphan_after_ms: int = 300
+    # The kernel ends a link connection whose sent data stays unacknowledged this long, ms
+    # (TCP_USER_TIMEOUT, set on the main lane's link socket; 0: the kernel's default, ~15 min).
+    tcp_user_timeout_ms: int = 1000
     # The robots' bridge's link report period, ms (cps_link.link_report).
     report_ms: int = 500
 
@@ -258,7 +261,12 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
             seen[route.to] = doc.line(entry.key_path)
             routes.append(route)
     backfill = _backfill(top, doc, classes, robots, routes, seen) if top.has("backfill") else None
-    limits = (("batch_bytes", 1024, 65535), ("kernel_unsent_bytes", 0, 2**31), ("report_ms", 100, 5000))
+    limits = (
+        ("batch_bytes", 1024, 65535),
+        ("kernel_unsent_bytes", 0, 2**31),
+        ("report_ms", 100, 5000),
+        ("tcp_user_timeout_ms", 0, 600_000),
+    )
     for key, low, high in limits:
         if top.has(key) and not low <= top.get(key, int) <= high:
             raise top.error(key, f"must be in [{low}, {high}], got {top.get(key, int)}")
@@ -302,6 +310,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         reopen_after_ms=reopen_ms,
         unheard_after_ms=unheard_ms,
         orphan_after_ms=orphan_ms,
+        tcp_user_timeout_ms=top.get("tcp_user_timeout_ms", int, default=BridgeTable.tcp_user_timeout_ms),
     )
 
 

@@ -407,8 +407,12 @@ class LinkSockets:
         proc_root="/proc/net",
         fd_root="/proc/self/fd",
         rescan_s=LINK_SOCKET_RESCAN_S,
+        user_timeout_ms=0,
     ):
         self.local_port, self.remote_port = local_port, remote_port
+        # TCP_USER_TIMEOUT set on each link socket found (0: left as it is), and the inodes set
+        self.user_timeout_ms = user_timeout_ms
+        self._timed = set()
         self.proc_root, self.fd_root = proc_root, fd_root
         self.rescan_s = rescan_s
         self._scanned_s = -math.inf  # monotonic s of the last look in /proc/net/tcp
@@ -459,6 +463,9 @@ class LinkSockets:
         out, seen = [], set()
         for inode in self._link_inodes():
             fd = self._fd_of(inode)
+            if fd is not None and self.user_timeout_ms and inode not in self._timed:
+                self._timed.add(inode)
+                _set_user_timeout(fd, self.user_timeout_ms)
             info = _tcp_info_of(fd) if fd is not None else None
             if info is None:
                 continue
@@ -480,6 +487,17 @@ class LinkSockets:
 
 
 _SIOCINQ, _SIOCOUTQ = termios.FIONREAD, termios.TIOCOUTQ  # linux/sockios.h: the same numbers
+
+
+def _set_user_timeout(fd, timeout_ms):
+    """TCP_USER_TIMEOUT of file descriptor `fd` of this process (a dup is set and closed; the
+    socket keeps the option). False when it cannot be set."""
+    try:
+        with socket.socket(fileno=os.dup(fd)) as sock:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, int(timeout_ms))
+        return True
+    except OSError:
+        return False
 
 
 def _tcp_info_of(fd):

@@ -217,7 +217,10 @@ class ZenohBridge:
         # this process's own link socket (Zenoh's): TCP_INFO for the bytes the link carried and its RTT
         port = table.endpoint_port
         self.link_sockets = (
-            (LinkSockets(remote_port=port) if self.queue is not None else LinkSockets(local_port=port))
+            LinkSockets(
+                **({"remote_port": port} if self.queue is not None else {"local_port": port}),
+                user_timeout_ms=table.tcp_user_timeout_ms,
+            )
             if self.main_lane
             else None
         )
