@@ -176,6 +176,28 @@ def test_link_sockets_set_the_kernels_user_timeout_on_each_link_socket_once():
             assert client.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT) == 7
 
 
+def test_link_sockets_end_their_connections_and_the_peer_sees_the_end():
+    """A session reopened because Zenoh no longer holds its transport: the bridge ends that
+    transport's connection itself (closing the session does not), and the peer reads its end."""
+    import socket
+
+    from cps_link.link_report import LinkSockets
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        port = server.getsockname()[1]
+        with socket.create_connection(("127.0.0.1", port)) as client, server.accept()[0] as accepted:
+            accepted.settimeout(5.0)
+            client.sendall(b"z")
+            assert accepted.recv(1) == b"z"
+            assert LinkSockets(remote_port=port).end_connections() == 1
+            assert accepted.recv(1) == b""  # the end of the connection, not a timeout
+            with pytest.raises(OSError):
+                client.sendall(b"z")
+        assert LinkSockets(remote_port=port).end_connections() == 0  # none left
+
+
 def test_link_sockets_look_for_new_sockets_only_when_one_closed_or_after_the_rescan_period():
     import socket
 

@@ -480,6 +480,22 @@ class LinkSockets:
             self._fds.pop(inode, None)
         return out
 
+    def end_connections(self):
+        """Shut down this process's link sockets (both ways; their owner sees the end of its
+        connection and closes it); how many. For a session reopened because Zenoh no longer holds
+        its transport: closing the session does not close that transport, and its connection would
+        outlive it, the peer still holding the old session's token and subscriptions."""
+        ended = 0
+        for inode in self._link_inodes():
+            fd = self._fd_of(inode)
+            try:
+                with socket.socket(fileno=os.dup(fd)) as sock:
+                    sock.shutdown(socket.SHUT_RDWR)
+                ended += 1
+            except (OSError, TypeError):  # closed meanwhile (TypeError: no descriptor left)
+                continue
+        return ended
+
     def totals(self):
         """{bytes_new (sent, retransmissions aside), bytes_acked, bytes_received}: cumulative over
         every link socket so far."""

@@ -361,6 +361,11 @@ class ZenohBridge:
     def _reopen(self, why):
         rospy.logwarn(f"{rospy.get_name()}: {why}: reopening the Zenoh session")
         old = self.z
+        if self.link_sockets is not None:
+            # an orphaned transport is not the session's to close: its connection is ended here
+            with self.lock:
+                ended = self.link_sockets.end_connections()
+            rospy.loginfo(f"{rospy.get_name()}: ended {ended} link connection(s) of the old session")
         try:
             old.session.close()
         except Exception as exc:  # zenoh's ZError: the old session is dropped either way
