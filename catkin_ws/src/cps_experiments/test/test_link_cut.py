@@ -152,11 +152,12 @@ def test_a_ten_second_cut_mid_mission(reference_mission, open_tmp_path):
     # for the twin's silence. (It may after the restore, for the one-way session Zenoh sometimes
     # leaves: the twin heard, its echoes of the robots' heartbeats never coming. That reopen is the
     # cure, printed above with the bridges' lines.) That stall is the twin's deaf one too: the robots'
-    # rule fires first, so the twin's main lane never reopens (both did once: two outages, one stall).
+    # rules fire first, so the twin's main lane never reopens for it (both did once: two outages, one
+    # stall); it may for a transport of its own that Zenoh orphaned (cps_link README).
     reopens = _reopen_lines(list((out / "logs" / "robots").glob("zenoh_bridge_robots-*.log")))
     assert not [line for line in reopens if "sent no heartbeat" in line], reopens
     twin_reopens = _reopen_lines(list((out / "logs").glob("zenoh_bridge_twin-*.log")))
-    assert not twin_reopens, twin_reopens
+    assert not [line for line in twin_reopens if "listed no transport" not in line], twin_reopens
     assert len(held) > 0 and max(held) <= FRESH_S, (
         f"captured up to {max(held, default=float('nan')):.2f} s before the link came back"
     )
