@@ -110,6 +110,9 @@ class BridgeTable:
     # The kernel ends a link connection whose sent data stays unacknowledged this long, ms
     # (TCP_USER_TIMEOUT, set on the main lane's link socket; 0: the kernel's default, ~15 min).
     tcp_user_timeout_ms: int = 1000
+    # Zenoh closes a transport whose put with congestion block has waited this long for room in
+    # its queue, ms (its wait_before_close): in a cut, what ends the transport on the sending side.
+    block_wait_before_close_ms: int = 2000
     # The robots' bridge's link report period, ms (cps_link.link_report).
     report_ms: int = 500
 
@@ -266,6 +269,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         ("kernel_unsent_bytes", 0, 2**31),
         ("report_ms", 100, 5000),
         ("tcp_user_timeout_ms", 0, 600_000),
+        ("block_wait_before_close_ms", 100, 60_000),
     )
     for key, low, high in limits:
         if top.has(key) and not low <= top.get(key, int) <= high:
@@ -311,6 +315,9 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         unheard_after_ms=unheard_ms,
         orphan_after_ms=orphan_ms,
         tcp_user_timeout_ms=top.get("tcp_user_timeout_ms", int, default=BridgeTable.tcp_user_timeout_ms),
+        block_wait_before_close_ms=top.get(
+            "block_wait_before_close_ms", int, default=BridgeTable.block_wait_before_close_ms
+        ),
     )
 
 

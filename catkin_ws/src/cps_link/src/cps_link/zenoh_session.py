@@ -71,7 +71,16 @@ def session_config(table: BridgeTable, side, twin_address, cert_dir, tls=True):
             "retry": retry,
         },
         "transport": {
-            "link": {"tx": {"lease": table.lease_ms, "keep_alive": table.keep_alive, "batch_size": table.batch_bytes}},
+            "link": {
+                "tx": {
+                    "lease": table.lease_ms,
+                    "keep_alive": table.keep_alive,
+                    "batch_size": table.batch_bytes,
+                    "queue": {
+                        "congestion_control": {"block": {"wait_before_close": table.block_wait_before_close_ms * 1000}}
+                    },
+                }
+            },
             # Zenoh moves messages > 3 kB through shared memory when both ends can map it: on the
             # test bed's one host that would carry them past the shaped link. A bridge crosses a network.
             "shared_memory": {"enabled": False},
