@@ -310,6 +310,13 @@ def test_a_peer_heard_while_the_session_lists_no_transport_to_it_is_an_orphaned_
     assert health.token_deleted("twin", 3.2)  # the link went down: the listing says nothing
     health.transports_listed(0, 3.3)
     assert health.unlisted_since_s is None and not health.orphaned(9.0, after_s=0.3)
+    # a reopen: the closing session listed nothing while still up, and no heartbeat tick came while
+    # down; the new session's first token must not find the old session's listing (test_zenoh_bridge
+    # saw two reopens 1 ms apart)
+    assert health.token_put("twin", 10.0)
+    health.transports_listed(0, 10.5)
+    assert health.session_closed(10.6) and health.token_put("twin", 11.0)
+    assert not health.orphaned(11.0, after_s=0.3) and not health.orphaned(12.0, after_s=0.3)
 
 
 def test_the_socket_talks_from_its_first_bytes_after_a_silence_and_the_first_heartbeat_is_timed():

@@ -97,6 +97,7 @@ class LinkHealth:
             self.last_outage_s = now_s - self.since_s
         self.ever_up = True
         self.since_s = now_s
+        self.unlisted_since_s = None  # a new up period: what the old session listed says nothing
         return True
 
     def token_put(self, name, now_s):
@@ -147,4 +148,5 @@ class LinkHealth:
             return False
         self.outages += 1
         self.since_s = now_s
+        self.unlisted_since_s = None
         return True
