@@ -1,7 +1,10 @@
 """The supervisor under faults, on a real master: restart backoff and a windowed limit (clock
 injected), a GUI that fails without ending the run, a dead master noticed within 2 s, nodes that
 drop root, code they cannot read refused at start, the map kernels they read without compiling,
-node output that cannot grow without bound."""
+node output that cannot grow without bound.
+
+The run's master serves every test but the two whose claim is about a master of their own (the
+dead master, the killed bringup's roscore); each test's processes are its own and stopped at its end."""
 
 import contextlib
 import os
@@ -55,47 +58,55 @@ def _next_event(supervisor, events, count, timeout_s=20):
     return events[count - 1]
 
 
-def test_restarts_back_off_exponentially_and_the_limit_counts_within_a_window(tmp_path):
+@pytest.fixture
+def graph(ros_master, tmp_path):
+    """A graph on the run's master (no roscore of its own), its processes' output under tmp_path."""
+    with RosGraph(master_uri=ros_master.uri, log_dir=str(tmp_path)) as graph:
+        yield graph
+
+
+def test_restarts_back_off_exponentially_and_the_limit_counts_within_a_window(graph):
     clock, events = FakeClock(), []
     policy = RestartPolicy(backoff_s=1.0, backoff_max_s=4.0, window_s=10.0)
-    with RosGraph(log_dir=str(tmp_path)) as graph:
-        supervisor = Supervisor(
-            [_spec("flaky", DIES_SOON, restart_limit=2)], graph, log=events.append, policy=policy, clock=clock
-        )
-        try:
-            supervisor.start_all(timeout_s=30)
-            events.clear()
-            assert _next_event(supervisor, events, 1).endswith("restart 1/2 in 1.0 s")
-            dead = supervisor.running["flaky"].proc
-            _poll(supervisor, 0.5)  # backing off: not restarted yet
-            assert supervisor.running["flaky"].proc is dead
-            clock.now_s = 1.0
-            supervisor.poll()
-            assert supervisor.running["flaky"].proc is not dead
-            assert _next_event(supervisor, events, 2).endswith("restart 2/2 in 2.0 s")  # doubled
-            clock.now_s = 12.0  # both restarts leave the window
-            supervisor.poll()
-            assert _next_event(supervisor, events, 3).endswith("restart 1/2 in 1.0 s")
-            clock.now_s = 13.0
-            supervisor.poll()
-            assert _next_event(supervisor, events, 4).endswith("restart 2/2 in 2.0 s")
-            clock.now_s = 15.0
-            supervisor.poll()
-            with pytest.raises(BringupError, match=r"restarted 2 of 2 times\) within 10 s"):
-                _poll(supervisor, 10.0)
-        finally:
-            supervisor.stop_all()
+    supervisor = Supervisor(
+        [_spec("flaky", DIES_SOON, restart_limit=2)], graph, log=events.append, policy=policy, clock=clock
+    )
+    try:
+        supervisor.start_all(timeout_s=30)
+        events.clear()
+        assert _next_event(supervisor, events, 1).endswith("restart 1/2 in 1.0 s")
+        dead = supervisor.running["flaky"].proc
+        _poll(supervisor, 0.5)  # backing off: not restarted yet
+        assert supervisor.running["flaky"].proc is dead
+        clock.now_s = 1.0
+        supervisor.poll()
+        assert supervisor.running["flaky"].proc is not dead
+        assert _next_event(supervisor, events, 2).endswith("restart 2/2 in 2.0 s")  # doubled
+        clock.now_s = 12.0  # both restarts leave the window
+        supervisor.poll()
+        assert _next_event(supervisor, events, 3).endswith("restart 1/2 in 1.0 s")
+        clock.now_s = 13.0
+        supervisor.poll()
+        assert _next_event(supervisor, events, 4).endswith("restart 2/2 in 2.0 s")
+        clock.now_s = 15.0
+        supervisor.poll()
+        with pytest.raises(BringupError, match=r"restarted 2 of 2 times\) within 10 s"):
+            _poll(supervisor, 10.0)
+    finally:
+        supervisor.stop_all()
 
 
-def test_a_gui_that_exits_with_an_error_does_not_end_the_mission(tmp_path):
+def test_a_gui_that_exits_with_an_error_does_not_end_the_mission(graph):
     events = []
-    with RosGraph(log_dir=str(tmp_path)) as graph:
-        supervisor = Supervisor([_spec("gui", DIES_SOON, essential=False)], graph, log=events.append)
-        try:
-            supervisor.start_all(timeout_s=30)
-            _poll(supervisor, 2.0)
-        finally:
-            supervisor.stop_all()
+    supervisor = Supervisor([_spec("gui", DIES_SOON, essential=False)], graph, log=events.append)
+    try:
+        supervisor.start_all(timeout_s=30)
+        # Polled until its exit is noted (it dies 0.3 s after its start), then a few polls more:
+        # none raises, the run goes on.
+        assert wait_for(lambda: (supervisor.poll(), any("gui: exited" in e for e in events))[1], 20), events
+        _poll(supervisor, 0.5)
+    finally:
+        supervisor.stop_all()
     assert any("gui: exited with code 4; not essential" in e for e in events), events
 
 
@@ -125,10 +136,12 @@ def _uids(pid):
     return [int(v) for v in line.split()[1:]]
 
 
+# Spins as a node does, so SIGINT ends it (rospy's handler swallows the KeyboardInterrupt: a node
+# in time.sleep ignored it, and every stop waited out the 3.6 s before SIGTERM).
 WRITER = (
-    "import os, sys, time, rospy; from std_msgs.msg import String; rospy.init_node('writer'); "
+    "import os, sys, rospy; from std_msgs.msg import String; rospy.init_node('writer'); "
     "p = rospy.Publisher('/writer/out', String, queue_size=1); "
-    "open(os.path.join(sys.argv[1], 'written.csv'), 'w').write('ok'); time.sleep(600)"
+    "open(os.path.join(sys.argv[1], 'written.csv'), 'w').write('ok'); rospy.spin()"
 )
 
 
@@ -182,12 +195,12 @@ def test_an_unprivileged_node_dies_with_a_killed_supervisor(open_tmp_path):
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="dropping root needs root")
-def test_nodes_started_as_root_run_unprivileged_and_can_write_the_mission_folder(open_tmp_path):
+def test_nodes_started_as_root_run_unprivileged_and_can_write_the_mission_folder(ros_master, open_tmp_path):
     out = open_tmp_path
     log_dir = out / "logs"
     hand_over("nobody", str(out), str(log_dir / "log"))
     nobody = pwd.getpwnam("nobody").pw_uid
-    with RosGraph(log_dir=str(log_dir)) as graph:
+    with RosGraph(master_uri=ros_master.uri, log_dir=str(log_dir)) as graph:
         spec = NodeSpec("writer", DIGITAL, (sys.executable, "-c", WRITER, str(out)), wait_topics=("/writer/out",))
         supervisor = Supervisor([spec], graph, log=lambda *_: None, user_prefix=user_prefix("nobody"))
         try:
@@ -199,19 +212,25 @@ def test_nodes_started_as_root_run_unprivileged_and_can_write_the_mission_folder
             supervisor.stop_all()
 
 
-def test_a_chatty_node_output_is_rotated_at_its_bound(tmp_path):
+def test_a_chatty_node_output_is_rotated_at_its_bound(graph):
     # ~1 MB/s: the bound holds to within what a node writes between two polls.
     chatty = "import time\nwhile True:\n    print('x' * 999, flush=True)\n    time.sleep(0.001)"
-    with RosGraph(log_dir=str(tmp_path)) as graph:
-        supervisor = Supervisor([_spec("chatty", chatty)], graph, log=lambda *_: None, node_log_max_bytes=100_000)
-        try:
-            supervisor.start_all(timeout_s=30)
-            log_path = supervisor.running["chatty"].proc.cps_log
-            _poll(supervisor, 3.0)
-            assert os.path.exists(log_path + ".1")
-            largest = max(os.path.getsize(log_path), os.path.getsize(log_path + ".1"))
-        finally:
-            supervisor.stop_all()
+    supervisor = Supervisor([_spec("chatty", chatty)], graph, log=lambda *_: None, node_log_max_bytes=100_000)
+    rotations = set()  # each rotation copies the log over <log>.1: a new modification time
+
+    def rotated_ten_times():
+        supervisor.poll()
+        with contextlib.suppress(FileNotFoundError):
+            rotations.add(os.stat(log_path + ".1").st_mtime_ns)
+        return len(rotations) >= 10
+
+    try:
+        supervisor.start_all(timeout_s=30)
+        log_path = supervisor.running["chatty"].proc.cps_log
+        assert wait_for(rotated_ten_times, 30, poll_s=0.1), f"{len(rotations)} rotations"
+        largest = max(os.path.getsize(log_path), os.path.getsize(log_path + ".1"))
+    finally:
+        supervisor.stop_all()
     assert largest < 3 * 100_000, largest
 
 

@@ -42,6 +42,18 @@ def _publish_for(pub, msg, seconds, rate_hz=20.0):
         time.sleep(1.0 / rate_hz)
 
 
+def _publish_until(pub, msg, done, timeout_s, rate_hz=20.0):
+    """Publish `msg` at `rate_hz` until `done()` (True) or until `timeout_s` has passed (False):
+    commands that must be obeyed within `timeout_s`, stopped at the first sign that they are."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        pub.publish(msg)
+        time.sleep(1.0 / rate_hz)
+        if done():
+            return True
+    return False
+
+
 def _start_mux(graph, env=None):
     return graph.start_node(
         "cps_sim",
@@ -118,8 +130,9 @@ def test_a_mux_restarted_after_the_gui_has_gone_starts_stopped(sim, rospy_node):
     try:
         sim.wait_for_topic(names.absolute(names.robot_topic("jackal", names.CMD_VEL)), timeout_s=30)
         assert wait_for(lambda: HEARD_OFF in sim.output_of(mux), 20)
-        _publish_for(auto, _twist(0.3), seconds=1.0)
-        assert wait_for(lambda: executed.latest is not None and executed.latest.linear.x > 0.0, 5)
+        assert _publish_until(
+            auto, _twist(0.3), lambda: executed.latest is not None and executed.latest.linear.x > 0.0, 6.0
+        ), "the mux, e-stop off, never drove"
         sim.stop(gui)  # the GUI dies, then the mux
         sim.stop(mux)
         executed.take()
@@ -132,8 +145,9 @@ def test_a_mux_restarted_after_the_gui_has_gone_starts_stopped(sim, rospy_node):
         # The GUI's process takes its own time to come up (1-3 s on the loaded machine): commands
         # published before the restarted mux has heard it are rightly not executed.
         assert wait_for(lambda: HEARD_OFF in sim.output_of(mux), 30), sim.output_of(mux)
-        _publish_for(auto, _twist(0.3), seconds=2.0)
-        assert any(m.linear.x > 0.0 for _, m in executed.take())
+        assert _publish_until(auto, _twist(0.3), lambda: any(m.linear.x > 0.0 for _, m in executed.messages), 2.0), (
+            "the state heard again, the commands did not drive within 2 s"
+        )
     finally:
         sim.stop(gui)
         sim.stop(mux)
@@ -166,8 +180,9 @@ def test_the_mux_deadman_survives_its_wall_clock_stepping_back_30_s(sim, rospy_n
         assert wait_for(lambda: "control mode teleop" in sim.output_of(mux), 10), sim.output_of(mux)
         # 5 Hz commands, well inside the 0.5 s dead-man: a mux on the wall clock would drop to zero
         # between commands after each step (age < 0 after a step back, > 30 s after a step forward).
-        _publish_for(teleop, _twist(0.3), seconds=1.0, rate_hz=5.0)
-        assert executed.latest.linear.x > 0.0
+        assert _publish_until(
+            teleop, _twist(0.3), lambda: executed.latest is not None and executed.latest.linear.x > 0.0, 1.0, 5.0
+        ), "teleop commands not obeyed within 1 s"
         executed.take()
         for _ in range(3):
             for step in (step_file.write_text, lambda _: step_file.unlink()):
