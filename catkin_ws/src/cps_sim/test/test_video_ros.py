@@ -104,12 +104,18 @@ def test_fleet_sim_refuses_a_level_the_camera_cannot_produce_at_start_up(ros, tm
     import pathlib
     import shutil
 
-    fleet_yaml = pathlib.Path(__file__).resolve().parents[2] / "cps_bringup" / "config" / "fleet.yaml"
+    import yaml
+
+    from cps_fleet.fleet import default_fleet_path
+
+    # the default fleet file as rospkg finds it; its site, relative to it, made absolute in the copy
+    fleet_yaml = pathlib.Path(default_fleet_path())
     good = "    - {name: 320x240, width: 320, height: 240, jpeg_quality: 75, bytes_prior: 14000}\n"
     bad = "    - {name: 320x200, width: 320, height: 200, jpeg_quality: 75, bytes_prior: 14000}\n"
     text = fleet_yaml.read_text()
-    site = fleet_yaml.parents[2] / "cps_sim" / "config" / "hall.yaml"
-    text = text.replace(good, bad).replace("site: ../../cps_sim/config/hall.yaml", f"site: {site}")
+    site = yaml.safe_load(text)["site"]
+    assert good in text and f"site: {site}" in text
+    text = text.replace(good, bad).replace(f"site: {site}", f"site: {(fleet_yaml.parent / site).resolve()}")
     shutil.copytree(fleet_yaml.parent / "routes", tmp_path / "routes")
     path = tmp_path / "fleet.yaml"
     path.write_text(text)
