@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from cps_bw_manager.setpoints import DEFAULT_MIN_INTERVAL_S
 from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 
@@ -306,6 +307,10 @@ def test_the_budget_follows_an_announced_link_capacity(ros, graph):
     assert {"2.000", "1.000"} <= budgets
 
 
+# The steady part of the test below: two of the setpoint filter's intervals and a little more.
+SETTLED_S = 2 * DEFAULT_MIN_INTERVAL_S + 2.0
+
+
 def test_steady_clouds_get_few_setpoints_and_limiters_echo_only_changes(ros, rospy_node, tmp_path):
     """Issue 36: with the setpoint filter's defaults, clouds of a steady size at a steady rate
     get their first setpoint and then nothing (the allocation is recomputed at 2 Hz all along),
@@ -336,13 +341,19 @@ def test_steady_clouds_get_few_setpoints_and_limiters_echo_only_changes(ros, ros
     status = TopicRecorder(names.absolute(names.robot_topic(robot, names.LIMITER_STATUS)), RateLimiterStatus)
     try:
         msg = CompressedPointCloud2(compressed_data=bytes(PAYLOAD_BYTES))
-        end = time.monotonic() + 25.0
-        while time.monotonic() < end:
+        # 10 s for the sizes to be measured after the first setpoint, then SETTLED_S of steady
+        # clouds: counted from the first setpoint, not from the start (under load the nodes come
+        # up late, and a window from the start would leave less than two filter intervals)
+        deadline = time.monotonic() + 90.0
+        while time.monotonic() < deadline and not (
+            rates.messages and time.monotonic() >= rates.messages[0][0] + 10.0 + SETTLED_S
+        ):
             msg.header.stamp = rospy.Time.now()
             pub.publish(msg)
             time.sleep(0.05)
         sent = [t for t, _ in rates.messages]
         assert sent, "no setpoint at all"
+        assert time.monotonic() >= sent[0] + 10.0 + SETTLED_S, "the steady window was not reached"
         settled = [t for t in sent if t > sent[0] + 10.0]  # after the sizes were measured
         assert len(settled) <= 1, f"setpoints at {[round(t - sent[0], 1) for t in sent]} s"
         # The status: 1 Hz plus one per rate change, never one per setpoint repeated.
