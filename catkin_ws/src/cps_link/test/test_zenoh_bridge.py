@@ -284,10 +284,11 @@ def test_a_session_that_carries_one_way_only_is_reopened(side, rospy_node, ros, 
         )
         seen = len(tokens)
         beat_for(reopen_s + 2.0)
-        assert len(tokens) == seen, f"reopened although heartbeats came: {tokens[seen:]}"
+        said = "\n".join(graph.output(f"bridge_{side}").splitlines()[-40:])  # the bridge's last lines
+        assert len(tokens) == seen, f"reopened although heartbeats came: {tokens[seen:]}\n{said}"
         if sub is not None:
             sub.unregister()
-            assert state and state[-1], "the twin's link state is not up with the peer's heartbeats"
+            assert state and state[-1], f"the twin's link state is not up with the peer's heartbeats: {state}\n{said}"
         else:
             echo_sub.undeclare()
         token.undeclare()

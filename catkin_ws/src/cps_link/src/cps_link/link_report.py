@@ -482,9 +482,9 @@ class LinkSockets:
 
     def end_connections(self):
         """Shut down this process's link sockets (both ways; their owner sees the end of its
-        connection and closes it); how many. For a session reopened because Zenoh no longer holds
-        its transport: closing the session does not close that transport, and its connection would
-        outlive it, the peer still holding the old session's token and subscriptions."""
+        connection and closes it); how many. For a session closed to be reopened: a transport Zenoh
+        no longer held is not closed with it, and its connection would outlive it, the peer still
+        holding the old session's token and subscriptions."""
         ended = 0
         for inode in self._link_inodes():
             fd = self._fd_of(inode)

@@ -361,15 +361,18 @@ class ZenohBridge:
     def _reopen(self, why):
         rospy.logwarn(f"{rospy.get_name()}: {why}: reopening the Zenoh session")
         old = self.z
-        if self.link_sockets is not None:
-            # an orphaned transport is not the session's to close: its connection is ended here
-            with self.lock:
-                ended = self.link_sockets.end_connections()
-            rospy.loginfo(f"{rospy.get_name()}: ended {ended} link connection(s) of the old session")
         try:
             old.session.close()
         except Exception as exc:  # zenoh's ZError: the old session is dropped either way
             rospy.logwarn(f"{rospy.get_name()}: closing the Zenoh session: {exc}")
+        if self.link_sockets is not None:
+            # an orphaned transport is not the session's to close: its connection, left open, is
+            # ended here. After the close, not before: a peer whose connection ended while the old
+            # session still listened reconnected to it and stayed with its orphaned transport.
+            with self.lock:
+                ended = self.link_sockets.end_connections()
+            if ended:
+                rospy.logwarn(f"{rospy.get_name()}: ended {ended} link connection(s) the closed session left open")
         with self.lock:
             down = self.health.session_closed(time.time())
         self._link_changed(False, down, "", "this side reopens its session")
