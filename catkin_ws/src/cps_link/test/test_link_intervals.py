@@ -174,6 +174,9 @@ def test_link_sockets_set_the_kernels_user_timeout_on_each_link_socket_once():
             client.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, 7)
             sender.read()  # set once per socket, not at every read
             assert client.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT) == 7
+            assert sender.user_timeout_refused == receiver.user_timeout_refused == 0
+            refused = LinkSockets(remote_port=port, user_timeout_ms=-5)  # the kernel says EINVAL
+            assert len(refused.read()) == 1 and refused.user_timeout_refused == 1
 
 
 def test_link_sockets_end_their_connections_and_the_peer_sees_the_end():

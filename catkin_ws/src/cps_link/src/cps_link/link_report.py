@@ -413,6 +413,7 @@ class LinkSockets:
         # TCP_USER_TIMEOUT set on each link socket found (0: left as it is), and the inodes set
         self.user_timeout_ms = user_timeout_ms
         self._timed = set()
+        self.user_timeout_refused = 0  # sockets the kernel refused it for
         self.proc_root, self.fd_root = proc_root, fd_root
         self.rescan_s = rescan_s
         self._scanned_s = -math.inf  # monotonic s of the last look in /proc/net/tcp
@@ -465,7 +466,7 @@ class LinkSockets:
             fd = self._fd_of(inode)
             if fd is not None and self.user_timeout_ms and inode not in self._timed:
                 self._timed.add(inode)
-                _set_user_timeout(fd, self.user_timeout_ms)
+                self.user_timeout_refused += not _set_user_timeout(fd, self.user_timeout_ms)
             info = _tcp_info_of(fd) if fd is not None else None
             if info is None:
                 continue
@@ -489,7 +490,7 @@ class LinkSockets:
         for inode in self._link_inodes():
             fd = self._fd_of(inode)
             try:
-                with socket.socket(fileno=os.dup(fd)) as sock:
+                with _dup_socket(fd) as sock:
                     sock.shutdown(socket.SHUT_RDWR)
                 ended += 1
             except (OSError, TypeError):  # closed meanwhile (TypeError: no descriptor left)
@@ -506,34 +507,37 @@ _SIOCINQ, _SIOCOUTQ = termios.FIONREAD, termios.TIOCOUTQ  # linux/sockios.h: the
 
 
 def _set_user_timeout(fd, timeout_ms):
-    """TCP_USER_TIMEOUT of file descriptor `fd` of this process (a dup is set and closed; the
-    socket keeps the option). False when it cannot be set."""
+    """TCP_USER_TIMEOUT of file descriptor `fd` of this process (the socket keeps the option);
+    False when it cannot be set."""
     try:
-        with socket.socket(fileno=os.dup(fd)) as sock:
+        with _dup_socket(fd) as sock:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, int(timeout_ms))
         return True
     except OSError:
         return False
 
 
+def _dup_socket(fd):
+    """A socket object on a dup of file descriptor `fd` of this process (closing it closes the dup
+    only; options and shutdowns reach the socket itself)."""
+    dup = os.dup(fd)
+    try:
+        return socket.socket(fileno=dup)
+    except OSError:
+        os.close(dup)
+        raise
+
+
 def _tcp_info_of(fd):
     """TCP_INFO of file descriptor `fd` of this process (a dup is read and closed; the socket stays)."""
     try:
-        dup = os.dup(fd)
+        with _dup_socket(fd) as sock:
+            info = parse_tcp_info(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, _TCP_INFO_LEN))
+            if info is None:
+                return None
+            send, receive = (
+                struct.unpack("i", fcntl.ioctl(sock.fileno(), op, b"\0" * 4))[0] for op in (_SIOCOUTQ, _SIOCINQ)
+            )
+            return dataclasses.replace(info, send_queue_bytes=send, receive_queue_bytes=receive)
     except OSError:
         return None
-    try:
-        sock = socket.socket(fileno=dup)
-    except OSError:
-        os.close(dup)
-        return None
-    try:
-        info = parse_tcp_info(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, _TCP_INFO_LEN))
-        if info is None:
-            return None
-        send, receive = (struct.unpack("i", fcntl.ioctl(dup, op, b"\0" * 4))[0] for op in (_SIOCOUTQ, _SIOCINQ))
-        return dataclasses.replace(info, send_queue_bytes=send, receive_queue_bytes=receive)
-    except OSError:
-        return None
-    finally:
-        sock.close()  # closes the dup only

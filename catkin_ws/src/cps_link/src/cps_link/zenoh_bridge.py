@@ -766,8 +766,14 @@ class ZenohBridge:
             if self.link_sockets is not None:
                 received = self.link_sockets.totals()["bytes_received"]
                 self.health.socket_bytes(received, now_s, self.table.heartbeat_timeout_ms / 1000.0)
+                refused = self.link_sockets.user_timeout_refused
             down = self.health.expire(now_s, self.table.heartbeat_timeout_ms / 1000.0)
         self._link_changed(False, down, "", f"no heartbeat for {self.table.heartbeat_timeout_ms} ms")
+        if self.link_sockets is not None and refused:
+            rospy.logwarn_once(
+                f"{rospy.get_name()}: the kernel refused TCP_USER_TIMEOUT on the link socket: a cut connection "
+                "lingers until Zenoh's own close (bridge.yaml tcp_user_timeout_ms)"
+            )
         self._watch_session(now_s)
 
     def _transports_listed(self):
