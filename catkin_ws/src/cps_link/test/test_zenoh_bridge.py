@@ -145,24 +145,30 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
                 topic=to,
             )
         )
+
+        def put(payload):
+            # Zenoh's put drops by default when its queue is not served within a millisecond: on a
+            # loaded machine (CI, beside busy loops) the two 18 kB frames and the one after them were
+            # dropped in the keyed peer itself while the 165 B one before them reached the twin (its
+            # log, 3 of 8 runs). The bridges' own publishers of these routes block; so does this peer.
+            session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
         # A new peer's puts reach the twin bridge only once its subscription has been matched: a
         # corrupt frame (rejected at the CRC, before any sequence state) is re-sent until counted.
         assert wait_for(
-            lambda: session.put(key, good[:-3] + b"xyz") or _diag_counter(diagnostics, "corrupt") >= 1,
+            lambda: put(good[:-3] + b"xyz") or _diag_counter(diagnostics, "corrupt") >= 1,
             timeout_s=20,
             poll_s=1.0,
         ), "the keyed peer's corrupt frame was never counted"
-        session.put(
-            key,
+        put(
             encode(
                 Frame(b"i" * 16, 2, math.nan, "cps_msgs/CompressedPointCloud2", "0" * 32, "/intruder", b"", topic=to)
             ),
         )
-        session.put(key, good)
-        session.put(key, good)
+        put(good)
+        put(good)
         # A well-formed frame for another topic under the cloud's key (issue 22): never published there.
-        session.put(
-            key,
+        put(
             encode(
                 Frame(
                     b"i" * 16,
@@ -176,15 +182,10 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
                 )
             ),
         )
-        assert wait_for(
-            lambda: (
-                _diag_counter(diagnostics, "corrupt") >= 1
-                and _diag_counter(diagnostics, "type_mismatch") >= 1
-                and _diag_counter(diagnostics, "duplicates") >= 1
-                and _diag_counter(diagnostics, "drop_wrong_topic") >= 1
-            ),
-            timeout_s=10,
-        ), diagnostics.latest
+        counted = ("corrupt", "type_mismatch", "duplicates", "drop_wrong_topic")
+        assert wait_for(lambda: all(_diag_counter(diagnostics, k) >= 1 for k in counted), timeout_s=10), {
+            k: _diag_counter(diagnostics, k) for k in counted
+        }
         # The intact frame is delivered once; its duplicate, the corrupt and the mistyped one never.
         assert wait_for(lambda: _intruder_checks(clouds), timeout_s=10), "the intact frame was not delivered"
     # Its duplicate was counted above (dropped, never published), so one stays one.
