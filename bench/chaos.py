@@ -8,7 +8,9 @@ steps, a node killed (map server, either bridge, the tissue's encoder or a rate 
 supervisor restarts it), the twin's CPUs saturated for 10 s, a slow viewer on the twin's map.
 After each fault the invariants (cps_harness.chaos) are judged from the mission's own files and
 written as one row: map fresh again, every robot's clouds arriving, teleop reaching the robots,
-no frame to the wrong topic or type, nothing left of a killed process.
+no frame to the wrong topic or type, nothing left of a killed process. A kill never spends a
+process's last restart in the supervisor's window (cps_harness.chaos.RestartBudget, from the
+mission's log): its target is then the first other with one left, named in the row.
 
     python bench/chaos.py [--seed 1] [--faults 50] [--out out/chaos] [--results docs/results/chaos.md]
 
@@ -114,7 +116,9 @@ def run(args):
     fleet_file = write_fleet_with_repeated_routes(out, LAPS)
     from cps_fleet.fleet import load_fleet
 
-    robots = load_fleet(fleet_file).robot_names
+    fleet = load_fleet(fleet_file)
+    robots = fleet.robot_names
+    budget = chaos.RestartBudget(fleet.limits.restart_window_s)
     faults = chaos.draw_faults(args.seed, args.faults)
     mission_dir = os.path.join(out, "mission")
     rows = []
@@ -132,14 +136,23 @@ def run(args):
             before = {k: v for path in diag.values() for k, v in chaos.read_mismatch_counters(path).items()}
             start = time.time()
             described = fault.describe()
-            killed = _kill_target(mission, fault.target) if fault.kind == chaos.KILL else None
-            if killed and killed != fault.target:
-                described += f" (runs in {killed} in this layout)"
-            try:
-                inject(mission, fault, killed)
-                error = None
-            except Exception as exc:  # noqa: BLE001 - a fault that cannot be injected is a row's failure
-                error = f"not injected: {type(exc).__name__}: {exc}"
+            killed = error = None
+            if fault.kind == chaos.KILL:
+                budget.read(mission.log(), start)
+                target = budget.target(fault.target, lambda name: _kill_target(mission, name), start)
+                if target is None:
+                    error = "not injected: no kill target has a restart left in the supervisor's window"
+                else:
+                    killed = _kill_target(mission, target)
+                    if target != fault.target:
+                        described += f" ({fault.target}'s restarts in the window spent: {target} instead)"
+                    if killed != target:
+                        described += f" (runs in {killed} in this layout)"
+            if error is None:
+                try:
+                    inject(mission, fault, killed)
+                except Exception as exc:  # noqa: BLE001 - a fault that cannot be injected is a row's failure
+                    error = f"not injected: {type(exc).__name__}: {exc}"
             end = time.time()
             time.sleep(chaos.RECOVERY_S + chaos.CHECK_WINDOW_S + 1.0)
             row = chaos.judge_fault(
@@ -159,7 +172,7 @@ def run(args):
             row.mismatches = chaos.mismatch_growth(before, after)
             if row.mismatches:
                 row.failures.append(f"frames to the wrong topic or type: {row.mismatches}")
-            if fault.kind == chaos.KILL:
+            if killed:
                 alive = _pids_of(mission, killed)
                 if len(alive) != 1:
                     row.failures.append(f"{len(alive)} {killed} processes after the restart (1 expected)")

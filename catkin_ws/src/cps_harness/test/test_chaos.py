@@ -45,6 +45,43 @@ def _judge(end, ages, arrivals, probes):
     return chaos.judge_fault(chaos.Row(1, "test", end - 1, end), ROBOTS, ages, arrivals, probes, _cloud_topic, PROBE)
 
 
+def _restart_lines(*events):
+    from cps_bringup.supervisor import restart_note
+
+    return "".join(f"[bringup] {label}: {restart_note(-9, n, limit, 1.0)}\n" for label, n, limit in events)
+
+
+def test_a_kill_goes_to_a_process_with_a_restart_left_and_the_window_gives_them_back():
+    """The supervisor ends the mission at a process's death past its restart limit in the window (a
+    crash loop): the soak's kills never spend a process's last restart. cloud_throttle runs in
+    cloud_tissue here, so both draw on one budget."""
+    host = {"cloud_throttle": "cloud_tissue"}.get
+    budget = chaos.RestartBudget(window_s=300.0)
+    assert budget.target("cloud_tissue", lambda n: host(n, n), 0.0) == "cloud_tissue", "never restarted: a kill"
+    log = _restart_lines(("cloud_tissue", 1, 3), ("map_server", 1, 3))
+    budget.read(log, 10.0)
+    log += _restart_lines(("cloud_tissue", 2, 3))
+    budget.read(log, 40.0)
+    budget.read(log, 50.0)  # lines read once
+    assert budget.left("cloud_tissue", 50.0) == 1 and budget.left("map_server", 50.0) == 2
+    assert budget.left("zenoh_bridge_twin", 50.0) is None
+    log += _restart_lines(("cloud_tissue", 3, 3))
+    budget.read(log, 60.0)
+    assert budget.left("cloud_tissue", 60.0) == 0
+    # spent: neither cloud_tissue nor its guest; the first target in KILL_TARGETS' order instead
+    assert budget.target("cloud_throttle", lambda n: host(n, n), 60.0) == chaos.KILL_TARGETS[0]
+    assert budget.target("map_server", lambda n: host(n, n), 60.0) == "map_server"
+    # the window lets the first restart go
+    assert budget.left("cloud_tissue", 310.0) == 1
+    assert budget.target("cloud_tissue", lambda n: host(n, n), 310.0) == "cloud_tissue"
+
+
+def test_no_kill_when_every_target_has_spent_its_restarts():
+    budget = chaos.RestartBudget(window_s=300.0)
+    budget.read(_restart_lines(*((t, 1, 1) for t in chaos.KILL_TARGETS)), 0.0)
+    assert budget.target(chaos.KILL_TARGETS[2], lambda n: n, 1.0) is None
+
+
 def test_a_fault_after_which_everything_recovers_holds():
     row = _judge(100.0, *_window_rows(100.0))
     assert row.held, row.failures

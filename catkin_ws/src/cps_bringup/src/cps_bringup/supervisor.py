@@ -27,6 +27,12 @@ class MasterLost(BringupError):
     """The ROS master is gone: nodes can no longer find each other."""
 
 
+def restart_note(code, restarts_in_window, restart_limit, delay_s):
+    """The event of a restart scheduled after a death (read back from the run's log by
+    cps_harness.chaos.RestartBudget)."""
+    return f"exited with code {code}; restart {restarts_in_window}/{restart_limit} in {delay_s:.1f} s"
+
+
 @dataclasses.dataclass(frozen=True)
 class RestartPolicy:
     """Delay before the n-th restart within `window_s`: backoff_s * 2^(n-1), at most backoff_max_s.
@@ -207,11 +213,7 @@ class Supervisor:
             running.restart_times.append(now)
             running.restarts += 1
             delay_s = self.policy.delay_s(len(running.restart_times))
-            self.record(
-                label,
-                f"exited with code {code}; restart {len(running.restart_times)}/"
-                f"{running.spec.restart_limit} in {delay_s:.1f} s",
-            )
+            self.record(label, restart_note(code, len(running.restart_times), running.spec.restart_limit, delay_s))
             running.restart_at = now + delay_s
             running.up = False
 

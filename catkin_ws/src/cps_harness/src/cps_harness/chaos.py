@@ -17,6 +17,7 @@ import dataclasses
 import json
 import math
 import random
+import re
 from typing import Dict, List, Optional
 
 from cps_link.receive_path import (
@@ -98,6 +99,51 @@ def draw_faults(seed: int, count: int) -> List[Fault]:
         else:
             faults.append(Fault(kind, HOG_S if kind == TWIN_CPU_HOG else VIEWER_S))
     return faults
+
+
+# The supervisor's line for a restart it schedules (cps_bringup.supervisor: "restart n/limit").
+RESTART_LINE = re.compile(r"\[bringup\] (?P<label>\S+): exited with code -?\d+; restart (?P<n>\d+)/(?P<limit>\d+)")
+
+
+class RestartBudget:
+    """The supervisor's restart budget of each process, as the mission's log shows it. A process
+    restarted `limit` times within the window ends the mission at its next death: by design (a
+    crash loop is not restarted forever), so a fourth kill of one process in 300 s tests the
+    supervisor's limit, not recovery. The first seed-2 soak ended that way at its 27th fault
+    (cloud_tissue killed four times, once as cloud_throttle's host)."""
+
+    def __init__(self, window_s: float):
+        self.window_s = window_s
+        self.limits: Dict[str, int] = {}
+        self.restarts_s: Dict[str, List[float]] = {}  # when each restart line was first read
+        self._lines_read = 0
+
+    def read(self, log_text: str, now_s: float):
+        """Take the restart lines of the mission's log not read yet, as of `now_s`."""
+        lines = [m for m in RESTART_LINE.finditer(log_text)]
+        for match in lines[self._lines_read :]:
+            label = match.group("label")
+            self.limits[label] = int(match.group("limit"))
+            self.restarts_s.setdefault(label, []).append(now_s)
+        self._lines_read = len(lines)
+
+    def left(self, label: str, now_s: float) -> Optional[int]:
+        """Restarts `label` has left in the window (None: never restarted, its limit not known yet;
+        every kill target's limit is at least 1)."""
+        if label not in self.limits:
+            return None
+        recent = [t for t in self.restarts_s[label] if now_s - t < self.window_s]
+        return self.limits[label] - len(recent)
+
+    def target(self, drawn: str, host_of, now_s: float) -> Optional[str]:
+        """The kill target for a drawn one: itself while its host has a restart left, else the first
+        of KILL_TARGETS (in their order: the same run, the same choice) whose host has; None when
+        none has."""
+        for name in (drawn, *(t for t in KILL_TARGETS if t != drawn)):
+            left = self.left(host_of(name), now_s)
+            if left is None or left >= 1:
+                return name
+        return None
 
 
 @dataclasses.dataclass
