@@ -156,6 +156,42 @@ def test_a_trains_interval_is_no_overuse():
     assert est2.overuses == 1
 
 
+def test_a_trains_interval_on_a_link_full_all_along_is_the_links_rate():
+    """A train waits behind every data frame: on a full link it trickles through interval after
+    interval. Live after a 60 -> 20 Mbit/s step, eight intervals in a row held a train's bytes with
+    the link's socket full in every sample, and the capacity stayed at 58 Mbit/s for 4 s."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 10)])
+    full = LinkReport(
+        **{
+            **_report(5.0, on_link=True).__dict__,
+            "delivered_mbps": 19.3,
+            "sent_mbps": 19.0,
+            "app_limited": False,
+            "link_busy": True,
+            "link_limited": True,
+        }
+    )
+    est.update(full)
+    assert est.overuses == 1 and est.last_overuse == "link_full"
+    assert est.capacity_mbps == pytest.approx(19.3)
+
+
+def test_without_the_sockets_counters_a_trains_interval_is_never_a_full_link():
+    """The frames' path takes a train's frames out of what was delivered: a sender blocked by a
+    train's burst is no measure of the link there (the socket's path counts every byte)."""
+    settings = ManagerSettings(available_mbps=LINE_MBPS, reserve_fraction=0.04, min_rate_hz=1.0, max_rate_hz=30.0)
+    core = ManagerCore(["scout"], settings, _estimator())
+    for i in range(1, 10):
+        core.on_bridge_report(0.5 * i, 0.5, 0.5, 187_500, 0, 187_500, True, rtt_s=(0.003,))
+    # 1.2 Mbit/s of fleet frames beside a train's burst, the sender blocked all the interval
+    blocked = dict(rtt_s=(0.003,), sender_blocked_s=0.5, probe_bytes=300_000, probe_sent_bytes=300_000)
+    core.on_bridge_report(5.0, 0.5, 0.5, 300_000 + 75_000, 300_000, 75_000, False, **blocked)
+    assert core.estimator.overuses == 0
+    # the same interval without a train: a full link at what it delivered
+    core.on_bridge_report(5.5, 0.5, 0.5, 75_000, 0, 75_000, False, rtt_s=(0.003,), sender_blocked_s=0.5)
+    assert core.estimator.overuses == 1 and core.estimator.last_overuse == "link_full"
+
+
 def test_an_allocation_probe_waits_while_trains_measure():
     est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
     est.update(_report(2.0, train=9.6, sent=231.0))

@@ -410,6 +410,15 @@ class DeliveryRateEstimator:
             self._merged.clear()
             self._samples.clear()
             self._deficit_reports = 0
+            if self._link_full(report, delivered):
+                # ... unless the link was full all along: then what it delivered, the train's frames
+                # included, is its rate. A train waits behind every data frame, so on a full link it
+                # trickles through interval after interval: live after a 60 -> 20 Mbit/s step, 8
+                # intervals in a row held a train's bytes (socket full in every sample, the sender's
+                # queue never empty) and the capacity stayed 58 for 4 s (test_over_link, 2026-11-29).
+                self._overuse("link_full")
+                self._on_overuse(now, delivered, sent, self.step_drain_factor)
+                return self.estimate_mbps
             self.congested = False
             self.capacity_mbps = self._clip(self._bw_max_mbps)
             return self.estimate_mbps
@@ -428,10 +437,7 @@ class DeliveryRateEstimator:
         # is full at what it delivered (the sender's blocked writes kept it from showing a deficit)
         # (while draining too: a cut from a window straddling a step can leave the capacity far
         # above what the link now takes, live 48.9 Mbit/s for 4 s on a 5 Mbit/s link)
-        full = (
-            bool(report.link_limited)
-            and delivered < (1.0 - self.deficit_fraction) * self.capacity_mbps - self.deficit_min_mbps
-        )
+        full = self._link_full(report, delivered)
         app_limited = report.app_limited
         if app_limited is None:
             # inferred (BBR: in flight below what the pacing allowed): the sender used clearly less
@@ -451,8 +457,7 @@ class DeliveryRateEstimator:
         busy = report.link_busy if report.link_busy is not None else not app_limited
         self.congested = deficit or full or (rtt_overuse and busy)
         if self.congested:
-            self.last_overuse = "deficit" if deficit else "link_full" if full else "rtt"
-            self.overuse_reasons[self.last_overuse] += 1
+            self._overuse("deficit" if deficit else "link_full" if full else "rtt")
         window_delivered, window_sent = self._window(now, report.interval_s, delivered, sent)
         if self.congested:
             # a step (a large deficit, a sender blocked by the link): this interval is the new link;
@@ -651,6 +656,18 @@ class DeliveryRateEstimator:
         else:
             self._set_mode("cruise", report.now_s)
             self.estimate_mbps = measured
+
+    def _link_full(self, report, delivered):
+        """A link-limited interval that delivered clearly less than the capacity believed."""
+        return (
+            bool(report.link_limited)
+            and delivered < (1.0 - self.deficit_fraction) * self.capacity_mbps - self.deficit_min_mbps
+        )
+
+    def _overuse(self, reason):
+        self.congested = True
+        self.last_overuse = reason
+        self.overuse_reasons[reason] += 1
 
     def _on_overuse(self, now, delivered, sent, drain_factor=DRAIN_FACTOR):
         """GCC: the link is full, so what it delivered is its rate; cut the target to 0.85 x it

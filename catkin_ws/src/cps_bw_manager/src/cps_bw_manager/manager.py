@@ -868,11 +868,15 @@ class ManagerCore:
         else:
             delivered_interval_s = interval_s
         socket_full = _finite(sender_socket_full) and sender_socket_full >= LINK_LIMITED_FRACTION
+        train_on_link = bool(probe_bytes) or (_finite(probe_sent_bytes) and probe_sent_bytes > 0)
         if _finite(sender_socket_full):
             link_limited = sender_socket_full >= LINK_FULL_STEP_FRACTION
         else:
+            # a train's frames are taken out of the frames' delivered bytes above: without the
+            # socket's counters a train's interval says nothing of a full link
             link_limited = (
-                _finite(sender_blocked_s)
+                not train_on_link
+                and _finite(sender_blocked_s)
                 and _positive(sender_interval_s)
                 and sender_blocked_s >= LINK_LIMITED_FRACTION * sender_interval_s
             )
@@ -907,7 +911,7 @@ class ManagerCore:
                 link_limited=link_limited,
                 train_mbps=mbps(probe_train_bytes, probe_train_spread_s) if has_train else math.nan,
                 train_sent_mbps=float(probe_train_sent_mbps) if has_train else math.nan,
-                train_on_link=bool(probe_bytes) or (_finite(probe_sent_bytes) and probe_sent_bytes > 0),
+                train_on_link=train_on_link,
             )
         )
 
