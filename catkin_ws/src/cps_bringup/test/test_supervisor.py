@@ -3,6 +3,7 @@ with nothing left running."""
 
 import os
 import re
+import signal
 import socket
 import subprocess
 import sys
@@ -527,3 +528,38 @@ def test_a_process_naming_the_mission_folder_after_the_stop_is_killed_and_named(
         if left.poll() is None:
             left.kill()
             left.wait()
+
+
+@pytest.mark.parametrize("stop_on_signals", [True, False])
+def test_the_bringup_stops_on_sigint_even_when_started_with_it_ignored(stop_on_signals):
+    """A process started in the background of a non-interactive shell inherits SIGINT ignored, and
+    Python keeps ignoring it: the chaos soak's bringup did not stop on its harness's SIGINT. The
+    bringup installs its handler itself (cli._stop_on_signals); without it the SIGINT is lost."""
+    code = (
+        "import sys, time\n"
+        "from cps_bringup.cli import _stop_on_signals\n"
+        f"if {stop_on_signals}:\n"
+        "    _stop_on_signals()\n"
+        "print('ready', flush=True)\n"
+        "try:\n"
+        "    time.sleep(30)\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.exit(130)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code],
+        stdout=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGINT)
+        if stop_on_signals:
+            assert proc.wait(5) in (130, -signal.SIGINT)  # -2: interrupted before its try
+        else:
+            time.sleep(1.0)
+            assert proc.poll() is None, "the premise: an inherited SIG_IGN outlives Python's start"
+    finally:
+        proc.kill()
+        proc.wait()

@@ -344,10 +344,16 @@ def _checked_record_link_only(args, sides):
     return True
 
 
-def _terminate_on_sigterm():
+def _stop_on_signals():
+    """SIGINT and SIGTERM end the mission as Ctrl-C does (the map saved, every node stopped). SIGINT
+    explicitly: a process started in the background of a non-interactive shell inherits SIGINT
+    ignored, and Python then keeps ignoring it (a chaos soak's bringup run that way did not stop on
+    its harness's SIGINT and was killed 240 s later; rospy installs its own handler the same way)."""
+
     def handler(signum, frame):
         raise KeyboardInterrupt(f"signal {signum}")
 
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, handler)
 
 
@@ -865,7 +871,7 @@ def _link_context(rate, log, scenario_name=None, name=None):
 
 def main(argv=None):
     args = build_parser().parse_args(argv)
-    _terminate_on_sigterm()
+    _stop_on_signals()
     try:
         result = run_mission(args)
     except BringupError as exc:
