@@ -145,7 +145,8 @@ def run(args):
                 else:
                     killed = _kill_target(mission, target)
                     if target != fault.target:
-                        described += f" ({fault.target}'s restarts in the window spent: {target} instead)"
+                        spent = _kill_target(mission, fault.target)
+                        described += f" ({spent} has no restart left in the supervisor's window: {target} instead)"
                     if killed != target:
                         described += f" (runs in {killed} in this layout)"
             if error is None:
