@@ -319,46 +319,34 @@ def test_a_peer_heard_while_the_session_lists_no_transport_to_it_is_an_orphaned_
     assert not health.orphaned(11.0, after_s=0.3) and not health.orphaned(12.0, after_s=0.3)
 
 
-def test_a_transport_kept_through_an_outage_is_stale_once_the_peers_lease_ran_out():
+def test_a_transport_kept_through_an_outage_onto_a_new_connection_is_stale():
     """The chaos soak's cross-wired frames: a put blocked in a 1.1 s cut held the robots' transport
-    open while the twin's lease ran out; the restored link joined the old transport, and Zenoh
-    refused the twin's re-declared key expressions. Kept: the same peer listed at every look since
-    the link went down, and the socket silent longer than the lease (in the cut), or the link back
-    on a new connection. A peer that was only slow keeps the socket talking and the connection; one
-    whose transport closed, or that reopened (another id), starts both sides afresh."""
-    z, lease = ("twin-zid",), 0.6
+    open while the twin's lease ran out; the restored link joined the old transport on a new
+    connection, and Zenoh refused the twin's re-declared key expressions. Kept: the same peer
+    listed at every look through the outage and a new connection. A peer that was only slow keeps
+    the connection; one whose transport closed, or that reopened (another id), starts both sides
+    afresh."""
+    z = ("twin-zid",)
 
-    def outage(looks, last_bytes_s=2.3):
-        """Up at 1.0; the socket's last bytes at last_bytes_s; down at 3.0; then `looks`:
-        (peers listed, connections, socket bytes grew) every 0.1 s from 3.1."""
+    def outage(listings, connections_at_restore, first_connections=frozenset({7})):
         health = LinkHealth(started_s=0.0)
         assert health.token_put("twin", 1.0)
-        health.socket_bytes(100, 1.0, gap_s=0.7)
-        health.transports_listed(z, 1.5, {7})
-        health.socket_bytes(200, last_bytes_s, gap_s=0.7)
-        assert not health.kept(2.9, lease, {7})  # up all along: no outage
+        health.transports_listed(z, 1.5, first_connections)
+        assert not health.kept(first_connections)  # up all along: no outage
         assert health.expire(3.0, timeout_s=0.7)  # no heartbeat for 0.7 s: down
-        received = 200
-        for i, (peers, connections, talks) in enumerate(looks):
-            now_s = 3.1 + 0.1 * i
-            received += 100 if talks else 0
-            health.socket_bytes(received, now_s, gap_s=0.7)
-            health.transports_listed(peers, now_s, connections)
-        return health, now_s
+        for i, (peers, connections) in enumerate(listings):
+            health.transports_listed(peers, 3.1 + 0.1 * i, connections)
+        return health, health.kept(connections_at_restore)
 
-    health, now_s = outage([(z, {7}, False), (z, set(), False)])
-    assert health.kept(now_s, lease, set()), "in the cut: silent 0.9 s, the transport still listed"
-    assert health.session_closed(now_s) is False and not health.kept(now_s, lease, set())  # reopened
-    health, now_s = outage([(z, {7}, True), (z, {7}, True)], last_bytes_s=2.9)
-    assert not health.kept(now_s, lease, {7}), "a slow peer: its keep-alives arrive, the same connection"
-    health, now_s = outage([(z, {7}, False), ((), set(), False), (z, {8}, True)])
-    assert not health.kept(now_s, lease, {8}), "the transport closed in the outage: both sides afresh"
-    health, now_s = outage([(z, {7}, False), (("twin-zid-2",), {8}, True)])
-    assert not health.kept(now_s, lease, {8}), "the peer reopened: another id"
-    # no look in the cut found the silence (a short cut, late ticks): back on a new connection
-    health, now_s = outage([(z, {7}, False), (z, {8}, True)], last_bytes_s=2.7)
-    assert not health.kept(3.15, lease, {7})  # silent 0.45 s, the old connection: not yet
-    assert health.heard("twin", 3.3) and health.kept(3.3, lease, {8}), "up again on a new connection"
+    cut = [(z, {7}), (z, set()), (z, set())]
+    assert outage(cut, {8})[1], "the old connection ended, a new one joined the kept transport"
+    health, kept = outage(cut, {8})
+    assert health.heard("twin", 4.0) and health.kept({8})  # up again: still kept until a reopen
+    assert health.session_closed(4.1) and not health.kept({9})  # the reopened session keeps nothing
+    assert not outage([(z, {7}), (z, {7})], {7})[1], "a slow peer: the same connection, nothing stale"
+    assert not outage([(z, {7}), ((), set()), (z, set())], {8})[1], "the transport closed in the outage"
+    assert not outage([(z, {7}), (("twin-zid-2",), {8})], {8})[1], "the peer reopened: another id"
+    assert not outage(cut, set())[1], "no connection yet: the link is not back"
 
 
 def test_the_socket_talks_from_its_first_bytes_after_a_silence_and_the_first_heartbeat_is_timed():

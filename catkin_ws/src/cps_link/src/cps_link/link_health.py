@@ -148,20 +148,15 @@ class LinkHealth:
             return False
         return max(self.last_heard.values(), default=-math.inf) > since_s
 
-    def kept(self, now_s, lease_s, connections):
-        """The session has listed a transport to the same peer at every look since the link went
-        down, and either the link socket has received nothing for longer than the peer's lease (the
-        peer has dropped its end of the transport: at the restore this side's routing state would be
-        stale), or the link is back on a new connection (none of `connections` was there when the
-        outage began: the peer started afresh on it). A peer that was only slow (its heartbeats late,
-        its transport's keep-alives arriving) keeps the socket talking and the connection: nothing
-        is stale."""
-        if not self.outage_listed:
-            return False
-        if self.outage_open and now_s - self.socket_heard_s > lease_s:
-            return True
+    def kept(self, connections):
+        """The link is back on a new connection (none of `connections` was there when the outage
+        began) after an outage through which the session listed a transport to the same peer at
+        every look: this side kept that transport's routing state while the peer, whose lease ran
+        out and whose end of the old connection closed, started afresh. (A peer that was only slow,
+        its heartbeats late, keeps the connection: nothing is stale.)"""
         return (
-            self.outage_connections is not None
+            bool(self.outage_listed)
+            and self.outage_connections is not None
             and bool(connections)
             and not frozenset(connections) & self.outage_connections
         )

@@ -313,14 +313,12 @@ class ZenohBridge:
           on the cut link; the restore lets it finish) and then removes the new one from its
           transport manager by the peer's id: what arrives is still delivered, what this side puts
           finds no transport (the Zenoh debug log of a stalled restore, cps_link README).
-        - kept (a lane with a link socket read, either side): the session has listed a transport
-          to the same peer at every look since the link went down, and its socket has been silent
-          longer than the lease (the peer has dropped its end) or the link is back on a new
-          connection. A put blocked in the cut holds this side's transport open (wait_before_close)
-          while the peer's lease runs out: at the restore Zenoh attaches the new link to the old
-          transport, refuses the peer's re-declared key expressions ("Remapping unsupported") and
-          sends under the old ids, which the peer resolves to other key expressions (the chaos
-          soak's cross-wired frames). Reopened in the cut, both sides start afresh at the restore.
+        - kept (a lane with a link socket read, either side): the session listed a transport to
+          the same peer at every look through an outage, and the link is back on a new connection. A put
+          blocked in the cut held this side's transport open (wait_before_close) while the peer's
+          lease ran out: Zenoh attaches the restored link to the old transport, refuses the peer's
+          re-declared key expressions ("Remapping unsupported") and sends under the old ids, which
+          the peer resolves to other key expressions (the chaos soak's cross-wired frames).
         - unheard (unheard_after_ms, the robots' main lane, whose heartbeats the twin echoes): the
           twin is heard but has echoed none of this side's heartbeats since the link came up; sooner
           than the twin's deaf rule for the same stall, so that one side reopens.
@@ -343,9 +341,7 @@ class ZenohBridge:
                 since_s = -math.inf if self.side == TWIN else None
             # None: the transport is not talking (a cut), or a robots' lane without a socket read
             talking = since_s is not None
-            kept = self.link_sockets is not None and self.health.kept(
-                now_s, self.table.lease_ms / 1000.0, self.link_sockets.connections()
-            )
+            kept = self.link_sockets is not None and self.health.kept(self.link_sockets.connections())
             deaf = self.health.deaf(now_s, after_s, since_s) if talking else []
             unheard = (
                 talking
@@ -359,9 +355,8 @@ class ZenohBridge:
             )
         elif kept:
             why = (
-                f"the Zenoh session keeps its transport to the {self.peer_side} bridge through the outage while "
-                "the peer's lease ran out: its routing state would be stale at the restore (the peer's key "
-                "expressions cannot be remapped)"
+                f"the Zenoh session kept its transport to the {self.peer_side} bridge through the outage while "
+                "the peer's lease ran out: its routing state is stale (the peer's key expressions cannot be remapped)"
             )
         elif unheard:
             why = f"{self.peer_side} bridge is heard but echoed none of this side's heartbeats for {self.table.unheard_after_ms} ms"
