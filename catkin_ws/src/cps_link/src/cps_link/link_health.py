@@ -4,15 +4,10 @@ behind a full send buffer may not see the session end until the link is back. A 
 its heartbeats stay away is a session that carries one way only (`deaf`); so is a peer heard while
 its echoes of this side's heartbeats never come back (`unheard`, where the peer echoes them), and
 so is a peer heard while the session lists no transport to it (`orphaned`: Zenoh's close of the
-transport before an outage, finishing after the new one opened, removed the new one). And a session
-that listed one transport to the peer through a whole outage (`kept`) holds routing state the peer,
-whose lease ran out, no longer has: Zenoh attaches the new link to the old transport, refuses the
-peer's re-declared key expressions ("Resource N remapped. Remapping unsupported!") and its samples
-reach the peer under another key expression (the chaos soak's cross-wired frames)."""
+transport before an outage, finishing after the new one opened, removed the new one)."""
 
 import dataclasses
 import math
-from typing import FrozenSet, Optional
 
 
 @dataclasses.dataclass
@@ -39,12 +34,6 @@ class LinkHealth:
     # since when the Zenoh session has listed no transport to a peer while the link was up (None:
     # it lists one, or the link is down)
     unlisted_since_s: float = None
-    # the peers' Zenoh ids the session listed at every look since the link last went down, and the
-    # link connections (socket inodes) at the first of those looks (None: not looked at since);
-    # looked at until the link is up again
-    outage_listed: Optional[FrozenSet[str]] = None
-    outage_connections: Optional[FrozenSet[int]] = None
-    outage_open: bool = False
 
     def __post_init__(self):
         if self.since_s is None:
@@ -109,7 +98,6 @@ class LinkHealth:
         self.ever_up = True
         self.since_s = now_s
         self.unlisted_since_s = None  # a new up period: what the old session listed says nothing
-        self.outage_open = False
         return True
 
     def token_put(self, name, now_s):
@@ -124,15 +112,8 @@ class LinkHealth:
         self.token_unheard_since.pop(name, None)
         return self.peer_gone(name, now_s)
 
-    def transports_listed(self, peers, now_s, connections=()):
-        """The peers' Zenoh ids the session listed transports to at now_s, and the link connections
-        (socket inodes) then."""
-        count = len(peers)
-        if self.outage_open:
-            listed = frozenset(peers)
-            self.outage_listed = listed if self.outage_listed is None else self.outage_listed & listed
-            if self.outage_connections is None:
-                self.outage_connections = frozenset(connections)
+    def transports_listed(self, count, now_s):
+        """How many transports to peers the Zenoh session listed at now_s."""
         if count or not self.up:
             self.unlisted_since_s = None
         elif self.unlisted_since_s is None:
@@ -148,19 +129,6 @@ class LinkHealth:
             return False
         return max(self.last_heard.values(), default=-math.inf) > since_s
 
-    def kept(self, connections):
-        """The link is back on a new connection (none of `connections` was there when the outage
-        began) after an outage through which the session listed a transport to the same peer at
-        every look: this side kept that transport's routing state while the peer, whose lease ran
-        out and whose end of the old connection closed, started afresh. (A peer that was only slow,
-        its heartbeats late, keeps the connection: nothing is stale.)"""
-        return (
-            bool(self.outage_listed)
-            and self.outage_connections is not None
-            and bool(connections)
-            and not frozenset(connections) & self.outage_connections
-        )
-
     def deaf(self, now_s, after_s, since_s=float("-inf")):
         """The peers whose token is there but that were not heard for after_s, counted from their
         token's coming or their last heartbeat, and from `since_s` at the earliest (since when the
@@ -168,11 +136,8 @@ class LinkHealth:
         return sorted(n for n in self.tokens if now_s - max(self.last_heard.get(n, now_s), since_s) > after_s)
 
     def session_closed(self, now_s):
-        """This side closed its session: every token goes with it; True when the link changed to down.
-        The new session keeps nothing of the old one's transports."""
-        down = any([self.token_deleted(n, now_s) for n in sorted(self.tokens)])
-        self.outage_listed, self.outage_connections, self.outage_open = None, None, False
-        return down
+        """This side closed its session: every token goes with it; True when the link changed to down."""
+        return any([self.token_deleted(n, now_s) for n in sorted(self.tokens)])
 
     def peer_gone(self, name, now_s):
         """A peer's token disappeared; True when the link changed to down (one more outage)."""
@@ -184,5 +149,4 @@ class LinkHealth:
         self.outages += 1
         self.since_s = now_s
         self.unlisted_since_s = None
-        self.outage_listed, self.outage_connections, self.outage_open = None, None, True
         return True

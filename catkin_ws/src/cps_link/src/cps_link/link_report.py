@@ -481,11 +481,6 @@ class LinkSockets:
             self._fds.pop(inode, None)
         return out
 
-    def connections(self):
-        """The link connections (socket inodes) found at the last read: a new inode is a new TCP
-        connection."""
-        return frozenset(self._last)
-
     def end_connections(self):
         """Shut down this process's link sockets (both ways; their owner sees the end of its
         connection and closes it); how many. For a session closed to be reopened: a transport Zenoh

@@ -306,19 +306,13 @@ class ZenohBridge:
     # --- the session: reopened when it carries one way only ----------------------------------
     def _watch_session(self, now_s):
         """Reopen the session (on a thread of its own) when it carries the other side's way only.
-        Four rules, the first that holds:
+        Three rules, the first that holds:
         - orphaned (bridge.yaml orphan_after_ms, any lane, either side): the peer is heard but the
           session lists no transport to it. Zenoh 1.10.2's close of the transport from before an
           outage can finish after the new one to the same peer opened (the old link's close waits
           on the cut link; the restore lets it finish) and then removes the new one from its
           transport manager by the peer's id: what arrives is still delivered, what this side puts
           finds no transport (the Zenoh debug log of a stalled restore, cps_link README).
-        - kept (a lane with a link socket read, either side): the session listed a transport to
-          the same peer at every look through an outage, and the link is back on a new connection. A put
-          blocked in the cut held this side's transport open (wait_before_close) while the peer's
-          lease ran out: Zenoh attaches the restored link to the old transport, refuses the peer's
-          re-declared key expressions ("Remapping unsupported") and sends under the old ids, which
-          the peer resolves to other key expressions (the chaos soak's cross-wired frames).
         - unheard (unheard_after_ms, the robots' main lane, whose heartbeats the twin echoes): the
           twin is heard but has echoed none of this side's heartbeats since the link came up; sooner
           than the twin's deaf rule for the same stall, so that one side reopens.
@@ -341,7 +335,6 @@ class ZenohBridge:
                 since_s = -math.inf if self.side == TWIN else None
             # None: the transport is not talking (a cut), or a robots' lane without a socket read
             talking = since_s is not None
-            kept = self.link_sockets is not None and self.health.kept(self.link_sockets.connections())
             deaf = self.health.deaf(now_s, after_s, since_s) if talking else []
             unheard = (
                 talking
@@ -352,11 +345,6 @@ class ZenohBridge:
             why = (
                 f"{self.peer_side} bridge is heard but the Zenoh session has listed no transport to it "
                 f"for {self.table.orphan_after_ms} ms"
-            )
-        elif kept:
-            why = (
-                f"the Zenoh session kept its transport to the {self.peer_side} bridge through the outage while "
-                "the peer's lease ran out: its routing state is stale (the peer's key expressions cannot be remapped)"
             )
         elif unheard:
             why = f"{self.peer_side} bridge is heard but echoed none of this side's heartbeats for {self.table.unheard_after_ms} ms"
@@ -774,8 +762,7 @@ class ZenohBridge:
         now_s = time.time()
         with self.lock:
             if listed is not None:
-                connections = self.link_sockets.connections() if self.link_sockets is not None else ()
-                self.health.transports_listed(listed, now_s, connections)
+                self.health.transports_listed(listed, now_s)
             if self.link_sockets is not None:
                 received = self.link_sockets.totals()["bytes_received"]
                 self.health.socket_bytes(received, now_s, self.table.heartbeat_timeout_ms / 1000.0)
@@ -790,9 +777,9 @@ class ZenohBridge:
         self._watch_session(now_s)
 
     def _transports_listed(self):
-        """The Zenoh ids of the peers the session lists transports to (None: closed under a reopen)."""
+        """How many transports to peers the Zenoh session lists (None: closed under a reopen)."""
         try:
-            return [str(zid) for zid in self.z.session.info.peers_zid()]
+            return len(list(self.z.session.info.peers_zid()))
         except Exception:  # zenoh's ZError: the session closed while it is reopened
             return None
 
