@@ -350,9 +350,11 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
     for config in (twin, robots):
         assert config["transport"]["shared_memory"]["enabled"] is False
         assert config["transport"]["link"]["tx"]["batch_size"] == table.batch_bytes == 16384
-        # a cut ends the sending side's transport after 2 s of a blocked put, not Zenoh's 5 s
+        # a cut ends the sending side's transport after 500 ms of a blocked put, not Zenoh's 5 s:
+        # within the lease, as the other side's ends
         block = config["transport"]["link"]["tx"]["queue"]["congestion_control"]["block"]
-        assert block["wait_before_close"] == 1000 * table.block_wait_before_close_ms == 2_000_000
+        assert block["wait_before_close"] == 1000 * table.block_wait_before_close_ms == 500_000
+        assert table.block_wait_before_close_ms < table.lease_ms
     assert table.kernel_unsent_bytes == 16384 and table.report_ms == 500
     assert table.reopen_after_ms == 5000 > table.unheard_after_ms == 2000 > table.heartbeat_timeout_ms
     assert table.orphan_after_ms == 300 >= 2 * table.heartbeat_ms

@@ -112,7 +112,7 @@ class BridgeTable:
     tcp_user_timeout_ms: int = 1000
     # Zenoh closes a transport whose put with congestion block has waited this long for room in
     # its queue, ms (its wait_before_close): in a cut, what ends the transport on the sending side.
-    block_wait_before_close_ms: int = 2000
+    block_wait_before_close_ms: int = 500
     # The robots' bridge's link report period, ms (cps_link.link_report).
     report_ms: int = 500
 
