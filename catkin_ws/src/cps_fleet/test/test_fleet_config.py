@@ -60,8 +60,8 @@ def _line_of(path, needle):
         ("node_log_max_mbytes: 20.0", "node_log_max_mbytes: -5", "node_log_max_mbytes: -5.0 is outside"),
         (
             "restart_backoff_max_s: 30.0",
-            "restart_backoff_max_s: 0.5",
-            "restart_backoff_max_s (0.5) < restart_backoff_s",
+            "restart_backoff_max_s: 0.1",
+            "restart_backoff_max_s (0.1) < restart_backoff_s",
         ),
         ("restart_window_s: 300.0", "restart_window_s: 0", "restart_window_s: 0.0 is outside (0.0"),
         (
