@@ -227,6 +227,8 @@ def test_bad_table_names_file_and_line(tmp_path):
         # the orphan rule needs two heartbeats, and comes before the unheard one
         "orphan_after_ms: 150",
         "orphan_after_ms: 2000",
+        # a blocked put ends its transport within the lease, as the peer's lease ends the peer's
+        "block_wait_before_close_ms: 2000",
     ):
         path.write_text(base + topic + setting + "\n")
         with pytest.raises(ConfigError, match=setting.split(":")[0]):

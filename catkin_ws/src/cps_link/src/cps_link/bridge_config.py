@@ -282,10 +282,15 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
     orphan_ms = top.get("orphan_after_ms", int, default=BridgeTable.orphan_after_ms)
     # the orphan rule needs a heartbeat after the session stopped listing the peer's transport
     beat_ms = top.get("heartbeat_ms", int)
+    # a blocked put ends its transport within the lease, as the peer's lease ends the peer's: else
+    # the sending side's transport outlives a short cut and its routing state goes stale (README)
+    block_ms = top.get("block_wait_before_close_ms", int, default=BridgeTable.block_wait_before_close_ms)
+    lease_ms = top.get("lease_ms", int)
     for key, value, low, high in (
         ("reopen_after_ms", reopen_ms, timeout_ms + 1, 600_000),
         ("unheard_after_ms", unheard_ms, timeout_ms + 1, reopen_ms - 1),
         ("orphan_after_ms", orphan_ms, 2 * beat_ms, unheard_ms - 1),
+        ("block_wait_before_close_ms", block_ms, 100, lease_ms - 1),
     ):
         if not low <= value <= high:
             if top.has(key):
