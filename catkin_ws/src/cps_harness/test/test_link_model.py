@@ -75,6 +75,17 @@ def test_settle_time_is_from_the_first_report_of_the_final_in_band_stretch():
     assert math.isinf(settle_time_s(trace[:3], 0.0, 1.5))
 
 
+def test_the_goodput_is_the_rate_less_loss_and_the_other_way_and_can_be_the_judges_truth():
+    """A shared medium at 5 Mbit/s with 2 % loss and 1 Mbit/s the other way carries 3.9 this way:
+    a delivery-rate estimate at 3.9 is 22 % off the tc rate and right on what the link carries."""
+    trace = LinkModel(steps_capacity([(0, 5)]), lambda t: 30.0, loss_fraction=0.02, reverse_mbps=1.0).run(
+        _Fixed(3.9), 3.0
+    )
+    assert all(r.goodput_mbps == pytest.approx(3.9) for r in trace)
+    assert math.isinf(settle_time_s(trace, 0.0, 3.0))
+    assert settle_time_s(trace, 0.0, 3.0, truth="goodput_mbps") == pytest.approx(0.5)
+
+
 def test_ingress_over_capacity_first_and_longest_runs():
     trace = [
         _row(0.5, 10, 10, ingress=30),

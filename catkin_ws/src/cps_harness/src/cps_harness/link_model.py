@@ -54,6 +54,9 @@ class TraceRow:
     queue_mbit: float
     link_up: bool  # the link health's view (the subject is paused while False)
     receiver_behind: bool
+    # what the link carries this way at the report: the tc rate less the loss and, on a shared
+    # medium, the other way's traffic (all a delivery-rate estimate can see); 0 during an outage
+    goodput_mbps: float = math.nan
 
 
 def steps_capacity(steps: Sequence[Tuple[float, float]]) -> Callable[[float], float]:
@@ -231,20 +234,23 @@ class LinkModel:
                     queue,
                     up,
                     acc["behind"],
+                    link_rate,
                 )
             )
             acc = None
         return trace
 
 
-def settle_time_s(trace: Sequence[TraceRow], step_s, end_s, tolerance=0.15):
+def settle_time_s(trace: Sequence[TraceRow], step_s, end_s, tolerance=0.15, truth="capacity_mbps"):
     """Seconds from `step_s` to the first report from which the capacity estimate stays within
-    +-tolerance of the true capacity up to `end_s` (rows while the link is down are not judged;
-    a report covers the interval before it, so 0.5 s is the soonest); inf if it never settles."""
+    +-tolerance of the truth (`truth`: the row's field, the tc rate by default, or `goodput_mbps`)
+    up to `end_s` (rows while the link is down are not judged; a report covers the interval before
+    it, so 0.5 s is the soonest); inf if it never settles."""
     rows = [r for r in trace if step_s < r.t_s <= end_s and r.link_up and r.capacity_mbps > 0]
     settled_at = math.inf
     for r in rows:  # the first report of the final stretch within the band
-        inside = abs(r.estimate_mbps - r.capacity_mbps) <= tolerance * r.capacity_mbps
+        true = getattr(r, truth)
+        inside = abs(r.estimate_mbps - true) <= tolerance * true
         settled_at = (r.t_s if math.isinf(settled_at) else settled_at) if inside else math.inf
     return settled_at - step_s
 
