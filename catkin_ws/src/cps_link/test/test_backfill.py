@@ -16,6 +16,11 @@ from cps_ros.processes import free_port
 ROBOT = "scout"
 
 
+def _link_lines(output):
+    """A bridge's link up/down and reopen lines."""
+    return [line for line in output.splitlines() if "link up" in line or "link down" in line or "reopen" in line]
+
+
 @pytest.mark.timeout(150)
 def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots_graph, managed_cloud_load, tmp_path):
     from geometry_msgs.msg import TransformStamped
@@ -64,7 +69,17 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
     # back. (Not bounded by the stop's wall time: a cloud published just before it can reach the robots'
     # bridge after it has seen the twin go; under CI's load one did, 1.06 s before the stop returned.)
     gap = (last_live_before, first_live_after)
-    assert all(last_live_before < s < first_live_after for s in stamps), (gap, t_stop, stamps)
+    # final27 (a full run): the first kept keyframe was 0.2 s older than the last live cloud the twin
+    # had before the stop; not reproduced in 8 runs beside two busy loops. A late heartbeat under load
+    # would make the robots' bridge see the link down before the stop and keep a keyframe then: the
+    # message carries both bridges' link lines, so that the next failure says which.
+    assert all(last_live_before < s < first_live_after for s in stamps), (
+        gap,
+        t_stop,
+        stamps,
+        _link_lines(robots_graph.output("br")),
+        _link_lines(ros.output("bt")),
+    )
     assert stamps[0] - t_stop < 2.0, (t_stop, stamps)  # kept from the start of the outage
     assert all(b - a >= 0.99 for a, b in zip(stamps, stamps[1:])), stamps  # one per keyframe period
     assert 3 <= len(stamps) <= 12, stamps
