@@ -269,7 +269,6 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         ("kernel_unsent_bytes", 0, 2**31),
         ("report_ms", 100, 5000),
         ("tcp_user_timeout_ms", 0, 600_000),
-        ("block_wait_before_close_ms", 100, 60_000),
     )
     for key, low, high in limits:
         if top.has(key) and not low <= top.get(key, int) <= high:
@@ -305,7 +304,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         endpoint_port=top.get("endpoint_port", int),
         command_port=top.get("command_port", int),
         key_prefix=top.get("key_prefix", str),
-        lease_ms=top.get("lease_ms", int),
+        lease_ms=lease_ms,
         keep_alive=top.get("keep_alive", int),
         retry_max_ms=top.get("retry_max_ms", int),
         heartbeat_ms=top.get("heartbeat_ms", int),
@@ -320,9 +319,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         unheard_after_ms=unheard_ms,
         orphan_after_ms=orphan_ms,
         tcp_user_timeout_ms=top.get("tcp_user_timeout_ms", int, default=BridgeTable.tcp_user_timeout_ms),
-        block_wait_before_close_ms=top.get(
-            "block_wait_before_close_ms", int, default=BridgeTable.block_wait_before_close_ms
-        ),
+        block_wait_before_close_ms=block_ms,
     )
 
 
