@@ -409,3 +409,28 @@ def test_a_probe_the_fleet_is_still_ramping_into_goes_on_until_it_proves_the_lin
     t += 0.5
     est.update(LinkReport(t, 0.5, 21.8, 21.8, app_limited=False, rtt_s=(0.002,), link_busy=False))
     assert est.capacity_mbps > 19.3 and est.estimate_mbps >= 2.0 * 19.3  # kept: the next doubles
+
+
+def test_one_intervals_deficit_seen_twice_in_the_merged_window_is_no_overuse():
+    """Live (test_over_link, final29): on a 19.3 Mbit/s link an app-limited fleet's one interval
+    put 1.5 Mbit/s more on the socket than was acked (a large frame written at its end), the next
+    sent and acked alike (13.7). The merged second held the first interval's deficit on both
+    reports, which "held on two reports" and cut the capacity by GCC's 0.85 to 16.4 for 3 s. A
+    report counts towards the run only if its own interval's queue grew too; a queue that grows in
+    each interval is still overuse on the second."""
+    from cps_bw_manager.estimation import LINK_REPORT_OPTIONS, LinkReport
+
+    est = DeliveryRateEstimator(19.3, line_rate_mbps=60.0, **LINK_REPORT_OPTIONS)
+    t = 0.0
+    for _ in range(6):
+        t += 0.5
+        est.update(LinkReport(t, 0.5, 14.0, 14.0, app_limited=True, rtt_s=(0.002,), link_busy=False))
+    t += 0.5
+    est.update(LinkReport(t, 0.5, 14.0, 15.7, app_limited=True, rtt_s=(0.002,), link_busy=False))
+    t += 0.5
+    est.update(LinkReport(t, 0.5, 13.7, 13.7, app_limited=True, rtt_s=(0.002,), link_busy=False))
+    assert est.overuses == 0 and est.capacity_mbps == pytest.approx(19.3)
+    for _ in range(2):  # a queue growing in each interval: overuse on the second
+        t += 0.5
+        est.update(LinkReport(t, 0.5, 14.0, 15.7, app_limited=False, rtt_s=(0.002,), link_busy=True))
+    assert est.overuses == 1 and est.last_overuse == "deficit"
