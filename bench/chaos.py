@@ -12,7 +12,7 @@ no frame to the wrong topic or type, nothing left of a killed process. A kill ne
 process's last restart in the supervisor's window (cps_harness.chaos.RestartBudget, from the
 mission's log): its target is then the first other with one left, named in the row.
 
-    python bench/chaos.py [--seed 1] [--faults 50] [--out out/chaos] [--results docs/results/chaos.md]
+    python bench/chaos.py [--seed 1] [--faults 50] [--kinds kill,...] [--out out/chaos] [--results docs/results/chaos.md]
 
 Needs root (the shaped link). Machine-bound (2 cores); run it alone, under the heavy lock.
 """
@@ -119,7 +119,7 @@ def run(args):
     fleet = load_fleet(fleet_file)
     robots = fleet.robot_names
     budget = chaos.RestartBudget(fleet.limits.restart_window_s)
-    faults = chaos.draw_faults(args.seed, args.faults)
+    faults = chaos.draw_faults(args.seed, args.faults, args.kinds)
     mission_dir = os.path.join(out, "mission")
     rows = []
     argv = ["--fleet", fleet_file, "--link", LINK_RATE, "--duration", 6 * 3600]
@@ -196,7 +196,7 @@ def report(args, rows):
     lines = [
         "# Chaos soak (bench/chaos.py)",
         "",
-        f"Seed {args.seed}, {args.faults} faults asked, {len(rows)} injected into one 4-robot mission across a "
+        f"Seed {args.seed}, {args.faults} faults of {', '.join(args.kinds)} asked, {len(rows)} injected into one 4-robot mission across a "
         f"{LINK_RATE} shaped link (Zenoh bridges): **{held} of {len(rows)} with every invariant held.** "
         f"Invariants, {chaos.RECOVERY_S:g} s after each fault's end for {chaos.CHECK_WINDOW_S:g} s: every robot's "
         f"published map at most {chaos.MAP_FRESH_S:g} s old, every robot's clouds arriving at the twin, the command "
@@ -217,7 +217,17 @@ def main(argv=None):
     parser.add_argument("--faults", type=int, default=50)
     parser.add_argument("--out", default="out/chaos")
     parser.add_argument("--results", default=None, help="also write the table (Markdown) here")
+    parser.add_argument(
+        "--kinds",
+        default=",".join(chaos.KINDS),
+        help=f"comma-separated fault kinds to draw from (default all: {','.join(chaos.KINDS)})",
+    )
     args = parser.parse_args(argv)
+    args.kinds = tuple(k for k in args.kinds.split(",") if k)
+    try:
+        chaos.draw_faults(args.seed, 1, args.kinds)
+    except ValueError as exc:
+        parser.error(str(exc))
     if os.geteuid() != 0:
         parser.error("needs root (the shaped link)")
     _faults, rows = run(args)

@@ -33,6 +33,14 @@ def test_the_same_seed_draws_the_same_faults_of_every_kind():
         chaos.draw_faults(7, 0)
 
 
+def test_faults_can_be_drawn_from_some_kinds_only():
+    kills = chaos.draw_faults(7, 20, (chaos.KILL,))
+    assert {f.kind for f in kills} == {chaos.KILL} and kills == chaos.draw_faults(7, 20, (chaos.KILL,))
+    for kinds in ((), ("kil",)):
+        with pytest.raises(ValueError, match="kinds must be some of"):
+            chaos.draw_faults(7, 5, kinds)
+
+
 def _window_rows(end, age_s=0.5, robots=ROBOTS, probe_ms=10.0):
     t = end + chaos.RECOVERY_S + 1.0
     ages = [{"time_s": str(t), "robot": r, "published_map_age_s": str(age_s)} for r in robots]

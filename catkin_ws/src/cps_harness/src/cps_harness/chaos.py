@@ -18,7 +18,7 @@ import json
 import math
 import random
 import re
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence
 
 from cps_link.receive_path import (
     KEY_MISMATCH,
@@ -81,14 +81,18 @@ class Fault:
         return f"{self.kind} {self.duration_s:.0f} s"
 
 
-def draw_faults(seed: int, count: int) -> List[Fault]:
-    """`count` faults drawn from `seed` (random.Random: the same on every machine)."""
+def draw_faults(seed: int, count: int, kinds: Sequence[str] = KINDS) -> List[Fault]:
+    """`count` faults of `kinds` drawn from `seed` (random.Random: the same on every machine; a
+    narrower `kinds` draws another sequence)."""
     if count < 1:
         raise ValueError(f"count must be at least 1, got {count}")
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown or not kinds:
+        raise ValueError(f"kinds must be some of {', '.join(KINDS)}, got {', '.join(kinds) or 'none'}")
     rng = random.Random(seed)
     faults = []
     for _ in range(count):
-        kind = rng.choice(KINDS)
+        kind = rng.choice(tuple(kinds))
         if kind == LINK_CUT:
             low, high = math.log(CUT_S[0]), math.log(CUT_S[1])
             faults.append(Fault(kind, round(math.exp(rng.uniform(low, high)), 2)))
