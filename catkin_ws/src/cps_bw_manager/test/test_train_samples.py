@@ -95,8 +95,26 @@ def test_a_small_shortfall_waits_for_the_next_train_and_takes_the_larger():
     est.update(_report(3.0, train=56.5, sent=231.0))  # above the held reading, below the capacity: taken
     assert est.capacity_mbps == pytest.approx(56.5)
     est.update(_report(4.0, train=52.0, sent=231.0))  # a new small shortfall, held again
-    est.update(_report(5.0, train=60.0, sent=231.0))  # a train above the capacity ends the wait
-    assert est.capacity_mbps == pytest.approx(LINE_MBPS)  # (clipped to the line rate)
+    est.update(_report(5.0, train=60.0, sent=231.0))  # a small rise ends that wait, held itself
+    assert est.capacity_mbps == pytest.approx(56.5) and est.trains[TRAIN_HELD] == 3
+    est.update(_report(6.0, train=59.0, sent=231.0))  # confirmed (both clipped to the line rate)
+    assert est.capacity_mbps == pytest.approx(LINE_MBPS)
+
+
+def test_a_small_rise_waits_for_the_next_train_and_takes_the_smaller():
+    """Live (test_over_link beside busy loops): a train read 26.2 Mbit/s on the 20 Mbit/s link (its
+    receiver descheduled, its bytes read late and in a burst: that only ever reads fast) and was
+    taken at once, 31 % over the link until the link rose. A rise within 1 / 0.7 x waits for the
+    next train; a step up (far above) is taken at once."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_report(2.0, train=9.6, sent=231.0))  # 60 -> 10: far below, at once
+    assert est.capacity_mbps == pytest.approx(9.6)
+    est.update(_report(3.0, train=12.6, sent=38.4))  # 1.31 x: held
+    assert est.capacity_mbps == pytest.approx(9.6) and est.trains[TRAIN_HELD] == 1
+    est.update(_report(4.0, train=11.0, sent=38.4))  # confirmed: at least the smaller
+    assert est.capacity_mbps == pytest.approx(11.0)
+    est.update(_report(5.0, train=40.0, sent=160.0))  # 10 -> 60: far above, at once
+    assert est.capacity_mbps == pytest.approx(40.0)
 
 
 def test_a_held_reading_confirms_nothing_once_the_capacity_moved():

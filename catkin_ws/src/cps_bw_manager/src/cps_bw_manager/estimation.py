@@ -66,7 +66,11 @@ TRAIN_BOTTLENECK = "bottleneck"
 TRAIN_LOWER_BOUND = "lower_bound"
 # A bottleneck below the capacity but above this x it is taken only when the next train confirms it
 # (the larger of the two: the link carried that much): on a 60 Mbit/s link single trains read
-# 36-81 Mbit/s (live, make demo on a loaded 2-core machine), a step down reads far below.
+# 36-81 Mbit/s (live, make demo on a loaded 2-core machine), a step down reads far below. So is one
+# above the capacity but below 1 / this x it (the smaller of the two): a receiver descheduled
+# under load reads a train's bytes late and in a burst, which only ever reads fast (live,
+# test_over_link beside busy loops: 26.2 Mbit/s on a 20 Mbit/s link, taken at once); a step up
+# reads far above.
 TRAIN_STEP_FRACTION = 0.7
 TRAIN_HELD = "bottleneck_held"  # such a reading, waiting for the next train
 # While a train was measured this recently the estimator does not probe by raising the allocation:
@@ -621,8 +625,8 @@ class DeliveryRateEstimator:
     def _take_train(self, report):
         """A probe train's sample (train_sample): a bottleneck measured is the link's capacity, in
         either direction (the fleet sends too little for its own samples to say), at once when it
-        is above the capacity or below TRAIN_STEP_FRACTION of it, else once the next train confirms
-        it; a lower bound only raises it. Bad samples are counted by kind in `ignored` and change
+        is below TRAIN_STEP_FRACTION of the capacity or above 1 / TRAIN_STEP_FRACTION of it, else
+        once the next train confirms it; a lower bound only raises it. Bad samples are counted by kind in `ignored` and change
         nothing."""
         if isinstance(report.train_mbps, float) and math.isnan(report.train_mbps):
             return  # no train in this interval
@@ -641,12 +645,16 @@ class DeliveryRateEstimator:
             self.trains[kind] += 1
             if measured <= self.capacity_mbps:
                 return
-        elif TRAIN_STEP_FRACTION * self.capacity_mbps <= measured < self.capacity_mbps:
-            if math.isnan(held):
+        elif measured != self.capacity_mbps and (
+            TRAIN_STEP_FRACTION * self.capacity_mbps <= measured <= self.capacity_mbps / TRAIN_STEP_FRACTION
+        ):
+            rise = measured > self.capacity_mbps
+            if math.isnan(held) or (held > self.capacity_mbps) != rise:
                 self._train_held = (measured, self.capacity_mbps)
                 self.trains[TRAIN_HELD] += 1
                 return
-            measured = max(measured, held)
+            # a shortfall confirmed: the link carried the larger; a rise confirmed: at least the smaller
+            measured = min(measured, held) if rise else max(measured, held)
             self.trains[kind] += 1
         else:
             self.trains[kind] += 1
