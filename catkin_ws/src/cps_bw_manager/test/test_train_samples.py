@@ -31,7 +31,8 @@ LINE_MBPS = 57.77
         (45.0, 40.0, TRAIN_LOWER_BOUND, 40.0),  # the fleet's frames beside it: no more than was sent
         (103.0, 79.0, TRAIN_LOWER_BOUND, 79.0),  # above the line, at its pace: the estimator clips it
         (81.0, 40.0, "train_faster_than_sent", math.nan),
-        (70.0, 230.0, "train_above_line_rate", math.nan),
+        (63.0, 230.0, TRAIN_BOTTLENECK, LINE_MBPS),  # slower than sent, faster than the line: the line
+        (120.0, 230.0, "train_above_line_rate", math.nan),  # more than 2 x the line: a broken measure
         (math.nan, 230.0, "train_not_finite", math.nan),
         (9.6, math.inf, "train_not_finite", math.nan),
         (0.0, 230.0, "train_not_positive", math.nan),
@@ -145,7 +146,7 @@ def test_a_lower_bound_only_raises_and_restores_a_false_low_reading():
 
 def test_bad_trains_are_counted_by_kind_and_hold_the_capacity():
     est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
-    for i, (train, sent) in enumerate(((math.nan, 1.0), (81.0, 40.0), (70.0, 230.0), (0.0, 230.0), (9.6, math.inf))):
+    for i, (train, sent) in enumerate(((math.nan, 1.0), (81.0, 40.0), (120.0, 230.0), (0.0, 230.0), (9.6, math.inf))):
         est.update(_report(2.0 + 0.5 * i, train=train, sent=sent, on_link=True))
     assert est.capacity_mbps == pytest.approx(LINE_MBPS)
     assert est.ignored["train_faster_than_sent"] == 1
