@@ -92,13 +92,15 @@ def _pids_of(mission, target):
     """The pids of the mission's processes whose ROS node name is `target` (`__name:=target` on its
     command line: a wrapper has none). A substring match also took `zenoh_bridge_twin_command`
     for `zenoh_bridge_twin`: the command lane's bridge was killed with the main one, and counted
-    as a second process after the restart."""
+    as a second process after the restart. A waiting warm spare (cps_ros.spare) carries the node's
+    command line but is not the node: left out."""
     from cps_ros.processes import processes_named
+    from cps_ros.spare import is_waiting_spare
 
     return [
         pid
         for pid, cmd in processes_named(str(mission.out_dir))
-        if f"__name:={target}" in cmd.split() and "nice" not in cmd.split()[0]
+        if f"__name:={target}" in cmd.split() and "nice" not in cmd.split()[0] and not is_waiting_spare(pid)
     ]
 
 

@@ -295,6 +295,78 @@ def test_a_dying_node_is_restarted_up_to_its_limit(tmp_path):
     assert any("restart 1/1" in e for e in events)
 
 
+SPARED_NODE = textwrap.dedent("""
+    import os, sys
+
+    def preload():
+        import rospy  # noqa: F401
+        from std_msgs.msg import String  # noqa: F401
+
+    def main():
+        import rospy
+        from std_msgs.msg import String
+        rospy.init_node("spared")
+        pub = rospy.Publisher("/spared/out", String, queue_size=1, latch=True)
+        pub.publish(String(str(os.getpid())))
+        rospy.spin()
+
+    if __name__ == "__main__":
+        sys.exit(main())
+""")
+
+
+@pytest.mark.ros
+def test_a_killed_node_restarts_from_its_warm_spare_and_gets_a_new_one(tmp_path, monkeypatch):
+    """Issue 38: a kill's recovery was a Python node's imports on a loaded CPU. The node's spare
+    waits imported, is not the node (the chaos soak's process count leaves it out), becomes it on
+    the restart, and a new spare follows; a dead spare means a cold start; nothing is left."""
+    from cps_bringup import supervisor as supervisor_module
+    from cps_ros import spare as spares
+
+    monkeypatch.setattr(supervisor_module, "SPARE_AFTER_UP_S", 0.5)
+    script = tmp_path / "spared_node"
+    script.write_text(SPARED_NODE)
+    spec = NodeSpec("spared", PHYSICAL, (sys.executable, str(script)), wait_topics=("/spared/out",), spare=True)
+    events = []
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        port = graph.port
+        supervisor = Supervisor([spec], graph, log=events.append, warm_spares=True)
+        running = supervisor.running
+
+        def poll_until(condition, timeout_s=30.0):
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline:
+                supervisor.poll()
+                if condition():
+                    return True
+                time.sleep(0.05)
+            return False
+
+        def waiting_spare():
+            r = running["spared"]
+            return r.spare is not None and spares.is_waiting_spare(r.spare.pid)
+
+        try:
+            supervisor.start_all(timeout_s=30)
+            assert poll_until(waiting_spare), events
+            first, spare_pid = supervisor.pid_of("spared"), running["spared"].spare.pid
+            os.kill(first, signal.SIGKILL)
+            assert poll_until(lambda: running["spared"].up and supervisor.pid_of("spared") != first), events
+            assert supervisor.pid_of("spared") == spare_pid and "spared: restarted from its warm spare" in events[-1]
+            assert poll_until(lambda: not spares.is_waiting_spare(spare_pid))  # it is the node now
+            assert poll_until(waiting_spare), events  # and a new one waits
+            # a spare killed with its node (as a soak's kill by command line would): a cold start
+            os.kill(running["spared"].spare.pid, signal.SIGKILL)
+            second = supervisor.pid_of("spared")
+            os.kill(second, signal.SIGKILL)
+            assert poll_until(lambda: running["spared"].up and supervisor.pid_of("spared") != second), events
+            assert poll_until(waiting_spare), events
+        finally:
+            supervisor.stop_all()
+    assert sum("warm spare" in e for e in events) == 1
+    assert not processes_named(f"-p {port}", f"127.0.0.1:{port}", str(script))
+
+
 def _run_cli(*args, timeout=60):
     return subprocess.run([sys.executable, BRINGUP, *args], capture_output=True, text=True, timeout=timeout)
 

@@ -492,6 +492,7 @@ def run_mission(args, log=print) -> MissionResult:
             node_log_max_bytes=int(fleet.limits.node_log_max_mbytes * 1e6),
             user_prefix=prefix if user else None,
             spec_prefix=lambda spec: split.prefix(spec.side, control=spec.control),
+            warm_spares=fleet.limits.warm_spares,
         )
         recorder_log = None
         if options.record_path:

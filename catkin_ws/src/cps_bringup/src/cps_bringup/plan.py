@@ -56,6 +56,9 @@ class NodeSpec:
     # A control process (velocity mux, route control): it runs at a higher scheduling priority than
     # the sensors and clouds of its side when the sides are split (host_split.CONTROL_NICE).
     control: bool = False
+    # A Python node, (python, script, ...), whose restart the supervisor speeds up with a warm spare
+    # (cps_ros.spare; fleet.yaml limits.warm_spares): the ones a map needs back within seconds.
+    spare: bool = False
 
 
 MAP_SERVER = names.MAP_SERVER
@@ -205,6 +208,7 @@ def plan_nodes(
                 ),
                 wait_topics=(A(names.LINK_STATE),) if lane == "main" else (),
                 control=lane == "command",  # teleop's path: above the clouds, like the mux
+                spare=True,
             )
             for lane, port in (("main", options.zenoh_port), ("command", options.zenoh_command_port))
         ]
@@ -400,6 +404,7 @@ def plan_nodes(
                 ),
                 wait_topics=(_tw(names.MAP_STATS), _tw(names.OCTOMAP_BINARY), MAP_SERVER_READY),
                 restart_limit=3,
+                spare=True,
             )
         )
         # The managed video, measured where it arrives: over Zenoh the twin's bridge republishes it
@@ -631,6 +636,7 @@ def _robot_tissue_shared(fleet, py, initial_rate_hz):
             # Not the managed topics, advertised with the first cloud through: a replayed bag
             # starts once this process (every robot's encoder) is up.
             wait_topics=tuple(_rt(robot.name, names.POINTS_DRACO) for robot in fleet.robots),
+            spare=True,
         ),
     ]
 

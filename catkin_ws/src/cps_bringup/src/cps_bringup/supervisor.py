@@ -4,8 +4,10 @@ The supervisor knows processes and topics, nothing of what the nodes do. Up mean
 runs and every topic in its spec is advertised. A node that does not come up within the timeout
 is named in the error, with the end of its log. Restarts wait an exponential backoff and a node's
 restart limit counts within a time window (`RestartPolicy`); a node that is not essential (the GUI)
-may end without ending the run. The master is watched: `MasterLost` when it is gone. Started as
-root, the nodes run as `run_as` (see `cps_bringup.privileges`).
+may end without ending the run. A node whose spec asks for it has a warm spare (cps_ros.spare)
+once the run is up: its restart starts the spare, its imports done, and a new spare follows. The
+master is watched: `MasterLost` when it is gone. Started as root, the nodes run as `run_as` (see
+`cps_bringup.privileges`).
 """
 
 import dataclasses
@@ -16,7 +18,14 @@ import time
 from typing import Callable, Dict, List, Optional
 
 from cps_bringup.plan import NodeSpec
+from cps_ros import spare as spares
 from cps_ros.processes import RosGraph, stop_all
+
+# A spare is started this long after its node is up (the run's start, or a restart that used the
+# previous one): its imports take a CPU second that the node's own start-up needs first, s.
+SPARE_AFTER_UP_S = 5.0
+# A spare stops at once (nothing to save): SIGINT, then SIGTERM after this, s.
+SPARE_STOP_TIMEOUT_S = 1.0
 
 
 class BringupError(RuntimeError):
@@ -68,6 +77,8 @@ class _Running:
     ended: bool = False
     # s from start_all's call to this node's start: how long it waited for the nodes it comes after.
     waited_s: float = 0.0
+    spare: Optional[object] = None  # its warm spare's process, waiting (spec.spare)
+    spare_due: Optional[float] = None  # when the next spare starts, once the node is up
 
 
 class Supervisor:
@@ -88,10 +99,12 @@ class Supervisor:
         clock: Callable[[], float] = time.monotonic,
         side_graphs: Optional[Dict[str, object]] = None,
         spec_prefix: Optional[Callable[[NodeSpec], List[str]]] = None,
+        warm_spares: bool = False,
     ):
         """`user_prefix`: argv that runs a node as another user (after the side's prefix). `side_graphs`:
         a side's own master (Zenoh: a master per side), instead of `graph`. `spec_prefix(spec)`: argv
-        before the side's prefix (its side's CPU budget and priority: host_split)."""
+        before the side's prefix (its side's CPU budget and priority: host_split). `warm_spares`: keep
+        a spare of each node whose spec asks for one."""
         labels = [s.label for s in specs]
         if len(set(labels)) != len(labels):
             raise ValueError(f"duplicate node labels in the plan: {labels}")
@@ -106,6 +119,7 @@ class Supervisor:
         self.user_prefix = list(user_prefix or [])
         self.spec_prefix = spec_prefix or (lambda spec: [])
         self.clock = clock
+        self.warm_spares = warm_spares
         self._master_silent_since: Optional[float] = None
         self.running: Dict[str, _Running] = {}
         self.events: List[Event] = []
@@ -122,16 +136,43 @@ class Supervisor:
     def _topics_by_graph(self):
         return {id(g): set(g.published_topics()) for g in (self.graph, *self.side_graphs.values())}
 
-    def argv_of(self, spec: NodeSpec):
-        """The command that starts `spec`. The CPU budget first: `ip netns exec` (a side's prefix with
-        --link) mounts its own /sys, where the cgroup folders are not; the groups and the nice value
-        are inherited through it."""
-        return [*self.spec_prefix(spec), *self.side_prefix.get(spec.side, []), *self.user_prefix, *spec.argv]
+    def argv_of(self, spec: NodeSpec, node_argv=None):
+        """The command that starts `spec` (or `node_argv` in its place: its spare). The CPU budget
+        first: `ip netns exec` (a side's prefix with --link) mounts its own /sys, where the cgroup
+        folders are not; the groups and the nice value are inherited through it."""
+        node_argv = spec.argv if node_argv is None else node_argv
+        return [*self.spec_prefix(spec), *self.side_prefix.get(spec.side, []), *self.user_prefix, *node_argv]
 
-    def _start(self, spec: NodeSpec):
-        argv = self.argv_of(spec)
+    def _start(self, spec: NodeSpec, node_argv=None):
+        argv = self.argv_of(spec, node_argv)
         proc = self._graph(spec.label).popen(argv, name=spec.label.replace("/", "_"), env=self.side_env.get(spec.side))
         return proc
+
+    def _restart(self, label, running):
+        """The node's new process: its spare, started, if one waits; else a new one."""
+        spare, running.spare = running.spare, None
+        running.spare_due = self.clock() + SPARE_AFTER_UP_S if running.spec.spare and self.warm_spares else None
+        if spare is not None and spare.poll() is None and spares.is_waiting_spare(spare.pid):
+            try:
+                os.kill(spare.pid, spares.ACTIVATE_SIGNAL)
+                self.record(label, "restarted from its warm spare")
+                return spare
+            except ProcessLookupError:
+                pass  # it died in between: a new process
+        if spare is not None:
+            stop_all([spare], [SPARE_STOP_TIMEOUT_S])
+        return self._start(running.spec)
+
+    def _keep_spares(self):
+        """Start the spare of each node that should have one, is up and is due (dead spares too)."""
+        now = self.clock()
+        for running in self.running.values():
+            if running.spare is not None and running.spare.poll() is not None:
+                running.spare = None  # died (killed): another after the delay
+                running.spare_due = now + SPARE_AFTER_UP_S
+            if running.spare is None and running.up and running.spare_due is not None and now >= running.spare_due:
+                running.spare_due = None
+                running.spare = self._start(running.spec, spares.spare_argv(running.spec.argv))
 
     def start_all(self, timeout_s=120.0):
         """Start every spec in dependency order; BringupError names what did not come up."""
@@ -147,6 +188,9 @@ class Supervisor:
             self._check_deaths(during_start=True)
             if not pending and all(r.up for r in self.running.values()):
                 self.record("all", f"{len(self.running)} processes up")
+                for running in self.running.values():
+                    if running.spec.spare and self.warm_spares:
+                        running.spare_due = self.clock() + SPARE_AFTER_UP_S
                 return
             if time.monotonic() > deadline:
                 missing = [label for label, r in self.running.items() if not r.up] + [s.label for s in pending]
@@ -189,7 +233,7 @@ class Supervisor:
             if running.restart_at is not None:
                 if now >= running.restart_at:
                     running.restart_at = None
-                    running.proc = self._start(running.spec)
+                    running.proc = self._restart(label, running)
                     running.up = False
                 continue
             code = running.proc.poll()
@@ -251,6 +295,7 @@ class Supervisor:
         self._check_master()
         self._refresh_up()
         self._check_deaths()
+        self._keep_spares()
         self._cap_logs()
 
     def stop_for_map_save(self, label, timeout_s=20.0):
@@ -270,7 +315,11 @@ class Supervisor:
         SIGKILL: cps_ros.processes.stop_all), as Ctrl-C on a terminal would; the masters stay up
         until the caller closes them. One after another, a mission's 17 processes took 8 s."""
         stopping = list(self.running.values())
-        stop_all([r.proc for r in stopping], [r.spec.stop_timeout_s for r in stopping])
+        waiting = [r.spare for r in stopping if r.spare is not None]
+        stop_all(
+            [r.proc for r in stopping] + waiting,
+            [r.spec.stop_timeout_s for r in stopping] + [SPARE_STOP_TIMEOUT_S] * len(waiting),
+        )
         self.running.clear()
 
     def pid_of(self, label):

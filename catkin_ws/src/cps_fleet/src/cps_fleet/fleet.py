@@ -185,6 +185,7 @@ class LimitsConfig:
     restart_backoff_s: float
     restart_backoff_max_s: float
     restart_window_s: float
+    warm_spares: bool
 
 
 @dataclasses.dataclass(frozen=True)
@@ -362,6 +363,7 @@ def load_fleet(path=None, profile=None):
         "restart_backoff_s",
         "restart_backoff_max_s",
         "restart_window_s",
+        "warm_spares",
     )
     limits = LimitsConfig(
         trajectory_max_points=_positive_int(limits_reader, "trajectory_max_points"),
@@ -370,6 +372,7 @@ def load_fleet(path=None, profile=None):
         restart_backoff_s=limits_reader.number("restart_backoff_s", low=0.0, high=3600.0),
         restart_backoff_max_s=limits_reader.number("restart_backoff_max_s", low=0.0, high=3600.0),
         restart_window_s=limits_reader.number("restart_window_s", low=0.0, high=86400.0, low_open=True),
+        warm_spares=limits_reader.get("warm_spares", bool),
     )
     if limits.trajectory_max_points < 2:
         raise limits_reader.error("trajectory_max_points", f"must be at least 2, got {limits.trajectory_max_points}")

@@ -1,0 +1,89 @@
+"""A warm spare of a Python node: started beside it, imported, waiting; run in its place when it dies.
+
+A node killed mid-mission is back only once a new Python process has imported rospy, numpy, Zenoh
+and its own modules: seconds of a loaded CPU's wall time before its first line of work (issue 38's
+chaos soak: kills took 3.4-6.3 s against a 3 s bar). The bringup supervisor keeps one spare per
+node that asks for it (`NodeSpec.spare`): a process with the node's own argv, placement and
+environment that imports what the node imports and then waits for `ACTIVATE_SIGNAL`. A restart is
+then that signal: the spare runs the node's script as `__main__`. Android's zygote is the model.
+The spare holds no ROS state (a node calls rospy.init_node in its main), so nothing of it is seen
+on the graph until it runs.
+
+    python -m cps_ros.spare NODE_SCRIPT [node args...]
+
+Its command line holds the node's (`__name:=...` included); while it waits its process name
+(/proc/<pid>/comm) is `SPARE_COMM`, which is how tools that find a node's process by its command line
+leave a waiting spare out (`is_waiting_spare`); once started, the script's name. SIGTERM or SIGINT
+while it waits ends it.
+"""
+
+import ctypes
+import os
+import runpy
+import signal
+import sys
+
+ACTIVATE_SIGNAL = signal.SIGUSR2
+SPARE_COMM = "cps-spare"
+_PR_SET_NAME = 15
+_COMM_BYTES = 15  # the kernel keeps 15 bytes of a process name
+
+
+def spare_argv(node_argv):
+    """The spare's argv for a node run as (python, script, args...)."""
+    if len(node_argv) < 2:
+        raise ValueError(f"a spare needs (python, script, ...), got {list(node_argv)}")
+    return (node_argv[0], "-m", __name__, *node_argv[1:])
+
+
+def is_waiting_spare(pid):
+    """True if `pid` is a spare that has not been started (its process name says so)."""
+    try:
+        with open(f"/proc/{pid}/comm") as stream:
+            return stream.read().strip() == SPARE_COMM
+    except OSError:
+        return False
+
+
+def _set_process_name(name):
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_NAME, os.fsencode(name)[:_COMM_BYTES], 0, 0, 0)
+    except (OSError, AttributeError):
+        pass  # only the name tools see; the spare works without it
+
+
+def preload(script):
+    """Import what `script` imports at module level, then run its `preload()` if it has one (what
+    its main imports late, so that `--help` and a bad argument answer at once, and any warm-up
+    that holds no ROS state)."""
+    namespace = runpy.run_path(script, run_name="__cps_spare__")
+    if callable(namespace.get("preload")):
+        namespace["preload"]()
+
+
+def main(argv):
+    if not argv:
+        print(f"usage: python -m {__name__} NODE_SCRIPT [node args...]", file=sys.stderr)
+        return 2
+    # blocked before anything else: a start signal sent while the imports run waits for them
+    signal.pthread_sigmask(signal.SIG_BLOCK, {ACTIVATE_SIGNAL})
+    _set_process_name(SPARE_COMM)
+    script = argv[0]
+    preload(script)
+    print(f"[spare] {os.path.basename(script)}: imported, waiting to be started", flush=True)
+    # Python's own SIGINT handler would only run once sigwait returns: while waiting, Ctrl-C (the
+    # supervisor's stop) ends the spare at once
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.sigwait({ACTIVATE_SIGNAL})
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {ACTIVATE_SIGNAL})
+    _set_process_name(os.path.basename(script))
+    print(f"[spare] {os.path.basename(script)}: started", flush=True)
+    sys.argv = list(argv)
+    runpy.run_path(script, run_name="__main__")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

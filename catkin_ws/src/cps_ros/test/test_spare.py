@@ -1,0 +1,85 @@
+"""cps_ros.spare: a node's warm spare imports ahead, waits without being the node, and runs the node's
+script as __main__ with the node's arguments when started; Ctrl-C ends a waiting spare at once."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from cps_ros import spare
+
+pytestmark = pytest.mark.unit
+
+NODE = textwrap.dedent("""
+    import os, sys
+    print("top level", flush=True)
+
+    def preload():
+        print("preloaded", flush=True)
+
+    def main():
+        print("main", os.path.basename(sys.argv[0]), *sys.argv[1:], flush=True)
+        return int(sys.argv[1])
+
+    if __name__ == "__main__":
+        sys.exit(main())
+""")
+
+
+def _spare(tmp_path, *args):
+    script = tmp_path / "node"
+    script.write_text(NODE)
+    proc = subprocess.Popen(
+        list(spare.spare_argv((sys.executable, str(script), *args))), stdout=subprocess.PIPE, text=True
+    )
+    lines = [proc.stdout.readline() for _ in range(3)]
+    return proc, lines
+
+
+def test_a_spare_preloads_once_waits_and_runs_the_node_with_its_arguments(tmp_path):
+    proc, lines = _spare(tmp_path, "3", "__name:=spared")
+    try:
+        assert lines == ["top level\n", "preloaded\n", "[spare] node: imported, waiting to be started\n"]
+        time.sleep(0.3)
+        assert proc.poll() is None and spare.is_waiting_spare(proc.pid)  # not the node yet
+        os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    # the script's top level again (imports cached), main with the node's own argv; its exit code
+    assert out.splitlines() == ["[spare] node: started", "top level", "main node 3 __name:=spared"]
+    assert proc.returncode == 3
+
+
+def test_a_started_spare_is_named_after_its_node(tmp_path):
+    script = tmp_path / "node"
+    script.write_text("import time\nif __name__ == '__main__':\n    print('up', flush=True); time.sleep(30)\n")
+    proc = subprocess.Popen(list(spare.spare_argv((sys.executable, str(script)))), stdout=subprocess.PIPE, text=True)
+    try:
+        proc.stdout.readline()
+        os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
+        assert proc.stdout.readline() == "[spare] node: started\n" and proc.stdout.readline() == "up\n"
+        assert not spare.is_waiting_spare(proc.pid)
+        with open(f"/proc/{proc.pid}/comm") as stream:
+            assert stream.read().strip() == "node"
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_ctrl_c_ends_a_waiting_spare_at_once(tmp_path):
+    proc, _ = _spare(tmp_path, "0")
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=5) == -signal.SIGINT and time.monotonic() - t0 < 2.0
+
+
+def test_a_spare_needs_a_script():
+    with pytest.raises(ValueError, match="a spare needs"):
+        spare.spare_argv((sys.executable,))
+    result = subprocess.run([sys.executable, "-m", "cps_ros.spare"], capture_output=True, text=True)
+    assert result.returncode == 2 and "usage" in result.stderr
