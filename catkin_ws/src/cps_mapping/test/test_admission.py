@@ -169,3 +169,43 @@ def test_the_receive_process_shares_the_namespace_and_remaps_not_the_name_or_pri
     argv = ["map_server", ns, "__name:=map_server_a", "__log:=/x.log", "_robots:=a,b", "x:=y"]
     argv += ["__master:=http://h:1", "--help"]
     assert remappings_of(argv) == (ns, "x:=y", "__master:=http://h:1")
+
+
+FAST_START = """
+import os, sys, time
+from cps_mapping import admission_process as ap
+from cps_ros.processes import group_members
+if sys.argv[1] == "fast":
+    ap.prepare_fast_start()
+t0 = time.monotonic()
+client = ap.AdmissionClient(ap.AdmissionConfig("fast_start_input", (), ("jackal",), "map", 0.5, 0))
+print("started_s", time.monotonic() - t0)
+print("method", ap._start_context.get_start_method())
+print("parent_is_me", os.getppid() == os.getpid(), int(open(f"/proc/{client.process.pid}/stat").read().rsplit(")", 1)[1].split()[1]) == os.getpid())
+client.close()
+"""
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("start", ["fast", "spawn"])
+def test_the_receive_process_starts_from_a_preloaded_fork_server_or_fresh(start, tmp_path):
+    """A map server's warm spare prepares a fork server that imported what the receive process
+    needs (issue 38: a restarted map server waited for those imports on the loaded twin CPU); the
+    receive process is then its child, not the map server's, and still comes up and ends with it."""
+    import subprocess
+    import sys
+
+    from cps_ros.processes import RosGraph, processes_named
+
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        result = subprocess.run(
+            [sys.executable, "-c", FAST_START, start], env=graph.env, capture_output=True, text=True, timeout=120
+        )
+        port = graph.port
+    assert result.returncode == 0, result.stderr[-3000:]
+    lines = dict(line.split(" ", 1) for line in result.stdout.splitlines())
+    print(f"receive process up after {float(lines['started_s']):.2f} s ({start})")
+    assert lines["method"] == ("forkserver" if start == "fast" else "spawn")
+    # the fork server's child, not the map server's; the spawned one is the map server's
+    assert lines["parent_is_me"] == ("False False" if start == "fast" else "False True")
+    assert not processes_named("fast_start_input", f"127.0.0.1:{port}")
