@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import pytest
@@ -365,6 +366,26 @@ def test_a_killed_node_restarts_from_its_warm_spare_and_gets_a_new_one(tmp_path,
             supervisor.stop_all()
     assert sum("warm spare" in e for e in events) == 1
     assert not processes_named(f"-p {port}", f"127.0.0.1:{port}", str(script))
+
+
+@pytest.mark.ros
+def test_the_wait_between_polls_ends_when_a_node_dies(tmp_path):
+    """wait_for_mission's wait wakes at a node's death (its pidfd), not at the end of its period, so
+    that the restart is not delayed by up to a period; without a death it waits the period."""
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        supervisor = Supervisor([_python_spec("sleeper", "import time; time.sleep(600)")], graph, log=lambda *_: None)
+        try:
+            supervisor.start_all(timeout_s=30)
+            t0 = time.monotonic()
+            supervisor.wait_for_exit(1.0)
+            assert time.monotonic() - t0 >= 0.9
+            killer = threading.Timer(0.5, os.kill, (supervisor.pid_of("sleeper"), signal.SIGKILL))
+            killer.start()
+            t0 = time.monotonic()
+            supervisor.wait_for_exit(60.0)
+            assert time.monotonic() - t0 < 30.0 and supervisor.running["sleeper"].proc.poll() == -signal.SIGKILL
+        finally:
+            supervisor.stop_all()
 
 
 def _run_cli(*args, timeout=60):

@@ -296,4 +296,4 @@ def wait_for_mission(
             log(format_progress(progress, elapsed))
             log(f"[bringup] duration of {duration_s:.0f} s reached")
             return "duration", elapsed
-        time.sleep(0.5)
+        supervisor.wait_for_exit(0.5)

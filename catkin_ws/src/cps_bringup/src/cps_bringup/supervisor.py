@@ -10,9 +10,11 @@ master is watched: `MasterLost` when it is gone. Started as root, the nodes run 
 `cps_bringup.privileges`).
 """
 
+import contextlib
 import dataclasses
 import math
 import os
+import select
 import shutil
 import time
 from typing import Callable, Dict, List, Optional
@@ -288,6 +290,27 @@ class Supervisor:
                     os.truncate(path, 0)
             except OSError:
                 continue
+
+    def wait_for_exit(self, timeout_s):
+        """Sleep up to `timeout_s` between polls, waking when a node's process ends (its pidfd turns
+        readable) or a restart falls due: a death is handled at once, not at the next poll (up to
+        0.5 s later, of a kill's recovery; issue 38)."""
+        now = self.clock()
+        due = [r.restart_at - now for r in self.running.values() if r.restart_at is not None]
+        timeout_s = max(0.0, min([timeout_s, *due]))
+        fds = []
+        try:
+            for running in self.running.values():
+                if running.restart_at is None and not running.ended and running.proc.poll() is None:
+                    with contextlib.suppress(OSError):  # already reaped: the next poll sees it
+                        fds.append(os.pidfd_open(running.proc.pid))
+            if fds:
+                select.select(fds, [], [], timeout_s)
+            else:
+                time.sleep(timeout_s)
+        finally:
+            for fd in fds:
+                os.close(fd)
 
     def poll(self):
         """Call periodically: restarts dead processes, raises BringupError past a restart limit and

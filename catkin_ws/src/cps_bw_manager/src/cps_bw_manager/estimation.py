@@ -441,7 +441,9 @@ class DeliveryRateEstimator:
         # merged window holds one interval's deficit on two reports, and live (test_over_link,
         # final29) one large frame written at an interval's end, then an interval sent and acked
         # alike, "held" on two and cut a 19.3 Mbit/s link's capacity to 16.4 for 3 s
-        grew = not math.isnan(sent) and sent - delivered > 0.5 * max(self.deficit_fraction * sent, self.deficit_min_mbps)
+        grew = not math.isnan(sent) and sent - delivered > 0.5 * max(
+            self.deficit_fraction * sent, self.deficit_min_mbps
+        )
         self._deficit_reports = self._deficit_reports + 1 if grew and self._deficit() else 0
         large = self._deficit_reports >= 1 and self._deficit(LARGE_DEFICIT_FRACTION, 2.0 * self.deficit_min_mbps)
         deficit = self._deficit_reports >= self.deficit_reports or large
