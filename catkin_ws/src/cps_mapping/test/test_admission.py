@@ -178,8 +178,12 @@ from cps_ros.processes import group_members
 if sys.argv[1] == "fast":
     ap.prepare_fast_start()
 t0 = time.monotonic()
-client = ap.AdmissionClient(ap.AdmissionConfig("fast_start_input", (), ("jackal",), "map", 0.5, 0))
+client = ap.AdmissionClient(
+    ap.AdmissionConfig("fast_start_input", ap.remappings_of(sys.argv), ("jackal",), "map", 0.5, 0)
+)
 print("started_s", time.monotonic() - t0)
+import rosgraph
+print("registered_as", rosgraph.Master("/fast_start_test").lookupNode("/fast_ns/fast_start_input") is not None)
 print("method", ap._start_context.get_start_method())
 print("parent_is_me", os.getppid() == os.getpid(), int(open(f"/proc/{client.process.pid}/stat").read().rsplit(")", 1)[1].split()[1]) == os.getpid())
 client.close()
@@ -191,7 +195,9 @@ client.close()
 def test_the_receive_process_starts_from_a_preloaded_fork_server_or_fresh(start, tmp_path):
     """A map server's warm spare prepares a fork server that imported what the receive process
     needs (issue 38: a restarted map server waited for those imports on the loaded twin CPU); the
-    receive process is then its child, not the map server's, and still comes up and ends with it."""
+    receive process is then its child, not the map server's, comes up in the map server's namespace
+    (a fork server importing rospy under its own took the receive process to /: it heard nothing)
+    and ends with it."""
     import subprocess
     import sys
 
@@ -199,13 +205,19 @@ def test_the_receive_process_starts_from_a_preloaded_fork_server_or_fresh(start,
 
     with RosGraph(log_dir=str(tmp_path)) as graph:
         result = subprocess.run(
-            [sys.executable, "-c", FAST_START, start], env=graph.env, capture_output=True, text=True, timeout=120
+            [sys.executable, "-c", FAST_START, start, "__ns:=/fast_ns"],
+            env=graph.env,
+            capture_output=True,
+            text=True,
+            timeout=120,
         )
         port = graph.port
     assert result.returncode == 0, result.stderr[-3000:]
     lines = dict(line.split(" ", 1) for line in result.stdout.splitlines())
     print(f"receive process up after {float(lines['started_s']):.2f} s ({start})")
     assert lines["method"] == ("forkserver" if start == "fast" else "spawn")
+    # in the map server's namespace, as rospy took it when the fork server imported it
+    assert lines["registered_as"] == "True"
     # the fork server's child, not the map server's; the spawned one is the map server's
     assert lines["parent_is_me"] == ("False False" if start == "fast" else "False True")
     assert not processes_named("fast_start_input", f"127.0.0.1:{port}")

@@ -19,6 +19,7 @@ import dataclasses
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 from typing import List, Tuple
 
@@ -44,14 +45,30 @@ def prepare_fast_start():
     forkserver with a preload); the receive process is then forked from it instead of spawned. A map
     server's warm spare (cps_ros.spare) calls this ahead of its start: a restarted map server waited
     for its receive process's imports on the loaded twin CPU. The fork server never starts a ROS node,
-    so nothing of rospy's state is forked; it ends with the process that started it."""
+    so nothing of rospy's state is forked; it ends with the process that started it.
+
+    rospy takes a node's namespace once, when it is imported (from `__ns:=` on the command line or
+    ROS_NAMESPACE): the fork server imports it under this process's namespace, passed on in its
+    environment (its own command line is multiprocessing's). Without it the receive process came up
+    in / and subscribed to nothing the twin's bridge publishes (live, a chaos soak's killed map
+    server restarted from its spare: 0 clouds received)."""
     global _start_context
+    import rosgraph.names
+
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*RECEIVE_PROCESS_IMPORTS, __name__])
-    # a first child waits for the server's imports: they are done before this returns
-    first = context.Process(target=_nothing, name="fork_server_ready", daemon=True)
-    first.start()
-    first.join()
+    before = os.environ.get(rosgraph.names.ROS_NAMESPACE)
+    os.environ[rosgraph.names.ROS_NAMESPACE] = rosgraph.names.get_ros_namespace(argv=sys.argv)
+    try:
+        # a first child waits for the server's imports: they are done before this returns
+        first = context.Process(target=_nothing, name="fork_server_ready", daemon=True)
+        first.start()
+        first.join()
+    finally:
+        if before is None:
+            del os.environ[rosgraph.names.ROS_NAMESPACE]
+        else:
+            os.environ[rosgraph.names.ROS_NAMESPACE] = before
     _start_context = context
 
 
