@@ -45,9 +45,8 @@ def test_recorded_mission_replays_through_tissue_and_twin(reference_mission, ope
     assert replay_f1 >= REPLAY_F1_FRACTION * live_f1
 
 
-def _write_bag(path, fleet, topics, frame_of=None):
-    """A small real bag: one cloud, odometry and tf message per robot on the given topics."""
-    import rosbag
+def _messages(fleet, topics, frame_of=None):
+    """(topic, message, stamp) of a small real recording: one cloud, odometry and tf message per robot."""
     import rospy
     from geometry_msgs.msg import TransformStamped
     from nav_msgs.msg import Odometry
@@ -55,66 +54,122 @@ def _write_bag(path, fleet, topics, frame_of=None):
     from tf2_msgs.msg import TFMessage
 
     stamp = rospy.Time(100)
-    with rosbag.Bag(str(path), "w") as bag:
-        for robot in fleet.robots:
-            cloud = PointCloud2()
-            cloud.header.stamp, cloud.header.frame_id = stamp, (frame_of or {}).get(robot.name, robot.sensor_frame)
-            odom = Odometry()
-            odom.header.stamp, odom.header.frame_id = stamp, names.odom_frame(robot.name)
-            for topic, msg in (
-                (names.absolute(names.robot_topic(robot.name, names.POINTS)), cloud),
-                (names.absolute(names.robot_topic(robot.name, names.ODOM)), odom),
-            ):
-                if topic in topics:
-                    bag.write(topic, msg, stamp)
-        static = TFMessage([TransformStamped(child_frame_id=names.odom_frame(r)) for r in fleet.robot_names])
-        for t in static.transforms:
-            t.header.frame_id, t.transform.rotation.w = names.MAP_FRAME, 1.0
-        for topic in (names.TF, names.TF_STATIC):
+    out = []
+    for robot in fleet.robots:
+        cloud = PointCloud2()
+        cloud.header.stamp, cloud.header.frame_id = stamp, (frame_of or {}).get(robot.name, robot.sensor_frame)
+        odom = Odometry()
+        odom.header.stamp, odom.header.frame_id = stamp, names.odom_frame(robot.name)
+        for topic, msg in (
+            (names.absolute(names.robot_topic(robot.name, names.POINTS)), cloud),
+            (names.absolute(names.robot_topic(robot.name, names.ODOM)), odom),
+            (names.absolute(names.managed_cloud_at_twin(robot.name)), cloud),
+        ):
             if topic in topics:
-                bag.write(topic, static, stamp)
+                out.append((topic, msg, stamp))
+    static = TFMessage([TransformStamped(child_frame_id=names.odom_frame(r)) for r in fleet.robot_names])
+    for t in static.transforms:
+        t.header.frame_id, t.transform.rotation.w = names.MAP_FRAME, 1.0
+    for topic in (names.TF, names.TF_STATIC):
+        if topic in topics:
+            out.append((topic, static, stamp))
+    return out
 
 
-def test_bag_with_every_topic_passes(tmp_path):
+def _write_bag(path, fleet, topics, frame_of=None):
+    """A small real recording (a rosbag, or an MCAP for a .mcap path, as --record writes them)."""
+    if str(path).endswith(".mcap"):
+        return _write_mcap(path, fleet, topics, frame_of)
+    import rosbag
+
+    with rosbag.Bag(str(path), "w") as bag:
+        for topic, msg, stamp in _messages(fleet, topics, frame_of):
+            bag.write(topic, msg, stamp)
+
+
+def _write_mcap(path, fleet, topics, frame_of=None):
+    import io
+
+    from cps_web.mcap_recording import McapRecording
+
+    recording = McapRecording(str(path))
+    for topic, msg, stamp in _messages(fleet, topics, frame_of):
+        buff = io.BytesIO()
+        msg.serialize(buff)
+        recording.write(topic, msg._type, msg._full_text, buff.getvalue(), log_time_ns=stamp.to_nsec())
+    recording.close()
+
+
+# Every check runs on both formats --record writes and --replay plays.
+FORMATS = pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+
+
+@FORMATS
+def test_bag_with_every_topic_passes(tmp_path, suffix):
     fleet = _two_robots()
-    _write_bag(tmp_path / "ok.bag", fleet, replay_topics(fleet))
-    contents = check_bag(str(tmp_path / "ok.bag"), fleet)
+    _write_bag(tmp_path / f"ok{suffix}", fleet, replay_topics(fleet))
+    contents = check_bag(str(tmp_path / f"ok{suffix}"), fleet)
     assert names.absolute(names.robot_topic("scout", names.POINTS)) in contents.topics
 
 
-def test_bag_without_topics_names_them(tmp_path):
+@FORMATS
+def test_bag_without_topics_names_them(tmp_path, suffix):
     fleet = _two_robots()
     topics = [
         t
         for t in replay_topics(fleet)
         if t not in (names.absolute(names.robot_topic("jackal", names.POINTS)), names.TF)
     ]
-    _write_bag(tmp_path / "partial.bag", fleet, topics)
+    _write_bag(tmp_path / f"partial{suffix}", fleet, topics)
     with pytest.raises(BagError) as error:
-        check_bag(str(tmp_path / "partial.bag"), fleet)
+        check_bag(str(tmp_path / f"partial{suffix}"), fleet)
     assert f"missing topics: {names.absolute(names.robot_topic('jackal', names.POINTS))}, {names.TF}" in str(
         error.value
     )
 
 
-def test_bag_of_another_fleet_is_refused(tmp_path):
+@FORMATS
+def test_bag_of_another_fleet_is_refused(tmp_path, suffix):
     other = load_fleet().with_robots(["champ", "iris"])
-    _write_bag(tmp_path / "other.bag", other, replay_topics(other))
+    _write_bag(tmp_path / f"other{suffix}", other, replay_topics(other))
     with pytest.raises(BagError) as error:
-        check_bag(str(tmp_path / "other.bag"), _two_robots())
+        check_bag(str(tmp_path / f"other{suffix}"), _two_robots())
     assert "recorded for another fleet" in str(error.value) and "champ, iris" in str(error.value)
 
 
-def test_bag_with_other_sensor_frames_is_refused(tmp_path):
+@FORMATS
+def test_bag_with_other_sensor_frames_is_refused(tmp_path, suffix):
     fleet = _two_robots()
-    _write_bag(tmp_path / "frames.bag", fleet, replay_topics(fleet), frame_of={"scout": "scout/velodyne"})
+    path = tmp_path / f"frames{suffix}"
+    _write_bag(path, fleet, replay_topics(fleet), frame_of={"scout": "scout/velodyne"})
     with pytest.raises(BagError) as error:
-        check_bag(str(tmp_path / "frames.bag"), fleet)
+        check_bag(str(path), fleet)
     assert "'scout/velodyne'" in str(error.value) and "scout/lidar" in str(error.value)
 
 
-def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
-    (tmp_path / "junk.bag").write_bytes(b"not a bag")
+def test_a_link_only_recording_is_refused_saying_what_it_is(tmp_path):
+    """--record-link-only's MCAP holds what the twin received, not the sensors: the reason says so."""
+    from cps_web.mcap_recording import link_topics
+
+    fleet = _two_robots()
+    _write_mcap(tmp_path / "link.mcap", fleet, link_topics(fleet.robot_names, ["jackal"]))
+    with pytest.raises(BagError) as error:
+        check_bag(str(tmp_path / "link.mcap"), fleet)
+    assert "missing topics" in str(error.value) and "--record-link-only recording" in str(error.value)
+
+
+def test_an_unfinished_mcap_is_refused_with_the_reason(tmp_path):
+    fleet = _two_robots()
+    _write_mcap(tmp_path / "ok.mcap", fleet, replay_topics(fleet))
+    data = (tmp_path / "ok.mcap").read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[: len(data) - 100])
+    with pytest.raises(BagError, match="not finished by its writer"):
+        check_bag(str(tmp_path / "cut.mcap"), fleet)
+
+
+@pytest.mark.parametrize("name, reason", [("junk.bag", "not a readable rosbag"), ("junk.mcap", "not an MCAP file")])
+def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path, name, reason):
+    (tmp_path / name).write_bytes(b"not a bag")
     result = subprocess.run(
         program_argv(
             BRINGUP,
@@ -122,7 +177,7 @@ def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
             "--robots",
             "scout,jackal",
             "--replay",
-            tmp_path / "junk.bag",
+            tmp_path / name,
             "--out",
             tmp_path / "out",
         ),
@@ -131,7 +186,7 @@ def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
         timeout=60,
     )
     assert result.returncode == 2
-    assert "not a readable rosbag" in result.stderr, result.stderr
+    assert reason in result.stderr, result.stderr
 
 
 def _unclosed_bag(path, fleet):
