@@ -7,13 +7,16 @@ loopback; the endpoint on as by default), alternated so that drift hits both ali
 - `none` (the anchor): nobody connects to the endpoint;
 - `stalled`: the npm `@foxglove/ws-protocol` client connects, subscribes every channel the
   endpoint advertises, then never reads its socket again (cps_harness.foxglove_probe.stalled_viewer),
-  for the whole window.
+  for the whole window;
+- `reading` (to tell the stall's cost from a viewer's): the same client subscribed to every channel,
+  reading and decoding all of it (on this machine: its own CPU competes with the mission's).
 In each, from SETTLE_S after every process is up, for WINDOW_S, on the twin's master:
 - the map server's insert rate: clouds and points inserted per s (its `map_stats` counters, summed
   over robots, between the window's first and last report), and what it dropped or superseded;
 - the link's figures: delivered Mbit/s (the twin bridge's `link_report`: delivered frame bytes over
   the reports' intervals), sent and offered Mbit/s, the median heartbeat round trip;
-- the CPU of the map server and of the endpoint (utime + stime from /proc, in cores);
+- the CPU of the map server and of the endpoint (utime + stime from /proc, in cores), and of every
+  process of the mission (by node name) and of the viewer, to see where CPU went;
 and at the window's end the stalled socket's queue (what the kernel holds unsent towards the viewer:
 proof that it stalled), and the endpoint's own counters (what its queue dropped) as it logged them
 when the mission stopped.
@@ -41,7 +44,7 @@ WINDOW_S = 60.0  # the issue's 60 s of a stalled viewer
 SETTLE_S = 10.0  # after every process is up: the robots' clouds and the link's reports have started
 # The mission's upper bound: up (~40-60 s on 2 cores), settle, window, and a margin; the bench stops it.
 DURATION_S = 240.0
-ARMS = ("none", "stalled")
+ARMS = ("none", "stalled", "reading")
 
 
 def measure(window_s):
@@ -129,11 +132,12 @@ def bench_fleet(folder):
 
 
 def run_arm(arm, out_dir, modules, fleet_file):
-    from web_bench import cpu_in_window, pid_of
+    from web_bench import pid_of
 
     from cps_bringup.plan import WEB_URL_FILE
-    from cps_harness.foxglove_probe import stalled_viewer, wait_paused
+    from cps_harness.foxglove_probe import probe_argv, stalled_viewer, wait_paused
     from cps_harness.mission import BRINGUP, Mission
+    from cps_ros.processes import processes_named
 
     args = ["--fleet", fleet_file, "--duration", DURATION_S, "--web-listen", "127.0.0.1:0"]
     result = {"arm": arm}
@@ -149,14 +153,24 @@ def run_arm(arm, out_dir, modules, fleet_file):
             if not wait_paused(viewer, timeout_s=20.0):
                 viewer.kill()
                 raise RuntimeError(f"the stalled viewer did not stall: {viewer.stderr.read()[-800:]}")
+        elif arm == "reading":
+            viewer = subprocess.Popen(
+                probe_argv(url, WINDOW_S + 60.0, [], modules), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+            )
+            time.sleep(3.0)  # connected and subscribed
         pids = {
             "endpoint": pid_of(out_dir, "foxglove_endpoint"),
             "map_server": pid_of(out_dir, os.path.join("cps_mapping", "nodes", "map_server")),
         }
+        every = process_labels(processes_named(out_dir))
+        if viewer is not None:
+            every[f"viewer[{viewer.pid}]"] = viewer.pid
         measuring = mission.popen_on(
             "twin", [sys.executable, os.path.abspath(__file__), "--measure", str(WINDOW_S)], f"measure_{arm}"
         )
-        result["cores"] = cpu_in_window(pids, WINDOW_S)
+        cores = cores_in_window({**pids, **every}, WINDOW_S)
+        result["cores"] = {k: cores[k] for k in pids}
+        result["process_cores"] = {k: round(v, 4) for k, v in cores.items() if k not in pids and v is not None}
         measuring.wait(timeout=WINDOW_S + 60)
         with open(os.path.join(os.path.dirname(mission.log_path), f"measure_{arm}.log")) as stream:
             result.update(json.loads(stream.read().strip().splitlines()[-1]))
@@ -167,6 +181,36 @@ def run_arm(arm, out_dir, modules, fleet_file):
         mission.stop()
     result["endpoint_counters"] = endpoint_counters(out_dir)
     return result
+
+
+def node_label(cmd):
+    """A process's node name (`__name:=`), else its program's name."""
+    words = cmd.split()
+    for word in words:
+        if word.startswith("__name:="):
+            return word.split(":=", 1)[1]
+    for word in words[1:] if words and os.path.basename(words[0]).startswith("python") else words:
+        if not word.startswith("-"):
+            return os.path.basename(word)
+    return os.path.basename(words[0]) if words else "?"
+
+
+def process_labels(processes):
+    """{"<node>[pid]": pid} of (pid, cmd) pairs; a process started with `python -c` (a
+    multiprocessing child) is named after its parent, e.g. "map_server/child[123]"."""
+    cmds = dict(processes)
+    out = {}
+    for pid, cmd in processes:
+        label = node_label(cmd)
+        if " -c " in f" {cmd} ":
+            try:
+                with open(f"/proc/{pid}/stat") as stream:
+                    ppid = int(stream.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError):
+                ppid = None
+            label = f"{node_label(cmds[ppid]) if ppid in cmds else '?'}/child"
+        out[f"{label}[{pid}]"] = pid
+    return out
 
 
 def endpoint_counters(out_dir):
@@ -201,58 +245,77 @@ FIGURES = (
 
 
 def summarize(runs):
-    """Per figure: each arm's values, means, the ratio stalled / none and each arm's spread
-    (max - min) relative to the anchor's mean."""
+    """Per figure and arm: each run's value, the mean, the ratio of the mean to the anchor's (the
+    `none` arms' mean) and the arm's spread (max - min) relative to the anchor's mean."""
     rows = []
+    arms = [a for a in ARMS if any(r["arm"] == a for r in runs)]
     for group, key, label in FIGURES:
+        row = {"figure": label}
         values = {
             arm: [r[group][key] for r in runs if r["arm"] == arm and r.get(group, {}).get(key) is not None]
-            for arm in ARMS
+            for arm in arms
         }
-        anchor = mean(values["none"])
-        rows.append(
-            {
-                "figure": label,
-                "none": values["none"],
-                "stalled": values["stalled"],
-                "anchor_mean": anchor,
-                "stalled_mean": mean(values["stalled"]),
-                "ratio": mean(values["stalled"]) / anchor if anchor else float("nan"),
-                "spread_none": (max(values["none"]) - min(values["none"])) / anchor
-                if len(values["none"]) > 1 and anchor
-                else None,
-                "spread_stalled": (max(values["stalled"]) - min(values["stalled"])) / anchor
-                if len(values["stalled"]) > 1 and anchor
-                else None,
+        anchor = mean(values.get("none", []))
+        for arm in arms:
+            v = values[arm]
+            row[arm] = {
+                "values": v,
+                "mean": mean(v),
+                "ratio": mean(v) / anchor if anchor else None,
+                "spread": (max(v) - min(v)) / anchor if len(v) > 1 and anchor else None,
             }
-        )
+        rows.append(row)
     return rows
 
 
 def print_table(rows):
-    print(
-        "| figure | no viewer (anchor), each run | stalled viewer, each run | stalled / anchor | spread, no viewer | spread, stalled |"
-    )
-    print("|---|---|---|---|---|---|")
+    arms = [a for a in ARMS if a in rows[0]]
 
     def fmt(v):
         return "-" if v is None else f"{v:.3g}"
 
+    head = ["figure"]
+    for arm in arms:
+        head += [f"{arm}: each run", f"{arm}: mean / anchor", f"{arm}: spread / anchor"]
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
     for row in rows:
-        print(
-            f"| {row['figure']} | {', '.join(fmt(v) for v in row['none'])} | {', '.join(fmt(v) for v in row['stalled'])} "
-            f"| {fmt(row['ratio'])} | {fmt(row['spread_none'])} | {fmt(row['spread_stalled'])} |"
-        )
+        cells = [row["figure"]]
+        for arm in arms:
+            a = row[arm]
+            cells += [", ".join(fmt(v) for v in a["values"]), fmt(a["ratio"]), fmt(a["spread"])]
+        print("| " + " | ".join(cells) + " |")
+
+
+def cores_in_window(pids, seconds):
+    """{name: cores} of each pid over `seconds` of wall time (None for a process that ended)."""
+    from web_bench import cpu_s
+
+    before = {k: cpu_s(p) for k, p in pids.items()}
+    t0 = time.monotonic()
+    time.sleep(seconds)
+    wall = time.monotonic() - t0
+    after = {k: cpu_s(p) for k, p in pids.items()}
+    return {k: None if before[k] is None or after[k] is None else (after[k] - before[k]) / wall for k in pids}
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=os.path.join(BENCH, "out", "web_stall"))
     parser.add_argument("--reps", type=int, default=3, help="missions per arm (alternated)")
+    parser.add_argument("--arms", default="none,stalled", help=f"comma-separated, of {', '.join(ARMS)}")
     parser.add_argument("--measure", type=float, default=None, help=argparse.SUPPRESS)  # the child on the twin
+    parser.add_argument("--summarize", nargs="+", default=None, metavar="JSON", help="only the table of earlier runs")
     args = parser.parse_args()
     if args.measure is not None:
         print(json.dumps(measure(args.measure)))
+        return 0
+    if args.summarize:
+        runs = []
+        for path in args.summarize:
+            with open(path) as stream:
+                runs += json.load(stream)["runs"]
+        print_table(summarize(runs))
         return 0
     from cps_harness.foxglove_probe import install_client
 
@@ -263,8 +326,9 @@ def main():
     fleet_file = bench_fleet(out)
     runs = []
     started = time.monotonic()
+    arms = args.arms.split(",")
     for rep in range(args.reps):
-        for arm in ARMS if rep % 2 == 0 else reversed(ARMS):
+        for arm in arms if rep % 2 == 0 else reversed(arms):
             folder = os.path.join(out, f"{rep}_{arm}")
             os.makedirs(folder, exist_ok=True)
             os.chmod(folder, 0o777)
