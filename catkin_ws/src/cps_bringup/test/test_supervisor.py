@@ -240,6 +240,23 @@ def test_plan_records_mcap_and_only_the_links_streams_on_the_twin():
     assert not any(t.endswith("/" + fleet.robot("scout").cloud_topic) for t in topics)  # no raw clouds
 
 
+def test_plan_replays_a_bag_with_rosbag_play_and_an_mcap_with_cps_webs_player():
+    from cps_bringup.mission_bag import replay_topics
+    from cps_bringup.plan import REPLAY, REPLAY_DELAY_S
+
+    fleet = load_fleet()
+
+    def replay(path):
+        return {s.label: s for s in plan_nodes(fleet, options=RunOptions(out_dir="/tmp/x", replay_path=path))}[REPLAY]
+
+    bag = replay("/tmp/x/m.bag")
+    assert bag.argv[:3] == ("rosbag", "play", "--clock") and bag.side == PHYSICAL and bag.one_shot
+    mcap = replay("/tmp/x/m.mcap")
+    assert mcap.argv[1].endswith("mcap_player") and mcap.side == PHYSICAL and mcap.one_shot
+    assert f"_topics:={','.join(replay_topics(fleet))}" in mcap.argv and f"_delay_s:={REPLAY_DELAY_S}" in mcap.argv
+    assert mcap.after == bag.after and mcap.after  # after everything that is not waiting for its clouds
+
+
 def _python_spec(label, code, wait_topics=(), restart_limit=0):
     return NodeSpec(
         label, PHYSICAL, (sys.executable, "-c", code), wait_topics=tuple(wait_topics), restart_limit=restart_limit

@@ -1,34 +1,87 @@
 """A mission recorded with `--record` and replayed with `--replay` through the real tissue and twin
-maps as well as the live run; bags that cannot feed the fleet are refused with the reason."""
+maps as well as the live run; recordings that cannot feed the fleet are refused with the reason.
 
+The reference mission's bag is replayed while the replay is recorded as MCAP (`--record
+FILE.mcap`, the robots' side: the same topics the bag holds, as the bag's replay plays them); that
+MCAP is read by Foxglove's npm readers, and replayed in turn: it maps within the same fraction of the
+live F1 as the bag's replay. Riding on the bag's replay gives a recorded MCAP of a real mission
+without another live mission; its replay is the one mission this adds."""
+
+import os
+import shutil
 import subprocess
+import tempfile
 
 import pytest
 
-from cps_bringup.mission_bag import BagError, check_bag, finish_recording, record_topics, replay_topics
+from cps_bringup.mission_bag import (
+    BagError,
+    check_bag,
+    cloud_topic,
+    finish_recording,
+    record_topics,
+    replay_topics,
+)
 from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_harness.mission import BRINGUP, program_argv, run_mission
 
 # The replay feeds the same clouds through the same tissue: its map scores (nearly) as the live one.
 REPLAY_F1_FRACTION = 0.95
+# Of each topic the bag's replay played, the share its MCAP recording holds: the recorder subscribes
+# once the replayed clock runs (as rosbag record on /use_sim_time), so it may miss the first messages
+# (2026-11-29: 4 of scout's 2874 odometry messages, 3 of its 1679 joint states, none of the others).
+RECORDED_FRACTION = 0.98
 
 
 def _two_robots():
     return load_fleet().with_robots(["scout", "jackal"])
 
 
-def _f1(map_file, fleet, tmp_path, name):
+_F1 = {}  # map file -> its F1 (the live map is scored once for the module's tests)
+
+
+def _f1(map_file, fleet, folder, name):
     from cps_experiments.report import score_saved_map
 
-    score, _ = score_saved_map(str(map_file), fleet, str(tmp_path / f"{name}_ground_truth.npz"))
-    return score.tolerant.f1  # within ±1 voxel
+    if str(map_file) not in _F1:
+        score, _ = score_saved_map(str(map_file), fleet, os.path.join(str(folder), f"{name}_ground_truth.npz"))
+        _F1[str(map_file)] = score.tolerant.f1  # within ±1 voxel
+    return _F1[str(map_file)]
+
+
+@pytest.fixture(scope="module")
+def replays_folder():
+    """A folder for this module's replays that the unprivileged nodes can write (as open_tmp_path)."""
+    folder = tempfile.mkdtemp(prefix="cps-open-")
+    os.chmod(folder, 0o755)
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def bag_replay(reference_mission, replays_folder):
+    """The reference mission's bag replayed (--replay), the replay recorded as MCAP (--record): the Mission."""
+    reference_mission.check()
+    out = os.path.join(replays_folder, "replay")
+    args = ["--fleet", reference_mission.fleet_file, "--replay", reference_mission.bag]
+    return run_mission(out, args + ["--record", os.path.join(out, "replay.mcap")])
+
+
+@pytest.fixture(scope="module")
+def mcap_replay(reference_mission, bag_replay, replays_folder):
+    """The MCAP recorded during the bag's replay, replayed (--replay FILE.mcap): the Mission."""
+    recorded = os.path.join(bag_replay.out_dir, "replay.mcap")
+    assert os.path.exists(recorded), bag_replay.log()[-3000:]
+    args = ["--fleet", reference_mission.fleet_file, "--replay", recorded]
+    return run_mission(os.path.join(replays_folder, "mcap_replay"), args)
 
 
 @pytest.mark.mission
-def test_recorded_mission_replays_through_tissue_and_twin(reference_mission, open_tmp_path):
+def test_recorded_mission_replays_through_tissue_and_twin(reference_mission, bag_replay, replays_folder):
     """The reference mission was recorded (--record); its bag replayed (--replay) maps as it did."""
-    reference_mission.check()
     bag = reference_mission.bag
     info = subprocess.run(["rosbag", "info", bag], capture_output=True, text=True, check=True).stdout
     print(info)
@@ -36,18 +89,64 @@ def test_recorded_mission_replays_through_tissue_and_twin(reference_mission, ope
     for topic in record_topics(fleet):
         assert topic in info, f"{topic} not recorded:\n{info}"
 
-    replay = run_mission(open_tmp_path / "replay", ["--fleet", reference_mission.fleet_file, "--replay", bag])
-    assert "mission ended by replay" in replay.log(), replay.log()[-3000:]
+    assert "mission ended by replay" in bag_replay.log(), bag_replay.log()[-3000:]
 
-    live_f1 = _f1(reference_mission.out / "map.bt", fleet, open_tmp_path, "live")
-    replay_f1 = _f1(open_tmp_path / "replay" / "map.bt", fleet, open_tmp_path, "replay")
+    live_f1 = _f1(reference_mission.out / "map.bt", fleet, replays_folder, "live")
+    replay_f1 = _f1(os.path.join(bag_replay.out_dir, "map.bt"), fleet, replays_folder, "replay")
     print(f"map F1 vs ground truth: live {live_f1:.4f}, replayed {replay_f1:.4f} ({replay_f1 / live_f1:.1%} of live)")
     assert replay_f1 >= REPLAY_F1_FRACTION * live_f1
 
 
-def _write_bag(path, fleet, topics, frame_of=None):
-    """A small real bag: one cloud, odometry and tf message per robot on the given topics."""
+@pytest.mark.mission
+def test_the_replay_recorded_as_mcap_is_read_by_foxglove_readers(reference_mission, bag_replay):
+    """The MCAP recorded during the bag's replay, read by Foxglove's npm readers: every message of
+    every channel decodes with its stored definition; it holds every topic the replay played, and
+    about as many messages of each as the bag played (the recorder starts with the replayed clock)."""
     import rosbag
+    from mcap.reader import make_reader
+
+    from cps_harness.mcap_check import npm_read
+
+    path = os.path.join(bag_replay.out_dir, "replay.mcap")
+    assert "recorded " in bag_replay.log() and os.path.exists(path), bag_replay.log()[-3000:]
+    report = npm_read(path)
+    with open(path, "rb") as stream:
+        metadata = {m.name: m.metadata for m in make_reader(stream).iter_metadata()}
+    fleet = load_fleet(reference_mission.fleet_file)
+    with rosbag.Bag(reference_mission.bag) as bag:
+        played = {topic: info.message_count for topic, info in bag.get_type_and_topic_info().topics.items()}
+    print(f"{os.path.getsize(path) / 1e6:.1f} MB, {report['message_count']} messages, {metadata.get('cps_recording')}")
+    for topic in replay_topics(fleet):
+        row = report["topics"].get(topic, {})
+        print(f"{topic}: {row.get('messages', 0)} recorded of {played.get(topic, 0)} played; first {row.get('first')}")
+    assert report["profile"] == "ros1" and report["decode_errors"] == 0, report["errors"]
+    assert sum(row["decoded"] for row in report["topics"].values()) == report["message_count"]
+    for topic in replay_topics(fleet):
+        assert report["topics"][topic]["messages"] >= RECORDED_FRACTION * played[topic], topic
+    for robot in fleet.robots:
+        first = report["topics"][cloud_topic(fleet, robot.name)]["first"]
+        assert first["frame_id"].lstrip("/") == robot.sensor_frame and first["points"] > 0, first
+        assert first["data_adds_up"], first
+
+
+@pytest.mark.mission
+def test_a_replay_from_the_mcap_maps_as_the_bags(reference_mission, bag_replay, mcap_replay, replays_folder):
+    """The MCAP (recorded from the bag's replay) replayed with --replay FILE.mcap maps within the
+    same fraction of the live F1 as the bag's replay."""
+    assert "mission ended by replay" in mcap_replay.log(), mcap_replay.log()[-3000:]
+    fleet = load_fleet(reference_mission.fleet_file)
+    live_f1 = _f1(reference_mission.out / "map.bt", fleet, replays_folder, "live")
+    bag_f1 = _f1(os.path.join(bag_replay.out_dir, "map.bt"), fleet, replays_folder, "replay")
+    mcap_f1 = _f1(os.path.join(mcap_replay.out_dir, "map.bt"), fleet, replays_folder, "mcap_replay")
+    print(
+        f"map F1 vs ground truth: live {live_f1:.4f}, bag replayed {bag_f1:.4f} ({bag_f1 / live_f1:.1%} of live), "
+        f"MCAP replayed {mcap_f1:.4f} ({mcap_f1 / live_f1:.1%} of live)"
+    )
+    assert mcap_f1 >= REPLAY_F1_FRACTION * live_f1
+
+
+def _messages(fleet, topics, frame_of=None):
+    """(topic, message, stamp) of a small real recording: one cloud, odometry and tf message per robot."""
     import rospy
     from geometry_msgs.msg import TransformStamped
     from nav_msgs.msg import Odometry
@@ -55,66 +154,122 @@ def _write_bag(path, fleet, topics, frame_of=None):
     from tf2_msgs.msg import TFMessage
 
     stamp = rospy.Time(100)
-    with rosbag.Bag(str(path), "w") as bag:
-        for robot in fleet.robots:
-            cloud = PointCloud2()
-            cloud.header.stamp, cloud.header.frame_id = stamp, (frame_of or {}).get(robot.name, robot.sensor_frame)
-            odom = Odometry()
-            odom.header.stamp, odom.header.frame_id = stamp, names.odom_frame(robot.name)
-            for topic, msg in (
-                (names.absolute(names.robot_topic(robot.name, names.POINTS)), cloud),
-                (names.absolute(names.robot_topic(robot.name, names.ODOM)), odom),
-            ):
-                if topic in topics:
-                    bag.write(topic, msg, stamp)
-        static = TFMessage([TransformStamped(child_frame_id=names.odom_frame(r)) for r in fleet.robot_names])
-        for t in static.transforms:
-            t.header.frame_id, t.transform.rotation.w = names.MAP_FRAME, 1.0
-        for topic in (names.TF, names.TF_STATIC):
+    out = []
+    for robot in fleet.robots:
+        cloud = PointCloud2()
+        cloud.header.stamp, cloud.header.frame_id = stamp, (frame_of or {}).get(robot.name, robot.sensor_frame)
+        odom = Odometry()
+        odom.header.stamp, odom.header.frame_id = stamp, names.odom_frame(robot.name)
+        for topic, msg in (
+            (names.absolute(names.robot_topic(robot.name, names.POINTS)), cloud),
+            (names.absolute(names.robot_topic(robot.name, names.ODOM)), odom),
+            (names.absolute(names.managed_cloud_at_twin(robot.name)), cloud),
+        ):
             if topic in topics:
-                bag.write(topic, static, stamp)
+                out.append((topic, msg, stamp))
+    static = TFMessage([TransformStamped(child_frame_id=names.odom_frame(r)) for r in fleet.robot_names])
+    for t in static.transforms:
+        t.header.frame_id, t.transform.rotation.w = names.MAP_FRAME, 1.0
+    for topic in (names.TF, names.TF_STATIC):
+        if topic in topics:
+            out.append((topic, static, stamp))
+    return out
 
 
-def test_bag_with_every_topic_passes(tmp_path):
+def _write_bag(path, fleet, topics, frame_of=None):
+    """A small real recording (a rosbag, or an MCAP for a .mcap path, as --record writes them)."""
+    if str(path).endswith(".mcap"):
+        return _write_mcap(path, fleet, topics, frame_of)
+    import rosbag
+
+    with rosbag.Bag(str(path), "w") as bag:
+        for topic, msg, stamp in _messages(fleet, topics, frame_of):
+            bag.write(topic, msg, stamp)
+
+
+def _write_mcap(path, fleet, topics, frame_of=None):
+    import io
+
+    from cps_web.mcap_recording import McapRecording
+
+    recording = McapRecording(str(path))
+    for topic, msg, stamp in _messages(fleet, topics, frame_of):
+        buff = io.BytesIO()
+        msg.serialize(buff)
+        recording.write(topic, msg._type, msg._full_text, buff.getvalue(), log_time_ns=stamp.to_nsec())
+    recording.close()
+
+
+# Every check runs on both formats --record writes and --replay plays.
+FORMATS = pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+
+
+@FORMATS
+def test_bag_with_every_topic_passes(tmp_path, suffix):
     fleet = _two_robots()
-    _write_bag(tmp_path / "ok.bag", fleet, replay_topics(fleet))
-    contents = check_bag(str(tmp_path / "ok.bag"), fleet)
+    _write_bag(tmp_path / f"ok{suffix}", fleet, replay_topics(fleet))
+    contents = check_bag(str(tmp_path / f"ok{suffix}"), fleet)
     assert names.absolute(names.robot_topic("scout", names.POINTS)) in contents.topics
 
 
-def test_bag_without_topics_names_them(tmp_path):
+@FORMATS
+def test_bag_without_topics_names_them(tmp_path, suffix):
     fleet = _two_robots()
     topics = [
         t
         for t in replay_topics(fleet)
         if t not in (names.absolute(names.robot_topic("jackal", names.POINTS)), names.TF)
     ]
-    _write_bag(tmp_path / "partial.bag", fleet, topics)
+    _write_bag(tmp_path / f"partial{suffix}", fleet, topics)
     with pytest.raises(BagError) as error:
-        check_bag(str(tmp_path / "partial.bag"), fleet)
+        check_bag(str(tmp_path / f"partial{suffix}"), fleet)
     assert f"missing topics: {names.absolute(names.robot_topic('jackal', names.POINTS))}, {names.TF}" in str(
         error.value
     )
 
 
-def test_bag_of_another_fleet_is_refused(tmp_path):
+@FORMATS
+def test_bag_of_another_fleet_is_refused(tmp_path, suffix):
     other = load_fleet().with_robots(["champ", "iris"])
-    _write_bag(tmp_path / "other.bag", other, replay_topics(other))
+    _write_bag(tmp_path / f"other{suffix}", other, replay_topics(other))
     with pytest.raises(BagError) as error:
-        check_bag(str(tmp_path / "other.bag"), _two_robots())
+        check_bag(str(tmp_path / f"other{suffix}"), _two_robots())
     assert "recorded for another fleet" in str(error.value) and "champ, iris" in str(error.value)
 
 
-def test_bag_with_other_sensor_frames_is_refused(tmp_path):
+@FORMATS
+def test_bag_with_other_sensor_frames_is_refused(tmp_path, suffix):
     fleet = _two_robots()
-    _write_bag(tmp_path / "frames.bag", fleet, replay_topics(fleet), frame_of={"scout": "scout/velodyne"})
+    path = tmp_path / f"frames{suffix}"
+    _write_bag(path, fleet, replay_topics(fleet), frame_of={"scout": "scout/velodyne"})
     with pytest.raises(BagError) as error:
-        check_bag(str(tmp_path / "frames.bag"), fleet)
+        check_bag(str(path), fleet)
     assert "'scout/velodyne'" in str(error.value) and "scout/lidar" in str(error.value)
 
 
-def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
-    (tmp_path / "junk.bag").write_bytes(b"not a bag")
+def test_a_link_only_recording_is_refused_saying_what_it_is(tmp_path):
+    """--record-link-only's MCAP holds what the twin received, not the sensors: the reason says so."""
+    from cps_web.mcap_recording import link_topics
+
+    fleet = _two_robots()
+    _write_mcap(tmp_path / "link.mcap", fleet, link_topics(fleet.robot_names, ["jackal"]))
+    with pytest.raises(BagError) as error:
+        check_bag(str(tmp_path / "link.mcap"), fleet)
+    assert "missing topics" in str(error.value) and "--record-link-only recording" in str(error.value)
+
+
+def test_an_unfinished_mcap_is_refused_with_the_reason(tmp_path):
+    fleet = _two_robots()
+    _write_mcap(tmp_path / "ok.mcap", fleet, replay_topics(fleet))
+    data = (tmp_path / "ok.mcap").read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[: len(data) - 100])
+    with pytest.raises(BagError, match="not finished by its writer"):
+        check_bag(str(tmp_path / "cut.mcap"), fleet)
+
+
+@pytest.mark.parametrize("name, reason", [("junk.bag", "not a readable rosbag"), ("junk.mcap", "not an MCAP file")])
+def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path, name, reason):
+    (tmp_path / name).write_bytes(b"not a bag")
     result = subprocess.run(
         program_argv(
             BRINGUP,
@@ -122,7 +277,7 @@ def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
             "--robots",
             "scout,jackal",
             "--replay",
-            tmp_path / "junk.bag",
+            tmp_path / name,
             "--out",
             tmp_path / "out",
         ),
@@ -131,7 +286,7 @@ def test_cli_refuses_a_bad_bag_before_starting_anything(tmp_path):
         timeout=60,
     )
     assert result.returncode == 2
-    assert "not a readable rosbag" in result.stderr, result.stderr
+    assert reason in result.stderr, result.stderr
 
 
 def _unclosed_bag(path, fleet):

@@ -191,3 +191,53 @@ def test_operator_commands_from_the_viewer_are_checked_and_reach_ros(ros, rospy_
     assert results[4][0] is None and "lacks 'high'" in results[4][1]
     assert asked == [("jackal", 1)]
     assert wait_for(lambda: selected.latest is not None, timeout_s=5.0) and selected.latest.data == "jackal"
+
+
+def test_mcap_player_node_plays_a_recording_at_its_pace_with_its_clock(ros, rospy_node, tmp_path):
+    """The player publishes every stored message as recorded (header seq kept), paced by the log
+    times, /clock at those times, /tf_static latched; then it exits by itself."""
+    import io
+
+    import rospy as _rospy
+    from nav_msgs.msg import Odometry
+    from rosgraph_msgs.msg import Clock
+    from std_msgs.msg import Header
+    from tf2_msgs.msg import TFMessage
+
+    from cps_harness.testing import TopicRecorder
+    from cps_web.mcap_recording import McapRecording
+
+    topic, static, start_ns, step_ns = "/mcap_player_test/odom", "/mcap_player_test/tf_static", 5_000_000_000, 10**8
+
+    def raw(msg):
+        buff = io.BytesIO()
+        msg.serialize(buff)
+        return buff.getvalue()
+
+    path = str(tmp_path / "played.mcap")
+    recording = McapRecording(path)
+    recording.write(names.TF_STATIC, TFMessage._type, TFMessage._full_text, raw(TFMessage()), log_time_ns=start_ns)
+    for i in range(SENT):
+        odom = Odometry(header=Header(seq=100 + i, frame_id=names.odom_frame(ROBOT)))
+        odom.pose.pose.position.x = float(i)
+        recording.write(topic, odom._type, Odometry._full_text, raw(odom), log_time_ns=start_ns + i * step_ns)
+    recording.close()
+    odoms, clocks = TopicRecorder(topic, Odometry), TopicRecorder("/clock", Clock, queue_size=1000)
+    statics = TopicRecorder(static, _rospy.AnyMsg)
+    proc = ros.start_node(
+        "cps_web",
+        "mcap_player",
+        name="mcap_player_test",
+        params={"~path": path, "~topics": f"{topic},{names.TF_STATIC}", "~delay_s": 1.5},
+        remap={names.TF_STATIC: static},
+    )
+    assert proc.wait(timeout=30) == 0, ros.output_of(proc)
+    assert wait_for(lambda: odoms.count >= SENT, timeout_s=5.0), ros.output_of(proc)
+    received = [msg for _, msg in odoms.messages]
+    assert [m.header.seq for m in received] == [100 + i for i in range(SENT)]
+    assert [m.pose.pose.position.x for m in received] == [float(i) for i in range(SENT)]
+    span = odoms.messages[-1][0] - odoms.messages[0][0]
+    assert span >= 0.8 * (SENT - 1) * step_ns / 1e9, span  # its recorded pace, not as fast as it can
+    times = [msg.clock.to_nsec() for _, msg in clocks.messages]
+    assert times == sorted(times) and times[0] >= start_ns and times[-1] == start_ns + (SENT - 1) * step_ns
+    assert statics.count == 1 and statics.latest._connection_header["latching"] == "1"

@@ -73,3 +73,36 @@ def test_link_topics_are_what_crosses_the_link():
     assert names.absolute(names.robot_topic("jackal", names.CAMERA_IMAGE_COMPRESSED)) in topics
     assert names.absolute(names.robot_topic("scout", names.CAMERA_IMAGE_COMPRESSED)) not in topics
     assert {names.TF, names.TF_STATIC} <= set(topics)
+
+
+def test_foxglove_npm_readers_decode_every_channel_and_catch_a_wrong_definition(tmp_path):
+    """Read by the npm libraries Foxglove and Lichtblick read MCAP with (no code shared with our
+    writer): every message decodes with its stored definition, every byte accounted for; a message
+    stored under another type's definition is an error."""
+    from std_msgs.msg import String
+    from tf2_msgs.msg import TFMessage
+
+    from cps_harness.mcap_check import npm_read
+
+    path = str(tmp_path / "m.mcap")
+    recording = McapRecording(path, chunk_bytes=4096)
+    cloud_topic = names.absolute(names.robot_topic("jackal", names.POINTS))
+    for i in range(20):
+        cloud = PointCloud2(header=Header(seq=i, frame_id="jackal/camera"), width=i, height=1, row_step=12 * i)
+        cloud.data = bytes(12 * i)
+        recording.write(cloud_topic, cloud._type, PointCloud2._full_text, _raw(cloud), log_time_ns=1_000 + i)
+    recording.write(names.TF_STATIC, TFMessage._type, TFMessage._full_text, _raw(TFMessage()), log_time_ns=999)
+    recording.close()
+    report = npm_read(path)
+    assert report["profile"] == "ros1" and report["decode_errors"] == 0, report["errors"]
+    assert report["message_count"] == 21
+    cloud_row = report["topics"][cloud_topic]
+    assert (cloud_row["type"], cloud_row["messages"], cloud_row["decoded"]) == ("sensor_msgs/PointCloud2", 20, 20)
+    assert cloud_row["first"] == {"frame_id": "jackal/camera", "stamp": 0, "points": 0, "data_adds_up": True}
+
+    wrong = str(tmp_path / "wrong.mcap")
+    recording = McapRecording(wrong)
+    recording.write("/x", String._type, String._full_text, _raw(Odometry(child_frame_id="a")), log_time_ns=1)
+    recording.close()
+    report = npm_read(wrong)
+    assert report["decode_errors"] == 1 and report["topics"]["/x"]["decoded"] == 0, report

@@ -220,9 +220,10 @@ def build_parser():
     parser.add_argument(
         "--replay",
         default=None,
-        metavar="BAG",
-        help="physical side: play this mission bag (e.g. your own robot's) with rosbag play "
-        "in place of the simulator, on the bag's clock; the mission ends with the bag",
+        metavar="BAG|FILE.mcap",
+        help="physical side: play this mission bag (e.g. your own robot's) with rosbag play, or a ROS 1 MCAP "
+        "(--record FILE.mcap's) with cps_web's player, in place of the simulator, on the recording's clock; "
+        "the mission ends with the recording",
     )
     parser.add_argument(
         "--bandwidth-manager",
@@ -712,7 +713,7 @@ def _checked_video_trace(path, fleet, sides, args, replay_path):
 
 
 def _checked_replay(path, fleet, sides, log):
-    """The absolute path of a bag that can feed `fleet`, or BringupError saying why not."""
+    """The absolute path of a bag or ROS 1 MCAP that can feed `fleet`, or BringupError saying why not."""
     if not path:
         return None
     if PHYSICAL not in sides:

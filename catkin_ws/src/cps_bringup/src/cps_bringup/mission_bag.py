@@ -5,6 +5,9 @@ topics and the twin's managed inputs. `--replay` plays only the physical topics,
 own clock (`rosbag play --clock`, every node with /use_sim_time): the clouds keep their recorded
 stamps, tf is looked up at those stamps and the tissue's latency is measured against the replayed
 clock, so replay latency is the tissue's own, not the time since the recording.
+
+A mission recorded as MCAP (`--record FILE.mcap`, or any ROS 1 MCAP) is checked and replayed the
+same way, by cps_web's MCAP player in place of rosbag play; which one a file is, its first bytes say.
 """
 
 import dataclasses
@@ -60,8 +63,18 @@ class BagContents:
     duration_s: float
 
 
+def is_mcap_recording(path: str) -> bool:
+    """True for an MCAP file (its magic) or a name ending in .mcap; else a rosbag."""
+    from cps_web.mcap_replay import is_mcap_file
+
+    return path.lower().endswith(".mcap") or is_mcap_file(path)
+
+
 def read_bag(path: str, cloud_topics) -> BagContents:
-    """Topics, first cloud frames and tf child frames of the bag at `path` (BagError if unreadable)."""
+    """Topics, first cloud frames and tf child frames of the bag or ROS 1 MCAP at `path` (BagError
+    if unreadable)."""
+    if is_mcap_recording(path):
+        return _read_mcap(path, cloud_topics)
     import rosbag
 
     try:
@@ -88,6 +101,16 @@ def read_bag(path: str, cloud_topics) -> BagContents:
     return BagContents(topics, frames, tuple(sorted(children)), duration)
 
 
+def _read_mcap(path, cloud_topics) -> BagContents:
+    from cps_web.mcap_replay import ReplayError, read_summary
+
+    try:
+        summary = read_summary(path, cloud_topics, (TF, TF_STATIC))
+    except ReplayError as exc:
+        raise BagError(str(exc)) from exc
+    return BagContents(summary.topics, summary.cloud_frames, summary.tf_child_frames, summary.duration_s)
+
+
 def check_bag(path: str, fleet: FleetConfig) -> BagContents:
     """The bag's contents if it can feed `fleet`'s tissue and twin; else BagError naming what is
     missing or why the bag belongs to another fleet (other robots, other sensor frames)."""
@@ -106,6 +129,11 @@ def check_bag(path: str, fleet: FleetConfig) -> BagContents:
     missing = [t for t in required_topics(fleet) if t not in contents.topics]
     if missing:
         problems.append(f"missing topics: {', '.join(missing)}")
+        if any(names.absolute(names.managed_cloud_at_twin(r)) in contents.topics for r in fleet.robot_names):
+            problems.append(
+                "it holds the clouds as the twin received them: a --record-link-only recording (what crossed "
+                "the link) cannot stand in for the robots' sensors"
+            )
     for topic, robot in clouds.items():
         kind = contents.topics.get(topic, (None,))[0]
         if kind and kind != "sensor_msgs/PointCloud2":
@@ -163,10 +191,6 @@ def finish_recording(path: str, recorder_log: str = None) -> str:
     )
 
 
-# An MCAP file starts and ends with this magic; a recorder that did not finish left no closing one.
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-
 def _log_tail(recorder_log):
     import os
 
@@ -180,6 +204,8 @@ def _finished_mcap(path: str, recorder_log: str = None) -> str:
     """The MCAP at `path` if its recorder finished it (summary and closing magic written), else
     BagError with the recorder's last log lines: a recorder killed mid-chunk loses that chunk."""
     import os
+
+    from cps_web.mcap_replay import MCAP_MAGIC
 
     if not os.path.exists(path):
         raise BagError(f"no MCAP was written to {path}; the recorder's log ends:\n{_log_tail(recorder_log)}")

@@ -94,7 +94,7 @@ class RunOptions:
     site_changes_file: Optional[str] = None
     # Record the mission to this rosbag (cps_bringup.mission_bag.record_topics).
     record_path: Optional[str] = None
-    # Play this rosbag in place of the robots (and the simulator), under the bag's clock.
+    # Play this rosbag or ROS 1 MCAP in place of the robots (and the simulator), under its clock.
     replay_path: Optional[str] = None
     # "tcpros": one master across the link (the paper's set-up); "zenoh": a master per side joined
     # only by cps_link's bridges (the twin's bridge listens at twin_address:zenoh_port).
@@ -645,8 +645,8 @@ REPLAY, RECORDER = "mission_replay", "mission_recorder"
 
 
 def _bag_specs(fleet, sides, options, planned, py):
-    """The mission's recorder (rosbag record, or cps_web's MCAP recorder for a .mcap path) and rosbag
-    play of a recorded bag (after everything else is up).
+    """The mission's recorder (rosbag record, or cps_web's MCAP recorder for a .mcap path) and the
+    player of a recorded bag or MCAP (rosbag play, or cps_web's MCAP player; after everything else is up).
 
     A bag is LZ4-compressed: raw clouds are most of it, and a third of the bytes is less for a slow
     disk to take in before the recorder's stop timeout."""
@@ -676,22 +676,28 @@ def _bag_specs(fleet, sides, options, planned, py):
             argv = ("rosbag", "record", "--lz4", "-O", options.record_path, f"__name:={RECORDER}", *topics)
         specs.append(NodeSpec(RECORDER, side, argv, restart_limit=0, stop_timeout_s=RECORDER_STOP_TIMEOUT_S))
     if options.replay_path and PHYSICAL in sides:
-        # --clock: every node runs on the bag's time (/use_sim_time); -d: subscribers connect first.
+        from cps_bringup.mission_bag import is_mcap_recording
+
+        if is_mcap_recording(options.replay_path):  # cps_web's player: rosbag play's --clock and -d, for MCAP
+            params = {"path": options.replay_path, "topics": ",".join(replay_topics(fleet)), "delay_s": REPLAY_DELAY_S}
+            argv = py("cps_web", "mcap_player", f"__name:={REPLAY}", *_args(params))
+        else:  # --clock: every node runs on the bag's time (/use_sim_time); -d: subscribers connect first.
+            argv = (
+                "rosbag",
+                "play",
+                "--clock",
+                "-d",
+                str(REPLAY_DELAY_S),
+                f"__name:={REPLAY}",
+                options.replay_path,
+                "--topics",
+                *replay_topics(fleet),
+            )
         specs.append(
             NodeSpec(
                 REPLAY,
                 PHYSICAL,
-                (
-                    "rosbag",
-                    "play",
-                    "--clock",
-                    "-d",
-                    str(REPLAY_DELAY_S),
-                    f"__name:={REPLAY}",
-                    options.replay_path,
-                    "--topics",
-                    *replay_topics(fleet),
-                ),
+                argv,
                 restart_limit=0,
                 one_shot=True,
                 after=tuple(s.label for s in planned + specs if not lazy & set(s.wait_topics)),

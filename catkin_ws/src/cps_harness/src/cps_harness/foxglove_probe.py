@@ -30,11 +30,11 @@ def _stamp(folder):
     return os.path.join(folder, ".installed")
 
 
-def install_client(folder: Optional[str] = None, timeout_s: float = 300.0) -> str:
-    """The node_modules folder holding NPM_PACKAGES, installed into `folder` if not there yet."""
+def install_client(folder: Optional[str] = None, timeout_s: float = 300.0, packages=NPM_PACKAGES) -> str:
+    """The node_modules folder holding `packages` (pinned), installed into `folder` if not there yet."""
     folder = os.path.abspath(folder or DEFAULT_FOLDER)
     modules = os.path.join(folder, "node_modules")
-    wanted = "\n".join(NPM_PACKAGES)
+    wanted = "\n".join(packages)
     if os.path.exists(_stamp(folder)) and open(_stamp(folder)).read() == wanted:
         return modules
     for tool in ("node", "npm"):
@@ -45,17 +45,17 @@ def install_client(folder: Optional[str] = None, timeout_s: float = 300.0) -> st
         json.dump({"name": "cps-foxglove-probe", "private": True}, stream)
     try:
         result = subprocess.run(
-            ["npm", "install", "--no-audit", "--no-fund", "--ignore-scripts", "--save-exact", *NPM_PACKAGES],
+            ["npm", "install", "--no-audit", "--no-fund", "--ignore-scripts", "--save-exact", *packages],
             cwd=folder,
             capture_output=True,
             text=True,
             timeout=timeout_s,
         )
     except subprocess.TimeoutExpired as exc:
-        raise ClientMissing(f"npm install {' '.join(NPM_PACKAGES)} did not finish in {timeout_s:.0f} s") from exc
+        raise ClientMissing(f"npm install {' '.join(packages)} did not finish in {timeout_s:.0f} s") from exc
     if result.returncode != 0:
         raise ClientMissing(
-            f"npm install {' '.join(NPM_PACKAGES)} failed (is the npm registry reachable?): "
+            f"npm install {' '.join(packages)} failed (is the npm registry reachable?): "
             f"{(result.stderr or result.stdout).strip()[-800:]}"
         )
     with open(_stamp(folder), "w") as stream:

@@ -1,4 +1,4 @@
-"""The endpoint's and the recorder's settings, one per private parameter of their nodes (same name)."""
+"""The endpoint's, the recorder's and the player's settings, one per private parameter of their nodes (same name)."""
 
 import dataclasses
 
@@ -36,6 +36,19 @@ class RecorderOptions:
     backlog_mbytes: float = _option(
         256.0, "messages waiting for the writer; beyond it they are dropped, counted", "MB", low=1.0
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class PlayerOptions:
+    """The MCAP player node's settings."""
+
+    path: str = _option("", "the ROS 1 MCAP file to play", "path")
+    topics: str = _option("", "comma-separated topics to play (empty: every topic)")
+    delay_s: float = _option(
+        0.0, "wait after advertising, before the first message (subscribers connect)", "s", low=0.0
+    )
+    clock_hz: float = _option(100.0, "how often /clock is published between messages", "Hz", low=1.0)
+    queue_size: int = _option(100, "messages each publisher queues per subscriber (rosbag play's default)", low=1)
 
 
 def parameters(kind):

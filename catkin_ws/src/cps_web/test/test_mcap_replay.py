@@ -1,0 +1,119 @@
+"""A ROS 1 MCAP read for a replay (what it holds, or why it cannot be played) and played at its
+recorded pace with /clock at the log time, on a fake clock."""
+
+import io
+
+import pytest
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+
+from cps_web.mcap_recording import McapRecording
+from cps_web.mcap_replay import Player, ReplayError, channels_of, is_mcap_file, raw_class, read_summary
+
+T0 = 1_700_000_000_000_000_000  # ns: a log time as a wall-clock recording has it
+ODOM, CLOUD = "/jackal/odom", "/jackal/points"
+
+
+def _raw(msg):
+    buff = io.BytesIO()
+    msg.serialize(buff)
+    return buff.getvalue()
+
+
+def _write(path, log_times_s=(0.0, 0.5, 1.0)):
+    recording = McapRecording(str(path), chunk_bytes=1024)
+    for i, t in enumerate(log_times_s):
+        odom = Odometry(header=Header(seq=100 + i, frame_id="jackal/odom"))
+        recording.write(ODOM, odom._type, Odometry._full_text, _raw(odom), log_time_ns=T0 + int(t * 1e9))
+    cloud = PointCloud2(header=Header(frame_id="jackal/camera_depth_optical_frame"), width=3, data=bytes(3))
+    recording.write(CLOUD, cloud._type, PointCloud2._full_text, _raw(cloud), log_time_ns=T0 + 200_000_000)
+    recording.close()
+    return str(path)
+
+
+def test_summary_gives_topics_counts_frames_and_span(tmp_path):
+    path = _write(tmp_path / "m.mcap")
+    assert is_mcap_file(path) and not is_mcap_file(str(tmp_path / "absent.mcap"))
+    summary = read_summary(path, cloud_topics=[CLOUD, "/scout/points"])
+    assert summary.topics == {ODOM: ("nav_msgs/Odometry", 3), CLOUD: ("sensor_msgs/PointCloud2", 1)}
+    assert summary.cloud_frames == {CLOUD: "jackal/camera_depth_optical_frame"}
+    assert summary.duration_s == pytest.approx(1.0)
+
+
+def test_unfinished_other_profile_and_junk_are_refused_with_the_reason(tmp_path):
+    path = _write(tmp_path / "m.mcap")
+    data = open(path, "rb").read()
+    (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ReplayError, match="not finished by its writer"):
+        read_summary(str(tmp_path / "cut.mcap"))
+    (tmp_path / "junk.mcap").write_bytes(b"not an mcap at all")
+    with pytest.raises(ReplayError, match="not an MCAP file"):
+        read_summary(str(tmp_path / "junk.mcap"))
+    from mcap.writer import Writer
+
+    with open(tmp_path / "ros2.mcap", "wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="ros2", library="test")
+        writer.finish()
+    with pytest.raises(ReplayError, match="'ros2' profile messages, not ROS 1"):
+        read_summary(str(tmp_path / "ros2.mcap"))
+
+
+def test_a_raw_class_publishes_the_stored_bytes_with_the_types_md5():
+    kind = raw_class("nav_msgs/Odometry", Odometry._full_text)
+    assert (kind._type, kind._md5sum) == ("nav_msgs/Odometry", Odometry._md5sum)
+    buff = io.BytesIO()
+    kind(b"\x01\x02").serialize(buff)
+    assert buff.getvalue() == b"\x01\x02" and not kind._has_header  # rospy leaves the seq as recorded
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 0.0
+
+    def monotonic(self):
+        return self.now
+
+    def sleep(self, seconds):
+        self.now += seconds
+
+
+def test_player_keeps_the_recorded_pace_and_clock_after_its_delay(tmp_path):
+    path = _write(tmp_path / "m.mcap")
+    channels = channels_of(path)
+    clock, published, clocks = FakeClock(), [], []
+    player = Player(path, topics=[ODOM, CLOUD], delay_s=2.0, clock_period_s=0.01)
+
+    played = player.run(
+        lambda channel, data: published.append((clock.now, channels[channel].topic, data)),
+        clocks.append,
+        monotonic=clock.monotonic,
+        sleep=clock.sleep,
+    )
+
+    assert played == 4
+    assert [(round(t, 6), topic) for t, topic, _ in published] == [
+        (2.0, ODOM),
+        (2.2, CLOUD),
+        (2.5, ODOM),
+        (3.0, ODOM),
+    ]
+    odom = Odometry()
+    odom.deserialize(published[-1][2])
+    assert odom.header.seq == 102  # as recorded
+    assert clocks == sorted(clocks) and clocks[0] == T0 and clocks[-1] == T0 + 1_000_000_000
+    assert len(clocks) >= 100  # ~100 Hz between messages, as rosbag play --clock
+
+
+def test_player_plays_only_the_topics_asked_and_stops_when_told(tmp_path):
+    path = _write(tmp_path / "m.mcap")
+    assert {c.topic for c in channels_of(path, [ODOM]).values()} == {ODOM}
+    clock, published = FakeClock(), []
+    player = Player(path, topics=[ODOM])
+    player.run(lambda c, d: published.append(c), lambda ns: None, monotonic=clock.monotonic, sleep=clock.sleep)
+    assert len(published) == 3
+    stopped = Player(path).run(
+        lambda c, d: None, lambda ns: None, stopped=lambda: True, monotonic=clock.monotonic, sleep=clock.sleep
+    )
+    assert stopped == 0
