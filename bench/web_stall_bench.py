@@ -109,26 +109,9 @@ def send_queue_bytes(port):
 def bench_fleet(folder):
     """The default fleet with each route driven there and back (about twice as long), so that no
     robot is done before the window ends; its fleet.yaml's path."""
-    import yaml
+    from cps_harness.fleets import write_fleet_with_repeated_routes
 
-    from cps_fleet.fleet import default_fleet_path
-
-    source = default_fleet_path()
-    config_dir = os.path.dirname(source)
-    with open(source) as stream:
-        doc = yaml.safe_load(stream)
-    doc["site"] = os.path.normpath(os.path.join(config_dir, doc["site"]))
-    for robot in doc["robots"]:
-        with open(os.path.join(config_dir, robot["route"])) as stream:
-            waypoints = yaml.safe_load(stream)["waypoints"]
-        route = os.path.join(folder, f"{robot['name']}_route.yaml")
-        with open(route, "w") as stream:
-            yaml.safe_dump({"waypoints": [dict(w) for w in waypoints + waypoints[-2::-1]]}, stream)
-        robot["route"] = route
-    path = os.path.join(folder, "fleet.yaml")
-    with open(path, "w") as stream:
-        yaml.safe_dump(doc, stream, sort_keys=False)
-    return path
+    return write_fleet_with_repeated_routes(folder, 1)
 
 
 def run_arm(arm, out_dir, modules, fleet_file):
