@@ -11,6 +11,7 @@ import pytest
 from cps_bringup.plan import DIGITAL, PHYSICAL, ZENOH, RunOptions, plan_nodes
 from cps_fleet.fleet import default_fleet_path, load_fleet
 from cps_harness.mission import run_mission
+from cps_ros.spare import log_of_waiting_spare
 
 FLEET8 = os.path.join(os.path.dirname(default_fleet_path()), "fleets", "fleet8.yaml")
 MISSION_S = 15
@@ -18,11 +19,20 @@ MISSION_S = 15
 
 def _started(log_dir, robots):
     """The labels of what the supervisor started (one log file per start), without the
-    per-robot cps_sim nodes (`<r>_velocity_mux`...) and the masters."""
-    labels = [name.rsplit("-", 1)[0] for name in os.listdir(log_dir) if name.endswith(".log")]
+    per-robot cps_sim nodes (`<r>_velocity_mux`...), the masters and the warm spares still waiting."""
+    labels = [
+        name.rsplit("-", 1)[0]
+        for name in os.listdir(log_dir)
+        if name.endswith(".log") and not log_of_waiting_spare(_read(os.path.join(log_dir, name)))
+    ]
     return sorted(
         label for label in labels if label != "roscore" and not any(label.startswith(f"{r}_") for r in robots)
     )
+
+
+def _read(path):
+    with open(path, errors="replace") as stream:
+        return stream.read()
 
 
 # Run on the twin's master: each robot's clouds inserted into the map (the map server's

@@ -207,7 +207,10 @@ def test_mcap_player_node_plays_a_recording_at_its_pace_with_its_clock(ros, rosp
     from cps_harness.testing import TopicRecorder
     from cps_web.mcap_recording import McapRecording
 
-    topic, static, start_ns, step_ns = "/mcap_player_test/odom", "/mcap_player_test/tf_static", 5_000_000_000, 10**8
+    robot = "mcap_player_test"
+    topic = names.absolute(names.robot_topic(robot, names.ODOM))
+    static = names.absolute(names.robot_topic(robot, "tf_static"))
+    start_ns, step_ns = 5_000_000_000, 10**8
 
     def raw(msg):
         buff = io.BytesIO()

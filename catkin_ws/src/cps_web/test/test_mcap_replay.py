@@ -8,11 +8,13 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 
+from cps_fleet import names
 from cps_web.mcap_recording import McapRecording
 from cps_web.mcap_replay import Player, ReplayError, channels_of, is_mcap_file, raw_class, read_summary
 
 T0 = 1_700_000_000_000_000_000  # ns: a log time as a wall-clock recording has it
-ODOM, CLOUD = "/jackal/odom", "/jackal/points"
+ODOM = names.absolute(names.robot_topic("jackal", names.ODOM))
+CLOUD = names.absolute(names.robot_topic("jackal", names.POINTS))
 
 
 def _raw(msg):
@@ -24,7 +26,7 @@ def _raw(msg):
 def _write(path, log_times_s=(0.0, 0.5, 1.0)):
     recording = McapRecording(str(path), chunk_bytes=1024)
     for i, t in enumerate(log_times_s):
-        odom = Odometry(header=Header(seq=100 + i, frame_id="jackal/odom"))
+        odom = Odometry(header=Header(seq=100 + i, frame_id=names.robot_topic("jackal", names.ODOM)))
         recording.write(ODOM, odom._type, Odometry._full_text, _raw(odom), log_time_ns=T0 + int(t * 1e9))
     cloud = PointCloud2(header=Header(frame_id="jackal/camera_depth_optical_frame"), width=3, data=bytes(3))
     recording.write(CLOUD, cloud._type, PointCloud2._full_text, _raw(cloud), log_time_ns=T0 + 200_000_000)
@@ -35,7 +37,7 @@ def _write(path, log_times_s=(0.0, 0.5, 1.0)):
 def test_summary_gives_topics_counts_frames_and_span(tmp_path):
     path = _write(tmp_path / "m.mcap")
     assert is_mcap_file(path) and not is_mcap_file(str(tmp_path / "absent.mcap"))
-    summary = read_summary(path, cloud_topics=[CLOUD, "/scout/points"])
+    summary = read_summary(path, cloud_topics=[CLOUD, names.absolute(names.robot_topic("scout", names.POINTS))])
     assert summary.topics == {ODOM: ("nav_msgs/Odometry", 3), CLOUD: ("sensor_msgs/PointCloud2", 1)}
     assert summary.cloud_frames == {CLOUD: "jackal/camera_depth_optical_frame"}
     assert summary.duration_s == pytest.approx(1.0)

@@ -36,6 +36,27 @@ def spare_argv(node_argv):
     return (node_argv[0], "-m", __name__, *node_argv[1:])
 
 
+_LINE_PREFIX = "[spare] "
+_WAITING = ": imported, waiting to be started"
+
+
+def waiting_line(script):
+    """The line a spare prints once imported, before it waits."""
+    return f"{_LINE_PREFIX}{os.path.basename(script)}{_WAITING}"
+
+
+def started_line(script):
+    """The line a spare prints when it is started, before the node's own output."""
+    return f"{_LINE_PREFIX}{os.path.basename(script)}: started"
+
+
+def log_of_waiting_spare(text):
+    """True if `text`, a process's captured output, is a spare's that was never started (a log file
+    per process: a mission's logs hold its waiting spares' beside its nodes')."""
+    lines = [line for line in text.splitlines() if line.strip()]
+    return bool(lines) and lines[-1].startswith(_LINE_PREFIX) and lines[-1].endswith(_WAITING)
+
+
 def is_waiting_spare(pid):
     """True if `pid` is a spare that has not been started (its process name says so)."""
     try:
@@ -68,18 +89,19 @@ def main(argv):
         return 2
     # blocked before anything else: a start signal sent while the imports run waits for them
     signal.pthread_sigmask(signal.SIG_BLOCK, {ACTIVATE_SIGNAL})
+    # Python's own SIGINT handler would only run once sigwait returns: until it is started, Ctrl-C
+    # (the supervisor's stop) ends the spare at once. Set before the ready line: a SIGINT sent right
+    # after it was once taken by Python's handler and the spare waited on (the suite, final30).
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     _set_process_name(SPARE_COMM)
     script = argv[0]
     preload(script)
-    print(f"[spare] {os.path.basename(script)}: imported, waiting to be started", flush=True)
-    # Python's own SIGINT handler would only run once sigwait returns: while waiting, Ctrl-C (the
-    # supervisor's stop) ends the spare at once
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    print(waiting_line(script), flush=True)
     signal.sigwait({ACTIVATE_SIGNAL})
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {ACTIVATE_SIGNAL})
     _set_process_name(os.path.basename(script))
-    print(f"[spare] {os.path.basename(script)}: started", flush=True)
+    print(started_line(script), flush=True)
     sys.argv = list(argv)
     runpy.run_path(script, run_name="__main__")
     return 0
