@@ -32,6 +32,7 @@ DEMO = ("cps_experiments", "demo")
 STOP_TIMEOUT_S = 240.0
 POLL_S = 0.05
 UP_LINE = "processes up"  # the supervisor's line once every process of the mission is up
+PROGRESS_LINE = r"(?m)^\[\s*\d+\.\d s\] "  # the mission's progress, every 10 s of its clock from 0.0
 
 _MASTERS = re.compile(r"\[bringup\] master (http://[\d.]+:(\d+))(?:; robots master (http://[\d.]+:\d+))?")
 _LINK = re.compile(r"between namespaces (\w+)_phys")
@@ -125,6 +126,11 @@ class Mission:
         match = self.wait_for_line(UP_LINE, timeout_s)
         self.up_at = self.seen[re.escape(UP_LINE)]
         return match
+
+    def wait_until_running(self, timeout_s=60.0):
+        """Until the mission's clock runs (its first progress line, once every process is up): a
+        Ctrl-C from then on ends the mission (exit 0, the map saved), one before ends its bring-up (130)."""
+        return self.wait_for(PROGRESS_LINE, timeout_s)
 
     def wait_for_masters(self, timeout_s=300.0):
         """Until the mission's master(s) are up (before its nodes start): the match of its log line."""
