@@ -32,6 +32,7 @@ DEMO = ("cps_experiments", "demo")
 STOP_TIMEOUT_S = 240.0
 POLL_S = 0.05
 UP_LINE = "processes up"  # the supervisor's line once every process of the mission is up
+PROGRESS_LINE = r"(?m)^\[\s*\d+\.\d s\] "  # the mission's progress, every 10 s of its clock from 0.0
 
 _MASTERS = re.compile(r"\[bringup\] master (http://[\d.]+:(\d+))(?:; robots master (http://[\d.]+:\d+))?")
 _LINK = re.compile(r"between namespaces (\w+)_phys")
@@ -125,6 +126,15 @@ class Mission:
         match = self.wait_for_line(UP_LINE, timeout_s)
         self.up_at = self.seen[re.escape(UP_LINE)]
         return match
+
+    def wait_until_running(self, timeout_s=60.0):
+        """Until the mission's clock runs (its first progress line, once every process is up): a
+        Ctrl-C from then on ends the mission (exit 0, the map saved), one before ends its bring-up (130)."""
+        return self.wait_for(PROGRESS_LINE, timeout_s)
+
+    def wait_for_masters(self, timeout_s=300.0):
+        """Until the mission's master(s) are up (before its nodes start): the match of its log line."""
+        return self.wait_for(_MASTERS.pattern, timeout_s)
 
     @property
     def returncode(self):
@@ -250,6 +260,21 @@ class Mission:
         self.helpers.append(proc)
         return proc
 
+    def topic_reader(self, side):
+        """A TopicReader on `side` (cps_harness's topic_reader node: one process for every topic
+        this test publishes or echoes there); stopped with the mission."""
+        log = open(os.path.join(os.path.dirname(self.log_path), f"topic_reader_{side}.log"), "wb")
+        proc = subprocess.Popen(
+            self.side_argv(side, [sys.executable, find_node("cps_harness", "topic_reader")]),
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=log,
+            start_new_session=True,
+        )
+        log.close()
+        self.helpers.append(proc)
+        return TopicReader(proc)
+
     def set_link(self, up):
         """Cut (or restore) the link: the physical end of the veth pair down (or up)."""
         from cps_link.netns_link import namespace
@@ -258,6 +283,38 @@ class Mission:
         subprocess.run(
             ["ip", "-n", namespace(link, "phys"), "link", "set", f"{link}_p", "up" if up else "down"], check=True
         )
+
+
+class TopicReader:
+    """Requests to a running topic_reader node (its docstring says what they do)."""
+
+    # Beyond a request's own timeout, how long its reply may take (the node's start, under load).
+    REPLY_SLACK_S = 60.0
+
+    def __init__(self, proc):
+        self.proc = proc
+
+    def _request(self, request, timeout_s):
+        import json
+        import select
+
+        self.proc.stdin.write((json.dumps(request) + "\n").encode())
+        self.proc.stdin.flush()
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout_s + self.REPLY_SLACK_S)
+        line = self.proc.stdout.readline() if ready else b""
+        if not line:
+            raise RuntimeError(f"the topic reader gave no reply to {request} (exit code {self.proc.poll()})")
+        return json.loads(line)
+
+    def publish(self, topic, data):
+        """Latch std_msgs/String `data` on `topic` for the next request (the one that waits for its effect)."""
+        self._request({"publish": topic, "data": data}, 0.0)
+
+    def echo(self, topics, timeout_s=30.0, noarr=False, until=None):
+        """{topic: one message as `rostopic echo -n 1` prints it ('' if none came)}, all at once;
+        with `until`, the first message holding that text."""
+        request = {"echo": list(topics), "timeout_s": timeout_s, "noarr": noarr, "until": until}
+        return self._request(request, timeout_s)["echo"]
 
 
 def run_mission(out_dir, args=(), program=BRINGUP, while_up=None, timeout_s=600.0, expect_code=0, **options):

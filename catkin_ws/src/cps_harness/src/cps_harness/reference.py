@@ -151,28 +151,33 @@ class Observed:
     reading_s: Dict[str, float] = dataclasses.field(default_factory=dict)
 
 
-def observe_while_up(mission: Mission) -> Observed:
-    """Everything the tests need from the running reference mission, read once it is up."""
+def observe_while_up(mission: Mission, reader=None) -> Observed:
+    """Everything the tests need from the running reference mission, read once it is up. `reader`:
+    the mission's TopicReader on the twin's side (started here if not given)."""
     from cps_harness.cgroups import control_nice, group_cpus, group_shares, members_of_split
 
     observed = Observed()
+    reader = reader or mission.topic_reader("twin")
+    clouds = [names.absolute(names.managed_cloud_at_twin(r)) for r in ROBOTS]
+    link_state = names.absolute(names.LINK_STATE)
     # The teleop robot is switched to teleop first and back to auto last: it stands still in between,
     # so the mission (which ends when every route is done) stays up for every reading. Read after
     # the routes, they failed on a machine fast enough to drive them in 30 s (final6, 2026-11-28).
+    # The topics are read by one process on the twin's side (cps_harness's topic_reader): with one
+    # `rostopic` process per reading, each a Python start behind the sides' CPU shares, they held the
+    # robot 55 s of the mission's 85 (2026-11-29).
     readings = {
         "cgroups": lambda: members_of_split(f"cpsfleet_{mission.pid}"),
         "cgroup_cpus": lambda: group_cpus(f"cpsfleet_{mission.pid}"),
         "cgroup_shares": lambda: group_shares(f"cpsfleet_{mission.pid}"),
         "control_nice": lambda: control_nice(observed.cgroups or {}),
-        "teleop_active": lambda: _switch_mode(mission, "teleop"),
-        "twin_managed_cloud": lambda: "".join(
-            mission.echo_once("twin", names.absolute(names.managed_cloud_at_twin(r)), 30.0, "--noarr") for r in ROBOTS
-        ),
-        "twin_link_state": lambda: mission.echo_once("twin", names.absolute(names.LINK_STATE)),
+        "teleop_active": lambda: _switch_mode(reader, "teleop"),
+        "twin_managed_cloud": lambda: "".join(reader.echo(clouds, 30.0, noarr=True)[t] for t in clouds),
+        "twin_link_state": lambda: reader.echo([link_state])[link_state],
         "viewer": lambda: _watch_in_foxglove(mission),
         "twin_master_on_link": lambda: _twin_master_on_link(mission),
         "open_across_link": lambda: _open_across_link(mission),
-        "auto_active": lambda: _switch_mode(mission, "auto"),
+        "auto_active": lambda: _switch_mode(reader, "auto"),
     }
     for field, read in readings.items():
         start = time.monotonic()
@@ -184,25 +189,14 @@ def observe_while_up(mission: Mission) -> Observed:
     return observed
 
 
-def _switch_mode(mission, mode, timeout_s=30.0):
-    """Ask TELEOP_ROBOT for `mode` from the twin's side; its active mode as the robot reports it
-    back across the link (rostopic echo's text), once it says `mode` or after `timeout_s`."""
+def _switch_mode(reader, mode, timeout_s=30.0):
+    """Ask TELEOP_ROBOT for `mode` from the twin's side (`reader`: a TopicReader there); its active
+    mode as the robot reports it back across the link (rostopic echo's text), once it says `mode`
+    or after `timeout_s`."""
     topic = names.absolute(names.robot_topic(TELEOP_ROBOT, names.CONTROL_MODE))
     active_topic = names.absolute(names.robot_topic(TELEOP_ROBOT, names.CONTROL_MODE_ACTIVE))
-    publisher = mission.popen_on("twin", ["rostopic", "pub", "-l", topic, "std_msgs/String", mode], f"mode_{mode}")
-    try:
-        deadline, active = time.monotonic() + timeout_s, ""
-        while time.monotonic() < deadline and f'data: "{mode}"' not in active:
-            # Each echo may use what is left of the wait: the topic is latched, so an echo returns as
-            # soon as it has started and subscribed, but under a mission whose sides take the CPU
-            # first (their cpu.shares) rostopic's start alone can take over 5 s (final7: every 5 s
-            # echo came back empty while the robot had switched).
-            active = mission.echo_once("twin", active_topic, max(5.0, deadline - time.monotonic()))
-            time.sleep(0.5)
-        return active
-    finally:
-        publisher.kill()
-        publisher.wait()
+    reader.publish(topic, mode)
+    return reader.echo([active_topic], timeout_s, until=f'data: "{mode}"')[active_topic]
 
 
 def viewer_topics():
@@ -311,8 +305,12 @@ def run_reference(folder):
         print(f"the npm Foxglove client is missing: {exc}")
     try:
         with run.mission:
+            # The reader starts with the twin's master (its Python start beside the bring-up's, not
+            # in the readings' time): the sides' shares are not yet taking the CPU first.
+            run.mission.wait_for_masters(UP_TIMEOUT_S)
+            reader = run.mission.topic_reader("twin")
             run.mission.wait_until_up(UP_TIMEOUT_S)
-            run.observed = observe_while_up(run.mission)
+            run.observed = observe_while_up(run.mission, reader)
             run.returncode = run.mission.wait(END_TIMEOUT_S)
     except Exception as exc:  # noqa: BLE001 - kept, and raised in every test that needs the mission
         run.error = f"the reference mission failed: {type(exc).__name__}: {exc}"
