@@ -111,11 +111,23 @@ def _read(path):
     return rows or []
 
 
+def write_fleet_with_spares(fleet_file):
+    """The fleet file with limits.warm_spares on (cps_ros.spare: kills restart from a warm spare)."""
+    import yaml
+
+    with open(fleet_file) as stream:
+        doc = yaml.safe_load(stream)
+    doc["limits"]["warm_spares"] = True
+    with open(fleet_file, "w") as stream:
+        yaml.safe_dump(doc, stream, sort_keys=False)
+    return fleet_file
+
+
 def run(args):
     out = os.path.abspath(args.out)
     os.makedirs(out, exist_ok=True)
     os.chmod(out, 0o755)
-    fleet_file = write_fleet_with_repeated_routes(out, LAPS)
+    fleet_file = write_fleet_with_spares(write_fleet_with_repeated_routes(out, LAPS))
     from cps_fleet.fleet import load_fleet
 
     fleet = load_fleet(fleet_file)
