@@ -56,12 +56,13 @@ def pid_of(out_dir, node_path_part):
 
 
 def cpu_in_window(pids, seconds):
-    """{name: cores} of each pid over `seconds` of wall time."""
+    """{name: cores} of each pid over `seconds` of wall time (None for a process that ended)."""
     before = {k: cpu_s(p) for k, p in pids.items()}
     t0 = time.monotonic()
     time.sleep(seconds)
     wall = time.monotonic() - t0
-    return {k: (cpu_s(p) - before[k]) / wall for k, p in pids.items()}
+    after = {k: cpu_s(p) for k, p in pids.items()}
+    return {k: None if before[k] is None or after[k] is None else (after[k] - before[k]) / wall for k in pids}
 
 
 def mcap_span(path):

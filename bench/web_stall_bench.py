@@ -115,7 +115,7 @@ def bench_fleet(folder):
 
 
 def run_arm(arm, out_dir, modules, fleet_file):
-    from web_bench import pid_of
+    from web_bench import cpu_in_window, pid_of
 
     from cps_bringup.plan import WEB_URL_FILE
     from cps_harness.foxglove_probe import probe_argv, stalled_viewer, wait_paused
@@ -151,7 +151,7 @@ def run_arm(arm, out_dir, modules, fleet_file):
         measuring = mission.popen_on(
             "twin", [sys.executable, os.path.abspath(__file__), "--measure", str(WINDOW_S)], f"measure_{arm}"
         )
-        cores = cores_in_window({**pids, **every}, WINDOW_S)
+        cores = cpu_in_window({**pids, **every}, WINDOW_S)
         result["cores"] = {k: cores[k] for k in pids}
         result["process_cores"] = {k: round(v, 4) for k, v in cores.items() if k not in pids and v is not None}
         measuring.wait(timeout=WINDOW_S + 60)
@@ -268,18 +268,6 @@ def print_table(rows):
             a = row[arm]
             cells += [", ".join(fmt(v) for v in a["values"]), fmt(a["ratio"]), fmt(a["spread"])]
         print("| " + " | ".join(cells) + " |")
-
-
-def cores_in_window(pids, seconds):
-    """{name: cores} of each pid over `seconds` of wall time (None for a process that ended)."""
-    from web_bench import cpu_s
-
-    before = {k: cpu_s(p) for k, p in pids.items()}
-    t0 = time.monotonic()
-    time.sleep(seconds)
-    wall = time.monotonic() - t0
-    after = {k: cpu_s(p) for k, p in pids.items()}
-    return {k: None if before[k] is None or after[k] is None else (after[k] - before[k]) / wall for k in pids}
 
 
 def main():

@@ -240,11 +240,6 @@ class Mission:
     def on_twin(self, argv, timeout_s=30.0):
         return self.run_on("twin", argv, timeout_s)
 
-    def echo_once(self, side, topic, timeout_s=30.0, *options):
-        """One message of `topic` on `side` as `rostopic echo -n 1` prints it ('' if none came)."""
-        argv = ["timeout", str(timeout_s), "rostopic", "echo", "-n", "1", *options, topic]
-        return self.run_on(side, argv, timeout_s + 5).stdout
-
     def popen_on(self, side, argv, log_name):
         """Start argv on one side in the background (its output in <log_name>.log beside the
         mission's log); stopped with the mission."""
