@@ -9,13 +9,14 @@ import sys
 import pytest
 
 from cps_fleet import names
-from cps_harness.testing import TopicRecorder
+from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.probe_train import PROBE_TRAIN_BYTES, train_period_s
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import free_port
 
 ROBOT = "scout"
 CAPACITY_MBPS = 40.0
+TRAINS = 3  # measured trains the test reads (one every 1.5 s at 40 Mbit/s)
 
 
 @pytest.fixture(scope="module")
@@ -43,21 +44,31 @@ def test_a_probe_train_crosses_and_is_measured(rospy_node, ros, robots_graph, ce
     for done in (timer.shutdown, allocation.unregister, reports.close):
         request.addfinalizer(done)
 
-    report = reports.wait(lambda m: m.probe_trains >= 1, timeout_s=45, what="a link report with a measured train")
-    # one train in a report: its second half's link bytes (the train's frames and whatever crossed
-    # beside them) over a spread, sent at 4 x the capacity the allocation said (or what the sender
-    # managed below it)
-    assert report.probe_train_bytes >= PROBE_TRAIN_BYTES // 2 * 0.5
-    assert 0 < report.probe_train_spread_s < 2.0
-    assert 0 < report.probe_train_sent_mbps <= 4 * CAPACITY_MBPS + 1e-6
-    # every probe byte the twin received is counted, the sender's too
+    def measured():
+        return [m for _, m in list(reports.messages) if m.probe_trains]
+
+    assert wait_for(lambda: len(measured()) >= TRAINS, timeout_s=45), f"{len(measured())} of {TRAINS} trains measured"
     seen = [m for _, m in reports.take()]
+    with_train = [m for m in seen if m.probe_trains]
+    for report in with_train:
+        # one train in a report: its second half's link bytes (the train's frames and whatever crossed
+        # beside them) over a spread, sent at 4 x the capacity the allocation said (or what the sender
+        # managed below it)
+        assert report.probe_train_bytes >= PROBE_TRAIN_BYTES // 2 * 0.5
+        assert 0 < report.probe_train_spread_s < 2.0
+        assert 0 < report.probe_train_sent_mbps <= 4 * CAPACITY_MBPS + 1e-6
+    # every probe byte the twin received is counted, the sender's too (a measured train had at least
+    # 80 % of its messages)
+    least_bytes = PROBE_TRAIN_BYTES * 0.8 * len(with_train)
     probe_bytes = sum(m.probe_bytes for m in seen)
     sent_bytes = sum(m.probe_sent_bytes for m in seen)
-    assert probe_bytes >= PROBE_TRAIN_BYTES * 0.8 and sent_bytes >= PROBE_TRAIN_BYTES * 0.8
-    # loopback is no bottleneck at 160 Mbit/s: the train arrives at about the rate it was sent
-    arrival_mbps = report.probe_train_bytes * 8e-6 / report.probe_train_spread_s
-    assert 0.5 * report.probe_train_sent_mbps <= arrival_mbps, (arrival_mbps, report.probe_train_sent_mbps)
+    assert probe_bytes >= least_bytes and sent_bytes >= least_bytes, (probe_bytes, sent_bytes, least_bytes)
+    # loopback is no bottleneck at 160 Mbit/s: trains arrive at about the rate they were sent. The
+    # median train, not each: a process descheduled mid-train on a loaded machine stretches that one
+    # train (CI saw 27 ms for a second half that takes 9.6 ms: 57 against 135 Mbit/s), a CPU and not
+    # a link figure
+    ratios = sorted(m.probe_train_bytes * 8e-6 / m.probe_train_spread_s / m.probe_train_sent_mbps for m in with_train)
+    assert ratios[len(ratios) // 2] >= 0.5, ratios
     # trains keep their period: no second train within it of the first
     trains = sum(m.probe_trains for m in seen)
     span_s = sum(m.interval_s for m in seen)
