@@ -362,7 +362,7 @@ def test_a_killed_node_restarts_from_its_warm_spare_and_gets_a_new_one(tmp_path,
 
         def waiting_spare():
             r = running["spared"]
-            return r.spare is not None and spares.is_waiting_spare(r.spare.pid)
+            return r.spare is not None and spares.is_ready_spare(r.spare.pid)
 
         try:
             supervisor.start_all(timeout_s=30)

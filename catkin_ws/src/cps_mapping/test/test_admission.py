@@ -14,6 +14,7 @@ from test_map_server_library import JACKAL_FRAME, JACKAL_POSE, _cloud, _server, 
 
 from cps_mapping.map_server import TransformUnavailable
 from cps_mapping.queues import Arrival, RobotSlots
+from cps_ros import spare
 from cps_transport.draco import DracoEncoder
 
 
@@ -172,32 +173,40 @@ def test_the_receive_process_shares_the_namespace_and_remaps_not_the_name_or_pri
 
 
 FAST_START = """
-import os, sys, time
+import os, sys, threading, time
 from cps_mapping import admission_process as ap
-from cps_ros.processes import group_members
+from cps_ros import priority, spare
 if sys.argv[1] == "fast":
     ap.prepare_fast_start()
+if sys.argv[1] == "spare":  # as a warm spare's import thread does it
+    thread = threading.Thread(target=lambda: (priority.set_thread_nice(spare.SPARE_NICE), ap.prepare_fast_start()))
+    thread.start()
+    thread.join()
 t0 = time.monotonic()
 client = ap.AdmissionClient(
-    ap.AdmissionConfig("fast_start_input", ap.remappings_of(sys.argv), ("jackal",), "map", 0.5, 0)
+    ap.AdmissionConfig("fast_start_input", ap.remappings_of(sys.argv), ("jackal",), "map", 0.5, RECEIVE_NICE)
 )
 print("started_s", time.monotonic() - t0)
 import rosgraph
 print("registered_as", rosgraph.Master("/fast_start_test").lookupNode("/fast_ns/fast_start_input") is not None)
 print("method", ap._start_context.get_start_method())
-print("parent_is_me", int(open(f"/proc/{client.process.pid}/stat").read().rsplit(")", 1)[1].split()[1]) == os.getpid())
+parent = int(open(f"/proc/{client.process.pid}/stat").read().rsplit(")", 1)[1].split()[1])
+print("parent_is_me", parent == os.getpid())
+print("nice", os.getpriority(os.PRIO_PROCESS, client.process.pid), os.getpriority(os.PRIO_PROCESS, parent))
 client.close()
 """
+RECEIVE_NICE = 2
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize("start", ["fast", "spawn"])
+@pytest.mark.parametrize("start", ["fast", "spare", "spawn"])
 def test_the_receive_process_starts_from_a_preloaded_fork_server_or_fresh(start, tmp_path):
     """A map server's warm spare prepares a fork server that imported what the receive process
     needs (issue 38: a restarted map server waited for those imports on the loaded twin CPU); the
     receive process is then its child, not the map server's, comes up in the map server's namespace
     (a fork server importing rospy under its own took the receive process to /: it heard nothing)
-    and ends with it."""
+    and ends with it. Prepared at a spare's low priority (run as root here), the receive process still
+    runs at the map server's nice plus its own ~receive_nice, not at the fork server's."""
     import subprocess
     import sys
 
@@ -205,7 +214,7 @@ def test_the_receive_process_starts_from_a_preloaded_fork_server_or_fresh(start,
 
     with RosGraph(log_dir=str(tmp_path)) as graph:
         result = subprocess.run(
-            [sys.executable, "-c", FAST_START, start, "__ns:=/fast_ns"],
+            [sys.executable, "-c", FAST_START.replace("RECEIVE_NICE", str(RECEIVE_NICE)), start, "__ns:=/fast_ns"],
             env=graph.env,
             capture_output=True,
             text=True,
@@ -215,9 +224,14 @@ def test_the_receive_process_starts_from_a_preloaded_fork_server_or_fresh(start,
     assert result.returncode == 0, result.stderr[-3000:]
     lines = dict(line.split(" ", 1) for line in result.stdout.splitlines())
     print(f"receive process up after {float(lines['started_s']):.2f} s ({start})")
-    assert lines["method"] == ("forkserver" if start == "fast" else "spawn")
+    forked = start in ("fast", "spare")
+    assert lines["method"] == ("forkserver" if forked else "spawn")
     # in the map server's namespace, as rospy took it when the fork server imported it
     assert lines["registered_as"] == "True"
     # the fork server's child, not the map server's; the spawned one is the map server's
-    assert lines["parent_is_me"] == ("False" if start == "fast" else "True")
+    assert lines["parent_is_me"] == ("False" if forked else "True")
+    # the receive process at the map server's nice (0) plus its own; the spare's fork server at 19
+    receive_nice, parent_nice = map(int, lines["nice"].split())
+    assert receive_nice == RECEIVE_NICE
+    assert parent_nice == (spare.SPARE_NICE if start == "spare" else 0)
     assert not processes_named("fast_start_input", f"127.0.0.1:{port}")

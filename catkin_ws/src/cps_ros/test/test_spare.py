@@ -20,9 +20,11 @@ NODE = textwrap.dedent("""
 
     def preload():
         print("preloaded", flush=True)
+        print("nice", os.getpriority(os.PRIO_PROCESS, 0), os.getpriority(os.PRIO_PROCESS, os.getpid()), flush=True)
 
     def main():
         print("main", os.path.basename(sys.argv[0]), *sys.argv[1:], flush=True)
+        print("nice", os.getpriority(os.PRIO_PROCESS, 0), flush=True)
         return int(sys.argv[1])
 
     if __name__ == "__main__":
@@ -36,22 +38,24 @@ def _spare(tmp_path, *args):
     proc = subprocess.Popen(
         list(spare.spare_argv((sys.executable, str(script), *args))), stdout=subprocess.PIPE, text=True
     )
-    lines = [proc.stdout.readline() for _ in range(3)]
+    lines = [proc.stdout.readline() for _ in range(4)]
     return proc, lines
 
 
 def test_a_spare_preloads_once_waits_and_runs_the_node_with_its_arguments(tmp_path):
     proc, lines = _spare(tmp_path, "3", "__name:=spared")
     try:
-        assert lines == ["top level\n", "preloaded\n", "[spare] node: imported, waiting to be started\n"]
+        # imported at nice 19 in a thread of its own; the main thread, the node to be, at 0
+        assert lines == ["top level\n", "preloaded\n", "nice 19 0\n", "[spare] node: imported, waiting to be started\n"]
         time.sleep(0.3)
-        assert proc.poll() is None and spare.is_waiting_spare(proc.pid)  # not the node yet
+        assert proc.poll() is None and spare.is_waiting_spare(proc.pid) and spare.is_ready_spare(proc.pid)
         os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
         out, _ = proc.communicate(timeout=30)
     finally:
         proc.kill()
-    # the script's top level again (imports cached), main with the node's own argv; its exit code
-    assert out.splitlines() == ["[spare] node: started", "top level", "main node 3 __name:=spared"]
+    # the script's top level again (imports cached), main with the node's own argv at the node's
+    # priority; its exit code
+    assert out.splitlines() == ["[spare] node: started", "top level", "main node 3 __name:=spared", "nice 0"]
     assert proc.returncode == 3
 
 
@@ -83,3 +87,26 @@ def test_a_spare_needs_a_script():
         spare.spare_argv((sys.executable,))
     result = subprocess.run([sys.executable, "-m", "cps_ros.spare"], capture_output=True, text=True)
     assert result.returncode == 2 and "usage" in result.stderr
+
+
+def test_a_spare_still_importing_is_a_spare_but_not_ready(tmp_path):
+    script = tmp_path / "node"
+    script.write_text("import time\ndef preload():\n    print('loading', flush=True); time.sleep(30)\n")
+    proc = subprocess.Popen(list(spare.spare_argv((sys.executable, str(script)))), stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline() == "loading\n"
+        assert spare.is_waiting_spare(proc.pid) and not spare.is_ready_spare(proc.pid)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not spare.is_waiting_spare(proc.pid)
+
+
+def test_a_preload_that_fails_ends_the_spare_with_its_error(tmp_path):
+    script = tmp_path / "node"
+    script.write_text("def preload():\n    raise RuntimeError('no kernels')\n")
+    result = subprocess.run(
+        list(spare.spare_argv((sys.executable, str(script)))), capture_output=True, text=True, timeout=30
+    )
+    assert result.returncode != 0 and "RuntimeError: no kernels" in result.stderr
+    assert "waiting to be started" not in result.stdout

@@ -151,10 +151,10 @@ class Supervisor:
         return proc
 
     def _restart(self, label, running):
-        """The node's new process: its spare, started, if one waits; else a new one."""
+        """The node's new process: its spare, started, if one is ready (done importing); else a new one."""
         spare, running.spare = running.spare, None
         running.spare_due = self.clock() + SPARE_AFTER_UP_S if running.spec.spare and self.warm_spares else None
-        if spare is not None and spare.poll() is None and spares.is_waiting_spare(spare.pid):
+        if spare is not None and spare.poll() is None and spares.is_ready_spare(spare.pid):
             try:
                 os.kill(spare.pid, spares.ACTIVATE_SIGNAL)
                 self.record(label, "restarted from its warm spare")

@@ -47,6 +47,11 @@ def prepare_fast_start():
     for its receive process's imports on the loaded twin CPU. The fork server never starts a ROS node,
     so nothing of rospy's state is forked; it ends with the process that started it.
 
+    Called from a spare's import thread (cps_ros.spare, at low priority) the fork server, and every
+    process it forks, inherit that priority: the receive process then sets its own (`_run`), which
+    needs the right to lower a nice value (root, or RLIMIT_NICE). Without it there is no fork
+    server: a receive process at nice 19 would starve on a loaded twin.
+
     rospy takes a node's namespace once, when it is imported (from `__ns:=` on the command line or
     ROS_NAMESPACE): the fork server imports it under this process's namespace, passed on in its
     environment (its own command line is multiprocessing's). Without it the receive process came up
@@ -54,6 +59,12 @@ def prepare_fast_start():
     server restarted from its spare: 0 clouds received)."""
     global _start_context
     import rosgraph.names
+
+    from cps_ros import priority
+
+    process_nice = os.getpriority(os.PRIO_PROCESS, os.getpid())  # the main thread's
+    if priority.thread_nice() > process_nice and not priority.may_lower_nice_to(process_nice):
+        return
 
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*RECEIVE_PROCESS_IMPORTS, __name__])
@@ -108,8 +119,11 @@ class AdmissionClient:
         context = _start_context
         self._next, child_next = context.Pipe()
         self._control, child_control = context.Pipe()
+        from cps_ros import priority
+
+        nice = priority.thread_nice() + config.nice  # forked from a low-priority fork server: set back
         self.process = context.Process(
-            target=_run, args=(config, child_next, child_control), name=config.node_name, daemon=True
+            target=_run, args=(config, nice, child_next, child_control), name=config.node_name, daemon=True
         )
         self.process.start()
         child_next.close()
@@ -157,13 +171,16 @@ class AdmissionClient:
             self.process.terminate()
 
 
-def _run(config: AdmissionConfig, next_conn, control_conn):
-    """The receive process: subscribers, transforms and slots; answers the insertion's requests."""
+def _run(config: AdmissionConfig, nice, next_conn, control_conn):
+    """The receive process at `nice`: subscribers, transforms and slots; answers the insertion's
+    requests."""
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
     except OSError:
         pass
-    os.nice(config.nice)
+    from cps_ros import priority
+
+    priority.set_thread_nice(nice)
     import logging
 
     import rospy

@@ -6,15 +6,19 @@ chaos soak: kills took 3.4-6.3 s against a 3 s bar). The bringup supervisor keep
 node that asks for it (`NodeSpec.spare`): a process with the node's own argv, placement and
 environment that imports what the node imports and then waits for `ACTIVATE_SIGNAL`. A restart is
 then that signal: the spare runs the node's script as `__main__`. Android's zygote is the model.
+The imports run in a thread at nice `SPARE_NICE`: they take only CPU no node wants (a mission's
+start with spares at the nodes' priority once left the map 3.1 s old at 20 s), while the main
+thread, which becomes the node, keeps the node's priority.
 The spare holds no ROS state (a node calls rospy.init_node in its main), so nothing of it is seen
 on the graph until it runs.
 
     python -m cps_ros.spare NODE_SCRIPT [node args...]
 
-Its command line holds the node's (`__name:=...` included); while it waits its process name
-(/proc/<pid>/comm) is `SPARE_COMM`, which is how tools that find a node's process by its command line
-leave a waiting spare out (`is_waiting_spare`); once started, the script's name. SIGTERM or SIGINT
-while it waits ends it.
+Its command line holds the node's (`__name:=...` included); while it imports its process name
+(/proc/<pid>/comm) is `LOADING_COMM`, once ready `SPARE_COMM`, which is how tools that find a node's
+process by its command line leave a spare out (`is_waiting_spare`) and how the supervisor starts only
+a ready one (`is_ready_spare`: a spare still importing at its low priority would be slower than a
+new process); once started, the script's name. SIGTERM or SIGINT while it waits ends it.
 """
 
 import ctypes
@@ -22,9 +26,14 @@ import os
 import runpy
 import signal
 import sys
+import threading
+
+from cps_ros import priority
 
 ACTIVATE_SIGNAL = signal.SIGUSR2
 SPARE_COMM = "cps-spare"
+LOADING_COMM = "cps-spare-load"
+SPARE_NICE = priority.NICE_MAX
 _PR_SET_NAME = 15
 _COMM_BYTES = 15  # the kernel keeps 15 bytes of a process name
 
@@ -57,13 +66,22 @@ def log_of_waiting_spare(text):
     return bool(lines) and lines[-1].startswith(_LINE_PREFIX) and lines[-1].endswith(_WAITING)
 
 
-def is_waiting_spare(pid):
-    """True if `pid` is a spare that has not been started (its process name says so)."""
+def _comm(pid):
     try:
         with open(f"/proc/{pid}/comm") as stream:
-            return stream.read().strip() == SPARE_COMM
+            return stream.read().strip()
     except OSError:
-        return False
+        return None
+
+
+def is_waiting_spare(pid):
+    """True if `pid` is a spare that has not been started, importing or ready (its process name)."""
+    return _comm(pid) in (LOADING_COMM, SPARE_COMM)
+
+
+def is_ready_spare(pid):
+    """True if `pid` is a spare done with its imports, waiting to be started."""
+    return _comm(pid) == SPARE_COMM
 
 
 def _set_process_name(name):
@@ -83,6 +101,24 @@ def preload(script):
         namespace["preload"]()
 
 
+def preload_at_low_priority(script):
+    """`preload(script)` in a thread at nice SPARE_NICE; its exception, if any, raised here."""
+    failed = []
+
+    def run():
+        try:
+            priority.set_thread_nice(SPARE_NICE)
+            preload(script)
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread as it is
+            failed.append(exc)
+
+    thread = threading.Thread(target=run, name="spare-preload")
+    thread.start()
+    thread.join()
+    if failed:
+        raise failed[0]
+
+
 def main(argv):
     if not argv:
         print(f"usage: python -m {__name__} NODE_SCRIPT [node args...]", file=sys.stderr)
@@ -93,9 +129,10 @@ def main(argv):
     # (the supervisor's stop) ends the spare at once. Set before the ready line: a SIGINT sent right
     # after it was once taken by Python's handler and the spare waited on (the suite, final30).
     signal.signal(signal.SIGINT, signal.SIG_DFL)
-    _set_process_name(SPARE_COMM)
+    _set_process_name(LOADING_COMM)
     script = argv[0]
-    preload(script)
+    preload_at_low_priority(script)
+    _set_process_name(SPARE_COMM)
     print(waiting_line(script), flush=True)
     signal.sigwait({ACTIVATE_SIGNAL})
     signal.signal(signal.SIGINT, signal.default_int_handler)

@@ -1,0 +1,28 @@
+"""A thread's CPU priority (its nice value): Linux keeps one per thread, and a thread or process
+inherits its creator's. Raising a nice value is always allowed; lowering it needs CAP_SYS_NICE or
+an RLIMIT_NICE that reaches it (sched(7)). A warm spare (cps_ros.spare) imports in a thread at
+nice 19 so that its imports take only CPU no node wants, while its main thread keeps the node's."""
+
+import os
+import resource
+
+NICE_MAX = 19
+
+
+def thread_nice():
+    """The calling thread's nice value."""
+    return os.getpriority(os.PRIO_PROCESS, 0)
+
+
+def set_thread_nice(nice):
+    """Set the calling thread's nice value (new threads and processes it starts inherit it)."""
+    os.setpriority(os.PRIO_PROCESS, 0, max(-20, min(NICE_MAX, int(nice))))
+
+
+def may_lower_nice_to(nice):
+    """True if this process may set a nice value as low as `nice` (root, or RLIMIT_NICE reaching it:
+    a soft limit r allows down to 20 - r)."""
+    if os.geteuid() == 0:
+        return True
+    soft, _ = resource.getrlimit(resource.RLIMIT_NICE)
+    return soft == resource.RLIM_INFINITY or 20 - soft <= nice
