@@ -5,6 +5,7 @@ Each test's memory growth is in the table, and a worker past the memory guard st
 import re
 import subprocess
 import sys
+import time
 import xml.etree.ElementTree as ET
 
 import pytest
@@ -100,3 +101,19 @@ def test_a_worker_past_the_memory_guard_stops_and_names_its_test(tmp_path, worke
     (guard,) = (tmp_path / "report").glob("memory_guard_*.txt")
     text = guard.read_text()
     assert text.startswith("test_sample.py::test_grows: this worker reached") and "test_grows" in text, text
+
+
+def test_the_machines_busy_share_is_given_beside_the_tests_cpu():
+    text = table({"a/b.py::t": 2.0}, {"a/b.py::t": "passed"}, {}, 3.0, {"a/b.py::t": 1.5}, machine=(5.0, 6.0))
+    assert "5 s busy of 6 s (83%); the tests' CPU above is 30% of that busy time." in text
+
+
+def test_the_machines_cpu_counts_a_busy_loop():
+    from cps_harness.durations import machine_busy, machine_cpu_s
+
+    start = machine_cpu_s()
+    t_end = time.process_time() + 0.3
+    while time.process_time() < t_end:
+        pass
+    busy, available = machine_busy(start, machine_cpu_s())
+    assert busy >= 0.25 and available >= busy

@@ -4,6 +4,11 @@ table (`--durations-table PATH`, markdown) when the run ends. With pytest-xdist 
 controller, which sees every worker's reports; the sum of the tests' durations is then more than
 the wall time, and the table gives both.
 
+And the machine's: every CPU's busy time over the run, from /proc/stat (`machine_busy`), whoever
+used it (processes no test reaped, a mission's orphans, anything else running). Beside the tests'
+CPU it says how much of the run's cost the per-test figures see, and whether the run was bound by
+the CPU (busy near 100 %: only less work makes it faster) or by waiting.
+
 Beside the wall time, each test's CPU time (`cpu_s` in its report's user properties, hence in
 junit.xml): its worker's own plus that of every child process the test reaped (the nodes and
 missions it started), from set-up to tear-down. On two shared cores the wall time says how long a
@@ -40,6 +45,7 @@ class Durations:
         self.worker = {}
         self.cpu_s = collections.Counter()  # nodeid -> CPU s (the worker's and its reaped children's)
         self.rss = {}  # nodeid -> (its worker's resident MB after it, MB grown in it)
+        self.machine_start = machine_cpu_s()
 
     @pytest.hookimpl
     def pytest_runtest_logreport(self, report):
@@ -59,7 +65,8 @@ class Durations:
         wall_s = time.monotonic() - self.started
         os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
         with open(self.path, "w") as stream:
-            stream.write(table(self.seconds, self.outcome, self.worker, wall_s, self.cpu_s, self.rss))
+            busy = machine_busy(self.machine_start, machine_cpu_s())
+            stream.write(table(self.seconds, self.outcome, self.worker, wall_s, self.cpu_s, self.rss, busy))
 
 
 def _package(nodeid):
@@ -71,9 +78,31 @@ def _file(nodeid):
     return nodeid.split("::", 1)[0]
 
 
-def table(seconds, outcome, worker, wall_s, cpu_s=None, rss=None):
+def machine_cpu_s():
+    """(busy, all) CPU s of every CPU since boot, from /proc/stat's first line (busy: all but idle
+    and iowait), or None where it cannot be read."""
+    try:
+        with open("/proc/stat") as stream:
+            fields = [int(v) for v in stream.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    ticks = os.sysconf("SC_CLK_TCK")
+    # user nice system idle iowait irq softirq steal (guest time is inside user already)
+    every = sum(fields[:8])
+    return (every - fields[3] - fields[4]) / ticks, every / ticks
+
+
+def machine_busy(start, end):
+    """(busy CPU s, available CPU s) between two `machine_cpu_s` readings, or None."""
+    if start is None or end is None:
+        return None
+    return end[0] - start[0], end[1] - start[1]
+
+
+def table(seconds, outcome, worker, wall_s, cpu_s=None, rss=None, machine=None):
     """The markdown table of a run: per package, per file, the slowest tests, per worker (wall s and
-    CPU s), and the tests their worker's memory grew most in (rss: nodeid -> (MB after, MB grown))."""
+    CPU s), and the tests their worker's memory grew most in (rss: nodeid -> (MB after, MB grown));
+    `machine`: (busy, available) CPU s of the whole machine over the run."""
     seconds, cpu_s = collections.Counter(seconds), collections.Counter(cpu_s or {})
     total, total_cpu = sum(seconds.values()), sum(cpu_s.values())
     lines = [
@@ -84,6 +113,15 @@ def table(seconds, outcome, worker, wall_s, cpu_s=None, rss=None):
         f"and the processes its tests reaped): {total_cpu:.0f} s.",
         "",
     ]
+    if machine is not None and machine[1] > 0:
+        lines[-1:-1] = [
+            "",
+            f"The machine's CPUs over the run (/proc/stat, every process): {machine[0]:.0f} s busy of "
+            f"{machine[1]:.0f} s ({machine[0] / machine[1]:.0%}); the tests' CPU above is "
+            f"{total_cpu / machine[0]:.0%} of that busy time."
+            if machine[0] > 0
+            else "The machine's CPUs over the run: none busy.",
+        ]
 
     def section(title, key, limit=None):
         sums, cpus, counts = collections.Counter(), collections.Counter(), collections.Counter()
