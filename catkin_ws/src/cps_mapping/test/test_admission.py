@@ -235,3 +235,31 @@ def test_the_receive_process_starts_from_a_preloaded_fork_server_or_fresh(start,
     assert receive_nice == RECEIVE_NICE
     assert parent_nice == (spare.SPARE_NICE if start == "spare" else 0)
     assert not processes_named("fast_start_input", f"127.0.0.1:{port}")
+
+
+def test_a_fork_server_left_at_a_spares_priority_is_not_used_where_it_cannot_be_set_back(monkeypatch):
+    """Where the supervisor did not set the spare's fork server back to the node's priority and the
+    map server may not lower a nice value, the receive process is spawned: forked, it would run
+    at nice 19 on a loaded twin."""
+    import multiprocessing
+    import subprocess
+
+    from cps_harness.testing import wait_for
+    from cps_mapping import admission_process as ap
+    from cps_ros import priority
+
+    server = subprocess.Popen(["nice", "-n", str(spare.SPARE_NICE), "sleep", "30"])
+    try:
+        assert wait_for(lambda: priority.process_nice(server.pid) == spare.SPARE_NICE)  # nice has run
+        monkeypatch.setattr(ap, "_start_context", multiprocessing.get_context("forkserver"))
+        monkeypatch.setitem(ap._fork_server, "pid", server.pid)
+        monkeypatch.setattr(priority, "may_lower_nice_to", lambda nice: False)
+        assert ap._context_for(2).get_start_method() == "spawn"
+        assert ap._context_for(spare.SPARE_NICE).get_start_method() == "forkserver"  # not above
+        monkeypatch.setattr(priority, "may_lower_nice_to", lambda nice: True)
+        assert ap._context_for(2).get_start_method() == "forkserver"  # the child sets its own
+        monkeypatch.delitem(ap._fork_server, "pid")
+        assert ap._context_for(2).get_start_method() == "spawn"  # no fork server known
+    finally:
+        server.kill()
+        server.wait()

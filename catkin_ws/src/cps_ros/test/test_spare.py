@@ -110,3 +110,28 @@ def test_a_preload_that_fails_ends_the_spare_with_its_error(tmp_path):
     )
     assert result.returncode != 0 and "RuntimeError: no kernels" in result.stderr
     assert "waiting to be started" not in result.stdout
+
+
+def test_what_a_spare_started_while_importing_takes_the_node_priority_back(tmp_path):
+    """The map server's spare starts a fork server from its import thread (nice 19); once the spare
+    is started, the supervisor sets such processes back to the spare's main-thread priority."""
+    script = tmp_path / "node"
+    script.write_text(
+        "import subprocess\n"
+        "def preload():\n"
+        "    global helper\n"
+        "    helper = subprocess.Popen(['sleep', '60'])\n"
+        "    print('helper', helper.pid, flush=True)\n"
+    )
+    proc = subprocess.Popen(list(spare.spare_argv((sys.executable, str(script)))), stdout=subprocess.PIPE, text=True)
+    try:
+        helper = int(proc.stdout.readline().split()[1])
+        assert "waiting" in proc.stdout.readline()
+        assert os.getpriority(os.PRIO_PROCESS, helper) == spare.SPARE_NICE
+        os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
+        assert spare.take_back_priority(proc.pid) >= 1  # run as root here
+        assert os.getpriority(os.PRIO_PROCESS, helper) == os.getpriority(os.PRIO_PROCESS, proc.pid) == 0
+    finally:
+        proc.kill()
+        proc.wait()
+        subprocess.run(["pkill", "-f", "^sleep 60$"], check=False)

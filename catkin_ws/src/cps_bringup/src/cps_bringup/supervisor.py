@@ -157,6 +157,7 @@ class Supervisor:
         if spare is not None and spare.poll() is None and spares.is_ready_spare(spare.pid):
             try:
                 os.kill(spare.pid, spares.ACTIVATE_SIGNAL)
+                spares.take_back_priority(spare.pid)
                 self.record(label, "restarted from its warm spare")
                 return spare
             except ProcessLookupError:

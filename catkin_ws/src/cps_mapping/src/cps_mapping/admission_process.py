@@ -47,10 +47,11 @@ def prepare_fast_start():
     for its receive process's imports on the loaded twin CPU. The fork server never starts a ROS node,
     so nothing of rospy's state is forked; it ends with the process that started it.
 
-    Called from a spare's import thread (cps_ros.spare, at low priority) the fork server, and every
-    process it forks, inherit that priority: the receive process then sets its own (`_run`), which
-    needs the right to lower a nice value (root, or RLIMIT_NICE). Without it there is no fork
-    server: a receive process at nice 19 would starve on a loaded twin.
+    Called from a spare's import thread (cps_ros.spare, at nice 19) the fork server, and every
+    process it forks, inherit that priority. The supervisor, as root, sets the fork server back to
+    the node's priority when it starts the spare (`cps_ros.spare.take_back_priority`); where no one
+    did, and the map server may not lower it itself, AdmissionClient spawns the receive process
+    instead: at nice 19 it would starve on a loaded twin.
 
     rospy takes a node's namespace once, when it is imported (from `__ns:=` on the command line or
     ROS_NAMESPACE): the fork server imports it under this process's namespace, passed on in its
@@ -60,20 +61,18 @@ def prepare_fast_start():
     global _start_context
     import rosgraph.names
 
-    from cps_ros import priority
-
-    process_nice = os.getpriority(os.PRIO_PROCESS, os.getpid())  # the main thread's
-    if priority.thread_nice() > process_nice and not priority.may_lower_nice_to(process_nice):
-        return
-
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([*RECEIVE_PROCESS_IMPORTS, __name__])
     before = os.environ.get(rosgraph.names.ROS_NAMESPACE)
     os.environ[rosgraph.names.ROS_NAMESPACE] = rosgraph.names.get_ros_namespace(argv=sys.argv)
     try:
-        # a first child waits for the server's imports: they are done before this returns
-        first = context.Process(target=_nothing, name="fork_server_ready", daemon=True)
+        # a first child waits for the server's imports: they are done before this returns; it
+        # says who its parent, the fork server, is
+        parent_end, child_end = context.Pipe(duplex=False)
+        first = context.Process(target=_send_parent_pid, args=(child_end,), name="fork_server_ready", daemon=True)
         first.start()
+        child_end.close()
+        fork_server_pid = parent_end.recv()
         first.join()
     finally:
         if before is None:
@@ -81,10 +80,30 @@ def prepare_fast_start():
         else:
             os.environ[rosgraph.names.ROS_NAMESPACE] = before
     _start_context = context
+    _fork_server["pid"] = fork_server_pid
 
 
-def _nothing():
-    pass
+_fork_server = {}
+
+
+def _send_parent_pid(conn):
+    conn.send(os.getppid())
+
+
+def _context_for(nice):
+    """The start context for a receive process at `nice`: the fork server's unless it runs above
+    `nice` and this process may not set its child back (then spawn)."""
+    from cps_ros import priority
+
+    if _start_context.get_start_method() != "forkserver":
+        return _start_context
+    try:
+        above = priority.process_nice(_fork_server["pid"]) > nice
+    except (KeyError, OSError):
+        return multiprocessing.get_context("spawn")
+    if above and not priority.may_lower_nice_to(nice):
+        return multiprocessing.get_context("spawn")
+    return _start_context
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,12 +135,13 @@ class AdmissionClient:
     interface of cps_mapping.admission.Admission, without `receive`: the process receives)."""
 
     def __init__(self, config: AdmissionConfig):
-        context = _start_context
-        self._next, child_next = context.Pipe()
-        self._control, child_control = context.Pipe()
         from cps_ros import priority
 
-        nice = priority.thread_nice() + config.nice  # forked from a low-priority fork server: set back
+        nice = priority.thread_nice() + config.nice
+        context = _context_for(nice)
+        self.start_method = context.get_start_method()
+        self._next, child_next = context.Pipe()
+        self._control, child_control = context.Pipe()
         self.process = context.Process(
             target=_run, args=(config, nice, child_next, child_control), name=config.node_name, daemon=True
         )

@@ -26,3 +26,25 @@ def may_lower_nice_to(nice):
         return True
     soft, _ = resource.getrlimit(resource.RLIMIT_NICE)
     return soft == resource.RLIM_INFINITY or 20 - soft <= nice
+
+
+def process_nice(pid):
+    """The nice value of `pid`'s main thread (what a process it forks from there inherits)."""
+    return os.getpriority(os.PRIO_PROCESS, pid)
+
+
+def renice_process(pid, nice):
+    """Set every thread of process `pid` to `nice`; the number set (a thread gone meanwhile is
+    skipped). PermissionError where lowering is not allowed."""
+    done = 0
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:
+        return 0
+    for tid in tids:
+        try:
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
+            done += 1
+        except ProcessLookupError:
+            pass
+    return done
