@@ -113,8 +113,8 @@ def test_a_preload_that_fails_ends_the_spare_with_its_error(tmp_path):
 
 
 def test_what_a_spare_started_while_importing_takes_the_node_priority_back(tmp_path):
-    """The map server's spare starts a fork server from its import thread (nice 19); once the spare
-    is started, the supervisor sets such processes back to the spare's main-thread priority."""
+    """The map server's spare starts a fork server from its import thread (nice 19); before it starts
+    the spare, the supervisor sets such processes back to the spare's main-thread priority."""
     script = tmp_path / "node"
     script.write_text(
         "import subprocess\n"
@@ -128,9 +128,10 @@ def test_what_a_spare_started_while_importing_takes_the_node_priority_back(tmp_p
         helper = int(proc.stdout.readline().split()[1])
         assert "waiting" in proc.stdout.readline()
         assert os.getpriority(os.PRIO_PROCESS, helper) == spare.SPARE_NICE
-        os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
         assert spare.take_back_priority(proc.pid) >= 1  # run as root here
         assert os.getpriority(os.PRIO_PROCESS, helper) == os.getpriority(os.PRIO_PROCESS, proc.pid) == 0
+        os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
+        assert spare.take_back_priority(2**22 + 1) == 0  # no such process: nothing, no error
     finally:
         proc.kill()
         proc.wait()

@@ -156,8 +156,8 @@ class Supervisor:
         running.spare_due = self.clock() + SPARE_AFTER_UP_S if running.spec.spare and self.warm_spares else None
         if spare is not None and spare.poll() is None and spares.is_ready_spare(spare.pid):
             try:
+                spares.take_back_priority(spare.pid)  # before it runs: what it forks gets the node's
                 os.kill(spare.pid, spares.ACTIVATE_SIGNAL)
-                spares.take_back_priority(spare.pid)
                 self.record(label, "restarted from its warm spare")
                 return spare
             except ProcessLookupError:

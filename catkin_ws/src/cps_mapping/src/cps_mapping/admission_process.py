@@ -200,7 +200,10 @@ def _run(config: AdmissionConfig, nice, next_conn, control_conn):
         pass
     from cps_ros import priority
 
-    priority.set_thread_nice(nice)
+    try:
+        priority.set_thread_nice(nice)
+    except PermissionError:
+        pass  # forked above `nice` without the right to lower it: _context_for spawns in that case
     import logging
 
     import rospy

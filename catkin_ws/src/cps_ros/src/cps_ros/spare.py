@@ -102,20 +102,21 @@ def preload(script):
 
 
 def take_back_priority(pid):
-    """After `pid`, a spare, was started: every process it started while importing (the map server's
-    fork server) to the spare's main-thread priority, which is the node's, so that what they fork
-    for the node does not run at SPARE_NICE. Needs the right to lower a nice value (the supervisor
-    as root): the number of threads reniced, 0 without it (the node then does without them:
-    admission_process.AdmissionClient spawns its receive process)."""
+    """Before `pid`, a ready spare, is started: every process it started while importing (the map
+    server's fork server) to the spare's main-thread priority, which is the node's, so that what
+    they fork for the node does not run at SPARE_NICE. Needs the right to lower a nice value (the
+    supervisor as root): the number of threads reniced, 0 without it (the node then does without
+    them: admission_process.AdmissionClient spawns its receive process). Never raises: a restart
+    goes on without it."""
     from cps_ros.processes import descendants
 
     try:
         nice = priority.process_nice(pid)
-    except OSError:
+        if not priority.may_lower_nice_to(nice):
+            return 0
+        return sum(priority.renice_process(child, nice) for child in descendants(pid))
+    except OSError:  # the spare gone, or not ours to renice
         return 0
-    if not priority.may_lower_nice_to(nice):
-        return 0
-    return sum(priority.renice_process(child, nice) for child in descendants(pid))
 
 
 def preload_at_low_priority(script):
