@@ -386,6 +386,53 @@ def test_a_killed_node_restarts_from_its_warm_spare_and_gets_a_new_one(tmp_path,
 
 
 @pytest.mark.ros
+def test_a_spare_still_importing_is_started_at_the_nodes_priority(tmp_path, monkeypatch):
+    """A spare's imports run at nice 19 and on a saturated side may not finish before its node dies
+    (a chaos soak's robots' spares): the supervisor (root here) gives it the node's priority and
+    starts it; the node comes up from it once its imports are done."""
+    from cps_bringup import supervisor as supervisor_module
+    from cps_ros import spare as spares
+
+    monkeypatch.setattr(supervisor_module, "SPARE_AFTER_UP_S", 0.5)
+    gate = tmp_path / "imports_may_finish"
+    script = tmp_path / "spared_node"
+    slow_preload = f"def preload():\n    while not os.path.exists({str(gate)!r}):\n        time.sleep(0.02)\n\n\n"
+    script.write_text("import time\n" + SPARED_NODE.replace("def preload():", slow_preload + "def unused():", 1))
+    spec = NodeSpec("spared", PHYSICAL, (sys.executable, str(script)), wait_topics=("/spared/out",), spare=True)
+    events = []
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        supervisor = Supervisor([spec], graph, log=events.append, warm_spares=True)
+        running = supervisor.running
+
+        def poll_until(condition, timeout_s=30.0):
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline:
+                supervisor.poll()
+                if condition():
+                    return True
+                time.sleep(0.05)
+            return False
+
+        try:
+            supervisor.start_all(timeout_s=30)
+            assert poll_until(
+                lambda: running["spared"].spare is not None and spares.is_waiting_spare(running["spared"].spare.pid)
+            )
+            first, spare_pid = supervisor.pid_of("spared"), running["spared"].spare.pid
+            assert not spares.is_ready_spare(spare_pid)
+            os.kill(first, signal.SIGKILL)
+            assert poll_until(lambda: supervisor.pid_of("spared") != first), events
+            assert supervisor.pid_of("spared") == spare_pid
+            assert "spared: restarted from its warm spare (still importing" in events[-1], events
+            assert os.getpriority(os.PRIO_PROCESS, spare_pid) == 0
+            gate.write_text("")
+            assert poll_until(lambda: running["spared"].up), events
+        finally:
+            gate.write_text("")
+            supervisor.stop_all()
+
+
+@pytest.mark.ros
 def test_the_wait_between_polls_ends_when_a_node_dies(tmp_path):
     """wait_for_mission's wait wakes at a node's death (its pidfd), not at the end of its period, so
     that the restart is not delayed by up to a period; without a death it waits the period."""

@@ -151,17 +151,23 @@ class Supervisor:
         return proc
 
     def _restart(self, label, running):
-        """The node's new process: its spare, started, if one is ready (done importing); else a new one."""
+        """The node's new process: its spare, started, if one is ready or still importing and can be
+        given the node's priority (its imports run at nice 19: on a saturated side they may never
+        finish, a chaos soak's robots' spares did not in a minute); else a new one."""
         spare, running.spare = running.spare, None
         running.spare_due = self.clock() + SPARE_AFTER_UP_S if running.spec.spare and self.warm_spares else None
-        if spare is not None and spare.poll() is None and spares.is_ready_spare(spare.pid):
-            try:
-                spares.take_back_priority(spare.pid)  # before it runs: what it forks gets the node's
-                os.kill(spare.pid, spares.ACTIVATE_SIGNAL)
-                self.record(label, "restarted from its warm spare")
-                return spare
-            except ProcessLookupError:
-                pass  # it died in between: a new process
+        if spare is not None and spare.poll() is None and spares.is_waiting_spare(spare.pid):
+            ready = spares.is_ready_spare(spare.pid)
+            # before it runs: its import thread and what it started get the node's priority
+            reniced = spares.take_back_priority(spare.pid)
+            if ready or reniced:
+                try:
+                    os.kill(spare.pid, spares.ACTIVATE_SIGNAL)
+                    how = "" if ready else " (still importing: at the node's priority now)"
+                    self.record(label, f"restarted from its warm spare{how}")
+                    return spare
+                except ProcessLookupError:
+                    pass  # it died in between: a new process
         if spare is not None:
             stop_all([spare], [SPARE_STOP_TIMEOUT_S])
         return self._start(running.spec)

@@ -16,9 +16,11 @@ on the graph until it runs.
 
 Its command line holds the node's (`__name:=...` included); while it imports its process name
 (/proc/<pid>/comm) is `LOADING_COMM`, once ready `SPARE_COMM`, which is how tools that find a node's
-process by its command line leave a spare out (`is_waiting_spare`) and how the supervisor starts only
-a ready one (`is_ready_spare`: a spare still importing at its low priority would be slower than a
-new process); once started, the script's name. SIGTERM or SIGINT while it waits ends it.
+process by its command line leave a spare out (`is_waiting_spare`) and how the supervisor tells a
+ready one (`is_ready_spare`). A spare started while it still imports waits for its imports (the
+start signal is held until then): the supervisor starts it only if it can first give it the node's
+priority (`take_back_priority`), else a new process. Once started, its process name is the
+script's. SIGTERM or SIGINT while it waits ends it.
 """
 
 import ctypes
@@ -102,19 +104,20 @@ def preload(script):
 
 
 def take_back_priority(pid):
-    """Before `pid`, a ready spare, is started: every process it started while importing (the map
-    server's fork server) to the spare's main-thread priority, which is the node's, so that what
-    they fork for the node does not run at SPARE_NICE. Needs the right to lower a nice value (the
-    supervisor as root): the number of threads reniced, 0 without it (the node then does without
-    them: admission_process.AdmissionClient spawns its receive process). Never raises: a restart
-    goes on without it."""
+    """Before `pid`, a spare, is started: its threads (an import thread still running) and every
+    process it started while importing (the map server's fork server) to the spare's main-thread
+    priority, which is the node's, so that neither its rest of the imports nor what they fork for
+    the node runs at SPARE_NICE. Needs the right to lower a nice value (the supervisor as root):
+    the number of threads set, 0 without it (the node then does without them:
+    admission_process.AdmissionClient spawns its receive process). Never raises: a restart goes
+    on without it."""
     from cps_ros.processes import descendants
 
     try:
         nice = priority.process_nice(pid)
         if not priority.may_lower_nice_to(nice):
             return 0
-        return sum(priority.renice_process(child, nice) for child in descendants(pid))
+        return sum(priority.renice_process(p, nice) for p in (pid, *descendants(pid)))
     except OSError:  # the spare gone, or not ours to renice
         return 0
 
