@@ -40,6 +40,14 @@ class EndpointOptions:
         "s",
         low=0.0,
     )
+    nice: int = _option(
+        10,
+        "the node's nice, below the map server's (0) and its receive process's (5): when the twin's CPU is "
+        "short, the map goes first",
+        "",
+        low=0,
+        high=19,
+    )
     scene_period_s: float = _option(0.2, "how often the robots' poses and trails are sent", "s", low=0.02)
     status_period_s: float = _option(1.0, "how often fleet health, the link and the counters are sent", "s", low=0.1)
     url_file: str = _option("", "write the endpoint's ws:// URL here once it listens (empty: none)", "path")
