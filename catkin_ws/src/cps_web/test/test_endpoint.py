@@ -256,3 +256,41 @@ def test_a_viewer_that_reads_nothing_costs_no_conversion(view, npm_client):
     finally:
         stalled.kill()
         stalled.wait()
+
+
+def test_socket_queues_are_the_kernels_for_the_port_only():
+    """SocketQueues reads the unsent bytes of this process's connections to the port (a socket
+    written to while its peer reads nothing holds MBs), not the listener's, not other sockets';
+    a closed connection leaves, a new one is seen after `rescan`."""
+    import socket
+
+    from cps_web.endpoint import SocketQueues
+
+    with socket.socket() as listener, socket.socket() as elsewhere:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        elsewhere.bind(("127.0.0.1", 0))
+        elsewhere.listen()
+        port = listener.getsockname()[1]
+        peers = [socket.create_connection(("127.0.0.1", port)) for _ in range(2)]
+        peers.append(socket.create_connection(elsewhere.getsockname()))
+        accepted = [listener.accept()[0] for _ in range(2)] + [elsewhere.accept()[0]]
+        try:
+            queues = SocketQueues(lambda: port)
+            assert queues() == [0, 0]
+            for conn in (accepted[0], accepted[2]):  # nobody reads at the other end
+                conn.setblocking(False)
+                with pytest.raises(BlockingIOError):
+                    while True:
+                        conn.send(b"\0" * 65536)
+            full = queues()
+            assert sorted(full)[0] == 0 and sorted(full)[1] > DEFAULT_STALLED_BYTES, full
+            accepted.pop(1).close()
+            assert len(queues()) == 1
+            peers.append(socket.create_connection(("127.0.0.1", port)))
+            accepted.append(listener.accept()[0])
+            queues.rescan()
+            assert len(queues()) == 2
+        finally:
+            for s in peers + accepted:
+                s.close()

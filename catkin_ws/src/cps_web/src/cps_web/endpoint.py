@@ -10,15 +10,21 @@ Conversion errors (bad input) are counted per channel and logged, never raised i
 
 A viewer that does not read costs no conversion either. The SDK does not say how far behind a
 viewer is, but the kernel does: the bytes its socket holds unsent or unacknowledged (`ss`'s
-Send-Q, /proc/net/tcp's tx_queue). While every viewer's socket holds `stalled_bytes` or more,
+Send-Q, SIOCOUTQ on the endpoint's own descriptors). While every viewer's socket holds `stalled_bytes` or more,
 nothing is converted (the offer is counted `stalled`), so a stalled viewer's socket fills once and
 then costs nothing, and a slow one is converted for at about the rate it drains. When a viewer
 takes data again, the latched channels' latest is sent at once.
 """
 
 import dataclasses
+import fcntl
 import logging
+import os
 import queue
+import socket
+import stat
+import struct
+import termios
 import threading
 import time
 from typing import Callable, Dict, List, Optional
@@ -57,31 +63,80 @@ DEFAULT_BACKLOG = 32  # messages the SDK holds per viewer before it drops its ol
 # the twin's host holds ~0 (a 55 000-point map is ~0.9 MB and drains in milliseconds), a stalled
 # one's fills to its buffers (several MB).
 DEFAULT_STALLED_BYTES = 256 * 1024
-CHECK_PERIOD_S = 0.1  # how often the viewers' sockets are looked at (one read of /proc/self/net/tcp)
+CHECK_PERIOD_S = 0.1  # how often the viewers' sockets are looked at (an ioctl each)
+SCAN_PERIOD_S = 1.0  # how often the endpoint's descriptors are listed for new viewers' sockets (~0.3 ms)
 # After this long with no viewer taking data, the node drops its ROS inputs that only viewers need.
 DEFAULT_STALL_HOLD_S = 2.0
-_ESTABLISHED = "01"  # /proc/net/tcp's st column
 
 
-def kernel_send_queues(port: int) -> Optional[List[int]]:
-    """Bytes each established TCP connection on local `port` holds unsent or unacknowledged (the
-    tx_queue column of /proc/self/net/tcp and tcp6: this process's network namespace); None when
-    neither can be read."""
-    out, read = [], False
-    for table in ("/proc/self/net/tcp", "/proc/self/net/tcp6"):
-        try:
-            with open(table) as stream:
-                lines = stream.readlines()[1:]
-        except OSError:
-            continue
-        read = True
-        for line in lines:
-            fields = line.split()
-            if len(fields) < 5 or fields[3] != _ESTABLISHED:
+class SocketQueues:
+    """The unsent or unacknowledged bytes of each connection to a local TCP port of this process
+    (ioctl SIOCOUTQ on its own descriptors: what `ss` shows as Send-Q). Reading /proc/net/tcp would
+    list every socket of the host, over a thousand on a running twin, at ~0.1 s of CPU a read. The
+    descriptors are listed again every SCAN_PERIOD_S, or at once after `rescan` (a new viewer)."""
+
+    def __init__(self, port: Callable[[], int]):
+        self.port = port
+        self._ours: Dict[int, int] = {}  # socket inode -> descriptor, of each connection to the port
+        self._others = set()  # inodes of every other socket (the listener, ROS, the master)
+        self._scanned_at = -float("inf")
+
+    def rescan(self):
+        self._scanned_at = -float("inf")
+
+    def __call__(self) -> Optional[List[int]]:
+        """The bytes each connection holds; None when this process's descriptors cannot be listed."""
+        now = time.monotonic()
+        if now - self._scanned_at >= SCAN_PERIOD_S:
+            try:
+                self._scan()
+            except OSError:
+                return None
+            self._scanned_at = now
+        out = []
+        for inode, fd in list(self._ours.items()):
+            try:
+                if os.fstat(fd).st_ino != inode:  # closed, and the descriptor reused
+                    raise OSError
+                out.append(struct.unpack("i", fcntl.ioctl(fd, termios.TIOCOUTQ, b"\0" * 4))[0])
+            except OSError:  # closed meanwhile
+                self._ours.pop(inode, None)
+        return out
+
+    def _scan(self):
+        ours, seen = {}, set()
+        for name in os.listdir("/proc/self/fd"):
+            fd = int(name)
+            try:
+                status = os.fstat(fd)
+            except OSError:  # closed meanwhile (or the listing's own descriptor)
                 continue
-            if int(fields[1].rsplit(":", 1)[1], 16) == port:
-                out.append(int(fields[4].split(":")[0], 16))
-    return out if read else None
+            if not stat.S_ISSOCK(status.st_mode):
+                continue
+            seen.add(status.st_ino)
+            if status.st_ino in self._others:
+                continue
+            if status.st_ino in self._ours or self._is_connection(fd):
+                ours[status.st_ino] = fd
+            else:
+                self._others.add(status.st_ino)
+        self._ours = ours
+        self._others &= seen
+
+    def _is_connection(self, fd) -> bool:
+        try:
+            sock = socket.socket(fileno=fd)  # borrowed: detached below, never closed here
+        except OSError:
+            return False
+        try:
+            if sock.type != socket.SOCK_STREAM or sock.family not in (socket.AF_INET, socket.AF_INET6):
+                return False
+            sock.getpeername()  # a listener has no peer
+            return sock.getsockname()[1] == self.port()
+        except OSError:
+            return False
+        finally:
+            sock.detach()
 
 
 def parse_listen(text: str):
@@ -130,6 +185,7 @@ class _Listener(ServerListener):
         self.endpoint = endpoint
 
     def on_subscribe(self, client, channel):
+        self.endpoint._viewer_subscribed()
         self.endpoint._resend_latched(channel.topic)
 
 
@@ -153,7 +209,7 @@ class Endpoint:
     ):
         """`channels`: Foxglove topic -> kind (one of the kinds above); `latched`: topics whose latest
         message a new subscriber gets at once (the map, the changes, static tf); `send_queues`: the
-        viewers' unsent bytes (default: the kernel's, `kernel_send_queues` of the server's port)."""
+        viewers' unsent bytes (default: the kernel's, SocketQueues of the server's port)."""
         self.context = foxglove.Context()
         self.channels = {}
         for topic, kind in channels.items():
@@ -172,7 +228,7 @@ class Endpoint:
         self._stop = threading.Event()
         self.stalled_bytes = stalled_bytes
         self.stall_hold_s = stall_hold_s
-        self._send_queues = send_queues or (lambda: kernel_send_queues(self.port))
+        self._send_queues = send_queues or SocketQueues(lambda: self.port)
         self._checked_at = -float("inf")
         self._accepting = True
         self._blocked_since: Optional[float] = None
@@ -264,6 +320,14 @@ class Endpoint:
         with self._lock:
             self.counters.count(topic, "queued")
         return True
+
+    def _viewer_subscribed(self):
+        """A viewer, maybe a new one, subscribed: its socket is looked at before the next offer."""
+        rescan = getattr(self._send_queues, "rescan", None)
+        if rescan:
+            rescan()
+        with self._lock:
+            self._checked_at = -float("inf")
 
     def _resend_latched(self, topic):
         with self._lock:
