@@ -10,10 +10,12 @@ Conversion errors (bad input) are counted per channel and logged, never raised i
 
 A viewer that does not read costs no conversion either. The SDK does not say how far behind a
 viewer is, but the kernel does: the bytes its socket holds unsent or unacknowledged (`ss`'s
-Send-Q, SIOCOUTQ on the endpoint's own descriptors). While every viewer's socket holds `stalled_bytes` or more,
-nothing is converted (the offer is counted `stalled`), so a stalled viewer's socket fills once and
-then costs nothing, and a slow one is converted for at about the rate it drains. When a viewer
-takes data again, the latched channels' latest is sent at once.
+Send-Q, SIOCOUTQ on the endpoint's own descriptors). While every viewer's socket holds
+`stalled_bytes` or more, nothing is converted (the offer is counted `stalled`), so a stalled
+viewer's socket fills once and then costs nothing, and a slow one is converted for at about the
+rate it drains. When a viewer takes data again, the latched channels' latest is sent at once.
+The gate is the endpoint's, not each viewer's (the SDK does not say which socket is whose): while
+one viewer reads, what a stalled one subscribed is converted too, and the SDK drops it for it.
 """
 
 import dataclasses
