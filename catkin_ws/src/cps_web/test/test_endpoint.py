@@ -1,7 +1,7 @@
 """The endpoint against a viewer no one here wrote (the npm @foxglove/ws-protocol client, run with
 node): channels advertised, every message decoded with its advertised schema, nothing converted
 for a channel nobody watches, the latest latched message to a late subscriber, a full queue's
-offers dropped and counted, a stalled viewer holding back nothing."""
+offers dropped and counted, a stalled viewer holding back nothing and costing no conversion."""
 
 import threading
 import time
@@ -16,7 +16,7 @@ from cps_harness import foxglove_probe
 from cps_harness.synthetic_clouds import xyz_cloud
 from cps_harness.testing import wait_for
 from cps_web import convert
-from cps_web.endpoint import Endpoint, parse_listen
+from cps_web.endpoint import CHECK_PERIOD_S, DEFAULT_STALLED_BYTES, Endpoint, parse_listen
 from cps_web.options import EndpointOptions
 from cps_web.twin_view import CHANGES, FLEET, HEALTH, LINK, MAP, VIDEO, TwinView, channels_of, pose_channel
 
@@ -124,7 +124,7 @@ def test_full_queue_drops_and_counts_and_bad_input_is_counted():
         assert endpoint.wait_idle()
         snap = endpoint.snapshot()
         assert (snap["dropped"], snap["bad"], snap["logged"]) == (3, 1, 3)
-        assert snap["by_channel"][MAP] == {"queued": 1, "dropped": 0, "bad": 1, "failed": 0, "logged": 0}
+        assert snap["by_channel"][MAP] == {"queued": 1, "dropped": 0, "stalled": 0, "bad": 1, "failed": 0, "logged": 0}
         endpoint.offer(HEALTH, lambda: 1 / 0)  # a defect: counted, and the worker goes on
         endpoint.offer(HEALTH, lambda: {"stamp_s": 2.0})
         assert endpoint.wait_idle()
@@ -147,8 +147,150 @@ def test_a_stalled_viewer_holds_back_no_offer(view, npm_client):
         assert view.endpoint.wait_idle(timeout_s=30.0), "the worker was held back by the stalled viewer"
         snap = view.endpoint.snapshot()
         print(f"stalled viewer, 200 offers of a 600 kB map: {snap}")
-        assert snap["by_channel"][MAP]["logged"] + snap["by_channel"][MAP]["dropped"] == 200
-        assert snap["by_channel"][MAP]["logged"] >= 1
+        row = snap["by_channel"][MAP]
+        assert row["logged"] + row["dropped"] + row["stalled"] == 200
+        assert row["logged"] >= 1
     finally:
         stalled.kill()
         stalled.wait()
+
+
+def _counting(make, calls):
+    def counted():
+        calls.append(1)
+        return make()
+
+    return counted
+
+
+def test_nothing_is_converted_while_no_viewer_takes_data():
+    """The viewers' sockets as the kernel would report them: while every one holds
+    DEFAULT_STALLED_BYTES unsent, an offer is not converted (counted stalled), not even one queued
+    before the stall; one reading viewer beside a stalled one gets everything; when a viewer reads
+    again, the latched map's latest is sent at once."""
+    queues = [[DEFAULT_STALLED_BYTES]]  # one viewer, its socket full
+    gate = threading.Event()
+    endpoint = Endpoint(
+        {MAP: "PointCloud", HEALTH: "health"},
+        latched=(MAP,),
+        host="127.0.0.1",
+        port=0,
+        stall_hold_s=0.3,
+        send_queues=lambda: queues[0],
+    )
+    endpoint.watched = lambda topic: True  # as if the viewers subscribed every channel
+    calls = []
+    row = _counting(lambda: {"stamp_s": 0.0}, calls)
+    cloud = _map_cloud(1000)
+    try:
+        for _ in range(20):
+            assert not endpoint.offer(HEALTH, row)
+            assert not endpoint.offer(MAP, _counting(lambda: convert.point_cloud(cloud), calls))
+        assert endpoint.wait_idle()
+        snap = endpoint.snapshot()
+        assert calls == [] and snap["stalled"] == 40 and snap["queued"] == 0, snap
+        assert (snap["viewers"], snap["stalled_viewers"]) == (1, 1)
+        time.sleep(0.3)
+        assert not endpoint.wanted(MAP)  # stalled for stall_hold_s: the node drops the ROS inputs
+
+        queues[0] = [10 * DEFAULT_STALLED_BYTES, 0]  # a reading viewer joins the stalled one
+        time.sleep(CHECK_PERIOD_S)
+        assert endpoint.offer(HEALTH, row)
+        assert endpoint.wait_idle()
+        assert len(calls) == 2  # the offer, and the latched map's latest, re-sent on resuming
+        assert endpoint.snapshot()["by_channel"][MAP]["logged"] == 1
+        assert endpoint.wanted(MAP)
+
+        assert endpoint.offer(HEALTH, lambda: gate.wait() and {"stamp_s": 1.0})  # the worker waits on it
+        assert wait_for(lambda: endpoint.snapshot()["queue_length"] == 0, 5.0)
+        assert endpoint.offer(HEALTH, row)  # queued while the reading viewer reads ...
+        queues[0] = [DEFAULT_STALLED_BYTES]  # ... which leaves before the worker gets to it
+        time.sleep(CHECK_PERIOD_S)
+        gate.set()
+        assert endpoint.wait_idle()
+        assert len(calls) == 2, "converted for viewers that take nothing"
+        assert endpoint.snapshot()["by_channel"][HEALTH]["stalled"] == 21
+    finally:
+        gate.set()
+        endpoint.close()
+
+
+def test_a_viewer_that_reads_nothing_costs_no_conversion(view, npm_client):
+    """The npm client subscribes every channel and stops reading: its socket fills once (a few
+    maps), after which nothing is converted for it however much is offered; a reading viewer
+    connecting beside it gets the map."""
+    stalled = foxglove_probe.stalled_viewer(view.url, 30.0, modules=npm_client)
+    calls = []
+    big = _map_cloud(50_000)  # 600 kB a message
+    try:
+        assert wait_for(lambda: view.endpoint.watched(MAP), 5.0), "the stalled viewer never subscribed"
+        assert foxglove_probe.wait_paused(stalled), "the stalled viewer never said it stopped reading"
+        for filled in range(1, 101):
+            view.endpoint.offer(MAP, _counting(lambda: convert.point_cloud(big), calls))
+            assert view.endpoint.wait_idle(timeout_s=10.0)
+            time.sleep(CHECK_PERIOD_S)
+            if not view.endpoint.accepting():
+                break
+        snap = view.endpoint.snapshot()
+        print(f"stalled after {filled} maps offered, {len(calls)} converted: {snap}")
+        assert snap["stalled_viewers"] == 1, f"100 maps (60 MB) did not fill the stalled viewer's socket: {snap}"
+        before = len(calls)
+        stop = threading.Event()
+        feeder = threading.Thread(target=_feed, args=(view, stop), daemon=True)
+        feeder.start()
+        try:
+            for _ in range(100):
+                view.endpoint.offer(MAP, _counting(lambda: convert.point_cloud(big), calls))
+                time.sleep(0.01)
+            assert view.endpoint.wait_idle()
+            assert len(calls) == before, "a map was converted for a viewer that reads nothing"
+            after = view.endpoint.snapshot()
+            assert after["logged"] == snap["logged"], (snap, after)  # nothing of the feed either
+            assert after["by_channel"][MAP]["stalled"] >= 100
+            view.endpoint.offer(MAP, lambda: convert.point_cloud(_map_cloud(100)))  # latched: the next viewer's
+            report = foxglove_probe.probe(view.url, 3.0, [MAP], modules=npm_client)
+        finally:
+            stop.set()
+            feeder.join()
+        assert report["messages"].get(MAP, 0) >= 1 and report["decode_errors"] == {}, report
+    finally:
+        stalled.kill()
+        stalled.wait()
+
+
+def test_socket_queues_are_the_kernels_for_the_port_only():
+    """SocketQueues reads the unsent bytes of this process's connections to the port (a socket
+    written to while its peer reads nothing holds MBs), not the listener's, not other sockets';
+    a closed connection leaves, a new one is seen after `rescan`."""
+    import socket
+
+    from cps_web.endpoint import SocketQueues
+
+    with socket.socket() as listener, socket.socket() as elsewhere:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        elsewhere.bind(("127.0.0.1", 0))
+        elsewhere.listen()
+        port = listener.getsockname()[1]
+        peers = [socket.create_connection(("127.0.0.1", port)) for _ in range(2)]
+        peers.append(socket.create_connection(elsewhere.getsockname()))
+        accepted = [listener.accept()[0] for _ in range(2)] + [elsewhere.accept()[0]]
+        try:
+            queues = SocketQueues(lambda: port)
+            assert queues() == [0, 0]
+            for conn in (accepted[0], accepted[2]):  # nobody reads at the other end
+                conn.setblocking(False)
+                with pytest.raises(BlockingIOError):
+                    while True:
+                        conn.send(b"\0" * 65536)
+            full = queues()
+            assert sorted(full)[0] == 0 and sorted(full)[1] > DEFAULT_STALLED_BYTES, full
+            accepted.pop(1).close()
+            assert len(queues()) == 1
+            peers.append(socket.create_connection(("127.0.0.1", port)))
+            accepted.append(listener.accept()[0])
+            queues.rescan()
+            assert len(queues()) == 2
+        finally:
+            for s in peers + accepted:
+                s.close()

@@ -1,6 +1,7 @@
 """The foxglove_endpoint node on a private master, seen by the npm @foxglove/ws-protocol client:
-the latched map, a robot's pose and the video it subscribes only while watched; a port in use
-refused with a clear error; the MCAP recorder node's file read back."""
+the latched map, a robot's pose and the video it subscribes only while watched (and read), at the
+nice that puts it behind the map server; a port in use refused with a clear error; the MCAP
+recorder node's file read back."""
 
 import socket
 
@@ -8,8 +9,10 @@ import pytest
 
 from cps_fleet import names
 from cps_harness import foxglove_probe
+from cps_harness.cgroups import nice_of
 from cps_harness.synthetic_clouds import xyz_cloud
 from cps_harness.testing import messages_received, wait_for
+from cps_web.options import EndpointOptions
 from cps_web.twin_view import MAP, VIDEO, pose_channel
 
 pytestmark = pytest.mark.ros
@@ -52,11 +55,12 @@ def test_node_serves_map_pose_and_video_to_the_npm_client(ros, rospy_node, tmp_p
     video_pub = rospy.Publisher(video_topic, CompressedImage, queue_size=2)
     map_pub.publish(_map_cloud(rospy, 500))
     url_file = tmp_path / "url.txt"
-    _start_endpoint(ros, url_file)
+    proc = _start_endpoint(ros, url_file)
     assert wait_for(lambda: url_file.exists() and url_file.read_text().strip(), timeout_s=30.0), ros.output(
         names.FOXGLOVE_ENDPOINT
     )
     url = url_file.read_text().strip()
+    assert nice_of(proc.pid) == EndpointOptions.nice  # behind the map server when the CPU is short
     assert video_pub.get_num_connections() == 0  # nobody watches: the video is not subscribed
 
     import threading
@@ -89,6 +93,38 @@ def test_node_serves_map_pose_and_video_to_the_npm_client(ros, rospy_node, tmp_p
     assert report["samples"][pose_channel(ROBOT)]["frame_id"] == names.odom_frame(ROBOT)
     # The viewer left: the video is unsubscribed again.
     assert wait_for(lambda: video_pub.get_num_connections() == 0, timeout_s=10.0), "the video unsubscribed"
+
+
+def test_node_drops_its_inputs_while_the_only_viewer_reads_nothing(ros, rospy_node, tmp_path):
+    """A viewer subscribes everything and stops reading: the big latched map fills its socket, and
+    within the stall hold the node unsubscribes the video (and the map) again."""
+    rospy = rospy_node
+    from sensor_msgs.msg import CompressedImage, PointCloud2
+
+    map_pub = rospy.Publisher(
+        names.absolute(names.in_twin(names.POINT_CLOUD_CENTERS)), PointCloud2, queue_size=1, latch=True
+    )
+    video_pub = rospy.Publisher(
+        names.absolute(names.robot_topic(ROBOT, names.CAMERA_IMAGE_COMPRESSED)), CompressedImage, queue_size=2
+    )
+    map_pub.publish(_map_cloud(rospy, 50_000))  # 600 kB: more than a viewer's socket takes unread
+    url_file = tmp_path / "url.txt"
+    _start_endpoint(ros, url_file)
+    assert wait_for(lambda: url_file.exists() and url_file.read_text().strip(), timeout_s=30.0), ros.output(
+        names.FOXGLOVE_ENDPOINT
+    )
+    stalled = foxglove_probe.stalled_viewer(url_file.read_text().strip(), 60.0)
+    try:
+        assert foxglove_probe.wait_paused(stalled, timeout_s=20.0), "the stalled viewer never said it stopped reading"
+        assert wait_for(lambda: video_pub.get_num_connections() == 1, timeout_s=10.0), "the video never subscribed"
+        assert wait_for(lambda: map_pub.get_num_connections() == 0, timeout_s=10.0 + EndpointOptions.stall_hold_s), (
+            "the map still subscribed for a viewer that reads nothing: " + ros.output(names.FOXGLOVE_ENDPOINT)[-2000:]
+        )
+        assert video_pub.get_num_connections() == 0
+        assert stalled.poll() is None  # still connected: the stall, not its leaving, dropped the inputs
+    finally:
+        stalled.kill()
+        stalled.wait()
 
 
 def test_port_in_use_is_a_clear_error(ros, tmp_path):

@@ -319,14 +319,17 @@ LINK_SCHEMA = {
 
 ENDPOINT_SCHEMA = {
     "type": "object",
-    "description": "The endpoint's own counters since it started: messages queued, dropped (queue full), bad (conversion refused), logged.",
+    "description": "The endpoint's own counters since it started: messages queued, dropped (queue full), stalled (no viewer took data: not converted), bad (conversion refused), logged; the viewers connected now, and how many of them are stalled.",
     "properties": {
         "queued": {"type": "integer"},
         "dropped": {"type": "integer"},
+        "stalled": {"type": "integer"},
         "bad": {"type": "integer"},
         "failed": {"type": "integer"},
         "logged": {"type": "integer"},
         "queue_length": {"type": "integer"},
+        "viewers": {"type": "integer"},
+        "stalled_viewers": {"type": "integer"},
         "by_channel": {"type": "object"},
     },
 }

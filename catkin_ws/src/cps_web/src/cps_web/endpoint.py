@@ -7,14 +7,29 @@ full queue drops the offer and counts it, so a slow viewer never holds back the 
 that feed the map server's graph. Past the queue the SDK keeps at most `backlog` messages per
 viewer and drops its oldest (its own bound), so a stalled viewer costs a fixed amount of memory.
 Conversion errors (bad input) are counted per channel and logged, never raised into the node.
+
+A viewer that does not read costs no conversion either. The SDK does not say how far behind a
+viewer is, but the kernel does: the bytes its socket holds unsent or unacknowledged (`ss`'s
+Send-Q, SIOCOUTQ on the endpoint's own descriptors). While every viewer's socket holds
+`stalled_bytes` or more, nothing is converted (the offer is counted `stalled`), so a stalled
+viewer's socket fills once and then costs nothing, and a slow one is converted for at about the
+rate it drains. When a viewer takes data again, the latched channels' latest is sent at once.
+The gate is the endpoint's, not each viewer's (the SDK does not say which socket is whose): while
+one viewer reads, what a stalled one subscribed is converted too, and the SDK drops it for it.
 """
 
 import dataclasses
+import fcntl
 import logging
+import os
 import queue
+import socket
+import stat
+import struct
+import termios
 import threading
 import time
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict, List, Optional
 
 import foxglove
 from foxglove import channels as fx_channels
@@ -46,6 +61,84 @@ DEFAULT_HOST = "127.0.0.1"  # the twin's host only
 DEFAULT_PORT = 8765  # Foxglove's usual port
 DEFAULT_QUEUE = 64  # offers waiting for the worker
 DEFAULT_BACKLOG = 32  # messages the SDK holds per viewer before it drops its oldest
+# Unsent bytes towards a viewer from which it counts as not reading: a reading viewer's socket on
+# the twin's host holds ~0 (a 55 000-point map is ~0.9 MB and drains in milliseconds), a stalled
+# one's fills to its buffers (several MB).
+DEFAULT_STALLED_BYTES = 256 * 1024
+CHECK_PERIOD_S = 0.1  # how often the viewers' sockets are looked at (an ioctl each)
+SCAN_PERIOD_S = 1.0  # how often the endpoint's descriptors are listed for new viewers' sockets (~0.3 ms)
+# After this long with no viewer taking data, the node drops its ROS inputs that only viewers need.
+DEFAULT_STALL_HOLD_S = 2.0
+
+
+class SocketQueues:
+    """The unsent or unacknowledged bytes of each connection to a local TCP port of this process
+    (ioctl SIOCOUTQ on its own descriptors: what `ss` shows as Send-Q). Reading /proc/net/tcp would
+    list every socket of the host, over a thousand on a running twin, at ~0.1 s of CPU a read. The
+    descriptors are listed again every SCAN_PERIOD_S, or at once after `rescan` (a new viewer)."""
+
+    def __init__(self, port: Callable[[], int]):
+        self.port = port
+        self._ours: Dict[int, int] = {}  # socket inode -> descriptor, of each connection to the port
+        self._others = set()  # inodes of every other socket (the listener, ROS, the master)
+        self._scanned_at = -float("inf")
+
+    def rescan(self):
+        self._scanned_at = -float("inf")
+
+    def __call__(self) -> Optional[List[int]]:
+        """The bytes each connection holds; None when this process's descriptors cannot be listed."""
+        now = time.monotonic()
+        if now - self._scanned_at >= SCAN_PERIOD_S:
+            try:
+                self._scan()
+            except OSError:
+                return None
+            self._scanned_at = now
+        out = []
+        for inode, fd in list(self._ours.items()):
+            try:
+                if os.fstat(fd).st_ino != inode:  # closed, and the descriptor reused
+                    raise OSError
+                out.append(struct.unpack("i", fcntl.ioctl(fd, termios.TIOCOUTQ, b"\0" * 4))[0])
+            except OSError:  # closed meanwhile
+                self._ours.pop(inode, None)
+        return out
+
+    def _scan(self):
+        ours, seen = {}, set()
+        for name in os.listdir("/proc/self/fd"):
+            fd = int(name)
+            try:
+                status = os.fstat(fd)
+            except OSError:  # closed meanwhile (or the listing's own descriptor)
+                continue
+            if not stat.S_ISSOCK(status.st_mode):
+                continue
+            seen.add(status.st_ino)
+            if status.st_ino in self._others:
+                continue
+            if status.st_ino in self._ours or self._is_connection(fd):
+                ours[status.st_ino] = fd
+            else:
+                self._others.add(status.st_ino)
+        self._ours = ours
+        self._others &= seen
+
+    def _is_connection(self, fd) -> bool:
+        try:
+            sock = socket.socket(fileno=fd)  # borrowed: detached below, never closed here
+        except OSError:
+            return False
+        try:
+            if sock.type != socket.SOCK_STREAM or sock.family not in (socket.AF_INET, socket.AF_INET6):
+                return False
+            sock.getpeername()  # a listener has no peer
+            return sock.getsockname()[1] == self.port()
+        except OSError:
+            return False
+        finally:
+            sock.detach()
 
 
 def parse_listen(text: str):
@@ -72,6 +165,7 @@ class Counters:
 
     queued: int = 0
     dropped: int = 0  # the queue was full
+    stalled: int = 0  # no viewer took data (every viewer's socket was full): not converted
     bad: int = 0  # the conversion refused the message (bad input)
     failed: int = 0  # the conversion raised anything else: a defect, logged with its traceback
     logged: int = 0
@@ -79,8 +173,11 @@ class Counters:
 
     def count(self, topic, what):
         setattr(self, what, getattr(self, what) + 1)
-        row = self.by_channel.setdefault(topic, {"queued": 0, "dropped": 0, "bad": 0, "failed": 0, "logged": 0})
+        row = self.by_channel.setdefault(topic, dict.fromkeys(_COUNTED, 0))
         row[what] += 1
+
+
+_COUNTED = ("queued", "dropped", "stalled", "bad", "failed", "logged")
 
 
 class _Listener(ServerListener):
@@ -90,6 +187,7 @@ class _Listener(ServerListener):
         self.endpoint = endpoint
 
     def on_subscribe(self, client, channel):
+        self.endpoint._viewer_subscribed()
         self.endpoint._resend_latched(channel.topic)
 
 
@@ -107,9 +205,13 @@ class Endpoint:
         name: str = "cps twin",
         clock: Callable[[], float] = time.time,
         services=(),
+        stalled_bytes: int = DEFAULT_STALLED_BYTES,
+        stall_hold_s: float = DEFAULT_STALL_HOLD_S,
+        send_queues: Optional[Callable[[], Optional[List[int]]]] = None,
     ):
         """`channels`: Foxglove topic -> kind (one of the kinds above); `latched`: topics whose latest
-        message a new subscriber gets at once (the map, the changes, static tf)."""
+        message a new subscriber gets at once (the map, the changes, static tf); `send_queues`: the
+        viewers' unsent bytes (default: the kernel's, SocketQueues of the server's port)."""
         self.context = foxglove.Context()
         self.channels = {}
         for topic, kind in channels.items():
@@ -126,6 +228,13 @@ class Endpoint:
         self._latest: Dict[str, tuple] = {}
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self.stalled_bytes = stalled_bytes
+        self.stall_hold_s = stall_hold_s
+        self._send_queues = send_queues or SocketQueues(lambda: self.port)
+        self._checked_at = -float("inf")
+        self._accepting = True
+        self._blocked_since: Optional[float] = None
+        self._viewers = (0, 0)  # (connections, stalled ones) when last looked at
         try:
             self.server = foxglove.start_server(
                 name=name,
@@ -151,13 +260,55 @@ class Endpoint:
         """Whether some viewer subscribes to `topic` now."""
         return self.channels[topic].has_sinks()
 
+    def accepting(self) -> bool:
+        """Whether some viewer takes data now: a connection holding fewer than `stalled_bytes`
+        unsent (looked at every CHECK_PERIOD_S at most). True while no connection is seen or the
+        sockets cannot be read: then the SDK's backlog is the only bound."""
+        now = time.monotonic()
+        with self._lock:
+            if now - self._checked_at < CHECK_PERIOD_S:
+                return self._accepting
+            self._checked_at = now
+        queues = self._send_queues()
+        accepting = not queues or any(q < self.stalled_bytes for q in queues)
+        with self._lock:
+            resumed = accepting and not self._accepting
+            self._accepting = accepting
+            if accepting:
+                self._blocked_since = None
+            elif self._blocked_since is None:
+                self._blocked_since = now
+            self._viewers = (len(queues or ()), sum(q >= self.stalled_bytes for q in queues or ()))
+        if resumed:  # the latched channels' latest, which the viewer missed while it was behind
+            for topic in self.latched:
+                if self.watched(topic):
+                    self._resend_latched(topic)
+        return accepting
+
+    def stalled_s(self) -> float:
+        """How long no viewer has taken data (0 while one does)."""
+        if self.accepting():
+            return 0.0
+        with self._lock:
+            return time.monotonic() - self._blocked_since if self._blocked_since is not None else 0.0
+
+    def wanted(self, topic: str) -> bool:
+        """Whether what feeds `topic` is worth receiving: a viewer subscribes to it, and some viewer
+        took data within the last `stall_hold_s`."""
+        return self.watched(topic) and self.stalled_s() < self.stall_hold_s
+
     def offer(self, topic: str, make: Callable[[], object], log_time_ns: Optional[int] = None) -> bool:
-        """Queue `make()` (the converted message) for `topic` if a viewer subscribes to it; a latched
-        topic's offer is also kept for the next subscriber. False when dropped or not watched."""
+        """Queue `make()` (the converted message) for `topic` if a viewer subscribes to it and some
+        viewer takes data; a latched topic's offer is also kept for the next subscriber. False when
+        dropped, not watched, or stalled (counted)."""
         if topic in self.latched:
             with self._lock:
                 self._latest[topic] = (make, log_time_ns)
         if not self.watched(topic):
+            return False
+        if not self.accepting():
+            with self._lock:
+                self.counters.count(topic, "stalled")
             return False
         return self._put(topic, make, log_time_ns)
 
@@ -171,6 +322,14 @@ class Endpoint:
         with self._lock:
             self.counters.count(topic, "queued")
         return True
+
+    def _viewer_subscribed(self):
+        """A viewer, maybe a new one, subscribed: its socket is looked at before the next offer."""
+        rescan = getattr(self._send_queues, "rescan", None)
+        if rescan:
+            rescan()
+        with self._lock:
+            self._checked_at = -float("inf")
 
     def _resend_latched(self, topic):
         with self._lock:
@@ -190,6 +349,10 @@ class Endpoint:
                 self._queue.task_done()
 
     def _handle(self, topic, make, log_time_ns):
+        if not self.accepting():  # every viewer fell behind since the offer was queued
+            with self._lock:
+                self.counters.count(topic, "stalled")
+            return
         try:
             message = make()
         except (ValueError, TypeError, AttributeError) as exc:
@@ -210,15 +373,14 @@ class Endpoint:
 
     def snapshot(self) -> dict:
         """The counters as the endpoint's JSON row."""
+        self.accepting()  # the viewers as they are now
         with self._lock:
             c = self.counters
             return {
-                "queued": c.queued,
-                "dropped": c.dropped,
-                "bad": c.bad,
-                "failed": c.failed,
-                "logged": c.logged,
+                **{what: getattr(c, what) for what in _COUNTED},
                 "queue_length": self._queue.qsize(),
+                "viewers": self._viewers[0],
+                "stalled_viewers": self._viewers[1],
                 "by_channel": {k: dict(v) for k, v in c.by_channel.items()},
             }
 

@@ -2,7 +2,14 @@
 
 import dataclasses
 
-from cps_web.endpoint import DEFAULT_BACKLOG, DEFAULT_HOST, DEFAULT_PORT, DEFAULT_QUEUE
+from cps_web.endpoint import (
+    DEFAULT_BACKLOG,
+    DEFAULT_HOST,
+    DEFAULT_PORT,
+    DEFAULT_QUEUE,
+    DEFAULT_STALL_HOLD_S,
+    DEFAULT_STALLED_BYTES,
+)
 
 
 def _option(default, meaning, unit="", **bounds):
@@ -20,6 +27,27 @@ class EndpointOptions:
         DEFAULT_QUEUE, "offers waiting for conversion; beyond it they are dropped, counted", low=1
     )
     backlog: int = _option(DEFAULT_BACKLOG, "messages the SDK holds per viewer before dropping its oldest", low=1)
+    stalled_bytes: int = _option(
+        DEFAULT_STALLED_BYTES,
+        "unsent bytes in a viewer's socket from which it counts as not reading; while every viewer is "
+        "there, nothing is converted (counted as stalled)",
+        "B",
+        low=1,
+    )
+    stall_hold_s: float = _option(
+        DEFAULT_STALL_HOLD_S,
+        "after this long with no viewer reading, the map, tf and video are unsubscribed until one reads again",
+        "s",
+        low=0.0,
+    )
+    nice: int = _option(
+        10,
+        "the node's nice, below the map server's (0) and its receive process's (5): when the twin's CPU is "
+        "short, the map goes first",
+        "",
+        low=0,
+        high=19,
+    )
     scene_period_s: float = _option(0.2, "how often the robots' poses and trails are sent", "s", low=0.02)
     status_period_s: float = _option(1.0, "how often fleet health, the link and the counters are sent", "s", low=0.1)
     url_file: str = _option("", "write the endpoint's ws:// URL here once it listens (empty: none)", "path")

@@ -75,6 +75,8 @@ class TwinView:
             queue_size=options.queue_size,
             backlog=options.backlog,
             services=commands.services() if commands else (),
+            stalled_bytes=options.stalled_bytes,
+            stall_hold_s=options.stall_hold_s,
         )
         self.url = f"ws://{host}:{self.endpoint.port}"
         self.trails = convert.Trails(self.robots)
@@ -140,9 +142,10 @@ class TwinView:
         self.endpoint.offer(COUNTERS, self.endpoint.snapshot)
 
     def watched_inputs(self) -> Dict[str, Optional[Tuple[str, str, Callable]]]:
-        """The inputs subscribed only while a viewer watches what they feed: key -> (topic, message
-        type, handler), None when not wanted now. The map, changes and static tf are latched: a new
-        subscription gets their latest at once. Relative topics resolve in the twin's namespace."""
+        """The inputs subscribed only while a viewer watches what they feed and some viewer takes
+        data (Endpoint.wanted): key -> (topic, message type, handler), None when not wanted now. The
+        map, changes and static tf are latched: a new subscription gets their latest at once.
+        Relative topics resolve in the twin's namespace."""
         video = self.video_robot()
         wanted = {
             "map": (names.POINT_CLOUD_CENTERS, "sensor_msgs/PointCloud2", self.on_map, MAP),
@@ -151,7 +154,7 @@ class TwinView:
             "tf_static": (names.TF_STATIC, "tf2_msgs/TFMessage", self.on_tf_static, TF),
         }
         out = {
-            key: (topic, kind, handler) if self.endpoint.watched(ch) else None
+            key: (topic, kind, handler) if self.endpoint.wanted(ch) else None
             for key, (topic, kind, handler, ch) in wanted.items()
         }
         out["video"] = (
@@ -168,8 +171,9 @@ class TwinView:
     def video_robot(self) -> Optional[str]:
         """Whose video to subscribe now: the operator's selected robot (the GUI's choice, which the
         manager gives operator-quality video), else the first camera robot; None while no viewer
-        watches the video (then nothing of it is pulled across the link for the endpoint)."""
-        if not self.endpoint.watched(VIDEO):
+        watches the video, or none takes data (then nothing of it is pulled across the link for the
+        endpoint)."""
+        if not self.endpoint.wanted(VIDEO):
             return None
         if self.selected_robot in self.camera_robots:
             return self.selected_robot
