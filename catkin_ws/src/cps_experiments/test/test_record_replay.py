@@ -30,7 +30,9 @@ from cps_harness.mission import BRINGUP, program_argv, run_mission
 REPLAY_F1_FRACTION = 0.95
 # Of each topic the bag's replay played, the share its MCAP recording holds: the recorder subscribes
 # once the replayed clock runs (as rosbag record on /use_sim_time), so it may miss the first messages
-# (2026-11-29: 4 of scout's 2874 odometry messages, 3 of its 1679 joint states, none of the others).
+# (2026-11-29: 4 of scout's 2874 odometry messages, 3 of its 1679 joint states, none of the others;
+# later that day 1 of scout's 49 battery messages, its first: a 1 Hz topic has ~50 in the mission,
+# where one message is 2 %). A topic may lack one message however few it has.
 RECORDED_FRACTION = 0.98
 
 
@@ -122,7 +124,8 @@ def test_the_replay_recorded_as_mcap_is_read_by_foxglove_readers(reference_missi
     assert report["profile"] == "ros1" and report["decode_errors"] == 0, report["errors"]
     assert sum(row["decoded"] for row in report["topics"].values()) == report["message_count"]
     for topic in replay_topics(fleet):
-        assert report["topics"][topic]["messages"] >= RECORDED_FRACTION * played[topic], topic
+        missed = played[topic] - report["topics"][topic]["messages"]
+        assert missed <= max(1, (1 - RECORDED_FRACTION) * played[topic]), (topic, missed, played[topic])
     for robot in fleet.robots:
         first = report["topics"][cloud_topic(fleet, robot.name)]["first"]
         assert first["frame_id"].lstrip("/") == robot.sensor_frame and first["points"] > 0, first

@@ -23,6 +23,7 @@ def _link_ports():
 def test_clouds_cross_and_the_link_is_up(reference_mission):
     reference_mission.check()
     observed = reference_mission.observed
+    print(f"the readings while the reference mission was up, s: {observed.reading_s}")
     assert not observed.errors, (observed.errors, observed.reading_s)
     # A cloud crossed: the twin's relayed managed topic carries each robot's clouds.
     assert observed.twin_managed_cloud.count("compressed_data:") == len(ROBOTS), observed.twin_managed_cloud
