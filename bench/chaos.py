@@ -12,7 +12,7 @@ no frame to the wrong topic or type, nothing left of a killed process. A kill ne
 process's last restart in the supervisor's window (cps_harness.chaos.RestartBudget, from the
 mission's log): its target is then the first other with one left, named in the row.
 
-    python bench/chaos.py [--seed 1] [--faults 50] [--kinds kill,...] [--out out/chaos] [--results docs/results/chaos.md]
+    python bench/chaos.py [--seed 1] [--faults 50] [--kinds kill,...] [--spares on|off] [--out out/chaos] [--results docs/results/chaos.md]
 
 Needs root (the shaped link). Machine-bound (2 cores); run it alone, under the heavy lock.
 """
@@ -111,13 +111,14 @@ def _read(path):
     return rows or []
 
 
-def write_fleet_with_spares(fleet_file):
-    """The fleet file with limits.warm_spares on (cps_ros.spare: kills restart from a warm spare)."""
+def write_fleet_with_spares(fleet_file, spares=True):
+    """The fleet file with limits.warm_spares set (cps_ros.spare: kills restart from a warm spare;
+    the default fleet's own setting is on)."""
     import yaml
 
     with open(fleet_file) as stream:
         doc = yaml.safe_load(stream)
-    doc["limits"]["warm_spares"] = True
+    doc["limits"]["warm_spares"] = bool(spares)
     with open(fleet_file, "w") as stream:
         yaml.safe_dump(doc, stream, sort_keys=False)
     return fleet_file
@@ -127,7 +128,7 @@ def run(args):
     out = os.path.abspath(args.out)
     os.makedirs(out, exist_ok=True)
     os.chmod(out, 0o755)
-    fleet_file = write_fleet_with_spares(write_fleet_with_repeated_routes(out, LAPS))
+    fleet_file = write_fleet_with_spares(write_fleet_with_repeated_routes(out, LAPS), args.spares == "on")
     from cps_fleet.fleet import load_fleet
 
     fleet = load_fleet(fleet_file)
@@ -210,8 +211,8 @@ def report(args, rows):
     lines = [
         "# Chaos soak (bench/chaos.py)",
         "",
-        f"Seed {args.seed}, {args.faults} faults of {', '.join(args.kinds)} asked, {len(rows)} injected into one 4-robot mission across a "
-        f"{LINK_RATE} shaped link (Zenoh bridges): **{held} of {len(rows)} with every invariant held.** "
+        f"Seed {args.seed}, {args.faults} faults of {', '.join(args.kinds)} asked, {len(rows)} injected into one 4-robot mission (warm spares "
+        f"{args.spares}) across a {LINK_RATE} shaped link (Zenoh bridges): **{held} of {len(rows)} with every invariant held.** "
         f"Invariants, {chaos.RECOVERY_S:g} s after each fault's end for {chaos.CHECK_WINDOW_S:g} s: every robot's "
         f"published map at most {chaos.MAP_FRESH_S:g} s old, every robot's clouds arriving at the twin, the command "
         f"probe reaching the robots with p95 at most {chaos.TELEOP_P95_MS:g} ms, no mismatch counter of either "
@@ -236,6 +237,7 @@ def main(argv=None):
         default=",".join(chaos.KINDS),
         help=f"comma-separated fault kinds to draw from (default all: {','.join(chaos.KINDS)})",
     )
+    parser.add_argument("--spares", choices=("on", "off"), default="on", help="warm spares (default on)")
     args = parser.parse_args(argv)
     args.kinds = tuple(k for k in args.kinds.split(",") if k)
     try:
