@@ -433,6 +433,48 @@ def test_a_spare_still_importing_is_started_at_the_nodes_priority(tmp_path, monk
 
 
 @pytest.mark.ros
+def test_a_spare_that_imports_too_long_gets_its_nodes_priority(tmp_path, monkeypatch):
+    """On a saturated side a spare at nice 19 would never be ready: after SPARE_PROMOTE_AFTER_S it
+    imports at its node's priority (root here); a spare that is ready by then is left as it is."""
+    from cps_bringup import supervisor as supervisor_module
+    from cps_ros import spare as spares
+
+    monkeypatch.setattr(supervisor_module, "SPARE_AFTER_UP_S", 0.2)
+    monkeypatch.setattr(supervisor_module, "SPARE_PROMOTE_AFTER_S", 1.0)
+    gate = tmp_path / "imports_may_finish"
+    script = tmp_path / "spared_node"
+    slow_preload = f"def preload():\n    while not os.path.exists({str(gate)!r}):\n        time.sleep(0.02)\n\n\n"
+    script.write_text("import time\n" + SPARED_NODE.replace("def preload():", slow_preload + "def unused():", 1))
+    spec = NodeSpec("spared", PHYSICAL, (sys.executable, str(script)), wait_topics=("/spared/out",), spare=True)
+    with RosGraph(log_dir=str(tmp_path)) as graph:
+        supervisor = Supervisor([spec], graph, log=lambda *_: None, warm_spares=True)
+        try:
+            supervisor.start_all(timeout_s=30)
+            running = supervisor.running["spared"]
+            deadline = time.monotonic() + 10
+            while running.spare is None and time.monotonic() < deadline:
+                supervisor.poll()
+                time.sleep(0.05)
+            pid = running.spare.pid
+
+            def nices():
+                return [os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{pid}/task")]
+
+            deadline = time.monotonic() + 10
+            while spares.SPARE_NICE not in nices() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert spares.SPARE_NICE in nices() and not spares.is_ready_spare(pid)  # importing at 19
+            deadline = time.monotonic() + 10
+            while running.spare_promote_at is not None and time.monotonic() < deadline:
+                supervisor.poll()
+                time.sleep(0.05)
+            assert set(nices()) == {0} and running.spare.pid == pid
+        finally:
+            gate.write_text("")
+            supervisor.stop_all()
+
+
+@pytest.mark.ros
 def test_the_wait_between_polls_ends_when_a_node_dies(tmp_path):
     """wait_for_mission's wait wakes at a node's death (its pidfd), not at the end of its period, so
     that the restart is not delayed by up to a period; without a death it waits the period."""

@@ -26,6 +26,10 @@ from cps_ros.processes import RosGraph, stop_all
 # A spare is started this long after its node is up (the run's start, or a restart that used the
 # previous one): its imports take a CPU second that the node's own start-up needs first, s.
 SPARE_AFTER_UP_S = 5.0
+# A spare imports at nice 19 (cps_ros.spare); one still importing this long after its start is given
+# its node's priority (as root): on a saturated side it would never finish (a chaos soak's robots'
+# spares), and a restart without a ready spare took 4-6 s to start cloud_tissue there, s.
+SPARE_PROMOTE_AFTER_S = 30.0
 # A spare stops at once (nothing to save): SIGINT, then SIGTERM after this, s.
 SPARE_STOP_TIMEOUT_S = 1.0
 
@@ -81,6 +85,7 @@ class _Running:
     waited_s: float = 0.0
     spare: Optional[object] = None  # its warm spare's process, waiting (spec.spare)
     spare_due: Optional[float] = None  # when the next spare starts, once the node is up
+    spare_promote_at: Optional[float] = None  # when a spare still importing gets the node's priority
 
 
 class Supervisor:
@@ -173,7 +178,8 @@ class Supervisor:
         return self._start(running.spec)
 
     def _keep_spares(self):
-        """Start the spare of each node that should have one, is up and is due (dead spares too)."""
+        """Start the spare of each node that should have one, is up and is due (dead spares too); give
+        one still importing after SPARE_PROMOTE_AFTER_S its node's priority."""
         now = self.clock()
         for running in self.running.values():
             if running.spare is not None and running.spare.poll() is not None:
@@ -182,6 +188,11 @@ class Supervisor:
             if running.spare is None and running.up and running.spare_due is not None and now >= running.spare_due:
                 running.spare_due = None
                 running.spare = self._start(running.spec, spares.spare_argv(running.spec.argv))
+                running.spare_promote_at = now + SPARE_PROMOTE_AFTER_S
+            if running.spare is not None and running.spare_promote_at is not None and now >= running.spare_promote_at:
+                running.spare_promote_at = None
+                if not spares.is_ready_spare(running.spare.pid):
+                    spares.take_back_priority(running.spare.pid)
 
     def start_all(self, timeout_s=120.0):
         """Start every spec in dependency order; BringupError names what did not come up."""
