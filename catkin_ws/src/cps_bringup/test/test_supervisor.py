@@ -333,6 +333,26 @@ SPARED_NODE = textwrap.dedent("""
 """)
 
 
+def _poll_until(supervisor, condition, timeout_s=30.0):
+    """Poll `supervisor` until `condition()` holds (True) or `timeout_s` passes (False)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        supervisor.poll()
+        if condition():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _slow_spared_node(tmp_path):
+    """The spared node whose spare's imports last until its gate file exists: (spec, gate)."""
+    gate = tmp_path / "imports_may_finish"
+    script = tmp_path / "spared_node"
+    slow_preload = f"def preload():\n    while not os.path.exists({str(gate)!r}):\n        time.sleep(0.02)\n\n\n"
+    script.write_text("import time\n" + SPARED_NODE.replace("def preload():", slow_preload + "def unused():", 1))
+    return NodeSpec("spared", PHYSICAL, (sys.executable, str(script)), wait_topics=("/spared/out",), spare=True), gate
+
+
 @pytest.mark.ros
 def test_a_killed_node_restarts_from_its_warm_spare_and_gets_a_new_one(tmp_path, monkeypatch):
     """Issue 38: a kill's recovery was a Python node's imports on a loaded CPU. The node's spare
@@ -352,13 +372,7 @@ def test_a_killed_node_restarts_from_its_warm_spare_and_gets_a_new_one(tmp_path,
         running = supervisor.running
 
         def poll_until(condition, timeout_s=30.0):
-            deadline = time.monotonic() + timeout_s
-            while time.monotonic() < deadline:
-                supervisor.poll()
-                if condition():
-                    return True
-                time.sleep(0.05)
-            return False
+            return _poll_until(supervisor, condition, timeout_s)
 
         def waiting_spare():
             r = running["spared"]
@@ -394,24 +408,14 @@ def test_a_spare_still_importing_is_started_at_the_nodes_priority(tmp_path, monk
     from cps_ros import spare as spares
 
     monkeypatch.setattr(supervisor_module, "SPARE_AFTER_UP_S", 0.5)
-    gate = tmp_path / "imports_may_finish"
-    script = tmp_path / "spared_node"
-    slow_preload = f"def preload():\n    while not os.path.exists({str(gate)!r}):\n        time.sleep(0.02)\n\n\n"
-    script.write_text("import time\n" + SPARED_NODE.replace("def preload():", slow_preload + "def unused():", 1))
-    spec = NodeSpec("spared", PHYSICAL, (sys.executable, str(script)), wait_topics=("/spared/out",), spare=True)
+    spec, gate = _slow_spared_node(tmp_path)
     events = []
     with RosGraph(log_dir=str(tmp_path)) as graph:
         supervisor = Supervisor([spec], graph, log=events.append, warm_spares=True)
         running = supervisor.running
 
         def poll_until(condition, timeout_s=30.0):
-            deadline = time.monotonic() + timeout_s
-            while time.monotonic() < deadline:
-                supervisor.poll()
-                if condition():
-                    return True
-                time.sleep(0.05)
-            return False
+            return _poll_until(supervisor, condition, timeout_s)
 
         try:
             supervisor.start_all(timeout_s=30)
@@ -441,20 +445,13 @@ def test_a_spare_that_imports_too_long_gets_its_nodes_priority(tmp_path, monkeyp
 
     monkeypatch.setattr(supervisor_module, "SPARE_AFTER_UP_S", 0.2)
     monkeypatch.setattr(supervisor_module, "SPARE_PROMOTE_AFTER_S", 1.0)
-    gate = tmp_path / "imports_may_finish"
-    script = tmp_path / "spared_node"
-    slow_preload = f"def preload():\n    while not os.path.exists({str(gate)!r}):\n        time.sleep(0.02)\n\n\n"
-    script.write_text("import time\n" + SPARED_NODE.replace("def preload():", slow_preload + "def unused():", 1))
-    spec = NodeSpec("spared", PHYSICAL, (sys.executable, str(script)), wait_topics=("/spared/out",), spare=True)
+    spec, gate = _slow_spared_node(tmp_path)
     with RosGraph(log_dir=str(tmp_path)) as graph:
         supervisor = Supervisor([spec], graph, log=lambda *_: None, warm_spares=True)
         try:
             supervisor.start_all(timeout_s=30)
             running = supervisor.running["spared"]
-            deadline = time.monotonic() + 10
-            while running.spare is None and time.monotonic() < deadline:
-                supervisor.poll()
-                time.sleep(0.05)
+            assert _poll_until(supervisor, lambda: running.spare is not None, 10)
             pid = running.spare.pid
 
             def nices():
@@ -464,10 +461,7 @@ def test_a_spare_that_imports_too_long_gets_its_nodes_priority(tmp_path, monkeyp
             while spares.SPARE_NICE not in nices() and time.monotonic() < deadline:
                 time.sleep(0.02)
             assert spares.SPARE_NICE in nices() and not spares.is_ready_spare(pid)  # importing at 19
-            deadline = time.monotonic() + 10
-            while running.spare_promote_at is not None and time.monotonic() < deadline:
-                supervisor.poll()
-                time.sleep(0.05)
+            assert _poll_until(supervisor, lambda: running.spare_promote_at is None, 10)
             assert set(nices()) == {0} and running.spare.pid == pid
         finally:
             gate.write_text("")

@@ -32,6 +32,13 @@ NODE = textwrap.dedent("""
 """)
 
 
+def _spare_of(tmp_path, text):
+    """A spare of a node script with `text`, its output piped."""
+    script = tmp_path / "node"
+    script.write_text(text)
+    return subprocess.Popen(list(spare.spare_argv((sys.executable, str(script)))), stdout=subprocess.PIPE, text=True)
+
+
 def _spare(tmp_path, *args):
     script = tmp_path / "node"
     script.write_text(NODE)
@@ -93,9 +100,9 @@ def test_a_spare_started_while_importing_finishes_at_the_nodes_priority_then_run
     """On a saturated side a spare's imports at nice 19 may never finish (a chaos soak's robots'
     spares did not in a minute): the supervisor, as root, gives it the node's priority and starts
     it; the start waits for the imports, then the node runs."""
-    script = tmp_path / "node"
     go = tmp_path / "imports_done"
-    script.write_text(
+    proc = _spare_of(
+        tmp_path,
         "import os, sys, time\n"
         "def preload():\n"
         "    print('loading', flush=True)\n"
@@ -103,9 +110,8 @@ def test_a_spare_started_while_importing_finishes_at_the_nodes_priority_then_run
         "        time.sleep(0.02)\n"
         "    print('imports done at nice', os.getpriority(os.PRIO_PROCESS, 0), flush=True)\n"
         "if __name__ == '__main__':\n"
-        "    print('node at nice', os.getpriority(os.PRIO_PROCESS, 0), flush=True)\n"
+        "    print('node at nice', os.getpriority(os.PRIO_PROCESS, 0), flush=True)\n",
     )
-    proc = subprocess.Popen(list(spare.spare_argv((sys.executable, str(script)))), stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline() == "loading\n"
         assert spare.is_waiting_spare(proc.pid) and not spare.is_ready_spare(proc.pid)
@@ -137,15 +143,14 @@ def test_a_preload_that_fails_ends_the_spare_with_its_error(tmp_path):
 def test_what_a_spare_started_while_importing_takes_the_node_priority_back(tmp_path):
     """The map server's spare starts a fork server from its import thread (nice 19); before it starts
     the spare, the supervisor sets such processes back to the spare's main-thread priority."""
-    script = tmp_path / "node"
-    script.write_text(
+    proc = _spare_of(
+        tmp_path,
         "import subprocess\n"
         "def preload():\n"
         "    global helper\n"
         "    helper = subprocess.Popen(['sleep', '60'])\n"
-        "    print('helper', helper.pid, flush=True)\n"
+        "    print('helper', helper.pid, flush=True)\n",
     )
-    proc = subprocess.Popen(list(spare.spare_argv((sys.executable, str(script)))), stdout=subprocess.PIPE, text=True)
     try:
         helper = int(proc.stdout.readline().split()[1])
         assert "waiting" in proc.stdout.readline()
