@@ -45,7 +45,7 @@ def _spare(tmp_path, *args):
     proc = subprocess.Popen(
         list(spare.spare_argv((sys.executable, str(script), *args))), stdout=subprocess.PIPE, text=True
     )
-    lines = [proc.stdout.readline() for _ in range(4)]
+    lines = [proc.stdout.readline() for _ in range(5)]
     return proc, lines
 
 
@@ -53,7 +53,14 @@ def test_a_spare_preloads_once_waits_and_runs_the_node_with_its_arguments(tmp_pa
     proc, lines = _spare(tmp_path, "3", "__name:=spared")
     try:
         # imported at nice 19 in a thread of its own; the main thread, the node to be, at 0
-        assert lines == ["top level\n", "preloaded\n", "nice 19 0\n", "[spare] node: imported, waiting to be started\n"]
+        assert lines == [
+            "[spare] node: importing\n",
+            "top level\n",
+            "preloaded\n",
+            "nice 19 0\n",
+            "[spare] node: imported, waiting to be started\n",
+        ]
+        assert spare.log_of_waiting_spare("".join(lines)) and spare.log_of_waiting_spare(lines[0])
         time.sleep(0.3)
         assert proc.poll() is None and spare.is_waiting_spare(proc.pid) and spare.is_ready_spare(proc.pid)
         os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
@@ -63,6 +70,7 @@ def test_a_spare_preloads_once_waits_and_runs_the_node_with_its_arguments(tmp_pa
     # the script's top level again (imports cached), main with the node's own argv at the node's
     # priority; its exit code
     assert out.splitlines() == ["[spare] node: started", "top level", "main node 3 __name:=spared", "nice 0"]
+    assert not spare.log_of_waiting_spare("".join(lines) + out)  # a started spare's log is its node's
     assert proc.returncode == 3
 
 
@@ -71,6 +79,7 @@ def test_a_started_spare_is_named_after_its_node(tmp_path):
     script.write_text("import time\nif __name__ == '__main__':\n    print('up', flush=True); time.sleep(30)\n")
     proc = subprocess.Popen(list(spare.spare_argv((sys.executable, str(script)))), stdout=subprocess.PIPE, text=True)
     try:
+        proc.stdout.readline()
         proc.stdout.readline()
         os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
         assert proc.stdout.readline() == "[spare] node: started\n" and proc.stdout.readline() == "up\n"
@@ -113,7 +122,7 @@ def test_a_spare_started_while_importing_finishes_at_the_nodes_priority_then_run
         "    print('node at nice', os.getpriority(os.PRIO_PROCESS, 0), flush=True)\n",
     )
     try:
-        assert proc.stdout.readline() == "loading\n"
+        assert proc.stdout.readline() == "[spare] node: importing\n" and proc.stdout.readline() == "loading\n"
         assert spare.is_waiting_spare(proc.pid) and not spare.is_ready_spare(proc.pid)
         assert spare.take_back_priority(proc.pid) >= 2  # its main and import threads (root here)
         os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
@@ -152,6 +161,7 @@ def test_what_a_spare_started_while_importing_takes_the_node_priority_back(tmp_p
         "    print('helper', helper.pid, flush=True)\n",
     )
     try:
+        assert proc.stdout.readline() == "[spare] node: importing\n"
         helper = int(proc.stdout.readline().split()[1])
         assert "waiting" in proc.stdout.readline()
         assert os.getpriority(os.PRIO_PROCESS, helper) == spare.SPARE_NICE
@@ -163,3 +173,11 @@ def test_what_a_spare_started_while_importing_takes_the_node_priority_back(tmp_p
         proc.kill()
         proc.wait()
         subprocess.run(["pkill", "-f", "^sleep 60$"], check=False)
+
+
+def test_a_log_is_a_waiting_spares_from_its_first_line_until_it_is_started():
+    assert spare.log_of_waiting_spare(spare.importing_line("/x/map_server") + "\n")  # still importing
+    assert spare.log_of_waiting_spare("[spare] map_server: importing\nkernels loaded\n")
+    assert not spare.log_of_waiting_spare("[spare] map_server: importing\n[spare] map_server: started\nup\n")
+    assert not spare.log_of_waiting_spare("")  # nothing printed: not known to be a spare
+    assert not spare.log_of_waiting_spare("[INFO] map_server: resumed from map.bt\n")

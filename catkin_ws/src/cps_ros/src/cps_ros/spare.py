@@ -49,6 +49,14 @@ def spare_argv(node_argv):
 
 _LINE_PREFIX = "[spare] "
 _WAITING = ": imported, waiting to be started"
+_IMPORTING = ": importing"
+_STARTED = ": started"
+
+
+def importing_line(script):
+    """The line a spare prints first, before its imports (at its start, so that its log is a spare's
+    from the beginning)."""
+    return f"{_LINE_PREFIX}{os.path.basename(script)}{_IMPORTING}"
 
 
 def waiting_line(script):
@@ -58,14 +66,16 @@ def waiting_line(script):
 
 def started_line(script):
     """The line a spare prints when it is started, before the node's own output."""
-    return f"{_LINE_PREFIX}{os.path.basename(script)}: started"
+    return f"{_LINE_PREFIX}{os.path.basename(script)}{_STARTED}"
 
 
 def log_of_waiting_spare(text):
-    """True if `text`, a process's captured output, is a spare's that was never started (a log file
-    per process: a mission's logs hold its waiting spares' beside its nodes')."""
-    lines = [line for line in text.splitlines() if line.strip()]
-    return bool(lines) and lines[-1].startswith(_LINE_PREFIX) and lines[-1].endswith(_WAITING)
+    """True if `text`, a process's captured output, is a spare's that was never started, importing
+    or waiting (a log file per process: a mission's logs hold its spares' beside its nodes')."""
+    lines = [line for line in text.splitlines() if line.startswith(_LINE_PREFIX)]
+    return (
+        bool(lines) and lines[0].endswith((_IMPORTING, _WAITING)) and not any(line.endswith(_STARTED) for line in lines)
+    )
 
 
 def _comm(pid):
@@ -152,6 +162,7 @@ def main(argv):
     signal.signal(signal.SIGINT, signal.SIG_DFL)
     _set_process_name(LOADING_COMM)
     script = argv[0]
+    print(importing_line(script), flush=True)
     preload_at_low_priority(script)
     _set_process_name(SPARE_COMM)
     print(waiting_line(script), flush=True)
