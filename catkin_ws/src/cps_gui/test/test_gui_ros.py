@@ -3,6 +3,7 @@ teleoperation commands, mode/priority/stop wiring, plots and health table from s
 video, top view and settings persistence."""
 
 import os
+import time
 
 import numpy as np
 import pytest
@@ -87,8 +88,16 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
     assert teleop.climb_slider.isVisibleTo(teleop) == joystick.speed_limits(robot_type).can_climb
     teleop.strafe_check.setChecked(strafe)
     rec = TopicRecorder(names.absolute(names.robot_topic(robot, names.CMD_VEL_TELEOP)), Twist)
+    pub = window.plugin.io.teleop_pubs[robot]
+    published_at = []  # when the GUI published each command (its own rate, before the queue of one)
+
+    def publish_and_note(msg, publish=pub.publish):
+        published_at.append(time.monotonic())
+        return publish(msg)
+
+    pub.publish = publish_and_note
     try:
-        _wait_connected(qapp, window.plugin.io.teleop_pubs[robot])
+        _wait_connected(qapp, pub)
         if climb:
             teleop.climb_slider.setValue(climb)  # starts the stream: climb only, until the drag
         dx, dy = 0.5 * teleop.pad.radius_px, -0.8 * teleop.pad.radius_px
@@ -98,6 +107,7 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
         _drag_and_release(qapp, teleop, rec, dx, dy, hold_s=1.5, release_also=lambda: teleop.climb_slider.setValue(0))
         messages = rec.take()
     finally:
+        del pub.publish
         rec.close()
     commands = [_as_tuple(m) for _, m in messages]
     # 15 published while held; the publisher keeps only the newest (queue 1), so on a loaded
@@ -115,10 +125,11 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
         assert expected.linear_y < 0 and expected.angular_z == 0 and expected.linear_z == 0
     if robot_type.name == "aerial_depth":
         assert expected.linear_y < 0 and expected.linear_z > 0
-    # 10 Hz while held (noisy machine: the median period, not every period).
-    times = [t for t, _ in messages[:-1]]
-    periods = sorted(b - a for a, b in zip(times, times[1:]))
-    assert 0.07 < periods[len(periods) // 2] < 0.25, periods
+    # 10 Hz while held, as the GUI published them (the median period, not every period: a noisy
+    # machine). Not as they arrived: the queue of one drops on a loaded machine, and a full run once
+    # saw 7 of 15 arrive, their median period 0.26 s.
+    periods = sorted(b - a for a, b in zip(published_at[:-2], published_at[1:-1]))
+    assert len(published_at) >= 10 and 0.07 < periods[len(periods) // 2] < 0.2, periods
     assert [c for c in commands if c == (0.0, 0.0, 0.0, 0.0)] == [last]
 
 
