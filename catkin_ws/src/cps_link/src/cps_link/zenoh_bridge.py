@@ -227,6 +227,13 @@ class ZenohBridge:
         self._tcp_rtts = []  # the robots' link socket's smoothed RTT at each heartbeat since the last report
         self._socket_samples = [0, 0]  # heartbeat samples of the link socket since the last report, of them full
         self.publishers, self.replays, self.ros_subs = {}, {}, []
+        self._publisher_ready = {}  # route.to -> Event: its publisher's subscribers connected (or waited for)
+        # Every typed topic this side republishes is advertised before its first frame, its
+        # subscribers awaited all at once beside the Zenoh session's start. Made on each route's
+        # first frame, a restarted twin bridge had each robot's first cloud wait for the map server
+        # to connect, one robot after another in Zenoh's callback (issue 38's kills: 3.5-6.4 s to a
+        # fresh map, the robots fresh one after another).
+        threading.Thread(target=self._advertise, name="advertise", daemon=True).start()
         self.session_factory = session_factory
         self._reopening = False
         self.z = self._declare(session)
@@ -558,25 +565,80 @@ class ZenohBridge:
         return None
 
     def _publisher(self, route, cls):
+        """`route`'s publisher, made if it has none yet; returns once its subscribers are connected
+        (those of a never-dropped topic, up to SUBSCRIBER_WAIT_S)."""
+        pub, new = self._make_publisher(route, cls)
+        if new:
+            self._await_subscribers([(route, pub)])
+        else:
+            self._publisher_ready[route.to].wait(SUBSCRIBER_WAIT_S)
+        return pub
+
+    def _make_publisher(self, route, cls):
+        """(`route`'s publisher, True if made now)."""
         with self.lock:
             pub = self.publishers.get(route.to)
-            if pub is None:
-                listener = None
-                if route.latched:
-                    listener = self.replays[route.to] = _LatchedReplay()
-                pub = self.publishers[route.to] = rospy.Publisher(
-                    route.to,
-                    cls,
-                    queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
-                    subscriber_listener=listener,
-                    tcp_nodelay=True,
-                )
-                new = True
+            if pub is not None:
+                return pub, False
+            listener = None
+            if route.latched:
+                listener = self.replays[route.to] = _LatchedReplay()
+            self._publisher_ready[route.to] = threading.Event()
+            pub = self.publishers[route.to] = rospy.Publisher(
+                route.to,
+                cls,
+                queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),
+                subscriber_listener=listener,
+                tcp_nodelay=True,
+            )
+            return pub, True
+
+    def _advertise(self):
+        """Make the publisher of every route whose type the table names (the managed streams first)
+        and wait for their subscribers together."""
+        routes = sorted((r for r in self.table.incoming(self.side) if r.msg_type), key=lambda r: not r.managed)
+        made = []
+        for route in routes:
+            cls = self._message_class(route.msg_type)
+            if cls is None or rospy.is_shutdown():
+                continue
+            try:
+                pub, new = self._make_publisher(route, cls)
+            except Exception as exc:  # a node shutting down: the first frame makes it, as before
+                rospy.logdebug(f"{rospy.get_name()}: advertising {route.to}: {exc}")
+                return
+            if new:
+                made.append((route, pub))
+        self._await_subscribers(made)
+
+    def _await_subscribers(self, made):
+        """Wait (up to SUBSCRIBER_WAIT_S) until each publisher of a never-dropped topic in `made`
+        [(route, publisher)] is connected to every subscriber of its topic the master knows (rospy
+        drops what is published before a subscriber has connected), then mark each ready."""
+        waiting = []
+        for route, pub in made:
+            if route.traffic.congestion == "block" and not route.latched:
+                waiting.append((route, pub))
             else:
-                new = False
-        if new and route.traffic.congestion == "block" and not route.latched:
-            _await_subscribers(pub, route.to, SUBSCRIBER_WAIT_S)
-        return pub
+                self._publisher_ready[route.to].set()
+        if not waiting:
+            return
+        expected = _subscriber_counts()
+        deadline = time.monotonic() + SUBSCRIBER_WAIT_S
+        while waiting and not rospy.is_shutdown():
+            still = []
+            for route, pub in waiting:
+                if pub.get_num_connections() >= expected.get(route.to, 0):
+                    self._publisher_ready[route.to].set()
+                else:
+                    still.append((route, pub))
+            waiting = still
+            if waiting and time.monotonic() >= deadline:
+                break
+            if waiting:
+                time.sleep(0.01)
+        for route, _ in waiting:
+            self._publisher_ready[route.to].set()
 
     # --- backfill (robots' side) --------------------------------------------------------------
     def _start_backfill(self, capacity_bytes):
@@ -988,20 +1050,15 @@ class ZenohBridge:
                 rospy.logdebug(f"{rospy.get_name()}: closing: {exc}")
 
 
-def _await_subscribers(pub, topic, timeout_s):
-    """Wait (up to timeout_s) until `pub` is connected to every subscriber of `topic` the master
-    knows: publishers are made on a topic's first message, and a command or backfill keyframe
-    published before the subscribers connect would be lost."""
+def _subscriber_counts():
+    """Topic -> how many subscribers the master knows of ({} without a master)."""
     import rosgraph
 
     try:
         _, subscribers, _ = rosgraph.Master(rospy.get_name()).getSystemState()
     except Exception:  # no master: nothing to wait for
-        return
-    expected = sum(len(nodes) for name, nodes in subscribers if name == topic)
-    deadline = time.monotonic() + timeout_s
-    while pub.get_num_connections() < expected and time.monotonic() < deadline and not rospy.is_shutdown():
-        time.sleep(0.01)
+        return {}
+    return {name: len(nodes) for name, nodes in subscribers}
 
 
 def link_report_msg(interval) -> LinkReport:
