@@ -28,8 +28,11 @@ from cps_ros.processes import RosGraph, stop_all
 SPARE_AFTER_UP_S = 5.0
 # A spare imports at nice 19 (cps_ros.spare); one still importing this long after its start is given
 # its node's priority (as root): on a saturated side it would never finish (a chaos soak's robots'
-# spares), and a restart without a ready spare took 4-6 s to start cloud_tissue there, s.
-SPARE_PROMOTE_AFTER_S = 30.0
+# spares), and a restart without a ready spare took 4-6 s to start cloud_tissue there. Long enough
+# that a mission's first minutes, when the robots' side is busiest, never pay for it (at 30 s the
+# promotions fell inside the suite's missions; final36's monitoring mission found its change late,
+# not traced), s.
+SPARE_PROMOTE_AFTER_S = 120.0
 # A spare stops at once (nothing to save): SIGINT, then SIGTERM after this, s.
 SPARE_STOP_TIMEOUT_S = 1.0
 
