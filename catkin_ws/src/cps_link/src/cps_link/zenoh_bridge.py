@@ -604,9 +604,9 @@ class ZenohBridge:
                 continue
             try:
                 pub, new = self._make_publisher(route, cls)
-            except Exception as exc:  # a node shutting down: the first frame makes it, as before
+            except Exception as exc:  # a node shutting down: a first frame makes the rest, as before
                 rospy.logdebug(f"{rospy.get_name()}: advertising {route.to}: {exc}")
-                return
+                break
             if new:
                 made.append((route, pub))
         self._await_subscribers(made)
