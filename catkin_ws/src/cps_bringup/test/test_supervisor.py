@@ -28,6 +28,7 @@ from cps_bringup.plan import (
 from cps_bringup.supervisor import BringupError, Supervisor
 from cps_fleet import names
 from cps_fleet.fleet import load_fleet
+from cps_harness.testing import make_gate, release_gate, wait_for
 from cps_ros.processes import RosGraph, processes_named
 from cps_transport.cloud_levels import initial_leaf_m
 
@@ -334,22 +335,23 @@ SPARED_NODE = textwrap.dedent("""
 
 
 def _poll_until(supervisor, condition, timeout_s=30.0):
-    """Poll `supervisor` until `condition()` holds (True) or `timeout_s` passes (False)."""
+    """Poll `supervisor` until `condition()` holds (True) or `timeout_s` passes (False); between polls
+    it waits as its run loop does (`wait_for_exit`: woken by a node's death)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         supervisor.poll()
         if condition():
             return True
-        time.sleep(0.05)
+        supervisor.wait_for_exit(0.05)
     return False
 
 
 def _slow_spared_node(tmp_path):
-    """The spared node whose spare's imports last until its gate file exists: (spec, gate)."""
-    gate = tmp_path / "imports_may_finish"
+    """The spared node whose spare's imports last until its gate (a FIFO) is released: (spec, gate)."""
+    gate = make_gate(tmp_path / "imports_may_finish")
     script = tmp_path / "spared_node"
-    slow_preload = f"def preload():\n    while not os.path.exists({str(gate)!r}):\n        time.sleep(0.02)\n\n\n"
-    script.write_text("import time\n" + SPARED_NODE.replace("def preload():", slow_preload + "def unused():", 1))
+    slow_preload = f"def preload():\n    open({str(gate)!r}).close()\n\n\n"
+    script.write_text(SPARED_NODE.replace("def preload():", slow_preload + "def unused():", 1))
     return NodeSpec("spared", PHYSICAL, (sys.executable, str(script)), wait_topics=("/spared/out",), spare=True), gate
 
 
@@ -429,10 +431,10 @@ def test_a_spare_still_importing_is_started_at_the_nodes_priority(tmp_path, monk
             assert supervisor.pid_of("spared") == spare_pid
             assert "spared: restarted from its warm spare (still importing" in events[-1], events
             assert os.getpriority(os.PRIO_PROCESS, spare_pid) == 0
-            gate.write_text("")
+            release_gate(gate)
             assert poll_until(lambda: running["spared"].up), events
         finally:
-            gate.write_text("")
+            release_gate(gate)
             supervisor.stop_all()
 
 
@@ -457,14 +459,12 @@ def test_a_spare_that_imports_too_long_gets_its_nodes_priority(tmp_path, monkeyp
             def nices():
                 return [os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{pid}/task")]
 
-            deadline = time.monotonic() + 10
-            while spares.SPARE_NICE not in nices() and time.monotonic() < deadline:
-                time.sleep(0.02)
-            assert spares.SPARE_NICE in nices() and not spares.is_ready_spare(pid)  # importing at 19
+            assert wait_for(lambda: spares.SPARE_NICE in nices(), timeout_s=10), nices()
+            assert not spares.is_ready_spare(pid)  # importing at 19
             assert _poll_until(supervisor, lambda: running.spare_promote_at is None, 10)
             assert set(nices()) == {0} and running.spare.pid == pid
         finally:
-            gate.write_text("")
+            release_gate(gate)
             supervisor.stop_all()
 
 

@@ -1,6 +1,7 @@
 """cps_ros.spare: a node's warm spare imports ahead, waits without being the node, and runs the node's
 script as __main__ with the node's arguments when started; Ctrl-C ends a waiting spare at once."""
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -10,6 +11,7 @@ import time
 
 import pytest
 
+from cps_harness.testing import make_gate, release_gate
 from cps_ros import spare
 
 pytestmark = pytest.mark.unit
@@ -61,7 +63,6 @@ def test_a_spare_preloads_once_waits_and_runs_the_node_with_its_arguments(tmp_pa
             "[spare] node: imported, waiting to be started\n",
         ]
         assert spare.log_of_waiting_spare("".join(lines)) and spare.log_of_waiting_spare(lines[0])
-        time.sleep(0.3)
         assert proc.poll() is None and spare.is_waiting_spare(proc.pid) and spare.is_ready_spare(proc.pid)
         os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
         out, _ = proc.communicate(timeout=30)
@@ -109,14 +110,13 @@ def test_a_spare_started_while_importing_finishes_at_the_nodes_priority_then_run
     """On a saturated side a spare's imports at nice 19 may never finish (a chaos soak's robots'
     spares did not in a minute): the supervisor, as root, gives it the node's priority and starts
     it; the start waits for the imports, then the node runs."""
-    go = tmp_path / "imports_done"
+    go = make_gate(tmp_path / "imports_may_finish")
     proc = _spare_of(
         tmp_path,
-        "import os, sys, time\n"
+        "import os, sys\n"
         "def preload():\n"
         "    print('loading', flush=True)\n"
-        f"    while not os.path.exists({str(go)!r}):\n"
-        "        time.sleep(0.02)\n"
+        f"    open({str(go)!r}).close()\n"
         "    print('imports done at nice', os.getpriority(os.PRIO_PROCESS, 0), flush=True)\n"
         "if __name__ == '__main__':\n"
         "    print('node at nice', os.getpriority(os.PRIO_PROCESS, 0), flush=True)\n",
@@ -126,7 +126,7 @@ def test_a_spare_started_while_importing_finishes_at_the_nodes_priority_then_run
         assert spare.is_waiting_spare(proc.pid) and not spare.is_ready_spare(proc.pid)
         assert spare.take_back_priority(proc.pid) >= 2  # its main and import threads (root here)
         os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
-        go.write_text("")
+        release_gate(go)
         out, _ = proc.communicate(timeout=30)
     finally:
         proc.kill()
@@ -160,6 +160,7 @@ def test_what_a_spare_started_while_importing_takes_the_node_priority_back(tmp_p
         "    helper = subprocess.Popen(['sleep', '60'])\n"
         "    print('helper', helper.pid, flush=True)\n",
     )
+    helper = None
     try:
         assert proc.stdout.readline() == "[spare] node: importing\n"
         helper = int(proc.stdout.readline().split()[1])
@@ -172,7 +173,9 @@ def test_what_a_spare_started_while_importing_takes_the_node_priority_back(tmp_p
     finally:
         proc.kill()
         proc.wait()
-        subprocess.run(["pkill", "-f", "^sleep 60$"], check=False)
+        if helper is not None:  # its own helper only, not any `sleep 60` on the machine
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(helper, signal.SIGKILL)
 
 
 def test_a_log_is_a_waiting_spares_from_its_first_line_until_it_is_started():

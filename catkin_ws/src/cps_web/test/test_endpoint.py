@@ -169,6 +169,7 @@ def test_nothing_is_converted_while_no_viewer_takes_data():
     before the stall; one reading viewer beside a stalled one gets everything; when a viewer reads
     again, the latched map's latest is sent at once."""
     queues = [[DEFAULT_STALLED_BYTES]]  # one viewer, its socket full
+    now_s = [0.0]  # the endpoint's clock of socket checks and the stall hold, moved by hand
     gate = threading.Event()
     endpoint = Endpoint(
         {MAP: "PointCloud", HEALTH: "health"},
@@ -177,6 +178,7 @@ def test_nothing_is_converted_while_no_viewer_takes_data():
         port=0,
         stall_hold_s=0.3,
         send_queues=lambda: queues[0],
+        monotonic=lambda: now_s[0],
     )
     endpoint.watched = lambda topic: True  # as if the viewers subscribed every channel
     calls = []
@@ -190,11 +192,11 @@ def test_nothing_is_converted_while_no_viewer_takes_data():
         snap = endpoint.snapshot()
         assert calls == [] and snap["stalled"] == 40 and snap["queued"] == 0, snap
         assert (snap["viewers"], snap["stalled_viewers"]) == (1, 1)
-        time.sleep(0.3)
+        now_s[0] += 0.3
         assert not endpoint.wanted(MAP)  # stalled for stall_hold_s: the node drops the ROS inputs
 
         queues[0] = [10 * DEFAULT_STALLED_BYTES, 0]  # a reading viewer joins the stalled one
-        time.sleep(CHECK_PERIOD_S)
+        now_s[0] += 2 * CHECK_PERIOD_S  # past the next check (a float sum of one period can fall short)
         assert endpoint.offer(HEALTH, row)
         assert endpoint.wait_idle()
         assert len(calls) == 2  # the offer, and the latched map's latest, re-sent on resuming
@@ -205,7 +207,7 @@ def test_nothing_is_converted_while_no_viewer_takes_data():
         assert wait_for(lambda: endpoint.snapshot()["queue_length"] == 0, 5.0)
         assert endpoint.offer(HEALTH, row)  # queued while the reading viewer reads ...
         queues[0] = [DEFAULT_STALLED_BYTES]  # ... which leaves before the worker gets to it
-        time.sleep(CHECK_PERIOD_S)
+        now_s[0] += 2 * CHECK_PERIOD_S  # past the next check (a float sum of one period can fall short)
         gate.set()
         assert endpoint.wait_idle()
         assert len(calls) == 2, "converted for viewers that take nothing"
@@ -228,8 +230,8 @@ def test_a_viewer_that_reads_nothing_costs_no_conversion(view, npm_client):
         for filled in range(1, 101):
             view.endpoint.offer(MAP, _counting(lambda: convert.point_cloud(big), calls))
             assert view.endpoint.wait_idle(timeout_s=10.0)
-            time.sleep(CHECK_PERIOD_S)
-            if not view.endpoint.accepting():
+            # the kernel's count, read again once CHECK_PERIOD_S has passed
+            if wait_for(lambda: not view.endpoint.accepting(), timeout_s=1.5 * CHECK_PERIOD_S, poll_s=0.02):
                 break
         snap = view.endpoint.snapshot()
         print(f"stalled after {filled} maps offered, {len(calls)} converted: {snap}")
@@ -241,7 +243,6 @@ def test_a_viewer_that_reads_nothing_costs_no_conversion(view, npm_client):
         try:
             for _ in range(100):
                 view.endpoint.offer(MAP, _counting(lambda: convert.point_cloud(big), calls))
-                time.sleep(0.01)
             assert view.endpoint.wait_idle()
             assert len(calls) == before, "a map was converted for a viewer that reads nothing"
             after = view.endpoint.snapshot()

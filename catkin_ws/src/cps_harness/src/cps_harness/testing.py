@@ -35,6 +35,22 @@ def wait_for(predicate, timeout_s=10.0, poll_s=0.05):
         time.sleep(poll_s)
 
 
+def make_gate(path):
+    """A FIFO at `path` that a child process waits on by opening it to read (`open(path).close()`
+    blocks until `release_gate`): a wait on an event, not a poll of a file."""
+    os.mkfifo(path)
+    return path
+
+
+def release_gate(path):
+    """Let whoever waits on the FIFO gate at `path` go on (nothing if no one waits)."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+    except OSError:  # ENXIO: no reader waits
+        return
+    os.close(fd)
+
+
 class TopicRecorder:
     """Every message of a topic with its monotonic arrival time, the newest one, and waits on them.
 

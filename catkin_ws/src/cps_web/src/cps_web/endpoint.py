@@ -208,10 +208,12 @@ class Endpoint:
         stalled_bytes: int = DEFAULT_STALLED_BYTES,
         stall_hold_s: float = DEFAULT_STALL_HOLD_S,
         send_queues: Optional[Callable[[], Optional[List[int]]]] = None,
+        monotonic: Callable[[], float] = time.monotonic,
     ):
         """`channels`: Foxglove topic -> kind (one of the kinds above); `latched`: topics whose latest
         message a new subscriber gets at once (the map, the changes, static tf); `send_queues`: the
-        viewers' unsent bytes (default: the kernel's, SocketQueues of the server's port)."""
+        viewers' unsent bytes (default: the kernel's, SocketQueues of the server's port); `monotonic`:
+        the clock of the socket checks and the stall hold."""
         self.context = foxglove.Context()
         self.channels = {}
         for topic, kind in channels.items():
@@ -231,6 +233,7 @@ class Endpoint:
         self.stalled_bytes = stalled_bytes
         self.stall_hold_s = stall_hold_s
         self._send_queues = send_queues or SocketQueues(lambda: self.port)
+        self._monotonic = monotonic
         self._checked_at = -float("inf")
         self._accepting = True
         self._blocked_since: Optional[float] = None
@@ -264,7 +267,7 @@ class Endpoint:
         """Whether some viewer takes data now: a connection holding fewer than `stalled_bytes`
         unsent (looked at every CHECK_PERIOD_S at most). True while no connection is seen or the
         sockets cannot be read: then the SDK's backlog is the only bound."""
-        now = time.monotonic()
+        now = self._monotonic()
         with self._lock:
             if now - self._checked_at < CHECK_PERIOD_S:
                 return self._accepting
@@ -290,7 +293,7 @@ class Endpoint:
         if self.accepting():
             return 0.0
         with self._lock:
-            return time.monotonic() - self._blocked_since if self._blocked_since is not None else 0.0
+            return self._monotonic() - self._blocked_since if self._blocked_since is not None else 0.0
 
     def wanted(self, topic: str) -> bool:
         """Whether what feeds `topic` is worth receiving: a viewer subscribes to it, and some viewer
