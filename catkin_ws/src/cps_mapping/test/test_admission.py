@@ -252,13 +252,13 @@ def test_a_fork_server_left_at_a_spares_priority_is_not_used_where_it_cannot_be_
     try:
         assert wait_for(lambda: priority.process_nice(server.pid) == spare.SPARE_NICE)  # nice has run
         monkeypatch.setattr(ap, "_start_context", multiprocessing.get_context("forkserver"))
-        monkeypatch.setitem(ap._fork_server, "pid", server.pid)
+        monkeypatch.setattr(ap, "_fork_server_pid", server.pid)
         monkeypatch.setattr(priority, "may_lower_nice_to", lambda nice: False)
         assert ap._context_for(2).get_start_method() == "spawn"
         assert ap._context_for(spare.SPARE_NICE).get_start_method() == "forkserver"  # not above
         monkeypatch.setattr(priority, "may_lower_nice_to", lambda nice: True)
         assert ap._context_for(2).get_start_method() == "forkserver"  # the child sets its own
-        monkeypatch.delitem(ap._fork_server, "pid")
+        monkeypatch.setattr(ap, "_fork_server_pid", None)
         assert ap._context_for(2).get_start_method() == "spawn"  # no fork server known
     finally:
         server.kill()

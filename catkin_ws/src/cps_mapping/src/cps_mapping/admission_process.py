@@ -58,7 +58,7 @@ def prepare_fast_start():
     environment (its own command line is multiprocessing's). Without it the receive process came up
     in / and subscribed to nothing the twin's bridge publishes (live, a chaos soak's killed map
     server restarted from its spare: 0 clouds received)."""
-    global _start_context
+    global _start_context, _fork_server_pid
     import rosgraph.names
 
     context = multiprocessing.get_context("forkserver")
@@ -80,10 +80,10 @@ def prepare_fast_start():
         else:
             os.environ[rosgraph.names.ROS_NAMESPACE] = before
     _start_context = context
-    _fork_server["pid"] = fork_server_pid
+    _fork_server_pid = fork_server_pid
 
 
-_fork_server = {}
+_fork_server_pid = None  # prepare_fast_start's fork server
 
 
 def _send_parent_pid(conn):
@@ -97,9 +97,11 @@ def _context_for(nice):
 
     if _start_context.get_start_method() != "forkserver":
         return _start_context
+    if _fork_server_pid is None:
+        return multiprocessing.get_context("spawn")
     try:
-        above = priority.process_nice(_fork_server["pid"]) > nice
-    except (KeyError, OSError):
+        above = priority.process_nice(_fork_server_pid) > nice
+    except OSError:  # the fork server gone
         return multiprocessing.get_context("spawn")
     if above and not priority.may_lower_nice_to(nice):
         return multiprocessing.get_context("spawn")
@@ -139,7 +141,6 @@ class AdmissionClient:
 
         nice = priority.thread_nice() + config.nice
         context = _context_for(nice)
-        self.start_method = context.get_start_method()
         self._next, child_next = context.Pipe()
         self._control, child_control = context.Pipe()
         self.process = context.Process(
