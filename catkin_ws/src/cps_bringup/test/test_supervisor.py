@@ -28,7 +28,7 @@ from cps_bringup.plan import (
 from cps_bringup.supervisor import BringupError, Supervisor
 from cps_fleet import names
 from cps_fleet.fleet import load_fleet
-from cps_harness.testing import make_gate, release_gate, wait_for
+from cps_harness.testing import Gate, wait_for
 from cps_ros.processes import RosGraph, processes_named
 from cps_transport.cloud_levels import initial_leaf_m
 
@@ -348,9 +348,9 @@ def _poll_until(supervisor, condition, timeout_s=30.0):
 
 def _slow_spared_node(tmp_path):
     """The spared node whose spare's imports last until its gate (a FIFO) is released: (spec, gate)."""
-    gate = make_gate(tmp_path / "imports_may_finish")
+    gate = Gate(tmp_path / "imports_may_finish")
     script = tmp_path / "spared_node"
-    slow_preload = f"def preload():\n    open({str(gate)!r}).close()\n\n\n"
+    slow_preload = f"def preload():\n    open({gate.path!r}).close()\n\n\n"
     script.write_text(SPARED_NODE.replace("def preload():", slow_preload + "def unused():", 1))
     return NodeSpec("spared", PHYSICAL, (sys.executable, str(script)), wait_topics=("/spared/out",), spare=True), gate
 
@@ -431,11 +431,12 @@ def test_a_spare_still_importing_is_started_at_the_nodes_priority(tmp_path, monk
             assert supervisor.pid_of("spared") == spare_pid
             assert "spared: restarted from its warm spare (still importing" in events[-1], events
             assert os.getpriority(os.PRIO_PROCESS, spare_pid) == 0
-            release_gate(gate)
+            gate.release()
             assert poll_until(lambda: running["spared"].up), events
         finally:
-            release_gate(gate)
+            gate.release()
             supervisor.stop_all()
+            gate.close()
 
 
 @pytest.mark.ros
@@ -464,8 +465,9 @@ def test_a_spare_that_imports_too_long_gets_its_nodes_priority(tmp_path, monkeyp
             assert _poll_until(supervisor, lambda: running.spare_promote_at is None, 10)
             assert set(nices()) == {0} and running.spare.pid == pid
         finally:
-            release_gate(gate)
+            gate.release()
             supervisor.stop_all()
+            gate.close()
 
 
 @pytest.mark.ros

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from cps_harness.testing import make_gate, release_gate
+from cps_harness.testing import Gate
 from cps_ros import spare
 
 pytestmark = pytest.mark.unit
@@ -110,13 +110,13 @@ def test_a_spare_started_while_importing_finishes_at_the_nodes_priority_then_run
     """On a saturated side a spare's imports at nice 19 may never finish (a chaos soak's robots'
     spares did not in a minute): the supervisor, as root, gives it the node's priority and starts
     it; the start waits for the imports, then the node runs."""
-    go = make_gate(tmp_path / "imports_may_finish")
+    go = Gate(tmp_path / "imports_may_finish")
     proc = _spare_of(
         tmp_path,
         "import os, sys\n"
         "def preload():\n"
         "    print('loading', flush=True)\n"
-        f"    open({str(go)!r}).close()\n"
+        f"    open({go.path!r}).close()\n"
         "    print('imports done at nice', os.getpriority(os.PRIO_PROCESS, 0), flush=True)\n"
         "if __name__ == '__main__':\n"
         "    print('node at nice', os.getpriority(os.PRIO_PROCESS, 0), flush=True)\n",
@@ -126,11 +126,12 @@ def test_a_spare_started_while_importing_finishes_at_the_nodes_priority_then_run
         assert spare.is_waiting_spare(proc.pid) and not spare.is_ready_spare(proc.pid)
         assert spare.take_back_priority(proc.pid) >= 2  # its main and import threads (root here)
         os.kill(proc.pid, spare.ACTIVATE_SIGNAL)
-        release_gate(go)
+        go.release()
         out, _ = proc.communicate(timeout=30)
     finally:
         proc.kill()
         proc.wait()
+        go.close()
     assert out.splitlines() == [
         "imports done at nice 0",
         "[spare] node: imported, waiting to be started",

@@ -35,20 +35,25 @@ def wait_for(predicate, timeout_s=10.0, poll_s=0.05):
         time.sleep(poll_s)
 
 
-def make_gate(path):
-    """A FIFO at `path` that a child process waits on by opening it to read (`open(path).close()`
-    blocks until `release_gate`): a wait on an event, not a poll of a file."""
-    os.mkfifo(path)
-    return path
+class Gate:
+    """A FIFO that child processes wait at by opening it to read (`open(path).close()` blocks until
+    `release`): a wait on an event, not a poll of a file. Once released it stays open (this side
+    holds it open for writing), so a child that comes to it later goes through too; `close` at the
+    end."""
 
+    def __init__(self, path):
+        self.path = str(path)
+        os.mkfifo(self.path)
+        self._fd = None
 
-def release_gate(path):
-    """Let whoever waits on the FIFO gate at `path` go on (nothing if no one waits)."""
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
-    except OSError:  # ENXIO: no reader waits
-        return
-    os.close(fd)
+    def release(self):
+        if self._fd is None:
+            self._fd = os.open(self.path, os.O_RDWR)  # a FIFO opened read-write never blocks
+
+    def close(self):
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 class TopicRecorder:
