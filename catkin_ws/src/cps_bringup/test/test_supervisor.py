@@ -3,6 +3,7 @@ with nothing left running."""
 
 import os
 import re
+import select
 import signal
 import socket
 import subprocess
@@ -346,6 +347,22 @@ def _poll_until(supervisor, condition, timeout_s=30.0):
     return False
 
 
+def _kill_and_wait_for_exit(*pids, timeout_s=10.0):
+    """SIGKILL each process and return once every one has exited (its pidfd turns readable)."""
+    fds = [os.pidfd_open(pid) for pid in pids]
+    try:
+        for pid in pids:
+            os.kill(pid, signal.SIGKILL)
+        waiting, deadline = list(fds), time.monotonic() + timeout_s
+        while waiting and time.monotonic() < deadline:
+            readable, _, _ = select.select(waiting, [], [], deadline - time.monotonic())
+            waiting = [fd for fd in waiting if fd not in readable]
+        assert not waiting, f"still running {timeout_s} s after SIGKILL: {pids}"
+    finally:
+        for fd in fds:
+            os.close(fd)
+
+
 def _slow_spared_node(tmp_path):
     """The spared node whose spare's imports last until its gate (a FIFO) is released: (spec, gate)."""
     gate = Gate(tmp_path / "imports_may_finish")
@@ -389,10 +406,11 @@ def test_a_killed_node_restarts_from_its_warm_spare_and_gets_a_new_one(tmp_path,
             assert supervisor.pid_of("spared") == spare_pid and "spared: restarted from its warm spare" in events[-1]
             assert poll_until(lambda: not spares.is_waiting_spare(spare_pid))  # it is the node now
             assert poll_until(waiting_spare), events  # and a new one waits
-            # a spare killed with its node (as a soak's kill by command line would): a cold start
-            os.kill(running["spared"].spare.pid, signal.SIGKILL)
+            # a spare killed with its node (as a soak's kill by command line would): a cold start. Both
+            # have exited before the supervisor looks again; else (CI, a92101b) a node slow to die on a
+            # loaded CPU stayed "up" past SPARE_AFTER_UP_S and its next spare took over, rightly.
             second = supervisor.pid_of("spared")
-            os.kill(second, signal.SIGKILL)
+            _kill_and_wait_for_exit(running["spared"].spare.pid, second)
             assert poll_until(lambda: running["spared"].up and supervisor.pid_of("spared") != second), events
             assert poll_until(waiting_spare), events
         finally:
