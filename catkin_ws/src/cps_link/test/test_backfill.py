@@ -2,6 +2,7 @@
 one keyframe per second with its pose; once the twin is back they cross, oldest first, each once,
 at background priority, paced by what the manager's allocation leaves unused."""
 
+import re
 import subprocess
 import sys
 import time
@@ -19,6 +20,16 @@ ROBOT = "scout"
 def _link_lines(output):
     """A bridge's link up/down and reopen lines."""
     return [line for line in output.splitlines() if "link up" in line or "link down" in line or "reopen" in line]
+
+
+def _times_of(lines, words):
+    """The wall times (s) of the log lines that contain `words` (rospy's "[LEVEL] [time]: ...")."""
+    times = []
+    for line in lines:
+        found = re.search(r"\[(\d+\.\d+)\]", line) if words in line else None
+        if found:
+            times.append(float(found.group(1)))
+    return times
 
 
 @pytest.mark.timeout(150)
@@ -68,18 +79,16 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
     # They fill the gap: newer than the last live cloud the twin had, older than the first after it came
     # back. (Not bounded by the stop's wall time: a cloud published just before it can reach the robots'
     # bridge after it has seen the twin go; under CI's load one did, 1.06 s before the stop returned.)
+    # One older than the last live cloud is right only where the robots' bridge itself saw the link go
+    # down before the stop: twin heartbeats later than heartbeat_timeout_ms on a loaded machine (final27
+    # and CI on a92101b kept one 0.2 s older; those runs' messages lost the bridges' lines).
     gap = (last_live_before, first_live_after)
-    # final27 (a full run): the first kept keyframe was 0.2 s older than the last live cloud the twin
-    # had before the stop; not reproduced in 8 runs beside two busy loops. A late heartbeat under load
-    # would make the robots' bridge see the link down before the stop and keep a keyframe then: the
-    # message carries both bridges' link lines, so that the next failure says which.
-    assert all(last_live_before < s < first_live_after for s in stamps), (
-        gap,
-        t_stop,
-        stamps,
-        _link_lines(robots_graph.output("br")),
-        _link_lines(ros.output("bt")),
-    )
+    robots_lines, twin_lines = _link_lines(robots_graph.output("br")), _link_lines(ros.output("bt"))
+    downs_before_stop = [t for t in _times_of(robots_lines, "link down") if t < t_stop]
+    before_gap = [s for s in stamps if s <= last_live_before]
+    why = (gap, t_stop, stamps, robots_lines, twin_lines)
+    assert all(s < first_live_after for s in stamps), why
+    assert not before_gap or downs_before_stop, why
     assert stamps[0] - t_stop < 2.0, (t_stop, stamps)  # kept from the start of the outage
     assert all(b - a >= 0.99 for a, b in zip(stamps, stamps[1:])), stamps  # one per keyframe period
     assert 3 <= len(stamps) <= 12, stamps
