@@ -60,6 +60,15 @@ def _wait_exit(ros, proc, timeout_s, publish=None):
     return proc.returncode
 
 
+def _why_it_ended(text):
+    """A crashed GUI's output, its cause first: what it printed before faulthandler's dump (a Python
+    exception that PyQt turned into abort(), a Qt fatal message), then the dump's head."""
+    dump_at = text.find("Fatal Python error")
+    if dump_at < 0:
+        return text[-3000:]
+    return f"{text[:dump_at][-4000:]}\n{text[dump_at : dump_at + 2000]}"
+
+
 def test_bad_options_are_refused_with_a_message(ros):
     for argv, words in (
         (["--after", "-1"], "--after must be >= 0"),
@@ -97,7 +106,7 @@ def test_standalone_host_starts_saves_a_screenshot_and_its_settings(ros, rospy_n
         ],
         env={"QT_QPA_PLATFORM": "offscreen"},
     )
-    assert _wait_exit(ros, proc, 90) == 0, ros.output("cps_gui_offscreen")[-3000:]
+    assert _wait_exit(ros, proc, 90) == 0, _why_it_ended(ros.output("cps_gui_offscreen"))
     from python_qt_binding.QtGui import QImage
 
     image = QImage(png)
@@ -270,7 +279,7 @@ def test_screenshot_of_the_live_gui_shows_the_map_in_3d_and_top_view_and_a_camer
             ],
             env={"DISPLAY": xvfb_display, "QT_QPA_PLATFORM": "xcb"},
         )
-        assert _wait_exit(ros, proc, 60, publish) == 0, ros.output("cps_gui_xvfb")[-3000:]
+        assert _wait_exit(ros, proc, 60, publish) == 0, _why_it_ended(ros.output("cps_gui_xvfb"))
     finally:
         for pub in (marker_pub, grid_pub, image_pub):
             pub.unregister()
