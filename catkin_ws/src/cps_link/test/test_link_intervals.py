@@ -121,11 +121,11 @@ def test_round_trips_count_each_echo_once():
 
 def _server_on_a_port_no_socket_here_uses():
     """A listening socket on a port that no established socket of this process has at either end.
-    A pytest worker keeps sockets of earlier tests, and LinkSockets, like the bridge, finds its
-    sockets by port: one of those on the port bind() picked is counted too (final37: five sockets
-    where the test made one. Not reproduced; the suspect: a connection of the worker's ROS node to
-    a peer in a network namespace since deleted stays established, and its remote port, free in
-    this namespace, can be bound again here)."""
+    LinkSockets, like the bridge, finds its sockets by port among the process's own, and a pytest
+    worker holds others: final37's receiver found five with the test's local port, four of them
+    loopback connections of the worker (its ROS node's, active 0.3 s before) that had that port as
+    theirs; how bind(0) came to give it out as well is not traced. The bridges' ports (7447, 7448)
+    are below the ephemeral range, where no connection takes its port by itself."""
     import socket
 
     from cps_link.link_report import LinkSockets
