@@ -12,9 +12,10 @@ import pytest
 from cps_fleet import names
 from cps_fleet.fleet import load_fleet
 from cps_mapping.baseline import BaselineError, load_baseline, write_map_metadata
-from cps_mapping.change_attention import ChangeAttention
+from cps_mapping.change_attention import Attention, ChangeAttention, Unattended
 from cps_mapping.change_detection import Change
 from cps_mapping.change_scoring import score_changes
+from cps_mapping.change_tracking import TrackedChange
 from cps_mapping.fused_map import FusedLogOddsMap
 
 
@@ -97,21 +98,36 @@ def test_score_matches_by_kind_and_place_once_each():
     assert score.match_of_expected(2).position_error_m == pytest.approx(0.1)
 
 
-def test_robots_near_a_new_change_are_raised_once():
+def test_robots_near_a_reported_change_since_its_first_cycle_are_raised_once():
+    """final36: the change was reported 19 s after its first cycle, the robot that saw it had moved
+    on, and its place drifted past 0.5 m, so it was "new" again after the mission's end."""
     attention = ChangeAttention(radius_m=3.0)
-    asked = []
+    crate = TrackedChange(_change("disappeared", 3.2, -1.0), first_seen_s=10.0, cycles=1)
+    attention.note_positions(5.0, {"champ": (3.0, -1.0)})  # before its first cycle: not counted
+    attention.note_positions(10.0, {"champ": (1.0, -1.0), "iris": (8.0, 5.0)})
+    attention.note_positions(15.0, {"champ": (-9.0, -1.0), "iris": (8.0, 5.0)})
+    assert attention.attend([]) == ([], [])
+    crate.cycles, crate.reported_s = 2, 20.0
+    attention.note_positions(20.0, {"champ": (-20.0, -1.0), "iris": (8.0, 5.0)})  # far from it now
+    raised, unattended = attention.attend([crate])
+    assert raised == [Attention("champ", crate.change, pytest.approx(2.2), 10.0)] and unattended == []
+    crate.change = _change("disappeared", 4.0, -1.0)  # the same tracked change, its place drifted
+    assert attention.attend([crate]) == ([], [])  # raised once
+    far = TrackedChange(_change("appeared", 30.0, 30.0), first_seen_s=15.0, cycles=2, reported_s=20.0)
+    raised, unattended = attention.attend([crate, far])
+    assert raised == [] and unattended == [Unattended(far.change, "iris", pytest.approx(33.3, abs=0.1))]
+    nobody = TrackedChange(_change("appeared", 0.0, 0.0), first_seen_s=99.0, cycles=2, reported_s=99.0)
+    assert attention.attend([nobody]) == ([], [Unattended(nobody.change, None, math.inf)])
 
-    def positions():
-        asked.append(True)
-        return {"champ": (1.0, -1.0), "iris": (8.0, 5.0)}
 
-    crate = _change("disappeared", 3.2, -1.0)
-    assert attention.robots_to_raise([crate], positions) == [("champ", crate)]
-    grown = _change("disappeared", 3.3, -1.0)  # the same change, seen a little more
-    assert attention.robots_to_raise([grown], positions) == []
-    assert len(asked) == 1, "positions are looked up only for new changes"
-    far = _change("appeared", 8.5, 5.5)
-    assert attention.robots_to_raise([grown, far], positions) == [("iris", far)]
+def test_positions_older_than_the_history_are_forgotten():
+    attention = ChangeAttention(radius_m=3.0, history_s=10.0)
+    attention.note_positions(0.0, {"champ": (0.0, 0.0)})
+    attention.note_positions(11.0, {"champ": (50.0, 0.0)})
+    old = TrackedChange(_change("appeared", 0.0, 0.0), first_seen_s=0.0, cycles=2, reported_s=11.0)
+    assert attention.attend([old]) == ([], [Unattended(old.change, "champ", pytest.approx(50.0))])
+    with pytest.raises(ValueError):
+        ChangeAttention(radius_m=0.0)
 
 
 def _moved(x, y, dx, dy, size=0.8):

@@ -5,8 +5,9 @@ from cps_fleet import names
 
 
 def change_detection_timer(server, options, log):
-    """The timer callback: publish the changes, then ask /tissue/set_priority for high priority for
-    each robot near a change new since the last detection (where its last inserted cloud was taken)."""
+    """The timer callback: publish the changes, note where the robots are (their last inserted
+    clouds' sensor poses), and ask /tissue/set_priority for high priority for each robot that came
+    near a newly reported change (cps_mapping.change_attention); say so for one no robot came near."""
     import rospy
 
     from cps_mapping.change_attention import ChangeAttention
@@ -19,16 +20,31 @@ def change_detection_timer(server, options, log):
         poses = dict(server.latest_poses)
         return {robot: poses[frame][1][:2] for robot, frame in server.sensor_frames.items() if frame in poses}
 
+    def where(change):
+        return f"{change.kind} change at ({change.place_m[0]:.1f}, {change.place_m[1]:.1f})"
+
     def detect(_event):
-        changes = server.publish_changes(rospy.Time.now())
-        for robot, change in attention.robots_to_raise(changes, positions) if attention else ():
+        now = rospy.Time.now()
+        server.publish_changes(now)
+        if attention is None:
+            return
+        attention.note_positions(now.to_sec(), positions())
+        raise_them, unattended = attention.attend(server.tracker.reported())
+        for u in unattended:
+            nearest = f"nearest {u.nearest_robot} at {u.distance_m:.1f} m" if u.nearest_robot else "no robot pose yet"
+            log.info(
+                f"map_server: {where(u.change)}: no robot within {attention.radius_m:g} m since it was found "
+                f"({nearest}): no one raised"
+            )
+        for a in raise_them:
+            near = f"near {a.robot} ({a.distance_m:.1f} m, {now.to_sec() - a.at_s:.0f} s ago)"
             try:
-                reply = set_priority(robot=robot, priority=1)
+                reply = set_priority(robot=a.robot, priority=1)
                 log.info(
-                    f"map_server: {change.kind} change at ({change.centroid_m[0]:.1f}, {change.centroid_m[1]:.1f}) "
-                    f"near {robot}: high priority {'granted' if reply.success else 'refused: ' + reply.message}"
+                    f"map_server: {where(a.change)} {near}: high priority "
+                    f"{'granted' if reply.success else 'refused: ' + reply.message}"
                 )
             except (rospy.ServiceException, rospy.ROSException) as exc:
-                log.warning(f"map_server: could not raise {robot}'s priority: {exc}")
+                log.warning(f"map_server: {where(a.change)} {near}: could not raise {a.robot}'s priority: {exc}")
 
     return detect
