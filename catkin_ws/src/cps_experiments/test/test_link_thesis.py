@@ -279,6 +279,29 @@ def test_a_committed_csv_from_before_the_judge_is_judged_again_without_its_impos
     assert check.failed and "mean 7.00 < 15" in check.detail
 
 
+def test_a_lowest_window_read_back_from_the_csv_is_partial_only_where_the_file_says_so(tmp_path):
+    """The 2026-11-29 report said "(partial)" of every lowest window: the flag was read as a number,
+    and csv_float("False") is NaN, which is true."""
+    import csv as csvlib
+
+    rows = [
+        dict(scenario="s", manager="on", arm="on_default", phase="5 Mbit/s, phase 3 (40.0-60.0 s)", phase_index="2",
+             capacity_mbps="5.0", phase_s="20.0", robot="jackal", stream="video", fps_mean="16.0",
+             fps_min_window=f"{low}", fps_min_window_at_s="3.0", fps_min_window_partial=partial,
+             windows_cover_phase="True")
+        for low, partial in ((15.5, "False"), (15.5, "True"))
+    ]  # fmt: skip
+    path = tmp_path / "new.csv"
+    with open(path, "w", newline="") as stream:
+        writer = csvlib.DictWriter(stream, fieldnames=sorted(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    whole, partial = link_thesis.rows_from_csv(read_csv(str(path)))
+    assert (whole["fps_min_window_partial"], partial["fps_min_window_partial"]) == (False, True)
+    details = [link_thesis._lowest_window_check("fps", r, 15.0, "jackal").detail for r in (whole, partial)]
+    assert "(partial)" not in details[0] and "(partial)" in details[1], details
+
+
 def test_each_scenario_has_three_arms_in_alternating_order_and_only_one_announces_the_capacity():
     runs = link_thesis.runs()
     assert [r.name for r in runs] == [

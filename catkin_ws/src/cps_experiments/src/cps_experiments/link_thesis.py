@@ -391,6 +391,7 @@ def rows_from_csv(csv_rows):
         "stream",
         "level",
         "windows_cover_phase",
+        "fps_min_window_partial",
     }
     rows = []
     for raw in csv_rows:
@@ -398,6 +399,8 @@ def rows_from_csv(csv_rows):
         if "phase_index" in raw and raw["phase_index"] != "":
             row["phase_index"] = int(float(raw["phase_index"]))
         row["windows_cover_phase"] = raw.get("windows_cover_phase") == "True"
+        # a flag, not a number: csv_float("False") is NaN, which is true (every window read "partial")
+        row["fps_min_window_partial"] = raw.get("fps_min_window_partial") == "True"
         rows.append(row)
     old = [r for r in rows if r.get("stream") == "link" and "phase_index" not in r]
     starts = defaultdict(list)
