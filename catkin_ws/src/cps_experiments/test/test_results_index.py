@@ -59,3 +59,14 @@ def test_the_index_keeps_how_the_figures_are_measured(tmp_path):
     text = (tmp_path / "README.md").read_text()
     assert "\n".join(MEASURED_HOW) in text
     assert "| figure | window | tolerance / bar | where it is measured |" in text and "twin capacity" in text
+
+
+def test_link_thesis_row_names_each_run_of_a_repeated_arm():
+    """Three runs of the judged arm read as three unnamed "on, default" cells (2026-11-29): each says
+    which run it is, in order."""
+    rows = [_link("off", 5.0, 1.61, 0.47, 18)]
+    for k, received in ((3, 0.12), (1, 0.19), (2, 0.14)):
+        rows.append(dict(_link("on_default", 5.0, 0.2, received, 0), repeat=str(k)))
+    (row,) = link_thesis_rows(rows)
+    runs = [row[2].index(f"on, default (online estimate) run {k}: ") for k in (1, 2, 3)]
+    assert runs == sorted(runs) and "manager off: offered 1.61" in row[2], row[2]

@@ -601,7 +601,7 @@ def _lowest_window_check(name, row, target, robot):
     return J.check(name, None, robot, None, "lowest window not recomputable from this file (counts as a failure)")
 
 
-def _repeat(row):
+def repeat_of(row):
     value = row.get("repeat")
     return 1 if J.missing(value) or value == "" else int(float(value))
 
@@ -613,7 +613,7 @@ def judge(rows, selected, arm=ARM_DEFAULT, repeat=1) -> Dict[str, J.Check]:
     counts only with frames delivered at it: with each frame's size logged, the lowest window of
     frames at >= 320x240; else the level the manager set, held only when no window of the phase went
     without a frame (staleness at most one window in rows before the judge)."""
-    on = [r for r in rows if r.get("scenario") == JUDGED_SCENARIO and r.get("arm") == arm and _repeat(r) == repeat]
+    on = [r for r in rows if r.get("scenario") == JUDGED_SCENARIO and r.get("arm") == arm and repeat_of(r) == repeat]
     phase = [r for r in on if r.get("capacity_mbps") == JUDGED_CAPACITY_MBPS]
     link = next((r for r in phase if r["stream"] == "link"), None)
     video = next((r for r in phase if r["stream"] == "video" and r["robot"] == selected), None)
@@ -623,7 +623,7 @@ def judge(rows, selected, arm=ARM_DEFAULT, repeat=1) -> Dict[str, J.Check]:
         {
             r["scenario"]: r
             for r in rows
-            if r.get("stream") == "map" and r.get("scenario") == REFERENCE_SCENARIO and _repeat(r) == 1
+            if r.get("stream") == "map" and r.get("scenario") == REFERENCE_SCENARIO and repeat_of(r) == 1
         }
     )
     ratio = math.nan
@@ -703,7 +703,7 @@ def differences(rows):
     and phase, the phases paired by the scenario's own numbering (judge.match_phases: a phase of one
     arm without its match is said, never left out): streams whose fps, latency p95 or level differ;
     the link's offered load and teleop p95; the map's F1. Each sentence names its manager-on arm."""
-    rows = [r for r in rows if _repeat(r) == 1]  # each arm's first run
+    rows = [r for r in rows if repeat_of(r) == 1]  # each arm's first run
     by_key = defaultdict(dict)
     for r in rows:
         by_key[(r.get("scenario"), r.get("phase_index", -1), r.get("robot", ""), r.get("stream"))][r.get("arm")] = r
@@ -886,9 +886,14 @@ def _arms_in(rows):
     return [arm for arm in (*ARMS_ON, ARM_OFF) if arm in present]
 
 
+def judged_repeats(rows):
+    """The runs of the judged arm in the judged scenario (1, 2, ...): "each holding" means every one."""
+    return sorted({repeat_of(r) for r in rows if r.get("arm") == ARM_DEFAULT and r.get("scenario") == JUDGED_SCENARIO})
+
+
 def _repeats_text(rows, selected):
     """The judged arm's verdict, one block per run of it ("each holding": every one must)."""
-    repeats = sorted({_repeat(r) for r in rows if r.get("arm") == ARM_DEFAULT and r.get("scenario") == JUDGED_SCENARIO})
+    repeats = judged_repeats(rows)
     if len(repeats) <= 1:
         return _verdict_text(judge(rows, selected, ARM_DEFAULT))
     blocks = []
@@ -940,7 +945,7 @@ def plot(rows, png_path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [r for r in rows if _repeat(r) == 1]  # each arm's first run
+    rows = [r for r in rows if repeat_of(r) == 1]  # each arm's first run
     styles = {ARM_DEFAULT: "-", ARM_ANNOUNCED: "-.", ARM_IPERF3: ":", ARM_OFF: "--"}
     hatches = {ARM_DEFAULT: "", ARM_ANNOUNCED: "..", ARM_IPERF3: "xx", ARM_OFF: "//"}
     arms = _arms_in(rows)

@@ -142,7 +142,7 @@ ARM_NAMES = {
 def link_thesis_rows(rows, scenario="wifi_degraded", capacity_mbps=5.0):
     """link_thesis's headline: per arm, what the robots offered and the twin received of the same
     managed streams in the scenario's `capacity_mbps` phase, against that capacity."""
-    from cps_experiments.link_thesis import rows_from_csv
+    from cps_experiments.link_thesis import repeat_of, rows_from_csv
 
     rows = rows_from_csv(rows)
     phase = [
@@ -150,12 +150,14 @@ def link_thesis_rows(rows, scenario="wifi_degraded", capacity_mbps=5.0):
     ]
     if not phase:
         return []
+    repeated = {r["arm"] for r in phase if repeat_of(r) > 1}
     cells = [
-        f"{ARM_NAMES.get(r['arm'], r['arm'])}: offered {r['offered_mean_mbytes_per_s']:.2f}, received "
+        f"{ARM_NAMES.get(r['arm'], r['arm'])}{f' run {repeat_of(r)}' if r['arm'] in repeated else ''}: "
+        f"offered {r['offered_mean_mbytes_per_s']:.2f}, received "
         f"{r['received_mean_mbytes_per_s']:.3f} MB/s of managed streams "
         f"({r['received_mean_mbytes_per_s'] / r['offered_mean_mbytes_per_s']:.0%}), "
         f"{r['offered_over_capacity_windows']:.0f} of {r['windows']:.0f} windows over capacity"
-        for r in sorted(phase, key=lambda r: r["arm"])
+        for r in sorted(phase, key=lambda r: (r["arm"], repeat_of(r)))
     ]
     return [
         [
