@@ -133,6 +133,57 @@ def test_joystick_drag_publishes_the_types_twist_at_10hz_and_release_sends_one_z
     assert [c for c in commands if c == (0.0, 0.0, 0.0, 0.0)] == [last]
 
 
+def test_commands_keep_their_rate_through_a_slow_repaint_and_stop_when_the_gui_freezes(window, qapp, rospy_node):
+    """The stream runs on its own thread: while the GUI thread is held (a repaint, here nothing spins
+    Qt) it goes on for the lease, then stops, so the robot's dead-man stops the robot of a frozen
+    GUI; once the GUI thread is back the commands resume at once."""
+    from geometry_msgs.msg import Twist
+
+    from cps_gui.widgets.teleop import COMMAND_LEASE_S, PUBLISH_PERIOD_S
+    from cps_harness.testing import wait_for
+
+    teleop = window.plugin.teleop
+    teleop.select_robot(JACKAL)
+    rec = TopicRecorder(names.absolute(names.robot_topic(JACKAL, names.CMD_VEL_TELEOP)), Twist)
+    pub = window.plugin.io.teleop_pubs[JACKAL]
+    published_at = []
+
+    def publish_and_note(msg, publish=pub.publish):
+        published_at.append(time.monotonic())
+        return publish(msg)
+
+    pub.publish = publish_and_note
+    stream = teleop._stream
+    try:
+        _wait_connected(qapp, pub)
+        radius = teleop.pad.radius_px
+        _mouse(teleop.pad, "press", teleop.pad.centre)
+        _mouse(teleop.pad, "move", teleop.pad.centre + _point(0.0, -0.8 * radius))
+        held_from = time.monotonic()
+        # the GUI thread is held from here: no events processed
+        assert wait_for(lambda: stream.schedule.lapses == 1, 10.0), published_at
+        lapsed_at, sent_while_held = time.monotonic(), len(published_at)
+        while_held = [t for t in published_at if t >= held_from]
+        assert while_held, published_at  # it went on without the GUI thread
+        assert max(while_held) - held_from <= COMMAND_LEASE_S + PUBLISH_PERIOD_S, while_held
+        assert wait_for(lambda: time.monotonic() - lapsed_at > 3 * PUBLISH_PERIOD_S, 5.0)
+        assert len(published_at) == sent_while_held  # silent since the lease ran out
+        spin_until(qapp, lambda: len(published_at) > sent_while_held, 5, "commands once the GUI is back")
+        _mouse(teleop.pad, "release", teleop.pad.centre)
+        spin_for(qapp, 0.2)
+        assert not stream.driving and stream.last_command == joystick.ZERO
+        spin_until(qapp, lambda: rec.latest is not None and _as_tuple(rec.latest) == (0.0,) * 4, 5, "the zero")
+    finally:
+        del pub.publish
+        rec.close()
+
+
+def _point(x, y):
+    from python_qt_binding.QtCore import QPointF
+
+    return QPointF(x, y)
+
+
 def test_keys_drive_only_while_the_pane_has_focus(window, qapp, rospy_node):
     from geometry_msgs.msg import Twist
     from python_qt_binding.QtCore import Qt

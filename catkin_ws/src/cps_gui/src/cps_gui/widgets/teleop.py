@@ -1,9 +1,11 @@
 """Pane 5, teleoperation: robot choice, virtual joystick, speedometer, auto/teleop switch,
 priority toggle, take-off/land for the quadrotor and the stop-all button.
 
-While the knob is held (or a key is down) the command is published at 10 Hz; the release sends
-one zero command and stops. cps_sim's dead-man stops a robot whose commands stop coming, so a
-frozen or closed GUI cannot leave a robot driving.
+While the knob is held (or a key is down) the command is published at 10 Hz, from a thread of its
+own (cps_gui.command_stream) so that a slow repaint does not slow it; the release sends one zero
+command and stops. The stream goes on only while the GUI thread renews its lease, and cps_sim's
+dead-man stops a robot whose commands stop coming, so a frozen or closed GUI cannot leave a robot
+driving.
 """
 
 import math
@@ -26,8 +28,12 @@ from python_qt_binding.QtWidgets import (
 )
 
 from cps_gui import joystick
+from cps_gui.command_stream import CommandStream
 
-PUBLISH_PERIOD_MS = 100
+# The command stream's period, and how long it goes on without the GUI thread (less than the robots'
+# dead-man, cps_sim.fleet_control.DEADMAN_S 0.5 s: a frozen GUI stops its robot within the two).
+PUBLISH_PERIOD_S = 0.1
+COMMAND_LEASE_S = 0.35
 
 _KEY_NAMES = {
     Qt.Key_W: "w",
@@ -154,7 +160,6 @@ class TeleopPane(QWidget):
         self.setFocusPolicy(Qt.StrongFocus)
         self._drag = None
         self._keys = set()
-        self.last_command = joystick.ZERO
 
         self.robot_combo = QComboBox()
         for robot in fleet.robots:
@@ -206,12 +211,14 @@ class TeleopPane(QWidget):
         layout.addWidget(self.stop_button)
         layout.addWidget(self.status_label)
 
-        self._timer = QTimer(self)
-        self._timer.setInterval(PUBLISH_PERIOD_MS)
-        self._timer.timeout.connect(self._publish_current)
+        self._stream = CommandStream(self.io.publish_velocity, PUBLISH_PERIOD_S, COMMAND_LEASE_S)
+        self._lease_timer = QTimer(self)  # the GUI thread's renewals: a frozen GUI stops sending
+        self._lease_timer.setInterval(int(PUBLISH_PERIOD_S * 1000))
+        self._lease_timer.timeout.connect(self._stream.renew)
         self.pad.moved.connect(self._on_drag)
         self.pad.released.connect(self._on_release)
         self.climb_slider.valueChanged.connect(self._on_climb)
+        self.strafe_check.toggled.connect(self._command_changed)
         self.climb_slider.sliderReleased.connect(lambda: self.climb_slider.setValue(0))
         self.robot_combo.currentIndexChanged.connect(self._on_robot_changed)
         self.auto_radio.clicked.connect(lambda: self.set_mode("auto"))
@@ -258,6 +265,12 @@ class TeleopPane(QWidget):
             return command
         return joystick.axes_to_command(robot_type, 0.0, 0.0, climb=climb)
 
+    @property
+    def last_command(self):
+        """The command last sent to the robot (zero before any)."""
+        sent = self._stream.last_command
+        return joystick.ZERO if sent is None else sent
+
     def _on_drag(self, dx, dy):
         self._drag = (dx, dy)
         self._start_driving()
@@ -275,26 +288,25 @@ class TeleopPane(QWidget):
     def _start_driving(self):
         if self.stop_button.isChecked():
             self.status_label.setText("stop-all is engaged: release it to drive")
-        if not self._timer.isActive():
-            self._publish_current()
-            self._timer.start()
+        self._stream.drive(self.robot.name, self._current_command())
+        if not self._lease_timer.isActive():  # (start() would restart its interval at every move)
+            self._lease_timer.start()
+
+    def _command_changed(self, *_):
+        """The command the stream sends next, where a control it depends on changed mid-drive."""
+        if self._stream.driving:
+            self._stream.drive(self.robot.name, self._current_command())
 
     def _maybe_stop(self):
         if self._drag is None and not self._keys and self.climb_slider.value() == 0:
             self._stop_driving()
+        else:
+            self._command_changed()
 
     def _stop_driving(self):
         """Stop the 10 Hz stream and send exactly one zero command."""
-        if self._timer.isActive():
-            self._timer.stop()
-            self._publish(joystick.ZERO)
-
-    def _publish_current(self):
-        self._publish(self._current_command())
-
-    def _publish(self, command):
-        self.last_command = command
-        self.io.publish_velocity(self.robot.name, command)
+        self._lease_timer.stop()
+        self._stream.stop(final=joystick.ZERO)
 
     def keyPressEvent(self, event):
         key = _KEY_NAMES.get(event.key())
@@ -379,4 +391,5 @@ class TeleopPane(QWidget):
     def shutdown(self):
         self._drag = None
         self._keys.clear()
-        self._stop_driving()
+        self._lease_timer.stop()
+        self._stream.close(final=joystick.ZERO)
