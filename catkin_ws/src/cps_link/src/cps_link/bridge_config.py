@@ -110,6 +110,10 @@ class BridgeTable:
     # The kernel ends a link connection whose sent data stays unacknowledged this long, ms
     # (TCP_USER_TIMEOUT, set on the main lane's link socket; 0: the kernel's default, ~15 min).
     tcp_user_timeout_ms: int = 1000
+    # The DSCP code point of the command lane's packets (IP_TOS on its link sockets, both sides):
+    # 46, EF, which Wi-Fi's WMM puts in its voice queue ahead of bulk data (the test bed's shaper
+    # models that queue: cps_link.netns_link). The main lane keeps 0, best effort.
+    command_dscp: int = 46
     # Zenoh closes a transport whose put with congestion block has waited this long for room in
     # its queue, ms (its wait_before_close): in a cut, what ends the transport on the sending side.
     block_wait_before_close_ms: int = 500
@@ -269,6 +273,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         ("kernel_unsent_bytes", 0, 2**31),
         ("report_ms", 100, 5000),
         ("tcp_user_timeout_ms", 0, 600_000),
+        ("command_dscp", 0, 63),
     )
     for key, low, high in limits:
         if top.has(key) and not low <= top.get(key, int) <= high:
@@ -319,6 +324,7 @@ def load_bridge_table(path=None, robots: Sequence[str] = ()) -> BridgeTable:
         unheard_after_ms=unheard_ms,
         orphan_after_ms=orphan_ms,
         tcp_user_timeout_ms=top.get("tcp_user_timeout_ms", int, default=BridgeTable.tcp_user_timeout_ms),
+        command_dscp=top.get("command_dscp", int, default=BridgeTable.command_dscp),
         block_wait_before_close_ms=block_ms,
     )
 

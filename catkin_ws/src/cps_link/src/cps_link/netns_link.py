@@ -166,9 +166,27 @@ def _shape_commands(name, side, rate, delay_ms, loss_pct, queue_ms, verb, jitter
     )
 
 
-def _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, verb, jitter_ms=0.0, with_netem=False):
+# Wi-Fi's WMM serves its voice access category ahead of best effort (DSCP 46, EF, maps to it); the
+# command lane's packets carry it (bridge.yaml command_dscp). The shaper models the two queues under
+# its one token bucket: an HTB child whose classes differ only in priority (no rate of their own:
+# the tbf is the link), a u32 filter sending packets with that DSCP to the first. Handles:
+_VOICE_HANDLE, _BEST_EFFORT_HANDLE = "21:", "22:"
+_CLASSES_HANDLE = "20:"
+_VOICE_CLASS, _BEST_EFFORT_CLASS = "20:1", "20:2"
+# The voice queue holds this many packets (teleop and heartbeats are small and few).
+VOICE_QUEUE_PACKETS = 100
+
+
+def best_effort_queue_bytes(rate_bps, queue_ms, burst_bytes):
+    """The best-effort queue's limit: what tbf's own queue held at `queue_ms` (rate x latency +
+    burst), so that the link's queue in time is what it was before the voice queue."""
+    return int(rate_bps / 8 * queue_ms / 1000.0 + burst_bytes)
+
+
+def _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, verb, jitter_ms=0.0, with_netem=False, dscp=None):
     """tc commands shaping one device: tbf alone, or netem (delay/jitter/loss; always with
-    `with_netem`, so that a live change can add them) with tbf as its child."""
+    `with_netem`, so that a live change can add them) with tbf as its child; under the tbf the voice
+    and best-effort queues (`verb` add: made; change: the best-effort limit follows the rate)."""
     rate_bps = rate_bits_per_s(rate)
     # At least two full 64 kB GSO frames: with less, TCP's large segments after a rate drop are
     # dropped whole and every connection stalls for seconds. At least 4 ms at the rate.
@@ -178,8 +196,44 @@ def _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, verb, jitter_ms
     if delay_ms or loss_pct or with_netem:
         delay = ["delay", f"{delay_ms:g}ms"] + ([f"{jitter_ms:g}ms"] if jitter_ms else []) if delay_ms else []
         netem = ["netem", "limit", "10000"] + delay + ["loss", f"{loss_pct:g}%"]
-        return [base + ["root", "handle", "1:"] + netem, base + ["parent", "1:", "handle", "10:"] + tbf]
-    return [base + ["root", "handle", "1:"] + tbf]
+        shaping, tbf_class = (
+            [base + ["root", "handle", "1:"] + netem, base + ["parent", "1:", "handle", "10:"] + tbf],
+            "10:1",
+        )
+    else:
+        shaping, tbf_class = [base + ["root", "handle", "1:"] + tbf], "1:1"
+    best_effort = ["bfifo", "limit", str(best_effort_queue_bytes(rate_bps, queue_ms, burst_bytes))]
+    if verb != "add":
+        return shaping + [base + ["parent", _BEST_EFFORT_CLASS, "handle", _BEST_EFFORT_HANDLE] + best_effort]
+    if dscp is None:
+        from cps_link.bridge_config import load_bridge_table
+
+        dscp = load_bridge_table().command_dscp
+    tc = ["ip", "netns", "exec", ns, "tc"]
+    unlimited = ["htb", "rate", "10gbit", "quantum", "1514"]
+    return shaping + [
+        base + ["parent", tbf_class, "handle", _CLASSES_HANDLE, "htb", "default", "2"],
+        tc + ["class", "add", "dev", dev, "parent", _CLASSES_HANDLE, "classid", _VOICE_CLASS, *unlimited, "prio", "0"],
+        tc
+        + [
+            "class",
+            "add",
+            "dev",
+            dev,
+            "parent",
+            _CLASSES_HANDLE,
+            "classid",
+            _BEST_EFFORT_CLASS,
+            *unlimited,
+            "prio",
+            "1",
+        ],
+        base + ["parent", _VOICE_CLASS, "handle", _VOICE_HANDLE, "pfifo", "limit", str(VOICE_QUEUE_PACKETS)],
+        base + ["parent", _BEST_EFFORT_CLASS, "handle", _BEST_EFFORT_HANDLE] + best_effort,
+        tc
+        + ["filter", "add", "dev", dev, "parent", _CLASSES_HANDLE, "protocol", "ip", "prio", "1", "u32"]
+        + ["match", "ip", "dsfield", f"{dscp << 2:#04x}", "0xfc", "flowid", _VOICE_CLASS],
+    ]
 
 
 def _check_shaping_args(rate, delay_ms, loss_pct, queue_ms, jitter_ms=0.0):
@@ -247,6 +301,10 @@ def link_up(
             _run(["ip", "-n", ns, "addr", "add", f"{side_ip(side)}/{PREFIX_LEN}", "dev", dev])
             _run(["ip", "-n", ns, "link", "set", "lo", "up"])
             _run(["ip", "-n", ns, "link", "set", dev, "up"])
+            # One TCP segment per packet, as a radio sends frames: with GSO a sender's 64 kB packet
+            # is one unit in the shaper's queue, 100 ms of a 5 Mbit/s link that a voice packet
+            # (DSCP EF, the command lane) queued behind it waits out.
+            _run(["ip", "-n", ns, "link", "set", "dev", dev, "gso_max_segs", "1"])
             set_unsent_limit(ns, bridge_unsent_bytes() if unsent_bytes is None else unsent_bytes)
         for ns, dev in shaped_devices(name):
             for cmd in _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, "add", jitter_ms, with_netem):
