@@ -108,6 +108,39 @@ def test_player_keeps_the_recorded_pace_and_clock_after_its_delay(tmp_path):
     assert len(clocks) >= 100  # ~100 Hz between messages, as rosbag play --clock
 
 
+def test_player_sends_each_clock_time_once_and_no_tick_between_close_messages(tmp_path):
+    """Every node on /use_sim_time takes every /clock message: dense messages (odometry every 2 ms,
+    two at each log time, as a recording of a replay holds them) bring one clock per log time,
+    ahead of its messages, and none in between; a longer gap still ticks at the clock period."""
+    times = [i * 0.002 for i in range(200) for _ in (0, 1)] + [1.0]  # 0.4 s dense, then a 0.6 s gap
+    path = _write(tmp_path / "dense.mcap", log_times_s=times)
+    clock, events = FakeClock(), []
+    player = Player(path, topics=[ODOM], clock_period_s=0.01)
+
+    played = player.run(
+        lambda channel, data: events.append(("message", data)),
+        lambda ns: events.append(("clock", ns)),
+        monotonic=clock.monotonic,
+        sleep=clock.sleep,
+    )
+
+    assert played == len(times)
+    clocks = [ns for kind, ns in events if kind == "clock"]
+    assert clocks == sorted(set(clocks)) and player.clocks_published == len(clocks)
+    last_clock = None
+    for kind, value in events:  # each message after a clock at (or past) its log time
+        if kind == "clock":
+            last_clock = value
+        else:
+            odom = Odometry()
+            odom.deserialize(value)
+            assert last_clock >= T0 + int(times[odom.header.seq - 100] * 1e9)
+    dense = [ns for ns in clocks if ns < T0 + 400_000_000]
+    assert len(dense) == 200  # one per log time, none between messages 2 ms apart
+    gap = [ns for ns in clocks if T0 + 400_000_000 < ns < T0 + 1_000_000_000]
+    assert 50 <= len(gap) <= 61  # 0.6 s at 100 Hz
+
+
 def test_player_plays_only_the_topics_asked_and_stops_when_told(tmp_path):
     path = _write(tmp_path / "m.mcap")
     assert {c.topic for c in channels_of(path, [ODOM]).values()} == {ODOM}
