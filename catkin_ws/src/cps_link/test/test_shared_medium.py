@@ -128,4 +128,6 @@ def test_packets_marked_with_the_command_lanes_dscp_pass_a_full_queue_of_bulk_da
     )
     assert flood, "the UDP flood did not run"
     assert median_plain_ms > 100.0  # the queue was full: an unmarked message waits in it
-    assert p95_marked_ms < 25.0
+    # marked ones pass it: a comparison in one run, not a latency target (those are bench figures;
+    # this run: 5 ms against 224); scheduling delays on a loaded machine hit both alike
+    assert p95_marked_ms < 0.25 * median_plain_ms, (p95_marked_ms, median_plain_ms)
