@@ -60,30 +60,6 @@ def test_a_cut_link_carries_nothing_until_it_is_set_again():
 TOS_PINGS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "tos_pings.py")
 
 
-def _udp_flood(link, mbps, seconds, port=5211):
-    """iperf3 UDP at `mbps` from the physical twin to the digital twin for `seconds` (more than the
-    link carries: its queue stays full whatever the senders' congestion control): iperf3's JSON."""
-    server = subprocess.Popen(
-        link.argv("twin", ["iperf3", "-s", "-1", "-p", str(port)]), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
-    try:
-        argv = ["iperf3", "-c", netns_link.side_ip("twin"), "-p", str(port), "-u", "-b", f"{mbps}M"]
-        for _ in range(25):  # the server may not listen yet: iperf3 says so at once
-            result = subprocess.run(
-                link.argv("phys", [*argv, "-t", str(seconds), "-J"]),
-                capture_output=True,
-                text=True,
-                timeout=seconds + 20,
-            )
-            report = json.loads(result.stdout or "{}")
-            if "error" not in report:
-                return report
-        raise AssertionError(f"iperf3 failed: {report.get('error')}")
-    finally:
-        server.kill()
-        server.wait()
-
-
 @pytest.mark.timeout(90)
 def test_packets_marked_with_the_command_lanes_dscp_pass_a_full_queue_of_bulk_data():
     """Wi-Fi's WMM serves the voice queue (DSCP EF) ahead of bulk data, and so does the shaper: at
@@ -103,7 +79,7 @@ def test_packets_marked_with_the_command_lanes_dscp_pass_a_full_queue_of_bulk_da
             )
             try:
                 assert server.stdout.readline().startswith("listening")
-                loader = threading.Thread(target=lambda: flood.append(_udp_flood(link, 8, 10)))
+                loader = threading.Thread(target=lambda: flood.append(netns_link.measure_udp_mbps(name, 8.0, 10)))
                 loader.start()
                 argv = [sys.executable, TOS_PINGS, "ping", netns_link.side_ip("phys"), "7601", "7602", str(dscp)]
                 # for 7 s of the flood's 10
@@ -121,7 +97,7 @@ def test_packets_marked_with_the_command_lanes_dscp_pass_a_full_queue_of_bulk_da
     # from 2 s on: the flood has started and filled the queue
     marked, plain = ([rtt for t, rtt in rtts[k] if t >= 2.0] for k in ("marked", "plain"))
     p95_marked_ms, median_plain_ms = float(np.percentile(marked, 95)) * 1e3, float(np.median(plain)) * 1e3
-    received = flood[0]["end"]["sum"]["bits_per_second"] / 1e6 if flood else float("nan")
+    received = flood[0] if flood else float("nan")
     print(
         f"\n5 Mbit/s shared, 8 Mbit/s of UDP offered, {received:.2f} received: DSCP {dscp} round trip p95 "
         f"{p95_marked_ms:.1f} ms ({len(marked)}), unmarked median {median_plain_ms:.0f} ms ({len(plain)})"

@@ -531,6 +531,13 @@ def measure_bidir_mbps(name="cps", seconds=3.0, port=5202):
     return end["sum_received"]["bits_per_second"] / 1e6, end["sum_received_bidir_reverse"]["bits_per_second"] / 1e6
 
 
+def measure_udp_mbps(name="cps", offered_mbps=8.0, seconds=3.0, port=5211):
+    """UDP at `offered_mbps` from the physical twin to the digital twin (more than the link carries
+    keeps its queue full whatever the senders' congestion control); returns the received Mbit/s."""
+    report = _iperf3(name, seconds, port, ["-u", "-b", f"{offered_mbps:g}M"])
+    return report["end"]["sum"]["bits_per_second"] / 1e6
+
+
 def _iperf3(name, seconds, port, extra):
     """iperf3's JSON report of one client run phys -> twin server with `extra` options."""
     if shutil.which("iperf3") is None:
