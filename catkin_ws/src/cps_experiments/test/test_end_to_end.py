@@ -19,10 +19,10 @@ def _pane(image, panes, name):
 
 
 def test_the_reference_mission_ends_with_a_scored_map_a_report_and_its_verdict(reference_mission):
-    reference_mission.check()
+    reference_mission.check_passed()
     out, log = reference_mission.out, reference_mission.log
     assert "every robot finished its route" in log, log[-3000:]
-    assert "[demo] verdict PASS" in log, log[-3000:]  # the demo exits 0 only on PASS (check() above)
+    assert "[demo] verdict PASS" in log, log[-3000:]  # the demo exits 0 only on PASS (check_passed above)
     # The supervisor's events are in the report as in the log (a killed map server's restart there:
     # test_link_cut, in the bringup's log).
     report = (out / "report.md").read_text()

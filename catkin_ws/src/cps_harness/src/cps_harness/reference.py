@@ -290,9 +290,23 @@ class ReferenceRun:
     error: str = ""  # why it could not run (then every test that needs it fails with this)
 
     def check(self):
-        """AssertionError unless the mission ran and ended with 0 (its log's tail in the message)."""
+        """AssertionError unless the mission ran to its end and judged itself: exit 0 with a PASS
+        verdict or 1 with a FAIL one (its log's tail in the message). What the tests that read its
+        files, bag and map need; whether it passed is `check_passed`'s (one test's), so that a
+        failed check of the verdict fails that test, not every test of the mission."""
+        from cps_experiments.verdict import EXIT_CODES, read_verdict
+
         assert not self.error, self.error
-        assert self.returncode == 0, f"the reference mission ended with {self.returncode}:\n{self.log[-4000:]}"
+        verdict = read_verdict(str(self.out))
+        status = verdict.status if verdict is not None else "no verdict"
+        assert verdict is not None and self.returncode == EXIT_CODES[verdict.status] in (0, 1), (
+            f"the reference mission ended with {self.returncode} ({status}):\n{self.log[-4000:]}"
+        )
+
+    def check_passed(self):
+        """`check`, and the mission's verdict PASS (each failed check named in the message)."""
+        self.check()
+        assert self.returncode == 0, f"the reference mission's verdict FAILED:\n{self.log[-4000:]}"
 
 
 # The reference mission's start, readiness and end, s (it starts while other tests run).
