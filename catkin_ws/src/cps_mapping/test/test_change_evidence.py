@@ -3,6 +3,8 @@ misses survive saving as levels; a wall seen through free space counts as a view
 through an obstacle does not; a surface seen in one cloud is no change under min_hits; faces of one
 item cut apart by the tolerance are one change."""
 
+import zipfile
+
 import numpy as np
 from fleet_model import new_map
 
@@ -13,6 +15,7 @@ from cps_mapping.change_detection import (
     detect_changes,
     detect_map_changes,
     miss_levels,
+    savez_fast,
     viewpoints_of,
     write_hit_levels,
 )
@@ -50,6 +53,23 @@ def test_frozen_copy_answers_as_the_map_and_levels_survive_saving(tmp_path):
     gone = _seen(_wall(3.0, -2.0, 2.0, 1.6), (0.0, 0.0, 0.5), 2)  # rays through x = 2 on the way to x = 3
     idx, misses = miss_levels(fused, FrozenMap(gone))
     assert (misses[np.isin(idx[:, 0], [20])] >= 2).mean() > 0.8
+
+
+def test_levels_are_saved_deflated_and_load_back_exactly(tmp_path):
+    rng = np.random.default_rng(1)
+    arrays = {
+        "index": rng.integers(0, 300, (20000, 3), dtype=np.int32),
+        "level": rng.integers(1, 9, 20000, dtype=np.uint8),
+    }
+    path = tmp_path / "levels.npz"
+    with open(path, "wb") as stream:
+        savez_fast(stream, **arrays)
+    with np.load(path) as back:
+        assert sorted(back.files) == ["index", "level"]
+        assert all(np.array_equal(back[k], v) and back[k].dtype == v.dtype for k, v in arrays.items())
+    with zipfile.ZipFile(path) as archive:
+        assert {i.compress_type for i in archive.infolist()} == {zipfile.ZIP_DEFLATED}
+        assert sum(i.compress_size for i in archive.infolist()) < sum(i.file_size for i in archive.infolist())
 
 
 def test_a_viewpoint_counts_only_through_known_free_space():

@@ -27,6 +27,7 @@ import functools
 import json
 import math
 import os
+import zipfile
 from typing import Callable, List, Optional
 
 import numpy as np
@@ -667,6 +668,20 @@ def hit_levels_path(map_path):
     return f"{map_path}.hits.npz"
 
 
+# zlib level of the saved level tables: 1 compresses a reference mission's (50 k voxels) in 21 ms of
+# CPU to 336 kB, numpy's savez_compressed (level 6) in 95 ms to 270 kB; the map server writes them at
+# every autosave (2 s in the reference fleet) on the twin's CPU that inserts the clouds.
+LEVELS_ZLIB_LEVEL = 1
+
+
+def savez_fast(stream, **arrays):
+    """np.savez_compressed's .npz (np.load reads it) at LEVELS_ZLIB_LEVEL."""
+    with zipfile.ZipFile(stream, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=LEVELS_ZLIB_LEVEL) as archive:
+        for name, array in arrays.items():
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
+
+
 def write_hit_levels(map_path, frozen):
     """Beside a saved map (`<map>.hits.npz`): how firmly each occupied voxel was seen (FrozenMap.hit_levels)
     and every voxel ever hit (`ever_hit`, FrozenMap.hit_index); a .bt keeps only occupied/free, and
@@ -676,9 +691,7 @@ def write_hit_levels(map_path, frozen):
     ever = frozen.hit_index()
     return write_atomically(
         hit_levels_path(map_path),
-        lambda stream: np.savez_compressed(
-            stream, index=index.astype(np.int32), level=level, ever_hit=ever.astype(np.int32)
-        ),
+        lambda stream: savez_fast(stream, index=index.astype(np.int32), level=level, ever_hit=ever.astype(np.int32)),
     )
 
 
@@ -741,7 +754,7 @@ def write_miss_levels(report_path, baseline_map, current_map):
     index, level = miss_levels(baseline_map, current_map)
     return write_atomically(
         miss_levels_path(report_path),
-        lambda stream: np.savez_compressed(stream, index=index.astype(np.int32), level=level),
+        lambda stream: savez_fast(stream, index=index.astype(np.int32), level=level),
     )
 
 
