@@ -10,6 +10,7 @@ import pytest
 
 from cps_bringup.host_split import (
     CONTROL_NICE,
+    MAP_NICE,
     MISSION_SIDE_SHARES,
     HostSplit,
     HostSplitError,
@@ -18,7 +19,7 @@ from cps_bringup.host_split import (
     parse_host_cpus,
     parse_host_quota,
 )
-from cps_bringup.plan import DIGITAL, PHYSICAL, NodeSpec
+from cps_bringup.plan import CONTROL_TIER, DIGITAL, PHYSICAL, NodeSpec
 from cps_bringup.supervisor import Supervisor
 from cps_harness.cgroups import group_exists, groups_of
 from cps_harness.mission import BRINGUP, program_argv
@@ -74,7 +75,8 @@ def test_bringup_refuses_a_missing_cpu_before_anything_starts(open_tmp_path):
 def test_bringup_places_each_side_in_its_own_cgroup(reference_mission):
     """The reference mission (a --link run as root: split in halves by default): the simulator and
     the robots' tissue are in the robots' cpuset+cpu groups, the map server in the twin's, fleet
-    control at CONTROL_NICE, each side on its own CPUs; the groups are gone after the run."""
+    control at CONTROL_NICE, the map server at MAP_NICE, each side on its own CPUs; the groups are
+    gone after the run."""
     reference_mission.check()
     cpus = default_host_cpus(sorted(os.sched_getaffinity(0)))
     log, observed = reference_mission.log, reference_mission.observed
@@ -88,6 +90,7 @@ def test_bringup_places_each_side_in_its_own_cgroup(reference_mission):
     shares = MISSION_SIDE_SHARES
     assert observed.cgroup_shares == {"": 2 * shares, PHYSICAL: shares, DIGITAL: shares}, observed.cgroup_shares
     assert observed.control_nice and all(n == CONTROL_NICE for n in observed.control_nice), observed.control_nice
+    assert observed.map_server_nice == [MAP_NICE], observed.map_server_nice
     assert not group_exists(f"cpsfleet_{reference_mission.mission.pid}")
 
 
@@ -167,12 +170,12 @@ def test_a_node_started_through_ip_netns_exec_keeps_its_group_and_priority():
                         "probe",
                         PHYSICAL,
                         ("sh", "-c", "grep :cpuset: /proc/self/cgroup; cut -d' ' -f19 /proc/self/stat"),
-                        control=True,
+                        tier=CONTROL_TIER,
                     )
                 ],
                 graph=None,
                 side_prefix={PHYSICAL: ["ip", "netns", "exec", netns]},
-                spec_prefix=lambda spec: split.prefix(spec.side, control=spec.control),
+                spec_prefix=lambda spec: split.prefix(spec.side, tier=spec.tier),
             )
             argv = supervisor.argv_of(supervisor.specs[0])
             run = subprocess.run(argv, capture_output=True, text=True, timeout=30)

@@ -15,9 +15,12 @@ import time
 import pytest
 
 from cps_bringup.plan import (
+    CONTROL_TIER,
     DIGITAL,
     MAP_SERVER,
     MAP_SERVER_READY,
+    MAP_TIER,
+    NORMAL_TIER,
     PER_ROBOT,
     PHYSICAL,
     TCPROS,
@@ -610,7 +613,8 @@ def test_the_unmanaged_arm_sends_the_finest_video_and_the_operators_robot_reache
         "zenoh_bridge_twin_command",
     } <= set(on)
     assert "--lane" in on["zenoh_bridge_twin_command"].argv
-    assert on["zenoh_bridge_twin_command"].control and not on["zenoh_bridge_twin"].control
+    assert on["zenoh_bridge_twin_command"].tier == CONTROL_TIER and on["zenoh_bridge_twin"].tier == NORMAL_TIER
+    assert on[MAP_SERVER].tier == MAP_TIER
     cameras = [r.name for r in fleet.robots if r.has_depth_camera]
     assert _arg(on["topic_stats"], "_topics").count("/" + names.CAMERA_IMAGE_COMPRESSED) == len(cameras)
     assert all(

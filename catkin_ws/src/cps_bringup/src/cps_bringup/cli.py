@@ -492,7 +492,7 @@ def run_mission(args, log=print) -> MissionResult:
             policy=RestartPolicy.from_limits(fleet.limits),
             node_log_max_bytes=int(fleet.limits.node_log_max_mbytes * 1e6),
             user_prefix=prefix if user else None,
-            spec_prefix=lambda spec: split.prefix(spec.side, control=spec.control),
+            spec_prefix=lambda spec: split.prefix(spec.side, tier=spec.tier),
             warm_spares=fleet.limits.warm_spares,
         )
         recorder_log = None

@@ -9,11 +9,12 @@ cgroup v1 hierarchy, the split falls back to `taskset` (CPUs only, no quota), or
 the machine has a single CPU, and `describe` says which.
 
 Priority: control processes (velocity mux, route control, the shared fleet control, each side's
-command-lane bridge) run at nice CONTROL_NICE (higher priority than the sensors and clouds of their side, which stay at 0). We
-choose nice rather than SCHED_RR: a real-time task inside a cgroup v1 `cpu` group needs an
-`rt_runtime_us` budget carved for that group, and a busy real-time node could starve its whole
-side; a nice of -10 gives a control node ~10x the CFS weight of a sensor node when they compete.
-Lowering nice needs root; without it the priorities stay equal (said by `describe`).
+command-lane bridge) run at nice CONTROL_NICE and the map server at MAP_NICE (higher priority than
+the sensors, clouds, GUI and statistics of their side, which stay at 0). We choose nice rather than
+SCHED_RR: a real-time task inside a cgroup v1 `cpu` group needs an `rt_runtime_us` budget carved for
+that group, and a busy real-time node could starve its whole side; a nice of -10 gives a control
+node ~10x the CFS weight of a sensor node when they compete, -5 the map server ~3x. Lowering nice
+needs root; without it the priorities stay equal (said by `describe`).
 """
 
 import dataclasses
@@ -23,13 +24,19 @@ import sys
 import time
 from typing import Dict, List, Optional, Tuple
 
-from cps_bringup.plan import DIGITAL, PHYSICAL
+from cps_bringup.plan import CONTROL_TIER, DIGITAL, MAP_TIER, NORMAL_TIER, PHYSICAL
 from cps_ros.processes import end_processes, process_command, process_running
 
 # What the user writes on the command line -> the plan's side.
 SIDE_NAMES = {"robots": PHYSICAL, "twin": DIGITAL}
 CGROUP_ROOT = "/sys/fs/cgroup"
 CONTROL_NICE = -10
+# The map server above the twin's other nodes: at 0 beside the GUI, the bridge and the statistics on
+# a loaded twin CPU its clouds waited 1-2 s to be inserted and the published map went over 3 s old
+# (the reference mission's verdict FAILED in CI, 2026-11-29). The reference mission beside two busy
+# loops, its published map's oldest while the robots worked: 2.7 and 3.3 s at 0; 2.0, 2.1, 2.3 s at -5.
+MAP_NICE = -5
+TIER_NICE = {CONTROL_TIER: CONTROL_NICE, MAP_TIER: MAP_NICE, NORMAL_TIER: 0}
 CFS_PERIOD_US = 100_000
 MAX_CPU_SHARES = 262144  # the kernel's bound on cpu.shares
 # Each side's cpu.shares in a mission (8 plain processes' weight): a side stands for a host whose
@@ -304,16 +311,16 @@ class HostSplit:
                     busy.append((folder, _read(os.path.join(folder, "cgroup.procs")).replace("\n", " ")))
         return busy
 
-    def prefix(self, side, control=False) -> List[str]:
-        """argv that starts a node of `side` inside its budget (and a control node at CONTROL_NICE)."""
+    def prefix(self, side, tier=NORMAL_TIER) -> List[str]:
+        """argv that starts a node of `side` inside its budget, at its tier's nice (TIER_NICE)."""
         argv: List[str] = []
         if self.mode == "cgroup" and side in self.cpus:
             groups = [self.group("cpuset", side), self.group("cpu", side)]
             argv += ["sh", "-c", _JOIN, "cps-host-split", str(len(groups)), *groups]
         elif self.mode == "taskset" and side in self.cpus:
             argv += ["taskset", "-c", ",".join(map(str, self.cpus[side]))]
-        if control and self.can_raise_priority:
-            argv += ["nice", "-n", str(CONTROL_NICE)]
+        if TIER_NICE[tier] and self.can_raise_priority:
+            argv += ["nice", "-n", str(TIER_NICE[tier])]
         return argv
 
     def describe(self):
@@ -325,9 +332,9 @@ class HostSplit:
             for side, cpus in sorted(self.cpus.items(), reverse=True)
         )
         priority = (
-            f"control nodes at nice {CONTROL_NICE}"
+            f"control nodes at nice {CONTROL_NICE}, the map server at {MAP_NICE}"
             if self.can_raise_priority
-            else "control nodes at the same priority as the others (lowering nice needs root)"
+            else "control nodes and the map server at the same priority as the others (lowering nice needs root)"
         )
         if self.mode == "cgroup":
             return f"host split by cgroup v1 cpuset+cpu ({self.root}/{{cpuset,cpu}}/{self.name}): {sides}; {priority}"

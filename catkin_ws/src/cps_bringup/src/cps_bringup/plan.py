@@ -15,6 +15,10 @@ from cps_fleet.fleet import FleetConfig
 from cps_sim.renderers import DEFAULT_RENDERER
 
 PHYSICAL, DIGITAL = "physical", "digital"
+# Scheduling tiers of a side's nodes when the sides are split (their nice: host_split.TIER_NICE):
+# control (velocity mux, route control, fleet control, each side's command-lane bridge) above the
+# map server (what keeps the operator's map fresh) above every other node of the side.
+CONTROL_TIER, MAP_TIER, NORMAL_TIER = "control", "map", "normal"
 TCPROS, ZENOH = "tcpros", "zenoh"
 TRANSPORTS = (ZENOH, TCPROS)
 SIDES = (PHYSICAL, DIGITAL)
@@ -53,9 +57,9 @@ class NodeSpec:
     essential: bool = True
     # How long stopping may take before SIGTERM/SIGKILL (rosbag record writes out its queue).
     stop_timeout_s: float = 6.0
-    # A control process (velocity mux, route control): it runs at a higher scheduling priority than
-    # the sensors and clouds of its side when the sides are split (host_split.CONTROL_NICE).
-    control: bool = False
+    # Its scheduling tier (CONTROL_TIER, MAP_TIER or NORMAL_TIER): above the sensors and clouds of
+    # its side when the sides are split (host_split.TIER_NICE).
+    tier: str = NORMAL_TIER
     # A Python node, (python, script, ...), whose restart the supervisor speeds up with a warm spare
     # (cps_ros.spare; fleet.yaml limits.warm_spares): the ones a map needs back within seconds.
     spare: bool = False
@@ -207,7 +211,9 @@ def plan_nodes(
                     )
                 ),
                 wait_topics=(A(names.LINK_STATE),) if lane == "main" else (),
-                control=lane == "command",  # teleop's path: above the clouds, like the mux
+                tier=CONTROL_TIER
+                if lane == "command"
+                else NORMAL_TIER,  # teleop's path: above the clouds, like the mux
                 spare=True,
             )
             for lane, port in (("main", options.zenoh_port), ("command", options.zenoh_command_port))
@@ -277,7 +283,7 @@ def plan_nodes(
                     ),
                     wait_topics=tuple(_rt(r, t) for r in robots for t in (names.CMD_VEL, names.MISSION_STATE)),
                     after=drivers,
-                    control=True,
+                    tier=CONTROL_TIER,
                 )
             )
         for robot in fleet.robots:
@@ -290,7 +296,7 @@ def plan_nodes(
                         PHYSICAL,
                         py("cps_sim", "velocity_mux", ns, "__name:=velocity_mux", *_args({**common, "robot": r})),
                         wait_topics=(_rt(r, names.CMD_VEL),),
-                        control=True,
+                        tier=CONTROL_TIER,
                     )
                 )
                 specs.append(
@@ -306,7 +312,7 @@ def plan_nodes(
                         ),
                         wait_topics=(_rt(r, names.MISSION_STATE),),
                         after=drivers,
-                        control=True,
+                        tier=CONTROL_TIER,
                     )
                 )
             if options.tissue_layout == PER_ROBOT:
@@ -405,6 +411,7 @@ def plan_nodes(
                 wait_topics=(_tw(names.MAP_STATS), _tw(names.OCTOMAP_BINARY), MAP_SERVER_READY),
                 restart_limit=3,
                 spare=True,
+                tier=MAP_TIER,
             )
         )
         # The managed video, measured where it arrives: over Zenoh the twin's bridge republishes it

@@ -55,10 +55,23 @@ def nice_of(pid):
         return int(f.read().rsplit(")", 1)[1].split()[16])  # field 19 of stat: nice
 
 
+def _nice_of_node(members, side, node):
+    """The nice of every process of `side` running `node` (not its `nice` wrapper, not a warm spare)."""
+    return [
+        nice_of(p)
+        for p, cmd in members.get(side, {}).items()
+        if node in cmd and "nice" not in cmd and "spare" not in cmd
+    ]
+
+
 def control_nice(members):
-    """The nice of every fleet_control process of the robots' side (not its `nice` wrapper)."""
-    control = [p for p, cmd in members.get(PHYSICAL, {}).items() if "fleet_control" in cmd and "nice" not in cmd]
-    return [nice_of(p) for p in control]
+    """The nice of every fleet_control process of the robots' side."""
+    return _nice_of_node(members, PHYSICAL, "fleet_control")
+
+
+def map_server_nice(members):
+    """The nice of the twin's map server process(es)."""
+    return _nice_of_node(members, DIGITAL, "cps_mapping/nodes/map_server")
 
 
 def group_exists(group_name):

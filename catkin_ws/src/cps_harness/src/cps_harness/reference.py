@@ -136,6 +136,7 @@ class Observed:
     cgroup_cpus: Dict[str, str] = None  # side -> cpuset.cpus
     cgroup_shares: Dict[str, int] = None  # side (and "" for the run's group) -> cpu.shares
     control_nice: List[int] = None  # nice of the fleet control process(es)
+    map_server_nice: List[int] = None  # nice of the map server process(es)
     twin_managed_cloud: str = ""  # one relayed managed cloud of each robot, as rostopic echo printed it
     twin_link_state: str = ""
     teleop_active: str = ""  # TELEOP_ROBOT's active mode after the twin asked for teleop
@@ -155,7 +156,7 @@ class Observed:
 def observe_while_up(mission: Mission, reader=None) -> Observed:
     """Everything the tests need from the running reference mission, read once it is up. `reader`:
     the mission's TopicReader on the twin's side (started here if not given)."""
-    from cps_harness.cgroups import control_nice, group_cpus, group_shares, members_of_split
+    from cps_harness.cgroups import control_nice, group_cpus, group_shares, map_server_nice, members_of_split
 
     observed = Observed()
     reader = reader or mission.topic_reader("twin")
@@ -172,6 +173,7 @@ def observe_while_up(mission: Mission, reader=None) -> Observed:
         "cgroup_cpus": lambda: group_cpus(f"cpsfleet_{mission.pid}"),
         "cgroup_shares": lambda: group_shares(f"cpsfleet_{mission.pid}"),
         "control_nice": lambda: control_nice(observed.cgroups or {}),
+        "map_server_nice": lambda: map_server_nice(observed.cgroups or {}),
         "teleop_active": lambda: _switch_mode(reader, "teleop"),
         "twin_managed_cloud": lambda: "".join(reader.echo(clouds, 30.0, noarr=True)[t] for t in clouds),
         "twin_link_state": lambda: reader.echo([link_state])[link_state],
