@@ -3,6 +3,7 @@ node): channels advertised, every message decoded with its advertised schema, no
 for a channel nobody watches, the latest latched message to a late subscriber, a full queue's
 offers dropped and counted, a stalled viewer holding back nothing and costing no conversion."""
 
+import os
 import threading
 import time
 
@@ -295,3 +296,31 @@ def test_socket_queues_are_the_kernels_for_the_port_only():
         finally:
             for s in peers + accepted:
                 s.close()
+
+
+def test_socket_queues_leave_every_socket_of_the_process_as_it_was():
+    """rospy sets Python's default socket timeout (60 s, when a subscriber connects), and a socket
+    object made on a descriptor then puts its file non-blocking: looking at the process's sockets
+    made rospy's TCPROS listener non-blocking, its accept thread died on EAGAIN, and nothing could
+    connect to the node's publishers or services any more (test_endpoint_node after this file)."""
+    import socket
+
+    from cps_web.endpoint import SocketQueues
+
+    before = socket.getdefaulttimeout()
+    socket.setdefaulttimeout(None)  # the sockets below made blocking (rospy may have set one already)
+    try:
+        with socket.socket() as listener, socket.socket() as other:
+            listener.bind(("127.0.0.1", 0))
+            listener.listen()
+            other.bind(("127.0.0.1", 0))
+            other.listen()
+            port = listener.getsockname()[1]
+            with socket.create_connection(("127.0.0.1", port)) as peer, listener.accept()[0] as conn:
+                conn.setblocking(True)
+                socket.setdefaulttimeout(60.0)  # as rospy sets it
+                assert SocketQueues(lambda: port)() == [0]
+                for sock in (listener, other, conn, peer):
+                    assert os.get_blocking(sock.fileno()), sock
+    finally:
+        socket.setdefaulttimeout(before)
