@@ -31,7 +31,7 @@ from cps_harness.testing import link_name
 from cps_harness.transport_compare import Graphs, start_estimating_manager, start_limited_load
 from cps_link.netns_link import ShapedLink, tc_rate
 from cps_link.scenario import LINK_EVENTS_COLUMNS, ScenarioRunner, load_scenario
-from cps_link.zenoh_session import default_cert_dir, ensure_certs
+from cps_link.zenoh_session import bridge_node_name, default_cert_dir, ensure_certs
 
 LIVE_SCENARIOS = ("wifi_degraded", "demo", "shared_medium")
 # Table 6 step 1 at full rate: 8.41 MB/s = 67 Mbit/s offered, more than any phase of the link.
@@ -187,7 +187,7 @@ def _wait_rows(path, rows, timeout_s, graphs):
         time.sleep(0.5)
     raise RuntimeError(
         f"no link estimate in {path} after {timeout_s:g} s:\n{graphs.output('manager')[-1500:]}\n"
-        f"{graphs.output('bridge_twin')[-1500:]}"
+        f"{graphs.output(bridge_node_name('twin', 'main'))[-1500:]}"
     )
 
 

@@ -436,3 +436,50 @@ def test_a_command_port_equal_to_the_main_port_is_refused_with_file_and_line(tmp
     line = next(i for i, text in enumerate(path.read_text().splitlines(), 1) if text.startswith("command_port"))
     with pytest.raises(ConfigError, match=f"{path}:{line}: command_port: the command lane needs a port of its own"):
         load_bridge_table(str(path))
+
+
+def _tos_of_connections(port):
+    """IP_TOS of this process's TCP connections from or to `port`."""
+    import os
+    import socket
+
+    found = []
+    for name in os.listdir("/proc/self/fd"):
+        try:
+            if not os.readlink(f"/proc/self/fd/{name}").startswith("socket:"):
+                continue
+            with socket.socket(fileno=os.dup(int(name))) as sock:
+                if sock.type == socket.SOCK_STREAM and port in (sock.getsockname()[1], sock.getpeername()[1]):
+                    found.append(sock.getsockopt(socket.IPPROTO_IP, socket.IP_TOS))
+        except OSError:  # not a connection (a listener has no peer), or closed meanwhile
+            continue
+    return found
+
+
+def test_the_command_lanes_connection_carries_its_dscp_both_ways():
+    """bridge.yaml command_dscp: Zenoh marks the command lane's sockets (its endpoints' `dscp`), the
+    robots' connecting one and the twin's accepted one (teleop goes twin -> robots): 46, EF, which
+    Wi-Fi's WMM and the test bed's shaper serve first. The main lane's stay unmarked."""
+    import dataclasses
+    import json
+    import time
+
+    import zenoh
+
+    from cps_ros.processes import free_port
+
+    table = load_bridge_table(robots=ROBOT_NAMES)
+    for lane, tos in (("command", table.command_dscp << 2), ("main", 0)):
+        lane_table = dataclasses.replace(table.for_lane(lane), endpoint_port=free_port())
+        sessions = []
+        try:
+            for side in (TWIN, ROBOTS):
+                config = session_config(lane_table, side, "127.0.0.1", "", tls=False)
+                sessions.append(zenoh.open(zenoh.Config.from_json5(json.dumps(config))))
+            deadline = time.monotonic() + 10.0
+            while len(_tos_of_connections(lane_table.endpoint_port)) < 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert _tos_of_connections(lane_table.endpoint_port) == [tos, tos], lane
+        finally:
+            for session in sessions:
+                session.close()

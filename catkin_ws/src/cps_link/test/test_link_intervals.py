@@ -281,26 +281,3 @@ def test_an_interval_carries_the_link_sockets_bytes_beside_the_frames():
     # not readable (0) on either side: no link bytes, the frames stand
     interval, _ = c.on_report(_report(3, 1.0, 80_000), 11.0, link_received_bytes=0)
     assert (interval.sent_link_bytes, interval.delivered_link_bytes) == (0, 0)
-
-
-def test_link_sockets_mark_each_link_socket_with_the_dscp_once():
-    """bridge.yaml command_dscp: the command lane's packets carry DSCP 46 (EF), which Wi-Fi's WMM
-    and the test bed's shaper serve first; set once per socket, on the socket itself."""
-    import socket
-
-    from cps_link.link_report import LinkSockets
-
-    with _server_on_a_port_no_socket_here_uses() as server:
-        port = server.getsockname()[1]
-        with socket.create_connection(("127.0.0.1", port)) as client, server.accept()[0] as accepted:
-            assert client.getsockopt(socket.IPPROTO_IP, socket.IP_TOS) == 0
-            sender, receiver = LinkSockets(remote_port=port, dscp=46), LinkSockets(local_port=port, dscp=46)
-            assert len(sender.read()) == 1 and len(receiver.read()) == 1
-            assert client.getsockopt(socket.IPPROTO_IP, socket.IP_TOS) == 46 << 2
-            assert accepted.getsockopt(socket.IPPROTO_IP, socket.IP_TOS) == 46 << 2
-            client.setsockopt(socket.IPPROTO_IP, socket.IP_TOS, 0)
-            sender.read()  # once per socket, not at every read
-            assert client.getsockopt(socket.IPPROTO_IP, socket.IP_TOS) == 0
-            assert sender.dscp_refused == receiver.dscp_refused == 0
-    with pytest.raises(ValueError, match="0..63"):
-        LinkSockets(remote_port=port, dscp=64)

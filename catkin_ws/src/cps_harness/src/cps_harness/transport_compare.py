@@ -11,7 +11,7 @@ import numpy as np
 from cps_fleet import names
 from cps_harness.link_run import LinkRosGraph
 from cps_link.netns_link import TWIN_IP, namespace
-from cps_link.zenoh_session import bridge_argv
+from cps_link.zenoh_session import bridge_argv, bridge_node_name
 from cps_ros.processes import RosGraph, find_node, process_cpu_s
 
 CLOUD_LOAD = find_node("cps_harness", "cloud_load")
@@ -42,10 +42,13 @@ class Graphs:
                 graph.start()
                 self.sides[side] = graph
             robots = list(LIVE)
-            self.bridges = [
-                self.start("twin", bridge_argv(sys.executable, "twin", TWIN_IP, robots, cert_dir), "bridge_twin"),
-                self.start("phys", bridge_argv(sys.executable, "robots", TWIN_IP, robots, cert_dir), "bridge_robots"),
-            ]
+            # each side's two lanes, as the bringup starts them: commands in their own connection,
+            # marked for the link's voice queue (bridge.yaml command_dscp); named as the bringup names them
+            self.bridges = []
+            for lane in ("main", "command"):
+                for side, role in (("twin", "twin"), ("phys", "robots")):
+                    argv = bridge_argv(sys.executable, role, TWIN_IP, robots, cert_dir, lane=lane)
+                    self.bridges.append(self.start(side, argv, bridge_node_name(role, lane)))
 
     def start(self, side, argv, name):
         argv = (["taskset", "-c", self.cpus[side]] if self.cpus.get(side) else []) + list(argv)

@@ -110,7 +110,8 @@ class BridgeTable:
     # The kernel ends a link connection whose sent data stays unacknowledged this long, ms
     # (TCP_USER_TIMEOUT, set on the main lane's link socket; 0: the kernel's default, ~15 min).
     tcp_user_timeout_ms: int = 1000
-    # The DSCP code point of the command lane's packets (IP_TOS on its link sockets, both sides):
+    # The DSCP code point of the command lane's packets (its endpoints' `dscp`: Zenoh sets IP_TOS on
+    # its sockets, the connecting and the accepted one):
     # 46, EF, which Wi-Fi's WMM puts in its voice queue ahead of bulk data (the test bed's shaper
     # models that queue: cps_link.netns_link). The main lane keeps 0, best effort.
     command_dscp: int = 46

@@ -408,19 +408,12 @@ class LinkSockets:
         fd_root="/proc/self/fd",
         rescan_s=LINK_SOCKET_RESCAN_S,
         user_timeout_ms=0,
-        dscp=None,
     ):
         self.local_port, self.remote_port = local_port, remote_port
         # TCP_USER_TIMEOUT set on each link socket found (0: left as it is), and the inodes set
         self.user_timeout_ms = user_timeout_ms
         self._timed = set()
         self.user_timeout_refused = 0  # sockets the kernel refused it for
-        # the DSCP code point its packets carry (IP_TOS; None: left as it is), and the inodes marked
-        if dscp is not None and not 0 <= dscp <= 63:
-            raise ValueError(f"a DSCP code point is 0..63, got {dscp}")
-        self.dscp = dscp
-        self._marked = set()
-        self.dscp_refused = 0
         self.proc_root, self.fd_root = proc_root, fd_root
         self.rescan_s = rescan_s
         self._scanned_s = -math.inf  # monotonic s of the last look in /proc/net/tcp
@@ -474,9 +467,6 @@ class LinkSockets:
             if fd is not None and self.user_timeout_ms and inode not in self._timed:
                 self._timed.add(inode)
                 self.user_timeout_refused += not _set_user_timeout(fd, self.user_timeout_ms)
-            if fd is not None and self.dscp is not None and inode not in self._marked:
-                self._marked.add(inode)
-                self.dscp_refused += not _set_dscp(fd, self.dscp)
             info = _tcp_info_of(fd) if fd is not None else None
             if info is None:
                 continue
@@ -522,17 +512,6 @@ def _set_user_timeout(fd, timeout_ms):
     try:
         with _dup_socket(fd) as sock:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, int(timeout_ms))
-        return True
-    except OSError:
-        return False
-
-
-def _set_dscp(fd, dscp):
-    """The DSCP code point of the IPv4 packets file descriptor `fd` of this process sends from now
-    on (IP_TOS, ECN bits left 0); False when it cannot be set."""
-    try:
-        with _dup_socket(fd) as sock:
-            sock.setsockopt(socket.IPPROTO_IP, socket.IP_TOS, int(dscp) << 2)
         return True
     except OSError:
         return False

@@ -619,14 +619,24 @@ class ShapedLink:
         merged.update(env or {})
         return netns_argv(self.name, side, argv, merged)
 
+    def _shaper_of(self, side):
+        """(namespace, device) of the shaper of `side` (shared topology: of both directions)."""
+        if self.topology == "shared":
+            return namespace_of_router(self.name), _ifb_device(self.name)
+        return namespace(self.name, side), _device(self.name, side)
+
     def qdisc_bytes_sent(self, side):
         """Bytes the shaping qdisc of `side` (shared topology: of both directions) has sent so far
         (for per-window link accounting)."""
-        ns, dev = (
-            (namespace_of_router(self.name), _ifb_device(self.name))
-            if self.topology == "shared"
-            else (namespace(self.name, side), _device(self.name, side))
-        )
+        ns, dev = self._shaper_of(side)
         out = _run(["ip", "netns", "exec", ns, "tc", "-s", "qdisc", "show", "dev", dev]).stdout
         match = re.search(r"qdisc tbf .*?Sent (\d+) bytes", out, re.S)
+        return int(match.group(1)) if match else 0
+
+    def voice_packets_sent(self, side):
+        """Packets the voice queue of `side`'s shaper (those marked bridge.yaml's command_dscp) has
+        sent so far."""
+        ns, dev = self._shaper_of(side)
+        out = _run(["ip", "netns", "exec", ns, "tc", "-s", "class", "show", "dev", dev, "classid", _VOICE_CLASS]).stdout
+        match = re.search(r"Sent \d+ bytes (\d+) pkt", out)
         return int(match.group(1)) if match else 0

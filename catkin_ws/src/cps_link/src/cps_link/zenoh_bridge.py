@@ -20,7 +20,7 @@ import rospy
 
 from cps_fleet import names
 from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
-from cps_link.bridge_config import COMMAND_CLASS, ROBOTS, TWIN, BridgeTable, Route, other_side
+from cps_link.bridge_config import ROBOTS, TWIN, BridgeTable, Route, other_side
 from cps_link.bridge_wire import Frame, WireError, encode, header_frame_id, header_stamp_s
 from cps_link.link_health import LinkHealth
 from cps_link.link_report import (
@@ -224,13 +224,6 @@ class ZenohBridge:
             if self.main_lane
             else None
         )
-        # the command lane's link sockets carry DSCP EF (bridge.yaml command_dscp): Wi-Fi's voice queue
-        self.command_sockets = (
-            LinkSockets(**({"remote_port": port} if side == ROBOTS else {"local_port": port}), dscp=table.command_dscp)
-            if table.lane == COMMAND_CLASS
-            else None
-        )
-        self._dscp_refused_said = 0
         self._tcp_rtts = []  # the robots' link socket's smoothed RTT at each heartbeat since the last report
         self._socket_samples = [0, 0]  # heartbeat samples of the link socket since the last report, of them full
         self.publishers, self.replays, self.ros_subs = {}, {}, []
@@ -823,13 +816,6 @@ class ZenohBridge:
                     self._socket_samples[1] += any(i.notsent_bytes >= SOCKET_FULL_BYTES for i in infos)
         else:
             self._put_heartbeat(b"")
-        if self.command_sockets is not None:  # marks each new connection once (a rescan finds it)
-            with self.lock:
-                self.command_sockets.read()
-                refused = self.command_sockets.dscp_refused - self._dscp_refused_said
-                self._dscp_refused_said += refused
-            if refused:
-                rospy.logwarn(f"{rospy.get_name()}: the kernel refused DSCP {self.table.command_dscp} on a link socket")
         if self.composer is not None:
             with self.lock:
                 sizes = [i.receive_queue_bytes for i in self.link_sockets.read()]

@@ -8,7 +8,7 @@ import json
 import os
 import subprocess
 
-from cps_link.bridge_config import ROBOTS, TWIN, BridgeTable
+from cps_link.bridge_config import COMMAND_CLASS, ROBOTS, TWIN, BridgeTable
 
 MAKE_CERTS = os.path.normpath(
     os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "scripts", "make_certs")
@@ -59,6 +59,8 @@ def session_config(table: BridgeTable, side, twin_address, cert_dir, tls=True):
     proto = "tls" if tls else "tcp"
     host = f"[{twin_address}]" if ":" in twin_address else twin_address
     endpoint = f"{proto}/{host}:{table.endpoint_port}"
+    if table.lane == COMMAND_CLASS:  # Zenoh marks the lane's sockets, the listener's accepted ones too
+        endpoint += f"#dscp={table.command_dscp << 2}"
     retry = {"period_init_ms": 200, "period_max_ms": table.retry_max_ms, "period_increase_factor": 1.5}
     config = {
         "mode": "peer",
