@@ -260,6 +260,16 @@ def test_a_viewer_that_reads_nothing_costs_no_conversion(view, npm_client):
         stalled.wait()
 
 
+def _listening():
+    """A TCP socket listening on a free loopback port."""
+    import socket
+
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen()
+    return sock
+
+
 def test_socket_queues_are_the_kernels_for_the_port_only():
     """SocketQueues reads the unsent bytes of this process's connections to the port (a socket
     written to while its peer reads nothing holds MBs), not the listener's, not other sockets';
@@ -268,11 +278,7 @@ def test_socket_queues_are_the_kernels_for_the_port_only():
 
     from cps_web.endpoint import SocketQueues
 
-    with socket.socket() as listener, socket.socket() as elsewhere:
-        listener.bind(("127.0.0.1", 0))
-        listener.listen()
-        elsewhere.bind(("127.0.0.1", 0))
-        elsewhere.listen()
+    with _listening() as listener, _listening() as elsewhere:
         port = listener.getsockname()[1]
         peers = [socket.create_connection(("127.0.0.1", port)) for _ in range(2)]
         peers.append(socket.create_connection(elsewhere.getsockname()))
@@ -310,11 +316,7 @@ def test_socket_queues_leave_every_socket_of_the_process_as_it_was():
     before = socket.getdefaulttimeout()
     socket.setdefaulttimeout(None)  # the sockets below made blocking (rospy may have set one already)
     try:
-        with socket.socket() as listener, socket.socket() as other:
-            listener.bind(("127.0.0.1", 0))
-            listener.listen()
-            other.bind(("127.0.0.1", 0))
-            other.listen()
+        with _listening() as listener, _listening() as other:
             port = listener.getsockname()[1]
             with socket.create_connection(("127.0.0.1", port)) as peer, listener.accept()[0] as conn:
                 conn.setblocking(True)
