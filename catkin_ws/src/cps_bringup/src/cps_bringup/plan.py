@@ -211,9 +211,8 @@ def plan_nodes(
                     )
                 ),
                 wait_topics=(A(names.LINK_STATE),) if lane == "main" else (),
-                tier=CONTROL_TIER
-                if lane == "command"
-                else NORMAL_TIER,  # teleop's path: above the clouds, like the mux
+                # the command lane is teleop's path: above the clouds, like the mux
+                tier=CONTROL_TIER if lane == "command" else NORMAL_TIER,
                 spare=True,
             )
             for lane, port in (("main", options.zenoh_port), ("command", options.zenoh_command_port))

@@ -520,8 +520,8 @@ def _set_user_timeout(fd, timeout_ms):
 def _dup_socket(fd):
     """A socket object on a dup of file descriptor `fd` of this process (closing it closes the dup
     only; options and shutdowns reach the socket itself). While a default socket timeout is set
-    (rospy's 60 s) it puts the shared file non-blocking: only for Zenoh's link sockets, which are
-    (cps_web.endpoint.SocketQueues must not, and asks the kernel directly)."""
+    (rospy's 60 s) it puts the shared file non-blocking: harmless for Zenoh's link sockets, which
+    are already (on another process's sockets it is not: cps_web.endpoint.SocketQueues)."""
     dup = os.dup(fd)
     try:
         return socket.socket(fileno=dup)
