@@ -439,20 +439,22 @@ def test_a_command_port_equal_to_the_main_port_is_refused_with_file_and_line(tmp
 
 
 def _tos_of_connections(port):
-    """IP_TOS of this process's TCP connections from or to `port`."""
+    """IP_TOS of this process's TCP connections from or to `port` (cps_ros.sockets: no socket
+    object is made on a descriptor, which would put rospy's listener in this process non-blocking)."""
     import os
     import socket
 
+    from cps_ros import sockets
+
     found = []
     for name in os.listdir("/proc/self/fd"):
-        try:
-            if not os.readlink(f"/proc/self/fd/{name}").startswith("socket:"):
-                continue
-            with socket.socket(fileno=os.dup(int(name))) as sock:
-                if sock.type == socket.SOCK_STREAM and port in (sock.getsockname()[1], sock.getpeername()[1]):
-                    found.append(sock.getsockopt(socket.IPPROTO_IP, socket.IP_TOS))
-        except OSError:  # not a connection (a listener has no peer), or closed meanwhile
-            continue
+        fd = int(name)
+        if sockets.socket_type(fd) == socket.SOCK_STREAM and port in (
+            sockets.inet_port(fd),
+            sockets.inet_port(fd, peer=True),
+        ):
+            if sockets.inet_port(fd, peer=True) is not None:  # not the listener
+                found.append(sockets.ip_tos(fd))
     return found
 
 

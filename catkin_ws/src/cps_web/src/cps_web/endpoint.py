@@ -18,7 +18,6 @@ The gate is the endpoint's, not each viewer's (the SDK does not say which socket
 one viewer reads, what a stalled one subscribed is converted too, and the SDK drops it for it.
 """
 
-import ctypes
 import dataclasses
 import fcntl
 import logging
@@ -36,6 +35,7 @@ import foxglove
 from foxglove import channels as fx_channels
 from foxglove.websocket import Capability, ServerListener
 
+from cps_ros import sockets
 from cps_web.convert import ENDPOINT_SCHEMA, HEALTH_SCHEMA, LINK_SCHEMA
 
 LOG = logging.getLogger("cps_web.endpoint")
@@ -127,32 +127,13 @@ class SocketQueues:
         self._others &= seen
 
     def _is_connection(self, fd) -> bool:
-        """Whether descriptor `fd` is a TCP connection to the port, asked of the kernel directly: a
-        Python socket object made on it would put its file non-blocking whenever a default socket
-        timeout is set (rospy sets 60 s), and rospy's TCPROS listener's accept thread, made
-        non-blocking so, died on EAGAIN: nothing could connect to the node any more."""
-        kind = ctypes.c_int(0)
-        size = ctypes.c_uint32(ctypes.sizeof(kind))
-        if _LIBC.getsockopt(fd, socket.SOL_SOCKET, socket.SO_TYPE, ctypes.byref(kind), ctypes.byref(size)) != 0:
-            return False
-        peer = _inet_port(_LIBC.getpeername, fd)  # a listener has no peer
+        """Whether descriptor `fd` is a TCP connection to the port (asked of the kernel directly:
+        cps_ros.sockets says why)."""
         return (
-            kind.value == socket.SOCK_STREAM and peer is not None and _inet_port(_LIBC.getsockname, fd) == self.port()
+            sockets.socket_type(fd) == socket.SOCK_STREAM
+            and sockets.inet_port(fd, peer=True) is not None  # a listener has no peer
+            and sockets.inet_port(fd) == self.port()
         )
-
-
-_LIBC = ctypes.CDLL(None, use_errno=True)
-
-
-def _inet_port(call, fd) -> Optional[int]:
-    """The port of getsockname/getpeername (`call`) of descriptor `fd`; None if it fails or the
-    socket is not IPv4 or IPv6."""
-    address = ctypes.create_string_buffer(128)  # a sockaddr_storage
-    size = ctypes.c_uint32(len(address))
-    if call(fd, address, ctypes.byref(size)) != 0:
-        return None
-    family = struct.unpack_from("=H", address.raw)[0]  # sa_family, then the port, big-endian
-    return struct.unpack_from("!H", address.raw, 2)[0] if family in (socket.AF_INET, socket.AF_INET6) else None
 
 
 def parse_listen(text: str):
