@@ -62,11 +62,19 @@ def _wait_exit(ros, proc, timeout_s, publish=None):
 
 def _why_it_ended(text):
     """A crashed GUI's output, its cause first: what it printed before faulthandler's dump (a Python
-    exception that PyQt turned into abort(), a Qt fatal message), then the dump's head."""
+    exception that PyQt turned into abort(), a Qt fatal message), the dump's head, and the crashing
+    thread's Python stack, or that it had none (a native thread: rviz, Ogre, Mesa). final44's
+    SIGSEGV showed only other threads' stacks in the dump's head."""
     dump_at = text.find("Fatal Python error")
     if dump_at < 0:
         return text[-3000:]
-    return f"{text[:dump_at][-4000:]}\n{text[dump_at : dump_at + 2000]}"
+    current_at = text.find("Current thread", dump_at)
+    current = (
+        text[current_at : current_at + 2000]
+        if current_at >= 0
+        else "(no 'Current thread' in the dump: the crashing thread ran no Python, a native thread)"
+    )
+    return f"{text[:dump_at][-3000:]}\n{text[dump_at : dump_at + 600]}\n...\n{current}"
 
 
 def test_bad_options_are_refused_with_a_message(ros):
