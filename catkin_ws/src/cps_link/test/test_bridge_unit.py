@@ -447,14 +447,10 @@ def _tos_of_connections(port):
     from cps_ros import sockets
 
     found = []
-    for name in os.listdir("/proc/self/fd"):
-        fd = int(name)
-        if sockets.socket_type(fd) == socket.SOCK_STREAM and port in (
-            sockets.inet_port(fd),
-            sockets.inet_port(fd, peer=True),
-        ):
-            if sockets.inet_port(fd, peer=True) is not None:  # not the listener
-                found.append(sockets.ip_tos(fd))
+    for fd in map(int, os.listdir("/proc/self/fd")):
+        peer = sockets.inet_port(fd, peer=True)  # None for a listener
+        if sockets.socket_type(fd) == socket.SOCK_STREAM and peer is not None and port in (sockets.inet_port(fd), peer):
+            found.append(sockets.ip_tos(fd))
     return found
 
 
