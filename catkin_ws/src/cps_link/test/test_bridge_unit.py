@@ -1,5 +1,6 @@
 """The Zenoh bridge's parts that need no ROS master: wire frames, the table, link health."""
 
+import dataclasses
 import io
 import math
 import uuid
@@ -13,6 +14,7 @@ from cps_link.backfill import Keyframe, KeyframeStore, Pacer, unused_bytes_per_s
 from cps_link.bridge_config import ROBOTS, TWIN, ConfigError, load_bridge_table
 from cps_link.bridge_wire import Frame, WireError, decode, encode, header_stamp_s, is_stale
 from cps_link.link_health import LinkHealth
+from cps_link.link_report import socket_full_bytes
 from cps_link.zenoh_bridge import zenoh_qos
 from cps_link.zenoh_session import session_config
 
@@ -357,7 +359,11 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
         block = config["transport"]["link"]["tx"]["queue"]["congestion_control"]["block"]
         assert block["wait_before_close"] == 1000 * table.block_wait_before_close_ms == 500_000
         assert table.block_wait_before_close_ms < table.lease_ms
-    assert table.kernel_unsent_bytes == 16384 and table.report_ms == 500
+    # the kernel holds at most four batches unsent (one made Zenoh's writer stall, then the
+    # transport close); the socket counts as full from half of that, where the kernel wakes its writer
+    assert table.kernel_unsent_bytes == 65536 == 4 * table.batch_bytes and table.report_ms == 500
+    assert socket_full_bytes(table) == 32768
+    assert socket_full_bytes(dataclasses.replace(table, kernel_unsent_bytes=0)) == table.batch_bytes // 2
     assert table.reopen_after_ms == 5000 > table.unheard_after_ms == 2000 > table.heartbeat_timeout_ms
     assert table.orphan_after_ms == 300 >= 2 * table.heartbeat_ms
     assert table.tcp_user_timeout_ms == 1000

@@ -37,10 +37,14 @@ HEARTBEAT = struct.Struct("!QQ")  # sequence number, the sender's monotonic cloc
 # least RECEIVER_BEHIND_SAMPLES of the samples of one interval (sampled at every heartbeat).
 RECEIVER_BEHIND_BYTES = 131072
 RECEIVER_BEHIND_SAMPLES = 2
-# The robots' link socket is full (the link, not the sender, is the limit) when at least this much
-# waits in it not yet sent: half of bridge.yaml's kernel_unsent_bytes (16 kB), which TCP_NOTSENT_LOWAT
-# keeps it near only while the link is slower than the sender.
-SOCKET_FULL_BYTES = 8192
+
+
+def socket_full_bytes(table):
+    """The robots' link socket is full (the link, not the sender, is the limit) when at least this
+    much waits in it not yet sent: half of bridge.yaml's kernel_unsent_bytes, which TCP_NOTSENT_LOWAT
+    keeps it between only while the link is slower than the sender (the kernel wakes the writer
+    below half); half a Zenoh batch where the kernel's bound is not set."""
+    return max(table.kernel_unsent_bytes, table.batch_bytes) // 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,7 +66,7 @@ class SenderReport:
     link_sent_bytes: int = 0
     link_acked_bytes: int = 0
     # heartbeat samples since the previous report, and of them those whose link socket held at least
-    # SOCKET_FULL_BYTES not yet sent (the link, not the sender, was the limit then)
+    # socket_full_bytes() not yet sent (the link, not the sender, was the limit then)
     socket_samples: int = 0
     socket_full_samples: int = 0  # heartbeat round trips completed since the previous report
     send_queue_max_bytes: int = 0  # since the previous report

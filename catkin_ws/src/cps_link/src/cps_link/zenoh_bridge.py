@@ -24,11 +24,11 @@ from cps_link.bridge_config import ROBOTS, TWIN, BridgeTable, Route, other_side
 from cps_link.bridge_wire import Frame, WireError, encode, header_frame_id, header_stamp_s
 from cps_link.link_health import LinkHealth
 from cps_link.link_report import (
-    SOCKET_FULL_BYTES,
     LinkSockets,
     ReportComposer,
     RoundTrips,
     SenderReport,
+    socket_full_bytes,
 )
 from cps_link.probe_train import TrainArrivals, TrainSchedule
 from cps_link.receive_path import (
@@ -226,6 +226,7 @@ class ZenohBridge:
         )
         self._tcp_rtts = []  # the robots' link socket's smoothed RTT at each heartbeat since the last report
         self._socket_samples = [0, 0]  # heartbeat samples of the link socket since the last report, of them full
+        self._socket_full_bytes = socket_full_bytes(table)
         self.publishers, self.replays, self.ros_subs = {}, {}, []
         self._publisher_ready = {}  # route.to -> Event: its publisher's subscribers connected (or waited for)
         # Every typed topic this side republishes is advertised before its first frame, its
@@ -813,7 +814,7 @@ class ZenohBridge:
                 self._tcp_rtts += [i.rtt_us * 1e-6 for i in infos if i.rtt_us > 0]
                 if infos:
                     self._socket_samples[0] += 1
-                    self._socket_samples[1] += any(i.notsent_bytes >= SOCKET_FULL_BYTES for i in infos)
+                    self._socket_samples[1] += any(i.notsent_bytes >= self._socket_full_bytes for i in infos)
         else:
             self._put_heartbeat(b"")
         if self.composer is not None:
