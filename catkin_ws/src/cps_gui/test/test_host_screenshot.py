@@ -13,6 +13,7 @@ import pytest
 from conftest import TEST_PREFIX
 
 from cps_fleet import names
+from cps_gui.host import SCREENSHOT_GALLIUM_DRIVER, choose_gl_driver
 from cps_harness.testing import find_node
 
 MARKER_RGB = (0, 255, 0)
@@ -75,6 +76,18 @@ def _why_it_ended(text):
         else "(no 'Current thread' in the dump: the crashing thread ran no Python, a native thread)"
     )
     return f"{text[:dump_at][-3000:]}\n{text[dump_at : dump_at + 600]}\n...\n{current}"
+
+
+def test_a_screenshot_renders_with_softpipe_unless_the_caller_chose_a_driver():
+    environ = {}
+    choose_gl_driver(environ, screenshot=True)
+    assert environ == {"GALLIUM_DRIVER": SCREENSHOT_GALLIUM_DRIVER} and SCREENSHOT_GALLIUM_DRIVER == "softpipe"
+    environ = {"GALLIUM_DRIVER": "llvmpipe"}
+    choose_gl_driver(environ, screenshot=True)
+    assert environ == {"GALLIUM_DRIVER": "llvmpipe"}
+    environ = {}
+    choose_gl_driver(environ, screenshot=False)  # an operator's window: Mesa's own choice
+    assert environ == {}
 
 
 def test_bad_options_are_refused_with_a_message(ros):
@@ -288,6 +301,8 @@ def test_screenshot_of_the_live_gui_shows_the_map_in_3d_and_top_view_and_a_camer
             env={"DISPLAY": xvfb_display, "QT_QPA_PLATFORM": "xcb"},
         )
         assert _wait_exit(ros, proc, 60, publish) == 0, _why_it_ended(ros.output("cps_gui_xvfb"))
+        # a screenshot renders with the driver the host chose (rviz names the device it got)
+        assert f"OpenGL device: {SCREENSHOT_GALLIUM_DRIVER}" in ros.output("cps_gui_xvfb")
     finally:
         for pub in (marker_pub, grid_pub, image_pub):
             pub.unregister()
