@@ -83,6 +83,21 @@ def test_phases_are_the_scenarios_own_and_runs_are_matched_by_their_number_not_a
     assert J.match_phases(ours[:2], other)[1] == ["phase 2: 20 against 10 Mbit/s"]
 
 
+def test_a_phase_starts_when_its_step_began_not_when_its_commands_had_run():
+    # demo_repeat's runs 7 and 9: the 10 -> 60 Mbit/s step at 80 s was written at 80.9 s, and a
+    # budget measured on the faster link at 80.8 s was judged against 10 Mbit/s
+    events = [
+        {"event": "start", "wall_time_s": "100", "began_wall_time_s": "100", "rate_mbps": "10"},
+        {"event": "shape", "wall_time_s": "180.9", "began_wall_time_s": "180.0", "rate_mbps": "60"},
+    ]
+    phase_list = J.phases(events, 200.0)
+    assert [(p.start_s, p.capacity_mbps) for p in phase_list] == [(100.0, 10), (180.0, 60)]
+    assert J.capacity_in_force(phase_list)(180.8) == 60
+    # files written before the column: when the commands had run
+    old = [{k: v for k, v in e.items() if k != "began_wall_time_s"} for e in events]
+    assert [p.start_s for p in J.phases(old, 200.0)] == [100.0, 180.9]
+
+
 def test_nan_or_missing_fails_its_check_and_every_failure_names_the_check_the_robot_and_the_time():
     assert J.at_least("map F1", math.nan, 0.9).failed
     assert J.at_least("map F1", None, 0.9).failed

@@ -98,6 +98,29 @@ def test_the_runner_announces_the_initial_rate_and_never_a_step_it_could_not_app
     assert len(runner.errors) == 3 and all("nosuchlink" in e for e in runner.errors), runner.errors
 
 
+def test_each_event_row_says_when_its_commands_began_and_when_they_had_run(tmp_path):
+    """A step's tc commands took 0.8-1.6 s on a loaded host while the link changed among the
+    first: the judge starts the phase at `began_wall_time_s`, not at `wall_time_s`."""
+    import csv
+    import time
+
+    from cps_fleet.csv_log import CsvLog
+    from cps_link.scenario import LINK_EVENTS_COLUMNS, ScenarioRunner
+
+    path = _write(tmp_path, "step", "initial: {rate_mbps: 60}\nsteps:\n  - {at_s: 0, rate_mbps: 10}\n")
+    csv_path = str(tmp_path / "link_events.csv")
+    with CsvLog(csv_path, LINK_EVENTS_COLUMNS) as log:
+        runner = ScenarioRunner("nosuchlink", load_scenario(str(path)), csv_log=log, log=lambda line: None, netem=False)
+        runner.apply = lambda event: time.sleep(0.3) or ""  # slow commands
+        runner.start()
+        runner._thread.join(10.0)
+        runner.stop()
+    start, step = list(csv.DictReader(open(csv_path)))
+    assert step["event"] == "shape" and step["rate_mbps"] == "10"
+    assert float(step["wall_time_s"]) - float(step["began_wall_time_s"]) >= 0.29
+    assert abs(float(start["wall_time_s"]) - float(start["began_wall_time_s"])) < 0.01  # the start runs nothing
+
+
 def test_a_failing_announcement_is_logged_and_the_scenario_goes_on(tmp_path):
     from cps_link.scenario import ScenarioRunner
 

@@ -186,14 +186,18 @@ class Phase:
 
 
 def phases(event_rows, end_s) -> List[Phase]:
-    """The scenario's phases from link_events.csv rows (`event` start/shape with `rate_mbps` at
-    `wall_time_s`), up to `end_s`: a new phase at each change of the rate, numbered from 0. A cut
-    does not end a phase (the capacity is the shaper's; the outage is judged apart)."""
+    """The scenario's phases from link_events.csv rows (`event` start/shape with `rate_mbps`), up
+    to `end_s`: a new phase at each change of the rate, from when its commands began
+    (`began_wall_time_s`; files without it: `wall_time_s`, when they had run, up to 1.6 s later
+    while the link had already changed), numbered from 0. A cut does not end a phase (the capacity
+    is the shaper's; the outage is judged apart)."""
     points = []
     for row in event_rows:
         if row.get("event") not in RATE_EVENTS:
             continue
-        t, rate = _float(row.get("wall_time_s")), _float(row.get("rate_mbps"))
+        t, rate = _float(row.get("began_wall_time_s")), _float(row.get("rate_mbps"))
+        if missing(t):
+            t = _float(row.get("wall_time_s"))
         if missing(t) or missing(rate) or (points and points[-1][1] == rate):
             continue
         points.append((t, rate))

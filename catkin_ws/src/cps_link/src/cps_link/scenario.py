@@ -33,6 +33,10 @@ LINK_EVENTS_COLUMNS = (
     "jitter_ms",
     "loss_pct",
     "note",
+    # when the event's commands began, wall s: `wall_time_s` is when they had all run, which on a
+    # loaded host was 0.8-1.6 s later (a step's tc commands, both ends), while the robots' end's
+    # shaper changes among the first
+    "began_wall_time_s",
 )
 _LIMITS = {
     "rate_mbps": (0.0, 10000.0, True),
@@ -243,12 +247,13 @@ class ScenarioRunner:
         for event in self.scenario.events():
             if self._stop.wait(max(0.0, self._t0 + event.at_s - time.monotonic())):
                 return
+            began_wall_s = time.time()
             try:
                 note = self.apply(event)
             except Exception as exc:  # a failed step is logged and the mission goes on
                 note = f"FAILED: {exc}"
                 self.errors.append(note)
-            self._write(time.monotonic() - self._t0, event.kind, event.shaping, note)
+            self._write(time.monotonic() - self._t0, event.kind, event.shaping, note, began_wall_s)
 
     def apply(self, event):
         """Apply one event to the link; returns a note on what could not be applied."""
@@ -268,7 +273,9 @@ class ScenarioRunner:
         netns_link.link_set(self.link_name, netns_link.tc_rate(s.rate_mbps))
         return "delay/jitter/loss not applied: this kernel has no sch_netem" if s.impaired else ""
 
-    def _write(self, mission_s, kind, s, note):
+    def _write(self, mission_s, kind, s, note, began_wall_s=None):
+        now_wall_s = time.time()
+        began_wall_s = now_wall_s if began_wall_s is None else began_wall_s
         self.applied.append((mission_s, kind, s, note))
         self.log(
             f"[link] {mission_s:6.1f} s {kind}: {s.rate_mbps:g} Mbit/s, delay {s.delay_ms:g}+-{s.jitter_ms:g} ms, "
@@ -278,13 +285,14 @@ class ScenarioRunner:
             self.csv_log.write(
                 (
                     f"{mission_s:.3f}",
-                    f"{time.time():.3f}",
+                    f"{now_wall_s:.3f}",
                     kind,
                     f"{s.rate_mbps:g}",
                     f"{s.delay_ms:g}",
                     f"{s.jitter_ms:g}",
                     f"{s.loss_pct:g}",
                     note,
+                    f"{began_wall_s:.3f}",
                 )
             )
         self._announce(mission_s, kind, s, note)
