@@ -499,7 +499,8 @@ def plan_nodes(
                 )
             )
         if options.gui_screenshot_path:
-            # rviz needs an X server with OpenGL: a private Xvfb (Mesa llvmpipe) for the offscreen GUI.
+            # rviz needs an X server with OpenGL: a private Xvfb for the offscreen GUI (the host renders its
+            # screenshot with Mesa's softpipe: cps_gui.host.choose_gl_driver).
             # xvfb-run is a shell that does not pass its own end on to the GUI: the GUI asks to be sent
             # SIGTERM when it ends, so that a killed bringup leaves no GUI behind.
             specs.append(

@@ -14,8 +14,8 @@ from python_qt_binding.QtWidgets import QApplication, QMainWindow
 DEFAULT_SETTINGS_PATH = os.path.join(os.path.expanduser("~"), ".config", "cps_gui", "cps_gui.ini")
 # Mesa's renderer for an unattended screenshot: softpipe, which compiles no shader. llvmpipe's shader
 # JIT crashed inside libLLVM-15 while Ogre swapped rviz's buffers (SIGSEGV on a corrupted LLVM
-# constant; Mesa 22.3.6, Debian 12; a core dump's stack): 1 launch in about 40 alone, 2 of 5 full
-# test runs. softpipe cost about 15 % more CPU over the screenshot test. Set GALLIUM_DRIVER to choose.
+# constant; Mesa 22.3.6, Debian 12; a core dump's stack): 1 of 50 launches beside two busy loops, 2 of
+# 5 full test runs. softpipe cost about 15 % more CPU over the screenshot test. Set GALLIUM_DRIVER to choose.
 SCREENSHOT_GALLIUM_DRIVER = "softpipe"
 
 
