@@ -5,7 +5,19 @@ import random
 
 import pytest
 
-from cps_bw_manager.setpoints import BUDGET, CHANGE, FIRST, LEVEL, ON_OFF, PROBE, RULE, SetpointFilter, Target
+from cps_bw_manager.setpoints import (
+    BUDGET,
+    CHANGE,
+    ECHO,
+    ECHO_GRACE_S,
+    FIRST,
+    LEVEL,
+    ON_OFF,
+    PROBE,
+    RULE,
+    SetpointFilter,
+    Target,
+)
 
 CLOUD = ("a", "cloud")
 VIDEO = ("a", "video")
@@ -137,3 +149,37 @@ def test_while_the_estimator_probes_a_higher_rate_goes_at_once_and_a_lower_one_s
     change = _sent(f.decide(1.0, {CLOUD: Target(1, 5.5)}, probing=True))[CLOUD]
     assert change.reason == PROBE and change.rate_hz == 5.5
     assert not f.decide(1.5, {CLOUD: Target(1, 5.0)}, probing=True)  # a lower one is no probe
+
+
+def test_a_lost_setpoint_is_sent_again_once_the_encoder_echoes_another_rate():
+    """Live (CI, TCPROS over the shaped link): two decisions published out of order left a limiter
+    at 24.7 Hz while the filter held 16.1 Hz in force, inside the deadband of every later target."""
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(2, 16.0)})
+    assert not f.echo(CLOUD, 16.0, 2, 3.0)  # the one in force
+    assert not f.decide(3.0, {CLOUD: Target(2, 15.0)})  # inside the deadband: nothing
+    assert not f.echo(CLOUD, 24.7, 2, ECHO_GRACE_S - 0.1)
+    assert f.echo(CLOUD, 24.7, 2, 3.5)
+    change = _sent(f.decide(3.6, {CLOUD: Target(2, 15.0)}))[CLOUD]
+    # both fields again, the target now (within the deadband of the one in force)
+    assert change.reason == ECHO and change.level_changed and change.rate_changed and change.rate_hz == 15.0
+    assert f.in_force(CLOUD) == (2, 15.0)
+    assert not f.decide(4.1, {CLOUD: Target(2, 15.0)})  # sent once
+
+
+def test_an_echoed_level_counts_and_an_encoder_that_never_agrees_gets_one_resend_per_interval():
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(1, 5.0), OTHER: Target(1, 5.0)})
+    assert not f.echo(OTHER, 5.0, None, 3.0)  # an encoder without levels: its rate alone
+    assert not f.echo(OTHER, 5.0 * (1 + 1e-5), 1, 3.0)  # a float's rounding is the same rate
+    resent = []
+    for k in range(3, 40):  # an encoder that keeps level 0 (a clamp, a bug): 1 s statuses
+        if f.echo(CLOUD, 5.0, 0, float(k)):
+            changes = _sent(f.decide(float(k), {CLOUD: Target(1, 5.0), OTHER: Target(1, 5.0)}))
+            assert set(changes) == {CLOUD} and changes[CLOUD].reason == ECHO
+            resent.append(k)
+    assert resent == [3, 8, 13, 18, 23, 28, 33, 38]
+    assert not f.echo(("c", "cloud"), 1.0, None, 10.0)  # nothing sent yet: nothing to compare
+    assert not f.echo(OTHER, math.nan, None, 10.0)  # an encoder that does not say
+    f.forget(CLOUD)
+    assert _sent(f.decide(40.0, {CLOUD: Target(1, 5.0)}))[CLOUD].reason == FIRST

@@ -579,6 +579,10 @@ class ManagerCore:
         """True while the stream is judged compute-bound (no finer level is bought for it)."""
         return self.state[(robot, stream)].compute_bound
 
+    def encoder_level(self, robot, stream) -> Optional[int]:
+        """The level the stream's encoder last said it runs at (None: it has not said, or has none)."""
+        return self.state[(robot, stream)].level
+
     def reported(self, robot, stream):
         """True once the stream's encoder has said what it runs: its level, and what that costs if
         it reports its host's CPU; or it forwarded LEVELLESS_AFTER messages without naming a level

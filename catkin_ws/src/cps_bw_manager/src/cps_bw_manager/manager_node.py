@@ -8,7 +8,7 @@ import rospy
 from std_msgs.msg import Float64, String, UInt8
 
 from cps_bw_manager.estimation import LINK_REPORT_OPTIONS, DeliveryRateEstimator
-from cps_bw_manager.level_allocation import CLOUD
+from cps_bw_manager.level_allocation import CLOUD, VIDEO
 from cps_bw_manager.manager import (
     ALLOCATION_CSV_COLUMNS,
     DEFAULT_INPUT_RATE_HOLD_S,
@@ -327,6 +327,8 @@ class BandwidthManagerNode:
 
     def _on_status(self, msg, robot):
         self._take_status(
+            (robot, CLOUD),
+            msg,
             lambda: self.core.on_limiter_status(
                 robot,
                 msg.mean_message_bytes,
@@ -336,11 +338,13 @@ class BandwidthManagerNode:
                 level=msg.level,
                 level_mean_message_bytes=msg.level_mean_message_bytes,
                 encoder=encoder_report(msg),
-            )
+            ),
         )
 
     def _on_video_status(self, msg, robot):
         self._take_status(
+            (robot, VIDEO),
+            msg,
             lambda: self.core.on_video_status(
                 robot,
                 msg.level,
@@ -349,15 +353,26 @@ class BandwidthManagerNode:
                 msg.output_rate_hz,
                 now_s=rospy.get_time(),
                 encoder=encoder_report(msg),
-            )
+            ),
         )
 
-    def _take_status(self, apply):
+    def _take_status(self, key, msg, apply):
         """A stream's status: `apply()` (the core's on_*_status) under the lock, reallocating when it
-        says something changed; a status the core refuses is ignored, logged with the count so far."""
+        says something changed or its encoder runs another setpoint than the one in force (lost:
+        sent again); a status the core refuses is ignored, logged with the count so far."""
         try:
             with self.lock:
                 changed = apply()
+                stale = self.setpoints.echo(key, msg.set_rate_hz, self.core.encoder_level(*key), rospy.get_time())
+            if stale:
+                rospy.logwarn(
+                    "bandwidth manager: %s/%s runs %.3f Hz at level %s, not the setpoint in force %s: sent again",
+                    *key,
+                    msg.set_rate_hz,
+                    self.core.encoder_level(*key),
+                    self.setpoints.in_force(key),
+                )
+            changed = changed or stale
         except ValueError as exc:
             rospy.logwarn_throttle(
                 5.0, f"bandwidth manager: {exc}; ignored ({self.core.invalid_inputs} bad inputs so far)"
@@ -525,11 +540,13 @@ class BandwidthManagerNode:
             )
             bound = self.core.compute_bound_streams()
             cpu_spare = self.core.cpu_spare_by_stream()
+            # Sent in the order decided: the setpoint topics are latched, so the last one published
+            # is what a limiter keeps, and the filter believes the last one decided is in force.
+            self._send(now_s, changes)
         if paused:
             rospy.logwarn_throttle(5.0, f"bandwidth manager: {paused}")
         elif not target.feasible:
             rospy.logwarn_throttle(5.0, f"bandwidth manager: {target.status}")
-        self._send(now_s, changes)
         msg = BandwidthAllocationArray()
         msg.header.stamp = rospy.Time.now()
         msg.available_mbps = available

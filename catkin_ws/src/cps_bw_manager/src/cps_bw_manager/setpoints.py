@@ -23,6 +23,11 @@ on the robots' saturated CPU: so a stream's setpoint is sent only when it matter
   filled live (a 20 -> 60 Mbit/s step went unseen). Probes come at most every 1.5 s, backing off
   to 3 s while refused, and only while the fleet wants more than it is given.
 
+- a stream whose encoder's status, `ECHO_GRACE_S` or more after the last setpoint, reports
+  another rate or level than the one in force gets it again (at most once per `min_interval_s`):
+  a setpoint can be lost (a latched topic reconnecting, an encoder restarted, a race), and the
+  deadband would otherwise never resend it.
+
 Decisions are batched per robot: one call decides every stream, and the node sends a robot's
 changes together.
 """
@@ -35,7 +40,20 @@ from cps_bw_manager.level_allocation import OPERATOR_VIDEO
 
 DEFAULT_RATE_DEADBAND = 0.2
 DEFAULT_MIN_INTERVAL_S = 5.0
-FIRST, LEVEL, ON_OFF, RULE, CHANGE, BUDGET, PROBE = "first", "level", "on/off", "rule", "change", "budget", "probe"
+# An encoder's status this long after a setpoint shows it (its status period is 1 s), s.
+ECHO_GRACE_S = 2.0
+# An echoed rate within this fraction of the one sent is the one sent (the message's float).
+ECHO_RATE_TOLERANCE = 1e-3
+FIRST, LEVEL, ON_OFF, RULE, CHANGE, BUDGET, PROBE, ECHO = (
+    "first",
+    "level",
+    "on/off",
+    "rule",
+    "change",
+    "budget",
+    "probe",
+    "echo",
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +92,8 @@ class SetpointFilter:
         self.min_interval_s = float(min_interval_s)
         self._sent: Dict[Tuple[str, str], Tuple[int, float, float]] = {}  # key -> (level, rate, at s)
         self._level_at: Dict[Tuple[str, str], float] = {}  # key -> when its level last changed, s
+        self._resend: set = set()  # keys whose encoder echoed something else than in force
+        self._echo_resent_at: Dict[Tuple[str, str], float] = {}
         self.sent_count = 0
 
     def in_force(self, key) -> Optional[Tuple[int, float]]:
@@ -85,6 +105,25 @@ class SetpointFilter:
         """Send the stream's next setpoint as its first (its encoder restarted)."""
         self._sent.pop(key, None)
         self._level_at.pop(key, None)
+        self._resend.discard(key)
+
+    def echo(self, key, rate_hz, level, status_s):
+        """An encoder's status: the rate (and level; None: it has none) it runs at, received at
+        `status_s`. True when it is not what was sent ECHO_GRACE_S or more before: the stream's
+        next decision resends what is in force (at most once per `min_interval_s`)."""
+        sent = self._sent.get(key)
+        if sent is None or not math.isfinite(rate_hz) or not math.isfinite(status_s):
+            return False
+        sent_level, sent_rate, sent_at = sent
+        if status_s < sent_at + ECHO_GRACE_S:
+            return False
+        same_rate = abs(rate_hz - sent_rate) <= ECHO_RATE_TOLERANCE * max(sent_rate, 1.0)
+        if same_rate and (level is None or level == sent_level):
+            return False
+        if status_s - self._echo_resent_at.get(key, -math.inf) < self.min_interval_s:
+            return False
+        self._resend.add(key)
+        return True
 
     def decide(
         self,
@@ -116,8 +155,12 @@ class SetpointFilter:
                     changes[key] = self._change(key, t, BUDGET)
         out: Dict[str, List[Change]] = {}
         for key, change in changes.items():
+            if key in self._resend:
+                self._resend.discard(key)
+                self._echo_resent_at[key] = float(now_s)
+            previous = self._sent.get(key)
             self._sent[key] = (change.level, change.rate_hz, float(now_s))
-            if change.level_changed:
+            if previous is None or previous[0] != change.level:
                 self._level_at[key] = float(now_s)
             self.sent_count += 1
             out.setdefault(key[0], []).append(change)
@@ -128,6 +171,8 @@ class SetpointFilter:
         if sent is None:
             return FIRST
         level, rate, at_s = sent
+        if key in self._resend:
+            return ECHO
         broken_rule = rate < t.min_rate_hz * (1 - 1e-9)
         if t.level > level or (t.level < level and (broken_rule or t.operator or self._level_settled(key, now_s))):
             return LEVEL
@@ -151,12 +196,13 @@ class SetpointFilter:
         sent = self._sent.get(key)
         if reason != LEVEL and sent is not None and t.level < sent[0]:
             t = dataclasses.replace(t, level=sent[0])  # a finer level still waits (see _reason)
+        again = sent is None or reason == ECHO  # both fields, whether or not they changed
         return Change(
             key=key,
             level=t.level,
             rate_hz=t.rate_hz,
-            level_changed=sent is None or sent[0] != t.level,
-            rate_changed=sent is None or sent[1] != t.rate_hz,
+            level_changed=again or sent[0] != t.level,
+            rate_changed=again or sent[1] != t.rate_hz,
             reason=reason,
         )
 
