@@ -47,8 +47,8 @@ def _set_all_rates(graph, rate_hz):
     assert result.returncode == 0, result.stderr
 
 
-def _start_load(graph, record_path=None):
-    """cps_transport's rate limiters and the cloud load on the physical side, the recorder on the twin.
+def _start_limiters(graph, record_path=None):
+    """cps_transport's rate limiters on the physical side, the recorder on the twin.
 
     Every digital-twin subscriber of a managed topic is one more TCP copy of it on the link, so
     each test has exactly one (the recorder, or topic_stats)."""
@@ -67,12 +67,47 @@ def _start_load(graph, record_path=None):
         )
     if record_path:
         graph.start_python("twin", find_node("cps_harness", "link_recorder"), [record_path, *LOAD], name="recorder")
+
+
+def _start_cloud_load(graph):
+    """The Table 6 cloud load into the limiters (physical side only: it does not cross the link)."""
     graph.start_python(
         "phys",
         find_node("cps_harness", "cloud_load"),
         [f"{r}:{size}:{hz}" for r, (size, hz) in LOAD.items()],
         name="load",
     )
+
+
+def _cloud_rows(csv_path):
+    """(stamp s, robot, rate in force Hz, measured message bytes) of the manager's cloud rows."""
+    with open(csv_path) as stream:
+        return [
+            (float(row["stamp_s"]), row["robot"], float(row["rate_hz"]), float(row["message_bytes"]))
+            for row in csv.DictReader(stream)
+            if row["stream"] == "cloud"
+        ]
+
+
+def _wait_for_measured_sizes(csv_path, timeout_s):
+    """Until the manager's allocation uses every robot's measured cloud size (within 10 % of LOAD's)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        latest = {robot: size for _, robot, _, size in _cloud_rows(csv_path)}
+        if all(abs(latest.get(r, 0.0) / size - 1.0) <= 0.1 for r, (size, _) in LOAD.items()):
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"the manager did not measure every cloud's size within {timeout_s} s: {latest}")
+
+
+def _rate_changes(csv_path):
+    """The manager's cloud rows where a robot's rate or size in force changed (a failure's timeline)."""
+    last, changes = {}, []
+    for stamp, robot, rate, size in _cloud_rows(csv_path):
+        if last.get(robot) != (rate, size):
+            last[robot] = (rate, size)
+            changes.append(f"{stamp:.2f} {robot} {rate:.2f} Hz {size:.0f} B")
+    return "\n".join(changes)
 
 
 def _wait_for_file_rows(path, timeout_s):
@@ -94,7 +129,9 @@ def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
         with ShapedLink(name, rate="60mbit") as link, LinkRosGraph(link) as graph:
             available_mbps = link.measure_mbps(seconds=2)
             budget = (1 - RESERVE) * available_mbps / 8.0
-            _start_load(graph, record_path)
+            # As deployed: the manager is connected to the limiters before the load fills the link;
+            # the phase begins once it allocates from every measured size.
+            _start_limiters(graph, record_path)
             graph.start_python(
                 "twin",
                 find_node("cps_bw_manager", "bandwidth_manager"),
@@ -107,8 +144,10 @@ def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
                 name="manager",
             )
             _wait_for_file_rows(csv_path, 40.0)
+            _start_cloud_load(graph)
             _wait_for_file_rows(record_path, 40.0)
-            time.sleep(4.0)  # sizes measured and the first full allocation in force
+            _wait_for_measured_sizes(csv_path, 40.0)
+            time.sleep(4.0)  # the allocation from the measured sizes in force at the limiters
             on_t0 = time.time()
             time.sleep(PHASE_S)
             on_t1 = time.time()
@@ -139,7 +178,12 @@ def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
             f"max {s.latency_max_ms:.0f} ms; rates " + ", ".join(f"{k} {v:.1f} Hz" for k, v in s.rates_hz.items())
         )
     assert on.messages > 0 and off.messages > 0, manager_log[-2000:]
-    assert all(w <= budget for w in on.windows_mbytes_per_s), (on.windows_mbytes_per_s, budget)
+    assert all(w <= budget for w in on.windows_mbytes_per_s), (
+        on.windows_mbytes_per_s,
+        budget,
+        f"phase {on_t0:.2f}-{on_t1:.2f}",
+        _rate_changes(csv_path),
+    )
     assert on.latency_p95_ms < 100.0, manager_log[-2000:]
     # Without the manager the offered load exceeds what the link can carry and queues build up.
     assert offered > available_mbps / 8.0
