@@ -11,8 +11,14 @@ cloud; never inserted first of all; ties: the cloud that waited longest). Under 
 insertion can serve, every robot is then served in turn and the map ages grow alike: freshness
 degrades in proportion, no robot starves.
 
-A cloud whose transform is not known yet is `defer`red (back into its slot, not ready before a
-time) unless a newer one arrived meanwhile. Keyframes sent after a link outage (`backfill`) wait
+A cloud whose transform is not known yet is `defer`red into its robot's second slot, for a cloud
+waiting for its transform (not ready before a time), where a newer cloud does not supersede it: the
+newer one waits in the live slot. With one slot a newer cloud superseded the waiting one, so while
+the robot's transforms came later than its clouds (live: tf 0.3-0.6 s behind on a busy link, the
+clouds 0.1-0.3 s) every cloud was superseded before its transform came, and three robots' maps
+stood still for 3 s in one demo (tf2's MessageFilter keeps a queue for the same reason). The
+waiting cloud is served first once its transform is known, and superseded when a newer cloud of its
+robot is inserted before it. Keyframes sent after a link outage (`backfill`) wait
 in a bounded FIFO per robot, each one a different place, and are served only when no live cloud
 is ready: background priority, as the link sends them within its unused budget.
 
@@ -61,7 +67,8 @@ class Arrival:
 
 
 class RobotSlots:
-    """One latest-only slot and one backfill FIFO per robot, served oldest map first; thread-safe."""
+    """One latest-only slot, one slot for a cloud waiting for its transform and one backfill FIFO
+    per robot, served oldest map first; thread-safe."""
 
     def __init__(self, robots: List[str], backfill_kept: int = BACKFILL_KEPT, clock: Callable = time.monotonic):
         if backfill_kept < 1:
@@ -70,6 +77,7 @@ class RobotSlots:
         self.backfill_kept = backfill_kept
         self.clock = clock
         self._live: Dict[str, Optional[Arrival]] = {r: None for r in self.robots}
+        self._waiting_tf: Dict[str, Optional[Arrival]] = {r: None for r in self.robots}
         self._backfill: Dict[str, collections.deque] = {r: collections.deque() for r in self.robots}
         self._newest_stamp_s: Dict[str, float] = {r: -math.inf for r in self.robots}
         self._counts: Dict[str, AdmissionCounters] = {r: AdmissionCounters() for r in self.robots}
@@ -105,7 +113,9 @@ class RobotSlots:
         """The next cloud to serve (not removed) and when the first deferred one is due: a live
         cloud first, the robot whose map is oldest; a backfill keyframe only when no live one is
         ready."""
-        live, due_live = self._oldest_first(((r, a) for r, a in self._live.items() if a is not None), now_s)
+        live, due_live = self._oldest_first(
+            ((r, a) for slot in (self._waiting_tf, self._live) for r, a in slot.items() if a is not None), now_s
+        )
         if live is not None:
             return live, due_live
         keyframe, due_backfill = self._oldest_first(((r, f[0]) for r, f in self._backfill.items() if f), now_s)
@@ -135,6 +145,8 @@ class RobotSlots:
                 if arrival is not None:
                     if arrival.backfill:
                         self._backfill[arrival.robot].popleft()
+                    elif self._waiting_tf[arrival.robot] is arrival:
+                        self._waiting_tf[arrival.robot] = None
                     else:
                         self._live[arrival.robot] = None
                     return arrival
@@ -145,17 +157,21 @@ class RobotSlots:
             return None
 
     def defer(self, arrival: Arrival, retry_s: float) -> bool:
-        """Put a taken cloud back, not ready for `retry_s`; False (not put back: counted as
-        superseded) when a newer live cloud of its robot arrived meanwhile."""
+        """Put a taken cloud back, not ready for `retry_s`, to wait for its transform: in its robot's
+        waiting slot, or, while an older cloud waits there, in the live slot unless a newer cloud
+        arrived meanwhile; False (not put back: counted as superseded) in that case."""
         with self._cond:
             arrival.not_before_s = self.clock() + retry_s
+            robot = arrival.robot
             if arrival.backfill:
-                self._backfill[arrival.robot].appendleft(arrival)
-            elif self._live[arrival.robot] is not None:
-                self._counts[arrival.robot].clouds_superseded += 1
+                self._backfill[robot].appendleft(arrival)
+            elif self._waiting_tf[robot] is None:
+                self._waiting_tf[robot] = arrival
+            elif self._live[robot] is not None:
+                self._counts[robot].clouds_superseded += 1
                 return False
             else:
-                self._live[arrival.robot] = arrival
+                self._live[robot] = arrival
             self._cond.notify()
             return True
 
@@ -163,6 +179,10 @@ class RobotSlots:
         """The robot's map now holds a cloud stamped `stamp_s` (its map age falls)."""
         with self._cond:
             self._newest_stamp_s[robot] = max(self._newest_stamp_s[robot], stamp_s)
+            waiting = self._waiting_tf[robot]
+            if waiting is not None and waiting.opened is not None and waiting.opened.header.stamp.to_sec() < stamp_s:
+                self._waiting_tf[robot] = None  # the map has a newer view of this robot
+                self._counts[robot].clouds_superseded += 1
 
     def count(self, robot: str, **amounts):
         """Add to the robot's admission counts (a cloud admission dropped, by cause)."""
@@ -181,16 +201,18 @@ class RobotSlots:
             return sum(c.clouds_superseded for c in self._counts.values())
 
     def length(self, robot: str) -> int:
-        """Clouds of `robot` waiting: its live slot (0 or 1) and its backfill keyframes."""
+        """Clouds of `robot` waiting: its live and waiting-for-transform slots (0 or 1 each) and its
+        backfill keyframes."""
         with self._cond:
-            return (self._live[robot] is not None) + len(self._backfill[robot])
+            return (self._live[robot] is not None) + (self._waiting_tf[robot] is not None) + len(self._backfill[robot])
 
     def clear(self) -> List[Arrival]:
         """Empty every slot; returns what was waiting (the caller counts it)."""
         with self._cond:
-            dropped = [a for a in self._live.values() if a is not None]
+            dropped = [a for slot in (self._live, self._waiting_tf) for a in slot.values() if a is not None]
             dropped += [a for fifo in self._backfill.values() for a in fifo]
             self._live = {r: None for r in self.robots}
+            self._waiting_tf = {r: None for r in self.robots}
             for fifo in self._backfill.values():
                 fifo.clear()
             return dropped
