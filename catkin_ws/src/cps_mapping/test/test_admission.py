@@ -13,6 +13,7 @@ import rospy
 import test_map_server_library as library
 from test_map_server_library import JACKAL_FRAME, JACKAL_POSE, _cloud, _server, drain
 
+from cps_fleet import names
 from cps_mapping.admission import Admission
 from cps_mapping.map_server import TransformUnavailable
 from cps_mapping.queues import Arrival, RobotSlots
@@ -126,7 +127,9 @@ def test_clouds_keep_going_in_while_a_robots_transforms_lag_behind_its_clouds(ja
             raise TransformUnavailable("tf not there yet")
         return JACKAL_POSE[1], JACKAL_POSE[0]
 
-    admission = Admission(["jackal"], transform_of, 2.0, "map", logging.getLogger("test"), clock=lambda: now[0])
+    admission = Admission(
+        ["jackal"], transform_of, 2.0, names.MAP_FRAME, logging.getLogger("test"), clock=lambda: now[0]
+    )
     placed = []
     for k in range(50):  # 5 s of clouds at 10 Hz, each arriving 0.1 s after its stamp
         now[0] = 100.0 + 0.1 * k
