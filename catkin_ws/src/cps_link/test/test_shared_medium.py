@@ -64,15 +64,14 @@ TOS_PINGS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "tos_pings.
 def test_packets_marked_with_the_command_lanes_dscp_pass_a_full_queue_of_bulk_data():
     """Wi-Fi's WMM serves the voice queue (DSCP EF) ahead of bulk data, and so does the shaper: at
     5 Mbit/s with 8 Mbit/s of UDP from the robots' side keeping the shared medium's queue full
-    (a deep one, as an access point's: 200 ms of the rate plus the burst, ~141 kB, ~0.23 s), round
-    trips marked with bridge.yaml's command_dscp stay short while unmarked ones wait in the queue.
-    (Without the voice queue, with GSO: 80-130 ms both behind TCP bulk.)"""
+    (~160 kB, ~0.26 s), round trips marked with bridge.yaml's command_dscp stay short while unmarked
+    ones wait in the queue. (Without the voice queue, with GSO: 80-130 ms both behind TCP bulk.)"""
     from cps_link.bridge_config import load_bridge_table
 
     dscp, name = load_bridge_table().command_dscp, link_name("kvo")
     flood = []
     try:
-        with ShapedLink(name, rate="5mbit", topology="shared", queue_ms=200.0) as link:
+        with ShapedLink(name, rate="5mbit", topology="shared") as link:
             server = subprocess.Popen(
                 link.argv("phys", [sys.executable, TOS_PINGS, "serve", "7601", "7602", str(dscp)]),
                 stdout=subprocess.PIPE,
