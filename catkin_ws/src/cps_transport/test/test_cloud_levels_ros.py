@@ -158,9 +158,15 @@ def test_level_topic_changes_the_leaf_the_tissue_emits_and_the_status_level(ros,
             if start is _start_shared:
                 assert report.level_mean_cpu_s > 0 and report.level_mean_points > 0, report
         # (this 320 x 240 view: 0.05 m clouds are 2.8-3.5x the 0.2 m ones, measured; 2x is the bound)
-        # on failure, the statuses as they came (level, level mean, mean) and the follower's log
-        history = [f"{m.level}:{m.level_mean_message_bytes:.0f}/{m.mean_message_bytes:.0f}" for _, m in status.messages]
-        assert sizes[0] > 2 * sizes[2], (sizes, history[-40:], ros.output(follower)[-2000:])
+        # on failure, the statuses as they came (level: level mean / mean) and the follower's log
+        assert sizes[0] > 2 * sizes[2], (
+            sizes,
+            [
+                f"{m.level}:{m.level_mean_message_bytes:.0f}/{m.mean_message_bytes:.0f}"
+                for _, m in status.messages[-40:]
+            ],
+            ros.output(follower)[-2000:],
+        )
         if start is _start_shared:
             assert points[0] > 2 * points[2], points
         if restart_voxel_grid is not None:

@@ -363,14 +363,16 @@ class BandwidthManagerNode:
         try:
             with self.lock:
                 changed = apply()
-                stale = self.setpoints.echo(key, msg.set_rate_hz, self.core.encoder_level(*key), rospy.get_time())
+                level = self.core.encoder_level(*key)
+                stale = self.setpoints.echo(key, msg.set_rate_hz, level, rospy.get_time())
+                in_force = self.setpoints.in_force(key) if stale else None
             if stale:
                 rospy.logwarn(
                     "bandwidth manager: %s/%s runs %.3f Hz at level %s, not the setpoint in force %s: sent again",
                     *key,
                     msg.set_rate_hz,
-                    self.core.encoder_level(*key),
-                    self.setpoints.in_force(key),
+                    level,
+                    in_force,
                 )
             changed = changed or stale
         except ValueError as exc:
