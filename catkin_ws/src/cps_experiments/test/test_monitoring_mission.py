@@ -81,7 +81,8 @@ def _check_monitoring(mission, monitor, fleet_file, baseline, changes):
     assert max(found.values()) <= MAX_POSITION_ERROR_M, (found, summary)
 
     # Live at the twin: what the map server reported while the mission ran is the same two changes,
-    # each first seen by an inserted cloud before it was reported, and it asked for a closer look.
+    # each first seen by an inserted cloud before it was reported, and it asked for a closer look
+    # (from the first cycle that found them: cps_mapping.change_attention).
     from cps_experiments.monitor_report import read_live_report
     from cps_mapping.change_scoring import score_changes
 
@@ -91,7 +92,8 @@ def _check_monitoring(mission, monitor, fleet_file, baseline, changes):
     assert (live_score.precision, live_score.recall) == (1.0, 1.0), live_summary
     assert all(t is not None and t > 0 for t in live.times_s()), (live.times_s(), live_summary)
     server_log = "".join(p.read_text() for p in (monitor / "logs").glob("map_server-*.log"))
-    assert "high priority granted" in server_log, server_log[-3000:]
+    timeline = [(c.kind, v, r) for c, v, r in zip(live.changes, live.first_view_s, live.reported_s)]
+    assert "high priority granted" in server_log, (f"(kind, first view, reported) {timeline}", server_log[-3000:])
 
     # Every reported change is a real one (issue 25): the robots' bodies are not compared (their
     # poses were saved with both maps) and a change needs evidence, not a difference.

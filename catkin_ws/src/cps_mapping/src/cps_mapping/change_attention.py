@@ -1,13 +1,18 @@
-"""Which robots to give a closer look at a newly reported change (the paper's "trigger or change
+"""Which robots to give a closer look at a newly found change (the paper's "trigger or change
 detection", section 5), without ROS: the robots that came within `radius_m` (horizontal) of the
-change's place while it was being confirmed, or are there now, get high priority on the link.
+change's place since the first detection cycle found it, or are there now, get high priority on
+the link.
 
 A change is reported only after it persisted some detection cycles (cps_mapping.change_tracking),
 and under load that took 19 s (final36): the robot that saw it had moved on, no robot was near at
 the report, and no one was raised. So the positions are kept at every detection cycle, and a change
-counts every robot near its place since its first cycle. Each tracked change is raised once, by the
-tracker's identity (its place may drift as more of it is seen: in final36 a drift past 0.5 m made
-the same changes "new" again after the mission's end, when the manager had gone).
+counts every robot near its place since its first cycle. The map server attends to a change from
+its first cycle, before it is reported: a closer look is what confirms it or withdraws it, and on a
+loaded twin the second cycle came as the robots finished (CI, 2026-11-29: the request found the
+manager gone; a cycle of 0.7 s of CPU took 12.9 s on a quiet machine, 11.6 s of it waiting for the
+twin's CPU). Each robot is raised once per tracked change, by the tracker's identity, and none
+after the change is reported (its place may drift as more of it is seen: in final36 a drift past
+0.5 m made the same changes "new" again after the mission's end, when the manager had gone).
 """
 
 import collections
@@ -32,7 +37,7 @@ class Attention:
 
 @dataclasses.dataclass(frozen=True)
 class Unattended:
-    """A reported change no robot came near: the nearest robot since its first cycle, if any."""
+    """A found change no robot came near: the nearest robot since its first cycle, if any."""
 
     change: object
     nearest_robot: Optional[str]
@@ -45,7 +50,8 @@ class ChangeAttention:
             raise ValueError("radius_m and history_s must be positive")
         self.radius_m, self.history_s = radius_m, history_s
         self._history = collections.deque()  # (t_s, {robot: (x, y)}), oldest first
-        self._handled = []  # the tracked changes already attended to (by identity)
+        self._settled = []  # the reported changes attended to (by identity): none raised again
+        self._raised = []  # (tracked change, robot) pairs raised
 
     def note_positions(self, now_s, positions_m: Dict[str, Tuple[float, float]]):
         """The robots' positions (map, m) at a detection cycle."""
@@ -53,15 +59,15 @@ class ChangeAttention:
         while self._history and now_s - self._history[0][0] > self.history_s:
             self._history.popleft()
 
-    def attend(self, reported) -> Tuple[List[Attention], List[Unattended]]:
-        """For every reported change (cps_mapping.change_tracking.TrackedChange) not handled yet:
-        each robot that came within radius_m of its place at a noted cycle since its first one,
-        at its nearest; or, if none did, the change with the nearest robot."""
+    def attend(self, found) -> Tuple[List[Attention], List[Unattended]]:
+        """For every found change (cps_mapping.change_tracking.TrackedChange) not settled yet: each
+        robot not raised for it yet that came within radius_m of its place at a noted cycle since its
+        first one, at its nearest. A change is settled once it is reported; one no robot came near
+        by then is returned as Unattended, with the nearest robot."""
         raise_them, unattended = [], []
-        for tracked in reported:
-            if any(tracked is handled for handled in self._handled):
+        for tracked in found:
+            if any(tracked is settled for settled in self._settled):
                 continue
-            self._handled.append(tracked)
             x, y = tracked.change.place_m
             nearest: Dict[str, Tuple[float, float]] = {}  # robot -> (distance, when)
             for t_s, positions in self._history:
@@ -71,9 +77,14 @@ class ChangeAttention:
                     d = math.hypot(rx - x, ry - y)
                     if robot not in nearest or d < nearest[robot][0]:
                         nearest[robot] = (d, t_s)
-            near = sorted((r, d, t) for r, (d, t) in nearest.items() if d <= self.radius_m)
+            raised = [robot for t, robot in self._raised if t is tracked]
+            near = sorted((r, d, t) for r, (d, t) in nearest.items() if d <= self.radius_m and r not in raised)
             raise_them += [Attention(r, tracked.change, d, t) for r, d, t in near]
-            if not near:
+            self._raised += [(tracked, r) for r, _, _ in near]
+            if tracked.reported_s is None:
+                continue
+            self._settled.append(tracked)
+            if not near and not raised:
                 closest = min(nearest.items(), key=lambda item: item[1][0], default=None)
                 unattended.append(
                     Unattended(tracked.change, closest[0], closest[1][0])

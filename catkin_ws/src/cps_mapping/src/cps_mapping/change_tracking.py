@@ -69,3 +69,7 @@ class ChangeTracker:
 
     def reported(self) -> List[TrackedChange]:
         return [t for t in self.tracked if t.reported_s is not None]
+
+    def candidates(self) -> List[TrackedChange]:
+        """Every change the last cycle found, reported or still being confirmed."""
+        return list(self.tracked)

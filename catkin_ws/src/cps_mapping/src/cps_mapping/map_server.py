@@ -145,7 +145,10 @@ class MapServerOptions:
         TRUSTED_RULES.min_cluster_voxels, "smaller clusters of changed voxels are noise", "voxels", low=1
     )
     change_attention_radius_m: float = _option(
-        ATTENTION_RADIUS_M, "a robot this near a newly found change gets high link priority (0: never)", "m", low=0.0
+        ATTENTION_RADIUS_M,
+        "a robot this near a newly found change (from its first cycle) gets high link priority (0: never)",
+        "m",
+        low=0.0,
     )
 
 
