@@ -33,3 +33,39 @@ def test_a_failing_callback_keeps_its_timer_and_is_counted(rospy_node):
     finally:
         timer.shutdown()
         diagnostics.close()
+
+
+ENDING_NODE = """
+import rospy
+from cps_ros.timers import guarded_timer
+
+rospy.init_node("guarded_timer_ending", anonymous=True, disable_signals=True)
+calls = []
+
+def fail_as_the_node_ends(_event):
+    calls.append(1)
+    while not rospy.is_shutdown():  # a call under way when the node ends finds its peer closed
+        rospy.rostime.wallsleep(0.01)
+    raise BrokenPipeError(32, "Broken pipe")
+
+timer = guarded_timer(0.05, fail_as_the_node_ends, "ending test timer")
+while not calls:
+    rospy.rostime.wallsleep(0.01)
+rospy.signal_shutdown("the node ends")
+rospy.rostime.wallsleep(0.5)
+print("calls", len(calls), "failures", timer.failures)
+"""
+
+
+def test_a_callback_failing_as_its_node_ends_is_not_a_failure(ros):
+    """Every mission's end logged two or three failed timers: a periodic call that found its peer
+    closed because the node was shutting down."""
+    import subprocess
+    import sys
+
+    result = subprocess.run(
+        [sys.executable, "-c", ENDING_NODE], env=ros.env, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "calls 1 failures 0" in result.stdout, result.stdout + result.stderr[-3000:]
+    assert "periodic 'ending test timer' failed" not in result.stdout + result.stderr

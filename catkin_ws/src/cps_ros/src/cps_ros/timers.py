@@ -18,7 +18,7 @@ _LOG_EVERY_S = 5.0
 class GuardedTimer:
     """A rospy.Timer calling `callback(event)` every `period_s`; an exception is logged at most
     every 5 s, counted in `failures` and reported on /diagnostics (`timer_failures`), and the
-    timer goes on."""
+    timer goes on. One raised once the node is shutting down is not a failure."""
 
     def __init__(self, period_s, callback, name):
         self.name = name
@@ -33,6 +33,10 @@ class GuardedTimer:
         try:
             self.callback(event)
         except Exception as exc:  # any failure: count it, say it, and keep the timer alive
+            if rospy.is_shutdown():
+                # The node is ending: its topics and the processes it talks to are closing, and a
+                # call that fails now is not a fault (every mission's end logged two or three).
+                return
             self.failures += 1
             self.last_error = f"{type(exc).__name__}: {exc}"
             now = time.monotonic()
