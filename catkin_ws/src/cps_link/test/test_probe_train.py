@@ -103,10 +103,11 @@ def test_the_send_rate_leaves_out_the_time_the_link_held_the_sender():
     assert plan.blocked_s == pytest.approx(0.02)
 
 
-def _through_tbf(rate_mbps, train_mbps, fleet_mbps, seed, delay_max_s=0.004, burst=TBF_BURST_BYTES):
+def _through_tbf(rate_mbps, train_mbps, fleet_mbps, seed, delay_max_s=0.004, burst=TBF_BURST_BYTES, last_late_s=0.0):
     """The twin's (t, link bytes, idle s) at each probe message of one train sent at train_mbps through
     a token bucket of `burst` bytes at rate_mbps (full at the start: the fleet sends less), with the
-    fleet's own frames at fleet_mbps beside it and a random delay before the twin takes each message."""
+    fleet's own frames at fleet_mbps beside it and a random delay before the twin takes each message
+    (`last_late_s` more for the last one)."""
     rng = random.Random(seed)
     rate = rate_mbps * 1e6 / 8
     segments = []  # (handed to the shaper s, bytes, probe message index or None when it ends one)
@@ -147,7 +148,7 @@ def _through_tbf(rate_mbps, train_mbps, fleet_mbps, seed, delay_max_s=0.004, bur
     for t_arrived, _, index in out:
         if index is None:
             continue
-        taken = max(taken, t_arrived) + rng.uniform(0, delay_max_s)
+        taken = max(taken, t_arrived) + rng.uniform(0, delay_max_s) + (last_late_s if index == 23 else 0.0)
         link, idle = link_at(taken)
         samples.append((index, taken, link, idle))
     return samples
@@ -179,6 +180,17 @@ def test_a_train_through_a_token_bucket_measures_its_rate_from_its_second_half(r
     whole = measure.whole_bytes * 8e-6 / measure.whole_spread_s
     assert whole > 1.3 * rate_mbps
     assert measure.sent_mbps == pytest.approx(4 * rate_mbps)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_last_message_read_late_while_the_fleet_sends_does_not_slow_the_reading(seed):
+    """final52: the twin took a train's last message ~30 ms late on its loaded core while the fleet's
+    frames kept arriving (the link never idle, so its last-receive time was the read's): a 20 Mbit/s
+    link read as 8.4. The fastest span of the measured part does not end on the late read."""
+    samples = _through_tbf(20.0, train_mbps=80.0, fleet_mbps=3.0, seed=seed, last_late_s=0.03)
+    assert samples[-1][3] < 0.003  # the fleet's 1 kB frames, 2.7 ms apart: the link was not idle at the read
+    measure = _feed(TrainArrivals(), samples, 80.0)
+    assert measure.arrival_mbps == pytest.approx(20.0, rel=0.05)
 
 
 def test_a_train_the_link_carries_at_its_pace_arrives_at_its_pace():

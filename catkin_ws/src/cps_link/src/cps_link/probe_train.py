@@ -70,6 +70,13 @@ TOO_SHORT = "too_short"  # its measured part arrived in no time (one read of the
 # link's. (Some may have: a shaper's burst can carry the head past the train's half.)
 RECEIVER_LATE = "receiver_late"
 RECEIVER_LATE_FRACTION = 0.5
+# The measured part's rate is its fastest span's among those that carry at least this fraction of
+# its link bytes. Each (read time, link bytes) pair is what the kernel had received when the twin
+# read it, however late the read, so a span's rate is what the link delivered over it, and a late
+# read only slows the spans that end on it: final52 (2026-11-29) read a 20 Mbit/s link as 8.4 when
+# the twin took a train's last message ~30 ms late while the fleet's frames kept the link's
+# last-receive time at the read.
+FASTEST_SPAN_FRACTION = 0.5
 PROBE_REFUSALS = (BAD_PROBE, INCOMPLETE, TOO_SHORT, RECEIVER_LATE)
 
 
@@ -214,8 +221,9 @@ class TrainPlan:
 
 @dataclasses.dataclass(frozen=True)
 class TrainMeasure:
-    """One train as the twin measured it: `bytes` arrived over the link in `spread_s` between the first
-    and last message of its measured part (the second half), against the rate it was sent at."""
+    """One train as the twin measured it: `bytes` arrived over the link in `spread_s` over the fastest
+    span of its measured part (the second half: FASTEST_SPAN_FRACTION), against the rate its
+    messages over that span were sent at."""
 
     train: int
     messages: int
@@ -308,7 +316,8 @@ def measure_train(samples, message_bytes):
     """The TrainMeasure of one train's arrivals [(t, link bytes, train bytes so far, header, idle s)],
     or why not (TOO_SHORT, RECEIVER_LATE). The measured part starts at the message that completes
     half the train's bytes (the head may have passed a shaper's burst at the sender's rate) and ends
-    when the link last received data before the last message was taken."""
+    when the link last received data before the last message was taken; its rate is that of its
+    fastest span (FASTEST_SPAN_FRACTION)."""
     if len(samples) < 2:
         return TOO_SHORT
     total = samples[-1][2]
@@ -316,18 +325,30 @@ def measure_train(samples, message_bytes):
     mid = min(mid, len(samples) - 2)
     first, half, last = samples[0], samples[mid], samples[-1]
     end_s = max(last[0] - last[4], half[0])
-    spread = end_s - half[0]
     moved = last[1] - half[1]
-    if spread <= 0 or moved <= 0:
+    if end_s - half[0] <= 0 or moved <= 0:
         return TOO_SHORT
     if moved < RECEIVER_LATE_FRACTION * (total - half[2]):
         return RECEIVER_LATE
+    # (read time, link bytes then, header) over the measured part, in time; the last message's at
+    # the link's last receive before it was read
+    points = sorted([(s[0], s[1], s[3]) for s in samples[mid:-1]] + [(end_s, last[1], last[3])], key=lambda p: p[0])
+    best = None  # (rate, bytes, spread s, header at its start, header at its end)
+    for i, (t0, b0, h0) in enumerate(points):
+        for t1, b1, h1 in points[i + 1 :]:
+            if t1 > t0 and b1 - b0 >= FASTEST_SPAN_FRACTION * moved:
+                rate = (b1 - b0) / (t1 - t0)
+                if best is None or rate > best[0]:
+                    best = (rate, b1 - b0, t1 - t0, h0, h1)
+    if best is None:
+        return TOO_SHORT
+    _, span_bytes, span_s, since, until = best
     return TrainMeasure(
         train=last[3].train,
         messages=len(samples),
-        bytes=int(moved),
-        spread_s=spread,
-        sent_mbps=sent_rate_mbps(half[3], last[3], message_bytes),
+        bytes=int(span_bytes),
+        spread_s=span_s,
+        sent_mbps=sent_rate_mbps(since, until, message_bytes),
         whole_bytes=int(last[1] - first[1]),
         whole_spread_s=end_s - first[0],
     )
