@@ -117,3 +117,16 @@ def test_the_machines_cpu_counts_a_busy_loop():
         pass
     busy, available = machine_busy(start, machine_cpu_s())
     assert busy >= 0.25 and available >= busy
+
+
+def test_a_fully_busy_interval_is_never_busier_than_the_machine():
+    """n3a (2026-11-30): seconds since boot as floats read a fully busy interval as 3.650000000008731 s
+    busy of 3.6499999999941792 available; the readings are whole ticks until their difference."""
+    import os
+
+    from cps_harness.durations import machine_busy
+
+    ticks = os.sysconf("SC_CLK_TCK")
+    start, end = (123456789012, 234567890123), (123456789012 + 365, 234567890123 + 365)
+    busy, available = machine_busy(start, end)
+    assert busy == available == 365 / ticks

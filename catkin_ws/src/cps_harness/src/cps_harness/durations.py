@@ -79,24 +79,27 @@ def _file(nodeid):
 
 
 def machine_cpu_s():
-    """(busy, all) CPU s of every CPU since boot, from /proc/stat's first line (busy: all but idle
-    and iowait), or None where it cannot be read."""
+    """(busy, all) CPU time of every CPU since boot, from /proc/stat's first line (busy: all but idle
+    and iowait), in clock ticks (`machine_busy` turns two readings into seconds), or None where it
+    cannot be read."""
     try:
         with open("/proc/stat") as stream:
             fields = [int(v) for v in stream.readline().split()[1:]]
     except (OSError, ValueError):
         return None
-    ticks = os.sysconf("SC_CLK_TCK")
     # user nice system idle iowait irq softirq steal (guest time is inside user already)
     every = sum(fields[:8])
-    return (every - fields[3] - fields[4]) / ticks, every / ticks
+    return every - fields[3] - fields[4], every
 
 
 def machine_busy(start, end):
-    """(busy CPU s, available CPU s) between two `machine_cpu_s` readings, or None."""
+    """(busy CPU s, available CPU s) between two `machine_cpu_s` readings, or None. In whole ticks
+    until the difference: seconds since boot as floats lost the last bits, and a fully busy
+    interval read busy 3.650000000008731 s of 3.6499999999941792 available."""
     if start is None or end is None:
         return None
-    return end[0] - start[0], end[1] - start[1]
+    ticks = os.sysconf("SC_CLK_TCK")
+    return (end[0] - start[0]) / ticks, (end[1] - start[1]) / ticks
 
 
 def table(seconds, outcome, worker, wall_s, cpu_s=None, rss=None, machine=None):
