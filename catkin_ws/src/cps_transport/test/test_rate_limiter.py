@@ -10,7 +10,7 @@ import pytest
 
 from cps_fleet import names
 from cps_harness.testing import wait_for
-from cps_transport.rate_limiter import RateLimiter, WindowRate
+from cps_transport.rate_limiter import RATE_WINDOW_S, RateLimiter, WindowRate
 
 
 def _forwarded_rate(limiter, input_hz, duration_s, jitter_s=0.0, seed=0):
@@ -119,14 +119,19 @@ def limiter(ros, rospy_node):
         remap={"~input": f"{NS}/in", "~output": f"{NS}/out"},
     )
     ros.wait_for_service(names.robot_topic(NS, names.private(names.CLOUD_THROTTLE, names.SET_RATE)), timeout_s=20)
-    state = SimpleNamespace(rospy=rospy, arrivals=[], statuses=[], lock=threading.Lock())
+    state = SimpleNamespace(rospy=rospy, arrivals=[], statuses=[], status_read_s=[], fed_s=[], lock=threading.Lock())
 
     def on_out(_msg):
         with state.lock:
             state.arrivals.append(time.monotonic())
 
     out_sub = rospy.Subscriber(f"{NS}/out", PointCloud2, on_out)
-    status_sub = rospy.Subscriber(names.robot_topic(NS, names.LIMITER_STATUS), RateLimiterStatus, state.statuses.append)
+
+    def on_status(msg):
+        state.status_read_s.append(time.monotonic())
+        state.statuses.append(msg)
+
+    status_sub = rospy.Subscriber(names.robot_topic(NS, names.LIMITER_STATUS), RateLimiterStatus, on_status)
     pub = rospy.Publisher(f"{NS}/in", PointCloud2, queue_size=10)
     stop = threading.Event()
     message = PointCloud2(height=1, width=100, point_step=16, row_step=MESSAGE_BYTES, data=bytes(MESSAGE_BYTES))
@@ -135,6 +140,7 @@ def limiter(ros, rospy_node):
         period, next_t = 1.0 / input_hz, time.monotonic()
         while not stop.is_set():
             pub.publish(message)
+            state.fed_s.append(time.monotonic())
             next_t += period
             time.sleep(max(0.0, next_t - time.monotonic()))
 
@@ -188,9 +194,14 @@ def test_node_refuses_a_zero_rate_and_reports_its_input(limiter):
         ),
         5.0,
     ), "no status after the refusal"
-    status = limiter.statuses[-1]
+    status, read_s = limiter.statuses[-1], limiter.status_read_s[-1]
     assert status.set_rate_hz == 1.0
-    assert status.input_rate_hz == pytest.approx(60.0, rel=0.1)
+    # What the feeder sent over the node's 2 s window before the status, measured as the node does
+    # ((n - 1) / span): 60 Hz on average, faster after a stall it caught up on (n3a, a loaded machine:
+    # 68 Hz reported, the feeder behind and catching up).
+    fed = [t for t in list(limiter.fed_s) if read_s - RATE_WINDOW_S <= t <= read_s]
+    sent_hz = (len(fed) - 1) / (fed[-1] - fed[0])
+    assert status.input_rate_hz == pytest.approx(sent_hz, rel=0.1), (status.input_rate_hz, sent_hz)
     assert status.mean_message_bytes == pytest.approx(MESSAGE_BYTES + 60, rel=0.1)
     assert status.received > status.forwarded > 0
     assert status.input_topic == f"{NS}/in" and status.output_topic == f"{NS}/out"

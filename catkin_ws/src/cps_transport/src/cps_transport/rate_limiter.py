@@ -9,11 +9,14 @@ faster than the set rate the output averages exactly the set rate (10 Hz -> 8 Hz
 
 import collections
 
+# The window of a limiter's input and output rates (its status's input_rate_hz), s.
+RATE_WINDOW_S = 2.0
+
 
 class WindowRate:
     """Messages per second and mean size over the last `window_s` seconds of arrivals."""
 
-    def __init__(self, window_s=2.0):
+    def __init__(self, window_s=RATE_WINDOW_S):
         if not window_s > 0:
             raise ValueError(f"window_s must be > 0, got {window_s}")
         self.window_s = window_s
@@ -45,7 +48,7 @@ class WindowRate:
 class RateLimiter:
     """Token bucket: `allow(now_s)` says whether the message arriving now is forwarded."""
 
-    def __init__(self, rate_hz, burst=2.0, window_s=2.0):
+    def __init__(self, rate_hz, burst=2.0, window_s=RATE_WINDOW_S):
         self.burst = float(burst)
         if self.burst < 1.0:
             raise ValueError(f"burst must be >= 1 message, got {burst}")
