@@ -119,7 +119,7 @@ def limiter(ros, rospy_node):
         remap={"~input": f"{NS}/in", "~output": f"{NS}/out"},
     )
     ros.wait_for_service(names.robot_topic(NS, names.private(names.CLOUD_THROTTLE, names.SET_RATE)), timeout_s=20)
-    state = SimpleNamespace(rospy=rospy, arrivals=[], statuses=[], status_read_s=[], fed_s=[], lock=threading.Lock())
+    state = SimpleNamespace(rospy=rospy, arrivals=[], statuses=[], status_reads=[], fed_s=[], lock=threading.Lock())
 
     def on_out(_msg):
         with state.lock:
@@ -128,7 +128,7 @@ def limiter(ros, rospy_node):
     out_sub = rospy.Subscriber(f"{NS}/out", PointCloud2, on_out)
 
     def on_status(msg):
-        state.status_read_s.append(time.monotonic())
+        state.status_reads.append((time.monotonic(), msg))  # one append: read with its status
         state.statuses.append(msg)
 
     status_sub = rospy.Subscriber(names.robot_topic(NS, names.LIMITER_STATUS), RateLimiterStatus, on_status)
@@ -194,9 +194,9 @@ def test_node_refuses_a_zero_rate_and_reports_its_input(limiter):
         ),
         5.0,
     ), "no status after the refusal"
-    status, read_s = limiter.statuses[-1], limiter.status_read_s[-1]
+    read_s, status = limiter.status_reads[-1]
     assert status.set_rate_hz == 1.0
-    # What the feeder sent over the node's 2 s window before the status, measured as the node does
+    # What the feeder sent over the node's window (RATE_WINDOW_S) before the status, measured as the node does
     # ((n - 1) / span): 60 Hz on average, faster after a stall it caught up on (n3a, a loaded machine:
     # 68 Hz reported, the feeder behind and catching up).
     fed = [t for t in list(limiter.fed_s) if read_s - RATE_WINDOW_S <= t <= read_s]
