@@ -383,12 +383,14 @@ def test_health_table_shows_the_published_figures(window, qapp, scout_stream):
     scout_stream()
     spin_until(
         qapp,
-        lambda: scout_stream.heartbeat() and _row(status)[7] == "7" and _row(status)[2] == "inspecting",
+        lambda: (
+            scout_stream.heartbeat()
+            and _row(status)[7] == "7"
+            and _row(status)[2] == "inspecting"
+            and _row(status)[5] == "ok"
+        ),
         5,
-        lambda: f"the last map stats in the table, got {_row(status)}",
-    )
-    spin_until(
-        qapp, lambda: scout_stream.heartbeat() and _row(status)[5] == "ok", 5, lambda: f"link ok, got {_row(status)}"
+        lambda: f"the last map stats in the table and the link ok, got {_row(status)}",
     )
     row = _row(status)
     assert row[:9] == [SCOUT, "?", "inspecting", "15", row[4], "ok", "4321", "7", "high"]

@@ -45,3 +45,16 @@ def test_lowering_a_nice_value_needs_root_or_rlimit_nice(monkeypatch, euid, soft
     monkeypatch.setattr(os, "geteuid", lambda: euid)
     monkeypatch.setattr(resource, "getrlimit", lambda which: (soft, soft))
     assert priority.may_lower_nice_to(nice) is allowed
+
+
+def test_a_threads_cpu_and_its_wait_for_a_cpu_are_read():
+    """The map server's change detection says how long a slow cycle waited for a CPU (schedstat)."""
+    import time
+
+    cpu_s, waited_s = priority.thread_cpu_and_wait_s()
+    t_end = time.thread_time() + 0.2
+    while time.thread_time() < t_end:
+        pass
+    cpu_end_s, waited_end_s = priority.thread_cpu_and_wait_s()
+    assert 0.15 <= cpu_end_s - cpu_s <= 1.0
+    assert waited_s is not None and waited_end_s >= waited_s  # this kernel keeps schedstat

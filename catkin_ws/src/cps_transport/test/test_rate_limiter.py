@@ -102,7 +102,8 @@ MESSAGE_BYTES = 1600
 
 @pytest.fixture
 def limiter(ros, rospy_node):
-    """The rate_limiter node at 30 Hz, fed at 60 Hz; its output arrival times and its statuses."""
+    """The rate_limiter node at 30 Hz, fed at 60 Hz; its output arrival times, its statuses (with when
+    each was read) and the feeder's publish times."""
     rospy = rospy_node
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import Float64
@@ -119,7 +120,7 @@ def limiter(ros, rospy_node):
         remap={"~input": f"{NS}/in", "~output": f"{NS}/out"},
     )
     ros.wait_for_service(names.robot_topic(NS, names.private(names.CLOUD_THROTTLE, names.SET_RATE)), timeout_s=20)
-    state = SimpleNamespace(rospy=rospy, arrivals=[], statuses=[], status_reads=[], fed_s=[], lock=threading.Lock())
+    state = SimpleNamespace(rospy=rospy, arrivals=[], status_reads=[], fed_s=[], lock=threading.Lock())
 
     def on_out(_msg):
         with state.lock:
@@ -129,7 +130,6 @@ def limiter(ros, rospy_node):
 
     def on_status(msg):
         state.status_reads.append((time.monotonic(), msg))  # one append: read with its status
-        state.statuses.append(msg)
 
     status_sub = rospy.Subscriber(names.robot_topic(NS, names.LIMITER_STATUS), RateLimiterStatus, on_status)
     pub = rospy.Publisher(f"{NS}/in", PointCloud2, queue_size=10)
@@ -190,7 +190,9 @@ def test_node_refuses_a_zero_rate_and_reports_its_input(limiter):
     assert not response.success and response.rate_hz == 1.0
     assert wait_for(
         lambda: (
-            limiter.statuses and limiter.statuses[-1].header.stamp > asked and limiter.statuses[-1].input_rate_hz > 0
+            limiter.status_reads
+            and limiter.status_reads[-1][1].header.stamp > asked
+            and limiter.status_reads[-1][1].input_rate_hz > 0
         ),
         5.0,
     ), "no status after the refusal"

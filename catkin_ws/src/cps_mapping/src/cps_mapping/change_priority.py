@@ -4,20 +4,10 @@ high priority through cps_bw_manager's /tissue/set_priority (the paper's section
 import time
 
 from cps_fleet import names
+from cps_ros.priority import thread_cpu_and_wait_s
 
 # A cycle slower than its period is said in the log, at most this often (s).
 SLOW_CYCLE_WARNING_PERIOD_S = 30.0
-
-
-def _thread_cpu_and_wait_s():
-    """(CPU time, time runnable but waiting for a CPU) of the calling thread, s; the wait is None
-    where the kernel keeps no schedstat."""
-    try:
-        with open("/proc/thread-self/schedstat") as stream:
-            on_cpu_ns, waiting_ns = (int(x) for x in stream.read().split()[:2])
-        return on_cpu_ns / 1e9, waiting_ns / 1e9
-    except (OSError, ValueError):
-        return time.thread_time(), None
 
 
 def change_detection_timer(server, options, log):
@@ -43,14 +33,14 @@ def change_detection_timer(server, options, log):
     warned_s = [-SLOW_CYCLE_WARNING_PERIOD_S]
 
     def detect(_event):
-        started_s, (cpu_s, waited_s) = time.monotonic(), _thread_cpu_and_wait_s()
+        started_s, (cpu_s, waited_s) = time.monotonic(), thread_cpu_and_wait_s()
         try:
             _detect()
         finally:
             took_s = time.monotonic() - started_s
             if took_s > options.change_period_s and started_s - warned_s[0] >= SLOW_CYCLE_WARNING_PERIOD_S:
                 warned_s[0] = started_s
-                cpu_end_s, waited_end_s = _thread_cpu_and_wait_s()
+                cpu_end_s, waited_end_s = thread_cpu_and_wait_s()
                 waiting = "" if waited_s is None else f", {waited_end_s - waited_s:.1f} s waiting for a CPU"
                 log.warning(
                     f"map_server: a change detection cycle took {took_s:.1f} s ({cpu_end_s - cpu_s:.1f} s on a CPU"
@@ -70,7 +60,7 @@ def change_detection_timer(server, options, log):
         for u in unattended:
             nearest = f"nearest {u.nearest_robot} at {u.distance_m:.1f} m" if u.nearest_robot else "no robot pose yet"
             log.info(
-                f"map_server: {where(u.change)} ({state[id(u.change)]}): no robot within {attention.radius_m:g} m since it was found "
+                f"map_server: {where(u.change)}: no robot within {attention.radius_m:g} m since it was found "
                 f"({nearest}): no one raised"
             )
         for a in raise_them:

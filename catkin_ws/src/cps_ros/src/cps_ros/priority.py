@@ -5,6 +5,7 @@ nice 19 so that its imports take only CPU no node wants, while its main thread k
 
 import os
 import resource
+import time
 
 NICE_MAX = 19
 
@@ -48,3 +49,15 @@ def renice_process(pid, nice):
         except ProcessLookupError:
             pass
     return done
+
+
+def thread_cpu_and_wait_s():
+    """(CPU time, time runnable but waiting for a CPU) of the calling thread since it started, s,
+    from the kernel's schedstat; the wait is None where the kernel keeps none. What a thread slower
+    than its work says of its priority: a long wait is the CPU it did not get."""
+    try:
+        with open("/proc/thread-self/schedstat") as stream:
+            on_cpu_ns, waiting_ns = (int(x) for x in stream.read().split()[:2])
+        return on_cpu_ns / 1e9, waiting_ns / 1e9
+    except (OSError, ValueError):
+        return time.thread_time(), None
