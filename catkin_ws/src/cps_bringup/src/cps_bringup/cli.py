@@ -63,6 +63,8 @@ from cps_sim.renderers import DEFAULT_RENDERER, RENDERERS
 # and everything stopped; the run is not restarted (docs/reliability.md).
 EXIT_MASTER_LOST = 3
 MASTER_LOST = "master_lost"
+# How long the map server may take to save on SIGINT when the master is gone.
+MAP_SAVE_ON_SHUTDOWN_TIMEOUT_S = 20.0
 
 
 @dataclasses.dataclass
@@ -557,6 +559,9 @@ def run_mission(args, log=print) -> MissionResult:
         except MasterLost as exc:
             ended_by = MASTER_LOST
             supervisor.record("roscore", f"{exc}: the nodes cannot reach each other any more; ending the mission")
+        if options.record_path:
+            # The recording is the mission's: it ends with it, not after the map save and the screenshot.
+            supervisor.stop(RECORDER)
         if ended_by == MASTER_LOST:
             map_file = _save_map_without_master(supervisor, options.map_file, log) if DIGITAL in sides else None
         else:
@@ -767,7 +772,7 @@ def _save_map(path, log):
 def _save_map_without_master(supervisor, path, log):
     """No master, no service: stop the map server with SIGINT; its shutdown hook saves to its map file."""
     before = os.path.getmtime(path) if os.path.exists(path) else None
-    supervisor.stop_for_map_save("map_server")
+    supervisor.stop("map_server", timeout_s=MAP_SAVE_ON_SHUTDOWN_TIMEOUT_S)
     if os.path.exists(path) and os.path.getmtime(path) != before:
         log(f"[bringup] map saved to {path} by the map server on shutdown")
         return path

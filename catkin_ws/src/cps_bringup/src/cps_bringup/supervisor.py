@@ -342,13 +342,13 @@ class Supervisor:
         self._keep_spares()
         self._cap_logs()
 
-    def stop_for_map_save(self, label, timeout_s=20.0):
-        """SIGINT `label` (a node that saves on shutdown) and wait for it; works without a master.
-        True if it exited by itself."""
+    def stop(self, label, timeout_s=None):
+        """SIGINT `label` (e.g. a node that saves on shutdown) and wait for it, up to `timeout_s`
+        (its spec's stop timeout by default); works without a master. True if it exited by itself."""
         running = self.running.get(label)
         if running is None or running.proc.poll() is not None:
             return False
-        self.graph.stop(running.proc, timeout_s=timeout_s)
+        self.graph.stop(running.proc, timeout_s=running.spec.stop_timeout_s if timeout_s is None else timeout_s)
         return running.proc.returncode is not None and running.proc.returncode >= 0
 
     def restarts(self):
