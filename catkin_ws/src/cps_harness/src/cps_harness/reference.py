@@ -85,8 +85,11 @@ VIEWER_S = 6.0
 # issue 39's test runs of 2026-11-28) they took 147 s in one run, and in another jackal was still in
 # teleop when 150 s ended the mission (exit 4: every test on the reference mission then fails).
 DURATION_S = 240.0
-# The GUI screenshot, seconds into the mission: while every robot still moves.
-SCREENSHOT_AFTER_S = 25.0
+# When the GUI screenshot is due, seconds after the GUI starts. The GUI shares the twin's CPU, which
+# the mission saturates, and renders rviz's frames in software: the screenshot is saved 35-50 s after
+# it is due (2026-11-30). Due at 25 s, it came 20-35 s after every robot had finished, and the
+# mission waited for it; due at 10 s it comes about when they finish (with the map nearly complete).
+SCREENSHOT_AFTER_S = 10.0
 
 
 def write_reference_fleet(folder):
