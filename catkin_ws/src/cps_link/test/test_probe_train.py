@@ -101,6 +101,19 @@ def test_the_send_rate_leaves_out_the_time_the_link_held_the_sender():
     plan.put_took(0.0005)  # a put that did not wait
     plan.put_took(0.02)
     assert plan.blocked_s == pytest.approx(0.02)
+    # a put whose thread waited for a CPU: that wait is the sender's, not the link holding it back
+    plan.put_took(0.02, cpu_wait_s=0.0195)
+    assert plan.blocked_s == pytest.approx(0.02)
+    plan.put_took(0.02, cpu_wait_s=0.005)
+    assert plan.blocked_s == pytest.approx(0.035)
+    # the reference mission's starved robots' core (2026-11-30): a train's second half put over 48 ms,
+    # 40 of them waiting for a CPU, sent at its own 32 Mbit/s, not at the 231 Mbit/s target
+    starved = TrainSchedule().start(0.0)
+    half = ProbeHeader(1, 12, 24, PROBE_TRAIN_BYTES, 231.0, 0.006, starved.blocked_s)
+    for _ in range(11):
+        starved.put_took(4e-3, cpu_wait_s=3.6e-3)
+    last = ProbeHeader(1, 23, 24, PROBE_TRAIN_BYTES, 231.0, 0.054, starved.blocked_s)
+    assert sent_rate_mbps(half, last, 16000) == pytest.approx(11 * 16000 * 8e-6 / 0.048)
 
 
 def _through_tbf(rate_mbps, train_mbps, fleet_mbps, seed, delay_max_s=0.004, burst=TBF_BURST_BYTES, last_late_s=0.0):

@@ -43,6 +43,7 @@ from cps_link.send_queue import DROP_RULES, EXPIRED, SUPERSEDED, SendQueue
 from cps_msgs.msg import LinkReport, LinkState
 from cps_ros import cloud_ledger
 from cps_ros.diagnostics import DropReporter
+from cps_ros.priority import thread_cpu_and_wait_s
 
 LINK_STATE_PERIOD_S = 1.0
 # How long to stay quiet before saying the other side has not come up yet, s.
@@ -942,9 +943,12 @@ class ZenohBridge:
                 if wait > 0:
                     time.sleep(wait)
             payload = plan.message(index, time.monotonic())
-            started = time.monotonic()
+            started, wait_before = time.monotonic(), thread_cpu_and_wait_s()[1]
             put = self.z.put_own("probe train", payload, self.reporter)
-            plan.put_took(time.monotonic() - started)
+            wait_after = thread_cpu_and_wait_s()[1]  # the put's time waiting for a CPU is not the link's
+            plan.put_took(
+                time.monotonic() - started, 0.0 if None in (wait_before, wait_after) else wait_after - wait_before
+            )
             if not put:
                 break
             sent += len(payload)
