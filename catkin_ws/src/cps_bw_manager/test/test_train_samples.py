@@ -13,6 +13,8 @@ from cps_bw_manager.estimation import (
     TRAIN_FRESH_S,
     TRAIN_HELD,
     TRAIN_LOWER_BOUND,
+    TRAIN_RECEIVER_STARVED,
+    TRAIN_RECEIVER_STARVED_FRACTION,
     DeliveryRateEstimator,
     LinkReport,
     train_sample,
@@ -49,8 +51,9 @@ def _estimator():
     return DeliveryRateEstimator(LINE_MBPS, line_rate_mbps=LINE_MBPS, **LINK_REPORT_OPTIONS)
 
 
-def _report(now_s, train=math.nan, sent=math.nan, on_link=None, fleet_mbps=3.0):
-    """An app-limited interval of a fleet sending `fleet_mbps`, with or without a train's measure."""
+def _report(now_s, train=math.nan, sent=math.nan, on_link=None, fleet_mbps=3.0, receiver_waited=math.nan):
+    """An app-limited interval of a fleet sending `fleet_mbps`, with or without a train's measure
+    (`receiver_waited`: the fraction of it the twin's receiving thread waited for a CPU)."""
     return LinkReport(
         now_s=now_s,
         interval_s=0.5,
@@ -63,6 +66,7 @@ def _report(now_s, train=math.nan, sent=math.nan, on_link=None, fleet_mbps=3.0):
         link_limited=False,
         train_mbps=train,
         train_sent_mbps=sent,
+        train_receiver_wait_fraction=receiver_waited,
         train_on_link=not math.isnan(train) if on_link is None else on_link,
     )
 
@@ -87,6 +91,27 @@ def test_a_train_that_came_out_slower_sets_the_capacity_at_once_after_a_step_dow
     # while trains measure the link
     _run(est, [_report(5.0 + 0.5 * i) for i in range(1, 20)])
     assert est.capacity_mbps == pytest.approx(9.6) and est.estimate_mbps == pytest.approx(9.6)
+
+
+def test_a_train_slowed_by_the_twins_cpu_only_bounds_the_capacity_from_below():
+    """The reference mission's saturated twin core (2026-11-30): a train whose reads waited for a
+    CPU for 78 % of its span read a 60 Mbit/s link at 16.2 Mbit/s and was taken as a step down at
+    once. Such a reading says only that the link carried at least that much: it never lowers the
+    capacity, and one above the capacity still raises it (a false low reading of an unstarved
+    train is undone by it). A train read on time (27 % of its span waiting) is taken as before."""
+    kind, mbps = train_sample(16.2, 231.5, LINE_MBPS, receiver_wait_fraction=0.78)
+    assert (kind, mbps) == (TRAIN_RECEIVER_STARVED, 16.2)
+    assert train_sample(9.6, 230.0, LINE_MBPS, receiver_wait_fraction=0.27) == (TRAIN_BOTTLENECK, 9.6)
+    assert train_sample(9.6, 230.0, LINE_MBPS)[0] == TRAIN_BOTTLENECK  # the wait unknown
+    # arrived at its pace: a lower bound however late its reads
+    assert train_sample(38.0, 40.0, LINE_MBPS, receiver_wait_fraction=0.9)[0] == TRAIN_LOWER_BOUND
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 10)])
+    est.update(_report(5.0, train=16.2, sent=231.5, receiver_waited=0.78))
+    assert est.capacity_mbps == pytest.approx(LINE_MBPS) and est.trains[TRAIN_RECEIVER_STARVED] == 1
+    est.update(_report(6.0, train=26.4, sent=36.8, receiver_waited=0.2))  # read on time: a step down
+    assert est.capacity_mbps == pytest.approx(26.4)
+    est.update(_report(7.0, train=55.0, sent=105.6, receiver_waited=TRAIN_RECEIVER_STARVED_FRACTION + 0.4))
+    assert est.capacity_mbps == pytest.approx(55.0)  # starved, yet the link carried at least that
 
 
 def test_a_small_shortfall_waits_for_the_next_train_and_takes_the_larger():

@@ -116,11 +116,21 @@ def test_the_send_rate_leaves_out_the_time_the_link_held_the_sender():
     assert sent_rate_mbps(half, last, 16000) == pytest.approx(11 * 16000 * 8e-6 / 0.048)
 
 
-def _through_tbf(rate_mbps, train_mbps, fleet_mbps, seed, delay_max_s=0.004, burst=TBF_BURST_BYTES, last_late_s=0.0):
-    """The twin's (t, link bytes, idle s) at each probe message of one train sent at train_mbps through
-    a token bucket of `burst` bytes at rate_mbps (full at the start: the fleet sends less), with the
-    fleet's own frames at fleet_mbps beside it and a random delay before the twin takes each message
-    (`last_late_s` more for the last one)."""
+def _through_tbf(
+    rate_mbps,
+    train_mbps,
+    fleet_mbps,
+    seed,
+    delay_max_s=0.004,
+    burst=TBF_BURST_BYTES,
+    last_late_s=0.0,
+    waiting_fraction=0.0,
+):
+    """The twin's (index, t, link bytes, idle s, CPU wait so far s) at each probe message of one train
+    sent at train_mbps through a token bucket of `burst` bytes at rate_mbps (full at the start: the
+    fleet sends less), with the fleet's own frames at fleet_mbps beside it and a random delay before
+    the twin takes each message (`last_late_s` more for the last one), `waiting_fraction` of it
+    spent waiting for a CPU."""
     rng = random.Random(seed)
     rate = rate_mbps * 1e6 / 8
     segments = []  # (handed to the shaper s, bytes, probe message index or None when it ends one)
@@ -157,13 +167,15 @@ def _through_tbf(rate_mbps, train_mbps, fleet_mbps, seed, delay_max_s=0.004, bur
         i = max((j for j, a in enumerate(arrivals) if a <= t), default=-1)
         return (cumulative[i], t - arrivals[i]) if i >= 0 else (0, t)
 
-    taken, samples = 0.0, []
+    taken, waited, samples = 0.0, 0.0, []
     for t_arrived, _, index in out:
         if index is None:
             continue
-        taken = max(taken, t_arrived) + rng.uniform(0, delay_max_s) + (last_late_s if index == 23 else 0.0)
+        delay = rng.uniform(0, delay_max_s) + (last_late_s if index == 23 else 0.0)
+        taken = max(taken, t_arrived) + delay
+        waited += waiting_fraction * delay
         link, idle = link_at(taken)
-        samples.append((index, taken, link, idle))
+        samples.append((index, taken, link, idle, waited))
     return samples
 
 
@@ -175,8 +187,8 @@ def _feed(arrivals, samples, target_mbps, train=1):
         for k in range(24)
     }
     out = None
-    for index, t, link, idle in samples:
-        out = arrivals.arrival(header_of[index], t, link, idle) or out
+    for index, t, link, idle, waited in samples:
+        out = arrivals.arrival(header_of[index], t, link, idle, waited) or out
     return out
 
 
@@ -206,6 +218,37 @@ def test_a_last_message_read_late_while_the_fleet_sends_does_not_slow_the_readin
     assert measure.arrival_mbps == pytest.approx(20.0, rel=0.05)
 
 
+# Train 15 of the reference mission on 2026-11-30, as the twin's bridge took it (ms since its first
+# message, kB the link had delivered, kB of the train so far, ms its thread had waited for a CPU so
+# far): a 60 Mbit/s link; the thread waited 52 ms for a CPU between messages 16 and 17.
+STARVED_TRAIN = (
+    (0.0, 0, 16, 578.3), (2.4, 73, 32, 578.3), (10.2, 151, 48, 585.0), (10.4, 174, 64, 585.0),
+    (10.6, 174, 80, 585.0), (10.7, 176, 96, 585.0), (10.8, 176, 112, 585.0), (10.9, 177, 128, 585.0),
+    (11.0, 177, 144, 585.0), (11.1, 178, 160, 585.0), (11.2, 178, 176, 585.0), (22.0, 256, 192, 587.1),
+    (22.2, 258, 208, 587.1), (22.4, 259, 224, 587.1), (22.5, 260, 240, 587.1), (22.7, 260, 256, 587.1),
+    (29.2, 291, 272, 593.3), (97.0, 408, 288, 645.8), (97.4, 408, 304, 645.8), (97.6, 408, 320, 645.8),
+    (97.8, 408, 336, 645.8), (106.1, 410, 352, 650.8), (106.4, 410, 368, 650.8), (106.6, 410, 384, 650.8),
+)  # fmt: skip
+
+
+def test_a_train_slowed_by_the_twins_cpu_says_how_long_its_reads_waited_for_one():
+    """Live, the twin's starved reads made a 60 Mbit/s link read 16 Mbit/s: its measure says that the
+    receiving thread waited for a CPU for most of the span (the manager then takes it only as a
+    lower bound, cps_bw_manager.estimation.train_sample); one read on time on a loaded core (a fifth
+    of each read's delay spent waiting) says little; a kernel that keeps no wait says NaN."""
+    starved = [(k, t * 1e-3, b * 1000, 0.0, w * 1e-3) for k, (t, b, _, w) in enumerate(STARVED_TRAIN)]
+    arrivals = TrainArrivals()
+    measure = _feed(arrivals, starved, 231.5)
+    assert measure.arrival_mbps == pytest.approx(16.2, abs=0.1)
+    assert measure.receiver_wait_s == pytest.approx(0.0587, abs=1e-4)  # of a 75 ms span
+    unknown = [(k, t, b, idle, math.nan) for k, t, b, idle, _ in starved]
+    assert math.isnan(_feed(arrivals, unknown, 231.5, train=2).receiver_wait_s)
+    loaded = _through_tbf(10.0, train_mbps=40.0, fleet_mbps=3.0, seed=3, waiting_fraction=0.2)
+    measure = _feed(arrivals, loaded, 40.0, train=3)
+    assert measure.arrival_mbps == pytest.approx(10.0, rel=0.05)
+    assert 0 < measure.receiver_wait_s <= 0.2 * measure.spread_s
+
+
 def test_a_train_the_link_carries_at_its_pace_arrives_at_its_pace():
     arrivals = TrainArrivals()
     samples = _through_tbf(60.0, train_mbps=20.0, fleet_mbps=3.0, seed=1, delay_max_s=0.0005)
@@ -233,7 +276,7 @@ def test_trains_that_cannot_be_measured_are_counted_by_kind():
     assert arrivals.refused[BAD_PROBE] == 1
     # the twin took the second half's messages after the link had moved them all (it was behind):
     # the link moved fewer bytes after the first of them than the train's frames after it
-    late = [(i, 5.0 + 0.001 * i, samples[-1][2] + 1000 * i, 0.0) for i, _, _, _ in samples]
+    late = [(i, 5.0 + 0.001 * i, samples[-1][2] + 1000 * i, 0.0, 0.0) for i, *_ in samples]
     assert _feed(arrivals, late, 115.5, train=5) is None
     assert arrivals.refused[RECEIVER_LATE] == 1
     assert arrivals.measured == 1

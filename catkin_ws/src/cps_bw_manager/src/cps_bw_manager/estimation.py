@@ -73,18 +73,27 @@ TRAIN_LOWER_BOUND = "lower_bound"
 # reads far above.
 TRAIN_STEP_FRACTION = 0.7
 TRAIN_HELD = "bottleneck_held"  # such a reading, waiting for the next train
+# A train that came out slower than sent while the twin's receiving thread waited for a CPU more
+# than this fraction of its measured part says only that the link carried at least that much: its
+# reads came late, and a late read only ever slows a train. On the reference mission's saturated
+# twin core (2026-11-30) the four trains that read a 60 Mbit/s link under 0.7 x (16-39 Mbit/s,
+# each taken as a step down at once) had waited 0.37-0.85 of their spans; trains read on time
+# 0.01-0.27 (others up to 0.95 read 58-176 Mbit/s).
+TRAIN_RECEIVER_STARVED_FRACTION = 0.3
+TRAIN_RECEIVER_STARVED = "receiver_starved_lower_bound"
 # While a train was measured this recently the estimator does not probe by raising the allocation:
 # the trains measure the link, up steps included (a train at 4 x the capacity). s.
 TRAIN_FRESH_S = 12.0
 
 
-def train_sample(arrival_mbps, sent_mbps, line_rate_mbps):
+def train_sample(arrival_mbps, sent_mbps, line_rate_mbps, receiver_wait_fraction=math.nan):
     """(kind, Mbit/s) of one probe train received at `arrival_mbps` that was sent at `sent_mbps`:
     (TRAIN_BOTTLENECK, the link's capacity) when it came out slower than sent,
     (TRAIN_LOWER_BOUND, what the link carried at least: the slower of the two) when it arrived at
     the rate sent, or (why it says nothing, NaN): train_not_finite, train_not_positive,
     train_faster_than_sent (more than 2 x), train_above_line_rate (a bottleneck more than 2 x the
-    line's rate). A bottleneck above the line rate is the line rate. A lower bound above it is the
+    line's rate); (TRAIN_RECEIVER_STARVED, a lower bound) for one slower than sent whose receiver
+    waited for a CPU more than TRAIN_RECEIVER_STARVED_FRACTION of it (`receiver_wait_fraction`). A bottleneck above the line rate is the line rate. A lower bound above it is the
     estimator's to clip: a 60 Mbit/s link's trains read 60-220 Mbit/s over their 25 ms halves
     (live), and after a false low reading such a train is what restores the capacity."""
     values = (arrival_mbps, sent_mbps)
@@ -98,6 +107,8 @@ def train_sample(arrival_mbps, sent_mbps, line_rate_mbps):
         return TRAIN_LOWER_BOUND, min(arrival_mbps, sent_mbps)
     if arrival_mbps > TRAIN_MAX_VALID_RATIO * line_rate_mbps:
         return "train_above_line_rate", math.nan
+    if receiver_wait_fraction > TRAIN_RECEIVER_STARVED_FRACTION:  # False for NaN (unknown)
+        return TRAIN_RECEIVER_STARVED, min(arrival_mbps, line_rate_mbps)
     # slower than sent but faster than the line: no bottleneck below the line (a shaper's burst or a
     # late read made it fast); live, two trains read a 60 Mbit/s line at 63.0 and were ignored while
     # the capacity stayed 22.5 for 8 s after the link came back (test_over_link)
@@ -147,6 +158,8 @@ class LinkReport:
     # measured part and the rate it was sent at (NaN: no train)
     train_mbps: float = math.nan
     train_sent_mbps: float = math.nan
+    # of the train's measured part, the fraction its receiving thread waited for a CPU (NaN: unknown)
+    train_receiver_wait_fraction: float = math.nan
     # a probe train was on the link in the interval (sent or received): its deficit or surplus is
     # the train's queue, not the fleet's, and the train's own measure is the interval's
     train_on_link: bool = False
@@ -287,7 +300,8 @@ class DeliveryRateEstimator:
         self.ignored = collections.Counter()  # reason -> reports ignored
         self.overuses = 0
         self.overuse_reasons = collections.Counter()  # deficit | rtt | link_full -> overuses
-        self.trains = collections.Counter()  # bottleneck | bottleneck_held | lower_bound -> trains
+        # bottleneck | bottleneck_held | lower_bound | receiver_starved_lower_bound -> trains
+        self.trains = collections.Counter()
         self._train_s = -math.inf  # the last valid train's report
         # a small bottleneck reading waiting for the next train, and the capacity it was held against
         self._train_held = (math.nan, math.nan)
@@ -631,11 +645,13 @@ class DeliveryRateEstimator:
         """A probe train's sample (train_sample): a bottleneck measured is the link's capacity, in
         either direction (the fleet sends too little for its own samples to say), at once when it
         is below TRAIN_STEP_FRACTION of the capacity or above 1 / TRAIN_STEP_FRACTION of it, else
-        once the next train confirms it; a lower bound only raises it. Bad samples are counted by kind in `ignored` and change
+        once the next train confirms it; a lower bound (a receiver-starved reading is one) only raises it. Bad samples are counted by kind in `ignored` and change
         nothing."""
         if isinstance(report.train_mbps, float) and math.isnan(report.train_mbps):
             return  # no train in this interval
-        kind, mbps = train_sample(report.train_mbps, report.train_sent_mbps, self.line_rate_mbps)
+        kind, mbps = train_sample(
+            report.train_mbps, report.train_sent_mbps, self.line_rate_mbps, report.train_receiver_wait_fraction
+        )
         if math.isnan(mbps):
             self.ignored[kind] += 1
             return
@@ -646,7 +662,7 @@ class DeliveryRateEstimator:
         (held, held_against), self._train_held = self._train_held, (math.nan, math.nan)
         if held_against != self.capacity_mbps:
             held = math.nan
-        if kind == TRAIN_LOWER_BOUND:
+        if kind in (TRAIN_LOWER_BOUND, TRAIN_RECEIVER_STARVED):
             self.trains[kind] += 1
             if measured <= self.capacity_mbps:
                 return

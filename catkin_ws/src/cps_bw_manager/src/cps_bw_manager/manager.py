@@ -843,6 +843,7 @@ class ManagerCore:
         probe_train_bytes=0,
         probe_train_spread_s=0.0,
         probe_train_sent_mbps=0.0,
+        probe_train_receiver_wait_s=math.nan,
         probe_cost_mbps=0.0,
     ):
         """One cps_msgs/LinkReport of the bridges as plain values. Where the robots' link socket's
@@ -856,7 +857,8 @@ class ManagerCore:
         them, when its sender waited for Zenoh half of its interval). The probe trains' frames
         (`probe_bytes`, in delivered and unmanaged) are their own part of the budget (their mean cost
         at the robots' bridge's period now, `probe_cost_mbps`), and the last train's measure (`probe_train_bytes` over
-        `probe_train_spread_s`, sent at `probe_train_sent_mbps`) is a capacity sample of its own.
+        `probe_train_spread_s`, sent at `probe_train_sent_mbps`, the twin's reads late by up to
+        `probe_train_receiver_wait_s`) is a capacity sample of its own.
         Returns True if the available bandwidth moved by > 5 %."""
         probe_bytes = probe_bytes if _finite(probe_bytes) and probe_bytes > 0 else 0
         if _positive(delivered_link_bytes):
@@ -915,6 +917,9 @@ class ManagerCore:
                 link_limited=link_limited,
                 train_mbps=mbps(probe_train_bytes, probe_train_spread_s) if has_train else math.nan,
                 train_sent_mbps=float(probe_train_sent_mbps) if has_train else math.nan,
+                train_receiver_wait_fraction=(
+                    float(probe_train_receiver_wait_s) / float(probe_train_spread_s) if has_train else math.nan
+                ),
                 train_on_link=train_on_link,
             )
         )

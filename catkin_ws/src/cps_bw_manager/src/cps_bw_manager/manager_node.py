@@ -78,6 +78,7 @@ LINK_ESTIMATE_CSV_COLUMNS = (
     "probe_trains",
     "probe_train_mbps",
     "probe_train_sent_mbps",
+    "probe_train_receiver_wait_ms",
 )
 
 
@@ -138,6 +139,9 @@ def link_estimate_csv_row(stamp_s, msg, report, overuse=""):
         report.probe_trains,
         rate(report.probe_train_bytes, report.probe_train_spread_s) if report.probe_train_bytes else "",
         f"{report.probe_train_sent_mbps:.3f}" if report.probe_train_bytes else "",
+        f"{1e3 * report.probe_train_receiver_wait_s:.1f}"
+        if report.probe_train_bytes and math.isfinite(report.probe_train_receiver_wait_s)
+        else "",
     )
 
 
@@ -444,6 +448,7 @@ class BandwidthManagerNode:
                 probe_train_bytes=msg.probe_train_bytes,
                 probe_train_spread_s=msg.probe_train_spread_s,
                 probe_train_sent_mbps=msg.probe_train_sent_mbps,
+                probe_train_receiver_wait_s=msg.probe_train_receiver_wait_s,
                 probe_cost_mbps=msg.probe_cost_mbps,
             )
             overuse = est.last_overuse if est and est.overuses > overuses else ""

@@ -158,11 +158,13 @@ class Interval:
     probe_bytes: int = 0
     probe_sent_bytes: int = 0
     # trains measured in the interval, and the last one's measured part: the link bytes that
-    # arrived after its first message, over how long, and the rate it was sent at (0: none)
+    # arrived after its first message, over how long, the rate it was sent at (0: none) and how long
+    # of it the twin's receiving thread waited for a CPU (NaN: not known)
     probe_trains: int = 0
     probe_train_bytes: int = 0
     probe_train_spread_s: float = 0.0
     probe_train_sent_mbps: float = 0.0
+    probe_train_receiver_wait_s: float = math.nan
     probe_cost_mbps: float = 0.0  # the trains' mean cost at the robots' bridge's period now
 
 
@@ -265,6 +267,7 @@ class ReportComposer:
             probe_train_bytes=train.bytes if train else 0,
             probe_train_spread_s=train.spread_s if train else 0.0,
             probe_train_sent_mbps=train.sent_mbps if train else 0.0,
+            probe_train_receiver_wait_s=train.receiver_wait_s if train else math.nan,
             probe_cost_mbps=report.probe_cost_mbps,
         )
         self._start(here)

@@ -238,6 +238,10 @@ class TrainMeasure:
     sent_mbps: float
     whole_bytes: int  # the same over the whole train, first to last message (for the record)
     whole_spread_s: float
+    # how long the twin's receiving thread was runnable but waiting for a CPU over the span (its
+    # schedstat), s: its reads were late by up to that much, which only ever slows a train; NaN where
+    # the kernel keeps none
+    receiver_wait_s: float = math.nan
 
     @property
     def arrival_mbps(self):
@@ -270,10 +274,11 @@ class TrainArrivals:
         self.received_bytes = 0  # every probe message's bytes, measured or not
         self._train = None  # (header of the first message seen, [(t, link bytes, train bytes so far, header)])
 
-    def arrival(self, payload, now_s, link_bytes, idle_s=0.0) -> Optional[TrainMeasure]:
+    def arrival(self, payload, now_s, link_bytes, idle_s=0.0, wait_s=math.nan) -> Optional[TrainMeasure]:
         """One probe message taken at `now_s` (monotonic s) when the link had delivered `link_bytes`
         in all (cumulative, the message included) and had been silent for `idle_s` (the kernel's
-        last_data_recv: a message taken after the train's end says when the end came). Returns the
+        last_data_recv: a message taken after the train's end says when the end came), the taking
+        thread having waited `wait_s` for a CPU so far (cumulative; NaN: unknown). Returns the
         measure of a train this message completes, else None."""
         size = len(payload)
         self.received_bytes += size
@@ -290,7 +295,7 @@ class TrainArrivals:
             train = self._train = (header, [])
         samples = train[1]
         so_far = (samples[-1][2] if samples else 0) + size
-        samples.append((now_s, link_bytes, so_far, header, max(0.0, idle_s)))
+        samples.append((now_s, link_bytes, so_far, header, max(0.0, idle_s), wait_s))
         if header.index == header.count - 1:
             self._train = None
             return self._measure(samples)
@@ -319,8 +324,8 @@ class TrainArrivals:
 
 
 def measure_train(samples, message_bytes):
-    """The TrainMeasure of one train's arrivals [(t, link bytes, train bytes so far, header, idle s)],
-    or why not (TOO_SHORT, RECEIVER_LATE). The measured part starts at the message that completes
+    """The TrainMeasure of one train's arrivals [(t, link bytes, train bytes so far, header, idle s,
+    the receiving thread's CPU wait so far s)], or why not (TOO_SHORT, RECEIVER_LATE). The measured part starts at the message that completes
     half the train's bytes (the head may have passed a shaper's burst at the sender's rate) and ends
     when the link last received data before the last message was taken; its rate is that of its
     fastest span (FASTEST_SPAN_FRACTION)."""
@@ -338,17 +343,20 @@ def measure_train(samples, message_bytes):
         return RECEIVER_LATE
     # (read time, link bytes then, header) over the measured part, in time; the last message's at
     # the link's last receive before it was read
-    points = sorted([(s[0], s[1], s[3]) for s in samples[mid:-1]] + [(end_s, last[1], last[3])], key=lambda p: p[0])
-    best = None  # (rate, bytes, spread s, header at its start, header at its end)
-    for i, (t0, b0, h0) in enumerate(points):
-        for t1, b1, h1 in points[i + 1 :]:
+    points = sorted(
+        [(s[0], s[1], s[3], s[5]) for s in samples[mid:-1]] + [(end_s, last[1], last[3], last[5])],
+        key=lambda p: p[0],
+    )
+    best = None  # (rate, bytes, spread s, header at its start, header at its end, receiver's wait s)
+    for i, (t0, b0, h0, w0) in enumerate(points):
+        for t1, b1, h1, w1 in points[i + 1 :]:
             if t1 > t0 and b1 - b0 >= FASTEST_SPAN_FRACTION * moved:
                 rate = (b1 - b0) / (t1 - t0)
                 if best is None or rate > best[0]:
-                    best = (rate, b1 - b0, t1 - t0, h0, h1)
+                    best = (rate, b1 - b0, t1 - t0, h0, h1, w1 - w0)
     if best is None:
         return TOO_SHORT
-    _, span_bytes, span_s, since, until = best
+    _, span_bytes, span_s, since, until, wait_s = best
     return TrainMeasure(
         train=last[3].train,
         messages=len(samples),
@@ -357,4 +365,5 @@ def measure_train(samples, message_bytes):
         sent_mbps=sent_rate_mbps(since, until, message_bytes),
         whole_bytes=int(last[1] - first[1]),
         whole_spread_s=end_s - first[0],
+        receiver_wait_s=wait_s,
     )

@@ -968,7 +968,10 @@ class ZenohBridge:
                     idle_s = min(i.last_data_recv_ms for i in read) * 1e-3
                 else:  # no TCP_INFO: the frames this bridge received
                     now, link_bytes, idle_s = time.monotonic(), self.composer.delivered_bytes, 0.0
-                measure = self.train_arrivals.arrival(payload, now, link_bytes, idle_s)
+                wait_s = thread_cpu_and_wait_s()[1]  # how late this thread's reads may be (its CPU)
+                measure = self.train_arrivals.arrival(
+                    payload, now, link_bytes, idle_s, math.nan if wait_s is None else wait_s
+                )
                 if measure is not None:
                     self.composer.train_measured(measure)
                 refused = dict(self.train_arrivals.refused)
@@ -1096,6 +1099,7 @@ def link_report_msg(interval) -> LinkReport:
         probe_train_bytes=interval.probe_train_bytes,
         probe_train_spread_s=interval.probe_train_spread_s,
         probe_train_sent_mbps=interval.probe_train_sent_mbps,
+        probe_train_receiver_wait_s=interval.probe_train_receiver_wait_s,
         probe_cost_mbps=interval.probe_cost_mbps,
     )
     msg.header.stamp = rospy.Time.now()
