@@ -73,12 +73,14 @@ TRAIN_LOWER_BOUND = "lower_bound"
 # reads far above.
 TRAIN_STEP_FRACTION = 0.7
 TRAIN_HELD = "bottleneck_held"  # such a reading, waiting for the next train
-# A train that came out slower than sent while the twin's receiving thread waited for a CPU more
-# than this fraction of its measured part says only that the link carried at least that much: its
-# reads came late, and a late read only ever slows a train. On the reference mission's saturated
-# twin core (2026-11-30) the four trains that read a 60 Mbit/s link under 0.7 x (16-39 Mbit/s,
-# each taken as a step down at once) had waited 0.37-0.85 of their spans; trains read on time
-# 0.01-0.27 (others up to 0.95 read 58-176 Mbit/s).
+# A train that came out slower than sent while the twin's receiving thread waited (for a CPU, or
+# for its bridge's lock) more than this fraction of its measured part says only that the link
+# carried at least that much: its reads came late, and a late read only ever slows a train. On the
+# reference mission's saturated twin core (2026-11-30) the four trains that read a 60 Mbit/s link
+# under 0.7 x (16-39 Mbit/s, each taken as a step down at once) had waited for a CPU 0.37-0.85 of
+# their spans, trains read on time 0.01-0.27 (others up to 0.95 read 58-176 Mbit/s); counting the
+# lock's waits too, link_thesis's shared_medium mission had 3 reports under 0.7 x the capacity
+# against 34 with the CPU's alone.
 TRAIN_RECEIVER_STARVED_FRACTION = 0.3
 TRAIN_RECEIVER_STARVED = "receiver_starved_lower_bound"
 # While a train was measured this recently the estimator does not probe by raising the allocation:
@@ -93,7 +95,7 @@ def train_sample(arrival_mbps, sent_mbps, line_rate_mbps, receiver_wait_fraction
     the rate sent, or (why it says nothing, NaN): train_not_finite, train_not_positive,
     train_faster_than_sent (more than 2 x), train_above_line_rate (a bottleneck more than 2 x the
     line's rate); (TRAIN_RECEIVER_STARVED, a lower bound) for one slower than sent whose receiver
-    waited for a CPU more than TRAIN_RECEIVER_STARVED_FRACTION of it (`receiver_wait_fraction`). A bottleneck above the line rate is the line rate. A lower bound above it is the
+    waited (for a CPU or its lock) more than TRAIN_RECEIVER_STARVED_FRACTION of it (`receiver_wait_fraction`). A bottleneck above the line rate is the line rate. A lower bound above it is the
     estimator's to clip: a 60 Mbit/s link's trains read 60-220 Mbit/s over their 25 ms halves
     (live), and after a false low reading such a train is what restores the capacity."""
     values = (arrival_mbps, sent_mbps)
@@ -158,7 +160,8 @@ class LinkReport:
     # measured part and the rate it was sent at (NaN: no train)
     train_mbps: float = math.nan
     train_sent_mbps: float = math.nan
-    # of the train's measured part, the fraction its receiving thread waited for a CPU (NaN: unknown)
+    # of the train's measured part, the fraction its receiving thread waited for a CPU or its bridge's
+    # lock (NaN: unknown)
     train_receiver_wait_fraction: float = math.nan
     # a probe train was on the link in the interval (sent or received): its deficit or surplus is
     # the train's queue, not the fleet's, and the train's own measure is the interval's

@@ -159,7 +159,7 @@ class Interval:
     probe_sent_bytes: int = 0
     # trains measured in the interval, and the last one's measured part: the link bytes that
     # arrived after its first message, over how long, the rate it was sent at (0: none) and how long
-    # of it the twin's receiving thread waited for a CPU (NaN: not known)
+    # of it the twin's receiving thread waited for a CPU or the bridge's lock (NaN: not known)
     probe_trains: int = 0
     probe_train_bytes: int = 0
     probe_train_spread_s: float = 0.0

@@ -238,9 +238,9 @@ class TrainMeasure:
     sent_mbps: float
     whole_bytes: int  # the same over the whole train, first to last message (for the record)
     whole_spread_s: float
-    # how long the twin's receiving thread was runnable but waiting for a CPU over the span (its
-    # schedstat), s: its reads were late by up to that much, which only ever slows a train; NaN where
-    # the kernel keeps none
+    # how long the twin's receiving thread waited over the span, runnable but without a CPU (its
+    # schedstat) or for its bridge's lock, s: its reads were late by up to that much, which only ever
+    # slows a train; NaN where the kernel keeps no schedstat
     receiver_wait_s: float = math.nan
 
     @property
@@ -278,7 +278,7 @@ class TrainArrivals:
         """One probe message taken at `now_s` (monotonic s) when the link had delivered `link_bytes`
         in all (cumulative, the message included) and had been silent for `idle_s` (the kernel's
         last_data_recv: a message taken after the train's end says when the end came), the taking
-        thread having waited `wait_s` for a CPU so far (cumulative; NaN: unknown). Returns the
+        thread having waited `wait_s` for a CPU or its lock so far (cumulative; NaN: unknown). Returns the
         measure of a train this message completes, else None."""
         size = len(payload)
         self.received_bytes += size
@@ -325,7 +325,7 @@ class TrainArrivals:
 
 def measure_train(samples, message_bytes):
     """The TrainMeasure of one train's arrivals [(t, link bytes, train bytes so far, header, idle s,
-    the receiving thread's CPU wait so far s)], or why not (TOO_SHORT, RECEIVER_LATE). The measured part starts at the message that completes
+    the receiving thread's wait for a CPU or its lock so far s)], or why not (TOO_SHORT, RECEIVER_LATE). The measured part starts at the message that completes
     half the train's bytes (the head may have passed a shaper's burst at the sender's rate) and ends
     when the link last received data before the last message was taken; its rate is that of its
     fastest span (FASTEST_SPAN_FRACTION)."""

@@ -212,6 +212,7 @@ class ZenohBridge:
         # probe trains while the fleet sends too little to fill the link (cps_link.probe_train)
         self.trains = TrainSchedule() if self.queue is not None else None
         self.train_arrivals = TrainArrivals() if self.composer is not None else None
+        self._probe_lock_wait_s = 0.0  # the probe callback's waits for self.lock, cumulative
         self._probe_sent_bytes = 0
         self._send_queue_max, self._report_seq, self._closing = 0, 0, False
         self._blocked_s = 0.0  # the sender thread's time inside Zenoh's put since the last report
@@ -960,7 +961,9 @@ class ZenohBridge:
         """The twin's side: one probe message, timed with the link's bytes received then."""
         try:
             payload = sample.payload.to_bytes()
+            asked_s = time.monotonic()
             with self.lock:
+                self._probe_lock_wait_s += time.monotonic() - asked_s
                 self.composer.received(len(payload), managed=False, probe=True)
                 read = self.link_sockets.read()
                 if read:
@@ -968,10 +971,10 @@ class ZenohBridge:
                     idle_s = min(i.last_data_recv_ms for i in read) * 1e-3
                 else:  # no TCP_INFO: the frames this bridge received
                     now, link_bytes, idle_s = time.monotonic(), self.composer.delivered_bytes, 0.0
-                wait_s = thread_cpu_and_wait_s()[1]  # how late this thread's reads may be (its CPU)
-                measure = self.train_arrivals.arrival(
-                    payload, now, link_bytes, idle_s, math.nan if wait_s is None else wait_s
-                )
+                # how late this thread's reads may be: its waits for a CPU and for the lock
+                cpu_wait_s = thread_cpu_and_wait_s()[1]
+                wait_s = math.nan if cpu_wait_s is None else cpu_wait_s + self._probe_lock_wait_s
+                measure = self.train_arrivals.arrival(payload, now, link_bytes, idle_s, wait_s)
                 if measure is not None:
                     self.composer.train_measured(measure)
                 refused = dict(self.train_arrivals.refused)
