@@ -95,8 +95,9 @@ def train_sample(arrival_mbps, sent_mbps, line_rate_mbps, receiver_wait_fraction
     the rate sent, or (why it says nothing, NaN): train_not_finite, train_not_positive,
     train_faster_than_sent (more than 2 x), train_above_line_rate (a bottleneck more than 2 x the
     line's rate); (TRAIN_RECEIVER_STARVED, a lower bound) for one slower than sent whose receiver
-    waited (for a CPU or its lock) more than TRAIN_RECEIVER_STARVED_FRACTION of it (`receiver_wait_fraction`). A bottleneck above the line rate is the line rate. A lower bound above it is the
-    estimator's to clip: a 60 Mbit/s link's trains read 60-220 Mbit/s over their 25 ms halves
+    waited (for a CPU or its lock) more than TRAIN_RECEIVER_STARVED_FRACTION of it
+    (`receiver_wait_fraction`). A bottleneck above the line rate is the line rate. A lower bound
+    above it is the estimator's to clip: a 60 Mbit/s link's trains read 60-220 Mbit/s over their 25 ms halves
     (live), and after a false low reading such a train is what restores the capacity."""
     values = (arrival_mbps, sent_mbps)
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values):
@@ -648,8 +649,8 @@ class DeliveryRateEstimator:
         """A probe train's sample (train_sample): a bottleneck measured is the link's capacity, in
         either direction (the fleet sends too little for its own samples to say), at once when it
         is below TRAIN_STEP_FRACTION of the capacity or above 1 / TRAIN_STEP_FRACTION of it, else
-        once the next train confirms it; a lower bound (a receiver-starved reading is one) only raises it. Bad samples are counted by kind in `ignored` and change
-        nothing."""
+        once the next train confirms it; a lower bound (a receiver-starved reading is one) only
+        raises it. Bad samples are counted by kind in `ignored` and change nothing."""
         if isinstance(report.train_mbps, float) and math.isnan(report.train_mbps):
             return  # no train in this interval
         kind, mbps = train_sample(

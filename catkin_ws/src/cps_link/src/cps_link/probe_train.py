@@ -272,14 +272,15 @@ class TrainArrivals:
         self.refused = dict.fromkeys(PROBE_REFUSALS, 0)
         self.measured = 0
         self.received_bytes = 0  # every probe message's bytes, measured or not
-        self._train = None  # (header of the first message seen, [(t, link bytes, train bytes so far, header)])
+        # (header of the first message seen, [(t, link bytes, train bytes so far, header, idle s, wait s)])
+        self._train = None
 
     def arrival(self, payload, now_s, link_bytes, idle_s=0.0, wait_s=math.nan) -> Optional[TrainMeasure]:
         """One probe message taken at `now_s` (monotonic s) when the link had delivered `link_bytes`
         in all (cumulative, the message included) and had been silent for `idle_s` (the kernel's
         last_data_recv: a message taken after the train's end says when the end came), the taking
-        thread having waited `wait_s` for a CPU or its lock so far (cumulative; NaN: unknown). Returns the
-        measure of a train this message completes, else None."""
+        thread having waited `wait_s` for a CPU or its lock so far (cumulative; NaN: unknown).
+        Returns the measure of a train this message completes, else None."""
         size = len(payload)
         self.received_bytes += size
         try:
@@ -325,10 +326,11 @@ class TrainArrivals:
 
 def measure_train(samples, message_bytes):
     """The TrainMeasure of one train's arrivals [(t, link bytes, train bytes so far, header, idle s,
-    the receiving thread's wait for a CPU or its lock so far s)], or why not (TOO_SHORT, RECEIVER_LATE). The measured part starts at the message that completes
-    half the train's bytes (the head may have passed a shaper's burst at the sender's rate) and ends
-    when the link last received data before the last message was taken; its rate is that of its
-    fastest span (FASTEST_SPAN_FRACTION)."""
+    the receiving thread's wait for a CPU or its lock so far s)], or why not (TOO_SHORT,
+    RECEIVER_LATE). The measured part starts at the message that completes half the train's bytes
+    (the head may have passed a shaper's burst at the sender's rate) and ends when the link last
+    received data before the last message was taken; its rate is that of its fastest span
+    (FASTEST_SPAN_FRACTION), with the receiver's wait over that span."""
     if len(samples) < 2:
         return TOO_SHORT
     total = samples[-1][2]
@@ -341,8 +343,8 @@ def measure_train(samples, message_bytes):
         return TOO_SHORT
     if moved < RECEIVER_LATE_FRACTION * (total - half[2]):
         return RECEIVER_LATE
-    # (read time, link bytes then, header) over the measured part, in time; the last message's at
-    # the link's last receive before it was read
+    # (read time, link bytes then, header, the receiver's wait then) over the measured part, in time;
+    # the last message's at the link's last receive before it was read
     points = sorted(
         [(s[0], s[1], s[3], s[5]) for s in samples[mid:-1]] + [(end_s, last[1], last[3], last[5])],
         key=lambda p: p[0],
