@@ -133,18 +133,23 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
     with zenoh.open(zenoh.Config.from_json5(json.dumps(config))) as session:
         to = names.absolute(names.managed_cloud_at_twin(ROBOT))
         key = f"cps/topic{to}"
-        good = encode(
-            Frame(
-                b"i" * 16,
-                1,
-                time.time(),
-                "cps_msgs/CompressedPointCloud2",
-                CompressedPointCloud2._md5sum,
-                "/intruder",
-                bytes(cloud_bytes(cloud)),
-                topic=to,
+
+        def intact():
+            """The intact frame, stamped now: a cloud's frame older than its route's max_age_s (2 s)
+            is dropped as stale (final59: stamped before the corrupt frame's retries, it was, its
+            copy then counted as a duplicate, and nothing was delivered)."""
+            return encode(
+                Frame(
+                    b"i" * 16,
+                    1,
+                    time.time(),
+                    "cps_msgs/CompressedPointCloud2",
+                    CompressedPointCloud2._md5sum,
+                    "/intruder",
+                    bytes(cloud_bytes(cloud)),
+                    topic=to,
+                )
             )
-        )
 
         def put(payload):
             # Zenoh's put drops by default when its queue is not served within a millisecond: on a
@@ -156,7 +161,7 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
         # A new peer's puts reach the twin bridge only once its subscription has been matched: a
         # corrupt frame (rejected at the CRC, before any sequence state) is re-sent until counted.
         assert wait_for(
-            lambda: put(good[:-3] + b"xyz") or _diag_counter(diagnostics, "corrupt") >= 1,
+            lambda: put(intact()[:-3] + b"xyz") or _diag_counter(diagnostics, "corrupt") >= 1,
             timeout_s=20,
             poll_s=1.0,
         ), "the keyed peer's corrupt frame was never counted"
@@ -165,6 +170,7 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
                 Frame(b"i" * 16, 2, math.nan, "cps_msgs/CompressedPointCloud2", "0" * 32, "/intruder", b"", topic=to)
             ),
         )
+        good = intact()
         put(good)
         put(good)
         # A well-formed frame for another topic under the cloud's key (issue 22): never published there.
@@ -187,7 +193,9 @@ def test_two_masters_joined_only_by_the_bridges(rospy_node, ros, robots_graph, c
             k: _diag_counter(diagnostics, k) for k in counted
         }
         # The intact frame is delivered once; its duplicate, the corrupt and the mistyped one never.
-        assert wait_for(lambda: _intruder_checks(clouds), timeout_s=10), "the intact frame was not delivered"
+        assert wait_for(lambda: _intruder_checks(clouds), timeout_s=10), (
+            f"the intact frame was not delivered (stale: {_diag_counter(diagnostics, 'stale')})"
+        )
     # Its duplicate was counted above (dropped, never published), so one stays one.
     assert _intruder_checks(clouds) == 1
 
