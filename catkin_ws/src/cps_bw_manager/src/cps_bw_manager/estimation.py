@@ -97,8 +97,8 @@ def train_sample(arrival_mbps, sent_mbps, line_rate_mbps, receiver_wait_fraction
     line's rate); (TRAIN_RECEIVER_STARVED, a lower bound) for one slower than sent whose receiver
     waited (for a CPU or its lock) more than TRAIN_RECEIVER_STARVED_FRACTION of it
     (`receiver_wait_fraction`). A bottleneck above the line rate is the line rate. A lower bound
-    above it is the estimator's to clip: a 60 Mbit/s link's trains read 60-220 Mbit/s over their 25 ms halves
-    (live), and after a false low reading such a train is what restores the capacity."""
+    above it is the estimator's to clip: a 60 Mbit/s link's trains read 60-220 Mbit/s over their
+    25 ms halves (live), and after a false low reading such a train is what restores the capacity."""
     values = (arrival_mbps, sent_mbps)
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values):
         return "train_not_finite", math.nan
