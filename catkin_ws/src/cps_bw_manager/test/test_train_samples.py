@@ -127,6 +127,52 @@ def test_a_small_shortfall_waits_for_the_next_train_and_takes_the_larger():
     assert est.capacity_mbps == pytest.approx(LINE_MBPS)
 
 
+def _step_interval(now_s, delivered_mbps, sent_mbps, link_limited):
+    """An interval of a fleet that kept the link busy (its sender's socket full if `link_limited`)."""
+    return LinkReport(
+        now_s=now_s,
+        interval_s=0.5,
+        delivered_mbps=delivered_mbps,
+        sent_mbps=sent_mbps,
+        offered_mbps=sent_mbps,
+        app_limited=False,
+        rtt_s=(0.003,),
+        link_busy=True,
+        link_limited=link_limited,
+    )
+
+
+def test_a_shortfall_in_the_first_train_after_a_cut_is_taken_at_once():
+    """Live (test_over_link, final62): a 60 -> 20 Mbit/s step cut the capacity to the 24.7 Mbit/s of
+    the interval that straddled it; the drain's check could not correct it (the next interval's
+    queue had emptied), and the next train's 19.1 (0.77 x: a small shortfall) was held until the
+    train after it, 2.5 s later. The cut is the step's first reading: the first train after it
+    (within max_drain_s) confirms it. Without a cut (a refused probe's drain, or a cut long ago) a
+    small shortfall still waits for the next train."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_step_interval(2.0, 24.7, 50.0, link_limited=True))  # a large deficit: a step
+    assert est.mode == "drain" and est.capacity_mbps == pytest.approx(24.7)
+    est.update(_step_interval(2.5, 19.5, 19.5, link_limited=False))  # drained: nothing to correct
+    assert est.capacity_mbps == pytest.approx(24.7)
+    est.update(_report(3.0, train=19.1, sent=79.0))
+    assert est.capacity_mbps == pytest.approx(19.1) and est.trains[TRAIN_HELD] == 0
+    assert est.allocation_mbps <= 19.1 + 1e-9
+    est.update(_report(4.0, train=16.0, sent=79.0))  # the next one is held as before
+    assert est.capacity_mbps == pytest.approx(19.1) and est.trains[TRAIN_HELD] == 1
+
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.mode, est._mode_since_s = "probe", 1.5
+    est._set_mode("drain", 2.0)  # what a refused probe leaves
+    est.update(_report(2.5, train=50.0, sent=231.0))
+    assert est.capacity_mbps == pytest.approx(LINE_MBPS) and est.trains[TRAIN_HELD] == 1
+
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_step_interval(2.0, 24.7, 50.0, link_limited=True))
+    _run(est, [_report(2.0 + 0.5 * i) for i in range(1, 12)])
+    est.update(_report(8.0, train=19.1, sent=79.0))  # 6 s after the cut: held
+    assert est.capacity_mbps == pytest.approx(24.7) and est.trains[TRAIN_HELD] == 1
+
+
 def test_a_small_rise_waits_for_the_next_train_and_takes_the_smaller():
     """Live (test_over_link beside busy loops): a train read 26.2 Mbit/s on the 20 Mbit/s link (its
     receiver descheduled, its bytes read late and in a burst: that only ever reads fast) and was

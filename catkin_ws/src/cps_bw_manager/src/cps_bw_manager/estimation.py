@@ -321,6 +321,7 @@ class DeliveryRateEstimator:
         self._last_probe_s = -math.inf
         self._capacity_before_probe_mbps = math.nan
         self._drain_checked = False  # the drain's one correction of the capacity was made
+        self._cut_s = -math.inf  # the last overuse's cut
         self._gain = PROBE_GAIN
 
     @property
@@ -648,8 +649,9 @@ class DeliveryRateEstimator:
     def _take_train(self, report):
         """A probe train's sample (train_sample): a bottleneck measured is the link's capacity, in
         either direction (the fleet sends too little for its own samples to say), at once when it
-        is below TRAIN_STEP_FRACTION of the capacity or above 1 / TRAIN_STEP_FRACTION of it, else
-        once the next train confirms it; a lower bound (a receiver-starved reading is one) only
+        is below TRAIN_STEP_FRACTION of the capacity or above 1 / TRAIN_STEP_FRACTION of it (or below
+        the capacity an overuse's cut set, the first train within max_drain_s of it), else once the
+        next train confirms it; a lower bound (a receiver-starved reading is one) only
         raises it. Bad samples are counted by kind in `ignored` and change nothing."""
         if isinstance(report.train_mbps, float) and math.isnan(report.train_mbps):
             return  # no train in this interval
@@ -659,6 +661,7 @@ class DeliveryRateEstimator:
         if math.isnan(mbps):
             self.ignored[kind] += 1
             return
+        first_after_cut = self._train_s < self._cut_s and report.now_s - self._cut_s <= self.max_drain_s
         self._train_s = report.now_s
         measured = self._clip(mbps)
         # a held reading counts only against the capacity it was held against: live (test_over_link)
@@ -670,6 +673,12 @@ class DeliveryRateEstimator:
             self.trains[kind] += 1
             if measured <= self.capacity_mbps:
                 return
+        elif measured < self.capacity_mbps and first_after_cut:
+            # the first train within max_drain_s of an overuse's cut, and a shortfall: the cut was
+            # the step's first reading (the rate of an interval that straddled it, so above the new
+            # link), the train confirms it. Live (test_over_link, final62), a 60 -> 20 Mbit/s step
+            # cut to 24.7; held, the train's 19.1 waited 2.5 s for the next (one per 2.5 s at 24.7)
+            self.trains[kind] += 1
         elif measured != self.capacity_mbps and (
             TRAIN_STEP_FRACTION * self.capacity_mbps <= measured <= self.capacity_mbps / TRAIN_STEP_FRACTION
         ):
@@ -720,6 +729,7 @@ class DeliveryRateEstimator:
         self.capacity_mbps = measured
         self.estimate_mbps = self._clip(drain_factor * measured)
         self.mode, self._mode_since_s = "drain", now  # a new overuse restarts the drain
+        self._cut_s = now
         self._drain_checked = False
         self._trend.reset()  # the rise is acted upon; the next overuse must be a new rise
 
