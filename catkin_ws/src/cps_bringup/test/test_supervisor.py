@@ -23,6 +23,7 @@ from cps_bringup.plan import (
     NORMAL_TIER,
     PER_ROBOT,
     PHYSICAL,
+    SHARED,
     TCPROS,
     ZENOH,
     NodeSpec,
@@ -576,6 +577,25 @@ def test_a_new_mission_starts_without_the_previous_missions_map_and_csvs(tmp_pat
     # and nothing the missions do not write is touched.
     assert sorted(p.name for p in tmp_path.iterdir()) == ["logs", "notes.txt", "physical_stats.csv"]
     assert clear_previous_mission(str(tmp_path), (PHYSICAL, DIGITAL)) == ["physical_stats.csv"]
+
+
+def test_every_file_the_plan_writes_into_the_folder_is_cleared_by_a_new_mission(tmp_path):
+    """A node's file in the output folder that clear_previous_mission does not know is appended to by
+    the next mission into that folder (link_estimate.csv was, till 2026-11-30)."""
+    from cps_bringup.cli import MISSION_OUTPUTS
+
+    out = str(tmp_path)
+    written = {PHYSICAL: set(), DIGITAL: set()}
+    for transport, layout in ((TCPROS, SHARED), (ZENOH, PER_ROBOT)):
+        options = RunOptions(out_dir=out, transport=transport, tissue_layout=layout, gui_screenshot_path=None)
+        for spec in plan_nodes(load_fleet(), options=options):
+            for arg in spec.argv:
+                value = arg.split(":=", 1)[-1]
+                if os.path.dirname(value) == out:
+                    written[spec.side].add(os.path.basename(value))
+    assert "link_estimate.csv" in written[DIGITAL] and "physical_stats.csv" in written[PHYSICAL]
+    for side, files in written.items():
+        assert files <= set(MISSION_OUTPUTS[side]), (side, sorted(files - set(MISSION_OUTPUTS[side])))
 
 
 @pytest.mark.parametrize("simulate, replay", [(True, ""), (True, "/tmp/x.bag"), (False, "")])

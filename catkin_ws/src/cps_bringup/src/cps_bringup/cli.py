@@ -284,7 +284,9 @@ def _sides(side):
 
 # What one mission's side writes into the output folder (the demo's report included). A new mission
 # starts without them: the map server would otherwise resume from an earlier mission's map, and the
-# CSVs (appended to, so that a restarted node keeps its rows) would mix two missions.
+# CSVs (appended to, so that a restarted node keeps its rows) would mix two missions (link_thesis's
+# reused folders held two missions' link_estimate.csv rows, under the older header, till 2026-11-30).
+# test_supervisor checks this against every file the plan puts in the folder.
 MISSION_OUTPUTS = {
     PHYSICAL: ("physical_stats.csv", "physical_arrivals.csv", "physical_counters.csv"),
     DIGITAL: (
@@ -296,6 +298,7 @@ MISSION_OUTPUTS = {
         "arrivals.csv",
         "counters.csv",
         "allocation.csv",
+        "link_estimate.csv",
         "setpoints.csv",
         "gui.png",
         WEB_URL_FILE,
