@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Every package's tests: ruff, then one pytest run on both cores (pytest-xdist, `--dist loadgroup`:
-# the missions on one worker, one at a time; see catkin_ws/src/conftest.py). The packages' rostest
+# the missions on one worker, one at a time; a third worker runs the modules marked `waiting`, which
+# mostly wait, beside the two CPU-bound ones; see catkin_ws/src/conftest.py). The packages' rostest
 # `.test` files run in it too, each as a test that runs `rostest` (its own master on a free port). Writes out/test/junit.xml and out/test/durations.md (where the time
 # went) and prints the test time last, beside the budget. Expects ci/env.sh to be sourced (make test
 # does that); CPS_SETUP_S, if set, is the set-up's time (reported apart from the tests').
@@ -20,7 +21,7 @@ if [ "$lint_rc" -eq 0 ]; then echo "ruff: lint and format clean"; else echo "ruf
 # --max-worker-restart 0: a worker that dies (final9: the kernel's OOM killer) ends the run with a
 # failure. Replaced, pytest-xdist 3.6's loadgroup scheduler left both workers waiting for work
 # forever (pytest-xdist issues 1323 and 1327): CI would have hung to its 90 min.
-parallel=(-n 2 --dist loadgroup --max-worker-restart 0)
+parallel=(-n 3 --dist loadgroup --max-worker-restart 0)
 for arg in "$@"; do
   case "$arg" in -n|-n*|--numprocesses*|-p) parallel=() ;; esac
 done

@@ -22,7 +22,7 @@ from cps_bringup.supervisor import BringupError, MasterLost, RestartPolicy, Supe
 from cps_harness.testing import wait_for
 from cps_ros.processes import RosGraph
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 
 DIES_SOON = "import time; time.sleep(0.3); raise SystemExit(4)"
 

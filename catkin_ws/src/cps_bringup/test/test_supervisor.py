@@ -37,6 +37,8 @@ from cps_harness.testing import Gate, wait_for
 from cps_ros.processes import RosGraph, processes_named
 from cps_transport.cloud_levels import initial_leaf_m
 
+pytestmark = pytest.mark.waiting
+
 BRINGUP = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_bringup")
 
 

@@ -13,7 +13,7 @@ from cps_bw_manager.setpoints import DEFAULT_MIN_INTERVAL_S
 from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 
 ROBOTS = ("scout", "jackal")
 PAYLOAD_BYTES = 20000

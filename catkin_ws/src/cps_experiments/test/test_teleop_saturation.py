@@ -15,7 +15,7 @@ from cps_link.zenoh_session import MAKE_CERTS
 
 LINK = link_name("zt")
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.waiting]
 P95_LIMIT_MS = 50.0
 PHASE_S = 10.0
 

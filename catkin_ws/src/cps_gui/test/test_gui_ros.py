@@ -14,6 +14,8 @@ from cps_fleet.fleet import load_fleet
 from cps_gui import joystick
 from cps_harness.testing import TopicRecorder
 
+pytestmark = pytest.mark.waiting
+
 SCOUT, JACKAL, CHAMP, IRIS = (TEST_PREFIX + n for n in ("scout", "jackal", "champ", "iris"))
 
 

@@ -14,6 +14,8 @@ from cps_harness.testing import TopicRecorder, wait_for
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import free_port
 
+pytestmark = pytest.mark.waiting
+
 ROBOT = "scout"
 
 

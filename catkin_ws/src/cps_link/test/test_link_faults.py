@@ -20,7 +20,7 @@ from cps_link.bridge_config import load_bridge_table
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import find_node, free_port
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.waiting]
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROBOT = "scout"
 SEED = int(os.environ.get("CPS_FAULT_SEED", "22"))

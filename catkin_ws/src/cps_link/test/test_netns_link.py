@@ -12,6 +12,8 @@ from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_link.netns_link import LinkError, ShapedLink, list_namespaces
 
+pytestmark = pytest.mark.waiting
+
 NODE = os.path.join(os.path.dirname(__file__), "..", "nodes", "cps_link")
 
 

@@ -14,6 +14,8 @@ from cps_link.probe_train import FASTEST_SPAN_FRACTION, PROBE_TRAIN_BYTES, RECEI
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import free_port
 
+pytestmark = pytest.mark.waiting
+
 ROBOT = "scout"
 CAPACITY_MBPS = 40.0
 TRAINS = 3  # measured trains the test reads (one every 1.5 s at 40 Mbit/s)

@@ -15,7 +15,7 @@ from cps_harness.testing import link_name
 from cps_link import netns_link
 from cps_link.netns_link import LinkError, ShapedLink, list_namespaces
 
-pytestmark = needs_link
+pytestmark = [needs_link, pytest.mark.waiting]
 RATE_MBPS = 20.0
 
 

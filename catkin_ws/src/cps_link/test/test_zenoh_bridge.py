@@ -21,6 +21,8 @@ from cps_link.bridge_wire import Frame, encode
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv, session_config
 from cps_ros.processes import find_node, free_port
 
+pytestmark = pytest.mark.waiting
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 CLOUD_LOAD = find_node("cps_harness", "cloud_load")
 ROBOT = "scout"

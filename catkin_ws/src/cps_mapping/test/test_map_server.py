@@ -18,7 +18,7 @@ from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_mapping.fused_map import pack_index, voxel_index
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 RES = 0.1
 # Sensor poses in map: (origin, rotation of the sensor frame in map).
 JACKAL = (np.array([-1.0, 2.0, 0.5]), sc.rotation_z(0.0) @ sc.OPTICAL_TO_BODY)

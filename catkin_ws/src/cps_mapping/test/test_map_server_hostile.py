@@ -14,7 +14,7 @@ from cps_fleet import names
 from cps_harness.hostile_clouds import packed_cloud, refused_clouds
 from cps_harness.testing import TopicRecorder, wait_for
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 FRAME = "jackal/camera_depth_optical_frame"
 
 

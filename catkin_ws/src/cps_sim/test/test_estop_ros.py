@@ -12,7 +12,7 @@ import pytest
 from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # A GUI stand-in in its own process: publishes the e-stop state latched, then dies when killed.

@@ -5,7 +5,7 @@ import pytest
 
 from cps_harness.testing import run_rostest
 
-pytestmark = pytest.mark.rostest
+pytestmark = [pytest.mark.rostest, pytest.mark.waiting]
 
 
 def test_sensor_rates_rostest():

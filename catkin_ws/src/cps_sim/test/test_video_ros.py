@@ -10,7 +10,7 @@ from video_sim import RATE_TOLERANCE, ROBOT, WINDOW_S, dimensions, frames_at, st
 from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 
 
 @pytest.fixture(scope="module")

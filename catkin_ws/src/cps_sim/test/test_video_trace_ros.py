@@ -7,7 +7,7 @@ import os
 import pytest
 from video_sim import RATE_TOLERANCE, ROBOT, WINDOW_S, dimensions, frames_at, video_sim
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 
 FRAMES = 6
 

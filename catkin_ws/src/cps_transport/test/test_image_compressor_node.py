@@ -10,7 +10,7 @@ from cps_fleet import names
 from cps_harness.testing import wait_for
 from cps_transport.image_compression import camera_test_image, decode_jpeg, psnr_db
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 
 
 def _reported(diagnostics, node):

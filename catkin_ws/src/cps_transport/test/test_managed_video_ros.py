@@ -10,7 +10,7 @@ from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
 from cps_transport.image_compression import camera_test_image, decode_jpeg
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 
 ROBOT = "jackal"
 CAMERA_HZ = 20.0  # the raw camera's rate in this test

@@ -12,6 +12,8 @@ from cps_fleet import names
 from cps_harness.testing import wait_for
 from cps_transport.rate_limiter import RATE_WINDOW_S, RateLimiter, WindowRate
 
+pytestmark = pytest.mark.waiting
+
 
 def _forwarded_rate(limiter, input_hz, duration_s, jitter_s=0.0, seed=0):
     rng = np.random.default_rng(seed)

@@ -14,6 +14,8 @@ from cps_fleet import names
 from cps_harness.testing import wait_for
 from cps_transport.topic_stats import TopicWindow, has_header_first, stamp_ns_from_serialized
 
+pytestmark = pytest.mark.waiting
+
 
 def test_window_rate_bandwidth_latency():
     window = TopicWindow(2.0)

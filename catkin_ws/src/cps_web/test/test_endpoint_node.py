@@ -16,7 +16,7 @@ from cps_harness.testing import messages_received, wait_for
 from cps_web.options import EndpointOptions
 from cps_web.twin_view import MAP, VIDEO, pose_channel
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.waiting]
 
 ROBOT = "jackal"  # a camera robot of the default fleet
 SENT = 20  # messages of each topic the recorder test publishes
