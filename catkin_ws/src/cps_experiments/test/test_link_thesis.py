@@ -207,6 +207,50 @@ def test_differences_name_both_arms(mission):
     assert any("its estimate / the true capacity 0.92 (median)" in s for s in sentences)
 
 
+def test_a_difference_says_what_the_manager_allotted_and_the_cpu_it_saw(mission):
+    """Live (shared_medium, 2026-11-30): champ's video ran at 5 fps at 160x120 with the manager, 28
+    without, the link far from full. The reason is in allocation.csv (its robots' core had no idle
+    share to spare, so the video stayed at its first status' rate): the sentence says it."""
+    _write(
+        mission / "allocation.csv",
+        [
+            "stamp_s",
+            "budget_mbytes_per_s",
+            "robot",
+            "stream",
+            "level",
+            "level_name",
+            "rate_hz",
+            "cpu_spare_cores",
+            "compute_bound",
+        ],
+        [[T0 + s, 6.9, "jackal", "video", 2, "160x120", 5.0, 0.0 if s > 2 else 0.3, 0] for s in range(50)],
+    )
+    rows = []
+    for arm in (DEFAULT, OFF):
+        for r in link_thesis.measure_run(str(mission), ["jackal"], read_csv):
+            if arm is OFF:
+                r = dict(r, fps_mean=28.0, level="", allotted_rate_hz=math.nan)
+            rows.append(dict(r, scenario="shared_medium", **arm))
+    on = next(r for r in rows if r["arm"] == DEFAULT["arm"] and r["stream"] == "video" and r["phase_index"] == 0)
+    assert on["allotted_rate_hz"] == 5.0 and on["cpu_spare_cores_median"] == 0.0 and on["compute_bound_share"] == 0.0
+    video = [s for s in link_thesis.differences(rows) if "phase 1 (0.0-20.0 s): jackal's video ran at" in s]
+    assert len(video) == 1 and video[0].endswith(
+        "; the manager allotted it 5.0 Hz (median), its robots' CPU to spare above the idle reserve 0.00 cores "
+        "(median), judged compute-bound in 0 % of its allocations."
+    ), video
+    # the manager off allotted nothing: no such clause for it; a file without the columns: none either
+    assert "allotted" not in "".join(link_thesis._why(r) for r in rows if r["arm"] == OFF["arm"])
+    written = mission / "link_thesis.csv"
+    link_thesis.write_csv(
+        str(written),
+        link_thesis.COLUMNS,
+        [[link_thesis._cell(r.get(c, "")) for c in link_thesis.COLUMNS] for r in rows],
+    )
+    back = link_thesis.rows_from_csv(read_csv(str(written)))
+    assert [r["allotted_rate_hz"] for r in back if r["arm"] == DEFAULT["arm"] and r["stream"] == "video"][0] == 5.0
+
+
 def test_the_report_and_plot_are_written_with_every_arm(mission, tmp_path):
     rows = []
     for arm in (ANNOUNCED, DEFAULT, OFF):

@@ -247,6 +247,36 @@ def stream_levels(allocation_rows) -> Dict[Tuple[str, str], List[Tuple[float, st
     return out
 
 
+def stream_allotments(allocation_rows) -> Dict[Tuple[str, str], List[Tuple[float, float, float, float]]]:
+    """{(robot, stream): [(stamp s, rate Hz in force, CPU to spare on its host (cores), compute-bound
+    0/1)]} from allocation.csv: why the manager set what it set (NaN where a file lacks a column)."""
+    out = defaultdict(list)
+    for row in allocation_rows:
+        if row.get("stream") and row.get("robot"):
+            out[(row["robot"], row["stream"])].append(
+                tuple(csv_float(row.get(k, "")) for k in ("stamp_s", "rate_hz", "cpu_spare_cores", "compute_bound"))
+            )
+    return out
+
+
+def allotment_figures(allotments, t0, t1):
+    """The manager's answer for one stream over [t0, t1): the rate in force (median), the CPU its
+    host had to spare as the allocations saw it (median, cores), the share of allocations that
+    judged it compute-bound. NaN when the manager set nothing (off) or the file has no such column."""
+    inside = [a for a in allotments if t0 <= a[0] < t1]
+
+    def median(k):
+        values = [a[k] for a in inside if math.isfinite(a[k])]
+        return float(np.median(values)) if values else math.nan
+
+    bound = [a[3] for a in inside if math.isfinite(a[3])]
+    return {
+        "allotted_rate_hz": median(1),
+        "cpu_spare_cores_median": median(2),
+        "compute_bound_share": float(np.mean(bound)) if bound else math.nan,
+    }
+
+
 def level_in(levels, t0, t1):
     """The level set for most of [t0, t1) ('' when the manager set none)."""
     counts = defaultdict(int)
@@ -280,6 +310,7 @@ def measure_run(run_dir, robots, read_csv):
     allocation_path = os.path.join(run_dir, "allocation.csv")
     allocation_rows = read_csv(allocation_path) if os.path.exists(allocation_path) else []
     levels = stream_levels(allocation_rows)
+    allotments = stream_allotments(allocation_rows)
     # The budget the manager worked with (from its available_mbps: the capacity the scenario announced
     # in the announced arm, else iperf3's figure at the start, or its estimate when estimate_bandwidth
     # is on), beside the capacity the scenario set.
@@ -306,6 +337,7 @@ def measure_run(run_dir, robots, read_csv):
                 figures = stream_figures(arrivals.get((robot, stream)), t0, t1)
                 got = [v for t, v in volumes.get((robot, stream), ()) if t0 <= t < t1]
                 figures["received_mean_mbytes_per_s"] = float(np.mean(got)) if got else 0.0
+                figures.update(allotment_figures(allotments.get((robot, stream), ()), t0, t1))
                 rows.append(
                     {**common, "robot": robot, "stream": stream, "level": level_in(levels[(robot, stream)], t0, t1)}
                     | figures
@@ -465,6 +497,10 @@ COLUMNS = (
     "teleop_probes",
     "f1_exact",
     "f1_tolerant",
+    # why the manager set what it set (allotment_figures; empty in files from before them)
+    "allotted_rate_hz",
+    "cpu_spare_cores_median",
+    "compute_bound_share",
 )
 
 
@@ -746,7 +782,7 @@ def _arm_differences(where, scenario, robot, stream, on, off, arm):
                 f"{where}: {what} ran at {_fmt(on['fps_mean'])} fps{_at(on)} {manager}, "
                 f"{_fmt(off['fps_mean'])} fps{_at(off)} without (lowest {FPS_WINDOW_S:g} s window "
                 f"{_low(on)} vs {_low(off)}; the newest at the twin up to {_fmt(on.get('staleness_max_s'))} vs "
-                f"{_fmt(off.get('staleness_max_s'))} s old)."
+                f"{_fmt(off.get('staleness_max_s'))} s old)" + _why(on) + "."
             )
         if _differ(on["latency_p95_ms"], off["latency_p95_ms"], 0.2):
             out.append(
@@ -782,6 +818,19 @@ def _arm_differences(where, scenario, robot, stream, on, off, arm):
             + (" (n/a: that mission saved no map)." if J.missing(on["f1_exact"]) or J.missing(off["f1_exact"]) else ".")
         )
     return out
+
+
+def _why(row):
+    """What the manager answered for a stream and what it saw (allotment_figures), or nothing."""
+    rate, spare, bound = (
+        row.get(k, math.nan) for k in ("allotted_rate_hz", "cpu_spare_cores_median", "compute_bound_share")
+    )
+    if J.missing(rate):
+        return ""
+    return (
+        f"; the manager allotted it {_fmt(rate)} Hz (median), its robots' CPU to spare above the idle reserve "
+        f"{_fmt(spare, 2)} cores (median), judged compute-bound in {_fmt(100.0 * bound if not J.missing(bound) else bound, 0)} % of its allocations"
+    )
 
 
 def _share(link):
