@@ -51,6 +51,11 @@ STREAMS = (CLOUD, VIDEO)
 OPERATOR_VIDEO = "operator_video"
 INSPECTION_DETAIL = "inspection_detail"
 GUARANTEES = (OPERATOR_VIDEO, INSPECTION_DETAIL)  # precedence order of rule 1b, 1c
+# The operator's video (rule 1b) may run this much above its guaranteed rate without CPU to spare,
+# where the link has room: the guarantee is a rate the operator must *see* in every window, and a
+# camera told exactly that rate on a saturated host delivers a frame or two fewer in some 10 s
+# windows (link_thesis at 5 Mbit/s: 15.0 fps allotted, lowest 10 s windows 15.0 and 14.5 fps).
+OPERATOR_VIDEO_RATE_HEADROOM = 1.2
 _BYTES_PER_MB = 1e6
 # A rule that fits within this fraction of the budget fits (float rounding of sums of products).
 _SLACK = 1e-12
@@ -341,7 +346,14 @@ def allocate_levels(
     size_base = np.array([sizes[i][base[i]] for i in range(n)])
     cap = np.maximum(fmax, required)
     if bounded:
-        cap = _cap_by_resources(demands, active, base, required, cap, weight, bounded)
+        at_least = np.array(
+            [
+                required[i]
+                * (OPERATOR_VIDEO_RATE_HEADROOM if kept_guarantee[i] and d.guarantee == OPERATOR_VIDEO else 1.0)
+                for i, d in enumerate(demands)
+            ]
+        )
+        cap = _cap_by_resources(demands, active, base, required, cap, weight, bounded, at_least)
     lo = np.where(active, size_base * required, 0.0)
     hi = np.where(active, size_base * cap, 0.0)
     level = list(base)
@@ -427,10 +439,11 @@ def allocate_levels(
     )
 
 
-def _cap_by_resources(demands, active, base, required, cap, weight, bounded):
+def _cap_by_resources(demands, active, base, required, cap, weight, bounded, at_least):
     """The streams' maximum rates within each bounded resource's spare (issue 36): a stream whose
     use grows with its rate (a video rendered at the rate set) may add to what it takes now its
-    weighted water-filling share of the spare, at its base level; never below its rules' rate.
+    weighted water-filling share of the spare, at its base level; never below its rules' rate
+    (`required`), nor below `at_least` (the operator's video: its rate with headroom).
     A stream produced at a fixed rate (a cloud encoded before its limiter) takes what its level
     costs whatever its rate: its increase at the base level comes off the spare first."""
     cap = cap.copy()
@@ -451,7 +464,7 @@ def _cap_by_resources(demands, active, base, required, cap, weight, bounded):
         for (i, u), g in zip(scaled, grant):
             per = u.per_message[base[i]]
             rate = (u.baseline_per_s + g) / per if math.isfinite(per) else 0.0
-            cap[i] = min(cap[i], max(required[i], rate))
+            cap[i] = min(cap[i], max(at_least[i], rate))
     return cap
 
 
