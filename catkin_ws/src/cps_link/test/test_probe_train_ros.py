@@ -10,7 +10,7 @@ import pytest
 
 from cps_fleet import names
 from cps_harness.testing import TopicRecorder, wait_for
-from cps_link.probe_train import FASTEST_SPAN_FRACTION, PROBE_TRAIN_BYTES, RECEIVER_LATE_FRACTION, train_period_s
+from cps_link.probe_train import FASTEST_SPAN_FRACTION, RECEIVER_LATE_FRACTION, train_bytes_for, train_period_s
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import free_port
 
@@ -59,12 +59,15 @@ def test_a_probe_train_crosses_and_is_measured(rospy_node, ros, robots_graph, ce
         # what the link moved after the twin took the message that completes half the train, and that
         # is at least RECEIVER_LATE_FRACTION of the second half (else the train is refused): final59
         # read 80 kB where the twin took that message late on a loaded machine.
-        assert report.probe_train_bytes >= PROBE_TRAIN_BYTES // 2 * RECEIVER_LATE_FRACTION * FASTEST_SPAN_FRACTION
+        assert (
+            report.probe_train_bytes
+            >= train_bytes_for(CAPACITY_MBPS) // 2 * RECEIVER_LATE_FRACTION * FASTEST_SPAN_FRACTION
+        )
         assert 0 < report.probe_train_spread_s < 2.0
         assert 0 < report.probe_train_sent_mbps <= 4 * CAPACITY_MBPS + 1e-6
     # every probe byte the twin received is counted, the sender's too (a measured train had at least
     # 80 % of its messages)
-    least_bytes = PROBE_TRAIN_BYTES * 0.8 * len(with_train)
+    least_bytes = train_bytes_for(CAPACITY_MBPS) * 0.8 * len(with_train)
     probe_bytes = sum(m.probe_bytes for m in seen)
     sent_bytes = sum(m.probe_sent_bytes for m in seen)
     assert probe_bytes >= least_bytes and sent_bytes >= least_bytes, (probe_bytes, sent_bytes, least_bytes)

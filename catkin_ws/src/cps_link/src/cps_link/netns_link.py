@@ -177,6 +177,20 @@ _VOICE_CLASS, _BEST_EFFORT_CLASS = "20:1", "20:2"
 VOICE_QUEUE_PACKETS = 100
 
 
+# The shaper's token bucket: SHAPER_BURST_S of the rate (a Wi-Fi transmit opportunity's frames),
+# at least SHAPER_BURST_FLOOR_BYTES (eleven full frames: with GSO off every packet is one). It was
+# max(128 kB, 4 ms) for 64 kB GSO packets; at 5 Mbit/s that bucket is 0.2 s of the link passed at
+# the sender's pace, which the link's estimate had to probe past with 384 kB trains that queued the
+# operator's video ~250 ms behind them.
+SHAPER_BURST_S = 0.004
+SHAPER_BURST_FLOOR_BYTES = 16384
+
+
+def shaper_burst_bytes(rate_bps):
+    """The tbf burst at `rate_bps`, bytes."""
+    return int(max(SHAPER_BURST_FLOOR_BYTES, rate_bps / 8 * SHAPER_BURST_S))
+
+
 def best_effort_queue_bytes(rate_bps, queue_ms, burst_bytes):
     """The best-effort queue's limit: what tbf's own queue held at `queue_ms` (rate x latency +
     burst), so that the link's queue in time is what it was before the voice queue."""
@@ -188,9 +202,7 @@ def _qdisc_commands(ns, dev, rate, delay_ms, loss_pct, queue_ms, verb, jitter_ms
     `with_netem`, so that a live change can add them) with tbf as its child; under the tbf the voice
     and best-effort queues (`verb` add: made; change: the best-effort limit follows the rate)."""
     rate_bps = rate_bits_per_s(rate)
-    # At least two full 64 kB GSO frames: with less, TCP's large segments after a rate drop are
-    # dropped whole and every connection stalls for seconds. At least 4 ms at the rate.
-    burst_bytes = int(max(131072, rate_bps / 8 * 0.004))
+    burst_bytes = shaper_burst_bytes(rate_bps)
     tbf = ["tbf", "rate", rate, "burst", str(burst_bytes), "latency", f"{queue_ms:g}ms"]
     base = ["ip", "netns", "exec", ns, "tc", "qdisc", verb, "dev", dev]
     if delay_ms or loss_pct or with_netem:

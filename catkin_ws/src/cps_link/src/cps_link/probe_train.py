@@ -15,10 +15,13 @@ rate proves only that the link carries that much. Ours differ where the link dif
   bytes_received read at each probe message, or the bridge's frames where that is not readable):
   the fleet's own frames overtake the train in Zenoh's priorities and share the link with it;
 - the rate is taken over the train's second half (from the arrival of the message that completes
-  half its bytes to the last): a token-bucket shaper (the test bed's tc tbf, burst max(128 kB, 4 ms))
-  and Wi-Fi's aggregation pass a train's head at the sender's rate, so a whole-train rate of a
-  384 kB train read 1.4-2 x a 5-20 Mbit/s link (test_probe_train); the second half is served at
-  the bottleneck once the head has used up the burst;
+  half its bytes to the last): a token-bucket shaper (the test bed's tc tbf, burst max(16 kB,
+  4 ms): cps_link.netns_link) and Wi-Fi's aggregation pass a train's head at the sender's rate;
+  the second half is served at the bottleneck once the head has used up the burst;
+- a train is sized by the capacity believed: PROBE_TRAIN_S of it (libwebrtc's clusters are
+  bounded by duration and a packet count), at least PROBE_MIN_TRAIN_BYTES, so that at 5 Mbit/s a
+  train is ~100 ms of the link, not the 0.6 s of the fixed 384 kB trains made for a 128 kB shaper
+  burst, which queued the operator's video ~250 ms behind them in the link's one bulk queue;
 - the train's cost is bounded by the capacity believed: its period is the train's bytes over
   PROBE_COST_FRACTION of it, so a train costs that fraction of the link on average, and a high
   capacity (where a step down matters most) is probed often. libwebrtc probes in ALR every 5 s;
@@ -32,21 +35,27 @@ import math
 import struct
 from typing import Optional
 
-# A train: messages of this many bytes (a Zenoh batch of the bridge table's 16 kB holds one), and
-# this many bytes in all. A token bucket of burst B (the test bed's tbf: 128 kB) passes the first
-# B x S / (S - R) bytes of a train sent at S into a link of R at the sender's pace; the second half
-# is measured after it only if that is less than half the train: 171 kB at S = 4 R, so 384 kB.
-# (The first live run's 256 kB trains at 2 x read a 10 Mbit/s link at 10.9 and 11.8 Mbit/s.)
-PROBE_MESSAGE_BYTES = 16000
-PROBE_TRAIN_BYTES = 24 * PROBE_MESSAGE_BYTES
+# A train is PROBE_TRAIN_S of the capacity believed, within [PROBE_MIN_TRAIN_BYTES,
+# PROBE_MAX_TRAIN_BYTES], in about PROBE_TRAIN_MESSAGES messages of [PROBE_MIN_MESSAGE_BYTES,
+# PROBE_MAX_MESSAGE_BYTES] (a Zenoh batch of the bridge table's 16 kB holds one; the twin's bridge
+# takes each in Python, so at 60 Mbit/s they stay 16 kB, one per 2 ms). A token bucket of burst B
+# passes the first B x S / (S - R) bytes of a train sent at S into a link of R at the sender's
+# pace; the second half is measured after it only if that is less than half the train: at S = 4 R
+# and the test bed's 16 kB floor, 21 kB, so 64 kB.
+PROBE_TRAIN_S = 0.05
+PROBE_MIN_TRAIN_BYTES = 64000
+PROBE_MAX_TRAIN_BYTES = 384000
+PROBE_TRAIN_MESSAGES = 16
+PROBE_MIN_MESSAGE_BYTES = 4000
+PROBE_MAX_MESSAGE_BYTES = 16000
 # The train is paced at this x the capacity believed (libwebrtc's ALR probes go at 2 x its
 # estimate; 4 x here, for the shaper's burst above): a link that kept its capacity comes out slower
 # than sent (its capacity measured); one that grew by 4 x carries it all (a lower bound).
 PROBE_SEND_GAIN = 4.0
 # On average a train costs at most this fraction of the capacity believed (its period follows).
 PROBE_COST_FRACTION = 0.05
-# ... but the trains are at least this far apart, and at most this far (a low capacity is probed
-# rarely: 384 kB at 5 % of 10 Mbit/s is one train per 6.1 s; at 5 Mbit/s the 10 s bound, 6.1 %), s.
+# ... but the trains are at least this far apart, and at most this far (at 5 Mbit/s a 64 kB train
+# at 5 % is one per 2 s; at 1 Mbit/s the 10 s bound, 5.1 %), s.
 PROBE_MIN_PERIOD_S = 0.5
 PROBE_MAX_PERIOD_S = 10.0
 # The twin gives up a train whose last message has not come this long after its first, s
@@ -126,32 +135,60 @@ def decode_probe(payload) -> ProbeHeader:
     return ProbeHeader(train, index, count, train_bytes, target, spread, blocked)
 
 
-def train_period_s(capacity_mbps, train_bytes=PROBE_TRAIN_BYTES, cost_fraction=PROBE_COST_FRACTION):
-    """How far apart trains go so that they cost `cost_fraction` of `capacity_mbps` on average, s."""
+def train_shape(capacity_mbps):
+    """(messages, bytes per message) of a train at `capacity_mbps` believed (the least train while
+    nothing is believed)."""
+    wanted = PROBE_MIN_TRAIN_BYTES
+    if math.isfinite(capacity_mbps) and capacity_mbps > 0:
+        wanted = min(PROBE_MAX_TRAIN_BYTES, max(PROBE_MIN_TRAIN_BYTES, capacity_mbps * PROBE_TRAIN_S / 8e-6))
+    message = min(PROBE_MAX_MESSAGE_BYTES, max(PROBE_MIN_MESSAGE_BYTES, wanted / PROBE_TRAIN_MESSAGES))
+    message = int(math.ceil(message / 1000.0) * 1000)
+    return int(math.ceil(wanted / message)), message
+
+
+def train_bytes_for(capacity_mbps):
+    """A train's bytes at `capacity_mbps` believed (train_shape)."""
+    count, message = train_shape(capacity_mbps)
+    return count * message
+
+
+def train_period_s(capacity_mbps, train_bytes=None, cost_fraction=PROBE_COST_FRACTION):
+    """How far apart trains go so that they cost `cost_fraction` of `capacity_mbps` on average, s
+    (`train_bytes` None: the train sized for that capacity)."""
     if not (math.isfinite(capacity_mbps) and capacity_mbps > 0):
         return PROBE_MAX_PERIOD_S
+    if train_bytes is None:
+        train_bytes = train_bytes_for(capacity_mbps)
     period = train_bytes * 8e-6 / (cost_fraction * capacity_mbps)
     return min(PROBE_MAX_PERIOD_S, max(PROBE_MIN_PERIOD_S, period))
 
 
-def probe_cost_fraction(link_mbps, capacity_mbps, train_bytes=PROBE_TRAIN_BYTES):
+def probe_cost_fraction(link_mbps, capacity_mbps, train_bytes=None):
     """What the trains cost of a `link_mbps` link while the sender believes `capacity_mbps`."""
+    if train_bytes is None:
+        train_bytes = train_bytes_for(capacity_mbps)
     return train_bytes * 8e-6 / train_period_s(capacity_mbps, train_bytes) / link_mbps
 
 
 class TrainSchedule:
     """The robots' side: when a train is due (the sender app-limited in its last report interval, the
-    link up, a period of the capacity believed since the last one) and what it is. Not thread-safe."""
+    link up, a period of the capacity believed since the last one) and what it is (train_shape of
+    the capacity believed). Not thread-safe."""
 
-    def __init__(self, train_bytes=PROBE_TRAIN_BYTES, message_bytes=PROBE_MESSAGE_BYTES, gain=PROBE_SEND_GAIN):
-        if message_bytes < _HEADER.size or train_bytes < 2 * message_bytes:
-            raise ValueError(f"a train of {train_bytes} bytes in messages of {message_bytes} is not a train")
-        self.train_bytes, self.message_bytes, self.gain = int(train_bytes), int(message_bytes), float(gain)
+    def __init__(self, gain=PROBE_SEND_GAIN):
+        if not (math.isfinite(gain) and gain > 1):
+            raise ValueError(f"a train paced at {gain!r} x the capacity believed measures nothing")
+        self.gain = float(gain)
         self.capacity_mbps = math.nan
         self.app_limited = False
         self.link_up = True
         self.last_train_s = -math.inf
         self.trains = 0
+
+    @property
+    def train_bytes(self):
+        """The next train's bytes."""
+        return train_bytes_for(self.capacity_mbps)
 
     def set_capacity(self, capacity_mbps):
         if math.isfinite(capacity_mbps) and capacity_mbps > 0:
@@ -162,7 +199,7 @@ class TrainSchedule:
             self.app_limited
             and self.link_up
             and math.isfinite(self.capacity_mbps)
-            and now_s - self.last_train_s >= train_period_s(self.capacity_mbps, self.train_bytes)
+            and now_s - self.last_train_s >= train_period_s(self.capacity_mbps)
         )
 
     def cost_mbps(self):
@@ -170,14 +207,14 @@ class TrainSchedule:
         is known): the budget keeps it out of the managed streams' share."""
         if not math.isfinite(self.capacity_mbps):
             return 0.0
-        return self.train_bytes * 8e-6 / train_period_s(self.capacity_mbps, self.train_bytes)
+        return self.train_bytes * 8e-6 / train_period_s(self.capacity_mbps)
 
     def start(self, now_s) -> "TrainPlan":
         """The next train (its id, sizes and pace), started at `now_s`."""
         self.trains += 1
         self.last_train_s = now_s
-        count = self.train_bytes // self.message_bytes
-        return TrainPlan(self.trains & 0xFFFFFFFF, count, self.message_bytes, self.gain * self.capacity_mbps)
+        count, message_bytes = train_shape(self.capacity_mbps)
+        return TrainPlan(self.trains & 0xFFFFFFFF, count, message_bytes, self.gain * self.capacity_mbps)
 
 
 @dataclasses.dataclass
