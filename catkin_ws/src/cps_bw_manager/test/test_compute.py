@@ -10,6 +10,8 @@ from hypothesis import strategies as st
 
 from cps_bw_manager.level_allocation import (
     CLOUD,
+    OPERATOR_VIDEO,
+    OPERATOR_VIDEO_RATE_HEADROOM,
     VIDEO,
     ResourceUse,
     StreamDemand,
@@ -49,7 +51,7 @@ def _cloud(robot, cpu=None, produced_hz=5.0, in_force_level=1, max_rate_hz=30.0)
     )
 
 
-def _video(robot, cpu, set_rate_hz=5.0, in_force_level=2):
+def _video(robot, cpu, set_rate_hz=5.0, in_force_level=2, **options):
     """A video of 24/6/2.5 kB per level rendered at the rate set, `cpu` s per frame per level."""
     return StreamDemand(
         robot,
@@ -59,6 +61,7 @@ def _video(robot, cpu, set_rate_hz=5.0, in_force_level=2):
         may_go_off=True,
         uses=(ResourceUse(HOST, cpu, cpu[in_force_level] * set_rate_hz),),
         level_in_force=in_force_level,
+        **options,
     )
 
 
@@ -92,23 +95,16 @@ def test_a_video_may_add_only_its_share_of_the_spare_cpu_to_its_rate():
     assert all(none[(r, VIDEO)].rate_hz == pytest.approx(5.0) for r in "ab")
 
 
-def test_the_operators_video_is_not_bound_by_the_cpu_spare():
-    from cps_bw_manager.level_allocation import OPERATOR_VIDEO
+def _operator_video(cpu, max_rate_hz=30.0):
+    """Robot a's video as the operator's (rule 1b: 320x240 or finer at >= 15 Hz), 5 Hz in force."""
+    return _video(
+        "a", cpu, max_rate_hz=max_rate_hz, guarantee=OPERATOR_VIDEO, guarantee_level=1, guarantee_rate_hz=15.0
+    )
 
+
+def test_the_operators_video_is_not_bound_by_the_cpu_spare():
     cpu = (0.010, 0.004, 0.0016)
-    d = [
-        StreamDemand(
-            "a",
-            VIDEO,
-            (24000.0, 6200.0, 2500.0),
-            VIDEO_BITS,
-            may_go_off=True,
-            guarantee=OPERATOR_VIDEO,
-            guarantee_level=1,
-            guarantee_rate_hz=15.0,
-            uses=(ResourceUse(HOST, cpu, cpu[2] * 5.0),),
-        )
-    ]
+    d = [_operator_video(cpu)]
     a = _by(allocate_levels(d, 100.0, spare={HOST: 0.0}))[("a", VIDEO)]
     assert a.level <= 1 and a.rate_hz >= 15.0 and a.guarantee_kept
 
@@ -120,33 +116,18 @@ def test_the_operators_video_gets_headroom_above_its_guarantee_where_the_link_ha
     OPERATOR_VIDEO_RATE_HEADROOM above the guarantee while the link has room; never above its
     maximum rate, and a link with room for the guarantee alone keeps the guarantee; the other
     videos stay at their rate in force."""
-    from cps_bw_manager.level_allocation import OPERATOR_VIDEO, OPERATOR_VIDEO_RATE_HEADROOM
-
     cpu = (0.010, 0.004, 0.0016)
-
-    def operator(max_rate_hz=30.0):
-        return StreamDemand(
-            "a",
-            VIDEO,
-            (24000.0, 6200.0, 2500.0),
-            VIDEO_BITS,
-            max_rate_hz=max_rate_hz,
-            may_go_off=True,
-            guarantee=OPERATOR_VIDEO,
-            guarantee_level=1,
-            guarantee_rate_hz=15.0,
-            uses=(ResourceUse(HOST, cpu, cpu[2] * 5.0),),
-        )
-
-    d = [operator(), _video("b", cpu, set_rate_hz=5.0)]
+    d = [_operator_video(cpu), _video("b", cpu, set_rate_hz=5.0)]
     got = _by(allocate_levels(d, 100.0, spare={HOST: 0.0}))
     assert OPERATOR_VIDEO_RATE_HEADROOM > 1.0
     assert got[("a", VIDEO)].rate_hz == pytest.approx(15.0 * OPERATOR_VIDEO_RATE_HEADROOM)
     assert got[("a", VIDEO)].level == 1 and got[("a", VIDEO)].guarantee_kept
     assert got[("b", VIDEO)].rate_hz == pytest.approx(5.0)
-    assert _by(allocate_levels([operator(16.0)], 100.0, spare={HOST: 0.0}))[("a", VIDEO)].rate_hz == pytest.approx(16.0)
+    assert _by(allocate_levels([_operator_video(cpu, 16.0)], 100.0, spare={HOST: 0.0}))[
+        ("a", VIDEO)
+    ].rate_hz == pytest.approx(16.0)
     # room for 15 Hz at 320x240 and no more: the guarantee, kept
-    tight = _by(allocate_levels([operator()], 6200.0 * 15.0 / 1e6, spare={HOST: 0.0}))[("a", VIDEO)]
+    tight = _by(allocate_levels([_operator_video(cpu)], 6200.0 * 15.0 / 1e6, spare={HOST: 0.0}))[("a", VIDEO)]
     assert tight.rate_hz == pytest.approx(15.0) and tight.guarantee_kept
 
 

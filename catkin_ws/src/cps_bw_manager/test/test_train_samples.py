@@ -54,20 +54,33 @@ def _estimator():
 def _report(now_s, train=math.nan, sent=math.nan, on_link=None, fleet_mbps=3.0, receiver_waited=math.nan):
     """An app-limited interval of a fleet sending `fleet_mbps`, with or without a train's measure
     (`receiver_waited`: the fraction of it the twin's receiving thread waited for a CPU)."""
-    return LinkReport(
-        now_s=now_s,
-        interval_s=0.5,
-        delivered_mbps=fleet_mbps,
-        sent_mbps=fleet_mbps,
-        offered_mbps=fleet_mbps,
-        app_limited=True,
-        rtt_s=(0.003,),
-        link_busy=False,
+    return _interval(
+        now_s,
+        fleet_mbps,
+        fleet_mbps,
+        busy=False,
         link_limited=False,
         train_mbps=train,
         train_sent_mbps=sent,
         train_receiver_wait_fraction=receiver_waited,
         train_on_link=not math.isnan(train) if on_link is None else on_link,
+    )
+
+
+def _interval(now_s, delivered_mbps, sent_mbps, busy, link_limited, **train):
+    """A 0.5 s interval; `busy`: the fleet kept the link busy (else app-limited); `link_limited`:
+    its sender's socket was full."""
+    return LinkReport(
+        now_s=now_s,
+        interval_s=0.5,
+        delivered_mbps=delivered_mbps,
+        sent_mbps=sent_mbps,
+        offered_mbps=sent_mbps,
+        app_limited=not busy,
+        rtt_s=(0.003,),
+        link_busy=busy,
+        link_limited=link_limited,
+        **train,
     )
 
 
@@ -127,21 +140,6 @@ def test_a_small_shortfall_waits_for_the_next_train_and_takes_the_larger():
     assert est.capacity_mbps == pytest.approx(LINE_MBPS)
 
 
-def _step_interval(now_s, delivered_mbps, sent_mbps, link_limited):
-    """An interval of a fleet that kept the link busy (its sender's socket full if `link_limited`)."""
-    return LinkReport(
-        now_s=now_s,
-        interval_s=0.5,
-        delivered_mbps=delivered_mbps,
-        sent_mbps=sent_mbps,
-        offered_mbps=sent_mbps,
-        app_limited=False,
-        rtt_s=(0.003,),
-        link_busy=True,
-        link_limited=link_limited,
-    )
-
-
 def test_a_shortfall_in_the_first_train_after_a_cut_is_taken_at_once():
     """Live (test_over_link, final62): a 60 -> 20 Mbit/s step cut the capacity to the 24.7 Mbit/s of
     the interval that straddled it; the drain's check could not correct it (the next interval's
@@ -150,9 +148,9 @@ def test_a_shortfall_in_the_first_train_after_a_cut_is_taken_at_once():
     (within max_drain_s) confirms it. Without a cut (a refused probe's drain, or a cut long ago) a
     small shortfall still waits for the next train."""
     est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
-    est.update(_step_interval(2.0, 24.7, 50.0, link_limited=True))  # a large deficit: a step
+    est.update(_interval(2.0, 24.7, 50.0, busy=True, link_limited=True))  # a large deficit: a step
     assert est.mode == "drain" and est.capacity_mbps == pytest.approx(24.7)
-    est.update(_step_interval(2.5, 19.5, 19.5, link_limited=False))  # drained: nothing to correct
+    est.update(_interval(2.5, 19.5, 19.5, busy=True, link_limited=False))  # drained: nothing to correct
     assert est.capacity_mbps == pytest.approx(24.7)
     est.update(_report(3.0, train=19.1, sent=79.0))
     assert est.capacity_mbps == pytest.approx(19.1) and est.trains[TRAIN_HELD] == 0
@@ -167,7 +165,7 @@ def test_a_shortfall_in_the_first_train_after_a_cut_is_taken_at_once():
     assert est.capacity_mbps == pytest.approx(LINE_MBPS) and est.trains[TRAIN_HELD] == 1
 
     est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
-    est.update(_step_interval(2.0, 24.7, 50.0, link_limited=True))
+    est.update(_interval(2.0, 24.7, 50.0, busy=True, link_limited=True))
     _run(est, [_report(2.0 + 0.5 * i) for i in range(1, 12)])
     est.update(_report(8.0, train=19.1, sent=79.0))  # 6 s after the cut: held
     assert est.capacity_mbps == pytest.approx(24.7) and est.trains[TRAIN_HELD] == 1
