@@ -102,6 +102,17 @@ def test_npm_client_decodes_every_channel_with_its_advertised_schema(view, npm_c
     assert view.endpoint.snapshot()["bad"] == 0
 
 
+def test_an_empty_map_decodes_as_a_cloud_of_no_points(view, npm_client):
+    """The map server's first map, before any cloud, has no points: its protobuf message has no
+    `data` on the wire. The viewer decoded it with its fields' defaults left out and read
+    `data.length` of undefined (pkg-alone run 2026-11-30: the reference mission's viewer, subscribed
+    at the mission's start)."""
+    view.on_map(_map_cloud(0))
+    report = foxglove_probe.probe(view.url, 2.0, [MAP], modules=npm_client)
+    assert report["decode_errors"] == {} and report["errors"] == [], report
+    assert report["messages"].get(MAP, 0) >= 1 and report["samples"][MAP]["points"] == 0, report
+
+
 def test_nothing_is_converted_for_a_channel_nobody_watches(view):
     calls = []
     assert not view.endpoint.offer(CHANGES, lambda: calls.append(1))

@@ -30,7 +30,9 @@ function decoderOf(channel) {
   if (channel.encoding === "protobuf" && channel.schemaEncoding === "protobuf") {
     const set = descriptor.FileDescriptorSet.decode(Buffer.from(channel.schema, "base64"));
     const type = protobuf.Root.fromDescriptor(set).lookupType(channel.schemaName);
-    return (bytes) => type.toObject(type.decode(bytes), { longs: Number, bytes: Buffer });
+    // defaults: proto3 leaves a field at its default off the wire, and toObject leaves it out too
+    // (the map's first message, published before any cloud, has no points: `data` was undefined)
+    return (bytes) => type.toObject(type.decode(bytes), { longs: Number, bytes: Buffer, defaults: true });
   }
   if (channel.encoding === "json") {
     return (bytes) => JSON.parse(new TextDecoder("utf-8", { fatal: true }).decode(bytes));
