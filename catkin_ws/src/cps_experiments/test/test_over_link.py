@@ -191,11 +191,22 @@ def test_manager_keeps_the_link_within_budget_and_latency_low(tmp_path):
 
 
 def _estimates(csv_path):
-    """(time, capacity Mbit/s, allocation target Mbit/s, delivered Mbit/s, sent Mbit/s, mode) per link
-    report from the manager's link_estimate.csv."""
+    """(time, capacity Mbit/s, allocation target Mbit/s, delivered Mbit/s, sent Mbit/s, mode, why) per
+    link report from the manager's link_estimate.csv; `why`: what the estimator had to go on (the
+    sender app-limited or not, an overuse, a train's reading), printed so that a failure's trace
+    says it (pkg-alone 2026-11-30: a rise missed for 8 s, its CSV gone before it was read)."""
     rows = []
     with open(csv_path) as stream:
         for row in csv.DictReader(stream):
+            train = row.get("probe_train_mbps", "")
+            why = f"app-limited {row.get('app_limited', '')}" + (
+                f"; overuse {row['overuse']}" if row.get("overuse") else ""
+            )
+            if train:
+                why += (
+                    f"; train {float(train):.1f} sent at {float(row['probe_train_sent_mbps'] or 'nan'):.1f}, "
+                    f"receiver waited {row.get('probe_train_receiver_wait_ms', '')} ms"
+                )
             rows.append(
                 (
                     float(row["stamp_s"]),
@@ -204,6 +215,7 @@ def _estimates(csv_path):
                     float(row["delivered_mbps"] or "nan"),
                     float(row["sent_mbps"] or "nan"),
                     row["mode"],
+                    why,
                 )
             )
     return rows
@@ -246,16 +258,16 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
 
     trace = _estimates(csv_path)
     print("\nestimate of the link while it goes 60 -> 20 -> 60 Mbit/s (the bridges' link reports):")
-    for t, capacity, target, delivered, sent, mode in trace:
+    for t, capacity, target, delivered, sent, mode, why in trace:
         if marks["drop"] - 4 <= t <= marks["end"]:
             phase = "60" if t < marks["drop"] else "20" if t < marks["rise"] else "60"
             print(
                 f"  t={t - marks['drop']:+6.1f} s link {phase}: capacity {capacity:5.1f} target {target:5.1f} ({mode}); "
-                f"delivered {delivered:5.1f} sent {sent:5.1f} Mbit/s"
+                f"delivered {delivered:5.1f} sent {sent:5.1f} Mbit/s; {why}"
             )
 
     def during(t0, t1):
-        return [(capacity, target, mode) for t, capacity, target, _, _, mode in trace if t0 <= t < t1]
+        return [(capacity, target, mode) for t, capacity, target, _, _, mode, _ in trace if t0 <= t < t1]
 
     low = during(marks["drop"] + ESTIMATE_SETTLE_S, marks["rise"])
     high = during(marks["rise"], marks["rise"] + 8.0)
