@@ -171,6 +171,19 @@ def test_a_shortfall_in_the_first_train_after_a_cut_is_taken_at_once():
     assert est.capacity_mbps == pytest.approx(24.7) and est.trains[TRAIN_HELD] == 1
 
 
+def test_a_bottleneck_below_what_its_interval_delivered_reads_as_that_interval():
+    """Live (test_over_link, 2026-11-30): on the 20 Mbit/s link a train read 11.7 Mbit/s in an
+    interval that delivered 15.6, and was taken at once as a step down (below 0.7 x 19.4). The link
+    carried at least what it delivered: the reading is that, here a small shortfall, held."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.capacity_mbps = est._bw_max_mbps = est._unrefuted_mbps = 19.4
+    est.update(_report(2.0, train=11.7, sent=67.4, fleet_mbps=15.6))
+    assert est.capacity_mbps == pytest.approx(19.4) and est.trains[TRAIN_HELD] == 1
+    assert est.trains["bottleneck_below_delivered"] == 1
+    est.update(_report(3.0, train=9.6, sent=67.4, fleet_mbps=3.0))  # a real step: far below, at once
+    assert est.capacity_mbps == pytest.approx(9.6)
+
+
 def test_a_small_rise_waits_for_the_next_train_and_takes_the_smaller():
     """Live (test_over_link beside busy loops): a train read 26.2 Mbit/s on the 20 Mbit/s link (its
     receiver descheduled, its bytes read late and in a burst: that only ever reads fast) and was
