@@ -9,6 +9,7 @@ import pytest
 
 from cps_bw_manager.estimation import (
     LINK_REPORT_OPTIONS,
+    TRAIN_BELOW_DELIVERED,
     TRAIN_BOTTLENECK,
     TRAIN_FRESH_S,
     TRAIN_HELD,
@@ -179,7 +180,7 @@ def test_a_bottleneck_below_what_its_interval_delivered_reads_as_that_interval()
     est.capacity_mbps = est._bw_max_mbps = est._unrefuted_mbps = 19.4
     est.update(_report(2.0, train=11.7, sent=67.4, fleet_mbps=15.6))
     assert est.capacity_mbps == pytest.approx(19.4) and est.trains[TRAIN_HELD] == 1
-    assert est.trains["bottleneck_below_delivered"] == 1
+    assert est.trains[TRAIN_BELOW_DELIVERED] == 1
     est.update(_report(3.0, train=9.6, sent=67.4, fleet_mbps=3.0))  # a real step: far below, at once
     assert est.capacity_mbps == pytest.approx(9.6)
 

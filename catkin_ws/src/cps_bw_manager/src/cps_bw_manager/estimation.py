@@ -73,6 +73,8 @@ TRAIN_LOWER_BOUND = "lower_bound"
 # reads far above.
 TRAIN_STEP_FRACTION = 0.7
 TRAIN_HELD = "bottleneck_held"  # such a reading, waiting for the next train
+# A bottleneck below what its own report interval delivered: raised to that (the link carried it).
+TRAIN_BELOW_DELIVERED = "bottleneck_below_delivered"
 # A train that came out slower than sent while the twin's receiving thread waited (for a CPU, or
 # for its bridge's lock) more than this fraction of its measured part says only that the link
 # carried at least that much: its reads came late, and a late read only ever slows a train. On the
@@ -304,7 +306,8 @@ class DeliveryRateEstimator:
         self.ignored = collections.Counter()  # reason -> reports ignored
         self.overuses = 0
         self.overuse_reasons = collections.Counter()  # deficit | rtt | link_full -> overuses
-        # bottleneck | bottleneck_held | lower_bound | receiver_starved_lower_bound -> trains
+        # bottleneck | bottleneck_held | bottleneck_below_delivered | lower_bound |
+        # receiver_starved_lower_bound -> trains
         self.trains = collections.Counter()
         self._train_s = -math.inf  # the last valid train's report
         # a small bottleneck reading waiting for the next train, and the capacity it was held against
@@ -668,7 +671,7 @@ class DeliveryRateEstimator:
             # reading is below what was measured beside it, and the link carried at least that
             # (live, test_over_link: a train read a 20 Mbit/s link at 11.7 in an interval that
             # delivered 15.6, taken at once as a step down)
-            self.trains["bottleneck_below_delivered"] += 1
+            self.trains[TRAIN_BELOW_DELIVERED] += 1
             mbps = report.delivered_mbps
         measured = self._clip(mbps)
         # a held reading counts only against the capacity it was held against: live (test_over_link)

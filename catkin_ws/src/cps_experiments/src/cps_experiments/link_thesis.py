@@ -238,24 +238,17 @@ def stream_volumes(stats_rows, window_s=INGRESS_WINDOW_S) -> Dict[Tuple[str, str
     return out
 
 
-def stream_levels(allocation_rows) -> Dict[Tuple[str, str], List[Tuple[float, str]]]:
-    """{(robot, stream): [(stamp s, level name)]} from allocation.csv (empty with the manager off)."""
+def stream_allotments(allocation_rows) -> Dict[Tuple[str, str], List[Tuple[float, str, float, float, float]]]:
+    """{(robot, stream): [(stamp s, level name, rate Hz in force, CPU to spare on its host (cores),
+    compute-bound 0/1)]} from allocation.csv (empty with the manager off): what the manager set and
+    why (NaN where a file lacks a column)."""
     out = defaultdict(list)
     for row in allocation_rows:
         if row.get("stream") and row.get("robot"):
-            out[(row["robot"], row["stream"])].append((csv_float(row["stamp_s"]), row.get("level_name", "")))
-    return out
-
-
-def stream_allotments(allocation_rows) -> Dict[Tuple[str, str], List[Tuple[float, float, float, float]]]:
-    """{(robot, stream): [(stamp s, rate Hz in force, CPU to spare on its host (cores), compute-bound
-    0/1)]} from allocation.csv: why the manager set what it set (NaN where a file lacks a column)."""
-    out = defaultdict(list)
-    for row in allocation_rows:
-        if row.get("stream") and row.get("robot"):
-            out[(row["robot"], row["stream"])].append(
-                tuple(csv_float(row.get(k, "")) for k in ("stamp_s", "rate_hz", "cpu_spare_cores", "compute_bound"))
+            t, rate, spare, bound = (
+                csv_float(row.get(k, "")) for k in ("stamp_s", "rate_hz", "cpu_spare_cores", "compute_bound")
             )
+            out[(row["robot"], row["stream"])].append((t, row.get("level_name", ""), rate, spare, bound))
     return out
 
 
@@ -269,18 +262,18 @@ def allotment_figures(allotments, t0, t1):
         values = [a[k] for a in inside if math.isfinite(a[k])]
         return float(np.median(values)) if values else math.nan
 
-    bound = [a[3] for a in inside if math.isfinite(a[3])]
+    bound = [a[4] for a in inside if math.isfinite(a[4])]
     return {
-        "allotted_rate_hz": median(1),
-        "cpu_spare_cores_median": median(2),
+        "allotted_rate_hz": median(2),
+        "cpu_spare_cores_median": median(3),
         "compute_bound_share": float(np.mean(bound)) if bound else math.nan,
     }
 
 
 def level_in(levels, t0, t1):
-    """The level set for most of [t0, t1) ('' when the manager set none)."""
+    """The level set for most of [t0, t1) ('' when the manager set none), from stream_allotments."""
     counts = defaultdict(int)
-    for t, name in levels:
+    for t, name, *_ in levels:
         if t0 <= t < t1:
             counts[name] += 1
     return max(counts, key=counts.get) if counts else ""
@@ -309,7 +302,6 @@ def measure_run(run_dir, robots, read_csv):
     offered = link_windows(read_csv(os.path.join(run_dir, "physical_stats.csv")))
     allocation_path = os.path.join(run_dir, "allocation.csv")
     allocation_rows = read_csv(allocation_path) if os.path.exists(allocation_path) else []
-    levels = stream_levels(allocation_rows)
     allotments = stream_allotments(allocation_rows)
     # The budget the manager worked with (from its available_mbps: the capacity the scenario announced
     # in the announced arm, else iperf3's figure at the start, or its estimate when estimate_bandwidth
@@ -332,14 +324,14 @@ def measure_run(run_dir, robots, read_csv):
         }
         for robot in robots:
             for stream in STREAMS:
-                if stream == "video" and (robot, stream) not in arrivals and not levels.get((robot, stream)):
+                if stream == "video" and (robot, stream) not in arrivals and not allotments.get((robot, stream)):
                     continue  # a robot without a camera
                 figures = stream_figures(arrivals.get((robot, stream)), t0, t1)
                 got = [v for t, v in volumes.get((robot, stream), ()) if t0 <= t < t1]
                 figures["received_mean_mbytes_per_s"] = float(np.mean(got)) if got else 0.0
                 figures.update(allotment_figures(allotments.get((robot, stream), ()), t0, t1))
                 rows.append(
-                    {**common, "robot": robot, "stream": stream, "level": level_in(levels[(robot, stream)], t0, t1)}
+                    {**common, "robot": robot, "stream": stream, "level": level_in(allotments[(robot, stream)], t0, t1)}
                     | figures
                 )
         capacity_mbytes = capacity_mbps / 8.0
@@ -827,9 +819,10 @@ def _why(row):
     )
     if J.missing(rate):
         return ""
+    percent = math.nan if J.missing(bound) else 100.0 * bound
     return (
         f"; the manager allotted it {_fmt(rate)} Hz (median), its robots' CPU to spare above the idle reserve "
-        f"{_fmt(spare, 2)} cores (median), judged compute-bound in {_fmt(100.0 * bound if not J.missing(bound) else bound, 0)} % of its allocations"
+        f"{_fmt(spare, 2)} cores (median), judged compute-bound in {_fmt(percent, 0)} % of its allocations"
     )
 
 
