@@ -138,12 +138,15 @@ def _through_tbf(
     count=None,
     last_late_s=0.0,
     waiting_fraction=0.0,
+    tick_s=0.0,
 ):
     """(The twin's (index, t, link bytes, idle s, CPU wait so far s) at each probe message, the
     messages' bytes) of one train of `count` messages (None: sized for rate_mbps) sent at train_mbps
     through the test bed's token bucket at rate_mbps (full at the start: the fleet sends less), with
     the fleet's own frames at fleet_mbps beside it and a random delay before the twin takes each
-    message (`last_late_s` more for the last one), `waiting_fraction` of it spent waiting for a CPU."""
+    message (`last_late_s` more for the last one), `waiting_fraction` of it spent waiting for a CPU;
+    the link's idle time as the kernel keeps it: whole ticks of `tick_s` (0: exact), its jiffies at a
+    random phase."""
     rng = random.Random(seed)
     rate = rate_mbps * 1e6 / 8
     burst = shaper_burst_bytes(rate_mbps * 1e6)
@@ -179,9 +182,16 @@ def _through_tbf(
         total += size
         cumulative.append(total)
 
+    phase = rng.uniform(0, tick_s)
+
+    def jiffies(t):
+        return math.floor((t + phase) / tick_s) if tick_s else t
+
     def link_at(t):
         i = max((j for j, a in enumerate(arrivals) if a <= t), default=-1)
-        return (cumulative[i], t - arrivals[i]) if i >= 0 else (0, t)
+        if i < 0:
+            return 0, t
+        return cumulative[i], (jiffies(t) - jiffies(arrivals[i])) * (tick_s or 1.0)
 
     taken, waited, samples = 0.0, 0.0, []
     for t_arrived, _, index in out:
@@ -242,6 +252,18 @@ def test_a_last_message_read_late_while_the_fleet_sends_does_not_slow_the_readin
     assert sent[0][-1][3] < 0.003  # the fleet's 1 kB frames, 2.7 ms apart: the link was not idle at the read
     measure = _feed(TrainArrivals(), sent, 80.0)
     assert measure.arrival_mbps == pytest.approx(20.0, rel=0.05)
+
+
+@pytest.mark.parametrize("rate_mbps", [5.0, 10.0, 20.0, 60.0])
+@pytest.mark.parametrize("seed", range(8))
+def test_the_kernels_coarse_last_receive_time_does_not_make_a_train_read_fast(rate_mbps, seed):
+    """CI on 2026-11-30: a 20 Mbit/s link read 24.5. TCP_INFO's last_data_recv counts whole jiffies
+    (4 ms here), so a train's end taken at the read minus that time came up to a tick early, and its
+    fastest span short: up to 1.6 x the link over these seeds. The end is put at the latest the
+    kernel's figure allows."""
+    sent = _through_tbf(rate_mbps, train_mbps=4 * rate_mbps, fleet_mbps=0.12 * rate_mbps, seed=seed, tick_s=0.004)
+    measure = _feed(TrainArrivals(), sent, 4 * rate_mbps)
+    assert rate_mbps * 0.95 <= measure.arrival_mbps <= rate_mbps * 1.1
 
 
 # Train 15 of the reference mission on 2026-11-30, as the twin's bridge took it (ms since its first

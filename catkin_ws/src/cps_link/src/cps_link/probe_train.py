@@ -86,6 +86,12 @@ RECEIVER_LATE_FRACTION = 0.5
 # the twin took a train's last message ~30 ms late while the fleet's frames kept the link's
 # last-receive time at the read.
 FASTEST_SPAN_FRACTION = 0.5
+# The kernel keeps a socket's last receive in jiffies (TCP_INFO's last_data_recv: Debian's amd64
+# kernels tick at 250 Hz, 4 ms), so "silent for idle_s" means the data came between idle_s - tick
+# and idle_s + tick before the read. The train's end is put at the latest of those: taken at its
+# face value, an end a tick too early made a 20 Mbit/s link read 24.5 (CI, 2026-11-30) and up to
+# 1.6 x in simulation; the latest end can only slow the reading, by at most a tick.
+LAST_RECEIVE_TICK_S = 0.004
 PROBE_REFUSALS = (BAD_PROBE, INCOMPLETE, TOO_SHORT, RECEIVER_LATE)
 
 
@@ -366,7 +372,8 @@ def measure_train(samples, message_bytes):
     the receiving thread's wait for a CPU or its lock so far s)], or why not (TOO_SHORT,
     RECEIVER_LATE). The measured part starts at the message that completes half the train's bytes
     (the head may have passed a shaper's burst at the sender's rate) and ends when the link last
-    received data before the last message was taken; its rate is that of its fastest span
+    received data before the last message was taken (the latest the kernel's tick allows:
+    LAST_RECEIVE_TICK_S); its rate is that of its fastest span
     (FASTEST_SPAN_FRACTION), with the receiver's wait over that span."""
     if len(samples) < 2:
         return TOO_SHORT
@@ -374,7 +381,7 @@ def measure_train(samples, message_bytes):
     mid = next(i for i, s in enumerate(samples) if s[2] >= total / 2.0)
     mid = min(mid, len(samples) - 2)
     first, half, last = samples[0], samples[mid], samples[-1]
-    end_s = max(last[0] - last[4], half[0])
+    end_s = max(last[0] - max(0.0, last[4] - LAST_RECEIVE_TICK_S), half[0])
     moved = last[1] - half[1]
     if end_s - half[0] <= 0 or moved <= 0:
         return TOO_SHORT
