@@ -272,6 +272,34 @@ def test_the_link_sockets_tcp_payload_counts_and_rtt_from_tcp_info_stay_monotone
     server.close()
 
 
+def test_a_read_is_stamped_when_the_kernel_gave_its_counters_not_after_the_queues(monkeypatch):
+    """The byte counters are true of the getsockopt's instant: the queues' ioctls and the dup's close
+    after it may let another thread hold the GIL for its 5 ms switch interval, and a probe train's
+    span measured between two late stamps reads the link fast or slow."""
+    import socket
+    import time
+
+    from cps_link import link_report
+    from cps_link.link_report import LinkSockets
+
+    ioctls_began = []
+    real_ioctl = link_report.fcntl.ioctl
+
+    def slow_ioctl(*args):
+        ioctls_began.append(time.monotonic())
+        time.sleep(0.01)
+        return real_ioctl(*args)
+
+    with _server_on_a_port_no_socket_here_uses() as server:
+        port = server.getsockname()[1]
+        with socket.create_connection(("127.0.0.1", port)), server.accept()[0]:
+            sockets = LinkSockets(remote_port=port)
+            monkeypatch.setattr(link_report.fcntl, "ioctl", slow_ioctl)
+            (info,) = sockets.read()
+    assert len(ioctls_began) == 2
+    assert sockets.read_s == info.read_s <= ioctls_began[0]
+
+
 def test_an_interval_carries_the_link_sockets_bytes_beside_the_frames():
     c = ReportComposer()
     c.on_report(_report(1, 0.0, 0, link_sent_bytes=1_000), 10.0, link_received_bytes=900)

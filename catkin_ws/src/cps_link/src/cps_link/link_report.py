@@ -379,6 +379,8 @@ class TcpInfo:
     send_queue_bytes: int = 0
     receive_queue_bytes: int = 0
     last_data_recv_ms: int = 0  # how long ago the socket last received data (the kernel's, ms)
+    # the monotonic s right after the kernel gave these counters (NaN: not read from a socket)
+    read_s: float = math.nan
 
     @property
     def bytes_new(self):
@@ -431,7 +433,9 @@ class LinkSockets:
         # the monotonic s at which the last read's TCP_INFO were taken (NaN before one): the
         # instant its byte counters are true of, so an interval between two reads is measured
         # from these, not from when the caller began (the robots' report was stamped before it
-        # took the bridge's lock: up to 38 ms early live)
+        # took the bridge's lock: up to 38 ms early live). Taken right after getsockopt, not after
+        # the queues' ioctls and the dup's close, which lets another thread take the GIL for up
+        # to its 5 ms switch interval: a probe train's span measured between two late stamps.
         self.read_s = math.nan
 
     def _fd_of(self, inode):
@@ -477,7 +481,7 @@ class LinkSockets:
             info = _tcp_info_of(fd) if fd is not None else None
             if info is None:
                 continue
-            self.read_s = time.monotonic()
+            self.read_s = info.read_s if math.isfinite(info.read_s) else time.monotonic()
             seen.add(inode)
             out.append(info)
             self._last[inode] = info
@@ -541,12 +545,14 @@ def _tcp_info_of(fd):
     """TCP_INFO of file descriptor `fd` of this process (a dup is read and closed; the socket stays)."""
     try:
         with _dup_socket(fd) as sock:
-            info = parse_tcp_info(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, _TCP_INFO_LEN))
+            raw = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, _TCP_INFO_LEN)
+            read_s = time.monotonic()
+            info = parse_tcp_info(raw)
             if info is None:
                 return None
             send, receive = (
                 struct.unpack("i", fcntl.ioctl(sock.fileno(), op, b"\0" * 4))[0] for op in (_SIOCOUTQ, _SIOCINQ)
             )
-            return dataclasses.replace(info, send_queue_bytes=send, receive_queue_bytes=receive)
+            return dataclasses.replace(info, send_queue_bytes=send, receive_queue_bytes=receive, read_s=read_s)
     except OSError:
         return None
