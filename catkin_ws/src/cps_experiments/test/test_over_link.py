@@ -199,9 +199,11 @@ def _estimates(csv_path):
     with open(csv_path) as stream:
         for row in csv.DictReader(stream):
             train = row.get("probe_train_mbps", "")
-            why = f"app-limited {row.get('app_limited', '')}" + (
+            why = f"app-limited {row.get('app_limited', '')}; socket full {row.get('sender_socket_full', '')}" + (
                 f"; overuse {row['overuse']}" if row.get("overuse") else ""
             )
+            if row.get("refused"):
+                why += f"; REFUSED {row['refused']}"
             if train:
                 why += (
                     f"; train {float(train):.1f} sent at {float(row['probe_train_sent_mbps'] or 'nan'):.1f}, "

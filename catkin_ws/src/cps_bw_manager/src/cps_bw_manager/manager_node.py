@@ -79,6 +79,7 @@ LINK_ESTIMATE_CSV_COLUMNS = (
     "probe_train_mbps",
     "probe_train_sent_mbps",
     "probe_train_receiver_wait_ms",
+    "refused",
 )
 
 
@@ -101,9 +102,10 @@ def link_estimate_msg(core, true_capacity_mbps, now_s) -> LinkEstimate:
     )
 
 
-def link_estimate_csv_row(stamp_s, msg, report, overuse=""):
-    """One row of link_estimate.csv (LINK_ESTIMATE_CSV_COLUMNS) for a link report, its estimate and
-    the overuse the report made the estimator see (deficit, link_full, rtt; "" none)."""
+def link_estimate_csv_row(stamp_s, msg, report, overuse="", refused=""):
+    """One row of link_estimate.csv (LINK_ESTIMATE_CSV_COLUMNS) for a link report, its estimate,
+    the overuse the report made the estimator see (deficit, link_full, rtt; "" none) and why the
+    estimator refused the report ("" taken: a key of DeliveryRateEstimator.ignored)."""
 
     def rate(n_bytes, seconds):
         return f"{n_bytes * 8e-6 / seconds:.4f}" if seconds > 0 else ""
@@ -142,6 +144,7 @@ def link_estimate_csv_row(stamp_s, msg, report, overuse=""):
         f"{1e3 * report.probe_train_receiver_wait_s:.1f}"
         if report.probe_train_bytes and math.isfinite(report.probe_train_receiver_wait_s)
         else "",
+        refused,
     )
 
 
@@ -427,6 +430,7 @@ class BandwidthManagerNode:
         with self.lock:
             est = self.core.estimator
             overuses = est.overuses if est else 0
+            ignored = dict(est.ignored) if est else {}
             moved = self.core.on_bridge_report(
                 rospy.get_time(),
                 msg.interval_s,
@@ -452,7 +456,8 @@ class BandwidthManagerNode:
                 probe_cost_mbps=msg.probe_cost_mbps,
             )
             overuse = est.last_overuse if est and est.overuses > overuses else ""
-        self.publish_estimate(msg, overuse)
+            refused = next((why for why, n in est.ignored.items() if n > ignored.get(why, 0)), "") if est else ""
+        self.publish_estimate(msg, overuse, refused)
         if moved:
             self.update()
 
@@ -460,16 +465,16 @@ class BandwidthManagerNode:
         with self.lock:
             self.true_capacity_mbps = msg.capacity_mbps if math.isfinite(msg.capacity_mbps) else math.nan
 
-    def publish_estimate(self, report, overuse=""):
+    def publish_estimate(self, report, overuse="", refused=""):
         """/tissue/link_estimate (and a row of link_estimate.csv): the estimate beside the true
         capacity, and the link report it came from (None: the 1 Hz repeat) with the overuse it
-        made the estimator see ("" none)."""
+        made the estimator see and why the estimator refused it ("" none)."""
         with self.lock:
             msg = link_estimate_msg(self.core, self.true_capacity_mbps, rospy.get_time())
         msg.header.stamp = rospy.Time.now()
         self.estimate_pub.publish(msg)
         if self.estimate_csv and report is not None:
-            self.estimate_csv.write(link_estimate_csv_row(msg.header.stamp.to_sec(), msg, report, overuse))
+            self.estimate_csv.write(link_estimate_csv_row(msg.header.stamp.to_sec(), msg, report, overuse, refused))
 
     def _on_link_state(self, msg):
         with self.lock:
