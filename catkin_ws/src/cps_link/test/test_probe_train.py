@@ -11,6 +11,7 @@ from cps_link.netns_link import shaper_burst_bytes
 from cps_link.probe_train import (
     BAD_PROBE,
     INCOMPLETE,
+    OUT_OF_ORDER,
     PROBE_COST_FRACTION,
     PROBE_MAX_MESSAGE_BYTES,
     PROBE_MAX_PERIOD_S,
@@ -205,7 +206,7 @@ def _through_tbf(
     return samples, message_bytes
 
 
-def _feed(arrivals, sent, target_mbps, train=1, count=None):
+def _feed(arrivals, sent, target_mbps, train=1, count=None, out_of_order=lambda index: 0):
     samples, message_bytes = sent
     count = count or max(index for index, *_ in samples) + 1
     header_of = {
@@ -222,7 +223,7 @@ def _feed(arrivals, sent, target_mbps, train=1, count=None):
     }
     out = None
     for index, t, link, idle, waited in samples:
-        out = arrivals.arrival(header_of[index], t, link, idle, waited) or out
+        out = arrivals.arrival(header_of[index], t, link, idle, waited, out_of_order(index)) or out
     return out
 
 
@@ -303,6 +304,24 @@ def test_a_train_the_link_carries_at_its_pace_arrives_at_its_pace():
     measure = _feed(arrivals, samples, 20.0)
     # the fleet's frames share the link with it: a little above the train's own pace
     assert 0.9 * 20.0 <= measure.arrival_mbps <= 1.3 * 20.0
+
+
+def test_a_train_the_link_lost_a_packet_under_is_refused():
+    """Live beside busy loops a 20 Mbit/s link read 30.2 by a train its reader took on time: TCP's
+    in-order byte count, which a train is timed by, jumps when a lost packet's retransmission fills
+    the hole. A train during which the socket received packets out of order is refused."""
+    sent = _through_tbf(20.0, train_mbps=80.0, fleet_mbps=3.0, seed=4)
+    samples, message_bytes = sent
+    # the hole: the bytes of messages 9-11 held out of order until message 12's read (then in at once)
+    held = {k: t for k, t, *_ in samples if 9 <= k <= 11}
+    jumped = [(k, t, b - (3 * message_bytes if k in held else 0), idle, w) for k, t, b, idle, w in samples]
+    clean = _feed(TrainArrivals(), (jumped, message_bytes), 80.0)
+    assert clean.arrival_mbps > 1.25 * 20.0  # what the jump reads when nothing says it happened
+    arrivals = TrainArrivals()
+    assert _feed(arrivals, (jumped, message_bytes), 80.0, out_of_order=lambda k: 3 if k >= 9 else 0) is None
+    assert arrivals.refused[OUT_OF_ORDER] == 1 and arrivals.measured == 0
+    # packets out of order before the train began are no reason
+    assert _feed(arrivals, sent, 80.0, train=2, out_of_order=lambda k: 7) is not None
 
 
 def test_trains_that_cannot_be_measured_are_counted_by_kind():

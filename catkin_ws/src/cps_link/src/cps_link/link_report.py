@@ -349,7 +349,9 @@ def _tcp_sockets(local_port, remote_port, proc_root):
 # struct tcp_info (linux/tcp.h), the fields read: srtt and min RTT (us), bytes acked, received and
 # sent (the TCP payload: TLS, Zenoh and the bridge's frames, every byte the link carries but the
 # TCP/IP headers), bytes not yet sent, the time limited by the receiver's window (us), and how long
-# ago data last arrived (ms: a probe train's end, cps_link.probe_train).
+# ago data last arrived (ms: a probe train's end, cps_link.probe_train), and the packets received
+# out of order (bytes_received counts in-order bytes only: it jumps when a lost packet's
+# retransmission fills the hole, which a probe train must not take for the link's pace).
 _TCP_INFO_LEN = 232
 _TCP_INFO_FIELDS = {
     "rtt_us": ("I", 68),
@@ -361,6 +363,7 @@ _TCP_INFO_FIELDS = {
     "bytes_sent": ("Q", 200),
     "bytes_retrans": ("Q", 208),
     "last_data_recv_ms": ("I", 52),
+    "rcv_ooopack": ("I", 224),
 }
 
 
@@ -379,6 +382,7 @@ class TcpInfo:
     send_queue_bytes: int = 0
     receive_queue_bytes: int = 0
     last_data_recv_ms: int = 0  # how long ago the socket last received data (the kernel's, ms)
+    rcv_ooopack: int = 0  # packets received out of order (a loss or reordering before them), cumulative
     # the monotonic s right after the kernel gave these counters (NaN: not read from a socket)
     read_s: float = math.nan
 
@@ -429,7 +433,7 @@ class LinkSockets:
         self._inodes = []  # the link sockets' inodes it found there
         self._fds = {}  # inode -> fd in this process
         self._last = {}  # inode -> TcpInfo at the last read
-        self._base = {"bytes_new": 0, "bytes_acked": 0, "bytes_received": 0}
+        self._base = {"bytes_new": 0, "bytes_acked": 0, "bytes_received": 0, "rcv_ooopack": 0}
         # the monotonic s at which the last read's TCP_INFO were taken (NaN before one): the
         # instant its byte counters are true of, so an interval between two reads is measured
         # from these, not from when the caller began (the robots' report was stamped before it
@@ -509,8 +513,8 @@ class LinkSockets:
         return ended
 
     def totals(self):
-        """{bytes_new (sent, retransmissions aside), bytes_acked, bytes_received}: cumulative over
-        every link socket so far."""
+        """{bytes_new (sent, retransmissions aside), bytes_acked, bytes_received, rcv_ooopack (packets
+        received out of order)}: cumulative over every link socket so far."""
         return {name: base + sum(getattr(i, name) for i in self._last.values()) for name, base in self._base.items()}
 
 

@@ -79,6 +79,12 @@ TOO_SHORT = "too_short"  # its measured part arrived in no time (one read of the
 # link's. (Some may have: a shaper's burst can carry the head past the train's half.)
 RECEIVER_LATE = "receiver_late"
 RECEIVER_LATE_FRACTION = 0.5
+# the twin's link socket received packets out of order while the train arrived (TCP_INFO's
+# rcv_ooopack): a packet was lost or reordered, and the in-order byte count the train is timed by
+# jumps when its retransmission fills the hole, so a span across the jump reads the link fast (live,
+# test_over_link beside busy loops: a 20 Mbit/s link read 30.2 by a train the twin's thread took on
+# time, sent at 4 x into a queue the fleet's frames already held)
+OUT_OF_ORDER = "out_of_order"
 # The measured part's rate is its fastest span's among those that carry at least this fraction of
 # its link bytes. Each (read time, link bytes) pair is what the kernel had received when the twin
 # read it, however late the read, so a span's rate is what the link delivered over it, and a late
@@ -92,7 +98,7 @@ FASTEST_SPAN_FRACTION = 0.5
 # face value, an end a tick too early made a 20 Mbit/s link read 24.5 (CI, 2026-11-30) and up to
 # 1.6 x in simulation; the latest end can only slow the reading, by at most a tick.
 LAST_RECEIVE_TICK_S = 0.004
-PROBE_REFUSALS = (BAD_PROBE, INCOMPLETE, TOO_SHORT, RECEIVER_LATE)
+PROBE_REFUSALS = (BAD_PROBE, INCOMPLETE, TOO_SHORT, RECEIVER_LATE, OUT_OF_ORDER)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,14 +321,18 @@ class TrainArrivals:
         self.refused = dict.fromkeys(PROBE_REFUSALS, 0)
         self.measured = 0
         self.received_bytes = 0  # every probe message's bytes, measured or not
-        # (header of the first message seen, [(t, link bytes, train bytes so far, header, idle s, wait s)])
+        # (header of the first message seen,
+        #  [(t, link bytes, train bytes so far, header, idle s, wait s, packets out of order)])
         self._train = None
 
-    def arrival(self, payload, now_s, link_bytes, idle_s=0.0, wait_s=math.nan) -> Optional[TrainMeasure]:
+    def arrival(
+        self, payload, now_s, link_bytes, idle_s=0.0, wait_s=math.nan, out_of_order=0
+    ) -> Optional[TrainMeasure]:
         """One probe message taken at `now_s` (monotonic s) when the link had delivered `link_bytes`
         in all (cumulative, the message included) and had been silent for `idle_s` (the kernel's
         last_data_recv: a message taken after the train's end says when the end came), the taking
-        thread having waited `wait_s` for a CPU or its lock so far (cumulative; NaN: unknown).
+        thread having waited `wait_s` for a CPU or its lock so far (cumulative; NaN: unknown), and
+        the link socket having received `out_of_order` packets out of order so far (cumulative).
         Returns the measure of a train this message completes, else None."""
         size = len(payload)
         self.received_bytes += size
@@ -339,7 +349,7 @@ class TrainArrivals:
             train = self._train = (header, [])
         samples = train[1]
         so_far = (samples[-1][2] if samples else 0) + size
-        samples.append((now_s, link_bytes, so_far, header, max(0.0, idle_s), wait_s))
+        samples.append((now_s, link_bytes, so_far, header, max(0.0, idle_s), wait_s, out_of_order))
         if header.index == header.count - 1:
             self._train = None
             return self._measure(samples)
@@ -369,14 +379,16 @@ class TrainArrivals:
 
 def measure_train(samples, message_bytes):
     """The TrainMeasure of one train's arrivals [(t, link bytes, train bytes so far, header, idle s,
-    the receiving thread's wait for a CPU or its lock so far s)], or why not (TOO_SHORT,
-    RECEIVER_LATE). The measured part starts at the message that completes half the train's bytes
+    the receiving thread's wait for a CPU or its lock so far s, packets out of order so far)], or
+    why not (TOO_SHORT, RECEIVER_LATE, OUT_OF_ORDER). The measured part starts at the message that completes half the train's bytes
     (the head may have passed a shaper's burst at the sender's rate) and ends when the link last
     received data before the last message was taken (the latest the kernel's tick allows:
     LAST_RECEIVE_TICK_S); its rate is that of its fastest span
     (FASTEST_SPAN_FRACTION), with the receiver's wait over that span."""
     if len(samples) < 2:
         return TOO_SHORT
+    if samples[-1][6] != samples[0][6]:
+        return OUT_OF_ORDER
     total = samples[-1][2]
     mid = next(i for i, s in enumerate(samples) if s[2] >= total / 2.0)
     mid = min(mid, len(samples) - 2)

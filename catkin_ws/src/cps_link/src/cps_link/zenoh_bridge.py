@@ -967,14 +967,19 @@ class ZenohBridge:
                 self.composer.received(len(payload), managed=False, probe=True)
                 read = self.link_sockets.read()
                 if read:
-                    now, link_bytes = self.link_sockets.read_s, self.link_sockets.totals()["bytes_received"]
+                    totals = self.link_sockets.totals()
+                    now, link_bytes, out_of_order = (
+                        self.link_sockets.read_s,
+                        totals["bytes_received"],
+                        totals["rcv_ooopack"],
+                    )
                     idle_s = min(i.last_data_recv_ms for i in read) * 1e-3
                 else:  # no TCP_INFO: the frames this bridge received
-                    now, link_bytes, idle_s = time.monotonic(), self.composer.delivered_bytes, 0.0
+                    now, link_bytes, idle_s, out_of_order = time.monotonic(), self.composer.delivered_bytes, 0.0, 0
                 # how late this thread's reads may be: its waits for a CPU and for the lock
                 cpu_wait_s = thread_cpu_and_wait_s()[1]
                 wait_s = math.nan if cpu_wait_s is None else cpu_wait_s + self._probe_lock_wait_s
-                measure = self.train_arrivals.arrival(payload, now, link_bytes, idle_s, wait_s)
+                measure = self.train_arrivals.arrival(payload, now, link_bytes, idle_s, wait_s, out_of_order)
                 if measure is not None:
                     self.composer.train_measured(measure)
                 refused = dict(self.train_arrivals.refused)
