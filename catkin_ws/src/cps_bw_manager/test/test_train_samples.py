@@ -172,6 +172,25 @@ def test_a_shortfall_in_the_first_train_after_a_cut_is_taken_at_once():
     assert est.capacity_mbps == pytest.approx(24.7) and est.trains[TRAIN_HELD] == 1
 
 
+def test_the_first_train_after_a_cut_takes_back_a_cut_too_deep_up_to_where_it_was():
+    """Live (test_over_link beside busy loops, 2026-11-30): on the 20 Mbit/s link a train's loss left
+    TCP sending below the link for an interval with its socket full: link_full cut 19.2 to 16.7;
+    the next train's 19.3 was held as a small rise and the one after it under-read, so 16.7 held for
+    2.5 s. The first train after a cut reads the link itself: at once, but never above the capacity
+    the cut started from."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_report(2.0, train=19.2, sent=231.0))  # the 20 Mbit/s link, far below: at once
+    _run(est, [_report(2.0 + 0.5 * i, fleet_mbps=14.0) for i in range(1, 5)])
+    assert est.capacity_mbps == pytest.approx(19.2)
+    est.update(_interval(4.5, 16.7, 13.3, busy=False, link_limited=True))
+    assert est.mode == "drain" and est.capacity_mbps == pytest.approx(16.7)
+    est.update(_report(5.0, train=19.3, sent=66.5, fleet_mbps=14.0))
+    assert est.capacity_mbps == pytest.approx(19.2) and est.trains[TRAIN_HELD] == 0
+    # a second train reading high is a rise like any other: held
+    est.update(_report(6.0, train=22.0, sent=76.8, fleet_mbps=14.0))
+    assert est.capacity_mbps == pytest.approx(19.2) and est.trains[TRAIN_HELD] == 1
+
+
 def test_a_bottleneck_below_what_its_interval_delivered_reads_as_that_interval():
     """Live (test_over_link, 2026-11-30): on the 20 Mbit/s link a train read 11.7 Mbit/s in an
     interval that delivered 15.6, and was taken at once as a step down (below 0.7 x 19.4). The link

@@ -325,6 +325,7 @@ class DeliveryRateEstimator:
         self._capacity_before_probe_mbps = math.nan
         self._drain_checked = False  # the drain's one correction of the capacity was made
         self._cut_s = -math.inf  # the last overuse's cut
+        self._before_cut_mbps = math.inf  # the capacity that cut (or the first of cuts no train saw) left
         self._gain = PROBE_GAIN
 
     @property
@@ -689,6 +690,14 @@ class DeliveryRateEstimator:
             # link), the train confirms it. Live (test_over_link, final62), a 60 -> 20 Mbit/s step
             # cut to 24.7; held, the train's 19.1 waited 2.5 s for the next (one per 2.5 s at 24.7)
             self.trains[kind] += 1
+        elif measured > self.capacity_mbps and first_after_cut:
+            # ... and above the cut: the cut read one interval, the train reads the link itself; it
+            # takes the capacity back at once, no higher than before the cut. Live (test_over_link
+            # beside busy loops) a train's loss left TCP sending below a 20 Mbit/s link for an
+            # interval with its socket full: cut to 16.9, the next train's 19.3 held, and the one
+            # after it under-read: 16.9 for 2.5 s
+            measured = min(measured, self._before_cut_mbps)
+            self.trains[kind] += 1
         elif measured != self.capacity_mbps and (
             TRAIN_STEP_FRACTION * self.capacity_mbps <= measured <= self.capacity_mbps / TRAIN_STEP_FRACTION
         ):
@@ -736,6 +745,8 @@ class DeliveryRateEstimator:
         self._merged.clear()  # this deficit is acted upon; the next one must be new
         self._samples.clear()  # the link changed: samples from before the overuse are not its rate
         self._deficit_reports = 0
+        if not (self._train_s < self._cut_s and now - self._cut_s <= self.max_drain_s):
+            self._before_cut_mbps = self.capacity_mbps  # (a cut soon after one no train saw keeps its origin)
         self.capacity_mbps = measured
         self.estimate_mbps = self._clip(drain_factor * measured)
         self.mode, self._mode_since_s = "drain", now  # a new overuse restarts the drain
