@@ -297,6 +297,35 @@ def test_a_trains_interval_on_a_link_full_all_along_is_the_links_rate():
     assert est.capacity_mbps == pytest.approx(19.3)
 
 
+def test_a_trains_interval_a_little_below_the_capacity_is_the_trains_cost_not_a_cut():
+    """Live beside busy loops (2026-11-30): on the 20 Mbit/s link an interval that carried a train
+    delivered 16.0 with the socket full in every sample (the train, sent at 4 x, cost a packet and
+    TCP sent below the link for a while); the same interval's train read 19.2. link_full cut the
+    capacity to 16.0. In a train's interval only a step (below 0.7 x) is the link's rate; the first
+    train after a cut in the same report as a train is still the first after it."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_report(2.0, train=19.2, sent=231.0))
+    assert est.capacity_mbps == pytest.approx(19.2)
+
+    def full_with_train(now_s, delivered_mbps, train):
+        return LinkReport(
+            **{
+                **_report(now_s, train=train, sent=76.7, fleet_mbps=14.0).__dict__,
+                "delivered_mbps": delivered_mbps,
+                "link_limited": True,
+            }
+        )
+
+    est.update(full_with_train(3.0, 16.0, 19.2))
+    assert est.overuses == 0 and est.capacity_mbps == pytest.approx(19.2)
+    # a step: cut (the train beside it, a small shortfall, taken first and held)
+    est.update(full_with_train(4.0, 12.0, 16.5))
+    assert est.last_overuse == "link_full" and est.capacity_mbps == pytest.approx(12.0)
+    assert est.trains[TRAIN_HELD] == 1
+    est.update(_report(5.0, train=12.4, sent=48.0, fleet_mbps=10.0))  # the first train after the cut
+    assert est.capacity_mbps == pytest.approx(12.4) and est.trains[TRAIN_HELD] == 1
+
+
 def test_without_the_sockets_counters_a_trains_interval_is_never_a_full_link():
     """The frames' path takes a train's frames out of what was delivered: a sender blocked by a
     train's burst is no measure of the link there (the socket's path counts every byte)."""
