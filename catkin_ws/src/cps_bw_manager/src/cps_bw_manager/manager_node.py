@@ -148,6 +148,15 @@ def link_estimate_csv_row(stamp_s, msg, report, overuse="", refused=""):
     )
 
 
+def report_time_s(msg, now_s):
+    """When a link report's interval closed: its stamp (the twin's bridge, on the twin's clock),
+    else `now_s`. Not when the manager took it: a callback that waited for the allocation's lock
+    took two reports 0.5 s apart back to back, and the estimator refused the second as a repeat
+    (clock_step) live beside busy loops, the interval right after a 60 -> 20 Mbit/s step."""
+    stamp_s = msg.header.stamp.to_sec()
+    return stamp_s if stamp_s > 0 else now_s
+
+
 def _param(name, default, kind):
     value = rospy.get_param(name, default)
     if kind is float and isinstance(value, int) and not isinstance(value, bool):
@@ -432,7 +441,7 @@ class BandwidthManagerNode:
             overuses = est.overuses if est else 0
             ignored = dict(est.ignored) if est else {}
             moved = self.core.on_bridge_report(
-                rospy.get_time(),
+                report_time_s(msg, rospy.get_time()),
                 msg.interval_s,
                 msg.sender_interval_s,
                 msg.delivered_bytes,
