@@ -23,9 +23,9 @@ def test_a_row_has_one_value_per_column_and_says_why_a_report_was_refused():
 
 
 def test_a_report_is_timed_by_its_stamp_not_by_when_the_manager_took_it():
-    """Two reports 0.5 s apart taken back to back (the callback waited for the allocation's lock)
-    are two intervals, not a repeat (the estimator refuses a report less than a quarter interval
-    after the last as a clock step)."""
+    """Two reports 0.5 s apart taken back to back (as a callback that waited for the allocation's
+    lock takes them) are two intervals, not a repeat (the estimator refuses a report less than a
+    quarter interval after the last as a clock step)."""
     import rospy
 
     stamped = [LinkReport(interval_s=0.5, sender_interval_s=0.5) for _ in range(2)]

@@ -150,9 +150,10 @@ def link_estimate_csv_row(stamp_s, msg, report, overuse="", refused=""):
 
 def report_time_s(msg, now_s):
     """When a link report's interval closed: its stamp (the twin's bridge, on the twin's clock),
-    else `now_s`. Not when the manager took it: a callback that waited for the allocation's lock
-    took two reports 0.5 s apart back to back, and the estimator refused the second as a repeat
-    (clock_step) live beside busy loops, the interval right after a 60 -> 20 Mbit/s step."""
+    else `now_s`. Not when the manager took it, which waits for the allocation's lock: live beside
+    busy loops the estimator refused the interval right after a 60 -> 20 Mbit/s step as a repeat
+    (clock_step). That lock wait is the suspected cause, not a traced one: with the stamp, 1 of 4
+    runs still refused one such interval."""
     stamp_s = msg.header.stamp.to_sec()
     return stamp_s if stamp_s > 0 else now_s
 

@@ -81,9 +81,10 @@ RECEIVER_LATE = "receiver_late"
 RECEIVER_LATE_FRACTION = 0.5
 # the twin's link socket received packets out of order while the train arrived (TCP_INFO's
 # rcv_ooopack): a packet was lost or reordered, and the in-order byte count the train is timed by
-# jumps when its retransmission fills the hole, so a span across the jump reads the link fast (live,
-# test_over_link beside busy loops: a 20 Mbit/s link read 30.2 by a train the twin's thread took on
-# time, sent at 4 x into a queue the fleet's frames already held)
+# jumps when its retransmission fills the hole, so a span across the jump reads the link fast. The
+# suspected cause, not a traced one, of a live over-reading (test_over_link beside busy loops: a 20
+# Mbit/s link read 30.2 by a train the twin's thread took on time, sent at 4 x into a queue the
+# fleet's frames already held); in simulation such a jump reads 1.25 x and more
 OUT_OF_ORDER = "out_of_order"
 # The measured part's rate is its fastest span's among those that carry at least this fraction of
 # its link bytes. Each (read time, link bytes) pair is what the kernel had received when the twin
