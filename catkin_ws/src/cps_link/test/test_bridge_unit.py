@@ -487,3 +487,31 @@ def test_the_command_lanes_connection_carries_its_dscp_both_ways():
         finally:
             for session in sessions:
                 session.close()
+
+
+def test_a_link_report_is_stamped_when_its_interval_closed_not_when_it_was_published(monkeypatch):
+    """Two reports' stamps are as far apart as the second's interval says, however long the first
+    waited to be published: stamped at publishing, one that waited came within a quarter interval
+    of the next one's stamp and the manager refused the next as a repeat (live, 1 of 4 runs)."""
+    import rospy
+
+    from cps_link.link_report import ReportComposer, SenderReport
+    from cps_link.zenoh_bridge import link_report_msg
+
+    monkeypatch.setattr(rospy.rostime, "_rostime_initialized", True)  # a clock without a node
+
+    def at(now_s):
+        monkeypatch.setattr(rospy.rostime, "_rostime_current", rospy.Time.from_sec(now_s))
+
+    def report(seq, t_s):
+        return SenderReport("run1", seq, t_s, 1000 * seq, 1000 * seq, 0, 0, False).encode()
+
+    composer = ReportComposer()
+    composer.on_report(report(1, 10.0), 500.0)
+    first, _ = composer.on_report(report(2, 10.5), 500.5)  # closed at ROS time 1000.5 ...
+    second, _ = composer.on_report(report(3, 11.5), 501.46)  # ... and 1001.46
+    at(1001.22)  # the first published 0.72 s after it closed
+    first_stamp = link_report_msg(first, 0.72).header.stamp.to_sec()
+    at(1001.46)  # the second at once
+    second_stamp = link_report_msg(second).header.stamp.to_sec()
+    assert second_stamp - first_stamp == pytest.approx(second.interval_s)

@@ -149,11 +149,11 @@ def link_estimate_csv_row(stamp_s, msg, report, overuse="", refused=""):
 
 
 def report_time_s(msg, now_s):
-    """When a link report's interval closed: its stamp (the twin's bridge, on the twin's clock),
-    else `now_s`. Not when the manager took it, which waits for the allocation's lock: live beside
-    busy loops the estimator refused the interval right after a 60 -> 20 Mbit/s step as a repeat
-    (clock_step). That lock wait is the suspected cause, not a traced one: with the stamp, 1 of 4
-    runs still refused one such interval."""
+    """When a link report's interval closed: its stamp (the twin's bridge stamps it with the clock
+    reading its interval_s was measured on), else `now_s`. Not when the manager took it, which can
+    wait for the allocation's lock: live beside busy loops the estimator refused the interval right
+    after a 60 -> 20 Mbit/s step as a repeat (clock_step), twice in eight runs (once with reports
+    stamped at the bridge's publishing: cps_link.zenoh_bridge.link_report_msg)."""
     stamp_s = msg.header.stamp.to_sec()
     return stamp_s if stamp_s > 0 else now_s
 

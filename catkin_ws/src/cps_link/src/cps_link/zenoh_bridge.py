@@ -916,12 +916,13 @@ class ZenohBridge:
                 self.composer.received(len(payload), managed=False)
                 self.link_sockets.read()
                 received = self.link_sockets.totals()["bytes_received"]
-                self.train_arrivals.expire(time.monotonic())
-                interval, _ = self.composer.on_report(payload, time.monotonic(), received)
+                closed_s = time.monotonic()
+                self.train_arrivals.expire(closed_s)
+                interval, _ = self.composer.on_report(payload, closed_s, received)
                 refused = dict(self.composer.refused)
             self.reporter.gauge(**{f"report_{why}": n for why, n in refused.items()})
             if interval is not None:
-                self.link_report_pub.publish(link_report_msg(interval))
+                self.link_report_pub.publish(link_report_msg(interval, time.monotonic() - closed_s))
         except Exception as exc:  # a zenoh callback must never die
             self.reporter.drop(f"link report: {exc}")
 
@@ -1077,8 +1078,12 @@ def _subscriber_counts():
     return {name: len(nodes) for name, nodes in subscribers}
 
 
-def link_report_msg(interval) -> LinkReport:
-    """cps_msgs/LinkReport of one cps_link.link_report.Interval, stamped now."""
+def link_report_msg(interval, closed_s_ago=0.0) -> LinkReport:
+    """cps_msgs/LinkReport of one cps_link.link_report.Interval, stamped when it closed
+    (`closed_s_ago` s before now): on the same clock reading as its interval_s, so that two reports'
+    stamps are as far apart as the second's interval says. Stamped at publishing, a report whose
+    publishing waited (the bridge's lock, its CPU) came within a quarter interval of the next one's
+    stamp, and the manager refused the next as a repeat (live beside busy loops, 1 of 4 runs)."""
     msg = LinkReport(
         seq=interval.seq,
         interval_s=interval.interval_s,
@@ -1110,7 +1115,7 @@ def link_report_msg(interval) -> LinkReport:
         probe_train_receiver_wait_s=interval.probe_train_receiver_wait_s,
         probe_cost_mbps=interval.probe_cost_mbps,
     )
-    msg.header.stamp = rospy.Time.now()
+    msg.header.stamp = rospy.Time.now() - rospy.Duration.from_sec(max(0.0, closed_s_ago))
     return msg
 
 
