@@ -12,7 +12,7 @@ from std_msgs.msg import Header
 
 from cps_fleet import names
 from cps_harness.mcap_check import read_ros1_mcap
-from cps_web.mcap_recording import McapRecording, RecordingError, link_topics
+from cps_web.mcap_recording import ClockGate, McapRecording, RecordingError, link_topics
 
 
 def _raw(msg):
@@ -106,3 +106,31 @@ def test_foxglove_npm_readers_decode_every_channel_and_catch_a_wrong_definition(
     recording.close()
     report = npm_read(wrong)
     assert report["decode_errors"] == 1 and report["topics"]["/x"]["decoded"] == 0, report
+
+
+def test_what_arrives_before_a_replayed_clock_runs_is_kept_and_logged_at_its_first_time(tmp_path):
+    """The recorder subscribes before the player's first message (final69's MCAP of a replay
+    lacked scout's first second: subscribed once the clock ran). What comes while the clock says 0
+    (a latched /tf_static, the first odometry) is held and logged at the clock's first time; a
+    clock that never starts leaves it at 0, never lost."""
+    path = str(tmp_path / "m.mcap")
+    recording = McapRecording(path)
+    gate = ClockGate(recording)
+    odom = Odometry()
+    for i in range(3):
+        gate.write("/early", odom._type, Odometry._full_text, _raw(odom), 0)
+    with pytest.raises(RecordingError):
+        gate.write("/bad", odom._type, "", b"", 0)
+    gate.write("/late", odom._type, Odometry._full_text, _raw(odom), 7_000_000_000)
+    gate.write("/late", odom._type, Odometry._full_text, _raw(odom), 7_100_000_000)
+    gate.close()
+    with open(path, "rb") as stream:
+        logged = [(c.topic, m.log_time) for _, c, m in make_reader(stream).iter_messages()]
+    assert logged == [("/early", 7_000_000_000)] * 3 + [("/late", 7_000_000_000), ("/late", 7_100_000_000)]
+    assert recording.refused == 1
+
+    never = McapRecording(str(tmp_path / "n.mcap"))
+    gate = ClockGate(never)
+    gate.write("/tf_static", odom._type, Odometry._full_text, _raw(odom), 0)
+    gate.close()
+    assert never.messages == 1

@@ -123,6 +123,47 @@ class McapRecording:
         self._stream.close()
 
 
+class ClockGate:
+    """Writes into a McapRecording at the time a clock says, holding what arrives while that clock
+    has not started (a replay's /clock: time 0) and logging it at the clock's first time. So the
+    recorder subscribes at once and connects while the player waits (rosbag play -d): subscribing
+    only once the clock ran, it missed the first second of a topic under load (the MCAP of the
+    replay in final69 lacked 31 of scout's 1949 odometry messages and 18 of its 806 joint states).
+    `write` from any thread."""
+
+    def __init__(self, recording: McapRecording):
+        self.recording = recording
+        self._lock = threading.Lock()
+        self._held = []  # (topic, type, definition, payload) before the clock started
+        self._started = False
+
+    def write(self, topic: str, type_name: str, definition: str, payload: bytes, clock_ns: int):
+        """One message received when the clock said `clock_ns` (0: not started)."""
+        if not self._started:
+            with self._lock:
+                if not self._started:
+                    if clock_ns == 0:
+                        if not type_name or not definition:  # refused and counted now, not at the release
+                            self.recording.write(topic, type_name, definition, payload)
+                        self._held.append((topic, type_name, definition, payload))
+                        return
+                    self._release(clock_ns)
+        self.recording.write(topic, type_name, definition, payload, log_time_ns=clock_ns)
+
+    def _release(self, clock_ns):
+        for held in self._held:
+            self.recording.write(*held, log_time_ns=clock_ns)
+        self._held.clear()
+        self._started = True
+
+    def close(self):
+        """Close the recording; what was held is written at time 0 if the clock never started."""
+        with self._lock:
+            if not self._started:
+                self._release(0)
+        self.recording.close()
+
+
 def link_topics(robots, camera_robots) -> List[str]:
     """What crosses the link, resolved as the twin receives it: the managed clouds (as relayed at the
     twin), the managed video, tf, and each robot's light streams and mission state."""
