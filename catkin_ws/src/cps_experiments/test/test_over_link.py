@@ -204,6 +204,8 @@ def _estimates(csv_path):
             )
             if row.get("refused"):
                 why += f"; REFUSED {row['refused']}"
+            if row.get("probe_refused"):
+                why += f"; trains refused {row['probe_refused']}"
             if train:
                 why += (
                     f"; train {float(train):.1f} sent at {float(row['probe_train_sent_mbps'] or 'nan'):.1f}, "

@@ -41,6 +41,17 @@ def test_an_interval_is_the_difference_of_two_reports_each_side_on_its_own_clock
     assert interval.rtt_s == (0.01, 0.02) and not interval.receiver_behind and interval.sender_blocked_s == 0.3
 
 
+def test_an_interval_says_which_trains_the_twin_refused_and_why():
+    c = ReportComposer()
+    c.on_report(_report(1, 100.0, 1000), 5000.0)
+    for why in ("receiver_late", "out_of_order", "receiver_late"):
+        c.train_refused(why)
+    interval, _ = c.on_report(_report(2, 100.5, 2000), 5000.5)
+    assert interval.probe_refused == "out_of_order:1,receiver_late:2"
+    interval, _ = c.on_report(_report(3, 101.0, 3000), 5001.0)
+    assert interval.probe_refused == ""  # the next interval starts from none
+
+
 def test_a_lost_report_makes_the_next_interval_longer_not_wrong():
     c = ReportComposer()
     c.on_report(_report(1, 0.0, 0), 10.0)

@@ -325,7 +325,8 @@ def test_a_train_the_link_lost_a_packet_under_is_refused():
 
 
 def test_trains_that_cannot_be_measured_are_counted_by_kind():
-    arrivals = TrainArrivals()
+    told = []  # what the link report hears of each refusal
+    arrivals = TrainArrivals(on_refused=told.append)
     samples, message_bytes = _through_tbf(10.0, train_mbps=115.5, fleet_mbps=3.0, seed=2, count=24)
     # six of 24 messages lost: fewer than 80 %
     lost = [s for s in samples if s[0] not in (3, 4, 5, 6, 7, 8)]
@@ -338,7 +339,7 @@ def test_trains_that_cannot_be_measured_are_counted_by_kind():
     # a train whose last message never comes, given up after the timeout
     _feed(arrivals, (samples[:5], message_bytes), 115.5, train=4, count=24)
     arrivals.expire(samples[0][1] + 10.0)
-    assert arrivals.refused[INCOMPLETE] == 3
+    assert arrivals.refused[INCOMPLETE] == 3 and told == [INCOMPLETE] * 3
     # not a probe message
     assert arrivals.arrival(b"garbage", 1.0, 100) is None
     assert arrivals.refused[BAD_PROBE] == 1

@@ -80,6 +80,7 @@ LINK_ESTIMATE_CSV_COLUMNS = (
     "probe_train_sent_mbps",
     "probe_train_receiver_wait_ms",
     "refused",
+    "probe_refused",
 )
 
 
@@ -145,6 +146,7 @@ def link_estimate_csv_row(stamp_s, msg, report, overuse="", refused=""):
         if report.probe_train_bytes and math.isfinite(report.probe_train_receiver_wait_s)
         else "",
         refused,
+        report.probe_refused,
     )
 
 

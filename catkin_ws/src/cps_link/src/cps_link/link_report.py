@@ -12,6 +12,7 @@ higher Zenoh priority than the data, so the twin's interval is a delivery-rate s
 over that time, not a count of the same bytes.
 """
 
+import collections
 import dataclasses
 import fcntl
 import json
@@ -166,6 +167,9 @@ class Interval:
     probe_train_sent_mbps: float = 0.0
     probe_train_receiver_wait_s: float = math.nan
     probe_cost_mbps: float = 0.0  # the trains' mean cost at the robots' bridge's period now
+    # trains the twin refused in the interval, by reason (cps_link.probe_train.PROBE_REFUSALS), e.g.
+    # "receiver_late:2,out_of_order:1" ("" none): a rise seen late with no train measured says why
+    probe_refused: str = ""
 
 
 class ReportComposer:
@@ -183,6 +187,7 @@ class ReportComposer:
         self._queue_high = 0
         self.probe_bytes = 0  # cumulative
         self._trains = []  # TrainMeasure of the interval
+        self._refused_trains = collections.Counter()  # why -> trains refused in the interval
 
     def received(self, size_bytes, managed, probe=False):
         self.delivered_bytes += size_bytes
@@ -194,6 +199,10 @@ class ReportComposer:
     def train_measured(self, measure):
         """A probe train measured (cps_link.probe_train.TrainMeasure): the interval reports the last."""
         self._trains.append(measure)
+
+    def train_refused(self, why):
+        """A probe train the twin could not measure (`why`: one of probe_train.PROBE_REFUSALS)."""
+        self._refused_trains[why] += 1
 
     def sample_receive_queue(self, queue_bytes):
         """One sample of the link socket's receive queue (None: no socket found)."""
@@ -269,6 +278,7 @@ class ReportComposer:
             probe_train_sent_mbps=train.sent_mbps if train else 0.0,
             probe_train_receiver_wait_s=train.receiver_wait_s if train else math.nan,
             probe_cost_mbps=report.probe_cost_mbps,
+            probe_refused=",".join(f"{why}:{n}" for why, n in sorted(self._refused_trains.items())),
         )
         self._start(here)
         return interval, None
@@ -277,6 +287,7 @@ class ReportComposer:
         self._last = here
         self._queue_max = self._queue_high = 0
         self._trains = []
+        self._refused_trains = collections.Counter()
 
     def _refuse(self, why):
         self.refused[why] += 1

@@ -317,8 +317,9 @@ class TrainArrivals:
     short (a later train's first message, or `expire`) is counted incomplete. Not thread-safe: the
     bridge calls it under its lock."""
 
-    def __init__(self, timeout_s=PROBE_TRAIN_TIMEOUT_S, min_fraction=PROBE_MIN_RECEIVED_FRACTION):
+    def __init__(self, timeout_s=PROBE_TRAIN_TIMEOUT_S, min_fraction=PROBE_MIN_RECEIVED_FRACTION, on_refused=None):
         self.timeout_s, self.min_fraction = timeout_s, min_fraction
+        self.on_refused = on_refused  # called with the reason of each train refused (the link report's)
         self.refused = dict.fromkeys(PROBE_REFUSALS, 0)
         self.measured = 0
         self.received_bytes = 0  # every probe message's bytes, measured or not
@@ -340,7 +341,7 @@ class TrainArrivals:
         try:
             header = decode_probe(payload)
         except ProbeError:
-            self.refused[BAD_PROBE] += 1
+            self._refuse(BAD_PROBE)
             return None
         train = self._train
         if train is not None and (train[0].train != header.train or now_s - train[1][0][0] > self.timeout_s):
@@ -361,18 +362,23 @@ class TrainArrivals:
         if self._train is not None and now_s - self._train[1][0][0] > self.timeout_s:
             self._give_up()
 
+    def _refuse(self, why):
+        self.refused[why] += 1
+        if self.on_refused is not None:
+            self.on_refused(why)
+
     def _give_up(self):
         self._train = None
-        self.refused[INCOMPLETE] += 1
+        self._refuse(INCOMPLETE)
 
     def _measure(self, samples) -> Optional[TrainMeasure]:
         last = samples[-1][3]
         if len(samples) < self.min_fraction * last.count:
-            self.refused[INCOMPLETE] += 1
+            self._refuse(INCOMPLETE)
             return None
         measure = measure_train(samples, last.train_bytes // last.count)
         if not isinstance(measure, TrainMeasure):
-            self.refused[measure] += 1
+            self._refuse(measure)
             return None
         self.measured += 1
         return measure

@@ -211,7 +211,9 @@ class ZenohBridge:
         self.composer = ReportComposer() if side == TWIN and self.main_lane else None
         # probe trains while the fleet sends too little to fill the link (cps_link.probe_train)
         self.trains = TrainSchedule() if self.queue is not None else None
-        self.train_arrivals = TrainArrivals() if self.composer is not None else None
+        self.train_arrivals = (
+            TrainArrivals(on_refused=self.composer.train_refused) if self.composer is not None else None
+        )
         self._probe_lock_wait_s = 0.0  # the probe callback's waits for self.lock, cumulative
         self._probe_sent_bytes = 0
         self._send_queue_max, self._report_seq, self._closing = 0, 0, False
@@ -1114,6 +1116,7 @@ def link_report_msg(interval, closed_s_ago=0.0) -> LinkReport:
         probe_train_sent_mbps=interval.probe_train_sent_mbps,
         probe_train_receiver_wait_s=interval.probe_train_receiver_wait_s,
         probe_cost_mbps=interval.probe_cost_mbps,
+        probe_refused=interval.probe_refused,
     )
     msg.header.stamp = rospy.Time.now() - rospy.Duration.from_sec(max(0.0, closed_s_ago))
     return msg
