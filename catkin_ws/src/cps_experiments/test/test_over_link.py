@@ -269,6 +269,10 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
                 f"  t={t - marks['drop']:+6.1f} s link {phase}: capacity {capacity:5.1f} target {target:5.1f} ({mode}); "
                 f"delivered {delivered:5.1f} sent {sent:5.1f} Mbit/s; {why}"
             )
+    # the link's state as the manager saw it: an outage declared after a step pauses the allocation
+    # and restarts the estimator's per-interval state (a report from before it is refused)
+    link_lines = [line for line in manager_log.splitlines() if "bandwidth manager: link" in line]
+    print("the manager's link state changes:", *(link_lines or ["none"]), sep="\n  ")
 
     def during(t0, t1):
         return [(capacity, target, mode) for t, capacity, target, _, _, mode, _ in trace if t0 <= t < t1]
