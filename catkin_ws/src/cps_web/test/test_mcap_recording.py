@@ -131,6 +131,6 @@ def test_what_arrives_before_a_replayed_clock_runs_is_kept_and_logged_at_its_fir
 
     never = McapRecording(str(tmp_path / "n.mcap"))
     gate = ClockGate(never)
-    gate.write("/tf_static", odom._type, Odometry._full_text, _raw(odom), 0)
+    gate.write(names.TF_STATIC, odom._type, Odometry._full_text, _raw(odom), 0)
     gate.close()
     assert never.messages == 1
