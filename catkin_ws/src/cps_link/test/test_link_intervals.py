@@ -52,6 +52,27 @@ def test_an_interval_says_which_trains_the_twin_refused_and_why():
     assert interval.probe_refused == ""  # the next interval starts from none
 
 
+def test_an_interval_over_a_reconnection_carries_no_link_bytes():
+    """Live beside busy loops (2026-11-30) the robots' bridge found its new link socket late: one
+    interval read 0 acked bytes, the next twice the 20 Mbit/s link's rate, taken for its capacity
+    (38 Mbit/s). An interval in which either side's link socket changed says its link bytes are not
+    known (0), and the manager counts the frames; the next one is the link's again."""
+
+    def report(seq, t_s, acked, sockets):
+        return _report(seq, t_s, 1000 * seq, link_sent_bytes=acked, link_acked_bytes=acked, link_sockets=sockets)
+
+    c = ReportComposer()
+    c.on_report(report(1, 100.0, 1_000_000, 1), 5000.0, 2_000_000, 1)
+    steady, _ = c.on_report(report(2, 100.5, 2_200_000, 1), 5000.5, 3_200_000, 1)
+    assert (steady.acked_link_bytes, steady.sent_link_bytes, steady.delivered_link_bytes) == (1_200_000,) * 3
+    robots_new, _ = c.on_report(report(3, 101.0, 4_600_000, 2), 5001.0, 4_400_000, 1)
+    assert (robots_new.acked_link_bytes, robots_new.sent_link_bytes, robots_new.delivered_link_bytes) == (0, 0, 0)
+    twin_new, _ = c.on_report(report(4, 101.5, 5_800_000, 2), 5001.5, 5_600_000, 2)
+    assert (twin_new.acked_link_bytes, twin_new.delivered_link_bytes) == (0, 0)
+    again, _ = c.on_report(report(5, 102.0, 7_000_000, 2), 5002.0, 6_800_000, 2)
+    assert (again.acked_link_bytes, again.delivered_link_bytes) == (1_200_000, 1_200_000)
+
+
 def test_a_lost_report_makes_the_next_interval_longer_not_wrong():
     c = ReportComposer()
     c.on_report(_report(1, 0.0, 0), 10.0)
@@ -279,6 +300,7 @@ def test_the_link_sockets_tcp_payload_counts_and_rtt_from_tcp_info_stay_monotone
         accepted.close()
     sender.read(), receiver.read()
     assert totals[0] == (50_000, 50_000) and totals[1] == (100_000, 100_000)
+    assert (sender.sockets_found, receiver.sockets_found) == (2, 2)  # the reconnection counted
     assert sender.totals()["bytes_new"] == 100_000 and sender.read() == []  # closed: still counted
     server.close()
 

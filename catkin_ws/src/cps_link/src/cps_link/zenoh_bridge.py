@@ -892,6 +892,7 @@ class ZenohBridge:
             link_acked_bytes=link["bytes_acked"],
             socket_samples=samples,
             socket_full_samples=full,
+            link_sockets=self.link_sockets.sockets_found,
             send_queue_max_bytes=queue_max,
             pacing_mbps=rate * 8e-6 if rate else 0.0,
             peer=self.name,
@@ -920,7 +921,7 @@ class ZenohBridge:
                 received = self.link_sockets.totals()["bytes_received"]
                 closed_s = time.monotonic()
                 self.train_arrivals.expire(closed_s)
-                interval, _ = self.composer.on_report(payload, closed_s, received)
+                interval, _ = self.composer.on_report(payload, closed_s, received, self.link_sockets.sockets_found)
                 refused = dict(self.composer.refused)
             self.reporter.gauge(**{f"report_{why}": n for why, n in refused.items()})
             if interval is not None:
