@@ -126,7 +126,7 @@ def test_clock_steps_duplicates_and_a_silent_far_side_hold_the_capacity():
     before = core.estimator.capacity_mbps
     _feed(core, 2.0, 1.0, 40.0)  # the same interval again (a duplicate)
     _feed(core, 1.0, 1.0, 40.0)  # time going backwards (a reordered interval, a clock step)
-    assert core.estimator.ignored["clock_step"] == 2
+    assert core.estimator.ignored["clock_step"] == 2 and core.estimator.last_refused == "clock_step"
     # a silent far side: no report for 30 s changes nothing, the estimate is held
     assert core.estimator.capacity_mbps == before and core.available_mbps == before
     # a report that says nothing arrived while 40 Mbit/s were sent: stalled, counted, held
@@ -135,6 +135,7 @@ def test_clock_steps_duplicates_and_a_silent_far_side_hold_the_capacity():
     # a bad round trip sample is counted and the rest of the report used
     _feed(core, 32.5, 40.0, 40.0, rtt_s=(math.nan, -1.0, 0.003))
     assert core.estimator.ignored["bad_rtt_sample"] == 2
+    assert core.estimator.last_refused == ""  # the report itself was taken (link_estimate.csv's 'refused')
 
 
 def test_a_sender_blocked_by_the_link_shows_its_capacity_without_a_deficit():

@@ -313,6 +313,7 @@ class DeliveryRateEstimator:
         # a small bottleneck reading waiting for the next train, and the capacity it was held against
         self._train_held = (math.nan, math.nan)
         self.last_overuse = ""  # the reason of the last overuse
+        self.last_refused = ""  # why the last report was refused as a whole ("" it was taken)
         self._deficit_reports = 0  # consecutive reports whose merged window showed a deficit
         self._bw_max_mbps = self.capacity_mbps  # max delivery-rate sample since the last overuse (or the prior)
         self._unrefuted_mbps = self.capacity_mbps  # highest allocation target run without an overuse since
@@ -397,21 +398,30 @@ class DeliveryRateEstimator:
             return "clock_step"  # backwards, or a repeat of the interval just counted
         return None
 
+    def _refuse(self, reason):
+        """The report is not used at all: counted in `ignored`, named in `last_refused`."""
+        self.ignored[reason] += 1
+        self.last_refused = reason
+        return self.estimate_mbps
+
+    def _cut_unseen(self, now_s):
+        """No train has come since the last overuse's cut, made within max_drain_s of `now_s`."""
+        return self._train_s <= self._cut_s and now_s - self._cut_s <= self.max_drain_s
+
     def _set_mode(self, mode, now_s):
         if mode != self.mode:
             self.mode, self._mode_since_s = mode, now_s
 
     def update(self, report: LinkReport):
         """Feed one interval; returns the allocation target `estimate_mbps` (Mbit/s)."""
+        self.last_refused = ""
         reason = self._reject(report)
         if reason:
-            self.ignored[reason] += 1
-            return self.estimate_mbps
+            return self._refuse(reason)
         if report.now_s < self._resumed_s + self.measure_window_s - 1e-6:
             # sliding averages still hold the outage (sent, nothing delivered): not a measurement
-            self.ignored["window_holds_outage"] += 1
             self._last_now_s = report.now_s
-            return self.estimate_mbps
+            return self._refuse("window_holds_outage")
         now = report.now_s
         dt = report.interval_s if self._last_now_s is None else min(report.interval_s, now - self._last_now_s)
         self._last_now_s = now
@@ -430,8 +440,7 @@ class DeliveryRateEstimator:
             return self.estimate_mbps
         if not math.isnan(sent) and sent > 0 and delivered == 0:
             # Nothing arrived although the sender sent: an outage in the making (liveliness decides).
-            self.ignored["stalled"] += 1
-            return self.estimate_mbps
+            return self._refuse("stalled")
         self._take_train(report)
         if report.train_on_link:
             # a train's queue is no overuse (live, it read as a deficit and cut a 10 Mbit/s link's
@@ -670,7 +679,7 @@ class DeliveryRateEstimator:
         if math.isnan(mbps):
             self.ignored[kind] += 1
             return
-        first_after_cut = self._train_s <= self._cut_s and report.now_s - self._cut_s <= self.max_drain_s
+        first_after_cut = self._cut_unseen(report.now_s)
         self._train_s = report.now_s
         if kind == TRAIN_BOTTLENECK and mbps < report.delivered_mbps:
             # the link delivered more over the train's interval than the train says it can: the
@@ -750,7 +759,7 @@ class DeliveryRateEstimator:
         self._merged.clear()  # this deficit is acted upon; the next one must be new
         self._samples.clear()  # the link changed: samples from before the overuse are not its rate
         self._deficit_reports = 0
-        if not (self._train_s <= self._cut_s and now - self._cut_s <= self.max_drain_s):
+        if not self._cut_unseen(now):
             self._before_cut_mbps = self.capacity_mbps  # (a cut soon after one no train saw keeps its origin)
         self.capacity_mbps = measured
         self.estimate_mbps = self._clip(drain_factor * measured)

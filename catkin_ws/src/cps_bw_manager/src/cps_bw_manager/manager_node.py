@@ -106,7 +106,7 @@ def link_estimate_msg(core, true_capacity_mbps, now_s) -> LinkEstimate:
 def link_estimate_csv_row(stamp_s, msg, report, overuse="", refused=""):
     """One row of link_estimate.csv (LINK_ESTIMATE_CSV_COLUMNS) for a link report, its estimate,
     the overuse the report made the estimator see (deficit, link_full, rtt; "" none) and why the
-    estimator refused the report ("" taken: a key of DeliveryRateEstimator.ignored)."""
+    estimator refused the report as a whole ("" taken: DeliveryRateEstimator.last_refused)."""
 
     def rate(n_bytes, seconds):
         return f"{n_bytes * 8e-6 / seconds:.4f}" if seconds > 0 else ""
@@ -442,7 +442,7 @@ class BandwidthManagerNode:
         with self.lock:
             est = self.core.estimator
             overuses = est.overuses if est else 0
-            ignored = dict(est.ignored) if est else {}
+            fed = est is not None and not self.core.paused  # on_bridge_report feeds it only then
             moved = self.core.on_bridge_report(
                 report_time_s(msg, rospy.get_time()),
                 msg.interval_s,
@@ -468,7 +468,7 @@ class BandwidthManagerNode:
                 probe_cost_mbps=msg.probe_cost_mbps,
             )
             overuse = est.last_overuse if est and est.overuses > overuses else ""
-            refused = next((why for why, n in est.ignored.items() if n > ignored.get(why, 0)), "") if est else ""
+            refused = est.last_refused if fed else ""
         self.publish_estimate(msg, overuse, refused)
         if moved:
             self.update()
