@@ -234,7 +234,7 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
     fed it /tissue/stats' 2 s sliding averages over TCPROS; a draining queue's burst read as
     capacity (29.6 Mbit/s "delivered" through 20) and it probed above 24 Mbit/s in 1 of 3 runs."""
     from cps_harness.transport_compare import Graphs, start_estimating_manager, start_limited_load
-    from cps_link.zenoh_session import default_cert_dir, ensure_certs
+    from cps_link.zenoh_session import bridge_node_name, default_cert_dir, ensure_certs
 
     name = link_name("bwe")
     csv_path = str(tmp_path / "link_estimate.csv")
@@ -255,6 +255,11 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
                 time.sleep(9.0)
                 marks["end"] = time.time()
                 manager_log = graphs.output("manager")
+                bridge_log = "\n".join(
+                    graphs.output(bridge_node_name(role, lane))
+                    for role in ("twin", "robots")
+                    for lane in ("main", "command")
+                )
             finally:
                 graphs.close()
     finally:
@@ -273,6 +278,8 @@ def test_estimate_tracks_the_link_going_60_20_60(tmp_path):
     # and restarts the estimator's per-interval state (a report from before it is refused)
     link_lines = [line for line in manager_log.splitlines() if "bandwidth manager: link" in line]
     print("the manager's link state changes:", *(link_lines or ["none"]), sep="\n  ")
+    bridge_lines = [line for line in bridge_log.splitlines() if ": link " in line]
+    print("the bridges' link state changes (and why):", *(bridge_lines or ["none"]), sep="\n  ")
 
     def during(t0, t1):
         return [(capacity, target, mode) for t, capacity, target, _, _, mode, _ in trace if t0 <= t < t1]
