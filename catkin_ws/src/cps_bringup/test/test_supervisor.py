@@ -262,6 +262,8 @@ def test_plan_replays_a_bag_with_rosbag_play_and_an_mcap_with_cps_webs_player():
     mcap = replay("/tmp/x/m.mcap")
     assert mcap.argv[1].endswith("mcap_player") and mcap.side == PHYSICAL and mcap.one_shot
     assert f"_topics:={','.join(replay_topics(fleet))}" in mcap.argv and f"_delay_s:={REPLAY_DELAY_S}" in mcap.argv
+    # both stay up after the last message (their queues drain to slow subscribers): the mission ends them
+    assert "--keep-alive" in bag.argv and "_keep_alive:=true" in mcap.argv
     assert mcap.after == bag.after and mcap.after  # after everything that is not waiting for its clouds
 
 

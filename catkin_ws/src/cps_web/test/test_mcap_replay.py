@@ -141,6 +141,27 @@ def test_player_sends_each_clock_time_once_and_no_tick_between_close_messages(tm
     assert 50 <= len(gap) <= 61  # 0.6 s at 100 Hz
 
 
+def test_player_kept_alive_runs_the_clock_on_after_the_last_message_until_stopped(tmp_path):
+    """As rosbag play -k: the process stays up (a publisher's queue to a slow subscriber is lost
+    when its process exits) and the clock moves on past the recording's end, at the clock period."""
+    path = _write(tmp_path / "m.mcap")
+    clock, clocks = FakeClock(), []
+    player = Player(path, topics=[ODOM, CLOUD], clock_period_s=0.01, keep_alive=True)
+
+    played = player.run(
+        lambda c, d: None, clocks.append, stopped=lambda: clock.now >= 5.0, monotonic=clock.monotonic, sleep=clock.sleep
+    )
+
+    assert played == 4
+    end_ns = T0 + 1_000_000_000
+    after = [ns for ns in clocks if ns > end_ns]
+    assert clocks == sorted(set(clocks)) and after and after[-1] >= T0 + 4_900_000_000
+    assert 380 <= len(after) <= 401  # 4 s at 100 Hz
+    other = FakeClock()  # not kept alive: returns at the last message
+    assert Player(path).run(lambda c, d: None, lambda ns: None, monotonic=other.monotonic, sleep=other.sleep) == 4
+    assert other.now < 1.1
+
+
 def test_player_plays_only_the_topics_asked_and_stops_when_told(tmp_path):
     path = _write(tmp_path / "m.mcap")
     assert {c.topic for c in channels_of(path, [ODOM]).values()} == {ODOM}

@@ -378,7 +378,7 @@ def run_mission(args, log=print) -> MissionResult:
     sides = _sides(args.side)
     split = _host_split(args, sides)  # refused here, before anything starts
     baseline, site_changes = check_monitoring_inputs(args, fleet, sides)
-    replay_path = _checked_replay(args.replay, fleet, sides, log)
+    replay_path, replayed = _checked_replay(args.replay, fleet, sides, log)
     video_trace, video_source = _checked_video_trace(
         getattr(args, "video_trace", None), fleet, sides, args, replay_path
     )
@@ -555,7 +555,7 @@ def run_mission(args, log=print) -> MissionResult:
                 args.duration,
                 log=log,
                 on_tick=fault_injection,
-                finished=_replay_finished(supervisor) if replay_path else None,
+                finished=_replay_finished(supervisor, replayed.end_s) if replay_path else None,
             )
         except KeyboardInterrupt:
             log("[bringup] interrupted; shutting down")
@@ -721,9 +721,10 @@ def _checked_video_trace(path, fleet, sides, args, replay_path):
 
 
 def _checked_replay(path, fleet, sides, log):
-    """The absolute path of a bag or ROS 1 MCAP that can feed `fleet`, or BringupError saying why not."""
+    """The absolute path of a bag or ROS 1 MCAP that can feed `fleet` and what it holds
+    (mission_bag.BagContents), or BringupError saying why not; (None, None) without one."""
     if not path:
-        return None
+        return None, None
     if PHYSICAL not in sides:
         raise BringupError("--replay plays the robots' side: use it with `physical` or `all`")
     from cps_bringup.mission_bag import BagError, check_bag
@@ -733,19 +734,26 @@ def _checked_replay(path, fleet, sides, log):
     except BagError as exc:
         raise BringupError(str(exc)) from exc
     log(f"[bringup] replaying {path}: {contents.duration_s:.1f} s, {len(contents.topics)} topics")
-    return os.path.abspath(path)
+    return os.path.abspath(path), contents
 
 
-# After the bag ends, s for the tissue and the map server to take in the last clouds.
+# After the bag ends, s for the tissue, the map server and a recorder to take in the last messages
+# (the player, kept alive, still sends what it queued for them).
 REPLAY_DRAIN_S = 3.0
 
 
-def _replay_finished(supervisor):
+def _replay_finished(supervisor, end_s):
+    """The mission's end by its replay: the bag's clock passed `end_s` (its last message; the player
+    runs on with -k) or the player ended; REPLAY_DRAIN_S later."""
+    import rospy
+
     from cps_bringup.plan import REPLAY
 
     def finished():
         running = supervisor.running.get(REPLAY)
-        if running is None or running.proc.poll() is None:
+        ended = running is None or running.proc.poll() is not None
+        # this process runs on /use_sim_time too (set before its init_node): the bag's clock
+        if not ended and rospy.get_time() < end_s:
             return None
         time.sleep(REPLAY_DRAIN_S)
         return "replay"

@@ -55,12 +55,13 @@ def required_topics(fleet: FleetConfig) -> List[str]:
 @dataclasses.dataclass(frozen=True)
 class BagContents:
     """What check_bag read: topic -> (type, message count), the first cloud frame per cloud topic,
-    the child frames tf carries and the bag's duration."""
+    the child frames tf carries, the bag's duration and its last message's time (s, the bag's clock)."""
 
     topics: Dict[str, Tuple[str, int]]
     cloud_frames: Dict[str, str]
     tf_child_frames: Tuple[str, ...]
     duration_s: float
+    end_s: float
 
 
 def is_mcap_recording(path: str) -> bool:
@@ -98,7 +99,8 @@ def read_bag(path: str, cloud_topics) -> BagContents:
             if count > 500:
                 break
         duration = bag.get_end_time() - bag.get_start_time() if topics else 0.0
-    return BagContents(topics, frames, tuple(sorted(children)), duration)
+        end_s = bag.get_end_time() if topics else 0.0
+    return BagContents(topics, frames, tuple(sorted(children)), duration, end_s)
 
 
 def _read_mcap(path, cloud_topics) -> BagContents:
@@ -108,7 +110,7 @@ def _read_mcap(path, cloud_topics) -> BagContents:
         summary = read_summary(path, cloud_topics, (TF, TF_STATIC))
     except ReplayError as exc:
         raise BagError(str(exc)) from exc
-    return BagContents(summary.topics, summary.cloud_frames, summary.tf_child_frames, summary.duration_s)
+    return BagContents(summary.topics, summary.cloud_frames, summary.tf_child_frames, summary.duration_s, summary.end_s)
 
 
 def check_bag(path: str, fleet: FleetConfig) -> BagContents:

@@ -685,14 +685,25 @@ def _bag_specs(fleet, sides, options, planned, py):
     if options.replay_path and PHYSICAL in sides:
         from cps_bringup.mission_bag import is_mcap_recording
 
-        if is_mcap_recording(options.replay_path):  # cps_web's player: rosbag play's --clock and -d, for MCAP
-            params = {"path": options.replay_path, "topics": ",".join(replay_topics(fleet)), "delay_s": REPLAY_DELAY_S}
+        # The player stays up after the last message (-k), its clock running on: a player that exits
+        # drops what its publishers still queue for a slow subscriber (rosbag play shuts down at once;
+        # the MCAP recorder of a replay in CI lacked 3 of 190 clouds and 18 of 766 joint states of one
+        # robot). The mission ends the replay once the clock passed the recording's end
+        # (cps_bringup.cli's REPLAY_DRAIN_S later).
+        if is_mcap_recording(options.replay_path):  # cps_web's player: rosbag play's --clock, -d and -k, for MCAP
+            params = {
+                "path": options.replay_path,
+                "topics": ",".join(replay_topics(fleet)),
+                "delay_s": REPLAY_DELAY_S,
+                "keep_alive": True,
+            }
             argv = py("cps_web", "mcap_player", f"__name:={REPLAY}", *_args(params))
         else:  # --clock: every node runs on the bag's time (/use_sim_time); -d: subscribers connect first.
             argv = (
                 "rosbag",
                 "play",
                 "--clock",
+                "--keep-alive",
                 "-d",
                 str(REPLAY_DELAY_S),
                 f"__name:={REPLAY}",

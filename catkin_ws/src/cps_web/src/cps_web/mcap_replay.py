@@ -44,12 +44,13 @@ def is_mcap_file(path: str) -> bool:
 @dataclasses.dataclass(frozen=True)
 class McapSummary:
     """topic -> (ROS type, messages); the first cloud frame per cloud topic; tf's child frames;
-    first to last log time, s."""
+    first to last log time, s; the last log time, s (the clock a replay publishes ends there)."""
 
     topics: Dict[str, Tuple[str, int]]
     cloud_frames: Dict[str, str]
     tf_child_frames: Tuple[str, ...]
     duration_s: float
+    end_s: float
 
 
 def _open_checked(path, stream):
@@ -116,7 +117,8 @@ def read_summary(path: str, cloud_topics: Iterable[str] = (), tf_topics: Iterabl
     except (McapError, OSError, ValueError, KeyError, AttributeError) as exc:
         raise ReplayError(f"{path}: not a readable ROS 1 MCAP ({type(exc).__name__}: {exc})") from exc
     duration = (end - start) / 1e9 if topics and start is not None else 0.0
-    return McapSummary(topics, frames, tuple(sorted(children)), duration)
+    end_s = end / 1e9 if topics and end is not None else 0.0
+    return McapSummary(topics, frames, tuple(sorted(children)), duration, end_s)
 
 
 class RawMessage(genpy.Message):
@@ -186,13 +188,23 @@ class Player:
     message comes (rosbag play's --clock at 100 Hz). The clock only moves forward: a time already
     published is not published again (messages recorded at one log time share one), and a wait
     shorter than `clock_period_s` publishes none in between. `stopped()` True ends it early.
-    Returns the messages published."""
+    `keep_alive` (rosbag play -k): after the last message the clock runs on until `stopped()`, so
+    that what the publishers still queue for slow subscribers reaches them (a player that exits drops
+    it). Returns the messages published."""
 
-    def __init__(self, path: str, topics: Optional[Iterable[str]] = None, delay_s: float = 0.0, clock_period_s=0.01):
+    def __init__(
+        self,
+        path: str,
+        topics: Optional[Iterable[str]] = None,
+        delay_s: float = 0.0,
+        clock_period_s=0.01,
+        keep_alive: bool = False,
+    ):
         self.path = path
         self.topics = None if topics is None else list(topics)
         self.delay_s = delay_s
         self.clock_period_s = clock_period_s
+        self.keep_alive = keep_alive
         self.published = 0
         self.clocks_published = 0
 
@@ -239,4 +251,9 @@ class Player:
                 clock_at(message.log_time, monotonic())
                 publish(channel.id, message.data)
                 self.published += 1
+        while self.keep_alive and not stopped():
+            now = monotonic()
+            if first_ns is not None and now >= next_clock_wall:
+                clock_at(first_ns + int((now - start_wall) * 1e9), now)
+            sleep(max(0.0, min(next_clock_wall - now, self.clock_period_s)))
         return self.published

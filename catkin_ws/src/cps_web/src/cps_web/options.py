@@ -77,6 +77,9 @@ class PlayerOptions:
     )
     clock_hz: float = _option(100.0, "how often /clock is published between messages", "Hz", low=1.0)
     queue_size: int = _option(100, "messages each publisher queues per subscriber (rosbag play's default)", low=1)
+    keep_alive: bool = _option(
+        False, "after the last message, run the clock on until shut down, so that slow subscribers get what is queued"
+    )
 
 
 def parameters(kind):
