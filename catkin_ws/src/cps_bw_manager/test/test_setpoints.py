@@ -13,6 +13,7 @@ from cps_bw_manager.setpoints import (
     FIRST,
     LEVEL,
     ON_OFF,
+    OPERATOR,
     PROBE,
     RULE,
     SetpointFilter,
@@ -134,6 +135,12 @@ def test_a_finer_level_waits_the_interval_after_the_last_level_change_and_never_
     g.decide(7.0, {VIDEO: Target(2, 5.0)})  # the video's first setpoint
     assert not g.decide(7.5, {VIDEO: Target(1, 5.0)})  # finer: waits
     assert _sent(g.decide(8.0, {VIDEO: Target(1, 5.0, operator=True)}))[VIDEO].reason == LEVEL  # selected: at once
+    # the operator's video back up to its rate at once (fig13_live: held 5 s at 18 Hz after a moment's
+    # CPU shortage); another stream's rise waits its 5 s; within the deadband nothing goes out
+    assert _sent(g.decide(8.5, {VIDEO: Target(1, 18.0, operator=True), CLOUD: Target(1, 5.0)}))[VIDEO].rate_hz == 18.0
+    out = _sent(g.decide(9.0, {VIDEO: Target(1, 30.0, operator=True), CLOUD: Target(1, 9.0)}))
+    assert out[VIDEO].reason == OPERATOR and out[VIDEO].rate_hz == 30.0 and CLOUD not in out
+    assert not g.decide(9.5, {VIDEO: Target(1, 33.0, operator=True), CLOUD: Target(1, 9.0)})
     h = SetpointFilter(min_interval_s=5.0)
     h.decide(0.0, {VIDEO: Target(1, 5.0)})
     h.decide(8.0, {VIDEO: Target(2, 5.0)})
