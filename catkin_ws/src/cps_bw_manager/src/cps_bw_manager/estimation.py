@@ -57,12 +57,11 @@ PROBE_GAP_FRACTION = 0.1
 
 
 # Probe trains (cps_link.probe_train; libwebrtc's probe_bitrate_estimator.cc): a train received
-# faster than this x its send rate measured no bottleneck, only that the link carried it at least as
-# fast as it was sent (libwebrtc drops it). Its span's rate is what the link delivered over the span,
-# however late each read (cps_link.probe_train.measure_train), and a shaper's burst at most doubles
-# it (TRAIN_RISE_AT_ONCE), so the link carries at least half the reading, more than was sent: a lower
-# bound at the send rate. Live (link_thesis, 5 -> 60 Mbit/s) the first train after the rise read 36.8
-# sent at 14.5, was dropped, and the capacity stayed 4.7 for 2.6 s more (settled 8.1 s after the rise)
+# faster than this x its send rate was bunched on its way (the sender's batches, a shaper's burst)
+# and measured no bottleneck; libwebrtc drops it. Here it counts as a train received at its pace
+# does: the link carried its measured part no slower than it was sent, a lower bound at the send
+# rate. Live (link_thesis, 5 -> 60 Mbit/s) the first train after the rise read 36.8 sent at 14.5,
+# was dropped, and the capacity stayed 4.7 for 2.6 s more (settled 8.1 s after the rise).
 TRAIN_MAX_VALID_RATIO = 2.0
 # ... one received at least this x its send rate found no bottleneck: the link carries at least
 # that much (a lower bound); one received slower came out at the bottleneck's rate.
@@ -78,10 +77,11 @@ TRAIN_STEP_FRACTION = 0.7
 # and in a burst, which only ever reads fast (live, test_over_link beside busy loops: 26.2 Mbit/s on
 # a 20 Mbit/s link); so does a burst a shaper (or Wi-Fi's aggregation) passes at the sender's pace
 # after the link's queue ran empty under the train (its sender descheduled, or its TCP window shut
-# after a loss): live 30.3 on the same link (1.58 x, 1 train in 100 over four runs; the others within
-# 19.1-19.6). Such a burst adds at most one span's bytes to the fastest span, which carries at least
-# a quarter of a train (cps_link.probe_train.FASTEST_SPAN_FRACTION of its second half; no less than
-# the test bed's 16 kB burst), so it reads at most 2 x; a step up reads more (20 -> 60: 3 x).
+# after a loss): live 30.3 on the same link (1.58 x; 1 train in 100 over four runs, the others
+# 19.1-19.6 but one at 10.7). In cps_link's token-bucket simulation (test_probe_train) a 10-50 ms gap
+# in the sender's puts reads up to 1.3 x at 20 Mbit/s, and up to 4 x at 10 Mbit/s where a whole
+# span fits in one burst. So 2 x is not a bound on such readings: it is where one reading is taken
+# as a step up (20 -> 60 reads 3 x) at the cost of waiting a train for rises below it.
 TRAIN_RISE_AT_ONCE = 2.0
 TRAIN_HELD = "bottleneck_held"  # such a reading, waiting for the next train
 # A bottleneck below what its own report interval delivered: raised to that (the link carried it).
