@@ -22,7 +22,7 @@ import socket
 import struct
 import termios
 import time
-from typing import List, Optional, Sequence
+from typing import List, NamedTuple, Optional, Sequence
 
 REPORT_VERSION = 1
 # Why the twin's bridge does not make an interval of a robots' report (each counted).
@@ -176,6 +176,18 @@ class Interval:
     probe_refused: str = ""
 
 
+class _Mark(NamedTuple):
+    """What closed an interval: the robots' report and the twin's counters when it came."""
+
+    report: SenderReport
+    now_s: float  # the twin's monotonic s
+    delivered_bytes: int
+    unmanaged_bytes: int
+    link_received_bytes: int  # the twin's link socket's (0: not readable)
+    probe_bytes: int
+    link_sockets: int  # link sockets the twin had read so far
+
+
 class ReportComposer:
     """The twin's side: counts what it receives (`received`), samples its socket's receive queue
     (`sample_receive_queue`) and makes an Interval of each robots' report (`on_report`). Not
@@ -186,7 +198,7 @@ class ReportComposer:
         self.unmanaged_bytes = 0
         self.behind_bytes, self.behind_samples = behind_bytes, behind_samples
         self.refused = dict.fromkeys(REPORT_REFUSALS, 0)
-        self._last = None  # (SenderReport, twin s, delivered, unmanaged, link received) closing the last interval
+        self._last: Optional[_Mark] = None  # what closed the last interval
         self._queue_max = 0
         self._queue_high = 0
         self.probe_bytes = 0  # cumulative
@@ -227,7 +239,7 @@ class ReportComposer:
             report = decode_sender_report(payload)
         except ReportError:
             return self._refuse(BAD_REPORT)
-        here = (
+        here = _Mark(
             report,
             now_s,
             self.delivered_bytes,
@@ -237,51 +249,51 @@ class ReportComposer:
             link_sockets,
         )
         last = self._last
-        if last is None or last[0].session != report.session:
+        if last is None or last.report.session != report.session:
             self._start(here)
             return self._refuse(FIRST_OF_RUN)
-        before = last[0]
+        before = last.report
         if report.seq <= before.seq:
             return self._refuse(OLD_REPORT)
         counters = ("offered_bytes", "sent_bytes", "superseded", "expired")
         if (
             any(getattr(report, c) < getattr(before, c) for c in counters)
             or report.t_s <= before.t_s
-            or 0 < link_received_bytes < last[4]  # 0: not readable now, not a counter going down
+            or 0 < link_received_bytes < last.link_received_bytes  # 0: not readable now, not a counter going down
             or 0 < report.link_sent_bytes < before.link_sent_bytes
             or 0 < report.link_acked_bytes < before.link_acked_bytes
             or report.probe_sent_bytes < before.probe_sent_bytes
         ):
             self._start(here)
             return self._refuse(COUNTER_BACKWARDS)
-        interval_s, sender_interval_s = now_s - last[1], report.t_s - before.t_s
+        interval_s, sender_interval_s = now_s - last.now_s, report.t_s - before.t_s
         if not (0 < interval_s <= MAX_INTERVAL_S and 0 < sender_interval_s <= MAX_INTERVAL_S):
             self._start(here)
             return self._refuse(FIRST_OF_RUN)
         behind = self._queue_high >= self.behind_samples
         train = self._trains[-1] if self._trains else None
-        same_sockets = (report.link_sockets, link_sockets) == (before.link_sockets, last[6])
+        same_sockets = (report.link_sockets, link_sockets) == (before.link_sockets, last.link_sockets)
+
+        def link_bytes(now, then):
+            # a socket's counter over the interval: 0 (not known) where either end was not readable
+            # or a link socket changed in between
+            return now - then if now and then and same_sockets else 0
+
         interval = Interval(
             seq=report.seq,
             interval_s=interval_s,
             sender_interval_s=sender_interval_s,
-            delivered_bytes=self.delivered_bytes - last[2],
-            unmanaged_bytes=self.unmanaged_bytes - last[3],
+            delivered_bytes=self.delivered_bytes - last.delivered_bytes,
+            unmanaged_bytes=self.unmanaged_bytes - last.unmanaged_bytes,
             sent_bytes=report.sent_bytes - before.sent_bytes,
             offered_bytes=report.offered_bytes - before.offered_bytes,
             app_limited=report.app_limited,
             rtt_s=tuple(report.rtt_s),
             receiver_behind=behind,
             sender_blocked_s=report.blocked_s,
-            delivered_link_bytes=link_received_bytes - last[4]
-            if link_received_bytes and last[4] and same_sockets
-            else 0,
-            sent_link_bytes=report.link_sent_bytes - before.link_sent_bytes
-            if report.link_sent_bytes and before.link_sent_bytes and same_sockets
-            else 0,
-            acked_link_bytes=report.link_acked_bytes - before.link_acked_bytes
-            if report.link_acked_bytes and before.link_acked_bytes and same_sockets
-            else 0,
+            delivered_link_bytes=link_bytes(link_received_bytes, last.link_received_bytes),
+            sent_link_bytes=link_bytes(report.link_sent_bytes, before.link_sent_bytes),
+            acked_link_bytes=link_bytes(report.link_acked_bytes, before.link_acked_bytes),
             sender_socket_full=report.socket_full_samples / report.socket_samples if report.socket_samples else 0.0,
             receive_queue_max_bytes=self._queue_max,
             send_queue_max_bytes=report.send_queue_max_bytes,
@@ -289,7 +301,7 @@ class ReportComposer:
             expired=report.expired - before.expired,
             pacing_mbps=report.pacing_mbps,
             peer=report.peer,
-            probe_bytes=self.probe_bytes - last[5],
+            probe_bytes=self.probe_bytes - last.probe_bytes,
             probe_sent_bytes=report.probe_sent_bytes - before.probe_sent_bytes,
             probe_trains=len(self._trains),
             probe_train_bytes=train.bytes if train else 0,
