@@ -167,7 +167,7 @@ def _missed_positions(bag_path, mcap_path, topic):
     with open(mcap_path, "rb") as stream:
         recorded = collections.Counter(
             hashlib.sha1(message.data).digest()
-            for _s, channel, message in make_reader(stream).iter_messages(topics=[topic])
+            for _schema, _channel, message in make_reader(stream).iter_messages(topics=[topic])
         )
     missed = []
     with rosbag.Bag(bag_path) as bag:

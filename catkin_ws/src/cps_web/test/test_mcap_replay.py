@@ -157,6 +157,16 @@ def test_player_kept_alive_runs_the_clock_on_after_the_last_message_until_stoppe
     after = [ns for ns in clocks if ns > end_ns]
     assert clocks == sorted(set(clocks)) and after and after[-1] >= T0 + 4_900_000_000
     assert 380 <= len(after) <= 401  # 4 s at 100 Hz
+    idle, sleeps = FakeClock(), []  # kept alive with nothing to play: it waits, a clock period at a time
+
+    def idle_sleep(seconds):
+        assert seconds > 0, "a busy wait"  # before: sleep(0) over and over, a core spent
+        sleeps.append(seconds)
+        idle.sleep(seconds)
+
+    empty = Player(path, topics=["/no_such_topic"], clock_period_s=0.01, keep_alive=True)
+    assert empty.run(lambda c, d: None, clocks.append, lambda: idle.now >= 1.0, idle.monotonic, idle_sleep) == 0
+    assert 95 <= len(sleeps) <= 101
     other = FakeClock()  # not kept alive: returns at the last message
     assert Player(path).run(lambda c, d: None, lambda ns: None, monotonic=other.monotonic, sleep=other.sleep) == 4
     assert other.now < 1.1

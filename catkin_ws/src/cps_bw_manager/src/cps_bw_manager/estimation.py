@@ -77,8 +77,8 @@ TRAIN_STEP_FRACTION = 0.7
 # and in a burst, which only ever reads fast (live, test_over_link beside busy loops: 26.2 Mbit/s on
 # a 20 Mbit/s link); so does a burst a shaper (or Wi-Fi's aggregation) passes at the sender's pace
 # after the link's queue ran empty under the train (its sender descheduled, or its TCP window shut
-# after a loss): live 30.3 on the same link (1.58 x; 1 train in 100 over four runs, the others
-# 19.1-19.6 but one at 10.7). In cps_link's token-bucket simulation (test_probe_train) a 10-50 ms gap
+# after a loss): live 30.3 on the same link (1.58 x; 1 train in 100 over four runs, the others of
+# that phase 19.1-20.2 but one at 10.7). In cps_link's token-bucket simulation (test_probe_train) a 10-50 ms gap
 # in the sender's puts reads up to 1.3 x at 20 Mbit/s, and up to 4 x at 10 Mbit/s where a whole
 # span fits in one burst. So 2 x is not a bound on such readings: it is where one reading is taken
 # as a step up (20 -> 60 reads 3 x) at the cost of waiting a train for rises below it.

@@ -252,8 +252,11 @@ class Player:
                 publish(channel.id, message.data)
                 self.published += 1
         while self.keep_alive and not stopped():
+            if first_ns is None:  # nothing played: no clock to run on
+                sleep(self.clock_period_s)
+                continue
             now = monotonic()
-            if first_ns is not None and now >= next_clock_wall:
+            if now >= next_clock_wall:
                 clock_at(first_ns + int((now - start_wall) * 1e9), now)
-            sleep(max(0.0, min(next_clock_wall - now, self.clock_period_s)))
+            sleep(max(0.0, next_clock_wall - monotonic()))
         return self.published
