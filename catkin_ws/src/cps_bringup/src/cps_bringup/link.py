@@ -123,19 +123,17 @@ class CapacityAnnouncer:
     (a modem, a Wi-Fi driver) would announce and the manager allocates from. rospy must be up."""
 
     def __init__(self, link, log=print, to_manager=True):
-        import rospy
 
         from cps_fleet import names
         from cps_msgs.msg import LinkCapacity
+        from cps_ros.publisher import Publisher
 
         self.link, self.log, self.to_manager = link, log, to_manager
         self.source = f"tc scenario {link.scenario.name}" if link.scenario else f"tc link {link.rate}"
         self.announced = []  # (mission s, Mbit/s)
         self._msg = LinkCapacity
-        self._oracle = rospy.Publisher(names.LINK_TRUE_CAPACITY, LinkCapacity, queue_size=10, latch=True)
-        self._pub = (
-            rospy.Publisher(names.LINK_CAPACITY, LinkCapacity, queue_size=10, latch=True) if to_manager else None
-        )
+        self._oracle = Publisher(names.LINK_TRUE_CAPACITY, LinkCapacity, queue_size=10, latch=True)
+        self._pub = Publisher(names.LINK_CAPACITY, LinkCapacity, queue_size=10, latch=True) if to_manager else None
 
     def on_rate(self, mission_s, rate_mbps):
         import rospy

@@ -517,6 +517,7 @@ def main(argv=None, log=print):
     from tf2_msgs.msg import TFMessage
 
     from cps_msgs.msg import CompressedPointCloud2
+    from cps_ros.publisher import Publisher
 
     # One node name per shard: a second node of the same name would shut the first one down.
     rospy.init_node("trace_replay" if shards == 1 else f"trace_replay_{shard}_of_{shards}", disable_signals=True)
@@ -525,17 +526,16 @@ def main(argv=None, log=print):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SyntaxWarning)
         cloud_pubs = {
-            c.name: rospy.Publisher(
+            c.name: Publisher(
                 names.absolute(names.managed_cloud_at_twin(c.name)), CompressedPointCloud2, queue_size=None
             )
             for c in copies
         }
-        tf_pub = rospy.Publisher(names.TF, TFMessage, queue_size=None)
+        tf_pub = Publisher(names.TF, TFMessage, queue_size=None)
     odom_pubs = {
-        c.name: rospy.Publisher(names.absolute(names.robot_topic(c.name, names.ODOM)), Odometry, queue_size=5)
-        for c in copies
+        c.name: Publisher(names.absolute(names.robot_topic(c.name, names.ODOM)), Odometry, queue_size=5) for c in copies
     }
-    static_pub = rospy.Publisher(names.TF_STATIC, TFMessage, queue_size=1, latch=True)
+    static_pub = Publisher(names.TF_STATIC, TFMessage, queue_size=1, latch=True)
     player = Player(
         trace,
         copies,

@@ -43,6 +43,7 @@ from cps_msgs.msg import (
 )
 from cps_msgs.srv import SetPriority, SetPriorityResponse
 from cps_ros.fault_report import FaultReport
+from cps_ros.publisher import Publisher
 from cps_ros.timers import guarded_timer
 
 LINK_REPORT_INPUT, TISSUE_STATS_INPUT = "link_report", "tissue_stats"
@@ -265,7 +266,7 @@ class BandwidthManagerNode:
             if estimate_csv_path
             else None
         )
-        self.estimate_pub = rospy.Publisher(names.LINK_ESTIMATE, LinkEstimate, queue_size=5)
+        self.estimate_pub = Publisher(names.LINK_ESTIMATE, LinkEstimate, queue_size=5)
 
         # Issue 36: only the setpoints that matter go out (setpoints.py), and each one is logged.
         self.setpoints = SetpointFilter(
@@ -281,14 +282,14 @@ class BandwidthManagerNode:
         )
 
         def latched(robot, name, kind):
-            return rospy.Publisher(names.robot_topic(robot, name), kind, queue_size=1, latch=True)
+            return Publisher(names.robot_topic(robot, name), kind, queue_size=1, latch=True)
 
         self.rate_pubs = {r: latched(r, names.LIMITER_RATE_HZ, Float64) for r in self.core.robots}
         self.level_pubs = {r: latched(r, names.LIMITER_LEVEL, UInt8) for r in self.core.robots}
         self.video_rate_pubs = {r: latched(r, names.VIDEO_RATE_HZ, Float64) for r in self.core.camera_robots}
         self.video_level_pubs = {r: latched(r, names.VIDEO_LEVEL, UInt8) for r in self.core.camera_robots}
-        self.alloc_pub = rospy.Publisher(names.ALLOCATION, BandwidthAllocationArray, queue_size=1, latch=True)
-        self.bw_pub = rospy.Publisher(names.AVAILABLE_BANDWIDTH, Float64, queue_size=1, latch=True)
+        self.alloc_pub = Publisher(names.ALLOCATION, BandwidthAllocationArray, queue_size=1, latch=True)
+        self.bw_pub = Publisher(names.AVAILABLE_BANDWIDTH, Float64, queue_size=1, latch=True)
 
         def per_robot(robot, name, kind, callback):
             return rospy.Subscriber(names.robot_topic(robot, name), kind, callback, callback_args=robot, queue_size=10)

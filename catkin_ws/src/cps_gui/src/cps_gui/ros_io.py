@@ -41,6 +41,7 @@ from cps_msgs.msg import (
     TopicStatsArray,
 )
 from cps_msgs.srv import SetPriority, SetPriorityRequest
+from cps_ros.publisher import Publisher
 from cps_ros.timers import guarded_timer
 from cps_transport.image_compression import InvalidImage, decode_jpeg
 
@@ -111,9 +112,9 @@ class FleetRosIO:
             lambda m: state.set_map_changes(map_changes_of(m)),
             buff_size=2**20,
         )
-        self.estop_pub = rospy.Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
+        self.estop_pub = Publisher(names.ESTOP, Bool, queue_size=1, latch=True)
         # The robot whose video the operator watches: the manager gives it operator-quality video.
-        self.selected_pub = rospy.Publisher(names.SELECTED_ROBOT, String, queue_size=1, latch=True)
+        self.selected_pub = Publisher(names.SELECTED_ROBOT, String, queue_size=1, latch=True)
         self.selected_robot = None
         self._discovery = guarded_timer(discovery_period_s, self._discover_images, "image discovery")
         threading.Thread(target=self._discover_images, args=(None,), daemon=True).start()
@@ -165,14 +166,12 @@ class FleetRosIO:
         self._subscribe(topic(names.MISSION_STATE), String, lambda m: state.set_mission_state(name, m.data))
         if robot.has_depth_camera:
             self._subscribe(topic(names.VIDEO_STATUS), RateLimiterStatus, lambda m: self._on_video_status(name, m))
-        self.teleop_pubs[name] = rospy.Publisher(topic(names.CMD_VEL_TELEOP), Twist, queue_size=1)
-        self.mode_pubs[name] = rospy.Publisher(topic(names.CONTROL_MODE), String, queue_size=1, latch=True)
+        self.teleop_pubs[name] = Publisher(topic(names.CMD_VEL_TELEOP), Twist, queue_size=1)
+        self.mode_pubs[name] = Publisher(topic(names.CONTROL_MODE), String, queue_size=1, latch=True)
         if robot.robot_type.is_aerial:
             # Each takeoff or land is an event, not a state: a queue of one dropped a takeoff that a land
             # followed within the writer's turn (test_gui_ros, final6); none is lost behind another.
-            self.flight_pubs[name] = rospy.Publisher(
-                topic(names.FLIGHT_COMMAND), String, queue_size=FLIGHT_COMMAND_QUEUE
-            )
+            self.flight_pubs[name] = Publisher(topic(names.FLIGHT_COMMAND), String, queue_size=FLIGHT_COMMAND_QUEUE)
 
     def _odom_origin(self, robot):
         """The static map -> <r>/odom as a topview.Pose2D, or None until tf has it."""

@@ -44,6 +44,7 @@ from cps_msgs.msg import LinkReport, LinkState
 from cps_ros import cloud_ledger
 from cps_ros.diagnostics import DropReporter
 from cps_ros.priority import thread_cpu_and_wait_s
+from cps_ros.publisher import Publisher
 
 LINK_STATE_PERIOD_S = 1.0
 # How long to stay quiet before saying the other side has not come up yet, s.
@@ -192,9 +193,7 @@ class ZenohBridge:
             [r for r in table.incoming(side) if is_cloud_route(r)], cloud_ledger.BRIDGE_IN, ledger_reporter
         )
         self.link_pub = (
-            rospy.Publisher(names.LINK_STATE, LinkState, queue_size=5, latch=True)
-            if table.publishes_link_state
-            else None
+            Publisher(names.LINK_STATE, LinkState, queue_size=5, latch=True) if table.publishes_link_state else None
         )
         self.store = None
         if side == ROBOTS and table.backfill and backfill_store_bytes:
@@ -262,7 +261,7 @@ class ZenohBridge:
             threading.Thread(target=self._probe_loop, name="probe", daemon=True).start()
             self.report_timer = rospy.Timer(rospy.Duration(table.report_ms / 1000.0), self._report)
         if self.composer is not None:
-            self.link_report_pub = rospy.Publisher(names.LINK_REPORT, LinkReport, queue_size=10)
+            self.link_report_pub = Publisher(names.LINK_REPORT, LinkReport, queue_size=10)
         if self.main_lane:
             _warn_unsent_limit(table.kernel_unsent_bytes)
         self._publish_link_state()
@@ -589,7 +588,7 @@ class ZenohBridge:
             if route.latched:
                 listener = self.replays[route.to] = _LatchedReplay()
             self._publisher_ready[route.to] = threading.Event()
-            pub = self.publishers[route.to] = rospy.Publisher(
+            pub = self.publishers[route.to] = Publisher(
                 route.to,
                 cls,
                 queue_size=QUEUE_SIZE.get(route.traffic.name, DEFAULT_QUEUE_SIZE),

@@ -4,6 +4,7 @@ import rospy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from cps_fleet import names
+from cps_ros.publisher import Publisher
 from cps_ros.timers import guarded_timer
 
 DROP_REPORT_TOPIC = names.DIAGNOSTICS
@@ -23,7 +24,7 @@ class DropReporter:
         self.processed = 0
         self.last_error = ""
         self._extra = {}
-        self._pub = rospy.Publisher(DROP_REPORT_TOPIC, DiagnosticArray, queue_size=5)
+        self._pub = Publisher(DROP_REPORT_TOPIC, DiagnosticArray, queue_size=5)
         self._timer = guarded_timer(period_s, self._report, f"drop report {input_topic}")
 
     def ok(self, **counters):

@@ -7,6 +7,7 @@ import rospy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 from cps_fleet import names
+from cps_ros.publisher import Publisher
 
 
 class FaultReport:
@@ -17,7 +18,7 @@ class FaultReport:
         self.part = part
         self.period_s = period_s
         self._last_s = -float("inf")
-        self._pub = rospy.Publisher(names.DIAGNOSTICS, DiagnosticArray, queue_size=5)
+        self._pub = Publisher(names.DIAGNOSTICS, DiagnosticArray, queue_size=5)
 
     def report(self, message, **counts):
         now = time.monotonic()

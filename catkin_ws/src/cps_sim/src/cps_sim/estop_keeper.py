@@ -12,13 +12,14 @@ import rospy
 from std_msgs.msg import Bool
 
 from cps_fleet import names
+from cps_ros.publisher import Publisher
 
 
 class EstopKeeper:
     def __init__(self, initial=False):
         self._lock = threading.Lock()
         self.active = bool(initial)
-        self._pub = rospy.Publisher(names.ESTOP, Bool, queue_size=5, latch=True)
+        self._pub = Publisher(names.ESTOP, Bool, queue_size=5, latch=True)
         self._pub.publish(Bool(data=self.active))
         self._sub = rospy.Subscriber(names.ESTOP, Bool, self._on_estop, queue_size=5)
 

@@ -22,6 +22,7 @@ from std_msgs.msg import Bool, String
 from cps_fleet import names
 from cps_fleet.config import ConfigError
 from cps_fleet.site import check_waypoint
+from cps_ros.publisher import Publisher
 from cps_ros.shutdown import init_node
 from cps_sim import messages
 from cps_sim.controllers import CommandGate
@@ -166,7 +167,7 @@ class FleetSimNode:
         rospy.Subscriber(names.ESTOP, Bool, self._on_estop, queue_size=5)
         self.tf = tf2_ros.TransformBroadcaster()
         self.static_tf = tf2_ros.StaticTransformBroadcaster()
-        self.diagnostics = rospy.Publisher(names.DIAGNOSTICS, DiagnosticArray, queue_size=5)
+        self.diagnostics = Publisher(names.DIAGNOSTICS, DiagnosticArray, queue_size=5)
         now = time.time()
         self.static_tf.sendTransform(self._static_transforms(now))
         rates = {n: s.rate_hz for n, s in self.sim.robots.items()}
@@ -199,14 +200,14 @@ class FleetSimNode:
             return names.robot_topic(name, relative)
 
         pubs = {
-            "points": rospy.Publisher(topic(sim.config.cloud_topic), PointCloud2, queue_size=2),
-            "odom": rospy.Publisher(topic(names.ODOM), Odometry, queue_size=10),
-            "joint_states": rospy.Publisher(topic(names.JOINT_STATES), JointState, queue_size=10),
-            "battery": rospy.Publisher(topic(names.BATTERY), BatteryState, queue_size=2),
+            "points": Publisher(topic(sim.config.cloud_topic), PointCloud2, queue_size=2),
+            "odom": Publisher(topic(names.ODOM), Odometry, queue_size=10),
+            "joint_states": Publisher(topic(names.JOINT_STATES), JointState, queue_size=10),
+            "battery": Publisher(topic(names.BATTERY), BatteryState, queue_size=2),
         }
         if sim.config.has_depth_camera:
-            pubs["image"] = rospy.Publisher(topic(names.CAMERA_IMAGE), Image, queue_size=2)
-            pubs["info"] = rospy.Publisher(topic(names.CAMERA_INFO), CameraInfo, queue_size=2)
+            pubs["image"] = Publisher(topic(names.CAMERA_IMAGE), Image, queue_size=2)
+            pubs["info"] = Publisher(topic(names.CAMERA_INFO), CameraInfo, queue_size=2)
             video = RobotVideo(
                 name, sim.sensor_frame, self.fleet.streams, self._on_video_rate, unmanaged=self.options.video_unmanaged
             )

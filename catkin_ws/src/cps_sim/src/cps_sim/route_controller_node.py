@@ -17,6 +17,7 @@ from std_msgs.msg import String
 
 from cps_fleet import names
 from cps_fleet.config import ConfigError
+from cps_ros.publisher import Publisher
 from cps_ros.shutdown import init_node
 from cps_sim.controllers import RouteTracker, validate_route
 from cps_sim.fleet_control import ROUTE_RATE_HZ
@@ -38,9 +39,9 @@ class RouteControllerNode:
         self.config = config
         self.tracker = tracker
         self.tf_buffer = tf_buffer
-        self.cmd_pub = rospy.Publisher(topic(names.CMD_VEL_AUTO), TwistMsg, queue_size=5)
-        self.state_pub = rospy.Publisher(topic(names.MISSION_STATE), String, queue_size=1, latch=True)
-        self.flight_pub = rospy.Publisher(topic(names.FLIGHT_COMMAND), String, queue_size=5)
+        self.cmd_pub = Publisher(topic(names.CMD_VEL_AUTO), TwistMsg, queue_size=5)
+        self.state_pub = Publisher(topic(names.MISSION_STATE), String, queue_size=1, latch=True)
+        self.flight_pub = Publisher(topic(names.FLIGHT_COMMAND), String, queue_size=5)
         self._publish_state(self.tracker.start())
         self.sub = rospy.Subscriber(topic(names.ODOM), Odometry, self._on_odom, queue_size=5)
         rospy.loginfo(

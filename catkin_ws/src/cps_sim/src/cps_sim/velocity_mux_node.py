@@ -12,6 +12,7 @@ from geometry_msgs.msg import Twist as TwistMsg
 from std_msgs.msg import Bool, String
 
 from cps_fleet import names
+from cps_ros.publisher import Publisher
 from cps_ros.shutdown import init_node
 from cps_sim.controllers import VelocityMux
 from cps_sim.fleet_control import DEADMAN_S, MUX_RATE_HZ
@@ -44,9 +45,9 @@ class VelocityMuxNode:
         # Per robot: rospy's own throttle is per line of code, so one robot's warnings would hide another's.
         self.warn = ThrottledLog(rospy.logwarn, WARN_PERIOD_S)
         self.cmd_vel_auto, self.cmd_vel_teleop = topic(names.CMD_VEL_AUTO), topic(names.CMD_VEL_TELEOP)
-        self.pub = rospy.Publisher(topic(names.CMD_VEL), TwistMsg, queue_size=5)
+        self.pub = Publisher(topic(names.CMD_VEL), TwistMsg, queue_size=5)
         # The mode in force (yocs_cmd_vel_mux's `active`): control_mode is only what was asked.
-        self.active_pub = rospy.Publisher(topic(names.CONTROL_MODE_ACTIVE), String, queue_size=1, latch=True)
+        self.active_pub = Publisher(topic(names.CONTROL_MODE_ACTIVE), String, queue_size=1, latch=True)
         self.active_pub.publish(String(data=self.mux.mode))
         self.mode_topic = topic(names.CONTROL_MODE)
         self.subs = [

@@ -13,6 +13,7 @@ from sensor_msgs.msg import CompressedImage
 
 from cps_fleet import names
 from cps_msgs.msg import RateLimiterStatus
+from cps_ros.publisher import Publisher
 from cps_sim import messages
 from cps_sim.scheduling import RateMeter
 from cps_sim.video import LevelSizes, VideoTask, compressed_image_bytes
@@ -56,8 +57,8 @@ class RobotVideo:
             return names.robot_topic(robot, relative)
 
         self.image_topic = names.absolute(topic(names.CAMERA_IMAGE_COMPRESSED))
-        self.publisher = rospy.Publisher(self.image_topic, CompressedImage, queue_size=2)
-        self.status_pub = rospy.Publisher(
+        self.publisher = Publisher(self.image_topic, CompressedImage, queue_size=2)
+        self.status_pub = Publisher(
             names.absolute(topic(names.VIDEO_STATUS)), RateLimiterStatus, queue_size=5, latch=True
         )
 

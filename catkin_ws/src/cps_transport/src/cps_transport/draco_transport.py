@@ -10,6 +10,7 @@ from rosgraph.names import ns_join
 from cps_msgs.msg import CompressedPointCloud2
 from cps_ros import cloud_ledger
 from cps_ros.diagnostics import DropReporter
+from cps_ros.publisher import Publisher
 from cps_transport.draco import DracoDecoder, DracoEncoder, DracoError
 from cps_transport.pointcloud import InvalidCloud
 
@@ -30,7 +31,7 @@ class DracoPublisher:
         self.base_topic = rospy.resolve_name(base_topic)
         self.topic = rospy.resolve_name(topic) if topic else draco_topic(base_topic)
         self.encoder = encoder if encoder is not None else DracoEncoder(**encoder_args)
-        self._publisher = rospy.Publisher(self.topic, CompressedPointCloud2, queue_size=queue_size, latch=latch)
+        self._publisher = Publisher(self.topic, CompressedPointCloud2, queue_size=queue_size, latch=latch)
         self.report = DropReporter(self.base_topic)
 
     @property

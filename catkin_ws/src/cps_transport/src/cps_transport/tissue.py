@@ -26,6 +26,7 @@ from cps_msgs.msg import CompressedPointCloud2, RateLimiterStatus
 from cps_msgs.srv import SetRate, SetRateResponse
 from cps_ros import cloud_ledger
 from cps_ros.diagnostics import DropReporter
+from cps_ros.publisher import Publisher
 from cps_ros.relay import relay_class, relay_message
 from cps_ros.timers import guarded_timer
 from cps_transport import host_cpu
@@ -204,7 +205,7 @@ class ManagedRateLimiter:
         def private(name):
             return ns_join(node_name, name.lstrip("~"))
 
-        self.status_pub = rospy.Publisher(private(names.STATUS), RateLimiterStatus, queue_size=5, latch=True)
+        self.status_pub = Publisher(private(names.STATUS), RateLimiterStatus, queue_size=5, latch=True)
         self.service = rospy.Service(private(names.SET_RATE), SetRate, self.on_set_rate)
         self.rate_sub = rospy.Subscriber(private(names.RATE_HZ), Float64, lambda msg: self.set_rate(msg.data))
         self.input_sub = rospy.Subscriber(input_topic, rospy.AnyMsg, self.on_message, queue_size=5, buff_size=1 << 24)
@@ -238,9 +239,7 @@ class ManagedRateLimiter:
             forward = self.limiter.allow(time.monotonic(), len(msg._buff))
             if forward and self.publisher is None:
                 self.relay_cls = relay_class(msg._connection_header)
-                self.publisher = rospy.Publisher(
-                    self.output_topic, self.relay_cls, queue_size=LIMITER_OUTPUT_QUEUE_SIZE
-                )
+                self.publisher = Publisher(self.output_topic, self.relay_cls, queue_size=LIMITER_OUTPUT_QUEUE_SIZE)
             if forward:
                 self.forward_seq += 1
                 out = relay_message(self.relay_cls, msg)
@@ -335,7 +334,7 @@ class ImageCompressor:
         self.quality = quality
         self.limiter = RateLimiter(max_rate_hz, burst=1.0) if max_rate_hz > 0 else None
         self.report = DropReporter(input_topic)
-        self.publisher = rospy.Publisher(output_topic, CompressedImage, queue_size=2)
+        self.publisher = Publisher(output_topic, CompressedImage, queue_size=2)
         self.subscriber = rospy.Subscriber(input_topic, Image, self.on_image, queue_size=1, buff_size=1 << 24)
 
     def on_image(self, msg):
@@ -384,8 +383,8 @@ class ManagedVideoCompressor:
         self.mean_bytes = float("nan")
         self.input_topic, self.output_topic = topic(names.CAMERA_IMAGE), topic(names.CAMERA_IMAGE_COMPRESSED)
         self.report = DropReporter(self.input_topic)
-        self.publisher = rospy.Publisher(self.output_topic, CompressedImage, queue_size=2)
-        self.status_pub = rospy.Publisher(topic(names.VIDEO_STATUS), RateLimiterStatus, queue_size=5, latch=True)
+        self.publisher = Publisher(self.output_topic, CompressedImage, queue_size=2)
+        self.status_pub = Publisher(topic(names.VIDEO_STATUS), RateLimiterStatus, queue_size=5, latch=True)
         self.subscriber = rospy.Subscriber(self.input_topic, Image, self.on_image, queue_size=1, buff_size=1 << 24)
         self.status_timer = guarded_timer(1.0, lambda _event: self.publish_status(), f"status {robot} video")
         self.publish_status()
@@ -625,7 +624,7 @@ class DracoDecoderPart:
     sensor_msgs/PointCloud2, header kept (DracoSubscriber: damaged payloads dropped and counted)."""
 
     def __init__(self, input_topic, output_topic):
-        self.publisher = rospy.Publisher(output_topic, PointCloud2, queue_size=2)
+        self.publisher = Publisher(output_topic, PointCloud2, queue_size=2)
         self.subscriber = DracoSubscriber(
             None, self.publisher.publish, topic=input_topic, ledger_stage=cloud_ledger.DECODER
         )
