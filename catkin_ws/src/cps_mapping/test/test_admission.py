@@ -305,3 +305,30 @@ def test_a_fork_server_left_at_a_spares_priority_is_not_used_where_it_cannot_be_
     finally:
         server.kill()
         server.wait()
+
+
+def test_stats_read_while_a_cloud_is_received_and_inserted_never_count_minus_one_waiting(jackal_points):
+    """A cloud received and inserted while the statistics are read: read admission first, then the
+    insertion, it was ended and never waiting, and the robot's queue_length came out -1. rospy
+    could not serialize that uint32 and left the topic's buffer corrupt (a mission's statistics
+    went silent for its last 7.6 s). Each figure is read in an order that cannot go negative."""
+    server, published = _server(robots=("jackal",))
+    real_snapshot = server.admission.snapshot
+    raced = []
+
+    def snapshot_then_a_cloud_arrives_and_is_inserted():
+        taken = real_snapshot()
+        if not raced:
+            raced.append(1)
+            server.receive_cloud("jackal", _as_received(_compressed(jackal_points, 200, seq=1)))
+            assert server.insert_pending(timeout_s=0) == 1
+        return taken
+
+    server.admission.snapshot = snapshot_then_a_cloud_arrives_and_is_inserted
+    server.publish_stats(genpy.Time(201, 0))
+    (row,) = published["stats"][-1].robots
+    assert raced and row.queue_length == 0
+    published["stats"][-1].serialize(io.BytesIO())  # what rospy does with it
+    assert server.waiting("jackal") == 0
+    c = server.robot_counters("jackal")
+    assert (c.clouds_received, c.clouds_inserted) == (1, 1)

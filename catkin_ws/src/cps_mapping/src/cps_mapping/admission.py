@@ -121,7 +121,7 @@ class Admission:
 
     def snapshot(self) -> Dict[str, tuple]:
         """{robot: (AdmissionCounters, clouds waiting)}."""
-        return {r: (self.slots.counts(r), self.slots.length(r)) for r in self.robots}
+        return {r: self.slots.state(r) for r in self.robots}
 
     def close(self):
         self.slots.close()

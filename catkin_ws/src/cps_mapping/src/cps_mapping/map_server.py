@@ -219,6 +219,20 @@ class RobotCounters:
         return max(0.0, now_s - self.newest_published_stamp_s)
 
 
+def _merged_counters(insertion: RobotCounters, admitted) -> RobotCounters:
+    """The insertion's counters (a copy) with the admission's AdmissionCounters, a cause both count summed."""
+    both = merged_counts(admitted, **{f: getattr(insertion, f) for f in vars(admitted) if hasattr(insertion, f)})
+    return dataclasses.replace(insertion, **both)
+
+
+def _waiting(insertion: RobotCounters, admitted) -> int:
+    """Clouds received and not ended: in the slot, or placed and not yet ended by the insertion.
+    `admitted` is the admission's (AdmissionCounters, clouds in the slot), read after `insertion`."""
+    counts, in_slot = admitted
+    ended = insertion.clouds_inserted + insertion.clouds_dropped_decoder + insertion.clouds_dropped_invalid
+    return in_slot + counts.clouds_placed - ended
+
+
 @dataclasses.dataclass(frozen=True)
 class MapSnapshot:
     """What the publishers send for one map version, built from a copy of the map taken under the
@@ -350,28 +364,31 @@ class MapServer:
         """Log `message` unless the same `key` was logged within `period_s`."""
         self._throttled.warn(key, message, period_s, level)
 
-    def robot_counters(self, robot, admitted=None) -> RobotCounters:
-        """A copy of the robot's counters: the admission's (from `admitted`, an AdmissionCounters,
-        or asked for) and the insertion's, a cause both count summed."""
-        admitted = admitted if admitted is not None else self.admission.snapshot()[robot][0]
+    def _counts_in_order(self):
+        """({robot: a copy of the insertion's counters}, the admission's snapshot), read in that
+        order. The admission counts a cloud placed before the insertion can end it, so every cloud
+        the first read counts as ended the second counts as placed, and a robot's waiting count is
+        never negative. Read the other way round, a cloud received and inserted between the two
+        reads made it -1, which a uint32 field cannot carry: /twin/map_stats failed to serialize."""
         with self._counters_lock:
-            mine = self.counters[robot]
-            both = merged_counts(admitted, **{f: getattr(mine, f) for f in vars(admitted) if hasattr(mine, f)})
-            return dataclasses.replace(mine, **both)
+            insertion = {r: dataclasses.replace(c) for r, c in self.counters.items()}
+        return insertion, self.admission.snapshot()
 
-    def waiting(self, robot, admitted=None) -> int:
+    def robot_counters(self, robot) -> RobotCounters:
+        """A copy of the robot's counters: the admission's and the insertion's, a cause both count summed."""
+        insertion, admitted = self._counts_in_order()
+        return _merged_counters(insertion[robot], admitted[robot][0])
+
+    def waiting(self, robot) -> int:
         """The robot's clouds received and not ended yet: in its slot, or placed and on their way to
         the insertion (the receive process hands them over in batches)."""
-        counts, in_slot = admitted if admitted is not None else self.admission.snapshot()[robot]
-        with self._counters_lock:
-            mine = self.counters[robot]  # the insertion's own counts only
-            ended = mine.clouds_inserted + mine.clouds_dropped_decoder + mine.clouds_dropped_invalid
-        return in_slot + counts.clouds_placed - ended
+        insertion, admitted = self._counts_in_order()
+        return _waiting(insertion[robot], admitted[robot])
 
     def _totals(self):
         """(superseded, dropped) so far, every robot and both sides (InsertCapacity's window)."""
-        admitted = self.admission.snapshot()
-        rows = [self.robot_counters(r, admitted[r][0]) for r in self.robots]
+        insertion, admitted = self._counts_in_order()
+        rows = [_merged_counters(insertion[r], admitted[r][0]) for r in self.robots]
         return sum(c.clouds_superseded for c in rows), sum(c.clouds_dropped for c in rows)
 
     def _count(self, robot, **amounts):
@@ -633,12 +650,12 @@ class MapServer:
         """MapStats: the published snapshot's figures and every robot's counters at `stamp`."""
         snap = self.snapshot
         contributions = snap.contributions if snap is not None else {}
-        admitted = self.admission.snapshot()
+        insertion, admitted = self._counts_in_order()
         robots = [
             map_messages.robot_map_stats(
                 r,
-                self.robot_counters(r, admitted[r][0]),
-                self.waiting(r, admitted[r]),
+                _merged_counters(insertion[r], admitted[r][0]),
+                _waiting(insertion[r], admitted[r]),
                 stamp.to_sec(),
                 contributions.get(r, 0),
             )

@@ -196,6 +196,12 @@ class RobotSlots:
         with self._cond:
             return dataclasses.replace(self._counts[robot])
 
+    def state(self, robot: str) -> Tuple[AdmissionCounters, int]:
+        """(a copy of the robot's admission counts, its clouds waiting), read at one instant: a cloud
+        taken between two reads would be in neither."""
+        with self._cond:
+            return dataclasses.replace(self._counts[robot]), self.length(robot)
+
     def superseded_total(self) -> int:
         with self._cond:
             return sum(c.clouds_superseded for c in self._counts.values())
