@@ -331,7 +331,7 @@ def test_a_drain_takes_its_delivered_rate_for_the_link_only_if_the_socket_stayed
     kbytes = 1000
 
     def step_then_drain(drain_socket_full, drain_rtts_s=(0.08,)):
-        core = _live_core(initial=25.0)
+        core = _live_core(initial=30.0)
         est = core.estimator
 
         def report(t, acked_kbytes, sent_kbytes, full, rtts_s):
@@ -350,7 +350,8 @@ def test_a_drain_takes_its_delivered_rate_for_the_link_only_if_the_socket_stayed
             )
 
         report(0.5, 1250, 1250, 0.0, (0.005,))  # 20 Mbit/s delivered, the link not yet full
-        # the link is 20 Mbit/s (1250 kB per 0.5 s) and the estimate 25: its socket full all along
+        # the link is 20 Mbit/s (1250 kB per 0.5 s) and the estimate 30 (a step, below 0.7 x): its
+        # socket full all along
         report(1.0, 1250, 1560, 1.0, (0.06,))
         assert est.last_overuse == "link_full" and est.mode == "drain"
         cut = est.capacity_mbps
