@@ -33,6 +33,8 @@ ROSOUT = "/rosout"
 ROSOUT_AGG = "/rosout_agg"
 ESTOP = "/fleet/estop"
 USE_SIM_TIME = "/use_sim_time"
+# rospy reads it at every log line; every master we start sets it (cps_ros.processes.MASTER_DEFAULTS)
+ROSOUT_DISABLE_TOPICS_GENERATION = "/rosout_disable_topics_generation"
 
 # --- per robot, relative to the robot's namespace ------------------------------------------------
 # The robot's raw cloud topic is its robot type's (fleet.yaml robot_types[*].cloud_topic).

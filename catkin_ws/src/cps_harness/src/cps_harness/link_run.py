@@ -61,6 +61,10 @@ class LinkRosGraph(ClosingContext):
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.run_python("twin", code).returncode == 0:
+                defaults = f"from cps_ros.processes import set_master_defaults; set_master_defaults({self.uri!r})"
+                done = self.run_python("twin", defaults)
+                if done.returncode != 0:
+                    raise RuntimeError(f"could not set the master's defaults: {done.stderr[-2000:]}")
                 return
             time.sleep(0.2)
         raise TimeoutError(f"no ROS master at {self.uri} within {timeout_s} s:\n{self.output('roscore')[-2000:]}")

@@ -21,6 +21,8 @@ import sys
 import tempfile
 import time
 
+from cps_fleet import names
+
 _PR_SET_PDEATHSIG = 1
 # How long stop waits for a killed process group's members to be gone: SIGKILL is not instant on a
 # loaded machine (a large process releases its memory first).
@@ -121,6 +123,24 @@ def stop_all(procs, timeout_s=10.0):
         time.sleep(0.02)
 
 
+# Parameters every master we start holds. rospy reads /rosout_disable_topics_generation at every
+# log line through its parameter cache, which keeps only a parameter that is set (rospy/msproxy.py,
+# get_param_cached): unset, each log line of every node was an XML-RPC call to the master, under
+# a lock its shutdown needs too. Four nodes logging fast kept the master so busy that their own
+# shutdown's unregister waited behind it for over 10 s (test_shutdown beside busy loops, 5 runs of
+# 5). Set to rospy's default.
+MASTER_DEFAULTS = {names.ROSOUT_DISABLE_TOPICS_GENERATION: False}
+
+
+def set_master_defaults(master_uri):
+    """Set MASTER_DEFAULTS on the master at `master_uri`."""
+    import rosgraph
+
+    master = rosgraph.Master("/cps_master_defaults", master_uri=master_uri)
+    for name, value in MASTER_DEFAULTS.items():
+        master.setParam(name, value)
+
+
 class RosGraph:
     """A roscore on a free port plus every process started through it; `close` kills them all."""
 
@@ -171,7 +191,8 @@ class RosGraph:
         while time.monotonic() < deadline:
             if self._master.poll() is not None:
                 raise RuntimeError(f"roscore exited with {self._master.returncode}: {self.output('roscore')}")
-            if self._master_up() and self._has_node("/rosout"):
+            if self._master_up() and self._has_node(names.ROSOUT):
+                set_master_defaults(self.uri)
                 return
             time.sleep(0.1)
         self.close()
