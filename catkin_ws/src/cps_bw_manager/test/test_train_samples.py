@@ -424,7 +424,7 @@ def test_one_full_interval_a_little_below_the_capacity_is_no_cut_two_are():
     est.update(_interval(5.5, 16.4, 15.2, busy=True, link_limited=True))
     assert est.overuses == 0 and est.capacity_mbps == pytest.approx(19.2)
     # the same shortfall on the next report: the link is slower
-    est.update(_report(6.0, train=16.5, sent=76.8, fleet_mbps=14.0))  # a train's interval between
+    est.update(_report(6.0, train=19.0, sent=76.8, fleet_mbps=14.0))  # a train's interval between
     est.update(_interval(6.5, 16.3, 15.2, busy=True, link_limited=True))
     assert est.overuses == 1 and est.last_overuse == "link_full" and est.capacity_mbps == pytest.approx(16.3)
 
@@ -433,3 +433,33 @@ def test_one_full_interval_a_little_below_the_capacity_is_no_cut_two_are():
     est.update(_report(2.0, train=19.2, sent=231.0))
     est.update(_interval(2.5, 12.0, 11.0, busy=True, link_limited=True))
     assert est.overuses == 1 and est.capacity_mbps == pytest.approx(12.0)
+
+
+def test_a_train_step_down_the_next_train_refutes_is_taken_back_at_once():
+    """Live (link_thesis, wifi_degraded at 60 Mbit/s, session 20): a train sent by a stalled sender
+    (at 111 Mbit/s, not its 225) read 36.1 and was taken at once as a step down; the next train's
+    56.3 (1.56 x) was held, and 36.1 stood for 5.5 s. The first train after a train's step that
+    reads back where the capacity was refutes the step at once."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.capacity_mbps = est._bw_max_mbps = est._unrefuted_mbps = 56.2
+    est.update(_report(2.0, train=36.1, sent=110.8))
+    assert est.capacity_mbps == pytest.approx(36.1)
+    est.update(_report(3.0, train=56.3, sent=144.4))
+    assert est.capacity_mbps == pytest.approx(56.2) and est.trains[TRAIN_HELD] == 0  # no higher than before
+
+
+def test_after_a_train_rise_the_next_reading_above_is_taken_at_once():
+    """Live (link_thesis, 5 -> 60 Mbit/s, session 20): two lower bounds took the capacity 4.7 -> 18.8
+    -> 44.8 at once, then the first bottleneck reading, 56.1 (1.25 x), waited for the next train:
+    3.5 s in all. After a rise the link may be higher still; the first train after it is taken."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_report(2.0, train=4.7, sent=231.0))  # 60 -> 5
+    assert est.capacity_mbps == pytest.approx(4.7)
+    est.update(_report(4.0, train=27.0, sent=18.8))  # 5 -> 60: arrived faster than its pace
+    assert est.capacity_mbps == pytest.approx(18.8)
+    est.update(_report(5.0, train=44.8, sent=48.5))  # at its pace, 2.4 x
+    assert est.capacity_mbps == pytest.approx(44.8)
+    est.update(_report(6.0, train=56.1, sent=179.4))  # the bottleneck, 1.25 x: at once
+    assert est.capacity_mbps == pytest.approx(56.1) and est.trains[TRAIN_HELD] == 0
+    est.update(_report(7.0, train=64.0, sent=224.0))  # not the first after the rise: held
+    assert est.capacity_mbps == pytest.approx(56.1) and est.trains[TRAIN_HELD] == 1

@@ -72,6 +72,9 @@ TRAIN_LOWER_BOUND = "lower_bound"
 # (the larger of the two: the link carried that much): on a 60 Mbit/s link single trains read
 # 36-81 Mbit/s (live, make demo on a loaded 2-core machine), a step down reads far below.
 TRAIN_STEP_FRACTION = 0.7
+# After a train's step down, the next train reading at least this x the capacity before the step
+# refutes it (the band the estimate is held to): the step was the outlier.
+STEP_REFUTED_FRACTION = 0.85
 # A bottleneck above the capacity is taken at once only above this x it, else when the next train
 # confirms it (the smaller of the two). A receiver descheduled under load reads a train's bytes late
 # and in a burst, which only ever reads fast (live, test_over_link beside busy loops: 26.2 Mbit/s on
@@ -335,8 +338,13 @@ class DeliveryRateEstimator:
         self._last_probe_s = -math.inf
         self._capacity_before_probe_mbps = math.nan
         self._drain_checked = False  # the drain's one correction of the capacity was made
-        self._cut_s = -math.inf  # the last overuse's cut
-        self._before_cut_mbps = math.inf  # the capacity that cut (or the first of cuts no train saw) left
+        # The last step taken on one reading (an overuse's cut, a train's step down or rise taken at
+        # once), the capacity it left (of cuts no train saw, the first one's), its direction and
+        # whether a train took it.
+        self._step_s = -math.inf
+        self._before_step_mbps = math.inf
+        self._step_up = False
+        self._step_by_train = False
         self._gain = PROBE_GAIN
 
     @property
@@ -415,9 +423,21 @@ class DeliveryRateEstimator:
         self.last_refused = reason
         return self.estimate_mbps
 
-    def _cut_unseen(self, now_s):
-        """No train has come since the last overuse's cut, made within max_drain_s of `now_s`."""
-        return self._train_s <= self._cut_s and now_s - self._cut_s <= self.max_drain_s
+    def _step_unseen(self, now_s):
+        """No train has come since the last step taken on one reading, made within max_drain_s of `now_s`."""
+        return self._train_s <= self._step_s and now_s - self._step_s <= self.max_drain_s
+
+    def _reads_past_the_step(self, measured):
+        """Is a train's `measured`, the first after a step, taken at once (see `_take_train`)?"""
+        if not self._step_by_train or self._step_up or measured < self.capacity_mbps:
+            return True
+        return measured >= STEP_REFUTED_FRACTION * self._before_step_mbps
+
+    def _mark_step(self, now_s, up, by_train):
+        """A step taken on one reading: the first train after it is taken at once (`_take_train`)."""
+        if by_train or self._step_by_train or not self._step_unseen(now_s):
+            self._before_step_mbps = self.capacity_mbps  # (a cut soon after one no train saw keeps its origin)
+        self._step_s, self._step_up, self._step_by_train = now_s, up, by_train
 
     def _set_mode(self, mode, now_s):
         if mode != self.mode:
@@ -698,7 +718,7 @@ class DeliveryRateEstimator:
         if math.isnan(mbps):
             self.ignored[kind] += 1
             return
-        first_after_cut = self._cut_unseen(report.now_s)
+        first_after_step = self._step_unseen(report.now_s)
         self._train_s = report.now_s
         if kind == TRAIN_BOTTLENECK and mbps < report.delivered_mbps:
             # the link delivered more over the train's interval than the train says it can: the
@@ -713,27 +733,34 @@ class DeliveryRateEstimator:
         (held, held_against), self._train_held = self._train_held, (math.nan, math.nan)
         if held_against != self.capacity_mbps:
             held = math.nan
+        # a step on this one reading: taken at once, and the next train is taken at once too
+        step = not TRAIN_STEP_FRACTION * self.capacity_mbps <= measured <= TRAIN_RISE_AT_ONCE * self.capacity_mbps
         if kind in (TRAIN_LOWER_BOUND, TRAIN_RECEIVER_STARVED):
             self.trains[kind] += 1
             if measured <= self.capacity_mbps:
                 return
-        elif measured < self.capacity_mbps and first_after_cut:
-            # the first train within max_drain_s of an overuse's cut, and a shortfall: the cut was
-            # the step's first reading (the rate of an interval that straddled it, so above the new
-            # link), the train confirms it. Live (test_over_link, final62), a 60 -> 20 Mbit/s step
-            # cut to 24.7; held, the train's 19.1 waited 2.5 s for the next (one per 2.5 s at 24.7)
+        elif first_after_step and measured != self.capacity_mbps and not step and self._reads_past_the_step(measured):
+            # The first train within max_drain_s of a step taken on one reading reads the link
+            # itself: at once, either way, back across the step no further than where it started.
+            # - after an overuse's cut, a shortfall: the cut was the step's first reading (an
+            #   interval that straddled it, so above the new link). Live (test_over_link, final62) a
+            #   60 -> 20 Mbit/s step cut to 24.7; held, the train's 19.1 waited 2.5 s for the next;
+            # - after a cut, a rise: the cut read one interval (live beside busy loops, a train's loss
+            #   left TCP below a 20 Mbit/s link with its socket full: cut to 16.9, the next train's
+            #   19.3 held, the one after it under-read: 16.9 for 2.5 s);
+            # - after a train's step down, a further shortfall, or a reading back where the capacity
+            #   was before it (the step was the outlier): live (link_thesis, 60 Mbit/s) one train sent
+            #   by a stalled sender read 36.1 and the next one's 56.3 was held: 36.1 for 5.5 s. A
+            #   rise part of the way back is held as any (a receiver read late reads fast);
+            # - after a train's rise: the link may have risen further. Live (link_thesis, 5 -> 60)
+            #   the rise went 4.7 -> 18.8 -> 44.8 on two lower bounds, and the first bottleneck
+            #   reading, 56.1, waited for the next train: 3.5 s in all.
+            if self._step_up and measured < self.capacity_mbps:
+                measured = max(measured, self._before_step_mbps)
+            elif not self._step_up and measured > self.capacity_mbps:
+                measured = min(measured, self._before_step_mbps)
             self.trains[kind] += 1
-        elif measured > self.capacity_mbps and first_after_cut:
-            # ... and above the cut: the cut read one interval, the train reads the link itself; it
-            # takes the capacity back at once, no higher than before the cut. Live (test_over_link
-            # beside busy loops) a train's loss left TCP sending below a 20 Mbit/s link for an
-            # interval with its socket full: cut to 16.9, the next train's 19.3 held, and the one
-            # after it under-read: 16.9 for 2.5 s
-            measured = min(measured, self._before_cut_mbps)
-            self.trains[kind] += 1
-        elif measured != self.capacity_mbps and (
-            TRAIN_STEP_FRACTION * self.capacity_mbps <= measured <= TRAIN_RISE_AT_ONCE * self.capacity_mbps
-        ):
+        elif measured != self.capacity_mbps and not step:
             rise = measured > self.capacity_mbps
             if math.isnan(held) or (held > self.capacity_mbps) != rise:
                 self._train_held = (measured, self.capacity_mbps)
@@ -744,6 +771,8 @@ class DeliveryRateEstimator:
             self.trains[kind] += 1
         else:
             self.trains[kind] += 1
+        if step:
+            self._mark_step(report.now_s, up=measured > self.capacity_mbps, by_train=True)
         if abs(measured - self.capacity_mbps) > self.deficit_fraction * self.capacity_mbps:
             # the link changed: samples from before are not its rate
             self._samples.clear()
@@ -780,12 +809,10 @@ class DeliveryRateEstimator:
         self._samples.clear()  # the link changed: samples from before the overuse are not its rate
         self._deficit_reports = 0
         self._small_full_reports = 0
-        if not self._cut_unseen(now):
-            self._before_cut_mbps = self.capacity_mbps  # (a cut soon after one no train saw keeps its origin)
+        self._mark_step(now, up=False, by_train=False)
         self.capacity_mbps = measured
         self.estimate_mbps = self._clip(drain_factor * measured)
         self.mode, self._mode_since_s = "drain", now  # a new overuse restarts the drain
-        self._cut_s = now
         self._drain_checked = False
         self._trend.reset()  # the rise is acted upon; the next overuse must be a new rise
 
