@@ -350,3 +350,24 @@ def test_trains_that_cannot_be_measured_are_counted_by_kind():
     assert arrivals.refused[RECEIVER_LATE] == 1
     assert arrivals.measured == 1
     assert arrivals.received_bytes > 0
+
+
+def test_a_step_up_found_makes_the_next_train_due_at_the_least_period():
+    """libwebrtc probes further at once when a probe comes near its target. Live (link_thesis,
+    5 -> 60 Mbit/s) each step of the rise (4.7 -> 18.8 -> 44.8 -> 56) waited a period of the capacity
+    before it, 2 s at 5 Mbit/s. A capacity at least 2 x the one the last train was paced for makes
+    the next train due PROBE_MIN_PERIOD_S after it, once; smaller moves keep the period."""
+    schedule = TrainSchedule()
+    schedule.app_limited = True
+    schedule.set_capacity(4.7)
+    schedule.start(100.0)
+    assert train_period_s(4.7) > 2.0 and not schedule.due(100.0 + PROBE_MIN_PERIOD_S)
+    schedule.set_capacity(8.0)  # 1.7 x: the period of the new capacity
+    assert not schedule.due(100.0 + PROBE_MIN_PERIOD_S) and not schedule.further
+    schedule.set_capacity(18.8)  # 4 x: the link may carry more
+    assert schedule.due(100.0 + PROBE_MIN_PERIOD_S) and not schedule.due(100.0 + 0.9 * PROBE_MIN_PERIOD_S)
+    plan = schedule.start(100.0 + PROBE_MIN_PERIOD_S)
+    assert plan.target_mbps == pytest.approx(4 * 18.8)
+    schedule.set_capacity(30.0)  # 1.6 x the last train's: back to the period
+    assert not schedule.due(100.0 + 2 * PROBE_MIN_PERIOD_S)
+    assert schedule.due(100.0 + PROBE_MIN_PERIOD_S + train_period_s(30.0))
