@@ -112,6 +112,24 @@ def test_while_the_link_is_idle_a_lower_rate_waits_and_a_higher_one_goes():
     assert _sent(f.decide(30.0, {CLOUD: Target(1, 0.6)}, link_idle=False))[CLOUD].reason == CHANGE
 
 
+def test_a_clouds_limiter_slack_above_what_it_can_send_moves_without_a_setpoint():
+    """Live (fig13_live, 16 robots, 60 Mbit/s, session 20): on the idle link each cloud's limiter
+    slack rose 7.8 -> 10.4 -> 16.8 -> 30 Hz, one setpoint every 5 s, while the cloud sent ~2.5 Hz
+    (its usable rate): the rate it runs at never changed. Rates are compared up to what the
+    stream can send; a stream held below that still gets its rise."""
+    f = SetpointFilter(rate_deadband=0.2, min_interval_s=5.0)
+    f.decide(0.0, {CLOUD: Target(0, 7.8, usable_hz=2.5)}, link_idle=True)
+    for k, slack_hz in enumerate((10.4, 16.8, 30.0, 12.0), start=1):
+        assert not f.decide(5.0 * k, {CLOUD: Target(0, slack_hz, usable_hz=2.5)}, link_idle=True)
+        assert not f.decide(5.0 * k, {CLOUD: Target(0, slack_hz, usable_hz=2.6)}, link_idle=False, probing=True)
+    # its sensor sped up past the limiter: the rise goes (the whole slack) once the interval passed
+    change = _sent(f.decide(30.0, {CLOUD: Target(0, 16.8, usable_hz=9.9)}, link_idle=True))[CLOUD]
+    assert change.reason == CHANGE and change.rate_hz == 16.8
+    # a video has no such bound: its rate is what it renders
+    f.decide(0.0, {VIDEO: Target(2, 8.0)})
+    assert _sent(f.decide(5.0, {VIDEO: Target(2, 12.0)}))[VIDEO].reason == CHANGE
+
+
 def test_a_finer_level_waits_the_interval_after_the_last_level_change_and_never_flaps():
     """Live at 16 robots a cloud went 1, 0, 1, 0, 1 within 10 s (three changes in 200 ms): shedding
     detail goes out at once, buying it back waits min_interval_s after the stream's last level change."""
