@@ -94,7 +94,7 @@ from cps_fleet import names
 
 rospy.init_node("rosout_param_cache", anonymous=True, disable_signals=True)
 for _ in range(3):
-    rospy.loginfo("a line for /rosout")
+    rospy.loginfo("a log line")
 print("cached", get_param_server_cache().get(names.ROSOUT_DISABLE_TOPICS_GENERATION))
 """
 
