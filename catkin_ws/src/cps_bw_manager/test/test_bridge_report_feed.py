@@ -436,3 +436,28 @@ def test_one_intervals_deficit_seen_twice_in_the_merged_window_is_no_overuse():
         t += 0.5
         est.update(LinkReport(t, 0.5, 14.0, 15.7, app_limited=False, rtt_s=(0.002,), link_busy=True))
     assert est.overuses == 1 and est.last_overuse == "deficit"
+
+
+def test_the_robots_sockets_send_queue_reaches_the_estimator_as_a_standing_queue():
+    """The bridge's send_queue_max_bytes (the robots' link socket's largest kernel send queue in the
+    interval) is what tells a standing queue from heartbeats delayed by a loaded host."""
+    kbytes = 1000
+
+    def run(queue_bytes):
+        core = _live_core(initial=19.0)
+        for i in range(1, 30):
+            core.on_bridge_report(
+                0.5 * i, 0.5, 0.5, 312 * kbytes, 0, 312 * kbytes, True, rtt_s=(0.002,) * 5,
+                sent_link_bytes=312 * kbytes, acked_link_bytes=312 * kbytes, sender_socket_full=0.0,
+                send_queue_max_bytes=2 * kbytes,
+            )  # fmt: skip
+        core.on_bridge_report(
+            15.0, 0.5, 0.5, 244 * kbytes, 0, 344 * kbytes, True, rtt_s=(0.060, 0.095, 0.115, 0.130, 0.140),
+            sent_link_bytes=344 * kbytes, acked_link_bytes=244 * kbytes, sender_socket_full=0.25,
+            send_queue_max_bytes=queue_bytes,
+        )  # fmt: skip
+        return core.estimator
+
+    est = run(195 * kbytes)
+    assert est.overuses == 1 and est.capacity_mbps == pytest.approx(244 * kbytes * 8e-6 / 0.5)
+    assert run(3 * kbytes).overuses == 0

@@ -463,3 +463,40 @@ def test_after_a_train_rise_the_next_reading_above_is_taken_at_once():
     assert est.capacity_mbps == pytest.approx(56.1) and est.trains[TRAIN_HELD] == 0
     est.update(_report(7.0, train=64.0, sent=224.0))  # not the first after the rise: held
     assert est.capacity_mbps == pytest.approx(56.1) and est.trains[TRAIN_HELD] == 1
+
+
+def _queued(now_s, acked_mbps, sent_mbps, rtts_s, queue_kbytes, socket_full=False):
+    """An app-limited interval (the sender's queue ran empty between frames) with heartbeat RTTs and
+    the robots' socket's largest send queue."""
+    return LinkReport(
+        now_s=now_s,
+        interval_s=0.5,
+        delivered_mbps=acked_mbps,
+        sent_mbps=sent_mbps,
+        offered_mbps=sent_mbps,
+        app_limited=True,
+        rtt_s=tuple(rtts_s),
+        link_busy=socket_full,
+        link_limited=socket_full,
+        sender_queue_mbit=queue_kbytes * 8e-3,
+    )
+
+
+def test_a_queue_standing_all_interval_is_a_step_though_the_sender_was_app_limited():
+    """Live (link_thesis run 3, session 21): 20 -> 5 Mbit/s with the fleet offering ~5 Mbit/s. The
+    heartbeats' RTT went 2 -> 115-139 ms and the robots' socket held 195-298 kB for 1.5 s, but the
+    sender was app-limited and its socket not full, both trains were refused (packets out of order)
+    and no deficit held two reports: the step was seen 2.7 s late, the operator's video p95 267 ms.
+    A queue that stood all interval (even its smallest RTT sample queueing) with its bytes in the
+    socket is the link's: what it delivered is its rate."""
+    est = _run(_estimator(), [_queued(0.5 * i, 5.0, 5.0, (0.002, 0.002, 0.003, 0.002, 0.002), 2) for i in range(1, 30)])
+    est.capacity_mbps = est._bw_max_mbps = est._unrefuted_mbps = 19.0
+    est.update(_queued(15.0, 3.9, 5.5, (0.060, 0.095, 0.115, 0.130, 0.140), 195))
+    assert est.overuses == 1 and est.last_overuse == "rtt" and est.capacity_mbps == pytest.approx(3.9)
+
+    # the same RTTs from a loaded host with an empty socket: not the link's queue
+    est = _run(_estimator(), [_queued(0.5 * i, 5.0, 5.0, (0.002, 0.002, 0.003, 0.002, 0.002), 2) for i in range(1, 30)])
+    est.capacity_mbps = est._bw_max_mbps = est._unrefuted_mbps = 19.0
+    est.update(_queued(15.0, 3.9, 3.9, (0.060, 0.095, 0.115, 0.130, 0.140), 3))
+    est.update(_queued(15.5, 3.8, 3.8, (0.120, 0.130, 0.139, 0.140, 0.150), 3))
+    assert est.overuses == 0 and est.capacity_mbps == pytest.approx(19.0)

@@ -47,6 +47,10 @@ LARGE_DEFICIT_FRACTION = 0.4
 STEP_FRACTION = 0.7
 # RTT samples of one interval from which its smallest says whether the queue emptied inside it.
 WHOLE_INTERVAL_RTT_SAMPLES = 3
+# A queue that stood all interval (its smallest RTT sample queueing) is the link's only if the
+# sender's socket held at least this fraction of the bytes that delay means at what the link
+# delivered: heartbeats delayed by a loaded host, not by a queue, come with an empty socket.
+STANDING_QUEUE_BYTES_FRACTION = 0.5
 # BBR's ProbeBW up gain is 1.25; 1.2 keeps a probe's allocation (96 % of it: 1.15 x the capacity)
 # inside the +-15 % band the estimate is held to
 PROBE_GAIN = 1.2
@@ -181,6 +185,9 @@ class LinkReport:
     # a probe train was on the link in the interval (sent or received): its deficit or surplus is
     # the train's queue, not the fleet's, and the train's own measure is the interval's
     train_on_link: bool = False
+    # the largest kernel send queue (unacked + unsent) of the sender's link socket in the interval,
+    # Mbit (NaN: not known)
+    sender_queue_mbit: float = math.nan
 
 
 class _Trendline:
@@ -545,6 +552,14 @@ class DeliveryRateEstimator:
         # loaded processes jitter by tens of ms, and read as overuse on an idle link they cut the
         # capacity to what an app-limited fleet happened to send (issue 35, live).
         busy = report.link_busy if report.link_busy is not None else not app_limited
+        # ... or the bottleneck's queue stood all interval although the sender's own queue ran empty
+        # between frames: every heartbeat waited behind it (the interval's smallest RTT queueing) and
+        # the sender's socket held those bytes. Live (link_thesis, a 20 -> 5 Mbit/s step with the
+        # fleet offering ~5 Mbit/s): RTT 2 -> 115-139 ms and 195-298 kB in the socket for 1.5 s, no
+        # overuse (app-limited, the socket not full; both trains refused for packets out of order),
+        # the step seen 2.7 s late and the operator's video p95 267 ms.
+        standing = self._standing_queue(report, delivered, least_queue_delay_s)
+        busy = busy or standing
         self.congested = deficit or full or (rtt_overuse and busy)
         if self.congested:
             self._overuse("deficit" if deficit else "link_full" if full else "rtt")
@@ -555,7 +570,14 @@ class DeliveryRateEstimator:
             # ... or a confirmed deficit while the sender kept the link busy, its window far below
             # the capacity (an app-limited fleet's window says nothing about the link: live, such a
             # "step" set a 60 Mbit/s link's capacity to the 2.4 Mbit/s it was sending)
-            step = large or full or (deficit and busy and window_delivered < STEP_FRACTION * self.capacity_mbps)
+            # ... or a standing queue while the link delivered far below the capacity: the link was
+            # busy all interval, so what it delivered is its rate
+            step = (
+                large
+                or full
+                or (deficit and busy and window_delivered < STEP_FRACTION * self.capacity_mbps)
+                or (rtt_overuse and standing and delivered < STEP_FRACTION * self.capacity_mbps)
+            )
             if step or self.sample_window_s <= 0:
                 self._on_overuse(now, delivered, sent, self.step_drain_factor if step else DRAIN_FACTOR)
             else:
@@ -785,6 +807,14 @@ class DeliveryRateEstimator:
         else:
             self._set_mode("cruise", report.now_s)
             self.estimate_mbps = measured
+
+    def _standing_queue(self, report, delivered, least_queue_delay_s):
+        """Did the link's queue stand all interval: the smallest of its RTT samples queueing, and the
+        sender's socket holding at least STANDING_QUEUE_BYTES_FRACTION of the bytes that delay means?"""
+        if math.isnan(least_queue_delay_s) or least_queue_delay_s <= self.queue_delay_threshold_s:
+            return False
+        queued = report.sender_queue_mbit
+        return math.isfinite(queued) and queued >= STANDING_QUEUE_BYTES_FRACTION * least_queue_delay_s * delivered
 
     def _link_full(self, report, delivered):
         """A link-limited interval that delivered clearly less than the capacity believed."""

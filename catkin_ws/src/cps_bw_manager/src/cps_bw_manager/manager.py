@@ -845,6 +845,7 @@ class ManagerCore:
         probe_train_sent_mbps=0.0,
         probe_train_receiver_wait_s=math.nan,
         probe_cost_mbps=0.0,
+        send_queue_max_bytes=math.nan,
     ):
         """One cps_msgs/LinkReport of the bridges as plain values. Where the robots' link socket's
         TCP payload counts are there (`sent_link_bytes`, `acked_link_bytes` > 0: every byte the link
@@ -858,7 +859,8 @@ class ManagerCore:
         (`probe_bytes`, in delivered and unmanaged) are their own part of the budget (their mean cost
         at the robots' bridge's period now, `probe_cost_mbps`), and the last train's measure (`probe_train_bytes` over
         `probe_train_spread_s`, sent at `probe_train_sent_mbps`, the twin's reads late by up to
-        `probe_train_receiver_wait_s`) is a capacity sample of its own.
+        `probe_train_receiver_wait_s`) is a capacity sample of its own. `send_queue_max_bytes`: the
+        robots' link socket's largest kernel send queue in the interval (a standing queue's bytes).
         Returns True if the available bandwidth moved by > 5 %."""
         probe_bytes = probe_bytes if _finite(probe_bytes) and probe_bytes > 0 else 0
         if _positive(delivered_link_bytes):
@@ -921,6 +923,7 @@ class ManagerCore:
                     float(probe_train_receiver_wait_s) / float(probe_train_spread_s) if has_train else math.nan
                 ),
                 train_on_link=train_on_link,
+                sender_queue_mbit=send_queue_max_bytes * 8e-6 if _finite(send_queue_max_bytes) else math.nan,
             )
         )
 

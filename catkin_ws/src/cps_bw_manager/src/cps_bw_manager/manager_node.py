@@ -467,6 +467,7 @@ class BandwidthManagerNode:
                 probe_train_sent_mbps=msg.probe_train_sent_mbps,
                 probe_train_receiver_wait_s=msg.probe_train_receiver_wait_s,
                 probe_cost_mbps=msg.probe_cost_mbps,
+                send_queue_max_bytes=msg.send_queue_max_bytes if msg.acked_link_bytes else math.nan,
             )
             overuse = est.last_overuse if est and est.overuses > overuses else ""
             refused = est.last_refused if fed else ""
