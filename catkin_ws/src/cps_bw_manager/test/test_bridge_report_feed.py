@@ -461,3 +461,20 @@ def test_the_robots_sockets_send_queue_reaches_the_estimator_as_a_standing_queue
     est = run(195 * kbytes)
     assert est.overuses == 1 and est.capacity_mbps == pytest.approx(244 * kbytes * 8e-6 / 0.5)
     assert run(3 * kbytes).overuses == 0
+
+
+def test_the_pacer_cruises_under_the_estimate_and_probes_and_drains_at_their_own_gains():
+    """Live (link_thesis at 5 Mbit/s, session 21): paced at the estimate (4.6-4.7, from the trains)
+    while the link acknowledged 4.50-4.59 with the robots' socket full, the kernel's 64 kB unsent
+    bound stayed full: ~110 ms in front of the operator's video. Cruising, the pacer runs at
+    CRUISE_PACING_GAIN x the estimate; a probe and a drain keep theirs."""
+    from cps_bw_manager.manager import CRUISE_PACING_GAIN
+
+    core = _live_core(initial=20.0)
+    est = core.estimator
+    assert est.mode == "cruise" and CRUISE_PACING_GAIN < 0.97
+    assert core.pacing_mbps == pytest.approx(CRUISE_PACING_GAIN * est.estimate_mbps)
+    est.mode, est.estimate_mbps = "probe", 1.2 * est.capacity_mbps
+    assert core.pacing_mbps == pytest.approx(1.2 * 20.0)
+    est.mode, est.estimate_mbps = "drain", 0.6 * est.capacity_mbps
+    assert core.pacing_mbps == pytest.approx(0.6 * 20.0)
