@@ -73,12 +73,18 @@ def test_the_header_round_trips_and_bad_ones_are_refused():
             decode_probe(bad)
 
 
-def test_a_train_goes_only_while_app_limited_with_the_link_up_and_its_period_passed():
+def test_a_train_goes_only_while_the_link_has_room_with_the_link_up_and_its_period_passed():
     schedule = TrainSchedule()
     assert not schedule.due(100.0)  # no capacity known yet
     schedule.set_capacity(57.77)
-    assert not schedule.due(100.0)  # not app-limited
-    schedule.app_limited = True
+    assert not schedule.due(100.0)  # no interval seen yet
+    schedule.note_interval(False, 10, 9)  # backlogged, the link socket full: the link has no room
+    assert not schedule.due(100.0)
+    schedule.note_interval(False, 0, 0)  # backlogged, the socket not read: no room known
+    assert not schedule.due(100.0)
+    schedule.note_interval(False, 10, 2)  # backlogged by the pacer, the socket rarely full: room
+    assert schedule.due(100.0)
+    schedule.note_interval(True, 10, 9)  # app-limited
     assert schedule.due(100.0)
     schedule.link_up = False
     assert not schedule.due(100.0)
@@ -358,7 +364,7 @@ def test_a_step_up_found_makes_the_next_train_due_at_the_least_period():
     before it, 2 s at 5 Mbit/s. A capacity at least 2 x the one the last train was paced for makes
     the next train due PROBE_MIN_PERIOD_S after it, once; smaller moves keep the period."""
     schedule = TrainSchedule()
-    schedule.app_limited = True
+    schedule.note_interval(True, 0, 0)
     schedule.set_capacity(4.7)
     schedule.start(100.0)
     assert train_period_s(4.7) > 2.0 and not schedule.due(100.0 + PROBE_MIN_PERIOD_S)

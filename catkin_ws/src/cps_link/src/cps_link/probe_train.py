@@ -1,5 +1,5 @@
-"""Probe trains: the link's capacity measured while the fleet has too little to send (issue 35), no
-ROS, no Zenoh.
+"""Probe trains: the link's capacity measured while the fleet leaves it room (issue 35), no ROS, no
+Zenoh.
 
 A fleet that offers 3 Mbit/s never fills a 10 Mbit/s link, so nothing it sends says the link went
 from 60 to 10 Mbit/s. The robots' bridge then sends, now and then, a short train of padding on a
@@ -64,6 +64,10 @@ PROBE_MAX_PERIOD_S = 10.0
 # Live (link_thesis, 5 -> 60 Mbit/s) each step of the rise waited a period of the capacity before
 # it (2 s at 5 Mbit/s) for the train that could read more.
 PROBE_FURTHER_RISE = 2.0
+# A report interval whose robots' link socket was full in under this fraction of its samples left
+# the link room: the sender's queue, if it backlogged, was held by its pacer (below the estimate
+# while the manager cruises), not by the link, and a train can measure the link beside it.
+ROOM_SOCKET_FULL_FRACTION = 0.5
 # The twin gives up a train whose last message has not come this long after its first, s
 # (libwebrtc's kMaxProbeInterval is 1 s); its messages are counted, its rate is not measured.
 PROBE_TRAIN_TIMEOUT_S = 2.0
@@ -190,7 +194,7 @@ def probe_cost_fraction(link_mbps, capacity_mbps, train_bytes=None):
 
 
 class TrainSchedule:
-    """The robots' side: when a train is due (the sender app-limited in its last report interval, the
+    """The robots' side: when a train is due (the link had room in the last report interval, the
     link up, a period of the capacity believed since the last one) and what it is (train_shape of
     the capacity believed). Not thread-safe."""
 
@@ -199,7 +203,7 @@ class TrainSchedule:
             raise ValueError(f"a train paced at {gain!r} x the capacity believed measures nothing")
         self.gain = float(gain)
         self.capacity_mbps = math.nan
-        self.app_limited = False
+        self.link_has_room = False  # the last report interval left the link room (note_interval)
         self.link_up = True
         self.last_train_s = -math.inf
         self.last_train_capacity_mbps = math.nan  # the capacity the last train was sized and paced for
@@ -217,10 +221,20 @@ class TrainSchedule:
                 self.further = True
             self.capacity_mbps = float(capacity_mbps)
 
+    def note_interval(self, app_limited, socket_samples, socket_full_samples):
+        """The last report interval: the sender app-limited (its queue ran empty), and in how many of
+        the robots' link socket's samples it was full. The link had room if the sender was
+        app-limited, or if its socket was full in under ROOM_SOCKET_FULL_FRACTION of the samples
+        (its queue held by the pacer, not the link: paced at 0.9 x the estimate while the manager
+        cruises, a fleet that fills the link is never app-limited, and on that alone no train would
+        see a 5 -> 60 Mbit/s rise)."""
+        full_fraction = socket_full_samples / socket_samples if socket_samples > 0 else 1.0
+        self.link_has_room = bool(app_limited) or full_fraction < ROOM_SOCKET_FULL_FRACTION
+
     def due(self, now_s) -> bool:
         period_s = PROBE_MIN_PERIOD_S if self.further else train_period_s(self.capacity_mbps)
         return (
-            self.app_limited
+            self.link_has_room
             and self.link_up
             and math.isfinite(self.capacity_mbps)
             and now_s - self.last_train_s >= period_s

@@ -899,7 +899,7 @@ class ZenohBridge:
             probe_cost_mbps=self.trains.cost_mbps(),
         )
         with self.lock:
-            self.trains.app_limited = report.app_limited
+            self.trains.note_interval(report.app_limited, samples, full)
         payload = report.encode()
         self.z.put_own("link report", payload, self.reporter)
         self.queue.urgent(len(payload), now)
