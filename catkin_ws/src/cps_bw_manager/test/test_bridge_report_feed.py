@@ -269,15 +269,16 @@ def test_the_robots_socket_sent_and_acked_over_its_own_interval_and_its_fullness
         1.5,
         0.5,
         0.5,
-        300 * kbytes,
+        2800 * kbytes,
         0,
-        300 * kbytes,
+        2800 * kbytes,
         False,
-        sent_link_bytes=310 * kbytes,
-        acked_link_bytes=300 * kbytes,
+        sent_link_bytes=2850 * kbytes,
+        acked_link_bytes=2800 * kbytes,
         sender_socket_full=0.8,
     )
-    # full in 80 % of its samples: busy, but the interval's acked rate counts its empty part too
+    # full in 80 % of its samples, 0.75 x the capacity: busy, but the interval's acked rate counts its
+    # empty part too (far below the capacity it would be a step: the next test)
     assert core.estimator.overuses == 0
     core.on_bridge_report(
         2.0,
@@ -478,3 +479,18 @@ def test_the_pacer_cruises_under_the_estimate_and_probes_and_drains_at_their_own
     assert core.pacing_mbps == pytest.approx(1.2 * 20.0)
     est.mode, est.estimate_mbps = "drain", 0.6 * est.capacity_mbps
     assert core.pacing_mbps == pytest.approx(0.6 * 20.0)
+
+
+def test_a_socket_full_in_most_samples_far_below_the_capacity_is_a_step():
+    """Live beside busy loops (session 21): after a 60 -> 20 Mbit/s step the first report not
+    refused had the robots' socket full in 80 % of its samples and 19.4 Mbit/s delivered; waiting
+    for a wholly full interval took 3.4 s. Far below the capacity (< 0.7 x) a mostly full socket is a
+    step; a little below it is not (the previous test)."""
+    core = _live_core(initial=57.4)
+    kbytes = 1000
+    core.on_bridge_report(
+        1.9, 0.5, 0.5, 1212 * kbytes, 0, 1031 * kbytes, False,
+        sent_link_bytes=1031 * kbytes, acked_link_bytes=1212 * kbytes, sender_socket_full=0.8,
+    )  # fmt: skip
+    assert core.estimator.last_overuse == "link_full"
+    assert core.estimator.capacity_mbps == pytest.approx(1212 * kbytes * 8e-6 / 0.5)

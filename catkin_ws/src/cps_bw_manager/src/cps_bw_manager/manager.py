@@ -930,6 +930,7 @@ class ManagerCore:
                 # queue can be empty at a report while the sender waits for the link)
                 link_busy=not app_limited or socket_full,
                 link_limited=link_limited,
+                link_mostly_full=socket_full if _finite(sender_socket_full) else None,
                 train_mbps=mbps(probe_train_bytes, probe_train_spread_s) if has_train else math.nan,
                 train_sent_mbps=float(probe_train_sent_mbps) if has_train else math.nan,
                 train_receiver_wait_fraction=(
