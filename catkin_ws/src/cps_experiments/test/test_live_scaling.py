@@ -232,3 +232,23 @@ def test_on_is_judged_against_off_beyond_the_measured_spread():
     assert row["min_window_hz"][2] == "same"  # 1.1 against 1.25: within the spread of 0.2
     assert row["teleop_p95_ms"][2] == "worse"  # 21 ms against 11 ms, spread 2 ms
     assert row["f1"][2] == "same"
+
+
+def test_a_low_budget_is_explained_by_the_measured_estimate_and_unmanaged_traffic(tmp_path):
+    """fig13_live (session 21, 16 robots on 10 Mbit/s): the report said the estimator "reads the
+    latency that CPU queueing adds as congestion" whenever the budget was low, while that run's
+    estimate was ~9.6 Mbit/s and 16 robots' odometry and tf took ~5.3 of it. The sentence now gives
+    the two measured figures from link_estimate.csv, and says when they were not measured."""
+    from cps_experiments.live_scaling import _differences
+
+    _mission_files(tmp_path, budget=0.42)
+    _write(tmp_path / "link_estimate.csv", ["stamp_s", "capacity_mbps", "unmanaged_mbps"],
+           [[i, 9.5 + 0.1 * (i % 3), 5.3] for i in range(9)])  # fmt: skip
+    figures = measure_run(str(tmp_path), {"elapsed_s": 10.0}, ["a", "b"], budget_mbytes_per_s=1.2)
+    assert figures["capacity_estimate_mbps"] == pytest.approx(9.6) and figures["unmanaged_mbps"] == pytest.approx(5.3)
+    figures.update(f1=0.98, f1_exact=0.7)
+    lines = "\n".join(_differences({LiveRun(16, 10.0, True): figures}, 0.04))
+    assert "the link's estimate was 9.6 Mbit/s" in lines and "5.3 Mbit/s" in lines
+    assert "CPU queueing" not in lines
+    figures.update(capacity_estimate_mbps=math.nan)
+    assert "were not measured" in "\n".join(_differences({LiveRun(16, 10.0, True): figures}, 0.04))
