@@ -265,6 +265,16 @@ def test_plan_replays_a_bag_with_rosbag_play_and_an_mcap_with_cps_webs_player():
     # both stay up after the last message (their queues drain to slow subscribers): the mission ends them
     assert "--keep-alive" in bag.argv and "_keep_alive:=true" in mcap.argv
     assert mcap.after == bag.after and mcap.after  # after everything that is not waiting for its clouds
+    # recorded too: the bag's player starts paused, the mission plays it once the recorder is
+    # connected to its topics (a full run's MCAP lacked /scout/odom's first 2 messages)
+    assert "--pause" not in bag.argv
+
+    def recorded(path):
+        options = RunOptions(out_dir="/tmp/x", replay_path=path, record_path="/tmp/x/r.mcap")
+        return {s.label: s for s in plan_nodes(fleet, options=options)}[REPLAY]
+
+    assert "--pause" in recorded("/tmp/x/m.bag").argv
+    assert not any("pause" in a for a in recorded("/tmp/x/m.mcap").argv)  # cps_web's player keeps its delay
 
 
 def _python_spec(label, code, wait_topics=(), restart_limit=0):

@@ -69,3 +69,24 @@ def test_every_runtime_publisher_is_the_guarded_one():
                 bare.append(str(path.relative_to(WORKSPACE_SRC)))
     assert not bare, f"use cps_ros.publisher.Publisher in {bare}"
     assert (WORKSPACE_SRC / "cps_mapping" / "nodes" / "map_server").is_file()  # the scan saw the nodes
+
+
+@pytest.mark.ros
+def test_a_nodes_connected_subscribers_are_read_from_its_bus_info(rospy_node):
+    """cps_ros.processes.subscribers_of: what the bringup waits on before it plays a recorded replay
+    (the recorder connected to each topic the player publishes)."""
+    from cps_msgs.msg import MapStats
+    from cps_ros.processes import subscribers_of
+    from cps_ros.publisher import Publisher
+
+    topic = names.absolute(names.robot_topic(f"bus_info_test_{uuid.uuid4().hex[:8]}", names.MAP_STATS))
+    me = rospy_node.get_name()
+    assert topic not in subscribers_of(me, me)
+    publisher = Publisher(topic, MapStats, queue_size=1)
+    received = TopicRecorder(topic, MapStats)
+    try:
+        assert wait_for(lambda: me in subscribers_of(me, me).get(topic, ()), timeout_s=10), subscribers_of(me, me)
+        assert subscribers_of("/no_such_node", me) == {}
+    finally:
+        received.close()
+        publisher.unregister()

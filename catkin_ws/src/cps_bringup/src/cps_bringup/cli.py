@@ -34,6 +34,7 @@ from cps_bringup.plan import (
     ZENOH,
     RunOptions,
     plan_nodes,
+    replay_starts_paused,
 )
 from cps_bringup.privileges import (
     PrivilegeError,
@@ -512,6 +513,19 @@ def run_mission(args, log=print) -> MissionResult:
         from cps_sim.estop_keeper import EstopKeeper
 
         stack.callback(EstopKeeper().close)  # the e-stop state outlives the GUI
+        if replay_starts_paused(options, sides):
+            # beside the start: the nodes that wait for the replay's first clouds hold start_all up
+            import threading
+
+            from cps_bringup.mission_bag import replay_topics
+
+            threading.Thread(
+                target=_play_once_recorded,
+                # the topics the player advertises: those of the bag it plays
+                args=([t for t in replay_topics(fleet) if t in replayed.topics], args.start_timeout, log),
+                name="play_once_recorded",
+                daemon=True,
+            ).start()
         supervisor.start_all(timeout_s=args.start_timeout)
         if DIGITAL in sides:
             _record_map_server_ready(supervisor)
@@ -740,6 +754,47 @@ def _checked_replay(path, fleet, sides, log):
 # After the bag ends, s for the tissue, the map server and a recorder to take in the last messages
 # (the player, kept alive, still sends what it queued for them).
 REPLAY_DRAIN_S = 3.0
+
+
+# How long the paused player waits for the recorder to connect to its topics before playing anyway, s.
+RECORDER_CONNECT_TIMEOUT_S = 30.0
+
+
+def _play_once_recorded(topics, start_timeout_s, log):
+    """Play the paused replay (rosbag play --pause) once the mission's recorder is connected to every
+    topic it plays: what is published before a subscriber's connection is lost to it (a full run's
+    MCAP of a replay lacked /scout/odom's first 2 messages, the recorder connected after the
+    player's 2 s delay). Runs beside the start (the player starts last, within `start_timeout_s`);
+    RECORDER_CONNECT_TIMEOUT_S after the player registered it plays anyway and says which topics
+    had no recorder."""
+    import rospy
+    from std_srvs.srv import SetBool
+
+    from cps_bringup.plan import REPLAY
+    from cps_ros.processes import subscribers_of
+
+    replay, recorder = names.absolute(REPLAY), names.absolute(RECORDER)
+    service = f"{replay}/{names.PAUSE_PLAYBACK}"
+    try:
+        rospy.wait_for_service(service, timeout=start_timeout_s)
+    except rospy.ROSException:
+        log(f"[bringup] the replay's {service} did not come up: nothing to play")
+        return
+    deadline = time.monotonic() + RECORDER_CONNECT_TIMEOUT_S
+    while True:
+        connected = subscribers_of(replay, rospy.get_name())
+        missing = [t for t in topics if recorder not in connected.get(t, ())]
+        if not missing or time.monotonic() > deadline or rospy.is_shutdown():
+            break
+        time.sleep(0.1)
+    if missing:
+        log(
+            f"[bringup] the recorder is not connected to {', '.join(missing)} after {RECORDER_CONNECT_TIMEOUT_S:g} s: playing anyway"
+        )
+    try:
+        rospy.ServiceProxy(service, SetBool)(data=False)
+    except (rospy.ServiceException, rospy.ROSException) as exc:
+        log(f"[bringup] could not play the replay ({service}): {exc}")
 
 
 def _replay_finished(supervisor, end_s):

@@ -699,9 +699,14 @@ def _bag_specs(fleet, sides, options, planned, py):
             }
             argv = py("cps_web", "mcap_player", f"__name:={REPLAY}", *_args(params))
         else:  # --clock: every node runs on the bag's time (/use_sim_time); -d: subscribers connect first.
+            # Recorded too: the player starts paused, and the mission plays it once the recorder is
+            # connected to each of its topics (cps_bringup.cli): in a loaded full run the recorder's
+            # connection to /scout/odom came after the 2 s delay, and the MCAP missed its first 2.
+            paused = ("--pause",) if replay_starts_paused(options, sides) else ()
             argv = (
                 "rosbag",
                 "play",
+                *paused,
                 "--clock",
                 "--keep-alive",
                 "-d",
@@ -722,6 +727,16 @@ def _bag_specs(fleet, sides, options, planned, py):
             )
         )
     return specs
+
+
+def replay_starts_paused(options, sides) -> bool:
+    """A ROS 1 bag replayed while the mission records starts paused (rosbag play --pause); the mission
+    plays it once the recorder is connected to its topics (cps_bringup.cli)."""
+    from cps_bringup.mission_bag import is_mcap_recording
+
+    return bool(
+        options.replay_path and options.record_path and PHYSICAL in sides and not is_mcap_recording(options.replay_path)
+    )
 
 
 def is_mcap(path: str) -> bool:

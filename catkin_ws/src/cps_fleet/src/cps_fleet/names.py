@@ -33,6 +33,8 @@ ROSOUT = "/rosout"
 ROSOUT_AGG = "/rosout_agg"
 ESTOP = "/fleet/estop"
 USE_SIM_TIME = "/use_sim_time"
+# rosbag play's own private service (std_srvs/SetBool: true pauses, false plays on)
+PAUSE_PLAYBACK = "pause_playback"
 # rospy reads it at every log line; every master we start sets it (cps_ros.processes.MASTER_DEFAULTS)
 ROSOUT_DISABLE_TOPICS_GENERATION = "/rosout_disable_topics_generation"
 

@@ -141,6 +141,26 @@ def set_master_defaults(master_uri):
         master.setParam(name, value)
 
 
+def subscribers_of(node, caller_id):
+    """{topic: {subscriber node names}} of `node`'s connected publications, from its bus info
+    (XML-RPC getBusInfo, which every ROS node serves); empty while the node is not registered."""
+    import xmlrpc.client
+
+    import rosgraph
+
+    try:
+        uri = rosgraph.Master(caller_id).lookupNode(node)
+        _code, _message, connections = xmlrpc.client.ServerProxy(uri).getBusInfo(caller_id)
+    except (OSError, rosgraph.MasterError, xmlrpc.client.Error):
+        return {}
+    out = {}
+    for connection in connections:
+        _id, destination, direction, _transport, topic, connected = connection[:6]
+        if direction == "o" and connected:
+            out.setdefault(topic, set()).add(destination)
+    return out
+
+
 class RosGraph:
     """A roscore on a free port plus every process started through it; `close` kills them all."""
 
