@@ -3,6 +3,7 @@ a train that came out slower than it was sent measures the link, one that arrive
 bounds it from below; bad ones are counted by kind and change nothing. And the manager's feed: a
 train's interval is no overuse, the trains' cost is kept out of the budget."""
 
+import dataclasses
 import math
 
 import pytest
@@ -473,21 +474,11 @@ def test_after_a_train_rise_the_next_reading_above_is_taken_at_once():
     assert est.capacity_mbps == pytest.approx(55.0) and est.trains[TRAIN_HELD] == 1
 
 
-def _queued(now_s, acked_mbps, sent_mbps, rtts_s, queue_kbytes, socket_full=False):
-    """An app-limited interval (the sender's queue ran empty between frames) with heartbeat RTTs and
-    the robots' socket's largest send queue."""
-    return LinkReport(
-        now_s=now_s,
-        interval_s=0.5,
-        delivered_mbps=acked_mbps,
-        sent_mbps=sent_mbps,
-        offered_mbps=sent_mbps,
-        app_limited=True,
-        rtt_s=tuple(rtts_s),
-        link_busy=socket_full,
-        link_limited=socket_full,
-        sender_queue_mbit=queue_kbytes * 8e-3,
-    )
+def _queued(now_s, acked_mbps, sent_mbps, rtts_s, queue_kbytes):
+    """An app-limited interval (the sender's queue ran empty between frames, its socket not full)
+    with heartbeat RTTs and the robots' socket's largest send queue."""
+    interval = _interval(now_s, acked_mbps, sent_mbps, busy=False, link_limited=False)
+    return dataclasses.replace(interval, rtt_s=tuple(rtts_s), sender_queue_mbit=queue_kbytes * 8e-3)
 
 
 def test_a_queue_standing_all_interval_is_a_step_though_the_sender_was_app_limited():
