@@ -238,16 +238,20 @@ def link_estimate_figures(path):
     """The manager's link estimate over the mission (link_estimate.csv, one row per link report): the
     median capacity estimate and the median unmanaged traffic (odometry, tf and the rest the budget
     leaves out), Mbit/s; NaN without the file or its figures (manager off, or over TCPROS)."""
+    from cps_experiments.link_report import estimate_at
     from cps_experiments.report import read_csv
 
     rows = read_csv(path) if os.path.exists(path) else []
 
-    def median(key):
-        values = [csv_float(r.get(key, "")) for r in rows]
+    def median(values):
         values = [v for v in values if math.isfinite(v)]
         return float(np.median(values)) if values else math.nan
 
-    return {"capacity_estimate_mbps": median("capacity_mbps"), "unmanaged_mbps": median("unmanaged_mbps")}
+    _, capacity = estimate_at(rows)  # the capacity estimate in force at each report
+    return {
+        "capacity_estimate_mbps": median(v for _, v in capacity),
+        "unmanaged_mbps": median(csv_float(r.get("unmanaged_mbps", "")) for r in rows),
+    }
 
 
 def measure_run(run_dir, summary, robots, budget_mbytes_per_s, watched=""):
