@@ -218,6 +218,19 @@ def test_map_server_inserts_a_cloud_at_the_leaf_it_carries(coarse_view):
     assert (c.clouds_without_leaf, c.clouds_bad_leaf, c.clouds_dropped_invalid) == (0, 0, 0)
 
 
+def test_a_cloud_at_the_maps_own_leaf_is_not_bridged(coarse_view):
+    """A cloud carries its leaf as float32: 0.1 arrives as 0.10000000149 > 0.1. Taken as coarser than
+    a 0.1 m map, every such cloud was bridged (live: ~830 samples and ~4 ms of the twin's CPU per
+    cloud, 70 % of its per-cloud path, for voxels its own points already reach)."""
+    at_map = voxel_downsample(coarse_view, RES)
+    server = _server()
+    server.receive_cloud("jackal", _cloud(at_map, leaf=RES))
+    assert server.insert_pending(timeout_s=0) == 1
+    c = server.robot_counters("jackal")
+    assert c.points_bridged == 0 and c.points_inserted == len(at_map)
+    assert (c.clouds_without_leaf, c.clouds_bad_leaf) == (0, 0)
+
+
 @pytest.mark.parametrize(
     "leaf,counter",
     [

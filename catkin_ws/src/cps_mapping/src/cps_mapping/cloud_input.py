@@ -114,6 +114,13 @@ def quaternion_matrix(x, y, z, w):
     )
 
 
+def coarser_than(leaf_m, resolution_m) -> bool:
+    """A cloud's leaf is coarser than the map's resolution, compared in float32, the precision a
+    cloud carries its leaf in: a 0.1 m leaf arrives as 0.10000000149, which is not coarser than a
+    0.1 m map."""
+    return bool(np.float32(leaf_m) > np.float32(resolution_m))
+
+
 def prepare_cloud(xyz_sensor, rotation, translation_m, max_points_range_m, leaf_m=None, resolution_m=None):
     """Drop non-finite points and points beyond `max_points_range_m` from the sensor, then move the
     rest into map with the sensor pose (rotation 3 x 3, translation 3). InvalidInput if none is left.
@@ -136,7 +143,7 @@ def prepare_cloud(xyz_sensor, rotation, translation_m, max_points_range_m, leaf_
     rotation = np.asarray(rotation, dtype=np.float64)
     points = xyz[sane] @ rotation.T + origin
     bridged = 0
-    if leaf_m is not None and resolution_m is not None and leaf_m > resolution_m:
+    if leaf_m is not None and resolution_m is not None and coarser_than(leaf_m, resolution_m):
         extra = bridge_coarse_cloud(xyz[sane], leaf_m, resolution_m, rotation, origin, points)
         bridged = len(extra)
         points = np.concatenate([points, extra]) if bridged else points
