@@ -83,3 +83,27 @@ def test_a_sweep_is_judged_from_its_measured_capacity_on():
     breaks = bends[:3] + [_trial(64, 20, 9.0, age_p95_s=6.0, unaccounted=3)]  # the cliff issue 37 found
     verdict = judge_sweep(breaks)
     assert not verdict["no_cliff"] and not verdict["fresh_beyond"] and not verdict["ledger"]
+
+
+def test_the_replay_rows_run_again_leave_the_live_rows_as_they_are(tmp_path, monkeypatch):
+    import json
+    import os
+    import shutil
+
+    from cps_experiments import live_scaling
+
+    results = os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "docs", "results")
+    for name in ("fig13_live.csv", live_scaling.REPLAY_CSV, live_scaling.RUNS_JSON):
+        shutil.copy(os.path.join(results, name), tmp_path / name)
+    live_before = (tmp_path / "fig13_live.csv").read_text()
+    row = {c: 0.5 for c in CSV_COLUMNS} | {f"clouds_{c}": 2 for c in CAUSES}
+    row |= dict(label="fig13_live", robots=32, sent=14, inserted=2, received=14, superseded=2, dropped=0)
+    row |= dict(replay_limited=False, holds=True, ledger_balances=True, counted_by="the nodes' counters")
+    row |= dict(host_split="the new split")
+    monkeypatch.setattr(live_scaling, "replay_rows", lambda sizes, *_a, **_k: {n: {**row, "robots": n} for n in sizes})
+    live_scaling.rerun_replay(str(tmp_path), run_root=str(tmp_path / "runs"), sizes=(32, 64))
+    assert (tmp_path / "fig13_live.csv").read_text() == live_before
+    replayed = replay_from_csv(read_csv(tmp_path / live_scaling.REPLAY_CSV))
+    assert sorted(replayed) == [32, 64] and replayed[64]["counted_by"] == "the nodes' counters"
+    assert json.loads((tmp_path / live_scaling.RUNS_JSON).read_text())["replay_host_split"] == "the new split"
+    assert "the new split" in (tmp_path / "fig13_live.md").read_text()

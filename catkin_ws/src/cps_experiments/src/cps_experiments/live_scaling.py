@@ -565,11 +565,7 @@ def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped, 
         )
     write_csv(os.path.join(out_dir, "fig13_live.csv"), COLUMNS, rows)
     if replayed:
-        write_csv(
-            os.path.join(out_dir, REPLAY_CSV),
-            REPLAY_COLUMNS,
-            [[_cell({**r, "asked": n}.get(c, "")) for c in REPLAY_COLUMNS] for n, r in sorted(replayed.items())],
-        )
+        _write_replay_csv(out_dir, replayed)
     info = dict(
         fleet_file=os.path.relpath(fleet_file),
         duration_s=duration_s,
@@ -583,6 +579,30 @@ def _write_outputs(out_dir, measured, failures, duration_s, fleet_file, shaped, 
     with open(os.path.join(out_dir, RUNS_JSON), "w") as stream:
         json.dump(info, stream, indent=1)
     write_report(out_dir)
+
+
+def rerun_replay(out_dir, run_root="out/experiments", duration_s=None, sizes=REPLAY_FLEET_SIZES, log=print):
+    """The replay rows alone, run again (the twin changed, the live fleets did not):
+    fig13_live_replay.csv and the runs file's replay host split rewritten, the report written again
+    from the files; the live rows in fig13_live.csv are kept as they are."""
+    rows = replay_rows(sizes, os.path.join(run_root, "fig13_live", "replay"), duration_s or DURATION_S, False, log)
+    _write_replay_csv(out_dir, rows)
+    path = os.path.join(out_dir, RUNS_JSON)
+    with open(path) as stream:
+        info = json.load(stream)
+    info["replay_host_split"] = next(iter(rows.values()))["host_split"]
+    with open(path, "w") as stream:
+        json.dump(info, stream, indent=1)
+    write_report(out_dir)
+    return rows
+
+
+def _write_replay_csv(out_dir, replayed):
+    write_csv(
+        os.path.join(out_dir, REPLAY_CSV),
+        REPLAY_COLUMNS,
+        [[_cell({**r, "asked": n}.get(c, "")) for c in REPLAY_COLUMNS] for n, r in sorted(replayed.items())],
+    )
 
 
 def _reserve_fraction(fleet_file):
