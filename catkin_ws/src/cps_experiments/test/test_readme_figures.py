@@ -43,6 +43,25 @@ def test_the_fig13_live_sentence_follows_its_csv(tmp_path):
     assert "teleop p95 45 ms" in readme_figures.fig13_live_paragraph(str(tmp_path))
 
 
+def test_the_fig13_live_paragraph_gives_the_newest_16_robot_runs_beside_the_old_sweep(tmp_path):
+    """Issue 34: the README quoted only the oldest sweep's 16 robots (0.40 Hz, teleop 52 ms with the
+    manager) while newer runs of the same fleet hold the bar; both are given, each from its file."""
+    folder = tmp_path / readme_figures.FIG13_LIVE_NEWEST
+    folder.mkdir()
+    shutil.copy(f"{readme_figures.RESULTS}/{readme_figures.FIG13_LIVE_NEWEST}/fig13_live.csv", folder)
+    text = readme_figures.newest_16_robot_sentence(str(folder))
+    assert "60 Mbit/s with the manager: robots reaching the twin 16 / 16" in text
+    assert "10 Mbit/s without the manager: robots reaching the twin 0 / 0" in text
+    assert text in readme_figures.fig13_live_paragraph()
+    csv = (folder / "fig13_live.csv").read_text().splitlines()
+    csv[1:] = [line.replace(",16,", ",15,", 1) if ",on," in line and ",60.0," in line else line for line in csv[1:]]
+    (folder / "fig13_live.csv").write_text("\n".join(csv) + "\n")
+    assert "60 Mbit/s with the manager: robots reaching the twin 15 / 15" in readme_figures.newest_16_robot_sentence(
+        str(folder)
+    )
+    assert readme_figures.newest_16_robot_sentence(str(tmp_path / "none")) == ""
+
+
 def test_the_monitoring_headline_is_what_ran_live():
     """Issue 39: the README's monitoring sentence leads with what the twin reported live, says
     whether the seed was held out from tuning, labels the re-detection on saved maps, and names

@@ -116,6 +116,48 @@ def fig13_live_paragraph(results_dir=RESULTS):
         + f". At {largest} robots on {link:g} Mbit/s with the manager: {arm(on)}; without: {arm(off)}. The bar "
         f"(≥ 1 Hz in every 10 s window, no window over budget, F1 ≥ 95 % both ways, ≤ 1 % dropped, teleop p95 ≤ "
         f"50 ms) is {'met' if not failed else 'not met; it fails on ' + '; '.join(failed)}."
+        + newest_16_robot_sentence(os.path.join(results_dir, FIG13_LIVE_NEWEST))
+    )
+
+
+# The newest 16-robot runs (issue 36), newer than fig13_live.csv's sweep: the README says both.
+FIG13_LIVE_NEWEST = "issue36_n16_session21"
+
+
+def newest_16_robot_sentence(folder):
+    """The README's sentence on the newest 16-robot runs, from their fig13_live.csv ('' without it)."""
+    from cps_experiments.live_scaling import measured_from_csv, verdict
+    from cps_experiments.report import read_csv
+
+    path = os.path.join(folder, "fig13_live.csv")
+    if not os.path.exists(path):
+        return ""
+    measured = measured_from_csv(read_csv(path))
+    parts = []
+    for link in sorted({live.link_mbps for live in measured if live.link_mbps}, reverse=True):
+        for manager in (True, False):
+            runs = sorted(
+                (live for live in measured if live.link_mbps == link and live.manager == manager),
+                key=lambda r: r.repeat,
+            )
+            if not runs:
+                continue
+            figures = [measured[r] for r in runs]
+            held = [not any(c.failed for c in verdict(f).values()) for f in figures]
+            parts.append(
+                f"{link:g} Mbit/s {'with' if manager else 'without'} the manager: robots reaching the twin "
+                + " / ".join(str(f["robots_reached"]) for f in figures)
+                + ", slowest 10 s window "
+                + " / ".join(f"{f['min_window_hz']:.1f}" for f in figures)
+                + " Hz, teleop p95 "
+                + " / ".join(f"{f['teleop_p95_ms']:.0f}" for f in figures)
+                + f" ms, the bar met in {sum(held)} of {len(held)}"
+            )
+    name = os.path.basename(folder)
+    return (
+        f" Newer 16-robot runs ([{name}](docs/results/{name}/README.md), {len(measured)} missions, run 1 / run 2): "
+        + "; ".join(parts)
+        + "."
     )
 
 
