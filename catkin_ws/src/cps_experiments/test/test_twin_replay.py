@@ -8,8 +8,8 @@ import pytest
 from cps_experiments.live_scaling import REPLAY_COLUMNS, _cell, replay_from_csv
 from cps_experiments.markdown import write_csv
 from cps_experiments.report import read_csv
-from cps_experiments.twin_replay import CAUSES, CSV_COLUMNS, holds, judge_sweep, ledger
-from cps_msgs.msg import RobotMapStats
+from cps_experiments.twin_replay import CAUSES, CSV_COLUMNS, holds, judge_sweep, ledger, map_ages
+from cps_msgs.msg import MapStats, RobotMapStats
 
 
 def _row(**counts):
@@ -34,6 +34,22 @@ def test_the_causes_sum_to_what_was_sent_and_what_no_counter_saw_is_unaccounted(
     assert (counts["queue"], counts["unaccounted"], counts["received_not_ended"]) == (2, 0, 0)
     short = ledger(20, 1, rows)  # three sent clouds no counter saw
     assert short["unaccounted"] == 3 and short["replay_dropped"] == 1 and sum(short[c] for c in CAUSES) == 20
+
+
+def test_a_robots_map_ages_end_with_its_replay():
+    """The replays' shards end up to ~1 s apart: a copy whose replay ended has nothing more to be
+    inserted, and its map age after that says nothing of the twin."""
+    import genpy
+
+    def stats(t, **ages):
+        msg = MapStats(robots=[RobotMapStats(robot=r, map_age_s=a) for r, a in ages.items()])
+        msg.header.stamp = genpy.Time.from_sec(t)
+        return msg
+
+    window = [stats(100.0, a=0.2, b=0.3), stats(101.0, a=0.4, b=0.2), stats(102.0, a=1.4, b=0.3)]
+    ages = map_ages(window, ["a", "b"], {"a": 101.05, "b": 102.5})
+    assert ages == {"a": [0.2, 0.4], "b": [0.3, 0.2, 0.3]}
+    assert map_ages(window, ["a"], {})["a"] == [0.2, 0.4, 1.4]  # no end known: the whole window
 
 
 def test_a_trials_row_goes_through_fig13_lives_replay_csv_with_every_cause(tmp_path):
