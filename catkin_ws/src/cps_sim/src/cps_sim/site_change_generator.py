@@ -28,7 +28,9 @@ CLEARANCE_M = 0.2
 # A new box: sides and height (m); a new cylinder: radius and height (m).
 BOX_SIDE_M, BOX_HEIGHT_M = (0.4, 1.0), (0.5, 1.4)
 CYLINDER_RADIUS_M, CYLINDER_HEIGHT_M = (0.2, 0.4), (0.6, 1.4)
-MAX_DRAWS = 200
+# Whole-fleet scenarios of some seeds need over 200 draws (seed 25: 238 and 257 of its first two; it
+# failed at 200): a draw costs milliseconds, and the draws before a success are the same at any bound.
+MAX_DRAWS = 2000
 # What a scenario may remove or move: every equipment type of the hall.
 CHANGED_TYPES = ("crate", "drum", "tank", "vertical_cylinder", "shelving", "pipe_run")
 
