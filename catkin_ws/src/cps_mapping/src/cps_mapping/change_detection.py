@@ -978,8 +978,9 @@ def write_report(changes: List[Change], path, baseline_name="baseline", current_
             f"| {i} | {c.kind} | {', '.join(f'{v:.2f}' for v in c.centroid_m)} | "
             f"{', '.join(f'{v:.2f}' for v in c.size_m)} | {c.volume_m3:.3f} | {c.voxels} | {moved} |"
         )
-    with open(path, "w") as stream:
-        stream.write("\n".join(lines) + "\n")
+    # Each file replaced atomically: the map server rewrites them every detection cycle, and a
+    # mission that ended while it wrote (seed 70615's fleet_4) left an empty .json, its report lost.
+    write_atomically(str(path), lambda stream: stream.write("\n".join(lines) + "\n"), binary=False)
     rows = [dataclasses.asdict(c) for c in changes]
     if tracker is not None:
         for row, t in zip(rows, tracker.reported()):
@@ -995,6 +996,7 @@ def write_report(changes: List[Change], path, baseline_name="baseline", current_
             }
             for t in tracker.withdrawn
         ]
-    with open(str(path).rsplit(".", 1)[0] + ".json", "w") as stream:
-        json.dump(rows, stream, indent=1)
+    write_atomically(
+        str(path).rsplit(".", 1)[0] + ".json", lambda stream: json.dump(rows, stream, indent=1), binary=False
+    )
     return path
