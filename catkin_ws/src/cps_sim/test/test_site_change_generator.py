@@ -97,7 +97,8 @@ def test_nothing_added_stands_where_a_moved_item_stood(tmp_path, site, fleet):
         after = drawn.apply(site)
         for m in drawn.moved:
             for a in drawn.added:
-                assert not _grown_overlap(after.item(a.name).footprint, site.item(m.name).footprint), (p, a.name, m.name)
+                where = after.item(a.name).footprint
+                assert not _grown_overlap(where, site.item(m.name).footprint), (p, a.name, m.name)
 
 
 def test_the_whole_fleet_changes_every_area_and_thin_layered_structure(tmp_path, site, fleet):
