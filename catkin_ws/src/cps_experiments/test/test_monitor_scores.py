@@ -77,3 +77,17 @@ def test_the_report_lists_what_was_not_seen_again_and_the_recall_over_what_was()
     assert "| tank_1 | 300 | 10% |" in text and "| tank_farm (fenced area) | 900 | 22% |" in text
     assert "crate_2" not in text.split("Recall")[0]
     assert "re-observed: 1/1 = 1.00; over all: 1/3 = 0.33" in text
+
+
+def test_an_empty_live_report_is_no_live_report(tmp_path):
+    """Seed 70615's fleet_4 ended while the map server rewrote map_changes.json (not atomically then):
+    an empty file. Scoring it as no live report (the mission's row says so) instead of stopping the
+    whole evaluation; a written one is read."""
+    from cps_experiments.monitor_report import read_live_report
+    from cps_mapping.change_detection import Change, write_report
+
+    (tmp_path / "map_changes.json").write_text("")
+    assert read_live_report(str(tmp_path)) is None
+    change = Change("appeared", 20, (1.0, 2.0, 0.5), (0.4, 0.4, 0.8), 0.02, (0.8, 1.8, 0.1), (1.2, 2.2, 0.9))
+    write_report([change], tmp_path / "map_changes.md")
+    assert read_live_report(str(tmp_path)) is not None

@@ -108,9 +108,10 @@ def test_keyframes_kept_during_an_outage_arrive_after_it(rospy_node, ros, robots
     assert stamps[0] - t_stop < 2.0, (t_stop, stamps)  # kept from the start of the outage
     assert all(b - a >= 0.99 for a, b in zip(stamps, stamps[1:])), stamps  # one per keyframe period
     assert 3 <= len(stamps) <= 12, stamps
-    pose_by_stamp = {m.header.stamp.to_sec(): m for _, m in poses.messages}
-    for stamp in stamps:
-        pose = pose_by_stamp[stamp]
+    # The twin pairs each keyframe with its pose by the stamp in ns (admission_process.BackfillPoses).
+    pose_by_stamp = {m.header.stamp.to_nsec(): m for _, m in poses.messages}
+    for _, cloud in backfill.messages:
+        pose = pose_by_stamp[cloud.header.stamp.to_nsec()]
         t = pose.transform.translation
         assert (pose.header.frame_id, pose.child_frame_id, t.x, t.y, t.z) == (names.MAP_FRAME, "load", 1.0, 2.0, 3.0)
     # The live stream resumed fresh (nothing older than the data class's bound was republished).

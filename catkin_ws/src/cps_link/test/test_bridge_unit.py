@@ -15,7 +15,7 @@ from cps_link.bridge_config import ROBOTS, TWIN, ConfigError, load_bridge_table
 from cps_link.bridge_wire import Frame, WireError, decode, encode, header_stamp_s, is_stale
 from cps_link.link_health import LinkHealth
 from cps_link.link_report import socket_full_bytes
-from cps_link.zenoh_bridge import zenoh_qos
+from cps_link.zenoh_bridge import POSE_TOLERANCE_S, keyframe_pose, zenoh_qos
 from cps_link.zenoh_session import session_config
 
 ROBOT_NAMES = ("scout", "jackal", "champ", "iris")
@@ -515,3 +515,43 @@ def test_a_link_report_is_stamped_when_its_interval_closed_not_when_it_was_publi
     at(1001.46)  # the second at once
     second_stamp = link_report_msg(second).header.stamp.to_sec()
     assert second_stamp - first_stamp == pytest.approx(second.interval_s)
+
+
+class _Transforms:
+    """tf2_ros.Buffer's lookup_transform as the robots' bridge uses it: a pose at the asked time
+    (tf2 stamps an interpolated transform with the time asked), or, for a time after the newest,
+    tf2's extrapolation error; the newest for time 0."""
+
+    def __init__(self, newest):
+        self.newest = newest
+
+    def lookup_transform(self, target, source, stamp):
+        import rospy
+        from geometry_msgs.msg import TransformStamped
+
+        if stamp > self.newest:
+            raise RuntimeError("Lookup would require extrapolation into the future")
+        pose = TransformStamped()
+        pose.header.frame_id, pose.child_frame_id = target, source
+        pose.header.stamp = self.newest if stamp == rospy.Time(0) else rospy.Time(stamp.secs, stamp.nsecs)
+        return pose
+
+
+@pytest.mark.parametrize("ahead_ns", [0, 3_000_000])
+def test_a_keyframe_pose_carries_its_cloud_stamp_to_the_nanosecond(ahead_ns):
+    """The twin pairs a keyframe with its pose by (frame, stamp in ns) (admission_process.BackfillPoses).
+    The pose was stamped through a float of seconds (rospy.Time.from_sec): 1796068802.154 s came
+    back 1796068802.154000044, and every keyframe of a demo went without its pose, placed by the
+    twin's /tf interpolated across the outage (issue 39)."""
+    import rospy
+    from sensor_msgs.msg import PointCloud2
+
+    cloud = PointCloud2()
+    cloud.header.stamp, cloud.header.frame_id = rospy.Time(1796068802, 154000000), "champ/depth"
+    stamp_ns = cloud.header.stamp.to_nsec()
+    assert rospy.Time.from_sec(cloud.header.stamp.to_sec()).to_nsec() != stamp_ns  # what a float loses
+    newest = rospy.Time(1796068802, 154000000 - ahead_ns)  # the cloud a few ms ahead of its tf
+    assert ahead_ns * 1e-9 <= POSE_TOLERANCE_S
+    pose = keyframe_pose(_Transforms(newest), names.MAP_FRAME, _serialize(cloud))
+    assert pose.child_frame_id == "champ/depth"
+    assert pose.header.stamp.to_nsec() == stamp_ns

@@ -16,6 +16,7 @@ from cps_sim.site_change_generator import (
     GeneratorError,
     generate_scenarios,
     overlap_problem,
+    placement_problem,
     visited_areas,
 )
 from cps_sim.site_changes import load_site_changes
@@ -70,6 +71,34 @@ def test_nothing_moved_or_added_stands_where_a_removed_item_stood(site, fleet):
     after = site.without("tank_4").moved("drum_5", dx, dy)
     problem = overlap_problem(after, ["drum_5"], [storage], vacated=[("tank_4", tank.footprint)])
     assert "where removed 'tank_4' stood" in problem, problem
+
+
+def _grown_overlap(footprint, other):
+    x0, y0, x1, y1 = footprint
+    return _overlap((x0 - CLEARANCE_M, y0 - CLEARANCE_M, x1 + CLEARANCE_M, y1 + CLEARANCE_M), other)
+
+
+def test_nothing_added_stands_where_a_moved_item_stood(tmp_path, site, fleet):
+    """seed5077's pair_4 added new_drum_4 0.03 m inside the old footprint of tank_4, moved in the
+    same scenario: the baseline's tank wall stood there, and 73 of the drum's voxels came down to
+    15 (missed). The generator now draws again; seed 5077's six pair scenarios drew it before."""
+    (storage,) = visited_areas(site, fleet, ROBOTS)
+    tank = site.item("tank_4")
+    path = tmp_path / "pair_4.yaml"
+    path.write_text(
+        "removed: [crate_4]\nmoved:\n- {name: tank_4, dx_m: -0.59, dy_m: 0.35}\n"
+        "added:\n- {name: new_drum_4, shape: cylinder, x: 6.37, y: -3.23, radius_m: 0.2, height_m: 0.68}\n"
+    )
+    changes = load_site_changes(str(path), site)
+    assert _grown_overlap(changes.apply(site).item("new_drum_4").footprint, tank.footprint)
+    assert "where 'tank_4' stood before it moved" in placement_problem(site, changes, [storage])
+    for p in generate_scenarios(site, fleet, ROBOTS, 6, 5077, str(tmp_path / "drawn"), log=lambda _: None):
+        drawn = load_site_changes(p, site)
+        after = drawn.apply(site)
+        for m in drawn.moved:
+            for a in drawn.added:
+                where = after.item(a.name).footprint
+                assert not _grown_overlap(where, site.item(m.name).footprint), (p, a.name, m.name)
 
 
 def test_the_whole_fleet_changes_every_area_and_thin_layered_structure(tmp_path, site, fleet):

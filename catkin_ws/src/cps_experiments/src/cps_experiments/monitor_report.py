@@ -89,14 +89,18 @@ class LiveReport:
 
 
 def read_live_report(out_dir):
-    """The mission's LiveReport, or None if the map server wrote none."""
+    """The mission's LiveReport, or None if the map server wrote none, or none that can be read (an
+    empty file: written while the mission ended, before the writes were atomic)."""
     from cps_mapping.change_detection import Change
 
     path = os.path.join(out_dir, LIVE_REPORT.rsplit(".", 1)[0] + ".json")
     if not os.path.exists(path):
         return None
-    with open(path) as stream:
-        rows = json.load(stream)
+    try:
+        with open(path) as stream:
+            rows = json.load(stream)
+    except ValueError:
+        return None
     kept = [r for r in rows if not r.get("withdrawn") and r.get("reported_s") is not None]
     return LiveReport(
         [Change.from_dict(r) for r in kept],

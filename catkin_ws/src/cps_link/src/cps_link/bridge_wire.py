@@ -60,11 +60,18 @@ def session_started_ns(session):
     return struct.unpack_from("!Q", session)[0]
 
 
-def header_stamp_s(body):
-    """The header stamp of a serialized message whose type starts with a std_msgs/Header."""
+def header_stamp(body):
+    """(secs, nsecs): the header stamp of a serialized message whose type starts with a
+    std_msgs/Header, exactly (a float of seconds since 1970 keeps only ~0.24 us)."""
     if len(body) < _ROS_STAMP.size:
         raise WireError(f"message of {len(body)} bytes is too short for a std_msgs/Header")
     _, secs, nsecs = _ROS_STAMP.unpack_from(body)
+    return secs, nsecs
+
+
+def header_stamp_s(body):
+    """The header stamp of a serialized message whose type starts with a std_msgs/Header, s."""
+    secs, nsecs = header_stamp(body)
     return secs + nsecs * 1e-9
 
 

@@ -94,13 +94,53 @@ def _index(centers, resolution_m):
     return np.unique(voxel_index(pts, resolution_m), axis=0) if len(pts) else np.zeros((0, 3), np.int64)
 
 
-def _merge_boxes(index, labels, count, gap_voxels):
-    """Relabel so that clusters whose voxel boxes are at most `gap_voxels` apart share a label."""
+def _box_gap(lo, hi, a, b):
+    """Empty voxels between the boxes of labels a and b along the axis where they are farthest apart
+    (<= 0: they touch or overlap)."""
+    return int(np.max(np.maximum(lo[a] - hi[b], lo[b] - hi[a]))) - 1
+
+
+def _connected_through(support, a_members, b_members, floor_z, margin_voxels=2):
+    """True if two clusters' voxels are one 26-connected piece of `support` (the occupied voxels of
+    the map that holds them) above the floor, within their joint box grown by `margin_voxels`: one
+    item of that map (two faces of it, or a sliver and the rest of it), not two items side by side.
+    The floor (its layer and the one above, as in a move's correlation) joins everything and is left out."""
+    both = np.vstack([a_members, b_members])
+    lo, hi = both.min(axis=0) - margin_voxels, both.max(axis=0) + margin_voxels
+    lo[2] = max(lo[2], floor_z + _FLOOR_LAYERS + 1)
+    if np.any(hi < lo):
+        return False
+    a_members = a_members[a_members[:, 2] >= lo[2]]
+    b_members = b_members[b_members[:, 2] >= lo[2]]
+    if not len(a_members) or not len(b_members):
+        return False
+    region = np.vstack([_region(support, lo, hi), a_members, b_members]) - lo
+    grid = np.zeros(tuple(hi - lo + 1), dtype=bool)
+    grid[region[:, 0], region[:, 1], region[:, 2]] = True
+    labels, _ = ndimage.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
+    a_labels = labels[tuple((a_members - lo).T)]
+    b_labels = labels[tuple((b_members - lo).T)]
+    return bool(np.intersect1d(a_labels, b_labels).size)
+
+
+def _merge_boxes(index, labels, count, gap_voxels, support=None, floor_z=0, min_voxels=1, item_gap_voxels=0):
+    """Relabel so that clusters that are one item share a label: clusters whose voxel boxes are at
+    most `gap_voxels` apart, and, if one of them holds at least `min_voxels`, at most
+    `item_gap_voxels` apart; with `support` (the occupied voxels of the map that holds the clusters)
+    only if their voxels are connected through it (`_connected_through`).
+
+    Without that test two items side by side were one change: seed 5077's fleet_1 had drum_3
+    (removed) and tank_2 (moved) 0.2 m apart, their disappeared clusters' boxes within the gap, and
+    reported them as one, the drum missed. With it, slivers of one item farther apart are one change:
+    the second slivers of crate_2's new place (pair_2), of new_box_1 (fleet_1) and a board of moved
+    shelving_2 (fleet_2) were each reported as a false 'appeared'."""
     lo = np.full((count + 1, 3), np.iinfo(np.int64).max)
     hi = np.full((count + 1, 3), np.iinfo(np.int64).min)
     np.minimum.at(lo, labels, index)
     np.maximum.at(hi, labels, index)
+    sizes = np.bincount(labels, minlength=count + 1)
     parent = list(range(count + 1))
+    members = {}
 
     def root(i):
         while parent[i] != i:
@@ -108,9 +148,20 @@ def _merge_boxes(index, labels, count, gap_voxels):
             i = parent[i]
         return i
 
+    def of(label):
+        if label not in members:
+            members[label] = index[labels == label]
+        return members[label]
+
     for a in range(1, count + 1):
         for b in range(a + 1, count + 1):
-            if np.all(lo[a] <= hi[b] + gap_voxels + 1) and np.all(lo[b] <= hi[a] + gap_voxels + 1):
+            if not sizes[a] or not sizes[b] or root(a) == root(b):
+                continue
+            gap = _box_gap(lo, hi, a, b)
+            near = gap <= gap_voxels or (max(sizes[a], sizes[b]) >= min_voxels and gap <= item_gap_voxels)
+            if not near:
+                continue
+            if support is None or _connected_through(support, of(a), of(b), floor_z):
                 parent[root(b)] = root(a)
     return np.array([root(label) for label in range(count + 1)])[labels]
 
@@ -132,10 +183,13 @@ def _change_of(kind, members, resolution_m, **extra):
     )
 
 
-def _clusters(index, kind, resolution_m, min_cluster_voxels, merge_gap_voxels=0):
+def _clusters(index, kind, resolution_m, min_cluster_voxels, merge_gap_voxels=0, support=None, floor_z=0):
     """[(Change, its voxel indices)]: 26-connected clusters of voxels; with `merge_gap_voxels` g,
     clusters at most 2 g empty voxels apart are one (an item's surface cut in two by the tolerance
-    around something next to it)."""
+    around something next to it), and so are clusters whose boxes come within 2 g voxels, or within
+    ITEM_GAP_M of a cluster of at least `min_cluster_voxels`, if `support` (the occupied voxel
+    indices of the map that holds them) connects them above the floor (`floor_z`, its voxel layer):
+    `_merge_boxes`."""
     if len(index) == 0:
         return []
     lo = index.min(axis=0) - merge_gap_voxels
@@ -148,7 +202,10 @@ def _clusters(index, kind, resolution_m, min_cluster_voxels, merge_gap_voxels=0)
     labels, count = ndimage.label(grid, structure=cube)
     voxel_labels = labels[local[:, 0], local[:, 1], local[:, 2]]
     if merge_gap_voxels > 0:  # and clusters whose boxes come within the gap: one item's faces
-        voxel_labels = _merge_boxes(index, voxel_labels, count, 2 * merge_gap_voxels)
+        item_gap = int(round(ITEM_GAP_M / resolution_m)) if support is not None else 0
+        voxel_labels = _merge_boxes(
+            index, voxel_labels, count, 2 * merge_gap_voxels, support, floor_z, min_cluster_voxels, item_gap
+        )
     out = []
     for label in range(1, count + 1):
         members = index[voxel_labels == label]
@@ -215,6 +272,12 @@ class ChangeRules:
         if not 0.0 < self.appeared_free_max_probability < 0.5:
             raise ValueError("appeared_free_max_probability must be in (0, 0.5)")
 
+
+# Clusters of one kind whose boxes are at most this far apart, one of them a change's size, are one
+# change when the map that holds them connects them above the floor (`_merge_boxes`): the slivers of
+# one item (a 3 m shelving's boards, a moved crate's sides), not two items (the generator keeps them
+# 0.2 m apart, and the map's free space between them).
+ITEM_GAP_M = 1.5
 
 # How far apart (box centres) a move's two halves may be: the longest item of the hall (a 4 m pipe
 # run) moved by its own length leaves slivers 4 m apart.
@@ -336,10 +399,11 @@ def detect_changes(
             disappeared = disappeared[
                 _neighbours_known(disappeared, resolution_m, current_known, both, min_known_neighbours)
             ]
-    gone = _clusters(disappeared, "disappeared", resolution_m, min_cluster_voxels, merge_gap_voxels)
+    floor_z = _floor_layer(base, cur) if merge_gap_voxels > 0 else 0
+    gone = _clusters(disappeared, "disappeared", resolution_m, min_cluster_voxels, merge_gap_voxels, base, floor_z)
     if disappeared_cluster_ok is not None:
         gone = [(c, m) for c, m in gone if disappeared_cluster_ok(c, index_to_center(m, resolution_m))]
-    new = _clusters(appeared, "appeared", resolution_m, min_cluster_voxels, merge_gap_voxels)
+    new = _clusters(appeared, "appeared", resolution_m, min_cluster_voxels, merge_gap_voxels, cur, floor_z)
     if appeared_cluster_ok is not None:
         new = [(c, m) for c, m in new if appeared_cluster_ok(c, index_to_center(m, resolution_m))]
     if seen_s is not None:
@@ -411,6 +475,8 @@ def pair_moves(appeared, disappeared, base, cur, resolution_m, radius_m, min_exp
         for j, (d, d_members) in enumerate(disappeared):
             if math.dist(a.place_m, d.place_m) > radius_m:
                 continue
+            if floor_z is None:
+                floor_z = _floor_layer(base, cur)
             lo = np.minimum(a_members.min(axis=0), d_members.min(axis=0)) - 1
             hi = np.maximum(a_members.max(axis=0), d_members.max(axis=0)) + 1
             if floor_z is None:
@@ -423,6 +489,9 @@ def pair_moves(appeared, disappeared, base, cur, resolution_m, radius_m, min_exp
             if shift is None:
                 continue
             refined, step, votes = shift
+            item = np.vstack([d_members, before[near_any(before + [step[0], step[1], 0], after, 1)]])
+            if not _same_size(a_members, d_members, item, step, floor_z):
+                continue
             gone_ok = _explained(d_members, step, cur)
             new_ok = _explained(a_members, (-step[0], -step[1]), base)
             if min(gone_ok, new_ok) >= min_explained:
@@ -438,6 +507,40 @@ def pair_moves(appeared, disappeared, base, cur, resolution_m, radius_m, min_exp
     rest = [c for k, (c, _) in enumerate(appeared) if k not in used_a]
     rest += [c for k, (c, _) in enumerate(disappeared) if k not in used_d]
     return moves + rest
+
+
+# A move that takes an item clear of its old place (the shift along some axis at least both clusters'
+# extent) leaves two whole items: their tops within MOVE_TOP_VOXELS layers, their extents along x and
+# y within MOVE_SIZE_VOXELS plus MOVE_SIZE_FRACTION of the larger (a surface's one-voxel jitter on
+# either side).
+MOVE_TOP_VOXELS = 1
+MOVE_SIZE_VOXELS = 2
+MOVE_SIZE_FRACTION = 0.15
+
+
+def _same_size(a_members, d_members, item, step, floor_z):
+    """True if an appeared and a disappeared cluster can be one item moved by `step` (dx, dy voxels);
+    `item`: the baseline's voxels of it (the disappeared cluster and what the shift lays onto the new
+    map). When the shift takes the item clear of where it stood, the two are the whole item before and
+    after: the same height (their tops within MOVE_TOP_VOXELS layers) and the same extent along x
+    and y. A shorter move leaves slivers (the side it left, the side it took), whose sizes are the
+    move's and the views', not the item's: they are not compared. Seed 5077's fleet_5 paired
+    crate_2 (1.0 x 1.0 x 1.0 m, removed) with a 0.77 x 0.92 x 1.15 m box added 4.2 m away: one
+    shift explained 60 % of each within the one-voxel tolerance."""
+    extent_a = a_members.max(axis=0) - a_members.min(axis=0) + 1
+    extent_d = d_members.max(axis=0) - d_members.min(axis=0) + 1
+    extent_item = item.max(axis=0) - item.min(axis=0) + 1
+    clear = any(abs(step[k]) >= max(extent_a[k], extent_d[k], extent_item[k]) for k in (0, 1))
+    if not clear:
+        return True
+    top_a, top_d = int(a_members[:, 2].max()) - floor_z, int(d_members[:, 2].max()) - floor_z
+    if abs(top_a - top_d) > MOVE_TOP_VOXELS:
+        return False
+    for axis in (0, 1):
+        larger = max(extent_a[axis], extent_d[axis])
+        if abs(int(extent_a[axis]) - int(extent_d[axis])) > MOVE_SIZE_VOXELS + MOVE_SIZE_FRACTION * larger:
+            return False
+    return True
 
 
 def _floor_layer(base, cur):
@@ -875,8 +978,9 @@ def write_report(changes: List[Change], path, baseline_name="baseline", current_
             f"| {i} | {c.kind} | {', '.join(f'{v:.2f}' for v in c.centroid_m)} | "
             f"{', '.join(f'{v:.2f}' for v in c.size_m)} | {c.volume_m3:.3f} | {c.voxels} | {moved} |"
         )
-    with open(path, "w") as stream:
-        stream.write("\n".join(lines) + "\n")
+    # Each file replaced atomically: the map server rewrites them every detection cycle, and a
+    # mission that ended while it wrote (seed 70615's fleet_4) left an empty .json, its report lost.
+    write_atomically(str(path), lambda stream: stream.write("\n".join(lines) + "\n"), binary=False)
     rows = [dataclasses.asdict(c) for c in changes]
     if tracker is not None:
         for row, t in zip(rows, tracker.reported()):
@@ -892,6 +996,7 @@ def write_report(changes: List[Change], path, baseline_name="baseline", current_
             }
             for t in tracker.withdrawn
         ]
-    with open(str(path).rsplit(".", 1)[0] + ".json", "w") as stream:
-        json.dump(rows, stream, indent=1)
+    write_atomically(
+        str(path).rsplit(".", 1)[0] + ".json", lambda stream: json.dump(rows, stream, indent=1), binary=False
+    )
     return path
