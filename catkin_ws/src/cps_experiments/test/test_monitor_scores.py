@@ -45,6 +45,21 @@ def test_the_live_reports_are_pooled_and_a_missing_one_is_said():
     assert not checks["scenarios drawn from a seed not used for tuning"]  # 3 < 12
 
 
+def test_a_mission_without_a_live_report_fails_the_verdict_and_counts_its_changes_missed():
+    """Seed 70615's committed run: 11 of 12 missions left a live report (the twelfth's file was being
+    rewritten when the mission ended), and the verdict passed live recall on the 11 (0.97) while
+    what ran found 32 of 36 changes (0.89)."""
+    full = _row(3, 3, _part(3, 3, 3, [0.05] * 3, [10.0] * 3, 1))
+    rows = [dict(full, group=g) for g in ["pair"] * 6 + ["whole fleet"] * 6]
+    assert all(ok for *_, ok in verdict(totals(rows, "live"), rows, seed_held_out=True))
+    rows[11] = dict(rows[11], live=None)
+    checks = {what: (got, ok) for what, _, got, ok in verdict(totals(rows, "live"), rows, seed_held_out=True)}
+    assert checks["every mission left a live report"] == ("11 of 12", False)
+    assert checks["live recall"] == (f"{33 / 36:.2f}", False)
+    assert checks["moves paired (live)"] == ("11 of 12", False)
+    assert checks["live precision"][1]  # nothing reported: nothing false
+
+
 def test_a_tuning_seed_is_refused_unless_asked_and_then_not_held_out():
     with pytest.raises(SystemExit):
         parse_args(["--seed", str(TUNING_SEEDS[0])])
