@@ -147,6 +147,54 @@ def test_clouds_keep_going_in_while_a_robots_transforms_lag_behind_its_clouds(ja
     assert counts.clouds_dropped_tf == 0
 
 
+def test_a_keyframe_is_placed_with_the_pose_sent_with_it_and_waits_for_it_never_for_tf(jackal_points):
+    """A keyframe is from an outage, when no /tf crossed the link: tf2 answers at its stamp by
+    interpolating across the gap (issue 39: the demo baseline's keyframes placed metres off the
+    robots' paths, their hits in free space). It waits for its own pose, and without one it is
+    dropped after the timeout, counted as tf, never placed by /tf."""
+    now = [100.0]
+    poses = {}
+    looked_up = []
+
+    def transform_of(frame, stamp):
+        looked_up.append(stamp.to_sec())
+        return JACKAL_POSE[1], JACKAL_POSE[0]  # /tf would answer (interpolated): it must not be asked
+
+    def keyframe_pose_of(frame, stamp):
+        if (frame, stamp.to_nsec()) not in poses:
+            raise TransformUnavailable("its pose has not come")
+        return poses.pop((frame, stamp.to_nsec()))
+
+    admission = Admission(
+        ["jackal"],
+        transform_of,
+        2.0,
+        names.MAP_FRAME,
+        logging.getLogger("test"),
+        clock=lambda: now[0],
+        keyframe_pose_of=keyframe_pose_of,
+    )
+    keyframe, lost = _cloud(jackal_points), _cloud(jackal_points)
+    keyframe.header.stamp, lost.header.stamp = genpy.Time(90, 123456789), genpy.Time(91, 0)
+    admission.receive("jackal", keyframe, backfill=True)
+    assert admission.next_cloud(timeout_s=0) is None  # its pose has not come: it waits
+    now[0] += 0.5
+    pose = (JACKAL_POSE[1], (7.0, 8.0, 9.0))
+    poses[(JACKAL_FRAME, keyframe.header.stamp.to_nsec())] = pose
+    placed = admission.next_cloud(timeout_s=0)
+    assert placed is not None and placed.backfill and placed.translation_m == (7.0, 8.0, 9.0)
+    admission.receive("jackal", lost, backfill=True)
+    assert admission.next_cloud(timeout_s=0) is None
+    now[0] += 2.5  # past the timeout, no pose: dropped
+    assert admission.next_cloud(timeout_s=0) is None
+    counts, waiting = admission.snapshot()["jackal"]
+    assert (counts.clouds_placed, counts.clouds_dropped_tf, waiting) == (1, 1, 0)
+    assert looked_up == []
+    live = _cloud(jackal_points)
+    admission.receive("jackal", live)
+    assert admission.next_cloud(timeout_s=0) is not None and len(looked_up) == 1  # live clouds: /tf
+
+
 def test_backfill_keyframes_wait_in_their_own_fifo_behind_live_clouds(jackal_points):
     slots = RobotSlots(["a"], backfill_kept=2, clock=lambda: 0.0)
     keyframes = [Arrival("a", k, arrived_s=float(k), backfill=True) for k in range(3)]

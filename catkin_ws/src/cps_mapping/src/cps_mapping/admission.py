@@ -57,10 +57,17 @@ class Admission:
         frame_id: str,
         log,
         clock: Callable = time.monotonic,
+        keyframe_pose_of: Optional[Callable] = None,
     ):
         """`transform_of(frame, stamp)` -> (3 x 3 rotation, translation) of `frame` in `frame_id`, or
-        raises TransformUnavailable; it must not wait."""
+        raises TransformUnavailable; it must not wait. `keyframe_pose_of(frame, stamp)`, the same for
+        a backfill keyframe from the pose sent with it, places keyframes instead of /tf: a keyframe
+        is from an outage, when no /tf crossed the link, and tf2 interpolates across the gap (issue
+        39: the demo's baseline placed its keyframes metres off the robots' paths and their hits
+        stood in free space). A keyframe whose pose has not come yet waits for it, up to
+        `tf_timeout_s` (then dropped, counted as tf)."""
         self.robots = list(robots)
+        self.keyframe_pose_of = keyframe_pose_of
         self.slots = RobotSlots(self.robots, clock=clock)
         self.transform_of, self.tf_timeout_s, self.frame_id = transform_of, tf_timeout_s, frame_id
         self.clock = clock
@@ -105,7 +112,8 @@ class Admission:
             self.log.warn(("frame", robot), f"map_server: {robot}: cloud without frame_id dropped")
             return None
         try:
-            rotation, translation = self.transform_of(frame, msg.header.stamp)
+            place = self.keyframe_pose_of if arrival.backfill and self.keyframe_pose_of else self.transform_of
+            rotation, translation = place(frame, msg.header.stamp)
         except TransformUnavailable as exc:
             if self.clock() - arrival.arrived_s < self.tf_timeout_s:
                 self.slots.defer(arrival, TF_RETRY_S)  # superseded (counted there) if a newer one arrived

@@ -227,16 +227,30 @@ def _run(config: AdmissionConfig, nice, next_conn, control_conn):
     transforms = LazyTransforms()  # /tf read when a cloud is placed, not in the receiving threads
     backfill_poses = BackfillPoses()
 
-    def transform_of(frame, stamp):
-        tf = backfill_poses.take(frame, stamp.to_nsec())
-        try:
-            tf = tf or transforms.lookup(config.frame_id, frame, stamp)
-        except tf2_py.TransformException as exc:
-            raise TransformUnavailable(str(exc)) from exc
+    def _pose(tf):
         t, q = tf.transform.translation, tf.transform.rotation
         return quaternion_matrix(q.x, q.y, q.z, q.w), (t.x, t.y, t.z)
 
-    admission = Admission(list(config.robots), transform_of, config.tf_timeout_s, config.frame_id, log)
+    def transform_of(frame, stamp):
+        try:
+            return _pose(transforms.lookup(config.frame_id, frame, stamp))
+        except tf2_py.TransformException as exc:
+            raise TransformUnavailable(str(exc)) from exc
+
+    def keyframe_pose_of(frame, stamp):
+        tf = backfill_poses.take(frame, stamp.to_nsec())
+        if tf is None:
+            raise TransformUnavailable(f"the pose sent with the keyframe of '{frame}' has not come")
+        return _pose(tf)
+
+    admission = Admission(
+        list(config.robots),
+        transform_of,
+        config.tf_timeout_s,
+        config.frame_id,
+        log,
+        keyframe_pose_of=keyframe_pose_of,
+    )
     rospy.Subscriber(names.TF, rospy.AnyMsg, transforms.received, queue_size=None, buff_size=RECEIVE_CHUNK_BYTES)
     rospy.Subscriber(names.TF_STATIC, rospy.AnyMsg, lambda m: transforms.received(m, static=True), queue_size=None)
     # rospy.AnyMsg: nothing deserialized in the receiving threads, and no subscriber queue bound
