@@ -92,7 +92,8 @@ def test_a_robot_played_at_another_rate_keeps_its_clouds_at_their_poses_and_the_
     # Due at 0.0 (4 s, looped), 0.5 (raised), 1.0, 1.5 and 2.0 (the loop's second turn).
     assert [stamp for _, stamp in (s for s in sent if s)] == pytest.approx([0.0, 1.0, 1.5, 2.0])
     assert player.sent_clouds == {"a": 4} and player.dropped_clouds == {"a": 1}
-    assert player.last_cloud_stamp_s == {"a": pytest.approx(2.0)}  # where its map ages stop counting
+    assert player.first_cloud_stamp_s == {"a": pytest.approx(0.0)}  # where its map ages may start counting
+    assert player.last_cloud_stamp_s == {"a": pytest.approx(2.0)}  # and where they stop
     assert player.publish_errors == ["a: OSError: link closed"]
     assert player.cloud_lateness_s == pytest.approx([0.05] * 4)
 

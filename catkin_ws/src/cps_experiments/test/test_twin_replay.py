@@ -36,9 +36,9 @@ def test_the_causes_sum_to_what_was_sent_and_what_no_counter_saw_is_unaccounted(
     assert short["unaccounted"] == 3 and short["replay_dropped"] == 1 and sum(short[c] for c in CAUSES) == 20
 
 
-def test_a_robots_map_ages_end_with_its_replay():
-    """The replays' shards end up to ~1 s apart: a copy whose replay ended has nothing more to be
-    inserted, and its map age after that says nothing of the twin."""
+def test_a_robots_map_ages_count_while_its_replay_plays():
+    """The replays' shards start and end apart: before a copy's replay (and its warm-up) and after
+    it, nothing is there for the twin to insert, and its map age says nothing of the twin."""
     import genpy
 
     def stats(t, **ages):
@@ -46,10 +46,11 @@ def test_a_robots_map_ages_end_with_its_replay():
         msg.header.stamp = genpy.Time.from_sec(t)
         return msg
 
-    window = [stats(100.0, a=0.2, b=0.3), stats(101.0, a=0.4, b=0.2), stats(102.0, a=1.4, b=0.3)]
-    ages = map_ages(window, ["a", "b"], {"a": 101.05, "b": 102.5})
-    assert ages == {"a": [0.2, 0.4], "b": [0.3, 0.2, 0.3]}
-    assert map_ages(window, ["a"], {})["a"] == [0.2, 0.4, 1.4]  # no end known: the whole window
+    inf = float("inf")
+    window = [stats(100.0, a=0.2, b=inf), stats(101.0, a=0.4, b=inf), stats(102.0, a=1.4, b=0.3), stats(103.0, b=0.2)]
+    ages = map_ages(window, ["a", "b"], {"a": (99.0, 101.05), "b": (101.5, 103.5)}, warmup_s=0.5)
+    assert ages == {"a": [0.2, 0.4], "b": [0.3, 0.2]}
+    assert map_ages(window, ["a"], {})["a"] == [0.2, 0.4, 1.4]  # nothing known of its replay: every message
 
 
 def test_a_trials_row_goes_through_fig13_lives_replay_csv_with_every_cause(tmp_path):

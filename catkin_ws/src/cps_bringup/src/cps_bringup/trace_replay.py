@@ -317,7 +317,9 @@ class Player:
         self.clock = clock
         self._stop = threading.Event()
         self.sent_clouds = {c.name: 0 for c in copies}
-        # the stamp of each copy's last cloud sent (s): a copy says nothing of the twin after it
+        # the stamps of each copy's first and last cloud sent (s): a copy says nothing of the twin
+        # before its first or after its last
+        self.first_cloud_stamp_s: Dict[str, float] = {}
         self.last_cloud_stamp_s: Dict[str, float] = {}
         self.dropped_clouds = {c.name: 0 for c in copies}  # publish() raised
         self.publish_errors: List[str] = []
@@ -397,6 +399,7 @@ class Player:
                 break
             if self._send(by_name[name], kind, m, stamp_of(start + t)) and kind == "cloud":
                 self.cloud_lateness_s.append(max(0.0, self.clock() - (start + t)))
+                self.first_cloud_stamp_s.setdefault(name, start + t)
                 self.last_cloud_stamp_s[name] = start + t
             nt, nkind, nm = next(streams[name])
             heapq.heappush(heap, (nt, count, name, nkind, nm))
@@ -568,6 +571,7 @@ def main(argv=None, log=print):
     late = sorted(player.cloud_lateness_s) or [0.0]
     summary = dict(
         sent=player.sent_clouds,
+        first_cloud_stamp_s=player.first_cloud_stamp_s,
         last_cloud_stamp_s=player.last_cloud_stamp_s,
         dropped=player.dropped_clouds,
         publish_errors=player.publish_errors,

@@ -97,17 +97,22 @@ class Watch:
             self.stats, self.capacity = [], []
 
 
-def map_ages(stats, robots, played_until):
-    """{robot: its map ages, s} from MapStats messages, each robot's up to the stamp of the last
-    cloud its replay sent (`played_until`, s; a robot without one: to the end): the replays' shards
-    start and end up to ~1 s apart, and a copy's map ages after its replay ended grow with nothing
-    for the twin to insert (at 128 robots they made the pooled p95 2.3 s while every robot was
-    served at least every 0.95 s)."""
+def map_ages(stats, robots, played, warmup_s=WARMUP_S):
+    """{robot: its map ages, s} from MapStats messages, each robot's from `warmup_s` after the stamp of
+    the first cloud its replay sent to the stamp of its last (`played`: {robot: (first s, last s)};
+    a robot without them: every message). The replays' shards start and end apart (at 128 robots on
+    one twin CPU up to ~1 s; on two CPUs shared with the twin 7 of 16 shards began after the others'
+    warm-up, and their copies' ages were infinite in the window): before its replay, and after it,
+    a copy's map age grows with nothing for the twin to insert (at 128 robots the tail made the
+    pooled p95 2.3 s while every robot was served at least every 0.95 s)."""
     ages = {r: [] for r in robots}
     for msg in stats:
         stamp_s = msg.header.stamp.to_sec()
         for row in msg.robots:
-            if row.robot in ages and stamp_s <= played_until.get(row.robot, math.inf):
+            if row.robot not in ages:
+                continue
+            first_s, last_s = played.get(row.robot, (-math.inf, math.inf))
+            if first_s + warmup_s <= stamp_s <= last_s:
                 ages[row.robot].append(row.map_age_s)
     return ages
 
@@ -260,7 +265,7 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
         if sampler is not None:
             sampler.stop()
         supervisor.stop_all()
-    sent, played_until, replay_dropped, late, stalls, errors = {}, {}, 0, [], [], []
+    sent, played, replay_dropped, late, stalls, errors = {}, {}, 0, [], [], []
     for i in range(shards):
         output = graph.output(f"{tag}_{i}")
         sent_line = next((line for line in reversed(output.splitlines()) if "sent clouds:" in line), None)
@@ -268,7 +273,8 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
             raise RuntimeError(f"the replay of {n} (shard {i}) did not finish: {output[-2000:]}")
         summary = json.loads(sent_line[sent_line.index("{") :])
         sent.update(summary["sent"])
-        played_until.update(summary.get("last_cloud_stamp_s", {}))
+        for robot, last_s in summary.get("last_cloud_stamp_s", {}).items():
+            played[robot] = (summary["first_cloud_stamp_s"][robot], last_s)
         replay_dropped += sum(summary.get("dropped", {}).values())
         late.append(summary["late_p95_s"])
         stalls += summary.get("stalls_s", [])
@@ -284,7 +290,7 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
     first = next((t for t, msg in stats if any(r.clouds_inserted for r in msg.robots if r.robot in robots)), end)
     start = first + WARMUP_S
     window = [(t, m) for t, m in stats if start <= t <= end]
-    ages = map_ages([m for _, m in window], robots, played_until)
+    ages = map_ages([m for _, m in window], robots, played)
     pooled = [a for values in ages.values() for a in values]
     per_robot_p95 = [_percentile(v, 95) for v in ages.values() if v]
     median_p95 = float(np.median(per_robot_p95)) if per_robot_p95 else math.inf
