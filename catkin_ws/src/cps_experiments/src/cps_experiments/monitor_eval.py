@@ -213,16 +213,22 @@ def totals(rows, key):
     )
 
 
+def over_every_mission(live, rows):
+    """(missions without a live report, changes made, live recall, moves made) over every mission:
+    a mission that left no live report found none of its changes and paired none of its moves."""
+    lost = [r for r in rows if r.get("live") is None]
+    made = live["made"] + sum(r["made"] for r in lost)
+    moves_made = live["moves_made"] + sum(r["moves_made"] for r in lost)
+    return lost, made, (live["matched"] / made if made else None), moves_made
+
+
 def verdict(live, rows, seed_held_out):
     """[(what, asked, got, met)] of issue 39's "done when" on what ran. A mission that left no live
     report reported nothing: its changes count as missed in the recall and its moves as unpaired
     (a missing value fails its check), and the missions with a live report are a check of their own."""
     whole = sum(r["group"] == "whole fleet" for r in rows)
     drawn = sum(r["group"] != "default" for r in rows)
-    lost = [r for r in rows if r.get("live") is None]
-    made = live["made"] + sum(r["made"] for r in lost)
-    recall = live["matched"] / made if made else None
-    moves_made = live["moves_made"] + sum(r["moves_made"] for r in lost)
+    lost, made, recall, moves_made = over_every_mission(live, rows)
 
     def at_least(v, bar):
         return v is not None and v >= bar

@@ -97,14 +97,15 @@ def monitoring_paragraph(results_dir=RESULTS):
 def _live_missing(live, rows):
     """'' if every mission left a live report; else how many did not, and the live recall with their
     changes counted as missed (the headline's figures are over the missions that left one)."""
+    from cps_experiments.monitor_eval import over_every_mission
+
     if not live.get("missing"):
         return ""
-    lost = [r for r in rows if r.get("live") is None]
-    made = live["made"] + sum(r["made"] for r in lost)
+    lost, made, recall, _ = over_every_mission(live, rows)
     names = ", ".join(r["scenario"] for r in lost)
     return (
         f"**{len(lost)} of them left no live report** ({names}: live figures over the other {live['missions']}; "
-        f"its changes counted as missed, the recall of what ran is {live['matched']}/{made} = {live['matched'] / made:.2f}), "
+        f"its changes counted as missed, the recall of what ran is {live['matched']}/{made} = {recall:.2f}), "
     )
 
 

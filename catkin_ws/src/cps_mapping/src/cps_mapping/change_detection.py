@@ -479,8 +479,6 @@ def pair_moves(appeared, disappeared, base, cur, resolution_m, radius_m, min_exp
                 floor_z = _floor_layer(base, cur)
             lo = np.minimum(a_members.min(axis=0), d_members.min(axis=0)) - 1
             hi = np.maximum(a_members.max(axis=0), d_members.max(axis=0)) + 1
-            if floor_z is None:
-                floor_z = _floor_layer(base, cur)
             lo[2] = max(lo[2], floor_z + _FLOOR_LAYERS + 1)
             before, after = _region(base, lo, hi), _region(cur, lo, hi)
             if not len(before) or not len(after):
