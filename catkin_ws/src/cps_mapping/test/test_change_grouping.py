@@ -93,3 +93,60 @@ def test_two_new_items_apart_are_two_changes():
         _centres(FLOOR), _centres(FLOOR, a, b), RES, tolerance_voxels=2, min_cluster_voxels=16, merge_gap_voxels=1
     )
     assert [c.kind for c in changes] == ["appeared", "appeared"], [(c.place_m, c.voxels) for c in changes]
+
+
+def _side_of(voxels, centre_m, towards):
+    """The voxels of an item on the side of its centre that faces `towards` (x, y): the half a map
+    made from there holds (and the voxels within half a voxel of the middle)."""
+    offset = (voxels[:, :2] + 0.5) * RES - np.asarray(centre_m)
+    return voxels[offset @ np.asarray(towards) > -RES / 2]
+
+
+def test_a_drum_moved_beside_a_tank_is_one_move():
+    """Seed 42507's pair_0: drum_4 moved (-1.23, +1.35) m beside tank_4 (0.7 m radius, 2.2 m tall), whose
+    wall stood in the box of the move's two halves. Laid onto itself 2 voxels along, the wall won the
+    correlation of the whole box, no shift explained the drum, and the move was two changes. The
+    drum is seen from one side in each map (from -y before, from -x after), as from the aisles."""
+    tank = _cylinder(5.5, -3.0, 0.7, 2.2)
+    before = _side_of(_cylinder(5.0, -4.8, 0.3, 0.9), (5.0, -4.8), (0.0, -1.0))
+    after = _side_of(_cylinder(3.77, -3.45, 0.3, 0.9), (3.77, -3.45), (-1.0, 0.0))
+    changes = detect_changes(
+        _centres(FLOOR, tank, before),
+        _centres(FLOOR, tank, after),
+        RES,
+        tolerance_voxels=2,
+        min_cluster_voxels=16,
+        merge_gap_voxels=1,
+        move_radius_m=5.0,
+    )
+    assert [c.kind for c in changes] == ["moved"], [(c.kind, c.place_m, c.voxels) for c in changes]
+    assert np.allclose(changes[0].displacement_m[:2], (-1.23, 1.35), atol=0.1)
+
+
+def _shelving(y0, board_layers=(7, 14, 21), length=30, depth=6):
+    """A shelving's boards (full slabs) and its four corner posts, standing on the floor at y0."""
+    boards = [(x, y0 + y, z) for x in range(length) for y in range(depth) for z in board_layers]
+    posts = [(x, y0 + y, z) for x in (0, length - 1) for y in (0, depth - 1) for z in range(1, max(board_layers))]
+    return np.unique(np.array(boards + posts), axis=0)
+
+
+def test_a_moved_shelving_whose_new_front_is_two_pieces_is_one_move():
+    """Seed 42507's pair_4: shelving_1 moved 0.5 m (of its 0.6 m depth); the new map held its top board's
+    left end but neither the board's middle nor the left posts above the middle board, so the new
+    front was two appeared clusters. One was paired with what the shelving left, and the other was
+    reported as a false 'appeared'."""
+    old, new = _shelving(0), _shelving(-5)
+    board_middle = (new[:, 2] == 21) & (new[:, 0] >= 8) & (new[:, 0] <= 17)
+    left_posts_above = (new[:, 0] == 0) & (new[:, 2] > 14) & (new[:, 2] < 21)
+    hole = board_middle | left_posts_above
+    changes = detect_changes(
+        _centres(FLOOR, old),
+        _centres(FLOOR, new[~hole]),
+        RES,
+        tolerance_voxels=2,
+        min_cluster_voxels=16,
+        merge_gap_voxels=1,
+        move_radius_m=5.0,
+    )
+    assert [c.kind for c in changes] == ["moved"], [(c.kind, c.place_m, c.size_m, c.voxels) for c in changes]
+    assert np.allclose(changes[0].displacement_m[:2], (0.0, -0.5), atol=0.1)
