@@ -152,7 +152,7 @@ def anchor(trace_path, profile, twin_cpus):
 
 
 def sweep(args):
-    from cps_experiments.twin_replay import replay_bench
+    from cps_experiments.twin_replay import replay_bench, replay_tf_rate_hz
 
     trace = args.bag or record_trace(args.profile)
     cpus = tuple(range(os.cpu_count()))[-args.twin_cpus :]
@@ -160,6 +160,7 @@ def sweep(args):
     figures = anchor(trace, args.profile, cpus)
     print(json.dumps(figures), flush=True)
     replay_args = ("--profile-rates", args.profile) if args.profile != "light" else ()
+    tf_rate_hz = replay_tf_rate_hz(args.profile)
     nice = () if args.receive_nice is None else (f"_receive_nice:={args.receive_nice}",)
     label = f"{args.profile}_{args.twin_cpus}cpu" + ("" if args.receive_nice is None else f"_nice{args.receive_nice}")
     rows = []
@@ -168,10 +169,10 @@ def sweep(args):
     with replay_bench(OUT, twin_cpus=cpus, name="cps_twin_capacity") as (run, split_text):
         print(split_text, flush=True)
         for n in [int(x) for x in args.robots.split(",")]:
-            row = run(n, trace, args.duration, label=label, replay_args=replay_args, map_server_args=nice)
+            row = run(n, trace, args.duration, label, replay_args, nice, tf_rate_hz)
             if row["replay_limited"]:  # the machine, not the twin: once more
                 print(f"  N={n}: replay late (p95 {row['replay_late_p95_s']:.3f} s), once more", flush=True)
-                row = run(n, trace, args.duration, label=label, replay_args=replay_args, map_server_args=nice)
+                row = run(n, trace, args.duration, label, replay_args, nice, tf_rate_hz)
             rows.append(row)
             print(_line(row), flush=True)
     key = f"{args.profile}/{args.twin_cpus}" + ("" if args.receive_nice is None else f"/nice{args.receive_nice}")
@@ -183,6 +184,7 @@ def sweep(args):
         split=split_text,
         trace=os.path.relpath(trace, ROOT),
         duration_s=args.duration,
+        tf_rate_hz=tf_rate_hz,
         started=started,
         load_before=load_before,
         load_after=os.getloadavg(),

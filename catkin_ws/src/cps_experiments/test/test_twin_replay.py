@@ -124,3 +124,19 @@ def test_the_replay_rows_run_again_leave_the_live_rows_as_they_are(tmp_path, mon
     assert sorted(replayed) == [32, 64] and replayed[64]["counted_by"] == "the nodes' counters"
     assert json.loads((tmp_path / live_scaling.RUNS_JSON).read_text())["replay_host_split"] == "the new split"
     assert "the new split" in (tmp_path / "fig13_live.md").read_text()
+
+
+def test_a_replay_sends_tf_at_twice_its_fastest_clouds_within_the_simulators_rate():
+    """The paper profile's 30 Hz camera clouds against the replay's 20 Hz tf waited in the map server
+    for a transform after their stamp, and the next cloud superseded them (33 % at 8 robots, the twin
+    half idle): its replay sends 2 x 30 Hz, capped at the simulator's 50 Hz odometry. Light stays at
+    the floor (its 10 Hz camera)."""
+    from cps_experiments.twin_replay import TF_RATE_HZ, replay_tf_rate_hz
+    from cps_fleet.fleet import load_fleet
+    from cps_sim.fleet_sim_node import FleetSimOptions
+
+    fleet = load_fleet()
+    assert fleet.with_profile("paper").profile.depth_camera.rate_hz * 2 > FleetSimOptions().odom_rate_hz
+    assert replay_tf_rate_hz("paper") == FleetSimOptions().odom_rate_hz
+    assert fleet.with_profile("light").profile.depth_camera.rate_hz * 2 <= TF_RATE_HZ
+    assert replay_tf_rate_hz("light") == TF_RATE_HZ

@@ -49,9 +49,13 @@ AGE_BAR_FACTOR = 1.5
 # median robot's (no robot starves).
 MAX_FALL = 0.10
 MAX_OLDEST_OVER_MEDIAN = 2.0
-# The replay keeps 20 odom -> base transforms per second per copy (recorded: ~50) and no odometry:
-# the twin's cloud path needs tf at the clouds' stamps only, and one Python replay must keep up.
+# The replay keeps at least 20 odom -> base transforms per second per copy (recorded: ~50) and no
+# odometry: the twin's cloud path needs tf at the clouds' stamps only, and one Python replay must
+# keep up. A cloud waits in the map server for the first transform after its stamp, and a newer
+# cloud of its robot supersedes it there: tf at TF_PER_CLOUD times the fastest cloud rate keeps
+# that wait within half a cloud period (`replay_tf_rate_hz`).
 TF_RATE_HZ = 20.0
+TF_PER_CLOUD = 2.0
 # A replay whose clouds leave later than this (p95, when publish() returned) limits the trial, not
 # the twin: marked so.
 MAX_REPLAY_LATE_S = 0.1
@@ -59,6 +63,20 @@ MAX_REPLAY_LATE_S = 0.1
 ROBOTS_PER_REPLAY = 8
 # The drop causes of a row, in the ledger's order (sent = the sum of these).
 CAUSES = ("inserted", "superseded", "waiting", "queue", "decoder", "tf", "map_server", "unaccounted")
+
+
+def replay_tf_rate_hz(profile):
+    """The odom -> base transforms per second a replay of `profile` (fleet.yaml's profiles) sends per
+    copy: TF_PER_CLOUD times its fastest sensor's cloud rate, at least TF_RATE_HZ, at most what the
+    simulator publishes (cps_sim's odom rate). Light: 20 Hz; paper: 50 Hz (its 30 Hz camera clouds
+    against 20 Hz tf: 33 % of the clouds superseded at 8 robots with the twin's CPU half idle, 18 %
+    at 50 Hz, session 22)."""
+    from cps_fleet.fleet import load_fleet
+    from cps_sim.fleet_sim_node import FleetSimOptions
+
+    rates = load_fleet().with_profile(profile).profile
+    fastest_hz = max(rates.depth_camera.rate_hz, rates.lidar.rate_hz)
+    return min(FleetSimOptions().odom_rate_hz, max(TF_RATE_HZ, TF_PER_CLOUD * fastest_hz))
 
 
 def _replay_script():
@@ -214,9 +232,22 @@ def _percentile(values, q):
     return float(np.percentile(values, q)) if len(values) else math.inf
 
 
-def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_args=(), map_server_args=()):
+def trial(
+    graph,
+    watch,
+    split,
+    bag,
+    n,
+    duration_s,
+    out_dir,
+    label="",
+    replay_args=(),
+    map_server_args=(),
+    tf_rate_hz=TF_RATE_HZ,
+):
     """One replay of `n` robots (`map_server_args`: the map server's extra arguments, such as
-    private parameters); the figures of the run (a dict, JSON-ready)."""
+    private parameters; `tf_rate_hz`: transforms per second per copy); the figures of the run (a
+    dict, JSON-ready)."""
     from cps_bringup.plan import DIGITAL, PHYSICAL
     from cps_bringup.supervisor import Supervisor
     from cps_bringup.trace_replay import twin_specs
@@ -251,7 +282,7 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
             graph.popen(
                 [*split.prefix(PHYSICAL), sys.executable, _replay_script(), bag, "--robots", str(n)]
                 + ["--duration", str(duration_s), "--copies-fleet", copies_fleet, "--no-odom"]
-                + ["--tf-rate", str(TF_RATE_HZ), "--wait-for-subscribers", "30", "--shard", f"{i}/{shards}"]
+                + ["--tf-rate", str(tf_rate_hz), "--wait-for-subscribers", "30", "--shard", f"{i}/{shards}"]
                 + list(replay_args),
                 name=f"{tag}_{i}",
             )
@@ -306,6 +337,7 @@ def trial(graph, watch, split, bag, n, duration_s, out_dir, label="", replay_arg
         robots=len(robots),
         note=note,
         duration_s=duration_s,
+        tf_rate_hz=tf_rate_hz,
         window_s=max(0.0, end - start),
         sent=total_sent,
         offered_clouds_per_s=total_sent / duration_s if duration_s else 0.0,
@@ -427,8 +459,8 @@ CSV_COLUMNS = (
 def replay_bench(out_dir, twin_cpus=None, twin_shares=16384, replay_shares=16384, name="cps_twin_replay"):
     """A private master, the twin on `twin_cpus` (default: the last CPU) and the replays on the
     others (on every CPU when the twin has them all), and this process's rospy node watching the
-    twin; yields (run(n, bag, duration_s, label="", replay_args=(), map_server_args=()), the split's
-    description).
+    twin; yields (run(n, bag, duration_s, label="", replay_args=(), map_server_args=(), tf_rate_hz=TF_RATE_HZ),
+    the split's description).
     Everything is stopped and removed on exit."""
     from cps_bringup.host_split import HostSplit, online_cpus
     from cps_bringup.plan import DIGITAL, PHYSICAL
@@ -451,8 +483,8 @@ def replay_bench(out_dir, twin_cpus=None, twin_shares=16384, replay_shares=16384
         watch = Watch()
         try:
             yield (
-                lambda n, bag, duration_s, label="", replay_args=(), map_server_args=(): trial(
-                    graph, watch, split, bag, n, duration_s, out_dir, label, replay_args, map_server_args
+                lambda n, bag, duration_s, label="", replay_args=(), map_server_args=(), tf_rate_hz=TF_RATE_HZ: trial(
+                    graph, watch, split, bag, n, duration_s, out_dir, label, replay_args, map_server_args, tf_rate_hz
                 ),
                 split.describe(),
             )
