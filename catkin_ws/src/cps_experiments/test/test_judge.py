@@ -122,3 +122,13 @@ def test_stats_windows_measure_any_topic_set_the_same_way_and_a_row_without_numb
     assert managed[0] == (1.0, pytest.approx(1.0)) and math.isnan(managed[1][1])
     everything = J.stats_window_volumes(rows, lambda r: True, 2.0)
     assert everything[0][1] == pytest.approx(1.005)
+
+
+def test_two_arms_differ_only_beyond_the_spread_and_the_printed_digit():
+    assert J.printed_unit(0.982) == pytest.approx(0.001) and J.printed_unit(115.0) == pytest.approx(1.0)
+    assert J.printed_unit(0.0) == 0.0 and J.printed_unit(math.nan) == 0.0
+    assert J.compare(0.9822, 0.9830, True) == "same"  # prints 0.982 against 0.983
+    assert J.compare(0.9700, 0.9830, True) == "worse"
+    assert J.compare(0.9700, 0.9830, True, spread=0.02) == "same"
+    assert J.compare(52.0, 11.0, False) == "worse" and J.compare(11.0, 52.0, False) == "better"
+    assert J.compare(math.nan, 1.0, True) == "n/a"

@@ -234,6 +234,21 @@ def test_on_is_judged_against_off_beyond_the_measured_spread():
     assert row["f1"][2] == "same"
 
 
+def test_figures_printed_alike_are_never_called_different():
+    """fig13_live called the manager worse on F1 within ±1 voxel at 0.982 against 0.983 (spread
+    0.0005), and on 0.456 against 0.457 with no repeats: one unit of the printed digit is no difference."""
+    measured = {
+        LiveRun(16, 60.0, True): _figures(f1=0.9821, f1_exact=0.456, latency_p95_ms=115.4),
+        LiveRun(16, 60.0, True, 1): _figures(f1=0.9826, f1_exact=0.456, latency_p95_ms=115.4),
+        LiveRun(16, 60.0, False): _figures(f1=0.9830, f1_exact=0.457, latency_p95_ms=114.6),
+        LiveRun(8, 60.0, True): _figures(f1=0.95),
+        LiveRun(8, 60.0, False): _figures(f1=0.983),
+    }
+    row = never_worse(measured)[(16, 60.0)]
+    assert [row[k][2] for k in ("f1", "f1_exact", "latency_p95_ms")] == ["same", "same", "same"]
+    assert never_worse(measured)[(8, 60.0)]["f1"][2] == "worse"
+
+
 def test_a_low_budget_is_explained_by_the_measured_estimate_and_unmanaged_traffic(tmp_path):
     """fig13_live (session 21, 16 robots on 10 Mbit/s): the report said the estimator "reads the
     latency that CPU queueing adds as congestion" whenever the budget was low, while that run's

@@ -288,6 +288,35 @@ def at_most(name, value, ceiling, robot="", at_s=None, unit="", what="") -> Chec
     return check(name, ok, robot, at_s, f"{subject}{_num(value)}{unit} {'≤' if ok else '>'} {_num(ceiling)}{unit}")
 
 
+# --- comparing two arms ---------------------------------------------------------------------------
+
+# Reports print compared figures to this many significant digits (`_num`, and fig13_live's ".3g").
+PRINTED_DIGITS = 3
+
+
+def printed_unit(value, digits=PRINTED_DIGITS) -> float:
+    """One unit of the last digit `value` is printed with (0.001 for 0.982, 1 for 115; 0 for 0 or NaN)."""
+    value = abs(float(value))
+    if not math.isfinite(value) or value == 0.0:
+        return 0.0
+    return 10.0 ** (math.floor(math.log10(value)) - digits + 1)
+
+
+def compare(ours, theirs, larger_better, spread=math.nan) -> str:
+    """'worse', 'better' or 'same' for `ours` against `theirs`: 'same' within the run-to-run `spread`
+    (NaN: not measured) and within one unit of the last printed digit of the larger of the two,
+    so that two figures the report prints alike are never called different (fig13_live called the
+    manager worse on F1 at 0.982 against 0.983 with a spread of 0.0005, and on 0.456 against 0.457
+    with none measured); 'n/a' when either is missing."""
+    if missing(ours) or missing(theirs):
+        return "n/a"
+    gain = (ours - theirs) if larger_better else (theirs - ours)
+    larger = max(abs(float(ours)), abs(float(theirs)))
+    # (and float's rounding: 0.456 - 0.457 is a little more than 0.001)
+    margin = max(spread if not missing(spread) else 0.0, printed_unit(larger)) + 1e-9 * larger
+    return "worse" if gain < -margin else "better" if gain > margin else "same"
+
+
 def _num(value):
     value = float(value)
     if math.isinf(value):

@@ -812,18 +812,7 @@ def never_worse(measured):
         for key, label, larger_better in COMPARED:
             on = finite_mean(f.get(key, math.nan) for f in on_runs)
             off = finite_mean(f.get(key, math.nan) for f in off_runs)
-            gain = (on - off) if larger_better else (off - on)
-            margin = tolerance[key] if math.isfinite(tolerance[key]) else 0.0
-            verdict_text = (
-                "n/a"
-                if not math.isfinite(gain)
-                else "worse"
-                if gain < -margin
-                else "better"
-                if gain > margin
-                else "same"
-            )
-            row[key] = (on, off, verdict_text)
+            row[key] = (on, off, J.compare(on, off, larger_better, tolerance[key]))
         out[(n, link)] = row
     return out
 
@@ -899,7 +888,8 @@ def _judgement(measured):
         return []
     lines = [
         "### Manager on against off (issue 36)",
-        "Each figure is the mean over a row's runs; 'worse' means worse by more than the run-to-run spread, "
+        "Each figure is the mean over a row's runs; 'worse' means worse by more than the run-to-run spread "
+        "and by more than one unit of the last digit printed (cps_experiments.judge.compare); the spread is "
         "the largest range (max − min) of that figure over the repeats of any one row: "
         + ", ".join(
             f"{label} {tolerance[key]:.3g}" if math.isfinite(tolerance[key]) else f"{label} not measured (no repeats)"

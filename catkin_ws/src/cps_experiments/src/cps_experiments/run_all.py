@@ -93,7 +93,8 @@ FIGURES_HOW = [
         "Fig. 13 live",
         "the mission from the first cloud at the twin to the last; 10 s windows every 1 s",
         "≥ 1 Hz per window, no window over budget, F1 ≥ 95 % of unconstrained, map server drops ≤ 1 %, teleop p95 "
-        "≤ 50 ms",
+        "≤ 50 ms; manager on against off: worse only beyond the run-to-run spread and one unit of the last digit "
+        "printed",
         "at the twin; teleop on the robots' side",
     ),
     (
