@@ -150,3 +150,27 @@ def test_a_moved_shelving_whose_new_front_is_two_pieces_is_one_move():
     )
     assert [c.kind for c in changes] == ["moved"], [(c.kind, c.place_m, c.size_m, c.voxels) for c in changes]
     assert np.allclose(changes[0].displacement_m[:2], (0.0, -0.5), atol=0.1)
+
+
+def test_a_moved_tank_and_a_drum_added_beside_its_new_place_are_a_move_and_an_addition():
+    """Seed 51999's fleet_0: tank_4 moved (-1.81, +0.59) m and a drum added 0.3 m from its new side;
+    the two new items were one 'appeared' cluster 2.4 m long, which the size rule of a clear move
+    refused to pair with the tank's 1.6 m old place: a false 'appeared' and a false 'disappeared',
+    the move and the drum missed. Here the drum stands 0.2 m from the tank's new wall."""
+    tank_x, tank_y = 3.69, -2.41
+    drum_x, drum_y = tank_x - 0.7 - 0.2 - 0.28, tank_y  # west of it, clear of its old place
+    changes = detect_changes(
+        _centres(FLOOR, _cylinder(5.5, -3.0, 0.7, 2.2)),
+        _centres(FLOOR, _cylinder(tank_x, tank_y, 0.7, 2.2), _cylinder(drum_x, drum_y, 0.28, 1.1)),
+        RES,
+        tolerance_voxels=2,
+        min_cluster_voxels=16,
+        merge_gap_voxels=1,
+        move_radius_m=5.0,
+    )
+    kinds = sorted(c.kind for c in changes)
+    assert kinds == ["appeared", "moved"], [(c.kind, c.place_m, c.size_m, c.voxels) for c in changes]
+    move = next(c for c in changes if c.kind == "moved")
+    added = next(c for c in changes if c.kind == "appeared")
+    assert np.allclose(move.displacement_m[:2], (-1.81, 0.59), atol=0.1)
+    assert np.allclose(added.place_m, (drum_x, drum_y), atol=0.15) and max(added.size_m[:2]) <= 0.7

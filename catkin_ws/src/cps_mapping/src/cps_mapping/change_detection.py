@@ -410,7 +410,12 @@ def detect_changes(
         for change, members in new + gone:
             change.first_view_s = _earliest(seen_s(index_to_center(members, resolution_m)))
     if move_radius_m > 0:
-        return pair_moves(new, gone, base, cur, resolution_m, move_radius_m, move_min_explained)
+        first_view = None
+        if seen_s is not None:
+            first_view = lambda members: _earliest(seen_s(index_to_center(members, resolution_m)))  # noqa: E731
+        return pair_moves(
+            new, gone, base, cur, resolution_m, move_radius_m, move_min_explained, min_cluster_voxels, first_view
+        )
     return [c for c, _ in new + gone]
 
 
@@ -471,10 +476,13 @@ def _explained(index, shift, other, tolerance_voxels=1):
     return float(near_any(moved, other, tolerance_voxels).mean())
 
 
-def pair_moves(appeared, disappeared, base, cur, resolution_m, radius_m, min_explained):
+def pair_moves(
+    appeared, disappeared, base, cur, resolution_m, radius_m, min_explained, min_cluster_voxels=1, first_view=None
+):
     """The changes, with each disappeared and appeared cluster that are one item moved replaced by
     one "moved" change. `appeared`/`disappeared`: [(Change, voxel indices)]; `base`/`cur`: the
-    two maps' occupied voxel indices (robots' volume left out).
+    two maps' occupied voxel indices (robots' volume left out); `first_view(members)`: the first
+    view of a change split off a cluster (None: its cluster's).
 
     A pair within `radius_m` (box centres, horizontally) is a move when one horizontal shift, found
     by correlating what moved between the two maps over both clusters' boxes (one voxel around; the
@@ -482,7 +490,11 @@ def pair_moves(appeared, disappeared, base, cur, resolution_m, radius_m, min_exp
     disappeared cluster onto the new map and of the appeared one, shifted back, onto the baseline.
     A move shorter than the item leaves only slivers (the side it left and the side it took); the
     correlation still finds the whole item's shift, and the item's other slivers that the shift
-    explains join the move (`_slivers_of`). Best pairs first."""
+    explains join the move (`_slivers_of`). A cluster's pieces that the shift does not explain are
+    other items the grouping joined to it (`_other_items`): the size rule reads the moved item's
+    pieces only, and the others stay changes of their own (at least `min_cluster_voxels`). Best
+    pairs first."""
+    appeared, disappeared = list(appeared), list(disappeared)  # paired clusters are replaced by their item's part
     floor_z = None
     candidates = []
     for i, (a, a_members) in enumerate(appeared):
@@ -501,20 +513,32 @@ def pair_moves(appeared, disappeared, base, cur, resolution_m, radius_m, min_exp
             if shift is None:
                 continue
             refined, step, votes = shift
-            item = np.vstack([d_members, before[near_any(before + [step[0], step[1], 0], after, 1)]])
-            if not _same_size(a_members, d_members, item, step, floor_z):
+            a_item, a_others = _other_items(a_members, (-step[0], -step[1]), base, min_explained)
+            d_item, d_others = _other_items(d_members, step, cur, min_explained)
+            if not len(a_item) or not len(d_item):
+                continue
+            item = np.vstack([d_item, before[near_any(before + [step[0], step[1], 0], after, 1)]])
+            if not _same_size(a_item, d_item, item, step, floor_z):
                 continue
             gone_ok = _explained(d_members, step, cur)
             new_ok = _explained(a_members, (-step[0], -step[1]), base)
             if min(gone_ok, new_ok) >= min_explained:
-                candidates.append((min(gone_ok, new_ok), votes, i, j, refined, step, before, after))
-    used_a, used_d, pairs = set(), set(), []
-    for _, _, i, j, refined, step, before, after in sorted(candidates, key=lambda c: (-c[0], -c[1])):
+                split = ((a_item, a_others), (d_item, d_others))
+                candidates.append((min(gone_ok, new_ok), votes, i, j, refined, step, before, after, split))
+    used_a, used_d, pairs, split_off = set(), set(), [], []
+    for _, _, i, j, refined, step, before, after, split in sorted(candidates, key=lambda c: (-c[0], -c[1])):
         if i in used_a or j in used_d:
             continue
         used_a.add(i)
         used_d.add(j)
-        item = np.vstack([disappeared[j][1], before[near_any(before + [step[0], step[1], 0], after, 1)]])
+        (a_item, a_others), (d_item, d_others) = split
+        appeared[i] = _part_of(appeared[i][0], a_item, resolution_m, first_view)
+        disappeared[j] = _part_of(disappeared[j][0], d_item, resolution_m, first_view)
+        for parent, others in ((appeared[i][0], a_others), (disappeared[j][0], d_others)):
+            for change, members in _clusters(others, parent.kind, resolution_m, min_cluster_voxels):
+                change.first_view_s = first_view(members) if first_view else parent.first_view_s
+                split_off.append(change)
+        item = np.vstack([d_item, before[near_any(before + [step[0], step[1], 0], after, 1)]])
         pairs.append(([i], [j], refined, step, np.unique(item, axis=0)))
     for a_of, d_of, _, step, item in pairs:
         shift = np.array([step[0], step[1], 0])
@@ -526,7 +550,39 @@ def pair_moves(appeared, disappeared, base, cur, resolution_m, radius_m, min_exp
     ]
     rest = [c for k, (c, _) in enumerate(appeared) if k not in used_a]
     rest += [c for k, (c, _) in enumerate(disappeared) if k not in used_d]
-    return moves + rest
+    return moves + rest + split_off
+
+
+def _other_items(members, shift, other, min_explained):
+    """(the voxels of a cluster that are one moved item, the rest): its 26-connected pieces that
+    `shift` (dx, dy) lays onto `other` (the other map) for at least `min_explained` of their voxels,
+    and the pieces it does not (other items the grouping joined to it). Seed 51999's fleet_0 moved
+    tank_4 and added a drum 0.3 m from its new side: the two were one 'appeared' cluster 2.4 m long,
+    which the size rule of a clear move refused to pair with the tank's 1.6 m old place; the move and
+    the drum were reported as a false 'appeared' and a false 'disappeared'."""
+    if not len(members):
+        return members, members
+    lo = members.min(axis=0)
+    local = members - lo
+    grid = np.zeros(tuple(local.max(axis=0) + 1), dtype=bool)
+    grid[tuple(local.T)] = True
+    labels, count = ndimage.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
+    piece = labels[tuple(local.T)]
+    laid = near_any(members + np.array([shift[0], shift[1], 0]), other, 1)
+    explained = np.bincount(piece, weights=laid, minlength=count + 1) / np.maximum(
+        np.bincount(piece, minlength=count + 1), 1
+    )
+    keep = explained[piece] >= min_explained
+    return members[keep], members[~keep]
+
+
+def _part_of(change, members, resolution_m, first_view):
+    """(Change, members) of the part `members` of `change`'s cluster (all of it: `change` itself)."""
+    if len(members) == change.voxels:
+        return change, members
+    part = _change_of(change.kind, members, resolution_m)
+    part.first_view_s = first_view(members) if first_view else change.first_view_s
+    return part, members
 
 
 # A moved item's other slivers lie within its box (before or after the move) grown by this many voxels.
