@@ -300,7 +300,13 @@ def report(_args):
             f"## {s['profile']} profile, {s['twin_cpus']} twin CPU{'s' if s['twin_cpus'] > 1 else ''}"
             + (f", the receive process at nice {s['receive_nice']}" if s.get("receive_nice") is not None else ""),
             "",
-            f"{s['split']}. Trace `{s['trace']}`; each N replays {s['duration_s']:g} s; run {s['started']}, machine "
+            f"{s['split']}. Trace `{s['trace']}`; each N replays {s['duration_s']:g} s"
+            + (
+                f" with {s['tf_rate_hz']:g} transforms per second per robot (twin_replay.replay_tf_rate_hz)"
+                if "tf_rate_hz" in s
+                else " with 20 transforms per second per robot (then the replay's one rate)"
+            )
+            + f"; run {s['started']}, machine "
             f"load (1/5/15 min) {', '.join(f'{x:.1f}' for x in s['load_before'])} before and "
             f"{', '.join(f'{x:.1f}' for x in s['load_after'])} after (a shared 2-core machine: figures are "
             "machine-bound).",
