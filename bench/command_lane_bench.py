@@ -50,12 +50,11 @@ def one_run(lanes, seconds, tmp):
         robots.start()
         for lane in ("main", "command") if lanes else ("all",):
             port = free_port()
-            twin.popen(
-                bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], certs, port, lane=lane), name=f"bt_{lane}"
-            )
-            robots.popen(
-                bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], certs, port, lane=lane), name=f"br_{lane}"
-            )
+            for graph, side, name in ((twin, "twin", f"bt_{lane}"), (robots, "robots", f"br_{lane}")):
+                argv = bridge_argv(
+                    sys.executable, side, "127.0.0.1", [ROBOT], certs, port, lane=lane, robots_address="127.0.0.1"
+                )
+                graph.popen(argv, name=name)
         robots.popen(
             [
                 sys.executable,

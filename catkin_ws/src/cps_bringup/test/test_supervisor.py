@@ -673,6 +673,9 @@ def test_selecting_a_robot_without_a_camera_is_refused_before_anything_starts(tm
         (["all", "--web-listen", "8765"], "--web-listen: listen address '8765': expected host:port"),
         (["all", "--record-link-only"], "--record-link-only: give the file with --record"),
         (["physical", "--record", "x.mcap", "--record-link-only"], "records what the twin receives"),
+        # split across machines the robots' command-lane listener must be named too (issue 38)
+        (["physical", "--twin-address", "10.0.0.2"], "--twin-address and --robots-address go together"),
+        (["digital", "--robots-address", "10.0.0.1"], "--twin-address and --robots-address go together"),
     ],
 )
 def test_bad_web_and_recording_options_are_refused_before_anything_starts(tmp_path, argv, message):

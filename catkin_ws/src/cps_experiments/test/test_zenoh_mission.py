@@ -2,7 +2,7 @@
 default): a master per side, each on its own host's loopback, joined only by the two bridges. Every
 robot's clouds reach the twin, the link is up, and a command from the twin reaches the robot, which
 executes it (its active mode comes back), both ways (teleop, then auto again); from the other host
-only the twin's bridge ports answer."""
+each host answers at its own bridge listener only."""
 
 import pytest
 
@@ -15,9 +15,10 @@ pytestmark = pytest.mark.skipif(
 )
 
 
-def _link_ports():
+def _listening_ports():
+    """Each host's bridge listener: the twin's the main lane's port, the robots' the command lane's."""
     table = load_bridge_table()
-    return table.endpoint_port, table.command_port
+    return {"twin": [table.endpoint_port], "phys": [table.command_port]}
 
 
 def test_clouds_cross_and_the_link_is_up(reference_mission):
@@ -43,9 +44,8 @@ def test_no_ros_port_is_on_the_link_and_the_mission_stopped_by_itself(reference_
     # The twin's master is not reachable at its link address.
     assert observed.twin_master_on_link not in (None, 0), observed.twin_master_on_link
     # One open port per host (issue 38): of every port either host listens on (rosout's and the
-    # nodelet manager's XML-RPC servers bind 0.0.0.0), the other reaches the twin's bridges only.
-    link_ports = sorted(_link_ports())
-    assert observed.open_across_link == {"twin": link_ports, "phys": []}, observed.open_across_link
+    # nodelet manager's XML-RPC servers bind 0.0.0.0), the other reaches its bridge listener only.
+    assert observed.open_across_link == _listening_ports(), observed.open_across_link
     assert not reference_mission.mission.killed, "the mission did not stop by itself:\n" + log[-3000:]
     assert "joined by Zenoh bridges" in log and "exited with code" not in log, log[-3000:]
     assert list((reference_mission.out / "logs" / "robots").glob("zenoh_bridge_robots-*.log"))

@@ -16,7 +16,7 @@ from cps_link.bridge_wire import Frame, WireError, decode, encode, header_stamp_
 from cps_link.link_health import LinkHealth
 from cps_link.link_report import socket_full_bytes
 from cps_link.zenoh_bridge import POSE_TOLERANCE_S, keyframe_pose, zenoh_qos
-from cps_link.zenoh_session import session_config
+from cps_link.zenoh_session import BridgeSetupError, session_config
 
 ROBOT_NAMES = ("scout", "jackal", "champ", "iris")
 # Every type bridge.yaml carries (and sensor_msgs/PointCloud2 of the backfill).
@@ -346,6 +346,21 @@ def test_session_config_listens_on_twin_connects_from_robots_over_mtls(tmp_path)
     robots = session_config(table, ROBOTS, "10.201.0.2", str(tmp_path))
     assert twin["listen"]["endpoints"] == ["tls/10.201.0.2:7447"] and twin["connect"]["endpoints"] == []
     assert robots["connect"]["endpoints"] == ["tls/10.201.0.2:7447"] and robots["listen"]["endpoints"] == []
+    # the command lane the other way round: the robots listen at their own address, the twin connects
+    # there, so each host answers at exactly one port (issue 38)
+    command = table.for_lane("command")
+    twin_command = session_config(command, TWIN, "10.201.0.2", str(tmp_path), robots_address="10.201.0.1")
+    robots_command = session_config(command, ROBOTS, "10.201.0.2", str(tmp_path), robots_address="10.201.0.1")
+    assert robots_command["listen"]["endpoints"] == ["tls/10.201.0.1:7448#dscp=184"]
+    assert robots_command["connect"]["endpoints"] == [] and twin_command["listen"]["endpoints"] == []
+    assert twin_command["connect"]["endpoints"] == ["tls/10.201.0.1:7448#dscp=184"]
+    with pytest.raises(BridgeSetupError, match="--robots-address"):
+        session_config(command, TWIN, "10.201.0.2", str(tmp_path))
+    # one robots' bridge per robot computer: the twin connects to each, each listens at its own
+    several = session_config(command, TWIN, "10.201.0.2", str(tmp_path), robots_address="10.201.0.1, 10.201.0.3")
+    assert several["connect"]["endpoints"] == ["tls/10.201.0.1:7448#dscp=184", "tls/10.201.0.3:7448#dscp=184"]
+    with pytest.raises(BridgeSetupError, match="listens at one address"):
+        session_config(command, ROBOTS, "10.201.0.2", str(tmp_path), robots_address="10.201.0.1,10.201.0.3")
     assert robots["transport"]["link"]["tls"]["enable_mtls"] is True
     assert robots["transport"]["link"]["tls"]["connect_private_key"].endswith("robots.key")
     assert not twin["scouting"]["multicast"]["enabled"]
@@ -462,7 +477,7 @@ def _tos_of_connections(port):
 
 def test_the_command_lanes_connection_carries_its_dscp_both_ways():
     """bridge.yaml command_dscp: Zenoh marks the command lane's sockets (its endpoints' `dscp`), the
-    robots' connecting one and the twin's accepted one (teleop goes twin -> robots): 46, EF, which
+    twin's connecting one and the robots' accepted one (teleop goes twin -> robots): 46, EF, which
     Wi-Fi's WMM and the test bed's shaper serve first. The main lane's stay unmarked."""
     import dataclasses
     import json
@@ -478,7 +493,7 @@ def test_the_command_lanes_connection_carries_its_dscp_both_ways():
         sessions = []
         try:
             for side in (TWIN, ROBOTS):
-                config = session_config(lane_table, side, "127.0.0.1", "", tls=False)
+                config = session_config(lane_table, side, "127.0.0.1", "", tls=False, robots_address="127.0.0.1")
                 sessions.append(zenoh.open(zenoh.Config.from_json5(json.dumps(config))))
             deadline = time.monotonic() + 10.0
             while len(_tos_of_connections(lane_table.endpoint_port)) < 2 and time.monotonic() < deadline:

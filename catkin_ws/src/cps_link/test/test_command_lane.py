@@ -51,10 +51,11 @@ def test_commands_cross_in_their_own_lane_while_clouds_load_the_main_one(
     subprocess.run([MAKE_CERTS, certs], check=True, capture_output=True)
     main_port, command_port = free_port(), free_port()
     for lane, port in (("main", main_port), ("command", command_port)):
-        ros.popen(bridge_argv(sys.executable, "twin", "127.0.0.1", [ROBOT], certs, port, lane=lane), name=f"bt_{lane}")
-        robots_graph.popen(
-            bridge_argv(sys.executable, "robots", "127.0.0.1", [ROBOT], certs, port, lane=lane), name=f"br_{lane}"
-        )
+        for graph, side, name in ((ros, "twin", f"bt_{lane}"), (robots_graph, "robots", f"br_{lane}")):
+            argv = bridge_argv(
+                sys.executable, side, "127.0.0.1", [ROBOT], certs, port, lane=lane, robots_address="127.0.0.1"
+            )
+            graph.popen(argv, name=name)
     managed_cloud_load(ROBOT)
     # 200 kB clouds at 20 Hz beside the fixture's: 4 MB/s through the main lane's bridges.
     robots_graph.popen(

@@ -1,5 +1,6 @@
-"""The host guard: from the other host only the link's ports answer (the twin listens on them, the
-robots' host connects to them), over a real link's two namespaces; its rules and its refusals."""
+"""The host guard: from the other host only a host's own link listener answers (the twin's main
+lane, the robots' command lane) and each reaches the other's only, over a real link's two
+namespaces; its rules and its refusals."""
 
 import json
 import socket
@@ -14,18 +15,33 @@ from cps_link import netns_link
 from cps_link.host_guard import GUARD_PRIORITY, guard_argv, guard_rules
 from cps_link.netns_link import PHYS_IP, TWIN_IP, ShapedLink, guard_hosts, namespace, netns_argv
 
-LINK_PORTS = (7447, 7448)
+MAIN_PORT, COMMAND_PORT = 7447, 7448  # the twin listens at the first, the robots at the second
+LISTEN = {"twin": (MAIN_PORT,), "phys": (COMMAND_PORT,)}
 OTHER_PORT = 41035  # a roscpp XML-RPC server's kind of port, on 0.0.0.0
 
 
-def test_the_twin_answers_from_its_listeners_and_the_robots_reach_only_them():
-    twin = guard_rules("twin", [7448, 7447, 7447], TWIN_IP)
+def test_a_host_answers_from_its_listener_and_reaches_only_the_others():
+    twin = guard_rules([MAIN_PORT, MAIN_PORT], PHYS_IP, [COMMAND_PORT])
+    allow = ["priority", str(GUARD_PRIORITY)]
     assert twin[:2] == [
-        ["priority", str(GUARD_PRIORITY), "ipproto", "tcp", "sport", "7447", "lookup", "main"],
-        ["priority", str(GUARD_PRIORITY), "ipproto", "tcp", "sport", "7448", "lookup", "main"],
+        [*allow, "ipproto", "tcp", "sport", "7447", "lookup", "main"],
+        [*allow, "to", f"{PHYS_IP}/32", "ipproto", "tcp", "dport", "7448", "lookup", "main"],
     ]
-    robots = guard_rules("phys", LINK_PORTS, TWIN_IP)
-    assert robots[0] == ["priority", str(GUARD_PRIORITY), "to", f"{TWIN_IP}/32", "ipproto", "tcp", "dport", "7447"] + [
+    robots = guard_rules([COMMAND_PORT], TWIN_IP, [MAIN_PORT])
+    assert robots[:2] == [
+        [*allow, "ipproto", "tcp", "sport", "7448", "lookup", "main"],
+        [*allow, "to", f"{TWIN_IP}/32", "ipproto", "tcp", "dport", "7447", "lookup", "main"],
+    ]
+    # a host with no listener of its own (one lane, the twin listening) only connects
+    assert guard_rules([], TWIN_IP, [MAIN_PORT])[0] == [
+        *allow,
+        "to",
+        f"{TWIN_IP}/32",
+        "ipproto",
+        "tcp",
+        "dport",
+        "7447",
+    ] + [
         "lookup",
         "main",
     ]
@@ -37,17 +53,16 @@ def test_the_twin_answers_from_its_listeners_and_the_robots_reach_only_them():
 
 
 @pytest.mark.parametrize(
-    "side, ports, match",
+    "listen, peer, match",
     [
-        ("rogue", LINK_PORTS, "side must be"),
-        ("twin", [], "link ports"),
-        ("phys", [0], "link ports"),
-        ("twin", [70000], "link ports"),
+        ([], [], "needs a link port"),
+        ([0], [MAIN_PORT], "listening ports"),
+        ([MAIN_PORT], [70000], "the peer's ports"),
     ],
 )
-def test_bad_guard_arguments_are_refused(side, ports, match):
+def test_bad_guard_arguments_are_refused(listen, peer, match):
     with pytest.raises(ValueError, match=match):
-        guard_rules(side, ports, TWIN_IP)
+        guard_rules(listen, TWIN_IP, peer)
 
 
 def _listen(name, side, ports):
@@ -77,25 +92,28 @@ def _open_from(name, side, host, ports):
 
 
 @pytest.mark.skipif(netns_link.capability_problem() is not None, reason=f"{netns_link.capability_problem()}")
-def test_guarded_hosts_answer_each_other_only_on_the_link_ports():
+def test_guarded_hosts_answer_each_other_only_at_their_listeners():
     name = link_name("hg")
     with ShapedLink(name, rate="60mbit"):
-        twin = _listen(name, "twin", (*LINK_PORTS, OTHER_PORT))
-        robots = _listen(name, "phys", (OTHER_PORT,))
+        twin = _listen(name, "twin", (MAIN_PORT, OTHER_PORT))
+        robots = _listen(name, "phys", (COMMAND_PORT, OTHER_PORT))
         try:
             # Unguarded, each host reaches every listener of the other.
-            assert _open_from(name, "phys", TWIN_IP, (*LINK_PORTS, OTHER_PORT)) == [*LINK_PORTS, OTHER_PORT]
-            assert _open_from(name, "twin", PHYS_IP, (OTHER_PORT,)) == [OTHER_PORT]
-            # The twin guarded alone: it answers the (unguarded) robots' host on its link ports only.
-            for argv in guard_argv(namespace(name, "twin"), "twin", LINK_PORTS, TWIN_IP):
+            assert _open_from(name, "phys", TWIN_IP, (MAIN_PORT, OTHER_PORT)) == [MAIN_PORT, OTHER_PORT]
+            assert _open_from(name, "twin", PHYS_IP, (COMMAND_PORT, OTHER_PORT)) == [COMMAND_PORT, OTHER_PORT]
+            # The twin guarded alone: it answers the (unguarded) robots' host at its listener only,
+            # and still reaches the robots' listener.
+            for argv in guard_argv(namespace(name, "twin"), LISTEN["twin"], PHYS_IP, LISTEN["phys"]):
                 subprocess.run(argv, check=True)
-            assert _open_from(name, "phys", TWIN_IP, (*LINK_PORTS, OTHER_PORT)) == list(LINK_PORTS)
-            # Both guarded (as bringup does): the robots' host answers nothing and still reaches them.
-            guard_hosts(name, LINK_PORTS, sides=("phys",))
-            assert _open_from(name, "twin", PHYS_IP, (OTHER_PORT,)) == []
-            assert _open_from(name, "phys", TWIN_IP, (*LINK_PORTS, OTHER_PORT)) == list(LINK_PORTS)
+            assert _open_from(name, "phys", TWIN_IP, (MAIN_PORT, OTHER_PORT)) == [MAIN_PORT]
+            assert _open_from(name, "twin", PHYS_IP, (COMMAND_PORT, OTHER_PORT)) == [COMMAND_PORT]
+            # Both guarded (as bringup does): each answers at its own listener and reaches the other's.
+            guard_hosts(name, LISTEN, sides=("phys",))
+            assert _open_from(name, "twin", PHYS_IP, (COMMAND_PORT, OTHER_PORT)) == [COMMAND_PORT]
+            assert _open_from(name, "phys", TWIN_IP, (MAIN_PORT, OTHER_PORT)) == [MAIN_PORT]
             # Loopback inside each host is untouched (each side's ROS graph lives there).
             assert _open_from(name, "twin", "127.0.0.1", (OTHER_PORT,)) == [OTHER_PORT]
+            assert _open_from(name, "phys", "127.0.0.1", (OTHER_PORT,)) == [OTHER_PORT]
         finally:
             for proc in (twin, robots):
                 proc.kill()

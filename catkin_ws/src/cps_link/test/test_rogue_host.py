@@ -25,7 +25,9 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 HERE = os.path.dirname(os.path.abspath(__file__))
 CLOUD_LOAD = find_node("cps_harness", "cloud_load")
 HOSTS = {"phys": "10.203.0.1", "twin": "10.203.0.2", "rogue": "10.203.0.3"}
-PORTS = {"main": 7447, "command": 7448}  # each lane's twin port (bridge.yaml's endpoint_port, command_port)
+PORTS = {"main": 7447, "command": 7448}  # each lane's port (bridge.yaml's endpoint_port, command_port)
+# where each lane listens: the twin's host the main lane, the robots' the command lane (issue 38)
+LISTENER = {"main": "twin", "command": "phys"}
 ROBOT = "scout"
 
 
@@ -66,14 +68,18 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
             robots.start()
             twin.start()
             for lane, port in PORTS.items():
-                twin.popen(
-                    bridge_argv(sys.executable, "twin", HOSTS["twin"], [ROBOT], fleet_certs, port, lane=lane),
-                    name=f"bt_{lane}",
-                )
-                robots.popen(
-                    bridge_argv(sys.executable, "robots", HOSTS["twin"], [ROBOT], fleet_certs, port, lane=lane),
-                    name=f"br_{lane}",
-                )
+                for graph, side, name in ((twin, "twin", f"bt_{lane}"), (robots, "robots", f"br_{lane}")):
+                    argv = bridge_argv(
+                        sys.executable,
+                        side,
+                        HOSTS["twin"],
+                        [ROBOT],
+                        fleet_certs,
+                        port,
+                        lane=lane,
+                        robots_address=HOSTS["phys"],
+                    )
+                    graph.popen(argv, name=name)
             robots.popen(
                 [
                     sys.executable,
@@ -120,7 +126,7 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
                         [
                             sys.executable,
                             find_node("cps_harness", "rogue"),
-                            HOSTS["twin"],
+                            HOSTS[LISTENER[lane]],
                             str(port),
                             rogue_certs,
                             os.path.join(fleet_certs, "ca.pem"),
@@ -159,14 +165,16 @@ def test_a_rogue_host_gets_nothing_in_and_nothing_out(tmp_path):
             # One open port per host (issue 38). Unguarded, the rogue reaches ports beyond the link's
             # (roscpp's XML-RPC servers bind 0.0.0.0 whatever ROS_IP says: rosout's on both hosts).
             before = {host: _scan(lan, host) for host in ("phys", "twin")}
-            link_ports = sorted(PORTS.values())
-            assert any(set(found) - set(link_ports) for found in before.values()), before
-            for host in ("phys", "twin"):
-                for argv in guard_argv(lan.namespace(host), host, link_ports, HOSTS["twin"]):
+            listens = {
+                host: [port for lane, port in PORTS.items() if LISTENER[lane] == host] for host in ("phys", "twin")
+            }
+            assert any(set(found) - set(listens[host]) for host, found in before.items()), before
+            for host, peer in (("phys", "twin"), ("twin", "phys")):
+                for argv in guard_argv(lan.namespace(host), listens[host], HOSTS[peer], listens[peer]):
                     subprocess.run(argv, check=True)
             after = {host: _scan(lan, host) for host in ("phys", "twin")}
             print("open from the rogue host, unguarded:", before, "guarded:", after)
-            assert after == {"phys": [], "twin": link_ports}, (before, after)
+            assert after == {"phys": [PORTS["command"]], "twin": [PORTS["main"]]}, (before, after)
             # and the fleet's connections, made before the guard, still carry clouds
             carried = len(_lines(cloud_file))
             assert wait_for(lambda: len(_lines(cloud_file)) > carried, 10.0), "no cloud crossed after the guard"

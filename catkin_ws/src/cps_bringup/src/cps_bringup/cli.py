@@ -140,8 +140,14 @@ def build_parser():
     parser.add_argument(
         "--twin-address",
         default=None,
-        help="zenoh: the twin host's address, where its bridge listens (default: the link's twin "
-        "address, or 127.0.0.1)",
+        help="zenoh: the twin host's address, where its main-lane bridge listens (default: the link's "
+        "twin address, or 127.0.0.1)",
+    )
+    parser.add_argument(
+        "--robots-address",
+        default=None,
+        help="zenoh: the robots' host's address, where its command-lane bridge listens (default: the "
+        "link's robots' address, or 127.0.0.1)",
     )
     parser.add_argument("--link-name", default=None, help=argparse.SUPPRESS)
     parser.add_argument(
@@ -340,6 +346,17 @@ def _checked_web_listen(text):
     return text
 
 
+def _checked_link_addresses(args):
+    """Split across machines each side names both listeners (the twin's main lane, the robots'
+    command lane), or BringupError before anything starts."""
+    twin, robots = getattr(args, "twin_address", None), getattr(args, "robots_address", None)
+    if bool(twin) != bool(robots):
+        raise BringupError(
+            "--twin-address and --robots-address go together: the twin's bridge listens at the first "
+            "(main lane), the robots' at the second (command lane)"
+        )
+
+
 def _checked_record_link_only(args, sides):
     """--record-link-only needs --record and the twin's side (what arrives there is what it records)."""
     if not getattr(args, "record_link_only", False):
@@ -385,6 +402,7 @@ def run_mission(args, log=print) -> MissionResult:
     )
     announce = _checked_announce(args, sides)
     web_listen = _checked_web_listen(getattr(args, "web_listen", WEB_LISTEN))
+    _checked_link_addresses(args)
     record_link_only = _checked_record_link_only(args, sides)
     os.makedirs(out_dir, exist_ok=True)
     removed = clear_previous_mission(out_dir, sides)
@@ -436,10 +454,11 @@ def run_mission(args, log=print) -> MissionResult:
                 options,
                 transport=ZENOH,
                 twin_address=args.twin_address or (link.twin_ip if link else "127.0.0.1"),
+                robots_address=args.robots_address or (link.phys_ip if link else "127.0.0.1"),
                 zenoh_port=None if link or args.twin_address else free_port(),
-                zenoh_command_port=None if link or args.twin_address else free_port(),
+                zenoh_command_port=None if link or args.robots_address else free_port(),
             )
-            if link:  # after iperf3: from now on the hosts answer only on the bridges' ports
+            if link:  # after iperf3: from now on each host answers only at its bridge listener
                 link.guard(_link_ports(options))
         specs = plan_nodes(fleet, sides=sides, options=options)
         if DIGITAL in sides:
@@ -915,11 +934,17 @@ def _host_split(args, sides):
 
 
 def _link_ports(options):
-    """The twin's bridge ports (both lanes): the options', else bridge.yaml's."""
-    from cps_link.bridge_config import load_bridge_table
+    """Each host's bridge listeners, "phys" or "twin" -> ports (the options', else bridge.yaml's):
+    the lane's listening side (bridge_config.BridgeTable.listening_side) listens at its port."""
+    from cps_link.bridge_config import TWIN, load_bridge_table
 
     table = load_bridge_table()
-    return (options.zenoh_port or table.endpoint_port, options.zenoh_command_port or table.command_port)
+    listening = {}
+    for lane, port in (("main", options.zenoh_port), ("command", options.zenoh_command_port)):
+        lane_table = table.for_lane(lane)
+        host = "twin" if lane_table.listening_side == TWIN else "phys"
+        listening.setdefault(host, []).append(port or lane_table.endpoint_port)
+    return listening
 
 
 @contextlib.contextmanager

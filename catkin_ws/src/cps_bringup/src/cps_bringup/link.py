@@ -75,7 +75,7 @@ class NamespacedLink:
     scenario: object = None  # a cps_link.scenario.Scenario to run during the mission, or None
     phys_ip: str = PHYS_IP
     twin_ip: str = TWIN_IP
-    guarded_ports: tuple = ()  # set by guard()
+    guarded_ports: tuple = ()  # set by guard(): ((host, its listening ports), ...)
 
     def exec_prefix(self, side):
         return ["ip", "netns", "exec", namespace(self.name, side)]
@@ -97,13 +97,13 @@ class NamespacedLink:
         runner.start()
         return runner
 
-    def guard(self, link_ports):
-        """From now on each host answers only on the link's ports (netns_link.guard_hosts): the
-        twin's bridge listeners; the robots' host on none."""
+    def guard(self, listen_ports):
+        """From now on each host answers only at its own bridge listener (netns_link.guard_hosts;
+        `listen_ports`: "phys" or "twin" -> ports): the twin's main lane, the robots' command lane."""
         from cps_link.netns_link import guard_hosts
 
-        guard_hosts(self.name, link_ports)
-        self.guarded_ports = tuple(sorted(link_ports))
+        guard_hosts(self.name, listen_ports)
+        self.guarded_ports = tuple((host, tuple(sorted(ports))) for host, ports in sorted(listen_ports.items()))
 
     def describe(self):
         return (
@@ -111,7 +111,12 @@ class NamespacedLink:
             + f"tc-shaped {self.rate} veth between namespaces {namespace(self.name, 'phys')} ({self.phys_ip}) and "
             f"{namespace(self.name, 'twin')} ({self.twin_ip}); iperf3 measured {self.measured_mbps:.1f} Mbit/s"
             + (f"; scenario {self.scenario.name}" if self.scenario else "")
-            + (f"; hosts answer only on the link's ports {list(self.guarded_ports)}" if self.guarded_ports else "")
+            + (
+                "; each host answers only at its link listener: "
+                + ", ".join(f"{host} {list(ports)}" for host, ports in self.guarded_ports)
+                if self.guarded_ports
+                else ""
+            )
         )
 
 

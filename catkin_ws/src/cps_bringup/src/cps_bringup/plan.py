@@ -101,9 +101,11 @@ class RunOptions:
     # Play this rosbag or ROS 1 MCAP in place of the robots (and the simulator), under its clock.
     replay_path: Optional[str] = None
     # "tcpros": one master across the link (the paper's set-up); "zenoh": a master per side joined
-    # only by cps_link's bridges (the twin's bridge listens at twin_address:zenoh_port).
+    # only by cps_link's bridges (the twin's main-lane bridge listens at twin_address:zenoh_port,
+    # the robots' command-lane bridge at robots_address:zenoh_command_port).
     transport: str = TCPROS
     twin_address: str = "127.0.0.1"
+    robots_address: str = "127.0.0.1"
     zenoh_port: Optional[int] = None
     # The command lane's port (None: bridge.yaml's command_port): each side runs its command-class
     # bridge as a process of its own, so teleop never waits behind clouds (cps_link LANES).
@@ -208,6 +210,7 @@ def plan_nodes(
                         port=port,
                         fleet_file=fleet.path,
                         lane=lane,
+                        robots_address=options.robots_address,
                     )
                 ),
                 wait_topics=(A(names.LINK_STATE),) if lane == "main" else (),

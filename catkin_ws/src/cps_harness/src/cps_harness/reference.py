@@ -260,7 +260,7 @@ def _twin_master_on_link(mission):
 
 def _open_across_link(mission):
     """For each host, which of its listening TCP ports the other host reaches (cps_link.host_guard
-    should leave the twin's bridge ports and nothing else)."""
+    should leave each host's own bridge listener and nothing else)."""
     import json
     import subprocess
     import sys

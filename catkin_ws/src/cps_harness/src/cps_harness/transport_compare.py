@@ -10,7 +10,7 @@ import numpy as np
 
 from cps_fleet import names
 from cps_harness.link_run import LinkRosGraph
-from cps_link.netns_link import TWIN_IP, namespace
+from cps_link.netns_link import PHYS_IP, TWIN_IP, namespace
 from cps_link.zenoh_session import bridge_argv, bridge_node_name
 from cps_ros.processes import RosGraph, find_node, process_cpu_s
 
@@ -47,7 +47,9 @@ class Graphs:
             self.bridges = []
             for lane in ("main", "command"):
                 for side, role in (("twin", "twin"), ("phys", "robots")):
-                    argv = bridge_argv(sys.executable, role, TWIN_IP, robots, cert_dir, lane=lane)
+                    argv = bridge_argv(
+                        sys.executable, role, TWIN_IP, robots, cert_dir, lane=lane, robots_address=PHYS_IP
+                    )
                     self.bridges.append(self.start(side, argv, bridge_node_name(role, lane)))
 
     def start(self, side, argv, name):

@@ -20,6 +20,12 @@ ROBOT_PLACEHOLDER = "<r>"
 # interpreter lock), `main` every other class, `all` both in one process.
 LANES = ("all", "main", "command")
 COMMAND_CLASS = "command"
+# Which side's bridge listens on a lane, the other connecting: the twin on the main lane (and
+# `all`), the robots on the command lane, so that each host answers from outside on exactly one
+# port, its own listener's (cps_link.host_guard, issue 38); the twin opens the connection that
+# carries its commands.
+COMMAND_LISTENER = ROBOTS
+DATA_LISTENER = TWIN
 # What the robots' bridge sends on a backfill pose route.
 POSE_TYPE = "geometry_msgs/TransformStamped"
 DEFAULT_TABLE = os.path.normpath(
@@ -88,7 +94,7 @@ class BridgeTable:
     classes: Dict[str, TrafficClass]
     routes: Tuple[Route, ...]
     backfill: Optional[Backfill] = None
-    # Where the twin's command lane listens (the main lane and `all` use endpoint_port).
+    # Where the robots' command lane listens (the main lane and `all`: the twin at endpoint_port).
     command_port: int = 0
     lane: str = "all"
     # Zenoh's batch size on the link, bytes (a batch is written whole; smaller batches let a
@@ -141,6 +147,11 @@ class BridgeTable:
             endpoint_port=self.command_port if command else self.endpoint_port,
             backfill=None if command else self.backfill,
         )
+
+    @property
+    def listening_side(self):
+        """The side whose bridge listens on this lane's port (the other side's connects to it)."""
+        return COMMAND_LISTENER if self.lane == COMMAND_CLASS else DATA_LISTENER
 
     @property
     def publishes_link_state(self):

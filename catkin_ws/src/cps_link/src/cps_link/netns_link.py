@@ -509,13 +509,18 @@ def link_down(name="cps"):
         raise LinkError(f"could not remove namespaces {left}")
 
 
-def guard_hosts(name, link_ports, sides=SIDES):
-    """Leave only `link_ports` (the Zenoh bridges' listeners on the twin) reachable between the
-    hosts (`sides`) of link `name` (cps_link.host_guard says how and why); undone with the namespaces."""
+def guard_hosts(name, listen_ports, sides=SIDES):
+    """Leave each host (`sides`) of link `name` reachable from the other only at its own link
+    listeners, `listen_ports[side]` ("phys" or "twin" -> ports; cps_link.host_guard says how and
+    why), and let it reach only the other's; undone with the namespaces."""
     from cps_link.host_guard import guard_argv
 
     for side in sides:
-        for argv in guard_argv(namespace(name, side), side, link_ports, TWIN_IP):
+        peer = "twin" if side == "phys" else "phys"
+        argv_list = guard_argv(
+            namespace(name, side), listen_ports.get(side, ()), side_ip(peer), listen_ports.get(peer, ())
+        )
+        for argv in argv_list:
             _run(argv)
 
 

@@ -1,7 +1,8 @@
 """The Zenoh session of one bridge: endpoints, mutual TLS with the fleet's certificates, a short
 lease (a silent peer is gone within a second) and endless reconnection. ROS-free.
 
-The twin side listens on its own address, the robots' side connects to it; nobody scouts.
+On the main lane the twin listens on its own address and the robots' side connects to it; on the
+command lane the robots listen and the twin connects (bridge_config.COMMAND_LISTENER); nobody scouts.
 """
 
 import json
@@ -52,22 +53,34 @@ def cert_files(cert_dir, side):
     return files
 
 
-def session_config(table: BridgeTable, side, twin_address, cert_dir, tls=True):
-    """The Zenoh configuration (a JSON-able dict) of `side`'s bridge; the twin listens at twin_address."""
+def session_config(table: BridgeTable, side, twin_address, cert_dir, tls=True, robots_address=None):
+    """The Zenoh configuration (a JSON-able dict) of `side`'s bridge for the table's lane: the lane's
+    listening side (BridgeTable.listening_side) listens at its own address, the other connects there
+    (the twin at twin_address on the main lane; on the command lane the robots at robots_address,
+    which the twin may give as a comma-separated list, one robots' bridge per computer)."""
     if side not in (ROBOTS, TWIN):
         raise BridgeSetupError(f"side must be robots or twin, got '{side}'")
+    listener = table.listening_side
+    addresses = [
+        a.strip() for a in (twin_address if listener == TWIN else robots_address or "").split(",") if a.strip()
+    ]
+    if not addresses:
+        raise BridgeSetupError(
+            f"the {table.lane} lane's listener is the {listener} bridge: its host's address is needed (--{listener}-address)"
+        )
+    if side == listener and len(addresses) > 1:
+        raise BridgeSetupError(f"the {side} bridge listens at one address of its own, got {', '.join(addresses)}")
     proto = "tls" if tls else "tcp"
-    host = f"[{twin_address}]" if ":" in twin_address else twin_address
-    endpoint = f"{proto}/{host}:{table.endpoint_port}"
-    if table.lane == COMMAND_CLASS:  # Zenoh marks the lane's sockets, the listener's accepted ones too
-        endpoint += f"#dscp={table.command_dscp << 2}"
+    # Zenoh marks the command lane's sockets, the listener's accepted ones too
+    mark = f"#dscp={table.command_dscp << 2}" if table.lane == COMMAND_CLASS else ""
+    endpoints = [f"{proto}/{f'[{a}]' if ':' in a else a}:{table.endpoint_port}{mark}" for a in addresses]
     retry = {"period_init_ms": 200, "period_max_ms": table.retry_max_ms, "period_increase_factor": 1.5}
     config = {
         "mode": "peer",
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "listen": {"endpoints": [endpoint] if side == TWIN else [], "retry": retry},
+        "listen": {"endpoints": endpoints if side == listener else [], "retry": retry},
         "connect": {
-            "endpoints": [endpoint] if side == ROBOTS else [],
+            "endpoints": endpoints if side != listener else [],
             "timeout_ms": -1,
             "exit_on_failure": False,
             "retry": retry,
@@ -117,8 +130,20 @@ def bridge_node_name(side, lane="all"):
     return f"zenoh_bridge_{side}_command" if lane == "command" else f"zenoh_bridge_{side}"
 
 
-def bridge_argv(python, side, twin_address, robots, cert_dir=None, port=None, fleet_file=None, name=None, lane="all"):
-    """The command line of one side's zenoh_bridge node for one lane (bringup, tests and the benchmark)."""
+def bridge_argv(
+    python,
+    side,
+    twin_address,
+    robots,
+    cert_dir=None,
+    port=None,
+    fleet_file=None,
+    name=None,
+    lane="all",
+    robots_address=None,
+):
+    """The command line of one side's zenoh_bridge node for one lane (bringup, tests and the benchmark);
+    the command lane needs robots_address, where the robots' bridge listens."""
     node = os.path.normpath(os.path.join(os.path.dirname(MAKE_CERTS), "..", "nodes", "zenoh_bridge"))
     argv = [
         python,
@@ -133,7 +158,13 @@ def bridge_argv(python, side, twin_address, robots, cert_dir=None, port=None, fl
         lane,
         f"__name:={bridge_node_name(side, lane)}",
     ]
-    for flag, value in (("--cert-dir", cert_dir), ("--port", port), ("--fleet", fleet_file), ("--name", name)):
+    for flag, value in (
+        ("--robots-address", robots_address),
+        ("--cert-dir", cert_dir),
+        ("--port", port),
+        ("--fleet", fleet_file),
+        ("--name", name),
+    ):
         if value:
             argv += [flag, str(value)]
     return argv
