@@ -132,3 +132,10 @@ def test_two_arms_differ_only_beyond_the_spread_and_the_printed_digit():
     assert J.compare(0.9700, 0.9830, True, spread=0.02) == "same"
     assert J.compare(52.0, 11.0, False) == "worse" and J.compare(11.0, 52.0, False) == "better"
     assert J.compare(math.nan, 1.0, True) == "n/a"
+
+
+def test_a_figure_that_misses_its_bar_never_prints_as_the_bar():
+    assert J.printed_apart(35 / 37, 0.95) == "0.946"  # "0.95" against "≥ 0.95" read as met
+    assert J.printed_apart(0.94999, 0.95) == "0.94999"
+    assert J.printed_apart(0.95, 0.95) == "0.95" and J.printed_apart(35 / 36, 0.95) == "0.97"
+    assert J.printed_apart(0.11, 0.2) == "0.11" and J.printed_apart(math.nan, 0.95) == "—"

@@ -302,6 +302,18 @@ def printed_unit(value, digits=PRINTED_DIGITS) -> float:
     return 10.0 ** (math.floor(math.log10(value)) - digits + 1)
 
 
+def printed_apart(value, bar, digits=2) -> str:
+    """`value` with `digits` decimals, or as many more as it takes to print differently from `bar`
+    when it differs from it: a figure that misses its bar never prints as the bar (seed 45756's
+    precision 0.946 printed "0.95" against "≥ 0.95", met: no)."""
+    if missing(value):
+        return "—"
+    value, bar = float(value), float(bar)
+    while value != bar and f"{value:.{digits}f}" == f"{bar:.{digits}f}" and digits < 9:
+        digits += 1
+    return f"{value:.{digits}f}"
+
+
 def compare(ours, theirs, larger_better, spread=math.nan) -> str:
     """'worse', 'better' or 'same' for `ours` against `theirs`: 'same' within the run-to-run `spread`
     (NaN: not measured) and within one unit of the last printed digit of the larger of the two,

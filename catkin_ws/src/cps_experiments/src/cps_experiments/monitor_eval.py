@@ -24,6 +24,7 @@ import time
 
 import numpy as np
 
+from cps_experiments.judge import printed_apart
 from cps_experiments.markdown import markdown_table
 from cps_experiments.monitor import DEFAULT_BASELINE, DEFAULT_CHANGES_FILE, DEFAULT_ROBOTS
 
@@ -241,11 +242,13 @@ def verdict(live, rows, seed_held_out):
         ("of them whole-fleet", "half", f"{whole}", drawn > 0 and whole * 2 >= drawn),
         ("every mission left a live report", f"{len(rows)} of {len(rows)}", f"{len(rows) - len(lost)} of {len(rows)}",
          not lost),
-        ("live precision", f"≥ {TARGETS['precision']}", _fmt(live["precision"]), at_least(live["precision"], TARGETS["precision"])),
-        ("live recall", f"≥ {TARGETS['recall']}", _fmt(recall), at_least(recall, TARGETS["recall"])),
+        ("live precision", f"≥ {TARGETS['precision']}", printed_apart(live["precision"], TARGETS["precision"]),
+         at_least(live["precision"], TARGETS["precision"])),
+        ("live recall", f"≥ {TARGETS['recall']}", printed_apart(recall, TARGETS["recall"]), at_least(recall, TARGETS["recall"])),
         ("moves paired (live)", "every move one change", f"{live['moves_paired']} of {moves_made}",
          live["moves_paired"] == moves_made),
-        ("position error p95 (live)", f"≤ {TARGETS['position_error_p95_m']} m", _fmt(live["position_error_p95_m"]),
+        ("position error p95 (live)", f"≤ {TARGETS['position_error_p95_m']} m",
+         printed_apart(live["position_error_p95_m"], TARGETS["position_error_p95_m"]),
          live["position_error_p95_m"] is not None and live["position_error_p95_m"] <= TARGETS["position_error_p95_m"]),
         ("first view → report, every one positive", "> 0 s",
          f"min {_fmt(live['time_min_s'], 1)} s; {live['times_not_positive']} not positive; {live['times_unknown']} unknown",
@@ -377,9 +380,10 @@ def write_results(out, rows, curve, meta):
     checks = verdict(live, rows, meta["held_out"])
     headline = (
         f"**What ran (the twin's live reports, {live['missions']} missions): precision {live['matched']}/"
-        f"{live['detected']} = {_fmt(live['precision'])}, recall {live['matched']}/{live['made']} = "
-        f"{_fmt(live['recall'])} (over the changes in places the missions re-observed: {live['reobserved_matched']}/"
-        f"{live['reobserved']} = {_fmt(live['recall_reobserved'])}), moves paired {live['moves_paired']} of "
+        f"{live['detected']} = {printed_apart(live['precision'], TARGETS['precision'])}, recall {live['matched']}/"
+        f"{live['made']} = {printed_apart(live['recall'], TARGETS['recall'])} (over the changes in places the "
+        f"missions re-observed: {live['reobserved_matched']}/{live['reobserved']} = "
+        f"{printed_apart(live['recall_reobserved'], TARGETS['recall'])}), moves paired {live['moves_paired']} of "
         f"{live['moves_made']}, position error p95 {_fmt(live['position_error_p95_m'])} m, first view → report "
         f"{_fmt(live['time_min_s'], 1)}–{_fmt(live['time_max_s'], 1)} s (median {_fmt(live['time_median_s'], 1)} s).**"
     )
@@ -457,14 +461,14 @@ def write_results(out, rows, curve, meta):
                     live["reobserved"],
                     live["detected"],
                     live["detected"] - live["matched"],
-                    _fmt(live["precision"]),
-                    _fmt(live["recall"]),
+                    printed_apart(live["precision"], TARGETS["precision"]),
+                    printed_apart(live["recall"], TARGETS["recall"]),
                     f"p95 {_fmt(live['position_error_p95_m'])}",
                     f"median {_fmt(live['time_median_s'], 0)}, max {_fmt(live['time_max_s'], 0)}",
                     redetected["detected"],
                     redetected["detected"] - redetected["matched"],
-                    _fmt(redetected["precision"]),
-                    _fmt(redetected["recall"]),
+                    printed_apart(redetected["precision"], TARGETS["precision"]),
+                    printed_apart(redetected["recall"], TARGETS["recall"]),
                 )
             ],
         ),  # fmt: skip

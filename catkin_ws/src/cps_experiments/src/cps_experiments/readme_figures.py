@@ -68,21 +68,26 @@ def monitoring_paragraph(results_dir=RESULTS):
     whole = sum(r["group"] == "whole fleet" for r in rows)
     unmet = [f"{what} ({got}; asked {asked})" for what, asked, got, met in results["verdict"] if not met]
 
-    def ratio(a, b):
-        return f"{a}/{b} = {a / b:.2f}" if b else "—"
+    from cps_experiments.judge import printed_apart
+    from cps_experiments.monitor_eval import TARGETS
+
+    precision, recall = TARGETS["precision"], TARGETS["recall"]
+
+    def ratio(a, b, bar):
+        return f"{a}/{b} = {printed_apart(a / b, bar)}" if b else "—"
 
     return (
         f"Over {len(rows)} monitoring missions on site changes drawn from seed {meta['seed']} "
         + ("(not a seed the rules were tuned on)" if meta["held_out"] else "(**a seed the rules were tuned on**)")
         + f", {whole} of them with the whole fleet ([docs/results/monitor-eval/](docs/results/monitor-eval/README.md)), "
         + _live_missing(live, rows)
-        + f"what the twin reported live: precision {ratio(live['matched'], live['detected'])}, recall "
-        f"{ratio(live['matched'], live['made'])} (over the changes in places the missions re-observed "
-        f"{ratio(live['reobserved_matched'], live['reobserved'])}), moves paired {live['moves_paired']} of "
+        + f"what the twin reported live: precision {ratio(live['matched'], live['detected'], precision)}, recall "
+        f"{ratio(live['matched'], live['made'], recall)} (over the changes in places the missions re-observed "
+        f"{ratio(live['reobserved_matched'], live['reobserved'], recall)}), moves paired {live['moves_paired']} of "
         f"{live['moves_made']}, position error p95 {live['position_error_p95_m']:.2f} m, first view → report "
         f"{live['time_min_s']:.1f}–{live['time_max_s']:.1f} s; re-detected on the saved maps after each mission "
-        f"(not what the operator saw): precision {ratio(again['matched'], again['detected'])}, recall "
-        f"{ratio(again['matched'], again['made'])}. "
+        f"(not what the operator saw): precision {ratio(again['matched'], again['detected'], precision)}, recall "
+        f"{ratio(again['matched'], again['made'], recall)}. "
         + (
             (
                 "Every figure issue 39 asks is met"
