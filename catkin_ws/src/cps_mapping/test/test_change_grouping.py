@@ -174,3 +174,44 @@ def test_a_moved_tank_and_a_drum_added_beside_its_new_place_are_a_move_and_an_ad
     added = next(c for c in changes if c.kind == "appeared")
     assert np.allclose(move.displacement_m[:2], (-1.81, 0.59), atol=0.1)
     assert np.allclose(added.place_m, (drum_x, drum_y), atol=0.15) and max(added.size_m[:2]) <= 0.7
+
+
+PIPE_LAYER = 16
+
+
+def _pipes(x_from, x_to):
+    """Two pipes along x, 0.3 m apart, at the pipe layer."""
+    return np.array([(x, y, PIPE_LAYER) for x in range(x_from, x_to) for y in (0, 3)])
+
+
+def _pipe_post(x):
+    """A 2 x 2 voxel post under the pipes and its crossbar across them, one layer below."""
+    post = [(x + i, 1 + j, z) for i in (0, 1) for j in (0, 1) for z in range(1, PIPE_LAYER - 1)]
+    return np.array(post + [(x, y, PIPE_LAYER - 1) for y in range(-1, 5)])
+
+
+def test_a_pipe_run_moved_along_its_length_is_one_move():
+    """Seed 45756's fleet_1: a 3 m pipe run moved 0.67 m along its length. Only its end post changed
+    where the missions saw (neither the pipes' layer nor the far end was seen free), each post clear
+    of its old place; the size rule of a clear move compared the two posts as whole items (the new
+    one with its crossbar, the old one's within the tolerance of the pipes) and refused the pair: a
+    false 'appeared' and a false 'disappeared'. The pipes the old post carries say the move is short."""
+    old = np.vstack([_pipes(-15, 15), _pipe_post(-14), _pipe_post(12)])
+    new = np.vstack([_pipes(-22, 8), _pipe_post(-21), _pipe_post(5)])
+
+    def seen_free(points):
+        return (points[:, 2] < PIPE_LAYER * RES) & (points[:, 0] < 0.0)
+
+    changes = detect_changes(
+        _centres(FLOOR, old),
+        _centres(FLOOR, new),
+        RES,
+        tolerance_voxels=2,
+        min_cluster_voxels=16,
+        merge_gap_voxels=1,
+        move_radius_m=5.0,
+        baseline_is_free=seen_free,
+        current_is_free=seen_free,
+    )
+    assert [c.kind for c in changes] == ["moved"], [(c.kind, c.place_m, c.size_m, c.voxels) for c in changes]
+    assert np.allclose(changes[0].displacement_m[:2], (-0.7, 0.0), atol=0.05)

@@ -283,6 +283,10 @@ ITEM_GAP_M = 1.5
 # run) moved by its own length leaves slivers 4 m apart.
 MOVE_RADIUS_M = 5.0
 
+# A moved item is at most this long along x or y (`_whole_item`): the hall's longest (a 4 m pipe run)
+# and a voxel each end; what reaches further is structure (a wall, the fence), not an item moved.
+ITEM_MAX_M = 4.2
+
 # A thin surface seen at incidence theta: each ray crosses ~1/tan(theta) voxels of the surface's
 # layer and meets the surface in one of them, the others get a miss. With OctoMap's hit 0.7 / miss
 # 0.4 (log-odds +0.85 / -0.41) a surface still there stays occupied while 1/tan(theta) - 1 < 2.1
@@ -492,8 +496,9 @@ def pair_moves(
     correlation still finds the whole item's shift, and the item's other slivers that the shift
     explains join the move (`_slivers_of`). A cluster's pieces that the shift does not explain are
     other items the grouping joined to it (`_other_items`): the size rule reads the moved item's
-    pieces only, and the others stay changes of their own (at least `min_cluster_voxels`). Best
-    pairs first."""
+    pieces only, and the others stay changes of their own (at least `min_cluster_voxels`). Whether
+    the move took the item clear of its old place reads the whole item (`_whole_item`: what the
+    disappeared cluster is connected to and moved with it), not the slivers. Best pairs first."""
     appeared, disappeared = list(appeared), list(disappeared)  # paired clusters are replaced by their item's part
     floor_z = None
     candidates = []
@@ -518,7 +523,8 @@ def pair_moves(
             if not len(a_item) or not len(d_item):
                 continue
             item = np.vstack([d_item, before[near_any(before + [step[0], step[1], 0], after, 1)]])
-            if not _same_size(a_item, d_item, item, step, floor_z):
+            whole = _whole_item(d_item, base, cur, step, floor_z, int(round(ITEM_MAX_M / resolution_m)))
+            if not _same_size(a_item, d_item, item if whole is None else whole, step, floor_z):
                 continue
             gone_ok = _explained(d_members, step, cur)
             new_ok = _explained(a_members, (-step[0], -step[1]), base)
@@ -551,6 +557,30 @@ def pair_moves(
     rest = [c for k, (c, _) in enumerate(appeared) if k not in used_a]
     rest += [c for k, (c, _) in enumerate(disappeared) if k not in used_d]
     return moves + rest + split_off
+
+
+def _whole_item(members, base, cur, step, floor_z, max_voxels):
+    """The baseline's voxels of the whole item a disappeared cluster (`members`) is part of, moved by
+    `step` (dx, dy voxels): its 26-connected component above the floor among the baseline's voxels
+    that the shift lays onto the new map, within `max_voxels` of the cluster; None if that reaches
+    further than `max_voxels` along x or y (structure, not an item). Seed 45756's fleet_1 moved a 3 m
+    pipe run 0.67 m along its length: only its end posts changed, each clear of its old place, and
+    the size rule of a clear move compared the two posts as whole items (one seen with its
+    crossbar, one without) and refused the pair; the pipes the posts carry say the move is short."""
+    lo, hi = members.min(axis=0) - max_voxels, members.max(axis=0) + max_voxels
+    lo[2] = max(lo[2], floor_z + _FLOOR_LAYERS + 1)
+    near = _region(base, lo, hi)
+    carried = near[near_any(near + np.array([step[0], step[1], 0]), cur, 1)]
+    voxels = np.unique(np.vstack([carried, members]), axis=0)
+    origin = voxels.min(axis=0)
+    local = voxels - origin
+    grid = np.zeros(tuple(local.max(axis=0) + 1), dtype=bool)
+    grid[tuple(local.T)] = True
+    labels, _ = ndimage.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
+    ids = np.unique(labels[tuple((members - origin).T)])
+    item = voxels[np.isin(labels[tuple(local.T)], ids[ids > 0])]
+    extent = item.max(axis=0) - item.min(axis=0) + 1
+    return None if max(extent[0], extent[1]) > max_voxels else item
 
 
 def _other_items(members, shift, other, min_explained):
