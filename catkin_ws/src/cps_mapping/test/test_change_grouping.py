@@ -4,7 +4,7 @@ are two changes; the slivers of one item that the map holds connected are one ch
 
 import numpy as np
 
-from cps_mapping.change_detection import _clusters, detect_changes, pair_moves
+from cps_mapping.change_detection import TRUSTED_RULES, _clusters, detect_changes, pair_moves
 from cps_mapping.fused_map import index_to_center
 
 RES = 0.1
@@ -35,6 +35,21 @@ def _cylinder(x_m, y_m, radius_m, height_m):
 
 def _centres(*parts):
     return index_to_center(np.vstack(parts), RES)
+
+
+def _with_moves(baseline_centres_m, current_centres_m, **free_space):
+    """detect_changes with the twin's grouping rules (TRUSTED_RULES) and moves paired."""
+    rules = TRUSTED_RULES
+    return detect_changes(
+        baseline_centres_m,
+        current_centres_m,
+        RES,
+        tolerance_voxels=rules.tolerance_voxels,
+        min_cluster_voxels=rules.min_cluster_voxels,
+        merge_gap_voxels=rules.merge_gap_voxels,
+        move_radius_m=rules.move_radius_m,
+        **free_space,
+    )
 
 
 def test_a_removal_and_an_addition_of_different_items_are_not_one_move():
@@ -110,14 +125,9 @@ def test_a_drum_moved_beside_a_tank_is_one_move():
     tank = _cylinder(5.5, -3.0, 0.7, 2.2)
     before = _side_of(_cylinder(5.0, -4.8, 0.3, 0.9), (5.0, -4.8), (0.0, -1.0))
     after = _side_of(_cylinder(3.77, -3.45, 0.3, 0.9), (3.77, -3.45), (-1.0, 0.0))
-    changes = detect_changes(
+    changes = _with_moves(
         _centres(FLOOR, tank, before),
         _centres(FLOOR, tank, after),
-        RES,
-        tolerance_voxels=2,
-        min_cluster_voxels=16,
-        merge_gap_voxels=1,
-        move_radius_m=5.0,
     )
     assert [c.kind for c in changes] == ["moved"], [(c.kind, c.place_m, c.voxels) for c in changes]
     assert np.allclose(changes[0].displacement_m[:2], (-1.23, 1.35), atol=0.1)
@@ -139,14 +149,9 @@ def test_a_moved_shelving_whose_new_front_is_two_pieces_is_one_move():
     board_middle = (new[:, 2] == 21) & (new[:, 0] >= 8) & (new[:, 0] <= 17)
     left_posts_above = (new[:, 0] == 0) & (new[:, 2] > 14) & (new[:, 2] < 21)
     hole = board_middle | left_posts_above
-    changes = detect_changes(
+    changes = _with_moves(
         _centres(FLOOR, old),
         _centres(FLOOR, new[~hole]),
-        RES,
-        tolerance_voxels=2,
-        min_cluster_voxels=16,
-        merge_gap_voxels=1,
-        move_radius_m=5.0,
     )
     assert [c.kind for c in changes] == ["moved"], [(c.kind, c.place_m, c.size_m, c.voxels) for c in changes]
     assert np.allclose(changes[0].displacement_m[:2], (0.0, -0.5), atol=0.1)
@@ -159,14 +164,9 @@ def test_a_moved_tank_and_a_drum_added_beside_its_new_place_are_a_move_and_an_ad
     the move and the drum missed. Here the drum stands 0.2 m from the tank's new wall."""
     tank_x, tank_y = 3.69, -2.41
     drum_x, drum_y = tank_x - 0.7 - 0.2 - 0.28, tank_y  # west of it, clear of its old place
-    changes = detect_changes(
+    changes = _with_moves(
         _centres(FLOOR, _cylinder(5.5, -3.0, 0.7, 2.2)),
         _centres(FLOOR, _cylinder(tank_x, tank_y, 0.7, 2.2), _cylinder(drum_x, drum_y, 0.28, 1.1)),
-        RES,
-        tolerance_voxels=2,
-        min_cluster_voxels=16,
-        merge_gap_voxels=1,
-        move_radius_m=5.0,
     )
     kinds = sorted(c.kind for c in changes)
     assert kinds == ["appeared", "moved"], [(c.kind, c.place_m, c.size_m, c.voxels) for c in changes]
@@ -202,14 +202,9 @@ def test_a_pipe_run_moved_along_its_length_is_one_move():
     def seen_free(points):
         return (points[:, 2] < PIPE_LAYER * RES) & (points[:, 0] < 0.0)
 
-    changes = detect_changes(
+    changes = _with_moves(
         _centres(FLOOR, old),
         _centres(FLOOR, new),
-        RES,
-        tolerance_voxels=2,
-        min_cluster_voxels=16,
-        merge_gap_voxels=1,
-        move_radius_m=5.0,
         baseline_is_free=seen_free,
         current_is_free=seen_free,
     )
