@@ -278,3 +278,20 @@ def test_builders_make_the_messages_the_map_describes(jackal_points):
     markers = map_messages.change_markers([change], header).markers
     assert [m.type for m in markers[1:]] == [markers[1].CUBE, markers[1].TEXT_VIEW_FACING]
     assert markers[1].color.g > markers[1].color.r and markers[1].pose.position.x == 1.0
+
+
+def test_a_robots_first_cloud_after_the_first_map_asks_for_a_publication_once(jackal_points):
+    """A robot whose first cloud is inserted after the process's first map was published (its
+    transforms not yet in a restarted server's buffer) is published at once, not a period later
+    (issue 38's chaos soak, seed 1, fault 42); only once, and never for a robot already published."""
+    server, _published = _server()
+    assert not server.first_unpublished()
+    server.receive_cloud("jackal", _cloud(jackal_points))
+    server.insert_pending(timeout_s=0)
+    assert server.first_unpublished() and not server.first_unpublished()  # asked once
+    server.publish_map(genpy.Time(101, 0))
+    later = _cloud(jackal_points)
+    later.header.stamp = genpy.Time(102, 0)
+    server.receive_cloud("jackal", later)
+    server.insert_pending(timeout_s=0)
+    assert not server.first_unpublished()  # jackal's clouds are in a published map already
