@@ -108,3 +108,29 @@ def test_a_nodes_log_lines_do_not_call_the_master(ros):
         [sys.executable, "-c", LOGGING_NODE], env=ros.env, capture_output=True, text=True, timeout=60
     )
     assert result.returncode == 0 and "cached False" in result.stdout, result.stdout + result.stderr[-3000:]
+
+
+def test_the_wait_for_daemon_threads_passes_over_threads_native_code_started():
+    """A thread started outside `threading` that called into Python shows as a _DummyThread, which
+    cannot be joined: the wait leaves it out and still waits for the daemon threads."""
+    import _thread
+    import threading
+
+    from cps_ros.shutdown import _wait_for_daemon_threads
+
+    seen, release = threading.Event(), threading.Event()
+
+    def native():
+        threading.current_thread()  # registers this thread as a _DummyThread
+        seen.set()
+        release.wait(5.0)
+
+    _thread.start_new_thread(native, ())
+    assert seen.wait(5.0)
+    daemon = threading.Thread(target=lambda: time.sleep(0.2), daemon=True)
+    daemon.start()
+    try:
+        _wait_for_daemon_threads(2.0)  # raised AssertionError: cannot join a dummy thread
+        assert not daemon.is_alive()
+    finally:
+        release.set()
