@@ -210,3 +210,22 @@ def test_a_pipe_run_moved_along_its_length_is_one_move():
     )
     assert [c.kind for c in changes] == ["moved"], [(c.kind, c.place_m, c.size_m, c.voxels) for c in changes]
     assert np.allclose(changes[0].displacement_m[:2], (-0.7, 0.0), atol=0.05)
+
+
+def test_a_moved_crate_and_a_drum_added_as_large_beside_it_are_a_move_and_an_addition():
+    """Seed 17645's pair_1: crate_2 moved (+0.98, -0.14) m and a drum added 0.3 m from its new side,
+    in the map as large as the crate's new faces: the 'appeared' cluster over both was half explained
+    by the move's shift (the crate's old place whole), and the move was a false 'disappeared' and an
+    'appeared' over both items. The shift must explain the moved item's pieces on both sides and
+    one side's whole cluster."""
+    old = _shell((20, -15, 0), (30, -5, 11))  # a 1 m crate at x 2.0-3.0 m, y -1.5 - -0.5 m
+    new = _shell((30, -16, 0), (40, -6, 11))  # moved (+1.0, -0.1) m
+    seen = new[(new[:, 0] < 39) & (new[:, 1] < -7)]  # its +x and +y faces not seen again
+    drum = _cylinder(3.5, -2.15, 0.25, 1.4)  # added 0.3 m from the crate's new -y face
+    changes = _with_moves(_centres(FLOOR, old), _centres(FLOOR, seen, drum))
+    kinds = sorted(c.kind for c in changes)
+    assert kinds == ["appeared", "moved"], [(c.kind, c.place_m, c.size_m, c.voxels) for c in changes]
+    move = next(c for c in changes if c.kind == "moved")
+    added = next(c for c in changes if c.kind == "appeared")
+    assert np.allclose(move.displacement_m[:2], (1.0, -0.1), atol=0.05)
+    assert np.allclose(added.place_m, (3.5, -2.15), atol=0.1) and max(added.size_m[:2]) <= 0.7

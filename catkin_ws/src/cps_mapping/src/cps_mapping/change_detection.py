@@ -491,7 +491,8 @@ def pair_moves(
     A pair within `radius_m` (box centres, horizontally) is a move when one horizontal shift, found
     by correlating what moved between the two maps over both clusters' boxes (one voxel around; the
     floor and shifts under 2 voxels left out: `_best_shift`), lays at least `min_explained` of the
-    disappeared cluster onto the new map and of the appeared one, shifted back, onto the baseline.
+    moved item's pieces of the disappeared cluster onto the new map and of the appeared one, shifted
+    back, onto the baseline, and as much of one of the two whole clusters.
     A move shorter than the item leaves only slivers (the side it left and the side it took); the
     correlation still finds the whole item's shift, and the item's other slivers that the shift
     explains join the move (`_slivers_of`). A cluster's pieces that the shift does not explain are
@@ -526,9 +527,15 @@ def pair_moves(
             whole = _whole_item(d_item, base, cur, step, floor_z, int(round(ITEM_MAX_M / resolution_m)))
             if not _same_size(a_item, d_item, item if whole is None else whole, step, floor_z):
                 continue
-            gone_ok = _explained(d_members, step, cur)
-            new_ok = _explained(a_members, (-step[0], -step[1]), base)
-            if min(gone_ok, new_ok) >= min_explained:
+            back = (-step[0], -step[1])
+            gone_ok, new_ok = _explained(d_members, step, cur), _explained(a_members, back, base)
+            # The shift explains the moved item's pieces on both sides and one side's whole cluster:
+            # the other may also hold an item added (or removed) beside the move. Seed 17645's pair_1
+            # moved a crate and added a drum 0.3 m from its new side, as large in the map as the
+            # crate's new faces: the 'appeared' cluster over both was half explained, the crate's
+            # old place whole, and the move was two changes.
+            items_ok = min(_explained(d_item, step, cur), _explained(a_item, back, base))
+            if items_ok >= min_explained and max(gone_ok, new_ok) >= min_explained:
                 split = ((a_item, a_others), (d_item, d_others))
                 candidates.append((min(gone_ok, new_ok), votes, i, j, refined, step, before, after, split))
     used_a, used_d, pairs, split_off = set(), set(), [], []
