@@ -29,7 +29,7 @@ monitor: setup
 # iris, half with the whole fleet), scored on what ran live: out/monitor-eval/results.md. The seeds
 # the rules were tuned on (cps_experiments.monitor_eval.TUNING_SEEDS) are refused unless --tuning.
 SCENARIOS ?= 12
-SEED ?= 17645
+SEED ?= 70873
 monitor-eval: setup
 	@$(ENV) python catkin_ws/src/cps_experiments/nodes/monitor_eval --scenarios $(SCENARIOS) --seed $(SEED) $(MONITOR_EVAL_ARGS)
 
