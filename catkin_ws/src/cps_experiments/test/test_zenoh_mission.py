@@ -17,8 +17,7 @@ pytestmark = pytest.mark.skipif(
 
 def _listening_ports():
     """Each host's bridge listener: the twin's the main lane's port, the robots' the command lane's."""
-    table = load_bridge_table()
-    return {"twin": [table.endpoint_port], "phys": [table.command_port]}
+    return {netns_link.host_of(side): ports for side, ports in load_bridge_table().listening_ports().items()}
 
 
 def test_clouds_cross_and_the_link_is_up(reference_mission):

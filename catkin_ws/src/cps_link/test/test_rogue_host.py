@@ -15,6 +15,7 @@ from cps_harness.netns_lan import SharedLan
 from cps_harness.port_scan import listening_ports, scan_argv
 from cps_harness.testing import link_name, wait_for
 from cps_link import netns_link
+from cps_link.bridge_config import load_bridge_table
 from cps_link.host_guard import guard_argv
 from cps_link.zenoh_session import MAKE_CERTS, bridge_argv
 from cps_ros.processes import RosGraph, find_node
@@ -26,8 +27,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 CLOUD_LOAD = find_node("cps_harness", "cloud_load")
 HOSTS = {"phys": "10.203.0.1", "twin": "10.203.0.2", "rogue": "10.203.0.3"}
 PORTS = {"main": 7447, "command": 7448}  # each lane's port (bridge.yaml's endpoint_port, command_port)
-# where each lane listens: the twin's host the main lane, the robots' the command lane (issue 38)
-LISTENER = {"main": "twin", "command": "phys"}
+# the host where each lane listens (bridge_config: the twin's the main lane, the robots' the command lane)
+LISTENER = {lane: netns_link.host_of(load_bridge_table().for_lane(lane).listening_side) for lane in PORTS}
 ROBOT = "scout"
 
 

@@ -934,17 +934,12 @@ def _host_split(args, sides):
 
 
 def _link_ports(options):
-    """Each host's bridge listeners, "phys" or "twin" -> ports (the options', else bridge.yaml's):
-    the lane's listening side (bridge_config.BridgeTable.listening_side) listens at its port."""
-    from cps_link.bridge_config import TWIN, load_bridge_table
+    """Each host's bridge listeners, "phys" or "twin" -> ports (the options', else bridge.yaml's)."""
+    from cps_link.bridge_config import load_bridge_table
+    from cps_link.netns_link import host_of
 
-    table = load_bridge_table()
-    listening = {}
-    for lane, port in (("main", options.zenoh_port), ("command", options.zenoh_command_port)):
-        lane_table = table.for_lane(lane)
-        host = "twin" if lane_table.listening_side == TWIN else "phys"
-        listening.setdefault(host, []).append(port or lane_table.endpoint_port)
-    return listening
+    listening = load_bridge_table().listening_ports(options.zenoh_port, options.zenoh_command_port)
+    return {host_of(side): ports for side, ports in listening.items()}
 
 
 @contextlib.contextmanager

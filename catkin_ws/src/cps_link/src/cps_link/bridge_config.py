@@ -153,6 +153,15 @@ class BridgeTable:
         """The side whose bridge listens on this lane's port (the other side's connects to it)."""
         return COMMAND_LISTENER if self.lane == COMMAND_CLASS else DATA_LISTENER
 
+    def listening_ports(self, main_port=None, command_port=None):
+        """Side -> the ports its bridges listen at when the main and the command lane run apart
+        (each lane's listening_side; a port None: the table's)."""
+        out = {}
+        for lane, port in (("main", main_port), (COMMAND_CLASS, command_port)):
+            lane_table = self.for_lane(lane)
+            out.setdefault(lane_table.listening_side, []).append(port or lane_table.endpoint_port)
+        return out
+
     @property
     def publishes_link_state(self):
         """Only one process per side says whether the link is up: the one carrying telemetry."""

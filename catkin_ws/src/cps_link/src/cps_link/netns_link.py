@@ -111,6 +111,13 @@ def side_ip(side):
     return PHYS_IP if side == "phys" else TWIN_IP
 
 
+def host_of(bridge_side):
+    """The namespace side ("phys" or "twin") where a bridge side ("robots" or "twin") runs."""
+    from cps_link.bridge_config import TWIN
+
+    return "twin" if bridge_side == TWIN else "phys"
+
+
 def _device(name, side):
     return f"{name}_{side[0]}"  # cps_p / cps_t: at most 12 characters (IFNAMSIZ 15)
 

@@ -524,8 +524,12 @@ def pair_moves(
             if not len(a_item) or not len(d_item):
                 continue
             item = np.vstack([d_item, before[near_any(before + [step[0], step[1], 0], after, 1)]])
-            whole = _whole_item(d_item, base, cur, step, floor_z, int(round(ITEM_MAX_M / resolution_m)))
-            if not _same_size(a_item, d_item, item if whole is None else whole, step, floor_z):
+
+            def item_of(d_item=d_item, step=step, item=item):
+                whole = _whole_item(d_item, base, cur, step, floor_z, int(round(ITEM_MAX_M / resolution_m)))
+                return item if whole is None else whole
+
+            if not _same_size(a_item, d_item, item_of, step, floor_z):
                 continue
             back = (-step[0], -step[1])
             gone_ok, new_ok = _explained(d_members, step, cur), _explained(a_members, back, base)
@@ -653,10 +657,10 @@ MOVE_SIZE_VOXELS = 2
 MOVE_SIZE_FRACTION = 0.15
 
 
-def _same_size(a_members, d_members, item, step, floor_z):
+def _same_size(a_members, d_members, item_of, step, floor_z):
     """True if an appeared and a disappeared cluster can be one item moved by `step` (dx, dy voxels);
-    `item`: the baseline's voxels of it (the disappeared cluster and what the shift lays onto the new
-    map). When the shift takes the item clear of where it stood, the two are the whole item before and
+    `item_of()`: the baseline's voxels of the item (asked only when the shift takes both clusters
+    clear of themselves: `_whole_item` reads a region of the map). When the shift takes the item clear of where it stood, the two are the whole item before and
     after: the same height (their tops within MOVE_TOP_VOXELS layers) and the same extent along x
     and y. A shorter move leaves slivers (the side it left, the side it took), whose sizes are the
     move's and the views', not the item's: they are not compared. Seed 5077's fleet_5 paired
@@ -664,9 +668,11 @@ def _same_size(a_members, d_members, item, step, floor_z):
     shift explained 60 % of each within the one-voxel tolerance."""
     extent_a = a_members.max(axis=0) - a_members.min(axis=0) + 1
     extent_d = d_members.max(axis=0) - d_members.min(axis=0) + 1
+    if not any(abs(step[k]) >= max(extent_a[k], extent_d[k]) for k in (0, 1)):
+        return True
+    item = item_of()
     extent_item = item.max(axis=0) - item.min(axis=0) + 1
-    clear = any(abs(step[k]) >= max(extent_a[k], extent_d[k], extent_item[k]) for k in (0, 1))
-    if not clear:
+    if not any(abs(step[k]) >= max(extent_a[k], extent_d[k], extent_item[k]) for k in (0, 1)):
         return True
     top_a, top_d = int(a_members[:, 2].max()) - floor_z, int(d_members[:, 2].max()) - floor_z
     if abs(top_a - top_d) > MOVE_TOP_VOXELS:
