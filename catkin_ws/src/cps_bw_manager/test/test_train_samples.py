@@ -199,17 +199,49 @@ def test_the_first_train_after_a_cut_takes_back_a_cut_too_deep_up_to_where_it_wa
     assert est.capacity_mbps == pytest.approx(19.2) and est.trains[TRAIN_HELD] == 0
 
 
-def test_a_bottleneck_below_what_its_interval_delivered_reads_as_that_interval():
+def test_a_bottleneck_below_what_its_interval_delivered_changes_nothing():
     """Live (test_over_link, 2026-11-30): on the 20 Mbit/s link a train read 11.7 Mbit/s in an
-    interval that delivered 15.6, and was taken at once as a step down (below 0.7 x 19.4). The link
-    carried at least what it delivered: the reading is that, here a small shortfall, held."""
+    interval that delivered 15.6, and was taken at once as a step down (below 0.7 x 19.4). Its own
+    interval refutes the reading: it is neither taken nor held (a held reading stays held)."""
     est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
     est.capacity_mbps = est._bw_max_mbps = est._unrefuted_mbps = 19.4
     est.update(_report(2.0, train=11.7, sent=67.4, fleet_mbps=15.6))
-    assert est.capacity_mbps == pytest.approx(19.4) and est.trains[TRAIN_HELD] == 1
-    assert est.trains[TRAIN_BELOW_DELIVERED] == 1
+    assert est.capacity_mbps == pytest.approx(19.4) and est.trains[TRAIN_HELD] == 0
+    assert est.trains[TRAIN_BELOW_DELIVERED] == 1 and est.trains[TRAIN_BOTTLENECK] == 0
     est.update(_report(3.0, train=9.6, sent=67.4, fleet_mbps=3.0))  # a real step: far below, at once
     assert est.capacity_mbps == pytest.approx(9.6)
+
+
+def test_a_refuted_train_right_after_a_cut_is_not_the_cuts_confirmation():
+    """Live (test_over_link, final92, 2026-12-01): the 60 -> 20 Mbit/s step cut the capacity to
+    19.1; 1.9 s later a train read 10.2 in an interval that delivered 14.0. Raised to 14.0 it was
+    taken at once as the shortfall after a cut: 14.0 on the 20 Mbit/s link for 1 s, until the next
+    train's 19.6. A refuted reading is no reading of the link: the cut's 19.1 holds, the next train
+    is taken at once as before."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_interval(2.0, 19.5, 42.0, busy=True, link_limited=True))  # the step: cut
+    assert est.mode == "drain" and est.capacity_mbps == pytest.approx(19.5)
+    est.update(_interval(2.5, 5.2, 6.6, busy=False, link_limited=False))
+    est.update(_report(3.5, train=10.2, sent=76.4, fleet_mbps=14.0))
+    assert est.capacity_mbps == pytest.approx(19.5) and est.trains[TRAIN_BELOW_DELIVERED] == 1
+    est.update(_report(4.5, train=19.6, sent=56.0, fleet_mbps=13.1))  # after a cut, at once
+    assert est.capacity_mbps == pytest.approx(19.6) and est.trains[TRAIN_HELD] == 0
+
+
+def test_a_train_interval_far_below_the_capacity_is_no_step_when_its_train_read_the_capacity():
+    """Live (test_over_link, final93, 2026-12-01): 1.8 s after a 60 -> 20 Mbit/s step's cut to
+    19.1, an interval carrying a train delivered 13.0 with its socket full most of the time (its
+    sender short of a CPU), and its own train read the link at 19.1: it was cut to 13.0 as a step
+    for 1 s. Without a train reading near the capacity such an interval is still a step (a train
+    trickling through a full link after a step down)."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_interval(2.0, 19.1, 42.0, busy=True, link_limited=True))
+    assert est.capacity_mbps == pytest.approx(19.1)
+    mostly_full = dict(busy=True, link_limited=False, link_mostly_full=True, train_on_link=True)
+    est.update(_interval(2.5, 13.0, 11.5, train_mbps=19.1, train_sent_mbps=230.2, **mostly_full))
+    assert est.capacity_mbps == pytest.approx(19.1) and est.overuses == 1
+    est.update(_interval(3.0, 13.0, 11.5, **mostly_full))  # no train read: the link is full, a step
+    assert est.capacity_mbps == pytest.approx(13.0) and est.overuses == 2
 
 
 def test_a_small_rise_waits_for_the_next_train_and_takes_the_smaller():
@@ -324,8 +356,8 @@ def test_a_trains_interval_a_little_below_the_capacity_is_the_trains_cost_not_a_
     """Live beside busy loops (2026-11-30): on the 20 Mbit/s link an interval that carried a train
     delivered 16.0 with the socket full in every sample (the train, sent at 4 x, cost a packet and
     TCP sent below the link for a while); the same interval's train read 19.2. link_full cut the
-    capacity to 16.0. In a train's interval only a step (below 0.7 x) is the link's rate; the first
-    train after a cut in the same report as a train is still the first after it."""
+    capacity to 16.0. In a train's interval only a step (below 0.7 x) that its own train did not
+    read is the link's rate; the first train after a cut is taken at once."""
     est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
     est.update(_report(2.0, train=19.2, sent=231.0))
     assert est.capacity_mbps == pytest.approx(19.2)
@@ -333,7 +365,7 @@ def test_a_trains_interval_a_little_below_the_capacity_is_the_trains_cost_not_a_
     def full_with_train(now_s, delivered_mbps, train):
         return LinkReport(
             **{
-                **_report(now_s, train=train, sent=76.7, fleet_mbps=14.0).__dict__,
+                **_report(now_s, train=train, sent=76.7, fleet_mbps=14.0, on_link=True).__dict__,
                 "delivered_mbps": delivered_mbps,
                 "link_limited": True,
             }
@@ -341,10 +373,12 @@ def test_a_trains_interval_a_little_below_the_capacity_is_the_trains_cost_not_a_
 
     est.update(full_with_train(3.0, 16.0, 19.2))
     assert est.overuses == 0 and est.capacity_mbps == pytest.approx(19.2)
-    # a step: cut (the train beside it, a small shortfall, taken first and held)
+    # far below, but its own train read the link near the capacity (final93): no cut, the reading held
     est.update(full_with_train(4.0, 12.0, 16.5))
+    assert est.overuses == 0 and est.capacity_mbps == pytest.approx(19.2) and est.trains[TRAIN_HELD] == 1
+    # a step: far below with a train trickling through the full link, no reading of it yet: cut
+    est.update(full_with_train(4.5, 12.0, math.nan))
     assert est.last_overuse == "link_full" and est.capacity_mbps == pytest.approx(12.0)
-    assert est.trains[TRAIN_HELD] == 1
     est.update(_report(5.0, train=12.4, sent=48.0, fleet_mbps=10.0))  # the first train after the cut
     assert est.capacity_mbps == pytest.approx(12.4) and est.trains[TRAIN_HELD] == 1
 

@@ -500,7 +500,7 @@ class DeliveryRateEstimator:
         if not math.isnan(sent) and sent > 0 and delivered == 0:
             # Nothing arrived although the sender sent: an outage in the making (liveliness decides).
             return self._refuse("stalled")
-        self._take_train(report)
+        train_read_mbps = self._take_train(report)
         if report.train_on_link:
             # a train's queue is no overuse (live, it read as a deficit and cut a 10 Mbit/s link's
             # capacity to the 7.9 Mbit/s its 0.5 s interval delivered): the interval is the train's
@@ -508,7 +508,12 @@ class DeliveryRateEstimator:
             self._merged.clear()
             self._samples.clear()
             self._deficit_reports = 0
-            if self._link_full(report, delivered) and delivered < STEP_FRACTION * self.capacity_mbps:
+            far_below = delivered < STEP_FRACTION * self.capacity_mbps
+            if (
+                self._link_full(report, delivered)
+                and far_below
+                and not train_read_mbps >= STEP_FRACTION * self.capacity_mbps
+            ):
                 # ... unless the link was full all along and far below the capacity (a step): then
                 # what it delivered, the train's frames included, is its rate. A train waits behind
                 # every data frame, so on a full link it trickles through interval after interval:
@@ -518,7 +523,11 @@ class DeliveryRateEstimator:
                 # own cost: sent at 4 x into the link's queue it can cost a packet, and TCP then
                 # sends below the link for an interval with its socket full (live beside busy loops,
                 # 2026-11-30: 16.0 delivered on a 20 Mbit/s link that the same interval's train read
-                # at 19.2, cut to 16.2; twice in four runs).
+                # at 19.2, cut to 16.2; twice in four runs). A train read in this interval near the
+                # capacity says the link is no step below it: live (final93, 2026-12-01) 1.8 s after
+                # a 60 -> 20 step's cut to 19.1 an interval delivered 13.0, its socket full 60 % of
+                # the time and its own train reading 19.1; cut to 13.3 for 1 s (the sender short of
+                # a CPU: the next interval sent 9.5, neither app-limited nor its socket full).
                 self._overuse("link_full")
                 self._on_overuse(now, delivered, sent, self.step_drain_factor)
                 return self.estimate_mbps
@@ -751,25 +760,32 @@ class DeliveryRateEstimator:
         either direction (the fleet sends too little for its own samples to say), at once when it
         is below TRAIN_STEP_FRACTION of the capacity or above TRAIN_RISE_AT_ONCE x it (or below
         the capacity an overuse's cut set, the first train within max_drain_s of it), else once the
-        next train confirms it; a lower bound (a receiver-starved reading is one) only
-        raises it. Bad samples are counted by kind in `ignored` and change nothing."""
+        next train confirms it; a lower bound (a receiver-starved reading is one) only raises it;
+        a bottleneck below what its own interval delivered changes nothing (that interval's
+        delivery sample counts as any). Bad samples are counted by kind in `ignored` and change
+        nothing. Returns what the link carried by the train's reading (Mbit/s; NaN without a
+        valid train)."""
         if isinstance(report.train_mbps, float) and math.isnan(report.train_mbps):
-            return  # no train in this interval
+            return math.nan  # no train in this interval
         kind, mbps = train_sample(
             report.train_mbps, report.train_sent_mbps, self.line_rate_mbps, report.train_receiver_wait_fraction
         )
         if math.isnan(mbps):
             self.ignored[kind] += 1
-            return
+            return math.nan
         step_open = self._step_open(report.now_s)
         self._train_s = report.now_s
         if kind == TRAIN_BOTTLENECK and mbps < report.delivered_mbps:
-            # the link delivered more over the train's interval than the train says it can: the
-            # reading is below what was measured beside it, and the link carried at least that
-            # (live, test_over_link: a train read a 20 Mbit/s link at 11.7 in an interval that
-            # delivered 15.6, taken at once as a step down)
+            # The link delivered more over the train's interval than the train says it can: its
+            # own interval refutes the reading, which measured no bottleneck (the link carried at
+            # least what the interval delivered; that sample counts as any other). Live
+            # (test_over_link, 2026-11-30) a train read a 20 Mbit/s link at 11.7 in an interval that
+            # delivered 15.6, taken at once as a step down; raised to 15.6 and still taken as a
+            # bottleneck, one read 10.2 where 14.0 was delivered 1.9 s after the 60 -> 20 step's
+            # cut (final92, 2026-12-01) and was taken at once as the shortfall after a cut: 14.0 on
+            # the 20 Mbit/s link for 1 s.
             self.trains[TRAIN_BELOW_DELIVERED] += 1
-            mbps = report.delivered_mbps
+            return report.delivered_mbps
         measured = self._clip(mbps)
         # a held reading counts only against the capacity it was held against: live (test_over_link)
         # one held on the 60 Mbit/s link "confirmed" a 19 Mbit/s reading after the 60 -> 20 step
@@ -781,7 +797,7 @@ class DeliveryRateEstimator:
         if kind in (TRAIN_LOWER_BOUND, TRAIN_RECEIVER_STARVED):
             self.trains[kind] += 1
             if measured <= self.capacity_mbps:
-                return
+                return measured
         elif step_open and not step and self._reads_past_the_step(measured):
             # The trains after a step taken on one reading read the link itself: at once, either
             # way, back across the step no further than where it started, until two of them agree
@@ -812,7 +828,7 @@ class DeliveryRateEstimator:
             if math.isnan(held) or (held > self.capacity_mbps) != rise:
                 self._train_held = (measured, self.capacity_mbps)
                 self.trains[TRAIN_HELD] += 1
-                return
+                return measured
             # a shortfall confirmed: the link carried the larger; a rise confirmed: at least the smaller
             measured = min(measured, held) if rise else max(measured, held)
             self.trains[kind] += 1
@@ -832,6 +848,7 @@ class DeliveryRateEstimator:
         else:
             self._set_mode("cruise", report.now_s)
             self.estimate_mbps = measured
+        return measured
 
     def _standing_queue(self, report, delivered, least_queue_delay_s):
         """Did the link's queue stand all interval: the smallest of its RTT samples queueing, and the
