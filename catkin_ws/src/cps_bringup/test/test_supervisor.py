@@ -439,7 +439,7 @@ def test_a_killed_node_restarts_from_its_warm_spare_and_gets_a_new_one(tmp_path,
 
 @pytest.mark.ros
 def test_a_spare_still_importing_is_started_at_the_nodes_priority(tmp_path, monkeypatch):
-    """A spare's imports run at nice 19 and on a saturated side may not finish before its node dies
+    """A spare's imports run at SPARE_NICE and on a saturated side may not finish before its node dies
     (a chaos soak's robots' spares): the supervisor (root here) gives it the node's priority and
     starts it; the node comes up from it once its imports are done."""
     from cps_bringup import supervisor as supervisor_module
@@ -477,7 +477,7 @@ def test_a_spare_still_importing_is_started_at_the_nodes_priority(tmp_path, monk
 
 @pytest.mark.ros
 def test_a_spare_that_imports_too_long_gets_its_nodes_priority(tmp_path, monkeypatch):
-    """On a saturated side a spare at nice 19 would never be ready: after SPARE_PROMOTE_AFTER_S it
+    """On a saturated side a spare at SPARE_NICE might never be ready: after SPARE_PROMOTE_AFTER_S it
     imports at its node's priority (root here); a spare that is ready by then is left as it is."""
     from cps_bringup import supervisor as supervisor_module
     from cps_ros import spare as spares

@@ -330,7 +330,7 @@ def test_the_receive_process_starts_from_a_preloaded_fork_server_or_fresh(start,
 def test_a_fork_server_left_at_a_spares_priority_is_not_used_where_it_cannot_be_set_back(monkeypatch):
     """Where the supervisor did not set the spare's fork server back to the node's priority and the
     map server may not lower a nice value, the receive process is spawned: forked, it would run
-    at nice 19 on a loaded twin."""
+    at SPARE_NICE on a loaded twin."""
     import multiprocessing
     import subprocess
 

@@ -26,7 +26,7 @@ from cps_ros.processes import RosGraph, stop_all
 # A spare is started this long after its node is up (the run's start, or a restart that used the
 # previous one): its imports take a CPU second that the node's own start-up needs first, s.
 SPARE_AFTER_UP_S = 5.0
-# A spare imports at nice 19 (cps_ros.spare); one still importing this long after its start is given
+# A spare imports at nice SPARE_NICE (cps_ros.spare); one still importing this long after its start is given
 # its node's priority (as root): on a saturated side it would never finish (a chaos soak's robots'
 # spares), and a restart without a ready spare took 4-6 s to start cloud_tissue there. Long enough
 # that a mission's first minutes, when the robots' side is busiest, never pay for it (at 30 s the
@@ -160,7 +160,7 @@ class Supervisor:
 
     def _restart(self, label, running):
         """The node's new process: its spare, started, if one is ready or still importing and can be
-        given the node's priority (its imports run at nice 19: on a saturated side they may never
+        given the node's priority (its imports run at nice SPARE_NICE: on a saturated side they may never
         finish, a chaos soak's robots' spares did not in a minute); else a new one."""
         spare, running.spare = running.spare, None
         running.spare_due = self.clock() + SPARE_AFTER_UP_S if running.spec.spare and self.warm_spares else None

@@ -52,11 +52,11 @@ def prepare_fast_start():
     for its receive process's imports on the loaded twin CPU. The fork server never starts a ROS node,
     so nothing of rospy's state is forked; it ends with the process that started it.
 
-    Called from a spare's import thread (cps_ros.spare, at nice 19) the fork server, and every
+    Called from a spare's import thread (cps_ros.spare, at SPARE_NICE) the fork server, and every
     process it forks, inherit that priority. The supervisor, as root, sets the fork server back to
     the node's priority when it starts the spare (`cps_ros.spare.take_back_priority`); where no one
     did, and the map server may not lower it itself, AdmissionClient spawns the receive process
-    instead: at nice 19 it would starve on a loaded twin.
+    instead: at SPARE_NICE it would wait for a CPU on a loaded twin.
 
     rospy takes a node's namespace once, when it is imported (from `__ns:=` on the command line or
     ROS_NAMESPACE): the fork server imports it under this process's namespace, passed on in its

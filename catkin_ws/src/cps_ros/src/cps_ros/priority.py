@@ -1,7 +1,7 @@
 """A thread's CPU priority (its nice value): Linux keeps one per thread, and a thread or process
 inherits its creator's. Raising a nice value is always allowed; lowering it needs CAP_SYS_NICE or
 an RLIMIT_NICE that reaches it (sched(7)). A warm spare (cps_ros.spare) imports in a thread at
-nice 19 so that its imports take only CPU no node wants, while its main thread keeps the node's."""
+spare.SPARE_NICE so that its imports take little CPU a node wants, while its main thread keeps the node's."""
 
 import os
 import resource

@@ -6,7 +6,7 @@ chaos soak: kills took 3.4-6.3 s against a 3 s bar). The bringup supervisor keep
 node that asks for it (`NodeSpec.spare`): a process with the node's own argv, placement and
 environment that imports what the node imports and then waits for `ACTIVATE_SIGNAL`. A restart is
 then that signal: the spare runs the node's script as `__main__`. Android's zygote is the model.
-The imports run in a thread at nice `SPARE_NICE`: they take only CPU no node wants (a mission's
+The imports run in a thread at nice `SPARE_NICE`: they take little CPU a node wants (a mission's
 start with spares at the nodes' priority once left the map 3.1 s old at 20 s), while the main
 thread, which becomes the node, keeps the node's priority.
 The spare holds no ROS state (a node calls rospy.init_node in its main), so nothing of it is seen
@@ -29,13 +29,19 @@ import runpy
 import signal
 import sys
 import threading
+import time
 
 from cps_ros import priority
 
 ACTIVATE_SIGNAL = signal.SIGUSR2
 SPARE_COMM = "cps-spare"
 LOADING_COMM = "cps-spare-load"
-SPARE_NICE = priority.NICE_MAX
+# CFS weighs nice 10 at 110 against a node's 1024 at nice 0: an import takes about a tenth of a CPU
+# beside one busy node. At nice 19 (weight 15) the robots' side of a 4-robot mission left its spares
+# importing for minutes: chaos seed 2 (2026-12-01) killed the robots' bridge 20 s after its spare
+# had started, still importing; promoted then, it was up 3.1 s after the kill (a ready one: 1.6 s)
+# and every map was 4.6-4.8 s old 3 s later.
+SPARE_NICE = 10
 _PR_SET_NAME = 15
 _COMM_BYTES = 15  # the kernel keeps 15 bytes of a process name
 
@@ -48,7 +54,7 @@ def spare_argv(node_argv):
 
 
 _LINE_PREFIX = "[spare] "
-_WAITING = ": imported, waiting to be started"
+_WAITING = ", waiting to be started"
 _IMPORTING = ": importing"
 _STARTED = ": started"
 
@@ -59,9 +65,11 @@ def importing_line(script):
     return f"{_LINE_PREFIX}{os.path.basename(script)}{_IMPORTING}"
 
 
-def waiting_line(script):
-    """The line a spare prints once imported, before it waits."""
-    return f"{_LINE_PREFIX}{os.path.basename(script)}{_WAITING}"
+def waiting_line(script, import_s, import_cpu_s):
+    """The line a spare prints once imported, before it waits: how long its imports took, in wall
+    time and in CPU time (their wait for a CPU is the difference)."""
+    took = f"imported in {import_s:.1f} s ({import_cpu_s:.2f} s of CPU)"
+    return f"{_LINE_PREFIX}{os.path.basename(script)}: {took}{_WAITING}"
 
 
 def started_line(script):
@@ -163,9 +171,10 @@ def main(argv):
     _set_process_name(LOADING_COMM)
     script = argv[0]
     print(importing_line(script), flush=True)
+    started_s, started_cpu_s = time.monotonic(), time.process_time()
     preload_at_low_priority(script)
     _set_process_name(SPARE_COMM)
-    print(waiting_line(script), flush=True)
+    print(waiting_line(script, time.monotonic() - started_s, time.process_time() - started_cpu_s), flush=True)
     signal.sigwait({ACTIVATE_SIGNAL})
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {ACTIVATE_SIGNAL})
