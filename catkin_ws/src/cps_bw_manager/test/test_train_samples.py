@@ -550,3 +550,26 @@ def test_after_a_cut_trains_are_taken_at_once_until_two_agree():
     est.update(_report(3.5, train=19.1, sent=97.1))  # agrees: settled
     est.update(_report(4.0, train=16.5, sent=76.4))
     assert est.capacity_mbps == pytest.approx(19.1) and est.trains[TRAIN_HELD] == 1
+
+
+def test_the_first_interval_after_a_cut_with_its_socket_full_throughout_is_the_links_rate():
+    """Live (test_over_link, 2026-12-01): the 60 -> 20 Mbit/s step's straddling interval cut the
+    capacity to 25.4; the next two intervals had the robots' socket full throughout and delivered
+    19.1 (sent alike: the link socket's own counts) at an RTT of 2 ms (the queue stood in the
+    sender's kernel, which the heartbeats do not wait in), so the drain's check, which asked for
+    more delivered than sent and a queueing RTT, never corrected the cut; an interval with its
+    socket 60 % full then cut it to 16.9 (-15.5 %) for 1 s. The first whole interval after a cut,
+    its socket full throughout, is the link's rate; one mostly full after it is no step."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_interval(2.0, 25.4, 26.0, busy=True, link_limited=False, link_mostly_full=True))
+    assert est.mode == "drain" and est.capacity_mbps == pytest.approx(25.4)
+    est.update(_interval(2.5, 19.1, 19.1, busy=True, link_limited=True, link_mostly_full=True))
+    assert est.capacity_mbps == pytest.approx(19.1) and est.overuses == 1
+    est.update(_interval(3.0, 16.9, 16.3, busy=True, link_limited=False, link_mostly_full=True))
+    assert est.capacity_mbps == pytest.approx(19.1) and est.overuses == 1
+    # without the socket's counters (link_mostly_full None) a sender blocked half its interval is
+    # no evidence of a link full throughout: the cut stands until a train or an overuse says more
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_interval(2.0, 25.4, 40.0, busy=True, link_limited=True))
+    est.update(_interval(2.5, 19.1, 19.1, busy=True, link_limited=True))
+    assert est.capacity_mbps == pytest.approx(25.4)

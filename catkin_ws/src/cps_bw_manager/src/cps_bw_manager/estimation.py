@@ -655,7 +655,15 @@ class DeliveryRateEstimator:
                 or bool(report.link_limited)
                 or least_queue_delay_s > self.queue_delay_threshold_s
             )
-            if (delivered >= 1.02 * sent or still_full) and queueing and whole:
+            # ... or, where the report counts the link socket's own bytes, that socket full all
+            # interval: the queue stood in the sender's kernel, the link carried all it could, and
+            # what was acknowledged is its rate; sent and acknowledged bytes are then alike, and
+            # the heartbeats, which do not wait in that socket, see no queue. Live (test_over_link,
+            # 2026-12-01) a 60 -> 20 Mbit/s step's straddling interval cut to 25.4; the next two
+            # intervals had the socket full throughout and delivered 19.1 at an RTT of 2 ms, and
+            # the capacity stayed 25.4 until an interval with its socket 60 % full cut it to 16.9.
+            socket_full_all_along = bool(report.link_limited) and bool(report.link_mostly_full)
+            if ((delivered >= 1.02 * sent or still_full) and queueing and whole) or socket_full_all_along:
                 self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = self._clip(delivered)
                 self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)
         if self.mode == "drain":
