@@ -295,3 +295,29 @@ def test_a_robots_first_cloud_after_the_first_map_asks_for_a_publication_once(ja
     server.receive_cloud("jackal", later)
     server.insert_pending(timeout_s=0)
     assert not server.first_unpublished()  # jackal's clouds are in a published map already
+
+
+def test_a_robots_first_cloud_after_the_link_came_back_asks_for_a_publication_once(jackal_points):
+    """After a link outage or a bridge's restart (`link_restored`) each robot's first cloud inserted
+    asks for a publication at once, not a period later (chaos seed 2, fault 26: champ's clouds were
+    in the map again 3 s after the robots' bridge was killed, its map published 0.1 s later by the
+    timer: 3.3 s old against a 3 s bar); once per robot, and not without an outage."""
+    server, _published = _server()
+    server.receive_cloud("jackal", _cloud(jackal_points))
+    server.insert_pending(timeout_s=0)
+    assert server.first_unpublished()
+    server.publish_map(genpy.Time(101, 0))
+    for second in (102, 103):
+        cloud = _cloud(jackal_points)
+        cloud.header.stamp = genpy.Time(second, 0)
+        server.receive_cloud("jackal", cloud)
+        server.insert_pending(timeout_s=0)
+        assert not server.first_unpublished()  # no outage: the timer publishes it
+    server.link_restored()
+    assert not server.first_unpublished()  # nothing inserted since
+    for second, due in ((104, True), (105, False)):
+        cloud = _cloud(jackal_points)
+        cloud.header.stamp = genpy.Time(second, 0)
+        server.receive_cloud("jackal", cloud)
+        server.insert_pending(timeout_s=0)
+        assert server.first_unpublished() == due
