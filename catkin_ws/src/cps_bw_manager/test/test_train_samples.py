@@ -573,3 +573,40 @@ def test_the_first_interval_after_a_cut_with_its_socket_full_throughout_is_the_l
     est.update(_interval(2.0, 25.4, 40.0, busy=True, link_limited=True))
     est.update(_interval(2.5, 19.1, 19.1, busy=True, link_limited=True))
     assert est.capacity_mbps == pytest.approx(25.4)
+
+
+def test_a_mostly_full_interval_far_below_after_a_full_one_since_the_step_is_no_second_step():
+    """Live (test_over_link, 2026-12-01): after a 60 -> 20 Mbit/s step cut to 34.3 and then to 18.8,
+    an interval with the socket full throughout delivered 19.6; the next, its socket 60 % full,
+    delivered 12.2 (its sender short of a CPU: the next one sent 7.5 with its socket empty, not
+    app-limited) and was cut to as a second step: 12.6 for 2 s. Since the step the link was seen
+    carrying 19.6 while full: a mostly full interval far below it is the sender's, not the link's.
+    Without such a reading, or long after the step, it still is a step."""
+
+    def mostly_full(now_s, delivered, sent):
+        return _interval(now_s, delivered, sent, busy=True, link_limited=False, link_mostly_full=True)
+
+    def full_throughout(now_s, delivered, sent):
+        return _interval(now_s, delivered, sent, busy=True, link_limited=True, link_mostly_full=True)
+
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(mostly_full(2.0, 34.3, 35.9))
+    est.update(full_throughout(2.5, 18.8, 18.3))
+    assert est.capacity_mbps == pytest.approx(18.8) and est.overuses == 2
+    est.update(full_throughout(3.0, 19.6, 14.7))
+    assert est.capacity_mbps == pytest.approx(19.6)
+    est.update(mostly_full(3.5, 12.2, 11.0))
+    assert est.capacity_mbps == pytest.approx(19.6) and est.overuses == 2
+
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(mostly_full(2.0, 34.3, 35.9))
+    est.update(mostly_full(2.5, 18.8, 18.3))
+    est.update(mostly_full(3.0, 12.2, 11.0))  # nothing seen full throughout since the step: a step
+    assert est.capacity_mbps == pytest.approx(12.2) and est.overuses == 3
+
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(mostly_full(2.0, 34.3, 35.9))
+    est.update(full_throughout(2.5, 18.8, 18.3))
+    _run(est, [_report(2.5 + 0.5 * i, fleet_mbps=10.0) for i in range(1, 10)])
+    est.update(mostly_full(7.5, 12.2, 11.0))  # 5 s after the step (max_drain_s 4 s): a step
+    assert est.capacity_mbps == pytest.approx(12.2)

@@ -360,6 +360,8 @@ class DeliveryRateEstimator:
         self._step_by_train = False
         self._step_settled = True  # two trains after the last step agreed (or none came in time)
         self._step_reading = math.nan  # the last train reading taken since that step
+        # the most an interval with the link socket full throughout delivered since that step (Mbit/s)
+        self._full_since_step_mbps = 0.0
         self._gain = PROBE_GAIN
 
     @property
@@ -459,6 +461,7 @@ class DeliveryRateEstimator:
             self._before_step_mbps = self.capacity_mbps  # (a cut soon after one no train saw keeps its origin)
         self._step_s, self._step_up, self._step_by_train = now_s, up, by_train
         self._step_settled, self._step_reading = False, reading
+        self._full_since_step_mbps = 0.0
 
     def _note_step_reading(self, reading):
         """A train reading taken while a step is open: two in a row within STEP_SETTLED_FRACTION settle it."""
@@ -473,6 +476,18 @@ class DeliveryRateEstimator:
 
     def update(self, report: LinkReport):
         """Feed one interval; returns the allocation target `estimate_mbps` (Mbit/s)."""
+        estimate = self._update(report)
+        if not self.last_refused and not self.receiver_behind and self._socket_full_throughout(report):
+            # what the link carried while full throughout, since the last step (`_link_full`)
+            self._full_since_step_mbps = max(self._full_since_step_mbps, report.delivered_mbps)
+        return estimate
+
+    @staticmethod
+    def _socket_full_throughout(report):
+        """Where the report counts the link socket's own bytes: was that socket full all interval?"""
+        return bool(report.link_limited) and bool(report.link_mostly_full)
+
+    def _update(self, report):
         self.last_refused = ""
         reason = self._reject(report)
         if reason:
@@ -662,7 +677,7 @@ class DeliveryRateEstimator:
             # 2026-12-01) a 60 -> 20 Mbit/s step's straddling interval cut to 25.4; the next two
             # intervals had the socket full throughout and delivered 19.1 at an RTT of 2 ms, and
             # the capacity stayed 25.4 until an interval with its socket 60 % full cut it to 16.9.
-            socket_full_all_along = bool(report.link_limited) and bool(report.link_mostly_full)
+            socket_full_all_along = self._socket_full_throughout(report)
             if ((delivered >= 1.02 * sent or still_full) and queueing and whole) or socket_full_all_along:
                 self.capacity_mbps = self._bw_max_mbps = self._unrefuted_mbps = self._clip(delivered)
                 self.estimate_mbps = self._clip(DRAIN_FACTOR * self.capacity_mbps)
@@ -872,10 +887,19 @@ class DeliveryRateEstimator:
         loops (session 21): the first interval after a 60 -> 20 Mbit/s step whose report was not
         refused had its socket full in 80 % of its samples and delivered 19.4; waiting for a wholly
         full one took 3.4 s. Such an interval can read low by its empty part (a socket full 80 % of
-        the time read 23 % low, live): the first train after the cut takes that back."""
+        the time read 23 % low, live): the first train after the cut takes that back. Within
+        max_drain_s of a step, after an interval with the socket full throughout that delivered
+        STEP_FRACTION of the capacity or more, a mostly full one far below is no second step: its
+        empty part is the sender's, short of a CPU. Live (test_over_link, 2026-12-01) after a
+        60 -> 20 Mbit/s step's cuts to 19.1, two such intervals delivered 18.8 and 19.6, then one
+        with its socket 60 % full delivered 12.2 (the next one 7.5 with its socket empty, not
+        app-limited): cut to 12.6 for 2 s."""
         if bool(report.link_limited):
             return delivered < (1.0 - self.deficit_fraction) * self.capacity_mbps - self.deficit_min_mbps
-        return bool(report.link_mostly_full) and delivered < STEP_FRACTION * self.capacity_mbps
+        if not (bool(report.link_mostly_full) and delivered < STEP_FRACTION * self.capacity_mbps):
+            return False
+        measured_since_step = report.now_s - self._step_s <= self.max_drain_s
+        return not (measured_since_step and self._full_since_step_mbps >= STEP_FRACTION * self.capacity_mbps)
 
     def _overuse(self, reason):
         self.congested = True
