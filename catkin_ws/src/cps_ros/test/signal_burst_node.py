@@ -3,9 +3,12 @@ every message of a 1 kHz publisher) and writes `shutdown hook ran` to stderr fro
 Its output goes to a file: a pipe nobody reads would fill and block its logging.
 
 argv[1]: `threaded` (cps_ros.shutdown.init_node) or `rospy` (rospy's own signal handlers, the anchor);
-argv[2]: `spin` (wait for a signal) or `return` (main ends by itself, no signal).
+argv[2]: `spin` (wait for a signal) or `return` (main ends by itself, no signal); argv[3], optional:
+a path whose existence starts the busy work after READY (so that nodes started together all import
+and connect before any of them takes the CPU).
 """
 
+import os
 import sys
 import threading
 import time
@@ -38,8 +41,11 @@ def main():
                 return
             time.sleep(0.001)
 
-    threading.Thread(target=publish, daemon=True).start()
     print("READY", flush=True)
+    go_path = sys.argv[3] if len(sys.argv) > 3 else None
+    while go_path and not os.path.exists(go_path) and not rospy.is_shutdown():
+        time.sleep(0.01)
+    threading.Thread(target=publish, daemon=True).start()
     while not rospy.is_shutdown():
         rospy.loginfo("main thread working")
 

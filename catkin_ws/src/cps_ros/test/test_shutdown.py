@@ -24,25 +24,39 @@ ROUNDS = 12
 ROUNDS_AT_ONCE = 4
 SIGTERMS_PER_BURST = 3
 EXIT_WAIT_S = 10.0
+READY_TIMEOUT_S = 30.0
 
 
-def run_node(graph, ending, output_path, timeout_s=30.0):
-    """Start the node with its output appended to `output_path`; return once it says READY."""
+def start_node(graph, ending, output_path, go_path=None):
+    """Start the node with its output appended to `output_path` (`go_path`: its busy work waits for
+    that file); returns (the process, where its output starts)."""
     with open(output_path, "ab") as output:
         start = output.tell()
         node = subprocess.Popen(
             # A name of its own: nodes of one name on one master shut each other down.
-            [sys.executable, NODE, "threaded", ending, f"__name:=signal_burst_{output_path.stem}_{os.getpid()}"],
+            [sys.executable, NODE, "threaded", ending, f"__name:=signal_burst_{output_path.stem}_{os.getpid()}"]
+            + ([str(go_path)] if go_path else []),
             env=graph.env,
             stdout=output,
             stderr=subprocess.STDOUT,
         )
+    return node, start
+
+
+def wait_ready(node, output_path, start, timeout_s=READY_TIMEOUT_S):
+    """Return once the node said READY; AssertionError (the node killed) if it ended or never did."""
     deadline = time.monotonic() + timeout_s
     while b"READY" not in output_path.read_bytes()[start:]:
         if node.poll() is not None or time.monotonic() > deadline:
             end_within(node, 0)
             raise AssertionError(f"the node never said READY:\n{output_path.read_text()[-3000:]}")
         time.sleep(0.05)
+
+
+def run_node(graph, ending, output_path):
+    """Start the node and return it once it says READY."""
+    node, start = start_node(graph, ending, output_path)
+    wait_ready(node, output_path, start)
     return node
 
 
@@ -61,17 +75,34 @@ def end_within(node, timeout_s):
 
 
 def test_a_busy_node_exits_and_runs_its_hooks_after_every_burst_of_sigterms(ros, tmp_path):
-    hung, outputs = [], []
-    for first in range(0, ROUNDS, ROUNDS_AT_ONCE):
-        rounds = range(first, min(first + ROUNDS_AT_ONCE, ROUNDS))
-        outputs += [tmp_path / f"node{i}.log" for i in rounds]
-        nodes = {i: run_node(ros, "spin", outputs[i]) for i in rounds}
-        time.sleep(0.5)  # connections up and logging
-        for node in nodes.values():
-            for _ in range(SIGTERMS_PER_BURST):
-                os.kill(node.pid, signal.SIGTERM)
-        deadline = time.monotonic() + EXIT_WAIT_S
-        hung += [i for i, node in nodes.items() if end_within(node, max(0.0, deadline - time.monotonic())) is None]
+    """A round's nodes all import and connect before any starts its busy work (a file they wait
+    for): started one after another, each busy node took the CPU from the next one's imports, and
+    under a loaded suite one never said READY in 30 s (final97, 2026-12-01); the three before it,
+    never signalled, were left spinning for good. Every node the test started is killed at its end."""
+    hung, outputs, started = [], [], []
+    try:
+        for first in range(0, ROUNDS, ROUNDS_AT_ONCE):
+            rounds = range(first, min(first + ROUNDS_AT_ONCE, ROUNDS))
+            outputs += [tmp_path / f"node{i}.log" for i in rounds]
+            go = tmp_path / f"go{first}"
+            nodes = {i: start_node(ros, "spin", outputs[i], go) for i in rounds}
+            started += [node for node, _ in nodes.values()]
+            for i, (node, start) in nodes.items():
+                wait_ready(node, outputs[i], start)
+            go.touch()
+            time.sleep(0.5)  # connections up and logging
+            for node, _ in nodes.values():
+                for _ in range(SIGTERMS_PER_BURST):
+                    os.kill(node.pid, signal.SIGTERM)
+            deadline = time.monotonic() + EXIT_WAIT_S
+            hung += [
+                i for i, (node, _) in nodes.items() if end_within(node, max(0.0, deadline - time.monotonic())) is None
+            ]
+    finally:
+        for node in started:
+            if node.poll() is None:
+                node.kill()
+                node.wait()
     said = {i: path.read_text() for i, path in enumerate(outputs)}
     assert hung == [], f"hung in rounds {hung} of {ROUNDS}; output:\n" + "\n".join(said[i][-6000:] for i in hung)
     assert [i for i, text in said.items() if text.count("shutdown hook ran") != 1] == []
