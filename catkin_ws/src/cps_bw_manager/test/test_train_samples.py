@@ -632,3 +632,15 @@ def test_a_low_train_after_the_first_one_since_a_cut_is_averaged_with_it():
     assert est.capacity_mbps == pytest.approx(19.4)
     est.update(_report(5.5, train=5.1, sent=60.5, fleet_mbps=4.0))  # 20 -> 5: a step, at once
     assert est.capacity_mbps == pytest.approx(5.1)
+
+
+def test_a_train_just_below_its_intervals_delivered_rate_reads_as_that_interval():
+    """Live (test_over_link, c25g, 2026-12-01): the 60 -> 20 Mbit/s step's straddling interval cut to
+    26.1; the first train after it read 19.1 in an interval that delivered 19.5. Refuted as below its
+    interval, it changed nothing and 26.1 stood for 3.5 s. Within 10 % the two agree: the reading
+    is what the interval delivered, taken as the first train after the cut."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    est.update(_interval(2.0, 26.1, 24.0, busy=True, link_limited=False, link_mostly_full=True))
+    assert est.capacity_mbps == pytest.approx(26.1)
+    est.update(_report(2.5, train=19.1, sent=65.7, fleet_mbps=19.5))
+    assert est.capacity_mbps == pytest.approx(19.5) and est.trains[TRAIN_BELOW_DELIVERED] == 1
