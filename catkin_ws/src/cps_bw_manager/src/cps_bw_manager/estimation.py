@@ -784,8 +784,9 @@ class DeliveryRateEstimator:
         is below TRAIN_STEP_FRACTION of the capacity or above TRAIN_RISE_AT_ONCE x it (or below
         the capacity an overuse's cut set, the first train within max_drain_s of it), else once the
         next train confirms it; a lower bound (a receiver-starved reading is one) only raises it;
-        a bottleneck below what its own interval delivered changes nothing (that interval's
-        delivery sample counts as any). Bad samples are counted by kind in `ignored` and change
+        a bottleneck more than STEP_SETTLED_FRACTION below what its own interval delivered changes
+        nothing (that interval's delivery sample counts as any); one less below reads as that
+        interval. Bad samples are counted by kind in `ignored` and change
         nothing. Returns what the link carried by the train's reading (Mbit/s; NaN without a
         valid train)."""
         if isinstance(report.train_mbps, float) and math.isnan(report.train_mbps):
