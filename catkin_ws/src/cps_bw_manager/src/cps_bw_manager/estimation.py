@@ -440,9 +440,13 @@ class DeliveryRateEstimator:
         self.last_refused = reason
         return self.estimate_mbps
 
+    def _in_step_drain(self, now_s):
+        """Is `now_s` within max_drain_s of the last step taken on one reading?"""
+        return now_s - self._step_s <= self.max_drain_s
+
     def _step_unseen(self, now_s):
         """No train has come since the last step taken on one reading, made within max_drain_s of `now_s`."""
-        return self._train_s <= self._step_s and now_s - self._step_s <= self.max_drain_s
+        return self._train_s <= self._step_s and self._in_step_drain(now_s)
 
     def _reads_past_the_step(self, measured):
         """Is a train's `measured`, the first after a step, taken at once (see `_take_train`)?"""
@@ -452,7 +456,7 @@ class DeliveryRateEstimator:
 
     def _step_open(self, now_s):
         """Since the last step taken on one reading, no two trains have agreed, within max_drain_s."""
-        return not self._step_settled and now_s - self._step_s <= self.max_drain_s
+        return not self._step_settled and self._in_step_drain(now_s)
 
     def _mark_step(self, now_s, up, by_train, reading=math.nan):
         """A step taken on one reading (`reading`: a train's): the trains after it are taken at once
@@ -911,8 +915,8 @@ class DeliveryRateEstimator:
             return delivered < (1.0 - self.deficit_fraction) * self.capacity_mbps - self.deficit_min_mbps
         if not (bool(report.link_mostly_full) and delivered < STEP_FRACTION * self.capacity_mbps):
             return False
-        measured_since_step = report.now_s - self._step_s <= self.max_drain_s
-        return not (measured_since_step and self._full_since_step_mbps >= STEP_FRACTION * self.capacity_mbps)
+        full_since_step = self._full_since_step_mbps >= STEP_FRACTION * self.capacity_mbps
+        return not (self._in_step_drain(report.now_s) and full_since_step)
 
     def _overuse(self, reason):
         self.congested = True
