@@ -334,7 +334,7 @@ class FleetSimNode:
             self.scheduler.done(name, stamp, time.time())
             return
         sim = self.sim.robots[name]
-        stamp, _ = self._state_for_capture()
+        stamp, _ = self._state_for_capture(cloud_of=name)
         with self.lock:
             sensor_pose = sim.robot.sensor_in_map()
         frame = sim.sensor.capture(sensor_pose)
@@ -362,19 +362,36 @@ class FleetSimNode:
             # Woken at least every VIDEO_POLL_S: a faster rate set meanwhile takes effect.
             self.video_stop.wait(min(max(due - time.time(), 0.0), VIDEO_POLL_S))
 
-    def _state_for_capture(self):
+    def _state_for_capture(self, cloud_of=None):
         """(stamp, the robots' poses at that wall time): the physics brought up to the stamp first,
-        so that a cloud's stamp is the time of the pose it is rendered from (tf at the stamp, which
-        carries the state at each publication, then gives that pose). Before, the poses were the
-        physics' as of the loop's start (up to a step behind) and the stamp was taken after the
+        so that a cloud's stamp is the time of the pose it is rendered from. Before, the poses were
+        the physics' as of the loop's start (up to a step behind) and the stamp was taken after the
         loop had published the finished captures: under load a cloud was stamped up to hundreds of
         ms after its pose, and the twin placed it where the robot was that much later (a turning
-        robot's clouds rotated, issue 39's false change at tank_3)."""
+        robot's clouds rotated, issue 39's false change at tank_3).
+
+        For a cloud (`cloud_of`: its robot), that robot's pose at the stamp is also published on
+        /tf, as lidar odometry publishes a pose at each scan's stamp: the twin reads the pose at the
+        stamp exactly, not interpolated between odometry samples. After a stall of the loop (the
+        physics brought up by up to hundreds of ms at once) the samples on either side of a capture
+        could lie 0.3 s apart while the robot's turn accelerated between them: the interpolated
+        pose was a few degrees off, and the clouds' rays carved voxels inside closed tanks (CI on
+        1d27b42, the reference mission's map)."""
         stamp = time.time()
         self.capture_lag.add(max(0.0, stamp - (self.physics.wall_start_s + self.physics.sim_time_s)))
         self._advance_physics(stamp, exact=True)
         with self.lock:
-            return stamp, self.sim.poses()
+            poses = self.sim.poses()
+            base_in_odom = self.sim.robots[cloud_of].robot.base_in_odom() if cloud_of is not None else None
+        if base_in_odom is not None:
+            self.tf.sendTransform(
+                [
+                    messages.transform_stamped(
+                        base_in_odom, names.odom_frame(cloud_of), names.base_frame(cloud_of), stamp
+                    )
+                ]
+            )
+        return stamp, poses
 
     def _service_workers(self, now):
         """Publish finished captures and hand due sensors to idle workers; True if any work was done."""
@@ -401,7 +418,7 @@ class FleetSimNode:
                     self.scheduler.done(name, now, now)
                     worked = True
                     continue
-            stamp, poses = self._state_for_capture()
+            stamp, poses = self._state_for_capture(cloud_of=None if name in self.videos else name)
             self.pool.request(worker, name, poses, stamp, task=task)
             worked = True
         return worked
