@@ -7,6 +7,7 @@ and the analysis of what crossed (bandwidth per 1 s window, latency percentiles)
 
 import dataclasses
 import math
+import os
 import subprocess
 import sys
 import time
@@ -14,15 +15,40 @@ from typing import List
 
 import numpy as np
 
+from cps_bringup.plan import DIGITAL, PHYSICAL
 from cps_fleet import names
 from cps_link.netns_link import PHYS_IP, TWIN_IP, ClosingContext
 from cps_ros.processes import RosGraph, free_port
 
+# The link tests' sides as the host split names them, and the prefix of their cgroups' names.
+LINK_SIDES = {"phys": PHYSICAL, "twin": DIGITAL}
+SIDE_GROUP = "cpslinktest"
+
+
+def side_hosts(name, cpus=None):
+    """Each side of a link test as a host, as a mission's sides are (cps_bringup.host_split): a
+    cgroup per side with a mission side's cpu.shares, on `cpus` ({"phys"|"twin": CPU list}; every
+    CPU by default). A HostSplit: enter it, start each side's processes behind `prefix(side)`.
+
+    Without it the test's processes weighed 1024 each against a mission's or a replay's 8192-16384
+    a side on the same two CPUs (make test runs them side by side): CI on 1d27b42 had the limiters
+    of test_over_link stall while the missions' worker ran, latency p95 270 ms and max 773 ms with
+    the manager on (alone: p95 31-42 ms)."""
+    from cps_bringup.host_split import MISSION_SIDE_SHARES, HostSplit, online_cpus
+
+    every = online_cpus()
+    per_side = {
+        LINK_SIDES[side]: tuple(int(c) for c in str((cpus or {}).get(side) or "").split(",") if c) or every
+        for side in LINK_SIDES
+    }
+    return HostSplit.choose(per_side, name=f"{name}_{os.getpid()}", shares=dict.fromkeys(per_side, MISSION_SIDE_SHARES))
+
 
 class LinkRosGraph(ClosingContext):
-    """A roscore in the twin namespace and every process started on either side; `close` kills all."""
+    """A roscore in the twin namespace and every process started on either side, each side in its
+    own cgroup (`side_hosts`); `close` kills all and removes the groups."""
 
-    def __init__(self, link, port=None):
+    def __init__(self, link, port=None, cpus=None):
         self.link = link
         self.port = port or free_port()
         self.uri = f"http://{TWIN_IP}:{self.port}"
@@ -30,16 +56,22 @@ class LinkRosGraph(ClosingContext):
             "twin": RosGraph(master_uri=self.uri, host_ip=TWIN_IP),
             "phys": RosGraph(master_uri=self.uri, host_ip=PHYS_IP),
         }
+        self.hosts = side_hosts(SIDE_GROUP, cpus)
+        self._hosts_entered = False
 
     def __enter__(self):
         return self._set_up_or_close(self._start_master)
 
     def _start_master(self):
+        self.hosts.__enter__()
+        self._hosts_entered = True
         self.start("twin", ["roscore", "-p", str(self.port)], name="roscore")
         self.wait_for_master()
 
     def start(self, side, argv, name):
-        return self.sides[side].popen(self.link.argv(side, argv, master_port=self.port), name=name)
+        # into the side's cgroup before `ip netns exec`, which mounts a /sys without the cgroups
+        argv = self.hosts.prefix(LINK_SIDES[side]) + self.link.argv(side, argv, master_port=self.port)
+        return self.sides[side].popen(argv, name=name)
 
     def start_python(self, side, path, args=(), name=None):
         return self.start(side, [sys.executable, path, *args], name=name or path.rsplit("/", 1)[-1])
@@ -73,8 +105,13 @@ class LinkRosGraph(ClosingContext):
         return "\n".join(graph.output(name) for graph in self.sides.values())
 
     def close(self):
-        for side in ("phys", "twin"):
-            self.sides[side].close()
+        try:
+            for side in ("phys", "twin"):
+                self.sides[side].close()
+        finally:
+            if self._hosts_entered:
+                self._hosts_entered = False
+                self.hosts.__exit__(None, None, None)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from cps_fleet import names
-from cps_harness.link_run import LinkRosGraph
+from cps_harness.link_run import LINK_SIDES, SIDE_GROUP, LinkRosGraph, side_hosts
 from cps_link.netns_link import PHYS_IP, TWIN_IP, namespace
 from cps_link.zenoh_session import bridge_argv, bridge_node_name
 from cps_ros.processes import RosGraph, find_node, process_cpu_s
@@ -23,16 +23,18 @@ SATURATING = {"scout": (34000, 10.0), "jackal": (142000, 30.0), "champ": (60000,
 
 
 class Graphs:
-    """Processes on either side: one master across the link (tcpros) or one per side (zenoh).
-    `cpus`: {side: taskset CPU list} pins each side's processes (bridges included), as bringup's
-    host split does; None: not pinned."""
+    """Processes on either side: one master across the link (tcpros) or one per side (zenoh), each
+    side's in its own cgroup with a host's weight (cps_harness.link_run.side_hosts). `cpus`:
+    {side: CPU list} pins each side's processes (bridges included), as bringup's host split does;
+    None: every CPU."""
 
     def __init__(self, link, transport, cert_dir, cpus=None):
-        self.link, self.transport, self.cpus = link, transport, cpus or {}
+        self.link, self.transport = link, transport
         self.stack = contextlib.ExitStack()
         if transport == "tcpros":
-            self.tcpros = self.stack.enter_context(LinkRosGraph(link))
+            self.tcpros = self.stack.enter_context(LinkRosGraph(link, cpus=cpus))
         else:
+            self.hosts = self.stack.enter_context(side_hosts(SIDE_GROUP, cpus))
             self.sides = {}
             from cps_bringup.link import InNamespace
 
@@ -53,10 +55,9 @@ class Graphs:
                     self.bridges.append(self.start(side, argv, bridge_node_name(role, lane)))
 
     def start(self, side, argv, name):
-        argv = (["taskset", "-c", self.cpus[side]] if self.cpus.get(side) else []) + list(argv)
         if self.transport == "tcpros":
             return self.tcpros.start(side, argv, name)
-        return self.sides[side].popen(argv, name=name)
+        return self.sides[side].popen(self.hosts.prefix(LINK_SIDES[side]) + list(argv), name=name)
 
     def output(self, name):
         if self.transport == "tcpros":
