@@ -202,5 +202,5 @@ def test_every_cloud_has_its_robots_pose_on_tf_at_its_exact_stamp(record):
         stamps = [msg.header.stamp.to_nsec() for _, msg in list(recorder.messages)]
         missing = [s for s in stamps if (names.base_frame(robot), s) not in on_tf]
         assert stamps and not missing, (
-            f"{robot}: {len(missing)} of {len(stamps)} clouds without a pose on /tf at their stamp"
+            f"{robot}: {len(missing)} of {len(stamps)} clouds without a pose on {names.TF} at their stamp"
         )
