@@ -31,9 +31,9 @@ def side_hosts(name, cpus=None):
     CPU by default). A HostSplit: enter it, start each side's processes behind `prefix(side)`.
 
     Without it the test's processes weighed 1024 each against a mission's or a replay's 8192-16384
-    a side on the same two CPUs (make test runs them side by side): CI on 1d27b42 had the limiters
-    of test_over_link stall while the missions' worker ran, latency p95 270 ms and max 773 ms with
-    the manager on (alone: p95 31-42 ms)."""
+    a side on the same two CPUs (make test runs them side by side). In CI on 1d27b42
+    test_over_link's manager-on latency reached p95 270 ms, max 773 ms (alone: p95 31-42 ms); beside
+    two busy loops at a replay's 16384 shares its p95 was 49 ms, 34-37 ms with these groups."""
     from cps_bringup.host_split import MISSION_SIDE_SHARES, HostSplit, online_cpus
 
     every = online_cpus()
