@@ -646,6 +646,14 @@ def test_a_train_just_below_its_intervals_delivered_rate_reads_as_that_interval(
     assert est.capacity_mbps == pytest.approx(19.5) and est.trains[TRAIN_BELOW_DELIVERED] == 1
 
 
+def _after_a_high_first_train():
+    """An estimator whose first train after a step read 24.6 in an interval full throughout at 19.1."""
+    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
+    full = dict(busy=True, link_limited=True, link_mostly_full=True)
+    est.update(_interval(2.0, 19.1, 19.1, **full, train_mbps=24.6, train_sent_mbps=229.8, train_on_link=True))
+    return est
+
+
 def test_full_intervals_carrying_only_a_trains_tail_count_towards_a_small_shortfall():
     """Live (test_over_link, c26e, 2026-12-01): the first train after a 60 -> 20 Mbit/s step read
     24.6 (taken at once). The intervals after it had the link's socket full throughout and
@@ -654,20 +662,7 @@ def test_full_intervals_carrying_only_a_trains_tail_count_towards_a_small_shortf
     two that a small shortfall needs, and 24.6 (+23 %) stood 2 s. An interval full throughout that
     holds only a train's tail counts; one that holds a train's reading still does not (the train's
     own cost, above)."""
-    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
-    est.update(
-        _interval(
-            2.0,
-            19.1,
-            19.1,
-            busy=True,
-            link_limited=True,
-            link_mostly_full=True,
-            train_mbps=24.6,
-            train_sent_mbps=229.8,
-            train_on_link=True,
-        )
-    )
+    est = _after_a_high_first_train()
     assert est.capacity_mbps == pytest.approx(24.6)
     est.update(_interval(2.5, 19.3, 19.2, busy=False, link_limited=True, link_mostly_full=True))
     assert est.overuses == 0 and est.capacity_mbps == pytest.approx(24.6)  # one is no cut
@@ -675,20 +670,7 @@ def test_full_intervals_carrying_only_a_trains_tail_count_towards_a_small_shortf
     assert est.overuses == 1 and est.last_overuse == "link_full" and est.capacity_mbps == pytest.approx(19.05)
 
     # the tail of a train in an interval whose socket was not full throughout says nothing
-    est = _run(_estimator(), [_report(0.5 * i) for i in range(1, 4)])
-    est.update(
-        _interval(
-            2.0,
-            19.1,
-            19.1,
-            busy=True,
-            link_limited=True,
-            link_mostly_full=True,
-            train_mbps=24.6,
-            train_sent_mbps=229.8,
-            train_on_link=True,
-        )
-    )
+    est = _after_a_high_first_train()
     est.update(_interval(2.5, 19.3, 19.2, busy=False, link_limited=True, link_mostly_full=True))
     est.update(_interval(3.0, 19.05, 18.1, busy=True, link_limited=False, link_mostly_full=True, train_on_link=True))
     assert est.overuses == 0 and est.capacity_mbps == pytest.approx(24.6)
