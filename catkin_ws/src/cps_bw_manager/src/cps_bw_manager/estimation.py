@@ -527,46 +527,37 @@ class DeliveryRateEstimator:
             self._merged.clear()
             self._samples.clear()
             self._deficit_reports = 0
+            full = self._link_full(report, delivered)
             far_below = delivered < STEP_FRACTION * self.capacity_mbps
-            if (
-                self._link_full(report, delivered)
-                and far_below
-                and not train_read_mbps >= STEP_FRACTION * self.capacity_mbps
-            ):
-                # ... unless the link was full all along and far below the capacity (a step): then
-                # what it delivered, the train's frames included, is its rate. A train waits behind
-                # every data frame, so on a full link it trickles through interval after interval:
-                # live after a 60 -> 20 Mbit/s step, 8 intervals in a row held a train's bytes
-                # (socket full in every sample, the sender's queue never empty) and the capacity
-                # stayed 58 for 4 s (test_over_link, 2026-11-29). A small shortfall is the train's
-                # own cost: sent at 4 x into the link's queue it can cost a packet, and TCP then
-                # sends below the link for an interval with its socket full (live beside busy loops,
-                # 2026-11-30: 16.0 delivered on a 20 Mbit/s link that the same interval's train read
-                # at 19.2, cut to 16.2; twice in four runs). A train read in this interval near the
-                # capacity says the link is no step below it: live (final93, 2026-12-01) 1.8 s after
-                # a 60 -> 20 step's cut to 19.1 an interval delivered 13.0, its socket full 60 % of
-                # the time and its own train reading 19.1; cut to 13.3 for 1 s (the sender short of
-                # a CPU: the next interval sent 9.5, neither app-limited nor its socket full).
+            step = full and far_below and not train_read_mbps >= STEP_FRACTION * self.capacity_mbps
+            # ... unless the link was full all along and far below the capacity (a step): then
+            # what it delivered, the train's frames included, is its rate. A train waits behind
+            # every data frame, so on a full link it trickles through interval after interval:
+            # live after a 60 -> 20 Mbit/s step, 8 intervals in a row held a train's bytes
+            # (socket full in every sample, the sender's queue never empty) and the capacity
+            # stayed 58 for 4 s (test_over_link, 2026-11-29). A small shortfall is the train's
+            # own cost: sent at 4 x into the link's queue it can cost a packet, and TCP then
+            # sends below the link for an interval with its socket full (live beside busy loops,
+            # 2026-11-30: 16.0 delivered on a 20 Mbit/s link that the same interval's train read
+            # at 19.2, cut to 16.2; twice in four runs). A train read in this interval near the
+            # capacity says the link is no step below it: live (final93, 2026-12-01) 1.8 s after
+            # a 60 -> 20 step's cut to 19.1 an interval delivered 13.0, its socket full 60 % of
+            # the time and its own train reading 19.1; cut to 13.3 for 1 s (the sender short of
+            # a CPU: the next interval sent 9.5, neither app-limited nor its socket full).
+            # ... and an interval full throughout that carried only the tail of a train (its
+            # bytes trickling through the full link, its reading in another interval) counts
+            # towards the run a small shortfall needs, as an interval without a train does: the
+            # train's cost is a train's own interval's. Live (c26e, 2026-12-01) the first train
+            # after a 60 -> 20 Mbit/s step read 24.6; the intervals after it delivered 19.1
+            # with the socket full throughout, all but one holding a train's tail, and 24.6
+            # (+23 %) stood 2 s.
+            tail_short = full and math.isnan(report.train_mbps) and self._socket_full_throughout(report)
+            if tail_short:
+                self._small_full_reports += 1
+            if step or (tail_short and self._small_full_reports >= self.deficit_reports):
                 self._overuse("link_full")
                 self._on_overuse(now, delivered, sent, self.step_drain_factor)
                 return self.estimate_mbps
-            if (
-                math.isnan(report.train_mbps)
-                and self._socket_full_throughout(report)
-                and self._link_full(report, delivered)
-            ):
-                # ... and an interval full throughout that carried only the tail of a train (its
-                # bytes trickling through the full link, its reading in another interval) counts
-                # towards the run a small shortfall needs, as an interval without a train does: the
-                # train's cost is a train's own interval's. Live (c26e, 2026-12-01) the first train
-                # after a 60 -> 20 Mbit/s step read 24.6; the intervals after it delivered 19.1
-                # with the socket full throughout, all but one holding a train's tail, and 24.6
-                # (+23 %) stood 2 s.
-                self._small_full_reports += 1
-                if self._small_full_reports >= self.deficit_reports:
-                    self._overuse("link_full")
-                    self._on_overuse(now, delivered, sent, self.step_drain_factor)
-                    return self.estimate_mbps
             self.congested = False
             self.capacity_mbps = self._clip(self._bw_max_mbps)
             return self.estimate_mbps
